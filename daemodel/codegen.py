@@ -1,0 +1,306 @@
+"""Code generation: sympy -> batched torch functions, and sympy -> casadi expressions.
+
+Both emitters accept exactly the expression nodes of :func:`check_supported` (arithmetic,
+the functions of :mod:`daemodel.functions`, ``Piecewise`` with an otherwise branch,
+comparisons and logic) and raise :class:`UnsupportedFunctionError` naming the function,
+the equation and the supported set for anything else.
+
+The torch emitter writes readable Python source (one local per variable, common
+subexpressions as ``_c0, _c1, ...``), registers it with :mod:`linecache` so tracebacks show
+the generated lines, and broadcasts every output to the common batch shape of
+``t (...)``, ``y (..., n)``, ``z (..., m)`` and ``p (..., k)``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import keyword
+import linecache
+import math
+from dataclasses import dataclass, field
+
+import sympy as sp
+from sympy.printing.str import StrPrinter
+
+from daemodel.errors import ShapeError, UnsupportedFunctionError
+from daemodel.functions import FUNCTIONS, REDUCTIONS
+
+_LOGIC = (sp.And, sp.Or, sp.Not, sp.Piecewise, sp.logic.boolalg.BooleanAtom, sp.core.relational.Relational)
+_ARITHMETIC = (sp.Add, sp.Mul, sp.Pow, sp.Symbol, sp.Rational, sp.Float, sp.NumberSymbol)
+_COUNTER = itertools.count()
+
+
+def _supported_names() -> str:
+    names = sorted(n for n, _, _ in (*FUNCTIONS.values(), *REDUCTIONS.values()))
+    return ", ".join(names + ["sqrt", "Piecewise"])
+
+
+def check_supported(expr: sp.Expr, where: str) -> None:
+    """Raise :class:`UnsupportedFunctionError` for any node the emitters cannot translate."""
+    for node in sp.preorder_traversal(expr):
+        if isinstance(node, sp.Tuple) or isinstance(node, sp.functions.elementary.piecewise.ExprCondPair):
+            continue
+        if type(node) in FUNCTIONS or type(node) in REDUCTIONS or isinstance(node, _ARITHMETIC + _LOGIC):
+            if isinstance(node, sp.Piecewise) and node.args[-1].cond != sp.true:
+                raise UnsupportedFunctionError(
+                    f"{where}: Piecewise {node} has no otherwise branch; add (value, True) last "
+                    "so the expression is defined everywhere"
+                )
+            continue
+        name = getattr(node.func, "__name__", type(node).__name__)
+        raise UnsupportedFunctionError(
+            f"{where}: function '{name}' in {node} is not supported by the torch and casadi "
+            f"emitters; rewrite it with the supported functions ({_supported_names()})"
+        )
+
+
+class TorchPrinter(StrPrinter):
+    """Prints a checked sympy expression as torch source over named locals."""
+
+    def __init__(self, names: dict):
+        super().__init__({"full_prec": True})
+        self._names = names
+
+    def _print_Symbol(self, expr):
+        return self._names[expr]
+
+    def _print_Float(self, expr):
+        return repr(float(expr))
+
+    def _print_Pi(self, expr):
+        return "math.pi"
+
+    def _print_Exp1(self, expr):
+        return "math.e"
+
+    def _print_NumberSymbol(self, expr):
+        return repr(float(expr))
+
+    def _print_Pow(self, expr, rational=False):
+        base, exponent = expr.as_base_exp()
+        if exponent == sp.S.Half:
+            return f"torch.sqrt({self._print(base)})"
+        if exponent == -sp.S.Half:
+            return f"(1/torch.sqrt({self._print(base)}))"
+        return super()._print_Pow(expr, rational)
+
+    def _print_function(self, expr):
+        if not expr.free_symbols:  # e.g. sin(1): torch functions need tensors
+            return repr(float(expr))
+        args = ", ".join(self._print(a) for a in expr.args)
+        return f"torch.{FUNCTIONS[type(expr)][1]}({args})"
+
+    def _print_reduction(self, expr):
+        pick = ">=" if isinstance(expr, sp.Max) else "<="
+        out = self._print(expr.args[0])
+        for arg in expr.args[1:]:
+            other = self._print(arg)
+            out = f"torch.where(({out}) {pick} ({other}), {out}, {other})"
+        return out
+
+    def _print_Piecewise(self, expr):
+        out = self._print(expr.args[-1].expr)
+        for value, cond in reversed(expr.args[:-1]):
+            out = f"torch.where({self._print(cond)}, {self._print(value)}, {out})"
+        return out
+
+    def _print_Relational(self, expr):
+        return f"(({self._print(expr.lhs)}) {expr.rel_op} ({self._print(expr.rhs)}))"
+
+    _print_Equality = _print_Unequality = _print_Relational
+
+    def _print_And(self, expr):
+        return "(" + " & ".join(f"({self._print(a)})" for a in expr.args) + ")"
+
+    def _print_Or(self, expr):
+        return "(" + " | ".join(f"({self._print(a)})" for a in expr.args) + ")"
+
+    def _print_Not(self, expr):
+        return f"(~({self._print(expr.args[0])}))"
+
+
+for _cls in FUNCTIONS:
+    setattr(TorchPrinter, f"_print_{_cls.__name__}", TorchPrinter._print_function)
+for _cls in REDUCTIONS:
+    setattr(TorchPrinter, f"_print_{_cls.__name__}", TorchPrinter._print_reduction)
+
+_RESERVED = {"t", "y", "z", "p", "torch", "math", "_stack", "_prepare"}
+
+
+def local_names(groups: dict) -> dict:
+    """Map each symbol to a valid, collision-free Python local named after it."""
+    names = {}
+    for symbols in groups.values():
+        for s in symbols:
+            name = s.name
+            while name in _RESERVED or keyword.iskeyword(name) or name in names.values():
+                name += "_"
+            names[s] = name
+    return names
+
+
+def torch_source(fname: str, exprs, labels, t, groups: dict, doc: str) -> str:
+    """Python source of ``fname(t, y, z, p=None) -> Tensor (..., len(exprs))``.
+
+    Parameters
+    ----------
+    groups : dict {"y": states, "z": algebraics, "p": parameters}
+        Symbols unpacked from the last axis of each argument, in order.
+    labels : list of str
+        One comment per output (the equation it comes from).
+    """
+    names = local_names(groups)
+    names[t] = "t"
+    printer = TorchPrinter(names)
+    replacements, reduced = sp.cse(list(exprs), symbols=sp.numbered_symbols("_c"), order="none")
+    used = set().union(*(e.free_symbols for e in reduced), *(e.free_symbols for _, e in replacements))
+    lines = [f"def {fname}(t, y, z, p=None):", f'    """{doc}"""', "    t, p = _prepare(t, y, z, p)"]
+    for arg, symbols in groups.items():
+        lines += [f"    {names[s]} = {arg}[..., {i}]" for i, s in enumerate(symbols) if s in used]
+    for sym, sub in replacements:
+        names[sym] = sym.name
+        lines.append(f"    {sym.name} = {printer.doprint(sub)}")
+    lines.append("    return _stack((")
+    lines += [f"        {printer.doprint(e)},  # {label}" for e, label in zip(reduced, labels)]
+    lines.append("    ), t, y, z, p)")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass(frozen=True)
+class TorchFunctions:
+    """Batched torch callables of a compiled DAE.
+
+    Each callable takes ``t (...)``, ``y (..., n)``, ``z (..., m)`` and optionally
+    ``p (..., k)`` (default: the model's parameter values), broadcastable, and returns a
+    tensor of the broadcast batch shape plus one trailing axis.
+
+    Attributes
+    ----------
+    f : callable -> Tensor (..., n)
+        ODE right-hand sides, in ``state_names`` order.
+    g : callable -> Tensor (..., m)
+        Constraints, in ``constraint_names`` order.
+    aliases : callable -> Tensor (..., a)
+        Eliminated alias variables, in ``alias_names`` order.
+    parameters : Tensor (k,)
+        The default parameter values.
+    source : dict name -> str
+        The generated source of each function.
+    """
+
+    f: object
+    g: object
+    aliases: object
+    parameters: object
+    dtype: object
+    device: object
+    source: dict = field(repr=False)
+
+
+def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model: str) -> TorchFunctions:
+    """Compile generated sources into callables.
+
+    Parameters
+    ----------
+    specs : dict name -> source
+    sizes : (n, m, k)
+    parameters : Tensor (k,)
+    """
+    import torch
+
+    n, m, k = sizes
+
+    def _prepare(t, y, z, p):
+        if p is None:
+            p = parameters
+        for arg, value, size in (("y", y, n), ("z", z, m), ("p", p, k)):
+            if value.ndim == 0 or value.shape[-1] != size:
+                raise ShapeError(
+                    f"model '{model}': {arg} must have shape (..., {size}); got {tuple(value.shape)}"
+                )
+        return torch.as_tensor(t, dtype=y.dtype, device=y.device), p
+
+    def _stack(values, t, y, z, p):
+        shape = torch.broadcast_shapes(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
+        if not values:
+            return y.new_zeros(shape + (0,))
+        return torch.stack(
+            [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
+            dim=-1,
+        )
+
+    out = {}
+    for name, source in specs.items():
+        filename = f"<daemodel {model}.{name} #{next(_COUNTER)}>"
+        linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
+        namespace = {"torch": torch, "math": math, "_stack": _stack, "_prepare": _prepare}
+        exec(compile(source, filename, "exec"), namespace)
+        out[name] = namespace[name]
+    return TorchFunctions(
+        f=out["f"],
+        g=out["g"],
+        aliases=out["aliases"],
+        parameters=parameters,
+        dtype=parameters.dtype,
+        device=parameters.device,
+        source=dict(specs),
+    )
+
+
+class CasadiConverter:
+    """Converts checked sympy expressions into casadi SX over a symbol map."""
+
+    def __init__(self, symbols: dict):
+        self._memo = dict(symbols)
+
+    def __call__(self, expr):
+        if expr in self._memo:
+            return self._memo[expr]
+        out = self._convert(expr)
+        self._memo[expr] = out
+        return out
+
+    def _convert(self, expr):
+        import casadi
+
+        if expr.is_Number or isinstance(expr, sp.NumberSymbol):
+            return float(expr)
+        if expr == sp.true:
+            return 1.0
+        if expr == sp.false:
+            return 0.0
+        args = [self(a) for a in expr.args] if not isinstance(expr, sp.Piecewise) else None
+        if isinstance(expr, sp.Add):
+            return sum(args[1:], args[0])
+        if isinstance(expr, sp.Mul):
+            return math.prod(args[1:], start=args[0])
+        if isinstance(expr, sp.Pow):
+            if expr.exp == sp.S.Half:
+                return casadi.sqrt(args[0])
+            return args[0] ** args[1]
+        if type(expr) in FUNCTIONS:
+            return FUNCTIONS[type(expr)][2](*args)
+        if type(expr) in REDUCTIONS:
+            return _fold(REDUCTIONS[type(expr)][2], args)
+        if isinstance(expr, sp.Piecewise):
+            out = self(expr.args[-1].expr)
+            for value, cond in reversed(expr.args[:-1]):
+                out = casadi.if_else(self(cond), self(value), out)
+            return out
+        if isinstance(expr, sp.core.relational.Relational):
+            ops = {"<": "__lt__", "<=": "__le__", ">": "__gt__", ">=": "__ge__", "==": "__eq__", "!=": "__ne__"}
+            return getattr(casadi.SX(args[0]), ops[expr.rel_op])(args[1])
+        if isinstance(expr, sp.And):
+            return _fold(casadi.logic_and, args)
+        if isinstance(expr, sp.Or):
+            return _fold(casadi.logic_or, args)
+        if isinstance(expr, sp.Not):
+            return casadi.logic_not(args[0])
+        raise UnsupportedFunctionError(f"casadi emitter: no translation for {expr}")  # check_supported ran first
+
+
+def _fold(op, args):
+    out = args[0]
+    for a in args[1:]:
+        out = op(out, a)
+    return out

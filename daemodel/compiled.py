@@ -1,0 +1,288 @@
+"""The compiled DAE: what every backend consumes.
+
+A :class:`CompiledDAE` is frozen: the checked semi-explicit system (right-hand sides,
+constraints with their derivative chains and index), consistent initial values, aliases,
+invariants for drift, and what pruning dropped.  Backends ask it for batched torch
+functions or casadi's DAE dict.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import sympy as sp
+
+from daemodel.codegen import (
+    CasadiConverter,
+    build_torch_functions,
+    check_supported,
+    torch_source,
+)
+from daemodel.errors import ReductionError
+from daemodel.structure import ITERATION_MATRIX, Constraint
+
+
+@dataclass(frozen=True, eq=False)
+class CompiledDAE:
+    """A checked, initialised, pruned semi-explicit DAE ``y' = f(t, y, z, p), 0 = g(t, y, z, p)``.
+
+    Attributes
+    ----------
+    name : str
+    t : sympy.Symbol
+    t0 : float
+        Initial time.
+    states, algebraics, parameters : tuple of sympy.Symbol
+    parameter_values : ndarray, shape (k,)
+    rhs : tuple of sympy.Expr
+        ``f``, one per state.
+    ode_numbers : tuple of int
+        Declaration number of each ODE.
+    constraints : tuple of Constraint
+        Each with its derivative chain; ``g`` is ``chain[0]``.
+    determined_by : tuple of int
+        For each algebraic variable, the constraint matched to it.
+    aliases : tuple of (name, expr, label)
+        Eliminated alias variables as expressions of the kept ones.
+    invariants : tuple of (name, expr)
+        The original constraints (and, for index 3, their velocity level) whose drift a
+        solution can report; unchanged by :meth:`reduced`.
+    y0, z0 : ndarray
+        Consistent initial values (float64).
+    notes : tuple of str
+        What initialisation changed.
+    dropped : dict str -> tuple of str
+        What output-driven pruning removed, by kind.
+    """
+
+    name: str
+    t: sp.Symbol
+    t0: float
+    states: tuple
+    algebraics: tuple
+    parameters: tuple
+    parameter_values: np.ndarray
+    rhs: tuple
+    ode_numbers: tuple
+    constraints: tuple
+    determined_by: tuple
+    aliases: tuple
+    invariants: tuple
+    y0: np.ndarray
+    z0: np.ndarray
+    notes: tuple = ()
+    dropped: dict = field(default_factory=dict)
+    reduced_from: int | None = None
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        for array in (self.parameter_values, self.y0, self.z0):
+            array.flags.writeable = False
+
+    # ---- names and structure ------------------------------------------------------------
+    @property
+    def index(self) -> int:
+        """Highest index over the constraints (0 for a pure ODE)."""
+        return max((c.index for c in self.constraints), default=0)
+
+    @property
+    def constraint_index(self) -> dict[str, int]:
+        """Index of each constraint, by name."""
+        return {c.name: c.index for c in self.constraints}
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.states)
+
+    @property
+    def algebraic_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.algebraics)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.parameters)
+
+    @property
+    def constraint_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.constraints)
+
+    @property
+    def alias_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _, _ in self.aliases)
+
+    @property
+    def invariant_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.invariants)
+
+    @property
+    def g(self) -> tuple:
+        """The constraints as posed, ``0 = g``."""
+        return tuple(c.expr for c in self.constraints)
+
+    # ---- index reduction ----------------------------------------------------------------
+    def reduced(self, index: int = 1) -> CompiledDAE:
+        """Differentiate every constraint of higher index until it has ``index``.
+
+        Each constraint of index k > ``index`` is replaced by its ``(k - index)``-th time
+        derivative along the ODE (named with primes: ``rod'``); the original constraints
+        stay available as :attr:`invariants` for drift.  Initial values are unchanged (they
+        satisfy every level of each chain).
+
+        Parameters
+        ----------
+        index : int
+            Target index, 1 <= index <= current index.
+        """
+        if isinstance(index, bool) or not isinstance(index, int) or not 1 <= index <= max(self.index, 1):
+            raise ReductionError(
+                f"reduced(index={index!r}): the target must be an integer from 1 to the current "
+                f"index {self.index} of '{self.name}'"
+            )
+        constraints = tuple(
+            Constraint(c.level_name(c.index - index), c.number, c.chain[c.index - index :])
+            if c.index > index
+            else c
+            for c in self.constraints
+        )
+        note = f"reduced from index {self.index} to {index}: " + (
+            ", ".join(f"{a.name} -> {b.name}" for a, b in zip(self.constraints, constraints) if a is not b)
+            or "nothing to differentiate"
+        )
+        return replace(
+            self,
+            constraints=constraints,
+            notes=self.notes + (note,),
+            reduced_from=self.reduced_from or self.index,
+            _cache={},
+        )
+
+    # ---- code generation ----------------------------------------------------------------
+    def _groups(self) -> dict:
+        return {"y": self.states, "z": self.algebraics, "p": self.parameters}
+
+    def _outputs(self) -> dict:
+        """name -> (expressions, labels, docstring) of every generated function."""
+        return {
+            "f": (
+                self.rhs,
+                [f"{s.name}' (#{n})" for s, n in zip(self.states, self.ode_numbers)],
+                "ODE right-hand sides f, shape (..., n).",
+            ),
+            "g": (
+                self.g,
+                [f"{c.name} (#{c.number}, index {c.index})" for c in self.constraints],
+                "Constraints g, shape (..., m).",
+            ),
+            "aliases": (
+                tuple(e for _, e, _ in self.aliases),
+                list(self.alias_names),
+                "Eliminated alias variables, shape (..., a).",
+            ),
+            "invariants": (
+                tuple(e for _, e in self.invariants),
+                list(self.invariant_names),
+                "Original constraints (drift), shape (..., i).",
+            ),
+        }
+
+    def torch_functions(self, dtype=None, device=None):
+        """Batched torch callables ``f``, ``g``, ``aliases``, ``invariants`` (cached).
+
+        Parameters
+        ----------
+        dtype : torch.dtype, default float64
+        device : str or torch.device, default "cpu"
+
+        Returns
+        -------
+        TorchFunctions
+            ``tf.f(t, y, z, p=None)`` with ``t (...)``, ``y (..., n)``, ``z (..., m)``,
+            ``p (..., k)`` broadcastable, returns ``(..., n)``; likewise ``g`` ``(..., m)``.
+        """
+        import torch
+
+        dtype = torch.float64 if dtype is None else dtype
+        device = torch.device("cpu" if device is None else device)
+        key = ("torch", dtype, str(device))
+        if key not in self._cache:
+            specs = {}
+            for fname, (exprs, labels, doc) in self._outputs().items():
+                for expr, label in zip(exprs, labels):
+                    check_supported(expr, f"model '{self.name}', {fname}: {label}")
+                doc = f"{doc} Generated by daemodel from model '{self.name}'."
+                specs[fname] = torch_source(fname, exprs, labels, self.t, self._groups(), doc)
+            parameters = torch.tensor(self.parameter_values.copy(), dtype=dtype, device=device)
+            sizes = (len(self.states), len(self.algebraics), len(self.parameters))
+            self._cache[key] = build_torch_functions(specs, sizes, parameters, self.name)
+        return self._cache[key]
+
+    def casadi_dae(self) -> dict:
+        """casadi's DAE dict ``{"x", "z", "p", "t", "ode", "alg"}`` of this system (SX).
+
+        For casadi's integrators the system must have index 1: use
+        ``c.reduced(index=1).casadi_dae()``.
+        """
+        import casadi
+
+        def column(symbols):
+            return casadi.vertcat(*[casadi.SX.sym(s.name) for s in symbols]) if symbols else casadi.SX(0, 1)
+
+        x, z, p, t = column(self.states), column(self.algebraics), column(self.parameters), casadi.SX.sym("t")
+        table = {self.t: t}
+        for symbols, vector in ((self.states, x), (self.algebraics, z), (self.parameters, p)):
+            table.update({s: vector[i] for i, s in enumerate(symbols)})
+        convert = CasadiConverter(table)
+        columns = {}
+        for fname, (exprs, labels, _) in self._outputs().items():
+            if fname not in ("f", "g"):
+                continue
+            for expr, label in zip(exprs, labels):
+                check_supported(expr, f"model '{self.name}', {fname}: {label}")
+            columns[fname] = casadi.vertcat(*[casadi.SX(convert(e)) for e in exprs]) if exprs else casadi.SX(0, 1)
+        return {"x": x, "z": z, "p": p, "t": t, "ode": columns["f"], "alg": columns["g"]}
+
+    # ---- report -------------------------------------------------------------------------
+    def report(self) -> str:
+        """A human-readable account: variables, equations, index per constraint, init, pruning."""
+        kind = {0: "ODE", 1: "index-1 DAE", 2: "index-2 DAE", 3: "index-3 DAE"}[self.index]
+        lines = [f"Model '{self.name}': {kind} (semi-explicit), t0 = {self.t0:g}"]
+        if self.reduced_from:
+            lines[0] += f", reduced from index {self.reduced_from}"
+        lines.append(f"Differential variables ({len(self.states)}):")
+        for s, n, f, v in zip(self.states, self.ode_numbers, self.rhs, self.y0):
+            lines.append(f"  #{n:<3d} {s.name}' = {f}")
+            lines.append(f"        {s.name}(t0) = {v:.16g}")
+        lines.append(f"Algebraic variables ({len(self.algebraics)}):")
+        for z, owner, v in zip(self.algebraics, self.determined_by, self.z0):
+            c = self.constraints[owner]
+            how = {1: c.name, 2: f"hidden constraint {c.level_name(1)}", 3: f"hidden constraint {c.level_name(2)}"}
+            lines.append(f"  {z.name}(t0) = {v:.16g}   (consistent: from {how[c.index]} = 0)")
+        if self.parameters:
+            lines.append(f"Parameters ({len(self.parameters)}):")
+            lines += [f"  {p.name} = {v:.16g}" for p, v in zip(self.parameters, self.parameter_values)]
+        lines.append(f"Constraints ({len(self.constraints)}):")
+        for c in self.constraints:
+            lines.append(f"  #{c.number:<3d} {c.name}: 0 = {c.expr}")
+            lines.append(f"        index {c.index}: determines the algebraic variables through {ITERATION_MATRIX[c.index]}")
+            for k in range(1, c.index):
+                lines.append(f"        {c.level_name(k)} = {c.chain[k]}")
+        if self.aliases:
+            lines.append(f"Aliases eliminated ({len(self.aliases)}):")
+            lines += [f"  {n} = {e}   (from {label})" for n, e, label in self.aliases]
+        if self.invariants:
+            lines.append("Invariants (drift): " + ", ".join(self.invariant_names))
+        lines.append("Initialisation: " + ("; ".join(self.notes) if self.notes else "given values are consistent"))
+        dropped = {k: v for k, v in self.dropped.items() if v}
+        if dropped:
+            lines.append("Pruned (not needed by the requested outputs):")
+            lines += [f"  {kind}: {', '.join(names)}" for kind, names in dropped.items()]
+        else:
+            lines.append("Pruned: nothing (every variable is needed)")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (
+            f"CompiledDAE({self.name!r}, index={self.index}, states={self.state_names}, "
+            f"algebraics={self.algebraic_names}, parameters={self.parameter_names})"
+        )

@@ -1,0 +1,133 @@
+"""``Model.compile``: validate -> eliminate aliases -> derivative chains -> prune -> match
+-> initialise -> numeric rank check -> :class:`CompiledDAE`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from daemodel.codegen import check_supported
+from daemodel.compiled import CompiledDAE
+from daemodel.errors import (
+    MissingInitialValueError,
+    MissingODEError,
+    MissingParameterValueError,
+    UnbalancedSystemError,
+    UnknownOutputError,
+)
+from daemodel.init import NumericSystem, initialise
+from daemodel.prune import eliminate_aliases, needed
+from daemodel.structure import derivative_chain, match
+
+
+def _names(symbols) -> str:
+    return ", ".join(f"'{s.name}'" for s in symbols)
+
+
+def _validate(model) -> None:
+    missing = [s for name, s in model._states.items() if name not in model._odes]
+    if missing:
+        raise MissingODEError(
+            f"differential variable(s) {_names(missing)} of model '{model.name}' have no ODE; "
+            "declare one with m.ode(<state>, <rhs>) or declare the variable as algebraic"
+        )
+    n_z, n_g = len(model._algebraics), len(model._constraints)
+    if n_z != n_g:
+        raise UnbalancedSystemError(
+            f"model '{model.name}' has {n_z} algebraic variable(s) ({_names(model._algebraics.values()) or 'none'}) "
+            f"but {n_g} constraint(s) ({', '.join(repr(c.name) for c in model._constraints) or 'none'}); "
+            "a semi-explicit DAE needs exactly one constraint per algebraic variable"
+        )
+    no_value = [name for name, v in model._parameter_values.items() if v is None]
+    if no_value:
+        raise MissingParameterValueError(
+            f"parameter(s) {', '.join(repr(n) for n in no_value)} of model '{model.name}' have no "
+            "value; give one with m.parameter(name, value) or m.set_parameters(name=value)"
+        )
+    for eq in [*model._odes.values(), *model._constraints]:
+        check_supported(eq.expr, f"model '{model.name}', {eq.label}")
+
+
+def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
+    """Compile a :class:`~daemodel.model.Model`; see ``Model.compile`` for the parameters."""
+    _validate(model)
+    states = list(model._states.values())
+    parameters = list(model._parameters.values())
+    rhs = {s: model._odes[s.name].expr for s in states}
+    symbols = {*states, *model._algebraics.values(), *parameters, model.t}
+    equations, algebraics, aliases = eliminate_aliases(
+        rhs, model._constraints, list(model._algebraics.values()), symbols
+    )
+    constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraics) for e in equations]
+    alias_exprs = {name: expr for name, expr, _ in aliases}
+
+    known = [*(s.name for s in states), *model._algebraics]
+    if outputs is None:
+        keep = set(known)
+    else:
+        outputs = [outputs] if isinstance(outputs, str) else list(outputs)
+        unknown = [o for o in outputs if o not in known]
+        if unknown:
+            raise UnknownOutputError(
+                f"compile(outputs=...): {', '.join(repr(u) for u in unknown)} not a variable of model "
+                f"'{model.name}'; variables: {', '.join(repr(k) for k in known)}"
+            )
+        keep = needed(outputs, rhs, constraints, algebraics, alias_exprs)
+    kept_constraints = [c for c in constraints if any(s.name in keep for s in c.determining.free_symbols if s in algebraics)]
+    kept_states = [s for s in states if s.name in keep]
+    kept_algebraics = [z for z in algebraics if z.name in keep]
+    kept_aliases = [a for a in aliases if a[0] in keep]
+    used = set().union(
+        *(rhs[s].free_symbols for s in kept_states),
+        *(e.free_symbols for c in kept_constraints for e in c.chain),
+        *(e.free_symbols for _, e, _ in kept_aliases),
+    )
+    kept_parameters = [p for p in parameters if p in used]
+    dropped = {
+        "differential variables": tuple(s.name for s in states if s not in kept_states),
+        "algebraic variables": tuple(z.name for z in algebraics if z not in kept_algebraics),
+        "constraints": tuple(c.name for c in constraints if c not in kept_constraints),
+        "aliases": tuple(a[0] for a in aliases if a not in kept_aliases),
+        "parameters": tuple(p.name for p in parameters if p not in kept_parameters),
+    }
+
+    missing = [s for s in kept_states if s.name not in model._initial]
+    if missing:
+        raise MissingInitialValueError(
+            f"differential variable(s) {_names(missing)} of model '{model.name}' have no initial "
+            "value; give them with m.initial(name=value)"
+        )
+    owner = match(kept_constraints, kept_algebraics)
+    numeric = NumericSystem(model.t, tuple(kept_states), tuple(kept_algebraics), tuple(kept_parameters))
+    p = np.array([model._parameter_values[q.name] for q in kept_parameters], dtype=float)
+    values = initialise(
+        numeric,
+        kept_constraints,
+        [(n, e) for n, e, _ in kept_aliases],
+        model._t0,
+        model._initial,
+        p,
+        repair,
+    )
+
+    invariants = tuple(
+        (c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1))
+    )
+    return CompiledDAE(
+        name=model.name,
+        t=model.t,
+        t0=model._t0,
+        states=tuple(kept_states),
+        algebraics=tuple(kept_algebraics),
+        parameters=tuple(kept_parameters),
+        parameter_values=p,
+        rhs=tuple(rhs[s] for s in kept_states),
+        ode_numbers=tuple(model._odes[s.name].number for s in kept_states),
+        constraints=tuple(kept_constraints),
+        determined_by=tuple(owner),
+        aliases=tuple((n, e, q.label) for n, e, q in kept_aliases),
+        invariants=invariants,
+        y0=values.y0,
+        z0=values.z0,
+        notes=values.notes,
+        dropped=dropped,
+    )

@@ -1,0 +1,94 @@
+"""One exception class per user mistake.
+
+Every class subclasses :class:`ModelError`, itself a :class:`ValueError`, so callers can
+catch them all at once or one at a time.  Messages name the culprit (equation, variable)
+and, where there is one, the fix.
+"""
+
+
+class ModelError(ValueError):
+    """Base class of every error daemodel raises for a user mistake."""
+
+
+class InvalidNameError(ModelError):
+    """A declared name is not a usable identifier, is reserved, or is declared twice."""
+
+
+class UnknownSymbolError(ModelError):
+    """An equation, initial value or output uses a name the model never declared."""
+
+
+class ExpressionParseError(ModelError):
+    """A string equation could not be parsed."""
+
+
+class InvalidValueError(ModelError):
+    """A parameter value, initial value or initial time is not a finite real number."""
+
+
+class ODETargetError(ModelError):
+    """``m.ode(x, ...)`` where ``x`` is not a declared differential variable."""
+
+
+class DuplicateODEError(ModelError):
+    """A differential variable received a second ODE."""
+
+
+class MissingODEError(ModelError):
+    """A differential variable has no ODE."""
+
+
+class DerivativeInEquationError(ModelError):
+    """A derivative appears on a right-hand side or in a constraint (not semi-explicit)."""
+
+
+class UnbalancedSystemError(ModelError):
+    """The number of algebraic variables differs from the number of constraints."""
+
+
+class MissingParameterValueError(ModelError):
+    """A parameter has no value at compile time."""
+
+
+class MissingInitialValueError(ModelError):
+    """A differential variable has no initial value."""
+
+
+class SingularSystemError(ModelError):
+    """The constraints do not determine the algebraic variables (singular iteration matrix)."""
+
+
+class IndexTooHighError(ModelError):
+    """A constraint needs more than two differentiations to determine an algebraic variable."""
+
+
+class InconsistentInitialStateError(ModelError):
+    """The initial differential state violates a constraint or a hidden constraint."""
+
+
+class InconsistentAlgebraicValueError(ModelError):
+    """A user-given initial algebraic value disagrees with the consistent one."""
+
+
+class InitialisationError(ModelError):
+    """The consistent initial values could not be computed (Newton did not converge)."""
+
+
+class UnsupportedFunctionError(ModelError):
+    """An equation uses a function that a code generator cannot translate."""
+
+
+class UnknownOutputError(ModelError):
+    """``compile(outputs=...)`` names something that is not a variable of the model."""
+
+
+class ShapeError(ModelError):
+    """An array passed to a generated function has the wrong trailing size."""
+
+
+class ReductionError(ModelError):
+    """``reduced(index=...)`` asks for an index the system cannot be reduced to."""
+
+
+class StagesError(ModelError):
+    """A Radau IIA tableau was asked for an invalid number of stages."""

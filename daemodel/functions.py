@@ -1,0 +1,66 @@
+"""The one table of functions daemodel understands, shared by the parser and both emitters.
+
+Each row maps a sympy function class to its torch function and its casadi function.  A
+function missing here is rejected by the parser (unknown function) and by the emitters
+(unsupported function) with the function's and the equation's name.
+"""
+
+from __future__ import annotations
+
+import casadi
+import sympy as sp
+
+
+
+# sympy class -> (name in strings, torch attribute, casadi callable)
+FUNCTIONS: dict[type, tuple[str, str, object]] = {
+    sp.sin: ("sin", "sin", casadi.sin),
+    sp.cos: ("cos", "cos", casadi.cos),
+    sp.tan: ("tan", "tan", casadi.tan),
+    sp.asin: ("asin", "asin", casadi.asin),
+    sp.acos: ("acos", "acos", casadi.acos),
+    sp.atan: ("atan", "atan", casadi.atan),
+    sp.sinh: ("sinh", "sinh", casadi.sinh),
+    sp.cosh: ("cosh", "cosh", casadi.cosh),
+    sp.tanh: ("tanh", "tanh", casadi.tanh),
+    sp.asinh: ("asinh", "asinh", casadi.asinh),
+    sp.acosh: ("acosh", "acosh", casadi.acosh),
+    sp.atanh: ("atanh", "atanh", casadi.atanh),
+    sp.exp: ("exp", "exp", casadi.exp),
+    sp.log: ("log", "log", casadi.log),
+    sp.Abs: ("Abs", "abs", casadi.fabs),
+    sp.sign: ("sign", "sign", casadi.sign),
+    sp.erf: ("erf", "erf", casadi.erf),
+    sp.atan2: ("atan2", "atan2", casadi.atan2),
+}
+
+# Two-argument-or-more reductions, folded pairwise.
+REDUCTIONS: dict[type, tuple[str, str, object]] = {
+    sp.Max: ("Max", "maximum", casadi.fmax),
+    sp.Min: ("Min", "minimum", casadi.fmin),
+}
+
+
+def _unevaluated_derivative(*args):
+    # sympy's diff of a plain symbol by t is 0; keep it visible so the model can reject it.
+    return sp.Derivative(*args)
+
+
+# What a string equation may name besides the model's own symbols.
+PARSE_NAMESPACE: dict[str, object] = {
+    **{name: cls for cls, (name, _, _) in {**FUNCTIONS, **REDUCTIONS}.items()},
+    "abs": sp.Abs,
+    "sqrt": sp.sqrt,
+    "ln": sp.log,
+    "pi": sp.pi,
+    "Piecewise": sp.Piecewise,
+    "Derivative": sp.Derivative,
+    "diff": _unevaluated_derivative,
+    # needed by sympy's parser transformations
+    "Integer": sp.Integer,
+    "Float": sp.Float,
+    "Rational": sp.Rational,
+    "Symbol": sp.Symbol,
+    "Function": sp.Function,
+    "__builtins__": {},
+}

@@ -1,0 +1,310 @@
+"""The symbolic front end: declare a semi-explicit DAE by name.
+
+    y' = f(t, y, z, p),    0 = g(t, y, z, p)
+
+``y`` are the differential variables (``m.states``), ``z`` the algebraic ones
+(``m.algebraics``), ``p`` named parameters with values.  Equations are sympy expressions or
+strings parsed against the declared names only.  Mistakes that can be seen at declaration
+(unknown names, an ODE for a non-state, a derivative in an equation) raise at once; mistakes
+of the whole system (a state without an ODE, unbalanced constraints) raise in ``compile``.
+"""
+
+from __future__ import annotations
+
+import keyword
+import math
+import re
+from dataclasses import dataclass
+from tokenize import TokenError
+
+import sympy as sp
+from sympy.core.function import AppliedUndef
+from sympy.parsing.sympy_parser import convert_xor, parse_expr, standard_transformations
+
+from daemodel.errors import (
+    DerivativeInEquationError,
+    DuplicateODEError,
+    ExpressionParseError,
+    InvalidNameError,
+    InvalidValueError,
+    ODETargetError,
+    UnknownSymbolError,
+)
+from daemodel.functions import PARSE_NAMESPACE
+
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+# "y1'" in a string: a prime right after a name is a derivative, which a semi-explicit DAE
+# keeps on the left-hand side only.
+_PRIMED = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*'")
+_TRANSFORMS = standard_transformations + (convert_xor,)
+
+
+@dataclass(frozen=True)
+class Equation:
+    """One declared equation.
+
+    Attributes
+    ----------
+    kind : {"ode", "constraint"}
+    name : str
+        The state's name for an ODE; the given or default name (``g1``, ``g2``, ...) for a
+        constraint.
+    number : int
+        1-based position among all equations in declaration order (shown as ``#k``).
+    expr : sympy.Expr
+        The right-hand side of ``y' = expr`` or the constraint ``0 = expr``.
+    """
+
+    kind: str
+    name: str
+    number: int
+    expr: sp.Expr
+
+    @property
+    def label(self) -> str:
+        """How messages and reports refer to the equation."""
+        if self.kind == "ode":
+            return f"the ODE for '{self.name}' (#{self.number})"
+        return f"constraint '{self.name}' (#{self.number})"
+
+
+def _split_names(names) -> list[str]:
+    if isinstance(names, str):
+        return [n for n in re.split(r"[\s,]+", names.strip()) if n]
+    return [str(n) for n in names]
+
+
+class Model:
+    """A semi-explicit DAE declared by name.
+
+    Parameters
+    ----------
+    name : str
+        Shown in reports.
+
+    Examples
+    --------
+    >>> import daemodel as dm
+    >>> m = dm.Model("decay")
+    >>> (x,) = m.states("x")
+    >>> (w,) = m.algebraics("w")
+    >>> m.ode(x, -w)
+    >>> m.constraint(w - 2 * x, name="rate")
+    >>> m.initial(x=1.0)
+    >>> m.compile().z0
+    array([2.])
+    """
+
+    def __init__(self, name: str = "model"):
+        self.name = str(name)
+        self.t = sp.Symbol("t")
+        self._states: dict[str, sp.Symbol] = {}
+        self._algebraics: dict[str, sp.Symbol] = {}
+        self._parameters: dict[str, sp.Symbol] = {}
+        self._parameter_values: dict[str, float | None] = {}
+        self._odes: dict[str, Equation] = {}
+        self._constraints: list[Equation] = []
+        self._initial: dict[str, float] = {}
+        self._t0 = 0.0
+        self._equation_count = 0
+
+    # ---- declarations -------------------------------------------------------------------
+    def states(self, names) -> tuple[sp.Symbol, ...]:
+        """Declare differential variables; ``names`` is ``"y1 y2"``, ``"y1, y2"`` or a list."""
+        return self._declare(names, self._states, "differential variable")
+
+    def algebraics(self, names) -> tuple[sp.Symbol, ...]:
+        """Declare algebraic variables (determined by the constraints)."""
+        return self._declare(names, self._algebraics, "algebraic variable")
+
+    def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
+        """Declare a named parameter; a value is needed by ``compile`` (see ``set_parameters``)."""
+        (symbol,) = self._declare([name], self._parameters, "parameter")
+        self._parameter_values[name] = None if value is None else _finite(value, f"parameter '{name}'")
+        return symbol
+
+    def set_parameters(self, **values: float) -> None:
+        """Give or change parameter values by name."""
+        for name, value in values.items():
+            if name not in self._parameters:
+                raise UnknownSymbolError(
+                    f"set_parameters: '{name}' is not a declared parameter; "
+                    f"parameters: {_listing(self._parameters)}"
+                )
+            self._parameter_values[name] = _finite(value, f"parameter '{name}'")
+
+    def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
+        out = []
+        for name in _split_names(names):
+            if not _NAME.match(name) or keyword.iskeyword(name):
+                raise InvalidNameError(
+                    f"{what} name {name!r} is not an identifier (letters, digits, '_', "
+                    "starting with a letter)"
+                )
+            if name == "t":
+                raise InvalidNameError(f"{what} name 't' is reserved for time (m.t)")
+            if name in PARSE_NAMESPACE:
+                raise InvalidNameError(
+                    f"{what} name {name!r} is the name of a supported function or constant; "
+                    "choose another name"
+                )
+            if name in self._all_symbols():
+                raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
+            symbol = sp.Symbol(name)
+            table[name] = symbol
+            out.append(symbol)
+        if not out:
+            raise InvalidNameError(f"no {what} names given")
+        return tuple(out)
+
+    def _all_symbols(self) -> dict[str, sp.Symbol]:
+        return {**self._states, **self._algebraics, **self._parameters}
+
+    def _kind(self, name: str) -> str:
+        if name in self._states:
+            return "a differential variable"
+        if name in self._algebraics:
+            return "an algebraic variable"
+        return "a parameter"
+
+    # ---- equations ----------------------------------------------------------------------
+    def ode(self, state, rhs) -> None:
+        """Declare ``state' = rhs``; ``state`` is a declared symbol or its name."""
+        name = state if isinstance(state, str) else getattr(state, "name", None)
+        if not isinstance(state, (str, sp.Symbol)) or name not in self._states:
+            if name in self._algebraics:
+                why = f"'{name}' is an algebraic variable; algebraic variables get constraints, not ODEs"
+            elif name in self._parameters:
+                why = f"'{name}' is a parameter"
+            else:
+                why = f"{state!r} is not a declared differential variable"
+            raise ODETargetError(f"m.ode: {why}; differential variables: {_listing(self._states)}")
+        if name in self._odes:
+            raise DuplicateODEError(
+                f"differential variable '{name}' already has an ODE "
+                f"({self._odes[name].label}: {name}' = {self._odes[name].expr}); a state has exactly one"
+            )
+        number = self._equation_count + 1
+        expr = self._expression(rhs, f"the ODE for '{name}' (#{number})")
+        self._equation_count = number
+        self._odes[name] = Equation("ode", name, number, expr)
+
+    def constraint(self, expr, name: str | None = None) -> None:
+        """Declare ``0 = expr``; a string may be ``"lhs = rhs"`` (meaning ``0 = lhs - rhs``)."""
+        number = self._equation_count + 1
+        name = f"g{len(self._constraints) + 1}" if name is None else str(name)
+        if not _NAME.match(name):
+            raise InvalidNameError(f"constraint name {name!r} is not an identifier")
+        if any(c.name == name for c in self._constraints):
+            raise InvalidNameError(f"constraint name '{name}' is already used")
+        label = f"constraint '{name}' (#{number})"
+        if isinstance(expr, str) and re.search(r"(?<![=<>!])=(?!=)|==", expr):
+            lhs, rhs = re.split(r"==|=", expr, maxsplit=1)
+            value = self._expression(lhs, label) - self._expression(rhs, label)
+        elif isinstance(expr, sp.Equality):
+            value = self._expression(expr.lhs, label) - self._expression(expr.rhs, label)
+        else:
+            value = self._expression(expr, label)
+        self._equation_count = number
+        self._constraints.append(Equation("constraint", name, number, value))
+
+    def initial(self, t: float | None = None, **values: float) -> None:
+        """Initial values by name: all differential variables; algebraic ones are optional.
+
+        A given algebraic value must agree with the consistent one (``compile`` checks it);
+        ``t`` sets the initial time (default 0).
+        """
+        for name, value in values.items():
+            if name not in self._states and name not in self._algebraics:
+                raise UnknownSymbolError(
+                    f"m.initial: '{name}' is not a declared variable; variables: "
+                    f"{_listing({**self._states, **self._algebraics})}"
+                )
+            self._initial[name] = _finite(value, f"initial value of '{name}'")
+        if t is not None:
+            self._t0 = _finite(t, "initial time t")
+
+    def _expression(self, value, where: str) -> sp.Expr:
+        """Turn a sympy expression, number or string into a checked sympy expression."""
+        symbols = self._all_symbols()
+        if isinstance(value, str):
+            primed = _PRIMED.search(value)
+            if primed:
+                raise DerivativeInEquationError(
+                    f"{where}: derivative {primed.group(0).strip()} in {value!r}; a semi-explicit "
+                    "DAE has derivatives only on the left (declare them with m.ode)"
+                )
+            try:
+                expr = parse_expr(
+                    value,
+                    local_dict={**symbols, "t": self.t},
+                    global_dict=dict(PARSE_NAMESPACE),
+                    transformations=_TRANSFORMS,
+                )
+            except (SyntaxError, TokenError, TypeError, AttributeError, NameError) as err:
+                raise ExpressionParseError(f"{where}: cannot parse {value!r} ({err})") from None
+        else:
+            try:
+                expr = sp.sympify(value, strict=True)
+            except (sp.SympifyError, TypeError) as err:
+                raise ExpressionParseError(f"{where}: {value!r} is not an expression ({err})") from None
+        if not isinstance(expr, sp.Expr):
+            raise ExpressionParseError(f"{where}: {value!r} is not a scalar expression (got {type(expr).__name__})")
+        if expr.has(sp.Derivative):
+            found = sorted(map(str, expr.atoms(sp.Derivative)))
+            raise DerivativeInEquationError(
+                f"{where}: derivative {', '.join(found)} in {expr}; a semi-explicit DAE has "
+                "derivatives only on the left (declare them with m.ode)"
+            )
+        undefined = sorted({str(a.func) for a in expr.atoms(AppliedUndef)})
+        if undefined:
+            raise UnknownSymbolError(
+                f"{where}: unknown function(s) {', '.join(undefined)} in {expr}; variables are "
+                "plain symbols (use those returned by m.states / m.algebraics), and the supported "
+                f"functions are {', '.join(sorted(n for n, v in PARSE_NAMESPACE.items() if callable(v) and n[0].islower()))}"
+            )
+        known = {**symbols, "t": self.t}
+        unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
+        if unknown:
+            raise UnknownSymbolError(
+                f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; "
+                f"declared: {_listing(known)}"
+            )
+        return expr
+
+    # ---- compile ------------------------------------------------------------------------
+    def compile(self, outputs=None, repair: bool = False):
+        """Check the structure, initialise consistently, prune and return a ``CompiledDAE``.
+
+        Parameters
+        ----------
+        outputs : list of str, optional
+            Variable names the user wants; only what they depend on through the coupled
+            system is kept.  ``None`` keeps everything.
+        repair : bool
+            Project an inconsistent initial state onto the constraint manifold (least change)
+            and replace disagreeing algebraic values, reporting both, instead of raising.
+        """
+        from daemodel.compiler import compile_model
+
+        return compile_model(self, outputs=outputs, repair=repair)
+
+    def __repr__(self) -> str:
+        return (
+            f"Model({self.name!r}: {len(self._states)} differential, {len(self._algebraics)} algebraic, "
+            f"{len(self._constraints)} constraints, {len(self._parameters)} parameters)"
+        )
+
+
+def _finite(value, what: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InvalidValueError(f"{what} must be a real number; got {value!r}") from None
+    if not math.isfinite(number):
+        raise InvalidValueError(f"{what} must be finite; got {value!r}")
+    return number
+
+
+def _listing(table) -> str:
+    return ", ".join(f"'{n}'" for n in table) or "(none)"
