@@ -23,16 +23,11 @@ import sympy as sp
 from sympy.printing.str import StrPrinter
 
 from daemodel.errors import ShapeError, UnsupportedFunctionError
-from daemodel.functions import FUNCTIONS, REDUCTIONS
+from daemodel.functions import FUNCTIONS, REDUCTIONS, supported_names
 
 _LOGIC = (sp.And, sp.Or, sp.Not, sp.Piecewise, sp.logic.boolalg.BooleanAtom, sp.core.relational.Relational)
 _ARITHMETIC = (sp.Add, sp.Mul, sp.Pow, sp.Symbol, sp.Rational, sp.Float, sp.NumberSymbol)
 _COUNTER = itertools.count()
-
-
-def _supported_names() -> str:
-    names = sorted(n for n, _, _ in (*FUNCTIONS.values(), *REDUCTIONS.values()))
-    return ", ".join(names + ["sqrt", "Piecewise"])
 
 
 def check_supported(expr: sp.Expr, where: str) -> None:
@@ -50,7 +45,7 @@ def check_supported(expr: sp.Expr, where: str) -> None:
         name = getattr(node.func, "__name__", type(node).__name__)
         raise UnsupportedFunctionError(
             f"{where}: function '{name}' in {node} is not supported by the torch and casadi "
-            f"emitters; rewrite it with the supported functions ({_supported_names()})"
+            f"emitters; rewrite it with the supported functions ({supported_names()})"
         )
 
 
@@ -161,7 +156,7 @@ def torch_source(fname: str, exprs, labels, t, groups: dict, doc: str) -> str:
         names[sym] = sym.name
         lines.append(f"    {sym.name} = {printer.doprint(sub)}")
     lines.append("    return _stack((")
-    lines += [f"        {printer.doprint(e)},  # {label}" for e, label in zip(reduced, labels)]
+    lines += [f"        {printer.doprint(e)},  # {label}" for e, label in zip(reduced, labels, strict=True)]
     lines.append("    ), t, y, z, p)")
     return "\n".join(lines) + "\n"
 
@@ -215,15 +210,13 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
             p = parameters
         for arg, value, size in (("y", y, n), ("z", z, m), ("p", p, k)):
             if value.ndim == 0 or value.shape[-1] != size:
-                raise ShapeError(
-                    f"model '{model}': {arg} must have shape (..., {size}); got {tuple(value.shape)}"
-                )
+                raise ShapeError(f"model '{model}': {arg} must have shape (..., {size}); got {tuple(value.shape)}")
         return torch.as_tensor(t, dtype=y.dtype, device=y.device), p
 
     def _stack(values, t, y, z, p):
         shape = torch.broadcast_shapes(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
         if not values:
-            return y.new_zeros(shape + (0,))
+            return y.new_zeros((*shape, 0))
         return torch.stack(
             [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
             dim=-1,

@@ -72,7 +72,9 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
                 f"'{model.name}'; variables: {', '.join(repr(k) for k in known)}"
             )
         keep = needed(outputs, rhs, constraints, algebraics, alias_exprs)
-    kept_constraints = [c for c in constraints if any(s.name in keep for s in c.determining.free_symbols if s in algebraics)]
+    kept_constraints = [
+        c for c in constraints if any(s.name in keep for s in c.determining.free_symbols if s in algebraics)
+    ]
     kept_states = [s for s in states if s.name in keep]
     kept_algebraics = [z for z in algebraics if z.name in keep]
     kept_aliases = [a for a in aliases if a[0] in keep]
@@ -109,9 +111,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         repair,
     )
 
-    invariants = tuple(
-        (c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1))
-    )
+    invariants = tuple((c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1)))
     return CompiledDAE(
         name=model.name,
         t=model.t,

@@ -10,8 +10,6 @@ from __future__ import annotations
 import casadi
 import sympy as sp
 
-
-
 # sympy class -> (name in strings, torch attribute, casadi callable)
 FUNCTIONS: dict[type, tuple[str, str, object]] = {
     sp.sin: ("sin", "sin", casadi.sin),
@@ -39,6 +37,12 @@ REDUCTIONS: dict[type, tuple[str, str, object]] = {
     sp.Max: ("Max", "maximum", casadi.fmax),
     sp.Min: ("Min", "minimum", casadi.fmin),
 }
+
+
+def supported_names() -> str:
+    """The functions users may write, for error messages."""
+    names = sorted(n for n, _, _ in (*FUNCTIONS.values(), *REDUCTIONS.values()))
+    return ", ".join([*names, "sqrt", "Piecewise"])
 
 
 def _unevaluated_derivative(*args):

@@ -94,6 +94,13 @@ def project(y0, residual, jacobian) -> np.ndarray:
 
 def newton(F, J, x0):
     """Damped Newton with least-squares steps; returns ``(x, converged)``."""
+    with np.errstate(all="ignore"):  # non-finite residuals are detected and reported below
+        return _newton(F, J, x0)
+
+
+def _newton(F, J, x0):
+    if x0.size == 0:
+        return x0.copy(), True
     x, r = x0.copy(), F(x0)
     for _ in range(NEWTON_MAXITER):
         if not np.all(np.isfinite(r)):
@@ -122,6 +129,9 @@ def initialise(
     repair: bool,
 ) -> InitialValues:
     """Check or repair y0, compute z0, compare with given algebraic values.
+
+    A given algebraic value is both Newton's start (it selects among several roots) and a
+    claim: if it disagrees with the root found, that is an error unless ``repair``.
 
     Parameters
     ----------
@@ -161,7 +171,7 @@ def initialise(
                 "real solution near the given state"
             )
         changes = ", ".join(
-            f"{y.name}: {a:.10g} -> {b:.10g}" for y, a, b in zip(numeric.y, y0, y_new) if a != b
+            f"{y.name}: {a:.10g} -> {b:.10g}" for y, a, b in zip(numeric.y, y0, y_new, strict=True) if a != b
         )
         notes.append(f"repaired y0 (least change, |dy| = {np.linalg.norm(y_new - y0):.3g}): {changes}")
         y0 = y_new
@@ -170,20 +180,20 @@ def initialise(
     H, Hz = numeric.function(determining), numeric.jacobian(determining, numeric.z)
     guess = np.array([given.get(z.name, 0.0) for z in numeric.z], dtype=float)
     z0, ok = newton(lambda z: H(t0, y0, z, p), lambda z: Hz(t0, y0, z, p), guess)
-    jacobian = Hz(t0, y0, z0, p)
+    with np.errstate(all="ignore"):
+        jacobian, residual = Hz(t0, y0, z0, p), H(t0, y0, z0, p)
     check_rank(jacobian, constraints, numeric.z, t0)  # a singular H_z explains a failed Newton
-    residual = H(t0, y0, z0, p)
     if not ok or np.max(np.abs(residual), initial=0.0) > 1e-8 * (1 + np.max(np.abs(z0), initial=0.0)):
         worst = int(np.argmax(np.abs(residual))) if residual.size else 0
         raise InitialisationError(
             f"Newton for the initial algebraic values did not converge: {constraints[worst].label} "
-            f"has residual {residual[worst]:.3g} at z = {dict(zip((z.name for z in numeric.z), z0))}; "
+            f"has residual {residual[worst]:.3g} at z = {dict(zip((z.name for z in numeric.z), z0, strict=True))}; "
             "give a better starting value with m.initial(<algebraic>=...)"
         )
 
-    values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0])))
+    values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0]).tolist(), strict=True))
     alias_fun = numeric.function([e for _, e in aliases])
-    values.update(zip((n for n, _ in aliases), alias_fun(t0, y0, z0, p)))
+    values.update(zip((n for n, _ in aliases), alias_fun(t0, y0, z0, p).tolist(), strict=True))
     for name, value in given.items():
         if name in {y.name for y in numeric.y} or name not in values:
             continue

@@ -30,13 +30,13 @@ from daemodel.errors import (
     ODETargetError,
     UnknownSymbolError,
 )
-from daemodel.functions import PARSE_NAMESPACE
+from daemodel.functions import PARSE_NAMESPACE, supported_names
 
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 # "y1'" in a string: a prime right after a name is a derivative, which a semi-explicit DAE
 # keeps on the left-hand side only.
 _PRIMED = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*'")
-_TRANSFORMS = standard_transformations + (convert_xor,)
+_TRANSFORMS = (*standard_transformations, convert_xor)
 
 
 @dataclass(frozen=True)
@@ -128,8 +128,7 @@ class Model:
         for name, value in values.items():
             if name not in self._parameters:
                 raise UnknownSymbolError(
-                    f"set_parameters: '{name}' is not a declared parameter; "
-                    f"parameters: {_listing(self._parameters)}"
+                    f"set_parameters: '{name}' is not a declared parameter; parameters: {_listing(self._parameters)}"
                 )
             self._parameter_values[name] = _finite(value, f"parameter '{name}'")
 
@@ -138,15 +137,13 @@ class Model:
         for name in _split_names(names):
             if not _NAME.match(name) or keyword.iskeyword(name):
                 raise InvalidNameError(
-                    f"{what} name {name!r} is not an identifier (letters, digits, '_', "
-                    "starting with a letter)"
+                    f"{what} name {name!r} is not an identifier (letters, digits, '_', starting with a letter)"
                 )
             if name == "t":
                 raise InvalidNameError(f"{what} name 't' is reserved for time (m.t)")
             if name in PARSE_NAMESPACE:
                 raise InvalidNameError(
-                    f"{what} name {name!r} is the name of a supported function or constant; "
-                    "choose another name"
+                    f"{what} name {name!r} is the name of a supported function or constant; choose another name"
                 )
             if name in self._all_symbols():
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
@@ -248,7 +245,7 @@ class Model:
                 expr = sp.sympify(value, strict=True)
             except (sp.SympifyError, TypeError) as err:
                 raise ExpressionParseError(f"{where}: {value!r} is not an expression ({err})") from None
-        if not isinstance(expr, sp.Expr):
+        if not isinstance(expr, sp.Expr) or getattr(expr, "is_Matrix", False):
             raise ExpressionParseError(f"{where}: {value!r} is not a scalar expression (got {type(expr).__name__})")
         if expr.has(sp.Derivative):
             found = sorted(map(str, expr.atoms(sp.Derivative)))
@@ -261,14 +258,13 @@ class Model:
             raise UnknownSymbolError(
                 f"{where}: unknown function(s) {', '.join(undefined)} in {expr}; variables are "
                 "plain symbols (use those returned by m.states / m.algebraics), and the supported "
-                f"functions are {', '.join(sorted(n for n, v in PARSE_NAMESPACE.items() if callable(v) and n[0].islower()))}"
+                f"functions are {supported_names()}"
             )
         known = {**symbols, "t": self.t}
         unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
         if unknown:
             raise UnknownSymbolError(
-                f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; "
-                f"declared: {_listing(known)}"
+                f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {_listing(known)}"
             )
         return expr
 

@@ -114,9 +114,7 @@ def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraic
 
 def incidence(constraints, algebraics) -> list[set[int]]:
     """For each constraint, the indices of algebraic variables its determining equation involves."""
-    return [
-        {j for j, z in enumerate(algebraics) if depends_on(c.determining, [z])} for c in constraints
-    ]
+    return [{j for j, z in enumerate(algebraics) if depends_on(c.determining, [z])} for c in constraints]
 
 
 def _describe(constraint: Constraint) -> str:
@@ -187,10 +185,10 @@ def check_rank(jacobian: np.ndarray, constraints, algebraics, t0: float) -> None
     SingularSystemError
         Naming the constraints (left null vector) and variables (right null vector) involved.
     """
-    if jacobian.size == 0:
-        return
+    if jacobian.size == 0 or not np.all(np.isfinite(jacobian)):
+        return  # nothing to judge; a non-finite Jacobian is reported as a failed Newton
     u, sigma, vt = np.linalg.svd(jacobian)
-    if sigma[-1] > RANK_RTOL * max(sigma[0], np.finfo(float).tiny) and np.all(np.isfinite(sigma)):
+    if sigma[-1] > RANK_RTOL * max(sigma[0], np.finfo(float).tiny):
         return
     left, right = np.abs(u[:, -1]), np.abs(vt[-1])
     rows = [constraints[i] for i in np.flatnonzero(left > 0.1 * left.max())]

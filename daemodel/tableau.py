@@ -15,7 +15,7 @@ so the order conditions can be checked far below float64 round-off.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import mpmath
 import numpy as np
@@ -94,7 +94,6 @@ def radau_polynomial(s: int) -> sp.Poly:
     return sp.Poly(sp.diff(x ** (s - 1) * (x - 1) ** s, x, s - 1), x)
 
 
-@lru_cache(maxsize=None)
 def radau_iia(s: int) -> RadauIIA:
     """The s-stage Radau IIA tableau (cached).
 
@@ -109,7 +108,11 @@ def radau_iia(s: int) -> RadauIIA:
     """
     if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 1:
         raise StagesError(f"Radau IIA needs an integer number of stages s >= 1; got {s!r}")
-    s = int(s)
+    return _radau_iia(int(s))
+
+
+@cache
+def _radau_iia(s: int) -> RadauIIA:
     roots = sp.Poly(radau_polynomial(s)).real_roots()  # exact, sorted ascending
     if len(roots) != s:  # the Radau polynomial has s simple real roots in (0, 1]
         raise StagesError(f"Radau polynomial of degree {s} has {len(roots)} real roots, expected {s}")

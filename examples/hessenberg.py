@@ -29,7 +29,7 @@ def build_model() -> dm.Model:
 def main() -> None:
     compiled = build_model().compile()
     print(compiled.report())
-    print(f"\nindex = {compiled.index}, z0 = {dict(zip(compiled.algebraic_names, compiled.z0.tolist()))}")
+    print(f"\nindex = {compiled.index}, z0 = {dict(zip(compiled.algebraic_names, compiled.z0.tolist(), strict=True))}")
     assert compiled.index == 2
     assert abs(compiled.z0[0] - 1.0) < 1e-14  # exact: y5(0) = e^0
 

@@ -39,8 +39,7 @@ def main() -> None:
     position = build_model(position_level=True).compile()
     velocity_form = position.reduced(index=2)
     print("\n" + position.report())
-    print(f"\nposition form: index {position.index}; reduced to index {velocity_form.index}: "
-          f"0 = {velocity_form.g[0]}")
+    print(f"\nposition form: index {position.index}; reduced to index {velocity_form.index}: 0 = {velocity_form.g[0]}")
     assert position.index == 3 and velocity_form.index == 2
     assert abs(position.z0[0] - 1.0) < 1e-14
 

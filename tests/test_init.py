@@ -1,0 +1,119 @@
+"""Consistent initialisation: checks, z0 from the hidden constraints, least-change repair."""
+
+import numpy as np
+import pytest
+import sympy as sp
+
+import daemodel as dm
+from daemodel import errors as E
+
+
+@pytest.mark.parametrize("theta", [0.3, 1.2, -2.0])
+@pytest.mark.parametrize("omega", [0.0, 0.7])
+def test_pendulum_z0_matches_closed_form(pendulum, theta, omega):
+    # y = (cos, sin) on the circle, velocity tangent; g' = 0 gives y5 = (omega^2 - lam y2 / m) / 1 for m = lam = 1
+    y1, y2 = np.cos(theta), np.sin(theta)
+    pendulum.initial(y1=y1, y2=y2, y3=-omega * y2, y4=omega * y1)
+    c = pendulum.compile()
+    assert c.z0[0] == pytest.approx(omega**2 - y2, abs=1e-14)
+
+
+def test_index3_pendulum_z0(pendulum3):
+    theta, omega = 0.4, 1.5
+    pendulum3.initial(y1=np.cos(theta), y2=np.sin(theta), y3=-omega * np.sin(theta), y4=omega * np.cos(theta))
+    assert pendulum3.compile().z0[0] == pytest.approx(omega**2 - np.sin(theta), abs=1e-14)
+
+
+def test_given_algebraic_value_checked(hessenberg):
+    hessenberg.initial(y5=1.0)
+    assert hessenberg.compile().notes == ()
+    hessenberg.initial(y5=2.0)
+    with pytest.raises(
+        E.InconsistentAlgebraicValueError,
+        match=r"initial value y5 = 2 disagrees with the consistent value y5 = 1\.0 determined by the constraints",
+    ):
+        hessenberg.compile()
+    c = hessenberg.compile(repair=True)
+    assert c.z0[0] == pytest.approx(1.0, abs=1e-15)
+    assert c.notes == ("replaced y5 = 2 by the consistent value 1.0",)
+
+
+def test_inconsistent_state_is_named(hessenberg):
+    hessenberg.initial(y1=1.1)
+    with pytest.raises(
+        E.InconsistentInitialStateError,
+        match=r"violates constraint 'invariant' \(#5\): invariant = 0\.1 \(tolerance .*compile\(repair=True\)",
+    ):
+        hessenberg.compile()
+
+
+def _kkt_residual(c, y0_given, levels):
+    """Distance of y - y0 from the row space of the constraint Jacobian (zero at the least change)."""
+    y = c.y0
+    jac = sp.Matrix(levels).jacobian(list(c.states))
+    C = np.array(jac.subs(dict(zip(c.states, y, strict=True))).evalf(), dtype=float).reshape(len(levels), len(y))
+    d = y - y0_given
+    coef = np.linalg.lstsq(C.T, d, rcond=None)[0]
+    return np.linalg.norm(C.T @ coef - d), np.linalg.norm(d)
+
+
+def test_repair_is_least_change_projection(hessenberg):
+    hessenberg.initial(y1=1.1, y2=0.9)
+    c = hessenberg.compile(repair=True)
+    y1, y2, y3, y4 = c.y0
+    assert abs(y1 * y4 - y2 * y3) < 1e-14
+    off_normal, moved = _kkt_residual(c, np.array([1.1, 0.9, 1.0, 1.0]), [c.g[0]])
+    assert moved > 0.05 and off_normal < 1e-12
+    assert c.notes[0].startswith("repaired y0 (least change")
+    assert c.z0[0] == pytest.approx(_hessenberg_z(c.y0), rel=1e-12)  # z0 follows the repaired y0
+
+
+def _hessenberg_z(y):
+    # invariant' = 0 is linear in y5: y5 (y4 (y1 y2 + y3 y4) + y2^2 y3^2 y4^2) = 3 y1 y2^2 y3 y4
+    y1, y2, y3, y4 = y
+    return 3 * y1 * y2**2 * y3 * y4 / (y4 * (y1 * y2 + y3 * y4) + y2**2 * y3**2 * y4**2)
+
+
+def test_hidden_constraint_of_index3_checked_and_repaired(pendulum3):
+    pendulum3.initial(y1=1.2, y2=0.1, y3=0.3, y4=1.0)
+    with pytest.raises(
+        E.InconsistentInitialStateError,
+        match=r"constraint 'rod' \(#5\): rod = 0\.45; hidden constraint rod' of constraint 'rod' \(#5\): rod' = 0\.92",
+    ):
+        pendulum3.compile()
+    c = pendulum3.compile(repair=True)
+    y1, y2, y3, y4 = c.y0
+    assert abs(y1**2 + y2**2 - 1) < 1e-14 and abs(y1 * y3 + y2 * y4) < 1e-14
+    chain = c.constraints[0].chain
+    off_normal, _ = _kkt_residual(c, np.array([1.2, 0.1, 0.3, 1.0]), [chain[0], chain[1]])
+    assert off_normal < 1e-12
+
+
+def test_repair_fails_without_real_solution():
+    m = dm.Model("imaginary")
+    (y,) = m.states("y")
+    (z,) = m.algebraics("z")
+    m.ode(y, z)
+    m.constraint(y**2 + 1, name="circle")
+    m.initial(y=0.5)
+    with pytest.raises(
+        E.InitialisationError, match=r"repair could not project the initial state onto constraint 'circle'"
+    ):
+        m.compile(repair=True)
+
+
+def test_newton_failure_asks_for_a_start_value():
+    m = dm.Model("logarithmic")
+    (y,) = m.states("y")
+    (z,) = m.algebraics("z")
+    m.ode(y, -z)
+    m.constraint(sp.log(z) - y, name="law")
+    m.initial(y=0.5)
+    with pytest.raises(
+        E.InitialisationError, match=r"did not converge: constraint 'law' \(#2\).*m.initial\(<algebraic>=...\)"
+    ):
+        m.compile()
+    m.initial(z=1.0)  # a start value is also a claim: it is checked against the root found
+    with pytest.raises(E.InconsistentAlgebraicValueError, match=r"consistent value z = 1\.6487212707"):
+        m.compile()
+    assert m.compile(repair=True).z0[0] == pytest.approx(np.exp(0.5), rel=1e-15)

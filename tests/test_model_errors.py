@@ -1,0 +1,193 @@
+"""Every user mistake of the front end raises its own ValueError subclass naming the culprit."""
+
+import pytest
+import sympy as sp
+
+import daemodel as dm
+from daemodel import errors as E
+
+
+def small() -> tuple:
+    m = dm.Model("small")
+    y1, y2 = m.states("y1 y2")
+    (z,) = m.algebraics("z")
+    mu = m.parameter("mu", 2.0)
+    return m, y1, y2, z, mu
+
+
+def test_all_errors_are_value_errors():
+    for name in dir(E):
+        cls = getattr(E, name)
+        if isinstance(cls, type) and issubclass(cls, Exception):
+            assert issubclass(cls, ValueError) and issubclass(cls, E.ModelError), name
+
+
+@pytest.mark.parametrize(
+    ("names", "pattern"),
+    [
+        ("1x", r"'1x' is not an identifier"),
+        ("_x", r"'_x' is not an identifier"),
+        ("lambda", r"'lambda' is not an identifier"),
+        ("t", r"'t' is reserved for time"),
+        ("sin", r"'sin' is the name of a supported function"),
+        ("y1", r"'y1' is already declared as a differential variable"),
+        ("mu", r"'mu' is already declared as a parameter"),
+        ("", r"no differential variable names given"),
+    ],
+)
+def test_invalid_names(names, pattern):
+    m, *_ = small()
+    with pytest.raises(E.InvalidNameError, match=pattern):
+        m.states(names)
+
+
+def test_constraint_names():
+    m, y1, y2, z, _ = small()
+    m.constraint(y1 - z, name="c")
+    with pytest.raises(E.InvalidNameError, match="constraint name 'c' is already used"):
+        m.constraint(y2 - z, name="c")
+    with pytest.raises(E.InvalidNameError, match="constraint name 'a b' is not an identifier"):
+        m.constraint(y2 - z, name="a b")
+
+
+def test_unknown_symbols_are_named():
+    m, y1, *_ = small()
+    with pytest.raises(E.UnknownSymbolError, match=r"the ODE for 'y1' \(#1\): unknown name\(s\) 'q' in"):
+        m.ode(y1, "y1 + q")
+    with pytest.raises(E.UnknownSymbolError, match=r"unknown name\(s\) 'w'"):
+        m.ode(y1, y1 * sp.Symbol("w"))
+    with pytest.raises(E.UnknownSymbolError, match=r"constraint 'g1' \(#1\): unknown function\(s\) foo"):
+        m.constraint("foo(y1) - z")
+    with pytest.raises(E.UnknownSymbolError, match="unknown function"):
+        m.constraint(sp.Function("y")(m.t) - 1)
+    with pytest.raises(E.UnknownSymbolError, match=r"m\.initial: 'q' is not a declared variable"):
+        m.initial(q=1.0)
+    with pytest.raises(E.UnknownSymbolError, match="set_parameters: 'q' is not a declared parameter"):
+        m.set_parameters(q=1.0)
+
+
+def test_parse_errors():
+    m, y1, *_ = small()
+    with pytest.raises(E.ExpressionParseError, match=r"the ODE for 'y1' \(#1\): cannot parse 'y1 \+\* \('"):
+        m.ode(y1, "y1 +* (")
+    with pytest.raises(E.ExpressionParseError, match="is not an expression"):
+        m.ode(y1, object())
+    with pytest.raises(E.ExpressionParseError, match="is not a scalar expression"):
+        m.ode(y1, sp.Matrix([1, 2]))
+
+
+def test_invalid_values():
+    m, *_ = small()
+    with pytest.raises(E.InvalidValueError, match="initial value of 'y1' must be finite; got nan"):
+        m.initial(y1=float("nan"))
+    with pytest.raises(E.InvalidValueError, match="parameter 'k' must be a real number; got 'abc'"):
+        m.parameter("k", "abc")
+    with pytest.raises(E.InvalidValueError, match="initial time t must be finite"):
+        m.initial(t=float("inf"))
+
+
+def test_ode_targets():
+    m, y1, _, z, mu = small()
+    with pytest.raises(E.ODETargetError, match="'z' is an algebraic variable; algebraic variables get constraints"):
+        m.ode(z, y1)
+    with pytest.raises(E.ODETargetError, match="'mu' is a parameter"):
+        m.ode(mu, y1)
+    with pytest.raises(
+        E.ODETargetError, match="'q' is not a declared differential variable; differential variables: 'y1', 'y2'"
+    ):
+        m.ode("q", y1)
+    with pytest.raises(E.ODETargetError, match="not a declared differential variable"):
+        m.ode(sp.Symbol("q"), y1)
+
+
+def test_duplicate_ode():
+    m, y1, *_ = small()
+    m.ode(y1, -y1)
+    with pytest.raises(E.DuplicateODEError, match=r"'y1' already has an ODE \(the ODE for 'y1' \(#1\): y1' = -y1\)"):
+        m.ode("y1", 2 * y1)
+
+
+@pytest.mark.parametrize(
+    "rhs", ["y1' + 1", "Derivative(y1, t)", "diff(y1, t) * 2", sp.Derivative(sp.Symbol("y1"), sp.Symbol("t"))]
+)
+def test_derivative_on_right_hand_side(rhs):
+    m, _, y2, *_ = small()
+    with pytest.raises(E.DerivativeInEquationError, match=r"the ODE for 'y2' \(#1\): derivative .*y1"):
+        m.ode(y2, rhs)
+
+
+def test_missing_ode():
+    m, y1, _, z, _ = small()
+    m.ode(y1, -z)
+    m.constraint(z - y1**2)
+    with pytest.raises(E.MissingODEError, match=r"differential variable\(s\) 'y2' of model 'small' have no ODE"):
+        m.compile()
+
+
+def test_unbalanced():
+    m, y1, y2, z, _ = small()
+    m.ode(y1, -z)
+    m.ode(y2, z)
+    with pytest.raises(
+        E.UnbalancedSystemError, match=r"1 algebraic variable\(s\) \('z'\) but 0 constraint\(s\) \(none\)"
+    ):
+        m.compile()
+    m.constraint(z - y1**2, name="a")
+    m.constraint(y2 - y1, name="b")
+    with pytest.raises(E.UnbalancedSystemError, match=r"but 2 constraint\(s\) \('a', 'b'\)"):
+        m.compile()
+
+
+def test_parameter_without_value_then_set():
+    m, y1, y2, z, mu = small()
+    k = m.parameter("k")
+    m.ode(y1, -k * z)
+    m.ode(y2, mu)
+    m.constraint(z - y1**2)
+    m.initial(y1=1.0, y2=0.0)
+    with pytest.raises(E.MissingParameterValueError, match=r"parameter\(s\) 'k' of model 'small' have no value"):
+        m.compile()
+    m.set_parameters(k=3.0)
+    c = m.compile()
+    assert c.parameter_names == ("mu", "k") and list(c.parameter_values) == [2.0, 3.0]
+
+
+def test_missing_initial_value():
+    m, y1, y2, z, _ = small()
+    m.ode(y1, -z)
+    m.ode(y2, z)
+    m.constraint(z - y1**2)
+    m.initial(y1=1.0)
+    with pytest.raises(E.MissingInitialValueError, match=r"'y2' of model 'small' have no initial value"):
+        m.compile()
+
+
+def test_unsupported_function_names_function_and_equation():
+    m, y1, y2, z, _ = small()
+    m.ode(y1, sp.gamma(y1))
+    m.ode(y2, z)
+    m.constraint(z - y1**2, name="shape")
+    m.initial(y1=1.0, y2=0.0)
+    with pytest.raises(E.UnsupportedFunctionError, match=r"the ODE for 'y1' \(#1\): function 'gamma' in gamma\(y1\)"):
+        m.compile()
+
+
+def test_piecewise_needs_otherwise_branch():
+    m, y1, y2, z, _ = small()
+    m.ode(y1, sp.Piecewise((y1, y1 > 0)))
+    m.ode(y2, z)
+    m.constraint(z - y1**2)
+    m.initial(y1=1.0, y2=0.0)
+    with pytest.raises(E.UnsupportedFunctionError, match="has no otherwise branch"):
+        m.compile()
+
+
+def test_constraint_string_with_equals_sign():
+    m, y1, y2, z, _ = small()
+    m.ode(y1, -z)
+    m.ode(y2, z)
+    m.constraint("z = y1^2 + mu")  # '^' is accepted as power
+    m.initial(y1=3.0, y2=0.0)
+    c = m.compile()
+    assert c.g[0] == z - y1**2 - sp.Symbol("mu")
+    assert c.z0[0] == 11.0

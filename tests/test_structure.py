@@ -1,0 +1,190 @@
+"""Index classification per constraint, singularity checks naming the culprits, reduction."""
+
+import numpy as np
+import pytest
+import sympy as sp
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import PROBLEMS
+
+
+@pytest.mark.parametrize("name", list(PROBLEMS))
+def test_problem_library_index(name):
+    assert PROBLEMS[name].model().compile().index == PROBLEMS[name].index
+
+
+def test_index1():
+    m = dm.Model("index1")
+    (y,) = m.states("y")
+    (z,) = m.algebraics("z")
+    m.ode(y, -z)
+    m.constraint(z - y**2 - sp.sin(m.t), name="law")
+    m.initial(y=3.0)
+    c = m.compile()
+    assert c.index == 1 and c.constraint_index == {"law": 1}
+    assert c.z0[0] == 9.0
+    assert c.invariant_names == ("law",)
+
+
+def mixed() -> dm.Model:
+    """One index-2 and one index-1 constraint, starting at t0 = 0.5."""
+    m = dm.Model("mixed")
+    y1, y2 = m.states("y1 y2")
+    a, b = m.algebraics("a b")
+    m.ode(y1, a)
+    m.ode(y2, b - y2)
+    m.constraint(y1 - m.t**2, name="path")  # index 2: path' = a - 2t  ->  a = 2t
+    m.constraint(b - y1 * a, name="law")  # index 1: b = y1 a
+    m.initial(t=0.5, y1=0.25, y2=0.0)
+    return m
+
+
+def test_mixed_system_is_classified_per_constraint():
+    c = mixed().compile()
+    assert c.constraint_index == {"path": 2, "law": 1}
+    assert c.index == 2 and c.t0 == 0.5
+    np.testing.assert_allclose(c.z0, [1.0, 0.25], rtol=0, atol=1e-15)
+    assert c.determined_by == (0, 1)
+
+
+def test_hessenberg_z0_from_hidden_constraint(hessenberg):
+    c = hessenberg.compile()
+    assert c.index == 2 and c.state_names == ("y1", "y2", "y3", "y4") and c.algebraic_names == ("y5",)
+    assert c.z0[0] == pytest.approx(1.0, abs=1e-15)
+    assert "from hidden constraint invariant' = 0" in c.report()
+
+
+def test_pendulum_index3_and_reduction_to_velocity_form(pendulum3):
+    c = pendulum3.compile()
+    assert c.index == 3 and c.constraint_index == {"rod": 3}
+    y1, y2, y3, y4 = c.states
+    assert sp.expand(c.constraints[0].chain[1] - 2 * (y1 * y3 + y2 * y4)) == 0
+    v = c.reduced(index=2)
+    assert v.index == 2 and v.constraint_names == ("rod'",)
+    assert sp.expand(v.g[0] - 2 * (y1 * y3 + y2 * y4)) == 0
+    assert v.invariant_names == ("rod", "rod'")  # the original constraint is kept for drift
+    np.testing.assert_array_equal(v.z0, c.z0)
+    one = c.reduced(index=1)
+    assert one.index == 1 and one.constraint_names == ("rod''",)
+    assert one.reduced(index=1).constraint_names == ("rod''",)
+    assert "reduced from index 3" in one.report()
+
+
+def test_reduced_velocity_pendulum_matches_paper_pendulum(pendulum, pendulum3):
+    # The index-3 model reduced to index 2 is the paper's pendulum up to the factor 2.
+    paper, reduced = pendulum.compile(), pendulum3.compile().reduced(index=2)
+    assert sp.expand(reduced.g[0] - 2 * paper.g[0]) == 0
+    np.testing.assert_allclose(reduced.z0, paper.z0, atol=1e-15)
+
+
+def test_index2_to_index1(hessenberg):
+    c = hessenberg.compile().reduced(index=1)
+    assert c.index == 1 and c.constraint_names == ("invariant'",) and c.invariant_names == ("invariant",)
+    y5 = c.algebraics[0]
+    assert sp.diff(c.g[0], y5) != 0  # now determines y5 directly (g_z nonsingular)
+
+
+@pytest.mark.parametrize("bad", [0, 3, 1.0, True])
+def test_reduction_errors(hessenberg, bad):
+    with pytest.raises(
+        E.ReductionError,
+        match=rf"reduced\(index={bad!r}\): the target must be an integer from 1 to the current index 2",
+    ):
+        hessenberg.compile().reduced(index=bad)
+
+
+def test_algebraic_in_no_jacobian():
+    m = dm.Model("dangling")
+    y1, y2 = m.states("y1 y2")
+    lam, _ = m.algebraics("lam mu")
+    m.ode(y1, lam)
+    m.ode(y2, -y2)
+    m.constraint(y1 - sp.sin(m.t), name="rod")
+    m.constraint(y2 + lam - 1, name="other")
+    m.initial(y1=0.0, y2=0.0)
+    with pytest.raises(
+        E.SingularSystemError,
+        match=r"algebraic variable 'mu' appears in no constraint's Jacobian: no constraint determines it "
+        r"\(constraint 'rod' \(#3\) \(index 2: through g_y f_z\); constraint 'other' \(#4\)",
+    ):
+        m.compile()
+
+
+def test_structurally_singular_block():
+    m = dm.Model("competing")
+    y1, y2, y3 = m.states("y1 y2 y3")
+    a, b, c = m.algebraics("a b c")
+    m.ode(y1, a)
+    m.ode(y2, a)
+    m.ode(y3, b + c)
+    m.constraint(y1 - m.t, name="c1")
+    m.constraint(y2 - 2 * m.t, name="c2")
+    m.constraint(y3 * b - c, name="c3")
+    m.initial(y1=0.0, y2=0.0, y3=0.0)
+    with pytest.raises(
+        E.SingularSystemError,
+        match=r"structurally singular: 2 constraint\(s\) constraint 'c1' \(#4\) .*, constraint 'c2' \(#5\) .* can only "
+        r"determine 1 algebraic variable\(s\) 'a'",
+    ):
+        m.compile()
+
+
+def test_numerically_singular_at_initial_point():
+    m = dm.Model("degenerate")
+    y1, y2 = m.states("y1 y2")
+    (a,) = m.algebraics("a")
+    m.ode(y1, y2 * a)  # g_y f_z = y2, zero at the initial point
+    m.ode(y2, 1)
+    m.constraint(y1 - 1, name="level")
+    m.initial(y1=1.0, y2=0.0)
+    with pytest.raises(
+        E.SingularSystemError,
+        match=r"constraint 'level' \(#3\) do not determine the algebraic variable\(s\) 'a': g_y f_z is singular "
+        r"at t=0 \(smallest singular value 0",
+    ):
+        m.compile()
+    m.initial(y2=0.5)
+    assert m.compile().z0[0] == 0.0
+
+
+def test_numerically_singular_names_all_culprits():
+    m = dm.Model("rank1")
+    y1, y2 = m.states("y1 y2")
+    a, b = m.algebraics("a b")
+    m.ode(y1, a + b)
+    m.ode(y2, 2 * a + 2 * b)
+    m.constraint(y1 - m.t, name="p")
+    m.constraint(y2 - 2 * m.t, name="q")
+    m.initial(y1=0.0, y2=0.0)
+    with pytest.raises(E.SingularSystemError, match=r"'p' \(#3\), constraint 'q' \(#4\) do not determine .*'a', 'b'"):
+        m.compile()
+
+
+def test_constraint_that_never_meets_an_algebraic():
+    m = dm.Model("chain")
+    y1, y2, y3 = m.states("y1 y2 y3")
+    (z,) = m.algebraics("z")
+    m.ode(y1, y2)
+    m.ode(y2, y3)
+    m.ode(y3, z)  # index 4 for a constraint on y1
+    m.constraint(y1 - sp.sin(m.t), name="deep")
+    m.initial(y1=0.0, y2=1.0, y3=0.0)
+    with pytest.raises(
+        E.IndexTooHighError, match=r"constraint 'deep' \(#4\): no algebraic variable appears in it or in its first 2"
+    ):
+        m.compile()
+
+
+def test_constraint_that_is_an_ode_invariant():
+    m = dm.Model("invariant")
+    y1, y2 = m.states("y1 y2")
+    (z,) = m.algebraics("z")
+    m.ode(y1, 0)
+    m.ode(y2, z)
+    m.constraint(y1 - 1, name="fixed")
+    m.initial(y1=1.0, y2=0.0)
+    with pytest.raises(
+        E.IndexTooHighError, match=r"constraint 'fixed' \(#3\): fixed' is identically zero along the ODE"
+    ):
+        m.compile()
