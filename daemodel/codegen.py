@@ -33,7 +33,7 @@ _COUNTER = itertools.count()
 def check_supported(expr: sp.Expr, where: str) -> None:
     """Raise :class:`UnsupportedFunctionError` for any node the emitters cannot translate."""
     for node in sp.preorder_traversal(expr):
-        if isinstance(node, sp.Tuple) or isinstance(node, sp.functions.elementary.piecewise.ExprCondPair):
+        if isinstance(node, sp.functions.elementary.piecewise.ExprCondPair):
             continue
         if type(node) in FUNCTIONS or type(node) in REDUCTIONS or isinstance(node, _ARITHMETIC + _LOGIC):
             if isinstance(node, sp.Piecewise) and node.args[-1].cond != sp.true:

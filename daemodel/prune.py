@@ -12,6 +12,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import sympy as sp
 
 from daemodel.structure import incidence
@@ -62,10 +64,7 @@ def eliminate_aliases(rhs: dict, constraints: list, algebraics: list, symbols: s
             sub = {x: v}
             for y in rhs:
                 rhs[y] = rhs[y].xreplace(sub)
-            constraints = [
-                c.__class__(c.kind, c.name, c.number, c.expr.xreplace(sub))
-                for c in constraints[:k] + constraints[k + 1 :]
-            ]
+            constraints = [replace(c, expr=c.expr.xreplace(sub)) for c in constraints[:k] + constraints[k + 1 :]]
             aliases = [(n, e.xreplace(sub), q) for n, e, q in aliases] + [(x.name, v, eq)]
             algebraics.remove(x)
             found = True
