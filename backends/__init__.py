@@ -1,6 +1,39 @@
-"""Solver backends, installed as ``daemodel.backends``.
+"""Solution methods, one module each, found by name.
 
-Each backend is one module with ``solve(compiled, ...) -> Solution`` and one registry line;
-core code never branches on a backend's name.  (The classical solvers and the Radau-PINN
-land here with issues 3 and 4.)
+A new method is a new module with a final :class:`~daemodel.backends.base.AbstractBackend`
+subclass plus one line in :data:`REGISTRY`.  Modules load on first use, so ``import
+daemodel`` does not import torch.
 """
+
+from __future__ import annotations
+
+import importlib
+
+from daemodel.errors import UnknownMethodError
+
+# method name -> "module:class"
+REGISTRY: dict[str, str] = {
+    "radau": "daemodel.backends.radau:RadauBackend",
+    "casadi-collocation": "daemodel.backends.casadi:CollocationBackend",
+    "casadi-idas": "daemodel.backends.casadi:IDASBackend",
+    "reference": "daemodel.backends.reference:ReferenceBackend",
+}
+
+
+def methods() -> tuple[str, ...]:
+    """The registered method names."""
+    return tuple(REGISTRY)
+
+
+def get_backend(method: str):
+    """The backend registered as ``method``.
+
+    Raises
+    ------
+    UnknownMethodError
+        Listing the known methods.
+    """
+    if not isinstance(method, str) or method not in REGISTRY:
+        raise UnknownMethodError(f"unknown method {method!r}; the methods are {', '.join(REGISTRY)}")
+    module, cls = REGISTRY[method].split(":")
+    return getattr(importlib.import_module(module), cls)()

@@ -2,9 +2,12 @@
 Radau-PINN and classical solvers."""
 
 from daemodel import errors
+from daemodel.backends import methods
 from daemodel.compiled import CompiledDAE
 from daemodel.model import Model
+from daemodel.solution import Solution
+from daemodel.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 
-__all__ = ["CompiledDAE", "Model", "RadauIIA", "errors", "radau_iia"]
+__all__ = ["CompiledDAE", "Model", "RadauIIA", "Solution", "errors", "methods", "radau_iia", "solve"]
 __version__ = "0.1.0"

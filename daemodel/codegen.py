@@ -13,6 +13,7 @@ the generated lines, and broadcasts every output to the common batch shape of
 
 from __future__ import annotations
 
+import functools
 import itertools
 import keyword
 import linecache
@@ -177,6 +178,11 @@ class TorchFunctions:
         Constraints, in ``constraint_names`` order.
     aliases : callable -> Tensor (..., a)
         Eliminated alias variables, in ``alias_names`` order.
+    invariants : callable -> Tensor (..., i)
+        The original constraints, in ``invariant_names`` order (for drift).
+    jacobian : callable -> Tensor (..., (n+m)**2), or None
+        ``d(f, g)/d(y, z)`` row-major (reshape to ``(..., n+m, n+m)``); None when a derivative
+        leaves the supported functions (e.g. of ``Abs``), and solvers use autograd instead.
     parameters : Tensor (k,)
         The default parameter values.
     source : dict name -> str
@@ -186,7 +192,9 @@ class TorchFunctions:
     f: object
     g: object
     aliases: object
+    invariants: object
     parameters: object
+    jacobian: object
     dtype: object
     device: object
     source: dict = field(repr=False)
@@ -214,9 +222,11 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
         return torch.as_tensor(t, dtype=y.dtype, device=y.device), p
 
     def _stack(values, t, y, z, p):
-        shape = torch.broadcast_shapes(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
+        shape = _broadcast_shape(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
         if not values:
             return y.new_zeros((*shape, 0))
+        if all(isinstance(v, torch.Tensor) and v.shape == shape for v in values):
+            return torch.stack(values, dim=-1)  # the common case, without copies
         return torch.stack(
             [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
             dim=-1,
@@ -233,11 +243,21 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
         f=out["f"],
         g=out["g"],
         aliases=out["aliases"],
+        invariants=out["invariants"],
         parameters=parameters,
+        jacobian=out.get("jacobian"),
         dtype=parameters.dtype,
         device=parameters.device,
         source=dict(specs),
     )
+
+
+@functools.lru_cache(maxsize=256)
+def _broadcast_shape(*shapes) -> tuple:
+    """numpy's broadcasting rule on shapes (cached: solvers call with the same few shapes)."""
+    import torch
+
+    return tuple(torch.broadcast_shapes(*shapes))
 
 
 class CasadiConverter:

@@ -92,3 +92,31 @@ class ReductionError(ModelError):
 
 class StagesError(ModelError):
     """A Radau IIA tableau was asked for an invalid number of stages."""
+
+
+class TimeSpanError(ModelError):
+    """``t_span`` or ``t_eval`` is empty, reversed, not finite, or outside the interval."""
+
+
+class StepSizeError(ModelError):
+    """A step size is not positive, or larger than the interval."""
+
+
+class UnknownMethodError(ModelError):
+    """``solve(method=...)`` names no registered backend."""
+
+
+class UnknownOptionError(ModelError):
+    """A keyword passed to ``solve`` is not an option of the chosen method."""
+
+
+class InvalidOptionError(ModelError):
+    """An option has a value the method cannot use (wrong type, range or precision)."""
+
+
+class ConvergenceError(ModelError):
+    """A solver failed: Newton did not converge, the step size underflowed, or values went non-finite."""
+
+
+class ComparisonError(ModelError):
+    """Two solutions (or a solution and a reference) cannot be compared: no common variables or times."""

@@ -55,6 +55,24 @@ class NumericSystem:
         fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, "numpy")
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(matrix.shape)
 
+    def batch_function(self, exprs):
+        """Return ``F(t, Y, Z, P) -> ndarray, shape (B, len(exprs))`` for rows ``Y (B, n)`` etc."""
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy")
+
+        def evaluate(t, Y, Z, P):
+            if not exprs:
+                return np.zeros((len(Y), 0))
+            out = fn(t, Y.T, Z.T, P.T)
+            return np.stack([np.broadcast_to(np.asarray(v, dtype=float), (len(Y),)) for v in out], axis=-1)
+
+        return evaluate
+
+    def batch_jacobian(self, exprs, wrt):
+        """Return ``J(t, Y, Z, P) -> ndarray, shape (B, len(exprs), len(wrt))``."""
+        entries = sp.Matrix(list(exprs)).jacobian(list(wrt)) if exprs and wrt else sp.zeros(len(exprs), len(wrt))
+        flat = self.batch_function(list(entries))
+        return lambda t, Y, Z, P: flat(t, Y, Z, P).reshape(len(Y), len(exprs), len(wrt))
+
 
 @dataclass(frozen=True)
 class InitialValues:

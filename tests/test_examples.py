@@ -20,9 +20,9 @@ def load(name):
     return module
 
 
-def run(name):
+def run(name, *args):
     return subprocess.run(
-        [sys.executable, str(ROOT / "examples" / f"{name}.py")], capture_output=True, text=True, check=True
+        [sys.executable, str(ROOT / "examples" / f"{name}.py"), *args], capture_output=True, text=True, check=True
     ).stdout
 
 
@@ -32,10 +32,14 @@ def test_hessenberg_example_prints_index_and_z0():
     assert "y5(t0) = 1   (consistent: from hidden constraint invariant' = 0)" in out
 
 
-def test_pendulum_example_reduces_position_form():
-    out = run("pendulum")
+def test_pendulum_example_reduces_position_form_and_solves_three_ways(tmp_path):
+    out = run("pendulum", "--quick", "--plot", str(tmp_path / "pendulum.png"))
     assert "Model 'pendulum': index-2 DAE" in out and "Model 'pendulum-index3': index-3 DAE" in out
     assert "position form: index 3; reduced to index 2: 0 = 2*y1*y3 + 2*y2*y4" in out
+    for method in ("radau", "casadi-collocation", "casadi-idas"):
+        assert f"\n{method} " in out
+    assert "radau vs casadi-collocation (same s, h): max difference" in out
+    assert (tmp_path / "pendulum.png").stat().st_size > 10_000
 
 
 @pytest.mark.parametrize(

@@ -28,4 +28,13 @@ def test_import_has_no_side_effects(tmp_path):
 def test_public_api():
     import daemodel as dm
 
-    assert set(dm.__all__) == {"CompiledDAE", "Model", "RadauIIA", "errors", "radau_iia"}
+    assert set(dm.__all__) == {
+        "CompiledDAE",
+        "Model",
+        "RadauIIA",
+        "Solution",
+        "errors",
+        "methods",
+        "radau_iia",
+        "solve",
+    }

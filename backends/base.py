@@ -1,0 +1,94 @@
+"""The backend contract, and checks that several methods' options share.
+
+A backend is a final subclass of :class:`AbstractBackend`:
+
+1. ``name`` is the string users pass as ``solve(method=...)``; ``Options`` is a frozen,
+   keyword-only dataclass whose fields are the method's options, validated in
+   ``__post_init__``; ``max_index`` is the highest index the method solves directly
+   (``solve`` reduces a model of higher index before calling it).
+2. ``solve(compiled, t_span, start, options)`` integrates every sample of ``start`` over
+   ``t_span = (t0, t1)``, ``t0 < t1``, and returns a :class:`~daemodel.solution.Solution`
+   with values for every state and algebraic variable, its wall time and its stats.
+3. It never returns non-finite values and never warns-then-returns: a failure raises
+   :class:`~daemodel.errors.ConvergenceError` naming the time, the step size and the fix.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+from daemodel.errors import InvalidOptionError, StepSizeError, TimeSpanError
+
+# Number of output times a method with its own step selection reports when t_eval is not given.
+DEFAULT_OUTPUT_POINTS = 101
+
+
+class AbstractBackend(ABC):
+    """A solution method: ``solve(compiled, t_span, start, options) -> Solution``."""
+
+    name: ClassVar[str]
+    Options: ClassVar[type]
+    max_index: ClassVar[int]
+
+    @abstractmethod
+    def solve(self, compiled, t_span: tuple[float, float], start, options):
+        """Integrate every sample of ``start`` (:class:`InitialStates`) over ``t_span``."""
+
+
+def check_number(name: str, value, *, positive: bool = True, integer: bool = False, allow_none: bool = False):
+    """Raise :class:`InvalidOptionError` unless ``value`` is a finite (positive) number."""
+    if value is None and allow_none:
+        return
+    kind = int if integer else (int, float, np.integer, np.floating)
+    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
+        raise InvalidOptionError(f"{name} must be a finite {'integer' if integer else 'number'}; got {value!r}")
+    if positive and value <= 0:
+        raise InvalidOptionError(f"{name} must be positive; got {value!r}")
+
+
+def check_stages(stages) -> None:
+    if isinstance(stages, bool) or not isinstance(stages, int) or not 1 <= stages <= 7:
+        raise InvalidOptionError(f"stages must be an integer from 1 to 7 (Radau IIA of order 2s-1); got {stages!r}")
+
+
+def check_dtype(dtype) -> str:
+    """Normalise ``"float64"``, ``"float32"`` or a torch dtype to its name."""
+    name = str(dtype).removeprefix("torch.")
+    if name not in ("float64", "float32"):
+        raise InvalidOptionError(f"dtype must be 'float64' (default) or 'float32'; got {dtype!r}")
+    return name
+
+
+def fixed_grid(t_span, h: float) -> np.ndarray:
+    """``t0, t0 + h, ..., t1``: the last step is shortened unless span/h is an integer (to 1e-9)."""
+    t0, t1 = t_span
+    span = t1 - t0
+    if h > span * (1 + 1e-12):
+        raise StepSizeError(
+            f"h = {h:g} is larger than the interval t_span = ({t0:g}, {t1:g}) of length {span:g}; take h <= {span:g}"
+        )
+    steps = span / h
+    count = round(steps) if abs(steps - round(steps)) <= 1e-9 * max(1.0, steps) else math.ceil(steps)
+    grid = t0 + h * np.arange(count + 1)
+    grid[-1] = t1
+    return grid
+
+
+def output_times(t_eval, t_span, default) -> np.ndarray:
+    """Validated output times: sorted, finite, inside ``t_span``; ``default`` when None."""
+    if t_eval is None:
+        return np.asarray(default, dtype=float)
+    times = np.asarray(t_eval, dtype=float).reshape(-1)
+    t0, t1 = t_span
+    slack = 1e-12 * max(1.0, abs(t0), abs(t1))
+    if times.size == 0 or not np.all(np.isfinite(times)):
+        raise TimeSpanError(f"t_eval must hold at least one finite time; got {t_eval!r}")
+    if np.any(np.diff(times) <= 0):
+        raise TimeSpanError("t_eval must be strictly increasing")
+    if times[0] < t0 - slack or times[-1] > t1 + slack:
+        raise TimeSpanError(f"t_eval runs from {times[0]:g} to {times[-1]:g}, outside t_span = ({t0:g}, {t1:g})")
+    return np.clip(times, t0, t1)

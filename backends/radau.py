@@ -1,0 +1,593 @@
+"""Radau IIA in torch: Newton on the compiled, batched stage residual.
+
+Each step solves ``F = 0, G = 0`` of :func:`daemodel.collocation.stage_residual` (the
+equations the Radau-PINN minimises) for the stage values of every sample at once, with a
+simplified Newton method: one Jacobian ``[f_y f_z; g_y g_z]`` at the step's start (forward-mode
+autograd through the generated code), one batched LU of the ``s(n+m)`` stage matrix, reused
+across iterations and, while Newton contracts fast, across steps.
+
+Fixed step (``h=...``) reproduces the Radau IIA collocation solution on the grid
+``t0 + k h``.  Adaptive mode (``rtol``, ``atol``) estimates the local error with an embedded
+formula of order s (Hairer & Wanner, Solving ODEs II, IV.8, generalised to s stages): with
+``gamma0`` the real eigenvalue of A (s odd) and ``bhat`` of order s including the start point,
+
+    (M - h gamma0 J) err = [gamma0 h f(y_n) + h sum_i (bhat_i - b_i) f(Y_i) ; 0]
+
+where ``M = diag(I, 0)``.  As in RADAU5, the error of an algebraic variable determined through
+an index-k constraint is multiplied by ``h^(k-1)`` before the norm (its stage values are only
+accurate to order s - k + 2).  A batch shares the step sequence (the worst sample decides).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from daemodel.backends.base import (
+    AbstractBackend,
+    check_dtype,
+    check_number,
+    check_stages,
+    fixed_grid,
+    output_times,
+)
+
+from daemodel.collocation import stage_residual
+from daemodel.errors import ConvergenceError, InvalidOptionError
+from daemodel.solution import Solution
+from daemodel.tableau import radau_iia
+
+# Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
+FIXED_NEWTON_TOL_EPS = 10
+# Tolerances of adaptive mode when neither h nor rtol/atol is given.
+DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
+# float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
+FLOAT32_MIN_RTOL = 1e-5
+# Step-size controller (RADAU5's values): safety factor, and bounds on h_new / h.
+SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 8.0
+# Keep h (and the LU) when the controller asks for a change within this band (RADAU5's QUOT1/2).
+KEEP_H_BAND = (1.0, 1.2)
+# Reuse the Jacobian for the next step when Newton contracted at least this fast (RADAU5's THET).
+REUSE_THETA = 1e-3
+# Above this contraction rate, Newton switches to per-stage Jacobians at the current iterate.
+REFRESH_THETA = 0.05
+# Fixed step: increments that stop shrinking (contraction above STAGNATION_THETA) while within
+# STAGNATION_FACTOR of newton_tol have reached the rounding floor of the residual.
+STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
+# Newton is declared diverging when an increment is not at least this much smaller than the last.
+DIVERGENCE_THETA = 0.99
+
+
+@dataclass(frozen=True, kw_only=True)
+class RadauOptions:
+    """Options of ``method="radau"``.
+
+    Attributes
+    ----------
+    stages : int
+        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).
+    h : float, optional
+        Fixed step size.  Exclusive with ``rtol``/``atol``.
+    rtol, atol : float, optional
+        Adaptive mode's tolerances (default 1e-6, 1e-8 when ``h`` is not given).
+    h0 : float, optional
+        First step of adaptive mode (default: estimated from f at t0).
+    t_eval : array, optional
+        Output times (collocation-polynomial dense output); default: the step grid.
+    newton_tol : float, optional
+        Newton's tolerance on scaled increments; default ``1000 * eps`` of the dtype for a fixed
+        step (the collocation solution to rounding), ``max(10 eps / rtol, min(0.03, sqrt(rtol)))``
+        relative to the error tolerance in adaptive mode (RADAU5's rule).
+    max_newton_iterations : int
+    max_steps : int
+    reuse_jacobian : bool
+        Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
+        contracted fast; otherwise a fresh one every step.
+    dtype : "float64" or "float32"
+    device : str
+        A torch device ("cpu", "cuda", "cuda:1", ...).
+    """
+
+    stages: int = 3
+    h: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    h0: float | None = None
+    t_eval: object = None
+    newton_tol: float | None = None
+    max_newton_iterations: int = 10
+    max_steps: int = 100_000
+    reuse_jacobian: bool = True
+    dtype: str = "float64"
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        check_stages(self.stages)
+        for name in ("h", "rtol", "atol", "h0", "newton_tol"):
+            check_number(name, getattr(self, name), allow_none=True)
+        check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
+        check_number("max_steps", self.max_steps, integer=True)
+        object.__setattr__(self, "dtype", check_dtype(self.dtype))
+        if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):
+            raise InvalidOptionError("h fixes the step size; rtol/atol/h0 select adaptive steps: give one or the other")
+        if self.h is None:
+            object.__setattr__(self, "rtol", DEFAULT_RTOL if self.rtol is None else self.rtol)
+            object.__setattr__(self, "atol", DEFAULT_ATOL if self.atol is None else self.atol)
+        eps = float(np.finfo(self.dtype).eps)
+        if self.dtype == "float32" and self.h is None and self.rtol < FLOAT32_MIN_RTOL:
+            raise InvalidOptionError(
+                f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); use dtype='float64'"
+            )
+        if self.newton_tol is not None and self.newton_tol < 10 * eps:
+            raise InvalidOptionError(
+                f"newton_tol = {self.newton_tol:g} is below 10 eps of {self.dtype} ({10 * eps:.1e}); "
+                "Newton cannot reach it" + (": use dtype='float64'" if self.dtype == "float32" else "")
+            )
+        if not isinstance(self.reuse_jacobian, bool):
+            raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
+        if not isinstance(self.device, str):
+            object.__setattr__(self, "device", str(self.device))
+
+    @property
+    def adaptive(self) -> bool:
+        return self.h is None
+
+
+class RadauBackend(AbstractBackend):
+    """``method="radau"``: batched Radau IIA with Newton, fixed or adaptive steps."""
+
+    name = "radau"
+    Options = RadauOptions
+    # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
+    max_index = 2
+
+    def solve(self, compiled, t_span, start, options: RadauOptions) -> Solution:
+        import torch
+
+        device = torch.device(options.device)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise InvalidOptionError(f"device = {options.device!r} but torch sees no CUDA device; use device='cpu'")
+        stepper = _Stepper(compiled, start, options, getattr(torch, options.dtype), device)
+        began = time.perf_counter()
+        times, values = stepper.integrate(t_span)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        wall = time.perf_counter() - began
+        names = (*compiled.state_names, *compiled.algebraic_names)
+        return Solution(
+            t=times,
+            values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
+            method=self.name,
+            settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
+            wall_time=wall,
+            stats=stepper.stats,
+            compiled=compiled,
+            parameters=start.p,
+            batched=start.batched,
+        )
+
+
+def embedded_weights(tableau) -> tuple[float, np.ndarray]:
+    """``(gamma0, bhat - b)`` of the order-s error estimate.
+
+    ``gamma0`` is A's real eigenvalue (s odd, as in RADAU5 and Hairer-Wanner's RADAU); for even
+    s, A has no real eigenvalue and ``det(A)^(1/s)`` (the geometric mean of their moduli) is used.
+    ``bhat`` solves ``gamma0 * 0^(k-1) + sum_i bhat_i c_i^(k-1) = 1/k`` for k = 1..s.
+    """
+    s, c = tableau.stages, tableau.c
+    eig = np.linalg.eigvals(tableau.A)
+    real = eig[np.abs(eig.imag) < 1e-12].real
+    gamma0 = float(real.max()) if real.size else float(abs(np.linalg.det(tableau.A)) ** (1 / s))
+    V = np.vander(c, s, increasing=True).T  # V[k, i] = c_i^k
+    rhs = 1.0 / np.arange(1, s + 1)
+    rhs[0] -= gamma0
+    return gamma0, np.linalg.solve(V, rhs) - tableau.b
+
+
+class _Stepper:
+    """State of one integration: tableau, functions, LU, counters."""
+
+    def __init__(self, compiled, start, options: RadauOptions, dtype, device):
+        import torch
+
+        self.torch = torch
+        self.compiled, self.options = compiled, options
+        self.dtype, self.device = dtype, device
+        self.tf = compiled.torch_functions(dtype=dtype, device=device)
+        self.tableau = radau_iia(options.stages)
+        self.A, self.b, self.c = self.tableau.to_torch(dtype, device)
+        gamma0, e = embedded_weights(self.tableau)
+        self.gamma0, self.e = gamma0, torch.tensor(e, dtype=dtype, device=device)
+        self.s, self.n, self.m = options.stages, len(compiled.states), len(compiled.algebraics)
+        self.B = start.size
+
+        def tensor(a):
+            return torch.tensor(a, dtype=dtype, device=device)
+
+        self.y, self.z, self.p = tensor(start.y0), tensor(start.z0), tensor(start.p)
+        # index of the constraint that determines each algebraic variable: its error weight is h^(k-1)
+        self.z_index = tensor([compiled.constraints[j].index for j in compiled.determined_by])
+        eps = float(np.finfo(options.dtype).eps)
+        if options.adaptive:
+            self.rtol, self.atol = options.rtol, options.atol
+            self.newton_tol = options.newton_tol or max(10 * eps / self.rtol, min(0.03, self.rtol**0.5))
+        else:
+            # fixed step: converge to rounding, increments measured against 1 + |w|
+            self.rtol, self.atol = 1.0, 1.0
+            self.newton_tol = options.newton_tol or FIXED_NEWTON_TOL_EPS * eps
+        self.stats = {
+            "mode": "adaptive" if options.adaptive else "fixed",
+            "stages": self.s,
+            "order": self.tableau.order,
+            "dtype": options.dtype,
+            "device": str(device),
+            "batch": self.B,
+            "steps": 0,
+            "rejected_steps": 0,
+            "newton_iterations": 0,
+            "max_newton_iterations": 0,
+            "newton_failures": 0,
+            "newton_refreshes": 0,
+            "jacobian_evaluations": 0,
+            "lu_decompositions": 0,
+            "residual_evaluations": 0,
+            "h_min": math.inf,
+            "h_max": 0.0,
+        }
+        self._jac = None  # (J, t, h-independent) at the last refresh
+        self._lu = None  # (LU, pivots, h)
+        self._eta = torch.ones(self.B, dtype=dtype, device=device)  # Newton's contraction estimate
+        self._previous = None  # (h, u_start, U) of the last accepted step, for the start guess
+
+    # ---- pieces -------------------------------------------------------------------------
+    def jacobian(self, t, y, z):
+        """``[f_y f_z; g_y g_z]`` at ``(t, y, z)``: the compiled symbolic Jacobian, else forward-mode AD.
+
+        ``t`` has shape () or (s,), ``y (B, n)`` or ``(B, s, n)``, likewise ``z``; the result has
+        shape ``(B, n+m, n+m)`` or ``(B, s, n+m, n+m)``.
+        """
+        torch = self.torch
+        import torch.autograd.forward_ad as fwAD
+
+        n, m = self.n, self.m
+        D = n + m
+        lead = y.shape[:-1]
+        eye = torch.eye(D, dtype=self.dtype, device=self.device)
+        t = torch.as_tensor(t, dtype=self.dtype, device=self.device)
+        p = self.p.reshape(self.B, *([1] * (len(lead) - 1)), -1)
+        if self.tf.jacobian is not None:  # the compiler's symbolic Jacobian
+            self.stats["jacobian_evaluations"] += 1
+            return self.tf.jacobian(t, y, z, p).reshape(*lead, D, D)
+        t, p = t[..., None], p[..., None, :]  # a new axis for the D directions
+
+        def directions(x, columns):
+            shape = (*lead, D, x.shape[-1])
+            return x[..., None, :].expand(shape).clone(), columns.expand(shape).clone()
+
+        with warnings.catch_warnings(), fwAD.dual_level():
+            # torch's forward-AD decompositions still call torch.jit.script on first use
+            warnings.filterwarnings("ignore", message=".*torch.jit.script.*deprecated", category=DeprecationWarning)
+            yd = fwAD.make_dual(*directions(y, eye[:, :n]))
+            zd = fwAD.make_dual(*directions(z, eye[:, n:]))
+            columns = []
+            for fn, size in ((self.tf.f, n), (self.tf.g, m)):
+                tangent = fwAD.unpack_dual(fn(t, yd, zd, p)).tangent
+                columns.append(y.new_zeros((*lead, D, size)) if tangent is None else tangent)
+        self.stats["jacobian_evaluations"] += 1
+        return torch.cat(columns, dim=-1).transpose(-1, -2).contiguous()
+
+    def newton_matrix(self, J, h):
+        """The Newton matrix of the stage equations, shape (B, s(n+m), s(n+m)).
+
+        ``J`` is one Jacobian for every stage, ``(B, D, D)`` (simplified Newton), or one per
+        stage, ``(B, s, D, D)`` (full Newton).
+        """
+        torch = self.torch
+        s, n, m, B = self.s, self.n, self.m, self.B
+        D = n + m
+        if J.ndim == 3:
+            J = J[:, None].expand(B, s, D, D)
+        # unknowns [Y_1..Y_s, Z_1..Z_s]; rows [F_1..F_s, G_1..G_s]
+        M = J.new_zeros((B, s * D, s * D))
+        for i in range(s):
+            rows_F, rows_G = slice(i * n, (i + 1) * n), slice(s * n + i * m, s * n + (i + 1) * m)
+            for j in range(s):
+                cols_Y, cols_Z = slice(j * n, (j + 1) * n), slice(s * n + j * m, s * n + (j + 1) * m)
+                # dF_i/dY_j = delta_ij I - h a_ij f_y(stage j);  dF_i/dZ_j = -h a_ij f_z(stage j)
+                M[:, rows_F, cols_Y] = (-h * float(self.tableau.A[i, j])) * J[:, j, :n, :n]
+                M[:, rows_F, cols_Z] = (-h * float(self.tableau.A[i, j])) * J[:, j, :n, n:]
+            # dG_i/dY_i = g_y(stage i);  dG_i/dZ_i = g_z(stage i)
+            M[:, rows_G, i * n : (i + 1) * n] = J[:, i, n:, :n]
+            M[:, rows_G, s * n + i * m : s * n + (i + 1) * m] = J[:, i, n:, n:]
+        M[:, : s * n, : s * n] += torch.eye(s * n, dtype=self.dtype, device=self.device)
+        return M
+
+    def factor(self, matrix, t, h, what):
+        torch = self.torch
+        LU, pivots, info = torch.linalg.lu_factor_ex(matrix)
+        self.stats["lu_decompositions"] += 1
+        if bool((info > 0).any()):  # non-finite entries surface in Newton's increments instead
+            sample = int(torch.nonzero(info > 0)[0])
+            raise ConvergenceError(
+                f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}; the "
+                "constraints may not determine the algebraic variables there (g_y f_z singular)"
+            )
+        return LU, pivots
+
+    def weights(self, h, y_ref):
+        """Error scale of each of the n + m components, shape (B, n+m)."""
+        torch = self.torch
+        scale = self.atol + self.rtol * y_ref.abs()
+        index_weight = torch.as_tensor(h, dtype=self.dtype, device=self.device) ** (self.z_index - 1)
+        return torch.cat([scale[:, : self.n], scale[:, self.n :] / index_weight], dim=-1)
+
+    def split(self, W):
+        s, n, m, B = self.s, self.n, self.m, self.B
+        return W[:, : s * n].reshape(B, s, n), W[:, s * n :].reshape(B, s, m)
+
+    def residual(self, t, h, W):
+        Y, Z = self.split(W)
+        r = stage_residual(self.tf, self.A, self.b, self.c, t, h, self.y, Y, Z, self.p)
+        self.stats["residual_evaluations"] += 1
+        return self.torch.cat([r.F.reshape(self.B, -1), r.G.reshape(self.B, -1)], dim=-1), r
+
+    def start_guess(self, h):
+        """Stage values extrapolated from the last step's collocation polynomial (or constant)."""
+        torch = self.torch
+        u = torch.cat([self.y, self.z], dim=-1)
+        if self._previous is None:
+            U = u[:, None, :].expand(self.B, self.s, self.n + self.m)
+        else:
+            h_old, u_old, U_old = self._previous
+            nodes = np.concatenate([[0.0], self.tableau.c])
+            tau = 1.0 + self.tableau.c * h / h_old
+            L = torch.tensor(_lagrange(nodes, tau), dtype=self.dtype, device=self.device)  # (s, s+1)
+            U = torch.einsum("ij,bjk->bik", L, torch.cat([u_old[:, None, :], U_old], dim=1))
+        return torch.cat([U[..., : self.n].reshape(self.B, -1), U[..., self.n :].reshape(self.B, -1)], dim=-1)
+
+    # ---- one step -----------------------------------------------------------------------
+    def newton(self, t, h, LU, pivots, W):
+        """Solve the stage equations from the guess ``W``; ``(W, stage residual, theta)`` or None."""
+        torch = self.torch
+        u_ref = torch.cat([self.y, self.z], dim=-1).abs()
+        w = self.weights(h, u_ref)
+        # the stage unknowns are ordered [Y_1..Y_s, Z_1..Z_s]
+        scale = torch.cat([w[:, : self.n].repeat(1, self.s), w[:, self.n :].repeat(1, self.s)], dim=-1)
+        if self.options.adaptive:
+            # RADAU5: trust the last step's contraction rate, so one iteration may suffice
+            eta = torch.clamp(self._eta, min=float(np.finfo(self.options.dtype).eps)) ** 0.8
+        else:
+            # the fixed-step solution must be the collocation solution: no early trust
+            eta = torch.ones_like(self._eta)
+        previous = None
+        theta = torch.zeros(self.B, dtype=self.dtype, device=self.device)
+        active = torch.ones(self.B, dtype=torch.bool, device=self.device)  # samples still iterating
+        for k in range(1, self.options.max_newton_iterations + 1):
+            R, r = self.residual(t, h, W)
+            dW = torch.linalg.lu_solve(LU, pivots, -R[..., None])[..., 0] * active[:, None]
+            W = W + dW
+            norm = torch.sqrt(torch.mean((dW / scale) ** 2, dim=-1))
+            finite = torch.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
+            if not bool(finite.all()):
+                return None, k, "non-finite values", int(torch.nonzero(~finite)[0])
+            if previous is not None:
+                theta = torch.where(active, norm / torch.clamp(previous, min=1e-300), theta)
+                diverging = active & (theta >= DIVERGENCE_THETA)
+                if bool(diverging.any()):
+                    worst = int(torch.nonzero(diverging)[0])
+                    return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
+                eta = torch.where(active, theta / (1 - theta), eta)
+                if float((theta * active).max()) > REFRESH_THETA and k < self.options.max_newton_iterations:
+                    # slow contraction: full Newton, with each stage's Jacobian at the current iterate
+                    Y, Z = self.split(W)
+                    stage_J = self.jacobian(t + self.c * h, Y, Z)
+                    LU, pivots = self.factor(self.newton_matrix(stage_J, h), t, h, "Newton matrix")
+                    self.stats["newton_refreshes"] += 1
+                    self._jac = None  # the next step starts from a fresh Jacobian too
+            previous = norm
+            if self.options.adaptive:
+                done = eta * norm <= self.newton_tol
+            else:
+                # the last increment itself is below tol, or rounding stops the iteration near it
+                done = (norm <= self.newton_tol) | (
+                    (theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * self.newton_tol)
+                )
+            active = active & ~done
+            if not bool(active.any()):
+                self._eta = eta
+                self.stats["newton_iterations"] += k
+                self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
+                if self.options.adaptive:  # the error estimate needs f at the final stage values
+                    _, r = self.residual(t, h, W)
+                return (W, r, float(theta.max())), k, None, None
+        return None, k, f"not converged in {k} iterations", int(torch.nonzero(active)[0])
+
+    def error_norm(self, t, h, r, W, first):
+        """RADAU5-style scaled local error of the step, worst sample."""
+        torch = self.torch
+        J = self.jacobian(t, self.y, self.z)
+        n = self.n
+        f0 = self.tf.f(t, self.y, self.z, self.p)
+        D = n + self.m
+        E = -h * self.gamma0 * J
+        E[:, :n, :] += torch.eye(D, dtype=self.dtype, device=self.device)[:n]
+        E[:, n:, :] = J[:, n:, :]
+        LU, pivots = self.factor(E, t, h, "error-estimate matrix")
+        combo = h * torch.einsum("i,bin->bn", self.e, r.stage_f)
+        # the constraint rows carry no local error: each step's Newton enforces g at its stages,
+        # and its leftover |g(y_n)| (Newton's tolerance) must not block ever smaller steps
+        zeros = f0.new_zeros((self.B, self.m))
+        rhs = torch.cat([self.gamma0 * h * f0 + combo, zeros], dim=-1)
+        err = torch.linalg.lu_solve(LU, pivots, rhs[..., None])[..., 0]
+        Y, Z = self.split(W)
+        u_new = torch.cat([Y[:, -1], Z[:, -1]], dim=-1)
+        u_old = torch.cat([self.y, self.z], dim=-1)
+        w = self.weights(h, torch.maximum(u_old.abs(), u_new.abs()))
+        norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
+        if first and bool((norm >= 1).any()):
+            # Hairer-Wanner: on a first or rejected step, apply the stiff filter once more
+            f1 = self.tf.f(t, self.y + err[:, :n], self.z + err[:, n:], self.p)
+            rhs = torch.cat([self.gamma0 * h * f1 + combo, zeros], dim=-1)
+            err = torch.linalg.lu_solve(LU, pivots, rhs[..., None])[..., 0]
+            norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
+        if not bool(torch.isfinite(norm).all()):
+            return math.inf
+        return float(norm.max())
+
+    # ---- the loop -----------------------------------------------------------------------
+    def integrate(self, t_span):
+        torch = self.torch
+        options = self.options
+        t0, t1 = t_span
+        grid = fixed_grid(t_span, options.h) if not options.adaptive else None
+        t_out = output_times(options.t_eval, t_span, grid if grid is not None else None)
+        dense = options.t_eval is not None
+        u0 = torch.cat([self.y, self.z], dim=-1)
+        out_t, out_u, steps = [t0], [u0], []
+        t, step = t0, 0
+        h = options.h if not options.adaptive else (options.h0 or self.initial_step(t_span))
+        first, rejected_last = True, False
+        while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
+            if step >= options.max_steps:
+                raise ConvergenceError(
+                    f"radau: max_steps = {options.max_steps} reached at t = {t:.6g} (h = {h:.3g}) before "
+                    f"t1 = {t1:g}; raise max_steps or loosen rtol/atol"
+                )
+            if options.adaptive:
+                if h < 1e-14 * max(1.0, abs(t)):
+                    h = self._shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
+                h = min(h, t1 - t)
+                if (t1 - t) - h < 1e-10 * h:
+                    h = t1 - t
+            else:
+                h = grid[step + 1] - grid[step]
+            W0 = self.start_guess(h)
+            J = self.current_jacobian(t, h, W0)
+            LU, pivots = self.current_lu(J, t, h)
+            result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+            if result is None and self._jac is not None and self._jac[1] != t:
+                # the reused Jacobian is stale: refresh it and try again
+                self._jac = self._lu = None
+                J = self.current_jacobian(t, h, W0)
+                LU, pivots = self.current_lu(J, t, h)
+                result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+            if result is None:
+                self.stats["newton_failures"] += 1
+                if not options.adaptive:
+                    raise ConvergenceError(
+                        f"radau: Newton failed in step {step + 1} from t = {t:.6g} with h = {h:.3g} ({why}, "
+                        f"sample {sample}); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+                    )
+                self._lu = None
+                h = self._shrink(h, t, why, sample, 0.5)
+                first = True
+                continue
+            W, r, theta = result
+            if options.adaptive:
+                err = self.error_norm(t, h, r, W, first or rejected_last)
+                factor = min(
+                    SAFETY,
+                    SAFETY * (2 * options.max_newton_iterations + 1) / (2 * options.max_newton_iterations + iterations),
+                )
+                quot = factor * max(err, 1e-10) ** (-1.0 / (self.s + 1))
+                if err > 1:
+                    self.stats["rejected_steps"] += 1
+                    h = self._shrink(h, t, f"error estimate {err:.2g} > 1", None, max(MIN_FACTOR, min(quot, 0.9)))
+                    rejected_last = True
+                    self._lu = None
+                    continue
+            Y, Z = self.split(W)
+            u_start = torch.cat([self.y, self.z], dim=-1)
+            U = torch.cat([Y, Z], dim=-1)
+            if dense:
+                steps.append((t, h, u_start, U))
+            else:
+                out_t.append(t + h)
+                out_u.append(U[:, -1])
+            self._previous = (h, u_start, U)
+            self.y, self.z = Y[:, -1].clone(), Z[:, -1].clone()
+            t = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
+            step += 1
+            self.stats["steps"] = step
+            self.stats["h_min"] = min(self.stats["h_min"], h)
+            self.stats["h_max"] = max(self.stats["h_max"], h)
+            if self.options.reuse_jacobian and theta > REUSE_THETA:
+                self._jac = None  # slow contraction: a fresh Jacobian next step
+            elif not self.options.reuse_jacobian:
+                self._jac = None
+            if options.adaptive:
+                new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
+                if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
+                    new_h = h
+                h = new_h
+            first = rejected_last = False
+        if dense:
+            return self.dense_output(t_out, u0, t0, steps)
+        values = torch.stack(out_u, dim=1)  # (B, T, n+m)
+        return np.asarray(out_t, dtype=float), values.detach().cpu().double().numpy()
+
+    def current_jacobian(self, t, h, W0):
+        """Each stage's Jacobian at the starting guess (kept while Newton contracts fast)."""
+        if self._jac is None:
+            Y0, Z0 = self.split(W0)
+            self._jac = (self.jacobian(t + self.c * h, Y0, Z0), t)
+            self._lu = None
+        return self._jac[0]
+
+    def current_lu(self, J, t, h):
+        if self._lu is None or self._lu[2] != h:
+            LU, pivots = self.factor(self.newton_matrix(J, h), t, h, "Newton matrix")
+            self._lu = (LU, pivots, h)
+        return self._lu[0], self._lu[1]
+
+    def _shrink(self, h, t, why, sample, factor):
+        new = h * factor
+        if new < 1e-14 * max(1.0, abs(t)):
+            who = f", sample {sample}" if sample is not None else ""
+            raise ConvergenceError(
+                f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "
+                "solution may blow up or leave the domain of f there"
+            )
+        return new
+
+    def initial_step(self, t_span) -> float:
+        """``0.01 |u0| / |f(u0)|`` in the error norm, capped by the interval (Hairer-Wanner's first guess)."""
+        torch = self.torch
+        t0, t1 = t_span
+        f0 = self.tf.f(t0, self.y, self.z, self.p)
+        sc = self.atol + self.rtol * self.y.abs()
+        d0 = float(torch.sqrt(torch.mean((self.y / sc) ** 2, dim=-1)).max())
+        d1 = float(torch.sqrt(torch.mean((f0 / sc) ** 2, dim=-1)).max()) if self.n else 0.0
+        h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        return min(h0, t1 - t0)
+
+    def dense_output(self, t_out, u0, t0, steps):
+        """Values at ``t_out`` from each step's collocation polynomial through (t_n, u_n), (t_n + c_i h, U_i)."""
+        torch = self.torch
+        nodes = np.concatenate([[0.0], self.tableau.c])
+        rows = []
+        k = 0
+        for time_point in t_out:
+            if time_point <= t0:
+                rows.append(u0)
+                continue
+            while k < len(steps) - 1 and time_point > steps[k][0] + steps[k][1] * (1 + 1e-13):
+                k += 1
+            t_n, h, u_start, U = steps[k]
+            L = torch.tensor(_lagrange(nodes, np.array([(time_point - t_n) / h])), dtype=self.dtype, device=self.device)
+            rows.append(torch.einsum("j,bjk->bk", L[0], torch.cat([u_start[:, None, :], U], dim=1)))
+        values = torch.stack(rows, dim=1)
+        return np.asarray(t_out, dtype=float), values.detach().cpu().double().numpy()
+
+
+def _lagrange(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` at ``points[i]``."""
+    L = np.ones((len(points), len(nodes)))
+    for j, xj in enumerate(nodes):
+        for m, xm in enumerate(nodes):
+            if m != j:
+                L[:, j] *= (points - xm) / (xj - xm)
+    return L

@@ -1,0 +1,185 @@
+"""A batch of consistent initial states for a solve.
+
+``solve(..., y0=..., z0=..., parameters=...)`` may give one initial state or many: by name
+(``{"y1": array, "y2": array}``; states not named keep the model's values) or as an array
+``(n,)`` / ``(B, n)`` in ``state_names`` order.  Every sample must satisfy the z-free
+constraint levels (the same test as at compile time); its algebraic values then come from
+a batched Newton solve of the determining equations, started from ``z0`` when given and from
+the compiled ``z0`` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemodel.errors import (
+    InconsistentAlgebraicValueError,
+    InconsistentInitialStateError,
+    InitialisationError,
+    InvalidValueError,
+    ShapeError,
+    UnknownSymbolError,
+)
+from daemodel.init import ALGEBRAIC_TOL, NEWTON_MAXITER, STATE_TOL, NumericSystem, hidden_constraints
+
+# Samples listed by index in an error message, at most.
+LISTED_SAMPLES = 5
+
+
+@dataclass(frozen=True)
+class InitialStates:
+    """Consistent initial values of every sample.
+
+    Attributes
+    ----------
+    y0 : ndarray, shape (B, n)
+    z0 : ndarray, shape (B, m)
+    p : ndarray, shape (B, k)
+    batched : bool
+        Whether the caller asked for a batch (a Solution then keeps the batch axis).
+    """
+
+    y0: np.ndarray
+    z0: np.ndarray
+    p: np.ndarray
+    batched: bool
+
+    @property
+    def size(self) -> int:
+        return len(self.y0)
+
+
+def _columns(compiled, value, names, defaults, what: str):
+    """``(B or None, ndarray (B or 1, len(names)))`` from a dict by name or an array."""
+    if value is None:
+        return None, np.asarray(defaults, dtype=float)[None, :]
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - set(names))
+        if unknown:
+            raise UnknownSymbolError(
+                f"{what} names {', '.join(repr(u) for u in unknown)}, which "
+                f"{'is' if len(unknown) == 1 else 'are'} not among {list(names)} of model '{compiled.name}'"
+            )
+        arrays = {k: np.asarray(v, dtype=float) for k, v in value.items()}
+        for k, a in arrays.items():
+            if a.ndim > 1:
+                raise ShapeError(f"{what}['{k}'] must be a number or a 1-d array of samples; got shape {a.shape}")
+        sizes = {a.shape[0] for a in arrays.values() if a.ndim == 1}
+        if len(sizes) > 1:
+            raise ShapeError(
+                f"{what}: the arrays have different lengths "
+                + ", ".join(f"{k}: {a.shape[0]}" for k, a in arrays.items() if a.ndim == 1)
+            )
+        size = sizes.pop() if sizes else None
+        out = np.repeat(np.asarray(defaults, dtype=float)[None, :], size or 1, axis=0)
+        for i, name in enumerate(names):
+            if name in arrays:
+                out[:, i] = arrays[name]
+        return size, out
+    array = np.asarray(value, dtype=float)
+    if array.ndim not in (1, 2) or array.shape[-1] != len(names):
+        raise ShapeError(
+            f"{what} must have shape ({len(names)},) or (batch, {len(names)}) with columns {list(names)}; "
+            f"got shape {array.shape}"
+        )
+    return (array.shape[0] if array.ndim == 2 else None), np.atleast_2d(array)
+
+
+def _finite(array, names, what):
+    bad = ~np.isfinite(array)
+    if bad.any():
+        sample, column = np.argwhere(bad)[0]
+        raise InvalidValueError(f"{what}: {names[column]} of sample {sample} is {array[sample, column]}, not finite")
+
+
+def _samples(indices) -> str:
+    listed = ", ".join(str(i) for i in indices[:LISTED_SAMPLES])
+    return listed + (f" and {len(indices) - LISTED_SAMPLES} more" if len(indices) > LISTED_SAMPLES else "")
+
+
+def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates:
+    """Resolve, check and complete the initial values of a solve.
+
+    Parameters
+    ----------
+    compiled : CompiledDAE
+    y0 : dict name -> float or array (B,), or array (n,) or (B, n), optional
+    z0 : same for the algebraic variables, optional; starting values (and a claim) for Newton
+    parameters : dict name -> float or array (B,), or array (k,) or (B, k), optional
+
+    Raises
+    ------
+    ShapeError, UnknownSymbolError, InvalidValueError
+        For malformed input, naming the argument and the expected shape or names.
+    InconsistentInitialStateError
+        When samples violate a constraint or hidden constraint (the samples are listed).
+    InitialisationError, InconsistentAlgebraicValueError
+        When Newton fails for the algebraic values, or they disagree with a given ``z0``.
+    """
+    states, algebraics, params = compiled.state_names, compiled.algebraic_names, compiled.parameter_names
+    sizes = {}
+    blocks = {}
+    for arg, value, names, defaults in (
+        ("y0", y0, states, compiled.y0),
+        ("z0", z0, algebraics, compiled.z0),
+        ("parameters", parameters, params, compiled.parameter_values),
+    ):
+        size, blocks[arg] = _columns(compiled, value, names, defaults, arg)
+        _finite(blocks[arg], names, arg)
+        if size is not None:
+            sizes[arg] = size
+    if len(set(sizes.values())) > 1:
+        raise ShapeError("the batch sizes differ: " + ", ".join(f"{k} has {v} samples" for k, v in sizes.items()))
+    batch = next(iter(sizes.values()), 1)
+    Y, Z, P = (np.ascontiguousarray(np.broadcast_to(b, (batch, b.shape[1]))) for b in blocks.values())
+    if y0 is None and z0 is None and parameters is None:
+        return InitialStates(y0=Y, z0=Z, p=P, batched=False)
+
+    numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+    t0 = compiled.t0
+    hidden = hidden_constraints(compiled.constraints)
+    residual = numeric.batch_function([e for _, _, e in hidden])(t0, Y, Z, P)  # z-free levels: Z is unused
+    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
+    bad = np.abs(residual) > tol[:, None]
+    if bad.any():
+        sample, level = np.argwhere(bad)[0]
+        name, label, _ = hidden[level]
+        raise InconsistentInitialStateError(
+            f"initial states of samples {_samples(np.flatnonzero(bad.any(axis=1)))} violate the constraints; "
+            f"sample {sample}: {label}: {name} = {residual[sample, level]:.6g} (tolerance {tol[sample]:.1e}). "
+            "Give states on the constraint manifold (e.g. velocities perpendicular to the rod)"
+        )
+
+    determining = [c.determining for c in compiled.constraints]
+    H = numeric.batch_function(determining)
+    Hz = numeric.batch_jacobian(determining, compiled.algebraics)
+    Zc = Z.copy()
+    with np.errstate(all="ignore"):  # non-finite iterates are caught by the residual test below
+        for _ in range(NEWTON_MAXITER):
+            r = H(t0, Y, Zc, P)
+            if Zc.shape[1] == 0 or not np.isfinite(r).all():
+                break
+            step = np.linalg.solve(Hz(t0, Y, Zc, P), -r[..., None])[..., 0]
+            Zc = Zc + step
+            if np.max(np.abs(step)) <= 1e-14 * (1 + np.max(np.abs(Zc))):
+                break
+        r = H(t0, Y, Zc, P)
+    failed = ~(np.abs(r) <= 1e-8 * (1 + np.abs(Zc).max(axis=1, initial=0.0))[:, None]).all(axis=1)
+    if failed.any():
+        sample = int(np.flatnonzero(failed)[0])
+        raise InitialisationError(
+            f"Newton for the initial algebraic values failed for samples {_samples(np.flatnonzero(failed))}; "
+            f"sample {sample} keeps residuals {r[sample]} of {[c.label for c in compiled.constraints]}; "
+            "pass starting values with z0=..."
+        )
+    if z0 is not None:
+        off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))
+        if off.any():
+            sample, j = np.argwhere(off)[0]
+            raise InconsistentAlgebraicValueError(
+                f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} disagrees with the consistent "
+                f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
+            )
+    return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))

@@ -1,0 +1,225 @@
+"""The result type every method returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from daemodel.errors import ComparisonError, UnknownSymbolError
+from daemodel.init import NumericSystem
+
+# Times of two solutions count as the same when they differ by less than this, relative to
+# the span: grids built as t0 + k*h in different orders differ in the last bits.
+TIME_MATCH_RTOL = 1e-9
+# Samples drawn by Solution.plot for a batch; more lines only hide each other.
+PLOTTED_SAMPLES = 20
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """Values of every variable, by name, on a time grid, for one sample or a batch.
+
+    Attributes
+    ----------
+    t : ndarray, shape (T,)
+    method : str
+        The backend that produced it.
+    settings : dict
+        The method's options as used (after defaults).
+    wall_time : float
+        Seconds spent in the method's solve (initial-value checks excluded).
+    stats : dict
+        Method counters: steps, rejected steps, Newton iterations, Jacobians, ...
+    compiled : CompiledDAE
+        The system that was solved (after any index reduction the method needed).
+    parameters : ndarray, shape (B, k)
+    batched : bool
+        Whether values keep a leading batch axis.
+
+    Examples
+    --------
+    >>> sol["y5"]            # (T,) or (B, T)
+    >>> sol.errors(exact)    # {"y1": {"max": ..., "mean": ...}, ...}
+    >>> sol.drift()          # {"invariant": max |g| along the solution}
+    """
+
+    t: np.ndarray
+    values: dict = field(repr=False)
+    method: str
+    settings: dict
+    wall_time: float
+    stats: dict
+    compiled: object = field(repr=False)
+    parameters: np.ndarray = field(repr=False)
+    batched: bool = False
+
+    def __post_init__(self) -> None:
+        c = self.compiled
+        if c.aliases and not set(c.alias_names) <= set(self.values):
+            Y, Z, P, T = self._flat()
+            numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
+            out = numeric.batch_function([e for _, e, _ in c.aliases])(T, Y, Z, P)
+            shape = self.values[c.state_names[0]].shape
+            for i, name in enumerate(c.alias_names):
+                self.values[name] = out[:, i].reshape(shape)
+        for array in self.values.values():
+            array.flags.writeable = False
+        self.t.flags.writeable = False
+
+    # ---- access -------------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every variable with values: states, algebraic variables, eliminated aliases."""
+        c = self.compiled
+        return (*c.state_names, *c.algebraic_names, *c.alias_names)
+
+    @property
+    def batch_size(self) -> int:
+        return len(self.parameters)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        """Values of one variable: shape (T,), or (B, T) for a batch."""
+        if name not in self.values:
+            raise UnknownSymbolError(f"the solution has no variable {name!r}; it has {list(self.names)}")
+        values = self.values[name]
+        return values if self.batched else values[0]
+
+    def _flat(self):
+        """States, algebraics, parameters and times flattened to (B*T, .) rows."""
+        c = self.compiled
+        B, T = self.batch_size, len(self.t)
+
+        def stack(names):
+            if not names:
+                return np.zeros((B * T, 0))
+            return np.stack([self.values[n].reshape(B * T) for n in names], axis=-1)
+
+        P = np.repeat(self.parameters, T, axis=0)
+        times = np.tile(self.t, B)
+        return stack(c.state_names), stack(c.algebraic_names), P, times
+
+    # ---- accuracy -----------------------------------------------------------------------
+    def errors(self, reference, names=None) -> dict[str, dict[str, float]]:
+        """Max and mean absolute error per variable against a reference.
+
+        Parameters
+        ----------
+        reference : callable or Solution
+            ``reference(t) -> dict name -> ndarray`` (shape (T,) or (B, T)), e.g.
+            ``Problem.exact_solution()``, or a Solution on the same times (for a Solution on
+            other times, re-solve it with ``t_eval=sol.t``).
+        names : iterable of str, optional
+            Variables to compare; default every variable both sides have.
+
+        Returns
+        -------
+        dict name -> {"max": float, "mean": float}
+        """
+        if isinstance(reference, Solution):
+            span = max(abs(self.t[-1] - self.t[0]), 1.0)
+            if len(reference.t) != len(self.t) or np.max(np.abs(reference.t - self.t)) > TIME_MATCH_RTOL * span:
+                raise ComparisonError(
+                    f"the reference ({reference.method}) has {len(reference.t)} times from {reference.t[0]:g} to "
+                    f"{reference.t[-1]:g}, this solution ({self.method}) {len(self.t)} from {self.t[0]:g} to "
+                    f"{self.t[-1]:g}; solve the reference with t_eval=sol.t"
+                )
+            ref_values = {n: reference.values[n] for n in reference.names}
+        elif callable(reference):
+            ref_values = dict(reference(self.t))
+        else:
+            raise ComparisonError(
+                f"errors() needs a Solution or a callable t -> dict of values; got {type(reference).__name__}"
+            )
+        wanted = list(names) if names is not None else [n for n in self.names if n in ref_values]
+        missing = [n for n in wanted if n not in ref_values or n not in self.values]
+        if missing or not wanted:
+            raise ComparisonError(
+                f"cannot compare {missing or 'anything'}: this solution has {list(self.names)}, "
+                f"the reference has {sorted(ref_values)}"
+            )
+        out = {}
+        for name in wanted:
+            ref = np.asarray(ref_values[name], dtype=float)
+            diff = np.abs(self.values[name] - np.broadcast_to(ref, self.values[name].shape))
+            out[name] = {"max": float(diff.max()), "mean": float(diff.mean())}
+        return out
+
+    def drift(self) -> dict[str, float]:
+        """Max ``|g|`` of each original constraint (and hidden position/velocity level) along the solution."""
+        c = self.compiled
+        Y, Z, P, T = self._flat()
+        numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
+        values = numeric.batch_function([e for _, e in c.invariants])(T, Y, Z, P)
+        return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
+
+    # ---- export -------------------------------------------------------------------------
+    def to_pandas(self):
+        """A DataFrame with a column ``t``, a column ``sample`` for a batch, and one per variable."""
+        import pandas as pd
+
+        B, T = self.batch_size, len(self.t)
+        columns = {}
+        if self.batched:
+            columns["sample"] = np.repeat(np.arange(B), T)
+        columns["t"] = np.tile(self.t, B)
+        for name in self.names:
+            columns[name] = self.values[name].reshape(B * T)
+        return pd.DataFrame(columns)
+
+    def plot(self, path=None, names=None, reference=None):
+        """Plot each variable against t (one panel each); a batch shows up to 20 samples.
+
+        Parameters
+        ----------
+        path : str or Path, optional
+            Write the figure there (PNG, PDF, ... by suffix).
+        names : iterable of str, optional
+            Variables to draw; default states and algebraic variables.
+        reference : callable or Solution, optional
+            Drawn dashed on top (first sample only for a batch).
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from matplotlib.figure import Figure
+
+        names = list(names) if names is not None else [*self.compiled.state_names, *self.compiled.algebraic_names]
+        for name in names:
+            self[name]  # raises for unknown names before drawing anything
+        columns = min(3, len(names))
+        rows = -(-len(names) // columns)
+        fig = Figure(figsize=(4.2 * columns, 2.8 * rows), layout="constrained")
+        axes = fig.subplots(rows, columns, squeeze=False, sharex=True)
+        ref_values = None
+        if isinstance(reference, Solution):
+            ref_values = (reference.t, {n: reference.values[n][0] for n in reference.names})
+        elif reference is not None:
+            ref_values = (self.t, {k: np.broadcast_to(v, self.t.shape) for k, v in reference(self.t).items()})
+        shown = min(self.batch_size, PLOTTED_SAMPLES)
+        for ax, name in zip(axes.flat, names, strict=False):
+            values = self.values[name]
+            for b in range(shown):
+                ax.plot(self.t, values[b], lw=1.2 if shown == 1 else 0.7, color="C0", alpha=1 if shown == 1 else 0.6)
+            if ref_values is not None and name in ref_values[1]:
+                ax.plot(ref_values[0], ref_values[1][name], "--", color="C3", lw=1, label="reference")
+                ax.legend(loc="best", fontsize=8)
+            ax.set_title(name)
+            ax.grid(alpha=0.3)
+        for ax in axes.flat[len(names) :]:
+            ax.set_visible(False)
+        for ax in axes[-1]:
+            ax.set_xlabel("t")
+        batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
+        fig.suptitle(f"{self.compiled.name}: {self.method}{batch}")
+        if path is not None:
+            fig.savefig(path, dpi=120)
+        return fig
+
+    def __repr__(self) -> str:
+        batch = f", batch={self.batch_size}" if self.batched else ""
+        return (
+            f"Solution({self.compiled.name!r}, method={self.method!r}, t=[{self.t[0]:g}, {self.t[-1]:g}] "
+            f"({len(self.t)} points){batch}, wall_time={self.wall_time:.3g} s)"
+        )

@@ -1,0 +1,93 @@
+"""``solve``: one entry point for every method."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from daemodel.backends import get_backend
+from daemodel.compiled import CompiledDAE
+from daemodel.errors import ModelError, TimeSpanError, UnknownOptionError
+from daemodel.initial_states import initial_states
+from daemodel.model import Model
+from daemodel.solution import Solution
+
+
+def solve(
+    model,
+    t_span,
+    *,
+    method: str = "radau",
+    y0=None,
+    z0=None,
+    parameters=None,
+    **options,
+) -> Solution:
+    """Solve a DAE over ``t_span`` with one method, for one initial state or a batch.
+
+    Parameters
+    ----------
+    model : Model or CompiledDAE
+        A Model is compiled first (all outputs).
+    t_span : (float, float)
+        ``(t0, t1)`` with ``t0 < t1``; ``t0`` is the time of the model's initial values.
+    method : str
+        A registered method: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
+        ``"reference"`` (see :func:`daemodel.backends.methods`).
+    y0 : dict name -> float or array (B,), or array (n,) or (B, n), optional
+        Initial states; states not named keep the model's values.  An array or a dict of
+        arrays makes a batch: the solution's values get a leading axis of size B.
+    z0 : same as y0, for the algebraic variables, optional
+        Newton's starting values (and a claim checked against the consistent values).
+    parameters : dict name -> float or array (B,), or array (k,) or (B, k), optional
+    **options
+        The method's options (e.g. ``stages=3, h=0.05`` or ``rtol=1e-8`` for ``"radau"``);
+        an option the method does not have is an error that lists the ones it has.
+
+    Returns
+    -------
+    Solution
+
+    Examples
+    --------
+    >>> sol = dm.solve(model, (0.0, 1.0), method="radau", stages=3, h=0.05)
+    >>> sol["y5"], sol.errors(exact), sol.drift()
+    """
+    backend = get_backend(method)
+    fields = {f.name for f in dataclasses.fields(backend.Options)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise UnknownOptionError(
+            f"method {method!r} has no option {', '.join(repr(u) for u in unknown)}; "
+            f"its options are {', '.join(sorted(fields))}"
+        )
+    opts = backend.Options(**options)
+
+    if isinstance(model, Model):
+        model = model.compile()
+    if not isinstance(model, CompiledDAE):
+        raise ModelError(f"solve() needs a Model or a CompiledDAE; got {type(model).__name__}")
+    t_span = _check_span(t_span, model)
+    start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
+    compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
+    return backend.solve(compiled, t_span, start, opts)
+
+
+def _check_span(t_span, compiled) -> tuple[float, float]:
+    try:
+        t0, t1 = (float(v) for v in t_span)
+    except (TypeError, ValueError):
+        raise TimeSpanError(f"t_span must be a pair (t0, t1) of numbers; got {t_span!r}") from None
+    if not (math.isfinite(t0) and math.isfinite(t1)):
+        raise TimeSpanError(f"t_span must be finite; got ({t0}, {t1})")
+    if t1 <= t0:
+        raise TimeSpanError(
+            f"t_span = ({t0:g}, {t1:g}) is {'empty' if t1 == t0 else 'reversed'}; daemodel integrates "
+            "forward in time: give t0 < t1"
+        )
+    if abs(t0 - compiled.t0) > 1e-12 * max(1.0, abs(t0)):
+        raise TimeSpanError(
+            f"t_span starts at {t0:g} but the initial values of '{compiled.name}' hold at t0 = {compiled.t0:g}; "
+            f"start t_span there or declare m.initial(t={t0:g}, ...)"
+        )
+    return t0, t1

@@ -1,0 +1,190 @@
+"""Classical solvers: convergence orders, three-way agreement, batches, adaptive steps."""
+
+import numpy as np
+import pytest
+import torch
+
+import daemodel as dm
+from daemodel.collocation import stage_residual
+from daemodel.problems import HESSENBERG, PENDULUM
+
+EXACT = HESSENBERG.exact_solution()
+
+
+def fitted_order(hs, errors) -> float:
+    """Least-squares slope of log(error) against log(h)."""
+    return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
+
+
+def max_error(sol, reference, names) -> float:
+    e = sol.errors(reference)
+    return max(e[n]["max"] for n in names)
+
+
+STEPS = {1: (1 / 20, 1 / 40, 1 / 80), 2: (1 / 10, 1 / 20, 1 / 40), 3: (1 / 8, 1 / 16, 1 / 32)}
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_hessenberg_index2_orders(s):
+    c = HESSENBERG.model().compile()
+    y_err, z_err = [], []
+    for h in STEPS[s]:
+        sol = dm.solve(c, (0.0, 1.0), stages=s, h=h)
+        y_err.append(max_error(sol, EXACT, ["y1", "y2", "y3", "y4"]))
+        z_err.append(max_error(sol, EXACT, ["y5"]))
+    order = dm.radau_iia(s).order
+    y_order, z_order = fitted_order(STEPS[s], y_err), fitted_order(STEPS[s], z_err)
+    print(f"s={s}: y order {y_order:.2f} (theory {order}), z order {z_order:.2f} (theory >= {s})")
+    assert abs(y_order - order) < 0.25
+    assert z_order > s - 0.25  # Hessenberg's z superconverges to 2s-1; the pendulum shows s
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_pendulum_index2_orders_against_reference(s):
+    c = PENDULUM.model().compile()
+    y_err, z_err = [], []
+    hs = STEPS[s]
+    for h in hs:
+        sol = dm.solve(c, (0.0, 1.0), stages=s, h=h)
+        ref = dm.solve(c, (0.0, 1.0), method="reference", t_eval=sol.t)
+        y_err.append(max_error(sol, ref, ["y1", "y2", "y3", "y4"]))
+        z_err.append(max_error(sol, ref, ["y5"]))
+    y_order, z_order = fitted_order(hs, y_err), fitted_order(hs, z_err)
+    print(f"pendulum s={s}: y order {y_order:.2f}, z order {z_order:.2f}")
+    assert abs(y_order - (2 * s - 1)) < 0.3
+    assert abs(z_order - s) < 0.35  # index 2: the algebraic variable has order s
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_index1_reduction_reaches_2s_minus_1_for_both(s):
+    c = HESSENBERG.model().compile().reduced(index=1)
+    y_err, z_err = [], []
+    for h in STEPS[s]:
+        sol = dm.solve(c, (0.0, 1.0), stages=s, h=h)
+        y_err.append(max_error(sol, EXACT, ["y1", "y2", "y3", "y4"]))
+        z_err.append(max_error(sol, EXACT, ["y5"]))
+    assert abs(fitted_order(STEPS[s], y_err) - (2 * s - 1)) < 0.25
+    assert abs(fitted_order(STEPS[s], z_err) - (2 * s - 1)) < 0.25
+
+
+def test_three_way_radau_casadi_collocation_exact():
+    c = HESSENBERG.model().compile()
+    own = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05)
+    col = dm.solve(c, (0.0, 1.0), method="casadi-collocation", stages=3, h=0.05)
+    np.testing.assert_allclose(own.t, col.t, atol=1e-14)
+    for name in own.names:  # same equations, two Newton solvers: agreement to rounding
+        np.testing.assert_allclose(own[name], col[name], rtol=1e-10, atol=1e-12)
+    for sol in (own, col):  # and both at the Radau ceiling: 4e-8 at s=3, h=0.05
+        assert 1e-8 < max_error(sol, EXACT, own.names) < 5e-8
+
+
+def test_stage_residual_vanishes_at_the_newton_solution():
+    """The residual the PINN minimises is the one Newton zeroes (stage values from dense output)."""
+    c = HESSENBERG.model().compile()
+    tab = dm.radau_iia(3)
+    h = 0.05
+    sol = dm.solve(c, (0.0, h), stages=3, h=h, t_eval=np.concatenate([[0.0], tab.c * h]))
+    Y = torch.tensor(np.stack([sol[n][1:] for n in c.state_names], axis=-1))
+    Z = torch.tensor(np.stack([sol[n][1:] for n in c.algebraic_names], axis=-1))
+    A, b, cc = tab.to_torch()
+    r = stage_residual(c.torch_functions(), A, b, cc, 0.0, h, torch.tensor(c.y0), Y, Z, y_end=Y[-1], z_end=Z[-1])
+    for part in (r.F, r.G, r.F_end, r.G_end, r.S):
+        assert part.abs().max() < 1e-13
+    wrong = stage_residual(c.torch_functions(), A, b, cc, 0.0, h, torch.tensor(c.y0), Y * 1.001, Z)
+    assert wrong.F.abs().max() > 1e-4
+
+
+def test_idas_and_reference_against_exact():
+    c = HESSENBERG.model().compile()
+    idas = dm.solve(c, (0.0, 1.0), method="casadi-idas", rtol=1e-10, atol=1e-12)
+    assert idas.compiled.index == 1  # IDAS gets the index-1 reduction ...
+    assert max_error(idas, EXACT, idas.names) < 1e-7
+    assert 0 < idas.drift()["invariant"] < 1e-8  # ... and the original constraint drifts a little
+    ref = dm.solve(c, (0.0, 1.0), method="reference")
+    assert max_error(ref, EXACT, ref.names) < 1e-10
+
+
+def pendulum_release(angles):
+    return {"y1": np.sin(angles), "y2": -np.cos(angles), "y3": 0 * angles, "y4": 0 * angles}
+
+
+def test_batch_equals_single_solves_and_casadi():
+    c = PENDULUM.model().compile()
+    angles = np.linspace(0.2, 2.8, 40)
+    batch = dm.solve(c, (0.0, 1.0), stages=3, h=0.05, y0=pendulum_release(angles))
+    assert batch["y5"].shape == (40, 21)
+    for k in (0, 17, 39):
+        single = dm.solve(c, (0.0, 1.0), stages=3, h=0.05, y0=pendulum_release(angles[k : k + 1]))
+        np.testing.assert_allclose(batch["y5"][k], single["y5"][0], rtol=1e-12, atol=1e-12)
+    col = dm.solve(c, (0.0, 1.0), method="casadi-collocation", stages=3, h=0.05, y0=pendulum_release(angles[::13]))
+    for name in c.state_names + c.algebraic_names:
+        np.testing.assert_allclose(batch[name][::13], col[name], rtol=1e-9, atol=1e-9)
+    # released at rest: y5(0) = -y2(0) * lam (the consistent value, found by batched Newton)
+    np.testing.assert_allclose(batch["y5"][:, 0], np.cos(angles), rtol=1e-12)
+
+
+def test_batch_parameters():
+    c = PENDULUM.model().compile()
+    masses = np.array([0.5, 1.0, 2.0])
+    batch = dm.solve(c, (0.0, 1.0), stages=3, h=0.05, parameters={"m": masses})
+    for k, mass in enumerate(masses):
+        c.parameter_values  # noqa: B018 - the compiled model is unchanged
+        single = dm.solve(c, (0.0, 1.0), stages=3, h=0.05, parameters={"m": mass})
+        np.testing.assert_allclose(batch["y4"][k], single["y4"], rtol=1e-12, atol=1e-14)
+    assert not np.allclose(batch["y4"][0], batch["y4"][2])
+
+
+def test_adaptive_meets_tolerance_and_tightens():
+    c = HESSENBERG.model().compile()
+    errors = []
+    for rtol in (1e-5, 1e-7, 1e-9):
+        sol = dm.solve(c, (0.0, 1.0), rtol=rtol, atol=rtol * 1e-2, t_eval=np.linspace(0, 1, 11))
+        errors.append(max_error(sol, EXACT, sol.names))
+        assert errors[-1] < 100 * rtol
+        assert sol.stats["mode"] == "adaptive" and sol.stats["steps"] < 400
+    assert errors[0] > errors[1] > errors[2]
+
+
+def test_dense_output_matches_the_grid():
+    c = PENDULUM.model().compile()
+    grid = dm.solve(c, (0.0, 1.0), stages=3, h=0.1)
+    dense = dm.solve(c, (0.0, 1.0), stages=3, h=0.1, t_eval=grid.t)
+    for name in grid.names:
+        np.testing.assert_allclose(dense[name], grid[name], rtol=1e-12, atol=1e-13)
+    between = dm.solve(c, (0.0, 1.0), stages=3, h=0.1, t_eval=[0.05, 0.55])
+    ref = dm.solve(c, (0.0, 1.0), method="reference", t_eval=[0.05, 0.55])
+    assert max_error(between, ref, c.state_names) < 1e-6  # collocation polynomial, order s + 1 inside
+
+
+def test_autograd_jacobian_path():
+    """A model whose Jacobian leaves the emitters (Abs) uses forward-mode AD, with the same result."""
+    m = dm.Model("abs")
+    x, v = m.states("x v")
+    (lam,) = m.algebraics("lam")
+    m.ode(x, v)
+    m.ode(v, -abs(x) * x - lam)
+    m.constraint(lam - 0.1 * v)
+    m.initial(x=1.0, v=0.0)
+    c = m.compile()
+    assert c.torch_functions().jacobian is None
+    own = dm.solve(c, (0.0, 2.0), stages=3, h=0.1)
+    col = dm.solve(c, (0.0, 2.0), method="casadi-collocation", stages=3, h=0.1)
+    for name in own.names:
+        np.testing.assert_allclose(own[name], col[name], rtol=1e-10, atol=1e-12)
+
+
+def test_solution_access_export_and_plot(tmp_path):
+    m = dm.Model("alias")
+    (y,) = m.states("y")
+    (w,) = m.algebraics("w")
+    m.ode(y, -w)
+    m.constraint(w - 2 * y, name="double")
+    m.initial(y=1.0)
+    sol = dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
+    np.testing.assert_allclose(sol["y"], np.exp(-2 * sol.t), rtol=1e-6)
+    np.testing.assert_allclose(sol["w"], 2 * sol["y"], rtol=1e-12)
+    frame = sol.to_pandas()
+    assert list(frame.columns) == ["t", *sol.names] and len(frame) == 11
+    fig = sol.plot(tmp_path / "alias.png", reference=lambda t: {"y": np.exp(-2 * t)})
+    assert (tmp_path / "alias.png").stat().st_size > 5000 and len(fig.axes) == len(sol.names)
+    assert "radau" in repr(sol)

@@ -1,0 +1,144 @@
+"""Every error a solve can raise for bad input or a failing solver, with its message."""
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import HESSENBERG, PENDULUM
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return PENDULUM.model().compile()
+
+
+@pytest.mark.parametrize(
+    ("t_span", "match"),
+    [
+        ((1.0, 0.0), r"t_span = \(1, 0\) is reversed"),
+        ((0.0, 0.0), r"t_span = \(0, 0\) is empty"),
+        ((0.0, float("inf")), "t_span must be finite"),
+        ("ab", "must be a pair"),
+        ((0.5, 1.0), "initial values of 'pendulum' hold at t0 = 0"),
+    ],
+)
+def test_bad_time_spans(pendulum, t_span, match):
+    with pytest.raises(E.TimeSpanError, match=match):
+        dm.solve(pendulum, t_span, h=0.1)
+
+
+def test_bad_t_eval(pendulum):
+    with pytest.raises(E.TimeSpanError, match="outside t_span"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, t_eval=[0.5, 2.0])
+    with pytest.raises(E.TimeSpanError, match="strictly increasing"):
+        dm.solve(pendulum, (0.0, 1.0), method="reference", t_eval=[0.5, 0.2])
+
+
+def test_step_sizes(pendulum):
+    with pytest.raises(E.StepSizeError, match=r"h = 2 is larger than the interval .* take h <= 1"):
+        dm.solve(pendulum, (0.0, 1.0), h=2.0)
+    with pytest.raises(E.StepSizeError, match="larger than the interval"):
+        dm.solve(pendulum, (0.0, 1.0), method="casadi-collocation", h=1.5)
+    with pytest.raises(E.InvalidOptionError, match="h must be positive"):
+        dm.solve(pendulum, (0.0, 1.0), h=-0.1)
+    with pytest.raises(E.InvalidOptionError, match="give one or the other"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, rtol=1e-6)
+
+
+def test_unknown_method_lists_the_known_ones(pendulum):
+    with pytest.raises(E.UnknownMethodError, match="unknown method 'rk4'; the methods are radau, casadi-collocation"):
+        dm.solve(pendulum, (0.0, 1.0), method="rk4")
+    assert dm.methods() == ("radau", "casadi-collocation", "casadi-idas", "reference")
+
+
+def test_unknown_option_lists_the_method_options(pendulum):
+    with pytest.raises(E.UnknownOptionError, match=r"method 'radau' has no option 'stage'; its options are .*stages"):
+        dm.solve(pendulum, (0.0, 1.0), stage=3)
+    with pytest.raises(E.UnknownOptionError, match="'casadi-idas' has no option 'h'"):
+        dm.solve(pendulum, (0.0, 1.0), method="casadi-idas", h=0.1)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"stages": 0}, E.InvalidOptionError, "stages must be an integer from 1 to 7"),
+        ({"stages": 2.5}, E.InvalidOptionError, "stages must be an integer"),
+        ({"dtype": "float16"}, E.InvalidOptionError, "dtype must be 'float64'"),
+        ({"max_newton_iterations": 0}, E.InvalidOptionError, "max_newton_iterations must be positive"),
+        ({"reuse_jacobian": "yes"}, E.InvalidOptionError, "reuse_jacobian must be True or False"),
+        ({"device": "cuda:7", "h": 0.1}, E.InvalidOptionError, "torch sees no CUDA device"),
+    ],
+)
+def test_invalid_radau_options(pendulum, kwargs, error, match):
+    import torch
+
+    if "device" in kwargs and torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    with pytest.raises(error, match=match):
+        dm.solve(pendulum, (0.0, 1.0), **kwargs)
+
+
+def test_invalid_options_of_other_methods(pendulum):
+    with pytest.raises(E.InvalidOptionError, match="integrator must be one of DOP853"):
+        dm.solve(pendulum, (0.0, 1.0), method="reference", integrator="Euler")
+    with pytest.raises(E.InvalidOptionError, match="rtol must be positive"):
+        dm.solve(pendulum, (0.0, 1.0), method="casadi-idas", rtol=0.0)
+
+
+def test_batch_shapes(pendulum):
+    with pytest.raises(E.ShapeError, match=r"y0 must have shape \(4,\) or \(batch, 4\) .*got shape \(3, 5\)"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0=np.zeros((3, 5)))
+    with pytest.raises(E.ShapeError, match="the arrays have different lengths y1: 3, y2: 2"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0={"y1": [1, 0, 1], "y2": [0, 1]})
+    with pytest.raises(E.ShapeError, match="the batch sizes differ: y0 has 2 samples, parameters has 3"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0={"y1": [1.0, 1.0]}, parameters={"m": [1.0, 2.0, 3.0]})
+    with pytest.raises(E.UnknownSymbolError, match="y0 names 'q', which is not among"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0={"q": 1.0})
+    with pytest.raises(E.InvalidValueError, match="y1 of sample 1 is nan"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0={"y1": [1.0, np.nan]})
+
+
+def test_inconsistent_batch_names_the_samples(pendulum):
+    y0 = {"y1": [1.0, 0.6, 1.0], "y2": [0.0, -0.8, 0.0], "y3": [0.0, 0.5, 0.0], "y4": [1.0, 0.0, 1.0]}
+    with pytest.raises(E.InconsistentInitialStateError, match=r"samples 1 violate .* sample 1: .*velocity"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, y0=y0)
+    with pytest.raises(E.InconsistentAlgebraicValueError, match="z0: y5 = 3 of sample 0 disagrees"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, z0={"y5": 3.0})
+
+
+def test_newton_failure_names_time_and_step():
+    c = HESSENBERG.model().compile()
+    with pytest.raises(E.ConvergenceError, match=r"Newton failed in step 1 from t = 0 with h = 0.1 .*smaller h"):
+        dm.solve(c, (0.0, 1.0), h=0.1, max_newton_iterations=1)
+
+
+def test_blow_up_raises_instead_of_returning_nan():
+    m = dm.Model("blowup")
+    (y,) = m.states("y")
+    m.ode(y, y**2)  # y = 1/(1 - t): infinite at t = 1
+    m.initial(y=1.0)
+    with pytest.raises(E.ConvergenceError, match=r"radau: .*t = 0\.9"):
+        dm.solve(m, (0.0, 2.0), h=0.1)
+    with pytest.raises(E.ConvergenceError, match=r"step size underflow at t = 1 \(h = .*\); the solution may blow up"):
+        dm.solve(m, (0.0, 2.0), rtol=1e-6)
+
+
+def test_max_steps(pendulum):
+    with pytest.raises(E.ConvergenceError, match="max_steps = 3 reached at t = "):
+        dm.solve(pendulum, (0.0, 1.0), rtol=1e-8, max_steps=3)
+
+
+def test_solution_errors(pendulum):
+    sol = dm.solve(pendulum, (0.0, 1.0), h=0.1)
+    with pytest.raises(E.UnknownSymbolError, match="the solution has no variable 'y9'"):
+        sol["y9"]
+    other = dm.solve(pendulum, (0.0, 1.0), method="reference")
+    with pytest.raises(E.ComparisonError, match=r"solve the reference with t_eval=sol\.t"):
+        sol.errors(other)
+    with pytest.raises(E.ComparisonError, match="cannot compare"):
+        sol.errors(lambda t: {"q": t})
+    with pytest.raises(E.ComparisonError, match="needs a Solution or a callable"):
+        sol.errors(3.0)
+    with pytest.raises(E.ModelError, match="needs a Model or a CompiledDAE"):
+        dm.solve("pendulum", (0.0, 1.0))
