@@ -27,6 +27,26 @@ from daemodel.errors import InvalidOptionError, StepSizeError, TimeSpanError
 DEFAULT_OUTPUT_POINTS = 101
 
 
+def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict):
+    """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order."""
+    from dataclasses import asdict
+
+    from daemodel.solution import Solution
+
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    return Solution(
+        t=np.asarray(times, dtype=float),
+        values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
+        method=backend.name,
+        settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
+        wall_time=wall_time,
+        stats=stats,
+        compiled=compiled,
+        parameters=start.p,
+        batched=start.batched,
+    )
+
+
 class AbstractBackend(ABC):
     """A solution method: ``solve(compiled, t_span, start, options) -> Solution``."""
 

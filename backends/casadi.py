@@ -11,7 +11,7 @@ the original constraints' drift is reported through :meth:`Solution.drift`.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
@@ -20,11 +20,11 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
+    make_solution,
     output_times,
 )
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
-from daemodel.solution import Solution
 
 # Steps of casadi-collocation over the interval when h is not given.
 DEFAULT_STEPS = 100
@@ -107,21 +107,6 @@ def _run(integrator, name, compiled, start, grid) -> tuple[np.ndarray, dict]:
     return out, {"batch": B, "casadi_calls": B, **stats}
 
 
-def _solution(backend, compiled, start, options, times, values, wall, stats) -> Solution:
-    names = (*compiled.state_names, *compiled.algebraic_names)
-    return Solution(
-        t=times,
-        values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
-        method=backend.name,
-        settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
-        wall_time=wall,
-        stats=stats,
-        compiled=compiled,
-        parameters=start.p,
-        batched=start.batched,
-    )
-
-
 class CollocationBackend(AbstractBackend):
     """``method="casadi-collocation"``: casadi's collocation integrator, Radau scheme."""
 
@@ -129,7 +114,7 @@ class CollocationBackend(AbstractBackend):
     Options = CollocationOptions
     max_index = 2
 
-    def solve(self, compiled, t_span, start, options: CollocationOptions) -> Solution:
+    def solve(self, compiled, t_span, start, options: CollocationOptions):
         import casadi
 
         h = options.h if options.h is not None else (t_span[1] - t_span[0]) / DEFAULT_STEPS
@@ -150,7 +135,7 @@ class CollocationBackend(AbstractBackend):
         values, stats = _run(integrator, self.name, compiled, start, grid[1:])
         wall = time.perf_counter() - began
         stats = {"stages": options.stages, "steps": len(grid) - 1, **stats}
-        return _solution(self, compiled, start, options, grid, values, wall, stats)
+        return make_solution(self, compiled, start, options, grid, values, wall, stats)
 
 
 class IDASBackend(AbstractBackend):
@@ -160,7 +145,7 @@ class IDASBackend(AbstractBackend):
     Options = IDASOptions
     max_index = 1
 
-    def solve(self, compiled, t_span, start, options: IDASOptions) -> Solution:
+    def solve(self, compiled, t_span, start, options: IDASOptions):
         import casadi
 
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
@@ -183,4 +168,4 @@ class IDASBackend(AbstractBackend):
         wall = time.perf_counter() - began
         if times[0] != t_span[0]:
             values = values[:, 1:]
-        return _solution(self, compiled, start, options, times, values, wall, stats)
+        return make_solution(self, compiled, start, options, times, values, wall, stats)

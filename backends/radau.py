@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
@@ -32,12 +32,12 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
+    make_solution,
     output_times,
 )
 
 from daemodel.collocation import stage_residual
 from daemodel.errors import ConvergenceError, InvalidOptionError
-from daemodel.solution import Solution
 from daemodel.tableau import radau_iia
 
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
@@ -144,7 +144,7 @@ class RadauBackend(AbstractBackend):
     # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
     max_index = 2
 
-    def solve(self, compiled, t_span, start, options: RadauOptions) -> Solution:
+    def solve(self, compiled, t_span, start, options: RadauOptions):
         import torch
 
         device = torch.device(options.device)
@@ -156,18 +156,7 @@ class RadauBackend(AbstractBackend):
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         wall = time.perf_counter() - began
-        names = (*compiled.state_names, *compiled.algebraic_names)
-        return Solution(
-            t=times,
-            values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
-            method=self.name,
-            settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
-            wall_time=wall,
-            stats=stepper.stats,
-            compiled=compiled,
-            parameters=start.p,
-            batched=start.batched,
-        )
+        return make_solution(self, compiled, start, options, times, values, wall, stepper.stats)
 
 
 def embedded_weights(tableau) -> tuple[float, np.ndarray]:

@@ -11,14 +11,13 @@ problems.  This is the reference the paper used for the pendulum, which has no c
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.base import DEFAULT_OUTPUT_POINTS, AbstractBackend, check_number, output_times
+from daemodel.backends.base import DEFAULT_OUTPUT_POINTS, AbstractBackend, check_number, make_solution, output_times
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
 from daemodel.init import NumericSystem
-from daemodel.solution import Solution
 
 INTEGRATORS = ("DOP853", "RK45", "Radau", "BDF", "LSODA")
 # Newton for z(t, y): iterations, and the relative size of the last step that ends it.
@@ -58,7 +57,7 @@ class ReferenceBackend(AbstractBackend):
     Options = ReferenceOptions
     max_index = 3
 
-    def solve(self, compiled, t_span, start, options: ReferenceOptions) -> Solution:
+    def solve(self, compiled, t_span, start, options: ReferenceOptions):
         from scipy.integrate import solve_ivp
 
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
@@ -113,15 +112,4 @@ class ReferenceBackend(AbstractBackend):
             for key in ("nfev", "njev", "nlu"):
                 stats[key] += int(getattr(result, key))
         wall = time.perf_counter() - began
-        names = (*compiled.state_names, *compiled.algebraic_names)
-        return Solution(
-            t=times,
-            values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
-            method=self.name,
-            settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
-            wall_time=wall,
-            stats=stats,
-            compiled=compiled,
-            parameters=start.p,
-            batched=start.batched,
-        )
+        return make_solution(self, compiled, start, options, times, values, wall, stats)
