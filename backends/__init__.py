@@ -17,6 +17,7 @@ REGISTRY: dict[str, str] = {
     "casadi-collocation": "daemodel.backends.casadi:CollocationBackend",
     "casadi-idas": "daemodel.backends.casadi:IDASBackend",
     "reference": "daemodel.backends.reference:ReferenceBackend",
+    "pinn": "daemodel.backends.pinn.backend:PINNBackend",
 }
 
 

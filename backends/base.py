@@ -27,8 +27,11 @@ from daemodel.errors import InvalidOptionError, StepSizeError, TimeSpanError
 DEFAULT_OUTPUT_POINTS = 101
 
 
-def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict):
-    """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order."""
+def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None):
+    """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
+
+    ``settings`` defaults to the options' fields (less ``t_eval``).
+    """
     from dataclasses import asdict
 
     from daemodel.solution import Solution
@@ -38,7 +41,7 @@ def make_solution(backend, compiled, start, options, times, values, wall_time: f
         t=np.asarray(times, dtype=float),
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
         method=backend.name,
-        settings={k: v for k, v in asdict(options).items() if k != "t_eval"},
+        settings=settings if settings is not None else {k: v for k, v in asdict(options).items() if k != "t_eval"},
         wall_time=wall_time,
         stats=stats,
         compiled=compiled,

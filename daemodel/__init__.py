@@ -3,11 +3,32 @@ Radau-PINN and classical solvers."""
 
 from daemodel import errors
 from daemodel.backends import methods
+from daemodel.backends.pinn.config import PINNConfig
 from daemodel.compiled import CompiledDAE
 from daemodel.model import Model
 from daemodel.solution import Solution
 from daemodel.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 
-__all__ = ["CompiledDAE", "Model", "RadauIIA", "Solution", "errors", "methods", "radau_iia", "solve"]
+__all__ = [
+    "CompiledDAE",
+    "Model",
+    "PINNConfig",
+    "RadauIIA",
+    "Solution",
+    "Surrogate",
+    "errors",
+    "methods",
+    "radau_iia",
+    "solve",
+]
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # Surrogate needs torch; load it on first use so that importing daemodel stays light.
+    if name == "Surrogate":
+        from daemodel.backends.pinn.surrogate import Surrogate
+
+        return Surrogate
+    raise AttributeError(f"module 'daemodel' has no attribute {name!r}")

@@ -80,6 +80,10 @@ class CompiledDAE:
         for array in (self.parameter_values, self.y0, self.z0):
             array.flags.writeable = False
 
+    def __getstate__(self) -> dict:
+        # Generated functions live in the cache and do not pickle; a copy regenerates them.
+        return {**self.__dict__, "_cache": {}}
+
     # ---- names and structure ------------------------------------------------------------
     @property
     def index(self) -> int:

@@ -120,3 +120,11 @@ class ConvergenceError(ModelError):
 
 class ComparisonError(ModelError):
     """Two solutions (or a solution and a reference) cannot be compared: no common variables or times."""
+
+
+class TrainingError(ConvergenceError):
+    """Radau-PINN training failed: a loss term is NaN, exploded, or missed its tolerance."""
+
+
+class NetworkFileError(ModelError):
+    """A saved network file does not exist, is not a daemodel network, or belongs to another model."""

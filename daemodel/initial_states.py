@@ -183,3 +183,31 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
                 f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
             )
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
+
+
+def project_states(compiled, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The nearest states to the rows of ``Y`` (B, n) that satisfy every z-free constraint level.
+
+    A batched form of :func:`daemodel.init.project`: ``y = y0 - C^T mu`` with ``C C^T mu =
+    c(y_k) + C (y0 - y_k)``, whose fixed points are the least-change projections.
+    """
+    from daemodel.init import PROJECTION_MAXITER
+
+    numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+    exprs = [e for _, _, e in hidden_constraints(compiled.constraints)]
+    Y0 = np.array(Y, dtype=float)
+    if not exprs:
+        return Y0
+    residual = numeric.batch_function(exprs)
+    jacobian = numeric.batch_jacobian(exprs, compiled.states)
+    Z = np.zeros((len(Y0), len(compiled.algebraics)))
+    y = Y0.copy()
+    for _ in range(PROJECTION_MAXITER):
+        C = jacobian(compiled.t0, y, Z, P)
+        rhs = residual(compiled.t0, y, Z, P) + np.einsum("bln,bn->bl", C, Y0 - y)
+        mu = np.einsum("blk,bk->bl", np.linalg.pinv(C @ C.transpose(0, 2, 1)), rhs)
+        y_new = Y0 - np.einsum("bln,bl->bn", C, mu)
+        if np.max(np.abs(y_new - y)) <= 1e-15 * (1 + np.max(np.abs(y))):
+            return y_new
+        y = y_new
+    return y

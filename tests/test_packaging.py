@@ -31,8 +31,10 @@ def test_public_api():
     assert set(dm.__all__) == {
         "CompiledDAE",
         "Model",
+        "PINNConfig",
         "RadauIIA",
         "Solution",
+        "Surrogate",
         "errors",
         "methods",
         "radau_iia",

@@ -49,7 +49,7 @@ def test_step_sizes(pendulum):
 def test_unknown_method_lists_the_known_ones(pendulum):
     with pytest.raises(E.UnknownMethodError, match="unknown method 'rk4'; the methods are radau, casadi-collocation"):
         dm.solve(pendulum, (0.0, 1.0), method="rk4")
-    assert dm.methods() == ("radau", "casadi-collocation", "casadi-idas", "reference")
+    assert dm.methods() == ("radau", "casadi-collocation", "casadi-idas", "reference", "pinn")
 
 
 def test_unknown_option_lists_the_method_options(pendulum):

@@ -1,0 +1,173 @@
+"""``method="pinn"``: the Radau-PINN behind :func:`daemodel.solve`."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from daemodel.backends.base import AbstractBackend, fixed_grid, make_solution
+from daemodel.backends.pinn.config import PINNConfig
+
+from daemodel.errors import InvalidOptionError, ModelError, ShapeError
+
+
+def resolve_model(model):
+    """A CompiledDAE from a Model or a CompiledDAE."""
+    from daemodel.compiled import CompiledDAE
+    from daemodel.model import Model
+
+    if isinstance(model, Model):
+        model = model.compile()
+    if not isinstance(model, CompiledDAE):
+        raise ModelError(f"expected a Model or a CompiledDAE; got {type(model).__name__}")
+    return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
+
+
+def show_progress(progress: bool | None) -> bool:
+    """``progress`` as given, or whether stderr is a terminal."""
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return bool(progress)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PINNOptions:
+    """Options of ``method="pinn"``.
+
+    Attributes
+    ----------
+    config : PINNConfig
+        The network, loss and optimizer settings (default: the fast mode).
+    segment_starts : Solution or array, optional
+        Known states at the start of every segment, from a classical solve on a grid that
+        contains the segment boundaries or an earlier sweep: an array (segments, n) or
+        (B, segments, n) in state order, or a Solution.  The segments then train
+        independently (in ``workers`` processes) instead of one after the other.
+    workers : int
+        Processes for segment-parallel training (with ``segment_starts``).
+    progress : bool, optional
+        Show a progress bar with the segment, the iteration and the loss terms (default: when
+        stderr is a terminal).
+    save : str or Path, optional
+        Write the trained networks here (load them with :meth:`Surrogate.load`).
+    """
+
+    config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
+    segment_starts: object = None
+    workers: int = 1
+    progress: bool | None = None
+    save: object = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.config, PINNConfig):
+            raise InvalidOptionError(
+                f"config must be a dm.PINNConfig; got {type(self.config).__name__} (e.g. config=dm.PINNConfig(h=0.05))"
+            )
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
+            raise InvalidOptionError(f"workers must be a positive integer; got {self.workers!r}")
+        if self.workers > 1 and self.segment_starts is None:
+            raise InvalidOptionError(
+                "workers > 1 trains segments in parallel, which needs segment_starts (known start values); "
+                "without them each segment waits for the previous one's prediction"
+            )
+        if self.progress is not None and not isinstance(self.progress, bool):
+            raise InvalidOptionError(f"progress must be True, False or None; got {self.progress!r}")
+
+
+class PINNBackend(AbstractBackend):
+    """Radau-PINN: one network per segment, trained on the Radau IIA stage residual."""
+
+    name = "pinn"
+    Options = PINNOptions
+    max_index = 2
+
+    def solve(self, compiled, t_span, start, options: PINNOptions):
+        import torch
+        from daemodel.backends.pinn.surrogate import Surrogate
+        from daemodel.backends.pinn.train import Progress, fit_parallel, fit_sequential
+
+        config = options.config
+        grid = fixed_grid(t_span, config.h)
+        segments = len(grid) - 1
+        dtype = getattr(torch, config.dtype)
+        # Parameters that differ between samples are network inputs; the others are constants.
+        varying = [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
+        inputs = tuple(compiled.parameter_names[i] for i in varying)
+        began = time.perf_counter()
+        bar = Progress(segments, show_progress(options.progress), "pinn")
+        try:
+            if options.segment_starts is None:
+                x0 = torch.as_tensor(np.concatenate([start.y0, start.p[:, varying]], axis=1), dtype=dtype)
+                p = torch.as_tensor(np.array(start.p), dtype=dtype, device=config.device)
+                networks, stats = fit_sequential(compiled, grid, x0.to(config.device), p, config, bar)
+                mode = "sequential"
+            else:
+                known = _segment_starts(options.segment_starts, compiled, grid, start.size)
+                starts = np.concatenate(
+                    [known, np.broadcast_to(start.p[:, varying], (segments, *start.p[:, varying].shape))], axis=2
+                )
+                networks, stats = fit_parallel(compiled, grid, starts, start.p, config, options.workers, bar)
+                mode = "parallel"
+        finally:
+            bar.close()
+        trained = time.perf_counter()
+        surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)
+        ends = surrogate.rollout(start.y0, start.p)
+        done = time.perf_counter()
+        values = np.concatenate([np.concatenate([start.y0, start.z0], axis=1)[:, None, :], ends], axis=1)
+        summary = {
+            "mode": mode,
+            "optimizer": config.optimizer,
+            "segments": segments,
+            "networks_per_segment": networks[0].count,
+            "parameters_per_segment": networks[0].parameter_count(),
+            "training_seconds": trained - began,
+            "evaluation_seconds": done - trained,
+            **{key: [getattr(s, key) for s in stats] for key in ("iterations", "L_f", "L_g", "L_s", "max_residual")},
+            "segment_seconds": [s.seconds for s in stats],
+        }
+        if mode == "parallel":
+            # how far the chained prediction drifted from the given start values
+            summary["start_mismatch"] = (
+                float(np.abs(ends[:, :-1, : known.shape[2]] - known[1:].transpose(1, 0, 2)).max())
+                if segments > 1
+                else 0.0
+            )
+        if options.save is not None:
+            surrogate.save(Path(options.save))
+        settings = {**dataclasses.asdict(config), "workers": options.workers}
+        return make_solution(self, compiled, start, options, grid, values, done - began, summary, settings=settings)
+
+
+def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:
+    """Known start states of each segment, shape (segments, B, n)."""
+    from daemodel.solution import Solution
+
+    segments, n = len(grid) - 1, len(compiled.states)
+    if isinstance(given, Solution):
+        rows = []
+        for t in grid[:-1]:
+            hit = np.flatnonzero(np.isclose(given.t, t, rtol=0, atol=1e-9 * max(1.0, abs(t))))
+            if hit.size == 0:
+                raise ShapeError(
+                    f"segment_starts: the solution has no value at t = {t:g}; solve it on a grid that "
+                    f"contains the segment boundaries (e.g. method='radau', h={grid[1] - grid[0]:g})"
+                )
+            rows.append(hit[0])
+        values = np.stack([np.atleast_2d(given[name])[:, rows] for name in compiled.state_names], axis=-1)  # (B', S, n)
+    else:
+        values = np.asarray(given, dtype=float)
+        if values.ndim == 2:
+            values = values[None]
+    if values.ndim != 3 or values.shape[1:] != (segments, n) or values.shape[0] not in (1, batch):
+        raise ShapeError(
+            f"segment_starts must have shape ({segments}, {n}) or ({batch}, {segments}, {n}) "
+            f"(segments, states {', '.join(compiled.state_names)}); got {np.shape(values)}"
+        )
+    if not np.all(np.isfinite(values)):
+        raise ShapeError("segment_starts holds non-finite values")
+    return np.ascontiguousarray(np.broadcast_to(values, (batch, segments, n)).transpose(1, 0, 2))

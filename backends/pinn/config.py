@@ -1,0 +1,197 @@
+"""``PINNConfig``: every setting of the Radau-PINN, frozen and checked (no torch import here)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from daemodel.backends.base import check_dtype, check_number, check_stages
+
+from daemodel.errors import InvalidOptionError
+
+ACTIVATIONS = ("tanh", "sigmoid", "sin", "gelu", "softplus")
+ARCHITECTURES = ("per-variable", "shared")
+OPTIMIZERS = ("lm", "lbfgs", "adam")
+# Iteration caps when ``iterations`` is not given: LM and L-BFGS stop on ``tol`` long before.
+DEFAULT_ITERATIONS = {"lm": 200, "lbfgs": 5000, "adam": 100_000}
+# Default step of each optimizer (LM has none: its damping adapts).
+DEFAULT_LEARNING_RATE = {"lm": None, "lbfgs": 1.0, "adam": 1e-3}
+# Stop when every residual component is below this.  An index-2 algebraic variable moves by
+# about residual / h (1e-11 left z 1e-8 from Newton's at h = 0.05); LM converges
+# quadratically, so the extra digits cost about one iteration.
+DEFAULT_TOL = 1e-12
+# The paper's problems and their activations (Hessenberg: sigmoid; pendulum: sin).
+PAPER_ACTIVATION = {"hessenberg": "sigmoid", "pendulum": "sin"}
+# Jagtap et al.'s adaptive activation: phi(eta * l * x) with l initialised to 1/eta.
+PAPER_ETA = 10.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class PINNConfig:
+    """Settings of ``method="pinn"``: the network, the loss, the optimizer and the segments.
+
+    The defaults are the fast mode: float64, Levenberg-Marquardt on the residual vector,
+    warm start from the previous segment, stopping when every residual is below ``tol``.
+    :meth:`paper` gives the paper's recipe (Adam, 100k iterations per segment).
+
+    Attributes
+    ----------
+    stages : int
+        Radau IIA stages v (order 2v-1).
+    h : float
+        Segment length: one network per segment; the last one is shortened to end at t1.
+    width, depth : int
+        Hidden width and number of hidden layers of each network.
+    activation : str
+        One of ``tanh``, ``sigmoid``, ``sin``, ``gelu``, ``softplus``.
+    eta : float
+        Scale of the adaptive activation: the first hidden layer is ``phi(eta * l * x W + b)``
+        with a trainable slope ``l`` that starts at ``1 / eta``.
+    architecture : str
+        ``"per-variable"`` (the paper's approach 2: one network per differential variable, two
+        for the algebraic variables, stages and end values) or ``"shared"`` (approach 1: one
+        network for all outputs).
+    increment : bool
+        Predict the differential outputs as ``y_n + h * N(y_n)`` instead of ``N(y_n)``; the
+        network then learns an O(1) slope rather than the state itself.  Off in :meth:`paper`.
+    weight_f, weight_g, weight_s : float
+        The loss weights W_f, W_g, W_s.
+    optimizer : str
+        ``"lm"`` (Levenberg-Marquardt), ``"lbfgs"`` or ``"adam"``.
+    iterations : int, optional
+        Cap on iterations per segment (default: 200 for lm, 5000 for lbfgs, 100000 for adam).
+    tol : float or None
+        Stop a segment when every residual component is at most ``tol``; a segment that ends
+        its iterations above it is an error.  None runs all ``iterations`` (the paper's recipe).
+    learning_rate : float, optional
+        Adam's or L-BFGS's step (default 1e-3 and 1.0).
+    samples : int
+        Training inputs per segment and trajectory: the segment's start plus ``samples - 1``
+        points drawn uniformly in a box of half-width ``radius`` around it.
+    radius : float
+        Half-width of that box (relative to ``max(1, |y_n|)`` per variable).
+    warm_start : bool
+        Start each segment from the previous segment's trained network.
+    dtype : "float64" or "float32"
+    device : str
+        A torch device ("cpu", "cuda", ...).
+    seed : int
+        Seeds the initial weights and the samples: equal seeds give equal results.
+    """
+
+    stages: int = 3
+    h: float = 0.05
+    width: int = 20
+    depth: int = 2
+    activation: str = "tanh"
+    eta: float = 1.0
+    architecture: str = "per-variable"
+    increment: bool = True
+    weight_f: float = 1.0
+    weight_g: float = 1.0
+    weight_s: float = 1.0
+    optimizer: str = "lm"
+    iterations: int | None = None
+    tol: float | None = DEFAULT_TOL
+    learning_rate: float | None = None
+    samples: int = 1
+    radius: float = 0.0
+    warm_start: bool = True
+    dtype: str = "float64"
+    device: str = "cpu"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_stages(self.stages)
+        check_number("h", self.h)
+        for name in ("width", "depth", "samples"):
+            check_number(name, getattr(self, name), integer=True)
+        check_number("iterations", self.iterations, integer=True, allow_none=True)
+        for name in ("eta", "weight_f", "weight_g", "weight_s"):
+            check_number(name, getattr(self, name))
+        check_number("tol", self.tol, allow_none=True)
+        check_number("learning_rate", self.learning_rate, allow_none=True)
+        check_number("radius", self.radius, positive=False)
+        check_number("seed", self.seed, positive=False, integer=True)
+        if self.radius < 0:
+            raise InvalidOptionError(f"radius must be >= 0; got {self.radius!r}")
+        for name, allowed in (
+            ("activation", ACTIVATIONS),
+            ("architecture", ARCHITECTURES),
+            ("optimizer", OPTIMIZERS),
+        ):
+            if getattr(self, name) not in allowed:
+                raise InvalidOptionError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        for name in ("increment", "warm_start"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
+        if self.samples > 1 and self.radius == 0:
+            raise InvalidOptionError(
+                f"samples = {self.samples} with radius = 0 would train on {self.samples} copies of one point; "
+                "give radius > 0 or samples = 1"
+            )
+        if self.optimizer == "lm" and self.learning_rate is not None:
+            raise InvalidOptionError("optimizer 'lm' has no learning_rate (its damping adapts); leave it None")
+        if self.tol is None and self.optimizer != "adam":
+            raise InvalidOptionError(
+                f"optimizer {self.optimizer!r} stops on tol; tol=None (a fixed iteration count) is the "
+                "paper's Adam recipe only"
+            )
+        object.__setattr__(self, "dtype", check_dtype(self.dtype))
+        if not isinstance(self.device, str):
+            object.__setattr__(self, "device", str(self.device))
+        if self.iterations is None:
+            object.__setattr__(self, "iterations", DEFAULT_ITERATIONS[self.optimizer])
+        if self.learning_rate is None:
+            object.__setattr__(self, "learning_rate", DEFAULT_LEARNING_RATE[self.optimizer])
+
+    @classmethod
+    def paper(cls, problem: str, **changes) -> PINNConfig:
+        """The paper's settings for ``problem`` ("hessenberg" or "pendulum"), with ``changes``.
+
+        Three stages, h = 0.05, approach 2, five hidden layers of 100, the problem's
+        activation with Jagtap's adaptive slope (eta = 10), Adam at 1e-3 for 100,000
+        iterations per segment, a fresh network per segment, outputs predicted directly.
+        The paper trains each segment at its start value alone (one sample).  We keep
+        float64 so its errors compare with the classical solvers'.
+        """
+        if problem not in PAPER_ACTIVATION:
+            raise InvalidOptionError(
+                f"the paper's problems are {', '.join(PAPER_ACTIVATION)}; got {problem!r}"
+                " (for another model, start from PINNConfig(...) instead)"
+            )
+        settings = {
+            "stages": 3,
+            "h": 0.05,
+            "width": 100,
+            "depth": 5,
+            "activation": PAPER_ACTIVATION[problem],
+            "eta": PAPER_ETA,
+            "architecture": "per-variable",
+            "increment": False,
+            "optimizer": "adam",
+            "iterations": 100_000,
+            "tol": None,
+            "learning_rate": 1e-3,
+            "samples": 1,
+            "radius": 0.0,
+            "warm_start": False,
+        }
+        return cls(**{**settings, **changes})
+
+    def replace(self, **changes) -> PINNConfig:
+        """A copy with ``changes`` applied (and checked); an unknown name is an error."""
+        fields = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - fields)
+        if unknown:
+            raise InvalidOptionError(
+                f"PINNConfig has no setting {', '.join(map(repr, unknown))}; "
+                f"its settings are {', '.join(sorted(fields))}"
+            )
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if "optimizer" in changes:
+            # Optimizer-dependent defaults follow the new optimizer unless given explicitly.
+            for name, table in (("iterations", DEFAULT_ITERATIONS), ("learning_rate", DEFAULT_LEARNING_RATE)):
+                if values[name] == table[self.optimizer]:
+                    values[name] = None
+        return PINNConfig(**{**values, **changes})

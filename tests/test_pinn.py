@@ -1,0 +1,336 @@
+"""Radau-PINN: architecture, the loss's identity with the Newton equations, training to the
+Radau ceiling, segment-parallel training, save/load, and every error message."""
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from daemodel.backends.pinn.loss import RadauLoss
+from daemodel.backends.pinn.network import Outputs, RadauNetwork
+from daemodel.backends.pinn.train import Segment, SegmentTrainer
+
+import daemodel as dm
+from daemodel.errors import InvalidOptionError, NetworkFileError, ShapeError, TrainingError
+from daemodel.problems import HESSENBERG, PENDULUM
+
+EXACT = HESSENBERG.exact_solution()
+F64 = torch.float64
+
+
+def network(config, inputs=4, n=4, m=1, seed=0):
+    return RadauNetwork(inputs, n, m, config, torch.Generator().manual_seed(seed))
+
+
+# ---- architecture -------------------------------------------------------------------------------
+@pytest.mark.parametrize(("architecture", "count"), [("per-variable", 6), ("shared", 1)])
+def test_network_count_and_output_shapes(architecture, count):
+    cfg = dm.PINNConfig(architecture=architecture, stages=3, width=8, depth=3)
+    net = network(cfg)
+    assert net.count == count  # approach 2: one per differential variable + two algebraic; approach 1: one
+    x = torch.rand(7, 4, dtype=F64)
+    out = net.predict(x, 0.05)
+    assert out.Y.shape == (7, 3, 4) and out.y_end.shape == (7, 4)
+    assert out.Z.shape == (7, 3, 1) and out.z_end.shape == (7, 1)
+    assert net.W_gate.shape == (2, count, 8, 8)  # depth 3 = H_1 plus two gated layers
+
+
+def test_per_variable_networks_are_independent():
+    # approach 2: the outputs of differential variable y2 depend on the parameters of its own network only
+    net = network(dm.PINNConfig(width=6, depth=2))
+    x = torch.rand(3, 4, dtype=F64)
+    raw = net(x)
+    y2_columns = [i * 4 + 1 for i in range(3)] + [3 * 4 + 1]  # stages of y2, then its end value
+    grad = torch.autograd.grad(raw[:, y2_columns].sum(), net.W_out)[0]
+    assert grad[1].abs().sum() > 0
+    assert torch.all(grad[[0, 2, 3, 4, 5]] == 0)
+
+
+def test_adaptive_slope_is_trainable_and_starts_at_one_over_eta():
+    net = network(dm.PINNConfig(eta=10.0, width=6, depth=2))
+    assert net.slope.requires_grad
+    assert torch.allclose(net.slope, torch.full_like(net.slope, 0.1))
+    net(torch.rand(5, 4, dtype=F64)).pow(2).sum().backward()
+    assert net.slope.grad is not None and net.slope.grad.abs().sum() > 0
+
+
+def test_increment_form_predicts_y_n_plus_h_times_network():
+    cfg = dm.PINNConfig(width=6, depth=2)
+    net = network(cfg)
+    x = torch.rand(2, 4, dtype=F64)
+    raw = net(x)
+    out = net.predict(x, 0.05)
+    assert torch.allclose(out.y_end, x + 0.05 * raw[:, 12:16])
+    direct = network(cfg.replace(increment=False))
+    assert torch.allclose(direct.predict(x, 0.05).y_end, direct(x)[:, 12:16])
+
+
+# ---- the loss is the Newton system --------------------------------------------------------------
+@pytest.mark.parametrize("s", [2, 3, 5])
+def test_loss_is_zero_at_the_newton_stage_values(s):
+    c = PENDULUM.model().compile()
+    h = 0.05
+    tableau = dm.radau_iia(s)
+    stages = dm.solve(c, (0.0, h), method="radau", stages=s, h=h, t_eval=np.asarray(tableau.c, dtype=float) * h)
+    Y = torch.tensor(np.stack([stages[k] for k in c.state_names], axis=-1), dtype=F64)[None]  # (1, s, n)
+    Z = torch.tensor(np.stack([stages[k] for k in c.algebraic_names], axis=-1), dtype=F64)[None]
+    y_n = torch.tensor(c.y0, dtype=F64)[None]
+    loss = RadauLoss(c.torch_functions(dtype=F64), tableau, dm.PINNConfig(stages=s), F64, "cpu")
+    p = torch.tensor(c.parameter_values, dtype=F64)[None]
+    exact = Outputs(Y=Y, y_end=Y[:, -1], Z=Z, z_end=Z[:, -1])
+    terms = loss.residuals(0.0, h, y_n, p, exact).terms()
+    assert max(terms.values()) < 1e-26, terms
+    perturbed = Outputs(Y=Y + 1e-6, y_end=Y[:, -1], Z=Z, z_end=Z[:, -1])
+    assert loss.residuals(0.0, h, y_n, p, perturbed).terms()["L_f"] > 1e-14
+
+
+# ---- fast mode reaches the ceiling ---------------------------------------------------------------
+def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
+    c = HESSENBERG.model().compile()
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(activation="sigmoid"))
+    radau = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05)
+    pinn_err, radau_err = sol.errors(EXACT), radau.errors(EXACT)
+    for name in c.state_names + c.algebraic_names:
+        assert pinn_err[name]["max"] <= 1e-6
+        assert pinn_err[name]["max"] <= 3 * radau_err[name]["max"], name
+    assert len(sol.stats["L_f"]) == len(sol.stats["iterations"]) == 20
+    assert max(sol.stats["max_residual"]) <= 1e-12
+    assert sol.method == "pinn" and sol.settings["optimizer"] == "lm"
+
+
+def test_fast_mode_on_the_pendulum_matches_radau_per_variable():
+    c = PENDULUM.model().compile()
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(activation="sin"))
+    radau = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05)
+    ref = dm.solve(c, (0.0, 1.0), method="reference", t_eval=sol.t)
+    pinn_err, radau_err = sol.errors(ref), radau.errors(ref)
+    for name in c.state_names + c.algebraic_names:
+        assert pinn_err[name]["max"] <= 3 * radau_err[name]["max"], name
+
+
+@pytest.mark.parametrize(("optimizer", "tol"), [("lbfgs", 1e-8), ("adam", 1e-2)])
+def test_first_order_optimizers_train_a_segment_to_tol(optimizer, tol):
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig(optimizer=optimizer, tol=tol, width=10, iterations=3000)
+    sol = dm.solve(c, (0.0, 0.05), method="pinn", config=cfg)
+    assert sol.stats["max_residual"][0] <= tol
+    assert sol.stats["iterations"][0] < 3000  # stopped on the tolerance
+    assert sol.errors(EXACT)["y1"]["max"] < 10 * tol
+
+
+def test_batch_with_varying_parameters_makes_them_network_inputs():
+    c = PENDULUM.model().compile()
+    y0 = {"y1": np.ones(3), "y4": np.ones(3)}
+    params = {"lam": np.array([0.5, 1.0, 2.0])}
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", y0=y0, parameters=params)
+    radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05, y0=y0, parameters=params)
+    assert sol["y4"].shape == (3, 5)
+    np.testing.assert_allclose(sol["y4"], radau["y4"], atol=1e-10)
+    np.testing.assert_allclose(sol["y5"], radau["y5"], atol=1e-8)
+
+
+def test_seed_makes_training_deterministic():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig(optimizer="adam", tol=None, iterations=30, seed=3)
+    a = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
+    b = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
+    other = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg.replace(seed=4))
+    assert np.array_equal(a["y5"], b["y5"])
+    assert not np.array_equal(a["y5"], other["y5"])
+
+
+def test_paper_recipe_runs_and_reports_its_loss_terms():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig.paper("hessenberg", iterations=50)
+    assert (cfg.width, cfg.depth, cfg.activation, cfg.optimizer, cfg.architecture) == (
+        100,
+        5,
+        "sigmoid",
+        "adam",
+        "per-variable",
+    )
+    assert dm.PINNConfig.paper("pendulum").activation == "sin"
+    sol = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
+    assert sol.stats["iterations"] == [50, 50]
+    assert all(np.isfinite(sol.stats[k]).all() for k in ("L_f", "L_g", "L_s"))
+    assert sol.stats["networks_per_segment"] == 6
+
+
+def test_progress_bar_shows_segment_iteration_and_loss_terms(capsys):
+    c = HESSENBERG.model().compile()
+    dm.solve(c, (0.0, 0.1), method="pinn", progress=True)
+    err = capsys.readouterr().err
+    assert "seg 2" in err and "L_f=" in err and "L_s=" in err
+
+
+# ---- segment-parallel training -------------------------------------------------------------------
+@pytest.mark.parametrize("workers", [1, 2])
+def test_segment_parallel_training_from_known_starts(workers):
+    c = HESSENBERG.model().compile()
+    radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, workers=workers)
+    assert sol.stats["mode"] == "parallel"
+    assert sol.stats["start_mismatch"] < 1e-10
+    for name in sol.names:
+        np.testing.assert_allclose(sol[name], radau[name], atol=1e-9)
+
+
+def test_segment_starts_as_an_array():
+    c = HESSENBERG.model().compile()
+    radau = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.05)
+    starts = np.stack([radau[k][:2] for k in c.state_names], axis=-1)
+    sol = dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=starts)
+    np.testing.assert_allclose(sol["y1"], radau["y1"], atol=1e-10)
+
+
+# ---- save and load --------------------------------------------------------------------------------
+def test_saved_networks_reload_and_reproduce_the_solution(tmp_path):
+    c = HESSENBERG.model().compile()
+    path = tmp_path / "hessenberg.pt"
+    sol = dm.solve(c, (0.0, 0.1), method="pinn", save=path)
+    surrogate = dm.Surrogate.load(path, c)
+    again = surrogate.solve()
+    for name in sol.names:
+        np.testing.assert_array_equal(sol[name], again[name])
+    assert surrogate.stats[0].iterations == sol.stats["iterations"][0]
+
+
+def test_surrogate_training_on_a_box_generalises_to_new_states():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig(architecture="shared", width=12, tol=1e-4, iterations=100)
+    box = {name: (0.98, 1.02) for name in c.state_names}
+    surrogate = dm.Surrogate.train(c, (0.0, 0.1), box=box, samples=64, config=cfg)
+    assert all(s.max_residual <= 1e-4 for s in surrogate.stats)
+    rng = np.random.default_rng(0)
+    y = rng.uniform(0.99, 1.01, (50, 3))
+    y0 = np.column_stack([y, y[:, 1] * y[:, 2] / y[:, 0]])  # on the constraint y1 y4 = y2 y3
+    sol = surrogate.solve(y0=y0)
+    radau = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.05, y0=y0)
+    assert sol["y1"].shape == (50, 3) and sol.stats["mode"] == "surrogate"
+    y_error = max(np.abs(sol[k] - radau[k]).max() for k in c.state_names)
+    z_error = np.abs(sol["y5"] - radau["y5"]).max()
+    print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")
+    assert y_error < 3e-4 and z_error < 3e-2  # z amplifies the fit's residual by ~1/h (index 2)
+
+
+# ---- errors ---------------------------------------------------------------------------------------
+def test_nan_loss_names_the_segment_and_the_term():
+    m = dm.Model("root")
+    m.states(["x"])
+    m.algebraics(["w"])
+    m.ode("x", "sqrt(0.05 - t) + w")
+    m.constraint("x - w", name="tie")
+    m.initial(x=0.0)
+    with pytest.raises(TrainingError, match=r"segment 2 \(t = 0.05 to 0.1\): loss term L_f.* not finite"):
+        dm.solve(m, (0.0, 0.2), method="pinn")
+
+
+def test_unreached_tolerance_names_the_segment_and_the_largest_term():
+    c = HESSENBERG.model().compile()
+    with pytest.raises(
+        TrainingError, match=r"segment 1 .*still .* > tol = 1e-12 after 1 lm iterations .*largest term L_"
+    ):
+        dm.solve(c, (0.0, 0.1), method="pinn", config=dm.PINNConfig(iterations=1))
+
+
+def test_exploding_loss_is_an_error():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig(optimizer="adam", learning_rate=50.0, tol=None, iterations=200, activation="softplus")
+    with pytest.raises(TrainingError, match=r"segment 1 .*loss exploded at iteration \d+"):
+        dm.solve(c, (0.0, 0.05), method="pinn", config=cfg)
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"stages": 8}, "stages must be an integer from 1 to 7"),
+        ({"h": -0.1}, "h must be positive"),
+        ({"width": 2.5}, "width must be a finite integer"),
+        ({"activation": "relu"}, "activation must be one of tanh, sigmoid, sin"),
+        ({"architecture": "mixed"}, "architecture must be one of per-variable, shared"),
+        ({"optimizer": "sgd"}, "optimizer must be one of lm, lbfgs, adam"),
+        ({"samples": 5}, "samples = 5 with radius = 0"),
+        ({"radius": -1.0}, "radius must be >= 0"),
+        ({"learning_rate": 0.1}, "optimizer 'lm' has no learning_rate"),
+        ({"tol": None}, "tol=None .* is the paper's Adam recipe only"),
+        ({"increment": 1}, "increment must be True or False"),
+        ({"dtype": "float16"}, "dtype must be 'float64'"),
+    ],
+)
+def test_config_errors(settings, message):
+    with pytest.raises(InvalidOptionError, match=message):
+        dm.PINNConfig(**settings)
+
+
+def test_config_paper_and_replace_errors():
+    with pytest.raises(InvalidOptionError, match="the paper's problems are hessenberg, pendulum; got 'robertson'"):
+        dm.PINNConfig.paper("robertson")
+    with pytest.raises(InvalidOptionError, match="PINNConfig has no setting 'widht'"):
+        dm.PINNConfig().replace(widht=3)
+    assert dm.PINNConfig().replace(optimizer="adam").iterations == 100_000  # defaults follow the optimizer
+
+
+def test_option_errors(tmp_path):
+    c = HESSENBERG.model().compile()
+    with pytest.raises(InvalidOptionError, match=r"config must be a dm\.PINNConfig; got dict"):
+        dm.solve(c, (0.0, 0.1), method="pinn", config={"h": 0.05})
+    with pytest.raises(InvalidOptionError, match=r"workers > 1 .* needs segment_starts"):
+        dm.solve(c, (0.0, 0.1), method="pinn", workers=2)
+    with pytest.raises(ShapeError, match=r"segment_starts must have shape \(2, 4\) or \(1, 2, 4\)"):
+        dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=np.ones((3, 4)))
+    coarse = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.1)
+    with pytest.raises(ShapeError, match=r"segment_starts: the solution has no value at t = 0\.05"):
+        dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=coarse)
+
+
+def test_network_file_errors(tmp_path):
+    c = HESSENBERG.model().compile()
+    with pytest.raises(NetworkFileError, match="no network file at"):
+        dm.Surrogate.load(tmp_path / "missing.pt", c)
+    junk = tmp_path / "junk.pt"
+    junk.write_text("not a network")
+    with pytest.raises(NetworkFileError, match="is not a daemodel network file"):
+        dm.Surrogate.load(junk, c)
+    path = tmp_path / "h.pt"
+    dm.solve(c, (0.0, 0.05), method="pinn", save=path)
+    with pytest.raises(NetworkFileError, match="networks for model 'hessenberg' with other equations than 'pendulum'"):
+        dm.Surrogate.load(path, PENDULUM.model())
+
+
+def test_surrogate_errors():
+    c = PENDULUM.model().compile()
+    with pytest.raises(ShapeError, match="box must be a dict state name"):
+        dm.Surrogate.train(c, (0.0, 0.05), box=[0, 1])
+    with pytest.raises(dm.errors.UnknownSymbolError, match="box names 'q', which is not a state"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"q": (0, 1)})
+    with pytest.raises(InvalidOptionError, match=r"box\['y1'\] = \(1, 0\) must be finite with low < high"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y1": (1, 0)})
+    cfg = dm.PINNConfig(tol=1e-3)
+    surrogate = dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, samples=4, config=cfg)
+    with pytest.raises(InvalidOptionError, match="parameter 'lam' was fixed when these networks were trained"):
+        surrogate.solve(parameters={"lam": 2.0})
+
+
+def test_trainer_reports_each_accepted_lm_step():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig()
+    seen = []
+    from daemodel.backends.pinn.train import make_loss, make_network
+
+    net = make_network(c, cfg, 4, 0)
+    trainer = SegmentTrainer(
+        net, make_loss(c, cfg), cfg, report=lambda it, terms: seen.append((it, sum(terms.values())))
+    )
+    x = torch.ones(1, 4, dtype=F64)
+    stats = trainer.train(Segment(0, 0.0, 0.05, x, torch.zeros(1, 0, dtype=F64)))
+    assert [it for it, _ in seen] == list(range(stats.iterations + 1))
+    assert all(b < a for (_, a), (_, b) in itertools.pairwise(seen))  # LM only accepts decreases
+
+
+def test_normalising_the_inputs_keeps_the_network_function():
+    net = network(dm.PINNConfig(width=6, depth=3, eta=10.0))
+    x = torch.rand(9, 4, dtype=F64) * 3 + 1
+    before = net(x)
+    net.normalise(x)
+    assert torch.allclose(net(x), before, rtol=1e-12, atol=1e-12)
+    assert not torch.allclose(net.center, torch.zeros(4, dtype=F64))
