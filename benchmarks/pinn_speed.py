@@ -1,0 +1,201 @@
+"""Radau-PINN speed and accuracy against classical Radau IIA at the same s and h.
+
+For both paper problems (Hessenberg index 2 with sigmoid, the index-2 pendulum with sin),
+s = 3, h = 0.05 on [0, 1]:
+
+* ``radau``: the classical Newton solve (the PINN's accuracy ceiling);
+* ``pinn fast``: ``dm.PINNConfig(activation=...)``, Levenberg-Marquardt to tol = 1e-12, warm start;
+* ``pinn parallel``: the same, every segment trained independently from the radau start
+  values in 2 processes;
+* ``pinn paper``: ``dm.PINNConfig.paper(problem)`` (Adam, 5 x 100 networks, 100,000 iterations
+  per segment), run for ``--paper-iterations`` iterations per segment; its time is
+  extrapolated to 100,000 iterations and its error is the short run's (both labelled).
+
+Errors are max absolute errors per variable against the exact solution (Hessenberg) or a
+1e-12 reference (pendulum).  Then the surrogate: networks trained on a box of initial states,
+evaluated on 10,000 new ones, against batched ``method="radau"``.
+
+torch runs on 1 thread (set deliberately: 2 threads fight with anything else on a 2-core
+machine); wall times are the best of ``--repeats`` after a warm-up.  Writes
+benchmarks/pinn_speed.json and .png (``_quick`` with --quick).
+
+Run: python benchmarks/pinn_speed.py [--quick]
+"""
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import daemodel as dm
+from daemodel.problems import HESSENBERG, PENDULUM
+
+HERE = Path(__file__).resolve().parent
+STAGES, H, T_SPAN = 3, 0.05, (0.0, 1.0)
+PAPER_ITERATIONS = 100_000
+PROBLEMS = {"hessenberg": (HESSENBERG, "sigmoid"), "pendulum": (PENDULUM, "sin")}
+
+
+def best_of(repeats, run):
+    results = [run() for _ in range(repeats)]
+    return min(r.wall_time for r in results), results[-1]
+
+
+def max_errors(sol, reference) -> dict:
+    return {name: float(e["max"]) for name, e in sol.errors(reference).items()}
+
+
+def problem_rows(name, repeats, paper_iterations) -> dict:
+    problem, activation = PROBLEMS[name]
+    compiled = problem.model().compile()
+    radau_run = lambda: dm.solve(compiled, T_SPAN, stages=STAGES, h=H)  # noqa: E731
+    fast = dm.PINNConfig(activation=activation, stages=STAGES, h=H)
+    radau_run()
+    dm.solve(compiled, (0.0, H), method="pinn", config=fast)  # warm-up: code generation, torch.func
+    radau_time, radau = best_of(repeats, radau_run)
+    reference = problem.exact_solution() or dm.solve(compiled, T_SPAN, method="reference", t_eval=radau.t)
+    rows = {"radau": {"seconds": radau_time, "errors": max_errors(radau, reference)}}
+
+    fast_time, sol = best_of(repeats, lambda: dm.solve(compiled, T_SPAN, method="pinn", config=fast))
+    rows["pinn fast"] = {
+        "seconds": fast_time,
+        "errors": max_errors(sol, reference),
+        "lm_iterations": int(sum(sol.stats["iterations"])),
+        "parameters_per_segment": sol.stats["parameters_per_segment"],
+    }
+    began = time.perf_counter()
+    par = dm.solve(compiled, T_SPAN, method="pinn", config=fast, segment_starts=radau, workers=2)
+    rows["pinn parallel (2 processes, radau starts)"] = {
+        "seconds": time.perf_counter() - began,
+        "errors": max_errors(par, reference),
+        "note": "includes starting 2 worker processes; the radau solve for the starts is not counted",
+    }
+    paper = dm.PINNConfig.paper(name, iterations=paper_iterations)
+    short = dm.solve(compiled, T_SPAN, method="pinn", config=paper)
+    per_iteration = short.stats["training_seconds"] / (paper_iterations * short.stats["segments"])
+    rows["pinn paper (extrapolated)"] = {
+        "seconds": per_iteration * PAPER_ITERATIONS * short.stats["segments"],
+        "errors": max_errors(short, reference),
+        "note": (
+            f"time: {paper_iterations} Adam iterations per segment measured "
+            f"({short.stats['training_seconds']:.1f} s), scaled to {PAPER_ITERATIONS}; "
+            f"errors: after the short run of {paper_iterations} iterations"
+        ),
+        "short_run_seconds": short.stats["training_seconds"],
+        "final_L_f": short.stats["L_f"][-1],
+    }
+    ratio = {v: rows["pinn fast"]["errors"][v] / rows["radau"]["errors"][v] for v in rows["radau"]["errors"]}
+    return {"activation": activation, "methods": rows, "fast_over_radau_error": ratio}
+
+
+def surrogate_rows(quick: bool, repeats: int) -> dict:
+    compiled = HESSENBERG.model().compile()
+    half = 0.02
+    config = dm.PINNConfig(architecture="shared", width=12, tol=1e-4, iterations=100)
+    samples = 64
+    began = time.perf_counter()
+    surrogate = dm.Surrogate.train(
+        compiled, T_SPAN, box={v: (1 - half, 1 + half) for v in compiled.state_names}, samples=samples, config=config
+    )
+    train_seconds = time.perf_counter() - began
+    count = 1000 if quick else 10_000
+    rng = np.random.default_rng(2026)
+    y = rng.uniform(1 - half / 2, 1 + half / 2, (count, 3))
+    y0 = np.column_stack([y, y[:, 1] * y[:, 2] / y[:, 0]])  # consistent: y1 y4 = y2 y3
+    surrogate.solve(y0=y0[:10])
+    eval_seconds, sol = best_of(repeats, lambda: surrogate.solve(y0=y0))
+    radau_seconds, radau = best_of(repeats, lambda: dm.solve(compiled, T_SPAN, stages=STAGES, h=H, y0=y0))
+    per_state = np.max(np.stack([np.abs(sol[v] - radau[v]).max(axis=1) for v in sol.names]), axis=0)
+    errors = {v: float(np.abs(sol[v] - radau[v]).max()) for v in sol.names}
+    return {
+        "problem": "hessenberg",
+        "box": f"y1..y4 in [{1 - half}, {1 + half}] (projected on y1 y4 = y2 y3)",
+        "training_states": samples,
+        "config": {"architecture": "shared", "width": 12, "depth": 2, "tol": 1e-4},
+        "training_seconds": train_seconds,
+        "new_states": count,
+        "evaluation_seconds": eval_seconds,
+        "radau_batch_seconds": radau_seconds,
+        "max_error_per_variable": errors,
+        "error_percentiles": {
+            str(q): float(np.percentile(per_state, q)) for q in (50, 90, 99, 100)
+        },
+        "per_state_max_error": per_state.tolist() if quick else None,
+    }
+
+
+def plot(results, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13, 4.2), layout="constrained")
+    axes = fig.subplots(1, 3)
+    for ax, name in zip(axes[:2], PROBLEMS, strict=True):
+        rows = results["problems"][name]["methods"]
+        labels = list(rows)
+        variables = list(rows["radau"]["errors"])
+        width = 0.8 / len(labels)
+        for i, label in enumerate(labels):
+            errs = [max(rows[label]["errors"][v], 1e-16) for v in variables]
+            ax.bar(np.arange(len(variables)) + i * width, errs, width, label=f"{label}: {rows[label]['seconds']:.3g} s")
+        ax.set_yscale("log")
+        ax.set_xticks(np.arange(len(variables)) + width * (len(labels) - 1) / 2, variables)
+        ax.set_ylabel("max absolute error")
+        ax.set_title(f"{name} ({results['problems'][name]['activation']}), s=3, h=0.05 on [0, 1]")
+        ax.legend(fontsize=7)
+    s = results["surrogate"]
+    errors = np.array(s["per_state_max_error"] or [])
+    ax = axes[2]
+    if errors.size:
+        ax.hist(np.log10(errors), bins=40)
+        ax.set_xlabel("log10 max error per state")
+    else:
+        pct = s["error_percentiles"]
+        ax.bar(list(pct), list(pct.values()))
+        ax.set_yscale("log")
+        ax.set_xlabel("percentile of per-state max error")
+    ax.set_title(
+        f"surrogate: {s['new_states']} states in {s['evaluation_seconds']:.3f} s\n"
+        f"(batched radau {s['radau_batch_seconds']:.2f} s)"
+    )
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="50 paper iterations, 1000 surrogate states, one repeat")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--paper-iterations", type=int, default=1000)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    repeats = 1 if args.quick else args.repeats
+    paper_iterations = 50 if args.quick else args.paper_iterations
+    results = {
+        "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}, 1 thread",
+        "problems": {name: problem_rows(name, repeats, paper_iterations) for name in PROBLEMS},
+        "surrogate": surrogate_rows(args.quick, repeats),
+    }
+    for name, block in results["problems"].items():
+        print(f"{name} ({block['activation']}):")
+        for label, row in block["methods"].items():
+            errs = "  ".join(f"{v} {e:.1e}" for v, e in row["errors"].items())
+            print(f"  {label:<42} {row['seconds']:10.3f} s   {errs}")
+    s = results["surrogate"]
+    print(
+        f"surrogate: {s['new_states']} new states in {s['evaluation_seconds']:.4f} s "
+        f"(batched radau {s['radau_batch_seconds']:.3f} s); max error {max(s['max_error_per_variable'].values()):.1e}; "
+        f"percentiles {s['error_percentiles']}"
+    )
+    suffix = "_quick" if args.quick else ""
+    (HERE / f"pinn_speed{suffix}.json").write_text(json.dumps(results, indent=2) + "\n")
+    plot(results, HERE / f"pinn_speed{suffix}.png")
+
+
+if __name__ == "__main__":
+    main()
