@@ -33,7 +33,7 @@ def solve(
         ``(t0, t1)`` with ``t0 < t1``; ``t0`` is the time of the model's initial values.
     method : str
         A registered method: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
-        ``"reference"`` (see :func:`daemodel.backends.methods`).
+        ``"reference"``, ``"pinn"`` (see :func:`daemodel.backends.methods`).
     y0 : dict name -> float or array (B,), or array (n,) or (B, n), optional
         Initial states; states not named keep the model's values.  An array or a dict of
         arrays makes a batch: the solution's values get a leading axis of size B.
@@ -41,7 +41,8 @@ def solve(
         Newton's starting values (and a claim checked against the consistent values).
     parameters : dict name -> float or array (B,), or array (k,) or (B, k), optional
     **options
-        The method's options (e.g. ``stages=3, h=0.05`` or ``rtol=1e-8`` for ``"radau"``);
+        The method's options (e.g. ``stages=3, h=0.05`` or ``rtol=1e-8`` for ``"radau"``,
+        ``config=dm.PINNConfig(...)`` for ``"pinn"``);
         an option the method does not have is an error that lists the ones it has.
 
     Returns

@@ -334,3 +334,18 @@ def test_normalising_the_inputs_keeps_the_network_function():
     net.normalise(x)
     assert torch.allclose(net(x), before, rtol=1e-12, atol=1e-12)
     assert not torch.allclose(net.center, torch.zeros(4, dtype=F64))
+
+
+def test_box_samples_keep_each_point_with_its_parameters():
+    from daemodel.backends.pinn.train import training_inputs
+
+    cfg = dm.PINNConfig(samples=4, radius=0.1)
+    x = torch.tensor([[1.0, 0.0, 7.0], [-2.0, 3.0, 9.0]], dtype=F64)  # two states, then a varying parameter
+    p = torch.tensor([[7.0], [9.0]], dtype=F64)
+    inputs, params = training_inputs(x, p, 2, cfg, torch.Generator().manual_seed(0))
+    assert inputs.shape == (8, 3) and params.shape == (8, 1)
+    assert torch.equal(inputs[:2], x)
+    assert torch.equal(inputs[:, 2], params[:, 0])  # every sample carries its own parameter value
+    for row, source in ((slice(2, 5), 0), (slice(5, 8), 1)):
+        half = 0.1 * torch.clamp(x[source, :2].abs(), min=1.0)
+        assert torch.all((inputs[row, :2] - x[source, :2]).abs() <= half)  # inside the box around its source

@@ -356,17 +356,19 @@ def make_loss(compiled, config):
     return RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
 
 
-def with_box(x: torch.Tensor, n: int, config, generator: torch.Generator) -> torch.Tensor:
-    """``x`` (B, d) followed by ``samples - 1`` points per row, uniform in a box of half-width
-    ``radius * max(1, |y|)`` around its states (parameters are not perturbed)."""
+def training_inputs(x: torch.Tensor, p: torch.Tensor, n: int, config, generator: torch.Generator):
+    """A segment's training inputs and their parameter vectors: the rows of ``x`` (B, d), each
+    followed by ``samples - 1`` points uniform in a box of half-width ``radius * max(1, |y|)``
+    around its states (parameters are not perturbed)."""
     if config.samples == 1:
-        return x
+        return x, p
     B, d = x.shape
     noise = torch.rand(B, config.samples - 1, n, generator=generator, dtype=torch.float64).to(x) * 2 - 1
     half = config.radius * torch.clamp(x[:, None, :n].abs(), min=1.0)
     extra = x[:, None, :].repeat(1, config.samples - 1, 1)
     extra[..., :n] = extra[..., :n] + half * noise
-    return torch.cat([x, extra.reshape(-1, d)])
+    # extra rows are grouped by their source row, as are their parameter vectors
+    return torch.cat([x, extra.reshape(-1, d)]), torch.cat([p, p.repeat_interleave(config.samples - 1, dim=0)])
 
 
 class Progress:
@@ -413,8 +415,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, pr
     x, networks, stats, previous = x0, [], [], None
     for k in range(len(grid) - 1):
         h = float(grid[k + 1] - grid[k])
-        inputs = with_box(x, n, config, generator)
-        samples_p = p.repeat_interleave(config.samples, dim=0) if config.samples > 1 else p
+        inputs, samples_p = training_inputs(x, p, n, config, generator)
         net = (
             copy_network(previous)
             if config.warm_start and previous is not None
@@ -447,8 +448,7 @@ def fit_one(payload):
     x = torch.as_tensor(np.array(x), dtype=dtype, device=config.device)
     p = torch.as_tensor(np.array(p), dtype=dtype, device=config.device)
     generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
-    inputs = with_box(x, len(compiled.states), config, generator)
-    samples_p = p.repeat_interleave(config.samples, dim=0) if config.samples > 1 else p
+    inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
     net = make_network(compiled, config, x.shape[1], k)
     net.normalise(inputs)
     stats = SegmentTrainer(net, make_loss(compiled, config), config).train(Segment(k, t, h, inputs, samples_p))
