@@ -64,17 +64,24 @@ def solve(
         )
     opts = backend.Options(**options)
 
-    if isinstance(model, Model):
-        model = model.compile()
-    if not isinstance(model, CompiledDAE):
-        raise ModelError(f"solve() needs a Model or a CompiledDAE; got {type(model).__name__}")
-    t_span = _check_span(t_span, model)
+    model = as_compiled(model)
+    t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
     return backend.solve(compiled, t_span, start, opts)
 
 
-def _check_span(t_span, compiled) -> tuple[float, float]:
+def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
+    """A Model compiled with all outputs, or a CompiledDAE as it is."""
+    if isinstance(model, Model):
+        model = model.compile()
+    if not isinstance(model, CompiledDAE):
+        raise ModelError(f"{caller} needs a Model or a CompiledDAE; got {type(model).__name__}")
+    return model
+
+
+def check_span(t_span, compiled) -> tuple[float, float]:
+    """``(t0, t1)`` as floats, finite, increasing, starting at the model's initial time."""
     try:
         t0, t1 = (float(v) for v in t_span)
     except (TypeError, ValueError):

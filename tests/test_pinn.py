@@ -349,3 +349,8 @@ def test_box_samples_keep_each_point_with_its_parameters():
     for row, source in ((slice(2, 5), 0), (slice(5, 8), 1)):
         half = 0.1 * torch.clamp(x[source, :2].abs(), min=1.0)
         assert torch.all((inputs[row, :2] - x[source, :2]).abs() <= half)  # inside the box around its source
+
+
+def test_surrogate_needs_a_model():
+    with pytest.raises(dm.errors.ModelError, match=r"Surrogate\.train\(\) needs a Model or a CompiledDAE; got str"):
+        dm.Surrogate.train("pendulum", (0.0, 1.0), box={"y1": (0, 1)})

@@ -12,18 +12,14 @@ import numpy as np
 from daemodel.backends.base import AbstractBackend, fixed_grid, make_solution
 from daemodel.backends.pinn.config import PINNConfig
 
-from daemodel.errors import InvalidOptionError, ModelError, ShapeError
+from daemodel.errors import InvalidOptionError, ShapeError
 
 
-def resolve_model(model):
-    """A CompiledDAE from a Model or a CompiledDAE."""
-    from daemodel.compiled import CompiledDAE
-    from daemodel.model import Model
+def resolve_model(model, caller: str):
+    """A CompiledDAE of index at most 2 from a Model or a CompiledDAE."""
+    from daemodel.solver import as_compiled
 
-    if isinstance(model, Model):
-        model = model.compile()
-    if not isinstance(model, CompiledDAE):
-        raise ModelError(f"expected a Model or a CompiledDAE; got {type(model).__name__}")
+    model = as_compiled(model, caller)
     return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
 
 

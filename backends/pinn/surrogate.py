@@ -98,11 +98,11 @@ class Surrogate:
         from daemodel.backends.pinn.backend import resolve_model, show_progress
 
         from daemodel.initial_states import project_states
-        from daemodel.solver import _check_span
+        from daemodel.solver import check_span
 
-        compiled = resolve_model(model)
+        compiled = resolve_model(model, "Surrogate.train()")
         config = PINNConfig() if config is None else config
-        t_span = _check_span(t_span, compiled)
+        t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
         parameter_box = dict(parameter_box or {})
@@ -215,7 +215,7 @@ class Surrogate:
         """Read networks written by :meth:`save` (or ``solve(..., save=path)``) for ``model``."""
         from daemodel.backends.pinn.backend import resolve_model
 
-        compiled = resolve_model(model)
+        compiled = resolve_model(model, "Surrogate.load()")
         path = Path(path)
         if not path.is_file():
             raise NetworkFileError(f"no network file at {path}")

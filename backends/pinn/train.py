@@ -236,7 +236,7 @@ class SegmentTrainer:
 
     # ---- Levenberg-Marquardt --------------------------------------------------------------------
     def _jacobian(self, segment: Segment, params: dict, raw: torch.Tensor):
-        """Yield ``(rows, J)`` chunks: J = dr/dtheta of shape (rows, P), sample chunk by chunk."""
+        """Yield dr/dtheta sample chunk by sample chunk, each of shape (rows, P)."""
         net, x = self.net, segment.x
         N, U = raw.shape
 
@@ -277,17 +277,10 @@ class SegmentTrainer:
         while iteration < self.config.iterations and not self._done(residuals):
             iteration += 1
             if system is None:
-                J_chunks = list(self._jacobian(segment, params, raw))
-                if r.numel() <= sum(sizes):
-                    J = torch.cat(J_chunks)
-                    system = ("dual", J, J @ J.T, J.T @ r, (J**2).sum(0))
-                else:
-                    JtJ = sum(Jc.T @ Jc for Jc in J_chunks)
-                    system = ("primal", None, JtJ, self._jtr(J_chunks, r), torch.diagonal(JtJ).clone())
-                    del J_chunks
+                system = self._normal_system(segment, params, raw, r, sum(sizes))
                 if mu is None:
-                    mu = LM_TAU * float(system[4].max())
                     scale = float(system[4].max())
+                    mu = LM_TAU * scale
             kind, J, A, g, _ = system
             delta = self._lm_step(kind, J, A, g, r, mu)
             if delta is None:  # not positive definite: more damping
@@ -316,13 +309,21 @@ class SegmentTrainer:
                 p.copy_(params[name])
         return iteration
 
-    @staticmethod
-    def _jtr(chunks, r):
-        out, offset = 0, 0
+    def _normal_system(self, segment: Segment, params: dict, raw, r, P: int):
+        """``(kind, J, A, J^T r, diag(J^T J))``: A = J J^T ("dual", R <= P) or J^T J ("primal").
+
+        The primal form accumulates over sample chunks, so J is never held whole.
+        """
+        chunks = self._jacobian(segment, params, raw)
+        if r.numel() <= P:
+            J = torch.cat(list(chunks))
+            return "dual", J, J @ J.T, J.T @ r, (J**2).sum(0)
+        JtJ, Jtr, offset = 0, 0, 0
         for Jc in chunks:
-            out = out + Jc.T @ r[offset : offset + Jc.shape[0]]
+            JtJ = JtJ + Jc.T @ Jc
+            Jtr = Jtr + Jc.T @ r[offset : offset + Jc.shape[0]]
             offset += Jc.shape[0]
-        return out
+        return "primal", None, JtJ, Jtr, torch.diagonal(JtJ).clone()
 
     @staticmethod
     def _lm_step(kind, J, A, g, r, mu):
