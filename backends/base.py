@@ -86,6 +86,16 @@ def check_dtype(dtype) -> str:
     return name
 
 
+def torch_device(name: str):
+    """``torch.device(name)``, refusing a CUDA device that torch cannot see."""
+    import torch
+
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InvalidOptionError(f"device = {name!r} but torch sees no CUDA device; use device='cpu'")
+    return device
+
+
 def fixed_grid(t_span, h: float) -> np.ndarray:
     """``t0, t0 + h, ..., t1``: the last step is shortened unless span/h is an integer (to 1e-9)."""
     t0, t1 = t_span

@@ -34,6 +34,7 @@ from daemodel.backends.base import (
     fixed_grid,
     make_solution,
     output_times,
+    torch_device,
 )
 
 from daemodel.collocation import stage_residual
@@ -147,9 +148,7 @@ class RadauBackend(AbstractBackend):
     def solve(self, compiled, t_span, start, options: RadauOptions):
         import torch
 
-        device = torch.device(options.device)
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise InvalidOptionError(f"device = {options.device!r} but torch sees no CUDA device; use device='cpu'")
+        device = torch_device(options.device)
         stepper = _Stepper(compiled, start, options, getattr(torch, options.dtype), device)
         began = time.perf_counter()
         times, values = stepper.integrate(t_span)

@@ -278,6 +278,9 @@ def test_option_errors(tmp_path):
         dm.solve(c, (0.0, 0.1), method="pinn", workers=2)
     with pytest.raises(ShapeError, match=r"segment_starts must have shape \(2, 4\) or \(1, 2, 4\)"):
         dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=np.ones((3, 4)))
+    if not torch.cuda.is_available():
+        with pytest.raises(InvalidOptionError, match="device = 'cuda' but torch sees no CUDA device"):
+            dm.solve(c, (0.0, 0.1), method="pinn", config=dm.PINNConfig(device="cuda"))
     coarse = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.1)
     with pytest.raises(ShapeError, match=r"segment_starts: the solution has no value at t = 0\.05"):
         dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=coarse)

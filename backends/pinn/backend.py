@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from daemodel.backends.base import AbstractBackend, fixed_grid, make_solution
+from daemodel.backends.base import AbstractBackend, fixed_grid, make_solution, torch_device
 from daemodel.backends.pinn.config import PINNConfig
 
 from daemodel.errors import InvalidOptionError, ShapeError
@@ -87,6 +87,7 @@ class PINNBackend(AbstractBackend):
         from daemodel.backends.pinn.train import Progress, fit_parallel, fit_sequential
 
         config = options.config
+        torch_device(config.device)
         grid = fixed_grid(t_span, config.h)
         segments = len(grid) - 1
         dtype = getattr(torch, config.dtype)

@@ -95,6 +95,7 @@ class Surrogate:
         progress : bool, optional
             Show a progress bar (default: when stderr is a terminal).
         """
+        from daemodel.backends.base import torch_device
         from daemodel.backends.pinn.backend import resolve_model, show_progress
 
         from daemodel.initial_states import project_states
@@ -102,6 +103,7 @@ class Surrogate:
 
         compiled = resolve_model(model, "Surrogate.train()")
         config = PINNConfig() if config is None else config
+        torch_device(config.device)
         t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
