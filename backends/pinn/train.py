@@ -1,17 +1,23 @@
 """Training one segment's networks: Levenberg-Marquardt, L-BFGS or Adam on the Radau loss.
 
-Levenberg-Marquardt works on the residual vector r(theta) (shape R) with its Jacobian
-J = dr/dtheta (R x P), built by the chain rule from the small per-sample Jacobian of r in the
-network outputs u and the network's Jacobian du/dtheta (one batched reverse pass per output).
-Each step solves::
+Levenberg-Marquardt drives a vector e(theta) to zero; the damping mu follows Nielsen's
+gain-ratio rule.  Two regimes, chosen by the counts of residuals R and parameters P:
 
-    (J^T J + mu I) delta = -J^T r          when R > P (many samples: surrogates)
-    delta = -J^T (J J^T + mu I)^{-1} r     when R <= P (few samples: the usual trajectory)
+* R <= P (few samples: the usual trajectory, 21 residuals against thousands of parameters):
+  e is the residual vector r, J = dr/dtheta = (dr/du)(du/dtheta) by the chain rule through
+  the network outputs u, and each step solves in the small residual space::
 
-which are the same step (push-through identity); the second is an R x R solve however many
-parameters the networks have.  The damping mu follows Nielsen's gain-ratio rule.  With one
-sample per segment this is Newton's method on the Radau stage equations seen through the
-network's parametrisation, which is why it reaches the classical solution in a few steps.
+      delta = -J^T (J J^T + mu I)^{-1} r
+
+  This is Newton's method on the Radau stage equations seen through the network's
+  parametrisation, which is why it reaches the classical solution in a few steps.
+* R > P (many samples: surrogates): the residuals cannot all vanish, and a least-squares fit
+  of r would weigh an index-2 algebraic variable by how much it moves the residual, O(h),
+  leaving its error ~ residual / h.  Instead e stacks every sample's Newton correction
+  ``(dr/du)^+ r`` (how far its outputs are from its own collocation solution), J = du/dtheta,
+  and each step solves ``(J^T J + mu I) delta = -J^T e`` (Gauss-Newton on Newton targets).
+
+Either way the training stops on the residual: every |r| component below ``tol``.
 """
 
 from __future__ import annotations
@@ -235,54 +241,66 @@ class SegmentTrainer:
         return done
 
     # ---- Levenberg-Marquardt --------------------------------------------------------------------
-    def _jacobian(self, segment: Segment, params: dict, raw: torch.Tensor):
-        """Yield dr/dtheta sample chunk by sample chunk, each of shape (rows, P)."""
+    def _output_jacobian(self, segment: Segment, raw: torch.Tensor) -> torch.Tensor:
+        """dr_b/du_b for every sample b, shape (N, R_per, U)."""
+        N = raw.shape[0]
+
+        def summed(u):
+            # r of sample b depends on u of sample b only: the Jacobian of the sum over samples
+            # is the stack of per-sample Jacobians.
+            return self.loss.vector(self.residuals(segment, u), N).sum(0)
+
+        return jacrev(summed)(raw.detach()).permute(1, 0, 2)
+
+    def _parameter_jacobians(self, segment: Segment, params: dict, U: int, P: int):
+        """Yield ``(chunk, du/dtheta)`` sample chunk by sample chunk, the latter of shape (c, U, P)."""
         net, x = self.net, segment.x
-        N, U = raw.shape
 
         def single(p, xi):
             return functional_call(net, p, (xi[None],))[0]
 
-        def summed(u, chunk):
-            # r of sample b depends on u of sample b only: the Jacobian of the sum over samples
-            # is the stack of per-sample Jacobians.
-            sub = Segment(segment.index, segment.t, segment.h, x[chunk], segment.p[chunk])
-            return self.loss.vector(self.residuals(sub, u), N).sum(0)
-
-        P = sum(p.numel() for p in params.values())
         step = max(1, JACOBIAN_ENTRIES // max(1, U * P))
-        for first in range(0, N, step):
-            chunk = slice(first, min(N, first + step))
+        for first in range(0, x.shape[0], step):
+            chunk = slice(first, min(x.shape[0], first + step))
             du = vmap(jacrev(single), in_dims=(None, 0))(params, x[chunk])  # name -> (c, U, *shape)
-            Ju = torch.cat([du[name].reshape(du[name].shape[0], U, -1) for name in params], dim=2)  # (c, U, P)
-            Ru = jacrev(summed)(raw[chunk].detach(), chunk).permute(1, 0, 2)  # (c, R_per, U)
-            yield torch.bmm(Ru, Ju).reshape(-1, P)
+            yield chunk, torch.cat([du[name].reshape(du[name].shape[0], U, -1) for name in params], dim=2)
+
+    def _merit(self, segment: Segment, params: dict, output_space: bool):
+        """Outputs, residuals and the vector e that LM drives to zero: r itself, or in output
+        space every sample's Newton correction ``R_u^+ r`` (the step to its collocation solution)."""
+        raw = functional_call(self.net, params, (segment.x,)).detach()
+        with torch.no_grad():
+            residuals = self.residuals(segment, raw)
+            r = self.loss.vector(residuals, segment.x.shape[0])
+        if not output_space:
+            return raw, residuals, r.reshape(-1)
+        e = torch.linalg.lstsq(self._output_jacobian(segment, raw), r[..., None]).solution[..., 0]
+        return raw, residuals, e.reshape(-1)
 
     def _levenberg_marquardt(self, segment: Segment) -> int:
         params = {name: p.detach().clone() for name, p in self.net.named_parameters()}
         names = list(params)
         sizes = [params[k].numel() for k in names]
-
-        def evaluate(current):
-            with torch.no_grad():
-                raw = functional_call(self.net, current, (segment.x,))
-                residuals = self.residuals(segment, raw)
-                return raw, residuals, self.loss.vector(residuals, segment.x.shape[0]).reshape(-1)
-
-        raw, residuals, r = evaluate(params)
-        terms = self._check(segment, residuals, 0, None)
-        self.report(0, terms)
-        mu, nu, system = None, 2.0, None
+        P = sum(sizes)
+        raw, residuals, r = self._merit(segment, params, False)
+        # More residuals than parameters (many samples): least squares cannot zero them all, and
+        # weighing them by residual would let an index-2 z (which moves the residual by O(h)
+        # only) keep errors ~ residual / h.  Fit every output's Newton correction instead.
+        output_space = r.numel() > P
+        raw, residuals, e = self._merit(segment, params, output_space) if output_space else (raw, residuals, r)
+        U = raw.shape[1]
+        self.report(0, self._check(segment, residuals, 0, None))
+        mu, nu, system, scale = None, 2.0, None, 1.0
         iteration = 0
         while iteration < self.config.iterations and not self._done(residuals):
             iteration += 1
             if system is None:
-                system = self._normal_system(segment, params, raw, r, sum(sizes))
+                system = self._normal_system(segment, params, raw, e, U, P, output_space)
                 if mu is None:
                     scale = float(system[4].max())
                     mu = LM_TAU * scale
             kind, J, A, g, _ = system
-            delta = self._lm_step(kind, J, A, g, r, mu)
+            delta = self._lm_step(kind, J, A, g, e, mu)
             if delta is None:  # not positive definite: more damping
                 mu, nu = mu * nu, nu * 2
                 continue
@@ -291,39 +309,46 @@ class SegmentTrainer:
             for name, size in zip(names, sizes, strict=True):
                 trial[name] = params[name] + delta[offset : offset + size].reshape(params[name].shape)
                 offset += size
-            raw_t, residuals_t, r_t = evaluate(trial)
+            raw_t, residuals_t, e_t = self._merit(segment, trial, output_space)
             predicted = 0.5 * float(delta @ (mu * delta - g))
-            actual = 0.5 * float(r @ r - r_t @ r_t)
+            actual = 0.5 * float(e @ e - e_t @ e_t)
             if math.isfinite(actual) and actual > 0 and predicted > 0:
                 rho = actual / predicted
-                params, raw, residuals, r = trial, raw_t, residuals_t, r_t
+                params, raw, residuals, e = trial, raw_t, residuals_t, e_t
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu, system = 2.0, None
                 self.report(iteration, self._check(segment, residuals, iteration, None))
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
-                    break  # no step decreases the loss: report through _finish
+                    break  # no step decreases the merit: report through _finish
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
         return iteration
 
-    def _normal_system(self, segment: Segment, params: dict, raw, r, P: int):
-        """``(kind, J, A, J^T r, diag(J^T J))``: A = J J^T ("dual", R <= P) or J^T J ("primal").
+    def _normal_system(self, segment: Segment, params: dict, raw, e, U: int, P: int, output_space: bool):
+        """``(kind, J, A, J^T e, diag(J^T J))`` of the linearised merit ``e + J delta``.
 
-        The primal form accumulates over sample chunks, so J is never held whole.
+        Residual space: J = dr/dtheta = (dr/du)(du/dtheta), A = J J^T ("dual", an R x R solve).
+        Output space: J = du/dtheta, A = J^T J ("primal"), accumulated over sample chunks so
+        that J is never held whole.
         """
-        chunks = self._jacobian(segment, params, raw)
-        if r.numel() <= P:
-            J = torch.cat(list(chunks))
-            return "dual", J, J @ J.T, J.T @ r, (J**2).sum(0)
-        JtJ, Jtr, offset = 0, 0, 0
-        for Jc in chunks:
+        if not output_space:
+            Ru = self._output_jacobian(segment, raw)
+            J = torch.cat(
+                [
+                    torch.bmm(Ru[chunk], Ju).reshape(-1, P)
+                    for chunk, Ju in self._parameter_jacobians(segment, params, U, P)
+                ]
+            )
+            return "dual", J, J @ J.T, J.T @ e, (J**2).sum(0)
+        JtJ, Jte = 0, 0
+        for chunk, Ju in self._parameter_jacobians(segment, params, U, P):
+            Jc = Ju.reshape(-1, P)
             JtJ = JtJ + Jc.T @ Jc
-            Jtr = Jtr + Jc.T @ r[offset : offset + Jc.shape[0]]
-            offset += Jc.shape[0]
-        return "primal", None, JtJ, Jtr, torch.diagonal(JtJ).clone()
+            Jte = Jte + Jc.T @ e[chunk.start * U : chunk.stop * U]
+        return "primal", None, JtJ, Jte, torch.diagonal(JtJ).clone()
 
     @staticmethod
     def _lm_step(kind, J, A, g, r, mu):
