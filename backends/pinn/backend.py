@@ -82,40 +82,38 @@ class PINNBackend(AbstractBackend):
     max_index = 2
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
-        import torch
         from daemodel.backends.pinn.surrogate import Surrogate
-        from daemodel.backends.pinn.train import Progress, fit_parallel, fit_sequential
+        from daemodel.backends.pinn.train import Progress, fit_parallel
 
         config = options.config
         torch_device(config.device)
         grid = fixed_grid(t_span, config.h)
         segments = len(grid) - 1
-        dtype = getattr(torch, config.dtype)
         # Parameters that differ between samples are network inputs; the others are constants.
         varying = [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
         inputs = tuple(compiled.parameter_names[i] for i in varying)
         began = time.perf_counter()
-        bar = Progress(segments, show_progress(options.progress), "pinn")
-        try:
-            if options.segment_starts is None:
-                x0 = torch.as_tensor(np.concatenate([start.y0, start.p[:, varying]], axis=1), dtype=dtype)
-                p = torch.as_tensor(np.array(start.p), dtype=dtype, device=config.device)
-                networks, stats = fit_sequential(compiled, grid, x0.to(config.device), p, config, bar)
-                mode = "sequential"
-            else:
-                known = _segment_starts(options.segment_starts, compiled, grid, start.size)
-                starts = np.concatenate(
-                    [known, np.broadcast_to(start.p[:, varying], (segments, *start.p[:, varying].shape))], axis=2
-                )
+        if options.segment_starts is None:
+            surrogate = Surrogate.fit(
+                compiled, config, grid, start.y0, start.p, inputs, show_progress(options.progress), "pinn"
+            )
+            mode = "sequential"
+        else:
+            known = _segment_starts(options.segment_starts, compiled, grid, start.size)
+            starts = np.concatenate(
+                [known, np.broadcast_to(start.p[:, varying], (segments, *start.p[:, varying].shape))], axis=2
+            )
+            bar = Progress(segments, show_progress(options.progress), "pinn")
+            try:
                 networks, stats = fit_parallel(compiled, grid, starts, start.p, config, options.workers, bar)
-                mode = "parallel"
-        finally:
-            bar.close()
+            finally:
+                bar.close()
+            surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)
+            mode = "parallel"
         trained = time.perf_counter()
-        surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)
-        ends = surrogate.rollout(start.y0, start.p)
+        values = surrogate.trajectory(start)
         done = time.perf_counter()
-        values = np.concatenate([np.concatenate([start.y0, start.z0], axis=1)[:, None, :], ends], axis=1)
+        networks, stats = surrogate.networks, surrogate.stats
         summary = {
             "mode": mode,
             "optimizer": config.optimizer,
@@ -130,7 +128,7 @@ class PINNBackend(AbstractBackend):
         if mode == "parallel":
             # how far the chained prediction drifted from the given start values
             summary["start_mismatch"] = (
-                float(np.abs(ends[:, :-1, : known.shape[2]] - known[1:].transpose(1, 0, 2)).max())
+                float(np.abs(values[:, 1:-1, : known.shape[2]] - known[1:].transpose(1, 0, 2)).max())
                 if segments > 1
                 else 0.0
             )

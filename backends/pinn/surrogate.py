@@ -95,7 +95,7 @@ class Surrogate:
         progress : bool, optional
             Show a progress bar (default: when stderr is a terminal).
         """
-        from daemodel.backends.base import torch_device
+        from daemodel.backends.base import fixed_grid, torch_device
         from daemodel.backends.pinn.backend import resolve_model, show_progress
 
         from daemodel.initial_states import project_states
@@ -123,13 +123,13 @@ class Surrogate:
             target[:, index] = low + (high - low) * unit[:, column]
         y = project_states(compiled, y, p)
         inputs = tuple(name for name in compiled.parameter_names if name in parameter_box)
-        return cls._fit(compiled, config, t_span, y, p, inputs, show_progress(progress), "pinn surrogate")
+        grid = fixed_grid(t_span, config.h)
+        return cls.fit(compiled, config, grid, y, p, inputs, show_progress(progress), "pinn surrogate")
 
     @classmethod
-    def _fit(cls, compiled, config, t_span, y, p, inputs, progress: bool, label: str) -> Surrogate:
-        from daemodel.backends.base import fixed_grid
-
-        grid = fixed_grid(t_span, config.h)
+    def fit(cls, compiled, config, grid, y, p, inputs, progress: bool, label: str) -> Surrogate:
+        """Train the segments of ``grid`` one after the other from the states ``y`` (B, n) with
+        parameters ``p`` (B, k); the parameters named in ``inputs`` become network inputs."""
         dtype = getattr(torch, config.dtype)
         columns = [compiled.parameter_names.index(name) for name in inputs]
         x0 = torch.as_tensor(np.concatenate([y, p[:, columns]], axis=1), dtype=dtype, device=config.device)
@@ -160,6 +160,11 @@ class Surrogate:
                 out.append(torch.cat([pred.y_end, pred.z_end], dim=1))
         return torch.stack(out, dim=1).cpu().numpy()
 
+    def trajectory(self, start) -> np.ndarray:
+        """Values on the grid for :class:`InitialStates` ``start``, shape (B, segments + 1, n+m)."""
+        first = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
+        return np.concatenate([first, self.rollout(start.y0, start.p)], axis=1)
+
     def solve(self, y0=None, z0=None, parameters=None):
         """Integrate a batch of consistent initial states with the trained networks.
 
@@ -174,9 +179,8 @@ class Surrogate:
         start = initial_states(self.compiled, y0=y0, z0=z0, parameters=parameters)
         self._check_parameters(start.p)
         began = time.perf_counter()
-        ends = self.rollout(start.y0, start.p)
+        values = self.trajectory(start)
         wall = time.perf_counter() - began
-        values = np.concatenate([np.concatenate([start.y0, start.z0], axis=1)[:, None, :], ends], axis=1)
         stats = {"mode": "surrogate", "segments": len(self.networks), "evaluation_seconds": wall}
         return make_solution(
             PINNBackend(), self.compiled, start, PINNOptions(config=self.config), self.grid, values, wall, stats

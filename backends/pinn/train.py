@@ -22,6 +22,7 @@ Either way the training stops on the residual: every |r| component below ``tol``
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass
@@ -438,15 +439,14 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, pr
     n = len(compiled.states)
     loss = make_loss(compiled, config)
     generator = torch.Generator().manual_seed(config.seed)
-    x, networks, stats, previous = x0, [], [], None
+    x, networks, stats = x0, [], []
     for k in range(len(grid) - 1):
         h = float(grid[k + 1] - grid[k])
         inputs, samples_p = training_inputs(x, p, n, config, generator)
-        net = (
-            copy_network(previous)
-            if config.warm_start and previous is not None
-            else make_network(compiled, config, x.shape[1], k)
-        )
+        if config.warm_start and networks:
+            net = copy.deepcopy(networks[-1])
+        else:
+            net = make_network(compiled, config, x.shape[1], k)
         net.normalise(inputs)
         segment = Segment(index=k, t=float(grid[k]), h=h, x=inputs, p=samples_p)
         stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
@@ -454,15 +454,8 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, pr
             y_end = net.predict(x, h).y_end
         x = torch.cat([y_end, x[:, n:]], dim=1)
         networks.append(net)
-        previous = net
         progress.advance()
     return networks, stats
-
-
-def copy_network(net):
-    import copy
-
-    return copy.deepcopy(net)
 
 
 def fit_one(payload):
