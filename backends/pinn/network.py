@@ -23,6 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
+# Parameters stacked as (depth - 1, K, ...); all others are (K, ...).
+GATE_PARAMETERS = ("W_gate", "b_gate")
+
 ACTIVATION_FUNCTIONS = {
     "tanh": torch.tanh,
     "sigmoid": torch.sigmoid,
@@ -92,7 +95,7 @@ class RadauNetwork(torch.nn.Module):
         self.activation = config.activation
         sizes, positions = output_layout(n, m, config.stages, config.architecture)
         K, w, d, out = len(sizes), config.width, inputs, max(sizes)
-        self.count = K
+        self.count, self.sizes = K, sizes  # sizes: how many of its stacked outputs each network uses
 
         def weight(*shape):
             fan_in, fan_out = shape[-2], shape[-1]
@@ -118,8 +121,9 @@ class RadauNetwork(torch.nn.Module):
         self.register_buffer("center", torch.zeros(d, dtype=dtype))
         self.register_buffer("scale", torch.ones(d, dtype=dtype))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Raw network outputs, shape (B, U), for inputs ``x`` of shape (B, d)."""
+    def forward(self, x: torch.Tensor, stacked: bool = False) -> torch.Tensor:
+        """Raw network outputs, shape (B, U), for inputs ``x`` of shape (B, d); with ``stacked``,
+        each network's own outputs, shape (K, B, out) (padded to the largest network)."""
         phi = ACTIVATION_FUNCTIONS[self.activation]
         xn = (x - self.center) / self.scale
         U = phi(torch.einsum("bd,kdw->kbw", xn, self.W_u) + self.b_u)
@@ -129,6 +133,8 @@ class RadauNetwork(torch.nn.Module):
             M = phi(torch.bmm(H, W) + b)
             H = (1 - M) * U + M * R
         out = torch.bmm(H, self.W_out) + self.b_out  # (K, B, out)
+        if stacked:
+            return out
         return out.permute(1, 0, 2).reshape(x.shape[0], -1)[:, self.order]
 
     def split(self, raw: torch.Tensor, y_n: torch.Tensor, h) -> Outputs:
@@ -166,6 +172,14 @@ class RadauNetwork(torch.nn.Module):
                 W *= ratio[None, :, None]
             self.center.copy_(center)
             self.scale.copy_(scale)
+
+    def unstack(self, params: dict) -> dict:
+        """``params`` (as ``named_parameters``) with the network axis K moved first and each
+        network's slice kept as a K = 1 stack: vmapping over axis 0 then gives one network."""
+        return {
+            name: (p.movedim(1, 0).unsqueeze(2) if name in GATE_PARAMETERS else p.unsqueeze(1))
+            for name, p in params.items()
+        }
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -16,8 +16,11 @@ gain-ratio rule.  Two regimes, chosen by the counts of residuals R and parameter
   leaving its error ~ residual / h.  Instead e stacks every sample's Newton correction
   ``(dr/du)^+ r`` (how far its outputs are from its own collocation solution), J = du/dtheta,
   and each step solves ``(J^T J + mu I) delta = -J^T e`` (Gauss-Newton on Newton targets).
+  An output depends only on its own network's parameters, so J^T J is block diagonal: with
+  the per-variable networks (approach 2) that is K small solves, not one of size P.
 
-Either way the training stops on the residual: every |r| component below ``tol``.
+Either way the training stops on the residual, every |r| component below ``tol``, or with
+``tol=None`` after ``iterations`` (sooner if no step decreases the merit).
 """
 
 from __future__ import annotations
@@ -332,8 +335,8 @@ class SegmentTrainer:
         """``(kind, J, A, J^T e, diag(J^T J))`` of the linearised merit ``e + J delta``.
 
         Residual space: J = dr/dtheta = (dr/du)(du/dtheta), A = J J^T ("dual", an R x R solve).
-        Output space: J = du/dtheta, A = J^T J ("primal"), accumulated over sample chunks so
-        that J is never held whole.
+        Output space: J = du/dtheta, A = the diagonal blocks of J^T J, one per network
+        ("blocks"), accumulated over sample chunks so that J is never held whole.
         """
         if not output_space:
             Ru = self._output_jacobian(segment, raw)
@@ -344,23 +347,65 @@ class SegmentTrainer:
                 ]
             )
             return "dual", J, J @ J.T, J.T @ e, (J**2).sum(0)
-        JtJ, Jte = 0, 0
-        for chunk, Ju in self._parameter_jacobians(segment, params, U, P):
-            Jc = Ju.reshape(-1, P)
-            JtJ = JtJ + Jc.T @ Jc
-            Jte = Jte + Jc.T @ e[chunk.start * U : chunk.stop * U]
-        return "primal", None, JtJ, Jte, torch.diagonal(JtJ).clone()
+        # An output depends on its own network's parameters only, so J = du/dtheta and J^T J
+        # are block diagonal over the K networks: K solves of size P/K instead of one of size P.
+        net, K, N = self.net, self.net.count, segment.x.shape[0]
+        where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
+        sizes = torch.tensor(net.sizes, device=e.device)
+        valid = torch.arange(max(net.sizes), device=e.device)[None, :] < sizes[:, None]  # (K, out): outputs in use
+        stacked = torch.zeros(N, valid.numel(), dtype=e.dtype, device=e.device)
+        stacked[:, net.order] = e.reshape(N, U)
+        stacked = stacked.reshape(N, K, -1).permute(1, 0, 2)  # (K, N, out)
+        JtJ = torch.zeros(K, P // K, P // K, dtype=e.dtype, device=e.device)
+        Jte = torch.zeros(K, P // K, dtype=e.dtype, device=e.device)
+        for chunk, J in self._block_jacobians(segment, params, P):
+            J = (J * valid[:, None, :, None]).reshape(K, -1, P // K)  # padded outputs take no part
+            JtJ += J.transpose(1, 2) @ J
+            Jte += (J.transpose(1, 2) @ stacked[:, chunk].reshape(K, -1, 1))[..., 0]
+        g, diagonal = torch.empty(P, dtype=e.dtype, device=e.device), torch.empty(P, dtype=e.dtype, device=e.device)
+        g[where.reshape(-1)] = Jte.reshape(-1)
+        diagonal[where.reshape(-1)] = torch.diagonal(JtJ, dim1=1, dim2=2).reshape(-1)
+        return "blocks", where, JtJ, g, diagonal
+
+    def _block_index(self, params: dict) -> torch.Tensor:
+        """Positions in the flat parameter vector of each network's parameters, shape (K, P/K),
+        in the order of :meth:`_block_jacobians`' columns."""
+        flat, offset = {}, 0
+        for name, p in params.items():
+            flat[name] = torch.arange(offset, offset + p.numel(), device=p.device).reshape(p.shape)
+            offset += p.numel()
+        return torch.cat([v.reshape(self.net.count, -1) for v in self.net.unstack(flat).values()], dim=1)
+
+    def _block_jacobians(self, segment: Segment, params: dict, P: int):
+        """Yield ``(chunk, du/dtheta)`` per network, the latter of shape (K, c, out, P/K)."""
+        net, x, K = self.net, segment.x, self.net.count
+        out = max(net.sizes)
+
+        def single(theta, xi):  # one network (K = 1 stack), one input: its outputs (out,)
+            return functional_call(net, theta, (xi[None],), {"stacked": True})[0, 0]
+
+        jacobian = vmap(vmap(jacrev(single), in_dims=(None, 0)), in_dims=(0, None))
+        stacks = net.unstack(params)
+        step = max(1, JACOBIAN_ENTRIES // max(1, P * out))
+        for first in range(0, x.shape[0], step):
+            chunk = slice(first, min(x.shape[0], first + step))
+            du = jacobian(stacks, x[chunk])  # name -> (K, c, out, *one network's shape)
+            yield chunk, torch.cat([du[name].reshape(K, du[name].shape[1], out, -1) for name in params], dim=3)
 
     @staticmethod
     def _lm_step(kind, J, A, g, r, mu):
-        eye = torch.eye(A.shape[0], dtype=A.dtype, device=A.device)
+        """The damped step; ``None`` when ``A + mu I`` is not positive definite.  For "blocks",
+        A is (K, P/K, P/K) and ``J`` (K, P/K) holds each network's positions in the flat parameters."""
+        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
         L, info = torch.linalg.cholesky_ex(A + mu * eye)
-        if int(info) != 0:
+        if bool((info != 0).any()):
             return None
         if kind == "dual":
             w = torch.cholesky_solve(r[:, None], L)[:, 0]
             return -(J.T @ w)
-        return -torch.cholesky_solve(g[:, None], L)[:, 0]
+        delta = torch.empty_like(g)
+        delta[J.reshape(-1)] = -torch.cholesky_solve(g[J][..., None], L).reshape(-1)
+        return delta
 
 
 # ---- segments in time ------------------------------------------------------------------------
