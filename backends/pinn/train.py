@@ -1,9 +1,10 @@
 """Training one segment's networks: Levenberg-Marquardt, L-BFGS or Adam on the Radau loss.
 
 Levenberg-Marquardt drives a vector e(theta) to zero; the damping mu follows Nielsen's
-gain-ratio rule.  Two regimes, chosen by the counts of residuals R and parameters P:
+gain-ratio rule.  Two regimes, chosen by the count of residuals R against the parameters
+P / K of one of the K networks:
 
-* R <= P (few samples: the usual trajectory, 21 residuals against thousands of parameters):
+* R <= P / K (few samples: the usual trajectory, 21 residuals against thousands of parameters):
   e is the residual vector r, J = dr/dtheta = (dr/du)(du/dtheta) by the chain rule through
   the network outputs u, and each step solves in the small residual space::
 
@@ -11,7 +12,7 @@ gain-ratio rule.  Two regimes, chosen by the counts of residuals R and parameter
 
   This is Newton's method on the Radau stage equations seen through the network's
   parametrisation, which is why it reaches the classical solution in a few steps.
-* R > P (many samples: surrogates): the residuals cannot all vanish, and a least-squares fit
+* R > P / K (many samples: surrogates): the residuals may not all vanish, and a least-squares fit
   of r would weigh an index-2 algebraic variable by how much it moves the residual, O(h),
   leaving its error ~ residual / h.  Instead e stacks every sample's Newton correction
   ``(dr/du)^+ r`` (how far its outputs are from its own collocation solution), J = du/dtheta,
@@ -287,10 +288,11 @@ class SegmentTrainer:
         sizes = [params[k].numel() for k in names]
         P = sum(sizes)
         raw, residuals, r = self._merit(segment, params, False)
-        # More residuals than parameters (many samples): least squares cannot zero them all, and
-        # weighing them by residual would let an index-2 z (which moves the residual by O(h)
-        # only) keep errors ~ residual / h.  Fit every output's Newton correction instead.
-        output_space = r.numel() > P
+        # Many samples: least squares may not zero all residuals, and weighing them by residual
+        # would let an index-2 z (which moves the residual by O(h) only) keep errors ~ residual / h.
+        # Fit every output's Newton correction instead.  The switch is where the block-diagonal
+        # output-space solve (R (P/K)^2) gets cheaper than the residual-space one (R^2 P).
+        output_space = r.numel() > P // self.net.count
         raw, residuals, e = self._merit(segment, params, output_space) if output_space else (raw, residuals, r)
         U = raw.shape[1]
         self.report(0, self._check(segment, residuals, 0, None))
