@@ -16,6 +16,7 @@ A backend is a final subclass of :class:`AbstractBackend`:
 from __future__ import annotations
 
 import math
+import sys
 from abc import ABC, abstractmethod
 from typing import ClassVar
 
@@ -25,6 +26,11 @@ from daemodel.errors import InvalidOptionError, StepSizeError, TimeSpanError
 
 # Number of output times a method with its own step selection reports when t_eval is not given.
 DEFAULT_OUTPUT_POINTS = 101
+# Work-precision sweeps (daemodel.compare): fixed-step methods take h = span / (10 * 2^k),
+# tolerance-driven ones rtol = 10^-(4 + 2k), k = 0, 1, ...: coarse enough to be cheap at
+# k = 0, and four points reach the float64 floor of a fifth-order method on a unit interval.
+SWEEP_FIRST_STEPS = 10
+SWEEP_FIRST_DIGITS = 4
 
 
 def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None):
@@ -60,6 +66,28 @@ class AbstractBackend(ABC):
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):
         """Integrate every sample of ``start`` (:class:`InitialStates`) over ``t_span``."""
+
+    def work_precision(self, t_span: tuple[float, float], points: int) -> list[dict]:
+        """``points`` sets of options, from cheap to accurate, that :func:`daemodel.compare`
+        sweeps; a method without an accuracy setting is solved once with its defaults."""
+        return [{}]
+
+
+def show_progress(progress: bool | None) -> bool:
+    """``progress`` as given, or whether stderr is a terminal."""
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return bool(progress)
+
+
+def halving_steps(t_span, points: int) -> list[float]:
+    """Step sizes of a work-precision sweep: span / 10, span / 20, ..."""
+    return [(t_span[1] - t_span[0]) / (SWEEP_FIRST_STEPS * 2**k) for k in range(points)]
+
+
+def tightening_tolerances(points: int) -> list[float]:
+    """Tolerances of a work-precision sweep: 1e-4, 1e-6, ..."""
+    return [10.0 ** -(SWEEP_FIRST_DIGITS + 2 * k) for k in range(points)]
 
 
 def check_number(name: str, value, *, positive: bool = True, integer: bool = False, allow_none: bool = False):

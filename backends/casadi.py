@@ -20,8 +20,10 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
+    halving_steps,
     make_solution,
     output_times,
+    tightening_tolerances,
 )
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
@@ -114,6 +116,9 @@ class CollocationBackend(AbstractBackend):
     Options = CollocationOptions
     max_index = 2
 
+    def work_precision(self, t_span, points):
+        return [{"stages": 3, "h": h} for h in halving_steps(t_span, points)]
+
     def solve(self, compiled, t_span, start, options: CollocationOptions):
         import casadi
 
@@ -144,6 +149,9 @@ class IDASBackend(AbstractBackend):
     name = "casadi-idas"
     Options = IDASOptions
     max_index = 1
+
+    def work_precision(self, t_span, points):
+        return [{"rtol": tol, "atol": tol} for tol in tightening_tolerances(points)]
 
     def solve(self, compiled, t_span, start, options: IDASOptions):
         import casadi

@@ -32,6 +32,7 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
+    halving_steps,
     make_solution,
     output_times,
     torch_device,
@@ -144,6 +145,9 @@ class RadauBackend(AbstractBackend):
     Options = RadauOptions
     # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
     max_index = 2
+
+    def work_precision(self, t_span, points):
+        return [{"stages": 3, "h": h} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: RadauOptions):
         import torch

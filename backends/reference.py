@@ -14,7 +14,14 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.base import DEFAULT_OUTPUT_POINTS, AbstractBackend, check_number, make_solution, output_times
+from daemodel.backends.base import (
+    DEFAULT_OUTPUT_POINTS,
+    AbstractBackend,
+    check_number,
+    make_solution,
+    output_times,
+    tightening_tolerances,
+)
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
 from daemodel.init import NumericSystem
@@ -56,6 +63,9 @@ class ReferenceBackend(AbstractBackend):
     name = "reference"
     Options = ReferenceOptions
     max_index = 3
+
+    def work_precision(self, t_span, points):
+        return [{"rtol": tol, "atol": tol} for tol in tightening_tolerances(points)]
 
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
         from scipy.integrate import solve_ivp

@@ -4,6 +4,7 @@ Radau-PINN and classical solvers."""
 from daemodel import errors
 from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
+from daemodel.compare import Comparison, compare
 from daemodel.compiled import CompiledDAE
 from daemodel.model import Model
 from daemodel.solution import Solution
@@ -12,11 +13,13 @@ from daemodel.tableau import RadauIIA, radau_iia
 
 __all__ = [
     "CompiledDAE",
+    "Comparison",
     "Model",
     "PINNConfig",
     "RadauIIA",
     "Solution",
     "Surrogate",
+    "compare",
     "errors",
     "methods",
     "radau_iia",

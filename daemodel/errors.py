@@ -128,3 +128,7 @@ class TrainingError(ConvergenceError):
 
 class NetworkFileError(ModelError):
     """A saved network file does not exist, is not a daemodel network, or belongs to another model."""
+
+
+class TargetError(ModelError):
+    """A ``daemodel compare`` target is neither a known problem nor a usable model file."""

@@ -30,13 +30,26 @@ def test_public_api():
 
     assert set(dm.__all__) == {
         "CompiledDAE",
+        "Comparison",
         "Model",
         "PINNConfig",
         "RadauIIA",
         "Solution",
         "Surrogate",
+        "compare",
         "errors",
         "methods",
         "radau_iia",
         "solve",
     }
+
+
+def test_console_script_runs(tmp_path):
+    # the installed entry point: pyproject's [project.scripts] daemodel = "daemodel.cli:main"
+    out = subprocess.run(
+        [sys.executable, "-c", "from daemodel.cli import main; main(['compare', '--help'])"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert out.returncode == 0 and "build_model()" in out.stdout

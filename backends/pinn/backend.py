@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from daemodel.backends.base import AbstractBackend, fixed_grid, make_solution, torch_device
+from daemodel.backends.base import (
+    AbstractBackend,
+    fixed_grid,
+    halving_steps,
+    make_solution,
+    show_progress,
+    torch_device,
+)
 from daemodel.backends.pinn.config import PINNConfig
 
 from daemodel.errors import InvalidOptionError, ShapeError
@@ -21,13 +27,6 @@ def resolve_model(model, caller: str):
 
     model = as_compiled(model, caller)
     return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
-
-
-def show_progress(progress: bool | None) -> bool:
-    """``progress`` as given, or whether stderr is a terminal."""
-    if progress is None:
-        return bool(getattr(sys.stderr, "isatty", lambda: False)())
-    return bool(progress)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,6 +79,9 @@ class PINNBackend(AbstractBackend):
     name = "pinn"
     Options = PINNOptions
     max_index = 2
+
+    def work_precision(self, t_span, points):
+        return [{"config": PINNConfig(h=h)} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.surrogate import Surrogate

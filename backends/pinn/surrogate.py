@@ -102,8 +102,8 @@ class Surrogate:
         progress : bool, optional
             Show a progress bar (default: when stderr is a terminal).
         """
-        from daemodel.backends.base import fixed_grid, torch_device
-        from daemodel.backends.pinn.backend import resolve_model, show_progress
+        from daemodel.backends.base import fixed_grid, show_progress, torch_device
+        from daemodel.backends.pinn.backend import resolve_model
 
         from daemodel.initial_states import project_states
         from daemodel.solver import check_span

@@ -1,0 +1,182 @@
+"""dm.compare and the `daemodel compare` command: errors measured against exact solutions
+and the reference, the sweep's convergence order, the outputs, and every error message."""
+
+import json
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel.cli import load_target, main
+from daemodel.errors import ComparisonError, TargetError, UnknownMethodError
+from daemodel.problems import HESSENBERG, PENDULUM
+
+EXACT = HESSENBERG.exact_solution()
+
+
+@pytest.fixture(scope="module")
+def hessenberg():
+    return dm.compare(
+        HESSENBERG.model(), (0.0, 1.0), ["radau", "casadi-collocation"], reference=EXACT, points=2, progress=False
+    )
+
+
+def test_errors_are_those_of_a_direct_solve_against_the_exact_solution(hessenberg):
+    assert [(r.method, r.settings) for r in hessenberg.runs] == [
+        ("radau", "stages=3, h=0.1"),
+        ("radau", "stages=3, h=0.05"),
+        ("casadi-collocation", "stages=3, h=0.1"),
+        ("casadi-collocation", "stages=3, h=0.05"),
+    ]
+    direct = dm.solve(HESSENBERG.model(), (0.0, 1.0), method="radau", stages=3, h=0.05).errors(EXACT)
+    assert hessenberg.runs[1].errors == direct
+    assert hessenberg.runs[1].errors["y3"]["max"] == pytest.approx(3.9e-8, rel=0.05)  # the s = 3 ceiling
+    assert hessenberg.runs[1].drift["invariant"] < 1e-14
+
+
+def test_the_sweep_shows_the_convergence_order(hessenberg):
+    # halving h divides a y error by 2^(2s-1) = 32 at s = 3
+    for coarse, fine in ((0, 1), (2, 3)):
+        runs = hessenberg.runs
+        order = np.log2(runs[coarse].errors["y1"]["max"] / runs[fine].errors["y1"]["max"])
+        assert 4.5 < order < 5.5
+    for name in ("y1", "y5"):  # two Newton solvers of the same equations
+        assert hessenberg.runs[1].errors[name]["max"] == pytest.approx(hessenberg.runs[3].errors[name]["max"], rel=1e-3)
+
+
+def test_default_reference_is_the_tight_scipy_solve_on_each_runs_times():
+    result = dm.compare(PENDULUM.model(), (0.0, 0.5), ["radau"], points=1, progress=False)
+    sol = dm.solve(PENDULUM.model(), (0.0, 0.5), method="radau", stages=3, h=0.05)
+    reference = dm.solve(PENDULUM.model(), (0.0, 0.5), method="reference", t_eval=sol.t)
+    assert result.runs[0].errors == sol.errors(reference)
+    assert "method='reference'" in result.reference
+
+
+def test_a_failing_setting_is_recorded_not_raised():
+    sweep = {"pinn": [{"config": dm.PINNConfig(iterations=1)}, {"config": dm.PINNConfig(h=0.1)}]}
+    result = dm.compare(HESSENBERG.model(), (0.0, 0.2), ["pinn"], reference=EXACT, sweep=sweep, progress=False)
+    failed, ok = result.runs
+    assert failed.settings == "h=0.05, iterations=1" and "segment 1" in failed.failure and failed.errors == {}
+    assert ok.failure is None and ok.errors["y1"]["max"] < 1e-6
+    assert "failed: pinn: segment 1" in result.table()
+
+
+def test_table_json_csv_and_plot(hessenberg, tmp_path):
+    table = hessenberg.table()
+    assert "hessenberg on [0, 1]: absolute errors against the exact solution" in table
+    assert "y5 max (mean)" in table and "casadi-collocation  stages=3, h=0.05" in table
+    paths = hessenberg.save(tmp_path / "out")
+    assert [p.name for p in paths] == ["hessenberg.json", "hessenberg.csv", "hessenberg_work_precision.png"]
+    payload = json.loads(paths[0].read_text())
+    assert len(payload["runs"]) == 4 and payload["algebraics"] == ["y5"]
+    import pandas as pd
+
+    frame = pd.read_csv(paths[1])
+    assert list(frame.columns[:5]) == ["method", "settings", "wall_time", "y1_max", "y1_mean"]
+    assert frame["y3_max"][1] == pytest.approx(hessenberg.runs[1].errors["y3"]["max"])
+    assert paths[2].stat().st_size > 20_000
+    fig = hessenberg.plot()
+    assert [ax.get_title() for ax in fig.axes] == ["differential variables", "algebraic variables"]
+    assert len(fig.axes[0].get_lines()) == 2  # one curve per method
+
+
+def test_compare_errors():
+    m = HESSENBERG.model()
+    with pytest.raises(UnknownMethodError, match="unknown method 'rk4'"):
+        dm.compare(m, (0, 1), ["rk4"])
+    with pytest.raises(ComparisonError, match="at least one method"):
+        dm.compare(m, (0, 1), [])
+    with pytest.raises(ComparisonError, match="sweep names pinn, which is not among the methods radau"):
+        dm.compare(m, (0, 1), ["radau"], sweep={"pinn": [{}]})
+    with pytest.raises(ComparisonError, match=r"sweep\['radau'\] must be a non-empty list of option dicts"):
+        dm.compare(m, (0, 1), ["radau"], sweep={"radau": {"h": 0.1}})
+    with pytest.raises(ComparisonError, match="points must be a positive integer; got 0"):
+        dm.compare(m, (0, 1), ["radau"], points=0)
+    with pytest.raises(ComparisonError, match=r"reference must be a callable .* got str"):
+        dm.compare(m, (0, 1), ["radau"], reference="exact")
+    with pytest.raises(dm.errors.ModelError, match=r"compare\(\) needs a Model or a CompiledDAE"):
+        dm.compare("hessenberg", (0, 1))
+
+
+MODEL_FILE = """
+import numpy as np
+import daemodel as dm
+
+T_SPAN = (0.0, 0.5)
+
+
+def build_model():
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    (w,) = m.algebraics("w")
+    m.ode(x, -w)
+    m.constraint(w - x, name="tie")
+    m.initial(x=1.0)
+    return m
+
+
+def exact(t):
+    return {"x": np.exp(-t), "w": np.exp(-t)}
+"""
+
+
+def test_cli_compares_a_problem_and_a_model_file(tmp_path, capsys):
+    path = tmp_path / "decay.py"
+    path.write_text(MODEL_FILE)
+    out = tmp_path / "results"
+    status = main(
+        [
+            *("compare", "hessenberg", str(path), "--methods", "radau,casadi-idas"),
+            *("--points", "2", "--out", str(out), "--no-progress"),
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert status == 0
+    assert "hessenberg on [0, 1]: absolute errors against the exact solution" in printed
+    assert "decay on [0, 0.5]: absolute errors against the exact solution" in printed  # T_SPAN and exact()
+    assert sorted(p.name for p in out.iterdir()) == [
+        "decay.csv",
+        "decay.json",
+        "decay_work_precision.png",
+        "hessenberg.csv",
+        "hessenberg.json",
+        "hessenberg_work_precision.png",
+    ]
+    decay = json.loads((out / "decay.json").read_text())
+    assert decay["runs"][1]["errors"]["x"]["max"] < 1e-7  # radau at h = 0.025 on an index-1 decay
+
+
+def test_cli_t_end_and_target_errors(tmp_path, capsys):
+    assert (
+        main(
+            [
+                "compare",
+                "pendulum",
+                "--methods",
+                "radau",
+                "--points",
+                "1",
+                "--t-end",
+                "0.3",
+                "--out",
+                str(tmp_path),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert "pendulum on [0, 0.3]" in capsys.readouterr().out
+    assert main(["compare", "lorenz", "--out", str(tmp_path)]) == 2
+    assert "'lorenz' is neither a problem (hessenberg, pendulum, pendulum-index3) nor a .py model file" in (
+        capsys.readouterr().err
+    )
+    empty = tmp_path / "empty.py"
+    empty.write_text("x = 1\n")
+    with pytest.raises(TargetError, match="defines neither build_model\\(\\) nor model"):
+        load_target(str(empty))
+    wrong = tmp_path / "wrong.py"
+    wrong.write_text("def build_model():\n    return 3\n")
+    with pytest.raises(TargetError, match="gave int, not a Model or CompiledDAE"):
+        load_target(str(wrong))
+    with pytest.raises(TargetError, match="no model file at"):
+        load_target(str(tmp_path / "missing.py"))
