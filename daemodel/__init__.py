@@ -12,8 +12,8 @@ from daemodel.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 
 __all__ = [
-    "CompiledDAE",
     "Comparison",
+    "CompiledDAE",
     "Model",
     "PINNConfig",
     "RadauIIA",

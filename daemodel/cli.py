@@ -80,9 +80,7 @@ def main(argv=None) -> int:
     cmp.add_argument("--out", default="results", help="directory for the JSON, CSV and PNG (default results/)")
     cmp.add_argument("--points", type=int, default=4, help="settings per method in the sweep (default 4)")
     cmp.add_argument("--t-end", type=float, help="end of the interval (default: the target's T_SPAN or 1)")
-    cmp.add_argument(
-        "--threads", type=int, default=1, help="torch threads, fixed for comparable timings (default 1)"
-    )
+    cmp.add_argument("--threads", type=int, default=1, help="torch threads, fixed for comparable timings (default 1)")
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
 
