@@ -86,12 +86,12 @@ class Comparison:
         """One flat dict per run: method, settings, wall_time, ``<var>_max``, ``<var>_mean``,
         ``drift_<constraint>``, failure."""
         out = []
+        drift_names = sorted({k for r in self.runs for k in r.drift})
         for run in self.runs:
             row = {"method": run.method, "settings": run.settings, "wall_time": run.wall_time}
             for name in self.names:
                 error = run.errors.get(name, {})
                 row[f"{name}_max"], row[f"{name}_mean"] = error.get("max"), error.get("mean")
-            drift_names = sorted({k for r in self.runs for k in r.drift})
             row.update({f"drift_{k}": run.drift.get(k) for k in drift_names})
             row["failure"] = run.failure
             out.append(row)
