@@ -180,3 +180,18 @@ def test_cli_t_end_and_target_errors(tmp_path, capsys):
         load_target(str(wrong))
     with pytest.raises(TargetError, match="no model file at"):
         load_target(str(tmp_path / "missing.py"))
+
+
+@pytest.mark.parametrize("method", dm.methods())
+def test_every_backend_sweeps_from_cheap_to_accurate(method):
+    from daemodel.backends import get_backend
+
+    backend = get_backend(method)
+    sweep = backend.work_precision((0.0, 2.0), 3)
+    assert len(sweep) == 3
+    options = [backend.Options(**o) for o in sweep]  # every setting is a valid set of options
+    steps = [getattr(o, "h", None) or getattr(getattr(o, "config", None), "h", None) for o in options]
+    if all(steps):
+        assert steps == pytest.approx([0.2, 0.1, 0.05])  # span / 10, halved
+    else:
+        assert [o.rtol for o in options] == pytest.approx([1e-4, 1e-6, 1e-8])
