@@ -116,6 +116,20 @@ class Solution:
         -------
         dict name -> {"max": float, "mean": float}
         """
+        wanted, ref_values = self._aligned_reference(reference, names)
+        out = {}
+        for name in wanted:
+            ref = np.asarray(ref_values[name], dtype=float)
+            diff = np.abs(self.values[name] - np.broadcast_to(ref, self.values[name].shape))
+            out[name] = {"max": float(diff.max()), "mean": float(diff.mean())}
+        return out
+
+    def _aligned_reference(self, reference, names=None) -> tuple[list[str], dict]:
+        """The variables to compare with ``reference`` and its values on this solution's times.
+
+        Raises :class:`ComparisonError` for a Solution on other times, anything that is neither
+        a Solution nor a callable, or variables that one side lacks.
+        """
         if isinstance(reference, Solution):
             span = max(abs(self.t[-1] - self.t[0]), 1.0)
             if len(reference.t) != len(self.t) or np.max(np.abs(reference.t - self.t)) > TIME_MATCH_RTOL * span:
@@ -138,12 +152,7 @@ class Solution:
                 f"cannot compare {missing or 'anything'}: this solution has {list(self.names)}, "
                 f"the reference has {sorted(ref_values)}"
             )
-        out = {}
-        for name in wanted:
-            ref = np.asarray(ref_values[name], dtype=float)
-            diff = np.abs(self.values[name] - np.broadcast_to(ref, self.values[name].shape))
-            out[name] = {"max": float(diff.max()), "mean": float(diff.mean())}
-        return out
+        return wanted, ref_values
 
     def drift(self) -> dict[str, float]:
         """Max ``|g|`` of each original constraint (and hidden position/velocity level) along the solution."""

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemodel.solution import TIME_MATCH_RTOL, Solution
+from daemodel.errors import ComparisonError
+from daemodel.solution import Solution
 
 
 def assert_solutions_close(actual, desired, *, atol: float = 0.0, rtol: float = 1e-7, names=None) -> None:
@@ -33,32 +34,15 @@ def assert_solutions_close(actual, desired, *, atol: float = 0.0, rtol: float = 
     """
     if not isinstance(actual, Solution):
         raise TypeError(f"actual must be a Solution; got {type(actual).__name__}")
-    if isinstance(desired, Solution):
-        span = max(abs(actual.t[-1] - actual.t[0]), 1.0)
-        if len(desired.t) != len(actual.t) or np.max(np.abs(desired.t - actual.t)) > TIME_MATCH_RTOL * span:
-            raise AssertionError(
-                f"the solutions have different times: {actual.method} {len(actual.t)} from {actual.t[0]:g} to "
-                f"{actual.t[-1]:g}, {desired.method} {len(desired.t)} from {desired.t[0]:g} to {desired.t[-1]:g}; "
-                "solve one with t_eval=other.t"
-            )
-        if desired.batch_size != actual.batch_size:
-            raise AssertionError(
-                f"the solutions have different batch sizes: {actual.batch_size} and {desired.batch_size}"
-            )
-        reference = {n: desired.values[n] for n in desired.names}
-        label = f"desired ({desired.method})"
-    elif callable(desired):
-        reference = dict(desired(actual.t))
-        label = "desired"
-    else:
+    if not (isinstance(desired, Solution) or callable(desired)):
         raise TypeError(f"desired must be a Solution or a callable t -> dict of values; got {type(desired).__name__}")
-    wanted = list(names) if names is not None else [n for n in actual.names if n in reference]
-    missing = [n for n in wanted if n not in reference or n not in actual.values]
-    if missing or not wanted:
-        raise AssertionError(
-            f"cannot compare {missing or 'anything'}: actual ({actual.method}) has {list(actual.names)}, "
-            f"{label} has {sorted(reference)}"
-        )
+    try:
+        wanted, reference = actual._aligned_reference(desired, names)
+    except ComparisonError as error:  # other times, or variables one side lacks
+        raise AssertionError(str(error)) from None
+    if isinstance(desired, Solution) and desired.batch_size != actual.batch_size:
+        raise AssertionError(f"the solutions have different batch sizes: {actual.batch_size} and {desired.batch_size}")
+    label = f"desired ({desired.method})" if isinstance(desired, Solution) else "desired"
     for name in wanted:
         a = actual.values[name]  # (B, T)
         b = np.broadcast_to(np.asarray(reference[name], dtype=float), a.shape)
