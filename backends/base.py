@@ -31,6 +31,8 @@ DEFAULT_OUTPUT_POINTS = 101
 # k = 0, and four points reach the float64 floor of a fifth-order method on a unit interval.
 SWEEP_FIRST_STEPS = 10
 SWEEP_FIRST_DIGITS = 4
+# Stages of the fixed-step sweeps: the paper's v = 3 (order 5), where the PINN was measured.
+SWEEP_STAGES = 3
 
 
 def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None):
@@ -85,9 +87,14 @@ def halving_steps(t_span, points: int) -> list[float]:
     return [(t_span[1] - t_span[0]) / (SWEEP_FIRST_STEPS * 2**k) for k in range(points)]
 
 
-def tightening_tolerances(points: int) -> list[float]:
-    """Tolerances of a work-precision sweep: 1e-4, 1e-6, ..."""
-    return [10.0 ** -(SWEEP_FIRST_DIGITS + 2 * k) for k in range(points)]
+def fixed_step_sweep(t_span, points: int) -> list[dict]:
+    """``stages``/``h`` options of a fixed-step method's work-precision sweep."""
+    return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points)]
+
+
+def tolerance_sweep(points: int) -> list[dict]:
+    """``rtol``/``atol`` options of an adaptive method's sweep: rtol = atol = 1e-4, 1e-6, ..."""
+    return [{"rtol": tol, "atol": tol} for tol in (10.0 ** -(SWEEP_FIRST_DIGITS + 2 * k) for k in range(points))]
 
 
 def check_number(name: str, value, *, positive: bool = True, integer: bool = False, allow_none: bool = False):

@@ -20,10 +20,10 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
-    halving_steps,
+    fixed_step_sweep,
     make_solution,
     output_times,
-    tightening_tolerances,
+    tolerance_sweep,
 )
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
@@ -117,7 +117,7 @@ class CollocationBackend(AbstractBackend):
     max_index = 2
 
     def work_precision(self, t_span, points):
-        return [{"stages": 3, "h": h} for h in halving_steps(t_span, points)]
+        return fixed_step_sweep(t_span, points)
 
     def solve(self, compiled, t_span, start, options: CollocationOptions):
         import casadi
@@ -151,7 +151,7 @@ class IDASBackend(AbstractBackend):
     max_index = 1
 
     def work_precision(self, t_span, points):
-        return [{"rtol": tol, "atol": tol} for tol in tightening_tolerances(points)]
+        return tolerance_sweep(points)
 
     def solve(self, compiled, t_span, start, options: IDASOptions):
         import casadi

@@ -32,7 +32,7 @@ from daemodel.backends.base import (
     check_number,
     check_stages,
     fixed_grid,
-    halving_steps,
+    fixed_step_sweep,
     make_solution,
     output_times,
     torch_device,
@@ -147,7 +147,7 @@ class RadauBackend(AbstractBackend):
     max_index = 2
 
     def work_precision(self, t_span, points):
-        return [{"stages": 3, "h": h} for h in halving_steps(t_span, points)]
+        return fixed_step_sweep(t_span, points)
 
     def solve(self, compiled, t_span, start, options: RadauOptions):
         import torch

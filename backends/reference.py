@@ -20,7 +20,7 @@ from daemodel.backends.base import (
     check_number,
     make_solution,
     output_times,
-    tightening_tolerances,
+    tolerance_sweep,
 )
 
 from daemodel.errors import ConvergenceError, InvalidOptionError
@@ -65,7 +65,7 @@ class ReferenceBackend(AbstractBackend):
     max_index = 3
 
     def work_precision(self, t_span, points):
-        return [{"rtol": tol, "atol": tol} for tol in tightening_tolerances(points)]
+        return tolerance_sweep(points)
 
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
         from scipy.integrate import solve_ivp

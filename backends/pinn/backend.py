@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from daemodel.backends.base import (
+    SWEEP_STAGES,
     AbstractBackend,
     fixed_grid,
     halving_steps,
@@ -81,7 +82,7 @@ class PINNBackend(AbstractBackend):
     max_index = 2
 
     def work_precision(self, t_span, points):
-        return [{"config": PINNConfig(h=h)} for h in halving_steps(t_span, points)]
+        return [{"config": PINNConfig(stages=SWEEP_STAGES, h=h)} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.surrogate import Surrogate
