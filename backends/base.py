@@ -33,12 +33,19 @@ SWEEP_FIRST_STEPS = 10
 SWEEP_FIRST_DIGITS = 4
 # Stages of the fixed-step sweeps: the paper's v = 3 (order 5), where the PINN was measured.
 SWEEP_STAGES = 3
+# Meaningful relative tolerances: below ~50 eps of float64 no integrator can deliver (IDAS and
+# RADAU5 stall there, and an adaptive solve runs until the step underflows); at or above 0.1 not
+# even one digit is asked for.
+RTOL_RANGE = (1e-14, 0.1)
 
 
-def make_solution(backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None):
+def make_solution(
+    backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None, status="success"
+):
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
-    ``settings`` defaults to the options' fields (less ``t_eval``).
+    ``settings`` defaults to the options' fields (less ``t_eval``); ``status`` is
+    :attr:`Solution.status`.
     """
     from dataclasses import asdict
 
@@ -55,6 +62,7 @@ def make_solution(backend, compiled, start, options, times, values, wall_time: f
         compiled=compiled,
         parameters=start.p,
         batched=start.batched,
+        status=status,
     )
 
 
@@ -106,6 +114,22 @@ def check_number(name: str, value, *, positive: bool = True, integer: bool = Fal
         raise InvalidOptionError(f"{name} must be a finite {'integer' if integer else 'number'}; got {value!r}")
     if positive and value <= 0:
         raise InvalidOptionError(f"{name} must be positive; got {value!r}")
+
+
+def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> None:
+    """Raise :class:`InvalidOptionError` unless ``rtol`` lies in :data:`RTOL_RANGE` and ``atol`` is positive."""
+    check_number("rtol", rtol)
+    check_number("atol", atol)
+    low, high = minimum_rtol, RTOL_RANGE[1]
+    if not low <= rtol <= high:
+        raise InvalidOptionError(
+            f"rtol = {rtol:g} is outside the meaningful range [{low:g}, {high:g}]: "
+            + (
+                "float64 cannot deliver more digits; use rtol >= " + f"{low:g}"
+                if rtol < low
+                else "that asks for no correct digit; use rtol <= " + f"{high:g}"
+            )
+        )
 
 
 def check_stages(stages) -> None:

@@ -23,7 +23,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-from daemodel.errors import ModelError, TargetError
+from daemodel.errors import DaemodelError, TargetError
 
 DEFAULT_T_SPAN = (0.0, 1.0)
 
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
                 points=args.points,
                 progress=False if args.no_progress else None,
             )
-        except ModelError as error:
+        except DaemodelError as error:
             print(f"daemodel compare {target}: {error}", file=sys.stderr)
             status = 2
             continue

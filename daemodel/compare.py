@@ -21,7 +21,7 @@ from pathlib import Path
 
 from daemodel.backends import get_backend
 from daemodel.backends import methods as registered_methods
-from daemodel.errors import ComparisonError, ConvergenceError
+from daemodel.errors import ComparisonError, SolverError
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
@@ -276,7 +276,7 @@ def compare(
                 bar.set_postfix_str(f"{method} {label}")
             try:
                 solution = solve(compiled, t_span, method=method, **options)
-            except ConvergenceError as error:
+            except SolverError as error:
                 runs.append(Run(method, label, math.nan, {}, {}, failure=str(error), short=short))
             else:
                 runs.append(Run(method, label, solution.wall_time, measure(solution), solution.drift(), short=short))

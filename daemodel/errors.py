@@ -1,13 +1,30 @@
-"""One exception class per user mistake.
+"""Every exception daemodel raises, in two families.
 
-Every class subclasses :class:`ModelError`, itself a :class:`ValueError`, so callers can
-catch them all at once or one at a time.  Messages name the culprit (equation, variable)
-and, where there is one, the fix.
+* :class:`ModelError` (a :class:`ValueError`): a **user mistake** that no solver run can fix:
+  a malformed equation, an unknown name, an option out of range, an inconsistent initial
+  state, a file that is not what it claims.  The message names the culprit (equation,
+  variable, option, file) and the fix.  Raised before any long computation where possible.
+* :class:`SolverError` (a :class:`RuntimeError`): the input was well formed but a **method
+  failed** on it: Newton did not converge, the step size underflowed, values went non-finite,
+  a local error estimate exceeded its bound, or a user-settable budget (``max_steps``,
+  iterations) ran out.  The message names the method, the time, the step, the sample and,
+  where known, the variable or equation, and what to change.
+
+Both derive from :class:`DaemodelError`, so ``except DaemodelError`` catches everything
+daemodel raises on purpose; anything else escaping the public API is a bug.
 """
 
 
-class ModelError(ValueError):
+class DaemodelError(Exception):
+    """Base class of every error daemodel raises on purpose."""
+
+
+class ModelError(DaemodelError, ValueError):
     """Base class of every error daemodel raises for a user mistake."""
+
+
+class SolverError(DaemodelError, RuntimeError):
+    """Base class of every failure of a method on well-formed input."""
 
 
 class InvalidNameError(ModelError):
@@ -114,8 +131,28 @@ class InvalidOptionError(ModelError):
     """An option has a value the method cannot use (wrong type, range or precision)."""
 
 
-class ConvergenceError(ModelError):
+class ConvergenceError(SolverError):
     """A solver failed: Newton did not converge, the step size underflowed, or values went non-finite."""
+
+
+class StepLimitError(SolverError):
+    """A user-settable budget ran out (``max_steps``, Newton iterations, training steps) before the end."""
+
+
+class LocalErrorBoundError(SolverError):
+    """A fixed-step method's a-posteriori local error estimate exceeded its bound (the step is not trustworthy)."""
+
+
+class ResourceLimitError(ModelError):
+    """A request would not fit in memory or time (a step grid, a sweep); refused before allocating."""
+
+
+class OutsideTrainingBoxError(ModelError):
+    """A surrogate was asked for states or parameters outside the box it was trained on."""
+
+
+class OutsideTrainingBoxWarning(UserWarning):
+    """A surrogate was asked for states or parameters outside the box it was trained on (by default a warning)."""
 
 
 class ComparisonError(ModelError):

@@ -36,6 +36,10 @@ class Solution:
     parameters : ndarray, shape (B, k)
     batched : bool
         Whether values keep a leading batch axis.
+    status : str
+        ``"success"`` when the method met its own accuracy criterion; otherwise what the user
+        must know to trust the values (e.g. a Radau-PINN trained on a fixed budget states its
+        final residual).  Shown by ``repr``.
 
     Examples
     --------
@@ -53,6 +57,7 @@ class Solution:
     compiled: object = field(repr=False)
     parameters: np.ndarray = field(repr=False)
     batched: bool = False
+    status: str = "success"
 
     def __post_init__(self) -> None:
         c = self.compiled
@@ -230,5 +235,5 @@ class Solution:
         batch = f", batch={self.batch_size}" if self.batched else ""
         return (
             f"Solution({self.compiled.name!r}, method={self.method!r}, t=[{self.t[0]:g}, {self.t[-1]:g}] "
-            f"({len(self.t)} points){batch}, wall_time={self.wall_time:.3g} s)"
+            f"({len(self.t)} points){batch}, wall_time={self.wall_time:.3g} s, status={self.status!r})"
         )

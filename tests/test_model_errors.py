@@ -15,11 +15,19 @@ def small() -> tuple:
     return m, y1, y2, z, mu
 
 
-def test_all_errors_are_value_errors():
-    for name in dir(E):
-        cls = getattr(E, name)
-        if isinstance(cls, type) and issubclass(cls, Exception):
-            assert issubclass(cls, ValueError) and issubclass(cls, E.ModelError), name
+def test_every_error_is_a_user_mistake_or_a_solver_failure():
+    """User mistakes are ValueErrors (ModelError), method failures RuntimeErrors (SolverError), never both."""
+    classes = [getattr(E, name) for name in dir(E)]
+    classes = [c for c in classes if isinstance(c, type) and issubclass(c, Exception) and not issubclass(c, Warning)]
+    assert len(classes) > 30
+    for cls in classes:
+        if cls is E.DaemodelError:
+            continue
+        assert issubclass(cls, E.DaemodelError), cls.__name__
+        mistake, failure = issubclass(cls, E.ModelError), issubclass(cls, E.SolverError)
+        assert mistake != failure or cls is E.DaemodelError, cls.__name__
+        assert issubclass(cls, ValueError) == mistake and issubclass(cls, RuntimeError) == failure, cls.__name__
+    assert issubclass(E.ConvergenceError, E.SolverError) and issubclass(E.TrainingError, E.SolverError)
 
 
 @pytest.mark.parametrize(
