@@ -1,8 +1,8 @@
 """The one table of functions daemodel understands, shared by the parser and both emitters.
 
 Each row maps a sympy function class to its torch function and its casadi function.  A
-function missing here is rejected by the parser (unknown function) and by the emitters
-(unsupported function) with the function's and the equation's name.
+function missing here is rejected by the parser (:mod:`daemodel.parse`: unknown function) and
+by the emitters (unsupported function) with the function's and the equation's name.
 """
 
 from __future__ import annotations
@@ -43,28 +43,3 @@ def supported_names() -> str:
     """The functions users may write, for error messages."""
     names = sorted(n for n, _, _ in (*FUNCTIONS.values(), *REDUCTIONS.values()))
     return ", ".join([*names, "sqrt", "Piecewise"])
-
-
-def _unevaluated_derivative(*args):
-    # sympy's diff of a plain symbol by t is 0; keep it visible so the model can reject it.
-    return sp.Derivative(*args)
-
-
-# What a string equation may name besides the model's own symbols.
-PARSE_NAMESPACE: dict[str, object] = {
-    **{name: cls for cls, (name, _, _) in {**FUNCTIONS, **REDUCTIONS}.items()},
-    "abs": sp.Abs,
-    "sqrt": sp.sqrt,
-    "ln": sp.log,
-    "pi": sp.pi,
-    "Piecewise": sp.Piecewise,
-    "Derivative": sp.Derivative,
-    "diff": _unevaluated_derivative,
-    # needed by sympy's parser transformations
-    "Integer": sp.Integer,
-    "Float": sp.Float,
-    "Rational": sp.Rational,
-    "Symbol": sp.Symbol,
-    "Function": sp.Function,
-    "__builtins__": {},
-}

@@ -15,11 +15,10 @@ import keyword
 import math
 import re
 from dataclasses import dataclass
-from tokenize import TokenError
 
+import numpy as np
 import sympy as sp
 from sympy.core.function import AppliedUndef
-from sympy.parsing.sympy_parser import convert_xor, parse_expr, standard_transformations
 
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -30,13 +29,16 @@ from daemodel.errors import (
     ODETargetError,
     UnknownSymbolError,
 )
-from daemodel.functions import PARSE_NAMESPACE, supported_names
+from daemodel.functions import supported_names
+from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation
 
+# Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
+# them as locals (they are the only user text that ever reaches generated source).
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
-# "y1'" in a string: a prime right after a name is a derivative, which a semi-explicit DAE
-# keeps on the left-hand side only.
-_PRIMED = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)\s*'")
-_TRANSFORMS = (*standard_transformations, convert_xor)
+# Model names also appear in file names (compare's results) and reports, never in generated code.
+_MODEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.\-]*$")
+# Longest name accepted (model, variable, parameter, constraint).
+MAX_NAME_LENGTH = 64
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,8 @@ class Model:
     Parameters
     ----------
     name : str
-        Shown in reports.
+        Shown in reports and used in result file names: letters, digits, ``_``, ``-`` and ``.``,
+        starting with a letter, at most 64 characters.
 
     Examples
     --------
@@ -96,7 +99,12 @@ class Model:
     """
 
     def __init__(self, name: str = "model"):
-        self.name = str(name)
+        if not isinstance(name, str) or not _MODEL_NAME.match(name) or len(name) > MAX_NAME_LENGTH:
+            raise InvalidNameError(
+                f"model name {name!r} is not allowed: use letters, digits, '_', '-' and '.', starting with a "
+                f"letter, at most {MAX_NAME_LENGTH} characters"
+            )
+        self.name = name
         self.t = sp.Symbol("t")
         self._states: dict[str, sp.Symbol] = {}
         self._algebraics: dict[str, sp.Symbol] = {}
@@ -135,13 +143,14 @@ class Model:
     def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
         out = []
         for name in _split_names(names):
-            if not _NAME.match(name) or keyword.iskeyword(name):
+            if not _NAME.match(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
                 raise InvalidNameError(
-                    f"{what} name {name!r} is not an identifier (letters, digits, '_', starting with a letter)"
+                    f"{what} name {name!r} is not an identifier (ASCII letters, digits, '_', starting with a "
+                    f"letter, at most {MAX_NAME_LENGTH} characters)"
                 )
             if name == "t":
                 raise InvalidNameError(f"{what} name 't' is reserved for time (m.t)")
-            if name in PARSE_NAMESPACE:
+            if name in RESERVED_NAMES:
                 raise InvalidNameError(
                     f"{what} name {name!r} is the name of a supported function or constant; choose another name"
                 )
@@ -155,6 +164,7 @@ class Model:
         return tuple(out)
 
     def _all_symbols(self) -> dict[str, sp.Symbol]:
+        """Every declared name (states, algebraic variables, parameters) -> its symbol."""
         return {**self._states, **self._algebraics, **self._parameters}
 
     def _kind(self, name: str) -> str:
@@ -189,8 +199,10 @@ class Model:
     def constraint(self, expr, name: str | None = None) -> None:
         """Declare ``0 = expr``; a string may be ``"lhs = rhs"`` (meaning ``0 = lhs - rhs``)."""
         number = self._equation_count + 1
-        name = f"g{len(self._constraints) + 1}" if name is None else str(name)
-        if not _NAME.match(name):
+        if name is not None and not isinstance(name, str):
+            raise InvalidNameError(f"constraint name must be a string; got {type(name).__name__}")
+        name = f"g{len(self._constraints) + 1}" if name is None else name
+        if not _NAME.match(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
             raise InvalidNameError(f"constraint name {name!r} is not an identifier")
         if any(c.name == name for c in self._constraints):
             raise InvalidNameError(f"constraint name '{name}' is already used")
@@ -225,28 +237,16 @@ class Model:
         """Turn a sympy expression, number or string into a checked sympy expression."""
         symbols = self._all_symbols()
         if isinstance(value, str):
-            primed = _PRIMED.search(value)
-            if primed:
-                raise DerivativeInEquationError(
-                    f"{where}: derivative {primed.group(0).strip()} in {value!r}; a semi-explicit "
-                    "DAE has derivatives only on the left (declare them with m.ode)"
-                )
-            try:
-                expr = parse_expr(
-                    value,
-                    local_dict={**symbols, "t": self.t},
-                    global_dict=dict(PARSE_NAMESPACE),
-                    transformations=_TRANSFORMS,
-                )
-            except (SyntaxError, TokenError, TypeError, AttributeError, NameError) as err:
-                raise ExpressionParseError(f"{where}: cannot parse {value!r} ({err})") from None
+            expr = parse_equation(value, {**symbols, "t": self.t}, where)
         else:
             try:
                 expr = sp.sympify(value, strict=True)
             except (sp.SympifyError, TypeError) as err:
                 raise ExpressionParseError(f"{where}: {value!r} is not an expression ({err})") from None
         if not isinstance(expr, sp.Expr) or getattr(expr, "is_Matrix", False):
-            raise ExpressionParseError(f"{where}: {value!r} is not a scalar expression (got {type(expr).__name__})")
+            raise ExpressionParseError(
+                f"{where}: {_short(value)} is not a scalar expression (got {type(expr).__name__})"
+            )
         if expr.has(sp.Derivative):
             found = sorted(map(str, expr.atoms(sp.Derivative)))
             raise DerivativeInEquationError(
@@ -266,6 +266,7 @@ class Model:
             raise UnknownSymbolError(
                 f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {_listing(known)}"
             )
+        check_numbers(expr, where)
         return expr
 
     # ---- compile ------------------------------------------------------------------------
@@ -293,6 +294,8 @@ class Model:
 
 
 def _finite(value, what: str) -> float:
+    if isinstance(value, bool | np.bool_ | str | bytes) or not isinstance(value, int | float | np.number | sp.Number):
+        raise InvalidValueError(f"{what} must be a real number; got {_short(value)} ({type(value).__name__})")
     try:
         number = float(value)
     except (TypeError, ValueError):
@@ -300,6 +303,12 @@ def _finite(value, what: str) -> float:
     if not math.isfinite(number):
         raise InvalidValueError(f"{what} must be finite; got {value!r}")
     return number
+
+
+def _short(value, limit: int = 80) -> str:
+    """``repr`` of a value, cut to ``limit`` characters for messages."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _listing(table) -> str:

@@ -11,6 +11,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.model import Model
+from daemodel.parse import parse_equation
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,7 +64,10 @@ class Problem:
         if not self.exact:
             return None
         t = sp.Symbol("t")
-        functions = {name: sp.lambdify(t, sp.sympify(expr), "numpy") for name, expr in self.exact.items()}
+        functions = {
+            name: sp.lambdify(t, parse_equation(expr, {"t": t}, f"exact solution of {name}"), "numpy")
+            for name, expr in self.exact.items()
+        }
 
         def solution(times):
             times = np.asarray(times, dtype=float)
