@@ -18,6 +18,7 @@ import itertools
 import keyword
 import linecache
 import math
+import re
 from dataclasses import dataclass, field
 
 import sympy as sp
@@ -61,7 +62,7 @@ class TorchPrinter(StrPrinter):
         return self._names[expr]
 
     def _print_Float(self, expr):
-        return repr(float(expr))
+        return _literal(float(expr))
 
     def _print_Pi(self, expr):
         return "math.pi"
@@ -70,7 +71,14 @@ class TorchPrinter(StrPrinter):
         return "math.e"
 
     def _print_NumberSymbol(self, expr):
-        return repr(float(expr))
+        return _literal(float(expr))
+
+    def _branch(self, expr):
+        """A torch.where operand: constants become tensors of y's dtype and device (Python
+        numbers would make torch.where return int64 or float32)."""
+        if not expr.free_symbols:
+            return f"y.new_tensor({_literal(float(expr))})"
+        return self._print(expr)
 
     def _print_Pow(self, expr, rational=False):
         base, exponent = expr.as_base_exp()
@@ -82,22 +90,22 @@ class TorchPrinter(StrPrinter):
 
     def _print_function(self, expr):
         if not expr.free_symbols:  # e.g. sin(1): torch functions need tensors
-            return repr(float(expr))
+            return _literal(float(expr))
         args = ", ".join(self._print(a) for a in expr.args)
         return f"torch.{FUNCTIONS[type(expr)][1]}({args})"
 
     def _print_reduction(self, expr):
         pick = ">=" if isinstance(expr, sp.Max) else "<="
-        out = self._print(expr.args[0])
+        out = self._branch(expr.args[0])
         for arg in expr.args[1:]:
-            other = self._print(arg)
+            other = self._branch(arg)
             out = f"torch.where(({out}) {pick} ({other}), {out}, {other})"
         return out
 
     def _print_Piecewise(self, expr):
-        out = self._print(expr.args[-1].expr)
+        out = self._branch(expr.args[-1].expr)
         for value, cond in reversed(expr.args[:-1]):
-            out = f"torch.where({self._print(cond)}, {self._print(value)}, {out})"
+            out = f"torch.where({self._print(cond)}, {self._branch(value)}, {out})"
         return out
 
     def _print_Relational(self, expr):
@@ -115,12 +123,24 @@ class TorchPrinter(StrPrinter):
         return f"(~({self._print(expr.args[0])}))"
 
 
+def _literal(value: float) -> str:
+    """A float as Python source; non-finite values through ``math`` (``repr`` gives ``inf``, a NameError)."""
+    if math.isnan(value):
+        return "math.nan"
+    if math.isinf(value):
+        return "math.inf" if value > 0 else "(-math.inf)"
+    return repr(value)
+
+
 for _cls in FUNCTIONS:
     setattr(TorchPrinter, f"_print_{_cls.__name__}", TorchPrinter._print_function)
 for _cls in REDUCTIONS:
     setattr(TorchPrinter, f"_print_{_cls.__name__}", TorchPrinter._print_reduction)
 
 _RESERVED = {"t", "y", "z", "p", "torch", "math", "_stack", "_prepare"}
+# Text daemodel writes into generated source besides expressions: no quotes, no newlines.
+_SAFE_TEXT = re.compile(r"^[A-Za-z0-9_ .,:#()\[\]/*+\-]*$")
+_IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 def local_names(groups: dict) -> dict:
@@ -129,22 +149,31 @@ def local_names(groups: dict) -> dict:
     for symbols in groups.values():
         for s in symbols:
             name = s.name
+            if not _IDENTIFIER.match(name):
+                raise ValueError(f"refusing to emit the symbol name {name!r}")  # the front end validates names
             while name in _RESERVED or keyword.iskeyword(name) or name in names.values():
                 name += "_"
             names[s] = name
     return names
 
 
-def torch_source(fname: str, exprs, labels, t, groups: dict, doc: str) -> str:
+def torch_source(fname: str, exprs, comments, t, groups: dict, doc: str) -> str:
     """Python source of ``fname(t, y, z, p=None) -> Tensor (..., len(exprs))``.
+
+    The only user text in the source is symbol names, which the front end validated as
+    identifiers (and :func:`local_names` keeps clear of Python keywords and the generated
+    names); ``fname``, ``comments`` and ``doc`` come from daemodel itself and are checked here.
 
     Parameters
     ----------
     groups : dict {"y": states, "z": algebraics, "p": parameters}
         Symbols unpacked from the last axis of each argument, in order.
-    labels : list of str
-        One comment per output (the equation it comes from).
+    comments : list of str
+        One comment per output (its position and equation number).
     """
+    for text in (fname, doc, *comments):
+        if not _SAFE_TEXT.match(text):
+            raise ValueError(f"refusing to emit {text!r} into generated source")  # daemodel's own bug
     names = local_names(groups)
     names[t] = "t"
     printer = TorchPrinter(names)
@@ -157,7 +186,7 @@ def torch_source(fname: str, exprs, labels, t, groups: dict, doc: str) -> str:
         names[sym] = sym.name
         lines.append(f"    {sym.name} = {printer.doprint(sub)}")
     lines.append("    return _stack((")
-    lines += [f"        {printer.doprint(e)},  # {label}" for e, label in zip(reduced, labels, strict=True)]
+    lines += [f"        {printer.doprint(e)},  # {note}" for e, note in zip(reduced, comments, strict=True)]
     lines.append("    ), t, y, z, p)")
     return "\n".join(lines) + "\n"
 
@@ -225,7 +254,7 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
         shape = _broadcast_shape(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
         if not values:
             return y.new_zeros((*shape, 0))
-        if all(isinstance(v, torch.Tensor) and v.shape == shape for v in values):
+        if all(isinstance(v, torch.Tensor) and v.shape == shape and v.dtype == y.dtype for v in values):
             return torch.stack(values, dim=-1)  # the common case, without copies
         return torch.stack(
             [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
@@ -234,7 +263,7 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
 
     out = {}
     for name, source in specs.items():
-        filename = f"<daemodel {model}.{name} #{next(_COUNTER)}>"
+        filename = f"<daemodel generated {name} #{next(_COUNTER)}>"
         linecache.cache[filename] = (len(source), None, source.splitlines(True), filename)
         namespace = {"torch": torch, "math": math, "_stack": _stack, "_prepare": _prepare}
         exec(compile(source, filename, "exec"), namespace)

@@ -167,7 +167,9 @@ def test_source_is_readable_and_registered():
     c = HESSENBERG.model().compile()
     tf = c.torch_functions()
     src = tf.source["f"]
-    assert "_c0 = " in src and "# y1' (#1)" in src  # common subexpressions, equation labels
+    assert "_c0 = " in src and "# f[0]: ODE #1" in src  # common subexpressions, equation numbers
+    # no user text besides validated identifiers: the model's name appears nowhere
+    assert all("hessenberg" not in text for text in tf.source.values())
     filename = tf.f.__code__.co_filename
     assert linecache.getline(filename, 1).startswith("def f(t, y, z, p=None):")
 
