@@ -8,6 +8,7 @@ import numpy as np
 from daemodel.codegen import check_supported
 from daemodel.compiled import CompiledDAE
 from daemodel.errors import (
+    InvalidValueError,
     MissingInitialValueError,
     MissingODEError,
     MissingParameterValueError,
@@ -24,6 +25,11 @@ def _names(symbols) -> str:
 
 
 def _validate(model) -> None:
+    if not model._states:
+        raise MissingODEError(
+            f"model '{model.name}' declares no differential variable; a DAE needs at least one state "
+            "with an ODE (declare it with m.states(...) and m.ode(...))"
+        )
     missing = [s for name, s in model._states.items() if name not in model._odes]
     if missing:
         raise MissingODEError(
@@ -49,6 +55,8 @@ def _validate(model) -> None:
 
 def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     """Compile a :class:`~daemodel.model.Model`; see ``Model.compile`` for the parameters."""
+    if not isinstance(repair, bool):
+        raise InvalidValueError(f"compile(repair=...) must be True or False; got {repair!r}")
     _validate(model)
     states = list(model._states.values())
     parameters = list(model._parameters.values())
@@ -64,8 +72,18 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     if outputs is None:
         keep = set(known)
     else:
-        outputs = [outputs] if isinstance(outputs, str) else list(outputs)
-        unknown = [o for o in outputs if o not in known]
+        try:
+            outputs = [outputs] if isinstance(outputs, str) else list(outputs)
+        except TypeError:
+            raise UnknownOutputError(
+                f"compile(outputs=...) must be a variable name or a list of them; got {type(outputs).__name__}"
+            ) from None
+        if not outputs:
+            raise UnknownOutputError(
+                f"compile(outputs=[]) asks for nothing; name the variables you want (of {', '.join(map(repr, known))}) "
+                "or leave outputs=None for all"
+            )
+        unknown = [o for o in outputs if not isinstance(o, str) or o not in known]
         if unknown:
             raise UnknownOutputError(
                 f"compile(outputs=...): {', '.join(repr(u) for u in unknown)} not a variable of model "

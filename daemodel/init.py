@@ -28,6 +28,12 @@ STATE_TOL = 1e-10
 # User-given algebraic values must agree with the consistent ones to this relative accuracy.
 ALGEBRAIC_TOL = 1e-9
 NEWTON_MAXITER = 50
+# Newton for algebraic values has settled when its last step is below this, relative to 1 + |z|
+# (quadratic convergence gets there in a few steps from a usable start), and its residual is
+# below NEWTON_RESIDUAL_TOL relative to 1 + |z|.
+NEWTON_STEP_TOL, NEWTON_RESIDUAL_TOL = 1e-13, 1e-8
+# Step halvings per Newton step while the residual grows.
+DAMPING_HALVINGS = 14
 PROJECTION_MAXITER = 100
 
 
@@ -44,7 +50,7 @@ class NumericSystem:
         """Return ``F(t, y, z, p) -> ndarray, shape (len(exprs),)``."""
         if not exprs:
             return lambda t, y, z, p: np.zeros(0)
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy")
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy", dummify=True)
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(len(exprs))
 
     def jacobian(self, exprs, wrt):
@@ -52,12 +58,12 @@ class NumericSystem:
         if not exprs or not wrt:
             return lambda t, y, z, p: np.zeros((len(exprs), len(wrt)))
         matrix = sp.Matrix(list(exprs)).jacobian(list(wrt))
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, "numpy")
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, "numpy", dummify=True)
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(matrix.shape)
 
     def batch_function(self, exprs):
         """Return ``F(t, Y, Z, P) -> ndarray, shape (B, len(exprs))`` for rows ``Y (B, n)`` etc."""
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy")
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy", dummify=True)
 
         def evaluate(t, Y, Z, P):
             if not exprs:
@@ -110,31 +116,95 @@ def project(y0, residual, jacobian) -> np.ndarray:
     return y
 
 
-def newton(F, J, x0):
-    """Damped Newton with least-squares steps; returns ``(x, converged)``."""
-    with np.errstate(all="ignore"):  # non-finite residuals are detected and reported below
-        return _newton(F, J, x0)
+@dataclass(frozen=True)
+class AlgebraicSolve:
+    """Result of :func:`solve_algebraic` for a batch of B systems of size m.
+
+    Attributes
+    ----------
+    x : ndarray, shape (B, m)
+        The last iterate of each sample.
+    residual : ndarray, shape (B, m)
+        ``F(x)``.
+    converged : ndarray of bool, shape (B,)
+        The last Newton step was below ``NEWTON_STEP_TOL (1 + |x|)`` (so the iteration settled on a
+        root, not drifted towards one at infinity, as for ``0 = exp(z)``) and the residual is finite
+        and below ``NEWTON_RESIDUAL_TOL (1 + |x|)``.
+    iterations : int
+    """
+
+    x: np.ndarray
+    residual: np.ndarray
+    converged: np.ndarray
+    iterations: int
 
 
-def _newton(F, J, x0):
-    if x0.size == 0:
-        return x0.copy(), True
-    x, r = x0.copy(), F(x0)
-    for _ in range(NEWTON_MAXITER):
-        if not np.all(np.isfinite(r)):
-            return x, False
-        dx = np.linalg.lstsq(J(x), -r, rcond=None)[0]
-        step = 1.0
-        while True:
-            x_new = x + step * dx
-            r_new = F(x_new)
-            if np.linalg.norm(r_new) <= np.linalg.norm(r) or step < 1e-4:
+def solve_algebraic(F, J, x0: np.ndarray, max_iterations: int = NEWTON_MAXITER) -> AlgebraicSolve:
+    """Damped Newton for ``F(x) = 0``, every sample of a batch at once: the one routine that
+    solves for algebraic values (consistent initialisation, batched initial states).
+
+    Parameters
+    ----------
+    F : callable (B, m) -> (B, m)
+    J : callable (B, m) -> (B, m, m)
+    x0 : ndarray, shape (B, m)
+        Starting values (they select among several roots).
+    max_iterations : int
+        Newton steps at most; a sample still moving then is reported as not converged.
+
+    Each step is the least-squares solution of ``J dx = -F`` (well defined where J is singular;
+    the caller checks the rank), halved per sample until ``|F|`` does not grow (at most
+    ``DAMPING_HALVINGS`` times).
+    """
+    x = np.array(x0, dtype=float, copy=True)
+    B, m = x.shape
+    if m == 0:
+        return AlgebraicSolve(x, np.zeros((B, 0)), np.ones(B, dtype=bool), 0)
+    with np.errstate(all="ignore"):  # non-finite iterates end as not converged, reported by the caller
+        r = F(x)
+        settled = np.zeros(B, dtype=bool)
+        iterations = 0
+        while iterations < max_iterations:
+            active = ~settled & np.isfinite(r).all(axis=1)
+            if not active.any():
                 break
-            step /= 2
-        x, r = x_new, r_new
-        if np.max(np.abs(dx)) <= 1e-13 * (1 + np.max(np.abs(x))):
-            break
-    return x, bool(np.all(np.isfinite(r)))
+            iterations += 1
+            dx = np.zeros_like(x)
+            dx[active] = _least_squares(J(x)[active], -r[active])
+            norm = np.linalg.norm(r, axis=1)
+            step = np.ones(B)
+            x_new, r_new = x + dx, F(x + dx)
+            for _ in range(DAMPING_HALVINGS):
+                worse = active & ~(np.linalg.norm(r_new, axis=1) <= norm)
+                if not worse.any():
+                    break
+                step[worse] /= 2
+                x_new = x + step[:, None] * dx
+                r_new = F(x_new)
+            x = np.where(active[:, None], x_new, x)
+            r = np.where(active[:, None], r_new, r)
+            small = np.max(np.abs(dx), axis=1) <= NEWTON_STEP_TOL * (1 + np.max(np.abs(x), axis=1))
+            settled |= active & small
+        scale = 1 + np.max(np.abs(x), axis=1)
+        fine = np.isfinite(r).all(axis=1) & np.isfinite(x).all(axis=1)
+        fine &= np.max(np.abs(r), axis=1) <= NEWTON_RESIDUAL_TOL * scale
+    return AlgebraicSolve(x, r, settled & fine, iterations)
+
+
+def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares solutions of ``A[i] x = b[i]`` for a stack; finite garbage never arises
+    from a singular A (the pseudo-inverse's minimum-norm step is used)."""
+    try:
+        out = np.linalg.solve(A, b[..., None])[..., 0]
+        if np.isfinite(out).all():
+            return out
+    except np.linalg.LinAlgError:
+        pass
+    return np.einsum("bij,bj->bi", np.linalg.pinv(A), b)
+
+
+def _guess(symbols, values) -> str:
+    return ", ".join(f"{z.name} = {v:.6g}" for z, v in zip(symbols, values, strict=True))
 
 
 def initialise(
@@ -195,18 +265,23 @@ def initialise(
         y0 = y_new
 
     determining = [c.determining for c in constraints]
-    H, Hz = numeric.function(determining), numeric.jacobian(determining, numeric.z)
-    guess = np.array([given.get(z.name, 0.0) for z in numeric.z], dtype=float)
-    z0, ok = newton(lambda z: H(t0, y0, z, p), lambda z: Hz(t0, y0, z, p), guess)
+    H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, numeric.z)
+    guess = np.array([[given.get(z.name, 0.0) for z in numeric.z]], dtype=float)
+    Y, P = y0[None, :], p[None, :]
+    result = solve_algebraic(lambda Z: H(t0, Y, Z, P), lambda Z: Hz(t0, Y, Z, P), guess)
+    z0, residual = result.x[0], result.residual[0]
     with np.errstate(all="ignore"):
-        jacobian, residual = Hz(t0, y0, z0, p), H(t0, y0, z0, p)
+        jacobian = Hz(t0, Y, result.x, P)[0]
     check_rank(jacobian, constraints, numeric.z, t0)  # a singular H_z explains a failed Newton
-    if not ok or np.max(np.abs(residual), initial=0.0) > 1e-8 * (1 + np.max(np.abs(z0), initial=0.0)):
-        worst = int(np.argmax(np.abs(residual))) if residual.size else 0
+    if not result.converged[0]:
+        worst = int(np.argmax(np.where(np.isfinite(residual), np.abs(residual), np.inf))) if residual.size else 0
+        values = ", ".join(f"{z.name} = {v:.6g}" for z, v in zip(numeric.z, z0, strict=True))
         raise InitialisationError(
-            f"Newton for the initial algebraic values did not converge: {constraints[worst].label} "
-            f"has residual {residual[worst]:.3g} at z = {dict(zip((z.name for z in numeric.z), z0, strict=True))}; "
-            "give a better starting value with m.initial(<algebraic>=...)"
+            f"Newton for the initial algebraic values did not converge: {constraints[worst].label} has residual "
+            f"{residual[worst]:.3g} at {values} after {result.iterations} steps from {_guess(numeric.z, guess[0])}, "
+            "and the steps have not settled (a constraint with no real root, such as 0 = exp(z), drives z "
+            "towards infinity). Check that the constraints have a root at t0, or give a starting value with "
+            "m.initial(<algebraic>=...)"
         )
 
     values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0]).tolist(), strict=True))

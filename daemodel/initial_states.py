@@ -22,7 +22,7 @@ from daemodel.errors import (
     ShapeError,
     UnknownSymbolError,
 )
-from daemodel.init import ALGEBRAIC_TOL, NEWTON_MAXITER, STATE_TOL, NumericSystem, hidden_constraints
+from daemodel.init import ALGEBRAIC_TOL, STATE_TOL, NumericSystem, hidden_constraints, solve_algebraic
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
@@ -62,7 +62,7 @@ def _columns(compiled, value, names, defaults, what: str):
                 f"{what} names {', '.join(repr(u) for u in unknown)}, which "
                 f"{'is' if len(unknown) == 1 else 'are'} not among {list(names)} of model '{compiled.name}'"
             )
-        arrays = {k: np.asarray(v, dtype=float) for k, v in value.items()}
+        arrays = {k: _numbers(v, f"{what}['{k}']") for k, v in value.items()}
         for k, a in arrays.items():
             if a.ndim > 1:
                 raise ShapeError(f"{what}['{k}'] must be a number or a 1-d array of samples; got shape {a.shape}")
@@ -73,18 +73,43 @@ def _columns(compiled, value, names, defaults, what: str):
                 + ", ".join(f"{k}: {a.shape[0]}" for k, a in arrays.items() if a.ndim == 1)
             )
         size = sizes.pop() if sizes else None
+        if size == 0:
+            raise ShapeError(f"{what}: the arrays hold no samples; give at least one")
         out = np.repeat(np.asarray(defaults, dtype=float)[None, :], size or 1, axis=0)
         for i, name in enumerate(names):
             if name in arrays:
                 out[:, i] = arrays[name]
         return size, out
-    array = np.asarray(value, dtype=float)
+    array = _numbers(value, what)
+    if array.ndim == 2 and array.shape[0] == 0:
+        raise ShapeError(f"{what} has shape {array.shape}: a batch of no samples; give at least one")
     if array.ndim not in (1, 2) or array.shape[-1] != len(names):
         raise ShapeError(
             f"{what} must have shape ({len(names)},) or (batch, {len(names)}) with columns {list(names)}; "
             f"got shape {array.shape}"
         )
     return (array.shape[0] if array.ndim == 2 else None), np.atleast_2d(array)
+
+
+def _numbers(value, what) -> np.ndarray:
+    """``value`` as a float array, refusing strings, booleans and objects (numpy would read "1.5" or True)."""
+    if isinstance(value, str | bytes):
+        raise InvalidValueError(f"{what} must be numbers; got the string {value!r}")
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as error:
+        raise InvalidValueError(f"{what} must be numbers; got {type(value).__name__} ({error})") from None
+    if raw.dtype.kind not in "iuf":
+        kind = {"b": "booleans", "U": "strings", "S": "bytes", "O": "objects", "c": "complex numbers"}
+        raise InvalidValueError(
+            f"{what} must be real numbers; got {kind.get(raw.dtype.kind, raw.dtype.name)} ({_short(value)})"
+        )
+    return raw.astype(float)
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _finite(array, names, what):
@@ -155,24 +180,16 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
     determining = [c.determining for c in compiled.constraints]
     H = numeric.batch_function(determining)
     Hz = numeric.batch_jacobian(determining, compiled.algebraics)
-    Zc = Z.copy()
-    with np.errstate(all="ignore"):  # non-finite iterates are caught by the residual test below
-        for _ in range(NEWTON_MAXITER):
-            r = H(t0, Y, Zc, P)
-            if Zc.shape[1] == 0 or not np.isfinite(r).all():
-                break
-            step = np.linalg.solve(Hz(t0, Y, Zc, P), -r[..., None])[..., 0]
-            Zc = Zc + step
-            if np.max(np.abs(step)) <= 1e-14 * (1 + np.max(np.abs(Zc))):
-                break
-        r = H(t0, Y, Zc, P)
-    failed = ~(np.abs(r) <= 1e-8 * (1 + np.abs(Zc).max(axis=1, initial=0.0))[:, None]).all(axis=1)
+    result = solve_algebraic(lambda Zc: H(t0, Y, Zc, P), lambda Zc: Hz(t0, Y, Zc, P), Z)
+    Zc, r = result.x, result.residual
+    failed = ~result.converged
     if failed.any():
         sample = int(np.flatnonzero(failed)[0])
         raise InitialisationError(
             f"Newton for the initial algebraic values failed for samples {_samples(np.flatnonzero(failed))}; "
-            f"sample {sample} keeps residuals {r[sample]} of {[c.label for c in compiled.constraints]}; "
-            "pass starting values with z0=..."
+            f"sample {sample} keeps residuals {r[sample]} of {[c.label for c in compiled.constraints]} after "
+            f"{result.iterations} steps; pass starting values with z0=..., or check that the constraints have a "
+            "real root at these states"
         )
     if z0 is not None:
         off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))

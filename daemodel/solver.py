@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+
+import numpy as np
 
 from daemodel.backends import get_backend
 from daemodel.compiled import CompiledDAE
@@ -71,6 +74,22 @@ def solve(
     return backend.solve(compiled, t_span, start, opts)
 
 
+def _pair(value):
+    """``(float, float)`` from two real numbers (no strings, no booleans), else None."""
+    try:
+        items = list(value)
+    except TypeError:
+        return None
+    if len(items) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in items):
+        return None
+    return float(items[0]), float(items[1])
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
     """A Model compiled with all outputs, or a CompiledDAE as it is."""
     if isinstance(model, Model):
@@ -82,10 +101,10 @@ def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
 
 def check_span(t_span, compiled) -> tuple[float, float]:
     """``(t0, t1)`` as floats, finite, increasing, starting at the model's initial time."""
-    try:
-        t0, t1 = (float(v) for v in t_span)
-    except (TypeError, ValueError):
-        raise TimeSpanError(f"t_span must be a pair (t0, t1) of numbers; got {t_span!r}") from None
+    pair = None if isinstance(t_span, str | bytes | dict) else _pair(t_span)
+    if pair is None:
+        raise TimeSpanError(f"t_span must be a pair (t0, t1) of numbers; got {_short(t_span)}")
+    t0, t1 = pair
     if not (math.isfinite(t0) and math.isfinite(t1)):
         raise TimeSpanError(f"t_span must be finite; got ({t0}, {t1})")
     if t1 <= t0:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
-from daemodel.errors import IndexTooHighError, SingularSystemError
+from daemodel.errors import IndexTooHighError, SingularSystemError, UnsupportedFunctionError
 
 MAX_INDEX = 3  # Hessenberg index 3 is the highest form the compiler recognises.
 # Relative singular-value threshold of the numeric rank check: float64 Jacobians of
@@ -109,7 +109,21 @@ def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraic
                 "missing from the right-hand sides); daemodel handles index 1, 2 and Hessenberg 3"
             )
         chain.append(time_derivative(chain[-1], t, rhs))
+        # sympy differentiates Abs of a symbol of unknown sign into re/im derivatives that
+        # nothing can evaluate (Max/Min give Heaviside, which the emitters name themselves)
+        if chain[-1].has(sp.Derivative, sp.re, sp.im):
+            raise UnsupportedFunctionError(
+                f"{label} has to be differentiated (it holds no algebraic variable), but its derivative "
+                f"{name + chr(39) * (len(chain) - 1)} = {_short(chain[-1])} leaves the supported functions: Abs, "
+                "sign, Max, Min and Piecewise have no usable derivative at their kinks. Write the constraint "
+                "with smooth functions (e.g. sqrt(x**2 + eps) for |x|), or declare its derivative as the constraint"
+            )
     return Constraint(name, number, tuple(chain))
+
+
+def _short(expr, limit: int = 120) -> str:
+    text = str(expr)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def incidence(constraints, algebraics) -> list[set[int]]:
