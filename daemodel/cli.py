@@ -8,28 +8,50 @@ A target is the name of a problem in :mod:`daemodel.problems` (``hessenberg``,
 
 * ``build_model()`` returning a :class:`~daemodel.Model` (or a module-level ``model``: a
   Model, a CompiledDAE, or a function returning one); and optionally
-* ``T_SPAN = (t0, t1)``, the interval (default (0, 1); ``--t-end`` overrides t1), and
+* ``T_SPAN = (t0, t1)``, the interval, finite with t0 < t1 (default (0, 1); ``--t-end``
+  overrides t1), and
 * ``exact(t)``, returning a dict name -> values, the reference for the errors (default: a
   tight scipy solve, ``method="reference"``).
 
 For each target it prints the table and writes ``<model>.json``, ``<model>.csv`` and
 ``<model>_work_precision.png`` into ``--out``.
+
+Every argument, the ``--out`` directory (created, and a file written and removed in it) and
+every target are checked before the first solve.  An error is one line on stderr,
+``daemodel compare TARGET: message``.  Exit status: 0 when every table was produced (a
+method that failed at some or all settings is shown as failed in it); 2 for a user mistake
+(nothing is solved then); 1 when a solver failure stopped a target (the default reference
+solve failed).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import math
+import numbers
+import os
 import sys
 from pathlib import Path
 
-from daemodel.errors import DaemodelError, TargetError
+from daemodel.errors import DaemodelError, ModelError, TargetError
 
 DEFAULT_T_SPAN = (0.0, 1.0)
+# Exit statuses of `daemodel compare`.
+EXIT_USER_MISTAKE, EXIT_SOLVER_FAILURE = 2, 1
 
 
 def load_target(target: str):
-    """``(model, t_span, exact)`` for a problem name or a model file (see the module docs)."""
+    """``(model, t_span, exact)`` for a problem name or a model file (see the module docs).
+
+    Raises
+    ------
+    TargetError
+        For anything wrong with the file, including any exception its code raises (a syntax
+        error, at import, in ``build_model()``): the message names the file, the line where
+        known, and the exception.
+    """
+    from daemodel.compare import exception_summary
     from daemodel.problems import PROBLEMS
 
     if target in PROBLEMS:
@@ -41,22 +63,54 @@ def load_target(target: str):
         raise TargetError(f"{target!r} is neither a problem ({', '.join(PROBLEMS)}) nor a .py model file")
     if not path.is_file():
         raise TargetError(f"no model file at {path}")
+
+    def run(what: str, function, *args):
+        try:
+            return function(*args)
+        except (Exception, SystemExit) as error:  # the user's code: a message, not a traceback
+            raise TargetError(f"{what} raised {exception_summary(error, filename=path)}") from error
+
     spec = importlib.util.spec_from_file_location(f"daemodel_target_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    if callable(getattr(module, "build_model", None)):
-        model = module.build_model()
+    sys.modules[spec.name] = module  # as an import does: dataclasses and pickle look the module up there
+    try:
+        run("importing the model file", spec.loader.exec_module, module)
+    except TargetError:
+        del sys.modules[spec.name]
+        raise
+    build = getattr(module, "build_model", None)
+    if build is not None:
+        if not callable(build):
+            raise TargetError(f"{path}: build_model is {type(build).__name__}, not a function returning a Model")
+        model = run("build_model()", build)
     elif hasattr(module, "model"):
-        model = module.model() if callable(module.model) and not _is_model(module.model) else module.model
+        model = run("model()", module.model) if callable(module.model) and not _is_model(module.model) else module.model
     else:
         raise TargetError(
             f"{path} defines neither build_model() nor model; define build_model() returning a daemodel.Model"
         )
     if not _is_model(model):
         raise TargetError(f"{path}: build_model() / model gave {type(model).__name__}, not a Model or CompiledDAE")
-    t_span = tuple(getattr(module, "T_SPAN", DEFAULT_T_SPAN))
+    t_span = _t_span(path, getattr(module, "T_SPAN", DEFAULT_T_SPAN))
     exact = getattr(module, "exact", None)
+    if exact is not None and not callable(exact):
+        raise TargetError(f"{path}: exact is {type(exact).__name__}, not a function t -> dict name -> values")
     return model, t_span, exact
+
+
+def _t_span(path: Path, value) -> tuple[float, float]:
+    """``T_SPAN`` of a model file as floats: a pair of finite numbers, increasing."""
+    expected = f"{path}: T_SPAN must be a pair (t0, t1) of finite numbers with t0 < t1; got {value!r}"
+    try:
+        pair = tuple(value)
+    except TypeError:
+        raise TargetError(expected) from None
+    if len(pair) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair):
+        raise TargetError(expected)
+    t0, t1 = float(pair[0]), float(pair[1])
+    if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1):
+        raise TargetError(expected)
+    return t0, t1
 
 
 def _is_model(value) -> bool:
@@ -66,8 +120,42 @@ def _is_model(value) -> bool:
     return isinstance(value, Model | CompiledDAE)
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="daemodel", description="Solve and compare DAEs.")
+def check_out(out: str) -> Path:
+    """The ``--out`` directory, created, with a probe file written and removed in it.
+
+    Raises
+    ------
+    ModelError
+        When it is an existing file, lies under a file, or cannot be created or written.
+    """
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise ModelError(f"--out {out} is an existing file, not a directory; give a directory")
+    probe = path / f".daemodel-write-check-{os.getpid()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        reason = error.strerror or str(error)
+        where = f" ({error.filename})" if error.filename and str(error.filename) != out else ""
+        raise ModelError(
+            f"--out {out} cannot be created or written: {reason}{where}; give a writable directory"
+        ) from None
+    return path
+
+
+class _UsageError(Exception):
+    """An argparse error, reported as one line instead of argparse's usage text and exit."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="daemodel", description="Solve and compare DAEs.")
     commands = parser.add_subparsers(dest="command", required=True)
     cmp = commands.add_parser(
         "compare",
@@ -78,41 +166,88 @@ def main(argv=None) -> int:
     cmp.add_argument("targets", nargs="+", metavar="TARGET", help="problem name or model file")
     cmp.add_argument("--methods", help="comma-separated methods (default: every method but 'reference')")
     cmp.add_argument("--out", default="results", help="directory for the JSON, CSV and PNG (default results/)")
-    cmp.add_argument("--points", type=int, default=4, help="settings per method in the sweep (default 4)")
+    cmp.add_argument("--points", type=int, default=4, help="settings per method in the sweep (default 4, at most 12)")
     cmp.add_argument("--t-end", type=float, help="end of the interval (default: the target's T_SPAN or 1)")
     cmp.add_argument("--threads", type=int, default=1, help="torch threads, fixed for comparable timings (default 1)")
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    return parser
 
-    from daemodel.compare import compare
 
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
+def main(argv=None) -> int:
+    """Run ``daemodel``; returns the exit status (see the module docs)."""
+    try:
+        args = _parser().parse_args(argv)
+    except _UsageError as error:
+        print(error, file=sys.stderr)
+        return EXIT_USER_MISTAKE
     import torch
 
     torch.set_num_threads(max(1, args.threads))
-    status = 0
+    return _compare(args)
+
+
+def _compare(args) -> int:
+    from daemodel.backends import get_backend
+    from daemodel.compare import check_points, plan_comparison
+
+    def report(where: str, error: Exception) -> None:
+        print(f"daemodel compare{where}: {error}", file=sys.stderr)
+
+    # The arguments and --out: wrong for every target alike.
+    try:
+        methods = None
+        if args.methods is not None:
+            methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+            if not methods:
+                raise ModelError(f"--methods {args.methods!r} names no method; give e.g. --methods radau,casadi-idas")
+            for method in methods:
+                get_backend(method)
+        check_points(args.points)
+        if args.t_end is not None and not math.isfinite(args.t_end):
+            raise ModelError(f"--t-end must be a finite number; got {args.t_end}")
+        if args.threads < 1:
+            raise ModelError(f"--threads must be at least 1; got {args.threads}")
+        check_out(args.out)
+    except DaemodelError as error:
+        report("", error)
+        return EXIT_USER_MISTAKE
+
+    # Every target, checked before the first solve.
+    plans, status = [], 0
     for target in args.targets:
         try:
             model, t_span, exact = load_target(target)
             if args.t_end is not None:
+                if args.t_end <= t_span[0]:
+                    raise TargetError(
+                        f"--t-end {args.t_end:g} is not after t0 = {t_span[0]:g}, where the target starts"
+                    )
                 t_span = (t_span[0], args.t_end)
-            result = compare(
-                model,
-                t_span,
-                methods,
-                reference=exact,
-                points=args.points,
-                progress=False if args.no_progress else None,
-            )
+            plans.append((target, plan_comparison(model, t_span, methods, reference=exact, points=args.points)))
         except DaemodelError as error:
-            print(f"daemodel compare {target}: {error}", file=sys.stderr)
-            status = 2
-            continue
-        print(result.table())
-        for path in result.save(args.out):
-            print(f"wrote {path}")
+            report(f" {target}", error)
+            status = max(status, _exit_status(error))
+    if status:
+        return status
+
+    for target, plan in plans:
+        try:
+            result = plan.run(progress=False if args.no_progress else None)
+            print(result.table())
+            for path in result.save(args.out):
+                print(f"wrote {path}")
+        except DaemodelError as error:  # e.g. a SolverError of the default reference solve
+            report(f" {target}", error)
+            status = max(status, _exit_status(error))
+        except OSError as error:
+            report(f" {target}", f"cannot write into --out {args.out}: {error}")
+            status = max(status, EXIT_USER_MISTAKE)
         print()
     return status
+
+
+def _exit_status(error: DaemodelError) -> int:
+    return EXIT_USER_MISTAKE if isinstance(error, ModelError) else EXIT_SOLVER_FAILURE
 
 
 if __name__ == "__main__":

@@ -8,6 +8,10 @@ Each method is solved over a sweep of its accuracy setting (its backend's
 ``work_precision``: step sizes h for the fixed-step methods, tolerances for the adaptive
 ones), and every solution is measured against one reference: the model's exact solution
 when given, else ``method="reference"`` (scipy at rtol = atol = 1e-12) on the same times.
+
+User mistakes (an unknown method or option, a setting its method refuses, a grid too large
+to solve, a reference that raises or is not finite) are refused before the first solve; a
+method that fails at a setting is recorded as a failed run, shown as such in the table.
 """
 
 from __future__ import annotations
@@ -16,15 +20,34 @@ import csv
 import dataclasses
 import json
 import math
+import traceback
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from daemodel.backends import get_backend
 from daemodel.backends import methods as registered_methods
-from daemodel.errors import ComparisonError, SolverError
+from daemodel.backends.base import SWEEP_FIRST_STEPS, fixed_grid, torch_device
+from daemodel.errors import (
+    ComparisonError,
+    ModelError,
+    ResourceLimitError,
+    SolverError,
+    UnknownOptionError,
+)
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
+# Most sweep points: a fixed-step sweep halves h from span/10 at each point, so point 12 is
+# already span/20,480 (20,480 steps per solve), and each further point doubles the time.
+MAX_POINTS = 12
+# Most fixed-grid steps one compared setting may take, refused before any solve: radau's
+# default max_steps, five times the finest default sweep point.
+MAX_SWEEP_STEPS = 100_000
+# Times across t_span on which a reference callable is checked before the first solve.
+REFERENCE_CHECK_POINTS = 11
 
 
 @dataclass(frozen=True)
@@ -37,7 +60,8 @@ class Run:
     settings : str
         The options that were swept, e.g. ``"h=0.05"`` or ``"rtol=1e-06, atol=1e-08"``.
     wall_time : float
-        The method's own solve time in seconds (training included for ``pinn``; NaN when it failed).
+        The method's own solve time in seconds (training included for ``pinn``; NaN when it failed, null in
+        the JSON).
     errors : dict name -> {"max": float, "mean": float}
         Absolute errors against the reference over every output time.
     drift : dict constraint -> float
@@ -111,15 +135,24 @@ class Comparison:
         for run in self.runs:
             line = f"{run.method:<{width['method']}}{run.settings:<{width['settings']}}"
             if run.failure is not None:
-                lines.append(line + f"{run.wall_time:>10.3f}  failed: {run.failure}")
+                lines.append(line + f"{'-':>10}  failed: {run.failure}")
                 continue
             line += f"{run.wall_time:>10.3f}"
             for name in self.names:
                 error = run.errors[name]
                 line += f"{error['max']:>11.1e} ({error['mean']:.0e})"
-            line += f"{max(run.drift.values(), default=math.nan):>10.1e}"
+            line += f"{max(run.drift.values()):>10.1e}" if run.drift else f"{'-':>10}"
             lines.append(line)
+        for method in self.failed_methods:
+            count = sum(r.method == method for r in self.runs)
+            lines.append(f"{method} failed at every setting ({count} of {count}): no errors to compare, no curve")
         return "\n".join(lines)
+
+    @property
+    def failed_methods(self) -> tuple:
+        """The methods that failed at every setting of their sweep."""
+        methods = dict.fromkeys(r.method for r in self.runs)
+        return tuple(m for m in methods if all(r.failure is not None for r in self.runs if r.method == m))
 
     def to_json(self, path) -> Path:
         path = Path(path)
@@ -131,7 +164,8 @@ class Comparison:
             "algebraics": list(self.algebraics),
             "runs": [dataclasses.asdict(run) for run in self.runs],
         }
-        path.write_text(json.dumps(payload, indent=2) + "\n")
+        # a failed run's wall time is NaN, which JSON lacks: null, as strict parsers expect
+        path.write_text(json.dumps(_nan_to_none(payload), indent=2, allow_nan=False) + "\n")
         return path
 
     def to_csv(self, path) -> Path:
@@ -162,7 +196,8 @@ class Comparison:
         for ax, (title, names) in zip(axes, groups, strict=True):
             for i, method in enumerate(methods):
                 runs = [r for r in self.runs if r.method == method and r.failure is None]
-                if not runs:
+                if not runs:  # a legend entry, so that a method that failed everywhere is not just absent
+                    ax.plot([], [], "x", color=f"C{i}", label=f"{method} (failed at every setting)")
                     continue
                 times = [r.wall_time for r in runs]
                 errors = [max(max(r.errors[n]["max"] for n in names), 1e-17) for r in runs]
@@ -206,6 +241,11 @@ def compare(
     """Solve ``model`` with each method over a sweep of its accuracy setting and measure every
     solution against one reference.
 
+    User mistakes are refused before the first solve (see :func:`plan_comparison`); a method
+    that fails at a setting (a :class:`SolverError`) is recorded as a failed run and the sweep
+    goes on.  A :class:`ModelError` that only a solve reveals is raised, never recorded: it is
+    a mistake to fix, not a point of the work-precision curve.
+
     Parameters
     ----------
     model : Model or CompiledDAE
@@ -213,22 +253,126 @@ def compare(
     methods : iterable of str, optional
         Registered method names; default every method except ``"reference"``.
     reference : callable, optional
-        ``reference(t) -> dict name -> values``, e.g. ``Problem.exact_solution()``.  Default:
-        ``method="reference"`` (scipy, rtol = atol = 1e-12) solved on each run's times.
+        ``reference(t) -> dict name -> values``, e.g. ``Problem.exact_solution()``: for times
+        ``t`` of shape (T,), finite values of shape (T,) for every state and algebraic
+        variable.  Default: ``method="reference"`` (scipy, rtol = atol = 1e-12) solved on each
+        run's times.
     sweep : dict method -> list of option dicts, optional
         Settings to solve a method with instead of its default sweep, e.g.
         ``{"radau": [{"stages": 5, "h": 0.1}, {"stages": 5, "h": 0.05}]}``.
     points : int
-        Length of the default sweeps.
+        Length of the default sweeps, 1 to :data:`MAX_POINTS`.
     progress : bool, optional
         Show a progress bar (default: when stderr is a terminal).
 
     Returns
     -------
     Comparison
+
+    Raises
+    ------
+    ModelError
+        Before any solve: an unknown method or option, an unusable setting, a grid of more
+        than :data:`MAX_SWEEP_STEPS` steps, ``points`` out of range, an inconsistent initial
+        state, or a reference that raises or returns missing, misshapen or non-finite values
+        (:class:`ComparisonError`, naming the variable and the time).
+    SolverError
+        Only when the default reference solve itself fails.
     """
-    from daemodel.backends.base import show_progress
-    from daemodel.solver import as_compiled, check_span, solve
+    return plan_comparison(model, t_span, methods, reference=reference, sweep=sweep, points=points).run(progress)
+
+
+@dataclass(frozen=True)
+class ComparisonPlan:
+    """A checked :func:`compare`: the model, the interval, the settings to solve and the reference.
+
+    Made by :func:`plan_comparison`, which refuses every user mistake it can find before a
+    solve; :meth:`run` then solves.  ``daemodel compare`` plans every target before solving any.
+
+    Attributes
+    ----------
+    compiled : CompiledDAE
+    t_span : (float, float)
+    settings : tuple of (method, options, settings label, short label)
+    reference : CheckedReference or None
+    """
+
+    compiled: object
+    t_span: tuple
+    settings: tuple
+    reference: CheckedReference | None
+
+    def run(self, progress: bool | None = None) -> Comparison:
+        """Solve every setting; a :class:`SolverError` at one is recorded as a failed run."""
+        from daemodel.backends.base import show_progress
+        from daemodel.solver import solve
+
+        compiled, t_span = self.compiled, self.t_span
+        references = {}
+
+        def measure(solution):
+            if self.reference is not None:
+                return solution.errors(self.reference)
+            key = tuple(solution.t)
+            if key not in references:
+                references[key] = solve(compiled, t_span, method="reference", t_eval=solution.t)
+            return solution.errors(references[key])
+
+        bar = None
+        if show_progress(progress):
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=len(self.settings), desc=f"compare {compiled.name}", unit="solve", leave=False)
+        runs = []
+        try:
+            for method, options, label, short in self.settings:
+                if bar is not None:
+                    bar.set_postfix_str(f"{method} {label}")
+                try:
+                    solution = solve(compiled, t_span, method=method, **options)
+                except SolverError as error:
+                    runs.append(Run(method, label, math.nan, {}, {}, failure=str(error), short=short))
+                else:
+                    errors = measure(solution)
+                    runs.append(Run(method, label, solution.wall_time, errors, solution.drift(), short=short))
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+        if self.reference is not None:
+            described = "the exact solution"
+        else:
+            described = "method='reference' (scipy, rtol = atol = 1e-12)"
+        return Comparison(
+            model=compiled.name,
+            t_span=t_span,
+            reference=described,
+            states=tuple(compiled.state_names),
+            algebraics=tuple(compiled.algebraic_names),
+            runs=tuple(runs),
+        )
+
+
+def plan_comparison(
+    model,
+    t_span,
+    methods=None,
+    *,
+    reference=None,
+    sweep: dict | None = None,
+    points: int = DEFAULT_POINTS,
+) -> ComparisonPlan:
+    """Check everything :func:`compare` is given, without solving; the arguments are compare's.
+
+    Refuses, each with a :class:`ModelError` naming the culprit: an unknown method, a sweep
+    for a method not compared, ``points`` outside 1 to :data:`MAX_POINTS`, a setting its
+    method rejects (with the method, the setting and how far the default sweep is usable), a
+    fixed grid of more than :data:`MAX_SWEEP_STEPS` steps, an inconsistent initial state, and
+    a reference that fails on :data:`REFERENCE_CHECK_POINTS` times across ``t_span``.
+    """
+    from daemodel.initial_states import initial_states
+    from daemodel.solver import as_compiled, check_span
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)
@@ -240,60 +384,192 @@ def compare(
     stray = sorted(set(sweep) - set(methods))
     if stray:
         raise ComparisonError(f"sweep names {', '.join(stray)}, which is not among the methods {', '.join(methods)}")
-    if isinstance(points, bool) or not isinstance(points, int) or points < 1:
-        raise ComparisonError(f"points must be a positive integer; got {points!r}")
+    check_points(points)
     if reference is not None and not callable(reference):
         raise ComparisonError(
             f"reference must be a callable t -> dict of values (an exact solution); got {type(reference).__name__}"
         )
-    plan = []
+    settings = []
     for method in methods:
-        settings = sweep.get(method, backends[method].work_precision(t_span, points))
-        if not isinstance(settings, list | tuple) or not settings or not all(isinstance(s, dict) for s in settings):
-            raise ComparisonError(f"sweep[{method!r}] must be a non-empty list of option dicts; got {settings!r}")
-        labels = sweep_labels(list(settings))
-        plan += [(method, options, *label) for options, label in zip(settings, labels, strict=True)]
-
-    references = {}
-
-    def measure(solution):
-        if reference is not None:
-            return solution.errors(reference)
-        key = tuple(solution.t)
-        if key not in references:
-            references[key] = solve(compiled, t_span, method="reference", t_eval=solution.t)
-        return solution.errors(references[key])
-
-    bar = None
-    if show_progress(progress):
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(plan), desc=f"compare {compiled.name}", unit="solve", leave=False)
-    runs = []
-    try:
-        for method, options, label, short in plan:
-            if bar is not None:
-                bar.set_postfix_str(f"{method} {label}")
-            try:
-                solution = solve(compiled, t_span, method=method, **options)
-            except SolverError as error:
-                runs.append(Run(method, label, math.nan, {}, {}, failure=str(error), short=short))
+        given = method in sweep
+        options_list = sweep[method] if given else backends[method].work_precision(t_span, points)
+        if (
+            not isinstance(options_list, list | tuple)
+            or not options_list
+            or not all(isinstance(s, dict) for s in options_list)
+        ):
+            raise ComparisonError(f"sweep[{method!r}] must be a non-empty list of option dicts; got {options_list!r}")
+        labels = sweep_labels(list(options_list))
+        for i, (options, (label, short)) in enumerate(zip(options_list, labels, strict=True)):
+            context = f"{method} at {label} (setting {i + 1} of {len(options_list)})"
+            if given:
+                fix = f"; fix sweep[{method!r}]"
+            elif i > 0:
+                fix = f"; {method}'s default sweep is usable up to points = {i}"
             else:
-                runs.append(Run(method, label, solution.wall_time, measure(solution), solution.drift(), short=short))
-            if bar is not None:
-                bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
-    described = "the exact solution" if reference is not None else "method='reference' (scipy, rtol = atol = 1e-12)"
-    return Comparison(
-        model=compiled.name,
-        t_span=t_span,
-        reference=described,
-        states=tuple(compiled.state_names),
-        algebraics=tuple(compiled.algebraic_names),
-        runs=tuple(runs),
-    )
+                fix = ""
+            _check_setting(backends[method], options, t_span, context, fix)
+            settings.append((method, options, label, short))
+    initial_states(compiled)  # an inconsistent initial state would fail every solve: refuse it now
+    checked = None
+    if reference is not None:
+        checked = CheckedReference(reference, compiled, t_span)
+        checked(np.linspace(*t_span, REFERENCE_CHECK_POINTS))
+    return ComparisonPlan(compiled=compiled, t_span=t_span, settings=tuple(settings), reference=checked)
+
+
+def check_points(points) -> int:
+    """``points`` if it is an integer from 1 to :data:`MAX_POINTS`, else :class:`ComparisonError`."""
+    if isinstance(points, bool) or not isinstance(points, int) or points < 1:
+        raise ComparisonError(f"points must be a positive integer; got {points!r}")
+    if points > MAX_POINTS:
+        steps = SWEEP_FIRST_STEPS * 2 ** (MAX_POINTS - 1)
+        raise ComparisonError(
+            f"points = {points} is more than {MAX_POINTS}: a fixed-step sweep halves h from span/{SWEEP_FIRST_STEPS} "
+            f"at each point, so point {MAX_POINTS} already takes {steps:,} steps per solve and every further point "
+            f"doubles that; take points <= {MAX_POINTS}, or give sweep= with the settings you need"
+        )
+    return points
+
+
+def _check_setting(backend, options: dict, t_span, context: str, fix: str) -> None:
+    """Raise the :class:`ModelError` that solving ``options`` would raise, before any solve,
+    with ``context`` (method and setting) in front and ``fix`` behind its message."""
+    fields = {f.name for f in dataclasses.fields(backend.Options)}
+    unknown = sorted(set(options) - fields)
+    try:
+        if unknown:
+            raise UnknownOptionError(
+                f"method {backend.name!r} has no option {', '.join(repr(u) for u in unknown)}; "
+                f"its options are {', '.join(sorted(fields))}"
+            )
+        backend.Options(**options)
+        flat = _flatten(options)
+        if flat.get("device") is not None:  # a CUDA device torch cannot see
+            torch_device(flat["device"])
+        h = flat.get("h")
+        if h is not None:  # a fixed grid: checked by Options as a positive number
+            span = t_span[1] - t_span[0]
+            if span / h > MAX_SWEEP_STEPS:
+                raise ResourceLimitError(
+                    f"h = {h:g} makes {math.ceil(span / h):,} steps over t_span = ({t_span[0]:g}, {t_span[1]:g}), "
+                    f"more than the {MAX_SWEEP_STEPS:,} a compared setting may take; "
+                    f"take h >= {span / MAX_SWEEP_STEPS:g}"
+                )
+            fixed_grid(t_span, h)  # h larger than the interval
+    except ModelError as error:
+        raise type(error)(f"{context}: {error}{fix}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class CheckedReference:
+    """A reference callable whose every answer is checked before an error is measured with it.
+
+    ``reference(t)`` must return a mapping with a finite float array of shape (T,) (or (B, T))
+    for every state and algebraic variable of ``compiled``; anything else, and any exception
+    it raises, is a :class:`ComparisonError` naming the variable, the time and the fix.
+    Variables it gives beyond those (aliases) are checked too when the model has them; other
+    keys are ignored.
+    """
+
+    function: object
+    compiled: object
+    t_span: tuple
+
+    def __call__(self, t) -> dict:
+        t = np.asarray(t, dtype=float)
+        where = f"on {t.size} times from {t[0]:g} to {t[-1]:g}"
+        try:
+            values = self.function(t)
+        except Exception as error:  # the user's code: any exception is a message, not a traceback
+            raise ComparisonError(
+                f"the reference, called {where}, raised {exception_summary(error, depth=1)}; reference(t) must "
+                "take an array of times and return a dict name -> array of values"
+            ) from error
+        if not isinstance(values, Mapping):
+            raise ComparisonError(
+                f"the reference returned {type(values).__name__} {where}; it must return a dict name -> array of values"
+            )
+        c = self.compiled
+        required = (*c.state_names, *c.algebraic_names)
+        missing = [n for n in required if n not in values]
+        if missing:
+            raise ComparisonError(
+                f"the reference gives no values for {', '.join(missing)}; it gives "
+                f"{', '.join(map(str, values)) or 'none'}, and must give every state and algebraic variable of "
+                f"'{c.name}': {', '.join(required)}"
+            )
+        out = {}
+        for name in (*required, *(n for n in c.alias_names if n in values)):
+            out[name] = self._check(name, values[name], t)
+        return out
+
+    def _check(self, name: str, value, t: np.ndarray) -> np.ndarray:
+        try:
+            array = np.asarray(value)
+            if array.dtype.kind == "O":  # e.g. a list of sympy numbers
+                array = array.astype(float)
+        except (TypeError, ValueError):
+            array = None
+        if array is None or array.dtype.kind not in "iuf":  # text numpy would parse, complex, bool
+            found = f"dtype {array.dtype}" if array is not None else type(value).__name__
+            raise ComparisonError(
+                f"the reference's values for '{name}' are not real numbers ({found}); return a float array per variable"
+            )
+        array = array.astype(float, copy=False)
+        if array.ndim not in (1, 2) or array.shape[-1] != t.size:
+            raise ComparisonError(
+                f"the reference's values for '{name}' have shape {array.shape}; expected ({t.size},), one value per "
+                f"time of the t it was called with (or (B, {t.size}) for a batch)"
+            )
+        finite = np.isfinite(array)
+        if not finite.all():
+            bad = ~finite.reshape(-1, t.size)
+            first = int(np.argmax(bad.any(axis=0)))
+            value = array.reshape(-1, t.size)[:, first][bad[:, first]][0]
+            raise ComparisonError(
+                f"the reference's value for '{name}' is {value} at t = {t[first]:g} ({int(bad.sum())} of {array.size} "
+                f"values not finite); a reference must be finite on t_span = ({self.t_span[0]:g}, "
+                f"{self.t_span[1]:g}): fix it, or give none to measure against method='reference'"
+            )
+        return array
+
+
+def exception_summary(error: BaseException, *, depth: int | None = None, filename=None) -> str:
+    """``"ZeroDivisionError: division by zero (line 7 of model.py)"``: one line for an
+    exception raised by user code, with the line where known.
+
+    Parameters
+    ----------
+    depth : int, optional
+        The line is that of traceback entry ``depth`` (1: the function called inside the ``try``).
+    filename : str or Path, optional
+        The line is that of the innermost traceback entry in this file (named even when no
+        entry is in it).
+    """
+    if isinstance(error, SyntaxError) and error.lineno is not None:
+        return f"{type(error).__name__}: {error.msg} (line {error.lineno} of {error.filename})"
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    text = f"{type(error).__name__}: {lines[0]}" if lines else type(error).__name__
+    frames = traceback.extract_tb(error.__traceback__)
+    if filename is not None:
+        target = Path(filename).resolve()
+        frame = next((f for f in reversed(frames) if Path(f.filename).resolve() == target), None)
+        return f"{text} (line {frame.lineno} of {filename})" if frame is not None else f"{text} (in {filename})"
+    if depth is not None and len(frames) > depth:
+        return f"{text} (line {frames[depth].lineno} of {frames[depth].filename})"
+    return text
+
+
+def _nan_to_none(value):
+    """``value`` with every non-finite float (in dicts and lists) replaced by None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _nan_to_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_nan_to_none(v) for v in value]
+    return value
 
 
 def sweep_labels(sweep: list[dict]) -> list[tuple[str, str]]:
