@@ -35,7 +35,6 @@ from daemodel.errors import (
     ModelError,
     ResourceLimitError,
     SolverError,
-    UnknownOptionError,
 )
 
 # Sweep points per method when compare() is not told otherwise.
@@ -435,15 +434,10 @@ def check_points(points) -> int:
 def _check_setting(backend, options: dict, t_span, context: str, fix: str) -> None:
     """Raise the :class:`ModelError` that solving ``options`` would raise, before any solve,
     with ``context`` (method and setting) in front and ``fix`` behind its message."""
-    fields = {f.name for f in dataclasses.fields(backend.Options)}
-    unknown = sorted(set(options) - fields)
+    from daemodel.solver import check_options
+
     try:
-        if unknown:
-            raise UnknownOptionError(
-                f"method {backend.name!r} has no option {', '.join(repr(u) for u in unknown)}; "
-                f"its options are {', '.join(sorted(fields))}"
-            )
-        backend.Options(**options)
+        check_options(backend, options)
         flat = _flatten(options)
         if flat.get("device") is not None:  # a CUDA device torch cannot see
             torch_device(flat["device"])

@@ -58,20 +58,26 @@ def solve(
     >>> sol["y5"], sol.errors(exact), sol.drift()
     """
     backend = get_backend(method)
-    fields = {f.name for f in dataclasses.fields(backend.Options)}
-    unknown = sorted(set(options) - fields)
-    if unknown:
-        raise UnknownOptionError(
-            f"method {method!r} has no option {', '.join(repr(u) for u in unknown)}; "
-            f"its options are {', '.join(sorted(fields))}"
-        )
-    opts = backend.Options(**options)
+    opts = check_options(backend, options)
 
     model = as_compiled(model)
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
     return backend.solve(compiled, t_span, start, opts)
+
+
+def check_options(backend, options: dict):
+    """``backend.Options(**options)``, an unknown name being an :class:`UnknownOptionError` that
+    lists the method's options (not the dataclass's TypeError)."""
+    fields = {f.name for f in dataclasses.fields(backend.Options)}
+    unknown = sorted(set(options) - fields)
+    if unknown:
+        raise UnknownOptionError(
+            f"method {backend.name!r} has no option {', '.join(repr(u) for u in unknown)}; "
+            f"its options are {', '.join(sorted(fields))}"
+        )
+    return backend.Options(**options)
 
 
 def _pair(value):
