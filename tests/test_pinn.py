@@ -11,7 +11,7 @@ from daemodel.backends.pinn.network import Outputs, RadauNetwork
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
 import daemodel as dm
-from daemodel.errors import InvalidOptionError, NetworkFileError, ShapeError, TrainingError
+from daemodel.errors import InvalidOptionError, NetworkFileError, ShapeError, TrainingError, UnknownOptionError
 from daemodel.problems import HESSENBERG, PENDULUM
 
 EXACT = HESSENBERG.exact_solution()
@@ -292,7 +292,7 @@ def test_config_errors(settings, message):
 def test_config_paper_and_replace_errors():
     with pytest.raises(InvalidOptionError, match="the paper's problems are hessenberg, pendulum; got 'robertson'"):
         dm.PINNConfig.paper("robertson")
-    with pytest.raises(InvalidOptionError, match="PINNConfig has no setting 'widht'"):
+    with pytest.raises(UnknownOptionError, match="PINNConfig has no setting 'widht'"):
         dm.PINNConfig().replace(widht=3)
     assert dm.PINNConfig().replace(optimizer="adam").iterations == 100_000  # defaults follow the optimizer
 

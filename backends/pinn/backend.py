@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,28 @@ def resolve_model(model, caller: str):
     return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
 
 
+def writable_file(path, argument: str) -> Path:
+    """``path`` (``~`` expanded) if a file can be written there, else an :class:`InvalidOptionError`.
+
+    Checked before training: a typo in the directory would otherwise surface only when the
+    trained networks are written, after the whole training run.
+    """
+    if not isinstance(path, str | os.PathLike):
+        raise InvalidOptionError(f"{argument} must be a file path (str or Path); got {type(path).__name__}")
+    path = Path(path).expanduser()
+    if path.is_dir():
+        raise InvalidOptionError(
+            f"{argument} = '{path}' is a directory; give a file name in it, e.g. '{path / 'networks.pt'}'"
+        )
+    if not path.parent.is_dir():
+        raise InvalidOptionError(
+            f"{argument} = '{path}': the directory '{path.parent}' does not exist; create it first or save elsewhere"
+        )
+    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise InvalidOptionError(f"{argument} = '{path}' is not writable; save elsewhere")
+    return path
+
+
 @dataclass(frozen=True, kw_only=True)
 class PINNOptions:
     """Options of ``method="pinn"``.
@@ -49,7 +72,10 @@ class PINNOptions:
         Show a progress bar with the segment, the iteration and the loss terms (default: when
         stderr is a terminal).
     save : str or Path, optional
-        Write the trained networks here (load them with :meth:`Surrogate.load`).
+        Write the trained networks here (load them with :meth:`Surrogate.load`; its training
+        box is this solve's start, so other initial states are reported as outside it).  The
+        directory is checked before training: one that does not exist or is not writable is
+        an :class:`InvalidOptionError`.
     """
 
     config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
@@ -72,10 +98,17 @@ class PINNOptions:
             )
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InvalidOptionError(f"progress must be True, False or None; got {self.progress!r}")
+        if self.save is not None:
+            object.__setattr__(self, "save", writable_file(self.save, "save"))
 
 
 class PINNBackend(AbstractBackend):
-    """Radau-PINN: one network per segment, trained on the Radau IIA stage residual."""
+    """Radau-PINN: one network per segment, trained on the Radau IIA stage residual.
+
+    The Solution's ``status`` is ``"success"`` when every segment met ``config.tol``; with
+    ``tol=None`` (a fixed budget) it states the budget and the final largest residual, which
+    ``stats["final_max_residual"]`` also holds.
+    """
 
     name = "pinn"
     Options = PINNOptions
@@ -85,7 +118,7 @@ class PINNBackend(AbstractBackend):
         return [{"config": PINNConfig(stages=SWEEP_STAGES, h=h)} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
-        from daemodel.backends.pinn.surrogate import Surrogate
+        from daemodel.backends.pinn.surrogate import Surrogate, training_status
         from daemodel.backends.pinn.train import Progress, fit_parallel
 
         config = options.config
@@ -126,6 +159,7 @@ class PINNBackend(AbstractBackend):
             "training_seconds": trained - began,
             "evaluation_seconds": done - trained,
             **{key: [getattr(s, key) for s in stats] for key in ("iterations", "L_f", "L_g", "L_s", "max_residual")},
+            "final_max_residual": max(s.max_residual for s in stats),
             "segment_seconds": [s.seconds for s in stats],
         }
         if mode == "parallel":
@@ -136,9 +170,12 @@ class PINNBackend(AbstractBackend):
                 else 0.0
             )
         if options.save is not None:
-            surrogate.save(Path(options.save))
+            surrogate.save(options.save)
         settings = {**dataclasses.asdict(config), "workers": options.workers}
-        return make_solution(self, compiled, start, options, grid, values, done - began, summary, settings=settings)
+        status = training_status(config, stats)
+        return make_solution(
+            self, compiled, start, options, grid, values, done - began, summary, settings=settings, status=status
+        )
 
 
 def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:

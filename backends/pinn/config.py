@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import functools
 from dataclasses import dataclass
 
 from daemodel.backends.base import check_dtype, check_number, check_stages
 
-from daemodel.errors import InvalidOptionError
+from daemodel.errors import InvalidOptionError, UnknownOptionError
 
 ACTIVATIONS = ("tanh", "sigmoid", "sin", "gelu", "softplus")
 ARCHITECTURES = ("per-variable", "shared")
@@ -26,13 +28,46 @@ PAPER_ACTIVATION = {"hessenberg": "sigmoid", "pendulum": "sin"}
 PAPER_ETA = 10.0
 
 
+def named_settings(cls):
+    """Make a misspelt or positional setting of a keyword-only dataclass a named error.
+
+    The ``__init__`` that ``dataclass`` writes raises a bare TypeError for ``PINNConfig(widht=3)``;
+    this wraps it (keeping its signature for ``help``) so that the mistake is an
+    :class:`UnknownOptionError` that lists the settings, like an unknown option of ``solve``.
+    """
+    generated = cls.__init__
+    fields = sorted(f.name for f in dataclasses.fields(cls))
+
+    @functools.wraps(generated)
+    def __init__(self, *args, **settings):
+        if args:
+            raise InvalidOptionError(
+                f"{cls.__name__} takes its settings by name, e.g. {cls.__name__}(stages=3, h=0.05); "
+                f"got {len(args)} positional argument{'s' if len(args) > 1 else ''}"
+            )
+        unknown = sorted(set(settings) - set(fields))
+        if unknown:
+            hints = [repr(m[0]) for u in unknown if (m := difflib.get_close_matches(u, fields, n=1))]
+            raise UnknownOptionError(
+                f"{cls.__name__} has no setting {', '.join(map(repr, unknown))}"
+                + (f" (did you mean {', '.join(hints)}?)" if hints else "")
+                + f"; its settings are {', '.join(fields)}"
+            )
+        generated(self, **settings)
+
+    cls.__init__ = __init__
+    return cls
+
+
+@named_settings
 @dataclass(frozen=True, kw_only=True)
 class PINNConfig:
     """Settings of ``method="pinn"``: the network, the loss, the optimizer and the segments.
 
     The defaults are the fast mode: float64, Levenberg-Marquardt on the residual vector,
     warm start from the previous segment, stopping when every residual is below ``tol``.
-    :meth:`paper` gives the paper's recipe (Adam, 100k iterations per segment).
+    :meth:`paper` gives the paper's recipe (Adam, 100k iterations per segment).  Settings are
+    given by name; a name it does not have is an :class:`UnknownOptionError` that lists them.
 
     Attributes
     ----------
@@ -177,14 +212,7 @@ class PINNConfig:
         return cls(**{**settings, **changes})
 
     def replace(self, **changes) -> PINNConfig:
-        """A copy with ``changes`` applied (and checked); an unknown name is an error."""
-        fields = {f.name for f in dataclasses.fields(self)}
-        unknown = sorted(set(changes) - fields)
-        if unknown:
-            raise InvalidOptionError(
-                f"PINNConfig has no setting {', '.join(map(repr, unknown))}; "
-                f"its settings are {', '.join(sorted(fields))}"
-            )
+        """A copy with ``changes`` applied (and checked); an unknown name is an :class:`UnknownOptionError`."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         if "optimizer" in changes:
             # Optimizer-dependent defaults follow the new optimizer unless given explicitly.

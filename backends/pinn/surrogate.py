@@ -5,6 +5,11 @@ values); ``surrogate.solve(y0=...)`` then integrates any batch of new initial st
 forward pass per segment, no Newton and no training.  ``dm.solve(..., method="pinn",
 save=path)`` writes the networks of an ordinary solve in the same format, so
 ``Surrogate.load(path, model)`` reuses them (accurate near the trajectories they were trained on).
+
+A surrogate is only as good as its training inputs, so it records them: the training box (the
+range of every state and input parameter it was trained from) and, per segment, the range of
+that segment's training inputs.  ``solve`` checks every query against both (see
+:meth:`Surrogate.solve`); ``load`` refuses a model whose fixed parameters differ from the trained ones.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +25,44 @@ import torch
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.train import Progress, SegmentStats, fit_sequential, make_network
 
-from daemodel.errors import InvalidOptionError, NetworkFileError, ShapeError, UnknownSymbolError
+from daemodel.errors import (
+    InvalidOptionError,
+    ModelError,
+    NetworkFileError,
+    OutsideTrainingBoxError,
+    OutsideTrainingBoxWarning,
+    ShapeError,
+    UnknownSymbolError,
+)
 
-FILE_FORMAT = "daemodel-pinn/1"
+# Format 2 added the training box and each segment's input ranges; format-1 files cannot be checked.
+FILE_FORMAT = "daemodel-pinn/2"
+# What a network file holds; a file that lacks one is damaged or was not written by Surrogate.save.
+FILE_KEYS = (
+    "format",
+    "model",
+    "fingerprint",
+    "config",
+    "grid",
+    "inputs",
+    "parameter_values",
+    "box",
+    "networks",
+    "stats",
+)
+# A query counts as outside the training box (or a segment's training inputs) when it lies beyond
+# a face by more than this fraction of the box's width.  The recorded box is the min/max of the
+# training states, which undercuts the distribution they came from: on the Hessenberg box
+# (0.98, 1.02)^4 with 64 training states, held-out states from the same box go up to 18% of the
+# width beyond it (start and later segments).  A query 25% outside has errors 3x those inside;
+# 100% outside 50x, 500% outside 6000x (0.09 against 1.5e-5).
+BOX_MARGIN = 0.25
+# ... plus this much relative to max(1, |bound|), so that a range of zero width (a state the box
+# does not vary, or the single start of an ordinary solve) still accepts its own value recomputed
+# in another order and the drift of chained predictions (a segment-parallel fit's start mismatch).
+BOX_FLOOR = 1e-6
+# What Surrogate.solve does with a query outside its training inputs.
+OUTSIDE_POLICIES = ("warn", "error", "ignore")
 # Initial states drawn from a box when Surrogate.train is not told how many.
 DEFAULT_BOX_SAMPLES = 256
 # Surrogate.train's settings when no config is given.  Over a box the residuals cannot all
@@ -59,15 +100,38 @@ class Surrogate:
     inputs : tuple of str
         Parameters that are network inputs (after the states), by name.
     stats : list of SegmentStats
-        Per-segment training results.
+        Per-segment training results, with each segment's training-input range.
+    box : dict name -> (low, high)
+        The training box: for every state and input parameter, the range it was trained from
+        (by default the first segment's training inputs).  For :meth:`train`, the range of the
+        training states after projection onto the constraints, and the ``parameter_box``; for
+        ``solve(..., method="pinn")``, the start state(s) of that solve.  Either way widened by
+        the ``radius`` box around each start when ``config.samples > 1``.
     """
 
-    def __init__(self, compiled, config: PINNConfig, grid, networks, inputs=(), stats=()):
+    def __init__(self, compiled, config: PINNConfig, grid, networks, inputs=(), stats=(), box=None):
         self.compiled, self.config = compiled, config
         self.grid = np.asarray(grid, dtype=float)
         self.networks = list(networks)
         self.inputs = tuple(inputs)
         self.stats = list(stats)
+        if box is None:
+            first = self.stats[0]
+            box = {name: (first.inputs_low[i], first.inputs_high[i]) for i, name in enumerate(self.input_names)}
+        self.box = {name: (float(box[name][0]), float(box[name][1])) for name in self.input_names}
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """The networks' inputs: the states, then the parameters in :attr:`inputs`."""
+        return (*self.compiled.state_names, *self.inputs)
+
+    @property
+    def segment_ranges(self) -> tuple[np.ndarray, np.ndarray]:
+        """Low and high ends of each segment's training inputs, each of shape (segments, d)."""
+        return (
+            np.array([s.inputs_low for s in self.stats], dtype=float),
+            np.array([s.inputs_high for s in self.stats], dtype=float),
+        )
 
     # ---- training -------------------------------------------------------------------------------
     @classmethod
@@ -91,9 +155,11 @@ class Surrogate:
         box : dict state name -> (low, high)
             Ranges of the initial states; states not named keep the model's values.  Each
             drawn point is projected onto the constraints (least change), so the box may
-            include states that the constraints determine.
+            include states that the constraints determine.  The projected states' range is
+            recorded as the surrogate's :attr:`box`, which :meth:`solve` checks queries against.
         parameter_box : dict parameter name -> (low, high), optional
-            Parameters that become network inputs, with their training ranges.
+            Parameters that become network inputs, with their training ranges (recorded in
+            :attr:`box` as given).
         samples : int
             Number of training initial states (a Sobol sequence, scrambled with ``config.seed``).
         config : PINNConfig, optional
@@ -131,12 +197,20 @@ class Surrogate:
         y = project_states(compiled, y, p)
         inputs = tuple(name for name in compiled.parameter_names if name in parameter_box)
         grid = fixed_grid(t_span, config.h)
-        return cls.fit(compiled, config, grid, y, p, inputs, show_progress(progress), "pinn surrogate")
+        return cls.fit(
+            compiled, config, grid, y, p, inputs, show_progress(progress), "pinn surrogate", parameter_box=parameter_box
+        )
 
     @classmethod
-    def fit(cls, compiled, config, grid, y, p, inputs, progress: bool, label: str) -> Surrogate:
+    def fit(
+        cls, compiled, config, grid, y, p, inputs, progress: bool, label: str, parameter_box: dict | None = None
+    ) -> Surrogate:
         """Train the segments of ``grid`` one after the other from the states ``y`` (B, n) with
-        parameters ``p`` (B, k); the parameters named in ``inputs`` become network inputs."""
+        parameters ``p`` (B, k); the parameters named in ``inputs`` become network inputs.
+
+        The training box is the first segment's training-input range, with the input
+        parameters' ranges replaced by ``parameter_box`` where given (the range they were drawn from).
+        """
         dtype = getattr(torch, config.dtype)
         columns = [compiled.parameter_names.index(name) for name in inputs]
         x0 = torch.as_tensor(np.concatenate([y, p[:, columns]], axis=1), dtype=dtype, device=config.device)
@@ -146,7 +220,9 @@ class Surrogate:
             networks, stats = fit_sequential(compiled, grid, x0, pt, config, bar)
         finally:
             bar.close()
-        return cls(compiled, config, grid, networks, inputs, stats)
+        surrogate = cls(compiled, config, grid, networks, inputs, stats)
+        surrogate.box.update({name: tuple(map(float, bounds)) for name, bounds in (parameter_box or {}).items()})
+        return surrogate
 
     # ---- evaluation -----------------------------------------------------------------------------
     def rollout(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -172,26 +248,121 @@ class Surrogate:
         first = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
         return np.concatenate([first, self.rollout(start.y0, start.p)], axis=1)
 
-    def solve(self, y0=None, z0=None, parameters=None):
+    def solve(self, y0=None, z0=None, parameters=None, *, outside: str = "warn"):
         """Integrate a batch of consistent initial states with the trained networks.
 
-        Parameters are as in :func:`daemodel.solve` (by name or as arrays); ``z0`` only seeds
-        the consistent algebraic values at t0.  Returns a :class:`Solution` on the segment grid.
+        Parameters
+        ----------
+        y0, z0, parameters
+            As in :func:`daemodel.solve` (by name or as arrays); ``z0`` only seeds the
+            consistent algebraic values at t0.  A parameter that was fixed in training cannot
+            change (an :class:`InvalidOptionError`).
+        outside : {"warn", "error", "ignore"}
+            What to do with a query outside what the networks were trained on: an initial
+            state or input parameter outside :attr:`box`, or a predicted state that drifts
+            outside the range a later segment was trained on, each by more than
+            ``BOX_MARGIN`` (25%) of the range's width.  ``"warn"`` (default) issues an
+            :class:`OutsideTrainingBoxWarning`, ``"error"`` raises
+            :class:`OutsideTrainingBoxError` (a start outside the box before any evaluation),
+            ``"ignore"`` says nothing.  Either way the Solution's ``status`` and
+            ``stats["outside_training_box"]`` record it.
+
+        Returns
+        -------
+        Solution
+            On the segment grid.  ``status`` is ``"success"`` when the networks were trained to
+            ``config.tol`` and every query stayed inside its training ranges; otherwise it
+            states the fixed training budget and its final residual, and what lay outside.
         """
         from daemodel.backends.base import make_solution
         from daemodel.backends.pinn.backend import PINNBackend, PINNOptions
 
         from daemodel.initial_states import initial_states
 
+        if outside not in OUTSIDE_POLICIES:
+            raise InvalidOptionError(f"outside must be one of {', '.join(OUTSIDE_POLICIES)}; got {outside!r}")
         start = initial_states(self.compiled, y0=y0, z0=z0, parameters=parameters)
         self._check_parameters(start.p)
+        x = self._network_inputs(start.y0, start.p)
+        low, high = (np.array([self.box[name][i] for name in self.input_names]) for i in (0, 1))
+        escaped = _outside(x[:, None, :], low[None], high[None])
+        inside = np.ones(len(x), dtype=bool) if escaped is None else escaped[4]
+        reports = []
+        if escaped is not None:
+            reports.append(self._start_report(escaped, x, low, high, start.batched))
+            self._raise_or_warn(reports[-1][1], outside)
         began = time.perf_counter()
         values = self.trajectory(start)
         wall = time.perf_counter() - began
-        stats = {"mode": "surrogate", "segments": len(self.networks), "evaluation_seconds": wall}
+        if len(self.networks) > 1:
+            n = len(self.compiled.states)
+            later = np.concatenate([values[:, 1:-1, :n], np.repeat(x[:, None, n:], len(self.networks) - 1, 1)], axis=2)
+            low, high = (r[1:] for r in self.segment_ranges)
+            drifted = _outside(later[inside], low, high)  # a start outside the box drifts anyway
+            if drifted is not None:
+                reports.append(self._drift_report(drifted, later, np.flatnonzero(inside), low, high, start.batched))
+                self._raise_or_warn(reports[-1][1], outside)
+        stats = {
+            "mode": "surrogate",
+            "segments": len(self.networks),
+            "evaluation_seconds": wall,
+            "max_residual": [s.max_residual for s in self.stats],
+            "final_max_residual": max(s.max_residual for s in self.stats),
+            "outside_training_box": [message for _, message in reports],
+        }
+        status = training_status(self.config, self.stats)
+        if reports:
+            status = "; ".join([*([] if status == "success" else [status]), *(short for short, _ in reports)])
         return make_solution(
-            PINNBackend(), self.compiled, start, PINNOptions(config=self.config), self.grid, values, wall, stats
+            PINNBackend(),
+            self.compiled,
+            start,
+            PINNOptions(config=self.config),
+            self.grid,
+            values,
+            wall,
+            stats,
+            status=status,
         )
+
+    def _network_inputs(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """States then input parameters, shape (B, d)."""
+        columns = [self.compiled.parameter_names.index(name) for name in self.inputs]
+        return np.concatenate([y0, p[:, columns]], axis=1)
+
+    def _start_report(self, escaped, x, low, high, batched: bool) -> tuple[str, str]:
+        count, b, _, j, _ = escaped
+        name, total = self.input_names[j], len(x)
+        sample = f"sample {b}: " if batched else ""
+        short = f"{count} of {total} initial states outside the training box"
+        return short, (
+            f"{count} of {total} initial states lie outside the box the surrogate was trained on, "
+            f"e.g. {sample}{_seen(name, x[b, j], low[j], high[j])}; "
+            "the networks were not trained there and may be far off: train on a box that "
+            "covers it, or pass outside='ignore'"
+        )
+
+    def _drift_report(self, drifted, later, rows, low, high, batched: bool) -> tuple[str, str]:
+        count, b, k, j, _ = drifted
+        b = int(rows[b])  # drifted counts among the samples that started inside the box
+        name, total, segment = self.input_names[j], len(later), k + 1  # later starts at segment index 1
+        t0, t1 = self.grid[segment], self.grid[segment + 1]
+        sample = f"sample {b}: " if batched else ""
+        short = f"{count} of {total} samples drift outside the inputs a later segment was trained on"
+        return short, (
+            f"{count} of {total} samples drift outside the inputs a later segment was trained on, "
+            f"first at segment {segment + 1} (t = {t0:.6g} to {t1:.6g}), "
+            f"e.g. {sample}predicted {_seen(name, later[b, k, j], low[k, j], high[k, j])}; "
+            "from there on the networks extrapolate: train on a box that covers these trajectories, "
+            "or pass outside='ignore'"
+        )
+
+    @staticmethod
+    def _raise_or_warn(message: str, outside: str) -> None:
+        if outside == "error":
+            raise OutsideTrainingBoxError(message)
+        if outside == "warn":
+            warnings.warn(message, OutsideTrainingBoxWarning, stacklevel=3)
 
     def _check_parameters(self, p: np.ndarray) -> None:
         fixed = [i for i, name in enumerate(self.compiled.parameter_names) if name not in self.inputs]
@@ -207,8 +378,11 @@ class Surrogate:
 
     # ---- files ----------------------------------------------------------------------------------
     def save(self, path) -> Path:
-        """Write the networks, the grid and the settings to ``path`` (a torch file)."""
-        path = Path(path)
+        """Write the networks, the grid, the settings, the training box and the training stats
+        to ``path`` (a torch file); a directory that does not exist is an :class:`InvalidOptionError`."""
+        from daemodel.backends.pinn.backend import writable_file
+
+        path = writable_file(path, "path")
         payload = {
             "format": FILE_FORMAT,
             "model": self.compiled.name,
@@ -217,6 +391,7 @@ class Surrogate:
             "grid": self.grid.tolist(),
             "inputs": list(self.inputs),
             "parameter_values": np.asarray(self.compiled.parameter_values, dtype=float).tolist(),
+            "box": {name: list(bounds) for name, bounds in self.box.items()},
             "networks": [{k: v.detach().cpu() for k, v in net.state_dict().items()} for net in self.networks],
             "stats": [dataclasses.asdict(s) for s in self.stats],
         }
@@ -224,8 +399,26 @@ class Surrogate:
         return path
 
     @classmethod
-    def load(cls, path, model) -> Surrogate:
-        """Read networks written by :meth:`save` (or ``solve(..., save=path)``) for ``model``."""
+    def load(cls, path, model, *, device: str | None = None) -> Surrogate:
+        """Read networks written by :meth:`save` (or ``solve(..., save=path)``) for ``model``.
+
+        Parameters
+        ----------
+        path : str or Path
+        model : Model or CompiledDAE
+            The model it was trained on: the same equations and names, and the same values of
+            the parameters that were not network inputs (the networks hold for those values
+            only).  Parameters that were inputs are checked against their box at every solve.
+        device : str, optional
+            Where to put the networks (default: the device they were trained on).
+
+        Raises
+        ------
+        NetworkFileError
+            No file, not a network file (or an older format), a missing key, other equations,
+            or a fixed parameter whose value differs from the trained one.
+        """
+        from daemodel.backends.base import torch_device
         from daemodel.backends.pinn.backend import resolve_model
 
         compiled = resolve_model(model, "Surrogate.load()")
@@ -236,23 +429,122 @@ class Surrogate:
             payload = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as error:
             raise NetworkFileError(f"{path} is not a daemodel network file ({error.__class__.__name__})") from None
-        if not isinstance(payload, dict) or payload.get("format") != FILE_FORMAT:
-            raise NetworkFileError(f"{path} is not a daemodel network file (expected format {FILE_FORMAT!r})")
+        found = payload.get("format") if isinstance(payload, dict) else None
+        if found != FILE_FORMAT:
+            older = isinstance(found, str) and found.startswith("daemodel-pinn/")
+            raise NetworkFileError(
+                f"{path} is a daemodel network file of format {found!r}, which does not record the training box; "
+                f"this version reads {FILE_FORMAT!r}: train and save it again"
+                if older
+                else f"{path} is not a daemodel network file (expected format {FILE_FORMAT!r})"
+            )
+        missing = [key for key in FILE_KEYS if key not in payload]
+        if missing:
+            raise NetworkFileError(
+                f"{path} lacks the key{'s' if len(missing) > 1 else ''} {', '.join(map(repr, missing))} "
+                f"that a {FILE_FORMAT} file holds ({', '.join(FILE_KEYS)}): it is damaged or was not written "
+                "by Surrogate.save; save the surrogate again"
+            )
         if payload["fingerprint"] != fingerprint(compiled):
             raise NetworkFileError(
                 f"{path} holds networks for model '{payload['model']}' with other equations than "
                 f"'{compiled.name}'; load it with the model it was trained on"
             )
-        config = PINNConfig(**payload["config"])
         inputs = tuple(payload["inputs"])
+        _check_fixed_parameters(path, compiled, payload["parameter_values"], inputs)
+        try:
+            config = PINNConfig(**payload["config"])
+            if device is not None:
+                config = config.replace(device=device)
+        except ModelError as error:
+            raise NetworkFileError(f"{path} records settings that are not valid: {error}") from None
+        torch_device(config.device)
+        grid = np.asarray(payload["grid"], dtype=float)
+        if len(payload["networks"]) != len(grid) - 1 or len(payload["stats"]) != len(grid) - 1:
+            raise NetworkFileError(
+                f"{path} holds {len(payload['networks'])} networks and {len(payload['stats'])} segment stats "
+                f"for a grid of {len(grid) - 1} segments: it is damaged; save the surrogate again"
+            )
         d = len(compiled.states) + len(inputs)
         networks = []
         for k, state in enumerate(payload["networks"]):
             net = make_network(compiled, config, d, k)
-            net.load_state_dict(state)
+            try:
+                net.load_state_dict(state)
+            except (RuntimeError, TypeError, AttributeError) as error:
+                first = str(error).strip().splitlines()[0]
+                raise NetworkFileError(
+                    f"{path}: the networks of segment {k + 1} do not fit the settings it records ({first}): "
+                    "it is damaged; save the surrogate again"
+                ) from None
             networks.append(net)
-        stats = [SegmentStats(**s) for s in payload["stats"]]
-        return cls(compiled, config, payload["grid"], networks, inputs, stats)
+        try:
+            stats = [
+                SegmentStats(**{**s, "inputs_low": tuple(s["inputs_low"]), "inputs_high": tuple(s["inputs_high"])})
+                for s in payload["stats"]
+            ]
+            box = {name: tuple(payload["box"][name]) for name in (*compiled.state_names, *inputs)}
+        except (KeyError, TypeError) as error:
+            raise NetworkFileError(
+                f"{path} holds incomplete training records ({error.__class__.__name__}: {error}): "
+                "it is damaged; save the surrogate again"
+            ) from None
+        return cls(compiled, config, grid, networks, inputs, stats, box)
+
+
+def _check_fixed_parameters(path, compiled, saved, inputs) -> None:
+    """A parameter that was not a network input must have the value the networks were trained with."""
+    saved = np.asarray(saved, dtype=float)
+    current = np.asarray(compiled.parameter_values, dtype=float)
+    for i, name in enumerate(compiled.parameter_names):
+        if name in inputs or np.isclose(current[i], saved[i], rtol=1e-12, atol=0):
+            continue
+        trained, now = float(saved[i]), float(current[i])
+        raise NetworkFileError(
+            f"{path} was trained with parameter '{name}' = {trained!r} fixed, but the model has {name} = {now!r}; "
+            f"the networks hold for the trained value only: load it onto a model with {name} = {trained!r} "
+            f"(m.set_parameters({name}={trained!r})), or train with parameter_box={{'{name}': (low, high)}} "
+            f"to make '{name}' a network input"
+        )
+
+
+def training_status(config: PINNConfig, stats) -> str:
+    """:attr:`Solution.status` of networks trained with ``config``: "success" when every segment
+    met ``config.tol`` (training raises otherwise); for a fixed budget (tol=None), the budget and
+    the final residual, which the user must judge."""
+    if config.tol is not None:
+        return "success"
+    worst = max(s.max_residual for s in stats)
+    fewest = min(s.iterations for s in stats)
+    budget = f"{config.iterations} {config.optimizer} iterations per segment"
+    if fewest < config.iterations:
+        budget = f"up to {budget} (as few as {fewest}, where the loss stopped decreasing)"
+    return f"budget: {budget}, final max residual {worst:.2g} (no tolerance set)"
+
+
+def _seen(name: str, value: float, low: float, high: float) -> str:
+    if low == high:
+        return f"{name} = {value:.8g}, but training saw {name} = {low:.8g} only"
+    return f"{name} = {value:.8g} not in [{low:.8g}, {high:.8g}] (give or take {BOX_MARGIN:.0%} of the width)"
+
+
+def _outside(x: np.ndarray, low: np.ndarray, high: np.ndarray):
+    """Where inputs ``x`` (B, K, d) leave the ranges ``[low, high]`` (K, d) by more than the margin.
+
+    Returns None when none does, else ``(count, b, k, j, inside)``: how many samples leave at
+    any k, the worst excursion at the first k where one happens (sample b, input j), and the
+    mask (B,) of samples that never leave.
+    """
+    margin = BOX_MARGIN * (high - low) + BOX_FLOOR * np.maximum(1.0, np.maximum(np.abs(low), np.abs(high)))
+    out = ~((x >= low - margin) & (x <= high + margin))  # a prediction gone non-finite is outside too
+    if not out.any():
+        return None
+    excess = np.where(np.isfinite(x), np.maximum(low - margin - x, x - high - margin), np.inf)
+    k = int(np.flatnonzero(out.any(axis=(0, 2)))[0])
+    relative = np.where(out[:, k], excess[:, k] / (high[k] - low[k] + margin[k]), -np.inf)
+    b, j = np.unravel_index(int(np.argmax(relative)), relative.shape)
+    inside = ~out.any(axis=(1, 2))
+    return int((~inside).sum()), int(b), k, int(j), inside
 
 
 def _ranges(box, names, argument: str, kind: str) -> list:

@@ -67,6 +67,9 @@ class SegmentStats:
     max_residual : float
         Final largest residual component (the quantity compared with ``tol``).
     seconds : float
+    inputs_low, inputs_high : tuple of float
+        Range of the training inputs, per input (states, then the parameters that are inputs):
+        where the segment's networks were trained, checked by ``Surrogate.solve``.
     """
 
     segment: int
@@ -78,6 +81,8 @@ class SegmentStats:
     L_s: float
     max_residual: float
     seconds: float
+    inputs_low: tuple
+    inputs_high: tuple
 
 
 @dataclass(frozen=True)
@@ -179,6 +184,8 @@ class SegmentTrainer:
             iterations=iterations,
             max_residual=worst,
             seconds=time.perf_counter() - began,
+            inputs_low=tuple(segment.x.amin(0).tolist()),
+            inputs_high=tuple(segment.x.amax(0).tolist()),
             **terms,
         )
 

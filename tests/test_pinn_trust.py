@@ -1,0 +1,291 @@
+"""What a Radau-PINN result lets the user trust: a surrogate's training box and its checks, the
+parameters a network file was trained with, the status of a fixed-budget training, and named
+errors for misspelt settings, unwritable save paths and damaged network files."""
+
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from daemodel.backends.pinn import surrogate as surrogate_module
+from daemodel.backends.pinn.surrogate import BOX_MARGIN, training_status
+from daemodel.backends.pinn.train import SegmentStats
+
+import daemodel as dm
+from daemodel.errors import (
+    InvalidOptionError,
+    NetworkFileError,
+    OutsideTrainingBoxError,
+    OutsideTrainingBoxWarning,
+    UnknownOptionError,
+)
+from daemodel.problems import HESSENBERG, PENDULUM
+
+# Tiny settings: the tests check the bookkeeping, not the accuracy.
+TINY = dm.PINNConfig(width=8, tol=None, iterations=3, warm_start=False)
+BOX = {"y4": (0.9, 1.1)}
+PARAMETER_BOX = {"lam": (0.5, 1.5)}
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return PENDULUM.model().compile()
+
+
+@pytest.fixture(scope="module")
+def boxed(pendulum):
+    """A pendulum surrogate over y4 in (0.9, 1.1) and lam in (0.5, 1.5), two segments."""
+    return dm.Surrogate.train(
+        pendulum, (0.0, 0.1), box=BOX, parameter_box=PARAMETER_BOX, samples=8, config=TINY, progress=False
+    )
+
+
+@pytest.fixture(scope="module")
+def trajectory_file(pendulum, tmp_path_factory):
+    """The networks of an ordinary pendulum solve (one start, lam = 1 fixed)."""
+    path = tmp_path_factory.mktemp("pinn") / "pendulum.pt"
+    dm.solve(pendulum, (0.0, 0.1), method="pinn", config=TINY, save=path)
+    return path
+
+
+# ---- the training box ----------------------------------------------------------------------------
+def test_surrogate_records_its_training_box(boxed, pendulum):
+    low, high = boxed.segment_ranges
+    assert low.shape == high.shape == (2, 5)  # two segments; four states and lam
+    assert boxed.box["lam"] == PARAMETER_BOX["lam"]  # the declared parameter range
+    for i, name in enumerate(pendulum.state_names):  # the training states after projection
+        assert boxed.box[name] == (low[0, i], high[0, i])
+    assert 0.9 <= boxed.box["y4"][0] < 0.95 and 1.05 < boxed.box["y4"][1] <= 1.1
+    assert boxed.box["y1"] == (1.0, 1.0)  # a state the box does not vary
+
+
+def test_inside_the_box_is_silent(boxed):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutsideTrainingBoxWarning)
+        sol = boxed.solve(y0={"y4": np.array([0.95, 1.0, 1.05])}, parameters={"lam": np.array([0.6, 1.0, 1.4])})
+    assert sol.stats["outside_training_box"] == []
+    assert "outside" not in sol.status
+
+
+def test_outside_the_box_warns_by_default_naming_variable_sample_value_and_box(boxed):
+    with pytest.warns(
+        OutsideTrainingBoxWarning,
+        match=r"1 of 2 initial states lie outside the box .* sample 1: y4 = 3 not in \[0\.9\d*, 1\.\d+\]",
+    ):
+        sol = boxed.solve(y0={"y4": np.array([1.0, 3.0])})
+    assert "1 of 2 initial states outside the training box" in sol.status
+    assert len(sol.stats["outside_training_box"]) == 1
+
+
+def test_an_input_parameter_outside_its_box_warns(boxed):
+    with pytest.warns(OutsideTrainingBoxWarning, match=r"lam = 3 not in \[0\.5, 1\.5\]"):
+        boxed.solve(parameters={"lam": 3.0})
+
+
+def test_outside_the_box_can_be_an_error(boxed, monkeypatch):
+    monkeypatch.setattr(type(boxed), "trajectory", lambda self, start: pytest.fail("evaluated"))
+    with pytest.raises(
+        OutsideTrainingBoxError,
+        match=r"y4 = 3 not in \[.*\] \(give or take 25% of the width\); the networks were not trained there",
+    ):
+        boxed.solve(y0={"y4": 3.0}, outside="error")
+
+
+def test_outside_the_box_can_be_ignored_but_the_status_still_says_so(boxed):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutsideTrainingBoxWarning)
+        sol = boxed.solve(y0={"y4": 3.0}, outside="ignore")
+    assert "1 of 1 initial states outside the training box" in sol.status
+    with pytest.raises(InvalidOptionError, match="outside must be one of warn, error, ignore; got 'quiet'"):
+        boxed.solve(outside="quiet")
+
+
+def test_the_margin_accepts_a_little_beyond_the_recorded_range(boxed):
+    low, high = boxed.box["y4"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutsideTrainingBoxWarning)
+        boxed.solve(y0={"y4": high + 0.9 * BOX_MARGIN * (high - low)})
+    with pytest.warns(OutsideTrainingBoxWarning):
+        boxed.solve(y0={"y4": high + 1.1 * BOX_MARGIN * (high - low)})
+
+
+def test_drift_outside_a_later_segments_training_inputs_is_reported(boxed):
+    # Pretend segment 2 was trained far from where the predictions go.
+    first, second = boxed.stats
+    far = tuple(v + 10.0 for v in second.inputs_high)
+    moved = dm.Surrogate(
+        boxed.compiled,
+        boxed.config,
+        boxed.grid,
+        boxed.networks,
+        boxed.inputs,
+        [first, dataclasses.replace(second, inputs_low=far, inputs_high=far)],
+        boxed.box,
+    )
+    with pytest.warns(
+        OutsideTrainingBoxWarning,
+        match=r"1 of 1 samples drift outside the inputs a later segment was trained on, "
+        r"first at segment 2 \(t = 0\.05 to 0\.1\), e\.g\. predicted (y\d) = \S+, but training saw \1 = \S+ only",
+    ):
+        sol = moved.solve()
+    assert "drift outside" in sol.status
+    with pytest.raises(OutsideTrainingBoxError, match="drift outside"):
+        moved.solve(outside="error")
+
+
+def test_a_solves_surrogate_box_is_its_own_start(trajectory_file, pendulum):
+    surrogate = dm.Surrogate.load(trajectory_file, pendulum)
+    assert surrogate.box == {"y1": (1.0, 1.0), "y2": (0.0, 0.0), "y3": (0.0, 0.0), "y4": (1.0, 1.0)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", OutsideTrainingBoxWarning)
+        surrogate.solve()  # the trained start, and the predictions it was trained along
+    with pytest.warns(OutsideTrainingBoxWarning, match="y4 = 1.01, but training saw y4 = 1 only"):
+        surrogate.solve(y0={"y4": 1.01})
+
+
+def test_box_and_ranges_survive_save_and_load(boxed, pendulum, tmp_path):
+    path = boxed.save(tmp_path / "boxed.pt")
+    again = dm.Surrogate.load(path, pendulum)
+    assert again.box == boxed.box
+    assert again.stats == boxed.stats
+    y0 = {"y4": np.array([0.95, 1.05])}
+    np.testing.assert_array_equal(again.solve(y0=y0)["y5"], boxed.solve(y0=y0)["y5"])
+
+
+# ---- parameters of a network file ----------------------------------------------------------------
+def test_load_refuses_a_model_whose_fixed_parameter_differs(trajectory_file):
+    model = PENDULUM.model()
+    model.set_parameters(lam=2.0)
+    with pytest.raises(
+        NetworkFileError,
+        match=r"trained with parameter 'lam' = 1\.0 fixed, but the model has lam = 2\.0; .*"
+        r"m\.set_parameters\(lam=1\.0\).*parameter_box=\{'lam': \(low, high\)\}",
+    ):
+        dm.Surrogate.load(trajectory_file, model)
+
+
+def test_a_parameter_that_was_an_input_is_checked_against_its_box_instead(boxed, tmp_path):
+    path = boxed.save(tmp_path / "boxed.pt")
+    model = PENDULUM.model()
+    model.set_parameters(lam=2.0)
+    surrogate = dm.Surrogate.load(path, model)  # lam is a network input: loading is fine
+    with pytest.warns(OutsideTrainingBoxWarning, match=r"lam = 2 not in \[0\.5, 1\.5\]"):
+        surrogate.solve()
+
+
+# ---- status of a fixed budget --------------------------------------------------------------------
+def test_fixed_budget_states_its_final_residual():
+    c = HESSENBERG.model().compile()
+    cfg = dm.PINNConfig(width=8, optimizer="adam", tol=None, iterations=5)
+    sol = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
+    worst = sol.stats["final_max_residual"]
+    assert worst == max(sol.stats["max_residual"]) > 0
+    assert sol.status == f"budget: 5 adam iterations per segment, final max residual {worst:.2g} (no tolerance set)"
+    assert f"status={sol.status!r}" in repr(sol)
+
+
+def test_a_met_tolerance_is_success():
+    c = HESSENBERG.model().compile()
+    sol = dm.solve(c, (0.0, 0.05), method="pinn", config=dm.PINNConfig(width=8, tol=1e-8))
+    assert sol.status == "success"
+    assert sol.stats["final_max_residual"] <= 1e-8
+
+
+def test_a_surrogate_reports_its_training_budget(boxed):
+    sol = boxed.solve()
+    worst = max(s.max_residual for s in boxed.stats)
+    assert sol.status.startswith("budget: ") and f"final max residual {worst:.2g} (no tolerance set)" in sol.status
+    assert sol.stats["final_max_residual"] == worst
+
+
+def test_a_budget_cut_short_says_so():
+    stats = [
+        SegmentStats(0, 0.0, 0.05, 40, 1e-9, 1e-9, 1e-9, 3.2e-5, 0.1, (1.0,), (1.0,)),
+        SegmentStats(1, 0.05, 0.05, 12, 1e-9, 1e-9, 1e-9, 1e-6, 0.1, (1.0,), (1.0,)),
+    ]
+    assert training_status(TINY.replace(iterations=40), stats) == (
+        "budget: up to 40 lm iterations per segment (as few as 12, where the loss stopped decreasing), "
+        "final max residual 3.2e-05 (no tolerance set)"
+    )
+    assert training_status(TINY.replace(tol=1e-6), stats) == "success"
+
+
+# ---- named errors --------------------------------------------------------------------------------
+def test_unknown_setting_is_named():
+    with pytest.raises(UnknownOptionError, match="PINNConfig has no setting 'bogus'; its settings are activation, "):
+        dm.PINNConfig(bogus=1)
+    with pytest.raises(UnknownOptionError, match=r"no setting 'widht' \(did you mean 'width'\?\)"):
+        dm.PINNConfig(widht=3)
+    with pytest.raises(UnknownOptionError, match="no setting 'widht'"):
+        dm.PINNConfig().replace(widht=3)
+    with pytest.raises(UnknownOptionError, match="no setting 'widht'"):
+        dm.PINNConfig.paper("hessenberg", widht=3)
+    with pytest.raises(InvalidOptionError, match=r"PINNConfig takes its settings by name, e\.g\. PINNConfig\(stages=3"):
+        dm.PINNConfig(3)
+
+
+def test_save_to_a_missing_directory_fails_before_training(tmp_path, monkeypatch):
+    monkeypatch.setattr(surrogate_module, "fit_sequential", lambda *args: pytest.fail("training started"))
+    c = HESSENBERG.model().compile()
+    endless = dm.PINNConfig(tol=None, iterations=10**9)
+    target = tmp_path / "missing" / "networks.pt"
+    with pytest.raises(InvalidOptionError, match=r"save = '.*networks\.pt': the directory '.*missing' does not exist"):
+        dm.solve(c, (0.0, 10.0), method="pinn", config=endless, save=target)
+    with pytest.raises(InvalidOptionError, match=r"save = '.*' is a directory; give a file name in it"):
+        dm.solve(c, (0.0, 10.0), method="pinn", config=endless, save=tmp_path)
+    with pytest.raises(InvalidOptionError, match=r"save must be a file path .*; got int"):
+        dm.solve(c, (0.0, 10.0), method="pinn", config=endless, save=3)
+
+
+def test_surrogate_save_to_a_missing_directory(boxed, tmp_path):
+    with pytest.raises(InvalidOptionError, match=r"path = '.*nowhere.*': the directory .* does not exist"):
+        boxed.save(tmp_path / "nowhere" / "x.pt")
+
+
+def damaged(path, tmp_path, change):
+    payload = torch.load(path, weights_only=True)
+    change(payload)
+    out = tmp_path / "damaged.pt"
+    torch.save(payload, out)
+    return out
+
+
+def test_a_network_file_with_a_missing_key(trajectory_file, pendulum, tmp_path):
+    path = damaged(trajectory_file, tmp_path, lambda p: p.pop("box"))
+    with pytest.raises(NetworkFileError, match=r"lacks the key 'box' that a daemodel-pinn/2 file holds \(format, "):
+        dm.Surrogate.load(path, pendulum)
+
+
+def test_damaged_or_old_network_files(trajectory_file, pendulum, tmp_path):
+    old = damaged(trajectory_file, tmp_path, lambda p: p.update(format="daemodel-pinn/1"))
+    with pytest.raises(NetworkFileError, match="of format 'daemodel-pinn/1', which does not record the training box"):
+        dm.Surrogate.load(old, pendulum)
+    broken = damaged(trajectory_file, tmp_path, lambda p: p["networks"][1].clear())
+    with pytest.raises(NetworkFileError, match="the networks of segment 2 do not fit the settings it records"):
+        dm.Surrogate.load(broken, pendulum)
+    short = damaged(trajectory_file, tmp_path, lambda p: p["stats"].pop())
+    with pytest.raises(NetworkFileError, match="2 networks and 1 segment stats for a grid of 2 segments"):
+        dm.Surrogate.load(short, pendulum)
+    settings = damaged(trajectory_file, tmp_path, lambda p: p["config"].update(widht=3))
+    with pytest.raises(
+        NetworkFileError, match="records settings that are not valid: PINNConfig has no setting 'widht'"
+    ):
+        dm.Surrogate.load(settings, pendulum)
+
+
+def test_load_onto_another_device(trajectory_file, pendulum):
+    surrogate = dm.Surrogate.load(trajectory_file, pendulum, device="cpu")
+    assert surrogate.config.device == "cpu"
+    if not torch.cuda.is_available():
+        with pytest.raises(InvalidOptionError, match="device = 'cuda' but torch sees no CUDA device"):
+            dm.Surrogate.load(trajectory_file, pendulum, device="cuda")
+
+
+def test_an_unusable_device_is_refused_before_anything_is_allocated(trajectory_file, pendulum):
+    with pytest.raises(InvalidOptionError, match="device = 'meta'"):
+        dm.Surrogate.load(trajectory_file, pendulum, device="meta")
+    with pytest.raises(InvalidOptionError, match="device = 'meta'"):
+        dm.solve(pendulum, (0.0, 0.1), method="pinn", config=TINY.replace(device="meta"))
+    with pytest.raises(InvalidOptionError, match="device = 'meta'"):
+        dm.Surrogate.train(pendulum, (0.0, 0.1), box=BOX, samples=2, config=TINY.replace(device="meta"))
