@@ -7,7 +7,7 @@
 * :class:`SolverError` (a :class:`RuntimeError`): the input was well formed but a **method
   failed** on it: Newton did not converge, the step size underflowed, values went non-finite,
   a local error estimate exceeded its bound, or a user-settable budget (``max_steps``,
-  iterations) ran out.  The message names the method, the time, the step, the sample and,
+  IDAS's ``max_num_steps``) ran out.  The message names the method, the time, the step, the sample and,
   where known, the variable or equation, and what to change.
 
 Both derive from :class:`DaemodelError`, so ``except DaemodelError`` catches everything
@@ -136,7 +136,10 @@ class ConvergenceError(SolverError):
 
 
 class StepLimitError(SolverError):
-    """A user-settable budget ran out (``max_steps``, Newton iterations, training steps) before the end."""
+    """A user-settable step budget (``max_steps``, ``max_num_steps``) ran out before the end of ``t_span``.
+
+    A Newton iteration that runs out of iterations is a :class:`ConvergenceError` instead: it did
+    not converge, and more iterations rarely help."""
 
 
 class LocalErrorBoundError(SolverError):

@@ -1,0 +1,206 @@
+"""method="reference" is the truth compare() measures against: it never hangs and is never silently wrong."""
+
+import numpy as np
+import pytest
+from daemodel.backends.reference import STIFF_STEPS, StiffnessDetector
+from scipy.integrate import DOP853
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import HESSENBERG
+
+# Robertson's kinetics at t = 40 (Hairer & Wanner II, Sec. IV.10); scipy's Radau, BDF and LSODA at
+# rtol 1e-12 to 3e-14 with the exact Jacobian agree with these figures to 2e-11 relative.
+ROBERTSON_AT_40 = {"y1": 0.7158270687193, "y2": 9.185534764529e-6, "y3": 0.2841637457458}
+
+
+def robertson() -> dm.Model:
+    """Robertson's chemical kinetics as an index-1 DAE: stiff after t ~ 0.01."""
+    m = dm.Model("robertson")
+    y1, y2 = m.states("y1 y2")
+    (y3,) = m.algebraics("y3")
+    m.ode(y1, -0.04 * y1 + 1e4 * y2 * y3)
+    m.ode(y2, 0.04 * y1 - 1e4 * y2 * y3 - 3e7 * y2**2)
+    m.constraint(y1 + y2 + y3 - 1, name="mass")
+    m.initial(y1=1.0, y2=0.0)
+    return m
+
+
+def vanishing_root(drives_a_state: bool = False) -> dm.Model:
+    """``0 = z^2 - s``, ``s' = -1``, s(0) = 1: the root z = sqrt(s) disappears at t = 1."""
+    m = dm.Model("vanishing")
+    (s,) = m.states("s")
+    (z,) = m.algebraics("z")
+    m.ode(s, -1)
+    m.constraint(z**2 - s, name="root")
+    m.initial(s=1.0, z=1.0)
+    if drives_a_state:
+        (x,) = m.states("x")
+        m.ode(x, z)
+        m.initial(x=0.0)
+    return m
+
+
+def relaxation(k: float = 100.0, a: float = 0.01, b: float = 0.005) -> dm.Model:
+    """``y' = -k (y - a)``, ``0 = z^2 - (y - b)``: z is defined along the solution (y > a > b), but
+    an over-long explicit step lands below b, where it is not."""
+    m = dm.Model("relaxation")
+    (y,) = m.states("y")
+    (z,) = m.algebraics("z")
+    rate = m.parameter("k", k)
+    m.ode(y, -rate * (y - a))
+    m.constraint(z**2 - (y - b), name="root")
+    m.initial(y=1.0, z=np.sqrt(1.0 - b))
+    return m
+
+
+def scalar(rhs: str, y0: float) -> dm.Model:
+    m = dm.Model("scalar")
+    m.states("y")
+    m.ode("y", rhs)
+    m.initial(y=y0)
+    return m
+
+
+@pytest.mark.parametrize(
+    ("model", "integrator"),
+    [(vanishing_root(), "auto"), (vanishing_root(drives_a_state=True), "auto"), (vanishing_root(), "Radau")],
+)
+def test_vanishing_root_raises_where_it_vanishes(model, integrator):
+    # Before: Newton's unconverged z was used silently (or the solve never returned).
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"near t = (1|0\.99999\d*) \(sample 0 of 'vanishing', integrator \w+\): the algebraic variables are "
+        r"not determined: the determining equations have no root there or are singular \(Newton for z did not "
+        r"converge within max_newton_iterations = 30; constraint 'root' \(#\d\) has the largest residual",
+    ):
+        dm.solve(model, (0.0, 2.0), method="reference", integrator=integrator)
+
+
+def test_singular_dH_dz_raises():
+    # 0 = (1 - t) z - x: dH/dz = 1 - t is exactly singular at the output time t = 1.
+    m = dm.Model("pole")
+    (x,) = m.states("x")
+    (z,) = m.algebraics("z")
+    m.ode(x, 1)
+    m.constraint((1 - m.t) * z - x, name="pole")
+    m.initial(x=1.0)
+    with pytest.raises(E.ConvergenceError, match=r"near t = 1 .*\(dH/dz is singular there; constraint 'pole'"):
+        dm.solve(m, (0.0, 2.0), method="reference", t_eval=[0.0, 0.5, 1.0, 1.5])
+
+
+def test_newton_budget_is_an_option():
+    sol = dm.solve(relaxation(), (0.0, 1.0), method="reference")
+    assert 0 < sol.stats["newton_iterations"] <= 4 * sol.stats["nfev"]
+    with pytest.raises(E.ConvergenceError, match=r"did not converge within max_newton_iterations = 1; "):
+        dm.solve(relaxation(), (0.0, 1.0), method="reference", max_newton_iterations=1)
+
+
+def test_robertson_auto_switches_to_radau_and_matches_published_values():
+    sol = dm.solve(robertson(), (0.0, 40.0), method="reference", t_eval=[0.0, 1.0, 40.0])
+    print(f"Robertson to 40, auto: {sol.stats}, {sol.wall_time:.2f} s")
+    assert sol.stats["integrator"].startswith("DOP853 -> Radau at t = ")
+    switched = float(sol.stats["integrator"].rsplit("= ", 1)[1])
+    assert 1e-3 < switched < 1.0  # after the initial transient, long before t = 40
+    relative = {n: abs(sol[n][-1] / value - 1) for n, value in ROBERTSON_AT_40.items()}
+    print(f"relative errors at t = 40: {relative}")
+    assert max(relative.values()) < 1e-8
+    assert sol.stats["steps"] < 2000  # DOP853 alone needs ~18000
+
+
+def test_auto_keeps_dop853_on_a_nonstiff_problem_and_explicit_radau_works():
+    exact = HESSENBERG.exact_solution()
+    for integrator, expected, tolerance in (("auto", "DOP853", 1e-10), ("Radau", "Radau", 1e-10)):
+        sol = dm.solve(HESSENBERG.model(), (0.0, 1.0), method="reference", integrator=integrator)
+        assert sol.stats["integrator"] == expected and sol.stats["restarts"] == 0
+        assert max(e["max"] for e in sol.errors(exact).values()) < tolerance
+
+
+@pytest.mark.parametrize("integrator", ["RK45", "BDF", "LSODA"])
+def test_other_explicit_integrators(integrator):
+    sol = dm.solve(HESSENBERG.model(), (0.0, 1.0), method="reference", integrator=integrator)
+    assert sol.stats["integrator"] == integrator
+    assert max(e["max"] for e in sol.errors(HESSENBERG.exact_solution()).values()) < 1e-8
+
+
+def test_batch_reports_each_samples_integrator():
+    sol = dm.solve(relaxation(), (0.0, 1.0), method="reference", parameters={"k": np.array([1.0, 1000.0])})
+    assert sol.stats["batch"] == 2
+    assert sol.stats["integrator"].startswith("sample 0: DOP853; sample 1: DOP853 -> Radau at t = ")
+
+
+def test_tiny_max_steps_raises_step_limit():
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"reference: max_steps = 5 reached at t = \S+ \(h = \S+\) before t1 = 40 \(sample 0 of 'robertson', "
+        r"integrator DOP853\); raise max_steps, or loosen rtol/atol, or use integrator='Radau' if the problem is stiff",
+    ):
+        dm.solve(robertson(), (0.0, 40.0), method="reference", max_steps=5)
+
+
+def test_explicit_dop853_on_a_stiff_problem_is_told_to_switch():
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"max_steps = 200 reached .* use integrator='auto' or 'Radau': the problem is stiff \(h \|lambda\| = ",
+    ):
+        dm.solve(robertson(), (0.0, 40.0), method="reference", integrator="DOP853", max_steps=200)
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        ({"rtol": 1e-16}, r"rtol = 1e-16 is outside the meaningful range \[2\.22045e-14, 0\.1\]: float64 cannot"),
+        ({"rtol": 0.5}, r"rtol = 0\.5 is outside the meaningful range .* use rtol <= 0\.1"),
+        ({"atol": 0.0}, r"atol must be positive; got 0\.0"),
+        ({"max_steps": 0}, r"max_steps must be positive; got 0"),
+        ({"max_newton_iterations": 2.5}, r"max_newton_iterations must be a finite integer; got 2\.5"),
+        ({"integrator": "Euler"}, r"integrator must be one of DOP853, RK45, Radau, BDF, LSODA or 'auto' \(DOP853, "),
+    ],
+)
+def test_options_are_validated(option, message):
+    with pytest.raises(E.InvalidOptionError, match=message):
+        dm.solve(robertson(), (0.0, 1.0), method="reference", **option)
+
+
+def test_blow_up_raises_near_the_singularity():
+    # y = 1 / (1 - t): the step size underflows just before t = 1.
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"the integrator stopped near t = (1|0\.99999\d*) \(sample 0 of 'scalar', integrator DOP853\): "
+        r"Required step size is less than spacing between numbers; the largest state there is 'y' = \d",
+    ):
+        dm.solve(scalar("y**2", 1.0), (0.0, 2.0), method="reference")
+
+
+@pytest.mark.parametrize(
+    ("rhs", "y0", "where", "value"),
+    [("y**2", 1e200, "0", "inf"), ("-sqrt(y)", 1.0, "2", "nan")],  # overflow at t0; y = (1 - t/2)^2 leaves y >= 0
+)
+def test_non_finite_derivative_names_the_state(rhs, y0, where, value):
+    with pytest.raises(
+        E.ConvergenceError,
+        match=rf"near t = {where} \(sample 0 of 'scalar', integrator DOP853\): the derivative of 'y' = {value} is not "
+        "finite: the solution blows up there or leaves the domain of the equations",
+    ):
+        dm.solve(scalar(rhs, y0), (0.0, 3.0), method="reference")
+
+
+def test_trial_point_off_the_solution_is_not_reported():
+    # At rtol 1e-3 DOP853's long trial steps cross y = b, where z is undefined; the restart with
+    # shorter steps passes, and the solution is as accurate as asked.
+    sol = dm.solve(relaxation(), (0.0, 1.0), method="reference", integrator="DOP853", rtol=1e-3)
+    assert sol.stats["restarts"] > 0
+    exact = np.sqrt(0.01 + 0.99 * np.exp(-100.0 * sol.t) - 0.005)
+    assert np.max(np.abs(sol["z"] - exact)) < 1e-2
+
+
+def test_stiffness_estimate_is_h_lambda_on_a_linear_problem():
+    solver = DOP853(lambda t, y: -1000.0 * y, 0.0, np.array([1.0]), 1.0, rtol=1e-3, atol=1e-6)
+    detector = StiffnessDetector()
+    switched = []
+    for _ in range(60):
+        solver.step()
+        switched.append(detector.update(solver))
+        assert detector.h_lambda == pytest.approx(1000.0 * solver.step_size, rel=1e-6)
+    assert detector.stiff and sum(switched) >= 1
+    assert not any(switched[:STIFF_STEPS])
