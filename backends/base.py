@@ -9,8 +9,12 @@ A backend is a final subclass of :class:`AbstractBackend`:
 2. ``solve(compiled, t_span, start, options)`` integrates every sample of ``start`` over
    ``t_span = (t0, t1)``, ``t0 < t1``, and returns a :class:`~daemodel.solution.Solution`
    with values for every state and algebraic variable, its wall time and its stats.
-3. It never returns non-finite values and never warns-then-returns: a failure raises
-   :class:`~daemodel.errors.ConvergenceError` naming the time, the step size and the fix.
+3. It never returns non-finite values and never warns-then-returns: a failure raises a
+   :class:`~daemodel.errors.SolverError` (:class:`~daemodel.errors.ConvergenceError`,
+   :class:`~daemodel.errors.LocalErrorBoundError`, :class:`~daemodel.errors.StepLimitError`)
+   naming the time, the step, the sample and the fix.
+4. Every loop has a user-settable bound, and a request that cannot fit (a grid of more than
+   :data:`MAX_GRID_POINTS` steps, see :func:`grid_steps`) is refused before anything is allocated.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from daemodel.errors import InvalidOptionError, StepSizeError, TimeSpanError
+from daemodel.errors import InvalidOptionError, ResourceLimitError, StepSizeError, TimeSpanError
 
 # Number of output times a method with its own step selection reports when t_eval is not given.
 DEFAULT_OUTPUT_POINTS = 101
@@ -37,6 +41,11 @@ SWEEP_STAGES = 3
 # RADAU5 stall there, and an adaptive solve runs until the step underflows); at or above 0.1 not
 # even one digit is asked for.
 RTOL_RANGE = (1e-14, 0.1)
+# Most steps of a fixed grid, whatever the method: its times alone take 80 MB, and at the ~0.1 ms
+# that the cheapest step of any backend costs, 10^7 steps are > 15 minutes: past this, h is a typo.
+MAX_GRID_POINTS = 10**7
+# A grid step must exceed this many ulps of the largest |t|, or t0 + k h repeats times.
+MIN_STEP_ULPS = 16
 
 
 def make_solution(
@@ -145,26 +154,91 @@ def check_dtype(dtype) -> str:
     return name
 
 
-def torch_device(name: str):
-    """``torch.device(name)``, refusing a CUDA device that torch cannot see."""
+def torch_device(name):
+    """``torch.device(name)`` for a device daemodel's torch solvers can use here: the CPU or a visible CUDA device.
+
+    Raises :class:`InvalidOptionError` naming the device and the valid choices for anything else
+    (not a device name, ``"meta"``, ``"mps"``, a CUDA device torch cannot see).
+    """
     import torch
 
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise InvalidOptionError(f"device = {name!r} but torch sees no CUDA device; use device='cpu'")
+    choices = device_choices()
+    if isinstance(name, torch.device):
+        device = name
+    elif isinstance(name, str):
+        try:
+            device = torch.device(name)
+        except (RuntimeError, ValueError):
+            raise InvalidOptionError(
+                f"device = {name!r} names no torch device; the choices here are {choices}"
+            ) from None
+    else:
+        raise InvalidOptionError(f"device must be a string such as 'cpu'; got {name!r}; the choices here are {choices}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InvalidOptionError(f"device = {name!r} but torch sees no CUDA device; use device='cpu'")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise InvalidOptionError(
+                f"device = {name!r} but torch sees {torch.cuda.device_count()} CUDA device(s); the choices here "
+                f"are {choices}"
+            )
+    elif device.type != "cpu":
+        raise InvalidOptionError(
+            f"device = {name!r}: daemodel's torch solvers run on the CPU or a CUDA device, not on "
+            f"{device.type!r} (float64, LU factorisation); the choices here are {choices}"
+        )
     return device
 
 
-def fixed_grid(t_span, h: float) -> np.ndarray:
-    """``t0, t0 + h, ..., t1``: the last step is shortened unless span/h is an integer (to 1e-9)."""
+def device_choices() -> str:
+    """The devices :func:`torch_device` accepts on this machine, as a readable list."""
+    import torch
+
+    names = ["'cpu'"]
+    if torch.cuda.is_available():
+        count = torch.cuda.device_count()
+        names += ["'cuda'", "'cuda:0'" if count == 1 else f"'cuda:0' to 'cuda:{count - 1}'"]
+    return ", ".join(names)
+
+
+def grid_steps(t_span, h: float, *, max_steps: int | None = None) -> int:
+    """Steps of the grid :func:`fixed_grid` builds, checked before anything is allocated.
+
+    Raises :class:`StepSizeError` when ``h`` exceeds the interval or is below the float
+    resolution of t there, and :class:`ResourceLimitError` when the grid needs more than
+    ``max_steps`` (the caller's own budget, when given) or :data:`MAX_GRID_POINTS` steps.
+    """
     t0, t1 = t_span
     span = t1 - t0
     if h > span * (1 + 1e-12):
         raise StepSizeError(
             f"h = {h:g} is larger than the interval t_span = ({t0:g}, {t1:g}) of length {span:g}; take h <= {span:g}"
         )
-    steps = span / h
-    count = round(steps) if abs(steps - round(steps)) <= 1e-9 * max(1.0, steps) else math.ceil(steps)
+    steps = span / h  # a float: it may exceed any int a grid could hold
+    for limit, name in ((max_steps, "max_steps"), (MAX_GRID_POINTS, "MAX_GRID_POINTS")):
+        if limit is not None and not steps <= limit * (1 + 1e-9):
+            why = "raise max_steps or" if name == "max_steps" else "a fixed grid holds at most that many steps:"
+            raise ResourceLimitError(
+                f"h = {h:g} over t_span = ({t0:g}, {t1:g}) needs {steps:.4g} steps, more than {name} = {limit:,}; "
+                f"{why} take h >= {span / limit:.3g}"
+            )
+    resolution = MIN_STEP_ULPS * float(np.spacing(max(abs(t0), abs(t1))))
+    if h < resolution:
+        raise StepSizeError(
+            f"h = {h:g} is below the float64 resolution of t on t_span = ({t0:.15g}, {t1:.15g}) "
+            f"({MIN_STEP_ULPS} ulps = {resolution:.3g}): the grid's times would repeat; take h >= {resolution:.3g}"
+        )
+    return round(steps) if abs(steps - round(steps)) <= 1e-9 * max(1.0, steps) else math.ceil(steps)
+
+
+def fixed_grid(t_span, h: float, *, max_steps: int | None = None) -> np.ndarray:
+    """``t0, t0 + h, ..., t1``: the last step is shortened unless span/h is an integer (to 1e-9).
+
+    The step count is checked first (:func:`grid_steps`): against ``max_steps`` when given, and
+    always against :data:`MAX_GRID_POINTS`, so an impossible grid is refused before it is allocated.
+    """
+    t0, t1 = t_span
+    count = grid_steps(t_span, h, max_steps=max_steps)
     grid = t0 + h * np.arange(count + 1)
     grid[-1] = t1
     return grid
@@ -174,13 +248,29 @@ def output_times(t_eval, t_span, default) -> np.ndarray:
     """Validated output times: sorted, finite, inside ``t_span``; ``default`` when None."""
     if t_eval is None:
         return np.asarray(default, dtype=float)
-    times = np.asarray(t_eval, dtype=float).reshape(-1)
+    times = numeric_times(t_eval)
     t0, t1 = t_span
     slack = 1e-12 * max(1.0, abs(t0), abs(t1))
-    if times.size == 0 or not np.all(np.isfinite(times)):
+    if times.size == 0:
         raise TimeSpanError(f"t_eval must hold at least one finite time; got {t_eval!r}")
+    if not np.all(np.isfinite(times)):
+        raise TimeSpanError(f"t_eval must hold finite times only; got {t_eval!r}")
     if np.any(np.diff(times) <= 0):
         raise TimeSpanError("t_eval must be strictly increasing")
     if times[0] < t0 - slack or times[-1] > t1 + slack:
         raise TimeSpanError(f"t_eval runs from {times[0]:g} to {times[-1]:g}, outside t_span = ({t0:g}, {t1:g})")
     return np.clip(times, t0, t1)
+
+
+def numeric_times(t_eval) -> np.ndarray:
+    """``t_eval`` as a flat float array; :class:`TimeSpanError` unless it holds real numbers only."""
+    try:
+        array = np.asarray(t_eval)
+        if array.dtype.kind == "O":  # e.g. a list mixing Python, numpy and sympy numbers
+            array = array.astype(float)
+    except (TypeError, ValueError):
+        array = None
+    if array is None or array.dtype.kind not in "iuf":
+        kind = "no array" if array is None else f"dtype {array.dtype}"
+        raise TimeSpanError(f"t_eval must be a sequence of real numbers; got {t_eval!r} ({kind})")
+    return array.astype(float).reshape(-1)

@@ -16,6 +16,21 @@ formula of order s (Hairer & Wanner, Solving ODEs II, IV.8, generalised to s sta
 where ``M = diag(I, 0)``.  As in RADAU5, the error of an algebraic variable determined through
 an index-k constraint is multiplied by ``h^(k-1)`` before the norm (its stage values are only
 accurate to order s - k + 2).  A batch shares the step sequence (the worst sample decides).
+
+Fixed step computes the same estimate after every step, with the Jacobian Newton already used,
+in units of the solution's size ``1 + max |u|`` so far, reports its maximum as
+``stats["max_local_error_estimate"]`` and refuses a step whose estimate exceeds
+:data:`LOCAL_ERROR_BOUND` (:class:`~daemodel.errors.LocalErrorBoundError`): Newton converges on
+a step across a singularity as readily as on a good one, and only the estimate tells them apart.
+
+Adaptive mode stops Newton on the contraction rate of the last step, as RADAU5 does, but a step
+declared converged after a single iteration is checked with one more increment (one LU solve):
+trusting that rate alone accepted unconverged stages, 100 x rtol errors on the pendulum and finite
+garbage on a switching f such as sign(x).
+
+Every loop is bounded: ``max_steps`` bounds the fixed grid (checked before it is built) and, in
+adaptive mode, every step attempt, accepted, rejected or failed in Newton
+(:class:`~daemodel.errors.StepLimitError`).
 """
 
 from __future__ import annotations
@@ -31,6 +46,7 @@ from daemodel.backends.base import (
     check_dtype,
     check_number,
     check_stages,
+    check_tolerances,
     fixed_grid,
     fixed_step_sweep,
     make_solution,
@@ -39,7 +55,7 @@ from daemodel.backends.base import (
 )
 
 from daemodel.collocation import stage_residual
-from daemodel.errors import ConvergenceError, InvalidOptionError
+from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
 
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
@@ -61,6 +77,22 @@ REFRESH_THETA = 0.05
 STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 # Newton is declared diverging when an increment is not at least this much smaller than the last.
 DIVERGENCE_THETA = 0.99
+# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
+# attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
+# t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
+DEFAULT_MAX_ADAPTIVE_STEPS = 5_000
+# Adaptive mode gives up early when the last PROGRESS_WINDOW attempts, at a step size that is
+# steady (within 1/10 and 2 times where the window started), project more than PROJECTION_FACTOR
+# times the attempts left: an endless t_span or a chattering switch fails in a second instead of
+# spending the whole budget (a stiff transient, whose h grows, is never judged by its slow start;
+# a blow-up, whose h collapses, ends in the step-size underflow that names it).
+PROGRESS_WINDOW, PROJECTION_FACTOR = 100, 10
+# Fixed step: default bound on the grid's step count, checked before the grid is built (the count
+# is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
+DEFAULT_MAX_FIXED_STEPS = 100_000
+# Fixed step: a step whose estimated local error exceeds a tenth of the solution's size 1 + max|u| keeps
+# no correct digit; steps across a pole measure >= 0.2 (s = 1..5), smooth problems at the tests' h <= 0.015.
+LOCAL_ERROR_BOUND = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -80,11 +112,15 @@ class RadauOptions:
     t_eval : array, optional
         Output times (collocation-polynomial dense output); default: the step grid.
     newton_tol : float, optional
-        Newton's tolerance on scaled increments; default ``1000 * eps`` of the dtype for a fixed
+        Newton's tolerance on scaled increments; default ``10 * eps`` of the dtype for a fixed
         step (the collocation solution to rounding), ``max(10 eps / rtol, min(0.03, sqrt(rtol)))``
         relative to the error tolerance in adaptive mode (RADAU5's rule).
     max_newton_iterations : int
-    max_steps : int
+    max_steps : int, optional
+        Fixed step: most steps of the grid, refused before it is built
+        (:class:`~daemodel.errors.ResourceLimitError`); default 100,000.  Adaptive mode: most step
+        attempts, accepted, rejected or failed in Newton alike
+        (:class:`~daemodel.errors.StepLimitError`); default 5,000, a runaway's 10-30 s.
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.
@@ -101,7 +137,7 @@ class RadauOptions:
     t_eval: object = None
     newton_tol: float | None = None
     max_newton_iterations: int = 10
-    max_steps: int = 100_000
+    max_steps: int | None = None
     reuse_jacobian: bool = True
     dtype: str = "float64"
     device: str = "cpu"
@@ -111,18 +147,24 @@ class RadauOptions:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
             check_number(name, getattr(self, name), allow_none=True)
         check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
-        check_number("max_steps", self.max_steps, integer=True)
         object.__setattr__(self, "dtype", check_dtype(self.dtype))
         if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):
             raise InvalidOptionError("h fixes the step size; rtol/atol/h0 select adaptive steps: give one or the other")
-        if self.h is None:
+        if self.max_steps is None:
+            object.__setattr__(
+                self, "max_steps", DEFAULT_MAX_ADAPTIVE_STEPS if self.adaptive else DEFAULT_MAX_FIXED_STEPS
+            )
+        check_number("max_steps", self.max_steps, integer=True)
+        if self.adaptive:
             object.__setattr__(self, "rtol", DEFAULT_RTOL if self.rtol is None else self.rtol)
             object.__setattr__(self, "atol", DEFAULT_ATOL if self.atol is None else self.atol)
+            if self.dtype == "float32" and self.rtol < FLOAT32_MIN_RTOL:
+                raise InvalidOptionError(
+                    f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); "
+                    "use dtype='float64'"
+                )
+            check_tolerances(self.rtol, self.atol)
         eps = float(np.finfo(self.dtype).eps)
-        if self.dtype == "float32" and self.h is None and self.rtol < FLOAT32_MIN_RTOL:
-            raise InvalidOptionError(
-                f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); use dtype='float64'"
-            )
         if self.newton_tol is not None and self.newton_tol < 10 * eps:
             raise InvalidOptionError(
                 f"newton_tol = {self.newton_tol:g} is below 10 eps of {self.dtype} ({10 * eps:.1e}); "
@@ -130,8 +172,9 @@ class RadauOptions:
             )
         if not isinstance(self.reuse_jacobian, bool):
             raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
+        device = torch_device(self.device)  # InvalidOptionError for a device torch cannot use here
         if not isinstance(self.device, str):
-            object.__setattr__(self, "device", str(self.device))
+            object.__setattr__(self, "device", str(device))
 
     @property
     def adaptive(self) -> bool:
@@ -218,6 +261,7 @@ class _Stepper:
             "device": str(device),
             "batch": self.B,
             "steps": 0,
+            "attempts": 0,
             "rejected_steps": 0,
             "newton_iterations": 0,
             "max_newton_iterations": 0,
@@ -229,8 +273,19 @@ class _Stepper:
             "h_min": math.inf,
             "h_max": 0.0,
         }
+        if not options.adaptive:
+            # worst step, sample and variable, in units of 1 + max|u| (see check_local_error)
+            self.stats["max_local_error_estimate"] = 0.0
         self._jac = None  # (J, t, h-independent) at the last refresh
         self._lu = None  # (LU, pivots, h)
+        self._step_jac = None  # the Jacobian of the last Newton matrix, (B, s, D, D): reused by the estimate
+        # the error-estimate matrix is M + J diag(rows): rows -h gamma0 for y, 1 for z (M = diag(I, 0))
+        self._error_M = torch.diag(torch.cat([torch.ones(self.n), torch.zeros(self.m)])).to(dtype=dtype, device=device)
+        self._error_rows = None  # (h, rows (D, 1), index weights h^(k-1) (D,)) for the last h
+        self._no_g = torch.zeros((self.B, self.m), dtype=dtype, device=device)  # the constraint rows' right side
+        self._f_start = None  # f at the start of the next step (the last stage's f of this one)
+        self._scale = None  # fixed step: 1 + max |u| over the steps' start values so far, (B, n+m)
+        self._outputs = None  # ([t], [u (B, n+m)], [(t, h, u_start, U)]) of the accepted steps
         self._eta = torch.ones(self.B, dtype=dtype, device=device)  # Newton's contraction estimate
         self._previous = None  # (h, u_start, U) of the last accepted step, for the start guess
 
@@ -298,15 +353,9 @@ class _Stepper:
         return M
 
     def factor(self, matrix, t, h, what):
-        torch = self.torch
-        LU, pivots, info = torch.linalg.lu_factor_ex(matrix)
+        LU, pivots, info = self.torch.linalg.lu_factor_ex(matrix)
         self.stats["lu_decompositions"] += 1
-        if bool((info > 0).any()):  # non-finite entries surface in Newton's increments instead
-            sample = int(torch.nonzero(info > 0)[0])
-            raise ConvergenceError(
-                f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}; the "
-                "constraints may not determine the algebraic variables there (g_y f_z singular)"
-            )
+        self.check_singular(info, t, h, what)
         return LU, pivots
 
     def weights(self, h, y_ref):
@@ -364,7 +413,8 @@ class _Stepper:
             norm = torch.sqrt(torch.mean((dW / scale) ** 2, dim=-1))
             finite = torch.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
             if not bool(finite.all()):
-                return None, k, "non-finite values", int(torch.nonzero(~finite)[0])
+                sample = int(torch.nonzero(~finite)[0])
+                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
             if previous is not None:
                 theta = torch.where(active, norm / torch.clamp(previous, min=1e-300), theta)
                 diverging = active & (theta >= DIVERGENCE_THETA)
@@ -377,6 +427,7 @@ class _Stepper:
                     Y, Z = self.split(W)
                     stage_J = self.jacobian(t + self.c * h, Y, Z)
                     LU, pivots = self.factor(self.newton_matrix(stage_J, h), t, h, "Newton matrix")
+                    self._step_jac = stage_J
                     self.stats["newton_refreshes"] += 1
                     self._jac = None  # the next step starts from a fresh Jacobian too
             previous = norm
@@ -388,138 +439,315 @@ class _Stepper:
                     (theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * self.newton_tol)
                 )
             active = active & ~done
+            if not bool(active.any()) and self.options.adaptive:
+                # the error estimate needs f at the final stage values
+                R, r = self.residual(t, h, W)
+                if k == 1 and k < self.options.max_newton_iterations:
+                    # converged on the last step's contraction alone: check that the next increment is
+                    # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
+                    after = torch.linalg.lu_solve(LU, pivots, -R[..., None])[..., 0]
+                    active = torch.sqrt(torch.mean((after / scale) ** 2, dim=-1)) > self.newton_tol
             if not bool(active.any()):
                 self._eta = eta
                 self.stats["newton_iterations"] += k
                 self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
-                if self.options.adaptive:  # the error estimate needs f at the final stage values
-                    _, r = self.residual(t, h, W)
                 return (W, r, float(theta.max())), k, None, None
         return None, k, f"not converged in {k} iterations", int(torch.nonzero(active)[0])
 
-    def error_norm(self, t, h, r, W, first):
-        """RADAU5-style scaled local error of the step, worst sample."""
+    def non_finite(self, r, dW, sample, t, h) -> str:
+        """Where a sample's first non-finite value arose: ``f`` or ``g`` at a stage, else an increment of a variable."""
         torch = self.torch
-        J = self.jacobian(t, self.y, self.z)
-        n = self.n
-        f0 = self.tf.f(t, self.y, self.z, self.p)
-        D = n + self.m
-        E = -h * self.gamma0 * J
-        E[:, :n, :] += torch.eye(D, dtype=self.dtype, device=self.device)[:n]
-        E[:, n:, :] = J[:, n:, :]
-        LU, pivots = self.factor(E, t, h, "error-estimate matrix")
-        combo = h * torch.einsum("i,bin->bn", self.e, r.stage_f)
+        compiled = self.compiled
+        for values, names, what in (
+            (r.stage_f, compiled.state_names, "the right-hand side of {}'"),
+            (r.G, compiled.constraint_names, "constraint '{}'"),
+        ):
+            bad = torch.nonzero(~torch.isfinite(values[sample]))
+            if len(bad):
+                stage, k = (int(i) for i in bad[0])
+                when = t + float(self.tableau.c[stage]) * h
+                return f"{what.format(names[k])} at stage {stage + 1} (t = {when:.6g})"
+        Y, Z = self.split(dW)
+        for values, names in ((Y, compiled.state_names), (Z, compiled.algebraic_names)):
+            bad = torch.nonzero(~torch.isfinite(values[sample]))
+            if len(bad):
+                stage, k = (int(i) for i in bad[0])
+                return f"the Newton increment of '{names[k]}' at stage {stage + 1}"
+        return "the Newton increment"
+
+    def error_rows(self, h):
+        """``(rows (D, 1), index weights (D,))`` of step size ``h``, kept while h is unchanged."""
+        if self._error_rows is None or self._error_rows[0] != h:
+            torch = self.torch
+            D = self.n + self.m
+            rows = torch.full((D, 1), -h * self.gamma0, dtype=self.dtype, device=self.device)
+            rows[self.n :] = 1.0
+            index_weight = torch.ones(D, dtype=self.dtype, device=self.device)
+            index_weight[self.n :] = torch.as_tensor(h, dtype=self.dtype, device=self.device) ** (self.z_index - 1)
+            self._error_rows = (h, rows, index_weight)
+        return self._error_rows[1], self._error_rows[2]
+
+    def local_error(self, h, J, f0, stage_f):
+        """The embedded local error estimate of the step (see the module docstring), shape (B, n+m).
+
+        ``J`` (B, D, D) is the Jacobian of the error matrix ``M - h gamma0 J``, ``f0`` (B, n) is
+        ``f`` at the step's start, ``stage_f`` (B, s, n) at its stages.  Returns the estimate, the
+        solve's ``info`` (> 0 where the matrix is singular) and what :meth:`refiltered` needs.
+        """
+        torch = self.torch
+        E = torch.addcmul(self._error_M, J, self.error_rows(h)[0])
+        quadrature = torch.matmul(self.e, stage_f)  # sum_i (bhat_i - b_i) f(Y_i), (B, n)
         # the constraint rows carry no local error: each step's Newton enforces g at its stages,
         # and its leftover |g(y_n)| (Newton's tolerance) must not block ever smaller steps
-        zeros = f0.new_zeros((self.B, self.m))
-        rhs = torch.cat([self.gamma0 * h * f0 + combo, zeros], dim=-1)
-        err = torch.linalg.lu_solve(LU, pivots, rhs[..., None])[..., 0]
+        rhs = torch.cat([(quadrature + self.gamma0 * f0) * h, self._no_g], dim=-1)
+        err, info = torch.linalg.solve_ex(E, rhs[..., None])
+        self.stats["lu_decompositions"] += 1
+        return err[..., 0], info, (E, quadrature)
+
+    def refiltered(self, t, h, err, matrices):
+        """The estimate with the stiff filter applied once more (Hairer-Wanner's first or rejected step)."""
+        torch = self.torch
+        E, quadrature = matrices
+        f1 = self.tf.f(t, self.y + err[:, : self.n], self.z + err[:, self.n :], self.p)
+        rhs = torch.cat([(quadrature + self.gamma0 * f1) * h, self._no_g], dim=-1)
+        return torch.linalg.solve_ex(E, rhs[..., None])[0][..., 0]
+
+    def error_norm(self, t, h, r, W, first):
+        """RADAU5-style scaled local error of the step, worst sample (adaptive mode)."""
+        torch = self.torch
+        J = self.jacobian(t, self.y, self.z)
+        f0 = self.tf.f(t, self.y, self.z, self.p)
+        err, info, matrices = self.local_error(h, J, f0, r.stage_f)
+        self.check_singular(info, t, h, "error-estimate matrix")
         Y, Z = self.split(W)
         u_new = torch.cat([Y[:, -1], Z[:, -1]], dim=-1)
         u_old = torch.cat([self.y, self.z], dim=-1)
         w = self.weights(h, torch.maximum(u_old.abs(), u_new.abs()))
         norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
         if first and bool((norm >= 1).any()):
-            # Hairer-Wanner: on a first or rejected step, apply the stiff filter once more
-            f1 = self.tf.f(t, self.y + err[:, :n], self.z + err[:, n:], self.p)
-            rhs = torch.cat([self.gamma0 * h * f1 + combo, zeros], dim=-1)
-            err = torch.linalg.lu_solve(LU, pivots, rhs[..., None])[..., 0]
+            err = self.refiltered(t, h, err, matrices)
             norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
         if not bool(torch.isfinite(norm).all()):
             return math.inf
         return float(norm.max())
 
+    def check_local_error(self, step, t, h, r):
+        """Fixed step: the step's local error estimate in units of the solution's size; raise beyond the bound.
+
+        The unit is ``1 + max |u|`` over the steps' start values so far (an algebraic variable of
+        index k: that over ``h^(k-1)``), so a step across a singularity cannot excuse its error by
+        its own huge result, nor an oscillation be judged where it crosses zero.  It reuses the
+        Jacobian of the step's Newton matrix (its first stage) and takes ``f`` at the step's start
+        from the last step's final stage (Radau IIA is stiffly accurate: ``c_s = 1``).
+        """
+        torch = self.torch
+        u = torch.cat([self.y, self.z], dim=-1).abs().add_(1.0)
+        self._scale = u if self._scale is None else torch.maximum(self._scale, u)
+        if self._f_start is None:
+            self._f_start = self.tf.f(t, self.y, self.z, self.p)
+        err, info, matrices = self.local_error(h, self._step_jac[:, 0], self._f_start, r.stage_f)
+        index_weight = self.error_rows(h)[1]
+        ratio = err.abs().mul_(index_weight).div_(self._scale)
+        worst = float(ratio.max())
+        if worst > LOCAL_ERROR_BOUND:  # the stiff filter once more before judging (Hairer-Wanner)
+            ratio = self.refiltered(t, h, err, matrices).abs().mul_(index_weight).div_(self._scale)
+            worst = float(ratio.max())
+        self._f_start = r.stage_f[:, -1]
+        if worst <= LOCAL_ERROR_BOUND:  # the usual case: False for NaN too
+            self.stats["max_local_error_estimate"] = max(self.stats["max_local_error_estimate"], worst)
+            return
+        self.stats["max_local_error_estimate"] = math.inf if math.isnan(worst) else worst
+        self.check_singular(info, t, h, "error-estimate matrix")
+        ratio = torch.nan_to_num(ratio, nan=math.inf)
+        sample, k = divmod(int(torch.argmax(ratio.reshape(-1))), self.n + self.m)
+        name = (*self.compiled.state_names, *self.compiled.algebraic_names)[k]
+        index = int(self.z_index[k - self.n]) if k >= self.n else 1
+        size = f"1 + max|{name}|" if index == 1 else f"(1 + max|{name}|) / h^{index - 1}"
+        value = float(ratio.reshape(-1)[sample * (self.n + self.m) + k])
+        raise LocalErrorBoundError(
+            f"radau: step {step} from t = {t:.6g} with h = {h:.3g}: the local error estimate of '{name}' "
+            f"(sample {sample}) is {value:.3g} times the solution's size {size} so far, beyond "
+            f"LOCAL_ERROR_BOUND = {LOCAL_ERROR_BOUND:g}: the step has no correct digit (the solution may be "
+            "singular, switch or change too fast there); take a smaller h, or the adaptive mode (rtol=...)"
+        )
+
+    def check_singular(self, info, t, h, what):
+        """Raise :class:`ConvergenceError` where ``info`` (of an LU) reports a singular matrix."""
+        torch = self.torch
+        if bool((info > 0).any()):  # non-finite entries surface in Newton's increments instead
+            sample = int(torch.nonzero(info > 0)[0])
+            raise ConvergenceError(
+                f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}; the "
+                "constraints may not determine the algebraic variables there (g_y f_z singular)"
+            )
+
     # ---- the loop -----------------------------------------------------------------------
     def integrate(self, t_span):
+        """Values at the output times: ``(times (T,), values (B, T, n+m))``."""
         torch = self.torch
         options = self.options
-        t0, t1 = t_span
-        grid = fixed_grid(t_span, options.h) if not options.adaptive else None
-        t_out = output_times(options.t_eval, t_span, grid if grid is not None else None)
-        dense = options.t_eval is not None
+        t0 = t_span[0]
+        grid = None if options.adaptive else fixed_grid(t_span, options.h, max_steps=options.max_steps)
+        t_out = output_times(options.t_eval, t_span, grid)
         u0 = torch.cat([self.y, self.z], dim=-1)
-        out_t, out_u, steps = [t0], [u0], []
-        t, step = t0, 0
-        h = options.h if not options.adaptive else (options.h0 or self.initial_step(t_span))
-        first, rejected_last = True, False
-        while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
-            if step >= options.max_steps:
-                raise ConvergenceError(
-                    f"radau: max_steps = {options.max_steps} reached at t = {t:.6g} (h = {h:.3g}) before "
-                    f"t1 = {t1:g}; raise max_steps or loosen rtol/atol"
-                )
-            if options.adaptive:
-                if h < 1e-14 * max(1.0, abs(t)):
-                    h = self._shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
-                h = min(h, t1 - t)
-                if (t1 - t) - h < 1e-10 * h:
-                    h = t1 - t
-            else:
-                h = grid[step + 1] - grid[step]
-            W0 = self.start_guess(h)
-            J = self.current_jacobian(t, h, W0)
-            LU, pivots = self.current_lu(J, t, h)
-            result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
-            if result is None and self._jac is not None and self._jac[1] != t:
-                # the reused Jacobian is stale: refresh it and try again
-                self._jac = self._lu = None
-                J = self.current_jacobian(t, h, W0)
-                LU, pivots = self.current_lu(J, t, h)
-                result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+        self._outputs = ([t0], [u0], [])
+        if options.adaptive:
+            self.adaptive_steps(t_span)
+        else:
+            self.fixed_steps(grid)
+        out_t, out_u, steps = self._outputs
+        if options.t_eval is not None:
+            return self.dense_output(t_out, u0, t0, steps)
+        values = torch.stack(out_u, dim=1)  # (B, T, n+m)
+        return np.asarray(out_t, dtype=float), values.detach().cpu().double().numpy()
+
+    def fixed_steps(self, grid):
+        """Step along ``grid``, checking each step's local error estimate."""
+        for step in range(1, len(grid)):
+            t, h = float(grid[step - 1]), float(grid[step] - grid[step - 1])
+            if abs(h - self.options.h) <= 1e-12 * self.options.h:
+                h = self.options.h  # not its rounded copy: the LU and the estimate's weights are kept per h
+            self.stats["attempts"] += 1
+            result, _, why, sample = self.attempt(t, h)
             if result is None:
                 self.stats["newton_failures"] += 1
-                if not options.adaptive:
-                    raise ConvergenceError(
-                        f"radau: Newton failed in step {step + 1} from t = {t:.6g} with h = {h:.3g} ({why}, "
-                        f"sample {sample}); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
-                    )
+                raise ConvergenceError(
+                    f"radau: Newton failed in step {step} from t = {t:.6g} with h = {h:.3g} ({why}, "
+                    f"sample {sample}); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+                )
+            W, r, theta = result
+            self.check_local_error(step, t, h, r)
+            self.accept(t, h, W, theta, float(grid[step]))
+
+    def adaptive_steps(self, t_span):
+        """RADAU5's step-size controller; every attempt counts against ``max_steps``."""
+        options = self.options
+        t0, t1 = t_span
+        t = t0
+        h = options.h0 or self.initial_step(t_span)
+        first, rejected_last = True, False
+        half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
+        window = (t0, 0, h)  # (t, accepted steps, h) PROGRESS_WINDOW attempts ago
+        while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
+            attempts = self.stats["attempts"]
+            if attempts >= options.max_steps:
+                raise self.budget_error(t, h, t1, half, options.max_steps - options.max_steps // 2)
+            if attempts == options.max_steps // 2:
+                half = (t, self.stats["steps"])
+            if attempts and attempts % PROGRESS_WINDOW == 0:
+                rate = (t - window[0]) / PROGRESS_WINDOW
+                needed = (t1 - t) / rate if rate > 0 else math.inf
+                # neither growing (a stiff transient) nor collapsing (a blow-up, reported as an underflow)
+                steady = window[2] / 10 <= h <= 2 * window[2]
+                if steady and needed > PROJECTION_FACTOR * (options.max_steps - attempts):
+                    raise self.budget_error(t, h, t1, window[:2], PROGRESS_WINDOW, projected=needed)
+                window = (t, self.stats["steps"], h)
+            self.stats["attempts"] += 1
+            if h < 1e-14 * max(1.0, abs(t)):
+                h = self._shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
+            h = min(h, t1 - t)
+            if (t1 - t) - h < 1e-10 * h:
+                h = t1 - t
+            result, iterations, why, sample = self.attempt(t, h)
+            if result is None:
+                self.stats["newton_failures"] += 1
                 self._lu = None
                 h = self._shrink(h, t, why, sample, 0.5)
                 first = True
                 continue
             W, r, theta = result
-            if options.adaptive:
-                err = self.error_norm(t, h, r, W, first or rejected_last)
-                factor = min(
-                    SAFETY,
-                    SAFETY * (2 * options.max_newton_iterations + 1) / (2 * options.max_newton_iterations + iterations),
-                )
-                quot = factor * max(err, 1e-10) ** (-1.0 / (self.s + 1))
-                if err > 1:
-                    self.stats["rejected_steps"] += 1
-                    h = self._shrink(h, t, f"error estimate {err:.2g} > 1", None, max(MIN_FACTOR, min(quot, 0.9)))
-                    rejected_last = True
-                    self._lu = None
-                    continue
-            Y, Z = self.split(W)
-            u_start = torch.cat([self.y, self.z], dim=-1)
-            U = torch.cat([Y, Z], dim=-1)
-            if dense:
-                steps.append((t, h, u_start, U))
-            else:
-                out_t.append(t + h)
-                out_u.append(U[:, -1])
-            self._previous = (h, u_start, U)
-            self.y, self.z = Y[:, -1].clone(), Z[:, -1].clone()
-            t = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
-            step += 1
-            self.stats["steps"] = step
-            self.stats["h_min"] = min(self.stats["h_min"], h)
-            self.stats["h_max"] = max(self.stats["h_max"], h)
-            if self.options.reuse_jacobian and theta > REUSE_THETA:
-                self._jac = None  # slow contraction: a fresh Jacobian next step
-            elif not self.options.reuse_jacobian:
-                self._jac = None
-            if options.adaptive:
-                new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
-                if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
-                    new_h = h
-                h = new_h
+            err = self.error_norm(t, h, r, W, first or rejected_last)
+            factor = min(
+                SAFETY,
+                SAFETY * (2 * options.max_newton_iterations + 1) / (2 * options.max_newton_iterations + iterations),
+            )
+            quot = factor * max(err, 1e-10) ** (-1.0 / (self.s + 1))
+            if err > 1:
+                self.stats["rejected_steps"] += 1
+                h = self._shrink(h, t, f"error estimate {err:.2g} > 1", None, max(MIN_FACTOR, min(quot, 0.9)))
+                rejected_last = True
+                self._lu = None
+                continue
+            t_next = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
+            self.accept(t, h, W, theta, t_next)
+            t = t_next
+            new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
+            if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
+                new_h = h
+            h = new_h
             first = rejected_last = False
-        if dense:
-            return self.dense_output(t_out, u0, t0, steps)
-        values = torch.stack(out_u, dim=1)  # (B, T, n+m)
-        return np.asarray(out_t, dtype=float), values.detach().cpu().double().numpy()
+
+    def attempt(self, t, h):
+        """Newton on the step from ``t`` with ``h``, retried once with a fresh Jacobian if a reused one fails."""
+        W0 = self.start_guess(h)
+        J = self.current_jacobian(t, h, W0)
+        LU, pivots = self.current_lu(J, t, h)
+        self._step_jac = J
+        result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+        if result is None and self._jac is not None and self._jac[1] != t:
+            # the reused Jacobian is stale: refresh it and try again
+            self._jac = self._lu = None
+            J = self.current_jacobian(t, h, W0)
+            LU, pivots = self.current_lu(J, t, h)
+            self._step_jac = J
+            result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+        return result, iterations, why, sample
+
+    def accept(self, t, h, W, theta, t_next):
+        """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
+        torch = self.torch
+        out_t, out_u, steps = self._outputs
+        Y, Z = self.split(W)
+        u_start = torch.cat([self.y, self.z], dim=-1)
+        U = torch.cat([Y, Z], dim=-1)
+        if self.options.t_eval is not None:
+            steps.append((t, h, u_start, U))
+        else:
+            out_t.append(t_next)
+            out_u.append(U[:, -1])
+        self._previous = (h, u_start, U)
+        self.y, self.z = Y[:, -1].clone(), Z[:, -1].clone()
+        self.stats["steps"] += 1
+        self.stats["h_min"] = min(self.stats["h_min"], h)
+        self.stats["h_max"] = max(self.stats["h_max"], h)
+        if not self.options.reuse_jacobian or theta > REUSE_THETA:
+            self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
+
+    def budget_error(self, t, h, t1, half, recent, projected=None) -> StepLimitError:
+        """max_steps ran out (or, ``projected``, cannot suffice): say where, and why it likely did
+        (chattering, or a span too long); ``half`` is (t, accepted steps) ``recent`` attempts ago."""
+        budget, accepted = self.options.max_steps, self.stats["steps"]
+        failed = self.stats["rejected_steps"] + self.stats["newton_failures"]
+        recent_accepted = accepted - half[1]
+        progress = t - half[0]
+        if recent_accepted < recent / 2:
+            reason = (
+                f"{recent - recent_accepted} of the last {recent} attempts were rejected or failed in Newton, "
+                f"and they advanced t by {progress:.3g} of the {t1 - half[0]:.3g} left: the right-hand side is "
+                "likely discontinuous near "
+                f"t = {t:.6g} (sign(x), abs(x), min/max or a Piecewise that switches), and steps across the "
+                "switch need h -> 0 (chattering); stop the integration at the switch and restart from there, "
+                "or smooth the switch"
+            )
+        else:
+            rate = progress / max(recent, 1)
+            more = f"about {(t1 - t) / rate:.3g} more" if rate > 0 else "endlessly many"
+            reason = (
+                f"the steps are accepted, but at the last {recent} attempts' rate ({rate:.3g} per attempt) the "
+                f"rest of t_span needs {more} attempts: t_span is too long for max_steps at this tolerance; "
+                "raise max_steps, loosen rtol/atol or shorten t_span"
+            )
+        if projected is None:
+            head = f"radau: max_steps = {budget} reached at t = {t:.6g}"
+        else:
+            head = (
+                f"radau: max_steps = {budget} cannot suffice (about {projected:.3g} more attempts projected, "
+                f"{budget - self.stats['attempts']} left), stopped early at t = {t:.6g}"
+            )
+        return StepLimitError(
+            f"{head} (h = {h:.3g}) before t1 = {t1:g}, after {accepted} accepted steps and {failed} rejected or "
+            f"failed attempts: {reason}"
+        )
 
     def current_jacobian(self, t, h, W0):
         """Each stage's Jacobian at the starting guess (kept while Newton contracts fast)."""

@@ -162,7 +162,8 @@ def test_an_unusable_setting_is_refused_before_any_solve(no_solve):
     m = decay()
     with pytest.raises(
         InvalidOptionError,
-        match=r"casadi-idas at rtol=1e-16, atol=1e-16 \(setting 7 of 7\): rtol = 1e-16 is below .*; "
+        match=r"casadi-idas at rtol=1e-16, atol=1e-16 \(setting 7 of 7\): rtol = 1e-16 is outside the meaningful "
+        r"range .*; "
         r"casadi-idas's default sweep is usable up to points = 6",
     ):
         dm.compare(m, (0.0, 0.5), ["radau", "casadi-idas"], points=7)

@@ -125,7 +125,7 @@ def test_blow_up_raises_instead_of_returning_nan():
 
 
 def test_max_steps(pendulum):
-    with pytest.raises(E.ConvergenceError, match="max_steps = 3 reached at t = "):
+    with pytest.raises(E.StepLimitError, match="max_steps = 3 reached at t = "):
         dm.solve(pendulum, (0.0, 1.0), rtol=1e-8, max_steps=3)
 
 

@@ -1,0 +1,258 @@
+"""Radau never returns a result it cannot vouch for, and every loop of it ends in a named error.
+
+A fixed step checks its embedded local error estimate against LOCAL_ERROR_BOUND; adaptive mode
+counts every attempt against max_steps; grids, tolerances, devices and output times are checked
+before anything is allocated or integrated.
+"""
+
+import itertools
+import tracemalloc
+
+import numpy as np
+import pytest
+import sympy as sp
+from daemodel.backends import radau
+from daemodel.backends.base import MAX_GRID_POINTS, fixed_grid
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import HESSENBERG, PENDULUM
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return PENDULUM.model().compile()
+
+
+@pytest.fixture(scope="module")
+def pole():
+    """``x' = -1, y' = 1/x``, x(0) = 1: y = -log(1 - t) ends at t = 1."""
+    m = dm.Model("pole")
+    x, y = m.states("x y")
+    m.ode(x, -1 + 0 * y)
+    m.ode(y, 1 / x)
+    m.initial(x=1.0, y=0.0)
+    return m.compile()
+
+
+@pytest.fixture(scope="module")
+def switch():
+    """``x' = -sign(x)``, x(0) = 0.5: at t = 0.5 the right-hand side switches."""
+    m = dm.Model("switch")
+    (x,) = m.states("x")
+    m.ode(x, -sp.sign(x))
+    m.initial(x=0.5)
+    return m.compile()
+
+
+# ---- fixed step: the local error estimate -------------------------------------------------
+
+
+# (stages, h) that returned finite garbage for y(2) before the estimate was checked (y(2) = 1.005 at (3, 0.03))
+@pytest.mark.parametrize(("stages", "h"), [(1, 0.03), (2, 0.13), (3, 0.03), (3, 0.3), (4, 0.07), (4, 0.13)])
+def test_a_step_across_a_pole_raises_local_error_bound(pole, stages, h):
+    with pytest.raises(
+        E.LocalErrorBoundError,
+        match=rf"radau: step \d+ from t = 0\.9\d* with h = {h:g}: the local error estimate of 'y' \(sample 0\) "
+        r"is .* times the solution's size 1 \+ max\|y\| so far, beyond LOCAL_ERROR_BOUND = 0\.1: .*"
+        r"take a smaller h, or the adaptive mode \(rtol=\.\.\.\)",
+    ):
+        dm.solve(pole, (0.0, 2.0), stages=stages, h=h)
+
+
+def test_the_bound_names_the_sample_of_a_batch(pole):
+    # x(0) = 3, 1, 5: only sample 1 reaches its pole (at t = 1) within t_span
+    with pytest.raises(E.LocalErrorBoundError, match=r"step 34 from t = 0\.99 .*'y' \(sample 1\)"):
+        dm.solve(pole, (0.0, 2.0), stages=3, h=0.03, y0={"x": [3.0, 1.0, 5.0], "y": [0.0, 0.0, 0.0]})
+
+
+def test_before_the_pole_the_solution_is_returned_with_its_estimate(pole):
+    sol = dm.solve(pole, (0.0, 0.9), stages=3, h=0.03)
+    assert sol.stats["mode"] == "fixed"
+    assert 0 < sol.stats["max_local_error_estimate"] < radau.LOCAL_ERROR_BOUND
+    np.testing.assert_allclose(sol["y"][-1], -np.log(0.1), rtol=1e-5)
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_smooth_problems_report_a_small_estimate_that_shrinks_with_h(pendulum, s):
+    estimates = []
+    for h in (0.125, 0.0625, 0.03125):
+        sol = dm.solve(pendulum, (0.0, 1.0), stages=s, h=h)
+        estimates.append(sol.stats["max_local_error_estimate"])
+    hessenberg = dm.solve(HESSENBERG.model().compile(), (0.0, 1.0), stages=s, h=0.05)
+    print(f"pendulum s={s}: estimates {estimates}; hessenberg h=0.05: {hessenberg.stats['max_local_error_estimate']}")
+    assert 0 < estimates[-1] < estimates[0] < 0.05
+    # the estimate is O(h^(s+1)): halving h shrinks it by at least 2^s
+    assert all(a / b > 2**s for a, b in itertools.pairwise(estimates))
+    assert 0 < hessenberg.stats["max_local_error_estimate"] < 0.05
+
+
+def test_stiff_decay_and_a_batch_do_not_trip_the_bound(pendulum):
+    m = dm.Model("decay")
+    (y,) = m.states("y")
+    m.ode(y, -1e6 * y)  # the first step's estimate needs the second stiff filter
+    m.initial(y=1.0)
+    sol = dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
+    assert sol.stats["max_local_error_estimate"] < 1e-3 and abs(sol["y"][-1]) < 1e-12
+    angles = np.linspace(0.2, 2.8, 50)
+    y0 = {"y1": np.sin(angles), "y2": -np.cos(angles), "y3": 0 * angles, "y4": 0 * angles}
+    batch = dm.solve(pendulum, (0.0, 2.0), stages=3, h=0.05, y0=y0)
+    assert 0 < batch.stats["max_local_error_estimate"] < 1e-3
+
+
+def test_non_finite_values_name_the_equation_stage_and_time():
+    m = dm.Model("root")
+    x, y = m.states("x y")
+    m.ode(x, -1 + 0 * y)
+    m.ode(y, sp.sqrt(x))  # NaN once x < 0
+    m.initial(x=0.05, y=0.0)
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"Newton failed in step 1 from t = 0 with h = 0\.1 \(non-finite values: the right-hand side of y' "
+        r"at stage 2 \(t = 0\.06\d*\), sample 0\)",
+    ):
+        dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
+    m = dm.Model("log")
+    (x,) = m.states("x")
+    (z,) = m.algebraics("z")
+    m.ode(x, -1 + 0 * z)
+    m.constraint(z - sp.log(x), name="logx")
+    m.initial(x=0.05)
+    with pytest.raises(E.ConvergenceError, match=r"non-finite values: constraint 'logx' at stage 2 \(t = 0\.06"):
+        dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
+
+
+# ---- adaptive: every attempt counts ----------------------------------------------------------
+
+
+def test_chattering_switch_raises_step_limit(switch):
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"radau: max_steps = 300 (reached|cannot suffice.*stopped early) at t = 0\.5\d* \(h = .*\) before "
+        r"t1 = 1, after \d+ accepted steps and \d+ rejected or failed attempts: .*discontinuous near t = 0\.5"
+        r".*chattering",
+    ):
+        dm.solve(switch, (0.0, 1.0), rtol=1e-3, max_steps=300)
+
+
+def test_switch_at_default_tolerances_raises_instead_of_returning_chatter(switch):
+    # one Newton iteration "converged" on the last step's contraction rate used to return x(0.9) = -0.12
+    with pytest.raises(
+        E.StepLimitError, match=r"max_steps = 300 (reached|cannot suffice.*stopped early) at t = 0\.5.*chattering"
+    ):
+        dm.solve(switch, (0.0, 1.0), max_steps=300)
+
+
+def test_adaptive_steps_meet_the_tolerance(pendulum):
+    times = np.linspace(0.0, 4.0, 9)
+    sol = dm.solve(pendulum, (0.0, 4.0), rtol=1e-6, t_eval=times)
+    ref = dm.solve(pendulum, (0.0, 4.0), method="reference", t_eval=times)
+    errors = sol.errors(ref)
+    print(f"pendulum on [0, 4], rtol = 1e-6: {sol.stats['steps']} steps, errors {errors}")
+    # without checking one-iteration Newton convergence: 1.4e-5 (y4) in 112 steps, 24 rejected
+    assert max(errors[name]["max"] for name in pendulum.state_names) < 1e-6
+
+
+def test_endless_span_raises_step_limit(pendulum, switch):
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"max_steps = 200 reached at t = .* before t1 = 1e\+300, .*the steps are accepted, but .* the rest of "
+        r"t_span needs about .* more attempts: t_span is too long for max_steps",
+    ):
+        dm.solve(pendulum, (0.0, 1e300), max_steps=200)
+    # the default budget is not spent: the projection stops after the first windows of steady steps
+    with pytest.raises(E.StepLimitError, match=r"max_steps = 5000 cannot suffice \(.*, 4[89]00 left\), stopped early"):
+        dm.solve(pendulum, (0.0, 1e300))
+    with pytest.raises(E.StepLimitError, match=r"max_steps = 200 (reached|cannot suffice).* before t1 = 1e\+300"):
+        dm.solve(switch, (0.0, 1e300), max_steps=200)
+
+
+def test_max_steps_counts_every_attempt_and_has_per_mode_defaults(pendulum):
+    sol = dm.solve(pendulum, (0.0, 4.0), rtol=1e-6)
+    stats = sol.stats
+    assert stats["attempts"] == stats["steps"] + stats["rejected_steps"] + stats["newton_failures"]
+    assert stats["rejected_steps"] > 0  # the budget below is spent by rejected attempts too
+    with pytest.raises(E.StepLimitError, match=f"max_steps = {stats['attempts'] - 1} reached"):
+        dm.solve(pendulum, (0.0, 4.0), rtol=1e-6, max_steps=stats["attempts"] - 1)
+    assert radau.RadauOptions().max_steps == radau.DEFAULT_MAX_ADAPTIVE_STEPS
+    assert radau.RadauOptions(h=0.1).max_steps == radau.DEFAULT_MAX_FIXED_STEPS
+    assert "max_local_error_estimate" not in stats
+
+
+# ---- grids, tolerances, devices, output times ----------------------------------------------
+
+
+def test_tiny_h_is_refused_before_the_grid_is_allocated(pendulum):
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=r"h = 1e-11 over t_span = \(0, 1\) needs 1e\+11 steps, more than max_steps = 100,000; "
+        r"raise max_steps or take h >= 1e-05",
+    ):
+        dm.solve(pendulum, (0.0, 1.0), h=1e-11)
+    with pytest.raises(E.ResourceLimitError, match=r"needs 100 steps, more than max_steps = 50"):
+        dm.solve(pendulum, (0.0, 1.0), h=0.01, max_steps=50)
+    tracemalloc.start()
+    try:
+        with pytest.raises(
+            E.ResourceLimitError,
+            match=rf"needs 1e\+11 steps, more than MAX_GRID_POINTS = {MAX_GRID_POINTS:,}; a fixed grid holds at most",
+        ):
+            fixed_grid((0.0, 1.0), 1e-11)  # casadi-collocation's and the PINN's grids
+        assert tracemalloc.get_traced_memory()[1] < 2**20
+    finally:
+        tracemalloc.stop()
+    with pytest.raises(E.StepSizeError, match=r"h = 1e-07 is below the float64 resolution of t on t_span"):
+        fixed_grid((1e10, 1e10 + 1.0), 1e-7)
+    assert len(fixed_grid((0.0, 1.0), 0.1)) == 11
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"rtol": 10.0, "atol": 10.0}, r"rtol = 10 is outside the meaningful range \[1e-14, 0\.1\]: that asks for no"),
+        ({"rtol": 1e-20}, r"rtol = 1e-20 is outside .* float64 cannot deliver more digits; use rtol >= 1e-14"),
+        ({"rtol": 1e-6, "atol": -1.0}, "atol must be positive"),
+        ({"rtol": 1e-8, "dtype": "float32"}, "below what float32 can deliver"),
+    ],
+)
+def test_tolerances_out_of_range(pendulum, kwargs, match):
+    with pytest.raises(E.InvalidOptionError, match=match):
+        dm.solve(pendulum, (0.0, 1.0), **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("device", "match"),
+    [
+        ("meta", r"device = 'meta': daemodel's torch solvers run on the CPU or a CUDA device, not on 'meta'"),
+        ("mps", r"not on 'mps' .*; the choices here are 'cpu'"),
+        (5, r"device must be a string such as 'cpu'; got 5; the choices here are 'cpu'"),
+        ("gpu", r"device = 'gpu' names no torch device; the choices here are 'cpu'"),
+        ("cuda:99", r"device = 'cuda:99' but torch sees (no CUDA device|\d+ CUDA device)"),
+    ],
+)
+def test_devices_torch_cannot_use_here(pendulum, device, match):
+    with pytest.raises(E.InvalidOptionError, match=match):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, device=device)
+
+
+def test_cpu_devices_are_accepted(pendulum):
+    import torch
+
+    assert dm.solve(pendulum, (0.0, 0.2), h=0.1, device=torch.device("cpu")).settings["device"] == "cpu"
+    assert dm.solve(pendulum, (0.0, 0.2), h=0.1, device="cpu:0").stats["device"] == "cpu:0"
+
+
+@pytest.mark.parametrize(
+    ("t_eval", "match"),
+    [
+        ("abc", r"t_eval must be a sequence of real numbers; got 'abc' \(dtype <U3\)"),
+        (["0.1", "0.2"], "t_eval must be a sequence of real numbers"),
+        ([0.1j], r"real numbers; got \[0\.1j\] \(dtype complex128\)"),
+        ([[0.1], [0.2, 0.3]], r"real numbers; .* \(no array\)"),
+        ([0.1, None], r"t_eval must hold finite times only"),
+        ([], "t_eval must hold at least one finite time"),
+    ],
+)
+def test_t_eval_must_be_numbers(pendulum, t_eval, match):
+    with pytest.raises(E.TimeSpanError, match=match):
+        dm.solve(pendulum, (0.0, 1.0), h=0.1, t_eval=t_eval)
