@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 from daemodel.backends.base import (
     DEFAULT_OUTPUT_POINTS,
+    LOCAL_ERROR_BOUND,
     AbstractBackend,
     check_number,
     check_stages,
@@ -60,11 +61,6 @@ from daemodel.errors import ConvergenceError, LocalErrorBoundError, SolverError,
 
 # Steps of casadi-collocation over the interval when h is not given.
 DEFAULT_STEPS = 100
-# casadi-collocation: a step whose local error estimate exceeds this fraction of its variable's
-# scale 1 + max|u| has no correct digit.  Measured: smooth problems (pendulum, Hessenberg, an RLC
-# circuit, q' = z, s = 1..5, h = 0.1..0.0125) stay below 0.035; steps over a pole that land on a
-# finite root give 0.3 and more (a wrong root is wrong by O(1) times the scale, never by 1e3).
-LOCAL_ERROR_BOUND = 0.1
 # Options that stop casadi from printing a warning for every non-finite evaluation (tens of
 # thousands of lines when Newton wanders into a singularity).
 QUIET = {"show_eval_warnings": False}

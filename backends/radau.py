@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
+    LOCAL_ERROR_BOUND,
     AbstractBackend,
     check_dtype,
     check_number,
@@ -90,9 +91,6 @@ PROGRESS_WINDOW, PROJECTION_FACTOR = 100, 10
 # Fixed step: default bound on the grid's step count, checked before the grid is built (the count
 # is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
 DEFAULT_MAX_FIXED_STEPS = 100_000
-# Fixed step: a step whose estimated local error exceeds a tenth of the solution's size 1 + max|u| keeps
-# no correct digit; steps across a pole measure >= 0.2 (s = 1..5), smooth problems at the tests' h <= 0.015.
-LOCAL_ERROR_BOUND = 0.1
 
 
 @dataclass(frozen=True, kw_only=True)
