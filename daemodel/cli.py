@@ -4,7 +4,7 @@
     daemodel compare examples/pendulum.py --methods radau,casadi-idas,pinn --out results/
 
 A target is the name of a problem in :mod:`daemodel.problems` (``hessenberg``,
-``pendulum``, ``pendulum-index3``) or a Python file that defines
+``pendulum``, ``pendulum-index3``, ``robertson``: each on its own interval) or a Python file that defines
 
 * ``build_model()`` returning a :class:`~daemodel.Model` (or a module-level ``model``: a
   Model, a CompiledDAE, or a function returning one); and optionally
@@ -57,7 +57,7 @@ def load_target(target: str):
     if target in PROBLEMS:
         problem = PROBLEMS[target]
         exact = problem.exact_solution() if problem.exact else None
-        return problem.model(), DEFAULT_T_SPAN, exact
+        return problem.model(), problem.t_span, exact
     path = Path(target)
     if path.suffix != ".py":
         raise TargetError(f"{target!r} is neither a problem ({', '.join(PROBLEMS)}) nor a .py model file")

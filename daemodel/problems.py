@@ -116,4 +116,16 @@ PENDULUM_INDEX3 = Problem(
     source="position-level form of the pendulum (Hairer & Wanner, Solving ODEs II, VII.1)",
 )
 
-PROBLEMS = {p.name: p for p in (HESSENBERG, PENDULUM, PENDULUM_INDEX3)}
+ROBERTSON = Problem(
+    name="robertson",
+    odes={"y1": "-0.04*y1 + 1e4*y2*y3", "y2": "0.04*y1 - 1e4*y2*y3 - 3e7*y2**2"},
+    algebraics=("y3",),
+    constraints={"mass": "y1 + y2 + y3 - 1"},
+    initial={"y1": 1.0, "y2": 0.0},
+    t_span=(0.0, 40.0),
+    index=1,
+    source="Robertson's chemical kinetics as an index-1 DAE, stiff after t ~ 0.01 (Hairer & Wanner, "
+    "Solving ODEs II, VI.1)",
+)
+
+PROBLEMS = {p.name: p for p in (HESSENBERG, PENDULUM, PENDULUM_INDEX3, ROBERTSON)}

@@ -8,6 +8,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from test_compare import MODEL_FILE
 
 import daemodel as dm
 import daemodel.solver
@@ -16,27 +17,9 @@ from daemodel.compare import MAX_POINTS, MAX_SWEEP_STEPS
 from daemodel.errors import ComparisonError, ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.problems import HESSENBERG
 
-MODEL = """
-import numpy as np
-import daemodel as dm
-
-T_SPAN = (0.0, 0.5)
-
-
-def build_model():
-    m = dm.Model("decay")
-    (x,) = m.states("x")
-    (w,) = m.algebraics("w")
-    m.ode(x, -w)
-    m.constraint(w - x, name="tie")
-    m.initial(x=1.0)
-    return m
-"""
-EXACT = """
-
-def exact(t):
-    return {"x": np.exp(-t), "w": np.exp(-t)}
-"""
+# the model file of test_compare, without and with its exact solution
+MODEL, _, EXACT = MODEL_FILE.partition("\n\ndef exact(t):")
+EXACT = "\n\ndef exact(t):" + EXACT
 
 
 def decay():

@@ -7,7 +7,7 @@ from scipy.integrate import DOP853
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.problems import HESSENBERG
+from daemodel.problems import HESSENBERG, ROBERTSON
 
 # Robertson's kinetics at t = 40 (Hairer & Wanner II, Sec. IV.10); scipy's Radau, BDF and LSODA at
 # rtol 1e-12 to 3e-14 with the exact Jacobian agree with these figures to 2e-11 relative.
@@ -15,15 +15,7 @@ ROBERTSON_AT_40 = {"y1": 0.7158270687193, "y2": 9.185534764529e-6, "y3": 0.28416
 
 
 def robertson() -> dm.Model:
-    """Robertson's chemical kinetics as an index-1 DAE: stiff after t ~ 0.01."""
-    m = dm.Model("robertson")
-    y1, y2 = m.states("y1 y2")
-    (y3,) = m.algebraics("y3")
-    m.ode(y1, -0.04 * y1 + 1e4 * y2 * y3)
-    m.ode(y2, 0.04 * y1 - 1e4 * y2 * y3 - 3e7 * y2**2)
-    m.constraint(y1 + y2 + y3 - 1, name="mass")
-    m.initial(y1=1.0, y2=0.0)
-    return m
+    return ROBERTSON.model()
 
 
 def vanishing_root(drives_a_state: bool = False) -> dm.Model:

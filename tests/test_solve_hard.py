@@ -5,19 +5,11 @@ import pytest
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.problems import PENDULUM, PENDULUM_INDEX3
+from daemodel.problems import PENDULUM, PENDULUM_INDEX3, ROBERTSON
 
 
 def robertson() -> dm.Model:
-    """Robertson's chemical kinetics as an index-1 DAE (Hairer & Wanner II, VI.1)."""
-    m = dm.Model("robertson")
-    y1, y2 = m.states("y1 y2")
-    (y3,) = m.algebraics("y3")
-    m.ode(y1, -0.04 * y1 + 1e4 * y2 * y3)
-    m.ode(y2, 0.04 * y1 - 1e4 * y2 * y3 - 3e7 * y2**2)
-    m.constraint(y1 + y2 + y3 - 1, name="mass")
-    m.initial(y1=1.0, y2=0.0)
-    return m
+    return ROBERTSON.model()
 
 
 def test_robertson_stiff_to_1e5_adaptive():
