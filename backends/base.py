@@ -43,6 +43,14 @@ SWEEP_STAGES = 3
 # a pole that land on a finite root measure 0.2 and more (a wrong root is wrong by O(1) times the
 # scale, so the 1e3 first proposed would catch almost none of them).
 LOCAL_ERROR_BOUND = 0.1
+# Step loops give up early when the last PROGRESS_WINDOW steps project more than PROJECTION_FACTOR
+# times the steps left in the budget: an endless t_span or a chattering switch fails in a second
+# instead of spending the whole budget.  The projection lets h keep growing as it did over the
+# window (a stiff transient's slow start is not judged at its pace), and a collapsing h (below
+# COLLAPSE_FACTOR of the window's start: a blow-up) is left to the step-size failure that names it.
+PROGRESS_WINDOW, PROJECTION_FACTOR, COLLAPSE_FACTOR = 100, 10, 0.1
+# Windows in a row that must each project past the budget before a loop gives up early.
+HOPELESS_WINDOWS = 2
 # Meaningful relative tolerances: below ~50 eps of float64 no integrator can deliver (IDAS and
 # RADAU5 stall there, and an adaptive solve runs until the step underflows); at or above 0.1 not
 # even one digit is asked for.
@@ -96,6 +104,41 @@ class AbstractBackend(ABC):
         """``points`` sets of options, from cheap to accurate, that :func:`daemodel.compare`
         sweeps; a method without an accuracy setting is solved once with its defaults."""
         return [{}]
+
+
+class ProgressWatch:
+    """Whether a step loop can still reach ``t1`` within its budget, judged window by window.
+
+    ``start`` is ``(t, count, h, extra)`` where the current window began (``extra``: whatever
+    the caller wants back for its message, e.g. its accepted steps then).
+    """
+
+    def __init__(self, t: float, h: float, extra=None):
+        self.start = (t, 0, h, extra)
+        self.strikes = 0  # windows in a row that projected past the budget
+
+    def hopeless(self, count: int, t: float, h: float, t1: float, budget: int, extra=None) -> float | None:
+        """Call once per step; ``count`` steps (or attempts) so far.  Returns the projected number of
+        further steps when :data:`HOPELESS_WINDOWS` windows in a row project past
+        :data:`PROJECTION_FACTOR` times the budget left, else None (starting a new window when one
+        is complete)."""
+        t_w, count_w, h_w, _ = self.start
+        steps = count - count_w
+        if steps < PROGRESS_WINDOW or count >= budget:  # the budget's own error speaks at the end
+            return None
+        covered, left, growth = t - t_w, t1 - t, h / h_w
+        if covered <= 0:
+            needed = math.inf
+        elif growth > 1:  # windows covering covered * growth^k: a geometric series up to t1
+            needed = steps * math.log1p(left * (growth - 1) / covered) / math.log(growth)
+        else:
+            needed = steps * left / covered
+        hopeless = growth >= COLLAPSE_FACTOR and needed > PROJECTION_FACTOR * (budget - count)
+        self.strikes = self.strikes + 1 if hopeless else 0
+        if self.strikes >= HOPELESS_WINDOWS:
+            return needed
+        self.start = (t, count, h, extra)
+        return None
 
 
 def show_progress(progress: bool | None) -> bool:

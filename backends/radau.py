@@ -44,6 +44,7 @@ import numpy as np
 from daemodel.backends.base import (
     LOCAL_ERROR_BOUND,
     AbstractBackend,
+    ProgressWatch,
     check_dtype,
     check_number,
     check_stages,
@@ -82,12 +83,6 @@ DIVERGENCE_THETA = 0.99
 # attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
 # t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
 DEFAULT_MAX_ADAPTIVE_STEPS = 5_000
-# Adaptive mode gives up early when the last PROGRESS_WINDOW attempts, at a step size that is
-# steady (within 1/10 and 2 times where the window started), project more than PROJECTION_FACTOR
-# times the attempts left: an endless t_span or a chattering switch fails in a second instead of
-# spending the whole budget (a stiff transient, whose h grows, is never judged by its slow start;
-# a blow-up, whose h collapses, ends in the step-size underflow that names it).
-PROGRESS_WINDOW, PROJECTION_FACTOR = 100, 10
 # Fixed step: default bound on the grid's step count, checked before the grid is built (the count
 # is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
 DEFAULT_MAX_FIXED_STEPS = 100_000
@@ -625,21 +620,17 @@ class _Stepper:
         h = options.h0 or self.initial_step(t_span)
         first, rejected_last = True, False
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
-        window = (t0, 0, h)  # (t, accepted steps, h) PROGRESS_WINDOW attempts ago
+        watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
         while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
             attempts = self.stats["attempts"]
             if attempts >= options.max_steps:
                 raise self.budget_error(t, h, t1, half, options.max_steps - options.max_steps // 2)
             if attempts == options.max_steps // 2:
                 half = (t, self.stats["steps"])
-            if attempts and attempts % PROGRESS_WINDOW == 0:
-                rate = (t - window[0]) / PROGRESS_WINDOW
-                needed = (t1 - t) / rate if rate > 0 else math.inf
-                # neither growing (a stiff transient) nor collapsing (a blow-up, reported as an underflow)
-                steady = window[2] / 10 <= h <= 2 * window[2]
-                if steady and needed > PROJECTION_FACTOR * (options.max_steps - attempts):
-                    raise self.budget_error(t, h, t1, window[:2], PROGRESS_WINDOW, projected=needed)
-                window = (t, self.stats["steps"], h)
+            needed = watch.hopeless(attempts, t, h, t1, options.max_steps, extra=self.stats["steps"])
+            if needed is not None:
+                t_w, count_w, _, accepted_w = watch.start
+                raise self.budget_error(t, h, t1, (t_w, accepted_w), attempts - count_w, projected=needed)
             self.stats["attempts"] += 1
             if h < 1e-14 * max(1.0, abs(t)):
                 h = self._shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
@@ -729,7 +720,10 @@ class _Stepper:
             )
         else:
             rate = progress / max(recent, 1)
-            more = f"about {(t1 - t) / rate:.3g} more" if rate > 0 else "endlessly many"
+            if projected is not None:
+                more = f"about {projected:.3g} more"
+            else:
+                more = f"about {(t1 - t) / rate:.3g} more" if rate > 0 else "endlessly many"
             reason = (
                 f"the steps are accepted, but at the last {recent} attempts' rate ({rate:.3g} per attempt) the "
                 f"rest of t_span needs {more} attempts: t_span is too long for max_steps at this tolerance; "

@@ -34,6 +34,7 @@ import sympy as sp
 from daemodel.backends.base import (
     DEFAULT_OUTPUT_POINTS,
     AbstractBackend,
+    ProgressWatch,
     check_number,
     check_tolerances,
     make_solution,
@@ -322,7 +323,7 @@ class _SampleRun:
         done = 0  # outputs filled
         t, y = t0, self.y0.copy()
         self.t = t0  # the last accepted time, for the reports
-        solver, detector = None, StiffnessDetector()
+        solver, detector, watch = None, StiffnessDetector(), None
         # While a failure at time ``guard`` is localised: steps at most max_step, and the distance
         # to the failure (window) must shrink from round to round.
         max_step, first_step, guard, window = math.inf, None, None, math.inf
@@ -346,6 +347,10 @@ class _SampleRun:
             self.counts["steps"] += 1
             t, y, self.h = solver.t, solver.y.copy(), solver.step_size
             self.t = t
+            watch = watch or ProgressWatch(t0, self.h)
+            needed = watch.hopeless(self.counts["steps"], t, self.h, self.t1, self.options.max_steps)
+            if needed is not None:
+                raise self._step_limit(detector, projected=needed)
             later = int(np.searchsorted(times, t, side="right"))
             if later > done:
                 done = self._outputs(solver, times, done, later, out)
@@ -397,14 +402,23 @@ class _SampleRun:
             "at this time. End t_span before it, or check the equations"
         )
 
-    def _step_limit(self, detector: StiffnessDetector) -> StepLimitError:
+    def _step_limit(self, detector: StiffnessDetector, projected: float | None = None) -> StepLimitError:
+        """max_steps ran out or, ``projected`` (steps still needed at the recent rate), cannot suffice."""
         hint = (
             f"use integrator='auto' or 'Radau': the problem is stiff (h |lambda| = {detector.h_lambda:.2g} holds "
             "DOP853 at its stability limit)"
             if self.integrator == "DOP853" and detector.stiff
             else "loosen rtol/atol, or use integrator='Radau' if the problem is stiff"
         )
+        budget = self.options.max_steps
+        if projected is None:
+            head = f"reference: max_steps = {budget} reached at t = {self.t:.6g}"
+        else:
+            head = (
+                f"reference: max_steps = {budget} cannot suffice (about {projected:.3g} more steps projected at the "
+                f"recent rate, {budget - self.counts['steps']} left), stopped early at t = {self.t:.6g}"
+            )
         return StepLimitError(
-            f"reference: max_steps = {self.options.max_steps} reached at t = {self.t:.6g} "
-            f"(h = {self.h:.3g}) before t1 = {self.t1:g} ({self._where()}); raise max_steps, or {hint}"
+            f"{head} (h = {self.h:.3g}) before t1 = {self.t1:g} ({self._where()}); raise max_steps, shorten t_span, "
+            f"or {hint}"
         )

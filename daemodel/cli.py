@@ -30,11 +30,11 @@ import argparse
 import importlib.util
 import math
 import numbers
-import os
 import sys
 from pathlib import Path
 
 from daemodel.errors import DaemodelError, ModelError, TargetError
+from daemodel.files import writable_directory
 
 DEFAULT_T_SPAN = (0.0, 1.0)
 # Exit statuses of `daemodel compare`.
@@ -121,28 +121,8 @@ def _is_model(value) -> bool:
 
 
 def check_out(out: str) -> Path:
-    """The ``--out`` directory, created, with a probe file written and removed in it.
-
-    Raises
-    ------
-    ModelError
-        When it is an existing file, lies under a file, or cannot be created or written.
-    """
-    path = Path(out)
-    if path.exists() and not path.is_dir():
-        raise ModelError(f"--out {out} is an existing file, not a directory; give a directory")
-    probe = path / f".daemodel-write-check-{os.getpid()}"
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe.write_text("")
-        probe.unlink()
-    except OSError as error:
-        reason = error.strerror or str(error)
-        where = f" ({error.filename})" if error.filename and str(error.filename) != out else ""
-        raise ModelError(
-            f"--out {out} cannot be created or written: {reason}{where}; give a writable directory"
-        ) from None
-    return path
+    """The ``--out`` directory, created, with a probe file written and removed in it."""
+    return writable_directory(out, "--out")
 
 
 class _UsageError(Exception):

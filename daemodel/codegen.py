@@ -81,6 +81,8 @@ class TorchPrinter(StrPrinter):
         return self._print(expr)
 
     def _print_Pow(self, expr, rational=False):
+        if not expr.free_symbols:  # e.g. sqrt(2): torch.sqrt needs a tensor
+            return _literal(float(expr))
         base, exponent = expr.as_base_exp()
         if exponent == sp.S.Half:
             return f"torch.sqrt({self._print(base)})"
@@ -91,7 +93,8 @@ class TorchPrinter(StrPrinter):
     def _print_function(self, expr):
         if not expr.free_symbols:  # e.g. sin(1): torch functions need tensors
             return _literal(float(expr))
-        args = ", ".join(self._print(a) for a in expr.args)
+        # a constant among several arguments (atan2(y, 1.5)) must be a tensor for torch
+        args = ", ".join(self._branch(a) if len(expr.args) > 1 else self._print(a) for a in expr.args)
         return f"torch.{FUNCTIONS[type(expr)][1]}({args})"
 
     def _print_reduction(self, expr):
@@ -139,8 +142,8 @@ for _cls in REDUCTIONS:
 
 _RESERVED = {"t", "y", "z", "p", "torch", "math", "_stack", "_prepare"}
 # Text daemodel writes into generated source besides expressions: no quotes, no newlines.
-_SAFE_TEXT = re.compile(r"^[A-Za-z0-9_ .,:#()\[\]/*+\-]*$")
-_IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_SAFE_TEXT = re.compile(r"[A-Za-z0-9_ .,:#()\[\]/*+\-]*")
+_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def local_names(groups: dict) -> dict:
@@ -149,7 +152,7 @@ def local_names(groups: dict) -> dict:
     for symbols in groups.values():
         for s in symbols:
             name = s.name
-            if not _IDENTIFIER.match(name):
+            if not _IDENTIFIER.fullmatch(name):
                 raise ValueError(f"refusing to emit the symbol name {name!r}")  # the front end validates names
             while name in _RESERVED or keyword.iskeyword(name) or name in names.values():
                 name += "_"
@@ -172,7 +175,7 @@ def torch_source(fname: str, exprs, comments, t, groups: dict, doc: str) -> str:
         One comment per output (its position and equation number).
     """
     for text in (fname, doc, *comments):
-        if not _SAFE_TEXT.match(text):
+        if not _SAFE_TEXT.fullmatch(text):
             raise ValueError(f"refusing to emit {text!r} into generated source")  # daemodel's own bug
     names = local_names(groups)
     names[t] = "t"

@@ -36,6 +36,7 @@ from daemodel.errors import (
     ResourceLimitError,
     SolverError,
 )
+from daemodel.files import writable_directory, writable_file
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
@@ -214,13 +215,12 @@ class Comparison:
             f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference} vs wall time"
         )
         if path is not None:
-            fig.savefig(path, dpi=130)
+            fig.savefig(writable_file(path, "plot path"), dpi=130)
         return fig
 
     def save(self, directory) -> list[Path]:
         """Write ``<model>.json``, ``<model>.csv`` and ``<model>_work_precision.png`` into ``directory``."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
+        directory = writable_directory(directory, "save directory")
         stem = directory / self.model
         png = Path(f"{stem}_work_precision.png")
         self.plot(png)

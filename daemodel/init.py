@@ -37,6 +37,11 @@ DAMPING_HALVINGS = 14
 PROJECTION_MAXITER = 100
 
 
+# lambdify's modules: scipy first, for the functions numpy lacks (erf would fall back to math.erf,
+# which takes no arrays).
+NUMERIC_MODULES = ["scipy", "numpy"]
+
+
 @dataclass(frozen=True)
 class NumericSystem:
     """Numpy callables of sympy expressions over ``(t, y, z, p)``."""
@@ -50,7 +55,7 @@ class NumericSystem:
         """Return ``F(t, y, z, p) -> ndarray, shape (len(exprs),)``."""
         if not exprs:
             return lambda t, y, z, p: np.zeros(0)
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy", dummify=True)
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), NUMERIC_MODULES, dummify=True)
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(len(exprs))
 
     def jacobian(self, exprs, wrt):
@@ -58,12 +63,12 @@ class NumericSystem:
         if not exprs or not wrt:
             return lambda t, y, z, p: np.zeros((len(exprs), len(wrt)))
         matrix = sp.Matrix(list(exprs)).jacobian(list(wrt))
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, "numpy", dummify=True)
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, NUMERIC_MODULES, dummify=True)
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(matrix.shape)
 
     def batch_function(self, exprs):
         """Return ``F(t, Y, Z, P) -> ndarray, shape (B, len(exprs))`` for rows ``Y (B, n)`` etc."""
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), "numpy", dummify=True)
+        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), NUMERIC_MODULES, dummify=True)
 
         def evaluate(t, Y, Z, P):
             if not exprs:

@@ -30,7 +30,7 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 from daemodel.functions import supported_names
-from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation
+from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_ite
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
 # them as locals (they are the only user text that ever reaches generated source).
@@ -70,10 +70,12 @@ class Equation:
         return f"constraint '{self.name}' (#{self.number})"
 
 
-def _split_names(names) -> list[str]:
+def _split_names(names, what: str) -> list[str]:
     if isinstance(names, str):
         return [n for n in re.split(r"[\s,]+", names.strip()) if n]
-    return [str(n) for n in names]
+    if isinstance(names, list | tuple) and all(isinstance(n, str) for n in names):
+        return list(names)
+    raise InvalidNameError(f'{what} names must be a string such as "x y" or a list of strings; got {_short(names)}')
 
 
 class Model:
@@ -99,7 +101,7 @@ class Model:
     """
 
     def __init__(self, name: str = "model"):
-        if not isinstance(name, str) or not _MODEL_NAME.match(name) or len(name) > MAX_NAME_LENGTH:
+        if not isinstance(name, str) or not _MODEL_NAME.fullmatch(name) or len(name) > MAX_NAME_LENGTH:
             raise InvalidNameError(
                 f"model name {name!r} is not allowed: use letters, digits, '_', '-' and '.', starting with a "
                 f"letter, at most {MAX_NAME_LENGTH} characters"
@@ -131,7 +133,7 @@ class Model:
         self._parameter_values[name] = None if value is None else _finite(value, f"parameter '{name}'")
         return symbol
 
-    def set_parameters(self, **values: float) -> None:
+    def set_parameters(self, /, **values: float) -> None:
         """Give or change parameter values by name."""
         for name, value in values.items():
             if name not in self._parameters:
@@ -142,8 +144,8 @@ class Model:
 
     def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
         out = []
-        for name in _split_names(names):
-            if not _NAME.match(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
+        for name in _split_names(names, what):
+            if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
                 raise InvalidNameError(
                     f"{what} name {name!r} is not an identifier (ASCII letters, digits, '_', starting with a "
                     f"letter, at most {MAX_NAME_LENGTH} characters)"
@@ -202,7 +204,7 @@ class Model:
         if name is not None and not isinstance(name, str):
             raise InvalidNameError(f"constraint name must be a string; got {type(name).__name__}")
         name = f"g{len(self._constraints) + 1}" if name is None else name
-        if not _NAME.match(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
+        if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
             raise InvalidNameError(f"constraint name {name!r} is not an identifier")
         if any(c.name == name for c in self._constraints):
             raise InvalidNameError(f"constraint name '{name}' is already used")
@@ -217,7 +219,7 @@ class Model:
         self._equation_count = number
         self._constraints.append(Equation("constraint", name, number, value))
 
-    def initial(self, t: float | None = None, **values: float) -> None:
+    def initial(self, /, t: float | None = None, **values: float) -> None:
         """Initial values by name: all differential variables; algebraic ones are optional.
 
         A given algebraic value must agree with the consistent one (``compile`` checks it);
@@ -266,6 +268,7 @@ class Model:
             raise UnknownSymbolError(
                 f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {_listing(known)}"
             )
+        expr = without_ite(expr)
         check_numbers(expr, where)
         return expr
 
@@ -298,7 +301,7 @@ def _finite(value, what: str) -> float:
         raise InvalidValueError(f"{what} must be a real number; got {_short(value)} ({type(value).__name__})")
     try:
         number = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InvalidValueError(f"{what} must be a real number; got {value!r}") from None
     if not math.isfinite(number):
         raise InvalidValueError(f"{what} must be finite; got {value!r}")

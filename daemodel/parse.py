@@ -41,6 +41,9 @@ STRING_FUNCTIONS: dict[str, object] = {
     "sqrt": sp.sqrt,
     "ln": sp.log,
     "Piecewise": sp.Piecewise,
+    # sympy's exact-number constructors, which sympy users write: their arguments are numbers
+    "Rational": sp.Rational,
+    "Integer": sp.Integer,
 }
 STRING_CONSTANTS: dict[str, sp.Expr] = {"pi": sp.pi}
 # Names that would read as derivatives: refused with the semi-explicit form's explanation.
@@ -157,7 +160,7 @@ class _Parser:
         finally:
             sys.setrecursionlimit(limit)
         try:
-            return self.build(tree.body, 0)
+            return without_ite(self.build(tree.body, 0))
         except RecursionError:
             raise self.fail(f"nested more than {MAX_DEPTH} levels deep") from None
 
@@ -176,12 +179,12 @@ class _Parser:
         if isinstance(node, ast.UnaryOp):
             operand = self.build(node.operand, depth + 1)
             if isinstance(node.op, ast.USub):
-                return -operand
+                return self.apply(lambda v: -v, (operand,), node)
             if isinstance(node.op, ast.UAdd):
                 return operand
-            return self.apply(sp.Not, (operand,), node)  # 'not x' and '~x'
+            return self.apply(sp.Not, (self.condition(operand, node.operand),), node)  # 'not x' and '~x'
         if isinstance(node, ast.BoolOp):
-            values = [self.build(v, depth + 1) for v in node.values]
+            values = [self.condition(self.build(v, depth + 1), v) for v in node.values]
             return self.construct(sp.And if isinstance(node.op, ast.And) else sp.Or, values, node)
         if isinstance(node, ast.Compare):
             return self.compare(node, depth)
@@ -248,7 +251,22 @@ class _Parser:
 
             return self.apply(fold, (first, *rest), node)
         left, right = self.build(node.left, depth + 1), self.build(node.right, depth + 1)
+        if op in (ast.BitAnd, ast.BitOr):
+            left, right = self.condition(left, node.left), self.condition(right, node.right)
         return self.apply(_BINARY[op], (left, right), node)
+
+    def condition(self, value, node):
+        """``value`` if it is a condition (a comparison or logic of comparisons): sympy would read
+        a number or a variable in ``x and 1`` as a truth value and return plain ``x``."""
+        if isinstance(value, sp.core.relational.Relational | sp.logic.boolalg.BooleanFunction) or value in (
+            sp.true,
+            sp.false,
+        ):
+            return value
+        raise self.fail(
+            f"{self.quote(node)} is not a condition: 'and', 'or', 'not', '&', '|' and '~' combine comparisons "
+            "such as x > 0"
+        )
 
     def compare(self, node, depth: int):
         values = [self.build(node.left, depth + 1), *(self.build(c, depth + 1) for c in node.comparators)]
@@ -268,6 +286,11 @@ class _Parser:
         # the arguments first: a hostile call such as open('f', 'w') fails on its string argument
         if name == "Piecewise":
             args = [self.piece(a, depth) for a in node.args]
+            if not args or args[-1][1] != sp.true:
+                raise self.fail(
+                    f"{self.quote(node)} has no otherwise branch; add (value, True) last so that it is defined "
+                    "everywhere"
+                )
         else:
             args = [self.build(a, depth + 1) for a in node.args]
         if name not in STRING_FUNCTIONS:
@@ -284,7 +307,8 @@ class _Parser:
     def piece(self, node, depth: int):
         if not isinstance(node, ast.Tuple) or len(node.elts) != 2:
             raise self.fail(f"each Piecewise argument must be a pair (value, condition); got {self.quote(node)}")
-        return (self.build(node.elts[0], depth + 1), self.build(node.elts[1], depth + 1))
+        value, condition = node.elts
+        return (self.build(value, depth + 1), self.condition(self.build(condition, depth + 1), condition))
 
     def construct(self, cls, args, node):
         return self.apply(lambda *a: cls(*a), args, node)
@@ -305,6 +329,17 @@ class _Parser:
             f"{self.where}: derivative {self.quote(node)} in {_short(self.text)}; a semi-explicit DAE has "
             "derivatives only on the left (declare them with m.ode)"
         )
+
+
+def without_ite(expr):
+    """``expr`` with sympy's boolean ``ITE(c, a, b)`` (which it makes of a Piecewise inside a
+    comparison) written as ``(c & a) | (~c & b)``, which every emitter translates."""
+    if not isinstance(expr, sp.Basic) or not expr.has(sp.ITE):
+        return expr
+    return expr.replace(
+        lambda e: isinstance(e, sp.ITE),
+        lambda e: sp.Or(sp.And(e.args[0], e.args[1]), sp.And(sp.Not(e.args[0]), e.args[2])),
+    )
 
 
 def check_numbers(expr: sp.Expr, where: str) -> None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import sympy as sp
 
+from daemodel.init import NUMERIC_MODULES
 from daemodel.model import Model
 from daemodel.parse import parse_equation
 
@@ -65,7 +66,7 @@ class Problem:
             return None
         t = sp.Symbol("t")
         functions = {
-            name: sp.lambdify(t, parse_equation(expr, {"t": t}, f"exact solution of {name}"), "numpy")
+            name: sp.lambdify(t, parse_equation(expr, {"t": t}, f"exact solution of {name}"), NUMERIC_MODULES)
             for name, expr in self.exact.items()
         }
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from daemodel.errors import ComparisonError, UnknownSymbolError
+from daemodel.files import writable_file
 from daemodel.init import NumericSystem
 
 # Times of two solutions count as the same when they differ by less than this, relative to
@@ -228,7 +229,7 @@ class Solution:
         batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
         fig.suptitle(f"{self.compiled.name}: {self.method}{batch}")
         if path is not None:
-            fig.savefig(path, dpi=120)
+            fig.savefig(writable_file(path, "plot path"), dpi=120)
         return fig
 
     def __repr__(self) -> str:

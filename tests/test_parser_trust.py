@@ -298,3 +298,99 @@ def test_t_span_must_be_two_numbers(pendulum, t_span):
 def test_initial_states_are_numbers(pendulum, kwargs, error, pattern):
     with pytest.raises(error, match=pattern):
         dm.solve(pendulum, (0, 1), h=0.1, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("text", "pattern"),
+    [
+        ("x and 1", r"'x' is not a condition: 'and', 'or', 'not', '&', '\|' and '~' combine comparisons"),
+        ("not x", r"'x' is not a condition"),
+        ("(x > 0) | y", r"'y' is not a condition"),
+        ("Piecewise((1, x))", r"'x' is not a condition"),
+        ("Piecewise((x, x > 0))", r"'Piecewise\(\(x, x > 0\)\)' has no otherwise branch; add \(value, True\) last"),
+        ("Rational(x, 2)", r"'Rational\(x, 2\)' is not a valid expression"),
+    ],
+)
+def test_conditions_and_branches_are_checked_where_they_are_written(model, text, pattern):
+    with pytest.raises(E.ExpressionParseError, match=pattern):
+        model.ode("x", text)
+
+
+def test_sympy_number_constructors_and_nested_piecewise_conditions(model):
+    x, y = sp.Symbol("x"), sp.Symbol("y")
+    table = {"x": x, "y": y}
+    assert parse_equation("Rational(1, 3) - 1/3 + Integer(2)", table, "eq") == 2
+    # sympy turns a Piecewise inside a comparison into a boolean ITE, which no emitter had
+    expr = parse_equation("Piecewise((1, Piecewise((x, x > 0), (0, True)) > 0), (2, True))", table, "eq")
+    assert not expr.has(sp.ITE)
+    m = dm.Model("nested")
+    m.states("x")
+    m.ode("x", "Piecewise((-1, Piecewise((x, x > 0), (0, True)) > 0.5), (-0.5, True))")
+    m.initial(x=1.0)
+    for method in ("radau", "reference", "casadi-collocation"):
+        sol = dm.solve(m, (0, 0.4), method=method, **({"h": 0.1} if method != "reference" else {}))
+        np.testing.assert_allclose(sol["x"][-1], 0.6, atol=1e-9, err_msg=method)
+
+
+def test_functions_of_constants_and_scipy_only_functions_evaluate_everywhere():
+    # torch.atan2 takes no Python number; numpy has no erf (lambdify used math.erf, scalars only)
+    m = dm.Model("consts")
+    m.states("x y")
+    m.algebraics("z")
+    m.ode("x", "atan2(y, 1.5) + atan2(1, 2) - z")
+    m.ode("y", "-y")
+    m.constraint("z - erf(y)")
+    m.initial(x=0.0, y=1.0)
+    ref = dm.solve(m, (0, 1), method="reference", y0={"y": [1.0, 0.5]})
+    sol = dm.solve(m, (0, 1), method="radau", h=0.05, y0={"y": [1.0, 0.5]})
+    np.testing.assert_allclose(sol["x"][:, -1], ref["x"][:, -1], atol=1e-8)
+    np.testing.assert_allclose(sol["z"], special_erf(sol["y"]), atol=1e-14)
+
+
+def special_erf(values):
+    from scipy.special import erf
+
+    return erf(values)
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "pattern"),
+    [
+        (lambda m: m.states(5), E.InvalidNameError, r"differential variable names must be a string such as"),
+        (lambda m: m.algebraics(None), E.InvalidNameError, r"algebraic variable names must be a string such as"),
+        (lambda m: m.states(["a", 1]), E.InvalidNameError, r"or a list of strings; got \['a', 1\]"),
+        (lambda m: m.states("ok\n"), None, None),
+        (lambda m: m.states(["bad\n"]), E.InvalidNameError, r"name 'bad\\n' is not an identifier"),
+        (lambda m: m.constraint("x", name="c\n"), E.InvalidNameError, r"constraint name 'c\\n' is not an identifier"),
+        (lambda m: m.initial(x=10**400), E.InvalidValueError, r"initial value of 'x' must be a real number; got 1000"),
+    ],
+)
+def test_names_and_values_are_checked_whole(model, call, error, pattern):
+    if error is None:
+        call(model)  # whitespace around names in a string is a separator
+        return
+    with pytest.raises(error, match=pattern):
+        call(model)
+
+
+def test_a_variable_may_be_called_self():
+    m = dm.Model("selfish")
+    m.states("self")
+    m.parameter("k", 1.0)
+    m.ode("self", "-k*self")
+    m.initial(self=1.0)
+    m.set_parameters(k=2.0)
+    sol = dm.solve(m, (0, 1), method="radau", h=0.05)
+    np.testing.assert_allclose(sol["self"][-1], np.exp(-2.0), rtol=1e-8)
+
+
+def test_plot_and_save_paths_are_checked_before_drawing(pendulum, tmp_path):
+    sol = dm.solve(pendulum, (0, 0.2), h=0.1)
+    with pytest.raises(E.InvalidOptionError, match=r"plot path = '.*missing/p\.png': the directory .* does not exist"):
+        sol.plot(tmp_path / "missing" / "p.png")
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(E.InvalidOptionError, match=r"save directory .*file/out cannot be created or written"):
+        dm.compare(pendulum, (0, 0.2), ["radau"], points=1).save(blocker / "out")
+    with pytest.raises(E.InvalidOptionError, match=r"save directory .*file is an existing file, not a directory"):
+        dm.compare(pendulum, (0, 0.2), ["radau"], points=1).save(blocker)

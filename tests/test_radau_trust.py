@@ -156,12 +156,12 @@ def test_adaptive_steps_meet_the_tolerance(pendulum):
 def test_endless_span_raises_step_limit(pendulum, switch):
     with pytest.raises(
         E.StepLimitError,
-        match=r"max_steps = 200 reached at t = .* before t1 = 1e\+300, .*the steps are accepted, but .* the rest of "
-        r"t_span needs about .* more attempts: t_span is too long for max_steps",
+        match=r"max_steps = 200 (reached|cannot suffice .* stopped early) at t = .* before t1 = 1e\+300, .*the steps "
+        r"are accepted, but .* the rest of t_span needs about .* more attempts: t_span is too long for max_steps",
     ):
         dm.solve(pendulum, (0.0, 1e300), max_steps=200)
     # the default budget is not spent: the projection stops after the first windows of steady steps
-    with pytest.raises(E.StepLimitError, match=r"max_steps = 5000 cannot suffice \(.*, 4[89]00 left\), stopped early"):
+    with pytest.raises(E.StepLimitError, match=r"max_steps = 5000 cannot suffice \(.*, 4[5-9]00 left\), stopped early"):
         dm.solve(pendulum, (0.0, 1e300))
     with pytest.raises(E.StepLimitError, match=r"max_steps = 200 (reached|cannot suffice).* before t1 = 1e\+300"):
         dm.solve(switch, (0.0, 1e300), max_steps=200)

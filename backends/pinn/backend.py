@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from daemodel.backends.base import (
@@ -21,6 +19,7 @@ from daemodel.backends.base import (
 from daemodel.backends.pinn.config import PINNConfig
 
 from daemodel.errors import InvalidOptionError, ShapeError
+from daemodel.files import writable_file
 
 
 def resolve_model(model, caller: str):
@@ -29,28 +28,6 @@ def resolve_model(model, caller: str):
 
     model = as_compiled(model, caller)
     return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
-
-
-def writable_file(path, argument: str) -> Path:
-    """``path`` (``~`` expanded) if a file can be written there, else an :class:`InvalidOptionError`.
-
-    Checked before training: a typo in the directory would otherwise surface only when the
-    trained networks are written, after the whole training run.
-    """
-    if not isinstance(path, str | os.PathLike):
-        raise InvalidOptionError(f"{argument} must be a file path (str or Path); got {type(path).__name__}")
-    path = Path(path).expanduser()
-    if path.is_dir():
-        raise InvalidOptionError(
-            f"{argument} = '{path}' is a directory; give a file name in it, e.g. '{path / 'networks.pt'}'"
-        )
-    if not path.parent.is_dir():
-        raise InvalidOptionError(
-            f"{argument} = '{path}': the directory '{path.parent}' does not exist; create it first or save elsewhere"
-        )
-    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
-        raise InvalidOptionError(f"{argument} = '{path}' is not writable; save elsewhere")
-    return path
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -176,6 +176,8 @@ class Surrogate:
 
         compiled = resolve_model(model, "Surrogate.train()")
         config = SURROGATE_CONFIG if config is None else config
+        if not isinstance(config, PINNConfig):
+            raise InvalidOptionError(f"config must be a dm.PINNConfig; got {type(config).__name__}")
         torch_device(config.device)
         t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
@@ -380,7 +382,7 @@ class Surrogate:
     def save(self, path) -> Path:
         """Write the networks, the grid, the settings, the training box and the training stats
         to ``path`` (a torch file); a directory that does not exist is an :class:`InvalidOptionError`."""
-        from daemodel.backends.pinn.backend import writable_file
+        from daemodel.files import writable_file
 
         path = writable_file(path, "path")
         payload = {
