@@ -227,17 +227,44 @@ def _stats(integrator) -> dict:
         return {}
 
 
-def first_non_finite(name: str, compiled, times, values, fix: str) -> ConvergenceError | None:
-    """The error for the earliest non-finite value of any sample, or None when all are finite."""
+def first_non_finite(name: str, compiled, times, values, fix: str, what: str = "") -> ConvergenceError | None:
+    """The error for the earliest non-finite value of any sample, or None when all are finite.
+
+    ``values`` (B, T, n + m) are the solution's, or (``what="f at"``) the right-hand sides ``f``
+    and constraints ``g`` evaluated there.
+    """
     bad = ~np.isfinite(values)
     if not bad.any():
         return None
     sample, k, j = min(zip(*np.nonzero(bad), strict=True), key=lambda hit: (hit[1], hit[0]))
-    variable = (*compiled.state_names, *compiled.algebraic_names)[j]
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    if what:
+        rows = (*(f"{y}'" for y in compiled.state_names), *compiled.constraint_names)
+        subject = f"the right-hand side of {rows[j]} is not finite at the returned values"
+    else:
+        subject = f"'{names[j]}' is not finite"
     return ConvergenceError(
-        f"{name}: '{variable}' is not finite at t = {times[k]:.6g} (sample {sample} of '{compiled.name}', "
-        f"after t = {times[k - 1]:.6g}): the solution may be singular there; {fix}"
+        f"{name}: {subject} at t = {times[k]:.6g} (sample {sample} of '{compiled.name}', "
+        f"after t = {times[max(k - 1, 0)]:.6g}): the solution may be singular there or leave the domain of the "
+        f"equations; {fix}"
     )
+
+
+def _right_hand_sides(dae, grid, values, parameters) -> np.ndarray:
+    """``[f, g]`` at every returned point, shape (B, T, n + m): one mapped casadi call per sample."""
+    import casadi
+
+    fg = casadi.Function("fg", [dae["t"], dae["x"], dae["z"], dae["p"]], [casadi.vertcat(dae["ode"], dae["alg"])])
+    n = dae["x"].shape[0]
+    out = np.empty_like(values)
+    mapped = fg.map(len(grid))
+    for b in range(values.shape[0]):
+        with np.errstate(all="ignore"), _captured():
+            result = mapped(
+                grid, values[b, :, :n].T, values[b, :, n:].T, np.repeat(parameters[b][:, None], len(grid), 1)
+            )
+        out[b] = np.asarray(result).T
+    return out
 
 
 class LocalErrorCheck:
@@ -374,6 +401,10 @@ class CollocationBackend(AbstractBackend):
         values = _run(call, compiled, start, len(grid) - 1, explain)
         stats = {"batch": start.size, "casadi_calls": start.size, **_stats(integrator)}
         failure = first_non_finite(self.name, compiled, grid, values, ADAPTIVE_FIX)
+        if failure is None:  # casadi's root finder returns its last iterate when f turns NaN inside a step
+            failure = first_non_finite(
+                self.name, compiled, grid, _right_hand_sides(dae, grid, values, start.p), ADAPTIVE_FIX, "f at"
+            )
         if failure is not None:
             raise failure
         estimates = check(grid, values, start.p)

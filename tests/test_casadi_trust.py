@@ -359,7 +359,7 @@ def test_collocation_non_finite_values_name_the_variable_and_time(monkeypatch):
     with pytest.raises(
         E.ConvergenceError,
         match=r"casadi-collocation: 'x' is not finite at t = 1\.2 \(sample 0 of 'singular', after t = 1\): the "
-        r"solution may be singular there; take a smaller h",
+        r"solution may be singular there or leave the domain of the equations; take a smaller h",
     ):
         dm.solve(singular_ode(), (0.0, 2.0), method="casadi-collocation", stages=2, h=0.2)
 
@@ -464,3 +464,20 @@ def test_local_error_bound_names_an_index2_algebraic_variable_with_its_weight(pe
         r"trustworthy: the local error estimate of 'y5' is 0\.5 times its scale 1 \+ max\|y5\| over h\^1, beyond",
     ):
         check.raise_beyond_bound("casadi-collocation", grid, estimates)
+
+
+def test_collocation_that_leaves_the_domain_of_f_is_caught():
+    # sqrt(x) with x < 0 after t = 2: casadi's root finder returns its last iterate (x stuck at 0)
+    m = dm.Model("sqrt")
+    m.states("x y")
+    m.ode("x", "-0.5")
+    m.ode("y", "sqrt(x)")
+    m.initial(x=1.0, y=0.0)
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"casadi-collocation: the right-hand side of y' is not finite at the returned values at t = 2 "
+        r"\(sample 0 of 'sqrt'",
+    ):
+        dm.solve(m, (0.0, 4.0), method="casadi-collocation", h=0.05)
+    sol = dm.solve(m, (0.0, 1.9), method="casadi-collocation", h=0.05)  # before it: fine
+    np.testing.assert_allclose(sol["y"][-1], (2 - 2 * (1 - 0.95) ** 1.5) / 1.5 * 1.0, rtol=1e-6)
