@@ -73,6 +73,8 @@ class NumericSystem:
         def evaluate(t, Y, Z, P):
             if not exprs:
                 return np.zeros((len(Y), 0))
+            # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
+            t = np.broadcast_to(np.asarray(t, dtype=float), (len(Y),))
             out = fn(t, Y.T, Z.T, P.T)
             return np.stack([np.broadcast_to(np.asarray(v, dtype=float), (len(Y),)) for v in out], axis=-1)
 

@@ -394,3 +394,17 @@ def test_plot_and_save_paths_are_checked_before_drawing(pendulum, tmp_path):
         dm.compare(pendulum, (0, 0.2), ["radau"], points=1).save(blocker / "out")
     with pytest.raises(E.InvalidOptionError, match=r"save directory .*file is an existing file, not a directory"):
         dm.compare(pendulum, (0, 0.2), ["radau"], points=1).save(blocker)
+
+
+def test_piecewise_on_time_and_state_in_a_constraint():
+    # lambdify's numpy select got a scalar condition on t beside array conditions on the states
+    m = dm.Model("switch")
+    m.states("y1 y2")
+    m.algebraics("z1")
+    m.ode("y1", "-y1 + z1")
+    m.ode("y2", "-y2")
+    m.constraint("z1 - Piecewise((1, Piecewise((t, y2 > 0), (t + y2, True)) >= 0), (2, True))")
+    m.initial(y1=0.0, y2=1.0, t=2.0)
+    sol = dm.solve(m, (2.0, 3.0), method="radau", h=0.05, y0={"y1": [0.0, 1.0]})
+    np.testing.assert_array_equal(sol["z1"], 1.0)
+    np.testing.assert_allclose(sol["y1"][:, -1], 1 + np.array([-1.0, 0.0]) * np.exp(-1.0), rtol=1e-9)
