@@ -209,10 +209,16 @@ class Model:
         if any(c.name == name for c in self._constraints):
             raise InvalidNameError(f"constraint name '{name}' is already used")
         label = f"constraint '{name}' (#{number})"
-        if isinstance(expr, str) and re.search(r"(?<![=<>!])=(?!=)|==", expr):
-            lhs, rhs = re.split(r"==|=", expr, maxsplit=1)
+        single = re.search(r"(?<![=<>!])=(?!=)", expr) if isinstance(expr, str) else None
+        if single:  # "lhs = rhs": a single '=' never occurs inside an admitted expression
+            lhs, rhs = expr[: single.start()], expr[single.end() :]
             value = self._expression(lhs, label) - self._expression(rhs, label)
-        elif isinstance(expr, sp.Equality):
+            self._equation_count = number
+            self._constraints.append(Equation("constraint", name, number, value))
+            return
+        if isinstance(expr, str):  # "lhs == rhs" parses as an equality; '==' inside a condition stays there
+            expr = parse_equation(expr, {**self._all_symbols(), "t": self.t}, label)
+        if isinstance(expr, sp.Equality):
             value = self._expression(expr.lhs, label) - self._expression(expr.rhs, label)
         else:
             value = self._expression(expr, label)

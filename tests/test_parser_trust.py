@@ -408,3 +408,15 @@ def test_piecewise_on_time_and_state_in_a_constraint():
     sol = dm.solve(m, (2.0, 3.0), method="radau", h=0.05, y0={"y1": [0.0, 1.0]})
     np.testing.assert_array_equal(sol["z1"], 1.0)
     np.testing.assert_allclose(sol["y1"][:, -1], 1 + np.array([-1.0, 0.0]) * np.exp(-1.0), rtol=1e-9)
+
+
+def test_constraint_strings_split_only_at_a_single_equals_sign(model):
+    x, z = sp.Symbol("x"), sp.Symbol("z")
+    model.constraint("z - Piecewise((1, x == 0), (2, True))", name="a")  # '==' in a condition stays there
+    model.constraint("z == x + 1", name="b")  # a top-level equality means lhs - rhs
+    model.constraint("z = x**2", name="c")
+    assert [c.expr for c in model._constraints] == [
+        z - sp.Piecewise((1, sp.Eq(x, 0)), (2, True)),
+        z - x - 1,
+        z - x**2,
+    ]
