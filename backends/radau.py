@@ -238,6 +238,9 @@ class _Stepper:
         self.y, self.z, self.p = tensor(start.y0), tensor(start.z0), tensor(start.p)
         # index of the constraint that determines each algebraic variable: its error weight is h^(k-1)
         self.z_index = tensor([compiled.constraints[j].index for j in compiled.determined_by])
+        # constraints (rows of g) of index 2, whose rows of z's iteration matrix are g_y f_z
+        self.z_rows_index2 = torch.tensor([c.index == 2 for c in compiled.constraints], device=device)
+        self._det_sign, self._det_time = None, compiled.t0  # the last fresh Jacobian's sign of det
         eps = float(np.finfo(options.dtype).eps)
         if options.adaptive:
             self.rtol, self.atol = options.rtol, options.atol
@@ -747,7 +750,40 @@ class _Stepper:
             Y0, Z0 = self.split(W0)
             self._jac = (self.jacobian(t + self.c * h, Y0, Z0), t)
             self._lu = None
+            self.check_determined(self._jac[0], t, h)
         return self._jac[0]
+
+    def check_determined(self, J, t, h):
+        """Refuse a step across a point where the constraints stop determining z.
+
+        The iteration matrix of the algebraic variables (row by row ``g_z`` for an index-1 and
+        ``g_y f_z`` for an index-2 constraint, as at compile time) must stay nonsingular; its
+        determinant changing sign between two fresh Jacobians (the stages of one step, or this
+        step and the last fresh one) means it passed through zero, where z is undetermined and
+        may blow up (``q' = (0.7 - t) z, 0 = q - sin t``).  Index-2 z is measured against
+        ``(atol + rtol |z|) / h``, so the error estimate alone would step over it.
+        """
+        if not self.m:
+            return
+        n = self.n
+        rows = J[..., n:, n:].clone()  # g_z, (B, s, m, m)
+        two = self.z_rows_index2
+        if two.any():
+            gyfz = J[..., n:, :n] @ J[..., :n, n:]
+            rows[..., two, :] = gyfz[..., two, :]
+        sign = torch_sign_det(rows)  # (B, s)
+        signs = sign if self._det_sign is None else self.torch.cat([self._det_sign[:, None], sign], dim=1)
+        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(dim=1)
+        if bool(flips.any()):
+            sample = int(self.torch.nonzero(flips)[0])
+            names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
+            raise ConvergenceError(
+                f"radau: the constraints ({names}) stop determining the algebraic variables between t = "
+                f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration matrix "
+                "(g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not determined "
+                "and may blow up; end t_span before that time or reformulate the constraints"
+            )
+        self._det_sign, self._det_time = sign[:, -1], t
 
     def current_lu(self, J, t, h):
         if self._lu is None or self._lu[2] != h:
@@ -793,6 +829,14 @@ class _Stepper:
             rows.append(torch.einsum("j,bjk->bk", L[0], torch.cat([u_start[:, None, :], U], dim=1)))
         values = torch.stack(rows, dim=1)
         return np.asarray(t_out, dtype=float), values.detach().cpu().double().numpy()
+
+
+def torch_sign_det(matrices):
+    """Sign of the determinant of each matrix in a stack (+1, -1, or 0), from an LU factorisation."""
+    import torch
+
+    sign, _ = torch.linalg.slogdet(matrices)
+    return sign
 
 
 def _lagrange(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:

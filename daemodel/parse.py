@@ -129,8 +129,15 @@ class _Parser:
     def fail(self, why: str, cls=ExpressionParseError):
         return cls(f"{self.where}: cannot parse {_short(self.text)}: {why}")
 
+    def segment(self, node) -> str | None:
+        """The source text of ``node``: sliced by offsets (ast.get_source_segment re-splits the whole
+        text on every call, quadratic in a long sum of numbers)."""
+        if self.text.isascii() and node.lineno == node.end_lineno == 1:
+            return self.text[node.col_offset : node.end_col_offset]
+        return ast.get_source_segment(self.text, node)
+
     def quote(self, node) -> str:
-        segment = ast.get_source_segment(self.text, node) or type(node).__name__
+        segment = self.segment(node) or type(node).__name__
         return _short(segment)
 
     def parse(self) -> sp.Expr:
@@ -207,7 +214,7 @@ class _Parser:
                 raise self.fail(f"the number {self.quote(node)} is not a finite float64")
             return sp.Integer(value)
         if isinstance(value, float):
-            literal = ast.get_source_segment(self.text, node) or repr(value)
+            literal = self.segment(node) or repr(value)
             if not math.isfinite(value):
                 raise self.fail(f"the number {_short(literal)} overflows float64 (largest ~1.8e308)")
             if value == 0.0 and any(d in literal.lower().split("e")[0] for d in "123456789"):

@@ -257,6 +257,11 @@ def fn(name: str, *args):
     return ("fn", name, tuple(args))
 
 
+# The generators nest expressions up to 400 deep (gen_expr_edge), and show / evaluate recurse
+# two frames a level: room for that, far below what the C stack allows.
+EXPRESSION_RECURSION_LIMIT = 10_000
+
+
 def show(e) -> str:
     """The tree as a daemodel expression string."""
     kind = e[0]
@@ -510,6 +515,14 @@ class Exact(Reference):
         }
 
 
+class TooCostly(RuntimeError):
+    """An independent solution that would take more evaluations than it is allowed."""
+
+
+class NoTameProblem(RuntimeError):
+    """A generator found no tame problem in its bounded number of attempts."""
+
+
 @dataclass
 class TreeODE(Reference):
     """``y' = rhs(t, y, z, p)`` with ``z`` given by ``zrules`` from ``(t, y, p)``, solved by scipy.
@@ -559,6 +572,16 @@ class TreeODE(Reference):
             elif kind == "monotone":
                 a, k = np.asarray(evaluate(rule[2], env), dtype=float), rule[3]
                 lo, hi = a - k - 1e-3, a + k + 1e-3
+                if a.ndim == 0:  # one time (inside solve_ivp): the same steps on scalars, 6x faster
+                    a, lo, hi = float(a), float(lo), float(hi)
+                    for _ in range(64):
+                        mid = 0.5 * (lo + hi)
+                        if mid + k * float(np.sin(mid)) > a:
+                            hi = mid
+                        else:
+                            lo = mid
+                    env[rule[1]] = np.float64(0.5 * (lo + hi))
+                    continue
                 for _ in range(64):
                     mid = 0.5 * (lo + hi)
                     up = mid + k * np.sin(mid) > a
@@ -584,11 +607,20 @@ class TreeODE(Reference):
                 raise ValueError(kind)
         return env
 
-    def solve(self):
+    def solve(self, max_nfev: int | None = None):
+        """scipy's solution; with ``max_nfev``, a :class:`TooCostly` error once the right-hand side has
+        been evaluated more often than that (scipy has no such limit: where the step size collapses,
+        near a blow-up or a jump in y, it would go on for hours, making its steps ever shorter)."""
         if self._solution is None:
             from scipy.integrate import solve_ivp
 
+            calls = 0
+
             def f(t, y):
+                nonlocal calls
+                calls += 1
+                if max_nfev is not None and calls > max_nfev:
+                    raise TooCostly(f"independent solution needs more than {max_nfev} evaluations")
                 env = self._env(t, y)
                 return np.array([np.broadcast_to(evaluate(e, env), ()) for e in self.rhs], dtype=float)
 
@@ -616,7 +648,9 @@ class TreeODE(Reference):
         """Solvable, bounded and cheap (a generated problem is kept only then)."""
         try:
             with np.errstate(all="ignore"):
-                sol = self.solve()
+                # scipy counts every call of the right-hand side in nfev, so stopping one call past
+                # the limit rejects exactly the problems the nfev test below would reject
+                sol = self.solve(max_nfev=TAME_MAX_NFEV)
                 t = np.linspace(*self.t_span, 201)
                 values = self(t)
         except (RuntimeError, ValueError, FloatingPointError, np.linalg.LinAlgError):
@@ -1442,6 +1476,8 @@ def gen_ode_problem(rng: random.Random, depth: int = 4, with_algebraic: bool = T
         ref = TreeODE(tuple(states), tuple(rhs), tuple(algs), tuple(zrules), pvals, y0, t_span)
         if ref.tame():
             break
+    else:
+        raise NoTameProblem("random ODE")
     steps = _model_steps(
         "expr",
         states,
@@ -1469,10 +1505,12 @@ def gen_index1(rng: random.Random, depth: int = 2) -> _Problem:
         gen = ExprGen(rng, [*states, *params], t_span)
         zrules, constraints, kinds = [], [], []
         if m == 2 and rng.random() < 0.35:
-            while True:
+            for _ in range(100):
                 A = [[round(rng.uniform(-2, 2), 1) for _ in range(2)] for _ in range(2)]
                 if abs(np.linalg.det(A)) > 0.5 and np.linalg.cond(A) < 20:
                     break
+            else:
+                A = [[1.0, 0.5], [-0.5, 1.0]]
             phis = [gen.expr(depth) for _ in range(2)]
             zrules.append(("linear", tuple(algs), A, tuple(phis)))
             for i in range(2):
@@ -1506,6 +1544,8 @@ def gen_index1(rng: random.Random, depth: int = 2) -> _Problem:
         ref = TreeODE(tuple(states), tuple(rhs), tuple(algs), tuple(zrules), pvals, y0, t_span)
         if ref.tame():
             break
+    else:
+        raise NoTameProblem("index-1 DAE")
     initial = dict(zip(states, y0, strict=True))
     if rng.random() < 0.2:  # also state the (exactly consistent) algebraic values
         z0 = ref(np.array([t_span[0]]))
@@ -1595,6 +1635,8 @@ def gen_index2(rng: random.Random, depth: int = 2) -> _Problem:
         ref = TreeODE(tuple(states), tuple(rhs), tuple(algs), zrules, pvals, tuple(float(v) for v in y0), t_span)
         if ref.tame():
             break
+    else:
+        raise NoTameProblem("index-2 DAE")
     odes = [(s, show(e)) for s, e in zip(states, rhs, strict=True)]
     initial = {s: float(v) for s, v in zip(states, ref.y0, strict=True)}
     steps = _model_steps("index2", states, algs, pvals, odes, constraints, initial, t_span[0])
@@ -3550,21 +3592,36 @@ def _random_case(rng: random.Random, category: str) -> Case:
     return gen_dae(rng, category)
 
 
+def _random_case_bounded(key: str, category: str, retries: int = 3) -> Case:
+    """The case drawn from ``Random(key)``; where its generator finds no tame problem (every attempt
+    too costly or unbounded), a redraw from ``Random(key + "-retry<k>")``, and after ``retries`` of
+    those a fixed small problem, so that generation always ends."""
+    for k in range(retries + 1):
+        rng = random.Random(key if k == 0 else f"{key}-retry{k}")
+        try:
+            with np.errstate(all="ignore"):
+                return _random_case(rng, category)
+        except NoTameProblem:
+            continue
+    steps, ref = small_model()
+    args = {"t_span": (0.0, 1.0), "method": "radau", "options": {"stages": 3, "h": 0.05}}
+    return Case(category, f"small model (no tame random problem for {key})", "valid", steps, "solve", args, ref, 1e-6)
+
+
 def random_cases(n: int, seed: int = 0, mix: dict | None = None) -> list[Case]:
     """``n`` random cases drawn from ``mix`` (default :data:`RANDOM_MIX`), reproducible from ``seed``.
 
     Each case has its own generator seeded from ``(seed, i)``, so case i does not depend on how
     many random numbers the cases before it used.
     """
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), EXPRESSION_RECURSION_LIMIT))
     mix = RANDOM_MIX if mix is None else mix
     cats, weights = list(mix), list(mix.values())
     picker = random.Random(seed)
     out = []
     for i in range(n):
         category = picker.choices(cats, weights)[0]
-        rng = random.Random(f"{seed}-{i}-{category}")
-        with np.errstate(all="ignore"):
-            out.append(_random_case(rng, category))
+        out.append(_random_case_bounded(f"{seed}-{i}-{category}", category))
     return _number(out, f"r{seed}-")
 
 

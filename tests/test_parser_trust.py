@@ -420,3 +420,15 @@ def test_constraint_strings_split_only_at_a_single_equals_sign(model):
         z - x - 1,
         z - x**2,
     ]
+
+
+def test_a_declared_but_unused_parameter_may_still_be_given():
+    m = dm.Model("unused")
+    m.states("y")
+    m.parameter("k", 1.0)  # no equation uses it: compile prunes it
+    m.ode("y", "-y")
+    m.initial(y=1.0)
+    sol = dm.solve(m, (0, 1), h=0.1, parameters={"k": [2.0, 3.0]})
+    np.testing.assert_allclose(sol["y"][:, -1], np.exp(-1.0), rtol=1e-8)
+    with pytest.raises(E.UnknownSymbolError, match=r"parameters names 'q', which is not among \[\]"):
+        dm.solve(m, (0, 1), h=0.1, parameters={"q": 2.0})

@@ -256,3 +256,23 @@ def test_cpu_devices_are_accepted(pendulum):
 def test_t_eval_must_be_numbers(pendulum, t_eval, match):
     with pytest.raises(E.TimeSpanError, match=match):
         dm.solve(pendulum, (0.0, 1.0), h=0.1, t_eval=t_eval)
+
+
+def test_a_step_across_a_point_where_z_is_not_determined_is_refused():
+    # q' = (0.7 - t) z, 0 = q - sin t: z = cos t / (0.7 - t) blows up at t = 0.7, where g_y f_z = 0.
+    # Index-2 z is measured against (atol + rtol |z|) / h, so the error estimate alone stepped over it.
+    m = dm.Model("sing2")
+    m.states("q")
+    m.algebraics("z")
+    m.ode("q", "z*(0.7 - t)")
+    m.constraint("q - sin(t)", name="track")
+    m.initial(q=0.0)
+    for options in ({}, {"h": 0.03}):
+        with pytest.raises(
+            E.ConvergenceError,
+            match=r"radau: the constraints \('track'\) stop determining the algebraic variables between t = "
+            r"0\.\d+ and 0\.7\d* \(sample 0\): the determinant of their iteration matrix .* changes sign",
+        ):
+            dm.solve(m, (0.0, 1.0), **options)
+    sol = dm.solve(m, (0.0, 0.6), h=0.03)  # before it: fine
+    np.testing.assert_allclose(sol["z"][-1], np.cos(0.6) / 0.1, rtol=1e-6)
