@@ -56,10 +56,10 @@ def _columns(compiled, value, names, defaults, what: str):
     if value is None:
         return None, np.asarray(defaults, dtype=float)[None, :]
     if isinstance(value, dict):
-        # a parameter the model declares but no kept equation uses was pruned: its value changes nothing
+        # a parameter the model declares but no kept equation uses was pruned: its values change
+        # nothing, but they are checked and still make a batch
         pruned = set(compiled.dropped.get("parameters", ())) if what == "parameters" else set()
-        value = {k: v for k, v in value.items() if k not in pruned}
-        unknown = sorted(set(value) - set(names))
+        unknown = sorted(set(value) - set(names) - pruned)
         if unknown:
             raise UnknownSymbolError(
                 f"{what} names {', '.join(repr(u) for u in unknown)}, which "
