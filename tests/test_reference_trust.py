@@ -7,7 +7,7 @@ from scipy.integrate import DOP853
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.problems import HESSENBERG, ROBERTSON
+from daemodel.problems import HESSENBERG, PENDULUM, ROBERTSON
 
 # Robertson's kinetics at t = 40 (Hairer & Wanner II, Sec. IV.10); scipy's Radau, BDF and LSODA at
 # rtol 1e-12 to 3e-14 with the exact Jacobian agree with these figures to 2e-11 relative.
@@ -197,3 +197,12 @@ def test_stiffness_estimate_is_h_lambda_on_a_linear_problem():
         assert detector.h_lambda == pytest.approx(1000.0 * solver.step_size, rel=1e-6)
     assert detector.stiff and sum(switched) >= 1
     assert not any(switched[:STIFF_STEPS])
+
+
+def test_an_endless_span_stops_early_instead_of_spending_max_steps():
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"reference: max_steps = 20000 cannot suffice \(about .* more steps projected at the recent rate, "
+        r"\d+ left\), stopped early at t = .* before t1 = 1e\+300",
+    ):
+        dm.solve(PENDULUM.model(), (0.0, 1e300), method="reference")
