@@ -23,6 +23,7 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 from daemodel.init import ALGEBRAIC_TOL, STATE_TOL, NumericSystem, hidden_constraints, solve_algebraic
+from daemodel.messages import quoted
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
@@ -105,14 +106,9 @@ def _numbers(value, what) -> np.ndarray:
     if raw.dtype.kind not in "iuf":
         kind = {"b": "booleans", "U": "strings", "S": "bytes", "O": "objects", "c": "complex numbers"}
         raise InvalidValueError(
-            f"{what} must be real numbers; got {kind.get(raw.dtype.kind, raw.dtype.name)} ({_short(value)})"
+            f"{what} must be real numbers; got {kind.get(raw.dtype.kind, raw.dtype.name)} ({quoted(value, 60)})"
         )
     return raw.astype(float)
-
-
-def _short(value, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _finite(array, names, what):

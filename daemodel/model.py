@@ -30,6 +30,7 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 from daemodel.functions import supported_names
+from daemodel.messages import quoted
 from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_ite
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
@@ -75,7 +76,7 @@ def _split_names(names, what: str) -> list[str]:
         return [n for n in re.split(r"[\s,]+", names.strip()) if n]
     if isinstance(names, list | tuple) and all(isinstance(n, str) for n in names):
         return list(names)
-    raise InvalidNameError(f'{what} names must be a string such as "x y" or a list of strings; got {_short(names)}')
+    raise InvalidNameError(f'{what} names must be a string such as "x y" or a list of strings; got {quoted(names)}')
 
 
 class Model:
@@ -253,7 +254,7 @@ class Model:
                 raise ExpressionParseError(f"{where}: {value!r} is not an expression ({err})") from None
         if not isinstance(expr, sp.Expr) or getattr(expr, "is_Matrix", False):
             raise ExpressionParseError(
-                f"{where}: {_short(value)} is not a scalar expression (got {type(expr).__name__})"
+                f"{where}: {quoted(value)} is not a scalar expression (got {type(expr).__name__})"
             )
         if expr.has(sp.Derivative):
             found = sorted(map(str, expr.atoms(sp.Derivative)))
@@ -304,7 +305,7 @@ class Model:
 
 def _finite(value, what: str) -> float:
     if isinstance(value, bool | np.bool_ | str | bytes) or not isinstance(value, int | float | np.number | sp.Number):
-        raise InvalidValueError(f"{what} must be a real number; got {_short(value)} ({type(value).__name__})")
+        raise InvalidValueError(f"{what} must be a real number; got {quoted(value)} ({type(value).__name__})")
     try:
         number = float(value)
     except (TypeError, ValueError, OverflowError):
@@ -312,12 +313,6 @@ def _finite(value, what: str) -> float:
     if not math.isfinite(number):
         raise InvalidValueError(f"{what} must be finite; got {value!r}")
     return number
-
-
-def _short(value, limit: int = 80) -> str:
-    """``repr`` of a value, cut to ``limit`` characters for messages."""
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _listing(table) -> str:

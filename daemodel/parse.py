@@ -24,6 +24,7 @@ import sympy as sp
 
 from daemodel.errors import DerivativeInEquationError, ExpressionParseError, UnknownSymbolError
 from daemodel.functions import FUNCTIONS, REDUCTIONS, supported_names
+from daemodel.messages import quoted
 
 # Longest equation string accepted: far beyond any hand-written equation, small enough that
 # parsing and checking stay well under a second.
@@ -127,7 +128,7 @@ class _Parser:
         self.nodes = 0
 
     def fail(self, why: str, cls=ExpressionParseError):
-        return cls(f"{self.where}: cannot parse {_short(self.text)}: {why}")
+        return cls(f"{self.where}: cannot parse {quoted(self.text)}: {why}")
 
     def segment(self, node) -> str | None:
         """The source text of ``node``: sliced by offsets (ast.get_source_segment re-splits the whole
@@ -138,7 +139,7 @@ class _Parser:
 
     def quote(self, node) -> str:
         segment = self.segment(node) or type(node).__name__
-        return _short(segment)
+        return quoted(segment)
 
     def parse(self) -> sp.Expr:
         if len(self.text) > MAX_CHARACTERS:
@@ -158,7 +159,7 @@ class _Parser:
             primed = _PRIMED.search(self.text)
             if primed:
                 raise DerivativeInEquationError(
-                    f"{self.where}: derivative {primed.group(0).strip()} in {_short(self.text)}; a semi-explicit "
+                    f"{self.where}: derivative {primed.group(0).strip()} in {quoted(self.text)}; a semi-explicit "
                     "DAE has derivatives only on the left (declare them with m.ode)"
                 ) from None
             raise self.fail(f"not a Python-syntax expression ({error.msg})") from None
@@ -216,9 +217,9 @@ class _Parser:
         if isinstance(value, float):
             literal = self.segment(node) or repr(value)
             if not math.isfinite(value):
-                raise self.fail(f"the number {_short(literal)} overflows float64 (largest ~1.8e308)")
+                raise self.fail(f"the number {quoted(literal)} overflows float64 (largest ~1.8e308)")
             if value == 0.0 and any(d in literal.lower().split("e")[0] for d in "123456789"):
-                raise self.fail(f"the number {_short(literal)} underflows float64 to 0; write 0 if you mean it")
+                raise self.fail(f"the number {quoted(literal)} underflows float64 to 0; write 0 if you mean it")
             return sp.Float(literal.replace("_", ""))
         kind = "string" if isinstance(value, str | bytes) else type(value).__name__
         raise self.fail(f"a {kind} constant {self.quote(node)} is not a number")
@@ -234,7 +235,7 @@ class _Parser:
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
         declared = ", ".join(repr(n) for n in self.symbols) or "(none)"
-        raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {_short(self.text)}; declared: {declared}")
+        raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
 
     def binary(self, node, depth: int):
         op = type(node.op)
@@ -304,7 +305,7 @@ class _Parser:
             if name in self.symbols:
                 raise self.fail(f"'{name}' is a variable, not a function: {self.quote(node)}")
             raise UnknownSymbolError(
-                f"{self.where}: unknown function(s) {name} in {_short(self.text)}; the supported functions are "
+                f"{self.where}: unknown function(s) {name} in {quoted(self.text)}; the supported functions are "
                 f"{supported_names()}"
             )
         if node.keywords:
@@ -327,13 +328,13 @@ class _Parser:
             return fn(*args)
         except (TypeError, ValueError, AttributeError, ZeroDivisionError) as error:
             first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-            raise self.fail(f"{self.quote(node)} is not a valid expression ({_short(first, 160)})") from None
+            raise self.fail(f"{self.quote(node)} is not a valid expression ({quoted(first, 160)})") from None
         except RecursionError:
             raise self.fail(f"nested more than {MAX_DEPTH} levels deep") from None
 
     def _derivative(self, node):
         return DerivativeInEquationError(
-            f"{self.where}: derivative {self.quote(node)} in {_short(self.text)}; a semi-explicit DAE has "
+            f"{self.where}: derivative {self.quote(node)} in {quoted(self.text)}; a semi-explicit DAE has "
             "derivatives only on the left (declare them with m.ode)"
         )
 
@@ -358,7 +359,7 @@ def check_numbers(expr: sp.Expr, where: str) -> None:
     """
     if expr.has(sp.zoo, sp.oo, -sp.oo, sp.nan, sp.I):
         raise ExpressionParseError(
-            f"{where}: {_short(str(expr))} contains an infinite, undefined or complex constant "
+            f"{where}: {quoted(str(expr))} contains an infinite, undefined or complex constant "
             "(e.g. 1/0 or sqrt(-1)); equations must be real and finite"
         )
     for node in sp.preorder_traversal(expr):
@@ -370,12 +371,7 @@ def check_numbers(expr: sp.Expr, where: str) -> None:
             if not (math.isfinite(value.real) and abs(value.imag) <= 1e-12 * max(1.0, abs(value.real))):
                 shown = value.real if not value.imag else value
                 raise ExpressionParseError(
-                    f"{where}: the constant {_short(str(node))} evaluates to {shown}, not a finite real float64"
+                    f"{where}: the constant {quoted(str(node))} evaluates to {shown}, not a finite real float64"
                 )
         elif isinstance(node, sp.Number) and not math.isfinite(float(node)):
-            raise ExpressionParseError(f"{where}: the number {_short(str(node))} is not a finite float64")
-
-
-def _short(text: str, limit: int = 80) -> str:
-    """``repr`` of a string, cut to ``limit`` characters for messages."""
-    return repr(text if len(text) <= limit else text[: limit - 3] + "...")
+            raise ExpressionParseError(f"{where}: the number {quoted(str(node))} is not a finite float64")

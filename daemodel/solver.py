@@ -12,6 +12,7 @@ from daemodel.backends import get_backend
 from daemodel.compiled import CompiledDAE
 from daemodel.errors import ModelError, TimeSpanError, UnknownOptionError
 from daemodel.initial_states import initial_states
+from daemodel.messages import quoted
 from daemodel.model import Model
 from daemodel.solution import Solution
 
@@ -91,11 +92,6 @@ def _pair(value):
     return float(items[0]), float(items[1])
 
 
-def _short(value, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
     """A Model compiled with all outputs, or a CompiledDAE as it is."""
     if isinstance(model, Model):
@@ -109,7 +105,7 @@ def check_span(t_span, compiled) -> tuple[float, float]:
     """``(t0, t1)`` as floats, finite, increasing, starting at the model's initial time."""
     pair = None if isinstance(t_span, str | bytes | dict) else _pair(t_span)
     if pair is None:
-        raise TimeSpanError(f"t_span must be a pair (t0, t1) of numbers; got {_short(t_span)}")
+        raise TimeSpanError(f"t_span must be a pair (t0, t1) of numbers; got {quoted(t_span, 60)}")
     t0, t1 = pair
     if not (math.isfinite(t0) and math.isfinite(t1)):
         raise TimeSpanError(f"t_span must be finite; got ({t0}, {t1})")

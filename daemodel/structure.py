@@ -22,6 +22,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.errors import IndexTooHighError, SingularSystemError, UnsupportedFunctionError
+from daemodel.messages import clip
 
 MAX_INDEX = 3  # Hessenberg index 3 is the highest form the compiler recognises.
 # Relative singular-value threshold of the numeric rank check: float64 Jacobians of
@@ -114,16 +115,11 @@ def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraic
         if chain[-1].has(sp.Derivative, sp.re, sp.im):
             raise UnsupportedFunctionError(
                 f"{label} has to be differentiated (it holds no algebraic variable), but its derivative "
-                f"{name + chr(39) * (len(chain) - 1)} = {_short(chain[-1])} leaves the supported functions: Abs, "
-                "sign, Max, Min and Piecewise have no usable derivative at their kinks. Write the constraint "
+                f"{name + chr(39) * (len(chain) - 1)} = {clip(str(chain[-1]), 120)} leaves the supported functions: "
+                "Abs, sign, Max, Min and Piecewise have no usable derivative at their kinks. Write the constraint "
                 "with smooth functions (e.g. sqrt(x**2 + eps) for |x|), or declare its derivative as the constraint"
             )
     return Constraint(name, number, tuple(chain))
-
-
-def _short(expr, limit: int = 120) -> str:
-    text = str(expr)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def incidence(constraints, algebraics) -> list[set[int]]:
