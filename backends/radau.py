@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,13 +54,15 @@ from daemodel.backends.base import (
     output_times,
     torch_device,
 )
+from daemodel.backends.radau_engines import CasadiEngine, StageTransform, TorchEngine
 
-from daemodel.collocation import stage_residual
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
 
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
 FIXED_NEWTON_TOL_EPS = 10
+# Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
+ENGINES = ("auto", "torch", "casadi")
 # Tolerances of adaptive mode when neither h nor rtol/atol is given.
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
 # float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
@@ -77,6 +78,10 @@ REFRESH_THETA = 0.05
 # Fixed step: increments that stop shrinking (contraction above STAGNATION_THETA) while within
 # STAGNATION_FACTOR of newton_tol have reached the rounding floor of the residual.
 STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
+# After a step needed full Newton (per-stage Jacobians), this many steps start with it directly,
+# then the transformed systems are tried again: where the Jacobian varies along the step (the
+# pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
+STAGE_NEWTON_STEPS = 8
 # Newton is declared diverging when an increment is not at least this much smaller than the last.
 DIVERGENCE_THETA = 0.99
 # Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
@@ -120,6 +125,12 @@ class RadauOptions:
     dtype : "float64" or "float32"
     device : str
         A torch device ("cpu", "cuda", "cuda:1", ...).
+    engine : "auto", "torch" or "casadi"
+        Who evaluates the residuals and Jacobians and factors the matrices; the algorithm is the
+        same, and so are the results to rounding.  "casadi": casadi-compiled functions, casadi's
+        sparse Jacobian and scipy's dense or sparse LU, for one trajectory in float64 on the CPU
+        (no torch code generation, no per-operation dispatch).  "torch": the compiler's batched
+        torch functions, for batches, float32 and GPUs.  "auto" picks casadi where it can.
     """
 
     stages: int = 3
@@ -134,6 +145,7 @@ class RadauOptions:
     reuse_jacobian: bool = True
     dtype: str = "float64"
     device: str = "cpu"
+    engine: str = "auto"
 
     def __post_init__(self) -> None:
         check_stages(self.stages)
@@ -168,6 +180,13 @@ class RadauOptions:
         device = torch_device(self.device)  # InvalidOptionError for a device torch cannot use here
         if not isinstance(self.device, str):
             object.__setattr__(self, "device", str(device))
+        if self.engine not in ENGINES:
+            raise InvalidOptionError(f"engine must be one of {', '.join(map(repr, ENGINES))}; got {self.engine!r}")
+        if self.engine == "casadi" and (self.dtype != "float64" or device.type != "cpu"):
+            raise InvalidOptionError(
+                f"engine='casadi' computes in float64 on the CPU; dtype={self.dtype!r}, device={self.device!r} "
+                "need engine='torch'"
+            )
 
     @property
     def adaptive(self) -> bool:
@@ -186,16 +205,38 @@ class RadauBackend(AbstractBackend):
         return fixed_step_sweep(t_span, points)
 
     def solve(self, compiled, t_span, start, options: RadauOptions):
-        import torch
-
-        device = torch_device(options.device)
-        stepper = _Stepper(compiled, start, options, getattr(torch, options.dtype), device)
+        began = time.perf_counter()
+        engine = make_engine(compiled, start, options)
+        stepper = _Stepper(compiled, start, options, engine)
+        setup = time.perf_counter() - began
         began = time.perf_counter()
         times, values = stepper.integrate(t_span)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        if engine.name == "torch" and engine.device.type == "cuda":
+            engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
+        stepper.stats["setup_time"] = setup
         return make_solution(self, compiled, start, options, times, values, wall, stepper.stats)
+
+
+def make_engine(compiled, start, options: RadauOptions):
+    """The engine ``options.engine`` names; ``"auto"``: casadi for one trajectory in float64 on the CPU
+    (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs."""
+    import torch
+
+    tableau = radau_iia(options.stages)
+    transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
+    name = options.engine
+    if name == "auto":
+        single = start.size == 1 and options.dtype == "float64" and torch_device(options.device).type == "cpu"
+        name = "casadi" if single else "torch"
+    if name == "casadi":
+        if start.size != 1:
+            raise InvalidOptionError(
+                f"engine='casadi' solves one trajectory; this batch has {start.size} samples: use engine='torch' "
+                "(or 'auto')"
+            )
+        return CasadiEngine(compiled, start, tableau, transform)
+    return TorchEngine(compiled, start, tableau, transform, getattr(torch, options.dtype), torch_device(options.device))
 
 
 def embedded_weights(tableau) -> tuple[float, np.ndarray]:
@@ -216,30 +257,22 @@ def embedded_weights(tableau) -> tuple[float, np.ndarray]:
 
 
 class _Stepper:
-    """State of one integration: tableau, functions, LU, counters."""
+    """State of one integration on an engine: the step, the controller, counters.
 
-    def __init__(self, compiled, start, options: RadauOptions, dtype, device):
-        import torch
+    Arrays belong to the engine's ``xp`` (numpy or torch): ``y (B, n)``, ``z (B, m)`` and the
+    stage values ``W (B, s, n+m)``, stage by stage ``[Y_i, Z_i]``.
+    """
 
-        self.torch = torch
+    def __init__(self, compiled, start, options: RadauOptions, engine):
+        self.engine, self.xp = engine, engine.xp
+        self.y, self.z = engine.asarray(start.y0), engine.asarray(start.z0)
         self.compiled, self.options = compiled, options
-        self.dtype, self.device = dtype, device
-        self.tf = compiled.torch_functions(dtype=dtype, device=device)
-        self.tableau = radau_iia(options.stages)
-        self.A, self.b, self.c = self.tableau.to_torch(dtype, device)
-        gamma0, e = embedded_weights(self.tableau)
-        self.gamma0, self.e = gamma0, torch.tensor(e, dtype=dtype, device=device)
-        self.s, self.n, self.m = options.stages, len(compiled.states), len(compiled.algebraics)
-        self.B = start.size
-
-        def tensor(a):
-            return torch.tensor(a, dtype=dtype, device=device)
-
-        self.y, self.z, self.p = tensor(start.y0), tensor(start.z0), tensor(start.p)
+        self.tableau = engine.tableau
+        self.gamma0 = engine.transform.gamma0
+        self.e = engine.asarray(embedded_weights(self.tableau)[1])
+        self.s, self.n, self.m, self.B = engine.s, engine.n, engine.m, engine.B
         # index of the constraint that determines each algebraic variable: its error weight is h^(k-1)
-        self.z_index = tensor([compiled.constraints[j].index for j in compiled.determined_by])
-        # constraints (rows of g) of index 2, whose rows of z's iteration matrix are g_y f_z
-        self.z_rows_index2 = torch.tensor([c.index == 2 for c in compiled.constraints], device=device)
+        self.z_index = np.array([compiled.constraints[j].index for j in compiled.determined_by], dtype=float)
         self._det_sign, self._det_time = None, compiled.t0  # the last fresh Jacobian's sign of det
         eps = float(np.finfo(options.dtype).eps)
         if options.adaptive:
@@ -251,10 +284,11 @@ class _Stepper:
             self.newton_tol = options.newton_tol or FIXED_NEWTON_TOL_EPS * eps
         self.stats = {
             "mode": "adaptive" if options.adaptive else "fixed",
+            "engine": engine.name,
             "stages": self.s,
             "order": self.tableau.order,
             "dtype": options.dtype,
-            "device": str(device),
+            "device": options.device,
             "batch": self.B,
             "steps": 0,
             "attempts": 0,
@@ -272,159 +306,95 @@ class _Stepper:
         if not options.adaptive:
             # worst step, sample and variable, in units of 1 + max|u| (see check_local_error)
             self.stats["max_local_error_estimate"] = 0.0
-        self._jac = None  # (J, t, h-independent) at the last refresh
-        self._lu = None  # (LU, pivots, h)
-        self._step_jac = None  # the Jacobian of the last Newton matrix, (B, s, D, D): reused by the estimate
-        # the error-estimate matrix is M + J diag(rows): rows -h gamma0 for y, 1 for z (M = diag(I, 0))
-        self._error_M = torch.diag(torch.cat([torch.ones(self.n), torch.zeros(self.m)])).to(dtype=dtype, device=device)
-        self._error_rows = None  # (h, rows (D, 1), index weights h^(k-1) (D,)) for the last h
-        self._no_g = torch.zeros((self.B, self.m), dtype=dtype, device=device)  # the constraint rows' right side
+        self._jac = None  # (J, t) at the last refresh
+        self._lu = None  # the Factors of the transformed systems of J and the current h
+        self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
         self._f_start = None  # f at the start of the next step (the last stage's f of this one)
         self._scale = None  # fixed step: 1 + max |u| over the steps' start values so far, (B, n+m)
-        self._outputs = None  # ([t], [u (B, n+m)], [(t, h, u_start, U)]) of the accepted steps
-        self._eta = torch.ones(self.B, dtype=dtype, device=device)  # Newton's contraction estimate
-        self._previous = None  # (h, u_start, U) of the last accepted step, for the start guess
+        self._outputs = None  # ([t], [u (B, n+m)], [(t, h, u_start, W)]) of the accepted steps
+        self._eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
+        self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
+        self._stage_steps = 0  # steps left that start with full Newton (see attempt)
 
     # ---- pieces -------------------------------------------------------------------------
+    def state(self):
+        return self.xp.concatenate([self.y, self.z], axis=-1)
+
+    def rms(self, x):
+        """Root mean square over all but the batch axis, shape (B,)."""
+        return self.xp.sqrt(self.xp.mean(x.reshape(self.B, -1) ** 2, axis=-1))
+
     def jacobian(self, t, y, z):
-        """``[f_y f_z; g_y g_z]`` at ``(t, y, z)``: the compiled symbolic Jacobian, else forward-mode AD.
-
-        ``t`` has shape () or (s,), ``y (B, n)`` or ``(B, s, n)``, likewise ``z``; the result has
-        shape ``(B, n+m, n+m)`` or ``(B, s, n+m, n+m)``.
-        """
-        torch = self.torch
-        import torch.autograd.forward_ad as fwAD
-
-        n, m = self.n, self.m
-        D = n + m
-        lead = y.shape[:-1]
-        eye = torch.eye(D, dtype=self.dtype, device=self.device)
-        t = torch.as_tensor(t, dtype=self.dtype, device=self.device)
-        p = self.p.reshape(self.B, *([1] * (len(lead) - 1)), -1)
-        if self.tf.jacobian is not None:  # the compiler's symbolic Jacobian
-            self.stats["jacobian_evaluations"] += 1
-            return self.tf.jacobian(t, y, z, p).reshape(*lead, D, D)
-        t, p = t[..., None], p[..., None, :]  # a new axis for the D directions
-
-        def directions(x, columns):
-            shape = (*lead, D, x.shape[-1])
-            return x[..., None, :].expand(shape).clone(), columns.expand(shape).clone()
-
-        with warnings.catch_warnings(), fwAD.dual_level():
-            # torch's forward-AD decompositions still call torch.jit.script on first use
-            warnings.filterwarnings("ignore", message=".*torch.jit.script.*deprecated", category=DeprecationWarning)
-            yd = fwAD.make_dual(*directions(y, eye[:, :n]))
-            zd = fwAD.make_dual(*directions(z, eye[:, n:]))
-            columns = []
-            for fn, size in ((self.tf.f, n), (self.tf.g, m)):
-                tangent = fwAD.unpack_dual(fn(t, yd, zd, p)).tangent
-                columns.append(y.new_zeros((*lead, D, size)) if tangent is None else tangent)
         self.stats["jacobian_evaluations"] += 1
-        return torch.cat(columns, dim=-1).transpose(-1, -2).contiguous()
+        return self.engine.jacobian(t, y, z)
 
-    def newton_matrix(self, J, h):
-        """The Newton matrix of the stage equations, shape (B, s(n+m), s(n+m)).
+    def factor(self, J, t, h, error_only=False):
+        factors = self.engine.factor(J, h, error_only)
+        self.stats["lu_decompositions"] += len(factors.lu)
+        self.check_singular(factors.singular, t, h, "Newton matrix")
+        return factors
 
-        ``J`` is one Jacobian for every stage, ``(B, D, D)`` (simplified Newton), or one per
-        stage, ``(B, s, D, D)`` (full Newton).
-        """
-        torch = self.torch
-        s, n, m, B = self.s, self.n, self.m, self.B
-        D = n + m
-        if J.ndim == 3:
-            J = J[:, None].expand(B, s, D, D)
-        # unknowns [Y_1..Y_s, Z_1..Z_s]; rows [F_1..F_s, G_1..G_s]
-        M = J.new_zeros((B, s * D, s * D))
-        for i in range(s):
-            rows_F, rows_G = slice(i * n, (i + 1) * n), slice(s * n + i * m, s * n + (i + 1) * m)
-            for j in range(s):
-                cols_Y, cols_Z = slice(j * n, (j + 1) * n), slice(s * n + j * m, s * n + (j + 1) * m)
-                # dF_i/dY_j = delta_ij I - h a_ij f_y(stage j);  dF_i/dZ_j = -h a_ij f_z(stage j)
-                M[:, rows_F, cols_Y] = (-h * float(self.tableau.A[i, j])) * J[:, j, :n, :n]
-                M[:, rows_F, cols_Z] = (-h * float(self.tableau.A[i, j])) * J[:, j, :n, n:]
-            # dG_i/dY_i = g_y(stage i);  dG_i/dZ_i = g_z(stage i)
-            M[:, rows_G, i * n : (i + 1) * n] = J[:, i, n:, :n]
-            M[:, rows_G, s * n + i * m : s * n + (i + 1) * m] = J[:, i, n:, n:]
-        M[:, : s * n, : s * n] += torch.eye(s * n, dtype=self.dtype, device=self.device)
-        return M
+    def index_weights(self, h):
+        """``h^(k-1)`` for each component (1 for the states), kept while h is unchanged."""
+        if self._index_weights is None or self._index_weights[0] != h:
+            weights = np.concatenate([np.ones(self.n), h ** (self.z_index - 1)])
+            self._index_weights = (h, self.engine.asarray(weights))
+        return self._index_weights[1]
 
-    def factor(self, matrix, t, h, what):
-        LU, pivots, info = self.torch.linalg.lu_factor_ex(matrix)
-        self.stats["lu_decompositions"] += 1
-        self.check_singular(info, t, h, what)
-        return LU, pivots
-
-    def weights(self, h, y_ref):
+    def weights(self, h, u_ref):
         """Error scale of each of the n + m components, shape (B, n+m)."""
-        torch = self.torch
-        scale = self.atol + self.rtol * y_ref.abs()
-        index_weight = torch.as_tensor(h, dtype=self.dtype, device=self.device) ** (self.z_index - 1)
-        return torch.cat([scale[:, : self.n], scale[:, self.n :] / index_weight], dim=-1)
-
-    def split(self, W):
-        s, n, m, B = self.s, self.n, self.m, self.B
-        return W[:, : s * n].reshape(B, s, n), W[:, s * n :].reshape(B, s, m)
+        return (self.atol + self.rtol * u_ref) / self.index_weights(h)
 
     def residual(self, t, h, W):
-        Y, Z = self.split(W)
-        r = stage_residual(self.tf, self.A, self.b, self.c, t, h, self.y, Y, Z, self.p)
         self.stats["residual_evaluations"] += 1
-        return self.torch.cat([r.F.reshape(self.B, -1), r.G.reshape(self.B, -1)], dim=-1), r
+        return self.engine.residual(t, h, self.y, W)
 
     def start_guess(self, h):
         """Stage values extrapolated from the last step's collocation polynomial (or constant)."""
-        torch = self.torch
-        u = torch.cat([self.y, self.z], dim=-1)
+        xp = self.xp
+        u = self.state()
         if self._previous is None:
-            U = u[:, None, :].expand(self.B, self.s, self.n + self.m)
-        else:
-            h_old, u_old, U_old = self._previous
-            nodes = np.concatenate([[0.0], self.tableau.c])
-            tau = 1.0 + self.tableau.c * h / h_old
-            L = torch.tensor(_lagrange(nodes, tau), dtype=self.dtype, device=self.device)  # (s, s+1)
-            U = torch.einsum("ij,bjk->bik", L, torch.cat([u_old[:, None, :], U_old], dim=1))
-        return torch.cat([U[..., : self.n].reshape(self.B, -1), U[..., self.n :].reshape(self.B, -1)], dim=-1)
+            return xp.repeat(u[:, None, :], self.s, axis=1) if xp is np else u[:, None, :].expand(self.B, self.s, -1)
+        h_old, u_old, W_old = self._previous
+        nodes = np.concatenate([[0.0], self.tableau.c])
+        L = self.engine.asarray(_lagrange(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
+        return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
 
     # ---- one step -----------------------------------------------------------------------
-    def newton(self, t, h, LU, pivots, W):
+    def newton(self, t, h, factors, W):
         """Solve the stage equations from the guess ``W``; ``(W, stage residual, theta)`` or None."""
-        torch = self.torch
-        u_ref = torch.cat([self.y, self.z], dim=-1).abs()
-        w = self.weights(h, u_ref)
-        # the stage unknowns are ordered [Y_1..Y_s, Z_1..Z_s]
-        scale = torch.cat([w[:, : self.n].repeat(1, self.s), w[:, self.n :].repeat(1, self.s)], dim=-1)
+        xp, engine = self.xp, self.engine
+        scale = self.weights(h, xp.abs(self.state()))[:, None, :]
         if self.options.adaptive:
             # RADAU5: trust the last step's contraction rate, so one iteration may suffice
-            eta = torch.clamp(self._eta, min=float(np.finfo(self.options.dtype).eps)) ** 0.8
+            eta = xp.clip(self._eta, float(np.finfo(self.options.dtype).eps), None) ** 0.8
         else:
             # the fixed-step solution must be the collocation solution: no early trust
-            eta = torch.ones_like(self._eta)
+            eta = xp.ones_like(self._eta)
         previous = None
-        theta = torch.zeros(self.B, dtype=self.dtype, device=self.device)
-        active = torch.ones(self.B, dtype=torch.bool, device=self.device)  # samples still iterating
+        theta = xp.zeros_like(self._eta)
+        active = xp.ones_like(self._eta) > 0  # samples still iterating
         for k in range(1, self.options.max_newton_iterations + 1):
-            R, r = self.residual(t, h, W)
-            dW = torch.linalg.lu_solve(LU, pivots, -R[..., None])[..., 0] * active[:, None]
+            r = self.residual(t, h, W)
+            dW = engine.newton_increment(factors, r.R) * active[:, None, None]
             W = W + dW
-            norm = torch.sqrt(torch.mean((dW / scale) ** 2, dim=-1))
-            finite = torch.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
+            norm = self.rms(dW / scale)
+            finite = xp.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
             if not bool(finite.all()):
-                sample = int(torch.nonzero(~finite)[0])
+                sample = engine.first(~finite)
                 return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
             if previous is not None:
-                theta = torch.where(active, norm / torch.clamp(previous, min=1e-300), theta)
+                theta = xp.where(active, norm / xp.clip(previous, 1e-300, None), theta)
                 diverging = active & (theta >= DIVERGENCE_THETA)
                 if bool(diverging.any()):
-                    worst = int(torch.nonzero(diverging)[0])
+                    worst = engine.first(diverging)
                     return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
-                eta = torch.where(active, theta / (1 - theta), eta)
+                eta = xp.where(active, theta / (1 - theta), eta)
                 if float((theta * active).max()) > REFRESH_THETA and k < self.options.max_newton_iterations:
                     # slow contraction: full Newton, with each stage's Jacobian at the current iterate
-                    Y, Z = self.split(W)
-                    stage_J = self.jacobian(t + self.c * h, Y, Z)
-                    LU, pivots = self.factor(self.newton_matrix(stage_J, h), t, h, "Newton matrix")
-                    self._step_jac = stage_J
-                    self.stats["newton_refreshes"] += 1
+                    stage_J = engine.stage_jacobians(t, h, W)
+                    self.stats["jacobian_evaluations"] += 1
+                    factors = self.factor_stages(stage_J, t, h)
                     self._jac = None  # the next step starts from a fresh Jacobian too
             previous = norm
             if self.options.adaptive:
@@ -437,93 +407,75 @@ class _Stepper:
             active = active & ~done
             if not bool(active.any()) and self.options.adaptive:
                 # the error estimate needs f at the final stage values
-                R, r = self.residual(t, h, W)
+                r = self.residual(t, h, W)
                 if k == 1 and k < self.options.max_newton_iterations:
                     # converged on the last step's contraction alone: check that the next increment is
                     # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
-                    after = torch.linalg.lu_solve(LU, pivots, -R[..., None])[..., 0]
-                    active = torch.sqrt(torch.mean((after / scale) ** 2, dim=-1)) > self.newton_tol
+                    after = engine.newton_increment(factors, r.R)
+                    active = self.rms(after / scale) > self.newton_tol
             if not bool(active.any()):
                 self._eta = eta
                 self.stats["newton_iterations"] += k
                 self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
                 return (W, r, float(theta.max())), k, None, None
-        return None, k, f"not converged in {k} iterations", int(torch.nonzero(active)[0])
+        return None, k, f"not converged in {k} iterations", self.engine.first(active)
 
     def non_finite(self, r, dW, sample, t, h) -> str:
         """Where a sample's first non-finite value arose: ``f`` or ``g`` at a stage, else an increment of a variable."""
-        torch = self.torch
-        compiled = self.compiled
+        xp, compiled, n = self.xp, self.compiled, self.n
         for values, names, what in (
             (r.stage_f, compiled.state_names, "the right-hand side of {}'"),
             (r.G, compiled.constraint_names, "constraint '{}'"),
+            (dW[..., :n], compiled.state_names, "the Newton increment of '{}'"),
+            (dW[..., n:], compiled.algebraic_names, "the Newton increment of '{}'"),
         ):
-            bad = torch.nonzero(~torch.isfinite(values[sample]))
+            bad = np.argwhere(~_host(xp.isfinite(values[sample])))
             if len(bad):
                 stage, k = (int(i) for i in bad[0])
                 when = t + float(self.tableau.c[stage]) * h
                 return f"{what.format(names[k])} at stage {stage + 1} (t = {when:.6g})"
-        Y, Z = self.split(dW)
-        for values, names in ((Y, compiled.state_names), (Z, compiled.algebraic_names)):
-            bad = torch.nonzero(~torch.isfinite(values[sample]))
-            if len(bad):
-                stage, k = (int(i) for i in bad[0])
-                return f"the Newton increment of '{names[k]}' at stage {stage + 1}"
         return "the Newton increment"
 
-    def error_rows(self, h):
-        """``(rows (D, 1), index weights (D,))`` of step size ``h``, kept while h is unchanged."""
-        if self._error_rows is None or self._error_rows[0] != h:
-            torch = self.torch
-            D = self.n + self.m
-            rows = torch.full((D, 1), -h * self.gamma0, dtype=self.dtype, device=self.device)
-            rows[self.n :] = 1.0
-            index_weight = torch.ones(D, dtype=self.dtype, device=self.device)
-            index_weight[self.n :] = torch.as_tensor(h, dtype=self.dtype, device=self.device) ** (self.z_index - 1)
-            self._error_rows = (h, rows, index_weight)
-        return self._error_rows[1], self._error_rows[2]
-
-    def local_error(self, h, J, f0, stage_f):
+    def local_error(self, h, factors, f0, stage_f):
         """The embedded local error estimate of the step (see the module docstring), shape (B, n+m).
 
-        ``J`` (B, D, D) is the Jacobian of the error matrix ``M - h gamma0 J``, ``f0`` (B, n) is
-        ``f`` at the step's start, ``stage_f`` (B, s, n) at its stages.  Returns the estimate, the
-        solve's ``info`` (> 0 where the matrix is singular) and what :meth:`refiltered` needs.
+        ``factors`` hold ``(1 / (h gamma0)) M - J``, ``f0`` (B, n) is ``f`` at the step's start,
+        ``stage_f`` (B, s, n) at its stages.  Returns the estimate and what :meth:`refiltered` needs.
         """
-        torch = self.torch
-        E = torch.addcmul(self._error_M, J, self.error_rows(h)[0])
-        quadrature = torch.matmul(self.e, stage_f)  # sum_i (bhat_i - b_i) f(Y_i), (B, n)
-        # the constraint rows carry no local error: each step's Newton enforces g at its stages,
-        # and its leftover |g(y_n)| (Newton's tolerance) must not block ever smaller steps
-        rhs = torch.cat([(quadrature + self.gamma0 * f0) * h, self._no_g], dim=-1)
-        err, info = torch.linalg.solve_ex(E, rhs[..., None])
-        self.stats["lu_decompositions"] += 1
-        return err[..., 0], info, (E, quadrature)
+        xp = self.xp
+        quadrature = xp.einsum("i,bin->bn", self.e, stage_f)  # sum_i (bhat_i - b_i) f(Y_i), (B, n)
+        # (M - h gamma0 J) err = [h (quadrature + gamma0 f0); 0] divided row-wise by diag(h gamma0, -1).
+        # The constraint rows carry no local error: each step's Newton enforces g at its stages,
+        # and its leftover |g(y_n)| (Newton's tolerance) must not block ever smaller steps.
+        zeros = xp.zeros_like(self.z)
+        rhs = xp.concatenate([quadrature / self.gamma0 + f0, zeros], axis=-1)
+        return self.engine.error_solve(factors, rhs), (factors, quadrature, zeros)
 
-    def refiltered(self, t, h, err, matrices):
+    def refiltered(self, t, err, matrices):
         """The estimate with the stiff filter applied once more (Hairer-Wanner's first or rejected step)."""
-        torch = self.torch
-        E, quadrature = matrices
-        f1 = self.tf.f(t, self.y + err[:, : self.n], self.z + err[:, self.n :], self.p)
-        rhs = torch.cat([(quadrature + self.gamma0 * f1) * h, self._no_g], dim=-1)
-        return torch.linalg.solve_ex(E, rhs[..., None])[0][..., 0]
+        factors, quadrature, zeros = matrices
+        n = self.n
+        f1 = self.engine.f(t, self.y + err[:, :n], self.z + err[:, n:])
+        rhs = self.xp.concatenate([quadrature / self.gamma0 + f1, zeros], axis=-1)
+        return self.engine.error_solve(factors, rhs)
+
+    def start_f(self, t):
+        """``f`` at the step's start: the last accepted step's final stage (Radau IIA is stiffly accurate)."""
+        if self._f_start is None:
+            self._f_start = self.engine.f(t, self.y, self.z)
+        return self._f_start
 
     def error_norm(self, t, h, r, W, first):
         """RADAU5-style scaled local error of the step, worst sample (adaptive mode)."""
-        torch = self.torch
-        J = self.jacobian(t, self.y, self.z)
-        f0 = self.tf.f(t, self.y, self.z, self.p)
-        err, info, matrices = self.local_error(h, J, f0, r.stage_f)
-        self.check_singular(info, t, h, "error-estimate matrix")
-        Y, Z = self.split(W)
-        u_new = torch.cat([Y[:, -1], Z[:, -1]], dim=-1)
-        u_old = torch.cat([self.y, self.z], dim=-1)
-        w = self.weights(h, torch.maximum(u_old.abs(), u_new.abs()))
-        norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
+        xp = self.xp
+        err, matrices = self.local_error(h, self._lu, self.start_f(t), r.stage_f)
+        u_new = W[:, -1]
+        w = self.weights(h, xp.maximum(xp.abs(self.state()), xp.abs(u_new)))
+        norm = self.rms(err / w)
         if first and bool((norm >= 1).any()):
-            err = self.refiltered(t, h, err, matrices)
-            norm = torch.sqrt(torch.mean((err / w) ** 2, dim=-1))
-        if not bool(torch.isfinite(norm).all()):
+            err = self.refiltered(t, err, matrices)
+            norm = self.rms(err / w)
+        if not bool(xp.isfinite(norm).all()):
             return math.inf
         return float(norm.max())
 
@@ -533,29 +485,25 @@ class _Stepper:
         The unit is ``1 + max |u|`` over the steps' start values so far (an algebraic variable of
         index k: that over ``h^(k-1)``), so a step across a singularity cannot excuse its error by
         its own huge result, nor an oscillation be judged where it crosses zero.  It reuses the
-        Jacobian of the step's Newton matrix (its first stage) and takes ``f`` at the step's start
-        from the last step's final stage (Radau IIA is stiffly accurate: ``c_s = 1``).
+        factored Newton matrix of the step's Jacobian and takes ``f`` at the step's start from the
+        last step's final stage (Radau IIA is stiffly accurate: ``c_s = 1``).
         """
-        torch = self.torch
-        u = torch.cat([self.y, self.z], dim=-1).abs().add_(1.0)
-        self._scale = u if self._scale is None else torch.maximum(self._scale, u)
-        if self._f_start is None:
-            self._f_start = self.tf.f(t, self.y, self.z, self.p)
-        err, info, matrices = self.local_error(h, self._step_jac[:, 0], self._f_start, r.stage_f)
-        index_weight = self.error_rows(h)[1]
-        ratio = err.abs().mul_(index_weight).div_(self._scale)
+        xp = self.xp
+        u = xp.abs(self.state()) + 1.0
+        self._scale = u if self._scale is None else xp.maximum(self._scale, u)
+        err, matrices = self.local_error(h, self._lu, self.start_f(t), r.stage_f)
+        index_weight = self.index_weights(h)
+        ratio = xp.abs(err) * index_weight / self._scale
         worst = float(ratio.max())
         if worst > LOCAL_ERROR_BOUND:  # the stiff filter once more before judging (Hairer-Wanner)
-            ratio = self.refiltered(t, h, err, matrices).abs().mul_(index_weight).div_(self._scale)
+            ratio = xp.abs(self.refiltered(t, err, matrices)) * index_weight / self._scale
             worst = float(ratio.max())
-        self._f_start = r.stage_f[:, -1]
         if worst <= LOCAL_ERROR_BOUND:  # the usual case: False for NaN too
             self.stats["max_local_error_estimate"] = max(self.stats["max_local_error_estimate"], worst)
             return
         self.stats["max_local_error_estimate"] = math.inf if math.isnan(worst) else worst
-        self.check_singular(info, t, h, "error-estimate matrix")
-        ratio = torch.nan_to_num(ratio, nan=math.inf)
-        sample, k = divmod(int(torch.argmax(ratio.reshape(-1))), self.n + self.m)
+        ratio = np.nan_to_num(np.asarray(_numpy(ratio)), nan=math.inf)
+        sample, k = divmod(int(np.argmax(ratio.reshape(-1))), self.n + self.m)
         name = (*self.compiled.state_names, *self.compiled.algebraic_names)[k]
         index = int(self.z_index[k - self.n]) if k >= self.n else 1
         size = f"1 + max|{name}|" if index == 1 else f"(1 + max|{name}|) / h^{index - 1}"
@@ -567,11 +515,10 @@ class _Stepper:
             "singular, switch or change too fast there); take a smaller h, or the adaptive mode (rtol=...)"
         )
 
-    def check_singular(self, info, t, h, what):
-        """Raise :class:`ConvergenceError` where ``info`` (of an LU) reports a singular matrix."""
-        torch = self.torch
-        if bool((info > 0).any()):  # non-finite entries surface in Newton's increments instead
-            sample = int(torch.nonzero(info > 0)[0])
+    def check_singular(self, singular, t, h, what):
+        """Raise :class:`ConvergenceError` where a factorisation reports a singular matrix."""
+        if bool(singular.any()):  # non-finite entries surface in Newton's increments instead
+            sample = self.engine.first(singular)
             raise ConvergenceError(
                 f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}; the "
                 "constraints may not determine the algebraic variables there (g_y f_z singular)"
@@ -580,12 +527,11 @@ class _Stepper:
     # ---- the loop -----------------------------------------------------------------------
     def integrate(self, t_span):
         """Values at the output times: ``(times (T,), values (B, T, n+m))``."""
-        torch = self.torch
         options = self.options
         t0 = t_span[0]
         grid = None if options.adaptive else fixed_grid(t_span, options.h, max_steps=options.max_steps)
         t_out = output_times(options.t_eval, t_span, grid)
-        u0 = torch.cat([self.y, self.z], dim=-1)
+        u0 = self.state()
         self._outputs = ([t0], [u0], [])
         if options.adaptive:
             self.adaptive_steps(t_span)
@@ -594,8 +540,8 @@ class _Stepper:
         out_t, out_u, steps = self._outputs
         if options.t_eval is not None:
             return self.dense_output(t_out, u0, t0, steps)
-        values = torch.stack(out_u, dim=1)  # (B, T, n+m)
-        return np.asarray(out_t, dtype=float), values.detach().cpu().double().numpy()
+        values = self.xp.stack(out_u, axis=1)  # (B, T, n+m)
+        return np.asarray(out_t, dtype=float), _numpy(values)
 
     def fixed_steps(self, grid):
         """Step along ``grid``, checking each step's local error estimate."""
@@ -611,9 +557,8 @@ class _Stepper:
                     f"radau: Newton failed in step {step} from t = {t:.6g} with h = {h:.3g} ({why}, "
                     f"sample {sample}); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
                 )
-            W, r, theta = result
-            self.check_local_error(step, t, h, r)
-            self.accept(t, h, W, theta, float(grid[step]))
+            self.check_local_error(step, t, h, result[1])
+            self.accept(t, h, result, float(grid[step]))
 
     def adaptive_steps(self, t_span):
         """RADAU5's step-size controller; every attempt counts against ``max_steps``."""
@@ -647,7 +592,7 @@ class _Stepper:
                 h = self._shrink(h, t, why, sample, 0.5)
                 first = True
                 continue
-            W, r, theta = result
+            W, r, _ = result
             err = self.error_norm(t, h, r, W, first or rejected_last)
             factor = min(
                 SAFETY,
@@ -661,7 +606,7 @@ class _Stepper:
                 self._lu = None
                 continue
             t_next = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
-            self.accept(t, h, W, theta, t_next)
+            self.accept(t, h, result, t_next)
             t = t_next
             new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
             if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
@@ -670,35 +615,59 @@ class _Stepper:
             first = rejected_last = False
 
     def attempt(self, t, h):
-        """Newton on the step from ``t`` with ``h``, retried once with a fresh Jacobian if a reused one fails."""
+        """Newton on the step from ``t`` with ``h``.
+
+        First with the step-start Jacobian through the transformed systems (reused while it serves,
+        refreshed once if a reused one fails); if that fails, full Newton with each stage's Jacobian
+        at the starting guess, which also checks that z stays determined at the stages.  After a
+        step needed full Newton, the next STAGE_NEWTON_STEPS steps start with it directly.
+        """
         W0 = self.start_guess(h)
-        J = self.current_jacobian(t, h, W0)
-        LU, pivots = self.current_lu(J, t, h)
-        self._step_jac = J
-        result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+        J = self.current_jacobian(t, h)
+        if self._stage_steps > 0:
+            self._stage_steps -= 1
+            self.current_lu(J, t, h, error_only=True)  # the error estimate's system
+            return self.stage_newton(t, h, W0)
+        factors = self.current_lu(J, t, h)
+        result, iterations, why, sample = self.newton(t, h, factors, W0)
         if result is None and self._jac is not None and self._jac[1] != t:
             # the reused Jacobian is stale: refresh it and try again
             self._jac = self._lu = None
-            J = self.current_jacobian(t, h, W0)
-            LU, pivots = self.current_lu(J, t, h)
-            self._step_jac = J
-            result, iterations, why, sample = self.newton(t, h, LU, pivots, W0)
+            factors = self.current_lu(self.current_jacobian(t, h), t, h)
+            result, iterations, why, sample = self.newton(t, h, factors, W0)
+        if result is None:
+            return self.stage_newton(t, h, W0)
         return result, iterations, why, sample
 
-    def accept(self, t, h, W, theta, t_next):
+    def stage_newton(self, t, h, W0):
+        """Full Newton from ``W0`` with each stage's Jacobian at ``W0`` (and at later iterates while
+        it contracts slowly)."""
+        stage_J = self.engine.stage_jacobians(t, h, W0)
+        self.stats["jacobian_evaluations"] += 1
+        self.check_determined(stage_J, t, h)
+        return self.newton(t, h, self.factor_stages(stage_J, t, h), W0)
+
+    def factor_stages(self, stage_J, t, h):
+        factors = self.engine.factor_stages(stage_J, h)
+        self.stats["lu_decompositions"] += 1
+        self.stats["newton_refreshes"] += 1
+        self.check_singular(factors.singular, t, h, "Newton matrix")
+        self._stage_steps = STAGE_NEWTON_STEPS
+        return factors
+
+    def accept(self, t, h, result, t_next):
         """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
-        torch = self.torch
+        W, r, theta = result
         out_t, out_u, steps = self._outputs
-        Y, Z = self.split(W)
-        u_start = torch.cat([self.y, self.z], dim=-1)
-        U = torch.cat([Y, Z], dim=-1)
+        u_start = self.state()
         if self.options.t_eval is not None:
-            steps.append((t, h, u_start, U))
+            steps.append((t, h, u_start, W))
         else:
             out_t.append(t_next)
-            out_u.append(U[:, -1])
-        self._previous = (h, u_start, U)
-        self.y, self.z = Y[:, -1].clone(), Z[:, -1].clone()
+            out_u.append(W[:, -1])
+        self._previous = (h, u_start, W)
+        self.y, self.z = W[:, -1, : self.n], W[:, -1, self.n :]
+        self._f_start = r.stage_f[:, -1]
         self.stats["steps"] += 1
         self.stats["h_min"] = min(self.stats["h_min"], h)
         self.stats["h_max"] = max(self.stats["h_max"], h)
@@ -744,11 +713,10 @@ class _Stepper:
             f"failed attempts: {reason}"
         )
 
-    def current_jacobian(self, t, h, W0):
-        """Each stage's Jacobian at the starting guess (kept while Newton contracts fast)."""
+    def current_jacobian(self, t, h):
+        """The Jacobian at the step's start (kept while Newton contracts fast), as RADAU5."""
         if self._jac is None:
-            Y0, Z0 = self.split(W0)
-            self._jac = (self.jacobian(t + self.c * h, Y0, Z0), t)
+            self._jac = (self.jacobian(t, self.y, self.z), t)
             self._lu = None
             self.check_determined(self._jac[0], t, h)
         return self._jac[0]
@@ -758,38 +726,34 @@ class _Stepper:
 
         The iteration matrix of the algebraic variables (row by row ``g_z`` for an index-1 and
         ``g_y f_z`` for an index-2 constraint, as at compile time) must stay nonsingular; its
-        determinant changing sign between two fresh Jacobians (the stages of one step, or this
-        step and the last fresh one) means it passed through zero, where z is undetermined and
-        may blow up (``q' = (0.7 - t) z, 0 = q - sin t``).  Index-2 z is measured against
-        ``(atol + rtol |z|) / h``, so the error estimate alone would step over it.
+        determinant changing sign between two fresh Jacobians means it passed through zero, where
+        z is undetermined and may blow up (``q' = (0.7 - t) z, 0 = q - sin t``).  Index-2 z is
+        measured against ``(atol + rtol |z|) / h``, so the error estimate alone would step over it.
         """
         if not self.m:
             return
-        n = self.n
-        rows = J[..., n:, n:].clone()  # g_z, (B, s, m, m)
-        two = self.z_rows_index2
-        if two.any():
-            gyfz = J[..., n:, :n] @ J[..., :n, n:]
-            rows[..., two, :] = gyfz[..., two, :]
-        sign = torch_sign_det(rows)  # (B, s)
-        signs = sign if self._det_sign is None else self.torch.cat([self._det_sign[:, None], sign], dim=1)
-        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(dim=1)
+        signs = self.engine.z_matrix_sign(J)  # (B,), or (B, s) for the stages of one step
+        signs = signs[:, None] if signs.ndim == 1 else signs
+        if self._det_sign is not None:
+            signs = self.xp.concatenate([self._det_sign[:, None], signs], axis=1)
+        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(axis=1)
         if bool(flips.any()):
-            sample = int(self.torch.nonzero(flips)[0])
+            sample = self.engine.first(flips)
             names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
             raise ConvergenceError(
                 f"radau: the constraints ({names}) stop determining the algebraic variables between t = "
-                f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration matrix "
-                "(g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not determined "
-                "and may blow up; end t_span before that time or reformulate the constraints"
+                f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration "
+                "matrix (g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not "
+                "determined and may blow up; end t_span before that time or reformulate the constraints"
             )
-        self._det_sign, self._det_time = sign[:, -1], t
+        self._det_sign, self._det_time = signs[:, -1], t
 
-    def current_lu(self, J, t, h):
-        if self._lu is None or self._lu[2] != h:
-            LU, pivots = self.factor(self.newton_matrix(J, h), t, h, "Newton matrix")
-            self._lu = (LU, pivots, h)
-        return self._lu[0], self._lu[1]
+    def current_lu(self, J, t, h, error_only=False):
+        """The factored transformed systems of ``J`` for step ``h`` (kept while both are unchanged), or
+        (``error_only``) the error estimate's system alone."""
+        if self._lu is None or self._lu.h != h or not (self._lu.complete or error_only):
+            self._lu = self.factor(J, t, h, error_only)
+        return self._lu
 
     def _shrink(self, h, t, why, sample, factor):
         new = h * factor
@@ -803,18 +767,18 @@ class _Stepper:
 
     def initial_step(self, t_span) -> float:
         """``0.01 |u0| / |f(u0)|`` in the error norm, capped by the interval (Hairer-Wanner's first guess)."""
-        torch = self.torch
+        xp = self.xp
         t0, t1 = t_span
-        f0 = self.tf.f(t0, self.y, self.z, self.p)
-        sc = self.atol + self.rtol * self.y.abs()
-        d0 = float(torch.sqrt(torch.mean((self.y / sc) ** 2, dim=-1)).max())
-        d1 = float(torch.sqrt(torch.mean((f0 / sc) ** 2, dim=-1)).max()) if self.n else 0.0
+        f0 = self.start_f(t0)
+        sc = self.atol + self.rtol * xp.abs(self.y)
+        d0 = float(self.rms(self.y / sc).max()) if self.n else 0.0
+        d1 = float(self.rms(f0 / sc).max()) if self.n else 0.0
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
         return min(h0, t1 - t0)
 
     def dense_output(self, t_out, u0, t0, steps):
-        """Values at ``t_out`` from each step's collocation polynomial through (t_n, u_n), (t_n + c_i h, U_i)."""
-        torch = self.torch
+        """Values at ``t_out`` from each step's collocation polynomial through (t_n, u_n), (t_n + c_i h, W_i)."""
+        xp = self.xp
         nodes = np.concatenate([[0.0], self.tableau.c])
         rows = []
         k = 0
@@ -824,19 +788,22 @@ class _Stepper:
                 continue
             while k < len(steps) - 1 and time_point > steps[k][0] + steps[k][1] * (1 + 1e-13):
                 k += 1
-            t_n, h, u_start, U = steps[k]
-            L = torch.tensor(_lagrange(nodes, np.array([(time_point - t_n) / h])), dtype=self.dtype, device=self.device)
-            rows.append(torch.einsum("j,bjk->bk", L[0], torch.cat([u_start[:, None, :], U], dim=1)))
-        values = torch.stack(rows, dim=1)
-        return np.asarray(t_out, dtype=float), values.detach().cpu().double().numpy()
+            t_n, h, u_start, W = steps[k]
+            L = self.engine.asarray(_lagrange(nodes, np.array([(time_point - t_n) / h]))[0])
+            rows.append(xp.einsum("j,bjk->bk", L, xp.concatenate([u_start[:, None, :], W], axis=1)))
+        return np.asarray(t_out, dtype=float), _numpy(xp.stack(rows, axis=1))
 
 
-def torch_sign_det(matrices):
-    """Sign of the determinant of each matrix in a stack (+1, -1, or 0), from an LU factorisation."""
-    import torch
+def _host(values) -> np.ndarray:
+    """A numpy view or copy of an engine's array, of its own dtype."""
+    return values if isinstance(values, np.ndarray) else values.detach().cpu().numpy()
 
-    sign, _ = torch.linalg.slogdet(matrices)
-    return sign
+
+def _numpy(values) -> np.ndarray:
+    """A float64 numpy copy of an engine's array."""
+    if isinstance(values, np.ndarray):
+        return values.astype(float, copy=False)
+    return values.detach().cpu().double().numpy()
 
 
 def _lagrange(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -126,6 +126,12 @@ class TorchPrinter(StrPrinter):
         return f"(~({self._print(expr.args[0])}))"
 
 
+def _tuple(items) -> str:
+    """Python source of a tuple of source items."""
+    items = list(items)
+    return f"({', '.join(items)},)" if items else "()"
+
+
 def _literal(value: float) -> str:
     """A float as Python source; non-finite values through ``math`` (``repr`` gives ``inf``, a NameError)."""
     if math.isnan(value):
@@ -154,7 +160,7 @@ def local_names(groups: dict) -> dict:
             name = s.name
             if not _IDENTIFIER.fullmatch(name):
                 raise ValueError(f"refusing to emit the symbol name {name!r}")  # the front end validates names
-            while name in _RESERVED or keyword.iskeyword(name) or name in names.values():
+            while name in _RESERVED or name.startswith("_layout") or keyword.iskeyword(name) or name in names.values():
                 name += "_"
             names[s] = name
     return names
@@ -182,15 +188,24 @@ def torch_source(fname: str, exprs, comments, t, groups: dict, doc: str) -> str:
     printer = TorchPrinter(names)
     replacements, reduced = sp.cse(list(exprs), symbols=sp.numbered_symbols("_c"), order="none")
     used = set().union(*(e.free_symbols for e in reduced), *(e.free_symbols for _, e in replacements))
-    lines = [f"def {fname}(t, y, z, p=None):", f'    """{doc}"""', "    t, p = _prepare(t, y, z, p)"]
+    # constant outputs (e.g. the 1 of d x / d u) are placed by one assignment, not one per entry
+    constant = [i for i, e in enumerate(reduced) if not e.free_symbols]
+    varying = [i for i, e in enumerate(reduced) if e.free_symbols]
+    lines = []
+    if constant:
+        values = ", ".join(_literal(float(reduced[i])) for i in constant)
+        lines.append(f"_layout_{fname} = ({_tuple(map(str, varying))}, {_tuple(map(str, constant))}, ({values},))")
+    else:
+        lines.append(f"_layout_{fname} = None")
+    lines += [f"def {fname}(t, y, z, p=None):", f'    """{doc}"""', "    t, p = _prepare(t, y, z, p)"]
     for arg, symbols in groups.items():
         lines += [f"    {names[s]} = {arg}[..., {i}]" for i, s in enumerate(symbols) if s in used]
     for sym, sub in replacements:
         names[sym] = sym.name
         lines.append(f"    {sym.name} = {printer.doprint(sub)}")
     lines.append("    return _stack((")
-    lines += [f"        {printer.doprint(e)},  # {note}" for e, note in zip(reduced, comments, strict=True)]
-    lines.append("    ), t, y, z, p)")
+    lines += [f"        {printer.doprint(reduced[i])},  # {comments[i]}" for i in varying]
+    lines.append(f"    ), t, y, z, p, _layout_{fname})")
     return "\n".join(lines) + "\n"
 
 
@@ -212,9 +227,11 @@ class TorchFunctions:
         Eliminated alias variables, in ``alias_names`` order.
     invariants : callable -> Tensor (..., i)
         The original constraints, in ``invariant_names`` order (for drift).
-    jacobian : callable -> Tensor (..., (n+m)**2), or None
-        ``d(f, g)/d(y, z)`` row-major (reshape to ``(..., n+m, n+m)``); None when a derivative
-        leaves the supported functions (e.g. of ``Abs``), and solvers use autograd instead.
+    jacobian : callable -> Tensor (..., nnz), or None
+        The entries of ``d(f, g)/d(y, z)`` at ``jacobian_pattern`` (the rest are zero); None
+        when a derivative leaves the supported functions (e.g. of ``Abs``), and solvers use
+        autograd instead.
+    jacobian_pattern : (rows, cols) of int arrays (nnz,), or None
     parameters : Tensor (k,)
         The default parameter values.
     source : dict name -> str
@@ -227,12 +244,15 @@ class TorchFunctions:
     invariants: object
     parameters: object
     jacobian: object
+    jacobian_pattern: object
     dtype: object
     device: object
     source: dict = field(repr=False)
 
 
-def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model: str) -> TorchFunctions:
+def build_torch_functions(
+    specs, sizes: tuple[int, int, int], parameters, model: str, jacobian_pattern=None
+) -> TorchFunctions:
     """Compile generated sources into callables.
 
     Parameters
@@ -240,6 +260,8 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
     specs : dict name -> source
     sizes : (n, m, k)
     parameters : Tensor (k,)
+    jacobian_pattern : (rows, cols), optional
+        Where the ``jacobian`` source's outputs sit in ``d(f, g)/d(y, z)``.
     """
     import torch
 
@@ -253,16 +275,29 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
                 raise ShapeError(f"model '{model}': {arg} must have shape (..., {size}); got {tuple(value.shape)}")
         return torch.as_tensor(t, dtype=y.dtype, device=y.device), p
 
-    def _stack(values, t, y, z, p):
+    def _stack(values, t, y, z, p, layout):
+        """The outputs as one tensor (..., len): ``values`` are the varying ones; ``layout`` is
+        None, or (their positions, the constants' positions, the constants)."""
         shape = _broadcast_shape(t.shape, y.shape[:-1], z.shape[:-1], p.shape[:-1])
-        if not values:
-            return y.new_zeros((*shape, 0))
-        if all(isinstance(v, torch.Tensor) and v.shape == shape and v.dtype == y.dtype for v in values):
-            return torch.stack(values, dim=-1)  # the common case, without copies
-        return torch.stack(
-            [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
-            dim=-1,
-        )
+        full = all(isinstance(v, torch.Tensor) and v.shape == shape and v.dtype == y.dtype for v in values)
+        if layout is None:
+            if not values:
+                return y.new_zeros((*shape, 0))
+            if full:
+                return torch.stack(values, dim=-1)  # the common case, without copies
+            return torch.stack(
+                [torch.broadcast_to(torch.as_tensor(v, dtype=y.dtype, device=y.device), shape) for v in values],
+                dim=-1,
+            )
+        varying, constant, constants = layout
+        out = y.new_empty((*shape, len(varying) + len(constant)))
+        out[..., list(constant)] = y.new_tensor(constants)
+        if full and values:
+            out[..., list(varying)] = torch.stack(values, dim=-1)
+        else:
+            for i, v in zip(varying, values, strict=True):
+                out[..., i] = v
+        return out
 
     out = {}
     for name, source in specs.items():
@@ -278,6 +313,7 @@ def build_torch_functions(specs, sizes: tuple[int, int, int], parameters, model:
         invariants=out["invariants"],
         parameters=parameters,
         jacobian=out.get("jacobian"),
+        jacobian_pattern=jacobian_pattern if "jacobian" in out else None,
         dtype=parameters.dtype,
         device=parameters.device,
         source=dict(specs),

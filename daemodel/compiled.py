@@ -143,6 +143,9 @@ class CompiledDAE:
                 f"reduced(index={index!r}): the target must be an integer from 1 to the current "
                 f"index {self.index} of '{self.name}'"
             )
+        key = ("reduced", index)
+        if key in self._cache:  # the same reduction, with its generated code, for every solve
+            return self._cache[key]
         constraints = tuple(
             Constraint(c.level_name(c.index - index), c.number, c.chain[c.index - index :]) if c.index > index else c
             for c in self.constraints
@@ -151,13 +154,14 @@ class CompiledDAE:
             ", ".join(f"{a.name} -> {b.name}" for a, b in zip(self.constraints, constraints, strict=True) if a is not b)
             or "nothing to differentiate"
         )
-        return replace(
+        self._cache[key] = replace(
             self,
             constraints=constraints,
             notes=(*self.notes, note),
             reduced_from=self.reduced_from or self.index,
             _cache={},
         )
+        return self._cache[key]
 
     # ---- code generation ----------------------------------------------------------------
     def _groups(self) -> dict:
@@ -207,23 +211,40 @@ class CompiledDAE:
                 check_supported(expr, f"model '{self.name}', {fname}: {label}")
         return outputs
 
+    def jacobian_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(rows, cols)`` of the entries of ``d(f, g)/d(y, z)`` that are not identically zero.
+
+        Read from each equation's free symbols (no differentiation), in row-major order; a
+        solver evaluates, stores and factors only these.  Cached.
+        """
+        if "pattern" not in self._cache:
+            unknowns = {v: j for j, v in enumerate((*self.states, *self.algebraics))}
+            rows, cols = [], []
+            for i, row in enumerate((*self.rhs, *self.g)):
+                found = sorted(unknowns[v] for v in row.free_symbols if v in unknowns)
+                rows += [i] * len(found)
+                cols += found
+            self._cache["pattern"] = (np.array(rows, dtype=np.int64), np.array(cols, dtype=np.int64))
+        return self._cache["pattern"]
+
     def _jacobian_output(self):
-        """``d(f, g)/d(y, z)`` flattened row-major, or None if a derivative is not emittable."""
+        """The nonzero entries of ``d(f, g)/d(y, z)`` (see :meth:`jacobian_pattern`), or None if a
+        derivative is not emittable.  Each equation is differentiated only by the variables in it."""
         rows = [*self.rhs, *self.g]
         unknowns = [*self.states, *self.algebraics]
+        row_names = self.state_names + self.constraint_names
         labels, comments, exprs = [], [], []
-        for i, row in enumerate(rows):
-            row_name = (self.state_names + self.constraint_names)[i]
-            for j, v in enumerate(unknowns):
-                expr = sp.diff(row, v)
-                try:
-                    check_supported(expr, "jacobian")
-                except UnsupportedFunctionError:
-                    return None
-                exprs.append(expr)
-                labels.append(f"d {row_name} / d {v.name}")
-                comments.append(f"row {i}, column {j}")
-        return tuple(exprs), labels, comments, "Jacobian d(f, g)/d(y, z), row-major, shape (..., (n+m)**2)."
+        for i, j in zip(*self.jacobian_pattern(), strict=True):
+            expr = sp.diff(rows[i], unknowns[j])
+            try:
+                check_supported(expr, "jacobian")
+            except UnsupportedFunctionError:
+                return None
+            exprs.append(expr)
+            labels.append(f"d {row_names[i]} / d {unknowns[j].name}")
+            comments.append(f"row {i}, column {j}")
+        doc = "Jacobian d(f, g)/d(y, z): the entries of jacobian_pattern, shape (..., nnz)."
+        return tuple(exprs), labels, comments, doc
 
     def torch_functions(self, dtype=None, device=None):
         """Batched torch callables ``f``, ``g``, ``aliases``, ``invariants`` (cached).
@@ -255,7 +276,8 @@ class CompiledDAE:
                 specs[fname] = torch_source(fname, exprs, comments, self.t, self._groups(), doc)
             parameters = torch.tensor(self.parameter_values.copy(), dtype=dtype, device=device)
             sizes = (len(self.states), len(self.algebraics), len(self.parameters))
-            self._cache[key] = build_torch_functions(specs, sizes, parameters, self.name)
+            pattern = self.jacobian_pattern() if jacobian is not None else None
+            self._cache[key] = build_torch_functions(specs, sizes, parameters, self.name, pattern)
         return self._cache[key]
 
     def casadi_dae(self) -> dict:

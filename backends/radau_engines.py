@@ -1,0 +1,556 @@
+"""The two engines of ``method="radau"``: who evaluates residuals and Jacobians and factors matrices.
+
+The algorithm (step control, error estimate, Newton strategy) is written once, in
+:mod:`daemodel.backends.radau`, on the arrays of an engine's ``xp`` (numpy or torch, whose
+functions share numpy's names).  An engine supplies only the numerical kernels:
+
+- :class:`TorchEngine`: the compiler's batched torch functions (any batch, any device, float32
+  or float64), a Jacobian from the compiler's sparse symbolic derivatives scattered into dense
+  matrices (forward-mode autograd where a derivative leaves the emitters), batched dense LU.
+- :class:`CasadiEngine`: one trajectory on CPU in float64, with casadi-compiled residual,
+  right-hand side and sparse Jacobian (casadi's AD), dense LAPACK LU for small systems and
+  SuperLU for large sparse ones; no torch code generation and no per-operation dispatch.
+
+Linear algebra follows RADAU5 (Hairer & Wanner, Solving ODEs II, IV.8): with one Jacobian ``J``
+per step, the Newton matrix of the s stages, ``(h A)^-1 (x) M - I (x) J`` with ``M = diag(I, 0)``,
+is block-diagonalised by ``A^-1 = T Lambda T^-1`` into one real system ``(gamma / h) M - J`` per
+real eigenvalue and one complex system ``((alpha + i beta) / h) M - J`` per complex pair, each of
+size n + m (:class:`StageTransform`): for s = 3, one real and one complex LU of size n + m
+instead of one real LU of size 3(n + m), about five times less work.
+"""
+
+from __future__ import annotations
+
+import warnings
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemodel.collocation import stage_residual
+
+# casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
+# more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
+# project's CPU: at 100 unknowns a dense LU of a 3 %-full matrix is ~0.1 ms, as SuperLU's overhead.
+DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
+# T Lambda T^-1 must reproduce A^-1 to this relative accuracy (float64 eigenvectors of A^-1).
+TRANSFORM_CHECK = 1e-12
+
+
+@dataclass(frozen=True)
+class StageTransform:
+    """``A^-1 = T Lambda T^-1`` with ``Lambda`` real block-diagonal, and the shifts of the blocks.
+
+    Attributes
+    ----------
+    T, T_inv, T_inv_A_inv : ndarray (s, s)
+    blocks : tuple of (k, eigenvalue)
+        Real eigenvalue ``gamma``: stage k of the transformed system alone.  Complex
+        ``alpha + i beta`` (beta > 0): stages k, k+1 as one complex system.
+    gamma0 : float
+        The error estimate's ``gamma0`` (:func:`~daemodel.backends.radau.embedded_weights`); its
+        matrix is ``(1 / (h gamma0)) M - J``, the real block itself when s is odd.
+    """
+
+    T: np.ndarray
+    T_inv: np.ndarray
+    T_inv_A_inv: np.ndarray
+    blocks: tuple
+    gamma0: float
+
+    @classmethod
+    def of(cls, A: np.ndarray, gamma0: float) -> StageTransform:
+        A_inv = np.linalg.inv(A)
+        eig, vectors = np.linalg.eig(A_inv)
+        columns, blocks, diagonal = [], [], []
+        for lam, v in sorted(zip(eig, vectors.T, strict=True), key=lambda pair: (pair[0].real, pair[0].imag)):
+            if abs(lam.imag) < 1e-12:
+                blocks.append((len(columns), complex(lam.real)))
+                columns.append(v.real / np.linalg.norm(v.real))
+                diagonal.append(np.array([[lam.real]]))
+            elif lam.imag > 0:  # its conjugate gives the same pair
+                blocks.append((len(columns), complex(lam)))
+                columns += [v.real, -v.imag]  # A^-1 [vr, -vi] = [vr, -vi] [[alpha, -beta], [beta, alpha]]
+                diagonal.append(np.array([[lam.real, -lam.imag], [lam.imag, lam.real]]))
+        T = np.array(columns).T
+        T_inv = np.linalg.inv(T)
+        Lam = np.zeros_like(A_inv)
+        k = 0
+        for d in diagonal:
+            Lam[k : k + len(d), k : k + len(d)] = d
+            k += len(d)
+        if np.abs(T @ Lam @ T_inv - A_inv).max() > TRANSFORM_CHECK * np.abs(A_inv).max():
+            raise ArithmeticError("radau: the eigen-decomposition of A^-1 is inaccurate")  # daemodel's own bug
+        return cls(T=T, T_inv=T_inv, T_inv_A_inv=T_inv @ A_inv, blocks=tuple(blocks), gamma0=gamma0)
+
+    def shifts(self, h: float) -> tuple:
+        """The shifts ``sigma`` of every ``sigma M - J`` to factor for step ``h``: the blocks',
+        then the error estimate's (the real block's when s is odd)."""
+        out = [lam / h for _, lam in self.blocks]
+        error = complex(1.0 / (h * self.gamma0))
+        if not any(abs(sigma - error) <= 1e-12 * abs(error) for sigma in out):
+            out.append(error)
+        return tuple(out)
+
+
+@dataclass
+class Factors:
+    """The factored systems of one Jacobian and step: ``lu`` by shift, and which samples are singular."""
+
+    h: float
+    shifts: tuple
+    lu: dict
+    singular: object
+    error_shift: complex
+    complete: bool = True  # False: the error estimate's system alone
+
+
+@dataclass
+class StageFactors:
+    """The factored full Newton matrix of per-stage Jacobians (no Kronecker structure)."""
+
+    lu: object
+    singular: object
+
+
+@dataclass
+class Residual:
+    """One evaluation of the stage equations: ``R (B, s, n+m)`` = [F, G] per stage, and f and g at the stages."""
+
+    R: object
+    stage_f: object
+    G: object
+
+
+class AbstractEngine(ABC):
+    """Numerical kernels of ``method="radau"`` on one backend of arrays (see the module docstring).
+
+    ``y (B, n)``, ``z (B, m)``, stage values ``W (B, s, n+m)``; ``t`` and ``h`` are floats.
+    """
+
+    name: str
+    xp: object
+
+    def __init__(self, compiled, start, tableau, transform: StageTransform):
+        self.compiled, self.tableau, self.transform = compiled, tableau, transform
+        self.s, self.n, self.m = tableau.stages, len(compiled.states), len(compiled.algebraics)
+        self.D = self.n + self.m
+        self.index2_rows = np.array([c.index == 2 for c in compiled.constraints], dtype=bool)
+
+    @abstractmethod
+    def asarray(self, values):
+        """An array of this engine (its dtype and device) from numpy values."""
+
+    @abstractmethod
+    def f(self, t: float, y, z):
+        """``f(t, y, z)``, shape (B, n)."""
+
+    @abstractmethod
+    def residual(self, t: float, h: float, y, W) -> Residual:
+        """The stage equations of :func:`daemodel.collocation.stage_residual`."""
+
+    @abstractmethod
+    def jacobian(self, t: float, y, z):
+        """``[f_y f_z; g_y g_z]`` at one point per sample (an engine-specific matrix)."""
+
+    @abstractmethod
+    def stage_jacobians(self, t: float, h: float, W):
+        """The Jacobian at each stage of ``W`` (for full Newton)."""
+
+    @abstractmethod
+    def z_matrix_sign(self, J):
+        """Sign of det of the algebraic variables' iteration matrix (rows ``g_z`` at index 1,
+        ``g_y f_z`` at index 2), shape (B,)."""
+
+    @abstractmethod
+    def _factor_shift(self, J, sigma: complex):
+        """Factor ``sigma M - J``: ``(lu, singular (B,))``."""
+
+    @abstractmethod
+    def solve(self, lu, rhs):
+        """Solve one factored ``sigma M - J`` system, ``rhs (B, n+m)`` real or complex."""
+
+    @abstractmethod
+    def factor_stages(self, stage_J, h: float) -> StageFactors:
+        """Factor the full Newton matrix of the stage equations with per-stage Jacobians."""
+
+    @abstractmethod
+    def solve_stages(self, factors: StageFactors, R):
+        """Solve the full Newton system ``N dW = -R``, ``R (B, s, n+m)``."""
+
+    @abstractmethod
+    def first(self, mask) -> int:
+        """Index of the first True of a (B,) mask."""
+
+    def newton_increment(self, factors, R):
+        """``dW`` solving the Newton system ``N dW = -R`` (``R (B, s, n+m)``), through the
+        transformed systems of ``factors`` or the full matrix of :class:`StageFactors`."""
+        if isinstance(factors, StageFactors):
+            return self.solve_stages(factors, R)
+        xp, n, h, tr = self.xp, self.n, factors.h, self.transform
+        T, T_inv, T_inv_A_inv = self._transform_arrays()
+        # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs
+        rhs = xp.concatenate(
+            [-xp.einsum("ki,bin->bkn", T_inv_A_inv, R[..., :n]) / h, xp.einsum("ki,bim->bkm", T_inv, R[..., n:])],
+            axis=-1,
+        )
+        parts = []
+        for (k, lam), shift in zip(tr.blocks, factors.shifts, strict=False):
+            lu = factors.lu[shift]
+            if lam.imag == 0:
+                parts.append(self.solve(lu, rhs[:, k]))
+            else:
+                w = self.solve(lu, rhs[:, k] + 1j * rhs[:, k + 1])
+                parts += [w.real, w.imag]
+        dV = xp.stack(parts, axis=1)
+        return xp.einsum("ij,bjd->bid", T, dV)
+
+    def error_solve(self, factors: Factors, rhs):
+        """Solve ``((1 / (h gamma0)) M - J) err = rhs`` (the error estimate's matrix)."""
+        return self.solve(factors.lu[factors.error_shift], rhs).real
+
+    def _transform_arrays(self):
+        if not hasattr(self, "_T"):
+            tr = self.transform
+            self._T = tuple(self.asarray(a) for a in (tr.T, tr.T_inv, tr.T_inv_A_inv))
+        return self._T
+
+    def factor(self, J, h: float, error_only: bool = False) -> Factors:
+        """Factor ``sigma M - J`` for every shift of :meth:`StageTransform.shifts`, or (``error_only``)
+        for the error estimate's alone."""
+        shifts = self.transform.shifts(h)
+        target = 1.0 / (h * self.transform.gamma0)
+        error = min(shifts, key=lambda sigma: abs(sigma - target))
+        lu, singular = {}, None
+        for sigma in (error,) if error_only else shifts:
+            lu[sigma], bad = self._factor_shift(J, sigma)
+            singular = bad if singular is None else singular | bad
+        return Factors(h=h, shifts=shifts, lu=lu, singular=singular, error_shift=error, complete=not error_only)
+
+
+class TorchEngine(AbstractEngine):
+    """Batched kernels in torch (see the module docstring)."""
+
+    name = "torch"
+
+    def __init__(self, compiled, start, tableau, transform, dtype, device):
+        import torch
+
+        super().__init__(compiled, start, tableau, transform)
+        self.xp = self.torch = torch
+        self.dtype, self.device = dtype, device
+        self.complex_dtype = torch.complex128 if dtype == torch.float64 else torch.complex64
+        self.tf = compiled.torch_functions(dtype=dtype, device=device)
+        self.A, self.b, self.c = tableau.to_torch(dtype, device)
+        self.p = self.asarray(start.p)
+        self.B = start.size
+        pattern = self.tf.jacobian_pattern
+        self._flat = None if pattern is None else torch.as_tensor(pattern[0] * self.D + pattern[1], device=device)
+        self._diag = torch.arange(self.n, device=device)
+        self._index2 = torch.as_tensor(self.index2_rows, device=device)
+
+    def asarray(self, values):
+        return self.torch.tensor(np.asarray(values), dtype=self.dtype, device=self.device)
+
+    def f(self, t, y, z):
+        return self.tf.f(t, y, z, self.p)
+
+    def residual(self, t, h, y, W):
+        n = self.n
+        r = stage_residual(self.tf, self.A, self.b, self.c, t, h, y, W[..., :n], W[..., n:], self.p)
+        return Residual(R=self.torch.cat([r.F, r.G], dim=-1), stage_f=r.stage_f, G=r.G)
+
+    def jacobian(self, t, y, z):
+        """``(B, D, D)`` for ``y (B, n)``, ``(B, s, D, D)`` for ``y (B, s, n)`` with ``t (s,)``."""
+        torch = self.torch
+        D, lead = self.D, y.shape[:-1]
+        t = torch.as_tensor(t, dtype=self.dtype, device=self.device)
+        p = self.p.reshape(self.B, *([1] * (len(lead) - 1)), -1)
+        if self.tf.jacobian is not None:  # the compiler's symbolic Jacobian, its nonzeros only
+            values = self.tf.jacobian(t, y, z, p)
+            J = values.new_zeros((*lead, D * D))
+            J[..., self._flat] = values
+            return J.reshape(*lead, D, D)
+        return self._forward_ad(t, y, z, p, lead)
+
+    def _forward_ad(self, t, y, z, p, lead):
+        """Forward-mode AD through the generated f and g, all D directions at once."""
+        torch = self.torch
+        import torch.autograd.forward_ad as fwAD
+
+        n, m, D = self.n, self.m, self.D
+        eye = torch.eye(D, dtype=self.dtype, device=self.device)
+        t, p = t[..., None], p[..., None, :]  # a new axis for the D directions
+
+        def directions(x, columns):
+            shape = (*lead, D, x.shape[-1])
+            return x[..., None, :].expand(shape).clone(), columns.expand(shape).clone()
+
+        with warnings.catch_warnings(), fwAD.dual_level():
+            # torch's forward-AD decompositions still call torch.jit.script on first use
+            warnings.filterwarnings("ignore", message=".*torch.jit.script.*deprecated", category=DeprecationWarning)
+            yd = fwAD.make_dual(*directions(y, eye[:, :n]))
+            zd = fwAD.make_dual(*directions(z, eye[:, n:]))
+            columns = []
+            for fn, size in ((self.tf.f, n), (self.tf.g, m)):
+                tangent = fwAD.unpack_dual(fn(t, yd, zd, p)).tangent
+                columns.append(y.new_zeros((*lead, D, size)) if tangent is None else tangent)
+        return torch.cat(columns, dim=-1).transpose(-1, -2).contiguous()
+
+    def stage_jacobians(self, t, h, W):
+        n = self.n
+        return self.jacobian(t + self.c * h, W[..., :n], W[..., n:])
+
+    def z_matrix_sign(self, J):
+        n = self.n
+        rows = J[..., n:, n:].clone()  # g_z, (B, m, m)
+        if self.index2_rows.any():
+            gyfz = J[..., n:, :n] @ J[..., :n, n:]
+            rows[..., self._index2, :] = gyfz[..., self._index2, :]
+        return self.torch.linalg.slogdet(rows)[0]
+
+    def _factor_shift(self, J, sigma):
+        torch = self.torch
+        if sigma.imag == 0:
+            matrix = -J
+            matrix.diagonal(dim1=-2, dim2=-1)[..., self._diag] += sigma.real
+        else:
+            matrix = (-J).to(self.complex_dtype)
+            matrix.diagonal(dim1=-2, dim2=-1)[..., self._diag] += sigma
+        LU, pivots, info = torch.linalg.lu_factor_ex(matrix)
+        return (LU, pivots), info > 0
+
+    def solve(self, lu, rhs):
+        LU, pivots = lu
+        if LU.is_complex() and not rhs.is_complex():
+            rhs = rhs.to(LU.dtype)
+        return self.torch.linalg.lu_solve(LU, pivots, rhs[..., None])[..., 0]
+
+    def factor_stages(self, stage_J, h):
+        torch = self.torch
+        s, n, D, B = self.s, self.n, self.D, self.B
+        # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage:
+        # dF_i/dU_j = delta_ij [I 0] - h a_ij [f_y f_z](stage j);  dG_i/dU_i = [g_y g_z](stage i)
+        N = stage_J.new_zeros((B, s, D, s, D))
+        N[:, :, :n] = (-h * self.A[None, :, None, :, None]) * stage_J[:, None, :, :n, :].permute(0, 1, 3, 2, 4)
+        for i in range(s):
+            N[:, i, n:, i, :] = stage_J[:, i, n:, :]
+            N[:, i, :n, i, :n] += torch.eye(n, dtype=self.dtype, device=self.device)
+        LU, pivots, info = torch.linalg.lu_factor_ex(N.reshape(B, s * D, s * D))
+        return StageFactors(lu=(LU, pivots), singular=info > 0)
+
+    def solve_stages(self, factors, R):
+        LU, pivots = factors.lu
+        B, s, D = R.shape
+        return self.torch.linalg.lu_solve(LU, pivots, -R.reshape(B, s * D, 1)).reshape(B, s, D)
+
+    def first(self, mask):
+        return int(self.torch.nonzero(mask)[0])
+
+
+class CasadiEngine(AbstractEngine):
+    """One trajectory in float64 on casadi-compiled functions and scipy's LU (see the module docstring)."""
+
+    name = "casadi"
+
+    def __init__(self, compiled, start, tableau, transform):
+        import casadi
+
+        super().__init__(compiled, start, tableau, transform)
+        self.xp = np
+        self.B = 1
+        s, n = self.s, self.n
+        self.p = np.asarray(start.p, dtype=float)[0]
+        dae = compiled.casadi_dae()
+        t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
+        # every function takes one packed vector and returns one (a call costs ~20 us per argument)
+        point = casadi.vertcat(t, x, z, p)
+        f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+        g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
+        self._f = casadi.Function("f", [point], [dae["ode"]])
+        # the stage equations of daemodel.collocation.stage_residual, as one compiled function of
+        # [t, h, y_n, W (stage by stage [Y_i, Z_i]), p] -> [R (stage by stage [F_i, G_i]), f at the stages]
+        h, y_n, W = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("W", s * self.D)
+        A, c = tableau.A, tableau.c
+        Y = [W[i * self.D : i * self.D + n] for i in range(s)]
+        Z = [W[i * self.D + n : (i + 1) * self.D] for i in range(s)]
+        stage_f = [f(t + float(c[i]) * h, Y[i], Z[i], p) for i in range(s)]
+        rows = []
+        for i in range(s):
+            quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
+            rows += [Y[i] - y_n - h * quadrature, g(t + float(c[i]) * h, Y[i], Z[i], p)]
+        packed = casadi.vertcat(t, h, y_n, W, p)
+        self._residual = casadi.Function("residual", [packed], [casadi.vertcat(*rows, *stage_f)])
+        jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
+        rows, cols = jac.sparsity().get_triplet()
+        self._jac = casadi.Function("jacobian", [point], [jac.nz[:]])
+        self.rows, self.cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        D = self.D
+        self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
+        if not self.dense:
+            self._sparse_layout()
+
+    def _sparse_layout(self):
+        """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
+        n, D = self.n, self.D
+        keys_J = self.cols * D + self.rows  # CSC order: by column, then row
+        keys_M = np.arange(n) * D + np.arange(n)
+        keys = np.unique(np.concatenate([keys_J, keys_M]))
+        indptr = np.searchsorted(keys // D, np.arange(D + 1))
+        self._csc = (keys % D, indptr, len(keys))
+        self._pos_J, self._pos_M = np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+
+    def asarray(self, values):
+        return np.array(values, dtype=float)
+
+    def f(self, t, y, z):
+        return self._f(np.concatenate([[t], y[0], z[0], self.p])).full().T
+
+    def residual(self, t, h, y, W):
+        s, n, D = self.s, self.n, self.D
+        out = self._residual(np.concatenate([[t, h], y[0], W.ravel(), self.p])).full().ravel()
+        R = out[: s * D].reshape(1, s, D)
+        return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
+
+    def jacobian(self, t, y, z):
+        return self._jac(np.concatenate([[t], y[0], z[0], self.p])).full().ravel()
+
+    def stage_jacobians(self, t, h, W):
+        n = self.n
+        return [self.jacobian(t + float(c) * h, W[:, i, :n], W[:, i, n:]) for i, c in enumerate(self.tableau.c)]
+
+    def _dense(self, values) -> np.ndarray:
+        J = np.zeros((self.D, self.D))
+        J[self.rows, self.cols] = values
+        return J
+
+    def _csr(self, values):
+        import scipy.sparse as sparse
+
+        return sparse.csr_matrix((values, (self.rows, self.cols)), shape=(self.D, self.D))
+
+    def z_matrix_sign(self, values):
+        if isinstance(values, list):  # the stages' Jacobians: (1, s)
+            return np.array([[self.z_matrix_sign(v)[0] for v in values]])
+        n = self.n
+        if self.dense:
+            J = self._dense(values)
+            rows = J[n:, n:].copy()
+            if self.index2_rows.any():
+                rows[self.index2_rows] = (J[n:, :n] @ J[:n, n:])[self.index2_rows]
+            return np.array([np.linalg.slogdet(rows)[0]])
+        import scipy.sparse as sparse
+
+        J = self._csr(values)
+        rows = J[n:, n:]
+        if self.index2_rows.any():
+            pick = sparse.diags(self.index2_rows.astype(float))
+            rows = rows - pick @ rows + pick @ (J[n:, :n] @ J[:n, n:])
+        return np.array([_sparse_sign_det(rows.tocsc())])
+
+    def _factor_shift(self, values, sigma):
+        real = sigma.imag == 0
+        if self.dense:
+            matrix = -self._dense(values) if real else -self._dense(values).astype(complex)
+            matrix[np.arange(self.n), np.arange(self.n)] += sigma.real if real else sigma
+            return _dense_lu(matrix)
+        import scipy.sparse as sparse
+
+        indices, indptr, nnz = self._csc
+        data = np.zeros(nnz, dtype=float if real else complex)
+        data[self._pos_J] = -values
+        data[self._pos_M] += sigma.real if real else sigma
+        return _sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)))
+
+    def solve(self, lu, rhs):
+        kind = lu[0]
+        if kind == "dense":
+            LU, piv, getrs = lu[1:]
+            if not np.iscomplexobj(LU) and np.iscomplexobj(rhs):
+                return (getrs(LU, piv, rhs[0].real)[0] + 1j * getrs(LU, piv, rhs[0].imag)[0])[None]
+            return getrs(LU, piv, rhs[0])[0][None]
+        if kind == "singular":
+            return np.full_like(rhs, np.nan)
+        return lu[1].solve(rhs[0])[None]
+
+    def factor_stages(self, stage_J, h):
+        s, n, m, D = self.s, self.n, self.m, self.D
+        A = self.tableau.A
+        if self.dense:
+            # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage (see TorchEngine.factor_stages)
+            Js = np.stack([self._dense(v) for v in stage_J])  # (s, D, D)
+            N = np.zeros((s, D, s, D))
+            N[:, :n] = (-h * A[:, None, :, None]) * Js[None, :, :n, :].transpose(0, 2, 1, 3)
+            for i in range(s):
+                N[i, n:, i, :] = Js[i, n:, :]
+                N[i, :n, i, :n] += np.eye(n)
+            lu, singular = _dense_lu(N.reshape(s * D, s * D))
+            return StageFactors(lu=lu, singular=singular)
+        import scipy.sparse as sparse
+
+        blocks = [[None] * s for _ in range(s)]
+        for j in range(s):
+            Jj = self._csr(stage_J[j])
+            for i in range(s):
+                top = -h * float(A[i, j]) * Jj[:n, :]
+                if i == j:
+                    blocks[i][j] = sparse.vstack([top + sparse.eye(n, D, format="csr"), Jj[n:, :]])
+                else:
+                    blocks[i][j] = sparse.vstack([top, sparse.csr_matrix((m, D))])
+        lu, singular = _sparse_lu(sparse.bmat(blocks, format="csc"))
+        return StageFactors(lu=lu, singular=singular)
+
+    def solve_stages(self, factors, R):
+        s, D = self.s, self.D
+        return self.solve(factors.lu, -R.reshape(1, s * D)).reshape(1, s, D)
+
+    def first(self, mask):
+        return int(np.flatnonzero(mask)[0])
+
+
+def _dense_lu(matrix: np.ndarray):
+    """LAPACK's LU of a dense square matrix: ``(("dense", LU, pivots, getrs), singular (1,))``."""
+    from scipy.linalg import lapack
+
+    getrf, getrs = (lapack.zgetrf, lapack.zgetrs) if np.iscomplexobj(matrix) else (lapack.dgetrf, lapack.dgetrs)
+    LU, piv, info = getrf(matrix, overwrite_a=True)
+    return ("dense", LU, piv, getrs), np.array([info > 0 or not np.isfinite(LU).all()])
+
+
+def _sparse_lu(matrix):
+    """SuperLU's factors of a sparse CSC matrix: ``(("sparse", lu), singular (1,))``."""
+    import scipy.sparse.linalg as splinalg
+
+    try:
+        return ("sparse", splinalg.splu(matrix)), np.array([False])
+    except RuntimeError:  # SuperLU: "Factor is exactly singular"
+        return ("singular",), np.array([True])
+
+
+def _sparse_sign_det(matrix) -> float:
+    """Sign of the determinant of a sparse square matrix (0 when singular), from SuperLU's factors."""
+    import scipy.sparse.linalg as splinalg
+
+    if matrix.shape[0] == 0:
+        return 1.0
+    try:
+        lu = splinalg.splu(matrix)
+    except RuntimeError:
+        return 0.0
+    sign = float(np.prod(np.sign(lu.U.diagonal())))
+    return sign * _permutation_sign(lu.perm_r) * _permutation_sign(lu.perm_c)
+
+
+def _permutation_sign(perm: np.ndarray) -> float:
+    """+1 or -1: the parity of a permutation, from its cycles."""
+    seen = np.zeros(len(perm), dtype=bool)
+    transpositions = 0
+    for start in range(len(perm)):
+        length = 0
+        k = start
+        while not seen[k]:
+            seen[k] = True
+            k = perm[k]
+            length += 1
+        transpositions += max(length - 1, 0)
+    return -1.0 if transpositions % 2 else 1.0

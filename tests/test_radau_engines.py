@@ -1,0 +1,154 @@
+"""radau's two engines run one algorithm: the same results to rounding, the same failures.
+
+The torch engine (batched, dense) and the casadi engine (one trajectory, casadi-compiled
+functions, dense or sparse LU) share the step, the controller and the error estimate; their
+linear algebra is RADAU5's transformed systems, which must solve the same Newton system as the
+full s(n+m) matrix.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sparse
+from daemodel.backends import radau, radau_engines
+from daemodel.backends.radau_engines import CasadiEngine, StageTransform, TorchEngine
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.initial_states import initial_states
+from daemodel.problems import HESSENBERG, PENDULUM
+from daemodel.tableau import radau_iia
+
+
+def _grid(K: int) -> dm.Model:
+    """Method of lines for c' = c_xx - w, 0 = w - c^2 / (1 + c) on K interior points (index 1)."""
+    m = dm.Model(f"grid{K}")
+    c = m.states(" ".join(f"c{k}" for k in range(K)))
+    w = m.algebraics(" ".join(f"w{k}" for k in range(K)))
+    dx2 = (1.0 / (K + 1)) ** 2
+    for k in range(K):
+        left = c[k - 1] if k > 0 else 0
+        right = c[k + 1] if k < K - 1 else 0
+        m.ode(c[k], 0.01 * (left - 2 * c[k] + right) / dx2 - w[k])
+        m.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
+    m.initial(**{f"c{k}": float(np.sin(np.pi * (k + 1) / (K + 1))) for k in range(K)})
+    return m
+
+
+@pytest.mark.parametrize("stages", range(1, 8))
+def test_the_transformation_block_diagonalises_A_inverse(stages):
+    tableau = radau_iia(stages)
+    tr = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
+    lam = np.zeros((stages, stages))
+    for k, eig in tr.blocks:
+        if eig.imag == 0:
+            lam[k, k] = eig.real
+        else:
+            lam[k : k + 2, k : k + 2] = [[eig.real, -eig.imag], [eig.imag, eig.real]]
+    A_inv = np.linalg.inv(tableau.A)
+    np.testing.assert_allclose(tr.T @ lam @ tr.T_inv, A_inv, rtol=0, atol=1e-13 * np.abs(A_inv).max())
+    # one real system when s is odd (RADAU5's gamma = 1 / gamma0, the error estimate's matrix too)
+    real = [eig for _, eig in tr.blocks if eig.imag == 0]
+    assert len(real) == stages % 2 and len(tr.blocks) == (stages + 1) // 2
+    shifts = tr.shifts(0.1)
+    assert len(shifts) == len(tr.blocks) + (1 - stages % 2)  # even s factors the error matrix apart
+    if real:
+        assert real[0].real == pytest.approx(1 / tr.gamma0, rel=1e-13)
+
+
+@pytest.mark.parametrize("engine_name", ["torch", "casadi"])
+@pytest.mark.parametrize("problem", [PENDULUM, HESSENBERG], ids=["pendulum", "hessenberg"])
+def test_transformed_systems_solve_the_full_newton_system(engine_name, problem):
+    """The increment through the real and complex systems equals the full s(n+m) solve with the
+    same Jacobian at every stage."""
+    compiled = problem.model().compile()
+    start = initial_states(compiled)
+    tableau = radau_iia(3)
+    transform = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
+    if engine_name == "torch":
+        import torch
+
+        engine = TorchEngine(compiled, start, tableau, transform, torch.float64, torch.device("cpu"))
+    else:
+        engine = CasadiEngine(compiled, start, tableau, transform)
+    y, z = engine.asarray(start.y0), engine.asarray(start.z0)
+    J = engine.jacobian(0.0, y, z)
+    h = 0.05
+    rng = np.random.default_rng(0)
+    R = engine.asarray(rng.normal(size=(1, 3, engine.D)))
+    transformed = engine.newton_increment(engine.factor(J, h), R)
+    stage_J = J[:, None].expand(1, 3, engine.D, engine.D) if engine_name == "torch" else [J] * 3
+    full = engine.newton_increment(engine.factor_stages(stage_J, h), R)
+    np.testing.assert_allclose(np.asarray(transformed), np.asarray(full), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("stages", [1, 2, 3, 5])
+@pytest.mark.parametrize("problem", [PENDULUM, HESSENBERG], ids=["pendulum", "hessenberg"])
+def test_engines_agree_to_rounding_on_a_fixed_grid(problem, stages):
+    compiled = problem.model().compile()
+    own = dm.solve(compiled, (0.0, 1.0), stages=stages, h=0.05, engine="torch")
+    other = dm.solve(compiled, (0.0, 1.0), stages=stages, h=0.05, engine="casadi")
+    assert (own.stats["engine"], other.stats["engine"]) == ("torch", "casadi")
+    for name in own.names:
+        np.testing.assert_allclose(other[name], own[name], rtol=1e-11, atol=1e-12)
+    assert other.stats["steps"] == own.stats["steps"] == 20
+
+
+@pytest.mark.parametrize("problem", [PENDULUM, HESSENBERG], ids=["pendulum", "hessenberg"])
+def test_engines_agree_in_adaptive_mode(problem):
+    """Same steps; values within the tolerance (Newton stops at a tolerance, not at rounding)."""
+    compiled = problem.model().compile()
+    own = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10, engine="torch")
+    other = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10, engine="casadi")
+    assert abs(other.stats["steps"] - own.stats["steps"]) <= 1
+    reference = dm.solve(compiled, (0.0, 1.0), method="reference")
+    for sol in (own, other):
+        for name in compiled.state_names:
+            assert abs(sol[name][-1] - reference[name][-1]) < 1e-7
+
+
+def test_sparse_lu_path_matches_the_dense_torch_engine():
+    """A 120-unknown grid: the casadi engine factors sparsely (SuperLU, complex too)."""
+    compiled = _grid(60).compile()
+    sparse_run = dm.solve(compiled, (0.0, 0.1), stages=3, h=0.01, engine="casadi")
+    dense_run = dm.solve(compiled, (0.0, 0.1), stages=3, h=0.01, engine="torch")
+    for name in ("c0", "c30", "w30"):
+        np.testing.assert_allclose(sparse_run[name], dense_run[name], rtol=1e-12, atol=1e-13)
+    tableau = radau_iia(3)
+    engine = CasadiEngine(
+        compiled, initial_states(compiled), tableau, StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
+    )
+    assert not engine.dense and len(engine.rows) < 0.05 * engine.D**2
+
+
+def test_auto_picks_casadi_for_one_trajectory_and_torch_for_batches():
+    compiled = PENDULUM.model().compile()
+    assert dm.solve(compiled, (0.0, 0.1), h=0.05).stats["engine"] == "casadi"
+    assert dm.solve(compiled, (0.0, 0.1), h=0.05, dtype="float32").stats["engine"] == "torch"
+    batch = dm.solve(compiled, (0.0, 0.1), h=0.05, y0={"y1": [1.0, 0.9]})
+    assert batch.stats["engine"] == "torch"
+    single = dm.solve(compiled, (0.0, 0.1), h=0.05, y0={"y1": [0.9]})
+    np.testing.assert_allclose(single["y2"][0], batch["y2"][1], rtol=1e-12, atol=1e-13)
+
+
+def test_engine_option_errors():
+    compiled = PENDULUM.model().compile()
+    with pytest.raises(E.InvalidOptionError, match=r"engine must be one of 'auto', 'torch', 'casadi'; got 'numpy'"):
+        dm.solve(compiled, (0.0, 0.1), h=0.05, engine="numpy")
+    with pytest.raises(
+        E.InvalidOptionError, match=r"engine='casadi' computes in float64 on the CPU; dtype='float32', device='cpu'"
+    ):
+        dm.solve(compiled, (0.0, 0.1), h=0.05, engine="casadi", dtype="float32")
+    with pytest.raises(E.InvalidOptionError, match=r"engine='casadi' solves one trajectory; this batch has 2 samples"):
+        dm.solve(compiled, (0.0, 0.1), h=0.05, engine="casadi", y0={"y1": [1.0, 0.9]})
+
+
+def test_sign_of_a_sparse_determinant():
+    rng = np.random.default_rng(1)
+    for size in (1, 2, 5, 30):
+        for _ in range(5):
+            matrix = rng.normal(size=(size, size)) * (rng.random((size, size)) < 0.3) + np.diag(rng.normal(size=size))
+            expected = np.sign(np.linalg.det(matrix))
+            assert radau_engines._sparse_sign_det(sparse.csc_matrix(matrix)) == expected
+    assert radau_engines._sparse_sign_det(sparse.csc_matrix(np.zeros((3, 3)))) == 0.0
+    assert radau_engines._permutation_sign(np.array([1, 0, 2])) == -1.0
+    assert radau_engines._permutation_sign(np.array([1, 2, 0])) == 1.0
