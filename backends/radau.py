@@ -315,6 +315,7 @@ class _Stepper:
         self._eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self._stage_steps = 0  # steps left that start with full Newton (see attempt)
+        self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):
@@ -356,8 +357,11 @@ class _Stepper:
         if self._previous is None:
             return xp.repeat(u[:, None, :], self.s, axis=1) if xp is np else u[:, None, :].expand(self.B, self.s, -1)
         h_old, u_old, W_old = self._previous
-        nodes = np.concatenate([[0.0], self.tableau.c])
-        L = self.engine.asarray(_lagrange(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
+        if self._extrapolation is None or self._extrapolation[0] != h / h_old:
+            nodes = np.concatenate([[0.0], self.tableau.c])
+            L = self.engine.asarray(_lagrange(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
+            self._extrapolation = (h / h_old, L)
+        L = self._extrapolation[1]
         return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
 
     # ---- one step -----------------------------------------------------------------------

@@ -354,37 +354,13 @@ class CasadiEngine(AbstractEngine):
     name = "casadi"
 
     def __init__(self, compiled, start, tableau, transform):
-        import casadi
-
         super().__init__(compiled, start, tableau, transform)
         self.xp = np
         self.B = 1
-        s, n = self.s, self.n
         self.p = np.asarray(start.p, dtype=float)[0]
-        dae = compiled.casadi_dae()
-        t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
-        # every function takes one packed vector and returns one (a call costs ~20 us per argument)
-        point = casadi.vertcat(t, x, z, p)
-        f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
-        g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
-        self._f = casadi.Function("f", [point], [dae["ode"]])
-        # the stage equations of daemodel.collocation.stage_residual, as one compiled function of
-        # [t, h, y_n, W (stage by stage [Y_i, Z_i]), p] -> [R (stage by stage [F_i, G_i]), f at the stages]
-        h, y_n, W = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("W", s * self.D)
-        A, c = tableau.A, tableau.c
-        Y = [W[i * self.D : i * self.D + n] for i in range(s)]
-        Z = [W[i * self.D + n : (i + 1) * self.D] for i in range(s)]
-        stage_f = [f(t + float(c[i]) * h, Y[i], Z[i], p) for i in range(s)]
-        rows = []
-        for i in range(s):
-            quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
-            rows += [Y[i] - y_n - h * quadrature, g(t + float(c[i]) * h, Y[i], Z[i], p)]
-        packed = casadi.vertcat(t, h, y_n, W, p)
-        self._residual = casadi.Function("residual", [packed], [casadi.vertcat(*rows, *stage_f)])
-        jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
-        rows, cols = jac.sparsity().get_triplet()
-        self._jac = casadi.Function("jacobian", [point], [jac.nz[:]])
-        self.rows, self.cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        functions = compiled.cached(("casadi-radau", self.s), lambda: _casadi_functions(compiled, tableau))
+        self._f, self._residual, self._jac, self._stage_jac = (_Buffered(fn) for fn in functions[:4])
+        self.rows, self.cols = functions[4:]
         D = self.D
         self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
         if not self.dense:
@@ -404,20 +380,20 @@ class CasadiEngine(AbstractEngine):
         return np.array(values, dtype=float)
 
     def f(self, t, y, z):
-        return self._f(np.concatenate([[t], y[0], z[0], self.p])).full().T
+        return self._f(np.concatenate([[t], y[0], z[0], self.p]))[None]
 
     def residual(self, t, h, y, W):
         s, n, D = self.s, self.n, self.D
-        out = self._residual(np.concatenate([[t, h], y[0], W.ravel(), self.p])).full().ravel()
+        out = self._residual(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
         R = out[: s * D].reshape(1, s, D)
         return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
 
     def jacobian(self, t, y, z):
-        return self._jac(np.concatenate([[t], y[0], z[0], self.p])).full().ravel()
+        return self._jac(np.concatenate([[t], y[0], z[0], self.p]))
 
     def stage_jacobians(self, t, h, W):
-        n = self.n
-        return [self.jacobian(t + float(c) * h, W[:, i, :n], W[:, i, n:]) for i, c in enumerate(self.tableau.c)]
+        values = self._stage_jac(np.concatenate([[t, h], W.ravel(), self.p]))
+        return list(values.reshape(self.s, -1))
 
     def _dense(self, values) -> np.ndarray:
         J = np.zeros((self.D, self.D))
@@ -506,6 +482,68 @@ class CasadiEngine(AbstractEngine):
 
     def first(self, mask):
         return int(np.flatnonzero(mask)[0])
+
+
+class _Buffered:
+    """A casadi function of one dense vector, evaluated on bound numpy buffers (casadi's
+    FunctionBuffer: ~3 us a call, against ~40-100 us through argument conversion)."""
+
+    def __init__(self, function):
+        self._inputs = np.zeros(function.nnz_in(0))
+        self._outputs = np.zeros(function.nnz_out(0))
+        self._buffer, self._evaluate = function.buffer()
+        self._buffer.set_arg(0, memoryview(self._inputs))
+        self._buffer.set_res(0, memoryview(self._outputs))
+        self.name = function.name()
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        self._inputs[:] = values
+        self._evaluate()
+        if self._buffer.ret() != 0:
+            raise RuntimeError(f"casadi function {self.name} failed (return code {self._buffer.ret()})")
+        return self._outputs.copy()
+
+
+def _casadi_functions(compiled, tableau):
+    """casadi functions of the casadi engine (cached on the compiled model, per s).
+
+    Each takes one packed vector and returns one (a call costs ~20 us per argument): ``f`` of
+    ``[t, y, z, p]``; the stage residual (the equations of
+    :func:`daemodel.collocation.stage_residual`) of ``[t, h, y_n, W, p]``, ``W`` stage by stage
+    ``[Y_i, Z_i]``, returning ``[R (stage by stage [F_i, G_i]), f at the stages]``; the Jacobian's
+    nonzeros at ``[t, y, z, p]`` and at every stage of ``[t, h, W, p]``; its pattern (rows, cols).
+    """
+    import casadi
+
+    dae = compiled.casadi_dae()
+    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
+    s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
+    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
+    jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
+    jac = casadi.Function("jacobian", [t, x, z, p], [jac.nz[:]]), jac.sparsity().get_triplet()
+    h, y_n, W = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("W", s * D)
+    A, c = tableau.A, tableau.c
+    times = [t + float(c[i]) * h for i in range(s)]
+    Y = [W[i * D : i * D + n] for i in range(s)]
+    Z = [W[i * D + n : (i + 1) * D] for i in range(s)]
+    stage_f = [f(times[i], Y[i], Z[i], p) for i in range(s)]
+    rows = []
+    for i in range(s):
+        quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
+        rows += [Y[i] - y_n - h * quadrature, g(times[i], Y[i], Z[i], p)]
+    return (
+        casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]),
+        casadi.Function("residual", [casadi.vertcat(t, h, y_n, W, p)], [casadi.vertcat(*rows, *stage_f)]),
+        casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac[0](t, x, z, p)]),
+        casadi.Function(
+            "stage_jacobians",
+            [casadi.vertcat(t, h, W, p)],
+            [casadi.vertcat(*(jac[0](times[i], Y[i], Z[i], p) for i in range(s)))],
+        ),
+        np.asarray(jac[1][0], dtype=np.int64),
+        np.asarray(jac[1][1], dtype=np.int64),
+    )
 
 
 def _dense_lu(matrix: np.ndarray):

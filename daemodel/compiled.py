@@ -84,6 +84,13 @@ class CompiledDAE:
         # Generated functions live in the cache and do not pickle; a copy regenerates them.
         return {**self.__dict__, "_cache": {}}
 
+    def cached(self, key, build):
+        """``build()``, computed once per key and kept with this model (not pickled): generated
+        functions that a solver would otherwise rebuild on every solve."""
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
+
     # ---- names and structure ------------------------------------------------------------
     @property
     def index(self) -> int:
