@@ -54,7 +54,7 @@ from daemodel.backends.base import (
     output_times,
     torch_device,
 )
-from daemodel.backends.radau_engines import CasadiEngine, StageTransform, TorchEngine
+from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
 
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
@@ -394,13 +394,6 @@ class _Stepper:
                     worst = engine.first(diverging)
                     return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
                 eta = xp.where(active, theta / (1 - theta), eta)
-                if float((theta * active).max()) > REFRESH_THETA and k < self.options.max_newton_iterations:
-                    # slow contraction: full Newton, with each stage's Jacobian at the current iterate
-                    stage_J = engine.stage_jacobians(t, h, W)
-                    self.stats["jacobian_evaluations"] += 1
-                    factors = self.factor_stages(stage_J, t, h)
-                    self._jac = None  # the next step starts from a fresh Jacobian too
-            previous = norm
             if self.options.adaptive:
                 done = eta * norm <= self.newton_tol
             else:
@@ -409,6 +402,14 @@ class _Stepper:
                     (theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * self.newton_tol)
                 )
             active = active & ~done
+            left = self.options.max_newton_iterations - k
+            if previous is not None and left > 0 and bool(active.any()):
+                result = self.slow_contraction(t, h, W, factors, theta, eta * norm * theta**left, active)
+                if isinstance(result, str):
+                    worst = engine.first(active & (theta >= float((theta * active).max())))
+                    return None, k, result, worst
+                factors = result
+            previous = norm
             if not bool(active.any()) and self.options.adaptive:
                 # the error estimate needs f at the final stage values
                 r = self.residual(t, h, W)
@@ -423,6 +424,30 @@ class _Stepper:
                 self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
                 return (W, r, float(theta.max())), k, None, None
         return None, k, f"not converged in {k} iterations", self.engine.first(active)
+
+    def slow_contraction(self, t, h, W, factors, theta, predicted, active):
+        """What Newton does when it contracts too slowly: the factors to go on with, or why it stops.
+
+        ``predicted`` is the size of the increment after the iterations left (RADAU5's test).  With
+        the transformed systems, a slow contraction that will not reach the tolerance ends the
+        attempt in adaptive mode (the controller shrinks h, as RADAU5 does) and switches a fixed
+        step to full Newton with each stage's Jacobian at the current iterate, which stays
+        quadratic; under full Newton the stage Jacobians are refreshed while it contracts slower
+        than REFRESH_THETA.
+        """
+        worst = float((theta * active).max())
+        if isinstance(factors, StageFactors):
+            refresh = worst > REFRESH_THETA
+        else:
+            refresh = bool((active & (predicted > self.newton_tol)).any())
+            if refresh and self.options.adaptive:
+                return f"converging too slowly (contraction {worst:.2f})"
+        if not refresh:
+            return factors
+        stage_J = self.engine.stage_jacobians(t, h, W)
+        self.stats["jacobian_evaluations"] += 1
+        self._jac = None  # the next step starts from a fresh Jacobian too
+        return self.factor_stages(stage_J, t, h)
 
     def non_finite(self, r, dW, sample, t, h) -> str:
         """Where a sample's first non-finite value arose: ``f`` or ``g`` at a stage, else an increment of a variable."""
@@ -639,8 +664,12 @@ class _Stepper:
             self._jac = self._lu = None
             factors = self.current_lu(self.current_jacobian(t, h), t, h)
             result, iterations, why, sample = self.newton(t, h, factors, W0)
-        if result is None:
+        if result is None and not self.options.adaptive:
             return self.stage_newton(t, h, W0)
+        if result is None:  # the controller shrinks h; first check that z stays determined over the step
+            stage_J = self.engine.stage_jacobians(t, h, W0)
+            self.stats["jacobian_evaluations"] += 1
+            self.check_determined(stage_J, t, h, keep=False)
         return result, iterations, why, sample
 
     def stage_newton(self, t, h, W0):
@@ -725,7 +754,7 @@ class _Stepper:
             self.check_determined(self._jac[0], t, h)
         return self._jac[0]
 
-    def check_determined(self, J, t, h):
+    def check_determined(self, J, t, h, keep=True):
         """Refuse a step across a point where the constraints stop determining z.
 
         The iteration matrix of the algebraic variables (row by row ``g_z`` for an index-1 and
@@ -750,7 +779,8 @@ class _Stepper:
                 "matrix (g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not "
                 "determined and may blow up; end t_span before that time or reformulate the constraints"
             )
-        self._det_sign, self._det_time = signs[:, -1], t
+        if keep:  # (not for the stages of a failed attempt: the step is retried shorter)
+            self._det_sign, self._det_time = signs[:, -1], t
 
     def current_lu(self, J, t, h, error_only=False):
         """The factored transformed systems of ``J`` for step ``h`` (kept while both are unchanged), or

@@ -171,7 +171,7 @@ def test_max_steps_counts_every_attempt_and_has_per_mode_defaults(pendulum):
     sol = dm.solve(pendulum, (0.0, 4.0), rtol=1e-6)
     stats = sol.stats
     assert stats["attempts"] == stats["steps"] + stats["rejected_steps"] + stats["newton_failures"]
-    assert stats["rejected_steps"] > 0  # the budget below is spent by rejected attempts too
+    assert stats["rejected_steps"] + stats["newton_failures"] > 0  # the budget below is spent by failed attempts too
     with pytest.raises(E.StepLimitError, match=f"max_steps = {stats['attempts'] - 1} reached"):
         dm.solve(pendulum, (0.0, 4.0), rtol=1e-6, max_steps=stats["attempts"] - 1)
     assert radau.RadauOptions().max_steps == radau.DEFAULT_MAX_ADAPTIVE_STEPS
