@@ -246,6 +246,12 @@ class TorchEngine(AbstractEngine):
         self.B = start.size
         pattern = self.tf.jacobian_pattern
         self._flat = None if pattern is None else torch.as_tensor(pattern[0] * self.D + pattern[1], device=device)
+        if pattern is None:  # forward-mode AD over the column colouring
+            colour = compiled.column_colouring()
+            rows, cols = (torch.as_tensor(a, device=device) for a in compiled.jacobian_pattern())
+            seeds = torch.zeros((int(colour.max(initial=0)) + 1, self.D), dtype=dtype, device=device)
+            seeds[torch.as_tensor(colour, device=device), torch.arange(self.D, device=device)] = 1.0
+            self._colouring = (seeds, rows, cols, torch.as_tensor(colour, device=device)[cols])
         self._diag = torch.arange(self.n, device=device)
         self._index2 = torch.as_tensor(self.index2_rows, device=device)
 
@@ -274,28 +280,33 @@ class TorchEngine(AbstractEngine):
         return self._forward_ad(t, y, z, p, lead)
 
     def _forward_ad(self, t, y, z, p, lead):
-        """Forward-mode AD through the generated f and g, all D directions at once."""
+        """Forward-mode AD through the generated f and g, one direction per colour of the
+        compiled column colouring (a few for a sparse system, instead of n + m)."""
         torch = self.torch
         import torch.autograd.forward_ad as fwAD
 
         n, m, D = self.n, self.m, self.D
-        eye = torch.eye(D, dtype=self.dtype, device=self.device)
-        t, p = t[..., None], p[..., None, :]  # a new axis for the D directions
+        seeds, rows, cols, colours = self._colouring
+        C = seeds.shape[0]
+        t, p = t[..., None], p[..., None, :]  # a new axis for the C directions
 
         def directions(x, columns):
-            shape = (*lead, D, x.shape[-1])
+            shape = (*lead, C, x.shape[-1])
             return x[..., None, :].expand(shape).clone(), columns.expand(shape).clone()
 
         with warnings.catch_warnings(), fwAD.dual_level():
             # torch's forward-AD decompositions still call torch.jit.script on first use
             warnings.filterwarnings("ignore", message=".*torch.jit.script.*deprecated", category=DeprecationWarning)
-            yd = fwAD.make_dual(*directions(y, eye[:, :n]))
-            zd = fwAD.make_dual(*directions(z, eye[:, n:]))
-            columns = []
+            yd = fwAD.make_dual(*directions(y, seeds[:, :n]))
+            zd = fwAD.make_dual(*directions(z, seeds[:, n:]))
+            parts = []
             for fn, size in ((self.tf.f, n), (self.tf.g, m)):
                 tangent = fwAD.unpack_dual(fn(t, yd, zd, p)).tangent
-                columns.append(y.new_zeros((*lead, D, size)) if tangent is None else tangent)
-        return torch.cat(columns, dim=-1).transpose(-1, -2).contiguous()
+                parts.append(y.new_zeros((*lead, C, size)) if tangent is None else tangent)
+        compressed = torch.cat(parts, dim=-1)  # (..., C, D): row i of colour c holds J[i, j] for j of colour c
+        J = y.new_zeros((*lead, D * D))
+        J[..., rows * D + cols] = compressed[..., colours, rows]
+        return J.reshape(*lead, D, D)
 
     def stage_jacobians(self, t, h, W):
         n = self.n

@@ -55,7 +55,8 @@ class TorchPrinter(StrPrinter):
     """Prints a checked sympy expression as torch source over named locals."""
 
     def __init__(self, names: dict):
-        super().__init__({"full_prec": True})
+        # terms in sympy's stored order: sorting them ("order": None) is most of printing's cost
+        super().__init__({"full_prec": True, "order": "none"})
         self._names = names
 
     def _print_Symbol(self, expr):

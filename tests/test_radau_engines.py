@@ -152,3 +152,35 @@ def test_sign_of_a_sparse_determinant():
     assert radau_engines._sparse_sign_det(sparse.csc_matrix(np.zeros((3, 3)))) == 0.0
     assert radau_engines._permutation_sign(np.array([1, 0, 2])) == -1.0
     assert radau_engines._permutation_sign(np.array([1, 2, 0])) == 1.0
+
+
+def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):
+    """Past SYMBOLIC_JACOBIAN_MAX_ENTRIES the torch engine differentiates by forward-mode AD with one
+    direction per colour; a grid needs a handful of colours instead of its 2K columns."""
+    import torch
+
+    from daemodel import compiled as compiled_module
+
+    tableau = radau_iia(3)
+    transform = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
+    for model in (PENDULUM.model(), _grid(12)):
+        symbolic = model.compile()
+        monkeypatch.setattr(compiled_module, "SYMBOLIC_JACOBIAN_MAX_ENTRIES", 0)
+        coloured = model.compile()
+        assert coloured.torch_functions().jacobian is None  # generated (and cached) under the limit
+        monkeypatch.undo()
+        assert symbolic.torch_functions().jacobian is not None
+        start = initial_states(symbolic)
+        engines = [
+            TorchEngine(c, start, tableau, transform, torch.float64, torch.device("cpu")) for c in (symbolic, coloured)
+        ]
+        y, z = engines[0].asarray(start.y0) * 1.1, engines[0].asarray(start.z0) + 0.3
+        np.testing.assert_allclose(
+            engines[1].jacobian(0.2, y, z), engines[0].jacobian(0.2, y, z), rtol=1e-13, atol=1e-13
+        )
+        colour = coloured.column_colouring()
+        rows, cols = coloured.jacobian_pattern()
+        assert len(set(zip(rows.tolist(), colour[cols].tolist(), strict=True))) == len(
+            rows
+        )  # no row meets a colour twice
+    assert colour.max() + 1 <= 4  # the grid: c_k couples to c_(k-1), c_(k+1), w_k
