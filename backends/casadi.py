@@ -64,6 +64,10 @@ DEFAULT_STEPS = 100
 # Options that stop casadi from printing a warning for every non-finite evaluation (tens of
 # thousands of lines when Newton wanders into a singularity).
 QUIET = {"show_eval_warnings": False}
+# casadi-collocation's root finder: absolute residual tolerance per unit of the solution's size
+# 1 + max|u0| (casadi's default 1e-12 assumes unit size; the squeezing mechanism's w ~ 1e4-4e5
+# leaves residuals at 1e-11 from rounding alone).
+ROOT_ABSTOL = 1e-12
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
 FIRST_STEP_SAFETY = 0.1
@@ -282,8 +286,9 @@ class LocalErrorCheck:
     does not raise: a step whose repeat has no solution gets a large or non-finite estimate.
     """
 
-    def __init__(self, compiled, stages: int, dae: dict | None = None):
-        """``dae``: the system's casadi DAE dict when the caller has built it already."""
+    def __init__(self, compiled, stages: int, dae: dict | None = None, root_abstol: float = ROOT_ABSTOL):
+        """``dae``: the system's casadi DAE dict when the caller has built it already; ``root_abstol``:
+        the root finder's residual tolerance (see :data:`ROOT_ABSTOL`)."""
         import casadi
 
         dae = dae if dae is not None else _dae(compiled)
@@ -307,13 +312,13 @@ class LocalErrorCheck:
                 "collocation_scheme": "radau",
                 "interpolation_order": stages + 1,
                 "number_of_finite_elements": 1,
-                "rootfinder_options": {"error_on_fail": False, **QUIET},
+                "rootfinder_options": {"error_on_fail": False, "abstol": root_abstol, **QUIET},
                 **QUIET,
             },
         )
         self.compiled = compiled
         self.stages = stages
-        self.z_index = np.array([compiled.constraints[c].index for c in compiled.determined_by], dtype=float)
+        self.z_index = np.array(compiled.algebraic_index, dtype=float)
 
     def __call__(self, grid, values, parameters) -> np.ndarray:
         """Estimates, shape (B, N, n + m), in units of each variable's scale, for ``values`` (B, N + 1, n + m)."""
@@ -376,6 +381,9 @@ class CollocationBackend(AbstractBackend):
         grid = fixed_grid(t_span, h)
         began = time.perf_counter()
         dae = _dae(compiled)
+        # casadi's Newton stops on |residual| < abstol (default 1e-12, for unit-size values): scale it
+        # with the solution, or mechanisms with accelerations of 1e4-1e6 never reach it (rounding)
+        root_abstol = ROOT_ABSTOL * (1.0 + float(np.abs(np.concatenate([start.y0, start.z0], axis=1)).max(initial=0)))
         integrator = casadi.integrator(
             "collocation",
             "collocation",
@@ -386,11 +394,11 @@ class CollocationBackend(AbstractBackend):
                 "collocation_scheme": "radau",
                 "interpolation_order": options.stages,
                 "number_of_finite_elements": 1,
-                "rootfinder_options": QUIET,
+                "rootfinder_options": {"abstol": root_abstol, **QUIET},
                 **QUIET,
             },
         )
-        check = LocalErrorCheck(compiled, options.stages, dae)
+        check = LocalErrorCheck(compiled, options.stages, dae, root_abstol)
         setup = time.perf_counter() - began  # building the integrators: reported apart from the solve
         began = time.perf_counter()
 

@@ -271,8 +271,8 @@ class _Stepper:
         self.gamma0 = engine.transform.gamma0
         self.e = engine.asarray(embedded_weights(self.tableau)[1])
         self.s, self.n, self.m, self.B = engine.s, engine.n, engine.m, engine.B
-        # index of the constraint that determines each algebraic variable: its error weight is h^(k-1)
-        self.z_index = np.array([compiled.constraints[j].index for j in compiled.determined_by], dtype=float)
+        # each algebraic variable's index (RADAU5's count, coupling included): its error weight is h^(k-1)
+        self.z_index = np.array(compiled.algebraic_index, dtype=float)
         self._det_sign, self._det_time = None, compiled.t0  # the last fresh Jacobian's sign of det
         eps = float(np.finfo(options.dtype).eps)
         if options.adaptive:
@@ -390,6 +390,8 @@ class _Stepper:
             if previous is not None:
                 theta = xp.where(active, norm / xp.clip(previous, 1e-300, None), theta)
                 diverging = active & (theta >= DIVERGENCE_THETA)
+                if not self.options.adaptive:  # increments at the rounding floor wander: that is not divergence
+                    diverging = diverging & (norm > STAGNATION_FACTOR * self.newton_tol)
                 if bool(diverging.any()):
                     worst = engine.first(diverging)
                     return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst

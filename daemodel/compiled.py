@@ -239,6 +239,45 @@ class CompiledDAE:
             self._cache["pattern"] = (np.array(rows, dtype=np.int64), np.array(cols, dtype=np.int64))
         return self._cache["pattern"]
 
+    @property
+    def algebraic_index(self) -> tuple[int, ...]:
+        """The index of each algebraic variable, as RADAU5 counts them (NIND1/NIND2): the highest
+        index among the constraints that move it through z's iteration matrix H_z (rows ``g_z``
+        at index 1, ``g_y f_z`` at index 2), not only the one matched to it.
+
+        Structurally, z_j depends on the constraint matched to z_k when the graph "z_a -> z_b if
+        z_b occurs in the iteration row matched to z_a" has a path from j to k (the pattern of
+        H_z^-1).  In a mechanism ``M w - f + G^T lam = 0, G v = 0`` every w and lam is coupled to
+        the velocity constraints and so has index 2, though most are matched to index-1 rows.
+        Cached.
+        """
+        if "algebraic_index" not in self._cache:
+            states = set(self.states)
+            position = {v: k for k, v in enumerate(self.algebraics)}
+            in_f = [{position[v] for v in f.free_symbols if v in position} for f in self.rhs]
+            state_rows = {v: i for i, v in enumerate(self.states)}
+            rows = []  # the algebraic variables in each constraint's iteration row
+            for c in self.constraints:
+                if c.index == 1:
+                    rows.append({position[v] for v in c.expr.free_symbols if v in position})
+                else:  # g_y f_z: the z in the right-hand sides of the states in g
+                    found = set()
+                    for v in c.expr.free_symbols & states:
+                        found |= in_f[state_rows[v]]
+                    rows.append(found)
+            owner = {k: j for k, j in enumerate(self.determined_by)}  # variable -> its constraint
+            index = []
+            for k in range(len(self.algebraics)):
+                seen, stack = {k}, [k]
+                while stack:
+                    for nxt in rows[owner[stack.pop()]]:
+                        if nxt not in seen:
+                            seen.add(nxt)
+                            stack.append(nxt)
+                index.append(max(self.constraints[owner[j]].index for j in seen))
+            self._cache["algebraic_index"] = tuple(index)
+        return self._cache["algebraic_index"]
+
     def column_colouring(self) -> np.ndarray:
         """A colour per column of ``d(f, g)/d(y, z)`` such that no two columns of one colour share a
         row (greedy, largest columns first): one forward-mode AD direction per colour recovers the
