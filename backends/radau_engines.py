@@ -342,11 +342,19 @@ class TorchEngine(AbstractEngine):
         s, n, D, B = self.s, self.n, self.D, self.B
         # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage:
         # dF_i/dU_j = delta_ij [I 0] - h a_ij [f_y f_z](stage j);  dG_i/dU_i = [g_y g_z](stage i)
-        N = stage_J.new_zeros((B, s, D, s, D))
-        N[:, :, :n] = (-h * self.A[None, :, None, :, None]) * stage_J[:, None, :, :n, :].permute(0, 1, 3, 2, 4)
+        # one buffer for every step: the G rows' off-diagonal blocks stay zero, everything else is overwritten
+        if getattr(self, "_stage_buffer", None) is None or self._stage_buffer.shape[0] != B:
+            self._stage_buffer = stage_J.new_zeros((B, s, D, s, D))
+            self._stage_eye = torch.eye(n, dtype=self.dtype, device=self.device)
+        N = self._stage_buffer
+        torch.mul(
+            (-h) * self.A[None, :, None, :, None],
+            stage_J[:, None, :, :n, :].permute(0, 1, 3, 2, 4),
+            out=N[:, :, :n],
+        )
         for i in range(s):
             N[:, i, n:, i, :] = stage_J[:, i, n:, :]
-            N[:, i, :n, i, :n] += torch.eye(n, dtype=self.dtype, device=self.device)
+            N[:, i, :n, i, :n] += self._stage_eye
         LU, pivots, info = torch.linalg.lu_factor_ex(N.reshape(B, s * D, s * D))
         return StageFactors(lu=(LU, pivots), singular=info > 0)
 
