@@ -177,12 +177,16 @@ class RadauOptions:
             )
         if not isinstance(self.reuse_jacobian, bool):
             raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
-        device = torch_device(self.device)  # InvalidOptionError for a device torch cannot use here
-        if not isinstance(self.device, str):
-            object.__setattr__(self, "device", str(device))
+        # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
+        # engine's solves then never import it, ~2.7 s on a first call)
+        if self.device != "cpu":
+            device = torch_device(self.device)
+            if not isinstance(self.device, str):
+                object.__setattr__(self, "device", str(device))
+        device_type = "cpu" if self.device == "cpu" else torch_device(self.device).type
         if self.engine not in ENGINES:
             raise InvalidOptionError(f"engine must be one of {', '.join(map(repr, ENGINES))}; got {self.engine!r}")
-        if self.engine == "casadi" and (self.dtype != "float64" or device.type != "cpu"):
+        if self.engine == "casadi" and (self.dtype != "float64" or device_type != "cpu"):
             raise InvalidOptionError(
                 f"engine='casadi' computes in float64 on the CPU; dtype={self.dtype!r}, device={self.device!r} "
                 "need engine='torch'"
@@ -221,14 +225,12 @@ class RadauBackend(AbstractBackend):
 def make_engine(compiled, start, options: RadauOptions):
     """The engine ``options.engine`` names; ``"auto"``: casadi for one trajectory in float64 on the CPU
     (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs."""
-    import torch
-
     tableau = radau_iia(options.stages)
     transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
     name = options.engine
     if name == "auto":
-        single = start.size == 1 and options.dtype == "float64" and torch_device(options.device).type == "cpu"
-        name = "casadi" if single else "torch"
+        on_cpu = options.device == "cpu" or torch_device(options.device).type == "cpu"
+        name = "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(
@@ -236,6 +238,8 @@ def make_engine(compiled, start, options: RadauOptions):
                 "(or 'auto')"
             )
         return CasadiEngine(compiled, start, tableau, transform)
+    import torch
+
     return TorchEngine(compiled, start, tableau, transform, getattr(torch, options.dtype), torch_device(options.device))
 
 
