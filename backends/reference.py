@@ -30,7 +30,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import sympy as sp
 from daemodel.backends.base import (
     DEFAULT_OUTPUT_POINTS,
     AbstractBackend,
@@ -43,7 +42,7 @@ from daemodel.backends.base import (
 )
 
 from daemodel.errors import ConvergenceError, InvalidOptionError, StepLimitError
-from daemodel.init import NumericSystem
+from daemodel.init import NumericSystem, jacobian_entries
 
 INTEGRATORS = ("DOP853", "RK45", "Radau", "BDF", "LSODA")
 AUTO = "auto"
@@ -146,7 +145,9 @@ class AlgebraicSolver:
         self.H = numeric.function(determining)
         self.Hz = numeric.jacobian(determining, compiled.algebraics)
         # Linear in z (H_z free of z, as in mechanics): one Newton step is exact but for rounding.
-        self.linear = not any(sp.diff(e, z).has(*compiled.algebraics) for e in determining for z in compiled.algebraics)
+        # The entries of H_z that are not identically zero (the others hold no z either).
+        _, _, entries = jacobian_entries(determining, compiled.algebraics, numeric.calculus)
+        self.linear = not any(e.has(*compiled.algebraics) for e in entries)
         self.labels = [c.label for c in compiled.constraints]
         self.names = compiled.algebraic_names
         self.maxiter = maxiter

@@ -17,7 +17,7 @@ from daemodel.errors import (
 )
 from daemodel.init import NumericSystem, initialise
 from daemodel.prune import eliminate_aliases, needed
-from daemodel.structure import derivative_chain, match
+from daemodel.structure import Differentiator, derivative_chain, match
 
 
 def _names(symbols) -> str:
@@ -62,10 +62,11 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     parameters = list(model._parameters.values())
     rhs = {s: model._odes[s.name].expr for s in states}
     symbols = {*states, *model._algebraics.values(), *parameters, model.t}
+    calculus = Differentiator()  # derivatives and free symbols shared by every step below
     equations, algebraics, aliases = eliminate_aliases(
-        rhs, model._constraints, list(model._algebraics.values()), symbols
+        rhs, model._constraints, list(model._algebraics.values()), symbols, calculus
     )
-    constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraics) for e in equations]
+    constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraics, calculus) for e in equations]
     alias_exprs = {name: expr for name, expr, _ in aliases}
 
     known = [*(s.name for s in states), *model._algebraics]
@@ -89,25 +90,32 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
                 f"compile(outputs=...): {', '.join(repr(u) for u in unknown)} not a variable of model "
                 f"'{model.name}'; variables: {', '.join(repr(k) for k in known)}"
             )
-        keep = needed(outputs, rhs, constraints, algebraics, alias_exprs)
+        keep = needed(outputs, rhs, constraints, algebraics, alias_exprs, calculus)
+    algebraic_names = {z.name for z in algebraics}
     kept_constraints = [
-        c for c in constraints if any(s.name in keep for s in c.determining.free_symbols if s in algebraics)
+        c
+        for c in constraints
+        if any(s.name in keep for s in calculus.free_symbols(c.determining) if s.name in algebraic_names)
     ]
     kept_states = [s for s in states if s.name in keep]
     kept_algebraics = [z for z in algebraics if z.name in keep]
     kept_aliases = [a for a in aliases if a[0] in keep]
     used = set().union(
-        *(rhs[s].free_symbols for s in kept_states),
-        *(e.free_symbols for c in kept_constraints for e in c.chain),
-        *(e.free_symbols for _, e, _ in kept_aliases),
+        *(calculus.free_symbols(rhs[s]) for s in kept_states),
+        *(calculus.free_symbols(e) for c in kept_constraints for e in c.chain),
+        *(calculus.free_symbols(e) for _, e, _ in kept_aliases),
     )
     kept_parameters = [p for p in parameters if p in used]
+    # names, not symbols: a membership test on a list of symbols compares them one by one
+    kept = {s.name for s in [*kept_states, *kept_algebraics, *kept_parameters]}
+    kept_constraint_names = {c.name for c in kept_constraints}
+    kept_alias_names = {a[0] for a in kept_aliases}
     dropped = {
-        "differential variables": tuple(s.name for s in states if s not in kept_states),
-        "algebraic variables": tuple(z.name for z in algebraics if z not in kept_algebraics),
-        "constraints": tuple(c.name for c in constraints if c not in kept_constraints),
-        "aliases": tuple(a[0] for a in aliases if a not in kept_aliases),
-        "parameters": tuple(p.name for p in parameters if p not in kept_parameters),
+        "differential variables": tuple(s.name for s in states if s.name not in kept),
+        "algebraic variables": tuple(z.name for z in algebraics if z.name not in kept),
+        "constraints": tuple(c.name for c in constraints if c.name not in kept_constraint_names),
+        "aliases": tuple(a[0] for a in aliases if a[0] not in kept_alias_names),
+        "parameters": tuple(p.name for p in parameters if p.name not in kept),
     }
 
     missing = [s for s in kept_states if s.name not in model._initial]
@@ -116,8 +124,10 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
             f"differential variable(s) {_names(missing)} of model '{model.name}' have no initial "
             "value; give them with m.initial(name=value)"
         )
-    owner = match(kept_constraints, kept_algebraics)
-    numeric = NumericSystem(model.t, tuple(kept_states), tuple(kept_algebraics), tuple(kept_parameters))
+    owner = match(kept_constraints, kept_algebraics, calculus)
+    numeric = NumericSystem(
+        model.t, tuple(kept_states), tuple(kept_algebraics), tuple(kept_parameters), calculus=calculus
+    )
     p = np.array([model._parameter_values[q.name] for q in kept_parameters], dtype=float)
     values = initialise(
         numeric,

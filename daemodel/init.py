@@ -10,17 +10,19 @@ manifold with the least change in the Euclidean norm and replaces disagreeing z 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import sympy as sp
+from sympy.printing.numpy import SciPyPrinter
 
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
     InitialisationError,
 )
-from daemodel.structure import check_rank
+from daemodel.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
 
 # Residual accepted for y0 on the constraint manifold, relative to 1 + max|y0|: a y0 typed
 # with 16 digits passes; one off in the 10th digit is reported.
@@ -42,33 +44,149 @@ PROJECTION_MAXITER = 100
 NUMERIC_MODULES = ["scipy", "numpy"]
 
 
+class _Printer(SciPyPrinter):
+    """The printer lambdify builds for ``NUMERIC_MODULES``, with three changes.
+
+    * Variables print as items of the generated function's arguments (``_y[3]``), names that no
+      user name can be (they start with a letter) and that shadow nothing of numpy's or scipy's
+      (a state named 'select'): lambdify's ``dummify=True`` instead substitutes one symbol at a
+      time into the expressions (variables x expression size), and an ``xreplace`` rebuilds every
+      node.  Four plain arguments also spare lambdify sorting hundreds of argument symbols.
+    * A subexpression that occurs more than once prints as the name it is assigned to first
+      (``shared``, from :func:`_shared_subexpressions`): printed and evaluated once.
+    * The terms of sums and products print in their stored order: sorting them (the default)
+      costs more than the rest of the printing on large expressions and changes nothing but the
+      order of rounding.
+    """
+
+    def __init__(self, names: dict, shared: dict, has_re: bool):
+        settings = {"fully_qualified_modules": False, "inline": True, "allow_unknown_functions": True}
+        super().__init__({**settings, "user_functions": {}, "order": "none"})
+        self._names, self._shared, self._top, self._has_re = names, shared, False, has_re
+
+    def _handle_UnevaluatedExpr(self, expr):
+        # the base class rewrites re(...) nodes with a walk over every expression it prints (each
+        # shared subexpression again); without re there is nothing to rewrite
+        return super()._handle_UnevaluatedExpr(expr) if self._has_re else expr
+
+    def doprint(self, expr, assign_to=None):
+        self._top = True  # the expression itself prints in full, also when it is shared
+        return super().doprint(expr, assign_to)
+
+    def _print(self, expr, **kwargs):
+        if self._top:
+            self._top = False
+        else:
+            name = self._shared.get(expr)
+            if name is not None:
+                return name
+        return super()._print(expr, **kwargs)
+
+    def _print_Symbol(self, expr):
+        name = self._names.get(expr)
+        return name if name is not None else super()._print_Symbol(expr)
+
+
+def _shared_subexpressions(exprs) -> dict:
+    """``{node: "_c<k>"}`` for the subexpressions to print once, in an order that defines each
+    after the ones it uses.
+
+    A node is shared when more than one parent refers to it (equal subtrees count as one node,
+    whether sympy built them as one object or not).  The base of a shared negative power is
+    shared too: a product prints ``a / b**(3/2)`` for ``a * b**(-3/2)``, a new power of that base.
+    Evaluating a name instead of its expression changes no rounding.
+    """
+    parents: dict = {}
+    order = []  # each node after its arguments
+
+    def visit(node) -> None:
+        if node in parents:
+            parents[node] += 1
+            return
+        parents[node] = 1
+        for arg in node.args:
+            if not arg.is_Atom:
+                visit(arg)
+        order.append(node)
+
+    for expr in exprs:
+        if not expr.is_Atom:
+            visit(expr)
+    shared = {n for n in order if parents[n] > 1 and isinstance(n, sp.Expr)}
+    shared |= {n.base for n in shared if n.is_Pow and n.exp.is_negative and not n.base.is_Atom}
+    return {node: f"_c{k}" for k, node in enumerate(n for n in order if n in shared)}
+
+
 @dataclass(frozen=True)
 class NumericSystem:
-    """Numpy callables of sympy expressions over ``(t, y, z, p)``."""
+    """Numpy callables of sympy expressions over ``(t, y, z, p)``.
+
+    Jacobians are built on the sparsity pattern: an entry is differentiated only where its
+    variable occurs in the expression, and only the nonzero derivatives are lambdified and
+    scattered into the dense result, so the symbolic work grows with the number of nonzeros,
+    not with ``len(exprs) * len(wrt)``.  ``calculus`` shares derivatives already taken (the
+    compiler passes the one its structure checks used).
+    """
 
     t: sp.Symbol
     y: tuple
     z: tuple
     p: tuple
+    calculus: Differentiator = field(default_factory=Differentiator, compare=False, repr=False)
+
+    @cached_property
+    def _arguments(self) -> tuple[dict, tuple]:
+        """``({variable: "_y[k]", ...}, (_t, _y, _z, _p))``: how the generated function reads each
+        variable from its four arguments, and those arguments as symbols."""
+        names = {self.t: "_t"}
+        for group, name in ((self.y, "_y"), (self.z, "_z"), (self.p, "_p")):
+            names.update({s: f"{name}[{k}]" for k, s in enumerate(group)})
+        return names, tuple(sp.Symbol(name) for name in ("_t", "_y", "_z", "_p"))
+
+    def _lambdify(self, exprs):
+        names, arguments = self._arguments
+        exprs = [sp.sympify(e) for e in exprs]
+        shared = _shared_subexpressions(exprs)
+        definitions = [(sp.Symbol(name), node) for node, name in shared.items()]
+        # docstring_limit=0: lambdify would otherwise print every expression a second time for
+        # the docstring
+        # use_imps=False: no implemented_function is ever used here, and looking for one walks
+        # every expression as a tree
+        return sp.lambdify(
+            arguments,
+            exprs,
+            NUMERIC_MODULES,
+            printer=_Printer(names, shared, any(e.has(sp.re) for e in exprs)),
+            docstring_limit=0,
+            cse=lambda e: (definitions, e),
+            use_imps=False,
+        )
 
     def function(self, exprs):
         """Return ``F(t, y, z, p) -> ndarray, shape (len(exprs),)``."""
         if not exprs:
             return lambda t, y, z, p: np.zeros(0)
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), NUMERIC_MODULES, dummify=True)
+        fn = self._lambdify(exprs)
         return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(len(exprs))
 
     def jacobian(self, exprs, wrt):
         """Return ``J(t, y, z, p) -> ndarray, shape (len(exprs), len(wrt))``."""
-        if not exprs or not wrt:
-            return lambda t, y, z, p: np.zeros((len(exprs), len(wrt)))
-        matrix = sp.Matrix(list(exprs)).jacobian(list(wrt))
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), matrix, NUMERIC_MODULES, dummify=True)
-        return lambda t, y, z, p: np.asarray(fn(t, y, z, p), dtype=float).reshape(matrix.shape)
+        shape = (len(exprs), len(wrt))
+        rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
+        if not entries:
+            return lambda t, y, z, p: np.zeros(shape)
+        values = self.function(entries)
+
+        def evaluate(t, y, z, p):
+            out = np.zeros(shape)
+            out[rows, cols] = values(t, y, z, p)
+            return out
+
+        return evaluate
 
     def batch_function(self, exprs):
         """Return ``F(t, Y, Z, P) -> ndarray, shape (B, len(exprs))`` for rows ``Y (B, n)`` etc."""
-        fn = sp.lambdify((self.t, self.y, self.z, self.p), list(exprs), NUMERIC_MODULES, dummify=True)
+        fn = self._lambdify(exprs) if exprs else None
 
         def evaluate(t, Y, Z, P):
             if not exprs:
@@ -82,9 +200,43 @@ class NumericSystem:
 
     def batch_jacobian(self, exprs, wrt):
         """Return ``J(t, Y, Z, P) -> ndarray, shape (B, len(exprs), len(wrt))``."""
-        entries = sp.Matrix(list(exprs)).jacobian(list(wrt)) if exprs and wrt else sp.zeros(len(exprs), len(wrt))
-        flat = self.batch_function(list(entries))
-        return lambda t, Y, Z, P: flat(t, Y, Z, P).reshape(len(Y), len(exprs), len(wrt))
+        shape = (len(exprs), len(wrt))
+        rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
+        values = self.batch_function(entries)
+
+        def evaluate(t, Y, Z, P):
+            out = np.zeros((len(Y), *shape))
+            if entries:
+                out[:, rows, cols] = values(t, Y, Z, P)
+            return out
+
+        return evaluate
+
+
+def jacobian_entries(exprs, wrt, calculus: Differentiator | None = None) -> tuple[np.ndarray, np.ndarray, list]:
+    """The structurally nonzero entries of ``d exprs / d wrt``.
+
+    Each expression is differentiated only by the variables that occur in it; derivatives that
+    sympy simplifies to 0 are left out.
+
+    Returns
+    -------
+    rows, cols : ndarray of int, shape (nnz,)
+    entries : list of sympy.Expr, length nnz
+        ``entries[k] = d exprs[rows[k]] / d wrt[cols[k]]``, row by row, columns ascending.
+    """
+    calculus = calculus or Differentiator()
+    column = {w: j for j, w in enumerate(wrt)}
+    rows, cols, entries = [], [], []
+    for i, expr in enumerate(exprs):
+        expr = sp.sympify(expr)
+        for j in sorted(column[s] for s in calculus.free_symbols(expr) if s in column):
+            derivative = calculus.diff(expr, wrt[j])
+            if derivative != 0:
+                rows.append(i)
+                cols.append(j)
+                entries.append(derivative)
+    return np.array(rows, dtype=int), np.array(cols, dtype=int), entries
 
 
 @dataclass(frozen=True)
@@ -200,7 +352,12 @@ def solve_algebraic(F, J, x0: np.ndarray, max_iterations: int = NEWTON_MAXITER) 
 
 def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Least-squares solutions of ``A[i] x = b[i]`` for a stack; finite garbage never arises
-    from a singular A (the pseudo-inverse's minimum-norm step is used)."""
+    from a singular A (the pseudo-inverse's minimum-norm step is used).  Large sparse systems
+    are solved block by block (:func:`~daemodel.structure.square_blocks`)."""
+    if A.shape[-1] >= BLOCK_MIN_SIZE:
+        out = _block_solve(A, b)
+        if out is not None:
+            return out
     try:
         out = np.linalg.solve(A, b[..., None])[..., 0]
         if np.isfinite(out).all():
@@ -208,6 +365,23 @@ def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         pass
     return np.einsum("bij,bj->bi", np.linalg.pinv(A), b)
+
+
+def _block_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """``A[i] x = b[i]`` solved on the independent blocks of the stack's joint nonzero pattern;
+    None where a block is not square, singular or gives a non-finite solution (the caller then
+    takes the whole-matrix path)."""
+    groups = square_blocks((A != 0).any(axis=0))
+    if groups is None:
+        return None
+    out = np.empty_like(b)
+    try:
+        for rows, cols in groups:
+            blocks = A[:, rows[:, :, None], cols[:, None, :]]  # (B, blocks, k, k)
+            out[:, cols] = np.linalg.solve(blocks, b[:, rows][..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    return out if np.isfinite(out).all() else None
 
 
 def _guess(symbols, values) -> str:
@@ -245,7 +419,7 @@ def initialise(
 
     hidden = hidden_constraints(constraints)
     exprs = [e for _, _, e in hidden]
-    c_fun, c_jac = numeric.function(exprs), numeric.jacobian(exprs, numeric.y)
+    c_fun = numeric.function(exprs)
     residual = c_fun(t0, y0, empty_z, p)
     tol = STATE_TOL * (1 + np.max(np.abs(y0), initial=0.0))
     bad = [(hidden[i], residual[i]) for i in np.flatnonzero(np.abs(residual) > tol)]
@@ -256,6 +430,7 @@ def initialise(
             "or compile(repair=True) to project them onto the constraint manifold"
         )
     if bad:
+        c_jac = numeric.jacobian(exprs, numeric.y)  # only a repair needs it
         y_new = project(y0, lambda y: c_fun(t0, y, empty_z, p), lambda y: c_jac(t0, y, empty_z, p))
         after = c_fun(t0, y_new, empty_z, p)
         if np.max(np.abs(after)) > tol:

@@ -10,6 +10,7 @@ the compiled ``z0`` otherwise.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,6 +124,48 @@ def _samples(indices) -> str:
     return listed + (f" and {len(indices) - LISTED_SAMPLES} more" if len(indices) > LISTED_SAMPLES else "")
 
 
+@dataclass(frozen=True)
+class _Checks:
+    """The batched numpy functions of the initial-state checks of one compiled model.
+
+    Attributes
+    ----------
+    numeric : NumericSystem
+    hidden : list of (level name, label, expr)
+        Every z-free constraint level.
+    residual : callable (t, Y, Z, P) -> (B, len(hidden))
+    H : callable (t, Y, Z, P) -> (B, m)
+        The determining equations.
+    Hz : callable (t, Y, Z, P) -> (B, m, m)
+        Their Jacobian in z.
+    """
+
+    numeric: NumericSystem
+    hidden: list
+    residual: Callable
+    H: Callable
+    Hz: Callable
+
+
+def _checks(compiled) -> _Checks:
+    """The :class:`_Checks` of ``compiled``, generated once and kept with it (every solve that
+    passes initial values would otherwise generate them again)."""
+
+    def build() -> _Checks:
+        numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+        hidden = hidden_constraints(compiled.constraints)
+        determining = [c.determining for c in compiled.constraints]
+        return _Checks(
+            numeric=numeric,
+            hidden=hidden,
+            residual=numeric.batch_function([e for _, _, e in hidden]),
+            H=numeric.batch_function(determining),
+            Hz=numeric.batch_jacobian(determining, compiled.algebraics),
+        )
+
+    return compiled.cached("initial_states", build)
+
+
 def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates:
     """Resolve, check and complete the initial values of a solve.
 
@@ -161,10 +204,9 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
     if y0 is None and z0 is None and parameters is None:
         return InitialStates(y0=Y, z0=Z, p=P, batched=False)
 
-    numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
-    t0 = compiled.t0
-    hidden = hidden_constraints(compiled.constraints)
-    residual = numeric.batch_function([e for _, _, e in hidden])(t0, Y, Z, P)  # z-free levels: Z is unused
+    checks = _checks(compiled)
+    t0, hidden = compiled.t0, checks.hidden
+    residual = checks.residual(t0, Y, Z, P)  # z-free levels: Z is unused
     tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
     bad = np.abs(residual) > tol[:, None]
     if bad.any():
@@ -176,9 +218,7 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
             "Give states on the constraint manifold (e.g. velocities perpendicular to the rod)"
         )
 
-    determining = [c.determining for c in compiled.constraints]
-    H = numeric.batch_function(determining)
-    Hz = numeric.batch_jacobian(determining, compiled.algebraics)
+    H, Hz = checks.H, checks.Hz
     result = solve_algebraic(lambda Zc: H(t0, Y, Zc, P), lambda Zc: Hz(t0, Y, Zc, P), Z)
     Zc, r = result.x, result.residual
     failed = ~result.converged
@@ -209,13 +249,15 @@ def project_states(compiled, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
     """
     from daemodel.init import PROJECTION_MAXITER
 
-    numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
-    exprs = [e for _, _, e in hidden_constraints(compiled.constraints)]
+    checks = _checks(compiled)
+    exprs = [e for _, _, e in checks.hidden]
     Y0 = np.array(Y, dtype=float)
     if not exprs:
         return Y0
-    residual = numeric.batch_function(exprs)
-    jacobian = numeric.batch_jacobian(exprs, compiled.states)
+    residual = checks.residual
+    jacobian = compiled.cached(
+        "initial_states.projection", lambda: checks.numeric.batch_jacobian(exprs, compiled.states)
+    )
     Z = np.zeros((len(Y0), len(compiled.algebraics)))
     y = Y0.copy()
     for _ in range(PROJECTION_MAXITER):

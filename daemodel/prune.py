@@ -16,25 +16,43 @@ from dataclasses import replace
 
 import sympy as sp
 
-from daemodel.structure import incidence
+from daemodel.structure import Differentiator, exact_value, incidence, point_value
 
 
-def find_alias(g: sp.Expr, algebraics, symbols) -> tuple[sp.Symbol, sp.Expr] | None:
+def find_alias(
+    g: sp.Expr, algebraics, symbols, calculus: Differentiator | None = None
+) -> tuple[sp.Symbol, sp.Expr] | None:
     """Return ``(x, v)`` when ``0 = g`` says ``x = v`` for an algebraic x and v = +-symbol."""
+    calculus = calculus or Differentiator()
+    occurring = calculus.free_symbols(g)  # once, not once per algebraic variable
     for x in algebraics:
-        if x not in g.free_symbols:
+        if x not in occurring:
             continue
-        a = sp.diff(g, x)
+        a = calculus.diff(g, x)
         if not (a.is_number and a != 0):
             continue
-        v = sp.expand(-(g - a * x) / a)
+        v = -(g - a * x) / a
+        if not _may_be_a_symbol(v, (occurring - {x}) & symbols):
+            continue  # skips the expansion, the costly part, for constraints that are no alias
+        v = sp.expand(v)
         bare = -v if v.could_extract_minus_sign() else v
         if isinstance(bare, sp.Symbol) and bare != x and bare in symbols:
             return x, v
     return None
 
 
-def eliminate_aliases(rhs: dict, constraints: list, algebraics: list, symbols: set):
+def _may_be_a_symbol(v: sp.Expr, candidates) -> bool:
+    """False when ``v`` certainly does not expand to +-s for any s of ``candidates``: its exact value
+    at a rational point (:func:`~daemodel.structure.exact_value`) is not +-s's value there."""
+    value = exact_value(v)
+    if value is None:
+        return True
+    return any(abs(value) == point_value(s) for s in candidates)
+
+
+def eliminate_aliases(
+    rhs: dict, constraints: list, algebraics: list, symbols: set, calculus: Differentiator | None = None
+):
     """Remove alias constraints and their algebraic variables.
 
     Parameters
@@ -45,6 +63,8 @@ def eliminate_aliases(rhs: dict, constraints: list, algebraics: list, symbols: s
     algebraics : list of Symbol
     symbols : set of Symbol
         What an alias may stand for (states, algebraics, parameters, t).
+    calculus : Differentiator, optional
+        Shared derivatives and free symbols.
 
     Returns
     -------
@@ -52,29 +72,44 @@ def eliminate_aliases(rhs: dict, constraints: list, algebraics: list, symbols: s
         The remaining constraints (expressions substituted), the remaining algebraic
         variables, and ``[(name, expr, equation)]`` for every eliminated alias.
     """
+    calculus = calculus or Differentiator()
     constraints, algebraics, aliases = list(constraints), list(algebraics), []
-    found = True
-    while found:
-        found = False
-        for k, eq in enumerate(constraints):
-            hit = find_alias(eq.expr, algebraics, symbols)
-            if hit is None:
-                continue
-            x, v = hit
-            sub = {x: v}
-            for y in rhs:
-                rhs[y] = rhs[y].xreplace(sub)
-            constraints = [replace(c, expr=c.expr.xreplace(sub)) for c in constraints[:k] + constraints[k + 1 :]]
-            aliases = [(n, e.xreplace(sub), q) for n, e, q in aliases] + [(x.name, v, eq)]
-            algebraics.remove(x)
-            found = True
-            break
+    # Every elimination restarts the scan from the first constraint.  A constraint found to be no
+    # alias stays none until an elimination rewrites it (find_alias looks only at the algebraic
+    # variables that occur in it), so the scan skips those: the same first alias as a full
+    # rescan, without re-examining every constraint after every elimination.
+    settled = [False] * len(constraints)
+    k = 0
+    while k < len(constraints):
+        if settled[k]:
+            k += 1
+            continue
+        hit = find_alias(constraints[k].expr, algebraics, symbols, calculus)
+        if hit is None:
+            settled[k] = True
+            k += 1
+            continue
+        x, v = hit
+        eq = constraints.pop(k)
+        settled.pop(k)
+        sub = {x: v}
+        for y, f in rhs.items():
+            if x in calculus.free_symbols(f):  # xreplace would walk the others for nothing
+                rhs[y] = f.xreplace(sub)
+        for i, c in enumerate(constraints):
+            if x in calculus.free_symbols(c.expr):
+                constraints[i] = replace(c, expr=c.expr.xreplace(sub))
+                settled[i] = False
+        aliases = [(n, e.xreplace(sub) if x in calculus.free_symbols(e) else e, q) for n, e, q in aliases]
+        aliases.append((x.name, v, eq))
+        algebraics.remove(x)
+        k = 0
     return constraints, algebraics, aliases
 
 
-def blocks(constraints, algebraics) -> list[tuple[list[int], list[int]]]:
+def blocks(constraints, algebraics, calculus: Differentiator | None = None) -> list[tuple[list[int], list[int]]]:
     """Connected blocks ``(constraint indices, algebraic indices)`` of the determining equations."""
-    rows = incidence(constraints, algebraics)
+    rows = incidence(constraints, algebraics, calculus)
     parent = list(range(len(constraints) + len(algebraics)))
 
     def root(i: int) -> int:
@@ -94,10 +129,12 @@ def blocks(constraints, algebraics) -> list[tuple[list[int], list[int]]]:
     return list(groups.values())
 
 
-def needed(outputs: list[str], rhs: dict, constraints, algebraics, aliases: dict) -> set[str]:
+def needed(
+    outputs: list[str], rhs: dict, constraints, algebraics, aliases: dict, calculus: Differentiator | None = None
+) -> set[str]:
     """Names of the variables the outputs depend on (closure through the coupled system)."""
     depends: dict[str, set[str]] = {y.name: {s.name for s in e.free_symbols} for y, e in rhs.items()}
-    for rows, cols in blocks(constraints, algebraics):
+    for rows, cols in blocks(constraints, algebraics, calculus):
         names = {s.name for i in rows for e in constraints[i].chain for s in e.free_symbols}
         names |= {algebraics[j].name for j in cols}
         for j in cols:

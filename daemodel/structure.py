@@ -16,9 +16,13 @@ constraints and algebraic variables) and numerically (singular values at the ini
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 import sympy as sp
 
 from daemodel.errors import IndexTooHighError, SingularSystemError, UnsupportedFunctionError
@@ -30,6 +34,10 @@ MAX_INDEX = 3  # Hessenberg index 3 is the highest form the compiler recognises.
 RANK_RTOL = 1e-10
 
 ITERATION_MATRIX = {1: "g_z", 2: "g_y f_z", 3: "g_y f_y f_z"}
+# Iteration matrices of at least this size are split into their independent square blocks for
+# the rank check and Newton's linear solves: a dense SVD or LU is O(m^3), the blocks of a sparse
+# system cost next to nothing.  Smaller ones are factored whole (microseconds either way).
+BLOCK_MIN_SIZE = 16
 
 
 @dataclass(frozen=True)
@@ -73,29 +81,177 @@ class Constraint:
 
 
 def is_zero(expr: sp.Expr) -> bool:
-    """Symbolic zero test: exact structure first, then after expansion."""
-    return expr == 0 or sp.expand(expr) == 0
+    """Symbolic zero test: exact structure first, then after expansion.
+
+    Expansion is the costly part; an exact nonzero value at one rational point proves the
+    expression is not zero (its expansion has the same value there) and skips it.
+    """
+    return expr == 0 or (not _nonzero_somewhere(expr) and sp.expand(expr) == 0)
 
 
-def depends_on(expr: sp.Expr, symbols) -> bool:
+# Largest integer power evaluated exactly by exact_value: beyond, the fractions grow too long to pay.
+MAX_EXACT_POWER = 64
+
+
+def _nonzero_somewhere(expr: sp.Expr) -> bool:
+    """Whether ``expr`` has an exact nonzero rational value at the point of :func:`exact_value`."""
+    value = exact_value(expr)
+    return value is not None and value != 0
+
+
+def exact_value(expr: sp.Expr) -> Fraction | None:
+    """The exact value of ``expr`` at a fixed rational point (each symbol a rational number
+    derived from its name), or None where the expression is not a rational function of its
+    symbols with rational coefficients (a float, ``sqrt``, ``sin``, ...) or is undefined there.
+
+    A certificate, never a proof of zero: two expressions whose values differ there are
+    different (so neither expands to the other).  Floats are refused because rounding could make
+    expressions that expand to the same look different.  Evaluated in Python's exact fractions,
+    without building sympy objects.
+    """
+    memo: dict = {}
+
+    def value(node) -> Fraction:
+        if node in memo:
+            return memo[node]
+        if node.is_Symbol:
+            out = point_value(node)
+        elif node.is_Rational:
+            out = Fraction(int(node.p), int(node.q))
+        elif node.is_Add:
+            out = sum((value(a) for a in node.args), Fraction(0))
+        elif node.is_Mul:
+            out = Fraction(1)
+            for a in node.args:
+                out *= value(a)
+        elif node.is_Pow and node.exp.is_Integer and abs(node.exp) <= MAX_EXACT_POWER:
+            out = value(node.base) ** int(node.exp)  # ZeroDivisionError at a pole
+        else:
+            raise _NotRational
+        memo[node] = out
+        return out
+
+    try:
+        return value(expr)
+    except (_NotRational, ZeroDivisionError):
+        return None
+
+
+class _NotRational(Exception):
+    """Raised inside :func:`exact_value` by a node that has no exact rational value."""
+
+
+def point_value(symbol: sp.Symbol) -> Fraction:
+    """The rational value of ``symbol`` at the point of :func:`exact_value`: from its name, so
+    that every run evaluates at the same point."""
+    name = symbol.name.encode()
+    return Fraction(2 + zlib.crc32(name) % 1009, 3 + zlib.crc32(name[::-1]) % 1013)
+
+
+class Differentiator:
+    """``sp.diff`` for the compiler: the same derivatives, without sympy's repeated work.
+
+    ``sp.diff(expr, s)`` walks every subtree for its free symbols at every level of the
+    recursion, asks the assumptions system whether each partial result is zero, and builds
+    ``0 * log(base)`` for every power (whose ``is_finite`` query is most of a derivative's cost
+    on a sum of squares).  Here the free symbols of each node are computed once and shared
+    by every derivative, subtrees free of ``s`` are skipped, and sums, products and powers
+    with an ``s``-free exponent are differentiated by the rules sympy applies to them
+    (``Add``: term by term; ``Mul``: Leibniz, one factor at a time, in argument order;
+    ``Pow``: ``b**e * (b' * e / b)``), so the result is the expression ``sp.diff`` returns.
+    Every other node (functions, ``Piecewise``, ...) is handed to ``sp.diff``.  Derivatives
+    and the zero tests of :func:`depends_on` are memoised: the derivative chain, the incidence
+    and the Jacobian of the determining equations reuse them.
+
+    One instance serves one compilation (it holds references to the expressions it saw).
+    """
+
+    def __init__(self) -> None:
+        self._free: dict = {}
+        self._derivatives: dict = {}
+        self._depends: dict = {}
+
+    def free_symbols(self, expr: sp.Expr) -> frozenset:
+        """``expr.free_symbols``, memoised per node."""
+        try:
+            return self._free[expr]
+        except KeyError:
+            pass
+        if expr.is_Symbol:
+            out = frozenset((expr,))
+        elif expr.is_Add or expr.is_Mul or expr.is_Pow:
+            out = frozenset().union(*(self.free_symbols(a) for a in expr.args))
+        else:  # functions, Piecewise, numbers: sympy knows their bound variables
+            out = frozenset(expr.free_symbols)
+        self._free[expr] = out
+        return out
+
+    def diff(self, expr: sp.Expr, s: sp.Symbol) -> sp.Expr:
+        """``sp.diff(expr, s)`` for a symbol ``s``."""
+        key = (expr, s)
+        try:
+            return self._derivatives[key]
+        except KeyError:
+            pass
+        if s not in self.free_symbols(expr):
+            out = sp.S.Zero
+        elif expr == s:
+            out = sp.S.One
+        elif expr.is_Add:
+            out = sp.Add(*[self.diff(a, s) for a in expr.args])
+        elif expr.is_Mul:
+            args, terms = expr.args, []
+            for i, a in enumerate(args):
+                d = self.diff(a, s)
+                if d != 0:
+                    terms.append(sp.Mul(*args[:i], d, *args[i + 1 :]))
+            out = sp.Add(*terms)
+        elif expr.is_Pow and s not in self.free_symbols(expr.exp):
+            # sympy: b**e * (e' * log(b) + b' * e / b) with e' = 0
+            out = expr * (self.diff(expr.base, s) * expr.exp / expr.base)
+        else:
+            out = sp.diff(expr, s)
+        self._derivatives[key] = out
+        return out
+
+    def depends(self, expr: sp.Expr, s: sp.Symbol) -> bool:
+        """Whether ``expr`` really depends on ``s``: its derivative is not zero (:func:`is_zero`)."""
+        key = (expr, s)
+        try:
+            return self._depends[key]
+        except KeyError:
+            pass
+        out = s in self.free_symbols(expr) and not is_zero(self.diff(expr, s))
+        self._depends[key] = out
+        return out
+
+
+def depends_on(expr: sp.Expr, symbols, calculus: Differentiator | None = None) -> bool:
     """Whether ``expr`` really depends on any of ``symbols`` (its derivative is not zero)."""
-    return any(s in expr.free_symbols and not is_zero(sp.diff(expr, s)) for s in symbols)
+    calculus = calculus or Differentiator()
+    occurring = calculus.free_symbols(expr)
+    return any(calculus.depends(expr, s) for s in symbols if s in occurring)
 
 
-def time_derivative(expr: sp.Expr, t: sp.Symbol, rhs: dict) -> sp.Expr:
+def time_derivative(expr: sp.Expr, t: sp.Symbol, rhs: dict, calculus: Differentiator | None = None) -> sp.Expr:
     """``d expr/dt = expr_t + sum_i expr_{y_i} f_i`` for an expression free of z."""
-    out = sp.diff(expr, t)
+    calculus = calculus or Differentiator()
+    occurring = calculus.free_symbols(expr)
+    out = calculus.diff(expr, t)
     for y, f in rhs.items():
-        if y in expr.free_symbols:
-            out += sp.diff(expr, y) * f
+        if y in occurring:
+            out += calculus.diff(expr, y) * f
     return out
 
 
-def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraics) -> Constraint:
+def derivative_chain(
+    name: str, number: int, g: sp.Expr, t, rhs: dict, algebraics, calculus: Differentiator | None = None
+) -> Constraint:
     """Differentiate ``0 = g`` along ``y' = rhs`` until an algebraic variable appears."""
+    calculus = calculus or Differentiator()
     chain = [g]
     label = f"constraint '{name}' (#{number})"
-    while not depends_on(chain[-1], algebraics):
+    while not depends_on(chain[-1], algebraics, calculus):
         if is_zero(chain[-1]):
             which = name + "'" * (len(chain) - 1)
             raise IndexTooHighError(
@@ -109,7 +265,7 @@ def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraic
                 f"derivatives (index above {MAX_INDEX}, or a variable that should be algebraic is "
                 "missing from the right-hand sides); daemodel handles index 1, 2 and Hessenberg 3"
             )
-        chain.append(time_derivative(chain[-1], t, rhs))
+        chain.append(time_derivative(chain[-1], t, rhs, calculus))
         # sympy differentiates Abs of a symbol of unknown sign into re/im derivatives that
         # nothing can evaluate (Max/Min give Heaviside, which the emitters name themselves)
         if chain[-1].has(sp.Derivative, sp.re, sp.im):
@@ -122,16 +278,27 @@ def derivative_chain(name: str, number: int, g: sp.Expr, t, rhs: dict, algebraic
     return Constraint(name, number, tuple(chain))
 
 
-def incidence(constraints, algebraics) -> list[set[int]]:
-    """For each constraint, the indices of algebraic variables its determining equation involves."""
-    return [{j for j, z in enumerate(algebraics) if depends_on(c.determining, [z])} for c in constraints]
+def incidence(constraints, algebraics, calculus: Differentiator | None = None) -> list[set[int]]:
+    """For each constraint, the indices of algebraic variables its determining equation involves.
+
+    Only the variables that occur in the equation are differentiated (the sparse incidence),
+    so the cost grows with the nonzeros, not with constraints x variables.
+    """
+    calculus = calculus or Differentiator()
+    column = {z: j for j, z in enumerate(algebraics)}
+    rows = []
+    for c in constraints:
+        occurring = calculus.free_symbols(c.determining)
+        candidates = sorted(column[z] for z in occurring if z in column)  # ascending, as a full scan adds them
+        rows.append({j for j in candidates if calculus.depends(c.determining, algebraics[j])})
+    return rows
 
 
 def _describe(constraint: Constraint) -> str:
     return f"{constraint.label} (index {constraint.index}: through {ITERATION_MATRIX[constraint.index]})"
 
 
-def match(constraints, algebraics) -> list[int]:
+def match(constraints, algebraics, calculus: Differentiator | None = None) -> list[int]:
     """Match each constraint to one algebraic variable it determines (augmenting paths).
 
     Returns
@@ -145,7 +312,7 @@ def match(constraints, algebraics) -> list[int]:
         When no perfect matching exists; the message names the variables and constraints
         of the structurally singular block.
     """
-    rows = incidence(constraints, algebraics)
+    rows = incidence(constraints, algebraics, calculus)
     names = [z.name for z in algebraics]
     owner = [-1] * len(algebraics)
 
@@ -197,7 +364,19 @@ def check_rank(jacobian: np.ndarray, constraints, algebraics, t0: float) -> None
     """
     if jacobian.size == 0 or not np.all(np.isfinite(jacobian)):
         return  # nothing to judge; a non-finite Jacobian is reported as a failed Newton
-    u, sigma, vt = np.linalg.svd(jacobian)
+    if len(jacobian) >= BLOCK_MIN_SIZE:
+        # the singular values of a block-diagonal matrix are those of its blocks together
+        groups = square_blocks(jacobian != 0)
+        if groups is not None:
+            sigma = np.concatenate(
+                [
+                    np.linalg.svd(jacobian[rows[:, :, None], cols[:, None, :]], compute_uv=False).ravel()
+                    for rows, cols in groups
+                ]
+            )
+            if sigma.min() > RANK_RTOL * max(sigma.max(), np.finfo(float).tiny):
+                return
+    u, sigma, vt = np.linalg.svd(jacobian)  # singular, or on the edge: the whole matrix names the culprits
     if sigma[-1] > RANK_RTOL * max(sigma[0], np.finfo(float).tiny):
         return
     left, right = np.abs(u[:, -1]), np.abs(vt[-1])
@@ -210,3 +389,40 @@ def check_rank(jacobian: np.ndarray, constraints, algebraics, t0: float) -> None
         f"t={t0:g} (smallest singular value {sigma[-1]:.3g}, largest {sigma[0]:.3g}) "
         "at the initial point"
     )
+
+
+def square_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """The independent diagonal blocks of a square matrix with nonzero ``pattern``, grouped by size.
+
+    Rows and columns are linked where an entry is nonzero; each connected set of rows and
+    columns is one block, and the matrix is block diagonal after permuting them.
+
+    Parameters
+    ----------
+    pattern : ndarray of bool, shape (m, m)
+
+    Returns
+    -------
+    list of (rows, cols), or None
+        For each block size k, ``rows`` and ``cols`` of shape (blocks, k): the row and column
+        indices of every block of that size.  None when a block is not square (then the matrix
+        is singular, whatever its values).
+    """
+    m = len(pattern)
+    i, j = np.nonzero(pattern)
+    graph = scipy.sparse.coo_matrix((np.ones(len(i)), (i, m + j)), shape=(2 * m, 2 * m))
+    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    row_labels, col_labels = labels[:m], labels[m:]
+    row_order, col_order = np.argsort(row_labels, kind="stable"), np.argsort(col_labels, kind="stable")
+    row_counts = np.bincount(row_labels, minlength=labels.max() + 1)
+    col_counts = np.bincount(col_labels, minlength=labels.max() + 1)
+    if not np.array_equal(row_counts, col_counts):
+        return None
+    # blocks of one size side by side: rows sorted by label, then split into equal chunks
+    starts = np.concatenate([[0], np.cumsum(row_counts)[:-1]])
+    groups = []
+    for k in np.unique(row_counts[row_counts > 0]):
+        first = starts[row_counts == k]
+        take = first[:, None] + np.arange(k)[None, :]
+        groups.append((row_order[take], col_order[take]))
+    return groups
