@@ -118,6 +118,7 @@ class Model:
         self._initial: dict[str, float] = {}
         self._t0 = 0.0
         self._equation_count = 0
+        self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile
 
     # ---- declarations -------------------------------------------------------------------
     def states(self, names) -> tuple[sp.Symbol, ...]:
@@ -294,7 +295,25 @@ class Model:
         """
         from daemodel.compiler import compile_model
 
-        return compile_model(self, outputs=outputs, repair=repair)
+        # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
+        # dm.solve again is not recompiled, and the compiled model keeps its generated code
+        key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
+        if self._compiled is None or self._compiled[0] != key:
+            self._compiled = (key, compile_model(self, outputs=outputs, repair=repair))
+        return self._compiled[1]
+
+    def _fingerprint(self) -> tuple:
+        """Everything declared so far, comparable with ``==``."""
+        return (
+            self.name,
+            tuple(self._states),
+            tuple(self._algebraics),
+            tuple(self._parameter_values.items()),
+            tuple((name, eq.expr) for name, eq in self._odes.items()),
+            tuple((eq.name, eq.expr) for eq in self._constraints),
+            tuple(self._initial.items()),
+            self._t0,
+        )
 
     def __repr__(self) -> str:
         return (

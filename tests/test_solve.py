@@ -188,3 +188,20 @@ def test_solution_access_export_and_plot(tmp_path):
     fig = sol.plot(tmp_path / "alias.png", reference=lambda t: {"y": np.exp(-2 * t)})
     assert (tmp_path / "alias.png").stat().st_size > 5000 and len(fig.axes) == len(sol.names)
     assert "radau" in repr(sol)
+
+
+def test_a_model_is_compiled_once_until_it_changes():
+    """dm.solve(model) reuses the last compile of unchanged declarations (with its generated code);
+    any new declaration, value or argument compiles afresh."""
+    m = PENDULUM.model()
+    first = m.compile()
+    assert m.compile() is first
+    sol = dm.solve(m, (0.0, 0.1), h=0.05)
+    assert sol.compiled is first
+    assert m.compile(outputs=["y1"]) is not first and m.compile() is not first  # other arguments
+    again = m.compile()
+    m.initial(y1=0.9)
+    changed = m.compile()
+    assert changed is not again and changed.y0[0] == 0.9
+    m.set_parameters(lam=2.0)
+    assert m.compile() is not changed and m.compile().parameter_values.tolist() == [1.0, 2.0]
