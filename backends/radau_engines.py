@@ -434,6 +434,17 @@ class CasadiEngine(AbstractEngine):
             if self.index2_rows.any():
                 rows[self.index2_rows] = (J[n:, :n] @ J[:n, n:])[self.index2_rows]
             return np.array([np.linalg.slogdet(rows)[0]])
+        if self.m <= DENSE_MAX_SIZE:  # a small z block of a large system: dense blocks of J suffice
+            g_rows = self.rows >= n
+            G = np.zeros((self.m, self.D))
+            G[self.rows[g_rows] - n, self.cols[g_rows]] = values[g_rows]
+            rows = G[:, n:].copy()
+            if self.index2_rows.any():
+                f_z = (self.rows < n) & (self.cols >= n)
+                F = np.zeros((n, self.m))
+                F[self.rows[f_z], self.cols[f_z] - n] = values[f_z]
+                rows[self.index2_rows] = (G[:, :n] @ F)[self.index2_rows]
+            return np.array([np.linalg.slogdet(rows)[0]])
         import scipy.sparse as sparse
 
         J = self._csr(values)
@@ -469,7 +480,7 @@ class CasadiEngine(AbstractEngine):
         return lu[1].solve(rhs[0])[None]
 
     def factor_stages(self, stage_J, h):
-        s, n, m, D = self.s, self.n, self.m, self.D
+        s, n, D = self.s, self.n, self.D
         A = self.tableau.A
         if self.dense:
             # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage (see TorchEngine.factor_stages)
@@ -483,17 +494,40 @@ class CasadiEngine(AbstractEngine):
             return StageFactors(lu=lu, singular=singular)
         import scipy.sparse as sparse
 
-        blocks = [[None] * s for _ in range(s)]
-        for j in range(s):
-            Jj = self._csr(stage_J[j])
-            for i in range(s):
-                top = -h * float(A[i, j]) * Jj[:n, :]
-                if i == j:
-                    blocks[i][j] = sparse.vstack([top + sparse.eye(n, D, format="csr"), Jj[n:, :]])
-                else:
-                    blocks[i][j] = sparse.vstack([top, sparse.csr_matrix((m, D))])
-        lu, singular = _sparse_lu(sparse.bmat(blocks, format="csc"))
+        if not hasattr(self, "_stage_layout"):
+            self._stage_layout = self._full_newton_layout()
+        top, bottom, positions, (indices, indptr, nnz) = self._stage_layout
+        V = np.stack(stage_J)  # (s, nnz of J)
+        values = np.concatenate(
+            [((-h) * A[:, :, None] * V[None, :, top]).ravel(), V[:, bottom].ravel(), np.ones(s * n)]
+        )
+        data = np.bincount(positions, weights=values, minlength=nnz)  # sums the identity into J's diagonal
+        lu, singular = _sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(s * D, s * D)))
         return StageFactors(lu=lu, singular=singular)
+
+    def _full_newton_layout(self):
+        """Where each entry of the full Newton matrix goes in its CSC data, computed once.
+
+        Entries, in the order :meth:`factor_stages` lays out their values: ``-h a_ij J_j`` on the F rows
+        of every block (i, j), ``J_i`` on the G rows of the diagonal blocks, the identity of the F rows.
+        """
+        s, n, D = self.s, self.n, self.D
+        top, bottom = np.flatnonzero(self.rows < n), np.flatnonzero(self.rows >= n)
+        i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
+        rows = [
+            (i[:, :, None] * D + self.rows[None, None, top]).ravel(),
+            (np.arange(s)[:, None] * D + self.rows[None, bottom]).ravel(),
+            (np.arange(s)[:, None] * D + np.arange(n)[None, :]).ravel(),
+        ]
+        cols = [
+            (j[:, :, None] * D + self.cols[None, None, top]).ravel(),
+            (np.arange(s)[:, None] * D + self.cols[None, bottom]).ravel(),
+            rows[2],
+        ]
+        keys_all = np.concatenate(cols) * (s * D) + np.concatenate(rows)  # CSC order: column, then row
+        keys = np.unique(keys_all)
+        indptr = np.searchsorted(keys // (s * D), np.arange(s * D + 1))
+        return top, bottom, np.searchsorted(keys, keys_all), (keys % (s * D), indptr, len(keys))
 
     def solve_stages(self, factors, R):
         s, D = self.s, self.D
