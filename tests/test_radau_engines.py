@@ -163,10 +163,10 @@ def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):
 
     tableau = radau_iia(3)
     transform = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
-    for model in (PENDULUM.model(), _grid(12)):
-        symbolic = model.compile()
+    for make in (PENDULUM.model, lambda: _grid(12)):
+        symbolic = make().compile()
         monkeypatch.setattr(compiled_module, "SYMBOLIC_JACOBIAN_MAX_ENTRIES", 0)
-        coloured = model.compile()
+        coloured = make().compile()  # a model of its own: a Model keeps its last compile
         assert coloured.torch_functions().jacobian is None  # generated (and cached) under the limit
         monkeypatch.undo()
         assert symbolic.torch_functions().jacobian is not None
