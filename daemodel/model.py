@@ -297,6 +297,8 @@ class Model:
 
         # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
         # dm.solve again is not recompiled, and the compiled model keeps its generated code
+        if outputs is not None and not (isinstance(outputs, list | tuple) and all(isinstance(o, str) for o in outputs)):
+            return compile_model(self, outputs=outputs, repair=repair)  # which names the mistake
         key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
         if self._compiled is None or self._compiled[0] != key:
             self._compiled = (key, compile_model(self, outputs=outputs, repair=repair))
