@@ -41,10 +41,13 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="batches up to 100, one repeat")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--map-sizes", type=int, nargs="*", default=[1000, 10000], help="batches also timed on casadi's map"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     repeats = 1 if args.quick else args.repeats
-    sizes = [1, 10, 100] if args.quick else [1, 10, 100, 1000]
+    sizes = [1, 10, 100] if args.quick else [1, 10, 100, 1000, 10000]
 
     compiled = PENDULUM.model().compile()
     dm.solve(compiled, (0.0, T1), stages=STAGES, h=H)  # warm-up: code generation, first torch calls
@@ -57,6 +60,7 @@ def main(argv=None) -> None:
             lambda y0=y0: dm.solve(compiled, (0.0, T1), method="casadi-collocation", stages=STAGES, h=H, y0=y0),
         )
         gap = max(float(np.max(np.abs(own[n] - col[n]))) for n in own.names)
+        mapped = casadi_map_time(compiled, y0) if size in args.map_sizes and not args.quick else None
         picks = np.unique(np.linspace(0, size - 1, min(size, 10)).round().astype(int))
         ref = dm.solve(compiled, (0.0, T1), method="reference", t_eval=own.t, y0={k: v[picks] for k, v in y0.items()})
         errors = {}
@@ -72,6 +76,11 @@ def main(argv=None) -> None:
                 "max_difference": gap,
                 "errors_vs_reference": errors,
                 "radau_newton_iterations": own.stats["newton_iterations"],
+                "radau_engine": own.stats["engine"],
+                "casadi_map_s": None if mapped is None else mapped[0],
+                "casadi_map_max_difference": (
+                    None if mapped is None else float(np.max(np.abs(mapped[1] - own_end(own))))
+                ),
             }
         )
         print(
@@ -99,6 +108,40 @@ def main(argv=None) -> None:
     print(f"wrote benchmarks/batch_radau{suffix}.json and .png")
 
 
+# casadi's own batching: the collocation integrator (same s, h, no step check) mapped over the
+# batch with this many threads (the machine's cores); integration only, the map is built first.
+MAP_THREADS = 2
+
+
+def own_end(sol) -> np.ndarray:
+    """The states at t1 of a batched Solution, (B, n)."""
+    return np.stack([np.atleast_2d(sol[n])[:, -1] for n in sol.compiled.state_names], axis=1)
+
+
+def casadi_map_time(compiled, y0) -> tuple[float, np.ndarray]:
+    """Seconds for casadi's collocation integrator mapped over the batch on MAP_THREADS threads, and
+    its states at t1 (B, n)."""
+    import time
+
+    import casadi
+
+    from daemodel.initial_states import initial_states
+
+    start = initial_states(compiled, y0=y0)
+    dae = compiled.casadi_dae()
+    steps = round(T1 / H)
+    grid = [H * k for k in range(1, steps + 1)]
+    options = {"collocation_scheme": "radau", "interpolation_order": STAGES, "number_of_finite_elements": 1}
+    integrator = casadi.integrator("collocation", "collocation", dae, 0.0, grid, options)
+    size = start.size
+    mapped = integrator.map(size, "thread", MAP_THREADS)
+    began = time.perf_counter()
+    out = mapped(x0=start.y0.T, z0=start.z0.T, p=start.p.T)
+    seconds = time.perf_counter() - began
+    xf = np.asarray(out["xf"])  # (n, steps * B): each sample's grid columns in turn
+    return seconds, xf.reshape(xf.shape[0], size, steps)[:, :, -1].T
+
+
 def plot(rows, path) -> None:
     from matplotlib.figure import Figure
 
@@ -107,6 +150,10 @@ def plot(rows, path) -> None:
     ax = fig.subplots()
     ax.loglog(sizes, [r["radau_s"] for r in rows], "o-", label="daemodel radau, one batched call (torch, 1 thread)")
     ax.loglog(sizes, [r["casadi_loop_s"] for r in rows], "s-", label="casadi collocation, one call per state")
+    mapped = [(r["batch"], r["casadi_map_s"]) for r in rows if r.get("casadi_map_s")]
+    if mapped:
+        label = f"casadi collocation integrator, map on {MAP_THREADS} threads"
+        ax.loglog(*zip(*mapped, strict=True), "^--", label=label)
     for r in rows:
         ax.annotate(f"{r['speedup']:.1f}x", (r["batch"], r["radau_s"]), textcoords="offset points", xytext=(4, -14))
     ax.set_xlabel("number of initial states")
