@@ -214,31 +214,184 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
 
 
 @pytest.mark.parametrize("architecture", ["per-variable", "shared"])
-def test_block_diagonal_lm_step_equals_the_dense_gauss_newton_step(architecture):
-    # Over many samples LM fits each sample's Newton correction e with J = du/dtheta, solving
-    # per network; the step must equal the dense solve (J^T J + mu I) delta = -J^T e.
+@pytest.mark.parametrize(
+    ("space", "samples", "kind"),
+    [
+        ("output", 1, "OutputGramSystem"),
+        ("output", 3, "OutputGramSystem"),
+        ("output", 60, "OutputSystem"),
+        ("residual", 1, "ResidualGramSystem"),
+        ("residual", 2, "ResidualGramSystem"),
+    ],
+)
+def test_lm_step_equals_the_dense_gauss_newton_step(architecture, space, samples, kind):
+    # LM fits every sample's Newton correction e with J = du/dtheta (or, as the fallback, the
+    # residuals r with J = dr/dtheta), solving per network in its outputs or its parameters or
+    # in residual space; the step, the predicted decrease and the first damping's scale must
+    # equal the dense solve (J^T J + mu I) delta = -J^T e.
     from daemodel.backends.pinn.train import make_loss, make_network
     from torch.func import functional_call, jacrev, vmap
 
     c = HESSENBERG.model().compile()
-    cfg = dm.PINNConfig(architecture=architecture, width=5, depth=2)
+    cfg = dm.PINNConfig(architecture=architecture, width=5, depth=3, eta=2.0)
     net = make_network(c, cfg, 4, 0)
-    x = 1 + 0.02 * torch.rand(30, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
+    x = 1 + 0.02 * torch.rand(samples, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
     net.normalise(x)
     trainer = SegmentTrainer(net, make_loss(c, cfg), cfg)
-    segment = Segment(0, 0.0, 0.05, x, torch.zeros(30, 0, dtype=F64))
+    segment = Segment(0, 0.0, 0.05, x, torch.zeros(samples, 0, dtype=F64))
     params = {k: v.detach().clone() for k, v in net.named_parameters()}
     P = sum(v.numel() for v in params.values())
-    raw, _, e = trainer._merit(segment, params, True)
-    kind, J, A, g, _ = trainer._normal_system(segment, params, raw, e, raw.shape[1], P, True)
-    mu = 1e-3 * float(A.diagonal(dim1=-2, dim2=-1).max())
-    delta = trainer._lm_step(kind, J, A, g, e, mu)
-
+    _, e = trainer._merit(segment, params, space)
+    system = trainer._normal_system(segment, params, e, space)
+    assert type(system).__name__ == kind
     du = vmap(jacrev(lambda p, xi: functional_call(net, p, (xi[None],))[0]), in_dims=(None, 0))(params, x)
-    dense = torch.cat([du[k].reshape(30 * raw.shape[1], -1) for k in params], dim=1)
+    dense = torch.cat([du[k].reshape(samples, -1, du[k][0, 0].numel()) for k in params], dim=2)  # (N, U, P)
+    if space == "residual":
+        dense = trainer._output_jacobian(segment, net(x).detach()) @ dense  # dr/du du/dtheta
+    dense = dense.reshape(-1, P)
+    assert system.scale == pytest.approx(float((dense**2).sum(0).max()), rel=1e-12)
+    mu = 1e-3 * system.scale
+    delta, predicted = system.step(mu)
     expected = -torch.linalg.solve(dense.T @ dense + mu * torch.eye(P, dtype=F64), dense.T @ e)
-    assert kind == "blocks" and A.shape[0] == net.count
-    assert torch.allclose(delta, expected, rtol=1e-9, atol=1e-12 * float(expected.abs().max()))
+    assert torch.allclose(delta, expected, rtol=1e-9, atol=1e-10 * float(expected.abs().max()))
+    assert predicted == pytest.approx(0.5 * float(delta @ (mu * delta - dense.T @ e)), rel=1e-9)
+
+
+def test_paper_networks_trained_by_lm_fall_back_to_the_residuals_far_from_the_solution():
+    # The paper's networks (5 x 100, eta = 10, outputs predicted directly) start with random stage
+    # values, where dr/du is nearly singular and the Newton corrections are no guide (no step
+    # decreases them); LM then continues on the residuals and still reaches tol.
+    c = HESSENBERG.model().compile()
+    paper = dm.PINNConfig.paper("hessenberg", h=0.05)
+    cfg = paper.replace(optimizer="lm", iterations=200, tol=dm.PINNConfig().tol, learning_rate=None)
+    sol = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
+    radau = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.05)
+    assert max(sol.stats["max_residual"]) <= 1e-12
+    for name in c.state_names + c.algebraic_names:
+        assert np.abs(sol[name] - radau[name]).max() <= 1e-9, name
+
+
+@pytest.mark.parametrize("activation", ["tanh", "sigmoid", "sin", "gelu", "softplus"])
+@pytest.mark.parametrize("depth", [1, 3])
+def test_hidden_jacobian_factors_equal_autograd(activation, depth):
+    # The hand-written reverse mode through the attention MLP, kept as outer-product factors:
+    # its dense form, Gram matrix, transposed product and weighted diagonal against torch.func.
+    from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
+    from torch.func import jacrev, vmap
+
+    net = network(dm.PINNConfig(width=6, depth=depth, activation=activation, eta=3.0), inputs=5, n=4, m=2)
+    x = 3 * torch.randn(3, 5, dtype=F64, generator=torch.Generator().manual_seed(2))
+    net.normalise(x)
+    with torch.no_grad():  # away from the initial weights (zero biases, slope 1 / eta)
+        for p in net.parameters():
+            p.add_(0.3 * torch.randn(p.shape, dtype=F64, generator=torch.Generator().manual_seed(p.numel())))
+    params = {k: v.detach() for k, v in net.named_parameters()}
+    hidden = net.hidden_jacobian(params, x)
+    K, B, w = hidden.H.shape
+    single = jacrev(lambda theta, xi: net._hidden(theta, xi[None])[0][0, 0])  # one network, one input
+    one = vmap(vmap(single, in_dims=(None, 0)), in_dims=(0, None))
+    expected = one(net.unstack(params), x)  # name -> (K, B, w, *one network's shape)
+    dH = torch.cat([expected[k].reshape(K, B, w, -1) for k in HIDDEN_PARAMETERS], dim=3)
+    scale = float(dH.abs().max())
+    assert torch.allclose(hidden.dense(), dH, rtol=0, atol=1e-13 * scale)
+    W = torch.randn(K, w, 4, dtype=F64, generator=torch.Generator().manual_seed(6))
+    assert torch.allclose(hidden.dense(W), torch.einsum("kri,kbrp->kbip", W, dH), rtol=0, atol=1e-12 * scale)
+    flat = dH.reshape(K, B * w, -1)
+    assert torch.allclose(hidden.gram(), flat @ flat.transpose(1, 2), rtol=1e-12, atol=1e-13 * scale**2)
+    v = torch.randn(K, B, w, dtype=F64, generator=torch.Generator().manual_seed(3))
+    assert torch.allclose(hidden.transpose(v), torch.einsum("kbr,kbrp->kp", v, dH), rtol=1e-12, atol=1e-12 * scale)
+    Q = torch.randn(K, B, w, w, dtype=F64, generator=torch.Generator().manual_seed(4))
+    quad = torch.einsum("kbrp,kbrq,kbqp->kp", dH, Q, dH)
+    assert torch.allclose(hidden.diagonal(Q), quad, rtol=1e-10, atol=1e-12 * scale**2)
+
+
+@pytest.mark.parametrize("symbolic", [True, False])
+def test_output_jacobian_of_the_loss_equals_autograd(symbolic):
+    # d(residual vector)/d(outputs) assembled from the model's Jacobian at the stages and the end
+    # point (the compiler's symbolic one, or forward-mode AD where it has none) against autograd.
+    import dataclasses
+
+    from torch.func import jacrev
+
+    c = PENDULUM.model().compile()
+    cfg = dm.PINNConfig(weight_g=2.0, weight_s=3.0)
+    loss = RadauLoss(c.torch_functions(dtype=F64), dm.radau_iia(3), cfg, F64, "cpu")
+    if not symbolic:
+        loss.functions = dataclasses.replace(loss.functions, jacobian=None)
+    n, m, s, N = 4, 1, 3, 2
+    gen = torch.Generator().manual_seed(5)
+    y_n = torch.rand(N, n, dtype=F64, generator=gen)
+    p = torch.tensor(c.parameter_values, dtype=F64).expand(N, -1)
+    u = torch.rand(N, (s + 1) * (n + m), dtype=F64, generator=gen)
+
+    def outputs(u):
+        return Outputs(
+            Y=u[:, : s * n].reshape(-1, s, n),
+            y_end=u[:, s * n : s * n + n],
+            Z=u[:, s * n + n : s * n + n + s * m].reshape(-1, s, m),
+            z_end=u[:, s * n + n + s * m :],
+        )
+
+    def vector(u):  # each sample's residuals depend on its own outputs only
+        return loss.vector(loss.residuals(0.3, 0.05, y_n, p, outputs(u)), N).sum(0)
+
+    expected = jacrev(vector)(u).permute(1, 0, 2)
+    assert torch.allclose(loss.jacobian(0.3, 0.05, y_n, p, outputs(u)), expected, rtol=1e-13, atol=1e-15)
+
+
+def test_fast_mode_on_an_ode_whose_jacobian_has_no_symbolic_form():
+    # Abs has no supported derivative, so the compiler emits no Jacobian: dr/du comes from
+    # autograd through f (and a system without algebraic variables has no g to differentiate).
+    m = dm.Model("damped")
+    m.states(["x", "v"])
+    m.ode("x", "v")
+    m.ode("v", "-x - 0.1*v*Abs(v)")
+    m.initial(x=1.0, v=0.0)
+    c = m.compile()
+    assert c.torch_functions(dtype=F64).jacobian is None
+    sol = dm.solve(c, (0.0, 0.2), method="pinn")
+    radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
+    for name in c.state_names:
+        assert np.abs(sol[name] - radau[name]).max() <= 1e-12, name
+
+
+def pendulum_chain(links: int) -> dm.Model:
+    """``links`` unit masses on unit rods in Cartesian coordinates (index 3), released straight
+    at 45 degrees below the horizontal: every rod has a nonzero tension from t = 0."""
+    m = dm.Model(f"chain{links}")
+    idx = range(1, links + 1)
+    x, y = m.states([f"x{i}" for i in idx]), m.states([f"y{i}" for i in idx])
+    u, v = m.states([f"u{i}" for i in idx]), m.states([f"v{i}" for i in idx])
+    lam = m.algebraics([f"lam{i}" for i in idx])
+    px, py = (0, *x), (0, *y)
+    for k in range(links):
+        i = k + 1
+        fx, fy = -lam[k] * (px[i] - px[i - 1]), -lam[k] * (py[i] - py[i - 1])
+        if i < links:
+            fx, fy = fx + lam[k + 1] * (px[i + 1] - px[i]), fy + lam[k + 1] * (py[i + 1] - py[i])
+        m.ode(x[k], u[k])
+        m.ode(y[k], v[k])
+        m.ode(u[k], fx)
+        m.ode(v[k], fy - 9.81)
+        m.constraint((px[i] - px[i - 1]) ** 2 + (py[i] - py[i - 1]) ** 2 - 1, name=f"rod{i}")
+    m.initial(**{f"x{i}": i * 0.5**0.5 for i in idx}, **{f"y{i}": -i * 0.5**0.5 for i in idx})
+    m.initial(**{f"{q}{i}": 0.0 for i in idx for q in "uv"})
+    return m
+
+
+def test_fast_mode_reaches_the_radau_ceiling_on_a_chain_with_many_multipliers():
+    # Five index-3 rods (reduced to index 2: 20 states, 5 multipliers): the Newton corrections of
+    # the multipliers are O(1) where their residuals are O(h^2), which a least-squares fit of the
+    # residuals through the networks (the former residual-space LM) took 100-200 steps per
+    # segment to resolve.  Fitting the Newton corrections takes Newton's handful.
+    c = pendulum_chain(5).compile()
+    span = (0.0, 0.15)
+    sol = dm.solve(c, span, method="pinn", config=dm.PINNConfig(iterations=20))
+    radau = dm.solve(c, span, method="radau", stages=3, h=0.05)
+    assert max(sol.stats["max_residual"]) <= 1e-12
+    for name in c.state_names + c.algebraic_names:
+        scale = max(1.0, float(np.abs(radau[name]).max()))
+        assert np.abs(sol[name] - radau[name]).max() <= 1e-8 * scale, name
 
 
 # ---- errors ---------------------------------------------------------------------------------------

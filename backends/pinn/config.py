@@ -64,8 +64,9 @@ def named_settings(cls):
 class PINNConfig:
     """Settings of ``method="pinn"``: the network, the loss, the optimizer and the segments.
 
-    The defaults are the fast mode: float64, Levenberg-Marquardt on the residual vector,
-    warm start from the previous segment, stopping when every residual is below ``tol``.
+    The defaults are the fast mode: float64, Levenberg-Marquardt on the Newton corrections of
+    the stage equations (see :mod:`daemodel.backends.pinn.train`), warm start from the previous
+    segment, stopping when every residual is below ``tol``.
     :meth:`paper` gives the paper's recipe (Adam, 100k iterations per segment).  Settings are
     given by name; a name it does not have is an :class:`UnknownOptionError` that lists them.
 

@@ -8,9 +8,11 @@ For N training inputs y_n with predictions ``Y_i, y_{n+1}, Z_i, z_{n+1}``
     L_s = 1/N         sum_samples |S|^2
     loss = W_f L_f + W_g L_g + W_s L_s = |r|^2
 
-The residual vector ``r`` (per sample, weights folded in) is what Levenberg-Marquardt works
-on; Adam and L-BFGS minimise ``|r|^2``.  At the classical Radau IIA solution (Newton's stage
-values, ``y_{n+1} = Y_s``, ``z_{n+1} = Z_s``) every residual is zero.
+The residual vector ``r`` (per sample, weights folded in) and its Jacobian with respect to
+the predictions (:meth:`RadauLoss.jacobian`, from the model's Jacobian) give the Newton
+corrections that Levenberg-Marquardt fits; Adam and L-BFGS minimise ``|r|^2``.  At the
+classical Radau IIA solution (Newton's stage values, ``y_{n+1} = Y_s``, ``z_{n+1} = Z_s``)
+every residual is zero.
 """
 
 from __future__ import annotations
@@ -87,6 +89,54 @@ class RadauLoss:
         G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
         return Residuals(F=F, G=G, S=res.S)
 
+    def jacobian(self, t_n: float, h: float, y_n, p, out) -> torch.Tensor:
+        """d(vector)/du, shape (N, R, U), of :meth:`vector` (one sample: ``total = N``) with
+        respect to the predictions ``u = [Y (s, n) row-major, y_end (n), Z (s, m) row-major,
+        z_end (m)]``, assembled from the model's Jacobian at the s stages and the end point::
+
+            dF_i/dY_j = delta_ij I - h a_ij f_y(j),   dF_i/dZ_j = -h a_ij f_z(j)   (end row: b_j, + I at y_end)
+            dG_i/d(Y_i, Z_i) = (g_y, g_z)(i),          dG_end/d(y_end, z_end) = (g_y, g_z)(end)
+            dS/dz_end = I,                             dS/dZ_s = -I
+        """
+        s, N = self.stages, y_n.shape[0]
+        n, m = y_n.shape[1], out.Z.shape[-1]
+        D = n + m
+        dtype, device = y_n.dtype, y_n.device
+        times = torch.cat([t_n + self.c * h, torch.full((1,), t_n + h, dtype=dtype, device=device)])
+        points_y = torch.cat([out.Y, out.y_end[:, None, :]], dim=1)  # (N, s+1, n)
+        points_z = torch.cat([out.Z, out.z_end[:, None, :]], dim=1)
+        J = model_jacobian(self.functions, times, points_y, points_z, None if p is None else p[:, None, :])
+        f_y, f_z, g_y, g_z = J[..., :n, :n], J[..., :n, n:], J[..., n:, :n], J[..., n:, n:]
+        Ab = torch.cat([self.A, self.b[None, :]])  # (s+1, s): the stage rows, then the end row
+        sn, sm = s * n, s * m
+        R, U = (s + 1) * D + m, (s + 1) * D
+        jac = y_n.new_zeros(N, R, U)
+        F = jac[:, : (s + 1) * n].view(N, s + 1, n, U)
+        F[..., :sn].view(N, s + 1, n, s, n).copy_(-h * torch.einsum("ij,bjpq->bipjq", Ab, f_y[:, :s]))
+        F[..., sn + n : sn + n + sm].view(N, s + 1, n, s, m).copy_(-h * torch.einsum("ij,bjpq->bipjq", Ab, f_z[:, :s]))
+        eye_n, eye_m = torch.eye(n, dtype=dtype, device=device), torch.eye(m, dtype=dtype, device=device)
+        for i in range(s):
+            F[:, i, :, i * n : (i + 1) * n] += eye_n
+        F[:, s, :, sn : sn + n] += eye_n  # y_end
+        G = jac[:, (s + 1) * n : (s + 1) * D].view(N, s + 1, m, U)
+        for i in range(s):
+            G[:, i, :, i * n : (i + 1) * n] = g_y[:, i]
+            G[:, i, :, sn + n + i * m : sn + n + (i + 1) * m] = g_z[:, i]
+        G[:, s, :, sn : sn + n] = g_y[:, s]
+        G[:, s, :, sn + n + sm :] = g_z[:, s]
+        S = jac[:, (s + 1) * D :]
+        S[:, :, sn + n + sm :] = eye_m
+        S[:, :, sn + n + (s - 1) * m : sn + n + sm] = -eye_m
+        W_f, W_g, W_s = self.weights
+        weights = torch.cat(
+            [
+                torch.full(((s + 1) * n,), math.sqrt(W_f / (N * (s + 1))), dtype=dtype, device=device),
+                torch.full(((s + 1) * m,), math.sqrt(W_g / (N * (s + 1))), dtype=dtype, device=device),
+                torch.full((m,), math.sqrt(W_s / N), dtype=dtype, device=device),
+            ]
+        )
+        return jac * weights[:, None]
+
     def vector(self, residuals: Residuals, total: int) -> torch.Tensor:
         """Weighted residual vector, shape (N, R), with ``|r|^2`` = the loss over ``total`` samples."""
         W_f, W_g, W_s = self.weights
@@ -100,3 +150,29 @@ class RadauLoss:
             ],
             dim=1,
         )
+
+
+def model_jacobian(functions, t, y, z, p) -> torch.Tensor:
+    """``d(f, g)/d(y, z)`` at points ``t (...)``, ``y (..., n)``, ``z (..., m)``, shape (..., D, D)
+    with D = n + m: the compiler's symbolic Jacobian at its nonzeros, or, where it has none (a
+    derivative outside the supported functions, or a system too large for a symbolic one),
+    reverse-mode autograd with the D rows as one batch of cotangents.  (Forward mode would need
+    fewer directions on a sparse system, but torch runs its rules for a Python scalar times a
+    dual tensor through Python decompositions: 3-6x slower here.)"""
+    n, m = y.shape[-1], z.shape[-1]
+    D, lead = n + m, y.shape[:-1]
+    if functions.jacobian is not None:
+        rows, cols = (torch.as_tensor(a, device=y.device) for a in functions.jacobian_pattern)
+        J = y.new_zeros((*lead, D * D))
+        J[..., rows * D + cols] = functions.jacobian(t, y, z, p)
+        return J.reshape(*lead, D, D)
+    with torch.enable_grad():
+        y, z = y.detach().requires_grad_(), z.detach().requires_grad_()
+        values = torch.cat([functions.f(t, y, z, p), functions.g(t, y, z, p)], dim=-1)  # (..., D)
+        rows = torch.eye(D, dtype=y.dtype, device=y.device).reshape(D, *([1] * len(lead)), D)
+        # each point's outputs depend on its own inputs only: one cotangent per row serves all points
+        grads = torch.autograd.grad(
+            values, (y, z), rows.expand(D, *values.shape), is_grads_batched=True, allow_unused=True
+        )
+    parts = [y.new_zeros((D, *x.shape)) if g is None else g for g, x in zip(grads, (y, z), strict=True)]
+    return torch.cat(parts, dim=-1).movedim(0, -2)  # (row, ..., column) -> (..., row, column)

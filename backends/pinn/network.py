@@ -13,7 +13,9 @@ so ``depth`` counts the hidden layers H_1..H_depth.  Approach 2 ("per-variable")
 network per differential variable (its s stages and end value) and two for the algebraic
 variables (all stages; all end values); approach 1 ("shared") has one network for all
 outputs.  The K networks of a segment are stored stacked (leading axis K) and evaluated in
-one batched product per layer, which is what makes their Jacobians cheap.
+one batched product per layer.  Their Jacobians with respect to their parameters, which
+Levenberg-Marquardt needs at every step, are written out the same way, for all K networks at
+once and kept in factors (:meth:`RadauNetwork.hidden_jacobian`, :class:`HiddenJacobian`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import torch
 
 # Parameters stacked as (depth - 1, K, ...); all others are (K, ...).
 GATE_PARAMETERS = ("W_gate", "b_gate")
+# The parameters before the output layer, in registration order (as ``named_parameters``).
+HIDDEN_PARAMETERS = ("W_u", "b_u", "W_r", "b_r", "W_1", "b_1", "slope", "W_gate", "b_gate")
 
 ACTIVATION_FUNCTIONS = {
     "tanh": torch.tanh,
@@ -33,6 +37,106 @@ ACTIVATION_FUNCTIONS = {
     "gelu": torch.nn.functional.gelu,
     "softplus": torch.nn.functional.softplus,
 }
+
+
+def _sigmoid_derivative(a, value):
+    value = torch.sigmoid(a) if value is None else value
+    return value * (1 - value)
+
+
+def _gelu_derivative(a, value):
+    return 0.5 * (1 + torch.erf(a / math.sqrt(2))) + a * torch.exp(-0.5 * a * a) / math.sqrt(2 * math.pi)
+
+
+def _softplus_derivative(a, value):
+    return torch.where(a > 20, torch.ones_like(a), torch.sigmoid(a))  # torch's softplus is linear above 20
+
+
+# phi'(a), given a and (when known, else None) phi(a).
+ACTIVATION_DERIVATIVES = {
+    "tanh": lambda a, value: 1 - (torch.tanh(a) if value is None else value) ** 2,
+    "sigmoid": _sigmoid_derivative,
+    "sin": lambda a, value: torch.cos(a),
+    "gelu": _gelu_derivative,
+    "softplus": _softplus_derivative,
+}
+
+
+@dataclass(frozen=True)
+class HiddenJacobian:
+    """The Jacobian of the last hidden layer H (K networks, B inputs, w units) with respect to
+    each network's hidden parameters, in factors.
+
+    Every hidden parameter but the slope belongs to a linear map ``A = a W + b`` followed by
+    the activation, so its Jacobian is an outer product: ``dH_r/dW[i, j] = a_i abar_{rj}`` and
+    ``dH_r/db_j = abar_{rj}``, with ``abar = dH_r/dA`` from reverse mode.  Gram matrices and
+    transposed products then cost O(w^3) per map instead of O(w^2 P).
+
+    Attributes
+    ----------
+    H : Tensor, shape (K, B, w)
+    maps : tuple of (a, abar)
+        ``a`` (K, B, inputs of the map), ``abar`` (K, B, w rows of H, units of the map), for
+        W_u/b_u, W_r/b_r, W_1/b_1 and each gated layer W_gate[l]/b_gate[l].
+    slope : Tensor, shape (K, B, w, 1)
+        dH/dl of the adaptive slope.
+    """
+
+    H: torch.Tensor
+    maps: tuple
+    slope: torch.Tensor
+
+    def dense(self, W: torch.Tensor | None = None) -> torch.Tensor:
+        """dH/dtheta, shape (K, B, w, P_hidden), or with ``W`` (K, w, out) the rows of ``W^T dH``,
+        shape (K, B, out, P_hidden) (the Jacobian of outputs ``H W``, formed without dH).  Columns
+        in the order of :data:`HIDDEN_PARAMETERS`, each parameter of one network flattened as
+        :meth:`RadauNetwork.unstack` lays it out."""
+        K, B, w = self.H.shape
+        rows = w if W is None else W.shape[-1]
+
+        def project(abar):  # (K, B, w, units) -> (K, B, rows, units)
+            return abar if W is None else torch.einsum("kri,kbrj->kbij", W, abar)
+
+        def outer(a, abar):
+            return (a[:, :, None, :, None] * abar[:, :, :, None, :]).reshape(K, B, rows, -1)
+
+        (a_u, bar_u), (a_r, bar_r), (a_1, bar_1), *gates = ((a, project(abar)) for a, abar in self.maps)
+        columns = [outer(a_u, bar_u), bar_u, outer(a_r, bar_r), bar_r, outer(a_1, bar_1), bar_1, project(self.slope)]
+        columns += [outer(a, abar) for a, abar in gates] + [abar for _, abar in gates]
+        return torch.cat(columns, dim=3)
+
+    def gram(self) -> torch.Tensor:
+        """``dH dH^T`` over each network's hidden parameters, shape (K, B w, B w)."""
+        K, B, w = self.H.shape
+        total = torch.einsum("kbr,kcq->kbrcq", self.slope[..., 0], self.slope[..., 0])
+        for a, abar in self.maps:  # weights and bias: (a_b . a_c + 1) (abar_b abar_c^T)
+            inputs = a @ a.transpose(1, 2) + 1  # (K, B, B)
+            total = total + inputs[:, :, None, :, None] * torch.einsum("kbrj,kcqj->kbrcq", abar, abar)
+        return total.reshape(K, B * w, B * w)
+
+    def transpose(self, v: torch.Tensor) -> torch.Tensor:
+        """``sum_b dH_b^T v_b`` for ``v`` (K, B, w): shape (K, P_hidden), in :meth:`dense`'s order."""
+        K = v.shape[0]
+        parts = []
+        for a, abar in self.maps:
+            back = torch.einsum("kbr,kbrj->kbj", v, abar)  # (K, B, units)
+            parts.append((torch.einsum("kbi,kbj->kij", a, back).reshape(K, -1), back.sum(1)))
+        (W_u, b_u), (W_r, b_r), (W_1, b_1), *gates = parts
+        slope = torch.einsum("kbr,kbr->k", v, self.slope[..., 0])[:, None]
+        columns = [W_u, b_u, W_r, b_r, W_1, b_1, slope] + [W for W, _ in gates] + [b for _, b in gates]
+        return torch.cat(columns, dim=1)
+
+    def diagonal(self, Q: torch.Tensor) -> torch.Tensor:
+        """``diag(sum_b dH_b^T Q_b dH_b)`` for ``Q`` (K, B, w, w): shape (K, P_hidden), in :meth:`dense`'s order."""
+        K = Q.shape[0]
+        parts = []
+        for a, abar in self.maps:
+            quad = torch.einsum("kbrj,kbrq,kbqj->kbj", abar, Q, abar)  # (K, B, units)
+            parts.append((torch.einsum("kbi,kbj->kij", a * a, quad).reshape(K, -1), quad.sum(1)))
+        (W_u, b_u), (W_r, b_r), (W_1, b_1), *gates = parts
+        slope = torch.einsum("kbr,kbrq,kbq->k", self.slope[..., 0], Q, self.slope[..., 0])[:, None]
+        columns = [W_u, b_u, W_r, b_r, W_1, b_1, slope] + [W for W, _ in gates] + [b for _, b in gates]
+        return torch.cat(columns, dim=1)
 
 
 @dataclass(frozen=True)
@@ -96,6 +200,7 @@ class RadauNetwork(torch.nn.Module):
         sizes, positions = output_layout(n, m, config.stages, config.architecture)
         K, w, d, out = len(sizes), config.width, inputs, max(sizes)
         self.count, self.sizes = K, sizes  # sizes: how many of its stacked outputs each network uses
+        self.output_count = sum(sizes)  # U: stage and end values of every variable
 
         def weight(*shape):
             fan_in, fan_out = shape[-2], shape[-1]
@@ -121,21 +226,67 @@ class RadauNetwork(torch.nn.Module):
         self.register_buffer("center", torch.zeros(d, dtype=dtype))
         self.register_buffer("scale", torch.ones(d, dtype=dtype))
 
-    def forward(self, x: torch.Tensor, stacked: bool = False) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, stacked: bool = False, params: dict | None = None) -> torch.Tensor:
         """Raw network outputs, shape (B, U), for inputs ``x`` of shape (B, d); with ``stacked``,
-        each network's own outputs, shape (K, B, out) (padded to the largest network)."""
-        phi = ACTIVATION_FUNCTIONS[self.activation]
-        xn = (x - self.center) / self.scale
-        U = phi(torch.einsum("bd,kdw->kbw", xn, self.W_u) + self.b_u)
-        R = phi(torch.einsum("bd,kdw->kbw", xn, self.W_r) + self.b_r)
-        H = phi(self.eta * self.slope * torch.einsum("bd,kdw->kbw", xn, self.W_1) + self.b_1)
-        for W, b in zip(self.W_gate, self.b_gate, strict=True):
-            M = phi(torch.bmm(H, W) + b)
-            H = (1 - M) * U + M * R
-        out = torch.bmm(H, self.W_out) + self.b_out  # (K, B, out)
+        each network's own outputs, shape (K, B, out) (padded to the largest network).  ``params``
+        (as ``named_parameters``) replaces the network's own parameters."""
+        p = dict(self.named_parameters()) if params is None else params
+        H = self._hidden(p, x)[0]
+        out = torch.bmm(H, p["W_out"]) + p["b_out"]  # (K, B, out)
         if stacked:
             return out
         return out.permute(1, 0, 2).reshape(x.shape[0], -1)[:, self.order]
+
+    def _hidden(self, p: dict, x: torch.Tensor):
+        """The last hidden layer H_depth, shape (K, B, w), and what its Jacobian needs."""
+        phi = ACTIVATION_FUNCTIONS[self.activation]
+        xn = (x - self.center) / self.scale
+        A_u = torch.einsum("bd,kdw->kbw", xn, p["W_u"]) + p["b_u"]
+        A_r = torch.einsum("bd,kdw->kbw", xn, p["W_r"]) + p["b_r"]
+        X_1 = torch.einsum("bd,kdw->kbw", xn, p["W_1"])
+        A_1 = self.eta * p["slope"] * X_1 + p["b_1"]
+        U, R, H = phi(A_u), phi(A_r), phi(A_1)
+        layers = []  # (H_k, pre-activation of M_k, M_k) of each gated layer
+        for W, b in zip(p["W_gate"], p["b_gate"], strict=True):
+            A = torch.bmm(H, W) + b
+            M = phi(A)
+            layers.append((H, A, M))
+            H = (1 - M) * U + M * R
+        return H, (xn, A_u, A_r, X_1, A_1, U, R, layers)
+
+    def hidden_jacobian(self, params: dict, x: torch.Tensor) -> HiddenJacobian:
+        """The last hidden layer and its Jacobian with respect to each network's own hidden
+        parameters (all but ``W_out``, ``b_out``), by reverse mode written out for its w rows,
+        kept in the factors of every linear map (see :class:`HiddenJacobian`)."""
+        p = params
+        H, (xn, A_u, A_r, X_1, A_1, U, R, layers) = self._hidden(p, x)
+        K, B, w = H.shape
+        dphi = ACTIVATION_DERIVATIVES[self.activation]
+        eye = torch.eye(w, dtype=H.dtype, device=H.device)
+        bar_H = eye.expand(K, B, w, w)  # (K, B, row of H_depth, unit of the current layer)
+        bar_U = torch.zeros_like(bar_H)
+        bar_R = torch.zeros_like(bar_H)
+        gates = []
+        for (H_k, A, M), W in zip(reversed(layers), reversed(list(p["W_gate"])), strict=True):
+            bar_U = bar_U + bar_H * (1 - M)[:, :, None, :]
+            bar_R = bar_R + bar_H * M[:, :, None, :]
+            bar_A = bar_H * ((R - U) * dphi(A, M))[:, :, None, :]
+            gates.append((H_k, bar_A))
+            bar_H = bar_A @ W.transpose(-1, -2)[:, None]
+        bar_A1 = bar_H * dphi(A_1, None)[:, :, None, :]
+        bar_Au = bar_U * dphi(A_u, U)[:, :, None, :]
+        bar_Ar = bar_R * dphi(A_r, R)[:, :, None, :]
+        inputs = xn.expand(K, *xn.shape)
+        return HiddenJacobian(
+            H=H,
+            maps=(
+                (inputs, bar_Au),
+                (inputs, bar_Ar),
+                (self.eta * p["slope"] * inputs, bar_A1),  # A_1 = eta l x W_1 + b_1
+                *gates[::-1],
+            ),
+            slope=self.eta * (bar_A1 * X_1[:, :, None, :]).sum(-1, keepdim=True),
+        )
 
     def split(self, raw: torch.Tensor, y_n: torch.Tensor, h) -> Outputs:
         """Stage and end values from raw outputs (B, U); ``y_n`` (B, n) for the increment form."""

@@ -1,27 +1,32 @@
 """Training one segment's networks: Levenberg-Marquardt, L-BFGS or Adam on the Radau loss.
 
-Levenberg-Marquardt drives a vector e(theta) to zero; the damping mu follows Nielsen's
-gain-ratio rule.  Two regimes, chosen by the count of residuals R against the parameters
-P / K of one of the K networks:
+Levenberg-Marquardt drives to zero the vector e that stacks every sample's Newton correction
+``e_b = (dr_b/du_b)^+ r_b``: how far the network outputs u_b (stage and end values) of sample b
+are from its own collocation solution, to first order.  J = du/dtheta, and each step solves
+``(J^T J + mu I) delta = -J^T e`` (Gauss-Newton on Newton targets); the damping mu follows
+Nielsen's gain-ratio rule.  At e = 0 every residual r is zero, so with one sample per segment
+(a trajectory) training ends on Newton's stage values, the classical Radau solution.
 
-* R <= P / K (few samples: the usual trajectory, 21 residuals against thousands of parameters):
-  e is the residual vector r, J = dr/dtheta = (dr/du)(du/dtheta) by the chain rule through
-  the network outputs u, and each step solves in the small residual space::
+Why Newton corrections rather than the residuals themselves (the gradient the loss gives): an
+index-2 algebraic variable moves the residual by O(h) only, and the multipliers of a chain of
+rods by less, so a least-squares fit of r through the networks takes tiny, badly scaled steps
+(measured on the first segment of a chain of rods: 83 LM steps for three links and more than
+200 for eight, against 6 and 9 here) and, over a box of many samples where r cannot vanish,
+leaves z errors of about residual / h.  Measured in e, the
+nonlinearity of the networks costs a constant factor per step, not a stall.
 
-      delta = -J^T (J J^T + mu I)^{-1} r
+The Jacobian is never formed whole.  dr/du comes from the model's Jacobian at the stages and
+the end point (:meth:`RadauLoss.jacobian`).  An output depends only on its own network's
+parameters, so J^T J is block diagonal over the K networks (approach 2: one per differential
+variable, two for the algebraic ones); each block is solved in whichever space is smaller:
 
-  This is Newton's method on the Radau stage equations seen through the network's
-  parametrisation, which is why it reaches the classical solution in a few steps.
-* R > P / K (many samples: surrogates): the residuals may not all vanish, and a least-squares fit
-  of r would weigh an index-2 algebraic variable by how much it moves the residual, O(h),
-  leaving its error ~ residual / h.  Instead e stacks every sample's Newton correction
-  ``(dr/du)^+ r`` (how far its outputs are from its own collocation solution), J = du/dtheta,
-  and each step solves ``(J^T J + mu I) delta = -J^T e`` (Gauss-Newton on Newton targets).
-  An output depends only on its own network's parameters, so J^T J is block diagonal: with
-  the per-variable networks (approach 2) that is K small solves, not one of size P.
+* its outputs (few samples, the usual trajectory): ``delta_k = -J_k^T (J_k J_k^T + mu I)^{-1} e_k``,
+  an (N out, N out) system whose matrix is built from the factors of the hand-written reverse
+  pass (:class:`HiddenJacobian`), O(w^3) per layer;
+* its parameters (many samples, surrogates): ``(J_k^T J_k + mu I) delta_k = -J_k^T e_k``, (P/K, P/K).
 
-Either way the training stops on the residual, every |r| component below ``tol``, or with
-``tol=None`` after ``iterations`` (sooner if no step decreases the merit).
+Training stops on the residual, every |r| component below ``tol``, or with ``tol=None`` after
+``iterations`` (sooner if no step decreases the merit).
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch.func import functional_call, jacrev, vmap
+from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
 from daemodel.errors import TrainingError
 
@@ -45,7 +50,14 @@ LM_TAU = 1e-6
 LM_MAX_DAMPING = 1e16
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
 LBFGS_CHUNK = 20
-# Entries of dr/dtheta held at once; larger sample sets are processed in chunks.
+# LM fits the Newton corrections of the outputs where a full Newton step on them cuts the
+# residual norm to at most this fraction (Newton converges from there); measured at the start of
+# a segment, it is 0.004-0.08 for the fast mode's networks (paper problems, chains of 3-8 rods,
+# a 30-point grid) and 1-176 for the paper's networks, whose first outputs are random.
+NEWTON_CONTRACTION = 0.5
+# Columns of W_out's and b_out's Jacobian follow the hidden parameters'.
+BLOCK_ORDER = (*HIDDEN_PARAMETERS, "W_out", "b_out")
+# Entries of du/dtheta held at once; larger sample sets are processed in chunks.
 JACOBIAN_ENTRIES = 2**24
 # Progress is reported at most this often (seconds).
 REPORT_SECONDS = 0.2
@@ -254,167 +266,354 @@ class SegmentTrainer:
 
     # ---- Levenberg-Marquardt --------------------------------------------------------------------
     def _output_jacobian(self, segment: Segment, raw: torch.Tensor) -> torch.Tensor:
-        """dr_b/du_b for every sample b, shape (N, R_per, U)."""
-        N = raw.shape[0]
+        """dr_b/du_b of every sample b with respect to its raw network outputs, shape (N, R, U),
+        from the model's Jacobian at the stages and the end point (:meth:`RadauLoss.jacobian`)."""
+        net, n = self.net, self.net.n
+        y_n = segment.x[:, :n]
+        out = net.split(raw, y_n, segment.h)
+        Ru = self.loss.jacobian(segment.t, segment.h, y_n, segment.p, out)
+        if net.increment:  # Y = y_n + h N(x), y_end = y_n + h N(x)
+            Ru[..., : (net.stages + 1) * n] *= segment.h
+        return Ru
 
-        def summed(u):
-            # r of sample b depends on u of sample b only: the Jacobian of the sum over samples
-            # is the stack of per-sample Jacobians.
-            return self.loss.vector(self.residuals(segment, u), N).sum(0)
+    def _correction(self, segment: Segment, raw, r):
+        """Every sample's Newton correction ``e = R_u^+ r``, shape (N, U): the step of its raw
+        outputs to its collocation solution, to first order; NaN where r or R_u is not finite."""
+        Ru = self._output_jacobian(segment, raw)
+        if not (bool(torch.isfinite(r).all()) and bool(torch.isfinite(Ru).all())):
+            # a step into NaN is rejected; a start in NaN is reported by _check
+            return torch.full_like(raw, math.nan)
+        return torch.linalg.lstsq(Ru, r[..., None]).solution[..., 0]
 
-        return jacrev(summed)(raw.detach()).permute(1, 0, 2)
-
-    def _parameter_jacobians(self, segment: Segment, params: dict, U: int, P: int):
-        """Yield ``(chunk, du/dtheta)`` sample chunk by sample chunk, the latter of shape (c, U, P)."""
-        net, x = self.net, segment.x
-
-        def single(p, xi):
-            return functional_call(net, p, (xi[None],))[0]
-
-        step = max(1, JACOBIAN_ENTRIES // max(1, U * P))
-        for first in range(0, x.shape[0], step):
-            chunk = slice(first, min(x.shape[0], first + step))
-            du = vmap(jacrev(single), in_dims=(None, 0))(params, x[chunk])  # name -> (c, U, *shape)
-            yield chunk, torch.cat([du[name].reshape(du[name].shape[0], U, -1) for name in params], dim=2)
-
-    def _merit(self, segment: Segment, params: dict, output_space: bool):
-        """Outputs, residuals and the vector e that LM drives to zero: r itself, or in output
-        space every sample's Newton correction ``R_u^+ r`` (the step to its collocation solution)."""
-        raw = functional_call(self.net, params, (segment.x,)).detach()
+    def _merit(self, segment: Segment, params: dict, space: str):
+        """Residuals and the vector that LM drives to zero: in ``"output"`` space every sample's
+        Newton correction (:meth:`_correction`), in ``"residual"`` space the residual vector r."""
         with torch.no_grad():
+            raw = self.net(segment.x, params=params)
             residuals = self.residuals(segment, raw)
             r = self.loss.vector(residuals, segment.x.shape[0])
-        if not output_space:
-            return raw, residuals, r.reshape(-1)
-        e = torch.linalg.lstsq(self._output_jacobian(segment, raw), r[..., None]).solution[..., 0]
-        return raw, residuals, e.reshape(-1)
+            if space == "residual":
+                return residuals, r.reshape(-1)
+            return residuals, self._correction(segment, raw, r).reshape(-1)
+
+    def _newton_contracts(self, segment: Segment, params: dict):
+        """Whether the full Newton step on the outputs, ``u - e``, cuts the residual norm to at most
+        :data:`NEWTON_CONTRACTION` of its value: where it does, the Newton corrections are a guide
+        and LM fits them; where not (far from the solution, dr/du nearly singular: the paper's
+        networks start from random stage values), LM works on the residuals.
+
+        Returns ``(contracts, residuals, r, e)``."""
+        with torch.no_grad():
+            raw = self.net(segment.x, params=params)
+            residuals = self.residuals(segment, raw)
+            N = segment.x.shape[0]
+            r = self.loss.vector(residuals, N)
+            e = self._correction(segment, raw, r)
+            newton = self.loss.vector(self.residuals(segment, raw - e), N)
+            contracts = bool(torch.linalg.norm(newton) <= NEWTON_CONTRACTION * torch.linalg.norm(r))
+        return contracts, residuals, r.reshape(-1), e.reshape(-1)
 
     def _levenberg_marquardt(self, segment: Segment) -> int:
         params = {name: p.detach().clone() for name, p in self.net.named_parameters()}
         names = list(params)
         sizes = [params[k].numel() for k in names]
-        P = sum(sizes)
-        raw, residuals, r = self._merit(segment, params, False)
-        # Many samples: least squares may not zero all residuals, and weighing them by residual
-        # would let an index-2 z (which moves the residual by O(h) only) keep errors ~ residual / h.
-        # Fit every output's Newton correction instead.  The switch is where the block-diagonal
-        # output-space solve (R (P/K)^2) gets cheaper than the residual-space one (R^2 P).
-        output_space = r.numel() > P // self.net.count
-        raw, residuals, e = self._merit(segment, params, output_space) if output_space else (raw, residuals, r)
-        U = raw.shape[1]
+        # With few samples the residual-space system is small (N R <= P / K), and LM works there
+        # until a Newton step on the outputs contracts, then on the Newton corrections; with many
+        # (surrogates) always on the corrections.
+        N, K = segment.x.shape[0], self.net.count
+        fallback = N * (self.net.output_count + self.net.m) <= sum(sizes) // K
+        if fallback:
+            contracts, residuals, r, e = self._newton_contracts(segment, params)
+            space = "output" if contracts else "residual"
+            e = e if contracts else r
+        else:
+            space = "output"
+            residuals, e = self._merit(segment, params, space)
         self.report(0, self._check(segment, residuals, 0, None))
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration = 0
         while iteration < self.config.iterations and not self._done(residuals):
             iteration += 1
             if system is None:
-                system = self._normal_system(segment, params, raw, e, U, P, output_space)
+                system = self._normal_system(segment, params, e, space)
                 if mu is None:
-                    scale = float(system[4].max())
+                    scale = system.scale
                     mu = LM_TAU * scale
-            kind, J, A, g, _ = system
-            delta = self._lm_step(kind, J, A, g, e, mu)
-            if delta is None:  # not positive definite: more damping
+            step = system.step(mu)
+            if step is None:  # not positive definite: more damping
                 mu, nu = mu * nu, nu * 2
                 continue
+            delta, predicted = step
             trial = {}
             offset = 0
             for name, size in zip(names, sizes, strict=True):
                 trial[name] = params[name] + delta[offset : offset + size].reshape(params[name].shape)
                 offset += size
-            raw_t, residuals_t, e_t = self._merit(segment, trial, output_space)
-            predicted = 0.5 * float(delta @ (mu * delta - g))
+            residuals_t, e_t = self._merit(segment, trial, space)
             actual = 0.5 * float(e @ e - e_t @ e_t)
             if math.isfinite(actual) and actual > 0 and predicted > 0:
                 rho = actual / predicted
-                params, raw, residuals, e = trial, raw_t, residuals_t, e_t
+                params, residuals, e = trial, residuals_t, e_t
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu, system = 2.0, None
                 self.report(iteration, self._check(segment, residuals, iteration, None))
+                if space == "residual" and not self._done(residuals):
+                    contracts, _, _, correction = self._newton_contracts(segment, params)
+                    if contracts:  # near enough for Newton: fit its corrections from here
+                        space, mu, e = "output", None, correction
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
-                    break  # no step decreases the merit: report through _finish
+                    if space == "residual" or not fallback:
+                        break  # no step decreases the merit: report through _finish
+                    # no step decreases the Newton corrections: continue on the residuals
+                    space, mu, nu, system = "residual", None, 2.0, None
+                    _, e = self._merit(segment, params, space)
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
         return iteration
 
-    def _normal_system(self, segment: Segment, params: dict, raw, e, U: int, P: int, output_space: bool):
-        """``(kind, J, A, J^T e, diag(J^T J))`` of the linearised merit ``e + J delta``.
-
-        Residual space: J = dr/dtheta = (dr/du)(du/dtheta), A = J J^T ("dual", an R x R solve).
-        Output space: J = du/dtheta, A = the diagonal blocks of J^T J, one per network
-        ("blocks"), accumulated over sample chunks so that J is never held whole.
-        """
-        if not output_space:
-            Ru = self._output_jacobian(segment, raw)
-            J = torch.cat(
-                [
-                    torch.bmm(Ru[chunk], Ju).reshape(-1, P)
-                    for chunk, Ju in self._parameter_jacobians(segment, params, U, P)
-                ]
-            )
-            return "dual", J, J @ J.T, J.T @ e, (J**2).sum(0)
-        # An output depends on its own network's parameters only, so J = du/dtheta and J^T J
-        # are block diagonal over the K networks: K solves of size P/K instead of one of size P.
+    def _normal_system(self, segment: Segment, params: dict, e: torch.Tensor, space: str = "output"):
+        """The linearised merit ``e + J delta`` as an :class:`OutputGramSystem` (J = du/dtheta; few
+        outputs per network: a (N out, N out) solve per network), an :class:`OutputSystem` (many:
+        a (P/K, P/K) solve per network) or, in residual space, a :class:`ResidualGramSystem`
+        (J = dr/dtheta: one (N R, N R) solve).  An output depends on its own network's parameters
+        only, so du/dtheta is block diagonal over the networks and never formed whole."""
         net, K, N = self.net, self.net.count, segment.x.shape[0]
+        out = max(net.sizes)
+        P = sum(p.numel() for p in params.values())
         where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         sizes = torch.tensor(net.sizes, device=e.device)
-        valid = torch.arange(max(net.sizes), device=e.device)[None, :] < sizes[:, None]  # (K, out): outputs in use
-        stacked = torch.zeros(N, valid.numel(), dtype=e.dtype, device=e.device)
-        stacked[:, net.order] = e.reshape(N, U)
-        stacked = stacked.reshape(N, K, -1).permute(1, 0, 2)  # (K, N, out)
+        valid = (torch.arange(out, device=e.device)[None, :] < sizes[:, None]).to(e.dtype)  # (K, out): outputs in use
+        W = params["W_out"] * valid[:, None, :]  # padded outputs take no part
+        if space == "residual":
+            with torch.no_grad():
+                Ru = self._output_jacobian(segment, net(segment.x, params=params))  # (N, R, U)
+            stacked = Ru.new_zeros(N, Ru.shape[1], K * out)
+            stacked[..., net.order] = Ru  # padded outputs: zero columns
+            gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P)
+            return ResidualGramSystem(gram, stacked.reshape(N, -1, K, out), e)
+        stacked = torch.zeros(N, K * out, dtype=e.dtype, device=e.device)
+        stacked[:, net.order] = e.reshape(N, -1)
+        stacked = stacked.reshape(N, K, out).transpose(0, 1)  # (K, N, out), zero at padded outputs
+        if N * out <= P // K:
+            return OutputGramSystem(NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P), stacked)
         JtJ = torch.zeros(K, P // K, P // K, dtype=e.dtype, device=e.device)
         Jte = torch.zeros(K, P // K, dtype=e.dtype, device=e.device)
-        for chunk, J in self._block_jacobians(segment, params, P):
-            J = (J * valid[:, None, :, None]).reshape(K, -1, P // K)  # padded outputs take no part
+        step = max(1, JACOBIAN_ENTRIES // max(1, P * out))
+        for first in range(0, N, step):
+            chunk = slice(first, min(N, first + step))
+            J = output_layer_jacobian(net.hidden_jacobian(params, segment.x[chunk]), W, valid).reshape(K, -1, P // K)
             JtJ += J.transpose(1, 2) @ J
             Jte += (J.transpose(1, 2) @ stacked[:, chunk].reshape(K, -1, 1))[..., 0]
-        g, diagonal = torch.empty(P, dtype=e.dtype, device=e.device), torch.empty(P, dtype=e.dtype, device=e.device)
-        g[where.reshape(-1)] = Jte.reshape(-1)
-        diagonal[where.reshape(-1)] = torch.diagonal(JtJ, dim1=1, dim2=2).reshape(-1)
-        return "blocks", where, JtJ, g, diagonal
+        return OutputSystem(JtJ, Jte, where, P)
 
     def _block_index(self, params: dict) -> torch.Tensor:
         """Positions in the flat parameter vector of each network's parameters, shape (K, P/K),
-        in the order of :meth:`_block_jacobians`' columns."""
+        in the order of :func:`output_layer_jacobian`'s columns (hidden parameters, W_out, b_out)."""
         flat, offset = {}, 0
         for name, p in params.items():
             flat[name] = torch.arange(offset, offset + p.numel(), device=p.device).reshape(p.shape)
             offset += p.numel()
-        return torch.cat([v.reshape(self.net.count, -1) for v in self.net.unstack(flat).values()], dim=1)
+        stacks = self.net.unstack(flat)
+        return torch.cat([stacks[name].reshape(self.net.count, -1) for name in BLOCK_ORDER], dim=1)
 
-    def _block_jacobians(self, segment: Segment, params: dict, P: int):
-        """Yield ``(chunk, du/dtheta)`` per network, the latter of shape (K, c, out, P/K)."""
-        net, x, K = self.net, segment.x, self.net.count
-        out = max(net.sizes)
 
-        def single(theta, xi):  # one network (K = 1 stack), one input: its outputs (out,)
-            return functional_call(net, theta, (xi[None],), {"stacked": True})[0, 0]
+def output_layer_jacobian(hidden, W, valid):
+    """du/dtheta of each network, shape (K, B, out, P/K), from its last hidden layer and that
+    layer's Jacobian (``hidden``, a :class:`HiddenJacobian`), the output weights ``W`` (K, w, out)
+    and the outputs in use ``valid`` (K, out).  Columns: hidden parameters, W_out (w, out), b_out."""
+    H = hidden.H
+    K, B, w = H.shape
+    out = W.shape[-1]
+    eye = torch.diag_embed(valid)[:, None]  # (K, 1, out, out): output i moves with column i only
+    weights = (H[:, :, None, :, None] * eye[:, :, :, None, :]).reshape(K, B, out, w * out)
+    return torch.cat([hidden.dense(W), weights, eye.expand(K, B, out, out)], dim=3)
 
-        jacobian = vmap(vmap(jacrev(single), in_dims=(None, 0)), in_dims=(0, None))
-        stacks = net.unstack(params)
-        step = max(1, JACOBIAN_ENTRIES // max(1, P * out))
-        for first in range(0, x.shape[0], step):
-            chunk = slice(first, min(x.shape[0], first + step))
-            du = jacobian(stacks, x[chunk])  # name -> (K, c, out, *one network's shape)
-            yield chunk, torch.cat([du[name].reshape(K, du[name].shape[1], out, -1) for name in params], dim=3)
 
-    @staticmethod
-    def _lm_step(kind, J, A, g, r, mu):
-        """The damped step; ``None`` when ``A + mu I`` is not positive definite.  For "blocks",
-        A is (K, P/K, P/K) and ``J`` (K, P/K) holds each network's positions in the flat parameters."""
-        eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-        L, info = torch.linalg.cholesky_ex(A + mu * eye)
+class NetworkGram:
+    """J = du/dtheta of the K networks at N inputs, kept in factors, with each network's Gram
+    matrix ``G_k = J_k J_k^T`` (N out, N out).  With u = H W_out + b_out,
+    ``G_k = W^T (dH dH^T) W + (H H^T + 1) I``, and dH dH^T comes from the factors of
+    :class:`HiddenJacobian`: the (out, P) Jacobian is never formed.
+
+    Parameters
+    ----------
+    hidden : HiddenJacobian
+        The last hidden layer (K, N, w) and its Jacobian.
+    W : Tensor, shape (K, w, out)
+        Output weights, zero columns at padded outputs.
+    valid : Tensor, shape (K, out)
+        1 at the outputs in use, 0 at padding.
+    where : Tensor, shape (K, P/K)
+        Each network's positions in the flat parameter vector (:meth:`SegmentTrainer._block_index`).
+    P : int
+
+    Attributes
+    ----------
+    groups : list of (networks, count, G)
+        Networks with equal output counts share one batched matrix of their own size (approach 2:
+        the n differential networks have s + 1 outputs, padded to the algebraic ones' s m):
+        their indices (k,), the count, and G (k, N count, N count).
+    """
+
+    def __init__(self, hidden, W, valid, where, P: int):
+        H = hidden.H
+        K, N, w = H.shape
+        self.hidden, self.W, self.valid, self.where, self.P = hidden, W, valid, where, P
+        M = hidden.gram().reshape(K, N, w, N, w)
+        inner = H @ H.transpose(1, 2) + 1  # (K, N, N): the output layer's share, per output
+        counts = valid.sum(1).long()
+        self.groups = []
+        for count in sorted(set(counts.tolist())):
+            k = torch.nonzero(counts == count)[:, 0]
+            Wg = W[k, :, :count]
+            G = torch.einsum("kai,kbacd,kdj->kbicj", Wg, M[k], Wg)
+            G = G + inner[k][:, :, None, :, None] * torch.eye(count, dtype=W.dtype, device=W.device)[:, None, :]
+            self.groups.append((k, count, G.reshape(len(k), N * count, N * count)))
+
+    def transpose(self, v: torch.Tensor) -> torch.Tensor:
+        """``J^T v`` for ``v`` (K, N, out) (zero at padded outputs): the flat parameter vector (P,)."""
+        H = self.hidden.H
+        K = H.shape[0]
+        hidden = self.hidden.transpose(v @ self.W.transpose(1, 2))
+        weights = torch.einsum("kba,kbi->kai", H, v).reshape(K, -1)
+        local = torch.cat([hidden, weights, v.sum(1)], dim=1)  # (K, P/K) in BLOCK_ORDER
+        flat = torch.empty(self.P, dtype=v.dtype, device=v.device)
+        flat[self.where.reshape(-1)] = local.reshape(-1)
+        return flat
+
+    def largest_diagonal(self, C: torch.Tensor) -> float:
+        """The largest entry of ``diag(J^T C J)`` for a block-diagonal ``C`` (K, N, out, out) (one
+        block per network and input): the first damping's scale."""
+        H = self.hidden.H
+        hidden = self.hidden.diagonal(self.W[:, None] @ C @ self.W[:, None].transpose(-1, -2))
+        Cii = torch.diagonal(C, dim1=-2, dim2=-1)  # (K, N, out)
+        weights = torch.einsum("kba,kbi->kai", H**2, Cii)
+        return float(torch.cat([hidden.reshape(-1), weights.reshape(-1), Cii.sum(1).reshape(-1)]).max())
+
+
+class OutputGramSystem:
+    """Levenberg-Marquardt on the Newton corrections e, solved per network in its outputs:
+    ``delta_k = -J_k^T (J_k J_k^T + mu I)^{-1} e_k`` with J_k = du_k/dtheta_k, which equals
+    ``-(J^T J + mu I)^{-1} J^T e`` of :class:`OutputSystem` (a push-through identity) at the
+    cost of a (N out, N out) solve per network.
+
+    Parameters
+    ----------
+    gram : NetworkGram
+    e : Tensor, shape (K, N, out)
+        The merit, zero at padded outputs.
+    """
+
+    def __init__(self, gram: NetworkGram, e):
+        self.gram = gram
+        N = e.shape[1]
+        self.parts = []
+        for k, count, G in gram.groups:
+            eg = e[k, :, :count].reshape(len(k), N * count)
+            self.parts.append((k, count, G, eg, (G @ eg[..., None])[..., 0]))
+
+    @property
+    def scale(self) -> float:
+        """The largest diagonal entry of J^T J (sets the first damping)."""
+        K, N, out = self.gram.valid.shape[0], self.gram.hidden.H.shape[1], self.gram.W.shape[-1]
+        return self.gram.largest_diagonal(torch.diag_embed(self.gram.valid)[:, None].expand(K, N, out, out))
+
+    def step(self, mu: float):
+        """``(delta, predicted decrease of |e|^2 / 2)``, or None when a ``G + mu I`` is not positive definite."""
+        H = self.gram.hidden.H
+        K, N, _ = H.shape
+        w = H.new_zeros(K, N, self.gram.W.shape[-1])
+        predicted = 0.0
+        for k, count, G, e, Ge in self.parts:
+            eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
+            L, info = torch.linalg.cholesky_ex(G + mu * eye)
+            if bool((info != 0).any()):
+                return None
+            wg = torch.cholesky_solve(e[..., None], L)[..., 0]  # (k, N count)
+            Gw = (G @ wg[..., None])[..., 0]
+            # delta = -J^T w, g = J^T e: delta.delta = w.G w, delta.g = -w.G e
+            predicted += 0.5 * float((mu * (wg * Gw) + wg * Ge).sum())
+            w[k, :, :count] = wg.reshape(len(k), N, count)
+        return -self.gram.transpose(w), predicted
+
+
+class ResidualGramSystem:
+    """Levenberg-Marquardt on the residual vector r with J = dr/dtheta = (dr/du)(du/dtheta),
+    ``delta = -J^T (J J^T + mu I)^{-1} r``, where ``J J^T = sum_k (dr/du_k) G_k (dr/du_k)^T``
+    with the networks' Gram matrices G_k: one (N R, N R) solve.
+
+    Parameters
+    ----------
+    gram : NetworkGram
+    Ru : Tensor, shape (N, R, K, out)
+        dr_b/du_b with the outputs in the networks' stacked layout (zero columns for padding).
+    r : Tensor, shape (N R,)
+    """
+
+    def __init__(self, gram: NetworkGram, Ru, r):
+        N, R = Ru.shape[:2]
+        self.gram, self.Ru, self.r = gram, Ru, r
+        A = Ru.new_zeros(N, R, N, R)
+        for k, count, G in gram.groups:
+            Rk = Ru[:, :, k, :count]  # (N, R, k, count)
+            A += torch.einsum("brki,kbicj,cqkj->brcq", Rk, G.reshape(len(k), N, count, N, count), Rk)
+        self.A = A.reshape(N * R, N * R)
+        self.Ar = self.A @ r
+
+    @property
+    def scale(self) -> float:
+        """The largest diagonal entry of J^T J (sets the first damping)."""
+        C = torch.einsum("brki,brkj->kbij", self.Ru, self.Ru)  # (dr/du)^T (dr/du), per network and input
+        return self.gram.largest_diagonal(C)
+
+    def step(self, mu: float):
+        """``(delta, predicted decrease of |r|^2 / 2)``, or None when ``A + mu I`` is not positive definite."""
+        eye = torch.eye(self.A.shape[0], dtype=self.A.dtype, device=self.A.device)
+        L, info = torch.linalg.cholesky_ex(self.A + mu * eye)
         if bool((info != 0).any()):
             return None
-        if kind == "dual":
-            w = torch.cholesky_solve(r[:, None], L)[:, 0]
-            return -(J.T @ w)
-        delta = torch.empty_like(g)
-        delta[J.reshape(-1)] = -torch.cholesky_solve(g[J][..., None], L).reshape(-1)
-        return delta
+        w = torch.cholesky_solve(self.r[:, None], L)[:, 0]
+        # delta = -J^T w, g = J^T r: delta.delta = w.A w, delta.g = -w.A r
+        predicted = 0.5 * float(mu * (w @ (self.A @ w)) + w @ self.Ar)
+        N, R = self.Ru.shape[:2]
+        v = torch.einsum("brki,br->kbi", self.Ru, w.reshape(N, R))  # (dr/du)^T w, per network
+        return -self.gram.transpose(v), predicted
+
+
+class OutputSystem:
+    """Levenberg-Marquardt on the Newton corrections e, ``(J^T J + mu I) delta = -J^T e`` with
+    J = du/dtheta, solved as one (P/K, P/K) system per network.
+
+    Parameters
+    ----------
+    JtJ : Tensor, shape (K, P/K, P/K)
+    Jte : Tensor, shape (K, P/K)
+    where : Tensor, shape (K, P/K)
+    P : int
+    """
+
+    def __init__(self, JtJ, Jte, where, P: int):
+        self.JtJ, self.Jte, self.where, self.P = JtJ, Jte, where, P
+
+    @property
+    def scale(self) -> float:
+        """The largest diagonal entry of J^T J (sets the first damping)."""
+        return float(torch.diagonal(self.JtJ, dim1=1, dim2=2).max())
+
+    def step(self, mu: float):
+        """``(delta, predicted decrease of |e|^2 / 2)``, or None when ``J^T J + mu I`` is not positive definite."""
+        eye = torch.eye(self.JtJ.shape[-1], dtype=self.JtJ.dtype, device=self.JtJ.device)
+        L, info = torch.linalg.cholesky_ex(self.JtJ + mu * eye)
+        if bool((info != 0).any()):
+            return None
+        local = -torch.cholesky_solve(self.Jte[..., None], L)[..., 0]  # (K, P/K)
+        predicted = 0.5 * float((local * (mu * local - self.Jte)).sum())  # delta.(mu delta - g) / 2, g = J^T e
+        delta = torch.empty(self.P, dtype=local.dtype, device=local.device)
+        delta[self.where.reshape(-1)] = local.reshape(-1)
+        return delta, predicted
 
 
 # ---- segments in time ------------------------------------------------------------------------
