@@ -167,9 +167,8 @@ def test_cli_t_end_and_target_errors(tmp_path, capsys):
     )
     assert "pendulum on [0, 0.3]" in capsys.readouterr().out
     assert main(["compare", "lorenz", "--out", str(tmp_path)]) == 2
-    assert "'lorenz' is neither a problem (hessenberg, pendulum, pendulum-index3, robertson, squeezer) nor a .py model file" in (
-        capsys.readouterr().err
-    )
+    problems = "hessenberg, pendulum, pendulum-index3, robertson, squeezer"
+    assert f"'lorenz' is neither a problem ({problems}) nor a .py model file" in capsys.readouterr().err
     empty = tmp_path / "empty.py"
     empty.write_text("x = 1\n")
     with pytest.raises(TargetError, match="defines neither build_model\\(\\) nor model"):
