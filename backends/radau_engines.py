@@ -136,6 +136,7 @@ class AbstractEngine(ABC):
         self.s, self.n, self.m = tableau.stages, len(compiled.states), len(compiled.algebraics)
         self.D = self.n + self.m
         self.index2_rows = np.array([c.index == 2 for c in compiled.constraints], dtype=bool)
+        self._T = None  # T, T^-1, T^-1 A^-1 as this engine's arrays, made on first use
 
     @abstractmethod
     def asarray(self, values):
@@ -210,7 +211,7 @@ class AbstractEngine(ABC):
         return self.solve(factors.lu[factors.error_shift], rhs).real
 
     def _transform_arrays(self):
-        if not hasattr(self, "_T"):
+        if self._T is None:
             tr = self.transform
             self._T = tuple(self.asarray(a) for a in (tr.T, tr.T_inv, tr.T_inv_A_inv))
         return self._T
@@ -253,6 +254,7 @@ class TorchEngine(AbstractEngine):
             seeds[torch.as_tensor(colour, device=device), torch.arange(self.D, device=device)] = 1.0
             self._colouring = (seeds, rows, cols, torch.as_tensor(colour, device=device)[cols])
         self._diag = torch.arange(self.n, device=device)
+        self._stage_buffer = self._stage_eye = None  # the full Newton matrix's buffer (factor_stages)
         self._index2 = torch.as_tensor(self.index2_rows, device=device)
 
     def asarray(self, values):
@@ -343,7 +345,7 @@ class TorchEngine(AbstractEngine):
         # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage:
         # dF_i/dU_j = delta_ij [I 0] - h a_ij [f_y f_z](stage j);  dG_i/dU_i = [g_y g_z](stage i)
         # one buffer for every step: the G rows' off-diagonal blocks stay zero, everything else is overwritten
-        if getattr(self, "_stage_buffer", None) is None or self._stage_buffer.shape[0] != B:
+        if self._stage_buffer is None or self._stage_buffer.shape[0] != B:
             self._stage_buffer = stage_J.new_zeros((B, s, D, s, D))
             self._stage_eye = torch.eye(n, dtype=self.dtype, device=self.device)
         N = self._stage_buffer
@@ -381,6 +383,7 @@ class CasadiEngine(AbstractEngine):
         self._f, self._residual, self._jac, self._stage_jac = (_Buffered(fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
         D = self.D
+        self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
         self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
         if not self.dense:
             self._sparse_layout()
@@ -494,7 +497,7 @@ class CasadiEngine(AbstractEngine):
             return StageFactors(lu=lu, singular=singular)
         import scipy.sparse as sparse
 
-        if not hasattr(self, "_stage_layout"):
+        if self._stage_layout is None:
             self._stage_layout = self._full_newton_layout()
         top, bottom, positions, (indices, indptr, nnz) = self._stage_layout
         V = np.stack(stage_J)  # (s, nnz of J)
