@@ -59,6 +59,14 @@ from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTra
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
 
+# Stages of a fixed step when none are given: the paper's v = 3 (order 5).
+FIXED_STAGES = 3
+# Stages of adaptive mode when none are given, by rtol: (smallest rtol, stages), loosest first.
+# Measured at equal error on the pendulums, Robertson, the squeezer and the scaling families
+# (benchmarks/adaptive_precision.py): s = 5 takes 3-5x fewer steps than s = 3 below rtol 1e-6
+# for 1.3-2x the cost of a step, and s = 7 pays off only below 1e-10 (at looser tolerances
+# its steps are rejected or fail Newton more often).
+ADAPTIVE_STAGES = ((1e-6, 3), (1e-10, 5), (0.0, 7))
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
 FIXED_NEWTON_TOL_EPS = 10
 # Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
@@ -103,8 +111,11 @@ class RadauOptions:
 
     Attributes
     ----------
-    stages : int
-        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).
+    stages : int, optional
+        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).  Default: 3
+        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
+        ``1e-10 <= rtol < 1e-6`` and 7 (order 13) below, where the larger steps of the higher order
+        pay for its larger systems (:data:`ADAPTIVE_STAGES`).
     h : float, optional
         Fixed step size.  Exclusive with ``rtol``/``atol``.
     rtol, atol : float, optional
@@ -137,7 +148,7 @@ class RadauOptions:
         torch functions, for batches, float32 and GPUs.  "auto" picks casadi where it can.
     """
 
-    stages: int = 3
+    stages: int | None = None
     h: float | None = None
     rtol: float | None = None
     atol: float | None = None
@@ -152,7 +163,6 @@ class RadauOptions:
     engine: str = "auto"
 
     def __post_init__(self) -> None:
-        check_stages(self.stages)
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
             check_number(name, getattr(self, name), allow_none=True)
         check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
@@ -173,6 +183,9 @@ class RadauOptions:
                     "use dtype='float64'"
                 )
             check_tolerances(self.rtol, self.atol)
+        if self.stages is None:
+            object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
+        check_stages(self.stages)
         eps = float(np.finfo(self.dtype).eps)
         if self.newton_tol is not None and self.newton_tol < 10 * eps:
             raise InvalidOptionError(
@@ -224,6 +237,11 @@ class RadauBackend(AbstractBackend):
         wall = time.perf_counter() - began
         stepper.stats["setup_time"] = setup
         return make_solution(self, compiled, start, options, times, values, wall, stepper.stats)
+
+
+def adaptive_stages(rtol: float) -> int:
+    """The stages adaptive mode uses at ``rtol`` when none are given (:data:`ADAPTIVE_STAGES`)."""
+    return next(stages for smallest, stages in ADAPTIVE_STAGES if rtol >= smallest)
 
 
 def make_engine(compiled, start, options: RadauOptions):
@@ -331,7 +349,8 @@ class _Stepper:
 
     def rms(self, x):
         """Root mean square over all but the batch axis, shape (B,)."""
-        return self.xp.sqrt(self.xp.mean(x.reshape(self.B, -1) ** 2, axis=-1))
+        x = x.reshape(self.B, -1)
+        return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
 
     def jacobian(self, t, y, z):
         self.stats["jacobian_evaluations"] += 1
@@ -358,12 +377,16 @@ class _Stepper:
         self.stats["residual_evaluations"] += 1
         return self.engine.residual(t, h, self.y, W)
 
+    def constant_guess(self):
+        """Every stage value equal to the step's start value."""
+        u = self.state()
+        return np.repeat(u[:, None, :], self.s, axis=1) if self.xp is np else u[:, None, :].expand(self.B, self.s, -1)
+
     def start_guess(self, h):
         """Stage values extrapolated from the last step's collocation polynomial (or constant)."""
         xp = self.xp
-        u = self.state()
         if self._previous is None:
-            return xp.repeat(u[:, None, :], self.s, axis=1) if xp is np else u[:, None, :].expand(self.B, self.s, -1)
+            return self.constant_guess()
         h_old, u_old, W_old = self._previous
         if self._extrapolation is None or self._extrapolation[0] != h / h_old:
             nodes = np.concatenate([[0.0], self.tableau.c])
@@ -387,8 +410,10 @@ class _Stepper:
         theta = xp.zeros_like(self._eta)
         active = xp.ones_like(self._eta) > 0  # samples still iterating
         for k in range(1, self.options.max_newton_iterations + 1):
-            r = self.residual(t, h, W)
-            dW = engine.newton_increment(factors, r.R) * active[:, None, None]
+            self.stats["residual_evaluations"] += 1
+            r, dW = engine.newton_step(factors, t, h, self.y, W)
+            if self.B > 1:
+                dW = dW * active[:, None, None]  # samples that converged keep their stage values
             W = W + dW
             norm = self.rms(dW / scale)
             finite = xp.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
@@ -422,12 +447,14 @@ class _Stepper:
             previous = norm
             if not bool(active.any()) and self.options.adaptive:
                 # the error estimate needs f at the final stage values
-                r = self.residual(t, h, W)
                 if k == 1 and k < self.options.max_newton_iterations:
                     # converged on the last step's contraction alone: check that the next increment is
                     # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
-                    after = engine.newton_increment(factors, r.R)
+                    self.stats["residual_evaluations"] += 1
+                    r, after = engine.newton_step(factors, t, h, self.y, W)
                     active = self.rms(after / scale) > self.newton_tol
+                else:
+                    r = self.residual(t, h, W)
             if not bool(active.any()):
                 self._eta = eta
                 self.stats["newton_iterations"] += k
@@ -669,6 +696,11 @@ class _Stepper:
             return self.stage_newton(t, h, W0)
         factors = self.current_lu(J, t, h)
         result, iterations, why, sample = self.newton(t, h, factors, W0)
+        if result is None and self._previous is not None:
+            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
+            # its step): start from the step's start value before anything costlier
+            W0 = self.constant_guess()
+            result, iterations, why, sample = self.newton(t, h, factors, W0)
         if result is None and self._jac is not None and self._jac[1] != t:
             # the reused Jacobian is stale: refresh it and try again
             self._jac = self._lu = None
@@ -853,9 +885,7 @@ def _numpy(values) -> np.ndarray:
 
 def _lagrange(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` at ``points[i]``."""
-    L = np.ones((len(points), len(nodes)))
-    for j, xj in enumerate(nodes):
-        for m, xm in enumerate(nodes):
-            if m != j:
-                L[:, j] *= (points - xm) / (xj - xm)
-    return L
+    others = ~np.eye(len(nodes), dtype=bool)  # others[j, m]: m != j
+    gaps = np.where(others, nodes[:, None] - nodes[None, :], 1.0)  # x_j - x_m
+    factors = np.where(others, points[:, None, None] - nodes[None, None, :], 1.0)  # x - x_m, (P, j, m)
+    return factors.prod(axis=-1) / gaps.prod(axis=-1)

@@ -9,7 +9,10 @@ functions share numpy's names).  An engine supplies only the numerical kernels:
   matrices (forward-mode autograd where a derivative leaves the emitters), batched dense LU.
 - :class:`CasadiEngine`: one trajectory on CPU in float64, with casadi-compiled residual,
   right-hand side and sparse Jacobian (casadi's AD), dense LAPACK LU for small systems and
-  SuperLU for large sparse ones; no torch code generation and no per-operation dispatch.
+  SuperLU for large sparse ones; no torch code generation and no per-operation dispatch.  On
+  dense systems a Newton iteration is one casadi call: the residual, then the increment through
+  the blocks' inverses (computed from their LU once per factorisation), which halves the
+  iteration's cost on small systems, where Python and numpy calls dominate.
 
 Linear algebra follows RADAU5 (Hairer & Wanner, Solving ODEs II, IV.8): with one Jacobian ``J``
 per step, the Newton matrix of the s stages, ``(h A)^-1 (x) M - I (x) J`` with ``M = diag(I, 0)``,
@@ -103,6 +106,7 @@ class Factors:
     singular: object
     error_shift: complex
     complete: bool = True  # False: the error estimate's system alone
+    inverse: object = None  # casadi engine, dense: the blocks' inverses packed for its fused Newton step
 
 
 @dataclass
@@ -191,10 +195,7 @@ class AbstractEngine(ABC):
         xp, n, h, tr = self.xp, self.n, factors.h, self.transform
         T, T_inv, T_inv_A_inv = self._transform_arrays()
         # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs
-        rhs = xp.concatenate(
-            [-xp.einsum("ki,bin->bkn", T_inv_A_inv, R[..., :n]) / h, xp.einsum("ki,bim->bkm", T_inv, R[..., n:])],
-            axis=-1,
-        )
+        rhs = xp.concatenate([(T_inv_A_inv @ R[..., :n]) * (-1.0 / h), T_inv @ R[..., n:]], axis=-1)
         parts = []
         for (k, lam), shift in zip(tr.blocks, factors.shifts, strict=False):
             lu = factors.lu[shift]
@@ -203,8 +204,12 @@ class AbstractEngine(ABC):
             else:
                 w = self.solve(lu, rhs[:, k] + 1j * rhs[:, k + 1])
                 parts += [w.real, w.imag]
-        dV = xp.stack(parts, axis=1)
-        return xp.einsum("ij,bjd->bid", T, dV)
+        return T @ xp.stack(parts, axis=1)
+
+    def newton_step(self, factors, t: float, h: float, y, W) -> tuple:
+        """The stage residual at ``W`` and Newton's increment from it: ``(Residual, dW)``."""
+        r = self.residual(t, h, y, W)
+        return r, self.newton_increment(factors, r.R)
 
     def error_solve(self, factors: Factors, rhs):
         """Solve ``((1 / (h gamma0)) M - J) err = rhs`` (the error estimate's matrix)."""
@@ -385,7 +390,11 @@ class CasadiEngine(AbstractEngine):
         D = self.D
         self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
         self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
-        if not self.dense:
+        self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
+        if self.dense:
+            step = compiled.cached(("casadi-radau-step", self.s), lambda: _step_function(functions[1], self))
+            self._step = [_Buffered(step, inputs=2), None]
+        else:
             self._sparse_layout()
 
     def _sparse_layout(self):
@@ -400,6 +409,34 @@ class CasadiEngine(AbstractEngine):
 
     def asarray(self, values):
         return np.array(values, dtype=float)
+
+    def factor(self, J, h: float, error_only: bool = False) -> Factors:
+        factors = super().factor(J, h, error_only)
+        if self.dense and factors.complete and not factors.singular.any():
+            # the blocks' inverses, column-major as casadi reads them, complex ones as (Re, Im)
+            packed = []
+            for _, lam in self.transform.blocks:
+                inverse = _dense_inverse(factors.lu[lam / h])
+                if inverse is None:
+                    return factors
+                packed += [inverse.real.ravel("F")] + ([inverse.imag.ravel("F")] if lam.imag else [])
+            factors.inverse = np.concatenate(packed)
+        return factors
+
+    def newton_step(self, factors, t, h, y, W):
+        """One casadi call for the residual and the transformed systems' increment (by their inverses)
+        on dense systems; the residual and LU solves apart otherwise (full Newton, sparse systems)."""
+        if not isinstance(factors, Factors) or factors.inverse is None:
+            return super().newton_step(factors, t, h, y, W)
+        step, bound = self._step
+        if bound is not factors:
+            step.inputs[1][:] = factors.inverse
+            self._step[1] = factors
+        s, n, D = self.s, self.n, self.D
+        out = step(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        R = out[: s * D].reshape(1, s, D)
+        stage_f = out[s * D : s * D + s * n].reshape(1, s, n)
+        return Residual(R=R, stage_f=stage_f, G=R[..., n:]), out[s * D + s * n :].reshape(1, s, D)
 
     def f(self, t, y, z):
         return self._f(np.concatenate([[t], y[0], z[0], self.p]))[None]
@@ -544,11 +581,14 @@ class _Buffered:
     """A casadi function of one dense vector, evaluated on bound numpy buffers (casadi's
     FunctionBuffer: ~3 us a call, against ~40-100 us through argument conversion)."""
 
-    def __init__(self, function):
-        self._inputs = np.zeros(function.nnz_in(0))
+    def __init__(self, function, inputs: int = 1):
+        # inputs after the first stay bound between calls: write them through ``inputs[k][:]``
+        self.inputs = [np.zeros(function.nnz_in(k)) for k in range(inputs)]
+        self._inputs = self.inputs[0]
         self._outputs = np.zeros(function.nnz_out(0))
         self._buffer, self._evaluate = function.buffer()
-        self._buffer.set_arg(0, memoryview(self._inputs))
+        for k, values in enumerate(self.inputs):
+            self._buffer.set_arg(k, memoryview(values))
         self._buffer.set_res(0, memoryview(self._outputs))
         self.name = function.name()
 
@@ -600,6 +640,56 @@ def _casadi_functions(compiled, tableau):
         np.asarray(jac[1][0], dtype=np.int64),
         np.asarray(jac[1][1], dtype=np.int64),
     )
+
+
+def _step_function(residual, engine):
+    """casadi function of the fused Newton step (:meth:`CasadiEngine.newton_step`).
+
+    Inputs: the residual's packed ``[t, h, y_n, W, p]`` and the blocks' inverses packed as
+    :meth:`CasadiEngine.factor` does; output ``[R, f at the stages, dW]``: the increment through
+    the transformed systems, ``dW = (T (x) I) blocks^-1 rhs``, exactly as
+    :meth:`AbstractEngine.newton_increment` computes it with LU solves.  Matrix products are MX
+    (dense kernels), the residual the SX function inside.
+    """
+    import casadi
+
+    s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
+    x = casadi.MX.sym("x", residual.nnz_in(0))
+    sizes = [(2 if lam.imag else 1) * D * D for _, lam in tr.blocks]
+    inverse = casadi.MX.sym("inverse", sum(sizes))
+    out = residual(x)
+    R = casadi.reshape(out[: s * D], D, s)  # column i: stage i's [F_i; G_i]
+    h = x[1]
+    rhs = casadi.vertcat(
+        casadi.mtimes(R[:n, :], casadi.DM(tr.T_inv_A_inv.T)) * (-1.0 / h),
+        casadi.mtimes(R[n:, :], casadi.DM(tr.T_inv.T)),
+    )
+    columns, offset = [], 0
+    for (k, lam), size in zip(tr.blocks, sizes, strict=True):
+        real = casadi.reshape(inverse[offset : offset + D * D], D, D)
+        if lam.imag == 0:
+            columns.append(casadi.mtimes(real, rhs[:, k]))
+        else:
+            imag = casadi.reshape(inverse[offset + D * D : offset + size], D, D)
+            re, im = rhs[:, k], rhs[:, k + 1]
+            columns += [
+                casadi.mtimes(real, re) - casadi.mtimes(imag, im),
+                casadi.mtimes(imag, re) + casadi.mtimes(real, im),
+            ]
+        offset += size
+    dW = casadi.mtimes(casadi.horzcat(*columns), casadi.DM(tr.T.T))  # column i: stage i's increment
+    return casadi.Function("newton_step", [x, inverse], [casadi.vertcat(out, casadi.vec(dW))])
+
+
+def _dense_inverse(lu) -> np.ndarray | None:
+    """The inverse of a matrix from its LAPACK LU (:func:`_dense_lu`); None if LAPACK finds it singular
+    or the inverse overflows (then the LU solves serve)."""
+    from scipy.linalg import lapack
+
+    _, LU, piv, _ = lu
+    getri = lapack.zgetri if np.iscomplexobj(LU) else lapack.dgetri
+    inverse, info = getri(LU, piv)
+    return inverse if info == 0 and np.isfinite(inverse).all() else None
 
 
 def _dense_lu(matrix: np.ndarray):

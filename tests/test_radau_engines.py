@@ -81,6 +81,29 @@ def test_transformed_systems_solve_the_full_newton_system(engine_name, problem):
     np.testing.assert_allclose(np.asarray(transformed), np.asarray(full), rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("stages", [1, 2, 3, 5, 7])
+@pytest.mark.parametrize("problem", [PENDULUM, HESSENBERG], ids=["pendulum", "hessenberg"])
+def test_fused_newton_step_equals_residual_and_lu_solves(problem, stages):
+    """The casadi engine's one-call Newton step (residual, then the increment through the blocks'
+    inverses) gives the residual and the increment of the separate residual and LU solves."""
+    compiled = problem.model().compile()
+    start = initial_states(compiled)
+    tableau = radau_iia(stages)
+    engine = CasadiEngine(compiled, start, tableau, StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0]))
+    y, z = engine.asarray(start.y0), engine.asarray(start.z0)
+    h = 0.05
+    factors = engine.factor(engine.jacobian(0.0, y, z), h)
+    assert factors.inverse is not None  # a dense system: the fused path is taken
+    rng = np.random.default_rng(1)
+    W = np.concatenate([y, z], axis=-1)[:, None, :] + 0.01 * rng.normal(size=(1, stages, engine.D))
+    r, dW = engine.newton_step(factors, 0.0, h, y, W)
+    separate = engine.residual(0.0, h, y, W)
+    np.testing.assert_allclose(r.R, separate.R, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(r.stage_f, separate.stage_f, rtol=1e-14, atol=1e-14)
+    expected = engine.newton_increment(factors, separate.R)
+    np.testing.assert_allclose(dW, expected, rtol=1e-9, atol=1e-11 * np.abs(expected).max())
+
+
 @pytest.mark.parametrize("stages", [1, 2, 3, 5])
 @pytest.mark.parametrize("problem", [PENDULUM, HESSENBERG], ids=["pendulum", "hessenberg"])
 def test_engines_agree_to_rounding_on_a_fixed_grid(problem, stages):

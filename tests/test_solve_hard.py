@@ -29,6 +29,22 @@ def test_robertson_stiff_to_1e5_adaptive():
     assert sol.drift()["mass"] < 1e-12
 
 
+@pytest.mark.parametrize("stages", [3, 5, 7])
+def test_robertson_loose_tolerance_with_many_stages(stages):
+    """At rtol = atol = 1e-4, y2 (~1e-5) is below the tolerance and the polynomial extrapolated from
+    the last step makes a poor Newton start for s = 5 and 7 (contraction ~1e3 at h ~ 0.01): Newton
+    restarts from the step's start value instead of shrinking h (before: > 300 attempts by t = 0.2)."""
+    times = np.concatenate([[0.0], np.logspace(-5, np.log10(40), 11)])
+    sol = dm.solve(robertson(), (0.0, 40.0), stages=stages, rtol=1e-4, atol=1e-4, t_eval=times, max_steps=300)
+    ref = dm.solve(
+        robertson(), (0.0, 40.0), method="reference", integrator="Radau", rtol=1e-10, atol=1e-14, t_eval=times
+    )
+    relative = {n: np.max(np.abs(sol[n] - ref[n]) / (1e-4 * np.abs(ref[n]) + 1e-4)) for n in ("y1", "y2", "y3")}
+    print(f"Robertson s = {stages} at 1e-4: {sol.stats['attempts']} attempts, errors in tolerance units {relative}")
+    assert sol.stats["attempts"] < 40
+    assert max(relative.values()) < 1
+
+
 def test_index3_pendulum_is_reduced_to_index2():
     c = PENDULUM_INDEX3.model().compile()
     assert c.index == 3
