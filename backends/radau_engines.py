@@ -227,11 +227,16 @@ class AbstractEngine(ABC):
         shifts = self.transform.shifts(h)
         target = 1.0 / (h * self.transform.gamma0)
         error = min(shifts, key=lambda sigma: abs(sigma - target))
+        lu, singular = self._factor_shifts(J, (error,) if error_only else shifts)
+        return Factors(h=h, shifts=shifts, lu=lu, singular=singular, error_shift=error, complete=not error_only)
+
+    def _factor_shifts(self, J, shifts) -> tuple:
+        """``sigma M - J`` factored for each of ``shifts``: ``({sigma: factors}, singular (B,))``."""
         lu, singular = {}, None
-        for sigma in (error,) if error_only else shifts:
+        for sigma in shifts:
             lu[sigma], bad = self._factor_shift(J, sigma)
             singular = bad if singular is None else singular | bad
-        return Factors(h=h, shifts=shifts, lu=lu, singular=singular, error_shift=error, complete=not error_only)
+        return lu, singular
 
 
 class TorchEngine(AbstractEngine):
@@ -391,7 +396,9 @@ class CasadiEngine(AbstractEngine):
         self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
         self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
         self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
+        self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
         if self.dense:
+            self._identity = (np.eye(D), np.eye(D, dtype=complex))
             step = compiled.cached(("casadi-radau-step", self.s), lambda: _step_function(functions[1], self))
             self._step = [_Buffered(step, inputs=2), None]
         else:
@@ -416,12 +423,25 @@ class CasadiEngine(AbstractEngine):
             # the blocks' inverses, column-major as casadi reads them, complex ones as (Re, Im)
             packed = []
             for _, lam in self.transform.blocks:
-                inverse = _dense_inverse(factors.lu[lam / h])
-                if inverse is None:
-                    return factors
+                inverse = factors.lu[lam / h][1]
                 packed += [inverse.real.ravel("F")] + ([inverse.imag.ravel("F")] if lam.imag else [])
             factors.inverse = np.concatenate(packed)
         return factors
+
+    def _factor_shifts(self, values, shifts):
+        """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
+        applies as a matrix product; sparse ones: SuperLU's factors."""
+        if not self.dense:
+            return super()._factor_shifts(values, shifts)
+        minus_J = -self._dense(values)
+        diagonal = slice(0, self.n * (self.D + 1), self.D + 1)  # M's diagonal in the flattened matrix
+        lu, singular = {}, False
+        for sigma in shifts:
+            matrix = minus_J.copy() if sigma.imag == 0 else minus_J.astype(complex)
+            matrix.ravel()[diagonal] += sigma.real if sigma.imag == 0 else sigma
+            lu[sigma] = _dense_inverse(matrix, self._identity[sigma.imag != 0])
+            singular = singular or lu[sigma][0] == "singular"
+        return lu, np.array([singular])
 
     def newton_step(self, factors, t, h, y, W):
         """One casadi call for the residual and the transformed systems' increment (by their inverses)
@@ -495,12 +515,10 @@ class CasadiEngine(AbstractEngine):
         return np.array([_sparse_sign_det(rows.tocsc())])
 
     def _factor_shift(self, values, sigma):
-        real = sigma.imag == 0
-        if self.dense:
-            matrix = -self._dense(values) if real else -self._dense(values).astype(complex)
-            matrix[np.arange(self.n), np.arange(self.n)] += sigma.real if real else sigma
-            return _dense_lu(matrix)
+        """SuperLU's factors of ``sigma M - J`` (dense systems: see :meth:`_factor_shifts`)."""
         import scipy.sparse as sparse
+
+        real = sigma.imag == 0
 
         indices, indptr, nnz = self._csc
         data = np.zeros(nnz, dtype=float if real else complex)
@@ -510,6 +528,8 @@ class CasadiEngine(AbstractEngine):
 
     def solve(self, lu, rhs):
         kind = lu[0]
+        if kind == "inverse":
+            return (lu[1] @ rhs[0])[None]
         if kind == "dense":
             LU, piv, getrs = lu[1:]
             if not np.iscomplexobj(LU) and np.iscomplexobj(rhs):
@@ -681,15 +701,15 @@ def _step_function(residual, engine):
     return casadi.Function("newton_step", [x, inverse], [casadi.vertcat(out, casadi.vec(dW))])
 
 
-def _dense_inverse(lu) -> np.ndarray | None:
-    """The inverse of a matrix from its LAPACK LU (:func:`_dense_lu`); None if LAPACK finds it singular
-    or the inverse overflows (then the LU solves serve)."""
+def _dense_inverse(matrix: np.ndarray, identity: np.ndarray) -> tuple:
+    """``("inverse", matrix^-1)`` by LAPACK (``gesv`` on ``identity``, of the matrix's dtype), or
+    ``("singular",)`` when it is singular or the inverse overflows."""
     from scipy.linalg import lapack
 
-    _, LU, piv, _ = lu
-    getri = lapack.zgetri if np.iscomplexobj(LU) else lapack.dgetri
-    inverse, info = getri(LU, piv)
-    return inverse if info == 0 and np.isfinite(inverse).all() else None
+    gesv = lapack.zgesv if np.iscomplexobj(matrix) else lapack.dgesv
+    _, _, inverse, info = gesv(matrix, identity)
+    # (the sum is not finite when any entry is not, or when the entries are near overflow: singular enough)
+    return ("inverse", inverse) if info == 0 and np.isfinite(inverse.sum()) else ("singular",)
 
 
 def _dense_lu(matrix: np.ndarray):
