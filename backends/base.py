@@ -63,10 +63,21 @@ MIN_STEP_ULPS = 16
 
 
 def make_solution(
-    backend, compiled, start, options, times, values, wall_time: float, stats: dict, settings=None, status="success"
+    backend,
+    compiled,
+    start,
+    options,
+    times,
+    values,
+    solve_time: float,
+    stats: dict,
+    settings=None,
+    status="success",
+    setup_time: float = 0.0,
 ):
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
+    ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and :attr:`Solution.setup_time`;
     ``settings`` defaults to the options' fields (less ``t_eval``); ``status`` is
     :attr:`Solution.status`.
     """
@@ -80,7 +91,8 @@ def make_solution(
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
         method=backend.name,
         settings=settings if settings is not None else {k: v for k, v in asdict(options).items() if k != "t_eval"},
-        wall_time=wall_time,
+        solve_time=solve_time,
+        setup_time=setup_time,
         stats=stats,
         compiled=compiled,
         parameters=start.p,

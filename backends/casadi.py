@@ -425,9 +425,8 @@ class CollocationBackend(AbstractBackend):
             "steps": len(grid) - 1,
             "max_local_error_estimate": float(estimates.max(initial=0.0)),
             **stats,
-            "setup_time": setup,
         }
-        return make_solution(self, compiled, start, options, grid, values, wall, stats)
+        return make_solution(self, compiled, start, options, grid, values, wall, stats, setup_time=setup)
 
 
 def collocation_failure(error: str, printed: str, *, sample: int, model: str, grid) -> ConvergenceError:
@@ -590,7 +589,6 @@ class IDASBackend(AbstractBackend):
             "casadi_calls": start.size,
             "first_step": step0,
             "initial_slope_fallbacks": len(fallbacks),
-            "setup_time": setup,
         }
         stats.update(_stats(shared))
         times_out = np.concatenate([[t_span[0]], grid])
@@ -600,4 +598,4 @@ class IDASBackend(AbstractBackend):
         wall = time.perf_counter() - began
         if times[0] != t_span[0]:
             values = values[:, 1:]
-        return make_solution(self, compiled, start, options, times, values, wall, stats)
+        return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup)

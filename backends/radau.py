@@ -235,8 +235,7 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
-        stepper.stats["setup_time"] = setup
-        return make_solution(self, compiled, start, options, times, values, wall, stepper.stats)
+        return make_solution(self, compiled, start, options, times, values, wall, stepper.stats, setup_time=setup)
 
 
 def adaptive_stages(rtol: float) -> int:

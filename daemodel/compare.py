@@ -1,4 +1,4 @@
-"""Every method on one model: wall time against error, as a table and a work-precision plot.
+"""Every method on one model: time against error, as a table and a work-precision plot.
 
 >>> result = dm.compare(model, (0.0, 1.0), methods=["radau", "casadi-idas", "pinn"])
 >>> print(result.table())
@@ -8,6 +8,11 @@ Each method is solved over a sweep of its accuracy setting (its backend's
 ``work_precision``: step sizes h for the fixed-step methods, tolerances for the adaptive
 ones), and every solution is measured against one reference: the model's exact solution
 when given, else ``method="reference"`` (scipy at rtol = atol = 1e-12) on the same times.
+
+Clocks: every method reports the same two (:attr:`Solution.solve_time`, producing the values from
+a ready method; :attr:`Solution.setup_time`, getting ready: code generation, integrator
+construction, training).  The table shows both; the plot draws the solve time by default (the
+setup noted in the legend) or their sum (``clock="total"``).
 
 User mistakes (an unknown method or option, a setting its method refuses, a grid too large
 to solve, a reference that raises or is not finite) are refused before the first solve; a
@@ -20,6 +25,7 @@ import csv
 import dataclasses
 import json
 import math
+import time
 import traceback
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -48,6 +54,8 @@ MAX_POINTS = 12
 MAX_SWEEP_STEPS = 100_000
 # Times across t_span on which a reference callable is checked before the first solve.
 REFERENCE_CHECK_POINTS = 11
+# What Comparison.plot can put on its time axis: the solve time, or setup plus solve.
+CLOCKS = ("solve", "total")
 
 
 @dataclass(frozen=True)
@@ -59,8 +67,10 @@ class Run:
     method : str
     settings : str
         The options that were swept, e.g. ``"h=0.05"`` or ``"rtol=1e-06, atol=1e-08"``.
-    wall_time : float
-        The method's own solve time in seconds (training included for ``pinn``; NaN when it failed, null in
+    solve_time : float
+        :attr:`Solution.solve_time` in seconds; for a failed run, the time until it failed.
+    setup_time : float
+        :attr:`Solution.setup_time` in seconds (training for ``pinn``); NaN for a failed run (null in
         the JSON).
     errors : dict name -> {"max": float, "mean": float}
         Absolute errors against the reference over every output time.
@@ -74,7 +84,8 @@ class Run:
 
     method: str
     settings: str
-    wall_time: float
+    solve_time: float
+    setup_time: float
     errors: dict
     drift: dict
     failure: str | None = None
@@ -107,12 +118,17 @@ class Comparison:
         return (*self.states, *self.algebraics)
 
     def records(self) -> list[dict]:
-        """One flat dict per run: method, settings, wall_time, ``<var>_max``, ``<var>_mean``,
+        """One flat dict per run: method, settings, solve_time, setup_time, ``<var>_max``, ``<var>_mean``,
         ``drift_<constraint>``, failure."""
         out = []
         drift_names = sorted({k for r in self.runs for k in r.drift})
         for run in self.runs:
-            row = {"method": run.method, "settings": run.settings, "wall_time": run.wall_time}
+            row = {
+                "method": run.method,
+                "settings": run.settings,
+                "solve_time": run.solve_time,
+                "setup_time": run.setup_time,
+            }
             for name in self.names:
                 error = run.errors.get(name, {})
                 row[f"{name}_max"], row[f"{name}_mean"] = error.get("max"), error.get("mean")
@@ -122,10 +138,10 @@ class Comparison:
         return out
 
     def table(self) -> str:
-        """A text table: method, settings, wall time, ``max (mean)`` error per variable, drift."""
+        """A text table: method, settings, solve and setup times, ``max (mean)`` error per variable, drift."""
         width = {"method": max(8, *(len(r.method) for r in self.runs)) + 2, "settings": 0}
         width["settings"] = max(10, *(len(r.settings) for r in self.runs)) + 2
-        head = f"{'method':<{width['method']}}{'settings':<{width['settings']}}{'time [s]':>10}"
+        head = f"{'method':<{width['method']}}{'settings':<{width['settings']}}{'solve [s]':>10}{'setup [s]':>10}"
         head += "".join(f"{name + ' max (mean)':>20}" for name in self.names) + f"{'drift':>10}"
         lines = [
             f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: absolute errors against {self.reference}",
@@ -135,9 +151,9 @@ class Comparison:
         for run in self.runs:
             line = f"{run.method:<{width['method']}}{run.settings:<{width['settings']}}"
             if run.failure is not None:
-                lines.append(line + f"{'-':>10}  failed: {run.failure}")
+                lines.append(line + f"{'-':>10}{'-':>10}  failed: {run.failure}")
                 continue
-            line += f"{run.wall_time:>10.3f}"
+            line += f"{run.solve_time:>10.3g}{run.setup_time:>10.3g}"
             for name in self.names:
                 error = run.errors[name]
                 line += f"{error['max']:>11.1e} ({error['mean']:.0e})"
@@ -177,16 +193,23 @@ class Comparison:
             writer.writerows(rows)
         return path
 
-    def plot(self, path=None):
-        """Work-precision plot: max absolute error against wall time, log-log, one curve per
-        method through its sweep; differential and algebraic variables in separate panels.
+    def plot(self, path=None, clock: str = "solve"):
+        """Work-precision plot: max absolute error against time, log-log, one curve per method
+        through its sweep; differential and algebraic variables in separate panels.
+
+        ``clock="solve"`` (default) draws :attr:`Run.solve_time`, each method's median setup time
+        noted in the legend; ``clock="total"`` draws setup plus solve.  A setting that failed is
+        an ``x`` on the top edge at the time it took to fail, and the legend counts the failures.
 
         Returns
         -------
         matplotlib.figure.Figure
         """
         from matplotlib.figure import Figure
+        from matplotlib.transforms import blended_transform_factory
 
+        if clock not in CLOCKS:
+            raise ComparisonError(f"clock must be one of {', '.join(map(repr, CLOCKS))}; got {clock!r}")
         groups = [("differential variables", self.states)]
         if self.algebraics:
             groups.append(("algebraic variables", self.algebraics))
@@ -194,26 +217,31 @@ class Comparison:
         axes = fig.subplots(1, len(groups), squeeze=False)[0]
         methods = list(dict.fromkeys(run.method for run in self.runs))
         for ax, (title, names) in zip(axes, groups, strict=True):
+            top_edge = blended_transform_factory(ax.transData, ax.transAxes)
             for i, method in enumerate(methods):
                 runs = [r for r in self.runs if r.method == method and r.failure is None]
-                if not runs:  # a legend entry, so that a method that failed everywhere is not just absent
-                    ax.plot([], [], "x", color=f"C{i}", label=f"{method} (failed at every setting)")
-                    continue
-                times = [r.wall_time for r in runs]
+                failed = [r for r in self.runs if r.method == method and r.failure is not None]
+                label = method
+                if runs and clock == "solve":
+                    label += f" (setup {_seconds(float(np.median([r.setup_time for r in runs])))})"
+                if failed:
+                    label += f", {len(failed)} of {len(failed) + len(runs)} failed"
+                times = [r.solve_time + (r.setup_time if clock == "total" else 0.0) for r in runs]
                 errors = [max(max(r.errors[n]["max"] for n in names), 1e-17) for r in runs]
-                ax.loglog(times, errors, "o-", color=f"C{i}", label=method)
+                ax.loglog(times, errors, "o-", color=f"C{i}", label=label)
                 for x, y, run in zip(times, errors, runs, strict=True):
                     ax.annotate(
                         run.short or run.settings, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6.5
                     )
-            ax.set_xlabel("wall time [s]")
+                shown = [r for r in failed if math.isfinite(r.solve_time) and r.solve_time > 0]
+                if shown:  # at the time it took to fail, on the top edge: no error to place it by
+                    ax.plot([r.solve_time for r in shown], [0.98] * len(shown), "x", color=f"C{i}", transform=top_edge)
+            ax.set_xlabel("solve time [s]" if clock == "solve" else "setup + solve time [s]")
             ax.set_ylabel(f"max absolute error ({', '.join(names)})")
             ax.set_title(title)
             ax.grid(which="both", alpha=0.25)
             ax.legend(fontsize=8)
-        fig.suptitle(
-            f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference} vs wall time"
-        )
+        fig.suptitle(f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference}")
         if path is not None:
             fig.savefig(writable_file(path, "plot path"), dpi=130)
         return fig
@@ -327,13 +355,25 @@ class ComparisonPlan:
             for method, options, label, short in self.settings:
                 if bar is not None:
                     bar.set_postfix_str(f"{method} {label}")
+                began = time.perf_counter()
                 try:
                     solution = solve(compiled, t_span, method=method, **options)
                 except SolverError as error:
-                    runs.append(Run(method, label, math.nan, {}, {}, failure=str(error), short=short))
+                    failed_after = time.perf_counter() - began
+                    runs.append(Run(method, label, failed_after, math.nan, {}, {}, failure=str(error), short=short))
                 else:
                     errors = measure(solution)
-                    runs.append(Run(method, label, solution.wall_time, errors, solution.drift(), short=short))
+                    runs.append(
+                        Run(
+                            method,
+                            label,
+                            solution.solve_time,
+                            solution.setup_time,
+                            errors,
+                            solution.drift(),
+                            short=short,
+                        )
+                    )
                 if bar is not None:
                     bar.update(1)
         finally:
@@ -602,3 +642,8 @@ def _default(options: dict, key: str):
 
 def _show(key: str, value) -> str:
     return f"{key}={value:g}" if isinstance(value, float) else f"{key}={value}"
+
+
+def _seconds(value: float) -> str:
+    """A duration for a legend: ``"0.81 ms"``, ``"795 ms"``, ``"1.24 s"``."""
+    return f"{value * 1e3:.3g} ms" if value < 1 else f"{value:.3g} s"

@@ -28,8 +28,15 @@ class Solution:
         The backend that produced it.
     settings : dict
         The method's options as used (after defaults).
-    wall_time : float
-        Seconds spent in the method's solve (initial-value checks excluded).
+    solve_time : float
+        Seconds the method spent producing the values from a ready method: integration for the
+        classical solvers, evaluating the trained networks for ``pinn``.
+    setup_time : float
+        Seconds the method spent getting ready for this solve, apart from ``solve_time``: code
+        generation and engine construction (radau), building casadi's integrator
+        (casadi-collocation, casadi-idas), the model's numeric functions (reference), training
+        (pinn).  What an earlier call left cached on the compiled model (code, casadi functions,
+        index reductions) is not charged again.  Initial-value checks are in neither clock.
     stats : dict
         Method counters: steps, rejected steps, Newton iterations, Jacobians, ...
     compiled : CompiledDAE
@@ -53,12 +60,13 @@ class Solution:
     values: dict = field(repr=False)
     method: str
     settings: dict
-    wall_time: float
+    solve_time: float
     stats: dict
     compiled: object = field(repr=False)
     parameters: np.ndarray = field(repr=False)
     batched: bool = False
     status: str = "success"
+    setup_time: float = 0.0
 
     def __post_init__(self) -> None:
         c = self.compiled
@@ -236,5 +244,6 @@ class Solution:
         batch = f", batch={self.batch_size}" if self.batched else ""
         return (
             f"Solution({self.compiled.name!r}, method={self.method!r}, t=[{self.t[0]:g}, {self.t[-1]:g}] "
-            f"({len(self.t)} points){batch}, wall_time={self.wall_time:.3g} s, status={self.status!r})"
+            f"({len(self.t)} points){batch}, solve_time={self.solve_time:.3g} s, setup_time={self.setup_time:.3g} s, "
+            f"status={self.status!r})"
         )

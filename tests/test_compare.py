@@ -72,12 +72,32 @@ def test_table_json_csv_and_plot(hessenberg, tmp_path):
     import pandas as pd
 
     frame = pd.read_csv(paths[1])
-    assert list(frame.columns[:5]) == ["method", "settings", "wall_time", "y1_max", "y1_mean"]
+    assert list(frame.columns[:6]) == ["method", "settings", "solve_time", "setup_time", "y1_max", "y1_mean"]
     assert frame["y3_max"][1] == pytest.approx(hessenberg.runs[1].errors["y3"]["max"])
     assert paths[2].stat().st_size > 20_000
     fig = hessenberg.plot()
     assert [ax.get_title() for ax in fig.axes] == ["differential variables", "algebraic variables"]
     assert len(fig.axes[0].get_lines()) == 2  # one curve per method
+
+
+def test_plot_draws_the_solve_clock_or_the_total(hessenberg):
+    """The x values are each run's solve time, or setup + solve with ``clock="total"``; the legend
+    notes each method's median setup time."""
+    for clock, expected in (
+        ("solve", [r.solve_time for r in hessenberg.runs]),
+        ("total", [r.solve_time + r.setup_time for r in hessenberg.runs]),
+    ):
+        axis = hessenberg.plot(clock=clock).axes[0]
+        drawn = [x for line in axis.get_lines() for x in line.get_xdata()]
+        assert drawn == pytest.approx(expected, rel=1e-12)
+        assert axis.get_xlabel() == ("solve time [s]" if clock == "solve" else "setup + solve time [s]")
+    labels = [text.get_text() for text in hessenberg.plot().axes[0].get_legend().get_texts()]
+    assert [label.split(" (setup ")[0] for label in labels] == ["radau", "casadi-collocation"]
+    assert all(run.setup_time > 0 and run.solve_time > 0 for run in hessenberg.runs)
+    table = hessenberg.table().splitlines()
+    assert "solve [s]" in table[1] and "setup [s]" in table[1]
+    with pytest.raises(ComparisonError, match="clock must be one of 'solve', 'total'; got 'wall'"):
+        hessenberg.plot(clock="wall")
 
 
 def test_compare_errors():

@@ -96,6 +96,9 @@ def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
     assert len(sol.stats["L_f"]) == len(sol.stats["iterations"]) == 20
     assert max(sol.stats["max_residual"]) <= 1e-12
     assert sol.method == "pinn" and sol.settings["optimizer"] == "lm"
+    # the clocks: training is the setup, evaluating the trained networks the solve
+    assert sol.setup_time == sol.stats["training_seconds"] and sol.solve_time == sol.stats["evaluation_seconds"]
+    assert sol.setup_time > sol.solve_time > 0
 
 
 def test_fast_mode_on_the_pendulum_matches_radau_per_variable():
@@ -207,6 +210,7 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
     sol = surrogate.solve(y0=y0)
     radau = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.05, y0=y0)
     assert sol["y1"].shape == (200, 3) and sol.stats["mode"] == "surrogate"
+    assert sol.setup_time == 0.0 and sol.solve_time > 0  # trained once, before: not charged to each solve
     y_error = max(np.abs(sol[k] - radau[k]).max() for k in c.state_names)
     z_error = np.abs(sol["y5"] - radau["y5"]).max()
     print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")

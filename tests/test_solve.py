@@ -171,6 +171,26 @@ def test_five_stages_take_fewer_steps_at_tight_tolerance():
     assert max_error(default, ref, c.state_names) < 1e-8
 
 
+@pytest.mark.parametrize(
+    "method, options",
+    [
+        ("radau", {"h": 0.1}),
+        ("radau", {"rtol": 1e-6}),
+        ("radau", {"h": 0.1, "engine": "torch"}),
+        ("casadi-collocation", {"h": 0.1}),
+        ("casadi-idas", {}),
+        ("reference", {}),
+    ],
+)
+def test_every_method_reports_setup_and_solve_clocks(method, options):
+    """One definition for every backend: ``setup_time`` (engine, integrator or numeric functions)
+    apart from ``solve_time`` (the integration), both positive, none left in the stats."""
+    sol = dm.solve(HESSENBERG.model().compile(), (0.0, 1.0), method=method, **options)
+    assert sol.solve_time > 0 and sol.setup_time > 0
+    assert "setup_time" not in sol.stats and "solve_time" not in sol.stats
+    assert f"solve_time={sol.solve_time:.3g} s, setup_time={sol.setup_time:.3g} s" in repr(sol)
+
+
 def test_dense_output_matches_the_grid():
     c = PENDULUM.model().compile()
     grid = dm.solve(c, (0.0, 1.0), stages=3, h=0.1)

@@ -151,7 +151,17 @@ class PINNBackend(AbstractBackend):
         settings = {**dataclasses.asdict(config), "workers": options.workers}
         status = training_status(config, stats)
         return make_solution(
-            self, compiled, start, options, grid, values, done - began, summary, settings=settings, status=status
+            self,
+            compiled,
+            start,
+            options,
+            grid,
+            values,
+            done - trained,  # evaluating the trained networks
+            summary,
+            settings=settings,
+            status=status,
+            setup_time=trained - began,  # training
         )
 
 
