@@ -3,8 +3,11 @@
     daemodel compare hessenberg pendulum
     daemodel compare examples/pendulum.py --methods radau,casadi-idas,pinn --out results/
 
-A target is the name of a problem in :mod:`daemodel.problems` (``hessenberg``,
-``pendulum``, ``pendulum-index3``, ``robertson``: each on its own interval) or a Python file that defines
+A target is the name of a problem in :mod:`daemodel.problems`, each on its own interval,
+
+    {problems}
+
+or a Python file that defines
 
 * ``build_model()`` returning a :class:`~daemodel.Model` (or a module-level ``model``: a
   Model, a CompiledDAE, or a function returning one); and optionally
@@ -30,6 +33,7 @@ import argparse
 import importlib.util
 import math
 import numbers
+import re
 import sys
 from pathlib import Path
 
@@ -134,13 +138,42 @@ class _Parser(argparse.ArgumentParser):
         raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("daemodel")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def help_text() -> str:
+    """This module's documentation as ``daemodel compare --help`` prints it: the problem list
+    filled in from :data:`daemodel.problems.PROBLEMS`, and the reST markup read as plain text."""
+    from daemodel.problems import PROBLEMS
+
+    names = ", ".join(f"{name} [{p.t_span[0]:g}, {p.t_span[1]:g}]" for name, p in PROBLEMS.items())
+    return plain_text(__doc__.replace("{problems}", names))
+
+
+def plain_text(text: str) -> str:
+    """reST inline markup as plain text: ``x`` -> x, :class:`~a.b.C` -> C, :mod:`a.b` -> a.b."""
+
+    def role(match) -> str:
+        target = match.group(2)
+        return target.split(".")[-1] if match.group(1) else target
+
+    return re.sub(r":[a-z]+:`(~?)([^`]*)`", role, text).replace("``", "")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="daemodel", description="Solve and compare DAEs.")
+    parser.add_argument("--version", action="version", version=f"daemodel {_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
     cmp = commands.add_parser(
         "compare",
-        help="every method on a model: table of wall time and errors, work-precision plot",
-        description=__doc__,
+        help="every method on a model: table of solve and setup times and errors, work-precision plot",
+        description=help_text(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     cmp.add_argument("targets", nargs="+", metavar="TARGET", help="problem name or model file")
@@ -149,6 +182,9 @@ def _parser() -> argparse.ArgumentParser:
     cmp.add_argument("--points", type=int, default=4, help="settings per method in the sweep (default 4, at most 12)")
     cmp.add_argument("--t-end", type=float, help="end of the interval (default: the target's T_SPAN or 1)")
     cmp.add_argument("--threads", type=int, default=1, help="torch threads, fixed for comparable timings (default 1)")
+    cmp.add_argument(
+        "--detail", action="store_true", help="a max (mean) error column per variable (default: worst per group)"
+    )
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -213,7 +249,7 @@ def _compare(args) -> int:
     for target, plan in plans:
         try:
             result = plan.run(progress=False if args.no_progress else None)
-            print(result.table())
+            print(result.table(detail=args.detail))
             for path in result.save(args.out):
                 print(f"wrote {path}")
         except DaemodelError as error:  # e.g. a SolverError of the default reference solve

@@ -137,12 +137,26 @@ class Comparison:
             out.append(row)
         return out
 
-    def table(self) -> str:
-        """A text table: method, settings, solve and setup times, ``max (mean)`` error per variable, drift."""
+    def table(self, detail: bool = False) -> str:
+        """A text table: method, settings, solve and setup times, errors, constraint drift.
+
+        By default the errors are grouped: the max absolute error over the differential variables
+        and over the algebraic ones, each with the variable that reached it, so that the table
+        stays about 110 characters wide whatever the model's size.  ``detail=True`` gives a
+        ``max (mean)`` column per variable instead (also in :meth:`to_csv`).
+        """
         width = {"method": max(8, *(len(r.method) for r in self.runs)) + 2, "settings": 0}
         width["settings"] = max(10, *(len(r.settings) for r in self.runs)) + 2
         head = f"{'method':<{width['method']}}{'settings':<{width['settings']}}{'solve [s]':>10}{'setup [s]':>10}"
-        head += "".join(f"{name + ' max (mean)':>20}" for name in self.names) + f"{'drift':>10}"
+        groups = [("differential", self.states)] + ([("algebraic", self.algebraics)] if self.algebraics else [])
+        if detail:
+            head += "".join(f"{name + ' max (mean)':>20}" for name in self.names)
+        else:
+            # each cell: the error in 9 characters, then the variable in parentheses
+            name_width = max(len(name) for name in self.names)
+            cell = max(12 + name_width, *(len(title) + 6 for title, _ in groups))
+            head += "".join(f"{title + ' max':>{cell}}" for title, _ in groups)
+        head += f"{'drift':>10}"
         lines = [
             f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: absolute errors against {self.reference}",
             head,
@@ -154,9 +168,14 @@ class Comparison:
                 lines.append(line + f"{'-':>10}{'-':>10}  failed: {run.failure}")
                 continue
             line += f"{run.solve_time:>10.3g}{run.setup_time:>10.3g}"
-            for name in self.names:
-                error = run.errors[name]
-                line += f"{error['max']:>11.1e} ({error['mean']:.0e})"
+            if detail:
+                for name in self.names:
+                    error = run.errors[name]
+                    line += f"{error['max']:>11.1e} ({error['mean']:.0e})"
+            else:
+                for _, names in groups:
+                    worst = max(names, key=lambda name: run.errors[name]["max"])
+                    line += f"{run.errors[worst]['max']:>{cell - name_width - 3}.1e} ({worst:<{name_width}})"
             line += f"{max(run.drift.values()):>10.1e}" if run.drift else f"{'-':>10}"
             lines.append(line)
         for method in self.failed_methods:

@@ -357,3 +357,22 @@ def test_a_model_file_loads_as_a_module(tmp_path):
     text += "    k: float = 1.0\n" + MODEL
     model, t_span, exact = load_target(write(tmp_path, text))
     assert model.name == "decay" and t_span == (0.0, 0.5) and exact is None
+
+
+def test_version_and_a_help_text_without_markup(capsys):
+    """``daemodel --version`` prints the installed version; ``compare --help`` reads as plain text
+    (no reST roles or double backquotes) and lists every problem with its interval."""
+    from importlib.metadata import version
+
+    from daemodel.problems import PROBLEMS
+
+    with pytest.raises(SystemExit) as stopped:
+        main(["--version"])
+    assert stopped.value.code == 0 and capsys.readouterr().out == f"daemodel {version('daemodel')}\n"
+    with pytest.raises(SystemExit):
+        main(["compare", "--help"])
+    text = capsys.readouterr().out
+    assert "``" not in text and not re.search(r":[a-z]+:`", text)
+    for name, problem in PROBLEMS.items():
+        assert f"{name} [{problem.t_span[0]:g}, {problem.t_span[1]:g}]" in text
+    assert "build_model() returning a Model" in text

@@ -64,7 +64,15 @@ def test_a_failing_setting_is_recorded_not_raised():
 def test_table_json_csv_and_plot(hessenberg, tmp_path):
     table = hessenberg.table()
     assert "hessenberg on [0, 1]: absolute errors against the exact solution" in table
-    assert "y5 max (mean)" in table and "casadi-collocation  stages=3, h=0.05" in table
+    assert "casadi-collocation  stages=3, h=0.05" in table
+    # grouped by default: the worst differential and algebraic variable of each run, by name
+    head, row = table.splitlines()[1], table.splitlines()[4]
+    assert "differential max" in head and "algebraic max" in head and "y1 max" not in head
+    worst = max(HESSENBERG.model().compile().state_names, key=lambda n: hessenberg.runs[1].errors[n]["max"])
+    assert f"{hessenberg.runs[1].errors[worst]['max']:.1e} ({worst})" in table.splitlines()[4]
+    assert f"{hessenberg.runs[1].errors['y5']['max']:.1e} (y5)" in row
+    detail = hessenberg.table(detail=True)
+    assert all(f"{name} max (mean)" in detail for name in hessenberg.names)
     paths = hessenberg.save(tmp_path / "out")
     assert [p.name for p in paths] == ["hessenberg.json", "hessenberg.csv", "hessenberg_work_precision.png"]
     payload = json.loads(paths[0].read_text())
@@ -164,6 +172,9 @@ def test_cli_compares_a_problem_and_a_model_file(tmp_path, capsys):
     ]
     decay = json.loads((out / "decay.json").read_text())
     assert decay["runs"][1]["errors"]["x"]["max"] < 1e-7  # radau at h = 0.025 on an index-1 decay
+    assert "differential max" in printed and "x max (mean)" not in printed
+    assert main(["compare", str(path), "--methods", "radau", "--points", "1", "--out", str(out), "--detail"]) == 0
+    assert "x max (mean)" in capsys.readouterr().out  # --detail: a column per variable
 
 
 def test_cli_t_end_and_target_errors(tmp_path, capsys):
