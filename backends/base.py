@@ -112,6 +112,10 @@ class AbstractBackend(ABC):
     def solve(self, compiled, t_span: tuple[float, float], start, options):
         """Integrate every sample of ``start`` (:class:`InitialStates`) over ``t_span``."""
 
+    def describe(self, options) -> str:
+        """The method and the settings that matter for its accuracy, for a label (e.g. a reference's)."""
+        return self.name
+
     def work_precision(self, t_span: tuple[float, float], points: int) -> list[dict]:
         """``points`` sets of options, from cheap to accurate, that :func:`daemodel.compare`
         sweeps; a method without an accuracy setting is solved once with its defaults."""

@@ -243,6 +243,10 @@ class ReferenceBackend(AbstractBackend):
     def work_precision(self, t_span, points):
         return tolerance_sweep(points)
 
+    def describe(self, options: ReferenceOptions) -> str:
+        integrator = "DOP853, Radau where stiff" if options.integrator == AUTO else options.integrator
+        return f"method={self.name!r} (scipy {integrator}, rtol = {options.rtol:g}, atol = {options.atol:g})"
+
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)

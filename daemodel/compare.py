@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemodel.backends import get_backend
+from daemodel.backends import REFERENCE, get_backend
 from daemodel.backends import methods as registered_methods
 from daemodel.backends.base import SWEEP_FIRST_STEPS, fixed_grid, torch_device
 from daemodel.errors import (
@@ -361,7 +361,7 @@ class ComparisonPlan:
                 return solution.errors(self.reference)
             key = tuple(solution.t)
             if key not in references:
-                references[key] = solve(compiled, t_span, method="reference", t_eval=solution.t)
+                references[key] = solve(compiled, t_span, method=REFERENCE, t_eval=solution.t)
             return solution.errors(references[key])
 
         bar = None
@@ -401,7 +401,8 @@ class ComparisonPlan:
         if self.reference is not None:
             described = "the exact solution"
         else:
-            described = "method='reference' (scipy, rtol = atol = 1e-12)"
+            backend = get_backend(REFERENCE)
+            described = backend.describe(backend.Options())
         return Comparison(
             model=compiled.name,
             t_span=t_span,
@@ -434,7 +435,7 @@ def plan_comparison(
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)
-    methods = [m for m in registered_methods() if m != "reference"] if methods is None else list(methods)
+    methods = [m for m in registered_methods() if m != REFERENCE] if methods is None else list(methods)
     if not methods:
         raise ComparisonError("compare() needs at least one method")
     backends = {method: get_backend(method) for method in methods}  # unknown names raise here
