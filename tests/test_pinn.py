@@ -541,3 +541,18 @@ def test_box_samples_keep_each_point_with_its_parameters():
 def test_surrogate_needs_a_model():
     with pytest.raises(dm.errors.ModelError, match=r"Surrogate\.train\(\) needs a Model or a CompiledDAE; got str"):
         dm.Surrogate.train("pendulum", (0.0, 1.0), box={"y1": (0, 1)})
+
+
+def test_stages_and_h_are_options_as_for_the_fixed_step_methods():
+    """``method="pinn", stages=2, h=0.1`` is ``config=PINNConfig(stages=2, h=0.1)``; PINNConfig's
+    checks apply to them."""
+    c = HESSENBERG.model().compile()
+    direct = dm.solve(c, (0.0, 0.2), method="pinn", stages=2, h=0.1)
+    configured = dm.solve(c, (0.0, 0.2), method="pinn", config=dm.PINNConfig(stages=2, h=0.1))
+    assert direct.settings["stages"] == 2 and direct.settings["h"] == 0.1 and direct.stats["segments"] == 2
+    for name in direct.names:  # both trained to the collocation solution (training is not bit-reproducible)
+        np.testing.assert_allclose(direct[name], configured[name], rtol=0, atol=1e-9)
+    with pytest.raises(dm.errors.InvalidOptionError, match="h must be positive; got -1"):
+        dm.solve(c, (0.0, 0.2), method="pinn", h=-1)
+    with pytest.raises(dm.errors.InvalidOptionError, match="stages must be an integer from 1 to 7"):
+        dm.solve(c, (0.0, 0.2), method="pinn", stages=9)

@@ -38,6 +38,10 @@ class PINNOptions:
     ----------
     config : PINNConfig
         The network, loss and optimizer settings (default: the fast mode).
+    stages, h : optional
+        Radau IIA stages and the segment length, as for the fixed-step methods: given here, they
+        replace ``config.stages`` and ``config.h`` (``method="pinn", stages=3, h=0.1`` is
+        ``config=PINNConfig(stages=3, h=0.1)``).
     segment_starts : Solution or array, optional
         Known states at the start of every segment, from a classical solve on a grid that
         contains the segment boundaries or an earlier sweep: an array (segments, n) or
@@ -56,6 +60,8 @@ class PINNOptions:
     """
 
     config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
+    stages: int | None = None
+    h: float | None = None
     segment_starts: object = None
     workers: int = 1
     progress: bool | None = None
@@ -66,6 +72,9 @@ class PINNOptions:
             raise InvalidOptionError(
                 f"config must be a dm.PINNConfig; got {type(self.config).__name__} (e.g. config=dm.PINNConfig(h=0.05))"
             )
+        given = {name: getattr(self, name) for name in ("stages", "h") if getattr(self, name) is not None}
+        if given:  # PINNConfig checks them, with its own messages
+            object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
             raise InvalidOptionError(f"workers must be a positive integer; got {self.workers!r}")
         if self.workers > 1 and self.segment_starts is None:
@@ -92,7 +101,7 @@ class PINNBackend(AbstractBackend):
     max_index = 2
 
     def work_precision(self, t_span, points):
-        return [{"config": PINNConfig(stages=SWEEP_STAGES, h=h)} for h in halving_steps(t_span, points)]
+        return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.surrogate import Surrogate, training_status
