@@ -166,6 +166,10 @@ class TrainingError(ConvergenceError):
     """Radau-PINN training failed: a loss term is NaN, exploded, or missed its tolerance."""
 
 
+class WorkerStartError(ModelError):
+    """Worker processes stopped before returning a result (an unguarded script re-run by spawn)."""
+
+
 class NetworkFileError(ModelError):
     """A saved network file does not exist, is not a daemodel network, or belongs to another model."""
 

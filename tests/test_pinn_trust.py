@@ -289,3 +289,32 @@ def test_an_unusable_device_is_refused_before_anything_is_allocated(trajectory_f
         dm.solve(pendulum, (0.0, 0.1), method="pinn", config=TINY.replace(device="meta"))
     with pytest.raises(InvalidOptionError, match="device = 'meta'"):
         dm.Surrogate.train(pendulum, (0.0, 0.1), box=BOX, samples=2, config=TINY.replace(device="meta"))
+
+
+UNGUARDED = """
+import daemodel as dm
+from daemodel.problems import HESSENBERG
+
+m = HESSENBERG.model()
+starts = dm.solve(m, (0.0, 0.1), method="radau", stages=3, h=0.05)
+dm.solve(m, (0.0, 0.1), method="pinn", segment_starts=starts, workers=2)
+"""
+
+
+def test_parallel_training_in_an_unguarded_script_names_the_fix(tmp_path):
+    """Spawned workers re-run the calling script; at its top level they would solve again and
+    cannot start processes of their own.  The user gets WorkerStartError with the fix, not
+    BrokenProcessPool."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED)
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    last = done.stderr.strip().splitlines()[-1]
+    assert done.returncode == 1
+    assert last.startswith("daemodel.errors.WorkerStartError: pinn: the 2 worker processes (workers=2) stopped")
+    assert 'under `if __name__ == "__main__":`, or take workers=1' in last
+    guarded = "if __name__ == '__main__':\n" + "".join(f"    {line}\n" for line in UNGUARDED.strip().splitlines())
+    script.write_text(guarded)
+    assert subprocess.run([sys.executable, str(script)], cwd=tmp_path, timeout=300).returncode == 0

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
-from daemodel.errors import TrainingError
+from daemodel.errors import TrainingError, WorkerStartError
 
 # A loss this many times its starting value has diverged (Adam/L-BFGS; LM never goes up).
 EXPLODE_FACTOR = 1e8
@@ -738,6 +738,7 @@ def fit_parallel(compiled, grid, starts, p, config, workers: int, progress: Prog
     import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
 
     segments = len(grid) - 1
     threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
@@ -752,13 +753,33 @@ def fit_parallel(compiled, grid, starts, p, config, workers: int, progress: Prog
             progress.advance()
     else:
         # spawn: a forked child would inherit torch's thread pool in an unusable state
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for k, result in enumerate(pool.map(fit_one, tasks)):
-                results[k] = result
-                progress.advance()
+        received = 0
+        try:
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                for k, result in enumerate(pool.map(fit_one, tasks)):
+                    results[k] = result
+                    received += 1
+                    progress.advance()
+        except BrokenProcessPool:
+            raise _broken_pool(workers, received, segments) from None
     networks = []
     for k, (state, _) in enumerate(results):
         net = make_network(compiled, config, starts.shape[2], k)
         net.load_state_dict(state)
         networks.append(net)
     return networks, [stats for _, stats in results]
+
+
+def _broken_pool(workers: int, received: int, segments: int) -> WorkerStartError:
+    """The error for worker processes that stopped: before any result, most likely the spawn trap."""
+    if received == 0:
+        return WorkerStartError(
+            f"pinn: the {workers} worker processes (workers={workers}) stopped before training any segment. They "
+            "start by re-running the script that called solve() (multiprocessing's spawn), so a script that "
+            "solves at its top level solves again in every worker, which cannot start processes of its own: put "
+            'the code that solves under `if __name__ == "__main__":`, or take workers=1'
+        )
+    return WorkerStartError(
+        f"pinn: a worker process stopped after {received} of {segments} segments were trained (killed, e.g. out "
+        f"of memory, or crashed); take fewer workers (workers={workers}) or workers=1"
+    )
