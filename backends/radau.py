@@ -47,12 +47,14 @@ from daemodel.backends.base import (
     check_dtype,
     check_number,
     check_stages,
+    check_threads,
     check_tolerances,
     fixed_grid,
     fixed_step_sweep,
     make_solution,
     output_times,
     torch_device,
+    torch_threads,
 )
 from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
 
@@ -140,6 +142,11 @@ class RadauOptions:
     dtype : "float64" or "float32"
     device : str
         A torch device ("cpu", "cuda", "cuda:1", ...).
+    threads : int, optional
+        torch's intra-op threads for the torch engine (the caller's setting is restored after the
+        solve).  Default: one thread for batches of under 20,000 unknowns in all (samples x
+        (n + m)), where more threads only add synchronisation, and torch's own setting above
+        (:data:`~daemodel.backends.base.SMALL_TORCH_WORK`).  The casadi engine runs on one thread.
     engine : "auto", "torch" or "casadi"
         Who evaluates the residuals and Jacobians and factors the matrices; the algorithm is the
         same, and so are the results to rounding.  "casadi": casadi-compiled functions, casadi's
@@ -160,6 +167,7 @@ class RadauOptions:
     reuse_jacobian: bool = True
     dtype: str = "float64"
     device: str = "cpu"
+    threads: int | None = None
     engine: str = "auto"
 
     def __post_init__(self) -> None:
@@ -192,6 +200,7 @@ class RadauOptions:
                 f"newton_tol = {self.newton_tol:g} is below 10 eps of {self.dtype} ({10 * eps:.1e}); "
                 "Newton cannot reach it" + (": use dtype='float64'" if self.dtype == "float32" else "")
             )
+        check_threads(self.threads)
         if not isinstance(self.reuse_jacobian, bool):
             raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
         # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
@@ -226,6 +235,12 @@ class RadauBackend(AbstractBackend):
         return fixed_step_sweep(t_span, points)
 
     def solve(self, compiled, t_span, start, options: RadauOptions):
+        if make_engine_name(start, options) == "casadi":
+            return self._solve(compiled, t_span, start, options)
+        with torch_threads(options.threads, start.size * (len(compiled.states) + len(compiled.algebraics))):
+            return self._solve(compiled, t_span, start, options)
+
+    def _solve(self, compiled, t_span, start, options: RadauOptions):
         began = time.perf_counter()
         engine = make_engine(compiled, start, options)
         stepper = _Stepper(compiled, start, options, engine)
@@ -235,6 +250,8 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
+        if engine.name == "torch":
+            stepper.stats["torch_threads"] = engine.torch.get_num_threads()
         return make_solution(self, compiled, start, options, times, values, wall, stepper.stats, setup_time=setup)
 
 
@@ -243,15 +260,20 @@ def adaptive_stages(rtol: float) -> int:
     return next(stages for smallest, stages in ADAPTIVE_STAGES if rtol >= smallest)
 
 
+def make_engine_name(start, options: RadauOptions) -> str:
+    """The engine ``options.engine`` picks for ``start`` ("auto": see :func:`make_engine`)."""
+    if options.engine != "auto":
+        return options.engine
+    on_cpu = options.device == "cpu" or torch_device(options.device).type == "cpu"
+    return "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
+
+
 def make_engine(compiled, start, options: RadauOptions):
     """The engine ``options.engine`` names; ``"auto"``: casadi for one trajectory in float64 on the CPU
     (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs."""
     tableau = radau_iia(options.stages)
     transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
-    name = options.engine
-    if name == "auto":
-        on_cpu = options.device == "cpu" or torch_device(options.device).type == "cpu"
-        name = "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
+    name = make_engine_name(start, options)
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(

@@ -251,3 +251,30 @@ def test_a_model_is_compiled_once_until_it_changes():
     assert changed is not again and changed.y0[0] == 0.9
     m.set_parameters(lam=2.0)
     assert m.compile() is not changed and m.compile().parameter_values.tolist() == [1.0, 2.0]
+
+
+def test_torch_threads_follow_the_work_and_are_restored():
+    """Small batches run on one torch thread (more only synchronise), large ones on the caller's
+    setting, ``threads=`` on exactly that many; the caller's setting is restored after each solve."""
+    c = PENDULUM.model().compile()
+
+    def batch(size):
+        angles = np.linspace(0.1, 3.0, size)
+        return {"y1": np.sin(angles), "y2": -np.cos(angles), "y3": 0 * angles, "y4": 0 * angles}
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        small = dm.solve(c, (0.0, 0.1), h=0.05, y0=batch(10))
+        large = dm.solve(c, (0.0, 0.1), h=0.05, y0=batch(5000))  # 25,000 unknowns in all
+        told = dm.solve(c, (0.0, 0.1), h=0.05, y0=batch(10), threads=2)
+        assert (small.stats["torch_threads"], large.stats["torch_threads"], told.stats["torch_threads"]) == (1, 2, 2)
+        assert torch.get_num_threads() == 2
+        pinn = dm.solve(c, (0.0, 0.1), method="pinn", h=0.05)
+        assert pinn.stats["torch_threads"] == 1 and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(dm.errors.InvalidOptionError, match=r"threads must be a positive integer or None .* got 0"):
+        dm.solve(c, (0.0, 0.1), h=0.05, threads=0)
+    with pytest.raises(dm.errors.InvalidOptionError, match=r"threads must be a positive integer or None .* got 1\.5"):
+        dm.solve(c, (0.0, 0.1), method="pinn", threads=1.5)

@@ -10,11 +10,13 @@ import numpy as np
 from daemodel.backends.base import (
     SWEEP_STAGES,
     AbstractBackend,
+    check_threads,
     fixed_grid,
     halving_steps,
     make_solution,
     show_progress,
     torch_device,
+    torch_threads,
 )
 from daemodel.backends.pinn.config import PINNConfig
 
@@ -49,6 +51,12 @@ class PINNOptions:
         independently (in ``workers`` processes) instead of one after the other.
     workers : int
         Processes for segment-parallel training (with ``segment_starts``).
+    threads : int, optional
+        torch's intra-op threads for training and evaluation (the caller's setting is restored
+        after the solve).  Default: one: a segment's networks are too small to gain from more
+        (Hessenberg's fast mode: 0.37 s on one thread, 0.46 s on two, on an idle 2-core CPU, and
+        7x slower with two threads when another process holds a core).  Parallel workers
+        (``workers``) share the cores between them instead.
     progress : bool, optional
         Show a progress bar with the segment, the iteration and the loss terms (default: when
         stderr is a terminal).
@@ -64,6 +72,7 @@ class PINNOptions:
     h: float | None = None
     segment_starts: object = None
     workers: int = 1
+    threads: int | None = None
     progress: bool | None = None
     save: object = None
 
@@ -75,6 +84,7 @@ class PINNOptions:
         given = {name: getattr(self, name) for name in ("stages", "h") if getattr(self, name) is not None}
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
+        check_threads(self.threads)
         if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
             raise InvalidOptionError(f"workers must be a positive integer; got {self.workers!r}")
         if self.workers > 1 and self.segment_starts is None:
@@ -104,6 +114,10 @@ class PINNBackend(AbstractBackend):
         return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
+        with torch_threads(options.threads if options.threads is not None else 1, 0):
+            return self._solve(compiled, t_span, start, options)
+
+    def _solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.surrogate import Surrogate, training_status
         from daemodel.backends.pinn.train import Progress, fit_parallel
 
@@ -142,6 +156,7 @@ class PINNBackend(AbstractBackend):
             "segments": segments,
             "networks_per_segment": networks[0].count,
             "parameters_per_segment": networks[0].parameter_count(),
+            "torch_threads": torch_threads_now(),
             "training_seconds": trained - began,
             "evaluation_seconds": done - trained,
             **{key: [getattr(s, key) for s in stats] for key in ("iterations", "L_f", "L_g", "L_s", "max_residual")},
@@ -202,3 +217,9 @@ def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:
     if not np.all(np.isfinite(values)):
         raise ShapeError("segment_starts holds non-finite values")
     return np.ascontiguousarray(np.broadcast_to(values, (batch, segments, n)).transpose(1, 0, 2))
+
+
+def torch_threads_now() -> int:
+    import torch
+
+    return torch.get_num_threads()
