@@ -215,7 +215,8 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
         raise InconsistentInitialStateError(
             f"initial states of samples {_samples(np.flatnonzero(bad.any(axis=1)))} violate the constraints; "
             f"sample {sample}: {label}: {name} = {residual[sample, level]:.6g} (tolerance {tol[sample]:.1e}). "
-            "Give states on the constraint manifold (e.g. velocities perpendicular to the rod)"
+            "Give states that satisfy them, or project yours onto them with compiled.consistent(y0=...) (the "
+            "nearest such states)"
         )
 
     H, Hz = checks.H, checks.Hz
@@ -239,6 +240,41 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
                 f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
             )
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
+
+
+def consistent_states(compiled, y0=None, parameters=None) -> dict:
+    """:meth:`CompiledDAE.consistent`: ``y0`` (as ``solve`` takes it) projected onto every z-free
+    constraint level, by name, one float per state or an array (B,) for a batch."""
+    sizes, blocks = {}, {}
+    for arg, value, names, defaults in (
+        ("y0", y0, compiled.state_names, compiled.y0),
+        ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
+    ):
+        size, blocks[arg] = _columns(compiled, value, names, defaults, arg)
+        _finite(blocks[arg], names, arg)
+        if size is not None:
+            sizes[arg] = size
+    if len(set(sizes.values())) > 1:
+        raise ShapeError("the batch sizes differ: " + ", ".join(f"{k} has {v} samples" for k, v in sizes.items()))
+    batch = next(iter(sizes.values()), 1)
+    Y, P = (np.ascontiguousarray(np.broadcast_to(b, (batch, b.shape[1]))) for b in blocks.values())
+    projected = project_states(compiled, Y, P)
+    checks = _checks(compiled)
+    Z = np.zeros((batch, len(compiled.algebraics)))
+    residual = checks.residual(compiled.t0, projected, Z, P)
+    tol = STATE_TOL * (1 + np.max(np.abs(projected), axis=1, initial=0.0))
+    bad = np.abs(residual) > tol[:, None]
+    if bad.any():
+        sample, level = np.argwhere(bad)[0]
+        name, label, _ = checks.hidden[level]
+        raise InconsistentInitialStateError(
+            f"consistent(): no state near sample {sample}'s satisfies {label}: {name} = "
+            f"{residual[sample, level]:.6g} after the projection (tolerance {tol[sample]:.1e}); the constraints "
+            "may have no real solution near these states"
+        )
+    if not sizes:
+        return {name: float(projected[0, i]) for i, name in enumerate(compiled.state_names)}
+    return {name: projected[:, i].copy() for i, name in enumerate(compiled.state_names)}
 
 
 def project_states(compiled, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
