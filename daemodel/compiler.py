@@ -137,6 +137,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         model._initial,
         p,
         repair,
+        guesses=model._guess,
     )
 
     invariants = tuple((c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1)))

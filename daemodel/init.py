@@ -21,6 +21,7 @@ from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
     InitialisationError,
+    SingularSystemError,
 )
 from daemodel.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
 
@@ -396,6 +397,7 @@ def initialise(
     given: dict,
     p: np.ndarray,
     repair: bool,
+    guesses: dict | None = None,
 ) -> InitialValues:
     """Check or repair y0, compute z0, compare with given algebraic values.
 
@@ -412,7 +414,11 @@ def initialise(
         The user's initial values (states required, algebraic values optional).
     p : ndarray, shape (k,)
     repair : bool
+    guesses : dict name -> float, optional
+        Newton's starting values for algebraic variables without a given value (``m.guess``):
+        they pick a root and claim nothing.
     """
+    guesses = guesses or {}
     notes = []
     y0 = np.array([given[y.name] for y in numeric.y], dtype=float)
     empty_z = np.zeros(len(numeric.z))
@@ -448,13 +454,25 @@ def initialise(
 
     determining = [c.determining for c in constraints]
     H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, numeric.z)
-    guess = np.array([[given.get(z.name, 0.0) for z in numeric.z]], dtype=float)
+    guess = np.array([[given.get(z.name, guesses.get(z.name, 0.0)) for z in numeric.z]], dtype=float)
     Y, P = y0[None, :], p[None, :]
     result = solve_algebraic(lambda Z: H(t0, Y, Z, P), lambda Z: Hz(t0, Y, Z, P), guess)
     z0, residual = result.x[0], result.residual[0]
     with np.errstate(all="ignore"):
         jacobian = Hz(t0, Y, result.x, P)[0]
-    check_rank(jacobian, constraints, numeric.z, t0)  # a singular H_z explains a failed Newton
+    try:
+        check_rank(jacobian, constraints, numeric.z, t0)  # a singular H_z explains a failed Newton
+    except SingularSystemError as error:
+        if result.converged[0] or not np.array_equal(result.x, guess):
+            raise
+        # Newton never left its start: the matrix is singular there, not necessarily at a root
+        unguessed = [z.name for z in numeric.z if z.name not in given and z.name not in guesses]
+        hint = f"; no guess was given for {', '.join(unguessed)}" if unguessed else ""
+        raise SingularSystemError(
+            f"{error}: that point is Newton's starting guess {_guess(numeric.z, guess[0])}, from which it cannot "
+            f"take a step{hint}. Give a guess near the root you want, e.g. m.guess({numeric.z[0].name}=1.0) "
+            "(a starting value that picks the root, not a claim)"
+        ) from None
     if not result.converged[0]:
         worst = int(np.argmax(np.where(np.isfinite(residual), np.abs(residual), np.inf))) if residual.size else 0
         values = ", ".join(f"{z.name} = {v:.6g}" for z, v in zip(numeric.z, z0, strict=True))
@@ -463,7 +481,7 @@ def initialise(
             f"{residual[worst]:.3g} at {values} after {result.iterations} steps from {_guess(numeric.z, guess[0])}, "
             "and the steps have not settled (a constraint with no real root, such as 0 = exp(z), drives z "
             "towards infinity). Check that the constraints have a root at t0, or give a starting value with "
-            "m.initial(<algebraic>=...)"
+            "m.guess(<algebraic>=...)"
         )
 
     values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0]).tolist(), strict=True))

@@ -116,6 +116,7 @@ class Model:
         self._odes: dict[str, Equation] = {}
         self._constraints: list[Equation] = []
         self._initial: dict[str, float] = {}
+        self._guess: dict[str, float] = {}  # starting values of algebraic variables for Newton, not claims
         self._t0 = 0.0
         self._equation_count = 0
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile
@@ -243,6 +244,21 @@ class Model:
         if t is not None:
             self._t0 = _finite(t, "initial time t")
 
+    def guess(self, **values: float) -> None:
+        """Starting values of algebraic variables for the Newton that computes them at t0.
+
+        A guess only picks the root (``0 = z**2 - x`` has two: ``m.guess(z=1)`` or
+        ``m.guess(z=-1)``); unlike a value given to :meth:`initial`, it is not a claim that the
+        root must match.  A variable without a guess starts at its :meth:`initial` value, else 0.
+        """
+        for name, value in values.items():
+            if name not in self._algebraics:
+                where = "a differential variable: give it with m.initial" if name in self._states else "not declared"
+                raise UnknownSymbolError(
+                    f"m.guess: '{name}' is {where}; guesses are for algebraic variables: {_listing(self._algebraics)}"
+                )
+            self._guess[name] = _finite(value, f"guess for '{name}'")
+
     def _expression(self, value, where: str) -> sp.Expr:
         """Turn a sympy expression, number or string into a checked sympy expression."""
         symbols = self._all_symbols()
@@ -314,6 +330,7 @@ class Model:
             tuple((name, eq.expr) for name, eq in self._odes.items()),
             tuple((eq.name, eq.expr) for eq in self._constraints),
             tuple(self._initial.items()),
+            tuple(self._guess.items()),
             self._t0,
         )
 

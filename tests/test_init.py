@@ -110,10 +110,12 @@ def test_newton_failure_asks_for_a_start_value():
     m.constraint(sp.log(z) - y, name="law")
     m.initial(y=0.5)
     with pytest.raises(
-        E.InitialisationError, match=r"did not converge: constraint 'law' \(#2\).*m.initial\(<algebraic>=...\)"
+        E.InitialisationError, match=r"did not converge: constraint 'law' \(#2\).*m\.guess\(<algebraic>=\.\.\.\)"
     ):
         m.compile()
-    m.initial(z=1.0)  # a start value is also a claim: it is checked against the root found
+    m.guess(z=1.0)  # a starting value picks the root and claims nothing
+    assert m.compile().z0[0] == pytest.approx(np.exp(0.5), rel=1e-15)
+    m.initial(z=1.0)  # an initial value is also a claim: it is checked against the root found
     with pytest.raises(E.InconsistentAlgebraicValueError, match=r"consistent value z = 1\.6487212707"):
         m.compile()
     assert m.compile(repair=True).z0[0] == pytest.approx(np.exp(0.5), rel=1e-15)
@@ -154,3 +156,34 @@ def test_consistent_pendulum_positions_and_velocities():
     fixed = c.consistent(y0=y0)
     sol = dm.solve(c, (0.0, 0.2), h=0.05, y0=fixed)
     assert max(sol.drift().values()) < 1e-8
+
+
+def _square_root_model() -> dm.Model:
+    m = dm.Model("square_root")
+    (x,) = m.states("x")
+    (z,) = m.algebraics("z")
+    m.ode(x, -z)
+    m.constraint(z**2 - x, name="root")  # z = +-sqrt(x); g_z = 2 z vanishes at z = 0
+    m.initial(x=1.0)
+    return m
+
+
+def test_guess_picks_the_root_and_claims_nothing():
+    """0 = z^2 - x has two roots: m.guess picks one without claiming it, and without a guess the
+    error says that z = 0 is only Newton's starting point and how to give one."""
+    m = _square_root_model()
+    message = (
+        r"g_z is singular at t=0 .* at the initial point: that point is Newton's starting guess z = 0, from which "
+        r"it cannot take a step; no guess was given for z\. Give a guess near the root you want, e\.g\. "
+        r"m\.guess\(z=1\.0\) \(a starting value that picks the root, not a claim\)"
+    )
+    with pytest.raises(dm.errors.SingularSystemError, match=message):
+        m.compile()
+    m.guess(z=-0.3)
+    assert m.compile().z0 == pytest.approx([-1.0], abs=1e-14)
+    m.guess(z=5.0)  # far from the root: a guess, not a claim that must agree
+    assert m.compile().z0 == pytest.approx([1.0], abs=1e-14)
+    with pytest.raises(dm.errors.UnknownSymbolError, match=r"m\.guess: 'x' is a differential variable"):
+        m.guess(x=2.0)
+    with pytest.raises(dm.errors.UnknownSymbolError, match=r"m\.guess: 'q' is not declared"):
+        m.guess(q=2.0)
