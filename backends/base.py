@@ -158,11 +158,29 @@ class ProgressWatch:
         return None
 
 
+# Seconds between progress lines when stderr is not a terminal (a log file, CI): a terminal
+# redraws one line in place, a log would keep every redraw.
+LOG_PROGRESS_SECONDS = 5.0
+
+
+def stderr_is_terminal() -> bool:
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
+
+
 def show_progress(progress: bool | None) -> bool:
     """``progress`` as given, or whether stderr is a terminal."""
     if progress is None:
-        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+        return stderr_is_terminal()
     return bool(progress)
+
+
+def progress_bar(total: int, desc: str, unit: str):
+    """A tqdm bar on stderr: redrawn in place on a terminal, a line every
+    :data:`LOG_PROGRESS_SECONDS` at most elsewhere."""
+    from tqdm.auto import tqdm
+
+    interval = 0.1 if stderr_is_terminal() else LOG_PROGRESS_SECONDS
+    return tqdm(total=total, desc=desc, unit=unit, leave=False, mininterval=interval, file=sys.stderr)
 
 
 def halving_steps(t_span, points: int) -> list[float]:

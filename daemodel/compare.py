@@ -248,9 +248,17 @@ class Comparison:
                 times = [r.solve_time + (r.setup_time if clock == "total" else 0.0) for r in runs]
                 errors = [max(max(r.errors[n]["max"] for n in names), 1e-17) for r in runs]
                 ax.loglog(times, errors, "o-", color=f"C{i}", label=label)
-                for x, y, run in zip(times, errors, runs, strict=True):
+                # the sweep's two ends only (cheapest, most accurate): labels of every point collide
+                ends = [0, len(runs) - 1][: len(runs)]
+                for k, (dx, align) in zip(ends, ((6, "left"), (-6, "right")), strict=False):
                     ax.annotate(
-                        run.short or run.settings, (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6.5
+                        runs[k].short or runs[k].settings,
+                        (times[k], errors[k]),
+                        textcoords="offset points",
+                        xytext=(dx, -9 if k else 4),
+                        ha=align,
+                        fontsize=6.5,
+                        color=f"C{i}",
                     )
                 shown = [r for r in failed if math.isfinite(r.solve_time) and r.solve_time > 0]
                 if shown:  # at the time it took to fail, on the top edge: no error to place it by
@@ -259,7 +267,9 @@ class Comparison:
             ax.set_ylabel(f"max absolute error ({', '.join(names)})")
             ax.set_title(title)
             ax.grid(which="both", alpha=0.25)
-            ax.legend(fontsize=8)
+        # one legend for the panels, below them, where it hides no data
+        handles, labels = axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=8)
         fig.suptitle(f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference}")
         if path is not None:
             fig.savefig(writable_file(path, "plot path"), dpi=130)
@@ -366,9 +376,9 @@ class ComparisonPlan:
 
         bar = None
         if show_progress(progress):
-            from tqdm.auto import tqdm
+            from daemodel.backends.base import progress_bar
 
-            bar = tqdm(total=len(self.settings), desc=f"compare {compiled.name}", unit="solve", leave=False)
+            bar = progress_bar(len(self.settings), f"compare {compiled.name}", "solve")
         runs = []
         try:
             for method, options, label, short in self.settings:

@@ -232,8 +232,12 @@ class Solution:
             ax.grid(alpha=0.3)
         for ax in axes.flat[len(names) :]:
             ax.set_visible(False)
-        for ax in axes[-1]:
-            ax.set_xlabel("t")
+        # the lowest visible panel of each column carries the time axis (sharex hides the others'
+        # tick labels, and the last row may be partly empty)
+        for column in range(columns):
+            lowest = max(row for row in range(rows) if row * columns + column < len(names))
+            axes[lowest, column].tick_params(labelbottom=True)
+            axes[lowest, column].set_xlabel("t")
         batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
         fig.suptitle(f"{self.compiled.name}: {self.method}{batch}")
         if path is not None:

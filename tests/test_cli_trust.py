@@ -183,7 +183,7 @@ def test_a_method_that_failed_everywhere_says_so(monkeypatch, tmp_path):
     assert "nan" not in table
     assert re.search(r"\nradau +stages=3, h=0\.05 +- +-  failed: radau: Newton did not converge at t = 0\n", table)
     assert table.endswith("radau failed at every setting (2 of 2): no errors to compare, no curve")
-    labels = [text.get_text() for text in result.plot().axes[0].get_legend().get_texts()]
+    labels = [text.get_text() for text in result.plot().legends[0].get_texts()]
     assert labels[0] == "radau, 2 of 2 failed" and re.fullmatch(r"casadi-idas \(setup [0-9.e+-]+ ms\)", labels[1])
     payload = json.loads(result.to_json(tmp_path / "decay.json").read_text())
     failed, solved = payload["runs"][0], payload["runs"][2]

@@ -101,7 +101,12 @@ def test_plot_draws_the_solve_clock_or_the_total(hessenberg):
         drawn = [x for line in axis.get_lines() for x in line.get_xdata()]
         assert drawn == pytest.approx(expected, rel=1e-12)
         assert axis.get_xlabel() == ("solve time [s]" if clock == "solve" else "setup + solve time [s]")
-    labels = [text.get_text() for text in hessenberg.plot().axes[0].get_legend().get_texts()]
+    figure = hessenberg.plot()
+    labels = [text.get_text() for text in figure.legends[0].get_texts()]
+    assert all(ax.get_legend() is None for ax in figure.axes)  # one legend, below the panels, over no data
+    # each curve labels its two ends (cheapest and most accurate setting) and nothing between
+    three = dm.compare(HESSENBERG.model(), (0.0, 1.0), ["radau"], reference=EXACT, points=3, progress=False)
+    assert [text.get_text() for text in three.plot().axes[0].texts] == [three.runs[0].short, three.runs[2].short]
     assert [label.split(" (setup ")[0] for label in labels] == ["radau", "casadi-collocation"]
     assert all(run.setup_time > 0 and run.solve_time > 0 for run in hessenberg.runs)
     table = hessenberg.table().splitlines()

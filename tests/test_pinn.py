@@ -2,6 +2,7 @@
 Radau ceiling, segment-parallel training, save/load, and every error message."""
 
 import itertools
+import time
 
 import numpy as np
 import pytest
@@ -159,7 +160,10 @@ def test_paper_recipe_runs_and_reports_its_loss_terms():
     assert sol.stats["networks_per_segment"] == 6
 
 
-def test_progress_bar_shows_segment_iteration_and_loss_terms(capsys):
+def test_progress_bar_shows_segment_iteration_and_loss_terms(capsys, monkeypatch):
+    import daemodel.backends.base as base
+
+    monkeypatch.setattr(base, "stderr_is_terminal", lambda: True)  # redrawn at every report, as on a terminal
     c = HESSENBERG.model().compile()
     dm.solve(c, (0.0, 0.1), method="pinn", progress=True)
     err = capsys.readouterr().err
@@ -556,3 +560,20 @@ def test_stages_and_h_are_options_as_for_the_fixed_step_methods():
         dm.solve(c, (0.0, 0.2), method="pinn", h=-1)
     with pytest.raises(dm.errors.InvalidOptionError, match="stages must be an integer from 1 to 7"):
         dm.solve(c, (0.0, 0.2), method="pinn", stages=9)
+
+
+def test_progress_in_a_log_is_a_line_every_few_seconds(capsys, monkeypatch):
+    """With stderr not a terminal (a log, CI), the progress bar is drawn at most every
+    LOG_PROGRESS_SECONDS (plus its first and closing draws), not at every segment and report,
+    which a log would keep; on a terminal it is redrawn in place at each."""
+    import daemodel.backends.base as base
+
+    c = HESSENBERG.model().compile()
+    began = time.perf_counter()
+    dm.solve(c, (0.0, 1.0), method="pinn", progress=True)  # 20 segments
+    seconds = time.perf_counter() - began
+    in_log = capsys.readouterr().err.count("\r")
+    assert in_log <= 4 + seconds / base.LOG_PROGRESS_SECONDS, in_log
+    monkeypatch.setattr(base, "stderr_is_terminal", lambda: True)
+    dm.solve(c, (0.0, 1.0), method="pinn", progress=True)
+    assert capsys.readouterr().err.count("\r") >= 20 > in_log  # at least one redraw per segment

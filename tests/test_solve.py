@@ -236,6 +236,20 @@ def test_solution_access_export_and_plot(tmp_path):
     assert "radau" in repr(sol)
 
 
+def test_plot_keeps_time_ticks_on_every_bottom_panel():
+    """Five variables on a 3-column grid: the last row holds two, so the third column's time axis
+    is on its first row; every column's lowest panel shows t's tick labels."""
+    sol = dm.solve(HESSENBERG.model(), (0.0, 1.0), h=0.1)
+    fig = sol.plot()
+    visible = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in visible] == list(sol.names)
+    bottom = {"y4", "y5", "y3"}  # (row 1: y4, y5; row 0, column 2: y3)
+    for ax in visible:
+        labels = [tick.label1.get_visible() for tick in ax.xaxis.get_major_ticks()]
+        assert any(labels) == (ax.get_title() in bottom), ax.get_title()
+        assert (ax.get_xlabel() == "t") == (ax.get_title() in bottom)
+
+
 def test_a_model_is_compiled_once_until_it_changes():
     """dm.solve(model) reuses the last compile of unchanged declarations (with its generated code);
     any new declaration, value or argument compiles afresh."""

@@ -655,18 +655,21 @@ class Progress:
     """A tqdm bar over segments whose postfix shows the iteration and the loss terms."""
 
     def __init__(self, total: int, enabled: bool, label: str):
-        self.bar = None
-        if enabled:
-            from tqdm.auto import tqdm
+        from daemodel.backends.base import LOG_PROGRESS_SECONDS, progress_bar, stderr_is_terminal
 
-            self.bar = tqdm(total=total, desc=label, unit="segment", leave=False)
+        self.bar = progress_bar(total, label, "segment") if enabled else None
+        # a terminal shows every report in place; a log gets one line every LOG_PROGRESS_SECONDS
+        self.every = 0.0 if stderr_is_terminal() else LOG_PROGRESS_SECONDS
+        self.shown = -math.inf  # perf_counter of the last redraw
         self.segment = 0
 
     def report(self, iteration: int, terms: dict) -> None:
         if self.bar is not None:
             shown = " ".join(f"{k}={v:.1e}" for k, v in terms.items())
             self.bar.set_postfix_str(f"seg {self.segment + 1} it {iteration} {shown}", refresh=False)
-            self.bar.refresh()
+            if time.perf_counter() - self.shown >= self.every:
+                self.bar.refresh()
+                self.shown = time.perf_counter()
 
     def advance(self) -> None:
         self.segment += 1
