@@ -8,6 +8,7 @@ functions or casadi's DAE dict.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -88,6 +89,19 @@ class CompiledDAE:
     def __getstate__(self) -> dict:
         # Generated functions live in the cache and do not pickle; a copy regenerates them.
         return {**self.__dict__, "_cache": {}}
+
+    def fingerprint(self) -> str:
+        """A hash of the equations and names: what a saved solution or network belongs to."""
+        text = repr(
+            (
+                self.state_names,
+                self.algebraic_names,
+                self.parameter_names,
+                [str(e) for e in self.rhs],
+                [str(e) for e in self.g],
+            )
+        )
+        return hashlib.sha256(text.encode()).hexdigest()
 
     def cached(self, key, build):
         """``build()``, computed once per key and kept with this model (not pickled): generated

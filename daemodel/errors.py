@@ -170,6 +170,10 @@ class WorkerStartError(ModelError):
     """Worker processes stopped before returning a result (an unguarded script re-run by spawn)."""
 
 
+class SolutionFileError(ModelError):
+    """A saved solution file does not exist, is not a daemodel solution, or belongs to another model."""
+
+
 class NetworkFileError(ModelError):
     """A saved network file does not exist, is not a daemodel network, or belongs to another model."""
 

@@ -88,6 +88,12 @@ class Model:
         Shown in reports and used in result file names: letters, digits, ``_``, ``-`` and ``.``,
         starting with a letter, at most 64 characters.
 
+    Attributes
+    ----------
+    t : sympy.Symbol
+        Time, for equations that depend on it: ``m.ode(x, -x + sp.sin(m.t))``, or ``"t"`` in a
+        string (``m.ode(x, "-x + sin(t)")``).  It cannot be declared as a variable.
+
     Examples
     --------
     >>> import daemodel as dm

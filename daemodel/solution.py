@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from daemodel.errors import ComparisonError, UnknownSymbolError
+from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
 from daemodel.files import writable_file
 from daemodel.init import NumericSystem
 
@@ -15,6 +17,15 @@ from daemodel.init import NumericSystem
 TIME_MATCH_RTOL = 1e-9
 # Samples drawn by Solution.plot for a batch; more lines only hide each other.
 PLOTTED_SAMPLES = 20
+# What Solution.save writes and Solution.load reads.
+SOLUTION_FORMAT = "daemodel-solution/1"
+
+
+def _jsonable(value):
+    """JSON for what a Solution's settings and stats hold beyond JSON's types (numpy values, dtypes)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return str(value)
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,6 +186,82 @@ class Solution:
         numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
         values = numeric.batch_function([e for _, e in c.invariants])(T, Y, Z, P)
         return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
+
+    # ---- files --------------------------------------------------------------------------
+    def save(self, path) -> Path:
+        """Write the solution to ``path`` (numpy's ``.npz``; no pickled objects): times, values,
+        parameters, method, settings, clocks, stats, status and the model's fingerprint.  Read it
+        back with :meth:`load` and the model."""
+        path = writable_file(path, "path")
+        names = [*self.compiled.state_names, *self.compiled.algebraic_names]
+        meta = {
+            "format": SOLUTION_FORMAT,
+            "model": self.compiled.name,
+            "fingerprint": self.compiled.fingerprint(),
+            "names": names,
+            "method": self.method,
+            "settings": self.settings,
+            "solve_time": self.solve_time,
+            "setup_time": self.setup_time,
+            "stats": self.stats,
+            "status": self.status,
+            "batched": self.batched,
+        }
+        with path.open("wb") as handle:
+            np.savez(
+                handle,
+                t=self.t,
+                values=np.stack([self.values[n] for n in names], axis=-1),
+                parameters=self.parameters,
+                meta=np.array(json.dumps(meta, default=_jsonable)),
+            )
+        return path
+
+    @classmethod
+    def load(cls, path, model) -> Solution:
+        """Read a solution written by :meth:`save` for ``model`` (a Model or a CompiledDAE with the
+        same equations and names; an index-3 model may be given for a solution of its reduction).
+
+        Raises
+        ------
+        SolutionFileError
+            No file, not a daemodel solution file, or a model with other equations or names.
+        """
+        from daemodel.solver import as_compiled
+
+        path = Path(path)
+        if not path.is_file():
+            raise SolutionFileError(f"no solution file at {path}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in ("t", "values", "parameters", "meta")}
+            meta = json.loads(str(arrays["meta"]))
+        except (OSError, ValueError, KeyError) as error:
+            raise SolutionFileError(f"{path} is not a daemodel solution file ({error.__class__.__name__})") from None
+        if not isinstance(meta, dict) or meta.get("format") != SOLUTION_FORMAT:
+            raise SolutionFileError(f"{path} is not a daemodel solution file (expected format {SOLUTION_FORMAT!r})")
+        compiled = as_compiled(model, "Solution.load()")
+        candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
+        match = next((c for c in candidates if c.fingerprint() == meta["fingerprint"]), None)
+        if match is None:
+            raise SolutionFileError(
+                f"{path} holds a solution of model '{meta['model']}' with other equations or names than "
+                f"'{compiled.name}' ({', '.join(meta['names'])}); load it with the model that was solved"
+            )
+        values = {name: np.ascontiguousarray(arrays["values"][..., i]) for i, name in enumerate(meta["names"])}
+        return cls(
+            t=arrays["t"],
+            values=values,
+            method=meta["method"],
+            settings=meta["settings"],
+            solve_time=meta["solve_time"],
+            setup_time=meta["setup_time"],
+            stats=meta["stats"],
+            compiled=match,
+            parameters=arrays["parameters"],
+            batched=meta["batched"],
+            status=meta["status"],
+        )
 
     # ---- export -------------------------------------------------------------------------
     def to_pandas(self):

@@ -292,3 +292,29 @@ def test_torch_threads_follow_the_work_and_are_restored():
         dm.solve(c, (0.0, 0.1), h=0.05, threads=0)
     with pytest.raises(dm.errors.InvalidOptionError, match=r"threads must be a positive integer or None .* got 1\.5"):
         dm.solve(c, (0.0, 0.1), method="pinn", threads=1.5)
+
+
+def test_solution_save_and_load(tmp_path):
+    """A Solution written with save() reads back with its model, every value, clock, setting and
+    stat equal; the file holds no pickled objects; the wrong model or file is named."""
+    from daemodel.problems import PENDULUM_INDEX3
+
+    m = PENDULUM_INDEX3.model()  # solved at index 2: loading with the index-3 model finds the reduction
+    sol = dm.solve(m, (0.0, 1.0), h=0.1, y0={"y1": [1.0, 1.0], "y2": [0.0, 0.0]})
+    path = sol.save(tmp_path / "pendulum.npz")
+    with np.load(path, allow_pickle=False) as data:
+        assert sorted(data.files) == ["meta", "parameters", "t", "values"]
+    back = dm.Solution.load(path, m)
+    assert back.batched and back.names == sol.names and back.method == "radau"
+    for name in sol.names:
+        np.testing.assert_array_equal(back[name], sol[name])
+    assert (back.solve_time, back.setup_time, back.status) == (sol.solve_time, sol.setup_time, sol.status)
+    assert back.settings["h"] == 0.1 and back.stats["steps"] == sol.stats["steps"]
+    assert back.drift() == sol.drift()
+    with pytest.raises(dm.errors.SolutionFileError, match="with other equations or names than 'hessenberg'"):
+        dm.Solution.load(path, HESSENBERG.model())
+    with pytest.raises(dm.errors.SolutionFileError, match="no solution file at"):
+        dm.Solution.load(tmp_path / "missing.npz", m)
+    (tmp_path / "other.npz").write_text("not numpy")
+    with pytest.raises(dm.errors.SolutionFileError, match="is not a daemodel solution file"):
+        dm.Solution.load(tmp_path / "other.npz", m)

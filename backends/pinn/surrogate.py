@@ -15,7 +15,6 @@ that segment's training inputs.  ``solve`` checks every query against both (see
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import time
 import warnings
 from pathlib import Path
@@ -74,16 +73,7 @@ SURROGATE_CONFIG = PINNConfig(width=16, warm_start=False, tol=None, iterations=4
 
 def fingerprint(compiled) -> str:
     """A hash of the equations and names: a saved network only loads for the model it solves."""
-    text = repr(
-        (
-            compiled.state_names,
-            compiled.algebraic_names,
-            compiled.parameter_names,
-            [str(e) for e in compiled.rhs],
-            [str(e) for e in compiled.g],
-        )
-    )
-    return hashlib.sha256(text.encode()).hexdigest()
+    return compiled.fingerprint()
 
 
 class Surrogate:
