@@ -196,7 +196,8 @@ class Solution:
         O(dt^4) in the output spacing dt, on top of the method's own (a method's dense output,
         radau's collocation polynomial, is ``solve(..., t_eval=times)``).  The algebraic
         variables are then solved from the constraints that determine them at the interpolated
-        states (Newton from their linear interpolation), so that the constraints hold.
+        states (Newton from their linear interpolation), so that the constraints hold; at the
+        output times themselves every value is the solution's own.
 
         Raises
         ------
@@ -246,6 +247,10 @@ class Solution:
                     "from the interpolated states; ask for that time with solve(..., t_eval=...)"
                 )
             z = result.x.reshape(B, K, m)
+            # at an output time itself, the method's own algebraic values (its z may differ from the
+            # constraints' root at its y by the method's algebraic error)
+            first, last = s[0, :, 0] == 0, s[0, :, 0] == 1
+            z[:, first], z[:, last] = Z[:, k[first]], Z[:, k[last] + 1]
         out = {name: y[..., i] for i, name in enumerate(c.state_names)}
         out.update({name: z[..., j] for j, name in enumerate(c.algebraic_names)})
         if c.aliases:

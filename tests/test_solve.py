@@ -340,3 +340,18 @@ def test_values_between_output_times_converge_at_order_four():
     np.testing.assert_allclose(batch.at(batch.t)["y3"], batch["y3"], rtol=0, atol=1e-12)  # the outputs themselves
     with pytest.raises(dm.errors.InvalidValueError, match=r"at\(\): t = 1.5 is outside the solution's span \[0, 1\]"):
         batch.at([0.5, 1.5])
+
+
+def test_collocation_t_eval_interpolates_its_step_grid():
+    """casadi-collocation takes t_eval: on the step grid its values are the grid solve's; between,
+    Solution.at's O(h^4) interpolation (casadi keeps its collocation polynomials to itself)."""
+    c = HESSENBERG.model().compile()
+    grid = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05)
+    on_grid = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05, t_eval=grid.t)
+    for name in c.state_names + c.algebraic_names:
+        np.testing.assert_allclose(on_grid[name], grid[name], rtol=0, atol=1e-12)
+    between = np.linspace(0.0, 1.0, 37)
+    sol = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05, t_eval=between)
+    assert np.array_equal(sol.t, between) and "t_eval" not in sol.settings
+    error = max(np.abs(sol[n] - EXACT(between)[n]).max() for n in c.state_names)
+    assert 1e-8 < error < 1e-5  # Hermite's O(h^4) at h = 0.05, above the grid's own 3.9e-8
