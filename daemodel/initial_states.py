@@ -166,6 +166,22 @@ def _checks(compiled) -> _Checks:
     return compiled.cached("initial_states", build)
 
 
+def _batch(compiled, arguments) -> tuple[dict, list]:
+    """``(sizes of the batched arguments, one array (B, k) per argument)`` from
+    ``(argument, value, names, defaults)`` rows: checked, finite, broadcast to one batch size."""
+    sizes, blocks = {}, []
+    for arg, value, names, defaults in arguments:
+        size, block = _columns(compiled, value, names, defaults, arg)
+        _finite(block, names, arg)
+        blocks.append(block)
+        if size is not None:
+            sizes[arg] = size
+    if len(set(sizes.values())) > 1:
+        raise ShapeError("the batch sizes differ: " + ", ".join(f"{k} has {v} samples" for k, v in sizes.items()))
+    batch = next(iter(sizes.values()), 1)
+    return sizes, [np.ascontiguousarray(np.broadcast_to(b, (batch, b.shape[1]))) for b in blocks]
+
+
 def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates:
     """Resolve, check and complete the initial values of a solve.
 
@@ -185,22 +201,15 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
     InitialisationError, InconsistentAlgebraicValueError
         When Newton fails for the algebraic values, or they disagree with a given ``z0``.
     """
-    states, algebraics, params = compiled.state_names, compiled.algebraic_names, compiled.parameter_names
-    sizes = {}
-    blocks = {}
-    for arg, value, names, defaults in (
-        ("y0", y0, states, compiled.y0),
-        ("z0", z0, algebraics, compiled.z0),
-        ("parameters", parameters, params, compiled.parameter_values),
-    ):
-        size, blocks[arg] = _columns(compiled, value, names, defaults, arg)
-        _finite(blocks[arg], names, arg)
-        if size is not None:
-            sizes[arg] = size
-    if len(set(sizes.values())) > 1:
-        raise ShapeError("the batch sizes differ: " + ", ".join(f"{k} has {v} samples" for k, v in sizes.items()))
-    batch = next(iter(sizes.values()), 1)
-    Y, Z, P = (np.ascontiguousarray(np.broadcast_to(b, (batch, b.shape[1]))) for b in blocks.values())
+    algebraics = compiled.algebraic_names
+    sizes, (Y, Z, P) = _batch(
+        compiled,
+        (
+            ("y0", y0, compiled.state_names, compiled.y0),
+            ("z0", z0, algebraics, compiled.z0),
+            ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
+        ),
+    )
     if y0 is None and z0 is None and parameters is None:
         return InitialStates(y0=Y, z0=Z, p=P, batched=False)
 
@@ -245,19 +254,14 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
 def consistent_states(compiled, y0=None, parameters=None) -> dict:
     """:meth:`CompiledDAE.consistent`: ``y0`` (as ``solve`` takes it) projected onto every z-free
     constraint level, by name, one float per state or an array (B,) for a batch."""
-    sizes, blocks = {}, {}
-    for arg, value, names, defaults in (
-        ("y0", y0, compiled.state_names, compiled.y0),
-        ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
-    ):
-        size, blocks[arg] = _columns(compiled, value, names, defaults, arg)
-        _finite(blocks[arg], names, arg)
-        if size is not None:
-            sizes[arg] = size
-    if len(set(sizes.values())) > 1:
-        raise ShapeError("the batch sizes differ: " + ", ".join(f"{k} has {v} samples" for k, v in sizes.items()))
-    batch = next(iter(sizes.values()), 1)
-    Y, P = (np.ascontiguousarray(np.broadcast_to(b, (batch, b.shape[1]))) for b in blocks.values())
+    sizes, (Y, P) = _batch(
+        compiled,
+        (
+            ("y0", y0, compiled.state_names, compiled.y0),
+            ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
+        ),
+    )
+    batch = len(Y)
     projected = project_states(compiled, Y, P)
     checks = _checks(compiled)
     Z = np.zeros((batch, len(compiled.algebraics)))
