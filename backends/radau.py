@@ -380,7 +380,7 @@ class _Stepper:
     def factor(self, J, t, h, error_only=False):
         factors = self.engine.factor(J, h, error_only)
         self.stats["lu_decompositions"] += len(factors.lu)
-        self.check_singular(factors.singular, t, h, "Newton matrix")
+        self.check_singular(factors.singular, t, h, "Newton matrix", J)
         return factors
 
     def index_weights(self, h):
@@ -602,14 +602,32 @@ class _Stepper:
             "singular, switch or change too fast there); take a smaller h, or the adaptive mode (rtol=...)"
         )
 
-    def check_singular(self, singular, t, h, what):
-        """Raise :class:`ConvergenceError` where a factorisation reports a singular matrix."""
-        if bool(singular.any()):  # non-finite entries surface in Newton's increments instead
-            sample = self.engine.first(singular)
+    def check_singular(self, singular, t, h, what, J):
+        """Raise :class:`ConvergenceError` where a factorisation reports a singular matrix, with the
+        likely cause: a Jacobian ``J`` that is not finite (the state left f's domain), algebraic
+        variables the constraints stop determining, or else the step size itself."""
+        if not bool(singular.any()):
+            return
+        sample = self.engine.first(singular)
+        head = f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}"
+        matrices = J if isinstance(J, list) else [J]
+        if not all(bool(self.xp.isfinite(m).all()) for m in matrices):
             raise ConvergenceError(
-                f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}; the "
-                "constraints may not determine the algebraic variables there (g_y f_z singular)"
+                f"{head}: the Jacobian of f and g is not finite there (the state left the domain of f or g, "
+                "e.g. sqrt or log of a negative value, which a step this long can cause); take a smaller h, "
+                "or the adaptive mode (rtol=..., atol=...)"
             )
+        signs = self.engine.z_matrix_sign(J)
+        if self.m and bool((signs == 0).any()):
+            raise ConvergenceError(
+                f"{head}; the constraints do not determine the algebraic variables there (their iteration matrix, "
+                "g_z or g_y f_z, is singular)"
+            )
+        determined = ", though the constraints determine the algebraic variables" if self.m else ""
+        raise ConvergenceError(
+            f"{head}{determined}: an eigenvalue of the Jacobian times h meets one of the method's shifts (a stiff "
+            "mode at this h); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+        )
 
     # ---- the loop -----------------------------------------------------------------------
     def integrate(self, t_span):
@@ -747,7 +765,7 @@ class _Stepper:
         factors = self.engine.factor_stages(stage_J, h)
         self.stats["lu_decompositions"] += 1
         self.stats["newton_refreshes"] += 1
-        self.check_singular(factors.singular, t, h, "Newton matrix")
+        self.check_singular(factors.singular, t, h, "Newton matrix", stage_J)
         self._stage_steps = STAGE_NEWTON_STEPS
         return factors
 

@@ -142,3 +142,28 @@ def test_solution_errors(pendulum):
         sol.errors(3.0)
     with pytest.raises(E.ModelError, match="needs a Model or a CompiledDAE"):
         dm.solve("pendulum", (0.0, 1.0))
+
+
+def test_a_singular_newton_matrix_names_its_cause():
+    """A fixed step whose Newton matrix is singular says why: a Jacobian that is not finite (the
+    Akzo Nobel chemistry at h = 9 drives y2 below 0, under a sqrt), or a step size that puts an
+    eigenvalue of the Jacobian on the method's real shift gamma / h."""
+    from daemodel.backends.radau import embedded_weights
+    from daemodel.backends.radau_engines import StageTransform
+
+    from daemodel.problems import AKZO_NOBEL
+    from daemodel.tableau import radau_iia
+
+    akzo = AKZO_NOBEL.model().compile()
+    with pytest.raises(E.ConvergenceError, match=r"at t = 9 with h = 9: the Jacobian of f and g is not finite"):
+        dm.solve(akzo, (0.0, 18.0), stages=3, h=9.0)
+    tableau = radau_iia(3)
+    blocks = StageTransform.of(tableau.A, embedded_weights(tableau)[0]).blocks
+    gamma = next(lam.real for _, lam in blocks if lam.imag == 0)
+    m = dm.Model("resonant")
+    (y,) = m.states("y")
+    m.parameter("a", gamma / 0.1)  # y' = a y with a h = gamma: sigma - a = 0 exactly
+    m.ode(y, "a*y")
+    m.initial(y=1.0)
+    with pytest.raises(E.ConvergenceError, match=r"an eigenvalue of the Jacobian times h meets one of the method"):
+        dm.solve(m, (0.0, 0.2), stages=3, h=0.1)
