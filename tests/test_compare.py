@@ -9,7 +9,7 @@ import pytest
 import daemodel as dm
 from daemodel.cli import load_target, main
 from daemodel.errors import ComparisonError, TargetError, UnknownMethodError
-from daemodel.problems import HESSENBERG, PENDULUM
+from daemodel.problems import HESSENBERG, PENDULUM, PROBLEMS
 
 EXACT = HESSENBERG.exact_solution()
 
@@ -205,7 +205,8 @@ def test_cli_t_end_and_target_errors(tmp_path, capsys):
     )
     assert "pendulum on [0, 0.3]" in capsys.readouterr().out
     assert main(["compare", "lorenz", "--out", str(tmp_path)]) == 2
-    problems = "hessenberg, pendulum, pendulum-index3, robertson, squeezer"
+    problems = "hessenberg, pendulum, pendulum-index3, robertson, squeezer, akzo-nobel"  # every one of PROBLEMS
+    assert problems == ", ".join(PROBLEMS)
     assert f"'lorenz' is neither a problem ({problems}) nor a .py model file" in capsys.readouterr().err
     empty = tmp_path / "empty.py"
     empty.write_text("x = 1\n")
