@@ -261,6 +261,25 @@ def first_non_finite(name: str, compiled, times, values, fix: str, what: str = "
     )
 
 
+def stuck_step(compiled, grid, values, slopes) -> ConvergenceError | None:
+    """The error for the first step that returned its start value exactly although f is not zero
+    there: casadi's root finder gave up (f or g turned NaN inside its Newton iteration, with casadi's
+    evaluation warnings off) and casadi returned its last iterate instead of failing."""
+    n = len(compiled.states)
+    same = np.all(values[:, 1:] == values[:, :-1], axis=2)  # (B, T-1): step k returned u_k
+    moving = np.abs(slopes[:, :-1, :n]).max(axis=2, initial=0.0) > 0  # f(t_k, u_k) != 0
+    stuck = np.argwhere(same & moving)
+    if not len(stuck):
+        return None
+    sample, k = (int(i) for i in stuck[0])
+    return ConvergenceError(
+        f"casadi-collocation: step {k + 1} from t = {grid[k]:.6g} (h = {grid[k + 1] - grid[k]:.3g}) of sample {sample} "
+        f"of '{compiled.name}' returned its start value although f is not zero there: casadi's Newton iteration "
+        "gave up (f or g likely turned NaN inside it, e.g. sqrt or log of a negative value) and casadi returned its "
+        'last iterate; take a smaller h, or an adaptive method (method="radau" with rtol=..., or method="casadi-idas")'
+    )
+
+
 def _right_hand_sides(dae, grid, values, parameters) -> np.ndarray:
     """``[f, g]`` at every returned point, shape (B, T, n + m): one mapped casadi call per sample."""
     import casadi
@@ -419,8 +438,9 @@ class CollocationBackend(AbstractBackend):
         stats = {"batch": start.size, "casadi_calls": start.size, **_stats(integrator)}
         failure = first_non_finite(self.name, compiled, grid, values, ADAPTIVE_FIX)
         if failure is None:  # casadi's root finder returns its last iterate when f turns NaN inside a step
-            failure = first_non_finite(
-                self.name, compiled, grid, _right_hand_sides(dae, grid, values, start.p), ADAPTIVE_FIX, "f at"
+            slopes = _right_hand_sides(dae, grid, values, start.p)
+            failure = first_non_finite(self.name, compiled, grid, slopes, ADAPTIVE_FIX, "f at") or stuck_step(
+                compiled, grid, values, slopes
             )
         if failure is not None:
             raise failure

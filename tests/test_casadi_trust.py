@@ -481,3 +481,19 @@ def test_collocation_that_leaves_the_domain_of_f_is_caught():
         dm.solve(m, (0.0, 4.0), method="casadi-collocation", h=0.05)
     sol = dm.solve(m, (0.0, 1.9), method="casadi-collocation", h=0.05)  # before it: fine
     np.testing.assert_allclose(sol["y"][-1], (2 - 2 * (1 - 0.95) ** 1.5) / 1.5 * 1.0, rtol=1e-6)
+
+
+def test_collocation_that_returns_its_start_value_is_refused():
+    """On the Akzo Nobel chemistry at h = 2.25, casadi's Newton meets sqrt of a negative y2 inside
+    a step and returns the step's start value, then every later one: finite values 0.29 off, which
+    the s + 1 check cannot see (both solves are stuck alike).  daemodel names the step instead."""
+    from daemodel.problems import AKZO_NOBEL
+
+    c = AKZO_NOBEL.model().compile()
+    with pytest.raises(
+        dm.errors.ConvergenceError,
+        match=r"step 2 from t = 2\.25 \(h = 2\.25\) of sample 0 of 'akzo-nobel' returned its start value although f",
+    ):
+        dm.solve(c, AKZO_NOBEL.t_span, method="casadi-collocation", h=2.25)
+    sol = dm.solve(c, AKZO_NOBEL.t_span, method="casadi-collocation", h=18.0)  # long steps that do converge
+    assert abs(sol["y1"][-1] - AKZO_NOBEL.reference["y1"]) < 1e-4
