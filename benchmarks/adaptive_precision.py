@@ -48,7 +48,6 @@ import itertools
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -59,7 +58,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # scaling_models and scaling, when run from elsewhere or as a worker
 
-import scaling  # noqa: E402  (machine_info, message, scalar_stats: one copy of each)
+import scaling  # noqa: E402  (machine_info, message, scalar_stats, run_worker_process: one copy of each)
 import scaling_models  # noqa: E402
 
 # The issue's comparison point: radau's time at this rtol = atol against IDAS's at equal error.
@@ -335,24 +334,18 @@ def run_worker(spec: dict) -> None:
 def run_model(family: str, size: int, spec: dict) -> dict:
     """One worker process for (family, size) with one BLAS thread; its record, partial if it was stopped."""
     with tempfile.TemporaryDirectory() as folder:
-        out = Path(folder) / "record.json"
-        # read by the BLAS libraries when numpy loads: set for the worker before it starts
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-        worker = json.dumps({**spec, "family": family, "size": size, "out": str(out)})
-        began = time.monotonic()
-        ended = None
-        try:
-            done = subprocess.run([sys.executable, __file__, "--worker", worker], env=env, timeout=WORKER_LIMIT)
-            if done.returncode != 0:
-                ended = f"the worker process exited with code {done.returncode}"
-        except subprocess.TimeoutExpired:
-            ended = f"the worker process was stopped after {WORKER_LIMIT:g} s"
-        record = json.loads(out.read_text()) if out.exists() else {}
+        worker = {**spec, "family": family, "size": size, "out": str(Path(folder) / "record.json")}
+        record, code, seconds = scaling.run_worker_process(__file__, worker, WORKER_LIMIT)
+    ended = None
+    if code is None:
+        ended = f"the worker process was stopped after {WORKER_LIMIT:g} s"
+    elif code != 0:
+        ended = f"the worker process exited with code {code}"
     record.setdefault("family", family)
     record.setdefault("size", size)
     record.setdefault("unknowns", scaling_models.unknowns(family, size))
     record.setdefault("solves", [])
-    record["worker_seconds"] = time.monotonic() - began
+    record["worker_seconds"] = seconds
     if ended:
         record["message"] = ended + (f"; {record['message']}" if record.get("message") else "")
     record["comparisons"] = comparisons(record)

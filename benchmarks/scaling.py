@@ -443,6 +443,25 @@ def machine_info(code_label: str | None) -> dict:
     }
 
 
+def run_worker_process(script: str, spec: dict, timeout: float) -> tuple[dict, int | None, float]:
+    """``python script --worker spec`` with one BLAS thread, under ``timeout`` seconds.
+
+    The worker writes its record to ``spec["out"]`` as it goes.  Returns that record (``{}`` if it
+    wrote none), the worker's exit code (None when it was stopped at the timeout) and its seconds.
+    """
+    # read by the BLAS libraries when numpy loads: set for the worker before it starts
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    began = time.monotonic()
+    try:
+        code = subprocess.run(
+            [sys.executable, script, "--worker", json.dumps(spec)], env=env, timeout=timeout
+        ).returncode
+    except subprocess.TimeoutExpired:
+        code = None
+    out = Path(spec["out"])
+    return (json.loads(out.read_text()) if out.exists() else {}), code, time.monotonic() - began
+
+
 def run_size(family: str, size: int, args, blocked: dict, solves: list, check_reference: bool, deadline: float) -> dict:
     """One worker process for (family, size); its record, completed for cells it could not report."""
     cell_count = 3 + len(solves) + check_reference
@@ -467,20 +486,16 @@ def run_size(family: str, size: int, args, blocked: dict, solves: list, check_re
             "check_reference": check_reference,
             "out": str(out),
         }
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-        began = time.monotonic()
-        timed_out = False
-        try:
-            done = subprocess.run([sys.executable, __file__, "--worker", json.dumps(spec)], env=env, timeout=timeout)
-            ended = f"the worker process exited with code {done.returncode} before reporting this cell"
-        except subprocess.TimeoutExpired:
-            timed_out = True
-            ended = f"the worker process was stopped after {timeout:.0f} s (a cell did not return to honour its limit)"
-        record = json.loads(out.read_text()) if out.exists() else {}
+        record, code, seconds = run_worker_process(__file__, spec, timeout)
+    timed_out = code is None
+    if timed_out:
+        ended = f"the worker process was stopped after {timeout:.0f} s (a cell did not return to honour its limit)"
+    else:
+        ended = f"the worker process exited with code {code} before reporting this cell"
     record.setdefault("family", family)
     record.setdefault("size", size)
     record.setdefault("unknowns", scaling_models.unknowns(family, size))
-    record["worker_seconds"] = time.monotonic() - began
+    record["worker_seconds"] = seconds
     cells = record.setdefault("cells", {})
     for key in ("build", "compile", "codegen", "reference", *solves):
         if key not in cells:
