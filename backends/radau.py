@@ -7,9 +7,14 @@ autograd through the generated code), one batched LU of the ``s(n+m)`` stage mat
 across iterations and, while Newton contracts fast, across steps.
 
 Fixed step (``h=...``) reproduces the Radau IIA collocation solution on the grid
-``t0 + k h``.  Adaptive mode (``rtol``, ``atol``) estimates the local error with an embedded
-formula of order s (Hairer & Wanner, Solving ODEs II, IV.8, generalised to s stages): with
-``gamma0`` the real eigenvalue of A (s odd) and ``bhat`` of order s including the start point,
+``t0 + k h``.  Where the simplified iteration fails, full Newton (each stage's Jacobian) tries
+the step again, and where that fails too, damped Newton (Deuflhard's natural monotonicity test,
+:data:`DAMPED_NEWTON_FACTOR`): a fixed step has no smaller h to fall back on.  A step whose
+extrapolated start guess leaves f's domain starts again from its start value.
+
+Adaptive mode (``rtol``, ``atol``) estimates the local error with an embedded formula of order s
+(Hairer & Wanner, Solving ODEs II, IV.8, generalised to s stages): with ``gamma0`` the real
+eigenvalue of A (s odd) and ``bhat`` of order s including the start point,
 
     (M - h gamma0 J) err = [gamma0 h f(y_n) + h sum_i (bhat_i - b_i) f(Y_i) ; 0]
 
@@ -42,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from daemodel.backends.base import (
     LOCAL_ERROR_BOUND,
+    SWEEP_FIRST_STEPS,
     AbstractBackend,
     ProgressWatch,
     check_dtype,
@@ -98,6 +104,15 @@ STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 STAGE_NEWTON_STEPS = 8
 # Newton is declared diverging when an increment is not at least this much smaller than the last.
 DIVERGENCE_THETA = 0.99
+# A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
+# damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
+# natural monotonicity test: a step lam dW is taken when the next simplified increment is at
+# most (1 - lam / 2) times dW; lam halves down to DAMPING_MIN = 2^-DAMPING_HALVINGS), for at most
+# DAMPED_NEWTON_FACTOR x max_newton_iterations iterations.  casadi's collocation (full Newton, no
+# divergence test) converged on steps where the undamped iterations here failed: the transistor
+# amplifier at h = 1e-3 (contraction 30 at step 1) and 2.5e-4 (10 iterations too few, step 52).
+DAMPED_NEWTON_FACTOR, DAMPING_HALVINGS = 5, 10
+DAMPING_MIN = 2.0**-DAMPING_HALVINGS
 # Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
 # attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
 # t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
@@ -231,8 +246,8 @@ class RadauBackend(AbstractBackend):
     # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
     max_index = 2
 
-    def work_precision(self, t_span, points):
-        return fixed_step_sweep(t_span, points)
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
+        return fixed_step_sweep(t_span, points, steps)
 
     def solve(self, compiled, t_span, start, options: RadauOptions):
         if make_engine_name(start, options) == "casadi":
@@ -353,6 +368,7 @@ class _Stepper:
         if not options.adaptive:
             # worst step, sample and variable, in units of 1 + max|u| (see check_local_error)
             self.stats["max_local_error_estimate"] = 0.0
+            self.stats["damped_newton_attempts"] = 0  # steps that needed the last resort (DAMPED_NEWTON_FACTOR)
         self._jac = None  # (J, t) at the last refresh
         self._lu = None  # the Factors of the transformed systems of J and the current h
         self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
@@ -613,9 +629,9 @@ class _Stepper:
         matrices = J if isinstance(J, list) else [J]
         if not all(bool(self.xp.isfinite(m).all()) for m in matrices):
             raise ConvergenceError(
-                f"{head}: the Jacobian of f and g is not finite there (the state left the domain of f or g, "
-                "e.g. sqrt or log of a negative value, which a step this long can cause); take a smaller h, "
-                "or the adaptive mode (rtol=..., atol=...)"
+                f"{head}: the Jacobian of f and g is not finite there (f or g is not differentiable at this "
+                "state, e.g. sqrt(x) at x = 0, or the state left their domain, e.g. sqrt or log of a negative "
+                "value, which a step this long can cause); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
             )
         signs = self.engine.z_matrix_sign(J)
         if self.m and bool((signs == 0).any()):
@@ -732,7 +748,15 @@ class _Stepper:
         if self._stage_steps > 0:
             self._stage_steps -= 1
             self.current_lu(J, t, h, error_only=True)  # the error estimate's system
-            return self.stage_newton(t, h, W0)
+            if self._previous is None:
+                return self.stage_newton(t, h, W0)
+            try:
+                found = self.stage_newton(t, h, W0)
+            except ConvergenceError:  # the extrapolated guess left f's domain (Akzo Nobel: y2 < 0 under sqrt)
+                found = (None,)
+            if found[0] is not None:
+                return found
+            return self.stage_newton(t, h, self.constant_guess())
         factors = self.current_lu(J, t, h)
         result, iterations, why, sample = self.newton(t, h, factors, W0)
         if result is None and self._previous is not None:
@@ -755,11 +779,80 @@ class _Stepper:
 
     def stage_newton(self, t, h, W0):
         """Full Newton from ``W0`` with each stage's Jacobian at ``W0`` (and at later iterates while
-        it contracts slowly)."""
+        it contracts slowly); for a fixed step, damped Newton if that fails."""
         stage_J = self.engine.stage_jacobians(t, h, W0)
         self.stats["jacobian_evaluations"] += 1
         self.check_determined(stage_J, t, h)
-        return self.newton(t, h, self.factor_stages(stage_J, t, h), W0)
+        result, iterations, why, sample = self.newton(t, h, self.factor_stages(stage_J, t, h), W0)
+        if result is not None or self.options.adaptive:
+            return result, iterations, why, sample
+        damped, more, why_damped, sample = self.damped_newton(t, h, W0)
+        if damped is not None:
+            return damped, iterations + more, None, None
+        return None, iterations + more, f"{why}; damped Newton: {why_damped}", sample
+
+    def damped_newton(self, t, h, W):
+        """A fixed step's last attempt: Newton from ``W`` with each stage's Jacobian at every iterate,
+        damped by the natural monotonicity test (see :data:`DAMPED_NEWTON_FACTOR`).
+
+        Returns ``(W, residual, 1.0)`` or None, the iterations, why it failed and the sample, as
+        :meth:`newton` does; the contraction 1.0 makes the next step evaluate a fresh Jacobian.
+        """
+        xp, engine = self.xp, self.engine
+        self.stats["damped_newton_attempts"] += 1
+        scale = self.weights(h, xp.abs(self.state()))[:, None, :]
+        lam = xp.ones_like(self._eta)
+        active = lam > 0
+        previous = xp.full_like(lam, math.inf)
+        limit = DAMPED_NEWTON_FACTOR * self.options.max_newton_iterations
+        for k in range(1, limit + 1):
+            stage_J = engine.stage_jacobians(t, h, W)
+            self.stats["jacobian_evaluations"] += 1
+            factors = engine.factor_stages(stage_J, h)
+            self.stats["lu_decompositions"] += 1
+            self.stats["newton_refreshes"] += 1
+            self._stage_steps = STAGE_NEWTON_STEPS
+            if bool(factors.singular.any()):  # an iterate left f's domain, or a stiff mode meets a shift
+                finite = all(bool(xp.isfinite(J).all()) for J in stage_J)
+                cause = "" if finite else " (the Jacobian of f and g is not finite there)"
+                return None, k, f"the Newton matrix at iterate {k} is singular{cause}", engine.first(factors.singular)
+            self.stats["residual_evaluations"] += 1
+            r, dW = engine.newton_step(factors, t, h, self.y, W)
+            norm = self.rms(dW / scale)
+            finite = xp.isfinite(norm)
+            if not bool(finite.all()):
+                sample = engine.first(~finite)
+                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
+            # converged: the increment is below tol, or it stopped shrinking at the rounding floor near it
+            stagnant = (norm >= STAGNATION_THETA * previous) & (norm <= STAGNATION_FACTOR * self.newton_tol)
+            active = active & (norm > self.newton_tol) & ~stagnant
+            previous = norm
+            if not bool(active.any()):
+                W = W + dW  # every sample's increment is below the tolerance: take it whole
+                self.stats["newton_iterations"] += k
+                self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
+                return (W, self.residual(t, h, W), 1.0), k, None, None
+            lam = xp.clip(2 * lam, None, 1.0)
+            while True:  # lam halves each pass, down to DAMPING_MIN: at most DAMPING_HALVINGS + 1 passes
+                trial = W + (lam * active)[:, None, None] * dW
+                self.stats["residual_evaluations"] += 1
+                _, simplified = engine.newton_step(factors, t, h, self.y, trial)
+                after = self.rms(simplified / scale)
+                fine = ~active | (xp.isfinite(after) & (after <= (1 - lam / 2) * norm))
+                if bool(fine.all()):
+                    break
+                if bool((~fine & (lam <= DAMPING_MIN)).any()):
+                    sample = engine.first(~fine & (lam <= DAMPING_MIN))
+                    return (
+                        None,
+                        k,
+                        f"no damped step down to {DAMPING_MIN:.2g} of the increment decreases it (increment "
+                        f"{float(norm[sample]):.2g}, tolerance {self.newton_tol:.2g})",
+                        sample,
+                    )
+                lam = xp.where(fine, lam, lam / 2)
+            W = trial
+        return None, limit, f"not converged in {limit} iterations", engine.first(active)
 
     def factor_stages(self, stage_J, t, h):
         factors = self.engine.factor_stages(stage_J, h)

@@ -109,7 +109,8 @@ def test_non_finite_values_name_the_equation_stage_and_time():
     with pytest.raises(
         E.ConvergenceError,
         match=r"Newton failed in step 1 from t = 0 with h = 0\.1 \(non-finite values: the right-hand side of y' "
-        r"at stage 2 \(t = 0\.06\d*\), sample 0\)",
+        r"at stage 2 \(t = 0\.06\d*\); damped Newton: the Newton matrix at iterate 2 is singular \(the Jacobian "
+        r"of f and g is not finite there\), sample 0\)",
     ):
         dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
     m = dm.Model("log")
