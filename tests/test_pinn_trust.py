@@ -185,6 +185,34 @@ def test_fixed_budget_states_its_final_residual():
     assert f"status={sol.status!r}" in repr(sol)
 
 
+def test_the_tolerance_measures_f_and_s_rows_in_units_of_their_variable():
+    """|F| / max(1, |y_n|), |G|, |S| / max(1, |z_end|): values of size 1 or less are unchanged."""
+    from daemodel.backends.pinn.loss import Residuals
+
+    def tensor(values):
+        return torch.tensor(values, dtype=torch.float64)
+
+    F = tensor([[[3e-12, 1e-13], [0.0, 0.0]]])  # N = 1, s + 1 = 2, n = 2
+    G, S = tensor([[[2e-14], [0.0]]]), tensor([[4e-12]])
+    assert Residuals(F=F, G=G, S=S).max_abs() == pytest.approx(4e-12, rel=1e-12)
+    scaled = Residuals(F=F, G=G, S=S, scale_f=tensor([[[3.0, 1.0]]]), scale_s=tensor([[4e4]]))
+    assert scaled.max_abs() == pytest.approx(1e-12, rel=1e-12)  # F: 3e-12 / 3; S: 4e-12 / 4e4
+    G = tensor([[[5e-12], [0.0]]])  # constraint rows are not scaled
+    assert Residuals(F=F, G=G, S=S, scale_f=tensor([[[3.0, 1.0]]]), scale_s=tensor([[4e4]])).max_abs() == 5e-12
+
+
+def test_the_squeezers_accelerations_no_longer_block_the_tolerance():
+    """Before, S = z_end - Z_s stalled at 3.6e-12 (the rounding of accelerations of 3e4) above
+    tol = 1e-12 in segment 4; now the first 12 segments train to the collocation solution."""
+    from daemodel.problems import SQUEEZER
+
+    compiled = SQUEEZER.model().compile()
+    sol = dm.solve(compiled, (0.0, 0.009), method="pinn", h=0.00075)
+    newton = dm.solve(compiled, (0.0, 0.009), h=0.00075)
+    for name in ("q1", "v1", "w1", "lam1"):
+        assert np.max(np.abs(sol[name] - newton[name])) <= 1e-12 * max(1.0, np.max(np.abs(newton[name])))
+
+
 def test_a_met_tolerance_is_success():
     c = HESSENBERG.model().compile()
     sol = dm.solve(c, (0.0, 0.05), method="pinn", config=dm.PINNConfig(width=8, tol=1e-8))

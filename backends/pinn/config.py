@@ -97,10 +97,12 @@ class PINNConfig:
     iterations : int, optional
         Cap on iterations per segment (default: 200 for lm, 5000 for lbfgs, 100000 for adam).
     tol : float or None
-        Stop a segment when every residual component is at most ``tol``; a segment that ends
-        its iterations above it is an error.  None is a fixed budget: all ``iterations`` (the
-        paper's recipe), or fewer when LM or L-BFGS can no longer decrease the loss.  Surrogates
-        use it, since over a box of inputs the residuals cannot all vanish.
+        Stop a segment when every residual component is at most ``tol``, the rows of F (units of
+        y) and S (units of z) relative to ``max(1, |value|)`` of their variable, the constraint
+        rows as they are; a segment that ends its iterations above it is an error.  None is a
+        fixed budget: all ``iterations`` (the paper's recipe), or fewer when LM or L-BFGS can no
+        longer decrease the loss.  Surrogates use it, since over a box of inputs the residuals
+        cannot all vanish.
     learning_rate : float, optional
         Adam's or L-BFGS's step (default 1e-3 and 1.0).
     samples : int

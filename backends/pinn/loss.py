@@ -39,11 +39,16 @@ class Residuals:
         Constraints at the stages, then at (y_{n+1}, z_{n+1}).
     S : Tensor, shape (N, m)
         ``z_{n+1} - Z_s``.
+    scale_f, scale_s : Tensor or None, shapes (N, 1, n) and (N, m)
+        ``max(1, |y_n|)`` and ``max(1, |z_{n+1}|)``: the size of the variable each F and S row is
+        measured in, for :meth:`max_abs` (None: 1).
     """
 
     F: torch.Tensor
     G: torch.Tensor
     S: torch.Tensor
+    scale_f: torch.Tensor | None = None
+    scale_s: torch.Tensor | None = None
 
     def terms(self) -> dict[str, float]:
         """The loss terms L_f, L_g, L_s (means as in the paper)."""
@@ -56,9 +61,14 @@ class Residuals:
             }
 
     def max_abs(self) -> float:
-        """The largest residual component: the stopping criterion."""
+        """The largest residual component, each F and S row in units of its variable's size
+        ``max(1, |value|)`` (G rows as they are): the stopping criterion.  Two networks predict
+        ``z_{n+1}`` and ``Z_s``, so S cannot fall below the rounding of z itself: 3.6e-12 for the
+        squeezer's accelerations of 3e4, where an absolute 1e-12 was out of reach."""
         with torch.no_grad():
-            return max((float(r.abs().max()) if r.numel() else 0.0) for r in (self.F, self.G, self.S))
+            F = self.F if self.scale_f is None else self.F / self.scale_f
+            S = self.S if self.scale_s is None else self.S / self.scale_s
+            return max((float(r.abs().max()) if r.numel() else 0.0) for r in (F, self.G, S))
 
 
 class RadauLoss:
@@ -87,7 +97,10 @@ class RadauLoss:
         )
         F = torch.cat([res.F, res.F_end[:, None, :]], dim=1)
         G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
-        return Residuals(F=F, G=G, S=res.S)
+        with torch.no_grad():
+            scale_f = y_n.detach().abs().clamp(min=1.0)[:, None, :]
+            scale_s = out.z_end.detach().abs().clamp(min=1.0) if out.z_end is not None else None
+        return Residuals(F=F, G=G, S=res.S, scale_f=scale_f, scale_s=scale_s)
 
     def jacobian(self, t_n: float, h: float, y_n, p, out) -> torch.Tensor:
         """d(vector)/du, shape (N, R, U), of :meth:`vector` (one sample: ``total = N``) with

@@ -181,7 +181,8 @@ class SegmentTrainer:
         if self.config.tol is not None and worst > self.config.tol:
             dominant = max(terms, key=lambda k: terms[k])
             raise TrainingError(
-                f"pinn: {_where(segment)}: the residual is still {worst:.3g} > tol = {self.config.tol:g} after "
+                f"pinn: {_where(segment)}: the largest residual (F and S rows relative to max(1, |value|)) is still "
+                f"{worst:.3g} > tol = {self.config.tol:g} after "
                 f"{iterations} {self.config.optimizer} iterations (largest term {dominant} = {terms[dominant]:.3g}); "
                 + (
                     "raise iterations, widen the network, or loosen tol"
