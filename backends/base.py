@@ -117,9 +117,11 @@ class AbstractBackend(ABC):
         """The method and the settings that matter for its accuracy, for a label (e.g. a reference's)."""
         return self.name
 
-    def work_precision(self, t_span: tuple[float, float], points: int) -> list[dict]:
+    def work_precision(self, t_span: tuple[float, float], points: int, steps: int = SWEEP_FIRST_STEPS) -> list[dict]:
         """``points`` sets of options, from cheap to accurate, that :func:`daemodel.compare`
-        sweeps; a method without an accuracy setting is solved once with its defaults."""
+        sweeps; a method without an accuracy setting is solved once with its defaults.  A
+        fixed-step method's coarsest setting takes ``steps`` steps over ``t_span``; others
+        ignore it."""
         return [{}]
 
 
@@ -183,14 +185,14 @@ def progress_bar(total: int, desc: str, unit: str):
     return tqdm(total=total, desc=desc, unit=unit, leave=False, mininterval=interval, file=sys.stderr)
 
 
-def halving_steps(t_span, points: int) -> list[float]:
-    """Step sizes of a work-precision sweep: span / 10, span / 20, ..."""
-    return [(t_span[1] - t_span[0]) / (SWEEP_FIRST_STEPS * 2**k) for k in range(points)]
+def halving_steps(t_span, points: int, steps: int = SWEEP_FIRST_STEPS) -> list[float]:
+    """Step sizes of a work-precision sweep: span / steps, span / (2 steps), ..."""
+    return [(t_span[1] - t_span[0]) / (steps * 2**k) for k in range(points)]
 
 
-def fixed_step_sweep(t_span, points: int) -> list[dict]:
+def fixed_step_sweep(t_span, points: int, steps: int = SWEEP_FIRST_STEPS) -> list[dict]:
     """``stages``/``h`` options of a fixed-step method's work-precision sweep."""
-    return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points)]
+    return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]
 
 
 def tolerance_sweep(points: int) -> list[dict]:

@@ -47,6 +47,7 @@ import numpy as np
 from daemodel.backends.base import (
     DEFAULT_OUTPUT_POINTS,
     LOCAL_ERROR_BOUND,
+    SWEEP_FIRST_STEPS,
     AbstractBackend,
     check_number,
     check_stages,
@@ -397,8 +398,8 @@ class CollocationBackend(AbstractBackend):
     Options = CollocationOptions
     max_index = 2
 
-    def work_precision(self, t_span, points):
-        return fixed_step_sweep(t_span, points)
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
+        return fixed_step_sweep(t_span, points, steps)
 
     def solve(self, compiled, t_span, start, options: CollocationOptions):
         import casadi
@@ -570,7 +571,7 @@ class IDASBackend(AbstractBackend):
     Options = IDASOptions
     max_index = 1
 
-    def work_precision(self, t_span, points):
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return tolerance_sweep(points)
 
     def solve(self, compiled, t_span, start, options: IDASOptions):

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from daemodel.backends.base import (
     DEFAULT_OUTPUT_POINTS,
+    SWEEP_FIRST_STEPS,
     AbstractBackend,
     ProgressWatch,
     check_number,
@@ -240,7 +241,7 @@ class ReferenceBackend(AbstractBackend):
     Options = ReferenceOptions
     max_index = 3
 
-    def work_precision(self, t_span, points):
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return tolerance_sweep(points)
 
     def describe(self, options: ReferenceOptions) -> str:

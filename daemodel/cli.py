@@ -16,6 +16,10 @@ or a Python file that defines
 * ``exact(t)``, returning a dict name -> values, the reference for the errors (default: a
   tight scipy solve, ``method="reference"``).
 
+Fixed-step methods start their sweep at ``--steps`` steps over the interval (h = span / steps,
+then halved at each of ``--points``); the default is the problem's own (fine enough for its
+oscillations and transients), or 10 for a model file.
+
 For each target it prints the table and writes ``<model>.json``, ``<model>.csv`` and
 ``<model>_work_precision.png`` into ``--out``.
 
@@ -180,6 +184,11 @@ def _parser() -> argparse.ArgumentParser:
     cmp.add_argument("--methods", help="comma-separated methods (default: every method but 'reference')")
     cmp.add_argument("--out", default="results", help="directory for the JSON, CSV and PNG (default results/)")
     cmp.add_argument("--points", type=int, default=4, help="settings per method in the sweep (default 4, at most 12)")
+    cmp.add_argument(
+        "--steps",
+        type=int,
+        help="steps of the coarsest fixed-step setting (default: the problem's own, or 10 for a model file)",
+    )
     cmp.add_argument("--t-end", type=float, help="end of the interval (default: the target's T_SPAN or 1)")
     cmp.add_argument("--threads", type=int, default=1, help="torch threads, fixed for comparable timings (default 1)")
     cmp.add_argument(
@@ -204,7 +213,9 @@ def main(argv=None) -> int:
 
 def _compare(args) -> int:
     from daemodel.backends import get_backend
+    from daemodel.backends.base import SWEEP_FIRST_STEPS
     from daemodel.compare import check_points, plan_comparison
+    from daemodel.problems import PROBLEMS
 
     def report(where: str, error: Exception) -> None:
         print(f"daemodel compare{where}: {error}", file=sys.stderr)
@@ -218,7 +229,7 @@ def _compare(args) -> int:
                 raise ModelError(f"--methods {args.methods!r} names no method; give e.g. --methods radau,casadi-idas")
             for method in methods:
                 get_backend(method)
-        check_points(args.points)
+        check_points(args.points, SWEEP_FIRST_STEPS if args.steps is None else args.steps)
         if args.t_end is not None and not math.isfinite(args.t_end):
             raise ModelError(f"--t-end must be a finite number; got {args.t_end}")
         if args.threads < 1:
@@ -239,7 +250,11 @@ def _compare(args) -> int:
                         f"--t-end {args.t_end:g} is not after t0 = {t_span[0]:g}, where the target starts"
                     )
                 t_span = (t_span[0], args.t_end)
-            plans.append((target, plan_comparison(model, t_span, methods, reference=exact, points=args.points)))
+            steps = args.steps
+            if steps is None:
+                steps = PROBLEMS[target].compare_steps if target in PROBLEMS else SWEEP_FIRST_STEPS
+            plan = plan_comparison(model, t_span, methods, reference=exact, points=args.points, steps=steps)
+            plans.append((target, plan))
         except DaemodelError as error:
             report(f" {target}", error)
             status = max(status, _exit_status(error))

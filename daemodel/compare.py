@@ -27,6 +27,7 @@ import json
 import math
 import time
 import traceback
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,6 +81,10 @@ class Run:
         The error message when the method failed at this setting (then no errors).
     short : str
         The part of ``settings`` that changes along the method's sweep (plot labels).
+    messages : tuple of str
+        The warnings the solve raised (``"Category: text"``, each once), kept here instead of
+        printed above the table; casadi's own printed output is caught by its backend and,
+        when it explains a failure, quoted in ``failure``.
     """
 
     method: str
@@ -90,6 +95,7 @@ class Run:
     drift: dict
     failure: str | None = None
     short: str = ""
+    messages: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -134,6 +140,7 @@ class Comparison:
                 row[f"{name}_max"], row[f"{name}_mean"] = error.get("max"), error.get("mean")
             row.update({f"drift_{k}": run.drift.get(k) for k in drift_names})
             row["failure"] = run.failure
+            row["messages"] = " | ".join(run.messages) or None
             out.append(row)
         return out
 
@@ -181,6 +188,12 @@ class Comparison:
         for method in self.failed_methods:
             count = sum(r.method == method for r in self.runs)
             lines.append(f"{method} failed at every setting ({count} of {count}): no errors to compare, no curve")
+        warned = [r for r in self.runs if r.messages]
+        if warned:
+            lines.append(
+                f"{len(warned)} run(s) raised warnings ({', '.join(f'{r.method} {r.short}' for r in warned)}): "
+                "see 'messages' in the JSON and CSV"
+            )
         return "\n".join(lines)
 
     @property
@@ -217,8 +230,11 @@ class Comparison:
         through its sweep; differential and algebraic variables in separate panels.
 
         ``clock="solve"`` (default) draws :attr:`Run.solve_time`, each method's median setup time
-        noted in the legend; ``clock="total"`` draws setup plus solve.  A setting that failed is
-        an ``x`` on the top edge at the time it took to fail, and the legend counts the failures.
+        noted in the legend; ``clock="total"`` draws setup plus solve.  The legend names each
+        curve's sweep from its cheapest setting to its most accurate (``h=0.1 -> 0.0125``), so
+        no label sits on the data, where the curves of methods with equal settings would make
+        them collide.  A setting that failed is an ``x`` on the top edge at the time it took to
+        fail, and the legend counts the failures.
 
         Returns
         -------
@@ -240,7 +256,7 @@ class Comparison:
             for i, method in enumerate(methods):
                 runs = [r for r in self.runs if r.method == method and r.failure is None]
                 failed = [r for r in self.runs if r.method == method and r.failure is not None]
-                label = method
+                label = method + (f": {_sweep_range(runs)}" if runs else "")
                 if runs and clock == "solve":
                     label += f" (setup {_seconds(float(np.median([r.setup_time for r in runs])))})"
                 if failed:
@@ -248,18 +264,6 @@ class Comparison:
                 times = [r.solve_time + (r.setup_time if clock == "total" else 0.0) for r in runs]
                 errors = [max(max(r.errors[n]["max"] for n in names), 1e-17) for r in runs]
                 ax.loglog(times, errors, "o-", color=f"C{i}", label=label)
-                # the sweep's two ends only (cheapest, most accurate): labels of every point collide
-                ends = [0, len(runs) - 1][: len(runs)]
-                for k, (dx, align) in zip(ends, ((6, "left"), (-6, "right")), strict=False):
-                    ax.annotate(
-                        runs[k].short or runs[k].settings,
-                        (times[k], errors[k]),
-                        textcoords="offset points",
-                        xytext=(dx, -9 if k else 4),
-                        ha=align,
-                        fontsize=6.5,
-                        color=f"C{i}",
-                    )
                 shown = [r for r in failed if math.isfinite(r.solve_time) and r.solve_time > 0]
                 if shown:  # at the time it took to fail, on the top edge: no error to place it by
                     ax.plot([r.solve_time for r in shown], [0.98] * len(shown), "x", color=f"C{i}", transform=top_edge)
@@ -269,7 +273,7 @@ class Comparison:
             ax.grid(which="both", alpha=0.25)
         # one legend for the panels, below them, where it hides no data
         handles, labels = axes[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=8)
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 2), fontsize=8)
         fig.suptitle(f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference}")
         if path is not None:
             fig.savefig(writable_file(path, "plot path"), dpi=130)
@@ -284,6 +288,17 @@ class Comparison:
         return [self.to_json(f"{stem}.json"), self.to_csv(f"{stem}.csv"), png]
 
 
+def _sweep_range(runs) -> str:
+    """``"h=0.1 -> 0.0125"``: a sweep's first and last setting, the name said once where both share it."""
+    first, last = (runs[0].short or runs[0].settings), (runs[-1].short or runs[-1].settings)
+    if len(runs) == 1 or first == last:
+        return first
+    head, _, _ = first.partition("=")
+    if "," not in first and last.startswith(head + "="):
+        last = last[len(head) + 1 :]
+    return f"{first} -> {last}"
+
+
 def compare(
     model,
     t_span,
@@ -292,6 +307,7 @@ def compare(
     reference=None,
     sweep: dict | None = None,
     points: int = DEFAULT_POINTS,
+    steps: int = SWEEP_FIRST_STEPS,
     progress: bool | None = None,
 ) -> Comparison:
     """Solve ``model`` with each method over a sweep of its accuracy setting and measure every
@@ -318,6 +334,11 @@ def compare(
         ``{"radau": [{"stages": 5, "h": 0.1}, {"stages": 5, "h": 0.05}]}``.
     points : int
         Length of the default sweeps, 1 to :data:`MAX_POINTS`.
+    steps : int
+        Steps over ``t_span`` of the fixed-step methods' coarsest default setting (``h = span /
+        steps``, then halved at each point).  The default 10 suits a smooth solution on the
+        span; an oscillation or a fast transient needs more (each problem in
+        :data:`daemodel.problems.PROBLEMS` carries its own ``compare_steps``).
     progress : bool, optional
         Show a progress bar (default: when stderr is a terminal).
 
@@ -335,7 +356,9 @@ def compare(
     SolverError
         Only when the default reference solve itself fails.
     """
-    return plan_comparison(model, t_span, methods, reference=reference, sweep=sweep, points=points).run(progress)
+    return plan_comparison(model, t_span, methods, reference=reference, sweep=sweep, points=points, steps=steps).run(
+        progress
+    )
 
 
 @dataclass(frozen=True)
@@ -385,11 +408,28 @@ class ComparisonPlan:
                 if bar is not None:
                     bar.set_postfix_str(f"{method} {label}")
                 began = time.perf_counter()
-                try:
-                    solution = solve(compiled, t_span, method=method, **options)
-                except SolverError as error:
-                    failed_after = time.perf_counter() - began
-                    runs.append(Run(method, label, failed_after, math.nan, {}, {}, failure=str(error), short=short))
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    try:
+                        solution = solve(compiled, t_span, method=method, **options)
+                    except SolverError as error:
+                        solution, failure = None, str(error)
+                        failed_after = time.perf_counter() - began
+                messages = tuple(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
+                if solution is None:
+                    runs.append(
+                        Run(
+                            method,
+                            label,
+                            failed_after,
+                            math.nan,
+                            {},
+                            {},
+                            failure=failure,
+                            short=short,
+                            messages=messages,
+                        )
+                    )
                 else:
                     errors = measure(solution)
                     runs.append(
@@ -401,6 +441,7 @@ class ComparisonPlan:
                             errors,
                             solution.drift(),
                             short=short,
+                            messages=messages,
                         )
                     )
                 if bar is not None:
@@ -431,6 +472,7 @@ def plan_comparison(
     reference=None,
     sweep: dict | None = None,
     points: int = DEFAULT_POINTS,
+    steps: int = SWEEP_FIRST_STEPS,
 ) -> ComparisonPlan:
     """Check everything :func:`compare` is given, without solving; the arguments are compare's.
 
@@ -453,7 +495,7 @@ def plan_comparison(
     stray = sorted(set(sweep) - set(methods))
     if stray:
         raise ComparisonError(f"sweep names {', '.join(stray)}, which is not among the methods {', '.join(methods)}")
-    check_points(points)
+    check_points(points, steps)
     if reference is not None and not callable(reference):
         raise ComparisonError(
             f"reference must be a callable t -> dict of values (an exact solution); got {type(reference).__name__}"
@@ -461,7 +503,7 @@ def plan_comparison(
     settings = []
     for method in methods:
         given = method in sweep
-        options_list = sweep[method] if given else backends[method].work_precision(t_span, points)
+        options_list = sweep[method] if given else backends[method].work_precision(t_span, points, steps)
         if (
             not isinstance(options_list, list | tuple)
             or not options_list
@@ -487,15 +529,18 @@ def plan_comparison(
     return ComparisonPlan(compiled=compiled, t_span=t_span, settings=tuple(settings), reference=checked)
 
 
-def check_points(points) -> int:
-    """``points`` if it is an integer from 1 to :data:`MAX_POINTS`, else :class:`ComparisonError`."""
+def check_points(points, steps: int = SWEEP_FIRST_STEPS) -> int:
+    """``points`` if it is an integer from 1 to :data:`MAX_POINTS`, and ``steps`` a positive
+    integer, else :class:`ComparisonError`."""
     if isinstance(points, bool) or not isinstance(points, int) or points < 1:
         raise ComparisonError(f"points must be a positive integer; got {points!r}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ComparisonError(f"steps must be a positive integer (the coarsest fixed-step grid); got {steps!r}")
     if points > MAX_POINTS:
-        steps = SWEEP_FIRST_STEPS * 2 ** (MAX_POINTS - 1)
+        finest = steps * 2 ** (MAX_POINTS - 1)
         raise ComparisonError(
-            f"points = {points} is more than {MAX_POINTS}: a fixed-step sweep halves h from span/{SWEEP_FIRST_STEPS} "
-            f"at each point, so point {MAX_POINTS} already takes {steps:,} steps per solve and every further point "
+            f"points = {points} is more than {MAX_POINTS}: a fixed-step sweep halves h from span/{steps} "
+            f"at each point, so point {MAX_POINTS} already takes {finest:,} steps per solve and every further point "
             f"doubles that; take points <= {MAX_POINTS}, or give sweep= with the settings you need"
         )
     return points

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import sympy as sp
 
+from daemodel.backends.base import SWEEP_FIRST_STEPS
 from daemodel.init import NUMERIC_MODULES
 from daemodel.model import Model
 from daemodel.parse import parse_equation
@@ -35,6 +36,10 @@ class Problem:
         Published values of the solution at ``t_span[1]`` where the source gives them and no
         closed form exists (empty otherwise); ``source`` says how they were computed.
     source : str
+    compare_steps : int
+        Steps over ``t_span`` of the coarsest fixed-step setting ``daemodel compare`` sweeps
+        (``h = span / compare_steps``, then halved): 10 where the solution is smooth on the
+        span, more where it oscillates or has fast transients that a coarser step cannot follow.
     """
 
     name: str
@@ -48,6 +53,7 @@ class Problem:
     exact: dict = field(default_factory=dict)
     reference: dict = field(default_factory=dict)
     source: str = ""
+    compare_steps: int = SWEEP_FIRST_STEPS
 
     def model(self) -> Model:
         """A fresh :class:`Model` of this problem."""
@@ -260,6 +266,7 @@ SQUEEZER = Problem(
         **{f"lam{k}": 0.0 for k in range(3, 7)},
     },
     t_span=(0.0, 0.03),
+    compare_steps=40,  # a fast mechanism: h = 7.5e-4 first (at 1.5e-3, radau's local error bound stops step 8)
     index=2,
     # andrews.f, subroutine andsoln: y(1..27) at t = 0.03 (PSIDE, rtol = atol = 1e-14, Cray C90)
     reference={
@@ -360,4 +367,152 @@ AKZO_NOBEL = Problem(
     "(Mazzia & Magherini, Univ. of Bari), chemakzo.f; reference at t = 180 from the test set",
 )
 
-PROBLEMS = {p.name: p for p in (HESSENBERG, PENDULUM, PENDULUM_INDEX3, ROBERTSON, SQUEEZER, AKZO_NOBEL)}
+# ---- Car axis problem, index 3 --------------------------------------------------------------
+#
+# Source: the Test Set for IVP Solvers (Mazzia & Magherini, Univ. of Bari), problem "Car Axis"
+# (caraxis.f, revision 1.2, 2006/10/02), read in deTestSet's copy: src/Ex_car.f for the equations
+# (carfunc) and the reference at t = 3 (carsoln), R/ex_caraxis.R for the parameters and initial
+# values.  A car axis on a bumpy road: the left wheel (xl, yl) and the right wheel (xr, yr) are
+# springs of rest length L0 to the chassis, the axis keeps length L between them, and the right
+# wheel's road point (xb, yb) oscillates, yb = r sin(w t).  The test set's form is
+# M y' = f(t, y) with mass k = M eps^2 / 2 on the four velocities and zero on the two position
+# constraints; dividing those rows by k gives the semi-explicit form here.  The stiff springs
+# (eps = 1e-2) make the motion a fast oscillation about a slow one.
+CAR_AXIS_PARAMETERS = {"eps": 1e-2, "M": 10.0, "L": 1.0, "L0": 0.5, "r": 0.1, "w": 10.0, "g": 1.0}
+_CAR_K = "(M*eps**2/2)"
+_CAR_YB = "(r*sin(w*t))"
+_CAR_XB = f"sqrt(L**2 - {_CAR_YB}**2)"
+_CAR_LL = "sqrt(xl**2 + yl**2)"
+_CAR_LR = f"sqrt((xr - {_CAR_XB})**2 + (yr - {_CAR_YB})**2)"
+
+CAR_AXIS = Problem(
+    name="car-axis",
+    odes={
+        "xl": "ul",
+        "yl": "vl",
+        "xr": "ur",
+        "yr": "vr",
+        "ul": f"((L0 - {_CAR_LL})*xl/{_CAR_LL} + lam1*{_CAR_XB} + 2*lam2*(xl - xr))/{_CAR_K}",
+        "vl": f"((L0 - {_CAR_LL})*yl/{_CAR_LL} + lam1*{_CAR_YB} + 2*lam2*(yl - yr))/{_CAR_K} - g",
+        "ur": f"((L0 - {_CAR_LR})*(xr - {_CAR_XB})/{_CAR_LR} - 2*lam2*(xl - xr))/{_CAR_K}",
+        "vr": f"((L0 - {_CAR_LR})*(yr - {_CAR_YB})/{_CAR_LR} - 2*lam2*(yl - yr))/{_CAR_K} - g",
+    },
+    algebraics=("lam1", "lam2"),
+    constraints={"road": f"{_CAR_XB}*xl + {_CAR_YB}*yl", "axis": "(xl - xr)**2 + (yl - yr)**2 - L**2"},
+    parameters=CAR_AXIS_PARAMETERS,
+    # ex_caraxis.R's yini: xl = 0, yl = L0, xr = L, yr = L0, ul = ur = -L0/L, vl = vr = 0, lam = 0
+    initial={"xl": 0.0, "yl": 0.5, "xr": 1.0, "yr": 0.5, "ul": -0.5, "vl": 0.0, "ur": -0.5, "vr": 0.0},
+    t_span=(0.0, 3.0),
+    compare_steps=120,  # the stiff springs' oscillation, period ~0.14: h = 0.025 first
+    index=3,
+    # caraxis.f, subroutine carsoln: y(1..10) at t = 3
+    reference={
+        "xl": 0.4934557842755629e-1,
+        "yl": 0.4969894602303324e0,
+        "xr": 0.1041742524885400e1,
+        "yr": 0.3739110272652214e0,
+        "ul": -0.7705836840321485e-1,
+        "vl": 0.7446866596327776e-2,
+        "ur": 0.1755681574942899e-1,
+        "vr": 0.7703410437794031e0,
+        "lam1": -0.4736886750784630e-2,
+        "lam2": -0.1104680411345730e-2,
+    },
+    source="Car axis problem (index 3 mechanism, stiff and oscillatory) of the Test Set for IVP Solvers "
+    "(Mazzia & Magherini, Univ. of Bari), caraxis.f rev. 1.2 (2006); reference at t = 3 from the test set",
+)
+
+# ---- Transistor amplifier, index 1 ---------------------------------------------------------
+#
+# Source: the Test Set for IVP Solvers (Mazzia & Magherini, Univ. of Bari), problem "Transistor
+# Amplifier" (transamp.f, revision 1.3, 2006/10/25), read in deTestSet's copy: src/Ex_transistor.f
+# for the equations (transres, transfunc) and the reference at t = 0.2 (transsoln: PSIDE at
+# rtol = atol = 1e-14), R/ex_transistor.R for the 19 parameters and the initial values.  The
+# circuit's node potentials U1..U8 obey M U' = f(t, U) with a singular capacitance matrix M:
+# C1 joins nodes 1-2, C3 nodes 4-5, C5 nodes 7-8, C2 and C4 ground nodes 3 and 6.  Semi-explicit
+# form: the capacitor voltages are the states (u12 = U1 - U2, U3, u45 = U4 - U5, U6, u78 = U7 - U8),
+# Kirchhoff's current law at the two ends of each floating capacitor adds up to an algebraic
+# equation (the capacitor's current cancels), and U1, U2, U4, U5, U7, U8 are algebraic, tied to the
+# states by the three voltage definitions.  Same solution, index 1.  The input Ue = 0.1 sin(200 pi t)
+# drives 20 periods on [0, 0.2]; the transistors' exponential g(U) = beta (exp(U / UF) - 1) makes
+# the problem stiff.
+TRANSISTOR_PARAMETERS = {
+    "Ub": 6.0, "UF": 0.026, "alpha": 0.99, "beta": 1e-6, "R0": 1000.0,
+    **{f"R{k}": 9000.0 for k in range(1, 10)},
+    **{f"C{k}": k * 1e-6 for k in range(1, 6)},
+}  # fmt: skip
+_TRANSISTOR_G1 = "beta*(exp((U2 - U3)/UF) - 1)"
+_TRANSISTOR_G2 = "beta*(exp((U5 - U6)/UF) - 1)"
+# transfunc's currents f(1..8): the rows of M U' = f, each the current leaving node k through its
+# resistors and transistor terminals (with the sign the test set gives it)
+_TRANSISTOR_F = {
+    1: "(U1 - 0.1*sin(200*pi*t))/R0",
+    2: f"U2/R1 + (U2 - Ub)/R2 + (1 - alpha)*{_TRANSISTOR_G1}",
+    3: f"U3/R3 - {_TRANSISTOR_G1}",
+    4: f"(U4 - Ub)/R4 + alpha*{_TRANSISTOR_G1}",
+    5: f"U5/R5 + (U5 - Ub)/R6 + (1 - alpha)*{_TRANSISTOR_G2}",
+    6: f"U6/R7 - {_TRANSISTOR_G2}",
+    7: f"(U7 - Ub)/R8 + alpha*{_TRANSISTOR_G2}",
+    8: "U8/R9",
+}
+
+TRANSISTOR_AMPLIFIER = Problem(
+    name="transistor-amplifier",
+    # row 1 of M U' = f: -C1 (U1 - U2)' = f1; rows 3 and 6: -C2 U3' = f3, -C4 U6' = f6; rows 4, 7 alike
+    odes={
+        "u12": f"-({_TRANSISTOR_F[1]})/C1",
+        "U3": f"-({_TRANSISTOR_F[3]})/C2",
+        "u45": f"-({_TRANSISTOR_F[4]})/C3",
+        "U6": f"-({_TRANSISTOR_F[6]})/C4",
+        "u78": f"-({_TRANSISTOR_F[7]})/C5",
+    },
+    algebraics=("U1", "U2", "U4", "U5", "U7", "U8"),
+    constraints={
+        # rows 1 + 2, 4 + 5, 7 + 8 of M U' = f: the floating capacitor's current cancels
+        "node12": f"{_TRANSISTOR_F[1]} + {_TRANSISTOR_F[2]}",
+        "node45": f"{_TRANSISTOR_F[4]} + {_TRANSISTOR_F[5]}",
+        "node78": f"{_TRANSISTOR_F[7]} + {_TRANSISTOR_F[8]}",
+        "C1": "U1 - U2 - u12",
+        "C3": "U4 - U5 - u45",
+        "C5": "U7 - U8 - u78",
+    },
+    parameters=TRANSISTOR_PARAMETERS,
+    # ex_transistor.R's yini: U = (0, Ub/(R2/R1 + 1), Ub/(R2/R1 + 1), Ub, Ub/(R6/R5 + 1), Ub/(R6/R5 + 1), Ub, 0)
+    initial={
+        "u12": -3.0,
+        "U3": 3.0,
+        "u45": 3.0,
+        "U6": 3.0,
+        "u78": 6.0,
+        "U1": 0.0,
+        "U2": 3.0,
+        "U4": 6.0,
+        "U5": 3.0,
+        "U7": 6.0,
+        "U8": 0.0,
+    },
+    t_span=(0.0, 0.2),
+    compare_steps=800,  # 20 periods of the 100 Hz input: h = 2.5e-4 first, 40 steps a period
+    index=1,
+    # transamp.f, subroutine transsoln: U(1..8) at t = 0.2 (PSIDE, rtol = atol = 1e-14)
+    reference={
+        "U1": -0.5562145012262709e-2,
+        "U2": 0.3006522471903042e1,
+        "U3": 0.2849958788608128e1,
+        "U4": 0.2926422536206241e1,
+        "U5": 0.2704617865010554e1,
+        "U6": 0.2761837778393145e1,
+        "U7": 0.4770927631616772e1,
+        "U8": 0.1236995868091548e1,
+    },
+    source="Transistor amplifier (index 1 circuit, stiff, driven at 100 Hz) of the Test Set for IVP Solvers "
+    "(Mazzia & Magherini, Univ. of Bari), transamp.f rev. 1.3 (2006), in semi-explicit form with the "
+    "capacitor voltages as states; reference at t = 0.2 from the test set (PSIDE at rtol = atol = 1e-14)",
+)
+
+PROBLEMS = {
+    p.name: p
+    for p in (
+        HESSENBERG, PENDULUM, PENDULUM_INDEX3, ROBERTSON, SQUEEZER, AKZO_NOBEL, CAR_AXIS, TRANSISTOR_AMPLIFIER,
+    )
+}  # fmt: skip

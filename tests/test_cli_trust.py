@@ -2,9 +2,11 @@
 of NaN: every mistake is refused before the first solve with one line that names the culprit,
 and the exit status tells a user mistake (2) from a solver failure (1)."""
 
+import importlib
 import json
 import re
 import textwrap
+import warnings
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from test_compare import MODEL_FILE
 import daemodel as dm
 import daemodel.solver
 from daemodel.cli import load_target, main
-from daemodel.compare import MAX_POINTS, MAX_SWEEP_STEPS
+from daemodel.compare import MAX_POINTS, MAX_SWEEP_STEPS, plan_comparison
 from daemodel.errors import ComparisonError, ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.problems import HESSENBERG
 
@@ -184,11 +186,71 @@ def test_a_method_that_failed_everywhere_says_so(monkeypatch, tmp_path):
     assert re.search(r"\nradau +stages=3, h=0\.05 +- +-  failed: radau: Newton did not converge at t = 0\n", table)
     assert table.endswith("radau failed at every setting (2 of 2): no errors to compare, no curve")
     labels = [text.get_text() for text in result.plot().legends[0].get_texts()]
-    assert labels[0] == "radau, 2 of 2 failed" and re.fullmatch(r"casadi-idas \(setup [0-9.e+-]+ ms\)", labels[1])
+    assert labels[0] == "radau, 2 of 2 failed"
+    assert re.fullmatch(
+        r"casadi-idas: rtol=0.0001, atol=0.0001 -> rtol=1e-06, atol=1e-06 \(setup [0-9.e+-]+ ms\)", labels[1]
+    )
     payload = json.loads(result.to_json(tmp_path / "decay.json").read_text())
     failed, solved = payload["runs"][0], payload["runs"][2]
     assert failed["setup_time"] is None and failed["solve_time"] >= 0  # the time it took to fail
     assert solved["solve_time"] > 0 and solved["setup_time"] > 0
+
+
+def test_warnings_of_a_solve_go_into_its_run_not_above_the_table(monkeypatch, tmp_path):
+    real = daemodel.solver.solve
+
+    def solve(model, t_span, *, method, **options):
+        if options.get("h") == 0.025:
+            warnings.warn("the Jacobian is badly conditioned", RuntimeWarning, stacklevel=1)
+            warnings.warn("the Jacobian is badly conditioned", RuntimeWarning, stacklevel=1)
+        return real(model, t_span, method=method, **options)
+
+    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a warning that escaped compare would fail here
+        result = dm.compare(decay(), (0.0, 0.5), ["radau"], reference=decay_exact, points=2, progress=False)
+    assert [r.messages for r in result.runs] == [(), ("RuntimeWarning: the Jacobian is badly conditioned",)]
+    assert result.table().endswith("1 run(s) raised warnings (radau h=0.025): see 'messages' in the JSON and CSV")
+    payload = json.loads(result.to_json(tmp_path / "decay.json").read_text())
+    assert payload["runs"][1]["messages"] == ["RuntimeWarning: the Jacobian is badly conditioned"]
+    rows = result.to_csv(tmp_path / "decay.csv").read_text().splitlines()
+    assert rows[0].endswith(",failure,messages") and rows[2].endswith(
+        ",RuntimeWarning: the Jacobian is badly conditioned"
+    )
+
+
+def test_steps_sets_the_coarsest_fixed_step_and_leaves_tolerances_alone(no_solve):
+    plan = plan_comparison(decay(), (0.0, 0.5), ["radau", "pinn", "casadi-idas"], points=2, steps=40)
+    h = {method: [options.get("h") for m, options, *_ in plan.settings if m == method] for method in ("radau", "pinn")}
+    assert h == {"radau": [0.5 / 40, 0.5 / 80], "pinn": [0.5 / 40, 0.5 / 80]}
+    assert [options for m, options, *_ in plan.settings if m == "casadi-idas"] == [
+        {"rtol": 1e-4, "atol": 1e-4},
+        {"rtol": 1e-6, "atol": 1e-6},
+    ]
+    for steps in (0, 2.5, True):
+        with pytest.raises(ComparisonError, match=rf"steps must be a positive integer .*; got {steps!r}"):
+            dm.compare(decay(), (0.0, 0.5), ["radau"], steps=steps)
+    with pytest.raises(ComparisonError, match=r"halves h from span/40 at each point, so point 12 already takes 81,920"):
+        dm.compare(decay(), (0.0, 0.5), ["radau"], points=13, steps=40)
+
+
+def test_the_command_takes_each_problems_own_steps_unless_told(monkeypatch, tmp_path):
+    planned = []
+
+    def plan(*args, **kwargs):
+        planned.append(kwargs["steps"])
+        raise dm.errors.ModelError("planned")  # stop before any solve
+
+    monkeypatch.setattr(importlib.import_module("daemodel.compare"), "plan_comparison", plan)
+    args = ["compare", "--methods", "radau", "--out", str(tmp_path)]
+    assert main([*args, "car-axis", "hessenberg", "transistor-amplifier"]) == 2
+    assert main([*args, "--steps", "25", "car-axis"]) == 2
+    assert planned == [120, 10, 800, 25]
+
+
+def test_the_command_refuses_steps_below_one(tmp_path, capsys, no_solve):
+    assert main(["compare", "hessenberg", "--steps", "0", "--out", str(tmp_path)]) == 2
+    assert "steps must be a positive integer (the coarsest fixed-step grid); got 0" in capsys.readouterr().err
 
 
 # ---- the command: user mistakes -> exit 2, one line, no traceback, nothing solved ----------------

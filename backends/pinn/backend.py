@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
+    SWEEP_FIRST_STEPS,
     SWEEP_STAGES,
     AbstractBackend,
     check_threads,
@@ -110,8 +111,8 @@ class PINNBackend(AbstractBackend):
     Options = PINNOptions
     max_index = 2
 
-    def work_precision(self, t_span, points):
-        return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points)]
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
+        return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]
 
     def solve(self, compiled, t_span, start, options: PINNOptions):
         with torch_threads(options.threads if options.threads is not None else 1, 0):
