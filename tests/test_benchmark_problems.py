@@ -54,6 +54,20 @@ def test_akzo_nobel_fixed_step_is_the_collocation_solution(akzo, h):
         assert np.max(np.abs(sol[name] - collocation[name])) < 1e-11
 
 
+def test_akzo_nobel_pinn_says_its_first_predictions_left_the_domain(akzo):
+    """The rates hold sqrt(y2) with y2 = 1.2e-3: at h = 0.1 the untrained network's stage values
+    y_n + h * output are negative there, at h = 1e-3 they are not and training succeeds."""
+    with pytest.raises(
+        dm.errors.TrainingError,
+        match=r"pinn: segment 1 \(t = 0 to 0\.1\): loss term L_f is not finite at iteration 0; shorten h, so that "
+        r"the first predictions stay near y_n \(e\.g\. inside sqrt or log\)$",
+    ):
+        dm.solve(akzo, (0.0, 0.1), method="pinn", h=0.1)
+    sol = dm.solve(akzo, (0.0, 0.002), method="pinn", h=0.001)
+    newton = dm.solve(akzo, (0.0, 0.002), h=0.001)
+    assert np.max(np.abs(sol["y2"] - newton["y2"])) < 1e-12
+
+
 def test_akzo_nobel_idas_digits(akzo):
     sol = dm.solve(akzo, AKZO_NOBEL.t_span, method="casadi-idas", rtol=1e-10, atol=1e-14, t_eval=[0.0, 180.0])
     assert digits(sol, AKZO_NOBEL) >= 9
@@ -135,3 +149,16 @@ def test_transistor_amplifier_fixed_step_needs_damped_newton(amplifier, engine):
     assert sol.stats["damped_newton_attempts"] > 0
     for name in ("U1", "U2", "U8", "u12", "U3"):
         assert np.max(np.abs(sol[name] - collocation[name])) < 1e-9
+
+
+def test_transistor_amplifier_idas_without_the_algebraic_error_test(amplifier):
+    """With the node potentials in IDAS's error test, 40 % of its steps fail that test; left out
+    (suppress_algebraic=True), it takes several times fewer steps for as many digits."""
+    kwargs = {"method": "casadi-idas", "rtol": 1e-7, "atol": 1e-7, "t_eval": [0.0, 0.2]}
+    full = dm.solve(amplifier, TRANSISTOR_AMPLIFIER.t_span, **kwargs)
+    suppressed = dm.solve(amplifier, TRANSISTOR_AMPLIFIER.t_span, suppress_algebraic=True, **kwargs)
+    assert full.stats["netfails"] > 0.3 * full.stats["nsteps"]
+    assert suppressed.stats["nsteps"] < full.stats["nsteps"] / 4
+    assert digits(suppressed, TRANSISTOR_AMPLIFIER) > 5
+    with pytest.raises(dm.errors.InvalidOptionError, match="suppress_algebraic must be True or False; got 'yes'"):
+        dm.solve(amplifier, TRANSISTOR_AMPLIFIER.t_span, method="casadi-idas", suppress_algebraic="yes")

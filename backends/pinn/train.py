@@ -153,9 +153,14 @@ class SegmentTrainer:
         terms = residuals.terms()
         bad = [name for name, value in terms.items() if not math.isfinite(value)]
         if bad:
+            if iteration == 0:  # the untrained network's stage values y_n + h * output left f's or g's domain
+                fix = "shorten h, so that the first predictions stay near y_n (e.g. inside sqrt or log)"
+            elif self.config.optimizer == "lm":
+                fix = "shorten h"
+            else:
+                fix = "lower learning_rate, shorten h, or use optimizer='lm'"
             raise TrainingError(
-                f"pinn: {_where(segment)}: loss term {', '.join(bad)} is not finite at iteration {iteration}; "
-                "lower learning_rate, shorten h, or use optimizer='lm'"
+                f"pinn: {_where(segment)}: loss term {', '.join(bad)} is not finite at iteration {iteration}; {fix}"
             )
         total = self._weighted(terms)
         if start is not None and total > EXPLODE_FACTOR * max(start, 1e-300):
