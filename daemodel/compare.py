@@ -202,6 +202,46 @@ class Comparison:
         methods = dict.fromkeys(r.method for r in self.runs)
         return tuple(m for m in methods if all(r.failure is not None for r in self.runs if r.method == m))
 
+    @classmethod
+    def load(cls, path) -> Comparison:
+        """A Comparison from the JSON :meth:`to_json` wrote, e.g. to redraw its plot without
+        solving again; a failed run's null setup time is NaN again.
+
+        Raises
+        ------
+        ComparisonError
+            When the file is not such a JSON (naming the file and what is missing).
+        """
+        path = Path(path)
+        try:
+            payload = json.loads(path.read_text())
+            runs = tuple(
+                Run(
+                    method=r["method"],
+                    settings=r["settings"],
+                    solve_time=math.nan if r["solve_time"] is None else r["solve_time"],
+                    setup_time=math.nan if r["setup_time"] is None else r["setup_time"],
+                    errors=r["errors"],
+                    drift=r["drift"],
+                    failure=r.get("failure"),
+                    short=r.get("short", ""),
+                    messages=tuple(r.get("messages", ())),
+                )
+                for r in payload["runs"]
+            )
+            return cls(
+                model=payload["model"],
+                t_span=tuple(payload["t_span"]),
+                reference=payload["reference"],
+                states=tuple(payload["states"]),
+                algebraics=tuple(payload["algebraics"]),
+                runs=runs,
+            )
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise ComparisonError(
+                f"{path} is not a comparison saved by Comparison.to_json: {type(error).__name__}: {error}"
+            ) from None
+
     def to_json(self, path) -> Path:
         path = Path(path)
         payload = {
@@ -268,7 +308,8 @@ class Comparison:
                 if shown:  # at the time it took to fail, on the top edge: no error to place it by
                     ax.plot([r.solve_time for r in shown], [0.98] * len(shown), "x", color=f"C{i}", transform=top_edge)
             ax.set_xlabel("solve time [s]" if clock == "solve" else "setup + solve time [s]")
-            ax.set_ylabel(f"max absolute error ({', '.join(names)})")
+            listed = ", ".join(names) if len(names) <= 6 else f"{names[0]} ... {names[-1]}, {len(names)} variables"
+            ax.set_ylabel(f"max absolute error ({listed})")
             ax.set_title(title)
             ax.grid(which="both", alpha=0.25)
         # one legend for the panels, below them, where it hides no data

@@ -1,7 +1,9 @@
 """dm.compare and the `daemodel compare` command: errors measured against exact solutions
 and the reference, the sweep's convergence order, the outputs, and every error message."""
 
+import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -115,6 +117,34 @@ def test_plot_draws_the_solve_clock_or_the_total(hessenberg):
     assert "solve [s]" in table[1] and "setup [s]" in table[1]
     with pytest.raises(ComparisonError, match="clock must be one of 'solve', 'total'; got 'wall'"):
         hessenberg.plot(clock="wall")
+
+
+def test_a_saved_comparison_loads_back_whole(hessenberg, tmp_path):
+    failed = dataclasses.replace(hessenberg.runs[0], setup_time=math.nan, errors={}, drift={}, failure="radau: no")
+    result = dataclasses.replace(hessenberg, runs=(failed, *hessenberg.runs[1:]))
+    loaded = dm.Comparison.load(result.to_json(tmp_path / "h.json"))
+    assert loaded.runs[1:] == result.runs[1:] and loaded.table() == result.table()
+    assert math.isnan(loaded.runs[0].setup_time) and loaded.runs[0].failure == "radau: no"
+    (tmp_path / "bad.json").write_text('{"model": "m"}')
+    with pytest.raises(ComparisonError, match=r"bad.json is not a comparison saved by Comparison.to_json: KeyError"):
+        dm.Comparison.load(tmp_path / "bad.json")
+    with pytest.raises(ComparisonError, match=r"missing.json is not a comparison saved .*: FileNotFoundError"):
+        dm.Comparison.load(tmp_path / "missing.json")
+
+
+def test_a_long_variable_list_is_shortened_on_the_axis():
+    """Up to six names are listed; the squeezer's 14 and 13 ran off the figure, so longer lists
+    name their ends and their count."""
+    from daemodel.compare import Comparison, Run
+
+    states, algebraics = tuple(f"q{i}" for i in range(1, 15)), ("w1", "lam1")
+    errors = {name: {"max": 1e-6, "mean": 1e-7} for name in (*states, *algebraics)}
+    runs = (Run("radau", "h=0.1", 0.01, 0.001, errors, {}, short="h=0.1"),)
+    figure = Comparison("many", (0.0, 1.0), "the exact solution", states, algebraics, runs).plot()
+    assert [ax.get_ylabel() for ax in figure.axes] == [
+        "max absolute error (q1 ... q14, 14 variables)",
+        "max absolute error (w1, lam1)",
+    ]
 
 
 def test_compare_errors():
