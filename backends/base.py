@@ -79,19 +79,31 @@ def make_solution(
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
     ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and :attr:`Solution.setup_time`;
-    ``settings`` defaults to the options' fields (less ``t_eval``); ``status`` is
-    :attr:`Solution.status`.
+    ``settings`` defaults to the options' fields (less ``t_eval``; a function, such as radau's
+    ``start_guess``, by its name, not copied); ``status`` is :attr:`Solution.status`.
     """
-    from dataclasses import asdict
+    from dataclasses import asdict, fields, is_dataclass
 
     from daemodel.solution import Solution
+
+    if settings is None:
+        settings = {}
+        for field in fields(options):
+            value = getattr(options, field.name)
+            if field.name == "t_eval":
+                continue
+            if is_dataclass(value):
+                value = asdict(value)
+            elif callable(value):
+                value = getattr(value, "__qualname__", type(value).__name__)
+            settings[field.name] = value
 
     names = (*compiled.state_names, *compiled.algebraic_names)
     return Solution(
         t=np.asarray(times, dtype=float),
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
         method=backend.name,
-        settings=settings if settings is not None else {k: v for k, v in asdict(options).items() if k != "t_eval"},
+        settings=settings,
         solve_time=solve_time,
         setup_time=setup_time,
         stats=stats,
