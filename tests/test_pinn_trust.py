@@ -220,6 +220,39 @@ def test_a_start_guess_is_checked():
         dm.solve(m, (0.0, 0.1), h=0.05, start_guess=lambda t, y, z: np.zeros((1, 5)))
 
 
+def rlc():
+    m = dm.Model("rlc")
+    i, v = m.states("i v")
+    m.algebraics("iR")
+    for name, value in {"R1": 1.0, "R2": 10.0, "L": 0.1, "C": 0.01}.items():
+        m.parameter(name, value)
+    m.ode(i, "(1 - R1*i - v)/L")
+    m.ode(v, "(i - iR)/C")
+    m.constraint("R2*iR - v", name="resistor")
+    m.initial(i=0.0, v=0.0)
+    return m.compile()
+
+
+def test_a_parameter_batch_trains_to_the_collocation_solution():
+    """R2 = 1, 10, 100 as a network input: the batch every classical method solves trains too."""
+    c, parameters = rlc(), {"R2": [1.0, 10.0, 100.0]}
+    pinn = dm.solve(c, (0.0, 0.5), method="pinn", parameters=parameters, h=0.05)
+    newton = dm.solve(c, (0.0, 0.5), parameters=parameters, h=0.05)
+    for name in ("i", "v", "iR"):
+        assert np.max(np.abs(pinn[name] - newton[name])) < 1e-11
+
+
+def test_a_parameter_batch_it_cannot_fit_names_the_sample():
+    """R2 over five decades in one network does not fit; the message's number is the residual
+    compared with tol, and it names the equation and the sample (R2 = 1e5)."""
+    with pytest.raises(
+        dm.errors.TrainingError,
+        match=r"segment 1 \(t = 0 to 0\.05\): the largest residual is still [0-9.e+-]+ > tol = 1e-12 \(constraint "
+        r"'resistor' at stage \d, sample 2; state rows relative to max\(1, \|value\|\)\) after 200 lm iterations",
+    ):
+        dm.solve(rlc(), (0.0, 0.1), method="pinn", parameters={"R2": [1.0, 1e3, 1e5]}, h=0.05)
+
+
 def test_fixed_budget_states_its_final_residual():
     c = HESSENBERG.model().compile()
     cfg = dm.PINNConfig(width=8, optimizer="adam", tol=None, iterations=5)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from daemodel.collocation import stage_residual
@@ -59,6 +60,38 @@ class Residuals:
                 "L_g": float((self.G**2).sum()) / (N * rows),
                 "L_s": float((self.S**2).sum()) / N,
             }
+
+    def largest(self, names=None) -> tuple[float, str]:
+        """The largest component as :meth:`max_abs` measures it, and where it is: which equation
+        (a stage or end-value row of a state's F, a constraint, a z_end - Z_s row), and the
+        sample when there are several.  ``names``: (states, constraints, algebraics)."""
+        with torch.no_grad():
+            F = self.F if self.scale_f is None else self.F / self.scale_f
+            S = self.S if self.scale_s is None else self.S / self.scale_s
+            best = (0.0, "")
+            for kind, r in (("F", F), ("G", self.G), ("S", S)):
+                if not r.numel():
+                    continue
+                flat = int(r.abs().argmax())
+                value = float(r.abs().flatten()[flat])
+                if value <= best[0] and best[1]:
+                    continue
+                index = [int(i) for i in np.unravel_index(flat, tuple(r.shape))]
+                column = index[-1]
+                if names is not None:
+                    label = names[{"F": 0, "G": 1, "S": 2}[kind]][column]
+                else:
+                    label = f"#{column}"
+                stages = self.F.shape[1] - 1
+                if kind == "S":
+                    where = f"z_end - Z_s of '{label}'"
+                else:
+                    row = "the end value" if index[1] == stages else f"stage {index[1] + 1}"
+                    where = f"the equation of '{label}' at {row}" if kind == "F" else f"constraint '{label}' at {row}"
+                if self.F.shape[0] > 1:
+                    where += f", sample {index[0]}"
+                best = (value, where)
+            return best
 
     def max_abs(self) -> float:
         """The largest residual component, each F and S row in units of its variable's size

@@ -184,11 +184,11 @@ class SegmentTrainer:
         terms = self._check(segment, residuals, iterations, None)
         worst = residuals.max_abs()
         if self.config.tol is not None and worst > self.config.tol:
-            dominant = max(terms, key=lambda k: terms[k])
+            _, where = residuals.largest(getattr(self.loss, "names", None))
             raise TrainingError(
-                f"pinn: {_where(segment)}: the largest residual (F and S rows relative to max(1, |value|)) is still "
-                f"{worst:.3g} > tol = {self.config.tol:g} after "
-                f"{iterations} {self.config.optimizer} iterations (largest term {dominant} = {terms[dominant]:.3g}); "
+                f"pinn: {_where(segment)}: the largest residual is still {worst:.3g} > tol = {self.config.tol:g} "
+                f"({where}; state rows relative to max(1, |value|)) after "
+                f"{iterations} {self.config.optimizer} iterations; "
                 + (
                     "raise iterations, widen the network, or loosen tol"
                     if self.config.optimizer == "lm"
@@ -639,7 +639,9 @@ def make_loss(compiled, config):
 
     dtype = getattr(torch, config.dtype)
     functions = compiled.torch_functions(dtype=dtype, device=config.device)
-    return RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
+    loss = RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
+    loss.names = (compiled.state_names, compiled.constraint_names, compiled.algebraic_names)
+    return loss
 
 
 def training_inputs(x: torch.Tensor, p: torch.Tensor, n: int, config, generator: torch.Generator):
