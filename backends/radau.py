@@ -382,7 +382,9 @@ class _Stepper:
         if not options.adaptive:
             # worst step, sample and variable, in units of 1 + max|u| (see check_local_error)
             self.stats["max_local_error_estimate"] = 0.0
-            self.stats["damped_newton_attempts"] = 0  # steps that needed the last resort (DAMPED_NEWTON_FACTOR)
+            self.stats["damped_newton_attempts"] = (
+                0  # runs of the last resort (DAMPED_NEWTON_FACTOR); a step may need 2
+            )
         self._jac = None  # (J, t) at the last refresh
         self._lu = None  # the Factors of the transformed systems of J and the current h
         self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
@@ -780,15 +782,14 @@ class _Stepper:
         if self._stage_steps > 0:
             self._stage_steps -= 1
             self.current_lu(J, t, h, error_only=True)  # the error estimate's system
-            if self._previous is None and self.options.start_guess is None:
-                return self.stage_newton(t, h, W0)
-            try:
-                found = self.stage_newton(t, h, W0)
-            except ConvergenceError:  # the extrapolated guess left f's domain (Akzo Nobel: y2 < 0 under sqrt)
-                found = (None,)
-            if found[0] is not None:
-                return found
-            return self.stage_newton(t, h, self.constant_guess())
+            guessed = self._previous is not None or self.options.start_guess is not None
+            if guessed and not self.finite_at(t, h, W0):
+                # the guess left f's domain (Akzo Nobel: y2 < 0 under a sqrt): start from the start value
+                W0, guessed = self.constant_guess(), False
+            found = self.stage_newton(t, h, W0)
+            if found[0] is None and guessed:
+                return self.stage_newton(t, h, self.constant_guess())
+            return found
         factors = self.current_lu(J, t, h)
         result, iterations, why, sample = self.newton(t, h, factors, W0)
         if result is None and (self._previous is not None or self.options.start_guess is not None):
@@ -808,6 +809,10 @@ class _Stepper:
             self.stats["jacobian_evaluations"] += 1
             self.check_determined(stage_J, t, h, keep=False)
         return result, iterations, why, sample
+
+    def finite_at(self, t, h, W) -> bool:
+        """Whether the stage residual (f and g) is finite at the stage values ``W``."""
+        return bool(self.xp.isfinite(self.residual(t, h, W).R).all())
 
     def stage_newton(self, t, h, W0):
         """Full Newton from ``W0`` with each stage's Jacobian at ``W0`` (and at later iterates while

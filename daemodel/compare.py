@@ -47,8 +47,9 @@ from daemodel.files import writable_directory, writable_file
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
-# Most sweep points: a fixed-step sweep halves h from span/10 at each point, so point 12 is
-# already span/20,480 (20,480 steps per solve), and each further point doubles the time.
+# Most sweep points: a fixed-step sweep halves h from span/steps at each point, so point 12 is
+# already span/(2,048 steps) (20,480 steps per solve at the default steps = 10), and each
+# further point doubles the time.
 MAX_POINTS = 12
 # Most fixed-grid steps one compared setting may take, refused before any solve: radau's
 # default max_steps, five times the finest default sweep point.
@@ -221,8 +222,11 @@ class Comparison:
                     settings=r["settings"],
                     solve_time=math.nan if r["solve_time"] is None else r["solve_time"],
                     setup_time=math.nan if r["setup_time"] is None else r["setup_time"],
-                    errors=r["errors"],
-                    drift=r["drift"],
+                    errors={
+                        name: {key: math.nan if value is None else value for key, value in error.items()}
+                        for name, error in r["errors"].items()
+                    },
+                    drift={name: math.nan if value is None else value for name, value in r["drift"].items()},
                     failure=r.get("failure"),
                     short=r.get("short", ""),
                     messages=tuple(r.get("messages", ())),

@@ -125,6 +125,12 @@ def test_a_saved_comparison_loads_back_whole(hessenberg, tmp_path):
     loaded = dm.Comparison.load(result.to_json(tmp_path / "h.json"))
     assert loaded.runs[1:] == result.runs[1:] and loaded.table() == result.table()
     assert math.isnan(loaded.runs[0].setup_time) and loaded.runs[0].failure == "radau: no"
+    # a non-finite error or drift is null in the JSON and NaN again when loaded
+    broken = dataclasses.replace(
+        hessenberg.runs[1], errors={**hessenberg.runs[1].errors, "y1": {"max": math.nan, "mean": 1.0}}
+    )
+    loaded = dm.Comparison.load(dataclasses.replace(hessenberg, runs=(broken,)).to_json(tmp_path / "nan.json"))
+    assert math.isnan(loaded.runs[0].errors["y1"]["max"]) and "nan" in loaded.table()
     (tmp_path / "bad.json").write_text('{"model": "m"}')
     with pytest.raises(ComparisonError, match=r"bad.json is not a comparison saved by Comparison.to_json: KeyError"):
         dm.Comparison.load(tmp_path / "bad.json")

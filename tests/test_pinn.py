@@ -426,7 +426,7 @@ def test_unreached_tolerance_names_the_segment_and_the_largest_residual():
     found = re.search(
         r"segment 1 \(t = 0 to 0\.05\): the largest residual is still ([0-9.e+-]+) > tol = 1e-12 \((the equation "
         r"of 'y\d' at (stage \d|the end value)|constraint 'invariant' at (stage \d|the end value)|z_end - Z_s of 'y5')"
-        r"; state rows relative to max\(1, \|value\|\)\) after 1 lm iterations; raise iterations",
+        r"; F and S rows relative to max\(1, \|value\|\)\) after 1 lm iterations; raise iterations",
         message,
     )
     assert found, message

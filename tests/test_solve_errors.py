@@ -136,6 +136,24 @@ def test_a_failed_damped_newton_says_why_after_the_undamped_reason(engine):
         dm.solve(m, (0.0, 4.0), h=2.0, engine=engine)
 
 
+def test_z_undetermined_along_a_fixed_step_run_is_named():
+    """0 = (0.5 - y) z - 1 stops determining z as y reaches 0.5: a fixed step says so, instead of
+    a Newton failure after a restart (the restart from the step's start value is only for a guess
+    at which f or g is not finite)."""
+    m = dm.Model("flip")
+    (y,) = m.states("y")
+    (z,) = m.algebraics("z")
+    m.ode(y, 1 + 0 * z)
+    m.constraint((0.5 - y) * z - 1, name="c")
+    m.initial(y=0.0)
+    for h, where in ((0.03, "t = 0.48 and 0.51"), (0.13, "t = 0.26 and 0.52")):
+        with pytest.raises(
+            E.ConvergenceError,
+            match=rf"the constraints \('c'\) stop determining the algebraic variables between {where}",
+        ):
+            dm.solve(m, (0.0, 1.0), h=h)
+
+
 def test_blow_up_raises_instead_of_returning_nan():
     m = dm.Model("blowup")
     (y,) = m.states("y")

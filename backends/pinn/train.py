@@ -187,7 +187,7 @@ class SegmentTrainer:
             _, where = residuals.largest(getattr(self.loss, "names", None))
             raise TrainingError(
                 f"pinn: {_where(segment)}: the largest residual is still {worst:.3g} > tol = {self.config.tol:g} "
-                f"({where}; state rows relative to max(1, |value|)) after "
+                f"({where}; F and S rows relative to max(1, |value|)) after "
                 f"{iterations} {self.config.optimizer} iterations; "
                 + (
                     "raise iterations, widen the network, or loosen tol"
