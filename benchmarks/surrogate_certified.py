@@ -9,6 +9,10 @@ time), the Newton iterations from the networks' guesses and from radau's own, an
 each path (min of ``--repeats`` runs, one torch thread).
 
     python benchmarks/surrogate_certified.py --out benchmarks/surrogate_certified.json
+
+Besides the JSON, a PNG beside it: per problem, the histogram of the held-out errors and their
+estimates, and each answer's error against its estimate (the calibration: points below the
+diagonal are bounded).
 """
 
 from __future__ import annotations
@@ -94,7 +98,47 @@ def run(name: str, t_end: float, samples: int, queries: int, repeats: int) -> di
         "torch_threads": torch.get_num_threads(),
     }
     print(json.dumps(out, indent=1), flush=True)
+    # per sample, worst over the grid: for the figure
+    out["_samples"] = {
+        "error_y": error_y.max(axis=1),
+        "estimate_y": estimate["y"][:, 1:].max(axis=1),
+        "error_z": error_z.max(axis=1),
+        "estimate_z": estimate["z"][:, 1:].max(axis=1),
+    }
     return out
+
+
+def plot(runs: list, path: Path) -> None:
+    """Histograms of the errors and estimates, and error against estimate, one row per problem."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 3.6 * len(runs)), layout="constrained")
+    axes = fig.subplots(len(runs), 2, squeeze=False)
+    for (hist, calibration), run in zip(axes, runs, strict=True):
+        samples = run["_samples"]
+        for i, group in enumerate(("y", "z")):
+            error, estimate = samples[f"error_{group}"], samples[f"estimate_{group}"]
+            low = np.log10(max(min(error.min(), estimate.min()), 1e-17))
+            high = np.log10(max(error.max(), estimate.max()))
+            bins = np.logspace(low - 0.1, high + 0.1, 50)
+            hist.hist(error, bins=bins, alpha=0.6, color=f"C{2 * i}", label=f"{group} error")
+            hist.hist(estimate, bins=bins, alpha=0.4, color=f"C{2 * i + 1}", label=f"{group} estimate")
+            rate = run["estimate_bounds_error"][group]
+            calibration.loglog(
+                estimate, error, ".", ms=2, alpha=0.4, color=f"C{2 * i}", label=f"{group}: bounded {rate:.2%}"
+            )
+        hist.set_xscale("log")
+        hist.set_xlabel("max absolute error over the grid, per held-out state")
+        hist.set_ylabel("states")
+        hist.set_title(f"{run['problem']}: {run['queries']:,} held-out states, {run['training_states']} trained")
+        hist.legend(fontsize=8)
+        lims = calibration.get_xlim()
+        calibration.plot(lims, lims, "k--", lw=1, label="error = estimate")
+        calibration.set_xlabel("error estimate (estimate=True)")
+        calibration.set_ylabel("error against radau's collocation solution")
+        calibration.set_title(f"{run['problem']}: per state, worst over the grid (below the line: bounded)")
+        calibration.legend(fontsize=8, markerscale=4)
+    fig.savefig(path, dpi=120)
 
 
 def main() -> None:
@@ -107,8 +151,11 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     runs = [run(name, args.t_end, args.samples, args.queries, args.repeats) for name in BOXES]
-    Path(args.out).write_text(json.dumps({"runs": runs}, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    out = Path(args.out)
+    plot(runs, out.with_suffix(".png"))
+    public = [{k: v for k, v in r.items() if not k.startswith("_")} for r in runs]
+    out.write_text(json.dumps({"runs": public}, indent=2) + "\n")
+    print(f"wrote {out} and {out.with_suffix('.png')}")
 
 
 if __name__ == "__main__":
