@@ -122,6 +122,11 @@ class Surrogate:
         return (*self.compiled.state_names, *self.inputs)
 
     @property
+    def input_columns(self) -> list[int]:
+        """Where the input parameters (:attr:`inputs`) sit in the model's parameter vector."""
+        return [self.compiled.parameter_names.index(name) for name in self.inputs]
+
+    @property
     def segment_ranges(self) -> tuple[np.ndarray, np.ndarray]:
         """Low and high ends of each segment's training inputs, each of shape (segments, d)."""
         return (
@@ -230,8 +235,7 @@ class Surrogate:
         ``y_{n+1}`` is the next network's input.
         """
         dtype = getattr(torch, self.config.dtype)
-        columns = [self.compiled.parameter_names.index(name) for name in self.inputs]
-        extra = torch.as_tensor(np.array(p[:, columns]), dtype=dtype, device=self.config.device)
+        extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=self.config.device)
         y = torch.as_tensor(np.array(y0), dtype=dtype, device=self.config.device)
         out = []
         with torch.no_grad():
@@ -354,9 +358,8 @@ class Surrogate:
         config, n = self.config, len(self.compiled.states)
         dtype = getattr(torch, config.dtype)
         loss = make_loss(self.compiled, config)
-        columns = [self.compiled.parameter_names.index(name) for name in self.inputs]
         p = torch.as_tensor(np.array(start.p), dtype=dtype, device=config.device)
-        extra = p[:, columns]
+        extra = p[:, self.input_columns]
         y = torch.as_tensor(np.array(start.y0), dtype=dtype, device=config.device)
         B = y.shape[0]
         E_y = torch.zeros(B, dtype=dtype, device=config.device)
@@ -387,8 +390,7 @@ class Surrogate:
 
         grid, config = self.grid, self.config
         dtype = getattr(torch, config.dtype)
-        columns = [self.compiled.parameter_names.index(name) for name in self.inputs]
-        extra = torch.as_tensor(np.array(start.p[:, columns]), dtype=dtype, device=config.device)
+        extra = torch.as_tensor(np.array(start.p[:, self.input_columns]), dtype=dtype, device=config.device)
 
         def guess(t, y, z):
             k = int(np.argmin(np.abs(grid[:-1] - t)))  # the segment this step is
@@ -425,8 +427,7 @@ class Surrogate:
 
     def _network_inputs(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
         """States then input parameters, shape (B, d)."""
-        columns = [self.compiled.parameter_names.index(name) for name in self.inputs]
-        return np.concatenate([y0, p[:, columns]], axis=1)
+        return np.concatenate([y0, p[:, self.input_columns]], axis=1)
 
     def _start_report(self, escaped, x, low, high, batched: bool) -> tuple[str, str]:
         count, b, _, j, _ = escaped
