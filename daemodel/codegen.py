@@ -267,6 +267,7 @@ def build_torch_functions(
     import torch
 
     n, m, k = sizes
+    _layout_tensors = {}
 
     def _prepare(t, y, z, p):
         if p is None:
@@ -291,10 +292,15 @@ def build_torch_functions(
                 dim=-1,
             )
         varying, constant, constants = layout
+        key = (layout, y.dtype, y.device)
+        if key not in _layout_tensors:  # index and value tensors made once per device, not per call
+            index = lambda positions: torch.tensor(positions, dtype=torch.long, device=y.device)  # noqa: E731
+            _layout_tensors[key] = (index(varying), index(constant), y.new_tensor(constants))
+        varying_at, constant_at, constant_values = _layout_tensors[key]
         out = y.new_empty((*shape, len(varying) + len(constant)))
-        out[..., list(constant)] = y.new_tensor(constants)
+        out[..., constant_at] = constant_values
         if full and values:
-            out[..., list(varying)] = torch.stack(values, dim=-1)
+            out[..., varying_at] = torch.stack(values, dim=-1)
         else:
             for i, v in zip(varying, values, strict=True):
                 out[..., i] = v

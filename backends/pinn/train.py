@@ -61,6 +61,10 @@ BLOCK_ORDER = (*HIDDEN_PARAMETERS, "W_out", "b_out")
 JACOBIAN_ENTRIES = 2**24
 # Progress is reported at most this often (seconds).
 REPORT_SECONDS = 0.2
+# Adam on a GPU (one CUDA graph per iteration): eager iterations before the capture, and
+# iterations between two reads of the loss terms.
+GRAPH_WARMUP = 3
+GRAPH_CHECK_EVERY = 100
 
 
 @dataclass(frozen=True)
@@ -216,6 +220,9 @@ class SegmentTrainer:
 
     # ---- Adam and L-BFGS ----------------------------------------------------------------------
     def _adam(self, segment: Segment) -> int:
+        return self._adam_graphed(segment) if segment.x.is_cuda else self._adam_eager(segment)
+
+    def _adam_eager(self, segment: Segment) -> int:
         optimizer = torch.optim.Adam(self.net.parameters(), lr=self.config.learning_rate)
         start, last_report = None, 0.0
         for iteration in range(self.config.iterations):
@@ -233,6 +240,63 @@ class SegmentTrainer:
             loss.backward()
             optimizer.step()
         return self.config.iterations
+
+    def _adam_graphed(self, segment: Segment) -> int:
+        """Adam on a GPU, each iteration (forward, loss, backward, step) replayed as one captured
+        CUDA graph.  A segment's networks see one or a few inputs, so eager Adam is bound by
+        kernel launches (hundreds per iteration); the graph launches them at once.  The loss terms
+        are read, checked and compared with ``tol`` every :data:`GRAPH_CHECK_EVERY` iterations,
+        at the parameters reached so far, by one more evaluation outside the graph."""
+        params = list(self.net.parameters())
+        optimizer = torch.optim.Adam(params, lr=self.config.learning_rate, capturable=True)
+        N, device = segment.x.shape[0], segment.x.device
+        # t and h as tensors on the device: a Python float would be copied from the host inside the graph
+        graphed = Segment(
+            index=segment.index,
+            t=torch.tensor(segment.t, dtype=segment.x.dtype, device=device),
+            h=torch.tensor(segment.h, dtype=segment.x.dtype, device=device),
+            x=segment.x,
+            p=segment.p,
+        )
+
+        def iteration():
+            r = self.loss.vector(self.residuals(graphed), N)
+            (r**2).sum().backward()
+            optimizer.step()
+
+        def check(done: int, start):
+            with torch.no_grad():
+                residuals = self.residuals(segment)
+            terms = self._check(segment, residuals, done, start)
+            self.report(done, terms)
+            return terms, self._done(residuals)
+
+        total = self.config.iterations
+        terms, finished = check(0, None)
+        start = self._weighted(terms)
+        if finished or total == 0:
+            return 0
+        warmup = min(GRAPH_WARMUP, total)  # eager iterations on a side stream: Adam's state, autograd's buffers
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                optimizer.zero_grad(set_to_none=True)
+                iteration()
+        torch.cuda.current_stream(device).wait_stream(side)
+        done = warmup
+        graph = torch.cuda.CUDAGraph()
+        optimizer.zero_grad(set_to_none=True)  # the graph's backward allocates .grad in its own pool
+        with torch.cuda.graph(graph):
+            iteration()
+        while done < total:
+            for _ in range(min(GRAPH_CHECK_EVERY - done % GRAPH_CHECK_EVERY, total - done)):
+                graph.replay()
+                done += 1
+            terms, finished = check(done, start)
+            if finished:
+                return done
+        return done
 
     def _lbfgs(self, segment: Segment) -> int:
         optimizer = torch.optim.LBFGS(
