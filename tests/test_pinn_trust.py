@@ -228,6 +228,63 @@ def test_the_error_estimate_bounds_the_error_of_held_out_answers(pendulum):
     assert np.median(estimate["y"][:, 1:] / error_y) < 10
 
 
+def test_tol_corrects_exactly_the_samples_whose_estimate_exceeds_it(pendulum):
+    """solve(tol=...): samples whose error estimate exceeds tol return radau's collocation
+    solution (Newton from their networks' guesses), the others their networks' answer, and every
+    sample ends within tol of the collocation solution.  tol is set at the median estimate, so
+    about half are corrected."""
+    surrogate = dm.Surrogate.train(pendulum, (0.0, 0.25), box={"y1": (0.99, 1.01), "y4": (0.99, 1.01)}, samples=16)
+    rng = np.random.default_rng(11)
+    B = 200
+    y = {"y1": rng.uniform(0.99, 1.01, B), "y2": np.zeros(B), "y3": np.zeros(B), "y4": rng.uniform(0.99, 1.01, B)}
+    y0 = pendulum.consistent(y0=y)
+    networks = surrogate.solve(y0=y0, estimate=True, outside="ignore")
+    worst = np.maximum(networks.stats["error_estimate"]["y"].max(1), networks.stats["error_estimate"]["z"].max(1))
+    tol = float(np.median(worst))
+    hybrid = surrogate.solve(y0=y0, tol=tol, outside="ignore")
+    newton = dm.solve(pendulum, (0.0, 0.25), h=0.05, y0=y0)
+    corrected = hybrid.stats["corrected"]
+    np.testing.assert_array_equal(corrected, worst > tol)
+    assert 0.4 * B < corrected.sum() < 0.6 * B
+    names = ("y1", "y2", "y3", "y4", "y5")
+    for name in names:
+        assert np.max(np.abs(hybrid[name][corrected] - newton[name][corrected])) < 1e-12
+        np.testing.assert_array_equal(hybrid[name][~corrected], networks[name][~corrected])
+    error = np.max([np.abs(hybrid[name] - newton[name]).max(axis=1) for name in names], axis=0)
+    assert error.max() <= tol
+    assert not hybrid.stats["error_estimate"]["y"][corrected].any()
+    assert 0 < hybrid.stats["newton_iterations"] and f"{corrected.sum()} of {B} samples corrected" in hybrid.status
+    everything = surrogate.solve(y0=y0, tol=1e-300, outside="ignore")
+    assert everything.stats["corrected"].all() and np.max(np.abs(everything["y5"] - newton["y5"])) < 1e-12
+
+
+def test_large_query_batches_are_evaluated_in_chunks(boxed, pendulum, monkeypatch):
+    """Queries are evaluated EVALUATION_CHUNK at a time (bigger batches spill the caches): the
+    answers and estimates do not depend on the chunking, including a last, shorter chunk."""
+    from daemodel.backends.pinn import surrogate
+
+    rng = np.random.default_rng(3)
+    y0 = pendulum.consistent(y0={"y4": rng.uniform(0.95, 1.05, 20)})
+    parameters = {"lam": rng.uniform(0.6, 1.4, 20)}
+    whole = boxed.solve(y0=y0, parameters=parameters, estimate=True)
+    monkeypatch.setattr(surrogate, "EVALUATION_CHUNK", 7)
+    chunked = boxed.solve(y0=y0, parameters=parameters, estimate=True)
+    plain = boxed.solve(y0=y0, parameters=parameters)
+    for name in ("y1", "y2", "y3", "y4", "y5"):
+        np.testing.assert_allclose(chunked[name], whole[name], rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(plain[name], whole[name], rtol=1e-13, atol=1e-15)
+    for key in ("y", "z"):
+        assert chunked.stats["error_estimate"][key].shape == (20, 3)
+        np.testing.assert_allclose(chunked.stats["error_estimate"][key], whole.stats["error_estimate"][key], rtol=1e-12)
+
+
+def test_tol_errors(boxed):
+    with pytest.raises(dm.errors.InvalidOptionError, match="newton=True corrects every sample and tol only those"):
+        boxed.solve(y0={"y4": 1.0}, tol=1e-6, newton=True)
+    with pytest.raises(dm.errors.InvalidOptionError, match="tol must be"):
+        boxed.solve(y0={"y4": 1.0}, tol=-1.0)
+
+
 def test_a_start_guess_is_checked():
     m = PENDULUM.model()
     with pytest.raises(dm.errors.InvalidOptionError, match=r"start_guess must be a function .*; got int"):
