@@ -354,15 +354,15 @@ class Surrogate:
             return self._newton(start, values, wall, reports)
         corrected, newton_iterations = np.zeros(start.size, dtype=bool), 0
         if tol is not None:
-            worst = np.max([estimate.max(axis=1) for estimate in estimates.values()], axis=0)
+            worst = np.max([bound.max(axis=1) for bound in estimates.values()], axis=0)
             corrected = worst > tol
             if corrected.any():
                 rows = np.flatnonzero(corrected)
                 solution = self._collocation(start, rows)
                 values[rows] = self._values_of(solution, len(rows))
                 newton_iterations = solution.stats["newton_iterations"]
-                for estimate in estimates.values():
-                    estimate[rows] = 0.0
+                for bound in estimates.values():
+                    bound[rows] = 0.0
             inside = inside & ~corrected  # a corrected sample does not depend on where the networks were trained
         if len(self.networks) > 1:
             n = len(self.compiled.states)
@@ -470,8 +470,11 @@ class Surrogate:
             k = int(np.argmin(np.abs(grid[:-1] - t)))  # the segment this step is
             x = torch.cat([torch.as_tensor(y, dtype=dtype, device=config.device), extra], dim=1)
             with torch.no_grad():
-                pred = self.networks[k].predict(x, float(grid[k + 1] - grid[k]))
-            return torch.cat([pred.Y, pred.Z], dim=2)
+                stages = []
+                for chunk in _chunks(len(x)):
+                    pred = self.networks[k].predict(x[chunk], float(grid[k + 1] - grid[k]))
+                    stages.append(torch.cat([pred.Y, pred.Z], dim=2))
+            return torch.cat(stages)
 
         return solve(
             self.compiled,
