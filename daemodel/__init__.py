@@ -6,6 +6,7 @@ from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.compare import Comparison, compare
 from daemodel.compiled import CompiledDAE
+from daemodel.ensemble import ensemble
 from daemodel.model import Model
 from daemodel.solution import Solution
 from daemodel.solver import solve
@@ -20,6 +21,7 @@ __all__ = [
     "Solution",
     "Surrogate",
     "compare",
+    "ensemble",
     "errors",
     "methods",
     "radau_iia",

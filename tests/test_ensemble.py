@@ -1,0 +1,131 @@
+"""dm.ensemble: a large batch in chunks, in this process or on a local Ray cluster, against one
+batched radau call, with failing samples recorded by index."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel.errors import ConvergenceError, InvalidOptionError
+from daemodel.problems import PENDULUM
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return PENDULUM.model().compile()
+
+
+@pytest.fixture(scope="module")
+def states(pendulum):
+    rng = np.random.default_rng(0)
+    B = 1500
+    return pendulum.consistent(y0={"y1": rng.uniform(0.99, 1.01, B), "y4": rng.uniform(0.99, 1.01, B)})
+
+
+@pytest.fixture(scope="module")
+def blowup():
+    """x' = k x^2, x(0) = 1: x = 1 / (1 - k t) blows up at t = 1/k, inside [0, 1] for k > 1."""
+    m = dm.Model("blowup")
+    (x,) = m.states("x")
+    k = m.parameter("k", 1.0)
+    m.ode(x, k * x**2)
+    m.initial(x=1.0)
+    return m.compile()
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, log_to_driver=False, include_dashboard=False)
+    yield ray
+    ray.shutdown()
+
+
+def same(a, b, names) -> float:
+    return max(float(np.abs(a[name] - b[name]).max()) for name in names)
+
+
+def test_local_ensemble_equals_one_batched_call(pendulum, states):
+    one = dm.solve(pendulum, (0.0, 1.0), h=0.05, y0=states)
+    ensemble = dm.ensemble(pendulum, (0.0, 1.0), y0=states, h=0.05, chunk=400)
+    names = (*pendulum.state_names, *pendulum.algebraic_names)
+    assert same(one, ensemble, names) < 1e-13
+    assert ensemble["y5"].shape == (1500, 21) and ensemble.batched and ensemble.status == "success"
+    np.testing.assert_array_equal(ensemble.stats["samples"], np.arange(1500))
+    assert [c["size"] for c in ensemble.stats["chunks"]] == [400, 400, 400, 300]
+    assert ensemble.stats["failures"] == [] and ensemble.stats["engine"] == "local"
+
+
+def test_a_failing_sample_is_recorded_and_left_out(blowup):
+    """k = 5 and 20 blow up inside [0, 1]: one batched call fails as a whole; the ensemble
+    splits the failing chunk down to them, records them by index and returns the others."""
+    k = np.array([0.1, 0.5, 5.0, 0.2, 20.0, 0.3, 0.4])
+    with pytest.raises(ConvergenceError, match="Newton failed"):
+        dm.solve(blowup, (0.0, 1.0), h=0.05, parameters={"k": k})
+    ensemble = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=4)
+    assert [(f.index, f.error) for f in ensemble.stats["failures"]] == [
+        (2, "ConvergenceError"),
+        (4, "ConvergenceError"),
+    ]
+    assert "Newton failed" in ensemble.stats["failures"][0].message
+    kept = np.array([0, 1, 3, 5, 6])
+    np.testing.assert_array_equal(ensemble.stats["samples"], kept)
+    np.testing.assert_allclose(ensemble.parameters[:, 0], k[kept])
+    np.testing.assert_allclose(ensemble["x"][:, -1], 1 / (1 - k[kept]), rtol=1e-6)  # the exact solution
+    assert np.isfinite(ensemble["x"]).all()
+    assert ensemble.status.endswith(
+        "2 of 7 samples failed and are left out (stats['failures'], first: sample 2, ConvergenceError)"
+    )
+
+
+def test_an_ensemble_whose_every_sample_fails_raises(blowup):
+    with pytest.raises(ConvergenceError, match=r"ensemble: every one of the 2 samples failed; sample 0: Convergence"):
+        dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": [5.0, 20.0]})
+
+
+def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup):
+    """Four tasks on a local Ray cluster of 2 CPUs: the same values as one batched call, each
+    task's peak memory recorded; failures travel back from the workers by index."""
+    one = dm.solve(pendulum, (0.0, 1.0), h=0.05, y0=states)
+    ensemble = dm.ensemble(pendulum, (0.0, 1.0), y0=states, h=0.05, chunk=400, engine="ray")
+    assert same(one, ensemble, (*pendulum.state_names, *pendulum.algebraic_names)) < 1e-13
+    np.testing.assert_array_equal(ensemble.stats["samples"], np.arange(1500))
+    assert len(ensemble.stats["peak_memory_mb"]) == 4 and min(ensemble.stats["peak_memory_mb"]) > 0
+    k = np.array([0.1, 5.0, 0.2, 0.3])
+    failing = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray")
+    assert [f.index for f in failing.stats["failures"]] == [1]
+    np.testing.assert_array_equal(failing.stats["samples"], [0, 2, 3])
+    with pytest.raises(
+        InvalidOptionError, match="Ray is already running in this process: leave out address and workers"
+    ):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=2)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"engine": "dask"}, "engine must be one of local, ray; got 'dask'"),
+        ({"chunk": 0}, r"chunk must be a positive integer \(samples per task\); got 0"),
+        ({"chunk": 2.5}, r"chunk must be a positive integer \(samples per task\); got 2.5"),
+        ({"workers": 2}, "workers and address are Ray's: pass engine='ray' with them"),
+        ({"engine": "ray", "workers": 0}, "workers must be a positive integer; got 0"),
+        (
+            {"y0": {"y4": [1.0, 1.0]}, "parameters": {"lam": [1.0, 1.0, 1.0]}},
+            "y0, z0 and parameters make batches of different sizes: y0: 2, parameters: 3",
+        ),
+    ],
+)
+def test_ensemble_errors(pendulum, options, message):
+    with pytest.raises(InvalidOptionError, match=message):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, **options)
+
+
+def test_ray_missing_says_how_to_install_it(pendulum, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    with pytest.raises(
+        InvalidOptionError, match=r"engine='ray' needs Ray, which is not installed: pip install 'daemodel\[ray\]'"
+    ):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray")
