@@ -31,14 +31,14 @@ def readme_scripts() -> list[str]:
 
 def test_readme_has_the_snippets_this_test_runs():
     scripts = readme_scripts()
-    assert len(scripts) == 4  # the walk-through (model, solve), compare, the PINN, parallel PINN training
+    assert len(scripts) == 5  # the walk-through (model, solve), ensembles, compare, the PINN, parallel PINN training
     assert all("import daemodel as dm" in script for script in scripts)
 
 
 @pytest.mark.parametrize(
     "index",
-    [0, 1, pytest.param(2, marks=pytest.mark.slow), 3],  # the PINN snippet trains for a minute or more
-    ids=["walk-through", "compare", "pinn", "parallel-pinn"],
+    [0, 1, 2, pytest.param(3, marks=pytest.mark.slow), 4],  # the PINN snippet trains for a minute or more
+    ids=["walk-through", "ensemble", "compare", "pinn", "parallel-pinn"],
 )
 def test_readme_snippet_runs(index, tmp_path):
     script = tmp_path / "snippet.py"
