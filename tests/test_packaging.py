@@ -37,6 +37,7 @@ def test_public_api():
         "Solution",
         "Surrogate",
         "compare",
+        "ensemble",
         "errors",
         "methods",
         "radau_iia",
