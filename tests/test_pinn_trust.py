@@ -42,6 +42,19 @@ def boxed(pendulum):
 
 
 @pytest.fixture(scope="module")
+def trained(pendulum):
+    """A pendulum surrogate trained as by default on 16 states of the box +-1 % in y1 and y4, on [0, 0.25]."""
+    return dm.Surrogate.train(pendulum, (0.0, 0.25), box={"y1": (0.99, 1.01), "y4": (0.99, 1.01)}, samples=16)
+
+
+def held_out(pendulum, seed: int, count: int):
+    """``count`` consistent states drawn like ``trained``'s training states."""
+    rng = np.random.default_rng(seed)
+    y = {"y1": rng.uniform(0.99, 1.01, count), "y4": rng.uniform(0.99, 1.01, count)}
+    return pendulum.consistent(y0={**y, "y2": np.zeros(count), "y3": np.zeros(count)})
+
+
+@pytest.fixture(scope="module")
 def trajectory_file(pendulum, tmp_path_factory):
     """The networks of an ordinary pendulum solve (one start, lam = 1 fixed)."""
     path = tmp_path_factory.mktemp("pinn") / "pendulum.pt"
@@ -192,14 +205,11 @@ def test_newton_from_the_networks_returns_the_collocation_solution(boxed, pendul
     assert hybrid.stats["mode"] == "surrogate + newton" and hybrid.method == "radau"
 
 
-def test_a_trained_networks_guess_saves_newton_iterations(pendulum):
+def test_a_trained_networks_guess_saves_newton_iterations(pendulum, trained):
     """Trained networks (16 states, 40 LM steps a segment) put the stages within 4e-7 of the
     collocation solution: full Newton from there takes 2 iterations a step, radau's own
     extrapolated guess 3-4."""
-    surrogate = dm.Surrogate.train(pendulum, (0.0, 0.25), box={"y1": (0.99, 1.01), "y4": (0.99, 1.01)}, samples=16)
-    rng = np.random.default_rng(1)
-    y = {"y1": rng.uniform(0.99, 1.01, 50), "y2": np.zeros(50), "y3": np.zeros(50), "y4": rng.uniform(0.99, 1.01, 50)}
-    y0 = pendulum.consistent(y0=y)
+    surrogate, y0 = trained, held_out(pendulum, seed=1, count=50)
     hybrid = surrogate.solve(y0=y0, newton=True, outside="ignore")
     newton = dm.solve(pendulum, (0.0, 0.25), h=0.05, y0=y0)
     assert np.max(np.abs(hybrid["y5"] - newton["y5"])) < 1e-12
@@ -207,16 +217,13 @@ def test_a_trained_networks_guess_saves_newton_iterations(pendulum):
     assert hybrid.stats["newton_iterations"] <= 2 * hybrid.stats["steps"] < newton.stats["newton_iterations"]
 
 
-def test_the_error_estimate_bounds_the_error_of_held_out_answers(pendulum):
+def test_the_error_estimate_bounds_the_error_of_held_out_answers(pendulum, trained):
     """Each answer's estimate, from its own stage residual, against its true error (radau's
     collocation solution at the same s and h) on 300 held-out states drawn like the 16 training
     states: it bounds y and z for at least 99 % of them, and y's is not vacuous (its median is
     within 10x of the error)."""
-    surrogate = dm.Surrogate.train(pendulum, (0.0, 0.25), box={"y1": (0.99, 1.01), "y4": (0.99, 1.01)}, samples=16)
-    rng = np.random.default_rng(7)
     B = 300
-    y = {"y1": rng.uniform(0.99, 1.01, B), "y2": np.zeros(B), "y3": np.zeros(B), "y4": rng.uniform(0.99, 1.01, B)}
-    y0 = pendulum.consistent(y0=y)
+    surrogate, y0 = trained, held_out(pendulum, seed=7, count=B)
     answer = surrogate.solve(y0=y0, estimate=True, outside="ignore")
     newton = dm.solve(pendulum, (0.0, 0.25), h=0.05, y0=y0)
     estimate = answer.stats["error_estimate"]
@@ -228,16 +235,13 @@ def test_the_error_estimate_bounds_the_error_of_held_out_answers(pendulum):
     assert np.median(estimate["y"][:, 1:] / error_y) < 10
 
 
-def test_tol_corrects_exactly_the_samples_whose_estimate_exceeds_it(pendulum):
+def test_tol_corrects_exactly_the_samples_whose_estimate_exceeds_it(pendulum, trained):
     """solve(tol=...): samples whose error estimate exceeds tol return radau's collocation
     solution (Newton from their networks' guesses), the others their networks' answer, and every
     sample ends within tol of the collocation solution.  tol is set at the median estimate, so
     about half are corrected."""
-    surrogate = dm.Surrogate.train(pendulum, (0.0, 0.25), box={"y1": (0.99, 1.01), "y4": (0.99, 1.01)}, samples=16)
-    rng = np.random.default_rng(11)
     B = 200
-    y = {"y1": rng.uniform(0.99, 1.01, B), "y2": np.zeros(B), "y3": np.zeros(B), "y4": rng.uniform(0.99, 1.01, B)}
-    y0 = pendulum.consistent(y0=y)
+    surrogate, y0 = trained, held_out(pendulum, seed=11, count=B)
     networks = surrogate.solve(y0=y0, estimate=True, outside="ignore")
     worst = np.maximum(networks.stats["error_estimate"]["y"].max(1), networks.stats["error_estimate"]["z"].max(1))
     tol = float(np.median(worst))
@@ -270,12 +274,14 @@ def test_large_query_batches_are_evaluated_in_chunks(boxed, pendulum, monkeypatc
     monkeypatch.setattr(surrogate, "EVALUATION_CHUNK", 7)
     chunked = boxed.solve(y0=y0, parameters=parameters, estimate=True)
     plain = boxed.solve(y0=y0, parameters=parameters)
+    # equal up to rounding: a batch of another size may sum in another order (measured: values
+    # 2e-16, estimates 1.3e-14 relative); a misplaced chunk would differ in the first digit
     for name in ("y1", "y2", "y3", "y4", "y5"):
-        np.testing.assert_allclose(chunked[name], whole[name], rtol=1e-13, atol=1e-15)
-        np.testing.assert_allclose(plain[name], whole[name], rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(chunked[name], whole[name], rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(plain[name], whole[name], rtol=1e-12, atol=1e-14)
     for key in ("y", "z"):
         assert chunked.stats["error_estimate"][key].shape == (20, 3)
-        np.testing.assert_allclose(chunked.stats["error_estimate"][key], whole.stats["error_estimate"][key], rtol=1e-12)
+        np.testing.assert_allclose(chunked.stats["error_estimate"][key], whole.stats["error_estimate"][key], rtol=1e-10)
 
 
 def test_tol_errors(boxed):
