@@ -8,6 +8,7 @@ index in ``stats["failures"]`` and left out of the returned Solution, whose valu
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -168,8 +169,6 @@ def solve_chunk(compiled, t_span, method: str, options: dict, offset: int, batch
 
 def _shell(solution: Solution) -> Solution:
     """The solution without its values: what the assembled Solution takes its settings from."""
-    import dataclasses
-
     return dataclasses.replace(solution, values={}, parameters=np.zeros((0, 0)))
 
 
@@ -238,8 +237,6 @@ def _report(progress: bool, results: list, chunks: int, began: float) -> None:
 
 
 def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int) -> Solution:
-    import dataclasses
-
     from daemodel.errors import ConvergenceError
 
     failures = sorted((failure for result in results for failure in result["failures"]), key=lambda f: f.index)
