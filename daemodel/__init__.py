@@ -6,7 +6,7 @@ from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.compare import Comparison, compare
 from daemodel.compiled import CompiledDAE
-from daemodel.ensemble import ensemble
+from daemodel.ensemble import EnsembleFiles, ensemble
 from daemodel.model import Model
 from daemodel.solution import Solution
 from daemodel.solver import solve
@@ -15,6 +15,7 @@ from daemodel.tableau import RadauIIA, radau_iia
 __all__ = [
     "Comparison",
     "CompiledDAE",
+    "EnsembleFiles",
     "Model",
     "PINNConfig",
     "RadauIIA",

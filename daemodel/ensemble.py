@@ -9,27 +9,36 @@ index in ``stats["failures"]`` and left out of the returned Solution, whose valu
 from __future__ import annotations
 
 import dataclasses
+import json
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from daemodel.engine import check_engine, run_tasks
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
     InitialisationError,
     InvalidOptionError,
+    SolutionFileError,
     SolverError,
 )
+from daemodel.files import writable_directory
 from daemodel.solution import Solution
 
-ENGINES = ("local", "ray")
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
 DEFAULT_CHUNK = 10_000
 # Failures of a single sample: what its own states or the method's iteration caused.  Any other
 # error (a wrong option, a model error) would fail every sample and ends the ensemble at once.
 SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateError, InconsistentAlgebraicValueError)
+# What ensemble(write_to=...) writes: a manifest and one Solution.save file per chunk with values.
+ENSEMBLE_FORMAT = "daemodel-ensemble/1"
+MANIFEST = "ensemble.json"
+CHUNK_FILE = "chunk-{offset:012d}.npz"
 
 
 @dataclass(frozen=True)
@@ -63,8 +72,9 @@ def ensemble(
     workers: int | None = None,
     address: str | None = None,
     progress: bool = False,
+    write_to=None,
     **options,
-) -> Solution:
+) -> Solution | EnsembleFiles:
     """Solve a large batch in chunks: ``engine="local"`` one chunk after another in this process
     (no Ray, no worker processes), ``engine="ray"`` one Ray task per chunk.
 
@@ -85,6 +95,12 @@ def ensemble(
         running one, else a new local one.
     progress : bool
         One line per finished chunk on stderr.
+    write_to : str or Path, optional
+        A directory (created if missing; it must hold no earlier ensemble) to write each
+        chunk's values to as the chunk finishes, one :meth:`Solution.save` file per chunk, with
+        a manifest ``ensemble.json``, instead of keeping them in memory: for batches whose values
+        do not fit.  The call then returns an :class:`EnsembleFiles`, which reads them back a
+        chunk at a time.
 
     Returns
     -------
@@ -92,18 +108,15 @@ def ensemble(
         The samples that were solved, in batch order, batched.  ``stats["samples"]`` holds their
         indices in the ensemble, ``stats["failures"]`` a :class:`Failure` per sample that was
         not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size.
+        With ``write_to``, an :class:`EnsembleFiles` instead.
     """
     from daemodel.initial_states import _columns
     from daemodel.model import Model
 
-    if engine not in ENGINES:
-        raise InvalidOptionError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
+    check_engine(engine, workers, address)
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
         raise InvalidOptionError(f"chunk must be a positive integer (samples per task); got {chunk!r}")
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
-        raise InvalidOptionError(f"workers must be a positive integer; got {workers!r}")
-    if engine == "local" and (workers is not None or address is not None):
-        raise InvalidOptionError("workers and address are Ray's: pass engine='ray' with them")
+    directory = None if write_to is None else _empty_directory(write_to)
     compiled = model.compile() if isinstance(model, Model) else model
     columns = {
         "y0": _columns(compiled, y0, compiled.state_names, compiled.y0, "y0"),
@@ -125,21 +138,43 @@ def ensemble(
         for start, stop in pieces
     ]
     began = time.perf_counter()
-    if engine == "local":
-        results = []
-        for start, batch in work:
-            results.append(solve_chunk(compiled, t_span, method, options, start, batch))
-            _report(progress, results, len(work), began)
-    else:
-        results = _run_on_ray(compiled, t_span, method, options, work, workers, address, progress, began)
+    finished = []
+
+    def report(_, result) -> None:
+        finished.append(result["size"])
+        if directory is not None:
+            _write_chunk(directory, result)
+        if progress:
+            print(
+                f"ensemble: {len(finished)}/{len(work)} chunks, {sum(finished)} samples, "
+                f"{time.perf_counter() - began:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    results = run_tasks(
+        solve_chunk,
+        (compiled, t_span, method, options),
+        work,
+        engine=engine,
+        workers=workers,
+        address=address,
+        label="ensemble",
+        on_result=report,
+    )
+    if directory is not None:
+        _write_manifest(directory, compiled, results, total, time.perf_counter() - began, engine, chunk)
+        return EnsembleFiles.load(directory, compiled)
     return _assemble(results, total, time.perf_counter() - began, engine, chunk)
 
 
-def solve_chunk(compiled, t_span, method: str, options: dict, offset: int, batch: dict) -> dict:
+def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
     """One chunk: its samples' values, or, for a chunk that fails, its halves' (down to single
-    samples, whose failures are recorded).  Plain data in and out: it runs in a Ray worker."""
+    samples, whose failures are recorded).  ``shared`` is (compiled, t_span, method, options).
+    Plain data in and out: it runs in a Ray worker."""
     from daemodel.solver import solve
 
+    compiled, t_span, method, options = shared
     size = len(batch["y0"])
     began = time.perf_counter()
     try:
@@ -150,7 +185,7 @@ def solve_chunk(compiled, t_span, method: str, options: dict, offset: int, batch
             return {"offset": offset, "size": 1, "seconds": time.perf_counter() - began, "failures": [failure]}
         half = size // 2
         parts = [
-            solve_chunk(compiled, t_span, method, options, offset + lo, {k: v[lo:hi] for k, v in batch.items()})
+            solve_chunk(shared, offset + lo, {k: v[lo:hi] for k, v in batch.items()})
             for lo, hi in ((0, half), (half, size))
         ]
         return _merge(parts, offset, size, time.perf_counter() - began)
@@ -163,13 +198,8 @@ def solve_chunk(compiled, t_span, method: str, options: dict, offset: int, batch
         "indices": np.arange(offset, offset + size),
         "values": values,
         "parameters": np.asarray(solution.parameters).reshape(size, -1),
-        "solution": _shell(solution),
+        "meta": {key: getattr(solution, key) for key in ("t", "method", "settings", "status", "compiled")},
     }
-
-
-def _shell(solution: Solution) -> Solution:
-    """The solution without its values: what the assembled Solution takes its settings from."""
-    return dataclasses.replace(solution, values={}, parameters=np.zeros((0, 0)))
 
 
 def _merge(parts: list, offset: int, size: int, seconds: float) -> dict:
@@ -186,67 +216,13 @@ def _merge(parts: list, offset: int, size: int, seconds: float) -> dict:
             name: np.concatenate([part["values"][name] for part in solved]) for name in solved[0]["values"]
         }
         merged["parameters"] = np.concatenate([part["parameters"] for part in solved])
-        merged["solution"] = solved[0]["solution"]
+        merged["meta"] = solved[0]["meta"]
     return merged
 
 
-def _run_on_ray(compiled, t_span, method, options, work, workers, address, progress, began) -> list:
-    try:
-        import ray
-    except ImportError:
-        raise InvalidOptionError(
-            "engine='ray' needs Ray, which is not installed: pip install 'daemodel[ray]' (or pip install ray)"
-        ) from None
-    if not ray.is_initialized():
-        ray.init(address=address, num_cpus=workers if address is None else None, log_to_driver=False)
-    elif address is not None or workers is not None:
-        raise InvalidOptionError("Ray is already running in this process: leave out address and workers")
-    task = ray.remote(num_cpus=1)(_ray_chunk)
-    shared = ray.put(compiled)  # pickled once; workers regenerate its code, without sympy's analysis
-    pending = [task.remote(shared, t_span, method, options, start, batch) for start, batch in work]
-    results = []
-    while pending:
-        done, pending = ray.wait(pending, num_returns=1)
-        results.append(ray.get(done[0]))
-        _report(progress, results, len(work), began)
-    return sorted(results, key=lambda result: result["offset"])
-
-
-def _ray_chunk(compiled, t_span, method, options, offset, batch):
-    """A Ray task: one chunk on one thread (Ray gives the task one CPU)."""
-    import resource
-
-    import torch
-
-    torch.set_num_threads(1)
-    result = solve_chunk(compiled, t_span, method, options, offset, batch)
-    result["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return result
-
-
-def _report(progress: bool, results: list, chunks: int, began: float) -> None:
-    if progress:
-        import sys
-
-        samples = sum(result["size"] for result in results)
-        print(
-            f"ensemble: {len(results)}/{chunks} chunks, {samples} samples, {time.perf_counter() - began:.1f} s",
-            file=sys.stderr,
-            flush=True,
-        )
-
-
 def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int) -> Solution:
-    from daemodel.errors import ConvergenceError
-
-    failures = sorted((failure for result in results for failure in result["failures"]), key=lambda f: f.index)
+    failures = _failures(results, total)
     solved = [result for result in results if "values" in result]
-    if not solved:
-        first = failures[0]
-        raise ConvergenceError(
-            f"ensemble: every one of the {total} samples failed; sample {first.index}: {first.error}: {first.message}"
-        )
-    shell = solved[0]["solution"]
     values = {name: np.concatenate([result["values"][name] for result in solved]) for name in solved[0]["values"]}
     stats = {
         "engine": engine,
@@ -256,17 +232,235 @@ def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int
         "chunks": [{"offset": r["offset"], "size": r["size"], "seconds": r["seconds"]} for r in results],
         "peak_memory_mb": [r["peak_memory_mb"] for r in results if "peak_memory_mb" in r],
     }
-    status = shell.status
-    if failures:
-        shown = f"{len(failures)} of {total} samples failed and are left out (stats['failures'], first: sample "
-        status = f"{status}; {shown}{failures[0].index}, {failures[0].error})"
-    return dataclasses.replace(
-        shell,
+    meta = solved[0]["meta"]
+    return Solution(
         values=values,
         parameters=np.concatenate([result["parameters"] for result in solved]),
         solve_time=seconds,
-        setup_time=0.0,
         stats=stats,
         batched=True,
-        status=status,
+        **{**meta, "status": _status(meta["status"], failures, total)},
     )
+
+
+def _failures(results: list, total: int) -> list:
+    """Every failure by index; a ConvergenceError naming the first when no sample was solved."""
+    from daemodel.errors import ConvergenceError
+
+    failures = sorted((failure for result in results for failure in result["failures"]), key=lambda f: f.index)
+    if len(failures) == total:
+        first = failures[0]
+        raise ConvergenceError(
+            f"ensemble: every one of the {total} samples failed; sample {first.index}: {first.error}: {first.message}"
+        )
+    return failures
+
+
+def _status(status: str, failures: list, total: int) -> str:
+    if not failures:
+        return status
+    shown = f"{len(failures)} of {total} samples failed and are left out (stats['failures'], first: sample "
+    return f"{status}; {shown}{failures[0].index}, {failures[0].error})"
+
+
+# ---- chunks written to files ----------------------------------------------------------------------
+class EnsembleFiles:
+    """An ensemble written chunk by chunk to a directory by ``ensemble(..., write_to=...)``.
+
+    Iterate over it for one :class:`Solution` per chunk file (its ``stats["samples"]`` are the
+    samples' indices in the ensemble), or gather chosen samples with :meth:`solution`: either
+    way only one chunk's values are read at a time.
+
+    Attributes
+    ----------
+    directory : Path
+    total : int
+        Samples in the ensemble, solved or not.
+    failures : list of Failure
+        The samples that were not solved, by index.
+    status, engine, chunk, seconds
+        As the in-memory ensemble's ``status`` and ``stats``; ``seconds`` is the whole run.
+
+    Examples
+    --------
+    >>> files = dm.ensemble(model, (0, 1), y0=states, h=0.05, write_to="runs/sweep")
+    >>> for part in files:                       # one chunk in memory at a time
+    ...     peak = np.maximum(peak, part["y1"].max(axis=1))
+    >>> files.solution([0, 17, 99_999])["y1"]     # three samples, read from their chunks
+    >>> files = dm.EnsembleFiles.load("runs/sweep", model)   # later, in another process
+    """
+
+    def __init__(self, directory: Path, compiled, manifest: dict):
+        self.directory, self.compiled, self._manifest = directory, compiled, manifest
+        self.total = int(manifest["total"])
+        self.failures = [Failure(**failure) for failure in manifest["failures"]]
+        self.status, self.engine = manifest["status"], manifest["engine"]
+        self.chunk, self.seconds = int(manifest["chunk"]), float(manifest["seconds"])
+
+    @classmethod
+    def load(cls, directory, model) -> EnsembleFiles:
+        """The ensemble written to ``directory`` for ``model`` (a Model or CompiledDAE with the
+        same equations and names).
+
+        Raises
+        ------
+        SolutionFileError
+            No manifest there, not a daemodel ensemble, a chunk file missing, or another model.
+        """
+        from daemodel.solver import as_compiled
+
+        directory = Path(directory).expanduser()
+        path = directory / MANIFEST
+        if not path.is_file():
+            raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, ValueError) as error:
+            raise SolutionFileError(f"{path} is not a daemodel ensemble manifest ({type(error).__name__})") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
+            raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
+        compiled = as_compiled(model, "EnsembleFiles.load()")
+        candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
+        if not any(c.fingerprint() == manifest["fingerprint"] for c in candidates):
+            raise SolutionFileError(
+                f"{directory} holds an ensemble of model '{manifest['model']}' with other equations or names than "
+                f"'{compiled.name}'; load it with the model that was solved"
+            )
+        missing = [entry["file"] for entry in manifest["files"] if not (directory / entry["file"]).is_file()]
+        if missing:
+            raise SolutionFileError(
+                f"{directory}: {len(missing)} of the ensemble's {len(manifest['files'])} chunk files are missing "
+                f"(first: {missing[0]})"
+            )
+        return cls(directory, compiled, manifest)
+
+    def __len__(self) -> int:
+        """Chunk files (a chunk whose every sample failed has none)."""
+        return len(self._manifest["files"])
+
+    @property
+    def solved(self) -> int:
+        """Samples with values."""
+        return sum(entry["solved"] for entry in self._manifest["files"])
+
+    def __iter__(self):
+        for entry in self._manifest["files"]:
+            yield self._read(entry)
+
+    def _read(self, entry: dict) -> Solution:
+        part = Solution.load(self.directory / entry["file"], self.compiled)
+        part.stats["samples"] = np.asarray(part.stats["samples"], dtype=np.int64)
+        return part
+
+    def solution(self, samples=None) -> Solution:
+        """The values of ``samples`` (indices in the ensemble, in the order given; default: every
+        solved sample, which must then fit in memory), as one batched Solution.
+
+        Raises
+        ------
+        InvalidOptionError
+            An index outside the ensemble, or of a sample that failed (named, with its error).
+        """
+        wanted = self._wanted(samples)
+        parts = []
+        for entry in self._manifest["files"]:
+            inside = wanted[(wanted >= entry["offset"]) & (wanted < entry["offset"] + entry["size"])]
+            if len(inside):
+                part = self._read(entry)
+                rows = np.isin(part.stats["samples"], inside)
+                parts.append((part, rows))
+        got = np.concatenate([part.stats["samples"][rows] for part, rows in parts])
+        order = np.argsort(got, kind="stable")
+        take = order[np.searchsorted(got, wanted, sorter=order)]
+        first = parts[0][0]
+        names = (*self.compiled.state_names, *self.compiled.algebraic_names)
+        values = {name: np.concatenate([part.values[name][rows] for part, rows in parts])[take] for name in names}
+        return Solution(
+            t=first.t,
+            values=values,
+            method=first.method,
+            settings=first.settings,
+            solve_time=self.seconds,
+            stats={"samples": wanted, "engine": self.engine, "chunk": self.chunk},
+            compiled=first.compiled,
+            parameters=np.concatenate([part.parameters[rows] for part, rows in parts])[take],
+            batched=True,
+            status=first.status,
+        )
+
+    def _wanted(self, samples) -> np.ndarray:
+        failed = {failure.index: failure for failure in self.failures}
+        if samples is None:
+            return np.array([i for i in range(self.total) if i not in failed], dtype=np.int64)
+        wanted = np.atleast_1d(np.asarray(samples))
+        if wanted.ndim != 1 or not len(wanted) or not np.issubdtype(wanted.dtype, np.integer):
+            raise InvalidOptionError(f"samples must be a non-empty list of sample indices; got {samples!r}")
+        outside = wanted[(wanted < 0) | (wanted >= self.total)]
+        if len(outside):
+            raise InvalidOptionError(f"sample {outside[0]} is not in the ensemble of {self.total} samples")
+        lost = [failed[i] for i in wanted.tolist() if i in failed]
+        if lost:
+            raise InvalidOptionError(
+                f"sample {lost[0].index} failed ({lost[0].error}: {lost[0].message}) and has no values; "
+                f"{len(self.failures)} samples failed (EnsembleFiles.failures)"
+            )
+        return wanted.astype(np.int64)
+
+    def __repr__(self) -> str:
+        return (
+            f"EnsembleFiles('{self.directory}', {self.solved} of {self.total} samples in {len(self)} chunk files, "
+            f"status={self.status!r})"
+        )
+
+
+def _empty_directory(path) -> Path:
+    directory = writable_directory(path, "write_to")
+    earlier = [p.name for p in directory.iterdir() if p.name == MANIFEST or p.name.startswith("chunk-")]
+    if earlier:
+        raise InvalidOptionError(
+            f"write_to {directory} holds an earlier ensemble ({sorted(earlier)[0]}, ...); give an empty directory "
+            "or remove its files"
+        )
+    return directory
+
+
+def _write_chunk(directory: Path, result: dict) -> None:
+    """Write a finished chunk's values and drop them from ``result``, which keeps its bookkeeping."""
+    if "values" not in result:
+        return
+    meta = result.pop("meta")
+    part = Solution(
+        values=result.pop("values"),
+        parameters=result.pop("parameters"),
+        solve_time=result["seconds"],
+        stats={"samples": result["indices"], "failures": [dataclasses.asdict(f) for f in result["failures"]]},
+        batched=True,
+        **meta,
+    )
+    result["file"] = CHUNK_FILE.format(offset=result["offset"])
+    result["solved"] = len(result.pop("indices"))
+    result["status"] = part.status
+    result["fingerprint"] = part.compiled.fingerprint()  # of the system solved: a reduction, for index 3
+    part.save(directory / result["file"])
+
+
+def _write_manifest(directory: Path, compiled, results: list, total: int, seconds: float, engine, chunk) -> None:
+    failures = _failures(results, total)
+    written = [result for result in results if "file" in result]
+    manifest = {
+        "format": ENSEMBLE_FORMAT,
+        "model": compiled.name,
+        "fingerprint": written[0]["fingerprint"],
+        "total": total,
+        "chunk": chunk,
+        "engine": engine,
+        "seconds": seconds,
+        "status": _status(written[0]["status"], failures, total),
+        "failures": [dataclasses.asdict(failure) for failure in failures],
+        "files": [
+            {key: result[key] for key in ("file", "offset", "size", "solved", "seconds")}
+            | {"peak_memory_mb": result.get("peak_memory_mb")}
+            for result in written
+        ],
+    }
+    (directory / MANIFEST).write_text(json.dumps(manifest, indent=1))

@@ -166,12 +166,12 @@ class TrainingError(ConvergenceError):
     """Radau-PINN training failed: a loss term is NaN, exploded, or missed its tolerance."""
 
 
-class WorkerStartError(ModelError):
-    """Worker processes stopped before returning a result (an unguarded script re-run by spawn)."""
+class WorkerError(ModelError):
+    """A Ray worker stopped before returning its task's result (killed, out of memory, crashed)."""
 
 
 class SolutionFileError(ModelError):
-    """A saved solution file does not exist, is not a daemodel solution, or belongs to another model."""
+    """A saved solution file or ensemble directory does not exist, is not daemodel's, or belongs to another model."""
 
 
 class NetworkFileError(ModelError):

@@ -1878,7 +1878,9 @@ def _option_space(method: str, rng: random.Random, t_span):
     if method == "pinn":
         return {
             "config": lambda: _pinn_config(rng, span),
-            "workers": lambda: _pool(rng, [1], [(0, "i"), (-1, "i"), ("2", "i"), (True, "i"), (2, "i")]),
+            # workers are Ray's; ray trains segments in parallel only from segment_starts
+            "workers": lambda: _pool(rng, [], [(1, "i"), (0, "i"), ("2", "i"), (True, "i"), (2, "i")]),
+            "engine": lambda: _pool(rng, ["local"], [("ray", "i"), ("dask", "i"), (None, "i")]),
             "progress": lambda: _pool(rng, [False, None], [("yes", "i"), (1, "i")]),
             "save": lambda: _pool(rng, ["net.pt"], [], ["missing/dir/net.pt"]),
         }
@@ -1967,7 +1969,7 @@ def gen_options(rng: random.Random) -> Case:
             verdict = "i" if rtol < 1e-5 else "v"
     if method == "pinn":
         cfg = options.get("config")
-        if verdict == "v" and options.get("workers", 1) != 1:
+        if verdict == "v" and ("workers" in options or options.get("engine", "local") != "local"):
             verdict = "i"
         if verdict == "v" and "save" in options and options["save"] != "net.pt":
             verdict = "e"
@@ -3361,10 +3363,10 @@ def api_edge_cases() -> list[Case]:
     for config, expect in (({"h": 0.1}, "invalid"), (None, "invalid"), ("fast", "invalid")):
         solve(f"pinn config={config!r}", expect, method="pinn", options={"config": config})
     solve(
-        "pinn workers=2 without segment_starts",
+        "pinn engine='ray' without segment_starts",
         "invalid",
         method="pinn",
-        options={"workers": 2, "config": PinnSpec({"h": 0.1})},
+        options={"engine": "ray", "config": PinnSpec({"h": 0.1})},
     )
     solve(
         "pinn segment_starts of the wrong shape",

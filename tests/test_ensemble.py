@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import daemodel as dm
-from daemodel.errors import ConvergenceError, InvalidOptionError
+from daemodel.errors import ConvergenceError, InvalidOptionError, SolutionFileError
 from daemodel.problems import PENDULUM
 
 
@@ -34,14 +34,6 @@ def blowup():
     m.ode(x, k * x**2)
     m.initial(x=1.0)
     return m.compile()
-
-
-@pytest.fixture(scope="module")
-def ray_cluster():
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, log_to_driver=False, include_dashboard=False)
-    yield ray
-    ray.shutdown()
 
 
 def same(a, b, names) -> float:
@@ -86,7 +78,7 @@ def test_an_ensemble_whose_every_sample_fails_raises(blowup):
         dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": [5.0, 20.0]})
 
 
-def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup):
+def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup, tmp_path):
     """Four tasks on a local Ray cluster of 2 CPUs: the same values as one batched call, each
     task's peak memory recorded; failures travel back from the workers by index."""
     one = dm.solve(pendulum, (0.0, 1.0), h=0.05, y0=states)
@@ -98,6 +90,9 @@ def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup
     failing = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray")
     assert [f.index for f in failing.stats["failures"]] == [1]
     np.testing.assert_array_equal(failing.stats["samples"], [0, 2, 3])
+    files = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray", write_to=tmp_path)
+    assert [f.index for f in files.failures] == [1] and files.engine == "ray"
+    np.testing.assert_array_equal(files.solution()["x"], failing["x"])
     with pytest.raises(
         InvalidOptionError, match="Ray is already running in this process: leave out address and workers"
     ):
@@ -129,3 +124,94 @@ def test_ray_missing_says_how_to_install_it(pendulum, monkeypatch):
         InvalidOptionError, match=r"engine='ray' needs Ray, which is not installed: pip install 'daemodel\[ray\]'"
     ):
         dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray")
+
+
+def test_a_model_with_an_eliminated_alias():
+    """The compiler eliminates x = y1; every chunk's Solution, and the ensemble's, computes it."""
+    m = dm.Model("aliased")
+    y1, y2 = m.states("y1 y2")
+    w, x = m.algebraics("w x")
+    m.ode(y1, -w)
+    m.ode(y2, x - y2)
+    m.constraint(w - y1**2, name="law")
+    m.constraint(x - y1, name="same")
+    m.initial(y1=2.0, y2=0.5)
+    ensemble = dm.ensemble(m, (0.0, 0.1), h=0.05, y0={"y1": [1.0, 2.0, 3.0]}, chunk=2)
+    np.testing.assert_array_equal(ensemble["x"], ensemble["y1"])
+    np.testing.assert_allclose(ensemble["y1"][:, -1], 1 / (1 / np.array([1.0, 2.0, 3.0]) + 0.1), rtol=1e-6)
+
+
+# ---- chunks written to files --------------------------------------------------------------------
+def test_chunks_written_to_files_read_back_a_chunk_at_a_time(pendulum, states, tmp_path):
+    one = dm.solve(pendulum, (0.0, 1.0), h=0.05, y0=states)
+    files = dm.ensemble(pendulum, (0.0, 1.0), y0=states, h=0.05, chunk=400, write_to=tmp_path / "sweep")
+    assert sorted(p.name for p in (tmp_path / "sweep").iterdir()) == [
+        "chunk-000000000000.npz",
+        "chunk-000000000400.npz",
+        "chunk-000000000800.npz",
+        "chunk-000000001200.npz",
+        "ensemble.json",
+    ]
+    assert repr(files).endswith("1500 of 1500 samples in 4 chunk files, status='success')")
+    names = (*pendulum.state_names, *pendulum.algebraic_names)
+    for part in files:
+        rows = part.stats["samples"]
+        assert len(rows) <= 400
+        for name in names:
+            np.testing.assert_array_equal(part[name], one[name][rows])
+    picked = [1499, 3, 800, 3]
+    again = dm.EnsembleFiles.load(tmp_path / "sweep", PENDULUM.model())  # another process would do this
+    chosen = again.solution(picked)
+    np.testing.assert_array_equal(chosen.stats["samples"], picked)
+    for name in names:
+        np.testing.assert_array_equal(chosen[name], one[name][picked])
+    np.testing.assert_array_equal(chosen.parameters, one.parameters[picked])
+    assert same(one, again.solution(), names) == 0.0
+
+
+def test_failures_written_to_files(blowup, tmp_path):
+    """Samples 2 and 3 (k = 5, 20) fail; their chunk has no file and asking for them names why."""
+    k = np.array([0.1, 0.5, 5.0, 20.0, 0.3])
+    files = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, write_to=tmp_path)
+    assert [(f.index, f.error) for f in files.failures] == [(2, "ConvergenceError"), (3, "ConvergenceError")]
+    assert len(files) == 2 and files.solved == 3 and files.total == 5
+    assert files.status.endswith(
+        "2 of 5 samples failed and are left out (stats['failures'], first: sample 2, ConvergenceError)"
+    )
+    np.testing.assert_array_equal(files.solution().stats["samples"], [0, 1, 4])
+    np.testing.assert_allclose(files.solution([4, 0])["x"][:, -1], 1 / (1 - k[[4, 0]]), rtol=1e-6)
+    with pytest.raises(
+        InvalidOptionError, match=r"sample 3 failed \(ConvergenceError: .*Newton failed.*\) and has no values"
+    ):
+        files.solution([0, 3])
+    with pytest.raises(InvalidOptionError, match="sample 5 is not in the ensemble of 5 samples"):
+        files.solution([5])
+    with pytest.raises(InvalidOptionError, match=r"samples must be a non-empty list of sample indices; got \[0.5\]"):
+        files.solution([0.5])
+
+
+def test_ensemble_file_errors(pendulum, blowup, tmp_path):
+    files = dm.ensemble(blowup, (0.0, 0.1), h=0.05, parameters={"k": [0.1, 0.2]}, write_to=tmp_path / "a")
+    with pytest.raises(InvalidOptionError, match=r"write_to .*a holds an earlier ensemble \(chunk-000000000000.npz"):
+        dm.ensemble(blowup, (0.0, 0.1), h=0.05, write_to=tmp_path / "a")
+    with pytest.raises(InvalidOptionError, match=r"write_to .* is an existing file, not a directory"):
+        dm.ensemble(blowup, (0.0, 0.1), h=0.05, write_to=files.directory / "ensemble.json")
+    with pytest.raises(
+        SolutionFileError, match=r"holds an ensemble of model 'blowup' with other equations or names than 'pendulum'"
+    ):
+        dm.EnsembleFiles.load(files.directory, pendulum)
+    with pytest.raises(SolutionFileError, match=r"no ensemble at .*: ensemble.json is missing"):
+        dm.EnsembleFiles.load(tmp_path, blowup)
+    (files.directory / "chunk-000000000000.npz").unlink()
+    with pytest.raises(
+        SolutionFileError, match=r"1 of the ensemble's 1 chunk files are missing \(first: chunk-000000000000.npz\)"
+    ):
+        dm.EnsembleFiles.load(files.directory, blowup)
+    (files.directory / "ensemble.json").write_text('{"format": "something-else"}')
+    with pytest.raises(
+        SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/1'\\)"
+    ):
+        dm.EnsembleFiles.load(files.directory, blowup)
+    (files.directory / "ensemble.json").write_text("{not json")
+    with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError\)"):
+        dm.EnsembleFiles.load(files.directory, blowup)

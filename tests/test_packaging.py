@@ -31,6 +31,7 @@ def test_public_api():
     assert set(dm.__all__) == {
         "CompiledDAE",
         "Comparison",
+        "EnsembleFiles",
         "Model",
         "PINNConfig",
         "RadauIIA",

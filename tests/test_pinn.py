@@ -172,15 +172,27 @@ def test_progress_bar_shows_segment_iteration_and_loss_terms(capsys, monkeypatch
 
 
 # ---- segment-parallel training -------------------------------------------------------------------
-@pytest.mark.parametrize("workers", [1, 2])
-def test_segment_parallel_training_from_known_starts(workers):
+def test_segment_parallel_training_from_known_starts():
     c = HESSENBERG.model().compile()
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
-    sol = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, workers=workers)
-    assert sol.stats["mode"] == "parallel"
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau)
+    assert sol.stats["mode"] == "parallel" and sol.settings["engine"] == "local"
     assert sol.stats["start_mismatch"] < 1e-10
     for name in sol.names:
         np.testing.assert_allclose(sol[name], radau[name], atol=1e-9)
+
+
+def test_segments_trained_as_ray_tasks_equal_the_local_ones(ray_cluster):
+    """Four segments as tasks on a 2-CPU Ray cluster: each task trains from the same seed on one
+    thread, so the networks, and the values, are the local engine's."""
+    c = HESSENBERG.model().compile()
+    radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
+    local = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau)
+    ray = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, engine="ray")
+    for name in ray.names:
+        np.testing.assert_allclose(ray[name], local[name], rtol=0, atol=1e-13)
+    assert ray.stats["iterations"] == local.stats["iterations"]
+    assert len(ray.stats["peak_memory_mb"]) == 4 and min(ray.stats["peak_memory_mb"]) > 0
 
 
 def test_segment_starts_as_an_array():
@@ -220,6 +232,55 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
     z_error = np.abs(sol["y5"] - radau["y5"]).max()
     print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")
     assert y_error < 3e-6 and z_error < 3e-5
+
+
+def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
+    """starts='radau': every segment trains from radau's solution of the training states, so the
+    segments are independent; on Ray they train in parallel and give the local engine's networks."""
+    from daemodel.initial_states import project_states
+
+    c = HESSENBERG.model().compile()
+    box = {name: (0.98, 1.02) for name in c.state_names}
+    ray = dm.Surrogate.train(c, (0.0, 0.1), box=box, samples=64, starts="radau", engine="ray")
+    rng = np.random.default_rng(0)
+    y0 = project_states(c, rng.uniform(0.99, 1.01, (200, 4)), np.zeros((200, 0)))
+    sol = ray.solve(y0=y0)
+    radau = dm.solve(c, (0.0, 0.1), method="radau", stages=3, h=0.05, y0=y0)
+    y_error = max(np.abs(sol[k] - radau[k]).max() for k in c.state_names)
+    z_error = np.abs(sol["y5"] - radau["y5"]).max()
+    print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")
+    assert y_error < 3e-6 and z_error < 3e-5
+    few = {"box": box, "samples": 16, "starts": "radau"}
+    local, ray = dm.Surrogate.train(c, (0.0, 0.1), **few), dm.Surrogate.train(c, (0.0, 0.1), **few, engine="ray")
+    sol, on_ray = local.solve(y0=y0), ray.solve(y0=y0)
+    for name in sol.names:
+        np.testing.assert_allclose(on_ray[name], sol[name], rtol=0, atol=1e-13)
+    assert local.box == ray.box
+
+
+def test_training_states_radau_cannot_solve_are_left_out_with_a_warning():
+    """x' = k x^2 blows up at t = 1 / (k x0): inside [0, 0.5] for some of the box's k."""
+    m = dm.Model("blowup")
+    (x,) = m.states("x")
+    k = m.parameter("k", 1.0)
+    m.ode(x, k * x**2)
+    m.initial(x=1.0)
+    c = m.compile()
+    config = dm.PINNConfig(width=16, warm_start=False, tol=None, iterations=40, h=0.05)
+    with pytest.warns(UserWarning, match=r"radau could not solve 6 of 16 training states \(sample\(s\) 0, 4, 6,"):
+        surrogate = dm.Surrogate.train(
+            c,
+            (0.0, 0.5),
+            box={"x": (0.9, 1.1)},
+            parameter_box={"k": (0.1, 3.0)},
+            samples=16,
+            config=config,
+            starts="radau",
+        )
+    sol = surrogate.solve(y0={"x": [0.95, 1.0]}, parameters={"k": [0.5, 1.0]})
+    exact = 1 / (1 / np.array([[0.95], [1.0]]) - np.array([[0.5], [1.0]]) * sol.t)
+    assert np.isfinite(surrogate.segment_ranges[0]).all()  # no failed state reached the training
+    np.testing.assert_allclose(sol["x"], exact, rtol=3e-2)  # 10 states over a 2-D box: a coarse fit
 
 
 @pytest.mark.parametrize("architecture", ["per-variable", "shared"])
@@ -490,8 +551,23 @@ def test_option_errors(tmp_path):
     c = HESSENBERG.model().compile()
     with pytest.raises(InvalidOptionError, match=r"config must be a dm\.PINNConfig; got dict"):
         dm.solve(c, (0.0, 0.1), method="pinn", config={"h": 0.05})
-    with pytest.raises(InvalidOptionError, match=r"workers > 1 .* needs segment_starts"):
+    with pytest.raises(
+        InvalidOptionError, match=r"engine='ray' trains segments in parallel, which needs segment_starts"
+    ):
+        dm.solve(c, (0.0, 0.1), method="pinn", engine="ray")
+    with pytest.raises(InvalidOptionError, match="workers and address are Ray's: pass engine='ray' with them"):
         dm.solve(c, (0.0, 0.1), method="pinn", workers=2)
+    with pytest.raises(InvalidOptionError, match="engine must be one of local, ray; got 'processes'"):
+        dm.solve(c, (0.0, 0.1), method="pinn", engine="processes")
+    with pytest.raises(InvalidOptionError, match=r"engine='ray' trains on the workers' CPUs .* device = 'meta'"):
+        dm.solve(
+            c,
+            (0.0, 0.1),
+            method="pinn",
+            engine="ray",
+            segment_starts=np.ones((2, 4)),
+            config=dm.PINNConfig(device="meta"),
+        )
     with pytest.raises(ShapeError, match=r"segment_starts must have shape \(2, 4\) or \(1, 2, 4\)"):
         dm.solve(c, (0.0, 0.1), method="pinn", segment_starts=np.ones((3, 4)))
     if not torch.cuda.is_available():
@@ -524,6 +600,14 @@ def test_surrogate_errors():
         dm.Surrogate.train(c, (0.0, 0.05), box={"q": (0, 1)})
     with pytest.raises(InvalidOptionError, match=r"box\['y1'\] = \(1, 0\) must be finite with low < high"):
         dm.Surrogate.train(c, (0.0, 0.05), box={"y1": (1, 0)})
+    with pytest.raises(InvalidOptionError, match="starts must be one of network, radau; got 'guess'"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="guess")
+    with pytest.raises(
+        InvalidOptionError, match="engine='ray' trains segments in parallel, which needs starts='radau'"
+    ):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, engine="ray")
+    with pytest.raises(InvalidOptionError, match="workers and address are Ray's"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", workers=2)
     cfg = dm.PINNConfig(tol=1e-3)
     surrogate = dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, samples=4, config=cfg)
     with pytest.raises(InvalidOptionError, match="parameter 'lam' was fixed when these networks were trained"):

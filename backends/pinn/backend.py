@@ -21,6 +21,7 @@ from daemodel.backends.base import (
 )
 from daemodel.backends.pinn.config import PINNConfig
 
+from daemodel.engine import check_engine
 from daemodel.errors import InvalidOptionError, ShapeError
 from daemodel.files import writable_file
 
@@ -49,15 +50,22 @@ class PINNOptions:
         Known states at the start of every segment, from a classical solve on a grid that
         contains the segment boundaries or an earlier sweep: an array (segments, n) or
         (B, segments, n) in state order, or a Solution.  The segments then train
-        independently (in ``workers`` processes) instead of one after the other.
-    workers : int
-        Processes for segment-parallel training (with ``segment_starts``).
+        independently from them, as tasks of ``engine``, instead of each from the previous
+        one's prediction.
+    engine : {"local", "ray"}
+        Where independently trained segments run: one after another in this process (the
+        default; no worker processes), or one Ray task each, in parallel (``daemodel[ray]``;
+        needs ``segment_starts``, on CPU).  As in :func:`daemodel.ensemble`.
+    workers : int, optional
+        Ray only, when this call starts Ray: the CPUs of the local cluster (default: all).
+    address : str, optional
+        Ray only: the cluster to connect to (``"auto"``, ``"ray://host:10001"``).
     threads : int, optional
         torch's intra-op threads for training and evaluation (the caller's setting is restored
         after the solve).  Default: one: a segment's networks are too small to gain from more
         (Hessenberg's fast mode: 0.37 s on one thread, 0.46 s on two, on an idle 2-core CPU, and
-        7x slower with two threads when another process holds a core).  Parallel workers
-        (``workers``) share the cores between them instead.
+        7x slower with two threads when another process holds a core).  Ray tasks take one
+        CPU and one thread each.
     progress : bool, optional
         Show a progress bar with the segment, the iteration and the loss terms (default: when
         stderr is a terminal).
@@ -72,7 +80,9 @@ class PINNOptions:
     stages: int | None = None
     h: float | None = None
     segment_starts: object = None
-    workers: int = 1
+    engine: str = "local"
+    workers: int | None = None
+    address: str | None = None
     threads: int | None = None
     progress: bool | None = None
     save: object = None
@@ -86,12 +96,16 @@ class PINNOptions:
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         check_threads(self.threads)
-        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or self.workers < 1:
-            raise InvalidOptionError(f"workers must be a positive integer; got {self.workers!r}")
-        if self.workers > 1 and self.segment_starts is None:
+        check_engine(self.engine, self.workers, self.address)
+        if self.engine == "ray" and self.segment_starts is None:
             raise InvalidOptionError(
-                "workers > 1 trains segments in parallel, which needs segment_starts (known start values); "
+                "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
+            )
+        if self.engine == "ray" and self.config.device != "cpu":
+            raise InvalidOptionError(
+                f"engine='ray' trains on the workers' CPUs (one each); device = {self.config.device!r} trains "
+                "here: take engine='local' for it"
             )
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InvalidOptionError(f"progress must be True, False or None; got {self.progress!r}")
@@ -142,7 +156,9 @@ class PINNBackend(AbstractBackend):
             )
             bar = Progress(segments, show_progress(options.progress), "pinn")
             try:
-                networks, stats = fit_parallel(compiled, grid, starts, start.p, config, options.workers, bar)
+                networks, stats, memory = fit_parallel(
+                    compiled, grid, starts, start.p, config, bar, options.engine, options.workers, options.address
+                )
             finally:
                 bar.close()
             surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)
@@ -173,7 +189,9 @@ class PINNBackend(AbstractBackend):
             )
         if options.save is not None:
             surrogate.save(options.save)
-        settings = {**dataclasses.asdict(config), "workers": options.workers}
+        if mode == "parallel" and options.engine == "ray":
+            summary["peak_memory_mb"] = memory
+        settings = {**dataclasses.asdict(config), "engine": options.engine}
         status = training_status(config, stats)
         return make_solution(
             self,

@@ -23,7 +23,14 @@ import numpy as np
 import torch
 from daemodel.backends.base import check_number
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.backends.pinn.train import Progress, SegmentStats, fit_sequential, make_loss, make_network
+from daemodel.backends.pinn.train import (
+    Progress,
+    SegmentStats,
+    fit_parallel,
+    fit_sequential,
+    make_loss,
+    make_network,
+)
 
 from daemodel.errors import (
     InvalidOptionError,
@@ -65,6 +72,8 @@ BOX_FLOOR = 1e-6
 OUTSIDE_POLICIES = ("warn", "error", "ignore")
 # Initial states drawn from a box when Surrogate.train is not told how many.
 DEFAULT_BOX_SAMPLES = 256
+# Surrogate.train's sources of each segment's training states.
+TRAINING_STARTS = ("network", "radau")
 # Surrogate.train's settings when no config is given.  Over a box the residuals cannot all
 # vanish, so LM runs a fixed budget (tol=None).  Each segment starts from a fresh network: on
 # the Hessenberg box, warm starts from the previous segment's fit ended 10-1000x less accurate.
@@ -153,6 +162,10 @@ class Surrogate:
         samples: int = DEFAULT_BOX_SAMPLES,
         config: PINNConfig | None = None,
         progress: bool | None = None,
+        starts: str = "network",
+        engine: str = "local",
+        workers: int | None = None,
+        address: str | None = None,
     ) -> Surrogate:
         """Train on ``samples`` initial states drawn uniformly from a box.
 
@@ -175,10 +188,21 @@ class Surrogate:
             per segment, 40 LM steps per segment (tol=None).
         progress : bool, optional
             Show a progress bar (default: when stderr is a terminal).
+        starts : {"network", "radau"}
+            Where each segment's training states come from.  ``"network"``: the previous
+            segment's predictions for the training states (segments train one after another).
+            ``"radau"``: radau's collocation solution of the training states at the same stages
+            and h, solved as a :func:`daemodel.ensemble` on ``engine``; the segments are then
+            independent and train as tasks of ``engine``.  Training states that radau cannot
+            solve are left out, with a warning naming them.
+        engine, workers, address
+            As in :func:`daemodel.ensemble`, for ``starts="radau"``: ``engine="ray"`` solves
+            the training data and trains the segments on Ray, in parallel.
         """
         from daemodel.backends.base import fixed_grid, show_progress, torch_device
         from daemodel.backends.pinn.backend import resolve_model
 
+        from daemodel.engine import check_engine
         from daemodel.initial_states import project_states
         from daemodel.solver import check_span
 
@@ -190,6 +214,19 @@ class Surrogate:
         t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
+        if starts not in TRAINING_STARTS:
+            raise InvalidOptionError(f"starts must be one of {', '.join(TRAINING_STARTS)}; got {starts!r}")
+        check_engine(engine, workers, address)
+        if engine == "ray" and starts == "network":
+            raise InvalidOptionError(
+                "engine='ray' trains segments in parallel, which needs starts='radau': with starts='network' "
+                "each segment waits for the previous one's predictions"
+            )
+        if engine == "ray" and config.device != "cpu":
+            raise InvalidOptionError(
+                f"engine='ray' trains on the workers' CPUs (one each); device = {config.device!r} trains here: "
+                "take engine='local' for it"
+            )
         parameter_box = dict(parameter_box or {})
         ranges = _ranges(box, compiled.state_names, "box", "state") + _ranges(
             parameter_box, compiled.parameter_names, "parameter_box", "parameter"
@@ -207,9 +244,53 @@ class Surrogate:
         y = project_states(compiled, y, p)
         inputs = tuple(name for name in compiled.parameter_names if name in parameter_box)
         grid = fixed_grid(t_span, config.h)
-        return cls.fit(
-            compiled, config, grid, y, p, inputs, show_progress(progress), "pinn surrogate", parameter_box=parameter_box
+        shown = show_progress(progress)
+        if starts == "network":
+            return cls.fit(compiled, config, grid, y, p, inputs, shown, "pinn surrogate", parameter_box=parameter_box)
+        return cls._fit_on_radau(compiled, config, grid, y, p, inputs, shown, (engine, workers, address), parameter_box)
+
+    @classmethod
+    def _fit_on_radau(cls, compiled, config, grid, y, p, inputs, progress, engine, parameter_box) -> Surrogate:
+        """Every segment trained independently from radau's solution of the training states."""
+        from daemodel.ensemble import ensemble
+
+        engine, workers, address = engine
+        data = ensemble(
+            compiled,
+            (float(grid[0]), float(grid[-1])),
+            y0=y,
+            parameters=p,
+            method="radau",
+            stages=config.stages,
+            h=config.h,
+            engine=engine,
+            workers=workers,
+            address=address,
         )
+        failures = data.stats["failures"]
+        if failures:
+            shown = ", ".join(str(f.index) for f in failures[:5])
+            warnings.warn(
+                f"Surrogate.train: radau could not solve {len(failures)} of {len(y)} training states (sample(s) "
+                f"{shown}{', ...' if len(failures) > 5 else ''}; first: {failures[0].error}: {failures[0].message}); "
+                "they are left out",
+                stacklevel=3,
+            )
+        kept = data.stats["samples"]
+        y, p = y[kept], p[kept]
+        columns = [compiled.parameter_names.index(name) for name in inputs]
+        states = np.stack([data[name] for name in compiled.state_names], axis=-1)  # (B, segments + 1, n)
+        extra = np.broadcast_to(p[:, columns], (len(grid) - 1, len(kept), len(columns)))
+        x = np.concatenate([states[:, :-1].transpose(1, 0, 2), extra], axis=2)  # (segments, B, d)
+        bar = Progress(len(grid) - 1, progress, "pinn surrogate")
+        try:
+            # Ray is running now (the ensemble connected): later tasks go to the same cluster
+            networks, stats, _ = fit_parallel(compiled, grid, x, p, config, bar, engine)
+        finally:
+            bar.close()
+        surrogate = cls(compiled, config, grid, networks, inputs, stats)
+        surrogate.box.update({name: tuple(map(float, bounds)) for name, bounds in (parameter_box or {}).items()})
+        return surrogate
 
     @classmethod
     def fit(

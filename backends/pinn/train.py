@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
-from daemodel.errors import TrainingError, WorkerStartError
+from daemodel.errors import TrainingError
 
 # A loss this many times its starting value has diverged (Adam/L-BFGS; LM never goes up).
 EXPLODE_FACTOR = 1e8
@@ -786,11 +786,10 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, pr
     return networks, stats
 
 
-def fit_one(payload):
-    """Train one segment on known inputs (a worker process's task; arguments are plain data)."""
-    compiled, config, k, t, h, x, p, threads = payload
-    if threads:
-        torch.set_num_threads(threads)
+def fit_one(shared: tuple, k: int, t: float, h: float, x) -> dict:
+    """Train segment k from the known inputs ``x`` (B, d): an engine task, plain data in and out.
+    ``shared`` is (compiled, config, p)."""
+    compiled, config, p = shared
     dtype = getattr(torch, config.dtype)
     x = torch.as_tensor(np.array(x), dtype=dtype, device=config.device)
     p = torch.as_tensor(np.array(p), dtype=dtype, device=config.device)
@@ -799,62 +798,40 @@ def fit_one(payload):
     net = make_network(compiled, config, x.shape[1], k)
     net.normalise(inputs)
     stats = SegmentTrainer(net, make_loss(compiled, config), config).train(Segment(k, t, h, inputs, samples_p))
-    return {name: value.cpu() for name, value in net.state_dict().items()}, stats
+    return {"state": {name: value.cpu() for name, value in net.state_dict().items()}, "stats": stats}
 
 
-def fit_parallel(compiled, grid, starts, p, config, workers: int, progress: Progress):
-    """Train every segment independently on known start values, in ``workers`` processes.
+def fit_parallel(compiled, grid, starts, p, config, progress: Progress, engine="local", workers=None, address=None):
+    """Train every segment independently on known start values, as tasks of ``engine``
+    (:func:`daemodel.engine.run_tasks`: one after another here, or in parallel on Ray).
 
     Parameters
     ----------
     starts : ndarray, shape (segments, B, d)
         Network inputs at each segment's start (from a classical solve or an earlier sweep).
+
+    Returns
+    -------
+    networks, stats, peak_memory_mb
+        The last: each Ray task's peak resident memory (empty for the local engine).
     """
-    import multiprocessing
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
+    from daemodel.engine import run_tasks
 
-    segments = len(grid) - 1
-    threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
-    tasks = [
-        (compiled, config, k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k], p, threads)
-        for k in range(segments)
-    ]
-    results = [None] * segments
-    if workers == 1:
-        for k, task in enumerate(tasks):
-            results[k] = fit_one(task)
-            progress.advance()
-    else:
-        # spawn: a forked child would inherit torch's thread pool in an unusable state
-        received = 0
-        try:
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                for k, result in enumerate(pool.map(fit_one, tasks)):
-                    results[k] = result
-                    received += 1
-                    progress.advance()
-        except BrokenProcessPool:
-            raise _broken_pool(workers, received, segments) from None
-    networks = []
-    for k, (state, _) in enumerate(results):
-        net = make_network(compiled, config, starts.shape[2], k)
-        net.load_state_dict(state)
-        networks.append(net)
-    return networks, [stats for _, stats in results]
-
-
-def _broken_pool(workers: int, received: int, segments: int) -> WorkerStartError:
-    """The error for worker processes that stopped: before any result, most likely the spawn trap."""
-    if received == 0:
-        return WorkerStartError(
-            f"pinn: the {workers} worker processes (workers={workers}) stopped before training any segment. They "
-            "start by re-running the script that called solve() (multiprocessing's spawn), so a script that "
-            "solves at its top level solves again in every worker, which cannot start processes of its own: put "
-            'the code that solves under `if __name__ == "__main__":`, or take workers=1'
-        )
-    return WorkerStartError(
-        f"pinn: a worker process stopped after {received} of {segments} segments were trained (killed, e.g. out "
-        f"of memory, or crashed); take fewer workers (workers={workers}) or workers=1"
+    tasks = [(k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k]) for k in range(len(grid) - 1)]
+    results = run_tasks(
+        fit_one,
+        (compiled, config, np.asarray(p)),
+        tasks,
+        engine=engine,
+        workers=workers,
+        address=address,
+        label="pinn",
+        on_result=lambda *_: progress.advance(),
     )
+    networks = []
+    for k, result in enumerate(results):
+        net = make_network(compiled, config, starts.shape[2], k)
+        net.load_state_dict(result["state"])
+        networks.append(net)
+    memory = [result["peak_memory_mb"] for result in results if "peak_memory_mb" in result]
+    return networks, [result["stats"] for result in results], memory

@@ -1,0 +1,123 @@
+"""Where independent pieces of work run: one after another in this process (``"local"``, the
+default: no worker processes, so nothing re-runs the calling script), or as Ray tasks
+(``"ray"``, the optional extra ``daemodel[ray]``) on a local cluster or an existing one.
+
+Ensemble chunks and segment-parallel PINN training both go through :func:`run_tasks`: a
+module-level function, one object every task shares (the compiled model; Ray stores it once
+and each worker unpickles it, regenerating its code without sympy's analysis) and a list of
+per-task arguments.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from daemodel.errors import InvalidOptionError, WorkerError
+
+ENGINES = ("local", "ray")
+
+
+def check_engine(engine, workers, address) -> None:
+    """The engine options' errors, named before any work starts."""
+    if engine not in ENGINES:
+        raise InvalidOptionError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise InvalidOptionError(f"workers must be a positive integer; got {workers!r}")
+    if address is not None and not isinstance(address, str):
+        raise InvalidOptionError(f"address must be a string such as 'auto' or 'ray://host:10001'; got {address!r}")
+    if engine == "local" and (workers is not None or address is not None):
+        raise InvalidOptionError("workers and address are Ray's: pass engine='ray' with them")
+
+
+def run_tasks(
+    function: Callable,
+    shared,
+    tasks: list,
+    *,
+    engine: str,
+    workers: int | None = None,
+    address: str | None = None,
+    label: str,
+    on_result: Callable | None = None,
+) -> list:
+    """``function(shared, *task)`` for every task; the results in task order.
+
+    ``"local"`` calls them in order, here.  ``"ray"`` submits one task each (one CPU, torch on
+    one thread), connecting to ``address`` or to the running Ray, else starting a local cluster
+    of ``workers`` CPUs (default: all), which stays up for later calls.  ``on_result(i, result)``
+    runs here as each finishes (in completion order on Ray).  A result that is a dict gains
+    ``"peak_memory_mb"``, the Ray worker's peak resident memory.
+
+    Raises
+    ------
+    WorkerError
+        A Ray worker died before returning (killed, out of memory, crashed); ``label`` and the
+        task's index name it.  An exception the function raised is re-raised as itself.
+    """
+    if engine == "local":
+        results = []
+        for i, task in enumerate(tasks):
+            results.append(function(shared, *task))
+            if on_result is not None:
+                on_result(i, results[-1])
+        return results
+    ray = connect(workers, address)
+    remote = ray.remote(num_cpus=1)(_on_worker)
+    stored = ray.put(shared)
+    pending = {remote.remote(function, stored, *task): i for i, task in enumerate(tasks)}
+    results = [None] * len(tasks)
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            i = pending.pop(done[0])
+            results[i] = _result(ray, done[0], label, i)
+            if on_result is not None:
+                on_result(i, results[i])
+    finally:
+        for reference in pending:
+            ray.cancel(reference)
+    return results
+
+
+def connect(workers: int | None, address: str | None):
+    """Ray, initialised: the running instance, the cluster at ``address`` or a new local one."""
+    try:
+        import ray
+    except ImportError:
+        raise InvalidOptionError(
+            "engine='ray' needs Ray, which is not installed: pip install 'daemodel[ray]' (or pip install ray)"
+        ) from None
+    if not ray.is_initialized():
+        ray.init(address=address, num_cpus=workers if address is None else None, log_to_driver=False)
+    elif address is not None or workers is not None:
+        raise InvalidOptionError("Ray is already running in this process: leave out address and workers")
+    return ray
+
+
+def _result(ray, reference, label: str, index: int):
+    try:
+        return ray.get(reference)
+    except ray.exceptions.RayTaskError as error:
+        cause = getattr(error, "cause", None)
+        if isinstance(cause, Exception):
+            raise cause from None  # the function's own exception, without Ray's wrapping
+        raise
+    except ray.exceptions.RayError as error:
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise WorkerError(
+            f"{label}: the Ray worker running task {index} stopped before returning ({type(error).__name__}: "
+            f"{reason}); give each task less work or the workers more memory"
+        ) from None
+
+
+def _on_worker(function, shared, *task):
+    """What a Ray task runs: the function on one torch thread (Ray gives the task one CPU)."""
+    import resource
+
+    import torch
+
+    torch.set_num_threads(1)
+    result = function(shared, *task)
+    if isinstance(result, dict):
+        result["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return result
