@@ -215,3 +215,24 @@ def test_ensemble_file_errors(pendulum, blowup, tmp_path):
     (files.directory / "ensemble.json").write_text("{not json")
     with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError\)"):
         dm.EnsembleFiles.load(files.directory, blowup)
+
+
+@pytest.mark.parametrize(("method", "options"), [("casadi-idas", {}), ("casadi-collocation", {"h": 0.05})])
+def test_casadi_methods_record_failing_samples_too(blowup, method, options):
+    """casadi solves a chunk sample by sample; k = 5 blows up at t = 0.2 and is left out."""
+    k = np.array([0.1, 0.5, 5.0, 0.2])
+    ensemble = dm.ensemble(blowup, (0.0, 1.0), parameters={"k": k}, method=method, chunk=2, **options)
+    assert [f.index for f in ensemble.stats["failures"]] == [2]
+    np.testing.assert_allclose(ensemble["x"][:, -1], 1 / (1 - k[[0, 1, 3]]), rtol=1e-6)
+
+
+def test_a_ray_worker_that_dies_is_named(ray_cluster):
+    """A task whose worker process exits (as when it is killed for memory): WorkerError names
+    the task, after Ray's own retries."""
+    import os
+
+    from daemodel.engine import run_tasks
+    from daemodel.errors import WorkerError
+
+    with pytest.raises(WorkerError, match=r"ensemble: the Ray worker running task 0 stopped before returning \(Worker"):
+        run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
