@@ -15,6 +15,10 @@ from collections.abc import Callable
 from daemodel.errors import InvalidOptionError, WorkerError
 
 ENGINES = ("local", "ray")
+# Shared objects (compiled models, with the code they generate) a Ray worker process keeps, by
+# reference: the latest calls', so that the tasks of one call generate code once per worker.
+HELD_OBJECTS = 2
+_HELD: dict = {}
 
 
 def check_engine(engine, workers, address) -> None:
@@ -63,7 +67,10 @@ def run_tasks(
         return results
     ray = connect(workers, address)
     remote = ray.remote(num_cpus=1)(_on_worker)
-    stored = ray.put(shared)
+    # Nested in a list, the reference reaches the task unresolved: each worker process fetches
+    # and unpickles the shared object once and keeps it (with the code it generates) for the
+    # call's later tasks, instead of once per task.
+    stored = [ray.put(shared)]
     pending = {remote.remote(function, stored, *task): i for i, task in enumerate(tasks)}
     results = [None] * len(tasks)
     try:
@@ -110,13 +117,22 @@ def _result(ray, reference, label: str, index: int):
         ) from None
 
 
-def _on_worker(function, shared, *task):
-    """What a Ray task runs: the function on one torch thread (Ray gives the task one CPU)."""
+def _on_worker(function, stored: list, *task):
+    """What a Ray task runs: the function on one torch thread (Ray gives the task one CPU), with
+    the shared object this worker process already holds for the call, or fetches now."""
     import resource
 
+    import ray
     import torch
 
     torch.set_num_threads(1)
+    (reference,) = stored
+    key = reference.hex()
+    if key not in _HELD:
+        if len(_HELD) >= HELD_OBJECTS:
+            _HELD.pop(next(iter(_HELD)))  # the oldest call's
+        _HELD[key] = ray.get(reference)
+    shared = _HELD[key]
     result = function(shared, *task)
     if isinstance(result, dict):
         result["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -236,3 +236,25 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
 
     with pytest.raises(WorkerError, match=r"ensemble: the Ray worker running task 0 stopped before returning \(Worker"):
         run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
+
+
+def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
+    """Tasks of one call on the same worker process share one copy of the shared object (and so
+    the code it has generated): each task appends to it and sees the earlier tasks' entries."""
+    import os
+
+    from daemodel.engine import run_tasks
+
+    def held(shared, i):
+        shared["seen"].append(i)
+        return os.getpid(), list(shared["seen"])
+
+    first = run_tasks(held, {"seen": []}, [(i,) for i in range(8)], engine="ray", label="test")
+    by_worker = {}
+    for pid, seen in first:
+        by_worker.setdefault(pid, []).append(seen)
+    assert max(len(seen) for _, seen in first) >= 2  # 8 tasks on 2 CPUs: some worker ran several
+    for runs in by_worker.values():
+        assert sorted(len(seen) for seen in runs) == list(range(1, len(runs) + 1))
+    second = run_tasks(held, {"seen": []}, [(i,) for i in range(2)], engine="ray", label="test")
+    assert all(len(seen) <= 2 for _, seen in second)  # a new call ships a fresh copy
