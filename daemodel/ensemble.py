@@ -86,7 +86,9 @@ def ensemble(
         solved by one :func:`daemodel.solve` call.
     engine : {"local", "ray"}
     chunk : int
-        Samples per task.
+        Samples per task.  On a CPU about 10^4 (smaller arrays stay in cache); on a GPU the
+        largest that fits its memory (10^5 pendulum states on an H100: one call 0.33 s, chunks
+        of 10^4 1.19 s).
     workers : int, optional
         Ray only, when this call starts Ray: the CPUs of the local cluster it starts (default:
         all).  Each task takes one CPU and runs torch on one thread.
