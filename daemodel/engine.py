@@ -11,6 +11,7 @@ per-task arguments.
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 from daemodel.errors import InvalidOptionError, WorkerError
 
@@ -47,10 +48,10 @@ def run_tasks(
     """``function(shared, *task)`` for every task; the results in task order.
 
     ``"local"`` calls them in order, here.  ``"ray"`` submits one task each (one CPU, torch on
-    one thread), connecting to ``address`` or to the running Ray, else starting a local cluster
-    of ``workers`` CPUs (default: all), which stays up for later calls.  ``on_result(i, result)``
-    runs here as each finishes (in completion order on Ray).  A result that is a dict gains
-    ``"peak_memory_mb"``, the Ray worker's peak resident memory.
+    one thread), on the cluster :func:`connect` gives; a cluster it starts stays up for later
+    calls.  ``on_result(i, result)``
+    runs here as each finishes (in completion order on Ray).  On Linux, a result that is a dict
+    gains ``"peak_memory_mb"``: the Ray worker's peak resident memory during the task.
 
     Raises
     ------
@@ -87,7 +88,9 @@ def run_tasks(
 
 
 def connect(workers: int | None, address: str | None):
-    """Ray, initialised: the running instance, the cluster at ``address`` or a new local one."""
+    """Ray, initialised: the running instance, the cluster at ``address``, or (``workers`` given)
+    a new local cluster of that many CPUs; with neither, Ray's own choice (``RAY_ADDRESS``, the
+    cluster ``ray start`` left on this machine, else a new local one)."""
     try:
         import ray
     except ImportError:
@@ -95,9 +98,22 @@ def connect(workers: int | None, address: str | None):
             "engine='ray' needs Ray, which is not installed: pip install 'daemodel[ray]' (or pip install ray)"
         ) from None
     if not ray.is_initialized():
-        ray.init(address=address, num_cpus=workers if address is None else None, log_to_driver=False)
-    elif address is not None or workers is not None:
-        raise InvalidOptionError("Ray is already running in this process: leave out address and workers")
+        if workers is not None and address not in (None, "local"):
+            raise InvalidOptionError(
+                f"workers sets the CPUs of a local cluster that this call starts; the cluster at "
+                f"address={address!r} has its own: leave workers out"
+            )
+        ray.init(address="local" if workers is not None else address, num_cpus=workers, log_to_driver=False)
+        return ray
+    if address is not None:
+        raise InvalidOptionError("Ray is already running in this process: leave out address (or ray.shutdown() first)")
+    if workers is not None:
+        cpus = ray.cluster_resources().get("CPU", 0)
+        if cpus != workers:
+            raise InvalidOptionError(
+                f"Ray is already running in this process with {cpus:g} CPUs, not workers={workers}: leave out "
+                "workers, or call ray.shutdown() first"
+            )
     return ray
 
 
@@ -107,7 +123,9 @@ def _result(ray, reference, label: str, index: int):
     except ray.exceptions.RayTaskError as error:
         cause = getattr(error, "cause", None)
         if isinstance(cause, Exception):
-            raise cause from None  # the function's own exception, without Ray's wrapping
+            # the function's own exception, without Ray's wrapping; the worker's traceback as a note
+            cause.add_note(f"raised in a Ray worker, in {label}'s task {index}:\n{error}")
+            raise cause from None
         raise
     except ray.exceptions.RayError as error:
         reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
@@ -120,8 +138,6 @@ def _result(ray, reference, label: str, index: int):
 def _on_worker(function, stored: list, *task):
     """What a Ray task runs: the function on one torch thread (Ray gives the task one CPU), with
     the shared object this worker process already holds for the call, or fetches now."""
-    import resource
-
     import ray
     import torch
 
@@ -133,7 +149,26 @@ def _on_worker(function, stored: list, *task):
             _HELD.pop(next(iter(_HELD)))  # the oldest call's
         _HELD[key] = ray.get(reference)
     shared = _HELD[key]
+    measured = _reset_peak_memory()
     result = function(shared, *task)
-    if isinstance(result, dict):
-        result["peak_memory_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak = _peak_memory_mb() if measured else None
+    if isinstance(result, dict) and peak is not None:
+        result["peak_memory_mb"] = peak
     return result
+
+
+def _reset_peak_memory() -> bool:
+    """Reset this process's peak resident memory (Linux: VmHWM), so that the next reading is
+    this task's; False where the system has no such counter (then no reading is reported)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_memory_mb() -> float | None:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return None

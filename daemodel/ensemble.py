@@ -32,6 +32,11 @@ from daemodel.solution import Solution
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
 DEFAULT_CHUNK = 10_000
+# Failed samples an ensemble records before it stops.  A chunk is bisected down to its failing
+# samples, so one whose every sample fails (an option that fails them all, such as a max_steps
+# too small) costs about log2(chunk) times its own solve plus a solve per sample: the bound ends
+# that after this many, with an error that names the first.
+DEFAULT_MAX_FAILURES = 1000
 # Failures of a single sample: what its own states or the method's iteration caused.  Any other
 # error (a wrong option, a model error) would fail every sample and ends the ensemble at once.
 SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateError, InconsistentAlgebraicValueError)
@@ -39,6 +44,7 @@ SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateErr
 ENSEMBLE_FORMAT = "daemodel-ensemble/1"
 MANIFEST = "ensemble.json"
 CHUNK_FILE = "chunk-{offset:012d}.npz"
+MANIFEST_KEYS = ("model", "fingerprint", "total", "chunk", "engine", "seconds", "status", "failures", "files")
 
 
 @dataclass(frozen=True)
@@ -73,6 +79,7 @@ def ensemble(
     address: str | None = None,
     progress: bool = False,
     write_to=None,
+    max_failures: int | None = DEFAULT_MAX_FAILURES,
     **options,
 ) -> Solution | EnsembleFiles:
     """Solve a large batch in chunks: ``engine="local"`` one chunk after another in this process
@@ -97,6 +104,9 @@ def ensemble(
         running one, else a new local one.
     progress : bool
         One line per finished chunk on stderr.
+    max_failures : int or None
+        Failed samples to record before the ensemble stops with a :class:`ConvergenceError`
+        that names the first (default 1000; None: no bound).
     write_to : str or Path, optional
         A directory (created if missing; it must hold no earlier ensemble) to write each
         chunk's values to as the chunk finishes, one :meth:`Solution.save` file per chunk, with
@@ -118,6 +128,16 @@ def ensemble(
     check_engine(engine, workers, address)
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
         raise InvalidOptionError(f"chunk must be a positive integer (samples per task); got {chunk!r}")
+    chunk = int(chunk)
+    if max_failures is not None and (
+        isinstance(max_failures, bool) or not isinstance(max_failures, int | np.integer) or max_failures < 0
+    ):
+        raise InvalidOptionError(f"max_failures must be a non-negative integer or None; got {max_failures!r}")
+    if engine == "ray" and str(options.get("device", "cpu")) != "cpu":
+        raise InvalidOptionError(
+            f"engine='ray' solves on the workers' CPUs (one each, no GPU requested); device = "
+            f"{options['device']!r} solves here: take engine='local' with the largest chunk that fits the GPU"
+        )
     directory = None if write_to is None else _empty_directory(write_to)
     compiled = model.compile() if isinstance(model, Model) else model
     columns = {
@@ -140,12 +160,18 @@ def ensemble(
         for start, stop in pieces
     ]
     began = time.perf_counter()
-    finished = []
+    finished, failed = [], []
 
     def report(_, result) -> None:
         finished.append(result["size"])
+        failed.extend(result["failures"])
+        if result.get("stopped") or (max_failures is not None and len(failed) > max_failures):
+            _too_many_failures(failed, max_failures)
         if directory is not None:
-            _write_chunk(directory, result)
+            _write_chunk(directory, compiled, result)
+        elif engine == "ray" and "values" in result:
+            # arrays from Ray are views into its object store, which they would keep pinned
+            result["values"] = {name: np.array(value) for name, value in result["values"].items()}
         if progress:
             print(
                 f"ensemble: {len(finished)}/{len(work)} chunks, {sum(finished)} samples, "
@@ -156,7 +182,7 @@ def ensemble(
 
     results = run_tasks(
         solve_chunk,
-        (compiled, t_span, method, options),
+        (compiled, t_span, method, options, max_failures),
         work,
         engine=engine,
         workers=workers,
@@ -167,16 +193,32 @@ def ensemble(
     if directory is not None:
         _write_manifest(directory, compiled, results, total, time.perf_counter() - began, engine, chunk)
         return EnsembleFiles.load(directory, compiled)
-    return _assemble(results, total, time.perf_counter() - began, engine, chunk)
+    return _assemble(compiled, results, total, time.perf_counter() - began, engine, chunk)
 
 
 def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
     """One chunk: its samples' values, or, for a chunk that fails, its halves' (down to single
-    samples, whose failures are recorded).  ``shared`` is (compiled, t_span, method, options).
-    Plain data in and out: it runs in a Ray worker."""
+    samples, whose failures are recorded).  ``shared`` is (compiled, t_span, method, options,
+    max_failures); a chunk that finds more than max_failures failures stops there, and its
+    result says ``"stopped"``.  Plain data in and out: it runs in a Ray worker."""
+    *problem, max_failures = shared
+    began = time.perf_counter()
+    found: list = []
+    try:
+        return _solve_part(problem, offset, batch, found, max_failures)
+    except _TooManyFailures:
+        seconds = time.perf_counter() - began
+        return {"offset": offset, "size": len(batch["y0"]), "seconds": seconds, "failures": found, "stopped": True}
+
+
+class _TooManyFailures(Exception):
+    """A chunk's bisection found more failures than max_failures (internal: ends the chunk)."""
+
+
+def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failures: int | None) -> dict:
     from daemodel.solver import solve
 
-    compiled, t_span, method, options = shared
+    compiled, t_span, method, options = problem
     size = len(batch["y0"])
     began = time.perf_counter()
     try:
@@ -184,10 +226,13 @@ def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
     except SAMPLE_FAILURES as error:
         if size == 1:
             failure = Failure(index=offset, error=type(error).__name__, message=str(error))
+            found.append(failure)
+            if max_failures is not None and len(found) > max_failures:
+                raise _TooManyFailures from None
             return {"offset": offset, "size": 1, "seconds": time.perf_counter() - began, "failures": [failure]}
         half = size // 2
         parts = [
-            solve_chunk(shared, offset + lo, {k: v[lo:hi] for k, v in batch.items()})
+            _solve_part(problem, offset + lo, {k: v[lo:hi] for k, v in batch.items()}, found, max_failures)
             for lo, hi in ((0, half), (half, size))
         ]
         return _merge(parts, offset, size, time.perf_counter() - began)
@@ -200,7 +245,9 @@ def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
         "indices": np.arange(offset, offset + size),
         "values": values,
         "parameters": np.asarray(solution.parameters).reshape(size, -1),
-        "meta": {key: getattr(solution, key) for key in ("t", "method", "settings", "status", "compiled")},
+        # the solved system travels as its index, not pickled back: the driver holds the model
+        "meta": {key: getattr(solution, key) for key in ("t", "method", "settings", "status")},
+        "index": solution.compiled.index,
     }
 
 
@@ -218,11 +265,11 @@ def _merge(parts: list, offset: int, size: int, seconds: float) -> dict:
             name: np.concatenate([part["values"][name] for part in solved]) for name in solved[0]["values"]
         }
         merged["parameters"] = np.concatenate([part["parameters"] for part in solved])
-        merged["meta"] = solved[0]["meta"]
+        merged["meta"], merged["index"] = solved[0]["meta"], solved[0]["index"]
     return merged
 
 
-def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int) -> Solution:
+def _assemble(compiled, results: list, total: int, seconds: float, engine: str, chunk: int) -> Solution:
     failures = _failures(results, total)
     solved = [result for result in results if "values" in result]
     values = {name: np.concatenate([result["values"][name] for result in solved]) for name in solved[0]["values"]}
@@ -231,7 +278,9 @@ def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int
         "chunk": chunk,
         "samples": np.concatenate([result["indices"] for result in solved]),
         "failures": failures,
-        "chunks": [{"offset": r["offset"], "size": r["size"], "seconds": r["seconds"]} for r in results],
+        "chunks": [
+            {key: r[key] for key in ("offset", "size", "seconds")} | {"status": r["meta"]["status"]} for r in solved
+        ],
         "peak_memory_mb": [r["peak_memory_mb"] for r in results if "peak_memory_mb" in r],
     }
     meta = solved[0]["meta"]
@@ -241,8 +290,14 @@ def _assemble(results: list, total: int, seconds: float, engine: str, chunk: int
         solve_time=seconds,
         stats=stats,
         batched=True,
-        **{**meta, "status": _status(meta["status"], failures, total)},
+        compiled=_system(compiled, solved[0]["index"]),
+        **{**meta, "status": _status([(r["offset"], r["meta"]["status"]) for r in solved], failures, total)},
     )
+
+
+def _system(compiled, index: int):
+    """The system a method solved: the model, or its reduction to ``index``."""
+    return compiled if compiled.index <= index else compiled.reduced(index)
 
 
 def _failures(results: list, total: int) -> list:
@@ -258,7 +313,30 @@ def _failures(results: list, total: int) -> list:
     return failures
 
 
-def _status(status: str, failures: list, total: int) -> str:
+def _too_many_failures(failed: list, max_failures: int) -> None:
+    from daemodel.errors import ConvergenceError
+
+    first = min(failed, key=lambda f: f.index)
+    raise ConvergenceError(
+        f"ensemble: more than max_failures={max_failures} samples failed ({len(failed)} found, first: sample "
+        f"{first.index}, {first.error}: {first.message}); the ensemble stopped, with samples left unsolved. "
+        "If many samples are expected to fail, raise max_failures (None: no bound); else fix what fails them"
+    )
+
+
+def _status(statuses: list, failures: list, total: int) -> str:
+    """The chunks' status when they agree, else each distinct one with the chunks that gave it
+    (a fixed-budget PINN states its own residual per chunk); then the failures' count."""
+    distinct: dict = {}
+    for offset, status in statuses:
+        distinct.setdefault(status, []).append(offset)
+    if len(distinct) == 1:
+        status = statuses[0][1]
+    else:
+        status = "the chunks' statuses differ: " + "; ".join(
+            f"{text!r} (chunks from sample {', '.join(map(str, offsets[:3]))}{', ...' if len(offsets) > 3 else ''})"
+            for text, offsets in distinct.items()
+        )
     if not failures:
         return status
     shown = f"{len(failures)} of {total} samples failed and are left out (stats['failures'], first: sample "
@@ -286,8 +364,7 @@ class EnsembleFiles:
     Examples
     --------
     >>> files = dm.ensemble(model, (0, 1), y0=states, h=0.05, write_to="runs/sweep")
-    >>> for part in files:                       # one chunk in memory at a time
-    ...     peak = np.maximum(peak, part["y1"].max(axis=1))
+    >>> peak = max(part["y1"].max() for part in files)   # one chunk in memory at a time
     >>> files.solution([0, 17, 99_999])["y1"]     # three samples, read from their chunks
     >>> files = dm.EnsembleFiles.load("runs/sweep", model)   # later, in another process
     """
@@ -321,6 +398,9 @@ class EnsembleFiles:
             raise SolutionFileError(f"{path} is not a daemodel ensemble manifest ({type(error).__name__})") from None
         if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
+        lacking = [key for key in MANIFEST_KEYS if key not in manifest]
+        if lacking:
+            raise SolutionFileError(f"{path} is damaged: it lacks {', '.join(lacking)}")
         compiled = as_compiled(model, "EnsembleFiles.load()")
         candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
         if not any(c.fingerprint() == manifest["fingerprint"] for c in candidates):
@@ -352,6 +432,7 @@ class EnsembleFiles:
     def _read(self, entry: dict) -> Solution:
         part = Solution.load(self.directory / entry["file"], self.compiled)
         part.stats["samples"] = np.asarray(part.stats["samples"], dtype=np.int64)
+        part.stats["failures"] = [Failure(**failure) for failure in part.stats["failures"]]
         return part
 
     def solution(self, samples=None) -> Solution:
@@ -364,31 +445,38 @@ class EnsembleFiles:
             An index outside the ensemble, or of a sample that failed (named, with its error).
         """
         wanted = self._wanted(samples)
-        parts = []
+        kept, first = [], None  # per chunk read: the wanted rows only, so one chunk is whole at a time
         for entry in self._manifest["files"]:
             inside = wanted[(wanted >= entry["offset"]) & (wanted < entry["offset"] + entry["size"])]
             if len(inside):
                 part = self._read(entry)
                 rows = np.isin(part.stats["samples"], inside)
-                parts.append((part, rows))
-        got = np.concatenate([part.stats["samples"][rows] for part, rows in parts])
+                kept.append(
+                    (
+                        part.stats["samples"][rows],
+                        {name: part.values[name][rows].copy() for name in self._names(part)},
+                        part.parameters[rows].copy(),
+                    )
+                )
+                first = first or {key: getattr(part, key) for key in ("t", "method", "settings", "compiled")}
+                del part
+        got = np.concatenate([indices for indices, _, _ in kept])
         order = np.argsort(got, kind="stable")
         take = order[np.searchsorted(got, wanted, sorter=order)]
-        first = parts[0][0]
-        names = (*self.compiled.state_names, *self.compiled.algebraic_names)
-        values = {name: np.concatenate([part.values[name][rows] for part, rows in parts])[take] for name in names}
+        names = kept[0][1].keys()
         return Solution(
-            t=first.t,
-            values=values,
-            method=first.method,
-            settings=first.settings,
+            values={name: np.concatenate([values[name] for _, values, _ in kept])[take] for name in names},
             solve_time=self.seconds,
             stats={"samples": wanted, "engine": self.engine, "chunk": self.chunk},
-            compiled=first.compiled,
-            parameters=np.concatenate([part.parameters[rows] for part, rows in parts])[take],
+            parameters=np.concatenate([parameters for _, _, parameters in kept])[take],
             batched=True,
-            status=first.status,
+            status=self.status,
+            **first,
         )
+
+    @staticmethod
+    def _names(part: Solution) -> tuple:
+        return (*part.compiled.state_names, *part.compiled.algebraic_names)
 
     def _wanted(self, samples) -> np.ndarray:
         failed = {failure.index: failure for failure in self.failures}
@@ -426,12 +514,13 @@ def _empty_directory(path) -> Path:
     return directory
 
 
-def _write_chunk(directory: Path, result: dict) -> None:
+def _write_chunk(directory: Path, compiled, result: dict) -> None:
     """Write a finished chunk's values and drop them from ``result``, which keeps its bookkeeping."""
     if "values" not in result:
         return
-    meta = result.pop("meta")
+    meta = result["meta"]
     part = Solution(
+        compiled=_system(compiled, result["index"]),
         values=result.pop("values"),
         parameters=result.pop("parameters"),
         solve_time=result["seconds"],
@@ -441,8 +530,6 @@ def _write_chunk(directory: Path, result: dict) -> None:
     )
     result["file"] = CHUNK_FILE.format(offset=result["offset"])
     result["solved"] = len(result.pop("indices"))
-    result["status"] = part.status
-    result["fingerprint"] = part.compiled.fingerprint()  # of the system solved: a reduction, for index 3
     part.save(directory / result["file"])
 
 
@@ -452,16 +539,16 @@ def _write_manifest(directory: Path, compiled, results: list, total: int, second
     manifest = {
         "format": ENSEMBLE_FORMAT,
         "model": compiled.name,
-        "fingerprint": written[0]["fingerprint"],
+        "fingerprint": _system(compiled, written[0]["index"]).fingerprint(),  # a reduction, for index 3
         "total": total,
         "chunk": chunk,
         "engine": engine,
         "seconds": seconds,
-        "status": _status(written[0]["status"], failures, total),
+        "status": _status([(r["offset"], r["meta"]["status"]) for r in written], failures, total),
         "failures": [dataclasses.asdict(failure) for failure in failures],
         "files": [
             {key: result[key] for key in ("file", "offset", "size", "solved", "seconds")}
-            | {"peak_memory_mb": result.get("peak_memory_mb")}
+            | {"status": result["meta"]["status"], "peak_memory_mb": result.get("peak_memory_mb")}
             for result in written
         ],
     }

@@ -11,7 +11,9 @@
   where known, the variable or equation, and what to change.
 
 Both derive from :class:`DaemodelError`, so ``except DaemodelError`` catches everything
-daemodel raises on purpose; anything else escaping the public API is a bug.
+daemodel raises on purpose; anything else escaping the public API is a bug.  A Ray worker
+that dies under a task (killed, out of memory) is a run that failed on well-formed input:
+:class:`WorkerError`, a SolverError.
 """
 
 
@@ -166,7 +168,7 @@ class TrainingError(ConvergenceError):
     """Radau-PINN training failed: a loss term is NaN, exploded, or missed its tolerance."""
 
 
-class WorkerError(ModelError):
+class WorkerError(SolverError):
     """A Ray worker stopped before returning its task's result (killed, out of memory, crashed)."""
 
 

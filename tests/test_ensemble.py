@@ -93,10 +93,12 @@ def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup
     files = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray", write_to=tmp_path)
     assert [f.index for f in files.failures] == [1] and files.engine == "ray"
     np.testing.assert_array_equal(files.solution()["x"], failing["x"])
-    with pytest.raises(
-        InvalidOptionError, match="Ray is already running in this process: leave out address and workers"
-    ):
-        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=2)
+    again = dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=2)  # the running cluster's CPUs
+    assert again.status == "success"
+    with pytest.raises(InvalidOptionError, match=r"Ray is already running in this process with 2 CPUs, not workers=3"):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=3)
+    with pytest.raises(InvalidOptionError, match=r"Ray is already running in this process: leave out address"):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", address="auto")
 
 
 @pytest.mark.parametrize(
@@ -107,6 +109,11 @@ def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup
         ({"chunk": 2.5}, r"chunk must be a positive integer \(samples per task\); got 2.5"),
         ({"workers": 2}, "workers and address are Ray's: pass engine='ray' with them"),
         ({"engine": "ray", "workers": 0}, "workers must be a positive integer; got 0"),
+        ({"engine": "ray", "address": 6379}, "address must be a string such as 'auto' or 'ray://host:10001'; got 6379"),
+        (
+            {"engine": "ray", "device": "cuda"},
+            r"engine='ray' solves on the workers' CPUs \(one each, no GPU requested\); device = 'cuda' solves here",
+        ),
         (
             {"y0": {"y4": [1.0, 1.0]}, "parameters": {"lam": [1.0, 1.0, 1.0]}},
             "y0, z0 and parameters make batches of different sizes: y0: 2, parameters: 3",
@@ -212,6 +219,9 @@ def test_ensemble_file_errors(pendulum, blowup, tmp_path):
         SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/1'\\)"
     ):
         dm.EnsembleFiles.load(files.directory, blowup)
+    (files.directory / "ensemble.json").write_text('{"format": "daemodel-ensemble/1", "model": "blowup"}')
+    with pytest.raises(SolutionFileError, match=r"ensemble.json is damaged: it lacks fingerprint, total, chunk"):
+        dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text("{not json")
     with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError\)"):
         dm.EnsembleFiles.load(files.directory, blowup)
@@ -258,3 +268,55 @@ def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
         assert sorted(len(seen) for seen in runs) == list(range(1, len(runs) + 1))
     second = run_tasks(held, {"seen": []}, [(i,) for i in range(2)], engine="ray", label="test")
     assert all(len(seen) <= 2 for _, seen in second)  # a new call ships a fresh copy
+
+
+def test_chunks_that_end_with_different_statuses_are_all_reported():
+    """A PINN on a fixed budget states its final residual, which differs from chunk to chunk."""
+    from daemodel.problems import HESSENBERG
+
+    c = HESSENBERG.model().compile()
+    config = dm.PINNConfig(tol=None, iterations=2)
+    y0 = c.consistent(y0={"y1": [1.0, 1.0, 1.5, 1.5], "y2": [1.0, 1.0, 0.7, 0.7]})
+    ensemble = dm.ensemble(c, (0.0, 0.1), y0=y0, method="pinn", config=config, chunk=2)
+    first, second = (chunk["status"] for chunk in ensemble.stats["chunks"])
+    assert first != second and first.startswith("budget: 2 lm iterations per segment, final max residual")
+    expected = f"the chunks' statuses differ: {first!r} (chunks from sample 0); {second!r} (chunks from sample 2)"
+    assert ensemble.status == expected
+
+
+def test_an_index_3_ensemble_written_to_files(tmp_path):
+    """radau solves the index-2 reduction; the files carry its fingerprint and load with the
+    index-3 model."""
+    from daemodel.problems import PENDULUM_INDEX3
+
+    m = PENDULUM_INDEX3.model()
+    c = m.compile()
+    y0 = {"y4": [0.99, 1.0, 1.01]}
+    memory = dm.ensemble(c, (0.0, 0.2), y0=y0, h=0.05, chunk=np.int64(2))
+    files = dm.ensemble(c, (0.0, 0.2), y0=y0, h=0.05, chunk=np.int64(2), write_to=tmp_path)
+    assert files.chunk == 2 and memory.compiled.index == 2
+    again = dm.EnsembleFiles.load(tmp_path, m).solution()
+    assert same(memory, again, (*memory.compiled.state_names, *memory.compiled.algebraic_names)) == 0.0
+
+
+def test_a_written_chunk_leaves_only_its_bookkeeping_in_memory(pendulum, tmp_path):
+    from daemodel.ensemble import _write_chunk, solve_chunk
+
+    result = solve_chunk((pendulum, (0.0, 0.1), "radau", {"h": 0.05}, None), 0, {"y0": np.tile(pendulum.y0, (3, 1))})
+    _write_chunk(tmp_path, pendulum, result)
+    assert {"values", "parameters", "indices"}.isdisjoint(result) and result["solved"] == 3
+    assert (tmp_path / result["file"]).is_file()
+
+
+def test_max_failures_stops_an_ensemble_whose_samples_keep_failing(blowup):
+    """Every k here blows up inside [0, 1]: the ensemble stops at the bound instead of solving
+    each sample alone, and names the first failure."""
+    k = np.linspace(5.0, 20.0, 64)
+    with pytest.raises(
+        ConvergenceError, match=r"more than max_failures=3 samples failed \(4 found, first: sample 0, ConvergenceError"
+    ):
+        dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=32, max_failures=3)
+    few = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": [0.1, 5.0, 0.2]}, chunk=2, max_failures=1)
+    assert [f.index for f in few.stats["failures"]] == [1]
+    with pytest.raises(InvalidOptionError, match="max_failures must be a non-negative integer or None; got -1"):
+        dm.ensemble(blowup, (0.0, 1.0), h=0.05, max_failures=-1)

@@ -13,7 +13,14 @@ from daemodel.backends.pinn.network import Outputs, RadauNetwork
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
 import daemodel as dm
-from daemodel.errors import InvalidOptionError, NetworkFileError, ShapeError, TrainingError, UnknownOptionError
+from daemodel.errors import (
+    ConvergenceError,
+    InvalidOptionError,
+    NetworkFileError,
+    ShapeError,
+    TrainingError,
+    UnknownOptionError,
+)
 from daemodel.problems import HESSENBERG, PENDULUM
 
 EXACT = HESSENBERG.exact_solution()
@@ -277,6 +284,8 @@ def test_training_states_radau_cannot_solve_are_left_out_with_a_warning():
             config=config,
             starts="radau",
         )
+    with pytest.raises(ConvergenceError, match=r"Surrogate.train\(starts='radau'\): radau solved none of the 4"):
+        dm.Surrogate.train(c, (0.0, 0.5), box={"x": (0.9, 1.1)}, parameter_box={"k": (5, 9)}, samples=4, starts="radau")
     sol = surrogate.solve(y0={"x": [0.95, 1.0]}, parameters={"k": [0.5, 1.0]})
     exact = 1 / (1 / np.array([[0.95], [1.0]]) - np.array([[0.5], [1.0]]) * sol.t)
     assert np.isfinite(surrogate.segment_ranges[0]).all()  # no failed state reached the training
@@ -608,6 +617,10 @@ def test_surrogate_errors():
         dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, engine="ray")
     with pytest.raises(InvalidOptionError, match="workers and address are Ray's"):
         dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", workers=2)
+    with pytest.raises(InvalidOptionError, match=r"engine='ray' trains on the workers' CPUs .* device = 'meta'"):
+        dm.Surrogate.train(
+            c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", engine="ray", config=dm.PINNConfig(device="meta")
+        )
     cfg = dm.PINNConfig(tol=1e-3)
     surrogate = dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, samples=4, config=cfg)
     with pytest.raises(InvalidOptionError, match="parameter 'lam' was fixed when these networks were trained"):

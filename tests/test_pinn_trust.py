@@ -495,7 +495,7 @@ print("trained", ray.settings["engine"], len(ray.stats["peak_memory_mb"]))
 """
 
 
-def test_parallel_training_in_an_unguarded_script_runs():
+def test_parallel_training_in_an_unguarded_script_runs(tmp_path):
     """Segment-parallel training from a script that solves at its top level, with no
     ``if __name__ == "__main__":`` guard.  The old process pool re-ran such a script in every
     worker (multiprocessing's spawn) and broke; Ray's workers import daemodel's functions, not
@@ -504,9 +504,10 @@ def test_parallel_training_in_an_unguarded_script_runs():
     import sys
 
     pytest.importorskip("ray")
-    done = subprocess.run(
-        [sys.executable, "-c", UNGUARDED], capture_output=True, text=True, timeout=300, env=_without_ray_address()
-    )
+    script = tmp_path / "unguarded.py"  # a file: spawn re-runs a script file, not a -c program
+    script.write_text(UNGUARDED)
+    run = {"cwd": tmp_path, "capture_output": True, "text": True, "timeout": 300, "env": _without_ray_address()}
+    done = subprocess.run([sys.executable, str(script)], **run)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "trained ray 2"
 

@@ -210,7 +210,6 @@ class Surrogate:
         config = SURROGATE_CONFIG if config is None else config
         if not isinstance(config, PINNConfig):
             raise InvalidOptionError(f"config must be a dm.PINNConfig; got {type(config).__name__}")
-        torch_device(config.device)
         t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
@@ -227,6 +226,7 @@ class Surrogate:
                 f"engine='ray' trains on the workers' CPUs (one each); device = {config.device!r} trains here: "
                 "take engine='local' for it"
             )
+        torch_device(config.device)
         parameter_box = dict(parameter_box or {})
         ranges = _ranges(box, compiled.state_names, "box", "state") + _ranges(
             parameter_box, compiled.parameter_names, "parameter_box", "parameter"
@@ -252,21 +252,31 @@ class Surrogate:
     @classmethod
     def _fit_on_radau(cls, compiled, config, grid, y, p, inputs, progress, engine, parameter_box) -> Surrogate:
         """Every segment trained independently from radau's solution of the training states."""
+        from daemodel.engine import connect
         from daemodel.ensemble import ensemble
+        from daemodel.errors import ConvergenceError
 
         engine, workers, address = engine
-        data = ensemble(
-            compiled,
-            (float(grid[0]), float(grid[-1])),
-            y0=y,
-            parameters=p,
-            method="radau",
-            stages=config.stages,
-            h=config.h,
-            engine=engine,
-            workers=workers,
-            address=address,
-        )
+        chunk = len(y)
+        if engine == "ray":  # the training states spread over the cluster's CPUs, a chunk each
+            chunk = max(1, -(-len(y) // int(connect(workers, address).cluster_resources().get("CPU", 1))))
+        try:
+            data = ensemble(
+                compiled,
+                (float(grid[0]), float(grid[-1])),
+                y0=y,
+                parameters=p,
+                method="radau",
+                stages=config.stages,
+                h=config.h,
+                engine=engine,
+                chunk=chunk,
+            )
+        except ConvergenceError as error:
+            raise ConvergenceError(
+                f"Surrogate.train(starts='radau'): radau solved none of the {len(y)} training states ({error}); "
+                "shrink the box or the span, or take starts='network'"
+            ) from None
         failures = data.stats["failures"]
         if failures:
             shown = ", ".join(str(f.index) for f in failures[:5])
