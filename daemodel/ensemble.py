@@ -58,6 +58,8 @@ class Failure:
     error : str
         The exception's class name (see :mod:`daemodel.errors`).
     message : str
+        The method's message from solving this sample alone: where it says "sample 0", that is
+        this sample (``index`` in the ensemble).
     """
 
     index: int
