@@ -49,9 +49,9 @@ def run_tasks(
 
     ``"local"`` calls them in order, here.  ``"ray"`` submits one task each (one CPU, torch on
     one thread), on the cluster :func:`connect` gives; a cluster it starts stays up for later
-    calls.  ``on_result(i, result)``
-    runs here as each finishes (in completion order on Ray).  On Linux, a result that is a dict
-    gains ``"peak_memory_mb"``: the Ray worker's peak resident memory during the task.
+    calls.  ``on_result(i, result)`` runs here as each finishes (in completion order on Ray).
+    On Linux, a result that is a dict gains ``"peak_memory_mb"``: the Ray worker's peak
+    resident memory during the task.
 
     Raises
     ------

@@ -20,6 +20,17 @@ def pendulum3() -> dm.Model:
 
 
 @pytest.fixture(scope="session")
+def blowup() -> dm.CompiledDAE:
+    """x' = k x^2, x(0) = 1: x = 1 / (1 - k t) blows up at t = 1/k, inside [0, 1] for k > 1."""
+    m = dm.Model("blowup")
+    (x,) = m.states("x")
+    k = m.parameter("k", 1.0)
+    m.ode(x, k * x**2)
+    m.initial(x=1.0)
+    return m.compile()
+
+
+@pytest.fixture(scope="session")
 def ray_cluster():
     """A local Ray cluster of 2 CPUs, started once for every test that takes it (skipped where
     Ray is not installed; CI installs it with the ``ray`` extra)."""

@@ -25,17 +25,6 @@ def states(pendulum):
     return pendulum.consistent(y0={"y1": rng.uniform(0.99, 1.01, B), "y4": rng.uniform(0.99, 1.01, B)})
 
 
-@pytest.fixture(scope="module")
-def blowup():
-    """x' = k x^2, x(0) = 1: x = 1 / (1 - k t) blows up at t = 1/k, inside [0, 1] for k > 1."""
-    m = dm.Model("blowup")
-    (x,) = m.states("x")
-    k = m.parameter("k", 1.0)
-    m.ode(x, k * x**2)
-    m.initial(x=1.0)
-    return m.compile()
-
-
 def same(a, b, names) -> float:
     return max(float(np.abs(a[name] - b[name]).max()) for name in names)
 

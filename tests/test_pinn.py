@@ -265,14 +265,9 @@ def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
     assert local.box == ray.box
 
 
-def test_training_states_radau_cannot_solve_are_left_out_with_a_warning():
+def test_training_states_radau_cannot_solve_are_left_out_with_a_warning(blowup):
     """x' = k x^2 blows up at t = 1 / (k x0): inside [0, 0.5] for some of the box's k."""
-    m = dm.Model("blowup")
-    (x,) = m.states("x")
-    k = m.parameter("k", 1.0)
-    m.ode(x, k * x**2)
-    m.initial(x=1.0)
-    c = m.compile()
+    c = blowup
     config = dm.PINNConfig(width=16, warm_start=False, tol=None, iterations=40, h=0.05)
     with pytest.warns(UserWarning, match=r"radau could not solve 6 of 16 training states \(sample\(s\) 0, 4, 6,"):
         surrogate = dm.Surrogate.train(
