@@ -140,7 +140,6 @@ def ensemble(
             f"engine='ray' solves on the workers' CPUs (one each, no GPU requested); device = "
             f"{options['device']!r} solves here: take engine='local' with the largest chunk that fits the GPU"
         )
-    directory = None if write_to is None else _empty_directory(write_to)
     compiled = model.compile() if isinstance(model, Model) else model
     columns = {
         "y0": _columns(compiled, y0, compiled.state_names, compiled.y0, "y0"),
@@ -155,6 +154,7 @@ def ensemble(
             + ", ".join(f"{name}: {size}" for name, size in sizes.items())
         )
     total = next(iter(sizes.values()), 1)
+    directory = None if write_to is None else _empty_directory(write_to)  # made once the inputs are known good
     arrays = {name: np.broadcast_to(array, (total, array.shape[1])) for name, (_, array) in columns.items()}
     pieces = [(start, min(start + chunk, total)) for start in range(0, total, chunk)]
     work = [
@@ -174,6 +174,7 @@ def ensemble(
         elif engine == "ray" and "values" in result:
             # arrays from Ray are views into its object store, which they would keep pinned
             result["values"] = {name: np.array(value) for name, value in result["values"].items()}
+            result["parameters"] = np.array(result["parameters"])
         if progress:
             print(
                 f"ensemble: {len(finished)}/{len(work)} chunks, {sum(finished)} samples, "
