@@ -22,8 +22,9 @@ HELD_OBJECTS = 2
 _HELD: dict = {}
 
 
-def check_engine(engine, workers, address) -> None:
-    """The engine options' errors, named before any work starts."""
+def check_engine(engine, workers, address, device="cpu") -> None:
+    """The engine options' errors, named before any work starts (``device``: the torch device
+    the tasks would compute on; Ray tasks request no GPU)."""
     if engine not in ENGINES:
         raise InvalidOptionError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
@@ -32,6 +33,11 @@ def check_engine(engine, workers, address) -> None:
         raise InvalidOptionError(f"address must be a string such as 'auto' or 'ray://host:10001'; got {address!r}")
     if engine == "local" and (workers is not None or address is not None):
         raise InvalidOptionError("workers and address are Ray's: pass engine='ray' with them")
+    if engine == "ray" and str(device) != "cpu":
+        raise InvalidOptionError(
+            f"engine='ray' runs each task on one of the workers' CPUs (no GPU requested); device = {str(device)!r} "
+            "runs here: take engine='local' for it"
+        )
 
 
 def run_tasks(

@@ -127,7 +127,7 @@ def ensemble(
     from daemodel.initial_states import _columns
     from daemodel.model import Model
 
-    check_engine(engine, workers, address)
+    check_engine(engine, workers, address, options.get("device", "cpu"))
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
         raise InvalidOptionError(f"chunk must be a positive integer (samples per task); got {chunk!r}")
     chunk = int(chunk)
@@ -135,11 +135,6 @@ def ensemble(
         isinstance(max_failures, bool) or not isinstance(max_failures, int | np.integer) or max_failures < 0
     ):
         raise InvalidOptionError(f"max_failures must be a non-negative integer or None; got {max_failures!r}")
-    if engine == "ray" and str(options.get("device", "cpu")) != "cpu":
-        raise InvalidOptionError(
-            f"engine='ray' solves on the workers' CPUs (one each, no GPU requested); device = "
-            f"{options['device']!r} solves here: take engine='local' with the largest chunk that fits the GPU"
-        )
     compiled = model.compile() if isinstance(model, Model) else model
     columns = {
         "y0": _columns(compiled, y0, compiled.state_names, compiled.y0, "y0"),

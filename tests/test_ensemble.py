@@ -101,7 +101,7 @@ def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup
         ({"engine": "ray", "address": 6379}, "address must be a string such as 'auto' or 'ray://host:10001'; got 6379"),
         (
             {"engine": "ray", "device": "cuda"},
-            r"engine='ray' solves on the workers' CPUs \(one each, no GPU requested\); device = 'cuda' solves here",
+            r"engine='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'cuda' runs here",
         ),
         (
             {"y0": {"y4": [1.0, 1.0]}, "parameters": {"lam": [1.0, 1.0, 1.0]}},

@@ -96,16 +96,11 @@ class PINNOptions:
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         check_threads(self.threads)
-        check_engine(self.engine, self.workers, self.address)
+        check_engine(self.engine, self.workers, self.address, self.config.device)
         if self.engine == "ray" and self.segment_starts is None:
             raise InvalidOptionError(
                 "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
-            )
-        if self.engine == "ray" and self.config.device != "cpu":
-            raise InvalidOptionError(
-                f"engine='ray' trains on the workers' CPUs (one each); device = {self.config.device!r} trains "
-                "here: take engine='local' for it"
             )
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InvalidOptionError(f"progress must be True, False or None; got {self.progress!r}")

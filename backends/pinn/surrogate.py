@@ -215,16 +215,11 @@ class Surrogate:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
         if starts not in TRAINING_STARTS:
             raise InvalidOptionError(f"starts must be one of {', '.join(TRAINING_STARTS)}; got {starts!r}")
-        check_engine(engine, workers, address)
+        check_engine(engine, workers, address, config.device)
         if engine == "ray" and starts == "network":
             raise InvalidOptionError(
                 "engine='ray' trains segments in parallel, which needs starts='radau': with starts='network' "
                 "each segment waits for the previous one's predictions"
-            )
-        if engine == "ray" and config.device != "cpu":
-            raise InvalidOptionError(
-                f"engine='ray' trains on the workers' CPUs (one each); device = {config.device!r} trains here: "
-                "take engine='local' for it"
             )
         torch_device(config.device)
         parameter_box = dict(parameter_box or {})
