@@ -228,18 +228,7 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
             "nearest such states)"
         )
 
-    H, Hz = checks.H, checks.Hz
-    result = solve_algebraic(lambda Zc: H(t0, Y, Zc, P), lambda Zc: Hz(t0, Y, Zc, P), Z)
-    Zc, r = result.x, result.residual
-    failed = ~result.converged
-    if failed.any():
-        sample = int(np.flatnonzero(failed)[0])
-        raise InitialisationError(
-            f"Newton for the initial algebraic values failed for samples {_samples(np.flatnonzero(failed))}; "
-            f"sample {sample} keeps residuals {r[sample]} of {[c.label for c in compiled.constraints]} after "
-            f"{result.iterations} steps; pass starting values with z0=..., or check that the constraints have a "
-            "real root at these states"
-        )
+    Zc = algebraic_values(compiled, t0, Y, P, Z)
     if z0 is not None:
         off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))
         if off.any():
@@ -249,6 +238,30 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
                 f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
             )
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
+
+
+def algebraic_values(compiled, t: float, Y: np.ndarray, P: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """The algebraic values (B, m) that the states ``Y`` (B, n) determine at time ``t``: one
+    batched Newton solve of the determining equations started from ``Z`` (B, m), as at t0.
+
+    Raises
+    ------
+    InitialisationError
+        Naming the samples where Newton fails.
+    """
+    checks = _checks(compiled)
+    H, Hz = checks.H, checks.Hz
+    result = solve_algebraic(lambda Zc: H(t, Y, Zc, P), lambda Zc: Hz(t, Y, Zc, P), Z)
+    failed = ~result.converged
+    if failed.any():
+        sample = int(np.flatnonzero(failed)[0])
+        raise InitialisationError(
+            f"Newton for the algebraic values at t = {t:.6g} failed for samples {_samples(np.flatnonzero(failed))}; "
+            f"sample {sample} keeps residuals {result.residual[sample]} of {[c.label for c in compiled.constraints]} "
+            f"after {result.iterations} steps; pass starting values with z0=... (or m.guess), or check that the "
+            "constraints have a real root at these states"
+        )
+    return result.x
 
 
 def consistent_states(compiled, y0=None, parameters=None) -> dict:

@@ -443,7 +443,7 @@ def damaged(path, tmp_path, change):
 
 def test_a_network_file_with_a_missing_key(trajectory_file, pendulum, tmp_path):
     path = damaged(trajectory_file, tmp_path, lambda p: p.pop("box"))
-    with pytest.raises(NetworkFileError, match=r"lacks the key 'box' that a daemodel-pinn/2 file holds \(format, "):
+    with pytest.raises(NetworkFileError, match=r"lacks the key 'box' that a daemodel-pinn/3 file holds \(format, "):
         dm.Surrogate.load(path, pendulum)
 
 
@@ -451,6 +451,9 @@ def test_damaged_or_old_network_files(trajectory_file, pendulum, tmp_path):
     old = damaged(trajectory_file, tmp_path, lambda p: p.update(format="daemodel-pinn/1"))
     with pytest.raises(NetworkFileError, match="of format 'daemodel-pinn/1', which does not record the training box"):
         dm.Surrogate.load(old, pendulum)
+    direct = damaged(trajectory_file, tmp_path, lambda p: p.update(format="daemodel-pinn/2"))
+    with pytest.raises(NetworkFileError, match="'daemodel-pinn/2', whose networks predict the algebraic values directly"):
+        dm.Surrogate.load(direct, pendulum)
     broken = damaged(trajectory_file, tmp_path, lambda p: p["networks"][1].clear())
     with pytest.raises(NetworkFileError, match="the networks of segment 2 do not fit the settings it records"):
         dm.Surrogate.load(broken, pendulum)

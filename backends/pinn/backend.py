@@ -141,18 +141,27 @@ class PINNBackend(AbstractBackend):
         began = time.perf_counter()
         if options.segment_starts is None:
             surrogate = Surrogate.fit(
-                compiled, config, grid, start.y0, start.p, inputs, show_progress(options.progress), "pinn"
+                compiled, config, grid, start.y0, start.z0, start.p, inputs, show_progress(options.progress), "pinn"
             )
             mode = "sequential"
         else:
-            known = _segment_starts(options.segment_starts, compiled, grid, start.size)
+            known, algebraics = _segment_starts(options.segment_starts, compiled, grid, start)
             starts = np.concatenate(
                 [known, np.broadcast_to(start.p[:, varying], (segments, *start.p[:, varying].shape))], axis=2
             )
             bar = Progress(segments, show_progress(options.progress), "pinn")
             try:
                 networks, stats, memory = fit_parallel(
-                    compiled, grid, starts, start.p, config, bar, options.engine, options.workers, options.address
+                    compiled,
+                    grid,
+                    starts,
+                    algebraics,
+                    start.p,
+                    config,
+                    bar,
+                    options.engine,
+                    options.workers,
+                    options.address,
                 )
             finally:
                 bar.close()
@@ -203,11 +212,15 @@ class PINNBackend(AbstractBackend):
         )
 
 
-def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:
-    """Known start states of each segment, shape (segments, B, n)."""
+def _segment_starts(given, compiled, grid, start) -> tuple[np.ndarray, np.ndarray]:
+    """Known start states of each segment, shape (segments, B, n), and their algebraic values
+    (segments, B, m): a Solution's own, or those the states determine (the batched algebraic
+    solve of the initialisation, at each segment's start time, from the previous segment's)."""
+    from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution
 
-    segments, n = len(grid) - 1, len(compiled.states)
+    segments, n, batch = len(grid) - 1, len(compiled.states), start.size
+    algebraics = None
     if isinstance(given, Solution):
         rows = []
         for t in grid[:-1]:
@@ -219,6 +232,8 @@ def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:
                 )
             rows.append(hit[0])
         values = np.stack([np.atleast_2d(given[name])[:, rows] for name in compiled.state_names], axis=-1)  # (B', S, n)
+        if compiled.algebraic_names:
+            algebraics = np.stack([np.atleast_2d(given[name])[:, rows] for name in compiled.algebraic_names], axis=-1)
     else:
         values = np.asarray(given, dtype=float)
         if values.ndim == 2:
@@ -230,7 +245,18 @@ def _segment_starts(given, compiled, grid, batch: int) -> np.ndarray:
         )
     if not np.all(np.isfinite(values)):
         raise ShapeError("segment_starts holds non-finite values")
-    return np.ascontiguousarray(np.broadcast_to(values, (batch, segments, n)).transpose(1, 0, 2))
+    values = np.ascontiguousarray(np.broadcast_to(values, (batch, segments, n)).transpose(1, 0, 2))
+    if algebraics is not None and algebraics.shape[0] in (1, batch):
+        algebraics = np.ascontiguousarray(
+            np.broadcast_to(algebraics, (batch, segments, algebraics.shape[2])).transpose(1, 0, 2)
+        )
+    else:  # each segment's from the previous one's, the first from the consistent start
+        z, algebraics = start.z0, []
+        for k in range(segments):
+            z = algebraic_values(compiled, float(grid[k]), values[k], start.p, z)
+            algebraics.append(z)
+        algebraics = np.stack(algebraics)
+    return values, algebraics
 
 
 def torch_threads_now() -> int:

@@ -42,8 +42,14 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 
-# Format 2 added the training box and each segment's input ranges; format-1 files cannot be checked.
-FILE_FORMAT = "daemodel-pinn/2"
+# Format 2 added the training box and each segment's input ranges; format 3 predicts the algebraic
+# outputs as increments from z_n (format-2 networks predicted them directly: they would be misread).
+FILE_FORMAT = "daemodel-pinn/3"
+# Why an older file cannot be read, by format.
+OLDER_FORMATS = {
+    "daemodel-pinn/1": "which does not record the training box",
+    "daemodel-pinn/2": "whose networks predict the algebraic values directly, not as increments from z_n",
+}
 # What a network file holds; a file that lacks one is damaged or was not written by Surrogate.save.
 FILE_KEYS = (
     "format",
@@ -203,7 +209,7 @@ class Surrogate:
         from daemodel.backends.pinn.backend import resolve_model
 
         from daemodel.engine import check_engine
-        from daemodel.initial_states import project_states
+        from daemodel.initial_states import algebraic_values, project_states
         from daemodel.solver import check_span
 
         compiled = resolve_model(model, "Surrogate.train()")
@@ -237,15 +243,20 @@ class Surrogate:
             target = y if kind == "state" else p
             target[:, index] = low + (high - low) * unit[:, column]
         y = project_states(compiled, y, p)
+        z = algebraic_values(compiled, compiled.t0, y, p, np.tile(np.asarray(compiled.z0, dtype=float), (samples, 1)))
         inputs = tuple(name for name in compiled.parameter_names if name in parameter_box)
         grid = fixed_grid(t_span, config.h)
         shown = show_progress(progress)
         if starts == "network":
-            return cls.fit(compiled, config, grid, y, p, inputs, shown, "pinn surrogate", parameter_box=parameter_box)
-        return cls._fit_on_radau(compiled, config, grid, y, p, inputs, shown, (engine, workers, address), parameter_box)
+            return cls.fit(
+                compiled, config, grid, y, z, p, inputs, shown, "pinn surrogate", parameter_box=parameter_box
+            )
+        return cls._fit_on_radau(
+            compiled, config, grid, y, z, p, inputs, shown, (engine, workers, address), parameter_box
+        )
 
     @classmethod
-    def _fit_on_radau(cls, compiled, config, grid, y, p, inputs, progress, engine, parameter_box) -> Surrogate:
+    def _fit_on_radau(cls, compiled, config, grid, y, z, p, inputs, progress, engine, parameter_box) -> Surrogate:
         """Every segment trained independently from radau's solution of the training states."""
         from daemodel.engine import connect
         from daemodel.ensemble import ensemble
@@ -260,6 +271,7 @@ class Surrogate:
                 compiled,
                 (float(grid[0]), float(grid[-1])),
                 y0=y,
+                z0=z,
                 parameters=p,
                 method="radau",
                 stages=config.stages,
@@ -287,10 +299,14 @@ class Surrogate:
         states = np.stack([data[name] for name in compiled.state_names], axis=-1)  # (B, segments + 1, n)
         extra = np.broadcast_to(p[:, columns], (len(grid) - 1, len(kept), len(columns)))
         x = np.concatenate([states[:, :-1].transpose(1, 0, 2), extra], axis=2)  # (segments, B, d)
+        algebraics = np.zeros((len(kept), len(grid), len(compiled.algebraic_names)))
+        for j, name in enumerate(compiled.algebraic_names):
+            algebraics[..., j] = data[name]
+        algebraics = algebraics[:, :-1].transpose(1, 0, 2)  # (segments, B, m)
         bar = Progress(len(grid) - 1, progress, "pinn surrogate")
         try:
             # Ray is running now (the ensemble connected): later tasks go to the same cluster
-            networks, stats, _ = fit_parallel(compiled, grid, x, p, config, bar, engine)
+            networks, stats, _ = fit_parallel(compiled, grid, x, algebraics, p, config, bar, engine)
         finally:
             bar.close()
         surrogate = cls(compiled, config, grid, networks, inputs, stats)
@@ -299,10 +315,11 @@ class Surrogate:
 
     @classmethod
     def fit(
-        cls, compiled, config, grid, y, p, inputs, progress: bool, label: str, parameter_box: dict | None = None
+        cls, compiled, config, grid, y, z, p, inputs, progress: bool, label: str, parameter_box: dict | None = None
     ) -> Surrogate:
-        """Train the segments of ``grid`` one after the other from the states ``y`` (B, n) with
-        parameters ``p`` (B, k); the parameters named in ``inputs`` become network inputs.
+        """Train the segments of ``grid`` one after the other from the consistent states ``y``
+        (B, n), ``z`` (B, m) with parameters ``p`` (B, k); the parameters named in ``inputs``
+        become network inputs.
 
         The training box is the first segment's training-input range, with the input
         parameters' ranges replaced by ``parameter_box`` where given (the range they were drawn from).
@@ -311,9 +328,10 @@ class Surrogate:
         columns = [compiled.parameter_names.index(name) for name in inputs]
         x0 = torch.as_tensor(np.concatenate([y, p[:, columns]], axis=1), dtype=dtype, device=config.device)
         pt = torch.as_tensor(np.array(p), dtype=dtype, device=config.device)
+        zt = torch.as_tensor(np.array(z), dtype=dtype, device=config.device)
         bar = Progress(len(grid) - 1, progress, label)
         try:
-            networks, stats = fit_sequential(compiled, grid, x0, pt, config, bar)
+            networks, stats = fit_sequential(compiled, grid, x0, pt, zt, config, bar)
         finally:
             bar.close()
         surrogate = cls(compiled, config, grid, networks, inputs, stats)
@@ -321,29 +339,30 @@ class Surrogate:
         return surrogate
 
     # ---- evaluation -----------------------------------------------------------------------------
-    def rollout(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def rollout(self, y0: np.ndarray, z0: np.ndarray, p: np.ndarray) -> np.ndarray:
         """States and algebraic values at the segment ends, shape (B, segments, n+m).
 
         Each segment is one forward pass of its network over the whole batch; its predicted
-        ``y_{n+1}`` is the next network's input.
+        ``y_{n+1}, z_{n+1}`` start the next segment.
         """
         if len(y0) > EVALUATION_CHUNK:
-            return np.concatenate([self.rollout(y0[rows], p[rows]) for rows in _chunks(len(y0))])
+            return np.concatenate([self.rollout(y0[rows], z0[rows], p[rows]) for rows in _chunks(len(y0))])
         dtype = getattr(torch, self.config.dtype)
         extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=self.config.device)
         y = torch.as_tensor(np.array(y0), dtype=dtype, device=self.config.device)
+        z = torch.as_tensor(np.array(z0), dtype=dtype, device=self.config.device)
         out = []
         with torch.no_grad():
             for k, net in enumerate(self.networks):
-                pred = net.predict(torch.cat([y, extra], dim=1), float(self.grid[k + 1] - self.grid[k]))
-                y = pred.y_end
+                pred = net.predict(torch.cat([y, extra], dim=1), z, float(self.grid[k + 1] - self.grid[k]))
+                y, z = pred.y_end, pred.z_end
                 out.append(torch.cat([pred.y_end, pred.z_end], dim=1))
         return torch.stack(out, dim=1).cpu().numpy()
 
     def trajectory(self, start) -> np.ndarray:
         """Values on the grid for :class:`InitialStates` ``start``, shape (B, segments + 1, n+m)."""
         first = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
-        return np.concatenate([first, self.rollout(start.y0, start.p)], axis=1)
+        return np.concatenate([first, self.rollout(start.y0, start.z0, start.p)], axis=1)
 
     def solve(
         self,
@@ -501,6 +520,7 @@ class Surrogate:
         p = torch.as_tensor(np.array(start.p), dtype=dtype, device=config.device)
         extra = p[:, self.input_columns]
         y = torch.as_tensor(np.array(start.y0), dtype=dtype, device=config.device)
+        z = torch.as_tensor(np.array(start.z0), dtype=dtype, device=config.device)
         B = y.shape[0]
         E_y = torch.zeros(B, dtype=dtype, device=config.device)
         est_y, est_z, ends = [np.zeros(B)], [np.zeros(B)], []
@@ -509,7 +529,7 @@ class Surrogate:
         for k, network in enumerate(self.networks):
             h = float(self.grid[k + 1] - self.grid[k])
             y_n = y.detach().clone().requires_grad_(True)
-            out = network.predict(torch.cat([y_n, extra], dim=1), h)
+            out = network.predict(torch.cat([y_n, extra], dim=1), z, h)
             (jacobian,) = torch.autograd.grad(out.y_end, y_n, rows, is_grads_batched=True)  # (row, B, column)
             growth = jacobian.abs().sum(-1).amax(0)  # max row sum of d y_end / d y_n
             with torch.no_grad():
@@ -521,7 +541,7 @@ class Surrogate:
                 E_y = carried + F
                 est_y.append((ESTIMATE_SAFETY * E_y).cpu().numpy())
                 est_z.append((ESTIMATE_SAFETY * (G / h**2 + E_y / h)).cpu().numpy())
-            y = out.y_end.detach()
+            y, z = out.y_end.detach(), out.z_end.detach()
         estimates = {"y": np.stack(est_y, axis=1)}
         if self.compiled.algebraics:
             estimates["z"] = np.stack(est_z, axis=1)
@@ -555,10 +575,11 @@ class Surrogate:
         def guess(t, y, z):
             k = int(np.argmin(np.abs(grid[:-1] - t)))  # the segment this step is
             x = torch.cat([torch.as_tensor(y, dtype=dtype, device=config.device), extra], dim=1)
+            z = torch.as_tensor(z, dtype=dtype, device=config.device)
             with torch.no_grad():
                 stages = []
                 for chunk in _chunks(len(x)):
-                    pred = self.networks[k].predict(x[chunk], float(grid[k + 1] - grid[k]))
+                    pred = self.networks[k].predict(x[chunk], z[chunk], float(grid[k + 1] - grid[k]))
                     stages.append(torch.cat([pred.Y, pred.Z], dim=2))
             return torch.cat(stages)
 
@@ -686,9 +707,9 @@ class Surrogate:
             raise NetworkFileError(f"{path} is not a daemodel network file ({error.__class__.__name__})") from None
         found = payload.get("format") if isinstance(payload, dict) else None
         if found != FILE_FORMAT:
-            older = isinstance(found, str) and found.startswith("daemodel-pinn/")
+            older = OLDER_FORMATS.get(found) if isinstance(found, str) else None
             raise NetworkFileError(
-                f"{path} is a daemodel network file of format {found!r}, which does not record the training box; "
+                f"{path} is a daemodel network file of format {found!r}, {older}; "
                 f"this version reads {FILE_FORMAT!r}: train and save it again"
                 if older
                 else f"{path} is not a daemodel network file (expected format {FILE_FORMAT!r})"

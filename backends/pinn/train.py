@@ -114,6 +114,8 @@ class Segment:
         Network inputs: states, then the parameters that vary.
     p : Tensor, shape (N, k)
         Full parameter vectors of the inputs.
+    z : Tensor, shape (N, m)
+        Algebraic values at the segment's start (the base of the increment form).
     """
 
     index: int
@@ -121,6 +123,7 @@ class Segment:
     h: float
     x: torch.Tensor
     p: torch.Tensor
+    z: torch.Tensor
 
 
 def _where(segment: Segment) -> str:
@@ -147,7 +150,7 @@ class SegmentTrainer:
     def residuals(self, segment: Segment, raw=None):
         n = self.net.n
         raw = self.net(segment.x) if raw is None else raw
-        out = self.net.split(raw, segment.x[:, :n], segment.h)
+        out = self.net.split(raw, segment.x[:, :n], segment.z, segment.h)
         return self.loss.residuals(segment.t, segment.h, segment.x[:, :n], segment.p, out)
 
     def _vector_of_raw(self, segment: Segment, raw):
@@ -257,6 +260,7 @@ class SegmentTrainer:
             h=torch.tensor(segment.h, dtype=segment.x.dtype, device=device),
             x=segment.x,
             p=segment.p,
+            z=segment.z,
         )
 
         def iteration():
@@ -340,7 +344,7 @@ class SegmentTrainer:
         from the model's Jacobian at the stages and the end point (:meth:`RadauLoss.jacobian`)."""
         net, n = self.net, self.net.n
         y_n = segment.x[:, :n]
-        out = net.split(raw, y_n, segment.h)
+        out = net.split(raw, y_n, segment.z, segment.h)
         Ru = self.loss.jacobian(segment.t, segment.h, y_n, segment.p, out)
         if net.increment:  # Y = y_n + h N(x), y_end = y_n + h N(x)
             Ru[..., : (net.stages + 1) * n] *= segment.h
@@ -708,19 +712,25 @@ def make_loss(compiled, config):
     return loss
 
 
-def training_inputs(x: torch.Tensor, p: torch.Tensor, n: int, config, generator: torch.Generator):
-    """A segment's training inputs and their parameter vectors: the rows of ``x`` (B, d), each
-    followed by ``samples - 1`` points uniform in a box of half-width ``radius * max(1, |y|)``
-    around its states (parameters are not perturbed)."""
+def training_inputs(x: torch.Tensor, p: torch.Tensor, z: torch.Tensor, n: int, config, generator: torch.Generator):
+    """A segment's training inputs, their parameter vectors and algebraic start values: the rows
+    of ``x`` (B, d), each followed by ``samples - 1`` points uniform in a box of half-width
+    ``radius * max(1, |y|)`` around its states (parameters are not perturbed; the box points share
+    their source row's algebraic start value ``z`` (B, m), the base of their increments)."""
     if config.samples == 1:
-        return x, p
+        return x, p, z
     B, d = x.shape
     noise = torch.rand(B, config.samples - 1, n, generator=generator, dtype=torch.float64).to(x) * 2 - 1
     half = config.radius * torch.clamp(x[:, None, :n].abs(), min=1.0)
     extra = x[:, None, :].repeat(1, config.samples - 1, 1)
     extra[..., :n] = extra[..., :n] + half * noise
     # extra rows are grouped by their source row, as are their parameter vectors
-    return torch.cat([x, extra.reshape(-1, d)]), torch.cat([p, p.repeat_interleave(config.samples - 1, dim=0)])
+    repeat = config.samples - 1
+    return (
+        torch.cat([x, extra.reshape(-1, d)]),
+        torch.cat([p, p.repeat_interleave(repeat, dim=0)]),
+        torch.cat([z, z.repeat_interleave(repeat, dim=0)]),
+    )
 
 
 class Progress:
@@ -753,11 +763,12 @@ class Progress:
             self.bar.close()
 
 
-def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, progress: Progress):
+def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.Tensor, config, progress: Progress):
     """Train the segments one after the other (time-domain decomposition).
 
-    Segment k trains on the states its predecessor predicted (``x0`` for the first), plus the
-    box samples of ``config``; its predicted ``y_{n+1}`` becomes segment k+1's input.
+    Segment k trains on the states its predecessor predicted (``x0`` (B, d) and the consistent
+    algebraic values ``z0`` (B, m) for the first), plus the box samples of ``config``; its
+    predicted ``y_{n+1}, z_{n+1}`` start segment k+1.
 
     Returns
     -------
@@ -767,41 +778,45 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, config, pr
     n = len(compiled.states)
     loss = make_loss(compiled, config)
     generator = torch.Generator().manual_seed(config.seed)
-    x, networks, stats = x0, [], []
+    x, z, networks, stats = x0, z0, [], []
     for k in range(len(grid) - 1):
         h = float(grid[k + 1] - grid[k])
-        inputs, samples_p = training_inputs(x, p, n, config, generator)
-        if config.warm_start and networks:
-            net = copy.deepcopy(networks[-1])
-        else:
-            net = make_network(compiled, config, x.shape[1], k)
+        inputs, samples_p, samples_z = training_inputs(x, p, z, n, config, generator)
+        fresh = not (config.warm_start and networks)
+        net = make_network(compiled, config, x.shape[1], k) if fresh else copy.deepcopy(networks[-1])
         net.normalise(inputs)
-        segment = Segment(index=k, t=float(grid[k]), h=h, x=inputs, p=samples_p)
+        if fresh and config.increment:
+            net.start_at_rest(inputs)
+        segment = Segment(index=k, t=float(grid[k]), h=h, x=inputs, p=samples_p, z=samples_z)
         stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
         with torch.no_grad():
-            y_end = net.predict(x, h).y_end
-        x = torch.cat([y_end, x[:, n:]], dim=1)
+            out = net.predict(x, z, h)
+        x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
         networks.append(net)
         progress.advance()
     return networks, stats
 
 
-def fit_one(shared: tuple, k: int, t: float, h: float, x) -> dict:
-    """Train segment k from the known inputs ``x`` (B, d): an engine task, plain data in and out.
-    ``shared`` is (compiled, config, p)."""
+def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
+    """Train segment k from the known inputs ``x`` (B, d) and algebraic values ``z`` (B, m): an
+    engine task, plain data in and out.  ``shared`` is (compiled, config, p)."""
     compiled, config, p = shared
     dtype = getattr(torch, config.dtype)
-    x = torch.as_tensor(np.array(x), dtype=dtype, device=config.device)
-    p = torch.as_tensor(np.array(p), dtype=dtype, device=config.device)
+    x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
     generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
-    inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
+    inputs, samples_p, samples_z = training_inputs(x, p, z, len(compiled.states), config, generator)
     net = make_network(compiled, config, x.shape[1], k)
     net.normalise(inputs)
-    stats = SegmentTrainer(net, make_loss(compiled, config), config).train(Segment(k, t, h, inputs, samples_p))
+    if config.increment:
+        net.start_at_rest(inputs)
+    segment = Segment(k, t, h, inputs, samples_p, samples_z)
+    stats = SegmentTrainer(net, make_loss(compiled, config), config).train(segment)
     return {"state": {name: value.cpu() for name, value in net.state_dict().items()}, "stats": stats}
 
 
-def fit_parallel(compiled, grid, starts, p, config, progress: Progress, engine="local", workers=None, address=None):
+def fit_parallel(
+    compiled, grid, starts, algebraics, p, config, progress: Progress, engine="local", workers=None, address=None
+):
     """Train every segment independently on known start values, as tasks of ``engine``
     (:func:`daemodel.engine.run_tasks`: one after another here, or in parallel on Ray).
 
@@ -809,6 +824,8 @@ def fit_parallel(compiled, grid, starts, p, config, progress: Progress, engine="
     ----------
     starts : ndarray, shape (segments, B, d)
         Network inputs at each segment's start (from a classical solve or an earlier sweep).
+    algebraics : ndarray, shape (segments, B, m)
+        The consistent algebraic values at each segment's start.
 
     Returns
     -------
@@ -817,7 +834,9 @@ def fit_parallel(compiled, grid, starts, p, config, progress: Progress, engine="
     """
     from daemodel.engine import run_tasks
 
-    tasks = [(k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k]) for k in range(len(grid) - 1)]
+    tasks = [
+        (k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k], algebraics[k]) for k in range(len(grid) - 1)
+    ]
     results = run_tasks(
         fit_one,
         (compiled, config, np.asarray(p)),
