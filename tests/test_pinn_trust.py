@@ -452,7 +452,7 @@ def test_damaged_or_old_network_files(trajectory_file, pendulum, tmp_path):
     with pytest.raises(NetworkFileError, match="of format 'daemodel-pinn/1', which does not record the training box"):
         dm.Surrogate.load(old, pendulum)
     direct = damaged(trajectory_file, tmp_path, lambda p: p.update(format="daemodel-pinn/2"))
-    with pytest.raises(NetworkFileError, match="'daemodel-pinn/2', whose networks predict the algebraic values directly"):
+    with pytest.raises(NetworkFileError, match="'daemodel-pinn/2', whose networks predict the algebraic values"):
         dm.Surrogate.load(direct, pendulum)
     broken = damaged(trajectory_file, tmp_path, lambda p: p["networks"][1].clear())
     with pytest.raises(NetworkFileError, match="the networks of segment 2 do not fit the settings it records"):

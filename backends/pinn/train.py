@@ -834,9 +834,7 @@ def fit_parallel(
     """
     from daemodel.engine import run_tasks
 
-    tasks = [
-        (k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k], algebraics[k]) for k in range(len(grid) - 1)
-    ]
+    tasks = [(k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k], algebraics[k]) for k in range(len(grid) - 1)]
     results = run_tasks(
         fit_one,
         (compiled, config, np.asarray(p)),
