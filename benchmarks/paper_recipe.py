@@ -58,8 +58,6 @@ def train(name: str, segments: int, iterations: int, device: str, state_dir: Pat
         raise SystemExit(f"{path} holds a run of {done[0]['iterations']} iterations per segment, not {iterations}")
     dtype = getattr(torch, config.dtype)
     y = torch.tensor([done[-1]["y_end"] if done else list(compiled.y0)], dtype=dtype, device=device)
-    # the paper's outputs are direct (no increments): z is each segment's start, unused by its networks
-    z = torch.tensor([done[-1]["z_end"] if done else list(compiled.z0)], dtype=dtype, device=device)
     p = torch.tensor([list(compiled.parameter_values)], dtype=dtype, device=device)
     loss = make_loss(compiled, config)
     for k in range(len(done), segments):
@@ -67,10 +65,10 @@ def train(name: str, segments: int, iterations: int, device: str, state_dir: Pat
         net = make_network(compiled, config, y.shape[1], k)  # fresh weights per segment, as the paper's
         net.normalise(y)
         began = time.perf_counter()
-        stats = SegmentTrainer(net, loss, config).train(Segment(index=k, t=t, h=config.h, x=y, p=p, z=z))
+        stats = SegmentTrainer(net, loss, config).train(Segment(index=k, t=t, h=config.h, x=y, p=p))
         seconds = time.perf_counter() - began
         with torch.no_grad():
-            out = net.predict(y, z, config.h)
+            out = net.predict(y, config.h)
         done.append(
             {
                 "segment": k + 1,
@@ -90,7 +88,7 @@ def train(name: str, segments: int, iterations: int, device: str, state_dir: Pat
         record["config"] = dict(config.__dict__)
         write_atomic(path, record)
         print(f"{name} segment {k + 1}: {seconds:.0f} s, L_f {stats.L_f:.1e} L_g {stats.L_g:.1e}", flush=True)
-        y, z = out.y_end.detach(), out.z_end.detach()
+        y = out.y_end.detach()
     return record
 
 

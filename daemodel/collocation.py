@@ -22,7 +22,15 @@ with Newton; the Radau-PINN trainer minimises the same function.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+
+# Full Newton (collocation_step): increments that stop shrinking (ratio above STAGNATION_THETA)
+# while below STAGNATION_SIZE (relative to 1 + |value|) have reached the rounding floor of the
+# residual.  That floor depends on the conditioning: on the squeezer (accelerations of 1e5) the
+# increments wander at 1e-13, 50x radau's 10 eps; the last increment is returned as the
+# solution's uncertainty.
+STAGNATION_THETA, STAGNATION_SIZE = 0.5, 1e-10
 
 
 @dataclass(frozen=True)
@@ -88,3 +96,130 @@ def stage_residual(functions, A, b, c, t_n, h, y_n, Y, Z, p=None, y_end=None, z_
             G_end = functions.g(t_n + h, y_end, z_end, p)
             S = z_end - Z[..., -1, :]
     return StageResidual(F=F, G=G, stage_f=stage_f, F_end=F_end, G_end=G_end, S=S)
+
+
+def model_jacobian(functions, t, y, z, p) -> object:
+    """``d(f, g)/d(y, z)`` at points ``t (...)``, ``y (..., n)``, ``z (..., m)``, shape (..., D, D)
+    with D = n + m: the compiler's symbolic Jacobian at its nonzeros, or, where it has none (a
+    derivative outside the supported functions, or a system too large for a symbolic one),
+    reverse-mode autograd with the D rows as one batch of cotangents.  (Forward mode would need
+    fewer directions on a sparse system, but torch runs its rules for a Python scalar times a
+    dual tensor through Python decompositions: 3-6x slower here.)"""
+    import torch
+
+    n, m = y.shape[-1], z.shape[-1]
+    D, lead = n + m, y.shape[:-1]
+    if functions.jacobian is not None:
+        rows, cols = (torch.as_tensor(a, device=y.device) for a in functions.jacobian_pattern)
+        J = y.new_zeros((*lead, D * D))
+        J[..., rows * D + cols] = functions.jacobian(t, y, z, p)
+        return J.reshape(*lead, D, D)
+    with torch.enable_grad():
+        y, z = y.detach().requires_grad_(), z.detach().requires_grad_()
+        values = torch.cat([functions.f(t, y, z, p), functions.g(t, y, z, p)], dim=-1)  # (..., D)
+        rows = torch.eye(D, dtype=y.dtype, device=y.device).reshape(D, *([1] * len(lead)), D)
+        # each point's outputs depend on its own inputs only: one cotangent per row serves all points
+        grads = torch.autograd.grad(
+            values, (y, z), rows.expand(D, *values.shape), is_grads_batched=True, allow_unused=True
+        )
+    parts = [y.new_zeros((D, *x.shape)) if g is None else g for g, x in zip(grads, (y, z), strict=True)]
+    return torch.cat(parts, dim=-1).movedim(0, -2)  # (row, ..., column) -> (..., row, column)
+
+
+def stage_jacobian(functions, A, c, t_n, h, Y, Z, p=None):
+    """``d(F, G)/d(Y, Z)`` of :func:`stage_residual`, shape (..., s D, s D) with D = n + m: rows
+    stage by stage ``[F_i, G_i]``, columns stage by stage ``[Y_j, Z_j]``::
+
+        dF_i/dY_j = delta_ij I - h a_ij f_y(j),   dF_i/dZ_j = -h a_ij f_z(j)
+        dG_i/dY_j = delta_ij g_y(i),              dG_i/dZ_j = delta_ij g_z(i)
+
+    the full Newton matrix of the stage equations (each stage's own Jacobian)."""
+    import torch
+
+    t_n = torch.as_tensor(t_n, dtype=Y.dtype, device=Y.device)
+    h = torch.as_tensor(h, dtype=Y.dtype, device=Y.device)
+    s, n, m = Y.shape[-2], Y.shape[-1], Z.shape[-1]
+    D, lead = n + m, Y.shape[:-2]
+    times = t_n[..., None] + c * h[..., None]  # (..., s)
+    J = model_jacobian(functions, times, Y, Z, None if p is None else p[..., None, :])  # (..., s, D, D)
+    hA = h[..., None, None] * A  # (..., s, s)
+    jac = Y.new_zeros((*lead, s, D, s, D))
+    jac[..., :n, :, :] = -torch.einsum("...ij,...jpq->...ipjq", hA, J[..., :n, :])
+    stage = torch.arange(s, device=Y.device)
+    jac[..., stage, n:, stage, :] = J[..., n:, :].movedim(-3, 0)
+    jac[..., stage, :n, stage, :n] += torch.eye(n, dtype=Y.dtype, device=Y.device)
+    return jac.reshape(*lead, s * D, s * D)
+
+
+@dataclass(frozen=True)
+class CollocationStep:
+    """The collocation solution of one step per row, by full Newton (:func:`collocation_step`).
+
+    Attributes
+    ----------
+    Y, Z : Tensor, shapes (..., s, n) and (..., s, m)
+        The stage values; ``Y[..., -1, :]``, ``Z[..., -1, :]`` are the step's end values.
+    converged : Tensor of bool, shape (...)
+        Whether the last increment was below the tolerance, or stopped shrinking at the rounding
+        floor (and everything is finite).
+    increment : Tensor, shape (..., s, n + m)
+        The last increment of each converged row: the stage values' uncertainty.
+    jacobian : Tensor, shape (..., s D, s D)
+        The stage equations' Jacobian at the returned stage values.
+    iterations : int
+    """
+
+    Y: object
+    Z: object
+    converged: object
+    increment: object
+    jacobian: object
+    iterations: int
+
+    def end_sensitivity(self):
+        """``d(y_{n+1}, z_{n+1})/dy_n`` of the step map, shape (..., n + m, n): the stage
+        equations' Jacobian solved against ``dF_i/dy_n = -I`` (the constraints hold no y_n)."""
+        import torch
+
+        s, n, m = self.Y.shape[-2], self.Y.shape[-1], self.Z.shape[-1]
+        D = n + m
+        rhs = self.Y.new_zeros((*self.Y.shape[:-2], s, D, n))
+        rhs[..., :n, :] = torch.eye(n, dtype=self.Y.dtype, device=self.Y.device)
+        X = torch.linalg.solve_ex(self.jacobian, rhs.reshape(*rhs.shape[:-3], s * D, n))[0]
+        return X[..., (s - 1) * D :, :]
+
+
+def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iterations: int, tol: float) -> CollocationStep:
+    """Full Newton on the stage equations F = 0, G = 0 from the stage values ``Y``, ``Z``, every
+    row of the batch at once (each with its own ``t_n``, ``h``, ``y_n``): the Radau IIA step that
+    :mod:`daemodel.backends.radau` takes, solved to ``tol`` (increments relative to
+    ``1 + |value|``) in at most ``max_iterations`` iterations.  A row whose matrix is singular or
+    whose values leave f's domain ends with ``converged`` False."""
+    import torch
+
+    n = Y.shape[-1]
+    W = torch.cat([Y, Z], dim=-1)
+    converged = torch.zeros(W.shape[:-2], dtype=torch.bool, device=W.device)
+    previous = torch.full_like(converged, math.inf, dtype=W.dtype)
+    last = torch.zeros_like(W)
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):  # noqa: B007  (the count is returned)
+        res = stage_residual(functions, A, None, c, t_n, h, y_n, W[..., :n], W[..., n:], p)
+        R = torch.cat([res.F, res.G], dim=-1).reshape(*W.shape[:-2], -1)
+        J = stage_jacobian(functions, A, c, t_n, h, W[..., :n], W[..., n:], p)
+        dW = torch.linalg.solve_ex(J, -R[..., None])[0][..., 0].reshape(W.shape)
+        dW = torch.where(converged[..., None, None], torch.zeros_like(dW), dW)  # converged rows keep their values
+        W = W + dW
+        size = (dW.abs() / (1 + W.abs())).flatten(-2).amax(-1)
+        # the increment is below tol, or has stopped shrinking while small (the rounding floor of R)
+        settled = (size <= tol) | ((size >= STAGNATION_THETA * previous) & (size <= STAGNATION_SIZE))
+        last = torch.where(converged[..., None, None], last, dW.abs())
+        converged = converged | (torch.isfinite(size) & settled)
+        previous = torch.where(converged, previous, size)
+        if bool(converged.all()) or not bool(torch.isfinite(W).any()):
+            break
+    J = stage_jacobian(functions, A, c, t_n, h, W[..., :n], W[..., n:], p)
+    finite = torch.isfinite(W).flatten(-2).all(-1) & torch.isfinite(J).flatten(-2).all(-1)
+    return CollocationStep(
+        Y=W[..., :n], Z=W[..., n:], converged=converged & finite, increment=last, jacobian=J, iterations=iterations
+    )

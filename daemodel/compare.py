@@ -86,6 +86,15 @@ class Run:
         The warnings the solve raised (``"Category: text"``, each once), kept here instead of
         printed above the table; casadi's own printed output is caught by its backend and,
         when it explains a failure, quoted in ``failure``.
+    status : str
+        :attr:`Solution.status` ("success", or why not: a PINN answer that is not certified starts
+        with "flagged").
+    certificate : dict
+        A PINN run's certificate, worst over the variables and the grid: ``distance`` (from the
+        Radau solution at the same h) and ``radau_error`` (Radau's own error there); empty otherwise.
+    step : tuple
+        ``(stages, h)`` of a fixed-step run (radau, casadi-collocation, pinn), else empty: runs on
+        the same grid, whose times the table compares.
     """
 
     method: str
@@ -97,6 +106,9 @@ class Run:
     failure: str | None = None
     short: str = ""
     messages: tuple = ()
+    status: str = "success"
+    certificate: dict = dataclasses.field(default_factory=dict)
+    step: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -141,6 +153,9 @@ class Comparison:
                 row[f"{name}_max"], row[f"{name}_mean"] = error.get("max"), error.get("mean")
             row.update({f"drift_{k}": run.drift.get(k) for k in drift_names})
             row["failure"] = run.failure
+            row["status"] = run.status
+            row["certified_distance"] = run.certificate.get("distance")
+            row["certificate_radau_error"] = run.certificate.get("radau_error")
             row["messages"] = " | ".join(run.messages) or None
             out.append(row)
         return out
@@ -185,7 +200,13 @@ class Comparison:
                     worst = max(names, key=lambda name: run.errors[name]["max"])
                     line += f"{run.errors[worst]['max']:>{cell - name_width - 3}.1e} ({worst:<{name_width}})"
             line += f"{max(run.drift.values()):>10.1e}" if run.drift else f"{'-':>10}"
+            if run.certificate:
+                verdict = "<=" if run.status == "success" else "> "
+                line += f"  cert {run.certificate['distance']:.0e} {verdict} {run.certificate['radau_error']:.0e}"
+            if run.status != "success" and not run.certificate:
+                line += f"  {run.status.split(':')[0]}"
             lines.append(line)
+        lines += self._certificate_notes()
         for method in self.failed_methods:
             count = sum(r.method == method for r in self.runs)
             lines.append(f"{method} failed at every setting ({count} of {count}): no errors to compare, no curve")
@@ -196,6 +217,24 @@ class Comparison:
                 "see 'messages' in the JSON and CSV"
             )
         return "\n".join(lines)
+
+    def _certificate_notes(self) -> list[str]:
+        """What the certificate column means, and each PINN run's time against radau's at the same
+        setting (setup + solve: training, evaluation and certificate against radau's whole solve)."""
+        certified = [r for r in self.runs if r.certificate]
+        if not certified:
+            return []
+        notes = [
+            "cert: the PINN's certified distance from the Radau solution at the same stages and h, against Radau's "
+            "own error (worst over variables and times); success needs distance <= error, else 'flagged'"
+        ]
+        radau = {r.step: r for r in self.runs if r.method == "radau" and r.failure is None and r.step}
+        for run in certified:
+            twin = radau.get(run.step)
+            if twin is not None:
+                ratio = (run.solve_time + run.setup_time) / max(twin.solve_time + twin.setup_time, 1e-12)
+                notes.append(f"{run.method} {run.settings}: {ratio:.3g}x radau's time at the same stages and h")
+        return notes
 
     @property
     def failed_methods(self) -> tuple:
@@ -230,6 +269,9 @@ class Comparison:
                     failure=r.get("failure"),
                     short=r.get("short", ""),
                     messages=tuple(r.get("messages", ())),
+                    status=r.get("status", "success"),
+                    certificate=dict(r.get("certificate", {})),
+                    step=tuple(r.get("step", ())),
                 )
                 for r in payload["runs"]
             )
@@ -487,6 +529,9 @@ class ComparisonPlan:
                             solution.drift(),
                             short=short,
                             messages=messages,
+                            status=solution.status,
+                            certificate=_certificate_digest(solution),
+                            step=_step(solution),
                         )
                     )
                 if bar is not None:
@@ -713,6 +758,24 @@ def exception_summary(error: BaseException, *, depth: int | None = None, filenam
     if depth is not None and len(frames) > depth:
         return f"{text} (line {frames[depth].lineno} of {frames[depth].filename})"
     return text
+
+
+def _step(solution) -> tuple:
+    """``(stages, h)`` of a fixed-step Solution, else ()."""
+    settings = solution.settings if isinstance(solution.settings, dict) else {}
+    if settings.get("h") is None or settings.get("stages") is None:
+        return ()
+    return (int(settings["stages"]), float(settings["h"]))
+
+
+def _certificate_digest(solution) -> dict:
+    """A PINN Solution's certificate, worst over variables and samples: the largest certified
+    distance and the largest Radau error; empty for other methods."""
+    certificate = solution.stats.get("certificate") if isinstance(solution.stats, dict) else None
+    if not certificate:
+        return {}
+    worst = lambda table: max(max(values) for values in table.values())  # noqa: E731
+    return {"distance": worst(certificate["max_distance"]), "radau_error": worst(certificate["max_radau_error"])}
 
 
 def _nan_to_none(value):

@@ -160,12 +160,17 @@ class OutsideTrainingBoxWarning(UserWarning):
     """A surrogate was asked for states or parameters outside the box it was trained on (by default a warning)."""
 
 
+class UncertifiedWarning(UserWarning):
+    """A Radau-PINN answer whose certificate does not put it within Radau's own error at the same h
+    (its Solution's status is "flagged"; ``strict=True`` makes it a :class:`TrainingError`)."""
+
+
 class ComparisonError(ModelError):
     """Two solutions (or a solution and a reference) cannot be compared: no common variables or times."""
 
 
 class TrainingError(ConvergenceError):
-    """Radau-PINN training failed: a loss term is NaN, exploded, or missed its tolerance."""
+    """Radau-PINN training failed: a loss term is NaN or exploded, or (``strict=True``) the answer is not certified."""
 
 
 class WorkerError(SolverError):

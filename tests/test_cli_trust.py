@@ -214,7 +214,7 @@ def test_warnings_of_a_solve_go_into_its_run_not_above_the_table(monkeypatch, tm
     payload = json.loads(result.to_json(tmp_path / "decay.json").read_text())
     assert payload["runs"][1]["messages"] == ["RuntimeWarning: the Jacobian is badly conditioned"]
     rows = result.to_csv(tmp_path / "decay.csv").read_text().splitlines()
-    assert rows[0].endswith(",failure,messages") and rows[2].endswith(
+    assert rows[0].endswith(",failure,status,certified_distance,certificate_radau_error,messages") and rows[2].endswith(
         ",RuntimeWarning: the Jacobian is badly conditioned"
     )
 

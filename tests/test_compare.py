@@ -57,12 +57,36 @@ def test_default_reference_is_the_tight_scipy_solve_on_each_runs_times():
 
 
 def test_a_failing_setting_is_recorded_not_raised():
-    sweep = {"pinn": [{"config": dm.PINNConfig(iterations=1)}, {"config": dm.PINNConfig(h=0.1)}]}
+    sweep = {"pinn": [{"config": dm.PINNConfig(iterations=1), "strict": True}, {"config": dm.PINNConfig(h=0.1)}]}
     result = dm.compare(HESSENBERG.model(), (0.0, 0.2), ["pinn"], reference=EXACT, sweep=sweep, progress=False)
     failed, ok = result.runs
-    assert failed.settings == "h=0.05, iterations=1" and "segment 1" in failed.failure and failed.errors == {}
+    assert failed.settings == "h=0.05, iterations=1, strict=True" and failed.errors == {}
+    assert failed.failure.startswith("pinn: not certified (the answer): at segment 1")
     assert ok.failure is None and ok.errors["y1"]["max"] < 1e-6
-    assert "failed: pinn: segment 1" in result.table()
+    assert "failed: pinn: not certified" in result.table()
+
+
+def test_the_table_shows_the_pinns_certificate_and_its_time_against_radaus():
+    """An under-trained PINN is flagged beside its certified distance and Radau's error; a
+    trained one is success; each PINN row has its time (setup + solve: training, evaluation and
+    certificate) against radau's whole solve at the same stages and h."""
+    sweep = {
+        "pinn": [{"config": dm.PINNConfig(iterations=1)}, {"config": dm.PINNConfig()}],
+        "radau": [{"stages": 3, "h": 0.05}],
+    }
+    result = dm.compare(HESSENBERG.model(), (0.0, 0.2), ["pinn", "radau"], reference=EXACT, sweep=sweep, progress=False)
+    flagged, certified, radau = result.runs
+    assert flagged.status.startswith("flagged: ") and certified.status == "success" and radau.status == "success"
+    assert flagged.certificate["distance"] > flagged.certificate["radau_error"]
+    assert certified.certificate["distance"] <= certified.certificate["radau_error"]
+    assert radau.certificate == {}
+    table = result.table()
+    assert f"cert {flagged.certificate['distance']:.0e} >  {flagged.certificate['radau_error']:.0e}" in table
+    assert f"cert {certified.certificate['distance']:.0e} <= {certified.certificate['radau_error']:.0e}" in table
+    ratio = (certified.solve_time + certified.setup_time) / (radau.solve_time + radau.setup_time)
+    assert f"pinn {certified.settings}: {ratio:.3g}x radau's time at the same stages and h" in table
+    records = result.records()
+    assert records[0]["status"].startswith("flagged") and records[1]["certified_distance"] > 0
 
 
 def test_table_json_csv_and_plot(hessenberg, tmp_path):

@@ -19,6 +19,7 @@ from daemodel.errors import (
     NetworkFileError,
     ShapeError,
     TrainingError,
+    UncertifiedWarning,
     UnknownOptionError,
 )
 from daemodel.problems import HESSENBERG, PENDULUM
@@ -38,7 +39,7 @@ def test_network_count_and_output_shapes(architecture, count):
     net = network(cfg)
     assert net.count == count  # approach 2: one per differential variable + two algebraic; approach 1: one
     x = torch.rand(7, 4, dtype=F64)
-    out = net.predict(x, torch.rand(7, 1, dtype=F64), 0.05)
+    out = net.predict(x, 0.05)
     assert out.Y.shape == (7, 3, 4) and out.y_end.shape == (7, 4)
     assert out.Z.shape == (7, 3, 1) and out.z_end.shape == (7, 1)
     assert net.W_gate.shape == (2, count, 8, 8)  # depth 3 = H_1 plus two gated layers
@@ -63,26 +64,23 @@ def test_adaptive_slope_is_trainable_and_starts_at_one_over_eta():
     assert net.slope.grad is not None and net.slope.grad.abs().sum() > 0
 
 
-def test_increment_form_predicts_start_values_plus_h_times_network():
+def test_increment_form_predicts_y_n_plus_h_times_network():
     cfg = dm.PINNConfig(width=6, depth=2)
     net = network(cfg)
-    x, z = torch.rand(2, 4, dtype=F64), torch.rand(2, 1, dtype=F64)
+    x = torch.rand(2, 4, dtype=F64)
     raw = net(x)
-    out = net.predict(x, z, 0.05)
+    out = net.predict(x, 0.05)
     assert torch.allclose(out.y_end, x + 0.05 * raw[:, 12:16])
-    assert torch.allclose(out.Z[:, :, 0], z + raw[:, 16:19])  # the algebraic stages from z_n too
-    assert torch.allclose(out.z_end, z + raw[:, 19:20])
     direct = network(cfg.replace(increment=False))
-    assert torch.allclose(direct.predict(x, z, 0.05).y_end, direct(x)[:, 12:16])
-    assert torch.allclose(direct.predict(x, z, 0.05).z_end, direct(x)[:, 19:20])
+    assert torch.allclose(direct.predict(x, 0.05).y_end, direct(x)[:, 12:16])
 
 
 def test_a_fresh_network_starts_at_rest_on_the_start_values():
     # Newton's constant guess: every stage and end value at (y_n, z_n), not at a random point
     net = network(dm.PINNConfig(width=6, depth=2))
     x, z = torch.rand(1, 4, dtype=F64), torch.tensor([[2.5]], dtype=F64)
-    net.start_at_rest(x)
-    out = net.predict(x, z, 0.05)
+    net.start_at_rest(x, z)
+    out = net.predict(x, 0.05)
     assert torch.allclose(out.Y, x[:, None, :].expand(1, 3, 4), atol=1e-15)
     assert torch.allclose(out.Z, torch.full((1, 3, 1), 2.5, dtype=F64), atol=1e-15)
     assert torch.allclose(out.z_end, z, atol=1e-15)
@@ -119,8 +117,10 @@ def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
     assert len(sol.stats["L_f"]) == len(sol.stats["iterations"]) == 20
     assert max(sol.stats["max_residual"]) <= 1e-12
     assert sol.method == "pinn" and sol.settings["optimizer"] == "lm"
-    # the clocks: training is the setup, evaluating the trained networks the solve
-    assert sol.setup_time == sol.stats["training_seconds"] and sol.solve_time == sol.stats["evaluation_seconds"]
+    # the clocks: training is the setup, evaluating the trained networks and certifying their answer the solve
+    assert sol.setup_time == sol.stats["training_seconds"]
+    assert sol.solve_time == pytest.approx(sol.stats["evaluation_seconds"] + sol.stats["certificate_seconds"])
+    assert sol.status == "success" and sol.stats["certificate"]["certified"] == [True]
     assert sol.setup_time > sol.solve_time > 0
 
 
@@ -328,7 +328,7 @@ def test_lm_step_equals_the_dense_gauss_newton_step(architecture, space, samples
     x = 1 + 0.02 * torch.rand(samples, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
     net.normalise(x)
     trainer = SegmentTrainer(net, make_loss(c, cfg), cfg)
-    segment = Segment(0, 0.0, 0.05, x, torch.zeros(samples, 0, dtype=F64), torch.ones(samples, 1, dtype=F64))
+    segment = Segment(0, 0.0, 0.05, x, torch.zeros(samples, 0, dtype=F64))
     params = {k: v.detach().clone() for k, v in net.named_parameters()}
     P = sum(v.numel() for v in params.values())
     _, e = trainer._merit(segment, params, space)
@@ -492,26 +492,40 @@ def test_nan_loss_names_the_segment_and_the_term():
     m.ode("x", "sqrt(0.05 - t) + w")
     m.constraint("x - w", name="tie")
     m.initial(x=0.0)
-    with pytest.raises(TrainingError, match=r"segment 2 \(t = 0.05 to 0.1\): loss term L_f.* not finite"):
+    with pytest.raises(
+        TrainingError,
+        match=r"segment 2 \(t = 0.05 to 0.1\): loss term L_f is not finite at iteration 0; the start values "
+        r"themselves, or the network's first predictions, lie outside f's or g's domain \(e\.g\. inside sqrt or "
+        r"log\): check the initial values, or shorten h$",
+    ):
         dm.solve(m, (0.0, 0.2), method="pinn")
 
 
-def test_unreached_tolerance_names_the_segment_and_the_largest_residual():
-    """The message names the largest component itself: its value (the number compared with tol)
-    and its equation, row and sample.  Before, it quoted the largest mean-square loss term beside
-    the largest component, e.g. "residual 3.88e-06 > tol (largest term L_g = 5.56e-12)"."""
+def test_an_under_trained_answer_is_flagged_not_success():
+    """One LM iteration per segment: the answer is far from Radau's, and the status, the warning
+    and (strict=True) the TrainingError say so with the certificate's numbers: the worst variable,
+    its segment, its distance from the Radau solution beside Radau's own error, and the first
+    segment that stopped above tol with its largest residual (value, equation, row)."""
     c = HESSENBERG.model().compile()
-    with pytest.raises(TrainingError) as raised:
-        dm.solve(c, (0.0, 0.1), method="pinn", config=dm.PINNConfig(iterations=1))
-    message = str(raised.value)
-    found = re.search(
-        r"segment 1 \(t = 0 to 0\.05\): the largest residual is still ([0-9.e+-]+) > tol = 1e-12 \((the equation "
-        r"of 'y\d' at (stage \d|the end value)|constraint 'invariant' at (stage \d|the end value)|z_end - Z_s of 'y5')"
-        r"; F and S rows relative to max\(1, \|value\|\)\) after 1 lm iterations; raise iterations",
-        message,
+    config = dm.PINNConfig(iterations=1)
+    with pytest.warns(UncertifiedWarning) as warned:
+        sol = dm.solve(c, (0.0, 0.1), method="pinn", config=config)
+    pattern = (
+        r"not certified \(the answer\): at segment (\d) \(t = [0-9.]+ to [0-9.]+\), 'y\d' is ([0-9.e+-]+) from "
+        r"the Radau solution at the same h, beyond Radau's own error ([0-9.e+-]+) there; training stopped above "
+        r"tol = 1e-12 in 2 segment\(s\), first segment 1 \(([0-9.e+-]+): (the equation of 'y\d' at (stage \d|the "
+        r"end value)|constraint 'invariant' at (stage \d|the end value)|z_end - Z_s of 'y5')\) after 1 lm iterations; "
+        r"raise iterations or tighten tol, shorten h, or use the Radau solution \(method='radau'\)$"
     )
-    assert found, message
-    assert float(found.group(1)) > 1e-12
+    found = re.search(pattern, sol.status)
+    assert sol.status.startswith("flagged: ") and found, sol.status
+    assert float(found.group(2)) > float(found.group(3)) and float(found.group(4)) > 1e-12
+    assert str(warned[0].message) == f"pinn: {sol.status}"
+    assert sol.stats["certificate"]["certified"] == [False]
+    radau = dm.solve(c, (0.0, 0.1), method="radau", h=0.05)
+    assert max(np.max(np.abs(sol[name] - radau[name])) for name in sol.names) > 1e-6  # really far off
+    with pytest.raises(TrainingError, match=r"^pinn: not certified \(the answer\): at segment \d"):
+        dm.solve(c, (0.0, 0.1), method="pinn", config=config, strict=True)
 
 
 def test_the_largest_residual_is_located():
@@ -655,7 +669,7 @@ def test_trainer_reports_each_accepted_lm_step():
         net, make_loss(c, cfg), cfg, report=lambda it, terms: seen.append((it, sum(terms.values())))
     )
     x = torch.ones(1, 4, dtype=F64)
-    stats = trainer.train(Segment(0, 0.0, 0.05, x, torch.zeros(1, 0, dtype=F64), torch.ones(1, 1, dtype=F64)))
+    stats = trainer.train(Segment(0, 0.0, 0.05, x, torch.zeros(1, 0, dtype=F64)))
     assert [it for it, _ in seen] == list(range(stats.iterations + 1))
     assert all(b < a for (_, a), (_, b) in itertools.pairwise(seen))  # LM only accepts decreases
 
@@ -675,10 +689,8 @@ def test_box_samples_keep_each_point_with_its_parameters():
     cfg = dm.PINNConfig(samples=4, radius=0.1)
     x = torch.tensor([[1.0, 0.0, 7.0], [-2.0, 3.0, 9.0]], dtype=F64)  # two states, then a varying parameter
     p = torch.tensor([[7.0], [9.0]], dtype=F64)
-    z = torch.tensor([[0.5], [-0.5]], dtype=F64)
-    inputs, params, algebraics = training_inputs(x, p, z, 2, cfg, torch.Generator().manual_seed(0))
-    assert inputs.shape == (8, 3) and params.shape == (8, 1) and algebraics.shape == (8, 1)
-    assert algebraics[:, 0].tolist() == [0.5, -0.5] + [0.5] * 3 + [-0.5] * 3  # each with its source's z
+    inputs, params = training_inputs(x, p, 2, cfg, torch.Generator().manual_seed(0))
+    assert inputs.shape == (8, 3) and params.shape == (8, 1)
     assert torch.equal(inputs[:2], x)
     assert torch.equal(inputs[:, 2], params[:, 0])  # every sample carries its own parameter value
     for row, source in ((slice(2, 5), 0), (slice(5, 8), 1)):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from daemodel.backends.base import (
 from daemodel.backends.pinn.config import PINNConfig
 
 from daemodel.engine import check_engine
-from daemodel.errors import InvalidOptionError, ShapeError
+from daemodel.errors import InvalidOptionError, ShapeError, TrainingError, UncertifiedWarning
 from daemodel.files import writable_file
 
 
@@ -69,6 +70,10 @@ class PINNOptions:
     progress : bool, optional
         Show a progress bar with the segment, the iteration and the loss terms (default: when
         stderr is a terminal).
+    strict : bool
+        Raise a :class:`~daemodel.errors.TrainingError` when the answer is not certified (see
+        :class:`PINNBackend`), instead of returning it flagged with an
+        :class:`~daemodel.errors.UncertifiedWarning`.
     save : str or Path, optional
         Write the trained networks here (load them with :meth:`Surrogate.load`; its training
         box is this solve's start, so other initial states are reported as outside it).  The
@@ -85,6 +90,7 @@ class PINNOptions:
     address: str | None = None
     threads: int | None = None
     progress: bool | None = None
+    strict: bool = False
     save: object = None
 
     def __post_init__(self) -> None:
@@ -102,6 +108,8 @@ class PINNOptions:
                 "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
             )
+        if not isinstance(self.strict, bool):
+            raise InvalidOptionError(f"strict must be True or False; got {self.strict!r}")
         if self.progress is not None and not isinstance(self.progress, bool):
             raise InvalidOptionError(f"progress must be True, False or None; got {self.progress!r}")
         if self.save is not None:
@@ -111,9 +119,15 @@ class PINNOptions:
 class PINNBackend(AbstractBackend):
     """Radau-PINN: one network per segment, trained on the Radau IIA stage residual.
 
-    The Solution's ``status`` is ``"success"`` when every segment met ``config.tol``; with
-    ``tol=None`` (a fixed budget) it states the budget and the final largest residual, which
-    ``stats["final_max_residual"]`` also holds.
+    Every answer is certified (:mod:`daemodel.backends.pinn.certificate`): its distance from the
+    Radau IIA solution at the same stages and h, set beside Radau's own error.  The Solution's
+    ``status`` is ``"success"`` when the distance is within that error for every variable, grid
+    time and sample (so the PINN's error is at most about twice Radau's), whatever the training
+    budget; otherwise it starts with ``"flagged"``, names the worst variable, segment and sample
+    with both numbers, and an :class:`~daemodel.errors.UncertifiedWarning` says the same (a
+    :class:`~daemodel.errors.TrainingError` with ``strict=True``).  ``stats["certificate"]`` holds
+    the per-sample verdicts and largest distances and errors; ``stats["final_max_residual"]`` the
+    training's largest residual.
     """
 
     name = "pinn"
@@ -128,7 +142,8 @@ class PINNBackend(AbstractBackend):
             return self._solve(compiled, t_span, start, options)
 
     def _solve(self, compiled, t_span, start, options: PINNOptions):
-        from daemodel.backends.pinn.surrogate import Surrogate, training_status
+        from daemodel.backends.pinn.certificate import certify
+        from daemodel.backends.pinn.surrogate import Surrogate
         from daemodel.backends.pinn.train import Progress, fit_parallel
 
         config = options.config
@@ -169,6 +184,8 @@ class PINNBackend(AbstractBackend):
             mode = "parallel"
         trained = time.perf_counter()
         values = surrogate.trajectory(start)
+        evaluated = time.perf_counter()
+        certificate = certify(compiled, config, grid, surrogate.networks, surrogate.input_columns, values, start.p)
         done = time.perf_counter()
         networks, stats = surrogate.networks, surrogate.stats
         summary = {
@@ -179,7 +196,9 @@ class PINNBackend(AbstractBackend):
             "parameters_per_segment": networks[0].parameter_count(),
             "torch_threads": torch_threads_now(),
             "training_seconds": trained - began,
-            "evaluation_seconds": done - trained,
+            "evaluation_seconds": evaluated - trained,
+            "certificate_seconds": done - evaluated,
+            "certificate": certificate.summary((*compiled.state_names, *compiled.algebraic_names)),
             **{key: [getattr(s, key) for s in stats] for key in ("iterations", "L_f", "L_g", "L_s", "max_residual")},
             "final_max_residual": max(s.max_residual for s in stats),
             "segment_seconds": [s.seconds for s in stats],
@@ -196,7 +215,11 @@ class PINNBackend(AbstractBackend):
         if mode == "parallel" and options.engine == "ray":
             summary["peak_memory_mb"] = memory
         settings = {**dataclasses.asdict(config), "engine": options.engine}
-        status = training_status(config, stats)
+        status = certified_status(compiled, config, grid, stats, certificate, start.batched)
+        if status != "success":
+            if options.strict:
+                raise TrainingError(f"pinn: {status.removeprefix('flagged: ')}")
+            warnings.warn(f"pinn: {status}", UncertifiedWarning, stacklevel=4)
         return make_solution(
             self,
             compiled,
@@ -204,7 +227,7 @@ class PINNBackend(AbstractBackend):
             options,
             grid,
             values,
-            done - trained,  # evaluating the trained networks
+            done - trained,  # evaluating the trained networks and certifying their answer
             summary,
             settings=settings,
             status=status,
@@ -257,6 +280,49 @@ def _segment_starts(given, compiled, grid, start) -> tuple[np.ndarray, np.ndarra
             algebraics.append(z)
         algebraics = np.stack(algebraics)
     return values, algebraics
+
+
+def certified_status(compiled, config, grid, stats, certificate, batched: bool) -> str:
+    """ "success" when ``certificate`` certifies every sample, else "flagged: ..." naming the
+    worst variable, segment and sample with the certified distance and Radau's error there,
+    and the first segment that missed ``config.tol`` (or the fixed budget)."""
+    if bool(certificate.certified.all()):
+        return "success"
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    b, t, j, _ = certificate.worst()
+    segment = max(t, 1)
+    sample = f", sample {b}" if batched else ""
+    where = f"segment {segment} (t = {grid[segment - 1]:.6g} to {grid[segment]:.6g}){sample}"
+    distance = certificate.distance[b, t, j]
+    bound = max(float(np.maximum.accumulate(certificate.radau_error[b, :, j])[t]), float(certificate.floor[j]))
+    uncertified = int((~certificate.certified).sum())
+    count = f"{uncertified} of {len(certificate.certified)} samples" if batched else "the answer"
+    if not np.isfinite(distance) or not np.isfinite(bound):
+        what = (
+            f"Newton from the networks' stages does not converge to a Radau step at {where} (a step of '{names[j]}' "
+            "with no correct digit, or values outside f's domain)"
+        )
+    else:
+        what = (
+            f"at {where}, '{names[j]}' is {distance:.3g} from the Radau solution at the same h, beyond Radau's own "
+            f"error {bound:.3g} there"
+        )
+    missed = [s for s in stats if not s.converged]
+    if missed:
+        first = missed[0]
+        training = (
+            f"; training stopped above tol = {config.tol:g} in {len(missed)} segment(s), first segment "
+            f"{first.segment + 1} ({first.max_residual:.3g}: {first.largest}) after {first.iterations} "
+            f"{config.optimizer} iterations"
+        )
+    elif config.tol is None:
+        training = f"; a fixed budget of {config.iterations} {config.optimizer} iterations per segment"
+    else:
+        training = ""
+    return (
+        f"flagged: not certified ({count}): {what}{training}; raise iterations or tighten tol, shorten h, "
+        "or use the Radau solution (method='radau')"
+    )
 
 
 def torch_threads_now() -> int:

@@ -88,11 +88,11 @@ class PINNConfig:
         for the algebraic variables, stages and end values) or ``"shared"`` (approach 1: one
         network for all outputs).
     increment : bool
-        Predict every output as its start value plus the network's increment: ``Y = y_n + h N``,
-        ``Z = z_n + N`` (z_n: the consistent algebraic values the compiler finds from
-        ``m.guess``, then the previous segment's), instead of ``N`` itself; the network then
-        learns an O(1) slope rather than the state, and a fresh network starts at rest (every
-        stage at the start value, Newton's constant guess).  Off in :meth:`paper`.
+        Predict the differential outputs as ``y_n + h * N(y_n)`` instead of ``N(y_n)``; the
+        network then learns an O(1) slope rather than the state itself.  A fresh network then
+        starts at rest: every stage at the start value, the algebraic ones at the consistent
+        ``z_n`` the compiler finds from ``m.guess`` (Newton's constant guess), not at random
+        values.  Off in :meth:`paper`.
     weight_f, weight_g, weight_s : float
         The loss weights W_f, W_g, W_s.
     optimizer : str

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from daemodel.collocation import stage_residual
+from daemodel.collocation import model_jacobian, stage_residual
 
 TERMS = ("L_f", "L_g", "L_s")
 
@@ -196,29 +196,3 @@ class RadauLoss:
             ],
             dim=1,
         )
-
-
-def model_jacobian(functions, t, y, z, p) -> torch.Tensor:
-    """``d(f, g)/d(y, z)`` at points ``t (...)``, ``y (..., n)``, ``z (..., m)``, shape (..., D, D)
-    with D = n + m: the compiler's symbolic Jacobian at its nonzeros, or, where it has none (a
-    derivative outside the supported functions, or a system too large for a symbolic one),
-    reverse-mode autograd with the D rows as one batch of cotangents.  (Forward mode would need
-    fewer directions on a sparse system, but torch runs its rules for a Python scalar times a
-    dual tensor through Python decompositions: 3-6x slower here.)"""
-    n, m = y.shape[-1], z.shape[-1]
-    D, lead = n + m, y.shape[:-1]
-    if functions.jacobian is not None:
-        rows, cols = (torch.as_tensor(a, device=y.device) for a in functions.jacobian_pattern)
-        J = y.new_zeros((*lead, D * D))
-        J[..., rows * D + cols] = functions.jacobian(t, y, z, p)
-        return J.reshape(*lead, D, D)
-    with torch.enable_grad():
-        y, z = y.detach().requires_grad_(), z.detach().requires_grad_()
-        values = torch.cat([functions.f(t, y, z, p), functions.g(t, y, z, p)], dim=-1)  # (..., D)
-        rows = torch.eye(D, dtype=y.dtype, device=y.device).reshape(D, *([1] * len(lead)), D)
-        # each point's outputs depend on its own inputs only: one cotangent per row serves all points
-        grads = torch.autograd.grad(
-            values, (y, z), rows.expand(D, *values.shape), is_grads_batched=True, allow_unused=True
-        )
-    parts = [y.new_zeros((D, *x.shape)) if g is None else g for g, x in zip(grads, (y, z), strict=True)]
-    return torch.cat(parts, dim=-1).movedim(0, -2)  # (row, ..., column) -> (..., row, column)

@@ -288,39 +288,35 @@ class RadauNetwork(torch.nn.Module):
             slope=self.eta * (bar_A1 * X_1[:, :, None, :]).sum(-1, keepdim=True),
         )
 
-    def split(self, raw: torch.Tensor, y_n: torch.Tensor, z_n: torch.Tensor, h) -> Outputs:
-        """Stage and end values from raw outputs (B, U).  In the increment form, every output is
-        its start value plus an increment: ``Y = y_n + h N``, ``Z = z_n + N``, with ``y_n`` (B, n)
-        and ``z_n`` (B, m) the step's consistent start values (the algebraic ones come from the
-        compiler's solve, which follows ``m.guess``, and then from the previous segment), so that
-        outputs near zero are the classical constant start of Newton.  Z's increment is not
-        scaled by h: an index-2 variable moves the residual by O(h) only, and a further h would
-        leave first-order optimizers (Adam, L-BFGS) a gradient of O(h^2) in it."""
+    def split(self, raw: torch.Tensor, y_n: torch.Tensor, h) -> Outputs:
+        """Stage and end values from raw outputs (B, U); ``y_n`` (B, n) for the increment form."""
         n, m, s = self.n, self.m, self.stages
         B = raw.shape[0]
         Y = raw[:, : s * n].reshape(B, s, n)
         y_end = raw[:, s * n : s * n + n]
-        Z = raw[:, s * n + n : s * n + n + s * m].reshape(B, s, m)
-        z_end = raw[:, s * n + n + s * m :]
         if self.increment:
             Y = y_n[:, None, :] + h * Y
             y_end = y_n + h * y_end
-            Z = z_n[:, None, :] + Z
-            z_end = z_n + z_end
+        Z = raw[:, s * n + n : s * n + n + s * m].reshape(B, s, m)
+        z_end = raw[:, s * n + n + s * m :]
         return Outputs(Y=Y, y_end=y_end, Z=Z, z_end=z_end)
 
-    def predict(self, x: torch.Tensor, z_n: torch.Tensor, h) -> Outputs:
-        """Stage and end values for inputs ``x`` (B, d) whose first n columns are y_n, with the
-        algebraic start values ``z_n`` (B, m)."""
-        return self.split(self(x), x[:, : self.n], z_n, h)
+    def predict(self, x: torch.Tensor, h) -> Outputs:
+        """Stage and end values for inputs ``x`` (B, d) whose first n columns are y_n."""
+        return self.split(self(x), x[:, : self.n], h)
 
-    def start_at_rest(self, x: torch.Tensor) -> None:
-        """Shift the output biases so that the raw outputs average zero over the inputs ``x``
-        (B, d): in the increment form every stage and end value then starts at the step's start
-        value (y_n, z_n), the constant guess Newton starts from, instead of a random point (which
-        can sit where a constraint is singular, on another root, or outside f's domain)."""
+    def start_at_rest(self, x: torch.Tensor, z: torch.Tensor) -> None:
+        """Shift the output biases so that, on average over the inputs ``x`` (B, d), every stage
+        and end value starts at the step's start: ``Y = y_n`` (increment form: raw outputs 0) and
+        ``Z = z_n``, the consistent algebraic values ``z`` (B, m) (from the compiler's solve, which
+        follows ``m.guess``).  That is the constant guess Newton starts from; a random start can sit
+        where a constraint is singular (often z = 0), on another root, or outside f's domain."""
+        n, s = self.n, self.stages
         with torch.no_grad():
-            self.b_out -= self(x, stacked=True).mean(1, keepdim=True)
+            target = torch.cat([x.new_zeros(s * n + n), z.mean(0).repeat(s + 1)])  # flat, as split reads it
+            shift = self.b_out.new_zeros(self.b_out.numel())
+            shift[self.order] = target - self(x).mean(0)
+            self.b_out += shift.reshape(self.b_out.shape)
 
     def normalise(self, x: torch.Tensor) -> None:
         """Centre and scale the inputs on the spread of ``x`` (B, d), keeping the function the

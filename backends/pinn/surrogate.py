@@ -42,14 +42,10 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 
-# Format 2 added the training box and each segment's input ranges; format 3 predicts the algebraic
-# outputs as increments from z_n (format-2 networks predicted them directly: they would be misread).
-FILE_FORMAT = "daemodel-pinn/3"
+# Format 2 added the training box and each segment's input ranges; format-1 files cannot be checked.
+FILE_FORMAT = "daemodel-pinn/2"
 # Why an older file cannot be read, by format.
-OLDER_FORMATS = {
-    "daemodel-pinn/1": "which does not record the training box",
-    "daemodel-pinn/2": "whose networks predict the algebraic values directly, not as increments from z_n",
-}
+OLDER_FORMATS = {"daemodel-pinn/1": "which does not record the training box"}
 # What a network file holds; a file that lacks one is damaged or was not written by Surrogate.save.
 FILE_KEYS = (
     "format",
@@ -339,30 +335,29 @@ class Surrogate:
         return surrogate
 
     # ---- evaluation -----------------------------------------------------------------------------
-    def rollout(self, y0: np.ndarray, z0: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def rollout(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
         """States and algebraic values at the segment ends, shape (B, segments, n+m).
 
         Each segment is one forward pass of its network over the whole batch; its predicted
-        ``y_{n+1}, z_{n+1}`` start the next segment.
+        ``y_{n+1}`` is the next network's input.
         """
         if len(y0) > EVALUATION_CHUNK:
-            return np.concatenate([self.rollout(y0[rows], z0[rows], p[rows]) for rows in _chunks(len(y0))])
+            return np.concatenate([self.rollout(y0[rows], p[rows]) for rows in _chunks(len(y0))])
         dtype = getattr(torch, self.config.dtype)
         extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=self.config.device)
         y = torch.as_tensor(np.array(y0), dtype=dtype, device=self.config.device)
-        z = torch.as_tensor(np.array(z0), dtype=dtype, device=self.config.device)
         out = []
         with torch.no_grad():
             for k, net in enumerate(self.networks):
-                pred = net.predict(torch.cat([y, extra], dim=1), z, float(self.grid[k + 1] - self.grid[k]))
-                y, z = pred.y_end, pred.z_end
+                pred = net.predict(torch.cat([y, extra], dim=1), float(self.grid[k + 1] - self.grid[k]))
+                y = pred.y_end
                 out.append(torch.cat([pred.y_end, pred.z_end], dim=1))
         return torch.stack(out, dim=1).cpu().numpy()
 
     def trajectory(self, start) -> np.ndarray:
         """Values on the grid for :class:`InitialStates` ``start``, shape (B, segments + 1, n+m)."""
         first = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
-        return np.concatenate([first, self.rollout(start.y0, start.z0, start.p)], axis=1)
+        return np.concatenate([first, self.rollout(start.y0, start.p)], axis=1)
 
     def solve(
         self,
@@ -520,7 +515,6 @@ class Surrogate:
         p = torch.as_tensor(np.array(start.p), dtype=dtype, device=config.device)
         extra = p[:, self.input_columns]
         y = torch.as_tensor(np.array(start.y0), dtype=dtype, device=config.device)
-        z = torch.as_tensor(np.array(start.z0), dtype=dtype, device=config.device)
         B = y.shape[0]
         E_y = torch.zeros(B, dtype=dtype, device=config.device)
         est_y, est_z, ends = [np.zeros(B)], [np.zeros(B)], []
@@ -529,7 +523,7 @@ class Surrogate:
         for k, network in enumerate(self.networks):
             h = float(self.grid[k + 1] - self.grid[k])
             y_n = y.detach().clone().requires_grad_(True)
-            out = network.predict(torch.cat([y_n, extra], dim=1), z, h)
+            out = network.predict(torch.cat([y_n, extra], dim=1), h)
             (jacobian,) = torch.autograd.grad(out.y_end, y_n, rows, is_grads_batched=True)  # (row, B, column)
             growth = jacobian.abs().sum(-1).amax(0)  # max row sum of d y_end / d y_n
             with torch.no_grad():
@@ -541,7 +535,7 @@ class Surrogate:
                 E_y = carried + F
                 est_y.append((ESTIMATE_SAFETY * E_y).cpu().numpy())
                 est_z.append((ESTIMATE_SAFETY * (G / h**2 + E_y / h)).cpu().numpy())
-            y, z = out.y_end.detach(), out.z_end.detach()
+            y = out.y_end.detach()
         estimates = {"y": np.stack(est_y, axis=1)}
         if self.compiled.algebraics:
             estimates["z"] = np.stack(est_z, axis=1)
@@ -575,11 +569,10 @@ class Surrogate:
         def guess(t, y, z):
             k = int(np.argmin(np.abs(grid[:-1] - t)))  # the segment this step is
             x = torch.cat([torch.as_tensor(y, dtype=dtype, device=config.device), extra], dim=1)
-            z = torch.as_tensor(z, dtype=dtype, device=config.device)
             with torch.no_grad():
                 stages = []
                 for chunk in _chunks(len(x)):
-                    pred = self.networks[k].predict(x[chunk], z[chunk], float(grid[k + 1] - grid[k]))
+                    pred = self.networks[k].predict(x[chunk], float(grid[k + 1] - grid[k]))
                     stages.append(torch.cat([pred.Y, pred.Z], dim=2))
             return torch.cat(stages)
 
