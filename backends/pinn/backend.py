@@ -294,7 +294,8 @@ def certified_status(compiled, config, grid, stats, certificate, batched: bool) 
     sample = f", sample {b}" if batched else ""
     where = f"segment {segment} (t = {grid[segment - 1]:.6g} to {grid[segment]:.6g}){sample}"
     distance = certificate.distance[b, t, j]
-    bound = max(float(np.maximum.accumulate(certificate.radau_error[b, :, j])[t]), float(certificate.floor[j]))
+    resolution = float(certificate.floor[j] + certificate.rounding[b, t, j])
+    bound = max(float(np.maximum.accumulate(certificate.radau_error[b, :, j])[t]), resolution)
     uncertified = int((~certificate.certified).sum())
     count = f"{uncertified} of {len(certificate.certified)} samples" if batched else "the answer"
     if not np.isfinite(distance) or not np.isfinite(bound):

@@ -80,6 +80,10 @@ class Certificate:
         The same per step, from the networks' own start values.
     floor : ndarray, shape (D,)
         :data:`CERTIFICATE_FLOOR` times ``1 + max|value|`` of each variable.
+    rounding : ndarray, shape (B, T, D)
+        Where Newton's increments stagnated above its tolerance (ill-conditioned stage
+        equations), the largest last increment so far, times :data:`CERTIFICATE_SAFETY`: the
+        resolution of the Radau step it computed, added to ``floor``.
     certified : ndarray of bool, shape (B,)
     """
 
@@ -88,12 +92,14 @@ class Certificate:
     local_distance: np.ndarray
     local_radau_error: np.ndarray
     floor: np.ndarray
+    rounding: np.ndarray
     certified: np.ndarray
 
     def ratio(self) -> np.ndarray:
         """``distance / max(radau_error so far, floor)``, shape (B, T, D): certified where every entry <= 1."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            ratio = self.distance / np.maximum(np.maximum.accumulate(self.radau_error, axis=1), self.floor)
+            bound = np.maximum(np.maximum.accumulate(self.radau_error, axis=1), self.floor + self.rounding)
+            ratio = self.distance / bound
         return np.where(np.isnan(ratio), np.inf, ratio)
 
     def worst(self) -> tuple[int, int, int, float]:
@@ -125,7 +131,9 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
         _certify_rows(compiled, config, grid, networks, input_columns, values, p, slice(i, min(B, i + step)))
         for i in range(0, B, step)
     ]
-    distance, error, local_d, local_e, converged = (np.concatenate([part[i] for part in parts]) for i in range(5))
+    distance, error, rounding, local_d, local_e, converged = (
+        np.concatenate([part[i] for part in parts]) for i in range(6)
+    )
     # a step whose Radau error estimate has no correct digit is one radau itself refuses
     size = 1 + np.abs(values).max(axis=1, keepdims=True)  # (B, 1, D)
     digits = (local_e <= LOCAL_ERROR_BOUND * size).all(axis=(1, 2))
@@ -135,6 +143,7 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
         local_distance=local_d,
         local_radau_error=local_e,
         floor=floor,
+        rounding=CERTIFICATE_SAFETY * rounding,
         certified=np.zeros(B, dtype=bool),
     )
     ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & converged & digits
@@ -214,13 +223,12 @@ def _certify_rows(compiled, config, grid, networks, input_columns, values, p, ro
         error.append(torch.einsum("bij,bj->bi", sensitivity[k], error[-1][:, :n]) + local_e[k])
     distance = [d.abs() for d in distance]
     error = [e.abs() for e in error]
-    floor = torch.zeros_like(distance[0])
-    for k in range(S):  # the rounding of each step's solution adds to the distance, without sign
-        floor = torch.einsum("bij,bj->bi", sensitivity[k].abs(), floor[:, :n]) + rounding[k]
-        distance[k + 1] = distance[k + 1] + floor
+    # where Newton stagnated above 10 eps, distances below its last increment are not resolved
+    rounding = torch.cat([torch.zeros_like(rounding[:1]), rounding]).cummax(0).values.transpose(0, 1)
     return (
         torch.stack(distance, dim=1).cpu().numpy(),
         torch.stack(error, dim=1).cpu().numpy(),
+        rounding.cpu().numpy(),
         local_d.abs().transpose(0, 1).cpu().numpy(),
         local_e.abs().transpose(0, 1).cpu().numpy(),
         (radau.converged & higher.converged).all(0).cpu().numpy(),
