@@ -72,8 +72,9 @@ def build_grid() -> dm.Model:
         Q = sum(V[i] * (V[i] - V[j] * sp.cos(th[i] - th[j])) * line(i, j) for j in others)
         return P, Q
 
-    generators = ((d1, w1, p["E1"], p["xd1"], p["M1"], p["D1"], p["Pm1"]), (d2, w2, p["E2"], p["xd2"], p["M2"], p["D2"], p["Pm2"]))
-    for i, (d, w, E, xd, M, D, Pm) in enumerate(generators):
+    generators = ((d1, w1), (d2, w2))
+    for i, (d, w) in enumerate(generators):
+        E, xd, M, D, Pm = (p[f"{name}{i + 1}"] for name in ("E", "xd", "M", "D", "Pm"))
         Pg = E * V[i] * sp.sin(d - th[i]) / xd
         Qg = (E * V[i] * sp.cos(d - th[i]) - V[i] ** 2) / xd
         m.ode(d, w)
@@ -100,7 +101,7 @@ def _slider_crank(name: str, index: int) -> dm.Model:
     x1, y1, x3, u1, v1, u3 = m.states("x1 y1 x3 u1 v1 u3")
     lam1, lam2 = m.algebraics("lam1 lam2")
     p = {key: m.parameter(key, value) for key, value in SLIDER_CRANK.items()}
-    r, l = p["r"], p["l"]
+    r, rod = p["r"], p["l"]
     m.ode(x1, u1)
     m.ode(y1, v1)
     m.ode(x3, u3)
@@ -110,7 +111,7 @@ def _slider_crank(name: str, index: int) -> dm.Model:
     m.ode(u3, (-2 * lam2 * (x3 - x1) - p["c"] * u3) / p["m2"])
     if index == 3:
         m.constraint(x1**2 + y1**2 - r**2, name="crank")
-        m.constraint((x3 - x1) ** 2 + y1**2 - l**2, name="rod")
+        m.constraint((x3 - x1) ** 2 + y1**2 - rod**2, name="rod")
     else:
         m.constraint(2 * x1 * u1 + 2 * y1 * v1, name="crank_velocity")
         m.constraint(2 * (x3 - x1) * (u3 - u1) + 2 * y1 * v1, name="rod_velocity")

@@ -144,14 +144,21 @@ class PINNBackend(AbstractBackend):
     def _solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.certificate import certify
         from daemodel.backends.pinn.surrogate import Surrogate
-        from daemodel.backends.pinn.train import Progress, fit_parallel
+        from daemodel.backends.pinn.train import Progress, copies_for, fit_parallel
 
         config = options.config
         torch_device(config.device)
         grid = fixed_grid(t_span, config.h)
         segments = len(grid) - 1
-        # Parameters that differ between samples are network inputs; the others are constants.
-        varying = [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
+        # Shared networks take the parameters that differ between samples as inputs; independent
+        # ones (one set per sample) hold each sample's values as constants.
+        independent = copies_for(config, start.size) > 1
+        varying = [] if independent else [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
+        if independent and options.save is not None:
+            raise InvalidOptionError(
+                f"save writes networks that solve any start in their box; the independent networks of a batch of "
+                f"{start.size} each solve their own sample only: use config=dm.PINNConfig(batch='shared') to save them"
+            )
         inputs = tuple(compiled.parameter_names[i] for i in varying)
         began = time.perf_counter()
         if options.segment_starts is None:
@@ -193,6 +200,7 @@ class PINNBackend(AbstractBackend):
             "optimizer": config.optimizer,
             "segments": segments,
             "networks_per_segment": networks[0].count,
+            "batch": "independent" if networks[0].copies > 1 else "shared",
             "parameters_per_segment": networks[0].parameter_count(),
             "torch_threads": torch_threads_now(),
             "training_seconds": trained - began,

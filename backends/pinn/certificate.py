@@ -126,9 +126,10 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
     :data:`CERTIFICATE_ROWS` segment-steps at a time."""
     B, segments = values.shape[0], len(grid) - 1
     floor = CERTIFICATE_FLOOR * (1 + np.abs(values).max(axis=(0, 1)))
+    predicted = _predictions(compiled, config, grid, networks, input_columns, values, p)
     step = max(1, CERTIFICATE_ROWS // max(1, segments))
     parts = [
-        _certify_rows(compiled, config, grid, networks, input_columns, values, p, slice(i, min(B, i + step)))
+        _certify_rows(compiled, config, grid, values, p, predicted, slice(i, min(B, i + step)))
         for i in range(0, B, step)
     ]
     distance, error, rounding, local_d, local_e, converged = (
@@ -150,12 +151,26 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
     return dataclasses.replace(certificate, certified=ok)
 
 
-def _certify_rows(compiled, config, grid, networks, input_columns, values, p, rows: slice):
-    """The propagated distance and Radau error (B, T, D), their local values (B, T-1, D) and
-    whether the (s+1)-stage steps converged (B,), for the samples ``rows``."""
+def _predictions(compiled, config, grid, networks, input_columns, values, p) -> tuple:
+    """Every segment's stage and end values from its chained start, for the whole batch at once
+    (independent networks answer their own batch only): Y, Z, y_end, z_end, each (S, B, ...)."""
+    n, dtype = len(compiled.states), getattr(torch, config.dtype)
+    extra = torch.as_tensor(np.array(p[:, input_columns], dtype=float), dtype=dtype, device=config.device)
+    start = torch.as_tensor(np.array(values[:, :-1, :n], dtype=float), dtype=dtype, device=config.device)
+    predicted = []
+    with torch.no_grad():
+        for k, net in enumerate(networks):
+            out = net.predict(torch.cat([start[:, k], extra], dim=1), float(grid[k + 1] - grid[k]))
+            predicted.append([a.to(torch.float64) for a in (out.Y, out.Z, out.y_end, out.z_end)])
+    return tuple(torch.stack([row[i] for row in predicted]) for i in range(4))
+
+
+def _certify_rows(compiled, config, grid, values, p, predicted, rows: slice):
+    """The propagated distance, Radau error and Newton's resolution (B, T, D), the local
+    distance and error (B, T-1, D), and whether every Newton solve converged (B,), for the
+    samples ``rows``."""
     values, p = values[rows], p[rows]
     B = values.shape[0]
-    dtype = getattr(torch, config.dtype)
     device = config.device
     n, m, s = len(compiled.states), len(compiled.algebraics), config.stages
     S = len(grid) - 1
@@ -163,14 +178,7 @@ def _certify_rows(compiled, config, grid, networks, input_columns, values, p, ro
     as_tensor = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=torch.float64, device=device)  # noqa: E731
     start = as_tensor(values[:, :-1])  # (B, S, D): every segment's start, as the networks chained it
     y_n, z_n = start[..., :n].transpose(0, 1), start[..., n:].transpose(0, 1)  # (S, B, .)
-    extra = as_tensor(p[:, input_columns]).to(dtype)
-    predicted = []
-    with torch.no_grad():
-        for k, net in enumerate(networks):
-            h = float(grid[k + 1] - grid[k])
-            out = net.predict(torch.cat([y_n[k].to(dtype), extra], dim=1), h)
-            predicted.append([a.to(torch.float64) for a in (out.Y, out.Z, out.y_end, out.z_end)])
-    Y, Z, y_end, z_end = (torch.stack([row[i] for row in predicted]) for i in range(4))  # (S, B, ...)
+    Y, Z, y_end, z_end = (a[:, rows] for a in predicted)  # (S, B, ...)
     t_n = as_tensor(grid[:-1])[:, None].expand(S, B)
     h = as_tensor(np.diff(grid))[:, None].expand(S, B)
     pp = as_tensor(p)[None].expand(S, *p.shape)

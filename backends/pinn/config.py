@@ -14,6 +14,7 @@ from daemodel.errors import InvalidOptionError, UnknownOptionError
 ACTIVATIONS = ("tanh", "sigmoid", "sin", "gelu", "softplus")
 ARCHITECTURES = ("per-variable", "shared")
 OPTIMIZERS = ("lm", "lbfgs", "adam")
+BATCH_MODES = ("independent", "shared")
 # Iteration caps when ``iterations`` is not given: LM and L-BFGS stop on ``tol`` long before.
 DEFAULT_ITERATIONS = {"lm": 200, "lbfgs": 5000, "adam": 100_000}
 # Default step of each optimizer (LM has none: its damping adapts).
@@ -115,6 +116,12 @@ class PINNConfig:
         Half-width of that box (relative to ``max(1, |y_n|)`` per variable).
     warm_start : bool
         Start each segment from the previous segment's trained network.
+    batch : str
+        How a batch of samples (initial states or parameter values) trains: ``"independent"``
+        (default) gives every sample its own networks, all trained at once as one block-diagonal
+        Levenberg-Marquardt problem, so each sample reaches its own Radau solution as a single
+        trajectory does; ``"shared"`` trains one set of networks whose inputs are the states and
+        the parameters that vary (a surrogate over the batch; ``Surrogate.train`` always shares).
     dtype : "float64" or "float32"
     device : str
         A torch device ("cpu", "cuda", ...).
@@ -140,6 +147,7 @@ class PINNConfig:
     samples: int = 1
     radius: float = 0.0
     warm_start: bool = True
+    batch: str = "independent"
     dtype: str = "float64"
     device: str = "cpu"
     seed: int = 0
@@ -162,6 +170,7 @@ class PINNConfig:
             ("activation", ACTIVATIONS),
             ("architecture", ARCHITECTURES),
             ("optimizer", OPTIMIZERS),
+            ("batch", BATCH_MODES),
         ):
             if getattr(self, name) not in allowed:
                 raise InvalidOptionError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

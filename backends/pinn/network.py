@@ -189,18 +189,27 @@ class RadauNetwork(torch.nn.Module):
     config : PINNConfig
     generator : torch.Generator
         Draws the initial weights (Xavier normal; biases zero; slope 1/eta).
+    copies : int
+        Independent sets of networks, one per sample of a batch (``batch="independent"``): set
+        b sees only input row b, so a batch must come whole and in order.  1: every network
+        sees every input (a trajectory, or ``batch="shared"``: the inputs carry the parameters).
     """
 
-    def __init__(self, inputs: int, n: int, m: int, config, generator: torch.Generator):
+    def __init__(self, inputs: int, n: int, m: int, config, generator: torch.Generator, copies: int = 1):
         super().__init__()
         dtype = getattr(torch, config.dtype)
         self.n, self.m, self.stages = n, m, config.stages
         self.eta, self.increment = float(config.eta), config.increment
         self.activation = config.activation
-        sizes, positions = output_layout(n, m, config.stages, config.architecture)
+        self.copies = copies
+        one, positions = output_layout(n, m, config.stages, config.architecture)
+        U = sum(one)
+        # copy b's networks follow copy b-1's; copy b's outputs are flat positions b U .. (b+1) U - 1
+        sizes = one * copies
+        positions = [[b * U + i for i in pos] for b in range(copies) for pos in positions]
         K, w, d, out = len(sizes), config.width, inputs, max(sizes)
         self.count, self.sizes = K, sizes  # sizes: how many of its stacked outputs each network uses
-        self.output_count = sum(sizes)  # U: stage and end values of every variable
+        self.output_count = U  # U: stage and end values of every variable (of one sample)
 
         def weight(*shape):
             fan_in, fan_out = shape[-2], shape[-1]
@@ -217,7 +226,8 @@ class RadauNetwork(torch.nn.Module):
         self.W_gate = weight(config.depth - 1, K, w, w)
         self.b_gate = bias(config.depth - 1, K, 1, w)
         self.W_out, self.b_out = weight(K, w, out), bias(K, 1, out)
-        # Column of the stacked output (K * out) that holds each entry of the flat output vector.
+        # Column of the stacked output (K * out) that holds each entry of the flat output vector
+        # (of every copy, one after the other).
         order = torch.empty(sum(sizes), dtype=torch.long)
         for k, pos in enumerate(positions):
             order[pos] = torch.arange(len(pos)) + k * out
@@ -228,22 +238,45 @@ class RadauNetwork(torch.nn.Module):
 
     def forward(self, x: torch.Tensor, stacked: bool = False, params: dict | None = None) -> torch.Tensor:
         """Raw network outputs, shape (B, U), for inputs ``x`` of shape (B, d); with ``stacked``,
-        each network's own outputs, shape (K, B, out) (padded to the largest network).  ``params``
-        (as ``named_parameters``) replaces the network's own parameters."""
+        each network's own outputs, shape (K, B', out) (padded to the largest network; B' = B,
+        or 1 for independent copies, each of which sees its own row).  ``params`` (as
+        ``named_parameters``) replaces the network's own parameters."""
         p = dict(self.named_parameters()) if params is None else params
         H = self._hidden(p, x)[0]
-        out = torch.bmm(H, p["W_out"]) + p["b_out"]  # (K, B, out)
+        out = torch.bmm(H, p["W_out"]) + p["b_out"]  # (K, B', out)
         if stacked:
             return out
-        return out.permute(1, 0, 2).reshape(x.shape[0], -1)[:, self.order]
+        return self.unstacked(out)
+
+    def unstacked(self, out: torch.Tensor) -> torch.Tensor:
+        """Stacked outputs (K, B', out) as the flat outputs (B, U) of every input row."""
+        rows = out.shape[1] if self.copies == 1 else self.copies
+        return out.permute(1, 0, 2).reshape(out.shape[1], -1)[:, self.order].reshape(rows, -1)
+
+    def stack(self, flat: torch.Tensor) -> torch.Tensor:
+        """Flat values (B, U) of every input row in the stacked layout (K, B', out), zero at padding."""
+        out = max(self.sizes)
+        rows = flat.shape[0] if self.copies == 1 else 1
+        stacked = flat.new_zeros(rows, self.count * out)
+        stacked[:, self.order] = flat.reshape(rows, -1)
+        return stacked.reshape(rows, self.count, out).transpose(0, 1)
+
+    def network_inputs(self, xn: torch.Tensor) -> torch.Tensor:
+        """Normalised inputs (B, d) as each network sees them, (K, B', d): all rows, or, for
+        independent copies, its own row only."""
+        if self.copies == 1:
+            return xn.expand(self.count, *xn.shape)
+        if xn.shape[0] != self.copies:
+            raise ValueError(f"these networks are {self.copies} independent copies; got {xn.shape[0]} input rows")
+        return xn.repeat_interleave(self.count // self.copies, dim=0)[:, None, :]
 
     def _hidden(self, p: dict, x: torch.Tensor):
-        """The last hidden layer H_depth, shape (K, B, w), and what its Jacobian needs."""
+        """The last hidden layer H_depth, shape (K, B', w), and what its Jacobian needs."""
         phi = ACTIVATION_FUNCTIONS[self.activation]
-        xn = (x - self.center) / self.scale
-        A_u = torch.einsum("bd,kdw->kbw", xn, p["W_u"]) + p["b_u"]
-        A_r = torch.einsum("bd,kdw->kbw", xn, p["W_r"]) + p["b_r"]
-        X_1 = torch.einsum("bd,kdw->kbw", xn, p["W_1"])
+        xn = self.network_inputs((x - self.center) / self.scale)  # (K, B', d)
+        A_u = torch.bmm(xn, p["W_u"]) + p["b_u"]
+        A_r = torch.bmm(xn, p["W_r"]) + p["b_r"]
+        X_1 = torch.bmm(xn, p["W_1"])
         A_1 = self.eta * p["slope"] * X_1 + p["b_1"]
         U, R, H = phi(A_u), phi(A_r), phi(A_1)
         layers = []  # (H_k, pre-activation of M_k, M_k) of each gated layer
@@ -276,7 +309,7 @@ class RadauNetwork(torch.nn.Module):
         bar_A1 = bar_H * dphi(A_1, None)[:, :, None, :]
         bar_Au = bar_U * dphi(A_u, U)[:, :, None, :]
         bar_Ar = bar_R * dphi(A_r, R)[:, :, None, :]
-        inputs = xn.expand(K, *xn.shape)
+        inputs = xn
         return HiddenJacobian(
             H=H,
             maps=(
@@ -313,15 +346,18 @@ class RadauNetwork(torch.nn.Module):
         where a constraint is singular (often z = 0), on another root, or outside f's domain."""
         n, s = self.n, self.stages
         with torch.no_grad():
-            target = torch.cat([x.new_zeros(s * n + n), z.mean(0).repeat(s + 1)])  # flat, as split reads it
-            shift = self.b_out.new_zeros(self.b_out.numel())
-            shift[self.order] = target - self(x).mean(0)
-            self.b_out += shift.reshape(self.b_out.shape)
+            if self.copies == 1:  # one set of networks for every row: on average
+                raw, z = self(x, stacked=True).mean(1, keepdim=True), z.mean(0, keepdim=True)
+            else:
+                raw = self(x, stacked=True)
+            target = torch.cat([z.new_zeros(len(z), s * n + n), z.repeat(1, s + 1)], dim=1)  # flat, as split reads
+            self.b_out += self.stack(target) - raw * (self.stack(torch.ones_like(target)) > 0)
 
     def normalise(self, x: torch.Tensor) -> None:
         """Centre and scale the inputs on the spread of ``x`` (B, d), keeping the function the
-        network computes (the first layers absorb the change).  One point is used raw, as in the paper."""
-        if x.shape[0] == 1:
+        network computes (the first layers absorb the change).  One point is used raw, as in the
+        paper, and so are independent copies (each sees one point)."""
+        if x.shape[0] == 1 or self.copies > 1:
             center, scale = torch.zeros_like(self.center), torch.ones_like(self.scale)
         else:
             lo, hi = x.min(0).values, x.max(0).values

@@ -80,7 +80,7 @@ TRAINING_STARTS = ("network", "radau")
 # vanish, so LM runs a fixed budget (tol=None).  Each segment starts from a fresh network: on
 # the Hessenberg box, warm starts from the previous segment's fit ended 10-1000x less accurate.
 # Width 16 per variable keeps one forward pass of 10,000 states over 20 segments under 1 s.
-SURROGATE_CONFIG = PINNConfig(width=16, warm_start=False, tol=None, iterations=40)
+SURROGATE_CONFIG = PINNConfig(width=16, warm_start=False, tol=None, iterations=40, batch="shared")
 # Queries evaluated at once.  In one batch the (networks, queries, width) activations and the
 # estimate's (states, queries, ...) cotangents leave the caches: on one CPU thread 10^5 queries
 # took 26x (networks) and 40x (estimate) the time of 10^4.  On 5*10^4 pendulum queries, chunks
@@ -187,7 +187,8 @@ class Surrogate:
             Number of training initial states (a Sobol sequence, scrambled with ``config.seed``).
         config : PINNConfig, optional
             Default ``SURROGATE_CONFIG``: per-variable networks of width 16, a fresh network
-            per segment, 40 LM steps per segment (tol=None).
+            per segment, 40 LM steps per segment (tol=None).  Its ``batch`` is always
+            ``"shared"``: one set of networks over the box.
         progress : bool, optional
             Show a progress bar (default: when stderr is a terminal).
         starts : {"network", "radau"}
@@ -212,6 +213,7 @@ class Surrogate:
         config = SURROGATE_CONFIG if config is None else config
         if not isinstance(config, PINNConfig):
             raise InvalidOptionError(f"config must be a dm.PINNConfig; got {type(config).__name__}")
+        config = config.replace(batch="shared")  # one set of networks over the box: that is a surrogate
         t_span = check_span(t_span, compiled)
         if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
@@ -341,7 +343,7 @@ class Surrogate:
         Each segment is one forward pass of its network over the whole batch; its predicted
         ``y_{n+1}`` is the next network's input.
         """
-        if len(y0) > EVALUATION_CHUNK:
+        if len(y0) > EVALUATION_CHUNK and self.networks[0].copies == 1:
             return np.concatenate([self.rollout(y0[rows], p[rows]) for rows in _chunks(len(y0))])
         dtype = getattr(torch, self.config.dtype)
         extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=self.config.device)
@@ -428,6 +430,12 @@ class Surrogate:
 
         from daemodel.initial_states import initial_states
 
+        if self.networks[0].copies > 1:
+            raise InvalidOptionError(
+                f"these are {self.networks[0].copies} independent sets of networks, each trained for one sample of a "
+                "batch: they answer that batch only; for networks that answer new queries, use Surrogate.train or "
+                "PINNConfig(batch='shared')"
+            )
         if outside not in OUTSIDE_POLICIES:
             raise InvalidOptionError(f"outside must be one of {', '.join(OUTSIDE_POLICIES)}; got {outside!r}")
         if tol is not None:

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
-from daemodel.errors import TrainingError
+from daemodel.errors import InvalidOptionError, TrainingError
 
 # A loss this many times its starting value has diverged (Adam/L-BFGS; LM never goes up).
 EXPLODE_FACTOR = 1e8
@@ -397,7 +397,8 @@ class SegmentTrainer:
         # until a Newton step on the outputs contracts, then on the Newton corrections; with many
         # (surrogates) always on the corrections.
         N, K = segment.x.shape[0], self.net.count
-        fallback = N * (self.net.output_count + self.net.m) <= sum(sizes) // K
+        # (independent copies: Newton corrections only; each starts at rest, Newton's constant guess)
+        fallback = self.net.copies == 1 and N * (self.net.output_count + self.net.m) <= sum(sizes) // K
         if fallback:
             contracts, residuals, r, e = self._newton_contracts(segment, params)
             space = "output" if contracts else "residual"
@@ -470,10 +471,8 @@ class SegmentTrainer:
             stacked[..., net.order] = Ru  # padded outputs: zero columns
             gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P)
             return ResidualGramSystem(gram, stacked.reshape(N, -1, K, out), e)
-        stacked = torch.zeros(N, K * out, dtype=e.dtype, device=e.device)
-        stacked[:, net.order] = e.reshape(N, -1)
-        stacked = stacked.reshape(N, K, out).transpose(0, 1)  # (K, N, out), zero at padded outputs
-        if N * out <= P // K:
+        stacked = net.stack(e.reshape(N, -1))  # (K, N', out), zero at padded outputs
+        if stacked.shape[1] * out <= P // K:
             return OutputGramSystem(NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P), stacked)
         JtJ = torch.zeros(K, P // K, P // K, dtype=e.dtype, device=e.device)
         Jte = torch.zeros(K, P // K, dtype=e.dtype, device=e.device)
@@ -693,13 +692,27 @@ class OutputSystem:
 
 
 # ---- segments in time ------------------------------------------------------------------------
-def make_network(compiled, config, inputs: int, segment: int):
-    """A fresh network for ``segment``, seeded from ``config.seed`` and the segment number."""
+def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):
+    """A fresh network for ``segment`` (``copies`` independent ones for a batch), seeded from
+    ``config.seed`` and the segment number."""
     from daemodel.backends.pinn.network import RadauNetwork
 
     generator = torch.Generator().manual_seed(config.seed * 100_003 + segment)
-    net = RadauNetwork(inputs, len(compiled.states), len(compiled.algebraics), config, generator)
+    net = RadauNetwork(inputs, len(compiled.states), len(compiled.algebraics), config, generator, copies)
     return net.to(config.device)
+
+
+def copies_for(config, batch: int) -> int:
+    """Independent network copies for a batch of ``batch`` samples: one each with
+    ``batch="independent"`` (1 for a single trajectory), else 1 shared set."""
+    if config.batch != "independent" or batch == 1:
+        return 1
+    if config.samples > 1:
+        raise InvalidOptionError(
+            f"samples = {config.samples} trains each network on a box around its start, which independent networks "
+            f"for a batch of {batch} do not have: use batch='shared' (one set of networks over the batch), or samples=1"
+        )
+    return batch
 
 
 def make_loss(compiled, config):
@@ -775,6 +788,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
     n = len(compiled.states)
     loss = make_loss(compiled, config)
     generator = torch.Generator().manual_seed(config.seed)
+    copies = copies_for(config, x0.shape[0])
     x, z, networks, stats = x0, z0, [], []
     for k in range(len(grid) - 1):
         h = float(grid[k + 1] - grid[k])
@@ -787,7 +801,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
             if not SegmentTrainer(net, loss, config).finite_start(segment):
                 net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
         if net is None:
-            net = make_network(compiled, config, x.shape[1], k)
+            net = make_network(compiled, config, x.shape[1], k, copies)
             net.normalise(inputs)
             if config.increment:
                 net.start_at_rest(inputs, z)
@@ -808,7 +822,7 @@ def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
     x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
     generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
     inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
-    net = make_network(compiled, config, x.shape[1], k)
+    net = make_network(compiled, config, x.shape[1], k, copies_for(config, x.shape[0]))
     net.normalise(inputs)
     if config.increment:
         net.start_at_rest(inputs, z)
@@ -850,7 +864,7 @@ def fit_parallel(
     )
     networks = []
     for k, result in enumerate(results):
-        net = make_network(compiled, config, starts.shape[2], k)
+        net = make_network(compiled, config, starts.shape[2], k, copies_for(config, starts.shape[1]))
         net.load_state_dict(result["state"])
         networks.append(net)
     memory = [result["peak_memory_mb"] for result in results if "peak_memory_mb" in result]
