@@ -103,7 +103,7 @@ def test_a_1000_value_parameter_batch_trains():
     one block-diagonal LM, every sample certified and at its Radau solution (about 20 s here;
     before, one network with RL as input ran 11 minutes without finishing)."""
     case = CASES["rectifier x1000"]
-    compiled, pinn, radau = solve_both(case)
+    _, pinn, radau = solve_both(case)
     assert pinn.stats["batch"] == "independent" and len(pinn.stats["certificate"]["certified"]) == 1000
     assert pinn.status == "success"
     for name in pinn.names:
