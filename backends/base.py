@@ -78,9 +78,11 @@ def make_solution(
 ):
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
-    ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and :attr:`Solution.setup_time`;
-    ``settings`` defaults to the options' fields (less ``t_eval``; a function, such as radau's
-    ``start_guess``, by its name, not copied); ``status`` is :attr:`Solution.status`.
+    ``backend`` is the backend or its method name (a trained surrogate answers as ``"pinn"``
+    without one).  ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and
+    :attr:`Solution.setup_time`; ``settings`` defaults to the options' fields (less ``t_eval``; a
+    function, such as radau's ``start_guess``, by its name, not copied); ``status`` is
+    :attr:`Solution.status`.
     """
     from dataclasses import asdict, fields, is_dataclass
 
@@ -102,7 +104,7 @@ def make_solution(
     return Solution(
         t=np.asarray(times, dtype=float),
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
-        method=backend.name,
+        method=backend if isinstance(backend, str) else backend.name,
         settings=settings,
         solve_time=solve_time,
         setup_time=setup_time,

@@ -319,7 +319,7 @@ def test_lm_step_equals_the_dense_gauss_newton_step(architecture, space, samples
     # residuals r with J = dr/dtheta), solving per network in its outputs or its parameters or
     # in residual space; the step, the predicted decrease and the first damping's scale must
     # equal the dense solve (J^T J + mu I) delta = -J^T e.
-    from daemodel.backends.pinn.train import make_loss, make_network
+    from daemodel.backends.pinn.segments import make_loss, make_network
     from torch.func import functional_call, jacrev, vmap
 
     c = HESSENBERG.model().compile()
@@ -662,7 +662,7 @@ def test_trainer_reports_each_accepted_lm_step():
     c = HESSENBERG.model().compile()
     cfg = dm.PINNConfig()
     seen = []
-    from daemodel.backends.pinn.train import make_loss, make_network
+    from daemodel.backends.pinn.segments import make_loss, make_network
 
     net = make_network(c, cfg, 4, 0)
     trainer = SegmentTrainer(
@@ -684,7 +684,7 @@ def test_normalising_the_inputs_keeps_the_network_function():
 
 
 def test_box_samples_keep_each_point_with_its_parameters():
-    from daemodel.backends.pinn.train import training_inputs
+    from daemodel.backends.pinn.segments import training_inputs
 
     cfg = dm.PINNConfig(samples=4, radius=0.1)
     x = torch.tensor([[1.0, 0.0, 7.0], [-2.0, 3.0, 9.0]], dtype=F64)  # two states, then a varying parameter
@@ -751,3 +751,35 @@ def test_adam_on_cuda_replays_a_graph_that_matches_eager_adam(monkeypatch):
     for name in (*c.state_names, *c.algebraic_names):
         np.testing.assert_allclose(graphed[name], eager[name], rtol=0, atol=1e-6)
     np.testing.assert_allclose(graphed.stats["L_f"], eager.stats["L_f"], rtol=1e-4)
+
+
+def test_an_exponential_schedule_decays_adams_rate_to_its_final_value(monkeypatch):
+    cfg = dm.PINNConfig(optimizer="adam", iterations=5, schedule="exponential", tol=None)
+    assert cfg.final_learning_rate == pytest.approx(1e-6)  # 1e-3 * DEFAULT_DECAY
+    rates = [cfg.learning_rate_at(k) for k in range(5)]
+    assert rates[0] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-6)
+    assert np.allclose(np.diff(np.log(rates)), np.log(1e-3) / 4)  # the same factor every iteration
+    assert dm.PINNConfig(optimizer="adam").learning_rate_at(10**5) == 1e-3  # constant: the paper's
+    # the default final rate follows a new learning_rate
+    assert cfg.replace(learning_rate=1e-2).final_learning_rate == pytest.approx(1e-5)
+    # eager Adam steps with the scheduled rate
+    seen = []
+    original = torch.optim.Adam.step
+
+    def step(self, *args, **kwargs):
+        seen.append(self.param_groups[0]["lr"])
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", step)
+    with pytest.warns(UncertifiedWarning):  # five Adam steps reach nothing
+        dm.solve(HESSENBERG.model(), (0.0, 0.05), method="pinn", config=cfg.replace(width=4))
+    assert seen == pytest.approx(rates)
+
+
+def test_schedule_errors():
+    with pytest.raises(InvalidOptionError, match="schedule must be one of constant, exponential; got 'cosine'"):
+        dm.PINNConfig(optimizer="adam", schedule="cosine")
+    with pytest.raises(InvalidOptionError, match="optimizer 'lm' has none to schedule"):
+        dm.PINNConfig(schedule="exponential")
+    with pytest.raises(InvalidOptionError, match="final_learning_rate ends an exponential schedule"):
+        dm.PINNConfig(optimizer="adam", final_learning_rate=1e-5)

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from daemodel.backends.pinn import surrogate as surrogate_module
+from daemodel.backends.pinn import segments as segments_module
 from daemodel.backends.pinn.surrogate import BOX_MARGIN, training_status
 from daemodel.backends.pinn.train import SegmentStats
 
@@ -460,7 +460,7 @@ def test_unknown_setting_is_named():
 
 
 def test_save_to_a_missing_directory_fails_before_training(tmp_path, monkeypatch):
-    monkeypatch.setattr(surrogate_module, "fit_sequential", lambda *args: pytest.fail("training started"))
+    monkeypatch.setattr(segments_module, "fit_sequential", lambda *args: pytest.fail("training started"))
     c = HESSENBERG.model().compile()
     endless = dm.PINNConfig(tol=None, iterations=10**9)
     target = tmp_path / "missing" / "networks.pt"

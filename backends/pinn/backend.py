@@ -21,18 +21,11 @@ from daemodel.backends.base import (
     torch_threads,
 )
 from daemodel.backends.pinn.config import PINNConfig
+from daemodel.backends.pinn.segments import MAX_INDEX
 
 from daemodel.engine import check_engine
 from daemodel.errors import InvalidOptionError, ShapeError, TrainingError, UncertifiedWarning
 from daemodel.files import writable_file
-
-
-def resolve_model(model, caller: str):
-    """A CompiledDAE of index at most 2 from a Model or a CompiledDAE."""
-    from daemodel.solver import as_compiled
-
-    model = as_compiled(model, caller)
-    return model.reduced(PINNBackend.max_index) if model.index > PINNBackend.max_index else model
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -132,7 +125,7 @@ class PINNBackend(AbstractBackend):
 
     name = "pinn"
     Options = PINNOptions
-    max_index = 2
+    max_index = MAX_INDEX
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]
@@ -143,8 +136,8 @@ class PINNBackend(AbstractBackend):
 
     def _solve(self, compiled, t_span, start, options: PINNOptions):
         from daemodel.backends.pinn.certificate import certify
+        from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, train_segments
         from daemodel.backends.pinn.surrogate import Surrogate
-        from daemodel.backends.pinn.train import Progress, copies_for, fit_parallel
 
         config = options.config
         torch_device(config.device)
@@ -162,8 +155,8 @@ class PINNBackend(AbstractBackend):
         inputs = tuple(compiled.parameter_names[i] for i in varying)
         began = time.perf_counter()
         if options.segment_starts is None:
-            surrogate = Surrogate.fit(
-                compiled, config, grid, start.y0, start.z0, start.p, inputs, show_progress(options.progress), "pinn"
+            networks, stats = train_segments(
+                compiled, config, grid, start.y0, start.z0, start.p, varying, show_progress(options.progress), "pinn"
             )
             mode = "sequential"
         else:
@@ -187,8 +180,8 @@ class PINNBackend(AbstractBackend):
                 )
             finally:
                 bar.close()
-            surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)
             mode = "parallel"
+        surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
         trained = time.perf_counter()
         values = surrogate.trajectory(start)
         evaluated = time.perf_counter()

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from daemodel.backends.base import LOCAL_ERROR_BOUND
+from daemodel.backends.pinn.segments import segment_steps
 
 from daemodel.collocation import collocation_step
 from daemodel.tableau import radau_iia
@@ -159,8 +160,8 @@ def _predictions(compiled, config, grid, networks, input_columns, values, p) -> 
     start = torch.as_tensor(np.array(values[:, :-1, :n], dtype=float), dtype=dtype, device=config.device)
     predicted = []
     with torch.no_grad():
-        for k, net in enumerate(networks):
-            out = net.predict(torch.cat([start[:, k], extra], dim=1), float(grid[k + 1] - grid[k]))
+        for k, (net, (_, h)) in enumerate(zip(networks, segment_steps(grid), strict=True)):
+            out = net.predict(torch.cat([start[:, k], extra], dim=1), h)
             predicted.append([a.to(torch.float64) for a in (out.Y, out.Z, out.y_end, out.z_end)])
     return tuple(torch.stack([row[i] for row in predicted]) for i in range(4))
 
@@ -179,8 +180,9 @@ def _certify_rows(compiled, config, grid, values, p, predicted, rows: slice):
     start = as_tensor(values[:, :-1])  # (B, S, D): every segment's start, as the networks chained it
     y_n, z_n = start[..., :n].transpose(0, 1), start[..., n:].transpose(0, 1)  # (S, B, .)
     Y, Z, y_end, z_end = (a[:, rows] for a in predicted)  # (S, B, ...)
-    t_n = as_tensor(grid[:-1])[:, None].expand(S, B)
-    h = as_tensor(np.diff(grid))[:, None].expand(S, B)
+    steps = np.array(segment_steps(grid))  # (S, 2): t, h
+    t_n = as_tensor(steps[:, 0])[:, None].expand(S, B)
+    h = as_tensor(steps[:, 1])[:, None].expand(S, B)
     pp = as_tensor(p)[None].expand(S, *p.shape)
     A, _, c = radau_iia(s).to_torch(dtype=torch.float64, device=device)
     radau = collocation_step(

@@ -23,14 +23,16 @@ import numpy as np
 import torch
 from daemodel.backends.base import check_number
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.backends.pinn.train import (
+from daemodel.backends.pinn.segments import (
     Progress,
-    SegmentStats,
     fit_parallel,
-    fit_sequential,
     make_loss,
     make_network,
+    resolve_model,
+    segment_steps,
+    train_segments,
 )
+from daemodel.backends.pinn.train import SegmentStats
 
 from daemodel.errors import (
     InvalidOptionError,
@@ -203,7 +205,6 @@ class Surrogate:
             the training data and trains the segments on Ray, in parallel.
         """
         from daemodel.backends.base import fixed_grid, show_progress, torch_device
-        from daemodel.backends.pinn.backend import resolve_model
 
         from daemodel.engine import check_engine
         from daemodel.initial_states import algebraic_values, project_states
@@ -322,16 +323,8 @@ class Surrogate:
         The training box is the first segment's training-input range, with the input
         parameters' ranges replaced by ``parameter_box`` where given (the range they were drawn from).
         """
-        dtype = getattr(torch, config.dtype)
         columns = [compiled.parameter_names.index(name) for name in inputs]
-        x0 = torch.as_tensor(np.concatenate([y, p[:, columns]], axis=1), dtype=dtype, device=config.device)
-        pt = torch.as_tensor(np.array(p), dtype=dtype, device=config.device)
-        zt = torch.as_tensor(np.array(z), dtype=dtype, device=config.device)
-        bar = Progress(len(grid) - 1, progress, label)
-        try:
-            networks, stats = fit_sequential(compiled, grid, x0, pt, zt, config, bar)
-        finally:
-            bar.close()
+        networks, stats = train_segments(compiled, config, grid, y, z, p, columns, progress, label)
         surrogate = cls(compiled, config, grid, networks, inputs, stats)
         surrogate.box.update({name: tuple(map(float, bounds)) for name, bounds in (parameter_box or {}).items()})
         return surrogate
@@ -350,8 +343,8 @@ class Surrogate:
         y = torch.as_tensor(np.array(y0), dtype=dtype, device=self.config.device)
         out = []
         with torch.no_grad():
-            for k, net in enumerate(self.networks):
-                pred = net.predict(torch.cat([y, extra], dim=1), float(self.grid[k + 1] - self.grid[k]))
+            for net, (_, h) in zip(self.networks, segment_steps(self.grid), strict=True):
+                pred = net.predict(torch.cat([y, extra], dim=1), h)
                 y = pred.y_end
                 out.append(torch.cat([pred.y_end, pred.z_end], dim=1))
         return torch.stack(out, dim=1).cpu().numpy()
@@ -426,7 +419,6 @@ class Surrogate:
             states the fixed training budget and its final residual, and what lay outside.
         """
         from daemodel.backends.base import make_solution
-        from daemodel.backends.pinn.backend import PINNBackend, PINNOptions
 
         from daemodel.initial_states import initial_states
 
@@ -499,14 +491,15 @@ class Surrogate:
         if tol is not None:
             status += f"; {int(corrected.sum())} of {start.size} samples corrected by Newton (estimate > tol = {tol:g})"
         return make_solution(
-            PINNBackend(),
+            "pinn",
             self.compiled,
             start,
-            PINNOptions(config=self.config),
+            None,
             self.grid,
             values,
             wall,
             stats,
+            settings=dataclasses.asdict(self.config),
             status=status,
         )
 
@@ -528,15 +521,14 @@ class Surrogate:
         est_y, est_z, ends = [np.zeros(B)], [np.zeros(B)], []
         # one cotangent per row of d y_end / d y_n, all rows in one batched backward pass
         rows = torch.eye(n, dtype=dtype, device=config.device)[:, None, :].expand(n, B, n)
-        for k, network in enumerate(self.networks):
-            h = float(self.grid[k + 1] - self.grid[k])
+        for network, (t_k, h) in zip(self.networks, segment_steps(self.grid), strict=True):
             y_n = y.detach().clone().requires_grad_(True)
             out = network.predict(torch.cat([y_n, extra], dim=1), h)
             (jacobian,) = torch.autograd.grad(out.y_end, y_n, rows, is_grads_batched=True)  # (row, B, column)
             growth = jacobian.abs().sum(-1).amax(0)  # max row sum of d y_end / d y_n
             with torch.no_grad():
                 ends.append(torch.cat([out.y_end, out.z_end], dim=1))
-                res = loss.residuals(float(self.grid[k]), h, y_n.detach(), p, out)
+                res = loss.residuals(t_k, h, y_n.detach(), p, out)
                 F = res.F.abs().amax(dim=(1, 2))
                 G = res.G.abs().amax(dim=(1, 2)) if res.G.numel() else torch.zeros_like(F)
                 carried = growth * E_y
@@ -570,6 +562,7 @@ class Surrogate:
         from daemodel.solver import solve
 
         grid, config = self.grid, self.config
+        steps = segment_steps(grid)
         dtype = getattr(torch, config.dtype)
         p = start.p[rows]
         extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=config.device)
@@ -580,7 +573,7 @@ class Surrogate:
             with torch.no_grad():
                 stages = []
                 for chunk in _chunks(len(x)):
-                    pred = self.networks[k].predict(x[chunk], float(grid[k + 1] - grid[k]))
+                    pred = self.networks[k].predict(x[chunk], steps[k][1])
                     stages.append(torch.cat([pred.Y, pred.Z], dim=2))
             return torch.cat(stages)
 
@@ -696,7 +689,6 @@ class Surrogate:
             or a fixed parameter whose value differs from the trained one.
         """
         from daemodel.backends.base import torch_device
-        from daemodel.backends.pinn.backend import resolve_model
 
         compiled = resolve_model(model, "Surrogate.load()")
         path = Path(path)

@@ -33,16 +33,21 @@ so in its stats; whether the answer is good enough is the certificate's verdict
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import torch
-from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
+from daemodel.backends.pinn.lm import (
+    BLOCK_ORDER,
+    NetworkGram,
+    OutputGramSystem,
+    OutputSystem,
+    ResidualGramSystem,
+    output_layer_jacobian,
+)
 
-from daemodel.errors import InvalidOptionError, TrainingError
+from daemodel.errors import TrainingError
 
 # A loss this many times its starting value has diverged (Adam/L-BFGS; LM never goes up).
 EXPLODE_FACTOR = 1e8
@@ -57,8 +62,6 @@ LBFGS_CHUNK = 20
 # a segment, it is 0.004-0.08 for the fast mode's networks (paper problems, chains of 3-8 rods,
 # a 30-point grid) and 1-176 for the paper's networks, whose first outputs are random.
 NEWTON_CONTRACTION = 0.5
-# Columns of W_out's and b_out's Jacobian follow the hidden parameters'.
-BLOCK_ORDER = (*HIDDEN_PARAMETERS, "W_out", "b_out")
 # Entries of du/dtheta held at once; larger sample sets are processed in chunks.
 JACOBIAN_ENTRIES = 2**24
 # Progress is reported at most this often (seconds).
@@ -244,6 +247,7 @@ class SegmentTrainer:
             if self._done(residuals):
                 return iteration
             loss.backward()
+            optimizer.param_groups[0]["lr"] = self.config.learning_rate_at(iteration)
             optimizer.step()
         return self.config.iterations
 
@@ -254,8 +258,11 @@ class SegmentTrainer:
         are read, checked and compared with ``tol`` every :data:`GRAPH_CHECK_EVERY` iterations,
         at the parameters reached so far, by one more evaluation outside the graph."""
         params = list(self.net.parameters())
-        optimizer = torch.optim.Adam(params, lr=self.config.learning_rate, capturable=True)
         N, device = segment.x.shape[0], segment.x.device
+        scheduled = self.config.schedule != "constant"
+        # a scheduled rate lives on the device, set before each replay (a float is baked into the graph)
+        rate = torch.tensor(self.config.learning_rate, dtype=segment.x.dtype, device=device) if scheduled else None
+        optimizer = torch.optim.Adam(params, lr=rate if scheduled else self.config.learning_rate, capturable=True)
         # t and h as tensors on the device: a Python float would be copied from the host inside the graph
         graphed = Segment(
             index=segment.index,
@@ -286,7 +293,9 @@ class SegmentTrainer:
         side = torch.cuda.Stream(device)
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
-            for _ in range(warmup):
+            for k in range(warmup):
+                if scheduled:
+                    rate.fill_(self.config.learning_rate_at(k))
                 optimizer.zero_grad(set_to_none=True)
                 iteration()
         torch.cuda.current_stream(device).wait_stream(side)
@@ -297,6 +306,8 @@ class SegmentTrainer:
             iteration()
         while done < total:
             for _ in range(min(GRAPH_CHECK_EVERY - done % GRAPH_CHECK_EVERY, total - done)):
+                if scheduled:
+                    rate.fill_(self.config.learning_rate_at(done))
                 graph.replay()
                 done += 1
             terms, finished = check(done, start)
@@ -493,379 +504,3 @@ class SegmentTrainer:
             offset += p.numel()
         stacks = self.net.unstack(flat)
         return torch.cat([stacks[name].reshape(self.net.count, -1) for name in BLOCK_ORDER], dim=1)
-
-
-def output_layer_jacobian(hidden, W, valid):
-    """du/dtheta of each network, shape (K, B, out, P/K), from its last hidden layer and that
-    layer's Jacobian (``hidden``, a :class:`HiddenJacobian`), the output weights ``W`` (K, w, out)
-    and the outputs in use ``valid`` (K, out).  Columns: hidden parameters, W_out (w, out), b_out."""
-    H = hidden.H
-    K, B, w = H.shape
-    out = W.shape[-1]
-    eye = torch.diag_embed(valid)[:, None]  # (K, 1, out, out): output i moves with column i only
-    weights = (H[:, :, None, :, None] * eye[:, :, :, None, :]).reshape(K, B, out, w * out)
-    return torch.cat([hidden.dense(W), weights, eye.expand(K, B, out, out)], dim=3)
-
-
-class NetworkGram:
-    """J = du/dtheta of the K networks at N inputs, kept in factors, with each network's Gram
-    matrix ``G_k = J_k J_k^T`` (N out, N out).  With u = H W_out + b_out,
-    ``G_k = W^T (dH dH^T) W + (H H^T + 1) I``, and dH dH^T comes from the factors of
-    :class:`HiddenJacobian`: the (out, P) Jacobian is never formed.
-
-    Parameters
-    ----------
-    hidden : HiddenJacobian
-        The last hidden layer (K, N, w) and its Jacobian.
-    W : Tensor, shape (K, w, out)
-        Output weights, zero columns at padded outputs.
-    valid : Tensor, shape (K, out)
-        1 at the outputs in use, 0 at padding.
-    where : Tensor, shape (K, P/K)
-        Each network's positions in the flat parameter vector (:meth:`SegmentTrainer._block_index`).
-    P : int
-
-    Attributes
-    ----------
-    groups : list of (networks, count, G)
-        Networks with equal output counts share one batched matrix of their own size (approach 2:
-        the n differential networks have s + 1 outputs, padded to the algebraic ones' s m):
-        their indices (k,), the count, and G (k, N count, N count).
-    """
-
-    def __init__(self, hidden, W, valid, where, P: int):
-        H = hidden.H
-        K, N, w = H.shape
-        self.hidden, self.W, self.valid, self.where, self.P = hidden, W, valid, where, P
-        M = hidden.gram().reshape(K, N, w, N, w)
-        inner = H @ H.transpose(1, 2) + 1  # (K, N, N): the output layer's share, per output
-        counts = valid.sum(1).long()
-        self.groups = []
-        for count in sorted(set(counts.tolist())):
-            k = torch.nonzero(counts == count)[:, 0]
-            Wg = W[k, :, :count]
-            G = torch.einsum("kai,kbacd,kdj->kbicj", Wg, M[k], Wg)
-            G = G + inner[k][:, :, None, :, None] * torch.eye(count, dtype=W.dtype, device=W.device)[:, None, :]
-            self.groups.append((k, count, G.reshape(len(k), N * count, N * count)))
-
-    def transpose(self, v: torch.Tensor) -> torch.Tensor:
-        """``J^T v`` for ``v`` (K, N, out) (zero at padded outputs): the flat parameter vector (P,)."""
-        H = self.hidden.H
-        K = H.shape[0]
-        hidden = self.hidden.transpose(v @ self.W.transpose(1, 2))
-        weights = torch.einsum("kba,kbi->kai", H, v).reshape(K, -1)
-        local = torch.cat([hidden, weights, v.sum(1)], dim=1)  # (K, P/K) in BLOCK_ORDER
-        flat = torch.empty(self.P, dtype=v.dtype, device=v.device)
-        flat[self.where.reshape(-1)] = local.reshape(-1)
-        return flat
-
-    def largest_diagonal(self, C: torch.Tensor) -> float:
-        """The largest entry of ``diag(J^T C J)`` for a block-diagonal ``C`` (K, N, out, out) (one
-        block per network and input): the first damping's scale."""
-        H = self.hidden.H
-        hidden = self.hidden.diagonal(self.W[:, None] @ C @ self.W[:, None].transpose(-1, -2))
-        Cii = torch.diagonal(C, dim1=-2, dim2=-1)  # (K, N, out)
-        weights = torch.einsum("kba,kbi->kai", H**2, Cii)
-        return float(torch.cat([hidden.reshape(-1), weights.reshape(-1), Cii.sum(1).reshape(-1)]).max())
-
-
-class OutputGramSystem:
-    """Levenberg-Marquardt on the Newton corrections e, solved per network in its outputs:
-    ``delta_k = -J_k^T (J_k J_k^T + mu I)^{-1} e_k`` with J_k = du_k/dtheta_k, which equals
-    ``-(J^T J + mu I)^{-1} J^T e`` of :class:`OutputSystem` (a push-through identity) at the
-    cost of a (N out, N out) solve per network.
-
-    Parameters
-    ----------
-    gram : NetworkGram
-    e : Tensor, shape (K, N, out)
-        The merit, zero at padded outputs.
-    """
-
-    def __init__(self, gram: NetworkGram, e):
-        self.gram = gram
-        N = e.shape[1]
-        self.parts = []
-        for k, count, G in gram.groups:
-            eg = e[k, :, :count].reshape(len(k), N * count)
-            self.parts.append((k, count, G, eg, (G @ eg[..., None])[..., 0]))
-
-    @property
-    def scale(self) -> float:
-        """The largest diagonal entry of J^T J (sets the first damping)."""
-        K, N, out = self.gram.valid.shape[0], self.gram.hidden.H.shape[1], self.gram.W.shape[-1]
-        return self.gram.largest_diagonal(torch.diag_embed(self.gram.valid)[:, None].expand(K, N, out, out))
-
-    def step(self, mu: float):
-        """``(delta, predicted decrease of |e|^2 / 2)``, or None when a ``G + mu I`` is not positive definite."""
-        H = self.gram.hidden.H
-        K, N, _ = H.shape
-        w = H.new_zeros(K, N, self.gram.W.shape[-1])
-        predicted = 0.0
-        for k, count, G, e, Ge in self.parts:
-            eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
-            L, info = torch.linalg.cholesky_ex(G + mu * eye)
-            if bool((info != 0).any()):
-                return None
-            wg = torch.cholesky_solve(e[..., None], L)[..., 0]  # (k, N count)
-            Gw = (G @ wg[..., None])[..., 0]
-            # delta = -J^T w, g = J^T e: delta.delta = w.G w, delta.g = -w.G e
-            predicted += 0.5 * float((mu * (wg * Gw) + wg * Ge).sum())
-            w[k, :, :count] = wg.reshape(len(k), N, count)
-        return -self.gram.transpose(w), predicted
-
-
-class ResidualGramSystem:
-    """Levenberg-Marquardt on the residual vector r with J = dr/dtheta = (dr/du)(du/dtheta),
-    ``delta = -J^T (J J^T + mu I)^{-1} r``, where ``J J^T = sum_k (dr/du_k) G_k (dr/du_k)^T``
-    with the networks' Gram matrices G_k: one (N R, N R) solve.
-
-    Parameters
-    ----------
-    gram : NetworkGram
-    Ru : Tensor, shape (N, R, K, out)
-        dr_b/du_b with the outputs in the networks' stacked layout (zero columns for padding).
-    r : Tensor, shape (N R,)
-    """
-
-    def __init__(self, gram: NetworkGram, Ru, r):
-        N, R = Ru.shape[:2]
-        self.gram, self.Ru, self.r = gram, Ru, r
-        A = Ru.new_zeros(N, R, N, R)
-        for k, count, G in gram.groups:
-            Rk = Ru[:, :, k, :count]  # (N, R, k, count)
-            A += torch.einsum("brki,kbicj,cqkj->brcq", Rk, G.reshape(len(k), N, count, N, count), Rk)
-        self.A = A.reshape(N * R, N * R)
-        self.Ar = self.A @ r
-
-    @property
-    def scale(self) -> float:
-        """The largest diagonal entry of J^T J (sets the first damping)."""
-        C = torch.einsum("brki,brkj->kbij", self.Ru, self.Ru)  # (dr/du)^T (dr/du), per network and input
-        return self.gram.largest_diagonal(C)
-
-    def step(self, mu: float):
-        """``(delta, predicted decrease of |r|^2 / 2)``, or None when ``A + mu I`` is not positive definite."""
-        eye = torch.eye(self.A.shape[0], dtype=self.A.dtype, device=self.A.device)
-        L, info = torch.linalg.cholesky_ex(self.A + mu * eye)
-        if bool((info != 0).any()):
-            return None
-        w = torch.cholesky_solve(self.r[:, None], L)[:, 0]
-        # delta = -J^T w, g = J^T r: delta.delta = w.A w, delta.g = -w.A r
-        predicted = 0.5 * float(mu * (w @ (self.A @ w)) + w @ self.Ar)
-        N, R = self.Ru.shape[:2]
-        v = torch.einsum("brki,br->kbi", self.Ru, w.reshape(N, R))  # (dr/du)^T w, per network
-        return -self.gram.transpose(v), predicted
-
-
-class OutputSystem:
-    """Levenberg-Marquardt on the Newton corrections e, ``(J^T J + mu I) delta = -J^T e`` with
-    J = du/dtheta, solved as one (P/K, P/K) system per network.
-
-    Parameters
-    ----------
-    JtJ : Tensor, shape (K, P/K, P/K)
-    Jte : Tensor, shape (K, P/K)
-    where : Tensor, shape (K, P/K)
-    P : int
-    """
-
-    def __init__(self, JtJ, Jte, where, P: int):
-        self.JtJ, self.Jte, self.where, self.P = JtJ, Jte, where, P
-
-    @property
-    def scale(self) -> float:
-        """The largest diagonal entry of J^T J (sets the first damping)."""
-        return float(torch.diagonal(self.JtJ, dim1=1, dim2=2).max())
-
-    def step(self, mu: float):
-        """``(delta, predicted decrease of |e|^2 / 2)``, or None when ``J^T J + mu I`` is not positive definite."""
-        eye = torch.eye(self.JtJ.shape[-1], dtype=self.JtJ.dtype, device=self.JtJ.device)
-        L, info = torch.linalg.cholesky_ex(self.JtJ + mu * eye)
-        if bool((info != 0).any()):
-            return None
-        local = -torch.cholesky_solve(self.Jte[..., None], L)[..., 0]  # (K, P/K)
-        predicted = 0.5 * float((local * (mu * local - self.Jte)).sum())  # delta.(mu delta - g) / 2, g = J^T e
-        delta = torch.empty(self.P, dtype=local.dtype, device=local.device)
-        delta[self.where.reshape(-1)] = local.reshape(-1)
-        return delta, predicted
-
-
-# ---- segments in time ------------------------------------------------------------------------
-def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):
-    """A fresh network for ``segment`` (``copies`` independent ones for a batch), seeded from
-    ``config.seed`` and the segment number."""
-    from daemodel.backends.pinn.network import RadauNetwork
-
-    generator = torch.Generator().manual_seed(config.seed * 100_003 + segment)
-    net = RadauNetwork(inputs, len(compiled.states), len(compiled.algebraics), config, generator, copies)
-    return net.to(config.device)
-
-
-def copies_for(config, batch: int) -> int:
-    """Independent network copies for a batch of ``batch`` samples: one each with
-    ``batch="independent"`` (1 for a single trajectory), else 1 shared set."""
-    if config.batch != "independent" or batch == 1:
-        return 1
-    if config.samples > 1:
-        raise InvalidOptionError(
-            f"samples = {config.samples} trains each network on a box around its start, which independent networks "
-            f"for a batch of {batch} do not have: use batch='shared' (one set of networks over the batch), or samples=1"
-        )
-    return batch
-
-
-def make_loss(compiled, config):
-    from daemodel.backends.pinn.loss import RadauLoss
-
-    from daemodel.tableau import radau_iia
-
-    dtype = getattr(torch, config.dtype)
-    functions = compiled.torch_functions(dtype=dtype, device=config.device)
-    loss = RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
-    loss.names = (compiled.state_names, compiled.constraint_names, compiled.algebraic_names)
-    return loss
-
-
-def training_inputs(x: torch.Tensor, p: torch.Tensor, n: int, config, generator: torch.Generator):
-    """A segment's training inputs and their parameter vectors: the rows of ``x`` (B, d), each
-    followed by ``samples - 1`` points uniform in a box of half-width ``radius * max(1, |y|)``
-    around its states (parameters are not perturbed)."""
-    if config.samples == 1:
-        return x, p
-    B, d = x.shape
-    noise = torch.rand(B, config.samples - 1, n, generator=generator, dtype=torch.float64).to(x) * 2 - 1
-    half = config.radius * torch.clamp(x[:, None, :n].abs(), min=1.0)
-    extra = x[:, None, :].repeat(1, config.samples - 1, 1)
-    extra[..., :n] = extra[..., :n] + half * noise
-    # extra rows are grouped by their source row, as are their parameter vectors
-    return torch.cat([x, extra.reshape(-1, d)]), torch.cat([p, p.repeat_interleave(config.samples - 1, dim=0)])
-
-
-class Progress:
-    """A tqdm bar over segments whose postfix shows the iteration and the loss terms."""
-
-    def __init__(self, total: int, enabled: bool, label: str):
-        from daemodel.backends.base import LOG_PROGRESS_SECONDS, progress_bar, stderr_is_terminal
-
-        self.bar = progress_bar(total, label, "segment") if enabled else None
-        # a terminal shows every report in place; a log gets one line every LOG_PROGRESS_SECONDS
-        self.every = 0.0 if stderr_is_terminal() else LOG_PROGRESS_SECONDS
-        self.shown = -math.inf  # perf_counter of the last redraw
-        self.segment = 0
-
-    def report(self, iteration: int, terms: dict) -> None:
-        if self.bar is not None:
-            shown = " ".join(f"{k}={v:.1e}" for k, v in terms.items())
-            self.bar.set_postfix_str(f"seg {self.segment + 1} it {iteration} {shown}", refresh=False)
-            if time.perf_counter() - self.shown >= self.every:
-                self.bar.refresh()
-                self.shown = time.perf_counter()
-
-    def advance(self) -> None:
-        self.segment += 1
-        if self.bar is not None:
-            self.bar.update(1)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
-def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.Tensor, config, progress: Progress):
-    """Train the segments one after the other (time-domain decomposition).
-
-    Segment k trains on the states its predecessor predicted (``x0`` (B, d) for the first), plus
-    the box samples of ``config``; its predicted ``y_{n+1}`` becomes segment k+1's input.  A fresh
-    network starts at rest on the consistent algebraic values ``z0`` (B, m) (the previous
-    segment's predicted ``z_{n+1}`` later on).
-
-    Returns
-    -------
-    networks : list of RadauNetwork
-    stats : list of SegmentStats
-    """
-    n = len(compiled.states)
-    loss = make_loss(compiled, config)
-    generator = torch.Generator().manual_seed(config.seed)
-    copies = copies_for(config, x0.shape[0])
-    x, z, networks, stats = x0, z0, [], []
-    for k in range(len(grid) - 1):
-        h = float(grid[k + 1] - grid[k])
-        inputs, samples_p = training_inputs(x, p, n, config, generator)
-        segment = Segment(index=k, t=float(grid[k]), h=h, x=inputs, p=samples_p)
-        net = None
-        if config.warm_start and networks:
-            net = copy.deepcopy(networks[-1])
-            net.normalise(inputs)
-            if not SegmentTrainer(net, loss, config).finite_start(segment):
-                net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
-        if net is None:
-            net = make_network(compiled, config, x.shape[1], k, copies)
-            net.normalise(inputs)
-            if config.increment:
-                net.start_at_rest(inputs, z)
-        stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
-        with torch.no_grad():
-            out = net.predict(x, h)
-        x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
-        networks.append(net)
-        progress.advance()
-    return networks, stats
-
-
-def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
-    """Train segment k from the known inputs ``x`` (B, d) and algebraic values ``z`` (B, m): an
-    engine task, plain data in and out.  ``shared`` is (compiled, config, p)."""
-    compiled, config, p = shared
-    dtype = getattr(torch, config.dtype)
-    x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
-    generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
-    inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
-    net = make_network(compiled, config, x.shape[1], k, copies_for(config, x.shape[0]))
-    net.normalise(inputs)
-    if config.increment:
-        net.start_at_rest(inputs, z)
-    segment = Segment(k, t, h, inputs, samples_p)
-    stats = SegmentTrainer(net, make_loss(compiled, config), config).train(segment)
-    return {"state": {name: value.cpu() for name, value in net.state_dict().items()}, "stats": stats}
-
-
-def fit_parallel(
-    compiled, grid, starts, algebraics, p, config, progress: Progress, engine="local", workers=None, address=None
-):
-    """Train every segment independently on known start values, as tasks of ``engine``
-    (:func:`daemodel.engine.run_tasks`: one after another here, or in parallel on Ray).
-
-    Parameters
-    ----------
-    starts : ndarray, shape (segments, B, d)
-        Network inputs at each segment's start (from a classical solve or an earlier sweep).
-    algebraics : ndarray, shape (segments, B, m)
-        The consistent algebraic values at each segment's start.
-
-    Returns
-    -------
-    networks, stats, peak_memory_mb
-        The last: each Ray task's peak resident memory (empty for the local engine).
-    """
-    from daemodel.engine import run_tasks
-
-    tasks = [(k, float(grid[k]), float(grid[k + 1] - grid[k]), starts[k], algebraics[k]) for k in range(len(grid) - 1)]
-    results = run_tasks(
-        fit_one,
-        (compiled, config, np.asarray(p)),
-        tasks,
-        engine=engine,
-        workers=workers,
-        address=address,
-        label="pinn",
-        on_result=lambda *_: progress.advance(),
-    )
-    networks = []
-    for k, result in enumerate(results):
-        net = make_network(compiled, config, starts.shape[2], k, copies_for(config, starts.shape[1]))
-        net.load_state_dict(result["state"])
-        networks.append(net)
-    memory = [result["peak_memory_mb"] for result in results if "peak_memory_mb" in result]
-    return networks, [result["stats"] for result in results], memory

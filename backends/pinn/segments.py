@@ -1,0 +1,230 @@
+"""The segments in time: one network per segment of the grid, trained one after another
+(each from its predecessor's prediction) or independently from known start values, as tasks of
+an engine.  Uses the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and
+:mod:`.surrogate` do).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+
+import numpy as np
+import torch
+from daemodel.backends.pinn.train import Segment, SegmentTrainer
+
+from daemodel.errors import InvalidOptionError
+
+# The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
+# index 3 is reduced first).
+MAX_INDEX = 2
+
+
+def resolve_model(model, caller: str):
+    """A CompiledDAE of index at most 2 from a Model or a CompiledDAE."""
+    from daemodel.solver import as_compiled
+
+    model = as_compiled(model, caller)
+    return model.reduced(MAX_INDEX) if model.index > MAX_INDEX else model
+
+
+def segment_steps(grid) -> list[tuple[float, float]]:
+    """``(t, h)`` of every segment of ``grid``: the one place a segment's length is taken."""
+    return [(float(grid[k]), float(grid[k + 1] - grid[k])) for k in range(len(grid) - 1)]
+
+
+def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):
+    """A fresh network for ``segment`` (``copies`` independent ones for a batch), seeded from
+    ``config.seed`` and the segment number."""
+    from daemodel.backends.pinn.network import RadauNetwork
+
+    generator = torch.Generator().manual_seed(config.seed * 100_003 + segment)
+    net = RadauNetwork(inputs, len(compiled.states), len(compiled.algebraics), config, generator, copies)
+    return net.to(config.device)
+
+
+def copies_for(config, batch: int) -> int:
+    """Independent network copies for a batch of ``batch`` samples: one each with
+    ``batch="independent"`` (1 for a single trajectory), else 1 shared set."""
+    if config.batch != "independent" or batch == 1:
+        return 1
+    if config.samples > 1:
+        raise InvalidOptionError(
+            f"samples = {config.samples} trains each network on a box around its start, which independent networks "
+            f"for a batch of {batch} do not have: use batch='shared' (one set of networks over the batch), or samples=1"
+        )
+    return batch
+
+
+def make_loss(compiled, config):
+    from daemodel.backends.pinn.loss import RadauLoss
+
+    from daemodel.tableau import radau_iia
+
+    dtype = getattr(torch, config.dtype)
+    functions = compiled.torch_functions(dtype=dtype, device=config.device)
+    loss = RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
+    loss.names = (compiled.state_names, compiled.constraint_names, compiled.algebraic_names)
+    return loss
+
+
+def training_inputs(x: torch.Tensor, p: torch.Tensor, n: int, config, generator: torch.Generator):
+    """A segment's training inputs and their parameter vectors: the rows of ``x`` (B, d), each
+    followed by ``samples - 1`` points uniform in a box of half-width ``radius * max(1, |y|)``
+    around its states (parameters are not perturbed)."""
+    if config.samples == 1:
+        return x, p
+    B, d = x.shape
+    noise = torch.rand(B, config.samples - 1, n, generator=generator, dtype=torch.float64).to(x) * 2 - 1
+    half = config.radius * torch.clamp(x[:, None, :n].abs(), min=1.0)
+    extra = x[:, None, :].repeat(1, config.samples - 1, 1)
+    extra[..., :n] = extra[..., :n] + half * noise
+    # extra rows are grouped by their source row, as are their parameter vectors
+    return torch.cat([x, extra.reshape(-1, d)]), torch.cat([p, p.repeat_interleave(config.samples - 1, dim=0)])
+
+
+class Progress:
+    """A tqdm bar over segments whose postfix shows the iteration and the loss terms."""
+
+    def __init__(self, total: int, enabled: bool, label: str):
+        from daemodel.backends.base import LOG_PROGRESS_SECONDS, progress_bar, stderr_is_terminal
+
+        self.bar = progress_bar(total, label, "segment") if enabled else None
+        # a terminal shows every report in place; a log gets one line every LOG_PROGRESS_SECONDS
+        self.every = 0.0 if stderr_is_terminal() else LOG_PROGRESS_SECONDS
+        self.shown = -math.inf  # perf_counter of the last redraw
+        self.segment = 0
+
+    def report(self, iteration: int, terms: dict) -> None:
+        if self.bar is not None:
+            shown = " ".join(f"{k}={v:.1e}" for k, v in terms.items())
+            self.bar.set_postfix_str(f"seg {self.segment + 1} it {iteration} {shown}", refresh=False)
+            if time.perf_counter() - self.shown >= self.every:
+                self.bar.refresh()
+                self.shown = time.perf_counter()
+
+    def advance(self) -> None:
+        self.segment += 1
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.Tensor, config, progress: Progress):
+    """Train the segments one after the other (time-domain decomposition).
+
+    Segment k trains on the states its predecessor predicted (``x0`` (B, d) for the first), plus
+    the box samples of ``config``; its predicted ``y_{n+1}`` becomes segment k+1's input.  A fresh
+    network starts at rest on the consistent algebraic values ``z0`` (B, m) (the previous
+    segment's predicted ``z_{n+1}`` later on).
+
+    Returns
+    -------
+    networks : list of RadauNetwork
+    stats : list of SegmentStats
+    """
+    n = len(compiled.states)
+    loss = make_loss(compiled, config)
+    generator = torch.Generator().manual_seed(config.seed)
+    copies = copies_for(config, x0.shape[0])
+    x, z, networks, stats = x0, z0, [], []
+    for k, (t, h) in enumerate(segment_steps(grid)):
+        inputs, samples_p = training_inputs(x, p, n, config, generator)
+        segment = Segment(index=k, t=t, h=h, x=inputs, p=samples_p)
+        net = None
+        if config.warm_start and networks:
+            net = copy.deepcopy(networks[-1])
+            net.normalise(inputs)
+            if not SegmentTrainer(net, loss, config).finite_start(segment):
+                net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
+        if net is None:
+            net = make_network(compiled, config, x.shape[1], k, copies)
+            net.normalise(inputs)
+            if config.increment:
+                net.start_at_rest(inputs, z)
+        stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
+        with torch.no_grad():
+            out = net.predict(x, h)
+        x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
+        networks.append(net)
+        progress.advance()
+    return networks, stats
+
+
+def train_segments(compiled, config, grid, y, z, p, input_columns, progress: bool, label: str):
+    """:func:`fit_sequential` from numpy arrays: the states ``y`` (B, n), their consistent
+    algebraic values ``z`` (B, m) and parameters ``p`` (B, k), whose columns ``input_columns``
+    are network inputs after the states; with a progress bar when ``progress``."""
+    dtype = getattr(torch, config.dtype)
+
+    def tensor(array):
+        return torch.as_tensor(np.array(array, dtype=float), dtype=dtype, device=config.device)
+
+    bar = Progress(len(grid) - 1, progress, label)
+    try:
+        return fit_sequential(
+            compiled, grid, tensor(np.concatenate([y, p[:, input_columns]], axis=1)), tensor(p), tensor(z), config, bar
+        )
+    finally:
+        bar.close()
+
+
+def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
+    """Train segment k from the known inputs ``x`` (B, d) and algebraic values ``z`` (B, m): an
+    engine task, plain data in and out.  ``shared`` is (compiled, config, p)."""
+    compiled, config, p = shared
+    dtype = getattr(torch, config.dtype)
+    x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
+    generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
+    inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
+    net = make_network(compiled, config, x.shape[1], k, copies_for(config, x.shape[0]))
+    net.normalise(inputs)
+    if config.increment:
+        net.start_at_rest(inputs, z)
+    segment = Segment(k, t, h, inputs, samples_p)
+    stats = SegmentTrainer(net, make_loss(compiled, config), config).train(segment)
+    return {"state": {name: value.cpu() for name, value in net.state_dict().items()}, "stats": stats}
+
+
+def fit_parallel(
+    compiled, grid, starts, algebraics, p, config, progress: Progress, engine="local", workers=None, address=None
+):
+    """Train every segment independently on known start values, as tasks of ``engine``
+    (:func:`daemodel.engine.run_tasks`: one after another here, or in parallel on Ray).
+
+    Parameters
+    ----------
+    starts : ndarray, shape (segments, B, d)
+        Network inputs at each segment's start (from a classical solve or an earlier sweep).
+    algebraics : ndarray, shape (segments, B, m)
+        The consistent algebraic values at each segment's start.
+
+    Returns
+    -------
+    networks, stats, peak_memory_mb
+        The last: each Ray task's peak resident memory (empty for the local engine).
+    """
+    from daemodel.engine import run_tasks
+
+    tasks = [(k, t, h, starts[k], algebraics[k]) for k, (t, h) in enumerate(segment_steps(grid))]
+    results = run_tasks(
+        fit_one,
+        (compiled, config, np.asarray(p)),
+        tasks,
+        engine=engine,
+        workers=workers,
+        address=address,
+        label="pinn",
+        on_result=lambda *_: progress.advance(),
+    )
+    networks = []
+    for k, result in enumerate(results):
+        net = make_network(compiled, config, starts.shape[2], k, copies_for(config, starts.shape[1]))
+        net.load_state_dict(result["state"])
+        networks.append(net)
+    memory = [result["peak_memory_mb"] for result in results if "peak_memory_mb" in result]
+    return networks, [result["stats"] for result in results], memory
