@@ -264,6 +264,51 @@ def test_tol_corrects_exactly_the_samples_whose_estimate_exceeds_it(pendulum, tr
     assert everything.stats["corrected"].all() and np.max(np.abs(everything["y5"] - newton["y5"])) < 1e-12
 
 
+def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendulum, trained, monkeypatch):
+    """A query inside the box raises no ConvergenceError because the networks' guesses fail:
+    the failing samples are found by halving the batch and solved by radau from their own start,
+    and stats["path"] says which sample took which path.  (The failure is forced for samples 3 and
+    6: real guesses from these networks converge.)"""
+    from daemodel.backends.pinn.surrogate import Surrogate
+
+    y0 = held_out(pendulum, seed=5, count=8)
+    original = Surrogate._radau
+    calls = []
+
+    def radau(self, start, rows, guessed):
+        calls.append((tuple(int(r) for r in rows), guessed))
+        if guessed and ({3, 6} & set(rows.tolist())):
+            raise dm.errors.ConvergenceError("radau: Newton failed in step 1 (forced)")
+        return original(self, start, rows, guessed)
+
+    monkeypatch.setattr(Surrogate, "_radau", radau)
+    answer = trained.solve(y0=y0, newton=True, outside="ignore")
+    assert answer.stats["path"] == ["newton"] * 3 + ["radau"] + ["newton"] * 2 + ["radau", "newton"]
+    assert answer.status.startswith("success (2 of 8 samples by radau from their start")
+    assert calls[-1] == ((3, 6), False)  # the failing samples alone, without the guesses
+    assert len(calls) <= 2 * 2 * 3 + 2  # halving: at most 2 log2(8) calls per failing sample, and the retry
+    newton = dm.solve(pendulum, (0.0, 0.25), h=0.05, y0=y0)
+    for name in answer.names:
+        np.testing.assert_allclose(answer[name], newton[name], rtol=0, atol=1e-12)
+    tol = trained.solve(y0=y0, tol=1e-300, outside="ignore")  # every sample corrected
+    assert tol.stats["path"] == answer.stats["path"]
+    assert tol.status.endswith(
+        "8 of 8 samples corrected by Newton (estimate > tol = 1e-300), 2 of them by radau from "
+        "their start (Newton from the networks failed)"
+    )
+    monkeypatch.setattr(
+        Surrogate,
+        "_radau",
+        lambda self, start, rows, guessed: (_ for _ in ()).throw(dm.errors.ConvergenceError("radau: forced")),
+    )
+    with pytest.raises(
+        dm.errors.ConvergenceError,
+        match=r"sample 0: Newton from the networks' stage values failed, "
+        r"and radau from the sample's start too \(ConvergenceError: radau: forced\)",
+    ):
+        trained.solve(y0=y0, newton=True, outside="ignore")
+
+
 def test_large_query_batches_are_evaluated_in_chunks(boxed, pendulum, monkeypatch):
     """Queries are evaluated EVALUATION_CHUNK at a time (bigger batches spill the caches): the
     answers and estimates do not depend on the chunking, including a last, shorter chunk."""

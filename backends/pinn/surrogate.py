@@ -386,8 +386,11 @@ class Surrogate:
             Correct the networks' answer by Newton: ``method="radau"`` with the surrogate's
             stages and step, every step starting from its network's stage values instead of
             an extrapolation (radau's ``start_guess``).  The answer is then the Radau IIA
-            collocation solution whatever the networks' error, each step converged to rounding
-            or failed with radau's named error; ``stats["network_error"]`` (B,) is each sample's
+            collocation solution whatever the networks' error, each step converged to rounding;
+            a sample where Newton from the networks' guesses fails is solved by radau from its
+            own start instead (the failing samples are found by halving the batch), and
+            ``stats["path"]`` (B,) says which: ``"newton"`` or ``"radau"``; only a sample radau
+            cannot solve either raises its named error.  ``stats["network_error"]`` (B,) is each sample's
             largest absolute difference between the networks' answer and it, over all variables
             and grid times (the certificate of the network-only answer), and
             ``stats["newton_iterations"]`` counts the iterations the guesses left to do.
@@ -407,7 +410,10 @@ class Surrogate:
             for those samples only) and returns the collocation solution; the others return the
             networks' answer.  So every sample's estimated distance from the Radau IIA solution
             at the surrogate's h is at most ``tol`` or it was solved.  ``stats["corrected"]`` (B,)
-            marks the corrected samples, ``stats["error_estimate"]`` is that of the returned
+            marks the corrected samples, ``stats["path"]`` (B,) says how each answer came:
+            ``"network"``, ``"newton"`` (from the networks' guesses) or ``"radau"`` (from its own
+            start, where Newton from the guesses failed: no ConvergenceError for a query the
+            classical method solves), ``stats["error_estimate"]`` is that of the returned
             answer (0 where corrected), ``stats["newton_iterations"]`` counts the correction's.
             Implies ``estimate=True``; cannot be combined with ``newton=True``.
 
@@ -453,14 +459,13 @@ class Surrogate:
         if newton:
             return self._newton(start, values, wall, reports)
         corrected, newton_iterations = np.zeros(start.size, dtype=bool), 0
+        path = np.full(start.size, "network", dtype=object)
         if tol is not None:
             worst = np.max([bound.max(axis=1) for bound in estimates.values()], axis=0)
             corrected = worst > tol
             if corrected.any():
                 rows = np.flatnonzero(corrected)
-                solution = self._collocation(start, rows)
-                values[rows] = self._values_of(solution, len(rows))
-                newton_iterations = solution.stats["newton_iterations"]
+                values[rows], path[rows], newton_iterations, _ = self._collocation(start, rows)
                 for bound in estimates.values():
                     bound[rows] = 0.0
             inside = inside & ~corrected  # a corrected sample does not depend on where the networks were trained
@@ -485,11 +490,15 @@ class Surrogate:
         if tol is not None:
             stats.update({"mode": "surrogate, corrected above tol", "corrected": corrected, "tol": tol})
             stats["newton_iterations"] = newton_iterations
+            stats["path"] = path.tolist()
         status = training_status(self.config, self.stats)
         if reports:
             status = "; ".join([*([] if status == "success" else [status]), *(short for short, _ in reports)])
         if tol is not None:
             status += f"; {int(corrected.sum())} of {start.size} samples corrected by Newton (estimate > tol = {tol:g})"
+            if (path == "radau").any():
+                fallen = int((path == "radau").sum())
+                status += f", {fallen} of them by radau from their start (Newton from the networks failed)"
         return make_solution(
             "pinn",
             self.compiled,
@@ -544,21 +553,82 @@ class Surrogate:
 
     def _newton(self, start, network_values, network_seconds: float, reports):
         """The collocation solution from the networks' stage values (see :meth:`solve`)."""
-        solution = self._collocation(start, np.arange(start.size))
-        difference = np.abs(network_values - self._values_of(solution, start.size)).reshape(start.size, -1)
-        solution.stats.update(
-            {
-                "mode": "surrogate + newton",
-                "network_error": difference.max(axis=1),
-                "network_seconds": network_seconds,
-                "outside_training_box": [message for _, message in reports],
-            }
-        )
-        return solution
+        from daemodel.backends.base import make_solution
 
-    def _collocation(self, start, rows: np.ndarray):
+        began = time.perf_counter()
+        values, path, iterations, solution = self._collocation(start, np.arange(start.size))
+        difference = np.abs(network_values - values).reshape(start.size, -1)
+        stats = {
+            "mode": "surrogate + newton",
+            "network_error": difference.max(axis=1),
+            "network_seconds": network_seconds,
+            "outside_training_box": [message for _, message in reports],
+            "path": path.tolist(),
+        }
+        if solution is not None:  # one radau call from the networks' guesses solved every sample
+            solution.stats.update(stats)
+            return solution
+        failed = int((path == "radau").sum())
+        stats["newton_iterations"] = iterations
+        return make_solution(
+            "radau",
+            self.compiled,
+            start,
+            None,
+            self.grid,
+            values,
+            time.perf_counter() - began,
+            stats,
+            settings={"stages": self.config.stages, "h": self.config.h, "start_guess": "the networks"},
+            status=f"success ({failed} of {start.size} samples by radau from their start: Newton from the networks "
+            "failed)",
+        )
+
+    def _collocation(self, start, rows: np.ndarray) -> tuple:
+        """The Radau IIA collocation solution at the surrogate's stages and step for the samples
+        ``rows`` of ``start``: radau with every step started from its network's stage values,
+        and, for the samples where that fails (split down to them), radau from its own start.
+
+        Returns ``(values (R, T, n+m), path (R,) "newton" or "radau", Newton iterations, the
+        Solution of the one call when every sample succeeded at once else None)``.  A sample
+        that radau cannot solve from its start either is a :class:`ConvergenceError` naming it.
+        """
+        from daemodel.errors import ConvergenceError, SolverError
+
+        values = np.empty((len(rows), len(self.grid), len(self.compiled.states) + len(self.compiled.algebraics)))
+        path = np.empty(len(rows), dtype=object)
+        iterations, whole = 0, []
+
+        def attempt(part: np.ndarray, guessed: bool) -> list:
+            """Solve the samples ``rows[part]``; halve a part that fails: the samples that fail alone."""
+            nonlocal iterations
+            try:
+                solution = self._radau(start, rows[part], guessed)
+            except SolverError as error:
+                if len(part) == 1:
+                    return [(int(part[0]), error)]
+                half = len(part) // 2
+                return attempt(part[:half], guessed) + attempt(part[half:], guessed)
+            values[part] = self._values_of(solution, len(part))
+            path[part] = "newton" if guessed else "radau"
+            iterations += solution.stats["newton_iterations"]
+            whole.append(solution)
+            return []
+
+        failed = attempt(np.arange(len(rows)), True)
+        if failed:
+            still = attempt(np.array([i for i, _ in failed]), False)
+            if still:
+                i, error = still[0]
+                raise ConvergenceError(
+                    f"Surrogate.solve: sample {int(rows[i])}: Newton from the networks' stage values failed, and radau "
+                    f"from the sample's start too ({type(error).__name__}: {error})"
+                ) from None
+        return values, path, iterations, whole[0] if not failed and len(whole) == 1 else None
+
+    def _radau(self, start, rows: np.ndarray, guessed: bool):
         """radau at the surrogate's stages and step for the samples ``rows`` of ``start``, every
-        step started from its network's stage values."""
+        step started from its network's stage values when ``guessed``."""
         from daemodel.solver import solve
 
         grid, config = self.grid, self.config
@@ -586,7 +656,7 @@ class Surrogate:
             y0=start.y0[rows],
             z0=start.z0[rows],
             parameters=p,
-            start_guess=guess,
+            start_guess=guess if guessed else None,
             dtype=config.dtype,
             device=config.device,
         )
