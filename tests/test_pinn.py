@@ -121,6 +121,10 @@ def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
     assert sol.setup_time == sol.stats["training_seconds"]
     assert sol.solve_time == pytest.approx(sol.stats["evaluation_seconds"] + sol.stats["certificate_seconds"])
     assert sol.status == "success" and sol.stats["certificate"]["certified"] == [True]
+    certificate = sol.stats["certificate"]  # per segment and sample too, beside radau's own error
+    for key in ("segment_distance", "segment_radau_error", "local_distance", "local_radau_error"):
+        assert np.shape(certificate[key]) == (1, 20)
+    assert np.all(np.array(certificate["segment_distance"]) <= np.array(certificate["segment_radau_error"]))
     assert sol.setup_time > sol.solve_time > 0
 
 

@@ -110,13 +110,20 @@ class Certificate:
         return int(b), int(t), int(j), float(ratio[b, t, j])
 
     def summary(self, names) -> dict:
-        """JSON-ready digest for ``Solution.stats``: per variable, the largest distance and Radau
-        error over the grid (per sample), and which samples are certified."""
+        """JSON-ready digest for ``Solution.stats``: which samples are certified; per variable,
+        the largest distance and Radau error over the grid (per sample); per segment and sample,
+        at the segment's end, the largest distance and Radau error over the variables
+        (``segment_distance``, ``segment_radau_error``, each (B, segments)) and the same from
+        the segment's own start (``local_distance``, ``local_radau_error``)."""
         return {
             "certified": self.certified.tolist(),
             "max_distance": {name: self.distance[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
             "max_radau_error": {name: self.radau_error[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
+            "segment_distance": self.distance[:, 1:].max(axis=2).tolist(),
+            "segment_radau_error": self.radau_error[:, 1:].max(axis=2).tolist(),
+            "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2).tolist(),
+            "local_radau_error": self.local_radau_error.max(axis=2).tolist(),
         }
 
 
