@@ -22,7 +22,8 @@ finally:
     sys.path.remove(str(BENCHMARKS))
 
 CASES = {case.name: case for case in pinn_models.CASES}
-# The cases that take under ~3 s each here (the rest run in benchmarks/pinn_ceiling.py).
+# The cases that take under ~3 s each here run by default; the others with -m slow (the
+# 1000-sample batch in its own test).
 QUICK = (
     "heat",
     "grid",
@@ -47,7 +48,10 @@ def values(solution, names):
     return np.stack([np.atleast_2d(solution[name]) for name in names], axis=-1)  # (B, T, D)
 
 
-@pytest.mark.parametrize("name", QUICK)
+SLOW = tuple(name for name in CASES if name not in QUICK and "x1000" not in name)
+
+
+@pytest.mark.parametrize("name", [*QUICK, *(pytest.param(name, marks=pytest.mark.slow) for name in SLOW)])
 def test_success_means_within_twice_radaus_error_and_the_certificate_bounds_the_distance(name):
     case = CASES[name]
     compiled, pinn, radau = solve_both(case)
