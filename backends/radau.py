@@ -64,6 +64,7 @@ from daemodel.backends.base import (
 )
 from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
 
+from daemodel.collocation import lagrange_matrix
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
 
@@ -456,7 +457,7 @@ class _Stepper:
         h_old, u_old, W_old = self._previous
         if self._extrapolation is None or self._extrapolation[0] != h / h_old:
             nodes = np.concatenate([[0.0], self.tableau.c])
-            L = self.engine.asarray(_lagrange(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
+            L = self.engine.asarray(lagrange_matrix(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
             self._extrapolation = (h / h_old, L)
         L = self._extrapolation[1]
         return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
@@ -1035,7 +1036,7 @@ class _Stepper:
             while k < len(steps) - 1 and time_point > steps[k][0] + steps[k][1] * (1 + 1e-13):
                 k += 1
             t_n, h, u_start, W = steps[k]
-            L = self.engine.asarray(_lagrange(nodes, np.array([(time_point - t_n) / h]))[0])
+            L = self.engine.asarray(lagrange_matrix(nodes, np.array([(time_point - t_n) / h]))[0])
             rows.append(xp.einsum("j,bjk->bk", L, xp.concatenate([u_start[:, None, :], W], axis=1)))
         return np.asarray(t_out, dtype=float), _numpy(xp.stack(rows, axis=1))
 
@@ -1050,11 +1051,3 @@ def _numpy(values) -> np.ndarray:
     if isinstance(values, np.ndarray):
         return values.astype(float, copy=False)
     return values.detach().cpu().double().numpy()
-
-
-def _lagrange(nodes: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` at ``points[i]``."""
-    others = ~np.eye(len(nodes), dtype=bool)  # others[j, m]: m != j
-    gaps = np.where(others, nodes[:, None] - nodes[None, :], 1.0)  # x_j - x_m
-    factors = np.where(others, points[:, None, None] - nodes[None, None, :], 1.0)  # x - x_m, (P, j, m)
-    return factors.prod(axis=-1) / gaps.prod(axis=-1)

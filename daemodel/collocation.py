@@ -223,3 +223,14 @@ def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iteratio
     return CollocationStep(
         Y=W[..., :n], Z=W[..., n:], converged=converged & finite, increment=last, jacobian=J, iterations=iterations
     )
+
+
+def lagrange_matrix(nodes, points):
+    """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` (N,) at ``points[i]`` (P,),
+    shape (P, N), in numpy: the interpolation of stage values (a start guess, dense output)."""
+    import numpy as np
+
+    others = ~np.eye(len(nodes), dtype=bool)  # others[j, m]: m != j
+    gaps = np.where(others, nodes[:, None] - nodes[None, :], 1.0)  # x_j - x_m
+    factors = np.where(others, points[:, None, None] - nodes[None, None, :], 1.0)  # x - x_m, (P, j, m)
+    return factors.prod(axis=-1) / gaps.prod(axis=-1)

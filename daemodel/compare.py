@@ -90,8 +90,9 @@ class Run:
         :attr:`Solution.status` ("success", or why not: a PINN answer that is not certified starts
         with "flagged").
     certificate : dict
-        A PINN run's certificate, worst over the variables and the grid: ``distance`` (from the
-        Radau solution at the same h) and ``radau_error`` (Radau's own error there); empty otherwise.
+        A PINN run's certificate where the ratio of the two is largest: ``distance`` (from the
+        Radau solution at the same h) and ``radau_error`` (what it is compared with: Radau's own
+        error there, or the rounding floor); empty otherwise.
     step : tuple
         ``(stages, h)`` of a fixed-step run (radau, casadi-collocation, pinn), else empty: runs on
         the same grid, whose times the table compares.
@@ -226,7 +227,8 @@ class Comparison:
             return []
         notes = [
             "cert: the PINN's certified distance from the Radau solution at the same stages and h, against Radau's "
-            "own error (worst over variables and times); success needs distance <= error, else 'flagged'"
+            "own error or the rounding floor, where their ratio is worst; success needs distance <= that, else "
+            "'flagged'"
         ]
         radau = {r.step: r for r in self.runs if r.method == "radau" and r.failure is None and r.step}
         for run in certified:
@@ -270,7 +272,9 @@ class Comparison:
                     short=r.get("short", ""),
                     messages=tuple(r.get("messages", ())),
                     status=r.get("status", "success"),
-                    certificate=dict(r.get("certificate", {})),
+                    certificate={
+                        key: math.nan if value is None else value for key, value in r.get("certificate", {}).items()
+                    },
                     step=tuple(r.get("step", ())),
                 )
                 for r in payload["runs"]
@@ -515,6 +519,7 @@ class ComparisonPlan:
                             failure=failure,
                             short=short,
                             messages=messages,
+                            status="failed",
                         )
                     )
                 else:
@@ -769,13 +774,12 @@ def _step(solution) -> tuple:
 
 
 def _certificate_digest(solution) -> dict:
-    """A PINN Solution's certificate, worst over variables and samples: the largest certified
-    distance and the largest Radau error; empty for other methods."""
+    """A PINN Solution's certificate where distance / bound is largest (over variables, times and
+    samples): the certified distance and what it is compared with; empty for other methods."""
     certificate = solution.stats.get("certificate") if isinstance(solution.stats, dict) else None
     if not certificate:
         return {}
-    worst = lambda table: max(max(values) for values in table.values())  # noqa: E731
-    return {"distance": worst(certificate["max_distance"]), "radau_error": worst(certificate["max_radau_error"])}
+    return {"distance": certificate["worst"]["distance"], "radau_error": certificate["worst"]["bound"]}
 
 
 def _nan_to_none(value):

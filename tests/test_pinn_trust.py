@@ -471,11 +471,24 @@ def test_a_met_tolerance_is_not_enough_for_success():
     assert max(np.max(np.abs(sol[name] - radau[name])) for name in sol.names) > 2 * radau_error
 
 
-def test_a_surrogate_reports_its_training_budget(boxed):
+def test_a_surrogates_plain_answer_is_unchecked_and_states_its_training(boxed, pendulum):
+    """The networks' answer to a query carries no certificate: never "success" without tol= or
+    newton=True.  Before, a surrogate trained with a tol said "success" whatever its answers:
+    trained with tol = 1e-12 for one iteration, its answer was 5.4e-3 from radau."""
     sol = boxed.solve()
     worst = max(s.max_residual for s in boxed.stats)
-    assert sol.status.startswith("budget: ") and f"final max residual {worst:.2g} (no tolerance set)" in sol.status
+    assert sol.status.startswith("unchecked (budget: ") and f"final max residual {worst:.2g} (no tolerance set)" in (
+        sol.status
+    )
+    assert sol.status.endswith(
+        "pass tol= for answers within tol of the Radau solution, or newton=True for that solution"
+    )
     assert sol.stats["final_max_residual"] == worst
+    short = dm.Surrogate.train(
+        pendulum, (0.0, 0.1), box=BOX, samples=4, config=TINY.replace(tol=1e-12, iterations=1), progress=False
+    )
+    assert short.solve().status.startswith("unchecked (training stopped above tol = 1e-12 in 2 of 2 segments")
+    assert boxed.solve(tol=1.0).status.startswith("success (estimate within tol = 1 or corrected)")
 
 
 def test_a_budget_cut_short_says_so():
@@ -487,7 +500,11 @@ def test_a_budget_cut_short_says_so():
         "budget: up to 40 lm iterations per segment (as few as 12, where the loss stopped decreasing), "
         "final max residual 3.2e-05 (no tolerance set)"
     )
-    assert training_status(TINY.replace(tol=1e-6), stats) == "success"
+    assert training_status(TINY.replace(tol=1e-6), stats) == "trained to tol = 1e-06 on its training inputs"
+    missed = [dataclasses.replace(stats[0], converged=False), stats[1]]
+    assert training_status(TINY.replace(tol=1e-6), missed) == (
+        "training stopped above tol = 1e-06 in 1 of 2 segments (final max residual 3.2e-05)"
+    )
 
 
 # ---- named errors --------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
+    LOCAL_ERROR_BOUND,
     SWEEP_FIRST_STEPS,
     SWEEP_STAGES,
     AbstractBackend,
@@ -192,9 +193,10 @@ class PINNBackend(AbstractBackend):
             "mode": mode,
             "optimizer": config.optimizer,
             "segments": segments,
-            "networks_per_segment": networks[0].count,
-            "batch": "independent" if networks[0].copies > 1 else "shared",
-            "parameters_per_segment": networks[0].parameter_count(),
+            # per sample: independent copies hold one set each
+            "networks_per_segment": networks[0].count // networks[0].copies,
+            "batch": "independent" if networks[0].copies > 1 else ("shared" if start.size > 1 else "one trajectory"),
+            "parameters_per_segment": networks[0].parameter_count() // networks[0].copies,
             "torch_threads": torch_threads_now(),
             "training_seconds": trained - began,
             "evaluation_seconds": evaluated - trained,
@@ -284,30 +286,36 @@ def _segment_starts(given, compiled, grid, start) -> tuple[np.ndarray, np.ndarra
 
 
 def certified_status(compiled, config, grid, stats, certificate, batched: bool) -> str:
-    """ "success" when ``certificate`` certifies every sample, else "flagged: ..." naming the
-    worst variable, segment and sample with the certified distance and Radau's error there,
-    and the first segment that missed ``config.tol`` (or the fixed budget)."""
+    """ "success" when ``certificate`` certifies every sample, else "flagged: ..." naming, for the
+    first sample that is not certified, the first step whose Newton check failed or whose Radau
+    error estimate has no correct digit, or else the variable, segment and sample farthest
+    beyond Radau's error, with both numbers; and the first segment that missed ``config.tol``
+    (or the fixed budget)."""
+    from daemodel.backends.pinn.certificate import NEWTON_FAILED
+    from daemodel.backends.pinn.train import segment_label
+
     if bool(certificate.certified.all()):
         return "success"
     names = (*compiled.state_names, *compiled.algebraic_names)
-    b, t, j, _ = certificate.worst()
-    segment = max(t, 1)
-    sample = f", sample {b}" if batched else ""
-    where = f"segment {segment} (t = {grid[segment - 1]:.6g} to {grid[segment]:.6g}){sample}"
-    distance = certificate.distance[b, t, j]
-    resolution = float(certificate.floor[j] + certificate.rounding[b, t, j])
-    bound = max(float(np.maximum.accumulate(certificate.radau_error[b, :, j])[t]), resolution)
-    uncertified = int((~certificate.certified).sum())
-    count = f"{uncertified} of {len(certificate.certified)} samples" if batched else "the answer"
-    if not np.isfinite(distance) or not np.isfinite(bound):
+    uncertified = np.flatnonzero(~certificate.certified)
+    count = f"{len(uncertified)} of {len(certificate.certified)} samples" if batched else "the answer"
+    steps = [(b, k) for b in uncertified for k in np.flatnonzero(certificate.failed[b])]
+    if steps:
+        b, k = steps[0]
+        where = segment_label(k, grid[k], grid[k + 1]) + (f", sample {b}" if batched else "")
         what = (
-            f"Newton from the networks' stages does not converge to a Radau step at {where} (a step of '{names[j]}' "
-            "with no correct digit, or values outside f's domain)"
+            f"at {where}, Newton from the networks' stages does not converge to a Radau step (values outside f's "
+            "domain, or a singular step)"
+            if certificate.failed[b, k] == NEWTON_FAILED
+            else f"at {where}, Radau's own step has no correct digit (its estimated local error is beyond "
+            f"{LOCAL_ERROR_BOUND:g} of the solution's size): no Radau solution to certify against at this h"
         )
     else:
+        b, t, j, _ = certificate.worst()
+        where = segment_label(t - 1, grid[t - 1], grid[t]) + (f", sample {b}" if batched else "")
         what = (
-            f"at {where}, '{names[j]}' is {distance:.3g} from the Radau solution at the same h, beyond Radau's own "
-            f"error {bound:.3g} there"
+            f"at {where}, '{names[j]}' is {certificate.distance[b, t, j]:.3g} from the Radau solution at the same h, "
+            f"beyond Radau's own error {certificate.bound()[b, t, j]:.3g} there"
         )
     missed = [s for s in stats if not s.converged]
     if missed:

@@ -45,7 +45,7 @@ import torch
 from daemodel.backends.base import LOCAL_ERROR_BOUND
 from daemodel.backends.pinn.segments import segment_steps
 
-from daemodel.collocation import collocation_step
+from daemodel.collocation import collocation_step, lagrange_matrix
 from daemodel.tableau import radau_iia
 
 # Full Newton iterations the certificate spends per step (from the networks' stages, converged
@@ -61,8 +61,11 @@ CERTIFICATE_FLOOR = 100 * float(np.finfo(np.float64).eps)
 # PINNs (Hessenberg at h = 0.05 and 0.1, per variable): the true distance from radau was 0.96-1.04
 # times |D|.
 CERTIFICATE_SAFETY = 2.0
-# Segments x samples certified at once: the stage Jacobians of a batch take (s D)^2 each.
-CERTIFICATE_ROWS = 4096
+# Entries of the stage Jacobians held at once: segment-steps are certified in chunks of
+# CERTIFICATE_ENTRIES / ((s+1) D)^2 rows (2^25 doubles: 256 MB, a few copies of it in the LU).
+CERTIFICATE_ENTRIES = 2**25
+# Why a sample is not certified, besides a distance beyond Radau's error.
+NEWTON_FAILED, NO_DIGIT = "newton", "digit"
 
 
 @dataclass(frozen=True)
@@ -79,12 +82,18 @@ class Certificate:
         Estimate of |Radau - exact| at the grid times, propagated the same way.
     local_distance, local_radau_error : ndarray, shape (B, T - 1, D)
         The same per step, from the networks' own start values.
-    floor : ndarray, shape (D,)
-        :data:`CERTIFICATE_FLOOR` times ``1 + max|value|`` of each variable.
+    floor : ndarray, shape (B, D)
+        :data:`CERTIFICATE_FLOOR` times ``1 + max|value|`` of each variable of each sample.
     rounding : ndarray, shape (B, T, D)
         Where Newton's increments stagnated above its tolerance (ill-conditioned stage
         equations), the largest last increment so far, times :data:`CERTIFICATE_SAFETY`: the
         resolution of the Radau step it computed, added to ``floor``.
+    failed : ndarray of str, shape (B, T - 1)
+        Per step: "" where both Newton solves converged and Radau's error estimate has a correct
+        digit, :data:`NEWTON_FAILED` where a Newton solve did not converge (from the networks'
+        stages, or the (s+1)-stage one), :data:`NO_DIGIT` where the estimated local error of
+        Radau's step is beyond ``LOCAL_ERROR_BOUND`` of the variable's size (index-weighted as
+        radau's fixed step weighs it: radau refuses such a step).
     certified : ndarray of bool, shape (B,)
     """
 
@@ -94,20 +103,36 @@ class Certificate:
     local_radau_error: np.ndarray
     floor: np.ndarray
     rounding: np.ndarray
+    failed: np.ndarray
     certified: np.ndarray
 
+    def bound(self) -> np.ndarray:
+        """What the distance is compared with, shape (B, T, D): Radau's error so far (its running
+        maximum over the grid: an error that crosses zero does not demand the impossible there;
+        so the PINN's largest error over the grid is at most about twice Radau's largest), or the
+        resolution (floor and Newton's rounding), whichever is larger."""
+        return np.maximum(np.maximum.accumulate(self.radau_error, axis=1), self.floor[:, None, :] + self.rounding)
+
     def ratio(self) -> np.ndarray:
-        """``distance / max(radau_error so far, floor)``, shape (B, T, D): certified where every entry <= 1."""
+        """``distance / bound``, shape (B, T, D): certified where every entry <= 1."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            bound = np.maximum(np.maximum.accumulate(self.radau_error, axis=1), self.floor + self.rounding)
-            ratio = self.distance / bound
+            ratio = self.distance / self.bound()
         return np.where(np.isnan(ratio), np.inf, ratio)
 
     def worst(self) -> tuple[int, int, int, float]:
-        """``(sample, grid index, variable, ratio)`` of the largest :meth:`ratio`."""
+        """``(sample, grid index, variable, ratio)`` of the largest :meth:`ratio` among the samples
+        that are not certified (all samples when every one is)."""
         ratio = self.ratio()
+        if not self.certified.all():
+            ratio = np.where(self.certified[:, None, None], -np.inf, ratio)
         b, t, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
         return int(b), int(t), int(j), float(ratio[b, t, j])
+
+    def _worst_pair(self) -> dict:
+        """The distance and its bound where their ratio is largest (the two numbers a verdict
+        compares; the per-variable maxima may come from different variables and times)."""
+        b, t, j, ratio = self.worst()
+        return {"distance": float(self.distance[b, t, j]), "bound": float(self.bound()[b, t, j]), "ratio": ratio}
 
     def summary(self, names) -> dict:
         """JSON-ready digest for ``Solution.stats``: which samples are certified; per variable,
@@ -120,6 +145,7 @@ class Certificate:
             "max_distance": {name: self.distance[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
             "max_radau_error": {name: self.radau_error[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
+            "worst": self._worst_pair(),
             "segment_distance": self.distance[:, 1:].max(axis=2).tolist(),
             "segment_radau_error": self.radau_error[:, 1:].max(axis=2).tolist(),
             "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2).tolist(),
@@ -130,32 +156,65 @@ class Certificate:
 def certify(compiled, config, grid, networks, input_columns, values, p) -> Certificate:
     """Certify the values ``values`` (B, T, n+m) that ``networks`` (one per segment of ``grid``)
     chained from their start, for the parameters ``p`` (B, k), of which the columns
-    ``input_columns`` are network inputs after the states.  Samples are certified
-    :data:`CERTIFICATE_ROWS` segment-steps at a time."""
-    B, segments = values.shape[0], len(grid) - 1
-    floor = CERTIFICATE_FLOOR * (1 + np.abs(values).max(axis=(0, 1)))
-    predicted = _predictions(compiled, config, grid, networks, input_columns, values, p)
-    step = max(1, CERTIFICATE_ROWS // max(1, segments))
-    parts = [
-        _certify_rows(compiled, config, grid, values, p, predicted, slice(i, min(B, i + step)))
-        for i in range(0, B, step)
-    ]
-    distance, error, rounding, local_d, local_e, converged = (
-        np.concatenate([part[i] for part in parts]) for i in range(6)
+    ``input_columns`` are network inputs after the states."""
+    device, s = config.device, config.stages
+    n, m = len(compiled.states), len(compiled.algebraics)
+    B, S, D = values.shape[0], len(grid) - 1, n + m
+    as_tensor = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=torch.float64, device=device)  # noqa: E731
+    Y, Z, y_end, z_end = (
+        a.reshape(S * B, *a.shape[2:]) for a in _predictions(compiled, config, grid, networks, input_columns, values, p)
     )
-    # a step whose Radau error estimate has no correct digit is one radau itself refuses
-    size = 1 + np.abs(values).max(axis=1, keepdims=True)  # (B, 1, D)
-    digits = (local_e <= LOCAL_ERROR_BOUND * size).all(axis=(1, 2))
+    start = as_tensor(values[:, :-1]).transpose(0, 1).reshape(S * B, D)  # row k B + b: segment k of sample b
+    steps = np.repeat(np.array(segment_steps(grid)), B, axis=0)  # (S B, 2): t, h of each row
+    rows_p = as_tensor(np.tile(np.asarray(p, dtype=float), (S, 1)))
+    chunk = max(1, CERTIFICATE_ENTRIES // ((s + 1) * D) ** 2)
+    parts = []
+    for first in range(0, S * B, chunk):
+        rows = slice(first, min(S * B, first + chunk))
+        parts.append(
+            _steps(compiled, s, as_tensor(steps[rows]), start[rows], Y[rows], Z[rows], rows_p[rows], n, device)
+        )
+    radau_end, local_e, converged, rounding, sensitivity = (torch.cat([part[i] for part in parts]) for i in range(5))
+    pinn_end = torch.cat([y_end, z_end], dim=-1)
+    inf = torch.tensor(float("inf"), dtype=torch.float64, device=device)
+    local_d = torch.where(converged[:, None], pinn_end - radau_end, inf)
+    local_e = torch.where(converged[:, None], local_e, inf)
+
+    def per_step(a):  # rows (S B, ...) -> (S, B, ...)
+        return a.reshape(S, B, *a.shape[1:])
+
+    local_d, local_e, rounding, sensitivity, converged = map(
+        per_step, (local_d, local_e, rounding, sensitivity, converged)
+    )
+    distance = [torch.zeros(B, D, dtype=torch.float64, device=device)]
+    error = [torch.zeros(B, D, dtype=torch.float64, device=device)]
+    for k in range(S):  # signed, through each step's sensitivity to its start
+        distance.append(torch.einsum("bij,bj->bi", sensitivity[k], distance[-1][:, :n]) + local_d[k])
+        error.append(torch.einsum("bij,bj->bi", sensitivity[k], error[-1][:, :n]) + local_e[k])
+    distance = torch.stack(distance, dim=1).abs().cpu().numpy()
+    error = torch.stack(error, dim=1).abs().cpu().numpy()
+    # where Newton stagnated above 10 eps, distances below its last increment are not resolved
+    rounding = torch.cat([torch.zeros_like(rounding[:1]), rounding]).cummax(0).values.transpose(0, 1).cpu().numpy()
+    local_d = local_d.abs().transpose(0, 1).cpu().numpy()
+    local_e = local_e.abs().transpose(0, 1).cpu().numpy()
+    size = 1 + np.abs(values).max(axis=1)  # (B, D): each sample's own scale
+    # a step whose Radau error estimate has no correct digit is one radau refuses (its fixed step
+    # weighs an index-k algebraic variable's estimate by h^(k-1), as here)
+    h = np.array([step for _, step in segment_steps(grid)])
+    weight = np.concatenate([np.ones((S, n)), h[:, None] ** (np.asarray(compiled.algebraic_index, float) - 1)], axis=1)
+    digits = local_e * weight[None] <= LOCAL_ERROR_BOUND * size[:, None, :]
+    failed = np.where(~converged.transpose(0, 1).cpu().numpy(), NEWTON_FAILED, np.where(digits.all(2), "", NO_DIGIT))
     certificate = Certificate(
         distance=CERTIFICATE_SAFETY * distance,
         radau_error=error,
         local_distance=local_d,
         local_radau_error=local_e,
-        floor=floor,
+        floor=CERTIFICATE_FLOOR * size,
         rounding=CERTIFICATE_SAFETY * rounding,
+        failed=failed,
         certified=np.zeros(B, dtype=bool),
     )
-    ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & converged & digits
+    ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & (failed == "").all(axis=1)
     return dataclasses.replace(certificate, certified=ok)
 
 
@@ -173,44 +232,24 @@ def _predictions(compiled, config, grid, networks, input_columns, values, p) -> 
     return tuple(torch.stack([row[i] for row in predicted]) for i in range(4))
 
 
-def _certify_rows(compiled, config, grid, values, p, predicted, rows: slice):
-    """The propagated distance, Radau error and Newton's resolution (B, T, D), the local
-    distance and error (B, T-1, D), and whether every Newton solve converged (B,), for the
-    samples ``rows``."""
-    values, p = values[rows], p[rows]
-    B = values.shape[0]
-    device = config.device
-    n, m, s = len(compiled.states), len(compiled.algebraics), config.stages
-    S = len(grid) - 1
+def _steps(compiled, s, steps, start, Y, Z, p, n, device) -> tuple:
+    """For rows of (t, h) ``steps`` (R, 2), starts (R, D) and the networks' stages: the Radau step's
+    end values (R, D) by full Newton from those stages, Radau's local error estimate (R, D) (that
+    step less the (s+1)-stage one), whether both converged (R,), Newton's last increment of the
+    end values (R, D), and the step map's sensitivity d(y, z)_end / dy_n (R, D, n)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
-    as_tensor = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=torch.float64, device=device)  # noqa: E731
-    start = as_tensor(values[:, :-1])  # (B, S, D): every segment's start, as the networks chained it
-    y_n, z_n = start[..., :n].transpose(0, 1), start[..., n:].transpose(0, 1)  # (S, B, .)
-    Y, Z, y_end, z_end = (a[:, rows] for a in predicted)  # (S, B, ...)
-    steps = np.array(segment_steps(grid))  # (S, 2): t, h
-    t_n = as_tensor(steps[:, 0])[:, None].expand(S, B)
-    h = as_tensor(steps[:, 1])[:, None].expand(S, B)
-    pp = as_tensor(p)[None].expand(S, *p.shape)
+    t_n, h = steps[:, 0], steps[:, 1]
+    y_n, z_n = start[:, :n], start[:, n:]
     A, _, c = radau_iia(s).to_torch(dtype=torch.float64, device=device)
     radau = collocation_step(
-        functions,
-        A,
-        c,
-        t_n,
-        h,
-        y_n,
-        Y,
-        Z,
-        pp,
-        max_iterations=CERTIFICATE_NEWTON_ITERATIONS,
-        tol=CERTIFICATE_NEWTON_TOL,
+        functions, A, c, t_n, h, y_n, Y, Z, p, max_iterations=CERTIFICATE_NEWTON_ITERATIONS, tol=CERTIFICATE_NEWTON_TOL
     )
     # the (s+1)-stage step from the same start, started on the s-stage collocation polynomial
     A1, _, c1 = radau_iia(s + 1).to_torch(dtype=torch.float64, device=device)
-    nodes = torch.cat([c.new_zeros(1), c])
-    basis = _lagrange(nodes, c1)  # (s+1 new, s+1 old)
-    Y1 = torch.einsum("ij,...jn->...in", basis, torch.cat([y_n[..., None, :], radau.Y], dim=-2))
-    Z1 = torch.einsum("ij,...jn->...in", basis, torch.cat([z_n[..., None, :], radau.Z], dim=-2))
+    nodes = np.concatenate([[0.0], radau_iia(s).c])
+    basis = torch.as_tensor(lagrange_matrix(nodes, radau_iia(s + 1).c), dtype=torch.float64, device=device)
+    Y1 = torch.einsum("ij,...jn->...in", basis, torch.cat([y_n[:, None, :], radau.Y], dim=-2))
+    Z1 = torch.einsum("ij,...jn->...in", basis, torch.cat([z_n[:, None, :], radau.Z], dim=-2))
     higher = collocation_step(
         functions,
         A1,
@@ -220,45 +259,16 @@ def _certify_rows(compiled, config, grid, values, p, predicted, rows: slice):
         y_n,
         Y1,
         Z1,
-        pp,
+        p,
         max_iterations=CERTIFICATE_NEWTON_ITERATIONS,
         tol=CERTIFICATE_NEWTON_TOL,
     )
-    radau_end = torch.cat([radau.Y[..., -1, :], radau.Z[..., -1, :]], dim=-1)  # (S, B, D)
-    pinn_end = torch.cat([y_end, z_end], dim=-1)
-    inf = torch.tensor(float("inf"), dtype=torch.float64, device=device)
-    local_d = torch.where(radau.converged[..., None], pinn_end - radau_end, inf)
-    # Newton's own rounding floor: where it stagnated above 10 eps, its last increment bounds it
-    rounding = radau.increment[..., -1, :]
-    higher_end = torch.cat([higher.Y[..., -1, :], higher.Z[..., -1, :]], dim=-1)
-    local_e = torch.where(higher.converged[..., None], radau_end - higher_end, inf)
-    sensitivity = radau.end_sensitivity()  # (S, B, D, n)
-    distance = [torch.zeros(B, n + m, dtype=torch.float64, device=device)]
-    error = [torch.zeros(B, n + m, dtype=torch.float64, device=device)]
-    for k in range(S):
-        distance.append(torch.einsum("bij,bj->bi", sensitivity[k], distance[-1][:, :n]) + local_d[k])
-        error.append(torch.einsum("bij,bj->bi", sensitivity[k], error[-1][:, :n]) + local_e[k])
-    distance = [d.abs() for d in distance]
-    error = [e.abs() for e in error]
-    # where Newton stagnated above 10 eps, distances below its last increment are not resolved
-    rounding = torch.cat([torch.zeros_like(rounding[:1]), rounding]).cummax(0).values.transpose(0, 1)
+    radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
+    higher_end = torch.cat([higher.Y[:, -1], higher.Z[:, -1]], dim=-1)
     return (
-        torch.stack(distance, dim=1).cpu().numpy(),
-        torch.stack(error, dim=1).cpu().numpy(),
-        rounding.cpu().numpy(),
-        local_d.abs().transpose(0, 1).cpu().numpy(),
-        local_e.abs().transpose(0, 1).cpu().numpy(),
-        (radau.converged & higher.converged).all(0).cpu().numpy(),
+        radau_end,
+        radau_end - higher_end,
+        radau.converged & higher.converged,
+        radau.increment[:, -1],
+        radau.end_sensitivity(),
     )
-
-
-def _lagrange(nodes, points):
-    """``L[i, j] = l_j(points_i)``, the Lagrange basis on ``nodes`` evaluated at ``points``."""
-    diff = points[:, None] - nodes[None, :]  # (P, N)
-    N = len(nodes)
-    L = torch.ones(len(points), N, dtype=nodes.dtype, device=nodes.device)
-    for j in range(N):
-        for i in range(N):
-            if i != j:
-                L[:, j] = L[:, j] * diff[:, i] / (nodes[j] - nodes[i])
-    return L

@@ -107,7 +107,8 @@ class PINNConfig:
     tol : float or None
         Stop a segment when every residual component is at most ``tol``, the rows of F (units of
         y) and S (units of z) relative to ``max(1, |value|)`` of their variable, the constraint
-        rows as they are; a segment that ends its iterations above it is an error.  None is a
+        rows as they are; a segment that ends its iterations above it says so in its stats (the
+        answer's status is the certificate's verdict, see ``method="pinn"``).  None is a
         fixed budget: all ``iterations`` (the paper's recipe), or fewer when LM or L-BFGS can no
         longer decrease the loss.  Surrogates use it, since over a box of inputs the residuals
         cannot all vanish.

@@ -420,9 +420,12 @@ class Surrogate:
         Returns
         -------
         Solution
-            On the segment grid.  ``status`` is ``"success"`` when the networks were trained to
-            ``config.tol`` and every query stayed inside its training ranges; otherwise it
-            states the fixed training budget and its final residual, and what lay outside.
+            On the segment grid.  With ``tol`` or ``newton=True``, ``status`` is ``"success"``
+            (every answer within tol by its estimate or corrected; the collocation solution),
+            with what was corrected and what lay outside the training ranges.  Without them it
+            starts with ``"unchecked"`` and states what training reached (tol met on the
+            training inputs, or the budget and its final residual): the networks' answer to a
+            new query carries no certificate.
         """
         from daemodel.backends.base import make_solution
 
@@ -491,9 +494,15 @@ class Surrogate:
             stats.update({"mode": "surrogate, corrected above tol", "corrected": corrected, "tol": tol})
             stats["newton_iterations"] = newton_iterations
             stats["path"] = path.tolist()
-        status = training_status(self.config, self.stats)
+        if tol is None:  # the networks' answers, unchecked: never "success"
+            status = (
+                f"unchecked ({training_status(self.config, self.stats)}): the networks' answer, without a certificate; "
+                "pass tol= for answers within tol of the Radau solution, or newton=True for that solution"
+            )
+        else:  # every answer within tol by its estimate, or corrected
+            status = f"success (estimate within tol = {tol:g} or corrected)"
         if reports:
-            status = "; ".join([*([] if status == "success" else [status]), *(short for short, _ in reports)])
+            status = "; ".join([status, *(short for short, _ in reports)])
         if tol is not None:
             status += f"; {int(corrected.sum())} of {start.size} samples corrected by Newton (estimate > tol = {tol:g})"
             if (path == "radau").any():
@@ -858,12 +867,18 @@ def _rows_of(start, rows: slice):
 
 
 def training_status(config: PINNConfig, stats) -> str:
-    """:attr:`Solution.status` of networks trained with ``config``: "success" when every segment
-    met ``config.tol`` (training raises otherwise); for a fixed budget (tol=None), the budget and
-    the final residual, which the user must judge."""
-    if config.tol is not None:
-        return "success"
+    """What the networks' training reached, for a surrogate's status: the tolerance met on the
+    training inputs, the segments that stopped above it, or for a fixed budget (tol=None) the
+    budget and the final residual.  None of these certifies an answer to a new query."""
     worst = max(s.max_residual for s in stats)
+    if config.tol is not None:
+        missed = sum(not s.converged for s in stats)
+        if missed:
+            return (
+                f"training stopped above tol = {config.tol:g} in {missed} of {len(stats)} segments "
+                f"(final max residual {worst:.2g})"
+            )
+        return f"trained to tol = {config.tol:g} on its training inputs"
     fewest = min(s.iterations for s in stats)
     budget = f"{config.iterations} {config.optimizer} iterations per segment"
     if fewest < config.iterations:

@@ -134,8 +134,13 @@ class Segment:
     p: torch.Tensor
 
 
+def segment_label(index: int, t0: float, t1: float) -> str:
+    """How messages name a segment: ``segment k (t = t0 to t1)``, k counted from 1."""
+    return f"segment {index + 1} (t = {t0:.6g} to {t1:.6g})"
+
+
 def _where(segment: Segment) -> str:
-    return f"segment {segment.index + 1} (t = {segment.t:.6g} to {segment.t + segment.h:.6g})"
+    return segment_label(segment.index, segment.t, segment.t + segment.h)
 
 
 class SegmentTrainer:
