@@ -112,3 +112,48 @@ def test_a_1000_value_parameter_batch_trains():
     assert pinn.status == "success"
     for name in pinn.names:
         assert np.max(np.abs(pinn[name] - radau[name])) < 1e-11
+
+
+def test_the_flag_names_the_uncertified_sample_and_its_failing_step():
+    """A batch whose sample 1 is uncertified only because Newton failed at its second step, while
+    sample 0's ratio is the largest overall: the message names sample 1 and segment 2, not the
+    certified sample 0."""
+    from daemodel.backends.pinn.backend import certified_status
+    from daemodel.backends.pinn.certificate import NEWTON_FAILED, Certificate
+    from daemodel.backends.pinn.config import PINNConfig
+
+    from daemodel.problems import HESSENBERG
+
+    compiled = HESSENBERG.model().compile()
+    B, T, D = 2, 3, 5
+    distance = np.zeros((B, T, D))
+    distance[0, 2, 0] = 0.5e-8  # sample 0: half its bound, the largest ratio of the batch
+    certificate = Certificate(
+        distance=distance,
+        radau_error=np.full((B, T, D), 1e-8),
+        local_distance=np.zeros((B, T - 1, D)),
+        local_radau_error=np.full((B, T - 1, D), 1e-8),
+        floor=np.full((B, D), 1e-14),
+        rounding=np.zeros((B, T, D)),
+        failed=np.array([["", ""], ["", NEWTON_FAILED]]),
+        certified=np.array([True, False]),
+    )
+    status = certified_status(compiled, PINNConfig(), np.array([0.0, 0.05, 0.1]), [], certificate, batched=True)
+    assert status.startswith(
+        "flagged: not certified (1 of 2 samples): at segment 2 (t = 0.05 to 0.1), sample 1, Newton from the "
+        "networks' stages does not converge to a Radau step"
+    )
+    assert certificate.worst()[0] == 1  # the worst ratio is taken among the uncertified samples
+
+
+def test_a_saved_comparison_with_an_uncertified_run_loads_and_prints(tmp_path):
+    from daemodel.problems import HESSENBERG
+
+    sweep = {"pinn": [{"config": dm.PINNConfig(iterations=1)}]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", dm.errors.UncertifiedWarning)
+        result = dm.compare(
+            HESSENBERG.model(), (0.0, 0.1), ["pinn"], reference=HESSENBERG.exact_solution(), sweep=sweep, progress=False
+        )
+    again = dm.Comparison.load(result.to_json(tmp_path / "c.json"))
+    assert again.runs[0].status.startswith("flagged: ") and again.table() == result.table()
