@@ -157,3 +157,19 @@ def test_a_saved_comparison_with_an_uncertified_run_loads_and_prints(tmp_path):
         )
     again = dm.Comparison.load(result.to_json(tmp_path / "c.json"))
     assert again.runs[0].status.startswith("flagged: ") and again.table() == result.table()
+
+
+def test_the_certificate_does_not_depend_on_its_chunks(monkeypatch):
+    """Segment-steps are certified CERTIFICATE_ENTRIES / ((s+1) D)^2 rows at a time; one row per
+    chunk gives the same verdicts and numbers as one chunk for everything."""
+    from daemodel.backends.pinn import certificate as module
+
+    compiled = pinn_models.build_rectifier().compile()
+    whole = dm.solve(compiled, (0.0, 0.1), method="pinn", h=0.02, parameters={"RL": [1.0, 3.0, 9.0]})
+    monkeypatch.setattr(module, "CERTIFICATE_ENTRIES", 1)
+    rows = dm.solve(compiled, (0.0, 0.1), method="pinn", h=0.02, parameters={"RL": [1.0, 3.0, 9.0]})
+    assert whole.stats["certificate"]["certified"] == rows.stats["certificate"]["certified"]
+    for key in ("segment_distance", "segment_radau_error"):
+        np.testing.assert_allclose(
+            whole.stats["certificate"][key], rows.stats["certificate"][key], rtol=1e-6, atol=1e-15
+        )
