@@ -623,3 +623,23 @@ def _without_ray_address() -> dict:
     import os
 
     return {key: value for key, value in os.environ.items() if key != "RAY_ADDRESS"}
+
+
+def test_independent_networks_are_not_saved_or_queried(tmp_path):
+    c = HESSENBERG.model().compile()
+    with pytest.raises(
+        InvalidOptionError,
+        match=r"the independent networks of a batch of 2 each solve their own "
+        r"sample only: use config=dm.PINNConfig\(batch='shared'\) to save them",
+    ):
+        dm.solve(c, (0.0, 0.1), method="pinn", y0=c.consistent(y0={"y1": [1.0, 1.01]}), save=tmp_path / "n.pt")
+    from daemodel.backends.pinn.segments import make_network
+    from daemodel.backends.pinn.surrogate import Surrogate
+
+    config = dm.PINNConfig()
+    networks = [make_network(c, config, 4, 0, copies=2)]
+    surrogate = Surrogate(c, config, [0.0, 0.05], networks, (), box={name: (1.0, 1.0) for name in c.state_names})
+    with pytest.raises(
+        InvalidOptionError, match="these are 2 independent sets of networks, each trained for one sample"
+    ):
+        surrogate.solve()

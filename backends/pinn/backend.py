@@ -72,7 +72,8 @@ class PINNOptions:
         Write the trained networks here (load them with :meth:`Surrogate.load`; its training
         box is this solve's start, so other initial states are reported as outside it).  The
         directory is checked before training: one that does not exist or is not writable is
-        an :class:`InvalidOptionError`.
+        an :class:`InvalidOptionError`.  A batch's independent networks (each answers its own
+        sample only) are not saved: use ``PINNConfig(batch="shared")`` for networks to reuse.
     """
 
     config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
