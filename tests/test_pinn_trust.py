@@ -304,7 +304,8 @@ def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendu
     with pytest.raises(
         dm.errors.ConvergenceError,
         match=r"sample 0: Newton from the networks' stage values failed, "
-        r"and radau from the sample's start too \(ConvergenceError: radau: forced\)",
+        r"and radau from the sample's start too \(solving it alone, so radau's 'sample 0' is this one: "
+        r"ConvergenceError: radau: forced\)",
     ):
         trained.solve(y0=y0, newton=True, outside="ignore")
 

@@ -393,7 +393,8 @@ class Surrogate:
             cannot solve either raises its named error.  ``stats["network_error"]`` (B,) is each sample's
             largest absolute difference between the networks' answer and it, over all variables
             and grid times (the certificate of the network-only answer), and
-            ``stats["newton_iterations"]`` counts the iterations the guesses left to do.
+            ``stats["newton_iterations"]`` counts the iterations the guesses left to do (and those
+            of any fallback from the samples' own starts).
         estimate : bool
             Attach to every answer an estimate of its error against that collocation solution,
             from its own Radau stage residual (f and g at the networks' predictions, no Newton):
@@ -631,7 +632,8 @@ class Surrogate:
                 i, error = still[0]
                 raise ConvergenceError(
                     f"Surrogate.solve: sample {int(rows[i])}: Newton from the networks' stage values failed, and radau "
-                    f"from the sample's start too ({type(error).__name__}: {error})"
+                    f"from the sample's start too (solving it alone, so radau's 'sample 0' is this one: "
+                    f"{type(error).__name__}: {error})"
                 ) from None
         return values, path, iterations, whole[0] if not failed and len(whole) == 1 else None
 
