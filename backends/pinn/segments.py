@@ -44,6 +44,16 @@ def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):
     return net.to(config.device)
 
 
+def fresh_network(compiled, config, inputs: torch.Tensor, z: torch.Tensor, segment: int, copies: int):
+    """A new network for ``segment`` with its inputs normalised on ``inputs`` (N, d) and, in the
+    increment form, at rest on their start values (``z`` (N, m): the algebraic ones)."""
+    net = make_network(compiled, config, inputs.shape[1], segment, copies)
+    net.normalise(inputs)
+    if config.increment:
+        net.start_at_rest(inputs, z)
+    return net
+
+
 def copies_for(config, batch: int) -> int:
     """Independent network copies for a batch of ``batch`` samples: one each with
     ``batch="independent"`` (1 for a single trajectory), else 1 shared set."""
@@ -142,10 +152,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
             if not SegmentTrainer(net, loss, config).finite_start(segment):
                 net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
         if net is None:
-            net = make_network(compiled, config, x.shape[1], k, copies)
-            net.normalise(inputs)
-            if config.increment:
-                net.start_at_rest(inputs, z)
+            net = fresh_network(compiled, config, inputs, z, k, copies)
         stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
         with torch.no_grad():
             out = net.predict(x, h)
@@ -181,10 +188,7 @@ def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
     x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
     generator = torch.Generator().manual_seed(config.seed * 100_003 + k)
     inputs, samples_p = training_inputs(x, p, len(compiled.states), config, generator)
-    net = make_network(compiled, config, x.shape[1], k, copies_for(config, x.shape[0]))
-    net.normalise(inputs)
-    if config.increment:
-        net.start_at_rest(inputs, z)
+    net = fresh_network(compiled, config, inputs, z, k, copies_for(config, x.shape[0]))
     segment = Segment(k, t, h, inputs, samples_p)
     stats = SegmentTrainer(net, make_loss(compiled, config), config).train(segment)
     return {"state": {name: value.cpu() for name, value in net.state_dict().items()}, "stats": stats}
