@@ -12,7 +12,9 @@ Paths timed (min of ``--repeats``, one torch thread), at each of ``--queries``:
 
 * ``networks``: the networks alone;
 * ``estimate``: the networks and each answer's error estimate (``estimate=True``);
-* ``hybrid``: ``tol=--tol``: Newton from the networks for the samples whose estimate exceeds tol;
+* ``hybrid``: ``tol=--tol``: every answer certified (its distance from the collocation solution,
+  one full Newton check per segment), Newton from the networks for the samples whose certified
+  distance exceeds tol;
 * ``newton``: Newton from the networks for every sample (``newton=True``);
 * ``radau``: batched radau from its own start guesses.
 
@@ -80,8 +82,10 @@ def draw(compiled, box: dict, count: int, rng, margin: bool = False):
     return y0, {name: values[name] for name in compiled.parameter_names}
 
 
-def accuracy(compiled, answer, radau) -> dict:
-    """Per held-out state: the worst error over the grid of y and z, and their estimates."""
+def accuracy(compiled, answer, radau, certified) -> dict:
+    """Per held-out state: the worst error over the grid of y and z, their estimates, and the
+    certified distance (``certified``: the same queries answered with ``tol=1e300``, certified and
+    none corrected) against the worst error over every variable."""
     states, algebraics = compiled.state_names, compiled.algebraic_names
     error_y = np.max([np.abs(answer[k] - radau[k]) for k in states], axis=0)[:, 1:]
     error_z = np.max([np.abs(answer[k] - radau[k]) for k in algebraics], axis=0)[:, 1:]
@@ -97,6 +101,10 @@ def accuracy(compiled, answer, radau) -> dict:
             "y": float(np.median(estimate["y"][:, 1:] / np.maximum(error_y, 1e-300))),
             "z": float(np.median(estimate["z"][:, 1:] / np.maximum(error_z, 1e-300))),
         },
+        "certificate_bounds_error": float(np.mean(worst <= certified.stats["certified_distance"])),
+        "certificate_over_error_median": float(
+            np.median(certified.stats["certified_distance"] / np.maximum(worst, 1e-300))
+        ),
         "_samples": {
             "error_y": error_y.max(axis=1),
             "estimate_y": estimate["y"][:, 1:].max(axis=1),
@@ -139,10 +147,12 @@ def run(
 
     held_out = draw(compiled, box | parameter_box, held_out_queries, rng)
     answer = surrogate.solve(y0=held_out[0], parameters=held_out[1], outside="ignore", estimate=True)
-    inside = accuracy(compiled, answer, radau(*held_out))
+    certified = surrogate.solve(y0=held_out[0], parameters=held_out[1], outside="ignore", tol=1e300)
+    inside = accuracy(compiled, answer, radau(*held_out), certified)
     margin = draw(compiled, box | parameter_box, margin_queries, rng, margin=True)
     answer = surrogate.solve(y0=margin[0], parameters=margin[1], outside="ignore", estimate=True)
-    outside = accuracy(compiled, answer, radau(*margin))
+    certified = surrogate.solve(y0=margin[0], parameters=margin[1], outside="ignore", tol=1e300)
+    outside = accuracy(compiled, answer, radau(*margin), certified)
     speed = []
     for count in queries:
         y0, parameters = draw(compiled, box | parameter_box, count, rng)

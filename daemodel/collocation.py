@@ -165,7 +165,9 @@ class CollocationStep:
     increment : Tensor, shape (..., s, n + m)
         The last increment of each converged row: the stage values' uncertainty.
     jacobian : Tensor, shape (..., s D, s D)
-        The stage equations' Jacobian at the returned stage values.
+        The stage equations' Jacobian at the last iterate: within the last increment (below the
+        tolerance for a converged row) of the returned stage values, which is all a first-order
+        sensitivity needs; one Jacobian fewer than evaluating it again.
     iterations : int
     """
 
@@ -218,7 +220,6 @@ def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iteratio
         previous = torch.where(converged, previous, size)
         if bool(converged.all()) or not bool(torch.isfinite(W).any()):
             break
-    J = stage_jacobian(functions, A, c, t_n, h, W[..., :n], W[..., n:], p)
     finite = torch.isfinite(W).flatten(-2).all(-1) & torch.isfinite(J).flatten(-2).all(-1)
     return CollocationStep(
         Y=W[..., :n], Z=W[..., n:], converged=converged & finite, increment=last, jacobian=J, iterations=iterations

@@ -237,31 +237,59 @@ def test_the_error_estimate_bounds_the_error_of_held_out_answers(pendulum, train
     assert np.median(estimate["y"][:, 1:] / error_y) < 10
 
 
-def test_tol_corrects_exactly_the_samples_whose_estimate_exceeds_it(pendulum, trained):
-    """solve(tol=...): samples whose error estimate exceeds tol return radau's collocation
-    solution (Newton from their networks' guesses), the others their networks' answer, and every
-    sample ends within tol of the collocation solution.  tol is set at the median estimate, so
-    about half are corrected."""
+def test_tol_corrects_exactly_the_samples_whose_certified_distance_exceeds_it(pendulum, trained):
+    """solve(tol=...): samples whose certified distance from the collocation solution exceeds
+    tol return that solution (Newton from their networks' guesses), the others their networks'
+    answer, and every sample ends within tol of the collocation solution (the networks' answers
+    by their certificate, which bounds the true distance).  tol is set at the median certified
+    distance, so about half are corrected."""
     B = 200
     surrogate, y0 = trained, held_out(pendulum, seed=11, count=B)
-    networks = surrogate.solve(y0=y0, estimate=True, outside="ignore")
-    worst = np.maximum(networks.stats["error_estimate"]["y"].max(1), networks.stats["error_estimate"]["z"].max(1))
-    tol = float(np.median(worst))
-    hybrid = surrogate.solve(y0=y0, tol=tol, outside="ignore")
+    networks = surrogate.solve(y0=y0, outside="ignore")
+    checked = surrogate.solve(y0=y0, tol=1e300, outside="ignore")  # certified, nothing corrected
+    distance = checked.stats["certified_distance"]
+    assert not checked.stats["corrected"].any() and np.isfinite(distance).all() and distance.shape == (B,)
     newton = dm.solve(pendulum, (0.0, 0.25), h=0.05, y0=y0)
-    corrected = hybrid.stats["corrected"]
-    np.testing.assert_array_equal(corrected, worst > tol)
-    assert 0.4 * B < corrected.sum() < 0.6 * B
     names = ("y1", "y2", "y3", "y4", "y5")
+    true = np.max([np.abs(networks[name] - newton[name]).max(axis=1) for name in names], axis=0)
+    assert (true <= distance).all() and np.median(distance / true) < 4  # a bound, and not a vacuous one
+    tol = float(np.median(distance))
+    hybrid = surrogate.solve(y0=y0, tol=tol, outside="ignore")
+    corrected = hybrid.stats["corrected"]
+    # the check resolves distances to 1e-3 tol (SURROGATE_CHECK_RESOLUTION): equal far from tol
+    near = np.abs(distance - tol) <= 1e-6 * tol
+    np.testing.assert_array_equal(corrected[~near], (distance > tol)[~near])
+    assert 0.4 * B < corrected.sum() < 0.6 * B
     for name in names:
         assert np.max(np.abs(hybrid[name][corrected] - newton[name][corrected])) < 1e-12
         np.testing.assert_array_equal(hybrid[name][~corrected], networks[name][~corrected])
     error = np.max([np.abs(hybrid[name] - newton[name]).max(axis=1) for name in names], axis=0)
     assert error.max() <= tol
-    assert not hybrid.stats["error_estimate"]["y"][corrected].any()
+    np.testing.assert_allclose(hybrid.stats["certified_distance"], np.where(corrected, 0.0, distance), rtol=1e-6)
+    assert hybrid.stats["path"] == ["newton" if c else "network" for c in corrected]
     assert 0 < hybrid.stats["newton_iterations"] and f"{corrected.sum()} of {B} samples corrected" in hybrid.status
     everything = surrogate.solve(y0=y0, tol=1e-300, outside="ignore")
     assert everything.stats["corrected"].all() and np.max(np.abs(everything["y5"] - newton["y5"])) < 1e-12
+
+
+def test_tol_corrects_a_sample_whose_newton_check_fails(pendulum, trained, monkeypatch):
+    """A sample whose certificate cannot be computed (its Newton check failed: distance inf) is
+    corrected whatever tol, never passed."""
+    from daemodel.backends.pinn import certificate as certificate_module
+
+    y0 = held_out(pendulum, seed=2, count=4)
+    original = certificate_module.collocation_step
+
+    def failing(*args, **kwargs):
+        step = original(*args, **kwargs)
+        converged = step.converged.clone()
+        converged[1::4] = False  # sample 1 of every segment (rows are segment k, sample b: k B + b)
+        return dataclasses.replace(step, converged=converged)
+
+    monkeypatch.setattr(certificate_module, "collocation_step", failing)
+    hybrid = trained.solve(y0=y0, tol=1e300, outside="ignore")
+    assert hybrid.stats["corrected"].tolist() == [False, True, False, False]
+    assert hybrid.stats["path"] == ["network", "newton", "network", "network"]
 
 
 def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendulum, trained, monkeypatch):
@@ -293,7 +321,7 @@ def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendu
     tol = trained.solve(y0=y0, tol=1e-300, outside="ignore")  # every sample corrected
     assert tol.stats["path"] == answer.stats["path"]
     assert tol.status.endswith(
-        "8 of 8 samples corrected by Newton (estimate > tol = 1e-300), 2 of them by radau from "
+        "8 of 8 samples corrected by Newton (certified distance > tol = 1e-300), 2 of them by radau from "
         "their start (Newton from the networks failed)"
     )
     monkeypatch.setattr(
@@ -333,7 +361,8 @@ def test_large_query_batches_are_evaluated_in_chunks(boxed, pendulum, monkeypatc
 
 
 def test_tol_errors(boxed):
-    with pytest.raises(dm.errors.InvalidOptionError, match="newton=True corrects every sample and tol only those"):
+    corrects = "newton=True corrects every sample and tol only those whose certified distance exceeds it"
+    with pytest.raises(dm.errors.InvalidOptionError, match=corrects):
         boxed.solve(y0={"y4": 1.0}, tol=1e-6, newton=True)
     with pytest.raises(dm.errors.InvalidOptionError, match="tol must be"):
         boxed.solve(y0={"y4": 1.0}, tol=-1.0)
@@ -489,7 +518,8 @@ def test_a_surrogates_plain_answer_is_unchecked_and_states_its_training(boxed, p
         pendulum, (0.0, 0.1), box=BOX, samples=4, config=TINY.replace(tol=1e-12, iterations=1), progress=False
     )
     assert short.solve().status.startswith("unchecked (training stopped above tol = 1e-12 in 2 of 2 segments")
-    assert boxed.solve(tol=1.0).status.startswith("success (estimate within tol = 1 or corrected)")
+    certified = "success (certified within tol = 1 of the Radau solution, or corrected)"
+    assert boxed.solve(tol=1.0).status.startswith(certified)
 
 
 def test_a_budget_cut_short_says_so():

@@ -153,10 +153,20 @@ class Certificate:
         }
 
 
-def certify(compiled, config, grid, networks, input_columns, values, p) -> Certificate:
+def certify(
+    compiled, config, grid, networks, input_columns, values, p, radau_error: bool = True, newton_tol=None
+) -> Certificate:
     """Certify the values ``values`` (B, T, n+m) that ``networks`` (one per segment of ``grid``)
     chained from their start, for the parameters ``p`` (B, k), of which the columns
-    ``input_columns`` are network inputs after the states."""
+    ``input_columns`` are network inputs after the states.
+
+    With ``radau_error=False`` only the distance from the Radau solution is computed (what
+    ``Surrogate.solve(tol=)`` compares with tol): the (s+1)-stage steps are skipped, Radau's error
+    is reported as 0, and no sample is ``certified`` (there is no Radau error to certify against);
+    ``failed`` still marks the steps whose Newton check failed.  ``newton_tol`` (default
+    :data:`CERTIFICATE_NEWTON_TOL`) is the Newton check's tolerance on increments relative to
+    ``1 + |value|``: distances are resolved to about it."""
+    newton_tol = CERTIFICATE_NEWTON_TOL if newton_tol is None else newton_tol
     device, s = config.device, config.stages
     n, m = len(compiled.states), len(compiled.algebraics)
     B, S, D = values.shape[0], len(grid) - 1, n + m
@@ -172,7 +182,19 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
     for first in range(0, S * B, chunk):
         rows = slice(first, min(S * B, first + chunk))
         parts.append(
-            _steps(compiled, s, as_tensor(steps[rows]), start[rows], Y[rows], Z[rows], rows_p[rows], n, device)
+            _steps(
+                compiled,
+                s,
+                as_tensor(steps[rows]),
+                start[rows],
+                Y[rows],
+                Z[rows],
+                rows_p[rows],
+                n,
+                device,
+                radau_error,
+                newton_tol,
+            )
         )
     radau_end, local_e, converged, rounding, sensitivity = (torch.cat([part[i] for part in parts]) for i in range(5))
     pinn_end = torch.cat([y_end, z_end], dim=-1)
@@ -214,6 +236,8 @@ def certify(compiled, config, grid, networks, input_columns, values, p) -> Certi
         failed=failed,
         certified=np.zeros(B, dtype=bool),
     )
+    if not radau_error:
+        return certificate
     ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & (failed == "").all(axis=1)
     return dataclasses.replace(certificate, certified=ok)
 
@@ -232,18 +256,22 @@ def _predictions(compiled, config, grid, networks, input_columns, values, p) -> 
     return tuple(torch.stack([row[i] for row in predicted]) for i in range(4))
 
 
-def _steps(compiled, s, steps, start, Y, Z, p, n, device) -> tuple:
+def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, newton_tol: float) -> tuple:
     """For rows of (t, h) ``steps`` (R, 2), starts (R, D) and the networks' stages: the Radau step's
     end values (R, D) by full Newton from those stages, Radau's local error estimate (R, D) (that
-    step less the (s+1)-stage one), whether both converged (R,), Newton's last increment of the
-    end values (R, D), and the step map's sensitivity d(y, z)_end / dy_n (R, D, n)."""
+    step less the (s+1)-stage one; zeros with ``radau_error=False``), whether both converged (R,),
+    Newton's last increment of the end values (R, D), and the step map's sensitivity
+    d(y, z)_end / dy_n (R, D, n)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
     t_n, h = steps[:, 0], steps[:, 1]
     y_n, z_n = start[:, :n], start[:, n:]
     A, _, c = radau_iia(s).to_torch(dtype=torch.float64, device=device)
     radau = collocation_step(
-        functions, A, c, t_n, h, y_n, Y, Z, p, max_iterations=CERTIFICATE_NEWTON_ITERATIONS, tol=CERTIFICATE_NEWTON_TOL
+        functions, A, c, t_n, h, y_n, Y, Z, p, max_iterations=CERTIFICATE_NEWTON_ITERATIONS, tol=newton_tol
     )
+    radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
+    if not radau_error:
+        return radau_end, torch.zeros_like(radau_end), radau.converged, radau.increment[:, -1], radau.end_sensitivity()
     # the (s+1)-stage step from the same start, started on the s-stage collocation polynomial
     A1, _, c1 = radau_iia(s + 1).to_torch(dtype=torch.float64, device=device)
     nodes = np.concatenate([[0.0], radau_iia(s).c])
@@ -263,7 +291,6 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device) -> tuple:
         max_iterations=CERTIFICATE_NEWTON_ITERATIONS,
         tol=CERTIFICATE_NEWTON_TOL,
     )
-    radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
     higher_end = torch.cat([higher.Y[:, -1], higher.Z[:, -1]], dim=-1)
     return (
         radau_end,
