@@ -569,6 +569,7 @@ def test_exploding_loss_is_an_error():
         ({"radius": -1.0}, "radius must be >= 0"),
         ({"learning_rate": 0.1}, "optimizer 'lm' has no learning_rate"),
         ({"increment": 1}, "increment must be True or False"),
+        ({"predictor": "yes"}, "predictor must be True or False; got 'yes'"),
         ({"dtype": "float16"}, "dtype must be 'float64'"),
     ],
 )

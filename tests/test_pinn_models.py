@@ -173,3 +173,59 @@ def test_the_certificate_does_not_depend_on_its_chunks(monkeypatch):
         np.testing.assert_allclose(
             whole.stats["certificate"][key], rows.stats["certificate"][key], rtol=1e-6, atol=1e-15
         )
+
+
+def test_the_predictor_extrapolates_the_collocation_polynomial_exactly():
+    """On sqrt_decay (y quadratic, z linear in t) the collocation polynomial of one step is the
+    exact solution, so the predictor's extrapolation to the next step, over a longer step too,
+    is that step's exact stage values."""
+    import torch
+    from daemodel.backends.pinn.network import Outputs
+    from daemodel.backends.pinn.segments import extrapolated_start
+
+    from daemodel.tableau import radau_iia
+
+    c = radau_iia(3).c
+    exact = CASES["sqrt_decay"].exact
+    h_prev, h = 0.05, 0.08
+
+    def stages(t0, step):
+        values = exact(t0 + c * step)
+        return (torch.tensor(values[name])[None, :, None] for name in ("y", "z"))
+
+    Y, Z = stages(0.0, h_prev)
+    previous = Outputs(Y=Y, y_end=Y[:, -1], Z=Z, z_end=Z[:, -1])
+    start = exact(np.array([0.0]))
+    Y_next, Z_next = extrapolated_start(
+        previous, torch.tensor(start["y"])[:, None], torch.tensor(start["z"])[:, None], h_prev, h, c
+    )
+    Y_true, Z_true = stages(h_prev, h)
+    assert torch.allclose(Y_next, Y_true, rtol=0, atol=1e-13) and torch.allclose(Z_next, Z_true, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", ["grid", "akzo_nobel", "transistor_amplifier"])
+def test_the_predictor_saves_iterations_and_changes_no_answer(name):
+    """Each segment starting on the extrapolated collocation polynomial (radau's own start guess,
+    from the PINN's previous stages) instead of the previous network's prediction: the same Radau
+    solution, certified, in fewer LM iterations (measured: 80 -> 42, 68 -> 32, 113 -> 60)."""
+    case = CASES[name]
+    compiled = case.model().compile()
+    runs = {}
+    for predictor in (True, False):
+        config = dm.PINNConfig(h=case.h, stages=case.stages, predictor=predictor)
+        runs[predictor] = dm.solve(compiled, case.t_span, method="pinn", config=config, **case.options)
+    assert runs[True].status == runs[False].status == "success"
+    assert sum(runs[True].stats["iterations"]) < 0.75 * sum(runs[False].stats["iterations"])
+    for variable in runs[True].names:
+        scale = 1 + np.max(np.abs(runs[False][variable]))
+        assert np.max(np.abs(runs[True][variable] - runs[False][variable])) < 1e-9 * scale
+
+
+def test_a_start_already_within_tol_still_takes_a_step():
+    """A residual below tol at the start is not accepted untouched (Newton judges convergence by
+    an increment): on sqrt_decay the predictor's start meets tol = 1e-12 in most segments yet
+    lies 3e-13 from the collocation solution, beyond Radau's error there (rounding); one LM step
+    brings it to rounding, and the answer is certified."""
+    case = CASES["sqrt_decay"]
+    pinn = dm.solve(case.model().compile(), case.t_span, method="pinn", h=case.h, stages=case.stages)
+    assert pinn.status == "success" and min(pinn.stats["iterations"]) >= 1

@@ -345,13 +345,27 @@ class RadauNetwork(torch.nn.Module):
         follows ``m.guess``).  That is the constant guess Newton starts from; a random start can sit
         where a constraint is singular (often z = 0), on another root, or outside f's domain."""
         n, s = self.n, self.stages
+        if self.copies == 1:  # one set of networks for every row: on average
+            z = z.mean(0, keepdim=True)
+        target = torch.cat([z.new_zeros(len(z), s * n + n), z.repeat(1, s + 1)], dim=1)  # flat, as split reads
+        self.start_at(x, target)
+
+    def start_at(self, x: torch.Tensor, target: torch.Tensor) -> None:
+        """Shift the output biases so that the raw outputs at the inputs ``x`` (B, d) are ``target``
+        (B, U) (for one set of networks over several rows: on average, ``target`` (1, U))."""
         with torch.no_grad():
-            if self.copies == 1:  # one set of networks for every row: on average
-                raw, z = self(x, stacked=True).mean(1, keepdim=True), z.mean(0, keepdim=True)
-            else:
-                raw = self(x, stacked=True)
-            target = torch.cat([z.new_zeros(len(z), s * n + n), z.repeat(1, s + 1)], dim=1)  # flat, as split reads
+            raw = self(x, stacked=True)
+            if self.copies == 1:
+                raw = raw.mean(1, keepdim=True)
             self.b_out += self.stack(target) - raw * (self.stack(torch.ones_like(target)) > 0)
+
+    def raw_outputs(self, Y: torch.Tensor, Z: torch.Tensor, y_n: torch.Tensor, h) -> torch.Tensor:
+        """The raw outputs (B, U) that :meth:`split` reads as the stage values ``Y`` (B, s, n) and
+        ``Z`` (B, s, m), the last stage also as the end values (Radau IIA is stiffly accurate)."""
+        B = Y.shape[0]
+        if self.increment:
+            Y = (Y - y_n[:, None, :]) / h
+        return torch.cat([Y.reshape(B, -1), Y[:, -1], Z.reshape(B, -1), Z[:, -1]], dim=1)
 
     def normalise(self, x: torch.Tensor) -> None:
         """Centre and scale the inputs on the spread of ``x`` (B, d), keeping the function the

@@ -15,6 +15,7 @@ import torch
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
 from daemodel.errors import InvalidOptionError
+from daemodel.tableau import radau_iia
 
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
 # index 3 is reduced first).
@@ -54,6 +55,20 @@ def fresh_network(compiled, config, inputs: torch.Tensor, z: torch.Tensor, segme
     return net
 
 
+def extrapolated_start(previous, y_prev, z_prev, h_prev: float, h: float, c):
+    """Radau's start guess for a step of length ``h`` that follows a step of ``h_prev``: that step's
+    collocation polynomial (through ``(0, (y_prev, z_prev))`` and its stages ``previous.Y``,
+    ``previous.Z`` at the nodes ``c``, a step of ``h_prev``) extrapolated to this step's nodes.
+    Returns the stage values ``(Y, Z)``, (B, s, n) and (B, s, m)."""
+    from daemodel.collocation import lagrange_matrix
+
+    nodes = np.concatenate([[0.0], c])
+    L = torch.as_tensor(lagrange_matrix(nodes, 1 + c * h / h_prev), dtype=y_prev.dtype, device=y_prev.device)
+    Y = torch.einsum("ij,bjn->bin", L, torch.cat([y_prev[:, None, :], previous.Y], dim=1))
+    Z = torch.einsum("ij,bjn->bin", L, torch.cat([z_prev[:, None, :], previous.Z], dim=1))
+    return Y, Z
+
+
 def copies_for(config, batch: int) -> int:
     """Independent network copies for a batch of ``batch`` samples: one each with
     ``batch="independent"`` (1 for a single trajectory), else 1 shared set."""
@@ -69,8 +84,6 @@ def copies_for(config, batch: int) -> int:
 
 def make_loss(compiled, config):
     from daemodel.backends.pinn.loss import RadauLoss
-
-    from daemodel.tableau import radau_iia
 
     dtype = getattr(torch, config.dtype)
     functions = compiled.torch_functions(dtype=dtype, device=config.device)
@@ -141,14 +154,23 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
     loss = make_loss(compiled, config)
     generator = torch.Generator().manual_seed(config.seed)
     copies = copies_for(config, x0.shape[0])
-    x, z, networks, stats = x0, z0, [], []
+    # the predictor sets each network's outputs at its input: one input per set of networks
+    predict = config.predictor and x0.shape[0] == copies and config.samples == 1
+    c = radau_iia(config.stages).c
+    x, z, networks, stats, previous = x0, z0, [], [], None
     for k, (t, h) in enumerate(segment_steps(grid)):
         inputs, samples_p = training_inputs(x, p, n, config, generator)
         segment = Segment(index=k, t=t, h=h, x=inputs, p=samples_p)
         net = None
-        if config.warm_start and networks:
-            net = copy.deepcopy(networks[-1])
-            net.normalise(inputs)
+        if networks and (config.warm_start or predict):
+            if config.warm_start:
+                net = copy.deepcopy(networks[-1])
+                net.normalise(inputs)
+            else:
+                net = fresh_network(compiled, config, inputs, z, k, copies)
+            if predict:
+                Y, Z = extrapolated_start(*previous, h, c)
+                net.start_at(inputs, net.raw_outputs(Y, Z, x[:, :n], h))
             if not SegmentTrainer(net, loss, config).finite_start(segment):
                 net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
         if net is None:
@@ -156,6 +178,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
         stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
         with torch.no_grad():
             out = net.predict(x, h)
+        previous = (out, x[:, :n], z, h)
         x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
         networks.append(net)
         progress.advance()

@@ -204,9 +204,12 @@ class SegmentTrainer:
     def _done(self, residuals) -> bool:
         return self.config.tol is not None and residuals.max_abs() <= self.config.tol
 
-    def _finish(self, segment: Segment, iterations: int, began: float) -> SegmentStats:
-        with torch.no_grad():
-            residuals = self.residuals(segment)
+    def _finish(self, segment: Segment, iterations: int, began: float, residuals=None) -> SegmentStats:
+        """The segment's stats, from ``residuals`` at the trained parameters when the optimizer
+        has them (LM's last accepted evaluation), else evaluated here."""
+        if residuals is None:
+            with torch.no_grad():
+                residuals = self.residuals(segment)
         terms = self._check(segment, residuals, iterations, None)
         worst = residuals.max_abs()
         _, where = residuals.largest(getattr(self.loss, "names", None))
@@ -229,8 +232,9 @@ class SegmentTrainer:
         """Train until every residual is below ``tol`` (or ``iterations`` for tol=None)."""
         began = time.perf_counter()
         method = {"lm": self._levenberg_marquardt, "lbfgs": self._lbfgs, "adam": self._adam}[self.config.optimizer]
-        iterations = method(segment)
-        return self._finish(segment, iterations, began)
+        done = method(segment)
+        iterations, residuals = done if isinstance(done, tuple) else (done, None)
+        return self._finish(segment, iterations, began, residuals)
 
     # ---- Adam and L-BFGS ----------------------------------------------------------------------
     def _adam(self, segment: Segment) -> int:
@@ -405,7 +409,7 @@ class SegmentTrainer:
             contracts = bool(torch.linalg.norm(newton) <= NEWTON_CONTRACTION * torch.linalg.norm(r))
         return contracts, residuals, r.reshape(-1), e.reshape(-1)
 
-    def _levenberg_marquardt(self, segment: Segment) -> int:
+    def _levenberg_marquardt(self, segment: Segment) -> tuple:
         params = {name: p.detach().clone() for name, p in self.net.named_parameters()}
         names = list(params)
         sizes = [params[k].numel() for k in names]
@@ -424,8 +428,11 @@ class SegmentTrainer:
             residuals, e = self._merit(segment, params, space)
         self.report(0, self._check(segment, residuals, 0, None))
         mu, nu, system, scale = None, 2.0, None, 1.0
-        iteration = 0
-        while iteration < self.config.iterations and not self._done(residuals):
+        iteration, stepped = 0, False
+        # as Newton judges convergence by an increment, a start (at rest, warm or predicted) is
+        # never accepted untouched: a small residual there need not mean a small distance (a
+        # predictor exact to 1e-12 left 6e-12 on a model whose Radau error is rounding)
+        while iteration < self.config.iterations and not (stepped and self._done(residuals)):
             iteration += 1
             if system is None:
                 system = self._normal_system(segment, params, e, space)
@@ -446,7 +453,7 @@ class SegmentTrainer:
             actual = 0.5 * float(e @ e - e_t @ e_t)
             if math.isfinite(actual) and actual > 0 and predicted > 0:
                 rho = actual / predicted
-                params, residuals, e = trial, residuals_t, e_t
+                params, residuals, e, stepped = trial, residuals_t, e_t, True
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu, system = 2.0, None
                 self.report(iteration, self._check(segment, residuals, iteration, None))
@@ -465,7 +472,7 @@ class SegmentTrainer:
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
-        return iteration
+        return iteration, residuals
 
     def _normal_system(self, segment: Segment, params: dict, e: torch.Tensor, space: str = "output"):
         """The linearised merit ``e + J delta`` as an :class:`OutputGramSystem` (J = du/dtheta; few
