@@ -381,7 +381,7 @@ def test_a_start_guess_is_checked():
         dm.solve(m, (0.0, 0.1), h=0.05, start_guess=lambda t, y, z: np.zeros((1, 5)))
 
 
-def rlc():
+def rlc(resistor: str = "R2*iR - v"):
     m = dm.Model("rlc")
     i, v = m.states("i v")
     m.algebraics("iR")
@@ -389,7 +389,7 @@ def rlc():
         m.parameter(name, value)
     m.ode(i, "(1 - R1*i - v)/L")
     m.ode(v, "(i - iR)/C")
-    m.constraint("R2*iR - v", name="resistor")
+    m.constraint(resistor, name="resistor")
     m.initial(i=0.0, v=0.0)
     return m.compile()
 
@@ -404,17 +404,19 @@ def test_a_parameter_batch_trains_to_the_collocation_solution():
 
 
 def test_an_under_trained_parameter_batch_names_the_sample():
-    """R2 over five decades, two LM iterations: not certified, and the error names the sample and
-    variable farthest from Radau and the first segment's residual (the number compared with tol,
-    its constraint and sample: R2 = 1e5)."""
+    """R2 over five decades with a cubic resistor, two LM iterations: not certified, and the error
+    names the sample and variable farthest from Radau and the first segment's residual (the
+    number compared with tol, its constraint and sample: R2 = 1, where the cubic term weighs
+    most).  (The linear resistor reaches Radau in one iteration: LM's step is then Newton's.)"""
     with pytest.raises(
         dm.errors.TrainingError,
-        match=r"^pinn: not certified \(3 of 3 samples\): at segment \d \(t = [0-9.]+ to [0-9.]+\), sample \d, '\w+' is "
+        match=r"^pinn: not certified \(1 of 3 samples\): at segment 2 \(t = 0.05 to 0.1\), sample 0, 'iR' is "
         r"[0-9.e+-]+ from the Radau solution .*; training stopped above tol = 1e-12 in 2 segment\(s\), first "
-        r"segment 1 \([0-9.e+-]+: constraint 'resistor' at (stage \d|the end value), sample 2\) after 2 lm iterations",
+        r"segment 1 \([0-9.e+-]+: constraint 'resistor' at (stage \d|the end value), sample 0\) after 2 lm iterations",
     ):
         config = dm.PINNConfig(h=0.05, iterations=2)
-        dm.solve(rlc(), (0.0, 0.1), method="pinn", parameters={"R2": [1.0, 1e3, 1e5]}, config=config, strict=True)
+        circuit = rlc(resistor="R2*iR + 10*iR**3 - v")
+        dm.solve(circuit, (0.0, 0.1), method="pinn", parameters={"R2": [1.0, 1e3, 1e5]}, config=config, strict=True)
 
 
 def test_the_certificate_judges_the_answer_not_the_residual():
@@ -434,15 +436,15 @@ def test_the_certificate_judges_the_answer_not_the_residual():
 
 def test_independent_networks_give_each_sample_its_radau_solution():
     """The default batch="independent": one set of networks per sample, trained as one
-    block-diagonal LM: the same batch reaches each sample's Radau solution to 1e-14 with every
-    residual below tol, where one shared set stalls at a residual of 79."""
+    block-diagonal LM: the same batch reaches each sample's Radau solution to tol's resolution
+    (1.1e-13 measured) with every residual below tol, where one shared set stalls at a residual of 79."""
     parameters = {"R2": [1.0, 1e3, 1e5]}
     pinn = dm.solve(rlc(), (0.0, 0.1), method="pinn", parameters=parameters, h=0.05)
     radau = dm.solve(rlc(), (0.0, 0.1), method="radau", parameters=parameters, h=0.05)
     assert pinn.status == "success" and pinn.stats["batch"] == "independent"
     assert pinn.stats["final_max_residual"] <= 1e-11  # tol 1e-12 on the F rows' scale, 2e-12 measured
     for name in pinn.names:
-        assert np.max(np.abs(pinn[name] - radau[name])) < 1e-14
+        assert np.max(np.abs(pinn[name] - radau[name])) < 1e-12
 
 
 def test_a_fixed_budget_is_judged_by_the_certificate():
@@ -489,12 +491,13 @@ def test_the_squeezers_accelerations_no_longer_block_the_tolerance():
 
 
 def test_a_met_tolerance_is_not_enough_for_success():
-    """tol = 1e-4 is met after a few LM steps, far from the Radau solution: flagged.  Before the
+    """tol = 1e-3 is met after two LM steps (the second LM's closing Newton step on the output
+    biases), at a residual of 3e-8, far from the Radau solution: flagged.  Before the
     certificate, a met tol was "success"."""
     c = HESSENBERG.model().compile()
     with pytest.warns(dm.errors.UncertifiedWarning):
-        sol = dm.solve(c, (0.0, 0.05), method="pinn", config=dm.PINNConfig(width=8, tol=1e-4))
-    assert sol.stats["final_max_residual"] <= 1e-4
+        sol = dm.solve(c, (0.0, 0.05), method="pinn", config=dm.PINNConfig(width=8, tol=1e-3))
+    assert sol.stats["final_max_residual"] <= 1e-3
     assert sol.status.startswith("flagged: ")
     radau = dm.solve(c, (0.0, 0.05), method="radau", h=0.05)
     radau_error = max(np.max(np.abs(radau[name] - EXACT(radau.t)[name])) for name in sol.names)

@@ -104,6 +104,63 @@ class Residuals:
             return max((float(r.abs().max()) if r.numel() else 0.0) for r in (F, self.G, S))
 
 
+class CasadiKernel:
+    """The residuals of :class:`RadauLoss` for one sample, and their Jacobian with respect to the
+    predictions, as casadi-compiled functions of one packed vector (the kernels radau's casadi
+    engine uses for a trajectory): a call costs microseconds where the torch functions, written
+    for batches, cost a millisecond of per-operation dispatch on a small system.
+
+    Both take ``[t_n, h, y_n (n), u (U), p (k)]`` with ``u = [Y (s, n) row-major, y_end (n),
+    Z (s, m) row-major, z_end (m)]`` (:meth:`RadauLoss.jacobian`'s layout); ``residual`` returns
+    ``[F (s+1, n), G (s+1, m), S (m)]`` flat, ``system`` that followed by the Jacobian dr/du
+    (R, U) row by row.
+    """
+
+    def __init__(self, compiled, tableau):
+        from daemodel.backends.radau_engines import _Buffered
+
+        functions = compiled.cached(("casadi-pinn", tableau.stages), lambda: _casadi_loss_functions(compiled, tableau))
+        self.residual, self.system = (_Buffered(function) for function in functions)
+        self.s, self.n, self.m = tableau.stages, len(compiled.states), len(compiled.algebraics)
+
+    def pack(self, t_n, h, y_n, p, out) -> np.ndarray:
+        parts = (out.Y, out.y_end, out.Z, out.z_end, p)
+        return np.concatenate([[float(t_n), float(h)], y_n.numpy().ravel(), *(a.numpy().ravel() for a in parts)])
+
+
+def _casadi_loss_functions(compiled, tableau):
+    """casadi functions of :class:`CasadiKernel` (cached on the compiled model, per s)."""
+    import casadi
+
+    dae = compiled.casadi_dae()
+    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
+    s, n, m = tableau.stages, x.numel(), z.numel()
+    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
+    h, y_n, u = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("u", (s + 1) * (n + m))
+    Y = [u[i * n : (i + 1) * n] for i in range(s)]
+    y_end = u[s * n : (s + 1) * n]
+    first = (s + 1) * n
+    Z = [u[first + i * m : first + (i + 1) * m] for i in range(s)]
+    z_end = u[first + s * m :]
+    times = [t + float(tableau.c[i]) * h for i in range(s)]
+    stage_f = [f(times[i], Y[i], Z[i], p) for i in range(s)]
+
+    def quadrature(weights):
+        return sum((float(weights[j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
+
+    F = [Y[i] - y_n - h * quadrature(tableau.A[i]) for i in range(s)] + [y_end - y_n - h * quadrature(tableau.b)]
+    G = [g(times[i], Y[i], Z[i], p) for i in range(s)] + [g(t + h, y_end, z_end, p)]
+    r = casadi.vertcat(*F, *G, z_end - Z[-1])
+    packed = casadi.vertcat(t, h, y_n, u, p)
+    jacobian = casadi.densify(casadi.jacobian(r, u))
+    rows = casadi.reshape(jacobian.T, -1, 1)  # column-major of J^T: J row by row
+    return (
+        casadi.Function("pinn_residual", [packed], [r]),
+        casadi.Function("pinn_system", [packed], [casadi.vertcat(r, rows)]),
+    )
+
+
 class RadauLoss:
     """Residuals of one segment ``[t_n, t_n + h]`` for a network's predictions.
 
@@ -115,16 +172,26 @@ class RadauLoss:
     config : PINNConfig
         Supplies the weights W_f, W_g, W_s.
     dtype, device
+    kernel : CasadiKernel, optional
+        Evaluates one sample's residuals and Jacobian where no gradient is wanted (LM, the
+        checks); batches and autograd (Adam, L-BFGS) use ``functions``.
     """
 
-    def __init__(self, functions, tableau, config, dtype, device):
+    def __init__(self, functions, tableau, config, dtype, device, kernel: CasadiKernel | None = None):
         self.functions = functions
         self.A, self.b, self.c = tableau.to_torch(dtype=dtype, device=device)
         self.stages = tableau.stages
         self.weights = (config.weight_f, config.weight_g, config.weight_s)
+        self.kernel = kernel
+
+    def _kernel_applies(self, y_n, out) -> bool:
+        """One sample, no gradient wanted: the casadi kernel (made for float64 on the CPU)."""
+        return self.kernel is not None and y_n.shape[0] == 1 and not (torch.is_grad_enabled() and out.Y.requires_grad)
 
     def residuals(self, t_n: float, h: float, y_n, p, out) -> Residuals:
         """Residuals at inputs ``y_n`` (N, n), parameters ``p`` (N, k), predictions ``out``."""
+        if self._kernel_applies(y_n, out):
+            return self._kernel_residuals(t_n, h, y_n, out, self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
         res = stage_residual(
             self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
         )
@@ -134,6 +201,16 @@ class RadauLoss:
             scale_f = y_n.detach().abs().clamp(min=1.0)[:, None, :]
             scale_s = out.z_end.detach().abs().clamp(min=1.0) if out.z_end is not None else None
         return Residuals(F=F, G=G, S=res.S, scale_f=scale_f, scale_s=scale_s)
+
+    def _kernel_residuals(self, t_n, h, y_n, out, values: np.ndarray) -> Residuals:
+        s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
+        r = torch.from_numpy(values)
+        F = r[: (s + 1) * n].reshape(1, s + 1, n)
+        G = r[(s + 1) * n : (s + 1) * (n + m)].reshape(1, s + 1, m)
+        S = r[(s + 1) * (n + m) :].reshape(1, m)
+        scale_f = y_n.abs().clamp(min=1.0)[:, None, :]
+        scale_s = out.z_end.abs().clamp(min=1.0)
+        return Residuals(F=F, G=G, S=S, scale_f=scale_f, scale_s=scale_s)
 
     def jacobian(self, t_n: float, h: float, y_n, p, out) -> torch.Tensor:
         """d(vector)/du, shape (N, R, U), of :meth:`vector` (one sample: ``total = N``) with
@@ -148,6 +225,10 @@ class RadauLoss:
         n, m = y_n.shape[1], out.Z.shape[-1]
         D = n + m
         dtype, device = y_n.dtype, y_n.device
+        if self._kernel_applies(y_n, out):
+            R, U = (s + 1) * D + m, (s + 1) * D
+            values = self.kernel.system(self.kernel.pack(t_n, h, y_n, p, out))
+            return torch.from_numpy(values[R:]).reshape(1, R, U) * self._row_weights(N, n, m, dtype, device)[:, None]
         times = torch.cat([t_n + self.c * h, torch.full((1,), t_n + h, dtype=dtype, device=device)])
         points_y = torch.cat([out.Y, out.y_end[:, None, :]], dim=1)  # (N, s+1, n)
         points_z = torch.cat([out.Z, out.z_end[:, None, :]], dim=1)
@@ -173,15 +254,19 @@ class RadauLoss:
         S = jac[:, (s + 1) * D :]
         S[:, :, sn + n + sm :] = eye_m
         S[:, :, sn + n + (s - 1) * m : sn + n + sm] = -eye_m
+        return jac * self._row_weights(N, n, m, dtype, device)[:, None]
+
+    def _row_weights(self, N: int, n: int, m: int, dtype, device) -> torch.Tensor:
+        """The weight of each row of :meth:`vector` (one sample of N)."""
+        s = self.stages
         W_f, W_g, W_s = self.weights
-        weights = torch.cat(
+        return torch.cat(
             [
                 torch.full(((s + 1) * n,), math.sqrt(W_f / (N * (s + 1))), dtype=dtype, device=device),
                 torch.full(((s + 1) * m,), math.sqrt(W_g / (N * (s + 1))), dtype=dtype, device=device),
                 torch.full((m,), math.sqrt(W_s / N), dtype=dtype, device=device),
             ]
         )
-        return jac * weights[:, None]
 
     def vector(self, residuals: Residuals, total: int) -> torch.Tensor:
         """Weighted residual vector, shape (N, R), with ``|r|^2`` = the loss over ``total`` samples."""

@@ -83,11 +83,14 @@ def copies_for(config, batch: int) -> int:
 
 
 def make_loss(compiled, config):
-    from daemodel.backends.pinn.loss import RadauLoss
+    from daemodel.backends.pinn.loss import CasadiKernel, RadauLoss
 
     dtype = getattr(torch, config.dtype)
     functions = compiled.torch_functions(dtype=dtype, device=config.device)
-    loss = RadauLoss(functions, radau_iia(config.stages), config, dtype, config.device)
+    tableau = radau_iia(config.stages)
+    # one trajectory in float64 on the CPU: LM's residuals and Jacobians from casadi's kernels
+    kernel = CasadiKernel(compiled, tableau) if config.dtype == "float64" and config.device == "cpu" else None
+    loss = RadauLoss(functions, tableau, config, dtype, config.device, kernel)
     loss.names = (compiled.state_names, compiled.constraint_names, compiled.algebraic_names)
     return loss
 

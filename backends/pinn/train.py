@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 from daemodel.backends.pinn.lm import (
     BLOCK_ORDER,
+    HIDDEN_STEP_WEIGHT,
     NetworkGram,
     OutputGramSystem,
     OutputSystem,
@@ -469,10 +470,30 @@ class SegmentTrainer:
                     # no step decreases the Newton corrections: continue on the residuals
                     space, mu, nu, system = "residual", None, 2.0, None
                     _, e = self._merit(segment, params, space)
+        if stepped and space == "output" and self._done(residuals) and N == self.net.copies:
+            iteration, params, residuals = self._polish(segment, params, residuals, e, iteration)
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
         return iteration, residuals
+
+    def _polish(self, segment: Segment, params: dict, residuals, e, iteration: int):
+        """LM's last step once every residual is below ``tol``: Gauss-Newton on the output biases
+        alone.  The outputs are linear in them, so where each set of networks has one input the
+        step moves every output by exactly its Newton correction: one Newton step on the stage
+        values, which takes the answer from tol to rounding (quadratic convergence) at the cost of
+        one evaluation and no Gram matrix.  A residual of 1e-12 can leave the stages 5e-13 from
+        the collocation solution, above Radau's own error on an accurate model (measured: a
+        damped oscillator at h = 0.05, Radau's error 1.8e-13); radau's fixed step, too, iterates
+        Newton to rounding.  Kept only where it decreases the Newton corrections."""
+        if not bool((e != 0).any()):
+            return iteration, params, residuals
+        trial = dict(params)
+        trial["b_out"] = params["b_out"] - self.net.stack(e.reshape(segment.x.shape[0], -1))
+        residuals_t, e_t = self._merit(segment, trial, "output")
+        if bool(torch.isfinite(e_t).all()) and float(e_t @ e_t) < float(e @ e) and self._done(residuals_t):
+            return iteration + 1, trial, residuals_t
+        return iteration, params, residuals
 
     def _normal_system(self, segment: Segment, params: dict, e: torch.Tensor, space: str = "output"):
         """The linearised merit ``e + J delta`` as an :class:`OutputGramSystem` (J = du/dtheta; few
@@ -487,16 +508,18 @@ class SegmentTrainer:
         sizes = torch.tensor(net.sizes, device=e.device)
         valid = (torch.arange(out, device=e.device)[None, :] < sizes[:, None]).to(e.dtype)  # (K, out): outputs in use
         W = params["W_out"] * valid[:, None, :]  # padded outputs take no part
+        weight = HIDDEN_STEP_WEIGHT if N == net.copies else 1.0  # one input per set of networks
         if space == "residual":
             with torch.no_grad():
                 Ru = self._output_jacobian(segment, net(segment.x, params=params))  # (N, R, U)
             stacked = Ru.new_zeros(N, Ru.shape[1], K * out)
             stacked[..., net.order] = Ru  # padded outputs: zero columns
-            gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P)
+            gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P, weight)
             return ResidualGramSystem(gram, stacked.reshape(N, -1, K, out), e)
         stacked = net.stack(e.reshape(N, -1))  # (K, N', out), zero at padded outputs
         if stacked.shape[1] * out <= P // K:
-            return OutputGramSystem(NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P), stacked)
+            gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P, weight)
+            return OutputGramSystem(gram, stacked)
         JtJ = torch.zeros(K, P // K, P // K, dtype=e.dtype, device=e.device)
         Jte = torch.zeros(K, P // K, dtype=e.dtype, device=e.device)
         step = max(1, JACOBIAN_ENTRIES // max(1, P * out))
