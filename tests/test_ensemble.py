@@ -264,7 +264,7 @@ def test_chunks_that_end_with_different_statuses_are_all_reported():
     from daemodel.problems import HESSENBERG
 
     c = HESSENBERG.model().compile()
-    config = dm.PINNConfig(tol=None, iterations=2)
+    config = dm.PINNConfig(tol=None, iterations=1)
     y0 = c.consistent(y0={"y1": [1.0, 1.0, 1.5, 1.5], "y2": [1.0, 1.0, 0.7, 0.7]})
     with pytest.warns(dm.errors.UncertifiedWarning):
         ensemble = dm.ensemble(c, (0.0, 0.1), y0=y0, method="pinn", config=config, chunk=2)

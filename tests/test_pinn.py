@@ -57,6 +57,20 @@ def test_per_variable_networks_are_independent():
     assert torch.all(grad[[0, 2, 3, 4, 5]] == 0)
 
 
+def test_a_clone_is_an_independent_equal_network():
+    from daemodel.backends.pinn.segments import make_network
+
+    net = make_network(PENDULUM.model().compile(), dm.PINNConfig(), 5, 0)
+    twin = net.clone()
+    x = torch.rand(3, 5, dtype=F64, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(net(x), twin(x)) and net.state_dict().keys() == twin.state_dict().keys()
+    with torch.no_grad():
+        twin.b_out += 1.0
+        twin.center += 1.0
+    assert torch.equal(net(x), make_network(PENDULUM.model().compile(), dm.PINNConfig(), 5, 0)(x))
+    assert not (net.center.any() or any(p is q for p, q in zip(net.parameters(), twin.parameters(), strict=True)))
+
+
 def test_adaptive_slope_is_trainable_and_starts_at_one_over_eta():
     net = network(dm.PINNConfig(eta=10.0, width=6, depth=2))
     assert net.slope.requires_grad
@@ -270,7 +284,9 @@ def test_segments_trained_as_ray_tasks_equal_the_local_ones(ray_cluster):
     ray = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, engine="ray")
     for name in ray.names:
         np.testing.assert_allclose(ray[name], local[name], rtol=0, atol=1e-13)
-    assert ray.stats["iterations"] == local.stats["iterations"]
+    # equal up to the closing Newton step, which stops at rounding: the last bits of a product
+    # on one thread (Ray) or two (here) can decide whether that step is taken
+    assert all(abs(a - b) <= 1 for a, b in zip(ray.stats["iterations"], local.stats["iterations"], strict=True))
     assert len(ray.stats["peak_memory_mb"]) == 4 and min(ray.stats["peak_memory_mb"]) > 0
 
 

@@ -20,6 +20,7 @@ once and kept in factors (:meth:`RadauNetwork.hidden_jacobian`, :class:`HiddenJa
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -372,6 +373,8 @@ class RadauNetwork(torch.nn.Module):
         network computes (the first layers absorb the change).  One point is used raw, as in the
         paper, and so are independent copies (each sees one point)."""
         if x.shape[0] == 1 or self.copies > 1:
+            if not (self.center.any() or (self.scale != 1).any()):
+                return  # already raw
             center, scale = torch.zeros_like(self.center), torch.ones_like(self.scale)
         else:
             lo, hi = x.min(0).values, x.max(0).values
@@ -386,6 +389,16 @@ class RadauNetwork(torch.nn.Module):
                 W *= ratio[None, :, None]
             self.center.copy_(center)
             self.scale.copy_(scale)
+
+    def clone(self) -> RadauNetwork:
+        """An independent copy (parameters and buffers copied; a warm start's new network): what
+        ``copy.deepcopy`` gives, without its recursive walk (a tenth of a segment's time there)."""
+        twin = copy.copy(self)
+        twin.__dict__ = {key: v.copy() if isinstance(v, dict) else v for key, v in self.__dict__.items()}
+        twin._parameters = {name: torch.nn.Parameter(p.detach().clone()) for name, p in self._parameters.items()}
+        twin._buffers = {name: b.clone() for name, b in self._buffers.items()}
+        twin._modules = {}
+        return twin
 
     def unstack(self, params: dict) -> dict:
         """``params`` (as ``named_parameters``) with the network axis K moved first and each

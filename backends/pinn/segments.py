@@ -6,7 +6,6 @@ an engine.  Uses the trainer (:mod:`.train`); builds no Solution (:mod:`.backend
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 
@@ -167,7 +166,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
         net = None
         if networks and (config.warm_start or predict):
             if config.warm_start:
-                net = copy.deepcopy(networks[-1])
+                net = networks[-1].clone()
                 net.normalise(inputs)
             else:
                 net = fresh_network(compiled, config, inputs, z, k, copies)

@@ -56,6 +56,11 @@ EXPLODE_FACTOR = 1e8
 LM_TAU = 1e-6
 # LM gives up when the damping exceeds this multiple of that diagonal: no step decreases the loss.
 LM_MAX_DAMPING = 1e16
+# LM hands over to Newton on the output biases (:meth:`SegmentTrainer._newton_finish`) once every
+# residual is below this (in :meth:`Residuals.max_abs`'s units), for at most NEWTON_FINISH_STEPS
+# steps: quadratic convergence from 1e-6 reaches 1e-12 in one and rounding in two.
+NEWTON_FINISH = 1e-6
+NEWTON_FINISH_STEPS = 3
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
 LBFGS_CHUNK = 20
 # LM fits the Newton corrections of the outputs where a full Newton step on them cuts the
@@ -387,6 +392,7 @@ class SegmentTrainer:
         Newton correction (:meth:`_correction`), in ``"residual"`` space the residual vector r."""
         with torch.no_grad():
             raw = self.net(segment.x, params=params)
+            self._raw = raw  # for the closing Newton steps' rounding test
             residuals = self.residuals(segment, raw)
             r = self.loss.vector(residuals, segment.x.shape[0])
             if space == "residual":
@@ -420,7 +426,9 @@ class SegmentTrainer:
         N, K = segment.x.shape[0], self.net.count
         # (independent copies: Newton corrections only; each starts at rest, Newton's constant guess)
         fallback = self.net.copies == 1 and N * (self.net.output_count + self.net.m) <= sum(sizes) // K
-        if fallback:
+        # the increment form starts at Newton's own guess (at rest, predicted or warm), where the
+        # corrections always guide (contraction 0.004-0.08, measured): no check needed
+        if fallback and not self.config.increment:
             contracts, residuals, r, e = self._newton_contracts(segment, params)
             space = "output" if contracts else "residual"
             e = e if contracts else r
@@ -430,6 +438,7 @@ class SegmentTrainer:
         self.report(0, self._check(segment, residuals, 0, None))
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
+        one_input = N == self.net.copies  # every set of networks sees one input
         # as Newton judges convergence by an increment, a start (at rest, warm or predicted) is
         # never accepted untouched: a small residual there need not mean a small distance (a
         # predictor exact to 1e-12 left 6e-12 on a model whose Radau error is rounding)
@@ -458,6 +467,8 @@ class SegmentTrainer:
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu, system = 2.0, None
                 self.report(iteration, self._check(segment, residuals, iteration, None))
+                if space == "output" and one_input and residuals.max_abs() <= NEWTON_FINISH:
+                    params, residuals, e, iteration = self._newton_finish(segment, params, residuals, e, iteration)
                 if space == "residual" and not self._done(residuals):
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
@@ -470,30 +481,48 @@ class SegmentTrainer:
                     # no step decreases the Newton corrections: continue on the residuals
                     space, mu, nu, system = "residual", None, 2.0, None
                     _, e = self._merit(segment, params, space)
-        if stepped and space == "output" and self._done(residuals) and N == self.net.copies:
-            iteration, params, residuals = self._polish(segment, params, residuals, e, iteration)
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
         return iteration, residuals
 
-    def _polish(self, segment: Segment, params: dict, residuals, e, iteration: int):
-        """LM's last step once every residual is below ``tol``: Gauss-Newton on the output biases
-        alone.  The outputs are linear in them, so where each set of networks has one input the
-        step moves every output by exactly its Newton correction: one Newton step on the stage
-        values, which takes the answer from tol to rounding (quadratic convergence) at the cost of
-        one evaluation and no Gram matrix.  A residual of 1e-12 can leave the stages 5e-13 from
-        the collocation solution, above Radau's own error on an accurate model (measured: a
-        damped oscillator at h = 0.05, Radau's error 1.8e-13); radau's fixed step, too, iterates
-        Newton to rounding.  Kept only where it decreases the Newton corrections."""
-        if not bool((e != 0).any()):
-            return iteration, params, residuals
-        trial = dict(params)
-        trial["b_out"] = params["b_out"] - self.net.stack(e.reshape(segment.x.shape[0], -1))
-        residuals_t, e_t = self._merit(segment, trial, "output")
-        if bool(torch.isfinite(e_t).all()) and float(e_t @ e_t) < float(e @ e) and self._done(residuals_t):
-            return iteration + 1, trial, residuals_t
-        return iteration, params, residuals
+    def _newton_finish(self, segment: Segment, params: dict, residuals, e, iteration: int):
+        """LM's closing steps, once every residual is below :data:`NEWTON_FINISH`: Gauss-Newton on
+        the output biases alone.  The outputs are linear in them, so where each set of networks
+        has one input a step moves every output by exactly its Newton correction: Newton on the
+        stage values, which converges quadratically from there, at the cost of one evaluation
+        and no Gram matrix.  At most :data:`NEWTON_FINISH_STEPS`, each kept only where it
+        decreases the Newton corrections, until they are at rounding (10 eps of each value, as
+        radau's fixed step iterates Newton).  A residual at tol = 1e-12 can leave the stages
+        5e-13 from the collocation solution, above Radau's own error on an accurate model
+        (measured: a damped oscillator at h = 0.05, Radau's error 1.8e-13).
+
+        Each step counts as an iteration (of ``config.iterations``) and is reported as one.
+        Returns ``(params, residuals, e, iteration)``."""
+        N = segment.x.shape[0]
+        for _ in range(min(NEWTON_FINISH_STEPS, self.config.iterations - iteration)):
+            if self._at_rounding(segment, self._raw, e):
+                break
+            trial = dict(params)
+            trial["b_out"] = params["b_out"] - self.net.stack(e.reshape(N, -1))
+            raw = self._raw
+            residuals_t, e_t = self._merit(segment, trial, "output")
+            if not (bool(torch.isfinite(e_t).all()) and float(e_t @ e_t) < float(e @ e)):
+                self._raw = raw
+                break
+            params, residuals, e, iteration = trial, residuals_t, e_t, iteration + 1
+            self.report(iteration, self._check(segment, residuals, iteration, None))
+        return params, residuals, e, iteration
+
+    def _at_rounding(self, segment: Segment, raw, e) -> bool:
+        """Whether the Newton corrections ``e`` move no stage or end value by more than 10 eps of
+        its size (the outputs ``raw`` as :meth:`RadauNetwork.split` reads them)."""
+        n, h = self.net.n, segment.h
+        now = self.net.split(raw, segment.x[:, :n], h)
+        moved = self.net.split(raw - e.reshape(raw.shape), segment.x[:, :n], h)
+        limit = 10 * torch.finfo(raw.dtype).eps
+        pairs = zip((now.Y, now.y_end, now.Z, now.z_end), (moved.Y, moved.y_end, moved.Z, moved.z_end), strict=True)
+        return all(bool(((a - b).abs() <= limit * (1 + a.abs())).all()) for a, b in pairs)
 
     def _normal_system(self, segment: Segment, params: dict, e: torch.Tensor, space: str = "output"):
         """The linearised merit ``e + J delta`` as an :class:`OutputGramSystem` (J = du/dtheta; few
