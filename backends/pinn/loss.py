@@ -129,28 +129,32 @@ class CasadiKernel:
 
 
 def _casadi_loss_functions(compiled, tableau):
-    """casadi functions of :class:`CasadiKernel` (cached on the compiled model, per s)."""
+    """casadi functions of :class:`CasadiKernel` (cached on the compiled model, per s), built on
+    radau's casadi engine's own stage residual (the equations Newton zeroes there): its stage
+    rows, and the end rows and ``S`` that the PINN adds."""
     import casadi
+    from daemodel.backends.radau_engines import _casadi_functions
 
+    radau_residual = compiled.cached(("casadi-radau", tableau.stages), lambda: _casadi_functions(compiled, tableau))[1]
     dae = compiled.casadi_dae()
-    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
-    s, n, m = tableau.stages, x.numel(), z.numel()
-    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
-    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
-    h, y_n, u = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("u", (s + 1) * (n + m))
+    t, p = dae["t"], dae["p"]
+    s, n, m = tableau.stages, dae["x"].numel(), dae["z"].numel()
+    D = n + m
+    g = casadi.Function("g", [t, dae["x"], dae["z"], p], [dae["alg"]])
+    h, y_n, u = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("u", (s + 1) * D)
     Y = [u[i * n : (i + 1) * n] for i in range(s)]
     y_end = u[s * n : (s + 1) * n]
     first = (s + 1) * n
     Z = [u[first + i * m : first + (i + 1) * m] for i in range(s)]
     z_end = u[first + s * m :]
-    times = [t + float(tableau.c[i]) * h for i in range(s)]
-    stage_f = [f(times[i], Y[i], Z[i], p) for i in range(s)]
-
-    def quadrature(weights):
-        return sum((float(weights[j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
-
-    F = [Y[i] - y_n - h * quadrature(tableau.A[i]) for i in range(s)] + [y_end - y_n - h * quadrature(tableau.b)]
-    G = [g(times[i], Y[i], Z[i], p) for i in range(s)] + [g(t + h, y_end, z_end, p)]
+    W = casadi.vertcat(*(casadi.vertcat(Y[i], Z[i]) for i in range(s)))  # stage by stage, as radau packs it
+    out = radau_residual(casadi.vertcat(t, h, y_n, W, p))
+    R, stage_f = out[: s * D], out[s * D :]
+    F = [R[i * D : i * D + n] for i in range(s)]
+    G = [R[i * D + n : (i + 1) * D] for i in range(s)]
+    quadrature = sum((float(tableau.b[j]) * stage_f[j * n : (j + 1) * n] for j in range(s)), casadi.SX.zeros(n))
+    F.append(y_end - y_n - h * quadrature)
+    G.append(g(t + h, y_end, z_end, p))
     r = casadi.vertcat(*F, *G, z_end - Z[-1])
     packed = casadi.vertcat(t, h, y_n, u, p)
     jacobian = casadi.densify(casadi.jacobian(r, u))
