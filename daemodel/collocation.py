@@ -204,7 +204,7 @@ def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iteratio
     converged = torch.zeros(W.shape[:-2], dtype=torch.bool, device=W.device)
     previous = torch.full_like(converged, math.inf, dtype=W.dtype)
     last = torch.zeros_like(W)
-    iterations = 0
+    iterations, J = 0, None
     for iterations in range(1, max_iterations + 1):  # noqa: B007  (the count is returned)
         res = stage_residual(functions, A, None, c, t_n, h, y_n, W[..., :n], W[..., n:], p)
         R = torch.cat([res.F, res.G], dim=-1).reshape(*W.shape[:-2], -1)
@@ -220,6 +220,8 @@ def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iteratio
         previous = torch.where(converged, previous, size)
         if bool(converged.all()) or not bool(torch.isfinite(W).any()):
             break
+    if J is None:  # no iteration: the Jacobian at the start
+        J = stage_jacobian(functions, A, c, t_n, h, W[..., :n], W[..., n:], p)
     finite = torch.isfinite(W).flatten(-2).all(-1) & torch.isfinite(J).flatten(-2).all(-1)
     return CollocationStep(
         Y=W[..., :n], Z=W[..., n:], converged=converged & finite, increment=last, jacobian=J, iterations=iterations

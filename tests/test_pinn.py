@@ -11,7 +11,7 @@ import torch
 from daemodel.backends.pinn.lm import HIDDEN_STEP_WEIGHT
 from daemodel.backends.pinn.loss import RadauLoss
 from daemodel.backends.pinn.network import Outputs, RadauNetwork
-from daemodel.backends.pinn.train import Segment, SegmentTrainer
+from daemodel.backends.pinn.train import NEWTON_FINISH_STEPS, Segment, SegmentTrainer
 
 import daemodel as dm
 from daemodel.errors import (
@@ -284,9 +284,11 @@ def test_segments_trained_as_ray_tasks_equal_the_local_ones(ray_cluster):
     ray = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, engine="ray")
     for name in ray.names:
         np.testing.assert_allclose(ray[name], local[name], rtol=0, atol=1e-13)
-    # equal up to the closing Newton step, which stops at rounding: the last bits of a product
-    # on one thread (Ray) or two (here) can decide whether that step is taken
-    assert all(abs(a - b) <= 1 for a, b in zip(ray.stats["iterations"], local.stats["iterations"], strict=True))
+    # equal up to the closing Newton steps, which stop at rounding: the last bits of a product
+    # on one thread (Ray) or two (here) decide whether a step is needed (measured on one thread
+    # and two locally: [3, 3, 4, 5] and [4, 3, 3, 5])
+    pairs = zip(ray.stats["iterations"], local.stats["iterations"], strict=True)
+    assert all(abs(a - b) <= NEWTON_FINISH_STEPS for a, b in pairs)
     assert len(ray.stats["peak_memory_mb"]) == 4 and min(ray.stats["peak_memory_mb"]) > 0
 
 
@@ -755,7 +757,9 @@ def test_trainer_reports_each_accepted_lm_step():
     x = torch.ones(1, 4, dtype=F64)
     stats = trainer.train(Segment(0, 0.0, 0.05, x, torch.zeros(1, 0, dtype=F64)))
     assert [it for it, _ in seen] == list(range(stats.iterations + 1))
-    assert all(b < a for (_, a), (_, b) in itertools.pairwise(seen))  # LM only accepts decreases
+    # LM accepts only decreases of the loss; the closing Newton steps, decreases of the Newton
+    # corrections, which at rounding (a loss of 1e-30) may leave the loss where it was
+    assert all(b < a or b < 1e-26 for (_, a), (_, b) in itertools.pairwise(seen))
 
 
 def test_normalising_the_inputs_keeps_the_network_function():

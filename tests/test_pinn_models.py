@@ -221,11 +221,34 @@ def test_the_predictor_saves_iterations_and_changes_no_answer(name):
         assert np.max(np.abs(runs[True][variable] - runs[False][variable])) < 1e-9 * scale
 
 
-def test_a_start_already_within_tol_still_takes_a_step():
-    """A residual below tol at the start is not accepted untouched (Newton judges convergence by
-    an increment): on sqrt_decay the predictor's start meets tol = 1e-12 in most segments yet
-    lies 3e-13 from the collocation solution, beyond Radau's error there (rounding); one LM step
-    brings it to rounding, and the answer is certified."""
-    case = CASES["sqrt_decay"]
-    pinn = dm.solve(case.model().compile(), case.t_span, method="pinn", h=case.h, stages=case.stages)
-    assert pinn.status == "success" and min(pinn.stats["iterations"]) >= 1
+def test_a_start_is_accepted_untouched_only_at_rounding():
+    """One Hessenberg segment whose networks start exactly on the collocation solution takes no
+    step; started 1e-13 off it, where every residual already meets tol = 1e-12, it still takes a
+    step (Newton judges convergence by an increment) and ends on the solution to rounding.
+    Before, such a start was accepted: on sqrt_decay the predictor's start met tol yet lay 6e-12
+    from the collocation solution, above Radau's error there (rounding), and was flagged."""
+    import torch
+    from daemodel.backends.pinn.segments import fresh_network, make_loss
+    from daemodel.backends.pinn.train import Segment, SegmentTrainer
+
+    from daemodel.problems import HESSENBERG
+    from daemodel.tableau import radau_iia
+
+    c, h = HESSENBERG.model().compile(), 0.05
+    config = dm.PINNConfig(h=h)
+    nodes = np.asarray(radau_iia(3).c, dtype=float) * h
+    stages = dm.solve(c, (0.0, h), method="radau", h=h, t_eval=nodes)
+    Y = torch.tensor(np.stack([stages[k] for k in c.state_names], axis=-1))[None]
+    Z = torch.tensor(np.stack([stages[k] for k in c.algebraic_names], axis=-1))[None]
+    x = torch.tensor(c.y0)[None]
+    segment = Segment(0, 0.0, h, x, torch.tensor(c.parameter_values).reshape(1, -1))
+    for offset, steps in ((0.0, 0), (1e-13, 1)):
+        net = fresh_network(c, config, x, torch.tensor(c.z0)[None], 0, 1)
+        net.start_at(x, net.raw_outputs(Y + offset, Z + offset, x, h))
+        trainer = SegmentTrainer(net, make_loss(c, config), config)
+        assert trainer.residuals(segment).max_abs() <= config.tol
+        stats = trainer.train(segment)
+        assert (stats.iterations == 0) if steps == 0 else (stats.iterations >= 1)
+        with torch.no_grad():
+            out = net.predict(x, h)
+        assert float((out.Y - Y).abs().max()) <= 1e-15 and float((out.Z - Z).abs().max()) <= 1e-14

@@ -422,8 +422,9 @@ def test_an_under_trained_parameter_batch_names_the_sample():
 def test_the_certificate_judges_the_answer_not_the_residual():
     """The same batch in one shared set of networks (R2 an input) with 200 iterations: the stage
     residual of R2 = 1e5 stays large (the resistor's constraint scales with R2), but the values on
-    the grid are the Radau solution's to 1e-12, and the certificate says so: success.  Before, the
-    residual made it a TrainingError."""
+    the grid are within the certified distance of the Radau solution (1e-12 to 1e-7 measured: the
+    200th iteration's rounding path varies with torch's threads), which is within Radau's own
+    error: success.  Before, the residual made it a TrainingError."""
     parameters = {"R2": [1.0, 1e3, 1e5]}
     config = dm.PINNConfig(h=0.05, batch="shared")
     pinn = dm.solve(rlc(), (0.0, 0.1), method="pinn", parameters=parameters, config=config)
@@ -431,7 +432,9 @@ def test_the_certificate_judges_the_answer_not_the_residual():
     assert pinn.stats["final_max_residual"] > 1.0
     assert pinn.status == "success" and pinn.stats["certificate"]["certified"] == [True, True, True]
     for name in pinn.names:
-        assert np.max(np.abs(pinn[name] - radau[name])) < 1e-11
+        distance = np.abs(pinn[name] - radau[name]).max(axis=1)
+        assert (distance <= np.array(pinn.stats["certificate"]["max_distance"][name])).all(), name
+        assert distance.max() < 1e-6
 
 
 def test_independent_networks_give_each_sample_its_radau_solution():

@@ -105,7 +105,9 @@ class OutputGramSystem:
     """Levenberg-Marquardt on the Newton corrections e, solved per network in its outputs:
     ``delta_k = -J_k^T (J_k J_k^T + mu I)^{-1} e_k`` with J_k = du_k/dtheta_k, which equals
     ``-(J^T J + mu I)^{-1} J^T e`` of :class:`OutputSystem` (a push-through identity) at the
-    cost of a (N out, N out) solve per network.
+    cost of a (N out, N out) solve per network.  With the gram's ``hidden_weight`` D (one input
+    per set of networks, a case :class:`OutputSystem` never serves) J is read as J D^(1/2) and
+    the step in the parameters is D^(1/2) times it.
 
     Parameters
     ----------
@@ -124,7 +126,7 @@ class OutputGramSystem:
 
     @property
     def scale(self) -> float:
-        """The largest diagonal entry of J^T J (sets the first damping)."""
+        """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping)."""
         K, N, out = self.gram.valid.shape[0], self.gram.hidden.H.shape[1], self.gram.W.shape[-1]
         return self.gram.largest_diagonal(torch.diag_embed(self.gram.valid)[:, None].expand(K, N, out, out))
 
@@ -172,7 +174,7 @@ class ResidualGramSystem:
 
     @property
     def scale(self) -> float:
-        """The largest diagonal entry of J^T J (sets the first damping)."""
+        """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping)."""
         C = torch.einsum("brki,brkj->kbij", self.Ru, self.Ru)  # (dr/du)^T (dr/du), per network and input
         return self.gram.largest_diagonal(C)
 

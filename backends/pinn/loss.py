@@ -117,11 +117,24 @@ class CasadiKernel:
     """
 
     def __init__(self, compiled, tableau):
-        from daemodel.backends.radau_engines import _Buffered
-
-        functions = compiled.cached(("casadi-pinn", tableau.stages), lambda: _casadi_loss_functions(compiled, tableau))
-        self.residual, self.system = (_Buffered(function) for function in functions)
+        self.compiled, self.tableau = compiled, tableau
         self.s, self.n, self.m = tableau.stages, len(compiled.states), len(compiled.algebraics)
+        self._functions = None  # built on first use: batches (surrogates) never need them
+
+    def _built(self):
+        if self._functions is None:
+            from daemodel.backends.radau_engines import _Buffered
+
+            compiled, tableau = self.compiled, self.tableau
+            made = compiled.cached(("casadi-pinn", tableau.stages), lambda: _casadi_loss_functions(compiled, tableau))
+            self._functions = tuple(_Buffered(function) for function in made)
+        return self._functions
+
+    def residual(self, packed: np.ndarray) -> np.ndarray:
+        return self._built()[0](packed)
+
+    def system(self, packed: np.ndarray) -> np.ndarray:
+        return self._built()[1](packed)
 
     def pack(self, t_n, h, y_n, p, out) -> np.ndarray:
         parts = (out.Y, out.y_end, out.Z, out.z_end, p)
@@ -188,13 +201,16 @@ class RadauLoss:
         self.weights = (config.weight_f, config.weight_g, config.weight_s)
         self.kernel = kernel
 
-    def _kernel_applies(self, y_n, out) -> bool:
+    def _kernel_applies(self, y_n, out, p=None) -> bool:
         """One sample, no gradient wanted: the casadi kernel (made for float64 on the CPU)."""
-        return self.kernel is not None and y_n.shape[0] == 1 and not (torch.is_grad_enabled() and out.Y.requires_grad)
+        if self.kernel is None or y_n.shape[0] != 1:
+            return False
+        inputs = (y_n, p, out.Y, out.y_end, out.Z, out.z_end)
+        return not (torch.is_grad_enabled() and any(a is not None and a.requires_grad for a in inputs))
 
     def residuals(self, t_n: float, h: float, y_n, p, out) -> Residuals:
         """Residuals at inputs ``y_n`` (N, n), parameters ``p`` (N, k), predictions ``out``."""
-        if self._kernel_applies(y_n, out):
+        if self._kernel_applies(y_n, out, p):
             return self._kernel_residuals(t_n, h, y_n, out, self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
         res = stage_residual(
             self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
@@ -229,7 +245,7 @@ class RadauLoss:
         n, m = y_n.shape[1], out.Z.shape[-1]
         D = n + m
         dtype, device = y_n.dtype, y_n.device
-        if self._kernel_applies(y_n, out):
+        if self._kernel_applies(y_n, out, p):
             R, U = (s + 1) * D + m, (s + 1) * D
             values = self.kernel.system(self.kernel.pack(t_n, h, y_n, p, out))
             return torch.from_numpy(values[R:]).reshape(1, R, U) * self._row_weights(N, n, m, dtype, device)[:, None]

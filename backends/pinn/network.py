@@ -394,7 +394,7 @@ class RadauNetwork(torch.nn.Module):
         """An independent copy (parameters and buffers copied; a warm start's new network): what
         ``copy.deepcopy`` gives, without its recursive walk (a tenth of a segment's time there)."""
         twin = copy.copy(self)
-        twin.__dict__ = {key: v.copy() if isinstance(v, dict) else v for key, v in self.__dict__.items()}
+        twin.__dict__ = {key: v.copy() if isinstance(v, dict | list | set) else v for key, v in self.__dict__.items()}
         twin._parameters = {name: torch.nn.Parameter(p.detach().clone()) for name, p in self._parameters.items()}
         twin._buffers = {name: b.clone() for name, b in self._buffers.items()}
         twin._modules = {}

@@ -145,7 +145,10 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
     Segment k trains on the states its predecessor predicted (``x0`` (B, d) for the first), plus
     the box samples of ``config``; its predicted ``y_{n+1}`` becomes segment k+1's input.  A fresh
     network starts at rest on the consistent algebraic values ``z0`` (B, m) (the previous
-    segment's predicted ``z_{n+1}`` later on).
+    segment's predicted ``z_{n+1}`` later on); with ``warm_start`` a segment starts from a copy
+    of the previous one's network, and with ``predictor`` (one input per set of networks) its
+    output biases then put its stages on the previous segment's extrapolated collocation
+    polynomial (:func:`extrapolated_start`).
 
     Returns
     -------
@@ -163,20 +166,21 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
     for k, (t, h) in enumerate(segment_steps(grid)):
         inputs, samples_p = training_inputs(x, p, n, config, generator)
         segment = Segment(index=k, t=t, h=h, x=inputs, p=samples_p)
-        net = None
-        if networks and (config.warm_start or predict):
-            if config.warm_start:
-                net = networks[-1].clone()
-                net.normalise(inputs)
-            else:
-                net = fresh_network(compiled, config, inputs, z, k, copies)
-            if predict:
-                Y, Z = extrapolated_start(*previous, h, c)
-                net.start_at(inputs, net.raw_outputs(Y, Z, x[:, :n], h))
-            if not SegmentTrainer(net, loss, config).finite_start(segment):
-                net = None  # the previous segment's slopes leave f's domain here (akzo-nobel: sqrt)
+        # the start, in order of preference: predicted, warm, fresh (at rest in the increment
+        # form); each but the last only where its predictions keep f and g finite (akzo-nobel's
+        # sqrt: the previous segment's slopes, or the extrapolation, can leave the domain)
+        warm = bool(networks) and config.warm_start
+        base = networks[-1].clone() if warm else fresh_network(compiled, config, inputs, z, k, copies)
+        if warm:
+            base.normalise(inputs)
+        candidates = [base] if warm else []
+        if predict and networks:
+            predicted = base.clone()
+            predicted.start_at(inputs, predicted.raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h))
+            candidates.insert(0, predicted)
+        net = next((net for net in candidates if SegmentTrainer(net, loss, config).finite_start(segment)), None)
         if net is None:
-            net = fresh_network(compiled, config, inputs, z, k, copies)
+            net = fresh_network(compiled, config, inputs, z, k, copies) if warm else base
         stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
         with torch.no_grad():
             out = net.predict(x, h)

@@ -91,10 +91,11 @@ SURROGATE_CONFIG = PINNConfig(width=16, warm_start=False, tol=None, iterations=4
 # 6.8 / 12.0 s (with the estimate).
 EVALUATION_CHUNK = 2048
 # Surrogate.solve(tol=) certifies each answer with a Newton check that stops when its increments
-# fall below this fraction of tol (relative to 1 + |value|): the distance is then resolved far
+# fall below this fraction of tol (:func:`check_tolerance`): the distance is then resolved far
 # below tol in two iterations from trained networks, where the trajectory mode's check (to 10 eps)
-# takes four.
+# takes four.  The check's relative tolerance is at most SURROGATE_CHECK_CAP, whatever tol.
 SURROGATE_CHECK_RESOLUTION = 1e-3
+SURROGATE_CHECK_CAP = 1e-10
 # Surrogate.solve(estimate=True) multiplies its propagated residual sums by this.  Measured on
 # 1,000 held-out states of pendulum and Hessenberg surrogates (16 training states, +-1 %,
 # [0, 0.25]): the unscaled y estimate bounded the error against radau's collocation solution for
@@ -420,7 +421,8 @@ class Surrogate:
             (largest over variables and grid times) exceeds ``tol``, or whose Newton check fails,
             is corrected by Newton from its networks' stage values (as ``newton=True``, for those
             samples only) and returns the collocation solution; the others return the networks'
-            answer.  So every answer is within tol of that solution by its certificate, or is it.
+            answer.  So every answer is within tol of that solution by its certificate, or is
+            that solution.
             ``stats["certified_distance"]`` (B,) is each returned answer's certified distance (0
             where corrected), ``stats["corrected"]`` (B,) marks the corrected samples,
             ``stats["path"]`` (B,) says how each answer came: ``"network"``, ``"newton"`` (from
@@ -485,9 +487,10 @@ class Surrogate:
                 values,
                 start.p,
                 radau_error=False,
-                newton_tol=max(CERTIFICATE_NEWTON_TOL, SURROGATE_CHECK_RESOLUTION * tol),
+                newton_tol=check_tolerance(tol, values),
             )
-            distance = certificate.distance.max(axis=(1, 2))  # inf where a Newton check failed
+            # inf where a Newton check failed; plus the check's own resolution where it stagnated
+            distance = (certificate.distance + certificate.rounding).max(axis=(1, 2))
             certificate_seconds = time.perf_counter() - checked
             corrected = ~(distance <= tol)
             if corrected.any():
@@ -869,6 +872,14 @@ class Surrogate:
                 "it is damaged; save the surrogate again"
             ) from None
         return cls(compiled, config, grid, networks, inputs, stats, box)
+
+
+def check_tolerance(tol: float, values: np.ndarray) -> float:
+    """The Newton check's tolerance for ``Surrogate.solve(tol=)``, relative to ``1 + |value|`` as
+    :func:`~daemodel.collocation.collocation_step` reads it: :data:`SURROGATE_CHECK_RESOLUTION`
+    of tol in absolute terms at the largest value, between 10 eps and :data:`SURROGATE_CHECK_CAP`."""
+    relative = SURROGATE_CHECK_RESOLUTION * tol / (1 + float(np.abs(values).max()))
+    return min(max(relative, CERTIFICATE_NEWTON_TOL), SURROGATE_CHECK_CAP)
 
 
 def _check_fixed_parameters(path, compiled, saved, inputs) -> None:

@@ -25,14 +25,24 @@ variable, two for the algebraic ones); each block is solved in whichever space i
   pass (:class:`HiddenJacobian`), O(w^3) per layer;
 * its parameters (many samples, surrogates): ``(J_k^T J_k + mu I) delta_k = -J_k^T e_k``, (P/K, P/K).
 
-Training stops on the residual, every |r| component below ``tol``, or with ``tol=None`` after
-``iterations`` (sooner if no step decreases the merit).  A segment that ends above ``tol`` says
-so in its stats; whether the answer is good enough is the certificate's verdict
-(:mod:`.certificate`), not the residual's.
+Where every set of networks sees one input (a trajectory, or independent networks per sample)
+three things change.  The step is measured in a metric that weighs the hidden parameters'
+squares by ``1 / HIDDEN_STEP_WEIGHT`` (:mod:`.lm`), so it moves mostly the output layer, in
+which the outputs are linear.  Once every residual is below :data:`NEWTON_FINISH`, the last
+steps are Gauss-Newton on the output biases alone, which is exactly Newton on the stage values
+(:meth:`SegmentTrainer._newton_finish`), until the corrections are at rounding.  And the start
+is accepted untouched only where its Newton correction is already at rounding.
+
+Training stops on the residual, every |r| component below ``tol`` after at least one step (or
+the start's correction at rounding), or with ``tol=None`` after ``iterations`` (sooner if no
+step decreases the merit); the closing Newton steps count as iterations.  A segment that ends
+above ``tol`` says so in its stats; whether the answer is good enough is the certificate's
+verdict (:mod:`.certificate`), not the residual's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -138,6 +148,17 @@ class Segment:
     h: float
     x: torch.Tensor
     p: torch.Tensor
+
+
+def _per_sample(mask, new, old):
+    """Residuals with sample b's rows from ``new`` where ``mask[b]``, else from ``old``."""
+
+    def pick(a, b):
+        return None if a is None else torch.where(mask.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+    return dataclasses.replace(
+        new, **{f.name: pick(getattr(new, f.name), getattr(old, f.name)) for f in dataclasses.fields(new)}
+    )
 
 
 def segment_label(index: int, t0: float, t1: float) -> str:
@@ -408,6 +429,7 @@ class SegmentTrainer:
         Returns ``(contracts, residuals, r, e)``."""
         with torch.no_grad():
             raw = self.net(segment.x, params=params)
+            self._raw = raw
             residuals = self.residuals(segment, raw)
             N = segment.x.shape[0]
             r = self.loss.vector(residuals, N)
@@ -424,7 +446,7 @@ class SegmentTrainer:
         # until a Newton step on the outputs contracts, then on the Newton corrections; with many
         # (surrogates) always on the corrections.
         N, K = segment.x.shape[0], self.net.count
-        # (independent copies: Newton corrections only; each starts at rest, Newton's constant guess)
+        # (independent copies: Newton corrections only; each starts at Newton's guess: at rest, or predicted)
         fallback = self.net.copies == 1 and N * (self.net.output_count + self.net.m) <= sum(sizes) // K
         # the increment form starts at Newton's own guess (at rest, predicted or warm), where the
         # corrections always guide (contraction 0.004-0.08, measured): no check needed
@@ -439,9 +461,17 @@ class SegmentTrainer:
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
         one_input = N == self.net.copies  # every set of networks sees one input
+        if (
+            space == "output"
+            and one_input
+            and bool(torch.isfinite(e).all())
+            and self._at_rounding(segment, self._raw, e)
+        ):
+            stepped = True  # the start's own Newton correction is at rounding: converged (an exact predictor)
         # as Newton judges convergence by an increment, a start (at rest, warm or predicted) is
-        # never accepted untouched: a small residual there need not mean a small distance (a
-        # predictor exact to 1e-12 left 6e-12 on a model whose Radau error is rounding)
+        # accepted untouched only where its Newton correction is at rounding: a small residual
+        # need not mean a small distance (a predictor within tol = 1e-12 left 6e-12 on a model
+        # whose Radau error is rounding)
         while iteration < self.config.iterations and not (stepped and self._done(residuals)):
             iteration += 1
             if system is None:
@@ -499,7 +529,7 @@ class SegmentTrainer:
 
         Each step counts as an iteration (of ``config.iterations``) and is reported as one.
         Returns ``(params, residuals, e, iteration)``."""
-        N = segment.x.shape[0]
+        N, K = segment.x.shape[0], self.net.count
         for _ in range(min(NEWTON_FINISH_STEPS, self.config.iterations - iteration)):
             if self._at_rounding(segment, self._raw, e):
                 break
@@ -507,9 +537,17 @@ class SegmentTrainer:
             trial["b_out"] = params["b_out"] - self.net.stack(e.reshape(N, -1))
             raw = self._raw
             residuals_t, e_t = self._merit(segment, trial, "output")
-            if not (bool(torch.isfinite(e_t).all()) and float(e_t @ e_t) < float(e @ e)):
+            before, after = ((a.reshape(N, -1) ** 2).sum(1) for a in (e, e_t))
+            better = torch.isfinite(after) & (after < before)  # per sample (each copy its own networks)
+            if not bool(better.any()):
                 self._raw = raw
                 break
+            if not bool(better.all()):  # keep the step only for the samples it improved
+                networks = better.repeat_interleave(K // N)[:, None, None]  # copy b's networks follow copy b-1's
+                trial["b_out"] = torch.where(networks, trial["b_out"], params["b_out"])
+                residuals_t = _per_sample(better, residuals_t, residuals)
+                e_t = torch.where(better[:, None], e_t.reshape(N, -1), e.reshape(N, -1)).reshape(-1)
+                self._raw = torch.where(better[:, None], self._raw, raw)
             params, residuals, e, iteration = trial, residuals_t, e_t, iteration + 1
             self.report(iteration, self._check(segment, residuals, iteration, None))
         return params, residuals, e, iteration
