@@ -64,7 +64,7 @@ from daemodel.backends.base import (
 )
 from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
 
-from daemodel.collocation import lagrange_matrix
+from daemodel.collocation import extrapolation_matrix, lagrange_matrix
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
 from daemodel.tableau import radau_iia
 
@@ -456,8 +456,7 @@ class _Stepper:
             return self.constant_guess()
         h_old, u_old, W_old = self._previous
         if self._extrapolation is None or self._extrapolation[0] != h / h_old:
-            nodes = np.concatenate([[0.0], self.tableau.c])
-            L = self.engine.asarray(lagrange_matrix(nodes, 1.0 + self.tableau.c * h / h_old))  # (s, s+1)
+            L = self.engine.asarray(extrapolation_matrix(self.tableau.c, h / h_old))  # (s, s+1)
             self._extrapolation = (h / h_old, L)
         L = self._extrapolation[1]
         return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))

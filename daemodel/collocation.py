@@ -228,6 +228,16 @@ def collocation_step(functions, A, c, t_n, h, y_n, Y, Z, p=None, *, max_iteratio
     )
 
 
+def extrapolation_matrix(c, ratio: float):
+    """Radau's start guess: the Lagrange matrix (s, s+1) that carries a step's collocation
+    polynomial, through its start (node 0) and its stages (nodes ``c``), to the stage nodes of
+    the next step, ``ratio`` = h_next / h times as long (radau's Newton, the PINN's predictor)."""
+    import numpy as np
+
+    c = np.asarray(c, dtype=float)
+    return lagrange_matrix(np.concatenate([[0.0], c]), 1.0 + c * ratio)
+
+
 def lagrange_matrix(nodes, points):
     """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` (N,) at ``points[i]`` (P,),
     shape (P, N), in numpy: the interpolation of stage values (a start guess, dense output)."""

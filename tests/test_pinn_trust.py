@@ -340,15 +340,20 @@ def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendu
 
 def test_large_query_batches_are_evaluated_in_chunks(boxed, pendulum, monkeypatch):
     """Queries are evaluated EVALUATION_CHUNK at a time (bigger batches spill the caches): the
-    answers and estimates do not depend on the chunking, including a last, shorter chunk."""
+    answers, estimates and certified distances do not depend on the chunking, including a last,
+    shorter chunk."""
     from daemodel.backends.pinn import surrogate
 
     rng = np.random.default_rng(3)
     y0 = pendulum.consistent(y0={"y4": rng.uniform(0.95, 1.05, 20)})
     parameters = {"lam": rng.uniform(0.6, 1.4, 20)}
     whole = boxed.solve(y0=y0, parameters=parameters, estimate=True)
+    whole_tol = boxed.solve(y0=y0, parameters=parameters, tol=1e-3)
     monkeypatch.setattr(surrogate, "EVALUATION_CHUNK", 7)
     chunked = boxed.solve(y0=y0, parameters=parameters, estimate=True)
+    chunked_tol = boxed.solve(y0=y0, parameters=parameters, tol=1e-3)
+    distances = (chunked_tol.stats["certified_distance"], whole_tol.stats["certified_distance"])
+    np.testing.assert_allclose(*distances, rtol=1e-10, atol=1e-15)
     plain = boxed.solve(y0=y0, parameters=parameters)
     # equal up to rounding: a batch of another size may sum in another order (measured: values
     # 2e-16, estimates 1.3e-14 relative); a misplaced chunk would differ in the first digit

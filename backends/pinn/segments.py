@@ -59,10 +59,9 @@ def extrapolated_start(previous, y_prev, z_prev, h_prev: float, h: float, c):
     collocation polynomial (through ``(0, (y_prev, z_prev))`` and its stages ``previous.Y``,
     ``previous.Z`` at the nodes ``c``, a step of ``h_prev``) extrapolated to this step's nodes.
     Returns the stage values ``(Y, Z)``, (B, s, n) and (B, s, m)."""
-    from daemodel.collocation import lagrange_matrix
+    from daemodel.collocation import extrapolation_matrix
 
-    nodes = np.concatenate([[0.0], c])
-    L = torch.as_tensor(lagrange_matrix(nodes, 1 + c * h / h_prev), dtype=y_prev.dtype, device=y_prev.device)
+    L = torch.as_tensor(extrapolation_matrix(c, h / h_prev), dtype=y_prev.dtype, device=y_prev.device)
     Y = torch.einsum("ij,bjn->bin", L, torch.cat([y_prev[:, None, :], previous.Y], dim=1))
     Z = torch.einsum("ij,bjn->bin", L, torch.cat([z_prev[:, None, :], previous.Z], dim=1))
     return Y, Z

@@ -84,7 +84,7 @@ TRAINING_STARTS = ("network", "radau")
 # the Hessenberg box, warm starts from the previous segment's fit ended 10-1000x less accurate.
 # Width 16 per variable keeps one forward pass of 10,000 states over 20 segments under 1 s.
 SURROGATE_CONFIG = PINNConfig(width=16, warm_start=False, tol=None, iterations=40, batch="shared")
-# Queries evaluated at once.  In one batch the (networks, queries, width) activations and the
+# Queries evaluated (and certified, with tol=) at once.  In one batch the (networks, queries, width) activations and the
 # estimate's (states, queries, ...) cotangents leave the caches: on one CPU thread 10^5 queries
 # took 26x (networks) and 40x (estimate) the time of 10^4.  On 5*10^4 pendulum queries, chunks
 # of 1,024 / 2,048 / 8,192 / 16,384 took 1.66 / 1.52 / 1.60 / 1.71 s (networks) and 5.4 / 5.6 /
@@ -478,19 +478,10 @@ class Surrogate:
         path = np.full(start.size, "network", dtype=object)
         if tol is not None:
             checked = time.perf_counter()
-            certificate = certify(
-                self.compiled,
-                self.config,
-                self.grid,
-                self.networks,
-                self.input_columns,
-                values,
-                start.p,
-                radau_error=False,
-                newton_tol=check_tolerance(tol, values),
+            newton_tol = check_tolerance(tol, values)
+            distance = np.concatenate(
+                [self._certified_distance(values[rows], start.p[rows], newton_tol) for rows in _chunks(start.size)]
             )
-            # inf where a Newton check failed; plus the check's own resolution where it stagnated
-            distance = (certificate.distance + certificate.rounding).max(axis=(1, 2))
             certificate_seconds = time.perf_counter() - checked
             corrected = ~(distance <= tol)
             if corrected.any():
@@ -553,6 +544,24 @@ class Surrogate:
             settings=dataclasses.asdict(self.config),
             status=status,
         )
+
+    def _certified_distance(self, values: np.ndarray, p: np.ndarray, newton_tol: float) -> np.ndarray:
+        """Each sample's certified distance from the collocation solution (largest over the grid
+        and variables, plus the check's own resolution; inf where its Newton check failed), for
+        ``solve(tol=)``: the networks' answers ``values`` (B, T, n+m) at parameters ``p``, the
+        check's Newton tolerance ``newton_tol`` (:func:`check_tolerance`)."""
+        certificate = certify(
+            self.compiled,
+            self.config,
+            self.grid,
+            self.networks,
+            self.input_columns,
+            values,
+            p,
+            radau_error=False,
+            newton_tol=newton_tol,
+        )
+        return (certificate.distance + certificate.rounding).max(axis=(1, 2))
 
     def _estimate(self, start) -> tuple[np.ndarray, dict]:
         """The networks' values on the grid (as :meth:`trajectory`) and the error estimates of
