@@ -134,8 +134,9 @@ class PINNConfig:
         there.  It uses the PINN's own previous stages, no classical solution.  Where each set
         of networks has one input (a trajectory, or independent networks for a batch); the
         first segment, and a segment whose extrapolation leaves f's domain, start at rest.
-        Measured on the models of ``benchmarks/pinn_models.py``: LM iterations fall 15-50 %
-        (a 3-bus grid 80 -> 42, akzo-nobel 68 -> 32).  Off in :meth:`paper`.
+        Measured on the models of ``benchmarks/pinn_models.py``: iterations fall 40-57 % (a
+        3-bus grid 79 -> 41, akzo-nobel 79 -> 34, the transistor amplifier 89 -> 51, every
+        other default on).  Off in :meth:`paper`.
     batch : str
         How a batch of samples (initial states or parameter values) trains: ``"independent"``
         (default) gives every sample its own networks, all trained at once as one block-diagonal
