@@ -47,6 +47,13 @@ from daemodel.files import writable_directory, writable_file
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
+# The table's words for why a PINN's certificate failed at a step (keys: NEWTON_FAILED,
+# ESTIMATE_FAILED, NO_DIGIT of backends/pinn/certificate.py, which imports torch).
+CERTIFICATE_FAILURES = {
+    "newton": "failed (Newton from the networks)",
+    "estimate": "failed (no Radau error estimate)",
+    "digit": "failed (Radau's step has no correct digit)",
+}
 # Most sweep points: a fixed-step sweep halves h from span/steps at each point, so point 12 is
 # already span/(2,048 steps) (20,480 steps per solve at the default steps = 10), and each
 # further point doubles the time.
@@ -201,7 +208,9 @@ class Comparison:
                     worst = max(names, key=lambda name: run.errors[name]["max"])
                     line += f"{run.errors[worst]['max']:>{cell - name_width - 3}.1e} ({worst:<{name_width}})"
             line += f"{max(run.drift.values()):>10.1e}" if run.drift else f"{'-':>10}"
-            if run.certificate:
+            if run.certificate and run.certificate.get("failure"):
+                line += f"  cert: {CERTIFICATE_FAILURES.get(run.certificate['failure'], run.certificate['failure'])}"
+            elif run.certificate:
                 verdict = "<=" if run.status == "success" else "> "
                 line += f"  cert {run.certificate['distance']:.0e} {verdict} {run.certificate['radau_error']:.0e}"
             if run.status != "success" and not run.certificate:
@@ -779,7 +788,10 @@ def _certificate_digest(solution) -> dict:
     certificate = solution.stats.get("certificate") if isinstance(solution.stats, dict) else None
     if not certificate:
         return {}
-    return {"distance": certificate["worst"]["distance"], "radau_error": certificate["worst"]["bound"]}
+    digest = {"distance": certificate["worst"]["distance"], "radau_error": certificate["worst"]["bound"]}
+    if certificate.get("failure"):
+        digest["failure"] = certificate["failure"]
+    return digest
 
 
 def _nan_to_none(value):

@@ -4,6 +4,7 @@ and the reference, the sweep's convergence order, the outputs, and every error m
 import dataclasses
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -87,6 +88,26 @@ def test_the_table_shows_the_pinns_certificate_and_its_time_against_radaus():
     assert f"pinn {certified.settings}: {ratio:.3g}x radau's time at the same stages and h" in table
     records = result.records()
     assert records[0]["status"].startswith("flagged") and records[1]["certified_distance"] > 0
+
+
+def test_the_table_names_a_certificate_that_failed_at_a_step():
+    """akzo-nobel at h = 2.25: the PINN equals radau, but the step estimating radau's own error
+    leaves sqrt's domain; the row says why it is flagged instead of comparing two infinities."""
+    from daemodel.backends.pinn import certificate
+
+    from daemodel.compare import CERTIFICATE_FAILURES
+    from daemodel.problems import PROBLEMS
+
+    kinds = (certificate.NEWTON_FAILED, certificate.ESTIMATE_FAILED, certificate.NO_DIGIT)
+    assert set(CERTIFICATE_FAILURES) == set(kinds)
+    sweep = {"pinn": [{"h": 2.25}]}
+    model = PROBLEMS["akzo-nobel"].model()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", dm.errors.UncertifiedWarning)
+        result = dm.compare(model, (0.0, 4.5), ["pinn"], sweep=sweep, progress=False)
+    (run,) = result.runs
+    assert run.certificate["failure"] == certificate.ESTIMATE_FAILED and run.status.startswith("flagged: ")
+    assert "cert: failed (no Radau error estimate)" in result.table()
 
 
 def test_table_json_csv_and_plot(hessenberg, tmp_path):

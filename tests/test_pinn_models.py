@@ -5,6 +5,7 @@ farther; and its certificate bounds its true distance from Radau's solution.
 The errors are measured against radau at the same h (whose own error the certificate estimates,
 checked against the exact solution where there is one and against the reference solver)."""
 
+import re
 import sys
 import warnings
 from pathlib import Path
@@ -144,6 +145,27 @@ def test_the_flag_names_the_uncertified_sample_and_its_failing_step():
         "networks' stages does not converge to a Radau step"
     )
     assert certificate.worst()[0] == 1  # the worst ratio is taken among the uncertified samples
+
+
+def test_a_failed_error_estimate_is_named_as_such():
+    """akzo-nobel at h = 2.25: the PINN trains to the Radau step (Newton from its stages moves
+    them by 2e-16), but the 4-stage step that estimates Radau's own error leaves sqrt's domain.
+    The flag says exactly that, with the distance, and advises a shorter h, not more training.
+    Before, it blamed Newton from the networks' stages."""
+    from daemodel.problems import PROBLEMS
+
+    c = PROBLEMS["akzo-nobel"].model().compile()
+    with pytest.warns(dm.errors.UncertifiedWarning):
+        pinn = dm.solve(c, (0.0, 4.5), method="pinn", h=2.25)
+    radau = dm.solve(c, (0.0, 4.5), method="radau", h=2.25)
+    assert max(np.max(np.abs(pinn[name] - radau[name])) for name in pinn.names) < 1e-12
+    assert re.fullmatch(
+        r"flagged: not certified \(the answer\): at segment 1 \(t = 0 to 2\.25\), the networks are [0-9.e+-]+ from "
+        r"the Radau step, but the 4-stage step that estimates Radau's own error does not converge there \(values "
+        r"outside f's domain, or a singular step\): no error estimate to certify against at this h; shorten h or use "
+        r"the Radau solution \(method='radau'\)",
+        pinn.status,
+    ), pinn.status
 
 
 def test_a_saved_comparison_with_an_uncertified_run_loads_and_prints(tmp_path):

@@ -292,7 +292,7 @@ def certified_status(compiled, config, grid, stats, certificate, batched: bool) 
     error estimate has no correct digit, or else the variable, segment and sample farthest
     beyond Radau's error, with both numbers; and the first segment that missed ``config.tol``
     (or the fixed budget)."""
-    from daemodel.backends.pinn.certificate import NEWTON_FAILED
+    from daemodel.backends.pinn.certificate import CERTIFICATE_SAFETY, ESTIMATE_FAILED, NEWTON_FAILED, NO_DIGIT
     from daemodel.backends.pinn.train import segment_label
 
     if bool(certificate.certified.all()):
@@ -304,13 +304,23 @@ def certified_status(compiled, config, grid, stats, certificate, batched: bool) 
     if steps:
         b, k = steps[0]
         where = segment_label(k, grid[k], grid[k + 1]) + (f", sample {b}" if batched else "")
-        what = (
-            f"at {where}, Newton from the networks' stages does not converge to a Radau step (values outside f's "
-            "domain, or a singular step)"
-            if certificate.failed[b, k] == NEWTON_FAILED
-            else f"at {where}, Radau's own step has no correct digit (its estimated local error is beyond "
-            f"{LOCAL_ERROR_BOUND:g} of the solution's size): no Radau solution to certify against at this h"
-        )
+        if certificate.failed[b, k] == NEWTON_FAILED:
+            what = (
+                f"at {where}, Newton from the networks' stages does not converge to a Radau step (values outside "
+                "f's domain, or a singular step)"
+            )
+        elif certificate.failed[b, k] == ESTIMATE_FAILED:
+            what = (
+                f"at {where}, the networks are {CERTIFICATE_SAFETY * certificate.local_distance[b, k].max():.3g} from "
+                f"the Radau step, but the {config.stages + 1}-stage step that estimates Radau's own error does not "
+                "converge there (values outside f's domain, or a singular step): no error estimate to certify "
+                "against at this h"
+            )
+        else:
+            what = (
+                f"at {where}, Radau's own step has no correct digit (its estimated local error is beyond "
+                f"{LOCAL_ERROR_BOUND:g} of the solution's size): no Radau solution to certify against at this h"
+            )
     else:
         b, t, j, _ = certificate.worst()
         where = segment_label(t - 1, grid[t - 1], grid[t]) + (f", sample {b}" if batched else "")
@@ -330,10 +340,11 @@ def certified_status(compiled, config, grid, stats, certificate, batched: bool) 
         training = f"; a fixed budget of {config.iterations} {config.optimizer} iterations per segment"
     else:
         training = ""
-    return (
-        f"flagged: not certified ({count}): {what}{training}; raise iterations or tighten tol, shorten h, "
-        "or use the Radau solution (method='radau')"
-    )
+    # where the networks are on the Radau step but there is no error to certify against, more
+    # training cannot help
+    at_radau = steps and certificate.failed[steps[0]] in (ESTIMATE_FAILED, NO_DIGIT) and not missed
+    fix = "shorten h" if at_radau else "raise iterations or tighten tol, shorten h,"
+    return f"flagged: not certified ({count}): {what}{training}; {fix} or use the Radau solution (method='radau')"
 
 
 def torch_threads_now() -> int:

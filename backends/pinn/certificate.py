@@ -65,7 +65,7 @@ CERTIFICATE_SAFETY = 2.0
 # CERTIFICATE_ENTRIES / ((s+1) D)^2 rows (2^25 doubles: 256 MB, a few copies of it in the LU).
 CERTIFICATE_ENTRIES = 2**25
 # Why a sample is not certified, besides a distance beyond Radau's error.
-NEWTON_FAILED, NO_DIGIT = "newton", "digit"
+NEWTON_FAILED, ESTIMATE_FAILED, NO_DIGIT = "newton", "estimate", "digit"
 
 
 @dataclass(frozen=True)
@@ -90,8 +90,9 @@ class Certificate:
         resolution of the Radau step it computed, added to ``floor``.
     failed : ndarray of str, shape (B, T - 1)
         Per step: "" where both Newton solves converged and Radau's error estimate has a correct
-        digit, :data:`NEWTON_FAILED` where a Newton solve did not converge (from the networks'
-        stages, or the (s+1)-stage one), :data:`NO_DIGIT` where the estimated local error of
+        digit, :data:`NEWTON_FAILED` where Newton from the networks' stages did not converge,
+        :data:`ESTIMATE_FAILED` where it did but the (s+1)-stage step that estimates Radau's own
+        error did not (no error to certify against), :data:`NO_DIGIT` where the estimated local error of
         Radau's step is beyond ``LOCAL_ERROR_BOUND`` of the variable's size (index-weighted as
         radau's fixed step weighs it: radau refuses such a step).
     certified : ndarray of bool, shape (B,)
@@ -128,6 +129,16 @@ class Certificate:
         b, t, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
         return int(b), int(t), int(j), float(ratio[b, t, j])
 
+    def failure(self) -> str:
+        """Why the first uncertified sample's first failed step is not certified
+        (:data:`NEWTON_FAILED`, :data:`ESTIMATE_FAILED`, :data:`NO_DIGIT`), or "" where no step
+        failed (a distance beyond Radau's error, or every sample certified)."""
+        for b in np.flatnonzero(~self.certified):
+            for kind in self.failed[b]:
+                if kind:
+                    return str(kind)
+        return ""
+
     def _worst_pair(self) -> dict:
         """The distance and its bound where their ratio is largest (the two numbers a verdict
         compares; the per-variable maxima may come from different variables and times)."""
@@ -146,6 +157,7 @@ class Certificate:
             "max_radau_error": {name: self.radau_error[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
             "worst": self._worst_pair(),
+            "failure": self.failure(),
             "segment_distance": self.distance[:, 1:].max(axis=2).tolist(),
             "segment_radau_error": self.radau_error[:, 1:].max(axis=2).tolist(),
             "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2).tolist(),
@@ -196,27 +208,31 @@ def certify(
                 newton_tol,
             )
         )
-    radau_end, local_e, converged, rounding, sensitivity = (torch.cat([part[i] for part in parts]) for i in range(5))
+    radau_end, local_e, converged, estimated, rounding, sensitivity = (
+        torch.cat([part[i] for part in parts]) for i in range(6)
+    )
     pinn_end = torch.cat([y_end, z_end], dim=-1)
     inf = torch.tensor(float("inf"), dtype=torch.float64, device=device)
     local_d = torch.where(converged[:, None], pinn_end - radau_end, inf)
-    local_e = torch.where(converged[:, None], local_e, inf)
+    local_e = torch.where((converged & estimated)[:, None], local_e, inf)
 
     def per_step(a):  # rows (S B, ...) -> (S, B, ...)
         return a.reshape(S, B, *a.shape[1:])
 
-    local_d, local_e, rounding, sensitivity, converged = map(
-        per_step, (local_d, local_e, rounding, sensitivity, converged)
+    local_d, local_e, rounding, sensitivity, converged, estimated = map(
+        per_step, (local_d, local_e, rounding, sensitivity, converged, estimated)
     )
     distance = [torch.zeros(B, D, dtype=torch.float64, device=device)]
     error = [torch.zeros(B, D, dtype=torch.float64, device=device)]
     for k in range(S):  # signed, through each step's sensitivity to its start
         distance.append(torch.einsum("bij,bj->bi", sensitivity[k], distance[-1][:, :n]) + local_d[k])
         error.append(torch.einsum("bij,bj->bi", sensitivity[k], error[-1][:, :n]) + local_e[k])
-    distance = torch.stack(distance, dim=1).abs().cpu().numpy()
-    error = torch.stack(error, dim=1).abs().cpu().numpy()
+    # after a failed step (inf) a product with a zero sensitivity is NaN: unknown, so inf
+    distance = _unknown_is_inf(torch.stack(distance, dim=1).abs().cpu().numpy())
+    error = _unknown_is_inf(torch.stack(error, dim=1).abs().cpu().numpy())
     # where Newton stagnated above 10 eps, distances below its last increment are not resolved
-    rounding = torch.cat([torch.zeros_like(rounding[:1]), rounding]).cummax(0).values.transpose(0, 1).cpu().numpy()
+    rounding = _unknown_is_inf(rounding.cpu().numpy())  # a failed Newton's last increment is NaN
+    rounding = np.maximum.accumulate(np.concatenate([np.zeros_like(rounding[:1]), rounding]), axis=0).transpose(1, 0, 2)
     local_d = local_d.abs().transpose(0, 1).cpu().numpy()
     local_e = local_e.abs().transpose(0, 1).cpu().numpy()
     size = 1 + np.abs(values).max(axis=1)  # (B, D): each sample's own scale
@@ -225,7 +241,10 @@ def certify(
     h = np.array([step for _, step in segment_steps(grid)])
     weight = np.concatenate([np.ones((S, n)), h[:, None] ** (np.asarray(compiled.algebraic_index, float) - 1)], axis=1)
     digits = local_e * weight[None] <= LOCAL_ERROR_BOUND * size[:, None, :]
-    failed = np.where(~converged.transpose(0, 1).cpu().numpy(), NEWTON_FAILED, np.where(digits.all(2), "", NO_DIGIT))
+    converged, estimated = (a.transpose(0, 1).cpu().numpy() for a in (converged, estimated))
+    failed = np.where(
+        ~converged, NEWTON_FAILED, np.where(~estimated, ESTIMATE_FAILED, np.where(digits.all(2), "", NO_DIGIT))
+    )
     certificate = Certificate(
         distance=CERTIFICATE_SAFETY * distance,
         radau_error=error,
@@ -240,6 +259,10 @@ def certify(
         return certificate
     ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & (failed == "").all(axis=1)
     return dataclasses.replace(certificate, certified=ok)
+
+
+def _unknown_is_inf(a: np.ndarray) -> np.ndarray:
+    return np.where(np.isnan(a), np.inf, a)
 
 
 def _predictions(compiled, config, grid, networks, input_columns, values, p) -> tuple:
@@ -259,7 +282,8 @@ def _predictions(compiled, config, grid, networks, input_columns, values, p) -> 
 def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, newton_tol: float) -> tuple:
     """For rows of (t, h) ``steps`` (R, 2), starts (R, D) and the networks' stages: the Radau step's
     end values (R, D) by full Newton from those stages, Radau's local error estimate (R, D) (that
-    step less the (s+1)-stage one; zeros with ``radau_error=False``), whether both converged (R,),
+    step less the (s+1)-stage one; zeros with ``radau_error=False``), whether the step converged
+    and whether the (s+1)-stage one did (R,) each,
     Newton's last increment of the end values (R, D), and the step map's sensitivity
     d(y, z)_end / dy_n (R, D, n)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
@@ -271,7 +295,8 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     )
     radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
     if not radau_error:
-        return radau_end, torch.zeros_like(radau_end), radau.converged, radau.increment[:, -1], radau.end_sensitivity()
+        done = radau.converged
+        return radau_end, torch.zeros_like(radau_end), done, done, radau.increment[:, -1], radau.end_sensitivity()
     # the (s+1)-stage step from the same start, started on the s-stage collocation polynomial
     A1, _, c1 = radau_iia(s + 1).to_torch(dtype=torch.float64, device=device)
     nodes = np.concatenate([[0.0], radau_iia(s).c])
@@ -295,7 +320,8 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     return (
         radau_end,
         radau_end - higher_end,
-        radau.converged & higher.converged,
+        radau.converged,
+        higher.converged,
         radau.increment[:, -1],
         radau.end_sensitivity(),
     )
