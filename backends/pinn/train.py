@@ -259,15 +259,14 @@ class SegmentTrainer:
         """Train until every residual is below ``tol`` (or ``iterations`` for tol=None)."""
         began = time.perf_counter()
         method = {"lm": self._levenberg_marquardt, "lbfgs": self._lbfgs, "adam": self._adam}[self.config.optimizer]
-        done = method(segment)
-        iterations, residuals = done if isinstance(done, tuple) else (done, None)
+        iterations, residuals = method(segment)  # residuals at the end where the optimizer has them
         return self._finish(segment, iterations, began, residuals)
 
     # ---- Adam and L-BFGS ----------------------------------------------------------------------
-    def _adam(self, segment: Segment) -> int:
+    def _adam(self, segment: Segment) -> tuple:
         return self._adam_graphed(segment) if segment.x.is_cuda else self._adam_eager(segment)
 
-    def _adam_eager(self, segment: Segment) -> int:
+    def _adam_eager(self, segment: Segment) -> tuple:
         optimizer = torch.optim.Adam(self.net.parameters(), lr=self.config.learning_rate)
         start, last_report = None, 0.0
         for iteration in range(self.config.iterations):
@@ -281,13 +280,13 @@ class SegmentTrainer:
                 self.report(iteration, terms)
                 last_report = time.perf_counter()
             if self._done(residuals):
-                return iteration
+                return iteration, None
             loss.backward()
             optimizer.param_groups[0]["lr"] = self.config.learning_rate_at(iteration)
             optimizer.step()
-        return self.config.iterations
+        return self.config.iterations, None
 
-    def _adam_graphed(self, segment: Segment) -> int:
+    def _adam_graphed(self, segment: Segment) -> tuple:
         """Adam on a GPU, each iteration (forward, loss, backward, step) replayed as one captured
         CUDA graph.  A segment's networks see one or a few inputs, so eager Adam is bound by
         kernel launches (hundreds per iteration); the graph launches them at once.  The loss terms
@@ -324,7 +323,7 @@ class SegmentTrainer:
         terms, finished = check(0, None)
         start = self._weighted(terms)
         if finished or total == 0:
-            return 0
+            return 0, None
         warmup = min(GRAPH_WARMUP, total)  # eager iterations on a side stream: Adam's state, autograd's buffers
         side = torch.cuda.Stream(device)
         side.wait_stream(torch.cuda.current_stream(device))
@@ -348,10 +347,10 @@ class SegmentTrainer:
                 done += 1
             terms, finished = check(done, start)
             if finished:
-                return done
-        return done
+                return done, None
+        return done, None
 
-    def _lbfgs(self, segment: Segment) -> int:
+    def _lbfgs(self, segment: Segment) -> tuple:
         optimizer = torch.optim.LBFGS(
             self.net.parameters(),
             lr=self.config.learning_rate,
@@ -378,14 +377,14 @@ class SegmentTrainer:
             start = self._weighted(terms) if start is None else start
             self.report(done, terms)
             if self._done(residuals):
-                return done
+                return done, None
             before = optimizer.state[optimizer._params[0]].get("n_iter", 0)
             optimizer.step(closure)
             after = optimizer.state[optimizer._params[0]].get("n_iter", 0)
             if after == before:  # L-BFGS made no progress: the loss is flat to rounding
                 break
             done += after - before
-        return done
+        return done, None
 
     # ---- Levenberg-Marquardt --------------------------------------------------------------------
     def _output_jacobian(self, segment: Segment, raw: torch.Tensor) -> torch.Tensor:
