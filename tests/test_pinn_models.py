@@ -63,7 +63,13 @@ def test_success_means_within_twice_radaus_error_and_the_certificate_bounds_the_
     distance = np.array([certificate["max_distance"][n] for n in names]).T  # (B, D)
     floor = 100 * np.finfo(float).eps * (1 + np.abs(radau_v).max(axis=(0, 1)))
     true_distance = np.abs(pinn_v - radau_v).max(axis=1)  # (B, D)
-    assert np.all(true_distance <= np.maximum(distance, floor)), (true_distance, distance)
+    # the Radau solution itself is resolved only to rounding, amplified by the stage equations'
+    # conditioning: measured as the difference of radau's two engines (on the squeezer 2e-10 to
+    # 1e-9 in its accelerations of 1e5, where PINN and radau differ by 3e-10 to 2e-9)
+    common = {"h": case.h, "stages": case.stages, **case.options}
+    other = dm.solve(compiled, case.t_span, method="radau", engine="torch", **common)
+    resolution = np.abs(values(other, names) - radau_v).max(axis=1)
+    assert np.all(true_distance <= np.maximum(distance + resolution, floor)), (true_distance, distance, resolution)
     radau_error = np.abs(radau_v - ref_v).max(axis=1)
     pinn_error = np.abs(pinn_v - ref_v).max(axis=1)
     if pinn.status == "success":
