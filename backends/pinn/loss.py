@@ -211,25 +211,21 @@ class RadauLoss:
     def residuals(self, t_n: float, h: float, y_n, p, out) -> Residuals:
         """Residuals at inputs ``y_n`` (N, n), parameters ``p`` (N, k), predictions ``out``."""
         if self._kernel_applies(y_n, out, p):
-            return self._kernel_residuals(t_n, h, y_n, out, self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
-        res = stage_residual(
-            self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
-        )
-        F = torch.cat([res.F, res.F_end[:, None, :]], dim=1)
-        G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
+            s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
+            r = torch.from_numpy(self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
+            F = r[: (s + 1) * n].reshape(1, s + 1, n)
+            G = r[(s + 1) * n : (s + 1) * (n + m)].reshape(1, s + 1, m)
+            S = r[(s + 1) * (n + m) :].reshape(1, m)
+        else:
+            res = stage_residual(
+                self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
+            )
+            F = torch.cat([res.F, res.F_end[:, None, :]], dim=1)
+            G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
+            S = res.S
         with torch.no_grad():
             scale_f = y_n.detach().abs().clamp(min=1.0)[:, None, :]
             scale_s = out.z_end.detach().abs().clamp(min=1.0) if out.z_end is not None else None
-        return Residuals(F=F, G=G, S=res.S, scale_f=scale_f, scale_s=scale_s)
-
-    def _kernel_residuals(self, t_n, h, y_n, out, values: np.ndarray) -> Residuals:
-        s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
-        r = torch.from_numpy(values)
-        F = r[: (s + 1) * n].reshape(1, s + 1, n)
-        G = r[(s + 1) * n : (s + 1) * (n + m)].reshape(1, s + 1, m)
-        S = r[(s + 1) * (n + m) :].reshape(1, m)
-        scale_f = y_n.abs().clamp(min=1.0)[:, None, :]
-        scale_s = out.z_end.abs().clamp(min=1.0)
         return Residuals(F=F, G=G, S=S, scale_f=scale_f, scale_s=scale_s)
 
     def jacobian(self, t_n: float, h: float, y_n, p, out) -> torch.Tensor:
