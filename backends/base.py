@@ -131,6 +131,12 @@ class AbstractBackend(ABC):
         """The method and the settings that matter for its accuracy, for a label (e.g. a reference's)."""
         return self.name
 
+    def times_follow_samples(self, options) -> bool:
+        """Whether the output times depend on the samples solved together (adaptive steps with no
+        ``t_eval``): the samples of separate calls, such as an ensemble's chunks, then come back
+        on different times."""
+        return False
+
     def work_precision(self, t_span: tuple[float, float], points: int, steps: int = SWEEP_FIRST_STEPS) -> list[dict]:
         """``points`` sets of options, from cheap to accurate, that :func:`daemodel.compare`
         sweeps; a method without an accuracy setting is solved once with its defaults.  A

@@ -264,6 +264,9 @@ class RadauBackend(AbstractBackend):
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return fixed_step_sweep(t_span, points, steps)
 
+    def times_follow_samples(self, options: RadauOptions) -> bool:
+        return options.adaptive and options.t_eval is None  # a batch steps together, on its own times
+
     def solve(self, compiled, t_span, start, options: RadauOptions):
         if make_engine_name(start, options) == "casadi":
             return self._solve(compiled, t_span, start, options)

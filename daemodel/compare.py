@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import math
 import time
 import traceback
@@ -43,7 +42,15 @@ from daemodel.errors import (
     ResourceLimitError,
     SolverError,
 )
-from daemodel.files import writable_directory, writable_file
+from daemodel.files import (
+    atomic_write,
+    file_name,
+    read_json,
+    save_figure,
+    writable_directory,
+    writable_file,
+    write_json,
+)
 
 # Sweep points per method when compare() is not told otherwise.
 DEFAULT_POINTS = 4
@@ -263,9 +270,11 @@ class Comparison:
         ComparisonError
             When the file is not such a JSON (naming the file and what is missing).
         """
-        path = Path(path)
+        path = Path(path).expanduser()
+        if not path.exists():
+            raise ComparisonError(f"no comparison file at {path}")
+        payload = read_json(path, ComparisonError, "a comparison saved by Comparison.to_json")
         try:
-            payload = json.loads(path.read_text())
             runs = tuple(
                 Run(
                     method=r["method"],
@@ -289,20 +298,24 @@ class Comparison:
                 for r in payload["runs"]
             )
             return cls(
-                model=payload["model"],
+                model=file_name(payload["model"], f"{path}: field 'model'", ComparisonError),
                 t_span=tuple(payload["t_span"]),
                 reference=payload["reference"],
                 states=tuple(payload["states"]),
                 algebraics=tuple(payload["algebraics"]),
                 runs=runs,
             )
-        except (OSError, ValueError, KeyError, TypeError) as error:
+        except (ValueError, KeyError, TypeError, AttributeError) as error:
+            if isinstance(error, ComparisonError):
+                raise
             raise ComparisonError(
                 f"{path} is not a comparison saved by Comparison.to_json: {type(error).__name__}: {error}"
             ) from None
 
     def to_json(self, path) -> Path:
-        path = Path(path)
+        """Write the comparison as JSON (atomically; a failed run's NaN times as null); read it back
+        with :meth:`load`."""
+        path = writable_file(path, "path")
         payload = {
             "model": self.model,
             "t_span": list(self.t_span),
@@ -312,17 +325,19 @@ class Comparison:
             "runs": [dataclasses.asdict(run) for run in self.runs],
         }
         # a failed run's wall time is NaN, which JSON lacks: null, as strict parsers expect
-        path.write_text(json.dumps(_nan_to_none(payload), indent=2, allow_nan=False) + "\n")
-        return path
+        return write_json(path, _nan_to_none(payload))
 
     def to_csv(self, path) -> Path:
-        path = Path(path)
+        """Write :meth:`records` as CSV (atomically), one row per run."""
+        path = writable_file(path, "path")
         rows = self.records()
-        with path.open("w", newline="") as handle:
+
+        def write(handle):
             writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-        return path
+
+        return atomic_write(path, write, text=True)
 
     def plot(self, path=None, clock: str = "solve"):
         """Work-precision plot: max absolute error against time, log-log, one curve per method
@@ -376,13 +391,13 @@ class Comparison:
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 2), fontsize=8)
         fig.suptitle(f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: error against {self.reference}")
         if path is not None:
-            fig.savefig(writable_file(path, "plot path"), dpi=130)
+            save_figure(fig, path, "plot path", dpi=130)
         return fig
 
     def save(self, directory) -> list[Path]:
         """Write ``<model>.json``, ``<model>.csv`` and ``<model>_work_precision.png`` into ``directory``."""
         directory = writable_directory(directory, "save directory")
-        stem = directory / self.model
+        stem = directory / file_name(self.model, "the comparison's model name", ComparisonError)
         png = Path(f"{stem}_work_precision.png")
         self.plot(png)
         return [self.to_json(f"{stem}.json"), self.to_csv(f"{stem}.csv"), png]

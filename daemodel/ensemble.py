@@ -9,7 +9,9 @@ index in ``stats["failures"]`` and left out of the returned Solution, whose valu
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -23,11 +25,20 @@ from daemodel.errors import (
     InconsistentInitialStateError,
     InitialisationError,
     InvalidOptionError,
+    ResourceLimitError,
     SolutionFileError,
     SolverError,
 )
-from daemodel.files import writable_directory
-from daemodel.solution import Solution
+from daemodel.files import (
+    DirectoryLock,
+    memory_limit,
+    open_inside,
+    read_arrays,
+    read_json,
+    writable_directory,
+    write_json,
+)
+from daemodel.solution import SOLUTION_ARRAYS, Solution
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
@@ -41,10 +52,27 @@ DEFAULT_MAX_FAILURES = 1000
 # error (a wrong option, a model error) would fail every sample and ends the ensemble at once.
 SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateError, InconsistentAlgebraicValueError)
 # What ensemble(write_to=...) writes: a manifest and one Solution.save file per chunk with values.
-ENSEMBLE_FORMAT = "daemodel-ensemble/1"
+# Each chunk records the run's fingerprint (model, t_span, method, settings, chunking) and a hash
+# of its own samples' inputs, so that a resumed run takes only its own chunks and a loader
+# refuses a chunk copied from another run.
+ENSEMBLE_FORMAT = "daemodel-ensemble/2"
 MANIFEST = "ensemble.json"
 CHUNK_FILE = "chunk-{offset:012d}.npz"
-MANIFEST_KEYS = ("model", "fingerprint", "total", "chunk", "engine", "seconds", "status", "failures", "files")
+CHUNK_NAME = re.compile(r"chunk-(\d{12})\.npz")
+# What an interrupted atomic write leaves: a temporary file, never complete, removed on resume.
+PARTIAL_NAME = re.compile(r"\.(chunk-\d{12}\.npz|ensemble\.json)\..+\.partial")
+MANIFEST_KEYS = (
+    "model",
+    "fingerprint",
+    "run",
+    "total",
+    "chunk",
+    "engine",
+    "seconds",
+    "status",
+    "failures",
+    "files",
+)
 
 
 @dataclass(frozen=True)
@@ -110,11 +138,21 @@ def ensemble(
         Failed samples to record before the ensemble stops with a :class:`ConvergenceError`
         that names the first (default 1000; None: no bound).
     write_to : str or Path, optional
-        A directory (created if missing; it must hold no earlier ensemble) to write each
-        chunk's values to as the chunk finishes, one :meth:`Solution.save` file per chunk, with
-        a manifest ``ensemble.json``, instead of keeping them in memory: for batches whose values
-        do not fit.  The call then returns an :class:`EnsembleFiles`, which reads them back a
-        chunk at a time.
+        A directory (created if missing) to write each chunk's values to as the chunk finishes,
+        one :meth:`Solution.save` file per chunk, with a manifest ``ensemble.json``, instead of
+        keeping them in memory: for batches whose values do not fit.  The call then returns an
+        :class:`EnsembleFiles`, which reads them back a chunk at a time.  The directory is
+        locked while the call runs (a second writer is refused).  The same call on a directory
+        that an interrupted run left **resumes**: the chunks there are checked against this
+        call's model, inputs, method and settings and kept, and only the others are solved; a
+        chunk of any other run is refused by name.  On a finished directory of the same call it
+        returns the files without solving.
+
+    Notes
+    -----
+    Adaptive radau with no ``t_eval`` reports a batch on the steps it took together: an ensemble
+    of more than one sample needs ``t_eval`` then, so that every chunk, and each half of a chunk
+    split around a failing sample, gives its values on the same times.
 
     Returns
     -------
@@ -124,10 +162,13 @@ def ensemble(
         not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size.
         With ``write_to``, an :class:`EnsembleFiles` instead.
     """
+    from daemodel.backends import get_backend
     from daemodel.initial_states import _columns
-    from daemodel.model import Model
+    from daemodel.solver import as_compiled, check_options, check_span
 
     check_engine(engine, workers, address, options.get("device", "cpu"))
+    backend = get_backend(method)
+    checked = check_options(backend, options)  # a misspelt option is named before any chunk runs
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
         raise InvalidOptionError(f"chunk must be a positive integer (samples per task); got {chunk!r}")
     chunk = int(chunk)
@@ -135,7 +176,8 @@ def ensemble(
         isinstance(max_failures, bool) or not isinstance(max_failures, int | np.integer) or max_failures < 0
     ):
         raise InvalidOptionError(f"max_failures must be a non-negative integer or None; got {max_failures!r}")
-    compiled = model.compile() if isinstance(model, Model) else model
+    compiled = as_compiled(model, "ensemble()")
+    t_span = check_span(t_span, compiled)
     columns = {
         "y0": _columns(compiled, y0, compiled.state_names, compiled.y0, "y0"),
         "parameters": _columns(compiled, parameters, compiled.parameter_names, compiled.parameter_values, "parameters"),
@@ -149,28 +191,72 @@ def ensemble(
             + ", ".join(f"{name}: {size}" for name, size in sizes.items())
         )
     total = next(iter(sizes.values()), 1)
-    directory = None if write_to is None else _empty_directory(write_to)  # made once the inputs are known good
+    if total > 1 and backend.times_follow_samples(checked):
+        raise InvalidOptionError(
+            f"ensemble: {method} with adaptive steps and no t_eval reports each batch on the steps it took, so the "
+            "chunks (and the halves of a chunk split around a failing sample) would come back on different times; "
+            "give t_eval=[...] (the collocation polynomials give the values there)"
+        )
     arrays = {name: np.broadcast_to(array, (total, array.shape[1])) for name, (_, array) in columns.items()}
     pieces = [(start, min(start + chunk, total)) for start in range(0, total, chunk)]
     work = [
         (start, {name: np.ascontiguousarray(array[start:stop]) for name, array in arrays.items()})
         for start, stop in pieces
     ]
+    plan = _Plan(compiled, t_span, method, options, total, chunk, engine, workers, address, progress, max_failures)
+    if write_to is None:
+        return _run(plan, work)
+    directory = writable_directory(write_to, "write_to")  # made once the inputs are known good
+    with DirectoryLock(directory, "write_to"):
+        run = _run_fingerprint(compiled, t_span, method, options, chunk, total)
+        digests = {start: _inputs_digest(batch) for start, batch in work}
+        done = _resume(directory, compiled, run, digests, {start: len(batch["y0"]) for start, batch in work})
+        if isinstance(done, EnsembleFiles):
+            return done
+        began = time.perf_counter()
+        results = _run(plan, [item for item in work if item[0] not in done], (directory, run, digests))
+        # the run's wall time: this call's, plus the seconds of the chunks an earlier call left
+        seconds = time.perf_counter() - began + sum(result["seconds"] for result in done.values())
+        results = sorted([*done.values(), *results], key=lambda result: result["offset"])
+        _write_manifest(directory, compiled, results, total, seconds, engine, chunk, run)
+        return EnsembleFiles.load(directory, compiled)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """One ensemble call's settings, as given."""
+
+    compiled: object
+    t_span: tuple
+    method: str
+    options: dict
+    total: int
+    chunk: int
+    engine: str
+    workers: int | None
+    address: str | None
+    progress: bool
+    max_failures: int | None
+
+
+def _run(plan: _Plan, work: list, files: tuple | None = None):
+    """Solve ``work``'s chunks: each result written to ``files`` = (directory, run, digests) as it
+    finishes (the results, without values, are returned), or kept and assembled into one Solution."""
     began = time.perf_counter()
     finished, failed = [], []
 
     def report(_, result) -> None:
         finished.append(result["size"])
         failed.extend(result["failures"])
-        if result.get("stopped") or (max_failures is not None and len(failed) > max_failures):
-            _too_many_failures(failed, max_failures)
-        if directory is not None:
-            _write_chunk(directory, compiled, result)
-        elif engine == "ray" and "values" in result:
+        if result.get("stopped") or (plan.max_failures is not None and len(failed) > plan.max_failures):
+            _too_many_failures(failed, plan.max_failures)
+        if files is not None:
+            _write_chunk(files, plan.compiled, result)
+        elif plan.engine == "ray" and "values" in result:
             # arrays from Ray are views into its object store, which they would keep pinned
             result["values"] = {name: np.array(value) for name, value in result["values"].items()}
             result["parameters"] = np.array(result["parameters"])
-        if progress:
+        if plan.progress:
             print(
                 f"ensemble: {len(finished)}/{len(work)} chunks, {sum(finished)} samples, "
                 f"{time.perf_counter() - began:.1f} s",
@@ -180,18 +266,17 @@ def ensemble(
 
     results = run_tasks(
         solve_chunk,
-        (compiled, t_span, method, options, max_failures),
+        (plan.compiled, plan.t_span, plan.method, plan.options, plan.max_failures),
         work,
-        engine=engine,
-        workers=workers,
-        address=address,
+        engine=plan.engine,
+        workers=plan.workers,
+        address=plan.address,
         label="ensemble",
         on_result=report,
     )
-    if directory is not None:
-        _write_manifest(directory, compiled, results, total, time.perf_counter() - began, engine, chunk)
-        return EnsembleFiles.load(directory, compiled)
-    return _assemble(compiled, results, total, time.perf_counter() - began, engine, chunk)
+    if files is not None:
+        return results
+    return _assemble(plan.compiled, results, plan.total, time.perf_counter() - began, plan.engine, plan.chunk)
 
 
 def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
@@ -369,7 +454,7 @@ class EnsembleFiles:
 
     def __init__(self, directory: Path, compiled, manifest: dict):
         self.directory, self.compiled, self._manifest = directory, compiled, manifest
-        self.total = int(manifest["total"])
+        self.total, self.run = int(manifest["total"]), manifest["run"]
         self.failures = [Failure(**failure) for failure in manifest["failures"]]
         self.status, self.engine = manifest["status"], manifest["engine"]
         self.chunk, self.seconds = int(manifest["chunk"]), float(manifest["seconds"])
@@ -382,23 +467,22 @@ class EnsembleFiles:
         Raises
         ------
         SolutionFileError
-            No manifest there, not a daemodel ensemble, a chunk file missing, or another model.
+            No manifest there, not a daemodel ensemble, a field that is damaged (named), a chunk
+            file missing or not a plain file, or another model.
         """
         from daemodel.solver import as_compiled
 
         directory = Path(directory).expanduser()
         path = directory / MANIFEST
-        if not path.is_file():
+        if not path.exists():
             raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")
-        try:
-            manifest = json.loads(path.read_text())
-        except (OSError, ValueError) as error:
-            raise SolutionFileError(f"{path} is not a daemodel ensemble manifest ({type(error).__name__})") from None
+        manifest = read_json(path, SolutionFileError, "a daemodel ensemble manifest")
         if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
         lacking = [key for key in MANIFEST_KEYS if key not in manifest]
         if lacking:
             raise SolutionFileError(f"{path} is damaged: it lacks {', '.join(lacking)}")
+        _check_manifest(path, manifest)
         compiled = as_compiled(model, "EnsembleFiles.load()")
         candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
         if not any(c.fingerprint() == manifest["fingerprint"] for c in candidates):
@@ -406,7 +490,7 @@ class EnsembleFiles:
                 f"{directory} holds an ensemble of model '{manifest['model']}' with other equations or names than "
                 f"'{compiled.name}'; load it with the model that was solved"
             )
-        missing = [entry["file"] for entry in manifest["files"] if not (directory / entry["file"]).is_file()]
+        missing = [entry["file"] for entry in manifest["files"] if not _plain_file(directory / entry["file"])]
         if missing:
             raise SolutionFileError(
                 f"{directory}: {len(missing)} of the ensemble's {len(manifest['files'])} chunk files are missing "
@@ -428,9 +512,22 @@ class EnsembleFiles:
             yield self._read(entry)
 
     def _read(self, entry: dict) -> Solution:
-        part = Solution.load(self.directory / entry["file"], self.compiled)
-        part.stats["samples"] = np.asarray(part.stats["samples"], dtype=np.int64)
-        part.stats["failures"] = [Failure(**failure) for failure in part.stats["failures"]]
+        part = _read_chunk(self.directory, entry["file"], self.compiled)
+        samples = part.stats["samples"]
+        if part.stats.get("run") != self.run or part.stats.get("inputs") != entry["inputs"]:
+            raise SolutionFileError(
+                f"{self.directory / entry['file']} is a chunk of another ensemble run (other samples, model, method "
+                "or settings) than this manifest's: it was copied or left there; the ensemble is damaged"
+            )
+        if (
+            len(samples) != entry["solved"]
+            or (samples < entry["offset"]).any()
+            or (samples >= entry["offset"] + entry["size"]).any()
+        ):
+            raise SolutionFileError(
+                f"{self.directory / entry['file']} holds {len(samples)} samples, not the {entry['solved']} of samples "
+                f"{entry['offset']} to {entry['offset'] + entry['size'] - 1} that the manifest lists"
+            )
         return part
 
     def solution(self, samples=None) -> Solution:
@@ -442,6 +539,19 @@ class EnsembleFiles:
         InvalidOptionError
             An index outside the ensemble, or of a sample that failed (named, with its error).
         """
+        rows = self.solved if samples is None else np.size(samples)
+        if self._manifest["files"]:
+            first_file = self._manifest["files"][0]["file"]
+            with open_inside(self.directory, first_file, "files[0].file", SolutionFileError) as handle:
+                where = self.directory / first_file
+                shapes = read_arrays(handle, where, SOLUTION_ARRAYS, SolutionFileError, data=False)
+            needed = rows * int(np.prod(shapes["values"][1:])) * 8
+            if needed > memory_limit():
+                raise ResourceLimitError(
+                    f"EnsembleFiles.solution: {rows} samples of {shapes['values'][1]} times and "
+                    f"{shapes['values'][2]} variables need {needed / 2**30:.1f} GiB, more than the "
+                    f"{memory_limit() / 2**30:.1f} GiB allowed; ask for fewer samples, or iterate over the chunks"
+                )
         wanted = self._wanted(samples)
         kept, first = [], None  # per chunk read: the wanted rows only, so one chunk is whole at a time
         for entry in self._manifest["files"]:
@@ -479,7 +589,7 @@ class EnsembleFiles:
     def _wanted(self, samples) -> np.ndarray:
         failed = {failure.index: failure for failure in self.failures}
         if samples is None:
-            return np.array([i for i in range(self.total) if i not in failed], dtype=np.int64)
+            return np.setdiff1d(np.arange(self.total, dtype=np.int64), np.fromiter(failed, np.int64, len(failed)))
         wanted = np.atleast_1d(np.asarray(samples))
         if wanted.ndim != 1 or not len(wanted) or not np.issubdtype(wanted.dtype, np.integer):
             raise InvalidOptionError(f"samples must be a non-empty list of sample indices; got {samples!r}")
@@ -501,43 +611,120 @@ class EnsembleFiles:
         )
 
 
-def _empty_directory(path) -> Path:
-    directory = writable_directory(path, "write_to")
-    earlier = [p.name for p in directory.iterdir() if p.name == MANIFEST or p.name.startswith("chunk-")]
-    if earlier:
-        raise InvalidOptionError(
-            f"write_to {directory} holds an earlier ensemble ({sorted(earlier)[0]}, ...); give an empty directory "
-            "or remove its files"
-        )
-    return directory
+def _run_fingerprint(compiled, t_span, method: str, options: dict, chunk: int, total: int) -> str:
+    """What makes two ensemble calls the same run: the model, the span, the method, its settings
+    and the chunking (the samples' inputs are hashed per chunk)."""
+    text = json.dumps(
+        [ENSEMBLE_FORMAT, compiled.fingerprint(), list(t_span), method, sorted(options.items()), chunk, total],
+        default=lambda value: np.asarray(value).tolist() if isinstance(value, np.ndarray | np.generic) else repr(value),
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _write_chunk(directory: Path, compiled, result: dict) -> None:
+def _inputs_digest(batch: dict) -> str:
+    """A hash of one chunk's inputs (y0, z0, parameters), by name."""
+    digest = hashlib.sha256()
+    for name in sorted(batch):
+        digest.update(name.encode() + np.ascontiguousarray(batch[name], dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def _plain_file(path: Path) -> bool:
+    """A regular file, not a link (a link could lead out of the directory)."""
+    try:
+        return path.lstat().st_mode & 0o170000 == 0o100000
+    except OSError:
+        return False
+
+
+def _read_chunk(directory: Path, name: str, compiled) -> Solution:
+    """A chunk file (its name checked, read without following a link) as a Solution."""
+    with open_inside(directory, name, "chunk file", SolutionFileError) as handle:
+        part = Solution._read(handle, directory / name, compiled)
+    part.stats["samples"] = np.asarray(part.stats.get("samples", []), dtype=np.int64)
+    try:
+        part.stats["failures"] = [Failure(**failure) for failure in part.stats.get("failures", [])]
+    except TypeError:
+        raise SolutionFileError(f"{directory / name}: field 'stats.failures' is damaged") from None
+    return part
+
+
+def _resume(directory: Path, compiled, run: str, digests: dict, sizes: dict):
+    """What an earlier run of the same call left in ``directory``: the finished ensemble's
+    :class:`EnsembleFiles`, or the chunks already written (by offset, as results without values);
+    anything of another run is refused by name.  Temporary files of interrupted writes are removed."""
+    names = sorted(entry.name for entry in directory.iterdir())
+    for name in names:
+        if PARTIAL_NAME.fullmatch(name):
+            (directory / name).unlink(missing_ok=True)
+    if MANIFEST in names:
+        files = EnsembleFiles.load(directory, compiled)
+        if files.run != run:
+            raise InvalidOptionError(
+                f"write_to {directory} holds a finished ensemble of other samples, model, method or settings; give "
+                "another directory, or remove its files"
+            )
+        return files
+    done = {}
+    for name in names:
+        match = CHUNK_NAME.fullmatch(name)
+        if not name.startswith("chunk-"):
+            continue
+        offset = int(match[1]) if match else None
+        part = _read_chunk(directory, name, compiled) if offset in sizes else None
+        if part is None or part.stats.get("run") != run or part.stats.get("inputs") != digests[offset]:
+            raise InvalidOptionError(
+                f"write_to {directory}: {name} is not a chunk of this ensemble (another run's samples, model, method, "
+                "settings or chunking); give another directory, or remove that file to solve its samples again"
+            )
+        done[offset] = {
+            "offset": offset,
+            "size": sizes[offset],
+            "seconds": part.solve_time,
+            "failures": part.stats["failures"],
+            "file": name,
+            "solved": len(part.stats["samples"]),
+            "meta": {"status": part.status},
+            "index": part.compiled.index,
+            "inputs": digests[offset],
+        }
+    return done
+
+
+def _write_chunk(files: tuple, compiled, result: dict) -> None:
     """Write a finished chunk's values and drop them from ``result``, which keeps its bookkeeping."""
     if "values" not in result:
         return
+    directory, run, digests = files
     meta = result["meta"]
     part = Solution(
         compiled=_system(compiled, result["index"]),
         values=result.pop("values"),
         parameters=result.pop("parameters"),
         solve_time=result["seconds"],
-        stats={"samples": result["indices"], "failures": [dataclasses.asdict(f) for f in result["failures"]]},
+        stats={
+            "samples": result["indices"],
+            "failures": [dataclasses.asdict(f) for f in result["failures"]],
+            "run": run,
+            "inputs": digests[result["offset"]],
+        },
         batched=True,
         **meta,
     )
     result["file"] = CHUNK_FILE.format(offset=result["offset"])
     result["solved"] = len(result.pop("indices"))
+    result["inputs"] = digests[result["offset"]]
     part.save(directory / result["file"])
 
 
-def _write_manifest(directory: Path, compiled, results: list, total: int, seconds: float, engine, chunk) -> None:
+def _write_manifest(directory: Path, compiled, results: list, total, seconds, engine, chunk, run: str) -> None:
     failures = _failures(results, total)
     written = [result for result in results if "file" in result]
     manifest = {
         "format": ENSEMBLE_FORMAT,
         "model": compiled.name,
         "fingerprint": _system(compiled, written[0]["index"]).fingerprint(),  # a reduction, for index 3
+        "run": run,
         "total": total,
         "chunk": chunk,
         "engine": engine,
@@ -545,9 +732,47 @@ def _write_manifest(directory: Path, compiled, results: list, total: int, second
         "status": _status([(r["offset"], r["meta"]["status"]) for r in written], failures, total),
         "failures": [dataclasses.asdict(failure) for failure in failures],
         "files": [
-            {key: result[key] for key in ("file", "offset", "size", "solved", "seconds")}
+            {key: result[key] for key in ("file", "offset", "size", "solved", "seconds", "inputs")}
             | {"status": result["meta"]["status"], "peak_memory_mb": result.get("peak_memory_mb")}
             for result in written
         ],
     }
-    (directory / MANIFEST).write_text(json.dumps(manifest, indent=1))
+    write_json(directory / MANIFEST, manifest)
+
+
+def _check_manifest(path: Path, manifest: dict) -> None:
+    """Every field of a manifest that sizes or names something, checked before anything is read
+    or allocated by it: whole numbers in range, chunk names that are the names of their offsets
+    (no path), chunks in order inside the ensemble, and samples that add up to its total."""
+
+    def bad(field: str, why: str):
+        raise SolutionFileError(f"{path}: field {field!r} {why}: the manifest is damaged or was edited")
+
+    def whole(value, field: str, low: int, high: float = float("inf")) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            bad(field, f"is {value!r}, not a whole number from {low} to {high:g}")
+        return value
+
+    total = whole(manifest["total"], "total", 1)
+    whole(manifest["chunk"], "chunk", 1)
+    if not isinstance(manifest["run"], str):
+        bad("run", "is not a string")
+    if not isinstance(manifest["files"], list) or not isinstance(manifest["failures"], list):
+        bad("files" if not isinstance(manifest["files"], list) else "failures", "is not a list")
+    end, solved = 0, 0
+    for k, entry in enumerate(manifest["files"]):
+        if not isinstance(entry, dict) or not {"file", "offset", "size", "solved", "inputs"} <= set(entry):
+            bad(f"files[{k}]", "lacks file, offset, size, solved or inputs")
+        offset = whole(entry["offset"], f"files[{k}].offset", end, total - 1)
+        size = whole(entry["size"], f"files[{k}].size", 1, total - offset)
+        solved += whole(entry["solved"], f"files[{k}].solved", 1, size)
+        if entry["file"] != CHUNK_FILE.format(offset=offset):
+            bad(f"files[{k}].file", f"is {entry['file']!r}, not the name of the chunk at sample {offset}")
+        end = offset + size
+    seen = set()
+    for k, failure in enumerate(manifest["failures"]):
+        if not isinstance(failure, dict) or set(failure) != {"index", "error", "message"}:
+            bad(f"failures[{k}]", "is not an index, an error and a message")
+        seen.add(whole(failure["index"], f"failures[{k}].index", 0, total - 1))
+    if len(seen) != len(manifest["failures"]) or solved + len(seen) != total:
+        bad("total", f"is {total}, but the chunks hold {solved} solved samples and {len(seen)} distinct failures")

@@ -181,6 +181,11 @@ class SolutionFileError(ModelError):
     """A saved solution file or ensemble directory does not exist, is not daemodel's, or belongs to another model."""
 
 
+class FileWriteError(ModelError, OSError):
+    """A file could not be written (a full disk, a size limit, no permission); the file that was
+    there before is intact and no partial file is left."""
+
+
 class NetworkFileError(ModelError):
     """A saved network file does not exist, is not a daemodel network, or belongs to another model."""
 

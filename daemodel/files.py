@@ -1,15 +1,61 @@
-"""Paths a user hands daemodel to write to, checked before the work that produces the file.
+"""The one place where daemodel writes and reads files.
 
-A typo in a directory should cost a second, not a training run or a whole comparison: every
-place that writes a user-named file or directory checks it here first.
+* **Checked before the work.**  A typo in a directory should cost a second, not a training run or
+  a whole comparison: every user-named file or directory is checked here before the work that
+  fills it (:func:`writable_file`, :func:`writable_directory`).
+* **Atomic.**  Every file is written to a temporary file in the same directory (an unpredictable
+  name, created exclusively, so a planted link is never followed), flushed, fsynced and renamed
+  over the target (:func:`atomic_write`).  A write that fails or is interrupted (a full disk,
+  kill -9) leaves the previous file as it was and no file that loads as complete.
+* **Contained.**  A name that becomes part of a path (a model's name, a field read from a file, a
+  chunk name in a manifest) is one plain file name (:func:`file_name`); what is read is opened
+  without following links (:func:`open_inside`), so nothing is read or written outside the
+  directory the user named.
+* **Locked.**  A directory that a long run fills is held by a :class:`DirectoryLock` (an
+  advisory ``flock``, released by the kernel when its process ends, so kill -9 leaves no stale
+  lock on a local disk); a second writer is refused with the holder's process and host.
+* **Sizes before allocation.**  A loader learns the sizes a file declares and compares them with
+  the file's real size before it reads (:func:`stored_members`, :func:`read_json`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import json
 import os
+import re
+import socket
+import stat
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
-from daemodel.errors import InvalidOptionError
+import numpy as np
+
+from daemodel.errors import FileWriteError, InvalidOptionError
+
+# A name daemodel puts into a path: letters, digits, '_', '-' and '.', not starting with '.'
+# (no hidden files, no '.' or '..'), no separator of any platform.
+FILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,199}")
+# The longest JSON file a loader reads, and the deepest nesting it accepts: a comparison or an
+# ensemble manifest is flat (a manifest of 10^6 failed samples is about 200 MB).
+JSON_BYTES = 1 << 30
+JSON_DEPTH = 32
+# The share of the machine's physical memory that one result read or built may take.
+MEMORY_FRACTION = 0.5
+
+
+def memory_limit() -> int:
+    """Bytes one result may take: :data:`MEMORY_FRACTION` of physical memory (4 GiB where the
+    system does not say)."""
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        physical = 8 << 30
+    return int(MEMORY_FRACTION * physical)
 
 
 def writable_file(path, argument: str) -> Path:
@@ -30,18 +76,19 @@ def writable_file(path, argument: str) -> Path:
 
 
 def writable_directory(path, argument: str) -> Path:
-    """``path`` (``~`` expanded), created if missing, with a probe file written and removed in it;
-    else an :class:`InvalidOptionError` naming ``argument``, the path and the reason."""
+    """``path`` (``~`` expanded), created if missing, with a probe file created exclusively under an
+    unpredictable name and removed; else an :class:`InvalidOptionError` naming ``argument``, the
+    path and the reason."""
     if not isinstance(path, str | os.PathLike):
         raise InvalidOptionError(f"{argument} must be a directory path (str or Path); got {type(path).__name__}")
     path = Path(path).expanduser()
     if path.exists() and not path.is_dir():
         raise InvalidOptionError(f"{argument} {path} is an existing file, not a directory; give a directory")
-    probe = path / f".daemodel-write-check-{os.getpid()}"
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe.write_text("")
-        probe.unlink()
+        handle, probe = tempfile.mkstemp(dir=path, prefix=".daemodel-write-check-")
+        os.close(handle)
+        os.unlink(probe)
     except OSError as error:
         reason = error.strerror or str(error)
         where = f" ({error.filename})" if error.filename and str(error.filename) != str(path) else ""
@@ -49,3 +96,283 @@ def writable_directory(path, argument: str) -> Path:
             f"{argument} {path} cannot be created or written: {reason}{where}; give a writable directory"
         ) from None
     return path
+
+
+def file_name(name, field: str, error: type = InvalidOptionError) -> str:
+    """``name`` if it is one plain file name (letters, digits, ``_``, ``-``, ``.``; not hidden, no
+    separator, at most 200 characters), else ``error`` naming ``field`` and the name."""
+    if not isinstance(name, str) or FILE_NAME.fullmatch(name) is None:
+        raise error(
+            f"{field} = {name!r} cannot name a file: a file name of letters, digits, '_', '-' and '.' is needed "
+            "(no path separator, no leading '.', at most 200 characters)"
+        )
+    return name
+
+
+@functools.cache
+def _new_file_mode() -> int:
+    """The mode a new file gets under this process's umask (read once, when first needed)."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def atomic_write(path: Path, write: Callable, *, text: bool = False) -> Path:
+    """Write ``path`` through ``write(handle)`` atomically: a temporary file beside it (created
+    exclusively, unpredictable name), flushed and fsynced, then renamed over ``path`` (a link at
+    ``path`` is replaced, never followed), and the directory fsynced.
+
+    On any failure, an interrupt included, the temporary file is removed and ``path`` keeps its
+    previous contents; an operating-system failure (a full disk, a file-size limit, a read-only
+    file system) is a :class:`FileWriteError` naming the file and the reason.
+    """
+    path = Path(path)
+    directory = path.parent
+    try:
+        mode = (path.stat().st_mode & 0o777) if path.is_file() else _new_file_mode()
+        handle, temporary = tempfile.mkstemp(dir=directory, prefix=f".{path.name[:100]}.", suffix=".partial")
+    except OSError as error:
+        raise FileWriteError(f"{path} could not be written: {error.strerror or error}") from None
+    try:
+        os.fchmod(handle, mode)
+        with os.fdopen(handle, "w" if text else "wb", **({"encoding": "utf-8", "newline": ""} if text else {})) as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(temporary, path)
+    except BaseException as error:  # an interrupt too: no partial file is left behind
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
+        if isinstance(error, OSError):
+            raise FileWriteError(
+                f"{path} could not be written ({error.strerror or error}); its previous contents, if any, are intact"
+            ) from None
+        raise
+    with contextlib.suppress(OSError):  # the rename itself survives a power cut (not every file system allows it)
+        descriptor = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
+    return path
+
+
+def open_file(path: Path, field: str, error: type, *, follow: bool = True):
+    """``path`` opened for reading as a binary file object, checked to be a regular file; with
+    ``follow=False`` a link is not followed.  ``error`` names the file and ``field`` otherwise."""
+    path = Path(path)
+    flags = os.O_RDONLY | (0 if follow else getattr(os, "O_NOFOLLOW", 0))
+    try:
+        descriptor = os.open(path, flags)
+    except OSError as failure:
+        if not follow and path.is_symlink():
+            raise error(f"{path} ({field}) is a link, which daemodel does not follow out of the directory") from None
+        raise error(f"{path} ({field}) cannot be read: {failure.strerror or failure}") from None
+    if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+        os.close(descriptor)
+        raise error(f"{path} ({field}) is not a file")
+    return os.fdopen(descriptor, "rb")
+
+
+def open_inside(directory: Path, name, field: str, error: type):
+    """The file ``name``, read from a file's contents, in ``directory``: the name is checked by
+    :func:`file_name` and a link is not followed, so nothing outside ``directory`` is read."""
+    return open_file(Path(directory) / file_name(name, field, error), field, error, follow=False)
+
+
+def stored_members(handle, path, error: type, limit: int | None = None, what: str = "daemodel file") -> dict:
+    """The members of the zip archive ``handle`` (``path`` for messages) by name, with their sizes,
+    after checking that each is stored uncompressed (daemodel writes no compressed archive, so a
+    compressed member is a foreign file, or a bomb) and that together they fit in the file's real
+    size and ``limit`` bytes; else ``error`` naming the file and the member."""
+    size = os.fstat(handle.fileno()).st_size
+    try:
+        with zipfile.ZipFile(handle) as archive:
+            members = archive.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as failure:
+        raise error(f"{path} is not a {what}, or is cut short ({type(failure).__name__}: {failure})") from None
+    finally:
+        handle.seek(0)
+    sizes = {}
+    for member in members:
+        if member.compress_type != zipfile.ZIP_STORED:
+            raise error(
+                f"{path}: member {member.filename!r} is compressed; daemodel writes its files uncompressed, so this "
+                "is not one of them"
+            )
+        sizes[member.filename] = member.file_size
+    declared = sum(sizes.values())
+    if declared > size:
+        raise error(f"{path} declares {declared} bytes of data in a file of {size} bytes: it is damaged")
+    if limit is not None and declared > limit:
+        raise error(f"{path} holds {declared / 2**30:.1f} GiB, more than the {limit / 2**30:.1f} GiB allowed")
+    return sizes
+
+
+def read_arrays(
+    handle,
+    path,
+    expected: dict,
+    error: type,
+    limit: int | None = None,
+    what: str = "daemodel file",
+    *,
+    data: bool = True,
+) -> dict:
+    """The arrays of the ``.npz`` archive ``handle`` (``path`` for messages), exactly the members
+    ``expected`` names (``{name: (dtype kinds, ndim)}``, e.g. ``{"t": ("f", 1)}``).  Each member's
+    header (dtype, shape) is read and checked against ``expected`` and against the member's real
+    size before its data is allocated; no object arrays (no pickles).  Else ``error`` naming the
+    file and the field.  With ``data=False``, only each array's shape (nothing allocated)."""
+    sizes = stored_members(handle, path, error, limit, what)
+    found = {name.removesuffix(".npy") for name in sizes}
+    missing, extra = [n for n in expected if n not in found], sorted(found - set(expected))
+    if missing or extra:
+        problem = f"lacks the field {missing[0]!r}" if missing else f"holds a field {extra[0]!r} that it should not"
+        raise error(f"{path} {problem} (a daemodel file holds {', '.join(expected)}): it is damaged or foreign")
+    arrays = {}
+    with zipfile.ZipFile(handle) as archive:
+        for name, (kinds, ndim) in expected.items():
+            try:
+                with archive.open(f"{name}.npy") as member:
+                    version = np.lib.format.read_magic(member)
+                    header = np.lib.format.read_array_header_1_0 if version == (1, 0) else None
+                    header = header or np.lib.format.read_array_header_2_0
+                    shape, _, dtype = header(member)
+                    data_start = member.tell()
+                if dtype.hasobject or dtype.kind not in kinds or len(shape) != ndim:
+                    raise error(
+                        f"{path}: field {name!r} is an array of {dtype} with {len(shape)} axes; "
+                        f"expected {ndim} axes of kind {kinds!r}"
+                    )
+                needed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if needed > sizes[f"{name}.npy"] - data_start:
+                    raise error(
+                        f"{path}: field {name!r} declares shape {shape} ({needed} bytes) in {sizes[f'{name}.npy']} "
+                        "bytes: the file is cut short or damaged"
+                    )
+                if not data:
+                    arrays[name] = shape
+                    continue
+                with archive.open(f"{name}.npy") as member:
+                    arrays[name] = np.lib.format.read_array(member, allow_pickle=False)
+            except (ValueError, OSError, EOFError, zipfile.BadZipFile) as failure:
+                if isinstance(failure, error):
+                    raise
+                raise error(f"{path}: field {name!r} cannot be read ({type(failure).__name__}: {failure})") from None
+    handle.seek(0)
+    return arrays
+
+
+def _depth(value, limit: int, level: int = 0) -> int:
+    if level > limit:
+        return level
+    if isinstance(value, dict):
+        return max((_depth(v, limit, level + 1) for v in value.values()), default=level + 1)
+    if isinstance(value, list):
+        return max((_depth(v, limit, level + 1) for v in value), default=level + 1)
+    return level
+
+
+def parse_json(text: str, path, error: type, what: str):
+    """The JSON value of ``text`` (read from ``path``), nested at most :data:`JSON_DEPTH` levels;
+    else ``error`` naming the file as not ``what``."""
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError) as failure:
+        raise error(f"{path} is not {what} ({type(failure).__name__})") from None
+    if _depth(value, JSON_DEPTH) > JSON_DEPTH:
+        raise error(f"{path} is not {what}: it nests deeper than {JSON_DEPTH} levels")
+    return value
+
+
+def read_json(path: Path, error: type, what: str):
+    """The JSON value in ``path``, read after checking its size (:data:`JSON_BYTES`); else
+    ``error`` naming the file as not ``what``."""
+    path = Path(path)
+    with open_file(path, "path", error) as handle:
+        size = os.fstat(handle.fileno()).st_size
+        if size > JSON_BYTES:
+            raise error(f"{path} is {size / 2**20:.0f} MiB, more than a {what} holds ({JSON_BYTES >> 20} MiB)")
+        try:
+            text = handle.read().decode("utf-8")
+        except (OSError, UnicodeDecodeError) as failure:
+            raise error(f"{path} is not {what} ({type(failure).__name__})") from None
+    return parse_json(text, path, error, what)
+
+
+def write_json(path: Path, value) -> Path:
+    """``value`` as JSON (no NaN: strict parsers reject it), written atomically to ``path``."""
+    text = json.dumps(value, indent=1, allow_nan=False) + "\n"
+    return atomic_write(path, lambda handle: handle.write(text), text=True)
+
+
+def save_figure(fig, path, argument: str, dpi: int) -> Path:
+    """A matplotlib figure written atomically to ``path`` (checked by :func:`writable_file`), in the
+    format its suffix names (PNG without one)."""
+    path = writable_file(path, argument)
+    fmt = path.suffix[1:].lower() or "png"
+    if fmt not in fig.canvas.get_supported_filetypes():
+        known = ", ".join(sorted(fig.canvas.get_supported_filetypes()))
+        raise InvalidOptionError(f"{argument} = '{path}': matplotlib writes no '.{fmt}' files; use one of {known}")
+    return atomic_write(path, lambda handle: fig.savefig(handle, format=fmt, dpi=dpi))
+
+
+class DirectoryLock:
+    """An exclusive lock on ``directory`` for one writer, held from :meth:`acquire` to
+    :meth:`release` (or the end of the process): a file ``.daemodel-lock`` locked with ``flock``
+    and holding the holder's process, host and start time.  A second writer, in this process or
+    another, gets ``error`` naming the holder and how to clear a lock that outlived its process
+    (possible on a network file system, where ``flock`` may not reach other hosts)."""
+
+    NAME = ".daemodel-lock"
+
+    def __init__(self, directory: Path, argument: str, error: type = InvalidOptionError):
+        self.path, self.argument, self.error = Path(directory) / self.NAME, argument, error
+        self._descriptor = None
+
+    def acquire(self) -> DirectoryLock:
+        import fcntl
+
+        for _ in range(100):  # the holder may remove the file between our open and our lock: retry
+            try:
+                descriptor = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+            except OSError as failure:
+                raise self.error(
+                    f"{self.argument} {self.path.parent} cannot be locked: {self.path}: {failure.strerror or failure}"
+                ) from None
+            try:
+                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.read(descriptor, 4096).decode("utf-8", "replace").strip() or "a process starting"
+                os.close(descriptor)
+                raise self.error(
+                    f"{self.argument} {self.path.parent} is being written by another run ({holder}); wait for it to "
+                    f"finish, or, if no such process runs (a lock left on a network file system), remove {self.path}"
+                ) from None
+            try:
+                same = os.stat(self.path, follow_symlinks=False).st_ino == os.fstat(descriptor).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(descriptor)
+        else:
+            raise self.error(f"{self.argument} {self.path.parent}: its lock file keeps changing; is another run there?")
+        os.ftruncate(descriptor, 0)
+        os.write(descriptor, f"process {os.getpid()} on {socket.gethostname()} since {time.strftime('%c')}".encode())
+        self._descriptor = descriptor
+        return self
+
+    def release(self) -> None:
+        if self._descriptor is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)  # before closing: a waiting writer then finds the file gone and retries
+            os.close(self._descriptor)
+            self._descriptor = None
+
+    def __enter__(self) -> DirectoryLock:
+        return self.acquire()
+
+    def __exit__(self, *_) -> None:
+        self.release()

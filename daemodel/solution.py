@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
-from daemodel.files import writable_file
+from daemodel.files import atomic_write, open_file, parse_json, read_arrays, save_figure, writable_file
 from daemodel.init import NumericSystem
 
 # Times of two solutions count as the same when they differ by less than this, relative to
@@ -19,6 +19,22 @@ TIME_MATCH_RTOL = 1e-9
 PLOTTED_SAMPLES = 20
 # What Solution.save writes and Solution.load reads.
 SOLUTION_FORMAT = "daemodel-solution/1"
+# Its arrays (dtype kinds, axes): times (T,), values (B, T, variables), parameters (B, k), and
+# the JSON of everything else; and the fields of that JSON with their types.
+SOLUTION_ARRAYS = {"t": ("f", 1), "values": ("f", 3), "parameters": ("f", 2), "meta": ("U", 0)}
+SOLUTION_META = {
+    "format": str,
+    "model": str,
+    "fingerprint": str,
+    "names": list,
+    "method": str,
+    "settings": dict,
+    "solve_time": (int, float),
+    "setup_time": (int, float),
+    "stats": dict,
+    "status": str,
+    "batched": bool,
+}
 
 
 def _jsonable(value):
@@ -280,15 +296,13 @@ class Solution:
             "status": self.status,
             "batched": self.batched,
         }
-        with path.open("wb") as handle:
-            np.savez(
-                handle,
-                t=self.t,
-                values=np.stack([self.values[n] for n in names], axis=-1),
-                parameters=self.parameters,
-                meta=np.array(json.dumps(meta, default=_jsonable)),
-            )
-        return path
+        arrays = {
+            "t": self.t,
+            "values": np.stack([self.values[n] for n in names], axis=-1),
+            "parameters": self.parameters,
+            "meta": np.array(json.dumps(meta, default=_jsonable)),
+        }
+        return atomic_write(path, lambda handle: np.savez(handle, **arrays))
 
     @classmethod
     def load(cls, path, model) -> Solution:
@@ -300,38 +314,63 @@ class Solution:
         SolutionFileError
             No file, not a daemodel solution file, or a model with other equations or names.
         """
+        path = Path(path).expanduser()
+        if not path.exists():
+            raise SolutionFileError(f"no solution file at {path}")
+        with open_file(path, "path", SolutionFileError) as handle:
+            return cls._read(handle, path, model)
+
+    @classmethod
+    def _read(cls, handle, path: Path, model) -> Solution:
+        """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
         from daemodel.solver import as_compiled
 
-        path = Path(path)
-        if not path.is_file():
-            raise SolutionFileError(f"no solution file at {path}")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in ("t", "values", "parameters", "meta")}
-            meta = json.loads(str(arrays["meta"]))
-        except (OSError, ValueError, KeyError) as error:
-            raise SolutionFileError(f"{path} is not a daemodel solution file ({error.__class__.__name__})") from None
+        arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, what="daemodel solution file")
+        meta = parse_json(str(arrays["meta"]), path, SolutionFileError, "a daemodel solution file")
         if not isinstance(meta, dict) or meta.get("format") != SOLUTION_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel solution file (expected format {SOLUTION_FORMAT!r})")
+        for key, kind in SOLUTION_META.items():
+            if key not in meta:
+                raise SolutionFileError(f"{path} lacks the field {key!r}: it is damaged")
+            if not isinstance(meta[key], kind) or (kind is not bool and isinstance(meta[key], bool)):
+                expected = "a number" if isinstance(kind, tuple) else f"a {kind.__name__}"
+                raise SolutionFileError(f"{path}: field {key!r} is a {type(meta[key]).__name__}, not {expected}")
         compiled = as_compiled(model, "Solution.load()")
         candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
         match = next((c for c in candidates if c.fingerprint() == meta["fingerprint"]), None)
         if match is None:
             raise SolutionFileError(
-                f"{path} holds a solution of model '{meta['model']}' with other equations or names than "
-                f"'{compiled.name}' ({', '.join(meta['names'])}); load it with the model that was solved"
+                f"{path} holds a solution of model {meta['model']!r} with other equations or names than "
+                f"'{compiled.name}'; load it with the model that was solved"
             )
-        values = {name: np.ascontiguousarray(arrays["values"][..., i]) for i, name in enumerate(meta["names"])}
+        names = [*match.state_names, *match.algebraic_names]
+        if meta["names"] != names:
+            raise SolutionFileError(f"{path}: field 'names' is {meta['names']!r}; the model's variables are {names}")
+        t, values, parameters = arrays["t"], arrays["values"], arrays["parameters"]
+        if not len(t) or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+            raise SolutionFileError(f"{path}: field 't' is not a non-empty, finite, increasing sequence of times")
+        B = len(parameters)
+        if parameters.shape[1:] != (len(match.parameter_names),) or not np.isfinite(parameters).all():
+            raise SolutionFileError(
+                f"{path}: field 'parameters' has shape {parameters.shape} or non-finite values; the model has "
+                f"{len(match.parameter_names)} parameters"
+            )
+        if values.shape != (B, len(t), len(names)) or (not meta["batched"] and B != 1):
+            raise SolutionFileError(
+                f"{path}: field 'values' has shape {values.shape}; {B} sample{'s' * (B != 1)}, {len(t)} times and "
+                f"{len(names)} variables make {(B, len(t), len(names))}"
+                + ("" if meta["batched"] or B == 1 else " (and an unbatched solution has one sample)")
+            )
         return cls(
-            t=arrays["t"],
-            values=values,
+            t=t,
+            values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
             method=meta["method"],
             settings=meta["settings"],
             solve_time=meta["solve_time"],
             setup_time=meta["setup_time"],
             stats=meta["stats"],
             compiled=match,
-            parameters=arrays["parameters"],
+            parameters=parameters,
             batched=meta["batched"],
             status=meta["status"],
         )
@@ -401,7 +440,7 @@ class Solution:
         batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
         fig.suptitle(f"{self.compiled.name}: {self.method}{batch}")
         if path is not None:
-            fig.savefig(writable_file(path, "plot path"), dpi=120)
+            save_figure(fig, path, "plot path", dpi=120)
         return fig
 
     def __repr__(self) -> str:

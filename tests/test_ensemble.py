@@ -188,7 +188,9 @@ def test_failures_written_to_files(blowup, tmp_path):
 
 def test_ensemble_file_errors(pendulum, blowup, tmp_path):
     files = dm.ensemble(blowup, (0.0, 0.1), h=0.05, parameters={"k": [0.1, 0.2]}, write_to=tmp_path / "a")
-    with pytest.raises(InvalidOptionError, match=r"write_to .*a holds an earlier ensemble \(chunk-000000000000.npz"):
+    with pytest.raises(
+        InvalidOptionError, match=r"write_to .*a holds a finished ensemble of other samples, model, method or settings"
+    ):
         dm.ensemble(blowup, (0.0, 0.1), h=0.05, write_to=tmp_path / "a")
     with pytest.raises(InvalidOptionError, match=r"write_to .* is an existing file, not a directory"):
         dm.ensemble(blowup, (0.0, 0.1), h=0.05, write_to=files.directory / "ensemble.json")
@@ -205,11 +207,11 @@ def test_ensemble_file_errors(pendulum, blowup, tmp_path):
         dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text('{"format": "something-else"}')
     with pytest.raises(
-        SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/1'\\)"
+        SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/2'\\)"
     ):
         dm.EnsembleFiles.load(files.directory, blowup)
-    (files.directory / "ensemble.json").write_text('{"format": "daemodel-ensemble/1", "model": "blowup"}')
-    with pytest.raises(SolutionFileError, match=r"ensemble.json is damaged: it lacks fingerprint, total, chunk"):
+    (files.directory / "ensemble.json").write_text('{"format": "daemodel-ensemble/2", "model": "blowup"}')
+    with pytest.raises(SolutionFileError, match=r"ensemble.json is damaged: it lacks fingerprint, run, total, chunk"):
         dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text("{not json")
     with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError\)"):
@@ -293,8 +295,9 @@ def test_a_written_chunk_leaves_only_its_bookkeeping_in_memory(pendulum, tmp_pat
     from daemodel.ensemble import _write_chunk, solve_chunk
 
     result = solve_chunk((pendulum, (0.0, 0.1), "radau", {"h": 0.05}, None), 0, {"y0": np.tile(pendulum.y0, (3, 1))})
-    _write_chunk(tmp_path, pendulum, result)
+    _write_chunk((tmp_path, "run", {0: "inputs"}), pendulum, result)
     assert {"values", "parameters", "indices"}.isdisjoint(result) and result["solved"] == 3
+    assert result["inputs"] == "inputs"
     assert (tmp_path / result["file"]).is_file()
 
 

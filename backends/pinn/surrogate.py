@@ -772,7 +772,7 @@ class Surrogate:
     def save(self, path) -> Path:
         """Write the networks, the grid, the settings, the training box and the training stats
         to ``path`` (a torch file); a directory that does not exist is an :class:`InvalidOptionError`."""
-        from daemodel.files import writable_file
+        from daemodel.files import atomic_write, writable_file
 
         path = writable_file(path, "path")
         payload = {
@@ -787,8 +787,7 @@ class Surrogate:
             "networks": [{k: v.detach().cpu() for k, v in net.state_dict().items()} for net in self.networks],
             "stats": [dataclasses.asdict(s) for s in self.stats],
         }
-        torch.save(payload, path)
-        return path
+        return atomic_write(path, lambda handle: torch.save(payload, handle))
 
     @classmethod
     def load(cls, path, model, *, device: str | None = None) -> Surrogate:
@@ -812,14 +811,19 @@ class Surrogate:
         """
         from daemodel.backends.base import torch_device
 
+        from daemodel.files import open_file, stored_members
+
         compiled = resolve_model(model, "Surrogate.load()")
-        path = Path(path)
-        if not path.is_file():
+        path = Path(path).expanduser()
+        if not path.exists():
             raise NetworkFileError(f"no network file at {path}")
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as error:
-            raise NetworkFileError(f"{path} is not a daemodel network file ({error.__class__.__name__})") from None
+        with open_file(path, "path", NetworkFileError) as handle:
+            # torch writes its archive uncompressed: the declared sizes must fit the file (no bomb)
+            stored_members(handle, path, NetworkFileError, what="daemodel network file")
+            try:
+                payload = torch.load(handle, map_location="cpu", weights_only=True)  # no pickled code
+            except Exception as error:  # torch's unpickler raises many kinds, RecursionError among them
+                raise NetworkFileError(f"{path} is not a daemodel network file ({error.__class__.__name__})") from None
         found = payload.get("format") if isinstance(payload, dict) else None
         if found != FILE_FORMAT:
             older = OLDER_FORMATS.get(found) if isinstance(found, str) else None

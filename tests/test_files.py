@@ -1,0 +1,561 @@
+"""Files under faults and hostile input (daemodel/files.py and its users): atomic writes that a
+full disk or kill -9 cannot tear, names that cannot leave the user's directory, loaders that
+check every field and size before they allocate, and ensembles that lock, resume and refuse
+foreign chunks.  Faults that end a process (a file-size limit, kill -9, a memory limit) are
+played in child processes."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import inspect
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel.errors import (
+    ComparisonError,
+    FileWriteError,
+    InvalidOptionError,
+    NetworkFileError,
+    ResourceLimitError,
+    SolutionFileError,
+)
+from daemodel.problems import PENDULUM
+
+TINY = dm.PINNConfig(width=8, tol=None, iterations=3, warm_start=False)
+K = np.linspace(0.5, 2.0, 40)
+
+
+def decay_model():
+    """x' = -k x, x(0) = 1."""
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    k = m.parameter("k", 1.0)
+    m.ode(x, -k * x)
+    m.initial(x=1.0)
+    return m.compile()
+
+
+def run_ensemble(directory="ens"):
+    """40 samples in chunks of one, to a directory."""
+    return dm.ensemble(decay, (0.0, 1.0), h=0.01, parameters={"k": K}, chunk=1, write_to=directory)
+
+
+decay = decay_model()
+# What a child process starts with: the same model and ensemble, from their source.
+PRELUDE = "\n".join(
+    [
+        "import numpy as np",
+        "import daemodel as dm",
+        inspect.getsource(decay_model),
+        "decay = decay_model()",
+        "K = np.linspace(0.5, 2.0, 40)",
+        inspect.getsource(run_ensemble),
+    ]
+)
+
+
+def child(code: str, tmp_path: Path, *, wait: bool = True, timeout: float = 120):
+    """Run ``code`` (after :data:`PRELUDE`) in a fresh Python with the working directory ``tmp_path``."""
+    script = tmp_path / f"child-{time.monotonic_ns()}.py"
+    script.write_text(PRELUDE + "\n" + textwrap.dedent(code))
+    command = [sys.executable, str(script)]
+    if not wait:
+        return subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    done = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=timeout)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory) -> dict:
+    """One file of each kind daemodel writes, with the model that reads it."""
+    root = tmp_path_factory.mktemp("kinds")
+    solution = dm.solve(decay, (0.0, 1.0), h=0.1, parameters={"k": [1.0, 2.0]})
+    comparison = dm.compare(PENDULUM.model(), (0.0, 0.1), ["radau"], points=1, progress=False)
+    pendulum = PENDULUM.model().compile()
+    dm.solve(pendulum, (0.0, 0.1), method="pinn", config=TINY, save=root / "networks.pt")
+    files = dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": [1.0, 2.0, 3.0]}, chunk=2, write_to=root / "ens")
+    return {
+        "solution": (solution.save(root / "solution.npz"), lambda p: dm.Solution.load(p, decay), SolutionFileError),
+        "comparison": (comparison.to_json(root / "comparison.json"), dm.Comparison.load, ComparisonError),
+        "networks": (root / "networks.pt", lambda p: dm.Surrogate.load(p, pendulum), NetworkFileError),
+        "chunk": (files.directory / "chunk-000000000000.npz", lambda p: dm.Solution.load(p, decay), SolutionFileError),
+        "manifest": (
+            files.directory / "ensemble.json",
+            lambda p: dm.EnsembleFiles.load(p.parent, decay),
+            SolutionFileError,
+        ),
+    }
+
+
+# ---- truncation -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["solution", "comparison", "networks", "chunk", "manifest"])
+def test_a_file_cut_anywhere_is_refused_by_name(saved, kind, tmp_path):
+    """Cut at 25 points (the first byte to the last but one of its content): never a raw
+    exception, never a file that loads as complete."""
+    path, load, error = saved[kind]
+    content = path.read_bytes().rstrip()
+    target = tmp_path / path.name
+    if kind == "manifest":  # the manifest's chunks beside it, so that only the manifest is cut
+        for chunk in path.parent.glob("chunk-*.npz"):
+            (tmp_path / chunk.name).write_bytes(chunk.read_bytes())
+    for cut in np.unique(np.linspace(0, len(content) - 1, 25).astype(int)):
+        target.write_bytes(content[:cut])
+        with pytest.raises(error, match=target.name):
+            load(target)
+
+
+# ---- a full disk, kill -9 -------------------------------------------------------------------------
+def test_a_full_disk_leaves_every_previous_file_intact(tmp_path):
+    """RLIMIT_FSIZE stands in for a full disk: each writer raises FileWriteError naming the file,
+    the previous file keeps its bytes, and no temporary file is left."""
+    out = child(
+        """
+        import json, resource, signal
+        import numpy as np
+        from daemodel.errors import FileWriteError
+        from daemodel.problems import PENDULUM
+        small = dm.solve(decay, (0.0, 1.0), h=0.1)
+        big = dm.solve(decay, (0.0, 1.0), h=0.001, parameters={"k": np.linspace(1, 2, 50)})
+        comparison = dm.compare(PENDULUM.model(), (0.0, 0.1), ["radau"], points=1, progress=False)
+        small.save("solution.npz")
+        comparison.to_json("comparison.json")
+        comparison.to_csv("comparison.csv")
+        small.plot("plot.png")
+        names = ("solution.npz", "comparison.json", "comparison.csv", "plot.png")
+        before = {name: open(name, "rb").read() for name in names}
+        limit = 2 * max(map(len, before.values()))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead of killing us
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        import dataclasses
+        long = dataclasses.replace(comparison, runs=comparison.runs * 2000)  # too long for the limit
+        caught = {}
+        for name, write in [
+            ("solution.npz", lambda: big.save("solution.npz")),
+            ("comparison.json", lambda: long.to_json("comparison.json")),
+            ("comparison.csv", lambda: long.to_csv("comparison.csv")),
+            ("plot.png", lambda: big.plot("plot.png")),
+        ]:
+            try:
+                write()
+                caught[name] = "written"
+            except FileWriteError as error:
+                caught[name] = str(error)
+        import os
+        intact = {name: open(name, "rb").read() == data for name, data in before.items()}
+        print(json.dumps({"caught": caught, "intact": intact, "left": sorted(os.listdir("."))}))
+        """,
+        tmp_path,
+    )
+    report = json.loads(out.splitlines()[-1])
+    for name, message in report["caught"].items():
+        if name == "plot.png" and message == "written":
+            continue  # a plot may fit the limit; then it was replaced whole
+        assert f"{name} could not be written" in message and "previous contents" in message, message
+        assert report["intact"][name], name
+    assert not [name for name in report["left"] if name.endswith(".partial")], report["left"]
+
+
+def test_kill_9_during_writes_leaves_a_complete_file(tmp_path):
+    """A child saves two different solutions over one file in a loop; killed at any moment, the
+    file loads as one of the two, whole."""
+    proc = child(
+        """
+        import numpy as np, sys
+        a = dm.solve(decay, (0.0, 1.0), h=0.001, parameters={"k": np.linspace(1, 2, 20)})
+        b = dm.solve(decay, (0.0, 1.0), h=0.002, parameters={"k": np.linspace(3, 4, 40)})
+        a.save("target.npz")
+        print("ready", flush=True)
+        while True:
+            b.save("target.npz")
+            a.save("target.npz")
+        """,
+        tmp_path,
+        wait=False,
+    )
+    assert proc.stdout.readline().strip() == "ready"
+    for pause in (0.05, 0.13, 0.29):
+        time.sleep(pause)
+        proc.send_signal(signal.SIGSTOP)  # freeze it mid-write, read, and go on
+        loaded = dm.Solution.load(tmp_path / "target.npz", decay)
+        assert loaded.batch_size in (20, 40) and loaded["x"].shape == (loaded.batch_size, len(loaded.t))
+        proc.send_signal(signal.SIGCONT)
+    proc.kill()
+    proc.wait()
+    loaded = dm.Solution.load(tmp_path / "target.npz", decay)
+    k = loaded.parameters[:, 0]
+    np.testing.assert_allclose(loaded["x"][:, -1], np.exp(-k), rtol=1e-9)
+
+
+# A child's ensemble chunks, each slowed down so that the parent can act between them.
+SLOW_CHUNKS = """
+import time, importlib
+module = importlib.import_module("daemodel.ensemble")  # the module, not the function daemodel exports
+original = module.solve_chunk
+def slow(*args):
+    time.sleep({pause})
+    return original(*args)
+module.solve_chunk = slow
+"""
+
+
+def test_kill_9_during_an_ensemble_then_the_same_call_resumes(tmp_path):
+    """The first run is killed after a few chunks; the same call keeps those chunks (their files
+    untouched), solves the rest, and every sample equals the exact solution."""
+    proc = child(SLOW_CHUNKS.format(pause=0.15) + "run_ensemble()", tmp_path, wait=False)
+    directory = tmp_path / "ens"
+    deadline = time.monotonic() + 120
+    while len(list(directory.glob("chunk-*.npz"))) < 3:
+        assert time.monotonic() < deadline and proc.poll() is None, proc.stderr.read() if proc.poll() else "slow"
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    kept = {path.name: path.stat().st_mtime_ns for path in directory.glob("chunk-*.npz")}
+    assert 3 <= len(kept) < 40 and not (directory / "ensemble.json").exists()
+    files = run_ensemble(directory)
+    assert all((directory / name).stat().st_mtime_ns == mtime for name, mtime in kept.items())
+    assert files.solved == 40 and len(files) == 40
+    values = files.solution()
+    np.testing.assert_allclose(values["x"], np.exp(-np.outer(K, values.t)), rtol=1e-8)
+
+
+def test_two_writers_of_one_directory(tmp_path):
+    """While one ensemble writes a directory, a second (here, in this process) is refused with
+    the holder named; the first finishes whole, and the lock is gone after it."""
+    proc = child(SLOW_CHUNKS.format(pause=0.1) + "run_ensemble()\nprint('done')", tmp_path, wait=False)
+    lock = tmp_path / "ens" / ".daemodel-lock"
+    deadline = time.monotonic() + 120
+    while not lock.exists() or not lock.read_text():
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.02)
+    with pytest.raises(
+        InvalidOptionError, match=rf"write_to .*ens is being written by another run \(process {proc.pid} on "
+    ):
+        run_ensemble(tmp_path / "ens")
+    out, err = proc.communicate(timeout=120)
+    assert out.strip().endswith("done"), err[-2000:]
+    assert not lock.exists()
+    assert dm.EnsembleFiles.load(tmp_path / "ens", decay).solved == 40
+
+
+# ---- links and names that would leave the directory -----------------------------------------------
+def test_a_planted_link_is_replaced_never_followed(tmp_path):
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious")
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "solution.npz").symlink_to(outside)
+    for pid in range(os.getpid() - 2, os.getpid() + 3):  # the old predictable write-check names
+        (work / f".daemodel-write-check-{pid}").symlink_to(outside)
+    sol = dm.solve(decay, (0.0, 1.0), h=0.1)
+    sol.save(work / "solution.npz")
+    files = dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": [1.0, 2.0]}, write_to=work)
+    assert outside.read_text() == "precious"
+    assert not (work / "solution.npz").is_symlink() and dm.Solution.load(work / "solution.npz", decay).t[-1] == 1.0
+    # a chunk file replaced by a link to a file outside is not read
+    (work / "chunk-000000000000.npz").unlink()
+    (work / "chunk-000000000000.npz").symlink_to(tmp_path / "work" / "solution.npz")
+    with pytest.raises(SolutionFileError, match=r"1 of the ensemble's 1 chunk files are missing"):
+        dm.EnsembleFiles.load(files.directory, decay)
+    # a lock file planted as a link
+    (tmp_path / "locked").mkdir()
+    (tmp_path / "locked" / ".daemodel-lock").symlink_to(outside)
+    with pytest.raises(InvalidOptionError, match=r"write_to .*locked cannot be locked: .*\.daemodel-lock"):
+        dm.ensemble(decay, (0.0, 1.0), h=0.1, write_to=tmp_path / "locked")
+    assert outside.read_text() == "precious"
+
+
+@pytest.mark.parametrize("name", ["../evil", "/tmp/evil", "..", ".hidden", "a/b", "", "x" * 201, 7])
+def test_a_comparisons_model_name_cannot_name_a_path(saved, tmp_path, name):
+    path = saved["comparison"][0]
+    payload = json.loads(path.read_text())
+    payload["model"] = name
+    edited = tmp_path / "edited.json"
+    edited.write_text(json.dumps(payload))
+    with pytest.raises(ComparisonError, match=r"edited.json: field 'model' = .* cannot name a file"):
+        dm.Comparison.load(edited)
+    forged = dataclasses.replace(dm.Comparison.load(path), model=name)
+    with pytest.raises(ComparisonError, match=r"the comparison's model name = .* cannot name a file"):
+        forged.save(tmp_path / "out")
+    assert not [p for p in tmp_path.parent.iterdir() if p.name == "evil"]
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda m: m["files"][0].update(file="../chunk-000000000000.npz"), r"field 'files\[0\].file' is '\.\./chunk"),
+        (lambda m: m["files"][0].update(file="/etc/passwd"), r"field 'files\[0\].file' is '/etc/passwd'"),
+        (lambda m: m.update(total=10**8), r"field 'total' is 100000000, but the chunks hold 3 solved samples"),
+        (lambda m: m["files"][0].update(solved=10**8), r"field 'files\[0\].solved' is 100000000, not a whole number"),
+        (lambda m: m["files"][1].update(offset=1), r"field 'files\[1\].offset' is 1, not a whole number from 2"),
+        (lambda m: m.update(total=True), r"field 'total' is True"),
+        (lambda m: m["failures"].append({"index": 0}), r"field 'failures\[0\]' is not an index, an error and a mess"),
+    ],
+)
+def test_a_manifest_edited_to_leave_the_directory_or_inflate_is_refused(saved, tmp_path, edit, message):
+    source = saved["manifest"][0].parent
+    for path in source.iterdir():
+        (tmp_path / path.name).write_bytes(path.read_bytes())
+    manifest = json.loads((tmp_path / "ensemble.json").read_text())
+    edit(manifest)
+    (tmp_path / "ensemble.json").write_text(json.dumps(manifest))
+    with pytest.raises(SolutionFileError, match=message):
+        dm.EnsembleFiles.load(tmp_path, decay)
+
+
+def test_a_deeply_nested_json_is_refused(tmp_path):
+    (tmp_path / "ensemble.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(RecursionError\)"):
+        dm.EnsembleFiles.load(tmp_path, decay)
+    (tmp_path / "deep.json").write_text('{"runs": ' + "[" * 40 + "]" * 40 + "}")
+    with pytest.raises(ComparisonError, match=r"deep.json is not a comparison .*: it nests deeper than 32 levels"):
+        dm.Comparison.load(tmp_path / "deep.json")
+
+
+# ---- loaders that check every field ----------------------------------------------------------------
+def _forge(tmp_path, saved, **changes) -> Path:
+    """A copy of the saved solution with some arrays or meta fields replaced."""
+    with np.load(saved["solution"][0], allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files}
+    meta = json.loads(str(arrays["meta"]))
+    for key, value in changes.items():
+        if key in arrays:
+            arrays[key] = value
+        else:
+            meta[key] = value
+    arrays["meta"] = np.array(json.dumps(meta))
+    path = tmp_path / "forged.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"names": ["x", "x"]}, r"field 'names' is \['x', 'x'\]; the model's variables are \['x'\]"),
+        ({"names": []}, r"field 'names' is \[\]; the model's variables are \['x'\]"),
+        ({"t": np.array([0.0, np.nan, 1.0])}, r"field 't' is not a non-empty, finite, increasing"),
+        ({"t": np.array([0.0, 0.5, 0.4])}, r"field 't' is not a non-empty, finite, increasing"),
+        ({"t": np.linspace(0, 1, 5)}, r"field 'values' has shape \(2, 11, 1\); 2 samples, 5 times and 1 variables"),
+        ({"parameters": np.ones((2, 3))}, r"field 'parameters' has shape \(2, 3\)"),
+        ({"batched": False}, r"an unbatched solution has one sample"),
+        ({"batched": "yes"}, r"field 'batched' is a str, not a bool"),
+        ({"solve_time": True}, r"field 'solve_time' is a bool, not a number"),
+        ({"values": np.ones((2, 11, 1), dtype=complex)}, r"field 'values' is an array of complex128"),
+        ({"t": np.ones((2, 2))}, r"field 't' is an array of float64 with 2 axes; expected 1"),
+    ],
+)
+def test_a_solution_file_with_a_bad_field_names_it(saved, tmp_path, changes, message):
+    path = _forge(tmp_path, saved, **changes)
+    with pytest.raises(SolutionFileError, match=message):
+        dm.Solution.load(path, decay)
+
+
+def test_a_solution_file_with_an_object_array_or_an_extra_member_is_refused_unread(saved, tmp_path):
+    """An object array would need a pickle: refused from its header.  A member daemodel does not
+    write: refused by name."""
+    path = tmp_path / "objects.npz"
+    arrays = dict(np.load(saved["solution"][0], allow_pickle=False))
+    with zipfile.ZipFile(path, "w") as archive:
+        for key, value in arrays.items():
+            with archive.open(f"{key}.npy", "w") as member:
+                if key == "values":
+                    np.lib.format.write_array(member, np.array([None, print], dtype=object), allow_pickle=True)
+                else:
+                    np.lib.format.write_array(member, value)
+    with pytest.raises(SolutionFileError, match=r"field 'values' is an array of object with 1 axes"):
+        dm.Solution.load(path, decay)
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("extra.npy", b"")
+    with pytest.raises(SolutionFileError, match=r"holds a field 'extra' that it should not"):
+        dm.Solution.load(path, decay)
+
+
+def test_a_solution_file_missing_a_field_or_declaring_more_than_it_holds(saved, tmp_path):
+    path = _forge(tmp_path, saved)
+    arrays = dict(np.load(path, allow_pickle=False))
+    del arrays["parameters"]
+    np.savez(tmp_path / "short.npz", **arrays)
+    with pytest.raises(SolutionFileError, match=r"short.npz lacks the field 'parameters'"):
+        dm.Solution.load(tmp_path / "short.npz", decay)
+    meta = json.loads(str(arrays["meta"]))
+    del meta["fingerprint"]
+    arrays["meta"], arrays["parameters"] = np.array(json.dumps(meta)), np.array([[1.0], [2.0]])
+    np.savez(tmp_path / "nofp.npz", **arrays)
+    with pytest.raises(SolutionFileError, match=r"nofp.npz lacks the field 'fingerprint'"):
+        dm.Solution.load(tmp_path / "nofp.npz", decay)
+    # a header that declares a larger array than the member holds (a consistent archive otherwise)
+    arrays = dict(np.load(saved["solution"][0], allow_pickle=False))
+    with zipfile.ZipFile(tmp_path / "liar.npz", "w") as archive:
+        for key, value in arrays.items():
+            with archive.open(f"{key}.npy", "w") as member:
+                if key == "values":
+                    np.lib.format.write_array_header_1_0(
+                        member, {"descr": "<f8", "fortran_order": False, "shape": (9, 11, 1)}
+                    )
+                    member.write(value.tobytes())
+                else:
+                    np.lib.format.write_array(member, value)
+    with pytest.raises(
+        SolutionFileError, match=r"field 'values' declares shape \(9, 11, 1\) \(792 bytes\) in 304 bytes"
+    ):
+        dm.Solution.load(tmp_path / "liar.npz", decay)
+
+
+# ---- bombs, checked under a memory limit -------------------------------------------------------------
+def test_a_zip_bomb_and_an_inflated_manifest_are_refused_before_allocating(saved, tmp_path):
+    """In a child whose address space is capped 400 MB above what it holds after import: a
+    solution file of 640 MB of zeros deflated to under 1 MB, and a manifest whose chunk claims
+    10^10 samples, are refused by name, not by a MemoryError."""
+    bomb = tmp_path / "bomb.npz"
+    arrays = dict(np.load(saved["solution"][0], allow_pickle=False))
+    with zipfile.ZipFile(bomb, "w") as archive:  # stored, as daemodel writes, but for the values
+        for key in ("t", "parameters", "meta"):
+            with archive.open(f"{key}.npy", "w") as member:
+                np.lib.format.write_array(member, arrays[key])
+        B, T = 2, 40_000_000  # 640 MB of float64 values
+        archive.compression = zipfile.ZIP_DEFLATED
+        with archive.open("values.npy", "w", force_zip64=True) as member:
+            header = {"descr": "<f8", "fortran_order": False, "shape": (B, T, 1)}
+            np.lib.format.write_array_header_2_0(member, header)
+            zeros = bytes(1 << 24)
+            for _ in range(B * T * 8 // len(zeros)):
+                member.write(zeros)
+    assert bomb.stat().st_size < 5 << 20
+    inflated = tmp_path / "inflated"
+    inflated.mkdir()
+    for path in saved["manifest"][0].parent.iterdir():
+        (inflated / path.name).write_bytes(path.read_bytes())
+    manifest = json.loads((inflated / "ensemble.json").read_text())
+    manifest["total"], manifest["files"] = 10**10, [{**manifest["files"][0], "size": 10**10, "solved": 10**10}]
+    (inflated / "ensemble.json").write_text(json.dumps(manifest))
+    out = child(
+        """
+        import resource
+        from daemodel.errors import ResourceLimitError, SolutionFileError
+        size = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
+        resource.setrlimit(resource.RLIMIT_AS, (size + (400 << 20), resource.RLIM_INFINITY))
+        try:
+            dm.Solution.load("bomb.npz", decay)
+        except SolutionFileError as error:
+            print("bomb:", error)
+        files = dm.EnsembleFiles.load("inflated", decay)
+        try:
+            files.solution()
+        except ResourceLimitError as error:
+            print("solution:", error)
+        try:
+            list(files)
+        except SolutionFileError as error:
+            print("chunks:", error)
+        """,
+        tmp_path,
+    )
+    assert "bomb: bomb.npz: member 'values.npy' is compressed" in out
+    assert "solution: EnsembleFiles.solution: 10000000000 samples of 11 times and 1 variables need 819.6 GiB" in out
+    assert "chunks: inflated/chunk-000000000000.npz holds 2 samples, not the 10000000000" in out
+
+
+def test_a_network_file_that_is_a_bomb_is_refused(saved, tmp_path):
+    path = tmp_path / "bomb.pt"
+    with zipfile.ZipFile(saved["networks"][0]) as source, zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as bomb:
+        for member in source.infolist():
+            bomb.writestr(member.filename, source.read(member))
+    with pytest.raises(NetworkFileError, match=r"bomb.pt: member '.*' is compressed"):
+        dm.Surrogate.load(path, PENDULUM.model())
+
+
+# ---- ensembles: foreign chunks, adaptive radau ----------------------------------------------------------
+def test_a_foreign_chunk_is_refused_on_resume_and_on_load(tmp_path):
+    k = [1.0, 2.0, 3.0]
+    ours = dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": k}, chunk=2, write_to=tmp_path / "ours")
+    other = dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": [5.0, 6.0, 7.0]}, chunk=2, write_to=tmp_path / "b")
+    foreign = (other.directory / "chunk-000000000002.npz").read_bytes()
+    # on load: the manifest's own chunk replaced by another run's
+    (ours.directory / "chunk-000000000002.npz").write_bytes(foreign)
+    files = dm.EnsembleFiles.load(ours.directory, decay)
+    with pytest.raises(SolutionFileError, match=r"chunk-000000000002.npz is a chunk of another ensemble run"):
+        files.solution([2])
+    # on resume: an interrupted directory holding another run's chunk
+    (tmp_path / "resume").mkdir()
+    (tmp_path / "resume" / "chunk-000000000002.npz").write_bytes(foreign)
+    with pytest.raises(InvalidOptionError, match=r"chunk-000000000002.npz is not a chunk of this ensemble"):
+        dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": k}, chunk=2, write_to=tmp_path / "resume")
+    (tmp_path / "resume" / "chunk-000000000007.npz").write_bytes(foreign)
+    (tmp_path / "resume" / "chunk-000000000002.npz").unlink()
+    with pytest.raises(InvalidOptionError, match=r"chunk-000000000007.npz is not a chunk of this ensemble"):
+        dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": k}, chunk=2, write_to=tmp_path / "resume")
+    # the finished directory of the same call: returned as it is, nothing solved again
+    again = dm.ensemble(decay, (0.0, 1.0), h=0.1, parameters={"k": [5.0, 6.0, 7.0]}, chunk=2, write_to=tmp_path / "b")
+    assert again.seconds == other.seconds and again.run == other.run
+
+
+def test_adaptive_radau_in_an_ensemble_matches_single_solves(tmp_path):
+    """k = 1, 1.1 and 1000 in chunks of one and two: every sample on t_eval equals its own
+    solve and the exact exp(-k t) to 1e-8; without t_eval the ensemble is refused, by name."""
+    k = np.array([1.0, 1.1, 1000.0])
+    t_eval = np.linspace(0.0, 1.0, 21)
+    options = {"rtol": 1e-10, "atol": 1e-12, "t_eval": t_eval}
+    single = np.stack([dm.solve(decay, (0.0, 1.0), parameters={"k": v}, **options)["x"] for v in k])
+    for chunk in (1, 2):
+        memory = dm.ensemble(decay, (0.0, 1.0), parameters={"k": k}, chunk=chunk, **options)
+        files = dm.ensemble(
+            decay, (0.0, 1.0), parameters={"k": k}, chunk=chunk, write_to=tmp_path / f"c{chunk}", **options
+        )
+        for values in (memory["x"], files.solution()["x"]):
+            np.testing.assert_allclose(values, single, rtol=0, atol=1e-8)
+            np.testing.assert_allclose(values, np.exp(-np.outer(k, t_eval)), rtol=0, atol=1e-8)
+    with pytest.raises(InvalidOptionError, match=r"radau with adaptive steps and no t_eval reports each batch on the"):
+        dm.ensemble(decay, (0.0, 1.0), parameters={"k": k}, chunk=2, rtol=1e-8)
+    assert dm.ensemble(decay, (0.0, 1.0), rtol=1e-8).batch_size == 1  # one sample: its own steps
+
+
+# ---- small things ------------------------------------------------------------------------------------
+def test_written_files_get_the_usual_permissions_and_no_partial_file(tmp_path):
+    sol = dm.solve(decay, (0.0, 1.0), h=0.1)
+    path = sol.save(tmp_path / "s.npz")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+    os.chmod(path, 0o600)
+    sol.save(path)  # a file written over keeps its mode
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.npz"]
+
+
+def test_a_write_that_fails_for_another_reason_leaves_nothing(tmp_path, monkeypatch):
+    """An exception inside the writer (here, matplotlib refusing) removes the temporary file."""
+    sol = dm.solve(decay, (0.0, 1.0), h=0.1)
+    with pytest.raises(InvalidOptionError, match=r"plot path = '.*plot.xyz': matplotlib writes no '.xyz' files"):
+        sol.plot(tmp_path / "plot.xyz")
+    from daemodel import files
+
+    def broken(handle):
+        handle.write(b"half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        files.atomic_write(tmp_path / "x.bin", broken)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(FileWriteError, match=r"nowhere/x.bin could not be written"):
+        files.atomic_write(tmp_path / "nowhere" / "x.bin", broken)
+
+
+def test_loading_an_entire_ensemble_is_bounded(saved, monkeypatch):
+    files = dm.EnsembleFiles.load(saved["manifest"][0].parent, decay)
+    monkeypatch.setattr(importlib.import_module("daemodel.ensemble"), "memory_limit", lambda: 100)
+    with pytest.raises(ResourceLimitError, match=r"3 samples of 11 times and 1 variables need 0.0 GiB, more than the"):
+        files.solution()
+    assert files.solution([0])["x"].shape == (1, 11)  # 88 bytes fit
