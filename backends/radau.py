@@ -57,6 +57,7 @@ from daemodel.backends.base import (
     check_tolerances,
     fixed_grid,
     fixed_step_sweep,
+    grid_steps,
     make_solution,
     output_times,
     torch_device,
@@ -65,7 +66,14 @@ from daemodel.backends.base import (
 from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
 
 from daemodel.collocation import extrapolation_matrix, lagrange_matrix
-from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, StepLimitError
+from daemodel.errors import (
+    ConvergenceError,
+    InvalidOptionError,
+    LocalErrorBoundError,
+    ResourceLimitError,
+    StepLimitError,
+)
+from daemodel.files import check_memory, memory_limit
 from daemodel.tableau import radau_iia
 
 # Stages of a fixed step when none are given: the paper's v = 3 (order 5).
@@ -274,6 +282,10 @@ class RadauBackend(AbstractBackend):
             return self._solve(compiled, t_span, start, options)
 
     def _solve(self, compiled, t_span, start, options: RadauOptions):
+        check_memory(
+            f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
+            memory_parts(compiled, t_span, start.size, options),
+        )
         began = time.perf_counter()
         engine = make_engine(compiled, start, options)
         stepper = _Stepper(compiled, start, options, engine)
@@ -291,6 +303,27 @@ class RadauBackend(AbstractBackend):
 def adaptive_stages(rtol: float) -> int:
     """The stages adaptive mode uses at ``rtol`` when none are given (:data:`ADAPTIVE_STAGES`)."""
     return next(stages for smallest, stages in ADAPTIVE_STAGES if rtol >= smallest)
+
+
+def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
+    """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
+    Newton matrices (a stage Jacobian and the factored transformed systems, about (2s + 1) D^2 a
+    sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval, also each step's
+    stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
+    D, item = len(compiled.states) + len(compiled.algebraics), 4 if options.dtype == "float32" else 8
+    parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * item}
+    steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
+    if options.t_eval is not None:
+        parts["outputs"] = B * np.size(options.t_eval) * D * 8
+    if steps is not None:
+        parts["step records" if options.t_eval is not None else "outputs"] = steps * step_record_bytes(D, B, options)
+    return parts
+
+
+def step_record_bytes(D: int, B: int, options: RadauOptions) -> int:
+    """Bytes an accepted step keeps until the end: its end values, or with t_eval its stages and start."""
+    item = 4 if options.dtype == "float32" else 8
+    return B * D * item * (options.stages + 1 if options.t_eval is not None else 1)
 
 
 def make_engine_name(start, options: RadauOptions) -> str:
@@ -686,6 +719,12 @@ class _Stepper:
         t_out = output_times(options.t_eval, t_span, grid)
         u0 = self.state()
         self._outputs = ([t0], [u0], [])
+        # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
+        # grid's records were counted before the solve)
+        self._record_budget = math.inf
+        if options.adaptive:
+            known = sum(memory_parts(self.compiled, t_span, self.B, options).values())
+            self._record_budget = (memory_limit() - known) // step_record_bytes(self.n + self.m, self.B, options)
         if options.adaptive:
             self.adaptive_steps(t_span)
         else:
@@ -906,6 +945,12 @@ class _Stepper:
         """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
         W, r, theta = result
         out_t, out_u, steps = self._outputs
+        if len(out_t) + len(steps) > self._record_budget:
+            raise ResourceLimitError(
+                f"radau: at t = {t:.6g}, the {len(out_t) + len(steps)} steps' outputs of {self.B} sample(s) reach "
+                f"the memory allowed ({memory_limit() / 2**30:.3g} GiB, DAEMODEL_MEMORY_LIMIT): solve fewer samples "
+                "at a time, loosen rtol, or give t_eval (with a fixed h, a grid's size is checked before the solve)"
+            )
         u_start = self.state()
         if self.options.t_eval is not None:
             steps.append((t, h, u_start, W))

@@ -10,16 +10,33 @@ per-task arguments.
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 from collections.abc import Callable
+from contextlib import contextmanager
 from pathlib import Path
 
-from daemodel.errors import InvalidOptionError, WorkerError
+from daemodel.errors import InvalidOptionError, TimeLimitError, WorkerError
 
 ENGINES = ("local", "ray")
+# Seconds a Ray task may run before it is stopped with a TimeLimitError (task_timeout=): far above
+# an ensemble chunk's or a PINN segment's usual minutes, short of a forgotten overnight hang.
+DEFAULT_TASK_TIMEOUT = 3600.0
+# Where a cluster that daemodel starts listens: this machine only, unless an address is given.
+LOOPBACK = "127.0.0.1"
 # Shared objects (compiled models, with the code they generate) a Ray worker process keeps, by
 # reference: the latest calls', so that the tasks of one call generate code once per worker.
 HELD_OBJECTS = 2
 _HELD: dict = {}
+
+
+def check_timeout(task_timeout) -> None:
+    """``task_timeout``: positive seconds or None."""
+    if task_timeout is not None and (
+        isinstance(task_timeout, bool) or not isinstance(task_timeout, int | float) or not task_timeout > 0
+    ):
+        raise InvalidOptionError(f"task_timeout must be a positive number of seconds or None; got {task_timeout!r}")
 
 
 def check_engine(engine, workers, address, device="cpu") -> None:
@@ -50,6 +67,7 @@ def run_tasks(
     address: str | None = None,
     label: str,
     on_result: Callable | None = None,
+    task_timeout: float | None = DEFAULT_TASK_TIMEOUT,
 ) -> list:
     """``function(shared, *task)`` for every task; the results in task order.
 
@@ -64,6 +82,8 @@ def run_tasks(
     WorkerError
         A Ray worker died before returning (killed, out of memory, crashed); ``label`` and the
         task's index name it.  An exception the function raised is re-raised as itself.
+    TimeLimitError
+        A Ray task ran longer than ``task_timeout`` seconds (None: no limit).
     """
     if engine == "local":
         results = []
@@ -78,7 +98,7 @@ def run_tasks(
     # and unpickles the shared object once and keeps it (with the code it generates) for the
     # call's later tasks, instead of once per task.
     stored = [ray.put(shared)]
-    pending = {remote.remote(function, stored, *task): i for i, task in enumerate(tasks)}
+    pending = {remote.remote(function, stored, (task_timeout, label, i), *task): i for i, task in enumerate(tasks)}
     results = [None] * len(tasks)
     try:
         while pending:
@@ -109,7 +129,23 @@ def connect(workers: int | None, address: str | None):
                 f"workers sets the CPUs of a local cluster that this call starts; the cluster at "
                 f"address={address!r} has its own: leave workers out"
             )
-        ray.init(address="local" if workers is not None else address, num_cpus=workers, log_to_driver=False)
+        if address is None and workers is None and not os.environ.get("RAY_ADDRESS"):
+            try:  # a cluster that `ray start` left on this machine
+                ray.init(address="auto", log_to_driver=False)
+                return ray
+            except ConnectionError:
+                pass
+        if address in (None, "local"):  # a new cluster: on the loopback interface, no dashboard
+            with _loopback():
+                ray.init(
+                    address="local",
+                    num_cpus=workers,
+                    log_to_driver=False,
+                    include_dashboard=False,
+                    _node_ip_address=LOOPBACK,
+                )
+        else:
+            ray.init(address=address, log_to_driver=False)
         return ray
     if address is not None:
         raise InvalidOptionError("Ray is already running in this process: leave out address (or ray.shutdown() first)")
@@ -141,9 +177,10 @@ def _result(ray, reference, label: str, index: int):
         ) from None
 
 
-def _on_worker(function, stored: list, *task):
+def _on_worker(function, stored: list, limit: tuple, *task):
     """What a Ray task runs: the function on one torch thread (Ray gives the task one CPU), with
-    the shared object this worker process already holds for the call, or fetches now."""
+    the shared object this worker process already holds for the call, or fetches now, stopped by
+    a TimeLimitError after ``limit`` = (seconds or None, label, index)."""
     import ray
     import torch
 
@@ -156,7 +193,8 @@ def _on_worker(function, stored: list, *task):
         _HELD[key] = ray.get(reference)
     shared = _HELD[key]
     measured = _reset_peak_memory()
-    result = function(shared, *task)
+    with _time_limit(*limit):
+        result = function(shared, *task)
     peak = _peak_memory_mb() if measured else None
     if isinstance(result, dict) and peak is not None:
         result["peak_memory_mb"] = peak
@@ -178,3 +216,50 @@ def _peak_memory_mb() -> float | None:
         if line.startswith("VmHWM:"):
             return int(line.split()[1]) / 1024
     return None
+
+
+class _time_limit:
+    """Raise :class:`TimeLimitError` in this (main) thread once ``seconds`` have passed (SIGALRM;
+    a long call into compiled code is interrupted when it returns to Python)."""
+
+    def __init__(self, seconds: float | None, label: str, index: int):
+        self.seconds, self.label, self.index = seconds, label, index
+        self.active = seconds is not None and threading.current_thread() is threading.main_thread()
+
+    def _expired(self, *_):
+        raise TimeLimitError(
+            f"{self.label}: task {self.index} ran past its time limit of {self.seconds:g} s (task_timeout) and was "
+            "stopped; give each task less work (a smaller chunk) or a longer task_timeout"
+        )
+
+    def __enter__(self):
+        if self.active:
+            self.previous = signal.signal(signal.SIGALRM, self._expired)
+            signal.setitimer(signal.ITIMER_REAL, self.seconds)
+        return self
+
+    def __exit__(self, *_):
+        if self.active:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, self.previous)
+
+
+@contextmanager
+def _loopback():
+    """While a new local cluster starts: Ray resolves a loopback node address to the machine's
+    network address unless it runs in its single-machine mode (its default on macOS and Windows,
+    switched by RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER); take that mode so that its servers listen on
+    127.0.0.1 only."""
+    from ray._private import ray_constants
+
+    variable, saved = ray_constants.ENABLE_RAY_CLUSTERS_ENV_VAR, ray_constants.ENABLE_RAY_CLUSTER
+    previous = os.environ.get(variable)
+    os.environ[variable], ray_constants.ENABLE_RAY_CLUSTER = "0", False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = saved
+        if previous is None:
+            os.environ.pop(variable, None)
+        else:
+            os.environ[variable] = previous

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemodel.engine import check_engine, run_tasks
+from daemodel.engine import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
@@ -31,6 +31,7 @@ from daemodel.errors import (
 )
 from daemodel.files import (
     DirectoryLock,
+    check_memory,
     memory_limit,
     open_inside,
     read_arrays,
@@ -110,6 +111,7 @@ def ensemble(
     progress: bool = False,
     write_to=None,
     max_failures: int | None = DEFAULT_MAX_FAILURES,
+    task_timeout: float | None = DEFAULT_TASK_TIMEOUT,
     **options,
 ) -> Solution | EnsembleFiles:
     """Solve a large batch in chunks: ``engine="local"`` one chunk after another in this process
@@ -137,6 +139,9 @@ def ensemble(
     max_failures : int or None
         Failed samples to record before the ensemble stops with a :class:`ConvergenceError`
         that names the first (default 1000; None: no bound).
+    task_timeout : float or None
+        Ray only: seconds a chunk's task may run before it is stopped with a
+        :class:`TimeLimitError` (default one hour; None: no limit).
     write_to : str or Path, optional
         A directory (created if missing) to write each chunk's values to as the chunk finishes,
         one :meth:`Solution.save` file per chunk, with a manifest ``ensemble.json``, instead of
@@ -167,6 +172,7 @@ def ensemble(
     from daemodel.solver import as_compiled, check_options, check_span
 
     check_engine(engine, workers, address, options.get("device", "cpu"))
+    check_timeout(task_timeout)
     backend = get_backend(method)
     checked = check_options(backend, options)  # a misspelt option is named before any chunk runs
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
@@ -203,7 +209,9 @@ def ensemble(
         (start, {name: np.ascontiguousarray(array[start:stop]) for name, array in arrays.items()})
         for start, stop in pieces
     ]
-    plan = _Plan(compiled, t_span, method, options, total, chunk, engine, workers, address, progress, max_failures)
+    plan = _Plan(
+        compiled, t_span, method, options, total, chunk, engine, workers, address, progress, max_failures, task_timeout
+    )
     if write_to is None:
         return _run(plan, work)
     directory = writable_directory(write_to, "write_to")  # made once the inputs are known good
@@ -237,19 +245,24 @@ class _Plan:
     address: str | None
     progress: bool
     max_failures: int | None
+    task_timeout: float | None
 
 
 def _run(plan: _Plan, work: list, files: tuple | None = None):
     """Solve ``work``'s chunks: each result written to ``files`` = (directory, run, digests) as it
     finishes (the results, without values, are returned), or kept and assembled into one Solution."""
     began = time.perf_counter()
-    finished, failed = [], []
+    finished, failed, sized = [], [], []
 
     def report(_, result) -> None:
         finished.append(result["size"])
         failed.extend(result["failures"])
         if result.get("stopped") or (plan.max_failures is not None and len(failed) > plan.max_failures):
             _too_many_failures(failed, plan.max_failures)
+        if files is None and "values" in result and not sized:  # the first values tell the output's size
+            sized.append(True)
+            width = sum(value.shape[1] for value in result["values"].values())  # times x variables
+            check_memory(f"ensemble of {plan.total} samples kept in memory", {"outputs": plan.total * width * 8})
         if files is not None:
             _write_chunk(files, plan.compiled, result)
         elif plan.engine == "ray" and "values" in result:
@@ -273,6 +286,7 @@ def _run(plan: _Plan, work: list, files: tuple | None = None):
         address=plan.address,
         label="ensemble",
         on_result=report,
+        task_timeout=plan.task_timeout,
     )
     if files is not None:
         return results

@@ -177,6 +177,10 @@ class WorkerError(SolverError):
     """A Ray worker stopped before returning its task's result (killed, out of memory, crashed)."""
 
 
+class TimeLimitError(SolverError):
+    """A Ray task ran longer than its time limit (``task_timeout``) and was stopped."""
+
+
 class SolutionFileError(ModelError):
     """A saved solution file or ensemble directory does not exist, is not daemodel's, or belongs to another model."""
 

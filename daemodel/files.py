@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from daemodel.errors import FileWriteError, InvalidOptionError
+from daemodel.errors import FileWriteError, InvalidOptionError, ResourceLimitError
 
 # A name daemodel puts into a path: letters, digits, '_', '-' and '.', not starting with '.'
 # (no hidden files, no '.' or '..'), no separator of any platform.
@@ -44,18 +44,43 @@ FILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,199}")
 # ensemble manifest is flat (a manifest of 10^6 failed samples is about 200 MB).
 JSON_BYTES = 1 << 30
 JSON_DEPTH = 32
-# The share of the machine's physical memory that one result read or built may take.
+# The share of the machine's physical memory that one result read or built may take, unless the
+# environment variable DAEMODEL_MEMORY_LIMIT gives a size ("64G", "512M", bytes).
 MEMORY_FRACTION = 0.5
+MEMORY_LIMIT_VARIABLE = "DAEMODEL_MEMORY_LIMIT"
+_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 
 
 def memory_limit() -> int:
-    """Bytes one result may take: :data:`MEMORY_FRACTION` of physical memory (4 GiB where the
-    system does not say)."""
+    """Bytes one solve, batch, ensemble chunk or loaded result may take: ``DAEMODEL_MEMORY_LIMIT``
+    when set (``"64G"``, ``"512M"``, a number of bytes), else :data:`MEMORY_FRACTION` of the
+    machine's physical memory (of 8 GiB where the system does not say)."""
+    text = os.environ.get(MEMORY_LIMIT_VARIABLE, "").strip()
+    if text:
+        match = re.fullmatch(r"(\d+(?:\.\d+)?)\s*([KMGT]?)(?:i?B)?", text, flags=re.IGNORECASE)
+        if match is None or float(match[1]) <= 0:
+            raise InvalidOptionError(
+                f"{MEMORY_LIMIT_VARIABLE} = {text!r} is not a memory size; give one such as '64G', '512M' or bytes"
+            )
+        return int(float(match[1]) * _UNITS[match[2].upper()])
     try:
         physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):
         physical = 8 << 30
     return int(MEMORY_FRACTION * physical)
+
+
+def check_memory(what: str, parts: dict) -> None:
+    """A :class:`ResourceLimitError` when the ``parts`` (name: bytes) of ``what`` add up to more
+    than :func:`memory_limit`, before anything is allocated; the message gives each part."""
+    limit, total = memory_limit(), sum(parts.values())
+    if total > limit:
+        itemised = ", ".join(f"{name} {size / 2**30:.3g} GiB" for name, size in parts.items())
+        raise ResourceLimitError(
+            f"{what} would need {total / 2**30:.3g} GiB ({itemised}), more than the {limit / 2**30:.3g} GiB allowed "
+            f"(set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it): solve fewer samples at a time "
+            "(dm.ensemble with a smaller chunk, write_to= to keep them on disk) or ask for fewer output times"
+        )
 
 
 def writable_file(path, argument: str) -> Path:

@@ -559,3 +559,77 @@ def test_loading_an_entire_ensemble_is_bounded(saved, monkeypatch):
     with pytest.raises(ResourceLimitError, match=r"3 samples of 11 times and 1 variables need 0.0 GiB, more than the"):
         files.solution()
     assert files.solution([0])["x"].shape == (1, 11)  # 88 bytes fit
+
+
+# ---- memory bounds before allocation ---------------------------------------------------------------
+def test_a_solve_whose_outputs_would_not_fit_is_refused_before_it_starts():
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"radau on 1000000 sample\(s\) of 1 unknowns would need 74.6 GiB \(Newton matrices 0.0522 GiB, "
+        r"outputs 74.5 GiB\), more than the .* GiB allowed \(set DAEMODEL_MEMORY_LIMIT",
+    ):
+        dm.solve(decay, (0.0, 1.0), h=1e-4, parameters={"k": np.ones(10**6)})
+
+
+def test_adaptive_steps_stop_at_the_memory_limit(monkeypatch):
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "20K")
+    k = {"k": np.linspace(1.0, 50.0, 100)}
+    with pytest.raises(ResourceLimitError, match=r"radau: at t = .*, the 15 steps' outputs of 100 sample\(s\) reach"):
+        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k)
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "lots")
+    with pytest.raises(InvalidOptionError, match=r"DAEMODEL_MEMORY_LIMIT = 'lots' is not a memory size"):
+        dm.solve(decay, (0.0, 1.0), h=0.1)
+
+
+def test_an_ensemble_too_big_for_memory_is_stopped_at_its_first_chunk(monkeypatch, tmp_path):
+    """2000 samples of 1001 times need 16 MB; with 1 MB allowed the in-memory ensemble stops
+    after its first chunk, and write_to= (one chunk of 800 KB in memory at a time) runs."""
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1M")
+    k = {"k": np.linspace(1.0, 2.0, 2000)}
+    with pytest.raises(ResourceLimitError, match=r"ensemble of 2000 samples kept in memory would need 0.0149 GiB"):
+        dm.ensemble(decay, (0.0, 1.0), h=0.001, parameters=k, chunk=100)
+    files = dm.ensemble(decay, (0.0, 1.0), h=0.001, parameters=k, chunk=100, write_to=tmp_path)
+    assert files.solved == 2000
+    part = next(iter(files))
+    np.testing.assert_allclose(part["x"][:, -1], np.exp(-part.parameters[:, 0]), rtol=1e-9)
+
+
+# ---- Ray: loopback, time limits -------------------------------------------------------------------------
+@pytest.mark.slow  # a Ray cluster of its own: about 80 s
+def test_a_ray_cluster_daemodel_starts_listens_on_loopback_and_stops_a_task_past_its_limit(tmp_path):
+    pytest.importorskip("ray")
+    out = child(
+        """
+        import time
+        from daemodel.engine import connect, run_tasks
+        from daemodel.errors import TimeLimitError
+        import subprocess
+        ray = connect(1, None)
+        print("nodes:", sorted({node["NodeManagerAddress"] for node in ray.nodes()}))
+        listening = subprocess.run(["ss", "-Hltnp"], capture_output=True, text=True).stdout.splitlines()
+        ours = [line.split()[3] for line in listening if any(n in line for n in ("gcs_server", "raylet", "ray::"))]
+        print("listening:", len(ours), sorted({a.rsplit(":", 1)[0].strip("[]").removeprefix("::ffff:") for a in ours}))
+        def sleepy(shared, seconds):
+            time.sleep(seconds)
+            return seconds
+        print("quick:", run_tasks(sleepy, None, [(0.1,)], engine="ray", label="nap", task_timeout=30))
+        began = time.perf_counter()
+        try:
+            run_tasks(sleepy, None, [(60,)], engine="ray", label="nap", task_timeout=2)
+        except TimeLimitError as error:
+            print("stopped after %.0f s:" % (time.perf_counter() - began), error)
+        """,
+        tmp_path,
+        timeout=240,
+    )
+    assert "nodes: ['127.0.0.1']" in out
+    count, hosts = out.split("listening: ")[1].split("\n")[0].split(" ", 1)
+    assert int(count) >= 3 and hosts == "['127.0.0.1']", out  # the GCS, the raylet and the workers
+    assert "quick: [0.1]" in out
+    assert "nap: task 0 ran past its time limit of 2 s (task_timeout) and was stopped" in out
+    assert int(out.split("stopped after ")[1].split(" s")[0]) < 30
+
+
+def test_task_timeout_errors(blowup):
+    with pytest.raises(InvalidOptionError, match=r"task_timeout must be a positive number of seconds or None; got 0"):
+        dm.ensemble(blowup, (0.0, 1.0), h=0.1, task_timeout=0)
