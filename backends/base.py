@@ -383,6 +383,16 @@ def fixed_grid(t_span, h: float, *, max_steps: int | None = None) -> np.ndarray:
     return grid
 
 
+def check_output_memory(method: str, compiled, samples: int, points: int, extra: int = 0) -> None:
+    """Refuse, before allocating, a solve whose outputs (``samples`` x ``points`` x variables
+    float64) and ``extra`` bytes exceed the memory limit (:func:`daemodel.files.check_memory`)."""
+    from daemodel.files import check_memory
+
+    D = len(compiled.states) + len(compiled.algebraics)
+    parts = {"outputs": samples * points * D * 8} | ({"working set": extra} if extra else {})
+    check_memory(f"{method} on {samples} sample(s) of {D} unknowns", parts)
+
+
 def output_times(t_eval, t_span, default) -> np.ndarray:
     """Validated output times: sorted, finite, inside ``t_span``; ``default`` when None."""
     if t_eval is None:

@@ -50,6 +50,7 @@ from daemodel.backends.base import (
     SWEEP_FIRST_STEPS,
     AbstractBackend,
     check_number,
+    check_output_memory,
     check_stages,
     check_tolerances,
     fixed_grid,
@@ -415,6 +416,8 @@ class CollocationBackend(AbstractBackend):
 
         h = options.h if options.h is not None else (t_span[1] - t_span[0]) / DEFAULT_STEPS
         grid = fixed_grid(t_span, h)
+        points = len(grid) + (0 if options.t_eval is None else np.size(options.t_eval))
+        check_output_memory(self.name, compiled, start.size, points)
         began = time.perf_counter()
         dae = _dae(compiled)
         # casadi's Newton stops on |residual| < abstol (default 1e-12, for unit-size values): scale it
@@ -588,6 +591,7 @@ class IDASBackend(AbstractBackend):
 
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         grid = times[1:] if times[0] == t_span[0] else times
+        check_output_memory(self.name, compiled, start.size, len(times))
         began = time.perf_counter()
         if len(grid) == 0:  # only t0 asked for: the initial state is the answer
             values = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]

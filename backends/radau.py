@@ -310,8 +310,8 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
     Newton matrices (a stage Jacobian and the factored transformed systems, about (2s + 1) D^2 a
     sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval, also each step's
     stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
-    D, item = len(compiled.states) + len(compiled.algebraics), 4 if options.dtype == "float32" else 8
-    parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * item}
+    D = len(compiled.states) + len(compiled.algebraics)
+    parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * _itemsize(options)}
     steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
     if options.t_eval is not None:
         parts["outputs"] = B * np.size(options.t_eval) * D * 8
@@ -322,8 +322,11 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
 
 def step_record_bytes(D: int, B: int, options: RadauOptions) -> int:
     """Bytes an accepted step keeps until the end: its end values, or with t_eval its stages and start."""
-    item = 4 if options.dtype == "float32" else 8
-    return B * D * item * (options.stages + 1 if options.t_eval is not None else 1)
+    return B * D * _itemsize(options) * (options.stages + 1 if options.t_eval is not None else 1)
+
+
+def _itemsize(options: RadauOptions) -> int:
+    return 4 if options.dtype == "float32" else 8
 
 
 def make_engine_name(start, options: RadauOptions) -> str:

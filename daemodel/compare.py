@@ -274,6 +274,7 @@ class Comparison:
         if not path.exists():
             raise ComparisonError(f"no comparison file at {path}")
         payload = read_json(path, ComparisonError, "a comparison saved by Comparison.to_json")
+        _check_payload(path, payload)
         try:
             runs = tuple(
                 Run(
@@ -401,6 +402,76 @@ class Comparison:
         png = Path(f"{stem}_work_precision.png")
         self.plot(png)
         return [self.to_json(f"{stem}.json"), self.to_csv(f"{stem}.csv"), png]
+
+
+def _check_payload(path, payload) -> None:
+    """Every field of a saved comparison with its type, before anything is built from it: a
+    ComparisonError names the first that is not what :meth:`Comparison.to_json` writes."""
+
+    def bad(field: str, expected: str):
+        raise ComparisonError(f"{path}: field {field!r} is not {expected}: the file is damaged or was edited")
+
+    def number(value, field: str, none: bool = True):
+        if (value is None and none) or (isinstance(value, int | float) and not isinstance(value, bool)):
+            return
+        bad(field, "a number" + (" or null" if none else ""))
+
+    def strings(value, field: str):
+        if not isinstance(value, list) or not all(isinstance(item, str) for item in value):
+            bad(field, "a list of strings")
+
+    if not isinstance(payload, dict):
+        bad("(top level)", "an object")
+    for key in ("model", "t_span", "reference", "states", "algebraics", "runs"):
+        if key not in payload:
+            return  # named by the KeyError below, as before
+    span = payload["t_span"]
+    if not isinstance(span, list) or len(span) != 2:
+        bad("t_span", "a pair of numbers")
+    for value in span:
+        number(value, "t_span", none=False)
+    if not all(math.isfinite(v) for v in span) or not span[0] < span[1]:
+        bad("t_span", "a finite, increasing pair")
+    if not isinstance(payload["reference"], str):
+        bad("reference", "a string")
+    strings(payload["states"], "states")
+    strings(payload["algebraics"], "algebraics")
+    if not payload["states"]:
+        bad("states", "a non-empty list")
+    names = [*payload["states"], *payload["algebraics"]]
+    if not isinstance(payload["runs"], list):
+        bad("runs", "a list")
+    for k, run in enumerate(payload["runs"]):
+        where = f"runs[{k}]"
+        if not isinstance(run, dict):
+            bad(where, "an object")
+        for key in ("method", "settings", "short", "status"):
+            if not isinstance(run.get(key, ""), str):
+                bad(f"{where}.{key}", "a string")
+        for key in ("solve_time", "setup_time"):
+            number(run.get(key), f"{where}.{key}")
+        if run.get("failure") is not None and not isinstance(run["failure"], str):
+            bad(f"{where}.failure", "a string or null")
+        strings(run.get("messages", []), f"{where}.messages")
+        errors = run.get("errors", {})
+        if not isinstance(errors, dict) or (run.get("failure") is None and set(errors) != set(names)):
+            bad(f"{where}.errors", "an entry for every variable of states and algebraics")
+        for name, error in errors.items():
+            if not isinstance(error, dict) or set(error) != {"max", "mean"}:
+                bad(f"{where}.errors.{name}", "an object of max and mean")
+            number(error["max"], f"{where}.errors.{name}.max")
+            number(error["mean"], f"{where}.errors.{name}.mean")
+        for key in ("drift", "certificate"):
+            table = run.get(key, {})
+            if not isinstance(table, dict):
+                bad(f"{where}.{key}", "an object")
+            for name, value in table.items():
+                number(value, f"{where}.{key}.{name}")
+        step = run.get("step", [])
+        if not isinstance(step, list) or len(step) not in (0, 2):
+            bad(f"{where}.step", "empty or a pair (stages, h)")
+        for value in step:
+            number(value, f"{where}.step", none=False)
 
 
 def _sweep_range(runs) -> str:

@@ -25,14 +25,14 @@ from daemodel.errors import (
     InconsistentInitialStateError,
     InitialisationError,
     InvalidOptionError,
-    ResourceLimitError,
     SolutionFileError,
     SolverError,
+    TimeLimitError,
 )
 from daemodel.files import (
     DirectoryLock,
     check_memory,
-    memory_limit,
+    is_plain_file,
     open_inside,
     read_arrays,
     read_json,
@@ -222,7 +222,8 @@ def ensemble(
         if isinstance(done, EnsembleFiles):
             return done
         began = time.perf_counter()
-        results = _run(plan, [item for item in work if item[0] not in done], (directory, run, digests))
+        earlier = [failure for result in done.values() for failure in result["failures"]]
+        results = _run(plan, [item for item in work if item[0] not in done], (directory, run, digests), earlier)
         # the run's wall time: this call's, plus the seconds of the chunks an earlier call left
         seconds = time.perf_counter() - began + sum(result["seconds"] for result in done.values())
         results = sorted([*done.values(), *results], key=lambda result: result["offset"])
@@ -248,11 +249,11 @@ class _Plan:
     task_timeout: float | None
 
 
-def _run(plan: _Plan, work: list, files: tuple | None = None):
+def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = ()):
     """Solve ``work``'s chunks: each result written to ``files`` = (directory, run, digests) as it
     finishes (the results, without values, are returned), or kept and assembled into one Solution."""
     began = time.perf_counter()
-    finished, failed, sized = [], [], []
+    finished, failed, sized = [], list(earlier), []  # a resumed run's failures count towards max_failures
 
     def report(_, result) -> None:
         finished.append(result["size"])
@@ -321,6 +322,8 @@ def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failur
     try:
         solution = solve(compiled, t_span, method=method, **batch, **options)
     except SAMPLE_FAILURES as error:
+        if isinstance(error, TimeLimitError):  # the task's time is up: no half of it may run on
+            raise
         if size == 1:
             failure = Failure(index=offset, error=type(error).__name__, message=str(error))
             found.append(failure)
@@ -490,7 +493,12 @@ class EnsembleFiles:
         path = directory / MANIFEST
         if not path.exists():
             raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")
-        manifest = read_json(path, SolutionFileError, "a daemodel ensemble manifest")
+        manifest = read_json(path, SolutionFileError, "a daemodel ensemble manifest", follow=False)
+        if isinstance(manifest, dict) and manifest.get("format") == "daemodel-ensemble/1":
+            raise SolutionFileError(
+                f"{path} is a daemodel ensemble of format 'daemodel-ensemble/1', whose chunks carry no fingerprints; "
+                f"this version reads {ENSEMBLE_FORMAT!r}: solve the ensemble again into a new directory"
+            )
         if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
         lacking = [key for key in MANIFEST_KEYS if key not in manifest]
@@ -504,7 +512,7 @@ class EnsembleFiles:
                 f"{directory} holds an ensemble of model '{manifest['model']}' with other equations or names than "
                 f"'{compiled.name}'; load it with the model that was solved"
             )
-        missing = [entry["file"] for entry in manifest["files"] if not _plain_file(directory / entry["file"])]
+        missing = [entry["file"] for entry in manifest["files"] if not is_plain_file(directory / entry["file"])]
         if missing:
             raise SolutionFileError(
                 f"{directory}: {len(missing)} of the ensemble's {len(manifest['files'])} chunk files are missing "
@@ -559,13 +567,11 @@ class EnsembleFiles:
             with open_inside(self.directory, first_file, "files[0].file", SolutionFileError) as handle:
                 where = self.directory / first_file
                 shapes = read_arrays(handle, where, SOLUTION_ARRAYS, SolutionFileError, data=False)
-            needed = rows * int(np.prod(shapes["values"][1:])) * 8
-            if needed > memory_limit():
-                raise ResourceLimitError(
-                    f"EnsembleFiles.solution: {rows} samples of {shapes['values'][1]} times and "
-                    f"{shapes['values'][2]} variables need {needed / 2**30:.1f} GiB, more than the "
-                    f"{memory_limit() / 2**30:.1f} GiB allowed; ask for fewer samples, or iterate over the chunks"
-                )
+            _, times, variables = shapes["values"]
+            check_memory(
+                f"EnsembleFiles.solution of {rows} samples of {times} times and {variables} variables",
+                {"values": rows * times * variables * 8},
+            )
         wanted = self._wanted(samples)
         kept, first = [], None  # per chunk read: the wanted rows only, so one chunk is whole at a time
         for entry in self._manifest["files"]:
@@ -582,7 +588,13 @@ class EnsembleFiles:
                 )
                 first = first or {key: getattr(part, key) for key in ("t", "method", "settings", "compiled")}
                 del part
-        got = np.concatenate([indices for indices, _, _ in kept])
+        got = np.concatenate([indices for indices, _, _ in kept]) if kept else np.zeros(0, np.int64)
+        absent = np.setdiff1d(wanted, got)
+        if len(absent):
+            raise SolutionFileError(
+                f"{self.directory}: sample {absent[0]} is in no chunk file although the manifest does not list it as "
+                "failed: the ensemble is damaged"
+            )
         order = np.argsort(got, kind="stable")
         take = order[np.searchsorted(got, wanted, sorter=order)]
         names = kept[0][1].keys()
@@ -643,19 +655,21 @@ def _inputs_digest(batch: dict) -> str:
     return digest.hexdigest()
 
 
-def _plain_file(path: Path) -> bool:
-    """A regular file, not a link (a link could lead out of the directory)."""
-    try:
-        return path.lstat().st_mode & 0o170000 == 0o100000
-    except OSError:
-        return False
-
-
 def _read_chunk(directory: Path, name: str, compiled) -> Solution:
     """A chunk file (its name checked, read without following a link) as a Solution."""
     with open_inside(directory, name, "chunk file", SolutionFileError) as handle:
         part = Solution._read(handle, directory / name, compiled)
-    part.stats["samples"] = np.asarray(part.stats.get("samples", []), dtype=np.int64)
+    samples = part.stats.get("samples")
+    if (
+        not isinstance(samples, list)
+        or len(samples) != part.batch_size
+        or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < 2**62 for i in samples)
+        or len(set(samples)) != len(samples)
+    ):
+        raise SolutionFileError(
+            f"{directory / name}: field 'stats.samples' is not {part.batch_size} distinct sample indices, one a row"
+        )
+    part.stats["samples"] = np.asarray(samples, dtype=np.int64)
     try:
         part.stats["failures"] = [Failure(**failure) for failure in part.stats.get("failures", [])]
     except TypeError:
@@ -685,8 +699,13 @@ def _resume(directory: Path, compiled, run: str, digests: dict, sizes: dict):
         if not name.startswith("chunk-"):
             continue
         offset = int(match[1]) if match else None
-        part = _read_chunk(directory, name, compiled) if offset in sizes else None
-        if part is None or part.stats.get("run") != run or part.stats.get("inputs") != digests[offset]:
+        if offset not in sizes or not is_plain_file(directory / name):
+            raise InvalidOptionError(
+                f"write_to {directory}: {name} is not one of this ensemble's chunk files (chunk-<first sample>.npz "
+                "for its chunking, a plain file); give another directory, or remove it"
+            )
+        part = _read_chunk(directory, name, compiled)
+        if part.stats.get("run") != run or part.stats.get("inputs") != digests[offset]:
             raise InvalidOptionError(
                 f"write_to {directory}: {name} is not a chunk of this ensemble (another run's samples, model, method, "
                 "settings or chunking); give another directory, or remove that file to solve its samples again"
@@ -769,8 +788,11 @@ def _check_manifest(path: Path, manifest: dict) -> None:
 
     total = whole(manifest["total"], "total", 1)
     whole(manifest["chunk"], "chunk", 1)
-    if not isinstance(manifest["run"], str):
-        bad("run", "is not a string")
+    for key in ("run", "status", "engine", "model", "fingerprint"):
+        if not isinstance(manifest[key], str):
+            bad(key, "is not a string")
+    if isinstance(manifest["seconds"], bool) or not isinstance(manifest["seconds"], int | float):
+        bad("seconds", f"is {manifest['seconds']!r}, not a number")
     if not isinstance(manifest["files"], list) or not isinstance(manifest["failures"], list):
         bad("files" if not isinstance(manifest["files"], list) else "failures", "is not a list")
     end, solved = 0, 0
@@ -787,6 +809,19 @@ def _check_manifest(path: Path, manifest: dict) -> None:
     for k, failure in enumerate(manifest["failures"]):
         if not isinstance(failure, dict) or set(failure) != {"index", "error", "message"}:
             bad(f"failures[{k}]", "is not an index, an error and a message")
+        if not isinstance(failure["error"], str) or not isinstance(failure["message"], str):
+            bad(f"failures[{k}]", "has an error or a message that is not a string")
         seen.add(whole(failure["index"], f"failures[{k}].index", 0, total - 1))
     if len(seen) != len(manifest["failures"]) or solved + len(seen) != total:
         bad("total", f"is {total}, but the chunks hold {solved} solved samples and {len(seen)} distinct failures")
+    # every sample lies in one chunk as solved or failed, or outside every chunk as failed
+    failed = np.sort(np.fromiter(seen, np.int64, len(seen)))
+    inside = 0
+    for k, entry in enumerate(manifest["files"]):
+        lo, hi = np.searchsorted(failed, [entry["offset"], entry["offset"] + entry["size"]])
+        inside += hi - lo
+        if entry["solved"] + (hi - lo) != entry["size"]:
+            bad(f"files[{k}].solved", f"is {entry['solved']}, but {hi - lo} of the chunk's {entry['size']} failed")
+    covered = sum(entry["size"] for entry in manifest["files"])
+    if len(seen) - inside != total - covered:
+        bad("failures", f"leave {total - covered - (len(seen) - inside)} samples outside every chunk unaccounted for")

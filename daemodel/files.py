@@ -70,6 +70,12 @@ def memory_limit() -> int:
     return int(MEMORY_FRACTION * physical)
 
 
+def _size(size: int) -> str:
+    """``size`` bytes in the largest binary unit that keeps a digit before the point."""
+    unit = max((u for u in _UNITS if _UNITS[u] <= max(size, 1)), key=_UNITS.get)
+    return f"{size / _UNITS[unit]:.3g} {unit}iB" if unit else f"{size} bytes"
+
+
 def check_memory(what: str, parts: dict) -> None:
     """A :class:`ResourceLimitError` when the ``parts`` (name: bytes) of ``what`` add up to more
     than :func:`memory_limit`, before anything is allocated; the message gives each part."""
@@ -154,7 +160,7 @@ def atomic_write(path: Path, write: Callable, *, text: bool = False) -> Path:
     path = Path(path)
     directory = path.parent
     try:
-        mode = (path.stat().st_mode & 0o777) if path.is_file() else _new_file_mode()
+        mode = (os.lstat(path).st_mode & 0o777) if is_plain_file(path) else _new_file_mode()  # never a link's target's
         handle, temporary = tempfile.mkstemp(dir=directory, prefix=f".{path.name[:100]}.", suffix=".partial")
     except OSError as error:
         raise FileWriteError(f"{path} could not be written: {error.strerror or error}") from None
@@ -186,7 +192,8 @@ def open_file(path: Path, field: str, error: type, *, follow: bool = True):
     """``path`` opened for reading as a binary file object, checked to be a regular file; with
     ``follow=False`` a link is not followed.  ``error`` names the file and ``field`` otherwise."""
     path = Path(path)
-    flags = os.O_RDONLY | (0 if follow else getattr(os, "O_NOFOLLOW", 0))
+    # non-blocking, so that a FIFO planted in its place cannot hang the open; cleared below
+    flags = os.O_RDONLY | os.O_NONBLOCK | (0 if follow else getattr(os, "O_NOFOLLOW", 0))
     try:
         descriptor = os.open(path, flags)
     except OSError as failure:
@@ -195,8 +202,17 @@ def open_file(path: Path, field: str, error: type, *, follow: bool = True):
         raise error(f"{path} ({field}) cannot be read: {failure.strerror or failure}") from None
     if not stat.S_ISREG(os.fstat(descriptor).st_mode):
         os.close(descriptor)
-        raise error(f"{path} ({field}) is not a file")
+        raise error(f"{path} ({field}) is not a plain file")
+    os.set_blocking(descriptor, True)
     return os.fdopen(descriptor, "rb")
+
+
+def is_plain_file(path: Path) -> bool:
+    """Whether ``path`` is a regular file itself (not a link, a FIFO or a device)."""
+    try:
+        return stat.S_ISREG(os.lstat(path).st_mode)
+    except OSError:
+        return False
 
 
 def open_inside(directory: Path, name, field: str, error: type):
@@ -230,7 +246,10 @@ def stored_members(handle, path, error: type, limit: int | None = None, what: st
     if declared > size:
         raise error(f"{path} declares {declared} bytes of data in a file of {size} bytes: it is damaged")
     if limit is not None and declared > limit:
-        raise error(f"{path} holds {declared / 2**30:.1f} GiB, more than the {limit / 2**30:.1f} GiB allowed")
+        raise error(
+            f"{path} holds {_size(declared)}, more than the {_size(limit)} allowed (set {MEMORY_LIMIT_VARIABLE}, "
+            "e.g. '64G', to change it)"
+        )
     return sizes
 
 
@@ -250,7 +269,7 @@ def read_arrays(
     size before its data is allocated; no object arrays (no pickles).  Else ``error`` naming the
     file and the field.  With ``data=False``, only each array's shape (nothing allocated)."""
     sizes = stored_members(handle, path, error, limit, what)
-    found = {name.removesuffix(".npy") for name in sizes}
+    found = {name.removesuffix(".npy") if name.endswith(".npy") else name + "/" for name in sizes}
     missing, extra = [n for n in expected if n not in found], sorted(found - set(expected))
     if missing or extra:
         problem = f"lacks the field {missing[0]!r}" if missing else f"holds a field {extra[0]!r} that it should not"
@@ -302,23 +321,30 @@ def _depth(value, limit: int, level: int = 0) -> int:
 def parse_json(text: str, path, error: type, what: str):
     """The JSON value of ``text`` (read from ``path``), nested at most :data:`JSON_DEPTH` levels;
     else ``error`` naming the file as not ``what``."""
+
+    def refuse(constant):
+        raise ValueError(f"{constant} is not a JSON number")
+
     try:
-        value = json.loads(text)
+        value = json.loads(text, parse_constant=refuse)  # NaN and Infinity: daemodel writes null
     except (ValueError, RecursionError) as failure:
-        raise error(f"{path} is not {what} ({type(failure).__name__})") from None
+        raise error(f"{path} is not {what} ({type(failure).__name__}: {failure})") from None
     if _depth(value, JSON_DEPTH) > JSON_DEPTH:
         raise error(f"{path} is not {what}: it nests deeper than {JSON_DEPTH} levels")
     return value
 
 
-def read_json(path: Path, error: type, what: str):
-    """The JSON value in ``path``, read after checking its size (:data:`JSON_BYTES`); else
-    ``error`` naming the file as not ``what``."""
+def read_json(path: Path, error: type, what: str, *, follow: bool = True):
+    """The JSON value in ``path``, read after checking its size (:data:`JSON_BYTES`, and a third of
+    the memory limit: parsing takes a few times the text); else ``error`` naming the file as not
+    ``what``.  ``follow=False``: a link there is refused."""
     path = Path(path)
-    with open_file(path, "path", error) as handle:
+    with open_file(path, "path", error, follow=follow) as handle:
         size = os.fstat(handle.fileno()).st_size
-        if size > JSON_BYTES:
-            raise error(f"{path} is {size / 2**20:.0f} MiB, more than a {what} holds ({JSON_BYTES >> 20} MiB)")
+        if size > min(JSON_BYTES, memory_limit() // 3):
+            raise error(
+                f"{path} is {_size(size)}, more than {what} holds ({_size(min(JSON_BYTES, memory_limit() // 3))})"
+            )
         try:
             text = handle.read().decode("utf-8")
         except (OSError, UnicodeDecodeError) as failure:
@@ -384,9 +410,14 @@ class DirectoryLock:
             os.close(descriptor)
         else:
             raise self.error(f"{self.argument} {self.path.parent}: its lock file keeps changing; is another run there?")
-        os.ftruncate(descriptor, 0)
-        os.write(descriptor, f"process {os.getpid()} on {socket.gethostname()} since {time.strftime('%c')}".encode())
         self._descriptor = descriptor
+        try:
+            os.ftruncate(descriptor, 0)
+            holder = f"process {os.getpid()} on {socket.gethostname()} since {time.strftime('%c')}"
+            os.write(descriptor, holder.encode())
+        except OSError as failure:
+            self.release()
+            raise FileWriteError(f"{self.path} could not be written: {failure.strerror or failure}") from None
         return self
 
     def release(self) -> None:

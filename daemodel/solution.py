@@ -9,7 +9,15 @@ from pathlib import Path
 import numpy as np
 
 from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
-from daemodel.files import atomic_write, open_file, parse_json, read_arrays, save_figure, writable_file
+from daemodel.files import (
+    atomic_write,
+    memory_limit,
+    open_file,
+    parse_json,
+    read_arrays,
+    save_figure,
+    writable_file,
+)
 from daemodel.init import NumericSystem
 
 # Times of two solutions count as the same when they differ by less than this, relative to
@@ -325,7 +333,7 @@ class Solution:
         """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
         from daemodel.solver import as_compiled
 
-        arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, what="daemodel solution file")
+        arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, memory_limit(), "daemodel solution file")
         meta = parse_json(str(arrays["meta"]), path, SolutionFileError, "a daemodel solution file")
         if not isinstance(meta, dict) or meta.get("format") != SOLUTION_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel solution file (expected format {SOLUTION_FORMAT!r})")

@@ -32,9 +32,12 @@ def blowup() -> dm.CompiledDAE:
 
 @pytest.fixture(scope="session")
 def ray_cluster():
-    """A local Ray cluster of 2 CPUs, started once for every test that takes it (skipped where
-    Ray is not installed; CI installs it with the ``ray`` extra)."""
+    """A local Ray cluster of 2 CPUs, started once for every test that takes it, as daemodel
+    starts one (on 127.0.0.1; skipped where Ray is not installed; CI installs it with the ``ray``
+    extra)."""
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, log_to_driver=False, include_dashboard=False)
+    from daemodel.engine import connect
+
+    connect(2, None)
     yield ray
     ray.shutdown()

@@ -214,7 +214,7 @@ def test_ensemble_file_errors(pendulum, blowup, tmp_path):
     with pytest.raises(SolutionFileError, match=r"ensemble.json is damaged: it lacks fingerprint, run, total, chunk"):
         dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text("{not json")
-    with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError\)"):
+    with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError: "):
         dm.EnsembleFiles.load(files.directory, blowup)
 
 

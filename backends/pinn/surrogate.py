@@ -845,13 +845,14 @@ class Surrogate:
                 f"{path} holds networks for model '{payload['model']}' with other equations than "
                 f"'{compiled.name}'; load it with the model it was trained on"
             )
+        _check_payload(path, compiled, payload)
         inputs = tuple(payload["inputs"])
         _check_fixed_parameters(path, compiled, payload["parameter_values"], inputs)
         try:
             config = PINNConfig(**payload["config"])
             if device is not None:
                 config = config.replace(device=device)
-        except ModelError as error:
+        except (ModelError, TypeError) as error:
             raise NetworkFileError(f"{path} records settings that are not valid: {error}") from None
         torch_device(config.device)
         grid = np.asarray(payload["grid"], dtype=float)
@@ -893,6 +894,37 @@ def check_tolerance(tol: float, values: np.ndarray) -> float:
     of tol in absolute terms at the largest value, between 10 eps and :data:`SURROGATE_CHECK_CAP`."""
     relative = SURROGATE_CHECK_RESOLUTION * tol / (1 + float(np.abs(values).max()))
     return min(max(relative, CERTIFICATE_NEWTON_TOL), SURROGATE_CHECK_CAP)
+
+
+def _check_payload(path, compiled, payload: dict) -> None:
+    """The types and sizes of a network file's fields, before anything is built from them."""
+
+    def bad(key: str, expected: str):
+        raise NetworkFileError(f"{path}: field {key!r} is not {expected}: it is damaged; save the surrogate again")
+
+    def numbers(value) -> bool:
+        return isinstance(value, list) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+
+    inputs = payload["inputs"]
+    if (
+        not isinstance(inputs, list)
+        or not all(isinstance(name, str) for name in inputs)
+        or not set(inputs) <= set(compiled.parameter_names)
+        or len(set(inputs)) != len(inputs)
+    ):
+        bad("inputs", f"a list of distinct parameters of the model ({', '.join(compiled.parameter_names)})")
+    if not numbers(payload["parameter_values"]) or len(payload["parameter_values"]) != len(compiled.parameter_names):
+        bad("parameter_values", f"{len(compiled.parameter_names)} numbers, one a parameter")
+    if not isinstance(payload["config"], dict):
+        bad("config", "a table of settings")
+    grid = payload["grid"]
+    if not numbers(grid) or len(grid) < 2 or not np.isfinite(grid).all() or (np.diff(grid) <= 0).any():
+        bad("grid", "an increasing list of at least two finite times")
+    for key in ("networks", "stats"):
+        if not isinstance(payload[key], list) or not all(isinstance(item, dict) for item in payload[key]):
+            bad(key, "a list with a table a segment")
+    if not isinstance(payload["box"], dict):
+        bad("box", "a table of ranges")
 
 
 def _check_fixed_parameters(path, compiled, saved, inputs) -> None:
