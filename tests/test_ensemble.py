@@ -239,6 +239,25 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
         run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
 
 
+def test_a_killed_ray_workers_task_is_retried_with_nothing_lost(ray_cluster, tmp_path):
+    """The first task to run kills its worker; Ray retries it on a new one, and every result
+    comes back, in order."""
+    from daemodel.engine import run_tasks
+
+    def die_once(marker, value):  # defined here: Ray ships it by value (workers cannot import tests)
+        import os
+        from pathlib import Path
+
+        if not Path(marker).exists():
+            Path(marker).write_text("died once")
+            os._exit(1)  # as the out-of-memory killer would end the worker
+        return value
+
+    marker = str(tmp_path / "died")
+    assert run_tasks(die_once, marker, [(0,), (10,), (20,)], engine="ray", label="t") == [0, 10, 20]
+    assert (tmp_path / "died").read_text() == "died once"
+
+
 def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
     """Tasks of one call on the same worker process share one copy of the shared object (and so
     the code it has generated): each task appends to it and sees the earlier tasks' entries."""

@@ -831,3 +831,9 @@ def test_a_resumed_ensemble_counts_the_failures_it_kept(blowup, tmp_path):
     (tmp_path / "chunk-000000000002.npz").unlink()
     with pytest.raises(dm.errors.ConvergenceError, match=r"more than max_failures=1 samples failed \(2 found"):
         dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters=k, chunk=2, write_to=tmp_path, max_failures=1)
+
+
+def test_a_pinn_solve_whose_outputs_would_not_fit_is_refused_before_training(monkeypatch):
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1K")
+    with pytest.raises(ResourceLimitError, match=r"pinn on 200 sample\(s\) of 1 unknowns would need"):
+        dm.solve(decay, (0.0, 1.0), method="pinn", parameters={"k": np.ones(200)}, config=TINY)

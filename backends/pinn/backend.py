@@ -13,6 +13,7 @@ from daemodel.backends.base import (
     SWEEP_FIRST_STEPS,
     SWEEP_STAGES,
     AbstractBackend,
+    check_output_memory,
     check_threads,
     fixed_grid,
     halving_steps,
@@ -145,6 +146,7 @@ class PINNBackend(AbstractBackend):
         torch_device(config.device)
         grid = fixed_grid(t_span, config.h)
         segments = len(grid) - 1
+        check_output_memory(self.name, compiled, start.size, len(grid))
         # Shared networks take the parameters that differ between samples as inputs; independent
         # ones (one set per sample) hold each sample's values as constants.
         independent = copies_for(config, start.size) > 1
