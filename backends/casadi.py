@@ -416,7 +416,7 @@ class CollocationBackend(AbstractBackend):
 
         h = options.h if options.h is not None else (t_span[1] - t_span[0]) / DEFAULT_STEPS
         grid = fixed_grid(t_span, h)
-        points = len(grid) + (0 if options.t_eval is None else np.size(options.t_eval))
+        points = len(grid) + len(output_times(options.t_eval, t_span, ()))  # t_eval validated first
         check_output_memory(self.name, compiled, start.size, points)
         began = time.perf_counter()
         dae = _dae(compiled)

@@ -314,7 +314,7 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
     parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * _itemsize(options)}
     steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
     if options.t_eval is not None:
-        parts["outputs"] = B * np.size(options.t_eval) * D * 8
+        parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
     if steps is not None:
         parts["step records" if options.t_eval is not None else "outputs"] = steps * step_record_bytes(D, B, options)
     return parts
