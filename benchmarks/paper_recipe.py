@@ -174,7 +174,8 @@ def plot(runs: list, path: Path) -> None:
         ax.axhline(1e-6, color="tab:blue", lw=0.8, ls=":", label="paper: y ~ 1e-6")
         ax.axhline(1e-5, color="tab:red", lw=0.8, ls=":", label="paper: z ~ 1e-5")
         iterations = run["segments"][0]["iterations"]
-        ax.set_title(f"{run['problem']}: {iterations:,} Adam iterations per segment")
+        schedule = run["config"].get("schedule", "constant")
+        ax.set_title(f"{run['problem']}: {iterations:,} Adam iterations per segment, {schedule} rate")
         ax.set_xlabel("t (segment end)")
         truth = "exact solution" if run["truth"] == "exact solution" else "reference solution"
         ax.set_ylabel(f"max abs error vs {truth}")
