@@ -695,9 +695,9 @@ def _resume(directory: Path, compiled, run: str, digests: dict, sizes: dict):
         return files
     done = {}
     for name in names:
-        match = CHUNK_NAME.fullmatch(name)
         if not name.startswith("chunk-"):
             continue
+        match = CHUNK_NAME.fullmatch(name)
         offset = int(match[1]) if match else None
         if offset not in sizes or not is_plain_file(directory / name):
             raise InvalidOptionError(

@@ -280,8 +280,8 @@ def read_arrays(
             try:
                 with archive.open(f"{name}.npy") as member:
                     version = np.lib.format.read_magic(member)
-                    header = np.lib.format.read_array_header_1_0 if version == (1, 0) else None
-                    header = header or np.lib.format.read_array_header_2_0
+                    fmt = np.lib.format
+                    header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
                     shape, _, dtype = header(member)
                     data_start = member.tell()
                 if dtype.hasobject or dtype.kind not in kinds or len(shape) != ndim:
@@ -340,11 +340,9 @@ def read_json(path: Path, error: type, what: str, *, follow: bool = True):
     ``what``.  ``follow=False``: a link there is refused."""
     path = Path(path)
     with open_file(path, "path", error, follow=follow) as handle:
-        size = os.fstat(handle.fileno()).st_size
-        if size > min(JSON_BYTES, memory_limit() // 3):
-            raise error(
-                f"{path} is {_size(size)}, more than {what} holds ({_size(min(JSON_BYTES, memory_limit() // 3))})"
-            )
+        size, largest = os.fstat(handle.fileno()).st_size, min(JSON_BYTES, memory_limit() // 3)
+        if size > largest:
+            raise error(f"{path} is {_size(size)}, more than {what} holds ({_size(largest)})")
         try:
             text = handle.read().decode("utf-8")
         except (OSError, UnicodeDecodeError) as failure:
