@@ -164,11 +164,57 @@ def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
         J_plain, J_kernel = plain.jacobian(0.3, 0.05, y_n, p, out), kernel.jacobian(0.3, 0.05, y_n, p, out)
         assert J_kernel.shape == J_plain.shape == (1, (s + 1) * (n + m) + m, (s + 1) * (n + m))
         torch.testing.assert_close(J_kernel, J_plain, rtol=1e-13, atol=1e-14)
+        # the Newton correction by sparse QR of the augmented system: dense lstsq's
+        residuals, e = kernel.residuals_and_correction(0.3, 0.05, y_n, p, out)
+        torch.testing.assert_close(residuals.F, a.F, rtol=1e-13, atol=1e-14)
+        expected = torch.linalg.lstsq(J_plain, plain.vector(a, 1)[..., None]).solution[..., 0]
+        torch.testing.assert_close(e, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
+        assert plain.residuals_and_correction(0.3, 0.05, y_n, p, out) is None
     # a batch, or a gradient, takes the torch functions
     assert kernel._kernel_applies(y_n, out) and not kernel._kernel_applies(y_n.repeat(2, 1), out)
     with torch.enable_grad():
         wanted = Outputs(Y=out.Y.clone().requires_grad_(True), y_end=out.y_end, Z=out.Z, z_end=out.z_end)
         assert not kernel._kernel_applies(y_n, wanted)
+
+
+def test_where_the_kernels_sparse_qr_fails_or_is_poor_the_trainer_solves_dense_lstsq(monkeypatch):
+    """The kernel's Newton correction is kept only where its QR succeeded and its least-squares
+    optimality is below OPTIMALITY_BOUND; otherwise the residuals stand and the trainer's
+    correction is torch's lstsq.  On the squeezer at rest (index 3, dr/du's condition 3e6) the
+    augmented system's e is 4.5e-8 (relative) from lstsq's: its error grows like eps cond^2 where
+    lstsq's grows like eps cond, a Newton correction that still contracts by 1e-7 a step."""
+    from daemodel.backends.pinn import loss as loss_module
+    from daemodel.backends.pinn.segments import make_loss, make_network
+
+    from daemodel.problems import SQUEEZER
+
+    c = SQUEEZER.model().compile()
+    config = dm.PINNConfig(width=6)
+    net = make_network(c, config, len(c.states), 0)
+    x = torch.tensor(c.y0, dtype=F64)[None]
+    net.start_at_rest(x, torch.tensor(c.z0, dtype=F64)[None])
+    trainer = SegmentTrainer(net, make_loss(c, config), config)
+    segment = Segment(0, 0.0, 1e-3, x, torch.tensor(c.parameter_values, dtype=F64)[None])
+    with torch.no_grad():
+        raw = net(x)
+        residuals, e = trainer._residuals_and_correction(segment, raw)
+        dense = trainer._correction(segment, raw, trainer.loss.vector(residuals, 1))
+        torch.testing.assert_close(e, dense, rtol=0, atol=1e-7 * float(dense.abs().max()))
+        for broken in ("optimality", "qr"):
+            if broken == "optimality":
+                monkeypatch.setattr(loss_module, "OPTIMALITY_BOUND", 0.0)
+            else:
+                monkeypatch.setattr(trainer.loss.kernel, "correction", _zero_pivot)
+            out = net.split(raw, x, segment.h)
+            kept, none = trainer.loss.residuals_and_correction(0.0, segment.h, x, segment.p, out)
+            assert none is None
+            torch.testing.assert_close(kept.F, residuals.F, rtol=0, atol=1e-15)
+            fallback = trainer._residuals_and_correction(segment, raw)[1]
+            torch.testing.assert_close(fallback, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))  # not 4.5e-8
+
+
+def _zero_pivot(*args):
+    raise RuntimeError("casadi function pinn_correction failed (return code 1)")
 
 
 # ---- fast mode reaches the ceiling ---------------------------------------------------------------
@@ -381,24 +427,28 @@ def test_training_states_radau_cannot_solve_are_left_out_with_a_warning(blowup):
 @pytest.mark.parametrize(
     ("space", "samples", "kind"),
     [
-        ("output", 1, "OutputGramSystem"),
+        ("output", 1, "OneInputSystem"),
         ("output", 3, "OutputGramSystem"),
         ("output", 60, "OutputSystem"),
         ("residual", 1, "ResidualGramSystem"),
         ("residual", 2, "ResidualGramSystem"),
+        ("copies", 3, "OneInputSystem"),
     ],
 )
 def test_lm_step_equals_the_dense_gauss_newton_step(architecture, space, samples, kind):
     # LM fits every sample's Newton correction e with J = du/dtheta (or, as the fallback, the
     # residuals r with J = dr/dtheta), solving per network in its outputs or its parameters or
     # in residual space; the step, the predicted decrease and the first damping's scale must
-    # equal the dense solve (J^T J + mu I) delta = -J^T e.
+    # equal the dense solve (J^T J + mu I) delta = -J^T e.  "copies": independent networks per
+    # sample, each seeing its own input.
     from daemodel.backends.pinn.segments import make_loss, make_network
-    from torch.func import functional_call, jacrev, vmap
+    from torch.func import functional_call, jacrev
 
     c = HESSENBERG.model().compile()
     cfg = dm.PINNConfig(architecture=architecture, width=5, depth=3, eta=2.0)
-    net = make_network(c, cfg, 4, 0)
+    copies = samples if space == "copies" else 1
+    space = "output" if space == "copies" else space
+    net = make_network(c, cfg, 4, 0, copies)
     x = 1 + 0.02 * torch.rand(samples, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
     net.normalise(x)
     trainer = SegmentTrainer(net, make_loss(c, cfg), cfg)
@@ -408,14 +458,14 @@ def test_lm_step_equals_the_dense_gauss_newton_step(architecture, space, samples
     _, e = trainer._merit(segment, params, space)
     system = trainer._normal_system(segment, params, e, space)
     assert type(system).__name__ == kind
-    du = vmap(jacrev(lambda p, xi: functional_call(net, p, (xi[None],))[0]), in_dims=(None, 0))(params, x)
-    dense = torch.cat([du[k].reshape(samples, -1, du[k][0, 0].numel()) for k in params], dim=2)  # (N, U, P)
+    du = jacrev(lambda p: functional_call(net, p, (x,)))(params)  # name -> (N, U, *shape)
+    dense = torch.cat([du[k].reshape(samples, du[k].shape[1], -1) for k in params], dim=2)  # (N, U, P)
     if space == "residual":
         dense = trainer._output_jacobian(segment, net(x).detach()) @ dense  # dr/du du/dtheta
     dense = dense.reshape(-1, P)
     # with one input the step's metric weighs the hidden parameters by 1 / HIDDEN_STEP_WEIGHT:
     # LM in phi = D^(-1/2) theta, whose Jacobian is J D^(1/2)
-    weight = HIDDEN_STEP_WEIGHT if samples == 1 else 1.0
+    weight = HIDDEN_STEP_WEIGHT if samples == copies else 1.0
     D = torch.cat(
         [torch.full((v.numel(),), 1.0 if k in ("W_out", "b_out") else weight, dtype=F64) for k, v in params.items()]
     )

@@ -149,6 +149,80 @@ class OutputGramSystem:
         return -self.gram.transpose(w), predicted
 
 
+class OneInputSystem:
+    """Levenberg-Marquardt on the Newton corrections e where every network sees one input (a
+    trajectory, or independent networks per sample): :class:`OutputGramSystem`'s step, whose
+    factors collapse to one product per network.  With one input each hidden map's Jacobian
+    is ``a_i abar_j`` (weights) and ``abar_j`` (biases), so with ``V = W^T [abar of every map,
+    dH/dl]`` (out, units) and each map's column weight ``|a|^2 + 1``::
+
+        G_k = D_h V diag(|a|^2 + 1) V^T + (|H|^2 + 1) I   (out, out)
+
+    and a step ``delta = -D J^T w`` is ``-D_h a (V^T w)`` and ``-D_h V^T w`` in the hidden maps,
+    ``-H w^T`` and ``-w`` in the output layer.  All K networks are solved in one batch, padded
+    outputs carrying an identity row (their correction, 0, stays 0).
+
+    Parameters
+    ----------
+    hidden : HiddenJacobian
+        At one input per network: H (K, 1, w).
+    W : Tensor, shape (K, w, out)
+        Output weights, zero columns at padded outputs.
+    valid : Tensor, shape (K, out)
+    e : Tensor, shape (K, 1, out)
+        The Newton corrections, zero at padded outputs.
+    hidden_weight : float
+        D_h, the hidden parameters' weight in the step's metric (:data:`HIDDEN_STEP_WEIGHT`).
+    """
+
+    def __init__(self, hidden, W, valid, e, hidden_weight: float):
+        self.H, self.W, self.valid, self.weight = hidden.H[:, 0], W, valid, hidden_weight
+        self.inputs = [a[:, 0] for a, _ in hidden.maps]  # (K, inputs of the map)
+        bars = [abar[:, 0] for _, abar in hidden.maps] + [hidden.slope[:, 0]]  # (K, w, units)
+        self.units = [bar.shape[-1] for bar in bars]
+        self.V = W.transpose(1, 2) @ torch.cat(bars, dim=2)  # (K, out, units)
+        norms = [(a * a).sum(-1, keepdim=True) + 1 for a in self.inputs] + [self.H.new_ones(len(self.H), 1)]
+        columns = torch.cat([norm.expand(-1, u) for norm, u in zip(norms, self.units, strict=True)], dim=1)
+        G = hidden_weight * (self.V * columns[:, None, :]) @ self.V.transpose(1, 2)
+        self.G = (
+            G + ((self.H * self.H).sum(1) + 1)[:, None, None] * torch.diag_embed(valid) + torch.diag_embed(1 - valid)
+        )
+        self.e = e[:, 0, :, None]  # (K, out, 1)
+        self.Ge = self.G @ self.e
+
+    @property
+    def scale(self) -> float:
+        """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping)."""
+        column = (self.V * self.V).sum(1)  # (K, units): |V_j|^2
+        largest = [self.H.new_ones(1), (self.H * self.H).amax(1)]  # b_out; W_out: H_i^2
+        first = 0
+        for a, u in zip([*self.inputs, None], self.units, strict=True):
+            part = column[:, first : first + u].amax(1)  # bias (slope: its own)
+            if a is not None:
+                part = part * (a * a).amax(1).clamp(min=1.0)  # weights: a_i^2 |V_j|^2
+            largest.append(self.weight * part)
+            first += u
+        return float(torch.cat(largest).max())
+
+    def step(self, mu: float):
+        """``(delta, predicted decrease of |e|^2 / 2)``, or None when a ``G + mu I`` is not positive definite."""
+        eye = torch.eye(self.G.shape[-1], dtype=self.G.dtype, device=self.G.device)
+        L, info = torch.linalg.cholesky_ex(self.G + mu * eye)
+        if bool((info != 0).any()):
+            return None
+        w = torch.cholesky_solve(self.e, L)  # (K, out, 1)
+        # delta = -D J^T w, g = J^T e: delta.D^-1 delta = w.G w, delta.g = -w.G e
+        predicted = 0.5 * float((mu * (w * (self.G @ w)) + w * self.Ge).sum())
+        back = -self.weight * (self.V.transpose(1, 2) @ w)[..., 0]  # (K, units): -D_h V^T w
+        parts = torch.split(back, self.units, dim=1)
+        maps = [(a[:, :, None] * b[:, None, :], b[:, None, :]) for a, b in zip(self.inputs, parts, strict=False)]
+        (W_u, b_u), (W_r, b_r), (W_1, b_1), *gates = maps
+        flat = [W_u, b_u, W_r, b_r, W_1, b_1, parts[-1]]  # the order of named_parameters
+        flat += [W for W, _ in gates] + [b for _, b in gates]  # W_gate, b_gate: (depth - 1, K, ...)
+        flat += [-self.H[:, :, None] * w[:, None, :, 0], -w.transpose(1, 2)]  # W_out, b_out
+        return torch.cat([part.reshape(-1) for part in flat]), predicted
+
+
 class ResidualGramSystem:
     """Levenberg-Marquardt on the residual vector r with J = dr/dtheta = (dr/du)(du/dtheta),
     ``delta = -J^T (J J^T + mu I)^{-1} r``, where ``J J^T = sum_k (dr/du_k) G_k (dr/du_k)^T``

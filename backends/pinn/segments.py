@@ -177,10 +177,13 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
             predicted = base.clone()
             predicted.start_at(inputs, predicted.raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h))
             candidates.insert(0, predicted)
-        net = next((net for net in candidates if SegmentTrainer(net, loss, config).finite_start(segment)), None)
-        if net is None:
+        trainers = (SegmentTrainer(net, loss, config, progress.report) for net in candidates)
+        trainer = next((trainer for trainer in trainers if trainer.finite_start(segment)), None)
+        if trainer is None:
             net = fresh_network(compiled, config, inputs, z, k, copies) if warm else base
-        stats.append(SegmentTrainer(net, loss, config, progress.report).train(segment))
+            trainer = SegmentTrainer(net, loss, config, progress.report)
+        net = trainer.net
+        stats.append(trainer.train(segment))
         with torch.no_grad():
             out = net.predict(x, h)
         previous = (out, x[:, :n], z, h)

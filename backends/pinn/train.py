@@ -52,6 +52,7 @@ from daemodel.backends.pinn.lm import (
     BLOCK_ORDER,
     HIDDEN_STEP_WEIGHT,
     NetworkGram,
+    OneInputSystem,
     OutputGramSystem,
     OutputSystem,
     ResidualGramSystem,
@@ -185,6 +186,7 @@ class SegmentTrainer:
     def __init__(self, net, loss, config, report=None):
         self.net, self.loss, self.config = net, loss, config
         self.report = report or (lambda iteration, terms: None)
+        self._start = None  # (segment, raw outputs) of finite_start
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -194,9 +196,17 @@ class SegmentTrainer:
         return self.loss.residuals(segment.t, segment.h, segment.x[:, :n], segment.p, out)
 
     def finite_start(self, segment: Segment) -> bool:
-        """Whether the network's current predictions give finite residuals on ``segment``."""
+        """Whether the network's current predictions give finite residuals on ``segment`` (its
+        outputs are kept for the training that follows, where they are its start)."""
         with torch.no_grad():
-            return all(math.isfinite(value) for value in self.residuals(segment).terms().values())
+            self._start = (segment, self.net(segment.x))
+            return all(math.isfinite(value) for value in self.residuals(segment, self._start[1]).terms().values())
+
+    def _start_outputs(self, segment: Segment):
+        """The raw outputs (N, U) that :meth:`finite_start` evaluated on ``segment``, taken once (the
+        network is trained right after the check, from those parameters), or None."""
+        start, self._start = self._start, None
+        return start[1] if start is not None and start[0] is segment else None
 
     def _vector_of_raw(self, segment: Segment, raw):
         return self.loss.vector(self.residuals(segment, raw), segment.x.shape[0])
@@ -407,19 +417,35 @@ class SegmentTrainer:
             return torch.full_like(raw, math.nan)
         return torch.linalg.lstsq(Ru, r[..., None]).solution[..., 0]
 
-    def _merit(self, segment: Segment, params: dict, space: str):
-        """Residuals and the vector that LM drives to zero: in ``"output"`` space every sample's
-        Newton correction (:meth:`_correction`), in ``"residual"`` space the residual vector r."""
-        with torch.no_grad():
-            raw = self.net(segment.x, params=params)
-            self._raw = raw  # for the closing Newton steps' rounding test
-            residuals = self.residuals(segment, raw)
-            r = self.loss.vector(residuals, segment.x.shape[0])
-            if space == "residual":
-                return residuals, r.reshape(-1)
-            return residuals, self._correction(segment, raw, r).reshape(-1)
+    def _residuals_and_correction(self, segment: Segment, raw):
+        """The residuals at the raw outputs ``raw`` (N, U) and every sample's Newton correction
+        (:meth:`_correction`): by one call of the loss's casadi kernel where it applies."""
+        net, n, h = self.net, self.net.n, segment.h
+        y_n = segment.x[:, :n]
+        out = net.split(raw, y_n, h)
+        fused = self.loss.residuals_and_correction(segment.t, h, y_n, segment.p, out)
+        if fused is not None and fused[1] is not None:
+            residuals, e = fused
+            if net.increment:  # the raw outputs of the increment form are the stage values / h
+                e[:, : (net.stages + 1) * n] /= h
+            return residuals, e
+        residuals = self.loss.residuals(segment.t, h, y_n, segment.p, out) if fused is None else fused[0]
+        return residuals, self._correction(segment, raw, self.loss.vector(residuals, segment.x.shape[0]))
 
-    def _newton_contracts(self, segment: Segment, params: dict):
+    def _merit(self, segment: Segment, params: dict, space: str, raw=None):
+        """Residuals and the vector that LM drives to zero: in ``"output"`` space every sample's
+        Newton correction (:meth:`_correction`), in ``"residual"`` space the residual vector r.
+        ``raw``: the outputs at ``params`` where the caller knows them."""
+        with torch.no_grad():
+            raw = self.net(segment.x, params=params) if raw is None else raw
+            self._raw = raw  # for the closing Newton steps' rounding test
+            if space == "residual":
+                residuals = self.residuals(segment, raw)
+                return residuals, self.loss.vector(residuals, segment.x.shape[0]).reshape(-1)
+            residuals, e = self._residuals_and_correction(segment, raw)
+            return residuals, e.reshape(-1)
+
+    def _newton_contracts(self, segment: Segment, params: dict, raw=None):
         """Whether the full Newton step on the outputs, ``u - e``, cuts the residual norm to at most
         :data:`NEWTON_CONTRACTION` of its value: where it does, the Newton corrections are a guide
         and LM fits them; where not (far from the solution, dr/du nearly singular: the paper's
@@ -427,12 +453,11 @@ class SegmentTrainer:
 
         Returns ``(contracts, residuals, r, e)``."""
         with torch.no_grad():
-            raw = self.net(segment.x, params=params)
+            raw = self.net(segment.x, params=params) if raw is None else raw
             self._raw = raw
-            residuals = self.residuals(segment, raw)
+            residuals, e = self._residuals_and_correction(segment, raw)
             N = segment.x.shape[0]
             r = self.loss.vector(residuals, N)
-            e = self._correction(segment, raw, r)
             newton = self.loss.vector(self.residuals(segment, raw - e), N)
             contracts = bool(torch.linalg.norm(newton) <= NEWTON_CONTRACTION * torch.linalg.norm(r))
         return contracts, residuals, r.reshape(-1), e.reshape(-1)
@@ -449,13 +474,14 @@ class SegmentTrainer:
         fallback = self.net.copies == 1 and N * (self.net.output_count + self.net.m) <= sum(sizes) // K
         # the increment form starts at Newton's own guess (at rest, predicted or warm), where the
         # corrections always guide (contraction 0.004-0.08, measured): no check needed
+        start = self._start_outputs(segment)  # the parameters are the network's own here
         if fallback and not self.config.increment:
-            contracts, residuals, r, e = self._newton_contracts(segment, params)
+            contracts, residuals, r, e = self._newton_contracts(segment, params, start)
             space = "output" if contracts else "residual"
             e = e if contracts else r
         else:
             space = "output"
-            residuals, e = self._merit(segment, params, space)
+            residuals, e = self._merit(segment, params, space, start)
         self.report(0, self._check(segment, residuals, 0, None))
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
@@ -535,7 +561,8 @@ class SegmentTrainer:
             trial = dict(params)
             trial["b_out"] = params["b_out"] - self.net.stack(e.reshape(N, -1))
             raw = self._raw
-            residuals_t, e_t = self._merit(segment, trial, "output")
+            # the outputs are linear in b_out, and each network sees one input: they move by -e
+            residuals_t, e_t = self._merit(segment, trial, "output", raw=raw - e.reshape(raw.shape))
             before, after = ((a.reshape(N, -1) ** 2).sum(1) for a in (e, e_t))
             better = torch.isfinite(after) & (after < before)  # per sample (each copy its own networks)
             if not bool(better.any()):
@@ -569,12 +596,15 @@ class SegmentTrainer:
         only, so du/dtheta is block diagonal over the networks and never formed whole."""
         net, K, N = self.net, self.net.count, segment.x.shape[0]
         out = max(net.sizes)
-        P = sum(p.numel() for p in params.values())
-        where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         sizes = torch.tensor(net.sizes, device=e.device)
         valid = (torch.arange(out, device=e.device)[None, :] < sizes[:, None]).to(e.dtype)  # (K, out): outputs in use
         W = params["W_out"] * valid[:, None, :]  # padded outputs take no part
         weight = HIDDEN_STEP_WEIGHT if N == net.copies else 1.0  # one input per set of networks
+        stacked = net.stack(e.reshape(N, -1)) if space == "output" else None  # (K, N', out), zero at padding
+        if space == "output" and stacked.shape[1] == 1:  # every network sees one input
+            return OneInputSystem(net.hidden_jacobian(params, segment.x), W, valid, stacked, weight)
+        P = sum(p.numel() for p in params.values())
+        where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         if space == "residual":
             with torch.no_grad():
                 Ru = self._output_jacobian(segment, net(segment.x, params=params))  # (N, R, U)
@@ -582,7 +612,6 @@ class SegmentTrainer:
             stacked[..., net.order] = Ru  # padded outputs: zero columns
             gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P, weight)
             return ResidualGramSystem(gram, stacked.reshape(N, -1, K, out), e)
-        stacked = net.stack(e.reshape(N, -1))  # (K, N', out), zero at padded outputs
         if stacked.shape[1] * out <= P // K:
             gram = NetworkGram(net.hidden_jacobian(params, segment.x), W, valid, where, P, weight)
             return OutputGramSystem(gram, stacked)
