@@ -187,9 +187,18 @@ class PINNBackend(AbstractBackend):
             mode = "parallel"
         surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
         trained = time.perf_counter()
-        values = surrogate.trajectory(start)
+        values, predictions = surrogate.trajectory(start, stages=True)
         evaluated = time.perf_counter()
-        certificate = certify(compiled, config, grid, surrogate.networks, surrogate.input_columns, values, start.p)
+        certificate = certify(
+            compiled,
+            config,
+            grid,
+            surrogate.networks,
+            surrogate.input_columns,
+            values,
+            start.p,
+            predictions=predictions,
+        )
         done = time.perf_counter()
         networks, stats = surrogate.networks, surrogate.stats
         summary = {

@@ -166,7 +166,16 @@ class Certificate:
 
 
 def certify(
-    compiled, config, grid, networks, input_columns, values, p, radau_error: bool = True, newton_tol=None
+    compiled,
+    config,
+    grid,
+    networks,
+    input_columns,
+    values,
+    p,
+    radau_error: bool = True,
+    newton_tol=None,
+    predictions=None,
 ) -> Certificate:
     """Certify the values ``values`` (B, T, n+m) that ``networks`` (one per segment of ``grid``)
     chained from their start, for the parameters ``p`` (B, k), of which the columns
@@ -177,15 +186,16 @@ def certify(
     is reported as 0, and no sample is ``certified`` (there is no Radau error to certify against);
     ``failed`` still marks the steps whose Newton check failed.  ``newton_tol`` (default
     :data:`CERTIFICATE_NEWTON_TOL`) is the Newton check's tolerance on increments relative to
-    ``1 + |value|``: distances are resolved to about it."""
+    ``1 + |value|``: distances are resolved to about it.  ``predictions``: the networks' stage
+    and end values along ``values`` where the caller has them (``Surrogate.rollout(stages=True)``)."""
     newton_tol = CERTIFICATE_NEWTON_TOL if newton_tol is None else newton_tol
     device, s = config.device, config.stages
     n, m = len(compiled.states), len(compiled.algebraics)
     B, S, D = values.shape[0], len(grid) - 1, n + m
     as_tensor = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=torch.float64, device=device)  # noqa: E731
-    Y, Z, y_end, z_end = (
-        a.reshape(S * B, *a.shape[2:]) for a in _predictions(compiled, config, grid, networks, input_columns, values, p)
-    )
+    if predictions is None:
+        predictions = _predictions(compiled, config, grid, networks, input_columns, values, p)
+    Y, Z, y_end, z_end = (a.reshape(S * B, *a.shape[2:]) for a in predictions)
     start = as_tensor(values[:, :-1]).transpose(0, 1).reshape(S * B, D)  # row k B + b: segment k of sample b
     steps = np.repeat(np.array(segment_steps(grid)), B, axis=0)  # (S B, 2): t, h of each row
     rows_p = as_tensor(np.tile(np.asarray(p, dtype=float), (S, 1)))

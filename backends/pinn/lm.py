@@ -165,7 +165,8 @@ class OneInputSystem:
     Parameters
     ----------
     hidden : HiddenJacobian
-        At one input per network: H (K, 1, w).
+        At one input per network, H (K, 1, w), with rows ``W`` (the factors of ``H W``, whose
+        reverse pass gives ``V`` directly: :meth:`RadauNetwork.hidden_jacobian`).
     W : Tensor, shape (K, w, out)
         Output weights, zero columns at padded outputs.
     valid : Tensor, shape (K, out)
@@ -178,9 +179,9 @@ class OneInputSystem:
     def __init__(self, hidden, W, valid, e, hidden_weight: float):
         self.H, self.W, self.valid, self.weight = hidden.H[:, 0], W, valid, hidden_weight
         self.inputs = [a[:, 0] for a, _ in hidden.maps]  # (K, inputs of the map)
-        bars = [abar[:, 0] for _, abar in hidden.maps] + [hidden.slope[:, 0]]  # (K, w, units)
+        bars = [abar[:, 0] for _, abar in hidden.maps] + [hidden.slope[:, 0]]  # (K, out, units): W^T abar
         self.units = [bar.shape[-1] for bar in bars]
-        self.V = W.transpose(1, 2) @ torch.cat(bars, dim=2)  # (K, out, units)
+        self.V = torch.cat(bars, dim=2)  # (K, out, units)
         norms = [(a * a).sum(-1, keepdim=True) + 1 for a in self.inputs] + [self.H.new_ones(len(self.H), 1)]
         columns = torch.cat([norm.expand(-1, u) for norm, u in zip(norms, self.units, strict=True)], dim=1)
         G = hidden_weight * (self.V * columns[:, None, :]) @ self.V.transpose(1, 2)

@@ -288,16 +288,22 @@ class RadauNetwork(torch.nn.Module):
             H = (1 - M) * U + M * R
         return H, (xn, A_u, A_r, X_1, A_1, U, R, layers)
 
-    def hidden_jacobian(self, params: dict, x: torch.Tensor) -> HiddenJacobian:
+    def hidden_jacobian(self, params: dict, x: torch.Tensor, rows: torch.Tensor | None = None) -> HiddenJacobian:
         """The last hidden layer and its Jacobian with respect to each network's own hidden
         parameters (all but ``W_out``, ``b_out``), by reverse mode written out for its w rows,
-        kept in the factors of every linear map (see :class:`HiddenJacobian`)."""
+        kept in the factors of every linear map (see :class:`HiddenJacobian`).  With ``rows``
+        (K, w, out) the reverse pass starts from ``rows^T`` instead: the factors are those of the
+        Jacobian of ``H rows`` (the outputs less their bias, for ``rows = W_out``), out rows each
+        instead of w, which is all that one input per network needs."""
         p = params
         H, (xn, A_u, A_r, X_1, A_1, U, R, layers) = self._hidden(p, x)
         K, B, w = H.shape
         dphi = ACTIVATION_DERIVATIVES[self.activation]
-        eye = torch.eye(w, dtype=H.dtype, device=H.device)
-        bar_H = eye.expand(K, B, w, w)  # (K, B, row of H_depth, unit of the current layer)
+        if rows is None:
+            bar_H = torch.eye(w, dtype=H.dtype, device=H.device).expand(K, B, w, w)
+        else:
+            bar_H = rows.transpose(1, 2)[:, None].expand(K, B, rows.shape[-1], w)
+        # bar_H: (K, B, row, unit of the current layer), a row of H_depth or of H rows
         bar_U = torch.zeros_like(bar_H)
         bar_R = torch.zeros_like(bar_H)
         gates = []
@@ -351,14 +357,16 @@ class RadauNetwork(torch.nn.Module):
         target = torch.cat([z.new_zeros(len(z), s * n + n), z.repeat(1, s + 1)], dim=1)  # flat, as split reads
         self.start_at(x, target)
 
-    def start_at(self, x: torch.Tensor, target: torch.Tensor) -> None:
+    def start_at(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         """Shift the output biases so that the raw outputs at the inputs ``x`` (B, d) are ``target``
-        (B, U) (for one set of networks over several rows: on average, ``target`` (1, U))."""
+        (B, U) (for one set of networks over several rows: on average, ``target`` (1, U)).
+        Returns the raw outputs (B, U) at ``x`` after the shift (the outputs move with it, to rounding)."""
         with torch.no_grad():
             raw = self(x, stacked=True)
-            if self.copies == 1:
-                raw = raw.mean(1, keepdim=True)
-            self.b_out += self.stack(target) - raw * (self.stack(torch.ones_like(target)) > 0)
+            mean = raw.mean(1, keepdim=True) if self.copies == 1 else raw
+            shift = self.stack(target) - mean * (self.stack(torch.ones_like(target)) > 0)
+            self.b_out += shift
+            return self.unstacked(raw + shift)
 
     def raw_outputs(self, Y: torch.Tensor, Z: torch.Tensor, y_n: torch.Tensor, h) -> torch.Tensor:
         """The raw outputs (B, U) that :meth:`split` reads as the stage values ``Y`` (B, s, n) and

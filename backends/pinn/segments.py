@@ -172,20 +172,20 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
         base = networks[-1].clone() if warm else fresh_network(compiled, config, inputs, z, k, copies)
         if warm:
             base.normalise(inputs)
-        candidates = [base] if warm else []
+        candidates = [(base, None)] if warm else []  # (network, its raw outputs at inputs if known)
         if predict and networks:
             predicted = base.clone()
-            predicted.start_at(inputs, predicted.raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h))
-            candidates.insert(0, predicted)
-        trainers = (SegmentTrainer(net, loss, config, progress.report) for net in candidates)
-        trainer = next((trainer for trainer in trainers if trainer.finite_start(segment)), None)
+            target = predicted.raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h)
+            candidates.insert(0, (predicted, predicted.start_at(inputs, target)))
+        trainers = ((SegmentTrainer(net, loss, config, progress.report), raw) for net, raw in candidates)
+        trainer = next((trainer for trainer, raw in trainers if trainer.finite_start(segment, raw)), None)
         if trainer is None:
             net = fresh_network(compiled, config, inputs, z, k, copies) if warm else base
             trainer = SegmentTrainer(net, loss, config, progress.report)
         net = trainer.net
         stats.append(trainer.train(segment))
         with torch.no_grad():
-            out = net.predict(x, h)
+            out = trainer.predict(x, h)
         previous = (out, x[:, :n], z, h)
         x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
         networks.append(net)

@@ -337,29 +337,43 @@ class Surrogate:
         return surrogate
 
     # ---- evaluation -----------------------------------------------------------------------------
-    def rollout(self, y0: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """States and algebraic values at the segment ends, shape (B, segments, n+m).
+    def rollout(self, y0: np.ndarray, p: np.ndarray, stages: bool = False):
+        """States and algebraic values at the segment ends, shape (B, segments, n+m); with
+        ``stages``, also every segment's predictions ``(Y, Z, y_end, z_end)``, each (segments,
+        B, ...) in float64 (what :func:`certify` checks).
 
         Each segment is one forward pass of its network over the whole batch; its predicted
         ``y_{n+1}`` is the next network's input.
         """
         if len(y0) > EVALUATION_CHUNK and self.networks[0].copies == 1:
-            return np.concatenate([self.rollout(y0[rows], p[rows]) for rows in _chunks(len(y0))])
+            parts = [self.rollout(y0[rows], p[rows], stages) for rows in _chunks(len(y0))]
+            if not stages:
+                return np.concatenate(parts)
+            predictions = tuple(torch.cat([part[1][i] for part in parts], dim=1) for i in range(4))
+            return np.concatenate([part[0] for part in parts]), predictions
         dtype = getattr(torch, self.config.dtype)
         extra = torch.as_tensor(np.array(p[:, self.input_columns]), dtype=dtype, device=self.config.device)
         y = torch.as_tensor(np.array(y0), dtype=dtype, device=self.config.device)
-        out = []
+        out, kept = [], []
         with torch.no_grad():
             for net, (_, h) in zip(self.networks, segment_steps(self.grid), strict=True):
                 pred = net.predict(torch.cat([y, extra], dim=1), h)
                 y = pred.y_end
                 out.append(torch.cat([pred.y_end, pred.z_end], dim=1))
-        return torch.stack(out, dim=1).cpu().numpy()
+                if stages:
+                    kept.append([a.to(torch.float64) for a in (pred.Y, pred.Z, pred.y_end, pred.z_end)])
+        values = torch.stack(out, dim=1).cpu().numpy()
+        if not stages:
+            return values
+        return values, tuple(torch.stack([row[i] for row in kept]) for i in range(4))
 
-    def trajectory(self, start) -> np.ndarray:
-        """Values on the grid for :class:`InitialStates` ``start``, shape (B, segments + 1, n+m)."""
+    def trajectory(self, start, stages: bool = False):
+        """Values on the grid for :class:`InitialStates` ``start``, shape (B, segments + 1, n+m)
+        (and with ``stages`` the predictions of :meth:`rollout`)."""
         first = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
-        return np.concatenate([first, self.rollout(start.y0, start.p)], axis=1)
+        ends = self.rollout(start.y0, start.p, stages)
+        values = np.concatenate([first, ends[0] if stages else ends], axis=1)
+        return (values, ends[1]) if stages else values
 
     def solve(
         self,

@@ -58,6 +58,7 @@ from daemodel.backends.pinn.lm import (
     ResidualGramSystem,
     output_layer_jacobian,
 )
+from daemodel.backends.pinn.network import Outputs
 
 from daemodel.errors import TrainingError
 
@@ -187,6 +188,7 @@ class SegmentTrainer:
         self.net, self.loss, self.config = net, loss, config
         self.report = report or (lambda iteration, terms: None)
         self._start = None  # (segment, raw outputs) of finite_start
+        self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -195,11 +197,12 @@ class SegmentTrainer:
         out = self.net.split(raw, segment.x[:, :n], segment.h)
         return self.loss.residuals(segment.t, segment.h, segment.x[:, :n], segment.p, out)
 
-    def finite_start(self, segment: Segment) -> bool:
+    def finite_start(self, segment: Segment, outputs=None) -> bool:
         """Whether the network's current predictions give finite residuals on ``segment`` (its
-        outputs are kept for the training that follows, where they are its start)."""
+        raw outputs, given as ``outputs`` where the caller knows them, are kept for the training
+        that follows, where they are its start)."""
         with torch.no_grad():
-            self._start = (segment, self.net(segment.x))
+            self._start = (segment, self.net(segment.x) if outputs is None else outputs)
             return all(math.isfinite(value) for value in self.residuals(segment, self._start[1]).terms().values())
 
     def _start_outputs(self, segment: Segment):
@@ -483,6 +486,7 @@ class SegmentTrainer:
             space = "output"
             residuals, e = self._merit(segment, params, space, start)
         self.report(0, self._check(segment, residuals, 0, None))
+        outputs = self._raw  # the raw outputs at params
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
         one_input = N == self.net.copies  # every set of networks sees one input
@@ -528,6 +532,7 @@ class SegmentTrainer:
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
+                outputs = self._raw
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
@@ -539,7 +544,18 @@ class SegmentTrainer:
         with torch.no_grad():
             for name, p in self.net.named_parameters():
                 p.copy_(params[name])
+        self._trained = (segment.x, outputs)
         return iteration, residuals
+
+    def predict(self, x: torch.Tensor, h) -> Outputs:
+        """The trained network's stage and end values at inputs ``x`` (B, d): where ``x`` is the
+        segment's own input (one sample per set of networks), those of LM's last accepted
+        evaluation (its closing Newton steps move the outputs by exactly the corrections, to
+        rounding), else a forward pass."""
+        known = self._trained
+        with torch.no_grad():
+            raw = known[1] if known is not None and known[0] is x else self.net(x)
+        return self.net.split(raw, x[:, : self.net.n], h)
 
     def _newton_finish(self, segment: Segment, params: dict, residuals, e, iteration: int):
         """LM's closing steps, once every residual is below :data:`NEWTON_FINISH`: Gauss-Newton on
@@ -602,7 +618,7 @@ class SegmentTrainer:
         weight = HIDDEN_STEP_WEIGHT if N == net.copies else 1.0  # one input per set of networks
         stacked = net.stack(e.reshape(N, -1)) if space == "output" else None  # (K, N', out), zero at padding
         if space == "output" and stacked.shape[1] == 1:  # every network sees one input
-            return OneInputSystem(net.hidden_jacobian(params, segment.x), W, valid, stacked, weight)
+            return OneInputSystem(net.hidden_jacobian(params, segment.x, rows=W), W, valid, stacked, weight)
         P = sum(p.numel() for p in params.values())
         where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         if space == "residual":
