@@ -165,11 +165,12 @@ def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
         assert J_kernel.shape == J_plain.shape == (1, (s + 1) * (n + m) + m, (s + 1) * (n + m))
         torch.testing.assert_close(J_kernel, J_plain, rtol=1e-13, atol=1e-14)
         # the Newton correction by sparse QR of the augmented system: dense lstsq's
-        residuals, e = kernel.residuals_and_correction(0.3, 0.05, y_n, p, out)
+        u = torch.cat([out.Y.reshape(1, -1), out.y_end, out.Z.reshape(1, -1), out.z_end], dim=1)
+        assert kernel.kernel_applies(y_n, u, p) and not plain.kernel_applies(y_n, u, p)
+        residuals, e = kernel.residuals_and_correction(0.3, 0.05, y_n, p, u)
         torch.testing.assert_close(residuals.F, a.F, rtol=1e-13, atol=1e-14)
         expected = torch.linalg.lstsq(J_plain, plain.vector(a, 1)[..., None]).solution[..., 0]
         torch.testing.assert_close(e, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
-        assert plain.residuals_and_correction(0.3, 0.05, y_n, p, out) is None
     # a batch, or a gradient, takes the torch functions
     assert kernel._kernel_applies(y_n, out) and not kernel._kernel_applies(y_n.repeat(2, 1), out)
     with torch.enable_grad():
@@ -205,8 +206,8 @@ def test_where_the_kernels_sparse_qr_fails_or_is_poor_the_trainer_solves_dense_l
                 monkeypatch.setattr(loss_module, "OPTIMALITY_BOUND", 0.0)
             else:
                 monkeypatch.setattr(trainer.loss.kernel, "correction", _zero_pivot)
-            out = net.split(raw, x, segment.h)
-            kept, none = trainer.loss.residuals_and_correction(0.0, segment.h, x, segment.p, out)
+            u = net.values(raw, x, segment.h)
+            kept, none = trainer.loss.residuals_and_correction(0.0, segment.h, x, segment.p, u)
             assert none is None
             torch.testing.assert_close(kept.F, residuals.F, rtol=0, atol=1e-15)
             fallback = trainer._residuals_and_correction(segment, raw)[1]

@@ -158,7 +158,8 @@ class CasadiKernel:
         return function(packed)
 
     def pack(self, t_n, h, y_n, p, out) -> np.ndarray:
-        parts = (out.Y, out.y_end, out.Z, out.z_end, p)
+        """The kernels' argument for predictions ``out``: an :class:`Outputs`, or the flat values u (1, U)."""
+        parts = (out, p) if isinstance(out, torch.Tensor) else (out.Y, out.y_end, out.Z, out.z_end, p)
         return np.concatenate([[float(t_n), float(h)], y_n.numpy().ravel(), *(a.numpy().ravel() for a in parts)])
 
 
@@ -247,27 +248,26 @@ class RadauLoss:
     def residuals(self, t_n: float, h: float, y_n, p, out) -> Residuals:
         """Residuals at inputs ``y_n`` (N, n), parameters ``p`` (N, k), predictions ``out``."""
         if self._kernel_applies(y_n, out, p):
-            return self._unpacked(
-                torch.from_numpy(self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out))), y_n, out
-            )
+            r = torch.from_numpy(self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
+            return self._unpacked(r, y_n, out.z_end)
         res = stage_residual(
             self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
         )
         F = torch.cat([res.F, res.F_end[:, None, :]], dim=1)
         G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
-        return self._measured(F, G, res.S, y_n, out)
+        return self._measured(F, G, res.S, y_n, out.z_end)
 
-    def _unpacked(self, r: torch.Tensor, y_n, out) -> Residuals:
+    def _unpacked(self, r: torch.Tensor, y_n, z_end) -> Residuals:
         """One sample's :class:`Residuals` from the kernel's flat ``[F, G, S]``."""
         s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
         F = r[: (s + 1) * n].reshape(1, s + 1, n)
         G = r[(s + 1) * n : (s + 1) * (n + m)].reshape(1, s + 1, m)
-        return self._measured(F, G, r[(s + 1) * (n + m) :].reshape(1, m), y_n, out)
+        return self._measured(F, G, r[(s + 1) * (n + m) :].reshape(1, m), y_n, z_end)
 
-    def _measured(self, F, G, S, y_n, out) -> Residuals:
+    def _measured(self, F, G, S, y_n, z_end) -> Residuals:
         with torch.no_grad():
             scale_f = y_n.detach().abs().clamp(min=1.0)[:, None, :]
-            scale_s = out.z_end.detach().abs().clamp(min=1.0) if out.z_end is not None else None
+            scale_s = z_end.detach().abs().clamp(min=1.0) if z_end is not None else None
         return Residuals(F=F, G=G, S=S, scale_f=scale_f, scale_s=scale_s)
 
     def jacobian(self, t_n: float, h: float, y_n, p, out) -> torch.Tensor:
@@ -314,24 +314,30 @@ class RadauLoss:
         S[:, :, sn + n + (s - 1) * m : sn + n + sm] = -eye_m
         return jac * self._row_weights(N, n, m, dtype, device)[:, None]
 
-    def residuals_and_correction(self, t_n: float, h: float, y_n, p, out):
+    def kernel_applies(self, y_n, u, p) -> bool:
+        """Whether one sample's residuals at the values ``u`` (flat, or any tensor they are made
+        from) go to the casadi kernel: :meth:`residuals_and_correction` takes them."""
+        return self.kernel is not None and y_n.shape[0] == 1 and not (torch.is_grad_enabled() and u.requires_grad)
+
+    def residuals_and_correction(self, t_n: float, h: float, y_n, p, u):
         """One sample's :meth:`residuals` and Newton correction ``e = (dr/du)^+ r`` (1, U) of
-        :meth:`vector`, in :meth:`jacobian`'s layout of u, by one call of the casadi kernel: None
-        where the kernel does not apply, and e None where its values are not finite (r not
-        finite, or dr/du rank-deficient: the caller solves ``lstsq``)."""
-        if not self._kernel_applies(y_n, out, p):
-            return None
+        :meth:`vector` at the stage and end values ``u`` (1, U) (:meth:`jacobian`'s layout, as
+        ``RadauNetwork.values`` gives them), by one call of the casadi kernel (where
+        :meth:`kernel_applies`); e is None where the kernel's sparse QR failed or its answer is not
+        a least-squares solution to rounding (r not finite, dr/du rank-deficient or too badly
+        conditioned): the caller solves ``lstsq`` then."""
         if self._kernel_weights is None:
-            n, m = y_n.shape[1], out.Z.shape[-1]
+            n, m = y_n.shape[1], self.kernel.m
             self._kernel_weights = self._row_weights(1, n, m, torch.float64, "cpu").numpy()
-        packed = self.kernel.pack(t_n, h, y_n, p, out)
+        packed = self.kernel.pack(t_n, h, y_n, p, u)
         R = len(self._kernel_weights)
+        z_end = u[:, u.shape[1] - self.kernel.m :]
         try:
             values = torch.from_numpy(self.kernel.correction(packed, self._kernel_weights))
         except RuntimeError:  # a zero pivot in the sparse QR
-            return self._unpacked(torch.from_numpy(self.kernel.residual(packed)), y_n, out), None
+            return self._unpacked(torch.from_numpy(self.kernel.residual(packed)), y_n, z_end), None
         e, optimality = values[None, R:-1], float(values[-1])
-        return self._unpacked(values[:R], y_n, out), e if optimality <= OPTIMALITY_BOUND else None
+        return self._unpacked(values[:R], y_n, z_end), e if optimality <= OPTIMALITY_BOUND else None
 
     def _row_weights(self, N: int, n: int, m: int, dtype, device) -> torch.Tensor:
         """The weight of each row of :meth:`vector` (one sample of N)."""

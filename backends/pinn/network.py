@@ -341,6 +341,21 @@ class RadauNetwork(torch.nn.Module):
         z_end = raw[:, s * n + n + s * m :]
         return Outputs(Y=Y, y_end=y_end, Z=Z, z_end=z_end)
 
+    def values(self, raw: torch.Tensor, y_n: torch.Tensor, h) -> torch.Tensor:
+        """The stage and end values that :meth:`split` reads from raw outputs (B, U), flat in the
+        same order ``[Y (s, n), y_end, Z (s, m), z_end]``; ``y_n`` (B, n) for the increment form."""
+        if not self.increment:
+            return raw
+        k = (self.stages + 1) * self.n
+        return torch.cat([y_n.repeat(1, self.stages + 1) + h * raw[:, :k], raw[:, k:]], dim=1)
+
+    def value_steps(self, step: torch.Tensor, h) -> torch.Tensor:
+        """How much a step of the raw outputs (B, U) moves the values of :meth:`values`."""
+        if not self.increment:
+            return step
+        k = (self.stages + 1) * self.n
+        return torch.cat([h * step[:, :k], step[:, k:]], dim=1)
+
     def predict(self, x: torch.Tensor, h) -> Outputs:
         """Stage and end values for inputs ``x`` (B, d) whose first n columns are y_n."""
         return self.split(self(x), x[:, : self.n], h)

@@ -425,14 +425,18 @@ class SegmentTrainer:
         (:meth:`_correction`): by one call of the loss's casadi kernel where it applies."""
         net, n, h = self.net, self.net.n, segment.h
         y_n = segment.x[:, :n]
-        out = net.split(raw, y_n, h)
-        fused = self.loss.residuals_and_correction(segment.t, h, y_n, segment.p, out)
-        if fused is not None and fused[1] is not None:
-            residuals, e = fused
-            if net.increment:  # the raw outputs of the increment form are the stage values / h
-                e[:, : (net.stages + 1) * n] /= h
-            return residuals, e
-        residuals = self.loss.residuals(segment.t, h, y_n, segment.p, out) if fused is None else fused[0]
+        fused = None
+        if self.loss.kernel_applies(y_n, raw, segment.p):
+            fused = self.loss.residuals_and_correction(segment.t, h, y_n, segment.p, net.values(raw, y_n, h))
+            if fused[1] is not None:
+                residuals, e = fused
+                if net.increment:  # the raw outputs of the increment form are the stage values / h
+                    e[:, : (net.stages + 1) * n] /= h
+                return residuals, e
+        if fused is None:
+            residuals = self.loss.residuals(segment.t, h, y_n, segment.p, net.split(raw, y_n, h))
+        else:
+            residuals = fused[0]
         return residuals, self._correction(segment, raw, self.loss.vector(residuals, segment.x.shape[0]))
 
     def _merit(self, segment: Segment, params: dict, space: str, raw=None):
@@ -597,12 +601,9 @@ class SegmentTrainer:
     def _at_rounding(self, segment: Segment, raw, e) -> bool:
         """Whether the Newton corrections ``e`` move no stage or end value by more than 10 eps of
         its size (the outputs ``raw`` as :meth:`RadauNetwork.split` reads them)."""
-        n, h = self.net.n, segment.h
-        now = self.net.split(raw, segment.x[:, :n], h)
-        moved = self.net.split(raw - e.reshape(raw.shape), segment.x[:, :n], h)
-        limit = 10 * torch.finfo(raw.dtype).eps
-        pairs = zip((now.Y, now.y_end, now.Z, now.z_end), (moved.Y, moved.y_end, moved.Z, moved.z_end), strict=True)
-        return all(bool(((a - b).abs() <= limit * (1 + a.abs())).all()) for a, b in pairs)
+        now = self.net.values(raw, segment.x[:, : self.net.n], segment.h)
+        moved = self.net.value_steps(e.reshape(raw.shape), segment.h)
+        return bool((moved.abs() <= 10 * torch.finfo(raw.dtype).eps * (1 + now.abs())).all())
 
     def _normal_system(self, segment: Segment, params: dict, e: torch.Tensor, space: str = "output"):
         """The linearised merit ``e + J delta`` as an :class:`OutputGramSystem` (J = du/dtheta; few
