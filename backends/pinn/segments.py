@@ -138,6 +138,26 @@ class Progress:
             self.bar.close()
 
 
+def _starts(compiled, config, previous, inputs, z, k: int, copies: int, target):
+    """Segment k's start networks in order of preference, each with its raw outputs at ``inputs``
+    where known, each made only where the one before it is refused: with ``target`` (the
+    predictor's raw outputs), a copy of ``previous`` (warm) or a fresh network with its output
+    biases shifted onto them; a copy of ``previous``."""
+
+    def begin():
+        if previous is None:
+            return fresh_network(compiled, config, inputs, z, k, copies)
+        net = previous.clone()
+        net.normalise(inputs)
+        return net
+
+    if target is not None:
+        predicted = begin()
+        yield predicted, predicted.start_at(inputs, target)
+    if previous is not None:
+        yield begin(), None
+
+
 def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.Tensor, config, progress: Progress):
     """Train the segments one after the other (time-domain decomposition).
 
@@ -169,19 +189,15 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
         # form); each but the last only where its predictions keep f and g finite (akzo-nobel's
         # sqrt: the previous segment's slopes, or the extrapolation, can leave the domain)
         warm = bool(networks) and config.warm_start
-        base = networks[-1].clone() if warm else fresh_network(compiled, config, inputs, z, k, copies)
-        if warm:
-            base.normalise(inputs)
-        candidates = [(base, None)] if warm else []  # (network, its raw outputs at inputs if known)
+        target = None  # the predictor's raw outputs: the previous collocation polynomial, extrapolated
         if predict and networks:
-            predicted = base.clone()
-            target = predicted.raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h)
-            candidates.insert(0, (predicted, predicted.start_at(inputs, target)))
-        trainers = ((SegmentTrainer(net, loss, config, progress.report), raw) for net, raw in candidates)
+            target = networks[-1].raw_outputs(*extrapolated_start(*previous, h, c), x[:, :n], h)
+        candidates = _starts(compiled, config, networks[-1] if warm else None, inputs, z, k, copies, target)
+        report = progress.report if progress.bar is not None else None
+        trainers = ((SegmentTrainer(net, loss, config, report), raw) for net, raw in candidates)
         trainer = next((trainer for trainer, raw in trainers if trainer.finite_start(segment, raw)), None)
         if trainer is None:
-            net = fresh_network(compiled, config, inputs, z, k, copies) if warm else base
-            trainer = SegmentTrainer(net, loss, config, progress.report)
+            trainer = SegmentTrainer(fresh_network(compiled, config, inputs, z, k, copies), loss, config, report)
         net = trainer.net
         stats.append(trainer.train(segment))
         with torch.no_grad():

@@ -187,6 +187,7 @@ class SegmentTrainer:
     def __init__(self, net, loss, config, report=None):
         self.net, self.loss, self.config = net, loss, config
         self.report = report or (lambda iteration, terms: None)
+        self._reporting = report is not None  # LM's accepted steps compute their terms only for a report
         self._start = None  # (segment, raw outputs) of finite_start
         self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
 
@@ -470,7 +471,7 @@ class SegmentTrainer:
         return contracts, residuals, r.reshape(-1), e.reshape(-1)
 
     def _levenberg_marquardt(self, segment: Segment) -> tuple:
-        params = {name: p.detach().clone() for name, p in self.net.named_parameters()}
+        params = {name: p.detach() for name, p in self.net.named_parameters()}  # steps make new tensors
         names = list(params)
         sizes = [params[k].numel() for k in names]
         # With few samples the residual-space system is small (N R <= P / K), and LM works there
@@ -529,7 +530,8 @@ class SegmentTrainer:
                 params, residuals, e, stepped = trial, residuals_t, e_t, True
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu, system = 2.0, None
-                self.report(iteration, self._check(segment, residuals, iteration, None))
+                if self._reporting:
+                    self.report(iteration, self._check(segment, residuals, iteration, None))
                 if space == "output" and one_input and residuals.max_abs() <= NEWTON_FINISH:
                     params, residuals, e, iteration = self._newton_finish(segment, params, residuals, e, iteration)
                 if space == "residual" and not self._done(residuals):
@@ -595,7 +597,8 @@ class SegmentTrainer:
                 e_t = torch.where(better[:, None], e_t.reshape(N, -1), e.reshape(N, -1)).reshape(-1)
                 self._raw = torch.where(better[:, None], self._raw, raw)
             params, residuals, e, iteration = trial, residuals_t, e_t, iteration + 1
-            self.report(iteration, self._check(segment, residuals, iteration, None))
+            if self._reporting:
+                self.report(iteration, self._check(segment, residuals, iteration, None))
         return params, residuals, e, iteration
 
     def _at_rounding(self, segment: Segment, raw, e) -> bool:
