@@ -249,6 +249,12 @@ class RadauNetwork(torch.nn.Module):
             return out
         return self.unstacked(out)
 
+    def evaluate(self, x: torch.Tensor, params: dict) -> tuple:
+        """The raw outputs (B, U) at ``params``, and the forward pass's intermediates, which
+        :meth:`hidden_jacobian` at the same ``params`` and ``x`` takes instead of recomputing them."""
+        hidden = self._hidden(params, x)
+        return self.unstacked(torch.bmm(hidden[0], params["W_out"]) + params["b_out"]), hidden
+
     def unstacked(self, out: torch.Tensor) -> torch.Tensor:
         """Stacked outputs (K, B', out) as the flat outputs (B, U) of every input row."""
         rows = out.shape[1] if self.copies == 1 else self.copies
@@ -288,15 +294,18 @@ class RadauNetwork(torch.nn.Module):
             H = (1 - M) * U + M * R
         return H, (xn, A_u, A_r, X_1, A_1, U, R, layers)
 
-    def hidden_jacobian(self, params: dict, x: torch.Tensor, rows: torch.Tensor | None = None) -> HiddenJacobian:
+    def hidden_jacobian(
+        self, params: dict, x: torch.Tensor, rows: torch.Tensor | None = None, forward: tuple | None = None
+    ) -> HiddenJacobian:
         """The last hidden layer and its Jacobian with respect to each network's own hidden
         parameters (all but ``W_out``, ``b_out``), by reverse mode written out for its w rows,
         kept in the factors of every linear map (see :class:`HiddenJacobian`).  With ``rows``
         (K, w, out) the reverse pass starts from ``rows^T`` instead: the factors are those of the
         Jacobian of ``H rows`` (the outputs less their bias, for ``rows = W_out``), out rows each
-        instead of w, which is all that one input per network needs."""
+        instead of w, which is all that one input per network needs.  ``forward``: the
+        intermediates of :meth:`evaluate` at these ``params`` and ``x``."""
         p = params
-        H, (xn, A_u, A_r, X_1, A_1, U, R, layers) = self._hidden(p, x)
+        H, (xn, A_u, A_r, X_1, A_1, U, R, layers) = self._hidden(p, x) if forward is None else forward
         K, B, w = H.shape
         dphi = ACTIVATION_DERIVATIVES[self.activation]
         if rows is None:
@@ -346,8 +355,9 @@ class RadauNetwork(torch.nn.Module):
         same order ``[Y (s, n), y_end, Z (s, m), z_end]``; ``y_n`` (B, n) for the increment form."""
         if not self.increment:
             return raw
-        k = (self.stages + 1) * self.n
-        return torch.cat([y_n.repeat(1, self.stages + 1) + h * raw[:, :k], raw[:, k:]], dim=1)
+        B, k = raw.shape[0], (self.stages + 1) * self.n
+        stages = (h * raw[:, :k]).reshape(B, self.stages + 1, self.n) + y_n[:, None, :]
+        return torch.cat([stages.reshape(B, k), raw[:, k:]], dim=1)
 
     def value_steps(self, step: torch.Tensor, h) -> torch.Tensor:
         """How much a step of the raw outputs (B, U) moves the values of :meth:`values`."""

@@ -190,6 +190,7 @@ class SegmentTrainer:
         self._reporting = report is not None  # LM's accepted steps compute their terms only for a report
         self._start = None  # (segment, raw outputs) of finite_start
         self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
+        self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -204,7 +205,8 @@ class SegmentTrainer:
         that follows, where they are its start)."""
         with torch.no_grad():
             self._start = (segment, self.net(segment.x) if outputs is None else outputs)
-            return all(math.isfinite(value) for value in self.residuals(segment, self._start[1]).terms().values())
+            res = self.residuals(segment, self._start[1])
+            return math.isfinite(float((res.F * res.F).sum() + (res.G * res.G).sum() + (res.S * res.S).sum()))
 
     def _start_outputs(self, segment: Segment):
         """The raw outputs (N, U) that :meth:`finite_start` evaluated on ``segment``, taken once (the
@@ -445,7 +447,9 @@ class SegmentTrainer:
         Newton correction (:meth:`_correction`), in ``"residual"`` space the residual vector r.
         ``raw``: the outputs at ``params`` where the caller knows them."""
         with torch.no_grad():
-            raw = self.net(segment.x, params=params) if raw is None else raw
+            if raw is None:  # a forward pass, whose intermediates the next system at params takes
+                raw, forward = self.net.evaluate(segment.x, params)
+                self._forward = (params, forward)
             self._raw = raw  # for the closing Newton steps' rounding test
             if space == "residual":
                 residuals = self.residuals(segment, raw)
@@ -622,7 +626,9 @@ class SegmentTrainer:
         weight = HIDDEN_STEP_WEIGHT if N == net.copies else 1.0  # one input per set of networks
         stacked = net.stack(e.reshape(N, -1)) if space == "output" else None  # (K, N', out), zero at padding
         if space == "output" and stacked.shape[1] == 1:  # every network sees one input
-            return OneInputSystem(net.hidden_jacobian(params, segment.x, rows=W), W, valid, stacked, weight)
+            forward = self._forward[1] if self._forward is not None and self._forward[0] is params else None
+            hidden = net.hidden_jacobian(params, segment.x, rows=W, forward=forward)
+            return OneInputSystem(hidden, W, valid, stacked, weight)
         P = sum(p.numel() for p in params.values())
         where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         if space == "residual":
