@@ -206,7 +206,8 @@ class OneInputSystem:
         return float(torch.cat(largest).max())
 
     def step(self, mu: float):
-        """``(delta, predicted decrease of |e|^2 / 2)``, or None when a ``G + mu I`` is not positive definite."""
+        """``(delta, predicted decrease of |e|^2 / 2)``, delta by parameter name (shaped as the
+        network's parameters), or None when a ``G + mu I`` is not positive definite."""
         eye = torch.eye(self.G.shape[-1], dtype=self.G.dtype, device=self.G.device)
         L, info = torch.linalg.cholesky_ex(self.G + mu * eye)
         if bool((info != 0).any()):
@@ -218,10 +219,14 @@ class OneInputSystem:
         parts = torch.split(back, self.units, dim=1)
         maps = [(a[:, :, None] * b[:, None, :], b[:, None, :]) for a, b in zip(self.inputs, parts, strict=False)]
         (W_u, b_u), (W_r, b_r), (W_1, b_1), *gates = maps
-        flat = [W_u, b_u, W_r, b_r, W_1, b_1, parts[-1]]  # the order of named_parameters
-        flat += [W for W, _ in gates] + [b for _, b in gates]  # W_gate, b_gate: (depth - 1, K, ...)
-        flat += [-self.H[:, :, None] * w[:, None, :, 0], -w.transpose(1, 2)]  # W_out, b_out
-        return torch.cat([part.reshape(-1) for part in flat]), predicted
+        K, w_units = self.H.shape
+        delta = {"W_u": W_u, "b_u": b_u, "W_r": W_r, "b_r": b_r, "W_1": W_1, "b_1": b_1}
+        delta["slope"] = parts[-1][:, :, None]
+        delta["W_gate"] = torch.stack([W for W, _ in gates]) if gates else back.new_zeros(0, K, w_units, w_units)
+        delta["b_gate"] = torch.stack([b for _, b in gates]) if gates else back.new_zeros(0, K, 1, w_units)
+        delta["W_out"] = -self.H[:, :, None] * w[:, None, :, 0]
+        delta["b_out"] = -w.transpose(1, 2)
+        return delta, predicted
 
 
 class ResidualGramSystem:

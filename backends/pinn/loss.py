@@ -17,6 +17,7 @@ every residual is zero.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -108,6 +109,10 @@ class Residuals:
         ``max(1, |value|)`` (G rows as they are): the stopping criterion.  Two networks predict
         ``z_{n+1}`` and ``Z_s``, so S cannot fall below the rounding of z itself: 3.6e-12 for the
         squeezer's accelerations of 3e4, where an absolute 1e-12 was out of reach."""
+        return self._largest_measured
+
+    @functools.cached_property
+    def _largest_measured(self) -> float:  # computed once: LM asks at every step
         with torch.no_grad():
             F = self.F if self.scale_f is None else self.F / self.scale_f
             S = self.S if self.scale_s is None else self.S / self.scale_s
@@ -125,7 +130,8 @@ class CasadiKernel:
     ``[F (s+1, n), G (s+1, m), S (m)]`` flat, ``system`` that followed by the Jacobian dr/du
     (R, U) row by row, and ``correction`` r, the Newton correction (the least-squares solution
     of ``W dr/du e = W r`` for row weights W, by a sparse QR of the augmented system, see
-    :data:`AUGMENTED_SCALE`) and its least-squares optimality (:data:`OPTIMALITY_BOUND`).  dr/du
+    :data:`AUGMENTED_SCALE`), its least-squares optimality (:data:`OPTIMALITY_BOUND`) and
+    ``max |e| / (1 + |u|)`` (how far it moves the values, for the trainer's rounding test).  dr/du
     is sparse (10% nonzero for heat by lines, 22 unknowns): a correction there costs 55 us,
     against 220 us for torch's dense ``lstsq`` alone.
     """
@@ -207,10 +213,12 @@ def _casadi_loss_functions(compiled, tableau):
     # the least-squares optimality A^T (W r - A e) = 0, relative to the sizes that bound its rounding
     size = R * casadi.mmax(casadi.fabs(A)) * (casadi.norm_inf(wr) + casadi.norm_inf(casadi.mtimes(A, e))) + 1e-300
     optimality = casadi.norm_inf(casadi.mtimes(A.T, wr - casadi.mtimes(A, e))) / size
+    u_x = X[2 + n : 2 + n + U]
+    rounding = casadi.mmax(casadi.fabs(e) / (1 + casadi.fabs(u_x)))  # how far e moves u, relative to 1 + |u|
     return (
         casadi.Function("pinn_residual", [packed], [r]),
         casadi.Function("pinn_system", [packed], [casadi.vertcat(r, rows)]),
-        casadi.Function("pinn_correction", [X, weights], [casadi.vertcat(r_x, e, optimality)]),
+        casadi.Function("pinn_correction", [X, weights], [casadi.vertcat(r_x, e, optimality, rounding)]),
     )
 
 
@@ -319,13 +327,14 @@ class RadauLoss:
         from) go to the casadi kernel: :meth:`residuals_and_correction` takes them."""
         return self.kernel is not None and y_n.shape[0] == 1 and not (torch.is_grad_enabled() and u.requires_grad)
 
-    def residuals_and_correction(self, t_n: float, h: float, y_n, p, u):
+    def residuals_and_correction(self, t_n: float, h: float, y_n, p, u) -> tuple:
         """One sample's :meth:`residuals` and Newton correction ``e = (dr/du)^+ r`` (1, U) of
         :meth:`vector` at the stage and end values ``u`` (1, U) (:meth:`jacobian`'s layout, as
         ``RadauNetwork.values`` gives them), by one call of the casadi kernel (where
         :meth:`kernel_applies`); e is None where the kernel's sparse QR failed or its answer is not
         a least-squares solution to rounding (r not finite, dr/du rank-deficient or too badly
-        conditioned): the caller solves ``lstsq`` then."""
+        conditioned): the caller solves ``lstsq`` then.  Returns ``(residuals, e, moved)``, moved
+        the largest ``|e_i| / (1 + |u_i|)`` (None with e)."""
         if self._kernel_weights is None:
             n, m = y_n.shape[1], self.kernel.m
             self._kernel_weights = self._row_weights(1, n, m, torch.float64, "cpu").numpy()
@@ -335,9 +344,10 @@ class RadauLoss:
         try:
             values = torch.from_numpy(self.kernel.correction(packed, self._kernel_weights))
         except RuntimeError:  # a zero pivot in the sparse QR
-            return self._unpacked(torch.from_numpy(self.kernel.residual(packed)), y_n, z_end), None
-        e, optimality = values[None, R:-1], float(values[-1])
-        return self._unpacked(values[:R], y_n, z_end), e if optimality <= OPTIMALITY_BOUND else None
+            return self._unpacked(torch.from_numpy(self.kernel.residual(packed)), y_n, z_end), None, None
+        residuals = self._unpacked(values[:R], y_n, z_end)
+        optimality, moved = float(values[-2]), float(values[-1])
+        return (residuals, values[None, R:-2], moved) if optimality <= OPTIMALITY_BOUND else (residuals, None, None)
 
     def _row_weights(self, N: int, n: int, m: int, dtype, device) -> torch.Tensor:
         """The weight of each row of :meth:`vector` (one sample of N)."""

@@ -191,6 +191,7 @@ class SegmentTrainer:
         self._start = None  # (segment, raw outputs) of finite_start
         self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
         self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
+        self._memo = None  # (raw, residuals, e, moved) of the last _residuals_and_correction
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -204,8 +205,12 @@ class SegmentTrainer:
         raw outputs, given as ``outputs`` where the caller knows them, are kept for the training
         that follows, where they are its start)."""
         with torch.no_grad():
-            self._start = (segment, self.net(segment.x) if outputs is None else outputs)
-            res = self.residuals(segment, self._start[1])
+            raw = self.net(segment.x) if outputs is None else outputs
+            self._start = (segment, raw)
+            if self.config.optimizer == "lm" and self.loss.kernel_applies(segment.x, raw, segment.p):
+                res = self._residuals_and_correction(segment, raw)[0]  # LM's first merit, kept
+            else:
+                res = self.residuals(segment, raw)
             return math.isfinite(float((res.F * res.F).sum() + (res.G * res.G).sum() + (res.S * res.S).sum()))
 
     def _start_outputs(self, segment: Segment):
@@ -426,21 +431,22 @@ class SegmentTrainer:
     def _residuals_and_correction(self, segment: Segment, raw):
         """The residuals at the raw outputs ``raw`` (N, U) and every sample's Newton correction
         (:meth:`_correction`): by one call of the loss's casadi kernel where it applies."""
+        if self._memo is not None and self._memo[0] is raw:
+            return self._memo[1:3]
         net, n, h = self.net, self.net.n, segment.h
         y_n = segment.x[:, :n]
-        fused = None
+        fused, moved = None, None
         if self.loss.kernel_applies(y_n, raw, segment.p):
             fused = self.loss.residuals_and_correction(segment.t, h, y_n, segment.p, net.values(raw, y_n, h))
-            if fused[1] is not None:
-                residuals, e = fused
-                if net.increment:  # the raw outputs of the increment form are the stage values / h
-                    e[:, : (net.stages + 1) * n] /= h
-                return residuals, e
+            residuals, e, moved = fused
+            if e is not None and net.increment:  # the raw outputs of the increment form are the stage values / h
+                e[:, : (net.stages + 1) * n] /= h
         if fused is None:
             residuals = self.loss.residuals(segment.t, h, y_n, segment.p, net.split(raw, y_n, h))
-        else:
-            residuals = fused[0]
-        return residuals, self._correction(segment, raw, self.loss.vector(residuals, segment.x.shape[0]))
+        if fused is None or fused[1] is None:
+            e = self._correction(segment, raw, self.loss.vector(residuals, segment.x.shape[0]))
+        self._memo = (raw, residuals, e, moved)  # the start's, asked again by LM; moved for _at_rounding
+        return residuals, e
 
     def _merit(self, segment: Segment, params: dict, space: str, raw=None):
         """Residuals and the vector that LM drives to zero: in ``"output"`` space every sample's
@@ -522,11 +528,13 @@ class SegmentTrainer:
                 mu, nu = mu * nu, nu * 2
                 continue
             delta, predicted = step
-            trial = {}
-            offset = 0
-            for name, size in zip(names, sizes, strict=True):
-                trial[name] = params[name] + delta[offset : offset + size].reshape(params[name].shape)
-                offset += size
+            if isinstance(delta, dict):  # by parameter
+                trial = {name: params[name] + delta[name] for name in names}
+            else:  # flat, in the order of named_parameters
+                trial, offset = {}, 0
+                for name, size in zip(names, sizes, strict=True):
+                    trial[name] = params[name] + delta[offset : offset + size].reshape(params[name].shape)
+                    offset += size
             residuals_t, e_t = self._merit(segment, trial, space)
             actual = 0.5 * float(e @ e - e_t @ e_t)
             if math.isfinite(actual) and actual > 0 and predicted > 0:
@@ -608,6 +616,8 @@ class SegmentTrainer:
     def _at_rounding(self, segment: Segment, raw, e) -> bool:
         """Whether the Newton corrections ``e`` move no stage or end value by more than 10 eps of
         its size (the outputs ``raw`` as :meth:`RadauNetwork.split` reads them)."""
+        if self._memo is not None and self._memo[0] is raw and self._memo[3] is not None:  # the kernel's
+            return self._memo[3] <= 10 * torch.finfo(raw.dtype).eps
         now = self.net.values(raw, segment.x[:, : self.net.n], segment.h)
         moved = self.net.value_steps(e.reshape(raw.shape), segment.h)
         return bool((moved.abs() <= 10 * torch.finfo(raw.dtype).eps * (1 + now.abs())).all())
