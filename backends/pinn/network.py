@@ -388,10 +388,16 @@ class RadauNetwork(torch.nn.Module):
         Returns the raw outputs (B, U) at ``x`` after the shift (the outputs move with it, to rounding)."""
         with torch.no_grad():
             raw = self(x, stacked=True)
-            mean = raw.mean(1, keepdim=True) if self.copies == 1 else raw
-            shift = self.stack(target) - mean * (self.stack(torch.ones_like(target)) > 0)
+            mean = raw.mean(1, keepdim=True) if raw.shape[1] > 1 else raw
+            shift = self.stack(target) - mean * self.used()[:, None, :]
             self.b_out += shift
             return self.unstacked(raw + shift)
+
+    def used(self) -> torch.Tensor:
+        """1 at the stacked outputs (K, out) that a network uses, 0 at its padding."""
+        sizes = torch.tensor(self.sizes, device=self.b_out.device)
+        out = self.b_out.shape[-1]
+        return (torch.arange(out, device=sizes.device)[None, :] < sizes[:, None]).to(self.b_out.dtype)
 
     def raw_outputs(self, Y: torch.Tensor, Z: torch.Tensor, y_n: torch.Tensor, h) -> torch.Tensor:
         """The raw outputs (B, U) that :meth:`split` reads as the stage values ``Y`` (B, s, n) and

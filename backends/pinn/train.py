@@ -192,6 +192,7 @@ class SegmentTrainer:
         self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
         self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
         self._memo = None  # (raw, residuals, e, moved) of the last _residuals_and_correction
+        self._valid = None  # the network's outputs in use (K, out)
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -630,8 +631,9 @@ class SegmentTrainer:
         only, so du/dtheta is block diagonal over the networks and never formed whole."""
         net, K, N = self.net, self.net.count, segment.x.shape[0]
         out = max(net.sizes)
-        sizes = torch.tensor(net.sizes, device=e.device)
-        valid = (torch.arange(out, device=e.device)[None, :] < sizes[:, None]).to(e.dtype)  # (K, out): outputs in use
+        if self._valid is None:
+            self._valid = net.used()  # (K, out): the outputs in use
+        valid = self._valid
         W = params["W_out"] * valid[:, None, :]  # padded outputs take no part
         weight = HIDDEN_STEP_WEIGHT if N == net.copies else 1.0  # one input per set of networks
         stacked = net.stack(e.reshape(N, -1)) if space == "output" else None  # (K, N', out), zero at padding
