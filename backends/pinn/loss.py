@@ -256,8 +256,8 @@ class RadauLoss:
     def residuals(self, t_n: float, h: float, y_n, p, out) -> Residuals:
         """Residuals at inputs ``y_n`` (N, n), parameters ``p`` (N, k), predictions ``out``."""
         if self._kernel_applies(y_n, out, p):
-            r = torch.from_numpy(self.kernel.residual(self.kernel.pack(t_n, h, y_n, p, out)))
-            return self._unpacked(r, y_n, out.z_end)
+            packed = self.kernel.pack(t_n, h, y_n, p, out)
+            return self._unpacked(self.kernel.residual(packed), packed)
         res = stage_residual(
             self.functions, self.A, self.b, self.c, t_n, h, y_n, out.Y, out.Z, p, y_end=out.y_end, z_end=out.z_end
         )
@@ -265,12 +265,20 @@ class RadauLoss:
         G = torch.cat([res.G, res.G_end[:, None, :]], dim=1)
         return self._measured(F, G, res.S, y_n, out.z_end)
 
-    def _unpacked(self, r: torch.Tensor, y_n, z_end) -> Residuals:
-        """One sample's :class:`Residuals` from the kernel's flat ``[F, G, S]``."""
+    def _unpacked(self, r: np.ndarray, packed: np.ndarray) -> Residuals:
+        """One sample's :class:`Residuals` from the kernel's flat ``[F, G, S]`` at its argument
+        ``packed`` (:meth:`CasadiKernel.pack`), taken apart in numpy (a torch operation costs
+        microseconds, as much as the kernel's call on a small model)."""
         s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
-        F = r[: (s + 1) * n].reshape(1, s + 1, n)
-        G = r[(s + 1) * n : (s + 1) * (n + m)].reshape(1, s + 1, m)
-        return self._measured(F, G, r[(s + 1) * (n + m) :].reshape(1, m), y_n, z_end)
+        first, U = (s + 1) * n, (s + 1) * (n + m)
+        y_n, z_end = packed[2 : 2 + n], packed[2 + n + U - m : 2 + n + U]
+        return Residuals(
+            F=torch.from_numpy(r[:first].reshape(1, s + 1, n)),
+            G=torch.from_numpy(r[first:U].reshape(1, s + 1, m)),
+            S=torch.from_numpy(r[U:].reshape(1, m)),
+            scale_f=torch.from_numpy(np.maximum(np.abs(y_n), 1.0).reshape(1, 1, n)),
+            scale_s=torch.from_numpy(np.maximum(np.abs(z_end), 1.0).reshape(1, m)),
+        )
 
     def _measured(self, F, G, S, y_n, z_end) -> Residuals:
         with torch.no_grad():
@@ -340,14 +348,14 @@ class RadauLoss:
             self._kernel_weights = self._row_weights(1, n, m, torch.float64, "cpu").numpy()
         packed = self.kernel.pack(t_n, h, y_n, p, u)
         R = len(self._kernel_weights)
-        z_end = u[:, u.shape[1] - self.kernel.m :]
         try:
-            values = torch.from_numpy(self.kernel.correction(packed, self._kernel_weights))
+            values = self.kernel.correction(packed, self._kernel_weights)
         except RuntimeError:  # a zero pivot in the sparse QR
-            return self._unpacked(torch.from_numpy(self.kernel.residual(packed)), y_n, z_end), None, None
-        residuals = self._unpacked(values[:R], y_n, z_end)
-        optimality, moved = float(values[-2]), float(values[-1])
-        return (residuals, values[None, R:-2], moved) if optimality <= OPTIMALITY_BOUND else (residuals, None, None)
+            return self._unpacked(self.kernel.residual(packed), packed), None, None
+        residuals = self._unpacked(values[:R], packed)
+        if not values[-2] <= OPTIMALITY_BOUND:
+            return residuals, None, None
+        return residuals, torch.from_numpy(values[None, R:-2]), float(values[-1])
 
     def _row_weights(self, N: int, n: int, m: int, dtype, device) -> torch.Tensor:
         """The weight of each row of :meth:`vector` (one sample of N)."""

@@ -244,7 +244,7 @@ class RadauNetwork(torch.nn.Module):
         ``named_parameters``) replaces the network's own parameters."""
         p = dict(self.named_parameters()) if params is None else params
         H = self._hidden(p, x)[0]
-        out = torch.bmm(H, p["W_out"]) + p["b_out"]  # (K, B', out)
+        out = torch.baddbmm(p["b_out"], H, p["W_out"])  # (K, B', out)
         if stacked:
             return out
         return self.unstacked(out)
@@ -253,10 +253,12 @@ class RadauNetwork(torch.nn.Module):
         """The raw outputs (B, U) at ``params``, and the forward pass's intermediates, which
         :meth:`hidden_jacobian` at the same ``params`` and ``x`` takes instead of recomputing them."""
         hidden = self._hidden(params, x)
-        return self.unstacked(torch.bmm(hidden[0], params["W_out"]) + params["b_out"]), hidden
+        return self.unstacked(torch.baddbmm(params["b_out"], hidden[0], params["W_out"])), hidden
 
     def unstacked(self, out: torch.Tensor) -> torch.Tensor:
         """Stacked outputs (K, B', out) as the flat outputs (B, U) of every input row."""
+        if out.shape[1] == 1 and self.copies == 1:  # one input row
+            return out.reshape(1, -1)[:, self.order]
         rows = out.shape[1] if self.copies == 1 else self.copies
         return out.permute(1, 0, 2).reshape(out.shape[1], -1)[:, self.order].reshape(rows, -1)
 
@@ -281,18 +283,19 @@ class RadauNetwork(torch.nn.Module):
         """The last hidden layer H_depth, shape (K, B', w), and what its Jacobian needs."""
         phi = ACTIVATION_FUNCTIONS[self.activation]
         xn = self.network_inputs((x - self.center) / self.scale)  # (K, B', d)
-        A_u = torch.bmm(xn, p["W_u"]) + p["b_u"]
-        A_r = torch.bmm(xn, p["W_r"]) + p["b_r"]
+        A_u = torch.baddbmm(p["b_u"], xn, p["W_u"])
+        A_r = torch.baddbmm(p["b_r"], xn, p["W_r"])
         X_1 = torch.bmm(xn, p["W_1"])
-        A_1 = self.eta * p["slope"] * X_1 + p["b_1"]
+        A_1 = torch.addcmul(p["b_1"], self.eta * p["slope"], X_1)
         U, R, H = phi(A_u), phi(A_r), phi(A_1)
+        H_1 = H
         layers = []  # (H_k, pre-activation of M_k, M_k) of each gated layer
         for W, b in zip(p["W_gate"], p["b_gate"], strict=True):
-            A = torch.bmm(H, W) + b
+            A = torch.baddbmm(b, H, W)
             M = phi(A)
             layers.append((H, A, M))
-            H = (1 - M) * U + M * R
-        return H, (xn, A_u, A_r, X_1, A_1, U, R, layers)
+            H = torch.addcmul(U, M, R - U)  # (1 - M) U + M R
+        return H, (xn, A_u, A_r, X_1, A_1, U, R, H_1, layers)
 
     def hidden_jacobian(
         self, params: dict, x: torch.Tensor, rows: torch.Tensor | None = None, forward: tuple | None = None
@@ -305,7 +308,7 @@ class RadauNetwork(torch.nn.Module):
         instead of w, which is all that one input per network needs.  ``forward``: the
         intermediates of :meth:`evaluate` at these ``params`` and ``x``."""
         p = params
-        H, (xn, A_u, A_r, X_1, A_1, U, R, layers) = self._hidden(p, x) if forward is None else forward
+        H, (xn, A_u, A_r, X_1, A_1, U, R, H_1, layers) = self._hidden(p, x) if forward is None else forward
         K, B, w = H.shape
         dphi = ACTIVATION_DERIVATIVES[self.activation]
         if rows is None:
@@ -313,16 +316,18 @@ class RadauNetwork(torch.nn.Module):
         else:
             bar_H = rows.transpose(1, 2)[:, None].expand(K, B, rows.shape[-1], w)
         # bar_H: (K, B, row, unit of the current layer), a row of H_depth or of H rows
-        bar_U = torch.zeros_like(bar_H)
-        bar_R = torch.zeros_like(bar_H)
+        bar_U = bar_R = None  # zero until a gated layer adds to them
         gates = []
         for (H_k, A, M), W in zip(reversed(layers), reversed(list(p["W_gate"])), strict=True):
-            bar_U = bar_U + bar_H * (1 - M)[:, :, None, :]
-            bar_R = bar_R + bar_H * M[:, :, None, :]
+            to_U, to_R = bar_H * (1 - M)[:, :, None, :], bar_H * M[:, :, None, :]
+            bar_U = to_U if bar_U is None else bar_U + to_U
+            bar_R = to_R if bar_R is None else bar_R + to_R
             bar_A = bar_H * ((R - U) * dphi(A, M))[:, :, None, :]
             gates.append((H_k, bar_A))
             bar_H = bar_A @ W.transpose(-1, -2)[:, None]
-        bar_A1 = bar_H * dphi(A_1, None)[:, :, None, :]
+        if bar_U is None:  # depth 1: H = H_1, U and R take no part
+            bar_U = bar_R = torch.zeros_like(bar_H)
+        bar_A1 = bar_H * dphi(A_1, H_1)[:, :, None, :]
         bar_Au = bar_U * dphi(A_u, U)[:, :, None, :]
         bar_Ar = bar_R * dphi(A_r, R)[:, :, None, :]
         inputs = xn
