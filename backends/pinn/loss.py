@@ -54,6 +54,8 @@ class Residuals:
     scale_f, scale_s : Tensor or None, shapes (N, 1, n) and (N, m)
         ``max(1, |y_n|)`` and ``max(1, |z_{n+1}|)``: the size of the variable each F and S row is
         measured in, for :meth:`max_abs` (None: 1).
+    measured : float or None
+        :meth:`max_abs`, where whoever made these residuals computed it (the kernel, in numpy).
     """
 
     F: torch.Tensor
@@ -61,6 +63,7 @@ class Residuals:
     S: torch.Tensor
     scale_f: torch.Tensor | None = None
     scale_s: torch.Tensor | None = None
+    measured: float | None = None
 
     def terms(self) -> dict[str, float]:
         """The loss terms L_f, L_g, L_s (means as in the paper)."""
@@ -109,7 +112,7 @@ class Residuals:
         ``max(1, |value|)`` (G rows as they are): the stopping criterion.  Two networks predict
         ``z_{n+1}`` and ``Z_s``, so S cannot fall below the rounding of z itself: 3.6e-12 for the
         squeezer's accelerations of 3e4, where an absolute 1e-12 was out of reach."""
-        return self._largest_measured
+        return self._largest_measured if self.measured is None else self.measured
 
     @functools.cached_property
     def _largest_measured(self) -> float:  # computed once: LM asks at every step
@@ -272,13 +275,10 @@ class RadauLoss:
         s, n, m = self.kernel.s, self.kernel.n, self.kernel.m
         first, U = (s + 1) * n, (s + 1) * (n + m)
         y_n, z_end = packed[2 : 2 + n], packed[2 + n + U - m : 2 + n + U]
-        return Residuals(
-            F=torch.from_numpy(r[:first].reshape(1, s + 1, n)),
-            G=torch.from_numpy(r[first:U].reshape(1, s + 1, m)),
-            S=torch.from_numpy(r[U:].reshape(1, m)),
-            scale_f=torch.from_numpy(np.maximum(np.abs(y_n), 1.0).reshape(1, 1, n)),
-            scale_s=torch.from_numpy(np.maximum(np.abs(z_end), 1.0).reshape(1, m)),
-        )
+        F, G, S = r[:first].reshape(1, s + 1, n), r[first:U].reshape(1, s + 1, m), r[U:].reshape(1, m)
+        scale_f, scale_s = np.maximum(np.abs(y_n), 1.0).reshape(1, 1, n), np.maximum(np.abs(z_end), 1.0).reshape(1, m)
+        measured = max(float(np.abs(a).max()) if a.size else 0.0 for a in (F / scale_f, G, S / scale_s))
+        return Residuals(*(torch.from_numpy(a) for a in (F, G, S, scale_f, scale_s)), measured=measured)
 
     def _measured(self, F, G, S, y_n, z_end) -> Residuals:
         with torch.no_grad():

@@ -484,7 +484,7 @@ class SegmentTrainer:
     def _levenberg_marquardt(self, segment: Segment) -> tuple:
         params = {name: p.detach() for name, p in self.net.named_parameters()}  # steps make new tensors
         names = list(params)
-        sizes = [params[k].numel() for k in names]
+        sizes = [params[k].numel() for k in names]  # (flat steps)
         # With few samples the residual-space system is small (N R <= P / K), and LM works there
         # until a Newton step on the outputs contracts, then on the Newton corrections; with many
         # (surrogates) always on the corrections.
@@ -501,7 +501,8 @@ class SegmentTrainer:
         else:
             space = "output"
             residuals, e = self._merit(segment, params, space, start)
-        self.report(0, self._check(segment, residuals, 0, None))
+        if self._reporting or start is None:  # (a start that finite_start passed has finite terms)
+            self.report(0, self._check(segment, residuals, 0, None))
         outputs = self._raw  # the raw outputs at params
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
