@@ -8,6 +8,8 @@ smaller, and reports the decrease of the merit its step predicts.
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
@@ -190,6 +192,14 @@ class OneInputSystem:
         )
         self.e = e[:, 0, :, None]  # (K, out, 1)
         self.Ge = self.G @ self.e
+
+    def refit(self, e) -> OneInputSystem:
+        """This linearisation (J where it was built) for new corrections ``e`` (K, 1, out): the next
+        step reuses the Jacobian, as simplified Newton (RADAU5's) reuses its matrix."""
+        twin = copy.copy(self)
+        twin.e = e[:, 0, :, None]
+        twin.Ge = twin.G @ twin.e
+        return twin
 
     @property
     def scale(self) -> float:

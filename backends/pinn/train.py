@@ -73,6 +73,10 @@ LM_MAX_DAMPING = 1e16
 # steps: quadratic convergence from 1e-6 reaches 1e-12 in one and rounding in two.
 NEWTON_FINISH = 1e-6
 NEWTON_FINISH_STEPS = 3
+# LM keeps a one-input system's Jacobian for its next step where the last step cut |e|^2 to at
+# most this fraction of its value (simplified Gauss-Newton, as RADAU5 keeps its Newton matrix
+# while Newton contracts); a step from a kept Jacobian that fails is retried with a new one.
+JACOBIAN_REUSE = 1e-2
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
 LBFGS_CHUNK = 20
 # LM fits the Newton corrections of the outputs where a full Newton step on them cuts the
@@ -518,10 +522,11 @@ class SegmentTrainer:
         # accepted untouched only where its Newton correction is at rounding: a small residual
         # need not mean a small distance (a predictor within tol = 1e-12 left 6e-12 on a model
         # whose Radau error is rounding)
+        stale = False  # whether system's Jacobian is from earlier parameters (reused)
         while iteration < self.config.iterations and not (stepped and self._done(residuals)):
             iteration += 1
             if system is None:
-                system = self._normal_system(segment, params, e, space)
+                system, stale = self._normal_system(segment, params, e, space), False
                 if mu is None:
                     scale = system.scale
                     mu = LM_TAU * scale
@@ -538,12 +543,14 @@ class SegmentTrainer:
                     trial[name] = params[name] + delta[offset : offset + size].reshape(params[name].shape)
                     offset += size
             residuals_t, e_t = self._merit(segment, trial, space)
-            actual = 0.5 * float(e @ e - e_t @ e_t)
+            before, after = float(e @ e), float(e_t @ e_t)
+            actual = 0.5 * (before - after)
             if math.isfinite(actual) and actual > 0 and predicted > 0:
                 rho = actual / predicted
                 params, residuals, e, stepped = trial, residuals_t, e_t, True
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
-                nu, system = 2.0, None
+                nu, system = 2.0, self._reused(system, e, after <= JACOBIAN_REUSE * before)
+                stale = system is not None
                 if self._reporting:
                     self.report(iteration, self._check(segment, residuals, iteration, None))
                 if space == "output" and one_input and residuals.max_abs() <= NEWTON_FINISH:
@@ -553,6 +560,8 @@ class SegmentTrainer:
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
                 outputs = self._raw
+            elif stale:  # a reused Jacobian's step failed: rebuild it here, the damping as it was
+                system = None
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
@@ -576,6 +585,14 @@ class SegmentTrainer:
         with torch.no_grad():
             raw = known[1] if known is not None and known[0] is x else self.net(x)
         return self.net.split(raw, x[:, : self.net.n], h)
+
+    def _reused(self, system, e, contracted: bool):
+        """``system`` refitted to the new corrections ``e`` where its last step contracted them
+        (by :data:`JACOBIAN_REUSE` in |e|^2) and it can be (one input per network), else None
+        (LM builds the next at the new parameters)."""
+        if not (contracted and isinstance(system, OneInputSystem)):
+            return None
+        return system.refit(self.net.stack(e.reshape(self.net.copies, -1)))
 
     def _newton_finish(self, segment: Segment, params: dict, residuals, e, iteration: int):
         """LM's closing steps, once every residual is below :data:`NEWTON_FINISH`: Gauss-Newton on
