@@ -437,9 +437,10 @@ def test_training_states_radau_cannot_solve_are_left_out_with_a_warning(blowup):
         ("residual", 1, "ResidualGramSystem"),
         ("residual", 2, "ResidualGramSystem"),
         ("copies", 3, "OneInputSystem"),
+        ("grouped", 1, "OneInputSystem"),
     ],
 )
-def test_lm_step_equals_the_dense_gauss_newton_step(architecture, depth, space, samples, kind):
+def test_lm_step_equals_the_dense_gauss_newton_step(architecture, depth, space, samples, kind, monkeypatch):
     # LM fits every sample's Newton correction e with J = du/dtheta (or, as the fallback, the
     # residuals r with J = dr/dtheta), solving per network in its outputs or its parameters or
     # in residual space; the step, the predicted decrease and the first damping's scale must
@@ -451,7 +452,9 @@ def test_lm_step_equals_the_dense_gauss_newton_step(architecture, depth, space, 
     c = HESSENBERG.model().compile()
     cfg = dm.PINNConfig(architecture=architecture, width=5, depth=depth, eta=2.0)
     copies = samples if space == "copies" else 1
-    space = "output" if space == "copies" else space
+    if space == "grouped":  # one batch per output count (4, 3, 1), each padded to its own
+        monkeypatch.setattr("daemodel.backends.pinn.lm.GROUP_OVERHEAD", 0)
+    space = "output" if space in ("copies", "grouped") else space
     net = make_network(c, cfg, 4, 0, copies)
     x = 1 + 0.02 * torch.rand(samples, 4, dtype=F64, generator=torch.Generator().manual_seed(1))
     net.normalise(x)
@@ -486,6 +489,16 @@ def test_lm_step_equals_the_dense_gauss_newton_step(architecture, depth, space, 
     assert predicted == pytest.approx(0.5 * float(step @ (mu * step - scaled.T @ e)), rel=1e-9)
 
 
+def test_networks_share_a_batch_while_padding_costs_less_than_a_batch():
+    from daemodel.backends.pinn.lm import output_groups
+
+    units = 3 * 20 + 20 + 1  # width 20, depth 2
+    heat = output_groups([4] * 20 + [6, 2], units)  # per-variable, 20 states, 2 algebraic
+    assert [(members.tolist(), count) for members, count in heat] == [(list(range(22)), 6)]
+    squeezer = output_groups([4] * 14 + [39, 13], units)
+    assert [(members.tolist(), count) for members, count in squeezer] == [([14, 15], 39), (list(range(14)), 4)]
+
+
 def test_a_kept_jacobian_steps_from_where_it_was_built():
     # simplified Gauss-Newton: a one-input system refitted to new corrections e' keeps G and J
     # (its step is -D J^T (G + mu I)^-1 e', a new system's at the same parameters); LM keeps it
@@ -503,7 +516,7 @@ def test_a_kept_jacobian_steps_from_where_it_was_built():
     system = trainer._normal_system(segment, params, e, "output")
     other = 0.5 * e.flip(0)
     kept = system.refit(net.stack(other.reshape(1, -1)))
-    assert kept.G is system.G and kept.V is system.V
+    assert all(a is b for a, b in zip(kept.G, system.G, strict=True))
     fresh = trainer._normal_system(segment, params, other, "output")
     for name, value in kept.step(1e-3)[0].items():
         torch.testing.assert_close(value, fresh.step(1e-3)[0][name], rtol=1e-12, atol=1e-15)

@@ -151,6 +151,29 @@ class OutputGramSystem:
         return -self.gram.transpose(w), predicted
 
 
+def output_groups(sizes, units: int) -> list:
+    """Networks grouped for :class:`OneInputSystem`: ``(networks, count)``, the indices of
+    networks with at most ``count`` outputs (``sizes``), solved as one batch padded to ``count``.
+    The networks of one output count join the group of the next larger count where their padding
+    costs fewer multiplies (``(count^2 - size^2) units`` each, in G's product) than a batch's
+    overhead, :data:`GROUP_OVERHEAD`: per-variable heat by lines (4, 6 and 2 outputs) is one
+    group; the squeezer's 39 and 13 are one and its fourteen 4s another."""
+    groups = []  # [members, count], largest count first
+    for size in sorted(set(sizes), reverse=True):
+        members = [k for k, other in enumerate(sizes) if other == size]
+        if groups and len(members) * (groups[-1][1] ** 2 - size**2) * units <= GROUP_OVERHEAD:
+            groups[-1][0].extend(members)
+        else:
+            groups.append([members, size])
+    return [(torch.tensor(sorted(members)), count) for members, count in groups]
+
+
+# A batch of networks costs about this many multiplies' time in fixed per-operation overhead
+# (~15 torch operations of ~5 us on this machine's 1-thread float64 at ~5 GFlop/s): padding that
+# costs less than this keeps networks of different output counts in one batch.
+GROUP_OVERHEAD = 300_000
+
+
 class OneInputSystem:
     """Levenberg-Marquardt on the Newton corrections e where every network sees one input (a
     trajectory, or independent networks per sample): :class:`OutputGramSystem`'s step, whose
@@ -161,14 +184,15 @@ class OneInputSystem:
         G_k = D_h V diag(|a|^2 + 1) V^T + (|H|^2 + 1) I   (out, out)
 
     and a step ``delta = -D J^T w`` is ``-D_h a (V^T w)`` and ``-D_h V^T w`` in the hidden maps,
-    ``-H w^T`` and ``-w`` in the output layer.  All K networks are solved in one batch, padded
-    outputs carrying an identity row (their correction, 0, stays 0).
+    ``-H w^T`` and ``-w`` in the output layer.  The networks are solved in batches of
+    :func:`output_groups`, padded outputs carrying an identity row (their correction, 0, stays 0).
 
     Parameters
     ----------
     hidden : HiddenJacobian
-        At one input per network, H (K, 1, w), with rows ``W`` (the factors of ``H W``, whose
-        reverse pass gives ``V`` directly: :meth:`RadauNetwork.hidden_jacobian`).
+        At one input per network, H (K, 1, w): with rows ``W`` (the factors of ``H W``, whose
+        reverse pass gives ``V`` directly, :meth:`RadauNetwork.hidden_jacobian`) or of H itself
+        (w rows, where W has more columns than H has units).
     W : Tensor, shape (K, w, out)
         Output weights, zero columns at padded outputs.
     valid : Tensor, shape (K, out)
@@ -176,66 +200,98 @@ class OneInputSystem:
         The Newton corrections, zero at padded outputs.
     hidden_weight : float
         D_h, the hidden parameters' weight in the step's metric (:data:`HIDDEN_STEP_WEIGHT`).
+    groups : list of (networks, count)
+        :func:`output_groups`.
+    projected : bool
+        Whether ``hidden`` holds the factors of ``H W`` (else of H).
     """
 
-    def __init__(self, hidden, W, valid, e, hidden_weight: float):
-        self.H, self.W, self.valid, self.weight = hidden.H[:, 0], W, valid, hidden_weight
+    def __init__(self, hidden, W, valid, e, hidden_weight: float, groups, projected: bool):
+        self.H, self.weight = hidden.H[:, 0], hidden_weight
+        K = valid.shape[0]
         self.inputs = [a[:, 0] for a, _ in hidden.maps]  # (K, inputs of the map)
-        bars = [abar[:, 0] for _, abar in hidden.maps] + [hidden.slope[:, 0]]  # (K, out, units): W^T abar
+        bars = [abar[:, 0] for _, abar in hidden.maps] + [hidden.slope[:, 0]]  # (K, rows, units)
         self.units = [bar.shape[-1] for bar in bars]
-        self.V = torch.cat(bars, dim=2)  # (K, out, units)
-        norms = [(a * a).sum(-1, keepdim=True) + 1 for a in self.inputs] + [self.H.new_ones(len(self.H), 1)]
+        factors = torch.cat(bars, dim=2)  # (K, rows, units)
+        norms = [(a * a).sum(-1, keepdim=True) + 1 for a in self.inputs] + [self.H.new_ones(K, 1)]
         columns = torch.cat([norm.expand(-1, u) for norm, u in zip(norms, self.units, strict=True)], dim=1)
-        G = hidden_weight * (self.V * columns[:, None, :]) @ self.V.transpose(1, 2)
-        self.G = (
-            G + ((self.H * self.H).sum(1) + 1)[:, None, None] * torch.diag_embed(valid) + torch.diag_embed(1 - valid)
-        )
-        self.e = e[:, 0, :, None]  # (K, out, 1)
-        self.Ge = self.G @ self.e
+        beta = (self.H * self.H).sum(1) + 1
+        self.whole = len(groups) == 1  # one batch of all K networks: no gathers
+        self.parts = []
+        for networks, count in groups:
+            at = slice(None) if self.whole else networks
+            Wg = W[at, :, :count]
+            V = factors[at, :count] if projected else Wg.transpose(1, 2) @ factors[at]
+            used = valid[at, :count]
+            G = hidden_weight * (V * columns[at][:, None, :]) @ V.transpose(1, 2)
+            G = G + beta[at][:, None, None] * torch.diag_embed(used) + torch.diag_embed(1 - used)
+            self.parts.append([at, count, V, G, None, None])
+        self.refit_(e)
+
+    def refit_(self, e) -> None:
+        """Set the corrections ``e`` (K, 1, out) (in place)."""
+        for part in self.parts:
+            at, count, _, G = part[:4]
+            part[4] = e[at, 0, :count, None]  # (k, count, 1)
+            part[5] = G @ part[4]
 
     def refit(self, e) -> OneInputSystem:
         """This linearisation (J where it was built) for new corrections ``e`` (K, 1, out): the next
         step reuses the Jacobian, as simplified Newton (RADAU5's) reuses its matrix."""
         twin = copy.copy(self)
-        twin.e = e[:, 0, :, None]
-        twin.Ge = twin.G @ twin.e
+        twin.parts = [list(part) for part in self.parts]
+        twin.refit_(e)
         return twin
+
+    @property
+    def G(self) -> list:
+        return [part[3] for part in self.parts]
 
     @property
     def scale(self) -> float:
         """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping)."""
-        column = (self.V * self.V).sum(1)  # (K, units): |V_j|^2
         largest = [self.H.new_ones(1), (self.H * self.H).amax(1)]  # b_out; W_out: H_i^2
-        first = 0
-        for a, u in zip([*self.inputs, None], self.units, strict=True):
-            part = column[:, first : first + u].amax(1)  # bias (slope: its own)
-            if a is not None:
-                part = part * (a * a).amax(1).clamp(min=1.0)  # weights: a_i^2 |V_j|^2
-            largest.append(self.weight * part)
-            first += u
+        for at, _, V, *_ in self.parts:
+            column = (V * V).sum(1)  # (k, units): |V_j|^2
+            first = 0
+            for a, u in zip([*self.inputs, None], self.units, strict=True):
+                part = column[:, first : first + u].amax(1)  # bias (slope: its own)
+                if a is not None:
+                    part = part * (a[at] * a[at]).amax(1).clamp(min=1.0)  # weights: a_i^2 |V_j|^2
+                largest.append(self.weight * part)
+                first += u
         return float(torch.cat(largest).max())
 
     def step(self, mu: float):
         """``(delta, predicted decrease of |e|^2 / 2)``, delta by parameter name (shaped as the
         network's parameters), or None when a ``G + mu I`` is not positive definite."""
-        eye = torch.eye(self.G.shape[-1], dtype=self.G.dtype, device=self.G.device)
-        L, info = torch.linalg.cholesky_ex(self.G + mu * eye)
-        if bool((info != 0).any()):
-            return None
-        w = torch.cholesky_solve(self.e, L)  # (K, out, 1)
-        # delta = -D J^T w, g = J^T e: delta.D^-1 delta = w.G w, delta.g = -w.G e
-        predicted = 0.5 * float((mu * (w * (self.G @ w)) + w * self.Ge).sum())
-        back = -self.weight * (self.V.transpose(1, 2) @ w)[..., 0]  # (K, units): -D_h V^T w
+        K, w_units = self.H.shape
+        predicted = 0.0
+        if not self.whole:
+            w = self.H.new_zeros(K, max(count for _, count, *_ in self.parts))
+            back = self.H.new_zeros(K, sum(self.units))
+        for at, count, V, G, e, Ge in self.parts:
+            eye = torch.eye(count, dtype=G.dtype, device=G.device)
+            L, info = torch.linalg.cholesky_ex(G + mu * eye)
+            if bool((info != 0).any()):
+                return None
+            wg = torch.cholesky_solve(e, L)  # (k, count, 1)
+            # delta = -D J^T w, g = J^T e: delta.D^-1 delta = w.G w, delta.g = -w.G e
+            predicted += 0.5 * float((mu * (wg * (G @ wg)) + wg * Ge).sum())
+            backg = -self.weight * (V.transpose(1, 2) @ wg)[..., 0]  # (k, units): -D_h V^T w
+            if self.whole:
+                w, back = wg[..., 0], backg
+            else:
+                w[at, :count], back[at] = wg[..., 0], backg
         parts = torch.split(back, self.units, dim=1)
         maps = [(a[:, :, None] * b[:, None, :], b[:, None, :]) for a, b in zip(self.inputs, parts, strict=False)]
         (W_u, b_u), (W_r, b_r), (W_1, b_1), *gates = maps
-        K, w_units = self.H.shape
         delta = {"W_u": W_u, "b_u": b_u, "W_r": W_r, "b_r": b_r, "W_1": W_1, "b_1": b_1}
         delta["slope"] = parts[-1][:, :, None]
         delta["W_gate"] = torch.stack([W for W, _ in gates]) if gates else back.new_zeros(0, K, w_units, w_units)
         delta["b_gate"] = torch.stack([b for _, b in gates]) if gates else back.new_zeros(0, K, 1, w_units)
-        delta["W_out"] = -self.H[:, :, None] * w[:, None, :, 0]
-        delta["b_out"] = -w.transpose(1, 2)
+        delta["W_out"] = -self.H[:, :, None] * w[:, None, :]
+        delta["b_out"] = -w[:, None, :]
         return delta, predicted
 
 

@@ -56,6 +56,7 @@ from daemodel.backends.pinn.lm import (
     OutputGramSystem,
     OutputSystem,
     ResidualGramSystem,
+    output_groups,
     output_layer_jacobian,
 )
 from daemodel.backends.pinn.network import Outputs
@@ -197,6 +198,7 @@ class SegmentTrainer:
         self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
         self._memo = None  # (raw, residuals, e, moved) of the last _residuals_and_correction
         self._valid = None  # the network's outputs in use (K, out)
+        self._groups = None  # output_groups of the network (one input per network)
 
     # ---- residuals --------------------------------------------------------------------------
     def residuals(self, segment: Segment, raw=None):
@@ -657,8 +659,13 @@ class SegmentTrainer:
         stacked = net.stack(e.reshape(N, -1)) if space == "output" else None  # (K, N', out), zero at padding
         if space == "output" and stacked.shape[1] == 1:  # every network sees one input
             forward = self._forward[1] if self._forward is not None and self._forward[0] is params else None
-            hidden = net.hidden_jacobian(params, segment.x, rows=W, forward=forward)
-            return OneInputSystem(hidden, W, valid, stacked, weight)
+            projected = out <= W.shape[1]  # the reverse pass from W's out rows, or from H's w
+            hidden = net.hidden_jacobian(params, segment.x, rows=W if projected else None, forward=forward)
+            if self._groups is None:
+                units = sum(p.shape[-1] for p in (params["W_u"], params["W_r"], params["W_1"]))
+                units += W.shape[1] * params["W_gate"].shape[0] + 1
+                self._groups = output_groups(net.sizes, units)
+            return OneInputSystem(hidden, W, valid, stacked, weight, self._groups, projected)
         P = sum(p.numel() for p in params.values())
         where = self._block_index(params)  # (K, P/K): flat parameter positions of each network
         if space == "residual":
