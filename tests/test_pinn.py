@@ -165,13 +165,13 @@ def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
         J_plain, J_kernel = plain.jacobian(0.3, 0.05, y_n, p, out), kernel.jacobian(0.3, 0.05, y_n, p, out)
         assert J_kernel.shape == J_plain.shape == (1, (s + 1) * (n + m) + m, (s + 1) * (n + m))
         torch.testing.assert_close(J_kernel, J_plain, rtol=1e-13, atol=1e-14)
-        # the Newton correction by sparse QR of the augmented system: dense lstsq's
+        # the Newton correction: the stage values' Newton increment, the end values' least squares
         u = torch.cat([out.Y.reshape(1, -1), out.y_end, out.Z.reshape(1, -1), out.z_end], dim=1)
         assert kernel.kernel_applies(y_n, u, p) and not plain.kernel_applies(y_n, u, p)
         residuals, e, moved = kernel.residuals_and_correction(0.3, 0.05, y_n, p, u)
         torch.testing.assert_close(residuals.F, a.F, rtol=1e-13, atol=1e-14)
-        expected = torch.linalg.lstsq(J_plain, plain.vector(a, 1)[..., None]).solution[..., 0]
-        torch.testing.assert_close(e, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
+        expected = _block_correction(J_plain[0], plain.vector(a, 1)[0], s, n, m)
+        torch.testing.assert_close(e[0], expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
         assert moved == pytest.approx(float((expected.abs() / (1 + u.abs())).max()), rel=1e-10)
     # a batch, or a gradient, takes the torch functions
     assert kernel._kernel_applies(y_n, out) and not kernel._kernel_applies(y_n.repeat(2, 1), out)
@@ -180,12 +180,24 @@ def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
         assert not kernel._kernel_applies(y_n, wanted)
 
 
-def test_where_the_kernels_sparse_qr_fails_or_is_poor_the_trainer_solves_dense_lstsq(monkeypatch):
-    """The kernel's Newton correction is kept only where its QR succeeded and its least-squares
-    optimality is below OPTIMALITY_BOUND; otherwise the residuals stand and the trainer's
-    correction is torch's lstsq.  On the squeezer at rest (index 3, dr/du's condition 3e6) the
-    augmented system's e is 4.5e-8 (relative) from lstsq's: its error grows like eps cond^2 where
-    lstsq's grows like eps cond, a Newton correction that still contracts by 1e-7 a step."""
+def _block_correction(J, r, s, n, m):
+    """The kernel's Newton correction, densely: the square stage rows solved for the stage values,
+    the end rows fitted by least squares for the end values (``J`` (R, U), ``r`` (R,), weighted)."""
+    from daemodel.backends.pinn.loss import correction_blocks
+
+    stage_rows, end_rows, stage_cols, end_cols = correction_blocks(s, n, m)
+    stages = torch.linalg.solve(J[stage_rows][:, stage_cols], r[stage_rows])
+    rest = r[end_rows] - J[end_rows][:, stage_cols] @ stages
+    ends = torch.linalg.lstsq(J[end_rows][:, end_cols], rest[:, None]).solution[:, 0]
+    e = torch.empty_like(r[: J.shape[1]])
+    e[stage_cols], e[end_cols] = stages, ends
+    return e
+
+
+def test_where_the_kernels_solves_fail_or_are_poor_the_trainer_solves_dense_lstsq(monkeypatch):
+    """The kernel's Newton correction is kept only where its sparse QRs succeeded and solved to
+    rounding (OPTIMALITY_BOUND); otherwise the residuals stand and the trainer's correction is
+    torch's lstsq of all rows (the squeezer near rest: index 3, dr/du's condition 3e6)."""
     from daemodel.backends.pinn import loss as loss_module
     from daemodel.backends.pinn.segments import make_loss, make_network
 
@@ -199,10 +211,16 @@ def test_where_the_kernels_sparse_qr_fails_or_is_poor_the_trainer_solves_dense_l
     trainer = SegmentTrainer(net, make_loss(c, config), config)
     segment = Segment(0, 0.0, 1e-3, x, torch.tensor(c.parameter_values, dtype=F64)[None])
     with torch.no_grad():
-        raw = net(x)
+        raw = net(x) + 0.01 * torch.randn(1, net.output_count, generator=torch.Generator().manual_seed(3), dtype=F64)
         residuals, e = trainer._residuals_and_correction(segment, raw)
-        dense = trainer._correction(segment, raw, trainer.loss.vector(residuals, 1))
-        torch.testing.assert_close(e, dense, rtol=0, atol=1e-7 * float(dense.abs().max()))
+        r = trainer.loss.vector(residuals, 1)
+        dense = trainer._correction(segment, raw, r)
+        Ru = trainer._output_jacobian(segment, raw)[0]
+        s, n, m = 3, len(c.states), len(c.algebraics)
+        block = _block_correction(Ru, r[0], s, n, m)
+        torch.testing.assert_close(e[0], block, rtol=0, atol=1e-9 * float(block.abs().max()))
+        # off the solution the rows cannot all vanish: the two corrections differ (6e-6 here)
+        assert float((e - dense).abs().max()) > 1e-7 * float(dense.abs().max())
         for broken in ("optimality", "qr"):
             if broken == "optimality":
                 monkeypatch.setattr(loss_module, "OPTIMALITY_BOUND", 0.0)
@@ -214,7 +232,7 @@ def test_where_the_kernels_sparse_qr_fails_or_is_poor_the_trainer_solves_dense_l
             trainer._memo = None  # the trainer's last answer, for the same outputs, is kept
             torch.testing.assert_close(kept.F, residuals.F, rtol=0, atol=1e-15)
             fallback = trainer._residuals_and_correction(segment, raw)[1]
-            torch.testing.assert_close(fallback, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))  # not 4.5e-8
+            torch.testing.assert_close(fallback, dense, rtol=0, atol=1e-9 * float(dense.abs().max()))
 
 
 def _zero_pivot(*args):

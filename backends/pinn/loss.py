@@ -27,15 +27,10 @@ import torch
 from daemodel.collocation import model_jacobian, stage_residual
 
 TERMS = ("L_f", "L_g", "L_s")
-# The kernel's Newton correction solves the augmented system [[alpha I, A], [A^T, 0]] of the
-# least-squares problem min |A e - W r| (A = W dr/du) by sparse QR, alpha this multiple of the
-# largest |A| entry: with alpha = max |A| the QR hit a zero pivot on every step of the squeezer
-# (index 3, entries over ten orders); with 1e-3 it solved 121 of its 122 systems, and every
-# system of the other nine models of the PINN benchmark.
-AUGMENTED_SCALE = 1e-3
-# ... and its answer is used where the least-squares optimality |A^T (W r - A e)|, relative to
-# R max|A| (|W r| + |A e|), is below this (3e-18 to 3e-16 measured where it solved; a failed
-# solve, or a worse one, is redone by torch's dense lstsq).
+# The kernel's Newton correction is used where each of its two solves (the square stage rows; the
+# end rows' normal equations) leaves a residual below this, relative to the sizes that bound its
+# rounding (measured: 5e-21 to 2e-16 on the ten trajectory models of the PINN benchmark); a failed solve, or
+# a worse one (a singular or near-singular stage matrix), is redone by torch's dense lstsq.
 OPTIMALITY_BOUND = 1e-13
 
 
@@ -131,12 +126,19 @@ class CasadiKernel:
     Both take ``[t_n, h, y_n (n), u (U), p (k)]`` with ``u = [Y (s, n) row-major, y_end (n),
     Z (s, m) row-major, z_end (m)]`` (:meth:`RadauLoss.jacobian`'s layout); ``residual`` returns
     ``[F (s+1, n), G (s+1, m), S (m)]`` flat, ``system`` that followed by the Jacobian dr/du
-    (R, U) row by row, and ``correction`` r, the Newton correction (the least-squares solution
-    of ``W dr/du e = W r`` for row weights W, by a sparse QR of the augmented system, see
-    :data:`AUGMENTED_SCALE`), its least-squares optimality (:data:`OPTIMALITY_BOUND`) and
-    ``max |e| / (1 + |u|)`` (how far it moves the values, for the trainer's rounding test).  dr/du
-    is sparse (10% nonzero for heat by lines, 22 unknowns): a correction there costs 55 us,
-    against 220 us for torch's dense ``lstsq`` alone.
+    (R, U) row by row, and ``correction`` r, the Newton correction e, its solves' accuracy
+    (:data:`OPTIMALITY_BOUND`) and ``max |e| / (1 + |u|)`` (how far it moves the values, for the
+    trainer's rounding test).
+
+    The correction uses the structure of dr/du (:func:`correction_blocks`): the stage rows are
+    square in the stage values (radau's Newton matrix), so the stage values take their full
+    Newton increment, by a sparse QR; the end values then fit the end rows (``F_end``, ``G_end``,
+    ``S``, row weights W) by least squares, on the normal equations of that small block (the
+    identity in y_end and z_end, and g at the end: well conditioned).  Where every residual can
+    vanish this is the least-squares solution of all rows; elsewhere it differs from it, and it is
+    radau's own Newton step in the stages.  dr/du is sparse (5% nonzero for the squeezer): a
+    correction costs 30 us for heat by lines and 52 us for the squeezer, against 150-250 us for
+    torch's dense ``lstsq`` alone.
     """
 
     def __init__(self, compiled, tableau):
@@ -160,8 +162,8 @@ class CasadiKernel:
         return self._built()[1](packed)
 
     def correction(self, packed: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The residuals r (R,), then the Newton correction ``e = argmin |W (dr/du e - r)|`` (U,)
-        for row weights ``weights`` (R,)."""
+        """The residuals r (R,), the Newton correction e (U,) for row weights ``weights`` (R,), its
+        solves' accuracy and how far it moves the values (the class's ``correction``)."""
         function = self._built()[2]
         function.inputs[1][:] = weights
         return function(packed)
@@ -203,19 +205,29 @@ def _casadi_loss_functions(compiled, tableau):
     packed = casadi.vertcat(t, h, y_n, u, p)
     sparse = casadi.jacobian(r, u)
     rows = casadi.reshape(casadi.densify(sparse).T, -1, 1)  # column-major of J^T: J row by row
-    # the least-squares Newton correction, from the augmented system (nonsingular where dr/du has
-    # full column rank; elsewhere the QR fails or its optimality is poor: the caller solves lstsq)
+    # the Newton correction: the stage rows are square (radau's Newton matrix), so the stage values
+    # take their full Newton increment; the end values then fit their rows (F_end, G_end, S: the
+    # identity in y_end and z_end, and g at the end) by least squares, on their normal equations
     X, weights = casadi.MX.sym("packed", packed.numel()), casadi.MX.sym("weights", r.numel())
     r_x, J_x = casadi.Function("pinn_sparse", [packed], [r, sparse])(X)
     R, U = sparse.shape
-    A = weights * J_x  # each row by its weight
-    alpha = AUGMENTED_SCALE * casadi.mmax(casadi.fabs(A))
-    augmented = casadi.blockcat([[alpha * casadi.MX.eye(R), A], [A.T, casadi.MX(U, U)]])
-    wr = weights * r_x
-    e = casadi.solve(augmented, casadi.vertcat(wr, casadi.MX(U, 1)), "qr")[R:]
-    # the least-squares optimality A^T (W r - A e) = 0, relative to the sizes that bound its rounding
-    size = R * casadi.mmax(casadi.fabs(A)) * (casadi.norm_inf(wr) + casadi.norm_inf(casadi.mtimes(A, e))) + 1e-300
-    optimality = casadi.norm_inf(casadi.mtimes(A.T, wr - casadi.mtimes(A, e))) / size
+    stage_rows, end_rows, stage_cols, end_cols = correction_blocks(s, n, m)
+    A, r_s = J_x[stage_rows, stage_cols], r_x[stage_rows]
+    stages = casadi.solve(A, r_s, "qr")
+    C = weights[end_rows] * J_x[end_rows, end_cols]
+    r_e = weights[end_rows] * (r_x[end_rows] - casadi.mtimes(J_x[end_rows, stage_cols], stages))
+    ends = casadi.solve(casadi.mtimes(C.T, C), casadi.mtimes(C.T, r_e), "qr")
+    e = casadi.vertcat(stages, ends)[np.argsort(stage_cols + end_cols).tolist()]
+    # each solve's residual relative to the sizes that bound its rounding (the stage rows' and the
+    # end rows' normal equations)
+    solved = casadi.norm_inf(casadi.mtimes(A, stages) - r_s) / (
+        len(stage_rows) * casadi.mmax(casadi.fabs(A)) * casadi.norm_inf(stages) + casadi.norm_inf(r_s) + 1e-300
+    )
+    fitted = casadi.norm_inf(casadi.mtimes(C.T, r_e - casadi.mtimes(C, ends))) / (
+        len(end_rows) * casadi.mmax(casadi.fabs(C)) * (casadi.norm_inf(r_e) + casadi.norm_inf(casadi.mtimes(C, ends)))
+        + 1e-300
+    )
+    optimality = casadi.fmax(solved, fitted)
     u_x = X[2 + n : 2 + n + U]
     rounding = casadi.mmax(casadi.fabs(e) / (1 + casadi.fabs(u_x)))  # how far e moves u, relative to 1 + |u|
     return (
@@ -223,6 +235,18 @@ def _casadi_loss_functions(compiled, tableau):
         casadi.Function("pinn_system", [packed], [casadi.vertcat(r, rows)]),
         casadi.Function("pinn_correction", [X, weights], [casadi.vertcat(r_x, e, optimality, rounding)]),
     )
+
+
+def correction_blocks(s: int, n: int, m: int) -> tuple:
+    """Rows and columns of :meth:`RadauLoss.jacobian` (``[F (s+1, n), G (s+1, m), S (m)]`` by
+    ``[Y (s, n), y_end, Z (s, m), z_end]``) in the Newton correction's two blocks: the stage rows
+    and stage values (square: radau's Newton matrix), the end rows and end values."""
+    stage_rows = list(range(s * n)) + [(s + 1) * n + i for i in range(s * m)]
+    end_rows = [s * n + i for i in range(n)] + [(s + 1) * n + s * m + i for i in range(m)]
+    end_rows += [(s + 1) * (n + m) + i for i in range(m)]
+    stage_cols = list(range(s * n)) + [(s + 1) * n + i for i in range(s * m)]
+    end_cols = [s * n + i for i in range(n)] + [(s + 1) * n + s * m + i for i in range(m)]
+    return stage_rows, end_rows, stage_cols, end_cols
 
 
 class RadauLoss:
@@ -336,13 +360,13 @@ class RadauLoss:
         return self.kernel is not None and y_n.shape[0] == 1 and not (torch.is_grad_enabled() and u.requires_grad)
 
     def residuals_and_correction(self, t_n: float, h: float, y_n, p, u) -> tuple:
-        """One sample's :meth:`residuals` and Newton correction ``e = (dr/du)^+ r`` (1, U) of
-        :meth:`vector` at the stage and end values ``u`` (1, U) (:meth:`jacobian`'s layout, as
-        ``RadauNetwork.values`` gives them), by one call of the casadi kernel (where
-        :meth:`kernel_applies`); e is None where the kernel's sparse QR failed or its answer is not
-        a least-squares solution to rounding (r not finite, dr/du rank-deficient or too badly
-        conditioned): the caller solves ``lstsq`` then.  Returns ``(residuals, e, moved)``, moved
-        the largest ``|e_i| / (1 + |u_i|)`` (None with e)."""
+        """One sample's :meth:`residuals` and Newton correction e (1, U) of :meth:`vector` at the
+        stage and end values ``u`` (1, U) (:meth:`jacobian`'s layout, as ``RadauNetwork.values``
+        gives them), by one call of the casadi kernel (where :meth:`kernel_applies`; e as
+        :class:`CasadiKernel` solves it); e is None where a solve failed or is not accurate to
+        rounding (r not finite, the stage matrix singular or nearly): the caller solves
+        ``lstsq`` then.  Returns ``(residuals, e, moved)``, moved the largest
+        ``|e_i| / (1 + |u_i|)`` (None with e)."""
         if self._kernel_weights is None:
             n, m = y_n.shape[1], self.kernel.m
             self._kernel_weights = self._row_weights(1, n, m, torch.float64, "cpu").numpy()
@@ -350,7 +374,7 @@ class RadauLoss:
         R = len(self._kernel_weights)
         try:
             values = self.kernel.correction(packed, self._kernel_weights)
-        except RuntimeError:  # a zero pivot in the sparse QR
+        except RuntimeError:  # a zero pivot in a sparse QR
             return self._unpacked(self.kernel.residual(packed), packed), None, None
         residuals = self._unpacked(values[:R], packed)
         if not values[-2] <= OPTIMALITY_BOUND:

@@ -5,7 +5,11 @@ Levenberg-Marquardt drives to zero the vector e that stacks every sample's Newto
 are from its own collocation solution, to first order.  J = du/dtheta, and each step solves
 ``(J^T J + mu I) delta = -J^T e`` (Gauss-Newton on Newton targets); the damping mu follows
 Nielsen's gain-ratio rule.  At e = 0 every residual r is zero, so with one sample per segment
-(a trajectory) training ends on Newton's stage values, the classical Radau solution.
+(a trajectory) training ends on Newton's stage values, the classical Radau solution.  For one
+sample in float64 on the CPU the loss's casadi kernel solves e in dr/du's two blocks instead
+(:class:`~.loss.CasadiKernel`): the stage values take radau's own Newton increment (the stage
+rows are square), the end values fit their rows by least squares; both forms of e are the same
+wherever every residual can vanish, and both vanish exactly where r does.
 
 Why Newton corrections rather than the residuals themselves (the gradient the loss gives): an
 index-2 algebraic variable moves the residual by O(h) only, and the multipliers of a chain of
