@@ -162,6 +162,7 @@ def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
             torch.testing.assert_close(getattr(b, name), getattr(a, name), rtol=1e-13, atol=1e-14)
         torch.testing.assert_close(plain.vector(b, 1), plain.vector(a, 1), rtol=1e-13, atol=1e-14)
         assert b.measured is not None and b.max_abs() == pytest.approx(a.max_abs(), rel=1e-12)
+        assert b.squares is not None and b.terms() == pytest.approx(a.terms(), rel=1e-12)
         J_plain, J_kernel = plain.jacobian(0.3, 0.05, y_n, p, out), kernel.jacobian(0.3, 0.05, y_n, p, out)
         assert J_kernel.shape == J_plain.shape == (1, (s + 1) * (n + m) + m, (s + 1) * (n + m))
         torch.testing.assert_close(J_kernel, J_plain, rtol=1e-13, atol=1e-14)

@@ -51,6 +51,8 @@ class Residuals:
         measured in, for :meth:`max_abs` (None: 1).
     measured : float or None
         :meth:`max_abs`, where whoever made these residuals computed it (the kernel, in numpy).
+    squares : tuple of float or None
+        The sums of squares of F, G and S, likewise (for :meth:`terms`).
     """
 
     F: torch.Tensor
@@ -59,16 +61,17 @@ class Residuals:
     scale_f: torch.Tensor | None = None
     scale_s: torch.Tensor | None = None
     measured: float | None = None
+    squares: tuple | None = None
 
     def terms(self) -> dict[str, float]:
         """The loss terms L_f, L_g, L_s (means as in the paper)."""
         N, rows = self.F.shape[0], self.F.shape[1]
-        with torch.no_grad():
-            return {
-                "L_f": float((self.F**2).sum()) / (N * rows),
-                "L_g": float((self.G**2).sum()) / (N * rows),
-                "L_s": float((self.S**2).sum()) / N,
-            }
+        if self.squares is None:
+            with torch.no_grad():
+                squares = [float((a**2).sum()) for a in (self.F, self.G, self.S)]
+        else:
+            squares = self.squares
+        return {"L_f": squares[0] / (N * rows), "L_g": squares[1] / (N * rows), "L_s": squares[2] / N}
 
     def largest(self, names=None) -> tuple[float, str]:
         """The largest component as :meth:`max_abs` measures it, and where it is: which equation
@@ -302,7 +305,9 @@ class RadauLoss:
         F, G, S = r[:first].reshape(1, s + 1, n), r[first:U].reshape(1, s + 1, m), r[U:].reshape(1, m)
         scale_f, scale_s = np.maximum(np.abs(y_n), 1.0).reshape(1, 1, n), np.maximum(np.abs(z_end), 1.0).reshape(1, m)
         measured = max(float(np.abs(a).max()) if a.size else 0.0 for a in (F / scale_f, G, S / scale_s))
-        return Residuals(*(torch.from_numpy(a) for a in (F, G, S, scale_f, scale_s)), measured=measured)
+        squares = tuple(float(a @ a) for a in (r[:first], r[first:U], r[U:]))
+        tensors = (torch.from_numpy(a) for a in (F, G, S, scale_f, scale_s))
+        return Residuals(*tensors, measured=measured, squares=squares)
 
     def _measured(self, F, G, S, y_n, z_end) -> Residuals:
         with torch.no_grad():

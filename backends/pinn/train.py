@@ -121,7 +121,8 @@ class SegmentStats:
     converged : bool
         Whether every residual met ``tol`` (True for a fixed budget, tol=None).
     largest : str
-        Where the largest residual is (equation, row, sample).
+        Where the largest residual is (equation, row, sample), for a segment that missed ``tol``
+        ("" for one that met it).
     """
 
     segment: int
@@ -271,7 +272,8 @@ class SegmentTrainer:
                 residuals = self.residuals(segment)
         terms = self._check(segment, residuals, iterations, None)
         worst = residuals.max_abs()
-        _, where = residuals.largest(getattr(self.loss, "names", None))
+        converged = self.config.tol is None or worst <= self.config.tol
+        where = "" if converged else residuals.largest(getattr(self.loss, "names", None))[1]
         # a missed tol is not an error here: the certificate judges the answer (backend.certified_status)
         return SegmentStats(
             segment=segment.index,
@@ -282,7 +284,7 @@ class SegmentTrainer:
             seconds=time.perf_counter() - began,
             inputs_low=tuple(segment.x.amin(0).tolist()),
             inputs_high=tuple(segment.x.amax(0).tolist()),
-            converged=self.config.tol is None or worst <= self.config.tol,
+            converged=converged,
             largest=where,
             **terms,
         )
