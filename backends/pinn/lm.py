@@ -249,18 +249,14 @@ class OneInputSystem:
 
     @property
     def scale(self) -> float:
-        """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping)."""
-        largest = [self.H.new_ones(1), (self.H * self.H).amax(1)]  # b_out; W_out: H_i^2
-        for at, _, V, *_ in self.parts:
-            column = (V * V).sum(1)  # (k, units): |V_j|^2
-            first = 0
-            for a, u in zip([*self.inputs, None], self.units, strict=True):
-                part = column[:, first : first + u].amax(1)  # bias (slope: its own)
-                if a is not None:
-                    part = part * (a[at] * a[at]).amax(1).clamp(min=1.0)  # weights: a_i^2 |V_j|^2
-                largest.append(self.weight * part)
-                first += u
-        return float(torch.cat(largest).max())
+        """The largest diagonal entry of J^T J, J in the weighted metric (sets the first damping):
+        ``a_i^2 |V_j|^2`` and ``|V_j|^2`` in a map's weights and bias, ``|V_l|^2`` in the slope
+        (all by D_h), ``H_i^2`` in W_out, 1 in b_out."""
+        K = self.H.shape[0]
+        inputs = [(a * a).amax(1, keepdim=True).clamp(min=1.0) for a in self.inputs] + [self.H.new_ones(K, 1)]
+        inputs = torch.cat([a.expand(-1, u) for a, u in zip(inputs, self.units, strict=True)], dim=1)  # (K, units)
+        largest = max(float(((V * V).sum(1) * inputs[at]).max()) for at, _, V, *_ in self.parts)
+        return max(self.weight * largest, float((self.H * self.H).max()), 1.0)
 
     def step(self, mu: float):
         """``(delta, predicted decrease of |e|^2 / 2)``, delta by parameter name (shaped as the

@@ -494,7 +494,10 @@ class SegmentTrainer:
         return contracts, residuals, r.reshape(-1), e.reshape(-1)
 
     def _levenberg_marquardt(self, segment: Segment) -> tuple:
-        params = {name: p.detach() for name, p in self.net.named_parameters()}  # steps make new tensors
+        with torch.no_grad():  # the parameters themselves: steps make new tensors
+            return self._lm_steps(segment, dict(self.net.named_parameters()))
+
+    def _lm_steps(self, segment: Segment, params: dict) -> tuple:
         names = list(params)
         sizes = [params[k].numel() for k in names]  # (flat steps)
         # With few samples the residual-space system is small (N R <= P / K), and LM works there
@@ -578,8 +581,8 @@ class SegmentTrainer:
                     # no step decreases the Newton corrections: continue on the residuals
                     space, mu, nu, system = "residual", None, 2.0, None
                     _, e = self._merit(segment, params, space)
-        with torch.no_grad():
-            for name, p in self.net.named_parameters():
+        for name, p in self.net.named_parameters():
+            if params[name] is not p:
                 p.copy_(params[name])
         self._trained = (segment.x, outputs)
         return iteration, residuals
