@@ -200,8 +200,8 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
             trainer = SegmentTrainer(fresh_network(compiled, config, inputs, z, k, copies), loss, config, report)
         net = trainer.net
         stats.append(trainer.train(segment))
-        with torch.no_grad():
-            out = trainer.predict(x, h)
+        with torch.no_grad():  # a forward pass, bit for bit what the rollout will evaluate
+            out = net.predict(x, h)
         previous = (out, x[:, :n], z, h)
         x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
         networks.append(net)

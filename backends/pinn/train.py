@@ -32,9 +32,11 @@ variable, two for the algebraic ones); each block is solved in whichever space i
 Where every set of networks sees one input (a trajectory, or independent networks per sample)
 three things change.  The step is measured in a metric that weighs the hidden parameters'
 squares by ``1 / HIDDEN_STEP_WEIGHT`` (:mod:`.lm`), so it moves mostly the output layer, in
-which the outputs are linear.  After every accepted LM step, Gauss-Newton on the output
-biases alone, which is exactly Newton on the stage values (:meth:`SegmentTrainer._newton_finish`),
-continues while it decreases the corrections, until they are at rounding.  And the start is
+which the outputs are linear.  After an accepted LM step in Newton's region (it contracted the
+corrections a hundredfold, or left every residual below :data:`NEWTON_FINISH`), Gauss-Newton on
+the output biases alone, which is exactly Newton on the stage values
+(:meth:`SegmentTrainer._newton_finish`), continues while it decreases the corrections, until they
+are at rounding.  And the start is
 accepted untouched only where its Newton correction is already at rounding.
 
 Training stops on the residual, every |r| component below ``tol`` after at least one step (or
@@ -63,7 +65,6 @@ from daemodel.backends.pinn.lm import (
     output_groups,
     output_layer_jacobian,
 )
-from daemodel.backends.pinn.network import Outputs
 
 from daemodel.errors import TrainingError
 
@@ -73,15 +74,19 @@ EXPLODE_FACTOR = 1e8
 LM_TAU = 1e-6
 # LM gives up when the damping exceeds this multiple of that diagonal: no step decreases the loss.
 LM_MAX_DAMPING = 1e16
-# After each accepted LM step, at most this many Gauss-Newton steps on the output biases
-# (:meth:`SegmentTrainer._newton_finish`), each kept only where it decreases the corrections:
-# quadratic convergence from 1e-6 reaches 1e-12 in one step and rounding in two.  Tried after every
-# step rather than only below a residual of 1e-6 (as before): the squeezer 101 -> 50 iterations
-# (174 -> 51 ms), heat by lines 29 -> 20 (37 -> 27 ms), the other nine models within 5 %.
+# In Newton's region, after an accepted LM step that cut |e|^2 to at most JACOBIAN_REUSE of its
+# value or left every residual below NEWTON_FINISH, at most NEWTON_FINISH_STEPS Gauss-Newton steps
+# on the output biases (:meth:`SegmentTrainer._newton_finish`), each kept only where it decreases
+# the corrections: quadratic convergence from 1e-6 reaches 1e-12 in one step and rounding in two.
+# Measured against the residual test alone: the squeezer 101 -> 75 iterations, heat by lines
+# 29 -> 20, the other nine models within 5 %; after every accepted step, contracting or not, the
+# squeezer took 50, but akzo-nobel at h = 4.5 (far outside Newton's region) ended 370 and more
+# from radau's values, or with a non-finite loss, where it ends 0.2 from them now.
+NEWTON_FINISH = 1e-6
 NEWTON_FINISH_STEPS = 3
-# LM keeps a one-input system's Jacobian for its next step where the last step cut |e|^2 to at
-# most this fraction of its value (simplified Gauss-Newton, as RADAU5 keeps its Newton matrix
-# while Newton contracts); a step from a kept Jacobian that fails is retried with a new one.
+# ... and LM keeps a one-input system's Jacobian for its next step after such a step (simplified
+# Gauss-Newton, as RADAU5 keeps its Newton matrix while Newton contracts); a step from a kept
+# Jacobian that fails is retried with a new one.
 JACOBIAN_REUSE = 1e-2
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
 LBFGS_CHUNK = 20
@@ -200,7 +205,6 @@ class SegmentTrainer:
         self.report = report or (lambda iteration, terms: None)
         self._reporting = report is not None  # LM's accepted steps compute their terms only for a report
         self._start = None  # (segment, raw outputs) of finite_start
-        self._trained = None  # (inputs, raw outputs) of LM's last accepted evaluation
         self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
         self._memo = None  # (raw, residuals, e, moved) of the last _residuals_and_correction
         self._valid = None  # the network's outputs in use (K, out)
@@ -519,7 +523,6 @@ class SegmentTrainer:
             residuals, e = self._merit(segment, params, space, start)
         if self._reporting or start is None:  # (a start that finite_start passed has finite terms)
             self.report(0, self._check(segment, residuals, 0, None))
-        outputs = self._raw  # the raw outputs at params
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
         one_input = N == self.net.copies  # every set of networks sees one input
@@ -564,16 +567,16 @@ class SegmentTrainer:
                 nu = 2.0
                 if self._reporting:
                     self.report(iteration, self._check(segment, residuals, iteration, None))
-                if space == "output" and one_input:
+                contracted = after <= JACOBIAN_REUSE * before  # Newton's region: the step cut |e|^2 a hundredfold
+                if space == "output" and one_input and (contracted or residuals.max_abs() <= NEWTON_FINISH):
                     params, residuals, e, iteration = self._newton_finish(segment, params, residuals, e, iteration)
                 # (the Jacobian does not depend on the output biases that the Newton steps moved)
-                system = self._reused(system, e, after <= JACOBIAN_REUSE * before)
+                system = self._reused(system, e, contracted)
                 stale = system is not None
                 if space == "residual" and not self._done(residuals):
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
-                outputs = self._raw
             elif stale:  # a reused Jacobian's step failed: rebuild it here, the damping as it was
                 system = None
             else:
@@ -587,18 +590,7 @@ class SegmentTrainer:
         for name, p in self.net.named_parameters():
             if params[name] is not p:
                 p.copy_(params[name])
-        self._trained = (segment.x, outputs)
         return iteration, residuals
-
-    def predict(self, x: torch.Tensor, h) -> Outputs:
-        """The trained network's stage and end values at inputs ``x`` (B, d): where ``x`` is the
-        segment's own input (one sample per set of networks), those of LM's last accepted
-        evaluation (its closing Newton steps move the outputs by exactly the corrections, to
-        rounding), else a forward pass."""
-        known = self._trained
-        with torch.no_grad():
-            raw = known[1] if known is not None and known[0] is x else self.net(x)
-        return self.net.split(raw, x[:, : self.net.n], h)
 
     def _reused(self, system, e, contracted: bool):
         """``system`` refitted to the new corrections ``e`` where its last step contracted them
@@ -609,7 +601,8 @@ class SegmentTrainer:
         return system.refit(self.net.stack(e.reshape(self.net.copies, -1)))
 
     def _newton_finish(self, segment: Segment, params: dict, residuals, e, iteration: int):
-        """The steps after each accepted LM step (one input per set of networks): Gauss-Newton on
+        """The steps after an accepted LM step in Newton's region (one input per set of networks,
+        :data:`NEWTON_FINISH`): Gauss-Newton on
         the output biases alone.  The outputs are linear in them, so where each set of networks
         has one input a step moves every output by exactly its Newton correction: Newton on the
         stage values (quadratic near the solution; farther away a step that does not decrease
