@@ -387,16 +387,19 @@ class RadauNetwork(torch.nn.Module):
         target = torch.cat([z.new_zeros(len(z), s * n + n), z.repeat(1, s + 1)], dim=1)  # flat, as split reads
         self.start_at(x, target)
 
-    def start_at(self, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def start_at(self, x: torch.Tensor, target: torch.Tensor) -> tuple:
         """Shift the output biases so that the raw outputs at the inputs ``x`` (B, d) are ``target``
         (B, U) (for one set of networks over several rows: on average, ``target`` (1, U)).
-        Returns the raw outputs (B, U) at ``x`` after the shift (the outputs move with it, to rounding)."""
+        Returns the raw outputs (B, U) at ``x`` after the shift (the outputs move with it, to
+        rounding) and the forward pass's intermediates (as :meth:`evaluate`; the shift leaves them)."""
         with torch.no_grad():
-            raw = self(x, stacked=True)
+            p = dict(self.named_parameters())
+            hidden = self._hidden(p, x)
+            raw = torch.baddbmm(p["b_out"], hidden[0], p["W_out"])
             mean = raw.mean(1, keepdim=True) if raw.shape[1] > 1 else raw
             shift = self.stack(target) - mean * self.used()[:, None, :]
             self.b_out += shift
-            return self.unstacked(raw + shift)
+            return self.unstacked(raw + shift), hidden
 
     def used(self) -> torch.Tensor:
         """1 at the stacked outputs (K, out) that a network uses, 0 at its padding."""

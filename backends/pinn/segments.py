@@ -62,8 +62,8 @@ def extrapolated_start(previous, y_prev, z_prev, h_prev: float, h: float, c):
     from daemodel.collocation import extrapolation_matrix
 
     L = torch.as_tensor(extrapolation_matrix(c, h / h_prev), dtype=y_prev.dtype, device=y_prev.device)
-    Y = torch.einsum("ij,bjn->bin", L, torch.cat([y_prev[:, None, :], previous.Y], dim=1))
-    Z = torch.einsum("ij,bjn->bin", L, torch.cat([z_prev[:, None, :], previous.Z], dim=1))
+    Y = L @ torch.cat([y_prev[:, None, :], previous.Y], dim=1)  # (s, s+1) @ (B, s+1, n)
+    Z = L @ torch.cat([z_prev[:, None, :], previous.Z], dim=1)
     return Y, Z
 
 
@@ -140,9 +140,9 @@ class Progress:
 
 def _starts(compiled, config, previous, inputs, z, k: int, copies: int, target):
     """Segment k's start networks in order of preference, each with its raw outputs at ``inputs``
-    where known, each made only where the one before it is refused: with ``target`` (the
-    predictor's raw outputs), a copy of ``previous`` (warm) or a fresh network with its output
-    biases shifted onto them; a copy of ``previous``."""
+    and the forward pass's intermediates where known (else None), each made only where the one
+    before it is refused: with ``target`` (the predictor's raw outputs), a copy of ``previous``
+    (warm) or a fresh network with its output biases shifted onto them; a copy of ``previous``."""
 
     def begin():
         if previous is None:
@@ -200,8 +200,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
             trainer = SegmentTrainer(fresh_network(compiled, config, inputs, z, k, copies), loss, config, report)
         net = trainer.net
         stats.append(trainer.train(segment))
-        with torch.no_grad():  # a forward pass, bit for bit what the rollout will evaluate
-            out = net.predict(x, h)
+        out = trainer.predict(x, h)  # bit for bit what the rollout will evaluate
         previous = (out, x[:, :n], z, h)
         x, z = torch.cat([out.y_end, x[:, n:]], dim=1), out.z_end
         networks.append(net)

@@ -65,6 +65,7 @@ from daemodel.backends.pinn.lm import (
     output_groups,
     output_layer_jacobian,
 )
+from daemodel.backends.pinn.network import HIDDEN_PARAMETERS, Outputs
 
 from daemodel.errors import TrainingError
 
@@ -208,6 +209,7 @@ class SegmentTrainer:
         self._forward = None  # (parameters, forward intermediates) of LM's last forward pass
         self._memo = None  # (raw, residuals, e, moved) of the last _residuals_and_correction
         self._valid = None  # the network's outputs in use (K, out)
+        self._hidden_layer = None  # (inputs, last hidden layer) at the trained hidden parameters
         self._groups = None  # output_groups of the network (one input per network)
 
     # ---- residuals --------------------------------------------------------------------------
@@ -217,24 +219,29 @@ class SegmentTrainer:
         out = self.net.split(raw, segment.x[:, :n], segment.h)
         return self.loss.residuals(segment.t, segment.h, segment.x[:, :n], segment.p, out)
 
-    def finite_start(self, segment: Segment, outputs=None) -> bool:
+    def finite_start(self, segment: Segment, start=None) -> bool:
         """Whether the network's current predictions give finite residuals on ``segment`` (its
-        raw outputs, given as ``outputs`` where the caller knows them, are kept for the training
-        that follows, where they are its start)."""
+        raw outputs, and the forward pass's intermediates where the caller knows them, ``start``
+        = (raw, intermediates) as :meth:`RadauNetwork.start_at` returns them, are kept for the
+        training that follows, where they are its start)."""
         with torch.no_grad():
-            raw = self.net(segment.x) if outputs is None else outputs
-            self._start = (segment, raw)
+            if start is None:
+                raw, forward = self.net.evaluate(segment.x, dict(self.net.named_parameters()))
+            else:
+                raw, forward = start
+            self._start = (segment, raw, forward)
             if self.config.optimizer == "lm" and self.loss.kernel_applies(segment.x, raw, segment.p):
                 res = self._residuals_and_correction(segment, raw)[0]  # LM's first merit, kept
             else:
                 res = self.residuals(segment, raw)
             return math.isfinite(float((res.F * res.F).sum() + (res.G * res.G).sum() + (res.S * res.S).sum()))
 
-    def _start_outputs(self, segment: Segment):
-        """The raw outputs (N, U) that :meth:`finite_start` evaluated on ``segment``, taken once (the
-        network is trained right after the check, from those parameters), or None."""
+    def _start_outputs(self, segment: Segment) -> tuple:
+        """The raw outputs (N, U) that :meth:`finite_start` evaluated on ``segment`` and the forward
+        pass's intermediates, taken once (the network is trained right after the check, from those
+        parameters), or (None, None)."""
         start, self._start = self._start, None
-        return start[1] if start is not None and start[0] is segment else None
+        return start[1:] if start is not None and start[0] is segment else (None, None)
 
     def _vector_of_raw(self, segment: Segment, raw):
         return self.loss.vector(self.residuals(segment, raw), segment.x.shape[0])
@@ -513,7 +520,9 @@ class SegmentTrainer:
         fallback = self.net.copies == 1 and N * (self.net.output_count + self.net.m) <= sum(sizes) // K
         # the increment form starts at Newton's own guess (at rest, predicted or warm), where the
         # corrections always guide (contraction 0.004-0.08, measured): no check needed
-        start = self._start_outputs(segment)  # the parameters are the network's own here
+        start, forward = self._start_outputs(segment)  # the parameters are the network's own here
+        if forward is not None:  # the first system at params takes them
+            self._forward = (params, forward)
         if fallback and not self.config.increment:
             contracts, residuals, r, e = self._newton_contracts(segment, params, start)
             space = "output" if contracts else "residual"
@@ -590,7 +599,23 @@ class SegmentTrainer:
         for name, p in self.net.named_parameters():
             if params[name] is not p:
                 p.copy_(params[name])
+        forward = self._forward
+        if forward is not None and all(params[name] is forward[0][name] for name in HIDDEN_PARAMETERS):
+            self._hidden_layer = (segment.x, forward[1][0])  # H at the trained hidden parameters
         return iteration, residuals
+
+    def predict(self, x: torch.Tensor, h) -> Outputs:
+        """The trained network's stage and end values at ``x`` (B, d), bit for bit a forward pass
+        (what the rollout evaluates): where ``x`` is the segment's input and LM's last forward pass
+        was at the trained hidden parameters (its closing Newton steps move the output biases
+        only), its last hidden layer and the output layer alone."""
+        p = dict(self.net.named_parameters())
+        with torch.no_grad():
+            if self._hidden_layer is not None and self._hidden_layer[0] is x:
+                raw = self.net.unstacked(torch.baddbmm(p["b_out"], self._hidden_layer[1], p["W_out"]))
+            else:
+                raw = self.net(x)
+        return self.net.split(raw, x[:, : self.net.n], h)
 
     def _reused(self, system, e, contracted: bool):
         """``system`` refitted to the new corrections ``e`` where its last step contracted them
