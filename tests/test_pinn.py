@@ -537,31 +537,6 @@ def test_networks_share_a_batch_while_padding_costs_less_than_a_batch():
     assert [(members.tolist(), count) for members, count in squeezer] == [([14, 15], 39), (list(range(14)), 4)]
 
 
-def test_a_kept_jacobian_steps_from_where_it_was_built():
-    # simplified Gauss-Newton: a one-input system refitted to new corrections e' keeps G and J
-    # (its step is -D J^T (G + mu I)^-1 e', a new system's at the same parameters); LM keeps it
-    # only after a step that contracted (JACOBIAN_REUSE)
-    from daemodel.backends.pinn.segments import make_loss, make_network
-
-    c = HESSENBERG.model().compile()
-    cfg = dm.PINNConfig(width=5, depth=2)
-    net = make_network(c, cfg, 4, 0)
-    x = torch.tensor(c.y0, dtype=F64)[None]
-    trainer = SegmentTrainer(net, make_loss(c, cfg), cfg)
-    segment = Segment(0, 0.0, 0.05, x, torch.zeros(1, 0, dtype=F64))
-    params = {k: v.detach() for k, v in net.named_parameters()}
-    _, e = trainer._merit(segment, params, "output")
-    system = trainer._normal_system(segment, params, e, "output")
-    other = 0.5 * e.flip(0)
-    kept = system.refit(net.stack(other.reshape(1, -1)))
-    assert all(a is b for a, b in zip(kept.G, system.G, strict=True))
-    fresh = trainer._normal_system(segment, params, other, "output")
-    for name, value in kept.step(1e-3)[0].items():
-        torch.testing.assert_close(value, fresh.step(1e-3)[0][name], rtol=1e-12, atol=1e-15)
-    assert trainer._reused(system, other, True) is not None
-    assert trainer._reused(system, other, False) is None
-
-
 def test_paper_networks_trained_by_lm_fall_back_to_the_residuals_far_from_the_solution():
     # The paper's networks (5 x 100, eta = 10, outputs predicted directly) start with random stage
     # values, where dr/du is nearly singular and the Newton corrections are no guide (no step

@@ -8,8 +8,6 @@ smaller, and reports the decrease of the merit its step predicts.
 
 from __future__ import annotations
 
-import copy
-
 import torch
 from daemodel.backends.pinn.network import HIDDEN_PARAMETERS
 
@@ -225,27 +223,8 @@ class OneInputSystem:
             used = valid[at, :count]
             G = hidden_weight * (V * columns[at][:, None, :]) @ V.transpose(1, 2)
             G = G + beta[at][:, None, None] * torch.diag_embed(used) + torch.diag_embed(1 - used)
-            self.parts.append([at, count, V, G, None, None])
-        self.refit_(e)
-
-    def refit_(self, e) -> None:
-        """Set the corrections ``e`` (K, 1, out) (in place)."""
-        for part in self.parts:
-            at, count, _, G = part[:4]
-            part[4] = e[at, 0, :count, None]  # (k, count, 1)
-            part[5] = G @ part[4]
-
-    def refit(self, e) -> OneInputSystem:
-        """This linearisation (J where it was built) for new corrections ``e`` (K, 1, out): the next
-        step reuses the Jacobian, as simplified Newton (RADAU5's) reuses its matrix."""
-        twin = copy.copy(self)
-        twin.parts = [list(part) for part in self.parts]
-        twin.refit_(e)
-        return twin
-
-    @property
-    def G(self) -> list:
-        return [part[3] for part in self.parts]
+            eg = e[at, 0, :count, None]  # (k, count, 1)
+            self.parts.append((at, count, V, G, eg, G @ eg))
 
     @property
     def scale(self) -> float:

@@ -75,20 +75,17 @@ EXPLODE_FACTOR = 1e8
 LM_TAU = 1e-6
 # LM gives up when the damping exceeds this multiple of that diagonal: no step decreases the loss.
 LM_MAX_DAMPING = 1e16
-# In Newton's region, after an accepted LM step that cut |e|^2 to at most JACOBIAN_REUSE of its
+# In Newton's region, after an accepted LM step that cut |e|^2 to at most NEWTON_REGION of its
 # value or left every residual below NEWTON_FINISH, at most NEWTON_FINISH_STEPS Gauss-Newton steps
 # on the output biases (:meth:`SegmentTrainer._newton_finish`), each kept only where it decreases
 # the corrections: quadratic convergence from 1e-6 reaches 1e-12 in one step and rounding in two.
 # Measured against the residual test alone: the squeezer 101 -> 75 iterations, heat by lines
-# 29 -> 20, the other nine models within 5 %; after every accepted step, contracting or not, the
-# squeezer took 50, but akzo-nobel at h = 4.5 (far outside Newton's region) ended 370 and more
-# from radau's values, or with a non-finite loss, where it ends 0.2 from them now.
+# 29 -> 20, the other nine models within 5 %.  After every accepted step, contracting or not, the
+# squeezer took 50, but akzo-nobel at h = 4.5 (far outside Newton's region) ended 370 and more from
+# radau's values or with a non-finite loss.
+NEWTON_REGION = 1e-2
 NEWTON_FINISH = 1e-6
 NEWTON_FINISH_STEPS = 3
-# ... and LM keeps a one-input system's Jacobian for its next step after such a step (simplified
-# Gauss-Newton, as RADAU5 keeps its Newton matrix while Newton contracts); a step from a kept
-# Jacobian that fails is retried with a new one.
-JACOBIAN_REUSE = 1e-2
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
 LBFGS_CHUNK = 20
 # LM fits the Newton corrections of the outputs where a full Newton step on them cuts the
@@ -546,11 +543,10 @@ class SegmentTrainer:
         # accepted untouched only where its Newton correction is at rounding: a small residual
         # need not mean a small distance (a predictor within tol = 1e-12 left 6e-12 on a model
         # whose Radau error is rounding)
-        stale = False  # whether system's Jacobian is from earlier parameters (reused)
         while iteration < self.config.iterations and not (stepped and self._done(residuals)):
             iteration += 1
             if system is None:
-                system, stale = self._normal_system(segment, params, e, space), False
+                system = self._normal_system(segment, params, e, space)
                 if mu is None:
                     scale = system.scale
                     mu = LM_TAU * scale
@@ -576,18 +572,14 @@ class SegmentTrainer:
                 nu = 2.0
                 if self._reporting:
                     self.report(iteration, self._check(segment, residuals, iteration, None))
-                contracted = after <= JACOBIAN_REUSE * before  # Newton's region: the step cut |e|^2 a hundredfold
+                contracted = after <= NEWTON_REGION * before  # Newton's region: |e|^2 cut a hundredfold
                 if space == "output" and one_input and (contracted or residuals.max_abs() <= NEWTON_FINISH):
                     params, residuals, e, iteration = self._newton_finish(segment, params, residuals, e, iteration)
-                # (the Jacobian does not depend on the output biases that the Newton steps moved)
-                system = self._reused(system, e, contracted)
-                stale = system is not None
+                system = None
                 if space == "residual" and not self._done(residuals):
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
-            elif stale:  # a reused Jacobian's step failed: rebuild it here, the damping as it was
-                system = None
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
@@ -616,14 +608,6 @@ class SegmentTrainer:
             else:
                 raw = self.net(x)
         return self.net.split(raw, x[:, : self.net.n], h)
-
-    def _reused(self, system, e, contracted: bool):
-        """``system`` refitted to the new corrections ``e`` where its last step contracted them
-        (by :data:`JACOBIAN_REUSE` in |e|^2) and it can be (one input per network), else None
-        (LM builds the next at the new parameters)."""
-        if not (contracted and isinstance(system, OneInputSystem)):
-            return None
-        return system.refit(self.net.stack(e.reshape(self.net.copies, -1)))
 
     def _newton_finish(self, segment: Segment, params: dict, residuals, e, iteration: int):
         """The steps after an accepted LM step in Newton's region (one input per set of networks,
