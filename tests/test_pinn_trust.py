@@ -498,22 +498,6 @@ def test_the_squeezers_accelerations_no_longer_block_the_tolerance():
         assert np.max(np.abs(sol[name] - newton[name])) <= 1e-12 * max(1.0, np.max(np.abs(newton[name])))
 
 
-@pytest.mark.slow
-def test_the_squeezer_trains_every_segment_where_the_corrections_stagnate():
-    """At h = 9.4e-5 LM on the Newton corrections crept from |e|^2 = 3.8e6 to 3.5e6 in 190
-    iterations in the segment at t = 0.029 and stopped at a residual of 5.6e-4, 700 from radau's
-    values; after STALL_WINDOW iterations without a tenfold cut it continues on the residuals."""
-    from daemodel.problems import SQUEEZER
-
-    compiled = SQUEEZER.model().compile()
-    with pytest.warns(dm.errors.UncertifiedWarning):  # the 4-stage estimate fails at t = 0.009
-        sol = dm.solve(compiled, (0.0, 0.03), method="pinn", h=9.375e-5)
-    assert max(sol.stats["max_residual"]) <= dm.PINNConfig().tol
-    newton = dm.solve(compiled, (0.0, 0.03), h=9.375e-5)
-    for name in ("q1", "v1", "w1", "lam1"):
-        assert np.max(np.abs(sol[name] - newton[name])) <= 1e-11 * max(1.0, np.max(np.abs(newton[name])))
-
-
 def test_a_met_tolerance_is_not_enough_for_success():
     """tol = 1e-3 is met within a budget of two iterations (an LM step, then one Newton step on
     the output biases), at a residual of 3e-8, 6e-7 from the Radau solution: flagged.  Before

@@ -84,12 +84,6 @@ LM_MAX_DAMPING = 1e16
 # squeezer took 50, but akzo-nobel at h = 4.5 (far outside Newton's region) ended 370 and more from
 # radau's values or with a non-finite loss.
 NEWTON_REGION = 1e-2
-# LM on the Newton corrections that cuts |e|^2 by less than STALL_FACTOR in STALL_WINDOW iterations
-# has stalled (where e's own Jacobian is nearly singular): it continues on the residuals, as where
-# no step decreases e at all.  Measured: a squeezer segment (h = 9.4e-5, t = 0.029) crept from
-# |e|^2 = 3.8e6 to 3.5e6 in 190 iterations and stopped at a residual of 5.6e-4.
-STALL_WINDOW = 10
-STALL_FACTOR = 0.1
 NEWTON_FINISH = 1e-6
 NEWTON_FINISH_STEPS = 3
 # L-BFGS runs in chunks of this many iterations between tolerance checks.
@@ -549,14 +543,8 @@ class SegmentTrainer:
         # accepted untouched only where its Newton correction is at rounding: a small residual
         # need not mean a small distance (a predictor within tol = 1e-12 left 6e-12 on a model
         # whose Radau error is rounding)
-        window = (iteration, float(e @ e))  # (start, |e|^2 there) of the stagnation test's window
         while iteration < self.config.iterations and not (stepped and self._done(residuals)):
             iteration += 1
-            if space == "output" and fallback and iteration - window[0] >= STALL_WINDOW:
-                if float(e @ e) > STALL_FACTOR * window[1]:  # the corrections stagnate: fit the residuals
-                    space, mu, nu, system = "residual", None, 2.0, None
-                    _, e = self._merit(segment, params, space)
-                window = (iteration, float(e @ e))
             if system is None:
                 system = self._normal_system(segment, params, e, space)
                 if mu is None:
@@ -592,7 +580,6 @@ class SegmentTrainer:
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
-                        window = (iteration, float(e @ e))
             else:
                 mu, nu = mu * nu, nu * 2
                 if mu > LM_MAX_DAMPING * scale:
