@@ -63,7 +63,8 @@ from daemodel.backends.base import (
     torch_device,
     torch_threads,
 )
-from daemodel.backends.radau_engines import CasadiEngine, StageFactors, StageTransform, TorchEngine
+from daemodel.backends.radau_compiled import CONVERGED
+from daemodel.backends.radau_engines import CasadiEngine, Residual, StageFactors, StageTransform, TorchEngine
 
 from daemodel.collocation import extrapolation_matrix, lagrange_matrix
 from daemodel.errors import (
@@ -435,6 +436,14 @@ class _Stepper:
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self._stage_steps = 0  # steps left that start with full Newton (see attempt)
         self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
+        # adaptive steps on dense systems of one trajectory: each attempt in one compiled call
+        self._compiled = (
+            options.adaptive
+            and options.start_guess is None
+            and engine.make_compiled_step(options.max_newton_iterations, embedded_weights(self.tableau)[1])
+        )
+        if self._compiled:
+            self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):
@@ -451,7 +460,7 @@ class _Stepper:
 
     def factor(self, J, t, h, error_only=False):
         factors = self.engine.factor(J, h, error_only)
-        self.stats["lu_decompositions"] += len(factors.lu)
+        self.stats["lu_decompositions"] += len(factors.shifts) if factors.complete else 1
         self.check_singular(factors.singular, t, h, "Newton matrix", J)
         return factors
 
@@ -494,11 +503,14 @@ class _Stepper:
         if self._previous is None:
             return self.constant_guess()
         h_old, u_old, W_old = self._previous
-        if self._extrapolation is None or self._extrapolation[0] != h / h_old:
-            L = self.engine.asarray(extrapolation_matrix(self.tableau.c, h / h_old))  # (s, s+1)
-            self._extrapolation = (h / h_old, L)
-        L = self._extrapolation[1]
+        L = self.extrapolation(h / h_old)
         return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
+
+    def extrapolation(self, ratio):
+        """The start guess's extrapolation matrix (s, s+1) for ``ratio`` = h / h_old, kept while it is unchanged."""
+        if self._extrapolation is None or self._extrapolation[0] != ratio:
+            self._extrapolation = (ratio, self.engine.asarray(extrapolation_matrix(self.tableau.c, ratio)))
+        return self._extrapolation[1]
 
     # ---- one step -----------------------------------------------------------------------
     def newton(self, t, h, factors, W):
@@ -780,15 +792,19 @@ class _Stepper:
             h = min(h, t1 - t)
             if (t1 - t) - h < 1e-10 * h:
                 h = t1 - t
-            result, iterations, why, sample = self.attempt(t, h)
-            if result is None:
-                self.stats["newton_failures"] += 1
-                self._lu = None
-                h = self._shrink(h, t, why, sample, 0.5)
-                first = True
-                continue
-            W, r, _ = result
-            err = self.error_norm(t, h, r, W, first or rejected_last)
+            fast = self.compiled_attempt(t, h, first or rejected_last) if self._compiled else None
+            if fast is not None:
+                result, iterations, err = fast
+            else:
+                result, iterations, why, sample = self.attempt(t, h)
+                if result is None:
+                    self.stats["newton_failures"] += 1
+                    self._lu = None
+                    h = self._shrink(h, t, why, sample, 0.5)
+                    first = True
+                    continue
+                W, r, _ = result
+                err = self.error_norm(t, h, r, W, first or rejected_last)
             factor = min(
                 SAFETY,
                 SAFETY * (2 * options.max_newton_iterations + 1) / (2 * options.max_newton_iterations + iterations),
@@ -854,6 +870,38 @@ class _Stepper:
             self.stats["jacobian_evaluations"] += 1
             self.check_determined(stage_J, t, h, keep=False)
         return result, iterations, why, sample
+
+    def compiled_attempt(self, t, h, first):
+        """The attempt of :meth:`attempt` and the error norm of :meth:`error_norm` in one compiled call
+        (:mod:`daemodel.backends.radau_compiled`), where Newton runs on the transformed systems:
+        ``(result, iterations, error norm)``, or None where the step must run on the general path (full
+        Newton pending, or the compiled Newton did not converge: the general path retries and words why)."""
+        if self._stage_steps > 0:
+            return None
+        factors = self.current_lu(self.current_jacobian(t, h), t, h)
+        if factors.inverse is None:
+            return None
+        s, n, D = self.s, self.n, self.n + self.m
+        if self._previous is None:
+            # every node at the start value: a constant guess
+            previous, L = np.tile(self.state()[0], s + 1), np.full((s, s + 1), 1.0 / (s + 1))
+        else:
+            h_old, u_old, W_old = self._previous
+            previous, L = np.concatenate([u_old[0], W_old.ravel()]), self.extrapolation(h / h_old)
+        scalars = (t, h, float(self._eta[0]), self.newton_tol, float(first), self.rtol, self.atol)
+        out = self.engine.compiled_step(factors, scalars, L, previous, self.start_f(t)[0])
+        outcome, k, evaluations, theta, eta, err = out[:6]
+        self.stats["residual_evaluations"] += int(evaluations)
+        if outcome != CONVERGED:
+            self.stats["compiled_retries"] += 1
+            return None
+        k = int(k)
+        self.stats["newton_iterations"] += k
+        self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
+        self._eta = np.array([eta])
+        W = out[6 : 6 + s * D].reshape(1, s, D)
+        r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
+        return (W, r, float(theta)), k, (float(err) if math.isfinite(err) else math.inf)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""

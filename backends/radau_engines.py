@@ -29,6 +29,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
+from daemodel.backends.radau_compiled import inverse_function, inverse_size, step_function, transformed_increment
 
 from daemodel.collocation import stage_residual
 
@@ -186,6 +187,11 @@ class AbstractEngine(ABC):
     @abstractmethod
     def first(self, mask) -> int:
         """Index of the first True of a (B,) mask."""
+
+    def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
+        """Whether this engine runs an adaptive attempt in one compiled call (see
+        :meth:`CasadiEngine.make_compiled_step`); by default it does not."""
+        return False
 
     def newton_increment(self, factors, R):
         """``dW`` solving the Newton system ``N dW = -R`` (``R (B, s, n+m)``), through the
@@ -403,6 +409,24 @@ class CasadiEngine(AbstractEngine):
             self._step = [_Buffered(step, inputs=2), None]
         else:
             self._sparse_layout()
+        self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
+        self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
+        self._functions = functions
+
+    def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
+        """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
+        the error estimate's ``bhat - b``); False
+        where the systems are sparse and the step runs on the general path."""
+        if not self.dense:
+            return False
+        compiled, functions = self.compiled, self._functions
+        weights = np.array(compiled.algebraic_index, dtype=float)
+        step = compiled.cached(
+            ("casadi-radau-compiled-step", self.s, iterations),
+            lambda: step_function(functions[0], functions[1], self, iterations, e, weights),
+        )
+        self._compiled = [_Buffered(step, inputs=2), None]
+        return True
 
     def _sparse_layout(self):
         """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
@@ -418,6 +442,10 @@ class CasadiEngine(AbstractEngine):
         return np.array(values, dtype=float)
 
     def factor(self, J, h: float, error_only: bool = False) -> Factors:
+        if self.dense and not error_only:
+            factors = self._compiled_factor(J, h)
+            if factors is not None:
+                return factors
         factors = super().factor(J, h, error_only)
         if self.dense and factors.complete and not factors.singular.any():
             # the blocks' inverses, column-major as casadi reads them, complex ones as (Re, Im)
@@ -425,8 +453,38 @@ class CasadiEngine(AbstractEngine):
             for _, lam in self.transform.blocks:
                 inverse = factors.lu[lam / h][1]
                 packed += [inverse.real.ravel("F")] + ([inverse.imag.ravel("F")] if lam.imag else [])
+            packed.append(factors.lu[factors.error_shift][1].real.ravel("F"))  # the error estimate's (compiled step)
             factors.inverse = np.concatenate(packed)
         return factors
+
+    def _compiled_factor(self, J, h: float) -> Factors | None:
+        """The inverses of every shift in one casadi call (:func:`~daemodel.backends.radau_compiled.inverse_function`),
+        or None where one is singular or not finite (scipy's LAPACK then factors, and names it)."""
+        if self._inverses is None:
+            build = lambda: inverse_function(self.rows, self.cols, self)  # noqa: E731
+            self._inverses = _Buffered(self.compiled.cached(("casadi-radau-inverses", self.s), build))
+        try:
+            packed = self._inverses(np.concatenate([[h], J]))
+        except RuntimeError:
+            return None
+        if not np.isfinite(packed.sum()):
+            return None
+        shifts = self.transform.shifts(h)
+        target = 1.0 / (h * self.transform.gamma0)
+        error = min(shifts, key=lambda sigma: abs(sigma - target))
+        lu = _PackedInverses(packed, self.transform.blocks, shifts, error, self.D)
+        return Factors(h=h, shifts=shifts, lu=lu, singular=np.array([False]), error_shift=error, inverse=packed)
+
+    def compiled_step(self, factors: Factors, scalars, L, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        """One adaptive attempt in one call (:mod:`daemodel.backends.radau_compiled`): ``scalars`` in the
+        order of its ``SCALARS``, ``L`` (s, s+1) the start guess's extrapolation matrix, ``previous``
+        ((s+1) D) the last step's start value and stages, ``f0`` (n) f at the step's start; returns its
+        packed output."""
+        step, bound = self._compiled
+        if bound is not factors:
+            step.inputs[1][:] = factors.inverse
+            self._compiled[1] = factors
+        return step(np.concatenate([scalars, L.ravel(), previous, f0, self.p]))
 
     def _factor_shifts(self, values, shifts):
         """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
@@ -493,7 +551,7 @@ class CasadiEngine(AbstractEngine):
             rows = J[n:, n:].copy()
             if self.index2_rows.any():
                 rows[self.index2_rows] = (J[n:, :n] @ J[:n, n:])[self.index2_rows]
-            return np.array([np.linalg.slogdet(rows)[0]])
+            return np.array([_dense_sign_det(rows)])
         if self.m <= DENSE_MAX_SIZE:  # a small z block of a large system: dense blocks of J suffice
             g_rows = self.rows >= n
             G = np.zeros((self.m, self.D))
@@ -504,7 +562,7 @@ class CasadiEngine(AbstractEngine):
                 F = np.zeros((n, self.m))
                 F[self.rows[f_z], self.cols[f_z] - n] = values[f_z]
                 rows[self.index2_rows] = (G[:, :n] @ F)[self.index2_rows]
-            return np.array([np.linalg.slogdet(rows)[0]])
+            return np.array([_dense_sign_det(rows)])
         import scipy.sparse as sparse
 
         J = self._csr(values)
@@ -597,6 +655,30 @@ class CasadiEngine(AbstractEngine):
         return int(np.flatnonzero(mask)[0])
 
 
+class _PackedInverses(dict):
+    """``{shift: ("inverse", matrix)}`` read from the packed inverses of the compiled factorisation
+    when first asked for (the compiled step reads the packed array itself; the general path's LU
+    solves need the matrices)."""
+
+    def __init__(self, packed, blocks, shifts, error_shift, D):
+        super().__init__()
+        self._where, offset = {}, 0
+        for (_, lam), sigma in zip(blocks, shifts, strict=False):
+            self._where[sigma] = (offset, bool(lam.imag))
+            offset += (2 if lam.imag else 1) * D * D
+        self._where.setdefault(error_shift, (offset, False))
+        self._packed, self._D = packed, D
+
+    def __missing__(self, sigma):
+        offset, complex_ = self._where[sigma]
+        D2, D = self._D * self._D, self._D
+        matrix = self._packed[offset : offset + D2].reshape(D, D, order="F")
+        if complex_:
+            matrix = matrix + 1j * self._packed[offset + D2 : offset + 2 * D2].reshape(D, D, order="F")
+        self[sigma] = ("inverse", matrix)
+        return self[sigma]
+
+
 class _Buffered:
     """A casadi function of one dense vector, evaluated on bound numpy buffers (casadi's
     FunctionBuffer: ~3 us a call, against ~40-100 us through argument conversion)."""
@@ -665,39 +747,19 @@ def _casadi_functions(compiled, tableau):
 def _step_function(residual, engine):
     """casadi function of the fused Newton step (:meth:`CasadiEngine.newton_step`).
 
-    Inputs: the residual's packed ``[t, h, y_n, W, p]`` and the blocks' inverses packed as
-    :meth:`CasadiEngine.factor` does; output ``[R, f at the stages, dW]``: the increment through
-    the transformed systems, ``dW = (T (x) I) blocks^-1 rhs``, exactly as
-    :meth:`AbstractEngine.newton_increment` computes it with LU solves.  Matrix products are MX
-    (dense kernels), the residual the SX function inside.
+    Inputs: the residual's packed ``[t, h, y_n, W, p]`` and the packed inverses of
+    :meth:`CasadiEngine.factor`; output ``[R, f at the stages, dW]``: the increment through the
+    transformed systems, exactly as :meth:`AbstractEngine.newton_increment` computes it with LU
+    solves.  Matrix products are MX (dense kernels), the residual the SX function inside.
     """
     import casadi
 
     s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
     x = casadi.MX.sym("x", residual.nnz_in(0))
-    sizes = [(2 if lam.imag else 1) * D * D for _, lam in tr.blocks]
-    inverse = casadi.MX.sym("inverse", sum(sizes))
+    inverse = casadi.MX.sym("inverse", inverse_size(tr, D))
     out = residual(x)
     R = casadi.reshape(out[: s * D], D, s)  # column i: stage i's [F_i; G_i]
-    h = x[1]
-    rhs = casadi.vertcat(
-        casadi.mtimes(R[:n, :], casadi.DM(tr.T_inv_A_inv.T)) * (-1.0 / h),
-        casadi.mtimes(R[n:, :], casadi.DM(tr.T_inv.T)),
-    )
-    columns, offset = [], 0
-    for (k, lam), size in zip(tr.blocks, sizes, strict=True):
-        real = casadi.reshape(inverse[offset : offset + D * D], D, D)
-        if lam.imag == 0:
-            columns.append(casadi.mtimes(real, rhs[:, k]))
-        else:
-            imag = casadi.reshape(inverse[offset + D * D : offset + size], D, D)
-            re, im = rhs[:, k], rhs[:, k + 1]
-            columns += [
-                casadi.mtimes(real, re) - casadi.mtimes(imag, im),
-                casadi.mtimes(imag, re) + casadi.mtimes(real, im),
-            ]
-        offset += size
-    dW = casadi.mtimes(casadi.horzcat(*columns), casadi.DM(tr.T.T))  # column i: stage i's increment
+    dW = transformed_increment(casadi, R, x[1], inverse, tr, n, D)  # column i: stage i's increment
     return casadi.Function("newton_step", [x, inverse], [casadi.vertcat(out, casadi.vec(dW))])
 
 
@@ -729,6 +791,21 @@ def _sparse_lu(matrix):
         return ("sparse", splinalg.splu(matrix)), np.array([False])
     except RuntimeError:  # SuperLU: "Factor is exactly singular"
         return ("singular",), np.array([True])
+
+
+def _dense_sign_det(matrix: np.ndarray) -> float:
+    """Sign of the determinant of a dense square matrix (0 when singular or not finite), from LAPACK's LU
+    (numpy's slogdet costs 10 us of overhead on the few-element matrices of a step)."""
+    from scipy.linalg import lapack
+
+    if matrix.shape[0] == 0:
+        return 1.0
+    LU, piv, info = lapack.dgetrf(matrix)
+    diagonal = LU.diagonal()
+    if info > 0 or not np.isfinite(diagonal).all():
+        return 0.0
+    swaps = int(np.count_nonzero(piv != np.arange(len(piv))))
+    return float(np.prod(np.sign(diagonal))) * (-1.0 if swaps % 2 else 1.0)
 
 
 def _sparse_sign_det(matrix) -> float:

@@ -1,0 +1,235 @@
+"""One compiled adaptive Radau step: start guess, simplified Newton and error estimate in one casadi call.
+
+On one trajectory in float64 (the casadi engine, dense systems) Python would otherwise run once
+per Newton iteration: a residual call, then norms, divergence and convergence tests on arrays of a
+few elements, each a numpy call of a few microseconds.  Here the whole attempt of an adaptive
+step, up to the error norm that the controller reads, is one casadi function of the step's
+scalars, the last step's collocation polynomial and the inverses of the transformed systems
+(bound to the function when they are factored), so that Python runs once per step.
+
+It follows :meth:`daemodel.backends.radau._Stepper.newton` and ``error_norm`` exactly (the same
+iterates, tests and counts); any outcome but convergence (non-finite values, divergence, slow
+contraction, the iteration limit) reports its code and the step runs again on the general path,
+which retries, refreshes the Jacobian or shrinks h and words the failure.
+
+The iteration is unrolled ``max_newton_iterations + 2`` times, each a casadi switch that runs one
+iteration while the step is still iterating and passes its state through unchanged after (the
+extra passes check a one-iteration convergence and evaluate ``f`` at the final stages).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Outcome codes of the compiled step (:data:`OUTCOMES` words them as the general path does).
+CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
+OUTCOMES = {NON_FINITE: "non-finite values", DIVERGING: "diverging", SLOW: "converging too slowly"}
+# Mirrors of radau's constants (the compiled step must test what the general path tests).
+DIVERGENCE_THETA = 0.99
+# Scalars in front of the packed input, in this order.
+SCALARS = ("t", "h", "eta", "newton_tol", "first", "rtol", "atol")
+
+
+def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int):
+    """``dW`` (D, s) from the stage residual ``R`` (D, s) through the transformed systems, whose
+    inverses come packed (real blocks, complex ones as (Re, Im), column-major): the increment
+    :meth:`AbstractEngine.newton_increment` computes with LU solves."""
+    rhs = casadi.vertcat(
+        casadi.mtimes(R[:n, :], casadi.DM(transform.T_inv_A_inv.T)) * (-1.0 / h),
+        casadi.mtimes(R[n:, :], casadi.DM(transform.T_inv.T)),
+    )
+    columns, offset = [], 0
+    for k, lam in transform.blocks:
+        real = casadi.reshape(inverse[offset : offset + D * D], D, D)
+        offset += D * D
+        if lam.imag == 0:
+            columns.append(casadi.mtimes(real, rhs[:, k]))
+            continue
+        imag = casadi.reshape(inverse[offset : offset + D * D], D, D)
+        offset += D * D
+        re, im = rhs[:, k], rhs[:, k + 1]
+        columns += [
+            casadi.mtimes(real, re) - casadi.mtimes(imag, im),
+            casadi.mtimes(imag, re) + casadi.mtimes(real, im),
+        ]
+    return casadi.mtimes(casadi.horzcat(*columns), casadi.DM(transform.T.T))
+
+
+def inverse_size(transform, D: int) -> int:
+    """Entries of the packed inverses: the blocks' (a complex one twice), then the error estimate's."""
+    return sum((2 if lam.imag else 1) * D * D for _, lam in transform.blocks) + D * D
+
+
+def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray):
+    """The casadi function of one adaptive attempt (see the module docstring).
+
+    Inputs: ``[SCALARS, L (s (s+1)), prev ((s+1) D), f0 (n), p]`` with ``L`` the extrapolation
+    matrix (s, s+1) of :func:`daemodel.collocation.extrapolation_matrix`, row by row, ``prev`` the
+    last accepted step's start value and stages (the start value s+1 times at the first step: a
+    constant guess), ``f0`` f at
+    the step's start; and the packed inverses (:func:`inverse_size`).  ``e`` (s,): the error
+    estimate's ``bhat - b``.  ``error_weights`` (m,): each
+    algebraic variable's index k, its error weighed by ``h^(k-1)``.
+
+    Output: ``[outcome, iterations, residual evaluations, theta, eta, error norm, W (s D), f at the
+    stages (s n)]``.
+    """
+    import casadi
+
+    s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
+    P = engine.p.size
+    size = len(SCALARS) + s * (s + 1) + (s + 1) * D + n + P
+    x = casadi.MX.sym("x", size)
+    inverse = casadi.MX.sym("inverse", inverse_size(tr, D))
+    t, h, eta0, tol, first, rtol, atol = (x[i] for i in range(len(SCALARS)))
+    offset = len(SCALARS)
+    extrapolation = x[offset : offset + s * (s + 1)]  # (s+1, s) column-major: L transposed
+    offset += s * (s + 1)
+    prev = casadi.reshape(x[offset : offset + (s + 1) * D], D, s + 1)  # column j: node j
+    offset += (s + 1) * D
+    f0 = x[offset : offset + n]
+    p = x[offset + n : offset + n + P]
+    u_n = prev[:, s]  # the last stage of the last step (c_s = 1): this step's start value
+    y_n = u_n[:n]
+
+    # start guess: the last step's collocation polynomial at the new stages (radau's extrapolation matrix,
+    # an input: computed symbolically here it differed from numpy's by 2e-9 at h / h_old = 8, enough to
+    # change Newton's iteration count and so the step sequence)
+    W0 = casadi.mtimes(prev, casadi.reshape(extrapolation, s + 1, s))  # (D, s)
+
+    index_w = casadi.vertcat(casadi.DM.ones(n), *(h ** (float(k) - 1) for k in error_weights))
+    scale = casadi.repmat((atol + rtol * casadi.fabs(u_n)) / index_w, 1, s)
+
+    # one iteration: state [W (D s), stage f (n s), previous norm, theta, eta, k, mode, outcome, active,
+    # evaluations]; mode 0 iterating, 1 checking a convergence at k = 1, 2 evaluating f at the end
+    W_s, F_s = casadi.MX.sym("W", D, s), casadi.MX.sym("F", n, s)
+    previous, theta, eta, k, mode, outcome, active, evaluations = (
+        casadi.MX.sym(name) for name in ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
+    )
+    fixed = [t, h, y_n, p, scale, tol, inverse]
+    fixed_syms = [
+        casadi.MX.sym(name, e.sparsity())
+        for name, e in zip(("t", "h", "y_n", "p", "scale", "tol", "inverse"), fixed, strict=True)
+    ]
+    ts, hs, ys, ps, scs, tols, invs = fixed_syms
+    out = residual(casadi.vertcat(ts, hs, ys, casadi.vec(W_s), ps))
+    R = casadi.reshape(out[: s * D], D, s)
+    stage_f = casadi.reshape(out[s * D :], n, s)
+    dW = transformed_increment(casadi, R, hs, invs, tr, n, D)
+    norm = casadi.sqrt(casadi.sumsqr(dW / scs) / (s * D))
+    finite = norm < 1e300  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
+    # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
+    checked = casadi.logic_and(mode == 1, norm <= tols)
+    iterate = casadi.logic_and(mode < 2, casadi.logic_not(checked))
+    k1 = k + iterate
+    has_prev = k1 > 1
+    theta1 = casadi.if_else(has_prev, norm / casadi.fmax(previous, 1e-300), theta)
+    diverging = casadi.logic_and(has_prev, theta1 >= DIVERGENCE_THETA)
+    eta1 = casadi.if_else(has_prev, theta1 / (1 - theta1), eta)
+    done = eta1 * norm <= tols
+    left = iterations - k1
+    slow = casadi.logic_and(
+        casadi.logic_and(has_prev, left > 0),
+        casadi.logic_and(casadi.logic_not(done), eta1 * norm * theta1**left > tols),
+    )
+    failure = casadi.if_else(
+        casadi.logic_not(finite),
+        NON_FINITE,
+        casadi.if_else(
+            diverging,
+            DIVERGING,
+            casadi.if_else(
+                slow, SLOW, casadi.if_else(casadi.logic_and(casadi.logic_not(done), left <= 0), NOT_CONVERGED, 0)
+            ),
+        ),
+    )
+    failed = casadi.logic_and(iterate, failure > 0)
+    # after a convergence: k = 1 checks the next increment, later ones evaluate f at the stages
+    check = 1 if iterations > 1 else 2  # (one iteration allowed: nothing to check it with)
+    next_mode = casadi.if_else(iterate, casadi.if_else(done, casadi.if_else(k1 == 1, check, 2), 0), 0)
+    finished = casadi.logic_or(mode == 2, checked)
+    state_in = [W_s, F_s, previous, theta, eta, k, mode, outcome, active, evaluations]
+    state_out = [
+        casadi.if_else(iterate, W_s + dW, W_s),
+        stage_f,
+        casadi.if_else(iterate, norm, previous),
+        casadi.if_else(iterate, theta1, theta),
+        casadi.if_else(iterate, eta1, eta),
+        k1,
+        next_mode,
+        casadi.if_else(failed, failure, outcome),
+        casadi.logic_not(casadi.logic_or(failed, finished)),
+        evaluations + 1,
+    ]
+    one = casadi.Function("iteration", [*state_in, *fixed_syms], state_out)
+    idle = casadi.Function("idle", [*state_in, *fixed_syms], state_in)
+    switch = casadi.Function.if_else("maybe_iterate", one, idle)
+
+    state = [
+        W0,
+        casadi.MX.zeros(n, s),
+        0.0,
+        0.0,
+        casadi.fmax(eta0, np.finfo(float).eps) ** 0.8,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+    ]
+    for _ in range(iterations + 2):  # (a failed check at k = 1 takes a pass more)
+        state = list(switch(state[8], *state, *fixed))
+    W, F, _, theta, eta, k, _, outcome, active, evaluations = state
+    outcome = casadi.if_else(active, NOT_CONVERGED, outcome)
+
+    # the embedded error estimate (radau's local_error, error_norm and refiltered)
+    gamma0 = tr.gamma0
+    quadrature = casadi.mtimes(F, casadi.DM(e))
+    error_inverse = casadi.reshape(inverse[inverse.numel() - D * D :], D, D)
+    zeros = casadi.MX.zeros(D - n)
+    err = casadi.mtimes(error_inverse, casadi.vertcat(quadrature / gamma0 + f0, zeros))
+    u_new = W[:, s - 1]
+    w = (atol + rtol * casadi.fmax(casadi.fabs(u_n), casadi.fabs(u_new))) / index_w
+    error_norm = casadi.sqrt(casadi.sumsqr(err / w) / D)
+    f1 = f(casadi.vertcat(t, u_n + err, p))
+    refiltered = casadi.mtimes(error_inverse, casadi.vertcat(quadrature / gamma0 + f1, zeros))
+    again = casadi.logic_and(first, error_norm >= 1)
+    error_norm = casadi.if_else(again, casadi.sqrt(casadi.sumsqr(refiltered / w) / D), error_norm)
+    return casadi.Function(
+        "radau_step",
+        [x, inverse],
+        [casadi.vertcat(outcome, k, evaluations, theta, eta, error_norm, casadi.vec(W), casadi.vec(F))],
+    )
+
+
+def inverse_function(rows: np.ndarray, cols: np.ndarray, engine):
+    """The casadi function of the packed inverses (:func:`inverse_size`) from ``[h, J's nonzeros]``.
+
+    A complex system ``(a + i b) M - J`` is inverted as the real ``[[a M - J, -b M], [b M, a M - J]]``
+    of twice its size (casadi computes in real numbers); LAPACK's LU (casadi's ``lapacklu``) factors
+    each.  A singular system makes the call fail: the caller then factors with scipy, which names it.
+    """
+    import casadi
+
+    n, D, tr = engine.n, engine.D, engine.transform
+    x = casadi.MX.sym("x", 1 + len(rows))
+    h = x[0]
+    J = casadi.densify(casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), x[1:]))
+    M = casadi.DM(np.diag(np.r_[np.ones(n), np.zeros(D - n)]))
+    identity = casadi.DM.eye(D)
+    packed, real_block = [], None
+    for _, lam in tr.blocks:
+        a, b = lam.real / h, lam.imag / h
+        if lam.imag == 0:
+            packed.append(casadi.vec(casadi.solve(a * M - J, identity, "lapacklu")))
+            real_block = (lam.real, packed[-1])
+            continue
+        big = casadi.blockcat([[a * M - J, -b * M], [b * M, a * M - J]])
+        both = casadi.solve(big, casadi.vertcat(identity, casadi.DM.zeros(D, D)), "lapacklu")
+        packed += [casadi.vec(both[:D, :]), casadi.vec(both[D:, :])]
+    error = 1.0 / tr.gamma0
+    if real_block is not None and abs(real_block[0] - error) <= 1e-12 * error:
+        packed.append(real_block[1])  # s odd: the error estimate's system is the real block
+    else:
+        packed.append(casadi.vec(casadi.solve(error / h * M - J, identity, "lapacklu")))
+    return casadi.Function("inverses", [x], [casadi.vertcat(*packed)])
