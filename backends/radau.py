@@ -66,7 +66,7 @@ from daemodel.backends.base import (
 from daemodel.backends.radau_compiled import CONVERGED
 from daemodel.backends.radau_engines import CasadiEngine, Residual, StageFactors, StageTransform, TorchEngine
 
-from daemodel.collocation import extrapolation_matrix, lagrange_matrix
+from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.errors import (
     ConvergenceError,
     InvalidOptionError,
@@ -436,6 +436,7 @@ class _Stepper:
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self._stage_steps = 0  # steps left that start with full Newton (see attempt)
         self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
+        self._extrapolation_polynomial = extrapolation_polynomial(self.tableau.c)  # the matrix by Horner's rule
         # adaptive steps on dense systems of one trajectory: each attempt in one compiled call
         self._compiled = (
             options.adaptive
@@ -509,7 +510,7 @@ class _Stepper:
     def extrapolation(self, ratio):
         """The start guess's extrapolation matrix (s, s+1) for ``ratio`` = h / h_old, kept while it is unchanged."""
         if self._extrapolation is None or self._extrapolation[0] != ratio:
-            self._extrapolation = (ratio, self.engine.asarray(extrapolation_matrix(self.tableau.c, ratio)))
+            self._extrapolation = (ratio, self.engine.asarray(horner(self._extrapolation_polynomial, ratio)))
         return self._extrapolation[1]
 
     # ---- one step -----------------------------------------------------------------------
@@ -883,13 +884,13 @@ class _Stepper:
             return None
         s, n, D = self.s, self.n, self.n + self.m
         if self._previous is None:
-            # every node at the start value: a constant guess
-            previous, L = np.tile(self.state()[0], s + 1), np.full((s, s + 1), 1.0 / (s + 1))
+            # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
+            previous, ratio = np.tile(self.state()[0], s + 1), 0.0
         else:
             h_old, u_old, W_old = self._previous
-            previous, L = np.concatenate([u_old[0], W_old.ravel()]), self.extrapolation(h / h_old)
-        scalars = (t, h, float(self._eta[0]), self.newton_tol, float(first), self.rtol, self.atol)
-        out = self.engine.compiled_step(factors, scalars, L, previous, self.start_f(t)[0])
+            previous, ratio = np.concatenate([u_old[0], W_old.ravel()]), h / h_old
+        scalars = (t, h, ratio, float(self._eta[0]), self.newton_tol, float(first), self.rtol, self.atol)
+        out = self.engine.compiled_step(factors, scalars, previous, self.start_f(t)[0])
         outcome, k, evaluations, theta, eta, err = out[:6]
         self.stats["residual_evaluations"] += int(evaluations)
         if outcome != CONVERGED:
@@ -1060,12 +1061,15 @@ class _Stepper:
     def current_jacobian(self, t, h):
         """The Jacobian at the step's start (kept while Newton contracts fast), as RADAU5."""
         if self._jac is None:
-            self._jac = (self.jacobian(t, self.y, self.z), t)
-            self._lu = None
-            self.check_determined(self._jac[0], t, h)
+            self.stats["jacobian_evaluations"] += 1
+            J, factors, signs = self.engine.refresh(t, self.y, self.z, h)
+            self._jac, self._lu = (J, t), factors
+            if factors is not None:  # factored along with J (see the engine's refresh)
+                self.stats["lu_decompositions"] += len(factors.shifts)
+            self.check_determined(J, t, h, signs=signs)
         return self._jac[0]
 
-    def check_determined(self, J, t, h, keep=True):
+    def check_determined(self, J, t, h, keep=True, signs=None):
         """Refuse a step across a point where the constraints stop determining z.
 
         The iteration matrix of the algebraic variables (row by row ``g_z`` for an index-1 and
@@ -1073,10 +1077,12 @@ class _Stepper:
         determinant changing sign between two fresh Jacobians means it passed through zero, where
         z is undetermined and may blow up (``q' = (0.7 - t) z, 0 = q - sin t``).  Index-2 z is
         measured against ``(atol + rtol |z|) / h``, so the error estimate alone would step over it.
+        ``signs``: the engine's ``z_matrix_sign(J)`` where it came with J.
         """
         if not self.m:
             return
-        signs = self.engine.z_matrix_sign(J)  # (B,), or (B, s) for the stages of one step
+        if signs is None:  # (B,), or (B, s) for the stages of one step
+            signs = self.engine.z_matrix_sign(J)
         signs = signs[:, None] if signs.ndim == 1 else signs
         if self._det_sign is not None:
             signs = self.xp.concatenate([self._det_sign[:, None], signs], axis=1)

@@ -21,13 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from daemodel.collocation import extrapolation_polynomial, horner
+
 # Outcome codes of the compiled step (:data:`OUTCOMES` words them as the general path does).
 CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
 OUTCOMES = {NON_FINITE: "non-finite values", DIVERGING: "diverging", SLOW: "converging too slowly"}
 # Mirrors of radau's constants (the compiled step must test what the general path tests).
 DIVERGENCE_THETA = 0.99
 # Scalars in front of the packed input, in this order.
-SCALARS = ("t", "h", "eta", "newton_tol", "first", "rtol", "atol")
+SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
 
 
 def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int):
@@ -63,10 +65,9 @@ def inverse_size(transform, D: int) -> int:
 def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray):
     """The casadi function of one adaptive attempt (see the module docstring).
 
-    Inputs: ``[SCALARS, L (s (s+1)), prev ((s+1) D), f0 (n), p]`` with ``L`` the extrapolation
-    matrix (s, s+1) of :func:`daemodel.collocation.extrapolation_matrix`, row by row, ``prev`` the
-    last accepted step's start value and stages (the start value s+1 times at the first step: a
-    constant guess), ``f0`` f at
+    Inputs: ``[SCALARS, prev ((s+1) D), f0 (n), p]`` with ``ratio`` = h / h_old, ``prev`` the last
+    accepted step's start value and stages (the start value s+1 times at the first step: a constant
+    guess), ``f0`` f at
     the step's start; and the packed inverses (:func:`inverse_size`).  ``e`` (s,): the error
     estimate's ``bhat - b``.  ``error_weights`` (m,): each
     algebraic variable's index k, its error weighed by ``h^(k-1)``.
@@ -78,13 +79,11 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
 
     s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
     P = engine.p.size
-    size = len(SCALARS) + s * (s + 1) + (s + 1) * D + n + P
+    size = len(SCALARS) + (s + 1) * D + n + P
     x = casadi.MX.sym("x", size)
     inverse = casadi.MX.sym("inverse", inverse_size(tr, D))
-    t, h, eta0, tol, first, rtol, atol = (x[i] for i in range(len(SCALARS)))
+    t, h, ratio, eta0, tol, first, rtol, atol = (x[i] for i in range(len(SCALARS)))
     offset = len(SCALARS)
-    extrapolation = x[offset : offset + s * (s + 1)]  # (s+1, s) column-major: L transposed
-    offset += s * (s + 1)
     prev = casadi.reshape(x[offset : offset + (s + 1) * D], D, s + 1)  # column j: node j
     offset += (s + 1) * D
     f0 = x[offset : offset + n]
@@ -92,10 +91,11 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     u_n = prev[:, s]  # the last stage of the last step (c_s = 1): this step's start value
     y_n = u_n[:n]
 
-    # start guess: the last step's collocation polynomial at the new stages (radau's extrapolation matrix,
-    # an input: computed symbolically here it differed from numpy's by 2e-9 at h / h_old = 8, enough to
-    # change Newton's iteration count and so the step sequence)
-    W0 = casadi.mtimes(prev, casadi.reshape(extrapolation, s + 1, s))  # (D, s)
+    # start guess: the last step's collocation polynomial at the new stages, by the same Horner
+    # evaluation as the general path (the extrapolation is ill-conditioned at large ratios: another
+    # formula's rounding changed Newton's iteration count and so the step sequence)
+    L = horner([casadi.DM(C) for C in extrapolation_polynomial(engine.tableau.c)], ratio)  # (s, s+1)
+    W0 = casadi.mtimes(prev, L.T)  # (D, s)
 
     index_w = casadi.vertcat(casadi.DM.ones(n), *(h ** (float(k) - 1) for k in error_weights))
     scale = casadi.repmat((atol + rtol * casadi.fabs(u_n)) / index_w, 1, s)
@@ -233,3 +233,24 @@ def inverse_function(rows: np.ndarray, cols: np.ndarray, engine):
     else:
         packed.append(casadi.vec(casadi.solve(error / h * M - J, identity, "lapacklu")))
     return casadi.Function("inverses", [x], [casadi.vertcat(*packed)])
+
+
+def refresh_function(jacobian, inverses, rows: np.ndarray, cols: np.ndarray, engine):
+    """The casadi function of a fresh Jacobian at the step's start, in one call: from ``[t, y, z, p, h]``,
+    ``[J's nonzeros, the algebraic variables' iteration matrix (m, m) column-major, the packed inverses]``.
+
+    The iteration matrix is :meth:`CasadiEngine.z_matrix_sign`'s (rows ``g_z`` at index 1, ``g_y f_z``
+    at index 2); ``jacobian`` and ``inverses`` are the engine's functions of the nonzeros.
+    """
+    import casadi
+
+    n, D = engine.n, engine.D
+    m = D - n
+    x = casadi.MX.sym("x", jacobian.nnz_in(0) + 1)
+    values = jacobian(x[:-1])
+    J = casadi.densify(casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), values))
+    index2 = engine.index2_rows
+    coupled = casadi.mtimes(J[n:, :n], J[:n, n:]) if index2.any() else None
+    z_rows = [coupled[i, :] if index2[i] else J[n + i, n:] for i in range(m)]
+    z_matrix = casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
+    return casadi.Function("refresh", [x], [casadi.vertcat(values, z_matrix, inverses(casadi.vertcat(x[-1], values)))])

@@ -24,12 +24,19 @@ instead of one real LU of size 3(n + m), about five times less work.
 
 from __future__ import annotations
 
+import math
 import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.radau_compiled import inverse_function, inverse_size, step_function, transformed_increment
+from daemodel.backends.radau_compiled import (
+    inverse_function,
+    inverse_size,
+    refresh_function,
+    step_function,
+    transformed_increment,
+)
 
 from daemodel.collocation import stage_residual
 
@@ -187,6 +194,11 @@ class AbstractEngine(ABC):
     @abstractmethod
     def first(self, mask) -> int:
         """Index of the first True of a (B,) mask."""
+
+    def refresh(self, t: float, y, z, h: float):
+        """A fresh Jacobian at ``(t, y, z)``: ``(J, factors for step h or None, z_matrix_sign or None)``;
+        an engine that computes the factors or the sign along with J returns them (else None)."""
+        return self.jacobian(t, y, z), None, None
 
     def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
         """Whether this engine runs an adaptive attempt in one compiled call (see
@@ -411,6 +423,7 @@ class CasadiEngine(AbstractEngine):
             self._sparse_layout()
         self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
         self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
+        self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
         self._functions = functions
 
     def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
@@ -457,16 +470,22 @@ class CasadiEngine(AbstractEngine):
             factors.inverse = np.concatenate(packed)
         return factors
 
-    def _compiled_factor(self, J, h: float) -> Factors | None:
+    def _compiled_factor(self, J, h: float, build_only: bool = False) -> Factors | None:
         """The inverses of every shift in one casadi call (:func:`~daemodel.backends.radau_compiled.inverse_function`),
         or None where one is singular or not finite (scipy's LAPACK then factors, and names it)."""
         if self._inverses is None:
             build = lambda: inverse_function(self.rows, self.cols, self)  # noqa: E731
             self._inverses = _Buffered(self.compiled.cached(("casadi-radau-inverses", self.s), build))
+        if build_only:
+            return None
         try:
             packed = self._inverses(np.concatenate([[h], J]))
         except RuntimeError:
             return None
+        return self._packed_factors(packed, h)
+
+    def _packed_factors(self, packed: np.ndarray, h: float) -> Factors | None:
+        """:class:`Factors` of the packed inverses of the compiled factorisation; None where one is not finite."""
         if not np.isfinite(packed.sum()):
             return None
         shifts = self.transform.shifts(h)
@@ -475,16 +494,33 @@ class CasadiEngine(AbstractEngine):
         lu = _PackedInverses(packed, self.transform.blocks, shifts, error, self.D)
         return Factors(h=h, shifts=shifts, lu=lu, singular=np.array([False]), error_shift=error, inverse=packed)
 
-    def compiled_step(self, factors: Factors, scalars, L, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    def refresh(self, t: float, y, z, h: float):
+        """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
+        iteration matrix, in one casadi call on dense systems (:func:`.radau_compiled.refresh_function`)."""
+        if not self.dense:
+            return super().refresh(t, y, z, h)
+        if self._refresh is None:
+            self._compiled_factor(None, h, build_only=True)
+            build = lambda: refresh_function(self._jac.function, self._inverses.function, self.rows, self.cols, self)  # noqa: E731
+            self._refresh = _Buffered(self.compiled.cached(("casadi-radau-refresh", self.s), build))
+        try:
+            out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
+        except RuntimeError:  # a singular system: the general path factors it and names it
+            return super().refresh(t, y, z, h)
+        nnz, m = len(self.rows), self.m
+        J = out[:nnz]
+        sign = np.array([_small_sign_det(out[nnz : nnz + m * m], m)])
+        return J, self._packed_factors(out[nnz + m * m :], h), sign
+
+    def compiled_step(self, factors: Factors, scalars, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
         """One adaptive attempt in one call (:mod:`daemodel.backends.radau_compiled`): ``scalars`` in the
-        order of its ``SCALARS``, ``L`` (s, s+1) the start guess's extrapolation matrix, ``previous``
-        ((s+1) D) the last step's start value and stages, ``f0`` (n) f at the step's start; returns its
-        packed output."""
+        order of its ``SCALARS``, ``previous`` ((s+1) D) the last step's start value and stages, ``f0``
+        (n) f at the step's start; returns its packed output."""
         step, bound = self._compiled
         if bound is not factors:
             step.inputs[1][:] = factors.inverse
             self._compiled[1] = factors
-        return step(np.concatenate([scalars, L.ravel(), previous, f0, self.p]))
+        return step(np.concatenate([scalars, previous, f0, self.p]))
 
     def _factor_shifts(self, values, shifts):
         """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
@@ -693,6 +729,7 @@ class _Buffered:
             self._buffer.set_arg(k, memoryview(values))
         self._buffer.set_res(0, memoryview(self._outputs))
         self.name = function.name()
+        self.function = function
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
         self._inputs[:] = values
@@ -791,6 +828,21 @@ def _sparse_lu(matrix):
         return ("sparse", splinalg.splu(matrix)), np.array([False])
     except RuntimeError:  # SuperLU: "Factor is exactly singular"
         return ("singular",), np.array([True])
+
+
+def _small_sign_det(values: np.ndarray, m: int) -> float:
+    """Sign of the determinant of the (m, m) matrix of ``values`` (column-major): by its formula up to
+    m = 3 (a few Python operations, where a LAPACK call costs 7 us), else :func:`_dense_sign_det`."""
+    if m == 1:
+        det = values[0]
+    elif m == 2:
+        det = values[0] * values[3] - values[1] * values[2]
+    elif m == 3:
+        a, b, c, d, e, f, g, h, i = values.tolist()  # columns (a, b, c), (d, e, f), (g, h, i)
+        det = a * (e * i - f * h) - d * (b * i - c * h) + g * (b * f - c * e)
+    else:
+        return _dense_sign_det(values.reshape(m, m, order="F"))
+    return float(np.sign(det)) if math.isfinite(det) else 0.0
 
 
 def _dense_sign_det(matrix: np.ndarray) -> float:

@@ -238,6 +238,36 @@ def extrapolation_matrix(c, ratio: float):
     return lagrange_matrix(np.concatenate([[0.0], c]), 1.0 + c * ratio)
 
 
+def extrapolation_polynomial(c):
+    """Coefficients ``C (s+1, s, s+1)`` of :func:`extrapolation_matrix` as a polynomial in the ratio:
+    ``L(ratio) = sum_k C[k] ratio^k``, evaluated by :func:`horner` in a few array operations (radau
+    extrapolates every step, mostly at a new ratio: the product form costs 20 us a time there)."""
+    import numpy as np
+    from numpy.polynomial import polynomial as P
+
+    c = np.asarray(c, dtype=float)
+    nodes = np.concatenate([[0.0], c])
+    s = len(c)
+    C = np.zeros((s + 1, s, s + 1))
+    for i in range(s):
+        for j in range(s + 1):
+            poly = np.array([1.0])
+            for m in range(s + 1):
+                if m != j:  # (1 + c_i r - x_m) / (x_j - x_m)
+                    poly = P.polymul(poly, np.array([1.0 - nodes[m], c[i]]) / (nodes[j] - nodes[m]))
+            C[: len(poly), i, j] = poly
+    return C
+
+
+def horner(C, x):
+    """``sum_k C[k] x^k`` by Horner's rule, on numpy arrays or casadi expressions alike (the same
+    operations in the same order, so both give the same bits)."""
+    out = C[-1]
+    for k in range(len(C) - 2, -1, -1):
+        out = out * x + C[k]
+    return out
+
+
 def lagrange_matrix(nodes, points):
     """``L[i, j]``: the j-th Lagrange basis polynomial on ``nodes`` (N,) at ``points[i]`` (P,),
     shape (P, N), in numpy: the interpolation of stage values (a start guess, dense output)."""
