@@ -13,7 +13,7 @@ from daemodel.errors import UnknownMethodError
 
 # method name -> "module:class"
 REGISTRY: dict[str, str] = {
-    "radau": "daemodel.backends.radau:RadauBackend",
+    "radau": "daemodel.backends.radau.backend:RadauBackend",
     "casadi-collocation": "daemodel.backends.casadi:CollocationBackend",
     "casadi-idas": "daemodel.backends.casadi:IDASBackend",
     "reference": "daemodel.backends.reference:ReferenceBackend",

@@ -1039,9 +1039,9 @@ def _preload() -> dict:
         except BaseException as error:
             meta.setdefault("preload_errors", []).append(f"{module}: {type(error).__name__}")
     try:
-        import daemodel.backends.radau as radau
+        import daemodel.backends as backends
 
-        meta["backends"] = os.path.dirname(os.path.abspath(radau.__file__))
+        meta["backends"] = os.path.dirname(os.path.abspath(backends.__file__))
     except BaseException:
         pass
     return meta

@@ -9,8 +9,11 @@ full s(n+m) matrix.
 import numpy as np
 import pytest
 import scipy.sparse as sparse
-from daemodel.backends import radau, radau_engines
-from daemodel.backends.radau_engines import CasadiEngine, StageTransform, TorchEngine
+from daemodel.backends import radau
+from daemodel.backends.radau import linalg
+from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.torch_engine import TorchEngine
+from daemodel.backends.radau.transform import StageTransform
 
 import daemodel as dm
 from daemodel import errors as E
@@ -171,10 +174,10 @@ def test_sign_of_a_sparse_determinant():
         for _ in range(5):
             matrix = rng.normal(size=(size, size)) * (rng.random((size, size)) < 0.3) + np.diag(rng.normal(size=size))
             expected = np.sign(np.linalg.det(matrix))
-            assert radau_engines._sparse_sign_det(sparse.csc_matrix(matrix)) == expected
-    assert radau_engines._sparse_sign_det(sparse.csc_matrix(np.zeros((3, 3)))) == 0.0
-    assert radau_engines._permutation_sign(np.array([1, 0, 2])) == -1.0
-    assert radau_engines._permutation_sign(np.array([1, 2, 0])) == 1.0
+            assert linalg.sparse_sign_det(sparse.csc_matrix(matrix)) == expected
+    assert linalg.sparse_sign_det(sparse.csc_matrix(np.zeros((3, 3)))) == 0.0
+    assert linalg.permutation_sign(np.array([1, 0, 2])) == -1.0
+    assert linalg.permutation_sign(np.array([1, 2, 0])) == 1.0
 
 
 def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):

@@ -190,7 +190,7 @@ def test_a_singular_newton_matrix_names_its_cause():
     at x = 0, where f is finite), or a step size that puts an eigenvalue of the Jacobian on the
     method's real shift gamma / h."""
     from daemodel.backends.radau import embedded_weights
-    from daemodel.backends.radau_engines import StageTransform
+    from daemodel.backends.radau.transform import StageTransform
 
     from daemodel.tableau import radau_iia
 

@@ -151,11 +151,11 @@ class CasadiKernel:
 
     def _built(self):
         if self._functions is None:
-            from daemodel.backends.radau_engines import _Buffered
+            from daemodel.backends.radau.compiled import Buffered
 
             compiled, tableau = self.compiled, self.tableau
             made = compiled.cached(("casadi-pinn", tableau.stages), lambda: _casadi_loss_functions(compiled, tableau))
-            self._functions = (*(_Buffered(function) for function in made[:2]), _Buffered(made[2], inputs=2))
+            self._functions = (*(Buffered(function) for function in made[:2]), Buffered(made[2], inputs=2))
         return self._functions
 
     def residual(self, packed: np.ndarray) -> np.ndarray:
@@ -182,9 +182,9 @@ def _casadi_loss_functions(compiled, tableau):
     radau's casadi engine's own stage residual (the equations Newton zeroes there): its stage
     rows, and the end rows and ``S`` that the PINN adds."""
     import casadi
-    from daemodel.backends.radau_engines import _casadi_functions
+    from daemodel.backends.radau.compiled import casadi_functions
 
-    radau_residual = compiled.cached(("casadi-radau", tableau.stages), lambda: _casadi_functions(compiled, tableau))[1]
+    radau_residual = compiled.cached(("casadi-radau", tableau.stages), lambda: casadi_functions(compiled, tableau))[1]
     dae = compiled.casadi_dae()
     t, p = dae["t"], dae["p"]
     s, n, m = tableau.stages, dae["x"].numel(), dae["z"].numel()

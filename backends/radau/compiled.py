@@ -202,6 +202,13 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     )
 
 
+def dense_jacobian(casadi, rows: np.ndarray, cols: np.ndarray, values, D: int):
+    """The dense (D, D) matrix of the nonzeros ``values`` at ``(rows, cols)`` (casadi's triplet order)."""
+    if not len(rows):  # f and g depend on no unknown (f = f(t)): casadi refuses an empty value vector
+        return casadi.MX.zeros(D, D)
+    return casadi.densify(casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), values))
+
+
 def inverse_function(rows: np.ndarray, cols: np.ndarray, engine):
     """The casadi function of the packed inverses (:func:`inverse_size`) from ``[h, J's nonzeros]``.
 
@@ -214,7 +221,7 @@ def inverse_function(rows: np.ndarray, cols: np.ndarray, engine):
     n, D, tr = engine.n, engine.D, engine.transform
     x = casadi.MX.sym("x", 1 + len(rows))
     h = x[0]
-    J = casadi.densify(casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), x[1:]))
+    J = dense_jacobian(casadi, rows, cols, x[1:], D)
     M = casadi.DM(np.diag(np.r_[np.ones(n), np.zeros(D - n)]))
     identity = casadi.DM.eye(D)
     packed, real_block = [], None
@@ -247,10 +254,95 @@ def refresh_function(jacobian, inverses, rows: np.ndarray, cols: np.ndarray, eng
     n, D = engine.n, engine.D
     m = D - n
     x = casadi.MX.sym("x", jacobian.nnz_in(0) + 1)
-    values = jacobian(x[:-1])
-    J = casadi.densify(casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), values))
+    values = casadi.vec(jacobian(x[:-1]))  # (a Jacobian without nonzeros comes as 1 x 0)
+    J = dense_jacobian(casadi, rows, cols, values, D)
     index2 = engine.index2_rows
     coupled = casadi.mtimes(J[n:, :n], J[:n, n:]) if index2.any() else None
     z_rows = [coupled[i, :] if index2[i] else J[n + i, n:] for i in range(m)]
     z_matrix = casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
     return casadi.Function("refresh", [x], [casadi.vertcat(values, z_matrix, inverses(casadi.vertcat(x[-1], values)))])
+
+
+class Buffered:
+    """A casadi function of one dense vector, evaluated on bound numpy buffers (casadi's
+    FunctionBuffer: ~3 us a call, against ~40-100 us through argument conversion)."""
+
+    def __init__(self, function, inputs: int = 1):
+        # inputs after the first stay bound between calls: write them through ``inputs[k][:]``
+        self.inputs = [np.zeros(function.nnz_in(k)) for k in range(inputs)]
+        self._inputs = self.inputs[0]
+        self._outputs = np.zeros(function.nnz_out(0))
+        self._buffer, self._evaluate = function.buffer()
+        for k, values in enumerate(self.inputs):
+            self._buffer.set_arg(k, memoryview(values))
+        self._buffer.set_res(0, memoryview(self._outputs))
+        self.name = function.name()
+        self.function = function
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        self._inputs[:] = values
+        self._evaluate()
+        if self._buffer.ret() != 0:
+            raise RuntimeError(f"casadi function {self.name} failed (return code {self._buffer.ret()})")
+        return self._outputs.copy()
+
+
+def casadi_functions(compiled, tableau):
+    """casadi functions of the casadi engine (cached on the compiled model, per s).
+
+    Each takes one packed vector and returns one (a call costs ~20 us per argument): ``f`` of
+    ``[t, y, z, p]``; the stage residual (the equations of
+    :func:`daemodel.collocation.stage_residual`) of ``[t, h, y_n, W, p]``, ``W`` stage by stage
+    ``[Y_i, Z_i]``, returning ``[R (stage by stage [F_i, G_i]), f at the stages]``; the Jacobian's
+    nonzeros at ``[t, y, z, p]`` and at every stage of ``[t, h, W, p]``; its pattern (rows, cols).
+    """
+    import casadi
+
+    dae = compiled.casadi_dae()
+    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
+    s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
+    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
+    jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
+    jac = casadi.Function("jacobian", [t, x, z, p], [jac.nz[:]]), jac.sparsity().get_triplet()
+    h, y_n, W = casadi.SX.sym("h"), casadi.SX.sym("y_n", n), casadi.SX.sym("W", s * D)
+    A, c = tableau.A, tableau.c
+    times = [t + float(c[i]) * h for i in range(s)]
+    Y = [W[i * D : i * D + n] for i in range(s)]
+    Z = [W[i * D + n : (i + 1) * D] for i in range(s)]
+    stage_f = [f(times[i], Y[i], Z[i], p) for i in range(s)]
+    rows = []
+    for i in range(s):
+        quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), casadi.SX.zeros(n))
+        rows += [Y[i] - y_n - h * quadrature, g(times[i], Y[i], Z[i], p)]
+    return (
+        casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]),
+        casadi.Function("residual", [casadi.vertcat(t, h, y_n, W, p)], [casadi.vertcat(*rows, *stage_f)]),
+        casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac[0](t, x, z, p)]),
+        casadi.Function(
+            "stage_jacobians",
+            [casadi.vertcat(t, h, W, p)],
+            [casadi.vertcat(*(jac[0](times[i], Y[i], Z[i], p) for i in range(s)))],
+        ),
+        np.asarray(jac[1][0], dtype=np.int64),
+        np.asarray(jac[1][1], dtype=np.int64),
+    )
+
+
+def newton_step_function(residual, engine):
+    """casadi function of the fused Newton step (:meth:`CasadiEngine.newton_step`).
+
+    Inputs: the residual's packed ``[t, h, y_n, W, p]`` and the packed inverses of
+    :meth:`CasadiEngine.factor`; output ``[R, f at the stages, dW]``: the increment through the
+    transformed systems, exactly as :meth:`AbstractEngine.newton_increment` computes it with LU
+    solves.  Matrix products are MX (dense kernels), the residual the SX function inside.
+    """
+    import casadi
+
+    s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
+    x = casadi.MX.sym("x", residual.nnz_in(0))
+    inverse = casadi.MX.sym("inverse", inverse_size(tr, D))
+    out = residual(x)
+    R = casadi.reshape(out[: s * D], D, s)  # column i: stage i's [F_i; G_i]
+    dW = transformed_increment(casadi, R, x[1], inverse, tr, n, D)  # column i: stage i's increment
+    return casadi.Function("newton_step", [x, inverse], [casadi.vertcat(out, casadi.vec(dW))])

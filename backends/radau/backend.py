@@ -1,0 +1,114 @@
+"""``method="radau"``: the backend glue (engine, controller, stepper, Solution)."""
+
+from __future__ import annotations
+
+import time
+
+from daemodel.backends.base import (
+    SWEEP_FIRST_STEPS,
+    AbstractBackend,
+    fixed_step_sweep,
+    grid_steps,
+    make_solution,
+    output_times,
+    torch_device,
+    torch_threads,
+)
+from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.control import make_controller
+from daemodel.backends.radau.options import RadauOptions
+from daemodel.backends.radau.step import Stepper, step_record_bytes
+from daemodel.backends.radau.transform import StageTransform, embedded_weights
+
+from daemodel.errors import InvalidOptionError
+from daemodel.files import check_memory, memory_limit
+from daemodel.tableau import radau_iia
+
+
+class RadauBackend(AbstractBackend):
+    """``method="radau"``: batched Radau IIA with Newton, fixed or adaptive steps."""
+
+    name = "radau"
+    Options = RadauOptions
+    # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
+    max_index = 2
+
+    def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
+        return fixed_step_sweep(t_span, points, steps)
+
+    def times_follow_samples(self, options: RadauOptions) -> bool:
+        return options.adaptive and options.t_eval is None  # a batch steps together, on its own times
+
+    def solve(self, compiled, t_span, start, options: RadauOptions):
+        if make_engine_name(start, options) == "casadi":
+            return self._solve(compiled, t_span, start, options)
+        with torch_threads(options.threads, start.size * (len(compiled.states) + len(compiled.algebraics))):
+            return self._solve(compiled, t_span, start, options)
+
+    def _solve(self, compiled, t_span, start, options: RadauOptions):
+        check_memory(
+            f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
+            memory_parts(compiled, t_span, start.size, options),
+        )
+        began = time.perf_counter()
+        engine = make_engine(compiled, start, options)
+        controller = make_controller(options)
+        stepper = Stepper(compiled, start, options, engine, controller)
+        if options.adaptive:
+            # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
+            # grid's records were counted before the solve)
+            known = sum(memory_parts(compiled, t_span, start.size, options).values())
+            D = len(compiled.states) + len(compiled.algebraics)
+            stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
+        setup = time.perf_counter() - began
+        began = time.perf_counter()
+        times, values = stepper.integrate(t_span)
+        if engine.name == "torch" and engine.device.type == "cuda":
+            engine.torch.cuda.synchronize(engine.device)
+        wall = time.perf_counter() - began
+        if engine.name == "torch":
+            stepper.stats["torch_threads"] = engine.torch.get_num_threads()
+        return make_solution(self, compiled, start, options, times, values, wall, stepper.stats, setup_time=setup)
+
+
+def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
+    """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
+    Newton matrices (a stage Jacobian and the factored transformed systems, about (2s + 1) D^2 a
+    sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval, also each step's
+    stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
+    D = len(compiled.states) + len(compiled.algebraics)
+    itemsize = 4 if options.dtype == "float32" else 8
+    parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * itemsize}
+    steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
+    if options.t_eval is not None:
+        parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
+    if steps is not None:
+        parts["step records" if options.t_eval is not None else "outputs"] = steps * step_record_bytes(D, B, options)
+    return parts
+
+
+def make_engine_name(start, options: RadauOptions) -> str:
+    """The engine ``options.engine`` picks for ``start`` ("auto": see :func:`make_engine`)."""
+    if options.engine != "auto":
+        return options.engine
+    on_cpu = options.device == "cpu" or torch_device(options.device).type == "cpu"
+    return "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
+
+
+def make_engine(compiled, start, options: RadauOptions):
+    """The engine ``options.engine`` names; ``"auto"``: casadi for one trajectory in float64 on the CPU
+    (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs."""
+    tableau = radau_iia(options.stages)
+    transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
+    name = make_engine_name(start, options)
+    if name == "casadi":
+        if start.size != 1:
+            raise InvalidOptionError(
+                f"engine='casadi' solves one trajectory; this batch has {start.size} samples: use engine='torch' "
+                "(or 'auto')"
+            )
+        return CasadiEngine(compiled, start, tableau, transform)
+    import torch
+    from daemodel.backends.radau.torch_engine import TorchEngine
+
+    return TorchEngine(compiled, start, tableau, transform, getattr(torch, options.dtype), torch_device(options.device))

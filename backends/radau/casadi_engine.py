@@ -1,0 +1,351 @@
+"""The casadi engine of ``method="radau"``: one trajectory in float64 on the CPU, compiled.
+
+casadi-compiled residual, right-hand side and sparse Jacobian (casadi's AD); on dense systems the
+inverses of the transformed systems (LAPACK's LU inside casadi), a Newton iteration as one casadi
+call, and an adaptive attempt as one casadi call (:mod:`.compiled`), so that Python runs once per
+step; SuperLU for large sparse systems.  No torch code generation and no per-operation dispatch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from daemodel.backends.radau.compiled import (
+    Buffered,
+    casadi_functions,
+    inverse_function,
+    newton_step_function,
+    refresh_function,
+    step_function,
+)
+from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
+from daemodel.backends.radau.linalg import (
+    dense_inverse,
+    dense_lu,
+    dense_sign_det,
+    small_sign_det,
+    sparse_lu,
+    sparse_sign_det,
+)
+
+# casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
+# more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
+# project's CPU: at 100 unknowns a dense LU of a 3 %-full matrix is ~0.1 ms, as SuperLU's overhead.
+DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
+
+
+class CasadiEngine(AbstractEngine):
+    """One trajectory in float64 on casadi-compiled functions and scipy's LU (see the module docstring)."""
+
+    name = "casadi"
+
+    def __init__(self, compiled, start, tableau, transform):
+        super().__init__(compiled, start, tableau, transform)
+        self.xp = np
+        self.B = 1
+        self.p = np.asarray(start.p, dtype=float)[0]
+        functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
+        self._f, self._residual, self._jac, self._stage_jac = (Buffered(fn) for fn in functions[:4])
+        self.rows, self.cols = functions[4:]
+        D = self.D
+        self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
+        self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
+        self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
+        self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
+        if self.dense:
+            self._identity = (np.eye(D), np.eye(D, dtype=complex))
+            step = compiled.cached(("casadi-radau-step", self.s), lambda: newton_step_function(functions[1], self))
+            self._step = [Buffered(step, inputs=2), None]
+        else:
+            self._sparse_layout()
+        self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
+        self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
+        self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
+        self._functions = functions
+
+    def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
+        """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
+        the error estimate's ``bhat - b``); False
+        where the systems are sparse and the step runs on the general path."""
+        if not self.dense:
+            return False
+        compiled, functions = self.compiled, self._functions
+        weights = np.array(compiled.algebraic_index, dtype=float)
+        step = compiled.cached(
+            ("casadi-radau-compiled-step", self.s, iterations),
+            lambda: step_function(functions[0], functions[1], self, iterations, e, weights),
+        )
+        self._compiled = [Buffered(step, inputs=2), None]
+        return True
+
+    def _sparse_layout(self):
+        """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
+        n, D = self.n, self.D
+        keys_J = self.cols * D + self.rows  # CSC order: by column, then row
+        keys_M = np.arange(n) * D + np.arange(n)
+        keys = np.unique(np.concatenate([keys_J, keys_M]))
+        indptr = np.searchsorted(keys // D, np.arange(D + 1))
+        self._csc = (keys % D, indptr, len(keys))
+        self._pos_J, self._pos_M = np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+
+    def asarray(self, values):
+        return np.array(values, dtype=float)
+
+    def factor(self, J, h: float, error_only: bool = False) -> Factors:
+        if self.dense and not error_only:
+            factors = self._compiled_factor(J, h)
+            if factors is not None:
+                return factors
+        factors = super().factor(J, h, error_only)
+        if self.dense and factors.complete and not factors.singular.any():
+            # the blocks' inverses, column-major as casadi reads them, complex ones as (Re, Im)
+            packed = []
+            for _, lam in self.transform.blocks:
+                inverse = factors.lu[lam / h][1]
+                packed += [inverse.real.ravel("F")] + ([inverse.imag.ravel("F")] if lam.imag else [])
+            packed.append(factors.lu[factors.error_shift][1].real.ravel("F"))  # the error estimate's (compiled step)
+            factors.inverse = np.concatenate(packed)
+        return factors
+
+    def _compiled_factor(self, J, h: float, build_only: bool = False) -> Factors | None:
+        """The inverses of every shift in one casadi call (:func:`~daemodel.backends.radau_compiled.inverse_function`),
+        or None where one is singular or not finite (scipy's LAPACK then factors, and names it)."""
+        if self._inverses is None:
+            build = lambda: inverse_function(self.rows, self.cols, self)  # noqa: E731
+            self._inverses = Buffered(self.compiled.cached(("casadi-radau-inverses", self.s), build))
+        if build_only:
+            return None
+        try:
+            packed = self._inverses(np.concatenate([[h], J]))
+        except RuntimeError:
+            return None
+        return self._packed_factors(packed, h)
+
+    def _packed_factors(self, packed: np.ndarray, h: float) -> Factors | None:
+        """:class:`Factors` of the packed inverses of the compiled factorisation; None where one is not finite."""
+        if not np.isfinite(packed.sum()):
+            return None
+        shifts = self.transform.shifts(h)
+        target = 1.0 / (h * self.transform.gamma0)
+        error = min(shifts, key=lambda sigma: abs(sigma - target))
+        lu = _PackedInverses(packed, self.transform.blocks, shifts, error, self.D)
+        return Factors(h=h, shifts=shifts, lu=lu, singular=np.array([False]), error_shift=error, inverse=packed)
+
+    def refresh(self, t: float, y, z, h: float):
+        """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
+        iteration matrix, in one casadi call on dense systems (:func:`.radau_compiled.refresh_function`)."""
+        if not self.dense:
+            return super().refresh(t, y, z, h)
+        if self._refresh is None:
+            self._compiled_factor(None, h, build_only=True)
+            build = lambda: refresh_function(self._jac.function, self._inverses.function, self.rows, self.cols, self)  # noqa: E731
+            self._refresh = Buffered(self.compiled.cached(("casadi-radau-refresh", self.s), build))
+        try:
+            out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
+        except RuntimeError:  # a singular system: the general path factors it and names it
+            return super().refresh(t, y, z, h)
+        nnz, m = len(self.rows), self.m
+        J = out[:nnz]
+        sign = np.array([small_sign_det(out[nnz : nnz + m * m], m)])
+        return J, self._packed_factors(out[nnz + m * m :], h), sign
+
+    def compiled_step(self, factors: Factors, scalars, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        """One adaptive attempt in one call (:mod:`daemodel.backends.radau_compiled`): ``scalars`` in the
+        order of its ``SCALARS``, ``previous`` ((s+1) D) the last step's start value and stages, ``f0``
+        (n) f at the step's start; returns its packed output."""
+        step, bound = self._compiled
+        if bound is not factors:
+            step.inputs[1][:] = factors.inverse
+            self._compiled[1] = factors
+        return step(np.concatenate([scalars, previous, f0, self.p]))
+
+    def _factor_shifts(self, values, shifts):
+        """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
+        applies as a matrix product; sparse ones: SuperLU's factors."""
+        if not self.dense:
+            return super()._factor_shifts(values, shifts)
+        minus_J = -self._dense(values)
+        diagonal = slice(0, self.n * (self.D + 1), self.D + 1)  # M's diagonal in the flattened matrix
+        lu, singular = {}, False
+        for sigma in shifts:
+            matrix = minus_J.copy() if sigma.imag == 0 else minus_J.astype(complex)
+            matrix.ravel()[diagonal] += sigma.real if sigma.imag == 0 else sigma
+            lu[sigma] = dense_inverse(matrix, self._identity[sigma.imag != 0])
+            singular = singular or lu[sigma][0] == "singular"
+        return lu, np.array([singular])
+
+    def newton_step(self, factors, t, h, y, W):
+        """One casadi call for the residual and the transformed systems' increment (by their inverses)
+        on dense systems; the residual and LU solves apart otherwise (full Newton, sparse systems)."""
+        if not isinstance(factors, Factors) or factors.inverse is None:
+            return super().newton_step(factors, t, h, y, W)
+        step, bound = self._step
+        if bound is not factors:
+            step.inputs[1][:] = factors.inverse
+            self._step[1] = factors
+        s, n, D = self.s, self.n, self.D
+        out = step(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        R = out[: s * D].reshape(1, s, D)
+        stage_f = out[s * D : s * D + s * n].reshape(1, s, n)
+        return Residual(R=R, stage_f=stage_f, G=R[..., n:]), out[s * D + s * n :].reshape(1, s, D)
+
+    def f(self, t, y, z):
+        return self._f(np.concatenate([[t], y[0], z[0], self.p]))[None]
+
+    def residual(self, t, h, y, W):
+        s, n, D = self.s, self.n, self.D
+        out = self._residual(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        R = out[: s * D].reshape(1, s, D)
+        return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
+
+    def jacobian(self, t, y, z):
+        return self._jac(np.concatenate([[t], y[0], z[0], self.p]))
+
+    def stage_jacobians(self, t, h, W):
+        values = self._stage_jac(np.concatenate([[t, h], W.ravel(), self.p]))
+        return list(values.reshape(self.s, -1))
+
+    def _dense(self, values) -> np.ndarray:
+        J = np.zeros((self.D, self.D))
+        J[self.rows, self.cols] = values
+        return J
+
+    def _csr(self, values):
+        import scipy.sparse as sparse
+
+        return sparse.csr_matrix((values, (self.rows, self.cols)), shape=(self.D, self.D))
+
+    def z_matrix_sign(self, values):
+        if isinstance(values, list):  # the stages' Jacobians: (1, s)
+            return np.array([[self.z_matrix_sign(v)[0] for v in values]])
+        n = self.n
+        if self.dense:
+            J = self._dense(values)
+            rows = J[n:, n:].copy()
+            if self.index2_rows.any():
+                rows[self.index2_rows] = (J[n:, :n] @ J[:n, n:])[self.index2_rows]
+            return np.array([dense_sign_det(rows)])
+        if self.m <= DENSE_MAX_SIZE:  # a small z block of a large system: dense blocks of J suffice
+            g_rows = self.rows >= n
+            G = np.zeros((self.m, self.D))
+            G[self.rows[g_rows] - n, self.cols[g_rows]] = values[g_rows]
+            rows = G[:, n:].copy()
+            if self.index2_rows.any():
+                f_z = (self.rows < n) & (self.cols >= n)
+                F = np.zeros((n, self.m))
+                F[self.rows[f_z], self.cols[f_z] - n] = values[f_z]
+                rows[self.index2_rows] = (G[:, :n] @ F)[self.index2_rows]
+            return np.array([dense_sign_det(rows)])
+        import scipy.sparse as sparse
+
+        J = self._csr(values)
+        rows = J[n:, n:]
+        if self.index2_rows.any():
+            pick = sparse.diags(self.index2_rows.astype(float))
+            rows = rows - pick @ rows + pick @ (J[n:, :n] @ J[:n, n:])
+        return np.array([sparse_sign_det(rows.tocsc())])
+
+    def _factor_shift(self, values, sigma):
+        """SuperLU's factors of ``sigma M - J`` (dense systems: see :meth:`_factor_shifts`)."""
+        import scipy.sparse as sparse
+
+        real = sigma.imag == 0
+
+        indices, indptr, nnz = self._csc
+        data = np.zeros(nnz, dtype=float if real else complex)
+        data[self._pos_J] = -values
+        data[self._pos_M] += sigma.real if real else sigma
+        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)))
+
+    def solve(self, lu, rhs):
+        kind = lu[0]
+        if kind == "inverse":
+            return (lu[1] @ rhs[0])[None]
+        if kind == "dense":
+            LU, piv, getrs = lu[1:]
+            if not np.iscomplexobj(LU) and np.iscomplexobj(rhs):
+                return (getrs(LU, piv, rhs[0].real)[0] + 1j * getrs(LU, piv, rhs[0].imag)[0])[None]
+            return getrs(LU, piv, rhs[0])[0][None]
+        if kind == "singular":
+            return np.full_like(rhs, np.nan)
+        return lu[1].solve(rhs[0])[None]
+
+    def factor_stages(self, stage_J, h):
+        s, n, D = self.s, self.n, self.D
+        A = self.tableau.A
+        if self.dense:
+            # rows [F_i; G_i] and unknowns [Y_j; Z_j] stage by stage (see TorchEngine.factor_stages)
+            Js = np.stack([self._dense(v) for v in stage_J])  # (s, D, D)
+            N = np.zeros((s, D, s, D))
+            N[:, :n] = (-h * A[:, None, :, None]) * Js[None, :, :n, :].transpose(0, 2, 1, 3)
+            for i in range(s):
+                N[i, n:, i, :] = Js[i, n:, :]
+                N[i, :n, i, :n] += np.eye(n)
+            lu, singular = dense_lu(N.reshape(s * D, s * D))
+            return StageFactors(lu=lu, singular=singular)
+        import scipy.sparse as sparse
+
+        if self._stage_layout is None:
+            self._stage_layout = self._full_newton_layout()
+        top, bottom, positions, (indices, indptr, nnz) = self._stage_layout
+        V = np.stack(stage_J)  # (s, nnz of J)
+        values = np.concatenate(
+            [((-h) * A[:, :, None] * V[None, :, top]).ravel(), V[:, bottom].ravel(), np.ones(s * n)]
+        )
+        data = np.bincount(positions, weights=values, minlength=nnz)  # sums the identity into J's diagonal
+        lu, singular = sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(s * D, s * D)))
+        return StageFactors(lu=lu, singular=singular)
+
+    def _full_newton_layout(self):
+        """Where each entry of the full Newton matrix goes in its CSC data, computed once.
+
+        Entries, in the order :meth:`factor_stages` lays out their values: ``-h a_ij J_j`` on the F rows
+        of every block (i, j), ``J_i`` on the G rows of the diagonal blocks, the identity of the F rows.
+        """
+        s, n, D = self.s, self.n, self.D
+        top, bottom = np.flatnonzero(self.rows < n), np.flatnonzero(self.rows >= n)
+        i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
+        rows = [
+            (i[:, :, None] * D + self.rows[None, None, top]).ravel(),
+            (np.arange(s)[:, None] * D + self.rows[None, bottom]).ravel(),
+            (np.arange(s)[:, None] * D + np.arange(n)[None, :]).ravel(),
+        ]
+        cols = [
+            (j[:, :, None] * D + self.cols[None, None, top]).ravel(),
+            (np.arange(s)[:, None] * D + self.cols[None, bottom]).ravel(),
+            rows[2],
+        ]
+        keys_all = np.concatenate(cols) * (s * D) + np.concatenate(rows)  # CSC order: column, then row
+        keys = np.unique(keys_all)
+        indptr = np.searchsorted(keys // (s * D), np.arange(s * D + 1))
+        return top, bottom, np.searchsorted(keys, keys_all), (keys % (s * D), indptr, len(keys))
+
+    def solve_stages(self, factors, R):
+        s, D = self.s, self.D
+        return self.solve(factors.lu, -R.reshape(1, s * D)).reshape(1, s, D)
+
+    def first(self, mask):
+        return int(np.flatnonzero(mask)[0])
+
+
+class _PackedInverses(dict):
+    """``{shift: ("inverse", matrix)}`` read from the packed inverses of the compiled factorisation
+    when first asked for (the compiled step reads the packed array itself; the general path's LU
+    solves need the matrices)."""
+
+    def __init__(self, packed, blocks, shifts, error_shift, D):
+        super().__init__()
+        self._where, offset = {}, 0
+        for (_, lam), sigma in zip(blocks, shifts, strict=False):
+            self._where[sigma] = (offset, bool(lam.imag))
+            offset += (2 if lam.imag else 1) * D * D
+        self._where.setdefault(error_shift, (offset, False))
+        self._packed, self._D = packed, D
+
+    def __missing__(self, sigma):
+        offset, complex_ = self._where[sigma]
+        D2, D = self._D * self._D, self._D
+        matrix = self._packed[offset : offset + D2].reshape(D, D, order="F")
+        if complex_:
+            matrix = matrix + 1j * self._packed[offset + D2 : offset + 2 * D2].reshape(D, D, order="F")
+        self[sigma] = ("inverse", matrix)
+        return self[sigma]

@@ -1,0 +1,223 @@
+"""The two controllers of ``method="radau"``: where the steps go, and what Newton must reach.
+
+A controller owns the step sequence and hands the :class:`~.step.Stepper` its Newton policy; the
+step itself (start guess, Newton, error estimate, acceptance) is the same for both:
+
+- :class:`FixedGrid` steps along ``t0 + k h`` and solves each step's stage equations to rounding
+  (the Radau IIA collocation solution), checking every step's local error estimate.
+- :class:`Radau5Controller` is RADAU5's step-size control: the embedded estimate against
+  ``rtol``/``atol``, the step kept within a band so the factorisations are reused, a failed Newton
+  halving h; every attempt counts against ``max_steps``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from daemodel.backends.base import ProgressWatch, fixed_grid
+from daemodel.backends.radau.newton import NewtonPolicy
+
+from daemodel.errors import ConvergenceError, StepLimitError
+
+# Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
+FIXED_NEWTON_TOL_EPS = 10
+# Step-size controller (RADAU5's values): safety factor, and bounds on h_new / h.
+SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 8.0
+# Keep h (and the LU) when the controller asks for a change within this band (RADAU5's QUOT1/2).
+KEEP_H_BAND = (1.0, 1.2)
+
+
+class FixedGrid:
+    """Steps along ``t0 + k h`` (the last one shortened to end at t1), Newton to rounding, each step's
+    local error estimate checked (:meth:`~.error.ErrorEstimate.check_fixed`)."""
+
+    name = "fixed"
+
+    def __init__(self, options):
+        self.h, self.max_steps = options.h, options.max_steps
+        eps = float(np.finfo(options.dtype).eps)
+        # converge to rounding, increments measured against 1 + |w|
+        self.policy = NewtonPolicy(
+            tol=options.newton_tol or FIXED_NEWTON_TOL_EPS * eps,
+            atol=1.0,
+            rtol=1.0,
+            iterations=options.max_newton_iterations,
+            trust_last_rate=False,
+            to_rounding=True,
+            rescue=True,
+        )
+
+    def grid(self, t_span):
+        return fixed_grid(t_span, self.h, max_steps=self.max_steps)
+
+    def start_stats(self, stats: dict) -> None:
+        # worst step, sample and variable, in units of 1 + max|u| (see ErrorEstimate.check_fixed)
+        stats["max_local_error_estimate"] = 0.0
+        stats["damped_newton_attempts"] = 0  # runs of the last resort (DAMPED_NEWTON_FACTOR); a step may need 2
+
+    def run(self, stepper, t_span, grid) -> None:
+        """Step along ``grid``, checking each step's local error estimate."""
+        for step in range(1, len(grid)):
+            t, h = float(grid[step - 1]), float(grid[step] - grid[step - 1])
+            if abs(h - self.h) <= 1e-12 * self.h:
+                h = self.h  # not its rounded copy: the LU and the estimate's weights are kept per h
+            stepper.stats["attempts"] += 1
+            result, _, why, sample = stepper.attempt(t, h)
+            if result is None:
+                stepper.stats["newton_failures"] += 1
+                raise ConvergenceError(
+                    f"radau: Newton failed in step {step} from t = {t:.6g} with h = {h:.3g} ({why}, "
+                    f"sample {sample}); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+                )
+            stepper.error.check_fixed(step, t, h, result[1])
+            stepper.accept(t, h, result, float(grid[step]))
+
+
+class Radau5Controller:
+    """RADAU5's step-size controller on the embedded estimate (Hairer & Wanner, IV.8)."""
+
+    name = "adaptive"
+
+    def __init__(self, options):
+        self.options = options
+        self.rtol, self.atol = options.rtol, options.atol
+        eps = float(np.finfo(options.dtype).eps)
+        self.policy = NewtonPolicy(
+            tol=options.newton_tol or max(10 * eps / self.rtol, min(0.03, self.rtol**0.5)),  # RADAU5's rule
+            atol=self.atol,
+            rtol=self.rtol,
+            iterations=options.max_newton_iterations,
+            trust_last_rate=True,
+            to_rounding=False,
+            rescue=False,
+        )
+
+    def grid(self, t_span):
+        return None  # the steps are found as they go
+
+    def start_stats(self, stats: dict) -> None:
+        pass
+
+    def run(self, stepper, t_span, grid) -> None:
+        """Steps from t0 to t1; every attempt counts against ``max_steps``."""
+        options, stats = self.options, stepper.stats
+        iterations = options.max_newton_iterations
+        t0, t1 = t_span
+        t = t0
+        h = options.h0 or self.initial_step(stepper, t_span)
+        first, rejected_last = True, False
+        half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
+        watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
+        while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
+            attempts = stats["attempts"]
+            if attempts >= options.max_steps:
+                raise self.budget_error(stats, t, h, t1, half, options.max_steps - options.max_steps // 2)
+            if attempts == options.max_steps // 2:
+                half = (t, stats["steps"])
+            needed = watch.hopeless(attempts, t, h, t1, options.max_steps, extra=stats["steps"])
+            if needed is not None:
+                t_w, count_w, _, accepted_w = watch.start
+                raise self.budget_error(stats, t, h, t1, (t_w, accepted_w), attempts - count_w, projected=needed)
+            stats["attempts"] += 1
+            if h < 1e-14 * max(1.0, abs(t)):
+                h = shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
+            h = min(h, t1 - t)
+            if (t1 - t) - h < 1e-10 * h:
+                h = t1 - t
+            fast = stepper.compiled_attempt(t, h, first or rejected_last) if stepper.compiled_step else None
+            if fast is not None:
+                result, newton_iterations, err = fast
+            else:
+                result, newton_iterations, why, sample = stepper.attempt(t, h)
+                if result is None:
+                    stats["newton_failures"] += 1
+                    stepper.drop_factors()
+                    h = shrink(h, t, why, sample, 0.5)
+                    first = True
+                    continue
+                W, r, _ = result
+                err = stepper.error.norm(t, h, r, W, first or rejected_last)
+            factor = min(SAFETY, SAFETY * (2 * iterations + 1) / (2 * iterations + newton_iterations))
+            quot = factor * max(err, 1e-10) ** (-1.0 / (stepper.s + 1))
+            if err > 1:
+                stats["rejected_steps"] += 1
+                h = shrink(h, t, f"error estimate {err:.2g} > 1", None, max(MIN_FACTOR, min(quot, 0.9)))
+                rejected_last = True
+                stepper.drop_factors()
+                continue
+            t_next = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
+            stepper.accept(t, h, result, t_next)
+            t = t_next
+            new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
+            if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
+                new_h = h
+            h = new_h
+            first = rejected_last = False
+
+    def initial_step(self, stepper, t_span) -> float:
+        """``0.01 |u0| / |f(u0)|`` in the error norm, capped by the interval (Hairer-Wanner's first guess)."""
+        xp = stepper.xp
+        t0, t1 = t_span
+        f0 = stepper.start_f(t0)
+        sc = self.atol + self.rtol * xp.abs(stepper.y)
+        d0 = float(stepper.rms(stepper.y / sc).max()) if stepper.n else 0.0
+        d1 = float(stepper.rms(f0 / sc).max()) if stepper.n else 0.0
+        h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        return min(h0, t1 - t0)
+
+    def budget_error(self, stats, t, h, t1, half, recent, projected=None) -> StepLimitError:
+        """max_steps ran out (or, ``projected``, cannot suffice): say where, and why it likely did
+        (chattering, or a span too long); ``half`` is (t, accepted steps) ``recent`` attempts ago."""
+        budget, accepted = self.options.max_steps, stats["steps"]
+        failed = stats["rejected_steps"] + stats["newton_failures"]
+        recent_accepted = accepted - half[1]
+        progress = t - half[0]
+        if recent_accepted < recent / 2:
+            reason = (
+                f"{recent - recent_accepted} of the last {recent} attempts were rejected or failed in Newton, "
+                f"and they advanced t by {progress:.3g} of the {t1 - half[0]:.3g} left: the right-hand side is "
+                "likely discontinuous near "
+                f"t = {t:.6g} (sign(x), abs(x), min/max or a Piecewise that switches), and steps across the "
+                "switch need h -> 0 (chattering); stop the integration at the switch and restart from there, "
+                "or smooth the switch"
+            )
+        else:
+            rate = progress / max(recent, 1)
+            if projected is not None:
+                more = f"about {projected:.3g} more"
+            else:
+                more = f"about {(t1 - t) / rate:.3g} more" if rate > 0 else "endlessly many"
+            reason = (
+                f"the steps are accepted, but at the last {recent} attempts' rate ({rate:.3g} per attempt) the "
+                f"rest of t_span needs {more} attempts: t_span is too long for max_steps at this tolerance; "
+                "raise max_steps, loosen rtol/atol or shorten t_span"
+            )
+        if projected is None:
+            head = f"radau: max_steps = {budget} reached at t = {t:.6g}"
+        else:
+            head = (
+                f"radau: max_steps = {budget} cannot suffice (about {projected:.3g} more attempts projected, "
+                f"{budget - stats['attempts']} left), stopped early at t = {t:.6g}"
+            )
+        return StepLimitError(
+            f"{head} (h = {h:.3g}) before t1 = {t1:g}, after {accepted} accepted steps and {failed} rejected or "
+            f"failed attempts: {reason}"
+        )
+
+
+def shrink(h, t, why, sample, factor):
+    """``h * factor``, or :class:`ConvergenceError` where that underflows (the last failure named)."""
+    new = h * factor
+    if new < 1e-14 * max(1.0, abs(t)):
+        who = f", sample {sample}" if sample is not None else ""
+        raise ConvergenceError(
+            f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "
+            "solution may blow up or leave the domain of f there"
+        )
+    return new
+
+
+def make_controller(options):
+    """The controller ``options`` select: a fixed grid for ``h``, RADAU5's otherwise."""
+    return Radau5Controller(options) if options.adaptive else FixedGrid(options)

@@ -1,0 +1,272 @@
+"""Newton on the stage equations of one step: simplified (one Jacobian, the transformed systems), full
+(each stage's Jacobian) and damped (Deuflhard), under one :class:`NewtonPolicy` set by the controller.
+
+The equations are :func:`daemodel.collocation.stage_residual`'s (the ones the Radau-PINN
+minimises).  Simplified Newton factors ``(gamma / h) M - J`` once (:mod:`.transform`); where it
+contracts too slowly, a fixed step switches to full Newton with each stage's Jacobian at the
+current iterate, and where that fails too, to damped Newton: a fixed step has no smaller h to fall
+back on.  An adaptive step instead fails, and the controller shrinks h, as RADAU5 does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from daemodel.backends.radau.engines import StageFactors
+
+# Above this contraction rate, Newton switches to per-stage Jacobians at the current iterate.
+REFRESH_THETA = 0.05
+# Fixed step: increments that stop shrinking (contraction above STAGNATION_THETA) while within
+# STAGNATION_FACTOR of newton_tol have reached the rounding floor of the residual.
+STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
+# After a step needed full Newton (per-stage Jacobians), this many steps start with it directly,
+# then the transformed systems are tried again: where the Jacobian varies along the step (the
+# pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
+STAGE_NEWTON_STEPS = 8
+# Newton is declared diverging when an increment is not at least this much smaller than the last.
+DIVERGENCE_THETA = 0.99
+# A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
+# damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
+# natural monotonicity test: a step lam dW is taken when the next simplified increment is at
+# most (1 - lam / 2) times dW; lam halves down to DAMPING_MIN = 2^-DAMPING_HALVINGS), for at most
+# DAMPED_NEWTON_FACTOR x max_newton_iterations iterations.  casadi's collocation (full Newton, no
+# divergence test) converged on steps where the undamped iterations here failed: the transistor
+# amplifier at h = 1e-3 (contraction 30 at step 1) and 2.5e-4 (10 iterations too few, step 52).
+DAMPED_NEWTON_FACTOR, DAMPING_HALVINGS = 5, 10
+DAMPING_MIN = 2.0**-DAMPING_HALVINGS
+
+
+@dataclass(frozen=True, kw_only=True)
+class NewtonPolicy:
+    """How a controller wants the stage equations solved.
+
+    Attributes
+    ----------
+    tol : float
+        Newton stops when the (predicted) scaled increment is below this.
+    atol, rtol : float
+        Increments are measured in units of ``atol + rtol |u|`` (an index-k algebraic variable's
+        divided by ``h^(k-1)``); the adaptive error estimate uses the same units.
+    iterations : int
+        Most iterations of one solve.
+    trust_last_rate : bool
+        RADAU5's start: the last step's contraction rate predicts this one's, so one iteration
+        may converge; such a convergence is checked with one more increment (trusting the rate
+        alone accepted 100 x rtol errors on the pendulum and finite garbage on sign(x)).
+    to_rounding : bool
+        The collocation solution to rounding: no early trust, and increments that stop shrinking
+        near ``tol`` are at the rounding floor (converged), not diverging.
+    rescue : bool
+        A fixed step has no smaller h: slow contraction switches to full Newton, and a failure to
+        full and then damped Newton.  Without rescue a slow or failed Newton ends the attempt.
+    """
+
+    tol: float
+    atol: float
+    rtol: float
+    iterations: int
+    trust_last_rate: bool
+    to_rounding: bool
+    rescue: bool
+
+
+class Newton:
+    """The Newton iterations of one :class:`~.step.Stepper` under its policy.
+
+    Each solve returns ``((W, residual, theta) or None, iterations, why it failed, sample)``.
+    """
+
+    def __init__(self, stepper, policy: NewtonPolicy):
+        self.stepper, self.policy = stepper, policy
+
+    def simplified(self, t, h, factors, W):
+        """Solve the stage equations from the guess ``W`` with ``factors`` (transformed systems or full)."""
+        stepper, policy = self.stepper, self.policy
+        xp, engine, stats = stepper.xp, stepper.engine, stepper.stats
+        scale = stepper.weights(h, xp.abs(stepper.state()))[:, None, :]
+        if policy.trust_last_rate:
+            # RADAU5: trust the last step's contraction rate, so one iteration may suffice
+            eta = xp.clip(stepper.eta, float(np.finfo(stepper.options.dtype).eps), None) ** 0.8
+        else:
+            eta = xp.ones_like(stepper.eta)
+        previous = None
+        theta = xp.zeros_like(stepper.eta)
+        active = xp.ones_like(stepper.eta) > 0  # samples still iterating
+        for k in range(1, policy.iterations + 1):
+            stats["residual_evaluations"] += 1
+            r, dW = engine.newton_step(factors, t, h, stepper.y, W)
+            if stepper.B > 1:
+                dW = dW * active[:, None, None]  # samples that converged keep their stage values
+            W = W + dW
+            norm = stepper.rms(dW / scale)
+            finite = xp.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
+            if not bool(finite.all()):
+                sample = engine.first(~finite)
+                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
+            if previous is not None:
+                theta = xp.where(active, norm / xp.clip(previous, 1e-300, None), theta)
+                diverging = active & (theta >= DIVERGENCE_THETA)
+                if policy.to_rounding:  # increments at the rounding floor wander: that is not divergence
+                    diverging = diverging & (norm > STAGNATION_FACTOR * policy.tol)
+                if bool(diverging.any()):
+                    worst = engine.first(diverging)
+                    return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
+                eta = xp.where(active, theta / (1 - theta), eta)
+            if policy.to_rounding:
+                # the last increment itself is below tol, or rounding stops the iteration near it
+                done = (norm <= policy.tol) | ((theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * policy.tol))
+            else:
+                done = eta * norm <= policy.tol
+            active = active & ~done
+            left = policy.iterations - k
+            if previous is not None and left > 0 and bool(active.any()):
+                result = self.slow_contraction(t, h, W, factors, theta, eta * norm * theta**left, active)
+                if isinstance(result, str):
+                    worst = engine.first(active & (theta >= float((theta * active).max())))
+                    return None, k, result, worst
+                factors = result
+            previous = norm
+            if not bool(active.any()) and policy.trust_last_rate:
+                # the error estimate needs f at the final stage values
+                if k == 1 and k < policy.iterations:
+                    # converged on the last step's contraction alone: check that the next increment is
+                    # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
+                    stats["residual_evaluations"] += 1
+                    r, after = engine.newton_step(factors, t, h, stepper.y, W)
+                    active = stepper.rms(after / scale) > policy.tol
+                else:
+                    r = stepper.residual(t, h, W)
+            if not bool(active.any()):
+                stepper.eta = eta
+                stats["newton_iterations"] += k
+                stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
+                return (W, r, float(theta.max())), k, None, None
+        return None, k, f"not converged in {k} iterations", engine.first(active)
+
+    def slow_contraction(self, t, h, W, factors, theta, predicted, active):
+        """What Newton does when it contracts too slowly: the factors to go on with, or why it stops.
+
+        ``predicted`` is the size of the increment after the iterations left (RADAU5's test).  With
+        the transformed systems, a slow contraction that will not reach the tolerance ends the
+        attempt without rescue (the controller shrinks h, as RADAU5 does) and switches to full
+        Newton with each stage's Jacobian at the current iterate with it, which stays quadratic;
+        under full Newton the stage Jacobians are refreshed while it contracts slower than
+        REFRESH_THETA.
+        """
+        stepper = self.stepper
+        worst = float((theta * active).max())
+        if isinstance(factors, StageFactors):
+            refresh = worst > REFRESH_THETA
+        else:
+            refresh = bool((active & (predicted > self.policy.tol)).any())
+            if refresh and not self.policy.rescue:
+                return f"converging too slowly (contraction {worst:.2f})"
+        if not refresh:
+            return factors
+        stage_J = stepper.engine.stage_jacobians(t, h, W)
+        stepper.stats["jacobian_evaluations"] += 1
+        stepper.drop_jacobian()  # the next step starts from a fresh Jacobian too
+        return stepper.factor_stages(stage_J, t, h)
+
+    def non_finite(self, r, dW, sample, t, h) -> str:
+        """Where a sample's first non-finite value arose: ``f`` or ``g`` at a stage, else an increment of a variable."""
+        stepper = self.stepper
+        xp, compiled, n = stepper.xp, stepper.compiled, stepper.n
+        for values, names, what in (
+            (r.stage_f, compiled.state_names, "the right-hand side of {}'"),
+            (r.G, compiled.constraint_names, "constraint '{}'"),
+            (dW[..., :n], compiled.state_names, "the Newton increment of '{}'"),
+            (dW[..., n:], compiled.algebraic_names, "the Newton increment of '{}'"),
+        ):
+            bad = np.argwhere(~host(xp.isfinite(values[sample])))
+            if len(bad):
+                stage, k = (int(i) for i in bad[0])
+                when = t + float(stepper.tableau.c[stage]) * h
+                return f"{what.format(names[k])} at stage {stage + 1} (t = {when:.6g})"
+        return "the Newton increment"
+
+    def full(self, t, h, W0):
+        """Full Newton from ``W0`` with each stage's Jacobian at ``W0`` (and at later iterates while
+        it contracts slowly); with rescue, damped Newton if that fails."""
+        stepper = self.stepper
+        stage_J = stepper.engine.stage_jacobians(t, h, W0)
+        stepper.stats["jacobian_evaluations"] += 1
+        stepper.check_determined(stage_J, t, h)
+        result, iterations, why, sample = self.simplified(t, h, stepper.factor_stages(stage_J, t, h), W0)
+        if result is not None or not self.policy.rescue:
+            return result, iterations, why, sample
+        damped, more, why_damped, sample = self.damped(t, h, W0)
+        if damped is not None:
+            return damped, iterations + more, None, None
+        return None, iterations + more, f"{why}; damped Newton: {why_damped}", sample
+
+    def damped(self, t, h, W):
+        """A fixed step's last attempt: Newton from ``W`` with each stage's Jacobian at every iterate,
+        damped by the natural monotonicity test (see :data:`DAMPED_NEWTON_FACTOR`).
+
+        Returns ``(W, residual, 1.0)`` or None, the iterations, why it failed and the sample, as
+        :meth:`simplified` does; the contraction 1.0 makes the next step evaluate a fresh Jacobian.
+        """
+        stepper, tol = self.stepper, self.policy.tol
+        xp, engine, stats = stepper.xp, stepper.engine, stepper.stats
+        stats["damped_newton_attempts"] += 1
+        scale = stepper.weights(h, xp.abs(stepper.state()))[:, None, :]
+        lam = xp.ones_like(stepper.eta)
+        active = lam > 0
+        previous = xp.full_like(lam, math.inf)
+        limit = DAMPED_NEWTON_FACTOR * self.policy.iterations
+        for k in range(1, limit + 1):
+            stage_J = engine.stage_jacobians(t, h, W)
+            stats["jacobian_evaluations"] += 1
+            factors = engine.factor_stages(stage_J, h)
+            stats["lu_decompositions"] += 1
+            stats["newton_refreshes"] += 1
+            stepper.stage_steps = STAGE_NEWTON_STEPS
+            if bool(factors.singular.any()):  # an iterate left f's domain, or a stiff mode meets a shift
+                finite = all(bool(xp.isfinite(J).all()) for J in stage_J)
+                cause = "" if finite else " (the Jacobian of f and g is not finite there)"
+                return None, k, f"the Newton matrix at iterate {k} is singular{cause}", engine.first(factors.singular)
+            stats["residual_evaluations"] += 1
+            r, dW = engine.newton_step(factors, t, h, stepper.y, W)
+            norm = stepper.rms(dW / scale)
+            finite = xp.isfinite(norm)
+            if not bool(finite.all()):
+                sample = engine.first(~finite)
+                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
+            # converged: the increment is below tol, or it stopped shrinking at the rounding floor near it
+            stagnant = (norm >= STAGNATION_THETA * previous) & (norm <= STAGNATION_FACTOR * tol)
+            active = active & (norm > tol) & ~stagnant
+            previous = norm
+            if not bool(active.any()):
+                W = W + dW  # every sample's increment is below the tolerance: take it whole
+                stats["newton_iterations"] += k
+                stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
+                return (W, stepper.residual(t, h, W), 1.0), k, None, None
+            lam = xp.clip(2 * lam, None, 1.0)
+            while True:  # lam halves each pass, down to DAMPING_MIN: at most DAMPING_HALVINGS + 1 passes
+                trial = W + (lam * active)[:, None, None] * dW
+                stats["residual_evaluations"] += 1
+                _, simplified = engine.newton_step(factors, t, h, stepper.y, trial)
+                after = stepper.rms(simplified / scale)
+                fine = ~active | (xp.isfinite(after) & (after <= (1 - lam / 2) * norm))
+                if bool(fine.all()):
+                    break
+                if bool((~fine & (lam <= DAMPING_MIN)).any()):
+                    sample = engine.first(~fine & (lam <= DAMPING_MIN))
+                    return (
+                        None,
+                        k,
+                        f"no damped step down to {DAMPING_MIN:.2g} of the increment decreases it (increment "
+                        f"{float(norm[sample]):.2g}, tolerance {tol:.2g})",
+                        sample,
+                    )
+                lam = xp.where(fine, lam, lam / 2)
+            W = trial
+        return None, limit, f"not converged in {limit} iterations", engine.first(active)
+
+
+def host(values) -> np.ndarray:
+    """A numpy view or copy of an engine's array, of its own dtype."""
+    return values if isinstance(values, np.ndarray) else values.detach().cpu().numpy()

@@ -1,0 +1,174 @@
+"""Options of ``method="radau"``: one frozen dataclass, validated where it is made."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from daemodel.backends.base import (
+    check_dtype,
+    check_number,
+    check_stages,
+    check_threads,
+    check_tolerances,
+    torch_device,
+)
+
+from daemodel.errors import InvalidOptionError
+
+# Stages of a fixed step when none are given: the paper's v = 3 (order 5).
+FIXED_STAGES = 3
+# Stages of adaptive mode when none are given, by rtol: (smallest rtol, stages), loosest first.
+# Measured at equal error on the pendulums, Robertson, the squeezer and the scaling families
+# (benchmarks/adaptive_precision.py): s = 5 takes 3-5x fewer steps than s = 3 below rtol 1e-6
+# for 1.3-2x the cost of a step, and s = 7 pays off only below 1e-10 (at looser tolerances
+# its steps are rejected or fail Newton more often).
+ADAPTIVE_STAGES = ((1e-6, 3), (1e-10, 5), (0.0, 7))
+# Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
+ENGINES = ("auto", "torch", "casadi")
+# Tolerances of adaptive mode when neither h nor rtol/atol is given.
+DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
+# float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
+FLOAT32_MIN_RTOL = 1e-5
+# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
+# attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
+# t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
+DEFAULT_MAX_ADAPTIVE_STEPS = 5_000
+# Fixed step: default bound on the grid's step count, checked before the grid is built (the count
+# is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
+DEFAULT_MAX_FIXED_STEPS = 100_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class RadauOptions:
+    """Options of ``method="radau"``.
+
+    Attributes
+    ----------
+    stages : int, optional
+        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).  Default: 3
+        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
+        ``1e-10 <= rtol < 1e-6`` and 7 (order 13) below, where the larger steps of the higher order
+        pay for its larger systems (:data:`ADAPTIVE_STAGES`).
+    h : float, optional
+        Fixed step size.  Exclusive with ``rtol``/``atol``.
+    rtol, atol : float, optional
+        Adaptive mode's tolerances (default 1e-6, 1e-8 when ``h`` is not given).
+    h0 : float, optional
+        First step of adaptive mode (default: estimated from f at t0).
+    t_eval : array, optional
+        Output times (collocation-polynomial dense output); default: the step grid.
+    newton_tol : float, optional
+        Newton's tolerance on scaled increments; default ``10 * eps`` of the dtype for a fixed
+        step (the collocation solution to rounding), ``max(10 eps / rtol, min(0.03, sqrt(rtol)))``
+        relative to the error tolerance in adaptive mode (RADAU5's rule).
+    max_newton_iterations : int
+    max_steps : int, optional
+        Fixed step: most steps of the grid, refused before it is built
+        (:class:`~daemodel.errors.ResourceLimitError`); default 100,000.  Adaptive mode: most step
+        attempts, accepted, rejected or failed in Newton alike
+        (:class:`~daemodel.errors.StepLimitError`); default 5,000, a runaway's 10-30 s.
+    reuse_jacobian : bool
+        Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
+        contracted fast; otherwise a fresh one every step.
+    dtype : "float64" or "float32"
+    device : str
+        A torch device ("cpu", "cuda", "cuda:1", ...).
+    threads : int, optional
+        torch's intra-op threads for the torch engine (the caller's setting is restored after the
+        solve).  Default: one thread for batches of under 20,000 unknowns in all (samples x
+        (n + m)), where more threads only add synchronisation, and torch's own setting above
+        (:data:`~daemodel.backends.base.SMALL_TORCH_WORK`).  The casadi engine runs on one thread.
+    engine : "auto", "torch" or "casadi"
+        Who evaluates the residuals and Jacobians and factors the matrices; the algorithm is the
+        same, and so are the results to rounding.  "casadi": casadi-compiled functions, casadi's
+        sparse Jacobian and scipy's dense or sparse LU, for one trajectory in float64 on the CPU
+        (no torch code generation, no per-operation dispatch).  "torch": the compiler's batched
+        torch functions, for batches, float32 and GPUs.  "auto" picks casadi where it can.
+    start_guess : callable, optional
+        Fixed step only: ``start_guess(t, y, z) -> W``, the stage values ``(B, s, n+m)`` Newton
+        starts each step from (``y`` (B, n), ``z`` (B, m) the step's start values, arrays of
+        the engine), instead of extrapolating the last step's collocation polynomial.  A trained
+        Radau-PINN is such a guess (``Surrogate.solve(newton=True)``); the answer is still the
+        collocation solution, Newton only starts closer to it.  From a guess, each step runs
+        full Newton (each stage's Jacobian at the guess); where it fails, the step starts again
+        from its start value, as it does after a failed extrapolation.
+    """
+
+    stages: int | None = None
+    h: float | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    h0: float | None = None
+    t_eval: object = None
+    newton_tol: float | None = None
+    max_newton_iterations: int = 10
+    max_steps: int | None = None
+    reuse_jacobian: bool = True
+    dtype: str = "float64"
+    device: str = "cpu"
+    threads: int | None = None
+    engine: str = "auto"
+    start_guess: object = None
+
+    def __post_init__(self) -> None:
+        for name in ("h", "rtol", "atol", "h0", "newton_tol"):
+            check_number(name, getattr(self, name), allow_none=True)
+        check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
+        object.__setattr__(self, "dtype", check_dtype(self.dtype))
+        if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):
+            raise InvalidOptionError("h fixes the step size; rtol/atol/h0 select adaptive steps: give one or the other")
+        if self.max_steps is None:
+            object.__setattr__(
+                self, "max_steps", DEFAULT_MAX_ADAPTIVE_STEPS if self.adaptive else DEFAULT_MAX_FIXED_STEPS
+            )
+        check_number("max_steps", self.max_steps, integer=True)
+        if self.adaptive:
+            object.__setattr__(self, "rtol", DEFAULT_RTOL if self.rtol is None else self.rtol)
+            object.__setattr__(self, "atol", DEFAULT_ATOL if self.atol is None else self.atol)
+            if self.dtype == "float32" and self.rtol < FLOAT32_MIN_RTOL:
+                raise InvalidOptionError(
+                    f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); "
+                    "use dtype='float64'"
+                )
+            check_tolerances(self.rtol, self.atol)
+        if self.stages is None:
+            object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
+        check_stages(self.stages)
+        eps = float(np.finfo(self.dtype).eps)
+        if self.newton_tol is not None and self.newton_tol < 10 * eps:
+            raise InvalidOptionError(
+                f"newton_tol = {self.newton_tol:g} is below 10 eps of {self.dtype} ({10 * eps:.1e}); "
+                "Newton cannot reach it" + (": use dtype='float64'" if self.dtype == "float32" else "")
+            )
+        check_threads(self.threads)
+        if not isinstance(self.reuse_jacobian, bool):
+            raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
+        # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
+        # engine's solves then never import it, ~2.7 s on a first call)
+        if self.device != "cpu":
+            device = torch_device(self.device)
+            if not isinstance(self.device, str):
+                object.__setattr__(self, "device", str(device))
+        device_type = "cpu" if self.device == "cpu" else torch_device(self.device).type
+        if self.start_guess is not None and (not callable(self.start_guess) or self.adaptive):
+            raise InvalidOptionError(
+                "start_guess must be a function (t, y, z) -> stage values, for a fixed step (h=...); "
+                f"got {type(self.start_guess).__name__}" + (" with adaptive steps" if self.adaptive else "")
+            )
+        if self.engine not in ENGINES:
+            raise InvalidOptionError(f"engine must be one of {', '.join(map(repr, ENGINES))}; got {self.engine!r}")
+        if self.engine == "casadi" and (self.dtype != "float64" or device_type != "cpu"):
+            raise InvalidOptionError(
+                f"engine='casadi' computes in float64 on the CPU; dtype={self.dtype!r}, device={self.device!r} "
+                "need engine='torch'"
+            )
+
+    @property
+    def adaptive(self) -> bool:
+        return self.h is None
+
+
+def adaptive_stages(rtol: float) -> int:
+    """The stages adaptive mode uses at ``rtol`` when none are given (:data:`ADAPTIVE_STAGES`)."""
+    return next(stages for smallest, stages in ADAPTIVE_STAGES if rtol >= smallest)

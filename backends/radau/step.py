@@ -1,0 +1,413 @@
+"""One Radau IIA step on an engine: the state, the start guess, Newton's matrices, acceptance.
+
+Each step solves ``F = 0, G = 0`` of :func:`daemodel.collocation.stage_residual` (the equations
+the Radau-PINN minimises) for the stage values of every sample at once (:mod:`.newton`), from a
+start guess extrapolated from the last step's collocation polynomial, with one Jacobian at the
+step's start whose transformed systems (:mod:`.transform`) are factored once and kept across
+iterations and, while Newton contracts fast, across steps (RADAU5's strategy).  The controller
+(:mod:`.control`) decides where the steps go and what Newton must reach; the step is the same for
+both.  On dense systems of one trajectory the casadi engine runs an adaptive attempt in one
+compiled call (:mod:`.compiled`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from daemodel.backends.base import output_times
+from daemodel.backends.radau.compiled import CONVERGED
+from daemodel.backends.radau.engines import Residual
+from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
+from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
+from daemodel.backends.radau.transform import embedded_weights
+
+from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
+from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
+from daemodel.files import memory_limit
+
+# Reuse the Jacobian for the next step when Newton contracted at least this fast (RADAU5's THET:
+# 0.001 for small systems, "0.1, say" where Jacobians and factorisations are costly).  Above
+# REUSE_LARGE_SIZE unknowns REUSE_THETA_LARGE applies.  Measured at equal error (rtol 1e-6, 1e-8):
+# chains of 40 and 160 unknowns and 160 dense particles 1.2-1.9x faster, a 600-unknown grid 1.3-2x;
+# the pendulum (5) at rtol 1e-10 and the squeezer (27) 1.3x slower (more iterations, cheap LUs).
+REUSE_THETA, REUSE_THETA_LARGE, REUSE_LARGE_SIZE = 1e-3, 0.03, 32
+
+
+class Stepper:
+    """State of one integration on an engine: the step and its counters, driven by a controller.
+
+    Arrays belong to the engine's ``xp`` (numpy or torch): ``y (B, n)``, ``z (B, m)`` and the
+    stage values ``W (B, s, n+m)``, stage by stage ``[Y_i, Z_i]``.
+    """
+
+    def __init__(self, compiled, start, options, engine, controller):
+        self.engine, self.xp = engine, engine.xp
+        self.y, self.z = engine.asarray(start.y0), engine.asarray(start.z0)
+        self.compiled, self.options, self.controller = compiled, options, controller
+        self.policy = controller.policy
+        self.tableau = engine.tableau
+        self.s, self.n, self.m, self.B = engine.s, engine.n, engine.m, engine.B
+        # each algebraic variable's index (RADAU5's count, coupling included): its error weight is h^(k-1)
+        self.z_index = np.array(compiled.algebraic_index, dtype=float)
+        self.newton = Newton(self, self.policy)
+        e = embedded_weights(self.tableau)[1]
+        self.error = ErrorEstimate(self, e)
+        self._det_sign, self._det_time = None, compiled.t0  # the last fresh Jacobian's sign of det
+        self.stats = {
+            "mode": controller.name,
+            "engine": engine.name,
+            "stages": self.s,
+            "order": self.tableau.order,
+            "dtype": options.dtype,
+            "device": options.device,
+            "batch": self.B,
+            "steps": 0,
+            "attempts": 0,
+            "rejected_steps": 0,
+            "newton_iterations": 0,
+            "max_newton_iterations": 0,
+            "newton_failures": 0,
+            "newton_refreshes": 0,
+            "jacobian_evaluations": 0,
+            "lu_decompositions": 0,
+            "residual_evaluations": 0,
+            "h_min": math.inf,
+            "h_max": 0.0,
+        }
+        controller.start_stats(self.stats)
+        self._jac = None  # (J, t) at the last refresh
+        self.factors = None  # the Factors of the transformed systems of J and the current h
+        self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
+        self._f_start = None  # f at the start of the next step (the last stage's f of this one)
+        self._outputs = None  # ([t], [u (B, n+m)], [(t, h, u_start, W)]) of the accepted steps
+        self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
+        self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
+        self.stage_steps = 0  # steps left that start with full Newton (see attempt)
+        self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
+        self._extrapolation_polynomial = extrapolation_polynomial(self.tableau.c)  # the matrix by Horner's rule
+        self.record_budget = math.inf  # accepted steps whose records fit in memory (set by the backend)
+        # the RADAU5 controller on dense systems of one trajectory: each attempt in one compiled call
+        self.compiled_step = (
+            self.policy.trust_last_rate
+            and options.start_guess is None
+            and engine.make_compiled_step(self.policy.iterations, e)
+        )
+        if self.compiled_step:
+            self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path
+
+    # ---- pieces -------------------------------------------------------------------------
+    def state(self):
+        return self.xp.concatenate([self.y, self.z], axis=-1)
+
+    def rms(self, x):
+        """Root mean square over all but the batch axis, shape (B,)."""
+        x = x.reshape(self.B, -1)
+        return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
+
+    def jacobian(self, t, y, z):
+        self.stats["jacobian_evaluations"] += 1
+        return self.engine.jacobian(t, y, z)
+
+    def factor(self, J, t, h, error_only=False):
+        factors = self.engine.factor(J, h, error_only)
+        self.stats["lu_decompositions"] += len(factors.shifts) if factors.complete else 1
+        self.check_singular(factors.singular, t, h, "Newton matrix", J)
+        return factors
+
+    def index_weights(self, h):
+        """``h^(k-1)`` for each component (1 for the states), kept while h is unchanged."""
+        if self._index_weights is None or self._index_weights[0] != h:
+            weights = np.concatenate([np.ones(self.n), h ** (self.z_index - 1)])
+            self._index_weights = (h, self.engine.asarray(weights))
+        return self._index_weights[1]
+
+    def weights(self, h, u_ref):
+        """Error scale of each of the n + m components, shape (B, n+m)."""
+        return (self.policy.atol + self.policy.rtol * u_ref) / self.index_weights(h)
+
+    def residual(self, t, h, W):
+        self.stats["residual_evaluations"] += 1
+        return self.engine.residual(t, h, self.y, W)
+
+    def constant_guess(self):
+        """Every stage value equal to the step's start value."""
+        u = self.state()
+        return np.repeat(u[:, None, :], self.s, axis=1) if self.xp is np else u[:, None, :].expand(self.B, self.s, -1)
+
+    def start_guess(self, h, t=None):
+        """Stage values from ``options.start_guess`` where given, else extrapolated from the last
+        step's collocation polynomial (or constant at the first step)."""
+        xp = self.xp
+        if self.options.start_guess is not None:
+            W = self.options.start_guess(t, self.y, self.z)
+            if xp is np:
+                W = np.asarray(W.detach().cpu().numpy() if hasattr(W, "detach") else W, dtype=float)
+            else:
+                W = xp.as_tensor(W, dtype=self.y.dtype, device=self.y.device)
+            if tuple(W.shape) != (self.B, self.s, self.n + self.m):
+                raise InvalidOptionError(
+                    f"start_guess returned stage values of shape {tuple(W.shape)}; expected "
+                    f"{(self.B, self.s, self.n + self.m)} (samples, stages, n + m)"
+                )
+            return W
+        if self._previous is None:
+            return self.constant_guess()
+        h_old, u_old, W_old = self._previous
+        L = self.extrapolation(h / h_old)
+        return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
+
+    def extrapolation(self, ratio):
+        """The start guess's extrapolation matrix (s, s+1) for ``ratio`` = h / h_old, kept while it is unchanged."""
+        if self._extrapolation is None or self._extrapolation[0] != ratio:
+            self._extrapolation = (ratio, self.engine.asarray(horner(self._extrapolation_polynomial, ratio)))
+        return self._extrapolation[1]
+
+    def start_f(self, t):
+        """``f`` at the step's start: the last accepted step's final stage (Radau IIA is stiffly accurate)."""
+        if self._f_start is None:
+            self._f_start = self.engine.f(t, self.y, self.z)
+        return self._f_start
+
+    def check_singular(self, singular, t, h, what, J):
+        """Raise :class:`ConvergenceError` where a factorisation reports a singular matrix, with the
+        likely cause: a Jacobian ``J`` that is not finite (the state left f's domain), algebraic
+        variables the constraints stop determining, or else the step size itself."""
+        if not bool(singular.any()):
+            return
+        sample = self.engine.first(singular)
+        head = f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}"
+        matrices = J if isinstance(J, list) else [J]
+        if not all(bool(self.xp.isfinite(m).all()) for m in matrices):
+            raise ConvergenceError(
+                f"{head}: the Jacobian of f and g is not finite there (f or g is not differentiable at this "
+                "state, e.g. sqrt(x) at x = 0, or the state left their domain, e.g. sqrt or log of a negative "
+                "value, which a step this long can cause); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+            )
+        signs = self.engine.z_matrix_sign(J)
+        if self.m and bool((signs == 0).any()):
+            raise ConvergenceError(
+                f"{head}; the constraints do not determine the algebraic variables there (their iteration matrix, "
+                "g_z or g_y f_z, is singular)"
+            )
+        determined = ", though the constraints determine the algebraic variables" if self.m else ""
+        raise ConvergenceError(
+            f"{head}{determined}: an eigenvalue of the Jacobian times h meets one of the method's shifts (a stiff "
+            "mode at this h); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+        )
+
+    # ---- the run --------------------------------------------------------------------------
+    def integrate(self, t_span):
+        """Values at the output times: ``(times (T,), values (B, T, n+m))``."""
+        t0 = t_span[0]
+        grid = self.controller.grid(t_span)
+        t_out = output_times(self.options.t_eval, t_span, grid)
+        u0 = self.state()
+        self._outputs = ([t0], [u0], [])
+        self.controller.run(self, t_span, grid)
+        out_t, out_u, steps = self._outputs
+        if self.options.t_eval is not None:
+            return self.dense_output(t_out, u0, t0, steps)
+        values = self.xp.stack(out_u, axis=1)  # (B, T, n+m)
+        return np.asarray(out_t, dtype=float), numpy_copy(values)
+
+    # ---- one step -----------------------------------------------------------------------
+    def attempt(self, t, h):
+        """Newton on the step from ``t`` with ``h``.
+
+        First with the step-start Jacobian through the transformed systems (reused while it serves,
+        refreshed once if a reused one fails); if that fails, full Newton with each stage's Jacobian
+        at the starting guess (with the policy's rescue), which also checks that z stays determined
+        at the stages.  After a step needed full Newton, the next STAGE_NEWTON_STEPS steps start
+        with it directly.
+        """
+        newton = self.newton
+        W0 = self.start_guess(h, t)
+        J = self.current_jacobian(t, h)
+        if self.options.start_guess is not None:
+            # a guess close to the collocation solution: full Newton from it converges quadratically
+            # (the pendulum at h = 0.05 from a Radau-PINN's stages: 2 iterations a step, against 6 of
+            # simplified Newton with the step-start Jacobian, which contracts at ~0.1 there)
+            self.stage_steps = max(self.stage_steps, 1)
+        if self.stage_steps > 0:
+            self.stage_steps -= 1
+            self.current_lu(J, t, h, error_only=True)  # the error estimate's system
+            guessed = self._previous is not None or self.options.start_guess is not None
+            if guessed and not self.finite_at(t, h, W0):
+                # the guess left f's domain (Akzo Nobel: y2 < 0 under a sqrt): start from the start value
+                W0, guessed = self.constant_guess(), False
+            found = newton.full(t, h, W0)
+            if found[0] is None and guessed:
+                return newton.full(t, h, self.constant_guess())
+            return found
+        factors = self.current_lu(J, t, h)
+        result, iterations, why, sample = newton.simplified(t, h, factors, W0)
+        if result is None and (self._previous is not None or self.options.start_guess is not None):
+            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
+            # its step): start from the step's start value before anything costlier
+            W0 = self.constant_guess()
+            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
+        if result is None and self._jac is not None and self._jac[1] != t:
+            # the reused Jacobian is stale: refresh it and try again
+            self._jac = self.factors = None
+            factors = self.current_lu(self.current_jacobian(t, h), t, h)
+            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
+        if result is None and self.policy.rescue:
+            return newton.full(t, h, W0)
+        if result is None:  # the controller shrinks h; first check that z stays determined over the step
+            stage_J = self.engine.stage_jacobians(t, h, W0)
+            self.stats["jacobian_evaluations"] += 1
+            self.check_determined(stage_J, t, h, keep=False)
+        return result, iterations, why, sample
+
+    def compiled_attempt(self, t, h, first):
+        """The attempt of :meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm` in one compiled
+        call (:mod:`.compiled`), where Newton runs on the transformed systems: ``(result, iterations,
+        error norm)``, or None where the step must run on the general path (full Newton pending, or the
+        compiled Newton did not converge: the general path retries and words why)."""
+        if self.stage_steps > 0:
+            return None
+        factors = self.current_lu(self.current_jacobian(t, h), t, h)
+        if factors.inverse is None:
+            return None
+        s, n, D = self.s, self.n, self.n + self.m
+        if self._previous is None:
+            # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
+            previous, ratio = np.tile(self.state()[0], s + 1), 0.0
+        else:
+            h_old, u_old, W_old = self._previous
+            previous, ratio = np.concatenate([u_old[0], W_old.ravel()]), h / h_old
+        policy = self.policy
+        scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
+        out = self.engine.compiled_step(factors, scalars, previous, self.start_f(t)[0])
+        outcome, k, evaluations, theta, eta, err = out[:6]
+        self.stats["residual_evaluations"] += int(evaluations)
+        if outcome != CONVERGED:
+            self.stats["compiled_retries"] += 1
+            return None
+        k = int(k)
+        self.stats["newton_iterations"] += k
+        self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
+        self.eta = np.array([eta])
+        W = out[6 : 6 + s * D].reshape(1, s, D)
+        r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
+        return (W, r, float(theta)), k, (float(err) if math.isfinite(err) else math.inf)
+
+    def finite_at(self, t, h, W) -> bool:
+        """Whether the stage residual (f and g) is finite at the stage values ``W``."""
+        return bool(self.xp.isfinite(self.residual(t, h, W).R).all())
+
+    def factor_stages(self, stage_J, t, h):
+        """The full Newton matrix of per-stage Jacobians, factored; the next steps start with it."""
+        factors = self.engine.factor_stages(stage_J, h)
+        self.stats["lu_decompositions"] += 1
+        self.stats["newton_refreshes"] += 1
+        self.check_singular(factors.singular, t, h, "Newton matrix", stage_J)
+        self.stage_steps = STAGE_NEWTON_STEPS
+        return factors
+
+    def accept(self, t, h, result, t_next):
+        """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
+        W, r, theta = result
+        out_t, out_u, steps = self._outputs
+        if len(out_t) + len(steps) > self.record_budget:
+            raise ResourceLimitError(
+                f"radau: at t = {t:.6g}, the {len(out_t) + len(steps)} steps' outputs of {self.B} sample(s) reach "
+                f"the memory allowed ({memory_limit() / 2**30:.3g} GiB, DAEMODEL_MEMORY_LIMIT): solve fewer samples "
+                "at a time, loosen rtol, or give t_eval (with a fixed h, a grid's size is checked before the solve)"
+            )
+        u_start = self.state()
+        if self.options.t_eval is not None:
+            steps.append((t, h, u_start, W))
+        else:
+            out_t.append(t_next)
+            out_u.append(W[:, -1])
+        self._previous = (h, u_start, W)
+        self.y, self.z = W[:, -1, : self.n], W[:, -1, self.n :]
+        self._f_start = r.stage_f[:, -1]
+        self.stats["steps"] += 1
+        self.stats["h_min"] = min(self.stats["h_min"], h)
+        self.stats["h_max"] = max(self.stats["h_max"], h)
+        reuse_theta = REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
+        if not self.options.reuse_jacobian or theta > reuse_theta:
+            self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
+
+    # ---- Newton's matrices ----------------------------------------------------------------
+    def current_jacobian(self, t, h):
+        """The Jacobian at the step's start (kept while Newton contracts fast), as RADAU5."""
+        if self._jac is None:
+            self.stats["jacobian_evaluations"] += 1
+            J, factors, signs = self.engine.refresh(t, self.y, self.z, h)
+            self._jac, self.factors = (J, t), factors
+            if factors is not None:  # factored along with J (see the engine's refresh)
+                self.stats["lu_decompositions"] += len(factors.shifts)
+            self.check_determined(J, t, h, signs=signs)
+        return self._jac[0]
+
+    def drop_jacobian(self):
+        """A fresh Jacobian at the next step's start."""
+        self._jac = None
+
+    def drop_factors(self):
+        """Factor anew at the next attempt (its h changes)."""
+        self.factors = None
+
+    def current_lu(self, J, t, h, error_only=False):
+        """The factored transformed systems of ``J`` for step ``h`` (kept while both are unchanged), or
+        (``error_only``) the error estimate's system alone."""
+        factors = self.factors
+        if factors is None or factors.h != h or not (factors.complete or error_only):
+            self.factors = self.factor(J, t, h, error_only)
+        return self.factors
+
+    def check_determined(self, J, t, h, keep=True, signs=None):
+        """Refuse a step across a point where the constraints stop determining z.
+
+        The iteration matrix of the algebraic variables (row by row ``g_z`` for an index-1 and
+        ``g_y f_z`` for an index-2 constraint, as at compile time) must stay nonsingular; its
+        determinant changing sign between two fresh Jacobians means it passed through zero, where
+        z is undetermined and may blow up (``q' = (0.7 - t) z, 0 = q - sin t``).  Index-2 z is
+        measured against ``(atol + rtol |z|) / h``, so the error estimate alone would step over it.
+        ``signs``: the engine's ``z_matrix_sign(J)`` where it came with J.
+        """
+        if not self.m:
+            return
+        if signs is None:  # (B,), or (B, s) for the stages of one step
+            signs = self.engine.z_matrix_sign(J)
+        signs = signs[:, None] if signs.ndim == 1 else signs
+        if self._det_sign is not None:
+            signs = self.xp.concatenate([self._det_sign[:, None], signs], axis=1)
+        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(axis=1)
+        if bool(flips.any()):
+            sample = self.engine.first(flips)
+            names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
+            raise ConvergenceError(
+                f"radau: the constraints ({names}) stop determining the algebraic variables between t = "
+                f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration "
+                "matrix (g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not "
+                "determined and may blow up; end t_span before that time or reformulate the constraints"
+            )
+        if keep:  # (not for the stages of a failed attempt: the step is retried shorter)
+            self._det_sign, self._det_time = signs[:, -1], t
+
+    def dense_output(self, t_out, u0, t0, steps):
+        """Values at ``t_out`` from each step's collocation polynomial through (t_n, u_n), (t_n + c_i h, W_i)."""
+        xp = self.xp
+        nodes = np.concatenate([[0.0], self.tableau.c])
+        rows = []
+        k = 0
+        for time_point in t_out:
+            if time_point <= t0:
+                rows.append(u0)
+                continue
+            while k < len(steps) - 1 and time_point > steps[k][0] + steps[k][1] * (1 + 1e-13):
+                k += 1
+            t_n, h, u_start, W = steps[k]
+            L = self.engine.asarray(lagrange_matrix(nodes, np.array([(time_point - t_n) / h]))[0])
+            rows.append(xp.einsum("j,bjk->bk", L, xp.concatenate([u_start[:, None, :], W], axis=1)))
+        return np.asarray(t_out, dtype=float), numpy_copy(xp.stack(rows, axis=1))
+
+
+def step_record_bytes(D: int, B: int, options) -> int:
+    """Bytes an accepted step keeps until the end: its end values, or with t_eval its stages and start."""
+    return B * D * (4 if options.dtype == "float32" else 8) * (options.stages + 1 if options.t_eval is not None else 1)

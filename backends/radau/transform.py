@@ -1,0 +1,90 @@
+"""The Radau IIA tableau in RADAU5's form: ``A^-1 = T Lambda T^-1`` and the embedded error estimate.
+
+With one Jacobian ``J`` per step, the Newton matrix of the s stages, ``(h A)^-1 (x) M - I (x) J``
+with ``M = diag(I, 0)``, is block-diagonalised by ``A^-1 = T Lambda T^-1`` into one real system
+``(gamma / h) M - J`` per real eigenvalue and one complex system ``((alpha + i beta) / h) M - J``
+per complex pair, each of size n + m (Hairer & Wanner, Solving ODEs II, IV.8): for s = 3, one real
+and one complex LU of size n + m instead of one real LU of size 3(n + m), about five times less work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# T Lambda T^-1 must reproduce A^-1 to this relative accuracy (float64 eigenvectors of A^-1).
+TRANSFORM_CHECK = 1e-12
+
+
+@dataclass(frozen=True)
+class StageTransform:
+    """``A^-1 = T Lambda T^-1`` with ``Lambda`` real block-diagonal, and the shifts of the blocks.
+
+    Attributes
+    ----------
+    T, T_inv, T_inv_A_inv : ndarray (s, s)
+    blocks : tuple of (k, eigenvalue)
+        Real eigenvalue ``gamma``: stage k of the transformed system alone.  Complex
+        ``alpha + i beta`` (beta > 0): stages k, k+1 as one complex system.
+    gamma0 : float
+        The error estimate's ``gamma0`` (:func:`~daemodel.backends.radau.embedded_weights`); its
+        matrix is ``(1 / (h gamma0)) M - J``, the real block itself when s is odd.
+    """
+
+    T: np.ndarray
+    T_inv: np.ndarray
+    T_inv_A_inv: np.ndarray
+    blocks: tuple
+    gamma0: float
+
+    @classmethod
+    def of(cls, A: np.ndarray, gamma0: float) -> StageTransform:
+        A_inv = np.linalg.inv(A)
+        eig, vectors = np.linalg.eig(A_inv)
+        columns, blocks, diagonal = [], [], []
+        for lam, v in sorted(zip(eig, vectors.T, strict=True), key=lambda pair: (pair[0].real, pair[0].imag)):
+            if abs(lam.imag) < 1e-12:
+                blocks.append((len(columns), complex(lam.real)))
+                columns.append(v.real / np.linalg.norm(v.real))
+                diagonal.append(np.array([[lam.real]]))
+            elif lam.imag > 0:  # its conjugate gives the same pair
+                blocks.append((len(columns), complex(lam)))
+                columns += [v.real, -v.imag]  # A^-1 [vr, -vi] = [vr, -vi] [[alpha, -beta], [beta, alpha]]
+                diagonal.append(np.array([[lam.real, -lam.imag], [lam.imag, lam.real]]))
+        T = np.array(columns).T
+        T_inv = np.linalg.inv(T)
+        Lam = np.zeros_like(A_inv)
+        k = 0
+        for d in diagonal:
+            Lam[k : k + len(d), k : k + len(d)] = d
+            k += len(d)
+        if np.abs(T @ Lam @ T_inv - A_inv).max() > TRANSFORM_CHECK * np.abs(A_inv).max():
+            raise ArithmeticError("radau: the eigen-decomposition of A^-1 is inaccurate")  # daemodel's own bug
+        return cls(T=T, T_inv=T_inv, T_inv_A_inv=T_inv @ A_inv, blocks=tuple(blocks), gamma0=gamma0)
+
+    def shifts(self, h: float) -> tuple:
+        """The shifts ``sigma`` of every ``sigma M - J`` to factor for step ``h``: the blocks',
+        then the error estimate's (the real block's when s is odd)."""
+        out = [lam / h for _, lam in self.blocks]
+        error = complex(1.0 / (h * self.gamma0))
+        if not any(abs(sigma - error) <= 1e-12 * abs(error) for sigma in out):
+            out.append(error)
+        return tuple(out)
+
+
+def embedded_weights(tableau) -> tuple[float, np.ndarray]:
+    """``(gamma0, bhat - b)`` of the order-s error estimate.
+
+    ``gamma0`` is A's real eigenvalue (s odd, as in RADAU5 and Hairer-Wanner's RADAU); for even
+    s, A has no real eigenvalue and ``det(A)^(1/s)`` (the geometric mean of their moduli) is used.
+    ``bhat`` solves ``gamma0 * 0^(k-1) + sum_i bhat_i c_i^(k-1) = 1/k`` for k = 1..s.
+    """
+    s, c = tableau.stages, tableau.c
+    eig = np.linalg.eigvals(tableau.A)
+    real = eig[np.abs(eig.imag) < 1e-12].real
+    gamma0 = float(real.max()) if real.size else float(abs(np.linalg.det(tableau.A)) ** (1 / s))
+    V = np.vander(c, s, increasing=True).T  # V[k, i] = c_i^k
+    rhs = 1.0 / np.arange(1, s + 1)
+    rhs[0] -= gamma0
+    return gamma0, np.linalg.solve(V, rhs) - tableau.b
