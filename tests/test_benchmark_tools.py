@@ -42,3 +42,45 @@ def test_time_at_error_uses_the_monotone_envelope_and_never_extrapolates(adaptiv
     assert time_at_error(points, 1e-3) == (10.0, "<")  # looser than every point: an upper bound
     assert time_at_error([(math.nan, 1.0), (0.0, 2.0)], 1e-6) == (None, "")
     assert time_at_error(points, -1.0) == (None, "")
+
+
+@pytest.fixture(scope="module")
+def radau_idas():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        spec = importlib.util.spec_from_file_location("radau_idas", BENCHMARKS / "radau_idas.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+
+
+def test_peak_relative_error_scales_each_variable_by_its_own_peak(radau_idas):
+    error = radau_idas.peak_relative_error
+    reference = {"big": [0.0, 100.0, -200.0], "small": [1e-5, -4e-5, 0.0], "zero": [0.0, 0.0, 0.0]}
+    values = {"big": [0.0, 101.0, -200.0], "small": [1e-5, -3e-5, 0.0], "zero": [0.0, 1e-9, 0.0]}
+    # big: 1 / 200 = 5e-3; small: 1e-5 / 4e-5 = 0.25 (an absolute error 1e5 times smaller counts more)
+    assert error(values, reference, ["big"]) == (pytest.approx(5e-3, rel=1e-12), "big")
+    assert error(values, reference, ["big", "small"]) == (pytest.approx(0.25, rel=1e-12), "small")
+    # a reference that is zero throughout is measured absolutely, not divided by zero
+    assert error(values, reference, ["zero"]) == (pytest.approx(1e-9, rel=1e-12), "zero")
+    assert error(values, reference, []) == (None, None)
+    assert error({**values, "big": [math.nan, 0.0, 0.0]}, reference, ["big", "small"])[1] == "big"  # NaN: the worst
+    with pytest.raises(ValueError, match=r"'big': values have shape \(2,\), the reference \(3,\)"):
+        error({"big": [0.0, 1.0]}, reference, ["big"])
+
+
+def test_worst_ratio_keeps_the_bounds_relation(radau_idas):
+    worst, meets = radau_idas.worst_ratio, radau_idas.meets
+    assert worst([]) is None and meets(None, 1.0) is None
+    exact = worst([{"ratio": 0.8, "relation": "="}, {"ratio": 0.5, "relation": "<"}])
+    assert exact == {"ratio": 0.8, "relation": "=", "points": 2} and meets(exact, 1.0) is True
+    # the largest value an upper bound: the worst is at most it
+    upper = worst([{"ratio": 0.8, "relation": "="}, {"ratio": 1.5, "relation": "<"}])
+    assert upper["ratio"] == 1.5 and upper["relation"] == "<"
+    assert meets(upper, 2.0) is True and meets(upper, 1.0) is None
+    # a lower bound anywhere: the worst is at least the largest exact or lower-bound value
+    lower = worst([{"ratio": 1.5, "relation": "="}, {"ratio": 0.9, "relation": ">"}, {"ratio": 3.0, "relation": "<"}])
+    assert lower["ratio"] == 1.5 and lower["relation"] == ">"
+    assert meets(lower, 1.0) is False and meets(lower, 2.0) is None
