@@ -144,6 +144,10 @@ class StepLimitError(SolverError):
     not converge, and more iterations rarely help."""
 
 
+class CompileError(SolverError):
+    """The system's C compiler failed on code daemodel generated (radau's ``jit=True``)."""
+
+
 class LocalErrorBoundError(SolverError):
     """A fixed-step method's a-posteriori local error estimate exceeded its bound (the step is not trustworthy)."""
 

@@ -101,6 +101,12 @@ def make_engine(compiled, start, options: RadauOptions):
     tableau = radau_iia(options.stages)
     transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
     name = make_engine_name(start, options)
+    if options.jit and name != "casadi":
+        raise InvalidOptionError(
+            f"jit=True compiles the casadi engine's adaptive step, for one trajectory in float64 on the CPU; this "
+            f"solve ({start.size} sample(s), {options.dtype}, device {options.device!r}) runs on the torch engine: "
+            "leave jit out"
+        )
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(

@@ -12,7 +12,9 @@ import numpy as np
 from daemodel.backends.radau.compiled import (
     Buffered,
     casadi_functions,
+    find_compiler,
     inverse_function,
+    machine_code,
     newton_step_function,
     refresh_function,
     step_function,
@@ -62,18 +64,18 @@ class CasadiEngine(AbstractEngine):
         self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
         self._functions = functions
 
-    def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
+    def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
-        the error estimate's ``bhat - b``); False
-        where the systems are sparse and the step runs on the general path."""
+        the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
+        about 0.5 s once); False where the systems are sparse and the step runs on the general path."""
         if not self.dense:
             return False
         compiled, functions = self.compiled, self._functions
         weights = np.array(compiled.algebraic_index, dtype=float)
-        step = compiled.cached(
-            ("casadi-radau-compiled-step", self.s, iterations),
-            lambda: step_function(functions[0], functions[1], self, iterations, e, weights),
-        )
+        key = ("casadi-radau-compiled-step", self.s, iterations)
+        step = compiled.cached(key, lambda: step_function(functions[0], functions[1], self, iterations, e, weights))
+        if jit:
+            step = compiled.cached((*key, "machine code"), lambda: machine_code(step, find_compiler()))
         self._compiled = [Buffered(step, inputs=2), None]
         return True
 

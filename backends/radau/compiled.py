@@ -202,6 +202,51 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     )
 
 
+# C compilers tried for jit=True, in this order (the first on PATH compiles).
+COMPILERS = ("cc", "gcc", "clang")
+# Optimisation of the machine code (-O2: the compiled step bit for bit as casadi's virtual machine).
+COMPILER_FLAGS = ("-O2",)
+
+
+def find_compiler() -> str | None:
+    """The path of the first of :data:`COMPILERS` on PATH, or None."""
+    import shutil
+
+    return next((path for path in map(shutil.which, COMPILERS) if path), None)
+
+
+def machine_code(function, compiler: str):
+    """``function`` compiled to machine code by ``compiler`` (casadi's jit through its shell compiler).
+
+    The C source and the shared library are written to a private temporary directory (mode 0700)
+    that is removed as soon as the library is loaded; nothing stays on disk.  Raises
+    :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
+    """
+    import shutil
+    import tempfile
+
+    import casadi
+
+    from daemodel.errors import CompileError
+
+    folder = tempfile.mkdtemp(prefix="daemodel-jit-")
+    try:
+        options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": folder + "/", "cleanup": False}
+        return casadi.Function(
+            function.name() + "_machine_code",
+            function.mx_in(),
+            function.call(function.mx_in()),
+            {"jit": True, "compiler": "shell", "jit_cleanup": False, "jit_temp_suffix": True, "jit_options": options},
+        )
+    except RuntimeError as error:
+        raise CompileError(
+            f"radau: jit=True: compiling the step of {function.name()!r} with {compiler} failed: "
+            f"{str(error).strip().splitlines()[-1][:400]}; solve with jit=False (the same results, slower steps)"
+        ) from None
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def dense_jacobian(casadi, rows: np.ndarray, cols: np.ndarray, values, D: int):
     """The dense (D, D) matrix of the nonzeros ``values`` at ``(rows, cols)`` (casadi's triplet order)."""
     if not len(rows):  # f and g depend on no unknown (f = f(t)): casadi refuses an empty value vector

@@ -26,6 +26,13 @@ FIXED_NEWTON_TOL_EPS = 10
 SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 8.0
 # Keep h (and the LU) when the controller asks for a change within this band (RADAU5's QUOT1/2).
 KEEP_H_BAND = (1.0, 1.2)
+# Gustafsson's predictive controller (RADAU5's default): after the second accepted step, the new h is
+# also predicted from the last two steps' errors and sizes, and the smaller of the two is taken.
+PREDICTIVE = True
+# The same where the step is compiled (a refactorisation costs 10-50 Newton iterations there): growth
+# up to 1.5x keeps h (RADAU5 lets users widen QUOT2 where factorisations are costly); measured with
+# REUSE_THETA_COMPILED, see there.
+KEEP_H_BAND_COMPILED = (1.0, 1.5)
 
 
 class FixedGrid:
@@ -107,8 +114,10 @@ class Radau5Controller:
         t = t0
         h = options.h0 or self.initial_step(stepper, t_span)
         first, rejected_last = True, False
+        accepted = None  # (h, error) of the last accepted step, for Gustafsson's prediction
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
         watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
+        keep = KEEP_H_BAND_COMPILED if stepper.compiled_step else KEEP_H_BAND
         while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
             attempts = stats["attempts"]
             if attempts >= options.max_steps:
@@ -149,8 +158,14 @@ class Radau5Controller:
             t_next = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
             stepper.accept(t, h, result, t_next)
             t = t_next
-            new_h = h * min(MAX_FACTOR, max(MIN_FACTOR, quot)) if not rejected_last else h * min(1.0, quot)
-            if KEEP_H_BAND[0] <= new_h / h <= KEEP_H_BAND[1]:
+            change = min(MAX_FACTOR, max(MIN_FACTOR, quot))
+            if PREDICTIVE and accepted is not None:
+                h_acc, err_acc = accepted
+                predicted = SAFETY * (h / h_acc) * (err_acc / max(err, 1e-10) ** 2) ** (1.0 / (stepper.s + 1))
+                change = min(change, min(MAX_FACTOR, max(MIN_FACTOR, predicted)))
+            accepted = (h, max(err, 1e-2))
+            new_h = h * change if not rejected_last else h * min(1.0, change)
+            if keep[0] <= new_h / h <= keep[1]:
                 new_h = h
             h = new_h
             first = rejected_last = False

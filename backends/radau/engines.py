@@ -113,7 +113,7 @@ class AbstractEngine(ABC):
         an engine that computes the factors or the sign along with J returns them (else None)."""
         return self.jacobian(t, y, z), None, None
 
-    def make_compiled_step(self, iterations: int, e: np.ndarray) -> bool:
+    def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Whether this engine runs an adaptive attempt in one compiled call (see
         :meth:`CasadiEngine.make_compiled_step`); by default it does not."""
         return False

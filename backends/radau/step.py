@@ -32,6 +32,12 @@ from daemodel.files import memory_limit
 # chains of 40 and 160 unknowns and 160 dense particles 1.2-1.9x faster, a 600-unknown grid 1.3-2x;
 # the pendulum (5) at rtol 1e-10 and the squeezer (27) 1.3x slower (more iterations, cheap LUs).
 REUSE_THETA, REUSE_THETA_LARGE, REUSE_LARGE_SIZE = 1e-3, 0.03, 32
+# The compiled attempt (casadi engine, dense): an iteration costs ~1-5 us there against 20-50 us for a
+# Jacobian and its factorisations, so the Jacobian is kept while Newton contracts faster than 0.1
+# (RADAU5's advice where factorisations are costly).  Measured with jit=True, best of 5 interleaved:
+# car axis 1.3-1.7x, akzo-nobel 1.3-1.5x, transistor amplifier 1.35x (rtol 1e-6) faster, the
+# pendulum at rtol 1e-8 and the squeezer at 1e-8 1.2-1.5x slower (benchmarks/radau_idas.py).
+REUSE_THETA_COMPILED = 0.1
 
 
 class Stepper:
@@ -91,7 +97,7 @@ class Stepper:
         self.compiled_step = (
             self.policy.trust_last_rate
             and options.start_guess is None
-            and engine.make_compiled_step(self.policy.iterations, e)
+            and engine.make_compiled_step(self.policy.iterations, e, jit=options.jit)
         )
         if self.compiled_step:
             self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path
@@ -261,34 +267,52 @@ class Stepper:
         return result, iterations, why, sample
 
     def compiled_attempt(self, t, h, first):
-        """The attempt of :meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm` in one compiled
-        call (:mod:`.compiled`), where Newton runs on the transformed systems: ``(result, iterations,
+        """The attempt of :meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm` in compiled
+        calls (:mod:`.compiled`), where Newton runs on the transformed systems: ``(result, iterations,
         error norm)``, or None where the step must run on the general path (full Newton pending, or the
-        compiled Newton did not converge: the general path retries and words why)."""
+        compiled Newton did not converge: the general path words why).
+
+        The retries of :meth:`attempt`, in its order: from the extrapolated guess, from the start
+        value, and with a fresh Jacobian where the kept one is stale.
+        """
         if self.stage_steps > 0:
             return None
         factors = self.current_lu(self.current_jacobian(t, h), t, h)
         if factors.inverse is None:
             return None
-        s, n, D = self.s, self.n, self.n + self.m
-        if self._previous is None:
-            # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
-            previous, ratio = np.tile(self.state()[0], s + 1), 0.0
-        else:
+        # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
+        constant = np.tile(self.state()[0], self.s + 1)
+        tries = [(constant, 0.0)]
+        if self._previous is not None:
             h_old, u_old, W_old = self._previous
-            previous, ratio = np.concatenate([u_old[0], W_old.ravel()]), h / h_old
-        policy = self.policy
+            tries.insert(0, (np.concatenate([u_old[0], W_old.ravel()]), h / h_old))
+        f0 = self.start_f(t)[0]
+        for previous, ratio in tries:
+            found = self._compiled_try(factors, t, h, ratio, first, previous, f0)
+            if found is not None:
+                return found
+        if self._jac[1] != t:  # the kept Jacobian is stale: refresh it and try again from the start value
+            self._jac = self.factors = None
+            factors = self.current_lu(self.current_jacobian(t, h), t, h)
+            if factors.inverse is not None:
+                return self._compiled_try(factors, t, h, 0.0, first, constant, f0)
+        return None
+
+    def _compiled_try(self, factors, t, h, ratio, first, previous, f0):
+        """One compiled attempt from the polynomial through ``previous`` at ``ratio``; None where Newton failed."""
+        policy, stats = self.policy, self.stats
         scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
-        out = self.engine.compiled_step(factors, scalars, previous, self.start_f(t)[0])
+        out = self.engine.compiled_step(factors, scalars, previous, f0)
         outcome, k, evaluations, theta, eta, err = out[:6]
-        self.stats["residual_evaluations"] += int(evaluations)
+        stats["residual_evaluations"] += int(evaluations)
         if outcome != CONVERGED:
-            self.stats["compiled_retries"] += 1
+            stats["compiled_retries"] += 1
             return None
         k = int(k)
-        self.stats["newton_iterations"] += k
-        self.stats["max_newton_iterations"] = max(self.stats["max_newton_iterations"], k)
+        stats["newton_iterations"] += k
+        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
         self.eta = np.array([eta])
+        s, n, D = self.s, self.n, self.n + self.m
         W = out[6 : 6 + s * D].reshape(1, s, D)
         r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
         return (W, r, float(theta)), k, (float(err) if math.isfinite(err) else math.inf)
@@ -328,7 +352,10 @@ class Stepper:
         self.stats["steps"] += 1
         self.stats["h_min"] = min(self.stats["h_min"], h)
         self.stats["h_max"] = max(self.stats["h_max"], h)
-        reuse_theta = REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
+        if self.compiled_step:
+            reuse_theta = REUSE_THETA_COMPILED
+        else:
+            reuse_theta = REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
         if not self.options.reuse_jacobian or theta > reuse_theta:
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
 

@@ -1,0 +1,123 @@
+"""radau's compiled adaptive attempt: the general path's algorithm in one casadi call per step.
+
+The compiled attempt (start guess, simplified Newton with its tests, error estimate) must take
+the same steps with the same Newton iterations as the general path that it replaces; machine code
+(``jit=True``) must give the same bits as casadi's virtual machine; its options fail by name.
+"""
+
+import numpy as np
+import pytest
+from daemodel.backends.radau import compiled as radau_compiled
+from daemodel.backends.radau import control, linalg, step
+from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.compiled import find_compiler
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.collocation import extrapolation_matrix, extrapolation_polynomial, horner
+from daemodel.problems import HESSENBERG, PENDULUM, PROBLEMS
+from daemodel.tableau import radau_iia
+
+needs_compiler = pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
+
+
+def _solve_both(monkeypatch, compiled, t_span, **options):
+    """The casadi engine with and without the compiled attempt, at the general path's reuse thresholds."""
+    monkeypatch.setattr(step, "REUSE_THETA_COMPILED", step.REUSE_THETA)
+    monkeypatch.setattr(control, "KEEP_H_BAND_COMPILED", control.KEEP_H_BAND)
+    fast = dm.solve(compiled, t_span, engine="casadi", **options)
+    monkeypatch.setattr(CasadiEngine, "make_compiled_step", lambda self, *args, **kwargs: False)
+    general = dm.solve(compiled, t_span, engine="casadi", **options)
+    monkeypatch.undo()
+    return fast, general
+
+
+@pytest.mark.parametrize(
+    ("problem", "rtol"),
+    [(PENDULUM, 1e-6), (PENDULUM, 1e-8), (HESSENBERG, 1e-6), (PROBLEMS["akzo-nobel"], 1e-6)],
+    ids=["pendulum-1e-6", "pendulum-1e-8", "hessenberg-1e-6", "akzo-nobel-1e-6"],
+)
+def test_compiled_attempt_takes_the_general_paths_steps(monkeypatch, problem, rtol):
+    compiled = problem.model().compile()
+    span = problem.t_span if problem.name != "pendulum" else (0.0, 1.0)
+    fast, general = _solve_both(monkeypatch, compiled, span, rtol=rtol, atol=rtol)
+    assert fast.stats["compiled_retries"] <= fast.stats["newton_failures"] + 1
+    assert "compiled_retries" not in general.stats
+    for key in ("steps", "attempts", "rejected_steps", "newton_iterations", "jacobian_evaluations"):
+        assert fast.stats[key] == general.stats[key], key
+    # the same iterates up to rounding; Newton stops within newton_tol of the solution (1e-4 of the
+    # error scale at rtol 1e-8, 0.03 at 1e-6), and rounding moves where: 1.6e-10 on the pendulum at 1e-8
+    for name in compiled.state_names:
+        np.testing.assert_allclose(fast[name], general[name], rtol=0.1 * rtol, atol=0.1 * rtol)
+
+
+@needs_compiler
+@pytest.mark.parametrize("problem", [PENDULUM, PROBLEMS["akzo-nobel"]], ids=["pendulum", "akzo-nobel"])
+def test_machine_code_gives_the_virtual_machines_bits(problem):
+    compiled = problem.model().compile()
+    vm = dm.solve(compiled, problem.t_span, rtol=1e-6, atol=1e-6)
+    jit = dm.solve(compiled, problem.t_span, rtol=1e-6, atol=1e-6, jit=True)
+    assert jit.stats["steps"] == vm.stats["steps"] and jit.stats["newton_iterations"] == vm.stats["newton_iterations"]
+    for name in (*compiled.state_names, *compiled.algebraic_names):
+        assert np.array_equal(jit[name], vm[name]), name
+
+
+def test_jit_option_errors(monkeypatch):
+    with pytest.raises(E.InvalidOptionError, match=r"jit must be True or False; got 1"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), jit=1)
+    with pytest.raises(E.InvalidOptionError, match=r"jit=True compiles the adaptive step \(rtol/atol\); a fixed step"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), h=0.1, jit=True)
+    monkeypatch.setattr(radau_compiled, "find_compiler", lambda: "/usr/bin/cc")
+    with pytest.raises(E.InvalidOptionError, match=r"engine='torch' has nothing to compile"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), jit=True, engine="torch")
+    with pytest.raises(E.InvalidOptionError, match=r"this solve \(2 sample\(s\), float64, device 'cpu'\) runs on"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), jit=True, parameters={"m": [1.0, 2.0]})
+    from daemodel.backends.radau import options
+
+    monkeypatch.setattr(options, "find_compiler", lambda: None)
+    with pytest.raises(E.InvalidOptionError, match=r"jit=True needs a C compiler on PATH \(tried cc, gcc, clang\)"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), jit=True)
+
+
+@needs_compiler
+def test_a_failing_compiler_is_a_compile_error(tmp_path):
+    failing = tmp_path / "cc"
+    failing.write_text("#!/bin/sh\necho 'cc: fatal error: no space left on device' >&2\nexit 1\n")
+    failing.chmod(0o755)
+    import casadi
+
+    x = casadi.MX.sym("x")
+    with pytest.raises(E.CompileError, match=r"jit=True: compiling the step of 'f' with .*cc failed: .*jit=False"):
+        radau_compiled.machine_code(casadi.Function("f", [x], [2 * x]), str(failing))
+
+
+@pytest.mark.parametrize("stages", range(1, 8))
+def test_horner_extrapolation_equals_the_product_form(stages):
+    c = radau_iia(stages).c
+    C = extrapolation_polynomial(c)
+    for ratio in (0.0, 0.2, 1.0, 2.5, 8.0):
+        exact = extrapolation_matrix(c, ratio)
+        np.testing.assert_allclose(horner(C, ratio), exact, rtol=0, atol=1e-14 * max(1.0, np.abs(exact).max()))
+    # at ratio 0 the new stages sit on the last node: the polynomial's value there
+    np.testing.assert_allclose(horner(C, 0.0), np.eye(stages + 1)[[-1] * stages], atol=1e-15)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 4])
+def test_small_determinant_signs(m):
+    rng = np.random.default_rng(m)
+    for _ in range(50):
+        matrix = rng.standard_normal((m, m))
+        assert linalg.small_sign_det(matrix.ravel(order="F"), m) == np.sign(np.linalg.det(matrix))
+    assert linalg.small_sign_det(np.zeros(m * m), m) == 0.0
+    assert linalg.small_sign_det(np.full(m * m, np.nan), m) == 0.0
+
+
+def test_a_right_hand_side_of_t_alone_compiles():
+    """f = f(t): the Jacobian has no nonzeros (casadi refuses an empty value vector unless told)."""
+    m = dm.Model("clock")
+    m.states("x")
+    m.ode("x", "cos(t)")
+    m.initial(x=0.0)
+    for options in ({"rtol": 1e-8, "atol": 1e-10}, {"h": 0.05}):
+        sol = dm.solve(m, (0.0, 1.0), **options)
+        assert abs(sol["x"][-1] - np.sin(1.0)) < 1e-8
