@@ -43,8 +43,11 @@ time, setup, status, errors, the solution's stats; the references; the summaries
 (solve time against achieved state error, log-log, one panel per problem, the 1e-6 line dashed),
 and prints markdown tables.
 
-Run: python benchmarks/radau_idas.py [--quick] [--problems ...] [--passes 3] [--solve-limit 20] [--out PATH]
-     [--code-label TEXT]
+Run: python benchmarks/radau_idas.py [--quick] [--jit] [--problems ...] [--passes 3] [--solve-limit 20]
+     [--out PATH] [--code-label TEXT]
+(``--jit``: radau's adaptive solves with ``jit=True``, the step compiled to machine code; the README
+quotes ``python benchmarks/radau_idas.py`` and ``python benchmarks/radau_idas.py --jit --no-fixed
+--out benchmarks/radau_idas_jit``.)
 """
 
 from __future__ import annotations
@@ -406,7 +409,10 @@ def run_worker(spec: dict) -> None:
                     continue
                 if not first and run["status"] != "ok":
                     continue
-                seconds = timed(run, model, {"rtol": tol, "atol": tol, "t_eval": model["grid"]}, first)
+                options = {"rtol": tol, "atol": tol, "t_eval": model["grid"]}
+                if method == RADAU and spec["jit"]:
+                    options["jit"] = True
+                seconds = timed(run, model, options, first)
                 if not first:
                     continue
                 if run["status"] != "ok":
@@ -520,6 +526,11 @@ def main(argv=None) -> None:
         "--out", default=str(HERE / "radau_idas"), help="output path without suffix (default %(default)s)"
     )
     parser.add_argument("--code-label", help="free text recorded with the machine (e.g. which commit was measured)")
+    parser.add_argument(
+        "--jit",
+        action="store_true",
+        help="radau's adaptive solves with jit=True (the step in machine code; its build is setup, apart)",
+    )
     args = parser.parse_args(argv)
     if args.worker:
         run_worker(json.loads(args.worker))
@@ -537,6 +548,7 @@ def main(argv=None) -> None:
         "solve_limit": args.solve_limit,
         "fixed": not args.no_fixed,
         "fixed_steps": FIXED_STEPS,
+        "jit": args.jit,
     }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -564,7 +576,8 @@ def main(argv=None) -> None:
         "machine": {**info, "load_average_at_end": list(os.getloadavg())},
         "settings": {
             "problems": problems,
-            "radau": "method='radau' without stages (its default picks them from rtol; recorded per solve)",
+            "radau": "method='radau' without stages (its default picks them from rtol; recorded per solve)"
+            + (", jit=True" if args.jit else ""),
             "radau_tols": spec["radau_tols"],
             "idas_tols": spec["idas_tols"],
             "reference": (

@@ -117,7 +117,7 @@ class Radau5Controller:
         accepted = None  # (h, error) of the last accepted step, for Gustafsson's prediction
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
         watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
-        keep = KEEP_H_BAND_COMPILED if stepper.compiled_step else KEEP_H_BAND
+        keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
         while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
             attempts = stats["attempts"]
             if attempts >= options.max_steps:

@@ -12,6 +12,7 @@ compiled call (:mod:`.compiled`).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -25,6 +26,7 @@ from daemodel.backends.radau.transform import embedded_weights
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
+from daemodel.tableau import radau_iia
 
 # Reuse the Jacobian for the next step when Newton contracted at least this fast (RADAU5's THET:
 # 0.001 for small systems, "0.1, say" where Jacobians and factorisations are costly).  Above
@@ -91,7 +93,7 @@ class Stepper:
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
         self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
-        self._extrapolation_polynomial = extrapolation_polynomial(self.tableau.c)  # the matrix by Horner's rule
+        self._extrapolation_polynomial = extrapolation_coefficients(self.s)  # the matrix by Horner's rule
         self.record_budget = math.inf  # accepted steps whose records fit in memory (set by the backend)
         # the RADAU5 controller on dense systems of one trajectory: each attempt in one compiled call
         self.compiled_step = (
@@ -101,6 +103,14 @@ class Stepper:
         )
         if self.compiled_step:
             self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path
+        # where iterations are cheap (the compiled step), the Jacobian and factors are kept longer
+        # (REUSE_THETA_COMPILED, control.KEEP_H_BAND_COMPILED), unless Newton's tolerance sits at the
+        # rounding floor (10 eps / rtol above RADAU5's min(0.03, sqrt(rtol)): rtol below ~5e-10), where a
+        # slower contraction leaves stage errors that the error estimate reads as the step's (the pendulum
+        # at rtol 1e-13, s = 7: step size underflow)
+        eps = float(np.finfo(options.dtype).eps)
+        rtol = self.policy.rtol
+        self.keep_longer = bool(self.compiled_step) and 10 * eps / rtol <= min(0.03, rtol**0.5)
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):
@@ -248,15 +258,15 @@ class Stepper:
             return found
         factors = self.current_lu(J, t, h)
         result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and (self._previous is not None or self.options.start_guess is not None):
-            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
-            # its step): start from the step's start value before anything costlier
-            W0 = self.constant_guess()
-            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
         if result is None and self._jac is not None and self._jac[1] != t:
-            # the reused Jacobian is stale: refresh it and try again
+            # the kept Jacobian may be stale (Newton contracts more slowly with it): refresh it, try again
             self._jac = self.factors = None
             factors = self.current_lu(self.current_jacobian(t, h), t, h)
+            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
+        if result is None and (self._previous is not None or self.options.start_guess is not None):
+            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
+            # its step): start from the step's start value
+            W0 = self.constant_guess()
             result, iterations, why, sample = newton.simplified(t, h, factors, W0)
         if result is None and self.policy.rescue:
             return newton.full(t, h, W0)
@@ -272,8 +282,8 @@ class Stepper:
         error norm)``, or None where the step must run on the general path (full Newton pending, or the
         compiled Newton did not converge: the general path words why).
 
-        The retries of :meth:`attempt`, in its order: from the extrapolated guess, from the start
-        value, and with a fresh Jacobian where the kept one is stale.
+        The retries of :meth:`attempt`, in its order: from the extrapolated guess, again with a fresh
+        Jacobian where the kept one is stale, then from the start value.
         """
         if self.stage_steps > 0:
             return None
@@ -281,25 +291,25 @@ class Stepper:
         if factors.inverse is None:
             return None
         # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
-        constant = np.tile(self.state()[0], self.s + 1)
-        tries = [(constant, 0.0)]
+        guess = constant = (np.tile(self.state()[0], self.s + 1), 0.0)
         if self._previous is not None:
             h_old, u_old, W_old = self._previous
-            tries.insert(0, (np.concatenate([u_old[0], W_old.ravel()]), h / h_old))
+            guess = (np.concatenate([u_old[0], W_old.ravel()]), h / h_old)
         f0 = self.start_f(t)[0]
-        for previous, ratio in tries:
-            found = self._compiled_try(factors, t, h, ratio, first, previous, f0)
-            if found is not None:
-                return found
-        if self._jac[1] != t:  # the kept Jacobian is stale: refresh it and try again from the start value
+        found = self._compiled_try(factors, t, h, guess, first, f0)
+        if found is None and self._jac[1] != t:  # the kept Jacobian may be stale: refresh it, try again
             self._jac = self.factors = None
             factors = self.current_lu(self.current_jacobian(t, h), t, h)
-            if factors.inverse is not None:
-                return self._compiled_try(factors, t, h, 0.0, first, constant, f0)
-        return None
+            if factors.inverse is None:
+                return None
+            found = self._compiled_try(factors, t, h, guess, first, f0)
+        if found is None and guess is not constant:
+            found = self._compiled_try(factors, t, h, constant, first, f0)
+        return found
 
-    def _compiled_try(self, factors, t, h, ratio, first, previous, f0):
-        """One compiled attempt from the polynomial through ``previous`` at ``ratio``; None where Newton failed."""
+    def _compiled_try(self, factors, t, h, guess, first, f0):
+        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old); None where Newton failed."""
+        previous, ratio = guess
         policy, stats = self.policy, self.stats
         scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
         out = self.engine.compiled_step(factors, scalars, previous, f0)
@@ -352,7 +362,7 @@ class Stepper:
         self.stats["steps"] += 1
         self.stats["h_min"] = min(self.stats["h_min"], h)
         self.stats["h_max"] = max(self.stats["h_max"], h)
-        if self.compiled_step:
+        if self.keep_longer:
             reuse_theta = REUSE_THETA_COMPILED
         else:
             reuse_theta = REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
@@ -418,21 +428,29 @@ class Stepper:
             self._det_sign, self._det_time = signs[:, -1], t
 
     def dense_output(self, t_out, u0, t0, steps):
-        """Values at ``t_out`` from each step's collocation polynomial through (t_n, u_n), (t_n + c_i h, W_i)."""
+        """Values at ``t_out`` (ascending) from each step's collocation polynomial through (t_n, u_n),
+        (t_n + c_i h, W_i): the points of one step in one product."""
         xp = self.xp
         nodes = np.concatenate([[0.0], self.tableau.c])
-        rows = []
-        k = 0
-        for time_point in t_out:
-            if time_point <= t0:
-                rows.append(u0)
-                continue
-            while k < len(steps) - 1 and time_point > steps[k][0] + steps[k][1] * (1 + 1e-13):
-                k += 1
-            t_n, h, u_start, W = steps[k]
-            L = self.engine.asarray(lagrange_matrix(nodes, np.array([(time_point - t_n) / h]))[0])
-            rows.append(xp.einsum("j,bjk->bk", L, xp.concatenate([u_start[:, None, :], W], axis=1)))
-        return np.asarray(t_out, dtype=float), numpy_copy(xp.stack(rows, axis=1))
+        t_out = np.asarray(t_out, dtype=float)
+        out = xp.stack([u0] * len(t_out), axis=1)  # (B, T, n+m): u0 where t <= t0
+        if steps:
+            ends = np.array([t_n + h * (1 + 1e-13) for t_n, h, _, _ in steps])
+            owner = np.minimum(np.searchsorted(ends, t_out, side="left"), len(steps) - 1)  # the step ending at or after
+            after = t_out > t0
+            for k in np.unique(owner[after]):
+                points = np.flatnonzero(after & (owner == k))
+                t_n, h, u_start, W = steps[k]
+                L = self.engine.asarray(lagrange_matrix(nodes, (t_out[points] - t_n) / h))  # (P, s+1)
+                values = xp.einsum("pj,bjk->bpk", L, xp.concatenate([u_start[:, None, :], W], axis=1))
+                out[:, points] = values if xp is np else values.to(out.dtype)
+        return t_out, numpy_copy(out)
+
+
+@functools.cache
+def extrapolation_coefficients(stages: int) -> np.ndarray:
+    """:func:`~daemodel.collocation.extrapolation_polynomial` of the s-stage tableau, computed once."""
+    return extrapolation_polynomial(radau_iia(stages).c)
 
 
 def step_record_bytes(D: int, B: int, options) -> int:
