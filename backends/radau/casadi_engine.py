@@ -127,10 +127,9 @@ class CasadiEngine(AbstractEngine):
         if not np.isfinite(packed.sum()):
             return None
         shifts = self.transform.shifts(h)
-        target = 1.0 / (h * self.transform.gamma0)
-        error = min(shifts, key=lambda sigma: abs(sigma - target))
-        lu = _PackedInverses(packed, self.transform.blocks, shifts, error, self.D)
-        return Factors(h=h, shifts=shifts, lu=lu, singular=np.array([False]), error_shift=error, inverse=packed)
+        error = self.transform.error_shift(shifts)
+        lu = _PackedInverses(packed, self.transform, shifts, self.D)
+        return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
     def refresh(self, t: float, y, z, h: float):
         """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
@@ -158,7 +157,13 @@ class CasadiEngine(AbstractEngine):
         if bound is not factors:
             step.inputs[1][:] = factors.inverse
             self._compiled[1] = factors
-        return step(np.concatenate([scalars, previous, f0, self.p]))
+        x, k = step.inputs[0], len(scalars)
+        x[:k] = scalars
+        x[k : k + previous.size] = previous
+        k += previous.size
+        x[k : k + f0.size] = f0
+        x[k + f0.size :] = self.p
+        return step.evaluate()
 
     def _factor_shifts(self, values, shifts):
         """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
@@ -329,25 +334,29 @@ class CasadiEngine(AbstractEngine):
         return int(np.flatnonzero(mask)[0])
 
 
+_NOT_SINGULAR = np.array([False])  # (shared: never written)
+
+
 class _PackedInverses(dict):
     """``{shift: ("inverse", matrix)}`` read from the packed inverses of the compiled factorisation
     when first asked for (the compiled step reads the packed array itself; the general path's LU
     solves need the matrices)."""
 
-    def __init__(self, packed, blocks, shifts, error_shift, D):
+    def __init__(self, packed, transform, shifts, D):
         super().__init__()
-        self._where, offset = {}, 0
-        for (_, lam), sigma in zip(blocks, shifts, strict=False):
-            self._where[sigma] = (offset, bool(lam.imag))
-            offset += (2 if lam.imag else 1) * D * D
-        self._where.setdefault(error_shift, (offset, False))
-        self._packed, self._D = packed, D
+        self._packed, self._transform, self._shifts, self._D = packed, transform, shifts, D
 
     def __missing__(self, sigma):
-        offset, complex_ = self._where[sigma]
-        D2, D = self._D * self._D, self._D
+        D, offset = self._D, 0
+        for (_, lam), shift in zip(self._transform.blocks, self._shifts, strict=False):
+            if shift == sigma:
+                break
+            offset += (2 if lam.imag else 1) * D * D
+        else:
+            lam = 0j  # the error estimate's own system (s even): last, real
+        D2 = D * D
         matrix = self._packed[offset : offset + D2].reshape(D, D, order="F")
-        if complex_:
+        if lam.imag:
             matrix = matrix + 1j * self._packed[offset + D2 : offset + 2 * D2].reshape(D, D, order="F")
         self[sigma] = ("inverse", matrix)
         return self[sigma]

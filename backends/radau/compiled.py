@@ -326,6 +326,10 @@ class Buffered:
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
         self._inputs[:] = values
+        return self.evaluate()
+
+    def evaluate(self) -> np.ndarray:
+        """The outputs for the inputs as they are in ``inputs`` (written in place by the caller)."""
         self._evaluate()
         if self._buffer.ret() != 0:
             raise RuntimeError(f"casadi function {self.name} failed (return code {self._buffer.ret()})")

@@ -134,19 +134,13 @@ class Radau5Controller:
             h = min(h, t1 - t)
             if (t1 - t) - h < 1e-10 * h:
                 h = t1 - t
-            fast = stepper.compiled_attempt(t, h, first or rejected_last) if stepper.compiled_step else None
-            if fast is not None:
-                result, newton_iterations, err = fast
-            else:
-                result, newton_iterations, why, sample = stepper.attempt(t, h)
-                if result is None:
-                    stats["newton_failures"] += 1
-                    stepper.drop_factors()
-                    h = shrink(h, t, why, sample, 0.5)
-                    first = True
-                    continue
-                W, r, _ = result
-                err = stepper.error.norm(t, h, r, W, first or rejected_last)
+            result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, first or rejected_last)
+            if result is None:
+                stats["newton_failures"] += 1
+                stepper.drop_factors()
+                h = shrink(h, t, why, sample, 0.5)
+                first = True
+                continue
             factor = min(SAFETY, SAFETY * (2 * iterations + 1) / (2 * iterations + newton_iterations))
             quot = factor * max(err, 1e-10) ** (-1.0 / (stepper.s + 1))
             if err > 1:

@@ -156,8 +156,7 @@ class AbstractEngine(ABC):
         """Factor ``sigma M - J`` for every shift of :meth:`StageTransform.shifts`, or (``error_only``)
         for the error estimate's alone."""
         shifts = self.transform.shifts(h)
-        target = 1.0 / (h * self.transform.gamma0)
-        error = min(shifts, key=lambda sigma: abs(sigma - target))
+        error = self.transform.error_shift(shifts)
         lu, singular = self._factor_shifts(J, (error,) if error_only else shifts)
         return Factors(h=h, shifts=shifts, lu=lu, singular=singular, error_shift=error, complete=not error_only)
 

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 from daemodel.backends.base import output_times
-from daemodel.backends.radau.compiled import CONVERGED
+from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
@@ -276,14 +276,26 @@ class Stepper:
             self.check_determined(stage_J, t, h, keep=False)
         return result, iterations, why, sample
 
+    def attempt_with_error(self, t, h, first):
+        """:meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm`: ``(result, iterations, why,
+        sample, error norm)``, in compiled calls where the engine has the compiled step (:mod:`.compiled`)."""
+        found = self.compiled_attempt(t, h, first) if self.compiled_step else None
+        if found is not None:
+            return found
+        result, iterations, why, sample = self.attempt(t, h)
+        if result is None:
+            return result, iterations, why, sample, math.inf
+        W, r, _ = result
+        return result, iterations, None, None, self.error.norm(t, h, r, W, first)
+
     def compiled_attempt(self, t, h, first):
-        """The attempt of :meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm` in compiled
-        calls (:mod:`.compiled`), where Newton runs on the transformed systems: ``(result, iterations,
-        error norm)``, or None where the step must run on the general path (full Newton pending, or the
-        compiled Newton did not converge: the general path words why).
+        """The attempt of :meth:`attempt_with_error` in compiled calls, where Newton runs on the transformed
+        systems; None where the step must run on the general path (full Newton pending, or values that
+        turned non-finite, whose culprit the general path names).
 
         The retries of :meth:`attempt`, in its order: from the extrapolated guess, again with a fresh
-        Jacobian where the kept one is stale, then from the start value.
+        Jacobian where the kept one is stale, then from the start value; where all fail, the
+        determinedness of z over the step is checked as :meth:`attempt` checks it.
         """
         if self.stage_steps > 0:
             return None
@@ -291,41 +303,51 @@ class Stepper:
         if factors.inverse is None:
             return None
         # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
-        guess = constant = (np.tile(self.state()[0], self.s + 1), 0.0)
-        if self._previous is not None:
-            h_old, u_old, W_old = self._previous
-            guess = (np.concatenate([u_old[0], W_old.ravel()]), h / h_old)
+        constant = None if self._previous is not None else (np.tile(self.state()[0], self.s + 1), 0.0)
+        guess = constant or (self._previous_nodes, h / self._previous[0])
         f0 = self.start_f(t)[0]
         found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found is None and self._jac[1] != t:  # the kept Jacobian may be stale: refresh it, try again
+        if found[0] is None and self._jac[1] != t:  # the kept Jacobian may be stale: refresh it, try again
             self._jac = self.factors = None
             factors = self.current_lu(self.current_jacobian(t, h), t, h)
             if factors.inverse is None:
                 return None
             found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found is None and guess is not constant:
-            found = self._compiled_try(factors, t, h, constant, first, f0)
+        if found[0] is None and constant is None:
+            found = self._compiled_try(factors, t, h, (np.tile(self.state()[0], self.s + 1), 0.0), first, f0)
+        if found[0] is None:
+            if found[2] is None:  # non-finite values: the general path names where they arose
+                return None
+            stage_J = self.engine.stage_jacobians(t, h, self.constant_guess())
+            self.stats["jacobian_evaluations"] += 1
+            self.check_determined(stage_J, t, h, keep=False)
         return found
 
     def _compiled_try(self, factors, t, h, guess, first, f0):
-        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old); None where Newton failed."""
+        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old), as
+        :meth:`attempt_with_error` returns it (why None where values turned non-finite)."""
         previous, ratio = guess
         policy, stats = self.policy, self.stats
         scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
         out = self.engine.compiled_step(factors, scalars, previous, f0)
         outcome, k, evaluations, theta, eta, err = out[:6]
         stats["residual_evaluations"] += int(evaluations)
+        k = int(k)
         if outcome != CONVERGED:
             stats["compiled_retries"] += 1
-            return None
-        k = int(k)
+            why = {
+                DIVERGING: f"diverging (contraction {theta:.2f})",
+                SLOW: f"converging too slowly (contraction {theta:.2f})",
+                NOT_CONVERGED: f"not converged in {k} iterations",
+            }.get(int(outcome))
+            return None, k, why, 0, math.inf
         stats["newton_iterations"] += k
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
         self.eta = np.array([eta])
         s, n, D = self.s, self.n, self.n + self.m
         W = out[6 : 6 + s * D].reshape(1, s, D)
         r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
-        return (W, r, float(theta)), k, (float(err) if math.isfinite(err) else math.inf)
+        return (W, r, float(theta)), k, None, None, (float(err) if math.isfinite(err) else math.inf)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""
@@ -357,6 +379,8 @@ class Stepper:
             out_t.append(t_next)
             out_u.append(W[:, -1])
         self._previous = (h, u_start, W)
+        if self.compiled_step:  # the compiled step's start guess reads the nodes packed
+            self._previous_nodes = np.concatenate([u_start[0], W.ravel()])
         self.y, self.z = W[:, -1, : self.n], W[:, -1, self.n :]
         self._f_start = r.stage_f[:, -1]
         self.stats["steps"] += 1

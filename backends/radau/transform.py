@@ -9,6 +9,7 @@ and one complex LU of size n + m instead of one real LU of size 3(n + m), about 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ import numpy as np
 TRANSFORM_CHECK = 1e-12
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StageTransform:
     """``A^-1 = T Lambda T^-1`` with ``Lambda`` real block-diagonal, and the shifts of the blocks.
 
@@ -63,14 +64,21 @@ class StageTransform:
             raise ArithmeticError("radau: the eigen-decomposition of A^-1 is inaccurate")  # daemodel's own bug
         return cls(T=T, T_inv=T_inv, T_inv_A_inv=T_inv @ A_inv, blocks=tuple(blocks), gamma0=gamma0)
 
+    @functools.cached_property
+    def error_block(self) -> int | None:
+        """Which block's system is the error estimate's (the real one when s is odd), or None."""
+        error = 1.0 / self.gamma0
+        return next((i for i, (_, lam) in enumerate(self.blocks) if abs(lam - error) <= 1e-12 * error), None)
+
     def shifts(self, h: float) -> tuple:
         """The shifts ``sigma`` of every ``sigma M - J`` to factor for step ``h``: the blocks',
-        then the error estimate's (the real block's when s is odd)."""
-        out = [lam / h for _, lam in self.blocks]
-        error = complex(1.0 / (h * self.gamma0))
-        if not any(abs(sigma - error) <= 1e-12 * abs(error) for sigma in out):
-            out.append(error)
-        return tuple(out)
+        then the error estimate's where it is no block's (s even)."""
+        out = tuple(lam / h for _, lam in self.blocks)
+        return out if self.error_block is not None else (*out, complex(1.0 / (h * self.gamma0)))
+
+    def error_shift(self, shifts: tuple) -> complex:
+        """The error estimate's shift among ``shifts`` (of :meth:`shifts`)."""
+        return shifts[self.error_block] if self.error_block is not None else shifts[-1]
 
 
 def embedded_weights(tableau) -> tuple[float, np.ndarray]:
