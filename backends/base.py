@@ -44,6 +44,11 @@ SWEEP_STAGES = 3
 # a pole that land on a finite root measure 0.2 and more (a wrong root is wrong by O(1) times the
 # scale, so the 1e3 first proposed would catch almost none of them).
 LOCAL_ERROR_BOUND = 0.1
+# Fixed steps: a run whose largest local error estimate, in the same units, exceeds this is flagged
+# (status "flagged: ..." naming the step, and a LocalErrorWarning), not "success": the default asks
+# for about three correct digits of every step relative to the solution's size; ``estimate_bound``
+# sets it per solve.
+DEFAULT_ESTIMATE_BOUND = 1e-3
 # Step loops give up early when the last PROGRESS_WINDOW steps project more than PROJECTION_FACTOR
 # times the steps left in the budget: an endless t_span or a chattering switch fails in a second
 # instead of spending the whole budget.  The projection lets h keep growing as it did over the
@@ -61,6 +66,36 @@ RTOL_RANGE = (1e-14, 0.1)
 MAX_GRID_POINTS = 10**7
 # A grid step must exceed this many ulps of the largest |t|, or t0 + k h repeats times.
 MIN_STEP_ULPS = 16
+
+
+def estimate_status(method: str, worst: float, bound: float, where: str) -> str:
+    """ "success" where a fixed-step run's largest local error estimate ``worst`` is within ``bound``;
+    else a "flagged: ..." status naming the step (``where``), with a :class:`LocalErrorWarning`."""
+    import warnings
+
+    from daemodel.errors import LocalErrorWarning
+
+    if worst <= bound:
+        return "success"
+    status = (
+        f"flagged: {method}'s local error estimate reaches {worst:.3g} of the solution's size at {where}, beyond "
+        f"estimate_bound = {bound:g}: the values there keep fewer digits than the bound asks; take a smaller h, "
+        "or the adaptive mode (rtol=...)"
+    )
+    warnings.warn(status, LocalErrorWarning, stacklevel=caller_level())
+    return status
+
+
+def caller_level() -> int:
+    """The ``stacklevel`` that points a warning at the first frame outside daemodel (the user's call)."""
+    import sys
+    from pathlib import Path
+
+    inside = (str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1] / "daemodel"))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(inside):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def make_solution(

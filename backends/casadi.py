@@ -1,9 +1,11 @@
 """casadi's integrators: Radau collocation, and IDAS on the index-1 reduction.
 
-Both build one casadi integrator per solve and call it once per sample (casadi integrates
-one initial state per call).  ``casadi-collocation`` applies Radau IIA collocation with
-``stages`` points and one finite element per step ``h`` to the system as compiled (index 2
-is fine: its root finder solves the same stage equations as ``method="radau"``);
+Both build one casadi integrator per model, output times and settings, kept with the compiled
+model (:func:`cached_integrator`: a sweep or a repeated solve pays the setup once), and call it
+once per sample (casadi integrates one initial state per call).  ``casadi-collocation`` applies
+Radau IIA collocation with ``stages`` points and one finite element per step ``h`` to the system
+as compiled (index 2 is fine: its root finder solves the same stage equations as
+``method="radau"``);
 ``casadi-idas`` needs index 1, so :func:`daemodel.solve` hands it the index-1 reduction and
 the original constraints' drift is reported through :meth:`Solution.drift`.
 
@@ -45,6 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
+    DEFAULT_ESTIMATE_BOUND,
     DEFAULT_OUTPUT_POINTS,
     LOCAL_ERROR_BOUND,
     SWEEP_FIRST_STEPS,
@@ -53,6 +56,7 @@ from daemodel.backends.base import (
     check_output_memory,
     check_stages,
     check_tolerances,
+    estimate_status,
     fixed_grid,
     fixed_step_sweep,
     make_solution,
@@ -140,15 +144,23 @@ class CollocationOptions:
         collocation polynomials, so the values there are :meth:`Solution.at`'s: cubic Hermite
         states through the step grid with the model's f (O(h^4) on top of the method's error)
         and algebraic values solved from the constraints.
+    estimate_bound : float
+        A run whose largest local error estimate (a step repeated with one more collocation
+        point, in units of the solution's size ``1 + max |u|``) exceeds this is flagged (status
+        ``"flagged: ..."`` naming the step, and a :class:`~daemodel.errors.LocalErrorWarning`);
+        every step's estimate is in ``stats["local_error_estimates"]``.  Default
+        :data:`~daemodel.backends.base.DEFAULT_ESTIMATE_BOUND`.
     """
 
     stages: int = 3
     h: float | None = None
     t_eval: object = None
+    estimate_bound: float = DEFAULT_ESTIMATE_BOUND
 
     def __post_init__(self) -> None:
         check_stages(self.stages)
         check_number("h", self.h, allow_none=True)
+        check_number("estimate_bound", self.estimate_bound)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -184,6 +196,18 @@ class IDASOptions:
         check_number("max_num_steps", self.max_num_steps, integer=True)
         if not isinstance(self.suppress_algebraic, bool):
             raise InvalidOptionError(f"suppress_algebraic must be True or False; got {self.suppress_algebraic!r}")
+
+
+def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
+    """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times and
+    settings and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a sweep)."""
+    import json
+
+    import casadi
+
+    times = [float(t) for t in times]
+    key = ("casadi-integrator", plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True))
+    return compiled.cached(key, lambda: casadi.integrator(plugin, plugin, dae, float(t0), times, settings))
 
 
 def _dae(compiled) -> dict:
@@ -358,7 +382,8 @@ class LocalErrorCheck:
         self.z_index = np.array(compiled.algebraic_index, dtype=float)
 
     def __call__(self, grid, values, parameters) -> np.ndarray:
-        """Estimates, shape (B, N, n + m), in units of each variable's scale, for ``values`` (B, N + 1, n + m)."""
+        """Estimates, shape (B, N, n + m), in units of each variable's scale ``1 + max |u|``, for
+        ``values`` (B, N + 1, n + m)."""
         B, N = values.shape[0], len(grid) - 1
         n = len(self.compiled.states)
         h = np.diff(grid)
@@ -369,10 +394,28 @@ class LocalErrorCheck:
         with _captured():
             repeat = self.step.map(B * N)(x0=starts[:n], z0=starts[n:], p=p)
         again = np.concatenate([np.asarray(repeat["xf"]), np.asarray(repeat["zf"])], axis=0).T.reshape(B, N, -1)
-        error = np.abs(values[:, 1:] - again)
-        error[..., n:] *= h[None, :, None] ** (self.z_index - 1)
         scale = 1.0 + np.max(np.abs(values), axis=1, keepdims=True)
-        return np.nan_to_num(error / scale, nan=np.inf)
+        return np.nan_to_num(np.abs(values[:, 1:] - again) / scale, nan=np.inf)
+
+    def weighted(self, grid, estimates) -> np.ndarray:
+        """``estimates`` with an index-k algebraic variable's multiplied by ``h^(k-1)`` (RADAU5's
+        units, which :data:`LOCAL_ERROR_BOUND` bounds)."""
+        n = len(self.compiled.states)
+        out = estimates.copy()
+        out[..., n:] *= np.diff(grid)[None, :, None] ** (self.z_index - 1)
+        return out
+
+    def status(self, name: str, grid, estimates, bound: float, batched: bool) -> str:
+        """ "success", or flagged at the step with the largest estimate beyond ``bound``
+        (:func:`~daemodel.backends.base.estimate_status`)."""
+        if not estimates.size:
+            return "success"
+        sample, step, j = np.unravel_index(int(np.argmax(estimates)), estimates.shape)
+        variable = (*self.compiled.state_names, *self.compiled.algebraic_names)[j]
+        t, h = grid[step], grid[step + 1] - grid[step]
+        where = f"step {step + 1} from t = {t:.6g} (h = {h:.3g}), in '{variable}'"
+        where += f", sample {sample}" if batched else ""
+        return estimate_status(name, float(estimates[sample, step, j]), bound, where)
 
     def raise_beyond_bound(self, name: str, grid, estimates) -> None:
         """:class:`LocalErrorBoundError` for the earliest step whose estimate exceeds the bound."""
@@ -412,8 +455,6 @@ class CollocationBackend(AbstractBackend):
         return fixed_step_sweep(t_span, points, steps)
 
     def solve(self, compiled, t_span, start, options: CollocationOptions):
-        import casadi
-
         h = options.h if options.h is not None else (t_span[1] - t_span[0]) / DEFAULT_STEPS
         grid = fixed_grid(t_span, h)
         points = len(grid) + len(output_times(options.t_eval, t_span, ()))  # t_eval validated first
@@ -423,21 +464,20 @@ class CollocationBackend(AbstractBackend):
         # casadi's Newton stops on |residual| < abstol (default 1e-12, for unit-size values): scale it
         # with the solution, or mechanisms with accelerations of 1e4-1e6 never reach it (rounding)
         root_abstol = ROOT_ABSTOL * (1.0 + float(np.abs(np.concatenate([start.y0, start.z0], axis=1)).max(initial=0)))
-        integrator = casadi.integrator(
-            "collocation",
-            "collocation",
-            dae,
-            float(grid[0]),
-            [float(t) for t in grid[1:]],
-            {
-                "collocation_scheme": "radau",
-                "interpolation_order": options.stages,
-                "number_of_finite_elements": 1,
-                "rootfinder_options": {"abstol": root_abstol, **QUIET},
-                **QUIET,
-            },
+        plugin_options = {
+            "collocation_scheme": "radau",
+            "interpolation_order": options.stages,
+            "number_of_finite_elements": 1,
+            "rootfinder_options": {"abstol": root_abstol, **QUIET},
+            **QUIET,
+        }
+        # built once per model, grid and settings, as radau builds its functions once: sweeps and
+        # repeated solves pay the setup once
+        integrator = cached_integrator(compiled, "collocation", dae, grid[0], grid[1:], plugin_options)
+        check = compiled.cached(
+            ("casadi-collocation-check", options.stages, root_abstol),
+            lambda: LocalErrorCheck(compiled, options.stages, dae, root_abstol),
         )
-        check = LocalErrorCheck(compiled, options.stages, dae, root_abstol)
         setup = time.perf_counter() - began  # building the integrators: reported apart from the solve
         began = time.perf_counter()
 
@@ -458,13 +498,16 @@ class CollocationBackend(AbstractBackend):
         if failure is not None:
             raise failure
         estimates = check(grid, values, start.p)
-        check.raise_beyond_bound(self.name, grid, estimates)
+        weighted = check.weighted(grid, estimates)
+        check.raise_beyond_bound(self.name, grid, weighted)
         stats = {
             "stages": options.stages,
             "steps": len(grid) - 1,
-            "max_local_error_estimate": float(estimates.max(initial=0.0)),
+            "max_local_error_estimate": float(weighted.max(initial=0.0)),
+            "local_error_estimates": estimates.max(axis=(0, 2), initial=0.0).tolist(),
             **stats,
         }
+        status = check.status(self.name, grid, estimates, options.estimate_bound, start.batched)
         settings = {k: v for k, v in dataclasses.asdict(options).items() if k != "t_eval"}
         on_grid = make_solution(self, compiled, start, options, grid, values, 0.0, stats, settings=settings)
         times = grid
@@ -474,7 +517,9 @@ class CollocationBackend(AbstractBackend):
             names = (*compiled.state_names, *compiled.algebraic_names)
             values = np.stack([np.reshape(between[name], (start.size, len(times))) for name in names], axis=-1)
         wall = time.perf_counter() - began
-        return make_solution(self, compiled, start, options, times, values, wall, stats, settings, setup_time=setup)
+        return make_solution(
+            self, compiled, start, options, times, values, wall, stats, settings, status=status, setup_time=setup
+        )
 
 
 def collocation_failure(error: str, printed: str, *, sample: int, model: str, grid) -> ConvergenceError:
@@ -610,7 +655,7 @@ class IDASBackend(AbstractBackend):
         if step0 is not None:
             settings["step0"] = step0
         out = [float(t) for t in grid]
-        shared = casadi.integrator("idas", "idas", dae, float(t_span[0]), out, {**settings, "calc_ic": True})
+        shared = cached_integrator(compiled, "idas", dae, t_span[0], out, {**settings, "calc_ic": True})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()

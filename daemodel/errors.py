@@ -164,6 +164,11 @@ class OutsideTrainingBoxWarning(UserWarning):
     """A surrogate was asked for states or parameters outside the box it was trained on (by default a warning)."""
 
 
+class LocalErrorWarning(UserWarning):
+    """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``): the
+    solution is flagged, not "success", and keeps fewer digits than that bound promises."""
+
+
 class UncertifiedWarning(UserWarning):
     """A Radau-PINN answer whose certificate does not put it within Radau's own error at the same h
     (its Solution's status is "flagged"; ``strict=True`` makes it a :class:`TrainingError`)."""

@@ -26,7 +26,8 @@ exactly one outcome of :data:`OUTCOMES`:
 ``refused-valid``
     a valid case raised a daemodel error (any class with a base in ``daemodel.errors``; on the old
     code ``ModelError``/``ConvergenceError``), exited the CLI with a non-zero status, or returned
-    a solution whose ``status`` is not ``"success"``.
+    a solution whose ``status`` is neither ``"success"`` nor ``"flagged: ..."`` (an answer whose
+    own estimate says it misses its accuracy, and says so, counts as ``ok``).
 ``silently-wrong``
     an invalid or hostile input was accepted (a hostile string must be refused by the ``m.ode`` /
     ``m.constraint`` call that receives it, not by a later step), or a solution disagrees with
@@ -998,6 +999,10 @@ def classify(case: Case, raw: dict, canary: bool) -> tuple[str, str]:
     # returned
     if case.expect in ("invalid", "hostile"):
         return "silently-wrong", "accepted an input that must be refused; " + raw.get("detail", "")
+    if str(raw.get("status")).startswith("flagged"):
+        # an answer whose own error estimate says it misses its accuracy, and says so: honest, not a
+        # refusal (a fixed step across a switch keeps fewer digits than estimate_bound asks)
+        return "ok", f"status {raw['status']!r}"
     if raw.get("status") not in (None, "success"):
         return ("refused-valid" if case.expect == "valid" else "ok"), f"status {raw['status']!r}"
     if not raw.get("passed"):

@@ -71,6 +71,20 @@ def test_the_compiled_step_keeps_radau5s_thresholds_where_newton_meets_rounding(
         assert abs(sol[name][-1] - reference[name][-1]) < 1e-10
 
 
+def test_no_predictive_control_where_the_estimates_are_rounding_noise():
+    """Gustafsson's prediction squares the estimates: at rtol 1e-13 (rounding) it drove a chain of 40
+    pendulums (s = 7, the sparse general path) to step size underflow at t = 0.76."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import scaling_models
+
+    compiled = scaling_models.pendulum_chain(40).compile()
+    sol = dm.solve(compiled, scaling_models.T_SPAN["pendulum_chain"], rtol=1e-13, atol=1e-13, stages=7)
+    assert sol.stats["steps"] < 300  # 120 measured
+
+
 def test_jit_option_errors(monkeypatch):
     with pytest.raises(E.InvalidOptionError, match=r"jit must be True or False; got 1"):
         dm.solve(PENDULUM.model(), (0.0, 1.0), jit=1)

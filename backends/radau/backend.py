@@ -68,7 +68,10 @@ class RadauBackend(AbstractBackend):
         wall = time.perf_counter() - began
         if engine.name == "torch":
             stepper.stats["torch_threads"] = engine.torch.get_num_threads()
-        return make_solution(self, compiled, start, options, times, values, wall, stepper.stats, setup_time=setup)
+        status = "success" if options.adaptive else stepper.error.status(self.name, options.estimate_bound)
+        return make_solution(
+            self, compiled, start, options, times, values, wall, stepper.stats, status=status, setup_time=setup
+        )
 
 
 def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import (
+    DEFAULT_ESTIMATE_BOUND,
     check_dtype,
     check_number,
     check_stages,
@@ -101,6 +102,14 @@ class RadauOptions:
         instead of running it on casadi's virtual machine: the same results bit for bit, a step
         about 10x cheaper.  The C source and library live in a private temporary directory that is
         removed once the library is loaded.
+    estimate_bound : float, optional
+        Fixed step only: a run whose largest local error estimate, in units of the solution's
+        size ``1 + max |u|``, exceeds this is flagged (status ``"flagged: ..."`` naming the step,
+        and a :class:`~daemodel.errors.LocalErrorWarning`) instead of "success".  Default
+        :data:`~daemodel.backends.base.DEFAULT_ESTIMATE_BOUND`; every step's estimate is in
+        ``stats["local_error_estimates"]``.  Beyond
+        :data:`~daemodel.backends.base.LOCAL_ERROR_BOUND` a step has no correct digit and the
+        solve raises :class:`~daemodel.errors.LocalErrorBoundError`.
     """
 
     stages: int | None = None
@@ -119,6 +128,7 @@ class RadauOptions:
     engine: str = "auto"
     start_guess: object = None
     jit: bool = False
+    estimate_bound: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
@@ -165,6 +175,13 @@ class RadauOptions:
                 "start_guess must be a function (t, y, z) -> stage values, for a fixed step (h=...); "
                 f"got {type(self.start_guess).__name__}" + (" with adaptive steps" if self.adaptive else "")
             )
+        check_number("estimate_bound", self.estimate_bound, allow_none=True)
+        if self.estimate_bound is not None and self.adaptive:
+            raise InvalidOptionError(
+                "estimate_bound bounds a fixed step's local error estimate (h=...); adaptive steps meet rtol/atol"
+            )
+        if self.estimate_bound is None and not self.adaptive:
+            object.__setattr__(self, "estimate_bound", DEFAULT_ESTIMATE_BOUND)
         if not isinstance(self.jit, bool):
             raise InvalidOptionError(f"jit must be True or False; got {self.jit!r}")
         if self.jit and not self.adaptive:

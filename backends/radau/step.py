@@ -105,12 +105,10 @@ class Stepper:
             self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path
         # where iterations are cheap (the compiled step), the Jacobian and factors are kept longer
         # (REUSE_THETA_COMPILED, control.KEEP_H_BAND_COMPILED), unless Newton's tolerance sits at the
-        # rounding floor (10 eps / rtol above RADAU5's min(0.03, sqrt(rtol)): rtol below ~5e-10), where a
-        # slower contraction leaves stage errors that the error estimate reads as the step's (the pendulum
-        # at rtol 1e-13, s = 7: step size underflow)
-        eps = float(np.finfo(options.dtype).eps)
-        rtol = self.policy.rtol
-        self.keep_longer = bool(self.compiled_step) and 10 * eps / rtol <= min(0.03, rtol**0.5)
+        # rounding floor (Radau5Controller.rounding_floor: rtol below ~5e-10), where a slower contraction
+        # leaves stage errors that the error estimate reads as the step's (the pendulum at rtol 1e-13,
+        # s = 7: step size underflow)
+        self.keep_longer = bool(self.compiled_step) and not controller.rounding_floor
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):

@@ -1,0 +1,75 @@
+"""Fixed steps are honest: every step's local error estimate is reported, and a run beyond
+``estimate_bound`` comes back flagged (status and a warning naming the step), for radau and for
+casadi's collocation alike; casadi's integrators are built once per model, times and settings."""
+
+import numpy as np
+import pytest
+from daemodel.backends.base import DEFAULT_ESTIMATE_BOUND
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import PENDULUM
+
+
+def _kink() -> dm.Model:
+    """x' = 1 before t = 0.52 and -1 after: x = min(t, 1.04 - t), a kink between grid points."""
+    m = dm.Model("kink")
+    m.states("x")
+    m.ode("x", "Piecewise((1, t < 0.52), (-1, True))")
+    m.initial(x=0.0)
+    return m
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-collocation"])
+def test_a_step_across_a_kink_is_flagged_with_its_estimate(method):
+    with pytest.warns(E.LocalErrorWarning) as caught:
+        sol = dm.solve(_kink(), (0.0, 1.0), h=0.05, method=method)
+    assert sol.status == str(caught[0].message)
+    assert sol.status.startswith(f"flagged: {method}'s local error estimate reaches 0.01") and sol.status.endswith(
+        "of the solution's size at step 11 from t = 0.5 (h = 0.05), in 'x', beyond estimate_bound = 0.001: "
+        "the values there keep fewer digits than the bound asks; take a smaller h, or the adaptive mode (rtol=...)"
+    )
+    estimates = np.asarray(sol.stats["local_error_estimates"])
+    assert estimates.shape == (20,) and int(np.argmax(estimates)) == 10  # step 11, the one across t = 0.52
+    exact = np.minimum(sol.t, 1.04 - sol.t)
+    error = np.abs(sol["x"] - exact).max()
+    assert DEFAULT_ESTIMATE_BOUND < error < 10 * estimates.max()  # the estimate's size, and truly beyond the bound
+    assert dm.solve(_kink(), (0.0, 1.0), h=0.05, method=method, estimate_bound=0.1).status == "success"
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-collocation"])
+def test_a_smooth_run_within_the_bound_is_success(method, recwarn):
+    sol = dm.solve(PENDULUM.model(), (0.0, 1.0), h=0.01, method=method)
+    assert sol.status == "success" and not [w for w in recwarn if w.category is E.LocalErrorWarning]
+    assert 0 < max(sol.stats["local_error_estimates"]) <= DEFAULT_ESTIMATE_BOUND
+    assert len(sol.stats["local_error_estimates"]) == 100
+
+
+def test_estimate_bound_errors():
+    with pytest.raises(E.InvalidOptionError, match=r"estimate_bound bounds a fixed step's local error estimate"):
+        dm.solve(PENDULUM.model(), (0.0, 1.0), estimate_bound=1e-3)
+    for method in ("radau", "casadi-collocation"):
+        with pytest.raises(E.InvalidOptionError, match=r"estimate_bound must be positive; got -1"):
+            dm.solve(PENDULUM.model(), (0.0, 1.0), h=0.1, method=method, estimate_bound=-1)
+
+
+@pytest.mark.parametrize(("method", "options"), [("casadi-idas", {"rtol": 1e-6}), ("casadi-collocation", {"h": 0.1})])
+def test_casadi_integrators_are_built_once_per_model_and_settings(monkeypatch, method, options):
+    import casadi
+
+    built = []
+    original = casadi.integrator
+
+    def counting(*args, **kwargs):
+        built.append(args[0])  # the integrator's name
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(casadi, "integrator", counting)
+    compiled = PENDULUM.model().compile()
+    first = dm.solve(compiled, (0.0, 1.0), method=method, **options)
+    again = dm.solve(compiled, (0.0, 1.0), method=method, **options)
+    assert np.array_equal(first["y1"], again["y1"])
+    name = "idas" if method == "casadi-idas" else "collocation"
+    assert built.count(name) == 1 and len(built) == (1 if method == "casadi-idas" else 2)  # (+ the estimate's)
+    dm.solve(compiled, (0.0, 1.0), method=method, **{k: v / 2 for k, v in options.items()})  # other settings
+    assert built.count(name) == 2
