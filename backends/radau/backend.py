@@ -106,7 +106,7 @@ def make_engine(compiled, start, options: RadauOptions):
     name = make_engine_name(start, options)
     if options.jit and name != "casadi":
         raise InvalidOptionError(
-            f"jit=True compiles the casadi engine's adaptive step, for one trajectory in float64 on the CPU; this "
+            f"jit=True compiles the casadi engine's functions, for one trajectory in float64 on the CPU; this "
             f"solve ({start.size} sample(s), {options.dtype}, device {options.device!r}) runs on the torch engine: "
             "leave jit out"
         )
@@ -116,7 +116,7 @@ def make_engine(compiled, start, options: RadauOptions):
                 f"engine='casadi' solves one trajectory; this batch has {start.size} samples: use engine='torch' "
                 "(or 'auto')"
             )
-        return CasadiEngine(compiled, start, tableau, transform)
+        return CasadiEngine(compiled, start, tableau, transform, jit=options.jit)
     import torch
     from daemodel.backends.radau.torch_engine import TorchEngine
 

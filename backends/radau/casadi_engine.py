@@ -40,12 +40,15 @@ class CasadiEngine(AbstractEngine):
 
     name = "casadi"
 
-    def __init__(self, compiled, start, tableau, transform):
+    def __init__(self, compiled, start, tableau, transform, jit: bool = False):
         super().__init__(compiled, start, tableau, transform)
         self.xp = np
         self.B = 1
         self.p = np.asarray(start.p, dtype=float)[0]
+        self.jit = jit
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
+        # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
+        # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
         self._f, self._residual, self._jac, self._stage_jac = (Buffered(fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
         D = self.D
@@ -56,13 +59,19 @@ class CasadiEngine(AbstractEngine):
         if self.dense:
             self._identity = (np.eye(D), np.eye(D, dtype=complex))
             step = compiled.cached(("casadi-radau-step", self.s), lambda: newton_step_function(functions[1], self))
-            self._step = [Buffered(step, inputs=2), None]
+            self._step = [Buffered(self._machine_code(step, ("casadi-radau-step", self.s)), inputs=2), None]
         else:
             self._sparse_layout()
         self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
         self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
         self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
         self._functions = functions
+
+    def _machine_code(self, function, key):
+        """``function``, or with ``jit`` its machine code (built once per model and ``key``)."""
+        if not self.jit:
+            return function
+        return self.compiled.cached((*key, "machine code"), lambda: machine_code(function, find_compiler()))
 
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
@@ -75,7 +84,7 @@ class CasadiEngine(AbstractEngine):
         key = ("casadi-radau-compiled-step", self.s, iterations)
         step = compiled.cached(key, lambda: step_function(functions[0], functions[1], self, iterations, e, weights))
         if jit:
-            step = compiled.cached((*key, "machine code"), lambda: machine_code(step, find_compiler()))
+            step = self._machine_code(step, key)
         self._compiled = [Buffered(step, inputs=2), None]
         return True
 

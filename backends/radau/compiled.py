@@ -232,10 +232,11 @@ def machine_code(function, compiler: str):
     folder = tempfile.mkdtemp(prefix="daemodel-jit-")
     try:
         options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": folder + "/", "cleanup": False}
+        inputs = function.mx_in()  # (an SX function makes new symbols on every call)
         return casadi.Function(
             function.name() + "_machine_code",
-            function.mx_in(),
-            function.call(function.mx_in()),
+            inputs,
+            function.call(inputs),
             {"jit": True, "compiler": "shell", "jit_cleanup": False, "jit_temp_suffix": True, "jit_options": options},
         )
     except RuntimeError as error:
