@@ -23,7 +23,7 @@ from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
 
-from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
+from daemodel.collocation import extrapolation_polynomial, horner
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
 from daemodel.tableau import radau_iia
@@ -328,7 +328,7 @@ class Stepper:
         policy, stats = self.policy, self.stats
         scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
         out = self.engine.compiled_step(factors, scalars, previous, f0)
-        outcome, k, evaluations, theta, eta, err = out[:6]
+        outcome, k, evaluations, theta, eta, err = out[:6].tolist()  # Python floats: cheaper to test
         stats["residual_evaluations"] += int(evaluations)
         k = int(k)
         if outcome != CONVERGED:
@@ -345,7 +345,7 @@ class Stepper:
         s, n, D = self.s, self.n, self.n + self.m
         W = out[6 : 6 + s * D].reshape(1, s, D)
         r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
-        return (W, r, float(theta)), k, None, None, (float(err) if math.isfinite(err) else math.inf)
+        return (W, r, theta), k, None, None, (err if math.isfinite(err) else math.inf)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""
@@ -451,22 +451,45 @@ class Stepper:
 
     def dense_output(self, t_out, u0, t0, steps):
         """Values at ``t_out`` (ascending) from each step's collocation polynomial through (t_n, u_n),
-        (t_n + c_i h, W_i): the points of one step in one product."""
+        (t_n + c_i h, W_i), all points in one product: the Lagrange weights at theta = (t - t_n) / h
+        are a polynomial in theta (:func:`dense_coefficients`), evaluated by Horner's rule."""
         xp = self.xp
-        nodes = np.concatenate([[0.0], self.tableau.c])
         t_out = np.asarray(t_out, dtype=float)
         out = xp.stack([u0] * len(t_out), axis=1)  # (B, T, n+m): u0 where t <= t0
-        if steps:
-            ends = np.array([t_n + h * (1 + 1e-13) for t_n, h, _, _ in steps])
-            owner = np.minimum(np.searchsorted(ends, t_out, side="left"), len(steps) - 1)  # the step ending at or after
-            after = t_out > t0
-            for k in np.unique(owner[after]):
-                points = np.flatnonzero(after & (owner == k))
-                t_n, h, u_start, W = steps[k]
-                L = self.engine.asarray(lagrange_matrix(nodes, (t_out[points] - t_n) / h))  # (P, s+1)
-                values = xp.einsum("pj,bjk->bpk", L, xp.concatenate([u_start[:, None, :], W], axis=1))
-                out[:, points] = values if xp is np else values.to(out.dtype)
+        after = np.flatnonzero(t_out > t0)
+        if not steps or not len(after):
+            return t_out, numpy_copy(out)
+        starts = np.array([t_n for t_n, _, _, _ in steps])
+        lengths = np.array([h for _, h, _, _ in steps])
+        ends = starts + lengths * (1 + 1e-13)
+        owner = np.minimum(np.searchsorted(ends, t_out[after], side="left"), len(steps) - 1)  # the step ending at/after
+        theta = (t_out[after] - starts[owner]) / lengths[owner]
+        weights = self.engine.asarray(horner(dense_coefficients(self.s), theta[:, None]))  # (P, s+1)
+        used = np.unique(owner)
+        nodes = xp.stack([xp.concatenate([steps[k][2][:, None, :], steps[k][3]], axis=1) for k in used], axis=1)
+        where = self.engine.asarray(np.searchsorted(used, owner)) if xp is not np else np.searchsorted(used, owner)
+        if xp is not np:
+            where = where.long()
+        picked = nodes[:, where]  # (B, P, s+1, n+m)
+        out[:, after] = xp.einsum("pj,bpjk->bpk", weights, picked)
         return t_out, numpy_copy(out)
+
+
+@functools.cache
+def dense_coefficients(stages: int) -> np.ndarray:
+    """``C (s+1, s+1)``: the Lagrange basis on the nodes (0, c_1 .. c_s) at theta is ``sum_k C[k] theta^k``
+    (:func:`~daemodel.collocation.horner`)."""
+    from numpy.polynomial import polynomial as P
+
+    nodes = np.concatenate([[0.0], radau_iia(stages).c])
+    C = np.zeros((stages + 1, stages + 1))
+    for j in range(stages + 1):
+        poly = np.array([1.0])
+        for m in range(stages + 1):
+            if m != j:
+                poly = P.polymul(poly, np.array([-nodes[m], 1.0]) / (nodes[j] - nodes[m]))
+        C[: len(poly), j] = poly
+    return C
 
 
 @functools.cache
