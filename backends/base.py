@@ -87,13 +87,12 @@ def estimate_status(method: str, worst: float, bound: float, where: str) -> str:
 
 
 def caller_level() -> int:
-    """The ``stacklevel`` that points a warning at the first frame outside daemodel (the user's call)."""
+    """The ``stacklevel`` that points a warning at the first frame outside daemodel (the user's call),
+    judged by module name (an installed copy's paths say nothing about the repository's layout)."""
     import sys
-    from pathlib import Path
 
-    inside = (str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1] / "daemodel"))
     frame, level = sys._getframe(1), 1
-    while frame is not None and frame.f_code.co_filename.startswith(inside):
+    while frame is not None and frame.f_globals.get("__name__", "").split(".")[0] == "daemodel":
         frame, level = frame.f_back, level + 1
     return level
 

@@ -38,6 +38,7 @@ Trust:
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import io
@@ -75,6 +76,9 @@ QUIET = {"show_eval_warnings": False}
 # 1 + max|u0| (casadi's default 1e-12 assumes unit size; the squeezing mechanism's w ~ 1e4-4e5
 # leaves residuals at 1e-11 from rounding alone).
 ROOT_ABSTOL = 1e-12
+# Integrators kept per model (least recently used dropped first): a sweep's tolerances or steps, a
+# few start values; each holds its output times (a 20,000-step grid is 160 kB) and casadi's memory.
+KEPT_INTEGRATORS = 32
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
 FIRST_STEP_SAFETY = 0.1
@@ -200,14 +204,22 @@ class IDASOptions:
 
 def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
     """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times and
-    settings and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a sweep)."""
+    settings and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a sweep); the
+    :data:`KEPT_INTEGRATORS` most recently used are kept."""
     import json
 
     import casadi
 
     times = [float(t) for t in times]
-    key = ("casadi-integrator", plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True))
-    return compiled.cached(key, lambda: casadi.integrator(plugin, plugin, dae, float(t0), times, settings))
+    key = (plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True))
+    kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
+    if key in kept:
+        kept.move_to_end(key)
+        return kept[key]
+    kept[key] = casadi.integrator(plugin, plugin, dae, float(t0), times, settings)
+    while len(kept) > KEPT_INTEGRATORS:
+        kept.popitem(last=False)
+    return kept[key]
 
 
 def _dae(compiled) -> dict:

@@ -10,16 +10,21 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
-@pytest.fixture(scope="module")
-def adaptive_precision():
+def _benchmark(name: str):
+    """The benchmark script ``benchmarks/<name>.py`` as a module (its folder on sys.path meanwhile)."""
     sys.path.insert(0, str(BENCHMARKS))
     try:
-        spec = importlib.util.spec_from_file_location("adaptive_precision", BENCHMARKS / "adaptive_precision.py")
+        spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
         yield module
     finally:
         sys.path.remove(str(BENCHMARKS))
+
+
+@pytest.fixture(scope="module")
+def adaptive_precision():
+    yield from _benchmark("adaptive_precision")
 
 
 def test_time_at_error_interpolates_in_log_log(adaptive_precision):
@@ -46,14 +51,7 @@ def test_time_at_error_uses_the_monotone_envelope_and_never_extrapolates(adaptiv
 
 @pytest.fixture(scope="module")
 def radau_idas():
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        spec = importlib.util.spec_from_file_location("radau_idas", BENCHMARKS / "radau_idas.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    yield from _benchmark("radau_idas")
 
 
 def test_peak_relative_error_scales_each_variable_by_its_own_peak(radau_idas):

@@ -13,6 +13,25 @@ def test_backends_install_as_daemodel_backends(tmp_path):
     assert out.strip() == "None"  # no top-level 'backends' package outside the repository
 
 
+def test_every_package_folder_is_installed():
+    """Each folder with an __init__.py under daemodel/ and backends/ is in pyproject's packages, where
+    package-dir says (an editable install finds a missing one; a wheel leaves it out)."""
+    import tomllib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    setuptools = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    declared = {name: root / folder for name, folder in setuptools["package-dir"].items()}
+    assert set(setuptools["packages"]) == set(declared)
+    found = set()
+    for top, name in (("daemodel", "daemodel"), ("backends", "daemodel.backends")):
+        for init in (root / top).rglob("__init__.py"):
+            parts = init.parent.relative_to(root / top).parts
+            found.add(".".join((name, *parts)))
+    assert found == set(declared)
+    assert all((folder / "__init__.py").exists() for folder in declared.values())
+
+
 def test_import_has_no_side_effects(tmp_path):
     out = python(
         "import sys, io, contextlib\n"

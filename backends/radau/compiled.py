@@ -117,7 +117,7 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     stage_f = casadi.reshape(out[s * D :], n, s)
     dW = transformed_increment(casadi, R, hs, invs, tr, n, D)
     norm = casadi.sqrt(casadi.sumsqr(dW / scs) / (s * D))
-    finite = norm < 1e300  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
+    finite = norm < casadi.inf  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
     # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
     checked = casadi.logic_and(mode == 1, norm <= tols)
     iterate = casadi.logic_and(mode < 2, casadi.logic_not(checked))
@@ -159,7 +159,8 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
         next_mode,
         casadi.if_else(failed, failure, outcome),
         casadi.logic_not(casadi.logic_or(failed, finished)),
-        evaluations + 1,
+        # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
+        evaluations + 1 + casadi.logic_and(mode == 1, iterate),
     ]
     one = casadi.Function("iteration", [*state_in, *fixed_syms], state_out)
     idle = casadi.Function("idle", [*state_in, *fixed_syms], state_in)
@@ -229,7 +230,13 @@ def machine_code(function, compiler: str):
 
     from daemodel.errors import CompileError
 
-    folder = tempfile.mkdtemp(prefix="daemodel-jit-")
+    try:
+        folder = tempfile.mkdtemp(prefix="daemodel-jit-")
+    except OSError as error:
+        raise CompileError(
+            f"radau: jit=True: no private temporary directory for the compiler ({error}); set TMPDIR to a "
+            "writable folder, or solve with jit=False"
+        ) from None
     try:
         options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": folder + "/", "cleanup": False}
         inputs = function.mx_in()  # (an SX function makes new symbols on every call)
@@ -242,7 +249,8 @@ def machine_code(function, compiler: str):
     except RuntimeError as error:
         raise CompileError(
             f"radau: jit=True: compiling the step of {function.name()!r} with {compiler} failed: "
-            f"{str(error).strip().splitlines()[-1][:400]}; solve with jit=False (the same results, slower steps)"
+            f"{(str(error).strip().splitlines() or ['no message'])[-1][:400]}; solve with jit=False (the same "
+            "results, slower steps)"
         ) from None
     finally:
         shutil.rmtree(folder, ignore_errors=True)

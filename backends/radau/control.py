@@ -97,9 +97,10 @@ class Radau5Controller:
         eps = float(np.finfo(options.dtype).eps)
         # Newton's tolerance is set by rounding (10 eps / rtol), not by RADAU5's min(0.03, sqrt(rtol)),
         # below rtol ~5e-10: its stage errors, and so the estimates, are near noise there
-        self.rounding_floor = 10 * eps / self.rtol > min(0.03, self.rtol**0.5)
+        tol = options.newton_tol or max(10 * eps / self.rtol, min(0.03, self.rtol**0.5))  # RADAU5's rule
+        self.rounding_floor = tol <= 10 * eps / self.rtol * (1 + 1e-12)  # (a newton_tol given that low too)
         self.policy = NewtonPolicy(
-            tol=options.newton_tol or max(10 * eps / self.rtol, min(0.03, self.rtol**0.5)),  # RADAU5's rule
+            tol=tol,
             atol=self.atol,
             rtol=self.rtol,
             iterations=options.max_newton_iterations,
@@ -147,7 +148,7 @@ class Radau5Controller:
                 stats["newton_failures"] += 1
                 stepper.drop_factors()
                 h = shrink(h, t, why, sample, 0.5)
-                first = True
+                first = rejected_last = True  # (as RADAU5: the next accepted step does not grow h)
                 continue
             factor = min(SAFETY, SAFETY * (2 * iterations + 1) / (2 * iterations + newton_iterations))
             quot = factor * max(err, 1e-10) ** (-1.0 / (stepper.s + 1))
@@ -167,7 +168,7 @@ class Radau5Controller:
                 change = min(change, min(MAX_FACTOR, max(MIN_FACTOR, predicted)))
             accepted = (h, max(err, 1e-2))
             new_h = h * change if not rejected_last else h * min(1.0, change)
-            if keep[0] <= new_h / h <= keep[1]:
+            if keep[0] <= new_h / h <= keep[1] and stepper.jacobian_kept():  # (RADAU5: only while THETA <= THET)
                 new_h = h
             h = new_h
             first = rejected_last = False

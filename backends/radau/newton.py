@@ -135,7 +135,7 @@ class Newton:
                     # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
                     stats["residual_evaluations"] += 1
                     r, after = engine.newton_step(factors, t, h, stepper.y, W)
-                    active = stepper.rms(after / scale) > policy.tol
+                    active = ~(stepper.rms(after / scale) <= policy.tol)  # (a NaN check confirms nothing)
                 else:
                     r = stepper.residual(t, h, W)
             if not bool(active.any()):

@@ -23,7 +23,7 @@ from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
 
-from daemodel.collocation import extrapolation_polynomial, horner
+from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
 from daemodel.tableau import radau_iia
@@ -403,6 +403,10 @@ class Stepper:
             self.check_determined(J, t, h, signs=signs)
         return self._jac[0]
 
+    def jacobian_kept(self) -> bool:
+        """Whether the next step starts with the Jacobian it has (Newton contracted fast enough)."""
+        return self._jac is not None
+
     def drop_jacobian(self):
         """A fresh Jacobian at the next step's start."""
         self._jac = None
@@ -451,8 +455,7 @@ class Stepper:
 
     def dense_output(self, t_out, u0, t0, steps):
         """Values at ``t_out`` (ascending) from each step's collocation polynomial through (t_n, u_n),
-        (t_n + c_i h, W_i), all points in one product: the Lagrange weights at theta = (t - t_n) / h
-        are a polynomial in theta (:func:`dense_coefficients`), evaluated by Horner's rule."""
+        (t_n + c_i h, W_i), all points in one product (Lagrange weights at theta = (t - t_n) / h)."""
         xp = self.xp
         t_out = np.asarray(t_out, dtype=float)
         out = xp.stack([u0] * len(t_out), axis=1)  # (B, T, n+m): u0 where t <= t0
@@ -464,32 +467,16 @@ class Stepper:
         ends = starts + lengths * (1 + 1e-13)
         owner = np.minimum(np.searchsorted(ends, t_out[after], side="left"), len(steps) - 1)  # the step ending at/after
         theta = (t_out[after] - starts[owner]) / lengths[owner]
-        weights = self.engine.asarray(horner(dense_coefficients(self.s), theta[:, None]))  # (P, s+1)
+        # the product form, for all points at once: exact at the nodes (a weight of 1 and zeros), which
+        # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
+        nodes = np.concatenate([[0.0], self.tableau.c])
+        weights = self.engine.asarray(lagrange_matrix(nodes, theta))  # (P, s+1)
         used = np.unique(owner)
-        nodes = xp.stack([xp.concatenate([steps[k][2][:, None, :], steps[k][3]], axis=1) for k in used], axis=1)
-        where = self.engine.asarray(np.searchsorted(used, owner)) if xp is not np else np.searchsorted(used, owner)
-        if xp is not np:
-            where = where.long()
-        picked = nodes[:, where]  # (B, P, s+1, n+m)
+        values = xp.stack([xp.concatenate([steps[k][2][:, None, :], steps[k][3]], axis=1) for k in used], axis=1)
+        where = np.searchsorted(used, owner)
+        picked = values[:, where if xp is np else self.engine.torch.as_tensor(where, device=values.device)]
         out[:, after] = xp.einsum("pj,bpjk->bpk", weights, picked)
         return t_out, numpy_copy(out)
-
-
-@functools.cache
-def dense_coefficients(stages: int) -> np.ndarray:
-    """``C (s+1, s+1)``: the Lagrange basis on the nodes (0, c_1 .. c_s) at theta is ``sum_k C[k] theta^k``
-    (:func:`~daemodel.collocation.horner`)."""
-    from numpy.polynomial import polynomial as P
-
-    nodes = np.concatenate([[0.0], radau_iia(stages).c])
-    C = np.zeros((stages + 1, stages + 1))
-    for j in range(stages + 1):
-        poly = np.array([1.0])
-        for m in range(stages + 1):
-            if m != j:
-                poly = P.polymul(poly, np.array([-nodes[m], 1.0]) / (nodes[j] - nodes[m]))
-        C[: len(poly), j] = poly
-    return C
 
 
 @functools.cache
