@@ -20,14 +20,12 @@ extra passes check a one-iteration convergence and evaluate ``f`` at the final s
 from __future__ import annotations
 
 import numpy as np
+from daemodel.backends.radau.newton import DIVERGENCE_THETA  # the test the general path makes
 
 from daemodel.collocation import extrapolation_polynomial, horner
 
-# Outcome codes of the compiled step (:data:`OUTCOMES` words them as the general path does).
+# Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does).
 CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
-OUTCOMES = {NON_FINITE: "non-finite values", DIVERGING: "diverging", SLOW: "converging too slowly"}
-# Mirrors of radau's constants (the compiled step must test what the general path tests).
-DIVERGENCE_THETA = 0.99
 # Scalars in front of the packed input, in this order.
 SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
 
