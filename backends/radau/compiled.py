@@ -1,16 +1,18 @@
-"""One compiled adaptive Radau step: start guess, simplified Newton and error estimate in one casadi call.
+"""radau's casadi functions: the stage residual and Jacobians, the fused Newton iteration, the
+inverses of the shifted systems, and one compiled adaptive attempt; and their machine code (``jit``).
 
 On one trajectory in float64 (the casadi engine, dense systems) Python would otherwise run once
 per Newton iteration: a residual call, then norms, divergence and convergence tests on arrays of a
-few elements, each a numpy call of a few microseconds.  Here the whole attempt of an adaptive
-step, up to the error norm that the controller reads, is one casadi function of the step's
-scalars, the last step's collocation polynomial and the inverses of the transformed systems
-(bound to the function when they are factored), so that Python runs once per step.
+few elements, each a numpy call of a few microseconds.  :func:`step_function` makes the whole
+attempt of an adaptive step, up to the error norm that the controller reads, one casadi function
+of the step's scalars, the last step's collocation polynomial and the inverses of the transformed
+systems (bound to the function when they are factored), so that Python runs once per step.
 
-It follows :meth:`daemodel.backends.radau._Stepper.newton` and ``error_norm`` exactly (the same
-iterates, tests and counts); any outcome but convergence (non-finite values, divergence, slow
-contraction, the iteration limit) reports its code and the step runs again on the general path,
-which retries, refreshes the Jacobian or shrinks h and words the failure.
+It follows :meth:`.newton.Newton.simplified` (the RADAU5 controller's policy) and
+:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts.  Any outcome but
+convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
+code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
+failure, and hands non-finite values to the general path, which names where they arose.
 
 The iteration is unrolled ``max_newton_iterations + 2`` times, each a casadi switch that runs one
 iteration while the step is still iterating and passes its state through unchanged after (the
