@@ -121,14 +121,17 @@ class CasadiEngine(AbstractEngine):
             factors.inverse = np.concatenate(packed)
         return factors
 
-    def _compiled_factor(self, J, h: float, build_only: bool = False) -> Factors | None:
-        """The inverses of every shift in one casadi call (:func:`~daemodel.backends.radau_compiled.inverse_function`),
-        or None where one is singular or not finite (scipy's LAPACK then factors, and names it)."""
+    def _inverse_function(self):
+        """The casadi function of the shifted systems' inverses (:func:`.compiled.inverse_function`),
+        built once per model and stages."""
+        build = lambda: inverse_function(self.rows, self.cols, self)  # noqa: E731
+        return self.compiled.cached(("casadi-radau-inverses", self.s), build)
+
+    def _compiled_factor(self, J, h: float) -> Factors | None:
+        """The inverses of every shift in one casadi call, or None where one is singular or not finite
+        (scipy's LAPACK then factors, and names it)."""
         if self._inverses is None:
-            build = lambda: inverse_function(self.rows, self.cols, self)  # noqa: E731
-            self._inverses = Buffered(self.compiled.cached(("casadi-radau-inverses", self.s), build))
-        if build_only:
-            return None
+            self._inverses = Buffered(self._inverse_function())
         try:
             packed = self._inverses(np.concatenate([[h], J]))
         except RuntimeError:
@@ -150,8 +153,8 @@ class CasadiEngine(AbstractEngine):
         if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE:
             return super().refresh(t, y, z, h)
         if self._refresh is None:
-            self._compiled_factor(None, h, build_only=True)
-            build = lambda: refresh_function(self._jac.function, self._inverses.function, self.rows, self.cols, self)  # noqa: E731
+            inverses = self._inverse_function()
+            build = lambda: refresh_function(self._jac.function, inverses, self.rows, self.cols, self)  # noqa: E731
             self._refresh = Buffered(self.compiled.cached(("casadi-radau-refresh", self.s), build))
         try:
             out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))

@@ -119,10 +119,6 @@ class Stepper:
         x = x.reshape(self.B, -1)
         return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
 
-    def jacobian(self, t, y, z):
-        self.stats["jacobian_evaluations"] += 1
-        return self.engine.jacobian(t, y, z)
-
     def factor(self, J, t, h, error_only=False):
         factors = self.engine.factor(J, h, error_only)
         self.stats["lu_decompositions"] += len(factors.shifts) if factors.complete else 1
