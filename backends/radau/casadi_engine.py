@@ -28,6 +28,7 @@ from daemodel.backends.radau.linalg import (
     sparse_lu,
     sparse_sign_det,
 )
+from daemodel.backends.radau.loop import CompiledRun, run_function
 
 # casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
 # more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
@@ -147,15 +148,31 @@ class CasadiEngine(AbstractEngine):
         lu = _PackedInverses(packed, self.transform, shifts, self.D)
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
+    def _refresh_function(self):
+        """The casadi function of a fresh Jacobian with its factored systems (:func:`.compiled.refresh_function`),
+        built once per model and stages."""
+        inverses = self._inverse_function()
+        build = lambda: refresh_function(self._jac.function, inverses, self.rows, self.cols, self)  # noqa: E731
+        return self.compiled.cached(("casadi-radau-refresh", self.s), build)
+
+    def make_compiled_run(self, iterations: int):
+        """RADAU5's controller over many attempts in one call (:mod:`.loop`), on the compiled step of
+        :meth:`make_compiled_step` (its machine code with ``jit``); None where the systems are factored
+        by scipy (above :data:`COMPILED_FACTOR_MAX_SIZE` unknowns) or there is no compiled step."""
+        if self._compiled is None or self.D > COMPILED_FACTOR_MAX_SIZE:
+            return None
+        step = self._compiled[0].function
+        key = ("casadi-radau-run", self.s, iterations, self.jit)
+        build = lambda: run_function(self, step, self._refresh_function(), self._inverse_function(), iterations)  # noqa: E731
+        return CompiledRun(self.compiled.cached(key, build), self)
+
     def refresh(self, t: float, y, z, h: float):
         """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
         iteration matrix, in one casadi call on dense systems (:func:`.radau_compiled.refresh_function`)."""
         if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE:
             return super().refresh(t, y, z, h)
         if self._refresh is None:
-            inverses = self._inverse_function()
-            build = lambda: refresh_function(self._jac.function, inverses, self.rows, self.cols, self)  # noqa: E731
-            self._refresh = Buffered(self.compiled.cached(("casadi-radau-refresh", self.s), build))
+            self._refresh = Buffered(self._refresh_function())
         try:
             out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
         except RuntimeError:  # a singular system: the general path factors it and names it

@@ -15,7 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from daemodel.backends.base import ProgressWatch, fixed_grid
+from daemodel.backends.base import PROGRESS_WINDOW, ProgressWatch, fixed_grid
+from daemodel.backends.radau.loop import HANDBACK
 from daemodel.backends.radau.newton import NewtonPolicy
 
 from daemodel.errors import ConvergenceError, StepLimitError
@@ -127,6 +128,8 @@ class Radau5Controller:
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
         watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
         keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
+        predictive = PREDICTIVE and not self.rounding_floor
+        python_next = False  # the compiled run handed the next attempt back (see .loop)
         while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
             attempts = stats["attempts"]
             if attempts >= options.max_steps:
@@ -137,6 +140,19 @@ class Radau5Controller:
             if needed is not None:
                 t_w, count_w, _, accepted_w = watch.start
                 raise self.budget_error(stats, t, h, t1, (t_w, accepted_w), attempts - count_w, projected=needed)
+            if not python_next and stepper.run_ready():
+                # the attempts up to the next budget check in compiled calls (the same steps as below): the
+                # half and the whole budget, and the end of the progress watch's window
+                checkpoint = options.max_steps // 2 if attempts < options.max_steps // 2 else options.max_steps
+                checkpoint = min(checkpoint, max(watch.start[1] + PROGRESS_WINDOW, attempts + 1))
+                settings = (t0, t1, checkpoint - attempts, self.policy.tol, self.rtol, self.atol)
+                settings += (stepper.reuse_theta(), *keep, float(predictive))
+                t, h, first, rejected_last, accepted, ended = stepper.compiled_run.advance(
+                    stepper, t, h, first, rejected_last, accepted, settings
+                )
+                python_next = ended == HANDBACK
+                continue
+            python_next = False
             stats["attempts"] += 1
             if h < 1e-14 * max(1.0, abs(t)):
                 h = shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
@@ -162,7 +178,7 @@ class Radau5Controller:
             stepper.accept(t, h, result, t_next)
             t = t_next
             change = min(MAX_FACTOR, max(MIN_FACTOR, quot))
-            if PREDICTIVE and accepted is not None and not self.rounding_floor:
+            if predictive and accepted is not None:
                 h_acc, err_acc = accepted
                 predicted = SAFETY * (h / h_acc) * (err_acc / max(err, 1e-10) ** 2) ** (1.0 / (stepper.s + 1))
                 change = min(change, min(MAX_FACTOR, max(MIN_FACTOR, predicted)))

@@ -118,6 +118,11 @@ class AbstractEngine(ABC):
         :meth:`CasadiEngine.make_compiled_step`); by default it does not."""
         return False
 
+    def make_compiled_run(self, iterations: int):
+        """Many attempts of the RADAU5 controller in one call (see :meth:`CasadiEngine.make_compiled_run`),
+        or None: by default there is none."""
+        return None
+
     def newton_increment(self, factors, R):
         """``dW`` solving the Newton system ``N dW = -R`` (``R (B, s, n+m)``), through the
         transformed systems of ``factors`` or the full matrix of :class:`StageFactors`."""

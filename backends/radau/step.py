@@ -109,6 +109,10 @@ class Stepper:
         # leaves stage errors that the error estimate reads as the step's (the pendulum at rtol 1e-13,
         # s = 7: step size underflow)
         self.keep_longer = bool(self.compiled_step) and not controller.rounding_floor
+        # and many attempts with the controller in one call (.loop), where the engine factors in casadi
+        self.compiled_run = engine.make_compiled_run(self.policy.iterations) if self.compiled_step else None
+        if self.compiled_run is not None:
+            self.stats["compiled_runs"] = 0  # calls of the compiled run (each up to loop.RUN_ATTEMPTS attempts)
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):
@@ -380,12 +384,24 @@ class Stepper:
         self.stats["steps"] += 1
         self.stats["h_min"] = min(self.stats["h_min"], h)
         self.stats["h_max"] = max(self.stats["h_max"], h)
-        if self.keep_longer:
-            reuse_theta = REUSE_THETA_COMPILED
-        else:
-            reuse_theta = REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
-        if not self.options.reuse_jacobian or theta > reuse_theta:
+        if theta > self.reuse_theta():
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
+
+    def reuse_theta(self) -> float:
+        """The contraction up to which the next step keeps the Jacobian (-inf: never, reuse_jacobian=False)."""
+        if not self.options.reuse_jacobian:
+            return -math.inf
+        if self.keep_longer:
+            return REUSE_THETA_COMPILED
+        return REUSE_THETA_LARGE if self.n + self.m > REUSE_LARGE_SIZE else REUSE_THETA
+
+    def run_ready(self) -> bool:
+        """Whether the next attempts may run in one compiled call (:mod:`.loop`): the engine has it, no
+        full Newton is pending, and the records of as many accepted steps fit the memory allowed."""
+        if self.compiled_run is None or self.stage_steps > 0:
+            return False
+        out_t, _, steps = self._outputs
+        return len(out_t) + len(steps) + self.compiled_run.attempts <= self.record_budget
 
     # ---- Newton's matrices ----------------------------------------------------------------
     def current_jacobian(self, t, h):

@@ -1,0 +1,130 @@
+"""radau's compiled run: many attempts of the RADAU5 controller in one casadi call (backends/radau/loop.py).
+
+The run must take the steps the controller takes one attempt at a time, bit for bit (the same
+arithmetic in the same order), hand back to Python what only Python does (retries past the
+compiled ones, errors), and stop where the controller checks its budget.
+"""
+
+import numpy as np
+import pytest
+from daemodel.backends.radau import loop
+from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.compiled import find_compiler
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import HESSENBERG, PENDULUM, PROBLEMS
+
+COUNTS = (
+    "steps", "attempts", "rejected_steps", "newton_failures", "newton_iterations", "max_newton_iterations",
+    "jacobian_evaluations", "lu_decompositions", "residual_evaluations", "compiled_retries", "h_min", "h_max",
+)  # fmt: skip
+
+
+def _with_and_without_run(monkeypatch, model, t_span, **options):
+    """The solve with the compiled run, and with the compiled attempt alone (one attempt per call)."""
+    run = dm.solve(model, t_span, **options)
+    monkeypatch.setattr(CasadiEngine, "make_compiled_run", lambda self, iterations: None)
+    single = dm.solve(model, t_span, **options)
+    monkeypatch.undo()
+    return run, single
+
+
+@pytest.mark.parametrize(
+    ("problem", "span", "rtol"),
+    [
+        (PENDULUM, (0.0, 1.0), 1e-6),
+        (PENDULUM, (0.0, 3.0), 1e-9),
+        (HESSENBERG, None, 1e-6),
+        (PROBLEMS["akzo-nobel"], None, 1e-8),  # Newton failures: handed back to Python
+        (PROBLEMS["robertson"], None, 1e-6),
+        (PROBLEMS["transistor-amplifier"], (0.0, 0.01), 1e-6),  # rejections
+    ],
+    ids=["pendulum", "pendulum-1e-9", "hessenberg", "akzo-nobel", "robertson", "transistor"],
+)
+def test_the_run_takes_the_controllers_steps_bit_for_bit(monkeypatch, problem, span, rtol):
+    compiled = problem.model().compile()
+    span = span or problem.t_span
+    run, single = _with_and_without_run(monkeypatch, compiled, span, rtol=rtol, atol=rtol)
+    assert run.stats["compiled_runs"] > 0 and "compiled_runs" not in single.stats
+    for key in COUNTS:
+        assert run.stats[key] == single.stats[key], key
+    assert np.array_equal(run.t, single.t)
+    for name in (*compiled.state_names, *compiled.algebraic_names):
+        assert np.array_equal(run[name], single[name]), name
+
+
+def test_the_runs_handbacks_and_retries_are_counted(monkeypatch):
+    """Akzo-Nobel at 1e-8: Newton fails with kept Jacobians (retried inside the run) and outright
+    (handed back to Python, which halves h): both counted as the one-attempt path counts them."""
+    run, single = _with_and_without_run(monkeypatch, PROBLEMS["akzo-nobel"].model(), (0.0, 180.0), rtol=1e-8, atol=1e-8)
+    assert run.stats["newton_failures"] > 0 and run.stats["compiled_retries"] > run.stats["newton_failures"]
+    assert run.stats["newton_failures"] == single.stats["newton_failures"]
+    # far fewer calls than attempts: each handback costs one Python attempt and a new run
+    assert run.stats["compiled_runs"] <= run.stats["attempts"] / 4
+
+
+def test_dense_output_from_the_runs_steps(monkeypatch):
+    t_eval = np.linspace(0.0, 2.0, 37)
+    run, single = _with_and_without_run(monkeypatch, PENDULUM.model(), (0.0, 2.0), rtol=1e-7, atol=1e-7, t_eval=t_eval)
+    assert np.array_equal(run.t, t_eval)
+    compiled = PENDULUM.model().compile()
+    for name in (*compiled.state_names, *compiled.algebraic_names):
+        assert np.array_equal(run[name], single[name]), name
+    reference = dm.solve(compiled, (0.0, 2.0), method="reference", t_eval=t_eval)
+    for name in compiled.state_names:  # the collocation polynomials between steps: order s = 3 there
+        assert np.abs(run[name] - reference[name]).max() < 1e-5, name
+
+
+def test_the_budget_is_checked_where_the_controller_checks_it(monkeypatch):
+    """max_steps and the progress watch see the same attempts: the same error, word for word."""
+    messages = []
+    for make_run in (True, False):
+        if not make_run:
+            monkeypatch.setattr(CasadiEngine, "make_compiled_run", lambda self, iterations: None)
+        for max_steps in (7, 40, 5000):
+            with pytest.raises(E.StepLimitError) as raised:
+                dm.solve(PENDULUM.model(), (0.0, 1e300), rtol=1e-6, atol=1e-6, max_steps=max_steps)
+            messages.append(str(raised.value))
+    assert messages[:3] == messages[3:]
+    assert "max_steps = 7 reached" in messages[0] and "max_steps = 5000 cannot suffice" in messages[2]
+
+
+def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run():
+    """q' = (0.7 - t) z, 0 = q - sin t: g_y f_z passes through zero at t = 0.7; the run hands the
+    attempt whose fresh Jacobian flips the sign back, and the stepper names the constraint."""
+    m = dm.Model("vanishing")
+    m.states("q")
+    m.algebraics("z")
+    m.ode("q", "z*(0.7 - t)")
+    m.constraint("q - sin(t)", name="track")
+    m.initial(q=0.0)
+    with pytest.raises(E.ConvergenceError, match=r"the constraints \('track'\) stop determining the algebraic"):
+        dm.solve(m, (0.0, 1.5), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
+def test_the_run_on_machine_code_gives_the_same_bits():
+    compiled = PROBLEMS["akzo-nobel"].model().compile()
+    vm = dm.solve(compiled, (0.0, 180.0), rtol=1e-7, atol=1e-7)
+    jit = dm.solve(compiled, (0.0, 180.0), rtol=1e-7, atol=1e-7, jit=True)
+    assert jit.stats["compiled_runs"] > 0
+    for key in COUNTS:
+        assert jit.stats[key] == vm.stats[key], key
+    for name in compiled.state_names:
+        assert np.array_equal(jit[name], vm[name]), name
+
+
+@pytest.mark.parametrize("m", [0, 1, 2, 3, 4, 6])
+def test_signs_of_determinants(m):
+    sign = loop.sign_det_function(m)
+    rng = np.random.default_rng(m)
+    for _ in range(40):
+        matrix = rng.standard_normal((m, m))
+        assert float(sign(matrix.ravel(order="F"))) == (np.sign(np.linalg.det(matrix)) if m else 1.0)
+    if m:
+        assert float(sign(np.zeros(m * m))) == 0.0
+        assert float(sign(np.full(m * m, np.nan))) == 0.0
+        singular = rng.standard_normal((m, m))
+        singular[:, -1] = 0.0
+        assert float(sign(singular.ravel(order="F"))) == 0.0
