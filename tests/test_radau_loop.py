@@ -36,7 +36,7 @@ def _with_and_without_run(monkeypatch, model, t_span, **options):
         (PENDULUM, (0.0, 1.0), 1e-6),
         (PENDULUM, (0.0, 3.0), 1e-9),
         (HESSENBERG, None, 1e-6),
-        (PROBLEMS["akzo-nobel"], None, 1e-8),  # Newton failures: handed back to Python
+        (PROBLEMS["akzo-nobel"], None, 1e-8),  # Newton failures, inside the run
         (PROBLEMS["robertson"], None, 1e-6),
         (PROBLEMS["transistor-amplifier"], (0.0, 0.01), 1e-6),  # rejections
     ],
@@ -54,14 +54,28 @@ def test_the_run_takes_the_controllers_steps_bit_for_bit(monkeypatch, problem, s
         assert np.array_equal(run[name], single[name]), name
 
 
-def test_the_runs_handbacks_and_retries_are_counted(monkeypatch):
-    """Akzo-Nobel at 1e-8: Newton fails with kept Jacobians (retried inside the run) and outright
-    (handed back to Python, which halves h): both counted as the one-attempt path counts them."""
-    run, single = _with_and_without_run(monkeypatch, PROBLEMS["akzo-nobel"].model(), (0.0, 180.0), rtol=1e-8, atol=1e-8)
-    assert run.stats["newton_failures"] > 0 and run.stats["compiled_retries"] > run.stats["newton_failures"]
-    assert run.stats["newton_failures"] == single.stats["newton_failures"]
-    # far fewer calls than attempts: each handback costs one Python attempt and a new run
-    assert run.stats["compiled_runs"] <= run.stats["attempts"] / 4
+def _ends(monkeypatch):
+    """How each compiled run ended (loop.FULL, FINISHED, HANDBACK, LIMIT), recorded as the solve goes."""
+    ends = []
+    advance = loop.CompiledRun.advance
+
+    def recorded(self, *args):
+        out = advance(self, *args)
+        ends.append(out[-1])
+        return out
+
+    monkeypatch.setattr(loop.CompiledRun, "advance", recorded)
+    return ends
+
+
+def test_newton_failures_are_handled_inside_the_run(monkeypatch):
+    """Akzo-Nobel at 1e-8: Newton fails with kept Jacobians (retried with fresh ones) and outright
+    (z checked over the step, h halved), all inside the run, counted as the one-attempt path counts."""
+    ends = _ends(monkeypatch)
+    run = dm.solve(PROBLEMS["akzo-nobel"].model(), (0.0, 180.0), rtol=1e-8, atol=1e-8)
+    assert run.stats["newton_failures"] == 2 and run.stats["compiled_retries"] == 5
+    assert loop.HANDBACK not in ends and ends[-1] == loop.FINISHED
+    assert run.stats["compiled_runs"] == len(ends) == 2
 
 
 def test_dense_output_from_the_runs_steps(monkeypatch):
@@ -90,7 +104,7 @@ def test_the_budget_is_checked_where_the_controller_checks_it(monkeypatch):
     assert "max_steps = 7 reached" in messages[0] and "max_steps = 5000 cannot suffice" in messages[2]
 
 
-def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run():
+def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run(monkeypatch):
     """q' = (0.7 - t) z, 0 = q - sin t: g_y f_z passes through zero at t = 0.7; the run hands the
     attempt whose fresh Jacobian flips the sign back, and the stepper names the constraint."""
     m = dm.Model("vanishing")
@@ -99,8 +113,24 @@ def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run():
     m.ode("q", "z*(0.7 - t)")
     m.constraint("q - sin(t)", name="track")
     m.initial(q=0.0)
+    ends = _ends(monkeypatch)
     with pytest.raises(E.ConvergenceError, match=r"the constraints \('track'\) stop determining the algebraic"):
         dm.solve(m, (0.0, 1.5), rtol=1e-6, atol=1e-6)
+    assert ends[-1] == loop.HANDBACK
+
+
+def test_values_leaving_the_domain_are_named_by_the_general_path(monkeypatch):
+    """sqrt of a state that a long step drives negative: the run hands the attempt back, and the
+    general path (full Newton from the start value, then shorter steps) finishes the solve."""
+    m = dm.Model("draining")
+    m.states("v")
+    m.ode("v", "-sqrt(v)")
+    m.initial(v=1.0)
+    ends = _ends(monkeypatch)
+    sol = dm.solve(m, (0.0, 1.99), rtol=1e-6, atol=1e-8)
+    exact = (1.0 - sol.t / 2.0) ** 2
+    assert np.abs(sol["v"] - exact).max() < 1e-6
+    assert loop.HANDBACK in ends
 
 
 @pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")

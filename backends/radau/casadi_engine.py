@@ -163,7 +163,8 @@ class CasadiEngine(AbstractEngine):
             return None
         step = self._compiled[0].function
         key = ("casadi-radau-run", self.s, iterations, self.jit)
-        build = lambda: run_function(self, step, self._refresh_function(), self._inverse_function(), iterations)  # noqa: E731
+        functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function)
+        build = lambda: run_function(self, step, *functions, iterations)  # noqa: E731
         return CompiledRun(self.compiled.cached(key, build), self)
 
     def refresh(self, t: float, y, z, h: float):

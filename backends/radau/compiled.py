@@ -305,16 +305,22 @@ def refresh_function(jacobian, inverses, rows: np.ndarray, cols: np.ndarray, eng
     """
     import casadi
 
-    n, D = engine.n, engine.D
-    m = D - n
     x = casadi.MX.sym("x", jacobian.nnz_in(0) + 1)
     values = casadi.vec(jacobian(x[:-1]))  # (a Jacobian without nonzeros comes as 1 x 0)
+    z_matrix = iteration_matrix(casadi, values, rows, cols, engine)
+    return casadi.Function("refresh", [x], [casadi.vertcat(values, z_matrix, inverses(casadi.vertcat(x[-1], values)))])
+
+
+def iteration_matrix(casadi, values, rows: np.ndarray, cols: np.ndarray, engine):
+    """The algebraic variables' iteration matrix (m, m), column-major, of the Jacobian's nonzeros
+    ``values``: :meth:`CasadiEngine.z_matrix_sign`'s rows, ``g_z`` at index 1, ``g_y f_z`` at index 2."""
+    n, D = engine.n, engine.D
+    m = D - n
     J = dense_jacobian(casadi, rows, cols, values, D)
     index2 = engine.index2_rows
     coupled = casadi.mtimes(J[n:, :n], J[:n, n:]) if index2.any() else None
     z_rows = [coupled[i, :] if index2[i] else J[n + i, n:] for i in range(m)]
-    z_matrix = casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
-    return casadi.Function("refresh", [x], [casadi.vertcat(values, z_matrix, inverses(casadi.vertcat(x[-1], values)))])
+    return casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
 
 
 class Buffered:

@@ -3,24 +3,29 @@
 With the attempt compiled (:func:`.compiled.step_function`), what Python still did per attempt, the
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
 times the attempt itself in machine code (the pendulum: 3.3 us).  :func:`run_function` makes
-:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function: each
-refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
-algebraic variables' iteration matrix), factors anew where h changed, runs the compiled attempt,
-and accepts or rejects the step exactly as the controller does (the same arithmetic in the same
-order: the same steps, bit for bit).
+:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  Each
+attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 
-Anything else ends the run *before* the attempt, which Python then makes on its own path, where
-the retries and the errors are: a Newton failure, a sign change of the iteration matrix's
-determinant, a singular or non-finite factorisation, a step size underflow.  A run also ends where
-the integration does, and at ``limit`` attempts (the controller's budget checks).  Each attempt
-that ran leaves a record (:data:`RECORD`, then the start value and the stages) from which
+- refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
+  algebraic variables' iteration matrix), or factors anew where h changed;
+- runs the compiled attempt, and its retries: with a fresh Jacobian where a kept one failed, then
+  from the start value;
+- where all failed, checks that z stays determined over the step and halves h; else accepts or
+  rejects the step and picks the next h.
+
+The same arithmetic in the same order: the same steps, bit for bit.  What only Python does ends
+the run *before* the attempt, which Python then makes on its own path, where the errors are
+worded: non-finite values (the general path names where they arose), a sign change of the
+iteration matrix's determinant, a singular factorisation, a step size underflow.  A run also ends
+where the integration does and at ``limit`` attempts (the controller's budget checks).  Each
+attempt that ran leaves a record (:data:`RECORD`, then the start value and the stages) from which
 :class:`CompiledRun` writes the steps and the statistics back into the stepper.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.radau.compiled import Buffered, inverse_size
+from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -40,7 +45,8 @@ SETTINGS = (
     "t0", "t1", "limit", "newton_tol", "rtol", "atol", "reuse_theta", "keep_low", "keep_high", "predictive",
 )  # fmt: skip
 # Each attempt's record, in this order, then the start value (D) and the stages (s D).
-RECORD = ("ran", "accepted", "t", "h", "t_next", "iterations", "evaluations", "refreshed", "factored", "retries")
+RECORD = ("ran", "accepted", "t", "h", "t_next", "iterations", "evaluations", "refreshed", "factored", "retries",
+          "newton_failed")  # fmt: skip
 
 
 def sign_det_function(m: int):
@@ -88,6 +94,14 @@ def not_finite(casadi, values):
     return casadi.logic_not(casadi.logic_and(total < casadi.inf, total > -casadi.inf))
 
 
+def any_of(casadi, *flags):
+    """The logical or of casadi ``flags``."""
+    out = flags[0]
+    for flag in flags[1:]:
+        out = casadi.logic_or(out, flag)
+    return out
+
+
 def is_close(casadi, a, b, rel_tol, abs_tol=0.0):
     """``math.isclose(a, b, rel_tol=rel_tol, abs_tol=abs_tol)`` on casadi scalars (its formula)."""
     diff = casadi.fabs(b - a)
@@ -121,7 +135,7 @@ def head_function():
 
 # What the tail reads of the attempt, after the scalars and settings.
 ATTEMPT = ("h", "limited", "underflow", "refreshed", "factored", "stale", "singular", "sign", "retry_sign",
-           "outcome", "k", "theta", "eta", "err", "evaluations", "retries")  # fmt: skip
+           "outcome", "k", "theta", "eta", "err", "evaluations", "retries", "newton_failed", "stage_flip")  # fmt: skip
 
 
 def tail_function(s: int, iterations: int):
@@ -140,9 +154,11 @@ def tail_function(s: int, iterations: int):
     err = casadi.if_else(err < casadi.inf, err, casadi.inf)  # (NaN: inf, as the stepper reads it)
     fac = casadi.fmin(control.SAFETY, control.SAFETY * (2 * iterations + 1) / (2 * iterations + k))
     quot = fac * casadi.fmax(err, 1e-10) ** (-1.0 / (s + 1))
-    accept = err <= 1
-    h_rejected = h * casadi.fmax(control.MIN_FACTOR, casadi.fmin(quot, 0.9))
-    shrunk_away = casadi.logic_and(casadi.logic_not(accept), h_rejected < 1e-14 * casadi.fmax(1.0, casadi.fabs(t)))
+    failed = a["newton_failed"]  # (every compiled try failed, z stays determined: the controller halves h)
+    accept = casadi.logic_and(casadi.logic_not(failed), err <= 1)
+    floor = 1e-14 * casadi.fmax(1.0, casadi.fabs(t))  # (shrink's underflow)
+    h_rejected = casadi.if_else(failed, h * 0.5, h * casadi.fmax(control.MIN_FACTOR, casadi.fmin(quot, 0.9)))
+    shrunk_away = casadi.logic_and(casadi.logic_not(accept), h_rejected < floor)
     t_next = casadi.if_else(is_close(casadi, t + h, t1, 1e-13), t1, t + h)
     jac_kept = casadi.logic_not(theta > c["reuse_theta"])  # (Stepper.accept's test)
     change = casadi.fmin(control.MAX_FACTOR, casadi.fmax(control.MIN_FACTOR, quot))
@@ -159,18 +175,16 @@ def tail_function(s: int, iterations: int):
         casadi.logic_and(a["refreshed"], v["det_sign"] * a["sign"] < 0),  # (check_determined's test)
         casadi.logic_and(a["stale"], a["sign"] * a["retry_sign"] < 0),
     )
-    handback = casadi.logic_or(
-        casadi.logic_or(a["underflow"], casadi.logic_or(a["singular"], flipped)),
-        casadi.logic_or(a["outcome"] != 0, shrunk_away),
-    )
+    non_finite = casadi.logic_and(a["outcome"] != 0, casadi.logic_not(failed))  # (the general path names where)
+    handback = any_of(casadi, a["underflow"], a["singular"], flipped, non_finite, a["stage_flip"], shrunk_away)
     ran = casadi.logic_not(casadi.logic_or(a["limited"], handback))
     refreshes = a["refreshed"] + a["stale"]
     after = {
         "t": casadi.if_else(accept, t_next, t),
         "h": casadi.if_else(accept, new_h, h_rejected),
         "h_old": casadi.if_else(accept, h, v["h_old"]),
-        "eta": a["eta"],
-        "first": casadi.if_else(accept, 0, v["first"]),
+        "eta": casadi.if_else(failed, v["eta"], a["eta"]),
+        "first": casadi.if_else(accept, 0, casadi.logic_or(failed, v["first"])),
         "rejected_last": casadi.logic_not(accept),
         "h_acc": casadi.if_else(accept, h, v["h_acc"]),
         "err_acc": casadi.if_else(accept, casadi.fmax(err, 1e-2), v["err_acc"]),
@@ -185,18 +199,20 @@ def tail_function(s: int, iterations: int):
     }
     stopped = {**v, "active": 0, "code": casadi.if_else(a["limited"], LIMIT, HANDBACK)}
     scalars = [casadi.if_else(ran, after[name], stopped[name]) for name in SCALARS]
-    record = [1, accept, t, h, t_next, k, a["evaluations"], refreshes, a["factored"], a["retries"]]
+    record = [1, accept, t, h, t_next, casadi.if_else(failed, 0, k), a["evaluations"], refreshes, a["factored"]]
+    record += [a["retries"], failed]
     record = [casadi.if_else(ran, value, 0) for value in record]
     out = casadi.vertcat(*scalars, ran, casadi.logic_and(ran, accept), *record)
     return casadi.Function("tail", [x], [out])
 
 
-def run_function(engine, step, refresh, inverses, iterations: int, attempts: int = RUN_ATTEMPTS):
+def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: int, attempts: int = RUN_ATTEMPTS):
     """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring).
 
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
-    :func:`.compiled.inverse_function`.  Inputs ``[state, settings]`` (:data:`SCALARS` and the
+    :func:`.compiled.inverse_function`; ``stage_jacobians``: the Jacobian's nonzeros at every stage
+    (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`SCALARS` and the
     arrays, :data:`SETTINGS` and p); output the state, then each attempt's record (:func:`record_size`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
     virtual machine an MX operation costs ~20 ns, an SX one ~2.
@@ -205,6 +221,7 @@ def run_function(engine, step, refresh, inverses, iterations: int, attempts: int
 
     s, n, D, m = engine.s, engine.n, engine.D, engine.m
     P, nnz, size_inverse = engine.p.size, len(engine.rows), inverse_size(engine.transform, D)
+    rows, cols = engine.rows, engine.cols
     layout = state_layout(s, n, D, nnz, size_inverse)
     state = casadi.MX.sym("state", layout["size"])
     settings = casadi.MX.sym("settings", len(SETTINGS) + P)
@@ -262,10 +279,31 @@ def run_function(engine, step, refresh, inverses, iterations: int, attempts: int
     same_result = casadi.Function("same_result", [*again, kept[2]], [again[1]])
     result = casadi.Function.if_else("constant", from_start, same_result)(constant, start, result, inverse)
     evaluations = evaluations + casadi.if_else(constant, result[2], 0)
-    retries = failed + casadi.logic_and(stale, failed_again)
+    outcome = result[0]
+    retries = failed + casadi.logic_and(stale, failed_again) + casadi.logic_and(constant, outcome != 0)
+
+    # every try failed (values finite): before h is halved, z must stay determined over the step, as
+    # Stepper.compiled_attempt checks it (the iteration matrix's sign at each stage of the start value)
+    newton_failed = casadi.logic_and(outcome != 0, outcome != NON_FINITE)
+    stage = [
+        casadi.MX.sym("t"),
+        casadi.MX.sym("h"),
+        casadi.MX.sym("u", D),
+        casadi.MX.sym("p", P),
+        casadi.MX.sym("sign"),
+    ]
+    values = stage_jacobians(casadi.vertcat(stage[0], stage[1], casadi.repmat(stage[2], s, 1), stage[3]))
+    chain = [stage[4]]
+    chain += [sign_det(iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine)) for i in range(s)]
+    flips = sum(chain[i] * chain[i + 1] < 0 for i in range(s))
+    check = casadi.Function("check", stage, [flips > 0])
+    never = casadi.Function("never", stage, [0])
+    final_sign = casadi.if_else(stale, retry_sign, sign)
+    stage_flip = casadi.Function.if_else("determined", check, never)(newton_failed, t, h, u, p, final_sign)
 
     attempt_values = [h, limited, underflow, refreshed, factored, stale, singular, sign, retry_sign,
-                      result[0], result[1], result[3], result[4], result[5], evaluations, retries]  # fmt: skip
+                      outcome, result[1], result[3], result[4], result[5], evaluations, retries,
+                      newton_failed, stage_flip]  # fmt: skip
     after = tail_function(s, iterations)(casadi.vertcat(scalars, given, *attempt_values))
     ran, taken = after[len(SCALARS)], after[len(SCALARS) + 1]
     W = result[6 : 6 + s * D]
@@ -365,14 +403,15 @@ class CompiledRun:
         records = records[records[:, 0] > 0]
         if not len(records):  # (the first attempt handed back: nothing moved)
             return v["t"], v["h"], bool(v["first"]), bool(v["rejected_last"]), accepted, int(v["code"])
-        _, taken, _, _, _, iterations, evaluations, refreshed, factored, retries = records[:, : len(RECORD)].T
+        _, taken, _, _, _, iterations, evaluations, refreshed, factored, retries, failed = records[:, : len(RECORD)].T
         taken = taken > 0
         stats["attempts"] += len(records)
-        stats["rejected_steps"] += int(len(records) - taken.sum())
+        stats["rejected_steps"] += int(len(records) - taken.sum() - failed.sum())
+        stats["newton_failures"] += int(failed.sum())
         stats["newton_iterations"] += int(iterations.sum())
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(iterations.max()))
         stats["residual_evaluations"] += int(evaluations.sum())
-        stats["jacobian_evaluations"] += int(refreshed.sum())
+        stats["jacobian_evaluations"] += int(refreshed.sum() + failed.sum())  # (the stages' at a failure)
         stats["compiled_retries"] += int(retries.sum())
         stats["lu_decompositions"] += self.shifts * int(refreshed.sum() + factored.sum())
         if refreshed.any() and stepper.m:
