@@ -403,35 +403,32 @@ class CompiledRun:
         records = records[records[:, 0] > 0]
         if not len(records):  # (the first attempt handed back: nothing moved)
             return v["t"], v["h"], bool(v["first"]), bool(v["rejected_last"]), accepted, int(v["code"])
-        _, taken, _, _, _, iterations, evaluations, refreshed, factored, retries, failed = records[:, : len(RECORD)].T
-        taken = taken > 0
+        sums = dict(zip(RECORD, records[:, : len(RECORD)].sum(axis=0).tolist(), strict=True))  # (one numpy call)
+        failed = int(sums["newton_failed"])
         stats["attempts"] += len(records)
-        stats["rejected_steps"] += int(len(records) - taken.sum() - failed.sum())
-        stats["newton_failures"] += int(failed.sum())
-        stats["newton_iterations"] += int(iterations.sum())
-        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(iterations.max()))
-        stats["residual_evaluations"] += int(evaluations.sum())
-        stats["jacobian_evaluations"] += int(refreshed.sum() + failed.sum())  # (the stages' at a failure)
-        stats["compiled_retries"] += int(retries.sum())
-        stats["lu_decompositions"] += self.shifts * int(refreshed.sum() + factored.sum())
-        if refreshed.any() and stepper.m:
+        stats["rejected_steps"] += len(records) - int(sums["accepted"]) - failed
+        stats["newton_failures"] += failed
+        stats["newton_iterations"] += int(sums["iterations"])
+        stats["max_newton_iterations"] = max(
+            stats["max_newton_iterations"], int(records[:, RECORD.index("iterations")].max())
+        )
+        stats["residual_evaluations"] += int(sums["evaluations"])
+        stats["jacobian_evaluations"] += int(sums["refreshed"]) + failed  # (the stages' at a failure)
+        stats["compiled_retries"] += int(sums["retries"])
+        stats["lu_decompositions"] += self.shifts * int(sums["refreshed"] + sums["factored"])
+        if sums["refreshed"] and stepper.m:
             stepper._det_sign, stepper._det_time = np.array([v["det_sign"]]), v["t_det"]
         steps = records[records[:, 1] > 0]
         if len(steps):
-            starts = steps[:, len(RECORD) : len(RECORD) + D]
-            stages = steps[:, len(RECORD) + D :].reshape(len(steps), s, D)
-            out_t, out_u, kept = stepper._outputs
-            if stepper.options.t_eval is not None:
-                kept.extend(
-                    zip(steps[:, 2].tolist(), steps[:, 3].tolist(), starts[:, None], stages[:, None], strict=True)
-                )
+            nodes = steps[:, len(RECORD) :].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
+            if stepper.records.dense:
+                stepper.records.add(steps[:, 2], steps[:, 3], None, nodes)
             else:
-                out_t.extend(steps[:, 4].tolist())
-                out_u.extend(stages[:, None, -1])
+                stepper.records.add(None, None, steps[:, 4], nodes[:, :, -1])
             stats["steps"] += len(steps)
-            stats["h_min"] = min(stats["h_min"], float(steps[:, 3].min()))
-            stats["h_max"] = max(stats["h_max"], float(steps[:, 3].max()))
-            stepper._previous = (float(steps[-1, 3]), starts[-1][None], stages[-1][None])
+            lengths = steps[:, 3].tolist()
+            stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)
+            stepper._previous = (float(steps[-1, 3]), nodes[:, -1, 0], nodes[:, -1, 1:])
             stepper._previous_nodes = out[L["nodes"]].copy()
             u = out[L["u"]]
             stepper.y, stepper.z = u[None, :n].copy(), u[None, n:].copy()

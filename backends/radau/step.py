@@ -88,7 +88,7 @@ class Stepper:
         self.factors = None  # the Factors of the transformed systems of J and the current h
         self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
         self._f_start = None  # f at the start of the next step (the last stage's f of this one)
-        self._outputs = None  # ([t], [u (B, n+m)], [(t, h, u_start, W)]) of the accepted steps
+        self.records = None  # the accepted steps' outputs (Records)
         self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
@@ -217,13 +217,12 @@ class Stepper:
         grid = self.controller.grid(t_span)
         t_out = output_times(self.options.t_eval, t_span, grid)
         u0 = self.state()
-        self._outputs = ([t0], [u0], [])
+        self.records = Records(t0, u0, dense=self.options.t_eval is not None)
         self.controller.run(self, t_span, grid)
-        out_t, out_u, steps = self._outputs
         if self.options.t_eval is not None:
-            return self.dense_output(t_out, u0, t0, steps)
-        values = self.xp.stack(out_u, axis=1)  # (B, T, n+m)
-        return np.asarray(out_t, dtype=float), numpy_copy(values)
+            return self.dense_output(t_out, u0, t0, self.records)
+        times, values = self.records.ends(self.xp)
+        return times, numpy_copy(values)
 
     # ---- one step -----------------------------------------------------------------------
     def attempt(self, t, h):
@@ -363,19 +362,18 @@ class Stepper:
     def accept(self, t, h, result, t_next):
         """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
         W, r, theta = result
-        out_t, out_u, steps = self._outputs
-        if len(out_t) + len(steps) > self.record_budget:
+        if self.records.count > self.record_budget:
             raise ResourceLimitError(
-                f"radau: at t = {t:.6g}, the {len(out_t) + len(steps)} steps' outputs of {self.B} sample(s) reach "
+                f"radau: at t = {t:.6g}, the {self.records.count} steps' outputs of {self.B} sample(s) reach "
                 f"the memory allowed ({memory_limit() / 2**30:.3g} GiB, DAEMODEL_MEMORY_LIMIT): solve fewer samples "
                 "at a time, loosen rtol, or give t_eval (with a fixed h, a grid's size is checked before the solve)"
             )
         u_start = self.state()
-        if self.options.t_eval is not None:
-            steps.append((t, h, u_start, W))
+        if self.records.dense:
+            nodes = self.xp.concatenate([u_start[:, None], W], axis=1)[:, None]
+            self.records.add(np.array([t]), np.array([h]), None, nodes)
         else:
-            out_t.append(t_next)
-            out_u.append(W[:, -1])
+            self.records.add(None, None, np.array([t_next]), W[:, None, -1])
         self._previous = (h, u_start, W)
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed
             self._previous_nodes = np.concatenate([u_start[0], W.ravel()])
@@ -400,8 +398,7 @@ class Stepper:
         full Newton is pending, and the records of as many accepted steps fit the memory allowed."""
         if self.compiled_run is None or self.stage_steps > 0:
             return False
-        out_t, _, steps = self._outputs
-        return len(out_t) + len(steps) + self.compiled_run.attempts <= self.record_budget
+        return self.records.count + self.compiled_run.attempts <= self.record_budget
 
     # ---- Newton's matrices ----------------------------------------------------------------
     def current_jacobian(self, t, h):
@@ -465,30 +462,78 @@ class Stepper:
         if keep:  # (not for the stages of a failed attempt: the step is retried shorter)
             self._det_sign, self._det_time = signs[:, -1], t
 
-    def dense_output(self, t_out, u0, t0, steps):
+    def dense_output(self, t_out, u0, t0, records):
         """Values at ``t_out`` (ascending) from each step's collocation polynomial through (t_n, u_n),
         (t_n + c_i h, W_i), all points in one product (Lagrange weights at theta = (t - t_n) / h)."""
         xp = self.xp
         t_out = np.asarray(t_out, dtype=float)
-        out = xp.stack([u0] * len(t_out), axis=1)  # (B, T, n+m): u0 where t <= t0
+        out = xp.repeat(u0[:, None], len(t_out), axis=1) if xp is np else xp.stack([u0] * len(t_out), axis=1)
+        # (B, T, n+m): u0 where t <= t0
         after = np.flatnonzero(t_out > t0)
-        if not steps or not len(after):
+        if not records.starts or not len(after):
             return t_out, numpy_copy(out)
-        starts = np.array([t_n for t_n, _, _, _ in steps])
-        lengths = np.array([h for _, h, _, _ in steps])
+        starts, lengths = np.concatenate(records.starts), np.concatenate(records.lengths)
         ends = starts + lengths * (1 + 1e-13)
-        owner = np.minimum(np.searchsorted(ends, t_out[after], side="left"), len(steps) - 1)  # the step ending at/after
+        owner = np.minimum(
+            np.searchsorted(ends, t_out[after], side="left"), len(starts) - 1
+        )  # the step ending at/after
         theta = (t_out[after] - starts[owner]) / lengths[owner]
         # the product form, for all points at once: exact at the nodes (a weight of 1 and zeros), which
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
         nodes = np.concatenate([[0.0], self.tableau.c])
         weights = self.engine.asarray(lagrange_matrix(nodes, theta))  # (P, s+1)
         used = np.unique(owner)
-        values = xp.stack([xp.concatenate([steps[k][2][:, None, :], steps[k][3]], axis=1) for k in used], axis=1)
-        where = np.searchsorted(used, owner)
-        picked = values[:, where if xp is np else self.engine.torch.as_tensor(where, device=values.device)]
-        out[:, after] = xp.einsum("pj,bpjk->bpk", weights, picked)
+        values = records.nodes_of(used, xp, self.index)  # (B, used, s+1, n+m)
+        where = self.index(np.searchsorted(used, owner))
+        out[:, after] = xp.einsum("pj,bpjk->bpk", weights, values[:, where])
         return t_out, numpy_copy(out)
+
+    def index(self, indices: np.ndarray):
+        """``indices`` as the engine's arrays take them (a tensor on the engine's device for torch)."""
+        return indices if self.xp is np else self.engine.torch.as_tensor(indices, device=self.y.device)
+
+
+class Records:
+    """The accepted steps' outputs, in blocks (one step, or a compiled run's steps): with ``dense``
+    (t_eval) each step's start, length and nodes (start value and stages, for the dense output),
+    else each step's end time and value.  ``count``: the outputs kept, the start's included."""
+
+    def __init__(self, t0: float, u0, dense: bool):
+        self.dense = dense
+        self.times, self.values = [np.array([t0])], [u0[:, None]]  # (k,), (B, k, n+m)
+        self.starts, self.lengths, self.nodes = [], [], []  # (k,), (k,), (B, k, s+1, n+m)
+        self.count = 1
+
+    def add(self, starts, lengths, times, arrays):
+        """A block of steps: ``starts``, ``lengths`` and ``arrays`` = their nodes with ``dense``; else
+        their end ``times`` and ``arrays`` = end values (B, k, n+m)."""
+        if self.dense:
+            self.starts.append(starts)
+            self.lengths.append(lengths)
+            self.nodes.append(arrays)
+            self.count += len(starts)
+        else:
+            self.times.append(times)
+            self.values.append(arrays)
+            self.count += len(times)
+
+    def ends(self, xp):
+        """``(times (T,), values (B, T, n+m))`` at the steps' ends, the start first."""
+        return np.concatenate(self.times), xp.concatenate(self.values, axis=1)
+
+    def nodes_of(self, steps: np.ndarray, xp, index):
+        """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered
+        block by block (only the steps asked for are copied)."""
+        if len(self.nodes) == 1 and len(steps) == self.nodes[0].shape[1]:
+            return self.nodes[0]
+        offsets = np.cumsum([0] + [len(block) for block in self.starts])
+        block = np.searchsorted(offsets, steps, side="right") - 1
+        pieces = []
+        for b in np.unique(block):
+            local = steps[block == b] - offsets[b]
+            nodes = self.nodes[b]
+            pieces.append(nodes if len(local) == nodes.shape[1] else nodes[:, index(local)])
+        return pieces[0] if len(pieces) == 1 else xp.concatenate(pieces, axis=1)
 
 
 @functools.cache
