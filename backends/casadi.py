@@ -43,6 +43,7 @@ import contextlib
 import dataclasses
 import io
 import re
+import threading
 import time
 from dataclasses import dataclass
 
@@ -203,23 +204,32 @@ class IDASOptions:
 
 
 def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
-    """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times and
-    settings and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a sweep); the
-    :data:`KEPT_INTEGRATORS` most recently used are kept."""
+    """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times,
+    settings and thread, and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a
+    sweep); the :data:`KEPT_INTEGRATORS` most recently used are kept.
+
+    Per thread: a solve reads the integrator's statistics after its calls, which another thread's call
+    of a shared integrator would overwrite in between."""
     import json
 
     import casadi
 
     times = [float(t) for t in times]
-    key = (plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True))
-    kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
-    if key in kept:
-        kept.move_to_end(key)
-        return kept[key]
-    kept[key] = casadi.integrator(plugin, plugin, dae, float(t0), times, settings)
-    while len(kept) > KEPT_INTEGRATORS:
-        kept.popitem(last=False)
-    return kept[key]
+    key = (plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
+    with _KEPT_LOCK:
+        kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
+        if key in kept:
+            kept.move_to_end(key)
+            return kept[key]
+    built = casadi.integrator(plugin, plugin, dae, float(t0), times, settings)
+    with _KEPT_LOCK:
+        kept[key] = built
+        while len(kept) > KEPT_INTEGRATORS:
+            kept.popitem(last=False)
+    return built
+
+
+_KEPT_LOCK = threading.Lock()  # (the kept integrators of every model: a cache shared by threads)
 
 
 def _dae(compiled) -> dict:

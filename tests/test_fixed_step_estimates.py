@@ -77,6 +77,36 @@ def test_integrators_kept_are_bounded(monkeypatch):
     assert [key[2][-1] for key in kept] == [0.75, 1.0]  # the two most recent t_spans
 
 
+def test_threads_keep_their_own_integrators():
+    """A solve reads its integrator's statistics after its calls: threads solving one model with the
+    same settings (different parameters) share no integrator, and each reports its own solve's."""
+    import threading
+
+    compiled = PENDULUM.model().compile()
+    lams = (0.5, 1.0, 2.0, 4.0)  # 146, 173, 211 and 190 IDAS steps at rtol 1e-8
+
+    def solve(lam):
+        return dm.solve(compiled, (0.0, 1.0), method="casadi-idas", rtol=1e-8, parameters={"lam": lam}).stats
+
+    alone = {lam: solve(lam)["nsteps"] for lam in lams}
+    together, barrier = {lam: [] for lam in lams}, threading.Barrier(len(lams))
+
+    def repeat(lam):
+        barrier.wait()
+        for _ in range(20):
+            together[lam].append(solve(lam)["nsteps"])
+
+    threads = [threading.Thread(target=repeat, args=(lam,)) for lam in lams]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for lam in lams:
+        assert set(together[lam]) == {alone[lam]}, lam
+    kept = compiled.reduced(1).cached("casadi-integrators", dict)
+    assert len({key[-1] for key in kept}) == len(lams) + 1  # the main thread's and each thread's
+
+
 @pytest.mark.parametrize(("method", "options"), [("casadi-idas", {"rtol": 1e-6}), ("casadi-collocation", {"h": 0.1})])
 def test_casadi_integrators_are_built_once_per_model_and_settings(monkeypatch, method, options):
     import casadi
