@@ -119,6 +119,25 @@ def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run(monkeypat
     assert ends[-1] == loop.HANDBACK
 
 
+def test_an_exactly_singular_newton_matrix_is_named_from_the_run(monkeypatch, capfd):
+    """0 = (t - 0.5) (z - 1): g_z vanishes at t = 0.5, where LAPACK refuses the factorisation inside
+    the run; the stepper makes that attempt and names the cause, and casadi's dump stays quiet."""
+    m = dm.Model("pinch")
+    m.states("y")
+    m.algebraics("z")
+    m.ode("y", "-y + z")
+    m.constraint("(t - 0.5)*(z - 1)", name="pinch")
+    m.initial(y=1.0, z=1.0)
+    ends = _ends(monkeypatch)
+    with pytest.raises(
+        E.ConvergenceError, match=r"the Newton matrix is singular for sample 0 at t = 0.5 with h = 0.5; "
+    ):
+        dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False)
+    assert ends[-1] == loop.HANDBACK
+    printed = capfd.readouterr()
+    assert "Input 0" not in printed.out + printed.err and "LapackLu" not in printed.out + printed.err
+
+
 def test_values_leaving_the_domain_are_named_by_the_general_path(monkeypatch):
     """sqrt of a state that a long step drives negative: the run hands the attempt back, and the
     general path (full Newton from the start value, then shorter steps) finishes the solve."""

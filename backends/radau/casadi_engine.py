@@ -2,8 +2,9 @@
 
 casadi-compiled residual, right-hand side and sparse Jacobian (casadi's AD); on dense systems the
 inverses of the transformed systems (LAPACK's LU inside casadi), a Newton iteration as one casadi
-call, and an adaptive attempt as one casadi call (:mod:`.compiled`), so that Python runs once per
-step; SuperLU for large sparse systems.  No torch code generation and no per-operation dispatch.
+call, an adaptive attempt as one casadi call (:mod:`.compiled`), and up to 24 unknowns many attempts
+with the controller in one (:mod:`.loop`), so that Python runs once per run of attempts; SuperLU for
+large sparse systems.  No torch code generation and no per-operation dispatch.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from daemodel.backends.radau.compiled import (
     inverse_function,
     machine_code,
     newton_step_function,
+    quiet,
     refresh_function,
     step_function,
 )
@@ -134,7 +136,8 @@ class CasadiEngine(AbstractEngine):
         if self._inverses is None:
             self._inverses = Buffered(self._inverse_function())
         try:
-            packed = self._inverses(np.concatenate([[h], J]))
+            with quiet():
+                packed = self._inverses(np.concatenate([[h], J]))
         except RuntimeError:
             return None
         return self._packed_factors(packed, h)
@@ -175,7 +178,8 @@ class CasadiEngine(AbstractEngine):
         if self._refresh is None:
             self._refresh = Buffered(self._refresh_function())
         try:
-            out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
+            with quiet():
+                out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
         except RuntimeError:  # a singular system: the general path factors it and names it
             return super().refresh(t, y, z, h)
         nnz, m = len(self.rows), self.m

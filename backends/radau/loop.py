@@ -14,9 +14,11 @@ attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
   rejects the step and picks the next h.
 
 The same arithmetic in the same order: the same steps, bit for bit.  What only Python does ends
-the run *before* the attempt, which Python then makes on its own path, where the errors are
-worded: non-finite values (the general path names where they arose), a sign change of the
-iteration matrix's determinant, a singular factorisation, a step size underflow.  A run also ends
+the run *before* the attempt, which Python then makes on its own path (the attempt runs twice),
+where the errors are worded: non-finite values (the general path names where they arose), a sign
+change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
+exactly singular matrix, which LAPACK refuses, fails the call, and Python makes the next attempt),
+a step size underflow.  A run also ends
 where the integration does and at ``limit`` attempts (the controller's budget checks).  Each
 attempt that ran leaves a record (:data:`RECORD`, then the start value and the stages) from which
 :class:`CompiledRun` writes the steps and the statistics back into the stepper.
@@ -25,7 +27,7 @@ attempt that ran leaves a record (:data:`RECORD`, then the start value and the s
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix
+from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix, quiet
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -391,7 +393,13 @@ class CompiledRun:
         inputs = self.buffered.inputs[1]
         inputs[: len(settings)] = settings
         inputs[len(SETTINGS) :] = stepper.engine.p
-        out = self.buffered.evaluate()
+        try:
+            with quiet():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
+                out = self.buffered.evaluate()
+        except RuntimeError:
+            # a factorisation inside failed (LAPACK refuses an exactly singular matrix): the next attempt
+            # on Python's path, which factors with scipy and names why it is singular
+            return t, h, first, rejected_last, accepted, HANDBACK
         stepper.stats["compiled_runs"] += 1
         return self._write_back(stepper, out, accepted)
 
@@ -421,10 +429,11 @@ class CompiledRun:
         steps = records[records[:, 1] > 0]
         if len(steps):
             nodes = steps[:, len(RECORD) :].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
+            # (copies: the records' other entries are not kept, as step_record_bytes counts)
             if stepper.records.dense:
-                stepper.records.add(steps[:, 2], steps[:, 3], None, nodes)
+                stepper.records.add(steps[:, 2].copy(), steps[:, 3].copy(), None, nodes.copy())
             else:
-                stepper.records.add(None, None, steps[:, 4], nodes[:, :, -1])
+                stepper.records.add(None, None, steps[:, 4].copy(), nodes[:, :, -1].copy())
             stats["steps"] += len(steps)
             lengths = steps[:, 3].tolist()
             stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)

@@ -7,7 +7,7 @@ step's start whose transformed systems (:mod:`.transform`) are factored once and
 iterations and, while Newton contracts fast, across steps (RADAU5's strategy).  The controller
 (:mod:`.control`) decides where the steps go and what Newton must reach; the step is the same for
 both.  On dense systems of one trajectory the casadi engine runs an adaptive attempt in one
-compiled call (:mod:`.compiled`).
+compiled call (:mod:`.compiled`), and many attempts with the controller in one (:mod:`.loop`).
 """
 
 from __future__ import annotations
@@ -528,9 +528,11 @@ class Records:
             return self.nodes[0]
         offsets = np.cumsum([0] + [len(block) for block in self.starts])
         block = np.searchsorted(offsets, steps, side="right") - 1
+        # the asked-for steps of each block are a contiguous run of ``steps`` (ascending): split there
+        starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
         pieces = []
-        for b in np.unique(block):
-            local = steps[block == b] - offsets[b]
+        for first, last in zip(starts, [*starts[1:], len(steps)], strict=True):
+            b, local = block[first], steps[first:last] - offsets[block[first]]
             nodes = self.nodes[b]
             pieces.append(nodes if len(local) == nodes.shape[1] else nodes[:, index(local)])
         return pieces[0] if len(pieces) == 1 else xp.concatenate(pieces, axis=1)
