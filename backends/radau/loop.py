@@ -18,10 +18,10 @@ the run *before* the attempt, which Python then makes on its own path (the attem
 where the errors are worded: non-finite values (the general path names where they arose), a sign
 change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
 exactly singular matrix, which LAPACK refuses, fails the call, and Python makes the next attempt),
-a step size underflow.  A run also ends
-where the integration does and at ``limit`` attempts (the controller's budget checks).  Each
-attempt that ran leaves a record (:data:`RECORD`, then the start value and the stages) from which
-:class:`CompiledRun` writes the steps and the statistics back into the stepper.
+a step size underflow.  A run also ends where the integration does and at ``limit`` attempts (the
+controller's budget checks).  Each attempt that ran leaves a record (:data:`RECORD`, then the start
+value and the stages) from which :class:`CompiledRun` writes the steps and the statistics back
+into the stepper.
 """
 
 from __future__ import annotations

@@ -467,16 +467,15 @@ class Stepper:
         (t_n + c_i h, W_i), all points in one product (Lagrange weights at theta = (t - t_n) / h)."""
         xp = self.xp
         t_out = np.asarray(t_out, dtype=float)
-        out = xp.repeat(u0[:, None], len(t_out), axis=1) if xp is np else xp.stack([u0] * len(t_out), axis=1)
         # (B, T, n+m): u0 where t <= t0
+        out = xp.repeat(u0[:, None], len(t_out), axis=1) if xp is np else xp.stack([u0] * len(t_out), axis=1)
         after = np.flatnonzero(t_out > t0)
         if not records.starts or not len(after):
             return t_out, numpy_copy(out)
         starts, lengths = np.concatenate(records.starts), np.concatenate(records.lengths)
         ends = starts + lengths * (1 + 1e-13)
-        owner = np.minimum(
-            np.searchsorted(ends, t_out[after], side="left"), len(starts) - 1
-        )  # the step ending at/after
+        last = len(starts) - 1
+        owner = np.minimum(np.searchsorted(ends, t_out[after], side="left"), last)  # the step ending at/after
         theta = (t_out[after] - starts[owner]) / lengths[owner]
         # the product form, for all points at once: exact at the nodes (a weight of 1 and zeros), which
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
