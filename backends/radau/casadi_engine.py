@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.radau.compiled import (
     Buffered,
+    StaticFactors,
     casadi_functions,
     find_compiler,
     inverse_function,
@@ -19,6 +20,7 @@ from daemodel.backends.radau.compiled import (
     newton_step_function,
     quiet,
     refresh_function,
+    static_factor_function,
     step_function,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
@@ -31,6 +33,7 @@ from daemodel.backends.radau.linalg import (
     sparse_sign_det,
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
+from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
 
 # casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
 # more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
@@ -40,6 +43,14 @@ DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
 # twice the size, casadi computing in real numbers); above it scipy's complex LAPACK is cheaper
 # (measured per factorisation: 0.12 against 0.09 ms at 40 unknowns, 0.85 against 0.51 ms at 100).
 COMPILED_FACTOR_MAX_SIZE = 24
+# Above it, a sparse pattern is factored with a fixed pivot order in compiled code (.sparse) where the
+# elimination takes at most this many multiply-adds and its factors at most this share of D^2 entries
+# (the chain of 40 pendulums, 200 unknowns: 8,000 and 5 %); denser or larger systems keep LAPACK or SuperLU.
+STATIC_MAX_FLOPS, STATIC_MAX_FILL = 100_000, 0.2
+# Without jit, where the elimination takes at most this many multiply-adds: on casadi's virtual machine
+# (~3 ns an operation) the chain of 40 pendulums (3,100) at s = 5 was 1.15x slower than SuperLU, the
+# chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
+STATIC_MAX_FLOPS_VM = 2_000
 
 
 class CasadiEngine(AbstractEngine):
@@ -73,6 +84,13 @@ class CasadiEngine(AbstractEngine):
         self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
         self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
         self._functions = functions
+        # above COMPILED_FACTOR_MAX_SIZE, where the pattern is sparse: LU factors with a fixed pivot order as
+        # compiled functions (.sparse), the pivots SuperLU picks at the first solve's start (per model and s)
+        self.static = None  # (StaticFactors, where the pattern allows; used by the compiled step only)
+        self._static = None  # (the factor function and the real and complex solves, on bound buffers)
+        if D > COMPILED_FACTOR_MAX_SIZE:
+            self.static = compiled.cached(("casadi-radau-static", self.s), lambda: self._static_factors(start))
+        self._static_active = False  # the compiled step reads the static factors: factor() makes them
 
     def _machine_code(self, function, key):
         """``function``, or with ``jit`` its machine code (built once per model and ``key``)."""
@@ -83,13 +101,19 @@ class CasadiEngine(AbstractEngine):
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
-        about 0.5 s once); False where the systems are sparse and the step runs on the general path."""
-        if not self.dense:
+        about 0.5 s once); False where the systems are sparse beyond the fixed-pivot factors' reach
+        (:data:`STATIC_MAX_FLOPS`) and the step runs on the general path."""
+        solver = self.static
+        if solver is not None and not jit and solver.lu.flops > STATIC_MAX_FLOPS_VM:
+            solver = None  # (on casadi's virtual machine its complex factors cost more than LAPACK's or SuperLU's)
+        if not self.dense and solver is None:
             return False
         compiled, functions = self.compiled, self._functions
+        self._static_active = solver is not None
         weights = np.array(compiled.algebraic_index, dtype=float)
-        key = ("casadi-radau-compiled-step", self.s, iterations)
-        step = compiled.cached(key, lambda: step_function(functions[0], functions[1], self, iterations, e, weights))
+        key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None)
+        build = lambda: step_function(functions[0], functions[1], self, iterations, e, weights, solver)  # noqa: E731
+        step = compiled.cached(key, build)
         if jit:
             step = self._machine_code(step, key)
         self._compiled = [Buffered(step, inputs=2), None]
@@ -109,6 +133,10 @@ class CasadiEngine(AbstractEngine):
         return np.array(values, dtype=float)
 
     def factor(self, J, h: float, error_only: bool = False) -> Factors:
+        if self._static_active:
+            factors = self._static_factor(J, h)
+            # (else SuperLU or LAPACK, whose factors the compiled step does not read: the general path)
+            return factors if factors is not None else super().factor(J, h, error_only)
         if self.dense and not error_only and self.D <= COMPILED_FACTOR_MAX_SIZE:
             factors = self._compiled_factor(J, h)
             if factors is not None:
@@ -149,6 +177,45 @@ class CasadiEngine(AbstractEngine):
         shifts = self.transform.shifts(h)
         error = self.transform.error_shift(shifts)
         lu = _PackedInverses(packed, self.transform, shifts, self.D)
+        return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
+
+    def _static_factors(self, start):
+        """The :class:`.compiled.StaticFactors` of this model's Jacobian pattern, pivoted as SuperLU
+        pivots ``sigma M - J`` at the start (sigma 1000 times J's largest entry: a short step), or None
+        where its elimination exceeds :data:`STATIC_MAX_FLOPS` or its factors :data:`STATIC_MAX_FILL`."""
+        J = self.jacobian(
+            self.compiled.t0, np.asarray(start.y0, dtype=float)[:1], np.asarray(start.z0, dtype=float)[:1]
+        )
+        if not np.isfinite(J).all():
+            return None
+        scale = 1e3 * max(1.0, float(np.abs(J).max(initial=0.0)))
+        lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
+        if lu.flops > STATIC_MAX_FLOPS or lu.L_size + lu.U_size > STATIC_MAX_FILL * self.D * self.D:
+            return None
+        return StaticFactors(lu, self.transform)
+
+    def _static_factor(self, J, h: float) -> Factors | None:
+        """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth
+        passes :data:`.sparse.MAX_GROWTH`, a pivot is 0 or a value is not finite (a singular system
+        among them, or one the fixed order does not suit)."""
+        if self._static is None:
+            build = lambda: static_factor_function(self.static.lu, self.transform)  # noqa: E731
+            factor = self.compiled.cached(("casadi-radau-static-factor", self.s), build)
+            solves = {key: Buffered(fn, inputs=2) for key, fn in self.static.solves.items()}
+            self._static = (Buffered(factor), solves)
+        factor, solves = self._static
+        packed = factor(np.concatenate([[h], J]))
+        growth, pivot = packed[-2:]
+        if not np.isfinite(packed.sum()) or growth > MAX_GROWTH or pivot == 0:
+            return None
+        shifts = self.transform.shifts(h)
+        error = self.transform.error_shift(shifts)
+        lu, static = {}, self.static
+        for (_, lam), shift, offset in zip(self.transform.blocks, shifts, static.offsets, strict=False):
+            complex_ = bool(lam.imag)
+            lu[shift] = ("static", complex_, packed[offset : offset + static.lu.size(complex_)], solves[complex_])
+        if error not in lu:
+            lu[error] = ("static", False, packed[static.error_offset : static.checks_offset], solves[False])
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
     def _refresh_function(self):
@@ -221,7 +288,7 @@ class CasadiEngine(AbstractEngine):
     def newton_step(self, factors, t, h, y, W):
         """One casadi call for the residual and the transformed systems' increment (by their inverses)
         on dense systems; the residual and LU solves apart otherwise (full Newton, sparse systems)."""
-        if not isinstance(factors, Factors) or factors.inverse is None:
+        if not isinstance(factors, Factors) or factors.inverse is None or self._static_active:
             return super().newton_step(factors, t, h, y, W)
         step, bound = self._step
         if bound is not factors:
@@ -312,6 +379,15 @@ class CasadiEngine(AbstractEngine):
             return getrs(LU, piv, rhs[0])[0][None]
         if kind == "singular":
             return np.full_like(rhs, np.nan)
+        if kind == "static":
+            _, complex_, packed, solve = lu
+            solve.inputs[0][:] = packed
+            if complex_:
+                solve.inputs[1][:] = np.concatenate([rhs[0].real, rhs[0].imag])
+                x = solve.evaluate()
+                return (x[: self.D] + 1j * x[self.D :])[None]
+            solve.inputs[1][:] = rhs[0].real if np.iscomplexobj(rhs) else rhs[0]
+            return solve.evaluate()[None]
         return lu[1].solve(rhs[0])[None]
 
     def factor_stages(self, stage_J, h):

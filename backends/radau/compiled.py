@@ -35,34 +35,103 @@ CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
 SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
 
 
-def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int):
+def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int, solver=None):
     """``dW`` (D, s) from the stage residual ``R`` (D, s) through the transformed systems, whose
-    inverses come packed (real blocks, complex ones as (Re, Im), column-major): the increment
-    :meth:`AbstractEngine.newton_increment` computes with LU solves."""
+    factors come packed (``solver``: :class:`DenseInverses` by default, the blocks' inverses, or
+    :class:`StaticFactors`): the increment :meth:`AbstractEngine.newton_increment` computes with LU solves."""
+    solver = solver or DenseInverses(transform, D)
     rhs = casadi.vertcat(
         casadi.mtimes(R[:n, :], casadi.DM(transform.T_inv_A_inv.T)) * (-1.0 / h),
         casadi.mtimes(R[n:, :], casadi.DM(transform.T_inv.T)),
     )
-    columns, offset = [], 0
-    for k, lam in transform.blocks:
-        real = casadi.reshape(inverse[offset : offset + D * D], D, D)
-        offset += D * D
+    columns = []
+    for index, (k, lam) in enumerate(transform.blocks):
         if lam.imag == 0:
-            columns.append(casadi.mtimes(real, rhs[:, k]))
-            continue
-        imag = casadi.reshape(inverse[offset : offset + D * D], D, D)
-        offset += D * D
-        re, im = rhs[:, k], rhs[:, k + 1]
-        columns += [
-            casadi.mtimes(real, re) - casadi.mtimes(imag, im),
-            casadi.mtimes(imag, re) + casadi.mtimes(real, im),
-        ]
+            columns.append(solver.real(casadi, inverse, index, rhs[:, k]))
+        else:
+            columns += solver.complex(casadi, inverse, index, rhs[:, k], rhs[:, k + 1])
     return casadi.mtimes(casadi.horzcat(*columns), casadi.DM(transform.T.T))
+
+
+class DenseInverses:
+    """The transformed systems' inverses packed column-major: each block's (a complex one as (Re, Im)),
+    then the error estimate's system's; applied by matrix products."""
+
+    def __init__(self, transform, D: int):
+        self.D, self.offsets = D, []
+        offset = 0
+        for _, lam in transform.blocks:
+            self.offsets.append(offset)
+            offset += (2 if lam.imag else 1) * D * D
+        self.error_offset, self.size = offset, offset + D * D
+
+    def real(self, casadi, packed, block: int, rhs):
+        o, D = self.offsets[block], self.D
+        return casadi.mtimes(casadi.reshape(packed[o : o + D * D], D, D), rhs)
+
+    def complex(self, casadi, packed, block: int, re, im):
+        o, D = self.offsets[block], self.D
+        real = casadi.reshape(packed[o : o + D * D], D, D)
+        imag = casadi.reshape(packed[o + D * D : o + 2 * D * D], D, D)
+        return [casadi.mtimes(real, re) - casadi.mtimes(imag, im), casadi.mtimes(imag, re) + casadi.mtimes(real, im)]
+
+    def error(self, casadi, packed, rhs):
+        o, D = self.error_offset, self.D
+        return casadi.mtimes(casadi.reshape(packed[o : o + D * D], D, D), rhs)
+
+
+class StaticFactors:
+    """The transformed systems' sparse LU factors with a fixed pivot order (:class:`.sparse.StaticLU`)
+    packed: each block's (real, or complex as (Re, Im) parts), then the error estimate's system's
+    where it is no block's (s even), then the factorisation's largest growth and smallest pivot (over
+    the systems); applied by triangular solves."""
+
+    def __init__(self, lu, transform):
+        self.lu, self.offsets = lu, []
+        offset = 0
+        for _, lam in transform.blocks:
+            self.offsets.append(offset)
+            offset += lu.size(bool(lam.imag))
+        if transform.error_block is not None:
+            self.error_offset = self.offsets[transform.error_block]
+        else:
+            self.error_offset, offset = offset, offset + lu.size(False)
+        self.checks_offset, self.size = offset, offset + 2
+        self.solves = {False: lu.solve_function(False), True: lu.solve_function(True)}
+
+    def real(self, casadi, packed, block: int, rhs):
+        o = self.offsets[block]
+        return self.solves[False](packed[o : o + self.lu.size(False)], rhs)
+
+    def complex(self, casadi, packed, block: int, re, im):
+        o = self.offsets[block]
+        out = self.solves[True](packed[o : o + self.lu.size(True)], casadi.vertcat(re, im))
+        return [out[: self.lu.D], out[self.lu.D :]]
+
+    def error(self, casadi, packed, rhs):
+        return self.solves[False](packed[self.error_offset : self.error_offset + self.lu.size(False)], rhs)
+
+
+def static_factor_function(lu, transform):
+    """casadi SX function of the packed :class:`StaticFactors` from ``[h, J's nonzeros]``: each block's
+    factors, the error system's where it is no block's, the largest growth and the smallest pivot."""
+    import casadi
+
+    x = casadi.SX.sym("x", 1 + len(lu.rows))
+    h, J = x[0], x[1:]
+    packed, growth, pivot = [], casadi.SX(0), casadi.SX(casadi.inf)
+    shifts = [lam for _, lam in transform.blocks]
+    shifts += [complex(1.0 / transform.gamma0)] if transform.error_block is None else []
+    for lam in shifts:
+        values, block_growth, block_pivot = lu.factor_expressions(casadi, h, J, lam, bool(lam.imag))
+        packed += values
+        growth, pivot = casadi.fmax(growth, block_growth), casadi.fmin(pivot, block_pivot)
+    return casadi.Function("static_factors", [x], [casadi.vertcat(*packed, growth, pivot)])
 
 
 def inverse_size(transform, D: int) -> int:
     """Entries of the packed inverses: the blocks' (a complex one twice), then the error estimate's."""
-    return sum((2 if lam.imag else 1) * D * D for _, lam in transform.blocks) + D * D
+    return DenseInverses(transform, D).size
 
 
 def newton_tests(iterations: int):
@@ -121,7 +190,7 @@ def newton_tests(iterations: int):
     return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)])
 
 
-def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray):
+def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray, solver=None):
     """The casadi function of one adaptive attempt (see the module docstring).
 
     Inputs: ``[SCALARS, prev ((s+1) D), f0 (n), p]`` with ``ratio`` = h / h_old, ``prev`` the last
@@ -140,7 +209,8 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     P = engine.p.size
     size = len(SCALARS) + (s + 1) * D + n + P
     x = casadi.MX.sym("x", size)
-    inverse = casadi.MX.sym("inverse", inverse_size(tr, D))
+    solver = solver or DenseInverses(tr, D)
+    inverse = casadi.MX.sym("inverse", solver.size)
     t, h, ratio, eta0, tol, first, rtol, atol = (x[i] for i in range(len(SCALARS)))
     offset = len(SCALARS)
     prev = casadi.reshape(x[offset : offset + (s + 1) * D], D, s + 1)  # column j: node j
@@ -174,7 +244,7 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     out = residual(casadi.vertcat(ts, hs, ys, casadi.vec(W_s), ps))
     R = casadi.reshape(out[: s * D], D, s)
     stage_f = casadi.reshape(out[s * D :], n, s)
-    dW = transformed_increment(casadi, R, hs, invs, tr, n, D)
+    dW = transformed_increment(casadi, R, hs, invs, tr, n, D, solver)
     norm = casadi.sqrt(casadi.sumsqr(dW / scs) / (s * D))
     # the tests on the scalars in one SX function (an MX operation costs ~40 ns on casadi's virtual
     # machine, an SX one ~2: a pendulum step of 3 iterations 23.6 -> 19.7 us)
@@ -206,14 +276,13 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     # the embedded error estimate (radau's local_error, error_norm and refiltered)
     gamma0 = tr.gamma0
     quadrature = casadi.mtimes(F, casadi.DM(e))
-    error_inverse = casadi.reshape(inverse[inverse.numel() - D * D :], D, D)
     zeros = casadi.MX.zeros(D - n)
-    err = casadi.mtimes(error_inverse, casadi.vertcat(quadrature / gamma0 + f0, zeros))
+    err = solver.error(casadi, inverse, casadi.vertcat(quadrature / gamma0 + f0, zeros))
     u_new = W[:, s - 1]
     w = (atol + rtol * casadi.fmax(casadi.fabs(u_n), casadi.fabs(u_new))) / index_w
     error_norm = casadi.sqrt(casadi.sumsqr(err / w) / D)
     f1 = f(casadi.vertcat(t, u_n + err, p))
-    refiltered = casadi.mtimes(error_inverse, casadi.vertcat(quadrature / gamma0 + f1, zeros))
+    refiltered = solver.error(casadi, inverse, casadi.vertcat(quadrature / gamma0 + f1, zeros))
     again = casadi.logic_and(first, error_norm >= 1)
     error_norm = casadi.if_else(again, casadi.sqrt(casadi.sumsqr(refiltered / w) / D), error_norm)
     return casadi.Function(

@@ -1,0 +1,224 @@
+"""Sparse LU factors of the transformed systems with a fixed pivot order, as casadi SX functions.
+
+Above :data:`.casadi_engine.COMPILED_FACTOR_MAX_SIZE` unknowns a dense inverse of each transformed
+system costs 0.16-0.75 ms at 100-200 unknowns, and the Newton iteration's products with it 40 us;
+SuperLU factors cheaper but only from Python, once per iteration's solve.  Chains and grids are
+sparse: with the pivot order of one SuperLU factorisation (COLAMD columns, partial pivoting rows)
+kept fixed, the elimination's pattern is fixed too, and the factorisation and the triangular
+solves are straight-line code on the nonzeros: measured on casadi's virtual machine, a factor
+5.5-40 us and a real solve 4-38 us on the chain and reaction-diffusion families at 100-200
+unknowns.  The factors then live in the compiled step like the dense inverses do.
+
+A fixed pivot order is what SuperLU would pick at the matrix it was chosen at; where values move
+far from it a pivot may grow small.  Each factorisation reports its growth (largest factor entry
+over largest matrix entry) and its smallest pivot; beyond :data:`MAX_GROWTH`, at a zero pivot, or
+not finite, the caller factors with LAPACK or SuperLU instead (:class:`.casadi_engine.CasadiEngine`
+does, and names a singular matrix).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Growth of the factors (max |L|, |U| entry over max |matrix| entry) beyond which the fixed pivot
+# order is not trusted (partial pivoting bounds |L| by 1; growth 1e8 loses 8 digits of the solve).
+MAX_GROWTH = 1e8
+
+
+class StaticLU:
+    """The elimination pattern of ``sigma M - J`` for the Jacobian pattern ``(rows, cols)`` with the
+    pivot order SuperLU picks at ``values`` (J's nonzeros) and step ``h``; ``n`` differential
+    variables of ``D`` (M = diag(1 x n, 0 x m)).
+
+    Row i of the matrix is row ``perm_r[i]`` of the permuted one, column j its column ``perm_c[j]``
+    (scipy's convention: ``Pr A Pc = L U``).
+    """
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, D: int, values: np.ndarray, h: float, shift: float):
+        import scipy.sparse as sparse
+        import scipy.sparse.linalg as splinalg
+
+        self.rows, self.cols, self.n, self.D = rows, cols, n, D
+        M = sparse.diags(np.r_[np.ones(n), np.zeros(D - n)])
+        A = (shift / h * M - sparse.csc_matrix((values, (rows, cols)), shape=(D, D))).tocsc()
+        lu = splinalg.splu(A, permc_spec="COLAMD")
+        self.perm_r, self.perm_c = lu.perm_r.copy(), lu.perm_c.copy()
+        # the permuted pattern, and the fill of elimination without further pivoting
+        pattern = [set() for _ in range(D)]
+        for i, j in zip(rows, cols, strict=True):
+            pattern[self.perm_r[i]].add(int(self.perm_c[j]))
+        for i in range(n):
+            pattern[self.perm_r[i]].add(int(self.perm_c[i]))
+        for k in range(D):
+            pattern[k].add(k)  # (a structurally zero pivot is computed as 0: singular, SuperLU then names it)
+        lower = [[] for _ in range(D)]  # lower[i]: columns k < i of L's row i
+        rows_below = [[] for _ in range(D)]  # rows i > k with an entry in column k
+        for i in range(D):
+            for j in pattern[i]:
+                if j < i:
+                    rows_below[j].append(i)
+        for k in range(D):
+            upper_k = [j for j in sorted(pattern[k]) if j > k]
+            for i in sorted(rows_below[k]):
+                lower[i].append(k)
+                for j in upper_k:
+                    if j not in pattern[i]:
+                        pattern[i].add(j)
+                        if j < i:
+                            rows_below[j].append(i)
+        self.flops = sum(len(below) * sum(1 for j in pattern[k] if j > k) for k, below in enumerate(rows_below))
+        self.lower = [sorted(columns) for columns in lower]
+        self.upper = [sorted(j for j in pattern[k] if j >= k) for k in range(D)]
+        self.L_size = sum(len(columns) for columns in self.lower)
+        self.U_size = sum(len(columns) for columns in self.upper)
+
+    def size(self, complex_: bool) -> int:
+        """Entries of one system's packed factors: L's then U's nonzeros (real and imaginary parts)."""
+        return (2 if complex_ else 1) * (self.L_size + self.U_size)
+
+    # ---- building the SX expressions ----------------------------------------------------------
+    def _entries(self, casadi, h, J, shift, complex_):
+        """The permuted matrix ``shift / h M - J`` as {(row, col): value} (complex: (re, im))."""
+        entries = {}
+        for k, (i, j) in enumerate(zip(self.rows, self.cols, strict=True)):
+            key = (int(self.perm_r[i]), int(self.perm_c[j]))
+            entries[key] = entries.get(key, 0) - J[k]
+        for i in range(self.n):
+            key = (int(self.perm_r[i]), int(self.perm_c[i]))
+            entries[key] = entries.get(key, 0) + shift.real / h
+        if not complex_:
+            return entries
+        out = {key: (value, casadi.SX(0)) for key, value in entries.items()}
+        for i in range(self.n):
+            key = (int(self.perm_r[i]), int(self.perm_c[i]))
+            out[key] = (out[key][0], out[key][1] + shift.imag / h)
+        return out
+
+    def factor_expressions(self, casadi, h, J, shift: complex, complex_: bool):
+        """SX ``(packed factors, growth, smallest pivot)`` of ``shift / h M - J`` (complex arithmetic where
+        ``complex_``); growth: the largest factor entry over the largest matrix entry; a pivot of 0
+        leaves the factors finite, and only the solve would divide by it."""
+        entries = self._entries(casadi, h, J, shift, complex_)
+        zero = (casadi.SX(0), casadi.SX(0)) if complex_ else casadi.SX(0)
+        A = [dict() for _ in range(self.D)]
+        for (i, j), value in entries.items():
+            A[i][j] = value
+        L = [dict() for _ in range(self.D)]
+        largest_matrix = _largest(casadi, [value for row in A for value in row.values()], complex_)
+        for k in range(self.D):
+            pivot = A[k].get(k, zero)
+            upper_k = [j for j in self.upper[k] if j > k]
+            for i in self._rows_below(k):
+                factor = _div(A[i].get(k, zero), pivot, complex_)
+                L[i][k] = factor
+                for j in upper_k:
+                    A[i][j] = _sub(A[i].get(j, zero), _mul(factor, A[k].get(j, zero), complex_), complex_)
+        L_values = [L[i][k] for i in range(self.D) for k in self.lower[i]]
+        U_values = [A[k].get(j, zero) for k in range(self.D) for j in self.upper[k]]
+        growth = _largest(casadi, L_values + U_values, complex_) / casadi.fmax(largest_matrix, 1e-300)
+        pivots = [A[k].get(k, zero) for k in range(self.D)]
+        smallest = _smallest(casadi, pivots, complex_)
+        if complex_:
+            packed = [v[0] for v in L_values] + [v[1] for v in L_values] + [v[0] for v in U_values]
+            packed += [v[1] for v in U_values]
+        else:
+            packed = L_values + U_values
+        return packed, growth, smallest
+
+    def _rows_below(self, k: int) -> list:
+        if not hasattr(self, "_below"):
+            below = [[] for _ in range(self.D)]
+            for i in range(self.D):
+                for c in self.lower[i]:
+                    below[c].append(i)
+            self._below = below
+        return self._below[k]
+
+    def solve_function(self, complex_: bool):
+        """casadi SX function of ``x`` solving ``A x = b`` from ``[packed factors, b]`` (complex: b and x
+        as (re (D), im (D)))."""
+        import casadi
+
+        D = self.D
+        factors = casadi.SX.sym("factors", self.size(complex_))
+        b = casadi.SX.sym("b", (2 if complex_ else 1) * D)
+        nL, nU = self.L_size, self.U_size
+        if complex_:
+            L_values = [(factors[q], factors[nL + q]) for q in range(nL)]
+            U_values = [(factors[2 * nL + q], factors[2 * nL + nU + q]) for q in range(nU)]
+            rhs = [(b[i], b[D + i]) for i in range(D)]
+        else:
+            L_values = [factors[q] for q in range(nL)]
+            U_values = [factors[nL + q] for q in range(nU)]
+            rhs = [b[i] for i in range(D)]
+        inverse_r = np.empty(D, dtype=int)
+        inverse_r[self.perm_r] = np.arange(D)
+        y, q = [None] * D, 0
+        for i in range(D):  # L y = Pr b (L unit lower)
+            value = rhs[inverse_r[i]]
+            for k in self.lower[i]:
+                value = _sub(value, _mul(L_values[q], y[k], complex_), complex_)
+                q += 1
+            y[i] = value
+        offsets = np.cumsum([0] + [len(columns) for columns in self.upper])
+        x = [None] * D
+        for i in reversed(range(D)):  # U x' = y
+            value, diagonal = y[i], None
+            for position, j in enumerate(self.upper[i]):
+                u = U_values[offsets[i] + position]
+                if j == i:
+                    diagonal = u
+                else:
+                    value = _sub(value, _mul(u, x[j], complex_), complex_)
+            x[i] = _div(value, diagonal, complex_)
+        solution = [x[self.perm_c[k]] for k in range(D)]  # x = Pc x'
+        if complex_:
+            out = casadi.vertcat(*(v[0] for v in solution), *(v[1] for v in solution))
+        else:
+            out = casadi.vertcat(*solution)
+        return casadi.Function("static_solve_complex" if complex_ else "static_solve", [factors, b], [out])
+
+
+def _mul(a, b, complex_):
+    if not complex_:
+        return a * b
+    return (a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
+
+
+def _sub(a, b, complex_):
+    if not complex_:
+        return a - b
+    return (a[0] - b[0], a[1] - b[1])
+
+
+def _div(a, b, complex_):
+    if not complex_:
+        return a / b
+    denominator = b[0] * b[0] + b[1] * b[1]
+    return ((a[0] * b[0] + a[1] * b[1]) / denominator, (a[1] * b[0] - a[0] * b[1]) / denominator)
+
+
+def _smallest(casadi, values, complex_):
+    """min |value| over ``values`` (complex: of |re| + |im|, zero exactly where the value is)."""
+    if complex_:
+        values = [casadi.fabs(v[0]) + casadi.fabs(v[1]) for v in values]
+    else:
+        values = [casadi.fabs(v) for v in values]
+    while len(values) > 1:
+        pairs = range(0, len(values) - 1, 2)
+        values = [casadi.fmin(values[i], values[i + 1]) for i in pairs] + values[len(values) - len(values) % 2 :]
+    return values[0]
+
+
+def _largest(casadi, values, complex_):
+    """max |value| over ``values`` (a balanced tree of fmax; complex: max of |re|, |im|)."""
+    if complex_:
+        values = [casadi.fmax(casadi.fabs(v[0]), casadi.fabs(v[1])) for v in values]
+    else:
+        values = [casadi.fabs(v) for v in values]
+    while len(values) > 1:
+        values = [
+            casadi.fmax(values[i], values[i + 1]) if i + 1 < len(values) else values[i]
+            for i in range(0, len(values), 2)
+        ]
+    return values[0] if values else casadi.SX(0)

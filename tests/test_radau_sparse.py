@@ -1,0 +1,140 @@
+"""Sparse LU factors with a fixed pivot order in compiled code (backends/radau/sparse.py).
+
+The factors must solve the transformed systems (real and complex) to rounding on the patterns of
+chains and grids, report their growth, and give the compiled step the general path's steps; where
+the growth or a zero pivot says the fixed order does not hold, SuperLU factors and names why.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sparse
+from daemodel.backends.radau import casadi_engine
+from daemodel.backends.radau import sparse as radau_sparse
+from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.compiled import Buffered, find_compiler, static_factor_function
+
+import daemodel as dm
+from daemodel import errors as E
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import scaling_models
+
+
+def _engine(model):
+    """The casadi engine of ``model``'s first solve (its Jacobian pattern and static factors)."""
+    engines = []
+    original = CasadiEngine.__init__
+
+    def keep(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        engines.append(self)
+
+    CasadiEngine.__init__ = keep
+    try:
+        compiled = model.compile()
+        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6)
+    finally:
+        CasadiEngine.__init__ = original
+    return compiled, engines[-1]
+
+
+@pytest.mark.parametrize(
+    ("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20), ("pendulum_chain", 40)]
+)
+def test_the_factors_solve_every_transformed_system(family, size):
+    compiled, engine = _engine(getattr(scaling_models, family)(size))
+    static = engine.static
+    assert static is not None and static.lu.L_size + static.lu.U_size < 0.1 * engine.D**2
+    rng = np.random.default_rng(size)
+    D, n = engine.D, engine.n
+    M = sparse.diags(np.r_[np.ones(n), np.zeros(D - n)])
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    J = J * (1 + 0.3 * rng.random(len(engine.rows)))
+    h = 0.01
+    factor = Buffered(static_factor_function(static.lu, engine.transform))
+    packed = factor(np.concatenate([[h], J]))
+    growth, pivot = packed[-2:]
+    assert 0 < growth < 10 and pivot > 0  # the pivots SuperLU picked still hold at other values
+    Jm = sparse.csc_matrix((J, (engine.rows, engine.cols)), shape=(D, D))
+    for index, (_, lam) in enumerate(engine.transform.blocks):
+        complex_ = bool(lam.imag)
+        solve = Buffered(static.solves[complex_], inputs=2)
+        offset = static.offsets[index]
+        solve.inputs[0][:] = packed[offset : offset + static.lu.size(complex_)]
+        b = rng.standard_normal(2 * D if complex_ else D)
+        solve.inputs[1][:] = b
+        x = solve.evaluate()
+        A = (lam / h * M - Jm).toarray() if complex_ else (lam.real / h * M - Jm).toarray()
+        if complex_:
+            residual = A @ (x[:D] + 1j * x[D:]) - (b[:D] + 1j * b[D:])
+        else:
+            residual = A @ x - b
+        assert np.abs(residual).max() < 1e-10 * np.abs(A).max() * max(1.0, np.abs(x).max()), index
+
+
+def _without_static(monkeypatch):
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS", -1)
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", -1)
+
+
+@pytest.mark.parametrize(("family", "size", "rtol"), [("reaction_diffusion", 50, 1e-6), ("pendulum_chain", 20, 1e-7)])
+def test_the_compiled_step_on_static_factors_takes_the_general_paths_steps(monkeypatch, family, size, rtol):
+    """The families above 24 unknowns now run the compiled step (SuperLU's or LAPACK's factors before)."""
+    model = getattr(scaling_models, family)(size)
+    fast = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol)
+    assert "compiled_retries" in fast.stats
+    _without_static(monkeypatch)
+    general = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol)
+    for key in ("steps", "rejected_steps", "newton_failures", "jacobian_evaluations"):
+        assert fast.stats[key] == general.stats[key], key
+    compiled = model.compile()
+    for name in compiled.state_names:
+        np.testing.assert_allclose(fast[name], general[name], rtol=0.1 * rtol, atol=0.1 * rtol)
+
+
+def test_growth_past_the_bound_falls_back_to_superlu(monkeypatch):
+    monkeypatch.setattr(casadi_engine, "MAX_GROWTH", 0.0)  # every static factorisation refused
+    model = scaling_models.reaction_diffusion(50)
+    refused = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    monkeypatch.undo()
+    _without_static(monkeypatch)
+    general = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    assert refused.stats["steps"] == general.stats["steps"]
+    assert refused.stats["compiled_retries"] == 0  # (no compiled attempt ran: each factored by LAPACK)
+    for name in model.compile().state_names:
+        np.testing.assert_allclose(refused[name], general[name], rtol=1e-7, atol=1e-7)
+
+
+def test_a_singular_system_is_named_by_the_fallback():
+    """Thirty copies of 0 = (t - 0.5) (z - 1): g_z vanishes at t = 0.5; the static factors are not
+    finite there and SuperLU's names the cause."""
+    m = dm.Model("pinches")
+    for k in range(30):
+        m.states(f"y{k}")
+        m.algebraics(f"z{k}")
+        m.ode(f"y{k}", f"-y{k} + z{k}")
+        m.constraint(f"(t - 0.5)*(z{k} - 1)", name=f"pinch{k}")
+        m.initial(**{f"y{k}": 1.0, f"z{k}": 1.0})
+    with pytest.raises(E.ConvergenceError, match=r"the Newton matrix is singular .* at t = 0.5 .*do not determine"):
+        dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False)
+
+
+@pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
+def test_machine_code_on_static_factors_gives_the_virtual_machines_bits(monkeypatch):
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**9)  # (the virtual machine takes them too)
+    compiled = scaling_models.reaction_diffusion(15).compile()
+    vm = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    jit = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6, jit=True)
+    assert "compiled_retries" in vm.stats and jit.stats["steps"] == vm.stats["steps"]
+    for name in compiled.state_names:
+        assert np.array_equal(jit[name], vm[name]), name
+
+
+def test_dense_patterns_keep_lapack():
+    """All-pairs coupling (160 unknowns): the fixed-order factors would fill in; LAPACK keeps them."""
+    _, engine = _engine(scaling_models.sphere_particles(20))
+    assert engine.static is None
+    assert radau_sparse.MAX_GROWTH == 1e8
