@@ -22,6 +22,7 @@ with Newton; the Radau-PINN trainer minimises the same function.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -273,7 +274,17 @@ def lagrange_matrix(nodes, points):
     shape (P, N), in numpy: the interpolation of stage values (a start guess, dense output)."""
     import numpy as np
 
-    others = ~np.eye(len(nodes), dtype=bool)  # others[j, m]: m != j
-    gaps = np.where(others, nodes[:, None] - nodes[None, :], 1.0)  # x_j - x_m
-    factors = np.where(others, points[:, None, None] - nodes[None, None, :], 1.0)  # x - x_m, (P, j, m)
-    return factors.prod(axis=-1) / gaps.prod(axis=-1)
+    others, denominators = _lagrange_denominators(tuple(float(x) for x in nodes))
+    factors = np.where(others, points[:, None, None] - np.asarray(nodes)[None, None, :], 1.0)  # x - x_m, (P, j, m)
+    return factors.prod(axis=-1) / denominators
+
+
+@functools.lru_cache(maxsize=64)
+def _lagrange_denominators(nodes: tuple):
+    """``(others, prod_m (x_j - x_m))`` of :func:`lagrange_matrix`'s nodes, ``others[j, m]``: m != j
+    (computed once per node set: a dense output evaluates the same tableau's nodes on every solve)."""
+    import numpy as np
+
+    nodes = np.asarray(nodes)
+    others = ~np.eye(len(nodes), dtype=bool)
+    return others, np.where(others, nodes[:, None] - nodes[None, :], 1.0).prod(axis=-1)

@@ -523,12 +523,13 @@ class Records:
     def nodes_of(self, steps: np.ndarray, xp, index):
         """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered
         block by block (only the steps asked for are copied)."""
-        if len(self.nodes) == 1 and len(steps) == self.nodes[0].shape[1]:
-            return self.nodes[0]
+        if len(self.nodes) == 1:  # (one compiled run: the whole solve)
+            nodes = self.nodes[0]
+            return nodes if len(steps) == nodes.shape[1] else nodes[:, index(steps)]
         offsets = np.cumsum([0] + [len(block) for block in self.starts])
         block = np.searchsorted(offsets, steps, side="right") - 1
         # the asked-for steps of each block are a contiguous run of ``steps`` (ascending): split there
-        starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
+        starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
         pieces = []
         for first, last in zip(starts, [*starts[1:], len(steps)], strict=True):
             b, local = block[first], steps[first:last] - offsets[block[first]]
