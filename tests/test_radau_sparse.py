@@ -14,7 +14,7 @@ import scipy.sparse as sparse
 from daemodel.backends.radau import casadi_engine
 from daemodel.backends.radau import sparse as radau_sparse
 from daemodel.backends.radau.casadi_engine import CasadiEngine
-from daemodel.backends.radau.compiled import Buffered, find_compiler, static_factor_function
+from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 
 import daemodel as dm
 from daemodel import errors as E
@@ -46,8 +46,8 @@ def _engine(model):
 )
 def test_the_factors_solve_every_transformed_system(family, size):
     compiled, engine = _engine(getattr(scaling_models, family)(size))
-    static = engine.static
-    assert static is not None and static.lu.L_size + static.lu.U_size < 0.1 * engine.D**2
+    static = StaticFactors(engine._static_pattern(), engine.transform)
+    assert static.lu.L_size + static.lu.U_size < 0.1 * engine.D**2
     rng = np.random.default_rng(size)
     D, n = engine.D, engine.n
     M = sparse.diags(np.r_[np.ones(n), np.zeros(D - n)])
@@ -136,5 +136,30 @@ def test_machine_code_on_static_factors_gives_the_virtual_machines_bits(monkeypa
 def test_dense_patterns_keep_lapack():
     """All-pairs coupling (160 unknowns): the fixed-order factors would fill in; LAPACK keeps them."""
     _, engine = _engine(scaling_models.sphere_particles(20))
-    assert engine.static is None
-    assert radau_sparse.MAX_GROWTH == 1e8
+    assert engine._static_pattern() is None and engine.static is None
+
+
+def test_a_pivot_grown_small_is_refused():
+    """0 = 2 exp(-40 t) z1 + z2 - 1: the order picked at t = 0 pivots on 2 exp(-40 t), 5e-16 at t = 0.9,
+    under entries of order 1 (found by review: a growth measured against a stiff entry elsewhere, -1e9,
+    let it pass with 13 % error in z); the multiplier |L| ~ 1e15 refuses it, and LAPACK factors."""
+    m = dm.Model("fading")
+    m.states("y0")
+    m.ode("y0", "-1e9*(y0 - cos(t))")
+    m.initial(y0=1.0)
+    for k in range(1, 25):
+        m.states(f"y{k}")
+        m.ode(f"y{k}", f"-{k}*y{k}")
+        m.initial(**{f"y{k}": 1.0})
+    m.algebraics("z1")
+    m.algebraics("z2")
+    m.constraint("2*exp(-40*t)*z1 + z2 - 1", name="g1")
+    m.constraint("z1 - z2 - 0.01*sin(z2)", name="g2")
+    compiled, engine = _engine(m)
+    assert engine.static is not None  # (27 unknowns: the sparse factors apply)
+    y, z = np.array([compiled.y0]), np.array([[1.0, 1.0]])
+    assert engine._static_factor(engine.jacobian(0.1, y, z), 0.05) is not None
+    J = engine.jacobian(0.9, y, z)
+    assert engine._static_factor(J, 0.05) is None
+    factor = engine._static[0]  # (the factor function on its buffer, made by the first factorisation)
+    assert factor(np.concatenate([[0.05], J]))[-2] > 1e12 > 1e6 == radau_sparse.MAX_GROWTH  # (|L|: ~1e15)

@@ -45,7 +45,8 @@ DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
 COMPILED_FACTOR_MAX_SIZE = 24
 # Above it, a sparse pattern is factored with a fixed pivot order in compiled code (.sparse) where the
 # elimination takes at most this many multiply-adds and its factors at most this share of D^2 entries
-# (the chain of 40 pendulums, 200 unknowns: 8,000 and 5 %); denser or larger systems keep LAPACK or SuperLU.
+# (the chain of 40 pendulums, 200 unknowns: 3,100 and 5 %; the squeezer: 25 %); denser or larger systems
+# keep LAPACK or SuperLU.
 STATIC_MAX_FLOPS, STATIC_MAX_FILL = 100_000, 0.2
 # Without jit, where the elimination takes at most this many multiply-adds: on casadi's virtual machine
 # (~3 ns an operation) the chain of 40 pendulums (3,100) at s = 5 was 1.15x slower than SuperLU, the
@@ -86,11 +87,10 @@ class CasadiEngine(AbstractEngine):
         self._functions = functions
         # above COMPILED_FACTOR_MAX_SIZE, where the pattern is sparse: LU factors with a fixed pivot order as
         # compiled functions (.sparse), the pivots SuperLU picks at the first solve's start (per model and s)
-        self.static = None  # (StaticFactors, where the pattern allows; used by the compiled step only)
+        self.static = None  # (StaticFactors where the compiled step reads them: see make_compiled_step)
         self._static = None  # (the factor function and the real and complex solves, on bound buffers)
-        if D > COMPILED_FACTOR_MAX_SIZE:
-            self.static = compiled.cached(("casadi-radau-static", self.s), lambda: self._static_factors(start))
         self._static_active = False  # the compiled step reads the static factors: factor() makes them
+        self._start = start
 
     def _machine_code(self, function, key):
         """``function``, or with ``jit`` its machine code (built once per model and ``key``)."""
@@ -103,11 +103,15 @@ class CasadiEngine(AbstractEngine):
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
         about 0.5 s once); False where the systems are sparse beyond the fixed-pivot factors' reach
         (:data:`STATIC_MAX_FLOPS`) and the step runs on the general path."""
-        solver = self.static
-        if solver is not None and not jit and solver.lu.flops > STATIC_MAX_FLOPS_VM:
-            solver = None  # (on casadi's virtual machine its complex factors cost more than LAPACK's or SuperLU's)
-        if not self.dense and solver is None:
+        lu = self._static_pattern() if self.D > COMPILED_FACTOR_MAX_SIZE else None
+        if lu is not None and not jit and lu.flops > STATIC_MAX_FLOPS_VM:
+            lu = None  # (on casadi's virtual machine its complex factors cost more than LAPACK's or SuperLU's)
+        if not self.dense and lu is None:
             return False
+        key = ("casadi-radau-static", self.s)
+        solver = self.static = (
+            None if lu is None else self.compiled.cached(key, lambda: StaticFactors(lu, self.transform))
+        )
         compiled, functions = self.compiled, self._functions
         self._static_active = solver is not None
         weights = np.array(compiled.algebraic_index, dtype=float)
@@ -179,10 +183,15 @@ class CasadiEngine(AbstractEngine):
         lu = _PackedInverses(packed, self.transform, shifts, self.D)
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
-    def _static_factors(self, start):
-        """The :class:`.compiled.StaticFactors` of this model's Jacobian pattern, pivoted as SuperLU
-        pivots ``sigma M - J`` at the start (sigma 1000 times J's largest entry: a short step), or None
-        where its elimination exceeds :data:`STATIC_MAX_FLOPS` or its factors :data:`STATIC_MAX_FILL`."""
+    def _static_pattern(self):
+        """The :class:`.sparse.StaticLU` of this model's Jacobian pattern (cached per model: the pivots
+        SuperLU picks for ``sigma M - J`` at the start of the model's first adaptive solve, sigma 1000
+        times J's largest entry, a short step), or None where its elimination exceeds
+        :data:`STATIC_MAX_FLOPS`, its factors :data:`STATIC_MAX_FILL`, or J is not finite there."""
+        return self.compiled.cached(("casadi-radau-static-pattern",), lambda: self._static_lu(self._start))
+
+    def _static_lu(self, start):
+        """See :meth:`_static_pattern`."""
         J = self.jacobian(
             self.compiled.t0, np.asarray(start.y0, dtype=float)[:1], np.asarray(start.z0, dtype=float)[:1]
         )
@@ -192,7 +201,7 @@ class CasadiEngine(AbstractEngine):
         lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
         if lu.flops > STATIC_MAX_FLOPS or lu.L_size + lu.U_size > STATIC_MAX_FILL * self.D * self.D:
             return None
-        return StaticFactors(lu, self.transform)
+        return lu
 
     def _static_factor(self, J, h: float) -> Factors | None:
         """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth

@@ -10,19 +10,23 @@ solves are straight-line code on the nonzeros: measured on casadi's virtual mach
 unknowns.  The factors then live in the compiled step like the dense inverses do.
 
 A fixed pivot order is what SuperLU would pick at the matrix it was chosen at; where values move
-far from it a pivot may grow small.  Each factorisation reports its growth (largest factor entry
-over largest matrix entry) and its smallest pivot; beyond :data:`MAX_GROWTH`, at a zero pivot, or
-not finite, the caller factors with LAPACK or SuperLU instead (:class:`.casadi_engine.CasadiEngine`
-does, and names a singular matrix).
+far from it a pivot may grow small against the entries below it.  Each factorisation reports its
+growth, the larger of its largest multiplier |L| (at most 1 under partial pivoting) and its largest
+|U| entry over the matrix's largest entry (Wilkinson's growth factor), and its smallest pivot;
+beyond :data:`MAX_GROWTH`, at a zero pivot, or not finite, the caller factors with LAPACK or
+SuperLU instead (:class:`.casadi_engine.CasadiEngine` does, and names a singular matrix).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# Growth of the factors (max |L|, |U| entry over max |matrix| entry) beyond which the fixed pivot
-# order is not trusted (partial pivoting bounds |L| by 1; growth 1e8 loses 8 digits of the solve).
-MAX_GROWTH = 1e8
+# Growth of the factors (max |L|, and max |U| over max |matrix|) beyond which the fixed pivot order is
+# not trusted: partial pivoting keeps |L| <= 1, and a pivot grown small against the entries below it
+# shows as a large multiplier (a 1e-16 pivot under O(1) entries: |L| ~ 1e16); the solve's backward
+# error grows with it, and beyond 1e6 Newton's iteration, which absorbs a relative error well below 1,
+# would contract too slowly.
+MAX_GROWTH = 1e6
 
 
 class StaticLU:
@@ -96,8 +100,9 @@ class StaticLU:
 
     def factor_expressions(self, casadi, h, J, shift: complex, complex_: bool):
         """SX ``(packed factors, growth, smallest pivot)`` of ``shift / h M - J`` (complex arithmetic where
-        ``complex_``); growth: the largest factor entry over the largest matrix entry; a pivot of 0
-        leaves the factors finite, and only the solve would divide by it."""
+        ``complex_``); growth: the larger of max |L| and max |U| over max |matrix| (see the module
+        docstring); a pivot of 0 with no entry below it leaves the factors finite, and only the solve
+        would divide by it."""
         entries = self._entries(casadi, h, J, shift, complex_)
         zero = (casadi.SX(0), casadi.SX(0)) if complex_ else casadi.SX(0)
         A = [dict() for _ in range(self.D)]
@@ -115,7 +120,10 @@ class StaticLU:
                     A[i][j] = _sub(A[i].get(j, zero), _mul(factor, A[k].get(j, zero), complex_), complex_)
         L_values = [L[i][k] for i in range(self.D) for k in self.lower[i]]
         U_values = [A[k].get(j, zero) for k in range(self.D) for j in self.upper[k]]
-        growth = _largest(casadi, L_values + U_values, complex_) / casadi.fmax(largest_matrix, 1e-300)
+        growth = casadi.fmax(
+            _largest(casadi, L_values, complex_) if L_values else casadi.SX(0),
+            _largest(casadi, U_values, complex_) / casadi.fmax(largest_matrix, 1e-300),
+        )
         pivots = [A[k].get(k, zero) for k in range(self.D)]
         smallest = _smallest(casadi, pivots, complex_)
         if complex_:
