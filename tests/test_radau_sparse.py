@@ -163,3 +163,16 @@ def test_a_pivot_grown_small_is_refused():
     assert engine._static_factor(J, 0.05) is None
     factor = engine._static[0]  # (the factor function on its buffer, made by the first factorisation)
     assert factor(np.concatenate([[0.05], J]))[-2] > 1e12 > 1e6 == radau_sparse.MAX_GROWTH  # (|L|: ~1e15)
+
+
+def test_no_pivot_order_leaves_lapack(monkeypatch):
+    """SuperLU refusing the start's matrix (exactly singular) leaves the factors to LAPACK."""
+
+    def refuse(*args, **kwargs):
+        raise RuntimeError("Factor is exactly singular")
+
+    monkeypatch.setattr(casadi_engine, "StaticLU", refuse)
+    compiled, engine = _engine(scaling_models.reaction_diffusion(20))
+    assert engine._static_pattern() is None and engine.static is None
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    assert sol.status == "success" and sol.stats["steps"] > 0

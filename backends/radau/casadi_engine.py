@@ -198,7 +198,10 @@ class CasadiEngine(AbstractEngine):
         if not np.isfinite(J).all():
             return None
         scale = 1e3 * max(1.0, float(np.abs(J).max(initial=0.0)))
-        lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
+        try:
+            lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
+        except RuntimeError:  # (SuperLU: "Factor is exactly singular"; the factorisations will say where)
+            return None
         if lu.flops > STATIC_MAX_FLOPS or lu.L_size + lu.U_size > STATIC_MAX_FILL * self.D * self.D:
             return None
         return lu
