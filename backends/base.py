@@ -219,6 +219,23 @@ class ProgressWatch:
 LOG_PROGRESS_SECONDS = 5.0
 
 
+@contextmanager
+def captured_output():
+    """Collect what casadi prints during a call instead of showing it (yields the text).
+
+    casadi's Python module sends its C++ output streams to ``sys.stdout``/``sys.stderr``, so
+    redirecting those catches IDAS's messages, the root finder's dumps and the inputs a failing
+    call prints of every function it was nested in (the tests check the file descriptors too,
+    with ``capfd``).
+    """
+    import contextlib
+    import io
+
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text), contextlib.redirect_stderr(text):
+        yield text
+
+
 def stderr_is_terminal() -> bool:
     return bool(getattr(sys.stderr, "isatty", lambda: False)())
 

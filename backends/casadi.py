@@ -39,9 +39,7 @@ Trust:
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
-import io
 import re
 import threading
 import time
@@ -54,6 +52,7 @@ from daemodel.backends.base import (
     LOCAL_ERROR_BOUND,
     SWEEP_FIRST_STEPS,
     AbstractBackend,
+    captured_output,
     check_number,
     check_output_memory,
     check_stages,
@@ -237,19 +236,6 @@ def _dae(compiled) -> dict:
     return {key: dae[key] for key in ("x", "z", "p", "t", "ode", "alg") if key in dae}
 
 
-@contextlib.contextmanager
-def _captured():
-    """Collect what casadi prints during a call instead of showing it.
-
-    casadi's Python module sends its C++ output streams to ``sys.stdout``/``sys.stderr``, so
-    redirecting those catches IDAS's messages and the root finder's dumps (the tests check the
-    file descriptors too, with ``capfd``).
-    """
-    text = io.StringIO()
-    with contextlib.redirect_stdout(text), contextlib.redirect_stderr(text):
-        yield text
-
-
 def _number(pattern: str, text: str) -> float | None:
     """The last number ``pattern`` captures in ``text`` (casadi's latest message comes last)."""
     found = re.findall(pattern, text)
@@ -273,7 +259,7 @@ def _run(call, compiled, start, T: int, explain) -> np.ndarray:
     out = np.empty((B, T + 1, n + m))
     out[:, 0, :n], out[:, 0, n:] = start.y0, start.z0
     for b in range(B):
-        with _captured() as printed:
+        with captured_output() as printed:
             try:
                 result = call(b)
             except RuntimeError as error:
@@ -346,7 +332,7 @@ def _right_hand_sides(dae, grid, values, parameters) -> np.ndarray:
     out = np.empty_like(values)
     mapped = fg.map(len(grid))
     for b in range(values.shape[0]):
-        with np.errstate(all="ignore"), _captured():
+        with np.errstate(all="ignore"), captured_output():
             result = mapped(
                 grid, values[b, :, :n].T, values[b, :, n:].T, np.repeat(parameters[b][:, None], len(grid), 1)
             )
@@ -413,7 +399,7 @@ class LocalErrorCheck:
         p = np.concatenate(
             [np.repeat(parameters, N, axis=0).T, np.tile(grid[:-1], B)[None, :], np.tile(h, B)[None, :]], axis=0
         )
-        with _captured():
+        with captured_output():
             repeat = self.step.map(B * N)(x0=starts[:n], z0=starts[n:], p=p)
         again = np.concatenate([np.asarray(repeat["xf"]), np.asarray(repeat["zf"])], axis=0).T.reshape(B, N, -1)
         scale = 1.0 + np.max(np.abs(values), axis=1, keepdims=True)

@@ -10,6 +10,7 @@ large sparse systems.  No torch code generation and no per-operation dispatch.
 from __future__ import annotations
 
 import numpy as np
+from daemodel.backends.base import captured_output
 from daemodel.backends.radau.compiled import (
     Buffered,
     StaticFactors,
@@ -18,7 +19,6 @@ from daemodel.backends.radau.compiled import (
     inverse_function,
     machine_code,
     newton_step_function,
-    quiet,
     refresh_function,
     static_factor_function,
     step_function,
@@ -168,7 +168,7 @@ class CasadiEngine(AbstractEngine):
         if self._inverses is None:
             self._inverses = Buffered(self._inverse_function())
         try:
-            with quiet():
+            with captured_output():
                 packed = self._inverses(np.concatenate([[h], J]))
         except RuntimeError:
             return None
@@ -257,7 +257,7 @@ class CasadiEngine(AbstractEngine):
         if self._refresh is None:
             self._refresh = Buffered(self._refresh_function())
         try:
-            with quiet():
+            with captured_output():
                 out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
         except RuntimeError:  # a singular system: the general path factors it and names it
             return super().refresh(t, y, z, h)

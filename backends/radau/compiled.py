@@ -21,9 +21,6 @@ extra passes check a one-iteration convergence and evaluate ``f`` at the final s
 
 from __future__ import annotations
 
-import contextlib
-import io
-
 import numpy as np
 from daemodel.backends.radau.newton import DIVERGENCE_THETA  # the test the general path makes
 
@@ -410,16 +407,6 @@ def iteration_matrix(casadi, values, rows: np.ndarray, cols: np.ndarray, engine)
     coupled = casadi.mtimes(J[n:, :n], J[:n, n:]) if index2.any() else None
     z_rows = [coupled[i, :] if index2[i] else J[n + i, n:] for i in range(m)]
     return casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
-
-
-@contextlib.contextmanager
-def quiet():
-    """What casadi prints meanwhile, dropped: a failing call prints its inputs, and those of every
-    function it was nested in, before it raises (its Python module writes its C++ streams to
-    sys.stdout and sys.stderr); the caller words the failure."""
-    sink = io.StringIO()
-    with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
-        yield
 
 
 class Buffered:

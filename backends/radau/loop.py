@@ -27,7 +27,8 @@ into the stepper.
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix, quiet
+from daemodel.backends.base import captured_output
+from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -394,7 +395,7 @@ class CompiledRun:
         inputs[: len(settings)] = settings
         inputs[len(SETTINGS) :] = stepper.engine.p
         try:
-            with quiet():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
+            with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
                 out = self.buffered.evaluate()
         except RuntimeError:
             # a factorisation inside failed (LAPACK refuses an exactly singular matrix): the next attempt
