@@ -72,6 +72,7 @@ class StaticLU:
                             rows_below[j].append(i)
         self.flops = sum(len(below) * sum(1 for j in pattern[k] if j > k) for k, below in enumerate(rows_below))
         self.lower = [sorted(columns) for columns in lower]
+        self.below = [sorted(rows) for rows in rows_below]  # below[k]: the rows of L's column k
         self.upper = [sorted(j for j in pattern[k] if j >= k) for k in range(D)]
         self.L_size = sum(len(columns) for columns in self.lower)
         self.U_size = sum(len(columns) for columns in self.upper)
@@ -113,7 +114,7 @@ class StaticLU:
         for k in range(self.D):
             pivot = A[k].get(k, zero)
             upper_k = [j for j in self.upper[k] if j > k]
-            for i in self._rows_below(k):
+            for i in self.below[k]:
                 factor = _div(A[i].get(k, zero), pivot, complex_)
                 L[i][k] = factor
                 for j in upper_k:
@@ -132,15 +133,6 @@ class StaticLU:
         else:
             packed = L_values + U_values
         return packed, growth, smallest
-
-    def _rows_below(self, k: int) -> list:
-        if not hasattr(self, "_below"):
-            below = [[] for _ in range(self.D)]
-            for i in range(self.D):
-                for c in self.lower[i]:
-                    below[c].append(i)
-            self._below = below
-        return self._below[k]
 
     def solve_function(self, complex_: bool):
         """casadi SX function of ``x`` solving ``A x = b`` from ``[packed factors, b]`` (complex: b and x
