@@ -3,8 +3,10 @@
 casadi-compiled residual, right-hand side and sparse Jacobian (casadi's AD); on dense systems the
 inverses of the transformed systems (LAPACK's LU inside casadi), a Newton iteration as one casadi
 call, an adaptive attempt as one casadi call (:mod:`.compiled`), and up to 24 unknowns many attempts
-with the controller in one (:mod:`.loop`), so that Python runs once per run of attempts; SuperLU for
-large sparse systems.  No torch code generation and no per-operation dispatch.
+with the controller in one (:mod:`.loop`), so that Python runs once per run of attempts.  Above 24
+unknowns, sparse patterns get LU factors with a fixed pivot order (:mod:`.sparse`), with ``jit`` a
+loop in C (:mod:`.kernel`), and then the many attempts in one call too; SuperLU for other large
+sparse systems.  No torch code generation and no per-operation dispatch.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from daemodel.backends.radau.compiled import (
     casadi_functions,
     find_compiler,
     inverse_function,
+    inverse_size,
     machine_code,
     newton_step_function,
     refresh_function,
@@ -24,6 +27,7 @@ from daemodel.backends.radau.compiled import (
     step_function,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
+from daemodel.backends.radau.kernel import factor_kernel
 from daemodel.backends.radau.linalg import (
     dense_inverse,
     dense_lu,
@@ -175,7 +179,10 @@ class CasadiEngine(AbstractEngine):
         return self._packed_factors(packed, h)
 
     def _packed_factors(self, packed: np.ndarray, h: float) -> Factors | None:
-        """:class:`Factors` of the packed inverses of the compiled factorisation; None where one is not finite."""
+        """:class:`Factors` of the packed inverses of the compiled factorisation (static factors where the
+        compiled step reads them); None where one is not finite."""
+        if self._static_active:
+            return self._static_packed(packed, h)
         if not np.isfinite(packed.sum()):
             return None
         shifts = self.transform.shifts(h)
@@ -210,16 +217,22 @@ class CasadiEngine(AbstractEngine):
         """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth
         passes :data:`.sparse.MAX_GROWTH`, a pivot is 0 or a value is not finite (a singular system
         among them, or one the fixed order does not suit)."""
+        factor = self._static_buffers()[0]
+        return self._static_packed(factor(np.concatenate([[h], J])), h)
+
+    def _static_buffers(self):
+        """The static factors' function and the real and complex solves, on bound buffers (made on first use)."""
         if self._static is None:
-            build = lambda: static_factor_function(self.static.lu, self.transform)  # noqa: E731
-            factor = self.compiled.cached(("casadi-radau-static-factor", self.s), build)
             solves = {key: Buffered(fn, inputs=2) for key, fn in self.static.solves.items()}
-            self._static = (Buffered(factor), solves)
-        factor, solves = self._static
-        packed = factor(np.concatenate([[h], J]))
+            self._static = (Buffered(self._static_factor_function()), solves)
+        return self._static
+
+    def _static_packed(self, packed: np.ndarray, h: float) -> Factors | None:
+        """:class:`Factors` of the packed static factors (see :meth:`_static_factor`), or None."""
         growth, pivot = packed[-2:]
         if not np.isfinite(packed.sum()) or growth > MAX_GROWTH or pivot == 0:
             return None
+        solves = self._static_buffers()[1]
         shifts = self.transform.shifts(h)
         error = self.transform.error_shift(shifts)
         lu, static = {}, self.static
@@ -230,6 +243,21 @@ class CasadiEngine(AbstractEngine):
             lu[error] = ("static", False, packed[static.error_offset : static.checks_offset], solves[False])
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
+    def _static_factor_function(self):
+        """The casadi function of the packed static factors from ``[h, J's nonzeros]`` (cached per model
+        and s): with ``jit`` the loop of :mod:`.kernel` in C, else straight-line SX
+        (:func:`.compiled.static_factor_function`); the same factors bit for bit."""
+        if self.jit:
+            return self._static_kernel()[0]
+        build = lambda: static_factor_function(self.static.lu, self.transform)  # noqa: E731
+        return self.compiled.cached(("casadi-radau-static-factor", self.s), build)
+
+    def _static_kernel(self):
+        """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the
+        determinant of the algebraic variables' iteration matrix; built once per model and s."""
+        build = lambda: factor_kernel(self.static.lu, self.transform, self.static, self.m, find_compiler())  # noqa: E731
+        return self.compiled.cached(("casadi-radau-static-kernel", self.s), build)
+
     def _refresh_function(self):
         """The casadi function of a fresh Jacobian with its factored systems (:func:`.compiled.refresh_function`),
         built once per model and stages."""
@@ -239,15 +267,27 @@ class CasadiEngine(AbstractEngine):
 
     def make_compiled_run(self, iterations: int):
         """RADAU5's controller over many attempts in one call (:mod:`.loop`), on the compiled step of
-        :meth:`make_compiled_step` (its machine code with ``jit``); None where the systems are factored
-        by scipy (above :data:`COMPILED_FACTOR_MAX_SIZE` unknowns) or there is no compiled step."""
-        if self._compiled is None or self.D > COMPILED_FACTOR_MAX_SIZE:
+        :meth:`make_compiled_step` (its machine code with ``jit``); None where there is no compiled step,
+        or above :data:`COMPILED_FACTOR_MAX_SIZE` unknowns unless the step reads static factors and
+        ``jit`` makes them in C (:mod:`.kernel`, with the determinant's sign; on casadi's virtual
+        machine their factorisation would cost more than the run saves)."""
+        static = self._static_active and self.jit
+        if self._compiled is None or (self.D > COMPILED_FACTOR_MAX_SIZE and not static):
             return None
         step = self._compiled[0].function
-        key = ("casadi-radau-run", self.s, iterations, self.jit)
-        functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function)
+        key = ("casadi-radau-run", self.s, iterations, self.jit, static)
+        if static:  # (the factors and the determinant's sign in C: .kernel)
+            factor, sign = self._static_kernel()
+            refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+            functions = (refresh, factor, self._stage_jac.function, sign, self.static)
+        else:
+            functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function, None, None)
         build = lambda: run_function(self, step, *functions, iterations)  # noqa: E731
         return CompiledRun(self.compiled.cached(key, build), self)
+
+    def packed_size(self) -> int:
+        """Entries of the packed factors the compiled step reads (static factors, or dense inverses)."""
+        return self.static.size if self._static_active else inverse_size(self.transform, self.D)
 
     def refresh(self, t: float, y, z, h: float):
         """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'

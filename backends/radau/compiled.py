@@ -382,31 +382,37 @@ def inverse_function(rows: np.ndarray, cols: np.ndarray, engine):
     return casadi.Function("inverses", [x], [casadi.vertcat(*packed)])
 
 
-def refresh_function(jacobian, inverses, rows: np.ndarray, cols: np.ndarray, engine):
+def refresh_function(jacobian, inverses, rows: np.ndarray, cols: np.ndarray, engine, sparse: bool = False):
     """The casadi function of a fresh Jacobian at the step's start, in one call: from ``[t, y, z, p, h]``,
     ``[J's nonzeros, the algebraic variables' iteration matrix (m, m) column-major, the packed inverses]``.
 
     The iteration matrix is :meth:`CasadiEngine.z_matrix_sign`'s (rows ``g_z`` at index 1, ``g_y f_z``
-    at index 2); ``jacobian`` and ``inverses`` are the engine's functions of the nonzeros.
+    at index 2; ``sparse``: from J's nonzeros, see :func:`iteration_matrix`); ``jacobian`` and
+    ``inverses`` are the engine's functions of the nonzeros (``inverses``: or its packed static factors).
     """
     import casadi
 
     x = casadi.MX.sym("x", jacobian.nnz_in(0) + 1)
     values = casadi.vec(jacobian(x[:-1]))  # (a Jacobian without nonzeros comes as 1 x 0)
-    z_matrix = iteration_matrix(casadi, values, rows, cols, engine)
+    z_matrix = iteration_matrix(casadi, values, rows, cols, engine, sparse)
     return casadi.Function("refresh", [x], [casadi.vertcat(values, z_matrix, inverses(casadi.vertcat(x[-1], values)))])
 
 
-def iteration_matrix(casadi, values, rows: np.ndarray, cols: np.ndarray, engine):
+def iteration_matrix(casadi, values, rows: np.ndarray, cols: np.ndarray, engine, sparse: bool = False):
     """The algebraic variables' iteration matrix (m, m), column-major, of the Jacobian's nonzeros
-    ``values``: :meth:`CasadiEngine.z_matrix_sign`'s rows, ``g_z`` at index 1, ``g_y f_z`` at index 2."""
+    ``values``: :meth:`CasadiEngine.z_matrix_sign`'s rows, ``g_z`` at index 1, ``g_y f_z`` at index 2.
+    ``sparse``: the product on J's nonzeros (at 100-200 unknowns the dense one costs 30-250 us on
+    casadi's virtual machine), the result dense."""
     n, D = engine.n, engine.D
     m = D - n
-    J = dense_jacobian(casadi, rows, cols, values, D)
+    if sparse and len(rows):
+        J = casadi.MX(casadi.Sparsity.triplet(D, D, rows.tolist(), cols.tolist()), values)
+    else:
+        J = dense_jacobian(casadi, rows, cols, values, D)
     index2 = engine.index2_rows
     coupled = casadi.mtimes(J[n:, :n], J[:n, n:]) if index2.any() else None
     z_rows = [coupled[i, :] if index2[i] else J[n + i, n:] for i in range(m)]
-    return casadi.vec(casadi.vertcat(*z_rows)) if m else casadi.MX(0, 1)
+    return casadi.vec(casadi.densify(casadi.vertcat(*z_rows))) if m else casadi.MX(0, 1)
 
 
 class Buffered:

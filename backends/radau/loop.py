@@ -1,4 +1,5 @@
-"""RADAU5's controller and many adaptive attempts in one casadi call (the casadi engine, dense systems).
+"""RADAU5's controller and many adaptive attempts in one casadi call (the casadi engine: dense systems
+up to 24 unknowns, and with ``jit`` sparse ones on static factors made in C, :mod:`.kernel`).
 
 With the attempt compiled (:func:`.compiled.step_function`), what Python still did per attempt, the
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
@@ -28,7 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 from daemodel.backends.base import captured_output
-from daemodel.backends.radau.compiled import NON_FINITE, Buffered, inverse_size, iteration_matrix
+from daemodel.backends.radau.compiled import NON_FINITE, Buffered, iteration_matrix
+from daemodel.backends.radau.sparse import MAX_GROWTH
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -95,6 +97,16 @@ def not_finite(casadi, values):
     """Whether any of ``values`` is NaN or infinite (their sum is then not finite, or overflows: singular enough)."""
     total = casadi.sum1(values)
     return casadi.logic_not(casadi.logic_and(total < casadi.inf, total > -casadi.inf))
+
+
+def unusable(casadi, packed, static):
+    """Whether the packed factors cannot serve: a value not finite (dense inverses), or with ``static``
+    (:class:`.compiled.StaticFactors`) also growth beyond :data:`.sparse.MAX_GROWTH` or a zero pivot
+    (:meth:`.casadi_engine.CasadiEngine.factor` then factors with LAPACK or SuperLU, on Python's path)."""
+    if static is None:
+        return not_finite(casadi, packed)
+    growth, pivot = packed[static.checks_offset], packed[static.checks_offset + 1]
+    return any_of(casadi, not_finite(casadi, packed), growth > MAX_GROWTH, pivot == 0)
 
 
 def any_of(casadi, *flags):
@@ -209,12 +221,17 @@ def tail_function(s: int, iterations: int):
     return casadi.Function("tail", [x], [out])
 
 
-def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: int, attempts: int = RUN_ATTEMPTS):
+def run_function(
+    engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int, attempts: int = RUN_ATTEMPTS
+):
     """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring).
 
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
-    :func:`.compiled.inverse_function`; ``stage_jacobians``: the Jacobian's nonzeros at every stage
+    :func:`.compiled.inverse_function`, or with ``static`` (the engine's
+    :class:`.compiled.StaticFactors`) the packed static factors' (:mod:`.kernel`); ``sign``: a
+    function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
+    ``stage_jacobians``: the Jacobian's nonzeros at every stage
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`SCALARS` and the
     arrays, :data:`SETTINGS` and p); output the state, then each attempt's record (:func:`record_size`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
@@ -223,7 +240,7 @@ def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: i
     import casadi
 
     s, n, D, m = engine.s, engine.n, engine.D, engine.m
-    P, nnz, size_inverse = engine.p.size, len(engine.rows), inverse_size(engine.transform, D)
+    P, nnz, size_inverse = engine.p.size, len(engine.rows), engine.packed_size()
     rows, cols = engine.rows, engine.cols
     layout = state_layout(s, n, D, nnz, size_inverse)
     state = casadi.MX.sym("state", layout["size"])
@@ -240,7 +257,7 @@ def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: i
     # the Jacobian, refreshed (with its factored systems) where it was dropped; else factored where h changed
     args = [casadi.MX.sym("t"), casadi.MX.sym("u", D), casadi.MX.sym("p", P), casadi.MX.sym("h")]
     kept = [casadi.MX.sym("J", nnz), casadi.MX.sym("sign"), casadi.MX.sym("inverse", size_inverse)]
-    sign_det = sign_det_function(m)
+    sign_det = sign if sign is not None and m > 3 else sign_det_function(m)
     out = refresh(casadi.vertcat(*args))
     fresh = casadi.Function("fresh", [*args, *kept], [out[:nnz], sign_det(out[nnz : nnz + m * m]), out[nnz + m * m :]])
     keep = casadi.Function("keep", [*args, *kept], kept)
@@ -249,7 +266,7 @@ def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: i
     factor = casadi.Function("factor", hJ, [inverses(casadi.vertcat(hJ[0], hJ[1]))])
     same = casadi.Function("same", hJ, [hJ[2]])
     inverse = casadi.Function.if_else("refactor", factor, same)(factored, h, J, inverse)
-    singular = not_finite(casadi, inverse)
+    singular = unusable(casadi, inverse, static)
 
     # the attempt from the last step's polynomial (a constant guess at the first step: ratio 0), then
     # Stepper.compiled_attempt's retries: with a fresh Jacobian where the kept one failed, then from
@@ -273,7 +290,7 @@ def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: i
     J, retry_sign, inverse, result = casadi.Function.if_else("stale", retry, keep_result)(
         stale, t, u, p, h, J, sign, inverse, x, result
     )
-    singular = casadi.logic_or(singular, casadi.logic_and(stale, not_finite(casadi, inverse)))
+    singular = casadi.logic_or(singular, casadi.logic_and(stale, unusable(casadi, inverse, static)))
     failed_again = result[0] != 0
     evaluations = evaluations + casadi.if_else(stale, result[2], 0)
     constant = casadi.logic_and(failed_again, state[layout["h_old"]] > 0)
@@ -297,7 +314,9 @@ def run_function(engine, step, refresh, inverses, stage_jacobians, iterations: i
     ]
     values = stage_jacobians(casadi.vertcat(stage[0], stage[1], casadi.repmat(stage[2], s, 1), stage[3]))
     chain = [stage[4]]
-    chain += [sign_det(iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine)) for i in range(s)]
+    sparse = static is not None
+    matrices = [iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine, sparse) for i in range(s)]
+    chain += [sign_det(matrix) for matrix in matrices]
     flips = sum(chain[i] * chain[i + 1] < 0 for i in range(s))
     check = casadi.Function("check", stage, [flips > 0])
     never = casadi.Function("never", stage, [0])
@@ -352,7 +371,7 @@ class CompiledRun:
     def __init__(self, function, engine):
         s, D = engine.s, engine.D
         self.buffered = Buffered(function, inputs=2)
-        self.layout = state_layout(s, engine.n, D, len(engine.rows), inverse_size(engine.transform, D))
+        self.layout = state_layout(s, engine.n, D, len(engine.rows), engine.packed_size())
         self.record = record_size(s, D)
         self.attempts = (function.nnz_out(0) - self.layout["size"]) // self.record
         self.shifts = len(engine.transform.shifts(1.0))  # LU decompositions a factorisation counts
