@@ -54,14 +54,20 @@ def test_compiled_attempt_takes_the_general_paths_steps(monkeypatch, problem, rt
 @needs_compiler
 @pytest.mark.parametrize("problem", [PENDULUM, PROBLEMS["akzo-nobel"]], ids=["pendulum", "akzo-nobel"])
 def test_machine_code_gives_the_virtual_machines_bits(problem):
+    """Fixed steps: the same bits.  Adaptive ones: jit factors with the C loop of .kernel (a fixed pivot
+    order) where the virtual machine inverts with LAPACK, so the same steps and values to rounding."""
     compiled = problem.model().compile()
+    t_eval = np.linspace(*problem.t_span, 11)
     for options in ({"rtol": 1e-6, "atol": 1e-6}, {"h": (problem.t_span[1] - problem.t_span[0]) / 20}):
-        vm = dm.solve(compiled, problem.t_span, **options)
-        jit = dm.solve(compiled, problem.t_span, jit=True, **options)
+        vm = dm.solve(compiled, problem.t_span, t_eval=t_eval, **options)
+        jit = dm.solve(compiled, problem.t_span, jit=True, t_eval=t_eval, **options)
         assert jit.stats["steps"] == vm.stats["steps"]
         assert jit.stats["newton_iterations"] == vm.stats["newton_iterations"]
         for name in (*compiled.state_names, *compiled.algebraic_names):
-            assert np.array_equal(jit[name], vm[name]), name
+            if "h" in options:
+                assert np.array_equal(jit[name], vm[name]), name
+            else:
+                np.testing.assert_allclose(jit[name], vm[name], rtol=1e-12, atol=1e-15, err_msg=name)
 
 
 def test_the_compiled_step_keeps_radau5s_thresholds_where_newton_meets_rounding():

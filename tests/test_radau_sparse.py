@@ -161,7 +161,7 @@ def test_a_pivot_grown_small_is_refused():
     assert engine._static_factor(engine.jacobian(0.1, y, z), 0.05) is not None
     J = engine.jacobian(0.9, y, z)
     assert engine._static_factor(J, 0.05) is None
-    factor = engine._static[0]  # (the factor function on its buffer, made by the first factorisation)
+    factor = engine._static["factor"]  # (the factor function on its buffer, made by the first factorisation)
     assert factor(np.concatenate([[0.05], J]))[-2] > 1e12 > 1e6 == radau_sparse.MAX_GROWTH  # (|L|: ~1e15)
 
 

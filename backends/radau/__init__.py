@@ -4,9 +4,10 @@ The files read like the algorithm: :mod:`.transform` (the tableau in RADAU5's fo
 embedded estimate's weights), :mod:`.engines` with :mod:`.torch_engine` and :mod:`.casadi_engine`
 (who evaluates and factors; :mod:`.compiled` holds the casadi functions, among them one compiled
 adaptive attempt, :mod:`.loop` many attempts with the controller in one call, :mod:`.sparse` and
-:mod:`.kernel` sparse factors with a fixed pivot order), :mod:`.newton` (one policy object), :mod:`.error` (the local error estimate),
-:mod:`.step` (one step on an engine), :mod:`.control` (the fixed grid and RADAU5's controller) and
-:mod:`.backend` (the glue: engine, controller, stepper, Solution).
+:mod:`.kernel` LU factors with a fixed pivot order), :mod:`.newton` (one policy object),
+:mod:`.error` (the local error estimate), :mod:`.step` (one step on an engine), :mod:`.control`
+(the fixed grid and RADAU5's controller) and :mod:`.backend` (the glue: engine, controller,
+stepper, Solution).
 """
 
 from daemodel.backends.base import LOCAL_ERROR_BOUND

@@ -47,15 +47,17 @@ DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
 # twice the size, casadi computing in real numbers); above it scipy's complex LAPACK is cheaper
 # (measured per factorisation: 0.12 against 0.09 ms at 40 unknowns, 0.85 against 0.51 ms at 100).
 COMPILED_FACTOR_MAX_SIZE = 24
-# Above it, a sparse pattern is factored with a fixed pivot order in compiled code (.sparse) where the
-# elimination takes at most this many multiply-adds and its factors at most this share of D^2 entries
-# (the chain of 40 pendulums, 200 unknowns: 3,100 and 5 %; the squeezer: 25 %); denser or larger systems
-# keep LAPACK or SuperLU.
-STATIC_MAX_FLOPS, STATIC_MAX_FILL = 100_000, 0.2
-# Without jit, where the elimination takes at most this many multiply-adds: on casadi's virtual machine
-# (~3 ns an operation) the chain of 40 pendulums (3,100) at s = 5 was 1.15x slower than SuperLU, the
-# chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
-STATIC_MAX_FLOPS_VM = 2_000
+# LU factors with a fixed pivot order (.sparse) where the elimination takes at most this many
+# multiply-adds and the factors hold at most this many entries (the triangular solves are straight-line
+# code in the compiled step; the chain of 40 pendulums, 200 unknowns: 3,100 and ~1,900); larger systems
+# keep LAPACK or SuperLU.  With jit (the factors a loop in C, .kernel) at any size and fill: car axis
+# (10 unknowns, dense) refactors in ~1 us where casadi's LAPACK call took 8-13.
+STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
+# Without jit (straight-line SX on casadi's virtual machine, ~3 ns an operation) only above
+# COMPILED_FACTOR_MAX_SIZE, for factors within this share of D^2 entries (the squeezer: 25 %) and an
+# elimination of at most this many multiply-adds: the chain of 40 pendulums (3,100) at s = 5 was 1.15x
+# slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
+STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
 
 
 class CasadiEngine(AbstractEngine):
@@ -92,7 +94,7 @@ class CasadiEngine(AbstractEngine):
         # above COMPILED_FACTOR_MAX_SIZE, where the pattern is sparse: LU factors with a fixed pivot order as
         # compiled functions (.sparse), the pivots SuperLU picks at the first solve's start (per model and s)
         self.static = None  # (StaticFactors where the compiled step reads them: see make_compiled_step)
-        self._static = None  # (the factor function and the real and complex solves, on bound buffers)
+        self._static = {}  # (on bound buffers, made on first use: the factor function, the real and complex solves)
         self._static_active = False  # the compiled step reads the static factors: factor() makes them
         self._start = start
 
@@ -107,9 +109,10 @@ class CasadiEngine(AbstractEngine):
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
         about 0.5 s once); False where the systems are sparse beyond the fixed-pivot factors' reach
         (:data:`STATIC_MAX_FLOPS`) and the step runs on the general path."""
-        lu = self._static_pattern() if self.D > COMPILED_FACTOR_MAX_SIZE else None
-        if lu is not None and not jit and lu.flops > STATIC_MAX_FLOPS_VM:
-            lu = None  # (on casadi's virtual machine its complex factors cost more than LAPACK's or SuperLU's)
+        D = self.D
+        lu = self._static_pattern() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
+        if lu is not None and not jit and (lu.flops > STATIC_MAX_FLOPS_VM or lu.entries > STATIC_MAX_FILL * D * D):
+            lu = None  # (on casadi's virtual machine its factors cost more than LAPACK's or SuperLU's)
         if not self.dense and lu is None:
             return False
         key = ("casadi-radau-static", self.s)
@@ -194,7 +197,7 @@ class CasadiEngine(AbstractEngine):
         """The :class:`.sparse.StaticLU` of this model's Jacobian pattern (cached per model: the pivots
         SuperLU picks for ``sigma M - J`` at the start of the model's first adaptive solve, sigma 1000
         times J's largest entry, a short step), or None where its elimination exceeds
-        :data:`STATIC_MAX_FLOPS`, its factors :data:`STATIC_MAX_FILL`, or J is not finite there."""
+        :data:`STATIC_MAX_FLOPS`, its factors :data:`STATIC_MAX_ENTRIES`, or J is not finite there."""
         return self.compiled.cached(("casadi-radau-static-pattern",), lambda: self._static_lu(self._start))
 
     def _static_lu(self, start):
@@ -209,7 +212,7 @@ class CasadiEngine(AbstractEngine):
             lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
         except RuntimeError:  # (SuperLU: "Factor is exactly singular"; the factorisations will say where)
             return None
-        if lu.flops > STATIC_MAX_FLOPS or lu.L_size + lu.U_size > STATIC_MAX_FILL * self.D * self.D:
+        if lu.flops > STATIC_MAX_FLOPS or lu.entries > STATIC_MAX_ENTRIES:
             return None
         return lu
 
@@ -217,30 +220,30 @@ class CasadiEngine(AbstractEngine):
         """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth
         passes :data:`.sparse.MAX_GROWTH`, a pivot is 0 or a value is not finite (a singular system
         among them, or one the fixed order does not suit)."""
-        factor = self._static_buffers()[0]
-        return self._static_packed(factor(np.concatenate([[h], J])), h)
+        if "factor" not in self._static:
+            self._static["factor"] = Buffered(self._static_factor_function())
+        return self._static_packed(self._static["factor"](np.concatenate([[h], J])), h)
 
-    def _static_buffers(self):
-        """The static factors' function and the real and complex solves, on bound buffers (made on first use)."""
-        if self._static is None:
-            solves = {key: Buffered(fn, inputs=2) for key, fn in self.static.solves.items()}
-            self._static = (Buffered(self._static_factor_function()), solves)
-        return self._static
+    def _static_solve(self, complex_: bool):
+        """The real or complex triangular solve of the static factors, on bound buffers (made on first
+        use: the compiled step solves inside, Python only on the general path)."""
+        if complex_ not in self._static:
+            self._static[complex_] = Buffered(self.static.solves[complex_], inputs=2)
+        return self._static[complex_]
 
     def _static_packed(self, packed: np.ndarray, h: float) -> Factors | None:
         """:class:`Factors` of the packed static factors (see :meth:`_static_factor`), or None."""
         growth, pivot = packed[-2:]
         if not np.isfinite(packed.sum()) or growth > MAX_GROWTH or pivot == 0:
             return None
-        solves = self._static_buffers()[1]
         shifts = self.transform.shifts(h)
         error = self.transform.error_shift(shifts)
         lu, static = {}, self.static
         for (_, lam), shift, offset in zip(self.transform.blocks, shifts, static.offsets, strict=False):
             complex_ = bool(lam.imag)
-            lu[shift] = ("static", complex_, packed[offset : offset + static.lu.size(complex_)], solves[complex_])
+            lu[shift] = ("static", complex_, packed[offset : offset + static.lu.size(complex_)])
         if error not in lu:
-            lu[error] = ("static", False, packed[static.error_offset : static.checks_offset], solves[False])
+            lu[error] = ("static", False, packed[static.error_offset : static.checks_offset])
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
     def _static_factor_function(self):
@@ -292,7 +295,7 @@ class CasadiEngine(AbstractEngine):
     def refresh(self, t: float, y, z, h: float):
         """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
         iteration matrix, in one casadi call on dense systems (:func:`.radau_compiled.refresh_function`)."""
-        if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE:
+        if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE or self._static_active:
             return super().refresh(t, y, z, h)
         if self._refresh is None:
             self._refresh = Buffered(self._refresh_function())
@@ -432,7 +435,8 @@ class CasadiEngine(AbstractEngine):
         if kind == "singular":
             return np.full_like(rhs, np.nan)
         if kind == "static":
-            _, complex_, packed, solve = lu
+            _, complex_, packed = lu
+            solve = self._static_solve(complex_)
             solve.inputs[0][:] = packed
             if complex_:
                 solve.inputs[1][:] = np.concatenate([rhs[0].real, rhs[0].imag])

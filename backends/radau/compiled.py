@@ -336,7 +336,7 @@ def machine_code(function, compiler: str):
         raise CompileError(
             f"radau: jit=True: compiling the step of {function.name()!r} with {compiler} failed: "
             f"{(str(error).strip().splitlines() or ['no message'])[-1][:400]}; solve with jit=False (the same "
-            "results, slower steps)"
+            "results to rounding, slower steps)"
         ) from None
     finally:
         shutil.rmtree(folder, ignore_errors=True)

@@ -314,13 +314,13 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
             message = f"did not finish in {KERNEL_COMPILE_TIMEOUT:g} s" if timed_out else str(error)
             raise CompileError(
                 f"radau: jit=True: compiling the sparse factors with {compiler} failed: {message}; solve with "
-                "jit=False (the same results, slower steps)"
+                "jit=False (the same results to rounding, slower steps)"
             ) from None
         if done.returncode != 0:
             lines = (done.stderr or done.stdout or "no message").strip().splitlines() or ["no message"]
             raise CompileError(
                 f"radau: jit=True: compiling the sparse factors with {compiler} failed: {lines[-1][:400]}; solve "
-                "with jit=False (the same results, slower steps)"
+                "with jit=False (the same results to rounding, slower steps)"
             )
         sign = casadi.external("sign_det", str(library)) if m else None
         return casadi.external("static_factors", str(library)), sign

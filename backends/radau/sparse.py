@@ -76,6 +76,7 @@ class StaticLU:
         self.upper = [sorted(j for j in pattern[k] if j >= k) for k in range(D)]
         self.L_size = sum(len(columns) for columns in self.lower)
         self.U_size = sum(len(columns) for columns in self.upper)
+        self.entries = self.L_size + self.U_size
 
     def size(self, complex_: bool) -> int:
         """Entries of one system's packed factors: L's then U's nonzeros (real and imaginary parts)."""
