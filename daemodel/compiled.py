@@ -417,7 +417,7 @@ class CompiledDAE:
 
     # ---- report -------------------------------------------------------------------------
     def report(self) -> str:
-        """A human-readable account: variables, equations, index per constraint, init, pruning."""
+        """A human-readable account: variables, equations, index per constraint, switches, init, pruning."""
         kind = {0: "ODE", 1: "index-1 DAE", 2: "index-2 DAE", 3: "index-3 DAE"}[self.index]
         lines = [f"Model '{self.name}': {kind} (semi-explicit), t0 = {self.t0:g}"]
         if self.reduced_from:
@@ -447,6 +447,12 @@ class CompiledDAE:
             lines += [f"  {n} = {e}   (from {label})" for n, e, label in self.aliases]
         if self.invariants:
             lines.append("Invariants (drift): " + ", ".join(self.invariant_names))
+        from daemodel.switches import find_switches
+
+        switches = find_switches(self)
+        if switches:
+            lines.append(f"Switches ({len(switches)}):")
+            lines += [f"  {s.describe()}" for s in switches]
         lines.append("Initialisation: " + ("; ".join(self.notes) if self.notes else "given values are consistent"))
         dropped = {k: v for k, v in self.dropped.items() if v}
         if dropped:

@@ -152,6 +152,11 @@ class LocalErrorBoundError(SolverError):
     """A fixed-step method's a-posteriori local error estimate exceeded its bound (the step is not trustworthy)."""
 
 
+class SwitchError(ModelError):
+    """A model's switches cannot be handled as asked: breakpoints that cannot be located or are too
+    many, or that differ between the samples of a batch."""
+
+
 class ResourceLimitError(ModelError):
     """A request would not fit in memory or time (a step grid, a sweep); refused before allocating."""
 

@@ -30,6 +30,8 @@ FUNCTIONS: dict[type, tuple[str, str, object]] = {
     sp.sign: ("sign", "sign", casadi.sign),
     sp.erf: ("erf", "erf", casadi.erf),
     sp.atan2: ("atan2", "atan2", casadi.atan2),
+    sp.floor: ("floor", "floor", casadi.floor),
+    sp.ceiling: ("ceiling", "ceil", casadi.ceil),
 }
 
 # Two-argument-or-more reductions, folded pairwise.

@@ -31,7 +31,7 @@ from daemodel.errors import (
 )
 from daemodel.functions import supported_names
 from daemodel.messages import quoted
-from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_ite
+from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
 # them as locals (they are the only user text that ever reaches generated source).
@@ -298,7 +298,7 @@ class Model:
             raise UnknownSymbolError(
                 f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {_listing(known)}"
             )
-        expr = without_ite(expr)
+        expr = without_heaviside(without_ite(expr))
         check_numbers(expr, where)
         return expr
 

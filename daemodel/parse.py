@@ -42,6 +42,7 @@ STRING_FUNCTIONS: dict[str, object] = {
     "sqrt": sp.sqrt,
     "ln": sp.log,
     "Piecewise": sp.Piecewise,
+    "Heaviside": sp.Heaviside,  # (written as a Piecewise: without_heaviside)
     # sympy's exact-number constructors, which sympy users write: their arguments are numbers
     "Rational": sp.Rational,
     "Integer": sp.Integer,
@@ -347,6 +348,20 @@ def without_ite(expr):
     return expr.replace(
         lambda e: isinstance(e, sp.ITE),
         lambda e: sp.Or(sp.And(e.args[0], e.args[1]), sp.And(sp.Not(e.args[0]), e.args[2])),
+    )
+
+
+def without_heaviside(expr):
+    """``expr`` with ``Heaviside(x, h0)`` written as ``Piecewise((0, x < 0), (h0, x = 0), (1, True))``
+    (sympy's value at 0, 1/2 unless given), which every emitter translates and :mod:`daemodel.switches`
+    reads as a switch of x."""
+    if not isinstance(expr, sp.Basic) or not expr.has(sp.Heaviside):
+        return expr
+    return expr.replace(
+        lambda e: isinstance(e, sp.Heaviside),
+        lambda e: sp.Piecewise(
+            (0, e.args[0] < 0), (e.args[1] if len(e.args) > 1 else sp.S.Half, sp.Eq(e.args[0], 0)), (1, True)
+        ),
     )
 
 

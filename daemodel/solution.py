@@ -83,6 +83,12 @@ class Solution:
         ``"success"`` when the method met its own accuracy criterion; otherwise what the user
         must know to trust the values (e.g. a Radau-PINN trained on a fixed budget states its
         final residual).  Shown by ``repr``.
+    breakpoints : dict
+        For a model with time switches (:mod:`daemodel.switches`): ``"t"``, the breakpoints each
+        sample's solve was cut at (B, K), and ``"before"``/``"after"``, each variable's values
+        just before and just after each, name -> (B, K); NaN-padded where the samples of a batch
+        switch at different times and some less often.  Values at a breakpoint in ``t`` are those
+        after it.  Empty without time switches.
 
     Examples
     --------
@@ -102,6 +108,7 @@ class Solution:
     batched: bool = False
     status: str = "success"
     setup_time: float = 0.0
+    breakpoints: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         c = self.compiled

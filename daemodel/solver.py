@@ -15,6 +15,7 @@ from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
 from daemodel.model import Model
 from daemodel.solution import Solution
+from daemodel.switches import has_time_switches, solve_with_breakpoints
 
 
 def solve(
@@ -65,6 +66,8 @@ def solve(
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
+    if has_time_switches(compiled):  # (from breakpoint to breakpoint, each side on its own branch)
+        return solve_with_breakpoints(backend, compiled, t_span, start, opts)
     return backend.solve(compiled, t_span, start, opts)
 
 

@@ -42,6 +42,14 @@ def test_pendulum_example_reduces_position_form_and_solves_three_ways(tmp_path):
     assert (tmp_path / "pendulum.png").stat().st_size > 10_000
 
 
+def test_switches_example_keeps_the_order_across_the_switch():
+    out = run("switches", "--quick")
+    assert "Piecewise in switch: t - 0.3 crosses 0 (time breakpoint)" in out
+    assert "breakpoints [0.3]: i jumps from 0 to 3" in out
+    for method in ("radau", "casadi-idas", "casadi-collocation", "reference"):
+        assert f"  {method} " in out
+
+
 @pytest.mark.parametrize(
     ("example", "kwargs", "problem"),
     [

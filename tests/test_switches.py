@@ -1,0 +1,245 @@
+"""Switches (daemodel/switches.py): found and classified by the compiler, time breakpoints located
+before the solve, and every method integrating from breakpoint to breakpoint with each side on its
+own branch, so that fixed-step radau keeps order 2s-1 across a switch (issue 27, first part).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import sympy as sp
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel import switches
+
+EXACT_SWITCH = 1.0 - math.exp(-0.63)  # x' = -x + [t >= 0.37], x(0) = 0, at t = 1
+
+
+def _switched(rhs="-x + Piecewise((0, t < 0.37), (1, True))"):
+    m = dm.Model("switched")
+    m.states("x")
+    m.ode("x", rhs)
+    m.initial(x=0.0)
+    return m
+
+
+def _slope(errors, hs):
+    """The convergence order: the least-squares slope of log(error) against log(h)."""
+    return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
+
+
+# ---- finding and classifying -----------------------------------------------------------------
+def test_every_kind_of_switch_is_found_and_classified():
+    m = dm.Model("kinds")
+    m.states("x y")
+    m.algebraics("z")
+    m.parameter("a", 0.3)
+    m.ode("x", "Abs(t - a) + Max(t, 0.6) + Min(2*t, 1) + sign(t - 0.8) + floor(4*t) + ceiling(3*t) - z")
+    m.ode("y", "Heaviside(t - 0.9) + Piecewise((1, y > 2), (0, True))")
+    m.constraint("z - Piecewise((1, x > 0.2), (0, True))", name="valve")
+    m.initial(x=0.0, y=0.0)
+    found = {(s.kind, str(s.function), s.equation, s.time_only) for s in switches.find_switches(m.compile())}
+    assert found == {
+        ("Abs", "a - t", "x'", True),
+        ("Max", "0.6 - t", "x'", True),
+        ("Min", "1 - 2*t", "x'", True),
+        ("sign", "t - 0.8", "x'", True),
+        ("floor", "4*t", "x'", True),
+        ("ceiling", "3*t", "x'", True),
+        ("Piecewise", "t - 0.9", "y'", True),  # (Heaviside, written as a Piecewise)
+        ("Piecewise", "y - 2", "y'", False),
+        ("Piecewise", "x - 0.2", "valve", False),
+    }
+    report = m.compile().report()
+    assert "Switches (9):" in report
+    assert "Abs in x': a - t crosses 0 (time breakpoint)" in report
+    assert "floor in x': 4*t crosses an integer (time breakpoint)" in report
+    assert "Piecewise in valve: x - 0.2 crosses 0 (state event" in report
+
+
+def test_a_switch_constant_in_time_is_no_switch():
+    m = dm.Model("constant")
+    m.states("x")
+    m.parameter("a", 1.0)
+    m.ode("x", "-x + Piecewise((1, a > 0), (0, True))")
+    m.initial(x=0.0)
+    assert switches.find_switches(m.compile()) == ()
+
+
+def test_heaviside_from_a_string_and_from_sympy():
+    t = sp.Symbol("t")
+    m = dm.Model("h")
+    x = m.states("x")[0]
+    m.ode("x", -x + sp.Heaviside(t - 0.5, 1))
+    m.initial(x=0.0)
+    assert m.compile().rhs[0].has(sp.Piecewise) and not m.compile().rhs[0].has(sp.Heaviside)
+    from_string = dm.solve(_switched("-x + Heaviside(t - 0.5)"), (0.0, 1.0), stages=3, h=0.05)
+    assert abs(from_string["x"][-1] - (1.0 - math.exp(-0.5))) < 1e-10
+
+
+# ---- breakpoints -----------------------------------------------------------------------------
+def test_breakpoints_in_closed_form_numerically_and_at_integers():
+    m = dm.Model("times")
+    m.states("x")
+    m.parameter("a", 0.3)
+    m.ode("x", "Piecewise((0, t < a), (1, True)) + Piecewise((0, sin(10*t) + t**3/7 < 0.3), (1, True)) + floor(4*t)")
+    m.initial(x=0.0)
+    c = m.compile()
+    times = switches.breakpoints(c, (0.0, 1.0), c.parameter_values)
+    g = lambda s: math.sin(10 * s) + s**3 / 7 - 0.3  # noqa: E731
+    for root in times:
+        assert min(abs(root - 0.3), abs(root - 0.25), abs(root - 0.5), abs(root - 0.75), abs(g(root))) < 1e-13
+    assert len(times) == 1 + 3 + 4  # a, the three quarters, and the other switch's four crossings in (0, 1)
+    assert np.all(np.diff(times) > 0)
+    moved = switches.breakpoints(c, (0.0, 1.0), np.array([0.6]))
+    assert 0.6 in moved and 0.3 not in moved
+
+
+def test_too_many_breakpoints_are_refused():
+    with pytest.raises(E.SwitchError, match=r"floor in x' switches 100000 times in t_span = \(0, 1\) \(at most 10000"):
+        dm.solve(_switched("floor(100000*t)"), (0.0, 1.0), stages=3, h=0.1)
+
+
+def test_a_switching_function_that_is_not_finite_is_named():
+    m = _switched("-x + Piecewise((0, log(t) + sin(5*t) < -1), (1, True))")  # (no closed form: bracketed)
+    with pytest.raises(E.SwitchError, match=r"Piecewise in x': its switching function .* is not finite at t = 0; the"):
+        dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
+
+
+# ---- fixed steps keep their order across a switch ------------------------------------------------
+@pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
+@pytest.mark.parametrize("stages", [1, 2, 3])
+@pytest.mark.parametrize(
+    ("rhs", "exact", "hs"),
+    [
+        # off the grid h would make; cut at 0.37, the segments take 3 and 5 steps, then 6 and 10, 12 and 20
+        ("-x + Piecewise((0, t < 0.37), (1, True))", EXACT_SWITCH, [0.126, 0.063, 0.0315]),
+        # on it: the step ending at the switch evaluates its last stage with the left limit
+        ("-x + Heaviside(t - 0.5)", 1.0 - math.exp(-0.5), [0.1, 0.05, 0.025]),
+    ],
+    ids=["off-grid", "on-grid"],
+)
+def test_fixed_radau_keeps_order_2s_minus_1_across_a_time_switch(monkeypatch, stages, rhs, exact, hs):
+    model = _switched(rhs)
+    errors = [abs(dm.solve(model, (0.0, 1.0), stages=stages, h=h)["x"][-1] - exact) for h in hs]
+    assert _slope(errors, hs) > 2 * stages - 1 - 0.3, errors
+    monkeypatch.setattr("daemodel.solver.has_time_switches", lambda compiled: False)  # (as before: 1st/2nd order)
+    across = [abs(dm.solve(model, (0.0, 1.0), stages=stages, h=h)["x"][-1] - exact) for h in hs]
+    if stages > 1:  # (and the fixed-step estimate flags the step across the switch: the warnings)
+        assert across[-1] > 100 * errors[-1], across
+
+
+def _circuit():
+    """A source V closes onto an RC branch at t1 = 0.3: C v' = i, 0 = i - [t >= t1] (V - v) / R."""
+    m = dm.Model("closing-switch")
+    m.states("v")
+    m.algebraics("i")
+    m.parameter("V", 2.0)
+    m.parameter("R", 0.5)
+    m.parameter("C", 0.4)
+    m.ode("v", "i / C")
+    m.constraint("i - Piecewise((0, t < 0.3), ((V - v) / R, True))", name="switch")
+    m.initial(v=0.5)
+    return m
+
+
+def _circuit_exact(t):
+    tau = 0.5 * 0.4
+    return np.where(t < 0.3, 0.5, 2.0 + (0.5 - 2.0) * np.exp(-(t - 0.3) / tau))
+
+
+@pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
+@pytest.mark.parametrize("stages", [1, 2, 3])
+def test_a_circuit_whose_switch_closes_keeps_the_order(stages):
+    model = _circuit()
+    hs = [0.1, 0.05, 0.025]
+    sols = [dm.solve(model, (0.0, 1.0), stages=stages, h=h) for h in hs]
+    errors = [abs(sol["v"][-1] - _circuit_exact(1.0)) for sol in sols]
+    assert _slope(errors, hs) > 2 * stages - 1 - 0.3, errors
+    sol = sols[-1]
+    assert sol.breakpoints["t"][0].tolist() == [0.3]
+    assert sol.breakpoints["before"]["i"][0, 0] == 0.0  # the algebraic current jumps at the switch
+    assert abs(sol.breakpoints["after"]["i"][0, 0] - (2.0 - 0.5) / 0.5) < 1e-12
+    assert abs(sol.breakpoints["before"]["v"][0, 0] - 0.5) < 1e-14
+    at = np.flatnonzero(np.isclose(sol.t, 0.3))
+    assert len(at) == 1 and abs(sol["i"][at[0]] - 3.0) < 1e-12  # (outputs at a breakpoint: after it)
+    assert sol.stats["segments"] == 2
+    if stages == 1:  # (its estimate passes the bound after the switch: the segment is named)
+        assert sol.status.startswith("on [0.3, 1]: flagged: radau's local error estimate")
+    else:
+        assert sol.status == "success"
+
+
+# ---- every method, batches, outputs ----------------------------------------------------------
+@pytest.mark.parametrize(
+    ("method", "options", "tol"),
+    [
+        ("radau", {"rtol": 1e-8, "atol": 1e-8}, 1e-8),
+        ("casadi-idas", {"rtol": 1e-8, "atol": 1e-8}, 1e-7),
+        ("casadi-collocation", {}, 1e-8),
+        ("reference", {}, 1e-11),
+    ],
+)
+def test_every_method_crosses_a_time_switch_to_its_tolerance(method, options, tol):
+    sol = dm.solve(_circuit(), (0.0, 1.0), method=method, t_eval=np.linspace(0.0, 1.0, 11), **options)
+    assert np.abs(sol["v"] - _circuit_exact(sol.t)).max() < tol
+    assert abs(sol["i"][3] - 3.0 * math.exp(0.0)) < 1e3 * tol  # (t = 0.3: after the switch)
+    assert sol.breakpoints["t"][0].tolist() == [0.3]
+
+
+def test_a_batch_with_the_same_breakpoints_matches_single_solves():
+    model = _circuit()
+    V = np.array([1.0, 2.0, 3.0])
+    batch = dm.solve(model, (0.0, 1.0), stages=3, h=0.05, parameters={"V": V})
+    for b, value in enumerate(V):
+        single = dm.solve(model, (0.0, 1.0), stages=3, h=0.05, parameters={"V": value})
+        np.testing.assert_allclose(batch["v"][b], single["v"], rtol=1e-13, atol=1e-14)
+        assert abs(batch.breakpoints["after"]["i"][b, 0] - (value - 0.5) / 0.5) < 1e-12
+
+
+def _moving():
+    m = dm.Model("moving")
+    m.states("x")
+    m.parameter("a", 0.3)
+    m.ode("x", "-x + Piecewise((0, t < a), (1, True))")
+    m.initial(x=0.0)
+    return m
+
+
+def test_samples_that_switch_at_different_times_are_solved_in_groups_on_t_eval():
+    a = np.array([0.3, 0.4, 0.3, 0.55])
+    grid = np.linspace(0.0, 1.0, 21)
+    batch = dm.solve(_moving(), (0.0, 1.0), stages=3, h=0.05, t_eval=grid, parameters={"a": a})
+    assert batch.stats["groups"] == 3 and batch["x"].shape == (4, 21)
+    for b, value in enumerate(a):
+        exact = np.where(grid < value, 0.0, 1.0 - np.exp(-(grid - value)))
+        np.testing.assert_allclose(batch["x"][b], exact, atol=1e-9)
+        single = dm.solve(_moving(), (0.0, 1.0), stages=3, h=0.05, t_eval=grid, parameters={"a": value})
+        np.testing.assert_allclose(batch["x"][b], single["x"], rtol=1e-13, atol=1e-15)  # (batches: torch)
+        assert batch.breakpoints["t"][b].tolist() == [value]
+    np.testing.assert_array_equal(batch.parameters[:, 0], a)
+
+
+def test_samples_that_switch_at_different_times_need_common_output_times():
+    with pytest.raises(
+        E.SwitchError,
+        match=r"sample 0: \[0.3\]; sample 1: \[0.4\]\): their parameters move the breakpoints, so their steps "
+        r"differ; pass t_eval to have them on common output times, or solve them one at a time",
+    ):
+        dm.solve(_moving(), (0.0, 1.0), stages=3, h=0.1, parameters={"a": np.array([0.3, 0.4])})
+
+
+def test_t_eval_between_and_at_breakpoints():
+    grid = np.array([0.0, 0.1, 0.37, 0.5, 1.0])
+    sol = dm.solve(_switched(), (0.0, 1.0), stages=3, h=0.01, t_eval=grid)
+    assert sol.t.tolist() == grid.tolist()
+    exact = np.where(grid < 0.37, 0.0, 1.0 - np.exp(-(grid - 0.37)))
+    np.testing.assert_allclose(sol["x"], exact, atol=1e-12)
+    assert sol.settings["h"] == 0.01 and sol.stats["segments"] == 2
+
+
+def test_a_switch_at_the_end_of_the_span_is_a_left_limit():
+    """t1 = 0.37: the one segment is evaluated on the branch before the switch (x stays 0)."""
+    sol = dm.solve(_switched("1 + Piecewise((0, t < 0.37), (100, True))"), (0.0, 0.37), stages=3, h=0.37 / 4)
+    assert abs(sol["x"][-1] - 0.37) < 1e-14 and sol.breakpoints["t"].shape == (1, 0)
