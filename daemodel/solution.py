@@ -87,8 +87,9 @@ class Solution:
         For a model with time switches (:mod:`daemodel.switches`): ``"t"``, the breakpoints each
         sample's solve was cut at (B, K), and ``"before"``/``"after"``, each variable's values
         just before and just after each, name -> (B, K); NaN-padded where the samples of a batch
-        switch at different times and some less often.  Values at a breakpoint in ``t`` are those
-        after it.  Empty without time switches.
+        switch at different times and some less often; ``"moved"``, how far the states were
+        projected at each (B, K), 0 unless a switch inside a constraint moved its solution set.
+        Values at a breakpoint in ``t`` are those after it.  Empty without time switches.
 
     Examples
     --------

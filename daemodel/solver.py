@@ -66,8 +66,8 @@ def solve(
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
-    if has_time_switches(compiled):  # (from breakpoint to breakpoint, each side on its own branch)
-        return solve_with_breakpoints(backend, compiled, t_span, start, opts)
+    if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
+        return solve_with_breakpoints(backend, model, t_span, start, opts)
     return backend.solve(compiled, t_span, start, opts)
 
 

@@ -344,11 +344,14 @@ def _segment_steps(a: float, b: float, h: float) -> float:
 
 def solve_with_breakpoints(backend, compiled, t_span, start, options):
     """Solve from breakpoint to breakpoint (see the module docstring): each segment on
-    :func:`branch_model` at its midpoint, the states carried over, the algebraic variables solved
-    anew at each breakpoint; one :class:`~daemodel.solution.Solution` of them all, whose values at
-    a breakpoint are those after it (:attr:`Solution.breakpoints` holds both sides).  Samples of a
-    batch whose parameters move the breakpoints are solved in groups that share them, on the
-    common output times ``t_eval``.
+    :func:`branch_model` at its midpoint (reduced to the index ``backend`` takes), the states
+    carried over (projected onto the constraints where a switch inside one moved them), the
+    algebraic variables solved anew at each breakpoint; one :class:`~daemodel.solution.Solution`
+    of them all, whose values at a breakpoint are those after it (:attr:`Solution.breakpoints`
+    holds both sides).  Samples of a batch whose parameters move the breakpoints are solved in
+    groups that share them, on the common output times ``t_eval``.  ``compiled`` is the model as
+    compiled, before any reduction: a switch inside a constraint that the reduction differentiates
+    away is still a breakpoint.
 
     Raises
     ------
@@ -381,6 +384,38 @@ def solve_with_breakpoints(backend, compiled, t_span, start, options):
     return _join_samples(parts, len(P), start.batched)
 
 
+def _onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The states ``Y`` (B, n) where they satisfy ``model``'s z-free constraint levels at its t0, else
+    their least-change projection onto them (a switch inside a constraint moves its solution set).
+
+    Raises
+    ------
+    SwitchError
+        No state near a sample's satisfies them after the switch.
+    """
+    from daemodel.initial_states import STATE_TOL, _checks, project_states
+
+    checks = _checks(model)
+    if not checks.hidden:
+        return Y
+    Z = np.zeros((len(Y), len(model.algebraics)))
+    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
+    if not (np.abs(checks.residual(model.t0, Y, Z, P)) > tol[:, None]).any():
+        return Y
+    projected = project_states(model, Y, P)
+    residual = checks.residual(model.t0, projected, Z, P)
+    bad = np.abs(residual) > (STATE_TOL * (1 + np.max(np.abs(projected), axis=1, initial=0.0)))[:, None]
+    if bad.any():
+        sample, level = np.argwhere(bad)[0]
+        name, label, _ = checks.hidden[level]
+        raise SwitchError(
+            f"after the switch at t = {model.t0:.10g} no state near sample {sample}'s satisfies {label}: {name} = "
+            f"{residual[sample, level]:.6g} after the projection; the switch leaves the constraints without a "
+            "real solution there"
+        )
+    return projected
+
+
 def _same(key: tuple, times: np.ndarray, t_span) -> bool:
     tol = MERGE_TOL * max(1.0, t_span[1] - t_span[0])
     return len(key) == len(times) and bool(np.all(np.abs(np.asarray(key) - times) <= tol))
@@ -395,13 +430,14 @@ def _join_samples(parts: list, B: int, batched: bool):
     values = {name: np.empty((B, len(first.t))) for name in first.values}
     parameters = np.empty((B, first.parameters.shape[1]))
     K = max(sol.breakpoints["t"].shape[1] for _, sol in parts)
-    record = {"t": np.full((B, K), np.nan), "before": {}, "after": {}}
+    record = {"t": np.full((B, K), np.nan), "moved": np.full((B, K), np.nan), "before": {}, "after": {}}
     for index, sol in parts:
         for name in values:
             values[name][index] = sol.values[name]
         parameters[index] = sol.parameters
         k = sol.breakpoints["t"].shape[1]
         record["t"][index, :k] = sol.breakpoints["t"]
+        record["moved"][index, :k] = sol.breakpoints["moved"]
         for side in ("before", "after"):
             for name in values:
                 record[side].setdefault(name, np.full((B, K), np.nan))[index, :k] = sol.breakpoints[side][name]
@@ -431,6 +467,8 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     from daemodel.solution import Solution
 
     t0, t1 = t_span
+    moved = []  # (B,) per breakpoint: how far the states were projected there
+    solved = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
     P = np.asarray(start.p, dtype=float)
     edges = [t0, *times.tolist(), t1]
     user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
@@ -440,8 +478,12 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     parts, pre, post = [], [], []
     for k, (a, b) in enumerate(itertools.pairwise(edges)):
         last = k == len(edges) - 2
-        model = branch_model(compiled, 0.5 * (a + b), P[0])
-        if k:  # the states carry over; the algebraic variables follow the new branch
+        whole = branch_model(compiled, 0.5 * (a + b), P[0])
+        model = whole.reduced(backend.max_index) if whole.index > backend.max_index else whole
+        if k:  # the states carry over (projected where a switch moved the constraints); z follows the branch
+            projected = _onto_constraints(dataclasses.replace(whole, t0=float(a)), Y, P)
+            moved.append(np.max(np.abs(projected - Y), axis=1, initial=0.0))
+            Y = projected
             Z = algebraic_values(model, a, Y, P, Z)
             post.append(np.concatenate([Y, Z], axis=1))
         model = dataclasses.replace(model, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
@@ -479,6 +521,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     B = len(P)
     record = {
         "t": np.repeat(times[None, :], B, axis=0),
+        "moved": np.stack(moved, axis=-1) if moved else np.zeros((B, 0)),
         "before": {
             name: np.stack([v[:, j] for v in pre], axis=-1) if pre else np.zeros((B, 0)) for j, name in enumerate(names)
         },
@@ -494,7 +537,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
         settings=settings,
         solve_time=sum(sol.solve_time for sol, _ in parts),
         stats=stats,
-        compiled=compiled,
+        compiled=solved,
         parameters=parts[0][0].parameters,
         batched=parts[0][0].batched,
         status="success" if not failing else "; ".join(failing),

@@ -243,3 +243,36 @@ def test_a_switch_at_the_end_of_the_span_is_a_left_limit():
     """t1 = 0.37: the one segment is evaluated on the branch before the switch (x stays 0)."""
     sol = dm.solve(_switched("1 + Piecewise((0, t < 0.37), (100, True))"), (0.0, 0.37), stages=3, h=0.37 / 4)
     assert abs(sol["x"][-1] - 0.37) < 1e-14 and sol.breakpoints["t"].shape == (1, 0)
+
+
+def _tracking():
+    """y' = z, 0 = y - H(t - 0.5) (index 2): the constraint itself switches, so y must jump to 1."""
+    m = dm.Model("tracking")
+    m.states("y")
+    m.algebraics("z")
+    m.ode("y", "z")
+    m.constraint("y - Heaviside(t - 0.5, 1)", name="track")
+    m.initial(y=0.0)
+    return m
+
+
+@pytest.mark.parametrize(
+    ("method", "options"),
+    [("radau", {"stages": 3, "h": 0.1}), ("radau", {"rtol": 1e-8, "atol": 1e-8}), ("casadi-idas", {})],
+)
+def test_a_switch_inside_a_constraint_projects_the_states(method, options):
+    """IDAS takes the index-1 reduction, whose constraint (z = 0) no longer holds the switch: the
+    breakpoint comes from the model as compiled, and each side is projected onto its own constraint."""
+    sol = dm.solve(_tracking(), (0.0, 1.0), method=method, t_eval=[0.0, 0.25, 0.5, 0.75, 1.0], **options)
+    np.testing.assert_allclose(sol["y"], [0.0, 0.0, 1.0, 1.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(sol["z"], 0.0, atol=1e-12)
+    assert sol.breakpoints["t"][0].tolist() == [0.5] and sol.breakpoints["moved"][0].tolist() == [1.0]
+    assert sol.breakpoints["before"]["y"][0, 0] == 0.0 and sol.breakpoints["after"]["y"][0, 0] == 1.0
+
+
+def test_the_pinn_across_a_switch_is_certified():
+    sol = dm.solve(_circuit(), (0.0, 1.0), method="pinn", h=0.1)
+    assert sol.status == "success" and sol.stats["segments"] == 2  # (each segment's certificate passed)
+    assert np.abs(sol["v"] - _circuit_exact(sol.t)).max() < 1e-5
+    at = np.flatnonzero(np.isclose(sol.t, 0.3))
+    assert len(at) == 1 and abs(sol["i"][at[0]] - 3.0) < 1e-9
