@@ -60,6 +60,8 @@ class CompiledDAE:
         What initialisation changed.
     dropped : dict str -> tuple of str
         What output-driven pruning removed, by kind.
+    events : tuple of daemodel.events.Event
+        The declared events (``Model.event``), on this model's symbols.
     """
 
     name: str
@@ -80,6 +82,7 @@ class CompiledDAE:
     notes: tuple = ()
     dropped: dict = field(default_factory=dict)
     reduced_from: int | None = None
+    events: tuple = ()
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -453,6 +456,9 @@ class CompiledDAE:
         if switches:
             lines.append(f"Switches ({len(switches)}):")
             lines += [f"  {s.describe()}" for s in switches]
+        if self.events:
+            lines.append(f"Events ({len(self.events)}):")
+            lines += [f"  {e.describe(self.state_names)}" for e in self.events]
         lines.append("Initialisation: " + ("; ".join(self.notes) if self.notes else "given values are consistent"))
         dropped = {k: v for k, v in self.dropped.items() if v}
         if dropped:

@@ -144,6 +144,14 @@ class StepLimitError(SolverError):
     not converge, and more iterations rarely help."""
 
 
+class EventLimitError(SolverError):
+    """More events in one solve than ``max_events`` allows (chattering, Zeno)."""
+
+
+class EventLocationError(SolverError):
+    """An event's crossing could not be located to its tolerance."""
+
+
 class CompileError(SolverError):
     """The system's C compiler failed on code daemodel generated (radau's ``jit=True``)."""
 

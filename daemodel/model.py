@@ -27,6 +27,7 @@ from daemodel.errors import (
     InvalidNameError,
     InvalidValueError,
     ODETargetError,
+    UnknownOutputError,
     UnknownSymbolError,
 )
 from daemodel.functions import supported_names
@@ -124,6 +125,7 @@ class Model:
         self._initial: dict[str, float] = {}
         self._guess: dict[str, float] = {}  # starting values of algebraic variables for Newton, not claims
         self._t0 = 0.0
+        self._events: list[tuple] = []  # (name, when, direction, ((state, expr), ...), terminal)
         self._equation_count = 0
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile
 
@@ -234,6 +236,84 @@ class Model:
         self._equation_count = number
         self._constraints.append(Equation("constraint", name, number, value))
 
+    def event(self, name: str, when, direction: int = 0, reset: dict | None = None, terminal: bool = False) -> None:
+        """Declare an event at each zero crossing of ``when`` (see :mod:`daemodel.events`).
+
+        Parameters
+        ----------
+        name : str
+            An identifier: ``sol.events[name]`` holds its times and the values around them.
+        when : str or sympy expression
+            Of t, the variables and parameters; the event is where it crosses 0.
+        direction : int
+            +1: rising crossings only; -1: falling only; 0: both.
+        reset : dict state name -> str or expression, optional
+            The states' values after the event, as expressions of the values just before
+            (``{"v": "-0.8*v"}``); states not named keep theirs.  Algebraic variables are solved
+            anew (they cannot be reset), and the states are projected onto the constraints where
+            the reset leaves them.
+        terminal : bool
+            End the solve at the event.
+        """
+        if (
+            not isinstance(name, str)
+            or not _NAME.fullmatch(name)
+            or keyword.iskeyword(name)
+            or len(name) > MAX_NAME_LENGTH
+        ):
+            raise InvalidNameError(f"event name {name!r} is not an identifier")
+        if any(e[0] == name for e in self._events):
+            raise InvalidNameError(f"event name '{name}' is already used")
+        if isinstance(direction, bool) or direction not in (-1, 0, 1):
+            raise InvalidValueError(f"event '{name}': direction must be -1, 0 or +1; got {direction!r}")
+        if not isinstance(terminal, bool):
+            raise InvalidValueError(f"event '{name}': terminal must be True or False; got {terminal!r}")
+        expr = self._expression(when, f"event '{name}' (when)")
+        resets = []
+        if reset is not None:
+            if not isinstance(reset, dict):
+                raise InvalidValueError(
+                    f"event '{name}': reset must be a dict state name -> expression; got {type(reset).__name__}"
+                )
+            for target, value in reset.items():
+                if target in self._algebraics:
+                    raise InvalidValueError(
+                        f"event '{name}': reset names the algebraic variable '{target}'; algebraic variables are "
+                        "solved anew after a reset from the constraints, reset the states they depend on"
+                    )
+                if target not in self._states:
+                    raise UnknownSymbolError(
+                        f"event '{name}': reset names {target!r}, which is no state; states: {_listing(self._states)}"
+                    )
+                resets.append((target, self._expression(value, f"event '{name}' (reset of '{target}')")))
+        self._events.append((name, expr, int(direction), tuple(resets), terminal))
+
+    def _with_events(self, compiled):
+        """``compiled`` with this model's events on its symbols (aliases substituted)."""
+        import dataclasses
+
+        from daemodel.events import Event
+
+        if not self._events:
+            return compiled
+        symbols = self._all_symbols()
+        aliases = {symbols[name]: expr for name, expr, _ in compiled.aliases if name in symbols}
+        known = {compiled.t, *compiled.states, *compiled.algebraics, *compiled.parameters}
+        index = {name: i for i, name in enumerate(compiled.state_names)}
+        events = []
+        for name, when, direction, resets, terminal in self._events:
+            exprs = [when.xreplace(aliases)] + [value.xreplace(aliases) for _, value in resets]
+            missing = sorted({s.name for e in exprs for s in e.free_symbols if s not in known})
+            targets = [target for target, _ in resets if target not in index]
+            if missing or targets:
+                raise UnknownOutputError(
+                    f"event '{name}' needs {', '.join(repr(m) for m in (*missing, *targets))}, which the requested "
+                    "outputs pruned away; add them to outputs"
+                )
+            reset = tuple((index[target], expr) for (target, _), expr in zip(resets, exprs[1:], strict=True))
+            events.append(Event(name, exprs[0], direction, reset, terminal))
+        return dataclasses.replace(compiled, events=tuple(events))
+
     def initial(self, /, t: float | None = None, **values: float) -> None:
         """Initial values by name: all differential variables; algebraic ones are optional.
 
@@ -320,10 +400,10 @@ class Model:
         # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
         # dm.solve again is not recompiled, and the compiled model keeps its generated code
         if outputs is not None and not (isinstance(outputs, list | tuple) and all(isinstance(o, str) for o in outputs)):
-            return compile_model(self, outputs=outputs, repair=repair)  # which names the mistake
+            return self._with_events(compile_model(self, outputs=outputs, repair=repair))  # (it names the mistake)
         key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
         if self._compiled is None or self._compiled[0] != key:
-            self._compiled = (key, compile_model(self, outputs=outputs, repair=repair))
+            self._compiled = (key, self._with_events(compile_model(self, outputs=outputs, repair=repair)))
         return self._compiled[1]
 
     def _fingerprint(self) -> tuple:
@@ -338,6 +418,7 @@ class Model:
             tuple(self._initial.items()),
             tuple(self._guess.items()),
             self._t0,
+            tuple(self._events),
         )
 
     def __repr__(self) -> str:

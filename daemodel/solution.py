@@ -90,6 +90,11 @@ class Solution:
         switch at different times and some less often; ``"moved"``, how far the states were
         projected at each (B, K), 0 unless a switch inside a constraint moved its solution set.
         Values at a breakpoint in ``t`` are those after it.  Empty without time switches.
+    events : dict
+        For a model with declared events (``Model.event``): for each event's name, ``"t"`` its times
+        (B, K), ``"before"``/``"after"`` each variable's values just before and after (name ->
+        (B, K)) and ``"moved"`` how far the states were projected onto the constraints after the
+        reset (B, K); NaN-padded across a batch.  Values at an event time in ``t`` are those after it.
 
     Examples
     --------
@@ -110,6 +115,7 @@ class Solution:
     status: str = "success"
     setup_time: float = 0.0
     breakpoints: dict = field(default_factory=dict, repr=False)
+    events: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         c = self.compiled

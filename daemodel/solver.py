@@ -11,6 +11,7 @@ import numpy as np
 from daemodel.backends import get_backend
 from daemodel.compiled import CompiledDAE
 from daemodel.errors import ModelError, TimeSpanError, UnknownOptionError
+from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events
 from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
 from daemodel.model import Model
@@ -26,6 +27,7 @@ def solve(
     y0=None,
     z0=None,
     parameters=None,
+    max_events: int = DEFAULT_MAX_EVENTS,
     **options,
 ) -> Solution:
     """Solve a DAE over ``t_span`` with one method, for one initial state or a batch.
@@ -45,6 +47,8 @@ def solve(
     z0 : same as y0, for the algebraic variables, optional
         Newton's starting values (and a claim checked against the consistent values).
     parameters : dict name -> float or array (B,), or array (k,) or (B, k), optional
+    max_events : int
+        Most events (``Model.event``) one solve handles (:class:`EventLimitError` beyond: chattering).
     **options
         The method's options (e.g. ``stages=3, h=0.05`` or ``rtol=1e-8`` for ``"radau"``,
         ``config=dm.PINNConfig(...)`` for ``"pinn"``);
@@ -66,6 +70,8 @@ def solve(
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
+    if model.events:  # (located, reset and restarted from, in every method alike)
+        return solve_with_events(backend, model, t_span, start, opts, max_events)
     if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
         return solve_with_breakpoints(backend, model, t_span, start, opts)
     return backend.solve(compiled, t_span, start, opts)

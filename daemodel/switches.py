@@ -421,26 +421,40 @@ def _same(key: tuple, times: np.ndarray, t_span) -> bool:
     return len(key) == len(times) and bool(np.all(np.abs(np.asarray(key) - times) <= tol))
 
 
+def _pad(records: list, B: int) -> dict:
+    """``(sample indices, record)`` pairs of per-group records (``"t"``, ``"moved"``: (b, k); ``"before"``,
+    ``"after"``: name -> (b, k)) as one record over all B samples, padded with NaN to the longest."""
+    K = max(record["t"].shape[1] for _, record in records)
+    out = {"t": np.full((B, K), np.nan), "moved": np.full((B, K), np.nan), "before": {}, "after": {}}
+    for index, record in records:
+        k = record["t"].shape[1]
+        out["t"][index, :k] = record["t"]
+        out["moved"][index, :k] = record["moved"]
+        for side in ("before", "after"):
+            for name, values in record[side].items():
+                out[side].setdefault(name, np.full((B, K), np.nan))[index, :k] = values
+    return out
+
+
 def _join_samples(parts: list, B: int, batched: bool):
     """One Solution of the groups' (``(sample indices, Solution)``, all on the same output times):
-    values and parameters in sample order, breakpoints padded with NaN to the longest."""
+    values and parameters in sample order, breakpoints and events padded with NaN to the longest."""
     from daemodel.solution import Solution
 
     first = parts[0][1]
+    if any(len(sol.t) != len(first.t) or not np.array_equal(sol.t, first.t) for _, sol in parts):
+        raise SwitchError(
+            "the samples of this batch end at different times (a terminal event): their outputs cannot share "
+            "times; solve them one at a time"
+        )
     values = {name: np.empty((B, len(first.t))) for name in first.values}
     parameters = np.empty((B, first.parameters.shape[1]))
-    K = max(sol.breakpoints["t"].shape[1] for _, sol in parts)
-    record = {"t": np.full((B, K), np.nan), "moved": np.full((B, K), np.nan), "before": {}, "after": {}}
     for index, sol in parts:
         for name in values:
             values[name][index] = sol.values[name]
         parameters[index] = sol.parameters
-        k = sol.breakpoints["t"].shape[1]
-        record["t"][index, :k] = sol.breakpoints["t"]
-        record["moved"][index, :k] = sol.breakpoints["moved"]
-        for side in ("before", "after"):
-            for name in values:
-                record[side].setdefault(name, np.full((B, K), np.nan))[index, :k] = sol.breakpoints[side][name]
+    breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
+    events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
     stats = _merge_stats([sol.stats for _, sol in parts])
     stats["groups"] = len(parts)
     failing = [f"samples {index.tolist()}: {sol.status}" for index, sol in parts if sol.status != "success"]
@@ -456,7 +470,8 @@ def _join_samples(parts: list, B: int, batched: bool):
         batched=batched,
         status="success" if not failing else "; ".join(failing),
         setup_time=sum(sol.setup_time for _, sol in parts),
-        breakpoints=record,
+        breakpoints=breakpoints,
+        events=events,
     )
 
 

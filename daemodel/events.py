@@ -1,0 +1,362 @@
+"""Declared events: impacts, resets and stops, located during the solve, in every method.
+
+``m.event(name, when, direction=0, reset=None, terminal=False)`` declares an event at each zero
+crossing of ``when`` (an expression of t, the variables and parameters): ``direction`` +1 for a
+rising, -1 for a falling crossing, 0 for both.  At the event ``reset`` (state name -> expression
+of the values just before) sets states; the states are then projected onto the constraints where
+the reset left them (least change, reported), the algebraic variables are solved anew with the
+routine that initialises them at t0, and the integration starts again.  ``terminal=True`` ends
+the solve there.
+
+How (:func:`solve_with_events`, for every method alike): integrate to t1 on the method's own
+outputs, evaluate every event function there, and take the first crossing; locate it between the
+two outputs that bracket it by the Illinois variant of regula falsi, each trial time a short solve
+from the output before it (so the located state has the method's own accuracy, not an
+interpolant's), to :data:`EVENT_TOL` in t; keep the outputs before it, apply the reset, go on
+from there.  A crossing between two outputs whose function changes sign twice is not seen; an
+event function that is zero at the start of a piece is armed only once it has left zero.
+At most ``max_events`` events a solve (default :data:`DEFAULT_MAX_EVENTS`): chattering (a ball
+bouncing ever lower, Zeno) ends in :class:`~daemodel.errors.EventLimitError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from daemodel.errors import EventLimitError, EventLocationError, SwitchError
+
+# Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
+DEFAULT_MAX_EVENTS = 1000
+# Width in t to which an event is located (relative to max(1, |t|)).
+EVENT_TOL = 1e-12
+# Trial solves of the location of one event before EventLocationError.
+MAX_LOCATION_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class Event:
+    """A declared event, compiled: ``when`` and the reset as expressions of the compiled model's
+    symbols (aliases substituted); ``reset`` as (state index, expression) pairs."""
+
+    name: str
+    when: sp.Expr
+    direction: int
+    reset: tuple
+    terminal: bool
+
+    def describe(self, state_names) -> str:
+        side = {1: "rising", -1: "falling", 0: "either way"}[self.direction]
+        what = f"{self.name}: {self.when} crosses 0 ({side})"
+        if self.reset:
+            what += "; then " + ", ".join(f"{state_names[i]} = {expr}" for i, expr in self.reset)
+        return what + ("; ends the solve" if self.terminal else "")
+
+
+def _functions(compiled):
+    """Numeric event functions of ``compiled``: ``F(t, Y, Z, P) -> (B, E)`` and the resets, cached."""
+    from daemodel.init import NumericSystem
+
+    def build():
+        numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+        when = numeric.batch_function([e.when for e in compiled.events])
+        resets = [numeric.batch_function([expr for _, expr in e.reset]) if e.reset else None for e in compiled.events]
+        return when, resets
+
+    return compiled.cached("events", build)
+
+
+def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, **changes):
+    """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
+    :func:`daemodel.switches.solve_with_breakpoints` does)."""
+    from daemodel.initial_states import InitialStates
+    from daemodel.switches import has_time_switches, solve_with_breakpoints
+
+    model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
+    start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
+    options = dataclasses.replace(options, **changes)
+    if has_time_switches(model):
+        return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
+    reduced = model.reduced(backend.max_index) if model.index > backend.max_index else model
+    return backend.solve(reduced, (float(a), float(b)), start, options)
+
+
+def _outputs(sol, compiled):
+    """``(t, Y (T, n), Z (T, m))`` of a one-sample solution."""
+    T = len(sol.t)
+    Y = np.stack([np.asarray(sol.values[n])[0] for n in compiled.state_names], axis=-1).reshape(T, -1)
+    Z = [np.asarray(sol.values[n])[0] for n in compiled.algebraic_names]
+    Z = np.stack(Z, axis=-1).reshape(T, -1) if Z else np.zeros((T, 0))
+    return np.asarray(sol.t, dtype=float), Y, Z
+
+
+def _crossing(values: np.ndarray, direction: int, armed: bool) -> np.ndarray:
+    """Indices j of the outputs where the function crossed zero from output j-1 (in ``direction``),
+    or reached it exactly; ``armed`` False: not until it has left zero first."""
+    sign = np.sign(values)
+    hits = []
+    for j in range(1, len(values)):
+        if not armed:
+            if sign[j - 1] != 0 and sign[j] == sign[j - 1]:
+                armed = True
+            continue
+        before, after = sign[j - 1], sign[j]
+        if before == 0 or before == after:
+            continue
+        rising = after > before
+        if direction == 0 or (direction > 0) == rising:
+            hits.append(j)
+            break
+    return np.asarray(hits, dtype=int)
+
+
+def solve_with_events(backend, compiled, t_span, start, options, max_events: int = DEFAULT_MAX_EVENTS):
+    """Solve with ``compiled.events`` located and applied (see the module docstring); one sample at a
+    time (each its own event times), a batch on the common output times ``t_eval``.
+
+    Raises
+    ------
+    EventLimitError
+        More than ``max_events`` events.
+    EventLocationError
+        An event that the trial solves do not locate.
+    SwitchError
+        A batch without ``t_eval``: its samples' outputs would not share times.
+    """
+    from daemodel.switches import _join_samples
+
+    P = np.asarray(start.p, dtype=float)
+    if len(P) == 1:
+        return _one_sample(backend, compiled, t_span, start, options, max_events)
+    if getattr(options, "t_eval", None) is None:
+        raise SwitchError(
+            f"a batch of {len(P)} samples with events: each sample has its own event times and steps; pass "
+            "t_eval to have them on common output times, or solve them one at a time"
+        )
+    from daemodel.initial_states import InitialStates
+
+    parts = []
+    for b in range(len(P)):
+        sub = InitialStates(y0=start.y0[b : b + 1], z0=start.z0[b : b + 1], p=start.p[b : b + 1], batched=True)
+        parts.append((np.array([b]), _one_sample(backend, compiled, t_span, sub, options, max_events)))
+    return _join_samples(parts, len(P), start.batched)
+
+
+def _one_sample(backend, compiled, t_span, start, options, max_events: int):
+    from daemodel.backends.base import output_times
+    from daemodel.initial_states import algebraic_values
+    from daemodel.solution import Solution
+    from daemodel.switches import _merge_stats, _onto_constraints
+
+    if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 0:
+        raise EventLimitError(f"max_events must be a non-negative integer; got {max_events!r}")
+    t0, t1 = (float(v) for v in t_span)
+    when, resets = _functions(compiled)
+    events = compiled.events
+    P = np.asarray(start.p, dtype=float)
+    Y, Z = np.asarray(start.y0, dtype=float), np.asarray(start.z0, dtype=float)
+    user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
+    h = getattr(options, "h", None)
+    pieces, all_stats, record = [], [], {e.name: {"t": [], "before": [], "after": [], "moved": []} for e in events}
+    armed = np.ones(len(events), dtype=bool)
+    t, count, solve_time, setup_time, last = t0, 0, 0.0, 0.0, None
+    while True:
+        sol = _span_solve(backend, compiled, t, t1, Y, Z, P, start.batched, options, t_eval=None)
+        all_stats.append(sol.stats)
+        solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+        last = sol
+        T, Ys, Zs = _outputs(sol, compiled)
+        F = when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
+        first, which, hit = None, None, {}
+        for e, event in enumerate(events):
+            hits = _crossing(F[:, e], event.direction, bool(armed[e]))
+            if len(hits):
+                hit[e] = int(hits[0])
+                if first is None or hits[0] < first:
+                    first, which = int(hits[0]), e
+        if first is None:
+            pieces.append((t, t1, Y, Z, None))
+            break
+        count += 1
+        if count > max_events:
+            raise EventLimitError(
+                f"event '{events[which].name}' would be event number {count} by t = {T[first]:.10g} (max_events = "
+                f"{max_events}): events this close together are chattering (Zeno); raise max_events, or end t_span "
+                "before it"
+            )
+        a, b, Fa, Fb = T[first - 1], T[first], F[first - 1, which], F[first, which]
+        ya, za = Ys[first - 1 : first], Zs[first - 1 : first]
+        t_event, y_event, z_event, located = _locate(
+            backend, compiled, options, start.batched, P, which, when, a, b, Fa, Fb, ya, za, h
+        )
+        all_stats += located
+        pieces.append((t, t_event, Y, Z, (which, t_event)))
+        # every event whose function changed sign (its way) between the bracket's start and the located
+        # time fires there, in declaration order (identical or simultaneous events)
+        F_event = when(np.array([t_event]), y_event, z_event, P)[0]
+        fired = [
+            e
+            for e, event in enumerate(events)
+            if e == which
+            or (
+                hit.get(e) == first
+                and (len(_crossing(np.array([F[first - 1, e], F_event[e]]), event.direction, True)) or F_event[e] == 0)
+            )
+        ]
+        before = np.concatenate([y_event, z_event], axis=1)
+        Y = y_event.copy()
+        for e in fired:
+            if resets[e] is not None:
+                new = resets[e](t_event, Y, z_event, P)
+                for k, (index, _) in enumerate(events[e].reset):
+                    Y[:, index] = new[:, k]
+        terminal = any(events[e].terminal for e in fired)
+        reduced = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
+        if terminal:
+            has_reset = any(resets[e] is not None for e in fired)
+            Z = algebraic_values(reduced, t_event, Y, P, z_event) if has_reset else z_event
+            moved = np.zeros(1)
+        else:
+            projected = _onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
+            moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
+            Y = projected
+            Z = algebraic_values(reduced, t_event, Y, P, z_event)
+        for e in fired:
+            entry = record[events[e].name]
+            entry["t"].append(t_event)
+            entry["before"].append(before[0])
+            entry["after"].append(np.concatenate([Y, Z], axis=1)[0])
+            entry["moved"].append(float(moved[0]))
+        count += len(fired) - 1
+        # (the fired events' functions are 0 here: armed again once they have left zero; the others stay)
+        armed = np.ones(len(events), dtype=bool)
+        armed[fired] = False
+        if terminal:
+            break
+        t = t_event
+    # the outputs: each piece solved again on the user's times (t_eval), or on its own steps (the last
+    # piece's detection solve is its solve); a piece ending at an event leaves its time to the next one,
+    # which starts with the values after it
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    times, rows = [], []
+    for a, b, Ya, Za, event in pieces:
+        closed = event is None
+        if user_grid is not None:
+            grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
+            if not len(grid):
+                continue
+            if len(grid) == 1 and grid[0] == a:
+                piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
+            else:
+                sol = _span_solve(backend, compiled, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
+                all_stats.append(sol.stats)
+                solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+                piece_t, Yp, Zp = _outputs(sol, compiled)
+                piece = np.concatenate([Yp, Zp], axis=1)
+        else:
+            if not closed:
+                sol = _span_solve(backend, compiled, a, b, Ya, Za, P, start.batched, options, t_eval=None)
+                all_stats.append(sol.stats)
+                solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+            else:
+                sol = last
+            piece_t, Yp, Zp = _outputs(sol, compiled)
+            piece = np.concatenate([Yp, Zp], axis=1)
+            if not closed:
+                piece_t, piece = piece_t[:-1], piece[:-1]
+        times.append(piece_t)
+        rows.append(piece)
+    if pieces[-1][4] is not None:  # a terminal event: the solve ends with the values after it
+        times.append(np.array([pieces[-1][1]]))
+        rows.append(np.concatenate([Y, Z], axis=1))
+    t_out = np.concatenate(times)
+    table = np.concatenate(rows, axis=0)
+    out = {name: table[:, j][None, :].copy() for j, name in enumerate(names)}
+    stats = _merge_stats(all_stats)
+    stats["events"] = count
+
+    def sides(rows) -> dict:
+        table = np.asarray(rows, dtype=float).reshape(len(rows), len(names))
+        return {v: table[:, j][None, :].copy() for j, v in enumerate(names)}
+
+    events_out = {
+        name: {
+            "t": np.asarray(entry["t"], dtype=float)[None, :],
+            "moved": np.asarray(entry["moved"], dtype=float)[None, :],
+            "before": sides(entry["before"]),
+            "after": sides(entry["after"]),
+        }
+        for name, entry in record.items()
+    }
+    solved = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
+    settings = dict(last.settings)
+    for key in ("t_eval", "h"):
+        if key in settings:
+            settings[key] = getattr(options, key)
+    return Solution(
+        t=t_out,
+        values=out,
+        method=last.method,
+        settings=settings,
+        solve_time=solve_time,
+        stats=stats,
+        compiled=solved,
+        parameters=P,
+        batched=start.batched,
+        status=last.status,
+        setup_time=setup_time,
+        events=events_out,
+    )
+
+
+def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, h):
+    """The event ``which`` between outputs ``a`` and ``b`` (values ``Fa``, ``Fb`` of opposite sign or
+    ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats)``, by the Illinois method on trial
+    solves from ``a``."""
+    stats = []
+    tol = EVENT_TOL * max(1.0, abs(a), abs(b))
+
+    def trial(tau):
+        changes = {"t_eval": None} | ({"h": min(h, tau - a)} if h is not None else {})
+        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
+        stats.append(sol.stats)
+        _, Ys, Zs = _outputs(sol, compiled)
+        y, z = Ys[-1:], Zs[-1:]
+        return float(when(np.array([tau]), y, z, P)[0, which]), y, z
+
+    if Fb == 0:
+        _, y, z = trial(b)
+        return b, y, z, stats
+    lo, hi, flo, fhi = a, b, Fa, Fb
+    best = None
+    side = 0
+    for _ in range(MAX_LOCATION_ITERATIONS):
+        tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
+        if not lo < tau < hi:
+            tau = 0.5 * (lo + hi)
+        f, y, z = trial(tau)
+        best = (tau, y, z)
+        if f == 0 or hi - lo <= tol:
+            return tau, y, z, stats
+        if np.sign(f) == np.sign(flo):
+            lo, flo = tau, f
+            if side == -1:
+                fhi *= 0.5  # (Illinois: halve the stale end's value)
+            side = -1
+        else:
+            hi, fhi = tau, f
+            if side == 1:
+                flo *= 0.5
+            side = 1
+        if hi - lo <= tol:
+            tau = hi  # (the event after the crossing: the function has changed sign there)
+            f, y, z = trial(tau)
+            return tau, y, z, stats
+    raise EventLocationError(
+        f"event {compiled.events[which].name!r} between t = {a:.10g} and {b:.10g}: not located to {tol:.1e} in "
+        f"{MAX_LOCATION_ITERATIONS} trial solves (the bracket is [{lo:.15g}, {hi:.15g}], last trial "
+        f"{best[0]:.15g}); the event function may be discontinuous there"
+    )

@@ -1,0 +1,202 @@
+"""Declared events (daemodel/events.py): located during the solve to 1e-12 in t with each method's
+own accuracy, reset, projected onto the constraints, the algebraic variables solved anew, terminal
+events, batches with their own event times, chattering bounded (issue 27, second part)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel import errors as E
+
+G = 9.81
+
+
+def _ball(e=0.8, **event):
+    m = dm.Model("ball")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", f"-{G}")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": f"-{e}*v"}, **event)
+    return m
+
+
+def _impacts(count, e=0.8):
+    t, v, out = math.sqrt(2.0 / G), math.sqrt(2.0 * G), []
+    for _ in range(count):
+        out.append(t)
+        v *= e
+        t += 2.0 * v / G
+    return np.array(out)
+
+
+@pytest.mark.parametrize(
+    ("method", "options", "tol"),
+    [
+        ("radau", {"rtol": 1e-10, "atol": 1e-10}, 1e-12),
+        ("radau", {"stages": 3, "h": 0.01}, 1e-12),  # (a quadratic: every method is exact between impacts)
+        ("casadi-idas", {"rtol": 1e-10, "atol": 1e-10}, 1e-9),
+        ("casadi-collocation", {}, 1e-11),  # (located to 1e-12 max(1, |t|) each, on a sum of four flights)
+        ("reference", {}, 1e-11),
+    ],
+)
+def test_a_bouncing_ball_in_every_method(method, options, tol):
+    sol = dm.solve(_ball(), (0.0, 2.5), method=method, **options)
+    floor = sol.events["floor"]
+    assert np.abs(floor["t"][0] - _impacts(4)).max() < tol
+    np.testing.assert_allclose(floor["after"]["v"][0], -0.8 * floor["before"]["v"][0], rtol=1e-14)
+    assert np.abs(floor["before"]["h"][0]).max() < 1e-9 and sol.stats["events"] == 4
+    for t_event, after in zip(floor["t"][0], floor["after"]["v"][0], strict=True):
+        at = np.flatnonzero(sol.t == t_event)
+        if len(at):  # (outputs at an event time: the values after it)
+            assert sol["v"][at[0]] == after
+
+
+def test_outputs_on_t_eval_across_impacts():
+    grid = np.linspace(0.0, 2.5, 26)
+    sol = dm.solve(_ball(), (0.0, 2.5), stages=3, h=0.01, t_eval=grid)
+    impacts = _impacts(4)
+    v0 = [math.sqrt(2 * G) * 0.8**k for k in range(1, 5)]
+    exact = np.where(grid < impacts[0], 1.0 - 0.5 * G * grid**2, 0.0)
+    for k in range(4):
+        end = impacts[k + 1] if k < 3 else np.inf
+        span = (grid >= impacts[k]) & (grid < end)
+        s = grid[span] - impacts[k]
+        exact[span] = v0[k] * s - 0.5 * G * s**2
+    assert sol.t.tolist() == grid.tolist()
+    np.testing.assert_allclose(sol["h"], exact, atol=1e-12)
+
+
+def _wall(terminal=False, x0=1.0):
+    """A pendulum (index 3, reduced) swinging into a wall at x = -0.5; both velocities scaled by -0.8."""
+    m = dm.Model("wall")
+    m.states("x y u v")
+    m.algebraics("lam")
+    m.ode("x", "u")
+    m.ode("y", "v")
+    m.ode("u", "-lam*x")
+    m.ode("v", f"-lam*y - {G}")
+    m.constraint("x**2 + y**2 - 1", name="rod")
+    m.initial(x=x0, y=-math.sqrt(1 - x0**2), u=0.0, v=0.0)
+    m.event("wall", "x + 0.5", direction=-1, reset={"u": "-0.8*u", "v": "-0.8*v"}, terminal=terminal)
+    return m
+
+
+def test_a_pendulum_hits_a_wall():
+    compiled = _wall().compile()
+    reference = dm.solve(compiled, (0.0, 3.0), rtol=1e-13, atol=1e-13, stages=7)
+    sol = dm.solve(compiled, (0.0, 3.0), rtol=1e-10, atol=1e-10)
+    wall = sol.events["wall"]
+    assert wall["t"].shape == (1, 2) and sol.status == "success"
+    assert np.abs(wall["t"] - reference.events["wall"]["t"]).max() < 1e-9  # the impact times
+    x, y, u, v, lam = (wall["after"][k][0] for k in ("x", "y", "u", "v", "lam"))
+    assert np.abs(x**2 + y**2 - 1).max() < 1e-12 and np.abs(x * u + y * v).max() < 1e-12  # both levels
+    # the algebraic variable after the reset: its own equation (d/dt (x u + y v) = 0) at the new velocities
+    np.testing.assert_allclose(lam, (u**2 + v**2 - G * y) / (x**2 + y**2), rtol=1e-12)
+    assert np.abs(wall["after"]["lam"][0] - wall["before"]["lam"][0]).min() > 1.0  # (it did move)
+    assert wall["moved"][0].tolist() == [0.0, 0.0]  # (the reset keeps x u + y v = 0: nothing to project)
+
+
+def test_a_terminal_event_ends_the_solve():
+    sol = dm.solve(_wall(terminal=True), (0.0, 3.0), rtol=1e-10, atol=1e-10)
+    t_event = sol.events["wall"]["t"][0, 0]
+    assert sol.t[-1] == t_event < 1.0 and abs(sol["x"][-1] + 0.5) < 1e-9
+    assert sol["u"][-1] == sol.events["wall"]["after"]["u"][0, 0]  # (the values after the reset end it)
+
+
+def test_a_batch_of_100_with_their_own_event_times():
+    x0 = np.linspace(0.6, 1.0, 100)
+    grid = np.linspace(0.0, 2.0, 11)
+    y0 = {"x": x0, "y": -np.sqrt(1 - x0**2), "u": np.zeros(100), "v": np.zeros(100)}
+    batch = dm.solve(_wall(), (0.0, 2.0), rtol=1e-8, atol=1e-8, t_eval=grid, y0=y0)
+    times = batch.events["wall"]["t"]
+    assert batch["x"].shape == (100, 11) and np.unique(np.round(times[:, 0], 9)).size == 100
+    for b in (0, 37, 99):
+        single = dm.solve(_wall(x0=x0[b]), (0.0, 2.0), rtol=1e-8, atol=1e-8, t_eval=grid)
+        np.testing.assert_array_equal(batch["x"][b], single["x"])
+        k = single.events["wall"]["t"].shape[1]
+        np.testing.assert_array_equal(times[b, :k], single.events["wall"]["t"][0])
+
+
+def test_a_batch_with_events_needs_common_output_times():
+    with pytest.raises(E.SwitchError, match=r"a batch of 2 samples with events: each sample has its own event times"):
+        dm.solve(_ball(), (0.0, 1.0), rtol=1e-6, atol=1e-6, y0={"h": [1.0, 2.0], "v": [0.0, 0.0]})
+
+
+def test_chattering_is_bounded():
+    """e = 0.8 bounces infinitely often before t = 4.06 (Zeno)."""
+    with pytest.raises(
+        E.EventLimitError, match=r"event 'floor' would be event number 21 by t = 4\.0\d* \(max_events = 20\)"
+    ):
+        dm.solve(_ball(), (0.0, 5.0), rtol=1e-8, atol=1e-8, max_events=20)
+
+
+def test_directions():
+    m = dm.Model("sine")
+    m.states("x")
+    m.ode("x", "cos(t)")
+    m.initial(x=0.0)
+    m.event("up", "x - 0.5", direction=1)
+    m.event("down", "x - 0.5", direction=-1)
+    m.event("any", "x - 0.5")
+    sol = dm.solve(m, (0.0, 9.0), rtol=1e-10, atol=1e-10)
+    up, down = [math.pi / 6, 13 * math.pi / 6], [5 * math.pi / 6, 17 * math.pi / 6]
+    assert np.abs(sol.events["up"]["t"][0] - up).max() < 1e-9
+    assert np.abs(sol.events["down"]["t"][0] - down).max() < 1e-9
+    assert np.abs(sol.events["any"]["t"][0] - sorted(up + down)).max() < 1e-9
+
+
+def test_events_and_time_switches_together():
+    m = dm.Model("ball")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", f"-{G} + Piecewise((0, t < 0.2), (0, True))")  # (a switch in t that changes nothing)
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": "-0.8*v"})
+    sol = dm.solve(m, (0.0, 2.5), rtol=1e-10, atol=1e-10)
+    assert np.abs(sol.events["floor"]["t"][0] - _impacts(4)).max() < 1e-12
+
+
+def test_the_report_lists_the_events():
+    report = _wall(terminal=True).compile().report()
+    assert "Events (1):\n  wall: x + 0.5 crosses 0 (falling); then u = -0.8*u, v = -0.8*v; ends the solve" in report
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "message"),
+    [
+        (lambda m: m.event("2x", "h"), E.InvalidNameError, r"event name '2x' is not an identifier"),
+        (lambda m: m.event("floor", "h"), E.InvalidNameError, r"event name 'floor' is already used"),
+        (lambda m: m.event("e", "h", direction=2), E.InvalidValueError, r"event 'e': direction must be -1, 0 or \+1"),
+        (lambda m: m.event("e", "h", terminal=1), E.InvalidValueError, r"event 'e': terminal must be True or False"),
+        (lambda m: m.event("e", "h", reset=[1]), E.InvalidValueError, r"event 'e': reset must be a dict"),
+        (
+            lambda m: m.event("e", "h", reset={"w": "1"}),
+            E.UnknownSymbolError,
+            r"event 'e': reset names 'w', which is no state",
+        ),
+        (lambda m: m.event("e", "h + q"), E.UnknownSymbolError, r"event 'e' \(when\): unknown name\(s\) 'q'"),
+    ],
+)
+def test_declaration_errors_name_the_event(call, error, message):
+    with pytest.raises(error, match=message):
+        call(_ball())
+
+
+def test_an_algebraic_variable_cannot_be_reset():
+    m = _wall()
+    with pytest.raises(E.InvalidValueError, match=r"event 'e': reset names the algebraic variable 'lam'; algebraic"):
+        m.event("e", "x", reset={"lam": "0"})
+
+
+def test_an_event_on_a_pruned_variable_is_refused():
+    m = dm.Model("two")
+    m.states("a b")
+    m.ode("a", "-a")
+    m.ode("b", "-b")
+    m.initial(a=1.0, b=1.0)
+    m.event("low", "b - 0.5")
+    with pytest.raises(E.UnknownOutputError, match=r"event 'low' needs 'b', which the requested outputs pruned away"):
+        m.compile(outputs=["a"])
