@@ -77,7 +77,8 @@ def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, o
 
     model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
     start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
-    options = dataclasses.replace(options, **changes)
+    fields = {f.name for f in dataclasses.fields(options)}
+    options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})  # (pinn: no t_eval)
     if has_time_switches(model):
         return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
     reduced = model.reduced(backend.max_index) if model.index > backend.max_index else model

@@ -200,3 +200,10 @@ def test_an_event_on_a_pruned_variable_is_refused():
     m.event("low", "b - 0.5")
     with pytest.raises(E.UnknownOutputError, match=r"event 'low' needs 'b', which the requested outputs pruned away"):
         m.compile(outputs=["a"])
+
+
+def test_the_pinn_with_events():
+    """The segments end at the events: each piece of flight trained, certified, and the impacts located."""
+    sol = dm.solve(_ball(), (0.0, 1.5), method="pinn", h=0.05)
+    assert sol.status == "success" and sol.events["floor"]["t"].shape == (1, 2)
+    assert np.abs(sol.events["floor"]["t"][0] - _impacts(2)).max() < 1e-8

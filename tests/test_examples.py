@@ -50,6 +50,13 @@ def test_switches_example_keeps_the_order_across_the_switch():
         assert f"  {method} " in out
 
 
+def test_events_example_locates_the_impacts_and_keeps_the_constraints():
+    out = run("events", "--quick")
+    assert "wall: x + 0.5 crosses 0 (falling); then u = -0.8*u, v = -0.8*v" in out
+    assert "impacts at t = [0.71300838" in out and "terminal: the solve ends at t = 0.713008381" in out
+    assert "a batch of 10: first impacts from t = " in out
+
+
 @pytest.mark.parametrize(
     ("example", "kwargs", "problem"),
     [

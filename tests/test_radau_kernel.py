@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau import casadi_engine, kernel, loop
-from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 from daemodel.backends.radau.linalg import dense_sign_det
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
@@ -25,31 +24,10 @@ from daemodel.tableau import radau_iia
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import scaling_models
+from test_radau_loop import COUNTS, _with_and_without_run  # (pytest puts tests/ on the path)
+from test_radau_sparse import _engine
 
 pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
-
-COUNTS = (
-    "steps", "attempts", "rejected_steps", "newton_failures", "newton_iterations", "max_newton_iterations",
-    "jacobian_evaluations", "lu_decompositions", "residual_evaluations", "compiled_retries", "h_min", "h_max",
-)  # fmt: skip
-
-
-def _engine(model):
-    """The casadi engine of ``model``'s first solve (its Jacobian pattern and static pivot order)."""
-    engines = []
-    original = CasadiEngine.__init__
-
-    def keep(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        engines.append(self)
-
-    CasadiEngine.__init__ = keep
-    try:
-        compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6)
-    finally:
-        CasadiEngine.__init__ = original
-    return compiled, engines[-1]
 
 
 @pytest.mark.parametrize(("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20)])
@@ -87,14 +65,6 @@ def test_signs_of_determinants_in_c(m):
     assert sign(singular.ravel(order="F"))[0] == 0.0 == dense_sign_det(singular)
     assert sign(np.full(m * m, np.nan))[0] == 0.0 == dense_sign_det(np.full((m, m), np.nan))
     assert sign(np.full(m * m, np.inf))[0] == 0.0
-
-
-def _with_and_without_run(monkeypatch, model, t_span, **options):
-    run = dm.solve(model, t_span, **options)
-    monkeypatch.setattr(CasadiEngine, "make_compiled_run", lambda self, iterations: None)
-    single = dm.solve(model, t_span, **options)
-    monkeypatch.undo()
-    return run, single
 
 
 @pytest.mark.parametrize(

@@ -302,6 +302,23 @@ def find_compiler() -> str | None:
     return next((path for path in map(shutil.which, COMPILERS) if path), None)
 
 
+def private_directory(prefix: str):
+    """A new private temporary directory (mode 0700) for the C compiler's files, as a Path; the caller
+    removes it.  :class:`~daemodel.errors.CompileError` where none can be made."""
+    import tempfile
+    from pathlib import Path
+
+    from daemodel.errors import CompileError
+
+    try:
+        return Path(tempfile.mkdtemp(prefix=prefix))
+    except OSError as error:
+        raise CompileError(
+            f"radau: jit=True: no private temporary directory for the compiler ({error}); set TMPDIR to a "
+            "writable folder, or solve with jit=False"
+        ) from None
+
+
 def machine_code(function, compiler: str):
     """``function`` compiled to machine code by ``compiler`` (casadi's jit through its shell compiler).
 
@@ -310,21 +327,14 @@ def machine_code(function, compiler: str):
     :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
     """
     import shutil
-    import tempfile
 
     import casadi
 
     from daemodel.errors import CompileError
 
+    folder = private_directory("daemodel-jit-")
     try:
-        folder = tempfile.mkdtemp(prefix="daemodel-jit-")
-    except OSError as error:
-        raise CompileError(
-            f"radau: jit=True: no private temporary directory for the compiler ({error}); set TMPDIR to a "
-            "writable folder, or solve with jit=False"
-        ) from None
-    try:
-        options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": folder + "/", "cleanup": False}
+        options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": f"{folder}/", "cleanup": False}
         inputs = function.mx_in()  # (an SX function makes new symbols on every call)
         return casadi.Function(
             function.name() + "_machine_code",

@@ -284,20 +284,13 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
     """
     import shutil
     import subprocess
-    import tempfile
-    from pathlib import Path
 
     import casadi
+    from daemodel.backends.radau.compiled import private_directory
 
     from daemodel.errors import CompileError
 
-    try:
-        folder = Path(tempfile.mkdtemp(prefix="daemodel-kernel-"))
-    except OSError as error:
-        raise CompileError(
-            f"radau: jit=True: no private temporary directory for the compiler ({error}); set TMPDIR to a "
-            "writable folder, or solve with jit=False"
-        ) from None
+    folder = private_directory("daemodel-kernel-")
     try:
         source, library = folder / "static_factors.c", folder / "static_factors.so"
         source.write_text(kernel_source(lu, transform, factors, m))
