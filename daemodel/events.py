@@ -33,6 +33,9 @@ from daemodel.errors import EventLimitError, EventLocationError, SwitchError
 DEFAULT_MAX_EVENTS = 1000
 # Width in t to which an event is located (relative to max(1, |t|)).
 EVENT_TOL = 1e-12
+# Chattering: more than CHATTER_EVENTS events within CHATTER_SPAN of t_span's length end the solve
+# (EventLimitError) before max_events does; a sliding mode makes thousands, each a few trial solves.
+CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
 # Trial solves of the location of one event before EventLocationError.
 MAX_LOCATION_ITERATIONS = 100
 
@@ -47,6 +50,9 @@ class Event:
     direction: int
     reset: tuple
     terminal: bool
+    # a switch's own event (with_state_events): after it, the function's side is the one it crossed to,
+    # and going straight back is a crossing too (the branch locked for the piece would be wrong)
+    strict: bool = False
 
     def describe(self, state_names) -> str:
         side = {1: "rising", -1: "falling", 0: "either way"}[self.direction]
@@ -66,18 +72,47 @@ def _functions(compiled):
         resets = [numeric.batch_function([expr for _, expr in e.reset]) if e.reset else None for e in compiled.events]
         return when, resets
 
-    return compiled.cached("events", build)
+    return compiled.cached(("events", compiled.events), build)
+
+
+def with_state_events(compiled):
+    """``compiled`` with an event at each of its switches on a state or algebraic variable
+    (:func:`daemodel.switches.find_switches`; no reset, named after the switch, ``floor`` and
+    ``ceiling`` through ``sin(pi x)``, which crosses 0 where they step), so that no step straddles
+    one; cached on ``compiled``."""
+    from daemodel.switches import find_switches
+
+    key = ("with-state-events",)
+    if key not in compiled._cache:
+        extra, names, functions = [], {e.name for e in compiled.events}, set()
+        for switch in find_switches(compiled):
+            if switch.time_only or switch.function in functions:
+                continue  # (one event a function: an index-2 model repeats f's switches in its hidden constraints)
+            functions.add(switch.function)
+            name, k = f"{switch.kind} in {switch.equation}", 1
+            while name in names:
+                k += 1
+                name = f"{switch.kind} in {switch.equation} ({k})"
+            names.add(name)
+            function = switch.function
+            if switch.kind in ("floor", "ceiling"):
+                function = sp.sin(sp.pi * function)
+            extra.append(Event(name, function, 0, (), False, strict=True))
+        compiled._cache[key] = dataclasses.replace(compiled, events=(*compiled.events, *extra)) if extra else compiled
+    return compiled._cache[key]
 
 
 def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, **changes):
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
     :func:`daemodel.switches.solve_with_breakpoints` does)."""
     from daemodel.initial_states import InitialStates
-    from daemodel.switches import has_time_switches, solve_with_breakpoints
+    from daemodel.switches import _segment_steps, has_time_switches, solve_with_breakpoints
 
     model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
     start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
     fields = {f.name for f in dataclasses.fields(options)}
+    if "h" not in changes and getattr(options, "h", None) is not None:  # (a piece shorter than h: equal steps)
+        changes["h"] = _segment_steps(a, b, options.h)
     options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})  # (pinn: no t_eval)
     if has_time_switches(model):
         return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
@@ -94,24 +129,27 @@ def _outputs(sol, compiled):
     return np.asarray(sol.t, dtype=float), Y, Z
 
 
-def _crossing(values: np.ndarray, direction: int, armed: bool) -> np.ndarray:
-    """Indices j of the outputs where the function crossed zero from output j-1 (in ``direction``),
-    or reached it exactly; ``armed`` False: not until it has left zero first."""
+def _crossing(values: np.ndarray, direction: int, armed: bool, side: float = 0.0) -> np.ndarray:
+    """``[j, i]``: the first output j where the function is on the other side of zero (in
+    ``direction``) than at output i, the last before it off zero (values exactly 0 have no side: a
+    function that stays on zero crosses nothing); empty where there is none.  ``armed`` False: not
+    until it has left zero and stayed on one side; ``side`` (+1 or -1): the side the function
+    starts on, whatever its first value (a switch just crossed)."""
     sign = np.sign(values)
-    hits = []
+    current, at = (side, 0) if side else (sign[0], 0)
+    armed = armed or bool(side)
     for j in range(1, len(values)):
+        if sign[j] == 0:
+            continue
         if not armed:
-            if sign[j - 1] != 0 and sign[j] == sign[j - 1]:
-                armed = True
+            armed = sign[j] == current
+            current, at = sign[j], j
             continue
-        before, after = sign[j - 1], sign[j]
-        if before == 0 or before == after:
-            continue
-        rising = after > before
-        if direction == 0 or (direction > 0) == rising:
-            hits.append(j)
-            break
-    return np.asarray(hits, dtype=int)
+        if current != 0 and sign[j] != current:
+            if direction == 0 or (direction > 0) == (sign[j] > current):
+                return np.array([j, at], dtype=int)
+        current, at = sign[j], j
+    return np.zeros(0, dtype=int)
 
 
 def solve_with_events(backend, compiled, t_span, start, options, max_events: int = DEFAULT_MAX_EVENTS):
@@ -150,7 +188,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.base import output_times
     from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution
-    from daemodel.switches import _merge_stats, _onto_constraints
+    from daemodel.switches import _merge_stats, _onto_constraints, has_state_switches, lock_branches
 
     if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 0:
         raise EventLimitError(f"max_events must be a non-negative integer; got {max_events!r}")
@@ -163,23 +201,28 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     h = getattr(options, "h", None)
     pieces, all_stats, record = [], [], {e.name: {"t": [], "before": [], "after": [], "moved": []} for e in events}
     armed = np.ones(len(events), dtype=bool)
+    sides = np.zeros(len(events))  # (strict events just fired: the side they crossed to)
     t, count, solve_time, setup_time, last = t0, 0, 0.0, 0.0, None
+    recent = []  # (the event times, to see chattering before max_events)
+    lock = has_state_switches(compiled)
     while True:
-        sol = _span_solve(backend, compiled, t, t1, Y, Z, P, start.batched, options, t_eval=None)
+        # (switches on variables locked to the branch where the piece starts: smooth until an event)
+        piece = lock_branches(compiled, t, Y[0], Z[0], P[0]) if lock else compiled
+        sol = _span_solve(backend, piece, t, t1, Y, Z, P, start.batched, options, t_eval=None)
         all_stats.append(sol.stats)
         solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
         last = sol
         T, Ys, Zs = _outputs(sol, compiled)
         F = when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
-        first, which, hit = None, None, {}
+        first, which, hit, before_index = None, None, {}, None
         for e, event in enumerate(events):
-            hits = _crossing(F[:, e], event.direction, bool(armed[e]))
+            hits = _crossing(F[:, e], event.direction, bool(armed[e]), sides[e])
             if len(hits):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
-                    first, which = int(hits[0]), e
+                    first, which, before_index = int(hits[0]), e, int(hits[1])
         if first is None:
-            pieces.append((t, t1, Y, Z, None))
+            pieces.append((t, t1, Y, Z, None, piece))
             break
         count += 1
         if count > max_events:
@@ -188,13 +231,26 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 f"{max_events}): events this close together are chattering (Zeno); raise max_events, or end t_span "
                 "before it"
             )
-        a, b, Fa, Fb = T[first - 1], T[first], F[first - 1, which], F[first, which]
-        ya, za = Ys[first - 1 : first], Zs[first - 1 : first]
+        a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
+        ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
         t_event, y_event, z_event, located = _locate(
-            backend, compiled, options, start.batched, P, which, when, a, b, Fa, Fb, ya, za, h
+            backend, piece, options, start.batched, P, which, when, a, b, Fa, Fb, ya, za, h
         )
         all_stats += located
-        pieces.append((t, t_event, Y, Z, (which, t_event)))
+        recent.append(t_event)
+        if len(recent) > CHATTER_EVENTS and recent[-1] - recent[-1 - CHATTER_EVENTS] <= CHATTER_SPAN * (t1 - t0):
+            how = (
+                ": the switch flips back at once, the solution slides along it (a sliding mode), which "
+                "integration on one branch at a time cannot follow; smooth the switch"
+                if events[which].strict
+                else " (Zeno); end t_span before it"
+            )
+            first_time = recent[-1 - CHATTER_EVENTS]
+            raise EventLimitError(
+                f"event '{events[which].name}': {CHATTER_EVENTS} events between t = {first_time:.12g} and "
+                f"{recent[-1]:.12g}: chattering{how}"
+            )
+        pieces.append((t, t_event, Y, Z, (which, t_event), piece))
         # every event whose function changed sign (its way) between the bracket's start and the located
         # time fires there, in declaration order (identical or simultaneous events)
         F_event = when(np.array([t_event]), y_event, z_event, P)[0]
@@ -204,7 +260,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if e == which
             or (
                 hit.get(e) == first
-                and (len(_crossing(np.array([F[first - 1, e], F_event[e]]), event.direction, True)) or F_event[e] == 0)
+                and (
+                    len(_crossing(np.array([F[before_index, e], F_event[e]]), event.direction, True)) or F_event[e] == 0
+                )
             )
         ]
         before = np.concatenate([y_event, z_event], axis=1)
@@ -224,6 +282,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             projected = _onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
             moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
             Y = projected
+            if lock:  # (z on the branch the next piece locks)
+                after = lock_branches(compiled, t_event, Y[0], z_event[0], P[0])
+                reduced = after.reduced(backend.max_index) if after.index > backend.max_index else after
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
         for e in fired:
             entry = record[events[e].name]
@@ -235,6 +296,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         # (the fired events' functions are 0 here: armed again once they have left zero; the others stay)
         armed = np.ones(len(events), dtype=bool)
         armed[fired] = False
+        sides = np.zeros(len(events))
+        for e in fired:
+            if events[e].strict:  # (the side it crossed to: the value there, else the output after the bracket)
+                sides[e] = np.sign(F_event[e]) or np.sign(F[first, e]) or 1.0
         if terminal:
             break
         t = t_event
@@ -243,7 +308,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     # which starts with the values after it
     names = (*compiled.state_names, *compiled.algebraic_names)
     times, rows = [], []
-    for a, b, Ya, Za, event in pieces:
+    for a, b, Ya, Za, event, piece in pieces:
         closed = event is None
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
@@ -252,14 +317,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if len(grid) == 1 and grid[0] == a:
                 piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
             else:
-                sol = _span_solve(backend, compiled, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
+                sol = _span_solve(backend, piece, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)
                 solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
                 piece_t, Yp, Zp = _outputs(sol, compiled)
                 piece = np.concatenate([Yp, Zp], axis=1)
         else:
             if not closed:
-                sol = _span_solve(backend, compiled, a, b, Ya, Za, P, start.batched, options, t_eval=None)
+                sol = _span_solve(backend, piece, a, b, Ya, Za, P, start.batched, options, t_eval=None)
                 all_stats.append(sol.stats)
                 solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
             else:
@@ -338,6 +403,7 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
         if not lo < tau < hi:
             tau = 0.5 * (lo + hi)
+        tau = max(tau, min(a + 1e-13 * max(1.0, abs(a)), 0.5 * (lo + hi)))  # (no trial span below ~1e-13)
         f, y, z = trial(tau)
         best = (tau, y, z)
         if f == 0 or hi - lo <= tol:

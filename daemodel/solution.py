@@ -226,6 +226,26 @@ class Solution:
         return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
 
     # ---- between the output times ---------------------------------------------------------
+    def _left_limits(self, ends: np.ndarray, times: np.ndarray):
+        """``(j, values just before (B, n+m))`` for each query ``times[j]`` whose interval ends at a
+        breakpoint or event, before it: the values there are those after the switch."""
+        records = [self.breakpoints] if self.breakpoints else []
+        records += list(self.events.values())
+        if not records:
+            return []
+        names = [*self.compiled.state_names, *self.compiled.algebraic_names]
+        out = []
+        for j, (end, q) in enumerate(zip(ends, times, strict=True)):
+            if q >= end:
+                continue
+            for record in records:
+                hit = np.argwhere(record["t"] == end)
+                if len(hit):
+                    row = [np.asarray(record["before"][name])[:, hit[0][1]] for name in names]
+                    out.append((j, np.stack(row, axis=-1)))
+                    break
+        return out
+
     def at(self, times) -> dict[str, np.ndarray]:
         """Values at ``times`` between (or on) the output times, by name: (len(times),) or (B, len(times)).
 
@@ -268,8 +288,14 @@ class Solution:
         s = ((times - t[k]) / dt)[None, :, None]  # (1, K, 1)
         h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
         step = dt[None, :, None]
-        y = h00 * Y[:, k] + h10 * step * F[:, k] + h01 * Y[:, k + 1] + h11 * step * F[:, k + 1]
-        z = (1 - s) * Z[:, k] + s * Z[:, k + 1]
+        right_y, right_f, right_z = Y[:, k + 1], F[:, k + 1], Z[:, k + 1]  # (copies: fancy indexing)
+        for j, before in self._left_limits(t[k + 1], times):  # (an interval that ends at a switch or event)
+            right_y[:, j], right_z[:, j] = before[:, :n], before[:, n:]
+            right_f[:, j] = numeric.batch_function(list(c.rhs))(
+                t[k[j] + 1], before[:, :n], before[:, n:], self.parameters
+            )
+        y = h00 * Y[:, k] + h10 * step * F[:, k] + h01 * right_y + h11 * step * right_f
+        z = (1 - s) * Z[:, k] + s * right_z
         if m:
             determining = [constraint.determining for constraint in c.constraints]
             H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, c.algebraics)

@@ -11,7 +11,7 @@ import numpy as np
 from daemodel.backends import get_backend
 from daemodel.compiled import CompiledDAE
 from daemodel.errors import ModelError, TimeSpanError, UnknownOptionError
-from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events
+from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
 from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
 from daemodel.model import Model
@@ -70,8 +70,14 @@ def solve(
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
-    if model.events:  # (located, reset and restarted from, in every method alike)
-        return solve_with_events(backend, model, t_span, start, opts, max_events)
+    located = with_state_events(model)  # (declared events, and one at each switch on a variable)
+    # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
+    # switches on variables of a batch are crossed by the steps, as before, and declared events refused)
+    common = len(start.p) == 1 or getattr(opts, "t_eval", None) is not None
+    # (and in float64: float32's rounding, ~1e-7, cannot tell which side of a switch a located state is on)
+    common = common and getattr(opts, "dtype", "float64") in ("float64", None)
+    if model.events or (located.events and common):  # (located, reset and restarted from, in every method)
+        return solve_with_events(backend, located, t_span, start, opts, max_events)
     if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
         return solve_with_breakpoints(backend, model, t_span, start, opts)
     return backend.solve(compiled, t_span, start, opts)

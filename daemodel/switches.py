@@ -80,7 +80,7 @@ class Switch:
     time_only: bool
 
     def describe(self) -> str:
-        what = "time breakpoint" if self.time_only else "state event (not located: the step size control crosses it)"
+        what = "time breakpoint" if self.time_only else "state event, located during the solve"
         crossing = "an integer" if self.kind in ("floor", "ceiling") else "0"
         return f"{self.kind} in {self.equation}: {self.function} crosses {crossing} ({what})"
 
@@ -253,12 +253,12 @@ def _time_only(expr, time_symbols) -> bool:
     return sp.sympify(expr).free_symbols <= time_symbols
 
 
-def _fix(expr, at: dict, time_symbols: set):
-    """``expr`` with every switch whose switching functions depend on time (and parameters) only
-    replaced by its branch at ``at`` (``{t: tau, parameter: value}``)."""
+def _fix(expr, at: dict, decide):
+    """``expr`` with every switch whose switching functions ``decide`` accepts (a predicate on an
+    expression) replaced by its branch at ``at`` (``{symbol: value}``)."""
     if expr.is_Atom:
         return expr
-    args = [_fix(a, at, time_symbols) if isinstance(a, sp.Basic) else a for a in expr.args]
+    args = [_fix(a, at, decide) if isinstance(a, sp.Basic) else a for a in expr.args]
     if isinstance(expr, sp.Piecewise):
         kept = []
         for (value, _), (_, condition) in zip(args, expr.args, strict=True):
@@ -267,7 +267,7 @@ def _fix(expr, at: dict, time_symbols: set):
                     return value
                 kept.append((value, True))
                 break
-            if kept or not _time_only(condition, time_symbols):
+            if kept or not decide(condition):
                 kept.append((value, condition))
                 continue
             if bool(condition.subs(at)):
@@ -275,7 +275,7 @@ def _fix(expr, at: dict, time_symbols: set):
         return sp.Piecewise(*kept) if kept else sp.nan
     if isinstance(expr, sp.Heaviside | sp.sign | sp.Abs | sp.floor | sp.ceiling | sp.DiracDelta):
         inner = args[0]
-        if not _time_only(inner, time_symbols):
+        if not decide(inner):
             return expr.func(*args)
         value = float(inner.subs(at))
         if isinstance(expr, sp.Heaviside):
@@ -289,7 +289,7 @@ def _fix(expr, at: dict, time_symbols: set):
             return sp.S.Zero  # (0 inside a segment: the switch is at its ends)
         return sp.Integer(math.floor(value) if isinstance(expr, sp.floor) else math.ceil(value))
     if isinstance(expr, sp.Max | sp.Min):
-        if not all(_time_only(a, time_symbols) for a in args):
+        if not all(decide(a) for a in args):
             return expr.func(*args)
         values = [float(a.subs(at)) for a in args]
         pick = int(np.argmax(values) if isinstance(expr, sp.Max) else np.argmin(values))
@@ -303,11 +303,35 @@ def branch_model(compiled, tau: float, p: np.ndarray):
     ``compiled``, with their generated code)."""
     time_symbols = {compiled.t, *compiled.parameters}
     at = {compiled.t: sp.Float(tau), **dict(zip(compiled.parameters, (sp.Float(float(v)) for v in p), strict=True))}
-    rhs = tuple(_fix(e, at, time_symbols) for e in compiled.rhs)
+    return _fixed(compiled, at, lambda e: _time_only(e, time_symbols), "branch")
+
+
+def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray):
+    """``compiled`` with its switches on states and algebraic variables fixed to their branch at
+    ``(t, y, z)`` (time switches left to :func:`branch_model`): smooth until one of those switching
+    functions crosses zero, which :mod:`daemodel.events` locates and then locks again.  Cached."""
+    time_symbols = {compiled.t, *compiled.parameters}
+    values = [
+        (compiled.t, t),
+        *zip(compiled.parameters, p, strict=True),
+        *zip(compiled.states, y, strict=True),
+        *zip(compiled.algebraics, z, strict=True),
+    ]
+    at = {symbol: sp.Float(float(value)) for symbol, value in values}
+    return _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked")
+
+
+def has_state_switches(compiled) -> bool:
+    return any(not s.time_only for s in find_switches(compiled))
+
+
+def _fixed(compiled, at: dict, decide, kind: str):
+    """``compiled`` with the switches ``decide`` accepts fixed at ``at`` (see :func:`_fix`), cached."""
+    rhs = tuple(_fix(e, at, decide) for e in compiled.rhs)
     constraints = tuple(
-        dataclasses.replace(c, chain=tuple(_fix(e, at, time_symbols) for e in c.chain)) for c in compiled.constraints
+        dataclasses.replace(c, chain=tuple(_fix(e, at, decide) for e in c.chain)) for c in compiled.constraints
     )
-    key = ("branch", rhs, tuple(c.chain for c in constraints))
+    key = (kind, rhs, tuple(c.chain for c in constraints))
     if key not in compiled._cache:
         compiled._cache[key] = dataclasses.replace(compiled, rhs=rhs, constraints=constraints, _cache={})
     return compiled._cache[key]

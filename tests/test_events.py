@@ -207,3 +207,74 @@ def test_the_pinn_with_events():
     sol = dm.solve(_ball(), (0.0, 1.5), method="pinn", h=0.05)
     assert sol.status == "success" and sol.events["floor"]["t"].shape == (1, 2)
     assert np.abs(sol.events["floor"]["t"][0] - _impacts(2)).max() < 1e-8
+
+
+# ---- switches on variables: located, the branch locked between them ----------------------------
+def _state_switch():
+    """x' = 1 + x below x = 1/2, 2 x above: exact x(1) = e^(2 (1 - ln 1.5)) / 2 (the switch at ln 1.5)."""
+    m = dm.Model("state-switch")
+    m.states("x")
+    m.ode("x", "Piecewise((1 + x, x < 0.5), (2*x, True))")
+    m.initial(x=0.0)
+    return m
+
+
+@pytest.mark.parametrize("stages", [1, 2, 3])
+def test_fixed_radau_keeps_its_order_across_a_switch_on_a_state(stages):
+    exact = 0.5 * math.exp(2 * (1 - math.log(1.5)))
+    hs = [0.1, 0.05, 0.025]
+    errors = [abs(dm.solve(_state_switch(), (0.0, 1.0), stages=stages, h=h)["x"][-1] - exact) for h in hs]
+    assert float(np.polyfit(np.log(hs), np.log(errors), 1)[0]) > 2 * stages - 1 - 0.3, errors
+
+
+def test_a_switch_on_a_state_is_located_and_reported():
+    compiled = _state_switch().compile()
+    assert "Piecewise in x': x - 0.5 crosses 0 (state event, located during the solve)" in compiled.report()
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-10, atol=1e-10)
+    switch = sol.events["Piecewise in x'"]
+    assert abs(switch["t"][0, 0] - math.log(1.5)) < 1e-12
+    assert abs(sol["x"][-1] - 0.5 * math.exp(2 * (1 - math.log(1.5)))) < 1e-12
+
+
+def test_a_valve_that_shuts_on_a_level():
+    """x' = -z, 0 = z - [x > 0.2]: the level falls at rate 1 until 0.2 (t = 0.8), where the flow z stops."""
+    m = dm.Model("valve")
+    m.states("x")
+    m.algebraics("z")
+    m.ode("x", "-z")
+    m.constraint("z - Piecewise((1, x > 0.2), (0, True))", name="valve")
+    m.initial(x=1.0)
+    for options in ({"rtol": 1e-10, "atol": 1e-10}, {"stages": 3, "h": 0.1}):
+        sol = dm.solve(m, (0.0, 1.0), t_eval=[0.0, 0.5, 1.0], **options)
+        valve = sol.events["Piecewise in valve"]
+        assert abs(valve["t"][0, 0] - 0.8) < 1e-12
+        assert valve["before"]["z"][0, 0] == 1.0 and valve["after"]["z"][0, 0] == 0.0
+        np.testing.assert_allclose(sol["x"], [1.0, 0.5, 0.2], atol=1e-12)
+
+
+def test_a_sliding_mode_is_refused_as_chattering():
+    m = dm.Model("slide")
+    m.states("x")
+    m.ode("x", "-sign(x)")
+    m.initial(x=1.0)
+    with pytest.raises(
+        E.EventLimitError,
+        match=r"event 'sign in x'': 20 events between t = 1 and 1\.0+\d*: chattering: "
+        r"the switch flips back at once, the solution slides along it \(a sliding mode\)",
+    ):
+        dm.solve(m, (0.0, 2.0), rtol=1e-6, atol=1e-6)
+
+
+def test_compare_takes_a_model_with_events():
+    result = dm.compare(_ball(), (0.0, 1.5), methods=["radau", "casadi-idas"])
+    for run in result.runs:
+        assert run.errors["h"]["max"] < 1e-5, (run.method, run.errors)
+
+
+def test_values_between_outputs_take_the_side_of_the_event_they_are_on():
+    sol = dm.solve(_ball(), (0.0, 1.0), rtol=1e-10, atol=1e-10)
+    t_event = sol.events["floor"]["t"][0, 0]
+    at = sol.at([t_event - 0.01, t_event + 0.01])
+    before, after = t_event - 0.01, 0.01
+    np.testing.assert_allclose(at["h"], [1 - 0.5 * G * before**2, 0.8 * math.sqrt(2 * G) * after - 0.5 * G * after**2])
+    np.testing.assert_allclose(at["v"], [-G * before, 0.8 * math.sqrt(2 * G) - G * after], rtol=1e-9)

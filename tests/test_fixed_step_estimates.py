@@ -12,14 +12,13 @@ from daemodel.problems import PENDULUM
 
 
 def _kink() -> dm.Model:
-    """x' = 1 before s = t = 0.52 and -1 after: x = min(t, 1.04 - t), a kink between grid points.
-    (A switch on the state s, which the solve does not stop at; one on t would be a breakpoint, which
-    the grid is cut at: tests/test_switches.py.)"""
+    """x' = 1 before t = 0.52 and -1 after (to 1e-4: tanh), x = min(t, 1.04 - t): a kink between grid
+    points.  (A smooth function, which no solve stops at; a Piecewise would be a switch, which the
+    grid is cut at or an event located at: tests/test_switches.py, tests/test_events.py.)"""
     m = dm.Model("kink")
-    m.states("x s")
-    m.ode("x", "Piecewise((1, s < 0.52), (-1, True))")
-    m.ode("s", "1")
-    m.initial(x=0.0, s=0.0)
+    m.states("x")
+    m.ode("x", "tanh(10000*(0.52 - t))")
+    m.initial(x=0.0)
     return m
 
 

@@ -39,6 +39,10 @@ PREDICTIVE = True
 KEEP_H_BAND_COMPILED = (1.0, 1.5)
 
 
+# The first step is at least this (times max(1, |t0|)): 1e4 times the step size underflow's threshold.
+INITIAL_STEP_FLOOR = 1e-10
+
+
 class FixedGrid:
     """Steps along ``t0 + k h`` (the last one shortened to end at t1), Newton to rounding, each step's
     local error estimate checked (:meth:`~.error.ErrorEstimate.check_fixed`)."""
@@ -198,6 +202,8 @@ class Radau5Controller:
         d0 = float(stepper.rms(stepper.y / sc).max()) if stepper.n else 0.0
         d1 = float(stepper.rms(f0 / sc).max()) if stepper.n else 0.0
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
+        h0 = max(h0, INITIAL_STEP_FLOOR * max(1.0, abs(t0)))
         return min(h0, t1 - t0)
 
     def budget_error(self, stats, t, h, t1, half, recent, projected=None) -> StepLimitError:
