@@ -24,8 +24,8 @@ from daemodel.tableau import radau_iia
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import scaling_models
-from test_radau_loop import COUNTS, _with_and_without_run  # (pytest puts tests/ on the path)
-from test_radau_sparse import _engine
+from test_radau_loop import COUNTS, _ends, _with_and_without_run  # (pytest puts tests/ on the path)
+from test_radau_sparse import _engine, _pinches
 
 pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
 
@@ -91,15 +91,7 @@ def test_growth_past_the_bound_hands_the_attempt_back(monkeypatch):
     monkeypatch.setattr(casadi_engine, "MAX_GROWTH", 0.0)
     monkeypatch.setattr(loop, "MAX_GROWTH", 0.0)
     model = scaling_models.reaction_diffusion(15)
-    ends = []
-    advance = loop.CompiledRun.advance
-
-    def recorded(self, *args):
-        out = advance(self, *args)
-        ends.append(out[-1])
-        return out
-
-    monkeypatch.setattr(loop.CompiledRun, "advance", recorded)
+    ends = _ends(monkeypatch)
     refused = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-6, jit=True)
     monkeypatch.undo()
     assert ends and set(ends) == {loop.HANDBACK}
@@ -113,13 +105,7 @@ def test_growth_past_the_bound_hands_the_attempt_back(monkeypatch):
 def test_a_singular_system_in_the_run_is_named_by_the_fallback():
     """Thirty copies of 0 = (t - 0.5) (z - 1): at t = 0.5 a pivot of the static factors is 0; the run
     hands the attempt back and SuperLU's factorisation names the cause."""
-    m = dm.Model("pinches")
-    for k in range(30):
-        m.states(f"y{k}")
-        m.algebraics(f"z{k}")
-        m.ode(f"y{k}", f"-y{k} + z{k}")
-        m.constraint(f"(t - 0.5)*(z{k} - 1)", name=f"pinch{k}")
-        m.initial(**{f"y{k}": 1.0, f"z{k}": 1.0})
+    m = _pinches()
     with pytest.raises(E.ConvergenceError, match=r"the Newton matrix is singular .* at t = 0.5 .*do not determine"):
         dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False, jit=True)
 

@@ -108,9 +108,8 @@ def test_growth_past_the_bound_falls_back_to_superlu(monkeypatch):
         np.testing.assert_allclose(refused[name], general[name], rtol=1e-7, atol=1e-7)
 
 
-def test_a_singular_system_is_named_by_the_fallback():
-    """Thirty copies of 0 = (t - 0.5) (z - 1): g_z vanishes at t = 0.5; the static factors are not
-    finite there and SuperLU's names the cause."""
+def _pinches():
+    """Thirty copies of 0 = (t - 0.5) (z - 1): g_z vanishes at t = 0.5."""
     m = dm.Model("pinches")
     for k in range(30):
         m.states(f"y{k}")
@@ -118,6 +117,12 @@ def test_a_singular_system_is_named_by_the_fallback():
         m.ode(f"y{k}", f"-y{k} + z{k}")
         m.constraint(f"(t - 0.5)*(z{k} - 1)", name=f"pinch{k}")
         m.initial(**{f"y{k}": 1.0, f"z{k}": 1.0})
+    return m
+
+
+def test_a_singular_system_is_named_by_the_fallback():
+    """The static factors are not finite where g_z vanishes; SuperLU's names the cause."""
+    m = _pinches()
     with pytest.raises(E.ConvergenceError, match=r"the Newton matrix is singular .* at t = 0.5 .*do not determine"):
         dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False)
 
