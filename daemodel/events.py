@@ -17,6 +17,11 @@ from there.  A crossing between two outputs whose function changes sign twice is
 event function that is zero at the start of a piece is armed only once it has left zero.
 At most ``max_events`` events a solve (default :data:`DEFAULT_MAX_EVENTS`): chattering (a ball
 bouncing ever lower, Zeno) ends in :class:`~daemodel.errors.EventLimitError`.
+
+Switches on states and algebraic variables (:mod:`daemodel.switches`) are events too
+(:func:`with_state_events`: no reset, named after the switch), with the switch locked to the
+branch where each piece starts (:func:`daemodel.switches.lock_branches`), so that every piece is
+smooth; a switch that flips straight back (a sliding mode) is refused as chattering.
 """
 
 from __future__ import annotations
@@ -190,8 +195,6 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.solution import Solution
     from daemodel.switches import _merge_stats, _onto_constraints, has_state_switches, lock_branches
 
-    if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 0:
-        raise EventLimitError(f"max_events must be a non-negative integer; got {max_events!r}")
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events

@@ -10,7 +10,7 @@ import numpy as np
 
 from daemodel.backends import get_backend
 from daemodel.compiled import CompiledDAE
-from daemodel.errors import ModelError, TimeSpanError, UnknownOptionError
+from daemodel.errors import InvalidOptionError, ModelError, TimeSpanError, UnknownOptionError
 from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
 from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
@@ -65,6 +65,8 @@ def solve(
     """
     backend = get_backend(method)
     opts = check_options(backend, options)
+    if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 0:
+        raise InvalidOptionError(f"max_events must be a non-negative integer; got {max_events!r}")
 
     model = as_compiled(model)
     t_span = check_span(t_span, model)

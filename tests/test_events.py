@@ -278,3 +278,9 @@ def test_values_between_outputs_take_the_side_of_the_event_they_are_on():
     before, after = t_event - 0.01, 0.01
     np.testing.assert_allclose(at["h"], [1 - 0.5 * G * before**2, 0.8 * math.sqrt(2 * G) * after - 0.5 * G * after**2])
     np.testing.assert_allclose(at["v"], [-G * before, 0.8 * math.sqrt(2 * G) - G * after], rtol=1e-9)
+
+
+@pytest.mark.parametrize("value", [-1, 2.5, True, "10"])
+def test_max_events_must_be_a_count(value):
+    with pytest.raises(E.InvalidOptionError, match=r"max_events must be a non-negative integer; got"):
+        dm.solve(_ball(), (0.0, 1.0), rtol=1e-6, atol=1e-6, max_events=value)
