@@ -226,9 +226,29 @@ class Solution:
         return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
 
     # ---- between the output times ---------------------------------------------------------
+    def _check_no_switch_inside(self, starts: np.ndarray, ends: np.ndarray, times: np.ndarray) -> None:
+        """:class:`InvalidValueError` where a query's interval of output times holds a breakpoint or an
+        event strictly inside: interpolating across it would mix the two sides."""
+        from daemodel.errors import InvalidValueError
+
+        records = ([("a breakpoint", self.breakpoints)] if self.breakpoints else []) + [
+            (f"event '{name}'", record) for name, record in self.events.items()
+        ]
+        for what, record in records:
+            switch_times = np.asarray(record["t"], dtype=float).ravel()
+            switch_times = switch_times[np.isfinite(switch_times)]
+            for a, b, q in zip(starts, ends, times, strict=True):
+                inside = switch_times[(switch_times > a) & (switch_times < b)]
+                if len(inside):
+                    raise InvalidValueError(
+                        f"at(): t = {q:g} lies between the outputs t = {a:g} and {b:g}, across {what} at t = "
+                        f"{inside[0]:.10g}: an interpolant across it would mix its two sides; solve with t_eval "
+                        "holding the times you need"
+                    )
+
     def _left_limits(self, ends: np.ndarray, times: np.ndarray):
-        """``(j, values just before (B, n+m))`` for each query ``times[j]`` whose interval ends at a
-        breakpoint or event, before it: the values there are those after the switch."""
+        """``(j, sample b, values just before (n+m,))`` for each query ``times[j]`` whose interval ends,
+        for sample b, at a breakpoint or event, before it: the values there are those after the switch."""
         records = [self.breakpoints] if self.breakpoints else []
         records += list(self.events.values())
         if not records:
@@ -239,11 +259,8 @@ class Solution:
             if q >= end:
                 continue
             for record in records:
-                hit = np.argwhere(record["t"] == end)
-                if len(hit):
-                    row = [np.asarray(record["before"][name])[:, hit[0][1]] for name in names]
-                    out.append((j, np.stack(row, axis=-1)))
-                    break
+                for b, k in np.argwhere(record["t"] == end):
+                    out.append((j, b, np.array([np.asarray(record["before"][name])[b, k] for name in names])))
         return out
 
     def at(self, times) -> dict[str, np.ndarray]:
@@ -288,12 +305,13 @@ class Solution:
         s = ((times - t[k]) / dt)[None, :, None]  # (1, K, 1)
         h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
         step = dt[None, :, None]
+        self._check_no_switch_inside(t[k], t[k + 1], times)
         right_y, right_f, right_z = Y[:, k + 1], F[:, k + 1], Z[:, k + 1]  # (copies: fancy indexing)
-        for j, before in self._left_limits(t[k + 1], times):  # (an interval that ends at a switch or event)
-            right_y[:, j], right_z[:, j] = before[:, :n], before[:, n:]
-            right_f[:, j] = numeric.batch_function(list(c.rhs))(
-                t[k[j] + 1], before[:, :n], before[:, n:], self.parameters
-            )
+        for j, b, before in self._left_limits(t[k + 1], times):  # (an interval that ends at a switch or event)
+            right_y[b, j], right_z[b, j] = before[:n], before[n:]
+            right_f[b, j] = numeric.batch_function(list(c.rhs))(
+                t[k[j] + 1], before[None, :n], before[None, n:], self.parameters[b : b + 1]
+            )[0]
         y = h00 * Y[:, k] + h10 * step * F[:, k] + h01 * right_y + h11 * step * right_f
         z = (1 - s) * Z[:, k] + s * right_z
         if m:

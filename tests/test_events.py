@@ -284,3 +284,14 @@ def test_values_between_outputs_take_the_side_of_the_event_they_are_on():
 def test_max_events_must_be_a_count(value):
     with pytest.raises(E.InvalidOptionError, match=r"max_events must be a non-negative integer; got"):
         dm.solve(_ball(), (0.0, 1.0), rtol=1e-6, atol=1e-6, max_events=value)
+
+
+def test_values_between_outputs_across_an_event_are_refused():
+    sol = dm.solve(_ball(), (0.0, 1.0), rtol=1e-10, atol=1e-10, t_eval=np.linspace(0.0, 1.0, 11))
+    with pytest.raises(
+        E.InvalidValueError,
+        match=r"at\(\): t = 0\.44 lies between the outputs t = 0\.4 and 0\.5, across "
+        r"event 'floor' at t = 0\.4515236\d*: an interpolant across it would mix its two sides",
+    ):
+        sol.at([0.44])
+    assert abs(sol.at([0.35])["h"][0] - (1 - 0.5 * G * 0.35**2)) < 1e-4  # (an interval without one: as before)
