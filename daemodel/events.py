@@ -111,7 +111,7 @@ def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, o
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
     :func:`daemodel.switches.solve_with_breakpoints` does)."""
     from daemodel.initial_states import InitialStates
-    from daemodel.switches import _segment_steps, has_time_switches, solve_with_breakpoints
+    from daemodel.switches import _segment_steps, for_method, has_time_switches, solve_with_breakpoints
 
     model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
     start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
@@ -121,8 +121,7 @@ def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, o
     options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})  # (pinn: no t_eval)
     if has_time_switches(model):
         return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
-    reduced = model.reduced(backend.max_index) if model.index > backend.max_index else model
-    return backend.solve(reduced, (float(a), float(b)), start, options)
+    return backend.solve(for_method(model, backend), (float(a), float(b)), start, options)
 
 
 def _outputs(sol, compiled):
@@ -193,7 +192,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.base import output_times
     from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution
-    from daemodel.switches import _merge_stats, _onto_constraints, has_state_switches, lock_branches
+    from daemodel.switches import (
+        _merge_stats,
+        _onto_constraints,
+        for_method,
+        has_state_switches,
+        lock_branches,
+        settings_as_given,
+    )
 
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
@@ -276,7 +282,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 for k, (index, _) in enumerate(events[e].reset):
                     Y[:, index] = new[:, k]
         terminal = any(events[e].terminal for e in fired)
-        reduced = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
+        reduced = for_method(compiled, backend)
         if terminal:
             has_reset = any(resets[e] is not None for e in fired)
             Z = algebraic_values(reduced, t_event, Y, P, z_event) if has_reset else z_event
@@ -286,8 +292,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
             Y = projected
             if lock:  # (z on the branch the next piece locks)
-                after = lock_branches(compiled, t_event, Y[0], z_event[0], P[0])
-                reduced = after.reduced(backend.max_index) if after.index > backend.max_index else after
+                reduced = for_method(lock_branches(compiled, t_event, Y[0], z_event[0], P[0]), backend)
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
         for e in fired:
             entry = record[events[e].name]
@@ -311,7 +316,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     # which starts with the values after it
     names = (*compiled.state_names, *compiled.algebraic_names)
     times, rows = [], []
-    for a, b, Ya, Za, event, piece in pieces:
+    for a, b, Ya, Za, event, model in pieces:
         closed = event is None
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
@@ -320,14 +325,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if len(grid) == 1 and grid[0] == a:
                 piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
             else:
-                sol = _span_solve(backend, piece, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
+                sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)
                 solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
                 piece_t, Yp, Zp = _outputs(sol, compiled)
                 piece = np.concatenate([Yp, Zp], axis=1)
         else:
             if not closed:
-                sol = _span_solve(backend, piece, a, b, Ya, Za, P, start.batched, options, t_eval=None)
+                sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=None)
                 all_stats.append(sol.stats)
                 solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
             else:
@@ -347,7 +352,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     stats = _merge_stats(all_stats)
     stats["events"] = count
 
-    def sides(rows) -> dict:
+    def by_name(rows) -> dict:
         table = np.asarray(rows, dtype=float).reshape(len(rows), len(names))
         return {v: table[:, j][None, :].copy() for j, v in enumerate(names)}
 
@@ -355,24 +360,19 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         name: {
             "t": np.asarray(entry["t"], dtype=float)[None, :],
             "moved": np.asarray(entry["moved"], dtype=float)[None, :],
-            "before": sides(entry["before"]),
-            "after": sides(entry["after"]),
+            "before": by_name(entry["before"]),
+            "after": by_name(entry["after"]),
         }
         for name, entry in record.items()
     }
-    solved = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
-    settings = dict(last.settings)
-    for key in ("t_eval", "h"):
-        if key in settings:
-            settings[key] = getattr(options, key)
     return Solution(
         t=t_out,
         values=out,
         method=last.method,
-        settings=settings,
+        settings=settings_as_given(last, options),
         solve_time=solve_time,
         stats=stats,
-        compiled=solved,
+        compiled=for_method(compiled, backend),
         parameters=P,
         batched=start.batched,
         status=last.status,

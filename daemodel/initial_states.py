@@ -215,9 +215,7 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
 
     checks = _checks(compiled)
     t0, hidden = compiled.t0, checks.hidden
-    residual = checks.residual(t0, Y, Z, P)  # z-free levels: Z is unused
-    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
-    bad = np.abs(residual) > tol[:, None]
+    residual, tol, bad = state_violations(compiled, Y, P)
     if bad.any():
         sample, level = np.argwhere(bad)[0]
         name, label, _ = hidden[level]
@@ -274,13 +272,9 @@ def consistent_states(compiled, y0=None, parameters=None) -> dict:
             ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
         ),
     )
-    batch = len(Y)
     projected = project_states(compiled, Y, P)
     checks = _checks(compiled)
-    Z = np.zeros((batch, len(compiled.algebraics)))
-    residual = checks.residual(compiled.t0, projected, Z, P)
-    tol = STATE_TOL * (1 + np.max(np.abs(projected), axis=1, initial=0.0))
-    bad = np.abs(residual) > tol[:, None]
+    residual, tol, bad = state_violations(compiled, projected, P)
     if bad.any():
         sample, level = np.argwhere(bad)[0]
         name, label, _ = checks.hidden[level]
@@ -292,6 +286,15 @@ def consistent_states(compiled, y0=None, parameters=None) -> dict:
     if not sizes:
         return {name: float(projected[0, i]) for i, name in enumerate(compiled.state_names)}
     return {name: projected[:, i].copy() for i, name in enumerate(compiled.state_names)}
+
+
+def state_violations(compiled, Y: np.ndarray, P: np.ndarray):
+    """``(residual (B, L), tolerance (B,), violated (B, L))`` of the states ``Y`` (B, n) on every
+    z-free constraint level of ``compiled`` at its t0 (:data:`STATE_TOL`, relative to each sample)."""
+    Z = np.zeros((len(Y), len(compiled.algebraics)))  # (the z-free levels do not read it)
+    residual = _checks(compiled).residual(compiled.t0, Y, Z, P)
+    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
+    return residual, tol, np.abs(residual) > tol[:, None]
 
 
 def project_states(compiled, Y: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
 from daemodel.model import Model
 from daemodel.solution import Solution
-from daemodel.switches import has_time_switches, solve_with_breakpoints
+from daemodel.switches import for_method, has_time_switches, solve_with_breakpoints
 
 
 def solve(
@@ -71,7 +71,7 @@ def solve(
     model = as_compiled(model)
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
-    compiled = model.reduced(backend.max_index) if model.index > backend.max_index else model
+    compiled = for_method(model, backend)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
     # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
     # switches on variables of a batch are crossed by the steps, as before, and declared events refused)

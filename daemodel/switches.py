@@ -321,6 +321,20 @@ def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarra
     return _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked")
 
 
+def for_method(compiled, backend):
+    """``compiled`` reduced to the highest index ``backend`` takes (itself where it takes it)."""
+    return compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
+
+
+def settings_as_given(sol, options) -> dict:
+    """``sol``'s settings with ``t_eval`` and ``h`` as the user gave them (a piece's were its own)."""
+    settings = dict(sol.settings)
+    for key in ("t_eval", "h"):
+        if key in settings:
+            settings[key] = getattr(options, key)
+    return settings
+
+
 def has_state_switches(compiled) -> bool:
     return any(not s.time_only for s in find_switches(compiled))
 
@@ -417,21 +431,16 @@ def _onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
     SwitchError
         No state near a sample's satisfies them after the switch.
     """
-    from daemodel.initial_states import STATE_TOL, _checks, project_states
+    from daemodel.initial_states import _checks, project_states, state_violations
 
-    checks = _checks(model)
-    if not checks.hidden:
-        return Y
-    Z = np.zeros((len(Y), len(model.algebraics)))
-    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
-    if not (np.abs(checks.residual(model.t0, Y, Z, P)) > tol[:, None]).any():
+    hidden = _checks(model).hidden
+    if not hidden or not state_violations(model, Y, P)[2].any():
         return Y
     projected = project_states(model, Y, P)
-    residual = checks.residual(model.t0, projected, Z, P)
-    bad = np.abs(residual) > (STATE_TOL * (1 + np.max(np.abs(projected), axis=1, initial=0.0)))[:, None]
+    residual, _, bad = state_violations(model, projected, P)
     if bad.any():
         sample, level = np.argwhere(bad)[0]
-        name, label, _ = checks.hidden[level]
+        name, label, _ = hidden[level]
         raise SwitchError(
             f"after the switch at t = {model.t0:.10g} no state near sample {sample}'s satisfies {label}: {name} = "
             f"{residual[sample, level]:.6g} after the projection; the switch leaves the constraints without a "
@@ -507,7 +516,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
 
     t0, t1 = t_span
     moved = []  # (B,) per breakpoint: how far the states were projected there
-    solved = compiled.reduced(backend.max_index) if compiled.index > backend.max_index else compiled
+    solved = for_method(compiled, backend)
     P = np.asarray(start.p, dtype=float)
     edges = [t0, *times.tolist(), t1]
     user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
@@ -518,7 +527,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     for k, (a, b) in enumerate(itertools.pairwise(edges)):
         last = k == len(edges) - 2
         whole = branch_model(compiled, 0.5 * (a + b), P[0])
-        model = whole.reduced(backend.max_index) if whole.index > backend.max_index else whole
+        model = for_method(whole, backend)
         if k:  # the states carry over (projected where a switch moved the constraints); z follows the branch
             projected = _onto_constraints(dataclasses.replace(whole, t0=float(a)), Y, P)
             moved.append(np.max(np.abs(projected - Y), axis=1, initial=0.0))
@@ -553,10 +562,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     ]
     stats = _merge_stats([sol.stats for sol, _ in parts])
     stats["segments"] = len(parts)
-    settings = dict(parts[0][0].settings)
-    for key in ("t_eval", "h"):
-        if key in settings:
-            settings[key] = getattr(options, key)
+    settings = settings_as_given(parts[0][0], options)
     B = len(P)
     record = {
         "t": np.repeat(times[None, :], B, axis=0),
