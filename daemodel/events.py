@@ -315,9 +315,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     # piece's detection solve is its solve); a piece ending at an event leaves its time to the next one,
     # which starts with the values after it
     names = (*compiled.state_names, *compiled.algebraic_names)
-    times, rows = [], []
+    times, rows, failing = [], [], []  # (failing: the pieces whose solve did not meet its accuracy)
     for a, b, Ya, Za, event, model in pieces:
-        closed = event is None
+        closed, sol = event is None, None
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
             if not len(grid):
@@ -341,6 +341,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             piece = np.concatenate([Yp, Zp], axis=1)
             if not closed:
                 piece_t, piece = piece_t[:-1], piece[:-1]
+        if sol is not None and sol.status != "success":
+            failing.append(f"on [{a:.6g}, {b:.6g}]: {sol.status}")
         times.append(piece_t)
         rows.append(piece)
     if pieces[-1][4] is not None:  # a terminal event: the solve ends with the values after it
@@ -375,7 +377,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         compiled=for_method(compiled, backend),
         parameters=P,
         batched=start.batched,
-        status=last.status,
+        status="success" if not failing else "; ".join(failing),
         setup_time=setup_time,
         events=events_out,
     )

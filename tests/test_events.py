@@ -295,3 +295,18 @@ def test_values_between_outputs_across_an_event_are_refused():
     ):
         sol.at([0.44])
     assert abs(sol.at([0.35])["h"][0] - (1 - 0.5 * G * 0.35**2)) < 1e-4  # (an interval without one: as before)
+
+
+@pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
+def test_a_flagged_piece_before_an_event_flags_the_solve():
+    """The fixed steps before the event keep fewer digits than the bound (a fast forcing); after it the
+    reset switches the forcing off and the steps are fine: the solve says which piece failed."""
+    m = dm.Model("quiet")
+    m.states("x s")
+    m.ode("x", "-x + 3*cos(30*t)*s")
+    m.ode("s", "0")
+    m.initial(x=0.0, s=1.0)
+    m.event("off", "t - 0.5", direction=1, reset={"s": "0"})
+    sol = dm.solve(m, (0.0, 2.0), stages=3, h=0.1)
+    assert sol.status.startswith("on [0, 0.5]: flagged: radau's local error estimate")
+    assert sol.events["off"]["t"][0].tolist() == [0.5]
