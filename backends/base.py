@@ -109,6 +109,7 @@ def make_solution(
     settings=None,
     status="success",
     setup_time: float = 0.0,
+    dense=None,
 ):
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
@@ -116,7 +117,7 @@ def make_solution(
     without one).  ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and
     :attr:`Solution.setup_time`; ``settings`` defaults to the options' fields (less ``t_eval``; a
     function, such as radau's ``start_guess``, by its name, not copied); ``status`` is
-    :attr:`Solution.status`.
+    :attr:`Solution.status`; ``dense`` is :attr:`Solution.dense` (:mod:`daemodel.dense`).
     """
     from dataclasses import asdict, fields, is_dataclass
 
@@ -147,6 +148,7 @@ def make_solution(
         parameters=start.p,
         batched=start.batched,
         status=status,
+        dense=dense,
     )
 
 

@@ -113,6 +113,15 @@ class CompiledDAE:
             self._cache[key] = build()
         return self._cache[key]
 
+    @property
+    def numeric(self):
+        """The model's :class:`~daemodel.init.NumericSystem` (numpy functions over ``(t, y, z, p)``), made
+        once and kept with it: each function it makes is made once too, so a solution's ``at()`` and
+        ``drift()``, the event functions and the initial-value checks share them."""
+        from daemodel.init import NumericSystem
+
+        return self.cached("numeric", lambda: NumericSystem(self.t, self.states, self.algebraics, self.parameters))
+
     # ---- names and structure ------------------------------------------------------------
     @property
     def index(self) -> int:

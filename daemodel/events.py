@@ -69,10 +69,9 @@ class Event:
 
 def _functions(compiled):
     """Numeric event functions of ``compiled``: ``F(t, Y, Z, P) -> (B, E)`` and the resets, cached."""
-    from daemodel.init import NumericSystem
 
     def build():
-        numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+        numeric = compiled.numeric
         when = numeric.batch_function([e.when for e in compiled.events])
         resets = [numeric.batch_function([expr for _, expr in e.reset]) if e.reset else None for e in compiled.events]
         return when, resets
@@ -190,6 +189,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
 
 def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.base import output_times
+    from daemodel.dense import Held, joined_in_time
     from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution
     from daemodel.switches import (
@@ -231,7 +231,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
         if first is None:
-            pieces.append((t, t1, Y, Z, None, piece))
+            pieces.append((t, t1, Y, Z, None, piece, sol.dense))
             break
         count += 1
         if count > max_events:
@@ -259,7 +259,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 f"event '{events[which].name}': {CHATTER_EVENTS} events between t = {first_time:.12g} and "
                 f"{recent[-1]:.12g}: chattering{how}"
             )
-        pieces.append((t, t_event, Y, Z, (which, t_event), piece))
+        pieces.append((t, t_event, Y, Z, (which, t_event), piece, sol.dense))
         # every event whose function changed sign (its way) between the bracket's start and the located
         # time fires there, in declaration order (identical or simultaneous events)
         F_event = when(np.array([t_event]), y_event, z_event, P)[0]
@@ -316,8 +316,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     # which starts with the values after it
     names = (*compiled.state_names, *compiled.algebraic_names)
     times, rows, failing = [], [], []  # (failing: the pieces whose solve did not meet its accuracy)
-    for a, b, Ya, Za, event, model in pieces:
+    dense = []  # each piece's dense output: its output solve's, else its detection solve's (that ran past b)
+    for a, b, Ya, Za, event, model, detection in pieces:
         closed, sol = event is None, None
+        dense.append(detection)
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
             if not len(grid):
@@ -343,11 +345,16 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 piece_t, piece = piece_t[:-1], piece[:-1]
         if sol is not None and sol.status != "success":
             failing.append(f"on [{a:.6g}, {b:.6g}]: {sol.status}")
+        if sol is not None and sol.dense is not None:
+            dense[-1] = sol.dense
         times.append(piece_t)
         rows.append(piece)
+    edges = [piece[0] for piece in pieces] + [pieces[-1][1]]
     if pieces[-1][4] is not None:  # a terminal event: the solve ends with the values after it
         times.append(np.array([pieces[-1][1]]))
         rows.append(np.concatenate([Y, Z], axis=1))
+        edges.append(pieces[-1][1])
+        dense.append(Held(pieces[-1][1], np.concatenate([Y, Z], axis=1)))
     t_out = np.concatenate(times)
     table = np.concatenate(rows, axis=0)
     out = {name: table[:, j][None, :].copy() for j, name in enumerate(names)}
@@ -380,6 +387,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         status="success" if not failing else "; ".join(failing),
         setup_time=setup_time,
         events=events_out,
+        dense=joined_in_time(edges, dense),
     )
 
 

@@ -134,6 +134,15 @@ class NumericSystem:
     z: tuple
     p: tuple
     calculus: Differentiator = field(default_factory=Differentiator, compare=False, repr=False)
+    # the functions made so far, by kind and expressions: a solution's at() and drift(), the event
+    # functions and the initial-value checks ask for the same ones again (see CompiledDAE.numeric)
+    _made: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def _once(self, kind: str, exprs, wrt, make):
+        key = (kind, tuple(exprs), None if wrt is None else tuple(wrt))
+        if key not in self._made:
+            self._made[key] = make()
+        return self._made[key]
 
     @cached_property
     def _arguments(self) -> tuple[dict, tuple]:
@@ -165,6 +174,9 @@ class NumericSystem:
 
     def function(self, exprs):
         """Return ``F(t, y, z, p) -> ndarray, shape (len(exprs),)``."""
+        return self._once("function", exprs, None, lambda: self._make_function(exprs))
+
+    def _make_function(self, exprs):
         if not exprs:
             return lambda t, y, z, p: np.zeros(0)
         fn = self._lambdify(exprs)
@@ -172,6 +184,9 @@ class NumericSystem:
 
     def jacobian(self, exprs, wrt):
         """Return ``J(t, y, z, p) -> ndarray, shape (len(exprs), len(wrt))``."""
+        return self._once("jacobian", exprs, wrt, lambda: self._make_jacobian(exprs, wrt))
+
+    def _make_jacobian(self, exprs, wrt):
         shape = (len(exprs), len(wrt))
         rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
         if not entries:
@@ -187,6 +202,9 @@ class NumericSystem:
 
     def batch_function(self, exprs):
         """Return ``F(t, Y, Z, P) -> ndarray, shape (B, len(exprs))`` for rows ``Y (B, n)`` etc."""
+        return self._once("batch_function", exprs, None, lambda: self._make_batch_function(exprs))
+
+    def _make_batch_function(self, exprs):
         fn = self._lambdify(exprs) if exprs else None
 
         def evaluate(t, Y, Z, P):
@@ -201,6 +219,9 @@ class NumericSystem:
 
     def batch_jacobian(self, exprs, wrt):
         """Return ``J(t, Y, Z, P) -> ndarray, shape (B, len(exprs), len(wrt))``."""
+        return self._once("batch_jacobian", exprs, wrt, lambda: self._make_batch_jacobian(exprs, wrt))
+
+    def _make_batch_jacobian(self, exprs, wrt):
         shape = (len(exprs), len(wrt))
         rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
         values = self.batch_function(entries)

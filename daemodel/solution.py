@@ -18,7 +18,6 @@ from daemodel.files import (
     save_figure,
     writable_file,
 )
-from daemodel.init import NumericSystem
 
 # Times of two solutions count as the same when they differ by less than this, relative to
 # the span: grids built as t0 + k*h in different orders differ in the last bits.
@@ -95,6 +94,10 @@ class Solution:
         (B, K), ``"before"``/``"after"`` each variable's values just before and after (name ->
         (B, K)) and ``"moved"`` how far the states were projected onto the constraints after the
         reset (B, K); NaN-padded across a batch.  Values at an event time in ``t`` are those after it.
+    dense : AbstractDenseOutput or None
+        The method's own continuous solution between the output times (:mod:`daemodel.dense`), which
+        :meth:`at` evaluates: radau's and the Radau-PINN's collocation polynomials, ...; None where
+        the method keeps none (then ``at()`` interpolates the outputs).  Not saved by :meth:`save`.
 
     Examples
     --------
@@ -116,12 +119,13 @@ class Solution:
     setup_time: float = 0.0
     breakpoints: dict = field(default_factory=dict, repr=False)
     events: dict = field(default_factory=dict, repr=False)
+    dense: object = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         c = self.compiled
         if c.aliases and not set(c.alias_names) <= set(self.values):
             Y, Z, P, T = self._flat()
-            numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
+            numeric = c.numeric
             out = numeric.batch_function([e for _, e, _ in c.aliases])(T, Y, Z, P)
             shape = self.values[c.state_names[0]].shape
             for i, name in enumerate(c.alias_names):
@@ -221,7 +225,7 @@ class Solution:
         """Max ``|g|`` of each original constraint (and hidden position/velocity level) along the solution."""
         c = self.compiled
         Y, Z, P, T = self._flat()
-        numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
+        numeric = c.numeric
         values = numeric.batch_function([e for _, e in c.invariants])(T, Y, Z, P)
         return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
 
@@ -264,25 +268,27 @@ class Solution:
         return out
 
     def at(self, times) -> dict[str, np.ndarray]:
-        """Values at ``times`` between (or on) the output times, by name: (len(times),) or (B, len(times)).
+        """Values at ``times`` inside the solution's span, by name: (len(times),) or (B, len(times)).
 
-        The states are interpolated by cubic Hermite polynomials through each pair of adjacent
-        output times, with the derivatives ``f(t, y, z)`` of the model there: an error of
-        O(dt^4) in the output spacing dt, on top of the method's own (a method's dense output,
-        radau's collocation polynomial, is ``solve(..., t_eval=times)``).  The algebraic
-        variables are then solved from the constraints that determine them at the interpolated
-        states (Newton from their linear interpolation), so that the constraints hold; at the
-        output times themselves every value is the solution's own.
+        Where the method keeps a dense output (:attr:`dense`: radau's collocation polynomials, the
+        Radau-PINN's), it is evaluated: the values are those ``solve(..., t_eval=times)`` would give,
+        at the method's own accuracy, across breakpoints and events too (a time on one takes the
+        values after it).  Otherwise the states are interpolated by cubic Hermite polynomials
+        through each pair of adjacent output times, with the derivatives ``f(t, y, z)`` there (an
+        error of O(dt^4) in the output spacing dt on top of the method's), and the algebraic
+        variables solved from the constraints that determine them at the interpolated states
+        (Newton from their linear interpolation); at the output times every value is the
+        solution's own.
 
         Raises
         ------
         InvalidValueError
-            For times outside the solution's span, or that are not finite.
+            For times outside the solution's span, or that are not finite; without a dense output,
+            for a time whose interval of outputs holds a breakpoint or event inside.
         InitialisationError
-            When the algebraic variables cannot be solved at an interpolated state.
+            Without a dense output: the algebraic variables cannot be solved at an interpolated state.
         """
-        from daemodel.errors import InitialisationError, InvalidValueError
-        from daemodel.init import solve_algebraic
+        from daemodel.errors import InvalidValueError
 
         times = np.atleast_1d(np.asarray(times, dtype=float))
         t = self.t
@@ -295,7 +301,28 @@ class Solution:
                 "over a span that contains it"
             )
         c = self.compiled
-        numeric = NumericSystem(c.t, c.states, c.algebraics, c.parameters)
+        B, n, m, K = self.batch_size, len(c.states), len(c.algebraics), len(times)
+        if self.dense is not None:
+            u = self.dense(times)
+            y, z = u[..., :n], u[..., n:]
+        else:
+            y, z = self._hermite(times)
+        out = {name: y[..., i] for i, name in enumerate(c.state_names)}
+        out.update({name: z[..., j] for j, name in enumerate(c.algebraic_names)})
+        if c.aliases:
+            values = c.numeric.batch_function([e for _, e, _ in c.aliases])(
+                np.tile(times, B), y.reshape(B * K, n), z.reshape(B * K, m), np.repeat(self.parameters, K, axis=0)
+            )
+            out.update({name: values[:, i].reshape(B, K) for i, name in enumerate(c.alias_names)})
+        return out if self.batched else {name: v[0] for name, v in out.items()}
+
+    def _hermite(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(y (B, K, n), z (B, K, m))`` at ``times`` from the outputs alone (see :meth:`at`)."""
+        from daemodel.errors import InitialisationError
+        from daemodel.init import solve_algebraic
+
+        t, c = self.t, self.compiled
+        numeric = c.numeric
         Y, Z, P, T = self._flat()
         B, n, m, K = self.batch_size, len(c.states), len(c.algebraics), len(times)
         F = numeric.batch_function(list(c.rhs))(T, Y, Z, P).reshape(B, len(t), n)
@@ -333,14 +360,7 @@ class Solution:
             # constraints' root at its y by the method's algebraic error)
             first, last = s[0, :, 0] == 0, s[0, :, 0] == 1
             z[:, first], z[:, last] = Z[:, k[first]], Z[:, k[last] + 1]
-        out = {name: y[..., i] for i, name in enumerate(c.state_names)}
-        out.update({name: z[..., j] for j, name in enumerate(c.algebraic_names)})
-        if c.aliases:
-            values = numeric.batch_function([e for _, e, _ in c.aliases])(
-                np.tile(times, B), y.reshape(B * K, n), z.reshape(B * K, m), np.repeat(self.parameters, K, axis=0)
-            )
-            out.update({name: values[:, i].reshape(B, K) for i, name in enumerate(c.alias_names)})
-        return out if self.batched else {name: v[0] for name, v in out.items()}
+        return y, z
 
     # ---- files --------------------------------------------------------------------------
     def save(self, path) -> Path:

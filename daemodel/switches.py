@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from daemodel.dense import joined_by_samples, joined_in_time
 from daemodel.errors import SwitchError
 
 # Points of the grid on which a switching function's sign changes are bracketed (per segment of
@@ -139,14 +140,13 @@ def breakpoints(compiled, t_span, p: np.ndarray) -> np.ndarray:
     SwitchError
         More than :data:`MAX_BREAKPOINTS` of them, naming the switch that makes most.
     """
-    from daemodel.init import NumericSystem
 
     t0, t1 = (float(v) for v in t_span)
     switches = [s for s in find_switches(compiled) if s.time_only]
     if not switches:
         return np.zeros(0)
     values = dict(zip(compiled.parameters, (float(v) for v in p), strict=True))
-    numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+    numeric = compiled.numeric
     times = []
     for switch in switches:
         found = _roots(switch, compiled.t, values, numeric, p, t0, t1)
@@ -505,6 +505,7 @@ def _join_samples(parts: list, B: int, batched: bool):
         setup_time=sum(sol.setup_time for _, sol in parts),
         breakpoints=breakpoints,
         events=events,
+        dense=joined_by_samples([(index, sol.dense) for index, sol in parts], B),
     )
 
 
@@ -588,6 +589,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
         status="success" if not failing else "; ".join(failing),
         setup_time=sum(sol.setup_time for sol, _ in parts),
         breakpoints=record,
+        dense=joined_in_time(edges, [sol.dense for sol, _ in parts]),
     )
 
 

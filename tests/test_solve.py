@@ -321,21 +321,24 @@ def test_solution_save_and_load(tmp_path):
 
 
 def test_values_between_output_times_converge_at_order_four():
-    """Solution.at: cubic Hermite states with the model's f at the outputs (error O(dt^4) in the
-    output spacing, measured against the exact solution), algebraic values solved from the
-    constraints there; a batch keeps its axis; times outside the span are refused."""
+    """Solution.at without a dense output (radau's dense_output=False): cubic Hermite states with the
+    model's f at the outputs (error O(dt^4) in the output spacing, measured against the exact
+    solution), algebraic values solved from the constraints there; a batch keeps its axis; times
+    outside the span are refused."""
     c = HESSENBERG.model().compile()
     inside = np.linspace(0.0, 1.0, 97)
     errors = []
     for outputs in (11, 21, 41):
-        sol = dm.solve(c, (0.0, 1.0), h=0.01, t_eval=np.linspace(0.0, 1.0, outputs))  # 1e-10 accurate on its grid
+        # 1e-10 accurate on its grid
+        sol = dm.solve(c, (0.0, 1.0), h=0.01, t_eval=np.linspace(0.0, 1.0, outputs), dense_output=False)
+        assert sol.dense is None
         values, exact = sol.at(inside), EXACT(inside)
         errors.append(max(np.abs(values[n] - exact[n]).max() for n in c.state_names))
         assert np.abs(values["y5"] - exact["y5"]).max() < errors[-1]
     order = fitted_order([1 / 10, 1 / 20, 1 / 40], errors)
     print(f"at(): errors {errors}, order {order:.2f}")
     assert 3.7 < order < 4.3
-    batch = dm.solve(c, (0.0, 1.0), h=0.05, y0={"y1": [1.0, 1.0]})
+    batch = dm.solve(c, (0.0, 1.0), h=0.05, y0={"y1": [1.0, 1.0]}, dense_output=False)
     assert {name: v.shape for name, v in batch.at([0.025, 0.5]).items()} == {n: (2, 2) for n in batch.names}
     np.testing.assert_allclose(batch.at(batch.t)["y3"], batch["y3"], rtol=0, atol=1e-12)  # the outputs themselves
     with pytest.raises(dm.errors.InvalidValueError, match=r"at\(\): t = 1.5 is outside the solution's span \[0, 1\]"):

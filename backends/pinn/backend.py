@@ -247,6 +247,7 @@ class PINNBackend(AbstractBackend):
             settings=settings,
             status=status,
             setup_time=trained - began,  # training
+            dense=surrogate.polynomials(values, predictions),
         )
 
 

@@ -44,6 +44,7 @@ from daemodel.errors import (
     ShapeError,
     UnknownSymbolError,
 )
+from daemodel.tableau import radau_iia
 
 # Format 2 added the training box and each segment's input ranges; format-1 files cannot be checked.
 FILE_FORMAT = "daemodel-pinn/2"
@@ -374,6 +375,26 @@ class Surrogate:
         ends = self.rollout(start.y0, start.p, stages)
         values = np.concatenate([first, ends[0] if stages else ends], axis=1)
         return (values, ends[1]) if stages else values
+
+    def polynomials(self, values: np.ndarray, predictions):
+        """The networks' dense output: on each segment the collocation polynomial through the
+        segment's start (``values`` (B, segments + 1, n+m), :meth:`trajectory`'s) and the stage
+        values its network predicted (``predictions``, :meth:`rollout`'s), with the segment's end
+        value at ``c_s = 1`` (the value the solution reports there: the network's ``y_{n+1}``).
+        The same polynomial radau's dense output evaluates, on the networks' stage values."""
+        from daemodel.dense import CollocationPolynomials
+
+        Y, Z = (a.cpu().numpy() for a in predictions[:2])  # (segments, B, s, n), (segments, B, s, m)
+        stages = np.concatenate([Y, Z], axis=3).transpose(1, 0, 2, 3)  # (B, segments, s, n+m)
+        stages[:, :, -1] = values[:, 1:]
+        nodes = np.concatenate([values[:, :-1, None], stages], axis=2)
+        steps = np.array(segment_steps(self.grid), dtype=float)
+        return CollocationPolynomials(
+            c=np.asarray(radau_iia(self.config.stages).c, dtype=float),
+            starts=steps[:, 0],
+            lengths=steps[:, 1],
+            nodes=nodes,
+        )
 
     def solve(
         self,

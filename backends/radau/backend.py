@@ -70,15 +70,25 @@ class RadauBackend(AbstractBackend):
             stepper.stats["torch_threads"] = engine.torch.get_num_threads()
         status = "success" if options.adaptive else stepper.error.status(self.name, options.estimate_bound)
         return make_solution(
-            self, compiled, start, options, times, values, wall, stepper.stats, status=status, setup_time=setup
+            self,
+            compiled,
+            start,
+            options,
+            times,
+            values,
+            wall,
+            stepper.stats,
+            status=status,
+            setup_time=setup,
+            dense=stepper.polynomials(),
         )
 
 
 def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
     """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
     Newton matrices (a stage Jacobian and the factored transformed systems, about (2s + 1) D^2 a
-    sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval, also each step's
-    stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
+    sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval or ``dense_output``, each
+    step's stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
     D = len(compiled.states) + len(compiled.algebraics)
     itemsize = 4 if options.dtype == "float32" else 8
     parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * itemsize}
@@ -86,7 +96,12 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
     if options.t_eval is not None:
         parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
     if steps is not None:
-        parts["step records" if options.t_eval is not None else "outputs"] = steps * step_record_bytes(D, B, options)
+        if options.t_eval is not None:
+            name = "step records"
+        else:
+            name = "outputs with the dense output (dense_output=False keeps the step ends only)"
+            name = name if options.dense_output else "outputs"
+        parts[name] = steps * step_record_bytes(D, B, options)
     return parts
 
 

@@ -450,10 +450,12 @@ class CompiledRun:
         if len(steps):
             nodes = steps[:, len(RECORD) :].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
             # (copies: the records' other entries are not kept, as step_record_bytes counts)
-            if stepper.records.dense:
-                stepper.records.add(steps[:, 2].copy(), steps[:, 3].copy(), None, nodes.copy())
-            else:
-                stepper.records.add(None, None, steps[:, 4].copy(), nodes[:, :, -1].copy())
+            stepper.records.add(
+                steps[:, 2].copy(),
+                steps[:, 3].copy(),
+                steps[:, 4].copy(),
+                nodes.copy() if stepper.records.dense else nodes[:, :, -1:].copy(),  # (the end values only)
+            )
             stats["steps"] += len(steps)
             lengths = steps[:, 3].tolist()
             stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)

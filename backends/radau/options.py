@@ -115,6 +115,12 @@ class RadauOptions:
         ``stats["local_error_estimates"]``.  Beyond
         :data:`~daemodel.backends.base.LOCAL_ERROR_BOUND` a step has no correct digit and the
         solve raises :class:`~daemodel.errors.LocalErrorBoundError`.
+    dense_output : bool
+        Keep each step's collocation polynomial (its start value and stages) in
+        :attr:`Solution.dense`, for :meth:`Solution.at` at the method's own accuracy between the
+        output times.  Default True; it holds s + 1 values per step where the step ends alone hold
+        one: False keeps only those (large batches over many steps), and ``at()`` then interpolates
+        the outputs by cubic Hermite polynomials.
     """
 
     stages: int | None = None
@@ -134,6 +140,7 @@ class RadauOptions:
     start_guess: object = None
     jit: bool = False
     estimate_bound: float | None = None
+    dense_output: bool = True
 
     def __post_init__(self) -> None:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
@@ -166,8 +173,9 @@ class RadauOptions:
                 "Newton cannot reach it" + (": use dtype='float64'" if self.dtype == "float32" else "")
             )
         check_threads(self.threads)
-        if not isinstance(self.reuse_jacobian, bool):
-            raise InvalidOptionError(f"reuse_jacobian must be True or False; got {self.reuse_jacobian!r}")
+        for name in ("reuse_jacobian", "dense_output"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
         # engine's solves then never import it, ~2.7 s on a first call)
         if self.device != "cpu":

@@ -217,12 +217,19 @@ class Stepper:
         grid = self.controller.grid(t_span)
         t_out = output_times(self.options.t_eval, t_span, grid)
         u0 = self.state()
-        self.records = Records(t0, u0, dense=self.options.t_eval is not None)
+        self.records = Records(t0, u0, dense=self.options.t_eval is not None or self.options.dense_output)
         self.controller.run(self, t_span, grid)
         if self.options.t_eval is not None:
             return self.dense_output(t_out, u0, t0, self.records)
         times, values = self.records.ends(self.xp)
         return times, numpy_copy(values)
+
+    def polynomials(self):
+        """The accepted steps' collocation polynomials (:class:`~daemodel.dense.CollocationPolynomials`)
+        after :meth:`integrate`, or None where they were not kept (``dense_output=False``)."""
+        if not self.options.dense_output:
+            return None
+        return self.records.polynomials(self.tableau.c, self.xp)
 
     # ---- one step -----------------------------------------------------------------------
     def attempt(self, t, h):
@@ -366,14 +373,15 @@ class Stepper:
             raise ResourceLimitError(
                 f"radau: at t = {t:.6g}, the {self.records.count} steps' outputs of {self.B} sample(s) reach "
                 f"the memory allowed ({memory_limit() / 2**30:.3g} GiB, DAEMODEL_MEMORY_LIMIT): solve fewer samples "
-                "at a time, loosen rtol, or give t_eval (with a fixed h, a grid's size is checked before the solve)"
+                "at a time, loosen rtol, give t_eval, or keep the step ends only (dense_output=False; with a fixed h, "
+                "a grid's size is checked before the solve)"
             )
         u_start = self.state()
         if self.records.dense:
             nodes = self.xp.concatenate([u_start[:, None], W], axis=1)[:, None]
-            self.records.add(np.array([t]), np.array([h]), None, nodes)
         else:
-            self.records.add(None, None, np.array([t_next]), W[:, None, -1])
+            nodes = W[:, None]  # (only the end value, the last node, is kept)
+        self.records.add(np.array([t]), np.array([h]), np.array([t_next]), nodes)
         self._previous = (h, u_start, W)
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed
             self._previous_nodes = np.concatenate([u_start[0], W.ravel()])
@@ -493,9 +501,10 @@ class Stepper:
 
 
 class Records:
-    """The accepted steps' outputs, in blocks (one step, or a compiled run's steps): with ``dense``
-    (t_eval) each step's start, length and nodes (start value and stages, for the dense output),
-    else each step's end time and value.  ``count``: the outputs kept, the start's included."""
+    """The accepted steps' outputs, in blocks (one step, or a compiled run's steps): each step's end
+    time and, with ``dense`` (t_eval, or the dense output kept for :meth:`Solution.at`), its start,
+    length and nodes (start value and stages: its collocation polynomial), else its end value.
+    ``count``: the outputs kept, the start's included."""
 
     def __init__(self, t0: float, u0, dense: bool):
         self.dense = dense
@@ -504,21 +513,36 @@ class Records:
         self.count = 1
 
     def add(self, starts, lengths, times, arrays):
-        """A block of steps: ``starts``, ``lengths`` and ``arrays`` = their nodes with ``dense``; else
-        their end ``times`` and ``arrays`` = end values (B, k, n+m)."""
+        """A block of steps: their ``starts``, ``lengths`` and end ``times``, and ``arrays`` = their nodes
+        (B, k, s+1, n+m); without ``dense`` only the end values (the last node) are kept."""
+        self.times.append(times)
         if self.dense:
             self.starts.append(starts)
             self.lengths.append(lengths)
             self.nodes.append(arrays)
-            self.count += len(starts)
         else:
-            self.times.append(times)
-            self.values.append(arrays)
-            self.count += len(times)
+            self.values.append(arrays[:, :, -1])
+        self.count += len(times)
 
     def ends(self, xp):
         """``(times (T,), values (B, T, n+m))`` at the steps' ends, the start first."""
-        return np.concatenate(self.times), xp.concatenate(self.values, axis=1)
+        values = self.values if not self.dense else self.values + [nodes[:, :, -1] for nodes in self.nodes]
+        return np.concatenate(self.times), xp.concatenate(values, axis=1)
+
+    def polynomials(self, c, xp):
+        """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``
+        or steps."""
+        if not self.dense or not self.starts:
+            return None
+        from daemodel.dense import CollocationPolynomials
+
+        nodes = self.nodes[0] if len(self.nodes) == 1 else xp.concatenate(self.nodes, axis=1)
+        return CollocationPolynomials(
+            c=np.asarray(c, dtype=float),
+            starts=np.concatenate(self.starts),
+            lengths=np.concatenate(self.lengths),
+            nodes=numpy_copy(nodes),
+        )
 
     def nodes_of(self, steps: np.ndarray, xp, index):
         """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered
@@ -545,5 +569,7 @@ def extrapolation_coefficients(stages: int) -> np.ndarray:
 
 
 def step_record_bytes(D: int, B: int, options) -> int:
-    """Bytes an accepted step keeps until the end: its end values, or with t_eval its stages and start."""
-    return B * D * (4 if options.dtype == "float32" else 8) * (options.stages + 1 if options.t_eval is not None else 1)
+    """Bytes an accepted step keeps until the end: its end values, or with t_eval or the dense output its
+    stages and start."""
+    dense = options.t_eval is not None or options.dense_output
+    return B * D * (4 if options.dtype == "float32" else 8) * (options.stages + 1 if dense else 1)

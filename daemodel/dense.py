@@ -1,0 +1,196 @@
+"""Dense output: a method's own continuous solution between its output times.
+
+A :class:`~daemodel.solution.Solution` keeps one of these in ``Solution.dense`` where its method
+has one, and :meth:`~daemodel.solution.Solution.at` evaluates it:
+
+* :class:`CollocationPolynomials`: Radau IIA's (``method="radau"``, the Radau-PINN): on each
+  step ``[t_n, t_n + h]`` the polynomial of degree s through the step's start ``u_n`` at
+  ``theta = 0`` and its stage values ``U_i`` at ``theta = c_i``, for the states and the algebraic
+  variables alike.  It is what collocation solves for: the states' polynomial meets the
+  differential equations at the nodes, and its error between them is of the stage order, O(h^(s+1))
+  for the states (O(h^s) for an index-2 algebraic variable, the order of its end values) where the
+  step ends are O(h^(2s-1)); so it is as accurate as ``t_eval`` asking radau for the same times
+  (it is the same evaluation).
+* :class:`Segments`: the dense outputs of a solve cut at breakpoints or events, one after the
+  other in time (a time shared by two is the later one's: values after the switch).
+* :class:`Groups`: the dense outputs of groups of a batch's samples solved apart (samples whose
+  parameters move the breakpoints, events), row by row.
+* :class:`Held`: the values after a terminal event, at its time.
+
+Each evaluates ``(B, K, n+m)`` values at ``K`` ascending or unordered times inside its span, in the
+order of the solved system's states then algebraic variables.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemodel.collocation import lagrange_matrix
+
+# A time that a step's end misses by less than this, relative to the step, belongs to that step:
+# step ends summed as t + h differ from the grid's t_{n+1} in the last bits.
+END_MATCH_RTOL = 1e-13
+
+
+class AbstractDenseOutput(ABC):
+    """A continuous solution on ``[t0, t1]``: ``(B, K, n+m)`` values at any ``K`` times inside."""
+
+    t0: float
+    t1: float
+
+    @abstractmethod
+    def __call__(self, times: np.ndarray) -> np.ndarray: ...
+
+    @property
+    @abstractmethod
+    def description(self) -> str:
+        """What it interpolates, for :meth:`Solution.at`'s docs and reports."""
+
+
+@dataclass(frozen=True, eq=False)
+class CollocationPolynomials(AbstractDenseOutput):
+    """Each step's collocation polynomial (see the module docstring).
+
+    Attributes
+    ----------
+    c : ndarray, shape (s,)
+        The tableau's nodes (Radau IIA: ``c_s = 1``, so ``theta = 1`` gives the step's end value).
+    starts, lengths : ndarray, shape (S,)
+        Each step's start time and length, ascending.
+    nodes : ndarray, shape (B, S, s+1, n+m)
+        Each step's start value, then its stage values.
+    """
+
+    c: np.ndarray
+    starts: np.ndarray
+    lengths: np.ndarray
+    nodes: np.ndarray
+
+    @property
+    def t0(self) -> float:
+        return float(self.starts[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.starts[-1] + self.lengths[-1])
+
+    @property
+    def description(self) -> str:
+        return f"each step's collocation polynomial (degree {len(self.c)})"
+
+    def owners(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(step, theta)`` of each time: the step whose interval holds it (a step's end its own,
+        not the next one's start) and where in it, ``theta = (t - t_n) / h`` in [0, 1]."""
+        ends = self.starts + self.lengths * (1 + END_MATCH_RTOL)
+        step = np.minimum(np.searchsorted(ends, times, side="left"), len(self.starts) - 1)
+        return step, (times - self.starts[step]) / self.lengths[step]
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        times = np.asarray(times, dtype=float)
+        step, theta = self.owners(times)
+        # the product form of the Lagrange weights: exact at the nodes (a weight of 1 and zeros)
+        weights = lagrange_matrix(np.concatenate([[0.0], self.c]), theta)  # (K, s+1)
+        return np.einsum("kj,bkjd->bkd", weights, self.nodes[:, step].astype(float, copy=False))
+
+
+@dataclass(frozen=True, eq=False)
+class Segments(AbstractDenseOutput):
+    """Dense outputs of consecutive intervals ``[edges[k], edges[k+1]]``: a time on an inner edge is
+    the later segment's (the values after a breakpoint or event)."""
+
+    edges: np.ndarray
+    pieces: tuple
+
+    @property
+    def t0(self) -> float:
+        return float(self.edges[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.edges[-1])
+
+    @property
+    def description(self) -> str:
+        return f"{self.pieces[0].description}, in {len(self.pieces)} segments"
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        times = np.asarray(times, dtype=float)
+        segment = np.clip(np.searchsorted(self.edges, times, side="right") - 1, 0, len(self.pieces) - 1)
+        out = None
+        for k in np.unique(segment):
+            where = np.flatnonzero(segment == k)
+            values = self.pieces[k](times[where])
+            if out is None:
+                out = np.empty((values.shape[0], len(times), values.shape[2]))
+            out[:, where] = values
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class Groups(AbstractDenseOutput):
+    """Dense outputs of groups of samples, ``(sample indices, dense output)``, solved apart over the
+    same span: their rows in sample order."""
+
+    groups: tuple
+    samples: int
+
+    @property
+    def t0(self) -> float:
+        return self.groups[0][1].t0
+
+    @property
+    def t1(self) -> float:
+        return self.groups[0][1].t1
+
+    @property
+    def description(self) -> str:
+        return self.groups[0][1].description
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        out = None
+        for index, dense in self.groups:
+            values = dense(times)
+            if out is None:
+                out = np.empty((self.samples, values.shape[1], values.shape[2]))
+            out[index] = values
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class Held(AbstractDenseOutput):
+    """The values ``(B, n+m)`` at one time: where a solve ends at a terminal event, those after it."""
+
+    t: float
+    values: np.ndarray
+
+    @property
+    def t0(self) -> float:
+        return self.t
+
+    @property
+    def t1(self) -> float:
+        return self.t
+
+    @property
+    def description(self) -> str:
+        return "the values after a terminal event"
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        return np.repeat(self.values[:, None], len(np.atleast_1d(times)), axis=1)
+
+
+def joined_in_time(edges, pieces) -> AbstractDenseOutput | None:
+    """The :class:`Segments` of ``pieces`` (None where a piece has no dense output)."""
+    if any(piece is None for piece in pieces):
+        return None
+    return pieces[0] if len(pieces) == 1 else Segments(np.asarray(edges, dtype=float), tuple(pieces))
+
+
+def joined_by_samples(groups, samples: int) -> AbstractDenseOutput | None:
+    """The :class:`Groups` of ``(index, dense)`` pairs (None where a group has no dense output)."""
+    if any(dense is None for _, dense in groups):
+        return None
+    return Groups(tuple(groups), samples)

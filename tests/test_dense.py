@@ -1,0 +1,146 @@
+"""Dense output (daemodel/dense.py): Solution.at evaluates the method's own continuous solution,
+radau's and the Radau-PINN's collocation polynomials, at the method's accuracy (issue 28, item 1)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel import errors as E
+from daemodel.problems import AKZO_NOBEL, HESSENBERG, PENDULUM
+
+EXACT = HESSENBERG.exact_solution()
+
+
+def _slope(hs, errors) -> float:
+    return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
+
+
+def _largest(values, reference, names) -> float:
+    return max(float(np.abs(np.asarray(values[n]) - np.asarray(reference[n])).max()) for n in names)
+
+
+@pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
+@pytest.mark.parametrize("stages", [2, 3])
+def test_between_the_steps_the_polynomial_converges_at_order_s_plus_1(stages):
+    """Inside each step (theta = 0.37) the collocation polynomial's error against the exact solution
+    falls as h^(s+1) (the stage order plus one: min(s+1, 2s-1) at s = 2, 3), for the states and for
+    the index-2 algebraic variable alike, measured."""
+    c = HESSENBERG.model().compile()
+    hs, y_errors, z_errors = [0.05, 0.025, 0.0125], [], []
+    for h in hs:
+        sol = dm.solve(c, (0.0, 1.0), h=h, stages=stages)
+        inside = (np.arange(round(1 / h)) + 0.37) * h
+        values, exact = sol.at(inside), EXACT(inside)
+        y_errors.append(_largest(values, exact, c.state_names))
+        z_errors.append(_largest(values, exact, c.algebraic_names))
+    print(f"s = {stages}: y {y_errors}, z {z_errors}")
+    assert abs(_slope(hs, y_errors) - (stages + 1)) < 0.3
+    assert abs(_slope(hs, z_errors) - (stages + 1)) < 0.3
+
+
+@pytest.mark.parametrize(
+    ("problem", "options", "outputs"),
+    [
+        (PENDULUM, {"h": 0.05, "stages": 3}, 5),  # the issue's case: 1170x farther than t_eval before
+        (PENDULUM, {"h": 0.05, "stages": 3}, 11),
+        (AKZO_NOBEL, {"rtol": 1e-6, "atol": 1e-6}, 5),  # adaptive: 8e5x before
+        (AKZO_NOBEL, {"rtol": 1e-6, "atol": 1e-6, "jit": True}, 5),
+    ],
+)
+def test_at_is_what_t_eval_gives(problem, options, outputs):
+    """at() between sparse outputs gives the values solve(..., t_eval=those times) gives (the same
+    polynomials, the same steps), so its error against a tight reference is t_eval's (ratio 1, where
+    the Hermite interpolant of the outputs was 27-8e5x farther, measured here too)."""
+    c = problem.model().compile()
+    t0, t1 = problem.t_span
+    grid = np.linspace(t0, t1, outputs)
+    between = np.linspace(t0, t1, 41)[1:-1]
+    between = between[~np.isin(between, grid)]
+    sparse = dm.solve(c, problem.t_span, t_eval=grid, **options)
+    direct = dm.solve(c, problem.t_span, t_eval=between, **options)
+    names = [*c.state_names, *c.algebraic_names]
+    values = sparse.at(between)
+    assert _largest(values, direct, names) <= 1e-14 * max(1.0, _largest(direct, dict.fromkeys(names, 0.0), names))
+    reference = dm.solve(c, problem.t_span, t_eval=between, rtol=1e-12, atol=1e-12)
+    error, direct_error = _largest(values, reference, names), _largest(direct, reference, names)
+    assert error <= 2 * direct_error
+    hermite = dm.solve(c, problem.t_span, t_eval=grid, dense_output=False, **options).at(between)
+    states = c.state_names  # (what the outputs alone give: 38-1400x farther on the states)
+    assert _largest(hermite, reference, states) > 20 * _largest(direct, reference, states)
+    np.testing.assert_array_equal(sparse.at(grid)["y1"], sparse["y1"])  # (the outputs themselves)
+
+
+def test_a_batch_and_the_default_grid():
+    """A batch keeps its axis; without t_eval (outputs on the step grid) the same polynomials."""
+    c = HESSENBERG.model().compile()
+    batch = dm.solve(c, (0.0, 1.0), h=0.05, y0={"y1": [1.0, 1.0]}, stages=3)
+    single = dm.solve(c, (0.0, 1.0), h=0.05, stages=3, t_eval=[0.0125, 0.5, 0.9875])
+    values = batch.at([0.0125, 0.5, 0.9875])
+    assert {name: v.shape for name, v in values.items()} == {n: (2, 3) for n in batch.names}
+    for name in batch.names:
+        np.testing.assert_allclose(values[name], np.broadcast_to(single[name], (2, 3)), rtol=1e-13, atol=1e-15)
+
+
+def _switched():
+    m = dm.Model("switched")
+    m.states("x")
+    m.ode("x", "-x + Piecewise((0, t < 0.37), (1, True))")
+    m.initial(x=0.0)
+    return m
+
+
+def test_across_a_breakpoint_each_side_its_own_polynomial():
+    """Segments: at() between outputs that enclose the breakpoint gives each side's own solution (the
+    Hermite interpolant across it was refused); on the breakpoint, the value after it."""
+    sol = dm.solve(_switched(), (0.0, 1.0), stages=3, h=0.02, t_eval=[0.0, 0.5, 1.0])
+    times = np.array([0.2, 0.36, 0.37, 0.38, 0.45])
+    exact = np.where(times < 0.37, 0.0, 1.0 - np.exp(-(times - 0.37)))
+    np.testing.assert_allclose(sol.at(times)["x"], exact, rtol=0, atol=1e-9)
+
+
+def test_groups_of_samples_that_switch_at_different_times():
+    a = np.array([0.3, 0.4, 0.3])
+    m = dm.Model("moving")
+    m.states("x")
+    m.parameter("a", 0.3)
+    m.ode("x", "-x + Piecewise((0, t < a), (1, True))")
+    m.initial(x=0.0)
+    batch = dm.solve(m, (0.0, 1.0), stages=3, h=0.05, t_eval=[0.0, 0.5, 1.0], parameters={"a": a})
+    times = np.array([0.25, 0.35, 0.45])
+    exact = np.where(times[None] < a[:, None], 0.0, 1.0 - np.exp(-(times[None] - a[:, None])))
+    np.testing.assert_allclose(batch.at(times)["x"], exact, rtol=0, atol=1e-9)
+
+
+def test_a_terminal_event_ends_with_the_values_after_it():
+    m = dm.Model("ball")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": "-0.8*v"}, terminal=True)
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-10)
+    impact = math.sqrt(2 / 9.81)
+    assert sol.t[-1] == sol.events["floor"]["t"][0, 0]
+    values = sol.at([0.3, sol.t[-1]])
+    assert abs(values["h"][0] - (1 - 0.5 * 9.81 * 0.09)) < 1e-9
+    assert values["v"][1] == sol["v"][-1] > 0 and abs(values["v"][1] - 0.8 * 9.81 * impact) < 1e-8
+
+
+def test_the_option_is_checked_and_named_in_the_memory_message():
+    c = HESSENBERG.model().compile()
+    with pytest.raises(E.InvalidOptionError, match=r"dense_output must be True or False; got 'yes'"):
+        dm.solve(c, (0.0, 1.0), h=0.05, dense_output="yes")
+    assert dm.solve(c, (0.0, 1.0), h=0.05, dense_output=False).dense is None
+
+
+def test_the_memory_check_counts_the_polynomials(monkeypatch):
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "8M")
+    c = HESSENBERG.model().compile()
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=r"outputs with the dense output \(dense_output=False keeps the step ends only\) 0\.0149 GiB",
+    ):
+        dm.solve(c, (0.0, 1.0), h=1e-5, stages=3)
+    assert dm.solve(c, (0.0, 1.0), h=1e-5, stages=3, dense_output=False).dense is None
