@@ -65,6 +65,7 @@ from daemodel.backends.base import (
     tolerance_sweep,
 )
 
+from daemodel.dense import AbstractDenseOutput, CollocationPolynomials
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, SolverError, StepLimitError
 
 # Steps of casadi-collocation over the interval when h is not given.
@@ -82,6 +83,9 @@ KEPT_INTEGRATORS = 32
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
 FIRST_STEP_SAFETY = 0.1
+# casadi-collocation's dense output: a step's stages solved again must end at the step's own end value
+# to this much, relative to 1 + its size (the root finder's tolerance is 1e-12 of it).
+DENSE_END_MATCH = 1e-8
 # Lines of casadi's captured output quoted in an error that cannot be translated.
 QUOTED_LINES = 3
 
@@ -340,6 +344,23 @@ def _right_hand_sides(dae, grid, values, parameters) -> np.ndarray:
     return out
 
 
+def normalised_dae(dae: dict) -> dict:
+    """``dae`` on normalised time ``t = tau + h s``, ``s`` in [0, 1], with ``tau`` and ``h`` appended to
+    its parameters: one integrator from s = 0 to 1 serves any step or interval."""
+    import casadi
+
+    tau, h, s = casadi.SX.sym("tau"), casadi.SX.sym("h"), casadi.SX.sym("s")
+    now = tau + h * s
+    return {
+        "x": dae["x"],
+        "z": dae["z"],
+        "p": casadi.vertcat(dae["p"], tau, h),
+        "t": s,
+        "ode": h * casadi.substitute(dae["ode"], dae["t"], now),
+        "alg": casadi.substitute(dae["alg"], dae["t"], now),
+    }
+
+
 class LocalErrorCheck:
     """The a-posteriori local error estimate of every casadi-collocation step.
 
@@ -361,20 +382,10 @@ class LocalErrorCheck:
         import casadi
 
         dae = dae if dae is not None else _dae(compiled)
-        tau, h, s = casadi.SX.sym("tau"), casadi.SX.sym("h"), casadi.SX.sym("s")
-        now = tau + h * s
-        normalised = {
-            "x": dae["x"],
-            "z": dae["z"],
-            "p": casadi.vertcat(dae["p"], tau, h),
-            "t": s,
-            "ode": h * casadi.substitute(dae["ode"], dae["t"], now),
-            "alg": casadi.substitute(dae["alg"], dae["t"], now),
-        }
         self.step = casadi.integrator(
             "collocation_check",
             "collocation",
-            normalised,
+            normalised_dae(dae),
             0.0,
             1.0,
             {
@@ -447,6 +458,118 @@ class LocalErrorCheck:
         )
 
 
+class CollocationStages:
+    """The stage values of casadi-collocation's steps, for its dense output.
+
+    casadi keeps its collocation polynomials to itself; they are determined by each step's start and
+    length, so they are found again here: the Radau IIA stage equations of the step (the equations
+    casadi's root finder solved, ``X_i = u_k + h sum_j a_ij f(t_k + c_j h, X_j, Z_j)``, ``0 = g(t_k + c_i
+    h, X_i, Z_i)``), solved by casadi's Newton from the straight line between the step's two ends, in
+    one mapped call for all the steps asked for.  Their root is the one casadi found where the end
+    value agrees: :meth:`__call__` checks it.
+    """
+
+    def __init__(self, compiled, stages: int, dae: dict, root_abstol: float):
+        import casadi
+
+        from daemodel.tableau import radau_iia
+
+        tableau = radau_iia(stages)
+        A, self.c = np.asarray(tableau.A, dtype=float), np.asarray(tableau.c, dtype=float)
+        n, m = dae["x"].shape[0], dae["z"].shape[0]
+        f = casadi.Function("f", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
+        g = casadi.Function("g", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["alg"]])
+        X, Z = casadi.SX.sym("X", n, stages), casadi.SX.sym("Z", m, stages)
+        x0, p = casadi.SX.sym("x0", n), casadi.SX.sym("p", dae["p"].shape[0])
+        tau, h = casadi.SX.sym("tau"), casadi.SX.sym("h")
+        slopes = [f(tau + self.c[j] * h, X[:, j], Z[:, j], p) for j in range(stages)]
+        equations = []
+        for i in range(stages):
+            equations.append(X[:, i] - x0 - h * sum(A[i, j] * slopes[j] for j in range(stages)))
+            equations.append(g(tau + self.c[i] * h, X[:, i], Z[:, i], p))
+        unknowns = casadi.vertcat(*[casadi.vertcat(X[:, i], Z[:, i]) for i in range(stages)])
+        residual = casadi.Function("stages", [unknowns, casadi.vertcat(x0, p, tau, h)], [casadi.vertcat(*equations)])
+        options = {"abstol": root_abstol, "error_on_fail": False, **QUIET}
+        self.solve = casadi.rootfinder("collocation_stages", "newton", residual, options)
+        self.n, self.stages = n, stages
+
+    def __call__(self, starts, ends, parameters, tau, h) -> np.ndarray:
+        """Stage values ``(K, s, n+m)`` of ``K`` steps from ``starts`` (K, n+m) to ``ends`` (K, n+m),
+        with ``parameters`` (K, k), start times ``tau`` (K,) and lengths ``h`` (K,).
+
+        Raises
+        ------
+        ConvergenceError
+            Where Newton finds no root, or one whose last stage is not the step's end value (casadi's).
+        """
+        K, D = starts.shape
+        guess = starts[:, None] + self.c[None, :, None] * (ends - starts)[:, None]  # (K, s, n+m)
+        inputs = np.concatenate([starts[:, : self.n], parameters, tau[:, None], h[:, None]], axis=1)
+        with captured_output():
+            found = self.solve.map(K)(guess.reshape(K, -1).T, inputs.T)
+        stages = np.asarray(found).T.reshape(K, self.stages, D)
+        scale = 1.0 + np.abs(ends).max(axis=1)
+        mismatch = np.abs(stages[:, -1] - ends).max(axis=1) / scale
+        bad = ~(mismatch <= DENSE_END_MATCH)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ConvergenceError(
+                f"casadi-collocation's dense output: the stage equations of the step from t = {tau[k]:.6g} (h = "
+                f"{h[k]:.3g}) solved again from its ends give an end value {mismatch[k]:.3g} (relative) away from the "
+                "step's own: no polynomial between those outputs; ask for the times with t_eval instead"
+            )
+        return stages
+
+
+@dataclass(frozen=True, eq=False)
+class CollocationSteps(AbstractDenseOutput):
+    """casadi-collocation's dense output: each step's collocation polynomial, its stages found again by
+    :class:`CollocationStages` for the steps a query needs (and kept for the next query)."""
+
+    grid: np.ndarray
+    values: np.ndarray  # (B, N + 1, n+m)
+    parameters: np.ndarray  # (B, k)
+    stages: CollocationStages
+    _found: dict = dataclasses.field(default_factory=dict)  # step -> (B, s, n+m)
+
+    @property
+    def t0(self) -> float:
+        return float(self.grid[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.grid[-1])
+
+    @property
+    def description(self) -> str:
+        return f"each step's collocation polynomial (degree {self.stages.stages}), its stages solved again"
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        times = np.asarray(times, dtype=float)
+        B = len(self.values)
+        lengths = np.diff(self.grid)
+        polynomials = CollocationPolynomials(self.stages.c, self.grid[:-1], lengths, np.empty((B, 0, 0, 0)))
+        step, _ = polynomials.owners(times)
+        needed = [k for k in np.unique(step).tolist() if k not in self._found]
+        if needed:
+            rows = np.array(needed)
+            starts = self.values[:, rows].reshape(-1, self.values.shape[2])  # (B * len, n+m), sample-major
+            ends = self.values[:, rows + 1].reshape(-1, self.values.shape[2])
+            found = self.stages(
+                starts,
+                ends,
+                np.repeat(self.parameters, len(rows), axis=0),
+                np.tile(self.grid[rows], B),
+                np.tile(lengths[rows], B),
+            ).reshape(B, len(rows), self.stages.stages, -1)
+            for j, k in enumerate(needed):
+                self._found[k] = found[:, j]
+        used = np.unique(step)
+        nodes = np.stack([np.concatenate([self.values[:, k, None], self._found[k]], axis=1) for k in used], axis=1)
+        within = CollocationPolynomials(self.stages.c, self.grid[used], lengths[used], nodes)
+        return within(times)
+
+
 class CollocationBackend(AbstractBackend):
     """``method="casadi-collocation"``: casadi's collocation integrator, Radau scheme, checked step by step.
 
@@ -517,16 +640,29 @@ class CollocationBackend(AbstractBackend):
         }
         status = check.status(self.name, grid, estimates, options.estimate_bound, start.batched)
         settings = {k: v for k, v in dataclasses.asdict(options).items() if k != "t_eval"}
-        on_grid = make_solution(self, compiled, start, options, grid, values, 0.0, stats, settings=settings)
+        stage_solver = compiled.cached(
+            ("casadi-collocation-stages", options.stages, root_abstol),
+            lambda: CollocationStages(compiled, options.stages, dae, root_abstol),
+        )
+        dense = CollocationSteps(grid, values, np.asarray(start.p, dtype=float), stage_solver)
         times = grid
         if options.t_eval is not None:
             times = output_times(options.t_eval, t_span, grid)
-            between = on_grid.at(times)
-            names = (*compiled.state_names, *compiled.algebraic_names)
-            values = np.stack([np.reshape(between[name], (start.size, len(times))) for name in names], axis=-1)
+            values = dense(times)
         wall = time.perf_counter() - began
         return make_solution(
-            self, compiled, start, options, times, values, wall, stats, settings, status=status, setup_time=setup
+            self,
+            compiled,
+            start,
+            options,
+            times,
+            values,
+            wall,
+            stats,
+            settings,
+            status=status,
+            setup_time=setup,
+            dense=dense,
         )
 
 
@@ -623,6 +759,60 @@ def first_step(zdot, z0, rtol: float, atol: float, t_span, first_output: float) 
     return max(step, 16 * float(np.spacing(max(abs(t_span[0]), abs(t_span[1]), 1.0))))
 
 
+@dataclass(frozen=True, eq=False)
+class IDASRestarts(AbstractDenseOutput):
+    """casadi-idas's dense output: IDAS started again from the output before each time asked for, with
+    the solve's tolerances, to that time (casadi keeps IDAS's interpolating polynomials to itself).
+    Every time is one short IDAS run from consistent values, on normalised time (:func:`normalised_dae`),
+    all of them in one mapped call; an output time itself is the solve's own value."""
+
+    times: np.ndarray  # (T,)
+    values: np.ndarray  # (B, T, n+m)
+    parameters: np.ndarray  # (B, k)
+    integrator: object  # () -> the integrator from s = 0 to 1 on normalised time
+    n: int
+
+    @property
+    def t0(self) -> float:
+        return float(self.times[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.times[-1])
+
+    @property
+    def description(self) -> str:
+        return "IDAS restarted from the output before each time"
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        times = np.asarray(times, dtype=float)
+        B, D = len(self.values), self.values.shape[2]
+        before = np.clip(np.searchsorted(self.times, times, side="right") - 1, 0, len(self.times) - 1)
+        out = np.repeat(self.values[:, before], 1, axis=1)  # (B, K, D): at the outputs, their own values
+        inside = np.flatnonzero(times > self.times[before])
+        if not len(inside):
+            return out
+        K = len(inside)
+        starts = self.values[:, before[inside]].reshape(B * K, D)
+        tau = np.tile(self.times[before[inside]], B)
+        p = np.concatenate(
+            [np.repeat(self.parameters, K, axis=0), tau[:, None], np.tile(times[inside], B)[:, None] - tau[:, None]],
+            axis=1,
+        )
+        try:
+            with captured_output() as printed:
+                found = self.integrator().map(B * K)(x0=starts[:, : self.n].T, z0=starts[:, self.n :].T, p=p.T)
+        except RuntimeError as error:
+            asked = ", ".join(f"{t:.6g}" for t in times[inside][:3])
+            raise ConvergenceError(
+                f"casadi-idas's dense output: IDAS started again from the outputs before t = {asked} failed "
+                f"({_last_lines(printed.getvalue()) or error}); ask for those times with t_eval instead"
+            ) from None
+        ends = np.concatenate([np.asarray(found["xf"]), np.asarray(found["zf"])], axis=0).T.reshape(B, K, D)
+        out[:, inside] = ends
+        return out
+
+
 class IDASBackend(AbstractBackend):
     """``method="casadi-idas"``: SUNDIALS IDAS (BDF, variable order) on the index-1 reduction.
 
@@ -699,6 +889,14 @@ class IDASBackend(AbstractBackend):
         if failure is not None:
             raise failure
         wall = time.perf_counter() - began
+        # (built on the first query, kept with the model; the first step IDAS chose on the real time
+        # scale means nothing on the normalised one)
+        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | {"calc_ic": True}
+
+        def restart():
+            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+
+        dense = IDASRestarts(times_out, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
         if times[0] != t_span[0]:
             values = values[:, 1:]
-        return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup)
+        return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)

@@ -347,7 +347,7 @@ def test_values_between_output_times_converge_at_order_four():
 
 def test_collocation_t_eval_interpolates_its_step_grid():
     """casadi-collocation takes t_eval: on the step grid its values are the grid solve's; between,
-    Solution.at's O(h^4) interpolation (casadi keeps its collocation polynomials to itself)."""
+    its collocation polynomials (their stages solved again: casadi keeps them to itself), O(h^4)."""
     c = HESSENBERG.model().compile()
     grid = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05)
     on_grid = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05, t_eval=grid.t)
@@ -357,4 +357,4 @@ def test_collocation_t_eval_interpolates_its_step_grid():
     sol = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05, t_eval=between)
     assert np.array_equal(sol.t, between) and "t_eval" not in sol.settings
     error = max(np.abs(sol[n] - EXACT(between)[n]).max() for n in c.state_names)
-    assert 1e-8 < error < 1e-5  # Hermite's O(h^4) at h = 0.05, above the grid's own 3.9e-8
+    assert 1e-8 < error < 1e-6  # the polynomial's O(h^4) at h = 0.05 (2.2e-7), above the grid's own 3.9e-8
