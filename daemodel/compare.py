@@ -677,8 +677,9 @@ def plan_comparison(
     fixed grid of more than :data:`MAX_SWEEP_STEPS` steps, an inconsistent initial state, and
     a reference that fails on :data:`REFERENCE_CHECK_POINTS` times across ``t_span``.
     """
+    from daemodel.compiler import as_compiled
     from daemodel.initial_states import initial_states
-    from daemodel.solver import as_compiled, check_span
+    from daemodel.solver import check_span
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)

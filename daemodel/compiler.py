@@ -12,10 +12,12 @@ from daemodel.errors import (
     MissingInitialValueError,
     MissingODEError,
     MissingParameterValueError,
+    ModelError,
     UnbalancedSystemError,
     UnknownOutputError,
 )
 from daemodel.init import NumericSystem, initialise
+from daemodel.model import Model
 from daemodel.prune import eliminate_aliases, needed
 from daemodel.structure import Differentiator, derivative_chain, match
 
@@ -51,6 +53,16 @@ def _validate(model) -> None:
         )
     for eq in [*model._odes.values(), *model._constraints]:
         check_supported(eq.expr, f"model '{model.name}', {eq.label}")
+
+
+def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
+    """A Model compiled with all outputs, or a CompiledDAE as it is; a :class:`ModelError` naming
+    ``caller`` for anything else."""
+    if isinstance(model, Model):
+        model = model.compile()
+    if not isinstance(model, CompiledDAE):
+        raise ModelError(f"{caller} needs a Model or a CompiledDAE; got {type(model).__name__}")
+    return model
 
 
 def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:

@@ -168,12 +168,17 @@ def ensemble(
         With ``write_to``, an :class:`EnsembleFiles` instead.
     """
     from daemodel.backends import get_backend
+    from daemodel.compiler import as_compiled
     from daemodel.initial_states import _columns
-    from daemodel.solver import as_compiled, check_options, check_span
+    from daemodel.solver import check_options, check_span
 
     check_engine(engine, workers, address, options.get("device", "cpu"))
     check_timeout(task_timeout)
     backend = get_backend(method)
+    if "dense_output" in {f.name for f in dataclasses.fields(backend.Options)} and "dense_output" not in options:
+        # an ensemble keeps its chunks' values, not their dense outputs: none is built (radau's takes s + 1
+        # times the memory of the values)
+        options = {**options, "dense_output": False}
     checked = check_options(backend, options)  # a misspelt option is named before any chunk runs
     if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
         raise InvalidOptionError(f"chunk must be a positive integer (samples per task); got {chunk!r}")
@@ -487,7 +492,7 @@ class EnsembleFiles:
             No manifest there, not a daemodel ensemble, a field that is damaged (named), a chunk
             file missing or not a plain file, or another model.
         """
-        from daemodel.solver import as_compiled
+        from daemodel.compiler import as_compiled
 
         directory = Path(directory).expanduser()
         path = directory / MANIFEST

@@ -409,7 +409,7 @@ class Solution:
     @classmethod
     def _read(cls, handle, path: Path, model) -> Solution:
         """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
-        from daemodel.solver import as_compiled
+        from daemodel.compiler import as_compiled
 
         arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, memory_limit(), "daemodel solution file")
         meta = parse_json(str(arrays["meta"]), path, SolutionFileError, "a daemodel solution file")

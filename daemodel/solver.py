@@ -9,12 +9,11 @@ import numbers
 import numpy as np
 
 from daemodel.backends import get_backend
-from daemodel.compiled import CompiledDAE
-from daemodel.errors import InvalidOptionError, ModelError, TimeSpanError, UnknownOptionError
+from daemodel.compiler import as_compiled
+from daemodel.errors import InvalidOptionError, TimeSpanError, UnknownOptionError
 from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
 from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
-from daemodel.model import Model
 from daemodel.solution import Solution
 from daemodel.switches import for_method, has_time_switches, solve_with_breakpoints
 
@@ -107,15 +106,6 @@ def _pair(value):
     if len(items) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in items):
         return None
     return float(items[0]), float(items[1])
-
-
-def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
-    """A Model compiled with all outputs, or a CompiledDAE as it is."""
-    if isinstance(model, Model):
-        model = model.compile()
-    if not isinstance(model, CompiledDAE):
-        raise ModelError(f"{caller} needs a Model or a CompiledDAE; got {type(model).__name__}")
-    return model
 
 
 def check_span(t_span, compiled) -> tuple[float, float]:

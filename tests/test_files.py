@@ -570,6 +570,12 @@ def test_a_solve_whose_outputs_would_not_fit_is_refused_before_it_starts():
         match=r"radau on 1000000 sample\(s\) of 1 unknowns would need 74.6 GiB \(Newton matrices 0.0522 GiB, "
         r"outputs 74.5 GiB\), more than the .* GiB allowed \(set DAEMODEL_MEMORY_LIMIT",
     ):
+        dm.solve(decay, (0.0, 1.0), h=1e-4, parameters={"k": np.ones(10**6)}, dense_output=False)
+    with pytest.raises(  # (the dense output: the start and s = 3 stages of every step)
+        ResourceLimitError,
+        match=r"would need 298 GiB \(Newton matrices 0.0522 GiB, outputs with the dense output "
+        r"\(dense_output=False keeps the step ends only\) 298 GiB\)",
+    ):
         dm.solve(decay, (0.0, 1.0), h=1e-4, parameters={"k": np.ones(10**6)})
 
 
@@ -577,6 +583,9 @@ def test_adaptive_steps_stop_at_the_memory_limit(monkeypatch):
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "20K")
     k = {"k": np.linspace(1.0, 50.0, 100)}
     with pytest.raises(ResourceLimitError, match=r"radau: at t = .*, the 15 steps' outputs of 100 sample\(s\) reach"):
+        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k, dense_output=False)
+    # (with the dense output, each step keeps its start and stages: 4 values where its end is 1)
+    with pytest.raises(ResourceLimitError, match=r"radau: at t = .*, the 3 steps' outputs of 100 sample\(s\) reach"):
         dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k)
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "lots")
     with pytest.raises(InvalidOptionError, match=r"DAEMODEL_MEMORY_LIMIT = 'lots' is not a memory size"):
