@@ -153,7 +153,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     )
 
     invariants = tuple((c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1)))
-    return CompiledDAE(
+    compiled = CompiledDAE(
         name=model.name,
         t=model.t,
         t0=model._t0,
@@ -172,3 +172,5 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         notes=values.notes,
         dropped=dropped,
     )
+    compiled._cache["numeric"] = numeric  # (the functions the initialisation made, and its derivatives, serve on)
+    return compiled
