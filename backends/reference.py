@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from daemodel.backends.base import (
@@ -43,6 +43,7 @@ from daemodel.backends.base import (
     tolerance_sweep,
 )
 
+from daemodel.dense import Restarts
 from daemodel.errors import ConvergenceError, InvalidOptionError, StepLimitError
 from daemodel.init import NumericSystem, jacobian_entries
 
@@ -256,6 +257,7 @@ class ReferenceBackend(AbstractBackend):
         algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)
         n, m = len(compiled.states), len(compiled.algebraics)
         values = np.empty((start.size, len(times), n + m))
+        finals = []  # (each sample's integrator at its end)
         stats = {"integrator": [], "batch": start.size, "steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "restarts": 0}
         began = time.perf_counter()
         with np.errstate(all="ignore"):  # non-finite values are detected and reported, never warned about
@@ -266,6 +268,7 @@ class ReferenceBackend(AbstractBackend):
                 run = _SampleRun(compiled, f, algebraic, start, b, options)
                 values[b] = run.integrate(t_span, times)
                 stats["integrator"].append(run.description)
+                finals.append(run.integrator)
                 for key in ("steps", "nfev", "njev", "nlu", "restarts"):
                     stats[key] += run.counts[key]
         distinct = list(dict.fromkeys(stats["integrator"]))
@@ -276,7 +279,16 @@ class ReferenceBackend(AbstractBackend):
         )
         stats["newton_iterations"] = algebraic.iterations
         wall = time.perf_counter() - began
-        return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup)
+        # the dense output restarts with the integrator the samples ended with: a stiff problem's restart
+        # would otherwise begin with DOP853 again (20x the error on akzo-nobel before it turns to Radau)
+        ended = options if options.integrator != AUTO else replace(options, integrator=_ended_with(finals))
+        dense = Restarts(self, compiled, ended, times, values, np.asarray(start.p, dtype=float))
+        return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)
+
+
+def _ended_with(integrators: list) -> str:
+    """The integrator for restarts of samples that ended with ``integrators``: Radau if any turned stiff."""
+    return "Radau" if "Radau" in integrators else integrators[0]
 
 
 class _SampleRun:

@@ -16,6 +16,8 @@ has one, and :meth:`~daemodel.solution.Solution.at` evaluates it:
 * :class:`Groups`: the dense outputs of groups of a batch's samples solved apart (samples whose
   parameters move the breakpoints, events), row by row.
 * :class:`Held`: the values after a terminal event, at its time.
+* :class:`Restarts`: for a method whose own interpolant is out of reach (the reference), the method
+  started again from the output before each time.
 
 Each evaluates ``(B, K, n+m)`` values at ``K`` ascending or unordered times inside its span, in the
 order of the solved system's states then algebraic variables.
@@ -180,6 +182,66 @@ class Held(AbstractDenseOutput):
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         return np.repeat(self.values[:, None], len(np.atleast_1d(times)), axis=1)
+
+
+@dataclass(frozen=True, eq=False)
+class Restarts(AbstractDenseOutput):
+    """A method started again from the output before each time asked for, with the solve's options, to
+    that time: for methods whose own interpolant is out of reach (the reference's integrators step
+    past the outputs and keep no polynomial of their steps).  One solve per interval of outputs that
+    holds times; an output time itself is the solve's own value.
+
+    Attributes
+    ----------
+    backend, compiled, options
+        The method, the system it solved and its options (``t_eval`` is replaced per interval).
+    times : ndarray, shape (T,)
+    values : ndarray, shape (B, T, n+m)
+    parameters : ndarray, shape (B, k)
+    """
+
+    backend: object
+    compiled: object
+    options: object
+    times: np.ndarray
+    values: np.ndarray
+    parameters: np.ndarray
+
+    @property
+    def t0(self) -> float:
+        return float(self.times[0])
+
+    @property
+    def t1(self) -> float:
+        return float(self.times[-1])
+
+    @property
+    def description(self) -> str:
+        return f"{self.backend.name} started again from the output before each time"
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        import dataclasses
+
+        from daemodel.initial_states import InitialStates
+
+        times = np.asarray(times, dtype=float)
+        n = len(self.compiled.states)
+        before = np.clip(np.searchsorted(self.times, times, side="right") - 1, 0, len(self.times) - 1)
+        out = self.values[:, before].copy()  # (B, K, n+m): at the outputs, their own values
+        inside = times > self.times[before]
+        for k in np.unique(before[inside]):
+            where = np.flatnonzero(inside & (before == k))
+            a, b = float(self.times[k]), float(self.times[k + 1])
+            start = InitialStates(
+                y0=self.values[:, k, :n].copy(), z0=self.values[:, k, n:].copy(), p=self.parameters, batched=True
+            )
+            model = dataclasses.replace(self.compiled, t0=a)
+            options = dataclasses.replace(self.options, t_eval=np.unique(times[where]))
+            sol = self.backend.solve(model, (a, b), start, options)
+            names = (*self.compiled.state_names, *self.compiled.algebraic_names)
+            found = np.stack([np.reshape(sol.values[name], (len(start.y0), -1)) for name in names], axis=-1)
+            out[:, where] = found[:, np.searchsorted(sol.t, times[where])]
+        return out
 
 
 def joined_in_time(edges, pieces) -> AbstractDenseOutput | None:
