@@ -45,9 +45,9 @@ and prints markdown tables.
 
 Run: python benchmarks/radau_idas.py [--quick] [--jit] [--problems ...] [--passes 3] [--solve-limit 20]
      [--out PATH] [--code-label TEXT]
-(``--jit``: radau's adaptive solves with ``jit=True``, the step compiled to machine code; the README
-quotes ``python benchmarks/radau_idas.py`` and ``python benchmarks/radau_idas.py --jit --no-fixed
---out benchmarks/radau_idas_jit``.)
+(``--jit``: radau's adaptive solves with ``jit=True``, the step compiled to machine code;
+docs/benchmarks/radau-idas.md quotes ``python benchmarks/radau_idas.py`` and
+``python benchmarks/radau_idas.py --jit --no-fixed --out benchmarks/radau_idas_jit``.)
 """
 
 from __future__ import annotations

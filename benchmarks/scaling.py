@@ -68,7 +68,7 @@ import scaling_models  # noqa: E402
 # Radau IIA stages of radau, casadi-collocation and pinn: the paper's s = 3 (order 5).
 STAGES = 3
 # Fixed step of radau, casadi-collocation and pinn: 20 steps over each family's unit interval,
-# the step of the README's tables; every family stays within the local-error bound at it.
+# the step of the tables in docs/benchmarks/scaling.md; every family stays within the local-error bound at it.
 STEP = 0.05
 # Tolerance of both adaptive methods (rtol = atol): the comparison point.
 ADAPTIVE_TOL = 1e-8

@@ -166,7 +166,7 @@ def slow_results(request):
     return cases, results
 
 
-# Cases that fail today for a reason understood and documented (README, Trust), with the outcome
+# Cases that fail today for a reason understood and documented (docs/trust.md), with the outcome
 # they give.  Each must keep failing that way: one that starts passing must leave this list.
 KNOWN_FAILURES = {
     # none: "r1-0105-options" (adaptive float32 radau, index-2 DAE with a kink, z1 0.12 off) was

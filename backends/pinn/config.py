@@ -17,7 +17,7 @@ OPTIMIZERS = ("lm", "lbfgs", "adam")
 BATCH_MODES = ("independent", "shared")
 SCHEDULES = ("constant", "exponential")
 # An exponential schedule ends at this fraction of learning_rate unless final_learning_rate is given
-# (1e-3 -> 1e-6: the decay measured on the paper's first Hessenberg segment, see README).
+# (1e-3 -> 1e-6: the decay measured on the paper's first Hessenberg segment, see docs/benchmarks/paper.md).
 DEFAULT_DECAY = 1e-3
 # Iteration caps when ``iterations`` is not given: LM and L-BFGS stop on ``tol`` long before.
 DEFAULT_ITERATIONS = {"lm": 200, "lbfgs": 5000, "adam": 100_000}

@@ -446,7 +446,7 @@ class Surrogate:
             estimate is ``|G| / h^2 + (propagated y error + |F|) / h`` (an index-2 variable moves
             by about residual / h^2); both are doubled (:data:`ESTIMATE_SAFETY`).  It costs n
             extra backward passes per segment.  Calibration, measured: see ESTIMATE_SAFETY and
-            README; it is an estimate, not a proof.
+            docs/benchmarks/surrogates.md; it is an estimate, not a proof.
         tol : float, optional
             The hybrid: every answer is checked by the certificate of the trajectory mode
             (:mod:`~daemodel.backends.pinn.certificate`): per segment, full Newton on the stage
