@@ -424,11 +424,12 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
             first = np.isnan(last)
             error = np.where(first, 0.0 if tolerances.linear else np.where(size == 0, 0.0, np.inf), error)
             stalled = (theta > tolerances.stall_rate) & (size <= tolerances.stall_step * scale)
-            bound = tolerances.residual * (
-                1 + np.maximum((scale - 1)[:, None], np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa)))
-            )
-            small = (np.abs(r_new) <= bound).all(axis=1)
-            settled[rows] = ((error <= tolerances.step * scale) | stalled) & small
+            candidate = (error <= tolerances.step * scale) | stalled
+            if candidate.any():  # (the residual's bound only where the steps have settled)
+                bound = tolerances.residual * (
+                    1 + np.maximum((scale - 1)[:, None], np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa)))
+                )
+                settled[rows] = candidate & (np.abs(r_new) <= bound).all(axis=1)
             previous[rows] = size
         fine = np.isfinite(r).all(axis=1) & np.isfinite(x).all(axis=1)
         converged = settled & fine

@@ -40,6 +40,9 @@ from daemodel.messages import quoted
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
+# check_branch evaluates H_z at this many bytes of matrices at a time: a large batch of outputs of a
+# model with many algebraic variables would otherwise hold all of them at once.
+BRANCH_CHECK_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True)
@@ -406,11 +409,14 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
     if m == 0 or T < 2:
         return
     rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
+    T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
+    Hz, sign = _checks(compiled).Hz, np.empty(B * T)
+    chunk = max(1, BRANCH_CHECK_BYTES // (8 * m * m))  # (rows per evaluation of H_z)
     with np.errstate(all="ignore"):
-        J = _checks(compiled).Hz(
-            np.tile(np.asarray(times, dtype=float), B), rows[:, :n], rows[:, n:], np.repeat(P, T, axis=0)
-        )
-        sign = _signs(J).reshape(B, T)
+        for a in range(0, B * T, chunk):
+            b = slice(a, a + chunk)
+            sign[b] = _signs(Hz(T_all[b], rows[b, :n], rows[b, n:], P_all[b]))
+    sign = sign.reshape(B, T)
     changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
     if not changed.any():
         return

@@ -277,3 +277,27 @@ def test_consistent_fix_errors_name_the_culprit():
         rf"\({others}\) satisfy .*fix fewer states, or values that the constraints allow",
     ):
         d.consistent(y0={x: 2.0, y: 0.1}, fix=[x])  # x^2 + y^2 = 1 has no y for x = 2
+
+
+def test_the_branch_check_reads_the_outputs_in_chunks(monkeypatch):
+    """One matrix per evaluation of H_z: the same refusal as all at once."""
+    import daemodel.initial_states as initial_states
+
+    monkeypatch.setattr(initial_states, "BRANCH_CHECK_BYTES", 8)
+    with pytest.raises(E.BranchError, match=r"casadi-idas: the algebraic variables leave the branch of roots"):
+        dm.solve(crossing().compile(), (0.0, 3.0), method="casadi-idas")
+    sol = dm.solve(crossing().compile(), (0.0, 0.9), method="casadi-idas", t_eval=np.linspace(0, 0.9, 10))
+    np.testing.assert_allclose(sol["z"], 1 - sol.t, rtol=0, atol=1e-6)
+
+
+def test_newton_reports_convergence_and_singularity_for_the_caller_to_judge():
+    """0 = z^2 + 1 has no real root and a singular Jacobian at z = 0; 0 = z^2 - 4 converges from 1 and
+    from -1 to the root on its side."""
+    F, J = (lambda z: z**2 + 1), (lambda z: (2 * z)[:, :, None])
+    result = solve_algebraic(F, J, np.array([[0.0]]))
+    assert not result.converged[0] and result.singular[0]
+    result = solve_algebraic(lambda z: z**2 - 4, J, np.array([[1.0], [-1.0]]))
+    assert result.converged.all() and not result.singular.any()
+    np.testing.assert_allclose(result.x[:, 0], [2.0, -2.0], rtol=0, atol=1e-15)
+    capped = solve_algebraic(lambda z: z**2 - 4, J, np.array([[1.0]]), NewtonTolerances(max_iterations=2))
+    assert not capped.converged[0] and capped.iterations == 2
