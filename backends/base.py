@@ -118,11 +118,19 @@ def make_solution(
     :attr:`Solution.setup_time`; ``settings`` defaults to the options' fields (less ``t_eval``; a
     function, such as radau's ``start_guess``, by its name, not copied); ``status`` is
     :attr:`Solution.status`; ``dense`` is :attr:`Solution.dense` (:mod:`daemodel.dense`).
+
+    Raises
+    ------
+    BranchError
+        When the algebraic variables leave their branch of roots between two output times
+        (:func:`daemodel.initial_states.check_branch`).
     """
     from dataclasses import asdict, fields, is_dataclass
 
+    from daemodel.initial_states import check_branch
     from daemodel.solution import Solution
 
+    check_branch(backend if isinstance(backend, str) else backend.name, compiled, times, values, start.p)
     if settings is None:
         settings = {}
         for field in fields(options):

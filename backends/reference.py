@@ -7,18 +7,24 @@ sympy's numpy lambdas, independent of the torch code generator that ``method="ra
 This is the reference the paper used for the pendulum, which has no closed form, and the truth
 that :func:`daemodel.compare` measures every method against, so it follows these rules:
 
-1. Newton for z stops only on a small step *and* a small residual, within
-   ``max_newton_iterations``; otherwise (no root, a singular ``H_z``, divergence) the solve
-   raises :class:`~daemodel.errors.ConvergenceError` naming the time, the sample and the
-   constraint with the largest residual: the algebraic variables are not determined there.
-2. A non-finite state or derivative raises ConvergenceError naming the time, the sample and the
+1. Newton for z (:func:`daemodel.init.solve_algebraic`, the one algebraic Newton) stops only on a
+   small step *and* a small residual, within ``max_newton_iterations``; otherwise (no root, a
+   singular ``H_z``, divergence) the solve raises :class:`~daemodel.errors.ConvergenceError`
+   naming the time, the sample and the constraint with the largest residual: the algebraic
+   variables are not determined there.
+2. z stays on the branch of roots chosen at t0: Newton starts from the branch's tangent
+   prediction at each evaluation, and a root that does not continue the branch (``det H_z``
+   changed sign since the last accepted point, or a jump far beyond the prediction's reach), or a
+   Newton failure where ``H_z`` has turned nearly singular (a fold), raises
+   :class:`~daemodel.errors.BranchError` (a ConvergenceError) once located as in rule 4.
+3. A non-finite state or derivative raises ConvergenceError naming the time, the sample and the
    state; so does a step size that underflows (a blow-up), naming the largest state.
-3. A failed evaluation is localised before it is reported: the integrator restarts from the last
+4. A failed evaluation is localised before it is reported: the integrator restarts from the last
    accepted point with steps :data:`LOCATE_SHRINK` times shorter than the distance to the
    failure.  A trial point off the solution (an over-long step) then passes, and a real failure
    is reported where it happens, to :data:`LOCATE_RTOL`.
-4. At most ``max_steps`` accepted steps per sample (:class:`~daemodel.errors.StepLimitError`).
-5. ``integrator="auto"`` (default) starts with DOP853 and continues with Radau from the point
+5. At most ``max_steps`` accepted steps per sample (:class:`~daemodel.errors.StepLimitError`).
+6. ``integrator="auto"`` (default) starts with DOP853 and continues with Radau from the point
    where Hairer's stiffness test fires; ``stats["integrator"]`` says where
    (``"DOP853 -> Radau at t = 0.00153"``).  rtol = atol = 1e-12 by default.
 """
@@ -44,8 +50,8 @@ from daemodel.backends.base import (
 )
 
 from daemodel.dense import Restarts
-from daemodel.errors import ConvergenceError, InvalidOptionError, StepLimitError
-from daemodel.init import NumericSystem, jacobian_entries
+from daemodel.errors import BranchError, ConvergenceError, InvalidOptionError, StepLimitError
+from daemodel.init import NewtonTolerances, NumericSystem, jacobian_entries, solve_algebraic
 
 INTEGRATORS = ("DOP853", "RK45", "Radau", "BDF", "LSODA")
 AUTO = "auto"
@@ -67,6 +73,17 @@ Z_RESIDUAL_TOL = 1e-8
 # Newton that stalls (theta above Z_STALL_RATE) with a step below Z_STALL_TOL (relative) has
 # reached the rounding level of an ill-conditioned H_z: accepted, not reported as a failure.
 Z_STALL_RATE, Z_STALL_TOL = 0.5, 1e-9
+# The root Newton finds at a trial point continues the branch when it is within BRANCH_JUMP_RATIO
+# times the larger of the predicted change of z and its change over the last accepted step of the
+# tangent prediction, plus BRANCH_ATOL relative to 1 + max|z|: a continuation's correction is second
+# order in the step (far below either), a jump to another root a distance between branches.  A
+# trial point that fails the test only because its step is long passes once localisation shortens it.
+BRANCH_JUMP_RATIO = 1.0
+BRANCH_ATOL = 1e-6
+# A Newton failure located just past an accepted point whose H_z has a smallest singular value
+# below BRANCH_END_TOL times the norm of [H_z, H_t, H_y] (z changing 100 times faster than H)
+# is the end of the branch (a fold, or a root running off to infinity), a BranchError.
+BRANCH_END_TOL = 1e-2
 # A failure is localised by restarting with steps LOCATE_SHRINK times shorter than the distance
 # to it (about 8 steps a round), until that distance is below LOCATE_RTOL * max(1, |t|).
 LOCATE_SHRINK = 8.0
@@ -128,13 +145,49 @@ class _EvaluationFailure(Exception):
     ``reason`` completes "... near t = <t> (sample <b>): <reason>".
     """
 
-    def __init__(self, t: float, reason: str):
+    def __init__(self, t: float, reason: str, error: type[ConvergenceError] = ConvergenceError):
         super().__init__(reason)
-        self.t, self.reason = float(t), reason
+        self.t, self.reason, self.error = float(t), reason, error
+
+
+@dataclass(frozen=True)
+class BranchPoint:
+    """An accepted point ``(t, y, z)`` of a sample's branch of roots, with what continues it.
+
+    Attributes
+    ----------
+    t : float
+    y : ndarray, shape (n,)
+    z : ndarray, shape (m,)
+    dz_dt : ndarray, shape (m,)
+    dz_dy : ndarray, shape (m, n)
+        The tangent of the branch, ``-H_z^{-1} [H_t, H_y]`` (implicit function theorem): the
+        prediction of z at a nearby ``(t, y)`` to first order.
+    sign : float
+        The sign of ``det H_z`` there: a branch that keeps it never crossed a singular ``H_z``.
+    change : float
+        ``max |z - z_before|`` over the last accepted step: how far z moves in a step, the scale of
+        a correction that is still a continuation.
+    """
+
+    t: float
+    y: np.ndarray
+    z: np.ndarray
+    dz_dt: np.ndarray
+    dz_dy: np.ndarray
+    sign: float
+    change: float
+
+    def predict(self, t, y) -> np.ndarray:
+        return self.z + self.dz_dt * (t - self.t) + self.dz_dy @ (y - self.y)
 
 
 class AlgebraicSolver:
-    """Newton for the algebraic variables: ``z(t, y)`` with ``H(t, y, z, p) = 0``.
+    """The algebraic variables ``z(t, y)`` with ``H(t, y, z, p) = 0``, on one branch of roots.
+
+    Newton is :func:`daemodel.init.solve_algebraic` (the one algebraic Newton) with this method's
+    tolerances; it starts from the branch's tangent prediction, and the root it converges to must
+    continue the branch (:meth:`leaves_branch`).
 
     Parameters
     ----------
@@ -147,10 +200,20 @@ class AlgebraicSolver:
         determining = [c.determining for c in compiled.constraints]
         self.H = numeric.function(determining)
         self.Hz = numeric.jacobian(determining, compiled.algebraics)
-        # Linear in z (H_z free of z, as in mechanics): one Newton step is exact but for rounding.
-        # The entries of H_z that are not identically zero (the others hold no z either).
+        self.Ht = numeric.jacobian(determining, (compiled.t,))
+        self.Hy = numeric.jacobian(determining, compiled.states)
+        # Linear in z (H_z free of z, as in mechanics): one Newton step is exact but for rounding,
+        # and the root is unique wherever H_z is regular (no other branch to jump to).
         _, _, entries = jacobian_entries(determining, compiled.algebraics, numeric.calculus)
-        self.linear = not any(e.has(*compiled.algebraics) for e in entries)
+        linear = not any(e.has(*compiled.algebraics) for e in entries)
+        self.tolerances = NewtonTolerances(
+            step=Z_NEWTON_TOL,
+            residual=Z_RESIDUAL_TOL,
+            max_iterations=maxiter,
+            stall_rate=Z_STALL_RATE,
+            stall_step=Z_STALL_TOL,
+            linear=linear,
+        )
         self.labels = [c.label for c in compiled.constraints]
         self.names = compiled.algebraic_names
         self.maxiter = maxiter
@@ -167,35 +230,101 @@ class AlgebraicSolver:
         """
         if z.size == 0:
             return z
-        r = self.H(t, y, z, p)
-        previous = None  # the last step's size, for the contraction theta
-        for _ in range(self.maxiter):
-            self.iterations += 1
-            J = self.Hz(t, y, z, p)
-            try:
-                dz = np.linalg.solve(J, -r)
-            except np.linalg.LinAlgError:
-                raise self._failure(t, z, r, "dH/dz is singular there") from None
-            z = z + dz
-            r = self.H(t, y, z, p)
-            size = float(np.max(np.abs(dz)))
-            if not math.isfinite(size):  # a non-finite residual makes the next step non-finite
-                raise self._failure(t, z, r, "Newton for z diverged to non-finite values")
-            scale = 1.0 + float(np.max(np.abs(z)))
-            error, stalled = (0.0 if self.linear else size), False
-            if previous is not None:
-                theta = size / previous if previous > 0 else math.inf
-                error = size * theta / (1 - theta) if theta < 1 else size
-                stalled = theta > Z_STALL_RATE and size <= Z_STALL_TOL * scale
-            if (error <= Z_NEWTON_TOL * scale or stalled) and np.all(
-                np.abs(r) <= Z_RESIDUAL_TOL * (1.0 + np.abs(J) @ np.abs(z))
-            ):
-                return z
-            previous = size
-        raise self._failure(t, z, r, f"Newton for z did not converge within max_newton_iterations = {self.maxiter}")
+        result = solve_algebraic(
+            lambda x: self.H(t, y, x[0], p)[None, :],
+            lambda x: self.Hz(t, y, x[0], p)[None],
+            z[None, :],
+            self.tolerances,
+        )
+        self.iterations += result.iterations
+        if result.converged[0]:
+            return result.x[0]
+        x, r = result.x[0], result.residual[0]
+        if result.singular[0]:
+            why = "dH/dz is singular there"
+        elif not np.isfinite(x).all() or not np.isfinite(r).all():
+            why = "Newton for z diverged to non-finite values"
+        else:
+            why = f"Newton for z did not converge within max_newton_iterations = {self.maxiter}"
+        raise self._failure(t, x, r, why)
+
+    def branch_point(self, t, y, z, p, before: BranchPoint | None) -> BranchPoint:
+        """The :class:`BranchPoint` of an accepted ``(t, y, z)``; ``before``, the previous one."""
+        if z.size == 0:
+            return BranchPoint(t, y, z, z, np.zeros((0, y.size)), 1.0, 0.0)
+        J = self.Hz(t, y, z, p)
+        sign, _ = np.linalg.slogdet(J)
+        try:
+            tangent = -np.linalg.solve(J, np.column_stack([self.Ht(t, y, z, p), self.Hy(t, y, z, p)]))
+        except np.linalg.LinAlgError:
+            tangent = np.zeros((z.size, 1 + y.size))
+        change = 0.0 if before is None else float(np.max(np.abs(z - before.z)))
+        return BranchPoint(float(t), y.copy(), z.copy(), tangent[:, 0], tangent[:, 1:], float(sign), change)
+
+    def leaves_branch(self, t, y, z, p, predicted: np.ndarray, point: BranchPoint) -> str | None:
+        """Why the root ``z`` at ``(t, y)`` (Newton from ``predicted``) does not continue the branch
+        through ``point``, or None when it does.
+
+        Two measurable departures: ``det H_z`` changed sign since ``point`` (a singular ``H_z`` lies
+        between: the branch folds or meets another, and z is not determined there), or the root is
+        further from the tangent prediction than :data:`BRANCH_JUMP_RATIO` times the larger of the
+        predicted change and z's change over the last step, plus :data:`BRANCH_ATOL` (relative):
+        a continuation's correction is second order in the step, a jump to another root is not.
+        """
+        if z.size == 0:
+            return None
+        sign, _ = np.linalg.slogdet(self.Hz(t, y, z, p))
+        if sign != point.sign:
+            values, before = self._values(z), self._values(point.z)
+            return (
+                f"the algebraic variables leave their branch of roots: det(dH/dz) changes sign between t = "
+                f"{point.t:.8g} ({before}) and here ({values}), so dH/dz is singular in between: the branch "
+                "turns back (a fold) or meets another one, and the constraints do not determine z past it. End "
+                "t_span before this time, or change the constraints so that their root stays isolated"
+            )
+        if self.tolerances.linear:
+            return None  # a regular H_z linear in z has one root: nothing to jump to
+        jump = float(np.max(np.abs(z - predicted)))
+        allowed = BRANCH_JUMP_RATIO * max(float(np.max(np.abs(predicted - point.z))), point.change)
+        allowed += BRANCH_ATOL * (1.0 + float(np.max(np.abs(point.z))))
+        if jump <= allowed:
+            return None
+        guess, values, before = self._values(predicted), self._values(z), self._values(point.z)
+        return (
+            f"the algebraic variables leave their branch of roots: continuing it from t = {point.t:.8g} "
+            f"({before}) predicts {guess}, but Newton converged to another root, {values} (a jump of {jump:.3g}, "
+            f"allowed {allowed:.3g}): the branch ends (a fold) or comes close to another one there. End t_span "
+            "before this time, or change the constraints so that their root stays isolated"
+        )
+
+    def branch_ends(self, point: BranchPoint, p) -> str | None:
+        """Why a Newton failure just past ``point`` is the end of its branch of roots, or None.
+
+        The branch ends where ``H_z`` turns singular relative to the other derivatives of the
+        determining equations (smallest singular value of ``H_z`` below :data:`BRANCH_END_TOL`
+        times the norm of ``[H_z, H_t, H_y]``): z's rate of change blows up there, at a fold where
+        the root meets another and both vanish, or as the root runs off to infinity.
+        """
+        if point.z.size == 0:
+            return None
+        t, y, z = point.t, point.y, point.z
+        J = self.Hz(t, y, z, p)
+        whole = np.linalg.norm(np.column_stack([J, self.Ht(t, y, z, p), self.Hy(t, y, z, p)]), 2)
+        smallest = np.linalg.svd(J, compute_uv=False)[-1]
+        if not smallest <= BRANCH_END_TOL * whole:
+            return None
+        return (
+            f"; the branch of roots ends here: at the last accepted point, t = {t:.8g} ({self._values(z)}), dH/dz "
+            f"is nearly singular (smallest singular value {smallest:.2g}, against {whole:.2g} for all of H's "
+            "derivatives): the root meets another one and both vanish (a fold), or runs off to infinity"
+        )
+
+    def _values(self, z) -> str:
+        return ", ".join(f"{n} = {v:.6g}" for n, v in zip(self.names, z, strict=True))
 
     def _failure(self, t, z, r, why: str) -> _EvaluationFailure:
-        worst = int(np.nanargmax(np.abs(r))) if np.any(np.isfinite(r)) else 0
+        finite = np.isfinite(r)
+        worst = int(np.argmax(np.where(finite, np.abs(r), -np.inf))) if finite.any() else 0
         values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(self.names, z, strict=True))
         return _EvaluationFailure(
             t,
@@ -296,8 +425,9 @@ class _SampleRun:
 
     def __init__(self, compiled, f, algebraic: AlgebraicSolver, start, b: int, options: ReferenceOptions):
         self.compiled, self.f, self.algebraic, self.b, self.options = compiled, f, algebraic, b, options
-        self.p, self.z = start.p[b], start.z0[b].copy()  # self.z: Newton's next guess
-        self.y0 = start.y0[b]
+        self.p, self.y0, self.z0 = start.p[b], start.y0[b], start.z0[b].copy()
+        self.point = None  # the branch of roots chosen at t0, moved from accepted point to accepted point
+        self.last = None  # (t, y, z) of the last evaluation: z at an accepted point without a new solve
         self.integrator = "DOP853" if options.integrator == AUTO else options.integrator
         self.description = self.integrator
         self.counts = dict.fromkeys(("steps", "nfev", "njev", "nlu", "restarts"), 0)
@@ -308,13 +438,38 @@ class _SampleRun:
         if not _finite(y):
             raise _EvaluationFailure(t, self._nonfinite(y, "the state"))
         try:
-            self.z = self.algebraic.solve(t, y, self.z, self.p)
-            dy = self.f(t, y, self.z, self.p)
+            z = self.z_at(t, y)
+            self.last = (t, y.copy(), z)
+            dy = self.f(t, y, z, self.p)
         except ArithmeticError as error:  # a Python-float operation (math.exp, **) overflowed
             raise _EvaluationFailure(t, f"evaluating the equations raised {type(error).__name__}: {error}") from None
         if not _finite(dy):
             raise _EvaluationFailure(t, self._nonfinite(dy, "the derivative of"))
         return dy
+
+    def z_at(self, t, y) -> np.ndarray:
+        """z at ``(t, y)`` on this sample's branch: Newton from the branch's tangent prediction.
+
+        Raises
+        ------
+        _EvaluationFailure
+            When Newton fails, or its root leaves the branch (a :class:`BranchError` once located).
+        """
+        predicted = self.point.predict(t, y)
+        z = self.algebraic.solve(t, y, predicted, self.p)
+        why = self.algebraic.leaves_branch(t, y, z, self.p, predicted, self.point)
+        if why is not None:
+            raise _EvaluationFailure(t, why, BranchError)
+        return z
+
+    def _accept(self, t, y) -> None:
+        """Move the branch's anchor to the accepted point ``(t, y)``."""
+        last = self.last
+        if last is not None and last[0] == t and np.array_equal(last[1], y):
+            z = last[2]  # (the integrator's last evaluation is at the new point: FSAL, Radau's f_new)
+        else:
+            z = self.z_at(np.float64(t), y)
+        self.point = self.algebraic.branch_point(t, y, z, self.p, self.point)
 
     def _nonfinite(self, values, what: str) -> str:
         bad = np.flatnonzero(~np.isfinite(values))
@@ -341,7 +496,8 @@ class _SampleRun:
     def integrate(self, t_span, times) -> np.ndarray:
         """Values of shape (T, n + m) at ``times``."""
         t0, self.t1 = t_span
-        out = np.empty((len(times), len(self.y0) + len(self.z)))
+        self.point = self.algebraic.branch_point(np.float64(t0), self.y0, self.z0, self.p, None)
+        out = np.empty((len(times), len(self.y0) + len(self.z0)))
         done = 0  # outputs filled
         t, y = t0, self.y0.copy()
         self.t = t0  # the last accepted time, for the reports
@@ -359,7 +515,7 @@ class _SampleRun:
             except _EvaluationFailure as failure:
                 distance = failure.t - t
                 if distance <= LOCATE_RTOL * max(1.0, abs(t)) or distance >= window:
-                    raise self._failed(failure.t, failure.reason) from None
+                    raise self._failed(failure.t, failure.reason, failure.error) from None
                 self._restart(solver)
                 solver, window, guard = None, distance, failure.t
                 max_step = first_step = distance / LOCATE_SHRINK
@@ -369,6 +525,10 @@ class _SampleRun:
             self.counts["steps"] += 1
             t, y, self.h = solver.t, solver.y.copy(), solver.step_size
             self.t = t
+            try:
+                self._accept(t, y)
+            except _EvaluationFailure as failure:
+                raise self._failed(failure.t, failure.reason, failure.error) from None
             watch = watch or ProgressWatch(t0, self.h)
             needed = watch.hopeless(self.counts["steps"], t, self.h, self.t1, self.options.max_steps)
             if needed is not None:
@@ -402,17 +562,20 @@ class _SampleRun:
         try:
             Y = solver.dense_output()(times[done:later]).T.reshape(later - done, -1)
             for k in range(done, later):
-                self.z = self.algebraic.solve(np.float64(times[k]), Y[k - done], self.z, self.p)
-                out[k] = np.concatenate([Y[k - done], self.z])
+                z = self.z_at(np.float64(times[k]), Y[k - done])
+                out[k] = np.concatenate([Y[k - done], z])
         except _EvaluationFailure as failure:
-            raise self._failed(failure.t, failure.reason) from None
+            raise self._failed(failure.t, failure.reason, failure.error) from None
         return later
 
     def _where(self) -> str:
         return f"sample {self.b} of '{self.compiled.name}', integrator {self.description}"
 
-    def _failed(self, t, reason: str) -> ConvergenceError:
-        return ConvergenceError(f"reference: near t = {t:.8g} ({self._where()}): {reason}")
+    def _failed(self, t, reason: str, error: type[ConvergenceError] = ConvergenceError) -> ConvergenceError:
+        ends = None if error is BranchError else self.algebraic.branch_ends(self.point, self.p)
+        if ends is not None:
+            error, reason = BranchError, reason + ends
+        return error(f"reference: near t = {t:.8g} ({self._where()}): {reason}")
 
     def _stopped(self, solver, message: str) -> ConvergenceError:
         """The integrator gave up (in scipy's words: the step size underflowed, LSODA's work limit, ...)."""

@@ -163,25 +163,29 @@ class CompiledDAE:
         return tuple(c.expr for c in self.constraints)
 
     # ---- index reduction ----------------------------------------------------------------
-    def consistent(self, y0=None, parameters=None) -> dict:
+    def consistent(self, y0=None, parameters=None, fix=()) -> dict:
         """The nearest initial states that satisfy every constraint, for ``solve(y0=...)``.
 
         ``y0`` and ``parameters`` as :func:`daemodel.solve` takes them (by name or as arrays, one
         sample or a batch; default: the model's own).  Each sample is projected, with the least
         change of its states, onto every constraint level free of the algebraic variables (the
-        constraints themselves and, at index 2 and 3, their time derivatives).  Returns a dict
-        state name -> float, or -> array (B,) for a batch.
+        constraints themselves and, at index 2 and 3, their time derivatives).  ``fix`` names
+        states to hold at their given values: only the others move (with the least change).
+        Returns a dict state name -> float, or -> array (B,) for a batch.
 
         Raises
         ------
         InconsistentInitialStateError
             When no nearby state satisfies the constraints (naming the sample and the level).
+        FixedStateError
+            When ``fix`` holds every state of an inconsistent sample, or the constraints have no
+            solution with the fixed states held.
         ShapeError, UnknownSymbolError, InvalidValueError
-            For malformed input, as ``solve`` does.
+            For malformed input, as ``solve`` does, and for a name in ``fix`` that is not a state.
         """
         from daemodel.initial_states import consistent_states
 
-        return consistent_states(self, y0, parameters)
+        return consistent_states(self, y0, parameters, fix)
 
     def reduced(self, index: int = 1) -> CompiledDAE:
         """Differentiate every constraint of higher index until it has ``index``.

@@ -89,6 +89,16 @@ class InconsistentAlgebraicValueError(ModelError):
     """A user-given initial algebraic value disagrees with the consistent one."""
 
 
+class WrongBranchError(InconsistentAlgebraicValueError):
+    """A user-given initial algebraic value is a root of the constraints, but of another branch
+    than the one the guess selects (both values are named)."""
+
+
+class FixedStateError(InconsistentInitialStateError):
+    """``consistent(fix=...)`` cannot hold the named states: no state is left to move, or the
+    constraints have no solution with those states held."""
+
+
 class InitialisationError(ModelError):
     """The consistent initial values could not be computed (Newton did not converge)."""
 
@@ -135,6 +145,12 @@ class InvalidOptionError(ModelError):
 
 class ConvergenceError(SolverError):
     """A solver failed: Newton did not converge, the step size underflowed, or values went non-finite."""
+
+
+class BranchError(ConvergenceError):
+    """A method's algebraic variables would leave the branch of roots chosen at t0: the determining
+    equations' Jacobian in z changes sign on the way (the branch folds or meets another), or Newton
+    jumped to another root far from the continuation of the last one."""
 
 
 class StepLimitError(SolverError):

@@ -22,6 +22,7 @@ from daemodel.errors import (
     InconsistentInitialStateError,
     InitialisationError,
     SingularSystemError,
+    WrongBranchError,
 )
 from daemodel.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
 
@@ -31,10 +32,13 @@ STATE_TOL = 1e-10
 # User-given algebraic values must agree with the consistent ones to this relative accuracy.
 ALGEBRAIC_TOL = 1e-9
 NEWTON_MAXITER = 50
-# Newton for algebraic values has settled when its last step is below this, relative to 1 + |z|
-# (quadratic convergence gets there in a few steps from a usable start), and its residual is
-# below NEWTON_RESIDUAL_TOL relative to 1 + |z|.
+# Newton for algebraic values has settled when the estimated error of its last iterate is below
+# this, relative to 1 + |z| (quadratic convergence gets there in a few steps from a usable start),
+# and its residual is below NEWTON_RESIDUAL_TOL relative to 1 + |z| (NewtonTolerances).
 NEWTON_STEP_TOL, NEWTON_RESIDUAL_TOL = 1e-13, 1e-8
+# Newton that stalls (contraction above NEWTON_STALL_RATE) with a step below NEWTON_STALL_TOL
+# (relative) has reached the rounding level of an ill-conditioned Jacobian: accepted.
+NEWTON_STALL_RATE, NEWTON_STALL_TOL = 0.5, 1e-9
 # Step halvings per Newton step while the residual grows.
 DAMPING_HALVINGS = 14
 PROJECTION_MAXITER = 100
@@ -279,22 +283,78 @@ def hidden_constraints(constraints) -> list[tuple[str, str, sp.Expr]]:
     ]
 
 
-def project(y0, residual, jacobian) -> np.ndarray:
-    """Nearest point to y0 with ``residual(y) = 0``.
+def project(Y0: np.ndarray, residual, jacobian, free: np.ndarray | None = None) -> np.ndarray:
+    """The nearest states to the rows of ``Y0`` (B, n) with ``residual(Y) = 0``: the one projection
+    onto the constraints (repair at compile time, ``consistent()``, the states after a switch).
 
     Iterates ``y = y0 - C^T mu`` with ``C C^T mu = c(y_k) + C (y0 - y_k)``: its fixed points
-    satisfy ``c(y) = 0`` and ``y - y0`` in the row space of ``C``, the conditions for the
-    least Euclidean change.  Least squares keeps it well defined for redundant constraints.
+    satisfy ``c(y) = 0`` and ``y - y0`` in the row space of ``C``, the conditions for the least
+    Euclidean change.  The pseudo-inverse keeps it well defined for redundant constraints.
+
+    Parameters
+    ----------
+    Y0 : ndarray, shape (B, n)
+    residual : callable (B, n) -> (B, L)
+    jacobian : callable (B, n) -> (B, L, n)
+    free : ndarray of bool, shape (n,), optional
+        The states allowed to move (default all): the others keep their values, and the change of
+        the free ones is the least (the columns of ``C`` of fixed states are left out).
     """
-    y = y0.copy()
+    Y0 = np.array(Y0, dtype=float)
+    mask = np.ones(Y0.shape[1], dtype=bool) if free is None else np.asarray(free, dtype=bool)
+    y = Y0.copy()
     for _ in range(PROJECTION_MAXITER):
-        C = jacobian(y)
-        mu = np.linalg.lstsq(C @ C.T, residual(y) + C @ (y0 - y), rcond=None)[0]
-        y_new = y0 - C.T @ mu
-        if np.max(np.abs(y_new - y)) <= 1e-15 * (1 + np.max(np.abs(y))):
+        C = jacobian(y) * mask  # (the columns of fixed states zeroed: they neither move nor count)
+        rhs = residual(y) + np.einsum("bln,bn->bl", C, Y0 - y)
+        mu = np.einsum("blk,bk->bl", np.linalg.pinv(C @ C.transpose(0, 2, 1)), rhs)
+        y_new = Y0 - np.einsum("bln,bl->bn", C, mu)
+        if np.max(np.abs(y_new - y), initial=0.0) <= 1e-15 * (1 + np.max(np.abs(y), initial=0.0)):
             return y_new
         y = y_new
     return y
+
+
+def violations(residual: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(tolerance (B,), violated (B, L))``: the one test of states on the z-free constraint levels.
+
+    ``residual`` (B, L) of the states ``Y`` (B, n) is violated where above :data:`STATE_TOL`
+    relative to ``1 + max|y|`` of its sample.
+    """
+    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
+    return tol, np.abs(residual) > tol[:, None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class NewtonTolerances:
+    """When :func:`solve_algebraic` calls a sample converged, and how long it tries.
+
+    Attributes
+    ----------
+    step : float
+        The estimated error of the last iterate (the last step, times ``theta / (1 - theta)``
+        once the contraction ``theta`` of two successive steps is known; a first step settles
+        only when it is zero or the equations are linear) must be below
+        ``step * (1 + max|x|)``: the iteration settled on a root instead of drifting towards one
+        at infinity (``0 = exp(z)``).
+    residual : float
+        ... and every residual below ``residual * (1 + max(max|x|, (|J| |x|)_i))``: the rounding
+        level of the equations with digits to spare.
+    max_iterations : int
+        Newton steps at most; a sample still moving then is reported as not converged.
+    stall_rate, stall_step : float
+        A sample whose contraction exceeds ``stall_rate`` with a step below ``stall_step * (1 +
+        max|x|)`` has reached the rounding level of an ill-conditioned ``J``: settled, not failed.
+    linear : bool
+        ``F`` is affine in ``x`` (``J`` free of ``x``, as in mechanics): the first step is exact up
+        to rounding, so it settles without a second.
+    """
+
+    step: float = NEWTON_STEP_TOL
+    residual: float = NEWTON_RESIDUAL_TOL
+    max_iterations: int = NEWTON_MAXITER
+    stall_rate: float = NEWTON_STALL_RATE
+    stall_step: float = NEWTON_STALL_TOL
+    linear: bool = False
 
 
 @dataclass(frozen=True)
@@ -308,30 +368,33 @@ class AlgebraicSolve:
     residual : ndarray, shape (B, m)
         ``F(x)``.
     converged : ndarray of bool, shape (B,)
-        The last Newton step was below ``NEWTON_STEP_TOL (1 + |x|)`` (so the iteration settled on a
-        root, not drifted towards one at infinity, as for ``0 = exp(z)``) and the residual is finite
-        and below ``NEWTON_RESIDUAL_TOL (1 + |x|)``.
+        Settled by :class:`NewtonTolerances` with a finite residual within its bound.  The caller
+        decides what a sample that did not converge means; none may ignore it.
+    singular : ndarray of bool, shape (B,)
+        ``J`` was numerically singular at the last iterate of a sample that did not converge
+        (the reason to report: the equations do not determine ``x`` there).
     iterations : int
     """
 
     x: np.ndarray
     residual: np.ndarray
     converged: np.ndarray
+    singular: np.ndarray
     iterations: int
 
 
-def solve_algebraic(F, J, x0: np.ndarray, max_iterations: int = NEWTON_MAXITER) -> AlgebraicSolve:
+def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonTolerances()) -> AlgebraicSolve:
     """Damped Newton for ``F(x) = 0``, every sample of a batch at once: the one routine that
-    solves for algebraic values (consistent initialisation, batched initial states).
+    solves for algebraic values (consistent initialisation, batched initial states, the states
+    after a switch or event, the reference method's ``z(t, y)``, dense output).
 
     Parameters
     ----------
     F : callable (B, m) -> (B, m)
     J : callable (B, m) -> (B, m, m)
     x0 : ndarray, shape (B, m)
-        Starting values (they select among several roots).
-    max_iterations : int
-        Newton steps at most; a sample still moving then is reported as not converged.
+        Starting values: they select the root (the branch) among several.
+    tolerances : NewtonTolerances
 
     Each step is the least-squares solution of ``J dx = -F`` (well defined where J is singular;
     the caller checks the rank), halved per sample until ``|F|`` does not grow (at most
@@ -340,36 +403,68 @@ def solve_algebraic(F, J, x0: np.ndarray, max_iterations: int = NEWTON_MAXITER) 
     x = np.array(x0, dtype=float, copy=True)
     B, m = x.shape
     if m == 0:
-        return AlgebraicSolve(x, np.zeros((B, 0)), np.ones(B, dtype=bool), 0)
+        return AlgebraicSolve(x, np.zeros((B, 0)), np.ones(B, dtype=bool), np.zeros(B, dtype=bool), 0)
     with np.errstate(all="ignore"):  # non-finite iterates end as not converged, reported by the caller
         r = F(x)
         settled = np.zeros(B, dtype=bool)
+        previous = np.full(B, np.nan)  # each sample's last step size, for the contraction theta
         iterations = 0
-        while iterations < max_iterations:
+        while iterations < tolerances.max_iterations:
             active = ~settled & np.isfinite(r).all(axis=1)
             if not active.any():
                 break
             iterations += 1
-            dx = np.zeros_like(x)
-            dx[active] = _least_squares(J(x)[active], -r[active])
-            norm = np.linalg.norm(r, axis=1)
-            step = np.ones(B)
-            x_new, r_new = x + dx, F(x + dx)
+            # (the samples still iterating, as a slice of the batch: the whole batch, the common case,
+            # without copies)
+            rows = slice(None) if active.all() else np.flatnonzero(active)
+            xa, ra = x[rows], r[rows]
+            Ja = J(x)[rows]
+            dx = _least_squares(Ja, -ra)
+            norm = np.sqrt(np.einsum("bi,bi->b", ra, ra))
+            step = np.ones(len(xa))
+            trial = x.copy()
+            trial[rows] = xa + dx
+            r_new = F(trial)[rows]
             for _ in range(DAMPING_HALVINGS):
-                worse = active & ~(np.linalg.norm(r_new, axis=1) <= norm)
+                worse = ~(np.sqrt(np.einsum("bi,bi->b", r_new, r_new)) <= norm)
                 if not worse.any():
                     break
                 step[worse] /= 2
-                x_new = x + step[:, None] * dx
-                r_new = F(x_new)
-            x = np.where(active[:, None], x_new, x)
-            r = np.where(active[:, None], r_new, r)
-            small = np.max(np.abs(dx), axis=1) <= NEWTON_STEP_TOL * (1 + np.max(np.abs(x), axis=1))
-            settled |= active & small
-        scale = 1 + np.max(np.abs(x), axis=1)
+                trial[rows] = xa + step[:, None] * dx
+                r_new = F(trial)[rows]
+            x[rows], r[rows] = trial[rows], r_new
+            xa = x[rows]
+            size = step * np.abs(dx).max(axis=1)
+            scale = 1 + np.abs(xa).max(axis=1)
+            last = previous[rows]
+            theta = size / last  # nan on the first step, inf after a zero step
+            contracting = theta < 1
+            error = np.where(contracting, size * theta / np.where(contracting, 1 - theta, 1), size)
+            # a first step has no contraction to estimate its error from: only a start that was a root
+            # (no step at all) settles on it, unless the equations are linear (the step is exact)
+            first = np.isnan(last)
+            error = np.where(first, 0.0 if tolerances.linear else np.where(size == 0, 0.0, np.inf), error)
+            stalled = (theta > tolerances.stall_rate) & (size <= tolerances.stall_step * scale)
+            candidate = (error <= tolerances.step * scale) | stalled
+            if candidate.any():  # (the residual's bound only where the steps have settled)
+                bound = tolerances.residual * (
+                    1 + np.maximum((scale - 1)[:, None], np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa)))
+                )
+                settled[rows] = candidate & (np.abs(r_new) <= bound).all(axis=1)
+            previous[rows] = size
         fine = np.isfinite(r).all(axis=1) & np.isfinite(x).all(axis=1)
-        fine &= np.max(np.abs(r), axis=1) <= NEWTON_RESIDUAL_TOL * scale
-    return AlgebraicSolve(x, r, settled & fine, iterations)
+        converged = settled & fine
+        singular = np.zeros(B, dtype=bool)
+        if not converged.all():
+            failed = ~converged & np.isfinite(x).all(axis=1)
+            if failed.any():
+                Jf = J(x)[failed]
+                finite = np.isfinite(Jf).all(axis=(1, 2))
+                rank = np.zeros(len(Jf), dtype=int)
+                if finite.any():
+                    rank[finite] = np.linalg.matrix_rank(Jf[finite])
+                singular[failed] = finite & (rank < m)
+    return AlgebraicSolve(x, r, converged, singular, iterations)
 
 
 def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -448,8 +543,8 @@ def initialise(
     exprs = [e for _, _, e in hidden]
     c_fun = numeric.function(exprs)
     residual = c_fun(t0, y0, empty_z, p)
-    tol = STATE_TOL * (1 + np.max(np.abs(y0), initial=0.0))
-    bad = [(hidden[i], residual[i]) for i in np.flatnonzero(np.abs(residual) > tol)]
+    (tol,), (violated,) = violations(residual[None, :], y0[None, :])
+    bad = [(hidden[i], residual[i]) for i in np.flatnonzero(violated)]
     if bad and not repair:
         listing = "; ".join(f"{label}: {name} = {value:.6g}" for (name, label, _), value in bad)
         raise InconsistentInitialStateError(
@@ -458,9 +553,13 @@ def initialise(
         )
     if bad:
         c_jac = numeric.jacobian(exprs, numeric.y)  # only a repair needs it
-        y_new = project(y0, lambda y: c_fun(t0, y, empty_z, p), lambda y: c_jac(t0, y, empty_z, p))
+        y_new = project(
+            y0[None, :],
+            lambda Y: c_fun(t0, Y[0], empty_z, p)[None, :],
+            lambda Y: c_jac(t0, Y[0], empty_z, p)[None, :, :],
+        )[0]
         after = c_fun(t0, y_new, empty_z, p)
-        if np.max(np.abs(after)) > tol:
+        if violations(after[None, :], y0[None, :])[1].any():
             worst = int(np.argmax(np.abs(after)))
             raise InitialisationError(
                 f"repair could not project the initial state onto {hidden[worst][1]} "
@@ -475,7 +574,9 @@ def initialise(
 
     determining = [c.determining for c in constraints]
     H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, numeric.z)
-    guess = np.array([[given.get(z.name, guesses.get(z.name, 0.0)) for z in numeric.z]], dtype=float)
+    # the guess selects the branch of roots; a given value without a guess starts Newton too (a
+    # claim that is a root is then its own nearest root), and is checked below either way
+    guess = np.array([[guesses.get(z.name, given.get(z.name, 0.0)) for z in numeric.z]], dtype=float)
     Y, P = y0[None, :], p[None, :]
     result = solve_algebraic(lambda Z: H(t0, Y, Z, P), lambda Z: Hz(t0, Y, Z, P), guess)
     z0, residual = result.x[0], result.residual[0]
@@ -505,6 +606,16 @@ def initialise(
             "m.guess(<algebraic>=...)"
         )
 
+    chosen = [(z, g, v) for z, g, v in zip(numeric.z, guess[0], z0, strict=True) if z.name in guesses]
+    if chosen:
+        notes.append(
+            "root chosen by the guess: "
+            + ", ".join(f"{z.name} = {v:.10g} (Newton from m.guess {z.name} = {g:.6g})" for z, g, v in chosen)
+        )
+    claimed = {z.name: given[z.name] for z in numeric.z if z.name in given}
+    if claimed and not repair:
+        _check_branch_claim(numeric, H, Hz, t0, Y, P, z0, claimed)
+
     values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0]).tolist(), strict=True))
     alias_fun = numeric.function([e for _, e in aliases])
     values.update(zip((n for n, _ in aliases), alias_fun(t0, y0, z0, p).tolist(), strict=True))
@@ -521,3 +632,34 @@ def initialise(
                 )
             notes.append(f"replaced {name} = {value:.10g} by the consistent value {consistent!r}")
     return InitialValues(y0=y0, z0=z0, notes=tuple(notes))
+
+
+def _check_branch_claim(numeric, H, Hz, t0, Y, P, z0, claimed: dict) -> None:
+    """Refuse given algebraic values that are a root of the determining equations but not the root
+    that Newton reaches from the guesses (another branch), naming both; other disagreements are left
+    to the caller's check against the consistent values."""
+    Zc = np.array([[claimed.get(z.name, v) for z, v in zip(numeric.z, z0, strict=True)]])
+    off = [
+        (z.name, claimed[z.name], v)
+        for z, v in zip(numeric.z, z0, strict=True)
+        if z.name in claimed and abs(claimed[z.name] - v) > ALGEBRAIC_TOL * (1 + abs(v))
+    ]
+    if not off or not is_root(H(t0, Y, Zc, P), Hz(t0, Y, Zc, P), Zc)[0]:
+        return
+    listing = ", ".join(f"{name} = {value:.10g}" for name, value, _ in off)
+    nearest = ", ".join(f"{name} = {float(root)!r}" for name, _, root in off)
+    raise WrongBranchError(
+        f"initial value {listing} is a root of the constraints, but of another branch than the one the guess "
+        f"selects: the root nearest the guess is {nearest}. Drop the initial value, or move m.guess(...) next to "
+        "it to choose its branch"
+    )
+
+
+def is_root(residual: np.ndarray, jacobian: np.ndarray, Z: np.ndarray) -> np.ndarray:
+    """``(B,)`` whether the residuals (B, m) of ``Z`` (B, m) are within Newton's residual bound
+    (:class:`NewtonTolerances`), with the Jacobian (B, m, m) at ``Z`` for its scale."""
+    with np.errstate(all="ignore"):
+        scale = 1 + np.maximum(
+            np.max(np.abs(Z), axis=1, initial=0.0)[:, None], np.einsum("bij,bj->bi", np.abs(jacobian), np.abs(Z))
+        )
+        return np.all(np.abs(residual) <= NEWTON_RESIDUAL_TOL * scale, axis=1)

@@ -10,24 +10,39 @@ the compiled ``z0`` otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from daemodel.errors import (
+    BranchError,
+    FixedStateError,
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
     InitialisationError,
     InvalidValueError,
     ShapeError,
     UnknownSymbolError,
+    WrongBranchError,
 )
-from daemodel.init import ALGEBRAIC_TOL, STATE_TOL, NumericSystem, hidden_constraints, solve_algebraic
+from daemodel.init import (
+    ALGEBRAIC_TOL,
+    NumericSystem,
+    hidden_constraints,
+    is_root,
+    project,
+    solve_algebraic,
+    violations,
+)
 from daemodel.messages import quoted
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
+# check_branch evaluates H_z at this many bytes of matrices at a time: a large batch of outputs of a
+# model with many algebraic variables would otherwise hold all of them at once.
+BRANCH_CHECK_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True)
@@ -226,21 +241,37 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
             "nearest such states)"
         )
 
-    Zc = algebraic_values(compiled, t0, Y, P, Z)
-    if z0 is not None:
-        off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))
-        if off.any():
-            sample, j = np.argwhere(off)[0]
-            raise InconsistentAlgebraicValueError(
-                f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} disagrees with the consistent "
-                f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
+    if z0 is None:
+        return InitialStates(y0=Y, z0=algebraic_values(compiled, t0, Y, P, Z), p=P, batched=bool(sizes))
+    # the branch is the one the model's guess selected (its compiled z0); where Newton from there
+    # fails, the given z0 is the only start there is, and selects the branch itself
+    Zc = algebraic_values(compiled, t0, Y, P, np.broadcast_to(compiled.z0, Z.shape), fallback=Z)
+    off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))
+    if off.any():
+        sample, j = np.argwhere(off)[0]
+        if is_root(
+            checks.H(t0, Y[sample : sample + 1], Z[sample : sample + 1], P[sample : sample + 1]),
+            checks.Hz(t0, Y[sample : sample + 1], Z[sample : sample + 1], P[sample : sample + 1]),
+            Z[sample : sample + 1],
+        )[0]:
+            raise WrongBranchError(
+                f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} is a root of the constraints, but of "
+                f"another branch than the model's guess selects: the root nearest the guess is {algebraics[j]} = "
+                f"{float(Zc[sample, j])!r}. Drop z0, or choose the branch with m.guess(...) and compile again"
             )
+        raise InconsistentAlgebraicValueError(
+            f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} disagrees with the consistent "
+            f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
+        )
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
 
 
-def algebraic_values(compiled, t: float, Y: np.ndarray, P: np.ndarray, Z: np.ndarray) -> np.ndarray:
+def algebraic_values(
+    compiled, t: float, Y: np.ndarray, P: np.ndarray, Z: np.ndarray, fallback: np.ndarray | None = None
+) -> np.ndarray:
     """The algebraic values (B, m) that the states ``Y`` (B, n) determine at time ``t``: one
-    batched Newton solve of the determining equations started from ``Z`` (B, m), as at t0.
+    batched Newton solve of the determining equations started from ``Z`` (B, m), as at t0, and
+    for the samples where that fails, from ``fallback`` (B, m) when given.
 
     Raises
     ------
@@ -251,6 +282,15 @@ def algebraic_values(compiled, t: float, Y: np.ndarray, P: np.ndarray, Z: np.nda
     H, Hz = checks.H, checks.Hz
     result = solve_algebraic(lambda Zc: H(t, Y, Zc, P), lambda Zc: Hz(t, Y, Zc, P), Z)
     failed = ~result.converged
+    if fallback is not None and failed.any():
+        Yf, Pf = Y[failed], P[failed]
+        retry = solve_algebraic(lambda Zc: H(t, Yf, Zc, Pf), lambda Zc: Hz(t, Yf, Zc, Pf), fallback[failed])
+        x, residual = result.x.copy(), result.residual.copy()
+        x[failed], residual[failed] = retry.x, retry.residual
+        still = failed.copy()
+        still[failed] = ~retry.converged
+        result = dataclasses.replace(result, x=x, residual=residual, converged=~still)
+        failed = still
     if failed.any():
         sample = int(np.flatnonzero(failed)[0])
         raise InitialisationError(
@@ -262,66 +302,141 @@ def algebraic_values(compiled, t: float, Y: np.ndarray, P: np.ndarray, Z: np.nda
     return result.x
 
 
-def consistent_states(compiled, y0=None, parameters=None) -> dict:
+def consistent_states(compiled, y0=None, parameters=None, fix=()) -> dict:
     """:meth:`CompiledDAE.consistent`: ``y0`` (as ``solve`` takes it) projected onto every z-free
-    constraint level, by name, one float per state or an array (B,) for a batch."""
+    constraint level, by name, one float per state or an array (B,) for a batch; the states named
+    in ``fix`` keep their values and the others change the least."""
+    names = compiled.state_names
+    if isinstance(fix, str):
+        fix = (fix,)
+    fix = tuple(fix)
+    unknown = [f for f in fix if f not in names]
+    if unknown:
+        listed = ", ".join(repr(u) for u in unknown)
+        raise UnknownSymbolError(
+            f"consistent(fix=...): {listed} {'is' if len(unknown) == 1 else 'are'} not a state of model "
+            f"'{compiled.name}'; the states are {list(names)}"
+        )
     sizes, (Y, P) = _batch(
         compiled,
         (
-            ("y0", y0, compiled.state_names, compiled.y0),
+            ("y0", y0, names, compiled.y0),
             ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
         ),
     )
-    projected = project_states(compiled, Y, P)
+    free = np.array([name not in fix for name in names])
     checks = _checks(compiled)
+    if fix and not free.any():
+        residual, tol, bad = state_violations(compiled, Y, P)
+        if bad.any():
+            sample, level = np.argwhere(bad)[0]
+            name, label, _ = checks.hidden[level]
+            raise FixedStateError(
+                f"consistent(fix=...) holds every state ({', '.join(names)}), so nothing can move, but sample "
+                f"{sample} violates {label}: {name} = {residual[sample, level]:.6g} (tolerance {tol[sample]:.1e}); "
+                "leave at least one state out of fix"
+            )
+    projected = project_states(compiled, Y, P, free=free)
     residual, tol, bad = state_violations(compiled, projected, P)
     if bad.any():
         sample, level = np.argwhere(bad)[0]
         name, label, _ = checks.hidden[level]
+        if fix:
+            raise FixedStateError(
+                f"consistent(fix=...): with {', '.join(fix)} held at sample {sample}'s values, no values of the other "
+                f"states ({', '.join(n for n, f in zip(names, free, strict=True) if f)}) satisfy {label}: {name} = "
+                f"{residual[sample, level]:.6g} after the projection (tolerance {tol[sample]:.1e}); fix fewer "
+                "states, or values that the constraints allow"
+            )
         raise InconsistentInitialStateError(
             f"consistent(): no state near sample {sample}'s satisfies {label}: {name} = "
             f"{residual[sample, level]:.6g} after the projection (tolerance {tol[sample]:.1e}); the constraints "
             "may have no real solution near these states"
         )
     if not sizes:
-        return {name: float(projected[0, i]) for i, name in enumerate(compiled.state_names)}
-    return {name: projected[:, i].copy() for i, name in enumerate(compiled.state_names)}
+        return {name: float(projected[0, i]) for i, name in enumerate(names)}
+    return {name: projected[:, i].copy() for i, name in enumerate(names)}
 
 
 def state_violations(compiled, Y: np.ndarray, P: np.ndarray):
     """``(residual (B, L), tolerance (B,), violated (B, L))`` of the states ``Y`` (B, n) on every
-    z-free constraint level of ``compiled`` at its t0 (:data:`STATE_TOL`, relative to each sample)."""
+    z-free constraint level of ``compiled`` at its t0 (:func:`daemodel.init.violations`)."""
     Z = np.zeros((len(Y), len(compiled.algebraics)))  # (the z-free levels do not read it)
     residual = _checks(compiled).residual(compiled.t0, Y, Z, P)
-    tol = STATE_TOL * (1 + np.max(np.abs(Y), axis=1, initial=0.0))
-    return residual, tol, np.abs(residual) > tol[:, None]
+    return (residual, *violations(residual, Y))
 
 
-def project_states(compiled, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """The nearest states to the rows of ``Y`` (B, n) that satisfy every z-free constraint level.
-
-    A batched form of :func:`daemodel.init.project`: ``y = y0 - C^T mu`` with ``C C^T mu =
-    c(y_k) + C (y0 - y_k)``, whose fixed points are the least-change projections.
-    """
-    from daemodel.init import PROJECTION_MAXITER
-
+def project_states(compiled, Y: np.ndarray, P: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
+    """The nearest states to the rows of ``Y`` (B, n) that satisfy every z-free constraint level
+    (:func:`daemodel.init.project`; ``free`` (n,) the states allowed to move, default all)."""
     checks = _checks(compiled)
     exprs = [e for _, _, e in checks.hidden]
-    Y0 = np.array(Y, dtype=float)
     if not exprs:
-        return Y0
-    residual = checks.residual
+        return np.array(Y, dtype=float)
     jacobian = compiled.cached(
         "initial_states.projection", lambda: checks.numeric.batch_jacobian(exprs, compiled.states)
     )
-    Z = np.zeros((len(Y0), len(compiled.algebraics)))
-    y = Y0.copy()
-    for _ in range(PROJECTION_MAXITER):
-        C = jacobian(compiled.t0, y, Z, P)
-        rhs = residual(compiled.t0, y, Z, P) + np.einsum("bln,bn->bl", C, Y0 - y)
-        mu = np.einsum("blk,bk->bl", np.linalg.pinv(C @ C.transpose(0, 2, 1)), rhs)
-        y_new = Y0 - np.einsum("bln,bl->bn", C, mu)
-        if np.max(np.abs(y_new - y)) <= 1e-15 * (1 + np.max(np.abs(y))):
-            return y_new
-        y = y_new
-    return y
+    Z = np.zeros((len(Y), len(compiled.algebraics)))
+    t0 = compiled.t0
+    return project(Y, lambda y: checks.residual(t0, y, Z, P), lambda y: jacobian(t0, y, Z, P), free)
+
+
+def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray) -> None:
+    """Refuse a solution whose algebraic variables leave the branch of roots they start on.
+
+    Between two output times of one sample, ``det H_z`` (the determining equations' Jacobian in z)
+    keeps its sign along a branch of roots; a change means a singular ``H_z`` in between, where the
+    branch folds or meets another and the constraints no longer determine z: the values after it
+    belong to no continuation of the initial root.  The check every method's solution passes
+    (:func:`daemodel.backends.base.make_solution`); a jump between two roots with the same sign of
+    ``det H_z`` is caught only where the method checks its own Newton (the reference does).
+
+    Parameters
+    ----------
+    method : str
+    compiled : CompiledDAE
+    times : ndarray, shape (T,)
+    values : ndarray, shape (B, T, n + m)
+    P : ndarray, shape (B, k)
+
+    Raises
+    ------
+    BranchError
+        Naming the method, the sample, the two output times and z on either side.
+    """
+    m, n = len(compiled.algebraics), len(compiled.states)
+    B, T = values.shape[:2]
+    if m == 0 or T < 2:
+        return
+    rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
+    T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
+    Hz, sign = _checks(compiled).Hz, np.empty(B * T)
+    chunk = max(1, BRANCH_CHECK_BYTES // (8 * m * m))  # (rows per evaluation of H_z)
+    with np.errstate(all="ignore"):
+        for a in range(0, B * T, chunk):
+            b = slice(a, a + chunk)
+            sign[b] = _signs(Hz(T_all[b], rows[b, :n], rows[b, n:], P_all[b]))
+    sign = sign.reshape(B, T)
+    changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
+    if not changed.any():
+        return
+    sample, k = np.argwhere(changed)[0]
+    names = compiled.algebraic_names
+    before = ", ".join(f"{z} = {v:.6g}" for z, v in zip(names, values[sample, k, n:], strict=True))
+    after = ", ".join(f"{z} = {v:.6g}" for z, v in zip(names, values[sample, k + 1, n:], strict=True))
+    raise BranchError(
+        f"{method}: the algebraic variables leave the branch of roots chosen at t0 between t = {times[k]:.8g} "
+        f"({before}) and t = {times[k + 1]:.8g} ({after}) (sample {sample} of '{compiled.name}'): det(dH/dz) "
+        "changes sign there, so dH/dz is singular in between: the branch turns back (a fold) or meets another "
+        "one, and the constraints do not determine z past it. End t_span before this time, or change the "
+        "constraints so that their root stays isolated"
+    )
+
+
+def _signs(J: np.ndarray) -> np.ndarray:
+    """``sign(det J)`` per matrix of a stack, 0 where an entry is not finite."""
+    finite = np.isfinite(J).all(axis=(1, 2))
+    out = np.zeros(len(J))
+    if finite.any():
+        out[finite] = np.linalg.slogdet(J[finite])[0]
+    return out
