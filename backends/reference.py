@@ -382,7 +382,7 @@ class ReferenceBackend(AbstractBackend):
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         check_output_memory(self.name, compiled, start.size, len(times))
-        numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+        numeric = compiled.numeric
         algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)
         n, m = len(compiled.states), len(compiled.algebraics)
         values = np.empty((start.size, len(times), n + m))

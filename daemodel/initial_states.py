@@ -167,7 +167,7 @@ def _checks(compiled) -> _Checks:
     passes initial values would otherwise generate them again)."""
 
     def build() -> _Checks:
-        numeric = NumericSystem(compiled.t, compiled.states, compiled.algebraics, compiled.parameters)
+        numeric = compiled.numeric
         hidden = hidden_constraints(compiled.constraints)
         determining = [c.determining for c in compiled.constraints]
         return _Checks(
