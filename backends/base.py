@@ -28,6 +28,7 @@ from typing import ClassVar
 import numpy as np
 
 from daemodel.errors import InvalidOptionError, ResourceLimitError, StepSizeError, TimeSpanError
+from daemodel.reals import real
 
 # Number of output times a method with its own step selection reports when t_eval is not given.
 DEFAULT_OUTPUT_POINTS = 101
@@ -282,20 +283,37 @@ def tolerance_sweep(points: int) -> list[dict]:
 
 
 def check_number(name: str, value, *, positive: bool = True, integer: bool = False, allow_none: bool = False):
-    """Raise :class:`InvalidOptionError` unless ``value`` is a finite (positive) number."""
+    """``value`` as a Python float (int with ``integer=True``) or None, else :class:`InvalidOptionError`.
+
+    Any real number is accepted: Python, numpy (``np.float32(0.05)``) or sympy (``sp.Rational(1, 20)``)
+    (see :func:`daemodel.reals.real`); options store the returned value.
+    """
     if value is None and allow_none:
-        return
-    kind = int if integer else (int, float, np.integer, np.floating)
-    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
-        raise InvalidOptionError(f"{name} must be a finite {'integer' if integer else 'number'}; got {value!r}")
-    if positive and value <= 0:
+        return None
+    number = real(value, name, integer=integer, error=InvalidOptionError)
+    if positive and number <= 0:
         raise InvalidOptionError(f"{name} must be positive; got {value!r}")
+    return number
 
 
-def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> None:
-    """Raise :class:`InvalidOptionError` unless ``rtol`` lies in :data:`RTOL_RANGE` and ``atol`` is positive."""
-    check_number("rtol", rtol)
-    check_number("atol", atol)
+def set_number(options, name: str, **check) -> None:
+    """:func:`check_number` on the option ``name`` of a frozen options dataclass, which then holds the
+    returned Python number (casadi, torch and JSON take it as it is)."""
+    object.__setattr__(options, name, check_number(name, getattr(options, name), **check))
+
+
+def set_tolerances(options, **check) -> None:
+    """:func:`check_tolerances` on ``options.rtol`` and ``options.atol``, stored as floats."""
+    rtol, atol = check_tolerances(options.rtol, options.atol, **check)
+    object.__setattr__(options, "rtol", rtol)
+    object.__setattr__(options, "atol", atol)
+
+
+def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> tuple[float, float]:
+    """``(rtol, atol)`` as floats; :class:`InvalidOptionError` unless ``rtol`` lies in :data:`RTOL_RANGE`
+    and ``atol`` is positive."""
+    rtol = check_number("rtol", rtol)
+    atol = check_number("atol", atol)
     low, high = minimum_rtol, RTOL_RANGE[1]
     if not low <= rtol <= high:
         raise InvalidOptionError(
@@ -306,6 +324,7 @@ def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> None
                 else "that asks for no correct digit; use rtol <= " + f"{high:g}"
             )
         )
+    return rtol, atol
 
 
 def check_stages(stages) -> None:

@@ -53,15 +53,15 @@ from daemodel.backends.base import (
     SWEEP_FIRST_STEPS,
     AbstractBackend,
     captured_output,
-    check_number,
     check_output_memory,
     check_stages,
-    check_tolerances,
     estimate_status,
     fixed_grid,
     fixed_step_sweep,
     make_solution,
     output_times,
+    set_number,
+    set_tolerances,
     tolerance_sweep,
 )
 
@@ -171,8 +171,8 @@ class CollocationOptions:
 
     def __post_init__(self) -> None:
         check_stages(self.stages)
-        check_number("h", self.h, allow_none=True)
-        check_number("estimate_bound", self.estimate_bound)
+        set_number(self, "h", allow_none=True)
+        set_number(self, "estimate_bound")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -204,8 +204,8 @@ class IDASOptions:
     suppress_algebraic: bool = False
 
     def __post_init__(self) -> None:
-        check_tolerances(self.rtol, self.atol)
-        check_number("max_num_steps", self.max_num_steps, integer=True)
+        set_tolerances(self)
+        set_number(self, "max_num_steps", integer=True)
         if not isinstance(self.suppress_algebraic, bool):
             raise InvalidOptionError(f"suppress_algebraic must be True or False; got {self.suppress_algebraic!r}")
 

@@ -39,13 +39,13 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
-import numbers
 import re
 import sys
 from pathlib import Path
 
-from daemodel.errors import DaemodelError, ModelError, TargetError
+from daemodel.errors import DaemodelError, InvalidValueError, ModelError, TargetError
 from daemodel.files import writable_directory
+from daemodel.reals import is_real, real
 
 DEFAULT_T_SPAN = (0.0, 1.0)
 # Exit statuses of `daemodel compare`.
@@ -153,9 +153,12 @@ def _t_span(path: Path, value) -> tuple[float, float]:
         pair = tuple(value)
     except TypeError:
         raise TargetError(expected) from None
-    if len(pair) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair):
+    if len(pair) != 2 or not all(is_real(v) for v in pair):
         raise TargetError(expected)
-    t0, t1 = float(pair[0]), float(pair[1])
+    try:
+        t0, t1 = real(pair[0], "t0", finite=False), real(pair[1], "t1", finite=False)
+    except InvalidValueError:  # a sympy symbol: no number
+        raise TargetError(expected) from None
     if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1):
         raise TargetError(expected)
     return t0, t1

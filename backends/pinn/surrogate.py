@@ -489,7 +489,7 @@ class Surrogate:
         if outside not in OUTSIDE_POLICIES:
             raise InvalidOptionError(f"outside must be one of {', '.join(OUTSIDE_POLICIES)}; got {outside!r}")
         if tol is not None:
-            check_number("tol", tol)
+            tol = check_number("tol", tol)
             if newton:
                 raise InvalidOptionError(
                     "newton=True corrects every sample and tol only those whose certified distance exceeds it; give one"

@@ -8,10 +8,10 @@ import numpy as np
 from daemodel.backends.base import (
     DEFAULT_ESTIMATE_BOUND,
     check_dtype,
-    check_number,
     check_stages,
     check_threads,
-    check_tolerances,
+    set_number,
+    set_tolerances,
     torch_device,
 )
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
@@ -144,8 +144,8 @@ class RadauOptions:
 
     def __post_init__(self) -> None:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
-            check_number(name, getattr(self, name), allow_none=True)
-        check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
+            set_number(self, name, allow_none=True)
+        set_number(self, "max_newton_iterations", integer=True)
         object.__setattr__(self, "dtype", check_dtype(self.dtype))
         if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):
             raise InvalidOptionError("h fixes the step size; rtol/atol/h0 select adaptive steps: give one or the other")
@@ -153,7 +153,7 @@ class RadauOptions:
             object.__setattr__(
                 self, "max_steps", DEFAULT_MAX_ADAPTIVE_STEPS if self.adaptive else DEFAULT_MAX_FIXED_STEPS
             )
-        check_number("max_steps", self.max_steps, integer=True)
+        set_number(self, "max_steps", integer=True)
         if self.adaptive:
             object.__setattr__(self, "rtol", DEFAULT_RTOL if self.rtol is None else self.rtol)
             object.__setattr__(self, "atol", DEFAULT_ATOL if self.atol is None else self.atol)
@@ -162,7 +162,7 @@ class RadauOptions:
                     f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); "
                     "use dtype='float64'"
                 )
-            check_tolerances(self.rtol, self.atol)
+            set_tolerances(self)
         if self.stages is None:
             object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
         check_stages(self.stages)
@@ -188,7 +188,7 @@ class RadauOptions:
                 "start_guess must be a function (t, y, z) -> stage values, for a fixed step (h=...); "
                 f"got {type(self.start_guess).__name__}" + (" with adaptive steps" if self.adaptive else "")
             )
-        check_number("estimate_bound", self.estimate_bound, allow_none=True)
+        set_number(self, "estimate_bound", allow_none=True)
         if self.estimate_bound is not None and self.adaptive:
             raise InvalidOptionError(
                 "estimate_bound bounds a fixed step's local error estimate (h=...); adaptive steps meet rtol/atol"
