@@ -15,6 +15,7 @@ from daemodel.files import (
     open_file,
     parse_json,
     read_arrays,
+    readable_path,
     save_figure,
     writable_file,
 )
@@ -400,7 +401,7 @@ class Solution:
         SolutionFileError
             No file, not a daemodel solution file, or a model with other equations or names.
         """
-        path = Path(path).expanduser()
+        path = readable_path(path, "Solution.load: path", SolutionFileError)
         if not path.exists():
             raise SolutionFileError(f"no solution file at {path}")
         with open_file(path, "path", SolutionFileError) as handle:
