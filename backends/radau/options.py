@@ -32,10 +32,15 @@ ENGINES = ("auto", "torch", "casadi")
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
 # float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
 FLOAT32_MIN_RTOL = 1e-5
-# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
-# attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
-# t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
-DEFAULT_MAX_ADAPTIVE_STEPS = 5_000
+# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  It bounds
+# the loop, and is set for a long span to run rather than to be refused: the pendulum on [0, 1000] at
+# rtol = 1e-6 takes 27,000 attempts (2.8-12 s on one shared core with the casadi engine, 0.1-0.4 ms
+# an attempt), the old default of 5,000 stopped it at t = 106.  A span that cannot finish within it
+# does not spend it: the progress watch (base.ProgressWatch) stops after two windows of 100 attempts
+# that project past it, naming max_steps.  What spends it all is chattering at a switch (rejected
+# attempts with h collapsing): 10-40 s with the casadi engine, minutes with the torch engine (2-6 ms
+# an attempt); give a smaller max_steps where a quick failure matters more than a long span.
+DEFAULT_MAX_ADAPTIVE_STEPS = 100_000
 # Fixed step: default bound on the grid's step count, checked before the grid is built (the count
 # is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
 DEFAULT_MAX_FIXED_STEPS = 100_000
@@ -69,7 +74,10 @@ class RadauOptions:
         Fixed step: most steps of the grid, refused before it is built
         (:class:`~daemodel.errors.ResourceLimitError`); default 100,000.  Adaptive mode: most step
         attempts, accepted, rejected or failed in Newton alike
-        (:class:`~daemodel.errors.StepLimitError`); default 5,000, a runaway's 10-30 s.
+        (:class:`~daemodel.errors.StepLimitError`); default 100,000
+        (:data:`DEFAULT_MAX_ADAPTIVE_STEPS`), enough for long spans (the pendulum on [0, 1000] at
+        rtol = 1e-6 takes 27,000).  A span that cannot finish within the budget is stopped early,
+        after a few hundred attempts project past it, with the number it would need.
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.
