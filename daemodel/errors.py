@@ -198,6 +198,11 @@ class LocalErrorWarning(UserWarning):
     solution is flagged, not "success", and keeps fewer digits than that bound promises."""
 
 
+class OmittedPanelsWarning(UserWarning):
+    """``Solution.plot()`` without ``names=`` drew the first variables only (a figure of sixty panels
+    is unreadable); the warning and the figure's title name how many were left out."""
+
+
 class UncertifiedWarning(UserWarning):
     """A Radau-PINN answer whose certificate does not put it within Radau's own error at the same h
     (its Solution's status is "flagged"; ``strict=True`` makes it a :class:`TrainingError`)."""
