@@ -75,7 +75,9 @@ class Solution:
         generation and engine construction (radau), building casadi's integrator
         (casadi-collocation, casadi-idas), the model's numeric functions (reference), training
         (pinn).  What an earlier call left cached on the compiled model (code, casadi functions,
-        index reductions) is not charged again.  Initial-value checks are in neither clock.
+        index reductions) is not charged again.  torch's first use in the process (its import and
+        first operations, 1-4 s) is charged to the setup of the torch solve that pays it
+        (``stats["torch_warm_up_seconds"]``, 0 afterwards).  Initial-value checks are in neither clock.
     stats : dict
         Method counters: steps, rejected steps, Newton iterations, Jacobians, ...
     compiled : CompiledDAE
