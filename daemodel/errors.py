@@ -33,6 +33,11 @@ class InvalidNameError(ModelError):
     """A declared name is not a usable identifier, is reserved, or is declared twice."""
 
 
+class NumericFunctionError(ModelError, TypeError):
+    """``math.sin(x)`` or ``np.sin(x)`` on a declared symbol, which has no number until the solve
+    (a TypeError too, as Python's and numpy's own refusals of the call are)."""
+
+
 class UnknownSymbolError(ModelError):
     """An equation, initial value or output uses a name the model never declared."""
 

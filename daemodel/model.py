@@ -32,6 +32,7 @@ from daemodel.functions import supported_names
 from daemodel.messages import quoted
 from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.reals import real
+from daemodel.symbols import Symbol
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
 # them as locals (they are the only user text that ever reaches generated source).
@@ -114,7 +115,7 @@ class Model:
                 f"letter, at most {MAX_NAME_LENGTH} characters"
             )
         self.name = name
-        self.t = sp.Symbol("t")
+        self.t = Symbol("t")
         self._states: dict[str, sp.Symbol] = {}
         self._algebraics: dict[str, sp.Symbol] = {}
         self._parameters: dict[str, sp.Symbol] = {}
@@ -168,7 +169,7 @@ class Model:
                 )
             if name in self._all_symbols():
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
-            symbol = sp.Symbol(name)
+            symbol = Symbol(name)
             table[name] = symbol
             out.append(symbol)
         if not out:
