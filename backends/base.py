@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from abc import ABC, abstractmethod
 from contextlib import contextmanager
 from typing import ClassVar
@@ -28,6 +29,7 @@ from typing import ClassVar
 import numpy as np
 
 from daemodel.errors import InvalidOptionError, ResourceLimitError, StepSizeError, TimeSpanError
+from daemodel.reals import real
 
 # Number of output times a method with its own step selection reports when t_eval is not given.
 DEFAULT_OUTPUT_POINTS = 101
@@ -282,20 +284,37 @@ def tolerance_sweep(points: int) -> list[dict]:
 
 
 def check_number(name: str, value, *, positive: bool = True, integer: bool = False, allow_none: bool = False):
-    """Raise :class:`InvalidOptionError` unless ``value`` is a finite (positive) number."""
+    """``value`` as a Python float (int with ``integer=True``) or None, else :class:`InvalidOptionError`.
+
+    Any real number is accepted: Python, numpy (``np.float32(0.05)``) or sympy (``sp.Rational(1, 20)``)
+    (see :func:`daemodel.reals.real`); options store the returned value.
+    """
     if value is None and allow_none:
-        return
-    kind = int if integer else (int, float, np.integer, np.floating)
-    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
-        raise InvalidOptionError(f"{name} must be a finite {'integer' if integer else 'number'}; got {value!r}")
-    if positive and value <= 0:
+        return None
+    number = real(value, name, integer=integer, error=InvalidOptionError)
+    if positive and number <= 0:
         raise InvalidOptionError(f"{name} must be positive; got {value!r}")
+    return number
 
 
-def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> None:
-    """Raise :class:`InvalidOptionError` unless ``rtol`` lies in :data:`RTOL_RANGE` and ``atol`` is positive."""
-    check_number("rtol", rtol)
-    check_number("atol", atol)
+def set_number(options, name: str, **check) -> None:
+    """:func:`check_number` on the option ``name`` of a frozen options dataclass, which then holds the
+    returned Python number (casadi, torch and JSON take it as it is)."""
+    object.__setattr__(options, name, check_number(name, getattr(options, name), **check))
+
+
+def set_tolerances(options, **check) -> None:
+    """:func:`check_tolerances` on ``options.rtol`` and ``options.atol``, stored as floats."""
+    rtol, atol = check_tolerances(options.rtol, options.atol, **check)
+    object.__setattr__(options, "rtol", rtol)
+    object.__setattr__(options, "atol", atol)
+
+
+def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> tuple[float, float]:
+    """``(rtol, atol)`` as floats; :class:`InvalidOptionError` unless ``rtol`` lies in :data:`RTOL_RANGE`
+    and ``atol`` is positive."""
+    rtol = check_number("rtol", rtol)
+    atol = check_number("atol", atol)
     low, high = minimum_rtol, RTOL_RANGE[1]
     if not low <= rtol <= high:
         raise InvalidOptionError(
@@ -306,6 +325,7 @@ def check_tolerances(rtol, atol, *, minimum_rtol: float = RTOL_RANGE[0]) -> None
                 else "that asks for no correct digit; use rtol <= " + f"{high:g}"
             )
         )
+    return rtol, atol
 
 
 def check_stages(stages) -> None:
@@ -352,6 +372,34 @@ def torch_threads(threads: int | None, work: int):
     finally:
         if torch.get_num_threads() != before:
             torch.set_num_threads(before)
+
+
+# (device, dtype) pairs on which torch has run its first operations in this process (see warm_up_torch).
+_TORCH_WARM: set[tuple[str, str]] = set()
+
+
+def warm_up_torch(device="cpu", dtype: str = "float64") -> float:
+    """Import torch and run its first operations on ``device`` in ``dtype``, once per process; the
+    seconds this call took (0.0 when already warm).
+
+    torch's first use in a process costs 1-4 s (the import, then the first matrix product and LU,
+    which load their kernels and LAPACK; a CUDA device's context on top).  A backend that uses torch
+    calls this inside its timed setup, so that the cost lands on the setup clock of the solve that
+    pays it instead of on no clock (the solve after it would look 100 times faster).
+    """
+    key = (str(device), str(dtype))
+    if key in _TORCH_WARM:
+        return 0.0
+    began = time.perf_counter()
+    import torch
+
+    a = torch.eye(4, dtype=getattr(torch, dtype), device=torch_device(device)) + 1.0  # a named error for a bad device
+    factors = torch.linalg.lu_factor(a)
+    torch.linalg.lu_solve(*factors, a @ a)
+    if a.device.type == "cuda":
+        torch.cuda.synchronize(a.device)
+    _TORCH_WARM.add(key)
+    return time.perf_counter() - began
 
 
 def torch_device(name):

@@ -53,15 +53,15 @@ from daemodel.backends.base import (
     SWEEP_FIRST_STEPS,
     AbstractBackend,
     captured_output,
-    check_number,
     check_output_memory,
     check_stages,
-    check_tolerances,
     estimate_status,
     fixed_grid,
     fixed_step_sweep,
     make_solution,
     output_times,
+    set_number,
+    set_tolerances,
     tolerance_sweep,
 )
 
@@ -77,6 +77,10 @@ QUIET = {"show_eval_warnings": False}
 # 1 + max|u0| (casadi's default 1e-12 assumes unit size; the squeezing mechanism's w ~ 1e4-4e5
 # leaves residuals at 1e-11 from rounding alone).
 ROOT_ABSTOL = 1e-12
+# A casadi-collocation step that returns its start value is steady, not stuck, when its change h |f|
+# is below the root finder's abstol or this many units in the last place of the value: rounding in
+# f (a constraint met to the last bit, x' = 1e-14 at rest) moves nothing that the values can show.
+STEADY_ULPS = 16
 # Integrators kept per model (least recently used dropped first): a sweep's tolerances or steps, a
 # few start values; each holds its output times (a 20,000-step grid is 160 kB) and casadi's memory.
 KEPT_INTEGRATORS = 32
@@ -167,8 +171,8 @@ class CollocationOptions:
 
     def __post_init__(self) -> None:
         check_stages(self.stages)
-        check_number("h", self.h, allow_none=True)
-        check_number("estimate_bound", self.estimate_bound)
+        set_number(self, "h", allow_none=True)
+        set_number(self, "estimate_bound")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -200,8 +204,8 @@ class IDASOptions:
     suppress_algebraic: bool = False
 
     def __post_init__(self) -> None:
-        check_tolerances(self.rtol, self.atol)
-        check_number("max_num_steps", self.max_num_steps, integer=True)
+        set_tolerances(self)
+        set_number(self, "max_num_steps", integer=True)
         if not isinstance(self.suppress_algebraic, bool):
             raise InvalidOptionError(f"suppress_algebraic must be True or False; got {self.suppress_algebraic!r}")
 
@@ -308,13 +312,22 @@ def first_non_finite(name: str, compiled, times, values, fix: str, what: str = "
     )
 
 
-def stuck_step(compiled, grid, values, slopes) -> ConvergenceError | None:
+def stuck_step(compiled, grid, values, slopes, root_abstol: float = ROOT_ABSTOL) -> ConvergenceError | None:
     """The error for the first step that returned its start value exactly although f is not zero
     there: casadi's root finder gave up (f or g turned NaN inside its Newton iteration, with casadi's
-    evaluation warnings off) and casadi returned its last iterate instead of failing."""
+    evaluation warnings off) and casadi returned its last iterate instead of failing.
+
+    A step whose whole change ``h |f|`` is within rounding of its start is not stuck but steady
+    (a start at rest up to rounding, ``x' = 1e-14``, or a constraint met to the last bit): the
+    collocation residual at the start guess is ``h f`` at the stages, so the root finder accepts that
+    guess once ``h |f| < root_abstol``; and a change below :data:`STEADY_ULPS` units in the last place
+    of ``u`` is not a change that the values can show.
+    """
     n = len(compiled.states)
     same = np.all(values[:, 1:] == values[:, :-1], axis=2)  # (B, T-1): step k returned u_k
-    moving = np.abs(slopes[:, :-1, :n]).max(axis=2, initial=0.0) > 0  # f(t_k, u_k) != 0
+    h = np.diff(grid)[None, :, None]
+    rounding = np.maximum(root_abstol, STEADY_ULPS * np.finfo(values.dtype).eps * np.abs(values[:, :-1, :n]))
+    moving = np.any(h * np.abs(slopes[:, :-1, :n]) > rounding, axis=2)  # f(t_k, u_k) moves u_k visibly
     stuck = np.argwhere(same & moving)
     if not len(stuck):
         return None
@@ -624,7 +637,7 @@ class CollocationBackend(AbstractBackend):
         if failure is None:  # casadi's root finder returns its last iterate when f turns NaN inside a step
             slopes = _right_hand_sides(dae, grid, values, start.p)
             failure = first_non_finite(self.name, compiled, grid, slopes, ADAPTIVE_FIX, "f at") or stuck_step(
-                compiled, grid, values, slopes
+                compiled, grid, values, slopes, root_abstol
             )
         if failure is not None:
             raise failure

@@ -41,11 +41,11 @@ from daemodel.backends.base import (
     SWEEP_FIRST_STEPS,
     AbstractBackend,
     ProgressWatch,
-    check_number,
     check_output_memory,
-    check_tolerances,
     make_solution,
     output_times,
+    set_number,
+    set_tolerances,
     tolerance_sweep,
 )
 
@@ -124,9 +124,9 @@ class ReferenceOptions:
     t_eval: object = None
 
     def __post_init__(self) -> None:
-        check_tolerances(self.rtol, self.atol, minimum_rtol=MIN_RTOL)
-        check_number("max_steps", self.max_steps, integer=True)
-        check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
+        set_tolerances(self, minimum_rtol=MIN_RTOL)
+        set_number(self, "max_steps", integer=True)
+        set_number(self, "max_newton_iterations", integer=True)
         if self.integrator != AUTO and self.integrator not in INTEGRATORS:
             raise InvalidOptionError(
                 f"integrator must be one of {', '.join(INTEGRATORS)} or {AUTO!r} (DOP853, then Radau where the "

@@ -16,6 +16,9 @@ or a Python file that defines
 * ``exact(t)``, returning a dict name -> values, the reference for the errors (default: a
   tight scipy solve, ``method="reference"``).
 
+The file runs as ``python model.py`` would: it may import the modules beside it
+(``from params import K`` with ``params.py`` in its folder); each target imports its own.
+
 Fixed-step methods start their sweep at ``--steps`` steps over the interval (h = span / steps,
 then halved at each of ``--points``); the default is the problem's own (fine enough for its
 oscillations and transients), or 10 for a model file.
@@ -36,13 +39,13 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
-import numbers
 import re
 import sys
 from pathlib import Path
 
-from daemodel.errors import DaemodelError, ModelError, TargetError
+from daemodel.errors import DaemodelError, InvalidValueError, ModelError, TargetError
 from daemodel.files import writable_directory
+from daemodel.reals import is_real, real
 
 DEFAULT_T_SPAN = (0.0, 1.0)
 # Exit statuses of `daemodel compare`.
@@ -78,25 +81,31 @@ def load_target(target: str):
         except (Exception, SystemExit) as error:  # the user's code: a message, not a traceback
             raise TargetError(f"{what} raised {exception_summary(error, filename=path)}") from error
 
-    spec = importlib.util.spec_from_file_location(f"daemodel_target_{path.stem}", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # as an import does: dataclasses and pickle look the module up there
+    # The file runs as `python my_model.py` would run it: its folder first on sys.path, so that
+    # `from params import K` finds params.py beside it.  Both the folder and the modules imported
+    # from it leave again afterwards, so that a second target with its own params.py imports its
+    # own (not the first one's cached in sys.modules) and nothing leaks into the caller's process.
+    folder = path.resolve().parent
+    loaded_before = set(sys.modules)
+    sys.path.insert(0, str(folder))
     try:
-        run("importing the model file", spec.loader.exec_module, module)
-    except TargetError:
-        del sys.modules[spec.name]
-        raise
-    build = getattr(module, "build_model", None)
-    if build is not None:
-        if not callable(build):
-            raise TargetError(f"{path}: build_model is {type(build).__name__}, not a function returning a Model")
-        model = run("build_model()", build)
-    elif hasattr(module, "model"):
-        model = run("model()", module.model) if callable(module.model) and not _is_model(module.model) else module.model
-    else:
-        raise TargetError(
-            f"{path} defines neither build_model() nor model; define build_model() returning a daemodel.Model"
-        )
+        module = _import_file(path, run)
+        build = getattr(module, "build_model", None)
+        if build is not None:
+            if not callable(build):
+                raise TargetError(f"{path}: build_model is {type(build).__name__}, not a function returning a Model")
+            model = run("build_model()", build)
+        elif hasattr(module, "model"):
+            model = module.model
+            if callable(model) and not _is_model(model):
+                model = run("model()", model)
+        else:
+            raise TargetError(
+                f"{path} defines neither build_model() nor model; define build_model() returning a daemodel.Model"
+            )
+    finally:
+        sys.path.remove(str(folder))
+        _forget_modules_from(folder, set(sys.modules) - loaded_before)
     if not _is_model(model):
         raise TargetError(f"{path}: build_model() / model gave {type(model).__name__}, not a Model or CompiledDAE")
     t_span = _t_span(path, getattr(module, "T_SPAN", DEFAULT_T_SPAN))
@@ -106,6 +115,37 @@ def load_target(target: str):
     return model, t_span, exact
 
 
+def _import_file(path: Path, run):
+    """The model file as a module, registered in sys.modules under a name no other target has."""
+    name = base = f"daemodel_target_{path.stem}"
+    copy = 1
+    while name in sys.modules:  # two targets named model.py in two folders are two modules
+        copy += 1
+        name = f"{base}_{copy}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # as an import does: dataclasses and pickle look the module up there
+    try:
+        run("importing the model file", spec.loader.exec_module, module)
+    except TargetError:
+        del sys.modules[name]
+        raise
+    return module
+
+
+def _forget_modules_from(folder: Path, names) -> None:
+    """Drop from sys.modules the modules among ``names`` that were imported from ``folder`` (a model
+    file's own helpers: ``params.py`` beside it, a package folder beside it).  The model keeps
+    references to what it uses; sys.modules only must not hand them to the next target."""
+    for name in names:
+        top = name.partition(".")[0]
+        if not ((folder / f"{top}.py").is_file() or (folder / top).is_dir()):
+            continue  # numpy, scipy, ...: found elsewhere on sys.path, shared by every target
+        origin = getattr(getattr(sys.modules.get(name), "__spec__", None), "origin", None)
+        if origin and Path(origin).resolve().is_relative_to(folder):
+            del sys.modules[name]
+
+
 def _t_span(path: Path, value) -> tuple[float, float]:
     """``T_SPAN`` of a model file as floats: a pair of finite numbers, increasing."""
     expected = f"{path}: T_SPAN must be a pair (t0, t1) of finite numbers with t0 < t1; got {value!r}"
@@ -113,9 +153,12 @@ def _t_span(path: Path, value) -> tuple[float, float]:
         pair = tuple(value)
     except TypeError:
         raise TargetError(expected) from None
-    if len(pair) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair):
+    if len(pair) != 2 or not all(is_real(v) for v in pair):
         raise TargetError(expected)
-    t0, t1 = float(pair[0]), float(pair[1])
+    try:
+        t0, t1 = real(pair[0], "t0", finite=False), real(pair[1], "t1", finite=False)
+    except InvalidValueError:  # a sympy symbol: no number
+        raise TargetError(expected) from None
     if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1):
         raise TargetError(expected)
     return t0, t1

@@ -46,6 +46,7 @@ from daemodel.files import (
     atomic_write,
     file_name,
     read_json,
+    readable_path,
     save_figure,
     writable_directory,
     writable_file,
@@ -275,7 +276,7 @@ class Comparison:
         ComparisonError
             When the file is not such a JSON (naming the file and what is missing).
         """
-        path = Path(path).expanduser()
+        path = readable_path(path, "Comparison.load: path", ComparisonError)
         if not path.exists():
             raise ComparisonError(f"no comparison file at {path}")
         payload = read_json(path, ComparisonError, "a comparison saved by Comparison.to_json")

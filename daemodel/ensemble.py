@@ -36,6 +36,7 @@ from daemodel.files import (
     open_inside,
     read_arrays,
     read_json,
+    readable_path,
     writable_directory,
     write_json,
 )
@@ -494,7 +495,7 @@ class EnsembleFiles:
         """
         from daemodel.compiler import as_compiled
 
-        directory = Path(directory).expanduser()
+        directory = readable_path(directory, "EnsembleFiles.load: directory", SolutionFileError, "directory")
         path = directory / MANIFEST
         if not path.exists():
             raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")

@@ -33,6 +33,11 @@ class InvalidNameError(ModelError):
     """A declared name is not a usable identifier, is reserved, or is declared twice."""
 
 
+class NumericFunctionError(ModelError, TypeError):
+    """``math.sin(x)`` or ``np.sin(x)`` on a declared symbol, which has no number until the solve
+    (a TypeError too, as Python's and numpy's own refusals of the call are)."""
+
+
 class UnknownSymbolError(ModelError):
     """An equation, initial value or output uses a name the model never declared."""
 
@@ -196,6 +201,11 @@ class OutsideTrainingBoxWarning(UserWarning):
 class LocalErrorWarning(UserWarning):
     """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``): the
     solution is flagged, not "success", and keeps fewer digits than that bound promises."""
+
+
+class OmittedPanelsWarning(UserWarning):
+    """``Solution.plot()`` without ``names=`` drew the first variables only (a figure of sixty panels
+    is unreadable); the warning and the figure's title name how many were left out."""
 
 
 class UncertifiedWarning(UserWarning):

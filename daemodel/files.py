@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from daemodel.errors import FileWriteError, InvalidOptionError, ResourceLimitError
+from daemodel.messages import quoted
 
 # A name daemodel puts into a path: letters, digits, '_', '-' and '.', not starting with '.'
 # (no hidden files, no '.' or '..'), no separator of any platform.
@@ -87,6 +88,16 @@ def check_memory(what: str, parts: dict) -> None:
             f"(set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it): solve fewer samples at a time "
             "(dm.ensemble with a smaller chunk, write_to= to keep them on disk) or ask for fewer output times"
         )
+
+
+def readable_path(path, argument: str, error: type, what: str = "file") -> Path:
+    """``path`` (``~`` expanded) for a loader, else ``error`` naming ``argument`` and what it takes:
+    ``Path(3)`` or ``Path(None)`` would raise a bare TypeError that names neither."""
+    if not isinstance(path, str | os.PathLike):
+        raise error(
+            f"{argument} must be a {what} path (str or pathlib.Path); got {quoted(path, 40)} ({type(path).__name__})"
+        )
+    return Path(path).expanduser()
 
 
 def writable_file(path, argument: str) -> Path:

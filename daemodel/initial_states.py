@@ -37,6 +37,7 @@ from daemodel.init import (
     violations,
 )
 from daemodel.messages import quoted
+from daemodel.reals import is_real, real
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
@@ -119,6 +120,9 @@ def _numbers(value, what) -> np.ndarray:
         raw = np.asarray(value)
     except (TypeError, ValueError) as error:
         raise InvalidValueError(f"{what} must be numbers; got {type(value).__name__} ({error})") from None
+    if raw.dtype.kind == "O" and raw.size and all(is_real(v) for v in raw.flat):
+        # sympy numbers (sp.pi, sp.Rational(1, 3)) make an object array: each converted, a symbol refused
+        return np.array([real(v, what) for v in raw.flat], dtype=float).reshape(raw.shape)
     if raw.dtype.kind not in "iuf":
         kind = {"b": "booleans", "U": "strings", "S": "bytes", "O": "objects", "c": "complex numbers"}
         raise InvalidValueError(

@@ -12,11 +12,9 @@ of the whole system (a state without an ODE, unbalanced constraints) raise in ``
 from __future__ import annotations
 
 import keyword
-import math
 import re
 from dataclasses import dataclass
 
-import numpy as np
 import sympy as sp
 from sympy.core.function import AppliedUndef
 
@@ -33,6 +31,8 @@ from daemodel.errors import (
 from daemodel.functions import supported_names
 from daemodel.messages import quoted
 from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
+from daemodel.reals import real
+from daemodel.symbols import Symbol
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
 # them as locals (they are the only user text that ever reaches generated source).
@@ -115,7 +115,7 @@ class Model:
                 f"letter, at most {MAX_NAME_LENGTH} characters"
             )
         self.name = name
-        self.t = sp.Symbol("t")
+        self.t = Symbol("t")
         self._states: dict[str, sp.Symbol] = {}
         self._algebraics: dict[str, sp.Symbol] = {}
         self._parameters: dict[str, sp.Symbol] = {}
@@ -141,7 +141,7 @@ class Model:
     def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
         """Declare a named parameter; a value is needed by ``compile`` (see ``set_parameters``)."""
         (symbol,) = self._declare([name], self._parameters, "parameter")
-        self._parameter_values[name] = None if value is None else _finite(value, f"parameter '{name}'")
+        self._parameter_values[name] = None if value is None else real(value, f"parameter '{name}'")
         return symbol
 
     def set_parameters(self, /, **values: float) -> None:
@@ -151,7 +151,7 @@ class Model:
                 raise UnknownSymbolError(
                     f"set_parameters: '{name}' is not a declared parameter; parameters: {_listing(self._parameters)}"
                 )
-            self._parameter_values[name] = _finite(value, f"parameter '{name}'")
+            self._parameter_values[name] = real(value, f"parameter '{name}'")
 
     def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
         out = []
@@ -169,7 +169,7 @@ class Model:
                 )
             if name in self._all_symbols():
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
-            symbol = sp.Symbol(name)
+            symbol = Symbol(name)
             table[name] = symbol
             out.append(symbol)
         if not out:
@@ -326,9 +326,9 @@ class Model:
                     f"m.initial: '{name}' is not a declared variable; variables: "
                     f"{_listing({**self._states, **self._algebraics})}"
                 )
-            self._initial[name] = _finite(value, f"initial value of '{name}'")
+            self._initial[name] = real(value, f"initial value of '{name}'")
         if t is not None:
-            self._t0 = _finite(t, "initial time t")
+            self._t0 = real(t, "initial time t")
 
     def guess(self, **values: float) -> None:
         """Starting values of algebraic variables for the Newton that computes them at t0.
@@ -343,7 +343,7 @@ class Model:
                 raise UnknownSymbolError(
                     f"m.guess: '{name}' is {where}; guesses are for algebraic variables: {_listing(self._algebraics)}"
                 )
-            self._guess[name] = _finite(value, f"guess for '{name}'")
+            self._guess[name] = real(value, f"guess for '{name}'")
 
     def _expression(self, value, where: str) -> sp.Expr:
         """Turn a sympy expression, number or string into a checked sympy expression."""
@@ -426,18 +426,6 @@ class Model:
             f"Model({self.name!r}: {len(self._states)} differential, {len(self._algebraics)} algebraic, "
             f"{len(self._constraints)} constraints, {len(self._parameters)} parameters)"
         )
-
-
-def _finite(value, what: str) -> float:
-    if isinstance(value, bool | np.bool_ | str | bytes) or not isinstance(value, int | float | np.number | sp.Number):
-        raise InvalidValueError(f"{what} must be a real number; got {quoted(value)} ({type(value).__name__})")
-    try:
-        number = float(value)
-    except (TypeError, ValueError, OverflowError):
-        raise InvalidValueError(f"{what} must be a real number; got {value!r}") from None
-    if not math.isfinite(number):
-        raise InvalidValueError(f"{what} must be finite; got {value!r}")
-    return number
 
 
 def _listing(table) -> str:

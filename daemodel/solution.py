@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
+from daemodel.errors import ComparisonError, OmittedPanelsWarning, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
     atomic_write,
     memory_limit,
     open_file,
     parse_json,
     read_arrays,
+    readable_path,
     save_figure,
     writable_file,
 )
@@ -24,6 +26,9 @@ from daemodel.files import (
 TIME_MATCH_RTOL = 1e-9
 # Samples drawn by Solution.plot for a batch; more lines only hide each other.
 PLOTTED_SAMPLES = 20
+# Panels Solution.plot() draws without names=: four rows of three stay readable on a screen or a
+# page; a 62-variable model drew 62 panels of a few pixels each.
+PLOTTED_PANELS = 12
 # What Solution.save writes and Solution.load reads.
 SOLUTION_FORMAT = "daemodel-solution/1"
 # Its arrays (dtype kinds, axes): times (T,), values (B, T, variables), parameters (B, k), and
@@ -70,7 +75,9 @@ class Solution:
         generation and engine construction (radau), building casadi's integrator
         (casadi-collocation, casadi-idas), the model's numeric functions (reference), training
         (pinn).  What an earlier call left cached on the compiled model (code, casadi functions,
-        index reductions) is not charged again.  Initial-value checks are in neither clock.
+        index reductions) is not charged again.  torch's first use in the process (its import and
+        first operations, 1-4 s) is charged to the setup of the torch solve that pays it
+        (``stats["torch_warm_up_seconds"]``, 0 afterwards).  Initial-value checks are in neither clock.
     stats : dict
         Method counters: steps, rejected steps, Newton iterations, Jacobians, ...
     compiled : CompiledDAE
@@ -400,7 +407,7 @@ class Solution:
         SolutionFileError
             No file, not a daemodel solution file, or a model with other equations or names.
         """
-        path = Path(path).expanduser()
+        path = readable_path(path, "Solution.load: path", SolutionFileError)
         if not path.exists():
             raise SolutionFileError(f"no solution file at {path}")
         with open_file(path, "path", SolutionFileError) as handle:
@@ -483,7 +490,9 @@ class Solution:
         path : str or Path, optional
             Write the figure there (PNG, PDF, ... by suffix).
         names : iterable of str, optional
-            Variables to draw; default states and algebraic variables.
+            Variables to draw, all of them.  Default: the states, then the algebraic variables, at
+            most :data:`PLOTTED_PANELS` (12) of them; where more were left out, the figure's title
+            says how many and an :class:`~daemodel.errors.OmittedPanelsWarning` names them.
         reference : callable or Solution, optional
             Drawn dashed on top (first sample only for a batch).
 
@@ -493,7 +502,20 @@ class Solution:
         """
         from matplotlib.figure import Figure
 
-        names = list(names) if names is not None else [*self.compiled.state_names, *self.compiled.algebraic_names]
+        omitted = []
+        if names is None:
+            every = [*self.compiled.state_names, *self.compiled.algebraic_names]
+            names, omitted = every[:PLOTTED_PANELS], every[PLOTTED_PANELS:]
+        else:
+            names = list(names)
+        if omitted:
+            listed = ", ".join(omitted[:PLOTTED_PANELS]) + (", ..." if len(omitted) > PLOTTED_PANELS else "")
+            warnings.warn(
+                f"plot() drew {len(names)} of the {len(names) + len(omitted)} variables of '{self.compiled.name}' and "
+                f"left out {len(omitted)} ({listed}); choose them with names=[...]",
+                OmittedPanelsWarning,
+                stacklevel=2,
+            )
         for name in names:
             self[name]  # raises for unknown names before drawing anything
         columns = min(3, len(names))
@@ -524,7 +546,8 @@ class Solution:
             axes[lowest, column].tick_params(labelbottom=True)
             axes[lowest, column].set_xlabel("t")
         batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
-        fig.suptitle(f"{self.compiled.name}: {self.method}{batch}")
+        left_out = f"\n{len(names)} of {len(names) + len(omitted)} variables; names=[...] chooses" if omitted else ""
+        fig.suptitle(f"{self.compiled.name}: {self.method}{batch}{left_out}")
         if path is not None:
             save_figure(fig, path, "plot path", dpi=120)
         return fig

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
-
-import numpy as np
 
 from daemodel.backends import get_backend
 from daemodel.compiler import as_compiled
-from daemodel.errors import InvalidOptionError, TimeSpanError, UnknownOptionError
+from daemodel.errors import InvalidOptionError, InvalidValueError, TimeSpanError, UnknownOptionError
 from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
 from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
+from daemodel.reals import is_real, real
 from daemodel.solution import Solution
 from daemodel.switches import for_method, has_time_switches, solve_with_breakpoints
 
@@ -98,14 +96,17 @@ def check_options(backend, options: dict):
 
 
 def _pair(value):
-    """``(float, float)`` from two real numbers (no strings, no booleans), else None."""
+    """``(float, float)`` from two real numbers (Python, numpy or sympy; no strings, no booleans), else None."""
     try:
         items = list(value)
     except TypeError:
         return None
-    if len(items) != 2 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_) for v in items):
+    if len(items) != 2 or not all(is_real(v) for v in items):
         return None
-    return float(items[0]), float(items[1])
+    try:
+        return real(items[0], "t0", finite=False), real(items[1], "t1", finite=False)
+    except InvalidValueError:  # a sympy symbol: no number
+        return None
 
 
 def check_span(t_span, compiled) -> tuple[float, float]:

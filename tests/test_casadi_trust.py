@@ -483,6 +483,44 @@ def test_collocation_that_leaves_the_domain_of_f_is_caught():
     np.testing.assert_allclose(sol["y"][-1], (2 - 2 * (1 - 0.95) ** 1.5) / 1.5 * 1.0, rtol=1e-6)
 
 
+def test_collocation_accepts_a_start_at_rest_to_rounding_and_refuses_an_inconsistent_one():
+    """A step that returns its start value because its whole change h |f| is rounding (x' = 1e-14,
+    or x' = w - 0.3 with w = 0.1 x + 0.2 = 0.30000000000000004 at x = 1) is steady, not stuck: the
+    root finder accepts its start guess.  A start that violates a constraint beyond rounding is
+    still refused by name (the stuck step itself: the Akzo Nobel test below)."""
+    drift = dm.Model("drift")
+    (x,) = drift.states("x")
+    drift.ode(x, 1e-14 + 0 * x)
+    drift.initial(x=1.0)
+    sol = dm.solve(drift, (0.0, 1.0), method="casadi-collocation", h=0.1)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol["x"], 1.0 + 1e-14 * sol.t, rtol=0, atol=1e-13)  # exact: 1 + 1e-14 t
+
+    rest = dm.Model("rest")
+    (x,) = rest.states("x")
+    (w,) = rest.algebraics("w")
+    rest.ode(x, w - 0.3)
+    rest.constraint(w - 0.1 * x - 0.2, name="tie")
+    rest.initial(x=1.0)
+    sol = dm.solve(rest, (0.0, 1.0), method="casadi-collocation", h=0.1)
+    assert sol.status == "success"
+    # exact: x' = 0.1 (x - 1) from x = 1 is x = 1 (w = 0.3), up to the start's rounding
+    np.testing.assert_allclose(sol["x"], 1.0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sol["w"], 0.3, rtol=0, atol=1e-15)
+
+    held = dm.Model("held")
+    (x,) = held.states("x")
+    (lam,) = held.algebraics("lam")
+    held.ode(x, lam)
+    held.constraint(x - 0.3, name="hold")
+    held.initial(x=0.1 + 0.2)  # 0.30000000000000004: on the constraint to rounding
+    sol = dm.solve(held, (0.0, 1.0), method="casadi-collocation", h=0.1)
+    assert sol.status == "success" and np.all(sol["x"] == 0.1 + 0.2) and np.all(sol["lam"] == 0.0)
+    held.initial(x=0.3 + 1e-6)
+    with pytest.raises(E.InconsistentInitialStateError, match=r"violates constraint 'hold' \(#2\): hold = 1e-06"):
+        dm.solve(held, (0.0, 1.0), method="casadi-collocation", h=0.1)
+
+
 def test_collocation_that_returns_its_start_value_is_refused():
     """On the Akzo Nobel chemistry at h = 2.25, casadi's Newton meets sqrt of a negative y2 inside
     a step and returns the step's start value, then every later one: finite values 0.29 off, which

@@ -438,3 +438,40 @@ def test_version_and_a_help_text_without_markup(capsys):
     for name, problem in PROBLEMS.items():
         assert f"{name} [{problem.t_span[0]:g}, {problem.t_span[1]:g}]" in text
     assert "build_model() returning a Model" in text
+
+
+# ---- a model file that imports a module beside it --------------------------------------------
+SIBLING_MODEL = """
+import daemodel as dm
+from params import RATE
+
+
+def build_model():
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    m.ode(x, -RATE * x)
+    m.initial(x=1.0)
+    return m
+"""
+
+
+def test_a_model_file_imports_the_module_beside_it_and_each_target_its_own(tmp_path, capsys):
+    import sys
+
+    targets = []
+    for folder, rate in (("a", 1), ("b", 3)):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "params.py").write_text(f"RATE = {rate}\n")
+        targets.append(write(tmp_path / folder, SIBLING_MODEL))
+    path_before = list(sys.path)
+    models = [load_target(target)[0] for target in targets]
+    assert sys.path == path_before and "params" not in sys.modules  # nothing leaks into the caller
+    # each file got its own params.py: x' = -RATE x, so x(1) = exp(-RATE)
+    for model, rate in zip(models, (1, 3), strict=True):
+        sol = dm.solve(model, (0.0, 1.0), method="radau", rtol=1e-10, atol=1e-12)
+        assert sol["x"][-1] == pytest.approx(np.exp(-rate), rel=1e-7)
+    # and through the command: both targets compared, no import error
+    status = main(["compare", *targets, "--methods", "radau", "--points", "1", "--out", str(tmp_path / "o")])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert captured.err == "" and captured.out.count("decay on [0, 1]") == 2

@@ -10,6 +10,7 @@ import dataclasses
 import inspect
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -846,3 +847,25 @@ def test_a_pinn_solve_whose_outputs_would_not_fit_is_refused_before_training(mon
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1K")
     with pytest.raises(ResourceLimitError, match=r"pinn on 200 sample\(s\) of 1 unknowns would need"):
         dm.solve(decay, (0.0, 1.0), method="pinn", parameters={"k": np.ones(200)}, config=TINY)
+
+
+@pytest.mark.parametrize("argument", [3, None, {"path": "x.npz"}, b"x.npz"], ids=["int", "None", "dict", "bytes"])
+def test_a_loader_given_no_path_names_the_argument_and_what_it_takes(argument):
+    """Path(3) or Path(None) raised a bare TypeError that named neither the loader nor the argument."""
+    from daemodel.backends.pinn.surrogate import Surrogate
+
+    model = PENDULUM.model()
+    got = r" path \(str or pathlib\.Path\); got " + re.escape(repr(argument)) + rf" \({type(argument).__name__}\)$"
+    loaders = [
+        (SolutionFileError, r"^Solution\.load: path must be a file", lambda: dm.Solution.load(argument, model)),
+        (
+            SolutionFileError,
+            r"^EnsembleFiles\.load: directory must be a directory",
+            lambda: dm.EnsembleFiles.load(argument, model),
+        ),
+        (NetworkFileError, r"^Surrogate\.load: path must be a file", lambda: Surrogate.load(argument, model)),
+        (ComparisonError, r"^Comparison\.load: path must be a file", lambda: dm.Comparison.load(argument)),
+    ]
+    for error, message, load in loaders:
+        with pytest.raises(error, match=message + got):
+            load()

@@ -199,3 +199,64 @@ def test_constraint_string_with_equals_sign():
     c = m.compile()
     assert c.g[0] == z - y1**2 - sp.Symbol("mu")
     assert c.z0[0] == 11.0
+
+
+# ---- numeric functions on declared symbols ---------------------------------------------------
+def test_math_and_numpy_functions_on_a_declared_symbol_name_the_fix():
+    """math.sin(x) raised sympy's 'Cannot convert expression to float' and np.sin(x) numpy's 'loop of
+    ufunc does not support argument 0 of type Symbol'; neither said what to write instead."""
+    import math
+
+    import numpy as np
+
+    m = dm.Model("pendulum")
+    (theta,) = m.states("theta")
+    k = m.parameter("k", 2.0)
+    fix = r"which has no value until the solve: write the equation with sympy's functions, "
+    cases = [
+        (
+            lambda: math.sin(theta),
+            r"^math\.sin\(theta\), math\.exp\(theta\), \.\.\. or float\(theta\) on the declared "
+            r"symbol 'theta', " + fix + r"sp\.sin\(theta\), sp\.exp\(theta\), \.\.\. \(import sympy as sp\), or as a "
+            r"string, \"sin\(theta\), exp\(theta\), \.\.\.\"$",
+        ),
+        (lambda: math.exp(k), r"^math\.sin\(k\), .* on the declared symbol 'k'"),
+        (lambda: float(m.t), r"or float\(t\) on the declared symbol 't'"),
+        (
+            lambda: np.sin(theta),
+            r"^np\.sin\(theta\) on the declared symbol 'theta', "
+            + fix
+            + r"sp\.sin\(theta\) \(import sympy as sp\), or as a string, \"sin\(theta\)\"$",
+        ),
+        (lambda: np.arcsin(theta), r"^np\.arcsin\(theta\) on .* sp\.asin\(theta\) .* \"asin\(theta\)\"$"),
+        (lambda: np.arctan2(theta, 1.0), r"^np\.arctan2\(theta, \.\.\.\) on .* sp\.atan2\(theta, \.\.\.\)"),
+        (lambda: np.log10(k), r"^np\.log10\(k\) on .* sp\.log\(k, 10\) .* \"log\(k, 10\)\"$"),
+    ]
+    for call, message in cases:
+        with pytest.raises(E.NumericFunctionError, match=message) as raised:
+            call()
+        assert isinstance(raised.value, TypeError)  # as Python's and numpy's own refusals were
+
+
+def test_declared_symbols_are_sympy_symbols_in_every_other_respect():
+    """The class that refuses math.sin is sympy.Symbol as far as sympy can tell: equal to a user's
+    sp.Symbol of the same name (same hash, same srepr), substituted for it both ways, pickled, and a
+    user's own sp.Symbol("x") in an equation is the declared x."""
+    import pickle
+
+    import numpy as np
+
+    plain = sp.Symbol("x")  # made before the declaration: sympy's cache must not hand it back
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    assert type(x) is not sp.Symbol and x == plain and plain == x and not (x != plain) and hash(x) == hash(plain)
+    assert sp.srepr(x) == "Symbol('x')" and {plain: 1}[x] == 1 and x + plain == 2 * x
+    assert (x + 1).subs(plain, 2) == 3 and (plain + 1).subs(x, 3) == 4 and (sp.sin(plain) + plain).subs(x, 0) == 0
+    copy = pickle.loads(pickle.dumps(x))
+    assert copy == x and type(copy) is type(x)
+    m.ode(x, -plain + sp.sin(sp.Symbol("t")))  # a user's own sp.Symbol("x") and ("t") are the declared x and t
+    m.initial(x=1.0)
+    assert m.compile().rhs[0].free_symbols == {x, m.t}
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-12)
+    # x' = -x + sin t, x(0) = 1: x = 1.5 e^-t + (sin t - cos t) / 2
+    np.testing.assert_allclose(sol["x"], 1.5 * np.exp(-sol.t) + (np.sin(sol.t) - np.cos(sol.t)) / 2, atol=1e-8)

@@ -216,3 +216,40 @@ def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):
             rows
         )  # no row meets a colour twice
     assert colour.max() + 1 <= 4  # the grid: c_k couples to c_(k-1), c_(k+1), w_k
+
+
+# A fresh process: torch's first use is charged to the setup clock of the solve that pays it.
+FIRST_TORCH_USE = """
+import json, sys
+import daemodel as dm
+from daemodel.problems import PENDULUM
+
+imported = "torch" in sys.modules
+c = PENDULUM.model().compile()
+radau = {"method": "radau", "h": 0.1, "engine": "torch"}
+pinn = {"method": "pinn", "config": dm.PINNConfig(h=0.05, width=4, depth=1, iterations=5)}
+first, second = (radau, pinn) if sys.argv[1] == "radau" else (pinn, radau)
+clocks = []
+for options in (first, second, first):
+    sol = dm.solve(c, (0.0, 0.1), **options)
+    clocks.append([sol.setup_time, sol.stats["torch_warm_up_seconds"]])
+print(json.dumps({"imported_before": imported, "clocks": clocks}))
+"""
+
+
+@pytest.mark.parametrize("first", ["radau", "pinn"])
+def test_the_first_torch_use_in_a_process_is_counted_in_the_setup(first):
+    """torch's import and first operations (1-4 s) were on no clock: the first torch solve of a
+    process reported a setup of 0.1 s.  Now the warm-up runs inside the timed setup, once."""
+    import json
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-W", "ignore", "-c", FIRST_TORCH_USE, first]
+    run = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    result = json.loads(run.stdout.strip().splitlines()[-1])
+    assert result["imported_before"] is False  # importing daemodel does not import torch: the solve pays
+    (setup, warm_up), *later = result["clocks"]
+    assert warm_up > 0 and setup >= warm_up  # the warm-up ran, inside the setup clock
+    assert [seconds for _, seconds in later] == [0.0, 0.0]  # once per process (and device, dtype)

@@ -1,5 +1,7 @@
 """Classical solvers: convergence orders, three-way agreement, batches, adaptive steps."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -248,6 +250,34 @@ def test_plot_keeps_time_ticks_on_every_bottom_panel():
         labels = [tick.label1.get_visible() for tick in ax.xaxis.get_major_ticks()]
         assert any(labels) == (ax.get_title() in bottom), ax.get_title()
         assert (ax.get_xlabel() == "t") == (ax.get_title() in bottom)
+
+
+def test_plot_of_a_large_model_draws_twelve_panels_and_says_what_it_left_out():
+    """62 panels of a few pixels each are no plot: without names=, the first PLOTTED_PANELS variables,
+    with the count in the title and a warning that names the rest; names= draws what it names."""
+    from daemodel.solution import PLOTTED_PANELS
+
+    m = dm.Model("chain")
+    states = m.states([f"x{i}" for i in range(1, 31)])
+    for rate, x in enumerate(states, start=1):
+        m.ode(x, -rate * x)
+    m.initial(**{x.name: 1.0 for x in states})
+    sol = dm.solve(m, (0.0, 0.1), rtol=1e-6)
+    with pytest.warns(
+        dm.errors.OmittedPanelsWarning,
+        match=r"plot\(\) drew 12 of the 30 variables of 'chain' and left out 18 \(x13, x14, .*x24, \.\.\.\); "
+        r"choose them with names=\[\.\.\.\]",
+    ):
+        fig = sol.plot()
+    drawn = [ax.get_title() for ax in fig.axes if ax.get_visible()]
+    assert PLOTTED_PANELS == 12 and drawn == [f"x{i}" for i in range(1, 13)]
+    assert "12 of 30 variables; names=[...] chooses" in fig._suptitle.get_text()
+    chosen = [f"x{i}" for i in range(16, 31)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # names= given: no warning, every name drawn
+        fig = sol.plot(names=chosen)
+    assert [ax.get_title() for ax in fig.axes if ax.get_visible()] == chosen
+    assert "variables" not in fig._suptitle.get_text()
 
 
 def test_a_model_is_compiled_once_until_it_changes():

@@ -7,7 +7,7 @@ import difflib
 import functools
 from dataclasses import dataclass
 
-from daemodel.backends.base import check_dtype, check_number, check_stages
+from daemodel.backends.base import check_dtype, check_stages, set_number
 
 from daemodel.errors import InvalidOptionError, UnknownOptionError
 
@@ -178,17 +178,17 @@ class PINNConfig:
 
     def __post_init__(self) -> None:
         check_stages(self.stages)
-        check_number("h", self.h)
+        set_number(self, "h")
         for name in ("width", "depth", "samples"):
-            check_number(name, getattr(self, name), integer=True)
-        check_number("iterations", self.iterations, integer=True, allow_none=True)
+            set_number(self, name, integer=True)
+        set_number(self, "iterations", integer=True, allow_none=True)
         for name in ("eta", "weight_f", "weight_g", "weight_s"):
-            check_number(name, getattr(self, name))
-        check_number("tol", self.tol, allow_none=True)
-        check_number("learning_rate", self.learning_rate, allow_none=True)
-        check_number("final_learning_rate", self.final_learning_rate, allow_none=True)
-        check_number("radius", self.radius, positive=False)
-        check_number("seed", self.seed, positive=False, integer=True)
+            set_number(self, name)
+        set_number(self, "tol", allow_none=True)
+        set_number(self, "learning_rate", allow_none=True)
+        set_number(self, "final_learning_rate", allow_none=True)
+        set_number(self, "radius", positive=False)
+        set_number(self, "seed", positive=False, integer=True)
         if self.radius < 0:
             raise InvalidOptionError(f"radius must be >= 0; got {self.radius!r}")
         for name, allowed in (

@@ -489,7 +489,7 @@ class Surrogate:
         if outside not in OUTSIDE_POLICIES:
             raise InvalidOptionError(f"outside must be one of {', '.join(OUTSIDE_POLICIES)}; got {outside!r}")
         if tol is not None:
-            check_number("tol", tol)
+            tol = check_number("tol", tol)
             if newton:
                 raise InvalidOptionError(
                     "newton=True corrects every sample and tol only those whose certified distance exceeds it; give one"
@@ -846,10 +846,10 @@ class Surrogate:
         """
         from daemodel.backends.base import torch_device
 
-        from daemodel.files import open_file, stored_members
+        from daemodel.files import open_file, readable_path, stored_members
 
         compiled = resolve_model(model, "Surrogate.load()")
-        path = Path(path).expanduser()
+        path = readable_path(path, "Surrogate.load: path", NetworkFileError)
         if not path.exists():
             raise NetworkFileError(f"no network file at {path}")
         with open_file(path, "path", NetworkFileError) as handle:

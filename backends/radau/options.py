@@ -8,10 +8,10 @@ import numpy as np
 from daemodel.backends.base import (
     DEFAULT_ESTIMATE_BOUND,
     check_dtype,
-    check_number,
     check_stages,
     check_threads,
-    check_tolerances,
+    set_number,
+    set_tolerances,
     torch_device,
 )
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
@@ -32,10 +32,15 @@ ENGINES = ("auto", "torch", "casadi")
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
 # float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
 FLOAT32_MIN_RTOL = 1e-5
-# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  An
-# attempt costs 2-6 ms on one (shared) CPU core, so a runaway (a chattering switch, an endless
-# t_span) fails within 10-30 s; the pendulum on [0, 10] takes ~370 attempts at rtol = 1e-6.
-DEFAULT_MAX_ADAPTIVE_STEPS = 5_000
+# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  It bounds
+# the loop, and is set for a long span to run rather than to be refused: the pendulum on [0, 1000] at
+# rtol = 1e-6 takes 27,000 attempts (2.8-12 s on one shared core with the casadi engine, 0.1-0.4 ms
+# an attempt), the old default of 5,000 stopped it at t = 106.  A span that cannot finish within it
+# does not spend it: the progress watch (base.ProgressWatch) stops after two windows of 100 attempts
+# that project past it, naming max_steps.  What spends it all is chattering at a switch (rejected
+# attempts with h collapsing): 10-40 s with the casadi engine, minutes with the torch engine (2-6 ms
+# an attempt); give a smaller max_steps where a quick failure matters more than a long span.
+DEFAULT_MAX_ADAPTIVE_STEPS = 100_000
 # Fixed step: default bound on the grid's step count, checked before the grid is built (the count
 # is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
 DEFAULT_MAX_FIXED_STEPS = 100_000
@@ -69,7 +74,10 @@ class RadauOptions:
         Fixed step: most steps of the grid, refused before it is built
         (:class:`~daemodel.errors.ResourceLimitError`); default 100,000.  Adaptive mode: most step
         attempts, accepted, rejected or failed in Newton alike
-        (:class:`~daemodel.errors.StepLimitError`); default 5,000, a runaway's 10-30 s.
+        (:class:`~daemodel.errors.StepLimitError`); default 100,000
+        (:data:`DEFAULT_MAX_ADAPTIVE_STEPS`), enough for long spans (the pendulum on [0, 1000] at
+        rtol = 1e-6 takes 27,000).  A span that cannot finish within the budget is stopped early,
+        after a few hundred attempts project past it, with the number it would need.
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.
@@ -144,8 +152,8 @@ class RadauOptions:
 
     def __post_init__(self) -> None:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
-            check_number(name, getattr(self, name), allow_none=True)
-        check_number("max_newton_iterations", self.max_newton_iterations, integer=True)
+            set_number(self, name, allow_none=True)
+        set_number(self, "max_newton_iterations", integer=True)
         object.__setattr__(self, "dtype", check_dtype(self.dtype))
         if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):
             raise InvalidOptionError("h fixes the step size; rtol/atol/h0 select adaptive steps: give one or the other")
@@ -153,7 +161,7 @@ class RadauOptions:
             object.__setattr__(
                 self, "max_steps", DEFAULT_MAX_ADAPTIVE_STEPS if self.adaptive else DEFAULT_MAX_FIXED_STEPS
             )
-        check_number("max_steps", self.max_steps, integer=True)
+        set_number(self, "max_steps", integer=True)
         if self.adaptive:
             object.__setattr__(self, "rtol", DEFAULT_RTOL if self.rtol is None else self.rtol)
             object.__setattr__(self, "atol", DEFAULT_ATOL if self.atol is None else self.atol)
@@ -162,7 +170,7 @@ class RadauOptions:
                     f"rtol = {self.rtol:g} is below what float32 can deliver (>= {FLOAT32_MIN_RTOL:g}); "
                     "use dtype='float64'"
                 )
-            check_tolerances(self.rtol, self.atol)
+            set_tolerances(self)
         if self.stages is None:
             object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
         check_stages(self.stages)
@@ -188,7 +196,7 @@ class RadauOptions:
                 "start_guess must be a function (t, y, z) -> stage values, for a fixed step (h=...); "
                 f"got {type(self.start_guess).__name__}" + (" with adaptive steps" if self.adaptive else "")
             )
-        check_number("estimate_bound", self.estimate_bound, allow_none=True)
+        set_number(self, "estimate_bound", allow_none=True)
         if self.estimate_bound is not None and self.adaptive:
             raise InvalidOptionError(
                 "estimate_bound bounds a fixed step's local error estimate (h=...); adaptive steps meet rtol/atol"
