@@ -48,22 +48,21 @@ from dataclasses import dataclass
 import numpy as np
 from daemodel.backends.base import (
     DEFAULT_ESTIMATE_BOUND,
-    DEFAULT_OUTPUT_POINTS,
     LOCAL_ERROR_BOUND,
-    SWEEP_FIRST_STEPS,
     AbstractBackend,
-    captured_output,
-    check_output_memory,
-    check_stages,
     estimate_status,
+    make_solution,
+)
+from daemodel.backends.checks import check_output_memory, check_stages, set_number, set_tolerances
+from daemodel.backends.grids import (
+    DEFAULT_OUTPUT_POINTS,
+    SWEEP_FIRST_STEPS,
     fixed_grid,
     fixed_step_sweep,
-    make_solution,
     output_times,
-    set_number,
-    set_tolerances,
     tolerance_sweep,
 )
+from daemodel.backends.progress import captured_output
 
 from daemodel.dense import AbstractDenseOutput, CollocationPolynomials
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, SolverError, StepLimitError
@@ -183,7 +182,7 @@ class IDASOptions:
     ----------
     rtol, atol : float
         IDAS's relative and absolute tolerances (rtol in
-        :data:`~daemodel.backends.base.RTOL_RANGE`).
+        :data:`~daemodel.backends.checks.RTOL_RANGE`).
     t_eval : array, optional
         Output times; default 101 equally spaced.
     max_num_steps : int

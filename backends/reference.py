@@ -36,18 +36,10 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from daemodel.backends.base import (
-    DEFAULT_OUTPUT_POINTS,
-    SWEEP_FIRST_STEPS,
-    AbstractBackend,
-    ProgressWatch,
-    check_output_memory,
-    make_solution,
-    output_times,
-    set_number,
-    set_tolerances,
-    tolerance_sweep,
-)
+from daemodel.backends.base import AbstractBackend, make_solution
+from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
+from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
+from daemodel.backends.progress import ProgressWatch
 
 from daemodel.dense import Restarts
 from daemodel.errors import BranchError, ConvergenceError, InvalidOptionError, StepLimitError

@@ -256,7 +256,7 @@ def main(argv=None) -> int:
 
 def _compare(args) -> int:
     from daemodel.backends import get_backend
-    from daemodel.backends.base import SWEEP_FIRST_STEPS
+    from daemodel.backends.grids import SWEEP_FIRST_STEPS
     from daemodel.compare import check_points, plan_comparison
     from daemodel.problems import PROBLEMS
 

@@ -35,7 +35,8 @@ import numpy as np
 
 from daemodel.backends import REFERENCE, get_backend
 from daemodel.backends import methods as registered_methods
-from daemodel.backends.base import SWEEP_FIRST_STEPS, fixed_grid, torch_device
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_grid
+from daemodel.backends.torch_setup import torch_device
 from daemodel.errors import (
     ComparisonError,
     ModelError,
@@ -575,7 +576,7 @@ class ComparisonPlan:
 
     def run(self, progress: bool | None = None) -> Comparison:
         """Solve every setting; a :class:`SolverError` at one is recorded as a failed run."""
-        from daemodel.backends.base import show_progress
+        from daemodel.backends.progress import show_progress
         from daemodel.solver import solve
 
         compiled, t_span = self.compiled, self.t_span
@@ -591,7 +592,7 @@ class ComparisonPlan:
 
         bar = None
         if show_progress(progress):
-            from daemodel.backends.base import progress_bar
+            from daemodel.backends.progress import progress_bar
 
             bar = progress_bar(len(self.settings), f"compare {compiled.name}", "solve")
         runs = []

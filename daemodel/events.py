@@ -188,7 +188,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
 
 
 def _one_sample(backend, compiled, t_span, start, options, max_events: int):
-    from daemodel.backends.base import output_times
+    from daemodel.backends.grids import output_times
     from daemodel.dense import Held, joined_in_time
     from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution

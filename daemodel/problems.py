@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import sympy as sp
 
-from daemodel.backends.base import SWEEP_FIRST_STEPS
+from daemodel.backends.grids import SWEEP_FIRST_STEPS
 from daemodel.init import NUMERIC_MODULES
 from daemodel.model import Model
 from daemodel.parse import parse_equation

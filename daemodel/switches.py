@@ -511,7 +511,7 @@ def _join_samples(parts: list, B: int, batched: bool):
 
 def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray):
     """The samples of ``start``, which share the breakpoints ``times``, from one to the next."""
-    from daemodel.backends.base import output_times
+    from daemodel.backends.grids import output_times
     from daemodel.initial_states import InitialStates, algebraic_values
     from daemodel.solution import Solution
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import sympy as sp
 from daemodel.backends import radau
-from daemodel.backends.base import MAX_GRID_POINTS, fixed_grid
+from daemodel.backends.grids import MAX_GRID_POINTS, fixed_grid
 
 import daemodel as dm
 from daemodel import errors as E

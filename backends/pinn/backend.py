@@ -8,23 +8,13 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.base import (
-    LOCAL_ERROR_BOUND,
-    SWEEP_FIRST_STEPS,
-    SWEEP_STAGES,
-    AbstractBackend,
-    check_output_memory,
-    check_threads,
-    fixed_grid,
-    halving_steps,
-    make_solution,
-    show_progress,
-    torch_device,
-    torch_threads,
-    warm_up_torch,
-)
+from daemodel.backends.base import LOCAL_ERROR_BOUND, AbstractBackend, make_solution
+from daemodel.backends.checks import check_output_memory, check_threads
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, fixed_grid, halving_steps
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.segments import MAX_INDEX
+from daemodel.backends.progress import show_progress
+from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
 from daemodel.engine import check_engine
 from daemodel.errors import InvalidOptionError, ShapeError, TrainingError, UncertifiedWarning

@@ -7,7 +7,7 @@ import difflib
 import functools
 from dataclasses import dataclass
 
-from daemodel.backends.base import check_dtype, check_stages, set_number
+from daemodel.backends.checks import check_dtype, check_stages, set_number
 
 from daemodel.errors import InvalidOptionError, UnknownOptionError
 

@@ -112,7 +112,7 @@ class Progress:
     """A tqdm bar over segments whose postfix shows the iteration and the loss terms."""
 
     def __init__(self, total: int, enabled: bool, label: str):
-        from daemodel.backends.base import LOG_PROGRESS_SECONDS, progress_bar, stderr_is_terminal
+        from daemodel.backends.progress import LOG_PROGRESS_SECONDS, progress_bar, stderr_is_terminal
 
         self.bar = progress_bar(total, label, "segment") if enabled else None
         # a terminal shows every report in place; a log gets one line every LOG_PROGRESS_SECONDS

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from daemodel.backends.base import check_number
+from daemodel.backends.checks import check_number
 from daemodel.backends.pinn.certificate import CERTIFICATE_NEWTON_TOL, certify
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.segments import (
@@ -212,7 +212,9 @@ class Surrogate:
             As in :func:`daemodel.ensemble`, for ``starts="radau"``: ``engine="ray"`` solves
             the training data and trains the segments on Ray, in parallel.
         """
-        from daemodel.backends.base import fixed_grid, show_progress, torch_device
+        from daemodel.backends.grids import fixed_grid
+        from daemodel.backends.progress import show_progress
+        from daemodel.backends.torch_setup import torch_device
 
         from daemodel.engine import check_engine
         from daemodel.initial_states import algebraic_values, project_states
@@ -844,7 +846,7 @@ class Surrogate:
             No file, not a network file (or an older format), a missing key, other equations,
             or a fixed parameter whose value differs from the trained one.
         """
-        from daemodel.backends.base import torch_device
+        from daemodel.backends.torch_setup import torch_device
 
         from daemodel.files import open_file, readable_path, stored_members
 

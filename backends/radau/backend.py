@@ -4,22 +4,14 @@ from __future__ import annotations
 
 import time
 
-from daemodel.backends.base import (
-    SWEEP_FIRST_STEPS,
-    AbstractBackend,
-    fixed_step_sweep,
-    grid_steps,
-    make_solution,
-    output_times,
-    torch_device,
-    torch_threads,
-    warm_up_torch,
-)
+from daemodel.backends.base import AbstractBackend, make_solution
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
 from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.options import RadauOptions
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
+from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
 from daemodel.errors import InvalidOptionError
 from daemodel.files import check_memory, memory_limit

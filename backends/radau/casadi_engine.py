@@ -12,7 +12,7 @@ sparse systems.  No torch code generation and no per-operation dispatch.
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.base import captured_output
+from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import (
     Buffered,
     StaticFactors,

@@ -15,7 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from daemodel.backends.base import PROGRESS_WINDOW, ProgressWatch, fixed_grid
+from daemodel.backends.grids import fixed_grid
+from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
 from daemodel.backends.radau.loop import HANDBACK
 from daemodel.backends.radau.newton import NewtonPolicy
 

@@ -28,7 +28,7 @@ into the stepper.
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.base import captured_output
+from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import NON_FINITE, Buffered, iteration_matrix
 from daemodel.backends.radau.sparse import MAX_GROWTH
 

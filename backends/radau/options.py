@@ -5,16 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.base import (
-    DEFAULT_ESTIMATE_BOUND,
-    check_dtype,
-    check_stages,
-    check_threads,
-    set_number,
-    set_tolerances,
-    torch_device,
-)
+from daemodel.backends.base import DEFAULT_ESTIMATE_BOUND
+from daemodel.backends.checks import check_dtype, check_stages, check_threads, set_number, set_tolerances
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
+from daemodel.backends.torch_setup import torch_device
 
 from daemodel.errors import InvalidOptionError
 
@@ -36,7 +30,7 @@ FLOAT32_MIN_RTOL = 1e-5
 # the loop, and is set for a long span to run rather than to be refused: the pendulum on [0, 1000] at
 # rtol = 1e-6 takes 27,000 attempts (2.8-12 s on one shared core with the casadi engine, 0.1-0.4 ms
 # an attempt), the old default of 5,000 stopped it at t = 106.  A span that cannot finish within it
-# does not spend it: the progress watch (base.ProgressWatch) stops after two windows of 100 attempts
+# does not spend it: the progress watch (progress.ProgressWatch) stops after two windows of 100 attempts
 # that project past it, naming max_steps.  What spends it all is chattering at a switch (rejected
 # attempts with h collapsing): 10-40 s with the casadi engine, minutes with the torch engine (2-6 ms
 # an attempt); give a smaller max_steps where a quick failure matters more than a long span.
@@ -88,7 +82,7 @@ class RadauOptions:
         torch's intra-op threads for the torch engine (the caller's setting is restored after the
         solve).  Default: one thread for batches of under 20,000 unknowns in all (samples x
         (n + m)), where more threads only add synchronisation, and torch's own setting above
-        (:data:`~daemodel.backends.base.SMALL_TORCH_WORK`).  The casadi engine runs on one thread.
+        (:data:`~daemodel.backends.torch_setup.SMALL_TORCH_WORK`).  The casadi engine runs on one thread.
     engine : "auto", "torch" or "casadi"
         Who evaluates the residuals and Jacobians and factors the matrices; the algorithm is the
         same, and so are the results to rounding.  "casadi": casadi-compiled functions, casadi's

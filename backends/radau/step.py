@@ -16,7 +16,7 @@ import functools
 import math
 
 import numpy as np
-from daemodel.backends.base import output_times
+from daemodel.backends.grids import output_times
 from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
