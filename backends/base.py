@@ -99,11 +99,11 @@ def make_solution(
     ------
     BranchError
         When the algebraic variables leave their branch of roots between two output times
-        (:func:`daemodel.initial_states.check_branch`).
+        (:func:`daemodel.compiling.initial_states.check_branch`).
     """
     from dataclasses import asdict, fields, is_dataclass
 
-    from daemodel.initial_states import check_branch
+    from daemodel.compiling.initial_states import check_branch
     from daemodel.solution import Solution
 
     check_branch(backend if isinstance(backend, str) else backend.name, compiled, times, values, start.p)

@@ -7,7 +7,7 @@ sympy's numpy lambdas, independent of the torch code generator that ``method="ra
 This is the reference the paper used for the pendulum, which has no closed form, and the truth
 that :func:`daemodel.compare` measures every method against, so it follows these rules:
 
-1. Newton for z (:func:`daemodel.init.solve_algebraic`, the one algebraic Newton) stops only on a
+1. Newton for z (:func:`daemodel.compiling.init.solve_algebraic`, the one algebraic Newton) stops only on a
    small step *and* a small residual, within ``max_newton_iterations``; otherwise (no root, a
    singular ``H_z``, divergence) the solve raises :class:`~daemodel.errors.ConvergenceError`
    naming the time, the sample and the constraint with the largest residual: the algebraic
@@ -41,9 +41,9 @@ from daemodel.backends.checks import check_output_memory, set_number, set_tolera
 from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
 from daemodel.backends.progress import ProgressWatch
 
+from daemodel.compiling.init import NewtonTolerances, NumericSystem, jacobian_entries, solve_algebraic
 from daemodel.dense import Restarts
 from daemodel.errors import BranchError, ConvergenceError, InvalidOptionError, StepLimitError
-from daemodel.init import NewtonTolerances, NumericSystem, jacobian_entries, solve_algebraic
 
 INTEGRATORS = ("DOP853", "RK45", "Radau", "BDF", "LSODA")
 AUTO = "auto"
@@ -177,7 +177,7 @@ class BranchPoint:
 class AlgebraicSolver:
     """The algebraic variables ``z(t, y)`` with ``H(t, y, z, p) = 0``, on one branch of roots.
 
-    Newton is :func:`daemodel.init.solve_algebraic` (the one algebraic Newton) with this method's
+    Newton is :func:`daemodel.compiling.init.solve_algebraic` (the one algebraic Newton) with this method's
     tolerances; it starts from the branch's tangent prediction, and the root it converges to must
     continue the branch (:meth:`leaves_branch`).
 

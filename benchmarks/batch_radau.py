@@ -125,7 +125,7 @@ def casadi_map_time(compiled, y0) -> tuple[float, np.ndarray]:
 
     import casadi
 
-    from daemodel.initial_states import initial_states
+    from daemodel.compiling.initial_states import initial_states
 
     start = initial_states(compiled, y0=y0)
     dae = compiled.casadi_dae()

@@ -188,7 +188,7 @@ def surrogate_training() -> dict:
     states from the +-1 % box against batched radau at the same s and h."""
     import ray
 
-    from daemodel.initial_states import project_states
+    from daemodel.compiling.initial_states import project_states
 
     m = HESSENBERG.model().compile()
     span, box = (0.0, 0.2), {name: (0.98, 1.02) for name in m.state_names}

@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 import daemodel as dm
+from daemodel.compiling.initial_states import project_states
 from daemodel.errors import InvalidOptionError
-from daemodel.initial_states import project_states
 from daemodel.problems import HESSENBERG, PENDULUM
 
 

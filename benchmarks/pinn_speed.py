@@ -108,7 +108,7 @@ def surrogate_rows(name: str, quick: bool, repeats: int) -> dict:
     drawn from the same distribution (uniform in the box, projected on the constraints)."""
     from daemodel.backends.pinn.surrogate import SURROGATE_CONFIG
 
-    from daemodel.initial_states import project_states
+    from daemodel.compiling.initial_states import project_states
 
     compiled = PROBLEMS[name][0].model().compile()
     config = SURROGATE_CONFIG.replace(activation=SURROGATE_ACTIVATION[name])

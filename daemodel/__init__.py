@@ -4,12 +4,12 @@ Radau-PINN and classical solvers."""
 from daemodel import errors
 from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.compare import Comparison, compare
-from daemodel.compiled import CompiledDAE
-from daemodel.ensemble import EnsembleFiles, ensemble
-from daemodel.model import Model
+from daemodel.comparing.compare import Comparison, compare
+from daemodel.compiling.compiled import CompiledDAE
+from daemodel.declaring.model import Model
 from daemodel.solution import Solution
-from daemodel.solver import solve
+from daemodel.solving.ensemble import EnsembleFiles, ensemble
+from daemodel.solving.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 
 __all__ = [

@@ -222,7 +222,7 @@ class Restarts(AbstractDenseOutput):
     def __call__(self, times: np.ndarray) -> np.ndarray:
         import dataclasses
 
-        from daemodel.initial_states import InitialStates
+        from daemodel.compiling.initial_states import InitialStates
 
         times = np.asarray(times, dtype=float)
         n = len(self.compiled.states)

@@ -11,9 +11,9 @@ import numpy as np
 import sympy as sp
 
 from daemodel.backends.grids import SWEEP_FIRST_STEPS
-from daemodel.init import NUMERIC_MODULES
-from daemodel.model import Model
-from daemodel.parse import parse_equation
+from daemodel.compiling.init import NUMERIC_MODULES
+from daemodel.declaring.model import Model
+from daemodel.declaring.parse import parse_equation
 
 
 @dataclass(frozen=True, kw_only=True)

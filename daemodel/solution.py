@@ -90,7 +90,7 @@ class Solution:
         must know to trust the values (e.g. a Radau-PINN trained on a fixed budget states its
         final residual).  Shown by ``repr``.
     breakpoints : dict
-        For a model with time switches (:mod:`daemodel.switches`): ``"t"``, the breakpoints each
+        For a model with time switches (:mod:`daemodel.solving.switches`): ``"t"``, the breakpoints each
         sample's solve was cut at (B, K), and ``"before"``/``"after"``, each variable's values
         just before and just after each, name -> (B, K); NaN-padded where the samples of a batch
         switch at different times and some less often; ``"moved"``, how far the states were
@@ -325,8 +325,8 @@ class Solution:
 
     def _hermite(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(y (B, K, n), z (B, K, m))`` at ``times`` from the outputs alone (see :meth:`at`)."""
+        from daemodel.compiling.init import solve_algebraic
         from daemodel.errors import InitialisationError
-        from daemodel.init import solve_algebraic
 
         t, c = self.t, self.compiled
         numeric = c.numeric
@@ -416,7 +416,7 @@ class Solution:
     @classmethod
     def _read(cls, handle, path: Path, model) -> Solution:
         """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
-        from daemodel.compiler import as_compiled
+        from daemodel.compiling.compiler import as_compiled
 
         arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, memory_limit(), "daemodel solution file")
         meta = parse_json(str(arrays["meta"]), path, SolutionFileError, "a daemodel solution file")

@@ -7,7 +7,7 @@ compare, the CLI, ...), what the case expects, and, where a solution must be rig
 independent solution to hold it against (:class:`TreeODE`, :class:`Pendulum`, :class:`Exact`:
 closed forms, or scipy's ``solve_ivp`` on an equivalent ODE evaluated here in numpy, never
 through daemodel's code).  Only the public API is used (``dm.Model``, ``dm.solve``,
-``dm.compare``, ``dm.PINNConfig``, ``dm.Surrogate``, ``daemodel.cli.main``, ``daemodel.errors``),
+``dm.compare``, ``dm.PINNConfig``, ``dm.Surrogate``, ``daemodel.comparing.cli.main``, ``daemodel.errors``),
 so the same cases run on the old code and on the new.
 
 :func:`run_cases` runs cases in child processes forked from one fresh interpreter that has
@@ -136,7 +136,7 @@ class Case:
     id: str = ""
     timeout: float | None = None
     # times where the reference is not compared: a jump in t, where the solution gives the value after
-    # it (daemodel.switches) and the reference the model's value at that instant (sign(0) = 0)
+    # it (daemodel.solving.switches) and the reference the model's value at that instant (sign(0) = 0)
     skip_times: tuple = ()
 
     def __post_init__(self) -> None:
@@ -164,7 +164,7 @@ class Case:
         elif self.action == "cli":
             for fname, content in a.get("files", {}).items():
                 lines.append(f"# file {fname}:\n{content}")
-            lines.append(f"daemodel.cli.main({a.get('argv')!r})")
+            lines.append(f"daemodel.comparing.cli.main({a.get('argv')!r})")
         else:
             lines.append(f"{self.action}({_kw(a)})")
         return "\n".join(lines)
@@ -812,7 +812,7 @@ def _act_cli(case, workdir):
     import contextlib
     import io
 
-    from daemodel.cli import main
+    from daemodel.comparing.cli import main
 
     for name, content in case.args.get("files", {}).items():
         path = os.path.join(workdir, name)
@@ -1031,7 +1031,7 @@ def _preload() -> dict:
         meta["import_error"] = f"{type(error).__name__}: {_first_line(error)}"
         return meta
     for module in (
-        "daemodel.cli",
+        "daemodel.comparing.cli",
         "daemodel.backends.radau",
         "daemodel.backends.casadi",
         "daemodel.backends.reference",
@@ -2237,7 +2237,7 @@ INVALID_EXPRESSIONS = [
     ("diff(x, t)", "diff"),
     ('Function("f")(x)', "Function"),
     ('Symbol("q")', "Symbol of an undeclared name"),
-    ("Mod(x, 2)", "unsupported function"),  # (floor is a switch now: daemodel.switches)
+    ("Mod(x, 2)", "unsupported function"),  # (floor is a switch now: daemodel.solving.switches)
     ("oo", "oo"),
     ("zoo", "zoo"),
     ("nan", "nan name"),
@@ -3085,7 +3085,7 @@ def model_edge_cases() -> list[Case]:
         ("1", "valid"),
         (Lazy("sp.Integral(sp.Symbol('x'), sp.Symbol('t'))"), "invalid"),
         (Lazy("sp.Sum(sp.Symbol('x'), (sp.Symbol('i'), 1, 3))"), "either"),
-        (Lazy("sp.floor(sp.Symbol('x'))"), "either"),  # (floor is a switch now: daemodel.switches)
+        (Lazy("sp.floor(sp.Symbol('x'))"), "either"),  # (floor is a switch now: daemodel.solving.switches)
         (Lazy("sp.Mod(sp.Symbol('x'), 2)"), "either"),
         (Lazy("sp.gamma(sp.Symbol('x') + 2)"), "either"),
         (Lazy("sp.re(sp.Symbol('x'))"), "either"),

@@ -13,9 +13,9 @@ import pytest
 from test_compare import MODEL_FILE
 
 import daemodel as dm
-import daemodel.solver
-from daemodel.cli import load_target, main
-from daemodel.compare import MAX_POINTS, MAX_SWEEP_STEPS, plan_comparison
+import daemodel.solving.solver
+from daemodel.comparing.cli import load_target, main
+from daemodel.comparing.compare import MAX_POINTS, MAX_SWEEP_STEPS, plan_comparison
 from daemodel.errors import ComparisonError, ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.problems import HESSENBERG
 
@@ -45,7 +45,7 @@ def no_solve(monkeypatch):
     def solve(*args, **kwargs):
         raise AssertionError("a solve ran before the mistake was refused")
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
 
 
 def write(tmp_path, text, name="model.py"):
@@ -171,14 +171,14 @@ def test_an_unusable_setting_is_refused_before_any_solve(no_solve):
 
 
 def test_a_method_that_failed_everywhere_says_so(monkeypatch, tmp_path):
-    real = daemodel.solver.solve
+    real = daemodel.solving.solver.solve
 
     def solve(model, t_span, *, method, **options):
         if method == "radau":
             raise ConvergenceError("radau: Newton did not converge at t = 0")
         return real(model, t_span, method=method, **options)
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
     result = dm.compare(decay(), (0.0, 0.5), ["radau", "casadi-idas"], reference=decay_exact, points=2, progress=False)
     assert result.failed_methods == ("radau",)
     table = result.table()
@@ -197,7 +197,7 @@ def test_a_method_that_failed_everywhere_says_so(monkeypatch, tmp_path):
 
 
 def test_warnings_of_a_solve_go_into_its_run_not_above_the_table(monkeypatch, tmp_path):
-    real = daemodel.solver.solve
+    real = daemodel.solving.solver.solve
 
     def solve(model, t_span, *, method, **options):
         if options.get("h") == 0.025:
@@ -205,7 +205,7 @@ def test_warnings_of_a_solve_go_into_its_run_not_above_the_table(monkeypatch, tm
             warnings.warn("the Jacobian is badly conditioned", RuntimeWarning, stacklevel=1)
         return real(model, t_span, method=method, **options)
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a warning that escaped compare would fail here
         result = dm.compare(decay(), (0.0, 0.5), ["radau"], reference=decay_exact, points=2, progress=False)
@@ -241,7 +241,7 @@ def test_the_command_takes_each_problems_own_steps_unless_told(monkeypatch, tmp_
         planned.append(kwargs["steps"])
         raise dm.errors.ModelError("planned")  # stop before any solve
 
-    monkeypatch.setattr(importlib.import_module("daemodel.compare"), "plan_comparison", plan)
+    monkeypatch.setattr(importlib.import_module("daemodel.comparing.compare"), "plan_comparison", plan)
     args = ["compare", "--methods", "radau", "--out", str(tmp_path)]
     assert main([*args, "car-axis", "hessenberg", "transistor-amplifier"]) == 2
     assert main([*args, "--steps", "25", "car-axis"]) == 2
@@ -379,7 +379,7 @@ def test_failed_settings_are_a_table_and_exit_0(monkeypatch, tmp_path, capsys):
     def solve(model, t_span, *, method, **options):
         raise ConvergenceError(f"{method}: Newton did not converge at t = 0.1")
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
     out = tmp_path / "out"
     status = main(["compare", write(tmp_path, MODEL + EXACT), "--methods", "radau", "--points", "2", "--out", str(out)])
     printed = capsys.readouterr()
@@ -390,14 +390,14 @@ def test_failed_settings_are_a_table_and_exit_0(monkeypatch, tmp_path, capsys):
 
 
 def test_a_failed_reference_solve_stops_the_target_with_exit_1(monkeypatch, tmp_path, capsys):
-    real = daemodel.solver.solve
+    real = daemodel.solving.solver.solve
 
     def solve(model, t_span, *, method, **options):
         if method == "reference":
             raise ConvergenceError("reference: solve_ivp failed at t = 0.2: step size underflow")
         return real(model, t_span, method=method, **options)
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
     path = write(tmp_path, MODEL)  # no exact(): the errors need the reference solve
     status, err = cli(capsys, path, "--methods", "radau", "--points", 1, "--out", tmp_path / "out")
     assert status == 1
@@ -408,7 +408,7 @@ def test_a_bug_in_daemodel_still_shows_its_traceback(monkeypatch, tmp_path):
     def solve(*args, **kwargs):
         raise KeyError("internal")
 
-    monkeypatch.setattr(daemodel.solver, "solve", solve)
+    monkeypatch.setattr(daemodel.solving.solver, "solve", solve)
     with pytest.raises(KeyError, match="internal"):
         main(["compare", write(tmp_path, MODEL + EXACT), "--methods", "radau", "--points", "1", "--out", str(tmp_path)])
 

@@ -11,9 +11,9 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.init import NumericSystem, _least_squares, jacobian_entries
-from daemodel.initial_states import initial_states
-from daemodel.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, is_zero, square_blocks
+from daemodel.compiling.init import NumericSystem, _least_squares, jacobian_entries
+from daemodel.compiling.initial_states import initial_states
+from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, is_zero, square_blocks
 
 GRAVITY = 9.81
 

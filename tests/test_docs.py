@@ -173,7 +173,7 @@ def test_the_readme_demo_is_the_one_ci_runs():
 def test_compare_commands_parse(page, command):
     from daemodel.backends import methods
 
-    from daemodel.cli import _parser
+    from daemodel.comparing.cli import _parser
 
     args = _parser().parse_args(shlex.split(command, comments=True)[1:])
     assert args.command == "compare" and args.targets

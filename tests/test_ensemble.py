@@ -232,8 +232,8 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
     the task, after Ray's own retries."""
     import os
 
-    from daemodel.engine import run_tasks
     from daemodel.errors import WorkerError
+    from daemodel.solving.engine import run_tasks
 
     with pytest.raises(WorkerError, match=r"ensemble: the Ray worker running task 0 stopped before returning \(Worker"):
         run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
@@ -242,7 +242,7 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
 def test_a_killed_ray_workers_task_is_retried_with_nothing_lost(ray_cluster, tmp_path):
     """The first task to run kills its worker; Ray retries it on a new one, and every result
     comes back, in order."""
-    from daemodel.engine import run_tasks
+    from daemodel.solving.engine import run_tasks
 
     def die_once(marker, value):  # defined here: Ray ships it by value (workers cannot import tests)
         import os
@@ -263,7 +263,7 @@ def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
     the code it has generated): each task appends to it and sees the earlier tasks' entries."""
     import os
 
-    from daemodel.engine import run_tasks
+    from daemodel.solving.engine import run_tasks
 
     def held(shared, i):
         shared["seen"].append(i)
@@ -311,7 +311,7 @@ def test_an_index_3_ensemble_written_to_files(tmp_path):
 
 
 def test_a_written_chunk_leaves_only_its_bookkeeping_in_memory(pendulum, tmp_path):
-    from daemodel.ensemble import _write_chunk, solve_chunk
+    from daemodel.solving.ensemble import _write_chunk, solve_chunk
 
     result = solve_chunk((pendulum, (0.0, 0.1), "radau", {"h": 0.05}, None), 0, {"y0": np.tile(pendulum.y0, (3, 1))})
     _write_chunk((tmp_path, "run", {0: "inputs"}), pendulum, result)

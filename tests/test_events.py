@@ -1,4 +1,4 @@
-"""Declared events (daemodel/events.py): located during the solve to 1e-12 in t with each method's
+"""Declared events (daemodel/solving/events.py): located during the solve to 1e-12 in t with each method's
 own accuracy, reset, projected onto the constraints, the algebraic variables solved anew, terminal
 events, batches with their own event times, chattering bounded (issue 27, second part)."""
 

@@ -18,7 +18,7 @@ import pytest
 import sympy as sp
 
 import daemodel as dm
-from daemodel.parse import parse_equation
+from daemodel.declaring.parse import parse_equation
 from daemodel.problems import SQUEEZER, SQUEEZER_POSITION_CONSTRAINTS
 
 POSITIONS = tuple(f"q{i}" for i in range(1, 8))

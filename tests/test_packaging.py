@@ -66,9 +66,9 @@ def test_public_api():
 
 
 def test_console_script_runs(tmp_path):
-    # the installed entry point: pyproject's [project.scripts] daemodel = "daemodel.cli:main"
+    # the installed entry point: pyproject's [project.scripts] daemodel = "daemodel.comparing.cli:main"
     out = subprocess.run(
-        [sys.executable, "-c", "from daemodel.cli import main; main(['compare', '--help'])"],
+        [sys.executable, "-c", "from daemodel.comparing.cli import main; main(['compare', '--help'])"],
         capture_output=True,
         text=True,
         cwd=tmp_path,

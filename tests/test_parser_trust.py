@@ -9,7 +9,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.parse import MAX_CHARACTERS, MAX_DEPTH, parse_equation
+from daemodel.declaring.parse import MAX_CHARACTERS, MAX_DEPTH, parse_equation
 from daemodel.problems import PROBLEMS
 
 

@@ -391,7 +391,7 @@ def test_saved_networks_reload_and_reproduce_the_solution(tmp_path):
 
 
 def test_surrogate_training_on_a_box_generalises_to_new_states():
-    from daemodel.initial_states import project_states
+    from daemodel.compiling.initial_states import project_states
 
     c = HESSENBERG.model().compile()
     box = {name: (0.98, 1.02) for name in c.state_names}
@@ -412,7 +412,7 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
 def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
     """starts='radau': every segment trains from radau's solution of the training states, so the
     segments are independent; on Ray they train in parallel and give the local engine's networks."""
-    from daemodel.initial_states import project_states
+    from daemodel.compiling.initial_states import project_states
 
     c = HESSENBERG.model().compile()
     box = {name: (0.98, 1.02) for name in c.state_names}
@@ -525,7 +525,7 @@ def test_each_segment_trains_on_the_values_the_answer_evaluates_it_at_bit_for_bi
     from daemodel.backends.pinn.segments import train_segments
     from daemodel.backends.pinn.surrogate import Surrogate
 
-    from daemodel.initial_states import initial_states
+    from daemodel.compiling.initial_states import initial_states
     from daemodel.problems import AKZO_NOBEL
 
     c = AKZO_NOBEL.model().compile()

@@ -17,7 +17,7 @@ from daemodel.backends.radau.transform import StageTransform
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.initial_states import initial_states
+from daemodel.compiling.initial_states import initial_states
 from daemodel.problems import HESSENBERG, PENDULUM
 from daemodel.tableau import radau_iia
 
@@ -191,7 +191,7 @@ def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):
     direction per colour; a grid needs a handful of colours instead of its 2K columns."""
     import torch
 
-    from daemodel import compiled as compiled_module
+    from daemodel.compiling import compiled as compiled_module
 
     tableau = radau_iia(3)
     transform = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])

@@ -127,7 +127,7 @@ def test_non_finite_values_name_the_equation_stage_and_time():
 
 
 def test_a_chattering_switch_is_refused_as_a_sliding_mode(switch):
-    """The switch is located (daemodel.events) and flips straight back: a sliding mode, refused by name
+    """The switch is located (daemodel.solving.events) and flips straight back: a sliding mode, refused by name
     (before switches were located, the step size control chattered into max_steps)."""
     with pytest.raises(
         E.EventLimitError,

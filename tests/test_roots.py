@@ -6,7 +6,7 @@ import pytest
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.init import NewtonTolerances, solve_algebraic
+from daemodel.compiling.init import NewtonTolerances, solve_algebraic
 
 
 def square_root(guess: float) -> dm.Model:
@@ -169,7 +169,7 @@ def test_the_reference_refuses_a_jump_far_from_the_continuation():
     and accepts a nearby point that continues the branch."""
     from daemodel.backends.reference import AlgebraicSolver
 
-    from daemodel.init import NumericSystem
+    from daemodel.compiling.init import NumericSystem
 
     c = fold().compile()
     solver = AlgebraicSolver(c, NumericSystem(c.t, c.states, c.algebraics, c.parameters), 30)
@@ -281,7 +281,7 @@ def test_consistent_fix_errors_name_the_culprit():
 
 def test_the_branch_check_reads_the_outputs_in_chunks(monkeypatch):
     """One matrix per evaluation of H_z: the same refusal as all at once."""
-    import daemodel.initial_states as initial_states
+    import daemodel.compiling.initial_states as initial_states
 
     monkeypatch.setattr(initial_states, "BRANCH_CHECK_BYTES", 8)
     with pytest.raises(E.BranchError, match=r"casadi-idas: the algebraic variables leave the branch of roots"):

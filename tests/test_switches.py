@@ -1,4 +1,4 @@
-"""Switches (daemodel/switches.py): found and classified by the compiler, time breakpoints located
+"""Switches (daemodel/solving/switches.py): found and classified by the compiler, time breakpoints located
 before the solve, and every method integrating from breakpoint to breakpoint with each side on its
 own branch, so that fixed-step radau keeps order 2s-1 across a switch (issue 27, first part).
 """
@@ -11,7 +11,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel import switches
+from daemodel.solving import switches
 
 EXACT_SWITCH = 1.0 - math.exp(-0.63)  # x' = -x + [t >= 0.37], x(0) = 0, at t = 1
 
@@ -124,7 +124,9 @@ def test_fixed_radau_keeps_order_2s_minus_1_across_a_time_switch(monkeypatch, st
     model = _switched(rhs)
     errors = [abs(dm.solve(model, (0.0, 1.0), stages=stages, h=h)["x"][-1] - exact) for h in hs]
     assert _slope(errors, hs) > 2 * stages - 1 - 0.3, errors
-    monkeypatch.setattr("daemodel.solver.has_time_switches", lambda compiled: False)  # (as before: 1st/2nd order)
+    monkeypatch.setattr(
+        "daemodel.solving.solver.has_time_switches", lambda compiled: False
+    )  # (as before: 1st/2nd order)
     across = [abs(dm.solve(model, (0.0, 1.0), stages=stages, h=h)["x"][-1] - exact) for h in hs]
     if stages > 1:  # (and the fixed-step estimate flags the step across the switch: the warnings)
         assert across[-1] > 100 * errors[-1], across

@@ -16,9 +16,9 @@ from daemodel.backends.pinn.segments import MAX_INDEX
 from daemodel.backends.progress import show_progress
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.engine import check_engine
 from daemodel.errors import InvalidOptionError, ShapeError, TrainingError, UncertifiedWarning
 from daemodel.files import writable_file
+from daemodel.solving.engine import check_engine
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -248,7 +248,7 @@ def _segment_starts(given, compiled, grid, start) -> tuple[np.ndarray, np.ndarra
     """Known start states of each segment, shape (segments, B, n), and their algebraic values
     (segments, B, m): a Solution's own, or those the states determine (the batched algebraic
     solve of the initialisation, at each segment's start time, from the previous segment's)."""
-    from daemodel.initial_states import algebraic_values
+    from daemodel.compiling.initial_states import algebraic_values
     from daemodel.solution import Solution
 
     segments, n, batch = len(grid) - 1, len(compiled.states), start.size

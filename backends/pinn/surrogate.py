@@ -216,9 +216,9 @@ class Surrogate:
         from daemodel.backends.progress import show_progress
         from daemodel.backends.torch_setup import torch_device
 
-        from daemodel.engine import check_engine
-        from daemodel.initial_states import algebraic_values, project_states
-        from daemodel.solver import check_span
+        from daemodel.compiling.initial_states import algebraic_values, project_states
+        from daemodel.solving.engine import check_engine
+        from daemodel.solving.solver import check_span
 
         compiled = resolve_model(model, "Surrogate.train()")
         config = SURROGATE_CONFIG if config is None else config
@@ -267,9 +267,9 @@ class Surrogate:
     @classmethod
     def _fit_on_radau(cls, compiled, config, grid, y, z, p, inputs, progress, engine, parameter_box) -> Surrogate:
         """Every segment trained independently from radau's solution of the training states."""
-        from daemodel.engine import connect
-        from daemodel.ensemble import ensemble
         from daemodel.errors import ConvergenceError
+        from daemodel.solving.engine import connect
+        from daemodel.solving.ensemble import ensemble
 
         engine, workers, address = engine
         chunk = len(y)
@@ -480,7 +480,7 @@ class Surrogate:
         """
         from daemodel.backends.base import make_solution
 
-        from daemodel.initial_states import initial_states
+        from daemodel.compiling.initial_states import initial_states
 
         if self.networks[0].copies > 1:
             raise InvalidOptionError(
@@ -718,7 +718,7 @@ class Surrogate:
     def _radau(self, start, rows: np.ndarray, guessed: bool):
         """radau at the surrogate's stages and step for the samples ``rows`` of ``start``, every
         step started from its network's stage values when ``guessed``."""
-        from daemodel.solver import solve
+        from daemodel.solving.solver import solve
 
         grid, config = self.grid, self.config
         steps = segment_steps(grid)

@@ -16,6 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from daemodel.compiling.init import (
+    ALGEBRAIC_TOL,
+    NumericSystem,
+    hidden_constraints,
+    is_root,
+    project,
+    solve_algebraic,
+    violations,
+)
 from daemodel.errors import (
     BranchError,
     FixedStateError,
@@ -26,15 +35,6 @@ from daemodel.errors import (
     ShapeError,
     UnknownSymbolError,
     WrongBranchError,
-)
-from daemodel.init import (
-    ALGEBRAIC_TOL,
-    NumericSystem,
-    hidden_constraints,
-    is_root,
-    project,
-    solve_algebraic,
-    violations,
 )
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
@@ -364,7 +364,7 @@ def consistent_states(compiled, y0=None, parameters=None, fix=()) -> dict:
 
 def state_violations(compiled, Y: np.ndarray, P: np.ndarray):
     """``(residual (B, L), tolerance (B,), violated (B, L))`` of the states ``Y`` (B, n) on every
-    z-free constraint level of ``compiled`` at its t0 (:func:`daemodel.init.violations`)."""
+    z-free constraint level of ``compiled`` at its t0 (:func:`daemodel.compiling.init.violations`)."""
     Z = np.zeros((len(Y), len(compiled.algebraics)))  # (the z-free levels do not read it)
     residual = _checks(compiled).residual(compiled.t0, Y, Z, P)
     return (residual, *violations(residual, Y))
@@ -372,7 +372,7 @@ def state_violations(compiled, Y: np.ndarray, P: np.ndarray):
 
 def project_states(compiled, Y: np.ndarray, P: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
     """The nearest states to the rows of ``Y`` (B, n) that satisfy every z-free constraint level
-    (:func:`daemodel.init.project`; ``free`` (n,) the states allowed to move, default all)."""
+    (:func:`daemodel.compiling.init.project`; ``free`` (n,) the states allowed to move, default all)."""
     checks = _checks(compiled)
     exprs = [e for _, _, e in checks.hidden]
     if not exprs:

@@ -309,7 +309,7 @@ def branch_model(compiled, tau: float, p: np.ndarray):
 def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray):
     """``compiled`` with its switches on states and algebraic variables fixed to their branch at
     ``(t, y, z)`` (time switches left to :func:`branch_model`): smooth until one of those switching
-    functions crosses zero, which :mod:`daemodel.events` locates and then locks again.  Cached."""
+    functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.  Cached."""
     time_symbols = {compiled.t, *compiled.parameters}
     values = [
         (compiled.t, t),
@@ -397,7 +397,7 @@ def solve_with_breakpoints(backend, compiled, t_span, start, options):
         The samples of a batch switch at different times and no ``t_eval`` gives them common
         output times.
     """
-    from daemodel.initial_states import InitialStates
+    from daemodel.compiling.initial_states import InitialStates
 
     P = np.asarray(start.p, dtype=float)
     groups: dict = {}
@@ -431,7 +431,7 @@ def _onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
     SwitchError
         No state near a sample's satisfies them after the switch.
     """
-    from daemodel.initial_states import _checks, project_states, state_violations
+    from daemodel.compiling.initial_states import _checks, project_states, state_violations
 
     hidden = _checks(model).hidden
     if not hidden or not state_violations(model, Y, P)[2].any():
@@ -512,7 +512,7 @@ def _join_samples(parts: list, B: int, batched: bool):
 def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray):
     """The samples of ``start``, which share the breakpoints ``times``, from one to the next."""
     from daemodel.backends.grids import output_times
-    from daemodel.initial_states import InitialStates, algebraic_values
+    from daemodel.compiling.initial_states import InitialStates, algebraic_values
     from daemodel.solution import Solution
 
     t0, t1 = t_span

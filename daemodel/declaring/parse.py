@@ -2,7 +2,7 @@
 
 A string is parsed by Python's :mod:`ast` (which builds a syntax tree and runs nothing) and
 the tree is walked here: only numbers, the declared names, the supported functions and
-constants of :mod:`daemodel.functions`, arithmetic (``+ - * / ** ^``), comparisons and logic
+constants of :mod:`daemodel.declaring.functions`, arithmetic (``+ - * / ** ^``), comparisons and logic
 (for ``Piecewise`` conditions) are admitted, and the sympy expression is built node by node.
 Anything else (attribute access, subscripts, lambdas, comprehensions, strings, keyword
 arguments, calls of anything but a supported function) is an :class:`ExpressionParseError`
@@ -22,8 +22,8 @@ import sys
 
 import sympy as sp
 
+from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, supported_names
 from daemodel.errors import DerivativeInEquationError, ExpressionParseError, UnknownSymbolError
-from daemodel.functions import FUNCTIONS, REDUCTIONS, supported_names
 from daemodel.messages import quoted
 
 # Longest equation string accepted: far beyond any hand-written equation, small enough that
@@ -353,7 +353,7 @@ def without_ite(expr):
 
 def without_heaviside(expr):
     """``expr`` with ``Heaviside(x, h0)`` written as ``Piecewise((0, x < 0), (h0, x = 0), (1, True))``
-    (sympy's value at 0, 1/2 unless given), which every emitter translates and :mod:`daemodel.switches`
+    (sympy's value at 0, 1/2 unless given), which every emitter translates and :mod:`daemodel.solving.switches`
     reads as a switch of x."""
     if not isinstance(expr, sp.Basic) or not expr.has(sp.Heaviside):
         return expr

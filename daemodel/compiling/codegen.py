@@ -1,7 +1,7 @@
 """Code generation: sympy -> batched torch functions, and sympy -> casadi expressions.
 
 Both emitters accept exactly the expression nodes of :func:`check_supported` (arithmetic,
-the functions of :mod:`daemodel.functions`, ``Piecewise`` with an otherwise branch,
+the functions of :mod:`daemodel.declaring.functions`, ``Piecewise`` with an otherwise branch,
 comparisons and logic) and raise :class:`UnsupportedFunctionError` naming the function,
 the equation and the supported set for anything else.
 
@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import sympy as sp
 from sympy.printing.str import StrPrinter
 
+from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, supported_names
 from daemodel.errors import ShapeError, UnsupportedFunctionError
-from daemodel.functions import FUNCTIONS, REDUCTIONS, supported_names
 
 _LOGIC = (sp.And, sp.Or, sp.Not, sp.Piecewise, sp.logic.boolalg.BooleanAtom, sp.core.relational.Relational)
 _ARITHMETIC = (sp.Add, sp.Mul, sp.Pow, sp.Symbol, sp.Rational, sp.Float, sp.NumberSymbol)

@@ -1,7 +1,7 @@
 """The one table of functions daemodel understands, shared by the parser and both emitters.
 
 Each row maps a sympy function class to its torch function and its casadi function.  A
-function missing here is rejected by the parser (:mod:`daemodel.parse`: unknown function) and
+function missing here is rejected by the parser (:mod:`daemodel.declaring.parse`: unknown function) and
 by the emitters (unsupported function) with the function's and the equation's name.
 """
 

@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemodel.codegen import check_supported
-from daemodel.compiled import CompiledDAE
+from daemodel.compiling.codegen import check_supported
+from daemodel.compiling.compiled import CompiledDAE
+from daemodel.compiling.init import NumericSystem, initialise
+from daemodel.compiling.prune import eliminate_aliases, needed
+from daemodel.compiling.structure import Differentiator, derivative_chain, match
+from daemodel.declaring.model import Model
 from daemodel.errors import (
     InvalidValueError,
     MissingInitialValueError,
@@ -16,10 +20,6 @@ from daemodel.errors import (
     UnbalancedSystemError,
     UnknownOutputError,
 )
-from daemodel.init import NumericSystem, initialise
-from daemodel.model import Model
-from daemodel.prune import eliminate_aliases, needed
-from daemodel.structure import Differentiator, derivative_chain, match
 
 
 def _names(symbols) -> str:
@@ -66,7 +66,7 @@ def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
 
 
 def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
-    """Compile a :class:`~daemodel.model.Model`; see ``Model.compile`` for the parameters."""
+    """Compile a :class:`~daemodel.declaring.model.Model`; see ``Model.compile`` for the parameters."""
     if not isinstance(repair, bool):
         raise InvalidValueError(f"compile(repair=...) must be True or False; got {repair!r}")
     _validate(model)

@@ -577,7 +577,7 @@ class ComparisonPlan:
     def run(self, progress: bool | None = None) -> Comparison:
         """Solve every setting; a :class:`SolverError` at one is recorded as a failed run."""
         from daemodel.backends.progress import show_progress
-        from daemodel.solver import solve
+        from daemodel.solving.solver import solve
 
         compiled, t_span = self.compiled, self.t_span
         references = {}
@@ -679,9 +679,9 @@ def plan_comparison(
     fixed grid of more than :data:`MAX_SWEEP_STEPS` steps, an inconsistent initial state, and
     a reference that fails on :data:`REFERENCE_CHECK_POINTS` times across ``t_span``.
     """
-    from daemodel.compiler import as_compiled
-    from daemodel.initial_states import initial_states
-    from daemodel.solver import check_span
+    from daemodel.compiling.compiler import as_compiled
+    from daemodel.compiling.initial_states import initial_states
+    from daemodel.solving.solver import check_span
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)
@@ -747,7 +747,7 @@ def check_points(points, steps: int = SWEEP_FIRST_STEPS) -> int:
 def _check_setting(backend, options: dict, t_span, context: str, fix: str) -> None:
     """Raise the :class:`ModelError` that solving ``options`` would raise, before any solve,
     with ``context`` (method and setting) in front and ``fix`` behind its message."""
-    from daemodel.solver import check_options
+    from daemodel.solving.solver import check_options
 
     try:
         check_options(backend, options)

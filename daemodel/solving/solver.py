@@ -6,14 +6,14 @@ import dataclasses
 import math
 
 from daemodel.backends import get_backend
-from daemodel.compiler import as_compiled
+from daemodel.compiling.compiler import as_compiled
+from daemodel.compiling.initial_states import initial_states
 from daemodel.errors import InvalidOptionError, InvalidValueError, TimeSpanError, UnknownOptionError
-from daemodel.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
-from daemodel.initial_states import initial_states
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
-from daemodel.switches import for_method, has_time_switches, solve_with_breakpoints
+from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
+from daemodel.solving.switches import for_method, has_time_switches, solve_with_breakpoints
 
 
 def solve(

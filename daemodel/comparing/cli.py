@@ -62,7 +62,7 @@ def load_target(target: str):
         error, at import, in ``build_model()``): the message names the file, the line where
         known, and the exception.
     """
-    from daemodel.compare import exception_summary
+    from daemodel.comparing.compare import exception_summary
     from daemodel.problems import PROBLEMS
 
     if target in PROBLEMS:
@@ -165,8 +165,8 @@ def _t_span(path: Path, value) -> tuple[float, float]:
 
 
 def _is_model(value) -> bool:
-    from daemodel.compiled import CompiledDAE
-    from daemodel.model import Model
+    from daemodel.compiling.compiled import CompiledDAE
+    from daemodel.declaring.model import Model
 
     return isinstance(value, Model | CompiledDAE)
 
@@ -257,7 +257,7 @@ def main(argv=None) -> int:
 def _compare(args) -> int:
     from daemodel.backends import get_backend
     from daemodel.backends.grids import SWEEP_FIRST_STEPS
-    from daemodel.compare import check_points, plan_comparison
+    from daemodel.comparing.compare import check_points, plan_comparison
     from daemodel.problems import PROBLEMS
 
     def report(where: str, error: Exception) -> None:

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from daemodel.engine import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
@@ -41,6 +40,7 @@ from daemodel.files import (
     write_json,
 )
 from daemodel.solution import SOLUTION_ARRAYS, Solution
+from daemodel.solving.engine import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
@@ -169,9 +169,9 @@ def ensemble(
         With ``write_to``, an :class:`EnsembleFiles` instead.
     """
     from daemodel.backends import get_backend
-    from daemodel.compiler import as_compiled
-    from daemodel.initial_states import _columns
-    from daemodel.solver import check_options, check_span
+    from daemodel.compiling.compiler import as_compiled
+    from daemodel.compiling.initial_states import _columns
+    from daemodel.solving.solver import check_options, check_span
 
     check_engine(engine, workers, address, options.get("device", "cpu"))
     check_timeout(task_timeout)
@@ -320,7 +320,7 @@ class _TooManyFailures(Exception):
 
 
 def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failures: int | None) -> dict:
-    from daemodel.solver import solve
+    from daemodel.solving.solver import solve
 
     compiled, t_span, method, options = problem
     size = len(batch["y0"])
@@ -493,7 +493,7 @@ class EnsembleFiles:
             No manifest there, not a daemodel ensemble, a field that is damaged (named), a chunk
             file missing or not a plain file, or another model.
         """
-        from daemodel.compiler import as_compiled
+        from daemodel.compiling.compiler import as_compiled
 
         directory = readable_path(directory, "EnsembleFiles.load: directory", SolutionFileError, "directory")
         path = directory / MANIFEST

@@ -18,9 +18,9 @@ event function that is zero at the start of a piece is armed only once it has le
 At most ``max_events`` events a solve (default :data:`DEFAULT_MAX_EVENTS`): chattering (a ball
 bouncing ever lower, Zeno) ends in :class:`~daemodel.errors.EventLimitError`.
 
-Switches on states and algebraic variables (:mod:`daemodel.switches`) are events too
+Switches on states and algebraic variables (:mod:`daemodel.solving.switches`) are events too
 (:func:`with_state_events`: no reset, named after the switch), with the switch locked to the
-branch where each piece starts (:func:`daemodel.switches.lock_branches`), so that every piece is
+branch where each piece starts (:func:`daemodel.solving.switches.lock_branches`), so that every piece is
 smooth; a switch that flips straight back (a sliding mode) is refused as chattering.
 """
 
@@ -81,10 +81,10 @@ def _functions(compiled):
 
 def with_state_events(compiled):
     """``compiled`` with an event at each of its switches on a state or algebraic variable
-    (:func:`daemodel.switches.find_switches`; no reset, named after the switch, ``floor`` and
+    (:func:`daemodel.solving.switches.find_switches`; no reset, named after the switch, ``floor`` and
     ``ceiling`` through ``sin(pi x)``, which crosses 0 where they step), so that no step straddles
     one; cached on ``compiled``."""
-    from daemodel.switches import find_switches
+    from daemodel.solving.switches import find_switches
 
     key = ("with-state-events",)
     if key not in compiled._cache:
@@ -108,9 +108,9 @@ def with_state_events(compiled):
 
 def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, **changes):
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
-    :func:`daemodel.switches.solve_with_breakpoints` does)."""
-    from daemodel.initial_states import InitialStates
-    from daemodel.switches import _segment_steps, for_method, has_time_switches, solve_with_breakpoints
+    :func:`daemodel.solving.switches.solve_with_breakpoints` does)."""
+    from daemodel.compiling.initial_states import InitialStates
+    from daemodel.solving.switches import _segment_steps, for_method, has_time_switches, solve_with_breakpoints
 
     model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
     start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
@@ -168,7 +168,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     SwitchError
         A batch without ``t_eval``: its samples' outputs would not share times.
     """
-    from daemodel.switches import _join_samples
+    from daemodel.solving.switches import _join_samples
 
     P = np.asarray(start.p, dtype=float)
     if len(P) == 1:
@@ -178,7 +178,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
             f"a batch of {len(P)} samples with events: each sample has its own event times and steps; pass "
             "t_eval to have them on common output times, or solve them one at a time"
         )
-    from daemodel.initial_states import InitialStates
+    from daemodel.compiling.initial_states import InitialStates
 
     parts = []
     for b in range(len(P)):
@@ -189,10 +189,10 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
 
 def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.grids import output_times
+    from daemodel.compiling.initial_states import algebraic_values
     from daemodel.dense import Held, joined_in_time
-    from daemodel.initial_states import algebraic_values
     from daemodel.solution import Solution
-    from daemodel.switches import (
+    from daemodel.solving.switches import (
         _merge_stats,
         _onto_constraints,
         for_method,

@@ -17,6 +17,7 @@ import numpy as np
 import sympy as sp
 from sympy.printing.numpy import SciPyPrinter
 
+from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
@@ -24,7 +25,6 @@ from daemodel.errors import (
     SingularSystemError,
     WrongBranchError,
 )
-from daemodel.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
 
 # Residual accepted for y0 on the constraint manifold, relative to 1 + max|y0|: a y0 typed
 # with 16 digits passes; one off in the 10th digit is reported.
@@ -470,7 +470,7 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
 def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Least-squares solutions of ``A[i] x = b[i]`` for a stack; finite garbage never arises
     from a singular A (the pseudo-inverse's minimum-norm step is used).  Large sparse systems
-    are solved block by block (:func:`~daemodel.structure.square_blocks`)."""
+    are solved block by block (:func:`~daemodel.compiling.structure.square_blocks`)."""
     if A.shape[-1] >= BLOCK_MIN_SIZE:
         out = _block_solve(A, b)
         if out is not None:

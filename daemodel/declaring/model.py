@@ -18,6 +18,9 @@ from dataclasses import dataclass
 import sympy as sp
 from sympy.core.function import AppliedUndef
 
+from daemodel.declaring.functions import supported_names
+from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
+from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
     DuplicateODEError,
@@ -28,11 +31,8 @@ from daemodel.errors import (
     UnknownOutputError,
     UnknownSymbolError,
 )
-from daemodel.functions import supported_names
 from daemodel.messages import quoted
-from daemodel.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.reals import real
-from daemodel.symbols import Symbol
 
 # Variable, parameter and constraint names: identifiers, ASCII, so that generated code can use
 # them as locals (they are the only user text that ever reaches generated source).
@@ -237,7 +237,7 @@ class Model:
         self._constraints.append(Equation("constraint", name, number, value))
 
     def event(self, name: str, when, direction: int = 0, reset: dict | None = None, terminal: bool = False) -> None:
-        """Declare an event at each zero crossing of ``when`` (see :mod:`daemodel.events`).
+        """Declare an event at each zero crossing of ``when`` (see :mod:`daemodel.solving.events`).
 
         Parameters
         ----------
@@ -292,7 +292,7 @@ class Model:
         """``compiled`` with this model's events on its symbols (aliases substituted)."""
         import dataclasses
 
-        from daemodel.events import Event
+        from daemodel.solving.events import Event
 
         if not self._events:
             return compiled
@@ -395,7 +395,7 @@ class Model:
             Project an inconsistent initial state onto the constraint manifold (least change)
             and replace disagreeing algebraic values, reporting both, instead of raising.
         """
-        from daemodel.compiler import compile_model
+        from daemodel.compiling.compiler import compile_model
 
         # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
         # dm.solve again is not recompiled, and the compiled model keeps its generated code

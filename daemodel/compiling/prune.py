@@ -16,7 +16,7 @@ from dataclasses import replace
 
 import sympy as sp
 
-from daemodel.structure import Differentiator, exact_value, incidence, point_value
+from daemodel.compiling.structure import Differentiator, exact_value, incidence, point_value
 
 
 def find_alias(
@@ -43,7 +43,7 @@ def find_alias(
 
 def _may_be_a_symbol(v: sp.Expr, candidates) -> bool:
     """False when ``v`` certainly does not expand to +-s for any s of ``candidates``: its exact value
-    at a rational point (:func:`~daemodel.structure.exact_value`) is not +-s's value there."""
+    at a rational point (:func:`~daemodel.compiling.structure.exact_value`) is not +-s's value there."""
     value = exact_value(v)
     if value is None:
         return True

@@ -14,14 +14,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import sympy as sp
 
-from daemodel.codegen import (
+from daemodel.compiling.codegen import (
     CasadiConverter,
     build_torch_functions,
     check_supported,
     torch_source,
 )
+from daemodel.compiling.structure import ITERATION_MATRIX, Constraint
 from daemodel.errors import ReductionError, UnsupportedFunctionError
-from daemodel.structure import ITERATION_MATRIX, Constraint
 
 # Most nonzeros of d(f, g)/d(y, z) emitted as symbolic derivatives: sympy takes ~10 ms per
 # derivative on real models (20 s for the 1,798 of a 600-unknown grid, 170 s for a dense
@@ -60,7 +60,7 @@ class CompiledDAE:
         What initialisation changed.
     dropped : dict str -> tuple of str
         What output-driven pruning removed, by kind.
-    events : tuple of daemodel.events.Event
+    events : tuple of daemodel.solving.events.Event
         The declared events (``Model.event``), on this model's symbols.
     """
 
@@ -115,10 +115,10 @@ class CompiledDAE:
 
     @property
     def numeric(self):
-        """The model's :class:`~daemodel.init.NumericSystem` (numpy functions over ``(t, y, z, p)``), made
+        """The model's :class:`~daemodel.compiling.init.NumericSystem` (numpy functions over ``(t, y, z, p)``), made
         once and kept with it: each function it makes is made once too, so a solution's ``at()`` and
         ``drift()``, the event functions and the initial-value checks share them."""
-        from daemodel.init import NumericSystem
+        from daemodel.compiling.init import NumericSystem
 
         return self.cached("numeric", lambda: NumericSystem(self.t, self.states, self.algebraics, self.parameters))
 
@@ -183,7 +183,7 @@ class CompiledDAE:
         ShapeError, UnknownSymbolError, InvalidValueError
             For malformed input, as ``solve`` does, and for a name in ``fix`` that is not a state.
         """
-        from daemodel.initial_states import consistent_states
+        from daemodel.compiling.initial_states import consistent_states
 
         return consistent_states(self, y0, parameters, fix)
 
@@ -463,7 +463,7 @@ class CompiledDAE:
             lines += [f"  {n} = {e}   (from {label})" for n, e, label in self.aliases]
         if self.invariants:
             lines.append("Invariants (drift): " + ", ".join(self.invariant_names))
-        from daemodel.switches import find_switches
+        from daemodel.solving.switches import find_switches
 
         switches = find_switches(self)
         if switches:

@@ -1,0 +1,1 @@
+"""Comparing methods: ``compare`` (work-precision tables and plots) and the ``daemodel`` command."""
