@@ -121,8 +121,9 @@ def _more_nodes_than(expr: sp.Expr, limit: int) -> bool:
 
 
 # Expansion of an expression that the numbers leave undecided (see is_zero), bounded by the
-# number of terms it would produce (expansion_size): sympy expands ~10**4 terms a second; the
-# wheelset's derivatives, of ~400 nodes each, would have produced millions (minutes each).
+# number of terms it would produce (expansion_size, a rough estimate: a derivative of the
+# wheelset's creep force, estimated at ~3,000 terms and of ~4,500 operations, did not finish
+# expanding in minutes), so the bound is low ...
 MAX_EXPANSION_TERMS = 1_000
 # ... and by its tree's size: expand walks every occurrence of a shared subexpression again.
 MAX_EXPANSION_NODES = 500
