@@ -16,6 +16,7 @@ constraints and algebraic variables) and numerically (singular values at the ini
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from dataclasses import dataclass
@@ -277,6 +278,15 @@ def _step(ctx, x, at_zero):
     return ctx.mpf(1) if x > 0 else ctx.mpf(0) if x < 0 else ctx.mpf(at_zero)
 
 
+@functools.cache
+def _context(digits: int):
+    """An mpmath context of ``digits`` decimal digits and its function table, made once (0.5 ms)
+    and never changed after: the global mpmath precision stays as it is."""
+    ctx = mpmath.MPContext()
+    ctx.dps = digits
+    return ctx, _numeric_functions(ctx)
+
+
 def _real_part_derivative(node) -> bool:
     """Whether ``node`` is ``Derivative(re(x), x)`` or ``Derivative(im(x), x)`` for a symbol x."""
     return (
@@ -296,9 +306,7 @@ def _numeric_value(expr: sp.Expr, attempt: int, digits: int):
         Where a subexpression has no finite value there (a pole, log(0), Max of complex
         number) or is of a kind not evaluated here (``Piecewise``, relations, ...).
     """
-    ctx = mpmath.MPContext()  # a context of its own: the global mpmath precision stays as it is
-    ctx.dps = digits
-    functions = _numeric_functions(ctx)
+    ctx, functions = _context(digits)
     memo: dict = {}
 
     def value(node):
