@@ -6,6 +6,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
+from daemodel import structure
 from daemodel.problems import PROBLEMS
 
 
@@ -188,3 +189,96 @@ def test_constraint_that_is_an_ode_invariant():
         E.IndexTooHighError, match=r"constraint 'fixed' \(#3\): fixed' is identically zero along the ODE"
     ):
         m.compile()
+
+
+# ---- the zero test: numbers first, a bounded expansion last ---------------------------------------
+zx, zy, zz = sp.symbols("x y z")
+
+
+@pytest.fixture
+def no_expansion(monkeypatch):
+    """sympy's expand, made to fail: what passes with it decided without expanding."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("expanded")
+
+    monkeypatch.setattr(structure.sp, "expand", refuse)
+
+
+@pytest.mark.parametrize(
+    "expr",
+    [
+        sp.sin(zx) * sp.cos(zy) ** 3 + sp.tanh(zx * zy) - 1,
+        # two nearly equal terms of sqrt and atan of trig: a difference of ~1e-13 that float64 could
+        # not tell from round-off, and 40 digits can
+        sp.sqrt(1 + sp.sin(zx) ** 2) * sp.atan(sp.cos(zy) / zz)
+        - sp.sqrt(1 + sp.sin(zx) ** 2 + sp.Rational(1, 10**12) * zx) * sp.atan(sp.cos(zy) / zz),
+        sp.sqrt(0.06**2 - (zx - 0.15) ** 2) + zy,  # imaginary at every point tried: complex values decide too
+        sp.Max(zx, zy) - zx,  # vanishes where x > y only
+    ],
+)
+def test_nonzero_expressions_are_decided_without_expansion(expr, no_expansion):
+    assert structure.is_zero(expr) is False
+
+
+@pytest.mark.parametrize(
+    "expr",
+    [
+        sp.sin(zx) ** 2 + sp.cos(zx) ** 2 - 1,  # sympy's expand leaves it as it is
+        sp.exp(zx + zy) - sp.exp(zx) * sp.exp(zy),
+        sp.tan(zx * zy) - sp.sin(zx * zy) / sp.cos(zx * zy),
+        (zx + 1) ** 2 - zx**2 - 2 * zx - 1,
+        (sp.sin(zx) + sp.cos(zy)) ** 3 - sp.expand((sp.sin(zx) + sp.cos(zy)) ** 3),
+    ],
+)
+def test_analytic_zeros_are_decided_zero_without_expansion(expr, no_expansion):
+    assert structure.is_zero(expr) is True
+
+
+def test_numbers_do_not_decide_a_zero_that_holds_on_part_of_the_domain():
+    """sqrt(x**2) - x vanishes for x > 0 only: the values at the first (positive) points vanish,
+    but sqrt is not analytic, so the numbers do not decide; the expansion keeps it (not zero)."""
+    for expr in (sp.sqrt(zx**2) - zx, sp.sqrt(zx * zy) - sp.sqrt(zx) * sp.sqrt(zy)):
+        assert structure.numeric_zero_test(expr) is None
+        assert structure.is_zero(expr) is False
+
+
+def test_an_expression_that_has_no_value_at_a_point_is_tried_at_the_next():
+    """1/(x - x0) with x0 the first point's value of x: a pole there, decided at the next point."""
+    x0 = structure.numeric_point(zx, 0)
+    expr = 1 / (zx - sp.Float(x0, 60)) + sp.sin(zx)
+    with pytest.raises(structure._NoValue):
+        structure._numeric_value(expr, 0, structure.ZERO_TEST_DIGITS[0])
+    assert structure.numeric_zero_test(expr) is False
+
+
+def test_expansion_size_counts_the_terms_expand_makes():
+    for expr in [(zx + zy) ** 3, (zx + zy) * (zx - zy + 1), (zx + zy + zz + 1) ** 6]:
+        assert structure.expansion_size(expr) >= len(sp.Add.make_args(sp.expand(expr)))
+    assert structure.expansion_size((zx + zy + zz + 1) ** 20) == 1771  # C(23, 3) monomials
+
+
+def test_the_expansion_bound(monkeypatch):
+    """What the numbers cannot decide (Piecewise is not evaluated) is expanded when small, and
+    taken for "not zero" without expanding when the expansion would exceed the bound."""
+    piece = sp.Piecewise((zx, zy > 0), (0, True))
+    expanded = []
+    real_expand = sp.expand
+    monkeypatch.setattr(structure.sp, "expand", lambda e: expanded.append(e) or real_expand(e))
+    small = piece * (zx + 1) ** 2 - piece * (zx**2 + 2 * zx + 1)
+    assert structure.numeric_zero_test(small) is None
+    assert structure.is_zero(small) is True and len(expanded) == 1
+    large = piece * (zx + zy + zz + 1) ** 20 - piece * (zx + zy + zz + 1) ** 20 * (1 + zx - zx * piece / piece)
+    assert structure.expansion_size(large) > structure.MAX_EXPANSION_TERMS
+    assert structure.is_zero(large) is False and len(expanded) == 1  # not expanded: the safe answer
+
+
+def test_alias_that_only_the_trigonometric_identity_reveals():
+    m = dm.Model("trig-alias")
+    (c,) = m.states(["c"])
+    q, w = m.algebraics(["q", "w"])
+    m.ode(c, -w - q)
+    m.constraint(w - c**2, name="rate")
+    m.constraint(q - c * (sp.sin(c) ** 2 + sp.cos(c) ** 2), name="same")
+    m.initial(c=0.5)
+    assert m.compile().alias_names == ("q",)

@@ -16,7 +16,15 @@ from dataclasses import replace
 
 import sympy as sp
 
-from daemodel.compiling.structure import Differentiator, exact_value, incidence, point_value
+from daemodel.compiling.structure import (
+    Differentiator,
+    exact_value,
+    incidence,
+    is_zero,
+    numeric_point,
+    numeric_value,
+    point_value,
+)
 
 
 def find_alias(
@@ -32,22 +40,34 @@ def find_alias(
         if not (a.is_number and a != 0):
             continue
         v = -(g - a * x) / a
-        if not _may_be_a_symbol(v, (occurring - {x}) & symbols):
-            continue  # skips the expansion, the costly part, for constraints that are no alias
-        v = sp.expand(v)
-        bare = -v if v.could_extract_minus_sign() else v
-        if isinstance(bare, sp.Symbol) and bare != x and bare in symbols:
-            return x, v
+        # the zero test (no expansion where the values decide) only for the symbols v may be
+        for s in _may_be(v, (occurring - {x}) & symbols):
+            for candidate in (s, -s):
+                if is_zero(v - candidate):
+                    return x, candidate
     return None
 
 
-def _may_be_a_symbol(v: sp.Expr, candidates) -> bool:
-    """False when ``v`` certainly does not expand to +-s for any s of ``candidates``: its exact value
-    at a rational point (:func:`~daemodel.compiling.structure.exact_value`) is not +-s's value there."""
+def _may_be(v: sp.Expr, candidates) -> list:
+    """The symbols s of ``candidates`` (in a fixed order) that ``v`` may be identically, up to sign.
+
+    Others are ruled out where ``v`` has a value at the point of
+    :func:`~daemodel.compiling.structure.exact_value` (exact) or at the first point of the numeric zero test
+    (:func:`~daemodel.compiling.structure.numeric_value`, 40 digits) and ``|v|`` differs from ``|s|`` there.
+    """
+    candidates = sorted(candidates, key=lambda s: s.name)
     value = exact_value(v)
+    if value is not None:
+        return [s for s in candidates if abs(value) == point_value(s)]
+    value = numeric_value(v)
     if value is None:
-        return True
-    return any(abs(value) == point_value(s) for s in candidates)
+        return candidates
+    return [s for s in candidates if abs(abs(value) - numeric_point(s, 0)) <= ALIAS_MATCH_RTOL * abs(value)]
+
+
+# A value and a symbol's value at the numeric test's first point (40 digits) "match" within this:
+# far above the round-off of an expression equal to the symbol, far below any other coincidence.
+ALIAS_MATCH_RTOL = 1e-20
 
 
 def eliminate_aliases(
