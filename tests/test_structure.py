@@ -6,7 +6,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel import structure
+from daemodel.compiling import structure
 from daemodel.problems import PROBLEMS
 
 
