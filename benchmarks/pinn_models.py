@@ -1,7 +1,7 @@
 """Models people bring, declared through the public API: the Radau-PINN's cases beyond the paper.
 
 Each ``build_*`` returns a :class:`daemodel.Model`; :data:`CASES` lists what
-``benchmarks/pinn_ceiling.py`` and ``tests/test_pinn_models.py`` solve: the model, the span, the
+``benchmarks/pinn_ceiling.py`` and ``tests/backends/test_pinn_models.py`` solve: the model, the span, the
 step and the stages, and the batch (initial states or parameters) where there is one.
 
 * ``heat``: the heat equation by lines, 20 interior points, the boundary values algebraic

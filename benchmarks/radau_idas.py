@@ -122,7 +122,7 @@ COUNTER_TOLS = (1e-6, 1e-8)
 WORKER_LIMIT = 4 * 3600.0
 
 
-# ---- arithmetic (tested in tests/test_benchmark_tools.py) ---------------------------------
+# ---- arithmetic (tested in tests/comparing/test_benchmark_tools.py) ---------------------------------
 def peak_relative_error(values, reference, names) -> tuple[float | None, str | None]:
     """The largest over ``names`` of max |values - reference| / the variable's peak |reference|.
 

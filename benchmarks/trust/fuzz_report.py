@@ -1,6 +1,6 @@
 """Count how daemodel fails on fuzz cases, per outcome and per category.
 
-The cases and the classifier live in ``tests/fuzz_cases.py`` (its docstring defines the
+The cases and the classifier live in ``tests/solving/fuzz_cases.py`` (its docstring defines the
 outcomes).  Every run includes the fixed cases (the issue's own, hostile strings, model, API and
 CLI edges) plus ``--cases`` random ones drawn from ``--seed``.  The code under test is whichever
 ``daemodel`` Python imports: the installed one, or the one that ``PYTHONPATH`` puts first.

@@ -85,7 +85,7 @@ def test_no_predictive_control_where_the_estimates_are_rounding_noise():
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import scaling_models
 
     compiled = scaling_models.pendulum_chain(40).compile()

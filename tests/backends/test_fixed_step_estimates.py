@@ -14,7 +14,7 @@ from daemodel.problems import PENDULUM
 def _kink() -> dm.Model:
     """x' = 1 before t = 0.52 and -1 after (to 1e-4: tanh), x = min(t, 1.04 - t): a kink between grid
     points.  (A smooth function, which no solve stops at; a Piecewise would be a switch, which the
-    grid is cut at or an event located at: tests/test_switches.py, tests/test_events.py.)"""
+    grid is cut at or an event located at: tests/solving/test_switches.py, tests/solving/test_events.py.)"""
     m = dm.Model("kink")
     m.states("x")
     m.ode("x", "tanh(10000*(0.52 - t))")

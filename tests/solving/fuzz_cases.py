@@ -1,6 +1,6 @@
 """Fuzz cases for daemodel's public API and command line, and the classifier that runs them.
 
-Imported by ``tests/test_fuzz.py`` and ``benchmarks/trust/fuzz_report.py``; it holds no tests.
+Imported by ``tests/solving/test_fuzz.py`` and ``benchmarks/trust/fuzz_report.py``; it holds no tests.
 
 A :class:`Case` is data: the calls that build a model (``steps``), one action (solve, compile,
 compare, the CLI, ...), what the case expects, and, where a solution must be right, an

@@ -3,12 +3,12 @@
 Every case must end ``"ok"``: a valid model solves to within its tolerance of an independent
 solution, an invalid input is refused with a daemodel error, a hostile string is refused
 without running anything.  The cases, the independent solutions and the classifier are in
-``tests/fuzz_cases.py``; each case runs in its own child process under a time limit, so a hang
+``tests/solving/fuzz_cases.py``; each case runs in its own child process under a time limit, so a hang
 or a crash fails one test, not the session.
 
 The default pass runs about a hundred quick cases (under a minute on two cores).  The slow pass
 runs every fixed case and 200 random ones, one test per category, only when asked for with
-``pytest -m slow tests/test_fuzz.py`` (a plain ``pytest`` skips it).
+``pytest -m slow tests/solving/test_fuzz.py`` (a plain ``pytest`` skips it).
 ``benchmarks/trust/fuzz_report.py`` counts the same outcomes for a report.
 """
 
@@ -159,7 +159,7 @@ def _slow_selected(config) -> bool:
 @pytest.fixture(scope="module")
 def slow_results(request):
     if not _slow_selected(request.config):
-        pytest.skip("the slow fuzz pass runs with: pytest -m slow tests/test_fuzz.py")
+        pytest.skip("the slow fuzz pass runs with: pytest -m slow tests/solving/test_fuzz.py")
     cases = [*F.fixed_cases(), *F.random_cases(SLOW_RANDOM, seed=SLOW_SEED)]
     results, meta = F.run_cases(cases, timeout=SLOW_TIMEOUT, jobs=2)
     assert "import_error" not in meta, meta

@@ -19,7 +19,7 @@ from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compi
 import daemodel as dm
 from daemodel import errors as E
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 
 

@@ -22,7 +22,7 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.tableau import radau_iia
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 from test_radau_loop import COUNTS, _ends, _with_and_without_run  # (pytest puts tests/ on the path)
 from test_radau_sparse import _engine, _pinches
