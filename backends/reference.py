@@ -260,8 +260,10 @@ class AlgebraicSolver:
         Two measurable departures: ``det H_z`` changed sign since ``point`` (a singular ``H_z`` lies
         between: the branch folds or meets another, and z is not determined there), or the root is
         further from the tangent prediction than :data:`BRANCH_JUMP_RATIO` times the larger of the
-        predicted change and z's change over the last step, plus :data:`BRANCH_ATOL` (relative):
-        a continuation's correction is second order in the step, a jump to another root is not.
+        predicted change and z's change over the last step, plus :data:`BRANCH_ATOL` (relative),
+        and further than that from the last root itself: a continuation's correction is second order
+        in the step, a jump to another root is not (where H has a kink the tangent misleads, and
+        the constant prediction is the closer one).
         """
         if z.size == 0:
             return None
@@ -279,7 +281,9 @@ class AlgebraicSolver:
         jump = float(np.max(np.abs(z - predicted)))
         allowed = BRANCH_JUMP_RATIO * max(float(np.max(np.abs(predicted - point.z))), point.change)
         allowed += BRANCH_ATOL * (1.0 + float(np.max(np.abs(point.z))))
-        if jump <= allowed:
+        # (where H has a kink, Min or Max of the states, the tangent misleads: a root as close to the last
+        # root itself, the constant prediction, continues the branch too)
+        if min(jump, float(np.max(np.abs(z - point.z)))) <= allowed:
             return None
         guess, values, before = self._values(predicted), self._values(z), self._values(point.z)
         return (

@@ -301,3 +301,23 @@ def test_newton_reports_convergence_and_singularity_for_the_caller_to_judge():
     np.testing.assert_allclose(result.x[:, 0], [2.0, -2.0], rtol=0, atol=1e-15)
     capped = solve_algebraic(lambda z: z**2 - 4, J, np.array([[1.0]]), NewtonTolerances(max_iterations=2))
     assert not capped.converged[0] and capped.iterations == 2
+
+
+def test_a_kink_in_the_constraints_is_no_jump():
+    """z1^3 + z1 = cosh(tanh(min(y3, k1, 1.96))) has one real root for every y3; where y3 crosses
+    k1 the tangent prediction turns wrong (the kink), and the root lies closer to the last root than
+    to it: no BranchError (the fuzz case r1-0015 was refused so), and the values are the roots."""
+    m = dm.Model("index1")
+    m.states("y1 y2 y3")
+    m.algebraics("z1 z2")
+    m.parameter("k1", 0.85)
+    m.ode("y1", "-0.95*y1 + 0.57*z2 + 0.27*tanh(z1/(2 + z2**2))**3")
+    m.ode("y2", "-1.26*y2 + 0.31*z1 + 0.23*(1 + (y2/(1.5 + cos(t)))**2)**1.5")
+    m.ode("y3", "-1.54*y3 + 0.27*z2 + 0.22*sign(0.47*y1*y2)*(0.47*y1*y2)")
+    m.constraint("z1**3 + z1 - cosh(tanh(Min(y3, k1, 1.96)))")
+    m.constraint("z2 + 0.5*sin(z2) - Max(0.63, sin(8/6), y3, k1)")
+    m.initial(y1=0.981, y2=-0.782, y3=-0.253)
+    sol = dm.solve(m, (0.0, 1.0), method="reference")
+    assert sol.status == "success"
+    z1, y3 = sol["z1"], sol["y3"]
+    np.testing.assert_allclose(z1**3 + z1, np.cosh(np.tanh(np.minimum(y3, 0.85))), rtol=1e-10)
