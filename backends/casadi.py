@@ -545,14 +545,6 @@ class CollocationSteps(AbstractDenseOutput):
     _found: dict = dataclasses.field(default_factory=dict)  # step -> (B, s, n+m)
 
     @property
-    def t0(self) -> float:
-        return float(self.grid[0])
-
-    @property
-    def t1(self) -> float:
-        return float(self.grid[-1])
-
-    @property
     def description(self) -> str:
         return f"each step's collocation polynomial (degree {self.stages.stages}), its stages solved again"
 
@@ -785,16 +777,8 @@ class IDASRestarts(AbstractDenseOutput):
     n: int
 
     @property
-    def t0(self) -> float:
-        return float(self.times[0])
-
-    @property
-    def t1(self) -> float:
-        return float(self.times[-1])
-
-    @property
     def description(self) -> str:
-        return "IDAS restarted from the output before each time"
+        return "IDAS started again from the output before each time"
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         times = np.asarray(times, dtype=float)

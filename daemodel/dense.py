@@ -38,10 +38,7 @@ END_MATCH_RTOL = 1e-13
 
 
 class AbstractDenseOutput(ABC):
-    """A continuous solution on ``[t0, t1]``: ``(B, K, n+m)`` values at any ``K`` times inside."""
-
-    t0: float
-    t1: float
+    """A continuous solution over a solve's span: ``(B, K, n+m)`` values at any ``K`` times inside."""
 
     @abstractmethod
     def __call__(self, times: np.ndarray) -> np.ndarray: ...
@@ -49,7 +46,7 @@ class AbstractDenseOutput(ABC):
     @property
     @abstractmethod
     def description(self) -> str:
-        """What it interpolates, for :meth:`Solution.at`'s docs and reports."""
+        """What it evaluates, in words (``sol.dense.description``: what ``sol.at()`` answers with)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,14 +67,6 @@ class CollocationPolynomials(AbstractDenseOutput):
     starts: np.ndarray
     lengths: np.ndarray
     nodes: np.ndarray
-
-    @property
-    def t0(self) -> float:
-        return float(self.starts[0])
-
-    @property
-    def t1(self) -> float:
-        return float(self.starts[-1] + self.lengths[-1])
 
     @property
     def description(self) -> str:
@@ -107,14 +96,6 @@ class Segments(AbstractDenseOutput):
     pieces: tuple
 
     @property
-    def t0(self) -> float:
-        return float(self.edges[0])
-
-    @property
-    def t1(self) -> float:
-        return float(self.edges[-1])
-
-    @property
     def description(self) -> str:
         return f"{self.pieces[0].description}, in {len(self.pieces)} segments"
 
@@ -140,14 +121,6 @@ class Groups(AbstractDenseOutput):
     samples: int
 
     @property
-    def t0(self) -> float:
-        return self.groups[0][1].t0
-
-    @property
-    def t1(self) -> float:
-        return self.groups[0][1].t1
-
-    @property
     def description(self) -> str:
         return self.groups[0][1].description
 
@@ -167,14 +140,6 @@ class Held(AbstractDenseOutput):
 
     t: float
     values: np.ndarray
-
-    @property
-    def t0(self) -> float:
-        return self.t
-
-    @property
-    def t1(self) -> float:
-        return self.t
 
     @property
     def description(self) -> str:
@@ -206,14 +171,6 @@ class Restarts(AbstractDenseOutput):
     times: np.ndarray
     values: np.ndarray
     parameters: np.ndarray
-
-    @property
-    def t0(self) -> float:
-        return float(self.times[0])
-
-    @property
-    def t1(self) -> float:
-        return float(self.times[-1])
 
     @property
     def description(self) -> str:

@@ -158,6 +158,8 @@ def test_casadi_collocation_finds_its_polynomials_again(monkeypatch):
     radau = dm.solve(c, (0.0, 1.0), method="radau", h=0.05, stages=3)
     names = [*c.state_names, *c.algebraic_names]
     assert _largest(collocation.at(inside), radau.at(inside), names) < 1e-10
+    assert radau.dense.description == "each step's collocation polynomial (degree 3)"
+    assert collocation.dense.description == "each step's collocation polynomial (degree 3), its stages solved again"
     np.testing.assert_allclose(collocation.at(collocation.t)["y5"], collocation["y5"], rtol=0, atol=1e-10)
     monkeypatch.setattr(backend, "DENSE_END_MATCH", -1.0)
     fresh = dm.solve(c, (0.0, 1.0), method="casadi-collocation", h=0.05, stages=3)
@@ -189,6 +191,7 @@ def test_restarts_from_the_output_before(problem, method):
     names = [*c.state_names, *c.algebraic_names]
     assert _largest(sparse.at(between), reference, names) <= 2 * _largest(direct, reference, names)
     np.testing.assert_array_equal(sparse.at(grid)["y1"], sparse["y1"])  # (the outputs themselves)
+    assert sparse.dense.description.endswith("started again from the output before each time")
 
 
 def test_a_failing_idas_restart_is_named():
