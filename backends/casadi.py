@@ -571,7 +571,10 @@ class CollocationSteps(AbstractDenseOutput):
         used = np.unique(step)
         nodes = np.stack([np.concatenate([self.values[:, k, None], self._found[k]], axis=1) for k in used], axis=1)
         within = CollocationPolynomials(self.stages.c, self.grid[used], lengths[used], nodes)
-        return within(times)
+        out = within(times)
+        on_grid = np.isin(times, self.grid)  # (a grid time: the step's own value, not its re-solved last stage)
+        out[:, on_grid] = self.values[:, np.searchsorted(self.grid, times[on_grid])]
+        return out
 
 
 class CollocationBackend(AbstractBackend):

@@ -407,8 +407,16 @@ class ReferenceBackend(AbstractBackend):
         # the dense output restarts with the integrator the samples ended with: a stiff problem's restart
         # would otherwise begin with DOP853 again (20x the error on akzo-nobel before it turns to Radau)
         ended = options if options.integrator != AUTO else replace(options, integrator=_ended_with(finals))
-        dense = Restarts(self, compiled, ended, times, values, np.asarray(start.p, dtype=float))
+        # (from each sample's own start where t_eval leaves t0 out: a piece after a breakpoint or event)
+        starts, first = (times, values) if times[0] == t_span[0] else _with_start(t_span[0], times, values, start)
+        dense = Restarts(self, compiled, ended, starts, first, np.asarray(start.p, dtype=float))
         return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)
+
+
+def _with_start(t0: float, times, values, start):
+    """``times`` and ``values`` (B, T, n+m) with each sample's start at ``t0`` first."""
+    first = np.concatenate([start.y0, start.z0], axis=1)[:, None]
+    return np.concatenate([[t0], times]), np.concatenate([first, values], axis=1)
 
 
 def _ended_with(integrators: list) -> str:

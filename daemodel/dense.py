@@ -154,7 +154,8 @@ class Restarts(AbstractDenseOutput):
     """A method started again from the output before each time asked for, with the solve's options, to
     that time: for methods whose own interpolant is out of reach (the reference's integrators step
     past the outputs and keep no polynomial of their steps).  One solve per interval of outputs that
-    holds times; an output time itself is the solve's own value.
+    holds times (past the last output, on from it); an output time itself is the solve's own value.
+    ``times`` must start at the solve's t0 (the backend puts each sample's start there).
 
     Attributes
     ----------
@@ -188,7 +189,9 @@ class Restarts(AbstractDenseOutput):
         inside = times > self.times[before]
         for k in np.unique(before[inside]):
             where = np.flatnonzero(inside & (before == k))
-            a, b = float(self.times[k]), float(self.times[k + 1])
+            # (past the last output, a piece that ends at an event: on from it to the latest time asked for)
+            a = float(self.times[k])
+            b = float(self.times[k + 1]) if k + 1 < len(self.times) else float(times[where].max())
             start = InitialStates(
                 y0=self.values[:, k, :n].copy(), z0=self.values[:, k, n:].copy(), p=self.parameters, batched=True
             )

@@ -208,3 +208,65 @@ def test_a_failing_idas_restart_is_named():
         r"\(Error in Function::call for 'idas'.*\); ask for those times with t_eval instead",
     ):
         sol.at([0.2, 0.5, 0.7])
+
+
+def _switch_in_time():
+    m = dm.Model("sw")
+    m.states("x y")
+    m.algebraics("z")
+    m.ode("x", "-x + z + Piecewise((0, t < 0.37), (1, True))")
+    m.ode("y", "z")
+    m.constraint("z - sin(x) - y")
+    m.initial(x=1.0, y=0.0)
+    return m
+
+
+def _pendulum_at_a_wall():
+    m = dm.Model("wall")
+    m.states("x y u v")
+    m.algebraics("lam")
+    m.ode("x", "u")
+    m.ode("y", "v")
+    m.ode("u", "-lam*x")
+    m.ode("v", "-lam*y - 9.81")
+    m.constraint("x**2 + y**2 - 1", name="rod")
+    m.initial(x=0.8, y=-0.6, u=0.0, v=0.0)
+    m.event("wall", "x + 0.5", direction=-1, reset={"u": "-0.8*u", "v": "-0.8*v"})
+    return m
+
+
+@pytest.mark.parametrize("method", ["reference", "casadi-idas", "radau"])
+def test_restarts_across_a_breakpoint_and_an_event(method):
+    """Pieces after a breakpoint or an event hold outputs that leave their start out (the first) and
+    end before the event (the last): each restarts from its own start and runs on past its last
+    output.  The reference gave the next output's value, and an IndexError, before."""
+    options = {"method": method, "rtol": 1e-10, "atol": 1e-10}
+    switched = dm.solve(_switch_in_time(), (0.0, 1.0), t_eval=[0.0, 0.5, 1.0], **options)
+    direct = dm.solve(_switch_in_time(), (0.0, 1.0), t_eval=[0.37, 0.45], **options)
+    assert _largest(switched.at([0.37, 0.45]), direct, ["x", "y", "z"]) < 1e-8
+    times = np.array([0.8, 0.99, 2.2, 2.3])  # (the wall at t = 0.729 and 2.243)
+    wall = dm.solve(_pendulum_at_a_wall(), (0.0, 3.0), t_eval=np.linspace(0.0, 3.0, 4), **options)
+    direct = dm.solve(_pendulum_at_a_wall(), (0.0, 3.0), t_eval=times, **options)
+    assert _largest(wall.at(times), direct, ["x", "y", "u", "v"]) < 1e-6
+
+
+@pytest.mark.parametrize("engine", ["torch", "casadi"])
+def test_the_step_ends_alone_keep_no_stages(engine, monkeypatch):
+    """dense_output=False keeps one value a step: a copy of the end, not a view that keeps the stages
+    (s times the memory the check counts)."""
+    from daemodel.backends.radau import step
+
+    kept, integrate = [], step.Stepper.integrate
+
+    def recording(self, t_span):
+        out = integrate(self, t_span)
+        kept.append(self.records)
+        return out
+
+    monkeypatch.setattr(step.Stepper, "integrate", recording)
+    dm.solve(HESSENBERG.model().compile(), (0.0, 1.0), h=0.05, stages=3, engine=engine, dense_output=False)
+    for block in kept[0].values[1:]:
+        if engine == "torch":
+            assert block.untyped_storage().nbytes() == block.numel() * block.element_size()
+        else:
+            assert block.base is None or block.base.size == block.size

@@ -379,8 +379,9 @@ class Stepper:
         u_start = self.state()
         if self.records.dense:
             nodes = self.xp.concatenate([u_start[:, None], W], axis=1)[:, None]
-        else:
-            nodes = W[:, None]  # (only the end value, the last node, is kept)
+        else:  # only the end value, the last node, is kept: a copy, or the view would keep all of W
+            end = W[:, None, -1:]
+            nodes = end.copy() if self.xp is np else end.clone()
         self.records.add(np.array([t]), np.array([h]), np.array([t_next]), nodes)
         self._previous = (h, u_start, W)
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed
