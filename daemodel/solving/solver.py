@@ -8,7 +8,7 @@ import math
 from daemodel.backends import get_backend
 from daemodel.compiling.compiler import as_compiled
 from daemodel.compiling.initial_states import initial_states
-from daemodel.errors import InvalidOptionError, InvalidValueError, TimeSpanError, UnknownOptionError
+from daemodel.errors import InvalidOptionError, InvalidValueError, SolverError, TimeSpanError, UnknownOptionError
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
@@ -77,9 +77,20 @@ def solve(
     common = common and getattr(opts, "dtype", "float64") in ("float64", None)
     if model.events or (located.events and common):  # (located, reset and restarted from, in every method)
         return solve_with_events(backend, located, t_span, start, opts, max_events)
-    if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
-        return solve_with_breakpoints(backend, model, t_span, start, opts)
-    return backend.solve(compiled, t_span, start, opts)
+    try:
+        if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
+            return solve_with_breakpoints(backend, model, t_span, start, opts)
+        return backend.solve(compiled, t_span, start, opts)
+    except SolverError as error:
+        if not located.events:
+            raise
+        # (the steps crossed the switches on variables, which this batch or dtype did not locate)
+        why = "a batch without t_eval" if len(start.p) > 1 and getattr(opts, "t_eval", None) is None else "float32"
+        raise type(error)(
+            f"{error}. The model switches on its variables ({located.events[-1].name}, ...), which {why} steps "
+            "across instead of locating: "
+            + ("pass t_eval to have them located on common output times" if why != "float32" else "use float64")
+        ) from error
 
 
 def check_options(backend, options: dict):

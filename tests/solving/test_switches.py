@@ -278,3 +278,26 @@ def test_the_pinn_across_a_switch_is_certified():
     assert np.abs(sol["v"] - _circuit_exact(sol.t)).max() < 1e-5
     at = np.flatnonzero(np.isclose(sol.t, 0.3))
     assert len(at) == 1 and abs(sol["i"][at[0]] - 3.0) < 1e-9
+
+
+def test_a_batch_without_t_eval_that_fails_across_a_state_switch_is_told_to_pass_t_eval():
+    """A batch's switches on variables are located on common output times only; where its steps fail
+    across one instead, the error says so and names t_eval (with t_eval the batch solves)."""
+    m = dm.Model("ss")
+    m.states("x y")
+    m.algebraics("z")
+    m.ode("x", "Piecewise((1, x < 0.5), (0.2, True)) - 0.1*z")
+    m.ode("y", "z")
+    m.constraint("z - x - y")
+    m.initial(x=0.0, y=0.0)
+    c = m.compile()
+    y0 = c.consistent(y0={"x": np.array([0.0, 0.2])})
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"radau: Newton failed in step 52 .*\. The model switches on its variables \(Piecewise in x', \.\.\.\), "
+        r"which a batch without t_eval steps across instead of locating: pass t_eval to have them located on common "
+        r"output times$",
+    ):
+        dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, engine="torch")
+    batch = dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, t_eval=[0.0, 0.5, 1.0])
+    assert batch["x"].shape == (2, 3) and batch.events
