@@ -16,6 +16,7 @@ has one, and :meth:`~daemodel.solution.Solution.at` evaluates it:
 * :class:`Groups`: the dense outputs of groups of a batch's samples solved apart (samples whose
   parameters move the breakpoints, events), row by row.
 * :class:`Held`: the values after a terminal event, at its time.
+* :class:`Deferred`: one made on the first query (a trained surrogate's).
 * :class:`Restarts`: for a method whose own interpolant is out of reach (the reference), the method
   started again from the output before each time.
 
@@ -26,7 +27,7 @@ order of the solved system's states then algebraic variables.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -202,6 +203,26 @@ class Restarts(AbstractDenseOutput):
             found = np.stack([np.reshape(sol.values[name], (len(start.y0), -1)) for name in names], axis=-1)
             out[:, where] = found[:, np.searchsorted(sol.t, times[where])]
         return out
+
+
+@dataclass(frozen=True, eq=False)
+class Deferred(AbstractDenseOutput):
+    """A dense output made on the first query, by ``make()``, and kept: what a solve would otherwise
+    pay for on every call whether or not anyone asks between its outputs (a trained surrogate's stage
+    values, one more pass of its networks)."""
+
+    make: object
+    what: str
+    _made: list = field(default_factory=list)
+
+    @property
+    def description(self) -> str:
+        return self.what
+
+    def __call__(self, times: np.ndarray) -> np.ndarray:
+        if not self._made:
+            self._made.append(self.make())
+        return self._made[0](times)
 
 
 def joined_in_time(edges, pieces) -> AbstractDenseOutput | None:

@@ -35,6 +35,7 @@ from daemodel.backends.pinn.segments import (
 )
 from daemodel.backends.pinn.train import SegmentStats
 
+from daemodel.dense import Deferred
 from daemodel.errors import (
     InvalidOptionError,
     ModelError,
@@ -569,6 +570,12 @@ class Surrogate:
             if (path == "radau").any():
                 fallen = int((path == "radau").sum())
                 status += f", {fallen} of them by radau from their start (Newton from the networks failed)"
+        dense = None
+        if not corrected.any():  # (the networks' answer throughout: their stages, on the first query)
+            dense = Deferred(
+                lambda: self.polynomials(values, self.rollout(start.y0, start.p, stages=True)[1]),
+                f"each segment's collocation polynomial (degree {self.config.stages}) through its network's stages",
+            )
         return make_solution(
             "pinn",
             self.compiled,
@@ -580,6 +587,7 @@ class Surrogate:
             stats,
             settings=dataclasses.asdict(self.config),
             status=status,
+            dense=dense,
         )
 
     def _certified_distance(self, values: np.ndarray, p: np.ndarray, newton_tol: float) -> np.ndarray:

@@ -407,6 +407,13 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
     z_error = np.abs(sol["y5"] - radau["y5"]).max()
     print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")
     assert y_error < 3e-6 and z_error < 3e-5
+    # between the grid times: the collocation polynomials through the networks' stages, made on this
+    # first query, within the same distance of radau's own polynomials
+    inside = np.array([0.0185, 0.0325, 0.0685, 0.0915])
+    between, radau_between = sol.at(inside), radau.at(inside)
+    assert max(np.abs(between[k] - radau_between[k]).max() for k in c.state_names) < 3e-6
+    assert np.abs(between["y5"] - radau_between["y5"]).max() < 3e-5
+    assert sol.dense.description.startswith("each segment's collocation polynomial (degree 3)")
 
 
 def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
