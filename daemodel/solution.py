@@ -181,8 +181,9 @@ class Solution:
         ----------
         reference : callable or Solution
             ``reference(t) -> dict name -> ndarray`` (shape (T,) or (B, T)), e.g.
-            ``Problem.exact_solution()``, or a Solution on the same times (for a Solution on
-            other times, re-solve it with ``t_eval=sol.t``).
+            ``Problem.exact_solution()``, or a Solution: on the same times, or one with a dense
+            output (:attr:`dense`) over a span that holds these times, evaluated at them
+            (:meth:`at`); for another, re-solve it with ``t_eval=sol.t``.
         names : iterable of str, optional
             Variables to compare; default every variable both sides have.
 
@@ -201,18 +202,26 @@ class Solution:
     def _aligned_reference(self, reference, names=None) -> tuple[list[str], dict]:
         """The variables to compare with ``reference`` and its values on this solution's times.
 
-        Raises :class:`ComparisonError` for a Solution on other times, anything that is neither
+        Raises :class:`ComparisonError` for a Solution on other times without a dense output that
+        covers them, anything that is neither
         a Solution nor a callable, or variables that one side lacks.
         """
         if isinstance(reference, Solution):
             span = max(abs(self.t[-1] - self.t[0]), 1.0)
-            if len(reference.t) != len(self.t) or np.max(np.abs(reference.t - self.t)) > TIME_MATCH_RTOL * span:
+            same = len(reference.t) == len(self.t) and np.max(np.abs(reference.t - self.t)) <= TIME_MATCH_RTOL * span
+            inside = reference.t[0] <= self.t[0] and self.t[-1] <= reference.t[-1]
+            if not same and reference.dense is not None and inside:  # (its own continuous solution at our times)
+                ref_values = reference.at(self.t)
+            elif not same:
                 raise ComparisonError(
                     f"the reference ({reference.method}) has {len(reference.t)} times from {reference.t[0]:g} to "
                     f"{reference.t[-1]:g}, this solution ({self.method}) {len(self.t)} from {self.t[0]:g} to "
-                    f"{self.t[-1]:g}; solve the reference with t_eval=sol.t"
+                    f"{self.t[-1]:g}"
+                    + ("" if reference.dense is None else ", beyond the span of its dense output")
+                    + "; solve the reference with t_eval=sol.t"
                 )
-            ref_values = {n: reference.values[n] for n in reference.names}
+            else:
+                ref_values = {n: reference.values[n] for n in reference.names}
         elif callable(reference):
             ref_values = dict(reference(self.t))
         else:

@@ -174,9 +174,20 @@ def test_solution_errors(pendulum):
     sol = dm.solve(pendulum, (0.0, 1.0), h=0.1)
     with pytest.raises(E.UnknownSymbolError, match="the solution has no variable 'y9'"):
         sol["y9"]
-    other = dm.solve(pendulum, (0.0, 1.0), method="reference")
-    with pytest.raises(E.ComparisonError, match=r"solve the reference with t_eval=sol\.t"):
-        sol.errors(other)
+    other = dm.solve(pendulum, (0.0, 1.0), method="reference")  # 101 times: its dense output answers at sol.t
+    direct = dm.solve(pendulum, (0.0, 1.0), method="reference", t_eval=sol.t)
+    for name, error in sol.errors(other).items():
+        assert error["max"] == pytest.approx(sol.errors(direct)[name]["max"], rel=1e-3, abs=1e-11)
+    plain = dm.solve(pendulum, (0.0, 1.0), h=0.05, dense_output=False)
+    with pytest.raises(
+        E.ComparisonError,
+        match=r"the reference \(radau\) has 21 times from 0 to 1, this solution \(radau\) 11 from 0 to 1; solve the "
+        r"reference with t_eval=sol\.t",
+    ):
+        sol.errors(plain)
+    short = dm.solve(pendulum, (0.0, 0.5), h=0.05)
+    with pytest.raises(E.ComparisonError, match=r"11 from 0 to 1, beyond the span of its dense output; solve the"):
+        sol.errors(short)
     with pytest.raises(E.ComparisonError, match="cannot compare"):
         sol.errors(lambda t: {"q": t})
     with pytest.raises(E.ComparisonError, match="needs a Solution or a callable"):
