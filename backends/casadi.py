@@ -64,7 +64,7 @@ from daemodel.backends.grids import (
 )
 from daemodel.backends.progress import captured_output
 
-from daemodel.dense import AbstractDenseOutput, CollocationPolynomials
+from daemodel.dense import AbstractDenseOutput, CollocationPolynomials, outputs_before, step_owners
 from daemodel.errors import ConvergenceError, InvalidOptionError, LocalErrorBoundError, SolverError, StepLimitError
 
 # Steps of casadi-collocation over the interval when h is not given.
@@ -552,8 +552,7 @@ class CollocationSteps(AbstractDenseOutput):
         times = np.asarray(times, dtype=float)
         B = len(self.values)
         lengths = np.diff(self.grid)
-        polynomials = CollocationPolynomials(self.stages.c, self.grid[:-1], lengths, np.empty((B, 0, 0, 0)))
-        step, _ = polynomials.owners(times)
+        step, _ = step_owners(self.grid[:-1], lengths, times)
         needed = [k for k in np.unique(step).tolist() if k not in self._found]
         if needed:
             rows = np.array(needed)
@@ -786,9 +785,8 @@ class IDASRestarts(AbstractDenseOutput):
     def __call__(self, times: np.ndarray) -> np.ndarray:
         times = np.asarray(times, dtype=float)
         B, D = len(self.values), self.values.shape[2]
-        before = np.clip(np.searchsorted(self.times, times, side="right") - 1, 0, len(self.times) - 1)
-        out = np.repeat(self.values[:, before], 1, axis=1)  # (B, K, D): at the outputs, their own values
-        inside = np.flatnonzero(times > self.times[before])
+        before, out, after = outputs_before(self.times, self.values, times)
+        inside = np.flatnonzero(after)
         if not len(inside):
             return out
         K = len(inside)

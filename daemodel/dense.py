@@ -38,6 +38,22 @@ from daemodel.collocation import lagrange_matrix
 END_MATCH_RTOL = 1e-13
 
 
+def step_owners(starts: np.ndarray, lengths: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(step, theta)`` of each time: the step whose interval holds it (a step's end its own, not the
+    next one's start) and where in it, ``theta = (t - t_n) / h`` in [0, 1]."""
+    ends = starts + lengths * (1 + END_MATCH_RTOL)
+    step = np.minimum(np.searchsorted(ends, times, side="left"), len(starts) - 1)
+    return step, (times - starts[step]) / lengths[step]
+
+
+def outputs_before(outputs: np.ndarray, values: np.ndarray, times: np.ndarray) -> tuple:
+    """``(before, at_outputs, inside)`` for ``times`` among ``outputs`` (T,): the index of the output at
+    or before each time, the values (B, K, n+m) there, and which times lie strictly after it (a
+    restart's to solve; the others are outputs, their own values)."""
+    before = np.clip(np.searchsorted(outputs, times, side="right") - 1, 0, len(outputs) - 1)
+    return before, values[:, before].copy(), times > outputs[before]
+
+
 class AbstractDenseOutput(ABC):
     """A continuous solution over a solve's span: ``(B, K, n+m)`` values at any ``K`` times inside."""
 
@@ -73,16 +89,9 @@ class CollocationPolynomials(AbstractDenseOutput):
     def description(self) -> str:
         return f"each step's collocation polynomial (degree {len(self.c)})"
 
-    def owners(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(step, theta)`` of each time: the step whose interval holds it (a step's end its own,
-        not the next one's start) and where in it, ``theta = (t - t_n) / h`` in [0, 1]."""
-        ends = self.starts + self.lengths * (1 + END_MATCH_RTOL)
-        step = np.minimum(np.searchsorted(ends, times, side="left"), len(self.starts) - 1)
-        return step, (times - self.starts[step]) / self.lengths[step]
-
     def __call__(self, times: np.ndarray) -> np.ndarray:
         times = np.asarray(times, dtype=float)
-        step, theta = self.owners(times)
+        step, theta = step_owners(self.starts, self.lengths, times)
         # the product form of the Lagrange weights: exact at the nodes (a weight of 1 and zeros)
         weights = lagrange_matrix(np.concatenate([[0.0], self.c]), theta)  # (K, s+1)
         return np.einsum("kj,bkjd->bkd", weights, self.nodes[:, step].astype(float, copy=False))
@@ -185,9 +194,7 @@ class Restarts(AbstractDenseOutput):
 
         times = np.asarray(times, dtype=float)
         n = len(self.compiled.states)
-        before = np.clip(np.searchsorted(self.times, times, side="right") - 1, 0, len(self.times) - 1)
-        out = self.values[:, before].copy()  # (B, K, n+m): at the outputs, their own values
-        inside = times > self.times[before]
+        before, out, inside = outputs_before(self.times, self.values, times)
         for k in np.unique(before[inside]):
             where = np.flatnonzero(inside & (before == k))
             # (past the last output, a piece that ends at an event: on from it to the latest time asked for)

@@ -24,6 +24,7 @@ from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
 
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
+from daemodel.dense import step_owners
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
 from daemodel.tableau import radau_iia
@@ -482,10 +483,7 @@ class Stepper:
         if not records.starts or not len(after):
             return t_out, numpy_copy(out)
         starts, lengths = np.concatenate(records.starts), np.concatenate(records.lengths)
-        ends = starts + lengths * (1 + 1e-13)
-        last = len(starts) - 1
-        owner = np.minimum(np.searchsorted(ends, t_out[after], side="left"), last)  # the step ending at/after
-        theta = (t_out[after] - starts[owner]) / lengths[owner]
+        owner, theta = step_owners(starts, lengths, t_out[after])  # (the step ending at or after each)
         # the product form, for all points at once: exact at the nodes (a weight of 1 and zeros), which
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
         nodes = np.concatenate([[0.0], self.tableau.c])
