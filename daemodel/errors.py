@@ -244,3 +244,8 @@ class NetworkFileError(ModelError):
 
 class TargetError(ModelError):
     """A ``daemodel compare`` target is neither a known problem nor a usable model file."""
+
+
+class SensitivityError(ModelError):
+    """Derivatives of a solution cannot be taken as asked: a name that is not a parameter or free
+    state, a method or solution without radau's step records, a singular step."""

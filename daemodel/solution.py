@@ -105,6 +105,10 @@ class Solution:
         The method's own continuous solution between the output times (:mod:`daemodel.dense`), which
         :meth:`at` evaluates: radau's and the Radau-PINN's collocation polynomials, ...; None where
         the method keeps none (then ``at()`` interpolates the outputs).  Not saved by :meth:`save`.
+    sensitivities : dict
+        With ``solve(..., sensitivities=[names])`` (radau): for each name, the derivatives of the
+        states and algebraic variables at the output times with respect to it, ndarray (B, T, n+m);
+        read them with :meth:`sensitivity`.  Empty otherwise.  Not saved by :meth:`save`.
 
     Examples
     --------
@@ -127,6 +131,7 @@ class Solution:
     breakpoints: dict = field(default_factory=dict, repr=False)
     events: dict = field(default_factory=dict, repr=False)
     dense: object = field(default=None, repr=False)
+    sensitivities: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         c = self.compiled
@@ -172,6 +177,83 @@ class Solution:
         P = np.repeat(self.parameters, T, axis=0)
         times = np.tile(self.t, B)
         return stack(c.state_names), stack(c.algebraic_names), P, times
+
+    # ---- derivatives --------------------------------------------------------------------
+    def sensitivity(self, output: str, name: str) -> np.ndarray:
+        """``d output / d name`` at the output times, shaped like ``sol[output]``: the exact derivative
+        of radau's discrete solution (:mod:`daemodel.solving.sensitivities`).
+
+        Parameters
+        ----------
+        output : str
+            A state, algebraic variable or eliminated alias.
+        name : str
+            One of the parameters or states named in ``solve(..., sensitivities=[...])``.
+
+        Raises
+        ------
+        SensitivityError
+            When the solve computed none for ``name``.
+        UnknownSymbolError
+            For an output the solution does not have.
+        """
+        from daemodel.errors import SensitivityError
+
+        if name not in self.sensitivities:
+            asked = list(self.sensitivities)
+            raise SensitivityError(
+                f"the solution has no sensitivities with respect to {name!r}; "
+                + (f"it has them for {asked}" if asked else "solve with sensitivities=[...] naming it")
+            )
+        if output not in self.values:
+            raise UnknownSymbolError(f"the solution has no variable {output!r}; it has {list(self.names)}")
+        c = self.compiled
+        S = self.sensitivities[name]  # (B, T, n+m)
+        kept = (*c.state_names, *c.algebraic_names)
+        if output in kept:
+            out = S[..., kept.index(output)]
+        else:  # an alias: the chain rule through its expression
+            expr = next(e for a, e, _ in c.aliases if a == output)
+            Y, Z, P, T = self._flat()
+            B, K = self.batch_size, len(self.t)
+            numeric = c.numeric
+            dw = numeric.batch_jacobian([expr], [*c.states, *c.algebraics])(T, Y, Z, P)[:, 0]  # (B*K, n+m)
+            out = np.einsum("rd,rd->r", dw, S.reshape(B * K, -1)).reshape(B, K)
+            if name in c.parameter_names:
+                dp = numeric.batch_jacobian([expr], list(c.parameters))(T, Y, Z, P)[:, 0]
+                out = out + dp[:, c.parameter_names.index(name)].reshape(B, K)
+        return out if self.batched else out[0]
+
+    def gradient(self, objective, wrt) -> dict[str, float | np.ndarray]:
+        """The gradient of a scalar objective of the outputs by the discrete adjoint of radau's steps:
+        one backward pass whose cost does not grow with the number of names.
+
+        Parameters
+        ----------
+        objective : dict or str or sympy expression
+            A dict output name -> measured values shaped like ``sol[output]`` (NaN where missing):
+            ``J = sum of (sol[output] - data)^2``; or an expression of the outputs (and ``t``),
+            summed over the output times: ``J = sum_t phi(outputs(t))``.
+        wrt : str or list of str
+            Parameters and states (their initial values, moved consistently with the constraints).
+
+        Returns
+        -------
+        dict name -> float, or ndarray (B,) for a batch (each sample's own J)
+
+        Raises
+        ------
+        SensitivityError
+            For a solution of another method or without step records, or names that are not free.
+        ShapeError, UnknownSymbolError, ExpressionParseError
+            For data of the wrong shape or an objective naming what the solution does not have.
+        """
+        from daemodel.solving.sensitivities import adjoint, objective_cotangent
+
+        cotangent = objective_cotangent(self, objective)
+        where, gradient = adjoint(self, cotangent, wrt)
+        out = {name: gradient[:, q] for q, name in enumerate(where.names)}
+        return out if self.batched else {name: float(v[0]) for name, v in out.items()}
 
     # ---- accuracy -----------------------------------------------------------------------
     def errors(self, reference, names=None) -> dict[str, dict[str, float]]:

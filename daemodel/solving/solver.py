@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 from daemodel.backends import get_backend
 from daemodel.compiling.compiler import as_compiled
 from daemodel.compiling.initial_states import initial_states
-from daemodel.errors import InvalidOptionError, InvalidValueError, SolverError, TimeSpanError, UnknownOptionError
+from daemodel.errors import (
+    InvalidOptionError,
+    InvalidValueError,
+    SensitivityError,
+    SolverError,
+    TimeSpanError,
+    UnknownOptionError,
+)
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
@@ -25,6 +33,7 @@ def solve(
     z0=None,
     parameters=None,
     max_events: int = DEFAULT_MAX_EVENTS,
+    sensitivities=None,
     **options,
 ) -> Solution:
     """Solve a DAE over ``t_span`` with one method, for one initial state or a batch.
@@ -46,6 +55,12 @@ def solve(
     parameters : dict name -> float or array (B,), or array (k,) or (B, k), optional
     max_events : int
         Most events (``Model.event``) one solve handles (:class:`EventLimitError` beyond: chattering).
+    sensitivities : list of str, optional
+        Parameters and states to differentiate the solution by (``"radau"``): the exact derivatives
+        of its discrete solution at the output times, algebraic variables included, read with
+        ``sol.sensitivity(output, name)`` (:mod:`daemodel.solving.sensitivities`).  A state's
+        initial value moves with the others held where the constraints allow; a parameter moves the
+        initial states the least that keeps them consistent.
     **options
         The method's options (e.g. ``stages=3, h=0.05`` or ``rtol=1e-8`` for ``"radau"``,
         ``config=dm.PINNConfig(...)`` for ``"pinn"``);
@@ -66,6 +81,8 @@ def solve(
         raise InvalidOptionError(f"max_events must be a non-negative integer; got {max_events!r}")
 
     model = as_compiled(model)
+    if sensitivities is not None:
+        check_sensitivities(model, backend, opts, sensitivities)
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
     compiled = for_method(model, backend)
@@ -80,7 +97,7 @@ def solve(
     try:
         if has_time_switches(model):  # (from breakpoint to breakpoint, each side on its own branch)
             return solve_with_breakpoints(backend, model, t_span, start, opts)
-        return backend.solve(compiled, t_span, start, opts)
+        sol = backend.solve(compiled, t_span, start, opts)
     except SolverError as error:
         if not located.events:
             raise
@@ -91,6 +108,41 @@ def solve(
             "across instead of locating: "
             + ("pass t_eval to have them located on common output times" if why != "float32" else "use float64")
         ) from error
+    return sol if sensitivities is None else with_sensitivities(sol, model, sensitivities)
+
+
+def check_sensitivities(model, backend, opts, names) -> None:
+    """Refuse, before solving, what :func:`with_sensitivities` cannot differentiate."""
+    from daemodel.solving.sensitivities import directions
+
+    directions(model, names)
+    if backend.name != "radau":
+        raise SensitivityError(
+            f"sensitivities are the derivatives of radau's discrete solution (its stage equations); method "
+            f"{backend.name!r} has none: solve with method='radau'"
+        )
+    if not opts.dense_output:
+        raise SensitivityError("sensitivities need the record of radau's steps: drop dense_output=False")
+    if model.events or has_time_switches(model) or with_state_events(model).events:
+        raise SensitivityError(
+            f"sensitivities: model '{model.name}' has events or switches, across which the derivatives of the "
+            "solution jump; daemodel does not differentiate through them yet: solve the span between two of them"
+        )
+
+
+def with_sensitivities(sol, model, names) -> Solution:
+    """``sol`` with its forward sensitivities, their time added to ``solve_time``."""
+    from daemodel.solving.sensitivities import forward
+
+    started = time.perf_counter()
+    where, values = forward(sol, names, model=model)
+    seconds = time.perf_counter() - started
+    return dataclasses.replace(
+        sol,
+        sensitivities={name: values[..., q] for q, name in enumerate(where.names)},
+        solve_time=sol.solve_time + seconds,
+        stats={**sol.stats, "sensitivity_seconds": seconds},
+    )
 
 
 def check_options(backend, options: dict):

@@ -1,0 +1,494 @@
+"""Exact derivatives of radau's solution: forward sensitivities and the discrete adjoint.
+
+A radau solution is the discrete map of its accepted steps.  Step ``k`` (start ``t_k``, length
+``h_k``, start value ``y_k``) has stage values ``W_k = (Y_i, Z_i)`` that zero the stage equations
+``R(W_k; y_k, p) = 0`` of :func:`daemodel.collocation.stage_residual`, and ``y_{k+1} = Y_s``.  The
+implicit function theorem gives the derivatives of that map::
+
+    M_k dW_k = -R_y dy_k - R_p dp,     M_k = dR/dW  (the stage equations' full Jacobian)
+
+with ``-R_y`` = the identity on every stage's ``F`` rows and ``-R_p`` = ``h sum_j a_ij f_p(j)`` on
+the ``F`` rows, ``-g_p(i)`` on the ``G`` rows.  These are the sensitivities of the discrete
+solution that radau returns, with its steps as taken (an adaptive controller's step sizes are
+held, as every discrete sensitivity method holds them): central finite differences of a re-solve
+on the same steps agree with them to their own rounding.  The values between the steps' nodes
+(``t_eval``, :meth:`Solution.at`) are the collocation polynomial's, a fixed linear combination of
+the nodes, so their derivatives are the same combination of the nodes' derivatives.
+
+Why ``M_k`` is factored afresh rather than radau's own Newton matrices: radau's simplified Newton
+keeps one Jacobian (at some earlier step's start) for many steps and reaches the stage values by
+iterating; the exact derivative needs the Jacobian at each step's own stage values, and a solve
+with the kept matrices would need as many iterations again, one step at a time.  Here every
+step's ``M_k`` is built from the recorded stage values (the dense output's nodes) and factored
+together with all the others, a block of steps at a time in one batched LAPACK call, and only the
+small recursion ``dy_{k+1} = Phi_k dy_k + Psi_k`` runs step by step.
+
+The adjoint of a scalar ``J = sum over outputs of phi(u(t))`` runs the same steps backwards with
+the transposed matrices: one column for the cotangent and ``n`` for the state's recursion per
+step, whatever the number of parameters (their gradient is one product ``lambda_k^T (-R_p)`` per
+step).  Memory: blocks of steps are built, used and dropped, in the forward order for the forward
+sensitivities and in the reverse order for the adjoint; the recorded nodes are the checkpoints.
+
+Initial values: a named initial state moves with the others held where the constraints allow it
+(the derivative of ``compiled.consistent(y0, fix=[name])``); a parameter moves the initial states
+the least that keeps every z-free constraint level satisfied (the derivative of
+``compiled.consistent(y0, parameters=...)``); the algebraic values follow from their determining
+equations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemodel.collocation import lagrange_matrix
+from daemodel.compiling.init import hidden_constraints
+from daemodel.dense import CollocationPolynomials, Groups, step_owners
+from daemodel.errors import SensitivityError, UnknownSymbolError
+from daemodel.tableau import radau_iia
+
+# Bytes of step matrices (M_k and its right-hand sides) built at a time: a block of steps is
+# built, factored, used and dropped before the next.
+BLOCK_BYTES = 32 * 2**20
+# The constraints fix a named initial state when the other states cannot absorb its change: the
+# least-squares correction leaves a violation above this, relative to the constraint rows' size.
+FIXED_STATE_RTOL = 1e-8
+
+
+@dataclass(frozen=True)
+class Directions:
+    """What the derivatives are taken with respect to.
+
+    Attributes
+    ----------
+    names : tuple of str
+        As the caller named them: parameters and states (their initial values).
+    parameter : ndarray of int, shape (Q,)
+        Each name's parameter index, -1 for a state.
+    state : ndarray of int, shape (Q,)
+        Each name's state index, -1 for a parameter.
+    """
+
+    names: tuple
+    parameter: np.ndarray
+    state: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def parameter_columns(self, k: int) -> np.ndarray:
+        """``dp / d(direction)``, shape (k, Q): a one where a direction is a parameter."""
+        out = np.zeros((k, self.size))
+        for q, j in enumerate(self.parameter):
+            if j >= 0:
+                out[j, q] = 1.0
+        return out
+
+
+def directions(compiled, names, caller: str = "sensitivities") -> Directions:
+    """Resolve ``names`` (a name or a list of parameter and state names) against ``compiled``.
+
+    Raises
+    ------
+    SensitivityError
+        For an empty list, a repeated name, or an algebraic variable (its initial value is not free:
+        the constraints determine it).
+    UnknownSymbolError
+        For a name the model does not have.
+    """
+    if isinstance(names, str):
+        names = (names,)
+    try:
+        names = tuple(names)
+    except TypeError:
+        raise SensitivityError(f"{caller} must be a list of parameter or state names; got {names!r}") from None
+    if not names:
+        raise SensitivityError(f"{caller}: name at least one parameter or state")
+    if any(not isinstance(n, str) for n in names):
+        raise SensitivityError(f"{caller} must be names (strings); got {names!r}")
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise SensitivityError(f"{caller} names {', '.join(repr(r) for r in repeated)} more than once")
+    parameters, states = compiled.parameter_names, compiled.state_names
+    pruned = set(compiled.dropped.get("parameters", ()))
+    parameter, state = [], []
+    for name in names:
+        if name in compiled.algebraic_names:
+            raise SensitivityError(
+                f"{caller}: {name!r} is an algebraic variable: its initial value is not free (the constraints "
+                "determine it from the states and parameters), so nothing can be differentiated with respect to it; "
+                f"name states or parameters: {list(states) + list(parameters)}"
+            )
+        if name not in parameters and name not in states and name not in pruned:
+            raise UnknownSymbolError(
+                f"{caller}: {name!r} is neither a parameter nor a state of model '{compiled.name}'; the parameters are "
+                f"{list(parameters)} and the states {list(states)}"
+            )
+        parameter.append(parameters.index(name) if name in parameters else -1)
+        state.append(states.index(name) if name in states else -1)
+    return Directions(names=names, parameter=np.array(parameter, dtype=int), state=np.array(state, dtype=int))
+
+
+def _zero_free_levels(compiled) -> list:
+    """Every z-free constraint expression of the system and of the model it was reduced from (its
+    invariants): what the initial states must satisfy."""
+    exprs = [e for _, _, e in hidden_constraints(compiled.constraints)]
+    algebraics = set(compiled.algebraics)
+    for _, expr in compiled.invariants:
+        if not (expr.free_symbols & algebraics) and all((expr - e).expand() != 0 for e in exprs):
+            exprs.append(expr)
+    return exprs
+
+
+def initial_sensitivities(compiled, t0: float, y0: np.ndarray, z0: np.ndarray, p: np.ndarray, where: Directions):
+    """``(dy0, dz0)``, shapes (B, n, Q) and (B, m, Q): the consistent initial values' derivatives.
+
+    Raises
+    ------
+    SensitivityError
+        When the constraints fix a named state given the others (it cannot move alone), or their
+        Jacobian in the algebraic variables is singular at t0.
+    """
+    numeric = compiled.numeric
+    B, n, m, k, Q = len(y0), y0.shape[1], z0.shape[1], p.shape[1], where.size
+    dy = np.zeros((B, n, Q))
+    for q, i in enumerate(where.state):
+        if i >= 0:
+            dy[:, i, q] = 1.0
+    dp = np.broadcast_to(where.parameter_columns(k), (B, k, Q))
+    levels = _zero_free_levels(compiled)
+    if levels:
+        C = numeric.batch_jacobian(levels, compiled.states)(t0, y0, z0, p)  # (B, L, n)
+        Cp = numeric.batch_jacobian(levels, compiled.parameters)(t0, y0, z0, p)  # (B, L, k)
+        violation = C @ dy + Cp @ dp  # (B, L, Q)
+        for q in range(Q):
+            free = np.arange(n) != where.state[q]
+            Cf = C[:, :, free]
+            correction = -np.linalg.pinv(Cf) @ violation[:, :, q, None]  # the least change of the free states
+            left = np.abs(Cf @ correction + violation[:, :, q, None])[..., 0]  # (B, L)
+            scale = np.abs(C).max(axis=-1, initial=0.0) + np.abs(Cp).max(axis=-1, initial=0.0) + 1.0
+            if (left > FIXED_STATE_RTOL * scale).any():
+                b, level = np.argwhere(left > FIXED_STATE_RTOL * scale)[0]
+                raise SensitivityError(
+                    f"the constraints fix {where.names[q]!r} given the other states ({levels[level]} = 0 of sample "
+                    f"{b} cannot hold when it moves alone), so the solution has no derivative with respect to it; "
+                    "name the parameters or states the constraints leave free"
+                )
+            dy[:, free, q] += correction[..., 0]
+    if m == 0:
+        return dy, np.zeros((B, 0, Q))
+    determining = [c.determining for c in compiled.constraints]
+    Hz = numeric.batch_jacobian(determining, compiled.algebraics)(t0, y0, z0, p)
+    Hy = numeric.batch_jacobian(determining, compiled.states)(t0, y0, z0, p)
+    Hp = numeric.batch_jacobian(determining, compiled.parameters)(t0, y0, z0, p)
+    try:
+        dz = -np.linalg.solve(Hz, Hy @ dy + Hp @ dp)
+    except np.linalg.LinAlgError:
+        dz = np.full((B, m, Q), np.nan)
+    if not np.isfinite(dz).all():
+        raise SensitivityError(
+            f"the algebraic variables' equations are singular in {list(compiled.algebraic_names)} at t0 = {t0:g}: the "
+            "initial algebraic values have no derivative there"
+        )
+    return dy, dz
+
+
+class StepSystems:
+    """The stage equations' derivatives of the recorded steps, a block of steps at a time.
+
+    Parameters
+    ----------
+    compiled : CompiledDAE
+        The system the steps solved.
+    dense : CollocationPolynomials
+    p : ndarray, shape (B, k)
+    """
+
+    def __init__(self, compiled, dense: CollocationPolynomials, p: np.ndarray):
+        self.compiled, self.dense, self.p = compiled, dense, p
+        self.n, self.m = len(compiled.states), len(compiled.algebraics)
+        self.D = self.n + self.m
+        self.s = len(dense.c)
+        self.A = np.array(radau_iia(self.s).A, dtype=float)
+        self.B, self.S = dense.nodes.shape[0], len(dense.starts)
+        exprs = [*compiled.rhs, *compiled.g]
+        self.jacobian = compiled.numeric.batch_jacobian(exprs, [*compiled.states, *compiled.algebraics])
+        self.parameter_jacobian = compiled.numeric.batch_jacobian(exprs, list(compiled.parameters))
+        k = max(1, p.shape[1])
+        per_step = 8 * self.B * (self.s * self.D) * (2 * self.s * self.D + self.n + k)
+        self.block = max(1, int(BLOCK_BYTES // per_step))
+
+    def blocks(self, reverse: bool = False):
+        starts = list(range(0, self.S, self.block))
+        for first in reversed(starts) if reverse else starts:
+            yield first, min(self.S, first + self.block)
+
+    def build(self, first: int, last: int):
+        """``(M, rhs_p)`` of steps ``first:last``: M (B, K, sD, sD), rows stage by stage ``[F_i, G_i]``
+        and columns ``[Y_j, Z_j]``; ``rhs_p = -dR/dp`` (B, K, sD, k)."""
+        n, s, D, B = self.n, self.s, self.D, self.B
+        K = last - first
+        h = self.dense.lengths[first:last]  # (K,)
+        times = self.dense.starts[first:last, None] + self.dense.c[None, :] * h[:, None]  # (K, s)
+        W = np.asarray(self.dense.nodes[:, first:last, 1:], dtype=float)  # (B, K, s, D)
+        rows = W.reshape(B * K * s, D)
+        P = np.repeat(self.p, K * s, axis=0)
+        t = np.tile(times.reshape(K * s), B)
+        J = self.jacobian(t, rows[:, :n], rows[:, n:], P).reshape(B, K, s, D, D)
+        Jp = self.parameter_jacobian(t, rows[:, :n], rows[:, n:], P).reshape(B, K, s, D, -1)
+        hA = h[:, None, None] * self.A  # (K, s, s)
+        M = np.zeros((B, K, s, D, s, D))
+        M[:, :, :, :n] = -np.einsum("kij,bkjnd->bkinjd", hA, J[:, :, :, :n, :])
+        stage = np.arange(s)
+        M[:, :, stage, n:, stage, :] = J[:, :, :, n:, :].transpose(2, 0, 1, 3, 4)
+        M[:, :, stage, :n, stage, :n] += np.eye(n)
+        rhs_p = np.empty((B, K, s, D, Jp.shape[-1]))
+        rhs_p[:, :, :, :n] = np.einsum("kij,bkjnq->bkinq", hA, Jp[:, :, :, :n, :])
+        rhs_p[:, :, :, n:] = -Jp[:, :, :, n:, :]
+        return M.reshape(B, K, s * D, s * D), rhs_p.reshape(B, K, s * D, -1)
+
+    def solve(self, M, rhs, first: int, transposed: bool = False):
+        """``M^-1 rhs`` (or ``M^-T rhs``) of a block; a singular step is named by its time."""
+        M = np.swapaxes(M, -1, -2) if transposed else M
+        try:
+            X = np.linalg.solve(M, rhs)
+        except np.linalg.LinAlgError:
+            X = None
+        finite = None if X is None else np.isfinite(X).reshape(X.shape[0], X.shape[1], -1).all(axis=(0, 2))
+        if finite is not None and finite.all():
+            return X
+        if finite is None:  # LAPACK stopped at an exactly singular matrix: which step's
+            finite = np.array([(np.linalg.matrix_rank(M[:, k]) == M.shape[-1]).all() for k in range(M.shape[1])])
+        bad = first + int(np.flatnonzero(~finite)[0])
+        raise SensitivityError(
+            f"the stage equations of the step at t = {self.dense.starts[bad]:.6g} (h = {self.dense.lengths[bad]:.3g}) "
+            "are singular: the solution has no derivative there"
+        )
+
+    def state_rhs(self, K: int):
+        """``-dR/dy_k``, (sD, n): the identity on every stage's F rows."""
+        out = np.zeros((self.s, self.D, self.n))
+        out[:, : self.n] = np.eye(self.n)
+        return out.reshape(self.s * self.D, self.n)
+
+
+def _pieces(dense, batch: int):
+    """``[(sample indices, CollocationPolynomials)]`` of a radau dense output."""
+    if isinstance(dense, CollocationPolynomials):
+        return [(np.arange(batch), dense)]
+    if isinstance(dense, Groups) and all(isinstance(d, CollocationPolynomials) for _, d in dense.groups):
+        return [(np.asarray(index), d) for index, d in dense.groups]
+    return None
+
+
+def _outputs_by_step(dense, times):
+    """``(owner step, Lagrange weights (T, s+1))`` of each output time."""
+    step, theta = step_owners(dense.starts, dense.lengths, times)
+    return step, lagrange_matrix(np.concatenate([[0.0], dense.c]), theta)
+
+
+def forward(sol, names, model=None) -> tuple[Directions, np.ndarray]:
+    """The forward sensitivities of ``sol`` (a radau solution with its dense output) at its output
+    times: ``(directions, S)`` with S (B, T, n+m, Q), ``S[b, t, :, q] = d u(t) / d names[q]``."""
+    compiled = sol.compiled
+    where = directions(model or compiled, names)
+    pieces = check_solution(sol, "sensitivities")
+    y0, z0 = _start(sol)
+    dy0, dz0 = initial_sensitivities(compiled, float(sol.t[0]), y0, z0, sol.parameters, where)
+    B, T, n, m = sol.batch_size, len(sol.t), len(compiled.states), len(compiled.algebraics)
+    out = np.zeros((B, T, n + m, where.size))
+    for samples, dense in pieces:
+        out[samples] = _forward_piece(
+            compiled, dense, sol.parameters[samples], where, dy0[samples], dz0[samples], np.asarray(sol.t)
+        )
+    return where, out
+
+
+def _forward_piece(compiled, dense, p, where: Directions, dy0, dz0, times):
+    systems = StepSystems(compiled, dense, p)
+    n, s, D, B, Q = systems.n, systems.s, systems.D, systems.B, where.size
+    columns = where.parameter_columns(p.shape[1])  # (k, Q)
+    owner, weights = _outputs_by_step(dense, times)
+    out = np.zeros((B, len(times), D, Q))
+    Sy, Sz = dy0, dz0
+    for first, last in systems.blocks():
+        M, rhs_p = systems.build(first, last)
+        K = last - first
+        rhs = np.concatenate([np.broadcast_to(systems.state_rhs(K), (B, K, s * D, n)), rhs_p @ columns], axis=-1)
+        X = systems.solve(M, rhs, first).reshape(B, K, s, D, n + Q)
+        Phi, Psi = X[..., :n], X[..., n:]
+        for k in range(K):
+            stages = Phi[:, k] @ Sy[:, None] + Psi[:, k]  # (B, s, D, Q)
+            here = np.flatnonzero(owner == first + k)
+            if len(here):
+                nodes = np.concatenate([np.concatenate([Sy, Sz], axis=1)[:, None], stages], axis=1)  # (B, s+1, D, Q)
+                out[:, here] = np.einsum("tj,bjdq->btdq", weights[here], nodes)
+            Sy, Sz = stages[:, -1, :n], stages[:, -1, n:]
+    return out
+
+
+def adjoint(sol, cotangent: tuple, names, model=None) -> tuple[Directions, np.ndarray]:
+    """The gradient of ``J`` with respect to ``names`` by the discrete adjoint, given ``cotangent =
+    (dJ/du (B, T, n+m) at the output times, dJ/dp (B, k) directly)``: ``(directions, gradient (B, Q))``."""
+    cotangent, direct_p = cotangent
+    compiled = sol.compiled
+    where = directions(model or compiled, names, caller="gradient")
+    pieces = check_solution(sol, "gradient")
+    y0, z0 = _start(sol)
+    dy0, dz0 = initial_sensitivities(compiled, float(sol.t[0]), y0, z0, sol.parameters, where)
+    B, k = sol.batch_size, sol.parameters.shape[1]
+    gradient = np.zeros((B, where.size))
+    for samples, dense in pieces:
+        ybar0, zbar0, pbar = _adjoint_piece(compiled, dense, sol.parameters[samples], cotangent[samples], sol.t)
+        gradient[samples] = (
+            np.einsum("bn,bnq->bq", ybar0, dy0[samples])
+            + np.einsum("bm,bmq->bq", zbar0, dz0[samples])
+            + (pbar + direct_p[samples]) @ where.parameter_columns(k)
+        )
+    return where, gradient
+
+
+def _adjoint_piece(compiled, dense, p, cotangent, times):
+    """``(dJ/dy0 (B, n), dJ/dz0 (B, m), dJ/dp (B, k))`` with the initial values held.
+
+    Backwards over the steps: the stage values' cotangent ``Wbar_k`` (the outputs' direct share,
+    the next step's start value) gives ``lambda_k = M_k^-T Wbar_k``, then ``dJ/dy_k = ystart_k +
+    sum_i lambda_k[F_i]`` and ``dJ/dp += lambda_k^T (-R_p)``.  ``Wbar_k = c_k + E dJ/dy_{k+1}``
+    splits into what the outputs give (known for every step at once) and the state's share, so the
+    transposed solves of a block run together (one column for ``c_k``, n for ``E``) and only the
+    n-vector recursion ``dJ/dy_k = alpha_k + Gamma_k dJ/dy_{k+1}`` runs step by step."""
+    systems = StepSystems(compiled, dense, p)
+    n, s, D, B = systems.n, systems.s, systems.D, systems.B
+    owner, weights = _outputs_by_step(dense, np.asarray(times))
+    E = np.zeros((s, D, n))
+    E[-1, :n] = np.eye(n)
+    pbar = np.zeros((B, p.shape[1]))
+    ybar = np.zeros((B, n))  # dJ/dy at the start of the block after this one
+    for first, last in systems.blocks(reverse=True):
+        K = last - first
+        # the outputs' direct cotangents of each node of steps first..last (the step after the block
+        # included: its start value is the block's last stage)
+        direct = np.zeros((B, K + 1, s + 1, D))
+        for t in np.flatnonzero((owner >= first) & (owner <= last)):
+            direct[:, owner[t] - first] += weights[t][None, :, None] * cotangent[:, t, None, :]
+        c = direct[:, :K, 1:].copy()  # (B, K, s, D)
+        c[:, :, -1, n:] += direct[:, 1:, 0, n:]  # the next step's start z is this step's last stage
+        M, rhs_p = systems.build(first, last)
+        rhs = np.concatenate(
+            [c.reshape(B, K, s * D, 1), np.broadcast_to(E.reshape(s * D, n), (B, K, s * D, n))], axis=-1
+        )
+        X = systems.solve(M, rhs, first, transposed=True).reshape(B, K, s, D, 1 + n)
+        a, G = X[..., 0], X[..., 1:]  # lambda_k = a_k + G_k dJ/dy_{k+1}
+        alpha = a[:, :, :, :n].sum(axis=2) + direct[:, :K, 0, :n]  # (B, K, n)
+        Gamma = G[:, :, :, :n].sum(axis=2)  # (B, K, n, n): dJ/dy_k's share of dJ/dy_{k+1}
+        carried = np.empty((B, K, n))
+        for k in range(K - 1, -1, -1):
+            carried[:, k] = ybar
+            ybar = alpha[:, k] + (Gamma[:, k] @ ybar[..., None])[..., 0]
+        lam = a + (G @ carried[:, :, None, :, None])[..., 0]  # (B, K, s, D)
+        pbar += np.einsum("bkr,bkrq->bq", lam.reshape(B, K, s * D), rhs_p)
+    start = np.zeros((B, s + 1, D))
+    for t in np.flatnonzero(owner == 0):
+        start += weights[t][None, :, None] * cotangent[:, t, None, :]
+    return ybar, start[:, 0, n:], pbar
+
+
+def _start(sol):
+    """The initial states and algebraic values (B, n), (B, m) at the first output time."""
+    c = sol.compiled
+    y0 = (
+        np.stack([sol.values[name][:, 0] for name in c.state_names], axis=-1)
+        if c.states
+        else np.zeros((sol.batch_size, 0))
+    )
+    z0 = (
+        np.stack([sol.values[name][:, 0] for name in c.algebraic_names], axis=-1)
+        if c.algebraics
+        else np.zeros((sol.batch_size, 0))
+    )
+    return y0, z0
+
+
+def check_solution(sol, what: str):
+    """The dense output's pieces of a solution whose derivatives can be taken, else a SensitivityError."""
+    if sol.method != "radau":
+        raise SensitivityError(
+            f"{what}: derivatives are taken of radau's discrete solution (its stage equations); this solution is "
+            f"{sol.method!r}'s: solve with method='radau'"
+        )
+    if sol.breakpoints or sol.events:
+        raise SensitivityError(
+            f"{what}: the model has {'events' if sol.events else 'time switches'}, across which the derivatives of "
+            "the solution jump; daemodel does not differentiate through them yet: fit the span between two of them"
+        )
+    pieces = None if sol.dense is None else _pieces(sol.dense, sol.batch_size)
+    if pieces is None:
+        raise SensitivityError(
+            f"{what}: the solution keeps no record of its steps (dense_output=False, or a solve restarted at events): "
+            "solve with dense_output=True"
+        )
+    if abs(float(sol.t[0]) - float(pieces[0][1].starts[0])) > 0:
+        raise SensitivityError(f"{what}: the solution's outputs must start at t0 (they start at {sol.t[0]:g})")
+    return pieces
+
+
+def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
+    """``(dJ/du (B, T, n+m), dJ/dp (B, k))`` of an objective (see :meth:`Solution.gradient`): the
+    outputs' share and, through aliases and parameters the objective names, the parameters' own."""
+    import sympy as sp
+
+    from daemodel.declaring.parse import parse_equation
+    from daemodel.errors import ShapeError
+
+    c = sol.compiled
+    B, T, D = sol.batch_size, len(sol.t), len(c.states) + len(c.algebraics)
+    Y, Z, P, times = sol._flat()
+    kept = (*c.state_names, *c.algebraic_names)
+    if isinstance(objective, dict):
+        cot_u, cot_p = np.zeros((B * T, D)), np.zeros((B * T, len(c.parameters)))
+        for name, data in objective.items():
+            if name not in sol.values:
+                raise UnknownSymbolError(
+                    f"gradient: the data name {name!r}, which the solution does not have; it has {list(sol.names)}"
+                )
+            array = np.asarray(data, dtype=float)
+            if array.shape != sol[name].shape:
+                raise ShapeError(
+                    f"gradient: the data for {name!r} have shape {array.shape}; the solution's values {sol[name].shape}"
+                )
+            misfit = np.nan_to_num(2 * (sol.values[name] - array.reshape(B, T)), nan=0.0).reshape(B * T)
+            if name in kept:
+                cot_u[:, kept.index(name)] += misfit
+            else:  # an alias: through its expression
+                expr = next(e for a, e, _ in c.aliases if a == name)
+                numeric = c.numeric
+                cot_u += (
+                    misfit[:, None] * numeric.batch_jacobian([expr], [*c.states, *c.algebraics])(times, Y, Z, P)[:, 0]
+                )
+                cot_p += misfit[:, None] * numeric.batch_jacobian([expr], list(c.parameters))(times, Y, Z, P)[:, 0]
+        return cot_u.reshape(B, T, D), cot_p.reshape(B, T, -1).sum(axis=1)
+    table = {s.name: s for s in (c.t, *c.states, *c.algebraics, *c.parameters)}
+    table.update({name: sp.Symbol(name) for name in c.alias_names})
+    if isinstance(objective, str):
+        phi = parse_equation(objective, table, "the gradient's objective")
+    elif isinstance(objective, sp.Expr):
+        stray = sorted(s.name for s in objective.free_symbols if s.name not in table)
+        if stray:
+            raise UnknownSymbolError(
+                f"gradient: the objective names {stray}, which the solution does not have; it has "
+                f"{list(sol.names)} and the parameters {list(c.parameter_names)}"
+            )
+        phi = objective.xreplace({s: table[s.name] for s in objective.free_symbols})
+    else:
+        raise SensitivityError(
+            "gradient: the objective must be a dict of measured data by output name, or an expression of the "
+            f"outputs (a string or sympy expression); got {type(objective).__name__}"
+        )
+    phi = phi.xreplace({sp.Symbol(name): expr for name, expr, _ in c.aliases})
+    derivatives = [sp.diff(phi, v) for v in (*c.states, *c.algebraics, *c.parameters)]
+    out = c.numeric.batch_function(derivatives)(times, Y, Z, P)
+    if not np.isfinite(out).all():
+        raise SensitivityError("gradient: the objective's derivatives are not finite on the solution")
+    return out[:, :D].reshape(B, T, D), out[:, D:].reshape(B, T, -1).sum(axis=1)
