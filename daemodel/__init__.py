@@ -7,6 +7,7 @@ from daemodel.backends.pinn.config import PINNConfig
 from daemodel.comparing.compare import Comparison, compare
 from daemodel.compiling.compiled import CompiledDAE
 from daemodel.declaring.model import Model
+from daemodel.fitting.fit import Fit, fit
 from daemodel.solution import Solution
 from daemodel.solving.ensemble import EnsembleFiles, ensemble
 from daemodel.solving.solver import solve
@@ -16,6 +17,7 @@ __all__ = [
     "Comparison",
     "CompiledDAE",
     "EnsembleFiles",
+    "Fit",
     "Model",
     "PINNConfig",
     "RadauIIA",
@@ -24,6 +26,7 @@ __all__ = [
     "compare",
     "ensemble",
     "errors",
+    "fit",
     "methods",
     "radau_iia",
     "solve",

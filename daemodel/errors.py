@@ -249,3 +249,13 @@ class TargetError(ModelError):
 class SensitivityError(ModelError):
     """Derivatives of a solution cannot be taken as asked: a name that is not a parameter or free
     state, a method or solution without radau's step records, a singular step."""
+
+
+class DataError(ModelError):
+    """Measured data that a fit cannot use: times outside the model's span or not increasing, a series
+    with no measurement, arrays of the wrong shape."""
+
+
+class UnidentifiableError(ModelError):
+    """The data do not determine some parameters of a fit: the outputs do not depend on them, or a
+    change of several of them together leaves the outputs unchanged."""

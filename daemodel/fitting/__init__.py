@@ -1,0 +1,1 @@
+"""Parameter estimation: :func:`daemodel.fit` and its result."""

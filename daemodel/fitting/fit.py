@@ -1,0 +1,423 @@
+"""``fit``: parameters (and initial states) of a DAE from measured outputs.
+
+Least squares on the misfit between the data and radau's solution at the measured times, with the
+exact derivatives of that solution (:mod:`daemodel.solving.sensitivities`): scipy's trust-region
+reflective ``least_squares`` with the sensitivities as its Jacobian, bounds kept.  Each series is
+weighed by its noise level when given (``sigma``), else by its own root mean square, so outputs of
+different magnitudes count alike.  The standard errors come from that Jacobian at the estimate,
+``cov = s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square (the usual asymptotic estimate;
+it assumes independent noise of equal variance within each weighted series).
+
+Before and after the iterations the Jacobian's columns are checked for dependence: a parameter the
+data do not determine (no effect on the outputs, or an effect that another's change can undo) is
+refused with :class:`~daemodel.errors.UnidentifiableError`, naming the parameters involved, instead
+of returning an arbitrary value with an infinite or meaningless standard error.
+
+``method="pinn"`` trains the Radau-PINN's segment networks together with the parameters
+(:mod:`daemodel.backends.pinn.inverse`); the result has the same form, with the PINN's certificate.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from daemodel.compiling.compiler import as_compiled
+from daemodel.errors import (
+    DataError,
+    InvalidOptionError,
+    UnidentifiableError,
+    UnknownSymbolError,
+)
+from daemodel.reals import is_real, real
+from daemodel.solving.sensitivities import directions
+from daemodel.solving.solver import solve
+
+# A direction in the (scaled) parameter space along which the weighted outputs change less than this
+# fraction of the Jacobian's largest singular value is one the data do not determine.
+IDENTIFIABILITY_RTOL = 1e-7
+# In a dependent direction, the parameters whose share of the (unit) null vector is at least this are named.
+CULPRIT_SHARE = 0.1
+# Iterations (Jacobian evaluations) of the least-squares solver, unless max_iterations says otherwise.
+DEFAULT_MAX_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class Fit:
+    """The result of :func:`fit`.
+
+    Attributes
+    ----------
+    parameters : dict name -> float
+        The estimates.
+    std : dict name -> float
+        Their standard errors from the Jacobian at the estimate.
+    correlation : ndarray, shape (P, P)
+        The estimates' correlation matrix, in the order of ``parameters``.
+    residuals : dict output -> ndarray (T,)
+        data - model at the measured times (NaN where the data are missing).
+    solution : Solution
+        The model solved at the estimate, on the measured times (t0 first).
+    cost : float
+        Half the sum of the weighted residuals' squares.
+    iterations : int
+        Jacobian evaluations (one solve with sensitivities each).
+    status : str
+        ``"success"`` when the solver's convergence test held; otherwise why it stopped.
+    method : str
+    fit_time : float
+        Seconds from start to result (solves, sensitivities and the solver's own work).
+    certificate : object or None
+        The Radau-PINN's certificate (``method="pinn"``); None for ``"radau"``.
+    """
+
+    parameters: dict
+    std: dict
+    correlation: np.ndarray = field(repr=False)
+    residuals: dict = field(repr=False)
+    solution: object = field(repr=False)
+    cost: float
+    iterations: int
+    status: str
+    method: str
+    fit_time: float
+    certificate: object = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        rows = [f"  {name:>12} = {value:.10g} +- {self.std[name]:.3g}" for name, value in self.parameters.items()]
+        return (
+            f"Fit({self.method}, {self.status}, cost {self.cost:.4g}, {self.iterations} iterations, "
+            f"{self.fit_time:.3g} s)\n" + "\n".join(rows)
+        )
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The checked inputs of one fit."""
+
+    compiled: object
+    names: tuple
+    start: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    times: np.ndarray  # the solve's output times: t0, then the measured times
+    rows: np.ndarray  # each measured time's index in ``times``
+    data: dict  # output -> (T,) with NaN
+    scale: dict  # output -> the series' weight's inverse
+
+
+def fit(
+    model,
+    t,
+    data: dict,
+    parameters: dict,
+    *,
+    method: str = "radau",
+    y0=None,
+    sigma: dict | None = None,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
+    tol: float = 1e-10,
+    **options,
+) -> Fit:
+    """Estimate parameters and initial states from measured outputs.
+
+    Parameters
+    ----------
+    model : Model or CompiledDAE
+    t : array (T,)
+        Measurement times, increasing, at or after the model's initial time.
+    data : dict output name -> array (T,)
+        Measured values of states, algebraic variables or aliases; NaN where missing.
+    parameters : dict name -> float or (low, high) or (low, start, high)
+        What to estimate: parameters and states (their initial values), each with a starting
+        value, or bounds (the start is then their midpoint, or their geometric mean when both are
+        positive), or both.  Every other parameter and state keeps the model's value (``y0``
+        overrides the states').
+    method : {"radau", "pinn"}
+    y0 : dict state -> float, optional
+        Known initial states other than the model's.
+    sigma : dict output -> float, optional
+        The noise level (standard deviation) of each series: its residuals are divided by it.
+        Default: each series' root mean square.
+    max_iterations : int
+        Most Jacobian evaluations; the result is flagged (``status``) when they run out.
+    tol : float
+        The least-squares solver's tolerance on the relative change of the cost and of the estimates.
+    **options
+        radau's options for each solve (default ``rtol=1e-8``), or the Radau-PINN's for ``"pinn"``.
+
+    Returns
+    -------
+    Fit
+
+    Raises
+    ------
+    DataError
+        For times outside the model's span or not increasing, a series that is all NaN, or arrays
+        of the wrong length.
+    UnidentifiableError
+        When the data do not determine some parameters (the Jacobian's columns are dependent), naming them.
+    UnknownSymbolError, SensitivityError, InvalidOptionError
+        For names the model does not have, algebraic variables named as parameters, bad options.
+    """
+    started = time.perf_counter()
+    compiled = as_compiled(model)
+    problem = _problem(compiled, t, data, parameters, sigma)
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
+        raise InvalidOptionError(f"max_iterations must be a positive integer; got {max_iterations!r}")
+    if not (is_real(tol) and 0 < float(tol) < 1):
+        raise InvalidOptionError(f"tol must be a number in (0, 1); got {tol!r}")
+    if method == "pinn":
+        from daemodel.backends.pinn.inverse import fit_pinn
+
+        return fit_pinn(problem, y0=y0, max_iterations=max_iterations, started=started, **options)
+    if method != "radau":
+        raise InvalidOptionError(f"fit: method must be 'radau' or 'pinn'; got {method!r}")
+    return _fit_radau(problem, y0, max_iterations, float(tol), options, started)
+
+
+def _problem(compiled, t, data, parameters, sigma) -> _Problem:
+    times = np.asarray(t, dtype=float) if not isinstance(t, str | bytes) else None
+    if times is None or times.ndim != 1 or len(times) == 0 or not np.isfinite(times).all():
+        raise DataError(f"fit: t must be a non-empty 1-d array of finite times; got {np.shape(t)!r}")
+    if (np.diff(times) <= 0).any():
+        k = int(np.flatnonzero(np.diff(times) <= 0)[0])
+        raise DataError(f"fit: t must increase; t[{k}] = {times[k]:g} and t[{k + 1}] = {times[k + 1]:g}")
+    if times[0] < compiled.t0:
+        raise DataError(
+            f"fit: t[0] = {times[0]:g} is before the initial time t0 = {compiled.t0:g} of '{compiled.name}': data "
+            "outside the span the model integrates over; drop those points or declare m.initial(t=...) earlier"
+        )
+    if not isinstance(data, dict) or not data:
+        raise DataError("fit: data must be a dict output name -> measured values, with at least one series")
+    outputs = (*compiled.state_names, *compiled.algebraic_names, *compiled.alias_names)
+    series, scale = {}, {}
+    sigma = dict(sigma or {})
+    for name, values in data.items():
+        if name not in outputs:
+            raise UnknownSymbolError(
+                f"fit: data name {name!r}, which model '{compiled.name}' has no output of; its outputs are "
+                f"{list(outputs)}"
+            )
+        array = np.asarray(values, dtype=float)
+        if array.shape != times.shape:
+            raise DataError(f"fit: data[{name!r}] has shape {array.shape}; t has {times.shape}")
+        if np.isinf(array).any():
+            raise DataError(
+                f"fit: data[{name!r}] holds infinite values (at t = {times[np.isinf(array)][0]:g}); use NaN for missing"
+            )
+        if np.isnan(array).all():
+            raise DataError(f"fit: data[{name!r}] is NaN everywhere: a series with no measurement; drop it")
+        series[name] = array
+        if name in sigma:
+            scale[name] = real(sigma.pop(name), f"sigma[{name!r}]")
+            if not scale[name] > 0:
+                raise DataError(f"fit: sigma[{name!r}] must be positive; got {scale[name]}")
+        else:
+            rms = float(np.sqrt(np.nanmean(array**2)))
+            scale[name] = rms if rms > 0 else 1.0
+    if sigma:
+        raise DataError(f"fit: sigma names {sorted(sigma)}, for which data has no series")
+    if not isinstance(parameters, dict) or not parameters:
+        raise InvalidOptionError("fit: parameters must be a dict name -> start value or (low, high) bounds, not empty")
+    where = directions(compiled, tuple(parameters), caller="fit")
+    values = dict(zip(compiled.parameter_names, compiled.parameter_values, strict=True))
+    values.update(zip(compiled.state_names, compiled.y0, strict=True))
+    start, low, high = [], [], []
+    for name, spec in parameters.items():
+        lo, x0, hi = _bounds(name, spec)
+        start.append(x0 if x0 is not None else values.get(name, 0.0))
+        low.append(lo)
+        high.append(hi)
+    start, low, high = (np.array(a, dtype=float) for a in (start, low, high))
+    start = np.clip(start, low, high)
+    if times[0] > compiled.t0:
+        grid, rows = np.concatenate([[compiled.t0], times]), np.arange(1, len(times) + 1)
+    else:
+        grid, rows = times, np.arange(len(times))
+    return _Problem(compiled, where.names, start, low, high, grid, rows, series, scale)
+
+
+def _bounds(name, spec):
+    """``(low, start or None, high)`` of one entry of ``parameters``."""
+    if is_real(spec):
+        return -math.inf, real(spec, f"parameters[{name!r}]"), math.inf
+    if isinstance(spec, tuple | list) and len(spec) in (2, 3) and all(is_real(v) for v in spec):
+        numbers = [real(v, f"parameters[{name!r}]", finite=False) for v in spec]
+        low, high = numbers[0], numbers[-1]
+        if not low < high:
+            raise InvalidOptionError(
+                f"fit: parameters[{name!r}] has bounds ({low:g}, {high:g}): low must be below high"
+            )
+        if len(numbers) == 3:
+            if not low <= numbers[1] <= high:
+                raise InvalidOptionError(
+                    f"fit: parameters[{name!r}]: the start {numbers[1]:g} is outside ({low:g}, {high:g})"
+                )
+            return low, numbers[1], high
+        if not (math.isfinite(low) and math.isfinite(high)):
+            return low, None, high
+        return low, (math.sqrt(low * high) if low > 0 else 0.5 * (low + high)), high
+    raise InvalidOptionError(
+        f"fit: parameters[{name!r}] must be a start value, (low, high) bounds or (low, start, high); got {spec!r}"
+    )
+
+
+class _Model:
+    """The weighted residuals and their Jacobian at parameter vectors, one solve with sensitivities
+    each, kept for the last vector (scipy asks for the residuals and the Jacobian apart)."""
+
+    def __init__(self, problem: _Problem, y0, options):
+        self.problem, self.options = problem, {"rtol": 1e-8, **options}
+        c = problem.compiled
+        self.base_p = dict(zip(c.parameter_names, c.parameter_values, strict=True))
+        self.base_y = dict(zip(c.state_names, c.y0, strict=True))
+        if y0:
+            unknown = [k for k in y0 if k not in self.base_y]
+            if unknown:
+                raise UnknownSymbolError(f"fit: y0 names {unknown}, which are not states of '{c.name}'")
+            self.base_y.update({k: real(v, f"y0[{k!r}]") for k, v in y0.items()})
+        self.states = [name for name in problem.names if name in c.state_names]
+        self.last = None
+        self.solves = 0
+
+    def solve(self, x):
+        if self.last is not None and np.array_equal(self.last[0], x):
+            return self.last[1]
+        p = self.problem
+        c = p.compiled
+        parameters = {**self.base_p, **{n: v for n, v in zip(p.names, x, strict=True) if n in self.base_p}}
+        y0 = {**self.base_y, **{n: v for n, v in zip(p.names, x, strict=True) if n in self.base_y}}
+        # initial states consistent with the constraints at these values: the named states held, the
+        # others moved the least (what the sensitivities differentiate)
+        y0 = c.consistent(y0=y0, parameters=parameters, fix=self.states)
+        sol = solve(
+            c,
+            (c.t0, float(p.times[-1])),
+            parameters=parameters,
+            y0=y0,
+            t_eval=p.times,
+            sensitivities=p.names,
+            **self.options,
+        )
+        self.solves += 1
+        self.last = (x.copy(), sol)
+        return sol
+
+    def residuals(self, x):
+        sol = self.solve(x)
+        p = self.problem
+        parts = [((sol[o][p.rows] - d) / p.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
+        return np.concatenate(parts)
+
+    def jacobian(self, x):
+        sol = self.solve(x)
+        p = self.problem
+        columns = []
+        for name in p.names:
+            columns.append(
+                np.concatenate(
+                    [(sol.sensitivity(o, name)[p.rows] / p.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
+                )
+            )
+        return np.stack(columns, axis=-1)
+
+
+def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: dict, started: float) -> Fit:
+    from scipy.optimize import least_squares
+
+    if "t_eval" in options or "sensitivities" in options:
+        raise InvalidOptionError(
+            "fit: t_eval and sensitivities are set by the fit (the measured times, the fitted names)"
+        )
+    model = _Model(problem, y0, options)
+    check_identifiable(problem.names, model.jacobian(problem.start), "at the start")
+    result = least_squares(
+        model.residuals,
+        problem.start,
+        jac=model.jacobian,
+        bounds=(problem.low, problem.high),
+        method="trf",
+        x_scale="jac",
+        ftol=tol,
+        xtol=tol,
+        gtol=tol,
+        max_nfev=max_iterations,
+    )
+    x = result.x
+    J = model.jacobian(x)
+    r = model.residuals(x)
+    check_identifiable(problem.names, J, "at the estimate")
+    std, correlation = standard_errors(J, r)
+    sol = model.solve(x)
+    status = (
+        "success"
+        if result.status > 0
+        else (
+            f"not converged: {result.message.rstrip('.')} after {result.nfev} evaluations "
+            f"(max_iterations={max_iterations}); "
+            f"the estimate is the best found, gradient norm {np.linalg.norm(result.grad, np.inf):.3g}"
+        )
+    )
+    at_bound = [n for n, v, lo, hi in zip(problem.names, x, problem.low, problem.high, strict=True) if v in (lo, hi)]
+    if at_bound and status == "success":
+        status = f"success, with {at_bound} at a bound (their standard errors assume the bound is not active)"
+    return Fit(
+        parameters={n: float(v) for n, v in zip(problem.names, x, strict=True)},
+        std={n: float(v) for n, v in zip(problem.names, std, strict=True)},
+        correlation=correlation,
+        residuals={o: np.where(np.isnan(d), np.nan, d - sol[o][problem.rows]) for o, d in problem.data.items()},
+        solution=sol,
+        cost=float(0.5 * r @ r),
+        iterations=int(result.njev or result.nfev),
+        status=status,
+        method="radau",
+        fit_time=time.perf_counter() - started,
+    )
+
+
+def check_identifiable(names, J, when: str) -> None:
+    """Raise :class:`UnidentifiableError` when the columns of ``J`` (residuals x parameters) are
+    dependent, naming the parameters of each dependent direction."""
+    norms = np.linalg.norm(J, axis=0)
+    dead = [n for n, v in zip(names, norms, strict=True) if not v > 0]
+    if dead:
+        it = "it" if len(dead) == 1 else "them"
+        raise UnidentifiableError(
+            f"fit: the data do not depend on {dead} {when}: the outputs measured do not change with {it}; fix {it} "
+            f"at known values, or measure an output that depends on {it}"
+        )
+    scaled = J / norms
+    _, singular, vt = np.linalg.svd(scaled, full_matrices=False)
+    small = singular <= IDENTIFIABILITY_RTOL * singular[0]
+    if len(singular) < len(names):  # fewer residuals than parameters
+        raise UnidentifiableError(
+            f"fit: {len(J)} data points cannot determine the {len(names)} parameters {list(names)}; measure more"
+        )
+    if small.any():
+        first = np.flatnonzero(small)[0]
+        v = vt[first]
+        culprits = [n for n, share in zip(names, np.abs(v), strict=True) if share >= CULPRIT_SHARE]
+        change = " and ".join(
+            f"{n} by {share:+.3g}" for n, share in zip(names, v, strict=True) if abs(share) >= CULPRIT_SHARE
+        )
+        raise UnidentifiableError(
+            f"fit: the data do not determine {culprits} {when}: a change of {change} (each relative to its own "
+            f"effect) leaves the outputs unchanged to {singular[first] / singular[0]:.1e}; fix all but one of them "
+            "at known values, or measure an output that tells them apart"
+        )
+
+
+def standard_errors(J, r):
+    """``(std (P,), correlation (P, P))`` from the Jacobian and residuals at the estimate."""
+    N, P = J.shape
+    dof = max(N - P, 1)
+    s2 = float(r @ r) / dof
+    cov = s2 * np.linalg.inv(J.T @ J)
+    std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        correlation = cov / np.outer(std, std)
+    return std, correlation
