@@ -216,8 +216,10 @@ class NumericSystem:
                 return np.zeros((len(Y), 0))
             # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
             t = np.broadcast_to(np.asarray(t, dtype=float), (len(Y),))
-            out = fn(t, Y.T, Z.T, P.T)
-            return np.stack([np.broadcast_to(np.asarray(v, dtype=float), (len(Y),)) for v in out], axis=-1)
+            out = np.empty((len(Y), len(exprs)))
+            for i, v in enumerate(fn(t, Y.T, Z.T, P.T)):  # (a constant broadcasts on assignment)
+                out[:, i] = np.asarray(v, dtype=float)
+            return out
 
         return evaluate
 

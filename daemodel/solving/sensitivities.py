@@ -240,12 +240,13 @@ class StepSystems:
         Jp = self.parameter_jacobian(t, rows[:, :n], rows[:, n:], P).reshape(B, K, s, D, -1)
         hA = h[:, None, None] * self.A  # (K, s, s)
         M = np.zeros((B, K, s, D, s, D))
-        M[:, :, :, :n] = -np.einsum("kij,bkjnd->bkinjd", hA, J[:, :, :, :n, :])
+        # (a broadcast product: einsum's loops run 5x slower here)
+        M[:, :, :, :n] = -hA[None, :, :, None, :, None] * np.swapaxes(J[:, :, :, :n, :], 2, 3)[:, :, None]
         stage = np.arange(s)
         M[:, :, stage, n:, stage, :] = J[:, :, :, n:, :].transpose(2, 0, 1, 3, 4)
         M[:, :, stage, :n, stage, :n] += np.eye(n)
         rhs_p = np.empty((B, K, s, D, Jp.shape[-1]))
-        rhs_p[:, :, :, :n] = np.einsum("kij,bkjnq->bkinq", hA, Jp[:, :, :, :n, :])
+        rhs_p[:, :, :, :n] = (hA[None, :, :, :, None, None] * Jp[:, :, None, :, :n, :]).sum(axis=3)
         rhs_p[:, :, :, n:] = -Jp[:, :, :, n:, :]
         return M.reshape(B, K, s * D, s * D), rhs_p.reshape(B, K, s * D, -1)
 
@@ -319,13 +320,19 @@ def _forward_piece(compiled, dense, p, where: Directions, dy0, dz0, times):
         rhs = np.concatenate([np.broadcast_to(systems.state_rhs(K), (B, K, s * D, n)), rhs_p @ columns], axis=-1)
         X = systems.solve(M, rhs, first).reshape(B, K, s, D, n + Q)
         Phi, Psi = X[..., :n], X[..., n:]
+        # step by step only the end values' recursion: (B, D, n) @ (B, n, Q) a step
+        starts = np.empty((B, K, D, Q))
         for k in range(K):
-            stages = Phi[:, k] @ Sy[:, None] + Psi[:, k]  # (B, s, D, Q)
-            here = np.flatnonzero(owner == first + k)
-            if len(here):
-                nodes = np.concatenate([np.concatenate([Sy, Sz], axis=1)[:, None], stages], axis=1)  # (B, s+1, D, Q)
-                out[:, here] = np.einsum("tj,bjdq->btdq", weights[here], nodes)
-            Sy, Sz = stages[:, -1, :n], stages[:, -1, n:]
+            starts[:, k, :n], starts[:, k, n:] = Sy, Sz
+            end = Phi[:, k, -1] @ Sy + Psi[:, k, -1]
+            Sy, Sz = end[:, :n], end[:, n:]
+        # the nodes of the steps that hold outputs, all at once
+        here = np.flatnonzero((owner >= first) & (owner < last))
+        if len(here):
+            k = owner[here] - first
+            stages = Phi[:, k] @ starts[:, k, None, :n] + Psi[:, k]  # (B, T_here, s, D, Q)
+            nodes = np.concatenate([starts[:, k, None], stages], axis=2)  # (B, T_here, s+1, D, Q)
+            out[:, here] = np.einsum("tj,btjdq->btdq", weights[here], nodes)
     return out
 
 
