@@ -7,27 +7,14 @@ import pytest
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.problems import AKZO_NOBEL
+from daemodel.problems import AKZO_NOBEL, DAMPED_PENDULUM
 
 TRUE_PENDULUM = {"L": 1.3, "m": 0.7}
 AKZO_RATES = ("k1", "k2", "k3", "k4", "klA")
 
 
 def damped_pendulum():
-    """A pendulum of length L and mass m with known linear damping c, released from rest at the
-    angle of (0.6, -0.8): the damping makes m visible in the positions (c/m is the decay rate)."""
-    m = dm.Model("damped-pendulum")
-    m.states(["x", "y", "u", "v"])
-    m.algebraics("lam")
-    for name, value in dict(L=1.0, m=1.0, c=0.3, g=9.81).items():
-        m.parameter(name, value)
-    m.ode("x", "u")
-    m.ode("y", "v")
-    m.ode("u", "(-x*lam - c*u)/m")
-    m.ode("v", "(-y*lam - c*v)/m - g")
-    m.constraint("x**2 + y**2 - L**2", name="rod")
-    m.initial(x=0.6, y=-0.8, u=0.0, v=0.0)
-    return m.compile()
+    return DAMPED_PENDULUM.model().compile()
 
 
 @pytest.fixture(scope="module")
