@@ -41,6 +41,10 @@ from daemodel.solving.solver import solve
 IDENTIFIABILITY_RTOL = 1e-7
 # In a dependent direction, the parameters whose share of the (unit) null vector is at least this are named.
 CULPRIT_SHARE = 0.1
+# Without sigma, each series' noise level is estimated from its residuals and the fit run again with
+# those weights, until no level changes by more than REWEIGHT_RTOL (at most REWEIGHTINGS times); a
+# level is kept above NOISE_FLOOR times the series' root mean square (noise-free data).
+REWEIGHTINGS, REWEIGHT_RTOL, NOISE_FLOOR = 4, 0.1, 1e-10
 # Iterations (Jacobian evaluations) of the least-squares solver, unless max_iterations says otherwise.
 DEFAULT_MAX_ITERATIONS = 100
 
@@ -106,7 +110,8 @@ class _Problem:
     times: np.ndarray  # the solve's output times: t0, then the measured times
     rows: np.ndarray  # each measured time's index in ``times``
     data: dict  # output -> (T,) with NaN
-    scale: dict  # output -> the series' weight's inverse
+    scale: dict  # output -> the series' weight's inverse: its noise level, given or first guessed
+    estimated: frozenset  # the series whose noise level the fit estimates (no sigma given)
 
 
 def fit(
@@ -196,6 +201,7 @@ def _problem(compiled, t, data, parameters, sigma) -> _Problem:
     outputs = (*compiled.state_names, *compiled.algebraic_names, *compiled.alias_names)
     series, scale = {}, {}
     sigma = dict(sigma or {})
+    given = set(sigma)
     for name, values in data.items():
         if name not in outputs:
             raise UnknownSymbolError(
@@ -238,7 +244,8 @@ def _problem(compiled, t, data, parameters, sigma) -> _Problem:
         grid, rows = np.concatenate([[compiled.t0], times]), np.arange(1, len(times) + 1)
     else:
         grid, rows = times, np.arange(len(times))
-    return _Problem(compiled, where.names, start, low, high, grid, rows, series, scale)
+    estimated = frozenset(name for name in series if name not in given)
+    return _Problem(compiled, where.names, start, low, high, grid, rows, series, scale, estimated)
 
 
 def _bounds(name, spec):
@@ -281,6 +288,7 @@ class _Model:
                 raise UnknownSymbolError(f"fit: y0 names {unknown}, which are not states of '{c.name}'")
             self.base_y.update({k: real(v, f"y0[{k!r}]") for k, v in y0.items()})
         self.states = [name for name in problem.names if name in c.state_names]
+        self.scale = dict(problem.scale)  # each series' noise level: given, or estimated (reweight)
         self.last = None
         self.solves = 0
 
@@ -310,8 +318,26 @@ class _Model:
     def residuals(self, x):
         sol = self.solve(x)
         p = self.problem
-        parts = [((sol[o][p.rows] - d) / p.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
+        parts = [((sol[o][p.rows] - d) / self.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
         return np.concatenate(parts)
+
+    def reweight(self, x) -> bool:
+        """Estimate each series' noise level (where ``sigma`` gave none) from its residuals at ``x``;
+        True when one changed by more than :data:`REWEIGHT_RTOL` (the fit then runs again)."""
+        p = self.problem
+        sol = self.solve(x)
+        N = sum(int((~np.isnan(d)).sum()) for d in p.data.values())
+        changed = False
+        for o, d in p.data.items():
+            if o not in p.estimated:
+                continue
+            r = (sol[o][p.rows] - d)[~np.isnan(d)]
+            # the residuals' mean square, with the parameters' share of the degrees of freedom taken out
+            level = float(np.sqrt(r @ r / max(len(r) * (N - len(p.names)) / N, 1.0)))
+            level = max(level, NOISE_FLOOR * float(np.sqrt(np.nanmean(d**2))), np.finfo(float).tiny)
+            changed |= abs(level / self.scale[o] - 1) > REWEIGHT_RTOL
+            self.scale[o] = level
+        return changed
 
     def jacobian(self, x):
         sol = self.solve(x)
@@ -320,7 +346,7 @@ class _Model:
         for name in p.names:
             columns.append(
                 np.concatenate(
-                    [(sol.sensitivity(o, name)[p.rows] / p.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
+                    [(sol.sensitivity(o, name)[p.rows] / self.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
                 )
             )
         return np.stack(columns, axis=-1)
@@ -335,18 +361,23 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
         )
     model = _Model(problem, y0, options)
     check_identifiable(problem.names, model.jacobian(problem.start), "at the start")
-    result = least_squares(
-        model.residuals,
-        problem.start,
-        jac=model.jacobian,
-        bounds=(problem.low, problem.high),
-        method="trf",
-        x_scale="jac",
-        ftol=tol,
-        xtol=tol,
-        gtol=tol,
-        max_nfev=max_iterations,
-    )
+    x, evaluations, jacobians = problem.start, 0, 0
+    for _ in range(REWEIGHTINGS + 1):
+        result = least_squares(
+            model.residuals,
+            x,
+            jac=model.jacobian,
+            bounds=(problem.low, problem.high),
+            method="trf",
+            x_scale="jac",
+            ftol=tol,
+            xtol=tol,
+            gtol=tol,
+            max_nfev=max(1, max_iterations - evaluations),
+        )
+        x, evaluations, jacobians = result.x, evaluations + result.nfev, jacobians + (result.njev or result.nfev)
+        if not model.reweight(x) or evaluations >= max_iterations or result.status <= 0:
+            break
     x = result.x
     J = model.jacobian(x)
     r = model.residuals(x)
@@ -357,7 +388,7 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
         "success"
         if result.status > 0
         else (
-            f"not converged: {result.message.rstrip('.')} after {result.nfev} evaluations "
+            f"not converged: {result.message.rstrip('.')} after {evaluations} evaluations "
             f"(max_iterations={max_iterations}); "
             f"the estimate is the best found, gradient norm {np.linalg.norm(result.grad, np.inf):.3g}"
         )
@@ -372,7 +403,7 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
         residuals={o: np.where(np.isnan(d), np.nan, d - sol[o][problem.rows]) for o, d in problem.data.items()},
         solution=sol,
         cost=float(0.5 * r @ r),
-        iterations=int(result.njev or result.nfev),
+        iterations=int(jacobians),
         status=status,
         method="radau",
         fit_time=time.perf_counter() - started,
