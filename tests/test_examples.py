@@ -71,3 +71,12 @@ def test_examples_match_problem_library(example, kwargs, problem):
     assert mine.state_names == ref.state_names and mine.algebraic_names == ref.algebraic_names
     assert all(sp.simplify(a - b) == 0 for a, b in zip(mine.rhs + mine.g, ref.rhs + ref.g, strict=True))
     assert mine.y0.tolist() == ref.y0.tolist() and mine.z0.tolist() == ref.z0.tolist()
+
+
+def test_fit_example_checks_sensitivities_adjoint_and_the_fit(tmp_path):
+    out = run("fit", "--plot", str(tmp_path / "fit.png"))
+    gap = float(out.split("largest relative gap to central differences: ")[1].split()[0])
+    assert gap < 1e-6
+    assert "Fit(radau, success" in out and "standard errors from the truth" in out
+    assert "m and c together: fit: the data do not determine ['m', 'c']" in out
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
