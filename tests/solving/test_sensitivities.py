@@ -103,10 +103,10 @@ def test_the_decay_sensitivities_converge_to_the_closed_form_at_order_2s_minus_1
     assert abs(order - (2 * stages - 1)) < 0.3, (errors, order)
 
 
-@pytest.mark.parametrize("mode", ["fixed", "adaptive"])
+@pytest.mark.parametrize("mode", ["fixed", "adaptive", "adaptive, jit"])
 def test_pendulum_index3_sensitivities_match_central_differences(mode):
     compiled = PENDULUM_INDEX3.model().compile()
-    options = dict(h=0.05, stages=3, newton_tol=1e-14) if mode == "fixed" else dict(rtol=1e-6)
+    options = dict(h=0.05, stages=3, newton_tol=1e-14) if mode == "fixed" else dict(rtol=1e-6, jit="jit" in mode)
     names = ["m", "lam", "y2", "y3"]
     sol = dm.solve(compiled, (0.0, 1.0), sensitivities=names, **options)
     values = dict(zip(compiled.parameter_names, compiled.parameter_values, strict=True))
