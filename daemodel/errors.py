@@ -244,3 +244,8 @@ class NetworkFileError(ModelError):
 
 class TargetError(ModelError):
     """A ``daemodel compare`` target is neither a known problem nor a usable model file."""
+
+
+class FittedConstraintError(ModelError):
+    """A constraint without algebraic variables (index 2, or an index-3 one's position or velocity
+    level) depends on a parameter being fitted: the known initial states satisfy it at one value only."""
