@@ -259,3 +259,8 @@ class DataError(ModelError):
 class UnidentifiableError(ModelError):
     """The data do not determine some parameters of a fit: the outputs do not depend on them, or a
     change of several of them together leaves the outputs unchanged."""
+
+
+class FittedConstraintError(ModelError):
+    """A constraint without algebraic variables (index 2, or an index-3 one's position or velocity
+    level) depends on a parameter being fitted: the known initial states satisfy it at one value only."""
