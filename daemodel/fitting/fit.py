@@ -19,6 +19,7 @@ of returning an arbitrary value with an infinite or meaningless standard error.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -176,9 +177,7 @@ def fit(
     if not (is_real(tol) and 0 < float(tol) < 1):
         raise InvalidOptionError(f"tol must be a number in (0, 1); got {tol!r}")
     if method == "pinn":
-        from daemodel.backends.pinn.inverse import fit_pinn
-
-        return fit_pinn(problem, y0=y0, max_iterations=max_iterations, started=started, **options)
+        return _fit_pinn(problem, y0, max_iterations, options, started)
     if method != "radau":
         raise InvalidOptionError(f"fit: method must be 'radau' or 'pinn'; got {method!r}")
     return _fit_radau(problem, y0, max_iterations, float(tol), options, started)
@@ -278,7 +277,9 @@ class _Model:
     each, kept for the last vector (scipy asks for the residuals and the Jacobian apart)."""
 
     def __init__(self, problem: _Problem, y0, options):
-        self.problem, self.options = problem, {"rtol": 1e-8, **options}
+        # radau adaptive at rtol 1e-8 unless the caller chose (fixed steps: h; the PINN's grid)
+        self.problem = problem
+        self.options = {"rtol": 1e-8, **options} if "h" not in options and "rtol" not in options else dict(options)
         c = problem.compiled
         self.base_p = dict(zip(c.parameter_names, c.parameter_values, strict=True))
         self.base_y = dict(zip(c.state_names, c.y0, strict=True))
@@ -452,3 +453,72 @@ def standard_errors(J, r):
     with np.errstate(invalid="ignore", divide="ignore"):
         correlation = cov / np.outer(std, std)
     return std, correlation
+
+
+def _fit_pinn(problem: _Problem, y0, max_iterations: int, options: dict, started: float) -> Fit:
+    """``method="pinn"``: the Radau-PINN's inverse mode (:func:`daemodel.backends.pinn.inverse.fit_inverse`).
+
+    Its standard errors are those of the same least-squares problem at the PINN's estimate, from
+    radau's exact sensitivities on the PINN's grid (fixed h, its stages: the discrete model its
+    certificate measures the networks against); they cost one solve."""
+    import warnings
+
+    from daemodel.backends.pinn.config import PINNConfig
+    from daemodel.backends.pinn.inverse import fit_inverse
+    from daemodel.compiling.initial_states import initial_states
+    from daemodel.errors import UncertifiedWarning
+
+    c = problem.compiled
+    known = {"config", "h", "stages", "progress"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise InvalidOptionError(f"fit(method='pinn') has no option {unknown}; its options are {sorted(known)}")
+    states = [n for n in problem.names if n in c.state_names]
+    if states:
+        raise InvalidOptionError(
+            f"fit(method='pinn') estimates parameters only: the networks start from known initial states; "
+            f"{states} {'is a state' if len(states) == 1 else 'are states'}: use method='radau' to fit initial values"
+        )
+    config = options.get("config") or PINNConfig()
+    if not isinstance(config, PINNConfig):
+        raise InvalidOptionError(f"config must be a dm.PINNConfig; got {type(config).__name__}")
+    given = {k: options[k] for k in ("h", "stages") if options.get(k) is not None}
+    config = dataclasses.replace(config, **given) if given else config
+    state = initial_states(c, y0=y0)
+    measured = problem.times[problem.rows]
+    inverse = fit_inverse(
+        c,
+        (c.t0, float(problem.times[-1])),
+        measured,
+        problem.data,
+        problem.names,
+        problem.start,
+        (problem.low, problem.high),
+        state,
+        config,
+        max_iterations=max_iterations,
+        progress=options.get("progress"),
+    )
+    x = inverse.parameters
+    sol = inverse.solution
+    model = _Model(problem, y0, {"h": config.h, "stages": config.stages})
+    model.reweight(x)
+    J, r = model.jacobian(x), model.residuals(x)
+    std, correlation = standard_errors(J, r)
+    values = sol.at(measured)
+    status = sol.status if inverse.converged else f"not converged after {inverse.iterations} iterations; {sol.status}"
+    if status != "success":
+        warnings.warn(f"fit(method='pinn'): {status}", UncertifiedWarning, stacklevel=3)
+    return Fit(
+        parameters={n: float(v) for n, v in zip(problem.names, x, strict=True)},
+        std={n: float(v) for n, v in zip(problem.names, std, strict=True)},
+        correlation=correlation,
+        residuals={o: np.where(np.isnan(d), np.nan, d - values[o]) for o, d in problem.data.items()},
+        solution=sol,
+        cost=float(inverse.loss["misfit"]),
+        iterations=int(inverse.iterations),
+        status=status,
+        method="pinn",
+        fit_time=time.perf_counter() - started,
+        certificate=inverse.certificate,
+    )

@@ -181,3 +181,39 @@ def test_running_out_of_iterations_is_flagged_not_called_success(pendulum):
     fit = dm.fit(compiled, t, exact, {"L": (0.5, 3.0), "m": (0.1, 5.0)}, max_iterations=1)
     assert fit.status.startswith("not converged:") and "max_iterations=1" in fit.status
     assert "L =" in repr(fit) and "+-" in repr(fit)
+
+
+def _decay():
+    m = dm.Model("decay")
+    m.states("y")
+    m.algebraics("z")
+    m.parameter("k", 1.5)
+    m.parameter("c", 0.7)
+    m.ode("y", "-k*y")
+    m.constraint("z - c*y**2", name="square")
+    m.initial(y=1.0)
+    return m.compile()
+
+
+def test_the_pinn_inverse_mode_gives_the_same_fit_object_with_its_certificate():
+    compiled = _decay()
+    t = np.linspace(0.1, 2.0, 20)
+    exact = dm.solve(compiled, (0.0, 2.0), rtol=1e-12, atol=1e-14, t_eval=np.r_[0.0, t])
+    rng = np.random.default_rng(0)
+    data = noisy({k: exact[k][1:] for k in ("y", "z")}, 0.01, rng)
+    start = {"k": (0.5, 5.0), "c": (0.2, 2.0)}
+    pinn = dm.fit(compiled, t, data, start, method="pinn", h=0.1, stages=3)
+    ceiling = dm.fit(compiled, t, data, start, h=0.1, stages=3)  # radau on the PINN's grid
+    assert pinn.method == "pinn" and pinn.status == "success" and pinn.certificate is not None
+    assert pinn.solution.method == "pinn" and set(pinn.residuals) == {"y", "z"}
+    for name, value in {"k": 1.5, "c": 0.7}.items():
+        assert abs(pinn.parameters[name] - value) <= 3 * pinn.std[name]
+        # the two weigh the series differently (the data's spread; the estimated noise): within a std error
+        assert abs(pinn.parameters[name] - ceiling.parameters[name]) <= ceiling.std[name]
+        assert pinn.std[name] == pytest.approx(ceiling.std[name], rel=0.2)
+    with pytest.raises(E.InvalidOptionError, match=r"estimates parameters only.*\['y'\] is a state"):
+        dm.fit(compiled, t, data, {"k": 1.0, "y": 1.0}, method="pinn")
+    with pytest.raises(E.InvalidOptionError, match=r"fit\(method='pinn'\) has no option \['rtol'\]"):
+        dm.fit(compiled, t, data, start, method="pinn", rtol=1e-6)
+    with pytest.raises(E.InvalidOptionError, match="config must be a dm.PINNConfig; got dict"):
+        dm.fit(compiled, t, data, start, method="pinn", config={"h": 0.1})
