@@ -215,5 +215,5 @@ def test_the_pinn_inverse_mode_gives_the_same_fit_object_with_its_certificate():
         dm.fit(compiled, t, data, {"k": 1.0, "y": 1.0}, method="pinn")
     with pytest.raises(E.InvalidOptionError, match=r"fit\(method='pinn'\) has no option \['rtol'\]"):
         dm.fit(compiled, t, data, start, method="pinn", rtol=1e-6)
-    with pytest.raises(E.InvalidOptionError, match="config must be a dm.PINNConfig; got dict"):
+    with pytest.raises(E.InvalidOptionError, match=r"config must be a dm\.PINNConfig; got dict"):
         dm.fit(compiled, t, data, start, method="pinn", config={"h": 0.1})
