@@ -310,3 +310,14 @@ def test_events_and_switches_are_refused():
     m.event("floor", "x", direction=-1, reset={"v": "-0.9*v"})
     with pytest.raises(E.SensitivityError, match="has events or switches"):
         dm.solve(m, (0, 1), h=0.1, sensitivities=["x"])
+
+
+def test_outputs_that_start_after_t0_have_the_same_sensitivities():
+    compiled = _decay()
+    late = dm.solve(compiled, (0.0, 2.0), h=0.05, stages=3, t_eval=[0.5, 1.0, 2.0], sensitivities=["k", "y"])
+    full = dm.solve(compiled, (0.0, 2.0), h=0.05, stages=3, sensitivities=["k", "y"])
+    rows = [10, 20, 40]
+    for name in ("k", "y"):
+        assert np.allclose(late.sensitivity("y", name), full.sensitivity("y", name)[rows], rtol=1e-12)
+    gradient = late.gradient("y", ["k"])["k"]
+    assert gradient == pytest.approx(full.sensitivity("y", "k")[rows].sum(), rel=1e-12)
