@@ -51,22 +51,21 @@ SEEDS = (0, 1)
 
 def problems() -> dict:
     """name -> (compiled, truth, span, PINN h, outputs measured, dense count, bounds)."""
-    import daemodel as dm
-    from daemodel.problems import AKZO_NOBEL, PENDULUM
+    from daemodel.problems import AKZO_NOBEL, DECAY, PENDULUM
 
-    m = dm.Model("decay")
-    m.states("y")
-    m.algebraics("z")
-    m.parameter("k", 1.5)
-    m.parameter("c", 0.7)
-    m.ode("y", "-k*y")
-    m.constraint("z - c*y**2", name="square")
-    m.initial(y=1.0)
     akzo = AKZO_NOBEL.model().compile()
     rates = dict(zip(akzo.parameter_names, akzo.parameter_values, strict=True))
     akzo_truth = {k: float(rates[k]) for k in ("k1", "k2", "klA")}
     return {
-        "decay": (m.compile(), {"k": 1.5, "c": 0.7}, 2.0, 0.1, ("y", "z"), 20, {"k": (0.5, 5.0), "c": (0.2, 2.0)}),
+        "decay": (
+            DECAY.model().compile(),
+            dict(DECAY.parameters),
+            2.0,
+            0.1,
+            ("y", "z"),
+            20,
+            {"k": (0.5, 5.0), "c": (0.2, 2.0)},
+        ),
         "pendulum": (
             PENDULUM.model().compile(),
             {"m": 1.0, "lam": 1.0},
@@ -107,34 +106,27 @@ def run(label, compiled, truth, span, h, outputs, dense, bounds, method, options
         for noise in NOISES:
             for seed in SEEDS if noise > 0 else SEEDS[:1]:
                 t, data = data_for(compiled, truth, span, outputs, count, noise, seed)
+                base = {
+                    "problem": label,
+                    "method": method,
+                    "data": density,
+                    "points": count,
+                    "noise": noise,
+                    "seed": seed,
+                }
                 started = time.perf_counter()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
                     try:
                         fit = dm.fit(compiled, t, data, bounds, method=method.split(",")[0], **options)
                     except dm.errors.DaemodelError as error:
-                        rows.append(
-                            {
-                                "problem": label,
-                                "method": method,
-                                "data": density,
-                                "points": count,
-                                "noise": noise,
-                                "seed": seed,
-                                "error": f"{type(error).__name__}: {error}",
-                            }
-                        )
+                        rows.append({**base, "error": f"{type(error).__name__}: {error}"})
                         continue
                 seconds = time.perf_counter() - started
                 relative = {k: abs(fit.parameters[k] - v) / abs(v) for k, v in truth.items()}
                 rows.append(
                     {
-                        "problem": label,
-                        "method": method,
-                        "data": density,
-                        "points": count,
-                        "noise": noise,
-                        "seed": seed,
+                        **base,
                         "estimates": fit.parameters,
                         "std": fit.std,
                         "relative_error": relative,

@@ -808,6 +808,21 @@ DAMPED_PENDULUM = Problem(
     source="a damped planar pendulum in Cartesian coordinates (Hairer & Wanner, Solving ODEs II, VII.1, with damping)",
 )
 
+# A second fitting problem, outside PROBLEMS: exponential decay with an index-1 algebraic variable
+# that depends on a parameter of its own (z0 = c y0^2 moves with c).
+DECAY = Problem(
+    name="decay",
+    odes={"y": "-k*y"},
+    algebraics=("z",),
+    constraints={"square": "z - c*y**2"},
+    parameters={"k": 1.5, "c": 0.7},
+    initial={"y": 1.0},
+    t_span=(0.0, 2.0),
+    index=1,
+    exact={"y": "exp(-1.5*t)", "z": "0.7*exp(-3*t)"},
+    source="exponential decay with an algebraic square (the fitting tests and benchmarks/fit_inverse.py)",
+)
+
 PROBLEMS = {
     p.name: p
     for p in (

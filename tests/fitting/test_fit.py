@@ -7,7 +7,7 @@ import pytest
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.problems import AKZO_NOBEL, DAMPED_PENDULUM
+from daemodel.problems import AKZO_NOBEL, DAMPED_PENDULUM, DECAY
 
 TRUE_PENDULUM = {"L": 1.3, "m": 0.7}
 AKZO_RATES = ("k1", "k2", "k3", "k4", "klA")
@@ -183,20 +183,8 @@ def test_running_out_of_iterations_is_flagged_not_called_success(pendulum):
     assert "L =" in repr(fit) and "+-" in repr(fit)
 
 
-def _decay():
-    m = dm.Model("decay")
-    m.states("y")
-    m.algebraics("z")
-    m.parameter("k", 1.5)
-    m.parameter("c", 0.7)
-    m.ode("y", "-k*y")
-    m.constraint("z - c*y**2", name="square")
-    m.initial(y=1.0)
-    return m.compile()
-
-
 def test_the_pinn_inverse_mode_gives_the_same_fit_object_with_its_certificate():
-    compiled = _decay()
+    compiled = DECAY.model().compile()
     t = np.linspace(0.1, 2.0, 20)
     exact = dm.solve(compiled, (0.0, 2.0), rtol=1e-12, atol=1e-14, t_eval=np.r_[0.0, t])
     rng = np.random.default_rng(0)
