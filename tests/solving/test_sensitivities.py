@@ -321,3 +321,22 @@ def test_outputs_that_start_after_t0_have_the_same_sensitivities():
         assert np.allclose(late.sensitivity("y", name), full.sensitivity("y", name)[rows], rtol=1e-12)
     gradient = late.gradient("y", ["k"])["k"]
     assert gradient == pytest.approx(full.sensitivity("y", "k")[rows].sum(), rel=1e-12)
+
+
+def test_blocks_of_one_step_give_the_same_derivatives(monkeypatch):
+    """The passes build, use and drop a block of steps at a time (the adjoint backwards, carrying the
+    state's cotangent across blocks): blocks of a single step must change nothing."""
+    from daemodel.solving import sensitivities
+
+    compiled = AKZO_NOBEL.model().compile()
+    names = ["k1", "klA", "y1"]
+    whole = dm.solve(compiled, (0.0, 20.0), rtol=1e-6, t_eval=np.linspace(0, 20, 9), sensitivities=names)
+    data = {"y1": whole["y1"] * 1.01, "y6": whole["y6"] * 0.99}
+    gradient = whole.gradient(data, names)
+    monkeypatch.setattr(sensitivities, "BLOCK_BYTES", 1)
+    single = dm.solve(compiled, (0.0, 20.0), rtol=1e-6, t_eval=np.linspace(0, 20, 9), sensitivities=names)
+    assert sensitivities.StepSystems(compiled, single.dense, single.parameters).block == 1
+    for name in names:
+        for output in ("y1", "y6"):
+            assert np.allclose(single.sensitivity(output, name), whole.sensitivity(output, name), rtol=1e-12, atol=0)
+    assert single.gradient(data, names) == pytest.approx(gradient, rel=1e-12)
