@@ -480,7 +480,9 @@ def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
                 f"gradient: the objective names {stray}, which the solution does not have; it has "
                 f"{list(sol.names)} and the parameters {list(c.parameter_names)}"
             )
-        phi = objective.xreplace({s: table[s.name] for s in objective.free_symbols})
+        # through the parser as text: it admits the supported functions only (a sympy Function of any
+        # name would otherwise reach the generated numeric code as written)
+        phi = parse_equation(sp.sstr(objective), table, "the gradient's objective")
     else:
         raise SensitivityError(
             "gradient: the objective must be a dict of measured data by output name, or an expression of the "

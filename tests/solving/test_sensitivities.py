@@ -242,7 +242,7 @@ def test_initial_sensitivities_keep_the_constraints_and_match_consistent():
     assert np.allclose(dy[0, :, 2], 0.0)  # the mass moves no initial state: the rod does not hold it
 
 
-def test_sensitivity_errors_name_the_culprit():
+def test_sensitivity_errors_name_the_culprit(tmp_path):
     compiled = PENDULUM_INDEX3.model().compile()
     with pytest.raises(
         E.UnknownSymbolError, match=r"'g' is neither a parameter nor a state of model 'pendulum-index3'"
@@ -273,6 +273,11 @@ def test_sensitivity_errors_name_the_culprit():
         sol.gradient({"y1": np.zeros(3)}, ["m"])
     with pytest.raises(E.UnknownSymbolError, match=r"the objective names \['q'\]"):
         sol.gradient(sp.Symbol("q"), ["m"])
+    canary = tmp_path / "canary"
+    evil = sp.Function(f"(lambda *a: open({str(canary)!r}, 'w') or 1.0)")
+    with pytest.raises(E.ExpressionParseError, match="only supported functions may be called"):
+        sol.gradient(evil(sp.Integer(1)) * sp.Symbol("y1"), ["m"])
+    assert not canary.exists()
     with pytest.raises(E.SensitivityError, match="got int"):
         sol.gradient(3, ["m"])
     idas = dm.solve(compiled, (0, 1), method="casadi-idas")
