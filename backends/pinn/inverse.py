@@ -234,7 +234,9 @@ def _check_constraints(compiled, names):
 class _Problem:
     """The joint problem as functions of the networks' output biases and the transformed parameters."""
 
-    def __init__(self, compiled, config, grid, networks, state, indices, transform, times, columns, values):
+    def __init__(
+        self, compiled, config, grid, networks, state, indices, transform, times, columns, values, scales=None
+    ):
         from daemodel.collocation import lagrange_matrix
         from daemodel.dense import step_owners
         from daemodel.tableau import radau_iia
@@ -250,7 +252,11 @@ class _Problem:
         self.indices, self.transform = indices, transform
         # the data, as (segment, Lagrange weights on start and stages, column, value, scale) rows
         observed = np.argwhere(np.isfinite(values))  # (rows, 2): time index, output
-        spread = np.array([_spread(values[:, j]) for j in range(values.shape[1])])
+        spread = (
+            np.array([_spread(values[:, j]) for j in range(values.shape[1])])
+            if scales is None
+            else np.asarray(scales, dtype=float)
+        )
         starts = np.asarray(grid[:-1], dtype=float)
         segment, theta = step_owners(starts, np.diff(grid), times)
         self.data_segment = segment[observed[:, 0]]
@@ -380,6 +386,7 @@ def fit_inverse(
     *,
     max_iterations: int | None = None,
     progress: bool | None = None,
+    scales=None,
 ) -> InverseFit:
     """Estimate the parameters ``names`` from ``data`` by training the Radau-PINN's segment
     networks and the parameters together (see the module docstring).
@@ -411,6 +418,9 @@ def fit_inverse(
         that reaches it is returned with a flagged status.
     progress : bool, optional
         A progress bar over the iterations (default: when stderr is a terminal).
+    scales : sequence of float, optional
+        Each data series' scale (its noise level), in the order of ``data``: its misfits are divided
+        by it.  Default: the spread (standard deviation) of its data.
 
     Returns
     -------
@@ -461,7 +471,7 @@ def fit_inverse(
         # the networks on the Radau solution at the start values: the forward mode, segment by segment
         z_start = algebraic_values(compiled, float(grid[0]), state.y0[:1], p_start, state.z0[:1])
         networks, _ = train_segments(compiled, config, grid, state.y0[:1], z_start, p_start, [], False, "pinn")
-        problem = _Problem(compiled, config, grid, networks, state, indices, transform, times, columns, values)
+        problem = _Problem(compiled, config, grid, networks, state, indices, transform, times, columns, values, scales)
         bar = _Bar(max_iterations, show_progress(progress))
         try:
             q, flat_b, iterations, converged, history, why = _gauss_newton(

@@ -46,6 +46,12 @@ CULPRIT_SHARE = 0.1
 # those weights, until no level changes by more than REWEIGHT_RTOL (at most REWEIGHTINGS times); a
 # level is kept above NOISE_FLOOR times the series' root mean square (noise-free data).
 REWEIGHTINGS, REWEIGHT_RTOL, NOISE_FLOOR = 4, 0.1, 1e-10
+# A start on a bound moves this fraction of the interval inside it.
+START_INSIDE = 1e-3
+# An estimate within this of a bound (relative to 1 + |value|) is reported at the bound.
+BOUND_RTOL = 1e-8
+# Central differences of the initial-state projection (an algebraic map): step relative to 1 + |value|.
+PROJECTION_STEP = 1e-6
 # Iterations (Jacobian evaluations) of the least-squares solver, unless max_iterations says otherwise.
 DEFAULT_MAX_ITERATIONS = 100
 
@@ -114,6 +120,11 @@ class _Problem:
     scale: dict  # output -> the series' weight's inverse: its noise level, given or first guessed
     estimated: frozenset  # the series whose noise level the fit estimates (no sigma given)
 
+    @property
+    def size(self) -> int:
+        """The number of measured values (NaN left out)."""
+        return sum(int((~np.isnan(d)).sum()) for d in self.data.values())
+
 
 def fit(
     model,
@@ -171,7 +182,7 @@ def fit(
     """
     started = time.perf_counter()
     compiled = as_compiled(model)
-    problem = _problem(compiled, t, data, parameters, sigma)
+    problem = _problem(compiled, t, data, parameters, sigma, y0)
     if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
         raise InvalidOptionError(f"max_iterations must be a positive integer; got {max_iterations!r}")
     if not (is_real(tol) and 0 < float(tol) < 1):
@@ -183,7 +194,7 @@ def fit(
     return _fit_radau(problem, y0, max_iterations, float(tol), options, started)
 
 
-def _problem(compiled, t, data, parameters, sigma) -> _Problem:
+def _problem(compiled, t, data, parameters, sigma, y0=None) -> _Problem:
     times = np.asarray(t, dtype=float) if not isinstance(t, str | bytes) else None
     if times is None or times.ndim != 1 or len(times) == 0 or not np.isfinite(times).all():
         raise DataError(f"fit: t must be a non-empty 1-d array of finite times; got {np.shape(t)!r}")
@@ -194,6 +205,11 @@ def _problem(compiled, t, data, parameters, sigma) -> _Problem:
         raise DataError(
             f"fit: t[0] = {times[0]:g} is before the initial time t0 = {compiled.t0:g} of '{compiled.name}': data "
             "outside the span the model integrates over; drop those points or declare m.initial(t=...) earlier"
+        )
+    if times[-1] <= compiled.t0:
+        raise DataError(
+            f"fit: every time in t is the initial time t0 = {compiled.t0:g}: data there measure the initial values "
+            "only, which the parameters do not move along a solution; measure later times"
         )
     if not isinstance(data, dict) or not data:
         raise DataError("fit: data must be a dict output name -> measured values, with at least one series")
@@ -230,7 +246,7 @@ def _problem(compiled, t, data, parameters, sigma) -> _Problem:
         raise InvalidOptionError("fit: parameters must be a dict name -> start value or (low, high) bounds, not empty")
     where = directions(compiled, tuple(parameters), caller="fit")
     values = dict(zip(compiled.parameter_names, compiled.parameter_values, strict=True))
-    values.update(zip(compiled.state_names, compiled.y0, strict=True))
+    values.update(_initial_states(compiled, y0))
     start, low, high = [], [], []
     for name, spec in parameters.items():
         lo, x0, hi = _bounds(name, spec)
@@ -238,13 +254,25 @@ def _problem(compiled, t, data, parameters, sigma) -> _Problem:
         low.append(lo)
         high.append(hi)
     start, low, high = (np.array(a, dtype=float) for a in (start, low, high))
-    start = np.clip(start, low, high)
+    start = _inside(start, low, high)
     if times[0] > compiled.t0:
         grid, rows = np.concatenate([[compiled.t0], times]), np.arange(1, len(times) + 1)
     else:
         grid, rows = times, np.arange(len(times))
     estimated = frozenset(name for name in series if name not in given)
     return _Problem(compiled, where.names, start, low, high, grid, rows, series, scale, estimated)
+
+
+def _inside(start, low, high):
+    """``start`` strictly inside its bounds: a value on or beyond one moves inside by 1e-3 of the
+    interval (or of the bound's size, for a one-sided bound); the optimizers need an interior start."""
+    start = np.clip(start, low, high)
+    finite_low, finite_high = np.isfinite(low), np.isfinite(high)
+    size = np.maximum(1.0, np.abs(np.where(finite_low, low, np.where(finite_high, high, 1.0))))
+    width = np.where(finite_low & finite_high, high - low, size)
+    step = START_INSIDE * width
+    start = np.where(finite_low & (start <= low), low + step, start)
+    return np.where(finite_high & (start >= high), high - step, start)
 
 
 def _bounds(name, spec):
@@ -274,44 +302,79 @@ def _bounds(name, spec):
 
 class _Model:
     """The weighted residuals and their Jacobian at parameter vectors, one solve with sensitivities
-    each, kept for the last vector (scipy asks for the residuals and the Jacobian apart)."""
+    each, kept for the last vector (scipy asks for the residuals and the Jacobian apart).
+
+    The initial states at a vector are the model's (or ``y0``'s) with the fitted states replaced,
+    projected onto the constraints with the fitted states held (:meth:`initial`).  Where the model
+    has constraint levels free of algebraic variables, the derivative of that projection is taken
+    by central differences of the projection itself (an algebraic map, cheap, to ~1e-9), so the
+    Jacobian is the derivative of the very map the fit evaluates; the rest is the exact sensitivity
+    of radau's solution from those initial states."""
 
     def __init__(self, problem: _Problem, y0, options):
+        from daemodel.solving.sensitivities import _zero_free_levels
+
         # radau adaptive at rtol 1e-8 unless the caller chose (fixed steps: h; the PINN's grid)
         self.problem = problem
         self.options = {"rtol": 1e-8, **options} if "h" not in options and "rtol" not in options else dict(options)
         c = problem.compiled
         self.base_p = dict(zip(c.parameter_names, c.parameter_values, strict=True))
-        self.base_y = dict(zip(c.state_names, c.y0, strict=True))
-        if y0:
-            unknown = [k for k in y0 if k not in self.base_y]
-            if unknown:
-                raise UnknownSymbolError(f"fit: y0 names {unknown}, which are not states of '{c.name}'")
-            self.base_y.update({k: real(v, f"y0[{k!r}]") for k, v in y0.items()})
+        self.base_y = _initial_states(c, y0)
         self.states = [name for name in problem.names if name in c.state_names]
+        self.projected = bool(_zero_free_levels(c))
         self.scale = dict(problem.scale)  # each series' noise level: given, or estimated (reweight)
         self.last = None
         self.solves = 0
 
+    def values(self, x) -> tuple[dict, dict]:
+        """``(parameters, initial states)`` by name at ``x``, the states not yet projected."""
+        names = self.problem.names
+        parameters = {**self.base_p, **{n: v for n, v in zip(names, x, strict=True) if n in self.base_p}}
+        return parameters, {**self.base_y, **{n: v for n, v in zip(names, x, strict=True) if n in self.base_y}}
+
+    def initial(self, x) -> np.ndarray:
+        """The consistent initial states (n,) at ``x``: the fitted states held, the others moved the least."""
+        c = self.problem.compiled
+        parameters, y0 = self.values(x)
+        projected = c.consistent(y0=y0, parameters=parameters, fix=self.states) if self.projected else y0
+        return np.array([float(projected[name]) for name in c.state_names])
+
+    def initial_derivative(self, x) -> np.ndarray:
+        """``d initial / d x`` (1, n, P) by central differences of :meth:`initial`."""
+        columns = []
+        for q in range(len(x)):
+            step = PROJECTION_STEP * max(1.0, abs(float(x[q])))
+            up, down = x.copy(), x.copy()
+            up[q] += step
+            down[q] -= step
+            columns.append((self.initial(up) - self.initial(down)) / (2 * step))
+        return np.stack(columns, axis=-1)[None]
+
     def solve(self, x):
+        """The solution with sensitivities at ``x``, or None where the model cannot be solved there
+        (the error kept in ``self.failure``: a trial point scipy then rejects)."""
+        from daemodel.errors import DaemodelError
+        from daemodel.solving.sensitivities import forward
+
         if self.last is not None and np.array_equal(self.last[0], x):
             return self.last[1]
         p = self.problem
         c = p.compiled
-        parameters = {**self.base_p, **{n: v for n, v in zip(p.names, x, strict=True) if n in self.base_p}}
-        y0 = {**self.base_y, **{n: v for n, v in zip(p.names, x, strict=True) if n in self.base_y}}
-        # initial states consistent with the constraints at these values: the named states held, the
-        # others moved the least (what the sensitivities differentiate)
-        y0 = c.consistent(y0=y0, parameters=parameters, fix=self.states)
-        sol = solve(
-            c,
-            (c.t0, float(p.times[-1])),
-            parameters=parameters,
-            y0=y0,
-            t_eval=p.times,
-            sensitivities=p.names,
-            **self.options,
-        )
+        parameters, _ = self.values(x)
+        try:
+            y0 = self.initial(x)
+            sol = solve(c, (c.t0, float(p.times[-1])), parameters=parameters, y0=y0, t_eval=p.times, **self.options)
+            initial = self.initial_derivative(x) if self.projected else None
+            started = time.perf_counter()
+            where, values = forward(sol, p.names, initial=initial)
+            sol = dataclasses.replace(
+                sol,
+                sensitivities={name: values[..., q] for q, name in enumerate(where.names)},
+                solve_time=sol.solve_time + time.perf_counter() - started,
+            )
+            self.failure = None
+        except DaemodelError as error:  # (SolverError, InitialisationError, ...: this point cannot be solved)
+            sol, self.failure = None, error
         self.solves += 1
         self.last = (x.copy(), sol)
         return sol
@@ -319,15 +382,20 @@ class _Model:
     def residuals(self, x):
         sol = self.solve(x)
         p = self.problem
+        if sol is None:  # scipy's trust region shrinks and tries again
+            return np.full(p.size, np.inf)
         parts = [((sol[o][p.rows] - d) / self.scale[o])[~np.isnan(d)] for o, d in p.data.items()]
         return np.concatenate(parts)
 
     def reweight(self, x) -> bool:
         """Estimate each series' noise level (where ``sigma`` gave none) from its residuals at ``x``;
-        True when one changed by more than :data:`REWEIGHT_RTOL` (the fit then runs again)."""
+        True when one changed by more than :data:`REWEIGHT_RTOL` (the fit then runs again).  Nothing
+        to estimate from where the data leave no degrees of freedom."""
         p = self.problem
         sol = self.solve(x)
-        N = sum(int((~np.isnan(d)).sum()) for d in p.data.values())
+        N = p.size
+        if N <= len(p.names) or sol is None:
+            return False
         changed = False
         for o, d in p.data.items():
             if o not in p.estimated:
@@ -352,6 +420,26 @@ class _Model:
             )
         return np.stack(columns, axis=-1)
 
+    def checked_start(self, x):
+        """The solution at the start, or the error that prevents it, naming the fit's values."""
+        sol = self.solve(x)
+        if sol is None:
+            error = self.failure
+            values = ", ".join(f"{n} = {v:.6g}" for n, v in zip(self.problem.names, x, strict=True))
+            raise type(error)(f"fit: at the start values ({values}): {error}") from error
+        return sol
+
+
+def _initial_states(compiled, y0) -> dict:
+    """The model's initial states by name, with ``y0``'s values where given."""
+    states = dict(zip(compiled.state_names, (float(v) for v in compiled.y0), strict=True))
+    if y0:
+        unknown = [k for k in y0 if k not in states]
+        if unknown:
+            raise UnknownSymbolError(f"fit: y0 names {unknown}, which are not states of '{compiled.name}'")
+        states.update({k: real(v, f"y0[{k!r}]") for k, v in y0.items()})
+    return states
+
 
 def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: dict, started: float) -> Fit:
     from scipy.optimize import least_squares
@@ -361,7 +449,8 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
             "fit: t_eval and sensitivities are set by the fit (the measured times, the fitted names)"
         )
     model = _Model(problem, y0, options)
-    check_identifiable(problem.names, model.jacobian(problem.start), "at the start")
+    model.checked_start(problem.start)
+    check_identifiable(problem.names, model.jacobian(problem.start), problem.start, "at the start")
     x, evaluations, jacobians = problem.start, 0, 0
     for _ in range(REWEIGHTINGS + 1):
         result = least_squares(
@@ -382,8 +471,8 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
     x = result.x
     J = model.jacobian(x)
     r = model.residuals(x)
-    check_identifiable(problem.names, J, "at the estimate")
-    std, correlation = standard_errors(J, r)
+    check_identifiable(problem.names, J, x, "at the estimate")
+    std, correlation = standard_errors(J, r, known=not problem.estimated)
     sol = model.solve(x)
     status = (
         "success"
@@ -394,9 +483,18 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
             f"the estimate is the best found, gradient norm {np.linalg.norm(result.grad, np.inf):.3g}"
         )
     )
-    at_bound = [n for n, v, lo, hi in zip(problem.names, x, problem.low, problem.high, strict=True) if v in (lo, hi)]
+    at_bound = [
+        n
+        for n, v, lo, hi in zip(problem.names, x, problem.low, problem.high, strict=True)
+        if min(abs(v - lo), abs(hi - v)) <= BOUND_RTOL * max(1.0, abs(v))
+    ]
     if at_bound and status == "success":
         status = f"success, with {at_bound} at a bound (their standard errors assume the bound is not active)"
+    if problem.size <= len(problem.names) and problem.estimated and status.startswith("success"):
+        status += (
+            f"; {problem.size} data points for {len(problem.names)} parameters leave no degrees of freedom to estimate "
+            "the noise from: standard errors unknown (NaN); give sigma, or more data"
+        )
     return Fit(
         parameters={n: float(v) for n, v in zip(problem.names, x, strict=True)},
         std={n: float(v) for n, v in zip(problem.names, std, strict=True)},
@@ -411,9 +509,11 @@ def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: 
     )
 
 
-def check_identifiable(names, J, when: str) -> None:
+def check_identifiable(names, J, x, when: str) -> None:
     """Raise :class:`UnidentifiableError` when the columns of ``J`` (residuals x parameters) are
-    dependent, naming the parameters of each dependent direction."""
+    dependent, naming the parameters of each dependent direction, or when a parameter's effect (its
+    column times its value, the change of the outputs per relative change) is negligible beside the
+    others' (a rate constant run off to 1e59 whose effect has faded away)."""
     norms = np.linalg.norm(J, axis=0)
     dead = [n for n, v in zip(names, norms, strict=True) if not v > 0]
     if dead:
@@ -429,6 +529,15 @@ def check_identifiable(names, J, when: str) -> None:
         raise UnidentifiableError(
             f"fit: {len(J)} data points cannot determine the {len(names)} parameters {list(names)}; measure more"
         )
+    effect = norms * np.where(np.asarray(x) != 0, np.abs(x), 1.0)
+    faint = [n for n, e in zip(names, effect, strict=True) if e <= IDENTIFIABILITY_RTOL * effect.max()]
+    if faint:
+        it = "it" if len(faint) == 1 else "them"
+        shares = ", ".join(f"{n}: {e / effect.max():.1e}" for n, e in zip(names, effect, strict=True) if n in faint)
+        raise UnidentifiableError(
+            f"fit: the data barely depend on {faint} {when} (a relative change moves the outputs {shares} as much as "
+            f"the largest effect does); fix {it} at known values, bound {it}, or measure an output that depends on {it}"
+        )
     if small.any():
         first = np.flatnonzero(small)[0]
         v = vt[first]
@@ -443,11 +552,15 @@ def check_identifiable(names, J, when: str) -> None:
         )
 
 
-def standard_errors(J, r):
-    """``(std (P,), correlation (P, P))`` from the Jacobian and residuals at the estimate."""
+def standard_errors(J, r, known: bool = False):
+    """``(std (P,), correlation (P, P))`` from the Jacobian and residuals at the estimate: the
+    residuals' mean square scales the covariance (as scipy's curve_fit with absolute_sigma=False),
+    unless ``known`` (every series' sigma given) and then only where the data leave degrees of
+    freedom; with none left and the noise unknown, the standard errors are NaN."""
     N, P = J.shape
-    dof = max(N - P, 1)
-    s2 = float(r @ r) / dof
+    if N <= P and not known:
+        return np.full(P, np.nan), np.full((P, P), np.nan)
+    s2 = float(r @ r) / (N - P) if N > P else 1.0
     cov = s2 * np.linalg.inv(J.T @ J)
     std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -484,6 +597,18 @@ def _fit_pinn(problem: _Problem, y0, max_iterations: int, options: dict, started
         raise InvalidOptionError(f"config must be a dm.PINNConfig; got {type(config).__name__}")
     given = {k: options[k] for k in ("h", "stages") if options.get(k) is not None}
     config = dataclasses.replace(config, **given) if given else config
+    aliases = [o for o in problem.data if o in c.alias_names]
+    if aliases:
+        of = {name: str(expr) for name, expr, _ in c.aliases}
+        raise InvalidOptionError(
+            "fit(method='pinn') measures states and algebraic variables; "
+            + ", ".join(f"{a!r} is an alias of {of[a]}" for a in aliases)
+            + ": give the data under the variable's own name"
+        )
+    # refuse what the data cannot determine before training (radau on the PINN's grid, one solve)
+    model = _Model(problem, y0, {"h": config.h, "stages": config.stages})
+    model.checked_start(problem.start)
+    check_identifiable(problem.names, model.jacobian(problem.start), problem.start, "at the start")
     state = initial_states(c, y0=y0)
     measured = problem.times[problem.rows]
     inverse = fit_inverse(
@@ -498,13 +623,14 @@ def _fit_pinn(problem: _Problem, y0, max_iterations: int, options: dict, started
         config,
         max_iterations=max_iterations,
         progress=options.get("progress"),
+        # (every series' sigma, when all are given; else each series' spread, the inverse mode's default)
+        scales=None if problem.estimated else [problem.scale[o] for o in problem.data],
     )
     x = inverse.parameters
     sol = inverse.solution
-    model = _Model(problem, y0, {"h": config.h, "stages": config.stages})
     model.reweight(x)
     J, r = model.jacobian(x), model.residuals(x)
-    std, correlation = standard_errors(J, r)
+    std, correlation = standard_errors(J, r, known=not problem.estimated)
     values = sol.at(measured)
     status = sol.status if inverse.converged else f"not converged after {inverse.iterations} iterations; {sol.status}"
     if status != "success":

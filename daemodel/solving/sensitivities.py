@@ -143,8 +143,11 @@ def _zero_free_levels(compiled) -> list:
     return exprs
 
 
-def initial_sensitivities(compiled, t0: float, y0: np.ndarray, z0: np.ndarray, p: np.ndarray, where: Directions):
-    """``(dy0, dz0)``, shapes (B, n, Q) and (B, m, Q): the consistent initial values' derivatives.
+def initial_sensitivities(
+    compiled, t0: float, y0: np.ndarray, z0: np.ndarray, p: np.ndarray, where: Directions, given=None
+):
+    """``(dy0, dz0)``, shapes (B, n, Q) and (B, m, Q): the consistent initial values' derivatives
+    (``dy0`` as ``given`` when given: then only ``dz0`` is derived).
 
     Raises
     ------
@@ -159,7 +162,9 @@ def initial_sensitivities(compiled, t0: float, y0: np.ndarray, z0: np.ndarray, p
         if i >= 0:
             dy[:, i, q] = 1.0
     dp = np.broadcast_to(where.parameter_columns(k), (B, k, Q))
-    levels = _zero_free_levels(compiled)
+    levels = _zero_free_levels(compiled) if given is None else []
+    if given is not None:
+        dy = np.broadcast_to(np.asarray(given, dtype=float), (B, n, Q)).copy()
     if levels:
         C = numeric.batch_jacobian(levels, compiled.states)(t0, y0, z0, p)  # (B, L, n)
         Cp = numeric.batch_jacobian(levels, compiled.parameters)(t0, y0, z0, p)  # (B, L, k)
@@ -291,14 +296,18 @@ def _outputs_by_step(dense, times):
     return step, lagrange_matrix(np.concatenate([[0.0], dense.c]), theta)
 
 
-def forward(sol, names, model=None) -> tuple[Directions, np.ndarray]:
+def forward(sol, names, model=None, initial=None) -> tuple[Directions, np.ndarray]:
     """The forward sensitivities of ``sol`` (a radau solution with its dense output) at its output
-    times: ``(directions, S)`` with S (B, T, n+m, Q), ``S[b, t, :, q] = d u(t) / d names[q]``."""
+    times: ``(directions, S)`` with S (B, T, n+m, Q), ``S[b, t, :, q] = d u(t) / d names[q]``.
+    ``initial`` (B, n, Q), when given, is the initial states' derivative to use instead of the
+    least-change one (a caller whose initial states are another function of the names: ``fit``)."""
     compiled = sol.compiled
     where = directions(model or compiled, names)
     pieces = check_solution(sol, "sensitivities")
     y0, z0 = _start(sol, pieces)
-    dy0, dz0 = initial_sensitivities(compiled, float(pieces[0][1].starts[0]), y0, z0, sol.parameters, where)
+    dy0, dz0 = initial_sensitivities(
+        compiled, float(pieces[0][1].starts[0]), y0, z0, sol.parameters, where, given=initial
+    )
     B, T, n, m = sol.batch_size, len(sol.t), len(compiled.states), len(compiled.algebraics)
     out = np.zeros((B, T, n + m, where.size))
     for samples, dense in pieces:

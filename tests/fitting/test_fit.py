@@ -205,3 +205,80 @@ def test_the_pinn_inverse_mode_gives_the_same_fit_object_with_its_certificate():
         dm.fit(compiled, t, data, start, method="pinn", rtol=1e-6)
     with pytest.raises(E.InvalidOptionError, match=r"config must be a dm\.PINNConfig; got dict"):
         dm.fit(compiled, t, data, start, method="pinn", config={"h": 0.1})
+
+
+def test_a_parameter_whose_effect_fades_is_refused_not_run_off_to_infinity(pendulum):
+    """From m = 3 the fit once drove m to 1e59 (the decay rate c/m vanishing) and called it success."""
+    compiled, t, exact = pendulum
+    with pytest.raises(E.UnidentifiableError, match=r"the data barely depend on \['m'\] at the estimate"):
+        dm.fit(compiled, t, exact, {"m": 3.0, "L": 2.0})
+
+
+def test_the_jacobian_is_the_derivative_of_the_map_the_fit_evaluates():
+    """A fitted state held by the projection while a parameter in the constraint moves the others:
+    the Jacobian against central differences of the fit's own residuals (it was 38 % off)."""
+    from daemodel.fitting.fit import _Model, _problem
+
+    compiled = DAMPED_PENDULUM.model().compile()
+    t = np.linspace(0.1, 3.0, 30)
+    y0 = compiled.consistent(y0={"x": 0.7, "y": -0.8, "u": 0.0, "v": 0.0}, parameters={"L": 1.3}, fix=["x"])
+    truth = dm.solve(compiled, (0, 3), parameters={"L": 1.3}, y0=y0, rtol=1e-11, t_eval=np.r_[0.0, t])
+    data = {k: truth[k][1:] for k in ("x", "y")}
+    model = _Model(_problem(compiled, t, data, {"L": (0.5, 3.0), "x": 0.65}, None), None, {"h": 0.01, "stages": 3})
+    x = np.array([1.25, 0.68])
+    J = model.jacobian(x)
+    step = 1e-6
+    fd = np.stack([(model.residuals(x + e) - model.residuals(x - e)) / (2 * step) for e in np.eye(2) * step], axis=1)
+    assert np.abs(J - fd).max(axis=0) / np.abs(fd).max(axis=0) == pytest.approx([0, 0], abs=1e-5)
+    fit = dm.fit(compiled, t, data, {"L": (0.5, 3.0), "x": 0.65}, rtol=1e-10)
+    assert fit.parameters == pytest.approx({"L": 1.3, "x": 0.7}, rel=1e-7)
+
+
+def test_an_estimate_at_a_bound_says_so(pendulum):
+    compiled, t, exact = pendulum
+    fit = dm.fit(compiled, t, exact, {"L": (0.5, 1.2), "m": (0.1, 5.0)})  # the truth, 1.3, is outside
+    assert fit.parameters["L"] == pytest.approx(1.2, rel=1e-6)
+    assert fit.status.startswith("success, with ['L'] at a bound")
+
+
+def test_no_degrees_of_freedom_leave_the_standard_errors_unknown():
+    compiled = DECAY.model().compile()
+    fit = dm.fit(compiled, [1.0], {"y": [0.25]}, {"k": 1.0})
+    assert fit.parameters["k"] == pytest.approx(np.log(4.0), rel=1e-6)
+    assert np.isnan(fit.std["k"]) and "leave no degrees of freedom" in fit.status
+    known = dm.fit(compiled, [1.0], {"y": [0.25]}, {"k": 1.0}, sigma={"y": 0.01})
+    assert known.std["k"] == pytest.approx(0.01 / 0.25, rel=1e-3)  # sigma / |dy/dk| = 0.01 / (t y)
+
+
+def test_a_start_the_model_cannot_be_solved_at_is_named():
+    compiled = DAMPED_PENDULUM.model().compile()
+    with pytest.raises(E.InconsistentInitialStateError, match=r"fit: at the start values \(x = 0.65, y = 0.75\)"):
+        dm.fit(compiled, [1.0, 2.0], {"x": [0.1, 0.2]}, {"x": 0.65, "y": 0.75})  # both held: off the rod
+
+
+def test_the_pinn_honours_sigma_bounds_and_refuses_aliases():
+    compiled = DECAY.model().compile()
+    t = np.linspace(0.1, 2.0, 20)
+    exact = dm.solve(compiled, (0.0, 2.0), rtol=1e-12, atol=1e-14, t_eval=np.r_[0.0, t])
+    data = noisy({k: exact[k][1:] for k in ("y", "z")}, 0.02, np.random.default_rng(1))
+    start = {"k": (0.5, 5.0), "c": (0.2, 2.0)}
+    a = dm.fit(compiled, t, data, start, method="pinn", h=0.1, sigma={"y": 1e-3, "z": 1.0})
+    b = dm.fit(compiled, t, data, start, method="pinn", h=0.1, sigma={"y": 1.0, "z": 1e-3})
+    assert abs(a.parameters["k"] - b.parameters["k"]) > 1e-4  # the weights move the estimate
+    one_sided = dm.fit(compiled, t, data, {"k": (1.0, np.inf), "c": 0.5}, method="pinn", h=0.1)
+    assert one_sided.parameters["k"] == pytest.approx(1.5, rel=0.05)
+    m = dm.Model("aliased")
+    m.states("y")
+    m.algebraics("w")
+    m.parameter("k", 1.0)
+    m.ode("y", "-k*y")
+    m.constraint("w - y")
+    m.initial(y=1.0)
+    with pytest.raises(E.InvalidOptionError, match="'w' is an alias of y: give the data under the variable's own"):
+        dm.fit(m, t, {"w": exact["y"][1:]}, {"k": 1.0}, method="pinn", h=0.1)
+
+
+def test_data_only_at_t0_are_refused(pendulum):
+    compiled, _, _ = pendulum
+    with pytest.raises(E.DataError, match="every time in t is the initial time t0 = 0"):
+        dm.fit(compiled, [0.0], {"x": [0.6]}, {"L": 1.0})
