@@ -14,7 +14,7 @@ import torch
 import daemodel as dm
 from daemodel import errors as E
 from daemodel.collocation import collocation_step
-from daemodel.problems import AKZO_NOBEL, PENDULUM_INDEX3
+from daemodel.problems import AKZO_NOBEL, DECAY, PENDULUM_INDEX3
 from daemodel.solving.sensitivities import directions, initial_sensitivities
 from daemodel.tableau import radau_iia
 
@@ -22,15 +22,9 @@ FD_RTOL = 1e-6  # the issue's bound: sensitivities against central differences
 
 
 def _decay():
-    """y' = -k y, z = y^2 (index 1): dy/dk = -t y0 exp(-k t), dy/dy0 = exp(-k t)."""
-    m = dm.Model("decay")
-    m.states("y")
-    m.algebraics("z")
-    m.parameter("k", 0.8)
-    m.ode("y", "-k*y")
-    m.constraint("z - y**2")
-    m.initial(y=1.5)
-    return m.compile()
+    """DECAY: y' = -k y, 0 = z - c y^2 (index 1), k = 1.5, c = 0.7, y0 = 1: dy/dk = -t exp(-k t),
+    dy/dy0 = exp(-k t), dz/dk = 2 c y dy/dk, dz/dc = y^2."""
+    return DECAY.model().compile()
 
 
 def _relative(a, b):
@@ -88,15 +82,16 @@ def test_the_decay_sensitivities_converge_to_the_closed_form_at_order_2s_minus_1
     compiled = _decay()
     errors, hs = [], [0.1, 0.05, 0.025]
     for h in hs:
-        sol = dm.solve(compiled, (0.0, 2.0), h=h, stages=stages, sensitivities=["k", "y"])
+        sol = dm.solve(compiled, (0.0, 2.0), h=h, stages=stages, sensitivities=["k", "y", "c"])
         t = sol.t
-        exact_k = -t * 1.5 * np.exp(-0.8 * t)
-        exact_y = np.exp(-0.8 * t)
+        y = np.exp(-1.5 * t)
+        exact_k = -t * y
         errors.append(
             max(
                 np.abs(sol.sensitivity("y", "k") - exact_k).max(),
-                np.abs(sol.sensitivity("y", "y") - exact_y).max(),
-                np.abs(sol.sensitivity("z", "k") - 2 * 1.5 * np.exp(-0.8 * t) * exact_k).max(),
+                np.abs(sol.sensitivity("y", "y") - y).max(),
+                np.abs(sol.sensitivity("z", "k") - 2 * 0.7 * y * exact_k).max(),
+                np.abs(sol.sensitivity("z", "c") - y**2).max(),
             )
         )
     order = np.polyfit(np.log(hs), np.log(errors), 1)[0]
