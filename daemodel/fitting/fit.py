@@ -3,15 +3,19 @@
 Least squares on the misfit between the data and radau's solution at the measured times, with the
 exact derivatives of that solution (:mod:`daemodel.solving.sensitivities`): scipy's trust-region
 reflective ``least_squares`` with the sensitivities as its Jacobian, bounds kept.  Each series is
-weighed by its noise level when given (``sigma``), else by its own root mean square, so outputs of
-different magnitudes count alike.  The standard errors come from that Jacobian at the estimate,
-``cov = s^2 (J^T J)^-1`` with ``s^2`` the residuals' mean square (the usual asymptotic estimate;
-it assumes independent noise of equal variance within each weighted series).
+weighed by its noise level: the one given (``sigma``), else one estimated from its own residuals
+(feasible weighted least squares: start from the series' root mean square, fit, estimate each
+series' level from its residuals, fit again while a level changes by more than 10 %), so series of
+different magnitudes and noise count by their information.  The standard errors come from the
+Jacobian at the estimate, ``cov = s^2 (J^T J)^-1`` with ``s^2`` the weighted residuals' mean
+square (the usual asymptotic estimate: independent noise of one level within each series, a model
+nearly linear over the estimate's uncertainty).  Over 200 noise draws on the damped pendulum the
+two-standard-error intervals held the truth 92.5 % (L) and 96.5 % (m) of the time.
 
-Before and after the iterations the Jacobian's columns are checked for dependence: a parameter the
-data do not determine (no effect on the outputs, or an effect that another's change can undo) is
-refused with :class:`~daemodel.errors.UnidentifiableError`, naming the parameters involved, instead
-of returning an arbitrary value with an infinite or meaningless standard error.
+Before and after the iterations the Jacobian's columns are checked: a parameter the data do not
+determine (no effect on the outputs, an effect that has faded beside the others', or one that
+another's change can undo) is refused with :class:`~daemodel.errors.UnidentifiableError`, naming
+the parameters involved, instead of returning an arbitrary value with a meaningless standard error.
 
 ``method="pinn"`` trains the Radau-PINN's segment networks together with the parameters
 (:mod:`daemodel.backends.pinn.inverse`); the result has the same form, with the PINN's certificate.
@@ -73,7 +77,9 @@ class Fit:
     solution : Solution
         The model solved at the estimate, on the measured times (t0 first).
     cost : float
-        Half the sum of the weighted residuals' squares.
+        Half the sum of the weighted residuals' squares (radau: each series divided by its noise
+        level, given or estimated, so about half the degrees of freedom at a good fit; pinn: by its
+        sigma when every series has one, else by its data's spread).
     iterations : int
         Jacobian evaluations (one solve with sensitivities each).
     status : str
@@ -137,6 +143,7 @@ def fit(
     sigma: dict | None = None,
     max_iterations: int = DEFAULT_MAX_ITERATIONS,
     tol: float = 1e-10,
+    progress: bool | None = None,
     **options,
 ) -> Fit:
     """Estimate parameters and initial states from measured outputs.
@@ -150,19 +157,28 @@ def fit(
         Measured values of states, algebraic variables or aliases; NaN where missing.
     parameters : dict name -> float or (low, high) or (low, start, high)
         What to estimate: parameters and states (their initial values), each with a starting
-        value, or bounds (the start is then their midpoint, or their geometric mean when both are
-        positive), or both.  Every other parameter and state keeps the model's value (``y0``
-        overrides the states').
+        value, or bounds (the start is then their geometric mean when both are finite and positive,
+        their midpoint when finite, else the model's value), or both; a start on a bound moves
+        1e-3 of the interval inside.  Every other parameter and state keeps the model's value
+        (``y0`` overrides the states', fitted ones' starts included).  At each trial the initial
+        states are projected onto the constraints with the fitted states held.
     method : {"radau", "pinn"}
     y0 : dict state -> float, optional
         Known initial states other than the model's.
     sigma : dict output -> float, optional
-        The noise level (standard deviation) of each series: its residuals are divided by it.
-        Default: each series' root mean square.
+        The noise level (standard deviation) of each series: its residuals are divided by it, so
+        it sets the series' relative weights; the standard errors still scale with the residuals
+        (see :func:`standard_errors`).  Default: estimated from the series' residuals (see the
+        module docstring).  The PINN uses them when every series has one, else each series' spread.
     max_iterations : int
-        Most Jacobian evaluations; the result is flagged (``status``) when they run out.
+        radau: most evaluations of the residuals (solves), summed over the noise-level
+        reweightings; pinn: most Gauss-Newton steps.  The result is flagged (``status``) when they run out.
+    progress : bool, optional
+        A progress bar over the solves (radau) or the Gauss-Newton steps (pinn), with the current
+        estimates (default: when stderr is a terminal).
     tol : float
-        The least-squares solver's tolerance on the relative change of the cost and of the estimates.
+        radau: the least-squares solver's tolerance on the relative change of the cost and of the
+        estimates (the PINN stops on its own tests, with ``config.tol`` on the Radau residual).
     **options
         radau's options for each solve (default ``rtol=1e-8``), or the Radau-PINN's for ``"pinn"``.
 
@@ -188,10 +204,10 @@ def fit(
     if not (is_real(tol) and 0 < float(tol) < 1):
         raise InvalidOptionError(f"tol must be a number in (0, 1); got {tol!r}")
     if method == "pinn":
-        return _fit_pinn(problem, y0, max_iterations, options, started)
+        return _fit_pinn(problem, y0, max_iterations, {**options, "progress": progress}, started)
     if method != "radau":
         raise InvalidOptionError(f"fit: method must be 'radau' or 'pinn'; got {method!r}")
-    return _fit_radau(problem, y0, max_iterations, float(tol), options, started)
+    return _fit_radau(problem, y0, max_iterations, float(tol), options, started, progress)
 
 
 def _problem(compiled, t, data, parameters, sigma, y0=None) -> _Problem:
@@ -325,6 +341,7 @@ class _Model:
         self.scale = dict(problem.scale)  # each series' noise level: given, or estimated (reweight)
         self.last = None
         self.solves = 0
+        self.bar = None  # a progress bar over the solves, when the fit shows one
 
     def values(self, x) -> tuple[dict, dict]:
         """``(parameters, initial states)`` by name at ``x``, the states not yet projected."""
@@ -377,6 +394,12 @@ class _Model:
             sol, self.failure = None, error
         self.solves += 1
         self.last = (x.copy(), sol)
+        if self.bar is not None:
+            self.bar.update(1)
+            estimates = ", ".join(f"{n}={v:.5g}" for n, v in zip(p.names, x, strict=True))
+            self.bar.set_postfix_str(
+                estimates + ("" if sol is not None else " (not solvable: rejected)"), refresh=False
+            )
         return sol
 
     def residuals(self, x):
@@ -441,14 +464,28 @@ def _initial_states(compiled, y0) -> dict:
     return states
 
 
-def _fit_radau(problem: _Problem, y0, max_iterations: int, tol: float, options: dict, started: float) -> Fit:
+def _fit_radau(
+    problem: _Problem, y0, max_iterations: int, tol: float, options: dict, started: float, progress=None
+) -> Fit:
     from scipy.optimize import least_squares
+
+    from daemodel.backends.progress import progress_bar, show_progress
 
     if "t_eval" in options or "sensitivities" in options:
         raise InvalidOptionError(
             "fit: t_eval and sensitivities are set by the fit (the measured times, the fitted names)"
         )
     model = _Model(problem, y0, options)
+    model.bar = progress_bar(max_iterations + 2, "fit", "solve") if show_progress(progress) else None
+    try:
+        return _least_squares(problem, model, max_iterations, tol, started, least_squares)
+    finally:
+        if model.bar is not None:
+            model.bar.close()
+
+
+def _least_squares(problem, model, max_iterations, tol, started, least_squares) -> Fit:
+    """The radau fit proper (see :func:`fit`): scipy's least squares, reweighted, then the checks."""
     model.checked_start(problem.start)
     check_identifiable(problem.names, model.jacobian(problem.start), problem.start, "at the start")
     x, evaluations, jacobians = problem.start, 0, 0

@@ -282,3 +282,14 @@ def test_data_only_at_t0_are_refused(pendulum):
     compiled, _, _ = pendulum
     with pytest.raises(E.DataError, match="every time in t is the initial time t0 = 0"):
         dm.fit(compiled, [0.0], {"x": [0.6]}, {"L": 1.0})
+
+
+def test_a_progress_bar_shows_the_solves_and_estimates(capsys):
+    compiled = DECAY.model().compile()
+    t = np.linspace(0.1, 2.0, 20)
+    exact = dm.solve(compiled, (0.0, 2.0), rtol=1e-12, t_eval=np.r_[0.0, t])
+    dm.fit(compiled, t, {"y": exact["y"][1:] * 1.001}, {"k": (0.5, 5.0)}, progress=True)
+    err = capsys.readouterr().err
+    assert "fit:" in err and "solve" in err  # (the estimates in its postfix show on redraws: a fast fit has none)
+    dm.fit(compiled, t, {"y": exact["y"][1:] * 1.001}, {"k": (0.5, 5.0)}, progress=False)
+    assert "fit:" not in capsys.readouterr().err
