@@ -78,6 +78,8 @@ class Solution:
         index reductions) is not charged again.  torch's first use in the process (its import and
         first operations, 1-4 s) is charged to the setup of the torch solve that pays it
         (``stats["torch_warm_up_seconds"]``, 0 afterwards).  Initial-value checks are in neither clock.
+        With ``sensitivities=``, generating their numeric Jacobians (once per model) is setup and the
+        sensitivity pass is solve time (``stats["sensitivity_seconds"]``).
     stats : dict
         Method counters: steps, rejected steps, Newton iterations, Jacobians, ...
     compiled : CompiledDAE
@@ -213,14 +215,13 @@ class Solution:
         if output in kept:
             out = S[..., kept.index(output)]
         else:  # an alias: the chain rule through its expression
-            expr = next(e for a, e, _ in c.aliases if a == output)
+            from daemodel.solving.sensitivities import alias_derivatives
+
             Y, Z, P, T = self._flat()
             B, K = self.batch_size, len(self.t)
-            numeric = c.numeric
-            dw = numeric.batch_jacobian([expr], [*c.states, *c.algebraics])(T, Y, Z, P)[:, 0]  # (B*K, n+m)
+            dw, dp = alias_derivatives(c, output, T, Y, Z, P)  # (B*K, n+m), (B*K, k)
             out = np.einsum("rd,rd->r", dw, S.reshape(B * K, -1)).reshape(B, K)
             if name in c.parameter_names:
-                dp = numeric.batch_jacobian([expr], list(c.parameters))(T, Y, Z, P)[:, 0]
                 out = out + dp[:, c.parameter_names.index(name)].reshape(B, K)
         return out if self.batched else out[0]
 

@@ -129,7 +129,9 @@ def plot(fit, t, data, path) -> None:
     axes[1].axhline(0.0, color="k", lw=0.5)
     axes[1].set(xlabel="t", ylabel="data - model")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    from daemodel.files import save_figure
+
+    save_figure(fig, path, "--plot", dpi=110)  # (atomic, checked)
     print(f"wrote {path}")
 
 

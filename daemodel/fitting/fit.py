@@ -328,7 +328,7 @@ class _Model:
     of radau's solution from those initial states."""
 
     def __init__(self, problem: _Problem, y0, options):
-        from daemodel.solving.sensitivities import _zero_free_levels
+        from daemodel.solving.sensitivities import zero_free_levels
 
         # radau adaptive at rtol 1e-8 unless the caller chose (fixed steps: h; the PINN's grid)
         self.problem = problem
@@ -337,7 +337,7 @@ class _Model:
         self.base_p = dict(zip(c.parameter_names, c.parameter_values, strict=True))
         self.base_y = _initial_states(c, y0)
         self.states = [name for name in problem.names if name in c.state_names]
-        self.projected = bool(_zero_free_levels(c))
+        self.projected = bool(zero_free_levels(c))
         self.scale = dict(problem.scale)  # each series' noise level: given, or estimated (reweight)
         self.last = None
         self.solves = 0

@@ -44,7 +44,7 @@ import numpy as np
 
 from daemodel.collocation import lagrange_matrix
 from daemodel.compiling.init import hidden_constraints
-from daemodel.dense import CollocationPolynomials, Groups, step_owners
+from daemodel.dense import CollocationPolynomials, step_owners
 from daemodel.errors import SensitivityError, UnknownSymbolError
 from daemodel.tableau import radau_iia
 
@@ -131,7 +131,7 @@ def directions(compiled, names, caller: str = "sensitivities") -> Directions:
     return Directions(names=names, parameter=np.array(parameter, dtype=int), state=np.array(state, dtype=int))
 
 
-def _zero_free_levels(compiled) -> list:
+def zero_free_levels(compiled) -> list:
     """Every z-free constraint expression of the system and of the model it was reduced from (its
     invariants): what the initial states must satisfy."""
     exprs = [e for _, _, e in hidden_constraints(compiled.constraints)]
@@ -141,6 +141,22 @@ def _zero_free_levels(compiled) -> list:
         if not (expr.free_symbols & algebraics) and all(expr != e for e in exprs):
             exprs.append(expr)
     return exprs
+
+
+def prepare(compiled) -> None:
+    """Generate (once per compiled model: cached on its numeric system) every numeric Jacobian the
+    passes use, so that a caller can charge code generation to setup, apart from the pass."""
+    numeric = compiled.numeric
+    exprs, determining = [*compiled.rhs, *compiled.g], [c.determining for c in compiled.constraints]
+    numeric.batch_jacobian(exprs, [*compiled.states, *compiled.algebraics])
+    numeric.batch_jacobian(exprs, list(compiled.parameters))
+    levels = zero_free_levels(compiled)
+    for wrt in (compiled.states, compiled.parameters):
+        if levels:
+            numeric.batch_jacobian(levels, wrt)
+    for wrt in (compiled.algebraics, compiled.states, compiled.parameters):
+        if determining:
+            numeric.batch_jacobian(determining, wrt)
 
 
 def initial_sensitivities(
@@ -162,7 +178,7 @@ def initial_sensitivities(
         if i >= 0:
             dy[:, i, q] = 1.0
     dp = np.broadcast_to(where.parameter_columns(k), (B, k, Q))
-    levels = _zero_free_levels(compiled) if given is None else []
+    levels = zero_free_levels(compiled) if given is None else []
     if given is not None:
         dy = np.broadcast_to(np.asarray(given, dtype=float), (B, n, Q)).copy()
     if levels:
@@ -274,20 +290,11 @@ class StepSystems:
             "are singular: the solution has no derivative there"
         )
 
-    def state_rhs(self, K: int):
+    def state_rhs(self):
         """``-dR/dy_k``, (sD, n): the identity on every stage's F rows."""
         out = np.zeros((self.s, self.D, self.n))
         out[:, : self.n] = np.eye(self.n)
         return out.reshape(self.s * self.D, self.n)
-
-
-def _pieces(dense, batch: int):
-    """``[(sample indices, CollocationPolynomials)]`` of a radau dense output."""
-    if isinstance(dense, CollocationPolynomials):
-        return [(np.arange(batch), dense)]
-    if isinstance(dense, Groups) and all(isinstance(d, CollocationPolynomials) for _, d in dense.groups):
-        return [(np.asarray(index), d) for index, d in dense.groups]
-    return None
 
 
 def _outputs_by_step(dense, times):
@@ -303,18 +310,13 @@ def forward(sol, names, model=None, initial=None) -> tuple[Directions, np.ndarra
     least-change one (a caller whose initial states are another function of the names: ``fit``)."""
     compiled = sol.compiled
     where = directions(model or compiled, names)
-    pieces = check_solution(sol, "sensitivities")
-    y0, z0 = _start(sol, pieces)
+    dense = check_solution(sol, "sensitivities")
+    n = len(compiled.states)
+    start = dense.nodes[:, 0, 0]  # the first step's start (the outputs need not begin at t0)
     dy0, dz0 = initial_sensitivities(
-        compiled, float(pieces[0][1].starts[0]), y0, z0, sol.parameters, where, given=initial
+        compiled, float(dense.starts[0]), start[:, :n], start[:, n:], sol.parameters, where, given=initial
     )
-    B, T, n, m = sol.batch_size, len(sol.t), len(compiled.states), len(compiled.algebraics)
-    out = np.zeros((B, T, n + m, where.size))
-    for samples, dense in pieces:
-        out[samples] = _forward_piece(
-            compiled, dense, sol.parameters[samples], where, dy0[samples], dz0[samples], np.asarray(sol.t)
-        )
-    return where, out
+    return where, _forward_piece(compiled, dense, sol.parameters, where, dy0, dz0, np.asarray(sol.t))
 
 
 def _forward_piece(compiled, dense, p, where: Directions, dy0, dz0, times):
@@ -327,7 +329,7 @@ def _forward_piece(compiled, dense, p, where: Directions, dy0, dz0, times):
     for first, last in systems.blocks():
         M, rhs_p = systems.build(first, last)
         K = last - first
-        rhs = np.concatenate([np.broadcast_to(systems.state_rhs(K), (B, K, s * D, n)), rhs_p @ columns], axis=-1)
+        rhs = np.concatenate([np.broadcast_to(systems.state_rhs(), (B, K, s * D, n)), rhs_p @ columns], axis=-1)
         X = systems.solve(M, rhs, first).reshape(B, K, s, D, n + Q)
         Phi, Psi = X[..., :n], X[..., n:]
         # step by step only the end values' recursion: (B, D, n) @ (B, n, Q) a step
@@ -352,18 +354,18 @@ def adjoint(sol, cotangent: tuple, names, model=None) -> tuple[Directions, np.nd
     cotangent, direct_p = cotangent
     compiled = sol.compiled
     where = directions(model or compiled, names, caller="gradient")
-    pieces = check_solution(sol, "gradient")
-    y0, z0 = _start(sol, pieces)
-    dy0, dz0 = initial_sensitivities(compiled, float(pieces[0][1].starts[0]), y0, z0, sol.parameters, where)
-    B, k = sol.batch_size, sol.parameters.shape[1]
-    gradient = np.zeros((B, where.size))
-    for samples, dense in pieces:
-        ybar0, zbar0, pbar = _adjoint_piece(compiled, dense, sol.parameters[samples], cotangent[samples], sol.t)
-        gradient[samples] = (
-            np.einsum("bn,bnq->bq", ybar0, dy0[samples])
-            + np.einsum("bm,bmq->bq", zbar0, dz0[samples])
-            + (pbar + direct_p[samples]) @ where.parameter_columns(k)
-        )
+    dense = check_solution(sol, "gradient")
+    n, k = len(compiled.states), sol.parameters.shape[1]
+    start = dense.nodes[:, 0, 0]
+    dy0, dz0 = initial_sensitivities(
+        compiled, float(dense.starts[0]), start[:, :n], start[:, n:], sol.parameters, where
+    )
+    ybar0, zbar0, pbar = _adjoint_piece(compiled, dense, sol.parameters, cotangent, sol.t)
+    gradient = (
+        np.einsum("bn,bnq->bq", ybar0, dy0)
+        + np.einsum("bm,bmq->bq", zbar0, dz0)
+        + (pbar + direct_p) @ where.parameter_columns(k)
+    )
     return where, gradient
 
 
@@ -412,18 +414,9 @@ def _adjoint_piece(compiled, dense, p, cotangent, times):
     return ybar, start[:, 0, n:], pbar
 
 
-def _start(sol, pieces):
-    """The initial states and algebraic values (B, n), (B, m): the first step's start node (the
-    outputs need not begin at t0)."""
-    n = len(sol.compiled.states)
-    u = np.empty((sol.batch_size, pieces[0][1].nodes.shape[-1]))
-    for samples, dense in pieces:
-        u[samples] = dense.nodes[:, 0, 0]
-    return u[:, :n], u[:, n:]
-
-
 def check_solution(sol, what: str):
-    """The dense output's pieces of a solution whose derivatives can be taken, else a SensitivityError."""
+    """The collocation polynomials of a solution whose derivatives can be taken, else a SensitivityError
+    (a batch solved in groups, :class:`daemodel.dense.Groups`, only arises across switches: refused above)."""
     if sol.method != "radau":
         raise SensitivityError(
             f"{what}: derivatives are taken of radau's discrete solution (its stage equations); this solution is "
@@ -434,13 +427,21 @@ def check_solution(sol, what: str):
             f"{what}: the model has {'events' if sol.events else 'time switches'}, across which the derivatives of "
             "the solution jump; daemodel does not differentiate through them yet: fit the span between two of them"
         )
-    pieces = None if sol.dense is None else _pieces(sol.dense, sol.batch_size)
-    if pieces is None:
+    if not isinstance(sol.dense, CollocationPolynomials):
         raise SensitivityError(
             f"{what}: the solution keeps no record of its steps (dense_output=False, or a solve restarted at events): "
             "solve with dense_output=True"
         )
-    return pieces
+    return sol.dense
+
+
+def alias_derivatives(compiled, alias: str, times, Y, Z, P) -> tuple[np.ndarray, np.ndarray]:
+    """``(d alias / d(y, z) (N, n+m), d alias / dp (N, k))`` of an eliminated alias at the rows
+    ``times (N,)``, ``Y``, ``Z``, ``P``: what the chain rule through its expression needs."""
+    expr = next(e for a, e, _ in compiled.aliases if a == alias)
+    numeric = compiled.numeric
+    dw = numeric.batch_jacobian([expr], [*compiled.states, *compiled.algebraics])(times, Y, Z, P)[:, 0]
+    return dw, numeric.batch_jacobian([expr], list(compiled.parameters))(times, Y, Z, P)[:, 0]
 
 
 def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
@@ -471,12 +472,9 @@ def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
             if name in kept:
                 cot_u[:, kept.index(name)] += misfit
             else:  # an alias: through its expression
-                expr = next(e for a, e, _ in c.aliases if a == name)
-                numeric = c.numeric
-                cot_u += (
-                    misfit[:, None] * numeric.batch_jacobian([expr], [*c.states, *c.algebraics])(times, Y, Z, P)[:, 0]
-                )
-                cot_p += misfit[:, None] * numeric.batch_jacobian([expr], list(c.parameters))(times, Y, Z, P)[:, 0]
+                dw, dp = alias_derivatives(c, name, times, Y, Z, P)
+                cot_u += misfit[:, None] * dw
+                cot_p += misfit[:, None] * dp
         return cot_u.reshape(B, T, D), cot_p.reshape(B, T, -1).sum(axis=1)
     table = {s.name: s for s in (c.t, *c.states, *c.algebraics, *c.parameters)}
     table.update({name: sp.Symbol(name) for name in c.alias_names})
