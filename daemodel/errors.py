@@ -169,6 +169,27 @@ class EventLimitError(SolverError):
     """More events in one solve than ``max_events`` allows (chattering, Zeno)."""
 
 
+class ZenoError(EventLimitError):
+    """Events accumulate: their times converge to a point (a ball bouncing ever lower), or a reset leaves
+    the state on its guard, so that the event would fire again at once.  ``t`` is the accumulation point
+    (estimated) or the time where the state stays on the guard; the solution past it is not defined by the
+    events."""
+
+    def __init__(self, message: str, t: float | None = None):
+        super().__init__(message)
+        self.t = t
+
+
+class SlidingModeError(EventLimitError):
+    """A switch on the variables where neither branch can be continued: on each side the flow points
+    back across the switching surface, so the solution slides along it (a Filippov sliding mode), which
+    daemodel does not integrate.  ``t`` is where the sliding starts."""
+
+    def __init__(self, message: str, t: float | None = None):
+        super().__init__(message)
+        self.t = t
+
+
 class EventLocationError(SolverError):
     """An event's crossing could not be located to its tolerance."""
 

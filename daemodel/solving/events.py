@@ -27,12 +27,14 @@ smooth; a switch that flips straight back (a sliding mode) is refused as chatter
 from __future__ import annotations
 
 import dataclasses
+import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import sympy as sp
 
-from daemodel.errors import EventLimitError, EventLocationError, SwitchError
+from daemodel.errors import EventLimitError, EventLocationError, SlidingModeError, SwitchError, ZenoError
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
@@ -43,6 +45,20 @@ EVENT_TOL = 1e-12
 CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
 # Trial solves of the location of one event before EventLocationError.
 MAX_LOCATION_ITERATIONS = 100
+# Which way an event function at zero goes (after an event, or where it starts) is read off one explicit
+# step this long: LOOKAHEAD_SPAN of t_span's length, and at least LOOKAHEAD_TOLS location tolerances (so
+# that a located event's own error in t cannot decide the side).
+LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
+# A drift within ROUNDING of the values' size (at least 1) is no motion.
+ROUNDING = 64 * np.finfo(float).eps
+# A reset changes the motion across its guard where the drift after it differs from the drift before by
+# more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
+RESET_CHANGE = 1e-6
+# A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
+TINY_SPAN = 1e-9
+# Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
+# t_span's length, whose geometric series ends inside t_span: ZenoError at the estimated accumulation point.
+ZENO_GAPS, ZENO_GAP = 5, 1e-6
 
 
 @dataclass(frozen=True)
@@ -55,9 +71,13 @@ class Event:
     direction: int
     reset: tuple
     terminal: bool
-    # a switch's own event (with_state_events): after it, the function's side is the one it crossed to,
-    # and going straight back is a crossing too (the branch locked for the piece would be wrong)
+    # a switch's own event (with_state_events): ``when`` is its switching function; after it, the
+    # branch is the side the flow goes to (both sides tried: neither is a sliding mode), and going
+    # straight back is a crossing too (the branch locked for the piece would be wrong)
     strict: bool = False
+    # floor/ceiling: the event is the function reaching the integer below or above its value, and the
+    # branch the integer part on the side the flow goes to
+    integer: bool = False
 
     def describe(self, state_names) -> str:
         side = {1: "rising", -1: "falling", 0: "either way"}[self.direction]
@@ -81,27 +101,25 @@ def _functions(compiled):
 
 def with_state_events(compiled):
     """``compiled`` with an event at each of its switches on a state or algebraic variable
-    (:func:`daemodel.solving.switches.find_switches`; no reset, named after the switch, ``floor`` and
-    ``ceiling`` through ``sin(pi x)``, which crosses 0 where they step), so that no step straddles
-    one; cached on ``compiled``."""
+    (:func:`daemodel.solving.switches.find_switches`; no reset, named after the switch; ``floor`` and
+    ``ceiling`` at the integers below and above the function's value in each piece), so that no step
+    straddles one; cached on ``compiled``."""
     from daemodel.solving.switches import find_switches
 
     key = ("with-state-events",)
     if key not in compiled._cache:
         extra, names, functions = [], {e.name for e in compiled.events}, set()
         for switch in find_switches(compiled):
-            if switch.time_only or switch.function in functions:
-                continue  # (one event a function: an index-2 model repeats f's switches in its hidden constraints)
+            if switch.time_only or switch.function in functions or -switch.function in functions:
+                continue  # (one event a surface: an index-2 model repeats f's switches in its hidden constraints)
             functions.add(switch.function)
             name, k = f"{switch.kind} in {switch.equation}", 1
             while name in names:
                 k += 1
                 name = f"{switch.kind} in {switch.equation} ({k})"
             names.add(name)
-            function = switch.function
-            if switch.kind in ("floor", "ceiling"):
-                function = sp.sin(sp.pi * function)
-            extra.append(Event(name, function, 0, (), False, strict=True))
+            integer = switch.kind in ("floor", "ceiling")
+            extra.append(Event(name, switch.function, 0, (), False, strict=True, integer=integer))
         compiled._cache[key] = dataclasses.replace(compiled, events=(*compiled.events, *extra)) if extra else compiled
     return compiled._cache[key]
 
@@ -187,6 +205,184 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     return _join_samples(parts, len(P), start.batched)
 
 
+def _drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float) -> np.ndarray:
+    """How ``functions`` (``F(t, Y, Z, P) -> (1, k)``) change over ``delta`` along ``piece``'s flow from
+    ``(t, Y, Z)``: one explicit midpoint step, the algebraic variables solved anew at its end; (k,).
+    Enough to tell which way a function at zero goes (its own rate, or its curvature where the rate
+    is 0: a ball at rest on the floor), at no cost of a solve."""
+    from daemodel.compiling.initial_states import algebraic_values
+    from daemodel.errors import ModelError
+    from daemodel.solving.switches import for_method
+
+    rhs = compiled.numeric.batch_function(list(piece.rhs))
+    k1 = rhs(t, Y, Z, P)
+    Y1 = Y + delta * rhs(t + 0.5 * delta, Y + 0.5 * delta * k1, Z, P)
+    Z1 = Z
+    if Z.shape[1]:
+        try:
+            Z1 = algebraic_values(for_method(piece, backend), t + delta, Y1, P, Z)
+        except ModelError:  # (no root near Z past the start: the rate of z is not needed to tell most sides)
+            Z1 = Z
+    return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
+
+
+def _side(change: float, scale: float) -> int:
+    """The sign of a drift, 0 within rounding of values of size ``scale``."""
+    return 0 if abs(change) <= ROUNDING * max(1.0, scale) else int(np.sign(change))
+
+
+def _leveled(when, levels: dict):
+    """``when`` with the integer events ``levels`` (event -> k) measured as ``(phi - k)(k + 1 - phi)``:
+    positive while ``floor(phi)`` stays ``k``, 0 where it steps, one sign change however far it goes."""
+    if not levels:
+        return when
+
+    def leveled(t, Y, Z, P):
+        out = when(t, Y, Z, P).copy()
+        for e, k in levels.items():
+            out[:, e] = (out[:, e] - k) * (k + 1 - out[:, e])
+        return out
+
+    return leveled
+
+
+@dataclass
+class _Start:
+    """How a piece starts: its model with the switches on variables locked, the event functions as
+    its detection sees them, and each one's side (0: taken from its values) and whether it is armed."""
+
+    model: object
+    when: object
+    sides: np.ndarray
+    armed: np.ndarray
+    setup_time: float
+
+
+def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock) -> _Start:
+    """The piece from ``t``: which side each event function at zero there goes to, by the flow
+    (:func:`_drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``;
+    ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
+    the side it crossed to (kept where both sides lead away).
+
+    Raises
+    ------
+    SlidingModeError
+        A switch at zero whose flow goes back across it on both sides.
+    ZenoError
+        A reset that leaves its event's function on the guard or going on across it.
+    """
+    from daemodel.solving.switches import lock_branches
+
+    started = time.perf_counter()
+    events = compiled.events
+    F0 = when(np.array([t]), Y, Z, P)[0]
+    at_zero = set(fired)
+    for e, event in enumerate(events):
+        if F0[e] == (round(F0[e]) if event.integer else 0):
+            at_zero.add(e)
+    scale = float(np.max(np.abs(np.concatenate([Y[0], Z[0], [t]]))))
+    chosen = {}
+    for _ in range(len(events) + 1):  # (more rounds for switches that cross within location tolerances of t)
+        switches = [e for e in sorted(at_zero) if events[e].strict and events[e].when not in chosen]
+        chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
+        for e in switches:
+            chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
+                                             delta, scale)  # fmt: skip
+        if not lock:
+            break
+        model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
+        rates = _drift(compiled, backend, model, t, Y, Z, P, when, delta) / delta
+        soon = EVENT_TOL * max(1.0, abs(t)) * 10  # (a crossing this close to t is at t: no piece that short)
+        near = {
+            e
+            for e, event in enumerate(events)
+            if event.strict
+            and not event.integer
+            and e not in at_zero
+            and np.sign(F0[e]) == -np.sign(rates[e])
+            and abs(F0[e]) <= abs(rates[e]) * soon
+        }
+        if not near:
+            break
+        at_zero |= near
+    model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen) if lock else compiled
+    sides, armed, levels = np.zeros(len(events)), np.ones(len(events), dtype=bool), {}
+    for e, event in enumerate(events):
+        if event.integer:
+            side = chosen.get(event.when)
+            levels[e] = (round(F0[e]) - (side < 0)) if side else math.floor(F0[e])
+            sides[e] = 1.0  # (inside [k, k + 1] by construction)
+        elif event.strict and e in at_zero:
+            sides[e] = chosen[event.when]
+    declared = [e for e in sorted(at_zero) if not events[e].strict]
+    if declared:
+        changes = _drift(compiled, backend, model, t, Y, Z, P, when, delta)
+        for e in declared:
+            side = _side(changes[e], scale)
+            before = crossing.get(e)
+            if before is not None:  # (a reset: it must send the function back, or leave its motion as it was)
+                across = _side(before, scale)
+                if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
+                    raise ZenoError(
+                        f"event '{events[e].name}' at t = {t:.12g}: after its reset {events[e].when} stays on the "
+                        "guard (it does not move back to the side it came from), so the event would fire again at "
+                        "once, without end (Zeno: a ball coming to rest); make the event terminal=True to stop "
+                        "there, change the reset, or end t_span at it",
+                        t,
+                    )
+            sides[e] = side
+            armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
+    return _Start(model, _leveled(when, levels), sides, armed, time.perf_counter() - started)
+
+
+def _branch(backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, delta: float, scale: float) -> int:
+    """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
+    branch moves its function away from zero on its own side; ``preferred`` where both do.
+
+    Raises
+    ------
+    SlidingModeError
+        Neither does: the flow turns back across the switch on both sides.
+    """
+    from daemodel.solving.switches import lock_branches
+
+    phi = event.when
+    function = compiled.numeric.batch_function([phi])
+    change = {}
+    for side in (1, -1):
+        candidate = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side})
+        change[side] = _side(_drift(compiled, backend, candidate, t, Y, Z, P, function, delta)[0], scale)
+    up, down = change[1] >= 0, change[-1] <= 0
+    if not (up or down):
+        raise SlidingModeError(
+            f"switch '{event.name}' at t = {t:.12g}: neither branch goes on: above zero {phi} turns back down, "
+            f"below zero it turns back up, so the solution slides along {phi} = 0 (a sliding mode), which "
+            "daemodel does not integrate (a branch at a time would chatter); smooth the switch (e.g. tanh(s/eps) "
+            "for sign(s)), or end t_span before it",
+            t,
+        )
+    return preferred if up and down else (1 if up else -1)
+
+
+def _accumulating(event, times: list, t0: float, t1: float) -> None:
+    """Raise :class:`ZenoError` where ``event``'s times converge geometrically to a point inside the span."""
+    if len(times) <= ZENO_GAPS:
+        return
+    gaps = np.diff(np.asarray(times[-ZENO_GAPS - 1 :]))
+    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1]) and gaps[-1] <= ZENO_GAP * (t1 - t0)):
+        return
+    ratio = gaps[-1] / gaps[-2]
+    limit = times[-1] + gaps[-1] * ratio / (1.0 - ratio)
+    if limit < t1:
+        raise ZenoError(
+            f"event '{event.name}' accumulates at t ≈ {limit:.12g}: its last {ZENO_GAPS} gaps shrink by "
+            f"{ratio:.3g} each, down to {gaps[-1]:.3g} at t = {times[-1]:.12g} (Zeno: infinitely many events before "
+            f"it); the solution past it is not defined by the events: end t_span before t ≈ {limit:.6g}, or make "
+            "the event terminal=True (or set max_events) to stop earlier",
+            limit,
+        )
+
+
 def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.grids import output_times
     from daemodel.compiling.initial_states import algebraic_values
@@ -197,10 +393,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         _onto_constraints,
         for_method,
         has_state_switches,
-        lock_branches,
         settings_as_given,
     )
 
+    started = time.perf_counter()
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events
@@ -209,23 +405,31 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
     h = getattr(options, "h", None)
     pieces, all_stats, record = [], [], {e.name: {"t": [], "before": [], "after": [], "moved": []} for e in events}
-    armed = np.ones(len(events), dtype=bool)
-    sides = np.zeros(len(events))  # (strict events just fired: the side they crossed to)
-    t, count, solve_time, setup_time, last = t0, 0, 0.0, 0.0, None
+    t, count, setup_time, last = t0, 0, 0.0, None
     recent = []  # (the event times, to see chattering before max_events)
+    history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
+    fired, crossing, preferred = [], {}, {}  # (what happened at t: see _start_piece)
     lock = has_state_switches(compiled)
+
+    def delta_at(time_: float) -> float:
+        return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * EVENT_TOL * max(1.0, abs(time_)))
+
     while True:
-        # (switches on variables locked to the branch where the piece starts: smooth until an event)
-        piece = lock_branches(compiled, t, Y[0], Z[0], P[0]) if lock else compiled
+        # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
+        begin = _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock)
+        setup_time += begin.setup_time
+        piece, piece_when = begin.model, begin.when
+        if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
+            Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         sol = _span_solve(backend, piece, t, t1, Y, Z, P, start.batched, options, t_eval=None)
         all_stats.append(sol.stats)
-        solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+        setup_time += sol.setup_time
         last = sol
         T, Ys, Zs = _outputs(sol, compiled)
-        F = when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
+        F = piece_when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
         first, which, hit, before_index = None, None, {}, None
         for e, event in enumerate(events):
-            hits = _crossing(F[:, e], event.direction, bool(armed[e]), sides[e])
+            hits = _crossing(F[:, e], event.direction, bool(begin.armed[e]), begin.sides[e])
             if len(hits):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
@@ -241,28 +445,25 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 "before it"
             )
         a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
+        if before_index == 0 and begin.sides[which] and np.sign(Fa) != begin.sides[which]:
+            Fa = begin.sides[which] * np.finfo(float).tiny  # (at zero where the piece starts, going to its side)
         ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
         t_event, y_event, z_event, located = _locate(
-            backend, piece, options, start.batched, P, which, when, a, b, Fa, Fb, ya, za, h
+            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, h
         )
         all_stats += located
         recent.append(t_event)
         if len(recent) > CHATTER_EVENTS and recent[-1] - recent[-1 - CHATTER_EVENTS] <= CHATTER_SPAN * (t1 - t0):
-            how = (
-                ": the switch flips back at once, the solution slides along it (a sliding mode), which "
-                "integration on one branch at a time cannot follow; smooth the switch"
-                if events[which].strict
-                else " (Zeno); end t_span before it"
-            )
             first_time = recent[-1 - CHATTER_EVENTS]
-            raise EventLimitError(
+            raise ZenoError(
                 f"event '{events[which].name}': {CHATTER_EVENTS} events between t = {first_time:.12g} and "
-                f"{recent[-1]:.12g}: chattering{how}"
+                f"{recent[-1]:.12g}: chattering (Zeno); end t_span before it, or make the event terminal=True",
+                recent[-1],
             )
         pieces.append((t, t_event, Y, Z, (which, t_event), piece, sol.dense))
         # every event whose function changed sign (its way) between the bracket's start and the located
         # time fires there, in declaration order (identical or simultaneous events)
-        F_event = when(np.array([t_event]), y_event, z_event, P)[0]
+        F_event = piece_when(np.array([t_event]), y_event, z_event, P)[0]
         fired = [
             e
             for e, event in enumerate(events)
@@ -274,25 +475,36 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 )
             )
         ]
+        for e in fired:
+            history[e].append(t_event)
+            _accumulating(events[e], history[e], t0, t1)
+        with_reset = [e for e in fired if resets[e] is not None]
+        crossing = {}
+        if with_reset:  # (how the functions moved just before the resets: a reset must send them back)
+            changes = _drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
+            crossing = {e: changes[e] for e in with_reset}
+        preferred = {e: int(np.sign(F[first, e])) or 1 for e in fired if events[e].strict and not events[e].integer}
         before = np.concatenate([y_event, z_event], axis=1)
         Y = y_event.copy()
-        for e in fired:
-            if resets[e] is not None:
-                new = resets[e](t_event, Y, z_event, P)
-                for k, (index, _) in enumerate(events[e].reset):
-                    Y[:, index] = new[:, k]
+        for e in with_reset:
+            new = resets[e](t_event, Y, z_event, P)
+            for k, (index, _) in enumerate(events[e].reset):
+                Y[:, index] = new[:, k]
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:
-            has_reset = any(resets[e] is not None for e in fired)
-            Z = algebraic_values(reduced, t_event, Y, P, z_event) if has_reset else z_event
+            Z = algebraic_values(reduced, t_event, Y, P, z_event) if with_reset else z_event
             moved = np.zeros(1)
         else:
             projected = _onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
             moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
             Y = projected
-            if lock:  # (z on the branch the next piece locks)
-                reduced = for_method(lock_branches(compiled, t_event, Y[0], z_event[0], P[0]), backend)
+            if lock and Z.shape[1]:  # (z on the branch the next piece takes)
+                after = _start_piece(
+                    backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta_at(t_event), lock
+                )
+                setup_time += after.setup_time
+                reduced = for_method(after.model, backend)
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
         for e in fired:
             entry = record[events[e].name]
@@ -301,13 +513,6 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             entry["after"].append(np.concatenate([Y, Z], axis=1)[0])
             entry["moved"].append(float(moved[0]))
         count += len(fired) - 1
-        # (the fired events' functions are 0 here: armed again once they have left zero; the others stay)
-        armed = np.ones(len(events), dtype=bool)
-        armed[fired] = False
-        sides = np.zeros(len(events))
-        for e in fired:
-            if events[e].strict:  # (the side it crossed to: the value there, else the output after the bracket)
-                sides[e] = np.sign(F_event[e]) or np.sign(F[first, e]) or 1.0
         if terminal:
             break
         t = t_event
@@ -329,14 +534,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             else:
                 sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)
-                solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+                setup_time += sol.setup_time
                 piece_t, Yp, Zp = _outputs(sol, compiled)
                 piece = np.concatenate([Yp, Zp], axis=1)
         else:
             if not closed:
                 sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=None)
                 all_stats.append(sol.stats)
-                solve_time, setup_time = solve_time + sol.solve_time, setup_time + sol.setup_time
+                setup_time += sol.setup_time
             else:
                 sol = last
             piece_t, Yp, Zp = _outputs(sol, compiled)
@@ -379,7 +584,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         values=out,
         method=last.method,
         settings=settings_as_given(last, options),
-        solve_time=solve_time,
+        solve_time=time.perf_counter() - started - setup_time,  # (all the rest: trial solves, resets, outputs)
         stats=stats,
         compiled=for_method(compiled, backend),
         parameters=P,
@@ -398,8 +603,12 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
     stats = []
     tol = EVENT_TOL * max(1.0, abs(a), abs(b))
 
+    takes_h = "h" in {f.name for f in dataclasses.fields(options)}
+
     def trial(tau):
         changes = {"t_eval": None} | ({"h": min(h, tau - a)} if h is not None else {})
+        if takes_h and tau - a <= TINY_SPAN * max(1.0, abs(a)):  # (one step: a method's default grid would
+            changes["h"] = tau - a  # cut it below the resolution of t)
         sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
         stats.append(sol.stats)
         _, Ys, Zs = _outputs(sol, compiled)

@@ -253,46 +253,66 @@ def _time_only(expr, time_symbols) -> bool:
     return sp.sympify(expr).free_symbols <= time_symbols
 
 
-def _fix(expr, at: dict, decide):
+def _fix(expr, at: dict, decide, sides: dict | None = None):
     """``expr`` with every switch whose switching functions ``decide`` accepts (a predicate on an
-    expression) replaced by its branch at ``at`` (``{symbol: value}``)."""
+    expression) replaced by its branch at ``at`` (``{symbol: value}``).  ``sides`` (switching function
+    -> +1 or -1) gives the branch of the functions that are at zero there: the side the solution goes
+    to (never the switch's value at zero: ``Heaviside(0) = 1/2``, ``sign(0) = 0`` are no branch)."""
+    sides = sides or {}
     if expr.is_Atom:
         return expr
-    args = [_fix(a, at, decide) if isinstance(a, sp.Basic) else a for a in expr.args]
+    args = [_fix(a, at, decide, sides) if isinstance(a, sp.Basic) else a for a in expr.args]
+
+    def value(function) -> float:
+        side = sides.get(function)
+        if side is None and -function in sides:
+            side = -sides[-function]
+        return float(side) if side else float(function.subs(at))
+
     if isinstance(expr, sp.Piecewise):
         kept = []
-        for (value, _), (_, condition) in zip(args, expr.args, strict=True):
+        for (piece, _), (_, condition) in zip(args, expr.args, strict=True):
             if condition == sp.true:
                 if not kept:
-                    return value
-                kept.append((value, True))
+                    return piece
+                kept.append((piece, True))
                 break
             if kept or not decide(condition):
-                kept.append((value, condition))
+                kept.append((piece, condition))
                 continue
-            if bool(condition.subs(at)):
-                return value
+            relations = condition.atoms(sp.core.relational.Relational)
+            truth = {r: type(r)(value(sp.sympify(r.lhs - r.rhs)), 0) for r in relations}
+            if bool(condition.xreplace(truth)):
+                return piece
         return sp.Piecewise(*kept) if kept else sp.nan
     if isinstance(expr, sp.Heaviside | sp.sign | sp.Abs | sp.floor | sp.ceiling | sp.DiracDelta):
         inner = args[0]
         if not decide(inner):
             return expr.func(*args)
-        value = float(inner.subs(at))
-        if isinstance(expr, sp.Heaviside):
-            half = args[1] if len(args) > 1 else sp.S.Half
-            return sp.S.One if value > 0 else (sp.S.Zero if value < 0 else half)
-        if isinstance(expr, sp.sign):
-            return sp.Integer(int(np.sign(value)))
-        if isinstance(expr, sp.Abs):
-            return inner if value >= 0 else -inner
         if isinstance(expr, sp.DiracDelta):
             return sp.S.Zero  # (0 inside a segment: the switch is at its ends)
-        return sp.Integer(math.floor(value) if isinstance(expr, sp.floor) else math.ceil(value))
+        if isinstance(expr, sp.floor | sp.ceiling):
+            number = float(inner.subs(at))
+            side = sides.get(inner)
+            if side:  # (at an integer k: floor is k going up, k - 1 going down)
+                k = round(number)
+                return sp.Integer(k if side > 0 else k - 1) + (1 if isinstance(expr, sp.ceiling) else 0)
+            return sp.Integer(math.floor(number) if isinstance(expr, sp.floor) else math.ceil(number))
+        number = value(inner)
+        if isinstance(expr, sp.Heaviside):
+            half = args[1] if len(args) > 1 else sp.S.Half
+            return sp.S.One if number > 0 else (sp.S.Zero if number < 0 else half)
+        if isinstance(expr, sp.sign):
+            return sp.Integer(int(np.sign(number)))
+        return inner if number >= 0 else -inner
     if isinstance(expr, sp.Max | sp.Min):
         if not all(decide(a) for a in args):
             return expr.func(*args)
-        values = [float(a.subs(at)) for a in args]
-        pick = int(np.argmax(values) if isinstance(expr, sp.Max) else np.argmin(values))
+        pick = 0
+        for j in range(1, len(args)):
+            difference = value(sp.sympify(args[pick] - args[j]))
+            if (difference < 0) if isinstance(expr, sp.Max) else (difference > 0):
+                pick = j
         return args[pick]
     return expr.func(*args)
 
@@ -306,10 +326,12 @@ def branch_model(compiled, tau: float, p: np.ndarray):
     return _fixed(compiled, at, lambda e: _time_only(e, time_symbols), "branch")
 
 
-def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray):
+def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray, sides: dict | None = None):
     """``compiled`` with its switches on states and algebraic variables fixed to their branch at
     ``(t, y, z)`` (time switches left to :func:`branch_model`): smooth until one of those switching
-    functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.  Cached."""
+    functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.
+    ``sides`` (switching function -> +1 or -1): the branch of those at zero there (see :func:`_fix`).
+    Cached."""
     time_symbols = {compiled.t, *compiled.parameters}
     values = [
         (compiled.t, t),
@@ -318,7 +340,7 @@ def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarra
         *zip(compiled.algebraics, z, strict=True),
     ]
     at = {symbol: sp.Float(float(value)) for symbol, value in values}
-    return _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked")
+    return _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", sides)
 
 
 def for_method(compiled, backend):
@@ -339,11 +361,11 @@ def has_state_switches(compiled) -> bool:
     return any(not s.time_only for s in find_switches(compiled))
 
 
-def _fixed(compiled, at: dict, decide, kind: str):
+def _fixed(compiled, at: dict, decide, kind: str, sides: dict | None = None):
     """``compiled`` with the switches ``decide`` accepts fixed at ``at`` (see :func:`_fix`), cached."""
-    rhs = tuple(_fix(e, at, decide) for e in compiled.rhs)
+    rhs = tuple(_fix(e, at, decide, sides) for e in compiled.rhs)
     constraints = tuple(
-        dataclasses.replace(c, chain=tuple(_fix(e, at, decide) for e in c.chain)) for c in compiled.constraints
+        dataclasses.replace(c, chain=tuple(_fix(e, at, decide, sides) for e in c.chain)) for c in compiled.constraints
     )
     key = (kind, rhs, tuple(c.chain for c in constraints))
     if key not in compiled._cache:
