@@ -129,6 +129,8 @@ class Groups(AbstractDenseOutput):
 
     groups: tuple
     samples: int
+    # each group's last time where it ended early (a terminal event), else None: NaN after it
+    ends: tuple | None = None
 
     @property
     def description(self) -> str:
@@ -136,10 +138,13 @@ class Groups(AbstractDenseOutput):
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         out = None
-        for index, dense in self.groups:
-            values = dense(times)
+        for k, (index, dense) in enumerate(self.groups):
+            end = None if self.ends is None else self.ends[k]
+            values = dense(np.minimum(times, end) if end is not None else times)
             if out is None:
                 out = np.empty((self.samples, values.shape[1], values.shape[2]))
+            if end is not None:
+                values[:, times > end] = np.nan  # (the samples ended there)
             out[index] = values
         return out
 
@@ -239,8 +244,9 @@ def joined_in_time(edges, pieces) -> AbstractDenseOutput | None:
     return pieces[0] if len(pieces) == 1 else Segments(np.asarray(edges, dtype=float), tuple(pieces))
 
 
-def joined_by_samples(groups, samples: int) -> AbstractDenseOutput | None:
-    """The :class:`Groups` of ``(index, dense)`` pairs (None where a group has no dense output)."""
+def joined_by_samples(groups, samples: int, ends=None) -> AbstractDenseOutput | None:
+    """The :class:`Groups` of ``(index, dense)`` pairs (None where a group has no dense output); ``ends``:
+    each group's end where it ended before the others, else None."""
     if any(dense is None for _, dense in groups):
         return None
-    return Groups(tuple(groups), samples)
+    return Groups(tuple(groups), samples, None if ends is None else tuple(ends))

@@ -497,24 +497,42 @@ def _join_samples(parts: list, B: int, batched: bool):
     from daemodel.solution import Solution
 
     first = parts[0][1]
+    t = first.t
+    ends = None
     if any(len(sol.t) != len(first.t) or not np.array_equal(sol.t, first.t) for _, sol in parts):
-        raise SwitchError(
-            "the samples of this batch end at different times (a terminal event): their outputs cannot share "
-            "times; solve them one at a time"
-        )
-    values = {name: np.empty((B, len(first.t))) for name in first.values}
+        # (a terminal event ends some samples early: each keeps its own end, NaN after it; the times are
+        # all of theirs, each sample's values at the others' times from its dense output)
+        t = np.unique(np.concatenate([sol.t for _, sol in parts]))
+        last = max(sol.t[-1] for _, sol in parts)
+        ends = [sol.t[-1] if sol.t[-1] < last else None for _, sol in parts]
+    values = {name: np.full((B, len(t)), np.nan) for name in first.values}
     parameters = np.empty((B, first.parameters.shape[1]))
     for index, sol in parts:
-        for name in values:
-            values[name][index] = sol.values[name]
+        if ends is None:
+            for name in values:
+                values[name][index] = sol.values[name]
+        else:
+            own = np.isin(t, sol.t)
+            between = ~own & (t <= sol.t[-1])
+            found = sol.at(t[between]) if between.any() else {}
+            for name in values:
+                row = np.full((len(index), len(t)), np.nan)
+                row[:, own] = np.asarray(sol.values[name]).reshape(len(index), -1)
+                if between.any():
+                    row[:, between] = np.asarray(found[name]).reshape(len(index), -1)
+                values[name][index] = row
         parameters[index] = sol.parameters
     breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
     events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
     stats = _merge_stats([sol.stats for _, sol in parts])
     stats["groups"] = len(parts)
+    if ends is not None:  # (where each sample ended)
+        stats["t_end"] = np.empty(B)
+        for index, sol in parts:
+            stats["t_end"][index] = sol.t[-1]
     failing = [f"samples {index.tolist()}: {sol.status}" for index, sol in parts if sol.status != "success"]
     return Solution(
-        t=first.t,
+        t=t,
         values=values,
         method=first.method,
         settings=first.settings,
@@ -527,7 +545,7 @@ def _join_samples(parts: list, B: int, batched: bool):
         setup_time=sum(sol.setup_time for _, sol in parts),
         breakpoints=breakpoints,
         events=events,
-        dense=joined_by_samples([(index, sol.dense) for index, sol in parts], B),
+        dense=joined_by_samples([(index, sol.dense) for index, sol in parts], B, ends),
     )
 
 
@@ -558,17 +576,19 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
             Z = algebraic_values(model, a, Y, P, Z)
             post.append(np.concatenate([Y, Z], axis=1))
         model = dataclasses.replace(model, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
-        changes = {}
+        changes, unseen = {}, False
         if user_grid is not None:
             inside = user_grid[(user_grid >= a) & ((user_grid <= b) if last else (user_grid < b))]
-            changes["t_eval"] = inside if last else np.concatenate([inside, [b]])
+            # (a last segment with no output time in it, a piece before an event: solved to b, b not shown)
+            unseen = last and not len(inside)
+            changes["t_eval"] = np.concatenate([inside, [b]]) if not last or unseen else inside
         if h is not None:
             changes["h"] = _segment_steps(a, b, h)
         segment_start = InitialStates(y0=Y, z0=Z, p=P, batched=start.batched)
         sol = backend.solve(model, (float(a), float(b)), segment_start, dataclasses.replace(options, **changes))
         end = np.stack([np.asarray(sol.values[name])[:, -1] for name in names], axis=-1)
         Y, Z = end[:, : len(compiled.states)].copy(), end[:, len(compiled.states) :].copy()
-        keep = np.ones(len(sol.t), dtype=bool)
+        keep = np.full(len(sol.t), not unseen)
         if not last:
             pre.append(end)
             keep[-1] = False  # (the breakpoint's values are the next segment's: after the switch)
