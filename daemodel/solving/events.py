@@ -13,15 +13,19 @@ outputs, evaluate every event function there, and take the first crossing; locat
 two outputs that bracket it by the Illinois variant of regula falsi, each trial time a short solve
 from the output before it (so the located state has the method's own accuracy, not an
 interpolant's), to :data:`EVENT_TOL` in t; keep the outputs before it, apply the reset, go on
-from there.  A crossing between two outputs whose function changes sign twice is not seen; an
-event function that is zero at the start of a piece is armed only once it has left zero.
-At most ``max_events`` events a solve (default :data:`DEFAULT_MAX_EVENTS`): chattering (a ball
-bouncing ever lower, Zeno) ends in :class:`~daemodel.errors.EventLimitError`.
+from there.  A crossing between two outputs whose function changes sign twice is not seen, except
+from where a piece starts: an event function at zero there (just fired, or where the solve starts)
+takes the side the flow goes to (:func:`_start_piece`: one explicit step, :func:`_drift`), so a
+flight shorter than an output step is a crossing too.  At most ``max_events`` events a solve
+(default :data:`DEFAULT_MAX_EVENTS`); events whose times converge stop earlier, at their estimated
+accumulation point, and so does a reset that leaves its function on the guard
+(:class:`~daemodel.errors.ZenoError`).
 
 Switches on states and algebraic variables (:mod:`daemodel.solving.switches`) are events too
 (:func:`with_state_events`: no reset, named after the switch), with the switch locked to the
-branch where each piece starts (:func:`daemodel.solving.switches.lock_branches`), so that every piece is
-smooth; a switch that flips straight back (a sliding mode) is refused as chattering.
+branch the flow takes where each piece starts (:func:`daemodel.solving.switches.lock_branches`,
+never the switch's value at zero), so that every piece is smooth; a switch where neither branch
+goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`).
 """
 
 from __future__ import annotations
