@@ -235,16 +235,19 @@ def _side(change: float, scale: float) -> int:
     return 0 if abs(change) <= ROUNDING * max(1.0, scale) else int(np.sign(change))
 
 
-def _leveled(when, levels: dict):
+def _leveled(when, levels: dict, replaced: dict | None = None):
     """``when`` with the integer events ``levels`` (event -> k) measured as ``(phi - k)(k + 1 - phi)``:
-    positive while ``floor(phi)`` stays ``k``, 0 where it steps, one sign change however far it goes."""
-    if not levels:
+    positive while ``floor(phi)`` stays ``k``, 0 where it steps, one sign change however far it goes;
+    and the columns of ``replaced`` (event -> function) by those functions (a sliding motion's exit)."""
+    if not levels and not replaced:
         return when
 
     def leveled(t, Y, Z, P):
         out = when(t, Y, Z, P).copy()
         for e, k in levels.items():
             out[:, e] = (out[:, e] - k) * (k + 1 - out[:, e])
+        for e, function in (replaced or {}).items():
+            out[:, e] = function(t, Y, Z, P)[:, 0]
         return out
 
     return leveled
@@ -260,9 +263,11 @@ class _Start:
     sides: np.ndarray
     armed: np.ndarray
     setup_time: float
+    # event -> (rate above, rate below) of the switches the piece slides along
+    sliding: dict = dataclasses.field(default_factory=dict)
 
 
-def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock) -> _Start:
+def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=()) -> _Start:
     """The piece from ``t``: which side each event function at zero there goes to, by the flow
     (:func:`_drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``;
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
@@ -291,7 +296,7 @@ def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale)  # fmt: skip
+                                             delta, scale, e in exited)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
@@ -309,13 +314,32 @@ def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred
         if not near:
             break
         at_zero |= near
-    model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen) if lock else compiled
+    slides = [e for e, event in enumerate(events) if event.strict and chosen.get(event.when) == 0]
+    if len(slides) > 1:
+        raise SlidingModeError(
+            f"switches {', '.join(repr(events[e].name) for e in slides)} at t = {t:.12g}: the solution slides along "
+            "two switches at once, which daemodel does not integrate; smooth one of them, or end t_span before it",
+            t,
+        )
+    sliding, replaced = {}, {}
+    if slides:
+        (e,) = slides
+        phi = events[e].when
+        others = {f: side for f, side in chosen.items() if f != phi}
+        model, leaving, rates = _sliding(compiled, t, Y, Z, P, others, phi)
+        sliding[e] = compiled.numeric.batch_function(list(rates))
+        replaced[e] = compiled.numeric.batch_function([leaving])
+        chosen.pop(phi)
+    else:
+        model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen) if lock else compiled
     sides, armed, levels = np.zeros(len(events)), np.ones(len(events), dtype=bool), {}
     for e, event in enumerate(events):
         if event.integer:
             side = chosen.get(event.when)
             levels[e] = (round(F0[e]) - (side < 0)) if side else math.floor(F0[e])
             sides[e] = 1.0  # (inside [k, k + 1] by construction)
+        elif e in sliding:
+            sides[e] = 1.0  # (the function that leaves the sliding motion: positive on it)
         elif event.strict and e in at_zero:
             sides[e] = chosen[event.when]
     declared = [e for e in sorted(at_zero) if not events[e].strict]
@@ -336,17 +360,21 @@ def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred
                     )
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
-    return _Start(model, _leveled(when, levels), sides, armed, time.perf_counter() - started)
+    return _Start(model, _leveled(when, levels, replaced), sides, armed, time.perf_counter() - started, sliding)
 
 
-def _branch(backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, delta: float, scale: float) -> int:
+def _branch(
+    backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, delta: float, scale: float, exited: bool
+) -> int:
     """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
-    branch moves its function away from zero on its own side; ``preferred`` where both do.
+    branch moves its function away from zero on its own side; ``preferred`` where both do, or where it
+    just left a sliding motion (``exited``); 0 where neither does and the solution slides along it
+    (:func:`_slides`).
 
     Raises
     ------
     SlidingModeError
-        Neither does: the flow turns back across the switch on both sides.
+        Neither does, and the sliding motion is not one daemodel integrates.
     """
     from daemodel.solving.switches import lock_branches
 
@@ -357,15 +385,54 @@ def _branch(backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, 
         candidate = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side})
         change[side] = _side(_drift(compiled, backend, candidate, t, Y, Z, P, function, delta)[0], scale)
     up, down = change[1] >= 0, change[-1] <= 0
+    if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
+        return preferred
+    if not (up or down) and _slides(compiled, event):
+        return 0  # (Filippov's sliding motion: see _sliding)
     if not (up or down):
         raise SlidingModeError(
             f"switch '{event.name}' at t = {t:.12g}: neither branch goes on: above zero {phi} turns back down, "
             f"below zero it turns back up, so the solution slides along {phi} = 0 (a sliding mode), which "
-            "daemodel does not integrate (a branch at a time would chatter); smooth the switch (e.g. tanh(s/eps) "
-            "for sign(s)), or end t_span before it",
+            "daemodel integrates only where the switching function is of t and the states and the switch and "
+            "the constraints are apart (index 1 at most); smooth the switch (e.g. tanh(s/eps) for sign(s)), or "
+            "end t_span before it",
             t,
         )
     return preferred if up and down else (1 if up else -1)
+
+
+def _slides(compiled, event) -> bool:
+    """Whether daemodel integrates the Filippov sliding motion along ``event``'s switch: its switching
+    function is of t, the states and parameters, it occurs in no constraint, and no constraint is
+    differentiated along the flow (index 1 at most: the sliding flow would change the hidden ones)."""
+    phi = event.when
+    if event.integer or phi.free_symbols & set(compiled.algebraics):
+        return False
+    return all(len(c.chain) == 1 and not any(e.has(phi) or e.has(-phi) for e in c.chain) for c in compiled.constraints)
+
+
+def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
+    """The model of the Filippov sliding motion along ``phi = 0``: ``y' = f- + a (f+ - f-)`` with ``a``
+    such that ``phi`` stays put (``a = r- / (r- - r+)``, ``r`` the rates of ``phi`` on each branch), and
+    the function that leaves it: ``r- (-r+)``, positive while both branches push onto the switch."""
+    from daemodel.solving.switches import lock_branches
+
+    plus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: 1})
+    minus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: -1})
+    key = ("sliding", phi, plus.rhs, minus.rhs)
+    if key not in compiled._cache:
+
+        def rate(rhs):
+            return sp.diff(phi, compiled.t) + sum(
+                sp.diff(phi, y) * f for y, f in zip(compiled.states, rhs, strict=True)
+            )
+
+        up, down = rate(plus.rhs), rate(minus.rhs)
+        a = down / (down - up)
+        rhs = tuple(fm + a * (fp - fm) for fp, fm in zip(plus.rhs, minus.rhs, strict=True))
+        model = dataclasses.replace(minus, rhs=rhs, _cache={})
+        compiled._cache[key] = (model, down * (-up), (up, down))
+    return compiled._cache[key]
 
 
 def _accumulating(event, times: list, t0: float, t1: float) -> None:
@@ -412,7 +479,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     t, count, setup_time, last = t0, 0, 0.0, None
     recent = []  # (the event times, to see chattering before max_events)
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
-    fired, crossing, preferred = [], {}, {}  # (what happened at t: see _start_piece)
+    fired, crossing, preferred, exited = [], {}, {}, set()  # (what happened at t: see _start_piece)
     lock = has_state_switches(compiled)
 
     def delta_at(time_: float) -> float:
@@ -420,7 +487,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
 
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
-        begin = _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock)
+        begin = _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited)
         setup_time += begin.setup_time
         piece, piece_when = begin.model, begin.when
         if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
@@ -488,6 +555,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             changes = _drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: int(np.sign(F[first, e])) or 1 for e in fired if events[e].strict and not events[e].integer}
+        exited = {e for e in fired if e in begin.sliding}
+        for e in exited:  # (it leaves the sliding motion to the side whose rate reached 0)
+            up, down = begin.sliding[e](np.array([t_event]), y_event, z_event, P)[0]
+            preferred[e] = 1 if abs(up) <= abs(down) else -1
         before = np.concatenate([y_event, z_event], axis=1)
         Y = y_event.copy()
         for e in with_reset:
@@ -505,7 +576,19 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Y = projected
             if lock and Z.shape[1]:  # (z on the branch the next piece takes)
                 after = _start_piece(
-                    backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta_at(t_event), lock
+                    backend,
+                    compiled,
+                    when,
+                    t_event,
+                    Y,
+                    z_event,
+                    P,
+                    fired,
+                    crossing,
+                    preferred,
+                    delta_at(t_event),
+                    lock,
+                    exited,
                 )
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)

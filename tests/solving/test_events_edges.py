@@ -154,18 +154,47 @@ def test_a_floor_that_goes_down():
 
 
 @pytest.mark.parametrize(("method", "options"), [*METHODS, ("pinn", {"h": 0.05})])
-def test_a_sliding_mode_is_refused_in_every_method(method, options):
-    # x' = 2 below the line x = t, 0.5 above it: from -0.1, x meets t at 0.1 and must slide along it
-    # (before: "success" with x' = 0.5 throughout, in every method)
+def test_a_sliding_mode_in_every_method(method, options):
+    # x' = 2 below the line x = t, 0.5 above it: from -0.1, x meets t at 0.1 and slides along it (Filippov:
+    # x' = 1 there) (before: "success" with x' = 0.5 throughout, x(1) = 0.55, in every method)
     m = dm.Model("slide")
     m.states("x")
     m.ode("x", "Piecewise((2, x < t), (0.5, True))")
     m.initial(x=-0.1)
+    sol = dm.solve(m, (0.0, 1.0), method=method, **options)
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - 1.0) < 1e-9 and abs(sol.events["Piecewise in x'"]["t"][0, 0] - 0.1) < 1e-10
+    np.testing.assert_allclose(sol.at([0.05, 0.5])["x"], [0.0, 0.5], atol=1e-9)
+
+
+def test_a_sliding_motion_that_ends():
+    # x' = -sign(x) + 2t - 3 from 1: x = 1 - 4t + t^2 down to 0 at 2 - sqrt(3), through it (both sides push
+    # down), x = t^2 - 2t - 3 + 2 sqrt(3) back up to 0 at sqrt(3), where both sides push onto it: it slides
+    # until the rate above, 2t - 4, turns at t = 2; then x = (t - 2)^2
+    m = dm.Model("exit")
+    m.states("x")
+    m.ode("x", "-sign(x) + 2*t - 3")
+    m.initial(x=1.0)
+    sol = dm.solve(m, (0.0, 4.0), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sol.events["sign in x'"]["t"][0], [2 - math.sqrt(3), math.sqrt(3), 2.0], atol=1e-9)
+    np.testing.assert_allclose(sol.at([1.9, 3.0, 4.0])["x"], [0.0, 1.0, 4.0], atol=1e-8)
+
+
+def test_a_sliding_mode_daemodel_does_not_integrate_is_refused():
+    # the switching function is an algebraic variable: the sliding motion would move it through the constraint
+    m = dm.Model("refused")
+    m.states("x")
+    m.algebraics("z")
+    m.ode("x", "-sign(z)")
+    m.constraint("z + z**3 - x")
+    m.initial(x=1.0)
     with pytest.raises(
-        E.SlidingModeError, match=r"switch 'Piecewise in x'' at t = 0\.1\d*: neither branch goes on"
-    ) as c:
-        dm.solve(m, (0.0, 1.0), method=method, **options)
-    assert abs(c.value.t - 0.1) < 1e-9
+        E.SlidingModeError,
+        match=r"switch 'sign in x'' at t = 1(\.0+\d*)?: neither branch goes on: above zero z turns back down.*"
+        r"daemodel integrates only where the switching function is of t and the states",
+    ) as caught:
+        dm.solve(m, (0.0, 2.0), rtol=1e-8, atol=1e-8)
+    assert abs(caught.value.t - 1.0) < 1e-9
 
 
 def test_a_repelling_switch_keeps_the_side_it_crossed_to():
@@ -191,19 +220,19 @@ def test_the_event_machinery_is_inside_the_clocks():
 
 
 def _linear_exact(x0, a, b, c, t1):
-    """x' = a below c, b at or above it: ``("value", x(t1))`` or ``("slide", t)`` where it would slide."""
+    """x' = a below c, b at or above it: x(t1), sliding along x = c where both sides push onto it."""
     rate = a if x0 < c else b
     if x0 == c:
         rate = b if b > 0 else (a if a < 0 else None)
         if rate is None:
-            return ("slide", 0.0)
+            return c
     reach = (c - x0) / rate if (c - x0) * rate > 0 else math.inf
     if reach >= t1:
-        return ("value", x0 + rate * t1)
+        return x0 + rate * t1
     after = b if rate > 0 else a  # (the branch on the far side)
     if (rate > 0 and after < 0) or (rate < 0 and after > 0):
-        return ("slide", reach)
-    return ("value", c + after * (t1 - reach))
+        return c  # (Filippov: x' = 0 on the switch)
+    return c + after * (t1 - reach)
 
 
 @settings(max_examples=40, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -223,14 +252,7 @@ def test_property_piecewise_linear_switches(x0, a, b, c, t1, how):
     else:
         m.ode("x", f"{a!r} + ({b!r} - {a!r})*Heaviside(x - {c!r})")
     m.initial(x=x0)
-    kind, value = _linear_exact(x0, a, b, c, t1)
-    if kind == "slide" and value < t1 - 1e-9:
-        with pytest.raises(E.SlidingModeError) as caught:
-            dm.solve(m, (0.0, t1), rtol=1e-10, atol=1e-10)
-        assert abs(caught.value.t - value) < 1e-8
-        return
-    if kind == "slide":  # (it would slide only at the very end)
-        return
+    value = _linear_exact(x0, a, b, c, t1)
     try:
         sol = dm.solve(m, (0.0, t1), rtol=1e-10, atol=1e-10)
     except E.DaemodelError as error:  # (a refusal must be named: DaemodelError covers every named error)
