@@ -202,7 +202,8 @@ class Comparison:
 
         By default the errors are grouped: the max absolute error over the differential variables
         and over the algebraic ones, each with the variable that reached it, so that the table
-        stays about 110 characters wide whatever the model's size.  ``detail=True`` gives a
+        stays about 110 characters wide whatever the model's size (125 with the event columns of a model
+        with events or breakpoints).  ``detail=True`` gives a
         ``max (mean)`` column per variable instead (also in :meth:`to_csv`).
         """
         width = {"method": max(8, *(len(r.method) for r in self.runs)) + 2, "settings": 0}
@@ -268,9 +269,9 @@ class Comparison:
         """What the event columns mean, and each run whose instants the reference does not match."""
         labels = list(dict.fromkeys(k for r in self.runs for k in r.instants))
         notes = [
-            f"event t, event y: at the instants of {', '.join(labels)}, paired in time order with the reference's, "
-            "max |t - t_ref| and the max error of the values just before and just after (each side at its own "
-            "instant); excluded: output values within such a pair's window, left out of the variables' errors "
+            f"event t, event y: at the instants of {', '.join(labels)}, each paired with the nearest of the "
+            "reference's, max |t - t_ref| and the max error of the values just before and just after (each side at "
+            "its own instant); excluded: output values within such a pair's window, left out of the variables' errors "
             "(one side may hold the value after a reset, the other the value before)"
         ]
         for run in self.runs:

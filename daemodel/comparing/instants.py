@@ -8,9 +8,9 @@ and the other the value before it, O(1) apart however accurate both are (a bounc
 8 m/s).  So :meth:`Solution.errors`, :meth:`Solution.error_report` and :func:`compare` measure:
 
 * the variables at the solution's output times, leaving out those within the window of an instant:
-  for the k-th event of a name on each side (paired in time order, per sample),
-  ``[min(t_a, t_b) - w, max(t_a, t_b) + w]``, and ``[t - w, t + w]`` around an instant only one side
-  has, with ``w = TIME_MATCH_RTOL * max(span, 1)``;
+  for a pair of instants of one event name, one on each side that are each other's nearest (per
+  sample), ``[min(t_a, t_b) - w, max(t_a, t_b) + w]``, and ``[t - w, t + w]`` around an instant that
+  pairs with none (one side missed it), with ``w = TIME_MATCH_RTOL * max(span, 1)``;
 * the instants themselves, per event name (and ``"time breakpoints"``): ``|t_a - t_b|`` of each
   pair, and the values before against the values before, after against after, each side's at its
   own instant.
@@ -35,7 +35,7 @@ BREAKPOINTS = "time breakpoints"
 
 @dataclass(frozen=True)
 class InstantErrors:
-    """One event name's (or the breakpoints') instants on both sides, paired in time order.
+    """One event name's (or the breakpoints') instants on both sides, paired each with its nearest.
 
     Attributes
     ----------
@@ -171,18 +171,18 @@ def measure(t: np.ndarray, own: dict, theirs: dict | None, names, batch: int) ->
             count += len(ta)
             if reference_count is not None:
                 reference_count += len(tb)
-            pairs = min(len(ta), len(tb))
-            windows = [(min(ta[k], tb[k]), max(ta[k], tb[k])) for k in range(pairs)]
-            windows += [(s, s) for s in (*ta[pairs:], *tb[pairs:])]
+            i, j = _pairs(ta, tb)
+            windows = [(min(ta[x], tb[y]), max(ta[x], tb[y])) for x, y in zip(i, j, strict=True)]
+            windows += [(s, s) for s in (*np.delete(ta, i), *np.delete(tb, j))]
             for lo, hi in windows:
                 keep[b] &= ~((t >= lo - w) & (t <= hi + w))
-            if pairs:
-                dt.append(np.abs(ta[:pairs] - tb[:pairs]))
+            if len(i):
+                dt.append(np.abs(ta[i] - tb[j]))
                 for side, found in ((before, 1), (after, 2)):
                     for name in names:
                         if name in pa[found] and name in pb[found]:
-                            a = mine[found][name][b][pa[0]][:pairs]
-                            c = other[found][name][b][pb[0]][:pairs]
+                            a = mine[found][name][b][pa[0][i]]
+                            c = other[found][name][b][pb[0][j]]
                             side[name].append(np.abs(a - c))
 
         def worst(parts) -> float:
@@ -196,6 +196,23 @@ def measure(t: np.ndarray, own: dict, theirs: dict | None, names, batch: int) ->
             after={name: worst(v) for name, v in after.items() if v},
         )
     return keep, out, w
+
+
+def _pairs(ta: np.ndarray, tb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices ``(i, j)`` of the instants of two ascending lists that are each other's nearest: the same
+    event on both sides (an instant one side lacks pairs with nothing, and shifts no other pair)."""
+    if not len(ta) or not len(tb):
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+
+    def nearest(x: np.ndarray, among: np.ndarray) -> np.ndarray:
+        k = np.clip(np.searchsorted(among, x), 1, len(among) - 1) if len(among) > 1 else np.zeros(len(x), dtype=int)
+        if len(among) > 1:
+            k = np.where(np.abs(among[k - 1] - x) <= np.abs(among[k] - x), k - 1, k)
+        return k
+
+    j = nearest(ta, tb)
+    i = np.flatnonzero(nearest(tb[j], ta) == np.arange(len(ta)))
+    return i, j[i]
 
 
 def _inside(record, b: int, lo: float, hi: float) -> tuple[np.ndarray, tuple]:
