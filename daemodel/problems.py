@@ -43,6 +43,13 @@ class Problem:
         Steps over ``t_span`` of the coarsest fixed-step setting ``daemodel compare`` sweeps
         (``h = span / compare_steps``, then halved): 10 where the solution is smooth on the
         span, more where it oscillates or has fast transients that a coarser step cannot follow.
+    events : tuple of dict
+        Declared events, each the keyword arguments of :meth:`Model.event` (``name``, ``when``,
+        ``direction``, ``reset`` with str expressions, ``terminal``).
+    exact_events : dict name -> tuple of str
+        The exact solution's event times (expressions), where ``exact`` jumps.  ``exact`` is then a
+        ``Piecewise`` in t whose conditions are ``t < t_k``: at ``t_k`` it gives the values after the
+        event (as a Solution does), and the same expressions with ``t <= t_k`` the values just before.
     """
 
     name: str
@@ -58,6 +65,8 @@ class Problem:
     reference: dict = field(default_factory=dict)
     source: str = ""
     compare_steps: int = SWEEP_FIRST_STEPS
+    events: tuple = ()
+    exact_events: dict = field(default_factory=dict)
 
     def model(self) -> Model:
         """A fresh :class:`Model` of this problem."""
@@ -74,23 +83,62 @@ class Problem:
         m.initial(**self.initial)
         if self.guesses:
             m.guess(**self.guesses)
+        for event in self.events:
+            m.event(**event)
         return m
 
-    def exact_solution(self):
-        """``solution(t) -> dict name -> ndarray`` from the closed form (None if there is none)."""
+    def exact_solution(self) -> ExactSolution | None:
+        """``solution(t) -> dict name -> ndarray`` from the closed form (None if there is none); with
+        :attr:`exact_events`, ``solution.events`` holds its event times and the values on each side."""
         if not self.exact:
             return None
         t = sp.Symbol("t")
-        functions = {
-            name: sp.lambdify(t, parse_equation(expr, {"t": t}, f"exact solution of {name}"), NUMERIC_MODULES)
-            for name, expr in self.exact.items()
+        expressions = {
+            name: parse_equation(expr, {"t": t}, f"exact solution of {name}") for name, expr in self.exact.items()
         }
+        # the left limits: the same pieces, each closed at its right end (t <= t_k for t < t_k)
+        closed = {
+            name: expr.replace(lambda e: isinstance(e, sp.StrictLessThan), lambda e: sp.LessThan(*e.args))
+            for name, expr in expressions.items()
+        }
+        right = ExactSolution({name: sp.lambdify(t, e, NUMERIC_MODULES) for name, e in expressions.items()})
+        left = ExactSolution({name: sp.lambdify(t, e, NUMERIC_MODULES) for name, e in closed.items()})
+        events = {}
+        for name, times in self.exact_events.items():
+            # (through lambdify, as the pieces' conditions are: the same digits give the same doubles)
+            instants = np.array(
+                [
+                    float(sp.lambdify((), parse_equation(v, {}, f"time of event {name}"), NUMERIC_MODULES)())
+                    for v in times
+                ]
+            )
+            events[name] = {
+                "t": instants[None, :],
+                "before": {k: v[None, :] for k, v in left(instants).items()},
+                "after": {k: v[None, :] for k, v in right(instants).items()},
+            }
+        return ExactSolution(right.functions, events)
 
-        def solution(times):
-            times = np.asarray(times, dtype=float)
-            return {name: np.broadcast_to(fn(times), times.shape).astype(float) for name, fn in functions.items()}
 
-        return solution
+@dataclass(frozen=True, eq=False)
+class ExactSolution:
+    """A closed-form solution: ``solution(t)`` gives a dict name -> ndarray shaped like ``t``.
+
+    Attributes
+    ----------
+    functions : dict name -> callable of t
+    events : dict
+        Its events in :attr:`Solution.events`' layout (name -> ``"t"``, ``"before"``, ``"after"``,
+        each (1, K)), which :meth:`Solution.errors` and :func:`compare` measure each side's
+        event instants with; empty without events.
+    """
+
+    functions: dict
+    events: dict = field(default_factory=dict)
+
+    def __call__(self, times) -> dict:
+        times = np.asarray(times, dtype=float)
+        return {name: np.broadcast_to(fn(times), times.shape).astype(float) for name, fn in self.functions.items()}
 
 
 PAPER = "Chen, Tang et al., PINNs for solving high-index DAE systems based on Radau methods"
@@ -823,10 +871,57 @@ DECAY = Problem(
     source="exponential decay with an algebraic square (the fitting tests and benchmarks/fit_inverse.py)",
 )
 
+# ---- a bouncing ball: events ---------------------------------------------------------------------
+#
+# Dropped from h = 1 at rest, g = 9.81, restitution e = 0.8: the k-th impact is at
+# t_k = sqrt(2/g) (1 + 2 (e + ... + e^(k-1))), the speed after it u_k = e^k sqrt(2 g), and on the flight
+# after it h = u_k s - g s^2 / 2, v = u_k - g s with s = t - t_k.  The impacts accumulate at
+# sqrt(2/g) (1 + 2 e / (1 - e)) = 4.0637 (Zeno): the span ends before it, after 6 impacts.
+# (e is a number in the reset, not a parameter: compile() refuses a parameter used only in an event, issue 40
+# item 10)
+BALL_G, BALL_E, BALL_IMPACTS = 9.81, 0.8, 12  # (12 impacts: the closed form holds up to t = 3.9)
+
+
+def _ball_exact() -> tuple[dict, tuple]:
+    """The bouncing ball's closed form: Piecewise h and v, each piece ``t < t_k`` (the values at an
+    impact are those after it), and the impact times."""
+    g, e = BALL_G, BALL_E
+    times = [float(np.sqrt(2 / g) * (1 + 2 * sum(e**j for j in range(1, k)))) for k in range(1, BALL_IMPACTS + 1)]
+    speeds = [float(e**k * np.sqrt(2 * g)) for k in range(1, BALL_IMPACTS + 1)]
+    h = [f"(1 - {g / 2!r}*t**2, t < {times[0]!r})"]
+    v = [f"(-{g!r}*t, t < {times[0]!r})"]
+    for k, (t_k, u_k) in enumerate(zip(times, speeds, strict=True)):
+        until = f"t < {times[k + 1]!r}" if k + 1 < len(times) else "True"
+        h.append(f"({u_k!r}*(t - {t_k!r}) - {g / 2!r}*(t - {t_k!r})**2, {until})")
+        v.append(f"({u_k!r} - {g!r}*(t - {t_k!r}), {until})")
+    exact = {"h": f"Piecewise({', '.join(h)})", "v": f"Piecewise({', '.join(v)})"}
+    return exact, tuple(repr(t_k) for t_k in times)
+
+
+_BALL_EXACT, _BALL_IMPACT_TIMES = _ball_exact()
+
+BOUNCING_BALL = Problem(
+    name="bouncing-ball",
+    odes={"h": "v", "v": "-g"},
+    algebraics=(),
+    constraints={},
+    parameters={"g": BALL_G},
+    initial={"h": 1.0, "v": 0.0},
+    t_span=(0.0, 3.0),
+    index=0,
+    # h = 0.075 first: at h = 0.3 a flight of 0.30 lies inside two outputs and its impacts go unseen (issue 40)
+    compare_steps=40,
+    exact=_BALL_EXACT,
+    exact_events={"floor": _BALL_IMPACT_TIMES},
+    events=({"name": "floor", "when": "h", "direction": -1, "reset": {"v": f"-{BALL_E!r}*v"}},),
+    source="a ball dropped from h = 1 that bounces with restitution 0.8 (an event with a reset; closed form "
+    "by parabolas between the impacts)",
+)
+
 PROBLEMS = {
     p.name: p
     for p in (
         HESSENBERG, PENDULUM, PENDULUM_INDEX3, ROBERTSON, SQUEEZER, AKZO_NOBEL, CAR_AXIS, TRANSISTOR_AMPLIFIER,
-        WHEELSET,
+        WHEELSET, BOUNCING_BALL,
     )
 }  # fmt: skip

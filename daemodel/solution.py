@@ -258,7 +258,9 @@ class Solution:
 
     # ---- accuracy -----------------------------------------------------------------------
     def errors(self, reference, names=None) -> dict[str, dict[str, float]]:
-        """Max and mean absolute error per variable against a reference.
+        """Max and mean absolute error per variable against a reference, at the output times away from
+        events and breakpoints (:meth:`error_report` measures those instants, and says how many times it
+        left out).
 
         Parameters
         ----------
@@ -273,14 +275,52 @@ class Solution:
         Returns
         -------
         dict name -> {"max": float, "mean": float}
+            Over the output times, except those within the window of an event or breakpoint of
+            either side (:mod:`daemodel.comparing.instants`): there one side may hold the value after
+            a reset and the other the value before it.
         """
+        return self.error_report(reference, names).variables
+
+    def error_report(self, reference, names=None):
+        """The errors against a reference on each side's own branch: the variables at the output times
+        away from events and breakpoints, and the instants themselves (:mod:`daemodel.comparing.instants`).
+
+        Parameters
+        ----------
+        reference, names
+            As for :meth:`errors`.  A reference callable may state its events with an attribute
+            ``events`` laid out as :attr:`events` (``Problem.exact_solution()`` does).
+
+        Returns
+        -------
+        ErrorReport
+            ``variables`` (what :meth:`errors` returns), ``instants`` (per event name and ``"time
+            breakpoints"``: the counts on both sides, max ``|t_a - t_b|``, and each variable's max error
+            just before and just after, each side at its own instant), ``excluded`` (output values left
+            out of ``variables``) and ``window``.
+
+        Raises
+        ------
+        ComparisonError
+            As for :meth:`errors`; a reference callable whose ``events`` is not laid out as
+            :attr:`events`.
+        """
+        from daemodel.comparing.instants import ErrorReport, measure, records_of
+
         wanted, ref_values = self._aligned_reference(reference, names)
+        B = self.batch_size
+        own = records_of(self, wanted, B, "solution")
+        theirs = records_of(reference, wanted, B, "reference")
+        keep, instants, window = measure(self.t, own, theirs, wanted, B)
         out = {}
         for name in wanted:
             ref = np.asarray(ref_values[name], dtype=float)
-            diff = np.abs(self.values[name] - np.broadcast_to(ref, self.values[name].shape))
-            out[name] = {"max": float(diff.max()), "mean": float(diff.mean())}
-        return out
+            diff = np.abs(self.values[name] - np.broadcast_to(ref, self.values[name].shape))[keep]
+            out[name] = {
+                "max": float(diff.max()) if diff.size else float("nan"),
+                "mean": float(diff.mean()) if diff.size else float("nan"),
+            }
+        return ErrorReport(variables=out, instants=instants, excluded=int((~keep).sum()), window=window)
 
     def _aligned_reference(self, reference, names=None) -> tuple[list[str], dict]:
         """The variables to compare with ``reference`` and its values on this solution's times.

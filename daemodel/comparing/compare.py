@@ -91,7 +91,8 @@ class Run:
         :attr:`Solution.setup_time` in seconds (training for ``pinn``); NaN for a failed run (null in
         the JSON).
     errors : dict name -> {"max": float, "mean": float}
-        Absolute errors against the reference over every output time.
+        Absolute errors against the reference over the output times, except those within the window
+        of an event or breakpoint (:mod:`daemodel.comparing.instants`; ``excluded`` counts them).
     drift : dict constraint -> float
         Max ``|g|`` of each original constraint along the solution.
     failure : str or None
@@ -112,6 +113,13 @@ class Run:
     step : tuple
         ``(stages, h)`` of a fixed-step run (radau, casadi-collocation, pinn), else empty: runs on
         the same grid, whose times the table compares.
+    instants : dict label -> dict
+        Per event name (and ``"time breakpoints"``): ``count`` and ``reference_count`` (None where the
+        reference states no instants), ``t`` (max ``|t_a - t_b|`` of the paired instants), ``before``
+        and ``after`` (max error over the variables of the values just before and just after them,
+        each side at its own instant); empty for a model without either.
+    excluded : int
+        Output values left out of ``errors`` for lying within the window of an instant.
     """
 
     method: str
@@ -126,6 +134,8 @@ class Run:
     status: str = "success"
     certificate: dict = dataclasses.field(default_factory=dict)
     step: tuple = ()
+    instants: dict = dataclasses.field(default_factory=dict)
+    excluded: int = 0
 
 
 @dataclass(frozen=True)
@@ -155,9 +165,12 @@ class Comparison:
 
     def records(self) -> list[dict]:
         """One flat dict per run: method, settings, solve_time, setup_time, ``<var>_max``, ``<var>_mean``,
-        ``drift_<constraint>``, failure."""
+        ``drift_<constraint>``, for a model with events or breakpoints ``<event>_count``,
+        ``<event>_reference_count``, ``<event>_t``, ``<event>_before``, ``<event>_after`` and ``excluded``
+        (:attr:`Run.instants`), failure, status, ..."""
         out = []
         drift_names = sorted({k for r in self.runs for k in r.drift})
+        labels = list(dict.fromkeys(k for r in self.runs for k in r.instants))
         for run in self.runs:
             row = {
                 "method": run.method,
@@ -169,6 +182,13 @@ class Comparison:
                 error = run.errors.get(name, {})
                 row[f"{name}_max"], row[f"{name}_mean"] = error.get("max"), error.get("mean")
             row.update({f"drift_{k}": run.drift.get(k) for k in drift_names})
+            for label in labels:
+                instant = run.instants.get(label, {})
+                stem = label.replace(" ", "_")
+                for key in ("count", "reference_count", "t", "before", "after"):
+                    row[f"{stem}_{key}"] = instant.get(key)
+            if labels:
+                row["excluded"] = run.excluded
             row["failure"] = run.failure
             row["status"] = run.status
             row["certified_distance"] = run.certificate.get("distance")
@@ -182,7 +202,8 @@ class Comparison:
 
         By default the errors are grouped: the max absolute error over the differential variables
         and over the algebraic ones, each with the variable that reached it, so that the table
-        stays about 110 characters wide whatever the model's size.  ``detail=True`` gives a
+        stays about 110 characters wide whatever the model's size (125 with the event columns of a model
+        with events or breakpoints).  ``detail=True`` gives a
         ``max (mean)`` column per variable instead (also in :meth:`to_csv`).
         """
         width = {"method": max(8, *(len(r.method) for r in self.runs)) + 2, "settings": 0}
@@ -197,6 +218,9 @@ class Comparison:
             cell = max(12 + name_width, *(len(title) + 6 for title, _ in groups))
             head += "".join(f"{title + ' max':>{cell}}" for title, _ in groups)
         head += f"{'drift':>10}"
+        instants = any(r.instants for r in self.runs)
+        if instants:
+            head += f"{'event t':>10}{'event y':>10}{'excluded':>9}"
         lines = [
             f"{self.model} on [{self.t_span[0]:g}, {self.t_span[1]:g}]: absolute errors against {self.reference}",
             head,
@@ -217,6 +241,8 @@ class Comparison:
                     worst = max(names, key=lambda name: run.errors[name]["max"])
                     line += f"{run.errors[worst]['max']:>{cell - name_width - 3}.1e} ({worst:<{name_width}})"
             line += f"{max(run.drift.values()):>10.1e}" if run.drift else f"{'-':>10}"
+            if instants:
+                line += _instant_cells(run)
             if run.certificate and run.certificate.get("failure"):
                 line += f"  cert: {CERTIFICATE_FAILURES.get(run.certificate['failure'], run.certificate['failure'])}"
             elif run.certificate:
@@ -226,6 +252,8 @@ class Comparison:
                 line += f"  {run.status.split(':')[0]}"
             lines.append(line)
         lines += self._certificate_notes()
+        if instants:
+            lines += self._instant_notes()
         for method in self.failed_methods:
             count = sum(r.method == method for r in self.runs)
             lines.append(f"{method} failed at every setting ({count} of {count}): no errors to compare, no curve")
@@ -236,6 +264,30 @@ class Comparison:
                 "see 'messages' in the JSON and CSV"
             )
         return "\n".join(lines)
+
+    def _instant_notes(self) -> list[str]:
+        """What the event columns mean, and each run whose instants the reference does not match."""
+        labels = list(dict.fromkeys(k for r in self.runs for k in r.instants))
+        notes = [
+            f"event t, event y: at the instants of {', '.join(labels)}, each paired with the nearest of the "
+            "reference's, max |t - t_ref| and the max error of the values just before and just after (each side at "
+            "its own instant); excluded: output values within such a pair's window, left out of the variables' errors "
+            "(one side may hold the value after a reset, the other the value before)"
+        ]
+        for run in self.runs:
+            for label, instant in run.instants.items():
+                theirs = instant.get("reference_count")
+                if theirs is None:
+                    notes.append(
+                        f"{run.method} {run.settings}: {instant['count']} {label} instants; the reference states none, "
+                        "so they are left out and not compared"
+                    )
+                elif theirs != instant["count"]:
+                    notes.append(
+                        f"{run.method} {run.settings}: {instant['count']} {label} instants, the reference "
+                        f"{theirs}: the unpaired ones are left out and not compared"
+                    )
+        return notes
 
     def _certificate_notes(self) -> list[str]:
         """What the certificate column means, and each PINN run's time against radau's at the same
@@ -302,6 +354,14 @@ class Comparison:
                         key: math.nan if value is None else value for key, value in r.get("certificate", {}).items()
                     },
                     step=tuple(r.get("step", ())),
+                    instants={
+                        label: {
+                            key: math.nan if value is None and key != "reference_count" else value
+                            for key, value in instant.items()
+                        }
+                        for label, instant in r.get("instants", {}).items()
+                    },
+                    excluded=r.get("excluded", 0),
                 )
                 for r in payload["runs"]
             )
@@ -474,6 +534,15 @@ def _check_payload(path, payload) -> None:
                 bad(f"{where}.{key}", "an object")
             for name, value in table.items():
                 number(value, f"{where}.{key}.{name}")
+        instants = run.get("instants", {})
+        if not isinstance(instants, dict):
+            bad(f"{where}.instants", "an object")
+        for label, instant in instants.items():
+            if not isinstance(instant, dict) or set(instant) != {"count", "reference_count", "t", "before", "after"}:
+                bad(f"{where}.instants.{label}", "an object of count, reference_count, t, before and after")
+            for key in ("count", "reference_count", "t", "before", "after"):
+                number(instant[key], f"{where}.instants.{label}.{key}", none=key != "count")
+        number(run.get("excluded", 0), f"{where}.excluded", none=False)
         step = run.get("step", [])
         if not isinstance(step, list) or len(step) not in (0, 2):
             bad(f"{where}.step", "empty or a pair (stages, h)")
@@ -584,11 +653,11 @@ class ComparisonPlan:
 
         def measure(solution):
             if self.reference is not None:
-                return solution.errors(self.reference)
+                return solution.error_report(self.reference)
             key = tuple(solution.t)
             if key not in references:
                 references[key] = solve(compiled, t_span, method=REFERENCE, t_eval=solution.t)
-            return solution.errors(references[key])
+            return solution.error_report(references[key])
 
         bar = None
         if show_progress(progress):
@@ -625,20 +694,22 @@ class ComparisonPlan:
                         )
                     )
                 else:
-                    errors = measure(solution)
+                    report = measure(solution)
                     runs.append(
                         Run(
                             method,
                             label,
                             solution.solve_time,
                             solution.setup_time,
-                            errors,
+                            report.variables,
                             solution.drift(),
                             short=short,
                             messages=messages,
                             status=solution.status,
                             certificate=_certificate_digest(solution),
                             step=_step(solution),
+                            instants={name: _instant_digest(i) for name, i in report.instants.items()},
+                            excluded=report.excluded,
                         )
                     )
                 if bar is not None:
@@ -783,6 +854,16 @@ class CheckedReference:
     compiled: object
     t_span: tuple
 
+    @property
+    def events(self):
+        """The reference's own ``events`` (laid out as :attr:`Solution.events`), or None."""
+        return getattr(self.function, "events", None)
+
+    @property
+    def breakpoints(self):
+        """The reference's own ``breakpoints`` (laid out as :attr:`Solution.breakpoints`), or None."""
+        return getattr(self.function, "breakpoints", None)
+
     def __call__(self, t) -> dict:
         t = np.asarray(t, dtype=float)
         where = f"on {t.size} times from {t[0]:g} to {t[-1]:g}"
@@ -874,6 +955,34 @@ def _step(solution) -> tuple:
     if settings.get("h") is None or settings.get("stages") is None:
         return ()
     return (int(settings["stages"]), float(settings["h"]))
+
+
+def _instant_digest(instant) -> dict:
+    """A :class:`~daemodel.comparing.instants.InstantErrors` as :attr:`Run.instants` keeps it: the values'
+    errors as the max over the variables on each side."""
+
+    def worst(errors: dict) -> float:
+        return float(max(errors.values())) if errors else math.nan
+
+    return {
+        "count": instant.count,
+        "reference_count": instant.reference_count,
+        "t": instant.t,
+        "before": worst(instant.before),
+        "after": worst(instant.after),
+    }
+
+
+def _instant_cells(run) -> str:
+    """The table's event t, event y and excluded cells of a run ("-" where nothing was paired)."""
+
+    def cell(values) -> str:
+        values = [v for v in values if v is not None and not math.isnan(v)]
+        return f"{max(values):>10.1e}" if values else f"{'-':>10}"
+
+    dt = cell([i["t"] for i in run.instants.values()])
+    dy = cell([v for i in run.instants.values() for v in (i["before"], i["after"])])
+    return f"{dt}{dy}{run.excluded:>9d}"
 
 
 def _certificate_digest(solution) -> dict:
