@@ -90,9 +90,14 @@ def test_the_compiled_step_on_static_factors_takes_the_general_paths_steps(monke
     general = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol)
     for key in ("steps", "rejected_steps", "newton_failures", "jacobian_evaluations"):
         assert fast.stats[key] == general.stats[key], key
+    # The same steps, not the same bits: each run's Newton stops within newton_tol (RADAU5's sqrt(rtol),
+    # 3.2e-4 of the error scale at 1e-7) of each step's collocation solution, and the two factorisations'
+    # rounding picks different iterates there; over 29 steps of a chain whose perturbations grow, those
+    # differences add up like local errors, which the controller holds to the solve's accuracy. So the
+    # bound is that accuracy, atol + rtol |y| (measured: 0.03 of it here, 0.41 on another machine's BLAS).
     compiled = model.compile()
     for name in compiled.state_names:
-        np.testing.assert_allclose(fast[name], general[name], rtol=0.1 * rtol, atol=0.1 * rtol)
+        np.testing.assert_allclose(fast[name], general[name], rtol=rtol, atol=rtol)
 
 
 def test_growth_past_the_bound_falls_back_to_superlu(monkeypatch):

@@ -9,6 +9,7 @@ import pytest
 
 import daemodel as dm
 from daemodel import errors as E
+from daemodel.solving.events import EVENT_TOL
 
 G = 9.81
 
@@ -32,14 +33,30 @@ def _impacts(count, e=0.8):
     return np.array(out)
 
 
+def _located_to(count, e=0.8, t_end=2.5):
+    """How far the first ``count`` impact times of a method exact on each flight may be from the exact ones.
+
+    Each impact is located within EVENT_TOL max(1, |t|) of where the computed flight crosses the floor
+    (the bracket's width; where inside it the search stops depends on rounding, so on the machine). An
+    impact found dt late starts the next flight from h = -v dt with speed e (v + g dt): that flight lasts
+    (2e - 1/e) dt longer, so the next impact moves by (1 + 2e - 1/e) dt (1.35 dt at e = 0.8) before its own
+    location adds its width. Between impacts every method here is exact on the parabola but for rounding
+    (a few eps per step, 1e-15 in t), well inside the margin below.
+    """
+    gain, bound = abs(1 + 2 * e - 1 / e), 0.0
+    for _ in range(count):
+        bound = gain * bound + EVENT_TOL * max(1.0, t_end)
+    return bound  # 1.7e-11 for four impacts; measured: 3.5e-14 (radau) to 3.6e-12 (another machine's radau)
+
+
 @pytest.mark.parametrize(
     ("method", "options", "tol"),
     [
-        ("radau", {"rtol": 1e-10, "atol": 1e-10}, 1e-12),
-        ("radau", {"stages": 3, "h": 0.01}, 1e-12),  # (a quadratic: every method is exact between impacts)
-        ("casadi-idas", {"rtol": 1e-10, "atol": 1e-10}, 1e-9),
-        ("casadi-collocation", {}, 1e-11),  # (located to 1e-12 max(1, |t|) each, on a sum of four flights)
-        ("reference", {}, 1e-11),
+        ("radau", {"rtol": 1e-10, "atol": 1e-10}, _located_to(4)),
+        ("radau", {"stages": 3, "h": 0.01}, _located_to(4)),  # (a quadratic: every method is exact between impacts)
+        ("casadi-idas", {"rtol": 1e-10, "atol": 1e-10}, 10 * 1e-10),  # (BDF: inexact on a parabola, rtol in h/|v|)
+        ("casadi-collocation", {}, _located_to(4)),
+        ("reference", {}, _located_to(4)),  # (DOP853 is exact on a parabola)
     ],
 )
 def test_a_bouncing_ball_in_every_method(method, options, tol):
@@ -66,7 +83,8 @@ def test_outputs_on_t_eval_across_impacts():
         s = grid[span] - impacts[k]
         exact[span] = v0[k] * s - 0.5 * G * s**2
     assert sol.t.tolist() == grid.tolist()
-    np.testing.assert_allclose(sol["h"], exact, atol=1e-12)
+    # (an impact dt off moves h by |v| dt after it, |v| <= sqrt(2 g): the location's bound in h)
+    np.testing.assert_allclose(sol["h"], exact, atol=math.sqrt(2 * G) * _located_to(4))
 
 
 def _wall(terminal=False, x0=1.0):
@@ -156,7 +174,7 @@ def test_events_and_time_switches_together():
     m.initial(h=1.0, v=0.0)
     m.event("floor", "h", direction=-1, reset={"v": "-0.8*v"})
     sol = dm.solve(m, (0.0, 2.5), rtol=1e-10, atol=1e-10)
-    assert np.abs(sol.events["floor"]["t"][0] - _impacts(4)).max() < 1e-12
+    assert np.abs(sol.events["floor"]["t"][0] - _impacts(4)).max() < _located_to(4)
 
 
 def test_the_report_lists_the_events():
@@ -247,7 +265,7 @@ def test_a_valve_that_shuts_on_a_level():
     for options in ({"rtol": 1e-10, "atol": 1e-10}, {"stages": 3, "h": 0.1}):
         sol = dm.solve(m, (0.0, 1.0), t_eval=[0.0, 0.5, 1.0], **options)
         valve = sol.events["Piecewise in valve"]
-        assert abs(valve["t"][0, 0] - 0.8) < 1e-12
+        assert abs(valve["t"][0, 0] - 0.8) <= EVENT_TOL * 1.0 + 8 * np.finfo(float).eps  # (x is linear: exact)
         assert valve["before"]["z"][0, 0] == 1.0 and valve["after"]["z"][0, 0] == 0.0
         np.testing.assert_allclose(sol["x"], [1.0, 0.5, 0.2], atol=1e-12)
 
