@@ -78,3 +78,43 @@ def is_real(value) -> bool:
     """Whether :func:`real` would take ``value``'s type (a number of any of the three kinds, no bool);
     a sympy value may still be refused there (a symbol, a complex number)."""
     return isinstance(value, numbers.Real | sp.Basic) and not isinstance(value, bool | np.bool_)
+
+
+def real_array(values, what: str, *, error: type = InvalidValueError) -> np.ndarray:
+    """``values`` (a number, list or array of real numbers) as a float64 array, else ``error``.
+
+    NaN and inf pass (callers decide what a missing or infinite value means); strings, bools,
+    complex numbers and anything else are refused by name, before numpy would parse ``"0.5"`` as a
+    number, count ``True`` as 1 or drop an imaginary part.
+
+    Parameters
+    ----------
+    values : number, sequence or array
+        Python, numpy or sympy numbers, nested to any depth.
+    what : str
+        The values' role in messages: ``"at(): times"``, ``"fit: data['x']"``.
+    error : type
+        The :class:`~daemodel.errors.ModelError` subclass to raise.
+
+    Returns
+    -------
+    ndarray of float64, the shape of ``values``
+    """
+    if isinstance(values, str | bytes):
+        raise error(f"{what} must be real numbers; got the string {quoted(values, 40)}")
+    try:
+        array = np.asarray(values)
+    except (TypeError, ValueError) as exc:  # (ragged nesting)
+        raise error(f"{what} must be an array of real numbers; got {type(values).__name__} ({exc})") from None
+    kind = array.dtype.kind
+    if kind in "fiu":
+        return array.astype(np.float64)
+    if kind == "O":  # (sympy numbers, mixed Python objects): each one checked as a single value is
+        out = np.empty(array.shape)
+        for index, value in np.ndenumerate(array):
+            out[index] = real(value, f"{what}{list(index) if array.ndim else ''}", finite=False, error=error)
+        return out
+    described = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "byte strings"}.get(kind, array.dtype)
+    first = array.flat[0].item() if array.size else None
+    hint = " (the imaginary part would be dropped)" if kind == "c" else ""
+    raise error(f"{what} must be real numbers; got {described}{hint}, the first {quoted(first, 40)}")

@@ -248,6 +248,8 @@ class Solution:
             For a solution of another method or without step records, or names that are not free.
         ShapeError, UnknownSymbolError, ExpressionParseError
             For data of the wrong shape or an objective naming what the solution does not have.
+        DataError
+            For data that are not real numbers (strings, complex, bools), or a series NaN everywhere.
         """
         from daemodel.solving.sensitivities import adjoint, objective_cotangent
 
@@ -422,14 +424,16 @@ class Solution:
         Raises
         ------
         InvalidValueError
-            For times outside the solution's span, or that are not finite; without a dense output,
+            For times that are not real numbers (strings, bools, complex), outside the solution's span,
+            or not finite; without a dense output,
             for a time whose interval of outputs holds a breakpoint or event inside.
         InitialisationError
             Without a dense output: the algebraic variables cannot be solved at an interpolated state.
         """
         from daemodel.errors import InvalidValueError
+        from daemodel.reals import real_array
 
-        times = np.atleast_1d(np.asarray(times, dtype=float))
+        times = np.atleast_1d(real_array(times, "at(): times"))  # ("0.5" and True are no times)
         t = self.t
         if times.ndim != 1 or not np.isfinite(times).all():
             raise InvalidValueError(f"at(): times must be a finite 1-d array; got shape {times.shape}")

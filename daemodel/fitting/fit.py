@@ -37,7 +37,7 @@ from daemodel.errors import (
     UnidentifiableError,
     UnknownSymbolError,
 )
-from daemodel.reals import is_real, real
+from daemodel.reals import is_real, real, real_array
 from daemodel.solving.sensitivities import directions
 from daemodel.solving.solver import solve
 
@@ -211,8 +211,8 @@ def fit(
 
 
 def _problem(compiled, t, data, parameters, sigma, y0=None) -> _Problem:
-    times = np.asarray(t, dtype=float) if not isinstance(t, str | bytes) else None
-    if times is None or times.ndim != 1 or len(times) == 0 or not np.isfinite(times).all():
+    times = real_array(t, "fit: t", error=DataError)
+    if times.ndim != 1 or len(times) == 0 or not np.isfinite(times).all():
         raise DataError(f"fit: t must be a non-empty 1-d array of finite times; got {np.shape(t)!r}")
     if (np.diff(times) <= 0).any():
         k = int(np.flatnonzero(np.diff(times) <= 0)[0])
@@ -239,7 +239,7 @@ def _problem(compiled, t, data, parameters, sigma, y0=None) -> _Problem:
                 f"fit: data name {name!r}, which model '{compiled.name}' has no output of; its outputs are "
                 f"{list(outputs)}"
             )
-        array = np.asarray(values, dtype=float)
+        array = real_array(values, f"fit: data[{name!r}]", error=DataError)  # (no strings, complex or bools)
         if array.shape != times.shape:
             raise DataError(f"fit: data[{name!r}] has shape {array.shape}; t has {times.shape}")
         if np.isinf(array).any():

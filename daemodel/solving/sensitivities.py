@@ -450,7 +450,8 @@ def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
     import sympy as sp
 
     from daemodel.declaring.parse import parse_equation
-    from daemodel.errors import ShapeError
+    from daemodel.errors import DataError, ShapeError
+    from daemodel.reals import real_array
 
     c = sol.compiled
     B, T, D = sol.batch_size, len(sol.t), len(c.states) + len(c.algebraics)
@@ -463,10 +464,14 @@ def objective_cotangent(sol, objective) -> tuple[np.ndarray, np.ndarray]:
                 raise UnknownSymbolError(
                     f"gradient: the data name {name!r}, which the solution does not have; it has {list(sol.names)}"
                 )
-            array = np.asarray(data, dtype=float)
+            array = real_array(data, f"gradient: the data for {name!r}", error=DataError)
             if array.shape != sol[name].shape:
                 raise ShapeError(
                     f"gradient: the data for {name!r} have shape {array.shape}; the solution's values {sol[name].shape}"
+                )
+            if np.isnan(array).all():  # (as fit refuses it: J would be 0 whatever the parameters)
+                raise DataError(
+                    f"gradient: the data for {name!r} are NaN everywhere: a series with no measurement; drop it"
                 )
             misfit = np.nan_to_num(2 * (sol.values[name] - array.reshape(B, T)), nan=0.0).reshape(B * T)
             if name in kept:

@@ -21,7 +21,15 @@ from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
 from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
-from daemodel.solving.switches import for_method, has_time_switches, solve_with_breakpoints
+from daemodel.solving.switches import (
+    branch_model,
+    breakpoints,
+    find_switches,
+    for_method,
+    has_time_switches,
+    lock_branches,
+    solve_with_breakpoints,
+)
 
 
 def solve(
@@ -85,6 +93,8 @@ def solve(
         check_sensitivities(model, backend, opts, sensitivities)
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
+    if sensitivities is not None and find_switches(model):
+        return _on_fixed_branches(backend, model, t_span, start, opts, sensitivities)
     compiled = for_method(model, backend)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
     # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
@@ -123,11 +133,75 @@ def check_sensitivities(model, backend, opts, names) -> None:
         )
     if not opts.dense_output:
         raise SensitivityError("sensitivities need the record of radau's steps: drop dense_output=False")
-    if model.events or has_time_switches(model) or with_state_events(model).events:
+    if getattr(opts, "dtype", "float64") != "float64":
         raise SensitivityError(
-            f"sensitivities: model '{model.name}' has events or switches, across which the derivatives of the "
-            "solution jump; daemodel does not differentiate through them yet: solve the span between two of them"
+            f"sensitivities are computed in float64 only (their linear systems are those of the steps); got "
+            f"dtype={opts.dtype!r}: drop it, or solve in float64"
         )
+    if model.events:
+        raise SensitivityError(
+            f"sensitivities: model '{model.name}' has events, across which the derivatives of the solution jump; "
+            "daemodel does not differentiate through them yet: solve the span between two of them"
+        )
+
+
+def _on_fixed_branches(backend, model, t_span, start, opts, names) -> Solution:
+    """The solve and its sensitivities for a model whose switches keep their branch over ``t_span``:
+    on that branch the model is smooth and its solution is the model's, so are their derivatives (a
+    parameter that moves a switch outside the span moves it nowhere near, to first order).  Refused
+    where a time switch changes branch inside the span, the samples of a batch start on different
+    branches, a switch on the variables is at zero at t0, or one crosses during the solve (checked at
+    every step's nodes): across a switch the derivatives jump."""
+    import numpy as np
+
+    def refuse(what: str) -> SensitivityError:
+        return SensitivityError(
+            f"sensitivities: model '{model.name}' {what}, across which the derivatives of the solution jump; "
+            "daemodel does not differentiate through switches yet: solve the span between two of them"
+        )
+
+    t0, t1 = (float(v) for v in t_span)
+    P, Y0, Z0 = (np.asarray(a, dtype=float) for a in (start.p, start.y0, start.z0))
+    on_states = [s for s in find_switches(model) if not s.time_only]
+    values = model.numeric.batch_function([s.function for s in on_states]) if on_states else None
+    branches = {}
+    for b in range(len(P)):
+        inside = breakpoints(model, t_span, P[b])
+        if len(inside):
+            raise refuse(f"has a time switch that changes branch at t = {inside[0]:.6g}, inside t_span")
+        if on_states:
+            at_t0 = values(np.array([t0]), Y0[b : b + 1], Z0[b : b + 1], P[b : b + 1])[0]
+            for switch, value in zip(on_states, at_t0, strict=True):
+                integer = switch.kind in ("floor", "ceiling")
+                if (value == round(value)) if integer else value == 0:
+                    raise refuse(f"starts on the switch {switch.describe()!r} (sample {b})")
+        smooth = lock_branches(branch_model(model, 0.5 * (t0 + t1), P[b]), t0, Y0[b], Z0[b], P[b])
+        branches.setdefault((smooth.rhs, tuple(c.chain for c in smooth.constraints)), (b, smooth))
+    if len(branches) > 1:
+        (first, _), (second, _) = list(branches.values())[:2]
+        raise refuse(f"starts on other branches of its switches in samples {first} and {second}")
+    ((_, smooth),) = branches.values()
+    sol = backend.solve(for_method(smooth, backend), t_span, start, opts)
+    if on_states:
+        dense = sol.dense
+        B, S, K, D = dense.nodes.shape
+        n = len(sol.compiled.states)
+        times = (dense.starts[:, None] + dense.lengths[:, None] * np.r_[0.0, dense.c][None, :]).ravel()
+        U = dense.nodes.reshape(B, S * K, D).astype(float)
+        F = values(
+            np.tile(times, B), U[..., :n].reshape(-1, n), U[..., n:].reshape(B * S * K, -1), np.repeat(P, S * K, 0)
+        )
+        F = F.reshape(B, S * K, len(on_states))
+        for q, switch in enumerate(on_states):
+            side = np.floor(F[..., q]) if switch.kind in ("floor", "ceiling") else np.sign(F[..., q])
+            moved = side != side[:, :1]
+            if moved.any():
+                b, k = np.argwhere(moved)[0]
+                raise refuse(
+                    f"crosses its switch {switch.describe()!r} between t = {times[k - 1]:.6g} and {times[k]:.6g} "
+                    f"(sample {b})"
+                )
+    return with_sensitivities(sol, smooth, names)
 
 
 def with_sensitivities(sol, model, names) -> Solution:

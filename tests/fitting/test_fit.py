@@ -144,8 +144,10 @@ def test_data_errors_name_the_culprit(pendulum):
         dm.fit(compiled, t, {"x": np.r_[np.inf, exact["x"][1:]]}, ok)
     with pytest.raises(E.DataError, match="at least one series"):
         dm.fit(compiled, t, {}, ok)
-    with pytest.raises(E.DataError, match="non-empty 1-d array"):
+    with pytest.raises(E.DataError, match="fit: t must be real numbers; got the string '0 1 2'"):
         dm.fit(compiled, "0 1 2", exact, ok)
+    with pytest.raises(E.DataError, match="non-empty 1-d array"):
+        dm.fit(compiled, [], exact, ok)
     with pytest.raises(E.DataError, match=r"sigma names \['v'\], for which data has no series"):
         dm.fit(compiled, t, exact, ok, sigma={"v": 0.1})
     with pytest.raises(E.DataError, match=r"sigma\['x'\] must be positive"):

@@ -308,8 +308,47 @@ def test_events_and_switches_are_refused():
     m.ode("v", "-9.81")
     m.initial(x=1.0, v=0.0)
     m.event("floor", "x", direction=-1, reset={"v": "-0.9*v"})
-    with pytest.raises(E.SensitivityError, match="has events or switches"):
+    with pytest.raises(E.SensitivityError, match="has events, across which the derivatives of the solution jump"):
         dm.solve(m, (0, 1), h=0.1, sensitivities=["x"])
+
+
+def _decay_with_switches():
+    """x' = -k x, with a pulse from t = a (5: outside [0, 1]) and a source above x = 2 (never reached from 1)."""
+    m = dm.Model("late")
+    m.states("x")
+    m.parameter("k", 1.5)
+    m.parameter("a", 5.0)
+    m.ode("x", "-k*x + Piecewise((1, t > a), (0, True)) + Heaviside(x - 2)")
+    m.initial(x=1.0)
+    return m
+
+
+def test_switches_outside_the_span_keep_their_sensitivities():
+    """Before: refused as a model with switches. On [0, 1] neither switch changes branch: x = exp(-k t),
+    dx/dk = -t exp(-k t), dx/dx0 = exp(-k t), and dx/da = 0 (the pulse stays beyond the span)."""
+    sol = dm.solve(_decay_with_switches(), (0.0, 1.0), rtol=1e-10, atol=1e-10, sensitivities=["k", "a", "x"])
+    t = sol.t
+    np.testing.assert_allclose(sol.sensitivity("x", "k"), -t * np.exp(-1.5 * t), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol.sensitivity("x", "x"), np.exp(-1.5 * t), rtol=0, atol=1e-12)
+    assert np.abs(sol.sensitivity("x", "a")).max() == 0.0
+    batch = dm.solve(_decay_with_switches(), (0.0, 1.0), h=0.05, parameters={"k": [1.0, 2.0]}, sensitivities=["k"])
+    np.testing.assert_allclose(batch.sensitivity("x", "k")[1], -batch.t * np.exp(-2.0 * batch.t), atol=1e-9)
+
+
+def test_switches_inside_the_span_are_refused_by_name():
+    with pytest.raises(E.SensitivityError, match=r"time switch that changes branch at t = 5, inside t_span"):
+        dm.solve(_decay_with_switches(), (0.0, 6.0), rtol=1e-8, sensitivities=["k"])
+    with pytest.raises(E.SensitivityError, match=r"crosses its switch .*x - 2 crosses 0.* between t = "):
+        dm.solve(_decay_with_switches(), (0.0, 1.0), rtol=1e-8, y0={"x": 4.0}, sensitivities=["k"])
+    with pytest.raises(E.SensitivityError, match=r"starts on the switch .*x - 2 crosses 0"):
+        dm.solve(_decay_with_switches(), (0.0, 1.0), rtol=1e-8, y0={"x": 2.0}, sensitivities=["k"])
+    with pytest.raises(E.SensitivityError, match=r"other branches of its switches in samples 0 and 1"):
+        dm.solve(_decay_with_switches(), (0.0, 1.0), h=0.1, y0={"x": [1.0, 3.0]}, sensitivities=["k"])
+
+
+def test_sensitivities_refuse_float32():
+    with pytest.raises(E.SensitivityError, match=r"float64 only .* got dtype='float32'"):
+        dm.solve(DECAY.model(), (0.0, 1.0), h=0.1, dtype="float32", sensitivities=["k"])
 
 
 def test_outputs_that_start_after_t0_have_the_same_sensitivities():
