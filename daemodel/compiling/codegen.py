@@ -1,9 +1,11 @@
 """Code generation: sympy -> batched torch functions, and sympy -> casadi expressions.
 
-Both emitters accept exactly the expression nodes of :func:`check_supported` (arithmetic,
-the functions of :mod:`daemodel.declaring.functions`, ``Piecewise`` with an otherwise branch,
-comparisons and logic) and raise :class:`UnsupportedFunctionError` naming the function,
-the equation and the supported set for anything else.
+Both emitters accept exactly the expression nodes of
+:func:`~daemodel.declaring.functions.check_supported` (arithmetic, the functions of
+:mod:`daemodel.declaring.functions`, ``Piecewise`` with an otherwise branch, comparisons and
+logic), which the compiler runs on every equation and ``Model.event`` on its expressions, and
+raise :class:`UnsupportedFunctionError` naming the function, the equation and the supported set
+for anything else.
 
 The torch emitter writes readable Python source (one local per variable, common
 subexpressions as ``_c0, _c1, ...``), registers it with :mod:`linecache` so tracebacks show
@@ -24,31 +26,10 @@ from dataclasses import dataclass, field
 import sympy as sp
 from sympy.printing.str import StrPrinter
 
-from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, supported_names
+from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS
 from daemodel.errors import ShapeError, UnsupportedFunctionError
 
-_LOGIC = (sp.And, sp.Or, sp.Not, sp.Piecewise, sp.logic.boolalg.BooleanAtom, sp.core.relational.Relational)
-_ARITHMETIC = (sp.Add, sp.Mul, sp.Pow, sp.Symbol, sp.Rational, sp.Float, sp.NumberSymbol)
 _COUNTER = itertools.count()
-
-
-def check_supported(expr: sp.Expr, where: str) -> None:
-    """Raise :class:`UnsupportedFunctionError` for any node the emitters cannot translate."""
-    for node in sp.preorder_traversal(expr):
-        if isinstance(node, sp.functions.elementary.piecewise.ExprCondPair):
-            continue
-        if type(node) in FUNCTIONS or type(node) in REDUCTIONS or isinstance(node, _ARITHMETIC + _LOGIC):
-            if isinstance(node, sp.Piecewise) and node.args[-1].cond != sp.true:
-                raise UnsupportedFunctionError(
-                    f"{where}: Piecewise {node} has no otherwise branch; add (value, True) last "
-                    "so the expression is defined everywhere"
-                )
-            continue
-        name = getattr(node.func, "__name__", type(node).__name__)
-        raise UnsupportedFunctionError(
-            f"{where}: function '{name}' in {node} is not supported by the torch and casadi "
-            f"emitters; rewrite it with the supported functions ({supported_names()})"
-        )
 
 
 class TorchPrinter(StrPrinter):

@@ -17,10 +17,10 @@ import sympy as sp
 from daemodel.compiling.codegen import (
     CasadiConverter,
     build_torch_functions,
-    check_supported,
     torch_source,
 )
 from daemodel.compiling.structure import ITERATION_MATRIX, Constraint
+from daemodel.declaring.functions import check_supported
 from daemodel.errors import ReductionError, UnsupportedFunctionError
 
 # Most nonzeros of d(f, g)/d(y, z) emitted as symbolic derivatives: sympy takes ~10 ms per

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemodel.compiling.codegen import check_supported
 from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.init import NumericSystem, initialise
 from daemodel.compiling.prune import eliminate_aliases, needed
 from daemodel.compiling.structure import Differentiator, derivative_chain, match
+from daemodel.declaring.functions import check_supported
 from daemodel.declaring.model import Model
 from daemodel.errors import (
     InvalidValueError,

@@ -10,6 +10,8 @@ from __future__ import annotations
 import casadi
 import sympy as sp
 
+from daemodel.errors import UnsupportedFunctionError
+
 # sympy class -> (name in strings, torch attribute, casadi callable)
 FUNCTIONS: dict[type, tuple[str, str, object]] = {
     sp.sin: ("sin", "sin", casadi.sin),
@@ -45,3 +47,26 @@ def supported_names() -> str:
     """The functions users may write, for error messages."""
     names = sorted(n for n, _, _ in (*FUNCTIONS.values(), *REDUCTIONS.values()))
     return ", ".join([*names, "sqrt", "Piecewise"])
+
+
+_LOGIC = (sp.And, sp.Or, sp.Not, sp.Piecewise, sp.logic.boolalg.BooleanAtom, sp.core.relational.Relational)
+_ARITHMETIC = (sp.Add, sp.Mul, sp.Pow, sp.Symbol, sp.Rational, sp.Float, sp.NumberSymbol)
+
+
+def check_supported(expr: sp.Expr, where: str) -> None:
+    """Raise :class:`UnsupportedFunctionError` for any node the emitters cannot translate."""
+    for node in sp.preorder_traversal(expr):
+        if isinstance(node, sp.functions.elementary.piecewise.ExprCondPair):
+            continue
+        if type(node) in FUNCTIONS or type(node) in REDUCTIONS or isinstance(node, _ARITHMETIC + _LOGIC):
+            if isinstance(node, sp.Piecewise) and node.args[-1].cond != sp.true:
+                raise UnsupportedFunctionError(
+                    f"{where}: Piecewise {node} has no otherwise branch; add (value, True) last "
+                    "so the expression is defined everywhere"
+                )
+            continue
+        name = getattr(node.func, "__name__", type(node).__name__)
+        raise UnsupportedFunctionError(
+            f"{where}: function '{name}' in {node} is not supported by the torch and casadi "
+            f"emitters; rewrite it with the supported functions ({supported_names()})"
+        )

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import sympy as sp
 from sympy.core.function import AppliedUndef
 
-from daemodel.declaring.functions import supported_names
+from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
@@ -269,6 +269,8 @@ class Model:
         if not isinstance(terminal, bool):
             raise InvalidValueError(f"event '{name}': terminal must be True or False; got {terminal!r}")
         expr = self._expression(when, f"event '{name}' (when)")
+        # (the emitters' strict check now, as the compiler's for equations: not at the solve)
+        check_supported(expr, f"model '{self.name}', event '{name}' (when)")
         resets = []
         if reset is not None:
             if not isinstance(reset, dict):
@@ -285,7 +287,9 @@ class Model:
                     raise UnknownSymbolError(
                         f"event '{name}': reset names {target!r}, which is no state; states: {_listing(self._states)}"
                     )
-                resets.append((target, self._expression(value, f"event '{name}' (reset of '{target}')")))
+                where = f"event '{name}' (reset of '{target}')"
+                resets.append((target, self._expression(value, where)))
+                check_supported(resets[-1][1], f"model '{self.name}', {where}")
         self._events.append((name, expr, int(direction), tuple(resets), terminal))
 
     def _with_events(self, compiled):

@@ -260,3 +260,21 @@ def test_declared_symbols_are_sympy_symbols_in_every_other_respect():
     sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-12)
     # x' = -x + sin t, x(0) = 1: x = 1.5 e^-t + (sin t - cos t) / 2
     np.testing.assert_allclose(sol["x"], 1.5 * np.exp(-sol.t) + (np.sin(sol.t) - np.cos(sol.t)) / 2, atol=1e-8)
+
+
+def test_an_event_with_a_function_the_emitters_lack_is_refused_where_it_is_declared():
+    """Before: accepted, then sympy's NotImplementedError ("Only definite integrals") at the solve."""
+    m = dm.Model("ball")
+    h, v = m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    with pytest.raises(
+        E.UnsupportedFunctionError,
+        match=r"model 'ball', event 'floor' \(when\): function 'Integral' in Integral\(h, t\)",
+    ):
+        m.event("floor", sp.Integral(h, m.t) - 0.1, direction=-1)
+    with pytest.raises(E.UnsupportedFunctionError, match=r"event 'floor' \(reset of 'v'\): function 'Integral'"):
+        m.event("floor", h, reset={"v": sp.Integral(v, m.t)})
+    m.event("floor", h, direction=-1, reset={"v": -0.8 * v})  # (nothing of the refused ones was kept)
+    assert dm.solve(m, (0.0, 0.5), rtol=1e-8).stats["events"] == 1

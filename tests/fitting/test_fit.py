@@ -140,6 +140,12 @@ def test_data_errors_name_the_culprit(pendulum):
         dm.fit(compiled, t, {"x": exact["x"], "y": np.full_like(t, np.nan)}, ok)
     with pytest.raises(E.DataError, match=r"data\['x'\] has shape \(3,\); t has \(50,\)"):
         dm.fit(compiled, t, {"x": exact["x"][:3]}, ok)
+    with pytest.raises(E.DataError, match=r"fit: data\['x'\] must be real numbers; got complex numbers \(the imag"):
+        dm.fit(compiled, t, {"x": exact["x"] + 0.01j}, ok)  # (before: the imaginary part dropped)
+    with pytest.raises(E.DataError, match=r"fit: data\['x'\] must be real numbers; got strings, the first '"):
+        dm.fit(compiled, t, {"x": [str(v) for v in exact["x"]]}, ok)  # (before: numpy's ValueError)
+    with pytest.raises(E.DataError, match=r"fit: data\['x'\] must be real numbers; got the string 'abc'"):
+        dm.fit(compiled, t, {"x": "abc"}, ok)
     with pytest.raises(E.DataError, match=r"data\['x'\] holds infinite values \(at t = 0.1\)"):
         dm.fit(compiled, t, {"x": np.r_[np.inf, exact["x"][1:]]}, ok)
     with pytest.raises(E.DataError, match="at least one series"):
