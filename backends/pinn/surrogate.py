@@ -37,6 +37,7 @@ from daemodel.backends.pinn.train import SegmentStats
 
 from daemodel.dense import Deferred
 from daemodel.errors import (
+    InconsistentInitialStateError,
     InvalidOptionError,
     ModelError,
     NetworkFileError,
@@ -217,6 +218,7 @@ class Surrogate:
         from daemodel.backends.progress import show_progress
         from daemodel.backends.torch_setup import torch_device
 
+        from daemodel.compiling.compiler import as_compiled
         from daemodel.compiling.initial_states import algebraic_values, project_states
         from daemodel.solving.engine import check_engine
         from daemodel.solving.solver import check_span
@@ -252,6 +254,7 @@ class Surrogate:
         for column, (kind, index, low, high) in enumerate(ranges):
             target = y if kind == "state" else p
             target[:, index] = low + (high - low) * unit[:, column]
+        _refuse_inconsistent_box(as_compiled(model, "Surrogate.train()"), y, p, box)  # (before any reduction)
         y = project_states(compiled, y, p)
         z = algebraic_values(compiled, compiled.t0, y, p, np.tile(np.asarray(compiled.z0, dtype=float), (samples, 1)))
         inputs = tuple(name for name in compiled.parameter_names if name in parameter_box)
@@ -1041,6 +1044,40 @@ def _outside(x: np.ndarray, low: np.ndarray, high: np.ndarray):
     b, j = np.unravel_index(int(np.argmax(relative)), relative.shape)
     inside = ~out.any(axis=(1, 2))
     return int((~inside).sum()), int(b), k, int(j), inside
+
+
+def _refuse_inconsistent_box(compiled, drawn: np.ndarray, p: np.ndarray, box: dict) -> None:
+    """Refuse a box none of whose drawn states the constraints admit (pendulum ``y1`` in [2, 3]: no
+    point of it is on the circle), naming the box and the constraint, before training on states
+    outside it: the least-change projection of every drawn state leaves the box.
+
+    ``compiled`` is the model as declared (an index-3 model's reduction keeps its position level as an
+    invariant only); ``drawn`` (B, n) the states drawn in the box.
+    """
+    from daemodel.compiling.initial_states import _checks, project_states, state_violations
+
+    hidden = _checks(compiled).hidden
+    if not hidden:
+        return
+    y = project_states(compiled, drawn, p)
+    names = compiled.state_names
+    index = np.array([names.index(k) for k in box])
+    low, high = (np.array([box[k][j] for k in box], dtype=float) for j in (0, 1))
+    slack = 1e-9 * np.maximum(1.0, np.maximum(abs(low), abs(high)))  # (a projection onto a face of the box)
+    if ((y[:, index] >= low - slack) & (y[:, index] <= high + slack)).all(axis=1).any():
+        return
+    residual, _, bad = state_violations(compiled, drawn, p)
+    level = int(np.argmax(bad[0])) if bad[0].any() else int(np.argmax(np.abs(residual[0])))
+    name, label, _ = hidden[level]
+    given = ", ".join(f"{k} in [{lo:g}, {hi:g}]" for k, (lo, hi) in box.items())
+    j = int(np.argmax(np.maximum(low - y[0, index], y[0, index] - high)))
+    moved = f"{names[index[j]]} = {drawn[0, index[j]]:.6g} -> {y[0, index[j]]:.6g}"
+    raise InconsistentInitialStateError(
+        f"Surrogate.train(): no state drawn in the box ({given}) satisfies {label} inside it: each of the "
+        f"{len(drawn)} leaves the box on its least-change projection ({name} = {residual[0, level]:.6g} at the "
+        f"first, whose projection moves {moved}); choose ranges the constraints allow, or name in the box the "
+        "states the constraints determine too"
+    )
 
 
 def _ranges(box, names, argument: str, kind: str) -> list:

@@ -23,7 +23,7 @@ from daemodel.errors import (
     UncertifiedWarning,
     UnknownOptionError,
 )
-from daemodel.problems import HESSENBERG, PENDULUM
+from daemodel.problems import HESSENBERG, PENDULUM, PENDULUM_INDEX3
 
 EXACT = HESSENBERG.exact_solution()
 F64 = torch.float64
@@ -837,6 +837,22 @@ def test_network_file_errors(tmp_path):
     dm.solve(c, (0.0, 0.05), method="pinn", save=path)
     with pytest.raises(NetworkFileError, match="networks for model 'hessenberg' with other equations than 'pendulum'"):
         dm.Surrogate.load(path, PENDULUM.model())
+
+
+def test_a_box_the_constraints_exclude_is_refused():
+    """Before: trained on y1 in [2, 3] (off the rod; the reduction keeps the rod as an invariant only)."""
+    c = PENDULUM_INDEX3.model().compile()
+    config = dm.PINNConfig(h=0.1, iterations=2)
+    with pytest.raises(
+        dm.errors.InconsistentInitialStateError,
+        match=r"no state drawn in the box \(y1 in \[2, 3\]\) satisfies constraint 'rod' \(#5\) inside it: each of "
+        r"the 8 leaves .* moves y1 = 2\.\d+ -> 1\)",
+    ):
+        dm.Surrogate.train(c, (0.0, 0.2), box={"y1": (2, 3)}, samples=8, config=config)
+    # a box that holds consistent states trains, on states inside it
+    box = {"y1": (0.5, 0.9), "y2": (-0.9, -0.3)}
+    surrogate = dm.Surrogate.train(c, (0.0, 0.2), box=box, samples=8, config=config)
+    assert surrogate.box["y1"][0] < 0.9 and surrogate.box["y2"][1] < -0.1
 
 
 def test_surrogate_errors():
