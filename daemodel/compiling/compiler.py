@@ -82,6 +82,9 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     alias_exprs = {name: expr for name, expr, _ in aliases}
 
     known = [*(s.name for s in states), *model._algebraics]
+    # the parameters the events read are used (their variables are the outputs' choice: Model.event names
+    # those the requested outputs prune away)
+    event_exprs = [e for _, when, _, resets, _ in model._events for e in (when, *(value for _, value in resets))]
     if outputs is None:
         keep = set(known)
     else:
@@ -116,6 +119,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         *(calculus.free_symbols(rhs[s]) for s in kept_states),
         *(calculus.free_symbols(e) for c in kept_constraints for e in c.chain),
         *(calculus.free_symbols(e) for _, e, _ in kept_aliases),
+        *(e.free_symbols for e in event_exprs),
     )
     kept_parameters = [p for p in parameters if p in used]
     # names, not symbols: a membership test on a list of symbols compares them one by one

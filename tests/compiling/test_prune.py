@@ -1,5 +1,7 @@
 """Model only what a scene needs: alias elimination and output-driven pruning."""
 
+import math
+
 import pytest
 import sympy as sp
 import torch
@@ -126,3 +128,21 @@ def test_outputs_can_name_an_alias():
     c = m.compile(outputs=["x"])
     assert c.state_names == ("y2",) and c.alias_names == ("x",) and c.algebraic_names == ()
     assert c.aliases[0][1] == sp.Symbol("y2")
+
+
+def test_a_parameter_only_an_event_reads_is_kept():
+    """Before: compile() refused it as pruned by the outputs, with no outputs requested."""
+    m = dm.Model("ball")
+    m.states("h v")
+    m.parameter("e", 0.8)
+    m.parameter("level", 0.0)
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    m.event("hit", "h - level", direction=-1, reset={"v": "-e*v"})
+    assert m.compile().parameter_names == ("e", "level")
+    sol = dm.solve(m, (0.0, 0.6), rtol=1e-10, atol=1e-10, parameters={"e": 0.5, "level": 0.5})
+    hit = math.sqrt(2 * 0.5 / 9.81)  # (a fall of 0.5, then up at half the speed)
+    assert abs(sol.events["hit"]["t"][0, 0] - hit) < 1e-11
+    assert sol["v"][-1] == pytest.approx(0.5 * 9.81 * hit - 9.81 * (0.6 - hit), rel=1e-10)
+    assert m.compile(outputs=["h"]).parameter_names == ("e", "level")  # (h needs v: both kept)
