@@ -34,7 +34,6 @@ from daemodel.errors import (
     InvalidValueError,
     ShapeError,
     UnknownSymbolError,
-    WrongBranchError,
 )
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
@@ -247,26 +246,22 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
 
     if z0 is None:
         return InitialStates(y0=Y, z0=algebraic_values(compiled, t0, Y, P, Z), p=P, batched=bool(sizes))
-    # the branch is the one the model's guess selected (its compiled z0); where Newton from there
-    # fails, the given z0 is the only start there is, and selects the branch itself
+    # a given z0 that is a root is the user's choice of branch (each sample its own: z**2 = 4 with
+    # z0 = [-2, 2] follows both roots); where it is none, the root the model's guess selects (its
+    # compiled z0) is the consistent value it disagrees with
     Zc = algebraic_values(compiled, t0, Y, P, np.broadcast_to(compiled.z0, Z.shape), fallback=Z)
-    off = np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))
+    off = (np.abs(Zc - Z) > ALGEBRAIC_TOL * (1 + np.abs(Zc))).any(axis=1)
     if off.any():
-        sample, j = np.argwhere(off)[0]
-        if is_root(
-            checks.H(t0, Y[sample : sample + 1], Z[sample : sample + 1], P[sample : sample + 1]),
-            checks.Hz(t0, Y[sample : sample + 1], Z[sample : sample + 1], P[sample : sample + 1]),
-            Z[sample : sample + 1],
-        )[0]:
-            raise WrongBranchError(
-                f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} is a root of the constraints, but of "
-                f"another branch than the model's guess selects: the root nearest the guess is {algebraics[j]} = "
-                f"{float(Zc[sample, j])!r}. Drop z0, or choose the branch with m.guess(...) and compile again"
+        Yo, Zo, Po = Y[off], Z[off], P[off]
+        roots = is_root(checks.H(t0, Yo, Zo, Po), checks.Hz(t0, Yo, Zo, Po), Zo)
+        if not roots.all():
+            sample = int(np.flatnonzero(off)[np.flatnonzero(~roots)[0]])
+            j = int(np.argmax(np.abs(Zc[sample] - Z[sample]) > ALGEBRAIC_TOL * (1 + np.abs(Zc[sample]))))
+            raise InconsistentAlgebraicValueError(
+                f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} disagrees with the consistent "
+                f"value {float(Zc[sample, j])!r} (and is no root of the constraints); drop z0 or pass consistent values"
             )
-        raise InconsistentAlgebraicValueError(
-            f"z0: {algebraics[j]} = {Z[sample, j]:.10g} of sample {sample} disagrees with the consistent "
-            f"value {Zc[sample, j]!r}; drop z0 or pass consistent values"
-        )
+        Zc[off] = algebraic_values(compiled, t0, Yo, Po, Zo)  # (Newton from the given roots: to full precision)
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
 
 

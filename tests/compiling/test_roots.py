@@ -106,14 +106,23 @@ def test_a_claimed_root_of_another_branch_is_refused_with_both_values():
     assert not isinstance(caught.value, E.WrongBranchError)
 
 
-def test_a_solve_z0_on_another_branch_is_refused_with_both_values():
+def test_a_solve_z0_on_another_branch_is_the_users_choice():
+    """Before: refused as another branch than the guess selects (WrongBranchError). A z0 that is a root
+    is an explicit, consistent choice: each sample follows its own root; one that is none is refused."""
     c = square_root(1.0).compile()
-    with pytest.raises(
-        E.WrongBranchError,
-        match=r"z0: z = -2 of sample 0 is a root of the constraints, but of another branch than the model's guess "
-        r"selects: the root nearest the guess is z = 2\.0\. Drop z0, or choose the branch with m\.guess",
+    for method, options in (
+        ("reference", {}),
+        ("radau", {"rtol": 1e-10, "atol": 1e-10}),
+        ("casadi-idas", {"rtol": 1e-10, "atol": 1e-10}),
     ):
-        dm.solve(c, (0.0, 1.0), method="reference", z0={"z": -2.0})
+        sol = dm.solve(c, (0.0, 1.0), method=method, z0={"z": [-2.0, 2.0]}, t_eval=[0.0, 1.0], **options)
+        # z z' = x' / 2 = -z / 20 on either root: z = z0 - t / 20
+        assert sol["z"][:, -1] == pytest.approx([-2.05, 1.95], abs=1e-8), method
+    with pytest.raises(
+        E.InconsistentAlgebraicValueError,
+        match=r"z0: z = -1 of sample 1 disagrees with the consistent value 2\.0 \(and is no root of the constraints\)",
+    ):
+        dm.solve(c, (0.0, 1.0), method="reference", z0={"z": [-2.0, -1.0]})
     sol = dm.solve(c, (0.0, 1.0), method="reference", z0={"z": 2.0}, t_eval=[0.0, 1.0])
     assert sol["z"][-1] == pytest.approx(1.95, abs=1e-11)
     # with new states the compiled root is still the start that selects the branch
