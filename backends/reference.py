@@ -26,7 +26,9 @@ that :func:`daemodel.compare` measures every method against, so it follows these
 5. At most ``max_steps`` accepted steps per sample (:class:`~daemodel.errors.StepLimitError`).
 6. ``integrator="auto"`` (default) starts with DOP853 and continues with Radau from the point
    where Hairer's stiffness test fires; ``stats["integrator"]`` says where
-   (``"DOP853 -> Radau at t = 0.00153"``).  rtol = atol = 1e-12 by default.
+   (``"DOP853 -> Radau at t = 0.00153"``).  It starts with Radau where the ODE's Jacobian at t0
+   already decays faster than DOP853 could follow over the span (:data:`STIFF_DECAY_SPAN`;
+   ``"Radau (stiff at t0: max -Re(lambda) = 2.6e+04)"``).  rtol = atol = 1e-12 by default.
 """
 
 from __future__ import annotations
@@ -86,6 +88,14 @@ LOCATE_RTOL = 1e-9
 STIFF_H_LAMBDA = 6.1
 STIFF_STEPS = 15
 NONSTIFF_RESET = 6
+# That test sees the eigenvalue that dominates the step's error, which at tight tolerances need not be
+# the stiff one: on a driven heat equation DOP853 keeps h |lambda| near 3 (accuracy in the fast, quasi-
+# steady modes) and never flags a step. So "auto" also looks at t0: where the ODE's Jacobian has a
+# decay rate max(-Re lambda) with rate * (t1 - t0) above STIFF_DECAY_SPAN, DOP853 would need more than
+# ~STIFF_DECAY_SPAN / 6.4 steps (1600) for stability alone, and Radau starts the solve. For up to
+# STIFF_EIG_MAX unknowns (a dense eigenvalue problem, ~0.2 s at 1000); larger models rely on the test.
+STIFF_DECAY_SPAN = 1e4
+STIFF_EIG_MAX = 1000
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -437,6 +447,24 @@ class _SampleRun:
         self.counts = dict.fromkeys(("steps", "nfev", "njev", "nlu", "restarts"), 0)
         self.h = math.nan  # the last accepted step
 
+    def decay_rate(self, t, y, z) -> float:
+        """``max(-Re lambda)`` of the ODE's Jacobian ``f_y - f_z H_z^-1 H_y`` at ``(t, y, z)``; 0 for
+        models above :data:`STIFF_EIG_MAX` unknowns or where it is not finite."""
+        compiled, numeric, p = self.compiled, self.compiled.numeric, self.p
+        n = len(compiled.states)
+        if n == 0 or n + len(compiled.algebraics) > STIFF_EIG_MAX:
+            return 0.0
+        J = numeric.jacobian(compiled.rhs, compiled.states)(t, y, z, p)
+        if len(compiled.algebraics):
+            fz = numeric.jacobian(compiled.rhs, compiled.algebraics)(t, y, z, p)
+            try:
+                J = J - fz @ np.linalg.solve(self.algebraic.Hz(t, y, z, p), self.algebraic.Hy(t, y, z, p))
+            except np.linalg.LinAlgError:
+                return 0.0
+        if not np.isfinite(J).all():
+            return 0.0
+        return float(max(0.0, -np.linalg.eigvals(J).real.min()))
+
     def rhs(self, t, y):
         t = np.float64(t)  # numpy semantics (inf, nan) for 1/(t - 1) and the like
         if not _finite(y):
@@ -505,6 +533,11 @@ class _SampleRun:
         done = 0  # outputs filled
         t, y = t0, self.y0.copy()
         self.t = t0  # the last accepted time, for the reports
+        if self.options.integrator == AUTO:
+            decay = self.decay_rate(np.float64(t0), y, self.z0)
+            if decay * (self.t1 - t0) > STIFF_DECAY_SPAN:
+                self.integrator = "Radau"
+                self.description = f"Radau (stiff at t0: max -Re(lambda) = {decay:.2g})"
         solver, detector, watch = None, StiffnessDetector(), None
         # While a failure at time ``guard`` is localised: steps at most max_step, and the distance
         # to the failure (window) must shrink from round to round.

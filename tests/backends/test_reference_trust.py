@@ -1,7 +1,10 @@
 """method="reference" is the truth compare() measures against: it never hangs and is never silently wrong."""
 
+import math
+
 import numpy as np
 import pytest
+import sympy as sp
 from daemodel.backends.reference import STIFF_STEPS, StiffnessDetector
 from scipy.integrate import DOP853
 
@@ -99,6 +102,38 @@ def test_robertson_auto_switches_to_radau_and_matches_published_values():
     print(f"relative errors at t = 40: {relative}")
     assert max(relative.values()) < 1e-8
     assert sol.stats["steps"] < 2000  # DOP853 alone needs ~18000
+
+
+def _driven_heat(points: int) -> dm.Model:
+    """u_t = u_xx by lines (benchmarks/pinn_models.py's heat): ``points`` states, both boundary values
+    algebraic, the left one driven by sin(2 pi t) / 2: every mode forced, the fastest decaying at
+    ~4 (points + 1)^2."""
+    m = dm.Model("heat")
+    u = m.states([f"u{i}" for i in range(1, points + 1)])
+    left, right = m.algebraics("uL uR")
+    dx = 1.0 / (points + 1)
+    values = [left, *u, right]
+    for i in range(1, points + 1):
+        m.ode(u[i - 1], (values[i - 1] - 2 * values[i] + values[i + 1]) / dx**2)
+    m.constraint(left - sp.sin(2 * sp.pi * m.t) / 2, name="driven_end")
+    m.constraint((right - u[-1]) / dx + 2.0 * (right - 0.2), name="robin_end")
+    m.initial(**{f"u{i}": math.sin(math.pi * i * dx) for i in range(1, points + 1)})
+    return m
+
+
+def test_auto_starts_with_radau_where_the_jacobian_is_stiff_at_t0():
+    """Before: DOP853 all the way (Hairer's test never fires: the step stays near h |lambda| = 3, held by
+    accuracy in the fast modes), 4349 steps and 3.6x Radau's time on 80 points; on 199 points it ran into
+    max_steps. Now the Jacobian at t0 (max -Re(lambda) = 2.6e4 over a span of 0.5) starts Radau."""
+    c = _driven_heat(80).compile()
+    sol = dm.solve(c, (0.0, 0.5), method="reference", t_eval=[0.0, 0.25, 0.5])
+    assert sol.stats["integrator"] == "Radau (stiff at t0: max -Re(lambda) = 2.6e+04)"
+    assert sol.stats["steps"] < 2500 and sol.stats["restarts"] == 0  # (DOP853: 4349)
+    own = dm.solve(c, (0.0, 0.5), method="radau", rtol=1e-11, atol=1e-11, t_eval=[0.0, 0.25, 0.5])
+    for name in ("u1", "u40", "u80", "uR"):
+        np.testing.assert_allclose(sol[name], own[name], rtol=0, atol=1e-9)
+    small = dm.solve(_driven_heat(20), (0.0, 0.5), method="reference", t_eval=[0.0, 0.5])
+    assert small.stats["integrator"] == "DOP853"  # (1764 * 0.5 is no stiffness over this span)
 
 
 def test_auto_keeps_dop853_on_a_nonstiff_problem_and_explicit_radau_works():
