@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 from daemodel.backends.base import AbstractBackend, make_solution
@@ -13,7 +14,7 @@ from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.errors import InvalidOptionError
+from daemodel.errors import ConvergenceError, DaemodelError, InvalidOptionError
 from daemodel.files import check_memory, memory_limit
 from daemodel.tableau import radau_iia
 
@@ -39,7 +40,7 @@ class RadauBackend(AbstractBackend):
         with torch_threads(options.threads, start.size * (len(compiled.states) + len(compiled.algebraics))):
             return self._solve(compiled, t_span, start, options, warm_up)
 
-    def _solve(self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0):
+    def _solve(self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True):
         check_memory(
             f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
             memory_parts(compiled, t_span, start.size, options),
@@ -56,7 +57,13 @@ class RadauBackend(AbstractBackend):
             stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
         setup = time.perf_counter() - began + warm_up
         began = time.perf_counter()
-        times, values = stepper.integrate(t_span)
+        try:
+            times, values = stepper.integrate(t_span)
+        except ConvergenceError as error:
+            where = getattr(error, "sign_change", None)
+            if where is None or options.adaptive or not check:
+                raise
+            raise self._at_a_smaller_step(compiled, t_span, start, options, error, where) from None
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
@@ -77,6 +84,29 @@ class RadauBackend(AbstractBackend):
             setup_time=setup,
             dense=stepper.polynomials(),
         )
+
+    def _at_a_smaller_step(self, compiled, t_span, start, options: RadauOptions, error, where) -> ConvergenceError:
+        """The error for a determinant that changed sign on a fixed grid: ``error`` where the change
+        remains at ``h / SMALLER_STEP`` too (the solution passes a point where z is undetermined), else
+        one that says the change is the step's own, too large for the solution there, and which h
+        passes (a CSTR at h = 1 was told to reformulate its constraints, where h = 0.5 works)."""
+        smaller = options.h / SMALLER_STEP
+        end = min(float(t_span[1]), where[1] + options.h)
+        try:
+            finer = dataclasses.replace(options, h=smaller, t_eval=None)
+            self._solve(compiled, (t_span[0], end), start, finer, check=False)
+        except DaemodelError:
+            return error
+        return ConvergenceError(
+            f"radau: with h = {options.h:.3g} the determinant of the constraints' iteration matrix (g_z, or g_y "
+            f"f_z at index 2) changes sign between t = {where[0]:.6g} and {where[1]:.6g}, but with h = {smaller:.3g} "
+            f"the solve passes t = {end:.6g} without it: the change is the step's own, too large for the "
+            f"solution there; take h = {smaller:.3g} or smaller, or the adaptive mode (rtol=..., atol=...)"
+        )
+
+
+# A determinant's sign change on a fixed grid is checked at this many times smaller steps.
+SMALLER_STEP = 4
 
 
 def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:

@@ -463,12 +463,14 @@ class Stepper:
         if bool(flips.any()):
             sample = self.engine.first(flips)
             names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
-            raise ConvergenceError(
+            error = ConvergenceError(
                 f"radau: the constraints ({names}) stop determining the algebraic variables between t = "
                 f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration "
                 "matrix (g_z, or g_y f_z at index 2) changes sign, so it passes through zero, where z is not "
                 "determined and may blow up; end t_span before that time or reformulate the constraints"
             )
+            error.sign_change = (self._det_time, t + h)  # (the backend checks a fixed step's at a smaller h)
+            raise error
         if keep:  # (not for the stages of a failed attempt: the step is retried shorter)
             self._det_sign, self._det_time = signs[:, -1], t
 

@@ -302,3 +302,24 @@ def test_a_step_across_a_point_where_z_is_not_determined_is_refused():
             dm.solve(m, (0.0, 1.0), **options)
     sol = dm.solve(m, (0.0, 0.6), h=0.03)  # before it: fine
     np.testing.assert_allclose(sol["z"][-1], np.cos(0.6) / 0.1, rtol=1e-6)
+
+
+def test_a_sign_change_that_is_the_steps_own_asks_for_a_smaller_h():
+    """y' = -10 y, 0 = (y + 0.05) z - 1: y = exp(-10 t) > 0 keeps g_z = y + 0.05 positive, but three stages
+    at h = 0.25 (h lambda = -2.5) leave the solution there. Before: "reformulate the constraints"; h/4
+    passes, so the advice is a smaller h, and at h/4 the values are the exact ones."""
+    m = dm.Model("inverse")
+    m.states("y")
+    m.algebraics("z")
+    m.ode("y", "-10*y + 0*z")
+    m.constraint("(y + 0.05)*z - 1", name="inverse")
+    m.initial(y=1.0)
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"radau: with h = 0\.25 the determinant .* changes sign between t = 0\.25 and 0\.5, but with "
+        r"h = 0\.0625 the solve passes t = 0\.75 without it: the change is the step's own, too large for the "
+        r"solution there; take h = 0\.0625 or smaller",
+    ):
+        dm.solve(m, (0.0, 3.0), h=0.25, stages=3)
+    sol = dm.solve(m, (0.0, 3.0), h=0.0625, stages=3)
+    np.testing.assert_allclose(sol["z"], 1 / (np.exp(-10 * sol.t) + 0.05), rtol=2e-3)
