@@ -439,7 +439,6 @@ def test_daemodel_compare_on_the_bouncing_ball(tmp_path, capsys):
 
 DOUBLE_PENDULUM_FILE = '''
 import math
-import re
 
 import daemodel as dm
 
