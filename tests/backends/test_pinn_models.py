@@ -78,7 +78,11 @@ def test_success_means_within_twice_radaus_error_and_the_certificate_bounds_the_
         assert np.all(pinn_error <= 2 * radau_error + reference_error), name
     else:
         assert pinn.status.startswith("flagged: ")
-    assert pinn.status == "success", pinn.status  # all of these reach the ceiling now (measured)
+    if radau.status == "success":
+        assert pinn.status == "success", pinn.status  # all of these reach the ceiling now (measured)
+    else:  # heat: radau's first step is flagged (0.0138 of u20's size), and so is the PINN, though certified
+        assert pinn.status.startswith("flagged: radau's local error estimate at the same h"), pinn.status
+        assert all(pinn.stats["certificate"]["certified"])
 
 
 def test_the_guess_needing_model_trains_to_the_exact_solution():
