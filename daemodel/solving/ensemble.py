@@ -173,8 +173,18 @@ def ensemble(
     Solution
         The samples that were solved, in batch order, batched.  ``stats["samples"]`` holds their
         indices in the ensemble, ``stats["failures"]`` a :class:`Failure` per sample that was
-        not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size.
+        not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size;
+        ``events`` and ``breakpoints`` as a batched solve's ((B, K), NaN-padded).
         With ``write_to``, an :class:`EnsembleFiles` instead.
+
+    Raises
+    ------
+    ResourceLimitError
+        In memory, before any chunk, when the outputs (samples x the output times that ``t_eval``
+        or a fixed ``h`` gives x variables) exceed :func:`daemodel.files.memory_limit`.
+    InvalidOptionError, SolutionFileError
+        With ``write_to``: a directory of another run (other inputs, model, events, parameter
+        values, method or settings).
     """
     from daemodel.backends import get_backend
     from daemodel.compiling.compiler import as_compiled
