@@ -194,22 +194,23 @@ class Certificate:
         return int(b), int(k), int(j), float(estimate[b, k, j])
 
     def summary(self, names) -> dict:
-        """JSON-ready digest for ``Solution.stats``: which samples are certified; per variable,
+        """Digest for ``Solution.stats``, as numpy arrays (a batch of 10^3 samples would make lists of
+        lists that print as megabytes): which samples are certified (B,); per variable,
         the largest distance and Radau error over the grid (per sample); per segment and sample,
         at the segment's end, the largest distance and Radau error over the variables
         (``segment_distance``, ``segment_radau_error``, each (B, segments)) and the same from
         the segment's own start (``local_distance``, ``local_radau_error``)."""
         return {
-            "certified": self.certified.tolist(),
-            "max_distance": {name: self.distance[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
-            "max_radau_error": {name: self.radau_error[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
+            "certified": np.asarray(self.certified, dtype=bool),
+            "max_distance": {name: self.distance[..., j].max(axis=1) for j, name in enumerate(names)},
+            "max_radau_error": {name: self.radau_error[..., j].max(axis=1) for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
             "worst": self._worst_pair(),
             "failure": self.failure(),
-            "segment_distance": self.distance[:, 1:].max(axis=2).tolist(),
-            "segment_radau_error": self.radau_error[:, 1:].max(axis=2).tolist(),
-            "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2).tolist(),
-            "local_radau_error": self.local_radau_error.max(axis=2).tolist(),
+            "segment_distance": self.distance[:, 1:].max(axis=2),
+            "segment_radau_error": self.radau_error[:, 1:].max(axis=2),
+            "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2),
+            "local_radau_error": self.local_radau_error.max(axis=2),
             # radau's own fixed-step estimate on the same steps: its largest, unweighted and weighted
             "max_local_error_estimate": None if (worst := self.largest_estimate()) is None else worst[3],
             "max_weighted_local_error_estimate": (
