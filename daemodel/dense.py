@@ -250,3 +250,108 @@ def joined_by_samples(groups, samples: int, ends=None) -> AbstractDenseOutput | 
     if any(dense is None for _, dense in groups):
         return None
     return Groups(tuple(groups), samples, None if ends is None else tuple(ends))
+
+
+# ---- in files ------------------------------------------------------------------------------------
+def stored_dense(dense: AbstractDenseOutput | None):
+    """``dense`` as plain data with arrays (``{"kind": ..., ...}``), for :meth:`Solution.save`; None
+    where it is no data but a method run again (:class:`Restarts`, casadi's), which a file cannot hold.
+    A :class:`Deferred` one is made first."""
+    if isinstance(dense, Deferred):
+        if not dense._made:
+            dense._made.append(dense.make())
+        dense = dense._made[0]
+    if isinstance(dense, CollocationPolynomials):
+        return {
+            "kind": "collocation",
+            "c": dense.c,
+            "starts": dense.starts,
+            "lengths": dense.lengths,
+            "nodes": dense.nodes,
+        }
+    if isinstance(dense, Held):
+        return {"kind": "held", "t": float(dense.t), "values": np.asarray(dense.values)}
+    if isinstance(dense, Segments):
+        pieces = [stored_dense(piece) for piece in dense.pieces]
+        return None if None in pieces else {"kind": "segments", "edges": dense.edges, "pieces": pieces}
+    if isinstance(dense, Groups):
+        pieces = [stored_dense(piece) for _, piece in dense.groups]
+        if None in pieces:
+            return None
+        return {
+            "kind": "groups",
+            "samples": int(dense.samples),
+            "indices": [np.asarray(index, dtype=np.int64).reshape(-1) for index, _ in dense.groups],
+            "pieces": pieces,
+            "ends": None if dense.ends is None else [None if end is None else float(end) for end in dense.ends],
+        }
+    return None
+
+
+def dense_from_stored(data, samples: int, width: int) -> AbstractDenseOutput:
+    """The dense output :func:`stored_dense` wrote, for ``samples`` rows of ``width`` unknowns, every
+    array checked before use; a ValueError saying what is wrong otherwise."""
+
+    def array(value, ndim: int, what: str, kind: str = "f") -> np.ndarray:
+        if not isinstance(value, np.ndarray) or value.ndim != ndim or value.dtype.kind not in kind:
+            raise ValueError(f"{what} is not an array of {ndim} axes")
+        return value
+
+    def number(value, what: str) -> float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+            raise ValueError(f"{what} is not a finite number")
+        return float(value)
+
+    def build(data, rows: int, where: str) -> AbstractDenseOutput:
+        kind = data.get("kind") if isinstance(data, dict) else None
+        if kind == "collocation":
+            c, starts = array(data.get("c"), 1, f"{where}.c"), array(data.get("starts"), 1, f"{where}.starts")
+            lengths, nodes = (
+                array(data.get("lengths"), 1, f"{where}.lengths"),
+                array(data.get("nodes"), 4, f"{where}.nodes"),
+            )
+            S = len(starts)
+            if not S or len(lengths) != S or nodes.shape != (rows, S, len(c) + 1, width):
+                raise ValueError(
+                    f"{where}.nodes has shape {nodes.shape}; {rows} samples, {S} steps, {len(c)} stages and {width} "
+                    f"unknowns make {(rows, S, len(c) + 1, width)}"
+                )
+            if not (np.isfinite(starts).all() and np.isfinite(lengths).all() and (lengths > 0).all()):
+                raise ValueError(f"{where}: its steps are not finite, positive intervals")
+            return CollocationPolynomials(c, starts, lengths, nodes)
+        if kind == "held":
+            values = array(data.get("values"), 2, f"{where}.values")
+            if values.shape != (rows, width):
+                raise ValueError(f"{where}.values has shape {values.shape}, not {(rows, width)}")
+            return Held(number(data.get("t"), f"{where}.t"), values)
+        if kind == "segments":
+            edges, pieces = array(data.get("edges"), 1, f"{where}.edges"), data.get("pieces")
+            if not isinstance(pieces, list) or not pieces or len(edges) != len(pieces) + 1:
+                raise ValueError(f"{where} does not hold one more edge than pieces")
+            if not np.isfinite(edges).all() or (np.diff(edges) < 0).any():
+                raise ValueError(f"{where}.edges is not a finite, ascending sequence")
+            built = tuple(build(piece, rows, f"{where}.pieces[{k}]") for k, piece in enumerate(pieces))
+            return Segments(edges, built)
+        if kind == "groups":
+            indices, pieces, ends = data.get("indices"), data.get("pieces"), data.get("ends")
+            if data.get("samples") != rows or not isinstance(indices, list) or not isinstance(pieces, list):
+                raise ValueError(f"{where} is not {rows} samples in groups")
+            if len(indices) != len(pieces) or (
+                ends is not None and (not isinstance(ends, list) or len(ends) != len(pieces))
+            ):
+                raise ValueError(f"{where} has as many groups of samples as pieces")
+            groups, seen = [], []
+            for k, (index, piece) in enumerate(zip(indices, pieces, strict=True)):
+                index = array(index, 1, f"{where}.indices[{k}]", "iu")
+                if not len(index) or index.min() < 0 or index.max() >= rows:
+                    raise ValueError(f"{where}.indices[{k}] holds no samples, or samples outside 0 to {rows - 1}")
+                groups.append((index, build(piece, len(index), f"{where}.pieces[{k}]")))
+                seen.append(index)
+            if not np.array_equal(np.sort(np.concatenate(seen)), np.arange(rows)):
+                raise ValueError(f"{where}: its groups do not hold each of the {rows} samples once")
+            if ends is not None:
+                ends = tuple(None if end is None else number(end, f"{where}.ends[{k}]") for k, end in enumerate(ends))
+            return Groups(tuple(groups), rows, ends)
+        raise ValueError(f"{where} is no dense output daemodel writes (kind {kind!r})")
+
+    return build(data, samples, "dense")

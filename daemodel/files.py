@@ -45,17 +45,88 @@ FILE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,199}")
 # ensemble manifest is flat (a manifest of 10^6 failed samples is about 200 MB).
 JSON_BYTES = 1 << 30
 JSON_DEPTH = 32
-# The share of the machine's physical memory that one result read or built may take, unless the
+# The share of the memory this process may use that one result read or built may take, unless the
 # environment variable DAEMODEL_MEMORY_LIMIT gives a size ("64G", "512M", bytes).
 MEMORY_FRACTION = 0.5
 MEMORY_LIMIT_VARIABLE = "DAEMODEL_MEMORY_LIMIT"
 _UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+# Where the kernel states the memory of this process's control group: cgroup v2 (the file of the
+# group named in /proc/self/cgroup, else of the root a container sees), cgroup v1.
+CGROUP_TABLE = Path("/proc/self/cgroup")
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+CGROUP_V1_LIMIT = Path("/sys/fs/cgroup/memory/memory.limit_in_bytes")
+# A cgroup v1 "limit" at or above this is the kernel's way of saying none (PAGE_COUNTER_MAX pages).
+CGROUP_V1_UNLIMITED = 1 << 60
+
+
+def _read_bytes(path: Path) -> int | None:
+    """The whole number in the small file ``path``, or None (missing, unreadable, "max")."""
+    try:
+        text = path.read_text().strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _cgroup_memory() -> int | None:
+    """Bytes this process's control group may use, or None where no limit is set or visible."""
+    found = []
+    try:
+        lines = CGROUP_TABLE.read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        lines = []
+    v1 = [CGROUP_V1_LIMIT]
+    for line in lines:  # "0::/user.slice/..." names the v2 group, "4:memory:/docker/..." the v1 one
+        number, _, rest = line.partition(":")
+        controllers, _, group = rest.partition(":")
+        group = group.strip().lstrip("/")
+        if number == "0" and not controllers and group:
+            found.append(_read_bytes(CGROUP_ROOT / group / "memory.max"))
+        elif "memory" in controllers.split(",") and group:
+            v1.insert(0, CGROUP_V1_LIMIT.parent / group / CGROUP_V1_LIMIT.name)
+    found.append(_read_bytes(CGROUP_ROOT / "memory.max"))
+    for path in v1:
+        value = _read_bytes(path)
+        found.append(value if value is not None and value < CGROUP_V1_UNLIMITED else None)
+    limits = [value for value in found if value]
+    return min(limits) if limits else None
+
+
+def _address_space_left() -> int | None:
+    """Bytes of address space this process may still map under its ``RLIMIT_AS``, or None without one."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft == resource.RLIM_INFINITY or soft < 0:
+            return None
+        used = int(Path("/proc/self/statm").read_text().split()[0]) * resource.getpagesize()
+    except (ImportError, OSError, ValueError, IndexError):
+        return None
+    return max(soft - used, 0)
+
+
+def memory_available() -> dict[str, int]:
+    """What bounds the memory this process may use, by name (bytes): the machine's physical memory
+    (8 GiB where the system does not say), its control group's limit (cgroup v2 ``memory.max`` or
+    v1 ``memory.limit_in_bytes``) and the address space its ``RLIMIT_AS`` leaves, where set."""
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        physical = 8 << 30
+    bounds = {
+        "physical memory": physical,
+        "cgroup memory limit": _cgroup_memory(),
+        "address space left under RLIMIT_AS": _address_space_left(),
+    }
+    return {name: value for name, value in bounds.items() if value is not None}
 
 
 def memory_limit() -> int:
     """Bytes one solve, batch, ensemble chunk or loaded result may take: ``DAEMODEL_MEMORY_LIMIT``
-    when set (``"64G"``, ``"512M"``, a number of bytes), else :data:`MEMORY_FRACTION` of the
-    machine's physical memory (of 8 GiB where the system does not say)."""
+    when set (``"64G"``, ``"512M"``, a number of bytes), else :data:`MEMORY_FRACTION` of the least of
+    :func:`memory_available` (the machine's RAM, the cgroup's limit, the address space left under
+    ``RLIMIT_AS``): the one place daemodel decides how much memory it may take."""
     text = os.environ.get(MEMORY_LIMIT_VARIABLE, "").strip()
     if text:
         match = re.fullmatch(r"(\d+(?:\.\d+)?)\s*([KMGT]?)(?:i?B)?", text, flags=re.IGNORECASE)
@@ -64,11 +135,16 @@ def memory_limit() -> int:
                 f"{MEMORY_LIMIT_VARIABLE} = {text!r} is not a memory size; give one such as '64G', '512M' or bytes"
             )
         return int(float(match[1]) * _UNITS[match[2].upper()])
-    try:
-        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (ValueError, OSError, AttributeError):
-        physical = 8 << 30
-    return int(MEMORY_FRACTION * physical)
+    return int(MEMORY_FRACTION * min(memory_available().values()))
+
+
+def _limit_source() -> str:
+    """What :func:`memory_limit` is now, in words."""
+    if os.environ.get(MEMORY_LIMIT_VARIABLE, "").strip():
+        return f"now {MEMORY_LIMIT_VARIABLE}"
+    bounds = memory_available()
+    least = min(bounds, key=bounds.get)
+    return f"now {MEMORY_FRACTION:g} of the {least} ({_size(bounds[least])})"
 
 
 def _size(size: int) -> str:
@@ -85,8 +161,8 @@ def check_memory(what: str, parts: dict) -> None:
         itemised = ", ".join(f"{name} {size / 2**30:.3g} GiB" for name, size in parts.items())
         raise ResourceLimitError(
             f"{what} would need {total / 2**30:.3g} GiB ({itemised}), more than the {limit / 2**30:.3g} GiB allowed "
-            f"(set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it): solve fewer samples at a time "
-            "(dm.ensemble with a smaller chunk, write_to= to keep them on disk) or ask for fewer output times"
+            f"(set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it; {_limit_source()}): solve fewer samples at a "
+            "time (dm.ensemble with a smaller chunk, write_to= to keep them on disk) or ask for fewer output times"
         )
 
 
@@ -273,15 +349,17 @@ def read_arrays(
     what: str = "daemodel file",
     *,
     data: bool = True,
+    others: bool = False,
 ) -> dict:
     """The arrays of the ``.npz`` archive ``handle`` (``path`` for messages), exactly the members
     ``expected`` names (``{name: (dtype kinds, ndim)}``, e.g. ``{"t": ("f", 1)}``).  Each member's
     header (dtype, shape) is read and checked against ``expected`` and against the member's real
     size before its data is allocated; no object arrays (no pickles).  Else ``error`` naming the
-    file and the field.  With ``data=False``, only each array's shape (nothing allocated)."""
+    file and the field.  With ``data=False``, only each array's shape (nothing allocated); with
+    ``others=True``, other members may be there (unread: a first pass that learns which)."""
     sizes = stored_members(handle, path, error, limit, what)
     found = {name.removesuffix(".npy") if name.endswith(".npy") else name + "/" for name in sizes}
-    missing, extra = [n for n in expected if n not in found], sorted(found - set(expected))
+    missing, extra = [n for n in expected if n not in found], [] if others else sorted(found - set(expected))
     if missing or extra:
         problem = f"lacks the field {missing[0]!r}" if missing else f"holds a field {extra[0]!r} that it should not"
         raise error(f"{path} {problem} (a daemodel file holds {', '.join(expected)}): it is damaged or foreign")
@@ -317,6 +395,59 @@ def read_arrays(
                 raise error(f"{path}: field {name!r} cannot be read ({type(failure).__name__}: {failure})") from None
     handle.seek(0)
     return arrays
+
+
+# How arrays and non-finite numbers travel in the JSON of a file whose arrays are members beside it
+# (:func:`stored`, :func:`restored`): {"__array__": member} and {"__float__": "nan" | "inf" | "-inf"}.
+ARRAY_KEY = "__array__"
+FLOAT_KEY = "__float__"
+# The members :func:`stored` names, and the dtype kinds it stores as arrays (numbers and flags).
+STORED_NAME = re.compile(r"a[0-9]{1,9}")
+STORED_KINDS = "fiub"
+
+
+def stored(value, arrays: dict):
+    """``value`` (dicts with string keys, lists, tuples, numbers, strings, None, numpy arrays and
+    scalars) as plain JSON data: each numeric or boolean array of at least one axis moved into
+    ``arrays`` under a new member name (``a0``, ``a1``, ...) and replaced by ``{ARRAY_KEY: name}``, a
+    non-finite float by ``{FLOAT_KEY: "nan"}`` (JSON has no NaN); anything else by its ``str``.
+    :func:`restored` undoes it."""
+    if isinstance(value, np.ndarray) and value.ndim and value.dtype.kind in STORED_KINDS:
+        name = f"a{len(arrays)}"
+        arrays[name] = np.ascontiguousarray(value)
+        return {ARRAY_KEY: name}
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+        if isinstance(value, list):
+            return [stored(v, arrays) for v in value]
+    if isinstance(value, bool) or value is None or isinstance(value, str | int):
+        return value
+    if isinstance(value, float):
+        return value if np.isfinite(value) else {FLOAT_KEY: str(value)}
+    if isinstance(value, dict):
+        return {str(k): stored(v, arrays) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [stored(v, arrays) for v in value]
+    return str(value)
+
+
+def restored(value, arrays: dict, path, error: type, field: str):
+    """The value :func:`stored` made, with its arrays from ``arrays``; ``error`` naming the file and
+    ``field`` for a reference to an array that is not there."""
+    if isinstance(value, list):
+        return [restored(v, arrays, path, error, field) for v in value]
+    if not isinstance(value, dict):
+        return value
+    if set(value) == {ARRAY_KEY}:
+        name = value[ARRAY_KEY]
+        if not isinstance(name, str) or name not in arrays:
+            raise error(
+                f"{path}: field {field!r} refers to an array {name!r} that the file does not hold: it is damaged"
+            )
+        return arrays[name]
+    if set(value) == {FLOAT_KEY} and value[FLOAT_KEY] in ("nan", "inf", "-inf"):
+        return float(value[FLOAT_KEY])
+    return {k: restored(v, arrays, path, error, field) for k, v in value.items()}
 
 
 def _depth(value, limit: int, level: int = 0) -> int:

@@ -9,15 +9,20 @@ from pathlib import Path
 
 import numpy as np
 
+from daemodel.dense import dense_from_stored, stored_dense
 from daemodel.errors import ComparisonError, OmittedPanelsWarning, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
+    STORED_KINDS,
+    STORED_NAME,
     atomic_write,
     memory_limit,
     open_file,
     parse_json,
     read_arrays,
     readable_path,
+    restored,
     save_figure,
+    stored,
     writable_file,
 )
 
@@ -30,14 +35,18 @@ PLOTTED_SAMPLES = 20
 # page; a 62-variable model drew 62 panels of a few pixels each.
 PLOTTED_PANELS = 12
 # What Solution.save writes and Solution.load reads.
-SOLUTION_FORMAT = "daemodel-solution/1"
+SOLUTION_FORMAT = "daemodel-solution/2"
+OLDER_SOLUTION_FORMATS = ("daemodel-solution/1",)
 # Its arrays (dtype kinds, axes): times (T,), values (B, T, variables), parameters (B, k), and
-# the JSON of everything else; and the fields of that JSON with their types.
+# the JSON of everything else, whose arrays (stats, events, breakpoints, the dense output) are the
+# members it lists in "arrays" (:func:`daemodel.files.stored`); and the fields of that JSON with their types.
 SOLUTION_ARRAYS = {"t": ("f", 1), "values": ("f", 3), "parameters": ("f", 2), "meta": ("U", 0)}
 SOLUTION_META = {
     "format": str,
     "model": str,
     "fingerprint": str,
+    "fingerprints": dict,
+    "declared": dict,
     "names": list,
     "method": str,
     "settings": dict,
@@ -46,14 +55,112 @@ SOLUTION_META = {
     "stats": dict,
     "status": str,
     "batched": bool,
+    "breakpoints": dict,
+    "events": dict,
+    "arrays": dict,
 }
 
 
-def _jsonable(value):
-    """JSON for what a Solution's settings and stats hold beyond JSON's types (numpy values, dtypes)."""
-    if isinstance(value, np.ndarray | np.generic):
-        return value.tolist()
-    return str(value)
+# Items of a list that a printed stats dict shows before it says how many more there are.
+SHOWN_ITEMS = 6
+
+
+class Stats(dict):
+    """A solution's counters (``Solution.stats``): a plain dict whose ``repr`` is a summary, so that
+    printing the stats of a batch of 10^3 samples (per-sample arrays) is a few lines, not megabytes:
+    an array shows its shape, dtype and range, a long list its first items and its length."""
+
+    def __repr__(self) -> str:
+        return "{" + ", ".join(f"{key!r}: {_summary(value)}" for key, value in self.items()) + "}"
+
+    __str__ = __repr__
+
+
+def _summary(value) -> str:
+    if isinstance(value, np.ndarray):
+        if value.size <= SHOWN_ITEMS:
+            return repr(value.tolist())
+        if value.dtype.kind in "fiub":
+            finite = value[np.isfinite(value)] if value.dtype.kind == "f" else value
+            span = f" from {finite.min():.4g} to {finite.max():.4g}" if finite.size else ""
+            return f"<array {value.shape} {value.dtype}{span}>"
+        return f"<array {value.shape} {value.dtype}>"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k!r}: {_summary(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple) and len(value) > SHOWN_ITEMS:
+        shown = ", ".join(_summary(v) for v in value[:SHOWN_ITEMS])
+        return f"[{shown}, ... ({len(value)} items)]"
+    if isinstance(value, list | tuple):
+        return ("[{}]" if isinstance(value, list) else "({})").format(", ".join(_summary(v) for v in value))
+    return repr(value)
+
+
+def declared(compiled) -> dict:
+    """What a solution's fingerprints cover, in words, for a loader's message: the events and the
+    parameter values."""
+    return {
+        "events": [event.describe(compiled.state_names) for event in compiled.events],
+        "parameter values": {
+            name: float(v) for name, v in zip(compiled.parameter_names, compiled.parameter_values, strict=True)
+        },
+    }
+
+
+def matching_system(compiled, meta: dict, path: Path, what: str = "a solution"):
+    """The system among ``compiled`` and its reductions whose fingerprints are those ``meta`` stored
+    (``"fingerprint"``, ``"fingerprints"``, ``"declared"``, ``"model"``), else a :class:`SolutionFileError`
+    saying that ``path`` holds ``what`` of another model and what differs: the equations, or the
+    events (both listed), or the parameter values (each changed one named)."""
+    candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
+    parts = meta["fingerprints"]
+    for candidate in candidates:
+        if candidate.fingerprint() == meta["fingerprint"] and candidate.fingerprints() == parts:
+            return candidate
+    differing = min(
+        ([field for field, value in c.fingerprints().items() if parts.get(field) != value] for c in candidates),
+        key=len,
+    )
+    if not differing or "equations" in differing:
+        raise SolutionFileError(
+            f"{path} holds {what} of model {meta['model']!r} with other equations or names than '{compiled.name}'; "
+            "load it with the model that was solved"
+        )
+    mine, theirs = declared(compiled), meta["declared"] if isinstance(meta["declared"], dict) else {}
+    details = []
+    if "events" in differing:
+        details.append(f"its events {theirs.get('events', '?')}, the model's {mine['events']}")
+    if "parameter values" in differing:
+        saved, now = theirs.get("parameter values") or {}, mine["parameter values"]
+        changed = [f"{n} = {saved.get(n, '?')!r}, the model's {v!r}" for n, v in now.items() if saved.get(n) != v]
+        details.append("its " + ("; ".join(changed) if changed else f"parameter values {saved}"))
+    raise SolutionFileError(
+        f"{path} holds {what} of model {meta['model']!r} whose {' and '.join(differing)} differ from those of "
+        f"'{compiled.name}' ({'; '.join(details)}): load it with the model that was solved"
+    )
+
+
+def _switch_record(record, B: int, names: list, path: Path, field: str) -> dict:
+    """A breakpoint or event record read back, checked: ``"t"`` and ``"moved"`` (B, K), ``"before"`` and
+    ``"after"`` each variable's (B, K)."""
+
+    def table(value, where: str, K: int | None) -> np.ndarray:
+        if not isinstance(value, np.ndarray) or value.dtype.kind != "f" or value.ndim != 2 or len(value) != B:
+            raise SolutionFileError(f"{path}: field '{where}' is not a float array of {B} rows: it is damaged")
+        if K is not None and value.shape[1] != K:
+            raise SolutionFileError(f"{path}: field '{where}' has {value.shape[1]} columns, not {K}: it is damaged")
+        return value
+
+    if not isinstance(record, dict) or set(record) != {"t", "moved", "before", "after"}:
+        raise SolutionFileError(
+            f"{path}: field '{field}' is not times, moves and values before and after: it is damaged"
+        )
+    t = table(record["t"], f"{field}.t", None)
+    out = {"t": t, "moved": table(record["moved"], f"{field}.moved", t.shape[1])}
+    for side in ("before", "after"):
+        if not isinstance(record[side], dict) or sorted(record[side]) != sorted(names):
+            raise SolutionFileError(f"{path}: field '{field}.{side}' does not hold the variables {names}")
+        out[side] = {name: table(record[side][name], f"{field}.{side}.{name}", t.shape[1]) for name in names}
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,7 +213,8 @@ class Solution:
     dense : AbstractDenseOutput or None
         The method's own continuous solution between the output times (:mod:`daemodel.dense`), which
         :meth:`at` evaluates: radau's and the Radau-PINN's collocation polynomials, ...; None where
-        the method keeps none (then ``at()`` interpolates the outputs).  Not saved by :meth:`save`.
+        the method keeps none (then ``at()`` interpolates the outputs).  Saved by :meth:`save` where it
+        is data (collocation polynomials), not where it runs the method again (the reference's, casadi's).
     sensitivities : dict
         With ``solve(..., sensitivities=[names])`` (radau): for each name, the derivatives of the
         states and algebraic variables at the output times with respect to it, ndarray (B, T, n+m);
@@ -136,6 +244,8 @@ class Solution:
     sensitivities: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.stats, Stats):
+            object.__setattr__(self, "stats", Stats(self.stats))
         c = self.compiled
         if c.aliases and not set(c.alias_names) <= set(self.values):
             Y, Z, P, T = self._flat()
@@ -371,42 +481,9 @@ class Solution:
         return {name: float(np.max(np.abs(values[:, i]))) for i, name in enumerate(c.invariant_names)}
 
     # ---- between the output times ---------------------------------------------------------
-    def _check_no_switch_inside(self, starts: np.ndarray, ends: np.ndarray, times: np.ndarray) -> None:
-        """:class:`InvalidValueError` where a query's interval of output times holds a breakpoint or an
-        event strictly inside: interpolating across it would mix the two sides."""
-        from daemodel.errors import InvalidValueError
-
-        records = ([("a breakpoint", self.breakpoints)] if self.breakpoints else []) + [
-            (f"event '{name}'", record) for name, record in self.events.items()
-        ]
-        for what, record in records:
-            switch_times = np.asarray(record["t"], dtype=float).ravel()
-            switch_times = switch_times[np.isfinite(switch_times)]
-            for a, b, q in zip(starts, ends, times, strict=True):
-                inside = switch_times[(switch_times > a) & (switch_times < b)]
-                if len(inside):
-                    raise InvalidValueError(
-                        f"at(): t = {q:g} lies between the outputs t = {a:g} and {b:g}, across {what} at t = "
-                        f"{inside[0]:.10g}: an interpolant across it would mix its two sides; solve with t_eval "
-                        "holding the times you need"
-                    )
-
-    def _left_limits(self, ends: np.ndarray, times: np.ndarray):
-        """``(j, sample b, values just before (n+m,))`` for each query ``times[j]`` whose interval ends,
-        for sample b, at a breakpoint or event, before it: the values there are those after the switch."""
-        records = [self.breakpoints] if self.breakpoints else []
-        records += list(self.events.values())
-        if not records:
-            return []
-        names = [*self.compiled.state_names, *self.compiled.algebraic_names]
-        out = []
-        for j, (end, q) in enumerate(zip(ends, times, strict=True)):
-            if q >= end:
-                continue
-            for record in records:
-                for b, k in np.argwhere(record["t"] == end):
-                    out.append((j, b, np.array([np.asarray(record["before"][name])[b, k] for name in names])))
-        return out
+    def _switch_records(self) -> list[dict]:
+        """The breakpoint record and each event's: ``"t"`` (B, K) and the values before and after."""
+        return ([self.breakpoints] if self.breakpoints else []) + list(self.events.values())
 
     def at(self, times) -> dict[str, np.ndarray]:
         """Values at ``times`` inside the solution's span, by name: (len(times),) or (B, len(times)).
@@ -415,18 +492,18 @@ class Solution:
         Radau-PINN's), it is evaluated: the values are those ``solve(..., t_eval=times)`` would give,
         at the method's own accuracy, across breakpoints and events too (a time on one takes the
         values after it).  Otherwise the states are interpolated by cubic Hermite polynomials
-        through each pair of adjacent output times, with the derivatives ``f(t, y, z)`` there (an
-        error of O(dt^4) in the output spacing dt on top of the method's), and the algebraic
-        variables solved from the constraints that determine them at the interpolated states
-        (Newton from their linear interpolation); at the output times every value is the
-        solution's own.
+        through the two nearest points of the time's piece, with the derivatives ``f(t, y, z)`` there:
+        the adjacent output times, or a breakpoint or event between them, with its values before it
+        (on its left) or after it (on its right), so that no interpolant spans one (an error of O(dt^4)
+        in the output spacing dt on top of the method's); the algebraic variables are solved from the
+        constraints that determine them at the interpolated states (Newton from their linear
+        interpolation).  At the output times every value is the solution's own.
 
         Raises
         ------
         InvalidValueError
             For times that are not real numbers (strings, bools, complex), outside the solution's span,
-            or not finite; without a dense output,
-            for a time whose interval of outputs holds a breakpoint or event inside.
+            or not finite.
         InitialisationError
             Without a dense output: the algebraic variables cannot be solved at an interpolated state.
         """
@@ -460,35 +537,55 @@ class Solution:
         return out if self.batched else {name: v[0] for name, v in out.items()}
 
     def _hermite(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(y (B, K, n), z (B, K, m))`` at ``times`` from the outputs alone (see :meth:`at`)."""
+        """``(y (B, K, n), z (B, K, m))`` at ``times`` from the outputs and the switches' values (see :meth:`at`)."""
         from daemodel.compiling.init import solve_algebraic
         from daemodel.errors import InitialisationError
 
         t, c = self.t, self.compiled
         numeric = c.numeric
-        Y, Z, P, T = self._flat()
+        Y, Z, _, _ = self._flat()
         B, n, m, K = self.batch_size, len(c.states), len(c.algebraics), len(times)
-        F = numeric.batch_function(list(c.rhs))(T, Y, Z, P).reshape(B, len(t), n)
-        Y, Z = Y.reshape(B, len(t), n), Z.reshape(B, len(t), m)
+        U = np.concatenate([Y.reshape(B, len(t), n), Z.reshape(B, len(t), m)], axis=2)
         k = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 2)  # interval of each time
-        dt = t[k + 1] - t[k]
-        s = ((times - t[k]) / dt)[None, :, None]  # (1, K, 1)
+        # each time's piece: the outputs around it, or a switch between them (its values after it on the
+        # left, before it on the right); a time on a switch is the piece after it
+        left_t, right_t = np.tile(t[k], (B, 1)), np.tile(t[k + 1], (B, 1))  # (B, K)
+        left, right = U[:, k], U[:, k + 1]  # (B, K, n+m), copies
+        names = [*c.state_names, *c.algebraic_names]
+        for record in self._switch_records():
+            switch_times = np.asarray(record["t"], dtype=float)
+            for j in range(switch_times.shape[1]):
+                at = switch_times[:, j, None]  # (B, 1); NaN (a batch's padding) compares False
+                before = np.stack([np.asarray(record["before"][v], dtype=float)[:, j] for v in names], axis=-1)
+                after = np.stack([np.asarray(record["after"][v], dtype=float)[:, j] for v in names], axis=-1)
+                on_left = (at > left_t) & (at <= times)
+                on_right = (at <= right_t) & (at > times)
+                left_t, right_t = np.where(on_left, at, left_t), np.where(on_right, at, right_t)
+                left = np.where(on_left[..., None], after[:, None], left)
+                right = np.where(on_right[..., None], before[:, None], right)
+        rhs = numeric.batch_function(list(c.rhs))
+        rows_p = np.repeat(self.parameters, K, axis=0)
+
+        def slope(when, values):
+            return rhs(
+                when.reshape(B * K), values[..., :n].reshape(B * K, n), values[..., n:].reshape(B * K, m), rows_p
+            )
+
+        step = right_t - left_t
+        s = np.divide(times - left_t, step, out=np.zeros_like(step), where=step > 0)[..., None]  # (B, K, 1)
         h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
-        step = dt[None, :, None]
-        self._check_no_switch_inside(t[k], t[k + 1], times)
-        right_y, right_f, right_z = Y[:, k + 1], F[:, k + 1], Z[:, k + 1]  # (copies: fancy indexing)
-        for j, b, before in self._left_limits(t[k + 1], times):  # (an interval that ends at a switch or event)
-            right_y[b, j], right_z[b, j] = before[:n], before[n:]
-            right_f[b, j] = numeric.batch_function(list(c.rhs))(
-                t[k[j] + 1], before[None, :n], before[None, n:], self.parameters[b : b + 1]
-            )[0]
-        y = h00 * Y[:, k] + h10 * step * F[:, k] + h01 * right_y + h11 * step * right_f
-        z = (1 - s) * Z[:, k] + s * right_z
+        dt = step[..., None]
+        y = (
+            h00 * left[..., :n]
+            + h10 * dt * slope(left_t, left).reshape(B, K, n)
+            + h01 * right[..., :n]
+            + h11 * dt * slope(right_t, right).reshape(B, K, n)
+        )
+        z = (1 - s) * left[..., n:] + s * right[..., n:]
         if m:
             determining = [constraint.determining for constraint in c.constraints]
             H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, c.algebraics)
             rows_t, rows_y = np.tile(times, B), y.reshape(B * K, n)
-            rows_p = np.repeat(self.parameters, K, axis=0)
             result = solve_algebraic(
                 lambda x: H(rows_t, rows_y, x, rows_p), lambda x: Hz(rows_t, rows_y, x, rows_p), z.reshape(B * K, m)
             )
@@ -498,50 +595,61 @@ class Solution:
                     f"at(): the algebraic variables could not be solved at t = {times[row % K]:g} (sample {row // K}) "
                     "from the interpolated states; ask for that time with solve(..., t_eval=...)"
                 )
-            z = result.x.reshape(B, K, m)
-            # at an output time itself, the method's own algebraic values (its z may differ from the
-            # constraints' root at its y by the method's algebraic error)
-            first, last = s[0, :, 0] == 0, s[0, :, 0] == 1
-            z[:, first], z[:, last] = Z[:, k[first]], Z[:, k[last] + 1]
+            # at an output or switch time itself, the method's own algebraic values (its z may differ from
+            # the constraints' root at its y by the method's algebraic error)
+            z = np.where(s == 0, left[..., n:], np.where(s == 1, right[..., n:], result.x.reshape(B, K, m)))
         return y, z
 
     # ---- files --------------------------------------------------------------------------
     def save(self, path) -> Path:
         """Write the solution to ``path`` (numpy's ``.npz``; no pickled objects): times, values,
-        parameters, method, settings, clocks, stats, status and the model's fingerprint.  Read it
-        back with :meth:`load` and the model."""
+        parameters, method, settings, clocks, stats (their arrays as arrays), status, breakpoints,
+        events, the dense output where it is data (radau's and the Radau-PINN's collocation
+        polynomials, in their pieces; a method's restarts are not: the loaded solution's :meth:`at`
+        interpolates within each piece between breakpoints and events) and the model's fingerprints
+        (equations, events, parameter values).  Read it back with :meth:`load` and the model."""
         path = writable_file(path, "path")
-        names = [*self.compiled.state_names, *self.compiled.algebraic_names]
+        c = self.compiled
+        names = [*c.state_names, *c.algebraic_names]
+        arrays: dict = {}
         meta = {
             "format": SOLUTION_FORMAT,
-            "model": self.compiled.name,
-            "fingerprint": self.compiled.fingerprint(),
+            "model": c.name,
+            "fingerprint": c.fingerprint(),
+            "fingerprints": c.fingerprints(),
+            "declared": declared(c),
             "names": names,
             "method": self.method,
-            "settings": self.settings,
+            "settings": stored(self.settings, arrays),
             "solve_time": self.solve_time,
             "setup_time": self.setup_time,
-            "stats": self.stats,
+            "stats": stored(self.stats, arrays),
             "status": self.status,
             "batched": self.batched,
+            "breakpoints": stored(self.breakpoints, arrays),
+            "events": stored(self.events, arrays),
+            "dense": stored(stored_dense(self.dense), arrays),
+            "arrays": {name: array.ndim for name, array in arrays.items()},
         }
-        arrays = {
+        arrays |= {
             "t": self.t,
             "values": np.stack([self.values[n] for n in names], axis=-1),
             "parameters": self.parameters,
-            "meta": np.array(json.dumps(meta, default=_jsonable)),
+            "meta": np.array(json.dumps(meta, allow_nan=False)),
         }
         return atomic_write(path, lambda handle: np.savez(handle, **arrays))
 
     @classmethod
     def load(cls, path, model) -> Solution:
         """Read a solution written by :meth:`save` for ``model`` (a Model or a CompiledDAE with the
-        same equations and names; an index-3 model may be given for a solution of its reduction).
+        same equations, names, events and parameter values; an index-3 model may be given for a
+        solution of its reduction).
 
         Raises
         ------
         SolutionFileError
-            No file, not a daemodel solution file, or a model with other equations or names.
+            No file, not a daemodel solution file, a damaged field (named), or a model whose
+            equations, events or parameter values differ from the solved one's (each named).
         """
         path = readable_path(path, "Solution.load: path", SolutionFileError)
         if not path.exists():
@@ -554,8 +662,16 @@ class Solution:
         """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
         from daemodel.compiling.compiler import as_compiled
 
-        arrays = read_arrays(handle, path, SOLUTION_ARRAYS, SolutionFileError, memory_limit(), "daemodel solution file")
-        meta = parse_json(str(arrays["meta"]), path, SolutionFileError, "a daemodel solution file")
+        limit = memory_limit()
+        first = read_arrays(
+            handle, path, {"meta": ("U", 0)}, SolutionFileError, limit, "daemodel solution file", others=True
+        )
+        meta = parse_json(str(first["meta"]), path, SolutionFileError, "a daemodel solution file")
+        if isinstance(meta, dict) and meta.get("format") in OLDER_SOLUTION_FORMATS:
+            raise SolutionFileError(
+                f"{path} is a daemodel solution file of format {meta['format']!r}, which kept no events, breakpoints "
+                f"or dense output; this version reads {SOLUTION_FORMAT!r}: solve and save it again"
+            )
         if not isinstance(meta, dict) or meta.get("format") != SOLUTION_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel solution file (expected format {SOLUTION_FORMAT!r})")
         for key, kind in SOLUTION_META.items():
@@ -564,14 +680,18 @@ class Solution:
             if not isinstance(meta[key], kind) or (kind is not bool and isinstance(meta[key], bool)):
                 expected = "a number" if isinstance(kind, tuple) else f"a {kind.__name__}"
                 raise SolutionFileError(f"{path}: field {key!r} is a {type(meta[key]).__name__}, not {expected}")
+        if "dense" not in meta or not isinstance(meta["dense"], dict | None):
+            raise SolutionFileError(f"{path}: field 'dense' is missing or not an object: it is damaged")
+        listed = meta["arrays"]
+        bad = [
+            k for k, v in listed.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)
+        ]
+        if bad:
+            raise SolutionFileError(f"{path}: field 'arrays' lists {bad[0]!r}, which is no array daemodel writes")
+        expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in listed.items()}
+        arrays = read_arrays(handle, path, expected, SolutionFileError, limit, "daemodel solution file")
         compiled = as_compiled(model, "Solution.load()")
-        candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
-        match = next((c for c in candidates if c.fingerprint() == meta["fingerprint"]), None)
-        if match is None:
-            raise SolutionFileError(
-                f"{path} holds a solution of model {meta['model']!r} with other equations or names than "
-                f"'{compiled.name}'; load it with the model that was solved"
-            )
+        match = matching_system(compiled, meta, path)
         names = [*match.state_names, *match.algebraic_names]
         if meta["names"] != names:
             raise SolutionFileError(f"{path}: field 'names' is {meta['names']!r}; the model's variables are {names}")
@@ -590,18 +710,37 @@ class Solution:
                 f"{len(names)} variables make {(B, len(t), len(names))}"
                 + ("" if meta["batched"] or B == 1 else " (and an unbatched solution has one sample)")
             )
+
+        def field(key):
+            return restored(meta[key], arrays, path, SolutionFileError, key)
+
+        breakpoints = field("breakpoints")
+        if breakpoints:
+            breakpoints = _switch_record(breakpoints, B, names, path, "breakpoints")
+        events = {
+            name: _switch_record(record, B, names, path, f"events.{name}") for name, record in field("events").items()
+        }
+        dense = None
+        if meta["dense"] is not None:
+            try:
+                dense = dense_from_stored(field("dense"), B, len(names))
+            except ValueError as error:
+                raise SolutionFileError(f"{path}: field 'dense' is damaged: {error}") from None
         return cls(
             t=t,
             values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
             method=meta["method"],
-            settings=meta["settings"],
+            settings=field("settings"),
             solve_time=meta["solve_time"],
             setup_time=meta["setup_time"],
-            stats=meta["stats"],
+            stats=field("stats"),
             compiled=match,
             parameters=parameters,
             batched=meta["batched"],
             status=meta["status"],
+            breakpoints=breakpoints,
+            events=events,
+            dense=dense,
         )
 
     # ---- export -------------------------------------------------------------------------

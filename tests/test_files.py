@@ -593,9 +593,9 @@ def test_adaptive_steps_stop_at_the_memory_limit(monkeypatch):
         dm.solve(decay, (0.0, 1.0), h=0.1)
 
 
-def test_an_ensemble_too_big_for_memory_is_stopped_at_its_first_chunk(monkeypatch, tmp_path):
-    """2000 samples of 1001 times need 16 MB; with 1 MB allowed the in-memory ensemble stops
-    after its first chunk, and write_to= (one chunk of 800 KB in memory at a time) runs."""
+def test_an_ensemble_too_big_for_memory_is_stopped_before_its_first_chunk(monkeypatch, tmp_path):
+    """2000 samples of 1001 times need 16 MB; with 1 MB allowed the in-memory ensemble is refused
+    before its first chunk, and write_to= (one chunk of 800 KB in memory at a time) runs."""
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1M")
     k = {"k": np.linspace(1.0, 2.0, 2000)}
     with pytest.raises(ResourceLimitError, match=r"ensemble of 2000 samples kept in memory would need 0.0149 GiB"):
@@ -869,3 +869,54 @@ def test_a_loader_given_no_path_names_the_argument_and_what_it_takes(argument):
     for error, message, load in loaders:
         with pytest.raises(error, match=message + got):
             load()
+
+
+# ---- the memory allowance: RAM, cgroup, address space ------------------------------------------------------------
+def test_the_memory_allowance_honours_the_cgroup_limit(monkeypatch, tmp_path):
+    """A process in a control group of 1 GiB may take half of that, not half of the machine's RAM (before:
+    the machine's RAM alone); cgroup v2 (the group /proc/self/cgroup names) and v1 alike."""
+    from daemodel import files
+
+    monkeypatch.delenv("DAEMODEL_MEMORY_LIMIT", raising=False)
+    table, root = tmp_path / "cgroup", tmp_path / "fs"
+    (root / "jobs" / "one").mkdir(parents=True)
+    (root / "jobs" / "one" / "memory.max").write_text("1073741824\n")
+    table.write_text("0::/jobs/one\n")
+    monkeypatch.setattr(files, "CGROUP_TABLE", table)
+    monkeypatch.setattr(files, "CGROUP_ROOT", root)
+    monkeypatch.setattr(files, "CGROUP_V1_LIMIT", tmp_path / "none" / "memory.limit_in_bytes")
+    assert files.memory_available()["cgroup memory limit"] == 1 << 30
+    assert files.memory_limit() == 1 << 29
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"ensemble of 1000 samples kept in memory would need 0\.745 GiB \(outputs of at least 100001 times x 1 "
+        r"variables 0\.745 GiB\), more than the 0\.5 GiB allowed \(set DAEMODEL_MEMORY_LIMIT, e\.g\. '64G', to change "
+        r"it; now 0\.5 of the cgroup memory limit \(1 GiB\)\)",
+    ):
+        dm.ensemble(decay, (0.0, 1.0), h=1e-5, parameters={"k": np.linspace(1, 2, 1000)})
+    (root / "jobs" / "one" / "memory.max").write_text("max\n")  # v2 without a limit; v1 with one
+    v1 = tmp_path / "v1" / "docker" / "abc" / "memory.limit_in_bytes"
+    v1.parent.mkdir(parents=True)
+    v1.write_text(str(3 << 29))
+    table.write_text("4:memory:/docker/abc\n0::/jobs/one\n")
+    monkeypatch.setattr(files, "CGROUP_V1_LIMIT", tmp_path / "v1" / "memory.limit_in_bytes")
+    assert files.memory_limit() == 3 << 28
+    v1.write_text("9223372036854771712")  # v1's way of saying none
+    assert "cgroup memory limit" not in files.memory_available()
+
+
+def test_the_memory_allowance_honours_the_address_space_limit(tmp_path):
+    """Under RLIMIT_AS, half the address space left (before: half the machine's RAM, so that a result
+    the limit cannot hold was allocated until the allocator failed)."""
+    out = child(
+        """
+        import resource
+        from daemodel.files import memory_available, memory_limit
+        size = int(open("/proc/self/statm").read().split()[0]) * resource.getpagesize()
+        resource.setrlimit(resource.RLIMIT_AS, (size + (2 << 30), resource.RLIM_INFINITY))
+        left = memory_available()["address space left under RLIMIT_AS"]
+        print("left", left <= 2 << 30, left > 1 << 30, memory_limit() == left // 2)
+        """,
+        tmp_path,
+    )
+    assert "left True True True" in out

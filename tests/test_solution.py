@@ -1,4 +1,14 @@
-"""Solution (daemodel/solution.py): what its methods refuse, by name."""
+"""Solution (daemodel/solution.py): what save/load keep (events, breakpoints, the dense output, stats
+as arrays), what load refuses (another model's events or parameter values, each named), at() between
+outputs across an event without a dense output, and the summary that printing stats gives.
+
+The bouncing ball: h' = v, v' = -g, h(0) = 1, v(0) = 0, event "floor" when h falls through 0 with
+v = -e v; its impacts are known in closed form: the first at sqrt(2/g), then each flight lasts
+2 v_k / g with v_k = e^k sqrt(2 g)."""
+
+from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -6,7 +16,155 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
+from daemodel.errors import SolutionFileError
 from daemodel.problems import DECAY
+
+G = 9.81
+SPAN = (0.0, 2.5)  # four impacts, well before the Zeno point near 4.06
+T_EVAL = np.linspace(0.0, 2.5, 6)  # sparse: the first impact (0.4515) lies inside [0, 0.5]
+
+
+def ball(reset: str | None = "-0.8*v", g: float = G):
+    m = dm.Model("ball")
+    h, v = m.states("h v")
+    gravity = m.parameter("g", g)
+    m.ode(h, v)
+    m.ode(v, -gravity)
+    m.initial(h=1.0, v=0.0)
+    if reset is not None:
+        m.event("floor", when=h, direction=-1, reset={"v": reset})
+    return m
+
+
+def impacts(e: float = 0.8, g: float = G, end: float = SPAN[1]) -> np.ndarray:
+    """The ball's impact times up to ``end``, exactly."""
+    times, t, v = [], math.sqrt(2 / g), math.sqrt(2 * g)
+    while t < end:
+        times.append(t)
+        v *= e
+        t += 2 * v / g
+    return np.array(times)
+
+
+def exact(times, e: float = 0.8, g: float = G) -> dict:
+    """h and v of the ball at ``times`` (inside SPAN)."""
+    times = np.asarray(times, dtype=float)
+    hits = impacts(e, g)
+    k = np.searchsorted(hits, times, side="right")  # impacts at or before each time
+    start = np.where(k > 0, hits[np.maximum(k - 1, 0)], 0.0)
+    v0 = np.where(k > 0, e**k * math.sqrt(2 * g), 0.0)
+    h0 = np.where(k > 0, 0.0, 1.0)
+    s = times - start
+    return {"h": h0 + v0 * s - 0.5 * g * s**2, "v": v0 - g * s}
+
+
+QUERIES = np.array([0.05, 0.3, 0.44, 0.46, 0.6, 0.95, 1.2, 1.6, 1.8, 2.3, 2.49])
+
+
+@pytest.mark.parametrize("method", ["radau", "reference", "casadi-idas"])
+def test_a_loaded_solution_keeps_its_events_and_never_interpolates_across_one(method, tmp_path):
+    """Saved and loaded, the events are the solve's (the impact times to 1e-8 of the closed form) and
+    at() gives the in-memory values: radau's collocation polynomials are stored (the same values bit
+    for bit); the reference's and IDAS's restarts are not, and the loaded at() interpolates within the
+    pieces between impacts (free flight is a parabola: exact).  Before: no events came back, and at()
+    interpolated across the first impact (h(0.3) = 0.235 instead of 0.559)."""
+    sol = dm.solve(ball(), SPAN, method=method, t_eval=T_EVAL, rtol=1e-10, atol=1e-10)
+    loaded = dm.Solution.load(sol.save(tmp_path / "ball.npz"), ball())
+    assert list(loaded.events) == ["floor"]
+    np.testing.assert_allclose(loaded.events["floor"]["t"][0], impacts(), rtol=0, atol=1e-8)
+    for key in ("t", "moved"):
+        np.testing.assert_array_equal(loaded.events["floor"][key], sol.events["floor"][key])
+    for side in ("before", "after"):
+        for name in ("h", "v"):
+            np.testing.assert_array_equal(loaded.events["floor"][side][name], sol.events["floor"][side][name])
+    here, there = sol.at(QUERIES), loaded.at(QUERIES)
+    truth = exact(QUERIES)
+    for name in ("h", "v"):
+        np.testing.assert_allclose(there[name], truth[name], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(there[name], here[name], rtol=0, atol=1e-6)
+    assert abs(there["h"][1] - 0.55855) < 1e-6
+    if method == "radau":
+        assert loaded.dense.description == sol.dense.description
+        for name in ("h", "v"):
+            np.testing.assert_array_equal(there[name], here[name])
+    else:
+        assert loaded.dense is None
+
+
+def test_a_loaded_solution_keeps_its_breakpoints_and_the_batch_dense_output(tmp_path):
+    """A time switch in a batch (its time a parameter): the breakpoints, NaN-padded, and the dense
+    output of the groups of samples come back; at() is the in-memory one."""
+    m = dm.Model("ramp")
+    m.states("x")
+    m.parameter("s", 0.5)
+    m.ode("x", "Piecewise((1, t < s), (-1, True))")
+    m.initial(x=0.0)
+    sol = dm.solve(m, (0.0, 1.0), parameters={"s": [0.3, 0.7, 2.0]}, t_eval=np.linspace(0, 1, 3))
+    loaded = dm.Solution.load(sol.save(tmp_path / "ramp.npz"), m)
+    np.testing.assert_array_equal(loaded.breakpoints["t"], sol.breakpoints["t"])
+    q = np.array([0.2, 0.3, 0.4, 0.69, 0.71, 0.95])
+    np.testing.assert_array_equal(loaded.at(q)["x"], sol.at(q)["x"])
+    switch = np.array([0.3, 0.7, 2.0])[:, None]
+    np.testing.assert_allclose(loaded.at(q)["x"], np.where(q < switch, q, 2 * switch - q), atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("other", "message"),
+    [
+        (
+            ball("-0.5*v"),
+            r"holds a solution of model 'ball' whose events differ from those of 'ball' \(its events \['floor: h "
+            r"crosses 0 \(falling\); then v = -0\.8\*v'\], the model's \['floor: h crosses 0 \(falling\); then "
+            r"v = -0\.5\*v'\]\): load it with the model that was solved",
+        ),
+        (ball(None), r"whose events differ from those of 'ball' \(its events \[.*\], the model's \[\]\)"),
+        (ball(g=9.0), r"whose parameter values differ from those of 'ball' \(its g = 9\.81, the model's 9\.0\)"),
+    ],
+)
+def test_load_refuses_a_model_with_other_events_or_parameter_values(other, message, tmp_path):
+    """Before: the fingerprint held the equations and names only, and each of these loaded."""
+    path = dm.solve(ball(), SPAN, t_eval=T_EVAL).save(tmp_path / "ball.npz")
+    with pytest.raises(SolutionFileError, match=message):
+        dm.Solution.load(path, other)
+
+
+def test_stats_round_trip_with_their_arrays_and_non_finite_values(tmp_path):
+    """IDAS reports NaN counters: the file was written with NaN in its JSON and could not be read back
+    (SolutionFileError 'NaN is not a JSON number').  Stats now round-trip, arrays as arrays."""
+    sol = dm.solve(ball(), SPAN, method="casadi-idas", t_eval=T_EVAL)
+    assert any(isinstance(v, float) and math.isnan(v) for v in sol.stats.values())
+    loaded = dm.Solution.load(sol.save(tmp_path / "idas.npz"), ball())
+    assert set(loaded.stats) == set(sol.stats)
+    for key, value in sol.stats.items():
+        if isinstance(value, float) and math.isnan(value):
+            assert math.isnan(loaded.stats[key])
+        else:
+            np.testing.assert_array_equal(np.asarray(loaded.stats[key]), np.asarray(value))
+
+
+def test_a_solution_file_of_the_older_format_is_refused_by_name(tmp_path):
+    import json
+    import zipfile
+
+    path = dm.solve(ball(), SPAN, t_eval=T_EVAL).save(tmp_path / "ball.npz")
+    with zipfile.ZipFile(path) as archive:
+        meta = json.loads(str(np.lib.format.read_array(archive.open("meta.npy"))))
+    meta["format"] = "daemodel-solution/1"
+    old = tmp_path / "old.npz"
+    np.savez(old, t=np.zeros(2), values=np.zeros((1, 2, 2)), parameters=np.zeros((1, 1)), meta=json.dumps(meta))
+    with pytest.raises(SolutionFileError, match=r"format 'daemodel-solution/1', which kept no events.*save it again"):
+        dm.Solution.load(old, ball())
+
+
+def test_printed_stats_are_a_summary():
+    """Per-sample arrays print as their shape and range (a 1000-sample PINN's certificate printed as
+    megabytes of nested lists); the dict itself is a plain dict."""
+    sol = dm.solve(ball(None), SPAN, parameters={"g": np.linspace(9, 10, 1000)}, t_eval=T_EVAL)
+    sol.stats["per_sample"] = np.arange(1000.0)
+    sol.stats["segments"] = np.zeros((1000, 20))
+    text = repr(sol.stats)
+    assert "<array (1000,) float64 from 0 to 999>" in text and "<array (1000, 20) float64 from 0 to 0>" in text
+    assert len(text) < 2000 and isinstance(sol.stats, dict)
 
 
 @pytest.fixture(scope="module")

@@ -8,15 +8,28 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-from daemodel.backends.base import LOCAL_ERROR_BOUND, AbstractBackend, make_solution
-from daemodel.backends.checks import check_output_memory, check_threads
-from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, fixed_grid, halving_steps
+from daemodel.backends.base import (
+    DEFAULT_ESTIMATE_BOUND,
+    LOCAL_ERROR_BOUND,
+    AbstractBackend,
+    caller_level,
+    make_solution,
+)
+from daemodel.backends.checks import check_output_memory, check_threads, set_number
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.segments import MAX_INDEX
 from daemodel.backends.progress import show_progress
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.errors import InvalidOptionError, ShapeError, TrainingError, UncertifiedWarning
+from daemodel.errors import (
+    InvalidOptionError,
+    LocalErrorBoundError,
+    LocalErrorWarning,
+    ShapeError,
+    TrainingError,
+    UncertifiedWarning,
+)
 from daemodel.files import writable_file
 from daemodel.solving.engine import check_engine
 
@@ -60,6 +73,13 @@ class PINNOptions:
         Raise a :class:`~daemodel.errors.TrainingError` when the answer is not certified (see
         :class:`PINNBackend`), instead of returning it flagged with an
         :class:`~daemodel.errors.UncertifiedWarning`.
+    estimate_bound : float
+        As radau's: a solve where radau's own local error estimate at the same h and stages (on the
+        PINN's steps), in units of the solution's size ``1 + max |u|``, exceeds this is flagged
+        (a :class:`~daemodel.errors.LocalErrorWarning`), certified or not; default
+        :data:`~daemodel.backends.base.DEFAULT_ESTIMATE_BOUND`.  Beyond
+        :data:`~daemodel.backends.base.LOCAL_ERROR_BOUND` a step has no correct digit and the solve
+        raises :class:`~daemodel.errors.LocalErrorBoundError`, as radau does.
     save : str or Path, optional
         Write the trained networks here (load them with :meth:`Surrogate.load`; its training
         box is this solve's start, so other initial states are reported as outside it).  The
@@ -78,6 +98,7 @@ class PINNOptions:
     threads: int | None = None
     progress: bool | None = None
     strict: bool = False
+    estimate_bound: float = DEFAULT_ESTIMATE_BOUND
     save: object = None
 
     def __post_init__(self) -> None:
@@ -95,6 +116,7 @@ class PINNOptions:
                 "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
             )
+        set_number(self, "estimate_bound")
         if not isinstance(self.strict, bool):
             raise InvalidOptionError(f"strict must be True or False; got {self.strict!r}")
         if self.progress is not None and not isinstance(self.progress, bool):
@@ -115,6 +137,13 @@ class PINNBackend(AbstractBackend):
     :class:`~daemodel.errors.TrainingError` with ``strict=True``).  ``stats["certificate"]`` holds
     the per-sample verdicts and largest distances and errors; ``stats["final_max_residual"]`` the
     training's largest residual.
+
+    The certificate proves closeness to radau, not accuracy, so the status is never better than
+    radau's at the same h and stages: the certificate also carries radau's own fixed-step error
+    estimate on the PINN's steps, and where radau would raise
+    :class:`~daemodel.errors.LocalErrorBoundError` (a step with no correct digit) the PINN raises
+    it too; where radau would be flagged (beyond ``estimate_bound``) the PINN is flagged with the
+    same estimate and a :class:`~daemodel.errors.LocalErrorWarning`, certified or not.
     """
 
     name = "pinn"
@@ -131,12 +160,12 @@ class PINNBackend(AbstractBackend):
 
     def _solve(self, compiled, t_span, start, options: PINNOptions, warm_up: float = 0.0):
         from daemodel.backends.pinn.certificate import certify
-        from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, train_segments
+        from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, segment_grid, train_segments
         from daemodel.backends.pinn.surrogate import Surrogate
 
         config = options.config
         torch_device(config.device)
-        grid = fixed_grid(t_span, config.h)
+        grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment
         segments = len(grid) - 1
         check_output_memory(self.name, compiled, start.size, len(grid))
         # Shared networks take the parameters that differ between samples as inputs; independent
@@ -190,6 +219,7 @@ class PINNBackend(AbstractBackend):
             values,
             start.p,
             predictions=predictions,
+            estimate_bound=options.estimate_bound,
         )
         done = time.perf_counter()
         networks, stats = surrogate.networks, surrogate.stats
@@ -223,11 +253,16 @@ class PINNBackend(AbstractBackend):
         if mode == "parallel" and options.engine == "ray":
             summary["peak_memory_mb"] = memory
         settings = {**dataclasses.asdict(config), "engine": options.engine}
+        check_local_error_bound(compiled, grid, certificate, start.batched)  # where radau raises, so does the PINN
         status = certified_status(compiled, config, grid, stats, certificate, start.batched)
         if status != "success":
             if options.strict:
                 raise TrainingError(f"pinn: {status.removeprefix('flagged: ')}")
             warnings.warn(f"pinn: {status}", UncertifiedWarning, stacklevel=4)
+        estimated = estimate_status(compiled, grid, certificate, options.estimate_bound, start.batched)
+        if estimated != "success":  # radau at the same h and stages is flagged: so is the PINN, certified or not
+            warnings.warn(f"pinn: {estimated}", LocalErrorWarning, stacklevel=caller_level())
+            status = estimated if status == "success" else f"{status}; {estimated.removeprefix('flagged: ')}"
         return make_solution(
             self,
             compiled,
@@ -350,6 +385,49 @@ def certified_status(compiled, config, grid, stats, certificate, batched: bool) 
     at_radau = steps and certificate.failed[steps[0]] in (ESTIMATE_FAILED, NO_DIGIT) and not missed
     fix = "shorten h" if at_radau else "raise iterations or tighten tol, shorten h,"
     return f"flagged: not certified ({count}): {what}{training}; {fix} or use the Radau solution (method='radau')"
+
+
+def check_local_error_bound(compiled, grid, certificate, batched: bool) -> None:
+    """Raise :class:`LocalErrorBoundError` where radau at the same h and stages raises it: at the first
+    step whose radau estimate (:attr:`Certificate.estimate`, from the networks' start there) is beyond
+    :data:`LOCAL_ERROR_BOUND`.  The certificate puts the PINN next to the Radau solution; where that
+    has no correct digit, neither has the PINN."""
+    beyond = certificate.beyond_bound()
+    if beyond is None:
+        return
+    sample, step, j, value = beyond
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    n = len(compiled.state_names)
+    index = int(compiled.algebraic_index[j - n]) if j >= n else 1
+    size = f"1 + max|{names[j]}|" if index == 1 else f"(1 + max|{names[j]}|) / h^{index - 1}"
+    t, h = float(grid[step]), float(grid[step + 1] - grid[step])
+    raise LocalErrorBoundError(
+        f"pinn: step {step + 1} from t = {t:.6g} with h = {h:.3g}: radau's local error estimate at the same h "
+        f"and stages, from the networks' values there, of '{names[j]}'"
+        + (f" (sample {sample})" if batched else "")
+        + f" is {value:.3g} times the solution's size {size} so far, beyond LOCAL_ERROR_BOUND = "
+        f"{LOCAL_ERROR_BOUND:g}: the Radau solution the PINN is certified against has no correct digit there (the "
+        "solution may be singular, switch or change too fast); take a smaller h, or method='radau' with rtol=..."
+    )
+
+
+def estimate_status(compiled, grid, certificate, bound: float, batched: bool) -> str:
+    """ "success" where radau's own local error estimate at the same h and stages stays within ``bound``
+    on every step (:meth:`Certificate.largest_estimate`), as radau's fixed step judges its own; else a
+    "flagged: ..." status naming the step, variable and sample (radau's words, for the PINN)."""
+    worst = certificate.largest_estimate()
+    if worst is None or worst[3] <= bound:
+        return "success"
+    sample, step, j, value = worst
+    name = (*compiled.state_names, *compiled.algebraic_names)[j]
+    t, h = float(grid[step]), float(grid[step + 1] - grid[step])
+    where = f"step {step + 1} from t = {t:.6g} (h = {h:.3g}), in '{name}'" + (f", sample {sample}" if batched else "")
+    return (
+        f"flagged: radau's local error estimate at the same h and stages, on the PINN's steps, reaches {value:.3g} "
+        f"of the solution's size at {where}, beyond estimate_bound = {bound:g}: the Radau solution the PINN is "
+        "certified against keeps fewer digits than the bound asks, and so does the PINN; take a smaller h, or "
+        "method='radau' with rtol=..."
+    )
 
 
 def torch_threads_now() -> int:

@@ -33,6 +33,13 @@ correct digit (beyond ``LOCAL_ERROR_BOUND`` of the variable's size, where radau 
 step: a spurious collocation root, e.g. stages on two branches of a constraint), is not certified.
 Nothing here uses a classical solution of the whole trajectory: every Newton solve starts from the
 networks' own start values.
+
+The certificate proves closeness to radau, not accuracy.  So that the PINN's status is never better
+than radau's at the same h and stages, every step also carries radau's own fixed-step error estimate
+(:func:`embedded_estimate`: the embedded estimate of order s of :mod:`daemodel.backends.radau.error`,
+at the Radau step's stages from the networks' start), in radau's units (``1 + max|u|`` over the step
+starts so far, an index-k algebraic variable's weighted by ``h^(k-1)``): the backend raises
+:class:`~daemodel.errors.LocalErrorBoundError` where radau would, and flags where radau would flag.
 """
 
 from __future__ import annotations
@@ -42,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from daemodel.backends.base import LOCAL_ERROR_BOUND
+from daemodel.backends.base import DEFAULT_ESTIMATE_BOUND, LOCAL_ERROR_BOUND
 from daemodel.backends.pinn.segments import segment_steps
 
 from daemodel.collocation import collocation_step, lagrange_matrix
@@ -96,6 +103,14 @@ class Certificate:
         Radau's step is beyond ``LOCAL_ERROR_BOUND`` of the variable's size (index-weighted as
         radau's fixed step weighs it: radau refuses such a step).
     certified : ndarray of bool, shape (B,)
+    estimate : ndarray, shape (B, T - 1, D), optional
+        Radau's own fixed-step local error estimate of each step (:func:`embedded_estimate`), in
+        units of ``1 + max|u|`` over the step starts so far, as radau's fixed step measures it
+        (:meth:`daemodel.backends.radau.error.ErrorEstimate.check_fixed`); NaN where the Newton
+        check failed.  None with ``radau_error=False``.
+    index_weight : ndarray, shape (T - 1, D), optional
+        ``h^(k-1)`` of each step for an index-k algebraic variable (1 for the states): ``estimate``
+        times it is what :data:`LOCAL_ERROR_BOUND` bounds.
     """
 
     distance: np.ndarray
@@ -106,6 +121,8 @@ class Certificate:
     rounding: np.ndarray
     failed: np.ndarray
     certified: np.ndarray
+    estimate: np.ndarray | None = None
+    index_weight: np.ndarray | None = None
 
     def bound(self) -> np.ndarray:
         """What the distance is compared with, shape (B, T, D): Radau's error so far (its running
@@ -145,23 +162,60 @@ class Certificate:
         b, t, j, ratio = self.worst()
         return {"distance": float(self.distance[b, t, j]), "bound": float(self.bound()[b, t, j]), "ratio": ratio}
 
+    def weighted_estimate(self) -> np.ndarray:
+        """``estimate`` times ``index_weight``, shape (B, T - 1, D): what radau's fixed step bounds by
+        :data:`LOCAL_ERROR_BOUND`."""
+        return self.estimate * self.index_weight[None]
+
+    def beyond_bound(self) -> tuple[int, int, int, float] | None:
+        """``(sample, step, variable, weighted estimate)`` at the first step (0-based) where radau's own
+        estimate is beyond :data:`LOCAL_ERROR_BOUND` for some sample (the variable and sample where it
+        is largest there), i.e. where radau at the same h and stages raises
+        :class:`~daemodel.errors.LocalErrorBoundError`; None where no step is (or no estimate was made).
+        Steps whose Newton check failed (NaN) are judged by the certificate, not here."""
+        if self.estimate is None:
+            return None
+        weighted = np.nan_to_num(self.weighted_estimate(), nan=0.0)
+        beyond = weighted > LOCAL_ERROR_BOUND
+        if not beyond.any():
+            return None
+        step = int(np.argmax(beyond.any(axis=(0, 2))))
+        sample, j = np.unravel_index(int(np.argmax(weighted[:, step])), weighted[:, step].shape)
+        return int(sample), step, int(j), float(weighted[sample, step, j])
+
+    def largest_estimate(self) -> tuple[int, int, int, float] | None:
+        """``(sample, step, variable, estimate)`` where radau's own estimate (unweighted, in units of
+        ``1 + max|u|``) is largest: what radau's fixed step compares with ``estimate_bound``; None
+        where no estimate was made or none is finite."""
+        if self.estimate is None or not np.isfinite(self.estimate).any():
+            return None
+        estimate = np.where(np.isfinite(self.estimate), self.estimate, -np.inf)
+        b, k, j = np.unravel_index(int(np.argmax(estimate)), estimate.shape)
+        return int(b), int(k), int(j), float(estimate[b, k, j])
+
     def summary(self, names) -> dict:
-        """JSON-ready digest for ``Solution.stats``: which samples are certified; per variable,
+        """Digest for ``Solution.stats``, as numpy arrays (a batch of 10^3 samples would make lists of
+        lists that print as megabytes): which samples are certified (B,); per variable,
         the largest distance and Radau error over the grid (per sample); per segment and sample,
         at the segment's end, the largest distance and Radau error over the variables
         (``segment_distance``, ``segment_radau_error``, each (B, segments)) and the same from
         the segment's own start (``local_distance``, ``local_radau_error``)."""
         return {
-            "certified": self.certified.tolist(),
-            "max_distance": {name: self.distance[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
-            "max_radau_error": {name: self.radau_error[..., j].max(axis=1).tolist() for j, name in enumerate(names)},
+            "certified": np.asarray(self.certified, dtype=bool),
+            "max_distance": {name: self.distance[..., j].max(axis=1) for j, name in enumerate(names)},
+            "max_radau_error": {name: self.radau_error[..., j].max(axis=1) for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
             "worst": self._worst_pair(),
             "failure": self.failure(),
-            "segment_distance": self.distance[:, 1:].max(axis=2).tolist(),
-            "segment_radau_error": self.radau_error[:, 1:].max(axis=2).tolist(),
-            "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2).tolist(),
-            "local_radau_error": self.local_radau_error.max(axis=2).tolist(),
+            "segment_distance": self.distance[:, 1:].max(axis=2),
+            "segment_radau_error": self.radau_error[:, 1:].max(axis=2),
+            "local_distance": (CERTIFICATE_SAFETY * self.local_distance).max(axis=2),
+            "local_radau_error": self.local_radau_error.max(axis=2),
+            # radau's own fixed-step estimate on the same steps: its largest, unweighted and weighted
+            "max_local_error_estimate": None if (worst := self.largest_estimate()) is None else worst[3],
+            "max_weighted_local_error_estimate": (
+                None if self.estimate is None else float(np.nan_to_num(self.weighted_estimate(), nan=0.0).max())
+            ),
         }
 
 
@@ -176,6 +230,7 @@ def certify(
     radau_error: bool = True,
     newton_tol=None,
     predictions=None,
+    estimate_bound: float = DEFAULT_ESTIMATE_BOUND,
 ) -> Certificate:
     """Certify the values ``values`` (B, T, n+m) that ``networks`` (one per segment of ``grid``)
     chained from their start, for the parameters ``p`` (B, k), of which the columns
@@ -187,7 +242,9 @@ def certify(
     ``failed`` still marks the steps whose Newton check failed.  ``newton_tol`` (default
     :data:`CERTIFICATE_NEWTON_TOL`) is the Newton check's tolerance on increments relative to
     ``1 + |value|``: distances are resolved to about it.  ``predictions``: the networks' stage
-    and end values along ``values`` where the caller has them (``Surrogate.rollout(stages=True)``)."""
+    and end values along ``values`` where the caller has them (``Surrogate.rollout(stages=True)``).
+    ``estimate_bound``: radau's option of that name, beyond which radau's fixed step applies the stiff
+    filter once more before judging its estimate (as :attr:`Certificate.estimate` does)."""
     newton_tol = CERTIFICATE_NEWTON_TOL if newton_tol is None else newton_tol
     device, s = config.device, config.stages
     n, m = len(compiled.states), len(compiled.algebraics)
@@ -218,8 +275,8 @@ def certify(
                 newton_tol,
             )
         )
-    radau_end, local_e, converged, estimated, rounding, sensitivity = (
-        torch.cat([part[i] for part in parts]) for i in range(6)
+    radau_end, local_e, converged, estimated, rounding, sensitivity, embedded, refiltered = (
+        torch.cat([part[i] for part in parts]) for i in range(8)
     )
     pinn_end = torch.cat([y_end, z_end], dim=-1)
     inf = torch.tensor(float("inf"), dtype=torch.float64, device=device)
@@ -229,8 +286,8 @@ def certify(
     def per_step(a):  # rows (S B, ...) -> (S, B, ...)
         return a.reshape(S, B, *a.shape[1:])
 
-    local_d, local_e, rounding, sensitivity, converged, estimated = map(
-        per_step, (local_d, local_e, rounding, sensitivity, converged, estimated)
+    local_d, local_e, rounding, sensitivity, converged, estimated, embedded, refiltered = map(
+        per_step, (local_d, local_e, rounding, sensitivity, converged, estimated, embedded, refiltered)
     )
     distance = [torch.zeros(B, D, dtype=torch.float64, device=device)]
     error = [torch.zeros(B, D, dtype=torch.float64, device=device)]
@@ -268,7 +325,24 @@ def certify(
     if not radau_error:
         return certificate
     ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & (failed == "").all(axis=1)
-    return dataclasses.replace(certificate, certified=ok)
+    estimate = _radau_units(values, weight, embedded, refiltered, converged, estimate_bound)
+    return dataclasses.replace(certificate, certified=ok, estimate=estimate, index_weight=weight)
+
+
+def _radau_units(values, weight, embedded, refiltered, converged, estimate_bound) -> np.ndarray:
+    """Radau's fixed-step estimate of every step, (B, S, D), as
+    :meth:`daemodel.backends.radau.error.ErrorEstimate.check_fixed` judges it: ``|err|`` over the
+    scale ``1 + max|u|`` of the step starts so far; where the step's weighted estimate is beyond
+    :data:`LOCAL_ERROR_BOUND` or its unweighted one beyond ``estimate_bound``, the
+    refiltered estimate (the stiff filter once more) where that is finite.  NaN where the Newton
+    check failed (no Radau step to estimate)."""
+    scale = np.maximum.accumulate(1.0 + np.abs(values[:, :-1]), axis=1)  # (B, S, D)
+    embedded, refiltered = (np.abs(a.transpose(0, 1).cpu().numpy()) / scale for a in (embedded, refiltered))
+    first = np.nan_to_num(embedded, nan=np.inf)
+    judged = ((first * weight[None]).max(axis=2) > LOCAL_ERROR_BOUND) | (first.max(axis=2) > estimate_bound)
+    again = judged & np.isfinite(refiltered).all(axis=2)  # (f at y + err may leave f's domain: keep the first)
+    estimate = np.where(again[..., None], refiltered, first)
+    return np.where(converged[..., None], estimate, np.nan)
 
 
 def _unknown_is_inf(a: np.ndarray) -> np.ndarray:
@@ -294,8 +368,9 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     end values (R, D) by full Newton from those stages, Radau's local error estimate (R, D) (that
     step less the (s+1)-stage one; zeros with ``radau_error=False``), whether the step converged
     and whether the (s+1)-stage one did (R,) each,
-    Newton's last increment of the end values (R, D), and the step map's sensitivity
-    d(y, z)_end / dy_n (R, D, n)."""
+    Newton's last increment of the end values (R, D), the step map's sensitivity
+    d(y, z)_end / dy_n (R, D, n), and radau's embedded estimate of the step and its refiltered form
+    (R, D) each (:func:`embedded_estimate`; zeros with ``radau_error=False``)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
     t_n, h = steps[:, 0], steps[:, 1]
     y_n, z_n = start[:, :n], start[:, n:]
@@ -305,8 +380,8 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     )
     radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
     if not radau_error:
-        done = radau.converged
-        return radau_end, torch.zeros_like(radau_end), done, done, radau.increment[:, -1], radau.end_sensitivity()
+        done, zeros = radau.converged, torch.zeros_like(radau_end)
+        return radau_end, zeros, done, done, radau.increment[:, -1], radau.end_sensitivity(), zeros, zeros
     # the (s+1)-stage step from the same start, started on the s-stage collocation polynomial
     A1, _, c1 = radau_iia(s + 1).to_torch(dtype=torch.float64, device=device)
     nodes = np.concatenate([[0.0], radau_iia(s).c])
@@ -334,4 +409,41 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
         higher.converged,
         radau.increment[:, -1],
         radau.end_sensitivity(),
+        *embedded_estimate(functions, s, t_n, h, y_n, z_n, radau.Y, radau.Z, p),
     )
+
+
+def embedded_estimate(functions, s, t_n, h, y_n, z_n, Y, Z, p) -> tuple:
+    """Radau's own embedded local error estimate of each row's step (the one radau's fixed step
+    checks, :mod:`daemodel.backends.radau.error`), at the stage values ``Y`` (R, s, n), ``Z``
+    (R, s, m) of the step from ``t_n``, ``y_n``, ``z_n`` (R, ...) with ``h`` (R,)::
+
+        ((1 / (h gamma0)) M - J) err = [sum_i (bhat_i - b_i) f(Y_i) / gamma0 + f(y_n); 0]
+
+    with J the Jacobian of (f, g) at the step's start, and the same with ``f`` at ``u_n + err``
+    (the stiff filter once more, which radau applies before it judges a step beyond its bounds).
+    Returns ``(err, refiltered)``, (R, n + m) each, unscaled."""
+    from daemodel.backends.radau.transform import embedded_weights
+
+    from daemodel.collocation import model_jacobian
+
+    tableau = radau_iia(s)
+    gamma0, e = embedded_weights(tableau)
+    e = torch.as_tensor(e, dtype=Y.dtype, device=Y.device)
+    _, _, c = tableau.to_torch(dtype=Y.dtype, device=Y.device)
+    n, D = y_n.shape[-1], y_n.shape[-1] + z_n.shape[-1]
+    stage_f = functions.f(t_n[:, None] + c * h[:, None], Y, Z, p[:, None, :])  # (R, s, n)
+    quadrature = torch.einsum("i,rin->rn", e, stage_f) / gamma0
+    M = torch.zeros(D, dtype=Y.dtype, device=Y.device)
+    M[:n] = 1.0
+    matrix = torch.diag_embed(M / (h[:, None] * gamma0)) - model_jacobian(functions, t_n, y_n, z_n, p)
+    lu, pivots, _ = torch.linalg.lu_factor_ex(matrix)
+    zeros = torch.zeros_like(z_n)
+
+    def solve(f):
+        rhs = torch.cat([quadrature + f, zeros], dim=-1)[..., None]
+        return torch.linalg.lu_solve(lu, pivots, rhs)[..., 0]
+
+    err = solve(functions.f(t_n, y_n, z_n, p))
+    refiltered = solve(functions.f(t_n, y_n + err[:, :n], z_n + err[:, n:], p))
+    return err, refiltered

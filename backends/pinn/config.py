@@ -80,9 +80,12 @@ class PINNConfig:
     stages : int
         Radau IIA stages v (order 2v-1).
     h : float
-        Segment length: one network per segment; the last one is shortened to end at t1.
+        Segment length: one network per segment; the last one is shortened to end at t1, and a
+        span shorter than h (a piece between two events) is one segment of its own length.
     width, depth : int
-        Hidden width and number of hidden layers of each network.
+        Hidden width and number of hidden layers of each network.  Networks whose training would
+        not fit in memory are refused before they are built (a
+        :class:`~daemodel.errors.ResourceLimitError` naming width, depth and the estimate).
     activation : str
         One of ``tanh``, ``sigmoid``, ``sin``, ``gelu``, ``softplus``.
     eta : float

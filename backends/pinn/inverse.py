@@ -657,8 +657,8 @@ def _gauss_newton(problem, q0: np.ndarray, z_start: np.ndarray, tol: float, max_
 def _solution(problem, state, grid, values, predictions, times, converged, why, iterations, train_time, R, d):
     """The Solution at the estimates (grid and data times, the networks' collocation polynomials as
     its dense output) and its certificate."""
-    from daemodel.backends.base import make_solution
-    from daemodel.backends.pinn.backend import certified_status
+    from daemodel.backends.base import DEFAULT_ESTIMATE_BOUND, make_solution
+    from daemodel.backends.pinn.backend import certified_status, estimate_status
     from daemodel.backends.pinn.certificate import certify
 
     from daemodel.dense import CollocationPolynomials
@@ -681,6 +681,11 @@ def _solution(problem, state, grid, values, predictions, times, converged, why, 
     out_times = np.union1d(grid, times)
     out_values = dense(out_times)
     status = certified_status(compiled, config, grid, [], certificate, False)
+    # never better than radau's at the same h and stages: flagged where its own estimate is (a fit keeps
+    # its estimates where radau's forward solve would raise LocalErrorBoundError; the status says so)
+    estimated = estimate_status(compiled, grid, certificate, DEFAULT_ESTIMATE_BOUND, False)
+    if estimated != "success":
+        status = estimated if status == "success" else f"{status}; {estimated.removeprefix('flagged: ')}"
     if not converged:
         reason = f"the joint training did not converge: {why}; raise max_iterations or start closer"
         status = f"flagged: {reason}" + ("" if status == "success" else "; " + status.removeprefix("flagged: "))

@@ -158,6 +158,15 @@ class Outputs:
     z_end: torch.Tensor
 
 
+def parameter_count_of(inputs: int, n: int, m: int, config, copies: int = 1) -> int:
+    """The parameters of one segment's networks (:class:`RadauNetwork` with these arguments), counted
+    without building them: ``K (3 (d w + w) + 1 + (depth - 1) (w^2 + w) + w out + out)`` for K
+    networks of width w, d inputs and ``out`` outputs (the largest network's)."""
+    one, _ = output_layout(n, m, config.stages, config.architecture)
+    K, w, d, out = len(one) * copies, config.width, inputs, max(one)
+    return K * (3 * (d * w + w) + 1 + (config.depth - 1) * (w * w + w) + w * out + out)
+
+
 def output_layout(n: int, m: int, stages: int, architecture: str) -> tuple[list[int], list[list[int]]]:
     """Output sizes of the K networks, and for each network the positions of its outputs
     in the flat vector ``[Y (s, n) row-major, y_end (n), Z (s, m) row-major, z_end (m)]``."""

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
-from daemodel.errors import InvalidOptionError
+from daemodel.errors import InvalidOptionError, ResourceLimitError
 from daemodel.tableau import radau_iia
 
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
@@ -32,6 +32,76 @@ def resolve_model(model, caller: str):
 def segment_steps(grid) -> list[tuple[float, float]]:
     """``(t, h)`` of every segment of ``grid``: the one place a segment's length is taken."""
     return [(float(grid[k]), float(grid[k + 1] - grid[k])) for k in range(len(grid) - 1)]
+
+
+# Copies of one segment's parameters that training holds beside the kept networks of every segment:
+# measured with LM on the pendulum (width 1000 and 2000, depth 2 and 3, 1 and 3 segments), the
+# peak resident memory grew by (segments + 2) times the parameters; L-BFGS adds its 50 pairs of
+# history, Adam its two moments and the gradient.
+TRAINING_COPIES = {"lm": 2, "lbfgs": 2 + 2 * 50, "adam": 2 + 3}
+# With N > 1 inputs per set of networks (samples > 1, or a shared batch), LM's Gram matrix of the
+# hidden layers (K, N w, N w) dominates: measured 10.4 GB at N = 8, w = 1000, K = 6 (the pendulum),
+# 3.4 times K (N w)^2 doubles.
+GRAM_COPIES = 4
+
+
+def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> dict:
+    """Bytes that training ``segments`` segments of networks with ``inputs`` inputs for ``batch``
+    samples takes, by part, computed before any network exists: the trained networks of every
+    segment, training's working copies of one segment's (:data:`TRAINING_COPIES`), and with more
+    than one input per set of networks, LM's Gram matrices (:data:`GRAM_COPIES`) or its normal
+    matrices in parameter space, whichever it solves in (see ``SegmentTrainer._normal_system``)."""
+    from daemodel.backends.pinn.network import output_layout, parameter_count_of
+
+    itemsize = 4 if config.dtype == "float32" else 8
+    copies = copies_for(config, batch)
+    P = parameter_count_of(inputs, len(compiled.states), len(compiled.algebraics), config, copies)
+    parts = {
+        f"the networks of {segments} segment(s)": segments * P * itemsize,
+        "training's working copies": TRAINING_COPIES[config.optimizer] * P * itemsize,
+    }
+    rows = batch * config.samples // copies  # inputs each set of networks sees
+    if config.optimizer == "lm" and rows > 1:
+        sizes, _ = output_layout(len(compiled.states), len(compiled.algebraics), config.stages, config.architecture)
+        K, w, out = len(sizes) * copies, config.width, max(sizes)
+        if rows * out <= P // K:
+            parts["LM's Gram matrices"] = GRAM_COPIES * K * (rows * w) ** 2 * itemsize
+        else:
+            parts["LM's normal matrices"] = K * (P // K) ** 2 * itemsize
+    return parts
+
+
+def check_network_memory(compiled, config, inputs: int, batch: int, segments: int) -> None:
+    """A :class:`ResourceLimitError` naming width and depth when the networks and their training
+    (:func:`network_memory`) would need more than the memory allowed
+    (:func:`daemodel.files.memory_limit`), before anything is allocated."""
+    from daemodel.files import MEMORY_LIMIT_VARIABLE, memory_limit
+
+    parts = network_memory(compiled, config, inputs, batch, segments)
+    limit, total = memory_limit(), sum(parts.values())
+    if total <= limit:
+        return
+    itemised = ", ".join(f"{name} {size / 2**30:.3g} GiB" for name, size in parts.items())
+    fewer = " or fewer samples" if any(name.startswith("LM's") for name in parts) else ""
+    raise ResourceLimitError(
+        f"pinn: networks of width = {config.width} and depth = {config.depth} for {batch} sample(s) of "
+        f"{len(compiled.states) + len(compiled.algebraics)} unknowns would need {total / 2**30:.3g} GiB to train "
+        f"({itemised}), more than the {limit / 2**30:.3g} GiB allowed (set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', "
+        f"to change it); take a smaller width or depth{fewer} (PINNConfig's defaults: width = 20, depth = 2)"
+    )
+
+
+def segment_grid(t_span, h: float, *, strict: bool = False) -> np.ndarray:
+    """The segment boundaries of a solve over ``t_span``: ``t0, t0 + h, ...`` with the last segment
+    shortened to end at t1 (:func:`~daemodel.backends.grids.fixed_grid`), and one segment of the
+    span's length where the span is shorter than ``h``: ``config.h`` is a segment length, and a piece
+    between two events or breakpoints may be shorter than it.  ``strict``: ``h`` was given as the
+    solve's own ``h=`` option, which, as radau's, may not exceed the interval
+    (:class:`~daemodel.errors.StepSizeError`)."""
+    from daemodel.backends.grids import fixed_grid
+
+    t0, t1 = t_span
+    return fixed_grid(t_span, h if strict else min(h, t1 - t0))
 
 
 def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):
@@ -175,6 +245,7 @@ def fit_sequential(compiled, grid, x0: torch.Tensor, p: torch.Tensor, z0: torch.
     stats : list of SegmentStats
     """
     n = len(compiled.states)
+    check_network_memory(compiled, config, x0.shape[1], x0.shape[0], len(grid) - 1)
     loss = make_loss(compiled, config)
     generator = torch.Generator().manual_seed(config.seed)
     copies = copies_for(config, x0.shape[0])
@@ -260,6 +331,7 @@ def fit_parallel(
     """
     from daemodel.solving.engine import run_tasks
 
+    check_network_memory(compiled, config, starts.shape[2], starts.shape[1], len(grid) - 1)
     tasks = [(k, t, h, starts[k], algebraics[k]) for k, (t, h) in enumerate(segment_steps(grid))]
     results = run_tasks(
         fit_one,

@@ -108,8 +108,9 @@ ESTIMATE_SAFETY = 2.0
 
 
 def fingerprint(compiled) -> str:
-    """A hash of the equations and names: a saved network only loads for the model it solves."""
-    return compiled.fingerprint()
+    """A hash of the equations, names and events: a saved network only loads for the model it solves
+    (its parameter values are checked apart: a surrogate may take parameters as inputs)."""
+    return compiled.fingerprint(parameter_values=False)
 
 
 class Surrogate:

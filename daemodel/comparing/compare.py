@@ -246,9 +246,9 @@ class Comparison:
             if run.certificate and run.certificate.get("failure"):
                 line += f"  cert: {CERTIFICATE_FAILURES.get(run.certificate['failure'], run.certificate['failure'])}"
             elif run.certificate:
-                verdict = "<=" if run.status == "success" else "> "
+                verdict = "<=" if run.certificate["distance"] <= run.certificate["radau_error"] else "> "
                 line += f"  cert {run.certificate['distance']:.0e} {verdict} {run.certificate['radau_error']:.0e}"
-            if run.status != "success" and not run.certificate:
+            if run.status != "success":  # (a certified PINN is flagged where radau's own estimate is)
                 line += f"  {run.status.split(':')[0]}"
             lines.append(line)
         lines += self._certificate_notes()
@@ -298,8 +298,8 @@ class Comparison:
             return []
         notes = [
             "cert: the PINN's certified distance from the Radau solution at the same stages and h, against Radau's "
-            "own error or the rounding floor, where their ratio is worst; success needs distance <= that, else "
-            "'flagged'"
+            "own error or the rounding floor, where their ratio is worst; success needs distance <= that, and "
+            "radau's own local error estimate at the same stages and h within estimate_bound, else 'flagged'"
         ]
         radau = {r.step: r for r in self.runs if r.method == "radau" and r.failure is None and r.step}
         for run in certified:

@@ -93,18 +93,40 @@ class CompiledDAE:
         # Generated functions live in the cache and do not pickle; a copy regenerates them.
         return {**self.__dict__, "_cache": {}}
 
-    def fingerprint(self) -> str:
-        """A hash of the equations and names: what a saved solution or network belongs to."""
-        text = repr(
-            (
-                self.state_names,
-                self.algebraic_names,
-                self.parameter_names,
-                [str(e) for e in self.rhs],
-                [str(e) for e in self.g],
-            )
+    def fingerprints(self) -> dict[str, str]:
+        """Hashes of what a saved result belongs to, by field: ``"equations"`` (the names and the
+        equations), ``"events"`` (each declared event's name, function, direction, reset and
+        terminal flag) and ``"parameter values"``, so that a loader can say which of them differs."""
+        equations = (
+            self.state_names,
+            self.algebraic_names,
+            self.parameter_names,
+            [str(e) for e in self.rhs],
+            [str(e) for e in self.g],
         )
-        return hashlib.sha256(text.encode()).hexdigest()
+        events = [
+            (e.name, str(e.when), e.direction, [(self.state_names[i], str(x)) for i, x in e.reset], e.terminal)
+            for e in self.events
+        ]
+        values = [float(v).hex() for v in np.asarray(self.parameter_values, dtype=float)]
+        return {
+            name: hashlib.sha256(repr(part).encode()).hexdigest()
+            for name, part in (("equations", equations), ("events", events), ("parameter values", values))
+        }
+
+    def fingerprint(self, *, parameter_values: bool = True) -> str:
+        """A hash of the equations, names, events and (unless ``parameter_values=False``: a trained
+        surrogate that takes the parameters as inputs) parameter values: what a saved solution,
+        ensemble or network belongs to (:meth:`fingerprints` by field)."""
+        parts = self.fingerprints()
+        kept = [parts["equations"]]
+        if self.events:  # (a model without events keeps the hash of the versions before events)
+            kept.append(parts["events"])
+        if parameter_values and self.parameters:
+            kept.append(parts["parameter values"])
+        if len(kept) == 1:  # (the hash of the equations alone, as before events and parameter values counted)
+            return kept[0]
+        return hashlib.sha256(repr(kept).encode()).hexdigest()
 
     def cached(self, key, build):
         """``build()``, computed once per key and kept with this model (not pickled): generated

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import re
 import sys
 import time
@@ -39,7 +40,7 @@ from daemodel.files import (
     writable_directory,
     write_json,
 )
-from daemodel.solution import SOLUTION_ARRAYS, Solution
+from daemodel.solution import SOLUTION_ARRAYS, Solution, declared, matching_system
 from daemodel.solving.engine import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
@@ -57,7 +58,12 @@ SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateErr
 # Each chunk records the run's fingerprint (model, t_span, method, settings, chunking) and a hash
 # of its own samples' inputs, so that a resumed run takes only its own chunks and a loader
 # refuses a chunk copied from another run.
-ENSEMBLE_FORMAT = "daemodel-ensemble/2"
+ENSEMBLE_FORMAT = "daemodel-ensemble/3"
+# Formats this version refuses by name: /1 carried no fingerprints, /2 none of events or parameter values.
+OLDER_ENSEMBLE_FORMATS = {
+    "daemodel-ensemble/1": "whose chunks carry no fingerprints",
+    "daemodel-ensemble/2": "whose fingerprints ignore events and parameter values",
+}
 MANIFEST = "ensemble.json"
 CHUNK_FILE = "chunk-{offset:012d}.npz"
 CHUNK_NAME = re.compile(r"chunk-(\d{12})\.npz")
@@ -66,6 +72,8 @@ PARTIAL_NAME = re.compile(r"\.(chunk-\d{12}\.npz|ensemble\.json)\..+\.partial")
 MANIFEST_KEYS = (
     "model",
     "fingerprint",
+    "fingerprints",
+    "declared",
     "run",
     "total",
     "chunk",
@@ -165,8 +173,18 @@ def ensemble(
     Solution
         The samples that were solved, in batch order, batched.  ``stats["samples"]`` holds their
         indices in the ensemble, ``stats["failures"]`` a :class:`Failure` per sample that was
-        not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size.
+        not (the status says how many), ``stats["chunks"]`` each chunk's seconds and size;
+        ``events`` and ``breakpoints`` as a batched solve's ((B, K), NaN-padded).
         With ``write_to``, an :class:`EnsembleFiles` instead.
+
+    Raises
+    ------
+    ResourceLimitError
+        In memory, before any chunk, when the outputs (samples x the output times that ``t_eval``
+        or a fixed ``h`` gives x variables) exceed :func:`daemodel.files.memory_limit`.
+    InvalidOptionError, SolutionFileError
+        With ``write_to``: a directory of another run (other inputs, model, events, parameter
+        values, method or settings).
     """
     from daemodel.backends import get_backend
     from daemodel.compiling.compiler import as_compiled
@@ -209,6 +227,13 @@ def ensemble(
             "chunks (and the halves of a chunk split around a failing sample) would come back on different times; "
             "give t_eval=[...] (the collocation polynomials give the values there)"
         )
+    times = _output_times_at_least(checked, t_span)
+    if write_to is None and times:  # refused before any chunk: outputs that cannot fit are known from the options
+        variables = len(compiled.states) + len(compiled.algebraics) + len(compiled.aliases)
+        check_memory(
+            f"ensemble of {total} samples kept in memory",
+            {f"outputs of at least {times} times x {variables} variables": total * times * variables * 8},
+        )
     arrays = {name: np.broadcast_to(array, (total, array.shape[1])) for name, (_, array) in columns.items()}
     pieces = [(start, min(start + chunk, total)) for start in range(0, total, chunk)]
     work = [
@@ -222,8 +247,8 @@ def ensemble(
         return _run(plan, work)
     directory = writable_directory(write_to, "write_to")  # made once the inputs are known good
     with DirectoryLock(directory, "write_to"):
-        run = _run_fingerprint(compiled, t_span, method, options, chunk, total)
         digests = {start: _inputs_digest(batch) for start, batch in work}
+        run = _run_fingerprint(compiled, t_span, method, options, chunk, total, digests)
         done = _resume(directory, compiled, run, digests, {start: len(batch["y0"]) for start, batch in work})
         if isinstance(done, EnsembleFiles):
             return done
@@ -235,6 +260,22 @@ def ensemble(
         results = sorted([*done.values(), *results], key=lambda result: result["offset"])
         _write_manifest(directory, compiled, results, total, seconds, engine, chunk, run)
         return EnsembleFiles.load(directory, compiled)
+
+
+def _output_times_at_least(options, t_span) -> int | None:
+    """The fewest output times a solve with ``options`` (a method's Options) reports: its ``t_eval``'s
+    distinct times, else the grid of a fixed step ``h`` (events add times); None where the options
+    do not tell (then the first chunk does)."""
+    given = {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
+    t_eval, h = given.get("t_eval"), given.get("h")
+    if t_eval is not None:
+        try:
+            return len(np.unique(np.asarray(t_eval, dtype=float)))
+        except (TypeError, ValueError):  # (the method names what is wrong with it)
+            return None
+    if isinstance(h, int | float) and not isinstance(h, bool) and h > 0:
+        return math.ceil(min((t_span[1] - t_span[0]) / h * (1 - 1e-9), 2**53)) + 1  # (steps of h, rounded up)
+    return None
 
 
 @dataclass(frozen=True)
@@ -276,6 +317,7 @@ def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = (
             # arrays from Ray are views into its object store, which they would keep pinned
             result["values"] = {name: np.array(value) for name, value in result["values"].items()}
             result["parameters"] = np.array(result["parameters"])
+            result["switches"] = joined_switches([result["switches"]]) | {"rows": result["switches"]["rows"]}
         if plan.progress:
             print(
                 f"ensemble: {len(finished)}/{len(work)} chunks, {sum(finished)} samples, "
@@ -351,6 +393,7 @@ def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failur
         "indices": np.arange(offset, offset + size),
         "values": values,
         "parameters": np.asarray(solution.parameters).reshape(size, -1),
+        "switches": {"events": solution.events, "breakpoints": solution.breakpoints, "rows": size},
         # the solved system travels as its index, not pickled back: the driver holds the model
         "meta": {key: getattr(solution, key) for key in ("t", "method", "settings", "status")},
         "index": solution.compiled.index,
@@ -371,6 +414,7 @@ def _merge(parts: list, offset: int, size: int, seconds: float) -> dict:
             name: np.concatenate([part["values"][name] for part in solved]) for name in solved[0]["values"]
         }
         merged["parameters"] = np.concatenate([part["parameters"] for part in solved])
+        merged["switches"] = joined_switches([part["switches"] for part in solved]) | {"rows": len(merged["indices"])}
         merged["meta"], merged["index"] = solved[0]["meta"], solved[0]["index"]
     return merged
 
@@ -393,12 +437,72 @@ def _assemble(compiled, results: list, total: int, seconds: float, engine: str, 
     return Solution(
         values=values,
         parameters=np.concatenate([result["parameters"] for result in solved]),
+        **joined_switches([result["switches"] for result in solved]),
         solve_time=seconds,
         stats=stats,
         batched=True,
         compiled=_system(compiled, solved[0]["index"]),
         **{**meta, "status": _status([(r["offset"], r["meta"]["status"]) for r in solved], failures, total)},
     )
+
+
+def _joined_records(records: list) -> dict:
+    """Breakpoint or event records of consecutive rows (``"t"``, ``"moved"`` (b, K), ``"before"``,
+    ``"after"`` name -> (b, K)) as one, each padded with NaN to the most switches any row had."""
+    K = max(record["t"].shape[1] for record in records)
+
+    def joined(tables: list) -> np.ndarray:
+        padded = [
+            np.pad(np.asarray(x, dtype=float), ((0, 0), (0, K - x.shape[1])), constant_values=np.nan) for x in tables
+        ]
+        return np.concatenate(padded)
+
+    out = {key: joined([record[key] for record in records]) for key in ("t", "moved")}
+    for side in ("before", "after"):
+        out[side] = {name: joined([record[side][name] for record in records]) for name in records[0][side]}
+    return out
+
+
+def joined_switches(parts: list) -> dict:
+    """The ``{"events": ..., "breakpoints": ...}`` of solutions of consecutive rows (chunks, halves of
+    a chunk; ``"rows"`` each) as those of one Solution: the layout of a batched solve's, NaN-padded."""
+    names = list(dict.fromkeys(name for part in parts for name in part["events"]))
+    variables = next((list(r["before"]) for p in parts for r in [p["breakpoints"], *p["events"].values()] if r), [])
+
+    def record(found: dict | None, rows: int) -> dict:  # (a part without this switch: none of its rows had one)
+        if found:
+            return found
+        none = np.zeros((rows, 0))
+        return {
+            "t": none,
+            "moved": none,
+            "before": dict.fromkeys(variables, none),
+            "after": dict.fromkeys(variables, none),
+        }
+
+    out = {
+        "events": {
+            name: _joined_records([record(part["events"].get(name), part["rows"]) for part in parts]) for name in names
+        },
+        "breakpoints": {},
+    }
+    if any(part["breakpoints"] for part in parts):
+        out["breakpoints"] = _joined_records([record(part["breakpoints"], part["rows"]) for part in parts])
+    return out
+
+
+def switch_rows(switches: dict, rows) -> dict:
+    """``{"events": ..., "breakpoints": ...}`` of the rows ``rows`` (a mask or indices)."""
+
+    def take(record: dict) -> dict:
+        out = {key: np.asarray(record[key])[rows] for key in ("t", "moved")}
+        out |= {side: {name: np.asarray(v)[rows] for name, v in record[side].items()} for side in ("before", "after")}
+        return out
+
+    return {
+        "events": {name: take(record) for name, record in switches["events"].items()},
+        "breakpoints": take(switches["breakpoints"]) if switches["breakpoints"] else {},
+    }
 
 
 def _system(compiled, index: int):
@@ -500,10 +604,11 @@ class EnsembleFiles:
         if not path.exists():
             raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")
         manifest = read_json(path, SolutionFileError, "a daemodel ensemble manifest", follow=False)
-        if isinstance(manifest, dict) and manifest.get("format") == "daemodel-ensemble/1":
+        if isinstance(manifest, dict) and manifest.get("format") in OLDER_ENSEMBLE_FORMATS:
             raise SolutionFileError(
-                f"{path} is a daemodel ensemble of format 'daemodel-ensemble/1', whose chunks carry no fingerprints; "
-                f"this version reads {ENSEMBLE_FORMAT!r}: solve the ensemble again into a new directory"
+                f"{path} is a daemodel ensemble of format {manifest['format']!r}, "
+                f"{OLDER_ENSEMBLE_FORMATS[manifest['format']]}; this version reads {ENSEMBLE_FORMAT!r}: solve the "
+                "ensemble again into a new directory"
             )
         if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
             raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
@@ -512,12 +617,7 @@ class EnsembleFiles:
             raise SolutionFileError(f"{path} is damaged: it lacks {', '.join(lacking)}")
         _check_manifest(path, manifest)
         compiled = as_compiled(model, "EnsembleFiles.load()")
-        candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
-        if not any(c.fingerprint() == manifest["fingerprint"] for c in candidates):
-            raise SolutionFileError(
-                f"{directory} holds an ensemble of model '{manifest['model']}' with other equations or names than "
-                f"'{compiled.name}'; load it with the model that was solved"
-            )
+        matching_system(compiled, manifest, directory, "an ensemble")
         missing = [entry["file"] for entry in manifest["files"] if not is_plain_file(directory / entry["file"])]
         if missing:
             raise SolutionFileError(
@@ -572,7 +672,7 @@ class EnsembleFiles:
             first_file = self._manifest["files"][0]["file"]
             with open_inside(self.directory, first_file, "files[0].file", SolutionFileError) as handle:
                 where = self.directory / first_file
-                shapes = read_arrays(handle, where, SOLUTION_ARRAYS, SolutionFileError, data=False)
+                shapes = read_arrays(handle, where, SOLUTION_ARRAYS, SolutionFileError, data=False, others=True)
             _, times, variables = shapes["values"]
             check_memory(
                 f"EnsembleFiles.solution of {rows} samples of {times} times and {variables} variables",
@@ -590,11 +690,13 @@ class EnsembleFiles:
                         part.stats["samples"][rows],
                         {name: part.values[name][rows].copy() for name in self._names(part)},
                         part.parameters[rows].copy(),
+                        switch_rows({"events": part.events, "breakpoints": part.breakpoints}, rows)
+                        | {"rows": int(rows.sum())},
                     )
                 )
                 first = first or {key: getattr(part, key) for key in ("t", "method", "settings", "compiled")}
                 del part
-        got = np.concatenate([indices for indices, _, _ in kept]) if kept else np.zeros(0, np.int64)
+        got = np.concatenate([indices for indices, *_ in kept]) if kept else np.zeros(0, np.int64)
         absent = np.setdiff1d(wanted, got)
         if len(absent):
             raise SolutionFileError(
@@ -605,10 +707,11 @@ class EnsembleFiles:
         take = order[np.searchsorted(got, wanted, sorter=order)]
         names = kept[0][1].keys()
         return Solution(
-            values={name: np.concatenate([values[name] for _, values, _ in kept])[take] for name in names},
+            values={name: np.concatenate([values[name] for _, values, *_ in kept])[take] for name in names},
             solve_time=self.seconds,
             stats={"samples": wanted, "engine": self.engine, "chunk": self.chunk},
-            parameters=np.concatenate([parameters for _, _, parameters in kept])[take],
+            parameters=np.concatenate([parameters for _, _, parameters, _ in kept])[take],
+            **switch_rows(joined_switches([switches for *_, switches in kept]), take),
             batched=True,
             status=self.status,
             **first,
@@ -643,11 +746,21 @@ class EnsembleFiles:
         )
 
 
-def _run_fingerprint(compiled, t_span, method: str, options: dict, chunk: int, total: int) -> str:
-    """What makes two ensemble calls the same run: the model, the span, the method, its settings
-    and the chunking (the samples' inputs are hashed per chunk)."""
+def _run_fingerprint(compiled, t_span, method: str, options: dict, chunk: int, total: int, digests: dict) -> str:
+    """What makes two ensemble calls the same run: the model (its equations, events and parameter
+    values), the span, the method, its settings, the chunking and every chunk's inputs (``digests``,
+    offset -> hash): a finished directory run again with other inputs is another run."""
     text = json.dumps(
-        [ENSEMBLE_FORMAT, compiled.fingerprint(), list(t_span), method, sorted(options.items()), chunk, total],
+        [
+            ENSEMBLE_FORMAT,
+            compiled.fingerprint(),
+            list(t_span),
+            method,
+            sorted(options.items()),
+            chunk,
+            total,
+            sorted(digests.items()),
+        ],
         default=lambda value: np.asarray(value).tolist() if isinstance(value, np.ndarray | np.generic) else repr(value),
     )
     return hashlib.sha256(text.encode()).hexdigest()
@@ -667,10 +780,11 @@ def _read_chunk(directory: Path, name: str, compiled) -> Solution:
         part = Solution._read(handle, directory / name, compiled)
     samples = part.stats.get("samples")
     if (
-        not isinstance(samples, list)
-        or len(samples) != part.batch_size
-        or not all(isinstance(i, int) and not isinstance(i, bool) and 0 <= i < 2**62 for i in samples)
-        or len(set(samples)) != len(samples)
+        not isinstance(samples, np.ndarray)
+        or samples.dtype.kind not in "iu"
+        or samples.shape != (part.batch_size,)
+        or (samples < 0).any()
+        or len(np.unique(samples)) != len(samples)
     ):
         raise SolutionFileError(
             f"{directory / name}: field 'stats.samples' is not {part.batch_size} distinct sample indices, one a row"
@@ -740,6 +854,7 @@ def _write_chunk(files: tuple, compiled, result: dict) -> None:
         compiled=_system(compiled, result["index"]),
         values=result.pop("values"),
         parameters=result.pop("parameters"),
+        **{key: value for key, value in result.pop("switches").items() if key != "rows"},
         solve_time=result["seconds"],
         stats={
             "samples": result["indices"],
@@ -759,10 +874,13 @@ def _write_chunk(files: tuple, compiled, result: dict) -> None:
 def _write_manifest(directory: Path, compiled, results: list, total, seconds, engine, chunk, run: str) -> None:
     failures = _failures(results, total)
     written = [result for result in results if "file" in result]
+    solved = _system(compiled, written[0]["index"])  # a reduction, for index 3
     manifest = {
         "format": ENSEMBLE_FORMAT,
         "model": compiled.name,
-        "fingerprint": _system(compiled, written[0]["index"]).fingerprint(),  # a reduction, for index 3
+        "fingerprint": solved.fingerprint(),
+        "fingerprints": solved.fingerprints(),
+        "declared": declared(solved),
         "run": run,
         "total": total,
         "chunk": chunk,
@@ -797,6 +915,9 @@ def _check_manifest(path: Path, manifest: dict) -> None:
     for key in ("run", "status", "engine", "model", "fingerprint"):
         if not isinstance(manifest[key], str):
             bad(key, "is not a string")
+    for key in ("fingerprints", "declared"):
+        if not isinstance(manifest[key], dict):
+            bad(key, "is not an object")
     if isinstance(manifest["seconds"], bool) or not isinstance(manifest["seconds"], int | float):
         bad("seconds", f"is {manifest['seconds']!r}, not a number")
     if not isinstance(manifest["files"], list) or not isinstance(manifest["failures"], list):

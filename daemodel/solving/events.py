@@ -265,11 +265,16 @@ class _Start:
     setup_time: float
     # event -> (rate above, rate below) of the switches the piece slides along
     sliding: dict = dataclasses.field(default_factory=dict)
+    # the events whose functions are at zero where the piece starts
+    at_zero: frozenset = frozenset()
 
 
-def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=()) -> _Start:
+def _start_piece(
+    backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=(), moved_off=()
+) -> _Start:
     """The piece from ``t``: which side each event function at zero there goes to, by the flow
-    (:func:`_drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``;
+    (:func:`_drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
+    (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
     the side it crossed to (kept where both sides lead away).
 
@@ -285,7 +290,7 @@ def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred
     started = time.perf_counter()
     events = compiled.events
     F0 = when(np.array([t]), Y, Z, P)[0]
-    at_zero = set(fired)
+    at_zero = set(fired) - set(moved_off)
     for e, event in enumerate(events):
         if F0[e] == (round(F0[e]) if event.integer else 0):
             at_zero.add(e)
@@ -360,7 +365,15 @@ def _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred
                     )
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
-    return _Start(model, _leveled(when, levels, replaced), sides, armed, time.perf_counter() - started, sliding)
+    return _Start(
+        model,
+        _leveled(when, levels, replaced),
+        sides,
+        armed,
+        time.perf_counter() - started,
+        sliding,
+        frozenset(at_zero),
+    )
 
 
 def _branch(
@@ -435,6 +448,17 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
     return compiled._cache[key]
 
 
+def _limit(times: list) -> float | None:
+    """Where ``times`` converge, if their last 3 gaps shrink: the sum of the geometric series they start."""
+    if len(times) < 4:
+        return None
+    gaps = np.diff(np.asarray(times[-4:]))
+    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1])):
+        return None
+    ratio = gaps[-1] / gaps[-2]
+    return float(times[-1] + gaps[-1] * ratio / (1.0 - ratio))
+
+
 def _accumulating(event, times: list, t0: float, t1: float) -> None:
     """Raise :class:`ZenoError` where ``event``'s times converge geometrically to a point inside the span."""
     if len(times) <= ZENO_GAPS:
@@ -479,7 +503,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     t, count, setup_time, last = t0, 0, 0.0, None
     recent = []  # (the event times, to see chattering before max_events)
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
-    fired, crossing, preferred, exited = [], {}, {}, set()  # (what happened at t: see _start_piece)
+    fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: _start_piece)
     lock = has_state_switches(compiled)
 
     def delta_at(time_: float) -> float:
@@ -487,7 +511,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
 
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
-        begin = _start_piece(backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited)
+        try:
+            begin = _start_piece(
+                backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off
+            )
+        except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
+            limit = max((_limit(history[e]) or -math.inf for e in fired), default=-math.inf)
+            if limit > -math.inf:
+                raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
+            raise
         setup_time += begin.setup_time
         piece, piece_when = begin.model, begin.when
         if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
@@ -516,13 +548,20 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 "before it"
             )
         a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
-        if before_index == 0 and begin.sides[which] and np.sign(Fa) != begin.sides[which]:
-            Fa = begin.sides[which] * np.finfo(float).tiny  # (at zero where the piece starts, going to its side)
         ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
+        if before_index == 0 and which in begin.at_zero and begin.sides[which]:
+            # (at zero where the piece starts, going to its side: the bracket starts a look-ahead later, where the
+            # method's own solution is on that side, clear of its error at the start)
+            a, Fa, ya, za = _clear_of_zero(
+                backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
+                delta_at(a), events[which],
+            )  # fmt: skip
         t_event, y_event, z_event, located = _locate(
             backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, h
         )
         all_stats += located
+        ends = t_event >= t1 - EVENT_TOL * max(1.0, abs(t1))  # (an event at t1: applied there, and the solve ends)
+        t_event = t1 if ends else t_event
         recent.append(t_event)
         if len(recent) > CHATTER_EVENTS and recent[-1] - recent[-1 - CHATTER_EVENTS] <= CHATTER_SPAN * (t1 - t0):
             first_time = recent[-1 - CHATTER_EVENTS]
@@ -560,11 +599,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             up, down = begin.sliding[e](np.array([t_event]), y_event, z_event, P)[0]
             preferred[e] = 1 if abs(up) <= abs(down) else -1
         before = np.concatenate([y_event, z_event], axis=1)
+        F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
         Y = y_event.copy()
         for e in with_reset:
             new = resets[e](t_event, Y, z_event, P)
             for k, (index, _) in enumerate(events[e].reset):
                 Y[:, index] = new[:, k]
+        F_reset = when(np.array([t_event]), Y, z_event, P)[0]
+        scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
+        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:
@@ -575,21 +618,11 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
             Y = projected
             if lock and Z.shape[1]:  # (z on the branch the next piece takes)
+                delta = delta_at(t_event)
                 after = _start_piece(
-                    backend,
-                    compiled,
-                    when,
-                    t_event,
-                    Y,
-                    z_event,
-                    P,
-                    fired,
-                    crossing,
-                    preferred,
-                    delta_at(t_event),
-                    lock,
-                    exited,
-                )
+                    backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta, lock, exited,
+                    moved_off,
+                )  # fmt: skip
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
@@ -600,7 +633,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             entry["after"].append(np.concatenate([Y, Z], axis=1)[0])
             entry["moved"].append(float(moved[0]))
         count += len(fired) - 1
-        if terminal:
+        if terminal or ends:
             break
         t = t_event
     # the outputs: each piece solved again on the user's times (t_eval), or on its own steps (the last
@@ -681,6 +714,40 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         events=events_out,
         dense=joined_in_time(edges, dense),
     )
+
+
+def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya, za, side, delta, event):
+    """``(t, F, y (1, n), z (1, m))`` past ``a`` where the event function ``which``, at zero at ``a``, is on
+    its ``side`` in the method's own solution: a look-ahead ``delta`` later, doubled while the method's
+    error near zero hides the side (up to half the bracket).
+
+    Raises
+    ------
+    ZenoError
+        It is not on its side anywhere there: back across zero sooner than the method resolves.
+    """
+    takes_h = "h" in {f.name for f in dataclasses.fields(options)}
+    step = delta
+    while True:
+        tau = min(a + step, 0.5 * (a + b))
+        changes = {"t_eval": None}
+        if takes_h and (getattr(options, "h", None) is not None or tau - a <= TINY_SPAN * max(1.0, abs(a))):
+            changes["h"] = min(getattr(options, "h", None) or math.inf, tau - a)
+        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
+        _, Ys, Zs = _outputs(sol, compiled)
+        y, z = Ys[-1:], Zs[-1:]
+        value = float(when(np.array([tau]), y, z, P)[0, which])
+        if np.sign(value) == side:
+            return tau, value, y, z
+        if tau >= 0.5 * (a + b):
+            raise ZenoError(
+                f"event '{event.name}' at t = {a:.12g}: its function does not leave zero to the side the flow "
+                f"takes within {tau - a:.3g} of its last crossing, at the method's accuracy (events closer together "
+                "than it resolves: Zeno, or a state resting on its guard); make the event terminal=True to stop "
+                "there, tighten the tolerances, or end t_span before it",
+                a,
+            )
+        step *= 2.0
 
 
 def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, h):

@@ -78,7 +78,11 @@ def test_success_means_within_twice_radaus_error_and_the_certificate_bounds_the_
         assert np.all(pinn_error <= 2 * radau_error + reference_error), name
     else:
         assert pinn.status.startswith("flagged: ")
-    assert pinn.status == "success", pinn.status  # all of these reach the ceiling now (measured)
+    if radau.status == "success":
+        assert pinn.status == "success", pinn.status  # all of these reach the ceiling now (measured)
+    else:  # heat: radau's first step is flagged (0.0138 of u20's size), and so is the PINN, though certified
+        assert pinn.status.startswith("flagged: radau's local error estimate at the same h"), pinn.status
+        assert all(pinn.stats["certificate"]["certified"])
 
 
 def test_the_guess_needing_model_trains_to_the_exact_solution():
@@ -196,7 +200,7 @@ def test_the_certificate_does_not_depend_on_its_chunks(monkeypatch):
     whole = dm.solve(compiled, (0.0, 0.1), method="pinn", h=0.02, parameters={"RL": [1.0, 3.0, 9.0]})
     monkeypatch.setattr(module, "CERTIFICATE_ENTRIES", 1)
     rows = dm.solve(compiled, (0.0, 0.1), method="pinn", h=0.02, parameters={"RL": [1.0, 3.0, 9.0]})
-    assert whole.stats["certificate"]["certified"] == rows.stats["certificate"]["certified"]
+    np.testing.assert_array_equal(whole.stats["certificate"]["certified"], rows.stats["certificate"]["certified"])
     for key in ("segment_distance", "segment_radau_error"):
         np.testing.assert_allclose(
             whole.stats["certificate"][key], rows.stats["certificate"][key], rtol=1e-6, atol=1e-15

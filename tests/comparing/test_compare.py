@@ -4,6 +4,7 @@ and the reference, the sweep's convergence order, the outputs, and every error m
 import dataclasses
 import json
 import math
+import re
 import warnings
 
 import numpy as np
@@ -434,3 +435,52 @@ def test_daemodel_compare_on_the_bouncing_ball(tmp_path, capsys):
     assert "bouncing-ball on [0, 3]: absolute errors against the exact solution" in capsys.readouterr().out
     result = dm.Comparison.load(tmp_path / "bouncing-ball.json")
     assert [max(e["max"] for e in r.errors.values()) < 1e-4 for r in result.runs] == [True] * 4
+
+
+DOUBLE_PENDULUM_FILE = '''
+import math
+
+import daemodel as dm
+
+T_SPAN = (0.0, 1.0)
+
+
+def build_model():
+    """Two point masses on rods of length 1 (Cartesian, index 3), released at 90 and 180 degrees."""
+    m = dm.Model("double_pendulum")
+    x1, y1, x2, y2, u1, v1, u2, v2 = m.states("x1 y1 x2 y2 u1 v1 u2 v2")
+    l1, l2 = m.algebraics("l1 l2")
+    g = m.parameter("g", 9.81)
+    for position, velocity in ((x1, u1), (y1, v1), (x2, u2), (y2, v2)):
+        m.ode(position, velocity)
+    m.ode(u1, -l1 * x1 + l2 * (x2 - x1))
+    m.ode(v1, -l1 * y1 + l2 * (y2 - y1) - g)
+    m.ode(u2, -l2 * (x2 - x1))
+    m.ode(v2, -l2 * (y2 - y1) - g)
+    m.constraint(x1**2 + y1**2 - 1, name="rod1")
+    m.constraint((x2 - x1) ** 2 + (y2 - y1) ** 2 - 1, name="rod2")
+    m.initial(x1=1.0, y1=0.0, x2=1.0, y2=1.0, u1=0.0, v1=0.0, u2=0.0, v2=0.0)
+    return m
+'''
+
+
+def test_daemodel_compare_shows_a_certified_pinn_flagged_where_radau_is(tmp_path, capsys):
+    """The double pendulum at h = 0.05: radau is flagged by its local error estimate and is 11 off in
+    l1; the PINN, certified within 4e-16 of radau, is as far off. Before, its row read 'cert 4e-16 >
+    2e-12' with no flag (and its status was "success"); now 'cert ... <= ...  flagged'."""
+    model = tmp_path / "double_pendulum.py"
+    model.write_text(DOUBLE_PENDULUM_FILE)
+    args = ["compare", str(model), "--methods", "radau,pinn", "--points", "1", "--steps", "20"]
+    assert main([*args, "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    table = capsys.readouterr().out
+    rows = {
+        line.split()[0]: line
+        for line in table.splitlines()
+        if line.startswith(("radau ", "pinn ")) and "training" not in line  # (not the notes below the table)
+    }
+    assert rows["radau"].endswith("flagged")
+    assert re.search(r"e\+01 \(l\d\)", rows["pinn"]), rows["pinn"]  # the multipliers, as far off as radau's
+    assert re.search(r"cert \de-\d\d <= \de-\d\d  flagged$", rows["pinn"]), rows["pinn"]
+    saved = json.loads((tmp_path / "out" / "double_pendulum.json").read_text())
+    (pinn,) = [run for run in saved["runs"] if run["method"] == "pinn"]
+    assert pinn["status"].startswith("flagged: radau's local error estimate at the same h and stages")

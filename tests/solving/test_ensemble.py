@@ -207,11 +207,14 @@ def test_ensemble_file_errors(pendulum, blowup, tmp_path):
         dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text('{"format": "something-else"}')
     with pytest.raises(
-        SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/2'\\)"
+        SolutionFileError, match="is not a daemodel ensemble manifest \\(expected format 'daemodel-ensemble/3'\\)"
     ):
         dm.EnsembleFiles.load(files.directory, blowup)
-    (files.directory / "ensemble.json").write_text('{"format": "daemodel-ensemble/2", "model": "blowup"}')
-    with pytest.raises(SolutionFileError, match=r"ensemble.json is damaged: it lacks fingerprint, run, total, chunk"):
+    (files.directory / "ensemble.json").write_text('{"format": "daemodel-ensemble/3", "model": "blowup"}')
+    with pytest.raises(
+        SolutionFileError,
+        match=r"ensemble.json is damaged: it lacks fingerprint, fingerprints, declared, run, total, chunk",
+    ):
         dm.EnsembleFiles.load(files.directory, blowup)
     (files.directory / "ensemble.json").write_text("{not json")
     with pytest.raises(SolutionFileError, match=r"is not a daemodel ensemble manifest \(JSONDecodeError: "):
@@ -332,3 +335,97 @@ def test_max_failures_stops_an_ensemble_whose_samples_keep_failing(blowup):
     assert [f.index for f in few.stats["failures"]] == [1]
     with pytest.raises(InvalidOptionError, match="max_failures must be a non-negative integer or None; got -1"):
         dm.ensemble(blowup, (0.0, 1.0), h=0.05, max_failures=-1)
+
+
+# ---- events, other inputs, memory --------------------------------------------------------------------------------
+G = 9.81
+
+
+def _ball(reset="-0.8*v"):
+    """The bouncing ball on (0, 2.5): four impacts, known in closed form, before its Zeno point."""
+    m = dm.Model("ball")
+    h, v = m.states("h v")
+    g = m.parameter("g", G)
+    m.ode(h, v)
+    m.ode(v, -g)
+    m.initial(h=1.0, v=0.0)
+    if reset is not None:
+        m.event("floor", when=h, direction=-1, reset={"v": reset})
+    return m
+
+
+def _impacts(g: float, end: float = 2.5, e: float = 0.8) -> list:
+    times, t, v = [], np.sqrt(2 / g), np.sqrt(2 * g)
+    while t < end:
+        times.append(t)
+        v *= e
+        t += 2 * v / g
+    return times
+
+
+GRAVITY = {"g": np.array([9.81, 9.0, 10.0, 8.0, 12.0])}
+T_EVAL = np.linspace(0.0, 2.5, 11)
+
+
+def test_an_ensemble_returns_its_events_as_a_batched_solve_does(tmp_path):
+    """In memory and from files, the events of every sample, NaN-padded (B, K) like a batched solve's
+    (before: events == {} both ways), each sample's impacts at the closed form's times."""
+    batched = dm.solve(_ball(), (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL)
+    memory = dm.ensemble(_ball(), (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL, chunk=2)
+    files = dm.ensemble(_ball(), (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL, chunk=2, write_to=tmp_path / "e")
+    for sol in (memory, files.solution()):
+        assert list(sol.events) == ["floor"]
+        np.testing.assert_array_equal(sol.events["floor"]["t"], batched.events["floor"]["t"])
+        for side in ("before", "after"):
+            np.testing.assert_array_equal(sol.events["floor"][side]["v"], batched.events["floor"][side]["v"])
+    for b, g in enumerate(GRAVITY["g"]):
+        found = memory.events["floor"]["t"][b]
+        exact = _impacts(g)
+        np.testing.assert_allclose(found[: len(exact)], exact, rtol=0, atol=1e-7)
+        assert np.isnan(found[len(exact) :]).all()
+    some = files.solution([4, 0])
+    np.testing.assert_array_equal(some.events["floor"]["t"], batched.events["floor"]["t"][[4, 0]])
+    np.testing.assert_allclose(some.at([0.3])["h"][:, 0], 1 - 0.5 * GRAVITY["g"][[4, 0]] * 0.09, atol=1e-9)
+
+
+def test_a_finished_directory_is_not_returned_for_other_inputs_or_another_model(tmp_path):
+    """Before: a finished write_to directory run again with other parameters (or another reset, or no
+    event) returned the first run's files without a word."""
+    where = tmp_path / "e"
+    dm.ensemble(_ball(), (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL, chunk=2, write_to=where)
+    again = dm.ensemble(_ball(), (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL, chunk=2, write_to=where)
+    assert again.solved == 5  # (the same call: its files)
+    with pytest.raises(InvalidOptionError, match=r"write_to .*e holds a finished ensemble of other samples, model"):
+        dm.ensemble(_ball(), (0.0, 2.5), parameters={"g": GRAVITY["g"] + 0.5}, t_eval=T_EVAL, chunk=2, write_to=where)
+    for other, what in ((_ball("-0.5*v"), r"then v = -0\.5\*v'\]"), (_ball(None), r"the model's \[\]")):
+        with pytest.raises(
+            SolutionFileError,
+            match=r"holds an ensemble of model 'ball' whose events differ from those of 'ball'.*" + what,
+        ):
+            dm.ensemble(other, (0.0, 2.5), parameters=GRAVITY, t_eval=T_EVAL, chunk=2, write_to=where)
+        with pytest.raises(SolutionFileError, match=r"whose events differ"):
+            dm.EnsembleFiles.load(where, other)
+
+
+def test_an_ensemble_that_cannot_fit_in_memory_is_refused_before_its_first_chunk(monkeypatch):
+    """5e6 samples of 2e4 output times: 745 GiB, refused with the estimate before any chunk runs
+    (before: the first chunk of 10^4 samples was solved, then the total checked)."""
+    from daemodel.errors import ResourceLimitError
+    from daemodel.solving import ensemble as module
+
+    def never(*args, **kwargs):
+        raise AssertionError("a chunk ran")
+
+    monkeypatch.setattr(module, "run_tasks", never)
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "64G")
+    m = dm.Model("decay")
+    m.states("x")
+    m.parameter("k", 1.0)
+    m.ode("x", "-k*x")
+    m.initial(x=1.0)
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"ensemble of 5000000 samples kept in memory would need 745 GiB \(outputs of at least 20000 times x 1 "
+        r"variables 745 GiB\), more than the 64 GiB allowed",
+    ):
+        dm.ensemble(m, (0.0, 1.0), parameters={"k": np.ones(5_000_000)}, t_eval=np.linspace(0.0, 1.0, 20_000))

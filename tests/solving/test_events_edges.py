@@ -307,3 +307,54 @@ def test_a_batch_whose_samples_end_at_their_own_terminal_events():
     exact[0, sol.t > first + 1e-12] = np.nan
     np.testing.assert_allclose(sol["h"], exact, atol=1e-9)
     assert np.isnan(sol.at([0.48])["h"][0, 0]) and abs(sol.at([0.48])["h"][1, 0] - (2.0 - 0.5 * G * 0.48**2)) < 1e-9
+
+
+# ---- found by review ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_a_reset_that_moves_the_function_off_its_guard(method, options):
+    # a sawtooth: x back to 0 and v doubled at x = 1 (the function is -1 after the reset: not on the guard)
+    m = dm.Model("saw")
+    m.states("x v")
+    m.ode("x", "v")
+    m.ode("v", "0")
+    m.initial(x=0.0, v=1.0)
+    m.event("top", "x - 1", direction=1, reset={"x": "0", "v": "2*v"})
+    sol = dm.solve(m, (0.0, 1.6), method=method, **options)
+    assert abs(sol["x"][-1] - 0.4) < 1e-9 and abs(sol["v"][-1] - 4.0) < 1e-10  # (collocation: v to 4e-12)
+
+
+@pytest.mark.parametrize("span", [120.0, pytest.param(1000.0, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("method", ["reference", "casadi-idas"])
+def test_flights_on_a_long_span_are_each_located(method, span):
+    # (before: "success" with h(1000) = -4.9e6, the first impact found twice and the ball through the floor:
+    # the first trial after an impact sat within the integrator's error of the floor)
+    sol = dm.solve(_ball(e=1.0), (0.0, span), method=method, max_events=2000)
+    flight = 2.0 * math.sqrt(2.0 / G)
+    expected = math.sqrt(2.0 / G) + flight * np.arange(len(sol.events["floor"]["t"][0]))
+    assert len(expected) == math.floor((span - math.sqrt(2.0 / G)) / flight) + 1
+    assert np.abs(sol.events["floor"]["t"][0] - expected).max() < 1e-6
+
+
+@pytest.mark.parametrize(("rhs", "event"), [("floor(2*x)", None), ("0", "x - 1")])
+def test_an_event_exactly_at_the_end_of_the_span(rhs, event):
+    # 2x reaches 3 (x - 1 reaches 0) exactly at t1 (before: InvalidOptionError "h must be positive" at h = 0.05)
+    m = dm.Model("end")
+    m.states("x y")
+    m.ode("x", "1")
+    m.ode("y", rhs)
+    m.initial(x=0.5 if event is None else 0.0, y=0.0)
+    if event is not None:
+        m.event("one", event, reset={"y": "1"})
+    sol = dm.solve(m, (0.0, 1.0), stages=3, h=0.05)
+    assert sol.t[-1] == 1.0 and abs(sol["y"][-1] - (1.5 if event is None else 1.0)) < 1e-12
+
+
+@pytest.mark.parametrize("t1", [1.5, 10.0])
+def test_zeno_reports_the_accumulation_point_whichever_check_fires(t1):
+    # e = 0.5: on (0, 1.5) the ball comes to rest on the floor before the gaps are small enough; the error's t
+    # is still the accumulation point (before: the bounce time, 5.6e-5 off)
+    with pytest.raises(E.ZenoError) as caught:
+        dm.solve(_ball(e=0.5), (0.0, t1), rtol=1e-10, atol=1e-10)
+    assert abs(caught.value.t - _accumulation(0.5)) < 1e-9

@@ -2,6 +2,9 @@
 fit (radau at the same h), its certificate against an independent radau solve at the estimates,
 the initial algebraic values following a fitted parameter, and every error message."""
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 import scipy.optimize
@@ -235,3 +238,23 @@ def test_networks_off_the_radau_solution_at_the_start_are_a_training_error(decay
     keep = r"trained at the start values keep a Radau residual of .* above tol = 1e-30"
     with pytest.raises(TrainingError, match=keep):
         fit(decay, TIMES, observations(decay, TIMES), config=config)
+
+
+def test_a_fit_is_flagged_where_radaus_estimate_at_its_h_is():
+    """The stiff CSTR's feed rate from exact concentrations at h = 1: radau at that h is flagged by
+    its own estimate (0.07 of the size of r at step 3), and so is the fit, whose networks are
+    certified close to radau; before, it said "success"."""
+    from pinn_hard_models import cstr
+
+    c = cstr().compile()
+    t = np.arange(1.0, 10.5, 1.0)
+    reference = dm.solve(c, (0.0, 10.0), method="radau", rtol=1e-10, atol=1e-10)
+    data = {"C": np.asarray(reference.at(t)["C"]).ravel()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = dm.fit(c, t, data, {"F": (0.5, 1.0, 2.0)}, method="pinn", config=dm.PINNConfig(h=1.0))
+    assert re.match(
+        r"flagged: radau's local error estimate at the same h and stages, on the PINN's steps, reaches [0-9.]+ of "
+        r"the solution's size at step 3 from t = 2 \(h = 1\), in 'r', beyond estimate_bound = 0\.001",
+        result.status,
+    ), result.status
