@@ -106,16 +106,24 @@ def declared(compiled) -> dict:
     }
 
 
-def matching_system(compiled, meta: dict, path: Path, what: str = "a solution"):
+def matching_system(compiled, meta: dict, path: Path, what: str = "a solution", solved=None):
     """The system among ``compiled`` and its reductions whose fingerprints are those ``meta`` stored
     (``"fingerprint"``, ``"fingerprints"``, ``"declared"``, ``"model"``), else a :class:`SolutionFileError`
     saying that ``path`` holds ``what`` of another model and what differs: the equations, or the
-    events (both listed), or the parameter values (each changed one named)."""
+    events (both listed), or the parameter values (each changed one named).  ``solved`` (B, k): the
+    parameter values the stored result was solved at, which the model's may equal instead of the
+    declared ones it was compiled with (a solve with ``parameters=``)."""
     candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
     parts = meta["fingerprints"]
     for candidate in candidates:
         if candidate.fingerprint() == meta["fingerprint"] and candidate.fingerprints() == parts:
             return candidate
+    values = np.asarray(compiled.parameter_values, dtype=float)
+    if solved is not None and np.shape(solved)[1:] == values.shape and len(solved) and np.all(solved == values):
+        for candidate in candidates:
+            mine = candidate.fingerprints()
+            if all(mine[field] == parts.get(field) for field in mine if field != "parameter values"):
+                return candidate
     differing = min(
         ([field for field, value in c.fingerprints().items() if parts.get(field) != value] for c in candidates),
         key=len,
@@ -161,6 +169,55 @@ def _switch_record(record, B: int, names: list, path: Path, field: str) -> dict:
             raise SolutionFileError(f"{path}: field '{field}.{side}' does not hold the variables {names}")
         out[side] = {name: table(record[side][name], f"{field}.{side}.{name}", t.shape[1]) for name in names}
     return out
+
+
+# The switch kinds whose events a solve names "<kind> in <equation>" (daemodel.solving.events).
+_SWITCH_KINDS = ("Piecewise", "Heaviside", "sign", "Abs", "Max", "Min", "floor", "ceiling")
+# A stored dense output must give the stored values at the output times to this, relative to their size.
+DENSE_CHECK_RTOL = 1e-4
+
+
+def _check_instants(model, t: np.ndarray, breakpoints: dict, events: dict, path: Path) -> None:
+    """Refuse a file whose events are not the model's, or whose instants are not times of its span in order
+    (NaN only as the padding after a sample's last)."""
+    declared = [e.name for e in model.events]
+    missing = [name for name in declared if name not in events]
+    if model.events and missing:
+        raise SolutionFileError(f"{path}: field 'events' lacks the model's event(s) {missing}: it is damaged")
+    foreign = [n for n in events if n not in declared and not any(n.startswith(f"{k} in ") for k in _SWITCH_KINDS)]
+    if foreign:
+        raise SolutionFileError(f"{path}: field 'events' holds {foreign}, which the model does not declare")
+    tol = 1e-9 * max(1.0, float(t[-1] - t[0]))
+    records = ([("breakpoints", breakpoints)] if breakpoints else []) + [(f"events.{n}", r) for n, r in events.items()]
+    for where, record in records:
+        for row in record["t"]:
+            known = ~np.isnan(row)
+            seen = row[known]
+            if (
+                np.isinf(row).any()
+                or (known[1:] & ~known[:-1]).any()
+                or (np.diff(seen) < 0).any()
+                or (len(seen) and (seen[0] < t[0] - tol or seen[-1] > t[-1] + tol))
+            ):
+                raise SolutionFileError(
+                    f"{path}: field '{where}.t' is not a sequence of times in [{t[0]:g}, {t[-1]:g}] in order: it is "
+                    "damaged"
+                )
+
+
+def _check_dense(dense, t: np.ndarray, values: np.ndarray, path: Path) -> None:
+    """Refuse a stored dense output that does not give the stored values at the output times."""
+    try:
+        found = np.asarray(dense(t), dtype=float)
+    except (ValueError, IndexError, TypeError, FloatingPointError) as error:
+        raise SolutionFileError(f"{path}: field 'dense' cannot be evaluated at the output times: {error}") from None
+    both = np.isfinite(values)
+    if found.shape != values.shape or not (np.isfinite(found) == both).all():
+        raise SolutionFileError(f"{path}: field 'dense' does not cover the output times: it is damaged")
+    scale = 1.0 + np.abs(values[both]).max(initial=0.0)
+    if (np.abs(found[both] - values[both]) > DENSE_CHECK_RTOL * scale).any():
+        raise SolutionFileError(f"{path}: field 'dense' does not give the stored values at the output times: it is "
+                                "damaged")  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -389,9 +446,18 @@ class Solution:
         dict name -> {"max": float, "mean": float}
             Over the output times, except those within the window of an event or breakpoint of
             either side (:mod:`daemodel.comparing.instants`): there one side may hold the value after
-            a reset and the other the value before it.
+            a reset and the other the value before it; ``"max"`` takes in the errors at the instants
+            too, each side's value just before (after) against the other's just before (after), so
+            that an event located wrong shows here.
         """
-        return self.error_report(reference, names).variables
+        report = self.error_report(reference, names)
+        out = {name: dict(values) for name, values in report.variables.items()}
+        for instants in report.instants.values():
+            for side in (instants.before, instants.after):
+                for name, error in side.items():
+                    if name in out and np.isfinite(error):
+                        out[name]["max"] = max(out[name]["max"], float(error))
+        return out
 
     def error_report(self, reference, names=None):
         """The errors against a reference on each side's own branch: the variables at the output times
@@ -691,7 +757,7 @@ class Solution:
         expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in listed.items()}
         arrays = read_arrays(handle, path, expected, SolutionFileError, limit, "daemodel solution file")
         compiled = as_compiled(model, "Solution.load()")
-        match = matching_system(compiled, meta, path)
+        match = matching_system(compiled, meta, path, solved=arrays["parameters"])
         names = [*match.state_names, *match.algebraic_names]
         if meta["names"] != names:
             raise SolutionFileError(f"{path}: field 'names' is {meta['names']!r}; the model's variables are {names}")
@@ -720,12 +786,14 @@ class Solution:
         events = {
             name: _switch_record(record, B, names, path, f"events.{name}") for name, record in field("events").items()
         }
+        _check_instants(match, t, breakpoints, events, path)
         dense = None
         if meta["dense"] is not None:
             try:
                 dense = dense_from_stored(field("dense"), B, len(names))
             except ValueError as error:
                 raise SolutionFileError(f"{path}: field 'dense' is damaged: {error}") from None
+            _check_dense(dense, t, values, path)
         return cls(
             t=t,
             values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},

@@ -198,3 +198,47 @@ def test_gradient_data_must_be_real_measurements():
     with pytest.raises(E.DataError, match=r"the data for 'y' are NaN everywhere: a series with no measurement"):
         sol.gradient({"y": np.full_like(good, np.nan)}, ["k"])  # (before: 0.0)
     assert sol.gradient({"y": good}, ["k"])["k"] != 0.0
+
+
+def _tampered(path, edit):
+    """The solution file at ``path`` with ``edit(arrays, meta)`` applied, written beside it."""
+    import json
+
+    arrays = {k: v.copy() for k, v in np.load(path).items()}
+    meta = json.loads(str(arrays["meta"]))
+    edit(arrays, meta)
+    arrays["meta"] = np.array(json.dumps(meta))
+    out = path.with_name("tampered.npz")
+    np.savez(out, **arrays)
+    return out
+
+
+def _event_times(arrays, meta):
+    return arrays[meta["events"]["floor"]["t"]["__array__"]]
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda a, m: m.update(events={}), r"field 'events' lacks the model's event\(s\) \['floor'\]"),
+        (lambda a, m: m["events"].update(ghost=m["events"]["floor"]), r"field 'events' holds \['ghost'\], which"),
+        (lambda a, m: _event_times(a, m).__setitem__((0, 0), 99.0), r"'events.floor.t' is not a sequence of times"),
+        (lambda a, m: _event_times(a, m).__setitem__(0, _event_times(a, m)[0, ::-1].copy()), r"in order"),
+        (lambda a, m: a.__setitem__(m["dense"]["edges"]["__array__"], a[m["dense"]["edges"]["__array__"]] * 0.1),
+         r"field 'dense' does not give the stored values at the output times"),
+    ],
+)  # fmt: skip
+def test_load_refuses_events_and_dense_outputs_that_are_not_the_solutions(edit, message, tmp_path):
+    # (found by review: each loaded with status "success"; at() then extrapolated, h = -19 for 0.148)
+    path = dm.solve(ball(), SPAN, rtol=1e-8, atol=1e-8).save(tmp_path / "ball.npz")
+    with pytest.raises(SolutionFileError, match=message):
+        dm.Solution.load(_tampered(path, edit), ball())
+
+
+def test_load_takes_a_model_whose_values_are_those_the_solve_used(tmp_path):
+    # (found by review: a solve at g = 5 of a model declared with 9.81 was refused with the model declared at 5)
+    path = dm.solve(ball(), SPAN, rtol=1e-8, atol=1e-8, parameters={"g": 5.0}).save(tmp_path / "ball.npz")
+    loaded = dm.Solution.load(path, ball(g=5.0))
+    assert loaded.parameters.tolist() == [[5.0]]
+    with pytest.raises(SolutionFileError, match=r"its g = 9\.81, the model's 7\.0"):
+        dm.Solution.load(path, ball(g=7.0))

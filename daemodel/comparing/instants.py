@@ -7,10 +7,10 @@ their accuracy (1e-12 apart at best); between the two instants one holds the val
 and the other the value before it, O(1) apart however accurate both are (a bouncing ball's velocity:
 8 m/s).  So :meth:`Solution.errors`, :meth:`Solution.error_report` and :func:`compare` measure:
 
-* the variables at the solution's output times, leaving out those within the window of an instant:
-  for a pair of instants of one event name, one on each side that are each other's nearest (per
-  sample), ``[min(t_a, t_b) - w, max(t_a, t_b) + w]``, and ``[t - w, t + w]`` around an instant that
-  pairs with none (one side missed it), with ``w = TIME_MATCH_RTOL * max(span, 1)``;
+* the variables at the solution's output times, leaving out those within the window of an instant of
+  either side, ``[t - w, t + w]`` with ``w = TIME_MATCH_RTOL * max(span, 1)`` (an output time between
+  two instants of the same event further apart than that is measured: one side is after its event
+  and the other before, which is the solve's error in timing it);
 * the instants themselves, per event name (and ``"time breakpoints"``): ``|t_a - t_b|`` of each
   pair, and the values before against the values before, after against after, each side's at its
   own instant.
@@ -126,7 +126,7 @@ def _record(record, names, batch: int, where: str) -> tuple:
             array = None
         if array is None or array.ndim not in (1, 2):
             raise ComparisonError(f"{where}: {what} is not a (K,) or (B, K) array of numbers")
-        array = array.reshape(-1, array.shape[-1]) if array.ndim == 2 else array[None, :]
+        array = array if array.ndim == 2 else array[None, :]
         if len(array) not in (1, batch):
             raise ComparisonError(f"{where}: {what} has {len(array)} rows; the solution has {batch} samples")
         return np.broadcast_to(array, (batch, array.shape[-1]))
@@ -172,10 +172,10 @@ def measure(t: np.ndarray, own: dict, theirs: dict | None, names, batch: int) ->
             if reference_count is not None:
                 reference_count += len(tb)
             i, j = _pairs(ta, tb)
-            windows = [(min(ta[x], tb[y]), max(ta[x], tb[y])) for x, y in zip(i, j, strict=True)]
-            windows += [(s, s) for s in (*np.delete(ta, i), *np.delete(tb, j))]
-            for lo, hi in windows:
-                keep[b] &= ~((t >= lo - w) & (t <= hi + w))
+            # (only each instant's own neighbourhood: an output time between two paired instants further apart
+            # than the window sees one side after its event and the other before, an error of the solve's timing)
+            for s in (*ta, *tb):
+                keep[b] &= ~((t >= s - w) & (t <= s + w))
             if len(i):
                 dt.append(np.abs(ta[i] - tb[j]))
                 for side, found in ((before, 1), (after, 2)):

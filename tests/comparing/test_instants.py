@@ -75,3 +75,24 @@ def test_a_references_events_not_laid_out_as_a_solutions_are_refused(ball, event
     reference.events = events
     with pytest.raises(ComparisonError, match=message):
         ball.errors(reference)
+
+
+def test_a_span_before_the_first_event():
+    # (found by review: a raw ValueError reshaping the empty event record, in errors, compare and the CLI)
+    sol = dm.solve(BOUNCING_BALL.model(), (0.0, 0.3), rtol=1e-10, atol=1e-10)
+    errors = sol.errors(BOUNCING_BALL.exact_solution())
+    assert errors["h"]["max"] < 1e-12 and errors["v"]["max"] < 1e-12
+
+
+@pytest.mark.parametrize(("guard", "off"), [("h + 0.01", 0.01), ("h + 0.2", 0.2)])
+def test_an_event_located_wrong_shows_in_the_errors(guard, off):
+    # (found by review: a terminal guard 0.2 below the floor gave errors of 1e-15: the output times between the
+    # two impacts were left out, and the instants' errors were not in errors())
+    m = dm.Model("ball")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", guard, direction=-1, reset={"v": "-0.8*v"}, terminal=True)
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-10, t_eval=np.linspace(0.0, 1.0, 101))
+    assert sol.errors(BOUNCING_BALL.exact_solution())["h"]["max"] >= off * (1 - 1e-6)
