@@ -716,6 +716,13 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     )
 
 
+def _one_step(options, span: float) -> dict:
+    """The changes to ``options`` that make a solve over ``span`` one fixed step (its adaptive settings
+    dropped: a fixed ``h`` excludes them)."""
+    fields = {f.name for f in dataclasses.fields(options)}
+    return {"h": span} | {name: None for name in ("rtol", "atol", "h0") if name in fields}
+
+
 def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya, za, side, delta, event):
     """``(t, F, y (1, n), z (1, m))`` past ``a`` where the event function ``which``, at zero at ``a``, is on
     its ``side`` in the method's own solution: a look-ahead ``delta`` later, doubled while the method's
@@ -731,8 +738,10 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
     while True:
         tau = min(a + step, 0.5 * (a + b))
         changes = {"t_eval": None}
-        if takes_h and (getattr(options, "h", None) is not None or tau - a <= TINY_SPAN * max(1.0, abs(a))):
-            changes["h"] = min(getattr(options, "h", None) or math.inf, tau - a)
+        if takes_h and getattr(options, "h", None) is not None:
+            changes["h"] = min(options.h, tau - a)
+        elif takes_h and tau - a <= TINY_SPAN * max(1.0, abs(a)):
+            changes |= _one_step(options, tau - a)
         sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
         _, Ys, Zs = _outputs(sol, compiled)
         y, z = Ys[-1:], Zs[-1:]
@@ -761,8 +770,8 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
 
     def trial(tau):
         changes = {"t_eval": None} | ({"h": min(h, tau - a)} if h is not None else {})
-        if takes_h and tau - a <= TINY_SPAN * max(1.0, abs(a)):  # (one step: a method's default grid would
-            changes["h"] = tau - a  # cut it below the resolution of t)
+        if takes_h and h is None and tau - a <= TINY_SPAN * max(1.0, abs(a)):  # (one step: a method's default grid
+            changes |= _one_step(options, tau - a)  # would cut it below the resolution of t)
         sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
         stats.append(sol.stats)
         _, Ys, Zs = _outputs(sol, compiled)

@@ -358,3 +358,17 @@ def test_zeno_reports_the_accumulation_point_whichever_check_fires(t1):
     with pytest.raises(E.ZenoError) as caught:
         dm.solve(_ball(e=0.5), (0.0, t1), rtol=1e-10, atol=1e-10)
     assert abs(caught.value.t - _accumulation(0.5)) < 1e-9
+
+
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_a_switch_a_hair_after_the_start(method, options):
+    # the crossing 1e-10 after t0: its trial solves are shorter than a method's own grid resolves, so each is one
+    # step (before the fix adaptive radau refused the fixed h it was given beside its rtol)
+    m = dm.Model("hair")
+    m.states("x y")
+    m.ode("x", "1")
+    m.ode("y", "Heaviside(x - 0.5)")
+    m.initial(x=0.5 - 1e-10, y=0.0)
+    sol = dm.solve(m, (0.0, 1.0), method=method, **options)
+    tol = 1e-6 if method == "casadi-idas" else 1e-9  # (IDAS at its default rtol 1e-6)
+    assert abs(sol["y"][-1] - 1.0) < tol and abs(sol.events["Piecewise in y'"]["t"][0, 0] - 1e-10) < 1e-12
