@@ -271,8 +271,8 @@ class Comparison:
         notes = [
             f"event t, event y: at the instants of {', '.join(labels)}, each paired with the nearest of the "
             "reference's, max |t - t_ref| and the max error of the values just before and just after (each side at "
-            "its own instant); excluded: output values within such a pair's window, left out of the variables' errors "
-            "(one side may hold the value after a reset, the other the value before)"
+            "its own instant); excluded: output values within 1e-9 of the span of either side's instant, left out of "
+            "the variables' errors (one side may hold the value after a reset, the other the value before)"
         ]
         for run in self.runs:
             for label, instant in run.instants.items():
