@@ -5,7 +5,9 @@ import dataclasses
 import json
 import math
 import re
+import shutil
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -437,31 +439,16 @@ def test_daemodel_compare_on_the_bouncing_ball(tmp_path, capsys):
     assert [max(e["max"] for e in r.errors.values()) < 1e-4 for r in result.runs] == [True] * 4
 
 
-DOUBLE_PENDULUM_FILE = '''
-import math
-
-import daemodel as dm
+# (the model file imports the double pendulum of tests/backends/pinn from a copy beside it, as a user's would)
+DOUBLE_PENDULUM_FILE = """
+from pinn_hard_models import double_pendulum
 
 T_SPAN = (0.0, 1.0)
 
 
 def build_model():
-    """Two point masses on rods of length 1 (Cartesian, index 3), released at 90 and 180 degrees."""
-    m = dm.Model("double_pendulum")
-    x1, y1, x2, y2, u1, v1, u2, v2 = m.states("x1 y1 x2 y2 u1 v1 u2 v2")
-    l1, l2 = m.algebraics("l1 l2")
-    g = m.parameter("g", 9.81)
-    for position, velocity in ((x1, u1), (y1, v1), (x2, u2), (y2, v2)):
-        m.ode(position, velocity)
-    m.ode(u1, -l1 * x1 + l2 * (x2 - x1))
-    m.ode(v1, -l1 * y1 + l2 * (y2 - y1) - g)
-    m.ode(u2, -l2 * (x2 - x1))
-    m.ode(v2, -l2 * (y2 - y1) - g)
-    m.constraint(x1**2 + y1**2 - 1, name="rod1")
-    m.constraint((x2 - x1) ** 2 + (y2 - y1) ** 2 - 1, name="rod2")
-    m.initial(x1=1.0, y1=0.0, x2=1.0, y2=1.0, u1=0.0, v1=0.0, u2=0.0, v2=0.0)
-    return m
-'''
+    return double_pendulum(90.0, 180.0)  # (released at 90 and 180 degrees)
+"""
 
 
 def test_daemodel_compare_shows_a_certified_pinn_flagged_where_radau_is(tmp_path, capsys):
@@ -470,6 +457,7 @@ def test_daemodel_compare_shows_a_certified_pinn_flagged_where_radau_is(tmp_path
     2e-12' with no flag (and its status was "success"); now 'cert ... <= ...  flagged'."""
     model = tmp_path / "double_pendulum.py"
     model.write_text(DOUBLE_PENDULUM_FILE)
+    shutil.copy(Path(__file__).parents[1] / "backends" / "pinn" / "pinn_hard_models.py", tmp_path)
     args = ["compare", str(model), "--methods", "radau,pinn", "--points", "1", "--steps", "20"]
     assert main([*args, "--out", str(tmp_path / "out"), "--no-progress"]) == 0
     table = capsys.readouterr().out
