@@ -454,13 +454,13 @@ class _SampleRun:
         n = len(compiled.states)
         if n == 0 or n + len(compiled.algebraics) > STIFF_EIG_MAX:
             return 0.0
-        J = numeric.jacobian(compiled.rhs, compiled.states)(t, y, z, p)
-        if len(compiled.algebraics):
-            fz = numeric.jacobian(compiled.rhs, compiled.algebraics)(t, y, z, p)
-            try:
+        try:  # (the derivative of a switch, sign or Abs, has no numeric form: then the steps decide, as before)
+            J = numeric.jacobian(compiled.rhs, compiled.states)(t, y, z, p)
+            if len(compiled.algebraics):
+                fz = numeric.jacobian(compiled.rhs, compiled.algebraics)(t, y, z, p)
                 J = J - fz @ np.linalg.solve(self.algebraic.Hz(t, y, z, p), self.algebraic.Hy(t, y, z, p))
-            except np.linalg.LinAlgError:
-                return 0.0
+        except (np.linalg.LinAlgError, ValueError, TypeError, NotImplementedError, ArithmeticError):
+            return 0.0
         if not np.isfinite(J).all():
             return 0.0
         return float(max(0.0, -np.linalg.eigvals(J).real.min()))
@@ -533,10 +533,11 @@ class _SampleRun:
         done = 0  # outputs filled
         t, y = t0, self.y0.copy()
         self.t = t0  # the last accepted time, for the reports
+        started_stiff = False  # (Radau from t0 by the Jacobian: DOP853 once more where its steps look hopeless)
         if self.options.integrator == AUTO:
             decay = self.decay_rate(np.float64(t0), y, self.z0)
             if decay * (self.t1 - t0) > STIFF_DECAY_SPAN:
-                self.integrator = "Radau"
+                self.integrator, started_stiff = "Radau", True
                 self.description = f"Radau (stiff at t0: max -Re(lambda) = {decay:.2g})"
         solver, detector, watch = None, StiffnessDetector(), None
         # While a failure at time ``guard`` is localised: steps at most max_step, and the distance
@@ -568,6 +569,13 @@ class _SampleRun:
                 raise self._failed(failure.t, failure.reason, failure.error) from None
             watch = watch or ProgressWatch(t0, self.h)
             needed = watch.hopeless(self.counts["steps"], t, self.h, self.t1, self.options.max_steps)
+            if needed is not None and started_stiff and solver.status != "finished":
+                # (a transient that only looked stiff at t0, beside an oscillation Radau must resolve too)
+                self._restart(solver)
+                self.integrator, solver, first_step, watch, started_stiff = "DOP853", None, None, None, False
+                self.description = f"Radau (stiff at t0) -> DOP853 at t = {t:.6g}"
+                detector = StiffnessDetector()
+                continue
             if needed is not None:
                 raise self._step_limit(detector, projected=needed)
             later = int(np.searchsorted(times, t, side="right"))

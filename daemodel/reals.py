@@ -80,6 +80,16 @@ def is_real(value) -> bool:
     return isinstance(value, numbers.Real | sp.Basic) and not isinstance(value, bool | np.bool_)
 
 
+def _not_real(values):
+    """The entries of nested lists and tuples that are no real numbers (strings, bools, complex), in order:
+    numpy turns ``[0.5, "0.6"]`` into strings throughout, and the culprit is the second."""
+    for value in values:
+        if isinstance(value, list | tuple):
+            yield from _not_real(value)
+        elif isinstance(value, str | bytes | bool | np.bool_ | complex | np.complexfloating):
+            yield value
+
+
 def real_array(values, what: str, *, error: type = InvalidValueError) -> np.ndarray:
     """``values`` (a number, list or array of real numbers) as a float64 array, else ``error``.
 
@@ -115,6 +125,8 @@ def real_array(values, what: str, *, error: type = InvalidValueError) -> np.ndar
             out[index] = real(value, f"{what}{list(index) if array.ndim else ''}", finite=False, error=error)
         return out
     described = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "byte strings"}.get(kind, array.dtype)
-    first = array.flat[0].item() if array.size else None
+    first = next(_not_real(values), None) if isinstance(values, list | tuple) else None
+    if first is None:  # (an array of them: its first)
+        first = array.flat[0].item() if array.size else None
     hint = " (the imaginary part would be dropped)" if kind == "c" else ""
     raise error(f"{what} must be real numbers; got {described}{hint}, the first {quoted(first, 40)}")

@@ -551,6 +551,22 @@ class Solution:
         """The breakpoint record and each event's: ``"t"`` (B, K) and the values before and after."""
         return ([self.breakpoints] if self.breakpoints else []) + list(self.events.values())
 
+    def _check_memory_of_at(self, K: int) -> None:
+        """Refuse ``at()`` at ``K`` times whose values and their evaluation would not fit (before allocating)."""
+        from daemodel.errors import ResourceLimitError
+        from daemodel.files import memory_limit
+
+        unknowns = len(self.compiled.states) + len(self.compiled.algebraics)
+        stages = int(self.settings.get("stages", 3) or 3) if isinstance(self.settings, dict) else 3
+        # (the values, and the dense output's work arrays: a polynomial's nodes per time)
+        need = 8 * K * self.batch_size * unknowns * (stages + 3)
+        limit = memory_limit()
+        if need > limit:
+            raise ResourceLimitError(
+                f"at(): {K} times of {self.batch_size} sample(s) and {unknowns} unknowns would need about "
+                f"{need / 2**30:.3g} GiB, beyond the {limit / 2**30:.3g} GiB allowance; ask for fewer times at once"
+            )
+
     def at(self, times) -> dict[str, np.ndarray]:
         """Values at ``times`` inside the solution's span, by name: (len(times),) or (B, len(times)).
 
@@ -578,8 +594,11 @@ class Solution:
 
         times = np.atleast_1d(real_array(times, "at(): times"))  # ("0.5" and True are no times)
         t = self.t
-        if times.ndim != 1 or not np.isfinite(times).all():
-            raise InvalidValueError(f"at(): times must be a finite 1-d array; got shape {times.shape}")
+        if times.ndim != 1:
+            raise InvalidValueError(f"at(): times must be a 1-d array; got shape {times.shape}")
+        if not np.isfinite(times).all():
+            raise InvalidValueError(f"at(): times must be finite; got {times[~np.isfinite(times)][0]}")
+        self._check_memory_of_at(len(times))
         outside = (times < t[0]) | (times > t[-1])
         if outside.any():
             raise InvalidValueError(

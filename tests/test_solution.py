@@ -182,6 +182,15 @@ def test_at_refuses_times_that_are_not_numbers(decay):
         decay.at([0.5 + 0.1j])
     with pytest.raises(E.InvalidValueError, match=r"at\(\): times\[1\] must be a real number; got None"):
         decay.at([0.5, None])
+    # (found by review: the message named '0.5', which numpy had made a string beside the culprit)
+    with pytest.raises(E.InvalidValueError, match=r"got strings, the first '0\.6'"):
+        decay.at([0.5, "0.6"])
+    with pytest.raises(E.InvalidValueError, match=r"at\(\): times must be finite; got nan"):
+        decay.at(float("nan"))
+    with pytest.MonkeyPatch.context() as patch:  # (an allowance of 16 MiB: 10^6 times need about 90 MiB)
+        patch.setenv("DAEMODEL_MEMORY_LIMIT", "16M")
+        with pytest.raises(E.ResourceLimitError, match=r"at\(\): 1000000 times of 1 sample\(s\) and 2 unknowns"):
+            decay.at(np.full(10**6, 0.5))
     # numbers of every kind are times
     exact = decay.at(0.5)["y"]
     for t in (np.float32(0.5), sp.Rational(1, 2), [sp.S.Half], np.array([0.5])):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -524,7 +525,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         piece, piece_when = begin.model, begin.when
         if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
-        sol = _span_solve(backend, piece, t, t1, Y, Z, P, start.batched, options, t_eval=None)
+        with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
+            warnings.simplefilter("always")
+            sol = _span_solve(backend, piece, t, t1, Y, Z, P, start.batched, options, t_eval=None)
         all_stats.append(sol.stats)
         setup_time += sol.setup_time
         last = sol
@@ -538,6 +541,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
         if first is None:
+            for warning in caught:
+                warnings.warn(warning.message, warning.category, stacklevel=4)
             pieces.append((t, t1, Y, Z, None, piece, sol.dense))
             break
         count += 1
@@ -742,7 +747,9 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
             changes["h"] = min(options.h, tau - a)
         elif takes_h and tau - a <= TINY_SPAN * max(1.0, abs(a)):
             changes |= _one_step(options, tau - a)
-        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
+        with warnings.catch_warnings():  # (a trial's flags are not the solve's: its outputs are solved again)
+            warnings.simplefilter("ignore")
+            sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
         _, Ys, Zs = _outputs(sol, compiled)
         y, z = Ys[-1:], Zs[-1:]
         value = float(when(np.array([tau]), y, z, P)[0, which])
@@ -772,7 +779,9 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         changes = {"t_eval": None} | ({"h": min(h, tau - a)} if h is not None else {})
         if takes_h and h is None and tau - a <= TINY_SPAN * max(1.0, abs(a)):  # (one step: a method's default grid
             changes |= _one_step(options, tau - a)  # would cut it below the resolution of t)
-        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
+        with warnings.catch_warnings():  # (a trial's flags are not the solve's: its outputs are solved again)
+            warnings.simplefilter("ignore")
+            sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
         stats.append(sol.stats)
         _, Ys, Zs = _outputs(sol, compiled)
         y, z = Ys[-1:], Zs[-1:]

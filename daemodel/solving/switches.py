@@ -332,15 +332,38 @@ def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarra
     functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.
     ``sides`` (switching function -> +1 or -1): the branch of those at zero there (see :func:`_fix`).
     Cached."""
-    time_symbols = {compiled.t, *compiled.parameters}
-    values = [
-        (compiled.t, t),
-        *zip(compiled.parameters, p, strict=True),
-        *zip(compiled.states, y, strict=True),
-        *zip(compiled.algebraics, z, strict=True),
-    ]
-    at = {symbol: sp.Float(float(value)) for symbol, value in values}
-    return _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", sides)
+    sides = sides or {}
+    switches = find_switches(compiled)
+    functions = tuple(dict.fromkeys(switch.function for switch in switches))
+    integer = {switch.function for switch in switches if switch.kind in ("floor", "ceiling")}
+    numbers = compiled.numeric.batch_function(list(functions))(
+        np.array([float(t)]), np.asarray(y, dtype=float)[None], np.asarray(z, dtype=float)[None], np.asarray(p)[None]
+    )[0]
+    # the branches as numbers (each function's sign, an integer part's floor and ceiling, or the side given):
+    # the same branches are the same model, found without rewriting the equations (large models: seconds each)
+    decided, signature = {}, []
+    for function, number in zip(functions, numbers, strict=True):
+        side = sides.get(function) or (-sides[-function] if -function in sides else None)
+        if function in integer:
+            signature.append((round(number), side) if side else (math.floor(number), math.ceil(number)))
+            if side:
+                decided[function] = side
+        else:
+            signature.append(side or int(np.sign(number)))
+            if signature[-1]:
+                decided[function] = signature[-1]
+    key = ("locked-by", tuple(signature))
+    if key not in compiled._cache:
+        time_symbols = {compiled.t, *compiled.parameters}
+        values = [
+            (compiled.t, t),
+            *zip(compiled.parameters, p, strict=True),
+            *zip(compiled.states, y, strict=True),
+            *zip(compiled.algebraics, z, strict=True),
+        ]
+        at = {symbol: sp.Float(float(value)) for symbol, value in values}
+        compiled._cache[key] = _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", decided)
+    return compiled._cache[key]
 
 
 def for_method(compiled, backend):

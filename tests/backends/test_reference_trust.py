@@ -136,6 +136,31 @@ def test_auto_starts_with_radau_where_the_jacobian_is_stiff_at_t0():
     assert small.stats["integrator"] == "DOP853"  # (1764 * 0.5 is no stiffness over this span)
 
 
+def test_auto_goes_back_to_dop853_where_only_a_transient_was_stiff():
+    # (found by review: a decay at 1e4 beside an oscillation at 50 rad/s over 20 s: the Radau start took the
+    # transient's steps for the whole span and stopped on max_steps; DOP853 solves it)
+    m = dm.Model("mix")
+    m.states("u y v")
+    m.ode("u", "-1e4*u")
+    m.ode("y", "v")
+    m.ode("v", "-2500.0*y")
+    m.initial(u=1.0, y=1.0, v=0.0)
+    sol = dm.solve(m, (0.0, 20.0), method="reference", t_eval=[0.0, 20.0], max_steps=10**6)
+    assert sol.stats["integrator"].startswith("Radau (stiff at t0) -> DOP853 at t = ")
+    assert abs(sol["y"][-1] - math.cos(50.0 * 20.0)) < 1e-9
+
+
+def test_auto_with_a_switch_whose_derivative_has_no_numeric_form():
+    # (found by review: sign's derivative reached the Jacobian's printer: a raw sympy error for a batch)
+    m = dm.Model("s")
+    m.states("x1 x2")
+    m.ode("x1", "x2")
+    m.ode("x2", "-sign(x1 - 2)")
+    m.initial(x1=1.0, x2=0.0)
+    sol = dm.solve(m, (0.0, 0.5), method="reference", y0={"x1": [1.0, 1.5], "x2": [0.0, 0.0]})
+    np.testing.assert_allclose(sol["x1"][:, -1], [1.0 + 0.125, 1.5 + 0.125], atol=1e-9)
+
+
 def test_auto_keeps_dop853_on_a_nonstiff_problem_and_explicit_radau_works():
     exact = HESSENBERG.exact_solution()
     for integrator, expected, tolerance in (("auto", "DOP853", 1e-10), ("Radau", "Radau", 1e-10)):
