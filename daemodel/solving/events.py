@@ -499,7 +499,6 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     P = np.asarray(start.p, dtype=float)
     Y, Z = np.asarray(start.y0, dtype=float), np.asarray(start.z0, dtype=float)
     user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
-    h = getattr(options, "h", None)
     pieces, all_stats, record = [], [], {e.name: {"t": [], "before": [], "after": [], "moved": []} for e in events}
     t, count, setup_time, last = t0, 0, 0.0, None
     recent = []  # (the event times, to see chattering before max_events)
@@ -562,7 +561,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 delta_at(a), events[which],
             )  # fmt: skip
         t_event, y_event, z_event, located = _locate(
-            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, h
+            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za
         )
         all_stats += located
         ends = t_event >= t1 - EVENT_TOL * max(1.0, abs(t1))  # (an event at t1: applied there, and the solve ends)
@@ -721,11 +720,23 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     )
 
 
-def _one_step(options, span: float) -> dict:
-    """The changes to ``options`` that make a solve over ``span`` one fixed step (its adaptive settings
-    dropped: a fixed ``h`` excludes them)."""
+def _trial(backend, compiled, options, batched, P, which, when, a: float, tau: float, ya, za) -> tuple:
+    """One trial solve of ``compiled`` over ``[a, tau]`` from ``(ya, za)``: ``(F, y (1, n), z (1, m), stats)``,
+    ``F`` the event function ``which`` at its end.  A fixed ``h`` is kept (at most the span); a span shorter
+    than a method's own grid resolves is one fixed step, its adaptive settings dropped.  Its warnings are
+    not the solve's (its outputs are solved again), so they are not shown."""
     fields = {f.name for f in dataclasses.fields(options)}
-    return {"h": span} | {name: None for name in ("rtol", "atol", "h0") if name in fields}
+    changes = {"t_eval": None}
+    if "h" in fields and getattr(options, "h", None) is not None:
+        changes["h"] = min(options.h, tau - a)
+    elif "h" in fields and tau - a <= TINY_SPAN * max(1.0, abs(a)):
+        changes |= {"h": tau - a} | {name: None for name in ("rtol", "atol", "h0") if name in fields}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
+    _, Ys, Zs = _outputs(sol, compiled)
+    y, z = Ys[-1:], Zs[-1:]
+    return float(when(np.array([tau]), y, z, P)[0, which]), y, z, sol.stats
 
 
 def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya, za, side, delta, event):
@@ -738,21 +749,10 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
     ZenoError
         It is not on its side anywhere there: back across zero sooner than the method resolves.
     """
-    takes_h = "h" in {f.name for f in dataclasses.fields(options)}
     step = delta
     while True:
         tau = min(a + step, 0.5 * (a + b))
-        changes = {"t_eval": None}
-        if takes_h and getattr(options, "h", None) is not None:
-            changes["h"] = min(options.h, tau - a)
-        elif takes_h and tau - a <= TINY_SPAN * max(1.0, abs(a)):
-            changes |= _one_step(options, tau - a)
-        with warnings.catch_warnings():  # (a trial's flags are not the solve's: its outputs are solved again)
-            warnings.simplefilter("ignore")
-            sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
-        _, Ys, Zs = _outputs(sol, compiled)
-        y, z = Ys[-1:], Zs[-1:]
-        value = float(when(np.array([tau]), y, z, P)[0, which])
+        value, y, z, _ = _trial(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
         if np.sign(value) == side:
             return tau, value, y, z
         if tau >= 0.5 * (a + b):
@@ -766,26 +766,17 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
-def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, h):
+def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za):
     """The event ``which`` between outputs ``a`` and ``b`` (values ``Fa``, ``Fb`` of opposite sign or
     ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats)``, by the Illinois method on trial
     solves from ``a``."""
     stats = []
     tol = EVENT_TOL * max(1.0, abs(a), abs(b))
 
-    takes_h = "h" in {f.name for f in dataclasses.fields(options)}
-
     def trial(tau):
-        changes = {"t_eval": None} | ({"h": min(h, tau - a)} if h is not None else {})
-        if takes_h and h is None and tau - a <= TINY_SPAN * max(1.0, abs(a)):  # (one step: a method's default grid
-            changes |= _one_step(options, tau - a)  # would cut it below the resolution of t)
-        with warnings.catch_warnings():  # (a trial's flags are not the solve's: its outputs are solved again)
-            warnings.simplefilter("ignore")
-            sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
-        stats.append(sol.stats)
-        _, Ys, Zs = _outputs(sol, compiled)
-        y, z = Ys[-1:], Zs[-1:]
-        return float(when(np.array([tau]), y, z, P)[0, which]), y, z
+        value, y, z, solved = _trial(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
+        stats.append(solved)
+        return value, y, z
 
     if Fb == 0:
         _, y, z = trial(b)
