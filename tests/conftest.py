@@ -36,7 +36,7 @@ def ray_cluster():
     starts one (on 127.0.0.1; skipped where Ray is not installed; CI installs it with the ``ray``
     extra)."""
     ray = pytest.importorskip("ray")
-    from daemodel.solving.engine import connect
+    from daemodel.executors import connect
 
     connect(2, None)
     yield ray

@@ -613,7 +613,7 @@ def test_a_ray_cluster_daemodel_starts_listens_on_loopback_and_stops_a_task_past
     out = child(
         """
         import time
-        from daemodel.solving.engine import connect, run_tasks
+        from daemodel.executors import connect, run_tasks
         from daemodel.errors import TimeLimitError
         import subprocess
         ray = connect(1, None)
@@ -809,7 +809,7 @@ def test_a_planted_link_does_not_lend_its_targets_mode(tmp_path):
 def test_a_time_limit_ends_an_ensemble_chunk_instead_of_splitting_it():
     """The limit is not a failing sample: the chunk is not bisected and solved again without it."""
     from daemodel.errors import TimeLimitError
-    from daemodel.solving.engine import _time_limit
+    from daemodel.executors import _time_limit
     from daemodel.solving.ensemble import solve_chunk
 
     batch = {"parameters": np.linspace(1.0, 2.0, 64)[:, None], "y0": np.ones((64, 1))}

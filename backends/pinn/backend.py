@@ -30,8 +30,8 @@ from daemodel.errors import (
     TrainingError,
     UncertifiedWarning,
 )
+from daemodel.executors import check_engine
 from daemodel.files import writable_file
-from daemodel.solving.engine import check_engine
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -23,7 +23,7 @@ MAX_INDEX = 2
 
 def resolve_model(model, caller: str):
     """A CompiledDAE of index at most 2 from a Model or a CompiledDAE."""
-    from daemodel.solving.solver import as_compiled
+    from daemodel.compiling.compiler import as_compiled
 
     model = as_compiled(model, caller)
     return model.reduced(MAX_INDEX) if model.index > MAX_INDEX else model
@@ -315,7 +315,7 @@ def fit_parallel(
     compiled, grid, starts, algebraics, p, config, progress: Progress, engine="local", workers=None, address=None
 ):
     """Train every segment independently on known start values, as tasks of ``engine``
-    (:func:`daemodel.solving.engine.run_tasks`: one after another here, or in parallel on Ray).
+    (:func:`daemodel.executors.run_tasks`: one after another here, or in parallel on Ray).
 
     Parameters
     ----------
@@ -329,7 +329,7 @@ def fit_parallel(
     networks, stats, peak_memory_mb
         The last: each Ray task's peak resident memory (empty for the local engine).
     """
-    from daemodel.solving.engine import run_tasks
+    from daemodel.executors import run_tasks
 
     check_network_memory(compiled, config, starts.shape[2], starts.shape[1], len(grid) - 1)
     tasks = [(k, t, h, starts[k], algebraics[k]) for k, (t, h) in enumerate(segment_steps(grid))]

@@ -221,7 +221,7 @@ class Surrogate:
 
         from daemodel.compiling.compiler import as_compiled
         from daemodel.compiling.initial_states import algebraic_values, project_states
-        from daemodel.solving.engine import check_engine
+        from daemodel.executors import check_engine
         from daemodel.solving.solver import check_span
 
         compiled = resolve_model(model, "Surrogate.train()")
@@ -273,7 +273,7 @@ class Surrogate:
     def _fit_on_radau(cls, compiled, config, grid, y, z, p, inputs, progress, engine, parameter_box) -> Surrogate:
         """Every segment trained independently from radau's solution of the training states."""
         from daemodel.errors import ConvergenceError
-        from daemodel.solving.engine import connect
+        from daemodel.executors import connect
         from daemodel.solving.ensemble import ensemble
 
         engine, workers, address = engine

@@ -29,6 +29,7 @@ from daemodel.errors import (
     SolverError,
     TimeLimitError,
 )
+from daemodel.executors import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 from daemodel.files import (
     DirectoryLock,
     check_memory,
@@ -41,7 +42,6 @@ from daemodel.files import (
     write_json,
 )
 from daemodel.solution import SOLUTION_ARRAYS, Solution, declared, matching_system
-from daemodel.solving.engine import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).

@@ -236,7 +236,7 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
     import os
 
     from daemodel.errors import WorkerError
-    from daemodel.solving.engine import run_tasks
+    from daemodel.executors import run_tasks
 
     with pytest.raises(WorkerError, match=r"ensemble: the Ray worker running task 0 stopped before returning \(Worker"):
         run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
@@ -245,7 +245,7 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
 def test_a_killed_ray_workers_task_is_retried_with_nothing_lost(ray_cluster, tmp_path):
     """The first task to run kills its worker; Ray retries it on a new one, and every result
     comes back, in order."""
-    from daemodel.solving.engine import run_tasks
+    from daemodel.executors import run_tasks
 
     def die_once(marker, value):  # defined here: Ray ships it by value (workers cannot import tests)
         import os
@@ -266,7 +266,7 @@ def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
     the code it has generated): each task appends to it and sees the earlier tasks' entries."""
     import os
 
-    from daemodel.solving.engine import run_tasks
+    from daemodel.executors import run_tasks
 
     def held(shared, i):
         shared["seen"].append(i)
