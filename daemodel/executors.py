@@ -19,7 +19,7 @@ from pathlib import Path
 
 from daemodel.errors import InvalidOptionError, TimeLimitError, WorkerError
 
-ENGINES = ("local", "ray")
+EXECUTORS = ("local", "ray")
 # Seconds a Ray task may run before it is stopped with a TimeLimitError (task_timeout=): far above
 # an ensemble chunk's or a PINN segment's usual minutes, short of a forgotten overnight hang.
 DEFAULT_TASK_TIMEOUT = 3600.0
@@ -39,21 +39,31 @@ def check_timeout(task_timeout) -> None:
         raise InvalidOptionError(f"task_timeout must be a positive number of seconds or None; got {task_timeout!r}")
 
 
-def check_engine(engine, workers, address, device="cpu") -> None:
-    """The engine options' errors, named before any work starts (``device``: the torch device
+def check_executor(executor, workers, address, device="cpu") -> None:
+    """The executor options' errors, named before any work starts (``device``: the torch device
     the tasks would compute on; Ray tasks request no GPU)."""
-    if engine not in ENGINES:
-        raise InvalidOptionError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
+    if executor not in EXECUTORS:
+        raise InvalidOptionError(f"executor must be one of {', '.join(EXECUTORS)}; got {executor!r}")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise InvalidOptionError(f"workers must be a positive integer; got {workers!r}")
     if address is not None and not isinstance(address, str):
         raise InvalidOptionError(f"address must be a string such as 'auto' or 'ray://host:10001'; got {address!r}")
-    if engine == "local" and (workers is not None or address is not None):
-        raise InvalidOptionError("workers and address are Ray's: pass engine='ray' with them")
-    if engine == "ray" and str(device) != "cpu":
+    if executor == "local" and (workers is not None or address is not None):
+        raise InvalidOptionError("workers and address are Ray's: pass executor='ray' with them")
+    if executor == "ray" and str(device) != "cpu":
         raise InvalidOptionError(
-            f"engine='ray' runs each task on one of the workers' CPUs (no GPU requested); device = {str(device)!r} "
-            "runs here: take engine='local' for it"
+            f"executor='ray' runs each task on one of the workers' CPUs (no GPU requested); device = {str(device)!r} "
+            "runs here: take executor='local' for it"
+        )
+
+
+def refuse_engine(caller: str, options: dict) -> None:
+    """A clear error for the spelling ``engine='local' | 'ray'`` of ``caller``'s executor (renamed
+    ``executor=``: ``engine=`` means casadi or torch for radau)."""
+    if "engine" in options:
+        raise InvalidOptionError(
+            f"{caller}: engine={options['engine']!r} is now spelled executor={options['engine']!r} "
+            "(engine= names radau's casadi or torch engine)"
         )
 
 

@@ -30,7 +30,7 @@ from daemodel.errors import (
     TrainingError,
     UncertifiedWarning,
 )
-from daemodel.executors import check_engine
+from daemodel.executors import check_executor
 from daemodel.files import writable_file
 
 
@@ -110,7 +110,7 @@ class PINNOptions:
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         check_threads(self.threads)
-        check_engine(self.engine, self.workers, self.address, self.config.device)
+        check_executor(self.engine, self.workers, self.address, self.config.device)
         if self.engine == "ray" and self.segment_starts is None:
             raise InvalidOptionError(
                 "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "

@@ -221,7 +221,7 @@ class Surrogate:
 
         from daemodel.compiling.compiler import as_compiled
         from daemodel.compiling.initial_states import algebraic_values, project_states
-        from daemodel.executors import check_engine
+        from daemodel.executors import check_executor
         from daemodel.solving.solver import check_span
 
         compiled = resolve_model(model, "Surrogate.train()")
@@ -234,7 +234,7 @@ class Surrogate:
             raise InvalidOptionError(f"samples must be a positive integer; got {samples!r}")
         if starts not in TRAINING_STARTS:
             raise InvalidOptionError(f"starts must be one of {', '.join(TRAINING_STARTS)}; got {starts!r}")
-        check_engine(engine, workers, address, config.device)
+        check_executor(engine, workers, address, config.device)
         if engine == "ray" and starts == "network":
             raise InvalidOptionError(
                 "engine='ray' trains segments in parallel, which needs starts='radau': with starts='network' "

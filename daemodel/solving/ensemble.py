@@ -29,7 +29,7 @@ from daemodel.errors import (
     SolverError,
     TimeLimitError,
 )
-from daemodel.executors import DEFAULT_TASK_TIMEOUT, check_engine, check_timeout, run_tasks
+from daemodel.executors import DEFAULT_TASK_TIMEOUT, check_executor, check_timeout, run_tasks
 from daemodel.files import (
     DirectoryLock,
     check_memory,
@@ -191,7 +191,7 @@ def ensemble(
     from daemodel.compiling.initial_states import _columns
     from daemodel.solving.solver import check_options, check_span
 
-    check_engine(engine, workers, address, options.get("device", "cpu"))
+    check_executor(engine, workers, address, options.get("device", "cpu"))
     check_timeout(task_timeout)
     backend = get_backend(method)
     if "dense_output" in {f.name for f in dataclasses.fields(backend.Options)} and "dense_output" not in options:
