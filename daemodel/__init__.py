@@ -6,7 +6,7 @@ from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.comparing.compare import Comparison, compare
 from daemodel.compiling.compiled import CompiledDAE
-from daemodel.declaring.model import Model
+from daemodel.compiling.compiler import Model
 from daemodel.fitting.fit import Fit, fit
 from daemodel.solution import Solution
 from daemodel.solving.ensemble import EnsembleFiles, ensemble

@@ -350,7 +350,7 @@ class Solution:
     # ---- derivatives --------------------------------------------------------------------
     def sensitivity(self, output: str, name: str) -> np.ndarray:
         """``d output / d name`` at the output times, shaped like ``sol[output]``: the exact derivative
-        of radau's discrete solution (:mod:`daemodel.solving.sensitivities`).
+        of radau's discrete solution (:mod:`daemodel.sensitivities`).
 
         Parameters
         ----------
@@ -382,7 +382,7 @@ class Solution:
         if output in kept:
             out = S[..., kept.index(output)]
         else:  # an alias: the chain rule through its expression
-            from daemodel.solving.sensitivities import alias_derivatives
+            from daemodel.sensitivities import alias_derivatives
 
             Y, Z, P, T = self._flat()
             B, K = self.batch_size, len(self.t)
@@ -418,7 +418,7 @@ class Solution:
         DataError
             For data that are not real numbers (strings, complex, bools), or a series NaN everywhere.
         """
-        from daemodel.solving.sensitivities import adjoint, objective_cotangent
+        from daemodel.sensitivities import adjoint, objective_cotangent
 
         cotangent = objective_cotangent(self, objective)
         where, gradient = adjoint(self, cotangent, wrt)
@@ -445,7 +445,7 @@ class Solution:
         -------
         dict name -> {"max": float, "mean": float}
             Over the output times, except those within the window of an event or breakpoint of
-            either side (:mod:`daemodel.comparing.instants`): there one side may hold the value after
+            either side (:mod:`daemodel.instants`): there one side may hold the value after
             a reset and the other the value before it; ``"max"`` takes in the errors at the instants
             too, each side's value just before (after) against the other's just before (after), so
             that an event located wrong shows here.
@@ -461,7 +461,7 @@ class Solution:
 
     def error_report(self, reference, names=None):
         """The errors against a reference on each side's own branch: the variables at the output times
-        away from events and breakpoints, and the instants themselves (:mod:`daemodel.comparing.instants`).
+        away from events and breakpoints, and the instants themselves (:mod:`daemodel.instants`).
 
         Parameters
         ----------
@@ -483,7 +483,7 @@ class Solution:
             As for :meth:`errors`; a reference callable whose ``events`` is not laid out as
             :attr:`events`.
         """
-        from daemodel.comparing.instants import ErrorReport, measure, records_of
+        from daemodel.instants import ErrorReport, measure, records_of
 
         wanted, ref_values = self._aligned_reference(reference, names)
         B = self.batch_size

@@ -166,7 +166,7 @@ def _t_span(path: Path, value) -> tuple[float, float]:
 
 def _is_model(value) -> bool:
     from daemodel.compiling.compiled import CompiledDAE
-    from daemodel.declaring.model import Model
+    from daemodel.compiling.compiler import Model
 
     return isinstance(value, Model | CompiledDAE)
 

@@ -92,7 +92,7 @@ class Run:
         the JSON).
     errors : dict name -> {"max": float, "mean": float}
         Absolute errors against the reference over the output times, except those within the window
-        of an event or breakpoint (:mod:`daemodel.comparing.instants`; ``excluded`` counts them).
+        of an event or breakpoint (:mod:`daemodel.instants`; ``excluded`` counts them).
     drift : dict constraint -> float
         Max ``|g|`` of each original constraint along the solution.
     failure : str or None
@@ -958,7 +958,7 @@ def _step(solution) -> tuple:
 
 
 def _instant_digest(instant) -> dict:
-    """A :class:`~daemodel.comparing.instants.InstantErrors` as :attr:`Run.instants` keeps it: the values'
+    """A :class:`~daemodel.instants.InstantErrors` as :attr:`Run.instants` keeps it: the values'
     errors as the max over the variables on each side."""
 
     def worst(errors: dict) -> float:

@@ -485,7 +485,7 @@ class CompiledDAE:
             lines += [f"  {n} = {e}   (from {label})" for n, e, label in self.aliases]
         if self.invariants:
             lines.append("Invariants (drift): " + ", ".join(self.invariant_names))
-        from daemodel.solving.switches import find_switches
+        from daemodel.compiling.switches import find_switches
 
         switches = find_switches(self)
         if switches:

@@ -1,7 +1,9 @@
-"""``Model.compile``: validate -> eliminate aliases -> derivative chains -> prune -> match
+"""``Model``: the declarations and ``compile``: validate -> eliminate aliases -> derivative chains -> prune -> match
 -> initialise -> numeric rank check -> :class:`CompiledDAE`."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -9,8 +11,9 @@ from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.init import NumericSystem, initialise
 from daemodel.compiling.prune import eliminate_aliases, needed
 from daemodel.compiling.structure import Differentiator, derivative_chain, match
+from daemodel.declaring.events import Event
 from daemodel.declaring.functions import check_supported
-from daemodel.declaring.model import Model
+from daemodel.declaring.model import Declaration
 from daemodel.errors import (
     InvalidValueError,
     MissingInitialValueError,
@@ -20,6 +23,29 @@ from daemodel.errors import (
     UnbalancedSystemError,
     UnknownOutputError,
 )
+
+
+def with_events(model, compiled):
+    """``compiled`` with ``model``'s events on its symbols (aliases substituted)."""
+    if not model._events:
+        return compiled
+    symbols = model._all_symbols()
+    aliases = {symbols[name]: expr for name, expr, _ in compiled.aliases if name in symbols}
+    known = {compiled.t, *compiled.states, *compiled.algebraics, *compiled.parameters}
+    index = {name: i for i, name in enumerate(compiled.state_names)}
+    events = []
+    for name, when, direction, resets, terminal in model._events:
+        exprs = [when.xreplace(aliases)] + [value.xreplace(aliases) for _, value in resets]
+        missing = sorted({s.name for e in exprs for s in e.free_symbols if s not in known})
+        targets = [target for target, _ in resets if target not in index]
+        if missing or targets:
+            raise UnknownOutputError(
+                f"event '{name}' needs {', '.join(repr(m) for m in (*missing, *targets))}, which the requested "
+                "outputs pruned away; add them to outputs"
+            )
+        reset = tuple((index[target], expr) for (target, _), expr in zip(resets, exprs[1:], strict=True))
+        events.append(Event(name, exprs[0], direction, reset, terminal))
+    return dataclasses.replace(compiled, events=tuple(events))
 
 
 def _names(symbols) -> str:
@@ -178,3 +204,53 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     )
     compiled._cache["numeric"] = numeric  # (the functions the initialisation made, and its derivatives, serve on)
     return compiled
+
+
+class Model(Declaration):
+    """A semi-explicit DAE declared by name.
+
+    Parameters
+    ----------
+    name : str
+        Shown in reports and used in result file names: letters, digits, ``_``, ``-`` and ``.``,
+        starting with a letter, at most 64 characters.
+
+    Attributes
+    ----------
+    t : sympy.Symbol
+        Time, for equations that depend on it: ``m.ode(x, -x + sp.sin(m.t))``, or ``"t"`` in a
+        string (``m.ode(x, "-x + sin(t)")``).  It cannot be declared as a variable.
+
+    Examples
+    --------
+    >>> import daemodel as dm
+    >>> m = dm.Model("decay")
+    >>> (x,) = m.states("x")
+    >>> (w,) = m.algebraics("w")
+    >>> m.ode(x, -w)
+    >>> m.constraint(w - 2 * x, name="rate")
+    >>> m.initial(x=1.0)
+    >>> m.compile().z0
+    array([2.])
+    """
+
+    def compile(self, outputs=None, repair: bool = False):
+        """Check the structure, initialise consistently, prune and return a ``CompiledDAE``.
+
+        Parameters
+        ----------
+        outputs : list of str, optional
+            Variable names the user wants; only what they depend on through the coupled
+            system is kept.  ``None`` keeps everything.
+        repair : bool
+            Project an inconsistent initial state onto the constraint manifold (least change)
+            and replace disagreeing algebraic values, reporting both, instead of raising.
+        """
+        # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
+        # dm.solve again is not recompiled, and the compiled model keeps its generated code
+        if outputs is not None and not (isinstance(outputs, list | tuple) and all(isinstance(o, str) for o in outputs)):
+            return with_events(self, compile_model(self, outputs=outputs, repair=repair))  # (it names the mistake)
+        key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
+        if self._compiled is None or self._compiled[0] != key:
+            self._compiled = (key, with_events(self, compile_model(self, outputs=outputs, repair=repair)))
+        return self._compiled[1]

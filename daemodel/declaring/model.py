@@ -28,7 +28,6 @@ from daemodel.errors import (
     InvalidNameError,
     InvalidValueError,
     ODETargetError,
-    UnknownOutputError,
     UnknownSymbolError,
 )
 from daemodel.messages import quoted
@@ -80,33 +79,10 @@ def _split_names(names, what: str) -> list[str]:
     raise InvalidNameError(f'{what} names must be a string such as "x y" or a list of strings; got {quoted(names)}')
 
 
-class Model:
-    """A semi-explicit DAE declared by name.
-
-    Parameters
-    ----------
-    name : str
-        Shown in reports and used in result file names: letters, digits, ``_``, ``-`` and ``.``,
-        starting with a letter, at most 64 characters.
-
-    Attributes
-    ----------
-    t : sympy.Symbol
-        Time, for equations that depend on it: ``m.ode(x, -x + sp.sin(m.t))``, or ``"t"`` in a
-        string (``m.ode(x, "-x + sin(t)")``).  It cannot be declared as a variable.
-
-    Examples
-    --------
-    >>> import daemodel as dm
-    >>> m = dm.Model("decay")
-    >>> (x,) = m.states("x")
-    >>> (w,) = m.algebraics("w")
-    >>> m.ode(x, -w)
-    >>> m.constraint(w - 2 * x, name="rate")
-    >>> m.initial(x=1.0)
-    >>> m.compile().z0
-    array([2.])
-    """
+class Declaration:
+    """The declarations of a semi-explicit DAE by name: variables, parameters, equations, initial
+    values and events, as sympy expressions (a plain record of what the user wrote).
+    :class:`daemodel.Model` adds ``compile``; this layer never compiles anything."""
 
     def __init__(self, name: str = "model"):
         if not isinstance(name, str) or not _MODEL_NAME.fullmatch(name) or len(name) > MAX_NAME_LENGTH:
@@ -127,7 +103,7 @@ class Model:
         self._t0 = 0.0
         self._events: list[tuple] = []  # (name, when, direction, ((state, expr), ...), terminal)
         self._equation_count = 0
-        self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile
+        self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
 
     # ---- declarations -------------------------------------------------------------------
     def states(self, names) -> tuple[sp.Symbol, ...]:
@@ -292,32 +268,6 @@ class Model:
                 check_supported(resets[-1][1], f"model '{self.name}', {where}")
         self._events.append((name, expr, int(direction), tuple(resets), terminal))
 
-    def _with_events(self, compiled):
-        """``compiled`` with this model's events on its symbols (aliases substituted)."""
-        import dataclasses
-
-        from daemodel.solving.events import Event
-
-        if not self._events:
-            return compiled
-        symbols = self._all_symbols()
-        aliases = {symbols[name]: expr for name, expr, _ in compiled.aliases if name in symbols}
-        known = {compiled.t, *compiled.states, *compiled.algebraics, *compiled.parameters}
-        index = {name: i for i, name in enumerate(compiled.state_names)}
-        events = []
-        for name, when, direction, resets, terminal in self._events:
-            exprs = [when.xreplace(aliases)] + [value.xreplace(aliases) for _, value in resets]
-            missing = sorted({s.name for e in exprs for s in e.free_symbols if s not in known})
-            targets = [target for target, _ in resets if target not in index]
-            if missing or targets:
-                raise UnknownOutputError(
-                    f"event '{name}' needs {', '.join(repr(m) for m in (*missing, *targets))}, which the requested "
-                    "outputs pruned away; add them to outputs"
-                )
-            reset = tuple((index[target], expr) for (target, _), expr in zip(resets, exprs[1:], strict=True))
-            events.append(Event(name, exprs[0], direction, reset, terminal))
-        return dataclasses.replace(compiled, events=tuple(events))
-
     def initial(self, /, t: float | None = None, **values: float) -> None:
         """Initial values by name: all differential variables; algebraic ones are optional.
 
@@ -386,30 +336,6 @@ class Model:
         check_numbers(expr, where)
         return expr
 
-    # ---- compile ------------------------------------------------------------------------
-    def compile(self, outputs=None, repair: bool = False):
-        """Check the structure, initialise consistently, prune and return a ``CompiledDAE``.
-
-        Parameters
-        ----------
-        outputs : list of str, optional
-            Variable names the user wants; only what they depend on through the coupled
-            system is kept.  ``None`` keeps everything.
-        repair : bool
-            Project an inconsistent initial state onto the constraint manifold (least change)
-            and replace disagreeing algebraic values, reporting both, instead of raising.
-        """
-        from daemodel.compiling.compiler import compile_model
-
-        # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
-        # dm.solve again is not recompiled, and the compiled model keeps its generated code
-        if outputs is not None and not (isinstance(outputs, list | tuple) and all(isinstance(o, str) for o in outputs)):
-            return self._with_events(compile_model(self, outputs=outputs, repair=repair))  # (it names the mistake)
-        key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
-        if self._compiled is None or self._compiled[0] != key:
-            self._compiled = (key, self._with_events(compile_model(self, outputs=outputs, repair=repair)))
-        return self._compiled[1]
-
     def _fingerprint(self) -> tuple:
         """Everything declared so far, comparable with ``==``."""
         return (
@@ -427,7 +353,8 @@ class Model:
 
     def __repr__(self) -> str:
         return (
-            f"Model({self.name!r}: {len(self._states)} differential, {len(self._algebraics)} algebraic, "
+            f"{type(self).__name__}({self.name!r}: {len(self._states)} differential, "
+            f"{len(self._algebraics)} algebraic, "
             f"{len(self._constraints)} constraints, {len(self._parameters)} parameters)"
         )
 

@@ -1,7 +1,7 @@
 """``fit``: parameters (and initial states) of a DAE from measured outputs.
 
 Least squares on the misfit between the data and radau's solution at the measured times, with the
-exact derivatives of that solution (:mod:`daemodel.solving.sensitivities`): scipy's trust-region
+exact derivatives of that solution (:mod:`daemodel.sensitivities`): scipy's trust-region
 reflective ``least_squares`` with the sensitivities as its Jacobian, bounds kept.  Each series is
 weighed by its noise level: the one given (``sigma``), else one estimated from its own residuals
 (feasible weighted least squares: start from the series' root mean square, fit, estimate each
@@ -38,7 +38,7 @@ from daemodel.errors import (
     UnknownSymbolError,
 )
 from daemodel.reals import is_real, real, real_array
-from daemodel.solving.sensitivities import directions
+from daemodel.sensitivities import directions
 from daemodel.solving.solver import solve
 
 # A direction in the (scaled) parameter space along which the weighted outputs change less than this
@@ -328,7 +328,7 @@ class _Model:
     of radau's solution from those initial states."""
 
     def __init__(self, problem: _Problem, y0, options):
-        from daemodel.solving.sensitivities import zero_free_levels
+        from daemodel.sensitivities import zero_free_levels
 
         # radau adaptive at rtol 1e-8 unless the caller chose (fixed steps: h; the PINN's grid)
         self.problem = problem
@@ -371,7 +371,7 @@ class _Model:
         """The solution with sensitivities at ``x``, or None where the model cannot be solved there
         (the error kept in ``self.failure``: a trial point scipy then rejects)."""
         from daemodel.errors import DaemodelError
-        from daemodel.solving.sensitivities import forward
+        from daemodel.sensitivities import forward
 
         if self.last is not None and np.array_equal(self.last[0], x):
             return self.last[1]

@@ -23,7 +23,7 @@ accumulation point, and so does a reset that leaves its function on the guard
 
 Switches on states and algebraic variables (:mod:`daemodel.solving.switches`) are events too
 (:func:`with_state_events`: no reset, named after the switch), with the switch locked to the
-branch the flow takes where each piece starts (:func:`daemodel.solving.switches.lock_branches`,
+branch the flow takes where each piece starts (:func:`daemodel.compiling.switches.lock_branches`,
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
 goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`).
 """
@@ -39,7 +39,10 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
+from daemodel.compiling.switches import has_state_switches, has_time_switches, lock_branches
 from daemodel.errors import EventLimitError, EventLocationError, SlidingModeError, SwitchError, ZenoError
+from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
+from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
@@ -66,32 +69,6 @@ TINY_SPAN = 1e-9
 ZENO_GAPS, ZENO_GAP = 5, 1e-6
 
 
-@dataclass(frozen=True)
-class Event:
-    """A declared event, compiled: ``when`` and the reset as expressions of the compiled model's
-    symbols (aliases substituted); ``reset`` as (state index, expression) pairs."""
-
-    name: str
-    when: sp.Expr
-    direction: int
-    reset: tuple
-    terminal: bool
-    # a switch's own event (with_state_events): ``when`` is its switching function; after it, the
-    # branch is the side the flow goes to (both sides tried: neither is a sliding mode), and going
-    # straight back is a crossing too (the branch locked for the piece would be wrong)
-    strict: bool = False
-    # floor/ceiling: the event is the function reaching the integer below or above its value, and the
-    # branch the integer part on the side the flow goes to
-    integer: bool = False
-
-    def describe(self, state_names) -> str:
-        side = {1: "rising", -1: "falling", 0: "either way"}[self.direction]
-        what = f"{self.name}: {self.when} crosses 0 ({side})"
-        if self.reset:
-            what += "; then " + ", ".join(f"{state_names[i]} = {expr}" for i, expr in self.reset)
-        return what + ("; ends the solve" if self.terminal else "")
-
-
 def _functions(compiled):
     """Numeric event functions of ``compiled``: ``F(t, Y, Z, P) -> (B, E)`` and the resets, cached."""
 
@@ -104,42 +81,16 @@ def _functions(compiled):
     return compiled.cached(("events", compiled.events), build)
 
 
-def with_state_events(compiled):
-    """``compiled`` with an event at each of its switches on a state or algebraic variable
-    (:func:`daemodel.solving.switches.find_switches`; no reset, named after the switch; ``floor`` and
-    ``ceiling`` at the integers below and above the function's value in each piece), so that no step
-    straddles one; cached on ``compiled``."""
-    from daemodel.solving.switches import find_switches
-
-    key = ("with-state-events",)
-    if key not in compiled._cache:
-        extra, names, functions = [], {e.name for e in compiled.events}, set()
-        for switch in find_switches(compiled):
-            if switch.time_only or switch.function in functions or -switch.function in functions:
-                continue  # (one event a surface: an index-2 model repeats f's switches in its hidden constraints)
-            functions.add(switch.function)
-            name, k = f"{switch.kind} in {switch.equation}", 1
-            while name in names:
-                k += 1
-                name = f"{switch.kind} in {switch.equation} ({k})"
-            names.add(name)
-            integer = switch.kind in ("floor", "ceiling")
-            extra.append(Event(name, switch.function, 0, (), False, strict=True, integer=integer))
-        compiled._cache[key] = dataclasses.replace(compiled, events=(*compiled.events, *extra)) if extra else compiled
-    return compiled._cache[key]
-
-
 def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, **changes):
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
     :func:`daemodel.solving.switches.solve_with_breakpoints` does)."""
     from daemodel.compiling.initial_states import InitialStates
-    from daemodel.solving.switches import _segment_steps, for_method, has_time_switches, solve_with_breakpoints
 
     model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
     start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
     fields = {f.name for f in dataclasses.fields(options)}
     if "h" not in changes and getattr(options, "h", None) is not None:  # (a piece shorter than h: equal steps)
-        changes["h"] = _segment_steps(a, b, options.h)
+        changes["h"] = segment_steps(a, b, options.h)
     options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})  # (pinn: no t_eval)
     if has_time_switches(model):
         return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
@@ -191,7 +142,6 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     SwitchError
         A batch without ``t_eval``: its samples' outputs would not share times.
     """
-    from daemodel.solving.switches import _join_samples
 
     P = np.asarray(start.p, dtype=float)
     if len(P) == 1:
@@ -207,7 +157,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     for b in range(len(P)):
         sub = InitialStates(y0=start.y0[b : b + 1], z0=start.z0[b : b + 1], p=start.p[b : b + 1], batched=True)
         parts.append((np.array([b]), _one_sample(backend, compiled, t_span, sub, options, max_events)))
-    return _join_samples(parts, len(P), start.batched)
+    return join_samples(parts, len(P), start.batched)
 
 
 def _drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float) -> np.ndarray:
@@ -217,7 +167,6 @@ def _drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float)
     is 0: a ball at rest on the floor), at no cost of a solve."""
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.errors import ModelError
-    from daemodel.solving.switches import for_method
 
     rhs = compiled.numeric.batch_function(list(piece.rhs))
     k1 = rhs(t, Y, Z, P)
@@ -286,7 +235,6 @@ def _start_piece(
     ZenoError
         A reset that leaves its event's function on the guard or going on across it.
     """
-    from daemodel.solving.switches import lock_branches
 
     started = time.perf_counter()
     events = compiled.events
@@ -390,7 +338,6 @@ def _branch(
     SlidingModeError
         Neither does, and the sliding motion is not one daemodel integrates.
     """
-    from daemodel.solving.switches import lock_branches
 
     phi = event.when
     function = compiled.numeric.batch_function([phi])
@@ -429,7 +376,6 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
     """The model of the Filippov sliding motion along ``phi = 0``: ``y' = f- + a (f+ - f-)`` with ``a``
     such that ``phi`` stays put (``a = r- / (r- - r+)``, ``r`` the rates of ``phi`` on each branch), and
     the function that leaves it: ``r- (-r+)``, positive while both branches push onto the switch."""
-    from daemodel.solving.switches import lock_branches
 
     plus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: 1})
     minus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: -1})
@@ -484,13 +430,6 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.dense import Held, joined_in_time
     from daemodel.solution import Solution
-    from daemodel.solving.switches import (
-        _merge_stats,
-        _onto_constraints,
-        for_method,
-        has_state_switches,
-        settings_as_given,
-    )
 
     started = time.perf_counter()
     t0, t1 = (float(v) for v in t_span)
@@ -618,7 +557,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Z = algebraic_values(reduced, t_event, Y, P, z_event) if with_reset else z_event
             moved = np.zeros(1)
         else:
-            projected = _onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
+            projected = onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
             moved = np.max(np.abs(projected - Y), axis=1, initial=0.0)
             Y = projected
             if lock and Z.shape[1]:  # (z on the branch the next piece takes)
@@ -687,7 +626,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     t_out = np.concatenate(times)
     table = np.concatenate(rows, axis=0)
     out = {name: table[:, j][None, :].copy() for j, name in enumerate(names)}
-    stats = _merge_stats(all_stats)
+    stats = merge_stats(all_stats)
     stats["events"] = count
 
     def by_name(rows) -> dict:

@@ -9,6 +9,14 @@ import time
 from daemodel.backends import get_backend
 from daemodel.compiling.compiler import as_compiled
 from daemodel.compiling.initial_states import initial_states
+from daemodel.compiling.switches import (
+    branch_model,
+    breakpoints,
+    find_switches,
+    has_time_switches,
+    lock_branches,
+    with_state_events,
+)
 from daemodel.errors import (
     InvalidOptionError,
     InvalidValueError,
@@ -20,16 +28,8 @@ from daemodel.errors import (
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
-from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events, with_state_events
-from daemodel.solving.switches import (
-    branch_model,
-    breakpoints,
-    find_switches,
-    for_method,
-    has_time_switches,
-    lock_branches,
-    solve_with_breakpoints,
-)
+from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events
+from daemodel.solving.switches import for_method, solve_with_breakpoints
 
 
 def solve(
@@ -66,7 +66,7 @@ def solve(
     sensitivities : list of str, optional
         Parameters and states to differentiate the solution by (``"radau"``): the exact derivatives
         of its discrete solution at the output times, algebraic variables included, read with
-        ``sol.sensitivity(output, name)`` (:mod:`daemodel.solving.sensitivities`).  A state's
+        ``sol.sensitivity(output, name)`` (:mod:`daemodel.sensitivities`).  A state's
         initial value moves with the others held where the constraints allow; a parameter moves the
         initial states the least that keeps them consistent.
     **options
@@ -123,7 +123,7 @@ def solve(
 
 def check_sensitivities(model, backend, opts, names) -> None:
     """Refuse, before solving, what :func:`with_sensitivities` cannot differentiate."""
-    from daemodel.solving.sensitivities import directions
+    from daemodel.sensitivities import directions
 
     directions(model, names)
     if backend.name != "radau":
@@ -207,7 +207,7 @@ def _on_fixed_branches(backend, model, t_span, start, opts, names) -> Solution:
 def with_sensitivities(sol, model, names) -> Solution:
     """``sol`` with its forward sensitivities: generating their numeric Jacobians (once per model)
     added to ``setup_time``, the pass itself to ``solve_time``."""
-    from daemodel.solving.sensitivities import forward, prepare
+    from daemodel.sensitivities import forward, prepare
 
     started = time.perf_counter()
     prepare(sol.compiled)

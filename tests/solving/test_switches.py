@@ -11,7 +11,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.solving import switches
+from daemodel.compiling import switches
 
 EXACT_SWITCH = 1.0 - math.exp(-0.63)  # x' = -x + [t >= 0.37], x(0) = 0, at t = 1
 

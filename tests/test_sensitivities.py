@@ -1,4 +1,4 @@
-"""Forward sensitivities and the discrete adjoint of radau (daemodel/solving/sensitivities.py, issue 29).
+"""Forward sensitivities and the discrete adjoint of radau (daemodel/sensitivities.py, issue 29).
 
 The references are independent of the code under test: central finite differences of solves at
 perturbed parameters and initial states (made consistent by ``compiled.consistent``), for adaptive
@@ -15,7 +15,7 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.collocation import collocation_step
 from daemodel.problems import AKZO_NOBEL, DECAY, PENDULUM_INDEX3
-from daemodel.solving.sensitivities import directions, initial_sensitivities
+from daemodel.sensitivities import directions, initial_sensitivities
 from daemodel.tableau import radau_iia
 
 FD_RTOL = 1e-6  # the issue's bound: sensitivities against central differences
@@ -365,7 +365,7 @@ def test_outputs_that_start_after_t0_have_the_same_sensitivities():
 def test_blocks_of_one_step_give_the_same_derivatives(monkeypatch):
     """The passes build, use and drop a block of steps at a time (the adjoint backwards, carrying the
     state's cotangent across blocks): blocks of a single step must change nothing."""
-    from daemodel.solving import sensitivities
+    from daemodel import sensitivities
 
     compiled = AKZO_NOBEL.model().compile()
     names = ["k1", "klA", "y1"]

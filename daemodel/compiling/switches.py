@@ -1,0 +1,405 @@
+"""Switches: where a model's equations change branch, found in the compiled equations.
+
+A switching function is what decides a branch: each relation of a ``Piecewise`` condition
+(``lhs - rhs``), the argument of ``Heaviside``, ``sign`` and ``Abs``, the differences of the
+arguments of ``Max`` and ``Min``, the argument of ``floor`` and ``ceiling`` (which switch where it
+crosses an integer).  One that depends on ``t`` and parameters only switches at *time
+breakpoints*, found before the solve (:func:`breakpoints`: in closed form where sympy solves the
+equation, else by bracketing sign changes on a fine grid and bisecting); one that depends on a
+state or algebraic variable is a *state event*, listed but not yet located.
+
+Segments are solved from breakpoint to breakpoint in :mod:`daemodel.solving.switches`; switches on
+states become events (:func:`with_state_events`), located in :mod:`daemodel.solving.events`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import sympy as sp
+
+from daemodel.declaring.events import Event
+from daemodel.errors import SwitchError
+
+# Points of the grid on which a switching function's sign changes are bracketed (per segment of
+# t_span); two roots closer than the grid's spacing may be missed if the function does not change
+# sign between them (a tangency, where the branch does not change either).
+ROOT_GRID = 4096
+
+# Breakpoints closer than this (relative to the span) are one.
+MERGE_TOL = 1e-12
+
+# Relations whose switching function has more operations than this are not handed to sympy's
+# solveset (it may take long on large expressions); they are found numerically.
+CLOSED_FORM_MAX_OPS = 40
+
+# Most breakpoints one solve may cut its span at (a switching function of t that oscillates
+# fast, e.g. floor(1e6 t), would otherwise make millions of segments).
+MAX_BREAKPOINTS = 10_000
+
+_KINDS = {
+    sp.Piecewise: "Piecewise",
+    sp.Heaviside: "Heaviside",
+    sp.sign: "sign",
+    sp.Abs: "Abs",
+    sp.Max: "Max",
+    sp.Min: "Min",
+    sp.floor: "floor",
+    sp.ceiling: "ceiling",
+}
+
+
+@dataclass(frozen=True)
+class Switch:
+    """One switching function.
+
+    Attributes
+    ----------
+    kind : str
+        ``"Piecewise"``, ``"Heaviside"``, ``"sign"``, ``"Abs"``, ``"Max"``, ``"Min"``, ``"floor"``
+        or ``"ceiling"``.
+    function : sympy.Expr
+        The switching function: the branch changes where it crosses 0 (``floor``/``ceiling``: an
+        integer).
+    equation : str
+        Where it occurs (the ODE of a state, ``x'``, or the constraint's name).
+    time_only : bool
+        It depends on ``t`` (and parameters) only: a time breakpoint.
+    """
+
+    kind: str
+    function: sp.Expr
+    equation: str
+    time_only: bool
+
+    def describe(self) -> str:
+        what = "time breakpoint" if self.time_only else "state event, located during the solve"
+        crossing = "an integer" if self.kind in ("floor", "ceiling") else "0"
+        return f"{self.kind} in {self.equation}: {self.function} crosses {crossing} ({what})"
+
+
+def _switching_functions(node) -> list:
+    """The switching functions of one switch node (see the module docstring)."""
+    if isinstance(node, sp.Piecewise):
+        out = []
+        for _, condition in node.args:
+            if condition in (sp.true, sp.false):
+                continue
+            for relation in sorted(condition.atoms(sp.core.relational.Relational), key=sp.default_sort_key):
+                out.append(relation.lhs - relation.rhs)
+        return out
+    if isinstance(node, sp.Max | sp.Min):
+        args = node.args
+        return [args[i] - args[j] for i in range(len(args)) for j in range(i + 1, len(args))]
+    return [node.args[0]]
+
+
+def find_switches(compiled) -> tuple[Switch, ...]:
+    """Every switching function of ``compiled``'s right-hand sides and constraints (each chain
+    element), once per equation; cached on the compiled model."""
+    key = ("switches",)
+    if key in compiled._cache:
+        return compiled._cache[key]
+    time_symbols = {compiled.t, *compiled.parameters}
+    equations = [(f"{name}'", (rhs,)) for name, rhs in zip(compiled.state_names, compiled.rhs, strict=True)]
+    equations += [(c.name, c.chain) for c in compiled.constraints]
+    found, seen = [], set()
+    for label, exprs in equations:
+        for expr in exprs:
+            for node in sp.preorder_traversal(expr):
+                kind = _KINDS.get(type(node))
+                if kind is None:
+                    continue
+                for function in _switching_functions(node):
+                    function = sp.sympify(function)
+                    symbols = function.free_symbols
+                    if compiled.t not in symbols and symbols <= time_symbols:
+                        continue  # (constant in time: the branch never changes)
+                    if (label, kind, function) in seen:
+                        continue
+                    seen.add((label, kind, function))
+                    found.append(Switch(kind, function, label, symbols <= time_symbols))
+    compiled._cache[key] = tuple(found)
+    return compiled._cache[key]
+
+
+def breakpoints(compiled, t_span, p: np.ndarray) -> np.ndarray:
+    """The times in the open interval ``t_span`` where a time switch of ``compiled`` changes
+    branch, for parameter values ``p`` (k,), sorted, near-equal ones merged.
+
+    Raises
+    ------
+    SwitchError
+        More than :data:`MAX_BREAKPOINTS` of them, naming the switch that makes most.
+    """
+
+    t0, t1 = (float(v) for v in t_span)
+    switches = [s for s in find_switches(compiled) if s.time_only]
+    if not switches:
+        return np.zeros(0)
+    values = dict(zip(compiled.parameters, (float(v) for v in p), strict=True))
+    numeric = compiled.numeric
+    times = []
+    for switch in switches:
+        found = _roots(switch, compiled.t, values, numeric, p, t0, t1)
+        if len(found) > MAX_BREAKPOINTS:
+            raise _too_many(switch, len(found), t0, t1)
+        times += found
+    if not times:
+        return np.zeros(0)
+    times = np.sort(np.asarray(times, dtype=float))
+    tol = MERGE_TOL * max(1.0, abs(t1 - t0))
+    merged = [times[0]]
+    for value in times[1:]:
+        if value - merged[-1] > tol:
+            merged.append(value)
+    out = np.asarray(merged)
+    out = out[(out > t0 + tol) & (out < t1 - tol)]
+    if len(out) > MAX_BREAKPOINTS:
+        raise SwitchError(
+            f"the time switches make {len(out)} breakpoints in t_span = ({t0:g}, {t1:g}), more than "
+            f"{MAX_BREAKPOINTS}; smooth the switching functions, or shorten t_span"
+        )
+    return out
+
+
+def _roots(switch: Switch, t, values: dict, numeric, p: np.ndarray, t0: float, t1: float) -> list:
+    """Where ``switch`` changes branch in (t0, t1): closed form where sympy gives a finite set of
+    real numbers, else bracketed on :data:`ROOT_GRID` points and bisected to rounding."""
+    phi = switch.function.subs(values)
+    integer = switch.kind in ("floor", "ceiling")
+    if not integer and sp.count_ops(phi) <= CLOSED_FORM_MAX_OPS:
+        try:
+            solutions = sp.solveset(phi, t, sp.Interval.open(t0, t1))
+        except (NotImplementedError, ValueError, TypeError):
+            solutions = None
+        if isinstance(solutions, sp.FiniteSet) and all(s.is_real for s in solutions):
+            return [float(s) for s in solutions]
+    evaluate = numeric.batch_function([switch.function])
+    P = np.asarray(p, dtype=float)[None, :]
+    n, m = len(numeric.y), len(numeric.z)
+
+    def at(times):
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        return evaluate(times, np.zeros((len(times), n)), np.zeros((len(times), m)), np.repeat(P, len(times), axis=0))[
+            :, 0
+        ]
+
+    grid = np.linspace(t0, t1, ROOT_GRID + 1)
+    values_ = at(grid)
+    if not np.isfinite(values_).all():
+        bad = grid[~np.isfinite(values_)][0]
+        raise SwitchError(
+            f"{switch.kind} in {switch.equation}: its switching function {switch.function} is not finite at t = "
+            f"{bad:.6g}; the breakpoints cannot be located"
+        )
+    level = np.floor(values_) if integer else np.sign(values_)
+    brackets = np.flatnonzero(level[1:] != level[:-1])
+    if integer:  # every integer crossed between two grid points: (bracket, integer)
+        low, high = np.minimum(values_[:-1], values_[1:])[brackets], np.maximum(values_[:-1], values_[1:])[brackets]
+        counts = (np.floor(high) - np.floor(low)).astype(np.int64)
+        if counts.sum() > MAX_BREAKPOINTS:
+            raise _too_many(switch, int(counts.sum()), t0, t1)
+        which = np.repeat(brackets, counts)
+        targets = np.concatenate([np.arange(np.floor(a) + 1, np.floor(b) + 1) for a, b in zip(low, high, strict=True)])
+    else:
+        if len(brackets) > MAX_BREAKPOINTS:
+            raise _too_many(switch, len(brackets), t0, t1)
+        which, targets = brackets, np.zeros(len(brackets))
+    if not len(which):
+        return []
+    return _bisect(lambda s: at(s) - targets, grid[which], grid[which + 1]).tolist()
+
+
+def _too_many(switch: Switch, count: int, t0: float, t1: float) -> SwitchError:
+    return SwitchError(
+        f"{switch.kind} in {switch.equation} switches {count} times in t_span = ({t0:g}, {t1:g}) (at most "
+        f"{MAX_BREAKPOINTS} breakpoints a solve): {switch.function} changes branch too often to integrate from "
+        "breakpoint to breakpoint; smooth it, or shorten t_span"
+    )
+
+
+def _bisect(g, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Roots of the vector function ``g`` (one entry per bracket), each in its [a, b] where g(a) and
+    g(b) differ in sign or one is 0, all brackets halved together down to rounding."""
+    a, b = a.astype(float).copy(), b.astype(float).copy()
+    ga = g(a)
+    exact_a = ga == 0
+    gb = g(b)
+    exact_b = gb == 0
+    for _ in range(1100):  # (a float64 interval halves to adjacent floats in at most ~1100 passes)
+        mid = 0.5 * (a + b)
+        open_ = (mid > a) & (mid < b)
+        if not open_.any():
+            break
+        gm = g(mid)
+        left = (np.sign(gm) == np.sign(ga)) & open_
+        a = np.where(left, mid, a)
+        ga = np.where(left, gm, ga)
+        b = np.where(open_ & ~left, mid, b)
+    out = 0.5 * (a + b)
+    return np.where(exact_a, a, np.where(exact_b, b, out))
+
+
+def _time_only(expr, time_symbols) -> bool:
+    return sp.sympify(expr).free_symbols <= time_symbols
+
+
+def _fix(expr, at: dict, decide, sides: dict | None = None):
+    """``expr`` with every switch whose switching functions ``decide`` accepts (a predicate on an
+    expression) replaced by its branch at ``at`` (``{symbol: value}``).  ``sides`` (switching function
+    -> +1 or -1) gives the branch of the functions that are at zero there: the side the solution goes
+    to (never the switch's value at zero: ``Heaviside(0) = 1/2``, ``sign(0) = 0`` are no branch)."""
+    sides = sides or {}
+    if expr.is_Atom:
+        return expr
+    args = [_fix(a, at, decide, sides) if isinstance(a, sp.Basic) else a for a in expr.args]
+
+    def value(function) -> float:
+        side = sides.get(function)
+        if side is None and -function in sides:
+            side = -sides[-function]
+        return float(side) if side else float(function.subs(at))
+
+    if isinstance(expr, sp.Piecewise):
+        kept = []
+        for (piece, _), (_, condition) in zip(args, expr.args, strict=True):
+            if condition == sp.true:
+                if not kept:
+                    return piece
+                kept.append((piece, True))
+                break
+            if kept or not decide(condition):
+                kept.append((piece, condition))
+                continue
+            relations = condition.atoms(sp.core.relational.Relational)
+            truth = {r: type(r)(value(sp.sympify(r.lhs - r.rhs)), 0) for r in relations}
+            if bool(condition.xreplace(truth)):
+                return piece
+        return sp.Piecewise(*kept) if kept else sp.nan
+    if isinstance(expr, sp.Heaviside | sp.sign | sp.Abs | sp.floor | sp.ceiling | sp.DiracDelta):
+        inner = args[0]
+        if not decide(inner):
+            return expr.func(*args)
+        if isinstance(expr, sp.DiracDelta):
+            return sp.S.Zero  # (0 inside a segment: the switch is at its ends)
+        if isinstance(expr, sp.floor | sp.ceiling):
+            number = float(inner.subs(at))
+            side = sides.get(inner)
+            if side:  # (at an integer k: floor is k going up, k - 1 going down)
+                k = round(number)
+                return sp.Integer(k if side > 0 else k - 1) + (1 if isinstance(expr, sp.ceiling) else 0)
+            return sp.Integer(math.floor(number) if isinstance(expr, sp.floor) else math.ceil(number))
+        number = value(inner)
+        if isinstance(expr, sp.Heaviside):
+            half = args[1] if len(args) > 1 else sp.S.Half
+            return sp.S.One if number > 0 else (sp.S.Zero if number < 0 else half)
+        if isinstance(expr, sp.sign):
+            return sp.Integer(int(np.sign(number)))
+        return inner if number >= 0 else -inner
+    if isinstance(expr, sp.Max | sp.Min):
+        if not all(decide(a) for a in args):
+            return expr.func(*args)
+        pick = 0
+        for j in range(1, len(args)):
+            difference = value(sp.sympify(args[pick] - args[j]))
+            if (difference < 0) if isinstance(expr, sp.Max) else (difference > 0):
+                pick = j
+        return args[pick]
+    return expr.func(*args)
+
+
+def branch_model(compiled, tau: float, p: np.ndarray):
+    """``compiled`` with its time switches fixed to their branch at ``t = tau`` (parameters ``p``):
+    smooth on a segment between two breakpoints.  Models with the same branches are one (cached on
+    ``compiled``, with their generated code)."""
+    time_symbols = {compiled.t, *compiled.parameters}
+    at = {compiled.t: sp.Float(tau), **dict(zip(compiled.parameters, (sp.Float(float(v)) for v in p), strict=True))}
+    return _fixed(compiled, at, lambda e: _time_only(e, time_symbols), "branch")
+
+
+def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray, sides: dict | None = None):
+    """``compiled`` with its switches on states and algebraic variables fixed to their branch at
+    ``(t, y, z)`` (time switches left to :func:`branch_model`): smooth until one of those switching
+    functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.
+    ``sides`` (switching function -> +1 or -1): the branch of those at zero there (see :func:`_fix`).
+    Cached."""
+    sides = sides or {}
+    switches = find_switches(compiled)
+    functions = tuple(dict.fromkeys(switch.function for switch in switches))
+    integer = {switch.function for switch in switches if switch.kind in ("floor", "ceiling")}
+    numbers = compiled.numeric.batch_function(list(functions))(
+        np.array([float(t)]), np.asarray(y, dtype=float)[None], np.asarray(z, dtype=float)[None], np.asarray(p)[None]
+    )[0]
+    # the branches as numbers (each function's sign, an integer part's floor and ceiling, or the side given):
+    # the same branches are the same model, found without rewriting the equations (large models: seconds each)
+    decided, signature = {}, []
+    for function, number in zip(functions, numbers, strict=True):
+        side = sides.get(function) or (-sides[-function] if -function in sides else None)
+        if function in integer:
+            signature.append((round(number), side) if side else (math.floor(number), math.ceil(number)))
+            if side:
+                decided[function] = side
+        else:
+            signature.append(side or int(np.sign(number)))
+            if signature[-1]:
+                decided[function] = signature[-1]
+    key = ("locked-by", tuple(signature))
+    if key not in compiled._cache:
+        time_symbols = {compiled.t, *compiled.parameters}
+        values = [
+            (compiled.t, t),
+            *zip(compiled.parameters, p, strict=True),
+            *zip(compiled.states, y, strict=True),
+            *zip(compiled.algebraics, z, strict=True),
+        ]
+        at = {symbol: sp.Float(float(value)) for symbol, value in values}
+        compiled._cache[key] = _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", decided)
+    return compiled._cache[key]
+
+
+def has_state_switches(compiled) -> bool:
+    return any(not s.time_only for s in find_switches(compiled))
+
+
+def has_time_switches(compiled) -> bool:
+    return any(s.time_only for s in find_switches(compiled))
+
+
+def _fixed(compiled, at: dict, decide, kind: str, sides: dict | None = None):
+    """``compiled`` with the switches ``decide`` accepts fixed at ``at`` (see :func:`_fix`), cached."""
+    rhs = tuple(_fix(e, at, decide, sides) for e in compiled.rhs)
+    constraints = tuple(
+        dataclasses.replace(c, chain=tuple(_fix(e, at, decide, sides) for e in c.chain)) for c in compiled.constraints
+    )
+    key = (kind, rhs, tuple(c.chain for c in constraints))
+    if key not in compiled._cache:
+        compiled._cache[key] = dataclasses.replace(compiled, rhs=rhs, constraints=constraints, _cache={})
+    return compiled._cache[key]
+
+
+def with_state_events(compiled):
+    """``compiled`` with an event at each of its switches on a state or algebraic variable
+    (:func:`find_switches`; no reset, named after the switch; ``floor`` and
+    ``ceiling`` at the integers below and above the function's value in each piece), so that no step
+    straddles one; cached on ``compiled``."""
+
+    key = ("with-state-events",)
+    if key not in compiled._cache:
+        extra, names, functions = [], {e.name for e in compiled.events}, set()
+        for switch in find_switches(compiled):
+            if switch.time_only or switch.function in functions or -switch.function in functions:
+                continue  # (one event a surface: an index-2 model repeats f's switches in its hidden constraints)
+            functions.add(switch.function)
+            name, k = f"{switch.kind} in {switch.equation}", 1
+            while name in names:
+                k += 1
+                name = f"{switch.kind} in {switch.equation} ({k})"
+            names.add(name)
+            integer = switch.kind in ("floor", "ceiling")
+            extra.append(Event(name, switch.function, 0, (), False, strict=True, integer=integer))
+        compiled._cache[key] = dataclasses.replace(compiled, events=(*compiled.events, *extra)) if extra else compiled
+    return compiled._cache[key]

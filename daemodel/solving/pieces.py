@@ -1,0 +1,141 @@
+"""Solves in pieces joined into one: the pieces' stats merged, samples solved in groups joined in sample
+order, the fixed step of a piece, and the states carried across a switch put back onto the constraints.
+Shared by the solves from breakpoint to breakpoint (:mod:`daemodel.solving.switches`) and from event to
+event (:mod:`daemodel.solving.events`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from daemodel.dense import joined_by_samples
+from daemodel.errors import SwitchError
+
+# Stats summed over segments (counters); keys starting with "max"/ending "_max" take the largest,
+# "min"/"_min" the smallest; any other key keeps the first segment's value (stages, engine, ...).
+_COUNTERS = ("steps", "attempts", "rejected", "iterations", "evaluations", "decompositions", "failures",
+             "refreshes", "retries", "runs", "setups", "calls")  # fmt: skip
+
+
+def merge_stats(all_stats: list) -> dict:
+    out = {}
+    for key in dict.fromkeys(k for stats in all_stats for k in stats):
+        values = [stats[key] for stats in all_stats if key in stats]
+        numeric = all(isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) for v in values)
+        if numeric and (key.startswith("max") or key.endswith("_max")):
+            out[key] = max(values)
+        elif numeric and (key.startswith("min") or key.endswith("_min")):
+            out[key] = min(values)
+        elif numeric and any(word in key for word in _COUNTERS):
+            out[key] = sum(values)
+        elif all(isinstance(v, list) for v in values):
+            out[key] = [x for v in values for x in v]
+        else:
+            out[key] = values[0]
+    return out
+
+
+def segment_steps(a: float, b: float, h: float) -> float:
+    """The step of a fixed grid on [a, b]: equal steps, as few as keep each at most ``h``."""
+    return (b - a) / max(1, math.ceil((b - a) / h * (1 - 1e-9)))
+
+
+def onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The states ``Y`` (B, n) where they satisfy ``model``'s z-free constraint levels at its t0, else
+    their least-change projection onto them (a switch inside a constraint moves its solution set).
+
+    Raises
+    ------
+    SwitchError
+        No state near a sample's satisfies them after the switch.
+    """
+    from daemodel.compiling.initial_states import _checks, project_states, state_violations
+
+    hidden = _checks(model).hidden
+    if not hidden or not state_violations(model, Y, P)[2].any():
+        return Y
+    projected = project_states(model, Y, P)
+    residual, _, bad = state_violations(model, projected, P)
+    if bad.any():
+        sample, level = np.argwhere(bad)[0]
+        name, label, _ = hidden[level]
+        raise SwitchError(
+            f"after the switch at t = {model.t0:.10g} no state near sample {sample}'s satisfies {label}: {name} = "
+            f"{residual[sample, level]:.6g} after the projection; the switch leaves the constraints without a "
+            "real solution there"
+        )
+    return projected
+
+
+def _pad(records: list, B: int) -> dict:
+    """``(sample indices, record)`` pairs of per-group records (``"t"``, ``"moved"``: (b, k); ``"before"``,
+    ``"after"``: name -> (b, k)) as one record over all B samples, padded with NaN to the longest."""
+    K = max(record["t"].shape[1] for _, record in records)
+    out = {"t": np.full((B, K), np.nan), "moved": np.full((B, K), np.nan), "before": {}, "after": {}}
+    for index, record in records:
+        k = record["t"].shape[1]
+        out["t"][index, :k] = record["t"]
+        out["moved"][index, :k] = record["moved"]
+        for side in ("before", "after"):
+            for name, values in record[side].items():
+                out[side].setdefault(name, np.full((B, K), np.nan))[index, :k] = values
+    return out
+
+
+def join_samples(parts: list, B: int, batched: bool):
+    """One Solution of the groups' (``(sample indices, Solution)``, all on the same output times):
+    values and parameters in sample order, breakpoints and events padded with NaN to the longest."""
+    from daemodel.solution import Solution
+
+    first = parts[0][1]
+    t = first.t
+    ends = None
+    if any(len(sol.t) != len(first.t) or not np.array_equal(sol.t, first.t) for _, sol in parts):
+        # (a terminal event ends some samples early: each keeps its own end, NaN after it; the times are
+        # all of theirs, each sample's values at the others' times from its dense output)
+        t = np.unique(np.concatenate([sol.t for _, sol in parts]))
+        last = max(sol.t[-1] for _, sol in parts)
+        ends = [sol.t[-1] if sol.t[-1] < last else None for _, sol in parts]
+    values = {name: np.full((B, len(t)), np.nan) for name in first.values}
+    parameters = np.empty((B, first.parameters.shape[1]))
+    for index, sol in parts:
+        if ends is None:
+            for name in values:
+                values[name][index] = sol.values[name]
+        else:
+            own = np.isin(t, sol.t)
+            between = ~own & (t <= sol.t[-1])
+            found = sol.at(t[between]) if between.any() else {}
+            for name in values:
+                row = np.full((len(index), len(t)), np.nan)
+                row[:, own] = np.asarray(sol.values[name]).reshape(len(index), -1)
+                if between.any():
+                    row[:, between] = np.asarray(found[name]).reshape(len(index), -1)
+                values[name][index] = row
+        parameters[index] = sol.parameters
+    breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
+    events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
+    stats = merge_stats([sol.stats for _, sol in parts])
+    stats["groups"] = len(parts)
+    if ends is not None:  # (where each sample ended)
+        stats["t_end"] = np.empty(B)
+        for index, sol in parts:
+            stats["t_end"][index] = sol.t[-1]
+    failing = [f"samples {index.tolist()}: {sol.status}" for index, sol in parts if sol.status != "success"]
+    return Solution(
+        t=t,
+        values=values,
+        method=first.method,
+        settings=first.settings,
+        solve_time=sum(sol.solve_time for _, sol in parts),
+        stats=stats,
+        compiled=first.compiled,
+        parameters=parameters,
+        batched=batched,
+        status="success" if not failing else "; ".join(failing),
+        setup_time=sum(sol.setup_time for _, sol in parts),
+        breakpoints=breakpoints,
+        events=events,
+        dense=joined_by_samples([(index, sol.dense) for index, sol in parts], B, ends),
+    )
