@@ -158,13 +158,47 @@ def test_a_solution_file_of_the_older_format_is_refused_by_name(tmp_path):
 
 def test_printed_stats_are_a_summary():
     """Per-sample arrays print as their shape and range (a 1000-sample PINN's certificate printed as
-    megabytes of nested lists); the dict itself is a plain dict."""
+    megabytes of nested lists), one entry a line, at most 40 lines; the dict itself is a plain dict."""
     sol = dm.solve(ball(None), SPAN, parameters={"g": np.linspace(9, 10, 1000)}, t_eval=T_EVAL)
     sol.stats["per_sample"] = np.arange(1000.0)
     sol.stats["segments"] = np.zeros((1000, 20))
+    for k in range(60):
+        sol.stats[f"extra_{k}"] = k
     text = repr(sol.stats)
-    assert "<array (1000,) float64 from 0 to 999>" in text and "<array (1000, 20) float64 from 0 to 0>" in text
-    assert len(text) < 2000 and isinstance(sol.stats, dict)
+    assert "'per_sample': <array (1000,) float64 from 0 to 999, median 499.5>" in text
+    assert "'segments': <array (1000, 20) float64 from 0 to 0, median 0>" in text
+    lines = text.splitlines()
+    assert (
+        len(lines) == 36 and lines[-1] == f" ... ({len(sol.stats) - 35} more entries)}}" and isinstance(sol.stats, dict)
+    )
+    assert str(sol.stats) == text and len(repr(sol).splitlines()) == 1
+
+
+def test_stats_hold_arrays_not_lists_of_lists():
+    """Per-step and per-segment figures were Python lists (of lists, per sample); they are arrays."""
+    fixed = dm.solve(DECAY.model(), (0.0, 1.0), h=0.1, stages=3)
+    estimates = fixed.stats["local_error_estimates"]
+    assert isinstance(estimates, np.ndarray) and estimates.shape == (10,) and estimates.dtype == float
+    stats = dm.solution.Stats(
+        {
+            "per_segment": [[1, 2], [3, 4], [5, 6]],
+            "ragged": [np.array([1.0]), np.array([2.0, 3.0])],
+            "nested": {"certified": [True, False], "error": [[0.5], [0.25]]},
+            "names": ["network", "newton"],
+            "empty": [],
+            "flag": True,
+        }
+    )
+    np.testing.assert_array_equal(stats["per_segment"], [[1, 2], [3, 4], [5, 6]])
+    np.testing.assert_array_equal(stats["ragged"], [[1.0, np.nan], [2.0, 3.0]])
+    assert stats["nested"]["certified"] == [True, False]  # (booleans are verdicts, kept as they are)
+    np.testing.assert_array_equal(stats["nested"]["error"], [[0.5], [0.25]])
+    assert stats["names"] == ["network", "newton"] and stats["empty"] == [] and stats["flag"] is True
+    assert repr(stats) == (
+        "{'per_segment': [[1, 2], [3, 4], [5, 6]],\n 'ragged': [[1.0, nan], [2.0, 3.0]],\n"
+        " 'nested': {'certified': [True, False], 'error': [[0.5], [0.25]]},\n 'names': ['network', 'newton'],\n"
+        " 'empty': [],\n 'flag': True}"
+    )
 
 
 @pytest.fixture(scope="module")

@@ -31,6 +31,8 @@ def merge_stats(all_stats: list) -> dict:
             out[key] = sum(values)
         elif all(isinstance(v, list) for v in values):
             out[key] = [x for v in values for x in v]
+        elif all(isinstance(v, np.ndarray) and v.ndim >= 1 for v in values) and len({v.shape[1:] for v in values}) == 1:
+            out[key] = np.concatenate(values)  # (per step or segment: the pieces' one after another)
         else:
             out[key] = values[0]
     return out

@@ -327,7 +327,7 @@ def test_paper_recipe_runs_and_reports_its_loss_terms():
     )
     assert dm.PINNConfig.paper("pendulum").activation == "sin"
     sol = dm.solve(c, (0.0, 0.1), method="pinn", config=cfg)
-    assert sol.stats["iterations"] == [50, 50]
+    assert sol.stats["iterations"].tolist() == [50, 50]
     assert all(np.isfinite(sol.stats[k]).all() for k in ("L_f", "L_g", "L_s"))
     assert sol.stats["networks_per_segment"] == 6
 
@@ -985,7 +985,7 @@ def test_adam_on_cuda_replays_a_graph_that_matches_eager_adam(monkeypatch, sched
     eager = dm.solve(c, (0.0, 0.1), method="pinn", config=config, progress=False)
     monkeypatch.setattr(torch.optim, "Adam", CapturableAdam)
     same_arithmetic = dm.solve(c, (0.0, 0.1), method="pinn", config=config, progress=False)
-    assert graphed.stats["iterations"] == eager.stats["iterations"] == [250, 250]
+    assert graphed.stats["iterations"].tolist() == eager.stats["iterations"].tolist() == [250, 250]
     for name in (*c.state_names, *c.algebraic_names):
         np.testing.assert_allclose(graphed[name], same_arithmetic[name], rtol=0, atol=1e-7)
         np.testing.assert_allclose(graphed[name], eager[name], rtol=0, atol=1e-6 if schedule == "constant" else 3e-5)
