@@ -2,29 +2,20 @@
 
 from __future__ import annotations
 
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from daemodel.dense import dense_from_stored, stored_dense
 from daemodel.errors import ComparisonError, OmittedPanelsWarning, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
-    STORED_KINDS,
-    STORED_NAME,
-    atomic_write,
     memory_limit,
     open_file,
-    parse_json,
-    read_arrays,
     readable_path,
-    restored,
     save_figure,
-    stored,
-    writable_file,
 )
+from daemodel.stats import Stats
 
 # Times of two solutions count as the same when they differ by less than this, relative to
 # the span: grids built as t0 + k*h in different orders differ in the last bits.
@@ -34,233 +25,6 @@ PLOTTED_SAMPLES = 20
 # Panels Solution.plot() draws without names=: four rows of three stay readable on a screen or a
 # page; a 62-variable model drew 62 panels of a few pixels each.
 PLOTTED_PANELS = 12
-# What Solution.save writes and Solution.load reads.
-SOLUTION_FORMAT = "daemodel-solution/2"
-OLDER_SOLUTION_FORMATS = ("daemodel-solution/1",)
-# Its arrays (dtype kinds, axes): times (T,), values (B, T, variables), parameters (B, k), and
-# the JSON of everything else, whose arrays (stats, events, breakpoints, the dense output) are the
-# members it lists in "arrays" (:func:`daemodel.files.stored`); and the fields of that JSON with their types.
-SOLUTION_ARRAYS = {"t": ("f", 1), "values": ("f", 3), "parameters": ("f", 2), "meta": ("U", 0)}
-SOLUTION_META = {
-    "format": str,
-    "model": str,
-    "fingerprint": str,
-    "fingerprints": dict,
-    "declared": dict,
-    "names": list,
-    "method": str,
-    "settings": dict,
-    "solve_time": (int, float),
-    "setup_time": (int, float),
-    "stats": dict,
-    "status": str,
-    "batched": bool,
-    "breakpoints": dict,
-    "events": dict,
-    "arrays": dict,
-}
-
-
-# Items of a list that a printed stats dict shows before it says how many more there are.
-SHOWN_ITEMS = 6
-# Entries a printed stats dict shows, one a line, before it says how many more there are (with the
-# braces: at most 40 lines whatever the batch).
-SHOWN_ENTRIES = 36
-
-
-class Stats(dict):
-    """A solution's counters (``Solution.stats``): a plain dict whose figures per step, segment or
-    sample are numpy arrays (lists of numbers, nested ones included, become arrays; ragged ones are
-    padded with NaN), and whose ``repr`` is a summary, one entry a line and at most 40 lines, so that
-    printing the stats of a batch of 10^3 samples is a screen, not megabytes: an array shows its
-    shape, dtype, range and median, a long list its first items and its length."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        for key, value in self.items():
-            self[key] = as_arrays(value)
-
-    def __repr__(self) -> str:
-        items = [f"{key!r}: {_summary(value)}" for key, value in self.items()]
-        if len(items) > SHOWN_ENTRIES:
-            items = [*items[: SHOWN_ENTRIES - 1], f"... ({len(items) - SHOWN_ENTRIES + 1} more entries)"]
-        if sum(len(item) + 2 for item in items) <= 100:
-            return "{" + ", ".join(items) + "}"
-        return "{" + ",\n ".join(items) + "}"
-
-    __str__ = __repr__
-
-
-def as_arrays(value):
-    """``value`` with its lists of numbers (nested ones too, ragged ones padded with NaN) as numpy
-    arrays, inside dicts too; other values as they are."""
-    if isinstance(value, dict):
-        return {key: as_arrays(item) for key, item in value.items()}
-    if not isinstance(value, list | tuple) or not value:
-        return value
-    items = [as_arrays(item) for item in value]
-    if all(_is_number(item) for item in items):
-        return np.asarray(items)
-    if all(isinstance(item, np.ndarray) and item.dtype.kind in "fiu" for item in items):
-        if len({item.shape for item in items}) == 1:
-            return np.stack(items)
-        if all(item.ndim == 1 for item in items):
-            out = np.full((len(items), max(item.size for item in items)), np.nan)
-            for row, item in zip(out, items, strict=True):
-                row[: item.size] = item
-            return out
-    return type(value)(items) if isinstance(value, list) else tuple(items)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool | np.bool_)
-
-
-def _summary(value) -> str:
-    if isinstance(value, np.ndarray):
-        if value.size <= SHOWN_ITEMS:
-            return repr(value.tolist())
-        if value.dtype.kind in "fiu":
-            finite = value[np.isfinite(value)] if value.dtype.kind == "f" else value
-            span = (
-                f" from {finite.min():.4g} to {finite.max():.4g}, median {np.median(finite):.4g}" if finite.size else ""
-            )
-            return f"<array {value.shape} {value.dtype}{span}>"
-        return f"<array {value.shape} {value.dtype}>"
-    if isinstance(value, dict):
-        text = "{" + ", ".join(f"{k!r}: {_summary(v)}" for k, v in value.items()) + "}"
-        return text if len(text) <= 300 else text[:290] + f"... ({len(value)} entries)}}"
-    if isinstance(value, list | tuple) and len(value) > SHOWN_ITEMS:
-        shown = ", ".join(_summary(v) for v in value[:SHOWN_ITEMS])
-        return f"[{shown}, ... ({len(value)} items)]"
-    if isinstance(value, list | tuple):
-        return ("[{}]" if isinstance(value, list) else "({})").format(", ".join(_summary(v) for v in value))
-    return repr(value)
-
-
-def declared(compiled) -> dict:
-    """What a solution's fingerprints cover, in words, for a loader's message: the events and the
-    parameter values."""
-    return {
-        "events": [event.describe(compiled.state_names) for event in compiled.events],
-        "parameter values": {
-            name: float(v) for name, v in zip(compiled.parameter_names, compiled.parameter_values, strict=True)
-        },
-    }
-
-
-def matching_system(compiled, meta: dict, path: Path, what: str = "a solution", solved=None):
-    """The system among ``compiled`` and its reductions whose fingerprints are those ``meta`` stored
-    (``"fingerprint"``, ``"fingerprints"``, ``"declared"``, ``"model"``), else a :class:`SolutionFileError`
-    saying that ``path`` holds ``what`` of another model and what differs: the equations, or the
-    events (both listed), or the parameter values (each changed one named).  ``solved`` (B, k): the
-    parameter values the stored result was solved at, which the model's may equal instead of the
-    declared ones it was compiled with (a solve with ``parameters=``)."""
-    candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
-    parts = meta["fingerprints"]
-    for candidate in candidates:
-        if candidate.fingerprint() == meta["fingerprint"] and candidate.fingerprints() == parts:
-            return candidate
-    values = np.asarray(compiled.parameter_values, dtype=float)
-    if solved is not None and np.shape(solved)[1:] == values.shape and len(solved) and np.all(solved == values):
-        for candidate in candidates:
-            mine = candidate.fingerprints()
-            if all(mine[field] == parts.get(field) for field in mine if field != "parameter values"):
-                return candidate
-    differing = min(
-        ([field for field, value in c.fingerprints().items() if parts.get(field) != value] for c in candidates),
-        key=len,
-    )
-    if not differing or "equations" in differing:
-        raise SolutionFileError(
-            f"{path} holds {what} of model {meta['model']!r} with other equations or names than '{compiled.name}'; "
-            "load it with the model that was solved"
-        )
-    mine, theirs = declared(compiled), meta["declared"] if isinstance(meta["declared"], dict) else {}
-    details = []
-    if "events" in differing:
-        details.append(f"its events {theirs.get('events', '?')}, the model's {mine['events']}")
-    if "parameter values" in differing:
-        saved, now = theirs.get("parameter values") or {}, mine["parameter values"]
-        changed = [f"{n} = {saved.get(n, '?')!r}, the model's {v!r}" for n, v in now.items() if saved.get(n) != v]
-        details.append("its " + ("; ".join(changed) if changed else f"parameter values {saved}"))
-    raise SolutionFileError(
-        f"{path} holds {what} of model {meta['model']!r} whose {' and '.join(differing)} differ from those of "
-        f"'{compiled.name}' ({'; '.join(details)}): load it with the model that was solved"
-    )
-
-
-def _switch_record(record, B: int, names: list, path: Path, field: str) -> dict:
-    """A breakpoint or event record read back, checked: ``"t"`` and ``"moved"`` (B, K), ``"before"`` and
-    ``"after"`` each variable's (B, K)."""
-
-    def table(value, where: str, K: int | None) -> np.ndarray:
-        if not isinstance(value, np.ndarray) or value.dtype.kind != "f" or value.ndim != 2 or len(value) != B:
-            raise SolutionFileError(f"{path}: field '{where}' is not a float array of {B} rows: it is damaged")
-        if K is not None and value.shape[1] != K:
-            raise SolutionFileError(f"{path}: field '{where}' has {value.shape[1]} columns, not {K}: it is damaged")
-        return value
-
-    if not isinstance(record, dict) or set(record) != {"t", "moved", "before", "after"}:
-        raise SolutionFileError(
-            f"{path}: field '{field}' is not times, moves and values before and after: it is damaged"
-        )
-    t = table(record["t"], f"{field}.t", None)
-    out = {"t": t, "moved": table(record["moved"], f"{field}.moved", t.shape[1])}
-    for side in ("before", "after"):
-        if not isinstance(record[side], dict) or sorted(record[side]) != sorted(names):
-            raise SolutionFileError(f"{path}: field '{field}.{side}' does not hold the variables {names}")
-        out[side] = {name: table(record[side][name], f"{field}.{side}.{name}", t.shape[1]) for name in names}
-    return out
-
-
-# The switch kinds whose events a solve names "<kind> in <equation>" (daemodel.solving.events).
-_SWITCH_KINDS = ("Piecewise", "Heaviside", "sign", "Abs", "Max", "Min", "floor", "ceiling")
-# A stored dense output must give the stored values at the output times to this, relative to their size.
-DENSE_CHECK_RTOL = 1e-4
-
-
-def _check_instants(model, t: np.ndarray, breakpoints: dict, events: dict, path: Path) -> None:
-    """Refuse a file whose events are not the model's, or whose instants are not times of its span in order
-    (NaN only as the padding after a sample's last)."""
-    declared = [e.name for e in model.events]
-    missing = [name for name in declared if name not in events]
-    if model.events and missing:
-        raise SolutionFileError(f"{path}: field 'events' lacks the model's event(s) {missing}: it is damaged")
-    foreign = [n for n in events if n not in declared and not any(n.startswith(f"{k} in ") for k in _SWITCH_KINDS)]
-    if foreign:
-        raise SolutionFileError(f"{path}: field 'events' holds {foreign}, which the model does not declare")
-    tol = 1e-9 * max(1.0, float(t[-1] - t[0]))
-    records = ([("breakpoints", breakpoints)] if breakpoints else []) + [(f"events.{n}", r) for n, r in events.items()]
-    for where, record in records:
-        for row in record["t"]:
-            known = ~np.isnan(row)
-            seen = row[known]
-            if (
-                np.isinf(row).any()
-                or (known[1:] & ~known[:-1]).any()
-                or (np.diff(seen) < 0).any()
-                or (len(seen) and (seen[0] < t[0] - tol or seen[-1] > t[-1] + tol))
-            ):
-                raise SolutionFileError(
-                    f"{path}: field '{where}.t' is not a sequence of times in [{t[0]:g}, {t[-1]:g}] in order: it is "
-                    "damaged"
-                )
-
-
-def _check_dense(dense, t: np.ndarray, values: np.ndarray, path: Path) -> None:
-    """Refuse a stored dense output that does not give the stored values at the output times."""
-    try:
-        found = np.asarray(dense(t), dtype=float)
-    except (ValueError, IndexError, TypeError, FloatingPointError) as error:
-        raise SolutionFileError(f"{path}: field 'dense' cannot be evaluated at the output times: {error}") from None
-    both = np.isfinite(values)
-    if found.shape != values.shape or not (np.isfinite(found) == both).all():
-        raise SolutionFileError(f"{path}: field 'dense' does not cover the output times: it is damaged")
-    scale = 1.0 + np.abs(values[both]).max(initial=0.0)
-    if (np.abs(found[both] - values[both]) > DENSE_CHECK_RTOL * scale).any():
-        raise SolutionFileError(f"{path}: field 'dense' does not give the stored values at the output times: it is "
-                                "damaged")  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -597,7 +361,6 @@ class Solution:
     def _check_memory_of_at(self, K: int) -> None:
         """Refuse ``at()`` at ``K`` times whose values and their evaluation would not fit (before allocating)."""
         from daemodel.errors import ResourceLimitError
-        from daemodel.files import memory_limit
 
         unknowns = len(self.compiled.states) + len(self.compiled.algebraics)
         stages = int(self.settings.get("stages", 3) or 3) if isinstance(self.settings, dict) else 3
@@ -736,36 +499,9 @@ class Solution:
         polynomials, in their pieces; a method's restarts are not: the loaded solution's :meth:`at`
         interpolates within each piece between breakpoints and events) and the model's fingerprints
         (equations, events, parameter values).  Read it back with :meth:`load` and the model."""
-        path = writable_file(path, "path")
-        c = self.compiled
-        names = [*c.state_names, *c.algebraic_names]
-        arrays: dict = {}
-        meta = {
-            "format": SOLUTION_FORMAT,
-            "model": c.name,
-            "fingerprint": c.fingerprint(),
-            "fingerprints": c.fingerprints(),
-            "declared": declared(c),
-            "names": names,
-            "method": self.method,
-            "settings": stored(self.settings, arrays),
-            "solve_time": self.solve_time,
-            "setup_time": self.setup_time,
-            "stats": stored(self.stats, arrays),
-            "status": self.status,
-            "batched": self.batched,
-            "breakpoints": stored(self.breakpoints, arrays),
-            "events": stored(self.events, arrays),
-            "dense": stored(stored_dense(self.dense), arrays),
-            "arrays": {name: array.ndim for name, array in arrays.items()},
-        }
-        arrays |= {
-            "t": self.t,
-            "values": np.stack([self.values[n] for n in names], axis=-1),
-            "parameters": self.parameters,
-            "meta": np.array(json.dumps(meta, allow_nan=False)),
-        }
-        return atomic_write(path, lambda handle: np.savez(handle, **arrays))
+        from daemodel.solution_files import write
+
+        return write(self, path)
 
     @classmethod
     def load(cls, path, model) -> Solution:
@@ -779,99 +515,13 @@ class Solution:
             No file, not a daemodel solution file, a damaged field (named), or a model whose
             equations, events or parameter values differ from the solved one's (each named).
         """
+        from daemodel.solution_files import read
+
         path = readable_path(path, "Solution.load: path", SolutionFileError)
         if not path.exists():
             raise SolutionFileError(f"no solution file at {path}")
         with open_file(path, "path", SolutionFileError) as handle:
-            return cls._read(handle, path, model)
-
-    @classmethod
-    def _read(cls, handle, path: Path, model) -> Solution:
-        """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
-        from daemodel.compiling.compiler import as_compiled
-
-        limit = memory_limit()
-        first = read_arrays(
-            handle, path, {"meta": ("U", 0)}, SolutionFileError, limit, "daemodel solution file", others=True
-        )
-        meta = parse_json(str(first["meta"]), path, SolutionFileError, "a daemodel solution file")
-        if isinstance(meta, dict) and meta.get("format") in OLDER_SOLUTION_FORMATS:
-            raise SolutionFileError(
-                f"{path} is a daemodel solution file of format {meta['format']!r}, which kept no events, breakpoints "
-                f"or dense output; this version reads {SOLUTION_FORMAT!r}: solve and save it again"
-            )
-        if not isinstance(meta, dict) or meta.get("format") != SOLUTION_FORMAT:
-            raise SolutionFileError(f"{path} is not a daemodel solution file (expected format {SOLUTION_FORMAT!r})")
-        for key, kind in SOLUTION_META.items():
-            if key not in meta:
-                raise SolutionFileError(f"{path} lacks the field {key!r}: it is damaged")
-            if not isinstance(meta[key], kind) or (kind is not bool and isinstance(meta[key], bool)):
-                expected = "a number" if isinstance(kind, tuple) else f"a {kind.__name__}"
-                raise SolutionFileError(f"{path}: field {key!r} is a {type(meta[key]).__name__}, not {expected}")
-        if "dense" not in meta or not isinstance(meta["dense"], dict | None):
-            raise SolutionFileError(f"{path}: field 'dense' is missing or not an object: it is damaged")
-        listed = meta["arrays"]
-        bad = [
-            k for k, v in listed.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)
-        ]
-        if bad:
-            raise SolutionFileError(f"{path}: field 'arrays' lists {bad[0]!r}, which is no array daemodel writes")
-        expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in listed.items()}
-        arrays = read_arrays(handle, path, expected, SolutionFileError, limit, "daemodel solution file")
-        compiled = as_compiled(model, "Solution.load()")
-        match = matching_system(compiled, meta, path, solved=arrays["parameters"])
-        names = [*match.state_names, *match.algebraic_names]
-        if meta["names"] != names:
-            raise SolutionFileError(f"{path}: field 'names' is {meta['names']!r}; the model's variables are {names}")
-        t, values, parameters = arrays["t"], arrays["values"], arrays["parameters"]
-        if not len(t) or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-            raise SolutionFileError(f"{path}: field 't' is not a non-empty, finite, increasing sequence of times")
-        B = len(parameters)
-        if parameters.shape[1:] != (len(match.parameter_names),) or not np.isfinite(parameters).all():
-            raise SolutionFileError(
-                f"{path}: field 'parameters' has shape {parameters.shape} or non-finite values; the model has "
-                f"{len(match.parameter_names)} parameters"
-            )
-        if values.shape != (B, len(t), len(names)) or (not meta["batched"] and B != 1):
-            raise SolutionFileError(
-                f"{path}: field 'values' has shape {values.shape}; {B} sample{'s' * (B != 1)}, {len(t)} times and "
-                f"{len(names)} variables make {(B, len(t), len(names))}"
-                + ("" if meta["batched"] or B == 1 else " (and an unbatched solution has one sample)")
-            )
-
-        def field(key):
-            return restored(meta[key], arrays, path, SolutionFileError, key)
-
-        breakpoints = field("breakpoints")
-        if breakpoints:
-            breakpoints = _switch_record(breakpoints, B, names, path, "breakpoints")
-        events = {
-            name: _switch_record(record, B, names, path, f"events.{name}") for name, record in field("events").items()
-        }
-        _check_instants(match, t, breakpoints, events, path)
-        dense = None
-        if meta["dense"] is not None:
-            try:
-                dense = dense_from_stored(field("dense"), B, len(names))
-            except ValueError as error:
-                raise SolutionFileError(f"{path}: field 'dense' is damaged: {error}") from None
-            _check_dense(dense, t, values, path)
-        return cls(
-            t=t,
-            values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
-            method=meta["method"],
-            settings=field("settings"),
-            solve_time=meta["solve_time"],
-            setup_time=meta["setup_time"],
-            stats=field("stats"),
-            compiled=match,
-            parameters=parameters,
-            batched=meta["batched"],
-            status=meta["status"],
-            breakpoints=breakpoints,
-            events=events,
-            dense=dense,
-        )
+            return read(handle, path, model)
 
     # ---- export -------------------------------------------------------------------------
     def to_pandas(self):

@@ -22,7 +22,7 @@ LAYERS = (
     ("core", ("errors", "files", "tableau", "reals", "collocation", "messages", "executors")),
     ("declaring", ("declaring",)),
     ("compiling", ("compiling",)),
-    ("the Solution", ("solution", "dense", "sensitivities", "instants", "plotting")),
+    ("the Solution", ("solution", "solution_files", "stats", "dense", "sensitivities", "instants", "plotting")),
     ("backends", ("backends",)),
     ("solving", ("solving",)),
     ("problems", ("problems",)),

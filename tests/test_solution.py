@@ -18,6 +18,7 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.errors import SolutionFileError
 from daemodel.problems import DECAY
+from daemodel.stats import Stats
 
 G = 9.81
 SPAN = (0.0, 2.5)  # four impacts, well before the Zeno point near 4.06
@@ -179,7 +180,7 @@ def test_stats_hold_arrays_not_lists_of_lists():
     fixed = dm.solve(DECAY.model(), (0.0, 1.0), h=0.1, stages=3)
     estimates = fixed.stats["local_error_estimates"]
     assert isinstance(estimates, np.ndarray) and estimates.shape == (10,) and estimates.dtype == float
-    stats = dm.solution.Stats(
+    stats = Stats(
         {
             "per_segment": [[1, 2], [3, 4], [5, 6]],
             "ragged": [np.array([1.0]), np.array([2.0, 3.0])],

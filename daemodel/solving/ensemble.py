@@ -41,7 +41,8 @@ from daemodel.files import (
     writable_directory,
     write_json,
 )
-from daemodel.solution import SOLUTION_ARRAYS, Solution, declared, matching_system
+from daemodel.solution import Solution
+from daemodel.solution_files import SOLUTION_ARRAYS, declared, matching_system, read
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
@@ -777,7 +778,7 @@ def _inputs_digest(batch: dict) -> str:
 def _read_chunk(directory: Path, name: str, compiled) -> Solution:
     """A chunk file (its name checked, read without following a link) as a Solution."""
     with open_inside(directory, name, "chunk file", SolutionFileError) as handle:
-        part = Solution._read(handle, directory / name, compiled)
+        part = read(handle, directory / name, compiled)
     samples = part.stats.get("samples")
     if (
         not isinstance(samples, np.ndarray)
