@@ -15,7 +15,7 @@ from the output before it (so the located state has the method's own accuracy, n
 interpolant's), to :data:`EVENT_TOL` in t; keep the outputs before it, apply the reset, go on
 from there.  A crossing between two outputs whose function changes sign twice is not seen, except
 from where a piece starts: an event function at zero there (just fired, or where the solve starts)
-takes the side the flow goes to (:func:`_start_piece`: one explicit step, :func:`_drift`), so a
+takes the side the flow goes to (:mod:`daemodel.solving.branches`: one explicit step), so a
 flight shorter than an output step is a crossing too.  At most ``max_events`` events a solve
 (default :data:`DEFAULT_MAX_EVENTS`); events whose times converge stop earlier, at their estimated
 accumulation point, and so does a reset that leaves its function on the guard
@@ -34,20 +34,17 @@ import dataclasses
 import math
 import time
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
-import sympy as sp
 
-from daemodel.compiling.switches import has_state_switches, has_time_switches, lock_branches
-from daemodel.errors import EventLimitError, EventLocationError, SlidingModeError, SwitchError, ZenoError
+from daemodel.compiling.switches import has_state_switches, has_time_switches
+from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
+from daemodel.solving.branches import EVENT_TOL, ROUNDING, drift, start_piece
 from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
-# Width in t to which an event is located (relative to max(1, |t|)).
-EVENT_TOL = 1e-12
 # Chattering: more than CHATTER_EVENTS events within CHATTER_SPAN of t_span's length end the solve
 # (EventLimitError) before max_events does; a sliding mode makes thousands, each a few trial solves.
 CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
@@ -57,11 +54,6 @@ MAX_LOCATION_ITERATIONS = 100
 # step this long: LOOKAHEAD_SPAN of t_span's length, and at least LOOKAHEAD_TOLS location tolerances (so
 # that a located event's own error in t cannot decide the side).
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
-# A drift within ROUNDING of the values' size (at least 1) is no motion.
-ROUNDING = 64 * np.finfo(float).eps
-# A reset changes the motion across its guard where the drift after it differs from the drift before by
-# more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
-RESET_CHANGE = 1e-6
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
 # Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
@@ -160,241 +152,6 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     return join_samples(parts, len(P), start.batched)
 
 
-def _drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float) -> np.ndarray:
-    """How ``functions`` (``F(t, Y, Z, P) -> (1, k)``) change over ``delta`` along ``piece``'s flow from
-    ``(t, Y, Z)``: one explicit midpoint step, the algebraic variables solved anew at its end; (k,).
-    Enough to tell which way a function at zero goes (its own rate, or its curvature where the rate
-    is 0: a ball at rest on the floor), at no cost of a solve."""
-    from daemodel.compiling.initial_states import algebraic_values
-    from daemodel.errors import ModelError
-
-    rhs = compiled.numeric.batch_function(list(piece.rhs))
-    k1 = rhs(t, Y, Z, P)
-    Y1 = Y + delta * rhs(t + 0.5 * delta, Y + 0.5 * delta * k1, Z, P)
-    Z1 = Z
-    if Z.shape[1]:
-        try:
-            Z1 = algebraic_values(for_method(piece, backend), t + delta, Y1, P, Z)
-        except ModelError:  # (no root near Z past the start: the rate of z is not needed to tell most sides)
-            Z1 = Z
-    return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
-
-
-def _side(change: float, scale: float) -> int:
-    """The sign of a drift, 0 within rounding of values of size ``scale``."""
-    return 0 if abs(change) <= ROUNDING * max(1.0, scale) else int(np.sign(change))
-
-
-def _leveled(when, levels: dict, replaced: dict | None = None):
-    """``when`` with the integer events ``levels`` (event -> k) measured as ``(phi - k)(k + 1 - phi)``:
-    positive while ``floor(phi)`` stays ``k``, 0 where it steps, one sign change however far it goes;
-    and the columns of ``replaced`` (event -> function) by those functions (a sliding motion's exit)."""
-    if not levels and not replaced:
-        return when
-
-    def leveled(t, Y, Z, P):
-        out = when(t, Y, Z, P).copy()
-        for e, k in levels.items():
-            out[:, e] = (out[:, e] - k) * (k + 1 - out[:, e])
-        for e, function in (replaced or {}).items():
-            out[:, e] = function(t, Y, Z, P)[:, 0]
-        return out
-
-    return leveled
-
-
-@dataclass
-class _Start:
-    """How a piece starts: its model with the switches on variables locked, the event functions as
-    its detection sees them, and each one's side (0: taken from its values) and whether it is armed."""
-
-    model: object
-    when: object
-    sides: np.ndarray
-    armed: np.ndarray
-    setup_time: float
-    # event -> (rate above, rate below) of the switches the piece slides along
-    sliding: dict = dataclasses.field(default_factory=dict)
-    # the events whose functions are at zero where the piece starts
-    at_zero: frozenset = frozenset()
-
-
-def _start_piece(
-    backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=(), moved_off=()
-) -> _Start:
-    """The piece from ``t``: which side each event function at zero there goes to, by the flow
-    (:func:`_drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
-    (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
-    ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
-    the side it crossed to (kept where both sides lead away).
-
-    Raises
-    ------
-    SlidingModeError
-        A switch at zero whose flow goes back across it on both sides.
-    ZenoError
-        A reset that leaves its event's function on the guard or going on across it.
-    """
-
-    started = time.perf_counter()
-    events = compiled.events
-    F0 = when(np.array([t]), Y, Z, P)[0]
-    at_zero = set(fired) - set(moved_off)
-    for e, event in enumerate(events):
-        if F0[e] == (round(F0[e]) if event.integer else 0):
-            at_zero.add(e)
-    scale = float(np.max(np.abs(np.concatenate([Y[0], Z[0], [t]]))))
-    chosen = {}
-    for _ in range(len(events) + 1):  # (more rounds for switches that cross within location tolerances of t)
-        switches = [e for e in sorted(at_zero) if events[e].strict and events[e].when not in chosen]
-        chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
-        for e in switches:
-            chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale, e in exited)  # fmt: skip
-        if not lock:
-            break
-        model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
-        rates = _drift(compiled, backend, model, t, Y, Z, P, when, delta) / delta
-        soon = EVENT_TOL * max(1.0, abs(t)) * 10  # (a crossing this close to t is at t: no piece that short)
-        near = {
-            e
-            for e, event in enumerate(events)
-            if event.strict
-            and not event.integer
-            and e not in at_zero
-            and np.sign(F0[e]) == -np.sign(rates[e])
-            and abs(F0[e]) <= abs(rates[e]) * soon
-        }
-        if not near:
-            break
-        at_zero |= near
-    slides = [e for e, event in enumerate(events) if event.strict and chosen.get(event.when) == 0]
-    if len(slides) > 1:
-        raise SlidingModeError(
-            f"switches {', '.join(repr(events[e].name) for e in slides)} at t = {t:.12g}: the solution slides along "
-            "two switches at once, which daemodel does not integrate; smooth one of them, or end t_span before it",
-            t,
-        )
-    sliding, replaced = {}, {}
-    if slides:
-        (e,) = slides
-        phi = events[e].when
-        others = {f: side for f, side in chosen.items() if f != phi}
-        model, leaving, rates = _sliding(compiled, t, Y, Z, P, others, phi)
-        sliding[e] = compiled.numeric.batch_function(list(rates))
-        replaced[e] = compiled.numeric.batch_function([leaving])
-        chosen.pop(phi)
-    else:
-        model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen) if lock else compiled
-    sides, armed, levels = np.zeros(len(events)), np.ones(len(events), dtype=bool), {}
-    for e, event in enumerate(events):
-        if event.integer:
-            side = chosen.get(event.when)
-            levels[e] = (round(F0[e]) - (side < 0)) if side else math.floor(F0[e])
-            sides[e] = 1.0  # (inside [k, k + 1] by construction)
-        elif e in sliding:
-            sides[e] = 1.0  # (the function that leaves the sliding motion: positive on it)
-        elif event.strict and e in at_zero:
-            sides[e] = chosen[event.when]
-    declared = [e for e in sorted(at_zero) if not events[e].strict]
-    if declared:
-        changes = _drift(compiled, backend, model, t, Y, Z, P, when, delta)
-        for e in declared:
-            side = _side(changes[e], scale)
-            before = crossing.get(e)
-            if before is not None:  # (a reset: it must send the function back, or leave its motion as it was)
-                across = _side(before, scale)
-                if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
-                    raise ZenoError(
-                        f"event '{events[e].name}' at t = {t:.12g}: after its reset {events[e].when} stays on the "
-                        "guard (it does not move back to the side it came from), so the event would fire again at "
-                        "once, without end (Zeno: a ball coming to rest); make the event terminal=True to stop "
-                        "there, change the reset, or end t_span at it",
-                        t,
-                    )
-            sides[e] = side
-            armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
-    return _Start(
-        model,
-        _leveled(when, levels, replaced),
-        sides,
-        armed,
-        time.perf_counter() - started,
-        sliding,
-        frozenset(at_zero),
-    )
-
-
-def _branch(
-    backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, delta: float, scale: float, exited: bool
-) -> int:
-    """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
-    branch moves its function away from zero on its own side; ``preferred`` where both do, or where it
-    just left a sliding motion (``exited``); 0 where neither does and the solution slides along it
-    (:func:`_slides`).
-
-    Raises
-    ------
-    SlidingModeError
-        Neither does, and the sliding motion is not one daemodel integrates.
-    """
-
-    phi = event.when
-    function = compiled.numeric.batch_function([phi])
-    change = {}
-    for side in (1, -1):
-        candidate = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side})
-        change[side] = _side(_drift(compiled, backend, candidate, t, Y, Z, P, function, delta)[0], scale)
-    up, down = change[1] >= 0, change[-1] <= 0
-    if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
-        return preferred
-    if not (up or down) and _slides(compiled, event):
-        return 0  # (Filippov's sliding motion: see _sliding)
-    if not (up or down):
-        raise SlidingModeError(
-            f"switch '{event.name}' at t = {t:.12g}: neither branch goes on: above zero {phi} turns back down, "
-            f"below zero it turns back up, so the solution slides along {phi} = 0 (a sliding mode), which "
-            "daemodel integrates only where the switching function is of t and the states and the switch and "
-            "the constraints are apart (index 1 at most); smooth the switch (e.g. tanh(s/eps) for sign(s)), or "
-            "end t_span before it",
-            t,
-        )
-    return preferred if up and down else (1 if up else -1)
-
-
-def _slides(compiled, event) -> bool:
-    """Whether daemodel integrates the Filippov sliding motion along ``event``'s switch: its switching
-    function is of t, the states and parameters, it occurs in no constraint, and no constraint is
-    differentiated along the flow (index 1 at most: the sliding flow would change the hidden ones)."""
-    phi = event.when
-    if event.integer or phi.free_symbols & set(compiled.algebraics):
-        return False
-    return all(len(c.chain) == 1 and not any(e.has(phi) or e.has(-phi) for e in c.chain) for c in compiled.constraints)
-
-
-def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
-    """The model of the Filippov sliding motion along ``phi = 0``: ``y' = f- + a (f+ - f-)`` with ``a``
-    such that ``phi`` stays put (``a = r- / (r- - r+)``, ``r`` the rates of ``phi`` on each branch), and
-    the function that leaves it: ``r- (-r+)``, positive while both branches push onto the switch."""
-
-    plus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: 1})
-    minus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: -1})
-    key = ("sliding", phi, plus.rhs, minus.rhs)
-    if key not in compiled._cache:
-
-        def rate(rhs):
-            return sp.diff(phi, compiled.t) + sum(
-                sp.diff(phi, y) * f for y, f in zip(compiled.states, rhs, strict=True)
-            )
-
-        up, down = rate(plus.rhs), rate(minus.rhs)
-        a = down / (down - up)
-        rhs = tuple(fm + a * (fp - fm) for fp, fm in zip(plus.rhs, minus.rhs, strict=True))
-        model = dataclasses.replace(minus, rhs=rhs, _cache={})
-        compiled._cache[key] = (model, down * (-up), (up, down))
-    return compiled._cache[key]
-
-
 def _limit(times: list) -> float | None:
     """Where ``times`` converge, if their last 3 gaps shrink: the sum of the geometric series they start."""
     if len(times) < 4:
@@ -442,7 +199,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     t, count, setup_time, last = t0, 0, 0.0, None
     recent = []  # (the event times, to see chattering before max_events)
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
-    fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: _start_piece)
+    fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
     lock = has_state_switches(compiled)
 
     def delta_at(time_: float) -> float:
@@ -451,7 +208,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
         try:
-            begin = _start_piece(
+            begin = start_piece(
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off
             )
         except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
@@ -534,7 +291,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         with_reset = [e for e in fired if resets[e] is not None]
         crossing = {}
         if with_reset:  # (how the functions moved just before the resets: a reset must send them back)
-            changes = _drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
+            changes = drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: int(np.sign(F[first, e])) or 1 for e in fired if events[e].strict and not events[e].integer}
         exited = {e for e in fired if e in begin.sliding}
@@ -562,7 +319,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Y = projected
             if lock and Z.shape[1]:  # (z on the branch the next piece takes)
                 delta = delta_at(t_event)
-                after = _start_piece(
+                after = start_piece(
                     backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta, lock, exited,
                     moved_off,
                 )  # fmt: skip
