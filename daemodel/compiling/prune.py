@@ -16,15 +16,8 @@ from dataclasses import replace
 
 import sympy as sp
 
-from daemodel.compiling.structure import (
-    Differentiator,
-    exact_value,
-    incidence,
-    is_zero,
-    numeric_point,
-    numeric_value,
-    point_value,
-)
+from daemodel.compiling.structure import Differentiator, incidence
+from daemodel.compiling.zero_test import exact_value, is_zero, numeric_point, numeric_value, point_value
 
 
 def find_alias(

@@ -13,7 +13,8 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.compiling.init import NumericSystem, _least_squares, jacobian_entries
 from daemodel.compiling.initial_states import initial_states
-from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, is_zero, square_blocks
+from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
+from daemodel.compiling.zero_test import is_zero
 
 GRAVITY = 9.81
 
