@@ -1,4 +1,4 @@
-"""dm.ensemble on 10^5 pendulum states: one batched radau call, the local engine (in memory and
+"""dm.ensemble on 10^5 pendulum states: one batched radau call, the local executor (in memory and
 written to files), and Ray with 1 and 2 workers on this machine; time, agreement and peak memory
 per worker.  Then a Ray worker's peak memory against the chunk size, and segment-parallel PINN
 training (Hessenberg, 20 segments) locally and on Ray.
@@ -66,7 +66,7 @@ def main() -> None:
 
 
 def ensemble_runs(c, span, y0, chunk) -> dict:
-    """10^5 states: one batched call, the local engine in memory and to files, Ray 1 and 2 workers."""
+    """10^5 states: one batched call, the local executor in memory and to files, Ray 1 and 2 workers."""
     names = (*c.state_names, *c.algebraic_names)
     B = len(next(iter(y0.values())))
     runs = {}
@@ -103,8 +103,8 @@ def ensemble_runs(c, span, y0, chunk) -> dict:
 
     for workers in (1, 2):
         ray.init(num_cpus=workers, log_to_driver=False, include_dashboard=False)
-        first, _ = timed(lambda: dm.ensemble(c, span, y0=y0, h=0.05, chunk=chunk, engine="ray"))
-        seconds, ensemble = timed(lambda: dm.ensemble(c, span, y0=y0, h=0.05, chunk=chunk, engine="ray"))
+        first, _ = timed(lambda: dm.ensemble(c, span, y0=y0, h=0.05, chunk=chunk, executor="ray"))
+        seconds, ensemble = timed(lambda: dm.ensemble(c, span, y0=y0, h=0.05, chunk=chunk, executor="ray"))
         record(f"ray, {workers} worker{'s' if workers > 1 else ''}", seconds, ensemble, first)
         ray.shutdown()
     one_worker, two_workers = runs["ray, 1 worker"]["seconds"], runs["ray, 2 workers"]["seconds"]
@@ -132,7 +132,7 @@ def worker_memory(c, span, y0) -> list:
     for chunk in (1_000, 10_000, 30_000):
         ray.init(num_cpus=1, log_to_driver=False, include_dashboard=False)
         part = {name: values[: 3 * chunk] for name, values in y0.items()}
-        ensemble = dm.ensemble(c, span, y0=part, h=0.05, chunk=chunk, engine="ray")
+        ensemble = dm.ensemble(c, span, y0=part, h=0.05, chunk=chunk, executor="ray")
         ray.shutdown()
         rows.append(
             {

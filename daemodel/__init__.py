@@ -9,7 +9,8 @@ from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.compiler import Model
 from daemodel.fitting.fit import Fit, fit
 from daemodel.solution import Solution
-from daemodel.solving.ensemble import EnsembleFiles, ensemble
+from daemodel.solving.ensemble import ensemble
+from daemodel.solving.ensemble_files import EnsembleFiles
 from daemodel.solving.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 

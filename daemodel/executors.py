@@ -131,7 +131,7 @@ def connect(workers: int | None, address: str | None):
         import ray
     except ImportError:
         raise InvalidOptionError(
-            "engine='ray' needs Ray, which is not installed: pip install 'daemodel[ray]' (or pip install ray)"
+            "executor='ray' needs Ray, which is not installed: pip install 'daemodel[ray]' (or pip install ray)"
         ) from None
     if not ray.is_initialized():
         if workers is not None and address not in (None, "local"):

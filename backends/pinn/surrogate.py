@@ -290,7 +290,7 @@ class Surrogate:
                 method="radau",
                 stages=config.stages,
                 h=config.h,
-                engine=engine,
+                executor=engine,
                 chunk=chunk,
             )
         except ConvergenceError as error:

@@ -68,8 +68,33 @@ class InitialStates:
         return len(self.y0)
 
 
-def _columns(compiled, value, names, defaults, what: str):
-    """``(B or None, ndarray (B or 1, len(names)))`` from a dict by name or an array."""
+def columns(compiled, value, names, defaults, what: str):
+    """One argument's values as columns: ``(B or None, ndarray (B or 1, len(names)))``.
+
+    Parameters
+    ----------
+    compiled : CompiledDAE
+    value : dict, array or None
+        By name (numbers or 1-d arrays of samples; a name left out takes its default), an array
+        of shape ``(len(names),)`` or ``(B, len(names))``, or None (every default).
+    names, defaults : sequences of the same length
+        The columns' names, in order, and their values where ``value`` gives none.
+    what : str
+        The argument's name in messages (``"y0"``, ``"z0"``, ``"parameters"``).
+
+    Returns
+    -------
+    size : int or None
+        The batch size that ``value`` gives; None for a single sample.
+    array : ndarray, shape (B or 1, len(names))
+
+    Raises
+    ------
+    UnknownSymbolError
+        A name that is not among ``names`` (nor a parameter that compiling pruned).
+    ShapeError
+        Arrays of different lengths, of no samples, or of the wrong shape.
+    """
     if value is None:
         return None, np.asarray(defaults, dtype=float)[None, :]
     if isinstance(value, dict):
@@ -189,7 +214,7 @@ def _batch(compiled, arguments) -> tuple[dict, list]:
     ``(argument, value, names, defaults)`` rows: checked, finite, broadcast to one batch size."""
     sizes, blocks = {}, []
     for arg, value, names, defaults in arguments:
-        size, block = _columns(compiled, value, names, defaults, arg)
+        size, block = columns(compiled, value, names, defaults, arg)
         _finite(block, names, arg)
         blocks.append(block)
         if size is not None:

@@ -1,48 +1,52 @@
 """Ensembles: a large batch of initial states and parameter sets, solved chunk by chunk, in this
-process or as Ray tasks, with each sample's failure recorded instead of ending the run.
+process or as Ray tasks (:mod:`daemodel.executors`), with each sample's failure recorded instead
+of ending the run.
 
 A chunk is one batched call of the method (radau's vectorised Newton over the chunk).  A chunk
 that fails is split in halves until the failing samples stand alone; they are recorded by
 index in ``stats["failures"]`` and left out of the returned Solution, whose values stay finite.
+What the chunks give back is joined in :mod:`daemodel.solving.ensemble_results`; an ensemble
+written to a directory is laid out, resumed and read back in :mod:`daemodel.solving.ensemble_files`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
-import re
 import sys
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from daemodel.errors import (
+    ConvergenceError,
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
     InitialisationError,
     InvalidOptionError,
-    SolutionFileError,
     SolverError,
     TimeLimitError,
 )
-from daemodel.executors import DEFAULT_TASK_TIMEOUT, check_executor, check_timeout, run_tasks
-from daemodel.files import (
-    DirectoryLock,
-    check_memory,
-    is_plain_file,
-    open_inside,
-    read_arrays,
-    read_json,
-    readable_path,
-    writable_directory,
-    write_json,
+from daemodel.executors import (
+    DEFAULT_TASK_TIMEOUT,
+    EXECUTORS,
+    check_executor,
+    check_timeout,
+    refuse_engine,
+    run_tasks,
 )
+from daemodel.files import DirectoryLock, check_memory, writable_directory
 from daemodel.solution import Solution
-from daemodel.solution_files import SOLUTION_ARRAYS, declared, matching_system, read
+from daemodel.solving.ensemble_files import (
+    EnsembleFiles,
+    inputs_digest,
+    resume,
+    run_fingerprint,
+    write_chunk,
+    write_manifest,
+)
+from daemodel.solving.ensemble_results import Failure, assemble, joined_switches, merged
 
 # Samples per chunk by default: big enough that radau's per-step Python overhead is shared,
 # small enough that a chunk's arrays stay modest (10^4 pendulum samples over 20 steps: ~10 MB).
@@ -55,55 +59,6 @@ DEFAULT_MAX_FAILURES = 1000
 # Failures of a single sample: what its own states or the method's iteration caused.  Any other
 # error (a wrong option, a model error) would fail every sample and ends the ensemble at once.
 SAMPLE_FAILURES = (SolverError, InitialisationError, InconsistentInitialStateError, InconsistentAlgebraicValueError)
-# What ensemble(write_to=...) writes: a manifest and one Solution.save file per chunk with values.
-# Each chunk records the run's fingerprint (model, t_span, method, settings, chunking) and a hash
-# of its own samples' inputs, so that a resumed run takes only its own chunks and a loader
-# refuses a chunk copied from another run.
-ENSEMBLE_FORMAT = "daemodel-ensemble/3"
-# Formats this version refuses by name: /1 carried no fingerprints, /2 none of events or parameter values.
-OLDER_ENSEMBLE_FORMATS = {
-    "daemodel-ensemble/1": "whose chunks carry no fingerprints",
-    "daemodel-ensemble/2": "whose fingerprints ignore events and parameter values",
-}
-MANIFEST = "ensemble.json"
-CHUNK_FILE = "chunk-{offset:012d}.npz"
-CHUNK_NAME = re.compile(r"chunk-(\d{12})\.npz")
-# What an interrupted atomic write leaves: a temporary file, never complete, removed on resume.
-PARTIAL_NAME = re.compile(r"\.(chunk-\d{12}\.npz|ensemble\.json)\..+\.partial")
-MANIFEST_KEYS = (
-    "model",
-    "fingerprint",
-    "fingerprints",
-    "declared",
-    "run",
-    "total",
-    "chunk",
-    "engine",
-    "seconds",
-    "status",
-    "failures",
-    "files",
-)
-
-
-@dataclass(frozen=True)
-class Failure:
-    """One sample the method could not solve.
-
-    Attributes
-    ----------
-    index : int
-        The sample's position in the ensemble's batch.
-    error : str
-        The exception's class name (see :mod:`daemodel.errors`).
-    message : str
-        The method's message from solving this sample alone: where it says "sample 0", that is
-        this sample (``index`` in the ensemble).
-    """
-
-    index: int
-    error: str
-    message: str
 
 
 def ensemble(
@@ -114,7 +69,7 @@ def ensemble(
     z0=None,
     parameters=None,
     method: str = "radau",
-    engine: str = "local",
+    executor: str = "local",
     chunk: int = DEFAULT_CHUNK,
     workers: int | None = None,
     address: str | None = None,
@@ -124,16 +79,19 @@ def ensemble(
     task_timeout: float | None = DEFAULT_TASK_TIMEOUT,
     **options,
 ) -> Solution | EnsembleFiles:
-    """Solve a large batch in chunks: ``engine="local"`` one chunk after another in this process
-    (no Ray, no worker processes), ``engine="ray"`` one Ray task per chunk.
+    """Solve a large batch in chunks: ``executor="local"`` one chunk after another in this process
+    (no Ray, no worker processes), ``executor="ray"`` one Ray task per chunk.
 
     Parameters
     ----------
     model : Model or CompiledDAE
     t_span, y0, z0, parameters, method, **options
         As in :func:`daemodel.solve`; the batch is split into chunks of ``chunk`` samples, each
-        solved by one :func:`daemodel.solve` call.
-    engine : {"local", "ray"}
+        solved by one :func:`daemodel.solve` call.  ``engine=`` is the method's (radau's
+        ``"torch"`` or ``"casadi"``), passed to every chunk's solve.
+    executor : {"local", "ray"}
+        Where the chunks run (:mod:`daemodel.executors`).  Spelled ``engine=`` before: ``engine="local"``
+        or ``"ray"`` raises an :class:`InvalidOptionError` that names the new spelling.
     chunk : int
         Samples per task.  On a CPU about 10^4 (smaller arrays stay in cache); on a GPU the
         largest that fits its memory (10^5 pendulum states on an H100: one call 0.33 s, chunks
@@ -183,16 +141,21 @@ def ensemble(
     ResourceLimitError
         In memory, before any chunk, when the outputs (samples x the output times that ``t_eval``
         or a fixed ``h`` gives x variables) exceed :func:`daemodel.files.memory_limit`.
+    InvalidOptionError
+        ``engine="local"`` or ``"ray"`` (now ``executor=``), or an option that the method or
+        the executor refuses, named before any chunk runs.
     InvalidOptionError, SolutionFileError
         With ``write_to``: a directory of another run (other inputs, model, events, parameter
         values, method or settings).
     """
     from daemodel.backends import get_backend
     from daemodel.compiling.compiler import as_compiled
-    from daemodel.compiling.initial_states import _columns
+    from daemodel.compiling.initial_states import columns as columns_of
     from daemodel.solving.solver import check_options, check_span
 
-    check_executor(engine, workers, address, options.get("device", "cpu"))
+    if isinstance(options.get("engine"), str) and options["engine"] in EXECUTORS:
+        refuse_engine("ensemble()", options)  # the old spelling of executor=; any other engine= is the method's
+    check_executor(executor, workers, address, options.get("device", "cpu"))
     check_timeout(task_timeout)
     backend = get_backend(method)
     if "dense_output" in {f.name for f in dataclasses.fields(backend.Options)} and "dense_output" not in options:
@@ -210,11 +173,13 @@ def ensemble(
     compiled = as_compiled(model, "ensemble()")
     t_span = check_span(t_span, compiled)
     columns = {
-        "y0": _columns(compiled, y0, compiled.state_names, compiled.y0, "y0"),
-        "parameters": _columns(compiled, parameters, compiled.parameter_names, compiled.parameter_values, "parameters"),
+        "y0": columns_of(compiled, y0, compiled.state_names, compiled.y0, "y0"),
+        "parameters": columns_of(
+            compiled, parameters, compiled.parameter_names, compiled.parameter_values, "parameters"
+        ),
     }
     if z0 is not None:
-        columns["z0"] = _columns(compiled, z0, compiled.algebraic_names, compiled.z0, "z0")
+        columns["z0"] = columns_of(compiled, z0, compiled.algebraic_names, compiled.z0, "z0")
     sizes = {name: size for name, (size, _) in columns.items() if size is not None}
     if len(set(sizes.values())) > 1:
         raise InvalidOptionError(
@@ -242,15 +207,26 @@ def ensemble(
         for start, stop in pieces
     ]
     plan = _Plan(
-        compiled, t_span, method, options, total, chunk, engine, workers, address, progress, max_failures, task_timeout
+        compiled,
+        t_span,
+        method,
+        options,
+        total,
+        chunk,
+        executor,
+        workers,
+        address,
+        progress,
+        max_failures,
+        task_timeout,
     )
     if write_to is None:
         return _run(plan, work)
     directory = writable_directory(write_to, "write_to")  # made once the inputs are known good
     with DirectoryLock(directory, "write_to"):
-        digests = {start: _inputs_digest(batch) for start, batch in work}
-        run = _run_fingerprint(compiled, t_span, method, options, chunk, total, digests)
-        done = _resume(directory, compiled, run, digests, {start: len(batch["y0"]) for start, batch in work})
+        digests = {start: inputs_digest(batch) for start, batch in work}
+        run = run_fingerprint(compiled, t_span, method, options, chunk, total, digests)
+        done = resume(directory, compiled, run, digests, {start: len(batch["y0"]) for start, batch in work})
         if isinstance(done, EnsembleFiles):
             return done
         began = time.perf_counter()
@@ -259,7 +235,7 @@ def ensemble(
         # the run's wall time: this call's, plus the seconds of the chunks an earlier call left
         seconds = time.perf_counter() - began + sum(result["seconds"] for result in done.values())
         results = sorted([*done.values(), *results], key=lambda result: result["offset"])
-        _write_manifest(directory, compiled, results, total, seconds, engine, chunk, run)
+        write_manifest(directory, compiled, results, total, seconds, executor, chunk, run)
         return EnsembleFiles.load(directory, compiled)
 
 
@@ -289,7 +265,7 @@ class _Plan:
     options: dict
     total: int
     chunk: int
-    engine: str
+    executor: str
     workers: int | None
     address: str | None
     progress: bool
@@ -313,8 +289,8 @@ def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = (
             width = sum(value.shape[1] for value in result["values"].values())  # times x variables
             check_memory(f"ensemble of {plan.total} samples kept in memory", {"outputs": plan.total * width * 8})
         if files is not None:
-            _write_chunk(files, plan.compiled, result)
-        elif plan.engine == "ray" and "values" in result:
+            write_chunk(files, plan.compiled, result)
+        elif plan.executor == "ray" and "values" in result:
             # arrays from Ray are views into its object store, which they would keep pinned
             result["values"] = {name: np.array(value) for name, value in result["values"].items()}
             result["parameters"] = np.array(result["parameters"])
@@ -331,7 +307,7 @@ def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = (
         solve_chunk,
         (plan.compiled, plan.t_span, plan.method, plan.options, plan.max_failures),
         work,
-        engine=plan.engine,
+        engine=plan.executor,
         workers=plan.workers,
         address=plan.address,
         label="ensemble",
@@ -340,7 +316,7 @@ def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = (
     )
     if files is not None:
         return results
-    return _assemble(plan.compiled, results, plan.total, time.perf_counter() - began, plan.engine, plan.chunk)
+    return assemble(plan.compiled, results, plan.total, time.perf_counter() - began, plan.executor, plan.chunk)
 
 
 def solve_chunk(shared: tuple, offset: int, batch: dict) -> dict:
@@ -384,7 +360,7 @@ def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failur
             _solve_part(problem, offset + lo, {k: v[lo:hi] for k, v in batch.items()}, found, max_failures)
             for lo, hi in ((0, half), (half, size))
         ]
-        return _merge(parts, offset, size, time.perf_counter() - began)
+        return merged(parts, offset, size, time.perf_counter() - began)
     values = {name: np.asarray(value).reshape(size, -1) for name, value in solution.values.items()}
     return {
         "offset": offset,
@@ -401,555 +377,11 @@ def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failur
     }
 
 
-def _merge(parts: list, offset: int, size: int, seconds: float) -> dict:
-    solved = [part for part in parts if "values" in part]
-    merged = {
-        "offset": offset,
-        "size": size,
-        "seconds": seconds,
-        "failures": [failure for part in parts for failure in part["failures"]],
-    }
-    if solved:
-        merged["indices"] = np.concatenate([part["indices"] for part in solved])
-        merged["values"] = {
-            name: np.concatenate([part["values"][name] for part in solved]) for name in solved[0]["values"]
-        }
-        merged["parameters"] = np.concatenate([part["parameters"] for part in solved])
-        merged["switches"] = joined_switches([part["switches"] for part in solved]) | {"rows": len(merged["indices"])}
-        merged["meta"], merged["index"] = solved[0]["meta"], solved[0]["index"]
-    return merged
-
-
-def _assemble(compiled, results: list, total: int, seconds: float, engine: str, chunk: int) -> Solution:
-    failures = _failures(results, total)
-    solved = [result for result in results if "values" in result]
-    values = {name: np.concatenate([result["values"][name] for result in solved]) for name in solved[0]["values"]}
-    stats = {
-        "engine": engine,
-        "chunk": chunk,
-        "samples": np.concatenate([result["indices"] for result in solved]),
-        "failures": failures,
-        "chunks": [
-            {key: r[key] for key in ("offset", "size", "seconds")} | {"status": r["meta"]["status"]} for r in solved
-        ],
-        "peak_memory_mb": [r["peak_memory_mb"] for r in results if "peak_memory_mb" in r],
-    }
-    meta = solved[0]["meta"]
-    return Solution(
-        values=values,
-        parameters=np.concatenate([result["parameters"] for result in solved]),
-        **joined_switches([result["switches"] for result in solved]),
-        solve_time=seconds,
-        stats=stats,
-        batched=True,
-        compiled=_system(compiled, solved[0]["index"]),
-        **{**meta, "status": _status([(r["offset"], r["meta"]["status"]) for r in solved], failures, total)},
-    )
-
-
-def _joined_records(records: list) -> dict:
-    """Breakpoint or event records of consecutive rows (``"t"``, ``"moved"`` (b, K), ``"before"``,
-    ``"after"`` name -> (b, K)) as one, each padded with NaN to the most switches any row had."""
-    K = max(record["t"].shape[1] for record in records)
-
-    def joined(tables: list) -> np.ndarray:
-        padded = [
-            np.pad(np.asarray(x, dtype=float), ((0, 0), (0, K - x.shape[1])), constant_values=np.nan) for x in tables
-        ]
-        return np.concatenate(padded)
-
-    out = {key: joined([record[key] for record in records]) for key in ("t", "moved")}
-    for side in ("before", "after"):
-        out[side] = {name: joined([record[side][name] for record in records]) for name in records[0][side]}
-    return out
-
-
-def joined_switches(parts: list) -> dict:
-    """The ``{"events": ..., "breakpoints": ...}`` of solutions of consecutive rows (chunks, halves of
-    a chunk; ``"rows"`` each) as those of one Solution: the layout of a batched solve's, NaN-padded."""
-    names = list(dict.fromkeys(name for part in parts for name in part["events"]))
-    variables = next((list(r["before"]) for p in parts for r in [p["breakpoints"], *p["events"].values()] if r), [])
-
-    def record(found: dict | None, rows: int) -> dict:  # (a part without this switch: none of its rows had one)
-        if found:
-            return found
-        none = np.zeros((rows, 0))
-        return {
-            "t": none,
-            "moved": none,
-            "before": dict.fromkeys(variables, none),
-            "after": dict.fromkeys(variables, none),
-        }
-
-    out = {
-        "events": {
-            name: _joined_records([record(part["events"].get(name), part["rows"]) for part in parts]) for name in names
-        },
-        "breakpoints": {},
-    }
-    if any(part["breakpoints"] for part in parts):
-        out["breakpoints"] = _joined_records([record(part["breakpoints"], part["rows"]) for part in parts])
-    return out
-
-
-def switch_rows(switches: dict, rows) -> dict:
-    """``{"events": ..., "breakpoints": ...}`` of the rows ``rows`` (a mask or indices)."""
-
-    def take(record: dict) -> dict:
-        out = {key: np.asarray(record[key])[rows] for key in ("t", "moved")}
-        out |= {side: {name: np.asarray(v)[rows] for name, v in record[side].items()} for side in ("before", "after")}
-        return out
-
-    return {
-        "events": {name: take(record) for name, record in switches["events"].items()},
-        "breakpoints": take(switches["breakpoints"]) if switches["breakpoints"] else {},
-    }
-
-
-def _system(compiled, index: int):
-    """The system a method solved: the model, or its reduction to ``index``."""
-    return compiled if compiled.index <= index else compiled.reduced(index)
-
-
-def _failures(results: list, total: int) -> list:
-    """Every failure by index; a ConvergenceError naming the first when no sample was solved."""
-    from daemodel.errors import ConvergenceError
-
-    failures = sorted((failure for result in results for failure in result["failures"]), key=lambda f: f.index)
-    if len(failures) == total:
-        first = failures[0]
-        raise ConvergenceError(
-            f"ensemble: every one of the {total} samples failed; sample {first.index}: {first.error}: {first.message}"
-        )
-    return failures
-
-
 def _too_many_failures(failed: list, max_failures: int) -> None:
-    from daemodel.errors import ConvergenceError
-
+    """Stop the ensemble: more than ``max_failures`` samples failed (``failed``, so far)."""
     first = min(failed, key=lambda f: f.index)
     raise ConvergenceError(
         f"ensemble: more than max_failures={max_failures} samples failed ({len(failed)} found, first: sample "
         f"{first.index}, {first.error}: {first.message}); the ensemble stopped, with samples left unsolved. "
         "If many samples are expected to fail, raise max_failures (None: no bound); else fix what fails them"
     )
-
-
-def _status(statuses: list, failures: list, total: int) -> str:
-    """The chunks' status when they agree, else each distinct one with the chunks that gave it
-    (a fixed-budget PINN states its own residual per chunk); then the failures' count."""
-    distinct: dict = {}
-    for offset, status in statuses:
-        distinct.setdefault(status, []).append(offset)
-    if len(distinct) == 1:
-        status = statuses[0][1]
-    else:
-        status = "the chunks' statuses differ: " + "; ".join(
-            f"{text!r} (chunks from sample {', '.join(map(str, offsets[:3]))}{', ...' if len(offsets) > 3 else ''})"
-            for text, offsets in distinct.items()
-        )
-    if not failures:
-        return status
-    shown = f"{len(failures)} of {total} samples failed and are left out (stats['failures'], first: sample "
-    return f"{status}; {shown}{failures[0].index}, {failures[0].error})"
-
-
-# ---- chunks written to files ----------------------------------------------------------------------
-class EnsembleFiles:
-    """An ensemble written chunk by chunk to a directory by ``ensemble(..., write_to=...)``.
-
-    Iterate over it for one :class:`Solution` per chunk file (its ``stats["samples"]`` are the
-    samples' indices in the ensemble), or gather chosen samples with :meth:`solution`: either
-    way only one chunk's values are read at a time.
-
-    Attributes
-    ----------
-    directory : Path
-    total : int
-        Samples in the ensemble, solved or not.
-    failures : list of Failure
-        The samples that were not solved, by index.
-    status, engine, chunk, seconds
-        As the in-memory ensemble's ``status`` and ``stats``; ``seconds`` is the whole run.
-
-    Examples
-    --------
-    >>> files = dm.ensemble(model, (0, 1), y0=states, h=0.05, write_to="runs/sweep")
-    >>> peak = max(part["y1"].max() for part in files)   # one chunk in memory at a time
-    >>> files.solution([0, 17, 99_999])["y1"]     # three samples, read from their chunks
-    >>> files = dm.EnsembleFiles.load("runs/sweep", model)   # later, in another process
-    """
-
-    def __init__(self, directory: Path, compiled, manifest: dict):
-        self.directory, self.compiled, self._manifest = directory, compiled, manifest
-        self.total, self.run = int(manifest["total"]), manifest["run"]
-        self.failures = [Failure(**failure) for failure in manifest["failures"]]
-        self.status, self.engine = manifest["status"], manifest["engine"]
-        self.chunk, self.seconds = int(manifest["chunk"]), float(manifest["seconds"])
-
-    @classmethod
-    def load(cls, directory, model) -> EnsembleFiles:
-        """The ensemble written to ``directory`` for ``model`` (a Model or CompiledDAE with the
-        same equations and names).
-
-        Raises
-        ------
-        SolutionFileError
-            No manifest there, not a daemodel ensemble, a field that is damaged (named), a chunk
-            file missing or not a plain file, or another model.
-        """
-        from daemodel.compiling.compiler import as_compiled
-
-        directory = readable_path(directory, "EnsembleFiles.load: directory", SolutionFileError, "directory")
-        path = directory / MANIFEST
-        if not path.exists():
-            raise SolutionFileError(f"no ensemble at {directory}: {MANIFEST} is missing")
-        manifest = read_json(path, SolutionFileError, "a daemodel ensemble manifest", follow=False)
-        if isinstance(manifest, dict) and manifest.get("format") in OLDER_ENSEMBLE_FORMATS:
-            raise SolutionFileError(
-                f"{path} is a daemodel ensemble of format {manifest['format']!r}, "
-                f"{OLDER_ENSEMBLE_FORMATS[manifest['format']]}; this version reads {ENSEMBLE_FORMAT!r}: solve the "
-                "ensemble again into a new directory"
-            )
-        if not isinstance(manifest, dict) or manifest.get("format") != ENSEMBLE_FORMAT:
-            raise SolutionFileError(f"{path} is not a daemodel ensemble manifest (expected format {ENSEMBLE_FORMAT!r})")
-        lacking = [key for key in MANIFEST_KEYS if key not in manifest]
-        if lacking:
-            raise SolutionFileError(f"{path} is damaged: it lacks {', '.join(lacking)}")
-        _check_manifest(path, manifest)
-        compiled = as_compiled(model, "EnsembleFiles.load()")
-        matching_system(compiled, manifest, directory, "an ensemble")
-        missing = [entry["file"] for entry in manifest["files"] if not is_plain_file(directory / entry["file"])]
-        if missing:
-            raise SolutionFileError(
-                f"{directory}: {len(missing)} of the ensemble's {len(manifest['files'])} chunk files are missing "
-                f"(first: {missing[0]})"
-            )
-        return cls(directory, compiled, manifest)
-
-    def __len__(self) -> int:
-        """Chunk files (a chunk whose every sample failed has none)."""
-        return len(self._manifest["files"])
-
-    @property
-    def solved(self) -> int:
-        """Samples with values."""
-        return sum(entry["solved"] for entry in self._manifest["files"])
-
-    def __iter__(self):
-        for entry in self._manifest["files"]:
-            yield self._read(entry)
-
-    def _read(self, entry: dict) -> Solution:
-        part = _read_chunk(self.directory, entry["file"], self.compiled)
-        samples = part.stats["samples"]
-        if part.stats.get("run") != self.run or part.stats.get("inputs") != entry["inputs"]:
-            raise SolutionFileError(
-                f"{self.directory / entry['file']} is a chunk of another ensemble run (other samples, model, method "
-                "or settings) than this manifest's: it was copied or left there; the ensemble is damaged"
-            )
-        if (
-            len(samples) != entry["solved"]
-            or (samples < entry["offset"]).any()
-            or (samples >= entry["offset"] + entry["size"]).any()
-        ):
-            raise SolutionFileError(
-                f"{self.directory / entry['file']} holds {len(samples)} samples, not the {entry['solved']} of samples "
-                f"{entry['offset']} to {entry['offset'] + entry['size'] - 1} that the manifest lists"
-            )
-        return part
-
-    def solution(self, samples=None) -> Solution:
-        """The values of ``samples`` (indices in the ensemble, in the order given; default: every
-        solved sample, which must then fit in memory), as one batched Solution.
-
-        Raises
-        ------
-        InvalidOptionError
-            An index outside the ensemble, or of a sample that failed (named, with its error).
-        """
-        rows = self.solved if samples is None else np.size(samples)
-        if self._manifest["files"]:
-            first_file = self._manifest["files"][0]["file"]
-            with open_inside(self.directory, first_file, "files[0].file", SolutionFileError) as handle:
-                where = self.directory / first_file
-                shapes = read_arrays(handle, where, SOLUTION_ARRAYS, SolutionFileError, data=False, others=True)
-            _, times, variables = shapes["values"]
-            check_memory(
-                f"EnsembleFiles.solution of {rows} samples of {times} times and {variables} variables",
-                {"values": rows * times * variables * 8},
-            )
-        wanted = self._wanted(samples)
-        kept, first = [], None  # per chunk read: the wanted rows only, so one chunk is whole at a time
-        for entry in self._manifest["files"]:
-            inside = wanted[(wanted >= entry["offset"]) & (wanted < entry["offset"] + entry["size"])]
-            if len(inside):
-                part = self._read(entry)
-                rows = np.isin(part.stats["samples"], inside)
-                kept.append(
-                    (
-                        part.stats["samples"][rows],
-                        {name: part.values[name][rows].copy() for name in self._names(part)},
-                        part.parameters[rows].copy(),
-                        switch_rows({"events": part.events, "breakpoints": part.breakpoints}, rows)
-                        | {"rows": int(rows.sum())},
-                    )
-                )
-                first = first or {key: getattr(part, key) for key in ("t", "method", "settings", "compiled")}
-                del part
-        got = np.concatenate([indices for indices, *_ in kept]) if kept else np.zeros(0, np.int64)
-        absent = np.setdiff1d(wanted, got)
-        if len(absent):
-            raise SolutionFileError(
-                f"{self.directory}: sample {absent[0]} is in no chunk file although the manifest does not list it as "
-                "failed: the ensemble is damaged"
-            )
-        order = np.argsort(got, kind="stable")
-        take = order[np.searchsorted(got, wanted, sorter=order)]
-        names = kept[0][1].keys()
-        return Solution(
-            values={name: np.concatenate([values[name] for _, values, *_ in kept])[take] for name in names},
-            solve_time=self.seconds,
-            stats={"samples": wanted, "engine": self.engine, "chunk": self.chunk},
-            parameters=np.concatenate([parameters for _, _, parameters, _ in kept])[take],
-            **switch_rows(joined_switches([switches for *_, switches in kept]), take),
-            batched=True,
-            status=self.status,
-            **first,
-        )
-
-    @staticmethod
-    def _names(part: Solution) -> tuple:
-        return (*part.compiled.state_names, *part.compiled.algebraic_names)
-
-    def _wanted(self, samples) -> np.ndarray:
-        failed = {failure.index: failure for failure in self.failures}
-        if samples is None:
-            return np.setdiff1d(np.arange(self.total, dtype=np.int64), np.fromiter(failed, np.int64, len(failed)))
-        wanted = np.atleast_1d(np.asarray(samples))
-        if wanted.ndim != 1 or not len(wanted) or not np.issubdtype(wanted.dtype, np.integer):
-            raise InvalidOptionError(f"samples must be a non-empty list of sample indices; got {samples!r}")
-        outside = wanted[(wanted < 0) | (wanted >= self.total)]
-        if len(outside):
-            raise InvalidOptionError(f"sample {outside[0]} is not in the ensemble of {self.total} samples")
-        lost = [failed[i] for i in wanted.tolist() if i in failed]
-        if lost:
-            raise InvalidOptionError(
-                f"sample {lost[0].index} failed ({lost[0].error}: {lost[0].message}) and has no values; "
-                f"{len(self.failures)} samples failed (EnsembleFiles.failures)"
-            )
-        return wanted.astype(np.int64)
-
-    def __repr__(self) -> str:
-        return (
-            f"EnsembleFiles('{self.directory}', {self.solved} of {self.total} samples in {len(self)} chunk files, "
-            f"status={self.status!r})"
-        )
-
-
-def _run_fingerprint(compiled, t_span, method: str, options: dict, chunk: int, total: int, digests: dict) -> str:
-    """What makes two ensemble calls the same run: the model (its equations, events and parameter
-    values), the span, the method, its settings, the chunking and every chunk's inputs (``digests``,
-    offset -> hash): a finished directory run again with other inputs is another run."""
-    text = json.dumps(
-        [
-            ENSEMBLE_FORMAT,
-            compiled.fingerprint(),
-            list(t_span),
-            method,
-            sorted(options.items()),
-            chunk,
-            total,
-            sorted(digests.items()),
-        ],
-        default=lambda value: np.asarray(value).tolist() if isinstance(value, np.ndarray | np.generic) else repr(value),
-    )
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _inputs_digest(batch: dict) -> str:
-    """A hash of one chunk's inputs (y0, z0, parameters), by name."""
-    digest = hashlib.sha256()
-    for name in sorted(batch):
-        digest.update(name.encode() + np.ascontiguousarray(batch[name], dtype=np.float64).tobytes())
-    return digest.hexdigest()
-
-
-def _read_chunk(directory: Path, name: str, compiled) -> Solution:
-    """A chunk file (its name checked, read without following a link) as a Solution."""
-    with open_inside(directory, name, "chunk file", SolutionFileError) as handle:
-        part = read(handle, directory / name, compiled)
-    samples = part.stats.get("samples")
-    if (
-        not isinstance(samples, np.ndarray)
-        or samples.dtype.kind not in "iu"
-        or samples.shape != (part.batch_size,)
-        or (samples < 0).any()
-        or len(np.unique(samples)) != len(samples)
-    ):
-        raise SolutionFileError(
-            f"{directory / name}: field 'stats.samples' is not {part.batch_size} distinct sample indices, one a row"
-        )
-    part.stats["samples"] = np.asarray(samples, dtype=np.int64)
-    try:
-        part.stats["failures"] = [Failure(**failure) for failure in part.stats.get("failures", [])]
-    except TypeError:
-        raise SolutionFileError(f"{directory / name}: field 'stats.failures' is damaged") from None
-    return part
-
-
-def _resume(directory: Path, compiled, run: str, digests: dict, sizes: dict):
-    """What an earlier run of the same call left in ``directory``: the finished ensemble's
-    :class:`EnsembleFiles`, or the chunks already written (by offset, as results without values);
-    anything of another run is refused by name.  Temporary files of interrupted writes are removed."""
-    names = sorted(entry.name for entry in directory.iterdir())
-    for name in names:
-        if PARTIAL_NAME.fullmatch(name):
-            (directory / name).unlink(missing_ok=True)
-    if MANIFEST in names:
-        files = EnsembleFiles.load(directory, compiled)
-        if files.run != run:
-            raise InvalidOptionError(
-                f"write_to {directory} holds a finished ensemble of other samples, model, method or settings; give "
-                "another directory, or remove its files"
-            )
-        return files
-    done = {}
-    for name in names:
-        if not name.startswith("chunk-"):
-            continue
-        match = CHUNK_NAME.fullmatch(name)
-        offset = int(match[1]) if match else None
-        if offset not in sizes or not is_plain_file(directory / name):
-            raise InvalidOptionError(
-                f"write_to {directory}: {name} is not one of this ensemble's chunk files (chunk-<first sample>.npz "
-                "for its chunking, a plain file); give another directory, or remove it"
-            )
-        part = _read_chunk(directory, name, compiled)
-        if part.stats.get("run") != run or part.stats.get("inputs") != digests[offset]:
-            raise InvalidOptionError(
-                f"write_to {directory}: {name} is not a chunk of this ensemble (another run's samples, model, method, "
-                "settings or chunking); give another directory, or remove that file to solve its samples again"
-            )
-        done[offset] = {
-            "offset": offset,
-            "size": sizes[offset],
-            "seconds": part.solve_time,
-            "failures": part.stats["failures"],
-            "file": name,
-            "solved": len(part.stats["samples"]),
-            "meta": {"status": part.status},
-            "index": part.compiled.index,
-            "inputs": digests[offset],
-        }
-    return done
-
-
-def _write_chunk(files: tuple, compiled, result: dict) -> None:
-    """Write a finished chunk's values and drop them from ``result``, which keeps its bookkeeping."""
-    if "values" not in result:
-        return
-    directory, run, digests = files
-    meta = result["meta"]
-    part = Solution(
-        compiled=_system(compiled, result["index"]),
-        values=result.pop("values"),
-        parameters=result.pop("parameters"),
-        **{key: value for key, value in result.pop("switches").items() if key != "rows"},
-        solve_time=result["seconds"],
-        stats={
-            "samples": result["indices"],
-            "failures": [dataclasses.asdict(f) for f in result["failures"]],
-            "run": run,
-            "inputs": digests[result["offset"]],
-        },
-        batched=True,
-        **meta,
-    )
-    result["file"] = CHUNK_FILE.format(offset=result["offset"])
-    result["solved"] = len(result.pop("indices"))
-    result["inputs"] = digests[result["offset"]]
-    part.save(directory / result["file"])
-
-
-def _write_manifest(directory: Path, compiled, results: list, total, seconds, engine, chunk, run: str) -> None:
-    failures = _failures(results, total)
-    written = [result for result in results if "file" in result]
-    solved = _system(compiled, written[0]["index"])  # a reduction, for index 3
-    manifest = {
-        "format": ENSEMBLE_FORMAT,
-        "model": compiled.name,
-        "fingerprint": solved.fingerprint(),
-        "fingerprints": solved.fingerprints(),
-        "declared": declared(solved),
-        "run": run,
-        "total": total,
-        "chunk": chunk,
-        "engine": engine,
-        "seconds": seconds,
-        "status": _status([(r["offset"], r["meta"]["status"]) for r in written], failures, total),
-        "failures": [dataclasses.asdict(failure) for failure in failures],
-        "files": [
-            {key: result[key] for key in ("file", "offset", "size", "solved", "seconds", "inputs")}
-            | {"status": result["meta"]["status"], "peak_memory_mb": result.get("peak_memory_mb")}
-            for result in written
-        ],
-    }
-    write_json(directory / MANIFEST, manifest)
-
-
-def _check_manifest(path: Path, manifest: dict) -> None:
-    """Every field of a manifest that sizes or names something, checked before anything is read
-    or allocated by it: whole numbers in range, chunk names that are the names of their offsets
-    (no path), chunks in order inside the ensemble, and samples that add up to its total."""
-
-    def bad(field: str, why: str):
-        raise SolutionFileError(f"{path}: field {field!r} {why}: the manifest is damaged or was edited")
-
-    def whole(value, field: str, low: int, high: float = float("inf")) -> int:
-        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            bad(field, f"is {value!r}, not a whole number from {low} to {high:g}")
-        return value
-
-    total = whole(manifest["total"], "total", 1)
-    whole(manifest["chunk"], "chunk", 1)
-    for key in ("run", "status", "engine", "model", "fingerprint"):
-        if not isinstance(manifest[key], str):
-            bad(key, "is not a string")
-    for key in ("fingerprints", "declared"):
-        if not isinstance(manifest[key], dict):
-            bad(key, "is not an object")
-    if isinstance(manifest["seconds"], bool) or not isinstance(manifest["seconds"], int | float):
-        bad("seconds", f"is {manifest['seconds']!r}, not a number")
-    if not isinstance(manifest["files"], list) or not isinstance(manifest["failures"], list):
-        bad("files" if not isinstance(manifest["files"], list) else "failures", "is not a list")
-    end, solved = 0, 0
-    for k, entry in enumerate(manifest["files"]):
-        if not isinstance(entry, dict) or not {"file", "offset", "size", "solved", "inputs"} <= set(entry):
-            bad(f"files[{k}]", "lacks file, offset, size, solved or inputs")
-        offset = whole(entry["offset"], f"files[{k}].offset", end, total - 1)
-        size = whole(entry["size"], f"files[{k}].size", 1, total - offset)
-        solved += whole(entry["solved"], f"files[{k}].solved", 1, size)
-        if entry["file"] != CHUNK_FILE.format(offset=offset):
-            bad(f"files[{k}].file", f"is {entry['file']!r}, not the name of the chunk at sample {offset}")
-        end = offset + size
-    seen = set()
-    for k, failure in enumerate(manifest["failures"]):
-        if not isinstance(failure, dict) or set(failure) != {"index", "error", "message"}:
-            bad(f"failures[{k}]", "is not an index, an error and a message")
-        if not isinstance(failure["error"], str) or not isinstance(failure["message"], str):
-            bad(f"failures[{k}]", "has an error or a message that is not a string")
-        seen.add(whole(failure["index"], f"failures[{k}].index", 0, total - 1))
-    if len(seen) != len(manifest["failures"]) or solved + len(seen) != total:
-        bad("total", f"is {total}, but the chunks hold {solved} solved samples and {len(seen)} distinct failures")
-    # every sample lies in one chunk as solved or failed, or outside every chunk as failed
-    failed = np.sort(np.fromiter(seen, np.int64, len(seen)))
-    inside = 0
-    for k, entry in enumerate(manifest["files"]):
-        lo, hi = np.searchsorted(failed, [entry["offset"], entry["offset"] + entry["size"]])
-        inside += hi - lo
-        if entry["solved"] + (hi - lo) != entry["size"]:
-            bad(f"files[{k}].solved", f"is {entry['solved']}, but {hi - lo} of the chunk's {entry['size']} failed")
-    covered = sum(entry["size"] for entry in manifest["files"])
-    if len(seen) - inside != total - covered:
-        bad("failures", f"leave {total - covered - (len(seen) - inside)} samples outside every chunk unaccounted for")

@@ -37,7 +37,7 @@ def test_local_ensemble_equals_one_batched_call(pendulum, states):
     assert ensemble["y5"].shape == (1500, 21) and ensemble.batched and ensemble.status == "success"
     np.testing.assert_array_equal(ensemble.stats["samples"], np.arange(1500))
     assert [c["size"] for c in ensemble.stats["chunks"]] == [400, 400, 400, 300]
-    assert ensemble.stats["failures"] == [] and ensemble.stats["engine"] == "local"
+    assert ensemble.stats["failures"] == [] and ensemble.stats["executor"] == "local"
 
 
 def test_a_failing_sample_is_recorded_and_left_out(blowup):
@@ -71,37 +71,41 @@ def test_ray_ensemble_equals_the_local_one(ray_cluster, pendulum, states, blowup
     """Four tasks on a local Ray cluster of 2 CPUs: the same values as one batched call, each
     task's peak memory recorded; failures travel back from the workers by index."""
     one = dm.solve(pendulum, (0.0, 1.0), h=0.05, y0=states)
-    ensemble = dm.ensemble(pendulum, (0.0, 1.0), y0=states, h=0.05, chunk=400, engine="ray")
+    ensemble = dm.ensemble(pendulum, (0.0, 1.0), y0=states, h=0.05, chunk=400, executor="ray")
     assert same(one, ensemble, (*pendulum.state_names, *pendulum.algebraic_names)) < 1e-13
     np.testing.assert_array_equal(ensemble.stats["samples"], np.arange(1500))
     assert len(ensemble.stats["peak_memory_mb"]) == 4 and min(ensemble.stats["peak_memory_mb"]) > 0
     k = np.array([0.1, 5.0, 0.2, 0.3])
-    failing = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray")
+    failing = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, executor="ray")
     assert [f.index for f in failing.stats["failures"]] == [1]
     np.testing.assert_array_equal(failing.stats["samples"], [0, 2, 3])
-    files = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, engine="ray", write_to=tmp_path)
-    assert [f.index for f in files.failures] == [1] and files.engine == "ray"
+    files = dm.ensemble(blowup, (0.0, 1.0), h=0.05, parameters={"k": k}, chunk=2, executor="ray", write_to=tmp_path)
+    assert [f.index for f in files.failures] == [1] and files.executor == "ray"
     np.testing.assert_array_equal(files.solution()["x"], failing["x"])
-    again = dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=2)  # the running cluster's CPUs
+    again = dm.ensemble(pendulum, (0.0, 0.1), h=0.05, executor="ray", workers=2)  # the running cluster's CPUs
     assert again.status == "success"
     with pytest.raises(InvalidOptionError, match=r"Ray is already running in this process with 2 CPUs, not workers=3"):
-        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", workers=3)
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, executor="ray", workers=3)
     with pytest.raises(InvalidOptionError, match=r"Ray is already running in this process: leave out address"):
-        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray", address="auto")
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, executor="ray", address="auto")
 
 
 @pytest.mark.parametrize(
     ("options", "message"),
     [
-        ({"engine": "dask"}, "engine must be one of local, ray; got 'dask'"),
+        ({"executor": "dask"}, "executor must be one of local, ray; got 'dask'"),
         ({"chunk": 0}, r"chunk must be a positive integer \(samples per task\); got 0"),
         ({"chunk": 2.5}, r"chunk must be a positive integer \(samples per task\); got 2.5"),
-        ({"workers": 2}, "workers and address are Ray's: pass engine='ray' with them"),
-        ({"engine": "ray", "workers": 0}, "workers must be a positive integer; got 0"),
-        ({"engine": "ray", "address": 6379}, "address must be a string such as 'auto' or 'ray://host:10001'; got 6379"),
+        ({"workers": 2}, "workers and address are Ray's: pass executor='ray' with them"),
+        ({"executor": "ray", "workers": 0}, "workers must be a positive integer; got 0"),
         (
-            {"engine": "ray", "device": "cuda"},
-            r"engine='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'cuda' runs here",
+            {"executor": "ray", "address": 6379},
+            "address must be a string such as 'auto' or 'ray://host:10001'; got 6379",
+        ),
+        (
+            {"executor": "ray", "device": "cuda"},
+            r"executor='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'cuda' runs "
+            "here",
         ),
         (
             {"y0": {"y4": [1.0, 1.0]}, "parameters": {"lam": [1.0, 1.0, 1.0]}},
@@ -114,12 +118,42 @@ def test_ensemble_errors(pendulum, options, message):
         dm.ensemble(pendulum, (0.0, 0.1), h=0.05, **options)
 
 
+@pytest.mark.parametrize("executor", ["local", "ray"])
+def test_the_old_spelling_engine_of_the_executor_is_refused_by_name(pendulum, executor):
+    """engine='local' | 'ray' was the ensemble's executor: refused, with both spellings named,
+    before any chunk runs (engine= names radau's casadi or torch engine)."""
+    with pytest.raises(
+        InvalidOptionError,
+        match=rf"ensemble\(\): engine='{executor}' is now spelled executor='{executor}' \(engine= names radau's",
+    ):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine=executor)
+
+
+def test_engine_is_the_methods_and_reaches_every_chunks_solve(pendulum, states):
+    """engine='torch' or 'casadi' goes to radau in every chunk (the executor is executor=): each
+    chunk gives what radau's solve with that engine gives, and what radau refuses, radau names."""
+    names = (*pendulum.state_names, *pendulum.algebraic_names)
+    few = {name: values[:6] for name, values in states.items()}
+    one = dm.solve(pendulum, (0.0, 0.5), h=0.05, y0=few, engine="torch")
+    chunks = dm.ensemble(pendulum, (0.0, 0.5), y0=few, h=0.05, chunk=4, engine="torch")
+    assert same(one, chunks, names) < 1e-13 and chunks.stats["executor"] == "local"
+    single = {name: values[:2] for name, values in states.items()}
+    alone = dm.ensemble(pendulum, (0.0, 0.5), y0=single, h=0.05, chunk=1, engine="casadi")
+    for i in range(2):
+        own = dm.solve(pendulum, (0.0, 0.5), h=0.05, y0={k: v[i] for k, v in single.items()}, engine="casadi")
+        assert max(float(np.abs(own[name] - alone[name][i]).max()) for name in names) == 0.0
+    with pytest.raises(InvalidOptionError, match=r"engine='casadi' solves one trajectory; this batch has 2 samples"):
+        dm.ensemble(pendulum, (0.0, 0.5), y0=single, h=0.05, chunk=2, engine="casadi")
+    with pytest.raises(InvalidOptionError, match=r"engine must be one of 'auto', 'torch', 'casadi'; got 'dask'"):
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="dask")
+
+
 def test_ray_missing_says_how_to_install_it(pendulum, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     with pytest.raises(
-        InvalidOptionError, match=r"engine='ray' needs Ray, which is not installed: pip install 'daemodel\[ray\]'"
+        InvalidOptionError, match=r"executor='ray' needs Ray, which is not installed: pip install 'daemodel\[ray\]'"
     ):
-        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, engine="ray")
+        dm.ensemble(pendulum, (0.0, 0.1), h=0.05, executor="ray")
 
 
 def test_a_model_with_an_eliminated_alias():
@@ -314,10 +348,11 @@ def test_an_index_3_ensemble_written_to_files(tmp_path):
 
 
 def test_a_written_chunk_leaves_only_its_bookkeeping_in_memory(pendulum, tmp_path):
-    from daemodel.solving.ensemble import _write_chunk, solve_chunk
+    from daemodel.solving.ensemble import solve_chunk
+    from daemodel.solving.ensemble_files import write_chunk
 
     result = solve_chunk((pendulum, (0.0, 0.1), "radau", {"h": 0.05}, None), 0, {"y0": np.tile(pendulum.y0, (3, 1))})
-    _write_chunk((tmp_path, "run", {0: "inputs"}), pendulum, result)
+    write_chunk((tmp_path, "run", {0: "inputs"}), pendulum, result)
     assert {"values", "parameters", "indices"}.isdisjoint(result) and result["solved"] == 3
     assert result["inputs"] == "inputs"
     assert (tmp_path / result["file"]).is_file()
