@@ -10,8 +10,8 @@ import numpy as np
 import sympy as sp
 
 from daemodel.backends.grids import SWEEP_FIRST_STEPS
+from daemodel.compiling.compiler import Model
 from daemodel.compiling.init import NUMERIC_MODULES
-from daemodel.declaring.model import Model
 from daemodel.declaring.parse import parse_equation
 
 
