@@ -9,7 +9,9 @@ of the step's scalars, the last step's collocation polynomial and the inverses o
 systems (bound to the function when they are factored), so that Python runs once per step.
 
 It follows :meth:`.newton.Newton.simplified` (the RADAU5 controller's policy) and
-:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts.  Any outcome but
+:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts, the tests and the
+error norm written once in :mod:`.formulas` for both.  Its packed input and output are named in
+one place (:func:`step_layouts`).  Any outcome but
 convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
 code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
 failure, and hands non-finite values to the general path, which names where they arose.
@@ -171,16 +173,27 @@ def inverse_size(transform, D: int) -> int:
     return DenseInverses(transform, D).size
 
 
+# The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
+# of NEWTON_STATE (previous: the last increment's norm; mode 0 iterating, 1 checking a convergence at
+# k = 1, 2 evaluating f at the end; active: still iterating).
+NEWTON_STATE = ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
+ITERATION = ("W", "F", *NEWTON_STATE)
+# newton_tests' input: the increment's norm, the state's scalars but active, Newton's tolerance; its output.
+NEWTON_BEFORE = Layout("norm", *(name for name in NEWTON_STATE if name != "active"), "tol")
+NEWTON_AFTER = Layout("iterate", *NEWTON_STATE)
+
+
 def newton_tests(iterations: int):
-    """The simplified Newton iteration's tests on its scalars (:meth:`.newton.Newton.simplified`'s, in
-    its order), an SX function: from ``[norm of the increment, previous norm, theta, eta, k, mode,
-    outcome, evaluations, tol]``, ``[iterate, previous, theta, eta, k, mode, outcome, active,
-    evaluations]`` after the iteration (mode 0 iterating, 1 checking a convergence at k = 1, 2
-    evaluating f at the end; see :func:`step_function`)."""
+    """The simplified Newton iteration's tests on its scalars (:meth:`.newton.Newton.simplified`'s, by
+    the same :mod:`.formulas` in its order), an SX function from ``before`` (:data:`NEWTON_BEFORE`) to
+    ``after`` (:data:`NEWTON_AFTER`: whether it iterated, and the state's scalars after the iteration;
+    see :data:`NEWTON_STATE`)."""
     import casadi
 
-    x = casadi.SX.sym("x", 9)
-    norm, previous, theta, eta, k, mode, outcome, evaluations, tol = casadi.vertsplit(x)
+    x = casadi.SX.sym("before", NEWTON_BEFORE.size)
+    v = NEWTON_BEFORE.read(x)
+    norm, previous, theta, eta, k, mode = v["norm"], v["previous"], v["theta"], v["eta"], v["k"], v["mode"]
+    outcome, evaluations, tol = v["outcome"], v["evaluations"], v["tol"]
     finite = norm < casadi.inf  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
     # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
     checked = casadi.logic_and(mode == 1, norm <= tol)
@@ -212,33 +225,32 @@ def newton_tests(iterations: int):
     check = 1 if iterations > 1 else 2  # (one iteration allowed: nothing to check it with)
     next_mode = casadi.if_else(iterate, casadi.if_else(done, casadi.if_else(k1 == 1, check, 2), 0), 0)
     finished = casadi.logic_or(mode == 2, checked)
-    out = [
-        iterate,
-        casadi.if_else(iterate, norm, previous),
-        casadi.if_else(iterate, theta1, theta),
-        casadi.if_else(iterate, eta1, eta),
-        k1,
-        next_mode,
-        casadi.if_else(failed, failure, outcome),
-        casadi.logic_not(casadi.logic_or(failed, finished)),
+    out = NEWTON_AFTER.pack(
+        iterate=iterate,
+        previous=casadi.if_else(iterate, norm, previous),
+        theta=casadi.if_else(iterate, theta1, theta),
+        eta=casadi.if_else(iterate, eta1, eta),
+        k=k1,
+        mode=next_mode,
+        outcome=casadi.if_else(failed, failure, outcome),
+        active=casadi.logic_not(casadi.logic_or(failed, finished)),
         # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
-        evaluations + 1 + casadi.logic_and(mode == 1, iterate),
-    ]
-    return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)])
+        evaluations=evaluations + 1 + casadi.logic_and(mode == 1, iterate),
+    )
+    return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
 
 
 def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray, solver=None):
     """The casadi function of one adaptive attempt (see the module docstring).
 
-    Inputs: ``[SCALARS, prev ((s+1) D), f0 (n), p]`` with ``ratio`` = h / h_old, ``prev`` the last
-    accepted step's start value and stages (the start value s+1 times at the first step: a constant
-    guess), ``f0`` f at
-    the step's start; and the packed inverses (:func:`inverse_size`).  ``e`` (s,): the error
-    estimate's ``bhat - b``.  ``error_weights`` (m,): each
-    algebraic variable's index k, its error weighed by ``h^(k-1)``.
+    Inputs (:func:`step_layouts`): :data:`STEP_SCALARS` with ``ratio`` = h / h_old, ``nodes`` the
+    last accepted step's start value and stages (the start value s+1 times at the first step: a
+    constant guess), ``f0`` f at the step's start, ``p``; and the packed inverses
+    (:func:`inverse_size`).  ``e`` (s,): the error estimate's ``bhat - b``.  ``error_weights`` (m,):
+    each algebraic variable's index k, its error weighed by ``h^(k-1)``.
 
-    Output: ``[outcome, iterations, residual evaluations, theta, eta, error norm, W (s D), f at the
-    stages (s n)]``.
+    Output (:func:`step_layouts`): :data:`STEP_RESULTS` (the outcome, Newton's iterations, the
+    residual evaluations, theta, eta, the error norm), the stages ``W`` (s D) and f at them ``F`` (s n).
     """
     import casadi
 
@@ -264,12 +276,9 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     index_w = formulas.index_weights(CASADI, h, n, error_weights - 1)
     scale = casadi.repmat(formulas.error_scale(atol, rtol, casadi.fabs(u_n), index_w), 1, s)
 
-    # one iteration: state [W (D s), stage f (n s), previous norm, theta, eta, k, mode, outcome, active,
-    # evaluations]; mode 0 iterating, 1 checking a convergence at k = 1, 2 evaluating f at the end
-    W_s, F_s = casadi.MX.sym("W", D, s), casadi.MX.sym("F", n, s)
-    previous, theta, eta, k, mode, outcome, active, evaluations = (
-        casadi.MX.sym(name) for name in ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
-    )
+    # one iteration on the state (ITERATION), or none where it is no longer active
+    W_s = casadi.MX.sym("W", D, s)
+    state_in = {"W": W_s, "F": casadi.MX.sym("F", n, s), **{name: casadi.MX.sym(name) for name in NEWTON_STATE}}
     fixed = [t, h, y_n, p, scale, tol, inverse]
     fixed_syms = [
         casadi.MX.sym(name, e.sparsity())
@@ -283,30 +292,21 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     norm = CASADI.rms(dW / scs)
     # the tests on the scalars in one SX function (an MX operation costs ~40 ns on casadi's virtual
     # machine, an SX one ~2: a pendulum step of 3 iterations 23.6 -> 19.7 us)
-    scalars = newton_tests(iterations)(casadi.vertcat(norm, previous, theta, eta, k, mode, outcome, evaluations, tols))
-    iterate = scalars[0]
-    state_in = [W_s, F_s, previous, theta, eta, k, mode, outcome, active, evaluations]
-    state_out = [casadi.if_else(iterate, W_s + dW, W_s), stage_f, *casadi.vertsplit(scalars[1:])]
-    one = casadi.Function("iteration", [*state_in, *fixed_syms], state_out)
-    idle = casadi.Function("idle", [*state_in, *fixed_syms], state_in)
+    before = NEWTON_BEFORE.pack(norm=norm, tol=tols, **{name: state_in[name] for name in NEWTON_BEFORE.names[1:-1]})
+    after = NEWTON_AFTER.read(newton_tests(iterations)(before=casadi.vertcat(*before))["after"])
+    state_out = dict(after, W=casadi.if_else(after["iterate"], W_s + dW, W_s), F=stage_f)
+    symbols = [*(state_in[name] for name in ITERATION), *fixed_syms]
+    one = casadi.Function("iteration", symbols, [state_out[name] for name in ITERATION])
+    idle = casadi.Function("idle", symbols, [state_in[name] for name in ITERATION])
     switch = casadi.Function.if_else("maybe_iterate", one, idle)
 
-    state = [
-        W0,
-        casadi.MX.zeros(n, s),
-        0.0,
-        0.0,
-        formulas.start_rate(CASADI, v["eta"], np.finfo(float).eps),
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-    ]
+    state = dict.fromkeys(NEWTON_STATE, 0.0)
+    state.update(W=W0, F=casadi.MX.zeros(n, s), eta=formulas.start_rate(CASADI, v["eta"], np.finfo(float).eps))
+    state["active"] = 1.0
     for _ in range(iterations + 2):  # (a failed check at k = 1 takes a pass more)
-        state = list(switch(state[8], *state, *fixed))
-    W, F, _, theta, eta, k, _, outcome, active, evaluations = state
-    outcome = casadi.if_else(active, NOT_CONVERGED, outcome)
+        state = dict(zip(ITERATION, switch(state["active"], *(state[name] for name in ITERATION), *fixed), strict=True))
+    W, F, theta, eta, k, evaluations = (state[name] for name in ("W", "F", "theta", "eta", "k", "evaluations"))
+    outcome = casadi.if_else(state["active"], NOT_CONVERGED, state["outcome"])
 
     # the embedded error estimate (.error's ErrorEstimate.norm: local, refiltered)
     gamma0 = tr.gamma0

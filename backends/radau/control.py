@@ -197,7 +197,7 @@ class Radau5Controller:
         xp = stepper.xp
         t0, t1 = t_span
         f0 = stepper.start_f(t0)
-        sc = self.atol + self.rtol * xp.abs(stepper.y)
+        sc = formulas.error_scale(self.atol, self.rtol, xp.abs(stepper.y), 1.0)  # (the states: weight 1)
         d0 = float(stepper.rms(stepper.y / sc).max()) if stepper.n else 0.0
         d1 = float(stepper.rms(f0 / sc).max()) if stepper.n else 0.0
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1

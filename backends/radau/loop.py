@@ -14,7 +14,10 @@ attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 - where all failed, checks that z stays determined over the step and halves h; else accepts or
   rejects the step and picks the next h.
 
-The same arithmetic in the same order: the same steps, bit for bit.  What only Python does ends
+The same arithmetic in the same order: the same steps, bit for bit, the controller's formulas
+(the accept/reject decision, the next h, the end and underflow tests) written once in
+:mod:`.formulas` for both, and every packed vector's parts named in one :class:`.compiled.Layout`
+(the head and tail take and return them by name).  What only Python does ends
 the run *before* the attempt, which Python then makes on its own path (the attempt runs twice),
 where the errors are worded: non-finite values (the general path names where they arose), a sign
 change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
