@@ -303,6 +303,12 @@ def too_slow(eta, norm, theta, left, tol):
     return eta * norm * theta**left > tol
 
 
+def sign_flip(before, after):
+    """Whether the sign of the algebraic variables' iteration matrix's determinant changed from
+    ``before`` to ``after`` (so it passed through zero, where z is not determined)."""
+    return before * after < 0
+
+
 def jacobian_kept(xp, theta, reuse_theta):
     """Whether the next step keeps the Jacobian: Newton contracted at most at ``reuse_theta``."""
     return xp.not_(theta > reuse_theta)

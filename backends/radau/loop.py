@@ -183,8 +183,8 @@ def tail_function(s: int, iterations: int):
     )
     done = casadi.logic_and(accept, formulas.finished(xp, t_next, t0, t1))
     flipped = casadi.logic_or(
-        casadi.logic_and(a["refreshed"], v["det_sign"] * a["sign"] < 0),  # (check_determined's test)
-        casadi.logic_and(a["stale"], a["sign"] * a["retry_sign"] < 0),
+        casadi.logic_and(a["refreshed"], formulas.sign_flip(v["det_sign"], a["sign"])),  # (check_determined's)
+        casadi.logic_and(a["stale"], formulas.sign_flip(a["sign"], a["retry_sign"])),
     )
     non_finite = casadi.logic_and(a["outcome"] != 0, casadi.logic_not(failed))  # (the general path names where)
     handback = any_of(casadi, a["underflow"], a["singular"], flipped, non_finite, a["stage_flip"], shrunk_away)
@@ -322,7 +322,7 @@ def run_function(
     sparse = static is not None
     matrices = [iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine, sparse) for i in range(s)]
     chain += [sign_det(matrix) for matrix in matrices]
-    flips = sum(chain[i] * chain[i + 1] < 0 for i in range(s))
+    flips = sum(formulas.sign_flip(chain[i], chain[i + 1]) for i in range(s))
     check = casadi.Function("check", stage, [flips > 0])
     never = casadi.Function("never", stage, [0])
     final_sign = casadi.if_else(stale, retry_sign, sign)

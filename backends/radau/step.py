@@ -464,7 +464,7 @@ class Stepper:
         signs = signs[:, None] if signs.ndim == 1 else signs
         if self._det_sign is not None:
             signs = self.xp.concatenate([self._det_sign[:, None], signs], axis=1)
-        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(axis=1)
+        flips = formulas.sign_flip(signs[:, :-1], signs[:, 1:]).any(axis=1)
         if bool(flips.any()):
             sample = self.engine.first(flips)
             names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
