@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import (
+    STEP_SCALARS,
     Buffered,
     StaticFactors,
     casadi_functions,
@@ -25,6 +26,7 @@ from daemodel.backends.radau.compiled import (
     refresh_function,
     static_factor_function,
     step_function,
+    step_layouts,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
 from daemodel.backends.radau.kernel import factor_kernel
@@ -128,6 +130,7 @@ class CasadiEngine(AbstractEngine):
         if jit:
             step = self._machine_code(step, key)
         self._compiled = [Buffered(step, inputs=2), None]
+        self.step_input, self.step_output = step_layouts(self.s, self.n, self.D, self.p.size)
         return True
 
     def _sparse_layout(self):
@@ -309,20 +312,17 @@ class CasadiEngine(AbstractEngine):
         sign = np.array([small_sign_det(out[nnz : nnz + m * m], m)])
         return J, self._packed_factors(out[nnz + m * m :], h), sign
 
-    def compiled_step(self, factors: Factors, scalars, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
-        """One adaptive attempt in one call (:mod:`daemodel.backends.radau_compiled`): ``scalars`` in the
-        order of its ``SCALARS``, ``previous`` ((s+1) D) the last step's start value and stages, ``f0``
-        (n) f at the step's start; returns its packed output."""
+    def compiled_step(self, factors: Factors, scalars: dict, previous: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        """One adaptive attempt in one call (:mod:`.compiled`): ``scalars`` by the names of its
+        ``STEP_SCALARS``, ``previous`` ((s+1) D) the last step's start value and stages, ``f0`` (n) f at
+        the step's start; returns its packed output (:attr:`step_output`)."""
         step, bound = self._compiled
         if bound is not factors:
             step.inputs[1][:] = factors.inverse
             self._compiled[1] = factors
-        x, k = step.inputs[0], len(scalars)
-        x[:k] = scalars
-        x[k : k + previous.size] = previous
-        k += previous.size
-        x[k : k + f0.size] = f0
-        x[k + f0.size :] = self.p
+        x, layout = step.inputs[0], self.step_input
+        x[: len(STEP_SCALARS)] = [scalars[name] for name in STEP_SCALARS]
+        x[layout["nodes"]], x[layout["f0"]], x[layout["p"]] = previous, f0, self.p
         return step.evaluate()
 
     def _factor_shifts(self, values, shifts):

@@ -9,7 +9,9 @@ of the step's scalars, the last step's collocation polynomial and the inverses o
 systems (bound to the function when they are factored), so that Python runs once per step.
 
 It follows :meth:`.newton.Newton.simplified` (the RADAU5 controller's policy) and
-:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts.  Any outcome but
+:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts, the tests and the
+error norm written once in :mod:`.formulas` for both.  Its packed input and output are named in
+one place (:func:`step_layouts`).  Any outcome but
 convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
 code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
 failure, and hands non-finite values to the general path, which names where they arose.
@@ -22,14 +24,54 @@ extra passes check a one-iteration convergence and evaluate ``f`` at the final s
 from __future__ import annotations
 
 import numpy as np
-from daemodel.backends.radau.newton import DIVERGENCE_THETA  # the test the general path makes
+from daemodel.backends.radau import formulas
+from daemodel.backends.radau.formulas import CASADI
 
 from daemodel.collocation import extrapolation_polynomial, horner
 
 # Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does).
 CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
-# Scalars in front of the packed input, in this order.
-SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
+# The compiled step's scalars, in front of its packed input's arrays (see step_layouts).
+STEP_SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
+# Its results, in front of its packed output's arrays.
+STEP_RESULTS = ("outcome", "iterations", "evaluations", "theta", "eta", "error_norm")
+
+
+class Layout:
+    """Named parts of one packed vector, in order: where each sits, a position (a scalar) or a slice
+    (``(name, size)``, an array), written in one place for the function that reads the vector and
+    for the code that packs it (casadi functions take and return packed vectors: a call costs ~20 us
+    per argument through argument conversion)."""
+
+    def __init__(self, *parts):
+        self.names, self.where, offset = [], {}, 0
+        for part in parts:
+            name, size = (part, None) if isinstance(part, str) else part
+            self.where[name] = offset if size is None else slice(offset, offset + size)
+            self.names.append(name)
+            offset += 1 if size is None else size
+        self.size = offset
+
+    def __getitem__(self, name: str):
+        return self.where[name]
+
+    def read(self, vector) -> dict:
+        """Each part of ``vector`` (numpy or casadi) by its name."""
+        return {name: vector[where] for name, where in self.where.items()}
+
+    def pack(self, **values) -> list:
+        """The parts in their order (every name given, no other)."""
+        if values.keys() != self.where.keys():
+            raise KeyError(f"expected the parts {self.names}; got {sorted(values)}")
+        return [values[name] for name in self.names]
+
+
+def step_layouts(s: int, n: int, D: int, P: int) -> tuple[Layout, Layout]:
+    """The compiled step's packed input (:data:`STEP_SCALARS`, the last step's start value and stages
+    ``nodes``, f at the step's start ``f0``, the parameters ``p``) and output (:data:`STEP_RESULTS`,
+    the stages ``W`` and f at the stages ``F``)."""
+    inputs = Layout(*STEP_SCALARS, ("nodes", (s + 1) * D), ("f0", n), ("p", P))
+    return inputs, Layout(*STEP_RESULTS, ("W", s * D), ("F", s * n))
 
 
 def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int, solver=None):
@@ -131,30 +173,41 @@ def inverse_size(transform, D: int) -> int:
     return DenseInverses(transform, D).size
 
 
+# The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
+# of NEWTON_STATE (previous: the last increment's norm; mode 0 iterating, 1 checking a convergence at
+# k = 1, 2 evaluating f at the end; active: still iterating).
+NEWTON_STATE = ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
+ITERATION = ("W", "F", *NEWTON_STATE)
+# newton_tests' input: the increment's norm, the state's scalars but active, Newton's tolerance; its output.
+NEWTON_BEFORE = Layout("norm", *(name for name in NEWTON_STATE if name != "active"), "tol")
+NEWTON_AFTER = Layout("iterate", *NEWTON_STATE)
+
+
 def newton_tests(iterations: int):
-    """The simplified Newton iteration's tests on its scalars (:meth:`.newton.Newton.simplified`'s, in
-    its order), an SX function: from ``[norm of the increment, previous norm, theta, eta, k, mode,
-    outcome, evaluations, tol]``, ``[iterate, previous, theta, eta, k, mode, outcome, active,
-    evaluations]`` after the iteration (mode 0 iterating, 1 checking a convergence at k = 1, 2
-    evaluating f at the end; see :func:`step_function`)."""
+    """The simplified Newton iteration's tests on its scalars (:meth:`.newton.Newton.simplified`'s, by
+    the same :mod:`.formulas` in its order), an SX function from ``before`` (:data:`NEWTON_BEFORE`) to
+    ``after`` (:data:`NEWTON_AFTER`: whether it iterated, and the state's scalars after the iteration;
+    see :data:`NEWTON_STATE`)."""
     import casadi
 
-    x = casadi.SX.sym("x", 9)
-    norm, previous, theta, eta, k, mode, outcome, evaluations, tol = casadi.vertsplit(x)
+    x = casadi.SX.sym("before", NEWTON_BEFORE.size)
+    v = NEWTON_BEFORE.read(x)
+    norm, previous, theta, eta, k, mode = v["norm"], v["previous"], v["theta"], v["eta"], v["k"], v["mode"]
+    outcome, evaluations, tol = v["outcome"], v["evaluations"], v["tol"]
     finite = norm < casadi.inf  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
     # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
     checked = casadi.logic_and(mode == 1, norm <= tol)
     iterate = casadi.logic_and(mode < 2, casadi.logic_not(checked))
     k1 = k + iterate
     has_prev = k1 > 1
-    theta1 = casadi.if_else(has_prev, norm / casadi.fmax(previous, 1e-300), theta)
-    diverging = casadi.logic_and(has_prev, theta1 >= DIVERGENCE_THETA)
-    eta1 = casadi.if_else(has_prev, theta1 / (1 - theta1), eta)
-    done = eta1 * norm <= tol
+    theta1 = casadi.if_else(has_prev, formulas.contraction(CASADI, norm, previous), theta)
+    diverging = casadi.logic_and(has_prev, formulas.diverging(theta1))
+    eta1 = casadi.if_else(has_prev, formulas.rate(theta1), eta)
+    done = formulas.converged(eta1, norm, tol)
     left = iterations - k1
     slow = casadi.logic_and(
         casadi.logic_and(has_prev, left > 0),
-        casadi.logic_and(casadi.logic_not(done), eta1 * norm * theta1**left > tol),
+        casadi.logic_and(casadi.logic_not(done), formulas.too_slow(eta1, norm, theta1, left, tol)),
     )
     failure = casadi.if_else(
         casadi.logic_not(finite),
@@ -172,48 +225,45 @@ def newton_tests(iterations: int):
     check = 1 if iterations > 1 else 2  # (one iteration allowed: nothing to check it with)
     next_mode = casadi.if_else(iterate, casadi.if_else(done, casadi.if_else(k1 == 1, check, 2), 0), 0)
     finished = casadi.logic_or(mode == 2, checked)
-    out = [
-        iterate,
-        casadi.if_else(iterate, norm, previous),
-        casadi.if_else(iterate, theta1, theta),
-        casadi.if_else(iterate, eta1, eta),
-        k1,
-        next_mode,
-        casadi.if_else(failed, failure, outcome),
-        casadi.logic_not(casadi.logic_or(failed, finished)),
+    out = NEWTON_AFTER.pack(
+        iterate=iterate,
+        previous=casadi.if_else(iterate, norm, previous),
+        theta=casadi.if_else(iterate, theta1, theta),
+        eta=casadi.if_else(iterate, eta1, eta),
+        k=k1,
+        mode=next_mode,
+        outcome=casadi.if_else(failed, failure, outcome),
+        active=casadi.logic_not(casadi.logic_or(failed, finished)),
         # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
-        evaluations + 1 + casadi.logic_and(mode == 1, iterate),
-    ]
-    return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)])
+        evaluations=evaluations + 1 + casadi.logic_and(mode == 1, iterate),
+    )
+    return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
 
 
 def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_weights: np.ndarray, solver=None):
     """The casadi function of one adaptive attempt (see the module docstring).
 
-    Inputs: ``[SCALARS, prev ((s+1) D), f0 (n), p]`` with ``ratio`` = h / h_old, ``prev`` the last
-    accepted step's start value and stages (the start value s+1 times at the first step: a constant
-    guess), ``f0`` f at
-    the step's start; and the packed inverses (:func:`inverse_size`).  ``e`` (s,): the error
-    estimate's ``bhat - b``.  ``error_weights`` (m,): each
-    algebraic variable's index k, its error weighed by ``h^(k-1)``.
+    Inputs (:func:`step_layouts`): :data:`STEP_SCALARS` with ``ratio`` = h / h_old, ``nodes`` the
+    last accepted step's start value and stages (the start value s+1 times at the first step: a
+    constant guess), ``f0`` f at the step's start, ``p``; and the packed inverses
+    (:func:`inverse_size`).  ``e`` (s,): the error estimate's ``bhat - b``.  ``error_weights`` (m,):
+    each algebraic variable's index k, its error weighed by ``h^(k-1)``.
 
-    Output: ``[outcome, iterations, residual evaluations, theta, eta, error norm, W (s D), f at the
-    stages (s n)]``.
+    Output (:func:`step_layouts`): :data:`STEP_RESULTS` (the outcome, Newton's iterations, the
+    residual evaluations, theta, eta, the error norm), the stages ``W`` (s D) and f at them ``F`` (s n).
     """
     import casadi
 
     s, n, D, tr = engine.s, engine.n, engine.D, engine.transform
-    P = engine.p.size
-    size = len(SCALARS) + (s + 1) * D + n + P
-    x = casadi.MX.sym("x", size)
+    inputs, outputs = step_layouts(s, n, D, engine.p.size)
+    x = casadi.MX.sym("x", inputs.size)
     solver = solver or DenseInverses(tr, D)
     inverse = casadi.MX.sym("inverse", solver.size)
-    t, h, ratio, eta0, tol, first, rtol, atol = (x[i] for i in range(len(SCALARS)))
-    offset = len(SCALARS)
-    prev = casadi.reshape(x[offset : offset + (s + 1) * D], D, s + 1)  # column j: node j
-    offset += (s + 1) * D
-    f0 = x[offset : offset + n]
-    p = x[offset + n : offset + n + P]
+    v = inputs.read(x)
+    t, h, ratio, tol, first = v["t"], v["h"], v["ratio"], v["newton_tol"], v["first"]
+    rtol, atol = v["rtol"], v["atol"]
+    prev = casadi.reshape(v["nodes"], D, s + 1)  # column j: node j
+    f0, p = v["f0"], v["p"]
     u_n = prev[:, s]  # the last stage of the last step (c_s = 1): this step's start value
     y_n = u_n[:n]
 
@@ -223,15 +273,12 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     L = horner([casadi.DM(C) for C in extrapolation_polynomial(engine.tableau.c)], ratio)  # (s, s+1)
     W0 = casadi.mtimes(prev, L.T)  # (D, s)
 
-    index_w = casadi.vertcat(casadi.DM.ones(n), *(h ** (float(k) - 1) for k in error_weights))
-    scale = casadi.repmat((atol + rtol * casadi.fabs(u_n)) / index_w, 1, s)
+    index_w = formulas.index_weights(CASADI, h, n, error_weights - 1)
+    scale = casadi.repmat(formulas.error_scale(atol, rtol, casadi.fabs(u_n), index_w), 1, s)
 
-    # one iteration: state [W (D s), stage f (n s), previous norm, theta, eta, k, mode, outcome, active,
-    # evaluations]; mode 0 iterating, 1 checking a convergence at k = 1, 2 evaluating f at the end
-    W_s, F_s = casadi.MX.sym("W", D, s), casadi.MX.sym("F", n, s)
-    previous, theta, eta, k, mode, outcome, active, evaluations = (
-        casadi.MX.sym(name) for name in ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
-    )
+    # one iteration on the state (ITERATION), or none where it is no longer active
+    W_s = casadi.MX.sym("W", D, s)
+    state_in = {"W": W_s, "F": casadi.MX.sym("F", n, s), **{name: casadi.MX.sym(name) for name in NEWTON_STATE}}
     fixed = [t, h, y_n, p, scale, tol, inverse]
     fixed_syms = [
         casadi.MX.sym(name, e.sparsity())
@@ -242,51 +289,41 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     R = casadi.reshape(out[: s * D], D, s)
     stage_f = casadi.reshape(out[s * D :], n, s)
     dW = transformed_increment(casadi, R, hs, invs, tr, n, D, solver)
-    norm = casadi.sqrt(casadi.sumsqr(dW / scs) / (s * D))
+    norm = CASADI.rms(dW / scs)
     # the tests on the scalars in one SX function (an MX operation costs ~40 ns on casadi's virtual
     # machine, an SX one ~2: a pendulum step of 3 iterations 23.6 -> 19.7 us)
-    scalars = newton_tests(iterations)(casadi.vertcat(norm, previous, theta, eta, k, mode, outcome, evaluations, tols))
-    iterate = scalars[0]
-    state_in = [W_s, F_s, previous, theta, eta, k, mode, outcome, active, evaluations]
-    state_out = [casadi.if_else(iterate, W_s + dW, W_s), stage_f, *casadi.vertsplit(scalars[1:])]
-    one = casadi.Function("iteration", [*state_in, *fixed_syms], state_out)
-    idle = casadi.Function("idle", [*state_in, *fixed_syms], state_in)
+    before = NEWTON_BEFORE.pack(norm=norm, tol=tols, **{name: state_in[name] for name in NEWTON_BEFORE.names[1:-1]})
+    after = NEWTON_AFTER.read(newton_tests(iterations)(before=casadi.vertcat(*before))["after"])
+    state_out = dict(after, W=casadi.if_else(after["iterate"], W_s + dW, W_s), F=stage_f)
+    symbols = [*(state_in[name] for name in ITERATION), *fixed_syms]
+    one = casadi.Function("iteration", symbols, [state_out[name] for name in ITERATION])
+    idle = casadi.Function("idle", symbols, [state_in[name] for name in ITERATION])
     switch = casadi.Function.if_else("maybe_iterate", one, idle)
 
-    state = [
-        W0,
-        casadi.MX.zeros(n, s),
-        0.0,
-        0.0,
-        casadi.fmax(eta0, np.finfo(float).eps) ** 0.8,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-    ]
+    state = dict.fromkeys(NEWTON_STATE, 0.0)
+    state.update(W=W0, F=casadi.MX.zeros(n, s), eta=formulas.start_rate(CASADI, v["eta"], np.finfo(float).eps))
+    state["active"] = 1.0
     for _ in range(iterations + 2):  # (a failed check at k = 1 takes a pass more)
-        state = list(switch(state[8], *state, *fixed))
-    W, F, _, theta, eta, k, _, outcome, active, evaluations = state
-    outcome = casadi.if_else(active, NOT_CONVERGED, outcome)
+        state = dict(zip(ITERATION, switch(state["active"], *(state[name] for name in ITERATION), *fixed), strict=True))
+    W, F, theta, eta, k, evaluations = (state[name] for name in ("W", "F", "theta", "eta", "k", "evaluations"))
+    outcome = casadi.if_else(state["active"], NOT_CONVERGED, state["outcome"])
 
-    # the embedded error estimate (radau's local_error, error_norm and refiltered)
+    # the embedded error estimate (.error's ErrorEstimate.norm: local, refiltered)
     gamma0 = tr.gamma0
     quadrature = casadi.mtimes(F, casadi.DM(e))
     zeros = casadi.MX.zeros(D - n)
-    err = solver.error(casadi, inverse, casadi.vertcat(quadrature / gamma0 + f0, zeros))
+    err = solver.error(casadi, inverse, formulas.error_rhs(CASADI, quadrature, gamma0, f0, zeros))
     u_new = W[:, s - 1]
-    w = (atol + rtol * casadi.fmax(casadi.fabs(u_n), casadi.fabs(u_new))) / index_w
-    error_norm = casadi.sqrt(casadi.sumsqr(err / w) / D)
-    f1 = f(casadi.vertcat(t, u_n + err, p))
-    refiltered = solver.error(casadi, inverse, casadi.vertcat(quadrature / gamma0 + f1, zeros))
-    again = casadi.logic_and(first, error_norm >= 1)
-    error_norm = casadi.if_else(again, casadi.sqrt(casadi.sumsqr(refiltered / w) / D), error_norm)
-    return casadi.Function(
-        "radau_step",
-        [x, inverse],
-        [casadi.vertcat(outcome, k, evaluations, theta, eta, error_norm, casadi.vec(W), casadi.vec(F))],
-    )
+    w = formulas.error_scale(atol, rtol, casadi.fmax(casadi.fabs(u_n), casadi.fabs(u_new)), index_w)
+
+    def refiltered():
+        f1 = f(casadi.vertcat(t, u_n + err, p))
+        return solver.error(casadi, inverse, formulas.error_rhs(CASADI, quadrature, gamma0, f1, zeros))
+
+    error_norm = formulas.error_norm(CASADI, err, w, first, refiltered)
+    results = dict(outcome=outcome, iterations=k, evaluations=evaluations, theta=theta, eta=eta)
+    out = outputs.pack(**results, error_norm=error_norm, W=casadi.vec(W), F=casadi.vec(F))
+    return casadi.Function("radau_step", [x, inverse], [casadi.vertcat(*out)])
 
 
 # C compilers tried for jit=True, in this order (the first on PATH compiles).

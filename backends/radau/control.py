@@ -12,20 +12,19 @@ step itself (start guess, Newton, error estimate, acceptance) is the same for bo
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from daemodel.backends.grids import fixed_grid
 from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
-from daemodel.backends.radau.loop import HANDBACK
+from daemodel.backends.radau import formulas
+from daemodel.backends.radau.formulas import SCALAR
+from daemodel.backends.radau.loop import HANDBACK, SETTINGS
 from daemodel.backends.radau.newton import NewtonPolicy
 
 from daemodel.errors import ConvergenceError, StepLimitError
 
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
 FIXED_NEWTON_TOL_EPS = 10
-# Step-size controller (RADAU5's values): safety factor, and bounds on h_new / h.
-SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 8.0
+# (The step-size formulas, RADAU5's safety factor and bounds, are .formulas', shared with .loop.)
 # Keep h (and the LU) when the controller asks for a change within this band (RADAU5's QUOT1/2).
 KEEP_H_BAND = (1.0, 1.2)
 # Gustafsson's predictive controller (RADAU5's default): after the second accepted step, the new h is
@@ -135,7 +134,7 @@ class Radau5Controller:
         keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
         predictive = PREDICTIVE and not self.rounding_floor
         python_next = False  # the compiled run handed the next attempt back (see .loop)
-        while t < t1 and not math.isclose(t, t1, rel_tol=1e-13, abs_tol=1e-13 * abs(t1 - t0)):
+        while not formulas.finished(SCALAR, t, t0, t1):
             attempts = stats["attempts"]
             if attempts >= options.max_steps:
                 raise self.budget_error(stats, t, h, t1, half, options.max_steps - options.max_steps // 2)
@@ -150,8 +149,18 @@ class Radau5Controller:
                 # half and the whole budget, and the end of the progress watch's window
                 checkpoint = options.max_steps // 2 if attempts < options.max_steps // 2 else options.max_steps
                 checkpoint = min(checkpoint, max(watch.start[1] + PROGRESS_WINDOW, attempts + 1))
-                settings = (t0, t1, checkpoint - attempts, self.policy.tol, self.rtol, self.atol)
-                settings += (stepper.reuse_theta(), *keep, float(predictive))
+                settings = SETTINGS.pack(
+                    t0=t0,
+                    t1=t1,
+                    limit=checkpoint - attempts,
+                    newton_tol=self.policy.tol,
+                    rtol=self.rtol,
+                    atol=self.atol,
+                    reuse_theta=stepper.reuse_theta(),
+                    keep_low=keep[0],
+                    keep_high=keep[1],
+                    predictive=float(predictive),
+                )
                 t, h, first, rejected_last, accepted, ended = stepper.compiled_run.advance(
                     stepper, t, h, first, rejected_last, accepted, settings
                 )
@@ -159,39 +168,28 @@ class Radau5Controller:
                 continue
             python_next = False
             stats["attempts"] += 1
-            if h < 1e-14 * max(1.0, abs(t)):
-                h = shrink(h, t, "the error estimate kept shrinking the step", None, 1.0)
-            h = min(h, t1 - t)
-            if (t1 - t) - h < 1e-10 * h:
-                h = t1 - t
+            if formulas.underflow(SCALAR, h, t):
+                shrink(h, t, "the error estimate kept shrinking the step", None)
+            h = formulas.step_length(SCALAR, h, t, t1)
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, first or rejected_last)
-            if result is None:
-                stats["newton_failures"] += 1
+            failed = result is None
+            err = formulas.finite_or_inf(SCALAR, err)
+            quot = formulas.error_quotient(SCALAR, err, newton_iterations, stepper.s, iterations)
+            if not formulas.accepted(SCALAR, failed, err):
+                stats["newton_failures" if failed else "rejected_steps"] += 1
+                why = why if failed else f"error estimate {err:.2g} > 1"
+                h = shrink(formulas.rejected_step(SCALAR, h, quot, failed), t, why, sample)
                 stepper.drop_factors()
-                h = shrink(h, t, why, sample, 0.5)
-                first = rejected_last = True  # (as RADAU5: the next accepted step does not grow h)
-                continue
-            factor = min(SAFETY, SAFETY * (2 * iterations + 1) / (2 * iterations + newton_iterations))
-            quot = factor * max(err, 1e-10) ** (-1.0 / (stepper.s + 1))
-            if err > 1:
-                stats["rejected_steps"] += 1
-                h = shrink(h, t, f"error estimate {err:.2g} > 1", None, max(MIN_FACTOR, min(quot, 0.9)))
+                first = first or failed  # (as RADAU5: after a failed Newton the next accepted step does not grow h)
                 rejected_last = True
-                stepper.drop_factors()
                 continue
-            t_next = t1 if math.isclose(t + h, t1, rel_tol=1e-13) else t + h
+            t_next = formulas.step_end(SCALAR, t, h, t1)
             stepper.accept(t, h, result, t_next)
             t = t_next
-            change = min(MAX_FACTOR, max(MIN_FACTOR, quot))
-            if predictive and accepted is not None:
-                h_acc, err_acc = accepted
-                predicted = SAFETY * (h / h_acc) * (err_acc / max(err, 1e-10) ** 2) ** (1.0 / (stepper.s + 1))
-                change = min(change, min(MAX_FACTOR, max(MIN_FACTOR, predicted)))
-            accepted = (h, max(err, 1e-2))
-            new_h = h * change if not rejected_last else h * min(1.0, change)
-            if keep[0] <= new_h / h <= keep[1] and stepper.jacobian_kept():  # (RADAU5: only while THETA <= THET)
-                new_h = h
-            h = new_h
+            last = accepted or (0.0, 0.0)  # (h 0: no accepted step yet)
+            h, accepted = formulas.next_step(
+                SCALAR, h, err, quot, stepper.s, last, predictive, rejected_last, keep, stepper.jacobian_kept()
+            )
             first = rejected_last = False
 
     def initial_step(self, stepper, t_span) -> float:
@@ -199,7 +197,7 @@ class Radau5Controller:
         xp = stepper.xp
         t0, t1 = t_span
         f0 = stepper.start_f(t0)
-        sc = self.atol + self.rtol * xp.abs(stepper.y)
+        sc = formulas.error_scale(self.atol, self.rtol, xp.abs(stepper.y), 1.0)  # (the states: weight 1)
         d0 = float(stepper.rms(stepper.y / sc).max()) if stepper.n else 0.0
         d1 = float(stepper.rms(f0 / sc).max()) if stepper.n else 0.0
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
@@ -247,10 +245,9 @@ class Radau5Controller:
         )
 
 
-def shrink(h, t, why, sample, factor):
-    """``h * factor``, or :class:`ConvergenceError` where that underflows (the last failure named)."""
-    new = h * factor
-    if new < 1e-14 * max(1.0, abs(t)):
+def shrink(new, t, why, sample):
+    """The shrunk step ``new``, or :class:`ConvergenceError` where it underflows (the last failure named)."""
+    if formulas.underflow(SCALAR, new, t):
         who = f", sample {sample}" if sample is not None else ""
         raise ConvergenceError(
             f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "

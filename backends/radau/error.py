@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 from daemodel.backends.base import LOCAL_ERROR_BOUND, estimate_status
+from daemodel.backends.radau import formulas
 
 from daemodel.errors import LocalErrorBoundError
 
@@ -50,7 +51,7 @@ class ErrorEstimate:
         # The constraint rows carry no local error: each step's Newton enforces g at its stages,
         # and its leftover |g(y_n)| (Newton's tolerance) must not block ever smaller steps.
         zeros = xp.zeros_like(stepper.z)
-        rhs = xp.concatenate([quadrature / self.gamma0 + f0, zeros], axis=-1)
+        rhs = formulas.error_rhs(stepper.ops, quadrature, self.gamma0, f0, zeros)
         return stepper.engine.error_solve(factors, rhs), (factors, quadrature, zeros)
 
     def refiltered(self, t, err, matrices):
@@ -59,8 +60,7 @@ class ErrorEstimate:
         factors, quadrature, zeros = matrices
         n = stepper.n
         f1 = stepper.engine.f(t, stepper.y + err[:, :n], stepper.z + err[:, n:])
-        rhs = stepper.xp.concatenate([quadrature / self.gamma0 + f1, zeros], axis=-1)
-        return stepper.engine.error_solve(factors, rhs)
+        return stepper.engine.error_solve(factors, formulas.error_rhs(stepper.ops, quadrature, self.gamma0, f1, zeros))
 
     def norm(self, t, h, r, W, first) -> float:
         """RADAU5's scaled local error of the step, worst sample (the adaptive controller's)."""
@@ -69,13 +69,8 @@ class ErrorEstimate:
         err, matrices = self.local(h, stepper.factors, stepper.start_f(t), r.stage_f)
         u_new = W[:, -1]
         w = stepper.weights(h, xp.maximum(xp.abs(stepper.state()), xp.abs(u_new)))
-        norm = stepper.rms(err / w)
-        if first and bool((norm >= 1).any()):
-            err = self.refiltered(t, err, matrices)
-            norm = stepper.rms(err / w)
-        if not bool(xp.isfinite(norm).all()):
-            return math.inf
-        return float(norm.max())
+        norm = formulas.error_norm(stepper.ops, err, w, first, lambda: self.refiltered(t, err, matrices))
+        return formulas.finite_or_inf(formulas.SCALAR, float(norm.max()))  # (max: NaN where any is)
 
     def check_fixed(self, step, t, h, r):
         """Fixed step: the step's local error estimate in units of the solution's size; raise beyond the bound.

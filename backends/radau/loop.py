@@ -14,7 +14,10 @@ attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 - where all failed, checks that z stays determined over the step and halves h; else accepts or
   rejects the step and picks the next h.
 
-The same arithmetic in the same order: the same steps, bit for bit.  What only Python does ends
+The same arithmetic in the same order: the same steps, bit for bit, the controller's formulas
+(the accept/reject decision, the next h, the end and underflow tests) written once in
+:mod:`.formulas` for both, and every packed vector's parts named in one :class:`.compiled.Layout`
+(the head and tail take and return them by name).  What only Python does ends
 the run *before* the attempt, which Python then makes on its own path (the attempt runs twice),
 where the errors are worded: non-finite values (the general path names where they arose), a sign
 change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
@@ -29,7 +32,9 @@ from __future__ import annotations
 
 import numpy as np
 from daemodel.backends.progress import captured_output
-from daemodel.backends.radau.compiled import NON_FINITE, Buffered, iteration_matrix
+from daemodel.backends.radau import formulas
+from daemodel.backends.radau.compiled import NON_FINITE, Buffered, Layout, iteration_matrix, step_layouts
+from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sparse import MAX_GROWTH
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
@@ -38,18 +43,18 @@ RUN_ATTEMPTS = 32
 # How a run ended: every attempt ran, the integration reached t1, Python must make the next attempt,
 # or ``limit`` attempts ran (the controller then checks its budget).
 FULL, FINISHED, HANDBACK, LIMIT = 0, 1, 2, 3
-# The carried scalars, in this order, in front of u (D), the last step's nodes ((s+1) D), f at the
-# start (n), J's nonzeros and the packed inverses.  h_old 0: no last step (a constant guess);
+# The carried scalars, in front of u (D), the last step's nodes ((s+1) D), f at the start (n), J's
+# nonzeros and the packed inverses (state_layout).  h_old 0: no last step (a constant guess);
 # factors_h 0: no factored systems; h_acc 0: no accepted step yet (Gustafsson's prediction waits).
-SCALARS = (
+SCALARS = Layout(
     "t", "h", "h_old", "eta", "first", "rejected_last", "h_acc", "err_acc", "jac_kept", "t_jac",
     "factors_h", "det_sign", "t_det", "attempts", "active", "code",
 )  # fmt: skip
-# The run's settings, in this order, then p.
-SETTINGS = (
+# The run's settings, in front of p.
+SETTINGS = Layout(
     "t0", "t1", "limit", "newton_tol", "rtol", "atol", "reuse_theta", "keep_low", "keep_high", "predictive",
 )  # fmt: skip
-# Each attempt's record, in this order, then the start value (D) and the stages (s D).
+# Each attempt's record, in front of the start value and the stages (record_layout).
 RECORD = ("ran", "accepted", "t", "h", "t_next", "iterations", "evaluations", "refreshed", "factored", "retries",
           "newton_failed")  # fmt: skip
 
@@ -117,78 +122,69 @@ def any_of(casadi, *flags):
     return out
 
 
-def is_close(casadi, a, b, rel_tol, abs_tol=0.0):
-    """``math.isclose(a, b, rel_tol=rel_tol, abs_tol=abs_tol)`` on casadi scalars (its formula)."""
-    diff = casadi.fabs(b - a)
-    return casadi.logic_or(
-        casadi.logic_or(diff <= casadi.fabs(rel_tol * b), diff <= casadi.fabs(rel_tol * a)),
-        casadi.logic_or(diff <= abs_tol, a == b),
-    )
+# What the head tells of the attempt to come (head_function's outputs).
+HEAD = ("h", "limited", "underflow", "refreshed", "factored", "ratio", "first")
 
 
 def head_function():
-    """The controller's loop head (SX, scalars): from ``[SCALARS, SETTINGS]``, ``[h (the last step
-    shortened to end at t1), limited (the budget is spent), underflow, refreshed (the Jacobian was
-    dropped), factored (h changed), ratio (h / h_old, 0 without a last step), first (the estimate
-    refiltered)]``."""
+    """The controller's loop head (SX, scalars; :meth:`.control.Radau5Controller.run`'s): from the
+    :data:`SCALARS` and :data:`SETTINGS`, :data:`HEAD`: ``h`` (shortened to end at t1), ``limited``
+    (the budget is spent), ``underflow``, ``refreshed`` (the Jacobian was dropped), ``factored`` (h
+    changed), ``ratio`` (h / h_old, 0 without a last step), ``first`` (the estimate refiltered)."""
     import casadi
 
-    x = casadi.SX.sym("x", len(SCALARS) + len(SETTINGS))
-    v = {name: x[i] for i, name in enumerate(SCALARS)}
-    c = {name: x[len(SCALARS) + i] for i, name in enumerate(SETTINGS)}
-    t, t1 = v["t"], c["t1"]
-    limited = v["attempts"] >= c["limit"]
-    underflow = v["h"] < 1e-14 * casadi.fmax(1.0, casadi.fabs(t))
-    h = casadi.fmin(v["h"], t1 - t)
-    h = casadi.if_else((t1 - t) - h < 1e-10 * h, t1 - t, h)
+    scalars, settings = casadi.SX.sym("scalars", SCALARS.size), casadi.SX.sym("settings", SETTINGS.size)
+    v, c = SCALARS.read(scalars), SETTINGS.read(settings)
+    t = v["t"]
+    h = formulas.step_length(CASADI, v["h"], t, c["t1"])
     refreshed = casadi.logic_not(v["jac_kept"])
-    factored = casadi.logic_and(casadi.logic_not(refreshed), v["factors_h"] != h)
-    ratio = casadi.if_else(v["h_old"] > 0, h / v["h_old"], 0.0)
-    first = casadi.logic_or(v["first"], v["rejected_last"])
-    return casadi.Function("head", [x], [casadi.vertcat(h, limited, underflow, refreshed, factored, ratio, first)])
+    out = {
+        "h": h,
+        "limited": v["attempts"] >= c["limit"],
+        "underflow": formulas.underflow(CASADI, v["h"], t),
+        "refreshed": refreshed,
+        "factored": casadi.logic_and(casadi.logic_not(refreshed), v["factors_h"] != h),
+        "ratio": casadi.if_else(v["h_old"] > 0, h / v["h_old"], 0.0),
+        "first": casadi.logic_or(v["first"], v["rejected_last"]),
+    }
+    return casadi.Function("head", [scalars, settings], [out[name] for name in HEAD], ["scalars", "settings"], HEAD)
 
 
-# What the tail reads of the attempt, after the scalars and settings.
-ATTEMPT = ("h", "limited", "underflow", "refreshed", "factored", "stale", "singular", "sign", "retry_sign",
-           "outcome", "k", "theta", "eta", "err", "evaluations", "retries", "newton_failed", "stage_flip")  # fmt: skip
+# What the tail reads of the attempt.
+ATTEMPT = Layout(
+    "h", "limited", "underflow", "refreshed", "factored", "stale", "singular", "sign", "retry_sign", "outcome",
+    "iterations", "theta", "eta", "error_norm", "evaluations", "retries", "newton_failed", "stage_flip",
+)  # fmt: skip
 
 
 def tail_function(s: int, iterations: int):
-    """The controller after the attempt (SX, scalars; :meth:`.control.Radau5Controller.run` in its
-    order of operations): from ``[SCALARS, SETTINGS, ATTEMPT]``, ``[the scalars after it, ran,
-    taken, the record's scalars (:data:`RECORD`)]``.  An attempt that did not run (the budget, or
-    one to hand back) leaves the scalars as they were, inactive, with the code why."""
+    """The controller after the attempt (SX, scalars; :meth:`.control.Radau5Controller.run`'s, by the
+    same :mod:`.formulas` in its order of operations): from the :data:`SCALARS`, :data:`SETTINGS` and
+    :data:`ATTEMPT`, the scalars ``after`` it, whether it ``ran``, whether a step was ``taken``, and
+    its ``record`` (:data:`RECORD`).  An attempt that did not run (the budget, or one to hand back)
+    leaves the scalars as they were, inactive, with the code why."""
     import casadi
-    from daemodel.backends.radau import control
 
-    x = casadi.SX.sym("x", len(SCALARS) + len(SETTINGS) + len(ATTEMPT))
-    v = {name: x[i] for i, name in enumerate(SCALARS)}
-    c = {name: x[len(SCALARS) + i] for i, name in enumerate(SETTINGS)}
-    a = {name: x[len(SCALARS) + len(SETTINGS) + i] for i, name in enumerate(ATTEMPT)}
-    t, t0, t1, h, k, theta, err = v["t"], c["t0"], c["t1"], a["h"], a["k"], a["theta"], a["err"]
-    err = casadi.if_else(err < casadi.inf, err, casadi.inf)  # (NaN: inf, as the stepper reads it)
-    fac = casadi.fmin(control.SAFETY, control.SAFETY * (2 * iterations + 1) / (2 * iterations + k))
-    quot = fac * casadi.fmax(err, 1e-10) ** (-1.0 / (s + 1))
+    xp = CASADI
+    symbols = {name: casadi.SX.sym(name, layout.size) for name, layout in TAIL_INPUTS.items()}
+    v, c, a = (layout.read(symbols[name]) for name, layout in TAIL_INPUTS.items())
+    t, t0, t1, h, k, theta = v["t"], c["t0"], c["t1"], a["h"], a["iterations"], a["theta"]
+    err = formulas.finite_or_inf(xp, a["error_norm"])  # (NaN: inf, as the stepper reads it)
+    quot = formulas.error_quotient(xp, err, k, s, iterations)
     failed = a["newton_failed"]  # (every compiled try failed, z stays determined: the controller halves h)
-    accept = casadi.logic_and(casadi.logic_not(failed), err <= 1)
-    floor = 1e-14 * casadi.fmax(1.0, casadi.fabs(t))  # (shrink's underflow)
-    h_rejected = casadi.if_else(failed, h * 0.5, h * casadi.fmax(control.MIN_FACTOR, casadi.fmin(quot, 0.9)))
-    shrunk_away = casadi.logic_and(casadi.logic_not(accept), h_rejected < floor)
-    t_next = casadi.if_else(is_close(casadi, t + h, t1, 1e-13), t1, t + h)
-    jac_kept = casadi.logic_not(theta > c["reuse_theta"])  # (Stepper.accept's test)
-    change = casadi.fmin(control.MAX_FACTOR, casadi.fmax(control.MIN_FACTOR, quot))
-    predicted = control.SAFETY * (h / v["h_acc"]) * (v["err_acc"] / casadi.fmax(err, 1e-10) ** 2) ** (1.0 / (s + 1))
-    predicted = casadi.fmin(control.MAX_FACTOR, casadi.fmax(control.MIN_FACTOR, predicted))
-    change = casadi.if_else(casadi.logic_and(c["predictive"], v["h_acc"] > 0), casadi.fmin(change, predicted), change)
-    new_h = casadi.if_else(v["rejected_last"], h * casadi.fmin(1.0, change), h * change)
-    quotient = new_h / h
-    banded = casadi.logic_and(casadi.logic_and(c["keep_low"] <= quotient, quotient <= c["keep_high"]), jac_kept)
-    new_h = casadi.if_else(banded, h, new_h)
-    near_end = is_close(casadi, t_next, t1, 1e-13, 1e-13 * casadi.fabs(t1 - t0))
-    done = casadi.logic_and(accept, casadi.logic_not(casadi.logic_and(t_next < t1, casadi.logic_not(near_end))))
+    accept = formulas.accepted(xp, failed, err)
+    h_rejected = formulas.rejected_step(xp, h, quot, failed)
+    shrunk_away = casadi.logic_and(casadi.logic_not(accept), formulas.underflow(xp, h_rejected, t))  # (shrink's)
+    t_next = formulas.step_end(xp, t, h, t1)
+    jac_kept = formulas.jacobian_kept(xp, theta, c["reuse_theta"])  # (Stepper.accept's test)
+    last, keep = (v["h_acc"], v["err_acc"]), (c["keep_low"], c["keep_high"])
+    new_h, (h_acc, err_acc) = formulas.next_step(
+        xp, h, err, quot, s, last, c["predictive"], v["rejected_last"], keep, jac_kept
+    )
+    done = casadi.logic_and(accept, formulas.finished(xp, t_next, t0, t1))
     flipped = casadi.logic_or(
-        casadi.logic_and(a["refreshed"], v["det_sign"] * a["sign"] < 0),  # (check_determined's test)
-        casadi.logic_and(a["stale"], a["sign"] * a["retry_sign"] < 0),
+        casadi.logic_and(a["refreshed"], formulas.sign_flip(v["det_sign"], a["sign"])),  # (check_determined's)
+        casadi.logic_and(a["stale"], formulas.sign_flip(a["sign"], a["retry_sign"])),
     )
     non_finite = casadi.logic_and(a["outcome"] != 0, casadi.logic_not(failed))  # (the general path names where)
     handback = any_of(casadi, a["underflow"], a["singular"], flipped, non_finite, a["stage_flip"], shrunk_away)
@@ -201,8 +197,8 @@ def tail_function(s: int, iterations: int):
         "eta": casadi.if_else(failed, v["eta"], a["eta"]),
         "first": casadi.if_else(accept, 0, casadi.logic_or(failed, v["first"])),
         "rejected_last": casadi.logic_not(accept),
-        "h_acc": casadi.if_else(accept, h, v["h_acc"]),
-        "err_acc": casadi.if_else(accept, casadi.fmax(err, 1e-2), v["err_acc"]),
+        "h_acc": casadi.if_else(accept, h_acc, v["h_acc"]),
+        "err_acc": casadi.if_else(accept, err_acc, v["err_acc"]),
         "jac_kept": casadi.if_else(accept, jac_kept, 1),  # (refreshed if it was not kept)
         "t_jac": casadi.if_else(refreshes > 0, t, v["t_jac"]),
         "factors_h": casadi.if_else(accept, h, 0),  # (a rejected step drops its factors: h changes)
@@ -213,12 +209,22 @@ def tail_function(s: int, iterations: int):
         "code": casadi.if_else(done, FINISHED, FULL),
     }
     stopped = {**v, "active": 0, "code": casadi.if_else(a["limited"], LIMIT, HANDBACK)}
-    scalars = [casadi.if_else(ran, after[name], stopped[name]) for name in SCALARS]
-    record = [1, accept, t, h, t_next, casadi.if_else(failed, 0, k), a["evaluations"], refreshes, a["factored"]]
-    record += [a["retries"], failed]
-    record = [casadi.if_else(ran, value, 0) for value in record]
-    out = casadi.vertcat(*scalars, ran, casadi.logic_and(ran, accept), *record)
-    return casadi.Function("tail", [x], [out])
+    scalars = [casadi.if_else(ran, after[name], stopped[name]) for name in SCALARS.names]
+    record = dict(ran=1, accepted=accept, t=t, h=h, t_next=t_next, iterations=casadi.if_else(failed, 0, k))
+    record.update(evaluations=a["evaluations"], refreshed=refreshes, factored=a["factored"])
+    record.update(retries=a["retries"], newton_failed=failed)
+    record = [casadi.if_else(ran, record[name], 0) for name in RECORD]
+    outputs = {
+        "after": casadi.vertcat(*scalars),
+        "ran": ran,
+        "taken": casadi.logic_and(ran, accept),
+        "record": casadi.vertcat(*record),
+    }
+    return casadi.Function("tail", list(symbols.values()), list(outputs.values()), list(symbols), list(outputs))
+
+
+# The tail's inputs.
+TAIL_INPUTS = {"scalars": SCALARS, "settings": SETTINGS, "attempt": ATTEMPT}
 
 
 def run_function(
@@ -233,7 +239,7 @@ def run_function(
     function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
     ``stage_jacobians``: the Jacobian's nonzeros at every stage
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`SCALARS` and the
-    arrays, :data:`SETTINGS` and p); output the state, then each attempt's record (:func:`record_size`).
+    arrays, :data:`SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
     virtual machine an MX operation costs ~20 ns, an SX one ~2.
     """
@@ -242,17 +248,17 @@ def run_function(
     s, n, D, m = engine.s, engine.n, engine.D, engine.m
     P, nnz, size_inverse = engine.p.size, len(engine.rows), engine.packed_size()
     rows, cols = engine.rows, engine.cols
-    layout = state_layout(s, n, D, nnz, size_inverse)
-    state = casadi.MX.sym("state", layout["size"])
-    settings = casadi.MX.sym("settings", len(SETTINGS) + P)
-    scalars = state[: len(SCALARS)]
+    layout, step_in, step_out = state_layout(s, n, D, nnz, size_inverse), *step_layouts(s, n, D, P)
+    state = casadi.MX.sym("state", layout.size)
+    settings = casadi.MX.sym("settings", SETTINGS.size + P)
+    scalars = state[: SCALARS.size]
     u, nodes, f0, J, inverse = (state[layout[name]] for name in ("u", "nodes", "f0", "J", "inverse"))
-    given = settings[: len(SETTINGS)]
-    p = settings[len(SETTINGS) :]
+    given = settings[: SETTINGS.size]
+    c = SETTINGS.read(given)
+    p = settings[SETTINGS.size :]
     t, eta, det_sign = state[layout["t"]], state[layout["eta"]], state[layout["det_sign"]]
-    h, limited, underflow, refreshed, factored, ratio, first = casadi.vertsplit(
-        head_function()(casadi.vertcat(scalars, given))
-    )
+    head = head_function()(scalars=scalars, settings=given)
+    h, refreshed, factored, ratio = head["h"], head["refreshed"], head["factored"], head["ratio"]
 
     # the Jacobian, refreshed (with its factored systems) where it was dropped; else factored where h changed
     args = [casadi.MX.sym("t"), casadi.MX.sym("u", D), casadi.MX.sym("p", P), casadi.MX.sym("h")]
@@ -271,12 +277,10 @@ def run_function(
     # the attempt from the last step's polynomial (a constant guess at the first step: ratio 0), then
     # Stepper.compiled_attempt's retries: with a fresh Jacobian where the kept one failed, then from
     # the start value (the state at the start, s+1 times, at ratio 0)
-    head = casadi.vertcat(t, h)
-    tail = casadi.vertcat(eta, given[SETTINGS.index("newton_tol")], first, given[SETTINGS.index("rtol")])
-    tail = casadi.vertcat(tail, given[SETTINGS.index("atol")])
-    x = casadi.vertcat(head, ratio, tail, nodes, f0, p)
+    fixed = dict(t=t, h=h, eta=eta, newton_tol=c["newton_tol"], first=head["first"], rtol=c["rtol"], atol=c["atol"])
+    x = casadi.vertcat(*step_in.pack(**fixed, ratio=ratio, nodes=nodes, f0=f0, p=p))
     result = step(x, inverse)
-    failed, evaluations = result[0] != 0, result[2]
+    failed, evaluations = result[step_out["outcome"]] != 0, result[step_out["evaluations"]]
     t_jac = casadi.if_else(refreshed, t, state[layout["t_jac"]])
     stale = casadi.logic_and(failed, t_jac != t)
     again = [casadi.MX.sym("x", x.numel()), casadi.MX.sym("result", result.numel())]
@@ -291,15 +295,16 @@ def run_function(
         stale, t, u, p, h, J, sign, inverse, x, result
     )
     singular = casadi.logic_or(singular, casadi.logic_and(stale, unusable(casadi, inverse, static)))
-    failed_again = result[0] != 0
-    evaluations = evaluations + casadi.if_else(stale, result[2], 0)
+    failed_again = result[step_out["outcome"]] != 0
+    evaluations = evaluations + casadi.if_else(stale, result[step_out["evaluations"]], 0)
     constant = casadi.logic_and(failed_again, state[layout["h_old"]] > 0)
-    start = casadi.vertcat(head, 0.0, tail, casadi.repmat(u, s + 1, 1), f0, p)
+    start = casadi.vertcat(*step_in.pack(**fixed, ratio=0.0, nodes=casadi.repmat(u, s + 1, 1), f0=f0, p=p))
     from_start = casadi.Function("from_start", [*again, kept[2]], [step(again[0], kept[2])])
     same_result = casadi.Function("same_result", [*again, kept[2]], [again[1]])
     result = casadi.Function.if_else("constant", from_start, same_result)(constant, start, result, inverse)
-    evaluations = evaluations + casadi.if_else(constant, result[2], 0)
-    outcome = result[0]
+    evaluations = evaluations + casadi.if_else(constant, result[step_out["evaluations"]], 0)
+    results = step_out.read(result)
+    outcome = results["outcome"]
     retries = failed + casadi.logic_and(stale, failed_again) + casadi.logic_and(constant, outcome != 0)
 
     # every try failed (values finite): before h is halved, z must stay determined over the step, as
@@ -317,26 +322,28 @@ def run_function(
     sparse = static is not None
     matrices = [iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine, sparse) for i in range(s)]
     chain += [sign_det(matrix) for matrix in matrices]
-    flips = sum(chain[i] * chain[i + 1] < 0 for i in range(s))
+    flips = sum(formulas.sign_flip(chain[i], chain[i + 1]) for i in range(s))
     check = casadi.Function("check", stage, [flips > 0])
     never = casadi.Function("never", stage, [0])
     final_sign = casadi.if_else(stale, retry_sign, sign)
     stage_flip = casadi.Function.if_else("determined", check, never)(newton_failed, t, h, u, p, final_sign)
 
-    attempt_values = [h, limited, underflow, refreshed, factored, stale, singular, sign, retry_sign,
-                      outcome, result[1], result[3], result[4], result[5], evaluations, retries,
-                      newton_failed, stage_flip]  # fmt: skip
-    after = tail_function(s, iterations)(casadi.vertcat(scalars, given, *attempt_values))
-    ran, taken = after[len(SCALARS)], after[len(SCALARS) + 1]
-    W = result[6 : 6 + s * D]
+    attempt = dict(head, stale=stale, singular=singular, sign=sign, retry_sign=retry_sign, outcome=outcome)
+    attempt.update(iterations=results["iterations"], theta=results["theta"], eta=results["eta"])
+    attempt.update(error_norm=results["error_norm"], evaluations=evaluations, retries=retries)
+    attempt.update(newton_failed=newton_failed, stage_flip=stage_flip)
+    del attempt["ratio"], attempt["first"]  # (the step's inputs)
+    attempt = casadi.vertcat(*ATTEMPT.pack(**attempt))
+    after = tail_function(s, iterations)(scalars=scalars, settings=given, attempt=attempt)
+    ran, taken, W = after["ran"], after["taken"], results["W"]
     moved = casadi.vertcat(
-        after[: len(SCALARS)],
+        after["after"],
         casadi.if_else(taken, W[(s - 1) * D :], u),
         casadi.if_else(taken, casadi.vertcat(u, W), nodes),
-        casadi.if_else(taken, result[6 + s * D + (s - 1) * n :], f0),
+        casadi.if_else(taken, results["F"][(s - 1) * n :], f0),
         casadi.if_else(ran, casadi.vertcat(J, inverse), state[layout["J"].start :]),
     )
-    record = casadi.vertcat(after[len(SCALARS) + 2 :], casadi.if_else(ran, casadi.vertcat(u, W), 0))
+    record = casadi.vertcat(after["record"], casadi.if_else(ran, casadi.vertcat(u, W), 0))
     attempt = casadi.Function("attempt", [state, settings], [moved, record])
     idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(record.numel())])
     maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
@@ -348,20 +355,16 @@ def run_function(
     return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
 
 
-def state_layout(s: int, n: int, D: int, nnz: int, size_inverse: int) -> dict:
-    """Where each part of the carried state sits: the scalars' indices, the arrays' slices, the size."""
-    layout = {name: i for i, name in enumerate(SCALARS)}
-    offset = len(SCALARS)
-    for name, size in (("u", D), ("nodes", (s + 1) * D), ("f0", n), ("J", nnz), ("inverse", size_inverse)):
-        layout[name] = slice(offset, offset + size)
-        offset += size
-    layout["size"] = offset
-    return layout
+def state_layout(s: int, n: int, D: int, nnz: int, size_inverse: int) -> Layout:
+    """The carried state: the :data:`SCALARS`, then ``u``, the last step's ``nodes``, ``f0``, ``J``'s
+    nonzeros and the packed ``inverse``."""
+    arrays = (("u", D), ("nodes", (s + 1) * D), ("f0", n), ("J", nnz), ("inverse", size_inverse))
+    return Layout(*SCALARS.names, *arrays)
 
 
-def record_size(s: int, D: int) -> int:
-    """Entries of one attempt's record: :data:`RECORD`, the start value, the stages."""
-    return len(RECORD) + D + s * D
+def record_layout(s: int, D: int) -> Layout:
+    """One attempt's record: :data:`RECORD`, then the start value and the stages (``nodes``)."""
+    return Layout(*RECORD, ("nodes", (s + 1) * D))
 
 
 class CompiledRun:
@@ -372,12 +375,12 @@ class CompiledRun:
         s, D = engine.s, engine.D
         self.buffered = Buffered(function, inputs=2)
         self.layout = state_layout(s, engine.n, D, len(engine.rows), engine.packed_size())
-        self.record = record_size(s, D)
-        self.attempts = (function.nnz_out(0) - self.layout["size"]) // self.record
+        self.record = record_layout(s, D)
+        self.attempts = (function.nnz_out(0) - self.layout.size) // self.record.size
         self.shifts = len(engine.transform.shifts(1.0))  # LU decompositions a factorisation counts
 
     def advance(self, stepper, t, h, first, rejected_last, accepted, settings):
-        """Up to :attr:`attempts` attempts from ``t`` with ``h`` (``settings``: :data:`SETTINGS`' values),
+        """Up to :attr:`attempts` attempts from ``t`` with ``h`` (``settings``: :data:`SETTINGS` packed),
         the controller's state given and returned: ``(t, h, first, rejected_last, accepted, how the run
         ended)``; the stepper's state and statistics move with the accepted steps."""
         L = self.layout
@@ -401,7 +404,7 @@ class CompiledRun:
             "active": 1.0,
             "code": FULL,
         }
-        state[: len(SCALARS)] = [scalars[name] for name in SCALARS]
+        state[: SCALARS.size] = SCALARS.pack(**scalars)
         u = stepper.state()[0]
         state[L["u"]] = u
         state[L["nodes"]] = stepper._previous_nodes if previous is not None else np.tile(u, stepper.s + 1)
@@ -411,8 +414,8 @@ class CompiledRun:
         if scalars["factors_h"]:
             state[L["inverse"]] = factors.inverse
         inputs = self.buffered.inputs[1]
-        inputs[: len(settings)] = settings
-        inputs[len(SETTINGS) :] = stepper.engine.p
+        inputs[: SETTINGS.size] = settings
+        inputs[SETTINGS.size :] = stepper.engine.p
         try:
             with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
                 out = self.buffered.evaluate()
@@ -426,9 +429,10 @@ class CompiledRun:
     def _write_back(self, stepper, out, accepted):
         L, stats, engine = self.layout, stepper.stats, stepper.engine
         s, n, D = stepper.s, stepper.n, stepper.n + stepper.m
-        v = dict(zip(SCALARS, out[: len(SCALARS)].tolist(), strict=True))
-        records = out[L["size"] :].reshape(self.attempts, self.record)
-        records = records[records[:, 0] > 0]
+        R = self.record
+        v = dict(zip(SCALARS.names, out[: SCALARS.size].tolist(), strict=True))
+        records = out[L.size :].reshape(self.attempts, R.size)
+        records = records[records[:, R["ran"]] > 0]
         if not len(records):  # (the first attempt handed back: nothing moved)
             return v["t"], v["h"], bool(v["first"]), bool(v["rejected_last"]), accepted, int(v["code"])
         sums = dict(zip(RECORD, records[:, : len(RECORD)].sum(axis=0).tolist(), strict=True))  # (one numpy call)
@@ -437,29 +441,27 @@ class CompiledRun:
         stats["rejected_steps"] += len(records) - int(sums["accepted"]) - failed
         stats["newton_failures"] += failed
         stats["newton_iterations"] += int(sums["iterations"])
-        stats["max_newton_iterations"] = max(
-            stats["max_newton_iterations"], int(records[:, RECORD.index("iterations")].max())
-        )
+        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(records[:, R["iterations"]].max()))
         stats["residual_evaluations"] += int(sums["evaluations"])
         stats["jacobian_evaluations"] += int(sums["refreshed"]) + failed  # (the stages' at a failure)
         stats["compiled_retries"] += int(sums["retries"])
         stats["lu_decompositions"] += self.shifts * int(sums["refreshed"] + sums["factored"])
         if sums["refreshed"] and stepper.m:
             stepper._det_sign, stepper._det_time = np.array([v["det_sign"]]), v["t_det"]
-        steps = records[records[:, 1] > 0]
+        steps = records[records[:, R["accepted"]] > 0]
         if len(steps):
-            nodes = steps[:, len(RECORD) :].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
+            nodes = steps[:, R["nodes"]].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
             # (copies: the records' other entries are not kept, as step_record_bytes counts)
             stepper.records.add(
-                steps[:, 2].copy(),
-                steps[:, 3].copy(),
-                steps[:, 4].copy(),
+                steps[:, R["t"]].copy(),
+                steps[:, R["h"]].copy(),
+                steps[:, R["t_next"]].copy(),
                 nodes.copy() if stepper.records.dense else nodes[:, :, -1:].copy(),  # (the end values only)
             )
             stats["steps"] += len(steps)
-            lengths = steps[:, 3].tolist()
+            lengths = steps[:, R["h"]].tolist()
             stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)
-            stepper._previous = (float(steps[-1, 3]), nodes[:, -1, 0], nodes[:, -1, 1:])
+            stepper._previous = (float(steps[-1, R["h"]]), nodes[:, -1, 0], nodes[:, -1, 1:])
             stepper._previous_nodes = out[L["nodes"]].copy()
             u = out[L["u"]]
             stepper.y, stepper.z = u[None, :n].copy(), u[None, n:].copy()

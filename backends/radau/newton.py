@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from daemodel.backends.radau import formulas
 from daemodel.backends.radau.engines import StageFactors
 
 # Above this contraction rate, Newton switches to per-stage Jacobians at the current iterate.
@@ -25,8 +26,8 @@ STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 # then the transformed systems are tried again: where the Jacobian varies along the step (the
 # pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
 STAGE_NEWTON_STEPS = 8
-# Newton is declared diverging when an increment is not at least this much smaller than the last.
-DIVERGENCE_THETA = 0.99
+# (The adaptive step's tests, divergence, convergence and slow contraction, are .formulas', shared
+# with the compiled step.)
 # A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
 # damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
 # natural monotonicity test: a step lam dW is taken when the next simplified increment is at
@@ -88,7 +89,7 @@ class Newton:
         scale = stepper.weights(h, xp.abs(stepper.state()))[:, None, :]
         if policy.trust_last_rate:
             # RADAU5: trust the last step's contraction rate, so one iteration may suffice
-            eta = xp.clip(stepper.eta, float(np.finfo(stepper.options.dtype).eps), None) ** 0.8
+            eta = formulas.start_rate(stepper.ops, stepper.eta, float(np.finfo(stepper.options.dtype).eps))
         else:
             eta = xp.ones_like(stepper.eta)
         previous = None
@@ -106,23 +107,24 @@ class Newton:
                 sample = engine.first(~finite)
                 return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
             if previous is not None:
-                theta = xp.where(active, norm / xp.clip(previous, 1e-300, None), theta)
-                diverging = active & (theta >= DIVERGENCE_THETA)
+                theta = xp.where(active, formulas.contraction(stepper.ops, norm, previous), theta)
+                diverging = active & formulas.diverging(theta)
                 if policy.to_rounding:  # increments at the rounding floor wander: that is not divergence
                     diverging = diverging & (norm > STAGNATION_FACTOR * policy.tol)
                 if bool(diverging.any()):
                     worst = engine.first(diverging)
                     return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
-                eta = xp.where(active, theta / (1 - theta), eta)
+                eta = xp.where(active, formulas.rate(theta), eta)
             if policy.to_rounding:
                 # the last increment itself is below tol, or rounding stops the iteration near it
                 done = (norm <= policy.tol) | ((theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * policy.tol))
             else:
-                done = eta * norm <= policy.tol
+                done = formulas.converged(eta, norm, policy.tol)
             active = active & ~done
             left = policy.iterations - k
             if previous is not None and left > 0 and bool(active.any()):
-                result = self.slow_contraction(t, h, W, factors, theta, eta * norm * theta**left, active)
+                slow = formulas.too_slow(eta, norm, theta, left, policy.tol)
+                result = self.slow_contraction(t, h, W, factors, theta, slow, active)
                 if isinstance(result, str):
                     worst = engine.first(active & (theta >= float((theta * active).max())))
                     return None, k, result, worst
@@ -145,10 +147,10 @@ class Newton:
                 return (W, r, float(theta.max())), k, None, None
         return None, k, f"not converged in {k} iterations", engine.first(active)
 
-    def slow_contraction(self, t, h, W, factors, theta, predicted, active):
+    def slow_contraction(self, t, h, W, factors, theta, slow, active):
         """What Newton does when it contracts too slowly: the factors to go on with, or why it stops.
 
-        ``predicted`` is the size of the increment after the iterations left (RADAU5's test).  With
+        ``slow``: the increment predicted after the iterations left still exceeds the tolerance (RADAU5's test).  With
         the transformed systems, a slow contraction that will not reach the tolerance ends the
         attempt without rescue (the controller shrinks h, as RADAU5 does) and switches to full
         Newton with each stage's Jacobian at the current iterate with it, which stays quadratic;
@@ -160,7 +162,7 @@ class Newton:
         if isinstance(factors, StageFactors):
             refresh = worst > REFRESH_THETA
         else:
-            refresh = bool((active & (predicted > self.policy.tol)).any())
+            refresh = bool((active & slow).any())
             if refresh and not self.policy.rescue:
                 return f"converging too slowly (contraction {worst:.2f})"
         if not refresh:

@@ -17,7 +17,8 @@ import math
 
 import numpy as np
 from daemodel.backends.grids import output_times
-from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW
+from daemodel.backends.radau import formulas
+from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW, STEP_RESULTS
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
@@ -41,6 +42,8 @@ REUSE_THETA, REUSE_THETA_LARGE, REUSE_LARGE_SIZE = 1e-3, 0.03, 32
 # car axis 1.3-1.7x, akzo-nobel 1.3-1.5x, transistor amplifier 1.35x (rtol 1e-6) faster, the
 # pendulum at rtol 1e-8 and the squeezer at 1e-8 1.2-1.5x slower (benchmarks/radau_idas.py).
 REUSE_THETA_COMPILED = 0.1
+# The namespace of numpy arrays (:mod:`.formulas`): the index weights are made in numpy for every engine.
+NUMPY = formulas.ArrayOps(np)
 
 
 class Stepper:
@@ -52,6 +55,7 @@ class Stepper:
 
     def __init__(self, compiled, start, options, engine, controller):
         self.engine, self.xp = engine, engine.xp
+        self.ops = formulas.ArrayOps(engine.xp)  # (the namespace of .formulas)
         self.y, self.z = engine.asarray(start.y0), engine.asarray(start.z0)
         self.compiled, self.options, self.controller = compiled, options, controller
         self.policy = controller.policy
@@ -121,8 +125,7 @@ class Stepper:
 
     def rms(self, x):
         """Root mean square over all but the batch axis, shape (B,)."""
-        x = x.reshape(self.B, -1)
-        return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
+        return self.ops.rms(x)
 
     def factor(self, J, t, h, error_only=False):
         factors = self.engine.factor(J, h, error_only)
@@ -133,13 +136,13 @@ class Stepper:
     def index_weights(self, h):
         """``h^(k-1)`` for each component (1 for the states), kept while h is unchanged."""
         if self._index_weights is None or self._index_weights[0] != h:
-            weights = np.concatenate([np.ones(self.n), h ** (self.z_index - 1)])
+            weights = formulas.index_weights(NUMPY, h, self.n, self.z_index - 1)
             self._index_weights = (h, self.engine.asarray(weights))
         return self._index_weights[1]
 
     def weights(self, h, u_ref):
         """Error scale of each of the n + m components, shape (B, n+m)."""
-        return (self.policy.atol + self.policy.rtol * u_ref) / self.index_weights(h)
+        return formulas.error_scale(self.policy.atol, self.policy.rtol, u_ref, self.index_weights(h))
 
     def residual(self, t, h, W):
         self.stats["residual_evaluations"] += 1
@@ -333,9 +336,10 @@ class Stepper:
         :meth:`attempt_with_error` returns it (why None where values turned non-finite)."""
         previous, ratio = guess
         policy, stats = self.policy, self.stats
-        scalars = (t, h, ratio, float(self.eta[0]), policy.tol, float(first), policy.rtol, policy.atol)
-        out = self.engine.compiled_step(factors, scalars, previous, f0)
-        outcome, k, evaluations, theta, eta, err = out[:6].tolist()  # Python floats: cheaper to test
+        scalars = dict(t=t, h=h, ratio=ratio, eta=float(self.eta[0]), newton_tol=policy.tol, first=float(first))
+        out = self.engine.compiled_step(factors, dict(scalars, rtol=policy.rtol, atol=policy.atol), previous, f0)
+        # (Python floats: cheaper to test)
+        outcome, k, evaluations, theta, eta, err = out[: len(STEP_RESULTS)].tolist()
         stats["residual_evaluations"] += int(evaluations)
         k = int(k)
         if outcome != CONVERGED:
@@ -350,9 +354,10 @@ class Stepper:
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
         self.eta = np.array([eta])
         s, n, D = self.s, self.n, self.n + self.m
-        W = out[6 : 6 + s * D].reshape(1, s, D)
-        r = Residual(R=None, stage_f=out[6 + s * D :].reshape(1, s, n), G=None)
-        return (W, r, theta), k, None, None, (err if math.isfinite(err) else math.inf)
+        results = self.engine.step_output.read(out)
+        W = results["W"].reshape(1, s, D)
+        r = Residual(R=None, stage_f=results["F"].reshape(1, s, n), G=None)
+        return (W, r, theta), k, None, None, formulas.finite_or_inf(formulas.SCALAR, err)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""
@@ -392,7 +397,7 @@ class Stepper:
         self.stats["steps"] += 1
         self.stats["h_min"] = min(self.stats["h_min"], h)
         self.stats["h_max"] = max(self.stats["h_max"], h)
-        if theta > self.reuse_theta():
+        if not formulas.jacobian_kept(formulas.SCALAR, theta, self.reuse_theta()):
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
 
     def reuse_theta(self) -> float:
@@ -459,7 +464,7 @@ class Stepper:
         signs = signs[:, None] if signs.ndim == 1 else signs
         if self._det_sign is not None:
             signs = self.xp.concatenate([self._det_sign[:, None], signs], axis=1)
-        flips = (signs[:, 1:] * signs[:, :-1] < 0).any(axis=1)
+        flips = formulas.sign_flip(signs[:, :-1], signs[:, 1:]).any(axis=1)
         if bool(flips.any()):
             sample = self.engine.first(flips)
             names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)

@@ -1,0 +1,314 @@
+"""RADAU5's formulas, written once over an array namespace: the step-size controller, the error norm
+and Newton's convergence tests.
+
+The Python path (:mod:`.control`, :mod:`.error`, :mod:`.newton`) calls them on Python floats
+(:data:`SCALAR`) or on the engine's arrays (:class:`ArrayOps` of numpy or torch); the compiled
+attempt and run (:mod:`.compiled`, :mod:`.loop`) call the same functions on casadi symbols
+(:data:`CASADI`), so that both make the same arithmetic in the same order and take the same steps,
+bit for bit.  A namespace supplies the few operations whose spelling differs (``minimum``,
+``maximum``, ``where``, the logical operators, ``isclose``, the root mean square); everything else
+is written with Python's operators, which all of them share.  ``where`` evaluates both branches;
+``cond`` takes them as functions, evaluated lazily where the namespace branches in Python (a
+division by zero in the branch not taken must not raise there).
+"""
+
+from __future__ import annotations
+
+import math
+
+# ---- the step-size controller (Hairer & Wanner, IV.8; RADAU5's values) ---------------------------
+# Safety factor of the next h, and bounds on h_new / h.
+SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 8.0
+# A rejected step shrinks h at least by this factor (RADAU5: min(quot, 0.9)); a failed Newton halves it.
+REJECTED_MAX_FACTOR, NEWTON_FAILURE_FACTOR = 0.9, 0.5
+# Estimates below this count as it (no infinite growth), and Gustafsson's prediction reads the last
+# accepted step's estimate as at least ACCEPTED_ERROR_FLOOR (RADAU5's ERRACC).
+ERROR_FLOOR, ACCEPTED_ERROR_FLOOR = 1e-10, 1e-2
+# Step size underflow: h below this times max(1, |t|).
+UNDERFLOW = 1e-14
+# t has reached t1 within this relative tolerance (of t1, and absolute of |t1 - t0|).
+END_TOLERANCE = 1e-13
+# A step that would leave less than this times h before t1 is stretched to end there.
+STRETCH = 1e-10
+# ---- Newton -------------------------------------------------------------------------------------
+# Newton is declared diverging when an increment is not at least this much smaller than the last.
+DIVERGENCE_THETA = 0.99
+# RADAU5's start: the last step's rate eta (at least eps) to this power predicts the first iteration's.
+START_RATE_POWER = 0.8
+# The last increment's norm counts as at least this in the contraction (no division by zero).
+TINY_NORM = 1e-300
+
+
+class ScalarOps:
+    """The namespace of Python floats and bools (the controller's scalars on the Python path)."""
+
+    minimum, maximum, abs = staticmethod(min), staticmethod(max), staticmethod(abs)
+
+    @staticmethod
+    def where(condition, a, b):
+        return a if condition else b
+
+    @staticmethod
+    def cond(condition, then, otherwise):
+        return then() if condition else otherwise()
+
+    @staticmethod
+    def and_(a, b):
+        return a and b
+
+    @staticmethod
+    def or_(a, b):
+        return a or b
+
+    @staticmethod
+    def not_(a):
+        return not a
+
+    @staticmethod
+    def isclose(a, b, rel_tol, abs_tol=0.0):
+        return math.isclose(a, b, rel_tol=rel_tol, abs_tol=abs_tol)
+
+
+class ArrayOps:
+    """The namespace of an engine's arrays (``xp``: numpy or torch), the samples along the first axis."""
+
+    def __init__(self, xp):
+        self.xp = xp
+
+    def maximum(self, a, b):
+        """The elementwise larger; a Python float bound clips (torch's maximum takes tensors only)."""
+        if isinstance(b, float):
+            return self.xp.clip(a, b, None)
+        if isinstance(a, float):
+            return self.xp.clip(b, a, None)
+        return self.xp.maximum(a, b)
+
+    def where(self, condition, a, b):
+        return self.xp.where(condition, a, b)
+
+    def cond(self, condition, then, otherwise):
+        return then() if condition else otherwise()
+
+    def any(self, flags) -> bool:
+        return bool(flags.any())
+
+    def and_(self, a, b):
+        return a and b  # (Python bools: the batch is reduced by any() first)
+
+    def rms(self, x):
+        """Root mean square over all but the first (batch) axis, shape (B,)."""
+        x = x.reshape(x.shape[0], -1)
+        return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
+
+    def concat(self, parts):
+        return self.xp.concatenate(parts, axis=-1)
+
+    def ones(self, n: int):
+        return self.xp.ones(n)
+
+    def powers(self, base, exponents):
+        return base**exponents
+
+
+class CasadiOps:
+    """The namespace of casadi symbols (SX or MX; the compiled attempt and run, one trajectory)."""
+
+    def __getattr__(self, name):  # (casadi is imported where the compiled functions are built)
+        import casadi
+
+        table = {
+            "minimum": casadi.fmin,
+            "maximum": casadi.fmax,
+            "abs": casadi.fabs,
+            "where": casadi.if_else,
+            "and_": casadi.logic_and,
+            "or_": casadi.logic_or,
+            "not_": casadi.logic_not,
+        }
+        if name not in table:
+            raise AttributeError(name)
+        return table[name]
+
+    @staticmethod
+    def cond(condition, then, otherwise):
+        import casadi
+
+        return casadi.if_else(condition, then(), otherwise())
+
+    @staticmethod
+    def any(flag):
+        return flag  # (one trajectory: the norm is a scalar)
+
+    @staticmethod
+    def isclose(a, b, rel_tol, abs_tol=0.0):
+        """``math.isclose``'s formula."""
+        import casadi
+
+        diff = casadi.fabs(b - a)
+        return casadi.logic_or(
+            casadi.logic_or(diff <= casadi.fabs(rel_tol * b), diff <= casadi.fabs(rel_tol * a)),
+            casadi.logic_or(diff <= abs_tol, a == b),
+        )
+
+    @staticmethod
+    def rms(x):
+        import casadi
+
+        return casadi.sqrt(casadi.sumsqr(x) / x.numel())
+
+    @staticmethod
+    def concat(parts):
+        import casadi
+
+        return casadi.vertcat(*parts)
+
+    @staticmethod
+    def ones(n: int):
+        import casadi
+
+        return casadi.DM.ones(n)
+
+    @staticmethod
+    def powers(base, exponents):
+        import casadi
+
+        return casadi.vertcat(*(base ** float(k) for k in exponents))
+
+
+SCALAR, CASADI = ScalarOps(), CasadiOps()
+
+
+# ---- the controller -----------------------------------------------------------------------------
+def underflow(xp, h, t):
+    """Whether ``h`` is below the step size underflow's threshold at ``t``."""
+    return h < UNDERFLOW * xp.maximum(1.0, xp.abs(t))
+
+
+def step_length(xp, h, t, t1):
+    """``h`` shortened to end at ``t1``, or stretched to it where less than :data:`STRETCH` h would be left."""
+    h = xp.minimum(h, t1 - t)
+    return xp.where((t1 - t) - h < STRETCH * h, t1 - t, h)
+
+
+def step_end(xp, t, h, t1):
+    """Where the step from ``t`` with ``h`` ends: ``t1`` itself where it ends within rounding of it."""
+    return xp.where(xp.isclose(t + h, t1, END_TOLERANCE), t1, t + h)
+
+
+def finished(xp, t, t0, t1):
+    """Whether the integration over ``(t0, t1)`` has reached ``t1`` at ``t``."""
+    near = xp.isclose(t, t1, END_TOLERANCE, END_TOLERANCE * xp.abs(t1 - t0))
+    return xp.not_(xp.and_(t < t1, xp.not_(near)))
+
+
+def error_quotient(xp, err, k, s: int, iterations: int):
+    """RADAU5's ``h_new / h`` from the step's error norm ``err`` (order s + 1): the safety factor,
+    lowered where Newton needed ``k`` of its ``iterations``, times ``err^(-1/(s+1))``."""
+    factor = xp.minimum(SAFETY, SAFETY * (2 * iterations + 1) / (2 * iterations + k))
+    return factor * xp.maximum(err, ERROR_FLOOR) ** (-1.0 / (s + 1))
+
+
+def accepted(xp, failed, err):
+    """Whether the attempt is accepted: Newton converged (not ``failed``) and the error norm is at most 1."""
+    return xp.and_(xp.not_(failed), err <= 1)
+
+
+def rejected_step(xp, h, quot, failed):
+    """The next h after a rejected attempt: halved after a failed Newton, else by the quotient (bounded)."""
+    shrunk = h * xp.maximum(MIN_FACTOR, xp.minimum(quot, REJECTED_MAX_FACTOR))
+    return xp.where(failed, h * NEWTON_FAILURE_FACTOR, shrunk)
+
+
+def next_step(xp, h, err, quot, s: int, last, predictive, rejected_last, keep, jac_kept):
+    """The next h after an accepted step of ``h`` with error norm ``err`` (``quot``: :func:`error_quotient`),
+    and the ``(h, err)`` that Gustafsson's prediction reads at the next one.
+
+    ``last``: the last accepted step's ``(h, err)`` (h 0: none yet); ``predictive``: Gustafsson's
+    predictive controller, the smaller of its h and the quotient's; ``rejected_last``: the attempt
+    before was rejected (h does not grow then); ``keep``: the band of ``h_new / h`` within which h
+    stays (and with it the factorisations) where the Jacobian is kept (``jac_kept``).
+    """
+    h_acc, err_acc = last
+    change = xp.minimum(MAX_FACTOR, xp.maximum(MIN_FACTOR, quot))
+
+    def gustafsson():
+        predicted = SAFETY * (h / h_acc) * (err_acc / xp.maximum(err, ERROR_FLOOR) ** 2) ** (1.0 / (s + 1))
+        return xp.minimum(change, xp.minimum(MAX_FACTOR, xp.maximum(MIN_FACTOR, predicted)))
+
+    change = xp.cond(xp.and_(predictive, h_acc > 0), gustafsson, lambda: change)
+    new_h = xp.where(rejected_last, h * xp.minimum(1.0, change), h * change)
+    quotient = new_h / h
+    banded = xp.and_(xp.and_(keep[0] <= quotient, quotient <= keep[1]), jac_kept)
+    return xp.where(banded, h, new_h), (h, xp.maximum(err, ACCEPTED_ERROR_FLOOR))
+
+
+# ---- the error estimate's norm ------------------------------------------------------------------
+def index_weights(xp, h, n: int, exponents):
+    """``h^(k-1)`` for each component (``exponents``: each algebraic variable's k - 1), 1 for the n states."""
+    return xp.concat([xp.ones(n), xp.powers(h, exponents)])
+
+
+def error_scale(atol, rtol, u_ref, weights):
+    """The error's unit in each component, ``(atol + rtol |u|) / h^(k-1)`` (``u_ref``: |u|)."""
+    return (atol + rtol * u_ref) / weights
+
+
+def error_rhs(xp, quadrature, gamma0, f0, zeros):
+    """The right-hand side of the estimate's system, ``[quadrature / gamma0 + f0; 0]`` (the constraint
+    rows carry no local error: each step's Newton enforces g at its stages)."""
+    return xp.concat([quadrature / gamma0 + f0, zeros])
+
+
+def error_norm(xp, err, scale, first, refiltered):
+    """RADAU5's scaled norm of the estimate ``err``; at a ``first`` (or after a rejected) step where it
+    is 1 or more, that of the estimate filtered once more (``refiltered()``, Hairer-Wanner)."""
+    norm = xp.rms(err / scale)
+    again = xp.and_(first, xp.any(norm >= 1))
+    return xp.cond(again, lambda: xp.rms(refiltered() / scale), lambda: norm)
+
+
+def finite_or_inf(xp, value):
+    """``value``, or inf where it is NaN or infinite (a norm: never negative)."""
+    return xp.where(value < math.inf, value, math.inf)
+
+
+# ---- Newton's tests -----------------------------------------------------------------------------
+def start_rate(xp, eta, eps):
+    """RADAU5's start: the last step's contraction rate predicts the first iteration's."""
+    return xp.maximum(eta, eps) ** START_RATE_POWER
+
+
+def contraction(xp, norm, previous):
+    """The contraction ``theta`` of the last increment against the one before."""
+    return norm / xp.maximum(previous, TINY_NORM)
+
+
+def diverging(theta):
+    """Whether Newton diverges at contraction ``theta``."""
+    return theta >= DIVERGENCE_THETA
+
+
+def rate(theta):
+    """The rate ``eta = theta / (1 - theta)`` that bounds the error left by the increments to come."""
+    return theta / (1 - theta)
+
+
+def converged(eta, norm, tol):
+    """Whether the predicted error ``eta |dW|`` is within Newton's tolerance."""
+    return eta * norm <= tol
+
+
+def too_slow(eta, norm, theta, left, tol):
+    """Whether the increment predicted after the ``left`` iterations still exceeds the tolerance (RADAU5)."""
+    return eta * norm * theta**left > tol
+
+
+def sign_flip(before, after):
+    """Whether the sign of the algebraic variables' iteration matrix's determinant changed from
+    ``before`` to ``after`` (so it passed through zero, where z is not determined)."""
+    return before * after < 0
+
+
+def jacobian_kept(xp, theta, reuse_theta):
+    """Whether the next step keeps the Jacobian: Newton contracted at most at ``reuse_theta``."""
+    return xp.not_(theta > reuse_theta)
