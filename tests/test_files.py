@@ -852,7 +852,7 @@ def test_a_pinn_solve_whose_outputs_would_not_fit_is_refused_before_training(mon
 @pytest.mark.parametrize("argument", [3, None, {"path": "x.npz"}, b"x.npz"], ids=["int", "None", "dict", "bytes"])
 def test_a_loader_given_no_path_names_the_argument_and_what_it_takes(argument):
     """Path(3) or Path(None) raised a bare TypeError that named neither the loader nor the argument."""
-    from daemodel.backends.pinn.surrogate import Surrogate
+    from daemodel.solving.surrogates import Surrogate
 
     model = PENDULUM.model()
     got = r" path \(str or pathlib\.Path\); got " + re.escape(repr(argument)) + rf" \({type(argument).__name__}\)$"

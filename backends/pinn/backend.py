@@ -30,7 +30,7 @@ from daemodel.errors import (
     TrainingError,
     UncertifiedWarning,
 )
-from daemodel.executors import check_executor
+from daemodel.executors import check_executor, refuse_engine
 from daemodel.files import writable_file
 
 
@@ -50,12 +50,15 @@ class PINNOptions:
         Known states at the start of every segment, from a classical solve on a grid that
         contains the segment boundaries or an earlier sweep: an array (segments, n) or
         (B, segments, n) in state order, or a Solution.  The segments then train
-        independently from them, as tasks of ``engine``, instead of each from the previous
+        independently from them, as tasks of ``executor``, instead of each from the previous
         one's prediction.
-    engine : {"local", "ray"}
+    executor : {"local", "ray"}
         Where independently trained segments run: one after another in this process (the
         default; no worker processes), or one Ray task each, in parallel (``daemodel[ray]``;
         needs ``segment_starts``, on CPU).  As in :func:`daemodel.ensemble`.
+    engine : None
+        The old spelling of ``executor`` (``engine=`` names radau's casadi or torch engine):
+        any value is an :class:`InvalidOptionError` saying so, for one release.
     workers : int, optional
         Ray only, when this call starts Ray: the CPUs of the local cluster (default: all).
     address : str, optional
@@ -92,7 +95,8 @@ class PINNOptions:
     stages: int | None = None
     h: float | None = None
     segment_starts: object = None
-    engine: str = "local"
+    executor: str = "local"
+    engine: object = None
     workers: int | None = None
     address: str | None = None
     threads: int | None = None
@@ -110,10 +114,11 @@ class PINNOptions:
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         check_threads(self.threads)
-        check_executor(self.engine, self.workers, self.address, self.config.device)
-        if self.engine == "ray" and self.segment_starts is None:
+        refuse_engine("method='pinn'", {} if self.engine is None else {"engine": self.engine})
+        check_executor(self.executor, self.workers, self.address, self.config.device)
+        if self.executor == "ray" and self.segment_starts is None:
             raise InvalidOptionError(
-                "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
+                "executor='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
             )
         set_number(self, "estimate_bound")
@@ -161,7 +166,7 @@ class PINNBackend(AbstractBackend):
     def _solve(self, compiled, t_span, start, options: PINNOptions, warm_up: float = 0.0):
         from daemodel.backends.pinn.certificate import certify
         from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, segment_grid, train_segments
-        from daemodel.backends.pinn.surrogate import Surrogate
+        from daemodel.backends.pinn.surrogate import SurrogateNetworks
 
         config = options.config
         torch_device(config.device)
@@ -199,14 +204,14 @@ class PINNBackend(AbstractBackend):
                     start.p,
                     config,
                     bar,
-                    options.engine,
+                    options.executor,
                     options.workers,
                     options.address,
                 )
             finally:
                 bar.close()
             mode = "parallel"
-        surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
+        surrogate = SurrogateNetworks(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
         trained = time.perf_counter()
         values, predictions = surrogate.trajectory(start, stages=True)
         evaluated = time.perf_counter()
@@ -250,9 +255,9 @@ class PINNBackend(AbstractBackend):
             )
         if options.save is not None:
             surrogate.save(options.save)
-        if mode == "parallel" and options.engine == "ray":
+        if mode == "parallel" and options.executor == "ray":
             summary["peak_memory_mb"] = memory
-        settings = {**dataclasses.asdict(config), "engine": options.engine}
+        settings = {**dataclasses.asdict(config), "executor": options.executor}
         check_local_error_bound(compiled, grid, certificate, start.batched)  # where radau raises, so does the PINN
         status = certified_status(compiled, config, grid, stats, certificate, start.batched)
         if status != "success":

@@ -476,7 +476,8 @@ def _onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
     SwitchError
         No state near a sample's satisfies them after the switch.
     """
-    from daemodel.compiling.initial_states import constraint_checks as _checks, project_states, state_violations
+    from daemodel.compiling.initial_states import constraint_checks as _checks
+    from daemodel.compiling.initial_states import project_states, state_violations
 
     hidden = _checks(model).hidden
     if not hidden or not state_violations(model, Y, P)[2].any():
