@@ -16,7 +16,7 @@ from daemodel.backends.base import (
     make_solution,
 )
 from daemodel.backends.checks import check_output_memory, check_threads, set_number
-from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps, output_times
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.segments import MAX_INDEX
 from daemodel.backends.progress import show_progress
@@ -46,6 +46,15 @@ class PINNOptions:
         Radau IIA stages and the segment length, as for the fixed-step methods: given here, they
         replace ``config.stages`` and ``config.h`` (``method="pinn", stages=3, h=0.1`` is
         ``config=PINNConfig(stages=3, h=0.1)``).
+    t_eval : array, optional
+        Output times instead of the segment grid, within the interval: the values there are the
+        PINN's dense output (:meth:`Solution.at`), on each segment the collocation polynomial
+        through the segment's start and its network's stage values, degree ``stages``: the
+        polynomial radau's ``t_eval`` evaluates on its own stages, so between the segment ends the
+        values carry the method's accuracy, and at a segment end they are the grid solution's.
+        Checked as radau's (:func:`~daemodel.backends.grids.output_times`: times outside the
+        interval, unsorted or not finite are a :class:`~daemodel.errors.TimeSpanError`) before
+        any training.  The certificate and the stats stay on the segment grid.
     segment_starts : Solution or array, optional
         Known states at the start of every segment, from a classical solve on a grid that
         contains the segment boundaries or an earlier sweep: an array (segments, n) or
@@ -94,6 +103,7 @@ class PINNOptions:
     config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
     stages: int | None = None
     h: float | None = None
+    t_eval: object = None
     segment_starts: object = None
     executor: str = "local"
     engine: object = None
@@ -172,7 +182,10 @@ class PINNBackend(AbstractBackend):
         torch_device(config.device)
         grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment
         segments = len(grid) - 1
-        check_output_memory(self.name, compiled, start.size, len(grid))
+        outputs = output_times(options.t_eval, t_span, grid)  # (checked before any training)
+        check_output_memory(
+            self.name, compiled, start.size, len(grid) + (len(outputs) if options.t_eval is not None else 0)
+        )
         # Shared networks take the parameters that differ between samples as inputs; independent
         # ones (one set per sample) hold each sample's values as constants.
         independent = copies_for(config, start.size) > 1
@@ -268,19 +281,23 @@ class PINNBackend(AbstractBackend):
         if estimated != "success":  # radau at the same h and stages is flagged: so is the PINN, certified or not
             warnings.warn(f"pinn: {estimated}", LocalErrorWarning, stacklevel=caller_level())
             status = estimated if status == "success" else f"{status}; {estimated.removeprefix('flagged: ')}"
+        dense = surrogate.polynomials(values, predictions)
+        times = grid
+        if options.t_eval is not None:  # the dense output at the user's times (as radau's t_eval)
+            times, values = outputs, dense(outputs)
         return make_solution(
             self,
             compiled,
             start,
             options,
-            grid,
+            times,
             values,
             done - trained,  # evaluating the trained networks and certifying their answer
             summary,
             settings=settings,
             status=status,
             setup_time=trained - began + warm_up,  # training, and torch's first use in the process
-            dense=surrogate.polynomials(values, predictions),
+            dense=dense,
         )
 
 

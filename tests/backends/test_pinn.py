@@ -272,6 +272,59 @@ def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
     np.testing.assert_allclose(sol.at(sol.t)["y5"], sol["y5"], rtol=0, atol=1e-14)
 
 
+def test_t_eval_gives_the_dense_output_at_the_pinns_own_accuracy():
+    """dm.solve(method="pinn", t_eval=...) returns the PINN's dense output at those times (each
+    segment's collocation polynomial through its network's stages, as radau's t_eval reads its own):
+    between the segment ends its error against the exact solution is the PINN's own, within 3x
+    radau's at the same h and stages (the certificate's bound: the distance to radau within radau's
+    error), and at the segment ends it is the grid solution's values."""
+    c = HESSENBERG.model().compile()
+    inside = (np.arange(20) + 0.37) * 0.05  # one time inside every segment of h = 0.05
+    t_eval = np.sort(np.concatenate([inside, [0.0, 0.25, 0.5, 1.0]]))
+    on_grid = dm.solve(c, (0.0, 1.0), method="pinn")
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", t_eval=t_eval)
+    radau = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05, t_eval=t_eval)
+    assert sol.status == "success" and sol.method == "pinn"
+    np.testing.assert_array_equal(sol.t, t_eval)
+    exact = EXACT(t_eval)
+    between = np.isin(t_eval, inside)
+    for name in c.state_names + c.algebraic_names:
+        error = np.abs(sol[name] - exact[name])[between].max()
+        radau_error = np.abs(radau[name] - exact[name])[between].max()
+        assert error <= 3 * radau_error and error <= 1e-6, (name, error, radau_error)
+        # the same networks (the same seed) as the solve on the grid: its dense output, its grid values
+        np.testing.assert_allclose(sol[name], on_grid.at(t_eval)[name], rtol=0, atol=1e-13)
+        ends = np.searchsorted(on_grid.t, t_eval[~between])
+        np.testing.assert_allclose(sol[name][~between], on_grid[name][ends], rtol=0, atol=1e-13)
+    # the certificate and the stats stay on the segment grid
+    assert sol.stats["segments"] == 20 and np.shape(sol.stats["certificate"]["segment_distance"]) == (1, 20)
+
+
+@pytest.mark.parametrize(
+    ("t_eval", "match"),
+    [
+        ([0.5, 1.2], r"t_eval runs from 0\.5 to 1\.2, outside t_span = \(0, 1\)"),
+        ([0.5, 0.2], "t_eval must be strictly increasing"),
+        ([0.1, float("nan")], "t_eval must hold finite times only"),
+        ("abc", r"t_eval must be a sequence of real numbers; got 'abc' \(dtype <U3\)"),
+        ([], "t_eval must hold at least one finite time"),
+    ],
+)
+def test_t_eval_errors_are_radaus_and_come_before_training(t_eval, match, monkeypatch):
+    """The PINN checks t_eval as radau does (the shared output_times), before it trains anything."""
+    from daemodel.backends.pinn import segments
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained before t_eval was checked")
+
+    monkeypatch.setattr(segments, "train_segments", no_training)
+    c = HESSENBERG.model().compile()
+    with pytest.raises(dm.errors.TimeSpanError, match=match):
+        dm.solve(c, (0.0, 1.0), method="pinn", t_eval=t_eval)
+    with pytest.raises(dm.errors.TimeSpanError, match=match):
+        dm.solve(c, (0.0, 1.0), method="radau", h=0.05, t_eval=t_eval)
+
+
 def test_fast_mode_on_the_pendulum_matches_radau_per_variable():
     c = PENDULUM.model().compile()
     sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(activation="sin"))
