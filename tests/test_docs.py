@@ -103,7 +103,7 @@ def python_blocks(page: Path) -> list[tuple[int, str]]:
 )
 def test_python_blocks_run(page, tmp_path, monkeypatch, request):
     blocks = python_blocks(page)
-    if any(re.search(r'^[^#\n]*engine="ray"', source, re.M) for _, source in blocks):
+    if any(re.search(r'^[^#\n]*(?:engine|executor)="ray"', source, re.M) for _, source in blocks):
         request.getfixturevalue("ray_cluster")  # the tests' local cluster of 2 CPUs (skipped without Ray)
     import matplotlib
     import torch
