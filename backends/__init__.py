@@ -14,8 +14,8 @@ from daemodel.errors import UnknownMethodError
 # method name -> "module:class"
 REGISTRY: dict[str, str] = {
     "radau": "daemodel.backends.radau.backend:RadauBackend",
-    "casadi-collocation": "daemodel.backends.casadi:CollocationBackend",
-    "casadi-idas": "daemodel.backends.casadi:IDASBackend",
+    "casadi-collocation": "daemodel.backends.casadi.collocation:CollocationBackend",
+    "casadi-idas": "daemodel.backends.casadi.idas:IDASBackend",
     "reference": "daemodel.backends.reference:ReferenceBackend",
     "pinn": "daemodel.backends.pinn.backend:PINNBackend",
 }

@@ -171,7 +171,7 @@ def segment_training() -> dict:
         ray.init(num_cpus=workers, log_to_driver=False, include_dashboard=False)
 
         def call():
-            return dm.solve(m, span, method="pinn", segment_starts=radau, engine="ray")
+            return dm.solve(m, span, method="pinn", segment_starts=radau, executor="ray")
 
         first, _ = timed(call)
         out[f"from radau starts, ray, {workers} worker{'s' if workers > 1 else ''}"] = entry(*timed(call), first)

@@ -1,10 +1,10 @@
 """Issue 15's paths on CUDA, for a session lent a GPU machine (results: gpu_issue15.json).
 
-* Hessenberg, 20 segments trained independently from radau's start values (the local engine),
+* Hessenberg, 20 segments trained independently from radau's start values (the local executor),
   on the CPU and on CUDA (warm: the second call of each);
 * ``Surrogate.train(starts="radau")``, 64 states from a +-2 % box over [0, 0.2], on the CPU and
   on CUDA, with the held-out max error on 500 states from the +-1 % box;
-* ``engine="ray"`` with ``device="cuda"``: the error it raises;
+* ``executor="ray"`` with ``device="cuda"``: the error it raises;
 * 10^5 pendulum states by radau on CUDA: one call against ensembles of chunks of 10^4 and 5*10^4.
 
     PYTHONPATH=... OUT=... python benchmarks/gpu_issue15.py
@@ -53,7 +53,9 @@ def main() -> None:
             "max_error_vs_radau": largest(sol, radau, names),
         }
     try:
-        dm.solve(c, (0.0, 1.0), method="pinn", segment_starts=radau, engine="ray", config=dm.PINNConfig(device="cuda"))
+        dm.solve(
+            c, (0.0, 1.0), method="pinn", segment_starts=radau, executor="ray", config=dm.PINNConfig(device="cuda")
+        )
     except InvalidOptionError as error:
         out["ray with cuda"] = str(error)
 

@@ -17,7 +17,7 @@ import traceback
 
 import numpy as np
 import torch
-from daemodel.backends.pinn import train as T
+from daemodel.backends.pinn import first_order
 
 import daemodel as dm
 from daemodel.problems import HESSENBERG, PENDULUM
@@ -25,7 +25,7 @@ from daemodel.problems import HESSENBERG, PENDULUM
 OUT = os.environ.get("OUT", "/tmp")
 res = {"torch": torch.__version__, "gpu": torch.cuda.get_device_name(0)}
 PROBLEMS = {"hessenberg": HESSENBERG, "pendulum": PENDULUM}
-graphed = T.SegmentTrainer._adam_graphed
+graphed = first_order.adam_graphed
 
 
 def save():
@@ -33,7 +33,7 @@ def save():
 
 
 def paper(name, iters, device, mode):
-    T.SegmentTrainer._adam_graphed = graphed if mode == "graph" else T.SegmentTrainer._adam_eager
+    first_order.adam_graphed = graphed if mode == "graph" else first_order.adam_eager
     c = PROBLEMS[name].model().compile()
     cfg = dm.PINNConfig.paper(name, iterations=iters, device=device)
     t0 = time.perf_counter()
@@ -66,7 +66,7 @@ for name in PROBLEMS:
     except Exception as e:
         res[f"paper/{name}/cpu/eager/300"] = repr(e)[:2000]
     save()
-T.SegmentTrainer._adam_graphed = graphed
+first_order.adam_graphed = graphed
 
 # fast LM on cuda against cpu
 for name, prob in PROBLEMS.items():

@@ -6,7 +6,7 @@ s = 3, h = 0.05 on [0, 1]:
 * ``radau``: the classical Newton solve (the PINN's accuracy ceiling);
 * ``pinn fast``: ``dm.PINNConfig(activation=...)``, Levenberg-Marquardt to tol = 1e-12, warm start;
 * ``pinn from radau starts``: the same, every segment trained independently from the radau
-  start values, one after another in this process (the local engine; Ray's parallel engine is
+  start values, one after another in this process (the local executor; Ray's parallel executor is
   timed in ``benchmarks/ensemble.py``);
 * ``pinn paper``: ``dm.PINNConfig.paper(problem)`` (Adam, 5 x 100 networks, 100,000 iterations
   per segment), run for ``--paper-iterations`` iterations per segment; its time is
@@ -106,9 +106,8 @@ def problem_rows(name, repeats, paper_iterations) -> dict:
 def surrogate_rows(name: str, quick: bool, repeats: int) -> dict:
     """Train a surrogate on a box of initial states around the model's, evaluate new states
     drawn from the same distribution (uniform in the box, projected on the constraints)."""
-    from daemodel.backends.pinn.surrogate import SURROGATE_CONFIG
-
     from daemodel.compiling.initial_states import project_states
+    from daemodel.solving.surrogates import SURROGATE_CONFIG
 
     compiled = PROBLEMS[name][0].model().compile()
     config = SURROGATE_CONFIG.replace(activation=SURROGATE_ACTIVATION[name])

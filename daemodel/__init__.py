@@ -38,7 +38,7 @@ __version__ = "0.1.0"
 def __getattr__(name):
     # Surrogate needs torch; load it on first use so that importing daemodel stays light.
     if name == "Surrogate":
-        from daemodel.backends.pinn.surrogate import Surrogate
+        from daemodel.solving.surrogates import Surrogate
 
         return Surrogate
     raise AttributeError(f"module 'daemodel' has no attribute {name!r}")

@@ -72,7 +72,7 @@ def run_tasks(
     shared,
     tasks: list,
     *,
-    engine: str,
+    executor: str,
     workers: int | None = None,
     address: str | None = None,
     label: str,
@@ -95,7 +95,7 @@ def run_tasks(
     TimeLimitError
         A Ray task ran longer than ``task_timeout`` seconds (None: no limit).
     """
-    if engine == "local":
+    if executor == "local":
         results = []
         for i, task in enumerate(tasks):
             results.append(function(shared, *task))

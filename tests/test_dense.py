@@ -150,7 +150,7 @@ def test_casadi_collocation_finds_its_polynomials_again(monkeypatch):
     """casadi-collocation's stages, solved again from each step's ends, give radau's polynomials (the
     same equations at the same h) to the root finders' tolerance; a step whose stages do not end at its
     own end value is named."""
-    from daemodel.backends import casadi as backend
+    from daemodel.backends.casadi import collocation as backend
 
     c = HESSENBERG.model().compile()
     inside = (np.arange(20) + 0.37) * 0.05

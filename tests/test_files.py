@@ -624,10 +624,10 @@ def test_a_ray_cluster_daemodel_starts_listens_on_loopback_and_stops_a_task_past
         def sleepy(shared, seconds):
             time.sleep(seconds)
             return seconds
-        print("quick:", run_tasks(sleepy, None, [(0.1,)], engine="ray", label="nap", task_timeout=30))
+        print("quick:", run_tasks(sleepy, None, [(0.1,)], executor="ray", label="nap", task_timeout=30))
         began = time.perf_counter()
         try:
-            run_tasks(sleepy, None, [(60,)], engine="ray", label="nap", task_timeout=2)
+            run_tasks(sleepy, None, [(60,)], executor="ray", label="nap", task_timeout=2)
         except TimeLimitError as error:
             print("stopped after %.0f s:" % (time.perf_counter() - began), error)
         """,
@@ -852,7 +852,7 @@ def test_a_pinn_solve_whose_outputs_would_not_fit_is_refused_before_training(mon
 @pytest.mark.parametrize("argument", [3, None, {"path": "x.npz"}, b"x.npz"], ids=["int", "None", "dict", "bytes"])
 def test_a_loader_given_no_path_names_the_argument_and_what_it_takes(argument):
     """Path(3) or Path(None) raised a bare TypeError that named neither the loader nor the argument."""
-    from daemodel.backends.pinn.surrogate import Surrogate
+    from daemodel.solving.surrogates import Surrogate
 
     model = PENDULUM.model()
     got = r" path \(str or pathlib\.Path\); got " + re.escape(repr(argument)) + rf" \({type(argument).__name__}\)$"

@@ -16,7 +16,7 @@ from daemodel.backends.base import (
     make_solution,
 )
 from daemodel.backends.checks import check_output_memory, check_threads, set_number
-from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps, output_times
 from daemodel.backends.pinn.config import PINNConfig
 from daemodel.backends.pinn.segments import MAX_INDEX
 from daemodel.backends.progress import show_progress
@@ -30,7 +30,7 @@ from daemodel.errors import (
     TrainingError,
     UncertifiedWarning,
 )
-from daemodel.executors import check_executor
+from daemodel.executors import check_executor, refuse_engine
 from daemodel.files import writable_file
 
 
@@ -46,16 +46,28 @@ class PINNOptions:
         Radau IIA stages and the segment length, as for the fixed-step methods: given here, they
         replace ``config.stages`` and ``config.h`` (``method="pinn", stages=3, h=0.1`` is
         ``config=PINNConfig(stages=3, h=0.1)``).
+    t_eval : array, optional
+        Output times instead of the segment grid, within the interval: the values there are the
+        PINN's dense output (:meth:`Solution.at`), on each segment the collocation polynomial
+        through the segment's start and its network's stage values, degree ``stages``: the
+        polynomial radau's ``t_eval`` evaluates on its own stages, so between the segment ends the
+        values carry the method's accuracy, and at a segment end they are the grid solution's.
+        Checked as radau's (:func:`~daemodel.backends.grids.output_times`: times outside the
+        interval, unsorted or not finite are a :class:`~daemodel.errors.TimeSpanError`) before
+        any training.  The certificate and the stats stay on the segment grid.
     segment_starts : Solution or array, optional
         Known states at the start of every segment, from a classical solve on a grid that
         contains the segment boundaries or an earlier sweep: an array (segments, n) or
         (B, segments, n) in state order, or a Solution.  The segments then train
-        independently from them, as tasks of ``engine``, instead of each from the previous
+        independently from them, as tasks of ``executor``, instead of each from the previous
         one's prediction.
-    engine : {"local", "ray"}
+    executor : {"local", "ray"}
         Where independently trained segments run: one after another in this process (the
         default; no worker processes), or one Ray task each, in parallel (``daemodel[ray]``;
         needs ``segment_starts``, on CPU).  As in :func:`daemodel.ensemble`.
+    engine : None
+        The old spelling of ``executor`` (``engine=`` names radau's casadi or torch engine):
+        any value is an :class:`InvalidOptionError` saying so, for one release.
     workers : int, optional
         Ray only, when this call starts Ray: the CPUs of the local cluster (default: all).
     address : str, optional
@@ -91,8 +103,10 @@ class PINNOptions:
     config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
     stages: int | None = None
     h: float | None = None
+    t_eval: object = None
     segment_starts: object = None
-    engine: str = "local"
+    executor: str = "local"
+    engine: object = None
     workers: int | None = None
     address: str | None = None
     threads: int | None = None
@@ -110,10 +124,11 @@ class PINNOptions:
         if given:  # PINNConfig checks them, with its own messages
             object.__setattr__(self, "config", dataclasses.replace(self.config, **given))
         check_threads(self.threads)
-        check_executor(self.engine, self.workers, self.address, self.config.device)
-        if self.engine == "ray" and self.segment_starts is None:
+        refuse_engine("method='pinn'", {} if self.engine is None else {"engine": self.engine})
+        check_executor(self.executor, self.workers, self.address, self.config.device)
+        if self.executor == "ray" and self.segment_starts is None:
             raise InvalidOptionError(
-                "engine='ray' trains segments in parallel, which needs segment_starts (known start values); "
+                "executor='ray' trains segments in parallel, which needs segment_starts (known start values); "
                 "without them each segment waits for the previous one's prediction"
             )
         set_number(self, "estimate_bound")
@@ -161,13 +176,16 @@ class PINNBackend(AbstractBackend):
     def _solve(self, compiled, t_span, start, options: PINNOptions, warm_up: float = 0.0):
         from daemodel.backends.pinn.certificate import certify
         from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, segment_grid, train_segments
-        from daemodel.backends.pinn.surrogate import Surrogate
+        from daemodel.backends.pinn.surrogate import SurrogateNetworks
 
         config = options.config
         torch_device(config.device)
         grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment
         segments = len(grid) - 1
-        check_output_memory(self.name, compiled, start.size, len(grid))
+        outputs = output_times(options.t_eval, t_span, grid)  # (checked before any training)
+        check_output_memory(
+            self.name, compiled, start.size, len(grid) + (len(outputs) if options.t_eval is not None else 0)
+        )
         # Shared networks take the parameters that differ between samples as inputs; independent
         # ones (one set per sample) hold each sample's values as constants.
         independent = copies_for(config, start.size) > 1
@@ -199,14 +217,14 @@ class PINNBackend(AbstractBackend):
                     start.p,
                     config,
                     bar,
-                    options.engine,
+                    options.executor,
                     options.workers,
                     options.address,
                 )
             finally:
                 bar.close()
             mode = "parallel"
-        surrogate = Surrogate(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
+        surrogate = SurrogateNetworks(compiled, config, grid, networks, inputs, stats)  # evaluates and saves them
         trained = time.perf_counter()
         values, predictions = surrogate.trajectory(start, stages=True)
         evaluated = time.perf_counter()
@@ -250,9 +268,9 @@ class PINNBackend(AbstractBackend):
             )
         if options.save is not None:
             surrogate.save(options.save)
-        if mode == "parallel" and options.engine == "ray":
+        if mode == "parallel" and options.executor == "ray":
             summary["peak_memory_mb"] = memory
-        settings = {**dataclasses.asdict(config), "engine": options.engine}
+        settings = {**dataclasses.asdict(config), "executor": options.executor}
         check_local_error_bound(compiled, grid, certificate, start.batched)  # where radau raises, so does the PINN
         status = certified_status(compiled, config, grid, stats, certificate, start.batched)
         if status != "success":
@@ -263,19 +281,23 @@ class PINNBackend(AbstractBackend):
         if estimated != "success":  # radau at the same h and stages is flagged: so is the PINN, certified or not
             warnings.warn(f"pinn: {estimated}", LocalErrorWarning, stacklevel=caller_level())
             status = estimated if status == "success" else f"{status}; {estimated.removeprefix('flagged: ')}"
+        dense = surrogate.polynomials(values, predictions)
+        times = grid
+        if options.t_eval is not None:  # the dense output at the user's times (as radau's t_eval)
+            times, values = outputs, dense(outputs)
         return make_solution(
             self,
             compiled,
             start,
             options,
-            grid,
+            times,
             values,
             done - trained,  # evaluating the trained networks and certifying their answer
             summary,
             settings=settings,
             status=status,
             setup_time=trained - began + warm_up,  # training, and torch's first use in the process
-            dense=surrogate.polynomials(values, predictions),
+            dense=dense,
         )
 
 

@@ -5,7 +5,7 @@ The joint problem.  One network per segment of the grid (:mod:`.segments`), chai
 networks take the previous segment's predicted end value as their input and as their ``y_n``, so
 continuity holds exactly, by construction (the rollout the certificate checks), not as a penalty.
 The parameters to estimate are a torch leaf ``q`` in a space that keeps their bounds
-(:class:`Transform`).  The residual is the Radau stage residual of every segment
+(:class:`~.inverse_inputs.Transform`).  The residual is the Radau stage residual of every segment
 (:func:`daemodel.collocation.stage_residual`, the rows Newton zeroes, with ``p`` the trainable
 parameters) and the misfit is each datum minus the segment's collocation polynomial through its
 start and its predicted stages (:func:`daemodel.collocation.lagrange_matrix`: what the Solution's
@@ -55,8 +55,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from daemodel.backends.pinn.config import DEFAULT_TOL
+from daemodel.backends.pinn.inverse_inputs import Transform, check_constraints, check_inputs
 
-from daemodel.errors import FittedConstraintError, InvalidOptionError, ShapeError, TimeSpanError, TrainingError
+from daemodel.errors import InvalidOptionError, ShapeError, TrainingError
 
 # Gauss-Newton iterations (accepted or rejected steps) when ``max_iterations`` is not given: the
 # problems measured converge in 5-15.
@@ -122,115 +123,6 @@ class InverseFit:
     history: tuple
 
 
-@dataclass(frozen=True)
-class Transform:
-    """Each fitted parameter ``p = low + (high - low) sigmoid(q)`` (two finite bounds), ``low +
-    exp(q)`` or ``high - exp(q)`` (one), or ``q`` (none): any q keeps p inside its bounds."""
-
-    low: np.ndarray
-    high: np.ndarray
-
-    def to_parameters(self, q):
-        finite_low = torch.as_tensor(np.isfinite(self.low))
-        finite_high = torch.as_tensor(np.isfinite(self.high))
-        # infinite bounds replaced by 0 in the branches that do not use them: torch.where's
-        # unused branch still takes part in the gradient (0 * inf is NaN)
-        low = torch.as_tensor(np.where(np.isfinite(self.low), self.low, 0.0), dtype=q.dtype)
-        high = torch.as_tensor(np.where(np.isfinite(self.high), self.high, 0.0), dtype=q.dtype)
-        return torch.where(
-            finite_low & finite_high,
-            low + (high - low) * torch.sigmoid(q),
-            torch.where(finite_low, low + torch.exp(q), torch.where(finite_high, high - torch.exp(q), q)),
-        )
-
-    def to_q(self, p: np.ndarray) -> np.ndarray:
-        low, high, p = self.low, self.high, np.asarray(p, dtype=float)
-        q = p.copy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            both = np.isfinite(low) & np.isfinite(high)
-            q = np.where(both, np.log((p - low) / (high - p)), q)
-            q = np.where(np.isfinite(low) & ~np.isfinite(high), np.log(p - low), q)
-            q = np.where(~np.isfinite(low) & np.isfinite(high), np.log(high - p), q)
-        return q
-
-
-def _check_inputs(compiled, t_span, times, data, names, start, bounds):
-    """Checked arrays: times (T,), the output columns (indices into states then algebraics), the
-    data (T, outputs) with NaN where missing, the fitted parameters' indices, start, low, high."""
-    variables = (*compiled.state_names, *compiled.algebraic_names)
-    t0, t1 = (float(t) for t in t_span)
-    times = np.asarray(times, dtype=float)
-    if times.ndim != 1 or times.size == 0:
-        raise ShapeError(f"times must be a 1-d array of at least one time; got shape {times.shape}")
-    if not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
-        raise TimeSpanError("times must be finite and sorted ascending")
-    if times[0] < t0 or times[-1] > t1:
-        raise TimeSpanError(
-            f"times run from {times[0]:g} to {times[-1]:g}, outside t_span ({t0:g}, {t1:g}): fit over a t_span "
-            "that holds every data time"
-        )
-    if not isinstance(data, dict) or not data:
-        raise ShapeError("data must be a dict output name -> array of values at times (NaN where missing)")
-    unknown = [name for name in data if name not in variables]
-    if unknown:
-        raise ShapeError(
-            f"data names {', '.join(map(repr, unknown))}, not a variable of model '{compiled.name}' "
-            f"(its variables: {', '.join(variables)})"
-        )
-    columns = [variables.index(name) for name in data]
-    values = []
-    for name in data:
-        column = np.asarray(data[name], dtype=float)
-        if column.shape != times.shape:
-            raise ShapeError(f"data['{name}'] has shape {column.shape}; times has {times.shape}: one value per time")
-        if np.isinf(column).any():
-            raise ShapeError(f"data['{name}'] holds an infinite value; mark a missing one with NaN")
-        values.append(column)
-    values = np.stack(values, axis=1)
-    if not np.isfinite(values).any():
-        raise ShapeError("data holds no finite value (every entry is NaN): nothing to fit")
-    names = tuple(names)
-    missing = [name for name in names if name not in compiled.parameter_names]
-    if missing or not names or len(set(names)) != len(names):
-        raise ShapeError(
-            f"names must be distinct parameters of model '{compiled.name}' ({', '.join(compiled.parameter_names)}); "
-            f"got {names}"
-        )
-    k = len(names)
-    start = np.asarray(start, dtype=float).reshape(-1)
-    low, high = (np.broadcast_to(np.asarray(b, dtype=float), (k,)).copy() for b in bounds)
-    if start.shape != (k,) or not np.all(np.isfinite(start)):
-        raise ShapeError(f"start must hold {k} finite values, one per name in {names}; got {start}")
-    outside = [i for i in range(k) if not low[i] < start[i] < high[i]]
-    if outside:
-        i = outside[0]
-        raise InvalidOptionError(
-            f"the start value of '{names[i]}', {start[i]:g}, is not strictly inside its bounds ({low[i]:g}, "
-            f"{high[i]:g}): the fit moves each parameter inside its bounds only; start inside them"
-        )
-    indices = np.array([compiled.parameter_names.index(name) for name in names])
-    return times, columns, values, indices, start, low, high
-
-
-def _check_constraints(compiled, names):
-    """Refuse a z-free constraint level (an index-2 constraint, or an index-3 one's position and
-    velocity levels) that depends on a fitted parameter: the given initial states satisfy it at
-    the start value only, so every other value would start inconsistently (the fit does not move
-    y0).  A constraint that holds z (index 1) is fine: z0 follows the parameters."""
-    from daemodel.compiling.init import hidden_constraints
-
-    fitted = {symbol for symbol in compiled.parameters if str(symbol) in names}
-    for _, label, expr in hidden_constraints(compiled.constraints):
-        used = sorted(str(s) for s in expr.free_symbols & fitted)
-        if used:
-            raise FittedConstraintError(
-                f"{label} involves the fitted parameter{'s' if len(used) > 1 else ''} {', '.join(map(repr, used))} "
-                "and no algebraic variable: the initial states satisfy it at the start value only, and the fit "
-                "does not move them; fit a model whose initial states follow the parameter (declare it in the "
-                "initial values), or fix the parameter"
-            )
-
-
 class _Problem:
     """The joint problem as functions of the networks' output biases and the transformed parameters."""
 
@@ -273,7 +165,7 @@ class _Problem:
     def at_parameters(self, q: torch.Tensor, z_guess: np.ndarray) -> None:
         """z0 at the parameters of ``q`` (the compiler's algebraic solve) and dz0/dq (implicit
         differentiation of its determining equations H(t0, y0, z0, p) = 0)."""
-        from daemodel.compiling.initial_states import _checks, algebraic_values
+        from daemodel.compiling.initial_states import algebraic_values, constraint_checks
 
         p = self.parameters(q).detach().numpy()[None]
         y0 = self.y0.numpy()
@@ -282,7 +174,7 @@ class _Problem:
             return
         t0 = float(self.grid[0])
         z0 = algebraic_values(self.compiled, t0, y0, p, np.asarray(z_guess, dtype=float).reshape(1, -1))
-        checks = _checks(self.compiled)
+        checks = constraint_checks(self.compiled)
         determining = [c.determining for c in self.compiled.constraints]
         Hp = self.compiled.numeric.batch_jacobian(determining, self.compiled.parameters)(t0, y0, z0, p)[0]
         Hz = checks.Hz(t0, y0, z0, p)[0]
@@ -456,11 +348,11 @@ def fit_inverse(
         raise InvalidOptionError(f"max_iterations must be a positive integer; got {max_iterations!r}")
     if compiled.index > MAX_INDEX:
         compiled = compiled.reduced(MAX_INDEX)
-    times, columns, values, indices, start, low, high = _check_inputs(
+    times, columns, values, indices, start, low, high = check_inputs(
         compiled, t_span, times, data, names, start, bounds
     )
     names = tuple(names)
-    _check_constraints(compiled, names)
+    check_constraints(compiled, names)
     tol = config.tol if config.tol is not None else DEFAULT_TOL
     transform = Transform(low=low, high=high)
     grid = fixed_grid(t_span, config.h)
@@ -700,7 +592,7 @@ def _solution(problem, state, grid, values, predictions, times, converged, why, 
         "final_max_residual": float(R.abs().max()),
         "certificate": certificate.summary(names),
     }
-    settings = {**dataclasses.asdict(config), "engine": "local"}
+    settings = {**dataclasses.asdict(config), "executor": "local"}
     return (
         make_solution(
             "pinn",

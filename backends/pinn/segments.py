@@ -1,6 +1,6 @@
 """The segments in time: one network per segment of the grid, trained one after another
 (each from its predecessor's prediction) or independently from known start values, as tasks of
-an engine.  Uses the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and
+an executor (local or Ray).  Uses the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and
 :mod:`.surrogate` do).
 """
 
@@ -299,7 +299,7 @@ def train_segments(compiled, config, grid, y, z, p, input_columns, progress: boo
 
 def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
     """Train segment k from the known inputs ``x`` (B, d) and algebraic values ``z`` (B, m): an
-    engine task, plain data in and out.  ``shared`` is (compiled, config, p)."""
+    executor task, plain data in and out.  ``shared`` is (compiled, config, p)."""
     compiled, config, p = shared
     dtype = getattr(torch, config.dtype)
     x, z, p = (torch.as_tensor(np.array(a), dtype=dtype, device=config.device) for a in (x, z, p))
@@ -312,9 +312,9 @@ def fit_one(shared: tuple, k: int, t: float, h: float, x, z) -> dict:
 
 
 def fit_parallel(
-    compiled, grid, starts, algebraics, p, config, progress: Progress, engine="local", workers=None, address=None
+    compiled, grid, starts, algebraics, p, config, progress: Progress, executor="local", workers=None, address=None
 ):
-    """Train every segment independently on known start values, as tasks of ``engine``
+    """Train every segment independently on known start values, as tasks of ``executor``
     (:func:`daemodel.executors.run_tasks`: one after another here, or in parallel on Ray).
 
     Parameters
@@ -327,7 +327,7 @@ def fit_parallel(
     Returns
     -------
     networks, stats, peak_memory_mb
-        The last: each Ray task's peak resident memory (empty for the local engine).
+        The last: each Ray task's peak resident memory (empty for the local executor).
     """
     from daemodel.executors import run_tasks
 
@@ -337,7 +337,7 @@ def fit_parallel(
         fit_one,
         (compiled, config, np.asarray(p)),
         tasks,
-        engine=engine,
+        executor=executor,
         workers=workers,
         address=address,
         label="pinn",

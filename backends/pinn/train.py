@@ -1,4 +1,5 @@
-"""Training one segment's networks: Levenberg-Marquardt, L-BFGS or Adam on the Radau loss.
+"""Training one segment's networks: Levenberg-Marquardt on the Radau loss (L-BFGS and Adam are
+:mod:`.first_order`'s; :meth:`SegmentTrainer.train` runs the configured one).
 
 Levenberg-Marquardt drives to zero the vector e that stacks every sample's Newton correction
 ``e_b = (dr_b/du_b)^+ r_b``: how far the network outputs u_b (stage and end values) of sample b
@@ -54,6 +55,7 @@ import time
 from dataclasses import dataclass
 
 import torch
+from daemodel.backends.pinn.first_order import adam, lbfgs
 from daemodel.backends.pinn.lm import (
     BLOCK_ORDER,
     HIDDEN_STEP_WEIGHT,
@@ -86,8 +88,6 @@ LM_MAX_DAMPING = 1e16
 NEWTON_REGION = 1e-2
 NEWTON_FINISH = 1e-6
 NEWTON_FINISH_STEPS = 3
-# L-BFGS runs in chunks of this many iterations between tolerance checks.
-LBFGS_CHUNK = 20
 # LM fits the Newton corrections of the outputs where a full Newton step on them cuts the
 # residual norm to at most this fraction (Newton converges from there); measured at the start of
 # a segment, it is 0.004-0.08 for the fast mode's networks (paper problems, chains of 3-8 rods,
@@ -95,12 +95,6 @@ LBFGS_CHUNK = 20
 NEWTON_CONTRACTION = 0.5
 # Entries of du/dtheta held at once; larger sample sets are processed in chunks.
 JACOBIAN_ENTRIES = 2**24
-# Progress is reported at most this often (seconds).
-REPORT_SECONDS = 0.2
-# Adam on a GPU (one CUDA graph per iteration): eager iterations before the capture, and
-# iterations between two reads of the loss terms.
-GRAPH_WARMUP = 3
-GRAPH_CHECK_EVERY = 100
 
 
 @dataclass(frozen=True)
@@ -240,10 +234,13 @@ class SegmentTrainer:
         start, self._start = self._start, None
         return start[1:] if start is not None and start[0] is segment else (None, None)
 
-    def _vector_of_raw(self, segment: Segment, raw):
+    def residual_vector(self, segment: Segment, raw):
+        """The residual vector r at the raw outputs ``raw`` (what the first-order optimizers square)."""
         return self.loss.vector(self.residuals(segment, raw), segment.x.shape[0])
 
-    def _check(self, segment: Segment, residuals, iteration: int, start: float | None) -> dict:
+    def check_terms(self, segment: Segment, residuals, iteration: int, start: float | None) -> dict:
+        """The loss terms of ``residuals``; a :class:`TrainingError` where one is not finite, or where
+        the weighted loss exceeds :data:`EXPLODE_FACTOR` times its value ``start`` at the start."""
         terms = residuals.terms()
         bad = [name for name, value in terms.items() if not math.isfinite(value)]
         if bad:
@@ -257,7 +254,7 @@ class SegmentTrainer:
             raise TrainingError(
                 f"pinn: {_where(segment)}: loss term {', '.join(bad)} is not finite at iteration {iteration}; {fix}"
             )
-        total = self._weighted(terms)
+        total = self.weighted(terms)
         if start is not None and total > EXPLODE_FACTOR * max(start, 1e-300):
             worst = max(terms, key=lambda k: terms[k])
             raise TrainingError(
@@ -266,11 +263,13 @@ class SegmentTrainer:
             )
         return terms
 
-    def _weighted(self, terms: dict) -> float:
+    def weighted(self, terms: dict) -> float:
+        """The loss: the terms weighted as the loss weighs them."""
         W_f, W_g, W_s = self.loss.weights
         return W_f * terms["L_f"] + W_g * terms["L_g"] + W_s * terms["L_s"]
 
-    def _done(self, residuals) -> bool:
+    def reached_tol(self, residuals) -> bool:
+        """Whether every residual is within ``tol`` (never, for a fixed budget: tol=None)."""
         return self.config.tol is not None and residuals.max_abs() <= self.config.tol
 
     def _finish(self, segment: Segment, iterations: int, began: float, residuals=None) -> SegmentStats:
@@ -279,7 +278,7 @@ class SegmentTrainer:
         if residuals is None:
             with torch.no_grad():
                 residuals = self.residuals(segment)
-        terms = self._check(segment, residuals, iterations, None)
+        terms = self.check_terms(segment, residuals, iterations, None)
         worst = residuals.max_abs()
         converged = self.config.tol is None or worst <= self.config.tol
         where = "" if converged else residuals.largest(getattr(self.loss, "names", None))[1]
@@ -301,133 +300,13 @@ class SegmentTrainer:
     def train(self, segment: Segment) -> SegmentStats:
         """Train until every residual is below ``tol`` (or ``iterations`` for tol=None)."""
         began = time.perf_counter()
-        method = {"lm": self._levenberg_marquardt, "lbfgs": self._lbfgs, "adam": self._adam}[self.config.optimizer]
-        iterations, residuals = method(segment)  # residuals at the end where the optimizer has them
+        # the residuals at the end where the optimizer has them (LM; Adam and L-BFGS, first_order.py: None)
+        if self.config.optimizer == "lm":
+            iterations, residuals = self._levenberg_marquardt(segment)
+        else:
+            optimizer = {"lbfgs": lbfgs, "adam": adam}[self.config.optimizer]
+            iterations, residuals = optimizer(self, segment)
         return self._finish(segment, iterations, began, residuals)
-
-    # ---- Adam and L-BFGS ----------------------------------------------------------------------
-    def _adam(self, segment: Segment) -> tuple:
-        return self._adam_graphed(segment) if segment.x.is_cuda else self._adam_eager(segment)
-
-    def _adam_eager(self, segment: Segment) -> tuple:
-        optimizer = torch.optim.Adam(self.net.parameters(), lr=self.config.learning_rate)
-        start, last_report = None, 0.0
-        for iteration in range(self.config.iterations):
-            optimizer.zero_grad()
-            residuals = self.residuals(segment)
-            r = self.loss.vector(residuals, segment.x.shape[0])
-            loss = (r**2).sum()
-            terms = self._check(segment, residuals, iteration, start)
-            start = self._weighted(terms) if start is None else start
-            if time.perf_counter() - last_report > REPORT_SECONDS:
-                self.report(iteration, terms)
-                last_report = time.perf_counter()
-            if self._done(residuals):
-                return iteration, None
-            loss.backward()
-            optimizer.param_groups[0]["lr"] = self.config.learning_rate_at(iteration)
-            optimizer.step()
-        return self.config.iterations, None
-
-    def _adam_graphed(self, segment: Segment) -> tuple:
-        """Adam on a GPU, each iteration (forward, loss, backward, step) replayed as one captured
-        CUDA graph.  A segment's networks see one or a few inputs, so eager Adam is bound by
-        kernel launches (hundreds per iteration); the graph launches them at once.  The loss terms
-        are read, checked and compared with ``tol`` every :data:`GRAPH_CHECK_EVERY` iterations,
-        at the parameters reached so far, by one more evaluation outside the graph."""
-        params = list(self.net.parameters())
-        N, device = segment.x.shape[0], segment.x.device
-        scheduled = self.config.schedule != "constant"
-        # a scheduled rate lives on the device, set before each replay (a float is baked into the graph)
-        rate = torch.tensor(self.config.learning_rate, dtype=segment.x.dtype, device=device) if scheduled else None
-        optimizer = torch.optim.Adam(params, lr=rate if scheduled else self.config.learning_rate, capturable=True)
-        # t and h as tensors on the device: a Python float would be copied from the host inside the graph
-        graphed = Segment(
-            index=segment.index,
-            t=torch.tensor(segment.t, dtype=segment.x.dtype, device=device),
-            h=torch.tensor(segment.h, dtype=segment.x.dtype, device=device),
-            x=segment.x,
-            p=segment.p,
-        )
-
-        def iteration():
-            r = self.loss.vector(self.residuals(graphed), N)
-            (r**2).sum().backward()
-            optimizer.step()
-
-        def check(done: int, start):
-            with torch.no_grad():
-                residuals = self.residuals(segment)
-            terms = self._check(segment, residuals, done, start)
-            self.report(done, terms)
-            return terms, self._done(residuals)
-
-        total = self.config.iterations
-        terms, finished = check(0, None)
-        start = self._weighted(terms)
-        if finished or total == 0:
-            return 0, None
-        warmup = min(GRAPH_WARMUP, total)  # eager iterations on a side stream: Adam's state, autograd's buffers
-        side = torch.cuda.Stream(device)
-        side.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(side):
-            for k in range(warmup):
-                if scheduled:
-                    rate.fill_(self.config.learning_rate_at(k))
-                optimizer.zero_grad(set_to_none=True)
-                iteration()
-        torch.cuda.current_stream(device).wait_stream(side)
-        done = warmup
-        graph = torch.cuda.CUDAGraph()
-        optimizer.zero_grad(set_to_none=True)  # the graph's backward allocates .grad in its own pool
-        with torch.cuda.graph(graph):
-            iteration()
-        while done < total:
-            for _ in range(min(GRAPH_CHECK_EVERY - done % GRAPH_CHECK_EVERY, total - done)):
-                if scheduled:
-                    rate.fill_(self.config.learning_rate_at(done))
-                graph.replay()
-                done += 1
-            terms, finished = check(done, start)
-            if finished:
-                return done, None
-        return done, None
-
-    def _lbfgs(self, segment: Segment) -> tuple:
-        optimizer = torch.optim.LBFGS(
-            self.net.parameters(),
-            lr=self.config.learning_rate,
-            max_iter=LBFGS_CHUNK,
-            history_size=50,
-            tolerance_grad=0.0,
-            tolerance_change=0.0,
-            line_search_fn="strong_wolfe",
-        )
-        start = None
-
-        def closure():
-            optimizer.zero_grad()
-            r = self._vector_of_raw(segment, self.net(segment.x))
-            loss = (r**2).sum()
-            loss.backward()
-            return loss
-
-        done = 0
-        while done < self.config.iterations:
-            with torch.no_grad():
-                residuals = self.residuals(segment)
-            terms = self._check(segment, residuals, done, start)
-            start = self._weighted(terms) if start is None else start
-            self.report(done, terms)
-            if self._done(residuals):
-                return done, None
-            before = optimizer.state[optimizer._params[0]].get("n_iter", 0)
-            optimizer.step(closure)
-            after = optimizer.state[optimizer._params[0]].get("n_iter", 0)
-            if after == before:  # L-BFGS made no progress: the loss is flat to rounding
-                break
-            done += after - before
-        return done, None
 
     # ---- Levenberg-Marquardt --------------------------------------------------------------------
     def _output_jacobian(self, segment: Segment, raw: torch.Tensor) -> torch.Tensor:
@@ -528,7 +407,7 @@ class SegmentTrainer:
             space = "output"
             residuals, e = self._merit(segment, params, space, start)
         if self._reporting or start is None:  # (a start that finite_start passed has finite terms)
-            self.report(0, self._check(segment, residuals, 0, None))
+            self.report(0, self.check_terms(segment, residuals, 0, None))
         mu, nu, system, scale = None, 2.0, None, 1.0
         iteration, stepped = 0, False
         one_input = N == self.net.copies  # every set of networks sees one input
@@ -543,7 +422,7 @@ class SegmentTrainer:
         # accepted untouched only where its Newton correction is at rounding: a small residual
         # need not mean a small distance (a predictor within tol = 1e-12 left 6e-12 on a model
         # whose Radau error is rounding)
-        while iteration < self.config.iterations and not (stepped and self._done(residuals)):
+        while iteration < self.config.iterations and not (stepped and self.reached_tol(residuals)):
             iteration += 1
             if system is None:
                 system = self._normal_system(segment, params, e, space)
@@ -571,12 +450,12 @@ class SegmentTrainer:
                 mu *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                 nu = 2.0
                 if self._reporting:
-                    self.report(iteration, self._check(segment, residuals, iteration, None))
+                    self.report(iteration, self.check_terms(segment, residuals, iteration, None))
                 contracted = after <= NEWTON_REGION * before  # Newton's region: |e|^2 cut a hundredfold
                 if space == "output" and one_input and (contracted or residuals.max_abs() <= NEWTON_FINISH):
                     params, residuals, e, iteration = self._newton_finish(segment, params, residuals, e, iteration)
                 system = None
-                if space == "residual" and not self._done(residuals):
+                if space == "residual" and not self.reached_tol(residuals):
                     contracts, _, _, correction = self._newton_contracts(segment, params)
                     if contracts:  # near enough for Newton: fit its corrections from here
                         space, mu, e = "output", None, correction
@@ -646,7 +525,7 @@ class SegmentTrainer:
                 self._raw = torch.where(better[:, None], self._raw, raw)
             params, residuals, e, iteration = trial, residuals_t, e_t, iteration + 1
             if self._reporting:
-                self.report(iteration, self._check(segment, residuals, iteration, None))
+                self.report(iteration, self.check_terms(segment, residuals, iteration, None))
         return params, residuals, e, iteration
 
     def _at_rounding(self, segment: Segment, raw, e) -> bool:

@@ -190,9 +190,10 @@ class _Checks:
     Hz: Callable
 
 
-def _checks(compiled) -> _Checks:
-    """The :class:`_Checks` of ``compiled``, generated once and kept with it (every solve that
-    passes initial values would otherwise generate them again)."""
+def constraint_checks(compiled) -> _Checks:
+    """The constraint checks of ``compiled`` (:class:`_Checks`: its hidden constraint levels with
+    their residual, and the determining equations with their z Jacobian), generated once and kept
+    with it (every solve that passes initial values would otherwise generate them again)."""
 
     def build() -> _Checks:
         numeric = compiled.numeric
@@ -256,7 +257,7 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
     if y0 is None and z0 is None and parameters is None:
         return InitialStates(y0=Y, z0=Z, p=P, batched=False)
 
-    checks = _checks(compiled)
+    checks = constraint_checks(compiled)
     t0, hidden = compiled.t0, checks.hidden
     residual, tol, bad = state_violations(compiled, Y, P)
     if bad.any():
@@ -302,7 +303,7 @@ def algebraic_values(
     InitialisationError
         Naming the samples where Newton fails.
     """
-    checks = _checks(compiled)
+    checks = constraint_checks(compiled)
     H, Hz = checks.H, checks.Hz
     result = solve_algebraic(lambda Zc: H(t, Y, Zc, P), lambda Zc: Hz(t, Y, Zc, P), Z)
     failed = ~result.converged
@@ -349,7 +350,7 @@ def consistent_states(compiled, y0=None, parameters=None, fix=()) -> dict:
         ),
     )
     free = np.array([name not in fix for name in names])
-    checks = _checks(compiled)
+    checks = constraint_checks(compiled)
     if fix and not free.any():
         residual, tol, bad = state_violations(compiled, Y, P)
         if bad.any():
@@ -386,14 +387,14 @@ def state_violations(compiled, Y: np.ndarray, P: np.ndarray):
     """``(residual (B, L), tolerance (B,), violated (B, L))`` of the states ``Y`` (B, n) on every
     z-free constraint level of ``compiled`` at its t0 (:func:`daemodel.compiling.init.violations`)."""
     Z = np.zeros((len(Y), len(compiled.algebraics)))  # (the z-free levels do not read it)
-    residual = _checks(compiled).residual(compiled.t0, Y, Z, P)
+    residual = constraint_checks(compiled).residual(compiled.t0, Y, Z, P)
     return (residual, *violations(residual, Y))
 
 
 def project_states(compiled, Y: np.ndarray, P: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
     """The nearest states to the rows of ``Y`` (B, n) that satisfy every z-free constraint level
     (:func:`daemodel.compiling.init.project`; ``free`` (n,) the states allowed to move, default all)."""
-    checks = _checks(compiled)
+    checks = constraint_checks(compiled)
     exprs = [e for _, _, e in checks.hidden]
     if not exprs:
         return np.array(Y, dtype=float)
@@ -434,7 +435,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         return
     rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
     T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
-    Hz, sign = _checks(compiled).Hz, np.empty(B * T)
+    Hz, sign = constraint_checks(compiled).Hz, np.empty(B * T)
     chunk = max(1, BRANCH_CHECK_BYTES // (8 * m * m))  # (rows per evaluation of H_z)
     with np.errstate(all="ignore"):
         for a in range(0, B * T, chunk):

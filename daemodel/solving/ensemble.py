@@ -307,7 +307,7 @@ def _run(plan: _Plan, work: list, files: tuple | None = None, earlier: tuple = (
         solve_chunk,
         (plan.compiled, plan.t_span, plan.method, plan.options, plan.max_failures),
         work,
-        engine=plan.executor,
+        executor=plan.executor,
         workers=plan.workers,
         address=plan.address,
         label="ensemble",

@@ -83,7 +83,8 @@ def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, o
     fields = {f.name for f in dataclasses.fields(options)}
     if "h" not in changes and getattr(options, "h", None) is not None:  # (a piece shorter than h: equal steps)
         changes["h"] = segment_steps(a, b, options.h)
-    options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})  # (pinn: no t_eval)
+    # (an option the method lacks is left out)
+    options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})
     if has_time_switches(model):
         return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
     return backend.solve(for_method(model, backend), (float(a), float(b)), start, options)

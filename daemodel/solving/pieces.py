@@ -52,9 +52,9 @@ def onto_constraints(model, Y: np.ndarray, P: np.ndarray) -> np.ndarray:
     SwitchError
         No state near a sample's satisfies them after the switch.
     """
-    from daemodel.compiling.initial_states import _checks, project_states, state_violations
+    from daemodel.compiling.initial_states import constraint_checks, project_states, state_violations
 
-    hidden = _checks(model).hidden
+    hidden = constraint_checks(model).hidden
     if not hidden or not state_violations(model, Y, P)[2].any():
         return Y
     projected = project_states(model, Y, P)

@@ -8,14 +8,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import sympy as sp
-from daemodel.backends.casadi import (
-    IDAS_REASONS,
-    LOCAL_ERROR_BOUND,
-    LocalErrorCheck,
-    collocation_failure,
-    first_non_finite,
-    idas_failure,
-)
+from daemodel.backends.casadi.collocation import LOCAL_ERROR_BOUND, LocalErrorCheck, collocation_failure
+from daemodel.backends.casadi.idas import IDAS_REASONS, idas_failure
+from daemodel.backends.casadi.plumbing import first_non_finite
 
 import daemodel as dm
 from daemodel import errors as E

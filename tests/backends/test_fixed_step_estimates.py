@@ -69,9 +69,9 @@ def test_estimate_bound_errors():
 
 
 def test_integrators_kept_are_bounded(monkeypatch):
-    from daemodel.backends import casadi as casadi_backend
+    from daemodel.backends.casadi import plumbing
 
-    monkeypatch.setattr(casadi_backend, "KEPT_INTEGRATORS", 2)
+    monkeypatch.setattr(plumbing, "KEPT_INTEGRATORS", 2)
     compiled = PENDULUM.model().compile()
     for t1 in (0.5, 0.75, 1.0):
         dm.solve(compiled, (0.0, t1), method="casadi-idas", rtol=1e-6)

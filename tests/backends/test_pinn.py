@@ -272,6 +272,59 @@ def test_fast_mode_reaches_the_radau_ceiling_on_hessenberg():
     np.testing.assert_allclose(sol.at(sol.t)["y5"], sol["y5"], rtol=0, atol=1e-14)
 
 
+def test_t_eval_gives_the_dense_output_at_the_pinns_own_accuracy():
+    """dm.solve(method="pinn", t_eval=...) returns the PINN's dense output at those times (each
+    segment's collocation polynomial through its network's stages, as radau's t_eval reads its own):
+    between the segment ends its error against the exact solution is the PINN's own, within 3x
+    radau's at the same h and stages (the certificate's bound: the distance to radau within radau's
+    error), and at the segment ends it is the grid solution's values."""
+    c = HESSENBERG.model().compile()
+    inside = (np.arange(20) + 0.37) * 0.05  # one time inside every segment of h = 0.05
+    t_eval = np.sort(np.concatenate([inside, [0.0, 0.25, 0.5, 1.0]]))
+    on_grid = dm.solve(c, (0.0, 1.0), method="pinn")
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", t_eval=t_eval)
+    radau = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05, t_eval=t_eval)
+    assert sol.status == "success" and sol.method == "pinn"
+    np.testing.assert_array_equal(sol.t, t_eval)
+    exact = EXACT(t_eval)
+    between = np.isin(t_eval, inside)
+    for name in c.state_names + c.algebraic_names:
+        error = np.abs(sol[name] - exact[name])[between].max()
+        radau_error = np.abs(radau[name] - exact[name])[between].max()
+        assert error <= 3 * radau_error and error <= 1e-6, (name, error, radau_error)
+        # the same networks (the same seed) as the solve on the grid: its dense output, its grid values
+        np.testing.assert_allclose(sol[name], on_grid.at(t_eval)[name], rtol=0, atol=1e-13)
+        ends = np.searchsorted(on_grid.t, t_eval[~between])
+        np.testing.assert_allclose(sol[name][~between], on_grid[name][ends], rtol=0, atol=1e-13)
+    # the certificate and the stats stay on the segment grid
+    assert sol.stats["segments"] == 20 and np.shape(sol.stats["certificate"]["segment_distance"]) == (1, 20)
+
+
+@pytest.mark.parametrize(
+    ("t_eval", "match"),
+    [
+        ([0.5, 1.2], r"t_eval runs from 0\.5 to 1\.2, outside t_span = \(0, 1\)"),
+        ([0.5, 0.2], "t_eval must be strictly increasing"),
+        ([0.1, float("nan")], "t_eval must hold finite times only"),
+        ("abc", r"t_eval must be a sequence of real numbers; got 'abc' \(dtype <U3\)"),
+        ([], "t_eval must hold at least one finite time"),
+    ],
+)
+def test_t_eval_errors_are_radaus_and_come_before_training(t_eval, match, monkeypatch):
+    """The PINN checks t_eval as radau does (the shared output_times), before it trains anything."""
+    from daemodel.backends.pinn import segments
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("trained before t_eval was checked")
+
+    monkeypatch.setattr(segments, "train_segments", no_training)
+    c = HESSENBERG.model().compile()
+    with pytest.raises(dm.errors.TimeSpanError, match=match):
+        dm.solve(c, (0.0, 1.0), method="pinn", t_eval=t_eval)
+    with pytest.raises(dm.errors.TimeSpanError, match=match):
+        dm.solve(c, (0.0, 1.0), method="radau", h=0.05, t_eval=t_eval)
+
+
 def test_fast_mode_on_the_pendulum_matches_radau_per_variable():
     c = PENDULUM.model().compile()
     sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(activation="sin"))
@@ -347,7 +400,7 @@ def test_segment_parallel_training_from_known_starts():
     c = HESSENBERG.model().compile()
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
     sol = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau)
-    assert sol.stats["mode"] == "parallel" and sol.settings["engine"] == "local"
+    assert sol.stats["mode"] == "parallel" and sol.settings["executor"] == "local"
     assert sol.stats["start_mismatch"] < 1e-10
     for name in sol.names:
         np.testing.assert_allclose(sol[name], radau[name], atol=1e-9)
@@ -418,12 +471,12 @@ def test_surrogate_training_on_a_box_generalises_to_new_states():
 
 def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
     """starts='radau': every segment trains from radau's solution of the training states, so the
-    segments are independent; on Ray they train in parallel and give the local engine's networks."""
+    segments are independent; on Ray they train in parallel and give the local executor's networks."""
     from daemodel.compiling.initial_states import project_states
 
     c = HESSENBERG.model().compile()
     box = {name: (0.98, 1.02) for name in c.state_names}
-    ray = dm.Surrogate.train(c, (0.0, 0.1), box=box, samples=64, starts="radau", engine="ray")
+    ray = dm.Surrogate.train(c, (0.0, 0.1), box=box, samples=64, starts="radau", executor="ray")
     rng = np.random.default_rng(0)
     y0 = project_states(c, rng.uniform(0.99, 1.01, (200, 4)), np.zeros((200, 0)))
     sol = ray.solve(y0=y0)
@@ -433,7 +486,7 @@ def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
     print(f"held-out error: y {y_error:.2e}, z {z_error:.2e}")
     assert y_error < 3e-6 and z_error < 3e-5
     few = {"box": box, "samples": 16, "starts": "radau"}
-    local, ray = dm.Surrogate.train(c, (0.0, 0.1), **few), dm.Surrogate.train(c, (0.0, 0.1), **few, engine="ray")
+    local, ray = dm.Surrogate.train(c, (0.0, 0.1), **few), dm.Surrogate.train(c, (0.0, 0.1), **few, executor="ray")
     sol, on_ray = local.solve(y0=y0), ray.solve(y0=y0)
     for name in sol.names:
         np.testing.assert_allclose(on_ray[name], sol[name], rtol=0, atol=1e-13)
@@ -530,10 +583,10 @@ def test_each_segment_trains_on_the_values_the_answer_evaluates_it_at_bit_for_bi
     # akzo-nobel at h = 2.25, where the networks' input sensitivity is not the step map's
     # (measured: chained from LM's last outputs instead, they differ by 6e-17 here)
     from daemodel.backends.pinn.segments import train_segments
-    from daemodel.backends.pinn.surrogate import Surrogate
 
     from daemodel.compiling.initial_states import initial_states
     from daemodel.problems import AKZO_NOBEL
+    from daemodel.solving.surrogates import Surrogate
 
     c = AKZO_NOBEL.model().compile()
     config, grid, start = dm.PINNConfig(), np.linspace(0.0, 2.0, 21), initial_states(c)
@@ -796,22 +849,28 @@ def test_option_errors(tmp_path):
     with pytest.raises(InvalidOptionError, match=r"config must be a dm\.PINNConfig; got dict"):
         dm.solve(c, (0.0, 0.1), method="pinn", config={"h": 0.05})
     with pytest.raises(
-        InvalidOptionError, match=r"engine='ray' trains segments in parallel, which needs segment_starts"
+        InvalidOptionError, match=r"executor='ray' trains segments in parallel, which needs segment_starts"
     ):
-        dm.solve(c, (0.0, 0.1), method="pinn", engine="ray")
-    with pytest.raises(InvalidOptionError, match="workers and address are Ray's: pass engine='ray' with them"):
+        dm.solve(c, (0.0, 0.1), method="pinn", executor="ray")
+    with pytest.raises(InvalidOptionError, match="workers and address are Ray's: pass executor='ray' with them"):
         dm.solve(c, (0.0, 0.1), method="pinn", workers=2)
-    with pytest.raises(InvalidOptionError, match="engine must be one of local, ray; got 'processes'"):
-        dm.solve(c, (0.0, 0.1), method="pinn", engine="processes")
+    with pytest.raises(InvalidOptionError, match="executor must be one of local, ray; got 'processes'"):
+        dm.solve(c, (0.0, 0.1), method="pinn", executor="processes")
+    # the old spelling (engine= names radau's casadi or torch engine) is refused by name, for one release
     with pytest.raises(
         InvalidOptionError,
-        match=r"engine='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'meta'",
+        match=r"^method='pinn': engine='ray' is now spelled executor='ray' \(engine= names radau's casadi or torch",
+    ):
+        dm.solve(c, (0.0, 0.1), method="pinn", engine="ray")
+    with pytest.raises(
+        InvalidOptionError,
+        match=r"executor='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'meta'",
     ):
         dm.solve(
             c,
             (0.0, 0.1),
             method="pinn",
-            engine="ray",
+            executor="ray",
             segment_starts=np.ones((2, 4)),
             config=dm.PINNConfig(device="meta"),
         )
@@ -866,17 +925,26 @@ def test_surrogate_errors():
     with pytest.raises(InvalidOptionError, match="starts must be one of network, radau; got 'guess'"):
         dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="guess")
     with pytest.raises(
-        InvalidOptionError, match="engine='ray' trains segments in parallel, which needs starts='radau'"
+        InvalidOptionError, match="executor='ray' trains segments in parallel, which needs starts='radau'"
     ):
-        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, engine="ray")
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, executor="ray")
+    with pytest.raises(InvalidOptionError, match=r"^Surrogate\.train\(\): engine='ray' is now spelled executor='ray'"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", engine="ray")
+    with pytest.raises(TypeError, match=r"Surrogate\.train\(\) got an unexpected keyword argument 'sampels'"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, sampels=4)
     with pytest.raises(InvalidOptionError, match="workers and address are Ray's"):
         dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", workers=2)
     with pytest.raises(
         InvalidOptionError,
-        match=r"engine='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'meta'",
+        match=r"executor='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'meta'",
     ):
         dm.Surrogate.train(
-            c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, starts="radau", engine="ray", config=dm.PINNConfig(device="meta")
+            c,
+            (0.0, 0.05),
+            box={"y4": (0.99, 1.01)},
+            starts="radau",
+            executor="ray",
+            config=dm.PINNConfig(device="meta"),
         )
     cfg = dm.PINNConfig(tol=1e-3)
     surrogate = dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, samples=4, config=cfg)
@@ -972,7 +1040,7 @@ def test_adam_on_cuda_replays_a_graph_that_matches_eager_adam(monkeypatch, sched
     rounding: 0 (constant) and 3.5e-9 (exponential) on an H200.  Plain eager Adam keeps its step
     counter and bias corrections on the host, and Adam amplifies that rounding difference: 1.3e-7
     (constant) and 6.3e-6 (exponential) after these 2 x 250 iterations."""
-    from daemodel.backends.pinn.train import SegmentTrainer as Trainer
+    from daemodel.backends.pinn import first_order
 
     class CapturableAdam(torch.optim.Adam):
         def __init__(self, params, **options):
@@ -981,7 +1049,7 @@ def test_adam_on_cuda_replays_a_graph_that_matches_eager_adam(monkeypatch, sched
     c = PENDULUM.model().compile()
     config = dm.PINNConfig.paper("pendulum", iterations=250, width=20, depth=2, device="cuda", schedule=schedule)
     graphed = dm.solve(c, (0.0, 0.1), method="pinn", config=config, progress=False)
-    monkeypatch.setattr(Trainer, "_adam_graphed", Trainer._adam_eager)
+    monkeypatch.setattr(first_order, "adam_graphed", first_order.adam_eager)
     eager = dm.solve(c, (0.0, 0.1), method="pinn", config=config, progress=False)
     monkeypatch.setattr(torch.optim, "Adam", CapturableAdam)
     same_arithmetic = dm.solve(c, (0.0, 0.1), method="pinn", config=config, progress=False)

@@ -297,7 +297,7 @@ def test_where_newton_from_the_networks_fails_radau_from_the_start_answers(pendu
     the failing samples are found by halving the batch and solved by radau from their own start,
     and stats["path"] says which sample took which path.  (The failure is forced for samples 3 and
     6: real guesses from these networks converge.)"""
-    from daemodel.backends.pinn.surrogate import Surrogate
+    from daemodel.solving.surrogates import Surrogate
 
     y0 = held_out(pendulum, seed=5, count=8)
     original = Surrogate._radau
@@ -649,9 +649,9 @@ from daemodel.problems import HESSENBERG
 m = HESSENBERG.model()
 starts = dm.solve(m, (0.0, 0.1), method="radau", stages=3, h=0.05)
 local = dm.solve(m, (0.0, 0.1), method="pinn", segment_starts=starts)
-ray = dm.solve(m, (0.0, 0.1), method="pinn", segment_starts=starts, engine="ray", workers=2)
+ray = dm.solve(m, (0.0, 0.1), method="pinn", segment_starts=starts, executor="ray", workers=2)
 assert np.abs(ray["y1"] - local["y1"]).max() < 1e-13, "ray and local differ"
-print("trained", ray.settings["engine"], len(ray.stats["peak_memory_mb"]))
+print("trained", ray.settings["executor"], len(ray.stats["peak_memory_mb"]))
 """
 
 
@@ -659,7 +659,7 @@ def test_parallel_training_in_an_unguarded_script_runs(tmp_path):
     """Segment-parallel training from a script that solves at its top level, with no
     ``if __name__ == "__main__":`` guard.  The old process pool re-ran such a script in every
     worker (multiprocessing's spawn) and broke; Ray's workers import daemodel's functions, not
-    the script, and the local engine starts no process."""
+    the script, and the local executor starts no process."""
     import subprocess
     import sys
 
@@ -688,7 +688,8 @@ def test_independent_networks_are_not_saved_or_queried(tmp_path):
     ):
         dm.solve(c, (0.0, 0.1), method="pinn", y0=c.consistent(y0={"y1": [1.0, 1.01]}), save=tmp_path / "n.pt")
     from daemodel.backends.pinn.segments import make_network
-    from daemodel.backends.pinn.surrogate import Surrogate
+
+    from daemodel.solving.surrogates import Surrogate
 
     config = dm.PINNConfig()
     networks = [make_network(c, config, 4, 0, copies=2)]

@@ -1033,10 +1033,12 @@ def _preload() -> dict:
     for module in (
         "daemodel.comparing.cli",
         "daemodel.backends.radau",
-        "daemodel.backends.casadi",
+        "daemodel.backends.casadi.collocation",
+        "daemodel.backends.casadi.idas",
         "daemodel.backends.reference",
         "daemodel.backends.pinn.backend",
         "daemodel.backends.pinn.surrogate",
+        "daemodel.solving.surrogates",
         "torch",
         "casadi",
         "scipy.integrate",

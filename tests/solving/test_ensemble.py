@@ -273,7 +273,7 @@ def test_a_ray_worker_that_dies_is_named(ray_cluster):
     from daemodel.executors import run_tasks
 
     with pytest.raises(WorkerError, match=r"ensemble: the Ray worker running task 0 stopped before returning \(Worker"):
-        run_tasks(os._exit, 1, [()], engine="ray", label="ensemble")
+        run_tasks(os._exit, 1, [()], executor="ray", label="ensemble")
 
 
 def test_a_killed_ray_workers_task_is_retried_with_nothing_lost(ray_cluster, tmp_path):
@@ -291,7 +291,7 @@ def test_a_killed_ray_workers_task_is_retried_with_nothing_lost(ray_cluster, tmp
         return value
 
     marker = str(tmp_path / "died")
-    assert run_tasks(die_once, marker, [(0,), (10,), (20,)], engine="ray", label="t") == [0, 10, 20]
+    assert run_tasks(die_once, marker, [(0,), (10,), (20,)], executor="ray", label="t") == [0, 10, 20]
     assert (tmp_path / "died").read_text() == "died once"
 
 
@@ -306,14 +306,14 @@ def test_a_ray_worker_fetches_the_shared_object_once_per_call(ray_cluster):
         shared["seen"].append(i)
         return os.getpid(), list(shared["seen"])
 
-    first = run_tasks(held, {"seen": []}, [(i,) for i in range(8)], engine="ray", label="test")
+    first = run_tasks(held, {"seen": []}, [(i,) for i in range(8)], executor="ray", label="test")
     by_worker = {}
     for pid, seen in first:
         by_worker.setdefault(pid, []).append(seen)
     assert max(len(seen) for _, seen in first) >= 2  # 8 tasks on 2 CPUs: some worker ran several
     for runs in by_worker.values():
         assert sorted(len(seen) for seen in runs) == list(range(1, len(runs) + 1))
-    second = run_tasks(held, {"seen": []}, [(i,) for i in range(2)], engine="ray", label="test")
+    second = run_tasks(held, {"seen": []}, [(i,) for i in range(2)], executor="ray", label="test")
     assert all(len(seen) <= 2 for _, seen in second)  # a new call ships a fresh copy
 
 

@@ -29,9 +29,9 @@ def test_the_estimate_per_step_and_where_it_is_beyond_the_bound():
     from daemodel.backends.pinn.certificate import certify
     from daemodel.backends.pinn.config import PINNConfig
     from daemodel.backends.pinn.segments import train_segments
-    from daemodel.backends.pinn.surrogate import Surrogate
 
     from daemodel.compiling.initial_states import initial_states
+    from daemodel.solving.surrogates import Surrogate
 
     c = HESSENBERG.model().compile()
     config = PINNConfig(h=0.1)

@@ -1,0 +1,143 @@
+"""What casadi-collocation and casadi-idas share: casadi's integrators built once per model and
+kept (:func:`cached_integrator`), the model as casadi's DAE dict (:func:`dae_of`,
+:func:`normalised_dae`), one call per sample with casadi's output captured (:func:`run_samples`),
+casadi's statistics and messages read back, and the check for non-finite values."""
+
+from __future__ import annotations
+
+import collections
+import re
+import threading
+
+import numpy as np
+from daemodel.backends.progress import captured_output
+
+from daemodel.errors import ConvergenceError
+
+# Options that stop casadi from printing a warning for every non-finite evaluation (tens of
+# thousands of lines when Newton wanders into a singularity).
+QUIET = {"show_eval_warnings": False}
+# Integrators kept per model (least recently used dropped first): a sweep's tolerances or steps, a
+# few start values; each holds its output times (a 20,000-step grid is 160 kB) and casadi's memory.
+KEPT_INTEGRATORS = 32
+# Lines of casadi's captured output quoted in an error that cannot be translated.
+QUOTED_LINES = 3
+
+
+def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
+    """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times,
+    settings and thread, and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a
+    sweep); the :data:`KEPT_INTEGRATORS` most recently used are kept.
+
+    Per thread: a solve reads the integrator's statistics after its calls, which another thread's call
+    of a shared integrator would overwrite in between."""
+    import json
+
+    import casadi
+
+    times = [float(t) for t in times]
+    key = (plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
+    with _KEPT_LOCK:
+        kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
+        if key in kept:
+            kept.move_to_end(key)
+            return kept[key]
+    built = casadi.integrator(plugin, plugin, dae, float(t0), times, settings)
+    with _KEPT_LOCK:
+        kept[key] = built
+        while len(kept) > KEPT_INTEGRATORS:
+            kept.popitem(last=False)
+    return built
+
+
+_KEPT_LOCK = threading.Lock()  # (the kept integrators of every model: a cache shared by threads)
+
+
+def dae_of(compiled) -> dict:
+    dae = compiled.casadi_dae()
+    return {key: dae[key] for key in ("x", "z", "p", "t", "ode", "alg") if key in dae}
+
+
+def last_number(pattern: str, text: str) -> float | None:
+    """The last number ``pattern`` captures in ``text`` (casadi's latest message comes last)."""
+    found = re.findall(pattern, text)
+    return float(found[-1]) if found else None
+
+
+def last_lines(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return " | ".join(lines[-QUOTED_LINES:])
+
+
+def run_samples(call, compiled, start, T: int, explain) -> np.ndarray:
+    """``call(sample)`` for each sample, quietly: values (B, T + 1, n + m) with t0 first.
+
+    ``call`` returns casadi's result (``xf`` (n, T), ``zf`` (m, T)) or raises casadi's
+    RuntimeError; ``explain(sample, error, printed)`` turns that failure (its text and what
+    casadi printed meanwhile) into the exception to raise.
+    """
+    B = start.size
+    n, m = len(compiled.states), len(compiled.algebraics)
+    out = np.empty((B, T + 1, n + m))
+    out[:, 0, :n], out[:, 0, n:] = start.y0, start.z0
+    for b in range(B):
+        with captured_output() as printed:
+            try:
+                result = call(b)
+            except RuntimeError as error:
+                failure = explain(b, str(error), printed.getvalue())
+            else:
+                failure = None
+        if failure is not None:
+            raise failure from None
+        out[b, 1:, :n] = np.asarray(result["xf"]).T.reshape(T, n)
+        out[b, 1:, n:] = np.asarray(result["zf"]).T.reshape(T, m)
+    return out
+
+
+def integrator_stats(integrator) -> dict:
+    """casadi's scalar statistics of the integrator's last call."""
+    try:
+        return {k: v for k, v in integrator.stats().items() if isinstance(v, (int, float, bool, str))}
+    except (RuntimeError, AttributeError):
+        return {}
+
+
+def first_non_finite(name: str, compiled, times, values, fix: str, what: str = "") -> ConvergenceError | None:
+    """The error for the earliest non-finite value of any sample, or None when all are finite.
+
+    ``values`` (B, T, n + m) are the solution's, or (``what="f at"``) the right-hand sides ``f``
+    and constraints ``g`` evaluated there.
+    """
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return None
+    sample, k, j = min(zip(*np.nonzero(bad), strict=True), key=lambda hit: (hit[1], hit[0]))
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    if what:
+        rows = (*(f"{y}'" for y in compiled.state_names), *compiled.constraint_names)
+        subject = f"the right-hand side of {rows[j]} is not finite at the returned values"
+    else:
+        subject = f"'{names[j]}' is not finite"
+    return ConvergenceError(
+        f"{name}: {subject} at t = {times[k]:.6g} (sample {sample} of '{compiled.name}', "
+        f"after t = {times[max(k - 1, 0)]:.6g}): the solution may be singular there or leave the domain of the "
+        f"equations; {fix}"
+    )
+
+
+def normalised_dae(dae: dict) -> dict:
+    """``dae`` on normalised time ``t = tau + h s``, ``s`` in [0, 1], with ``tau`` and ``h`` appended to
+    its parameters: one integrator from s = 0 to 1 serves any step or interval."""
+    import casadi
+
+    tau, h, s = casadi.SX.sym("tau"), casadi.SX.sym("h"), casadi.SX.sym("s")
+    now = tau + h * s
+    return {
+        "x": dae["x"],
+        "z": dae["z"],
+        "p": casadi.vertcat(dae["p"], tau, h),
+        "t": s,
+        "ode": h * casadi.substitute(dae["ode"], dae["t"], now),
+        "alg": casadi.substitute(dae["alg"], dae["t"], now),
+    }
