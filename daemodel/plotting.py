@@ -181,7 +181,7 @@ def draw_variable(ax, solution: Solution, name: str, drawn: Drawn | None = None,
     lines = []
     for b in range(shown):
         t, y = broken_curve(drawn.grid, drawn.values[name][b], instants_of(records, b, [name], span), name)
-        lines += ax.plot(t, y, gid="solution", **style)
+        lines += ax.plot(t, y, **({"gid": "solution"} | style))
     return lines
 
 

@@ -113,13 +113,18 @@ def test_the_ball_is_drawn_from_its_dense_output_broken_at_each_impact(ball):
         assert np.asarray(marks.get_xdata()) == pytest.approx(limits["t"], abs=1e-8)
 
 
-def test_the_exact_reference_is_drawn_broken_at_its_own_impacts(ball):
+def test_a_reference_is_drawn_broken_at_its_own_impacts(ball):
     model, exact, limits = ball
     sol = dm.solve(model, SPAN, method="radau", rtol=RTOL, atol=1e-8, t_eval=OUTPUTS)
     panels = rendered(sol, reference=exact)
     (v_line,) = panels["v"]["reference"]
     runs = check_broken_at_the_impacts(v_line, limits, "v", atol=1e-12)
     assert sum(len(t) for t, _ in runs) >= DRAWN_POINTS  # on the fine grid, not the outputs
+    # a Solution as the reference: drawn from its own dense output, broken at its own impacts
+    tight = dm.solve(model, SPAN, method="radau", rtol=1e-10, atol=1e-10)
+    (v_line,) = rendered(sol, reference=tight)["v"]["reference"]
+    runs = check_broken_at_the_impacts(v_line, limits, "v", atol=1e-8)
+    assert v_line.get_linestyle() == "--" and sum(len(t) for t, _ in runs) >= DRAWN_POINTS
 
 
 def test_without_a_dense_output_the_output_points_are_drawn_broken_at_each_impact(ball):
