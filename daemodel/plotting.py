@@ -306,7 +306,7 @@ def plot_solution(solution: Solution, path=None, names=None, reference=None):
         handles, labels = list(legend.values()), list(legend)
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4), fontsize=8)
     batch = f", {shown} of {solution.batch_size} samples" if solution.batched else ""
-    points = "" if drawn.dense else ", its output points (no dense output)"
+    points = "" if drawn.dense else ", drawn through its output points"
     left_out = f"\n{len(names)} of {len(names) + len(omitted)} variables; names=[...] chooses" if omitted else ""
     fig.suptitle(f"{compiled.name}: {solution.method}{batch}{points}{left_out}")
     if path is not None:
