@@ -27,14 +27,18 @@ import numpy as np
 
 from daemodel.errors import OmittedPanelsWarning, ResourceLimitError
 from daemodel.files import save_figure
-from daemodel.solution import PLOTTED_PANELS, PLOTTED_SAMPLES, Solution
+from daemodel.instants import BREAKPOINTS
+
+# Samples drawn by Solution.plot for a batch; more lines only hide each other.
+PLOTTED_SAMPLES = 20
+# Panels Solution.plot() draws without names=: four rows of three stay readable on a screen or a
+# page; a 62-variable model drew 62 panels of a few pixels each.
+PLOTTED_PANELS = 12
 
 # Times across the span on which a dense output is drawn (with the output times): a figure is about
 # 1000 pixels wide, so a curve drawn on twice that shows no chord; a flight of the bouncing ball
 # (g = 9.81) on a span of 2.5 is drawn to g (2.5 / 2000)^2 / 8 = 2e-6 at its apex.
 DRAWN_POINTS = 2001
-# The label of the time breakpoints among the instants marked on the time axis.
-BREAKPOINTS = "time breakpoints"
 # Colours of the instants' ticks, one per event name: the solution is C0 and a reference C3.
 INSTANT_COLORS = ("C1", "C2", "C4", "C5", "C6", "C8", "C9", "C7")
 
@@ -71,7 +75,7 @@ def instants_of(records: dict, sample: int, names, span: tuple) -> list[Instant]
     return sorted(out, key=lambda instant: instant.t)
 
 
-def solution_records(solution: Solution) -> dict:
+def solution_records(solution) -> dict:
     """The solution's breakpoints (as :data:`BREAKPOINTS`) and events, label -> record, with the values
     of the eliminated aliases on each side computed from those of the states and algebraic variables."""
     records = ({BREAKPOINTS: solution.breakpoints} if solution.breakpoints else {}) | dict(solution.events)
@@ -142,7 +146,7 @@ class Drawn:
     dense: bool
 
 
-def drawn_values(solution: Solution, names) -> Drawn:
+def drawn_values(solution, names) -> Drawn:
     """The values to draw: the dense output on :data:`DRAWN_POINTS` times and the output times, or the
     output points where the solution has no dense output (or a batch too large to evaluate it for)."""
     t = solution.t
@@ -158,7 +162,7 @@ def drawn_values(solution: Solution, names) -> Drawn:
     return Drawn(t, {name: solution.values[name] for name in names}, False)
 
 
-def draw_variable(ax, solution: Solution, name: str, drawn: Drawn | None = None, samples=None, **style) -> list:
+def draw_variable(ax, solution, name: str, drawn: Drawn | None = None, samples=None, **style) -> list:
     """Draw one variable of ``solution`` on ``ax``, each sample's line broken at its own events and
     breakpoints (see the module docs); returns the lines (``gid`` ``"solution"``).
 
@@ -191,7 +195,7 @@ def draw_reference(ax, reference, name: str, grid: np.ndarray, span: tuple) -> l
     it states by attributes ``events`` and ``breakpoints`` laid out as :attr:`Solution.events` (as
     :meth:`Problem.exact_solution` does); nothing where it has no values for ``name``."""
     style = {"linestyle": "--", "color": "C3", "lw": 1, "label": "reference", "gid": "reference"}
-    if isinstance(reference, Solution):
+    if not callable(reference):  # a Solution
         if name not in reference.names:
             return []
         return draw_variable(ax, reference, name, samples=1, **style)
@@ -207,7 +211,7 @@ def draw_reference(ax, reference, name: str, grid: np.ndarray, span: tuple) -> l
     return ax.plot(t, y, **style)
 
 
-def mark_instants(ax, solution: Solution, samples=None) -> list:
+def mark_instants(ax, solution, samples=None) -> list:
     """Ticks on the time axis of ``ax`` at the events and breakpoints of the drawn samples, one colour and
     one label per event name (``gid`` ``"instant"``); returns the marks."""
     from matplotlib.transforms import blended_transform_factory
@@ -238,7 +242,7 @@ def mark_instants(ax, solution: Solution, samples=None) -> list:
     return marks
 
 
-def plot_solution(solution: Solution, path=None, names=None, reference=None):
+def plot_solution(solution, path=None, names=None, reference=None):
     """:meth:`Solution.plot`: each variable against t, one panel each; a batch shows up to
     :data:`~daemodel.solution.PLOTTED_SAMPLES` samples (see the module docs for what is drawn).
 

@@ -13,16 +13,8 @@ from daemodel.files import (
     open_file,
     readable_path,
 )
+from daemodel.instants import TIME_MATCH_RTOL
 from daemodel.stats import Stats
-
-# Times of two solutions count as the same when they differ by less than this, relative to
-# the span: grids built as t0 + k*h in different orders differ in the last bits.
-TIME_MATCH_RTOL = 1e-9
-# Samples drawn by Solution.plot for a batch; more lines only hide each other.
-PLOTTED_SAMPLES = 20
-# Panels Solution.plot() draws without names=: four rows of three stay readable on a screen or a
-# page; a 62-variable model drew 62 panels of a few pixels each.
-PLOTTED_PANELS = 12
 
 
 @dataclass(frozen=True, eq=False)
@@ -519,7 +511,7 @@ class Solution:
         if not path.exists():
             raise SolutionFileError(f"no solution file at {path}")
         with open_file(path, "path", SolutionFileError) as handle:
-            return read(handle, path, model)
+            return read(handle, path, model, cls)
 
     # ---- export -------------------------------------------------------------------------
     def to_pandas(self):
@@ -548,7 +540,7 @@ class Solution:
             Write the figure there (PNG, PDF, ... by suffix).
         names : iterable of str, optional
             Variables to draw, all of them.  Default: the states, then the algebraic variables, at
-            most :data:`PLOTTED_PANELS` (12) of them; where more were left out, the figure's title
+            most :data:`~daemodel.plotting.PLOTTED_PANELS` (12) of them; where more were left out, the figure's title
             says how many and an :class:`~daemodel.errors.OmittedPanelsWarning` names them.
         reference : callable or Solution, optional
             Drawn dashed on top (first sample only for a batch), broken at the instants it states.
