@@ -93,7 +93,7 @@ def violations(root: Path) -> list[str]:
                 )
             if imported.startswith("_") and not imported.startswith("__") and module != name:
                 found.append(f"{where}:{line}: {name} imports the private name {imported} of {module}")
-    return found
+    return list(dict.fromkeys(found))  # (one line for an import of several names)
 
 
 def _layer_name(index: int) -> str:
