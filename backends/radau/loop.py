@@ -428,7 +428,7 @@ class CompiledRun:
 
     def _write_back(self, stepper, out, accepted):
         L, stats, engine = self.layout, stepper.stats, stepper.engine
-        s, n, D = stepper.s, stepper.n, stepper.n + stepper.m
+        s, D = stepper.s, stepper.n + stepper.m
         R = self.record
         v = dict(zip(SCALARS.names, out[: SCALARS.size].tolist(), strict=True))
         records = out[L.size :].reshape(self.attempts, R.size)
@@ -452,20 +452,13 @@ class CompiledRun:
         if len(steps):
             nodes = steps[:, R["nodes"]].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
             # (copies: the records' other entries are not kept, as step_record_bytes counts)
-            stepper.records.add(
+            stepper.take_steps(
                 steps[:, R["t"]].copy(),
                 steps[:, R["h"]].copy(),
                 steps[:, R["t_next"]].copy(),
-                nodes.copy() if stepper.records.dense else nodes[:, :, -1:].copy(),  # (the end values only)
+                nodes.copy() if stepper.records.dense else nodes,
+                out[L["f0"]][None].copy(),
             )
-            stats["steps"] += len(steps)
-            lengths = steps[:, R["h"]].tolist()
-            stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)
-            stepper._previous = (float(steps[-1, R["h"]]), nodes[:, -1, 0], nodes[:, -1, 1:])
-            stepper._previous_nodes = out[L["nodes"]].copy()
-            u = out[L["u"]]
-            stepper.y, stepper.z = u[None, :n].copy(), u[None, n:].copy()
-            stepper._f_start = out[L["f0"]][None].copy()
             accepted = (v["h_acc"], v["err_acc"])
         stepper.eta = np.array([v["eta"]])
         stepper._jac = (out[L["J"]].copy(), v["t_jac"]) if v["jac_kept"] else None

@@ -382,23 +382,35 @@ class Stepper:
                 "at a time, loosen rtol, give t_eval, or keep the step ends only (dense_output=False; with a fixed h, "
                 "a grid's size is checked before the solve)"
             )
-        u_start = self.state()
-        if self.records.dense:
-            nodes = self.xp.concatenate([u_start[:, None], W], axis=1)[:, None]
-        else:  # only the end value, the last node, is kept: a copy, or the view would keep all of W
-            end = W[:, None, -1:]
-            nodes = end.copy() if self.xp is np else end.clone()
-        self.records.add(np.array([t]), np.array([h]), np.array([t_next]), nodes)
-        self._previous = (h, u_start, W)
-        if self.compiled_step:  # the compiled step's start guess reads the nodes packed
-            self._previous_nodes = np.concatenate([u_start[0], W.ravel()])
-        self.y, self.z = W[:, -1, : self.n], W[:, -1, self.n :]
-        self._f_start = r.stage_f[:, -1]
-        self.stats["steps"] += 1
-        self.stats["h_min"] = min(self.stats["h_min"], h)
-        self.stats["h_max"] = max(self.stats["h_max"], h)
+        nodes = self.xp.concatenate([self.state()[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
+        self.take_steps(np.array([t]), np.array([h]), np.array([t_next]), nodes, r.stage_f[:, -1])
         if not formulas.jacobian_kept(formulas.SCALAR, theta, self.reuse_theta()):
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
+
+    def take_steps(self, starts, lengths, ends, nodes, f_end):
+        """Take accepted steps (one, or a compiled run's): ``starts``, ``lengths`` and ``ends`` (k,) numpy,
+        ``nodes`` (B, k, s+1, n+m) their start values and stages, ``f_end`` (B, n) f at the last one's end.
+
+        Records their outputs (the nodes whole with ``dense``, else a copy of the end values: a view
+        would keep all of them), moves the state to the last one's end, keeps its polynomial for the
+        next start guess and counts them.
+        """
+        if self.records.dense:
+            kept = nodes
+        else:
+            end = nodes[:, :, -1:]
+            kept = end.copy() if self.xp is np else end.clone()
+        self.records.add(starts, lengths, ends, kept)
+        last = nodes[:, -1]  # (B, s+1, n+m)
+        self._previous = (float(lengths[-1]), last[:, 0], last[:, 1:])
+        if self.compiled_step:  # the compiled step's start guess reads the nodes packed (B = 1)
+            self._previous_nodes = last[0].reshape(-1).copy()
+        self.y, self.z = last[:, -1, : self.n], last[:, -1, self.n :]
+        self._f_start = f_end
+        self.stats["steps"] += len(starts)
+        lengths = lengths.tolist()
+        self.stats["h_min"] = min(self.stats["h_min"], *lengths)
+        self.stats["h_max"] = max(self.stats["h_max"], *lengths)
 
     def reuse_theta(self) -> float:
         """The contraction up to which the next step keeps the Jacobian (-inf: never, reuse_jacobian=False)."""
