@@ -75,6 +75,11 @@ class ScalarOps:
     def isclose(a, b, rel_tol, abs_tol=0.0):
         return math.isclose(a, b, rel_tol=rel_tol, abs_tol=abs_tol)
 
+    @staticmethod
+    def branch(name, condition, then, otherwise, *operands):
+        """``then(*operands)`` where ``condition``, else ``otherwise(*operands)`` (only that one runs)."""
+        return then(*operands) if condition else otherwise(*operands)
+
 
 class ArrayOps:
     """The namespace of an engine's arrays (``xp``: numpy or torch), the samples along the first axis."""
@@ -154,6 +159,26 @@ class CasadiOps:
         return casadi.if_else(condition, a, b)
 
     @staticmethod
+    def branch(name, condition, then, otherwise, *operands):
+        """``then(*operands)`` where ``condition``, else ``otherwise(*operands)``, as a casadi switch named
+        ``name`` that runs only the branch taken (MX).  ``operands``: expressions, or tuples of them;
+        the branches see them as symbols, and must use nothing else from outside, and return the same
+        structure of the same shapes (Python numbers: 1 x 1)."""
+        import casadi
+
+        flat = flatten(operands)
+        symbols = [casadi.MX.sym(f"{name}_{k}", x.sparsity()) for k, x in enumerate(flat)]
+        args = unflatten(operands, iter(symbols))
+        taken, other = then(*args), otherwise(*args)
+        functions = [
+            casadi.Function(f"{name}_{k}", symbols, [casadi.MX(float(x)) if isinstance(x, (bool, int, float)) else x
+                                                     for x in flatten(out)])
+            for k, out in (("then", taken), ("else", other))
+        ]  # fmt: skip
+        results = casadi.Function.if_else(name, *functions).call([condition, *flat])
+        return unflatten(taken, iter(results))
+
+    @staticmethod
     def any(flag):
         return flag  # (one trajectory: the norm is a scalar)
 
@@ -191,6 +216,20 @@ class CasadiOps:
         import casadi
 
         return casadi.vertcat(*(base ** float(k) for k in exponents))
+
+
+def flatten(values) -> list:
+    """The leaves of nested tuples (a value that is no tuple: itself)."""
+    if not isinstance(values, tuple):
+        return [values]
+    return [leaf for value in values for leaf in flatten(value)]
+
+
+def unflatten(like, leaves):
+    """Nested tuples shaped as ``like``, of the next values of the iterator ``leaves``."""
+    if not isinstance(like, tuple):
+        return next(leaves)
+    return tuple(unflatten(value, leaves) for value in like)
 
 
 SCALAR, CASADI = ScalarOps(), CasadiOps()

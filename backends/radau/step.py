@@ -14,15 +14,18 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 from daemodel.backends.grids import output_times
 from daemodel.backends.radau import formulas
-from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW, STEP_RESULTS
+from daemodel.backends.radau.compiled import STEP_RESULTS
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
+from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
+from daemodel.backends.radau.tries import AbstractTriesSide, compiled_tries
 
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.dense import step_owners
@@ -298,12 +301,13 @@ class Stepper:
 
     def compiled_attempt(self, t, h, first):
         """The attempt of :meth:`attempt_with_error` in compiled calls, where Newton runs on the transformed
-        systems; None where the step must run on the general path (full Newton pending, or values that
-        turned non-finite, whose culprit the general path names).
+        systems; None where the step must run on the general path (full Newton pending, factors that
+        cannot serve, or values that turned non-finite, whose culprit the general path names).
 
-        The retries of :meth:`attempt`, in its order: from the extrapolated guess, again with a fresh
-        Jacobian where the kept one is stale, then from the start value; where all fail, the
-        determinedness of z over the step is checked as :meth:`attempt` checks it.
+        The retries of :meth:`attempt`, in its order (:func:`.tries.compiled_tries`, which the compiled
+        run builds into its graph too): from the extrapolated guess, again with a fresh Jacobian
+        where the kept one is stale, then from the start value; where all fail, the determinedness
+        of z over the step is checked as :meth:`attempt` checks it.
         """
         if self.stage_steps > 0:
             return None
@@ -311,45 +315,35 @@ class Stepper:
         if factors.inverse is None:
             return None
         # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
-        constant = None if self._previous is not None else (np.tile(self.state()[0], self.s + 1), 0.0)
-        guess = constant or (self._previous_nodes, h / self._previous[0])
-        f0 = self.start_f(t)[0]
-        found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found[0] is None and self._jac[1] != t:  # the kept Jacobian may be stale: refresh it, try again
-            self._jac = self.factors = None
-            factors = self.current_lu(self.current_jacobian(t, h), t, h)
-            if factors.inverse is None:
-                return None
-            found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found[0] is None and constant is None:
-            found = self._compiled_try(factors, t, h, (np.tile(self.state()[0], self.s + 1), 0.0), first, f0)
-        if found[0] is None:
-            if found[2] is None:  # non-finite values: the general path names where they arose
-                return None
-            stage_J = self.engine.stage_jacobians(t, h, self.constant_guess())
-            self.stats["jacobian_evaluations"] += 1
-            self.check_determined(stage_J, t, h, keep=False)
-        return found
+        start = (np.tile(self.state()[0], self.s + 1), 0.0)
+        extrapolated = self._previous is not None
+        guess = (self._previous_nodes, h / self._previous[0]) if extrapolated else start
+        side = PythonTries(self, t, h, first)
+        tries = compiled_tries(SCALAR, side, factors, guess, start, self._jac[1] != t, extrapolated)
+        self.stats["compiled_retries"] += tries.retries
+        self.stats["residual_evaluations"] += tries.evaluations
+        if not tries.usable or side.non_finite(tries.result):
+            return None
+        return tries.result.found
 
-    def _compiled_try(self, factors, t, h, guess, first, f0):
-        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old), as
-        :meth:`attempt_with_error` returns it (why None where values turned non-finite)."""
+    def compiled_try(self, factors, t, h, guess, first, f0):
+        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old): a :class:`CompiledTry`
+        whose ``found`` is as :meth:`attempt_with_error` returns it (why None where values turned
+        non-finite)."""
         previous, ratio = guess
         policy, stats = self.policy, self.stats
         scalars = dict(t=t, h=h, ratio=ratio, eta=float(self.eta[0]), newton_tol=policy.tol, first=float(first))
         out = self.engine.compiled_step(factors, dict(scalars, rtol=policy.rtol, atol=policy.atol), previous, f0)
         # (Python floats: cheaper to test)
         outcome, k, evaluations, theta, eta, err = out[: len(STEP_RESULTS)].tolist()
-        stats["residual_evaluations"] += int(evaluations)
-        k = int(k)
-        if outcome != CONVERGED:
-            stats["compiled_retries"] += 1
+        k, outcome, evaluations = int(k), int(outcome), int(evaluations)
+        if outcome != formulas.CONVERGED:
             why = {
-                DIVERGING: f"diverging (contraction {theta:.2f})",
-                SLOW: f"converging too slowly (contraction {theta:.2f})",
-                NOT_CONVERGED: f"not converged in {k} iterations",
-            }.get(int(outcome))
-            return None, k, why, 0, math.inf
+                formulas.DIVERGING: f"diverging (contraction {theta:.2f})",
+                formulas.SLOW: f"converging too slowly (contraction {theta:.2f})",
+                formulas.NOT_CONVERGED: f"not converged in {k} iterations",
+            }.get(outcome)
+            return CompiledTry((None, k, why, 0, math.inf), outcome, evaluations)
         stats["newton_iterations"] += k
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
         self.eta = np.array([eta])
@@ -357,7 +351,8 @@ class Stepper:
         results = self.engine.step_output.read(out)
         W = results["W"].reshape(1, s, D)
         r = Residual(R=None, stage_f=results["F"].reshape(1, s, n), G=None)
-        return (W, r, theta), k, None, None, formulas.finite_or_inf(formulas.SCALAR, err)
+        found = (W, r, theta), k, None, None, formulas.finite_or_inf(formulas.SCALAR, err)
+        return CompiledTry(found, outcome, evaluations)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""
@@ -578,6 +573,51 @@ class Records:
             nodes = self.nodes[b]
             pieces.append(nodes if len(local) == nodes.shape[1] else nodes[:, index(local)])
         return pieces[0] if len(pieces) == 1 else xp.concatenate(pieces, axis=1)
+
+
+class CompiledTry(NamedTuple):
+    """One compiled attempt's result (:meth:`Stepper.compiled_try`)."""
+
+    found: tuple  # as Stepper.attempt_with_error returns it
+    outcome: int  # .formulas.newton_iteration's
+    evaluations: int  # of the residual
+
+
+class PythonTries(AbstractTriesSide):
+    """The compiled attempt's tries (:func:`.tries.compiled_tries`) on Python values: each try a compiled
+    call (a :class:`CompiledTry`), the matrices the stepper's factors."""
+
+    def __init__(self, stepper: Stepper, t: float, h: float, first: bool):
+        self.stepper, self.t, self.h, self.first = stepper, t, h, first
+        self.f0 = stepper.start_f(t)[0]
+
+    def attempt(self, matrices, guess):
+        return self.stepper.compiled_try(matrices, self.t, self.h, guess, self.first, self.f0)
+
+    def failed(self, result):
+        return result.outcome != formulas.CONVERGED
+
+    def non_finite(self, result):
+        return result.outcome == formulas.NON_FINITE
+
+    def evaluations(self, result):
+        return result.evaluations
+
+    def refresh(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        stepper.drop_jacobian()
+        stepper.drop_factors()
+        return stepper.current_lu(stepper.current_jacobian(t, h), t, h)
+
+    def usable(self, matrices):
+        return matrices.inverse is not None
+
+    def check_stages(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        stage_J = stepper.engine.stage_jacobians(t, h, stepper.constant_guess())
+        stepper.stats["jacobian_evaluations"] += 1
+        stepper.check_determined(stage_J, t, h, keep=False)  # (raises where the sign changes)
+        return False
 
 
 @functools.cache
