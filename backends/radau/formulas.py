@@ -170,13 +170,30 @@ class CasadiOps:
         symbols = [casadi.MX.sym(f"{name}_{k}", x.sparsity()) for k, x in enumerate(flat)]
         args = unflatten(operands, iter(symbols))
         taken, other = then(*args), otherwise(*args)
+        pairs = [
+            [casadi.MX(float(x)) if isinstance(x, (bool, int, float)) else x for x in flatten(out)]
+            for out in (taken, other)
+        ]
+        # an operand both branches pass through is the operand itself; the switch takes only the operands
+        # its other outputs read (each argument is a copy: the factors are thousands of numbers)
+        through = {
+            k: i
+            for k, (a, b) in enumerate(zip(*pairs, strict=True))
+            for i, x in enumerate(symbols)
+            if a is x and b is x
+        }
+        switched = [k for k in range(len(pairs[0])) if k not in through]
+        outputs = [[out[k] for k in switched] for out in pairs]
+        free = {x.name() for out in outputs for y in out for x in casadi.symvar(y) if x.is_symbolic()}
+        read = [i for i, x in enumerate(symbols) if x.is_symbolic() and x.name() in free]  # (an empty one is not)
         functions = [
-            casadi.Function(f"{name}_{k}", symbols, [casadi.MX(float(x)) if isinstance(x, (bool, int, float)) else x
-                                                     for x in flatten(out)])
-            for k, out in (("then", taken), ("else", other))
-        ]  # fmt: skip
-        results = casadi.Function.if_else(name, *functions).call([condition, *flat])
-        return unflatten(taken, iter(results))
+            casadi.Function(f"{name}_{kind}", [symbols[i] for i in read], out)
+            for kind, out in zip(("then", "else"), outputs, strict=True)
+        ]
+        results = casadi.Function.if_else(name, *functions).call([condition, *(flat[i] for i in read)])
+        values = dict(zip(switched, results, strict=True))
+        values.update({k: flat[i] for k, i in through.items()})
+        return unflatten(taken, iter(values[k] for k in range(len(pairs[0]))))
 
     @staticmethod
     def any(flag):
