@@ -36,7 +36,7 @@ from daemodel.backends.radau import formulas
 from daemodel.backends.radau.compiled import NON_FINITE, Buffered, Layout, iteration_matrix, step_layouts
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sparse import MAX_GROWTH
-from daemodel.backends.radau.tries import AbstractTriesSide, compiled_tries
+from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -262,7 +262,8 @@ def run_function(
 
     # the Jacobian, refreshed (with its factored systems) where it was dropped; else factored where h changed
     sign_det = sign if sign is not None and m > 3 else sign_det_function(m)
-    side = CasadiTries(engine, step, refresh, sign_det, stage_jacobians, static, step_out)
+    t_jac = casadi.if_else(refreshed, t, state[layout["t_jac"]])
+    side = CasadiTries(engine, step, refresh, sign_det, stage_jacobians, static, step_out, t_jac != t)
     fresh = lambda *matrices: side.refresh(matrices)[4:]  # noqa: E731
     J, sign, inverse = CASADI.branch(
         "refresh", refreshed, fresh, lambda *matrices: matrices[4:], t, h, u, p, J, det_sign, inverse
@@ -279,8 +280,7 @@ def run_function(
     fixed = dict(t=t, h=h, eta=eta, newton_tol=c["newton_tol"], first=head["first"], rtol=c["rtol"], atol=c["atol"])
     x = casadi.vertcat(*step_in.pack(**fixed, ratio=ratio, nodes=nodes, f0=f0, p=p))
     start = casadi.vertcat(*step_in.pack(**fixed, ratio=0.0, nodes=casadi.repmat(u, s + 1, 1), f0=f0, p=p))
-    t_jac = casadi.if_else(refreshed, t, state[layout["t_jac"]])
-    tries = compiled_tries(CASADI, side, matrices, x, start, t_jac != t, state[layout["h_old"]] > 0)
+    tries = attempt_tries(CASADI, side, matrices, x, start, state[layout["h_old"]] > 0)
     stale, result, (J, retry_sign, inverse) = tries.stale, tries.result, tries.matrices[4:]
     singular = casadi.logic_or(singular, casadi.logic_not(tries.usable))
     results = step_out.read(result)
@@ -315,17 +315,21 @@ def run_function(
 
 
 class CasadiTries(AbstractTriesSide):
-    """The compiled attempt's tries (:func:`.tries.compiled_tries`) on casadi symbols, in
+    """The compiled attempt's tries (:func:`.tries.attempt_tries`) on casadi symbols, in
     :func:`run_function`'s graph: ``matrices`` = ``(t, h, u, p, J, sign, inverse)`` (the step's start,
     the Jacobian's nonzeros, the sign of the algebraic variables' iteration matrix, the packed
     factors), a guess the compiled step's packed input, a result its packed output."""
 
-    def __init__(self, engine, step, refresh, sign_det, stage_jacobians, static, step_out):
+    def __init__(self, engine, step, refresh, sign_det, stage_jacobians, static, step_out, stale_jacobian):
         self.engine, self.step, self.refresh_function, self.sign_det = engine, step, refresh, sign_det
         self.stage_jacobians, self.static, self.out = stage_jacobians, static, step_out
+        self.stale_jacobian = stale_jacobian  # (the Jacobian's time is not the step's)
 
     def attempt(self, matrices, guess):
         return self.step(guess, matrices[6])
+
+    def kept(self):
+        return self.stale_jacobian
 
     def failed(self, result):
         return result[self.out["outcome"]] != 0

@@ -25,7 +25,7 @@ from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
-from daemodel.backends.radau.tries import AbstractTriesSide, compiled_tries
+from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.dense import step_owners
@@ -267,25 +267,14 @@ class Stepper:
             if found[0] is None and guessed:
                 return newton.full(t, h, self.constant_guess())
             return found
-        factors = self.current_lu(J, t, h)
-        result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and self._jac is not None and self._jac[1] != t:
-            # the kept Jacobian may be stale (Newton contracts more slowly with it): refresh it, try again
-            self._jac = self.factors = None
-            factors = self.current_lu(self.current_jacobian(t, h), t, h)
-            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and (self._previous is not None or self.options.start_guess is not None):
-            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
-            # its step): start from the step's start value
-            W0 = self.constant_guess()
-            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and self.policy.rescue:
-            return newton.full(t, h, W0)
-        if result is None:  # the controller shrinks h; first check that z stays determined over the step
-            stage_J = self.engine.stage_jacobians(t, h, W0)
-            self.stats["jacobian_evaluations"] += 1
-            self.check_determined(stage_J, t, h, keep=False)
-        return result, iterations, why, sample
+        # with the transformed systems: the tries of .tries (with a stale Jacobian refreshed, from the
+        # start value, then z's determinedness checked), as the compiled attempt and run make them
+        extrapolated = self._previous is not None or self.options.start_guess is not None
+        side = GeneralTries(self, t, h)
+        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess(), extrapolated)
+        if tries.result[0] is None and self.policy.rescue:  # (every try started from the start value then)
+            return newton.full(t, h, self.constant_guess())
+        return tries.result
 
     def attempt_with_error(self, t, h, first):
         """:meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm`: ``(result, iterations, why,
@@ -304,7 +293,7 @@ class Stepper:
         systems; None where the step must run on the general path (full Newton pending, factors that
         cannot serve, or values that turned non-finite, whose culprit the general path names).
 
-        The retries of :meth:`attempt`, in its order (:func:`.tries.compiled_tries`, which the compiled
+        The retries of :meth:`attempt`, in its order (:func:`.tries.attempt_tries`, which the compiled
         run builds into its graph too): from the extrapolated guess, again with a fresh Jacobian
         where the kept one is stale, then from the start value; where all fail, the determinedness
         of z over the step is checked as :meth:`attempt` checks it.
@@ -318,8 +307,8 @@ class Stepper:
         start = (np.tile(self.state()[0], self.s + 1), 0.0)
         extrapolated = self._previous is not None
         guess = (self._previous_nodes, h / self._previous[0]) if extrapolated else start
-        side = PythonTries(self, t, h, first)
-        tries = compiled_tries(SCALAR, side, factors, guess, start, self._jac[1] != t, extrapolated)
+        side = CompiledTries(self, t, h, first)
+        tries = attempt_tries(SCALAR, side, factors, guess, start, extrapolated)
         self.stats["compiled_retries"] += tries.retries
         self.stats["residual_evaluations"] += tries.evaluations
         if not tries.usable or side.non_finite(tries.result):
@@ -583,13 +572,60 @@ class CompiledTry(NamedTuple):
     evaluations: int  # of the residual
 
 
-class PythonTries(AbstractTriesSide):
-    """The compiled attempt's tries (:func:`.tries.compiled_tries`) on Python values: each try a compiled
-    call (a :class:`CompiledTry`), the matrices the stepper's factors."""
+class StepperTries(AbstractTriesSide):
+    """The tries (:func:`.tries.attempt_tries`) on Python values: the matrices the stepper's factors, a
+    refresh and the stages' check the stepper's."""
+
+    def __init__(self, stepper: Stepper, t: float, h: float):
+        self.stepper, self.t, self.h = stepper, t, h
+
+    def kept(self):
+        jac = self.stepper._jac
+        return jac is not None and jac[1] != self.t
+
+    def refresh(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        stepper.drop_jacobian()
+        stepper.drop_factors()
+        return stepper.current_lu(stepper.current_jacobian(t, h), t, h)
+
+    def check_stages(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        if stepper.policy.rescue:  # (full Newton follows, which checks them)
+            return False
+        stage_J = stepper.engine.stage_jacobians(t, h, stepper.constant_guess())
+        stepper.stats["jacobian_evaluations"] += 1
+        stepper.check_determined(stage_J, t, h, keep=False)  # (raises where the sign changes)
+        return False
+
+
+class GeneralTries(StepperTries):
+    """The general path's tries: each :meth:`.newton.Newton.simplified` from stage values, its result
+    ``(result or None, iterations, why, sample)``."""
+
+    def attempt(self, matrices, guess):
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
+
+    def failed(self, result):
+        return result[0] is None
+
+    def non_finite(self, result):
+        return False  # (the general path names them in its why)
+
+    def evaluations(self, result):
+        return 0  # (counted as they are made)
+
+    def usable(self, matrices):
+        return True  # (a singular factorisation raised, naming why)
+
+
+class CompiledTries(StepperTries):
+    """The compiled attempt's tries: each a compiled call (a :class:`CompiledTry`) from a guess
+    ``(the last step's nodes, h / h_old)``."""
 
     def __init__(self, stepper: Stepper, t: float, h: float, first: bool):
-        self.stepper, self.t, self.h, self.first = stepper, t, h, first
-        self.f0 = stepper.start_f(t)[0]
+        super().__init__(stepper, t, h)
+        self.first, self.f0 = first, stepper.start_f(t)[0]
 
     def attempt(self, matrices, guess):
         return self.stepper.compiled_try(matrices, self.t, self.h, guess, self.first, self.f0)
@@ -603,21 +639,8 @@ class PythonTries(AbstractTriesSide):
     def evaluations(self, result):
         return result.evaluations
 
-    def refresh(self, matrices):
-        stepper, t, h = self.stepper, self.t, self.h
-        stepper.drop_jacobian()
-        stepper.drop_factors()
-        return stepper.current_lu(stepper.current_jacobian(t, h), t, h)
-
     def usable(self, matrices):
         return matrices.inverse is not None
-
-    def check_stages(self, matrices):
-        stepper, t, h = self.stepper, self.t, self.h
-        stage_J = stepper.engine.stage_jacobians(t, h, stepper.constant_guess())
-        stepper.stats["jacobian_evaluations"] += 1
-        stepper.check_determined(stage_J, t, h, keep=False)  # (raises where the sign changes)
-        return False
 
 
 @functools.cache

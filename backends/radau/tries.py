@@ -1,12 +1,14 @@
-"""The compiled attempt's tries, written once over a namespace (:mod:`.formulas`): where the first
-compiled try fails, again with a fresh Jacobian, then from the start value, and where all fail, the
-check that z stays determined over the step.
+"""An attempt's tries, written once over a namespace (:mod:`.formulas`): where the first try fails,
+again with a fresh Jacobian where the kept one may be stale, then from the start value, and where all
+fail, the check that z stays determined over the step.
 
-:meth:`.step.Stepper.compiled_attempt` runs them on Python values (:data:`.formulas.SCALAR`: each
-try a compiled call, each condition a Python branch); :func:`.loop.run_function` builds them into
-its casadi graph (:data:`.formulas.CASADI`: each conditional try a casadi switch, which runs only
-the branch taken).  Each side supplies the tries' pieces (:class:`AbstractTriesSide`): what a try,
-a refresh, a check is on that side; the order and the conditions are here.
+Three callers make them, each with its side (:class:`AbstractTriesSide`: what a try, a refresh, a
+check is there): :meth:`.step.Stepper.attempt` on the general path (each try
+:meth:`.newton.Newton.simplified`), :meth:`.step.Stepper.compiled_attempt` (each try one compiled
+call), both on Python values (:data:`.formulas.SCALAR`: each condition a Python branch), and
+:func:`.loop.run_function`, which builds them into its casadi graph (:data:`.formulas.CASADI`: each
+conditional try a casadi switch that runs only the branch taken).  The order and the conditions are
+here.
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ class AbstractTriesSide(abc.ABC):
 
     ``matrices``: what a try runs on (the Jacobian's factored systems, and whatever the side needs
     with them); ``guess``: a start guess; ``result``: a try's outcome.  On casadi symbols each is an
-    expression or a tuple of them, passed into the switches whole (:meth:`.formulas.CasadiOps.branch`).
+    expression or a tuple of them, passed into the switches whole (:meth:`.formulas.CasadiOps.branch`:
+    a branch reads nothing else).
     """
 
     @abc.abstractmethod
     def attempt(self, matrices, guess):
-        """One compiled try from ``guess`` on ``matrices``: its result."""
+        """One try from ``guess`` on ``matrices``: its result."""
 
     @abc.abstractmethod
     def failed(self, result):
@@ -33,15 +36,19 @@ class AbstractTriesSide(abc.ABC):
 
     @abc.abstractmethod
     def non_finite(self, result):
-        """Whether it failed on values that turned non-finite (the general path names where)."""
+        """Whether it failed on values that turned non-finite (where the general path names them)."""
 
     @abc.abstractmethod
     def evaluations(self, result):
         """The residual evaluations the try made."""
 
     @abc.abstractmethod
+    def kept(self):
+        """Whether the Jacobian, after the first try, was kept from an earlier step (it may be stale)."""
+
+    @abc.abstractmethod
     def refresh(self, matrices):
-        """The matrices of a fresh Jacobian at the step's start (the kept one may be stale)."""
+        """The matrices of a fresh Jacobian at the step's start."""
 
     @abc.abstractmethod
     def usable(self, matrices):
@@ -54,7 +61,7 @@ class AbstractTriesSide(abc.ABC):
 
 
 class Tries(NamedTuple):
-    """What :func:`compiled_tries` found."""
+    """What :func:`attempt_tries` found."""
 
     result: object  # the last try's
     matrices: object  # those it ran on (refreshed where the Jacobian was stale)
@@ -66,29 +73,30 @@ class Tries(NamedTuple):
     stage_flip: object  # the stages' check (check_stages; only where Newton failed)
 
 
-def compiled_tries(xp, side: AbstractTriesSide, matrices, guess, start, kept, extrapolated) -> Tries:
-    """The compiled attempt's tries, in :meth:`.step.Stepper.attempt`'s order:
+def attempt_tries(xp, side: AbstractTriesSide, matrices, guess, start, extrapolated) -> Tries:
+    """An attempt's tries, in their order:
 
-    1. from ``guess`` (the last step's polynomial where there is one: ``extrapolated``; else the
+    1. from ``guess`` (the last step's polynomial, or a given guess: ``extrapolated``; else the
        start value) on ``matrices``;
-    2. where it failed on a Jacobian ``kept`` from an earlier step, which may be stale: again with
-       a fresh one, where its systems can serve;
+    2. where it failed on a Jacobian kept from an earlier step (:meth:`~AbstractTriesSide.kept`),
+       which may be stale (Newton contracts more slowly with it): again with a fresh one, where its
+       systems can serve;
     3. where that failed too (or was not tried) and the guess was ``extrapolated``: from the start
-       value ``start`` (the extrapolation can be far off: a fast transient);
-    4. where every try failed with finite values (the controller then halves h): the check that z
-       stays determined over the step, which a failed step would otherwise step across.
+       value ``start`` (the extrapolation can be far off: a fast transient, a degree-2s-1
+       polynomial taken past its step);
+    4. where every try failed with finite values (the controller then shrinks h): the check that z
+       stays determined over the step, which the error estimate alone would step over.
 
     Matrices that cannot serve (``usable`` False) end the tries: the attempt goes to the general path.
     """
     first = side.attempt(matrices, guess)
+    stale = xp.and_(side.failed(first), side.kept())
 
     def attempt(m, g, r):
         return side.attempt(m, g)
 
     def kept_result(m, g, r):
         return r
-
-    stale = xp.and_(side.failed(first), kept)
 
     def fresh(m, g, r):
         m = side.refresh(m)
