@@ -177,8 +177,8 @@ def inverse_size(transform, D: int) -> int:
 
 
 # The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
-# of NEWTON_STATE (previous: the last increment's norm; mode 0 iterating, 1 checking a convergence at
-# k = 1, 2 evaluating f at the end; active: still iterating).
+# of NEWTON_STATE (previous: the last increment's norm; mode: .formulas' ITERATING, CHECK a convergence
+# at k = 1 or EVALUATE f at the end, after_convergence; active: still iterating).
 NEWTON_STATE = ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
 ITERATION = ("W", "F", *NEWTON_STATE)
 # newton_tests' input: the increment's norm, the state's scalars but active, Newton's tolerance; its output.
@@ -197,17 +197,16 @@ def newton_tests(iterations: int):
     v = NEWTON_BEFORE.read(x)
     norm, previous, theta, eta, k, mode = v["norm"], v["previous"], v["theta"], v["eta"], v["k"], v["mode"]
     outcome, evaluations, tol = v["outcome"], v["evaluations"], v["tol"]
-    # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
-    checked = casadi.logic_and(mode == 1, norm <= tol)
-    iterate = casadi.logic_and(mode < 2, casadi.logic_not(checked))
+    # a check whose increment is small too: converged at W, not taking it
+    checked = casadi.logic_and(mode == formulas.CHECK, formulas.confirmed(norm, tol))
+    iterate = casadi.logic_and(mode < formulas.EVALUATE, casadi.logic_not(checked))
     k1 = k + iterate
     tests = formulas.newton_iteration(CASADI, norm, previous, theta, eta, iterate, k1 <= 1, iterations - k1, tol)
     failure, done = tests.outcome, casadi.logic_and(iterate, casadi.logic_not(tests.active))
     failed = casadi.logic_and(iterate, failure > 0)
-    # after a convergence: k = 1 checks the next increment, later ones evaluate f at the stages
-    check = 1 if iterations > 1 else 2  # (one iteration allowed: nothing to check it with)
-    next_mode = casadi.if_else(iterate, casadi.if_else(done, casadi.if_else(k1 == 1, check, 2), 0), 0)
-    finished = casadi.logic_or(mode == 2, checked)
+    then = formulas.after_convergence(CASADI, k1, iterations)
+    next_mode = casadi.if_else(casadi.logic_and(iterate, done), then, formulas.ITERATING)
+    finished = casadi.logic_or(mode == formulas.EVALUATE, checked)
     out = NEWTON_AFTER.pack(
         iterate=iterate,
         previous=casadi.if_else(iterate, norm, previous),
@@ -218,7 +217,7 @@ def newton_tests(iterations: int):
         outcome=casadi.if_else(failed, failure, outcome),
         active=casadi.logic_not(casadi.logic_or(failed, finished)),
         # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
-        evaluations=evaluations + 1 + casadi.logic_and(mode == 1, iterate),
+        evaluations=evaluations + 1 + casadi.logic_and(mode == formulas.CHECK, iterate),
     )
     return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
 

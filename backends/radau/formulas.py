@@ -44,6 +44,9 @@ TINY_NORM = 1e-300
 STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 # How a simplified Newton iteration ends (newton_iteration), the failures in the order in which they win.
 CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
+# What follows a convergence (after_convergence): iterating on, a check of it by one more increment,
+# f evaluated at the final stages (the error estimate reads it).
+ITERATING, CHECK, EVALUATE = 0, 1, 2
 
 
 class ScalarOps:
@@ -455,3 +458,16 @@ class NewtonTests(NamedTuple):
     slow: object  # contracting too slowly (SLOW's test)
     running: object  # any sample still iterating
     failing: object  # the samples that failed the outcome's test (False where none)
+
+
+def after_convergence(xp, k, iterations: int):
+    """What follows a convergence at iteration ``k`` on RADAU5's start (the last step's rate trusted):
+    at the first, where another iteration is allowed, :data:`CHECK` (one more increment must be
+    small too: a non-smooth f, e.g. sign(x), can make one iteration look converged, and trusting
+    the rate alone accepted 100 x rtol errors on the pendulum); else :data:`EVALUATE`."""
+    return xp.where(xp.and_(k == 1, iterations > 1), CHECK, EVALUATE)
+
+
+def confirmed(norm, tol):
+    """Whether the increment after a one-iteration convergence confirms it (a NaN confirms nothing)."""
+    return norm <= tol

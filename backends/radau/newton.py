@@ -125,12 +125,10 @@ class Newton:
             previous = norm
             if not running and policy.trust_last_rate:
                 # the error estimate needs f at the final stage values
-                if k == 1 and k < policy.iterations:
-                    # converged on the last step's contraction alone: check that the next increment is
-                    # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
+                if formulas.after_convergence(formulas.SCALAR, k, policy.iterations) == formulas.CHECK:
                     stats["residual_evaluations"] += 1
                     r, after = engine.newton_step(factors, t, h, stepper.y, W)
-                    active = ~(stepper.rms(after / scale) <= policy.tol)  # (a NaN check confirms nothing)
+                    active = ~formulas.confirmed(stepper.rms(after / scale), policy.tol)
                     running = bool(active.any())
                 else:
                     r = stepper.residual(t, h, W)

@@ -169,3 +169,13 @@ def test_a_casadi_branch_runs_the_branch_taken_and_passes_the_rest_through():
     function = casadi.Function("f", [a, b], [out])
     assert float(function(3.0, [0.0, 0.0])) == 6.0 and float(function(-3.0, [0.0, 0.0])) == -2.0
     assert SCALAR.branch("b", 3.0 > 0, lambda a: a * 2, lambda a: a + 1, 3.0) == 6.0
+
+
+@pytest.mark.parametrize(
+    ("k", "iterations", "then"), [(1, 7, formulas.CHECK), (2, 7, formulas.EVALUATE), (1, 1, formulas.EVALUATE)]
+)
+def test_a_convergence_at_the_first_iteration_is_checked_where_another_is_allowed(k, iterations, then):
+    assert formulas.after_convergence(SCALAR, k, iterations) == then
+    x = casadi.SX.sym("k")
+    assert float(casadi.Function("then", [x], [formulas.after_convergence(CASADI, x, iterations)])(k)) == then
+    assert formulas.confirmed(1e-7, 1e-6) and not formulas.confirmed(math.nan, 1e-6)
