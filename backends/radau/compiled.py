@@ -29,8 +29,11 @@ from daemodel.backends.radau.formulas import CASADI
 
 from daemodel.collocation import extrapolation_polynomial, horner
 
-# Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does).
-CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
+# Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does):
+# .formulas.newton_iteration's, the same for both.
+CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = (
+    formulas.CONVERGED, formulas.NON_FINITE, formulas.DIVERGING, formulas.SLOW, formulas.NOT_CONVERGED,
+)  # fmt: skip
 # The compiled step's scalars, in front of its packed input's arrays (see step_layouts).
 STEP_SCALARS = ("t", "h", "ratio", "eta", "newton_tol", "first", "rtol", "atol")
 # Its results, in front of its packed output's arrays.
@@ -174,8 +177,8 @@ def inverse_size(transform, D: int) -> int:
 
 
 # The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
-# of NEWTON_STATE (previous: the last increment's norm; mode 0 iterating, 1 checking a convergence at
-# k = 1, 2 evaluating f at the end; active: still iterating).
+# of NEWTON_STATE (previous: the last increment's norm; mode: .formulas' ITERATING, CHECK a convergence
+# at k = 1 or EVALUATE f at the end, after_convergence; active: still iterating).
 NEWTON_STATE = ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
 ITERATION = ("W", "F", *NEWTON_STATE)
 # newton_tests' input: the increment's norm, the state's scalars but active, Newton's tolerance; its output.
@@ -194,48 +197,27 @@ def newton_tests(iterations: int):
     v = NEWTON_BEFORE.read(x)
     norm, previous, theta, eta, k, mode = v["norm"], v["previous"], v["theta"], v["eta"], v["k"], v["mode"]
     outcome, evaluations, tol = v["outcome"], v["evaluations"], v["tol"]
-    finite = norm < casadi.inf  # False for NaN and inf (a NaN anywhere in R or dW ends up here)
-    # mode 1: the increment after a one-iteration convergence is small too: converged at W, not taking it
-    checked = casadi.logic_and(mode == 1, norm <= tol)
-    iterate = casadi.logic_and(mode < 2, casadi.logic_not(checked))
+    # a check whose increment is small too: converged at W, not taking it
+    checked = casadi.logic_and(mode == formulas.CHECK, formulas.confirmed(norm, tol))
+    iterate = casadi.logic_and(mode < formulas.EVALUATE, casadi.logic_not(checked))
     k1 = k + iterate
-    has_prev = k1 > 1
-    theta1 = casadi.if_else(has_prev, formulas.contraction(CASADI, norm, previous), theta)
-    diverging = casadi.logic_and(has_prev, formulas.diverging(theta1))
-    eta1 = casadi.if_else(has_prev, formulas.rate(theta1), eta)
-    done = formulas.converged(eta1, norm, tol)
-    left = iterations - k1
-    slow = casadi.logic_and(
-        casadi.logic_and(has_prev, left > 0),
-        casadi.logic_and(casadi.logic_not(done), formulas.too_slow(eta1, norm, theta1, left, tol)),
-    )
-    failure = casadi.if_else(
-        casadi.logic_not(finite),
-        NON_FINITE,
-        casadi.if_else(
-            diverging,
-            DIVERGING,
-            casadi.if_else(
-                slow, SLOW, casadi.if_else(casadi.logic_and(casadi.logic_not(done), left <= 0), NOT_CONVERGED, 0)
-            ),
-        ),
-    )
+    tests = formulas.newton_iteration(CASADI, norm, previous, theta, eta, iterate, k1 <= 1, iterations - k1, tol)
+    failure, done = tests.outcome, casadi.logic_and(iterate, casadi.logic_not(tests.active))
     failed = casadi.logic_and(iterate, failure > 0)
-    # after a convergence: k = 1 checks the next increment, later ones evaluate f at the stages
-    check = 1 if iterations > 1 else 2  # (one iteration allowed: nothing to check it with)
-    next_mode = casadi.if_else(iterate, casadi.if_else(done, casadi.if_else(k1 == 1, check, 2), 0), 0)
-    finished = casadi.logic_or(mode == 2, checked)
+    then = formulas.after_convergence(CASADI, k1, iterations)
+    next_mode = casadi.if_else(casadi.logic_and(iterate, done), then, formulas.ITERATING)
+    finished = casadi.logic_or(mode == formulas.EVALUATE, checked)
     out = NEWTON_AFTER.pack(
         iterate=iterate,
         previous=casadi.if_else(iterate, norm, previous),
-        theta=casadi.if_else(iterate, theta1, theta),
-        eta=casadi.if_else(iterate, eta1, eta),
+        theta=tests.theta,  # (moved only where it iterated: its active)
+        eta=tests.eta,
         k=k1,
         mode=next_mode,
         outcome=casadi.if_else(failed, failure, outcome),
         active=casadi.logic_not(casadi.logic_or(failed, finished)),
         # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
-        evaluations=evaluations + 1 + casadi.logic_and(mode == 1, iterate),
+        evaluations=evaluations + 1 + casadi.logic_and(mode == formulas.CHECK, iterate),
     )
     return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
 

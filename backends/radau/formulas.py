@@ -15,6 +15,7 @@ division by zero in the branch not taken must not raise there).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 # ---- the step-size controller (Hairer & Wanner, IV.8; RADAU5's values) ---------------------------
 # Safety factor of the next h, and bounds on h_new / h.
@@ -37,6 +38,15 @@ DIVERGENCE_THETA = 0.99
 START_RATE_POWER = 0.8
 # The last increment's norm counts as at least this in the contraction (no division by zero).
 TINY_NORM = 1e-300
+# Newton to rounding (the fixed grid): increments that stop shrinking (contraction above
+# STAGNATION_THETA) while within STAGNATION_FACTOR of the tolerance have reached the rounding floor
+# of the residual (converged, not diverging).
+STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
+# How a simplified Newton iteration ends (newton_iteration), the failures in the order in which they win.
+CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
+# What follows a convergence (after_convergence): iterating on, a check of it by one more increment,
+# f evaluated at the final stages (the error estimate reads it).
+ITERATING, CHECK, EVALUATE = 0, 1, 2
 
 
 class ScalarOps:
@@ -68,6 +78,11 @@ class ScalarOps:
     def isclose(a, b, rel_tol, abs_tol=0.0):
         return math.isclose(a, b, rel_tol=rel_tol, abs_tol=abs_tol)
 
+    @staticmethod
+    def branch(name, condition, then, otherwise, *operands):
+        """``then(*operands)`` where ``condition``, else ``otherwise(*operands)`` (only that one runs)."""
+        return then(*operands) if condition else otherwise(*operands)
+
 
 class ArrayOps:
     """The namespace of an engine's arrays (``xp``: numpy or torch), the samples along the first axis."""
@@ -90,10 +105,17 @@ class ArrayOps:
         return then() if condition else otherwise()
 
     def any(self, flags) -> bool:
-        return bool(flags.any())
+        """Whether any sample's flag is set: a Python bool (one read of the device), for Python's branches."""
+        return flags if isinstance(flags, bool) else bool(flags.any())
 
     def and_(self, a, b):
-        return a and b  # (Python bools: the batch is reduced by any() first)
+        return a & b  # (elementwise; Python bools stay bools)
+
+    def or_(self, a, b):
+        return a | b
+
+    def not_(self, a):
+        return (not a) if isinstance(a, bool) else ~a
 
     def rms(self, x):
         """Root mean square over all but the first (batch) axis, shape (B,)."""
@@ -131,9 +153,50 @@ class CasadiOps:
 
     @staticmethod
     def cond(condition, then, otherwise):
+        """Both branches, selected (a tuple of values: each selected)."""
         import casadi
 
-        return casadi.if_else(condition, then(), otherwise())
+        a, b = then(), otherwise()
+        if isinstance(a, tuple):
+            return tuple(casadi.if_else(condition, x, y) for x, y in zip(a, b, strict=True))
+        return casadi.if_else(condition, a, b)
+
+    @staticmethod
+    def branch(name, condition, then, otherwise, *operands):
+        """``then(*operands)`` where ``condition``, else ``otherwise(*operands)``, as a casadi switch named
+        ``name`` that runs only the branch taken (MX).  ``operands``: expressions, or tuples of them;
+        the branches see them as symbols, and must use nothing else from outside, and return the same
+        structure of the same shapes (Python numbers: 1 x 1)."""
+        import casadi
+
+        flat = flatten(operands)
+        symbols = [casadi.MX.sym(f"{name}_{k}", x.sparsity()) for k, x in enumerate(flat)]
+        args = unflatten(operands, iter(symbols))
+        taken, other = then(*args), otherwise(*args)
+        pairs = [
+            [casadi.MX(float(x)) if isinstance(x, (bool, int, float)) else x for x in flatten(out)]
+            for out in (taken, other)
+        ]
+        # an operand both branches pass through is the operand itself; the switch takes only the operands
+        # its other outputs read (each argument is a copy: the factors are thousands of numbers)
+        through = {
+            k: i
+            for k, (a, b) in enumerate(zip(*pairs, strict=True))
+            for i, x in enumerate(symbols)
+            if a is x and b is x
+        }
+        switched = [k for k in range(len(pairs[0])) if k not in through]
+        outputs = [[out[k] for k in switched] for out in pairs]
+        free = {x.name() for out in outputs for y in out for x in casadi.symvar(y) if x.is_symbolic()}
+        read = [i for i, x in enumerate(symbols) if x.is_symbolic() and x.name() in free]  # (an empty one is not)
+        functions = [
+            casadi.Function(f"{name}_{kind}", [symbols[i] for i in read], out)
+            for kind, out in zip(("then", "else"), outputs, strict=True)
+        ]
+        results = casadi.Function.if_else(name, *functions).call([condition, *(flat[i] for i in read)])
+        values = dict(zip(switched, results, strict=True))
+        values.update({k: flat[i] for k, i in through.items()})
+        return unflatten(taken, iter(values[k] for k in range(len(pairs[0]))))
 
     @staticmethod
     def any(flag):
@@ -173,6 +236,20 @@ class CasadiOps:
         import casadi
 
         return casadi.vertcat(*(base ** float(k) for k in exponents))
+
+
+def flatten(values) -> list:
+    """The leaves of nested tuples (a value that is no tuple: itself)."""
+    if not isinstance(values, tuple):
+        return [values]
+    return [leaf for value in values for leaf in flatten(value)]
+
+
+def unflatten(like, leaves):
+    """Nested tuples shaped as ``like``, of the next values of the iterator ``leaves``."""
+    if not isinstance(like, tuple):
+        return next(leaves)
+    return tuple(unflatten(value, leaves) for value in like)
 
 
 SCALAR, CASADI = ScalarOps(), CasadiOps()
@@ -312,3 +389,85 @@ def sign_flip(before, after):
 def jacobian_kept(xp, theta, reuse_theta):
     """Whether the next step keeps the Jacobian: Newton contracted at most at ``reuse_theta``."""
     return xp.not_(theta > reuse_theta)
+
+
+def newton_iteration(xp, norm, previous, theta, eta, active, first, left, tol, to_rounding=False, slow_ends=True):
+    """The tests of one simplified Newton iteration (a :class:`NewtonTests`) on its increment's scaled
+    norm ``norm``, in their order; the first failure ends the iteration (its outcome wins over the later ones):
+
+    1. :data:`NON_FINITE`: a norm not finite (a NaN or inf anywhere in R or dW ends up there);
+    2. :data:`DIVERGING` (not at the ``first`` iteration): the contraction against the last norm
+       ``previous`` reaches :data:`DIVERGENCE_THETA` (to rounding: only above
+       :data:`STAGNATION_FACTOR` times ``tol``, where increments do not wander at the floor);
+    3. the rate eta moves, and the samples that converged stop (:func:`converged`; to rounding: the
+       increment below ``tol``, or stagnant within :data:`STAGNATION_FACTOR` of it);
+    4. :data:`SLOW` (``slow_ends``; with ``left`` iterations still to come): the increment predicted
+       after them exceeds ``tol`` (:func:`too_slow`);
+    5. :data:`NOT_CONVERGED`: none left and a sample still iterating.
+
+    ``active``: the samples still iterating (only their theta and eta move).  On arrays each test's
+    :meth:`ArrayOps.any` is one read of the device and a Python branch (the later tests are not
+    evaluated after a failure: no warning from a rate at theta 1); on casadi symbols every branch is
+    evaluated and the outcome selected.  With ``slow_ends`` False the caller may refresh its
+    matrices where samples are ``slow`` instead.
+    """
+
+    NONE = False  # (no sample)
+
+    def contracted():
+        th = xp.where(active, contraction(xp, norm, previous), theta)
+        flags = xp.and_(active, diverging(th))
+        if to_rounding:  # increments at the rounding floor wander: that is not divergence
+            flags = xp.and_(flags, norm > STAGNATION_FACTOR * tol)
+        return th, flags
+
+    def tests():
+        th, diverges = xp.cond(first, lambda: (theta, False), contracted)
+        return xp.cond(xp.any(diverges), lambda: (DIVERGING, th, eta, active, NONE, True, diverges), lambda: after(th))
+
+    def after(th):
+        rate_ = xp.cond(first, lambda: eta, lambda: xp.where(active, rate(th), eta))
+        if to_rounding:  # the last increment itself is below tol, or rounding stops it near tol
+            stagnant = xp.and_(th >= STAGNATION_THETA, norm <= STAGNATION_FACTOR * tol)
+            done = xp.or_(norm <= tol, stagnant)
+        else:
+            done = converged(rate_, norm, tol)
+        still = xp.and_(active, xp.not_(done))
+        running = xp.any(still)
+        slow = xp.cond(
+            xp.and_(xp.and_(xp.not_(first), left > 0), running),
+            lambda: xp.and_(still, too_slow(rate_, norm, th, left, tol)),
+            lambda: NONE,
+        )
+        ending = xp.cond(xp.and_(left <= 0, running), lambda: NOT_CONVERGED, lambda: CONVERGED)
+        # (slow_ends: a Python flag, the policy's and the matrices')
+        outcome = xp.cond(xp.any(slow), lambda: SLOW, lambda: ending) if slow_ends else ending
+        return outcome, th, rate_, still, slow, running, slow
+
+    bad = xp.not_(norm < math.inf)
+    return NewtonTests(*xp.cond(xp.any(bad), lambda: (NON_FINITE, theta, eta, active, NONE, True, bad), tests))
+
+
+class NewtonTests(NamedTuple):
+    """What :func:`newton_iteration` found (arrays: one entry per sample; casadi: symbols)."""
+
+    outcome: object  # CONVERGED (none failed: converged, or iterating on), or the failure
+    theta: object  # the contraction
+    eta: object  # the rate
+    active: object  # still iterating after the iteration
+    slow: object  # contracting too slowly (SLOW's test)
+    running: object  # any sample still iterating
+    failing: object  # the samples that failed the outcome's test (False where none)
+
+
+def after_convergence(xp, k, iterations: int):
+    """What follows a convergence at iteration ``k`` on RADAU5's start (the last step's rate trusted):
+    at the first, where another iteration is allowed, :data:`CHECK` (one more increment must be
+    small too: a non-smooth f, e.g. sign(x), can make one iteration look converged, and trusting
+    the rate alone accepted 100 x rtol errors on the pendulum); else :data:`EVALUATE`."""
+    return xp.where(xp.and_(k == 1, iterations > 1), CHECK, EVALUATE)
+
+
+def confirmed(norm, tol):
+    """Whether the increment after a one-iteration convergence confirms it (a NaN confirms nothing)."""
+    return norm <= tol

@@ -36,6 +36,7 @@ from daemodel.backends.radau import formulas
 from daemodel.backends.radau.compiled import NON_FINITE, Buffered, Layout, iteration_matrix, step_layouts
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sparse import MAX_GROWTH
+from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
@@ -247,7 +248,6 @@ def run_function(
 
     s, n, D, m = engine.s, engine.n, engine.D, engine.m
     P, nnz, size_inverse = engine.p.size, len(engine.rows), engine.packed_size()
-    rows, cols = engine.rows, engine.cols
     layout, step_in, step_out = state_layout(s, n, D, nnz, size_inverse), *step_layouts(s, n, D, P)
     state = casadi.MX.sym("state", layout.size)
     settings = casadi.MX.sym("settings", SETTINGS.size + P)
@@ -261,72 +261,31 @@ def run_function(
     h, refreshed, factored, ratio = head["h"], head["refreshed"], head["factored"], head["ratio"]
 
     # the Jacobian, refreshed (with its factored systems) where it was dropped; else factored where h changed
-    args = [casadi.MX.sym("t"), casadi.MX.sym("u", D), casadi.MX.sym("p", P), casadi.MX.sym("h")]
-    kept = [casadi.MX.sym("J", nnz), casadi.MX.sym("sign"), casadi.MX.sym("inverse", size_inverse)]
     sign_det = sign if sign is not None and m > 3 else sign_det_function(m)
-    out = refresh(casadi.vertcat(*args))
-    fresh = casadi.Function("fresh", [*args, *kept], [out[:nnz], sign_det(out[nnz : nnz + m * m]), out[nnz + m * m :]])
-    keep = casadi.Function("keep", [*args, *kept], kept)
-    J, sign, inverse = casadi.Function.if_else("refresh", fresh, keep)(refreshed, t, u, p, h, J, det_sign, inverse)
-    hJ = [casadi.MX.sym("h"), casadi.MX.sym("J", nnz), casadi.MX.sym("inverse", size_inverse)]
-    factor = casadi.Function("factor", hJ, [inverses(casadi.vertcat(hJ[0], hJ[1]))])
-    same = casadi.Function("same", hJ, [hJ[2]])
-    inverse = casadi.Function.if_else("refactor", factor, same)(factored, h, J, inverse)
+    t_jac = casadi.if_else(refreshed, t, state[layout["t_jac"]])
+    side = CasadiTries(engine, step, refresh, sign_det, stage_jacobians, static, step_out, t_jac != t)
+    fresh = lambda *matrices: side.refresh(matrices)[4:]  # noqa: E731
+    J, sign, inverse = CASADI.branch(
+        "refresh", refreshed, fresh, lambda *matrices: matrices[4:], t, h, u, p, J, det_sign, inverse
+    )
+    factor = lambda h, J, inverse: inverses(casadi.vertcat(h, J))  # noqa: E731
+    inverse = CASADI.branch("refactor", factored, factor, lambda h, J, inverse: inverse, h, J, inverse)
+    matrices = (t, h, u, p, J, sign, inverse)
     singular = unusable(casadi, inverse, static)
 
     # the attempt from the last step's polynomial (a constant guess at the first step: ratio 0), then
-    # Stepper.compiled_attempt's retries: with a fresh Jacobian where the kept one failed, then from
-    # the start value (the state at the start, s+1 times, at ratio 0)
+    # its retries (.tries, as Stepper.compiled_attempt makes them): with a fresh Jacobian where the kept
+    # one failed, then from the start value (the state at the start, s+1 times, at ratio 0); where
+    # every try failed (values finite), before h is halved, whether z stays determined over the step
     fixed = dict(t=t, h=h, eta=eta, newton_tol=c["newton_tol"], first=head["first"], rtol=c["rtol"], atol=c["atol"])
     x = casadi.vertcat(*step_in.pack(**fixed, ratio=ratio, nodes=nodes, f0=f0, p=p))
-    result = step(x, inverse)
-    failed, evaluations = result[step_out["outcome"]] != 0, result[step_out["evaluations"]]
-    t_jac = casadi.if_else(refreshed, t, state[layout["t_jac"]])
-    stale = casadi.logic_and(failed, t_jac != t)
-    again = [casadi.MX.sym("x", x.numel()), casadi.MX.sym("result", result.numel())]
-    out = refresh(casadi.vertcat(*args))
-    fresh_inverse = out[nnz + m * m :]
-    retry = casadi.Function(
-        "retry", [*args, *kept, *again],
-        [out[:nnz], sign_det(out[nnz : nnz + m * m]), fresh_inverse, step(again[0], fresh_inverse)],
-    )  # fmt: skip
-    keep_result = casadi.Function("keep_result", [*args, *kept, *again], [*kept, again[1]])
-    J, retry_sign, inverse, result = casadi.Function.if_else("stale", retry, keep_result)(
-        stale, t, u, p, h, J, sign, inverse, x, result
-    )
-    singular = casadi.logic_or(singular, casadi.logic_and(stale, unusable(casadi, inverse, static)))
-    failed_again = result[step_out["outcome"]] != 0
-    evaluations = evaluations + casadi.if_else(stale, result[step_out["evaluations"]], 0)
-    constant = casadi.logic_and(failed_again, state[layout["h_old"]] > 0)
     start = casadi.vertcat(*step_in.pack(**fixed, ratio=0.0, nodes=casadi.repmat(u, s + 1, 1), f0=f0, p=p))
-    from_start = casadi.Function("from_start", [*again, kept[2]], [step(again[0], kept[2])])
-    same_result = casadi.Function("same_result", [*again, kept[2]], [again[1]])
-    result = casadi.Function.if_else("constant", from_start, same_result)(constant, start, result, inverse)
-    evaluations = evaluations + casadi.if_else(constant, result[step_out["evaluations"]], 0)
+    tries = attempt_tries(CASADI, side, matrices, x, start, state[layout["h_old"]] > 0)
+    stale, result, (J, retry_sign, inverse) = tries.stale, tries.result, tries.matrices[4:]
+    singular = casadi.logic_or(singular, casadi.logic_not(tries.usable))
     results = step_out.read(result)
-    outcome = results["outcome"]
-    retries = failed + casadi.logic_and(stale, failed_again) + casadi.logic_and(constant, outcome != 0)
-
-    # every try failed (values finite): before h is halved, z must stay determined over the step, as
-    # Stepper.compiled_attempt checks it (the iteration matrix's sign at each stage of the start value)
-    newton_failed = casadi.logic_and(outcome != 0, outcome != NON_FINITE)
-    stage = [
-        casadi.MX.sym("t"),
-        casadi.MX.sym("h"),
-        casadi.MX.sym("u", D),
-        casadi.MX.sym("p", P),
-        casadi.MX.sym("sign"),
-    ]
-    values = stage_jacobians(casadi.vertcat(stage[0], stage[1], casadi.repmat(stage[2], s, 1), stage[3]))
-    chain = [stage[4]]
-    sparse = static is not None
-    matrices = [iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], rows, cols, engine, sparse) for i in range(s)]
-    chain += [sign_det(matrix) for matrix in matrices]
-    flips = sum(formulas.sign_flip(chain[i], chain[i + 1]) for i in range(s))
-    check = casadi.Function("check", stage, [flips > 0])
-    never = casadi.Function("never", stage, [0])
-    final_sign = casadi.if_else(stale, retry_sign, sign)
-    stage_flip = casadi.Function.if_else("determined", check, never)(newton_failed, t, h, u, p, final_sign)
+    outcome, evaluations, retries = results["outcome"], tries.evaluations, tries.retries
+    newton_failed, stage_flip = tries.newton_failed, tries.stage_flip
 
     attempt = dict(head, stale=stale, singular=singular, sign=sign, retry_sign=retry_sign, outcome=outcome)
     attempt.update(iterations=results["iterations"], theta=results["theta"], eta=results["eta"])
@@ -353,6 +312,63 @@ def run_function(
         carried, rec = maybe(carried[layout["active"]], carried, settings)
         records.append(rec)
     return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+
+
+class CasadiTries(AbstractTriesSide):
+    """The compiled attempt's tries (:func:`.tries.attempt_tries`) on casadi symbols, in
+    :func:`run_function`'s graph: ``matrices`` = ``(t, h, u, p, J, sign, inverse)`` (the step's start,
+    the Jacobian's nonzeros, the sign of the algebraic variables' iteration matrix, the packed
+    factors), a guess the compiled step's packed input, a result its packed output."""
+
+    def __init__(self, engine, step, refresh, sign_det, stage_jacobians, static, step_out, stale_jacobian):
+        self.engine, self.step, self.refresh_function, self.sign_det = engine, step, refresh, sign_det
+        self.stage_jacobians, self.static, self.out = stage_jacobians, static, step_out
+        self.stale_jacobian = stale_jacobian  # (the Jacobian's time is not the step's)
+
+    def attempt(self, matrices, guess):
+        return self.step(guess, matrices[6])
+
+    def kept(self):
+        return self.stale_jacobian
+
+    def failed(self, result):
+        return result[self.out["outcome"]] != 0
+
+    def non_finite(self, result):
+        return result[self.out["outcome"]] == NON_FINITE
+
+    def evaluations(self, result):
+        return result[self.out["evaluations"]]
+
+    def refresh(self, matrices):
+        import casadi
+
+        t, h, u, p = matrices[:4]
+        nnz, m = len(self.engine.rows), self.engine.m
+        out = self.refresh_function(casadi.vertcat(t, u, p, h))
+        return (t, h, u, p, out[:nnz], self.sign_det(out[nnz : nnz + m * m]), out[nnz + m * m :])
+
+    def usable(self, matrices):
+        import casadi
+
+        return casadi.logic_not(unusable(casadi, matrices[6], self.static))
+
+    def check_stages(self, matrices):
+        """The iteration matrix's sign at each stage of the start value, against the last fresh one's."""
+        import casadi
+
+        t, h, u, p, _, sign, _ = matrices
+        engine = self.engine
+        s, nnz = engine.s, len(engine.rows)
+        values = self.stage_jacobians(casadi.vertcat(t, h, casadi.repmat(u, s, 1), p))
+        sparse = self.static is not None
+        chain = [sign] + [
+            self.sign_det(
+                iteration_matrix(casadi, values[i * nnz : (i + 1) * nnz], engine.rows, engine.cols, engine, sparse)
+            )
+            for i in range(s)
+        ]
+        return sum(formulas.sign_flip(chain[i], chain[i + 1]) for i in range(s)) > 0
 
 
 def state_layout(s: int, n: int, D: int, nnz: int, size_inverse: int) -> Layout:
@@ -428,7 +444,7 @@ class CompiledRun:
 
     def _write_back(self, stepper, out, accepted):
         L, stats, engine = self.layout, stepper.stats, stepper.engine
-        s, n, D = stepper.s, stepper.n, stepper.n + stepper.m
+        s, D = stepper.s, stepper.n + stepper.m
         R = self.record
         v = dict(zip(SCALARS.names, out[: SCALARS.size].tolist(), strict=True))
         records = out[L.size :].reshape(self.attempts, R.size)
@@ -452,20 +468,13 @@ class CompiledRun:
         if len(steps):
             nodes = steps[:, R["nodes"]].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
             # (copies: the records' other entries are not kept, as step_record_bytes counts)
-            stepper.records.add(
+            stepper.take_steps(
                 steps[:, R["t"]].copy(),
                 steps[:, R["h"]].copy(),
                 steps[:, R["t_next"]].copy(),
-                nodes.copy() if stepper.records.dense else nodes[:, :, -1:].copy(),  # (the end values only)
+                nodes.copy() if stepper.records.dense else nodes,
+                out[L["f0"]][None].copy(),
             )
-            stats["steps"] += len(steps)
-            lengths = steps[:, R["h"]].tolist()
-            stats["h_min"], stats["h_max"] = min(stats["h_min"], *lengths), max(stats["h_max"], *lengths)
-            stepper._previous = (float(steps[-1, R["h"]]), nodes[:, -1, 0], nodes[:, -1, 1:])
-            stepper._previous_nodes = out[L["nodes"]].copy()
-            u = out[L["u"]]
-            stepper.y, stepper.z = u[None, :n].copy(), u[None, n:].copy()
-            stepper._f_start = out[L["f0"]][None].copy()
             accepted = (v["h_acc"], v["err_acc"])
         stepper.eta = np.array([v["eta"]])
         stepper._jac = (out[L["J"]].copy(), v["t_jac"]) if v["jac_kept"] else None

@@ -16,18 +16,16 @@ from dataclasses import dataclass
 import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.engines import StageFactors
+from daemodel.backends.radau.formulas import STAGNATION_FACTOR, STAGNATION_THETA
 
 # Above this contraction rate, Newton switches to per-stage Jacobians at the current iterate.
 REFRESH_THETA = 0.05
-# Fixed step: increments that stop shrinking (contraction above STAGNATION_THETA) while within
-# STAGNATION_FACTOR of newton_tol have reached the rounding floor of the residual.
-STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 # After a step needed full Newton (per-stage Jacobians), this many steps start with it directly,
 # then the transformed systems are tried again: where the Jacobian varies along the step (the
 # pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
 STAGE_NEWTON_STEPS = 8
-# (The adaptive step's tests, divergence, convergence and slow contraction, are .formulas', shared
-# with the compiled step.)
+# (Simplified Newton's tests, in their order, are .formulas.newton_iteration, shared with the
+# compiled step; the damped iteration's stagnation test reads its STAGNATION_THETA and _FACTOR.)
 # A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
 # damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
 # natural monotonicity test: a step lam dW is taken when the next simplified increment is at
@@ -102,69 +100,60 @@ class Newton:
                 dW = dW * active[:, None, None]  # samples that converged keep their stage values
             W = W + dW
             norm = stepper.rms(dW / scale)
-            finite = xp.isfinite(norm)  # a NaN or inf anywhere in R or dW ends up here
-            if not bool(finite.all()):
-                sample = engine.first(~finite)
-                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
-            if previous is not None:
-                theta = xp.where(active, formulas.contraction(stepper.ops, norm, previous), theta)
-                diverging = active & formulas.diverging(theta)
-                if policy.to_rounding:  # increments at the rounding floor wander: that is not divergence
-                    diverging = diverging & (norm > STAGNATION_FACTOR * policy.tol)
-                if bool(diverging.any()):
-                    worst = engine.first(diverging)
-                    return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
-                eta = xp.where(active, formulas.rate(theta), eta)
-            if policy.to_rounding:
-                # the last increment itself is below tol, or rounding stops the iteration near it
-                done = (norm <= policy.tol) | ((theta >= STAGNATION_THETA) & (norm <= STAGNATION_FACTOR * policy.tol))
-            else:
-                done = formulas.converged(eta, norm, policy.tol)
-            active = active & ~done
             left = policy.iterations - k
-            if previous is not None and left > 0 and bool(active.any()):
-                slow = formulas.too_slow(eta, norm, theta, left, policy.tol)
-                result = self.slow_contraction(t, h, W, factors, theta, slow, active)
-                if isinstance(result, str):
-                    worst = engine.first(active & (theta >= float((theta * active).max())))
-                    return None, k, result, worst
-                factors = result
+            # slow contraction ends the attempt with the transformed systems and no rescue (the
+            # controller shrinks h, as RADAU5 does); else slow_contraction refreshes the matrices
+            slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
+            tests = formulas.newton_iteration(
+                stepper.ops, norm, previous, theta, eta, active, previous is None, left, policy.tol,
+                to_rounding=policy.to_rounding, slow_ends=slow_ends,
+            )  # fmt: skip
+            theta, eta, active = tests.theta, tests.eta, tests.active
+            if tests.outcome == formulas.NON_FINITE:
+                sample = engine.first(tests.failing)
+                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
+            if tests.outcome == formulas.DIVERGING:
+                worst = engine.first(tests.failing)
+                return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
+            if tests.outcome == formulas.SLOW:
+                worst = float((theta * active).max())
+                sample = engine.first(active & (theta >= worst))
+                return None, k, f"converging too slowly (contraction {worst:.2f})", sample
+            running = tests.running
+            if previous is not None and left > 0 and running and not slow_ends:
+                factors = self.slow_contraction(t, h, W, factors, theta, tests.slow, active)
             previous = norm
-            if not bool(active.any()) and policy.trust_last_rate:
+            if not running and policy.trust_last_rate:
                 # the error estimate needs f at the final stage values
-                if k == 1 and k < policy.iterations:
-                    # converged on the last step's contraction alone: check that the next increment is
-                    # small too (a non-smooth f, e.g. sign(x), can make one iteration look converged)
+                if formulas.after_convergence(formulas.SCALAR, k, policy.iterations) == formulas.CHECK:
                     stats["residual_evaluations"] += 1
                     r, after = engine.newton_step(factors, t, h, stepper.y, W)
-                    active = ~(stepper.rms(after / scale) <= policy.tol)  # (a NaN check confirms nothing)
+                    active = ~formulas.confirmed(stepper.rms(after / scale), policy.tol)
+                    running = bool(active.any())
                 else:
                     r = stepper.residual(t, h, W)
-            if not bool(active.any()):
+            if not running:
                 stepper.eta = eta
                 stats["newton_iterations"] += k
                 stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
                 return (W, r, float(theta.max())), k, None, None
+            if tests.outcome == formulas.NOT_CONVERGED:
+                break
         return None, k, f"not converged in {k} iterations", engine.first(active)
 
     def slow_contraction(self, t, h, W, factors, theta, slow, active):
-        """What Newton does when it contracts too slowly: the factors to go on with, or why it stops.
-
-        ``slow``: the increment predicted after the iterations left still exceeds the tolerance (RADAU5's test).  With
-        the transformed systems, a slow contraction that will not reach the tolerance ends the
-        attempt without rescue (the controller shrinks h, as RADAU5 does) and switches to full
-        Newton with each stage's Jacobian at the current iterate with it, which stays quadratic;
+        """The factors to go on with where Newton contracts slowly and the policy rescues (a fixed step):
         under full Newton the stage Jacobians are refreshed while it contracts slower than
-        REFRESH_THETA.
+        REFRESH_THETA; with the transformed systems, where the contraction will not reach the
+        tolerance (``slow``: :func:`.formulas.newton_iteration`'s test), full Newton with each stage's
+        Jacobian at the current iterate takes over, which stays quadratic.  (Without rescue a slow
+        contraction ends the attempt: the controller shrinks h, as RADAU5 does.)
         """
         stepper = self.stepper
-        worst = float((theta * active).max())
         if isinstance(factors, StageFactors):
-            refresh = worst > REFRESH_THETA
+            refresh = float((theta * active).max()) > REFRESH_THETA
         else:
-            refresh = bool((active & slow).any())
-            if refresh and not self.policy.rescue:
-                return f"converging too slowly (contraction {worst:.2f})"
+            refresh = bool(slow.any())
         if not refresh:
             return factors
         stage_J = stepper.engine.stage_jacobians(t, h, W)

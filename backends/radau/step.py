@@ -14,15 +14,18 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 from daemodel.backends.grids import output_times
 from daemodel.backends.radau import formulas
-from daemodel.backends.radau.compiled import CONVERGED, DIVERGING, NOT_CONVERGED, SLOW, STEP_RESULTS
+from daemodel.backends.radau.compiled import STEP_RESULTS
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
+from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
 from daemodel.backends.radau.transform import embedded_weights
+from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
 from daemodel.dense import step_owners
@@ -264,25 +267,14 @@ class Stepper:
             if found[0] is None and guessed:
                 return newton.full(t, h, self.constant_guess())
             return found
-        factors = self.current_lu(J, t, h)
-        result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and self._jac is not None and self._jac[1] != t:
-            # the kept Jacobian may be stale (Newton contracts more slowly with it): refresh it, try again
-            self._jac = self.factors = None
-            factors = self.current_lu(self.current_jacobian(t, h), t, h)
-            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and (self._previous is not None or self.options.start_guess is not None):
-            # the extrapolated guess can be far off (a fast transient, a degree-2s-1 polynomial taken past
-            # its step): start from the step's start value
-            W0 = self.constant_guess()
-            result, iterations, why, sample = newton.simplified(t, h, factors, W0)
-        if result is None and self.policy.rescue:
-            return newton.full(t, h, W0)
-        if result is None:  # the controller shrinks h; first check that z stays determined over the step
-            stage_J = self.engine.stage_jacobians(t, h, W0)
-            self.stats["jacobian_evaluations"] += 1
-            self.check_determined(stage_J, t, h, keep=False)
-        return result, iterations, why, sample
+        # with the transformed systems: the tries of .tries (with a stale Jacobian refreshed, from the
+        # start value, then z's determinedness checked), as the compiled attempt and run make them
+        extrapolated = self._previous is not None or self.options.start_guess is not None
+        side = GeneralTries(self, t, h)
+        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess(), extrapolated)
+        if tries.result[0] is None and self.policy.rescue:  # (every try started from the start value then)
+            return newton.full(t, h, self.constant_guess())
+        return tries.result
 
     def attempt_with_error(self, t, h, first):
         """:meth:`attempt` and the error norm of :meth:`.ErrorEstimate.norm`: ``(result, iterations, why,
@@ -298,12 +290,13 @@ class Stepper:
 
     def compiled_attempt(self, t, h, first):
         """The attempt of :meth:`attempt_with_error` in compiled calls, where Newton runs on the transformed
-        systems; None where the step must run on the general path (full Newton pending, or values that
-        turned non-finite, whose culprit the general path names).
+        systems; None where the step must run on the general path (full Newton pending, factors that
+        cannot serve, or values that turned non-finite, whose culprit the general path names).
 
-        The retries of :meth:`attempt`, in its order: from the extrapolated guess, again with a fresh
-        Jacobian where the kept one is stale, then from the start value; where all fail, the
-        determinedness of z over the step is checked as :meth:`attempt` checks it.
+        The retries of :meth:`attempt`, in its order (:func:`.tries.attempt_tries`, which the compiled
+        run builds into its graph too): from the extrapolated guess, again with a fresh Jacobian
+        where the kept one is stale, then from the start value; where all fail, the determinedness
+        of z over the step is checked as :meth:`attempt` checks it.
         """
         if self.stage_steps > 0:
             return None
@@ -311,45 +304,35 @@ class Stepper:
         if factors.inverse is None:
             return None
         # every node at the start value: a constant guess (at the ratio 0, the start value's weight is 1)
-        constant = None if self._previous is not None else (np.tile(self.state()[0], self.s + 1), 0.0)
-        guess = constant or (self._previous_nodes, h / self._previous[0])
-        f0 = self.start_f(t)[0]
-        found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found[0] is None and self._jac[1] != t:  # the kept Jacobian may be stale: refresh it, try again
-            self._jac = self.factors = None
-            factors = self.current_lu(self.current_jacobian(t, h), t, h)
-            if factors.inverse is None:
-                return None
-            found = self._compiled_try(factors, t, h, guess, first, f0)
-        if found[0] is None and constant is None:
-            found = self._compiled_try(factors, t, h, (np.tile(self.state()[0], self.s + 1), 0.0), first, f0)
-        if found[0] is None:
-            if found[2] is None:  # non-finite values: the general path names where they arose
-                return None
-            stage_J = self.engine.stage_jacobians(t, h, self.constant_guess())
-            self.stats["jacobian_evaluations"] += 1
-            self.check_determined(stage_J, t, h, keep=False)
-        return found
+        start = (np.tile(self.state()[0], self.s + 1), 0.0)
+        extrapolated = self._previous is not None
+        guess = (self._previous_nodes, h / self._previous[0]) if extrapolated else start
+        side = CompiledTries(self, t, h, first)
+        tries = attempt_tries(SCALAR, side, factors, guess, start, extrapolated)
+        self.stats["compiled_retries"] += tries.retries
+        self.stats["residual_evaluations"] += tries.evaluations
+        if not tries.usable or side.non_finite(tries.result):
+            return None
+        return tries.result.found
 
-    def _compiled_try(self, factors, t, h, guess, first, f0):
-        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old), as
-        :meth:`attempt_with_error` returns it (why None where values turned non-finite)."""
+    def compiled_try(self, factors, t, h, guess, first, f0):
+        """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old): a :class:`CompiledTry`
+        whose ``found`` is as :meth:`attempt_with_error` returns it (why None where values turned
+        non-finite)."""
         previous, ratio = guess
         policy, stats = self.policy, self.stats
         scalars = dict(t=t, h=h, ratio=ratio, eta=float(self.eta[0]), newton_tol=policy.tol, first=float(first))
         out = self.engine.compiled_step(factors, dict(scalars, rtol=policy.rtol, atol=policy.atol), previous, f0)
         # (Python floats: cheaper to test)
         outcome, k, evaluations, theta, eta, err = out[: len(STEP_RESULTS)].tolist()
-        stats["residual_evaluations"] += int(evaluations)
-        k = int(k)
-        if outcome != CONVERGED:
-            stats["compiled_retries"] += 1
+        k, outcome, evaluations = int(k), int(outcome), int(evaluations)
+        if outcome != formulas.CONVERGED:
             why = {
-                DIVERGING: f"diverging (contraction {theta:.2f})",
-                SLOW: f"converging too slowly (contraction {theta:.2f})",
-                NOT_CONVERGED: f"not converged in {k} iterations",
-            }.get(int(outcome))
-            return None, k, why, 0, math.inf
+                formulas.DIVERGING: f"diverging (contraction {theta:.2f})",
+                formulas.SLOW: f"converging too slowly (contraction {theta:.2f})",
+                formulas.NOT_CONVERGED: f"not converged in {k} iterations",
+            }.get(outcome)
+            return CompiledTry((None, k, why, 0, math.inf), outcome, evaluations)
         stats["newton_iterations"] += k
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
         self.eta = np.array([eta])
@@ -357,7 +340,8 @@ class Stepper:
         results = self.engine.step_output.read(out)
         W = results["W"].reshape(1, s, D)
         r = Residual(R=None, stage_f=results["F"].reshape(1, s, n), G=None)
-        return (W, r, theta), k, None, None, formulas.finite_or_inf(formulas.SCALAR, err)
+        found = (W, r, theta), k, None, None, formulas.finite_or_inf(formulas.SCALAR, err)
+        return CompiledTry(found, outcome, evaluations)
 
     def finite_at(self, t, h, W) -> bool:
         """Whether the stage residual (f and g) is finite at the stage values ``W``."""
@@ -382,23 +366,35 @@ class Stepper:
                 "at a time, loosen rtol, give t_eval, or keep the step ends only (dense_output=False; with a fixed h, "
                 "a grid's size is checked before the solve)"
             )
-        u_start = self.state()
-        if self.records.dense:
-            nodes = self.xp.concatenate([u_start[:, None], W], axis=1)[:, None]
-        else:  # only the end value, the last node, is kept: a copy, or the view would keep all of W
-            end = W[:, None, -1:]
-            nodes = end.copy() if self.xp is np else end.clone()
-        self.records.add(np.array([t]), np.array([h]), np.array([t_next]), nodes)
-        self._previous = (h, u_start, W)
-        if self.compiled_step:  # the compiled step's start guess reads the nodes packed
-            self._previous_nodes = np.concatenate([u_start[0], W.ravel()])
-        self.y, self.z = W[:, -1, : self.n], W[:, -1, self.n :]
-        self._f_start = r.stage_f[:, -1]
-        self.stats["steps"] += 1
-        self.stats["h_min"] = min(self.stats["h_min"], h)
-        self.stats["h_max"] = max(self.stats["h_max"], h)
+        nodes = self.xp.concatenate([self.state()[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
+        self.take_steps(np.array([t]), np.array([h]), np.array([t_next]), nodes, r.stage_f[:, -1])
         if not formulas.jacobian_kept(formulas.SCALAR, theta, self.reuse_theta()):
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
+
+    def take_steps(self, starts, lengths, ends, nodes, f_end):
+        """Take accepted steps (one, or a compiled run's): ``starts``, ``lengths`` and ``ends`` (k,) numpy,
+        ``nodes`` (B, k, s+1, n+m) their start values and stages, ``f_end`` (B, n) f at the last one's end.
+
+        Records their outputs (the nodes whole with ``dense``, else a copy of the end values: a view
+        would keep all of them), moves the state to the last one's end, keeps its polynomial for the
+        next start guess and counts them.
+        """
+        if self.records.dense:
+            kept = nodes
+        else:
+            end = nodes[:, :, -1:]
+            kept = end.copy() if self.xp is np else end.clone()
+        self.records.add(starts, lengths, ends, kept)
+        last = nodes[:, -1]  # (B, s+1, n+m)
+        self._previous = (float(lengths[-1]), last[:, 0], last[:, 1:])
+        if self.compiled_step:  # the compiled step's start guess reads the nodes packed (B = 1)
+            self._previous_nodes = last[0].reshape(-1).copy()
+        self.y, self.z = last[:, -1, : self.n], last[:, -1, self.n :]
+        self._f_start = f_end
+        self.stats["steps"] += len(starts)
+        lengths = lengths.tolist()
+        self.stats["h_min"] = min(self.stats["h_min"], *lengths)
+        self.stats["h_max"] = max(self.stats["h_max"], *lengths)
 
     def reuse_theta(self) -> float:
         """The contraction up to which the next step keeps the Jacobian (-inf: never, reuse_jacobian=False)."""
@@ -566,6 +562,85 @@ class Records:
             nodes = self.nodes[b]
             pieces.append(nodes if len(local) == nodes.shape[1] else nodes[:, index(local)])
         return pieces[0] if len(pieces) == 1 else xp.concatenate(pieces, axis=1)
+
+
+class CompiledTry(NamedTuple):
+    """One compiled attempt's result (:meth:`Stepper.compiled_try`)."""
+
+    found: tuple  # as Stepper.attempt_with_error returns it
+    outcome: int  # .formulas.newton_iteration's
+    evaluations: int  # of the residual
+
+
+class StepperTries(AbstractTriesSide):
+    """The tries (:func:`.tries.attempt_tries`) on Python values: the matrices the stepper's factors, a
+    refresh and the stages' check the stepper's."""
+
+    def __init__(self, stepper: Stepper, t: float, h: float):
+        self.stepper, self.t, self.h = stepper, t, h
+
+    def kept(self):
+        jac = self.stepper._jac
+        return jac is not None and jac[1] != self.t
+
+    def refresh(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        stepper.drop_jacobian()
+        stepper.drop_factors()
+        return stepper.current_lu(stepper.current_jacobian(t, h), t, h)
+
+    def check_stages(self, matrices):
+        stepper, t, h = self.stepper, self.t, self.h
+        if stepper.policy.rescue:  # (full Newton follows, which checks them)
+            return False
+        stage_J = stepper.engine.stage_jacobians(t, h, stepper.constant_guess())
+        stepper.stats["jacobian_evaluations"] += 1
+        stepper.check_determined(stage_J, t, h, keep=False)  # (raises where the sign changes)
+        return False
+
+
+class GeneralTries(StepperTries):
+    """The general path's tries: each :meth:`.newton.Newton.simplified` from stage values, its result
+    ``(result or None, iterations, why, sample)``."""
+
+    def attempt(self, matrices, guess):
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
+
+    def failed(self, result):
+        return result[0] is None
+
+    def non_finite(self, result):
+        return False  # (the general path names them in its why)
+
+    def evaluations(self, result):
+        return 0  # (counted as they are made)
+
+    def usable(self, matrices):
+        return True  # (a singular factorisation raised, naming why)
+
+
+class CompiledTries(StepperTries):
+    """The compiled attempt's tries: each a compiled call (a :class:`CompiledTry`) from a guess
+    ``(the last step's nodes, h / h_old)``."""
+
+    def __init__(self, stepper: Stepper, t: float, h: float, first: bool):
+        super().__init__(stepper, t, h)
+        self.first, self.f0 = first, stepper.start_f(t)[0]
+
+    def attempt(self, matrices, guess):
+        return self.stepper.compiled_try(matrices, self.t, self.h, guess, self.first, self.f0)
+
+    def failed(self, result):
+        return result.outcome != formulas.CONVERGED
+
+    def non_finite(self, result):
+        return result.outcome == formulas.NON_FINITE
+
+    def evaluations(self, result):
+        return result.evaluations
+
+    def usable(self, matrices):
+        return matrices.inverse is not None
 
 
 @functools.cache

@@ -116,3 +116,66 @@ def test_layouts_name_every_part_once():
     assert layout.pack(**parts)[2] is parts["u"]
     with pytest.raises(KeyError, match=r"expected the parts \['t', 'h', 'u', 'code', 'p'\]; got \['h', 't'\]"):
         layout.pack(t=0.0, h=1.0)
+
+
+# (norm, previous, theta, eta, first, left, tol): Newton's outcome, the samples still iterating
+NEWTON_CASES = [
+    ((math.nan, 1e-3, 0.0, 0.5, False, 3, 1e-2), formulas.NON_FINITE, True),
+    ((1e-4, 0.0, 0.0, 0.01, True, 6, 1e-2), formulas.CONVERGED, False),  # the first: the last step's rate
+    ((1e-3, 1e-3, 0.1, 0.5, False, 3, 1e-6), formulas.DIVERGING, True),  # theta 1: no rate computed
+    ((2e-4, 1e-3, 0.1, 0.5, False, 1, 5e-6), formulas.SLOW, True),  # 0.25 2e-4 0.2 > 5e-6
+    ((2e-4, 1e-3, 0.1, 0.5, False, 2, 5e-6), formulas.CONVERGED, True),  # 0.25 2e-4 0.04 < 5e-6: on
+    ((2e-4, 1e-3, 0.1, 0.5, False, 0, 5e-6), formulas.NOT_CONVERGED, True),
+    ((2e-4, 1e-3, 0.1, 0.5, False, 0, 5e-5), formulas.CONVERGED, False),  # 0.25 2e-4 <= 5e-5
+]
+
+
+@pytest.mark.parametrize(("case", "outcome", "running"), NEWTON_CASES)
+def test_newtons_tests_in_their_order_on_arrays_and_on_casadi_symbols(case, outcome, running):
+    norm, previous, theta, eta, first, left, tol = case
+    arrays = ArrayOps(np)
+    with np.errstate(all="raise"):  # (a test past a failure, such as the rate at theta 1, would warn)
+        found = formulas.newton_iteration(
+            arrays, np.array([norm]), None if first else np.array([previous]), np.array([theta]), np.array([eta]),
+            np.array([True]), first, left, tol,
+        )  # fmt: skip
+    assert found.outcome == outcome and found.running == running
+    names = ("norm", "previous", "theta", "eta", "first", "left", "tol")
+    x = {name: casadi.SX.sym(name) for name in names}
+    tests = formulas.newton_iteration(CASADI, *(x[name] for name in names[:4]), 1, *(x[name] for name in names[4:]))
+    function = casadi.Function("tests", list(x.values()), [tests.outcome, tests.theta, tests.eta, tests.active])
+    symbolic = [float(value) for value in function(norm, previous, theta, eta, first, left, tol)]
+    assert symbolic[0] == outcome and symbolic[3] == (running if outcome == formulas.CONVERGED else 1.0)
+    if outcome != formulas.NON_FINITE:  # (the same contraction and rate, bit for bit)
+        assert symbolic[1] == found.theta[0] and symbolic[2] == found.eta[0]
+    if not first and outcome != formulas.NON_FINITE:
+        assert found.theta[0] == norm / previous
+
+
+def test_newtons_tests_move_only_the_samples_still_iterating():
+    arrays = ArrayOps(np)
+    norm, previous = np.array([1e-9, 1e-4, 5e-5]), np.array([1e-3, 1e-3, 1e-3])
+    active = np.array([True, True, False])  # the third converged before: its theta and eta stay
+    found = formulas.newton_iteration(arrays, norm, previous, np.full(3, 0.3), np.full(3, 0.5), active, False, 4, 1e-6)
+    np.testing.assert_array_equal(found.theta, [1e-6, 0.1, 0.3])
+    np.testing.assert_array_equal(found.eta, [1e-6 / (1 - 1e-6), 0.1 / 0.9, 0.5])
+    assert list(found.active) == [False, True, False] and found.outcome == formulas.CONVERGED
+
+
+def test_a_casadi_branch_runs_the_branch_taken_and_passes_the_rest_through():
+    a, b = casadi.MX.sym("a"), casadi.MX.sym("b", 2)
+    out, kept = CASADI.branch("b", a > 0, lambda a, b: (a * 2, b), lambda a, b: (a + 1, b), a, b)
+    assert kept is b  # (both branches pass it through: no copy through the switch)
+    function = casadi.Function("f", [a, b], [out])
+    assert float(function(3.0, [0.0, 0.0])) == 6.0 and float(function(-3.0, [0.0, 0.0])) == -2.0
+    assert SCALAR.branch("b", 3.0 > 0, lambda a: a * 2, lambda a: a + 1, 3.0) == 6.0
+
+
+@pytest.mark.parametrize(
+    ("k", "iterations", "then"), [(1, 7, formulas.CHECK), (2, 7, formulas.EVALUATE), (1, 1, formulas.EVALUATE)]
+)
+def test_a_convergence_at_the_first_iteration_is_checked_where_another_is_allowed(k, iterations, then):
+    assert formulas.after_convergence(SCALAR, k, iterations) == then
+    x = casadi.SX.sym("k")
+    assert float(casadi.Function("then", [x], [formulas.after_convergence(CASADI, x, iterations)])(k)) == then
+    assert formulas.confirmed(1e-7, 1e-6) and not formulas.confirmed(math.nan, 1e-6)
