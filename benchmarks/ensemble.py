@@ -215,7 +215,7 @@ def surrogate_training() -> dict:
     for workers in (1, 2):
         ray.init(num_cpus=workers, log_to_driver=False, include_dashboard=False)
         label = f"from radau starts, ray, {workers} worker{'s' if workers > 1 else ''}"
-        out[label] = entry(*timed(lambda: train(starts="radau", engine="ray")))  # the cluster's first call
+        out[label] = entry(*timed(lambda: train(starts="radau", executor="ray")))  # the cluster's first call
         print("surrogate", label, json.dumps(out[label]), flush=True)
         ray.shutdown()
     return out

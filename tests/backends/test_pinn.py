@@ -412,7 +412,7 @@ def test_segments_trained_as_ray_tasks_equal_the_local_ones(ray_cluster):
     c = HESSENBERG.model().compile()
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
     local = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau)
-    ray = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, engine="ray")
+    ray = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau, executor="ray")
     for name in ray.names:
         np.testing.assert_allclose(ray[name], local[name], rtol=0, atol=1e-13)
     # equal up to the closing Newton steps, which stop at rounding: the last bits of a product
