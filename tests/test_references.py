@@ -41,7 +41,11 @@ def resolves(path: str) -> bool:
 
 def references(pattern: re.Pattern) -> list[tuple[str, str]]:
     return sorted(
-        {(str(text.relative_to(ROOT)), m.group(0)) for text in TEXTS for m in pattern.finditer(text.read_text())}
+        {
+            (str(text.relative_to(ROOT)), m.group(m.lastindex or 0))
+            for text in TEXTS
+            for m in pattern.finditer(text.read_text())
+        }
     )
 
 
@@ -53,6 +57,25 @@ def test_every_dotted_path_imports(where, path):
 @pytest.mark.parametrize(("where", "path"), references(FILE))
 def test_every_named_source_file_exists(where, path):
     assert (ROOT / path).is_file(), f"{where} names {path}, which does not exist"
+
+
+# A reST role's target with a leading dot (``:func:`.compiled.refresh_function```): Sphinx takes it as a
+# suffix of some object's full name.
+SUFFIX = re.compile(r":(?:mod|func|class|meth|data|attr|exc):`~?(\.[\w.]+)`")
+
+
+def _modules() -> list[str]:
+    names = []
+    for folder, package in (("daemodel", "daemodel"), ("backends", "daemodel.backends")):
+        for path in (ROOT / folder).rglob("*.py"):
+            parts = [p for p in path.relative_to(ROOT / folder).with_suffix("").parts if p != "__init__"]
+            names.append(".".join([package, *parts]))
+    return names
+
+
+@pytest.mark.parametrize(("where", "suffix"), references(SUFFIX))
+def test_every_dotted_suffix_names_something(where, suffix):
+    assert any(resolves(f"{module}{suffix}") for module in _modules()), f"{where} names {suffix}, which is nowhere"
 
 
 def test_a_moved_name_is_caught():
