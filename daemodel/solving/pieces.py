@@ -15,7 +15,7 @@ from daemodel.errors import SwitchError
 # Stats summed over segments (counters); keys starting with "max"/ending "_max" take the largest,
 # "min"/"_min" the smallest; any other key keeps the first segment's value (stages, engine, ...).
 _COUNTERS = ("steps", "attempts", "rejected", "iterations", "evaluations", "decompositions", "failures",
-             "refreshes", "retries", "runs", "setups", "calls")  # fmt: skip
+             "refreshes", "retries", "runs", "setups", "calls", "events")  # fmt: skip
 
 
 def merge_stats(all_stats: list) -> dict:
@@ -134,8 +134,10 @@ def join_samples(parts: list, B: int, batched: bool):
         parameters[index] = sol.parameters
     breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
     events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
-    stats = merge_stats([sol.stats for _, sol in parts])
+    stats = merge_stats([sol.stats for _, sol in parts])  # (events: every group's, summed)
     stats["groups"] = len(parts)
+    if isinstance(stats.get("batch"), int):  # (each group's solve had its own: the whole is B samples)
+        stats["batch"] = B
     if ends is not None:  # (where each sample ended)
         stats["t_end"] = np.empty(B)
         for index, sol in parts:

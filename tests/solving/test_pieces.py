@@ -33,3 +33,21 @@ def test_rows_of_different_widths_are_padded_with_nan_not_dropped():
 def test_lists_of_other_things_still_concatenate():
     merged = merge_stats([Stats({"integrator": ["LSODA"]}), Stats({"integrator": ["Radau"]})])
     assert merged == {"integrator": ["LSODA", "Radau"]}
+
+
+def test_a_batch_solved_in_groups_counts_every_samples_events_and_all_its_samples():
+    """A batch with events is solved sample by sample (groups) and joined: its stats said the first
+    group's ``events`` and ``batch`` (1 and 1 for three balls that bounce 1, 2 and 3 times)."""
+    import daemodel as dm
+
+    m = dm.Model("ball")
+    h, v = m.states("h v")
+    m.ode(h, v)
+    m.ode(v, -9.81)
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": "-0.8*v"})
+    heights = [3.0, 1.0, 0.5]  # first bounces at sqrt(2 h / g): 0.78, 0.45, 0.32; the next 1.6 sqrt(2 h / g) later
+    alone = [dm.solve(m, (0.0, 1.3), y0={"h": h0, "v": 0.0}, rtol=1e-8).stats["events"] for h0 in heights]
+    assert alone == [1, 2, 3]
+    batch = dm.solve(m, (0.0, 1.3), y0={"h": heights, "v": [0.0] * 3}, t_eval=[0.0, 0.5, 1.3], rtol=1e-8)
+    assert batch.stats["groups"] == 3 and batch.stats["batch"] == 3 and batch.stats["events"] == 6
