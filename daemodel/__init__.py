@@ -4,7 +4,8 @@ Radau-PINN and classical solvers."""
 from daemodel import errors
 from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.comparing.compare import Comparison, compare
+from daemodel.comparing.compare import compare
+from daemodel.comparing.tables import Comparison
 from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.compiler import Model
 from daemodel.fitting.fit import Fit, fit

@@ -2,29 +2,19 @@
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from daemodel.errors import ComparisonError, OmittedPanelsWarning, SolutionFileError, UnknownSymbolError
+from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
     memory_limit,
     open_file,
     readable_path,
-    save_figure,
 )
+from daemodel.instants import TIME_MATCH_RTOL
 from daemodel.stats import Stats
-
-# Times of two solutions count as the same when they differ by less than this, relative to
-# the span: grids built as t0 + k*h in different orders differ in the last bits.
-TIME_MATCH_RTOL = 1e-9
-# Samples drawn by Solution.plot for a batch; more lines only hide each other.
-PLOTTED_SAMPLES = 20
-# Panels Solution.plot() draws without names=: four rows of three stay readable on a screen or a
-# page; a 62-variable model drew 62 panels of a few pixels each.
-PLOTTED_PANELS = 12
 
 
 @dataclass(frozen=True, eq=False)
@@ -521,7 +511,7 @@ class Solution:
         if not path.exists():
             raise SolutionFileError(f"no solution file at {path}")
         with open_file(path, "path", SolutionFileError) as handle:
-            return read(handle, path, model)
+            return read(handle, path, model, cls)
 
     # ---- export -------------------------------------------------------------------------
     def to_pandas(self):
@@ -540,72 +530,28 @@ class Solution:
     def plot(self, path=None, names=None, reference=None):
         """Plot each variable against t (one panel each); a batch shows up to 20 samples.
 
+        Drawn from the dense output (:meth:`at`, the method's accuracy) on a fine grid, or the output
+        points where there is none; broken at every event and breakpoint (each side's limit shown),
+        whose times are marked on the time axis (:mod:`daemodel.plotting`).
+
         Parameters
         ----------
         path : str or Path, optional
             Write the figure there (PNG, PDF, ... by suffix).
         names : iterable of str, optional
             Variables to draw, all of them.  Default: the states, then the algebraic variables, at
-            most :data:`PLOTTED_PANELS` (12) of them; where more were left out, the figure's title
+            most :data:`~daemodel.plotting.PLOTTED_PANELS` (12) of them; where more were left out, the figure's title
             says how many and an :class:`~daemodel.errors.OmittedPanelsWarning` names them.
         reference : callable or Solution, optional
-            Drawn dashed on top (first sample only for a batch).
+            Drawn dashed on top (first sample only for a batch), broken at the instants it states.
 
         Returns
         -------
         matplotlib.figure.Figure
         """
-        from matplotlib.figure import Figure
+        from daemodel.plotting import plot_solution
 
-        omitted = []
-        if names is None:
-            every = [*self.compiled.state_names, *self.compiled.algebraic_names]
-            names, omitted = every[:PLOTTED_PANELS], every[PLOTTED_PANELS:]
-        else:
-            names = list(names)
-        if omitted:
-            listed = ", ".join(omitted[:PLOTTED_PANELS]) + (", ..." if len(omitted) > PLOTTED_PANELS else "")
-            warnings.warn(
-                f"plot() drew {len(names)} of the {len(names) + len(omitted)} variables of '{self.compiled.name}' and "
-                f"left out {len(omitted)} ({listed}); choose them with names=[...]",
-                OmittedPanelsWarning,
-                stacklevel=2,
-            )
-        for name in names:
-            self[name]  # raises for unknown names before drawing anything
-        columns = min(3, len(names))
-        rows = -(-len(names) // columns)
-        fig = Figure(figsize=(4.2 * columns, 2.8 * rows), layout="constrained")
-        axes = fig.subplots(rows, columns, squeeze=False, sharex=True)
-        ref_values = None
-        if isinstance(reference, Solution):
-            ref_values = (reference.t, {n: reference.values[n][0] for n in reference.names})
-        elif reference is not None:
-            ref_values = (self.t, {k: np.broadcast_to(v, self.t.shape) for k, v in reference(self.t).items()})
-        shown = min(self.batch_size, PLOTTED_SAMPLES)
-        for ax, name in zip(axes.flat, names, strict=False):
-            values = self.values[name]
-            for b in range(shown):
-                ax.plot(self.t, values[b], lw=1.2 if shown == 1 else 0.7, color="C0", alpha=1 if shown == 1 else 0.6)
-            if ref_values is not None and name in ref_values[1]:
-                ax.plot(ref_values[0], ref_values[1][name], "--", color="C3", lw=1, label="reference")
-                ax.legend(loc="best", fontsize=8)
-            ax.set_title(name)
-            ax.grid(alpha=0.3)
-        for ax in axes.flat[len(names) :]:
-            ax.set_visible(False)
-        # the lowest visible panel of each column carries the time axis (sharex hides the others'
-        # tick labels, and the last row may be partly empty)
-        for column in range(columns):
-            lowest = max(row for row in range(rows) if row * columns + column < len(names))
-            axes[lowest, column].tick_params(labelbottom=True)
-            axes[lowest, column].set_xlabel("t")
-        batch = f", {shown} of {self.batch_size} samples" if self.batched else ""
-        left_out = f"\n{len(names)} of {len(names) + len(omitted)} variables; names=[...] chooses" if omitted else ""
-        fig.suptitle(f"{self.compiled.name}: {self.method}{batch}{left_out}")
-        if path is not None:
-            save_figure(fig, path, "plot path", dpi=120)
-        return fig
+        return plot_solution(self, path, names, reference)
 
     def __repr__(self) -> str:
         batch = f", batch={self.batch_size}" if self.batched else ""

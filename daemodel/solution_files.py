@@ -22,7 +22,6 @@ from daemodel.files import (
     stored,
     writable_file,
 )
-from daemodel.solution import Solution
 
 # What Solution.save writes and Solution.load reads.
 SOLUTION_FORMAT = "daemodel-solution/2"
@@ -214,7 +213,7 @@ def write(sol, path) -> Path:
     return atomic_write(path, lambda handle: np.savez(handle, **arrays))
 
 
-def read(handle, path: Path, model) -> Solution:
+def read(handle, path: Path, model, cls):
     """The solution in the open file ``handle`` (``path`` for messages), every field checked."""
     from daemodel.compiling.compiler import as_compiled
 
@@ -282,7 +281,7 @@ def read(handle, path: Path, model) -> Solution:
         except ValueError as error:
             raise SolutionFileError(f"{path}: field 'dense' is damaged: {error}") from None
         _check_dense(dense, t, values, path)
-    return Solution(
+    return cls(
         t=t,
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
         method=meta["method"],

@@ -23,7 +23,7 @@ LAYERS = (
     ("core", ("errors", "files", "tableau", "reals", "collocation", "messages", "executors")),
     ("declaring", ("declaring",)),
     ("compiling", ("compiling",)),
-    ("the Solution", ("solution", "solution_files", "stats", "dense", "sensitivities", "instants")),
+    ("the Solution", ("solution", "solution_files", "stats", "dense", "sensitivities", "instants", "plotting")),
     ("backends", ("backends",)),
     ("solving", ("solving",)),
     ("problems", ("problems",)),
@@ -153,7 +153,7 @@ def violations(root: Path) -> list[str]:
                 found.append(f"{where}:{line}: {name} imports the private name {imported} of {module}")
         for line, module, attribute in private_attributes(name, path, table):
             found.append(f"{where}:{line}: {name} reads the private name {attribute} of {module}")
-    return found
+    return list(dict.fromkeys(found))  # (one line for an import of several names)
 
 
 def _layer_name(index: int) -> str:
@@ -352,3 +352,52 @@ def test_a_module_in_no_layer_is_named(tree):
     assert violations(tree) == [
         "daemodel/gadgets.py: module daemodel.gadgets is in no layer (add it to LAYERS and to docs/README.md#layout)"
     ]
+
+
+def circles(root: Path) -> list[list[str]]:
+    """The import circles among the modules under ``root`` (strongly connected sets of two or more
+    modules, or a module importing itself), each in name order; imports inside functions count."""
+    table = modules(root)
+    arrows: dict[str, set[str]] = {name: set() for name in table}
+    for name, path in table.items():
+        for _, module, imported in imports(name, path):
+            target = f"{module}.{imported}" if f"{module}.{imported}" in table else module
+            if target in table and name != "daemodel":
+                arrows[name].add(target)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(node: str) -> None:  # Tarjan's strongly connected components
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for other in sorted(arrows[node]):
+            if other not in index:
+                visit(other)
+                low[node] = min(low[node], low[other])
+            elif other in stack:
+                low[node] = min(low[node], index[other])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1 or node in arrows[node]:
+                found.append(sorted(component))
+
+    for node in sorted(table):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_no_module_imports_another_that_imports_it_back():
+    assert circles(ROOT) == []
+
+
+def test_a_planted_circle_is_named(tree):
+    _plant(tree / "daemodel" / "stats.py", "from daemodel.solution import Solution", inside=True)
+    assert circles(tree) == [["daemodel.solution", "daemodel.stats"]]

@@ -30,11 +30,11 @@ def resolves(path: str) -> bool:
             target = importlib.import_module(".".join(parts[:i]))
         except ImportError:
             continue
-        try:
-            for attribute in parts[i:]:
+        for k, attribute in enumerate(parts[i:], i + 1):
+            if hasattr(target, attribute):
                 target = getattr(target, attribute)
-        except AttributeError:
-            return False
+            else:  # an instance's attribute a class declares (a dataclass field without a default)
+                return k == len(parts) and attribute in getattr(target, "__annotations__", {})
         return True
     return False
 
@@ -82,3 +82,5 @@ def test_a_moved_name_is_caught():
     assert resolves("daemodel.compiling.zero_test.exact_value")
     assert not resolves("daemodel.compiling.structure.exact_value")
     assert not resolves("daemodel.solving.nowhere")
+    assert resolves("daemodel.comparing.tables.Run.solve_time")  # (a dataclass field)
+    assert not resolves("daemodel.comparing.tables.Run.nowhere")

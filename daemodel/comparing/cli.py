@@ -62,7 +62,7 @@ def load_target(target: str):
         error, at import, in ``build_model()``): the message names the file, the line where
         known, and the exception.
     """
-    from daemodel.comparing.compare import exception_summary
+    from daemodel.comparing.references import exception_summary
     from daemodel.problems import PROBLEMS
 
     if target in PROBLEMS:
@@ -257,7 +257,8 @@ def main(argv=None) -> int:
 def _compare(args) -> int:
     from daemodel.backends import get_backend
     from daemodel.backends.grids import SWEEP_FIRST_STEPS
-    from daemodel.comparing.compare import check_points, plan_comparison
+    from daemodel.comparing.compare import plan_comparison
+    from daemodel.comparing.sweeps import check_points
     from daemodel.problems import PROBLEMS
 
     def report(where: str, error: Exception) -> None:

@@ -289,7 +289,7 @@ def inputs_digest(batch: dict) -> str:
 def _read_chunk(directory: Path, name: str, compiled) -> Solution:
     """A chunk file (its name checked, read without following a link) as a Solution."""
     with open_inside(directory, name, "chunk file", SolutionFileError) as handle:
-        part = read(handle, directory / name, compiled)
+        part = read(handle, directory / name, compiled, Solution)
     samples = part.stats.get("samples")
     if (
         not isinstance(samples, np.ndarray)

@@ -408,7 +408,7 @@ def test_segment_parallel_training_from_known_starts():
 
 def test_segments_trained_as_ray_tasks_equal_the_local_ones(ray_cluster):
     """Four segments as tasks on a 2-CPU Ray cluster: each task trains from the same seed on one
-    thread, so the networks, and the values, are the local engine's."""
+    thread, so the networks, and the values, are the local executor's."""
     c = HESSENBERG.model().compile()
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
     local = dm.solve(c, (0.0, 0.2), method="pinn", segment_starts=radau)

@@ -15,7 +15,8 @@ from test_compare import MODEL_FILE
 import daemodel as dm
 import daemodel.solving.solver
 from daemodel.comparing.cli import load_target, main
-from daemodel.comparing.compare import MAX_POINTS, MAX_SWEEP_STEPS, plan_comparison
+from daemodel.comparing.compare import plan_comparison
+from daemodel.comparing.sweeps import MAX_POINTS, MAX_SWEEP_STEPS
 from daemodel.errors import ComparisonError, ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.problems import HESSENBERG
 

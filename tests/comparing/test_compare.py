@@ -100,7 +100,7 @@ def test_the_table_names_a_certificate_that_failed_at_a_step():
     leaves sqrt's domain; the row says why it is flagged instead of comparing two infinities."""
     from daemodel.backends.pinn import certificate
 
-    from daemodel.comparing.compare import CERTIFICATE_FAILURES
+    from daemodel.comparing.tables import CERTIFICATE_FAILURES
     from daemodel.problems import PROBLEMS
 
     kinds = (certificate.NEWTON_FAILED, certificate.ESTIMATE_FAILED, certificate.NO_DIGIT)
@@ -191,7 +191,7 @@ def test_a_saved_comparison_loads_back_whole(hessenberg, tmp_path):
 def test_a_long_variable_list_is_shortened_on_the_axis():
     """Up to six names are listed; the squeezer's 14 and 13 ran off the figure, so longer lists
     name their ends and their count."""
-    from daemodel.comparing.compare import Comparison, Run
+    from daemodel.comparing.tables import Comparison, Run
 
     states, algebraics = tuple(f"q{i}" for i in range(1, 15)), ("w1", "lam1")
     errors = {name: {"max": 1e-6, "mean": 1e-7} for name in (*states, *algebraics)}

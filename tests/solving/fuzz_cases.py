@@ -3396,10 +3396,10 @@ def api_edge_cases() -> list[Case]:
     for config, expect in (({"h": 0.1}, "invalid"), (None, "invalid"), ("fast", "invalid")):
         solve(f"pinn config={config!r}", expect, method="pinn", options={"config": config})
     solve(
-        "pinn engine='ray' without segment_starts",
+        "pinn executor='ray' without segment_starts",
         "invalid",
         method="pinn",
-        options={"engine": "ray", "config": PinnSpec({"h": 0.1})},
+        options={"executor": "ray", "config": PinnSpec({"h": 0.1})},
     )
     solve(
         "pinn segment_starts of the wrong shape",

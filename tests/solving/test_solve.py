@@ -256,7 +256,7 @@ def test_plot_keeps_time_ticks_on_every_bottom_panel():
 def test_plot_of_a_large_model_draws_twelve_panels_and_says_what_it_left_out():
     """62 panels of a few pixels each are no plot: without names=, the first PLOTTED_PANELS variables,
     with the count in the title and a warning that names the rest; names= draws what it names."""
-    from daemodel.solution import PLOTTED_PANELS
+    from daemodel.plotting import PLOTTED_PANELS
 
     m = dm.Model("chain")
     states = m.states([f"x{i}" for i in range(1, 31)])
