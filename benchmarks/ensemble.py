@@ -81,7 +81,7 @@ def ensemble_runs(c, span, y0, chunk) -> dict:
             "max_difference_from_one_call": max(float(np.abs(ensemble[k] - one[k]).max()) for k in names),
             "failures": len(ensemble.stats["failures"]),
             "chunk_seconds": [chunk["seconds"] for chunk in ensemble.stats["chunks"]],
-            "peak_memory_mb_per_task": ensemble.stats["peak_memory_mb"],
+            "peak_memory_mb_per_task": np.asarray(ensemble.stats["peak_memory_mb"]).tolist(),  # (an array: JSON)
         }
         print(label, json.dumps(runs[label]), flush=True)
 
@@ -161,7 +161,7 @@ def segment_training() -> dict:
             "first_call_seconds": first,
             "training_seconds": sol.stats["training_seconds"],
             "max_error_against_radau": max(float(np.abs(sol[k] - radau[k]).max()) for k in names),
-            "segment_seconds": sol.stats["segment_seconds"],
+            "segment_seconds": np.asarray(sol.stats["segment_seconds"]).tolist(),  # (an array: JSON)
         }
 
     out = {}

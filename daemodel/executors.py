@@ -60,11 +60,18 @@ def check_executor(executor, workers, address, device="cpu") -> None:
 def refuse_engine(caller: str, options: dict) -> None:
     """A clear error for the spelling ``engine='local' | 'ray'`` of ``caller``'s executor (renamed
     ``executor=``: ``engine=`` means casadi or torch for radau)."""
-    if "engine" in options:
+    if "engine" not in options:
+        return
+    engine = options["engine"]
+    if isinstance(engine, str) and engine in EXECUTORS:
         raise InvalidOptionError(
-            f"{caller}: engine={options['engine']!r} is now spelled executor={options['engine']!r} "
+            f"{caller}: engine={engine!r} is now spelled executor={engine!r} "
             "(engine= names radau's casadi or torch engine)"
         )
+    raise InvalidOptionError(
+        f"{caller} takes no engine= (radau's casadi or torch engine); got engine={engine!r}. "
+        "Where its tasks run is executor='local' or 'ray'"
+    )
 
 
 def run_tasks(

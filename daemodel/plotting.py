@@ -171,7 +171,7 @@ def draw_variable(ax, solution, name: str, drawn: Drawn | None = None, samples=N
     drawn : Drawn, optional
         The values from :func:`drawn_values` (computed here for ``name`` when not given).
     samples : int, optional
-        How many samples of a batch to draw; default up to :data:`~daemodel.solution.PLOTTED_SAMPLES`.
+        How many samples of a batch to draw; default up to :data:`~daemodel.plotting.PLOTTED_SAMPLES`.
     style
         Passed to ``ax.plot`` (colour, line width, ...).
     """
@@ -244,7 +244,7 @@ def mark_instants(ax, solution, samples=None) -> list:
 
 def plot_solution(solution, path=None, names=None, reference=None):
     """:meth:`Solution.plot`: each variable against t, one panel each; a batch shows up to
-    :data:`~daemodel.solution.PLOTTED_SAMPLES` samples (see the module docs for what is drawn).
+    :data:`~daemodel.plotting.PLOTTED_SAMPLES` samples (see the module docs for what is drawn).
 
     Parameters
     ----------
@@ -252,7 +252,7 @@ def plot_solution(solution, path=None, names=None, reference=None):
         Write the figure there (PNG, PDF, ... by suffix).
     names : iterable of str, optional
         Variables to draw, all of them.  Default: the states, then the algebraic variables, at most
-        :data:`~daemodel.solution.PLOTTED_PANELS` of them; where more were left out, the figure's title
+        :data:`~daemodel.plotting.PLOTTED_PANELS` of them; where more were left out, the figure's title
         says how many and an :class:`~daemodel.errors.OmittedPanelsWarning` names them.
     reference : callable or Solution, optional
         Drawn dashed on top (first sample only for a batch), see :func:`draw_reference`.

@@ -71,7 +71,11 @@ def _summary(value) -> str:
                 f" from {finite.min():.4g} to {finite.max():.4g}, median {np.median(finite):.4g}" if finite.size else ""
             )
             return f"<array {value.shape} {value.dtype}{span}>"
+        if value.dtype.kind == "b":
+            return f"<array {value.shape} bool, {int(value.sum())} true>"
         return f"<array {value.shape} {value.dtype}>"
+    if isinstance(value, np.generic):
+        return repr(value.item())  # (3, not np.int64(3))
     if isinstance(value, dict):
         text = "{" + ", ".join(f"{k!r}: {_summary(v)}" for k, v in value.items()) + "}"
         return text if len(text) <= 300 else text[:290] + f"... ({len(value)} entries)}}"

@@ -36,7 +36,7 @@ def _copy_of_the_repository(target: Path) -> None:
         if (ROOT / name).is_file() and name.split("/")[0] in ("daemodel", "backends", "build_backend"):
             (target / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(ROOT / name, target / name)
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "MANIFEST.in"):
         shutil.copy2(ROOT / name, target / name)
 
 
@@ -114,3 +114,33 @@ def test_a_wheel_without_setuptools_finder_line_is_left_as_it_is(tmp_path):
     before = wheel.read_bytes()
     assert not daemodel_build.finder_first(wheel)
     assert wheel.read_bytes() == before
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="needs git to list the repository's files")
+def test_a_wheel_built_from_the_sdist_holds_the_package_and_daemodel_backends_only(tmp_path):
+    """The sdist carries the build backend (pyproject's backend-path), so pip can build a wheel from
+    it; that wheel holds every module of daemodel/ and backends/ (as daemodel.backends), and neither
+    build_backend nor a top-level backends package."""
+    source = tmp_path / "source"
+    source.mkdir()
+    _copy_of_the_repository(source)
+    build = (
+        "import sys; sys.path.insert(0, 'build_backend'); import daemodel_build; "
+        f"print(daemodel_build.build_sdist({str(tmp_path)!r}))"
+    )
+    sdist = subprocess.run([sys.executable, "-c", build], cwd=source, capture_output=True, text=True)
+    assert sdist.returncode == 0, sdist.stderr
+    name = sdist.stdout.split()[-1]
+    wheel = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "--no-index",
+         "-w", str(tmp_path / "wheels"), str(tmp_path / name)],
+        capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert wheel.returncode == 0, wheel.stdout + wheel.stderr
+    (built,) = (tmp_path / "wheels").glob("daemodel-*.whl")
+    with zipfile.ZipFile(built) as archive:
+        modules = {name for name in archive.namelist() if name.endswith(".py")}
+    expected = {str(p.relative_to(ROOT)) for p in (ROOT / "daemodel").rglob("*.py")}
+    expected |= {"daemodel/" + str(p.relative_to(ROOT)) for p in (ROOT / "backends").rglob("*.py")}
+    assert modules == expected

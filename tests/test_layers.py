@@ -9,6 +9,7 @@ layers are drawn in docs/README.md#layout.
 from __future__ import annotations
 
 import ast
+import re
 import shutil
 from pathlib import Path
 
@@ -54,7 +55,8 @@ def layer(module: str) -> int | None:
 
 def imports(name: str, path: Path):
     """``(line, imported module, imported name or "")`` of every import in the file, relative ones
-    resolved."""
+    resolved; a literal string given to ``importlib.import_module`` or ``__import__`` and a
+    ``"module:attribute"`` string naming a daemodel module (a registry's entry) count as imports."""
     package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
@@ -68,6 +70,62 @@ def imports(name: str, path: Path):
                 module = node.module or ""
             for alias in node.names:
                 yield node.lineno, module, alias.name
+        elif isinstance(node, ast.Call) and _called(node.func) in DYNAMIC and node.args:
+            first = node.args[0]
+            if isinstance(first, ast.Constant) and isinstance(first.value, str):
+                yield node.lineno, first.value, ""
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and ENTRY.fullmatch(node.value):
+            module, attribute = node.value.split(":")
+            yield node.lineno, module, attribute
+
+
+# Calls that import the module their literal string names, and a registry's "module:attribute".
+DYNAMIC = ("import_module", "__import__")
+ENTRY = re.compile(r"daemodel(\.\w+)*:\w+")
+
+
+def _called(func: ast.expr) -> str:
+    return func.id if isinstance(func, ast.Name) else func.attr if isinstance(func, ast.Attribute) else ""
+
+
+def private_attributes(name: str, path: Path, table: dict[str, Path]):
+    """``(line, module, name)`` of every private attribute read through a name bound to another
+    daemodel module (``import daemodel.a.b as m; m._x``, ``from daemodel.a import b; b._x``,
+    ``daemodel.a.b._x``)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    bound = {}
+    for _, module, imported in imports(name, path):
+        if imported and f"{module}.{imported}" in table:
+            bound[imported] = f"{module}.{imported}"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.asname:
+                    bound[alias.asname] = alias.name
+                else:
+                    bound[alias.name.split(".")[0]] = alias.name.split(".")[0]
+        elif isinstance(node, ast.ImportFrom):
+            for alias in node.names:
+                if alias.asname and alias.name in bound:
+                    bound[alias.asname] = bound.pop(alias.name)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            dotted = _dotted(node.value)
+            if dotted is None or dotted.split(".")[0] not in bound:
+                continue
+            head, _, rest = dotted.partition(".")
+            module = ".".join(filter(None, [bound[head], rest]))
+            if module in table and module != name:
+                yield node.lineno, module, node.attr
+
+
+def _dotted(node: ast.expr) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        inner = _dotted(node.value)
+        return None if inner is None else f"{inner}.{node.attr}"
+    return None
 
 
 def violations(root: Path) -> list[str]:
@@ -93,6 +151,8 @@ def violations(root: Path) -> list[str]:
                 )
             if imported.startswith("_") and not imported.startswith("__") and module != name:
                 found.append(f"{where}:{line}: {name} imports the private name {imported} of {module}")
+        for line, module, attribute in private_attributes(name, path, table):
+            found.append(f"{where}:{line}: {name} reads the private name {attribute} of {module}")
     return list(dict.fromkeys(found))  # (one line for an import of several names)
 
 
@@ -111,6 +171,41 @@ def test_every_layer_is_drawn_in_the_development_docs():
         assert title in layout, f"docs/README.md#layout does not name the layer {title!r}"
 
 
+def _layout() -> str:
+    text = (ROOT / "docs" / "README.md").read_text()
+    return text[text.index("## Layout") :]
+
+
+def test_the_drawing_holds_what_layers_holds_and_each_exists():
+    drawing = _layout().split("```text\n", 1)[1].split("```", 1)[0]
+    rows = {}
+    for row in drawing.splitlines():
+        title = next((t for t, _ in LAYERS if row.startswith(t + " ")), None)
+        if title is not None:
+            rows[title] = set(re.findall(r"\b(\w+)(?:\.py\b|/)", row[len(title) :]))
+    for title, names in LAYERS:
+        assert rows.get(title) == set(names), (
+            f"docs/README.md#layout draws {title} as {rows.get(title)}, LAYERS {names}"
+        )
+        for name in names:
+            folder = ROOT / ("backends" if name == "backends" else f"daemodel/{name}")
+            assert folder.is_dir() or folder.with_suffix(".py").is_file(), f"LAYERS names {name}, which does not exist"
+
+
+def test_every_module_is_named_in_the_layout_and_every_file_it_names_exists():
+    layout = _layout()
+    for name, path in modules(ROOT).items():
+        if path.name != "__init__.py":
+            assert re.search(rf"(?<!\w){re.escape(path.name)}", layout), f"docs/README.md#layout does not name {name}"
+    files = {
+        p.name
+        for folder in ("daemodel", "backends", "benchmarks", "tests", "build_backend")
+        for p in (ROOT / folder).rglob("*.py")
+    }
+    for named in set(re.findall(r"\b\w+\.py\b", layout)):
+        assert named in files, f"docs/README.md#layout names {named}, which does not exist"
+
+
 @pytest.fixture
 def tree(tmp_path):
     for folder, _ in TREES:
@@ -118,9 +213,13 @@ def tree(tmp_path):
     return tmp_path
 
 
-def _plant(path: Path, line: str, inside_a_function: bool = False) -> None:
+def _plant(path: Path, line: str, inside: bool | str = False) -> None:
+    """Append ``line`` to the file: at the top level, inside a function (``inside=True``) or under
+    ``if TYPE_CHECKING:`` (``inside="TYPE_CHECKING"``)."""
     text = path.read_text()
-    if inside_a_function:
+    if inside == "TYPE_CHECKING":
+        line = f"\n\nfrom typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n    {line}\n"
+    elif inside:
         line = f"\n\ndef _planted():\n    {line}\n"
     path.write_text(text + "\n" + line + "\n")
 
@@ -168,6 +267,76 @@ def _plant(path: Path, line: str, inside_a_function: bool = False) -> None:
             "import daemodel",
             True,
             "daemodel/errors.py:{n}: daemodel.errors (core) imports daemodel (the package's front), a layer above",
+        ),
+        (
+            "daemodel/compiling/structure.py",
+            "import daemodel.solving.solver as s",
+            True,
+            "daemodel/compiling/structure.py:{n}: daemodel.compiling.structure (compiling) imports "
+            "daemodel.solving.solver (solving), a layer above",
+        ),
+        (
+            "daemodel/declaring/parse.py",
+            "from daemodel import solving",
+            False,
+            "daemodel/declaring/parse.py:{n}: daemodel.declaring.parse (declaring) imports daemodel.solving "
+            "(solving), a layer above",
+        ),
+        (
+            "daemodel/compiling/init.py",
+            "from .. import solving",
+            True,
+            "daemodel/compiling/init.py:{n}: daemodel.compiling.init (compiling) imports daemodel.solving "
+            "(solving), a layer above",
+        ),
+        (
+            "daemodel/compiling/init.py",
+            "from ..solving import solver",
+            False,
+            "daemodel/compiling/init.py:{n}: daemodel.compiling.init (compiling) imports daemodel.solving.solver "
+            "(solving), a layer above",
+        ),
+        (
+            "daemodel/solution.py",
+            "from daemodel.solving.solver import solve",
+            "TYPE_CHECKING",
+            "daemodel/solution.py:{n}: daemodel.solution (the Solution) imports daemodel.solving.solver "
+            "(solving), a layer above",
+        ),
+        (
+            "backends/__init__.py",
+            'importlib.import_module("daemodel.solving.solver")',
+            True,
+            "backends/__init__.py:{n}: daemodel.backends (backends) imports daemodel.solving.solver "
+            "(solving), a layer above",
+        ),
+        (
+            "daemodel/dense.py",
+            '__import__("daemodel.comparing.compare")',
+            True,
+            "daemodel/dense.py:{n}: daemodel.dense (the Solution) imports daemodel.comparing.compare "
+            "(comparing and fitting), a layer above",
+        ),
+        (
+            "backends/__init__.py",
+            'REGISTRY["planted"] = "daemodel.solving.solver:solve"',
+            False,
+            "backends/__init__.py:{n}: daemodel.backends (backends) imports daemodel.solving.solver "
+            "(solving), a layer above",
+        ),
+        (
+            "daemodel/solving/events.py",
+            "from daemodel.compiling import structure as planted; planted._planted_helper()",
+            True,
+            "daemodel/solving/events.py:{n}: daemodel.solving.events reads the private name _planted_helper of "
+            "daemodel.compiling.structure",
+        ),
+        (
+            "daemodel/solving/pieces.py",
+            "import daemodel.compiling.structure; daemodel.compiling.structure._planted_helper()",
+            True,
+            "daemodel/solving/pieces.py:{n}: daemodel.solving.pieces reads the private name _planted_helper of "
+            "daemodel.compiling.structure",
         ),
     ],
 )
@@ -230,5 +399,5 @@ def test_no_module_imports_another_that_imports_it_back():
 
 
 def test_a_planted_circle_is_named(tree):
-    _plant(tree / "daemodel" / "stats.py", "from daemodel.solution import Solution", inside_a_function=True)
+    _plant(tree / "daemodel" / "stats.py", "from daemodel.solution import Solution", inside=True)
     assert circles(tree) == [["daemodel.solution", "daemodel.stats"]]

@@ -202,6 +202,11 @@ def test_stats_hold_arrays_not_lists_of_lists():
     )
 
 
+def test_printed_stats_count_a_boolean_arrays_true_entries_and_show_numpy_scalars_as_numbers():
+    stats = Stats({"certified": np.arange(1000) % 4 != 0, "steps": np.int64(3), "h": np.float64(0.5)})
+    assert repr(stats) == "{'certified': <array (1000,) bool, 750 true>, 'steps': 3, 'h': 0.5}"
+
+
 @pytest.fixture(scope="module")
 def decay():
     return dm.solve(DECAY.model(), (0.0, 1.0), h=0.1, stages=3)

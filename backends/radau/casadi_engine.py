@@ -297,7 +297,7 @@ class CasadiEngine(AbstractEngine):
 
     def refresh(self, t: float, y, z, h: float):
         """A fresh Jacobian, the systems of step ``h`` factored and the sign of the algebraic variables'
-        iteration matrix, in one casadi call on dense systems (:func:`.radau_compiled.refresh_function`)."""
+        iteration matrix, in one casadi call on dense systems (:func:`.compiled.refresh_function`)."""
         if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE or self._static_active:
             return super().refresh(t, y, z, h)
         if self._refresh is None:

@@ -60,7 +60,7 @@ class CompiledDAE:
         What initialisation changed.
     dropped : dict str -> tuple of str
         What output-driven pruning removed, by kind.
-    events : tuple of daemodel.solving.events.Event
+    events : tuple of daemodel.declaring.events.Event
         The declared events (``Model.event``), on this model's symbols.
     """
 

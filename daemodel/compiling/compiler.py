@@ -92,7 +92,7 @@ def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
 
 
 def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
-    """Compile a :class:`~daemodel.declaring.model.Model`; see ``Model.compile`` for the parameters."""
+    """Compile a :class:`~daemodel.compiling.compiler.Model`; see ``Model.compile`` for the parameters."""
     if not isinstance(repair, bool):
         raise InvalidValueError(f"compile(repair=...) must be True or False; got {repair!r}")
     _validate(model)

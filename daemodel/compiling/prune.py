@@ -45,8 +45,8 @@ def _may_be(v: sp.Expr, candidates) -> list:
     """The symbols s of ``candidates`` (in a fixed order) that ``v`` may be identically, up to sign.
 
     Others are ruled out where ``v`` has a value at the point of
-    :func:`~daemodel.compiling.structure.exact_value` (exact) or at the first point of the numeric zero test
-    (:func:`~daemodel.compiling.structure.numeric_value`, 40 digits) and ``|v|`` differs from ``|s|`` there.
+    :func:`~daemodel.compiling.zero_test.exact_value` (exact) or at the first point of the numeric zero test
+    (:func:`~daemodel.compiling.zero_test.numeric_value`, 40 digits) and ``|v|`` differs from ``|s|`` there.
     """
     candidates = sorted(candidates, key=lambda s: s.name)
     value = exact_value(v)

@@ -31,8 +31,8 @@ def is_zero(expr: sp.Expr) -> bool:
     "Not zero" is the safe answer for every caller: a derivative taken for nonzero makes the
     constraint depend on the variable, and the numeric rank check of the iteration matrix at
     the initial point then names the singular constraint; a derivative chain whose last element
-    is taken for nonzero is differentiated again and ends in :class:`IndexTooHighError` at
-    :data:`MAX_INDEX`.  A wrong "zero" would instead change the index silently.
+    is taken for nonzero is differentiated again and ends in :class:`~daemodel.errors.IndexTooHighError` at
+    :data:`~daemodel.compiling.structure.MAX_INDEX`.  A wrong "zero" would instead change the index silently.
     """
     if expr == 0:
         return True

@@ -1,5 +1,5 @@
-"""Problems for parameter fitting (issue 29), outside :data:`PROBLEMS`: they have no published
-reference to compare methods on."""
+"""Problems for parameter fitting (issue 29), outside :data:`~daemodel.problems.library.PROBLEMS`:
+they have no published reference to compare methods on."""
 
 from __future__ import annotations
 

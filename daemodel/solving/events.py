@@ -21,9 +21,10 @@ flight shorter than an output step is a crossing too.  At most ``max_events`` ev
 accumulation point, and so does a reset that leaves its function on the guard
 (:class:`~daemodel.errors.ZenoError`).
 
-Switches on states and algebraic variables (:mod:`daemodel.solving.switches`) are events too
-(:func:`with_state_events`: no reset, named after the switch), with the switch locked to the
-branch the flow takes where each piece starts (:func:`daemodel.compiling.switches.lock_branches`,
+Switches on states and algebraic variables (found in :mod:`daemodel.compiling.switches`) are events
+too (:func:`~daemodel.compiling.switches.with_state_events`: no reset, named after the switch), with
+the switch locked to the branch the flow takes where each piece starts
+(:func:`daemodel.compiling.switches.lock_branches`,
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
 goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`).
 """

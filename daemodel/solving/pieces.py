@@ -15,13 +15,21 @@ from daemodel.errors import SwitchError
 # Stats summed over segments (counters); keys starting with "max"/ending "_max" take the largest,
 # "min"/"_min" the smallest; any other key keeps the first segment's value (stages, engine, ...).
 _COUNTERS = ("steps", "attempts", "rejected", "iterations", "evaluations", "decompositions", "failures",
-             "refreshes", "retries", "runs", "setups", "calls")  # fmt: skip
+             "refreshes", "retries", "runs", "setups", "calls", "events")  # fmt: skip
 
 
 def merge_stats(all_stats: list) -> dict:
+    """The stats of pieces solved one after another as one: counters summed, ``max``/``min`` entries
+    the largest/smallest, figures per step or segment (lists, arrays) one piece's after another (an
+    empty one adds nothing; rows of different widths padded with NaN), anything else the first's."""
     out = {}
     for key in dict.fromkeys(k for stats in all_stats for k in stats):
         values = [stats[key] for stats in all_stats if key in stats]
+        if any(isinstance(v, np.ndarray) for v in values) and all(isinstance(v, list | np.ndarray) for v in values):
+            # a piece's figures may be an empty list (no step) or rows of another width (the converted
+            # stats of a Solution, daemodel.stats.as_arrays): join the non-empty ones as arrays
+            values = [np.asarray(v) for v in values if len(v)] or [np.asarray(values[0])]
+            values = _same_width(values)
         numeric = all(isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) for v in values)
         if numeric and (key.startswith("max") or key.endswith("_max")):
             out[key] = max(values)
@@ -36,6 +44,14 @@ def merge_stats(all_stats: list) -> dict:
         else:
             out[key] = values[0]
     return out
+
+
+def _same_width(arrays: list) -> list:
+    """2-D float or integer arrays of different widths padded with NaN to the widest (others as they are)."""
+    if len(arrays) < 2 or any(a.ndim != 2 or a.dtype.kind not in "fiu" for a in arrays):
+        return arrays
+    width = max(a.shape[1] for a in arrays)
+    return [np.pad(a.astype(float), ((0, 0), (0, width - a.shape[1])), constant_values=np.nan) for a in arrays]
 
 
 def segment_steps(a: float, b: float, h: float) -> float:
@@ -118,8 +134,10 @@ def join_samples(parts: list, B: int, batched: bool):
         parameters[index] = sol.parameters
     breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
     events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
-    stats = merge_stats([sol.stats for _, sol in parts])
+    stats = merge_stats([sol.stats for _, sol in parts])  # (events: every group's, summed)
     stats["groups"] = len(parts)
+    if isinstance(stats.get("batch"), int):  # (each group's solve had its own: the whole is B samples)
+        stats["batch"] = B
     if ends is not None:  # (where each sample ended)
         stats["t_end"] = np.empty(B)
         for index, sol in parts:

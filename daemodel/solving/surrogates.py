@@ -246,8 +246,9 @@ class Surrogate(SurrogateNetworks):
             The y estimate propagates each segment's largest residual |F| (in units of y)
             through the networks' own sensitivity ``|d y_end / d y_n|`` (max row sum); the z
             estimate is ``|G| / h^2 + (propagated y error + |F|) / h`` (an index-2 variable moves
-            by about residual / h^2); both are doubled (:data:`ESTIMATE_SAFETY`).  It costs n
-            extra backward passes per segment.  Calibration, measured: see ESTIMATE_SAFETY and
+            by about residual / h^2); both are doubled
+            (:data:`~daemodel.backends.pinn.surrogate.ESTIMATE_SAFETY`).  It costs n extra backward
+            passes per segment.  Calibration, measured: see ESTIMATE_SAFETY and
             docs/benchmarks/surrogates.md; it is an estimate, not a proof.
         tol : float, optional
             The hybrid: every answer is checked by the certificate of the trajectory mode

@@ -862,6 +862,16 @@ def test_option_errors(tmp_path):
         match=r"^method='pinn': engine='ray' is now spelled executor='ray' \(engine= names radau's casadi or torch",
     ):
         dm.solve(c, (0.0, 0.1), method="pinn", engine="ray")
+    # radau's engine is not the PINN's: no rename suggested (executor='torch' would be refused in turn)
+    for engine in ("torch", "casadi", 3):
+        with pytest.raises(
+            InvalidOptionError,
+            match=rf"^method='pinn' takes no engine= \(radau's casadi or torch engine\); got engine={engine!r}\. "
+            "Where its tasks run is executor='local' or 'ray'$",
+        ):
+            dm.solve(c, (0.0, 0.1), method="pinn", engine=engine)
+    with pytest.raises(InvalidOptionError, match=r"^Surrogate\.train\(\) takes no engine= .*got engine='torch'"):
+        dm.Surrogate.train(c, (0.0, 0.05), box={"y4": (0.99, 1.01)}, engine="torch")
     with pytest.raises(
         InvalidOptionError,
         match=r"executor='ray' runs each task on one of the workers' CPUs \(no GPU requested\); device = 'meta'",
