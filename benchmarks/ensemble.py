@@ -81,7 +81,7 @@ def ensemble_runs(c, span, y0, chunk) -> dict:
             "max_difference_from_one_call": max(float(np.abs(ensemble[k] - one[k]).max()) for k in names),
             "failures": len(ensemble.stats["failures"]),
             "chunk_seconds": [chunk["seconds"] for chunk in ensemble.stats["chunks"]],
-            "peak_memory_mb_per_task": ensemble.stats["peak_memory_mb"],
+            "peak_memory_mb_per_task": np.asarray(ensemble.stats["peak_memory_mb"]).tolist(),  # stats hold arrays
         }
         print(label, json.dumps(runs[label]), flush=True)
 
@@ -137,7 +137,7 @@ def worker_memory(c, span, y0) -> list:
         rows.append(
             {
                 "chunk": chunk,
-                "peak_memory_mb": max(ensemble.stats["peak_memory_mb"]),
+                "peak_memory_mb": float(max(ensemble.stats["peak_memory_mb"])),
                 "chunk_seconds": [item["seconds"] for item in ensemble.stats["chunks"]],
             }
         )
@@ -161,7 +161,7 @@ def segment_training() -> dict:
             "first_call_seconds": first,
             "training_seconds": sol.stats["training_seconds"],
             "max_error_against_radau": max(float(np.abs(sol[k] - radau[k]).max()) for k in names),
-            "segment_seconds": sol.stats["segment_seconds"],
+            "segment_seconds": np.asarray(sol.stats["segment_seconds"]).tolist(),
         }
 
     out = {}
