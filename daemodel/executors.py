@@ -101,7 +101,11 @@ def run_tasks(
         task's index name it.  An exception the function raised is re-raised as itself.
     TimeLimitError
         A Ray task ran longer than ``task_timeout`` seconds (None: no limit).
+    InvalidOptionError
+        ``executor`` is neither ``"local"`` nor ``"ray"`` (a mistyped name never starts Ray).
     """
+    if executor not in EXECUTORS:
+        raise InvalidOptionError(f"{label}: executor must be one of {', '.join(EXECUTORS)}; got {executor!r}")
     if executor == "local":
         results = []
         for i, task in enumerate(tasks):

@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "solving"))
 
-import fuzz_cases as F  # noqa: E402 - after the path to tests/
+import fuzz_cases as F  # noqa: E402 - after the path to tests/solving/
 
 # One colour per outcome, "ok" green and the failures from worst to mildest.
 COLOURS = {

@@ -187,8 +187,8 @@ class Surrogate(SurrogateNetworks):
         extra = np.broadcast_to(p[:, columns], (len(grid) - 1, len(kept), len(columns)))
         x = np.concatenate([states[:, :-1].transpose(1, 0, 2), extra], axis=2)  # (segments, B, d)
         algebraics = np.zeros((len(kept), len(grid), len(compiled.algebraic_names)))
-        for j, name in enumerate(compiled.algebraic_names):
-            algebraics[..., j] = data[name]
+        for j, variable in enumerate(compiled.algebraic_names):  # not `name`: that is the executor's
+            algebraics[..., j] = data[variable]
         algebraics = algebraics[:, :-1].transpose(1, 0, 2)  # (segments, B, m)
         bar = Progress(len(grid) - 1, progress, "pinn surrogate")
         try:

@@ -493,6 +493,23 @@ def test_surrogate_trained_from_radau_starts_locally_and_on_ray(ray_cluster):
     assert local.box == ray.box
 
 
+def test_surrogate_from_radau_starts_trains_locally_by_default(monkeypatch):
+    """starts='radau' with the default executor='local' trains its segments here: it never asks
+    for Ray (the executor's name was shadowed by a loop over the algebraic names, so the segments
+    went to Ray as executor 'y5', joining any cluster running on the machine)."""
+    import daemodel.executors as executors
+
+    def no_ray(*args, **kwargs):
+        raise AssertionError("executor='local' asked for Ray")
+
+    monkeypatch.setattr(executors, "connect", no_ray)
+    c = HESSENBERG.model().compile()
+    config = dm.PINNConfig(width=8, warm_start=False, tol=None, iterations=5)
+    box = {name: (0.98, 1.02) for name in c.state_names}
+    surrogate = dm.Surrogate.train(c, (0.0, 0.1), box=box, samples=4, config=config, starts="radau", progress=False)
+    assert len(surrogate.networks) == 2
+
+
 def test_training_states_radau_cannot_solve_are_left_out_with_a_warning(blowup):
     """x' = k x^2 blows up at t = 1 / (k x0): inside [0, 0.5] for some of the box's k."""
     c = blowup
