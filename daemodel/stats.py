@@ -50,11 +50,15 @@ def as_arrays(value):
         if len({item.shape for item in items}) == 1:
             return np.stack(items)
         if all(item.ndim == 1 for item in items):
-            out = np.full((len(items), max(item.size for item in items)), np.nan)
-            for row, item in zip(out, items, strict=True):
-                row[: item.size] = item
-            return out
+            return np.stack(padded_with_nan(items))
     return type(value)(items) if isinstance(value, list) else tuple(items)
+
+
+def padded_with_nan(arrays: list) -> list:
+    """Numeric arrays of one number of axes, as floats, their last axis padded with NaN to the widest."""
+    width = max(a.shape[-1] for a in arrays)
+    pad = [(0, 0)] * (arrays[0].ndim - 1)
+    return [np.pad(a.astype(float), [*pad, (0, width - a.shape[-1])], constant_values=np.nan) for a in arrays]
 
 
 def _is_number(value) -> bool:

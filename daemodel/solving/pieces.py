@@ -11,6 +11,7 @@ import numpy as np
 
 from daemodel.dense import joined_by_samples
 from daemodel.errors import SwitchError
+from daemodel.stats import padded_with_nan
 
 # Stats summed over segments (counters); keys starting with "max"/ending "_max" take the largest,
 # "min"/"_min" the smallest; any other key keeps the first segment's value (stages, engine, ...).
@@ -50,8 +51,7 @@ def _same_width(arrays: list) -> list:
     """2-D float or integer arrays of different widths padded with NaN to the widest (others as they are)."""
     if len(arrays) < 2 or any(a.ndim != 2 or a.dtype.kind not in "fiu" for a in arrays):
         return arrays
-    width = max(a.shape[1] for a in arrays)
-    return [np.pad(a.astype(float), ((0, 0), (0, width - a.shape[1])), constant_values=np.nan) for a in arrays]
+    return padded_with_nan(arrays)
 
 
 def segment_steps(a: float, b: float, h: float) -> float:
