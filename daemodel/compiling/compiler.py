@@ -203,7 +203,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         dropped=dropped,
     )
     compiled._cache["numeric"] = numeric  # (the functions the initialisation made, and its derivatives, serve on)
-    return compiled
+    return with_events(model, compiled)
 
 
 class Model(Declaration):
@@ -249,8 +249,8 @@ class Model(Declaration):
         # the same declarations and arguments give the same (frozen) CompiledDAE: a Model passed to
         # dm.solve again is not recompiled, and the compiled model keeps its generated code
         if outputs is not None and not (isinstance(outputs, list | tuple) and all(isinstance(o, str) for o in outputs)):
-            return with_events(self, compile_model(self, outputs=outputs, repair=repair))  # (it names the mistake)
+            return compile_model(self, outputs=outputs, repair=repair)  # (it names the mistake)
         key = (None if outputs is None else tuple(outputs), repair, self._fingerprint())
         if self._compiled is None or self._compiled[0] != key:
-            self._compiled = (key, with_events(self, compile_model(self, outputs=outputs, repair=repair)))
+            self._compiled = (key, compile_model(self, outputs=outputs, repair=repair))
         return self._compiled[1]
