@@ -26,15 +26,17 @@ from daemodel.errors import (
 
 
 def with_events(model, compiled):
-    """``compiled`` with ``model``'s events on its symbols (aliases substituted)."""
-    if not model._events:
+    """``compiled`` with the events of ``model`` (a Declaration, or what it declared: a
+    :class:`~daemodel.declaring.model.Declared`) on its symbols (aliases substituted)."""
+    declared = model.declared() if isinstance(model, Declaration) else model
+    if not declared.events:
         return compiled
-    symbols = model._all_symbols()
+    symbols = declared.symbols()
     aliases = {symbols[name]: expr for name, expr, _ in compiled.aliases if name in symbols}
     known = {compiled.t, *compiled.states, *compiled.algebraics, *compiled.parameters}
     index = {name: i for i, name in enumerate(compiled.state_names)}
     events = []
-    for name, when, direction, resets, terminal in model._events:
+    for name, when, direction, resets, terminal in declared.events:
         exprs = [when.xreplace(aliases)] + [value.xreplace(aliases) for _, value in resets]
         missing = sorted({s.name for e in exprs for s in e.free_symbols if s not in known})
         targets = [target for target, _ in resets if target not in index]
@@ -53,31 +55,32 @@ def _names(symbols) -> str:
 
 
 def _validate(model) -> None:
-    if not model._states:
+    """Refuse a declaration that is no complete semi-explicit DAE (``model``: a Declared)."""
+    if not model.states:
         raise MissingODEError(
             f"model '{model.name}' declares no differential variable; a DAE needs at least one state "
             "with an ODE (declare it with m.states(...) and m.ode(...))"
         )
-    missing = [s for name, s in model._states.items() if name not in model._odes]
+    missing = [s for name, s in model.states.items() if name not in model.odes]
     if missing:
         raise MissingODEError(
             f"differential variable(s) {_names(missing)} of model '{model.name}' have no ODE; "
             "declare one with m.ode(<state>, <rhs>) or declare the variable as algebraic"
         )
-    n_z, n_g = len(model._algebraics), len(model._constraints)
+    n_z, n_g = len(model.algebraics), len(model.constraints)
     if n_z != n_g:
         raise UnbalancedSystemError(
-            f"model '{model.name}' has {n_z} algebraic variable(s) ({_names(model._algebraics.values()) or 'none'}) "
-            f"but {n_g} constraint(s) ({', '.join(repr(c.name) for c in model._constraints) or 'none'}); "
+            f"model '{model.name}' has {n_z} algebraic variable(s) ({_names(model.algebraics.values()) or 'none'}) "
+            f"but {n_g} constraint(s) ({', '.join(repr(c.name) for c in model.constraints) or 'none'}); "
             "a semi-explicit DAE needs exactly one constraint per algebraic variable"
         )
-    no_value = [name for name, v in model._parameter_values.items() if v is None]
+    no_value = [name for name, v in model.parameter_values.items() if v is None]
     if no_value:
         raise MissingParameterValueError(
             f"parameter(s) {', '.join(repr(n) for n in no_value)} of model '{model.name}' have no "
             "value; give one with m.parameter(name, value) or m.set_parameters(name=value)"
         )
-    for eq in [*model._odes.values(), *model._constraints]:
+    for eq in [*model.odes.values(), *model.constraints]:
         check_supported(eq.expr, f"model '{model.name}', {eq.label}")
 
 
@@ -95,22 +98,23 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     """Compile a :class:`~daemodel.compiling.compiler.Model`; see ``Model.compile`` for the parameters."""
     if not isinstance(repair, bool):
         raise InvalidValueError(f"compile(repair=...) must be True or False; got {repair!r}")
+    model = model.declared()
     _validate(model)
-    states = list(model._states.values())
-    parameters = list(model._parameters.values())
-    rhs = {s: model._odes[s.name].expr for s in states}
-    symbols = {*states, *model._algebraics.values(), *parameters, model.t}
+    states = list(model.states.values())
+    parameters = list(model.parameters.values())
+    rhs = {s: model.odes[s.name].expr for s in states}
+    symbols = {*states, *model.algebraics.values(), *parameters, model.t}
     calculus = Differentiator()  # derivatives and free symbols shared by every step below
     equations, algebraics, aliases = eliminate_aliases(
-        rhs, model._constraints, list(model._algebraics.values()), symbols, calculus
+        rhs, model.constraints, list(model.algebraics.values()), symbols, calculus
     )
     constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraics, calculus) for e in equations]
     alias_exprs = {name: expr for name, expr, _ in aliases}
 
-    known = [*(s.name for s in states), *model._algebraics]
+    known = [*(s.name for s in states), *model.algebraics]
     # the parameters the events read are used (their variables are the outputs' choice: Model.event names
     # those the requested outputs prune away)
-    event_exprs = [e for _, when, _, resets, _ in model._events for e in (when, *(value for _, value in resets))]
+    event_exprs = [e for _, when, _, resets, _ in model.events for e in (when, *(value for _, value in resets))]
     if outputs is None:
         keep = set(known)
     else:
@@ -160,7 +164,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         "parameters": tuple(p.name for p in parameters if p.name not in kept),
     }
 
-    missing = [s for s in kept_states if s.name not in model._initial]
+    missing = [s for s in kept_states if s.name not in model.initial]
     if missing:
         raise MissingInitialValueError(
             f"differential variable(s) {_names(missing)} of model '{model.name}' have no initial "
@@ -170,29 +174,29 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     numeric = NumericSystem(
         model.t, tuple(kept_states), tuple(kept_algebraics), tuple(kept_parameters), calculus=calculus
     )
-    p = np.array([model._parameter_values[q.name] for q in kept_parameters], dtype=float)
+    p = np.array([model.parameter_values[q.name] for q in kept_parameters], dtype=float)
     values = initialise(
         numeric,
         kept_constraints,
         [(n, e) for n, e, _ in kept_aliases],
-        model._t0,
-        model._initial,
+        model.t0,
+        model.initial,
         p,
         repair,
-        guesses=model._guess,
+        guesses=model.guess,
     )
 
     invariants = tuple((c.level_name(k), c.chain[k]) for c in kept_constraints for k in range(max(1, c.index - 1)))
     compiled = CompiledDAE(
         name=model.name,
         t=model.t,
-        t0=model._t0,
+        t0=model.t0,
         states=tuple(kept_states),
         algebraics=tuple(kept_algebraics),
         parameters=tuple(kept_parameters),
         parameter_values=p,
         rhs=tuple(rhs[s] for s in kept_states),
-        ode_numbers=tuple(model._odes[s.name].number for s in kept_states),
+        ode_numbers=tuple(model.odes[s.name].number for s in kept_states),
         constraints=tuple(kept_constraints),
         determined_by=tuple(owner),
         aliases=tuple((n, e, q.label) for n, e, q in kept_aliases),

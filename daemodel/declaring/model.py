@@ -14,6 +14,7 @@ from __future__ import annotations
 import keyword
 import re
 from dataclasses import dataclass
+from types import MappingProxyType
 
 import sympy as sp
 from sympy.core.function import AppliedUndef
@@ -71,6 +72,46 @@ class Equation:
         return f"constraint '{self.name}' (#{self.number})"
 
 
+@dataclass(frozen=True)
+class Declared:
+    """What a :class:`Declaration` holds, read-only: what the compiler reads (views of the
+    declaration's tables, no copies; a later declaration shows in them).
+
+    Attributes
+    ----------
+    name : str
+    t : sympy.Symbol
+    states, algebraics, parameters : Mapping[str, sympy.Symbol]
+        The variables and parameters by name, in declaration order.
+    parameter_values : Mapping[str, float or None]
+    odes : Mapping[str, Equation]
+        Each state's ODE by the state's name.
+    constraints : tuple of Equation
+    initial, guess : Mapping[str, float]
+        Initial values of states (and algebraic variables), and Newton's starting values.
+    t0 : float
+    events : tuple
+        ``(name, when, direction, ((state, expr), ...), terminal)`` per event.
+    """
+
+    name: str
+    t: sp.Symbol
+    states: MappingProxyType
+    algebraics: MappingProxyType
+    parameters: MappingProxyType
+    parameter_values: MappingProxyType
+    odes: MappingProxyType
+    constraints: tuple
+    initial: MappingProxyType
+    guess: MappingProxyType
+    t0: float
+    events: tuple
+
+    def symbols(self) -> dict[str, sp.Symbol]:
+        """Every declared symbol by name: states, algebraic variables, parameters."""
+        return {**self.states, **self.algebraics, **self.parameters}
+
+
 def _split_names(names, what: str) -> list[str]:
     if isinstance(names, str):
         return [n for n in re.split(r"[\s,]+", names.strip()) if n]
@@ -104,6 +145,24 @@ class Declaration:
         self._events: list[tuple] = []  # (name, when, direction, ((state, expr), ...), terminal)
         self._equation_count = 0
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
+
+    def declared(self) -> Declared:
+        """What is declared so far, read-only (the compiler's input)."""
+        view = MappingProxyType
+        return Declared(
+            name=self.name,
+            t=self.t,
+            states=view(self._states),
+            algebraics=view(self._algebraics),
+            parameters=view(self._parameters),
+            parameter_values=view(self._parameter_values),
+            odes=view(self._odes),
+            constraints=tuple(self._constraints),
+            initial=view(self._initial),
+            guess=view(self._guess),
+            t0=self._t0,
+            events=tuple(self._events),
+        )
 
     # ---- declarations -------------------------------------------------------------------
     def states(self, names) -> tuple[sp.Symbol, ...]:

@@ -278,3 +278,23 @@ def test_an_event_with_a_function_the_emitters_lack_is_refused_where_it_is_decla
         m.event("floor", h, reset={"v": sp.Integral(v, m.t)})
     m.event("floor", h, direction=-1, reset={"v": -0.8 * v})  # (nothing of the refused ones was kept)
     assert dm.solve(m, (0.0, 0.5), rtol=1e-8).stats["events"] == 1
+
+
+def test_what_is_declared_is_read_only_and_is_what_compile_reads():
+    """``Declaration.declared()``: views the compiler reads, which a caller cannot change."""
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    (w,) = m.algebraics("w")
+    k = m.parameter("k", 2.0)
+    m.ode(x, -w)
+    m.constraint(w - k * x, name="rate")
+    m.initial(x=1.0)
+    d = m.declared()
+    assert list(d.states) == ["x"] and list(d.algebraics) == ["w"] and dict(d.parameter_values) == {"k": 2.0}
+    assert d.symbols() == {"x": x, "w": w, "k": k}
+    assert [c.name for c in d.constraints] == ["rate"] and d.odes["x"].expr == -w
+    with pytest.raises(TypeError):
+        d.initial["x"] = 5.0  # a view: the declaration changes through m.initial only
+    m.initial(x=3.0)
+    assert d.initial["x"] == 3.0  # (a view, not a copy)
+    assert m.compile().z0 == pytest.approx([6.0])

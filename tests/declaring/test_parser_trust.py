@@ -257,9 +257,9 @@ def test_abs_in_a_differentiated_constraint_is_named():
 def test_initial_values_must_be_real_numbers(model, value, pattern):
     with pytest.raises(E.InvalidValueError, match=pattern):
         model.initial(x=value)
-    assert model._initial == {}
+    assert model.declared().initial == {}
     model.initial(x=np.float32(1.5), y=2)
-    assert model._initial == {"x": 1.5, "y": 2.0}
+    assert model.declared().initial == {"x": 1.5, "y": 2.0}
 
 
 def test_compile_options_and_empty_models(pendulum):
@@ -415,7 +415,7 @@ def test_constraint_strings_split_only_at_a_single_equals_sign(model):
     model.constraint("z - Piecewise((1, x == 0), (2, True))", name="a")  # '==' in a condition stays there
     model.constraint("z == x + 1", name="b")  # a top-level equality means lhs - rhs
     model.constraint("z = x**2", name="c")
-    assert [c.expr for c in model._constraints] == [
+    assert [c.expr for c in model.declared().constraints] == [
         z - sp.Piecewise((1, sp.Eq(x, 0)), (2, True)),
         z - x - 1,
         z - x**2,
