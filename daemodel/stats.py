@@ -35,6 +35,24 @@ class Stats(dict):
 
     __str__ = __repr__
 
+    def to_dict(self) -> dict:
+        """The stats as plain Python values for ``json.dumps`` (strict JSON included): arrays as nested
+        lists, numpy scalars as Python numbers, NaN and infinities as None."""
+        return {str(key): plain(value) for key, value in self.items()}
+
+
+def plain(value):
+    """``value`` with numpy arrays and scalars as Python lists and numbers, non-finite floats as None."""
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    if isinstance(value, dict):
+        return {str(key): plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(item) for item in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
 
 def as_arrays(value):
     """``value`` with its lists of numbers (nested ones too, ragged ones padded with NaN) as numpy

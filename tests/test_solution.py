@@ -202,6 +202,24 @@ def test_stats_hold_arrays_not_lists_of_lists():
     )
 
 
+def test_stats_as_plain_values_go_through_strict_json():
+    """json.dumps(sol.stats) refuses numpy arrays; ``to_dict()`` is plain (NaN and inf as None)."""
+    import json
+
+    fixed = dm.solve(DECAY.model(), (0.0, 1.0), h=0.1, stages=3)
+    with pytest.raises(TypeError):
+        json.dumps(fixed.stats)
+    back = json.loads(json.dumps(fixed.stats.to_dict(), allow_nan=False))
+    assert back["local_error_estimates"] == fixed.stats["local_error_estimates"].tolist()
+    assert back["steps"] == fixed.stats["steps"] == 10
+    stats = Stats({"ragged": [np.array([1.0]), np.array([2.0, np.inf])], "n": np.int64(3), "inner": {"x": (np.nan,)}})
+    assert json.loads(json.dumps(stats.to_dict(), allow_nan=False)) == {
+        "ragged": [[1.0, None], [2.0, None]],
+        "n": 3,
+        "inner": {"x": [None]},
+    }
+
+
 def test_printed_stats_count_a_boolean_arrays_true_entries_and_show_numpy_scalars_as_numbers():
     stats = Stats({"certified": np.arange(1000) % 4 != 0, "steps": np.int64(3), "h": np.float64(0.5)})
     assert repr(stats) == "{'certified': <array (1000,) bool, 750 true>, 'steps': 3, 'h': 0.5}"
