@@ -144,6 +144,11 @@ class Declaration:
         self._t0 = 0.0
         self._events: list[tuple] = []  # (name, when, direction, ((state, expr), ...), terminal)
         self._equation_count = 0
+        # every declared name -> its symbol, and the same with t: kept as names are declared, so that a
+        # declaration looks names up in O(1) (merging the tables on every m.ode made a loop quadratic)
+        self._symbols: dict[str, sp.Symbol] = {}
+        self._known: dict[str, sp.Symbol] = {"t": self.t}
+        self._constraint_names: set[str] = set()
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
 
     def declared(self) -> Declared:
@@ -202,18 +207,14 @@ class Declaration:
                 raise InvalidNameError(
                     f"{what} name {name!r} is the name of a supported function or constant; choose another name"
                 )
-            if name in self._all_symbols():
+            if name in self._symbols:
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
             symbol = Symbol(name)
-            table[name] = symbol
+            table[name] = self._symbols[name] = self._known[name] = symbol
             out.append(symbol)
         if not out:
             raise InvalidNameError(f"no {what} names given")
         return tuple(out)
-
-    def _all_symbols(self) -> dict[str, sp.Symbol]:
-        """Every declared name (states, algebraic variables, parameters) -> its symbol."""
-        return {**self._states, **self._algebraics, **self._parameters}
 
     def _kind(self, name: str) -> str:
         if name in self._states:
@@ -252,24 +253,27 @@ class Declaration:
         name = f"g{len(self._constraints) + 1}" if name is None else name
         if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
             raise InvalidNameError(f"constraint name {name!r} is not an identifier")
-        if any(c.name == name for c in self._constraints):
+        if name in self._constraint_names:
             raise InvalidNameError(f"constraint name '{name}' is already used")
         label = f"constraint '{name}' (#{number})"
         single = re.search(r"(?<![=<>!])=(?!=)", expr) if isinstance(expr, str) else None
         if single:  # "lhs = rhs": a single '=' never occurs inside an admitted expression
             lhs, rhs = expr[: single.start()], expr[single.end() :]
             value = self._expression(lhs, label) - self._expression(rhs, label)
-            self._equation_count = number
-            self._constraints.append(Equation("constraint", name, number, value))
+            self._add_constraint(Equation("constraint", name, number, value))
             return
         if isinstance(expr, str):  # "lhs == rhs" parses as an equality; '==' inside a condition stays there
-            expr = parse_equation(expr, {**self._all_symbols(), "t": self.t}, label)
+            expr = parse_equation(expr, self._known, label)
         if isinstance(expr, sp.Equality):
             value = self._expression(expr.lhs, label) - self._expression(expr.rhs, label)
         else:
             value = self._expression(expr, label)
-        self._equation_count = number
-        self._constraints.append(Equation("constraint", name, number, value))
+        self._add_constraint(Equation("constraint", name, number, value))
+
+    def _add_constraint(self, equation: Equation) -> None:
+        self._equation_count = equation.number
+        self._constraints.append(equation)
+        self._constraint_names.add(equation.name)
 
     def event(self, name: str, when, direction: int = 0, reset: dict | None = None, terminal: bool = False) -> None:
         """Declare an event at each zero crossing of ``when`` (see :mod:`daemodel.solving.events`).
@@ -360,9 +364,8 @@ class Declaration:
 
     def _expression(self, value, where: str) -> sp.Expr:
         """Turn a sympy expression, number or string into a checked sympy expression."""
-        symbols = self._all_symbols()
         if isinstance(value, str):
-            expr = parse_equation(value, {**symbols, "t": self.t}, where)
+            expr = parse_equation(value, self._known, where)
         else:
             try:
                 expr = sp.sympify(value, strict=True)
@@ -385,7 +388,7 @@ class Declaration:
                 "plain symbols (use those returned by m.states / m.algebraics), and the supported "
                 f"functions are {supported_names()}"
             )
-        known = {**symbols, "t": self.t}
+        known = self._known
         unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
         if unknown:
             raise UnknownSymbolError(
