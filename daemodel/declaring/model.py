@@ -391,8 +391,9 @@ class Declaration:
         known = self._known
         unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
         if unknown:
+            listing = _listing(sorted(known, key=lambda n: n == "t"))  # (t last)
             raise UnknownSymbolError(
-                f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {_listing(known)}"
+                f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {listing}"
             )
         expr = without_heaviside(without_ite(expr))
         check_numbers(expr, where)

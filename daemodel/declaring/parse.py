@@ -235,7 +235,7 @@ class _Parser:
             raise self.fail(f"'{name}' is a function: call it, e.g. {name}(x)")
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
-        declared = ", ".join(repr(n) for n in self.symbols) or "(none)"
+        declared = ", ".join(repr(n) for n in sorted(self.symbols, key=lambda n: n == "t")) or "(none)"  # (t last)
         raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
 
     def binary(self, node, depth: int):
