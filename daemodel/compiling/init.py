@@ -227,6 +227,16 @@ class NumericSystem:
         """Return ``J(t, Y, Z, P) -> ndarray, shape (B, len(exprs), len(wrt))``."""
         return self._once("batch_jacobian", exprs, wrt, lambda: self._make_batch_jacobian(exprs, wrt))
 
+    def batch_jacobian_entries(self, exprs, wrt):
+        """The Jacobian's structural nonzeros: ``(rows, cols, values)`` with ``values(t, Y, Z, P) ->
+        ndarray, shape (B, nnz)`` (:func:`jacobian_entries`' order), for sparse use."""
+        return self._once("batch_jacobian_entries", exprs, wrt, lambda: self._make_entries(exprs, wrt))
+
+    def _make_entries(self, exprs, wrt):
+        rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
+        values = self.batch_function(entries)
+        return rows, cols, values
+
     def _make_batch_jacobian(self, exprs, wrt):
         shape = (len(exprs), len(wrt))
         rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)

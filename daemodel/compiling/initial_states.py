@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from daemodel.compiling.determinants import determinant_signs
 from daemodel.compiling.init import (
     ALGEBRAIC_TOL,
     NumericSystem,
@@ -40,7 +41,7 @@ from daemodel.reals import is_real, real
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
-# check_branch evaluates H_z at this many bytes of matrices at a time: a large batch of outputs of a
+# check_branch evaluates H_z's nonzeros at this many bytes at a time: a large batch of outputs of a
 # model with many algebraic variables would otherwise hold all of them at once.
 BRANCH_CHECK_BYTES = 64 * 2**20
 
@@ -435,12 +436,16 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         return
     rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
     T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
-    Hz, sign = constraint_checks(compiled).Hz, np.empty(B * T)
-    chunk = max(1, BRANCH_CHECK_BYTES // (8 * m * m))  # (rows per evaluation of H_z)
+    checks = constraint_checks(compiled)
+    determining = [c.determining for c in compiled.constraints]
+    at, to, entries = checks.numeric.batch_jacobian_entries(determining, compiled.algebraics)
+    sign = np.empty(B * T)
+    chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)
     with np.errstate(all="ignore"):
         for a in range(0, B * T, chunk):
             b = slice(a, a + chunk)
-            sign[b] = _signs(Hz(T_all[b], rows[b, :n], rows[b, n:], P_all[b]))
+            nonzeros = entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]) if len(at) else np.zeros((len(rows[b]), 0))
+            sign[b] = determinant_signs(at, to, nonzeros, m)
     sign = sign.reshape(B, T)
     changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
     if not changed.any():
@@ -456,12 +461,3 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         "one, and the constraints do not determine z past it. End t_span before this time, or change the "
         "constraints so that their root stays isolated"
     )
-
-
-def _signs(J: np.ndarray) -> np.ndarray:
-    """``sign(det J)`` per matrix of a stack, 0 where an entry is not finite."""
-    finite = np.isfinite(J).all(axis=(1, 2))
-    out = np.zeros(len(J))
-    if finite.any():
-        out[finite] = np.linalg.slogdet(J[finite])[0]
-    return out
