@@ -433,8 +433,12 @@ class CompiledDAE:
         """casadi's DAE dict ``{"x", "z", "p", "t", "ode", "alg"}`` of this system (SX).
 
         For casadi's integrators the system must have index 1: use
-        ``c.reduced(index=1).casadi_dae()``.
+        ``c.reduced(index=1).casadi_dae()``.  Made once and kept with the model (the conversion from
+        sympy cost casadi-idas 1-7 ms of setup on every call); each call returns a new dict of it.
         """
+        return dict(self.cached("casadi_dae", self._make_casadi_dae))
+
+    def _make_casadi_dae(self) -> dict:
         import casadi
 
         def column(symbols):

@@ -218,3 +218,25 @@ def test_casadi_idas_on_index1_reduction_matches_exact_solution():
     for i, name in enumerate(c.state_names):
         np.testing.assert_allclose(xf[i], exact[name], rtol=1e-8)
     np.testing.assert_allclose(zf[0], exact["y5"], rtol=1e-7)
+
+
+def test_the_casadi_dae_is_made_once_per_model(monkeypatch):
+    """casadi-idas converted the sympy system to casadi on every call (1-7 ms of its setup): the DAE is
+    kept with the compiled model; each call returns its own dict."""
+    from daemodel.compiling import compiled as compiled_module
+
+    c = PENDULUM.model().compile()
+    first = c.casadi_dae()
+    first["ode"] = None  # (a caller's dict: the kept one is untouched)
+    made = []
+
+    class Counting(compiled_module.CasadiConverter):
+        def __init__(self, *args, **kwargs):
+            made.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(compiled_module, "CasadiConverter", Counting)
+    again = c.casadi_dae()
+    assert made == [] and again["ode"] is not None and again["alg"] is c.casadi_dae()["alg"]
+    c.reduced(1).casadi_dae()  # (another system: converted)
+    assert made == [1]
