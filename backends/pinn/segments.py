@@ -43,6 +43,11 @@ TRAINING_COPIES = {"lm": 2, "lbfgs": 2 + 2 * 50, "adam": 2 + 3}
 # hidden layers (K, N w, N w) dominates: measured 10.4 GB at N = 8, w = 1000, K = 6 (the pendulum),
 # 3.4 times K (N w)^2 doubles.
 GRAM_COPIES = 4
+# The Newton corrections that LM fits are solved from the Radau stage system, dense: its Jacobian
+# ((s+1)(n+m) + m rows, (s+1)(n+m) columns) per input, and its factorisations.  Measured on the
+# reaction-diffusion family (s = 3, one sample) at 400 and 800 unknowns: the peak resident memory grew
+# by 16.9 and 16.1 times one such matrix (1.5 GB at 800 unknowns; 10^4 unknowns would need 200 GB).
+STAGE_SYSTEM_COPIES = 16
 
 
 def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> dict:
@@ -61,6 +66,9 @@ def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> 
         "training's working copies": TRAINING_COPIES[config.optimizer] * P * itemsize,
     }
     rows = batch * config.samples // copies  # inputs each set of networks sees
+    D, m = len(compiled.states) + len(compiled.algebraics), len(compiled.algebraics)
+    R, U = (config.stages + 1) * D + m, (config.stages + 1) * D
+    parts["the Radau stage system, dense"] = STAGE_SYSTEM_COPIES * max(rows, 1) * R * U * itemsize
     if config.optimizer == "lm" and rows > 1:
         sizes, _ = output_layout(len(compiled.states), len(compiled.algebraics), config.stages, config.architecture)
         K, w, out = len(sizes) * copies, config.width, max(sizes)
@@ -83,6 +91,15 @@ def check_network_memory(compiled, config, inputs: int, batch: int, segments: in
         return
     itemised = ", ".join(f"{name} {size / 2**30:.3g} GiB" for name, size in parts.items())
     fewer = " or fewer samples" if any(name.startswith("LM's") for name in parts) else ""
+    stage_system = parts["the Radau stage system, dense"]
+    if stage_system >= max(parts.values()):  # (the model's size, more than the networks', is what does not fit)
+        D = len(compiled.states) + len(compiled.algebraics)
+        raise ResourceLimitError(
+            f"pinn: a model of {D} unknowns is too large for the PINN: its Levenberg-Marquardt solves the Radau "
+            f"stage system of {config.stages} stages densely, which would need {total / 2**30:.3g} GiB to train "
+            f"({itemised}), more than the {limit / 2**30:.3g} GiB allowed (set {MEMORY_LIMIT_VARIABLE} to change "
+            "it); solve it with method='radau' (sparse), or take fewer stages"
+        )
     raise ResourceLimitError(
         f"pinn: networks of width = {config.width} and depth = {config.depth} for {batch} sample(s) of "
         f"{len(compiled.states) + len(compiled.algebraics)} unknowns would need {total / 2**30:.3g} GiB to train "

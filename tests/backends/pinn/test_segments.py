@@ -37,7 +37,8 @@ def test_a_width_of_a_million_is_refused_before_allocating(monkeypatch):
         ResourceLimitError,
         match=r"pinn: networks of width = 1000000 and depth = 2 for 1 sample\(s\) of 5 unknowns would need "
         r"9\.83e\+05 GiB to train \(the networks of 20 segment\(s\) 8\.94e\+05 GiB, training's working copies "
-        r"8\.94e\+04 GiB\), more than the 8 GiB allowed \(set DAEMODEL_MEMORY_LIMIT, e\.g\. '64G', to change "
+        r"8\.94e\+04 GiB, the Radau stage system, dense 5\.01e-05 GiB\), more than the 8 GiB allowed \(set "
+        r"DAEMODEL_MEMORY_LIMIT, e\.g\. '64G', to change "
         r"it\); take a smaller width or depth \(PINNConfig's defaults: width = 20, depth = 2\)",
     ):
         dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(width=10**6))
@@ -64,6 +65,27 @@ def test_the_estimate_is_of_the_measured_size():
 
     c = PENDULUM.model().compile()
     parts = network_memory(c, dm.PINNConfig(width=1000), 4, 1, 1)
-    assert sum(parts.values()) == 3 * 6_120_030 * 8
+    assert sum(size for name, size in parts.items() if "stage system" not in name) == 3 * 6_120_030 * 8
+    # (the pendulum: D = 5, m = 1, s = 3: 54 KB)
+    assert parts["the Radau stage system, dense"] == 16 * (4 * 5 + 1) * (4 * 5) * 8
     parts = network_memory(c, dm.PINNConfig(width=1000, samples=8, radius=0.01), 4, 1, 1)
     assert 10.4e9 <= sum(parts.values()) <= 1.3 * 10.4e9
+
+
+def test_a_model_too_large_for_the_pinns_dense_stage_system_is_refused_before_allocating(monkeypatch):
+    """The PINN's Levenberg-Marquardt solves the Radau stage system densely: ((s+1) D + m) x (s+1) D per
+    input, 16 copies (measured at 400 and 800 unknowns: 1.5 GB at 800; 10^4 unknowns would need 200 GB).
+    A model whose stage system does not fit is refused naming its size, the limit and radau."""
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1G")
+    m = dm.Model("chain")
+    xs = m.states([f"x{i}" for i in range(600)])
+    for x in xs:
+        m.ode(x, -x)
+    m.initial(**{x.name: 1.0 for x in xs})
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"pinn: a model of 600 unknowns is too large for the PINN: its Levenberg-Marquardt solves the Radau "
+        r"stage system of 3 stages densely, which would need 1\.34 GiB to train \(.*the Radau stage system, dense "
+        r"0\.687 GiB\), more than the 1 GiB allowed .*solve it with method='radau' \(sparse\), or take fewer stages",
+    ):
+        dm.solve(m.compile(), (0.0, 0.1), method="pinn", h=0.05)
