@@ -21,7 +21,7 @@ from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
 from daemodel.backends.radau import formulas, sequence
 from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import NewtonPolicy
-from daemodel.backends.radau.sequence import CONTROLLER_STATISTICS, HANDBACK
+from daemodel.backends.radau.sequence import HANDBACK
 
 from daemodel.errors import ConvergenceError, StepLimitError
 
@@ -184,7 +184,7 @@ class Radau5Controller:
             attempt["jac_kept"] = not failed and stepper.keeps_jacobian(result[2])
             carried, decisions = sequence.after_attempt(SCALAR, carried, settings, attempt, stepper.s, iterations)
             accepted = decisions["accepted"]
-            sequence.add_statistics(stats, sequence.one_attempt(accepted, failed), names=CONTROLLER_STATISTICS)
+            sequence.add_attempt(stats, accepted, failed)
             if not accepted:
                 if decisions["shrunk_away"]:
                     why = why if failed else f"error estimate {decisions['err']:.2g} > 1"

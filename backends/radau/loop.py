@@ -150,7 +150,7 @@ def tail_function(s: int, iterations: int):
     # (Stepper.keeps_jacobian's test: the run holds a Jacobian after every attempt)
     a["jac_kept"] = formulas.jacobian_kept(CASADI, a["theta"], c["reuse_theta"])
     after, decisions = sequence.after_attempt(CASADI, v, c, a, s, iterations)
-    scalars, ran, taken, record = sequence.run_tail(CASADI, v, a, after, decisions)
+    scalars, ran, taken, record = sequence.run_tail(CASADI, v, c, a, after, decisions)
     outputs = {
         "after": casadi.vertcat(*(scalars[name] for name in SCALARS.names)),
         "ran": ran,

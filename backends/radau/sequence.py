@@ -105,7 +105,7 @@ def after_attempt(xp, carried: dict, settings: dict, attempt: dict, s: int, iter
 
     ``decisions``: ``err`` (the error norm, inf where not finite), ``accepted``, ``t_next`` (where
     the step ends), ``h_rejected`` (the next h after a rejection), ``shrunk_away`` (rejected, and
-    that h underflows: the run ends there), ``done`` (accepted, and the integration reached t1).
+    that h underflows: the run ends there).
     Every value is computed whichever way the attempt went (casadi evaluates both branches; on
     Python floats the branch not taken costs a few operations and raises nothing).
     """
@@ -129,15 +129,15 @@ def after_attempt(xp, carried: dict, settings: dict, attempt: dict, s: int, iter
         "h_acc": xp.where(accept, h_acc, carried["h_acc"]),
         "err_acc": xp.where(accept, err_acc, carried["err_acc"]),
     }
-    done = xp.and_(accept, formulas.finished(xp, t_next, settings["t0"], settings["t1"]))
-    decisions = dict(err=err, accepted=accept, t_next=t_next, h_rejected=h_rejected, shrunk_away=shrunk_away, done=done)
+    decisions = dict(err=err, accepted=accept, t_next=t_next, h_rejected=h_rejected, shrunk_away=shrunk_away)
     return after, decisions
 
 
-def run_tail(xp, carried: dict, attempt: dict, after: dict, decisions: dict):
+def run_tail(xp, carried: dict, settings: dict, attempt: dict, after: dict, decisions: dict):
     """The compiled run after an attempt (:func:`after_attempt`'s ``after`` and ``decisions``), from its
-    :data:`SCALARS` ``carried`` and the :data:`ATTEMPT`: ``(scalars, ran, taken, record)``, the
-    :data:`SCALARS` after it, whether it ran, whether a step was taken, its :data:`RECORD`.
+    :data:`SCALARS` ``carried``, the :data:`SETTINGS` and the :data:`ATTEMPT`: ``(scalars, ran,
+    taken, record)``, the :data:`SCALARS` after it (inactive where the integration reached t1),
+    whether it ran, whether a step was taken, its :data:`RECORD`.
 
     An attempt does not run where the budget is spent (``limited``), or where Python must make it
     (handed back: the error is worded there): an underflow of h before it or after its rejection,
@@ -157,7 +157,7 @@ def run_tail(xp, carried: dict, attempt: dict, after: dict, decisions: dict):
         handback = xp.or_(handback, flag)
     ran = xp.not_(xp.or_(attempt["limited"], handback))
     refreshes = attempt["refreshed"] + attempt["stale"]
-    done = decisions["done"]
+    done = xp.and_(accept, formulas.finished(xp, decisions["t_next"], settings["t0"], settings["t1"]))
     moved = {
         **after,
         "h_old": xp.where(accept, attempt["h"], carried["h_old"]),
@@ -199,16 +199,26 @@ def statistics(sums: dict, shifts: int = 0) -> dict:
     }
 
 
-def add_statistics(stats: dict, sums: dict, shifts: int = 0, names=None) -> None:
-    """Add :func:`statistics` (those ``names``: all where None) to ``stats``."""
+def add_statistics(stats: dict, sums: dict, shifts: int = 0) -> None:
+    """Add :func:`statistics` to ``stats``."""
     for name, value in statistics(sums, shifts).items():
-        if names is None or name in names:
-            stats[name] += int(value)
+        stats[name] += int(value)
 
 
-def one_attempt(accepted: bool, newton_failed: bool) -> dict:
-    """The record entries of one attempt that :data:`CONTROLLER_STATISTICS` read (the others: 0)."""
-    return dict(NO_RECORD, ran=1, accepted=accepted, newton_failed=newton_failed)
+def add_attempt(stats: dict, accepted: bool, newton_failed: bool) -> None:
+    """Add one attempt of the Python controller to its :data:`CONTROLLER_STATISTICS` (:func:`statistics`
+    of its record, made once for each outcome: a few additions per attempt)."""
+    for name, value in ATTEMPT_COUNTS[bool(accepted), bool(newton_failed)]:
+        stats[name] += value
 
 
 NO_RECORD = dict.fromkeys(RECORD, 0)
+# What one attempt adds to the CONTROLLER_STATISTICS, by (accepted, newton_failed).
+ATTEMPT_COUNTS = {
+    (accepted, failed): tuple(
+        (name, int(value))
+        for name, value in statistics(dict(NO_RECORD, ran=1, accepted=accepted, newton_failed=failed)).items()
+        if name in CONTROLLER_STATISTICS
+    )
+    for accepted, failed in ((True, False), (False, False), (False, True))
+}

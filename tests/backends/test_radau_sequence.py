@@ -59,7 +59,7 @@ def _on_floats(carried, settings, attempt):
     attempt = dict(attempt, **{name: head[name] for name in ("h", "limited", "underflow", "refreshed", "factored")})
     attempt["jac_kept"] = formulas.jacobian_kept(SCALAR, attempt["theta"], settings["reuse_theta"])
     after, decisions = sequence.after_attempt(SCALAR, carried, settings, attempt, S, ITERATIONS)
-    scalars, ran, taken, record = sequence.run_tail(SCALAR, carried, attempt, after, decisions)
+    scalars, ran, taken, record = sequence.run_tail(SCALAR, carried, settings, attempt, after, decisions)
     return head, after, decisions, scalars, ran, taken, record
 
 
@@ -110,9 +110,9 @@ def test_the_cases_reach_every_decision():
     assert seen["failed Newton"][4] and seen["failed Newton"][1]["first"]  # (the next step does not grow h)
     assert seen["h underflows"][0]["underflow"] and not seen["h underflows"][4]
     assert seen["rejected h underflows"][2]["shrunk_away"] and not seen["rejected h underflows"][4]
-    assert seen["end of interval"][2]["done"] and seen["end of interval"][3]["code"] == sequence.FINISHED
+    assert seen["end of interval"][3]["active"] == 0 and seen["end of interval"][3]["code"] == sequence.FINISHED
     stretched = seen["stretched to the end"]
-    assert stretched[0]["h"] == 1.0 - (1.0 - 0.1 - 1e-12) and stretched[2]["done"] and stretched[3]["t"] == 1.0
+    assert stretched[0]["h"] == 1.0 - (1.0 - 0.1 - 1e-12) and stretched[3]["active"] == 0 and stretched[3]["t"] == 1.0
     assert seen["budget spent"][3]["code"] == sequence.LIMIT and not seen["budget spent"][4]
     for handed in ("non-finite", "stale Jacobian, sign flip", "refreshed, sign flip", "stages flip"):
         assert not seen[handed][4] and seen[handed][3]["code"] == sequence.HANDBACK, handed
@@ -172,5 +172,5 @@ def test_the_statistics_of_records():
     )  # fmt: skip
     own = dict.fromkeys(sequence.CONTROLLER_STATISTICS, 0)
     for accepted, failed in ((True, False), (False, False), (False, True)):
-        sequence.add_statistics(own, sequence.one_attempt(accepted, failed), names=sequence.CONTROLLER_STATISTICS)
+        sequence.add_attempt(own, accepted, failed)
     assert own == {name: stats[name] for name in sequence.CONTROLLER_STATISTICS}
