@@ -7,7 +7,10 @@ step itself (start guess, Newton, error estimate, acceptance) is the same for bo
   (the Radau IIA collocation solution), checking every step's local error estimate.
 - :class:`Radau5Controller` is RADAU5's step-size control: the embedded estimate against
   ``rtol``/``atol``, the step kept within a band so the factorisations are reused, a failed Newton
-  halving h; every attempt counts against ``max_steps``.
+  halving h; every attempt counts against ``max_steps``.  Its attempt's decisions (before the
+  attempt: h and the underflow; after it: accept or reject, the next h) are :mod:`.sequence`'s,
+  which the compiled run (:mod:`.loop`) makes on casadi symbols; what is written here is what only
+  Python does: the budget and the progress watch, the named errors, the stepper's calls.
 """
 
 from __future__ import annotations
@@ -15,10 +18,10 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.grids import fixed_grid
 from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
-from daemodel.backends.radau import formulas
+from daemodel.backends.radau import formulas, sequence
 from daemodel.backends.radau.formulas import SCALAR
-from daemodel.backends.radau.loop import HANDBACK, SETTINGS
 from daemodel.backends.radau.newton import NewtonPolicy
+from daemodel.backends.radau.sequence import HANDBACK
 
 from daemodel.errors import ConvergenceError, StepLimitError
 
@@ -121,20 +124,37 @@ class Radau5Controller:
         pass
 
     def run(self, stepper, t_span, grid) -> None:
-        """Steps from t0 to t1; every attempt counts against ``max_steps``."""
+        """Steps from t0 to t1; every attempt counts against ``max_steps``.
+
+        Each attempt is :mod:`.sequence`'s (the decisions before and after it, as the compiled run
+        makes them), on Python floats; here only what Python alone does: the budget's and the
+        progress watch's checks, the named errors, the stepper's calls, the hand-over to the
+        compiled run (:mod:`.loop`) for as many attempts as the budget's next check allows.
+        """
         options, stats = self.options, stepper.stats
         iterations = options.max_newton_iterations
         t0, t1 = t_span
-        t = t0
         h = options.h0 or self.initial_step(stepper, t_span)
-        first, rejected_last = True, False
-        accepted = None  # (h, error) of the last accepted step, for Gustafsson's prediction
+        # (h_acc 0: no accepted step yet, for Gustafsson's prediction)
+        carried = dict(t=t0, h=h, first=True, rejected_last=False, h_acc=0.0, err_acc=0.0)
+        keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
+        settings = dict(
+            t0=t0,
+            t1=t1,
+            limit=options.max_steps,  # (the compiled run's: up to the budget's next check, below)
+            newton_tol=self.policy.tol,
+            rtol=self.rtol,
+            atol=self.atol,
+            reuse_theta=stepper.reuse_theta(),
+            keep_low=keep[0],
+            keep_high=keep[1],
+            predictive=float(PREDICTIVE and not self.rounding_floor),
+        )
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
         watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
-        keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
-        predictive = PREDICTIVE and not self.rounding_floor
         python_next = False  # the compiled run handed the next attempt back (see .loop)
-        while not formulas.finished(SCALAR, t, t0, t1):
+        while not formulas.finished(SCALAR, carried["t"], t0, t1):
+            t, h = carried["t"], carried["h"]
             attempts = stats["attempts"]
             if attempts >= options.max_steps:
                 raise self.budget_error(stats, t, h, t1, half, options.max_steps - options.max_steps // 2)
@@ -149,48 +169,29 @@ class Radau5Controller:
                 # half and the whole budget, and the end of the progress watch's window
                 checkpoint = options.max_steps // 2 if attempts < options.max_steps // 2 else options.max_steps
                 checkpoint = min(checkpoint, max(watch.start[1] + PROGRESS_WINDOW, attempts + 1))
-                settings = SETTINGS.pack(
-                    t0=t0,
-                    t1=t1,
-                    limit=checkpoint - attempts,
-                    newton_tol=self.policy.tol,
-                    rtol=self.rtol,
-                    atol=self.atol,
-                    reuse_theta=stepper.reuse_theta(),
-                    keep_low=keep[0],
-                    keep_high=keep[1],
-                    predictive=float(predictive),
-                )
-                t, h, first, rejected_last, accepted, ended = stepper.compiled_run.advance(
-                    stepper, t, h, first, rejected_last, accepted, settings
-                )
+                limited = dict(settings, limit=checkpoint - attempts)
+                carried, ended = stepper.compiled_run.advance(stepper, carried, limited)
                 python_next = ended == HANDBACK
                 continue
             python_next = False
-            stats["attempts"] += 1
-            if formulas.underflow(SCALAR, h, t):
-                shrink(h, t, "the error estimate kept shrinking the step", None)
-            h = formulas.step_length(SCALAR, h, t, t1)
-            result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, first or rejected_last)
+            head = sequence.before_attempt(SCALAR, carried, settings)
+            if head["underflow"]:
+                raise underflow_error(h, t, "the error estimate kept shrinking the step", None)
+            h = head["h"]
+            result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
             failed = result is None
-            err = formulas.finite_or_inf(SCALAR, err)
-            quot = formulas.error_quotient(SCALAR, err, newton_iterations, stepper.s, iterations)
-            if not formulas.accepted(SCALAR, failed, err):
-                stats["newton_failures" if failed else "rejected_steps"] += 1
-                why = why if failed else f"error estimate {err:.2g} > 1"
-                h = shrink(formulas.rejected_step(SCALAR, h, quot, failed), t, why, sample)
+            attempt = dict(h=h, iterations=newton_iterations, error_norm=err, newton_failed=failed)
+            attempt["jac_kept"] = not failed and stepper.keeps_jacobian(result[2])
+            carried, decisions = sequence.after_attempt(SCALAR, carried, settings, attempt, stepper.s, iterations)
+            accepted = decisions["accepted"]
+            sequence.add_attempt(stats, accepted, failed)
+            if not accepted:
+                if decisions["shrunk_away"]:
+                    why = why if failed else f"error estimate {decisions['err']:.2g} > 1"
+                    raise underflow_error(decisions["h_rejected"], t, why, sample)
                 stepper.drop_factors()
-                first = first or failed  # (as RADAU5: after a failed Newton the next accepted step does not grow h)
-                rejected_last = True
                 continue
-            t_next = formulas.step_end(SCALAR, t, h, t1)
-            stepper.accept(t, h, result, t_next)
-            t = t_next
-            last = accepted or (0.0, 0.0)  # (h 0: no accepted step yet)
-            h, accepted = formulas.next_step(
-                SCALAR, h, err, quot, stepper.s, last, predictive, rejected_last, keep, stepper.jacobian_kept()
-            )
-            first = rejected_last = False
+            stepper.accept(t, h, result, decisions["t_next"])
 
     def initial_step(self, stepper, t_span) -> float:
         """``0.01 |u0| / |f(u0)|`` in the error norm, capped by the interval (Hairer-Wanner's first guess)."""
@@ -245,15 +246,13 @@ class Radau5Controller:
         )
 
 
-def shrink(new, t, why, sample):
-    """The shrunk step ``new``, or :class:`ConvergenceError` where it underflows (the last failure named)."""
-    if formulas.underflow(SCALAR, new, t):
-        who = f", sample {sample}" if sample is not None else ""
-        raise ConvergenceError(
-            f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "
-            "solution may blow up or leave the domain of f there"
-        )
-    return new
+def underflow_error(new, t, why, sample) -> ConvergenceError:
+    """The step size underflow at ``t`` with the step ``new`` (the last failure named)."""
+    who = f", sample {sample}" if sample is not None else ""
+    return ConvergenceError(
+        f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "
+        "solution may blow up or leave the domain of f there"
+    )
 
 
 def make_controller(options):

@@ -14,50 +14,47 @@ attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 - where all failed, checks that z stays determined over the step and halves h; else accepts or
   rejects the step and picks the next h.
 
-The same arithmetic in the same order: the same steps, bit for bit, the controller's formulas
-(the accept/reject decision, the next h, the end and underflow tests) written once in
-:mod:`.formulas` for both, and every packed vector's parts named in one :class:`.compiled.Layout`
-(the head and tail take and return them by name).  What only Python does ends
+The same arithmetic in the same order: the same steps, bit for bit.  Nothing of the controller is
+written here: the run's head and tail (:func:`head_function`, :func:`tail_function`) are
+:mod:`.sequence`'s functions (the decisions before and after an attempt, by :mod:`.formulas`'
+formulas) called on casadi symbols, which :meth:`.control.Radau5Controller.run` calls on Python
+floats, and the attempt's tries are :mod:`.tries`'; every packed vector's parts are named in one
+:class:`.compiled.Layout` (:mod:`.sequence`'s layouts: the head and tail take and return them by
+name).  What this module writes is the graph around them: the Jacobian's refresh and refactor
+as casadi switches, the carried arrays, the records.  What only Python does ends
 the run *before* the attempt, which Python then makes on its own path (the attempt runs twice),
 where the errors are worded: non-finite values (the general path names where they arose), a sign
 change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
 exactly singular matrix, which LAPACK refuses, fails the call, and Python makes the next attempt),
 a step size underflow.  A run also ends where the integration does and at ``limit`` attempts (the
-controller's budget checks).  Each attempt that ran leaves a record (:data:`RECORD`, then the start
-value and the stages) from which :class:`CompiledRun` writes the steps and the statistics back
-into the stepper.
+controller's budget checks).  Each attempt that ran leaves a record (:data:`.sequence.RECORD`,
+then the start value and the stages) from which :class:`CompiledRun` writes the steps back into
+the stepper, and the statistics by :func:`.sequence.add_statistics`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from daemodel.backends.progress import captured_output
-from daemodel.backends.radau import formulas
+from daemodel.backends.radau import formulas, sequence
 from daemodel.backends.radau.compiled import NON_FINITE, Buffered, Layout, iteration_matrix, step_layouts
 from daemodel.backends.radau.formulas import CASADI
+from daemodel.backends.radau.sequence import (
+    ATTEMPT,
+    CONTROLLER,
+    FULL,
+    HANDBACK,
+    HEAD,
+    RECORD,
+    SCALARS,
+    SETTINGS,
+)
 from daemodel.backends.radau.sparse import MAX_GROWTH
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
 RUN_ATTEMPTS = 32
-# How a run ended: every attempt ran, the integration reached t1, Python must make the next attempt,
-# or ``limit`` attempts ran (the controller then checks its budget).
-FULL, FINISHED, HANDBACK, LIMIT = 0, 1, 2, 3
-# The carried scalars, in front of u (D), the last step's nodes ((s+1) D), f at the start (n), J's
-# nonzeros and the packed inverses (state_layout).  h_old 0: no last step (a constant guess);
-# factors_h 0: no factored systems; h_acc 0: no accepted step yet (Gustafsson's prediction waits).
-SCALARS = Layout(
-    "t", "h", "h_old", "eta", "first", "rejected_last", "h_acc", "err_acc", "jac_kept", "t_jac",
-    "factors_h", "det_sign", "t_det", "attempts", "active", "code",
-)  # fmt: skip
-# The run's settings, in front of p.
-SETTINGS = Layout(
-    "t0", "t1", "limit", "newton_tol", "rtol", "atol", "reuse_theta", "keep_low", "keep_high", "predictive",
-)  # fmt: skip
-# Each attempt's record, in front of the start value and the stages (record_layout).
-RECORD = ("ran", "accepted", "t", "h", "t_next", "iterations", "evaluations", "refreshed", "factored", "retries",
-          "newton_failed")  # fmt: skip
 
 
 def sign_det_function(m: int):
@@ -123,109 +120,44 @@ def any_of(casadi, *flags):
     return out
 
 
-# What the head tells of the attempt to come (head_function's outputs).
-HEAD = ("h", "limited", "underflow", "refreshed", "factored", "ratio", "first")
+# The head's and the tail's inputs.
+HEAD_INPUTS = {"scalars": SCALARS, "settings": SETTINGS}
+TAIL_INPUTS = {"scalars": SCALARS, "settings": SETTINGS, "attempt": ATTEMPT}
 
 
 def head_function():
-    """The controller's loop head (SX, scalars; :meth:`.control.Radau5Controller.run`'s): from the
-    :data:`SCALARS` and :data:`SETTINGS`, :data:`HEAD`: ``h`` (shortened to end at t1), ``limited``
-    (the budget is spent), ``underflow``, ``refreshed`` (the Jacobian was dropped), ``factored`` (h
-    changed), ``ratio`` (h / h_old, 0 without a last step), ``first`` (the estimate refiltered)."""
+    """The run's loop head (SX, scalars): :func:`.sequence.before_attempt` and
+    :func:`.sequence.run_head` on casadi symbols, from the :data:`.sequence.SCALARS` and
+    :data:`.sequence.SETTINGS` to the :data:`.sequence.HEAD`, each input and output by its name."""
     import casadi
 
-    scalars, settings = casadi.SX.sym("scalars", SCALARS.size), casadi.SX.sym("settings", SETTINGS.size)
-    v, c = SCALARS.read(scalars), SETTINGS.read(settings)
-    t = v["t"]
-    h = formulas.step_length(CASADI, v["h"], t, c["t1"])
-    refreshed = casadi.logic_not(v["jac_kept"])
-    out = {
-        "h": h,
-        "limited": v["attempts"] >= c["limit"],
-        "underflow": formulas.underflow(CASADI, v["h"], t),
-        "refreshed": refreshed,
-        "factored": casadi.logic_and(casadi.logic_not(refreshed), v["factors_h"] != h),
-        "ratio": casadi.if_else(v["h_old"] > 0, h / v["h_old"], 0.0),
-        "first": casadi.logic_or(v["first"], v["rejected_last"]),
-    }
-    return casadi.Function("head", [scalars, settings], [out[name] for name in HEAD], ["scalars", "settings"], HEAD)
-
-
-# What the tail reads of the attempt.
-ATTEMPT = Layout(
-    "h", "limited", "underflow", "refreshed", "factored", "stale", "singular", "sign", "retry_sign", "outcome",
-    "iterations", "theta", "eta", "error_norm", "evaluations", "retries", "newton_failed", "stage_flip",
-)  # fmt: skip
+    symbols = {name: casadi.SX.sym(name, layout.size) for name, layout in HEAD_INPUTS.items()}
+    v, c = (layout.read(symbols[name]) for name, layout in HEAD_INPUTS.items())
+    out = sequence.before_attempt(CASADI, v, c)
+    out.update(sequence.run_head(CASADI, v, c, out["h"]))
+    return casadi.Function("head", list(symbols.values()), [out[name] for name in HEAD], list(symbols), HEAD)
 
 
 def tail_function(s: int, iterations: int):
-    """The controller after the attempt (SX, scalars; :meth:`.control.Radau5Controller.run`'s, by the
-    same :mod:`.formulas` in its order of operations): from the :data:`SCALARS`, :data:`SETTINGS` and
-    :data:`ATTEMPT`, the scalars ``after`` it, whether it ``ran``, whether a step was ``taken``, and
-    its ``record`` (:data:`RECORD`).  An attempt that did not run (the budget, or one to hand back)
-    leaves the scalars as they were, inactive, with the code why."""
+    """The run after the attempt (SX, scalars): :func:`.sequence.after_attempt` and
+    :func:`.sequence.run_tail` on casadi symbols, from the :data:`.sequence.SCALARS`,
+    :data:`.sequence.SETTINGS` and :data:`.sequence.ATTEMPT` to the scalars ``after`` it, whether it
+    ``ran``, whether a step was ``taken``, and its ``record`` (:data:`.sequence.RECORD`)."""
     import casadi
 
-    xp = CASADI
     symbols = {name: casadi.SX.sym(name, layout.size) for name, layout in TAIL_INPUTS.items()}
     v, c, a = (layout.read(symbols[name]) for name, layout in TAIL_INPUTS.items())
-    t, t0, t1, h, k, theta = v["t"], c["t0"], c["t1"], a["h"], a["iterations"], a["theta"]
-    err = formulas.finite_or_inf(xp, a["error_norm"])  # (NaN: inf, as the stepper reads it)
-    quot = formulas.error_quotient(xp, err, k, s, iterations)
-    failed = a["newton_failed"]  # (every compiled try failed, z stays determined: the controller halves h)
-    accept = formulas.accepted(xp, failed, err)
-    h_rejected = formulas.rejected_step(xp, h, quot, failed)
-    shrunk_away = casadi.logic_and(casadi.logic_not(accept), formulas.underflow(xp, h_rejected, t))  # (shrink's)
-    t_next = formulas.step_end(xp, t, h, t1)
-    jac_kept = formulas.jacobian_kept(xp, theta, c["reuse_theta"])  # (Stepper.accept's test)
-    last, keep = (v["h_acc"], v["err_acc"]), (c["keep_low"], c["keep_high"])
-    new_h, (h_acc, err_acc) = formulas.next_step(
-        xp, h, err, quot, s, last, c["predictive"], v["rejected_last"], keep, jac_kept
-    )
-    done = casadi.logic_and(accept, formulas.finished(xp, t_next, t0, t1))
-    flipped = casadi.logic_or(
-        casadi.logic_and(a["refreshed"], formulas.sign_flip(v["det_sign"], a["sign"])),  # (check_determined's)
-        casadi.logic_and(a["stale"], formulas.sign_flip(a["sign"], a["retry_sign"])),
-    )
-    non_finite = casadi.logic_and(a["outcome"] != 0, casadi.logic_not(failed))  # (the general path names where)
-    handback = any_of(casadi, a["underflow"], a["singular"], flipped, non_finite, a["stage_flip"], shrunk_away)
-    ran = casadi.logic_not(casadi.logic_or(a["limited"], handback))
-    refreshes = a["refreshed"] + a["stale"]
-    after = {
-        "t": casadi.if_else(accept, t_next, t),
-        "h": casadi.if_else(accept, new_h, h_rejected),
-        "h_old": casadi.if_else(accept, h, v["h_old"]),
-        "eta": casadi.if_else(failed, v["eta"], a["eta"]),
-        "first": casadi.if_else(accept, 0, casadi.logic_or(failed, v["first"])),
-        "rejected_last": casadi.logic_not(accept),
-        "h_acc": casadi.if_else(accept, h_acc, v["h_acc"]),
-        "err_acc": casadi.if_else(accept, err_acc, v["err_acc"]),
-        "jac_kept": casadi.if_else(accept, jac_kept, 1),  # (refreshed if it was not kept)
-        "t_jac": casadi.if_else(refreshes > 0, t, v["t_jac"]),
-        "factors_h": casadi.if_else(accept, h, 0),  # (a rejected step drops its factors: h changes)
-        "det_sign": casadi.if_else(a["stale"], a["retry_sign"], a["sign"]),
-        "t_det": casadi.if_else(refreshes > 0, t, v["t_det"]),
-        "attempts": v["attempts"] + 1,
-        "active": casadi.logic_not(done),
-        "code": casadi.if_else(done, FINISHED, FULL),
-    }
-    stopped = {**v, "active": 0, "code": casadi.if_else(a["limited"], LIMIT, HANDBACK)}
-    scalars = [casadi.if_else(ran, after[name], stopped[name]) for name in SCALARS.names]
-    record = dict(ran=1, accepted=accept, t=t, h=h, t_next=t_next, iterations=casadi.if_else(failed, 0, k))
-    record.update(evaluations=a["evaluations"], refreshed=refreshes, factored=a["factored"])
-    record.update(retries=a["retries"], newton_failed=failed)
-    record = [casadi.if_else(ran, record[name], 0) for name in RECORD]
+    # (Stepper.keeps_jacobian's test: the run holds a Jacobian after every attempt)
+    a["jac_kept"] = formulas.jacobian_kept(CASADI, a["theta"], c["reuse_theta"])
+    after, decisions = sequence.after_attempt(CASADI, v, c, a, s, iterations)
+    scalars, ran, taken, record = sequence.run_tail(CASADI, v, c, a, after, decisions)
     outputs = {
-        "after": casadi.vertcat(*scalars),
+        "after": casadi.vertcat(*(scalars[name] for name in SCALARS.names)),
         "ran": ran,
-        "taken": casadi.logic_and(ran, accept),
-        "record": casadi.vertcat(*record),
+        "taken": taken,
+        "record": casadi.vertcat(*(record[name] for name in RECORD)),
     }
     return casadi.Function("tail", list(symbols.values()), list(outputs.values()), list(symbols), list(outputs))
-
-
-# The tail's inputs.
-TAIL_INPUTS = {"scalars": SCALARS, "settings": SETTINGS, "attempt": ATTEMPT}
 
 
 def run_function(
@@ -239,8 +171,8 @@ def run_function(
     :class:`.compiled.StaticFactors`) the packed static factors' (:mod:`.kernel`); ``sign``: a
     function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
     ``stage_jacobians``: the Jacobian's nonzeros at every stage
-    (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`SCALARS` and the
-    arrays, :data:`SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
+    (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`.sequence.SCALARS` and the
+    arrays, :data:`.sequence.SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
     virtual machine an MX operation costs ~20 ns, an SX one ~2.
     """
@@ -372,14 +304,14 @@ class CasadiTries(AbstractTriesSide):
 
 
 def state_layout(s: int, n: int, D: int, nnz: int, size_inverse: int) -> Layout:
-    """The carried state: the :data:`SCALARS`, then ``u``, the last step's ``nodes``, ``f0``, ``J``'s
+    """The carried state: the :data:`.sequence.SCALARS`, then ``u``, the last step's ``nodes``, ``f0``, ``J``'s
     nonzeros and the packed ``inverse``."""
     arrays = (("u", D), ("nodes", (s + 1) * D), ("f0", n), ("J", nnz), ("inverse", size_inverse))
     return Layout(*SCALARS.names, *arrays)
 
 
 def record_layout(s: int, D: int) -> Layout:
-    """One attempt's record: :data:`RECORD`, then the start value and the stages (``nodes``)."""
+    """One attempt's record: :data:`.sequence.RECORD`, then the start value and the stages (``nodes``)."""
     return Layout(*RECORD, ("nodes", (s + 1) * D))
 
 
@@ -395,22 +327,19 @@ class CompiledRun:
         self.attempts = (function.nnz_out(0) - self.layout.size) // self.record.size
         self.shifts = len(engine.transform.shifts(1.0))  # LU decompositions a factorisation counts
 
-    def advance(self, stepper, t, h, first, rejected_last, accepted, settings):
-        """Up to :attr:`attempts` attempts from ``t`` with ``h`` (``settings``: :data:`SETTINGS` packed),
-        the controller's state given and returned: ``(t, h, first, rejected_last, accepted, how the run
-        ended)``; the stepper's state and statistics move with the accepted steps."""
-        L = self.layout
+    def advance(self, stepper, carried: dict, settings: dict):
+        """Up to :attr:`attempts` attempts from the controller's scalars ``carried``
+        (:data:`.sequence.CONTROLLER`) with ``settings`` (:data:`.sequence.SETTINGS`): ``(carried after,
+        how the run ended)``; the stepper's state and statistics move with the accepted steps."""
+        L, t = self.layout, carried["t"]
         state = self.buffered.inputs[0]
         previous, factors, jac = stepper._previous, stepper.factors, stepper._jac
         scalars = {
-            "t": t,
-            "h": h,
+            **carried,
             "h_old": previous[0] if previous is not None else 0.0,
             "eta": float(stepper.eta[0]),
-            "first": float(first),
-            "rejected_last": float(rejected_last),
-            "h_acc": accepted[0] if accepted is not None else 0.0,
-            "err_acc": accepted[1] if accepted is not None else 0.0,
+            "first": float(carried["first"]),
+            "rejected_last": float(carried["rejected_last"]),
             "jac_kept": float(jac is not None),
             "t_jac": jac[1] if jac is not None else 0.0,
             "factors_h": factors.h if factors is not None and factors.inverse is not None else 0.0,
@@ -430,7 +359,7 @@ class CompiledRun:
         if scalars["factors_h"]:
             state[L["inverse"]] = factors.inverse
         inputs = self.buffered.inputs[1]
-        inputs[: SETTINGS.size] = settings
+        inputs[: SETTINGS.size] = SETTINGS.pack(**settings)
         inputs[SETTINGS.size :] = stepper.engine.p
         try:
             with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
@@ -438,30 +367,24 @@ class CompiledRun:
         except RuntimeError:
             # a factorisation inside failed (LAPACK refuses an exactly singular matrix): the next attempt
             # on Python's path, which factors with scipy and names why it is singular
-            return t, h, first, rejected_last, accepted, HANDBACK
+            return carried, HANDBACK
         stepper.stats["compiled_runs"] += 1
-        return self._write_back(stepper, out, accepted)
+        return self._write_back(stepper, out)
 
-    def _write_back(self, stepper, out, accepted):
+    def _write_back(self, stepper, out):
         L, stats, engine = self.layout, stepper.stats, stepper.engine
         s, D = stepper.s, stepper.n + stepper.m
         R = self.record
         v = dict(zip(SCALARS.names, out[: SCALARS.size].tolist(), strict=True))
+        carried = {name: v[name] for name in CONTROLLER}
+        carried["first"], carried["rejected_last"] = bool(v["first"]), bool(v["rejected_last"])
         records = out[L.size :].reshape(self.attempts, R.size)
         records = records[records[:, R["ran"]] > 0]
         if not len(records):  # (the first attempt handed back: nothing moved)
-            return v["t"], v["h"], bool(v["first"]), bool(v["rejected_last"]), accepted, int(v["code"])
+            return carried, int(v["code"])
         sums = dict(zip(RECORD, records[:, : len(RECORD)].sum(axis=0).tolist(), strict=True))  # (one numpy call)
-        failed = int(sums["newton_failed"])
-        stats["attempts"] += len(records)
-        stats["rejected_steps"] += len(records) - int(sums["accepted"]) - failed
-        stats["newton_failures"] += failed
-        stats["newton_iterations"] += int(sums["iterations"])
+        sequence.add_statistics(stats, sums, self.shifts)
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(records[:, R["iterations"]].max()))
-        stats["residual_evaluations"] += int(sums["evaluations"])
-        stats["jacobian_evaluations"] += int(sums["refreshed"]) + failed  # (the stages' at a failure)
-        stats["compiled_retries"] += int(sums["retries"])
-        stats["lu_decompositions"] += self.shifts * int(sums["refreshed"] + sums["factored"])
         if sums["refreshed"] and stepper.m:
             stepper._det_sign, stepper._det_time = np.array([v["det_sign"]]), v["t_det"]
         steps = records[records[:, R["accepted"]] > 0]
@@ -475,10 +398,8 @@ class CompiledRun:
                 nodes.copy() if stepper.records.dense else nodes,
                 out[L["f0"]][None].copy(),
             )
-            accepted = (v["h_acc"], v["err_acc"])
         stepper.eta = np.array([v["eta"]])
         stepper._jac = (out[L["J"]].copy(), v["t_jac"]) if v["jac_kept"] else None
         factors_h = v["factors_h"]
         stepper.factors = engine._packed_factors(out[L["inverse"]].copy(), factors_h) if factors_h else None
-        first, rejected_last = bool(v["first"]), bool(v["rejected_last"])
-        return v["t"], v["h"], first, rejected_last, accepted, int(v["code"])
+        return carried, int(v["code"])

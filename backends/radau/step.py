@@ -368,7 +368,7 @@ class Stepper:
             )
         nodes = self.xp.concatenate([self.state()[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
         self.take_steps(np.array([t]), np.array([h]), np.array([t_next]), nodes, r.stage_f[:, -1])
-        if not formulas.jacobian_kept(formulas.SCALAR, theta, self.reuse_theta()):
+        if not self.keeps_jacobian(theta):
             self._jac = None  # slow contraction (or no reuse asked for): a fresh Jacobian next step
 
     def take_steps(self, starts, lengths, ends, nodes, f_end):
@@ -423,9 +423,11 @@ class Stepper:
             self.check_determined(J, t, h, signs=signs)
         return self._jac[0]
 
-    def jacobian_kept(self) -> bool:
-        """Whether the next step starts with the Jacobian it has (Newton contracted fast enough)."""
-        return self._jac is not None
+    def keeps_jacobian(self, theta) -> bool:
+        """Whether the next step, after this one is accepted with Newton's contraction ``theta``, starts
+        with the Jacobian it has: one is held (full Newton may have dropped it) and Newton contracted
+        fast enough (:func:`.formulas.jacobian_kept`)."""
+        return self._jac is not None and formulas.jacobian_kept(SCALAR, theta, self.reuse_theta())
 
     def drop_jacobian(self):
         """A fresh Jacobian at the next step's start."""

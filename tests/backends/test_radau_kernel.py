@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemodel.backends.radau import casadi_engine, kernel, loop
+from daemodel.backends.radau import casadi_engine, kernel, loop, sequence
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 from daemodel.backends.radau.linalg import dense_sign_det
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
@@ -94,7 +94,7 @@ def test_growth_past_the_bound_hands_the_attempt_back(monkeypatch):
     ends = _ends(monkeypatch)
     refused = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-6, jit=True)
     monkeypatch.undo()
-    assert ends and set(ends) == {loop.HANDBACK}
+    assert ends and set(ends) == {sequence.HANDBACK}
     monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS", -1)
     general = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-6, jit=True)
     assert refused.stats["steps"] == general.stats["steps"]

@@ -7,7 +7,7 @@ compiled ones, errors), and stop where the controller checks its budget.
 
 import numpy as np
 import pytest
-from daemodel.backends.radau import loop
+from daemodel.backends.radau import loop, sequence
 from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import find_compiler
 
@@ -55,7 +55,7 @@ def test_the_run_takes_the_controllers_steps_bit_for_bit(monkeypatch, problem, s
 
 
 def _ends(monkeypatch):
-    """How each compiled run ended (loop.FULL, FINISHED, HANDBACK, LIMIT), recorded as the solve goes."""
+    """How each compiled run ended (sequence.FULL, FINISHED, HANDBACK, LIMIT), recorded as the solve goes."""
     ends = []
     advance = loop.CompiledRun.advance
 
@@ -74,7 +74,7 @@ def test_newton_failures_are_handled_inside_the_run(monkeypatch):
     ends = _ends(monkeypatch)
     run = dm.solve(PROBLEMS["akzo-nobel"].model(), (0.0, 180.0), rtol=1e-8, atol=1e-8)
     assert run.stats["newton_failures"] == 2 and run.stats["compiled_retries"] == 5
-    assert loop.HANDBACK not in ends and ends[-1] == loop.FINISHED
+    assert sequence.HANDBACK not in ends and ends[-1] == sequence.FINISHED
     assert run.stats["compiled_runs"] == len(ends) == 2
 
 
@@ -116,7 +116,7 @@ def test_a_sign_change_of_the_iteration_matrix_is_refused_from_the_run(monkeypat
     ends = _ends(monkeypatch)
     with pytest.raises(E.ConvergenceError, match=r"the constraints \('track'\) stop determining the algebraic"):
         dm.solve(m, (0.0, 1.5), rtol=1e-6, atol=1e-6)
-    assert ends[-1] == loop.HANDBACK
+    assert ends[-1] == sequence.HANDBACK
 
 
 def test_an_exactly_singular_newton_matrix_is_named_from_the_run(monkeypatch, capfd):
@@ -133,7 +133,7 @@ def test_an_exactly_singular_newton_matrix_is_named_from_the_run(monkeypatch, ca
         E.ConvergenceError, match=r"the Newton matrix is singular for sample 0 at t = 0.5 with h = 0.5; "
     ):
         dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False)
-    assert ends[-1] == loop.HANDBACK
+    assert ends[-1] == sequence.HANDBACK
     printed = capfd.readouterr()
     assert "Input 0" not in printed.out + printed.err and "LapackLu" not in printed.out + printed.err
 
@@ -149,7 +149,7 @@ def test_values_leaving_the_domain_are_named_by_the_general_path(monkeypatch):
     sol = dm.solve(m, (0.0, 1.99), rtol=1e-6, atol=1e-8)
     exact = (1.0 - sol.t / 2.0) ** 2
     assert np.abs(sol["v"] - exact).max() < 1e-6
-    assert loop.HANDBACK in ends
+    assert sequence.HANDBACK in ends
 
 
 @pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
