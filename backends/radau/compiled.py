@@ -9,16 +9,20 @@ of the step's scalars, the last step's collocation polynomial and the inverses o
 systems (bound to the function when they are factored), so that Python runs once per step.
 
 It follows :meth:`.newton.Newton.simplified` (the RADAU5 controller's policy) and
-:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts, the tests and the
-error norm written once in :mod:`.formulas` for both.  Its packed input and output are named in
-one place (:func:`step_layouts`).  Any outcome but
+:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts.  Which is written
+where: the Newton iteration's passes once in :mod:`.iteration` (:func:`newton_tests` is one pass
+on casadi SX, on the state :class:`.iteration.NewtonState`), the tests, the start guess's rate and
+the error norm once in :mod:`.formulas`; what is here alone is the attempt's graph around them (the
+start guess, the increments through the packed inverses, the unrolled passes, the error
+estimate's systems).  Its packed input and output are named in one place (:func:`step_layouts`).
+Any outcome but
 convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
 code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
 failure, and hands non-finite values to the general path, which names where they arose.
 
 The iteration is unrolled ``max_newton_iterations + 2`` times, each a casadi switch that runs one
-iteration while the step is still iterating and passes its state through unchanged after (the
-extra passes check a one-iteration convergence and evaluate ``f`` at the final stages).
+pass while the state is active and passes it through unchanged after (the extra passes check a
+one-iteration convergence and evaluate ``f`` at the final stages).
 """
 
 from __future__ import annotations

@@ -110,7 +110,7 @@ class ArrayOps:
         return then() if condition else otherwise()
 
     def guard(self, condition, then, otherwise):
-        """``then()`` where ``condition``, else ``otherwise()`` (see :meth:`CasadiOps.guard`): only the one taken runs."""
+        """``then()`` where ``condition``, else ``otherwise()``: only the one taken runs (:meth:`CasadiOps.guard`)."""
         return then() if condition else otherwise()
 
     def any(self, flags) -> bool:

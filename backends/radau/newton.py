@@ -6,6 +6,13 @@ minimises).  Simplified Newton factors ``(gamma / h) M - J`` once (:mod:`.transf
 contracts too slowly, a fixed step switches to full Newton with each stage's Jacobian at the
 current iterate, and where that fails too, to damped Newton: a fixed step has no smaller h to fall
 back on.  An adaptive step instead fails, and the controller shrinks h, as RADAU5 does.
+
+Which is written where: the simplified iteration's passes (its tests, the check of a one-iteration
+convergence, the evaluation of f at the final stages, the counts) are :func:`.iteration.newton_pass`,
+which the compiled attempt runs too (:func:`.compiled.newton_tests`); :meth:`Newton.simplified` runs
+them on the samples' arrays and adds what Python alone does (the increments, the worded failure, the
+fixed grid's rescue).  :meth:`Newton.full` (the rescue, and the steps that start with stage
+Jacobians) and :meth:`Newton.damped` are Python's alone: the compiled attempt has no counterpart.
 """
 
 from __future__ import annotations
@@ -25,8 +32,8 @@ REFRESH_THETA = 0.05
 # then the transformed systems are tried again: where the Jacobian varies along the step (the
 # pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
 STAGE_NEWTON_STEPS = 8
-# (Simplified Newton's tests, in their order, are .formulas.newton_iteration, shared with the
-# compiled step; the damped iteration's stagnation test reads its STAGNATION_THETA and _FACTOR.)
+# (Simplified Newton's passes are .iteration.newton_pass, its tests .formulas.newton_iteration, shared
+# with the compiled step; the damped iteration's stagnation test reads its STAGNATION_THETA and _FACTOR.)
 # A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
 # damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
 # natural monotonicity test: a step lam dW is taken when the next simplified increment is at
