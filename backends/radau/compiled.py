@@ -15,10 +15,9 @@ on casadi SX, on the state :class:`.iteration.NewtonState`), the tests, the star
 the error norm once in :mod:`.formulas`; what is here alone is the attempt's graph around them (the
 start guess, the increments through the packed inverses, the unrolled passes, the error
 estimate's systems).  Its packed input and output are named in one place (:func:`step_layouts`).
-Any outcome but
-convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
-code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
-failure, and hands non-finite values to the general path, which names where they arose.
+Any outcome but convergence (non-finite values, divergence, slow contraction, the iteration limit)
+reports its code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words
+the failure, and hands non-finite values to the general path, which names where they arose.
 
 The iteration is unrolled ``max_newton_iterations + 2`` times, each a casadi switch that runs one
 pass while the state is active and passes it through unchanged after (the extra passes check a
