@@ -9,16 +9,19 @@ of the step's scalars, the last step's collocation polynomial and the inverses o
 systems (bound to the function when they are factored), so that Python runs once per step.
 
 It follows :meth:`.newton.Newton.simplified` (the RADAU5 controller's policy) and
-:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts, the tests and the
-error norm written once in :mod:`.formulas` for both.  Its packed input and output are named in
-one place (:func:`step_layouts`).  Any outcome but
-convergence (non-finite values, divergence, slow contraction, the iteration limit) reports its
-code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words the
-failure, and hands non-finite values to the general path, which names where they arose.
+:meth:`.error.ErrorEstimate.norm` exactly: the same iterates, tests and counts.  Which is written
+where: the Newton iteration's passes once in :mod:`.iteration` (:func:`newton_tests` is one pass
+on casadi SX, on the state :class:`.iteration.NewtonState`), the tests, the start guess's rate and
+the error norm once in :mod:`.formulas`; what is here alone is the attempt's graph around them (the
+start guess, the increments through the packed inverses, the unrolled passes, the error
+estimate's systems).  Its packed input and output are named in one place (:func:`step_layouts`).
+Any outcome but convergence (non-finite values, divergence, slow contraction, the iteration limit)
+reports its code; :meth:`.step.Stepper.compiled_attempt` retries as the general path does and words
+the failure, and hands non-finite values to the general path, which names where they arose.
 
 The iteration is unrolled ``max_newton_iterations + 2`` times, each a casadi switch that runs one
-iteration while the step is still iterating and passes its state through unchanged after (the
-extra passes check a one-iteration convergence and evaluate ``f`` at the final stages).
+pass while the state is active and passes it through unchanged after (the extra passes check a
+one-iteration convergence and evaluate ``f`` at the final stages).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
+from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
 
 from daemodel.collocation import extrapolation_polynomial, horner
 
@@ -177,48 +181,31 @@ def inverse_size(transform, D: int) -> int:
 
 
 # The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
-# of NEWTON_STATE (previous: the last increment's norm; mode: .formulas' ITERATING, CHECK a convergence
-# at k = 1 or EVALUATE f at the end, after_convergence; active: still iterating).
-NEWTON_STATE = ("previous", "theta", "eta", "k", "mode", "outcome", "active", "evaluations")
+# of NEWTON_STATE, .iteration's NewtonState but `iterating` (one trajectory: mode == ITERATING).
+NEWTON_STATE = tuple(name for name in NewtonState._fields if name != "iterating")
 ITERATION = ("W", "F", *NEWTON_STATE)
-# newton_tests' input: the increment's norm, the state's scalars but active, Newton's tolerance; its output.
+# newton_tests' input: the increment's norm, the state's scalars but active (a pass runs where it is),
+# Newton's tolerance; its output: whether the pass iterated (the increment taken), the state after it.
 NEWTON_BEFORE = Layout("norm", *(name for name in NEWTON_STATE if name != "active"), "tol")
 NEWTON_AFTER = Layout("iterate", *NEWTON_STATE)
 
 
 def newton_tests(iterations: int):
-    """The simplified Newton iteration's tests on its scalars (:meth:`.newton.Newton.simplified`'s, by
-    the same :mod:`.formulas` in its order), an SX function from ``before`` (:data:`NEWTON_BEFORE`) to
-    ``after`` (:data:`NEWTON_AFTER`: whether it iterated, and the state's scalars after the iteration;
-    see :data:`NEWTON_STATE`)."""
+    """One pass of the simplified Newton iteration on its scalars, :func:`.iteration.newton_pass` (the one
+    :meth:`.newton.Newton.simplified` runs) on casadi SX symbols: an SX function from ``before``
+    (:data:`NEWTON_BEFORE`) to ``after`` (:data:`NEWTON_AFTER`)."""
     import casadi
 
     x = casadi.SX.sym("before", NEWTON_BEFORE.size)
     v = NEWTON_BEFORE.read(x)
-    norm, previous, theta, eta, k, mode = v["norm"], v["previous"], v["theta"], v["eta"], v["k"], v["mode"]
-    outcome, evaluations, tol = v["outcome"], v["evaluations"], v["tol"]
-    # a check whose increment is small too: converged at W, not taking it
-    checked = casadi.logic_and(mode == formulas.CHECK, formulas.confirmed(norm, tol))
-    iterate = casadi.logic_and(mode < formulas.EVALUATE, casadi.logic_not(checked))
-    k1 = k + iterate
-    tests = formulas.newton_iteration(CASADI, norm, previous, theta, eta, iterate, k1 <= 1, iterations - k1, tol)
-    failure, done = tests.outcome, casadi.logic_and(iterate, casadi.logic_not(tests.active))
-    failed = casadi.logic_and(iterate, failure > 0)
-    then = formulas.after_convergence(CASADI, k1, iterations)
-    next_mode = casadi.if_else(casadi.logic_and(iterate, done), then, formulas.ITERATING)
-    finished = casadi.logic_or(mode == formulas.EVALUATE, checked)
-    out = NEWTON_AFTER.pack(
-        iterate=iterate,
-        previous=casadi.if_else(iterate, norm, previous),
-        theta=tests.theta,  # (moved only where it iterated: its active)
-        eta=tests.eta,
-        k=k1,
-        mode=next_mode,
-        outcome=casadi.if_else(failed, failure, outcome),
-        active=casadi.logic_not(casadi.logic_or(failed, finished)),
-        # (a refuted check's increment is iteration 2's: the general path evaluates it twice)
-        evaluations=evaluations + 1 + casadi.logic_and(mode == formulas.CHECK, iterate),
+    state = NewtonState(
+        **{name: v[name] for name in NEWTON_STATE if name != "active"},
+        active=1,
+        iterating=v["mode"] == formulas.ITERATING,
     )
+    found = newton_pass(CASADI, state, v["norm"], v["tol"], iterations)
+    after = found.state._asdict()
+    out = NEWTON_AFTER.pack(iterate=found.iterate, **{name: after[name] for name in NEWTON_STATE})
     return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
 
 
@@ -282,9 +269,10 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     idle = casadi.Function("idle", symbols, [state_in[name] for name in ITERATION])
     switch = casadi.Function.if_else("maybe_iterate", one, idle)
 
-    state = dict.fromkeys(NEWTON_STATE, 0.0)
-    state.update(W=W0, F=casadi.MX.zeros(n, s), eta=formulas.start_rate(CASADI, v["eta"], np.finfo(float).eps))
-    state["active"] = 1.0
+    eta0 = formulas.start_rate(CASADI, v["eta"], np.finfo(float).eps)
+    start = newton_start(eta0, 0.0, 1.0)._asdict()
+    state = dict(W=W0, F=casadi.MX.zeros(n, s), **{name: start[name] for name in NEWTON_STATE})
+    state.update((name, float(value)) for name, value in state.items() if isinstance(value, (bool, int)))
     for _ in range(iterations + 2):  # (a failed check at k = 1 takes a pass more)
         state = dict(zip(ITERATION, switch(state["active"], *(state[name] for name in ITERATION), *fixed), strict=True))
     W, F, theta, eta, k, evaluations = (state[name] for name in ("W", "F", "theta", "eta", "k", "evaluations"))

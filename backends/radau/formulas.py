@@ -62,6 +62,8 @@ class ScalarOps:
     def cond(condition, then, otherwise):
         return then() if condition else otherwise()
 
+    guard = cond
+
     @staticmethod
     def and_(a, b):
         return a and b
@@ -99,9 +101,16 @@ class ArrayOps:
         return self.xp.maximum(a, b)
 
     def where(self, condition, a, b):
+        """``a`` where ``condition``, else ``b``; a Python bool picks one (the Newton state's Python numbers)."""
+        if isinstance(condition, bool):
+            return a if condition else b
         return self.xp.where(condition, a, b)
 
     def cond(self, condition, then, otherwise):
+        return then() if condition else otherwise()
+
+    def guard(self, condition, then, otherwise):
+        """``then()`` where ``condition``, else ``otherwise()``: only the one taken runs (:meth:`CasadiOps.guard`)."""
         return then() if condition else otherwise()
 
     def any(self, flags) -> bool:
@@ -160,6 +169,14 @@ class CasadiOps:
         if isinstance(a, tuple):
             return tuple(casadi.if_else(condition, x, y) for x, y in zip(a, b, strict=True))
         return casadi.if_else(condition, a, b)
+
+    @staticmethod
+    def guard(condition, then, otherwise):
+        """``then()`` where ``condition``, else ``otherwise()``, for a ``then`` whose values are already
+        ``otherwise``'s where ``condition`` is false (through its own masks and the caller's): here
+        ``then()`` alone, no select (Python's namespaces run only the branch taken, and skip ``then``'s
+        work where it is idle)."""
+        return then()
 
     @staticmethod
     def branch(name, condition, then, otherwise, *operands):

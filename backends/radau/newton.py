@@ -6,6 +6,13 @@ minimises).  Simplified Newton factors ``(gamma / h) M - J`` once (:mod:`.transf
 contracts too slowly, a fixed step switches to full Newton with each stage's Jacobian at the
 current iterate, and where that fails too, to damped Newton: a fixed step has no smaller h to fall
 back on.  An adaptive step instead fails, and the controller shrinks h, as RADAU5 does.
+
+Which is written where: the simplified iteration's passes (its tests, the check of a one-iteration
+convergence, the evaluation of f at the final stages, the counts) are :func:`.iteration.newton_pass`,
+which the compiled attempt runs too (:func:`.compiled.newton_tests`); :meth:`Newton.simplified` runs
+them on the samples' arrays and adds what Python alone does (the increments, the worded failure, the
+fixed grid's rescue).  :meth:`Newton.full` (the rescue, and the steps that start with stage
+Jacobians) and :meth:`Newton.damped` are Python's alone: the compiled attempt has no counterpart.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.engines import StageFactors
 from daemodel.backends.radau.formulas import STAGNATION_FACTOR, STAGNATION_THETA
+from daemodel.backends.radau.iteration import newton_pass, newton_start
 
 # Above this contraction rate, Newton switches to per-stage Jacobians at the current iterate.
 REFRESH_THETA = 0.05
@@ -24,8 +32,8 @@ REFRESH_THETA = 0.05
 # then the transformed systems are tried again: where the Jacobian varies along the step (the
 # pendulum at h = 0.05 contracts at ~0.1 with one Jacobian) the transformed start only costs.
 STAGE_NEWTON_STEPS = 8
-# (Simplified Newton's tests, in their order, are .formulas.newton_iteration, shared with the
-# compiled step; the damped iteration's stagnation test reads its STAGNATION_THETA and _FACTOR.)
+# (Simplified Newton's passes are .iteration.newton_pass, its tests .formulas.newton_iteration, shared
+# with the compiled step; the damped iteration's stagnation test reads its STAGNATION_THETA and _FACTOR.)
 # A fixed step whose Newton iterations (simplified, then full) both fail gets a last attempt:
 # damped Newton from the start guess with each stage's Jacobian at every iterate (Deuflhard's
 # natural monotonicity test: a step lam dW is taken when the next simplified increment is at
@@ -81,65 +89,65 @@ class Newton:
         self.stepper, self.policy = stepper, policy
 
     def simplified(self, t, h, factors, W):
-        """Solve the stage equations from the guess ``W`` with ``factors`` (transformed systems or full)."""
+        """Solve the stage equations from the guess ``W`` with ``factors`` (transformed systems or full).
+
+        The passes of :func:`.iteration.newton_pass` (the compiled attempt's, on the samples' arrays),
+        each on the increment at the current stage values; around them what Python alone does: no
+        increment where only f is needed (EVALUATE), the worded failure, the fixed grid's rescue.
+        """
         stepper, policy = self.stepper, self.policy
-        xp, engine, stats = stepper.xp, stepper.engine, stepper.stats
+        xp, ops, engine, stats = stepper.xp, stepper.ops, stepper.engine, stepper.stats
         scale = stepper.weights(h, xp.abs(stepper.state()))[:, None, :]
         if policy.trust_last_rate:
             # RADAU5: trust the last step's contraction rate, so one iteration may suffice
-            eta = formulas.start_rate(stepper.ops, stepper.eta, float(np.finfo(stepper.options.dtype).eps))
+            eta = formulas.start_rate(ops, stepper.eta, float(np.finfo(stepper.options.dtype).eps))
         else:
             eta = xp.ones_like(stepper.eta)
-        previous = None
-        theta = xp.zeros_like(stepper.eta)
-        active = xp.ones_like(stepper.eta) > 0  # samples still iterating
-        for k in range(1, policy.iterations + 1):
-            stats["residual_evaluations"] += 1
-            r, dW = engine.newton_step(factors, t, h, stepper.y, W)
-            if stepper.B > 1:
-                dW = dW * active[:, None, None]  # samples that converged keep their stage values
-            W = W + dW
-            norm = stepper.rms(dW / scale)
-            left = policy.iterations - k
-            # slow contraction ends the attempt with the transformed systems and no rescue (the
-            # controller shrinks h, as RADAU5 does); else slow_contraction refreshes the matrices
-            slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
-            tests = formulas.newton_iteration(
-                stepper.ops, norm, previous, theta, eta, active, previous is None, left, policy.tol,
-                to_rounding=policy.to_rounding, slow_ends=slow_ends,
+        zeros = xp.zeros_like(stepper.eta)
+        state = newton_start(eta, zeros, zeros == 0)
+        # slow contraction ends the attempt with the transformed systems and no rescue (the controller
+        # shrinks h, as RADAU5 does); else slow_contraction refreshes the matrices
+        slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
+        while state.active:  # (no idle pass: Python's branch where every sample is done)
+            mode = state.mode
+            if mode == formulas.EVALUATE:  # the error estimate needs f at the final stage values
+                r, dW, norm = engine.residual(t, h, stepper.y, W), None, None
+            else:
+                r, dW = engine.newton_step(factors, t, h, stepper.y, W)
+                if stepper.B > 1 and mode == formulas.ITERATING:
+                    dW = dW * state.iterating[:, None, None]  # samples that converged keep their stage values
+                norm = stepper.rms(dW / scale)
+            found = newton_pass(
+                ops, state, norm, policy.tol, policy.iterations, to_rounding=policy.to_rounding,
+                slow_ends=slow_ends, trust_last_rate=policy.trust_last_rate,
             )  # fmt: skip
-            theta, eta, active = tests.theta, tests.eta, tests.active
-            if tests.outcome == formulas.NON_FINITE:
-                sample = engine.first(tests.failing)
-                return None, k, f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
-            if tests.outcome == formulas.DIVERGING:
-                worst = engine.first(tests.failing)
-                return None, k, f"diverging (contraction {float(theta[worst]):.2f})", worst
-            if tests.outcome == formulas.SLOW:
-                worst = float((theta * active).max())
-                sample = engine.first(active & (theta >= worst))
-                return None, k, f"converging too slowly (contraction {worst:.2f})", sample
-            running = tests.running
-            if previous is not None and left > 0 and running and not slow_ends:
-                factors = self.slow_contraction(t, h, W, factors, theta, tests.slow, active)
-            previous = norm
-            if not running and policy.trust_last_rate:
-                # the error estimate needs f at the final stage values
-                if formulas.after_convergence(formulas.SCALAR, k, policy.iterations) == formulas.CHECK:
-                    stats["residual_evaluations"] += 1
-                    r, after = engine.newton_step(factors, t, h, stepper.y, W)
-                    active = ~formulas.confirmed(stepper.rms(after / scale), policy.tol)
-                    running = bool(active.any())
-                else:
-                    r = stepper.residual(t, h, W)
-            if not running:
-                stepper.eta = eta
-                stats["newton_iterations"] += k
-                stats["max_newton_iterations"] = max(stats["max_newton_iterations"], k)
-                return (W, r, float(theta.max())), k, None, None
-            if tests.outcome == formulas.NOT_CONVERGED:
-                break
-        return None, k, f"not converged in {k} iterations", engine.first(active)
+            state, tests = found.state, found.tests
+            if found.iterate:  # (a refuted check's increment moves the samples it refuted)
+                W = W + (dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW)
+            if state.outcome != formulas.CONVERGED:
+                stats["residual_evaluations"] += state.evaluations
+                return None, state.k, *self.failure(state, tests, r, dW, t, h)
+            if found.iterate and tests.running and state.k > 1 and policy.iterations > state.k and not slow_ends:
+                factors = self.slow_contraction(t, h, W, factors, state.theta, tests.slow, state.iterating)
+        stats["residual_evaluations"] += state.evaluations
+        stepper.eta = state.eta
+        stats["newton_iterations"] += state.k
+        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], state.k)
+        return (W, r, float(state.theta.max())), state.k, None, None
+
+    def failure(self, state, tests, r, dW, t, h):
+        """Why the iteration failed (``state.outcome``) and at which sample: the first that failed the test."""
+        engine, theta = self.stepper.engine, state.theta
+        if state.outcome == formulas.NON_FINITE:
+            sample = engine.first(tests.failing)
+            return f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
+        if state.outcome == formulas.DIVERGING:
+            worst = engine.first(tests.failing)
+            return f"diverging (contraction {float(theta[worst]):.2f})", worst
+        if state.outcome == formulas.SLOW:
+            worst = float((theta * state.iterating).max())
+            return f"converging too slowly (contraction {worst:.2f})", engine.first(state.iterating & (theta >= worst))
+        return f"not converged in {state.k} iterations", engine.first(state.iterating)
 
     def slow_contraction(self, t, h, W, factors, theta, slow, active):
         """The factors to go on with where Newton contracts slowly and the policy rescues (a fixed step):
