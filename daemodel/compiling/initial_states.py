@@ -407,6 +407,14 @@ def project_states(compiled, Y: np.ndarray, P: np.ndarray, free: np.ndarray | No
     return project(Y, lambda y: checks.residual(t0, y, Z, P), lambda y: jacobian(t0, y, Z, P), free)
 
 
+def branch_check_functions(compiled):
+    """The nonzeros of ``H_z`` that :func:`check_branch` reads, ``(rows, cols, values(t, Y, Z, P))``,
+    generated once per model (a solve makes them in its setup: generated at the check, after the
+    integration, they were 50-170 ms of the first solve's clock)."""
+    determining = [c.determining for c in compiled.constraints]
+    return compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
+
+
 def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray) -> None:
     """Refuse a solution whose algebraic variables leave the branch of roots they start on.
 
@@ -436,9 +444,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         return
     rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
     T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
-    checks = constraint_checks(compiled)
-    determining = [c.determining for c in compiled.constraints]
-    at, to, entries = checks.numeric.batch_jacobian_entries(determining, compiled.algebraics)
+    at, to, entries = branch_check_functions(compiled)
     sign = np.empty(B * T)
     chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)
     with np.errstate(all="ignore"):

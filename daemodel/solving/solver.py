@@ -8,7 +8,7 @@ import time
 
 from daemodel.backends import get_backend
 from daemodel.compiling.compiler import as_compiled
-from daemodel.compiling.initial_states import initial_states
+from daemodel.compiling.initial_states import branch_check_functions, initial_states
 from daemodel.compiling.switches import (
     branch_model,
     breakpoints,
@@ -119,6 +119,8 @@ def _solve(model, t_span, method, arguments, options, dispatched) -> Solution:
         dispatched.append(time.perf_counter())
         return _on_fixed_branches(backend, model, t_span, start, opts, sensitivities)
     compiled = for_method(model, backend)
+    if compiled.algebraics:
+        branch_check_functions(compiled)  # (generated in the setup: the check runs after the integration)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
     # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
     # switches on variables of a batch are crossed by the steps, as before, and declared events refused)

@@ -186,3 +186,29 @@ def test_no_pivot_order_leaves_lapack(monkeypatch):
     assert engine._static_pattern() is None and engine.static is None
     sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
     assert sol.status == "success" and sol.stats["steps"] > 0
+
+
+def test_the_code_a_first_solve_generates_is_setup_not_solve(monkeypatch):
+    """Issue 42: the first adaptive solve of a chain of pendulums generated its static factorisation
+    (0.4 s of 0.44) and the branch check's functions (50 ms) inside its solve clock.  Each is slowed by
+    a known 0.3 s here and must land in setup_time."""
+    import time
+
+    from daemodel.compiling.init import NumericSystem
+
+    factor_function, lambdify = casadi_engine.static_factor_function, NumericSystem._lambdify
+
+    def slow_factor_function(*args, **kwargs):
+        time.sleep(0.3)
+        return factor_function(*args, **kwargs)
+
+    def slow_lambdify(self, exprs):
+        time.sleep(0.3)
+        return lambdify(self, exprs)
+
+    monkeypatch.setattr(casadi_engine, "static_factor_function", slow_factor_function)
+    monkeypatch.setattr(NumericSystem, "_lambdify", slow_lambdify)
+    compiled = scaling_models.pendulum_chain(16).compile()
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    assert "compiled_retries" in sol.stats  # (the compiled step, on static factors)
+    assert sol.setup_time >= 0.6 and sol.solve_time < 0.3, (sol.setup_time, sol.solve_time)
