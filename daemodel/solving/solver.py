@@ -94,11 +94,13 @@ def within_clocks(sol: Solution, started: float, dispatched: float) -> Solution:
     """``sol`` with every second since ``started`` on its clocks, so that its setup plus its solve time
     is the call's wall time: the time until the work ``dispatched`` to a method (compiling the model,
     checking options, initial states, switches) added to ``setup_time``, what the methods' own clocks
-    did not count after it (joining pieces, checks) to ``solve_time``."""
+    did not count after it (joining pieces, checks) to ``solve_time``; each also in the stats
+    (``preparation_seconds``, ``completion_seconds``), so that a method's own figures add up to them."""
     wall = time.perf_counter() - started
     before = dispatched - started
     after = max(0.0, wall - before - sol.setup_time - sol.solve_time)
-    return dataclasses.replace(sol, setup_time=sol.setup_time + before, solve_time=sol.solve_time + after)
+    stats = {**sol.stats, "preparation_seconds": before, "completion_seconds": after}
+    return dataclasses.replace(sol, setup_time=sol.setup_time + before, solve_time=sol.solve_time + after, stats=stats)
 
 
 def _solve(model, t_span, method, arguments, options, dispatched) -> Solution:
