@@ -360,12 +360,13 @@ def info() -> dict:
     """The cache as ``daemodel cache info`` shows it: its folder, whether it is safe (``"yes"`` or
     the reason it is refused), its entries, their bytes, the limit and leftover temporary files."""
     folder = cache_folder()
-    try:
-        checked_folder(folder, create=False)
-        safe = "yes"
-    except UnsafeCacheError as error:
-        safe = f"no: {error}"
-    exists = os.path.lexists(folder) and os.path.isdir(folder) and not os.path.islink(folder)
+    safe = "yes" if os.path.lexists(folder) else "yes (not created yet)"
+    if os.path.lexists(folder):
+        try:
+            checked_folder(folder, create=False)
+        except UnsafeCacheError as error:
+            safe = f"no: {error}"
+    exists = os.path.isdir(folder) and not os.path.islink(folder)
     found = entries(folder) if exists else {"entries": {}, "partial": []}
     total = sum(size for size, _ in found["entries"].values())
     return {

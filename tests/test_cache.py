@@ -438,6 +438,8 @@ def test_an_entry_above_the_limit_is_not_kept(folder, monkeypatch):
 
 
 def test_cache_info_and_clear(folder, capsys):
+    assert main(["cache", "info"]) == 0
+    assert "safe:             yes (not created yet)\nentries:          0\n" in capsys.readouterr().out
     compiled(2.0)
     compiled(3.0)
     other = folder / "notes.txt"
