@@ -133,8 +133,9 @@ class CasadiEngine(AbstractEngine):
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
-        about 0.5 s once); False where the systems are sparse beyond the fixed-pivot factors' reach
-        (:data:`STATIC_MAX_FLOPS`) and the step runs on the general path."""
+        about 0.5 s once per machine: the disk cache keeps it); False where the systems are sparse
+        beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
+        general path."""
         D = self.D
         lu = self._static_pattern() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
         if lu is not None and not jit and (lu.flops > STATIC_MAX_FLOPS_VM or lu.entries > STATIC_MAX_FILL * D * D):
