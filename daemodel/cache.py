@@ -98,8 +98,8 @@ def size_limit() -> int:
     return int(match[1]) * _SIZE_UNITS[match[2].upper()]
 
 
-def unsafe(path: Path, info: os.stat_result) -> str | None:
-    """What makes ``path`` (its ``lstat`` is ``info``) unsafe to hold or be code this user loads, or None."""
+def unsafe(info: os.stat_result) -> str | None:
+    """What makes a path whose ``lstat`` is ``info`` unsafe to hold or be code this user loads, or None."""
     if stat.S_ISLNK(info.st_mode):
         return "is a symbolic link"
     if info.st_uid != os.geteuid():
@@ -123,13 +123,13 @@ def checked_folder(folder: Path | None = None, *, create: bool = True) -> Path:
         info = os.lstat(folder)
     except OSError as error:
         raise UnsafeCacheError(f"cache folder {folder} cannot be read: {error.strerror or error}") from None
-    problem = unsafe(folder, info) or (None if stat.S_ISDIR(info.st_mode) else "is not a folder")
+    problem = unsafe(info) or (None if stat.S_ISDIR(info.st_mode) else "is not a folder")
     if problem:
         raise UnsafeCacheError(f"cache folder {folder} {problem}; set {CACHE_VARIABLE} to a private folder")
     try:
         with os.scandir(folder) as found:
             for entry in found:
-                problem = unsafe(Path(entry.path), entry.stat(follow_symlinks=False))
+                problem = unsafe(entry.stat(follow_symlinks=False))
                 if problem:
                     raise UnsafeCacheError(
                         f"cache folder {folder}: {entry.name} {problem}; remove it (or the whole folder) or set "
