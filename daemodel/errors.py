@@ -198,6 +198,18 @@ class CompileError(SolverError):
     """The system's C compiler failed on code daemodel generated (radau's ``jit=True``)."""
 
 
+class UnsafeCacheError(ModelError):
+    """The folder of compiled libraries (``DAEMODEL_CACHE``) is not safe to load code from: it, or a
+    file in it, is a link, writable by the group or others, or owned by another user.  A solve then
+    compiles into a private temporary folder instead (:class:`CacheWarning`)."""
+
+
+class CacheWarning(UserWarning):
+    """The cache of compiled libraries was not used as it should be: its folder was refused
+    (:class:`UnsafeCacheError`, said once per process and folder) or a library could not be stored
+    in it (a full disk); the solve goes on with code compiled for this process alone."""
+
+
 class LocalErrorBoundError(SolverError):
     """A fixed-step method's a-posteriori local error estimate exceeded its bound (the step is not trustworthy)."""
 

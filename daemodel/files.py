@@ -235,10 +235,11 @@ def _new_file_mode() -> int:
     return 0o666 & ~umask
 
 
-def atomic_write(path: Path, write: Callable, *, text: bool = False) -> Path:
+def atomic_write(path: Path, write: Callable, *, text: bool = False, mode: int | None = None) -> Path:
     """Write ``path`` through ``write(handle)`` atomically: a temporary file beside it (created
     exclusively, unpredictable name), flushed and fsynced, then renamed over ``path`` (a link at
-    ``path`` is replaced, never followed), and the directory fsynced.
+    ``path`` is replaced, never followed), and the directory fsynced.  ``mode``: the new file's
+    permission bits (default: the file's it replaces, else the umask's).
 
     On any failure, an interrupt included, the temporary file is removed and ``path`` keeps its
     previous contents; an operating-system failure (a full disk, a file-size limit, a read-only
@@ -247,7 +248,8 @@ def atomic_write(path: Path, write: Callable, *, text: bool = False) -> Path:
     path = Path(path)
     directory = path.parent
     try:
-        mode = (os.lstat(path).st_mode & 0o777) if is_plain_file(path) else _new_file_mode()  # never a link's target's
+        if mode is None:  # (never a link's target's)
+            mode = (os.lstat(path).st_mode & 0o777) if is_plain_file(path) else _new_file_mode()
         handle, temporary = tempfile.mkstemp(dir=directory, prefix=f".{path.name[:100]}.", suffix=".partial")
     except OSError as error:
         raise FileWriteError(f"{path} could not be written: {error.strerror or error}") from None
@@ -492,10 +494,11 @@ def read_json(path: Path, error: type, what: str, *, follow: bool = True):
     return parse_json(text, path, error, what)
 
 
-def write_json(path: Path, value) -> Path:
-    """``value`` as JSON (no NaN: strict parsers reject it), written atomically to ``path``."""
+def write_json(path: Path, value, *, mode: int | None = None) -> Path:
+    """``value`` as JSON (no NaN: strict parsers reject it), written atomically to ``path`` (``mode``:
+    see :func:`atomic_write`)."""
     text = json.dumps(value, indent=1, allow_nan=False) + "\n"
-    return atomic_write(path, lambda handle: handle.write(text), text=True)
+    return atomic_write(path, lambda handle: handle.write(text), text=True, mode=mode)
 
 
 def save_figure(fig, path, argument: str, dpi: int) -> Path:

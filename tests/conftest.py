@@ -1,7 +1,23 @@
+import os
+
 import pytest
 
 import daemodel as dm
 from daemodel.problems import PROBLEMS
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_cache(tmp_path_factory):
+    """The cache of compiled libraries (daemodel.cache) of the whole run, in a temporary folder: the
+    tests, and the processes they start, never write to the user's ~/.cache."""
+    folder = tmp_path_factory.mktemp("daemodel-cache") / "cache"
+    before = os.environ.get("DAEMODEL_CACHE")
+    os.environ["DAEMODEL_CACHE"] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop("DAEMODEL_CACHE", None)
+    else:
+        os.environ["DAEMODEL_CACHE"] = before
 
 
 @pytest.fixture

@@ -67,6 +67,8 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
+        if engine.name == "casadi" and engine.cache_outcome() is not None:
+            stepper.stats["compiled_cache"] = engine.cache_outcome()  # (daemodel.cache: hit, miss, refused: ...)
         if engine.name == "torch":
             stepper.stats["torch_threads"] = engine.torch.get_num_threads()
             stepper.stats["torch_warm_up_seconds"] = warm_up

@@ -62,6 +62,11 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
 
 
+# What the disk cache did (daemodel.cache), the most telling first: a refused folder, a library not
+# stored, compiled and stored, loaded from disk, built earlier in this process.
+CACHE_OUTCOMES = ("refused:", "not", "miss", "hit", "memory")
+
+
 class CasadiEngine(AbstractEngine):
     """One trajectory in float64 on casadi-compiled functions and scipy's LU (see the module docstring)."""
 
@@ -73,6 +78,8 @@ class CasadiEngine(AbstractEngine):
         self.B = 1
         self.p = np.asarray(start.p, dtype=float)[0]
         self.jit = jit
+        self.cache_outcomes = []  # (jit: what the disk cache did for each function compiled: _machine_code)
+        self.kernel_outcome = None  # (jit: the disk cache's outcome for the C loop of .kernel, made on first use)
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
@@ -101,16 +108,34 @@ class CasadiEngine(AbstractEngine):
         self._start = start
 
     def _machine_code(self, function, key):
-        """``function``, or with ``jit`` its machine code (built once per model and ``key``)."""
+        """``function``, or with ``jit`` its machine code (built once per model and ``key``, through the
+        disk cache); what the cache did is added to :attr:`cache_outcomes` ("memory" where this
+        process built it before)."""
         if not self.jit:
             return function
-        return self.compiled.cached((*key, "machine code"), lambda: machine_code(function, find_compiler()))
+        built = []
+
+        def build():
+            built.append(machine_code(function, find_compiler()))
+            return built[-1]
+
+        code = self.compiled.cached((*key, "machine code"), build)
+        self.cache_outcomes.append(code.outcome if built else "memory")
+        return code.function
+
+    def cache_outcome(self) -> str | None:
+        """What the disk cache of compiled libraries did for this engine's machine code, in one word
+        (:data:`CACHE_OUTCOMES`' most telling of :attr:`cache_outcomes`), or None without ``jit``."""
+        if not self.cache_outcomes:
+            return None
+        return min(self.cache_outcomes, key=lambda outcome: CACHE_OUTCOMES.index(outcome.split(" ")[0]))
 
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
-        about 0.5 s once); False where the systems are sparse beyond the fixed-pivot factors' reach
-        (:data:`STATIC_MAX_FLOPS`) and the step runs on the general path."""
+        about 0.5 s once per machine: the disk cache keeps it); False where the systems are sparse
+        beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
+        general path."""
         D = self.D
         lu = self._static_pattern() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
         if lu is not None and not jit and (lu.flops > STATIC_MAX_FLOPS_VM or lu.entries > STATIC_MAX_FILL * D * D):
@@ -265,8 +290,17 @@ class CasadiEngine(AbstractEngine):
     def _static_kernel(self):
         """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the
         determinant of the algebraic variables' iteration matrix; built once per model and s."""
-        build = lambda: factor_kernel(self.static.lu, self.transform, self.static, self.m, find_compiler())  # noqa: E731
-        return self.compiled.cached(("casadi-radau-static-kernel", self.s), build)
+        built = []
+
+        def build():
+            built.append(factor_kernel(self.static.lu, self.transform, self.static, self.m, find_compiler()))
+            return built[-1]
+
+        factors, sign, outcome = self.compiled.cached(("casadi-radau-static-kernel", self.s), build)
+        if self.kernel_outcome is None:
+            self.kernel_outcome = outcome if built else "memory"
+            self.cache_outcomes.append(self.kernel_outcome)
+        return factors, sign
 
     def _refresh_function(self):
         """The casadi function of a fresh Jacobian with its factored systems (:func:`.compiled.refresh_function`),

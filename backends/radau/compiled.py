@@ -26,11 +26,14 @@ one-iteration convergence and evaluate ``f`` at the final stages).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
 
+from daemodel.cache import Build, cached_library
 from daemodel.collocation import extrapolation_polynomial, horner
 
 # Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does):
@@ -300,6 +303,16 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
 COMPILERS = ("cc", "gcc", "clang")
 # Optimisation of the machine code (-O2: the compiled step bit for bit as casadi's virtual machine).
 COMPILER_FLAGS = ("-O2",)
+# What a failed compile's message proposes.
+JIT_FIX = "solve with jit=False (the same results to rounding, slower steps)"
+
+
+class MachineCode(NamedTuple):
+    """A function in machine code (:func:`machine_code`), and what the disk cache did to give it
+    (:class:`daemodel.cache.Library`'s ``outcome``: "hit", "miss", "refused: ...", "not stored: ...")."""
+
+    function: object
+    outcome: str
 
 
 def find_compiler() -> str | None:
@@ -309,54 +322,24 @@ def find_compiler() -> str | None:
     return next((path for path in map(shutil.which, COMPILERS) if path), None)
 
 
-def private_directory(prefix: str):
-    """A new private temporary directory (mode 0700) for the C compiler's files, as a Path; the caller
-    removes it.  :class:`~daemodel.errors.CompileError` where none can be made."""
-    import tempfile
-    from pathlib import Path
+def machine_code(function, compiler: str) -> MachineCode:
+    """``function`` compiled to machine code by ``compiler``, through the disk cache of compiled
+    libraries (:mod:`daemodel.cache`): the C source of casadi's code generator (what casadi's jit
+    compiles), compiled with :data:`COMPILER_FLAGS` in a private temporary folder, stored and loaded
+    with ``casadi.external``; or loaded from the cache where an earlier process stored it.
 
-    from daemodel.errors import CompileError
-
-    try:
-        return Path(tempfile.mkdtemp(prefix=prefix))
-    except OSError as error:
-        raise CompileError(
-            f"radau: jit=True: no private temporary directory for the compiler ({error}); set TMPDIR to a "
-            "writable folder, or solve with jit=False"
-        ) from None
-
-
-def machine_code(function, compiler: str):
-    """``function`` compiled to machine code by ``compiler`` (casadi's jit through its shell compiler).
-
-    The C source and the shared library are written to a private temporary directory (mode 0700)
-    that is removed as soon as the library is loaded; nothing stays on disk.  Raises
-    :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
+    Returns the compiled function and what the cache did (:class:`daemodel.cache.Library`'s
+    ``outcome``).  Raises :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
     """
-    import shutil
-
     import casadi
 
-    from daemodel.errors import CompileError
-
-    folder = private_directory("daemodel-jit-")
-    try:
-        options = {"compiler": compiler, "flags": list(COMPILER_FLAGS), "directory": f"{folder}/", "cleanup": False}
-        inputs = function.mx_in()  # (an SX function makes new symbols on every call)
-        return casadi.Function(
-            function.name() + "_machine_code",
-            inputs,
-            function.call(inputs),
-            {"jit": True, "compiler": "shell", "jit_cleanup": False, "jit_temp_suffix": True, "jit_options": options},
-        )
-    except RuntimeError as error:
-        raise CompileError(
-            f"radau: jit=True: compiling the step of {function.name()!r} with {compiler} failed: "
-            f"{(str(error).strip().splitlines() or ['no message'])[-1][:400]}; solve with jit=False (the same "
-            "results to rounding, slower steps)"
-        ) from None
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
+    name = function.name() + "_machine_code"
+    inputs = function.mx_in()  # (an SX function makes new symbols on every call)
+    generator = casadi.CodeGenerator("daemodel_jit")
+    generator.add(casadi.Function(name, inputs, function.call(inputs)))
+    what = f"radau: jit=True: compiling the step of {function.name()!r}"
+    code = cached_library(generator.dump(), [name], Build(compiler, COMPILER_FLAGS, what, JIT_FIX))
+    return MachineCode(code.functions[name], code.outcome)
 
 
 def dense_jacobian(casadi, rows: np.ndarray, cols: np.ndarray, values, D: int):

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
-# C compilers' flags: no fused multiply-adds (the factors bit for bit those of the SX function)
-KERNEL_FLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off", "-fno-math-errno")
+# C compilers' flags: no fused multiply-adds (the factors bit for bit those of the SX function); the
+# cache adds those of a shared library (daemodel.cache.LIBRARY_FLAGS)
+KERNEL_FLAGS = ("-O2", "-ffp-contract=off", "-fno-math-errno")
 # Seconds the compiler may take (a model's arrays are at most a few hundred kB of C)
 KERNEL_COMPILE_TIMEOUT = 120.0
 
@@ -277,45 +278,18 @@ def kernel_source(lu, transform, factors, m: int) -> str:
 def factor_kernel(lu, transform, factors, m: int, compiler: str):
     """The casadi functions ``static_factors`` (one input ``[h, J's nonzeros]``, one output: the
     packed factors, growth and smallest pivot) and ``sign_det`` (of an (m, m) matrix's column-major
-    values; m = 0: 1) compiled by ``compiler`` from :func:`kernel_source`.
+    values; m = 0: None) compiled by ``compiler`` from :func:`kernel_source`, and what the disk cache
+    of compiled libraries did (:mod:`daemodel.cache`: "hit", "miss", ...).
 
-    Source and library go to a private temporary directory (mode 0700) removed once the library is
-    loaded.  Raises :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
+    The library is compiled in a private temporary directory (mode 0700) and kept in the cache, or
+    loaded from it.  Raises :class:`~daemodel.errors.CompileError` with the compiler's message where
+    it fails.
     """
-    import shutil
-    import subprocess
+    from daemodel.cache import Build, cached_library
 
-    import casadi
-    from daemodel.backends.radau.compiled import private_directory
-
-    from daemodel.errors import CompileError
-
-    folder = private_directory("daemodel-kernel-")
-    try:
-        source, library = folder / "static_factors.c", folder / "static_factors.so"
-        source.write_text(kernel_source(lu, transform, factors, m))
-        try:
-            done = subprocess.run(
-                [compiler, *KERNEL_FLAGS, str(source), "-o", str(library), "-lm"],
-                capture_output=True,
-                text=True,
-                timeout=KERNEL_COMPILE_TIMEOUT,
-                check=False,
-            )
-        except (OSError, subprocess.TimeoutExpired) as error:
-            timed_out = isinstance(error, subprocess.TimeoutExpired)
-            message = f"did not finish in {KERNEL_COMPILE_TIMEOUT:g} s" if timed_out else str(error)
-            raise CompileError(
-                f"radau: jit=True: compiling the sparse factors with {compiler} failed: {message}; solve with "
-                "jit=False (the same results to rounding, slower steps)"
-            ) from None
-        if done.returncode != 0:
-            lines = (done.stderr or done.stdout or "no message").strip().splitlines() or ["no message"]
-            raise CompileError(
-                f"radau: jit=True: compiling the sparse factors with {compiler} failed: {lines[-1][:400]}; solve "
-                "with jit=False (the same results to rounding, slower steps)"
-            )
-        sign = casadi.external("sign_det", str(library)) if m else None
-        return casadi.external("static_factors", str(library)), sign
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
+    what = "radau: jit=True: compiling the sparse factors"
+    fix = "solve with jit=False (the same results to rounding, slower steps)"
+    build = Build(compiler, KERNEL_FLAGS, what, fix, libraries=("-lm",), timeout=KERNEL_COMPILE_TIMEOUT)
+    names = ["static_factors", *(["sign_det"] if m else [])]
+    code = cached_library(kernel_source(lu, transform, factors, m), names, build)
+    return code.functions["static_factors"], code.functions.get("sign_det"), code.outcome

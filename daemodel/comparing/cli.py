@@ -2,6 +2,8 @@
 
     daemodel compare hessenberg pendulum
     daemodel compare examples/pendulum.py --methods radau,casadi-idas,pinn --out results/
+    daemodel cache info
+    daemodel cache clear
 
 A target is the name of a problem in :mod:`daemodel.problems`, each on its own interval,
 
@@ -238,6 +240,14 @@ def _parser() -> argparse.ArgumentParser:
         "--detail", action="store_true", help="a max (mean) error column per variable (default: worst per group)"
     )
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    store = commands.add_parser(
+        "cache",
+        help="the cache of compiled libraries (radau's jit=True): where it is, what it holds; clear it",
+        description="The cache of compiled libraries (DAEMODEL_CACHE, else ~/.cache/daemodel; DAEMODEL_CACHE_SIZE "
+        "bytes, default 1 GiB): 'info' shows its folder, entries, size, limit and whether it is safe; 'clear' "
+        "removes daemodel's entries (no other file) and says how many bytes it freed.",
+    )
+    store.add_argument("action", choices=("info", "clear"), help="info: what the cache holds; clear: empty it")
     return parser
 
 
@@ -248,6 +258,8 @@ def main(argv=None) -> int:
     except _UsageError as error:
         print(error, file=sys.stderr)
         return EXIT_USER_MISTAKE
+    if args.command == "cache":
+        return _cache(args.action)
     import torch
 
     torch.set_num_threads(max(1, args.threads))
@@ -319,6 +331,23 @@ def _compare(args) -> int:
             status = max(status, EXIT_USER_MISTAKE)
         print()
     return status
+
+
+def _cache(action: str) -> int:
+    """``daemodel cache info`` or ``daemodel cache clear`` (see :mod:`daemodel.cache`)."""
+    from daemodel.cache import cache_folder, clear, info
+
+    try:
+        if action == "clear":
+            freed = clear()
+            print(f"daemodel cache clear: freed {freed} bytes in {cache_folder()}")
+            return 0
+        for name, value in info().items():
+            print(f"{name + ':':17} {value}")
+        return 0
+    except DaemodelError as error:
+        print(f"daemodel cache {action}: {error}", file=sys.stderr)
+        return _exit_status(error)
 
 
 def _exit_status(error: DaemodelError) -> int:
