@@ -32,6 +32,7 @@ from daemodel.errors import (
 )
 from daemodel.executors import check_executor, refuse_engine
 from daemodel.files import writable_file
+from daemodel.tableau import radau_iia
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -197,6 +198,7 @@ class PINNBackend(AbstractBackend):
             )
         inputs = tuple(compiled.parameter_names[i] for i in varying)
         began = time.perf_counter()
+        radau_iia(config.stages + 1)  # (the certificate's (s+1)-stage tableau, exact, once per process: setup)
         if options.segment_starts is None:
             networks, stats = train_segments(
                 compiled, config, grid, start.y0, start.z0, start.p, varying, show_progress(options.progress), "pinn"
