@@ -108,7 +108,8 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     equations, algebraics, aliases = eliminate_aliases(
         rhs, model.constraints, list(model.algebraics.values()), symbols, calculus
     )
-    constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraics, calculus) for e in equations]
+    algebraic_set = frozenset(algebraics)  # (made once: each chain asks which of them occur)
+    constraints = [derivative_chain(e.name, e.number, e.expr, model.t, rhs, algebraic_set, calculus) for e in equations]
     alias_exprs = {name: expr for name, expr, _ in aliases}
 
     known = [*(s.name for s in states), *model.algebraics]

@@ -631,8 +631,9 @@ def initialise(
     values = dict(zip((v.name for v in numeric.y + numeric.z), np.concatenate([y0, z0]).tolist(), strict=True))
     alias_fun = numeric.function([e for _, e in aliases])
     values.update(zip((n for n, _ in aliases), alias_fun(t0, y0, z0, p).tolist(), strict=True))
+    state_names = {y.name for y in numeric.y}
     for name, value in given.items():
-        if name in {y.name for y in numeric.y} or name not in values:
+        if name in state_names or name not in values:
             continue
         consistent = values[name]
         if abs(value - consistent) > ALGEBRAIC_TOL * (1 + abs(consistent)):

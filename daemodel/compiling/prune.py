@@ -23,12 +23,15 @@ from daemodel.compiling.zero_test import exact_value, is_zero, numeric_point, nu
 def find_alias(
     g: sp.Expr, algebraics, symbols, calculus: Differentiator | None = None
 ) -> tuple[sp.Symbol, sp.Expr] | None:
-    """Return ``(x, v)`` when ``0 = g`` says ``x = v`` for an algebraic x and v = +-symbol."""
+    """Return ``(x, v)`` when ``0 = g`` says ``x = v`` for an algebraic x and v = +-symbol.
+
+    ``algebraics``: a list, or a dict of each algebraic variable's position (the first one in that
+    order that ``g`` is an alias of wins); only those occurring in ``g`` are looked at, so that a
+    scan of n constraints is O(n), not O(n^2)."""
     calculus = calculus or Differentiator()
     occurring = calculus.free_symbols(g)  # once, not once per algebraic variable
-    for x in algebraics:
-        if x not in occurring:
-            continue
+    position = algebraics if isinstance(algebraics, dict) else {x: i for i, x in enumerate(algebraics)}
+    for x in sorted((s for s in occurring if s in position), key=position.__getitem__):
         a = calculus.diff(g, x)
         if not (a.is_number and a != 0):
             continue
@@ -92,12 +95,13 @@ def eliminate_aliases(
     # variables that occur in it), so the scan skips those: the same first alias as a full
     # rescan, without re-examining every constraint after every elimination.
     settled = [False] * len(constraints)
+    position = {x: i for i, x in enumerate(algebraics)}  # (the algebraic variables not eliminated yet)
     k = 0
     while k < len(constraints):
         if settled[k]:
             k += 1
             continue
-        hit = find_alias(constraints[k].expr, algebraics, symbols, calculus)
+        hit = find_alias(constraints[k].expr, position, symbols, calculus)
         if hit is None:
             settled[k] = True
             k += 1
@@ -116,6 +120,7 @@ def eliminate_aliases(
         aliases = [(n, e.xreplace(sub) if x in calculus.free_symbols(e) else e, q) for n, e, q in aliases]
         aliases.append((x.name, v, eq))
         algebraics.remove(x)
+        del position[x]
         k = 0
     return constraints, algebraics, aliases
 

@@ -181,10 +181,13 @@ class Differentiator:
 
 
 def depends_on(expr: sp.Expr, symbols, calculus: Differentiator | None = None) -> bool:
-    """Whether ``expr`` really depends on any of ``symbols`` (its derivative is not zero)."""
+    """Whether ``expr`` really depends on any of ``symbols`` (its derivative is not zero).  Only the
+    symbols occurring in it are looked at: pass a set or frozenset, made once, where this is asked of
+    many expressions (a list is made a set on every call)."""
     calculus = calculus or Differentiator()
+    wanted = symbols if isinstance(symbols, set | frozenset) else set(symbols)
     occurring = calculus.free_symbols(expr)
-    return any(calculus.depends(expr, s) for s in symbols if s in occurring)
+    return any(calculus.depends(expr, s) for s in sorted(occurring & wanted, key=str))
 
 
 def time_derivative(expr: sp.Expr, t: sp.Symbol, rhs: dict, calculus: Differentiator | None = None) -> sp.Expr:
