@@ -68,7 +68,8 @@ def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> 
     rows = batch * config.samples // copies  # inputs each set of networks sees
     D, m = len(compiled.states) + len(compiled.algebraics), len(compiled.algebraics)
     R, U = (config.stages + 1) * D + m, (config.stages + 1) * D
-    parts["the Radau stage system, dense"] = STAGE_SYSTEM_COPIES * max(rows, 1) * R * U * itemsize
+    # (every input's stage system at once, (batch samples, R, U): independent networks' too)
+    parts["the Radau stage system, dense"] = STAGE_SYSTEM_COPIES * max(batch * config.samples, 1) * R * U * itemsize
     if config.optimizer == "lm" and rows > 1:
         sizes, _ = output_layout(len(compiled.states), len(compiled.algebraics), config.stages, config.architecture)
         K, w, out = len(sizes) * copies, config.width, max(sizes)
@@ -93,12 +94,14 @@ def check_network_memory(compiled, config, inputs: int, batch: int, segments: in
     fewer = " or fewer samples" if any(name.startswith("LM's") for name in parts) else ""
     stage_system = parts["the Radau stage system, dense"]
     if stage_system >= max(parts.values()):  # (the model's size, more than the networks', is what does not fit)
-        D = len(compiled.states) + len(compiled.algebraics)
+        D, inputs_all = len(compiled.states) + len(compiled.algebraics), batch * config.samples
+        many = f" with {inputs_all} training inputs" if inputs_all > 1 else ""
         raise ResourceLimitError(
-            f"pinn: a model of {D} unknowns is too large for the PINN: its Levenberg-Marquardt solves the Radau "
-            f"stage system of {config.stages} stages densely, which would need {total / 2**30:.3g} GiB to train "
-            f"({itemised}), more than the {limit / 2**30:.3g} GiB allowed (set {MEMORY_LIMIT_VARIABLE} to change "
-            "it); solve it with method='radau' (sparse), or take fewer stages"
+            f"pinn: a model of {D} unknowns{many} is too large for the PINN: its Levenberg-Marquardt solves the "
+            f"Radau stage system of {config.stages} stages densely{' for every input at once' if many else ''}, "
+            f"which would need {total / 2**30:.3g} GiB to train ({itemised}), more than the {limit / 2**30:.3g} GiB "
+            f"allowed (set {MEMORY_LIMIT_VARIABLE} to change it); solve it with method='radau' (sparse), or take "
+            f"fewer stages{' or fewer samples' if many else ''}"
         )
     raise ResourceLimitError(
         f"pinn: networks of width = {config.width} and depth = {config.depth} for {batch} sample(s) of "

@@ -26,16 +26,22 @@ def sparse_enough(nnz: int, m: int) -> bool:
 
 def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.ndarray:
     """``sign(det A_k)`` of the (m, m) matrices whose nonzeros at ``(rows, cols)`` are ``values[k]``
-    (K, nnz), shape (K,): +1 or -1, 0 where ``A_k`` is singular or an entry is not finite."""
+    (K, nnz), shape (K,): +1 or -1, 0 where ``A_k`` is singular or an entry is not finite.  Entries
+    at one position add up (as in a sparse matrix), on both paths."""
     values = np.asarray(values, dtype=float)
     K = len(values)
     if not sparse_enough(len(rows), m):
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        repeated = len(np.unique(rows * m + cols)) < len(rows)
         out = np.empty(K)
         chunk = max(1, DENSE_CHUNK_BYTES // (8 * m * m))
         for a in range(0, K, chunk):
             block = values[a : a + chunk]
             dense = np.zeros((len(block), m, m))
-            dense[:, rows, cols] = block
+            if repeated:
+                np.add.at(dense, (slice(None), rows, cols), block)
+            else:
+                dense[:, rows, cols] = block
             out[a : a + chunk] = dense_signs(dense)
         return out
     return np.array([sparse_sign(rows, cols, v, m) for v in values])

@@ -74,8 +74,9 @@ class Equation:
 
 @dataclass(frozen=True)
 class Declared:
-    """What a :class:`Declaration` holds, read-only: what the compiler reads (views of the
-    declaration's tables, no copies; a later declaration shows in them).
+    """What a :class:`Declaration` holds, read-only: what the compiler reads.  The mappings are views
+    of the declaration's tables, no copies (a later declaration shows in them); ``constraints``,
+    ``events`` and ``t0`` are as they were when :meth:`Declaration.declared` was called.
 
     Attributes
     ----------
@@ -180,8 +181,10 @@ class Declaration:
 
     def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
         """Declare a named parameter; a value is needed by ``compile`` (see ``set_parameters``)."""
+        value = None if value is None else real(value, f"parameter '{name}'")  # (before declaring: a refused
+        # value leaves the name free)
         (symbol,) = self._declare([name], self._parameters, "parameter")
-        self._parameter_values[name] = None if value is None else real(value, f"parameter '{name}'")
+        self._parameter_values[name] = value
         return symbol
 
     def set_parameters(self, /, **values: float) -> None:
@@ -194,8 +197,9 @@ class Declaration:
             self._parameter_values[name] = real(value, f"parameter '{name}'")
 
     def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
-        out = []
-        for name in _split_names(names, what):
+        """Declare ``names`` in ``table``, all or none: every name is checked before any is declared."""
+        names, seen = _split_names(names, what), set()
+        for name in names:
             if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
                 raise InvalidNameError(
                     f"{what} name {name!r} is not an identifier (ASCII letters, digits, '_', starting with a "
@@ -209,12 +213,15 @@ class Declaration:
                 )
             if name in self._symbols:
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
-            symbol = Symbol(name)
-            table[name] = self._symbols[name] = self._known[name] = symbol
-            out.append(symbol)
-        if not out:
+            if name in seen:
+                raise InvalidNameError(f"{what} name {name!r} is given twice")
+            seen.add(name)
+        if not names:
             raise InvalidNameError(f"no {what} names given")
-        return tuple(out)
+        out = tuple(Symbol(name) for name in names)
+        for name, symbol in zip(names, out, strict=True):
+            table[name] = self._symbols[name] = self._known[name] = symbol
+        return out
 
     def _kind(self, name: str) -> str:
         if name in self._states:

@@ -48,6 +48,17 @@ def test_singular_or_non_finite_matrices_have_sign_zero_on_both_paths():
     np.testing.assert_array_equal(negated, [-1.0, 0.0, -1.0])
 
 
+def test_entries_at_one_position_add_up_on_both_paths():
+    # diag(-3 + 2, 1, ...): det < 0 where the two entries at (0, 0) add up; whichever of them came last
+    # alone (2 in one order, -3 in the other) would give +1 in one of the two orders
+    for m in (2, 100):  # (the dense path; the sparse one)
+        rows, cols = np.r_[0, np.arange(m)], np.r_[0, np.arange(m)]
+        values = np.r_[-3.0, 2.0, np.ones(m - 1)][None]
+        assert determinants.sparse_enough(len(rows), m) == (m == 100)
+        np.testing.assert_array_equal(determinant_signs(rows, cols, values, m), [-1.0])
+        np.testing.assert_array_equal(determinant_signs(rows, cols, values[:, [1, 0, *range(2, m + 1)]], m), [-1.0])
+
+
 def cubic_folds(m: int):
     """``x_i' = 0``, ``0 = z_i^3 / 3 - z_i - x_i``: dH/dz = diag(z_i^2 - 1), singular at |z_i| = 1 (a fold)."""
     model = dm.Model("folds")

@@ -49,6 +49,23 @@ def test_invalid_names(names, pattern):
         m.states(names)
 
 
+def test_a_refused_declaration_declares_none_of_its_names():
+    m = dm.Model("partial")
+    with pytest.raises(E.InvalidNameError, match="'1c' is not an identifier"):
+        m.states("a b 1c")
+    with pytest.raises(E.InvalidNameError, match="'a' is given twice"):
+        m.algebraics("z a a")
+    with pytest.raises(E.InvalidValueError, match="parameter 'k' must be a real number; got 'abc'"):
+        m.parameter("k", "abc")
+    assert m.declared().symbols() == {}
+    a, b, c = m.states("a b c")  # (the names the refused calls gave are free)
+    (z,) = m.algebraics("z")
+    k = m.parameter("k", 2.0)
+    declared = m.declared()
+    assert declared.symbols() == {"a": a, "b": b, "c": c, "z": z, "k": k}
+    assert dict(declared.parameter_values) == {"k": 2.0}
+
+
 def test_constraint_names():
     m, y1, y2, z, _ = small()
     m.constraint(y1 - z, name="c")

@@ -89,3 +89,28 @@ def test_a_model_too_large_for_the_pinns_dense_stage_system_is_refused_before_al
         r"0\.687 GiB\), more than the 1 GiB allowed .*solve it with method='radau' \(sparse\), or take fewer stages",
     ):
         dm.solve(m.compile(), (0.0, 0.1), method="pinn", h=0.05)
+
+
+def test_the_stage_system_estimate_counts_every_sample_of_a_batch(monkeypatch):
+    """Independent networks for a batch: the loss's Jacobian holds every sample's stage system at
+    once, (B, R, U) (seen: (6, 21, 20) for the pendulum and 6 samples), not one network's."""
+    from daemodel.backends.pinn.segments import network_memory
+
+    c = PENDULUM.model().compile()
+    one = 16 * (4 * 5 + 1) * (4 * 5) * 8
+    assert network_memory(c, dm.PINNConfig(), 4, 6, 1)["the Radau stage system, dense"] == 6 * one
+    shared = dm.PINNConfig(batch="shared", samples=8, radius=0.01)
+    assert network_memory(c, shared, 4, 6, 1)["the Radau stage system, dense"] == 48 * one
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1G")
+    m = dm.Model("chain")
+    xs = m.states([f"x{i}" for i in range(100)])  # (one input: 16 x 400 x 400 doubles, 20 MB)
+    for x in xs:
+        m.ode(x, -x)
+    m.initial(**{x.name: 1.0 for x in xs})
+    with pytest.raises(
+        ResourceLimitError,
+        match=r"pinn: a model of 100 unknowns with 64 training inputs is too large for the PINN: .* densely for "
+        r"every input at once, which would need 2\.47 GiB .*the Radau stage system, dense 1\.22 GiB\), more "
+        r"than the 1 GiB allowed .*or take fewer stages or fewer samples",
+    ):
+        dm.solve(m.compile(), (0.0, 0.1), method="pinn", h=0.05, y0={"x0": np.linspace(0.5, 1.5, 64)})
