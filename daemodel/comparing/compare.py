@@ -128,9 +128,10 @@ class ComparisonPlan:
     def run(self, progress: bool | None = None) -> Comparison:
         """Solve every setting; a :class:`SolverError` at one is recorded as a failed run."""
         from daemodel.backends.progress import show_progress
-        from daemodel.solving.solver import solve
+        from daemodel.solving.solver import prepare, solve
 
         compiled, t_span = self.compiled, self.t_span
+        prepare(compiled, dict.fromkeys(method for method, *_ in self.settings))  # (no method pays for the others)
         references = {}
 
         def measure(solution):
