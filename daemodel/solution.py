@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import sympy as sp
 
 from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
@@ -124,7 +125,13 @@ class Solution:
         return len(self.parameters)
 
     def __getitem__(self, name: str) -> np.ndarray:
-        """Values of one variable: shape (T,), or (B, T) for a batch."""
+        """Values of one variable, by its name or its symbol: shape (T,), or (B, T) for a batch."""
+        if isinstance(name, sp.Symbol):
+            name = name.name
+        if not isinstance(name, str):
+            raise UnknownSymbolError(
+                f"a solution is indexed by a variable's name or symbol (e.g. sol['x']); got {type(name).__name__}"
+            )
         if name not in self.values:
             raise UnknownSymbolError(f"the solution has no variable {name!r}; it has {list(self.names)}")
         values = self.values[name]

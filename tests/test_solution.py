@@ -309,3 +309,17 @@ def test_load_takes_a_model_whose_values_are_those_the_solve_used(tmp_path):
     assert loaded.parameters.tolist() == [[5.0]]
     with pytest.raises(SolutionFileError, match=r"its g = 9\.81, the model's 7\.0"):
         dm.Solution.load(path, ball(g=7.0))
+
+
+def test_a_solution_is_indexed_by_a_variables_name_or_its_symbol(decay):
+    """sol[x] with the symbol m.states returned said 'the solution has no variable x; it has ['x', ...]'."""
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    m.ode(x, -x)
+    m.initial(x=1.0)
+    sol = dm.solve(m, (0.0, 1.0), h=0.1)
+    np.testing.assert_array_equal(sol[x], sol["x"])
+    with pytest.raises(E.UnknownSymbolError, match=r"no variable 'y'; it has \['x'\]"):
+        sol["y"]
+    with pytest.raises(E.UnknownSymbolError, match=r"indexed by a variable's name or symbol .*; got int"):
+        sol[0]
