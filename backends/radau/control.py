@@ -21,6 +21,7 @@ from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
 from daemodel.backends.radau import formulas, sequence
 from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import NewtonPolicy
+from daemodel.backends.radau.options import DEFAULT_NEWTON_ITERATIONS
 from daemodel.backends.radau.sequence import HANDBACK
 
 from daemodel.errors import ConvergenceError, StepLimitError
@@ -213,7 +214,13 @@ class Radau5Controller:
         failed = stats["rejected_steps"] + stats["newton_failures"]
         recent_accepted = accepted - half[1]
         progress = t - half[0]
-        if recent_accepted < recent / 2:
+        iterations = self.options.max_newton_iterations
+        if stats["newton_failures"] > stats["rejected_steps"] and iterations < DEFAULT_NEWTON_ITERATIONS:
+            reason = (
+                f"{stats['newton_failures']} attempts failed in Newton, which stops at max_newton_iterations = "
+                f"{iterations}: raise it (the default is {DEFAULT_NEWTON_ITERATIONS})"
+            )
+        elif recent_accepted < recent / 2:
             reason = (
                 f"{recent - recent_accepted} of the last {recent} attempts were rejected or failed in Newton, "
                 f"and they advanced t by {progress:.3g} of the {t1 - half[0]:.3g} left: the right-hand side is "
@@ -249,9 +256,15 @@ class Radau5Controller:
 def underflow_error(new, t, why, sample) -> ConvergenceError:
     """The step size underflow at ``t`` with the step ``new`` (the last failure named)."""
     who = f", sample {sample}" if sample is not None else ""
+    if why is not None and why.startswith("not converged in"):  # (the iterations ran out, at every h)
+        cause = (
+            "Newton stops at max_newton_iterations before it converges: raise it (the default is "
+            f"{DEFAULT_NEWTON_ITERATIONS})"
+        )
+    else:
+        cause = "the solution may blow up or leave the domain of f there"
     return ConvergenceError(
-        f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); the "
-        "solution may blow up or leave the domain of f there"
+        f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); {cause}"
     )
 
 

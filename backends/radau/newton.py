@@ -147,7 +147,7 @@ class Newton:
         if state.outcome == formulas.SLOW:
             worst = float((theta * state.iterating).max())
             return f"converging too slowly (contraction {worst:.2f})", engine.first(state.iterating & (theta >= worst))
-        return f"not converged in {state.k} iterations", engine.first(state.iterating)
+        return f"not converged in {state.k} iteration{'s' if state.k != 1 else ''}", engine.first(state.iterating)
 
     def slow_contraction(self, t, h, W, factors, theta, slow, active):
         """The factors to go on with where Newton contracts slowly and the policy rescues (a fixed step):
@@ -263,7 +263,7 @@ class Newton:
                     )
                 lam = xp.where(fine, lam, lam / 2)
             W = trial
-        return None, limit, f"not converged in {limit} iterations", engine.first(active)
+        return None, limit, f"not converged in {limit} iteration{'s' if limit != 1 else ''}", engine.first(active)
 
 
 def host(values) -> np.ndarray:

@@ -12,6 +12,10 @@ from daemodel.backends.torch_setup import torch_device
 
 from daemodel.errors import InvalidOptionError
 
+# Newton's most iterations per attempt unless max_newton_iterations is given (a failure with fewer
+# names it).
+DEFAULT_NEWTON_ITERATIONS = 10
+
 # Stages of a fixed step when none are given: the paper's v = 3 (order 5).
 FIXED_STAGES = 3
 # Stages of adaptive mode when none are given, by rtol: (smallest rtol, stages), loosest first.
@@ -133,7 +137,7 @@ class RadauOptions:
     h0: float | None = None
     t_eval: object = None
     newton_tol: float | None = None
-    max_newton_iterations: int = 10
+    max_newton_iterations: int = DEFAULT_NEWTON_ITERATIONS
     max_steps: int | None = None
     reuse_jacobian: bool = True
     dtype: str = "float64"

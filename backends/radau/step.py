@@ -330,7 +330,7 @@ class Stepper:
             why = {
                 formulas.DIVERGING: f"diverging (contraction {theta:.2f})",
                 formulas.SLOW: f"converging too slowly (contraction {theta:.2f})",
-                formulas.NOT_CONVERGED: f"not converged in {k} iterations",
+                formulas.NOT_CONVERGED: f"not converged in {k} iteration{'s' if k != 1 else ''}",
             }.get(outcome)
             return CompiledTry((None, k, why, 0, math.inf), outcome, evaluations)
         stats["newton_iterations"] += k

@@ -316,3 +316,21 @@ def test_a_sign_change_that_is_the_steps_own_asks_for_a_smaller_h():
         dm.solve(m, (0.0, 3.0), h=0.25, stages=3)
     sol = dm.solve(m, (0.0, 3.0), h=0.0625, stages=3)
     np.testing.assert_allclose(sol["z"], 1 / (np.exp(-10 * sol.t) + 0.05), rtol=2e-3)
+
+
+def test_too_few_newton_iterations_are_named_as_the_cause():
+    """With max_newton_iterations = 1 the pendulum's steps shrink to nothing: the budget's error said the
+    right-hand side was likely discontinuous (chattering); it names the iterations."""
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"radau: max_steps = 100000 cannot suffice .*: 250 attempts failed in Newton, which stops at "
+        r"max_newton_iterations = 1: raise it \(the default is 10\)",
+    ):
+        dm.solve(PENDULUM.model(), (0.0, 0.5), rtol=1e-8, atol=1e-8, max_newton_iterations=1)
+    from daemodel.backends.radau.control import underflow_error
+
+    message = str(underflow_error(1e-15, 0.25, "not converged in 1 iteration", 0))
+    assert message == (
+        "radau: step size underflow at t = 0.25 (h = 1e-15; last failure: not converged in 1 iteration, sample 0); "
+        "Newton stops at max_newton_iterations before it converges: raise it (the default is 10)"
+    )
