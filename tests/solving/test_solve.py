@@ -9,7 +9,7 @@ import torch
 
 import daemodel as dm
 from daemodel.collocation import stage_residual
-from daemodel.problems import HESSENBERG, PENDULUM
+from daemodel.problems import BOUNCING_BALL, HESSENBERG, PENDULUM
 
 EXACT = HESSENBERG.exact_solution()
 
@@ -194,16 +194,6 @@ def test_every_method_reports_setup_and_solve_clocks(method, options):
     assert f"solve_time={sol.solve_time:.3g} s, setup_time={sol.setup_time:.3g} s" in repr(sol)
 
 
-def _bouncing_ball():
-    m = dm.Model("ball")
-    m.states("h v")
-    m.ode("h", "v")
-    m.ode("v", "-9.81")
-    m.initial(h=1.0, v=0.0)
-    m.event("floor", "h", direction=-1, reset={"v": "-0.9*v"})
-    return m
-
-
 @pytest.mark.parametrize(
     "method, options",
     [
@@ -220,9 +210,9 @@ def test_a_calls_wall_time_is_its_setup_plus_its_solve(method, options):
     5 % or 5 ms (before: 65 ms of a thermostat's first solve, the compile, on neither clock)."""
     import time
 
-    for model in (_bouncing_ball(), HESSENBERG.model()):  # (a Model: compiled inside the call)
+    for model in (BOUNCING_BALL.model(), HESSENBERG.model()):  # (a Model: compiled inside the call)
         started = time.perf_counter()
-        sol = dm.solve(model, (0.0, 2.0) if model.name == "ball" else (0.0, 1.0), method=method, **options)
+        sol = dm.solve(model, (0.0, 2.0) if model.name == "bouncing-ball" else (0.0, 1.0), method=method, **options)
         wall = time.perf_counter() - started
         assert abs(wall - sol.setup_time - sol.solve_time) <= max(5e-3, 0.05 * wall), (model.name, wall, sol)
 

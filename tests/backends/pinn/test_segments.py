@@ -77,11 +77,7 @@ def test_a_model_too_large_for_the_pinns_dense_stage_system_is_refused_before_al
     input, 16 copies (measured at 400 and 800 unknowns: 1.5 GB at 800; 10^4 unknowns would need 200 GB).
     A model whose stage system does not fit is refused naming its size, the limit and radau."""
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1G")
-    m = dm.Model("chain")
-    xs = m.states([f"x{i}" for i in range(600)])
-    for x in xs:
-        m.ode(x, -x)
-    m.initial(**{x.name: 1.0 for x in xs})
+    m = decay_chain(600)
     with pytest.raises(
         ResourceLimitError,
         match=r"pinn: a model of 600 unknowns is too large for the PINN: its Levenberg-Marquardt solves the Radau "
@@ -102,11 +98,7 @@ def test_the_stage_system_estimate_counts_every_sample_of_a_batch(monkeypatch):
     shared = dm.PINNConfig(batch="shared", samples=8, radius=0.01)
     assert network_memory(c, shared, 4, 6, 1)["the Radau stage system, dense"] == 48 * one
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1G")
-    m = dm.Model("chain")
-    xs = m.states([f"x{i}" for i in range(100)])  # (one input: 16 x 400 x 400 doubles, 20 MB)
-    for x in xs:
-        m.ode(x, -x)
-    m.initial(**{x.name: 1.0 for x in xs})
+    m = decay_chain(100)  # (one input: 16 x 400 x 400 doubles, 20 MB)
     with pytest.raises(
         ResourceLimitError,
         match=r"pinn: a model of 100 unknowns with 64 training inputs is too large for the PINN: .* densely for "
@@ -114,3 +106,13 @@ def test_the_stage_system_estimate_counts_every_sample_of_a_batch(monkeypatch):
         r"than the 1 GiB allowed .*or take fewer stages or fewer samples",
     ):
         dm.solve(m.compile(), (0.0, 0.1), method="pinn", h=0.05, y0={"x0": np.linspace(0.5, 1.5, 64)})
+
+
+def decay_chain(n: int) -> dm.Model:
+    """``x_i' = -x_i`` for n states, all from 1."""
+    m = dm.Model("chain")
+    xs = m.states([f"x{i}" for i in range(n)])
+    for x in xs:
+        m.ode(x, -x)
+    m.initial(**{x.name: 1.0 for x in xs})
+    return m
