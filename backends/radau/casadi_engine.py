@@ -251,9 +251,8 @@ class CasadiEngine(AbstractEngine):
     def _static_factor(self, J, h: float) -> Factors | None:
         """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth
         passes :data:`.sparse.MAX_GROWTH`, a pivot is 0 or a value is not finite (a singular system
-        among them, or one the fixed order does not suit)."""
-        if "factor" not in self._static:
-            self._static["factor"] = Buffered(self._static_factor_function())
+        among them, or one the fixed order does not suit).  (Its function is made with the compiled
+        step, :meth:`make_compiled_step`, which alone makes the static factors active.)"""
         return self._static_packed(self._static["factor"](np.concatenate([[h], J])), h)
 
     def _static_solve(self, complex_: bool):

@@ -450,8 +450,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
     with np.errstate(all="ignore"):
         for a in range(0, B * T, chunk):
             b = slice(a, a + chunk)
-            nonzeros = entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]) if len(at) else np.zeros((len(rows[b]), 0))
-            sign[b] = determinant_signs(at, to, nonzeros, m)
+            sign[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
     sign = sign.reshape(B, T)
     changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
     if not changed.any():

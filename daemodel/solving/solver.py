@@ -85,9 +85,17 @@ def solve(
     """
     started = time.perf_counter()
     dispatched = []  # when the work went to a method: the time before it (compile, checks) is setup
-    arguments = dict(y0=y0, z0=z0, parameters=parameters, max_events=max_events, sensitivities=sensitivities)
-    sol = _solve(model, t_span, method, arguments, options, dispatched)
+    sol = _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities, options, dispatched)
     return within_clocks(sol, started, dispatched[0] if dispatched else started)
+
+
+def system_for(model, backend):
+    """The system ``backend`` solves of ``model`` (reduced to its highest index), with its branch check's
+    functions made: work a solve keeps with the compiled model, done before any method's clock."""
+    compiled = for_method(model, backend)
+    if compiled.algebraics:
+        branch_check_functions(compiled)  # (the check runs after the integration: made in the setup)
+    return compiled
 
 
 def prepare(model, methods) -> None:
@@ -100,9 +108,7 @@ def prepare(model, methods) -> None:
     initial_states(model)
     with_state_events(model)
     for method in methods:
-        compiled = for_method(model, get_backend(method))
-        if compiled.algebraics:
-            branch_check_functions(compiled)
+        system_for(model, get_backend(method))
 
 
 def within_clocks(sol: Solution, started: float, dispatched: float) -> Solution:
@@ -118,10 +124,8 @@ def within_clocks(sol: Solution, started: float, dispatched: float) -> Solution:
     return dataclasses.replace(sol, setup_time=sol.setup_time + before, solve_time=sol.solve_time + after, stats=stats)
 
 
-def _solve(model, t_span, method, arguments, options, dispatched) -> Solution:
+def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities, options, dispatched) -> Solution:
     """:func:`solve`'s work; ``dispatched`` gets the time at which it goes to a method."""
-    y0, z0, parameters = arguments["y0"], arguments["z0"], arguments["parameters"]
-    max_events, sensitivities = arguments["max_events"], arguments["sensitivities"]
     backend = get_backend(method)
     opts = check_options(backend, options)
     if isinstance(max_events, bool) or not isinstance(max_events, int) or max_events < 0:
@@ -135,9 +139,7 @@ def _solve(model, t_span, method, arguments, options, dispatched) -> Solution:
     if sensitivities is not None and find_switches(model):
         dispatched.append(time.perf_counter())
         return _on_fixed_branches(backend, model, t_span, start, opts, sensitivities)
-    compiled = for_method(model, backend)
-    if compiled.algebraics:
-        branch_check_functions(compiled)  # (generated in the setup: the check runs after the integration)
+    compiled = system_for(model, backend)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
     # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
     # switches on variables of a batch are crossed by the steps, as before, and declared events refused)
