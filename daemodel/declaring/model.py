@@ -145,9 +145,8 @@ class Declaration:
         self._t0 = 0.0
         self._events: list[tuple] = []  # (name, when, direction, ((state, expr), ...), terminal)
         self._equation_count = 0
-        # every declared name -> its symbol, and the same with t: kept as names are declared, so that a
-        # declaration looks names up in O(1) (merging the tables on every m.ode made a loop quadratic)
-        self._symbols: dict[str, sp.Symbol] = {}
+        # t and every declared name -> its symbol: kept as names are declared, so that a declaration
+        # looks names up in O(1) (merging the tables on every m.ode made a loop quadratic)
         self._known: dict[str, sp.Symbol] = {"t": self.t}
         self._constraint_names: set[str] = set()
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
@@ -211,7 +210,7 @@ class Declaration:
                 raise InvalidNameError(
                     f"{what} name {name!r} is the name of a supported function or constant; choose another name"
                 )
-            if name in self._symbols:
+            if name in self._known:  # (t is refused above)
                 raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
             if name in seen:
                 raise InvalidNameError(f"{what} name {name!r} is given twice")
@@ -220,7 +219,7 @@ class Declaration:
             raise InvalidNameError(f"no {what} names given")
         out = tuple(Symbol(name) for name in names)
         for name, symbol in zip(names, out, strict=True):
-            table[name] = self._symbols[name] = self._known[name] = symbol
+            table[name] = self._known[name] = symbol
         return out
 
     def _kind(self, name: str) -> str:
