@@ -43,11 +43,12 @@ time, setup, status, errors, the solution's stats; the references; the summaries
 (solve time against achieved state error, log-log, one panel per problem, the 1e-6 line dashed),
 and prints markdown tables.
 
-Run: python benchmarks/radau_idas.py [--quick] [--jit] [--problems ...] [--passes 3] [--solve-limit 20]
+Run: python benchmarks/radau_idas.py [--quick] [--jit auto|true|false] [--problems ...] [--passes 3] [--solve-limit 20]
      [--out PATH] [--code-label TEXT]
-(``--jit``: radau's adaptive solves with ``jit=True``, the step compiled to machine code;
-docs/benchmarks/radau-idas.md quotes ``python benchmarks/radau_idas.py`` and
-``python benchmarks/radau_idas.py --jit --no-fixed --out benchmarks/radau_idas_jit``.)
+(``--jit``: radau's adaptive solves with that ``jit``; the default ``auto`` is radau's own default, the
+step in machine code where a C compiler is found; ``false`` keeps casadi's virtual machine;
+docs/benchmarks/radau-idas.md quotes ``python benchmarks/radau_idas.py --jit false`` and
+``python benchmarks/radau_idas.py --jit true --no-fixed --out benchmarks/radau_idas_jit``.)
 """
 
 from __future__ import annotations
@@ -410,8 +411,8 @@ def run_worker(spec: dict) -> None:
                 if not first and run["status"] != "ok":
                     continue
                 options = {"rtol": tol, "atol": tol, "t_eval": model["grid"]}
-                if method == RADAU and spec["jit"]:
-                    options["jit"] = True
+                if method == RADAU and spec["jit"] != "auto":
+                    options["jit"] = spec["jit"] == "true"
                 seconds = timed(run, model, options, first)
                 if not first:
                     continue
@@ -528,8 +529,10 @@ def main(argv=None) -> None:
     parser.add_argument("--code-label", help="free text recorded with the machine (e.g. which commit was measured)")
     parser.add_argument(
         "--jit",
-        action="store_true",
-        help="radau's adaptive solves with jit=True (the step in machine code; its build is setup, apart)",
+        choices=("auto", "true", "false"),
+        default="auto",
+        help="radau's adaptive solves' jit (default %(default)s, radau's default: the step in machine code where "
+        "a C compiler is found; its build is setup, apart)",
     )
     args = parser.parse_args(argv)
     if args.worker:
@@ -577,7 +580,7 @@ def main(argv=None) -> None:
         "settings": {
             "problems": problems,
             "radau": "method='radau' without stages (its default picks them from rtol; recorded per solve)"
-            + (", jit=True" if args.jit else ""),
+            + f", jit={ {'auto': repr('auto'), 'true': 'True', 'false': 'False'}[args.jit] }",
             "radau_tols": spec["radau_tols"],
             "idas_tols": spec["idas_tols"],
             "reference": (

@@ -76,9 +76,14 @@ def main(argv=None) -> None:
     batch = dm.solve(compiled, (0.0, 2.0), rtol=1e-8, atol=1e-8, t_eval=grid, y0=y0)
     first = batch.events["wall"]["t"][:, 0]
     print(f"a batch of {samples}: first impacts from t = {first.min():.4f} to {first.max():.4f}")
+    # each sample alone: the same steps to rounding (the batch runs on torch, a single trajectory in
+    # machine code where a C compiler is found; with jit=False both are bit for bit the same)
+    gap = 0.0
     for b in (0, samples // 2, samples - 1):
         single = dm.solve(build_model(x0=float(x0[b])), (0.0, 2.0), rtol=1e-8, atol=1e-8, t_eval=grid)
-        assert np.array_equal(batch["x"][b], single["x"])
+        gap = max(gap, float(np.abs(batch["x"][b] - single["x"]).max()))
+    print(f"the batch against each sample solved alone: within {gap:.1e}")
+    assert gap < 1e-9
 
 
 if __name__ == "__main__":

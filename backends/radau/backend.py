@@ -8,14 +8,16 @@ import time
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
 from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.options import RadauOptions
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.errors import ConvergenceError, DaemodelError, InvalidOptionError
+from daemodel.errors import CompileError, ConvergenceError, DaemodelError, InvalidOptionError
 from daemodel.files import check_memory, memory_limit
+from daemodel.messages import clip
 from daemodel.tableau import radau_iia
 
 
@@ -46,9 +48,15 @@ class RadauBackend(AbstractBackend):
             memory_parts(compiled, t_span, start.size, options),
         )
         began = time.perf_counter()
-        engine = make_engine(compiled, start, options)
-        controller = make_controller(options)
-        stepper = Stepper(compiled, start, options, engine, controller)
+        machine_code, said = jit_choice(make_engine_name(start, options), options)
+        try:
+            engine, stepper = self._stepper(compiled, start, options, machine_code)
+        except CompileError as error:
+            if options.jit is True:
+                raise
+            # "auto": the compiler failed (every compile runs here, in the setup): the virtual machine
+            engine, stepper = self._stepper(compiled, start, options, False)
+            said = f"casadi's virtual machine: the C compiler failed ({clip(str(error), 300)})"
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)
@@ -67,6 +75,8 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         wall = time.perf_counter() - began
+        if said is not None:
+            stepper.stats["jit"] = said
         if engine.name == "casadi" and engine.cache_outcome() is not None:
             stepper.stats["compiled_cache"] = engine.cache_outcome()  # (daemodel.cache: hit, miss, refused: ...)
         if engine.name == "torch":
@@ -86,6 +96,12 @@ class RadauBackend(AbstractBackend):
             setup_time=setup,
             dense=stepper.polynomials(),
         )
+
+    @staticmethod
+    def _stepper(compiled, start, options: RadauOptions, machine_code: bool):
+        """The engine (in machine code or not: :func:`jit_choice`) and the stepper of a solve."""
+        engine = make_engine(compiled, start, options, machine_code)
+        return engine, Stepper(compiled, start, options, engine, make_controller(options))
 
     def _at_a_smaller_step(self, compiled, t_span, start, options: RadauOptions, error, where) -> ConvergenceError:
         """The error for a determinant that changed sign on a fixed grid: ``error`` where the change
@@ -140,25 +156,41 @@ def make_engine_name(start, options: RadauOptions) -> str:
     return "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
 
 
-def make_engine(compiled, start, options: RadauOptions):
+def jit_choice(name: str, options: RadauOptions) -> tuple[bool, str | None]:
+    """Whether the engine ``name`` runs its steps in machine code (``options.jit``: "auto", True,
+    False), and what ``stats["jit"]`` says of it (None on the torch engine, which compiles nothing)."""
+    if name != "casadi":
+        return False, None
+    if options.jit is False:
+        return False, "casadi's virtual machine (jit=False)"
+    compiler = find_compiler()
+    if compiler is None:  # (jit=True without a compiler was refused by RadauOptions)
+        return False, f"casadi's virtual machine: no C compiler on PATH (tried {', '.join(COMPILERS)})"
+    return True, f"machine code ({compiler})"
+
+
+def make_engine(compiled, start, options: RadauOptions, machine_code: bool | None = None):
     """The engine ``options.engine`` names; ``"auto"``: casadi for one trajectory in float64 on the CPU
-    (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs."""
+    (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs.  The casadi
+    engine's steps run in machine code where ``machine_code`` says so (default: :func:`jit_choice`)."""
     tableau = radau_iia(options.stages)
     transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
     name = make_engine_name(start, options)
-    if options.jit and name != "casadi":
+    if options.jit is True and name != "casadi":
         raise InvalidOptionError(
             f"jit=True compiles the casadi engine's functions, for one trajectory in float64 on the CPU; this "
             f"solve ({start.size} sample(s), {options.dtype}, device {options.device!r}) runs on the torch engine: "
             "leave jit out"
         )
+    if machine_code is None:
+        machine_code = jit_choice(name, options)[0]
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(
                 f"engine='casadi' solves one trajectory; this batch has {start.size} samples: use engine='torch' "
                 "(or 'auto')"
             )
-        return CasadiEngine(compiled, start, tableau, transform, jit=options.jit)
+        return CasadiEngine(compiled, start, tableau, transform, jit=machine_code)
     import torch
     from daemodel.backends.radau.torch_engine import TorchEngine
 

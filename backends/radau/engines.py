@@ -55,6 +55,7 @@ class AbstractEngine(ABC):
 
     name: str
     xp: object
+    jit = False  # (the casadi engine's steps in machine code: see CasadiEngine)
 
     def __init__(self, compiled, start, tableau, transform: StageTransform):
         self.compiled, self.tableau, self.transform = compiled, tableau, transform

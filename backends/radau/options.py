@@ -11,6 +11,7 @@ from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.torch_setup import torch_device
 
 from daemodel.errors import InvalidOptionError
+from daemodel.messages import clip
 
 # Newton's most iterations per attempt unless max_newton_iterations is given (a failure with fewer
 # names it).
@@ -101,7 +102,7 @@ class RadauOptions:
         collocation solution, Newton only starts closer to it.  From a guess, each step runs
         full Newton (each stage's Jacobian at the guess); where it fails, the step starts again
         from its start value, as it does after a failed extrapolation.
-    jit : bool
+    jit : "auto", True or False
         The casadi engine: compile its steps (the adaptive attempt: start guess, Newton, error
         estimate; and the fused Newton iteration of fixed steps) to machine code with the system's
         C compiler (:data:`~.compiled.COMPILERS`, the first on PATH; 0.3-1 s once per model and
@@ -112,8 +113,16 @@ class RadauOptions:
         the elimination is small, dense or sparse), with up to 32 attempts in one call at any size.
         Fixed steps give the same results bit for bit; adaptive ones the same steps and values to
         rounding (the factors differ from LAPACK's in the last bits), 1.1-4x faster on the Test Set
-        problems.  The C sources and libraries live in a private temporary directory that is removed
-        once the library is loaded.
+        problems.  The C sources are compiled in a private temporary directory that is removed
+        once the library is stored and loaded.
+
+        ``"auto"`` (the default): machine code wherever the casadi engine runs and a C compiler is
+        found, else casadi's virtual machine; ``stats["jit"]`` says which and why, once per solve
+        (no warning).  Where the compiler fails, ``"auto"`` goes on on the virtual machine and says
+        so there, with the compiler's message.  ``True`` insists: an
+        :class:`~daemodel.errors.InvalidOptionError` without a compiler or on the torch engine, a
+        :class:`~daemodel.errors.CompileError` where the compiler fails.  ``False``: the virtual
+        machine, nothing compiled.
     estimate_bound : float, optional
         Fixed step only: a run whose largest local error estimate, in units of the solution's
         size ``1 + max |u|``, exceeds this is flagged (status ``"flagged: ..."`` naming the step,
@@ -145,7 +154,7 @@ class RadauOptions:
     threads: int | None = None
     engine: str = "auto"
     start_guess: object = None
-    jit: bool = False
+    jit: bool | str = "auto"
     estimate_bound: float | None = None
     dense_output: bool = True
 
@@ -202,17 +211,18 @@ class RadauOptions:
             )
         if self.estimate_bound is None and not self.adaptive:
             object.__setattr__(self, "estimate_bound", DEFAULT_ESTIMATE_BOUND)
-        if not isinstance(self.jit, bool):
-            raise InvalidOptionError(f"jit must be True or False; got {self.jit!r}")
-        if self.jit and self.engine == "torch":
+        if not (isinstance(self.jit, bool) or (isinstance(self.jit, str) and self.jit == "auto")):
+            raise InvalidOptionError(f"jit must be 'auto', True or False; got {clip(repr(self.jit), 60)}")
+        if self.jit is True and self.engine == "torch":
             raise InvalidOptionError(
                 "jit=True compiles the casadi engine's functions (one trajectory in float64 on the CPU); "
                 "engine='torch' has nothing to compile: leave jit out, or use engine='auto' or 'casadi'"
             )
-        if self.jit and find_compiler() is None:
+        if self.jit is True and find_compiler() is None:
             raise InvalidOptionError(
                 f"jit=True needs a C compiler on PATH (tried {', '.join(COMPILERS)}); install one (e.g. gcc), "
-                "or leave jit out (the same results to rounding, slower steps)"
+                "or leave jit out ('auto': casadi's virtual machine where no compiler is found; the same results "
+                "to rounding, slower steps)"
             )
         if self.engine not in ENGINES:
             raise InvalidOptionError(f"engine must be one of {', '.join(map(repr, ENGINES))}; got {self.engine!r}")

@@ -107,7 +107,7 @@ class Stepper:
         self.compiled_step = (
             self.policy.trust_last_rate
             and options.start_guess is None
-            and engine.make_compiled_step(self.policy.iterations, e, jit=options.jit)
+            and engine.make_compiled_step(self.policy.iterations, e, jit=engine.jit)
         )
         if self.compiled_step:
             self.stats["compiled_retries"] = 0  # compiled attempts that failed and ran again on the general path

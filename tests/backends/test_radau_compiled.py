@@ -22,12 +22,13 @@ needs_compiler = pytest.mark.skipif(find_compiler() is None, reason="no C compil
 
 
 def _solve_both(monkeypatch, compiled, t_span, **options):
-    """The casadi engine with and without the compiled attempt, at the general path's reuse thresholds."""
+    """The casadi engine with and without the compiled attempt, at the general path's reuse thresholds,
+    both on casadi's virtual machine (LAPACK's factors: machine code factors with a fixed pivot order)."""
     monkeypatch.setattr(step, "REUSE_THETA_COMPILED", step.REUSE_THETA)
     monkeypatch.setattr(control, "KEEP_H_BAND_COMPILED", control.KEEP_H_BAND)
-    fast = dm.solve(compiled, t_span, engine="casadi", **options)
+    fast = dm.solve(compiled, t_span, engine="casadi", jit=False, **options)
     monkeypatch.setattr(CasadiEngine, "make_compiled_step", lambda self, *args, **kwargs: False)
-    general = dm.solve(compiled, t_span, engine="casadi", **options)
+    general = dm.solve(compiled, t_span, engine="casadi", jit=False, **options)
     monkeypatch.undo()
     return fast, general
 
@@ -62,8 +63,10 @@ def test_machine_code_gives_the_virtual_machines_bits(problem):
     compiled = problem.model().compile()
     t_eval = np.linspace(*problem.t_span, 11)
     for options in ({"rtol": 1e-6, "atol": 1e-6}, {"h": (problem.t_span[1] - problem.t_span[0]) / 20}):
-        vm = dm.solve(compiled, problem.t_span, t_eval=t_eval, **options)
+        vm = dm.solve(compiled, problem.t_span, t_eval=t_eval, jit=False, **options)
         jit = dm.solve(compiled, problem.t_span, jit=True, t_eval=t_eval, **options)
+        assert jit.stats["jit"] == f"machine code ({find_compiler()})"
+        assert vm.stats["jit"] == "casadi's virtual machine (jit=False)"
         assert jit.stats["steps"] == vm.stats["steps"]
         assert jit.stats["newton_iterations"] == vm.stats["newton_iterations"]
         for name in (*compiled.state_names, *compiled.algebraic_names):
@@ -92,13 +95,15 @@ def test_no_predictive_control_where_the_estimates_are_rounding_noise():
     import scaling_models
 
     compiled = scaling_models.pendulum_chain(40).compile()
-    sol = dm.solve(compiled, scaling_models.T_SPAN["pendulum_chain"], rtol=1e-13, atol=1e-13, stages=7)
+    span = scaling_models.T_SPAN["pendulum_chain"]
+    sol = dm.solve(compiled, span, rtol=1e-13, atol=1e-13, stages=7, jit=False)
     assert sol.stats["steps"] < 300  # 120 measured
 
 
 def test_jit_option_errors(monkeypatch):
-    with pytest.raises(E.InvalidOptionError, match=r"jit must be True or False; got 1"):
-        dm.solve(PENDULUM.model(), (0.0, 1.0), jit=1)
+    for wrong in (1, "yes", "AUTO", None):
+        with pytest.raises(E.InvalidOptionError, match=rf"jit must be 'auto', True or False; got {wrong!r}"):
+            dm.solve(PENDULUM.model(), (0.0, 1.0), jit=wrong)
     monkeypatch.setattr(radau_compiled, "find_compiler", lambda: "/usr/bin/cc")
     with pytest.raises(E.InvalidOptionError, match=r"engine='torch' has nothing to compile"):
         dm.solve(PENDULUM.model(), (0.0, 1.0), jit=True, engine="torch")
@@ -109,6 +114,32 @@ def test_jit_option_errors(monkeypatch):
     monkeypatch.setattr(options, "find_compiler", lambda: None)
     with pytest.raises(E.InvalidOptionError, match=r"jit=True needs a C compiler on PATH \(tried cc, gcc, clang\)"):
         dm.solve(PENDULUM.model(), (0.0, 1.0), jit=True)
+
+
+def test_auto_says_which_code_ran_and_goes_on_where_the_compiler_fails(monkeypatch, tmp_path):
+    """jit="auto" (the default): machine code where a compiler is found, said in stats["jit"]; where
+    none is found, or it fails, casadi's virtual machine, said there with the reason; jit=True raises."""
+    compiled = PENDULUM.model().compile()
+    span, options = (0.0, 1.0), {"rtol": 1e-6, "atol": 1e-6}
+    vm = dm.solve(compiled, span, jit=False, **options)
+    assert vm.stats["jit"] == "casadi's virtual machine (jit=False)" and "compiled_cache" not in vm.stats
+    batch = dm.solve(compiled, span, parameters={"m": [1.0, 2.0]}, **options)
+    assert "jit" not in batch.stats  # (the torch engine compiles nothing)
+    failing = tmp_path / "cc"
+    failing.write_text("#!/bin/sh\necho 'cc: fatal error: out of licences' >&2\nexit 1\n")
+    failing.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    fresh = PENDULUM.model().compile()  # (nothing compiled for it in this process)
+    sol = dm.solve(fresh, span, **options)
+    assert sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed (radau: jit=True: compiling")
+    assert "cc: fatal error: out of licences" in sol.stats["jit"] and sol.status == "success"
+    for name in compiled.state_names:  # (the virtual machine's answer, bit for bit)
+        assert np.array_equal(sol[name], vm[name]), name
+    with pytest.raises(E.CompileError, match=r"out of licences; solve with jit=False"):
+        dm.solve(PENDULUM.model().compile(), span, jit=True, **options)
+    monkeypatch.setenv("PATH", str(tmp_path / "nothing"))
+    none = dm.solve(fresh, span, **options)
+    assert none.stats["jit"] == "casadi's virtual machine: no C compiler on PATH (tried cc, gcc, clang)"
 
 
 @needs_compiler
