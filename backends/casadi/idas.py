@@ -160,26 +160,31 @@ def idas_failure(error: str, printed: str, *, sample: int, model: str, grid, max
     return ConvergenceError(f"{name}: {function} failed{at} ({where}, {code}): {said}")
 
 
-def initial_slopes(dae: dict, t0: float, start) -> tuple[np.ndarray, np.ndarray]:
-    """``y'(t0) = f`` (B, n) and ``z'(t0) = -g_z^{-1} (g_t + g_y f)`` (B, m) of every sample (index 1)."""
+def slopes_function(dae: dict):
+    """The casadi function ``(t, x, z, p) -> (f, g_z, g_t + g_y f)`` of ``dae`` (index 1): ``g_z`` a
+    sparse matrix, the last a directional derivative (no dense ``g_y``)."""
     import casadi
 
-    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
-    alg = dae["alg"]
-    parts = casadi.Function(
-        "slopes",
-        [t, x, z, p],
-        [dae["ode"], casadi.jacobian(alg, z), casadi.jacobian(alg, t), casadi.jacobian(alg, x)],
-    )
+    t, x, z, p, alg = dae["t"], dae["x"], dae["z"], dae["p"], dae["alg"]
+    rate = casadi.jacobian(alg, t) + casadi.jtimes(alg, x, dae["ode"])
+    return casadi.Function("slopes", [t, x, z, p], [dae["ode"], casadi.jacobian(alg, z), rate])
+
+
+def initial_slopes(compiled, dae: dict, t0: float, start) -> tuple[np.ndarray, np.ndarray]:
+    """``y'(t0) = f`` (B, n) and ``z'(t0) = -g_z^{-1} (g_t + g_y f)`` (B, m) of every sample (index 1),
+    by a sparse LU of ``g_z`` (the function made once per model: :func:`slopes_function`)."""
+    from scipy.sparse.linalg import splu
+
+    slopes = compiled.cached("casadi-idas-slopes", lambda: slopes_function(dae))
     B, n, m = start.size, start.y0.shape[1], start.z0.shape[1]
     ydot, zdot = np.zeros((B, n)), np.zeros((B, m))
     for b in range(B):
-        f, g_z, g_t, g_y = (np.asarray(v, dtype=float) for v in parts(t0, start.y0[b], start.z0[b], start.p[b]))
-        ydot[b] = f.reshape(n)
+        f, g_z, rate = slopes(t0, start.y0[b], start.z0[b], start.p[b])
+        ydot[b] = np.asarray(f, dtype=float).reshape(n)
         if m:
             try:
-                zdot[b] = -np.linalg.solve(g_z.reshape(m, m), g_t.reshape(m) + g_y.reshape(m, n) @ ydot[b])
-            except np.linalg.LinAlgError:  # g_z singular: IDAS will say where it fails
+                zdot[b] = -splu(g_z.sparse().tocsc()).solve(np.asarray(rate, dtype=float).reshape(m))
+            except RuntimeError:  # g_z singular: IDAS will say where it fails
                 zdot[b] = np.nan
     return ydot, zdot
 
@@ -272,7 +277,7 @@ class IDASBackend(AbstractBackend):
             values = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
             return make_solution(self, compiled, start, options, times, values, time.perf_counter() - began, {})
         dae = dae_of(compiled)
-        ydot, zdot = initial_slopes(dae, t_span[0], start)
+        ydot, zdot = initial_slopes(compiled, dae, t_span[0], start)
         settings = {
             "abstol": options.atol,
             "reltol": options.rtol,
