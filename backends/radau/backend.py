@@ -7,7 +7,13 @@ import time
 
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
-from daemodel.backends.radau.casadi_engine import CasadiEngine
+from daemodel.backends.radau.casadi_engine import (
+    DENSE_MAX_SIZE,
+    CasadiEngine,
+    dense_systems,
+    factor_entries,
+    jacobian_pattern,
+)
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.options import RadauOptions
@@ -43,12 +49,13 @@ class RadauBackend(AbstractBackend):
             return self._solve(compiled, t_span, start, options, warm_up)
 
     def _solve(self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True):
+        began = time.perf_counter()  # (the memory estimate reads the Jacobian's pattern: setup)
+        engine_name = make_engine_name(start, options)
         check_memory(
             f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
-            memory_parts(compiled, t_span, start.size, options),
+            memory_parts(compiled, t_span, start.size, options, engine_name),
         )
-        began = time.perf_counter()
-        machine_code, said = jit_choice(make_engine_name(start, options), options)
+        machine_code, said = jit_choice(engine_name, options)
         try:
             engine, stepper = self._stepper(compiled, start, options, machine_code)
         except CompileError as error:
@@ -60,7 +67,7 @@ class RadauBackend(AbstractBackend):
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)
-            known = sum(memory_parts(compiled, t_span, start.size, options).values())
+            known = sum(memory_parts(compiled, t_span, start.size, options, engine_name).values())
             D = len(compiled.states) + len(compiled.algebraics)
             stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
         setup = time.perf_counter() - began + warm_up
@@ -127,14 +134,22 @@ class RadauBackend(AbstractBackend):
 SMALLER_STEP = 4
 
 
-def memory_parts(compiled, t_span, B: int, options: RadauOptions) -> dict:
+def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = "torch") -> dict:
     """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
-    Newton matrices (a stage Jacobian and the factored transformed systems, about (2s + 1) D^2 a
-    sample), and the outputs (a fixed grid's points, or t_eval's; with t_eval or ``dense_output``, each
-    step's stages for the dense output).  Adaptive steps add per step what :func:`step_record_bytes` says."""
-    D = len(compiled.states) + len(compiled.algebraics)
+    Newton matrices (a stage Jacobian and the factored transformed systems: about (2s + 1) D^2 a
+    sample where they are dense, the torch engine's and the casadi engine's small or full systems;
+    on the casadi engine's sparse systems the Jacobian's nonzeros and s factors of the fill SuperLU
+    makes of its pattern, :func:`.casadi_engine.factor_entries`), and the outputs (a fixed grid's
+    points, or t_eval's; with t_eval or ``dense_output``, each step's stages for the dense output).
+    Adaptive steps add per step what :func:`step_record_bytes` says."""
+    n, D, s = len(compiled.states), len(compiled.states) + len(compiled.algebraics), options.stages
     itemsize = 4 if options.dtype == "float32" else 8
-    parts = {"Newton matrices": B * (2 * options.stages + 1) * D * D * itemsize}
+    parts = {"Newton matrices": B * (2 * s + 1) * D * D * itemsize}
+    if engine == "casadi" and D > DENSE_MAX_SIZE:
+        rows, cols = jacobian_pattern(compiled)
+        if not dense_systems(D, rows.size):
+            # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
+            parts = {"Newton matrices (sparse)": rows.size * 8 * (s + 1) + s * factor_entries(rows, cols, n, D) * 16}
     steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
     if options.t_eval is not None:
         parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first

@@ -67,6 +67,43 @@ STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
 CACHE_OUTCOMES = ("refused:", "not", "miss", "hit", "memory")
 
 
+def dense_systems(D: int, nonzeros: int) -> bool:
+    """Whether the casadi engine factors systems of ``D`` unknowns whose Jacobian has ``nonzeros``
+    entries densely (LAPACK), else with SuperLU (:data:`DENSE_MAX_SIZE`, :data:`DENSE_FILL`)."""
+    return D <= DENSE_MAX_SIZE or nonzeros > DENSE_FILL * D * D
+
+
+def jacobian_pattern(compiled) -> tuple[np.ndarray, np.ndarray]:
+    """The rows and columns of the nonzeros of ``[f_y f_z; g_y g_z]`` (casadi's sparsity of the model's
+    equations; no function is built), made once per model."""
+
+    def build():
+        import casadi
+
+        dae = compiled.casadi_dae()
+        pattern = casadi.jacobian_sparsity(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"]))
+        rows, cols = pattern.get_triplet()
+        return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+
+    return compiled.cached("jacobian-pattern", build)
+
+
+def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
+    """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
+    ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
+    engine's factors, which pivot on their own values, is of the same order)."""
+    import scipy.sparse as sparse
+
+    values = np.random.default_rng(0).uniform(0.5, 1.5, rows.size)
+    matrix = sparse.csc_matrix((values, (rows, cols)), shape=(D, D))
+    matrix = matrix + sparse.diags(np.r_[np.full(n, 2.0), np.zeros(D - n)]).tocsc()
+    try:
+        lu = sparse.linalg.splu(matrix)
+    except RuntimeError:  # (structurally singular at these values: at most dense)
+        return D * D
+    return int(lu.L.nnz + lu.U.nnz)
+
+
 class CasadiEngine(AbstractEngine):
     """One trajectory in float64 on casadi-compiled functions and scipy's LU (see the module docstring)."""
 
@@ -87,7 +124,7 @@ class CasadiEngine(AbstractEngine):
         self.rows, self.cols = functions[4:]
         D = self.D
         self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
-        self.dense = D <= DENSE_MAX_SIZE or len(self.rows) > DENSE_FILL * D * D
+        self.dense = dense_systems(D, len(self.rows))
         self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
         self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
         if self.dense:

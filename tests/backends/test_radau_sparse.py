@@ -35,7 +35,7 @@ def _engine(model):
     CasadiEngine.__init__ = keep
     try:
         compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6)
+        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)  # (its pattern: nothing to compile)
     finally:
         CasadiEngine.__init__ = original
     return compiled, engines[-1]
@@ -212,3 +212,33 @@ def test_the_code_a_first_solve_generates_is_setup_not_solve(monkeypatch):
     sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
     assert "compiled_retries" in sol.stats  # (the compiled step, on static factors)
     assert sol.setup_time >= 0.6 and sol.solve_time < 0.3, (sol.setup_time, sol.solve_time)
+
+
+def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill():
+    """The memory guard assumed dense Newton matrices: (2s + 1) D^2 (reaction-diffusion at 5 x 10^4
+    unknowns refused for 130 GiB).  On the casadi engine's sparse systems it counts the Jacobian's
+    nonzeros and s factors of the fill SuperLU makes: within 2x of the solve's own factors."""
+    from daemodel.backends.radau import backend
+
+    compiled, engine = _engine(scaling_models.reaction_diffusion(300))  # 600 unknowns, sparse
+    span = scaling_models.T_SPAN["reaction_diffusion"]
+    options = backend.RadauOptions(rtol=1e-6, atol=1e-6)
+    dense = backend.memory_parts(compiled, span, 1, options, "torch")
+    assert dense == {"Newton matrices": 7 * 600**2 * 8}
+    rows, cols = casadi_engine.jacobian_pattern(compiled)
+    assert sorted(zip(rows, cols, strict=True)) == sorted(zip(engine.rows, engine.cols, strict=True))
+    values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    for sigma in (3.6 + 0j, 2.7 + 3.0j):  # (s = 3's shifts over h = 1, about)
+        lu = engine._factor_shift(values, sigma)[0][1]
+        estimate = casadi_engine.factor_entries(rows, cols, len(compiled.states), 600)
+        assert (lu.L.nnz + lu.U.nnz) / 2 <= estimate <= 2 * (lu.L.nnz + lu.U.nnz)
+    parts = backend.memory_parts(compiled, span, 1, options, "casadi")
+    assert parts == {"Newton matrices (sparse)": rows.size * 8 * 4 + 3 * estimate * 16}
+    assert parts["Newton matrices (sparse)"] < dense["Newton matrices"] / 20
+    # systems the engine factors densely keep the dense estimate
+    chain = scaling_models.pendulum_chain(30).compile()  # 150 unknowns, a dense enough pattern?
+    dense_chain = casadi_engine.dense_systems(150, casadi_engine.jacobian_pattern(chain)[0].size)
+    chain_parts = backend.memory_parts(chain, span, 1, options, "casadi")
+    assert ("Newton matrices" in chain_parts) == dense_chain
+    small = backend.memory_parts(scaling_models.reaction_diffusion(40).compile(), span, 1, options, "casadi")
+    assert small == {"Newton matrices": 7 * 80**2 * 8}  # (80 unknowns: dense, LAPACK)
