@@ -22,6 +22,7 @@ import sys
 
 import sympy as sp
 
+from daemodel.declaring.arrays import compact_listing, element_name
 from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, supported_names
 from daemodel.errors import DerivativeInEquationError, ExpressionParseError, UnknownSymbolError
 from daemodel.messages import quoted
@@ -96,7 +97,7 @@ _DESCRIBE = {
 }
 
 
-def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.Expr:
+def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str, shapes: dict | None = None) -> sp.Expr:
     """Parse one equation string over ``symbols`` (name -> Symbol, including ``t``).
 
     Parameters
@@ -107,6 +108,9 @@ def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.E
         Every name the equation may use.
     where : str
         How messages refer to the equation, e.g. ``"the ODE for 'x' (#1)"``.
+    shapes : dict name -> tuple of int, optional
+        The declared arrays' shapes: ``u[3]`` and ``T[3, 4]`` (non-negative integer indices) are the
+        elements ``u[3]`` and ``T[3,4]``; any other subscript is refused.
 
     Raises
     ------
@@ -118,14 +122,14 @@ def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.E
     DerivativeInEquationError
         ``diff(...)`` or ``Derivative(...)``.
     """
-    return _Parser(text, symbols, where).parse()
+    return _Parser(text, symbols, where, shapes or {}).parse()
 
 
 class _Parser:
     """One parse: the source (for quoting constructs), the names, and a node budget."""
 
-    def __init__(self, text: str, symbols: dict, where: str):
-        self.text, self.symbols, self.where = text, symbols, where
+    def __init__(self, text: str, symbols: dict, where: str, shapes: dict):
+        self.text, self.symbols, self.where, self.shapes = text, symbols, where, shapes
         self.nodes = 0
 
     def fail(self, why: str, cls=ExpressionParseError):
@@ -199,6 +203,8 @@ class _Parser:
             return self.compare(node, depth)
         if isinstance(node, ast.Call):
             return self.call(node, depth)
+        if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name) and node.value.id in self.shapes:
+            return self.element(node)
         if isinstance(node, ast.Tuple):
             raise self.fail(f"a tuple {self.quote(node)} is only allowed as a (value, condition) pair of Piecewise")
         what = _DESCRIBE.get(type(node), f"the construct '{type(node).__name__}'")
@@ -235,8 +241,22 @@ class _Parser:
             raise self.fail(f"'{name}' is a function: call it, e.g. {name}(x)")
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
-        declared = ", ".join(repr(n) for n in sorted(self.symbols, key=lambda n: n == "t")) or "(none)"  # (t last)
+        declared = compact_listing(sorted(self.symbols, key=lambda n: n == "t"))  # (t last)
         raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
+
+    def element(self, node):
+        """``u[3]``, ``T[3, 4]``: an element of a declared array, by non-negative integer literals."""
+        name = node.value.id
+        items = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+        if not all(isinstance(i, ast.Constant) and type(i.value) is int for i in items):
+            raise self.fail(
+                f"the subscript {self.quote(node)} is not allowed: an array's element is written with integer "
+                f"indices, e.g. {name}[{', '.join('0' * len(self.shapes[name]))}]"
+            )
+        element = element_name(name, tuple(i.value for i in items), self.shapes[name], self.where)
+        if element not in self.symbols:  # (declared by the model that passed the shapes)
+            raise UnknownSymbolError(f"{self.where}: unknown name '{element}' in {quoted(self.text)}")
+        return self.symbols[element]
 
     def binary(self, node, depth: int):
         op = type(node.op)
