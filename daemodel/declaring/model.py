@@ -222,7 +222,7 @@ class Declaration:
         values = (
             None
             if value is None
-            else self._array_values(name, checked_shape(shape, f"parameter array {name!r}"), value, "parameter")
+            else self._array_values(name, checked_shape(shape, f"parameter array {name!r}"), value, "parameter value")
         )
         out = self._declare_array(name, shape, "parameters")
         for symbol, v in zip(out.flat, [None] * out.size if values is None else values, strict=True):
@@ -235,7 +235,9 @@ class Declaration:
         for name, value in values.items():
             if self._arrays.get(name, ("",))[0] == "parameters":
                 _, shape, symbols = self._arrays[name]
-                for symbol, v in zip(symbols.flat, self._array_values(name, shape, value, "parameter"), strict=True):
+                for symbol, v in zip(
+                    symbols.flat, self._array_values(name, shape, value, "parameter value"), strict=True
+                ):
                     self._parameter_values[symbol.name] = v
                 continue
             if name not in self._parameters:
@@ -302,15 +304,17 @@ class Declaration:
         return out
 
     def _array_values(self, name: str, shape: tuple, value, what: str) -> list:
-        """``value`` (one number, or an array of ``shape``) as one checked float per element of ``name``."""
+        """``value`` (one number, or an array of ``shape``) as one checked float per element of ``name``;
+        ``what``: ``"initial value"``, ``"guess"`` or ``"parameter value"``."""
         if np.ndim(value) == 0:
-            return [real(value, f"{what} value of '{name}'")] * int(np.prod(shape))
+            return [real(value, f"{what} of '{name}'")] * int(np.prod(shape))
         values = np.asarray(value, dtype=object)
         if values.shape != shape:
+            plural = "guesses" if what == "guess" else f"{what}s"
             raise ShapeError(
-                f"{what} values of the array '{name}' must be one number or of shape {shape}; got shape {values.shape}"
+                f"the {plural} of the array '{name}' must be one number or of shape {shape}; got shape {values.shape}"
             )
-        return [real(v, f"{what} value of '{name}[{','.join(map(str, i))}]'") for i, v in np.ndenumerate(values)]
+        return [real(v, f"{what} of '{name}[{','.join(map(str, i))}]'") for i, v in np.ndenumerate(values)]
 
     def _shapes(self) -> dict[str, tuple]:
         """Each array's shape by its name (for the parser: ``"u[3]"`` in a string)."""
@@ -362,9 +366,9 @@ class Declaration:
 
     def _ode_block(self, states, rhs) -> None:
         if isinstance(states, str):
-            kind, _, states = self._arrays[states]
+            name, (kind, _, states) = states, self._arrays[states]
             if kind != "states":
-                raise ODETargetError(f"m.ode: {states!r} is an array of {_WHAT[kind]}s, not of differential variables")
+                raise ODETargetError(f"m.ode: '{name}' is an array of {_WHAT[kind]}s, not of differential variables")
         exprs = _block(rhs, states.shape, f"m.ode: {states.size} differential variable(s) of shape {states.shape}")
         names, seen = [], set()
         for state in states.flat:
