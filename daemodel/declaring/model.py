@@ -99,8 +99,9 @@ class Declared:
     events : tuple
         ``(name, when, direction, ((state, expr), ...), terminal)`` per event.
     arrays : Mapping[str, tuple]
-        Each declared array's ``(kind, shape)`` by its name; kind is ``"states"``, ``"algebraics"``
-        or ``"parameters"`` (its elements are in that table as ``u[0]``, ``T[3,4]``, ...).
+        Each declared array's ``(kind, shape, symbols)`` by its name: kind is ``"states"``,
+        ``"algebraics"`` or ``"parameters"`` (its elements are in that table as ``u[0]``, ``T[3,4]``,
+        ...), symbols the read-only object array the declaration returned.
     """
 
     name: str
