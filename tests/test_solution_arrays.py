@@ -98,3 +98,19 @@ def test_report_and_plot_name_the_elements(tmp_path):
     assert (tmp_path / "T.png").stat().st_size > 0
     with pytest.raises(E.UnknownSymbolError, match=r"plot\(names=...\): index 5 is out of range for axis 1 of 'w'"):
         sol.plot(names=["w[0,5]"])
+
+
+def test_an_objective_of_elements_differentiates_by_an_element_parameter():
+    """sol.gradient(T[0, 1]**2) goes through the parser as text ('T[0,1]**2'): elements parse there
+    too.  Exact: J = sum_t exp(-2 k t), dJ/dk = sum_t -2 t exp(-2 k t) at k = 2."""
+    m, T, _ = decays()
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-12, t_eval=np.linspace(0.0, 1.0, 5))
+    exact = np.sum(-2 * sol.t * np.exp(-4 * sol.t))
+    for objective in (T[0, 1] ** 2, "T[0, 1]**2"):
+        assert abs(sol.gradient(objective, wrt=["k[0,1]"])["k[0,1]"] - exact) < 1e-8
+
+
+def test_many_missing_names_are_counted():
+    sol = dm.solve(decays()[0], (0.0, 0.1), h=0.05)
+    with pytest.raises(E.UnknownSymbolError, match=r"no values of 'a', 'b', 'c', 'd', 'e' and 2 more: not variables"):
+        sol[np.array(list("abcdefg"), dtype=object)]

@@ -1,10 +1,10 @@
 """Equation strings to sympy expressions without evaluating any Python.
 
 A string is parsed by Python's :mod:`ast` (which builds a syntax tree and runs nothing) and
-the tree is walked here: only numbers, the declared names, the supported functions and
-constants of :mod:`daemodel.declaring.functions`, arithmetic (``+ - * / ** ^``), comparisons and logic
-(for ``Piecewise`` conditions) are admitted, and the sympy expression is built node by node.
-Anything else (attribute access, subscripts, lambdas, comprehensions, strings, keyword
+the tree is walked here: only numbers, the declared names (an array's element as ``u[3]``), the
+supported functions and constants of :mod:`daemodel.declaring.functions`, arithmetic (``+ - * / ** ^``),
+comparisons and logic (for ``Piecewise`` conditions) are admitted, and the sympy expression is built
+node by node.  Anything else (attribute access, other subscripts, lambdas, comprehensions, strings, keyword
 arguments, calls of anything but a supported function) is an :class:`ExpressionParseError`
 that names the equation and quotes the offending construct.
 
@@ -109,8 +109,9 @@ def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str, shapes:
     where : str
         How messages refer to the equation, e.g. ``"the ODE for 'x' (#1)"``.
     shapes : dict name -> tuple of int, optional
-        The declared arrays' shapes: ``u[3]`` and ``T[3, 4]`` (non-negative integer indices) are the
-        elements ``u[3]`` and ``T[3,4]``; any other subscript is refused.
+        The declared arrays' shapes, for messages: ``u[3]`` and ``T[3, 4]`` (non-negative integer
+        indices) are the elements ``u[3]`` and ``T[3,4]`` of ``symbols``, an index out of an array's
+        range is named as such, and any other subscript is refused.
 
     Raises
     ------
@@ -203,8 +204,10 @@ class _Parser:
             return self.compare(node, depth)
         if isinstance(node, ast.Call):
             return self.call(node, depth)
-        if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name) and node.value.id in self.shapes:
-            return self.element(node)
+        if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name):
+            element = self.element(node)
+            if element is not None:
+                return element
         if isinstance(node, ast.Tuple):
             raise self.fail(f"a tuple {self.quote(node)} is only allowed as a (value, condition) pair of Piecewise")
         what = _DESCRIBE.get(type(node), f"the construct '{type(node).__name__}'")
@@ -245,18 +248,23 @@ class _Parser:
         raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
 
     def element(self, node):
-        """``u[3]``, ``T[3, 4]``: an element of a declared array, by non-negative integer literals."""
+        """``u[3]``, ``T[3, 4]``: an element of a declared array, by non-negative integer literals; None
+        for a subscript of a name that is no array (refused as a subscript)."""
         name = node.value.id
         items = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
-        if not all(isinstance(i, ast.Constant) and type(i.value) is int for i in items):
+        index = tuple(i.value for i in items if isinstance(i, ast.Constant) and type(i.value) is int)
+        element = f"{name}[{','.join(map(str, index))}]"
+        if len(index) == len(items) and element in self.symbols:  # (an element among the symbols: also
+            return self.symbols[element]  # where no shapes are given, e.g. a solution's names)
+        if name not in self.shapes:
+            return None
+        if len(index) != len(items):
             raise self.fail(
                 f"the subscript {self.quote(node)} is not allowed: an array's element is written with integer "
                 f"indices, e.g. {name}[{', '.join('0' * len(self.shapes[name]))}]"
             )
-        element = element_name(name, tuple(i.value for i in items), self.shapes[name], self.where)
-        if element not in self.symbols:  # (declared by the model that passed the shapes)
-            raise UnknownSymbolError(f"{self.where}: unknown name '{element}' in {quoted(self.text)}")
-        return self.symbols[element]
+        element = element_name(name, index, self.shapes[name], self.where)  # (raises: out of range)
+        raise UnknownSymbolError(f"{self.where}: unknown name '{element}' in {quoted(self.text)}")
 
     def binary(self, node, depth: int):
         op = type(node.op)
