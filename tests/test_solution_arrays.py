@@ -114,3 +114,18 @@ def test_many_missing_names_are_counted():
     sol = dm.solve(decays()[0], (0.0, 0.1), h=0.05)
     with pytest.raises(E.UnknownSymbolError, match=r"no values of 'a', 'b', 'c', 'd', 'e' and 2 more: not variables"):
         sol[np.array(list("abcdefg"), dtype=object)]
+
+
+def test_initial_states_by_array_for_one_sample_and_a_batch():
+    m, _, _ = decays()
+    c = m.compile()
+    start = np.linspace(0.5, 1.5, 6).reshape(2, 3)  # (w = 2 T + w^3 / 100 has a root near 2 T up to T ~ 1.9)
+    sol = dm.solve(c, (0.0, 1.0), rtol=1e-10, atol=1e-12, y0={"T": start})
+    assert np.max(np.abs(sol["T"][..., -1] - start * np.exp(-RATES))) < 1e-8
+    batch = dm.solve(c, (0.0, 1.0), rtol=1e-10, atol=1e-12, y0={"T": np.stack([start, start / 2])})
+    assert batch["T"].shape == (2, 2, 3, len(batch.t))
+    assert np.max(np.abs(batch["T"][1, ..., -1] - start / 2 * np.exp(-RATES))) < 1e-8
+    with pytest.raises(E.ShapeError, match=r"y0\['T'\] must have the array's shape \(2, 3\), or \(batch, \*\(2, 3\)\)"):
+        dm.solve(c, (0.0, 1.0), y0={"T": np.ones(6)})
+    with pytest.raises(E.UnknownSymbolError, match=r"z0 names 'T\[0,0\]', .* not among \['w\[...\]' \(6 elements\)\]"):
+        dm.solve(c, (0.0, 1.0), z0={"T": start})
