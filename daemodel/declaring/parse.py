@@ -244,8 +244,18 @@ class _Parser:
             raise self.fail(f"'{name}' is a function: call it, e.g. {name}(x)")
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
+        if name in self.shapes:
+            raise self.whole_array(name)
         declared = compact_listing(sorted(self.symbols, key=lambda n: n == "t"))  # (t last)
         raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
+
+    def whole_array(self, name: str) -> ExpressionParseError:
+        """The error for an array's name used as a value (``2*u``) or called (``u(3)``)."""
+        zeros = ", ".join("0" * len(self.shapes[name]))
+        return self.fail(
+            f"'{name}' is an array of shape {self.shapes[name]}: an equation takes its elements, e.g. "
+            f"{name}[{zeros}] (an array of equations: m.ode({name}, exprs), m.constraint(exprs))"
+        )
 
     def element(self, node):
         """``u[3]``, ``T[3, 4]``: an element of a declared array, by non-negative integer literals; None
@@ -320,6 +330,8 @@ class _Parser:
         name = node.func.id
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
+        if name in self.shapes:
+            raise self.whole_array(name)
         # the arguments first: a hostile call such as open('f', 'w') fails on its string argument
         if name == "Piecewise":
             args = [self.piece(a, depth) for a in node.args]

@@ -219,6 +219,16 @@ def test_constraint_arrays_are_named_by_element_and_refuse_clashes():
         ("T[0, x]", E.ExpressionParseError, r"e.g. T\[0, 0\]"),
         ("u[1.0]", E.ExpressionParseError, "the subscript 'u\\[1.0\\]' is not allowed"),
         ("x[0]", E.ExpressionParseError, r"subscript 'x\[0\]' is not allowed in an equation"),
+        (
+            "2*T",
+            E.ExpressionParseError,
+            r"'T' is an array of shape \(2, 2\): an equation takes its elements, e.g. T\[0, 0\]",
+        ),
+        (
+            "u(1)",
+            E.ExpressionParseError,
+            r"'u' is an array of shape \(3,\): an equation takes its elements, e.g. u\[0\]",
+        ),
         ("w", E.UnknownSymbolError, r"declared: 'x', 'u\[...\]' \(3 elements\), 'T\[...\]' \(4 elements\), 't'"),
     ],
 )
