@@ -25,6 +25,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from daemodel.declaring.arrays import element_name, element_names, split_element
 from daemodel.errors import OmittedPanelsWarning, ResourceLimitError
 from daemodel.files import save_figure
 from daemodel.instants import BREAKPOINTS
@@ -242,6 +243,21 @@ def mark_instants(ax, solution, samples=None) -> list:
     return marks
 
 
+def element_names_of(solution, names) -> list:
+    """``names`` with each array's name (``"u"``, declared by ``m.states("u", 100)``) spread over its
+    elements, in numpy's order, and an element written with spaces (``"T[3, 4]"``) as declared."""
+    arrays, out = solution.compiled.arrays, []
+    for name in names:
+        parts = split_element(name) if isinstance(name, str) else None
+        if isinstance(name, str) and name in arrays:
+            out += element_names(name, arrays[name])
+        elif parts is not None and parts[0] in arrays:
+            out.append(element_name(*parts, arrays[parts[0]], "plot(names=...)"))
+        else:
+            out.append(name)
+    return out
+
+
 def plot_solution(solution, path=None, names=None, reference=None):
     """:meth:`Solution.plot`: each variable against t, one panel each; a batch shows up to
     :data:`~daemodel.plotting.PLOTTED_SAMPLES` samples (see the module docs for what is drawn).
@@ -251,9 +267,10 @@ def plot_solution(solution, path=None, names=None, reference=None):
     path : str or Path, optional
         Write the figure there (PNG, PDF, ... by suffix).
     names : iterable of str, optional
-        Variables to draw, all of them.  Default: the states, then the algebraic variables, at most
-        :data:`~daemodel.plotting.PLOTTED_PANELS` of them; where more were left out, the figure's title
-        says how many and an :class:`~daemodel.errors.OmittedPanelsWarning` names them.
+        Variables to draw, all of them (an array's name: each of its elements).  Default: the
+        states, then the algebraic variables, at most :data:`~daemodel.plotting.PLOTTED_PANELS` of
+        them; where more were left out, the figure's title says how many and an
+        :class:`~daemodel.errors.OmittedPanelsWarning` names them.
     reference : callable or Solution, optional
         Drawn dashed on top (first sample only for a batch), see :func:`draw_reference`.
 
@@ -269,7 +286,7 @@ def plot_solution(solution, path=None, names=None, reference=None):
         every = [*compiled.state_names, *compiled.algebraic_names]
         names, omitted = every[:PLOTTED_PANELS], every[PLOTTED_PANELS:]
     else:
-        names = list(names)
+        names = element_names_of(solution, names)
     if omitted:
         listed = ", ".join(omitted[:PLOTTED_PANELS]) + (", ..." if len(omitted) > PLOTTED_PANELS else "")
         warnings.warn(

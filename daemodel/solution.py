@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import sympy as sp
 
+from daemodel.declaring.arrays import compact_listing, element_name, element_names, split_element
 from daemodel.errors import ComparisonError, SolutionFileError, UnknownSymbolError
 from daemodel.files import (
     memory_limit,
@@ -124,8 +125,15 @@ class Solution:
     def batch_size(self) -> int:
         return len(self.parameters)
 
-    def __getitem__(self, name: str) -> np.ndarray:
-        """Values of one variable, by its name or its symbol: shape (T,), or (B, T) for a batch."""
+    def __getitem__(self, name) -> np.ndarray:
+        """Values of one variable, by its name or its symbol: shape (T,), or (B, T) for a batch.
+
+        An array's name (``sol["u"]``, declared by ``m.states("u", 1000)``) gives all its elements,
+        shape ``(*shape, T)`` (``(B, *shape, T)`` for a batch); an element's name (``sol["u[3]"]``,
+        ``sol["T[3,4]"]``) or symbol gives one; an array of symbols (``sol[T[:, 0]]``) gives those.
+        """
+        if isinstance(name, np.ndarray):
+            return self._gather(name)
         if isinstance(name, sp.Symbol):
             name = name.name
         if not isinstance(name, str):
@@ -133,9 +141,40 @@ class Solution:
                 f"a solution is indexed by a variable's name or symbol (e.g. sol['x']); got {type(name).__name__}"
             )
         if name not in self.values:
-            raise UnknownSymbolError(f"the solution has no variable {name!r}; it has {list(self.names)}")
+            return self._array(name)
         values = self.values[name]
         return values if self.batched else values[0]
+
+    def _array(self, name: str) -> np.ndarray:
+        """``sol[name]`` for an array's name or an element's (``"T[3, 4]"`` with spaces too), else the
+        error naming what is wrong: no such variable, an index out of range, a pruned element."""
+        shapes = self.compiled.arrays
+        if name in shapes:
+            return self._gather(np.array(element_names(name, shapes[name]), dtype=object).reshape(shapes[name]))
+        parts = split_element(name)
+        if parts is not None and parts[0] in shapes:
+            element = element_name(*parts, shapes[parts[0]], f"sol[{name!r}]")
+            return self._gather(np.array(element, dtype=object))
+        raise UnknownSymbolError(f"the solution has no variable {name!r}; it has [{compact_listing(self.names)}]")
+
+    def _gather(self, names: np.ndarray) -> np.ndarray:
+        """The values of an array of variables (names or symbols): shape ``(*names.shape, T)``, batch first."""
+        flat = [n.name if isinstance(n, sp.Symbol) else n for n in names.flat]
+        missing = [n for n in flat if not isinstance(n, str) or n not in self.values]
+        if missing:
+            pruned = [n for n in missing if isinstance(n, str) and n in self.compiled.dropped_names()]
+            why = "pruned by compile(outputs=...): add them to outputs" if pruned == missing else "not variables of it"
+            shown = ", ".join(repr(n) for n in missing[:5]) + (
+                f" and {len(missing) - 5} more" if len(missing) > 5 else ""
+            )
+            raise UnknownSymbolError(f"the solution has no values of {shown}: {why}")
+        B, T = self.batch_size, len(self.t)
+        out = np.empty((B, len(flat), T))
+        for i, n in enumerate(flat):
+            out[:, i] = self.values[n]
+        out = out.reshape(B, *names.shape, T)
+        out.flags.writeable = False
+        return out if self.batched else out[0]
 
     def _flat(self):
         """States, algebraics, parameters and times flattened to (B*T, .) rows."""

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import sympy as sp
 from sympy.printing.str import StrPrinter
 
+from daemodel.declaring.arrays import identifier
 from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS
 from daemodel.errors import ShapeError, UnsupportedFunctionError
 
@@ -135,16 +136,18 @@ _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def local_names(groups: dict) -> dict:
-    """Map each symbol to a valid, collision-free Python local named after it."""
-    names = {}
+    """Map each symbol to a valid, collision-free Python local named after it (an array's element
+    ``u[3]`` / ``T[3,4]`` after :func:`~daemodel.declaring.arrays.identifier`: ``u_3`` / ``T_3_4``)."""
+    names, taken = {}, set()
     for symbols in groups.values():
         for s in symbols:
-            name = s.name
+            name = identifier(s.name)
             if not _IDENTIFIER.fullmatch(name):
                 raise ValueError(f"refusing to emit the symbol name {name!r}")  # the front end validates names
-            while name in _RESERVED or name.startswith("_layout") or keyword.iskeyword(name) or name in names.values():
+            while name in _RESERVED or name.startswith("_layout") or keyword.iskeyword(name) or name in taken:
                 name += "_"
             names[s] = name
+            taken.add(name)
     return names
 
 
@@ -152,8 +155,9 @@ def torch_source(fname: str, exprs, comments, t, groups: dict, doc: str) -> str:
     """Python source of ``fname(t, y, z, p=None) -> Tensor (..., len(exprs))``.
 
     The only user text in the source is symbol names, which the front end validated as
-    identifiers (and :func:`local_names` keeps clear of Python keywords and the generated
-    names); ``fname``, ``comments`` and ``doc`` come from daemodel itself and are checked here.
+    identifiers or array elements (:func:`local_names` makes identifiers of the elements and keeps
+    all clear of Python keywords and the generated names); ``fname``, ``comments`` and ``doc``
+    come from daemodel itself and are checked here.
 
     Parameters
     ----------

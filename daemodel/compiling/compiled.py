@@ -17,6 +17,7 @@ import sympy as sp
 from daemodel.compiling.codegen import (
     CasadiConverter,
     build_torch_functions,
+    local_names,
     torch_source,
 )
 from daemodel.compiling.structure import ITERATION_MATRIX, Constraint
@@ -62,6 +63,9 @@ class CompiledDAE:
         What output-driven pruning removed, by kind.
     events : tuple of daemodel.declaring.events.Event
         The declared events (``Model.event``), on this model's symbols.
+    arrays : dict str -> tuple of int
+        The shape of each declared array of variables (``m.states("u", 1000)``) by its name, whose
+        elements ``u[0]``, ... are among the variables (or were pruned): ``sol["u"]`` gathers them.
     """
 
     name: str
@@ -83,6 +87,7 @@ class CompiledDAE:
     dropped: dict = field(default_factory=dict)
     reduced_from: int | None = None
     events: tuple = ()
+    arrays: dict = field(default_factory=dict)
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -174,6 +179,10 @@ class CompiledDAE:
     @property
     def alias_names(self) -> tuple[str, ...]:
         return tuple(name for name, _, _ in self.aliases)
+
+    def dropped_names(self) -> frozenset:
+        """Every name that output-driven pruning removed (variables, aliases, constraints, parameters)."""
+        return frozenset(name for names in self.dropped.values() for name in names)
 
     @property
     def invariant_names(self) -> tuple[str, ...]:
@@ -441,8 +450,10 @@ class CompiledDAE:
     def _make_casadi_dae(self) -> dict:
         import casadi
 
+        names = local_names(self._groups())  # (identifiers, never a user's string: u[3] is u_3)
+
         def column(symbols):
-            return casadi.vertcat(*[casadi.SX.sym(s.name) for s in symbols]) if symbols else casadi.SX(0, 1)
+            return casadi.vertcat(*[casadi.SX.sym(names[s]) for s in symbols]) if symbols else casadi.SX(0, 1)
 
         x, z, p, t = column(self.states), column(self.algebraics), column(self.parameters), casadi.SX.sym("t")
         table = {self.t: t}

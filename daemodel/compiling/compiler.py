@@ -11,6 +11,7 @@ from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.init import NumericSystem, initialise
 from daemodel.compiling.prune import eliminate_aliases, needed
 from daemodel.compiling.structure import Differentiator, derivative_chain, match
+from daemodel.declaring.arrays import compact_listing
 from daemodel.declaring.events import Event
 from daemodel.declaring.functions import check_supported
 from daemodel.declaring.model import Declaration
@@ -116,6 +117,11 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     # the parameters the events read are used (their variables are the outputs' choice: Model.event names
     # those the requested outputs prune away)
     event_exprs = [e for _, when, _, resets, _ in model.events for e in (when, *(value for _, value in resets))]
+    arrays = {name: entry for name, entry in model.arrays.items() if entry[0] != "parameters"}
+
+    def elements(name: str) -> list[str]:
+        return [s.name for s in arrays[name][2].flat]
+
     if outputs is None:
         keep = set(known)
     else:
@@ -127,14 +133,17 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
             ) from None
         if not outputs:
             raise UnknownOutputError(
-                f"compile(outputs=[]) asks for nothing; name the variables you want (of {', '.join(map(repr, known))}) "
+                f"compile(outputs=[]) asks for nothing; name the variables you want (of {compact_listing(known)}) "
                 "or leave outputs=None for all"
             )
-        unknown = [o for o in outputs if not isinstance(o, str) or o not in known]
+        # (an array's name stands for its elements)
+        outputs = [e for o in outputs for e in (elements(o) if isinstance(o, str) and o in arrays else (o,))]
+        known_set = set(known)
+        unknown = [o for o in outputs if not isinstance(o, str) or o not in known_set]
         if unknown:
             raise UnknownOutputError(
                 f"compile(outputs=...): {', '.join(repr(u) for u in unknown)} not a variable of model "
-                f"'{model.name}'; variables: {', '.join(repr(k) for k in known)}"
+                f"'{model.name}'; variables: {compact_listing(known)}"
             )
         keep = needed(outputs, rhs, constraints, algebraics, alias_exprs, calculus)
     algebraic_names = {z.name for z in algebraics}
@@ -206,6 +215,7 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
         z0=values.z0,
         notes=values.notes,
         dropped=dropped,
+        arrays={name: shape for name, (_, shape, _) in arrays.items()},
     )
     compiled._cache["numeric"] = numeric  # (the functions the initialisation made, and its derivatives, serve on)
     return with_events(model, compiled)
@@ -245,8 +255,9 @@ class Model(Declaration):
         Parameters
         ----------
         outputs : list of str, optional
-            Variable names the user wants; only what they depend on through the coupled
-            system is kept.  ``None`` keeps everything.
+            Variable names the user wants (an array's name stands for all its elements, ``"u[3]"``
+            for one); only what they depend on through the coupled system is kept.  ``None`` keeps
+            everything.
         repair : bool
             Project an inconsistent initial state onto the constraint manifold (least change)
             and replace disagreeing algebraic values, reporting both, instead of raising.

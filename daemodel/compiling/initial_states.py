@@ -26,6 +26,7 @@ from daemodel.compiling.init import (
     solve_algebraic,
     violations,
 )
+from daemodel.declaring.arrays import compact_listing, element_names
 from daemodel.errors import (
     BranchError,
     FixedStateError,
@@ -98,6 +99,8 @@ def columns(compiled, value, names, defaults, what: str):
     """
     if value is None:
         return None, np.asarray(defaults, dtype=float)[None, :]
+    if isinstance(value, dict) and any(isinstance(k, str) and k in compiled.arrays for k in value):
+        value = _spread(compiled.arrays, value, what)
     if isinstance(value, dict):
         # a parameter the model declares but no kept equation uses was pruned: its values change
         # nothing, but they are checked and still make a batch
@@ -106,7 +109,8 @@ def columns(compiled, value, names, defaults, what: str):
         if unknown:
             raise UnknownSymbolError(
                 f"{what} names {', '.join(repr(u) for u in unknown)}, which "
-                f"{'is' if len(unknown) == 1 else 'are'} not among {list(names)} of model '{compiled.name}'"
+                f"{'is' if len(unknown) == 1 else 'are'} not among {_listed(names)} "
+                f"of model '{compiled.name}'"
             )
         arrays = {k: _numbers(v, f"{what}['{k}']") for k, v in value.items()}
         for k, a in arrays.items():
@@ -131,10 +135,35 @@ def columns(compiled, value, names, defaults, what: str):
         raise ShapeError(f"{what} has shape {array.shape}: a batch of no samples; give at least one")
     if array.ndim not in (1, 2) or array.shape[-1] != len(names):
         raise ShapeError(
-            f"{what} must have shape ({len(names)},) or (batch, {len(names)}) with columns {list(names)}; "
+            f"{what} must have shape ({len(names)},) or (batch, {len(names)}) with columns {_listed(names)}; "
             f"got shape {array.shape}"
         )
     return (array.shape[0] if array.ndim == 2 else None), np.atleast_2d(array)
+
+
+def _listed(names) -> str:
+    """``names`` for a message, as a list, each array's elements as one entry."""
+    return f"[{compact_listing(names)}]" if len(names) else "[]"
+
+
+def _spread(shapes: dict, value: dict, what: str) -> dict:
+    """``value`` with each array of variables by its name (``{"T": array}``, of the array's shape for one
+    sample or ``(B, *shape)`` for a batch) spread over its elements' names."""
+    out = {}
+    for key, v in value.items():
+        if not (isinstance(key, str) and key in shapes):
+            out[key] = v
+            continue
+        shape, array = shapes[key], _numbers(v, f"{what}['{key}']")
+        if array.shape != shape and array.shape[1:] != shape:
+            raise ShapeError(
+                f"{what}['{key}'] must have the array's shape {shape}, or (batch, *{shape}) for a batch; "
+                f"got shape {array.shape}"
+            )
+        one = array.shape == shape  # (else a batch: the samples first)
+        for name, index in zip(element_names(key, shape), np.ndindex(*shape), strict=True):
+            out[name] = array[index] if one else array[(slice(None), *index)]
+    return out
 
 
 def _numbers(value, what) -> np.ndarray:

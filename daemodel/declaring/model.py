@@ -16,9 +16,11 @@ import re
 from dataclasses import dataclass
 from types import MappingProxyType
 
+import numpy as np
 import sympy as sp
 from sympy.core.function import AppliedUndef
 
+from daemodel.declaring.arrays import checked_shape, compact_listing, element_names, symbol_array
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.declaring.symbols import Symbol
@@ -29,6 +31,7 @@ from daemodel.errors import (
     InvalidNameError,
     InvalidValueError,
     ODETargetError,
+    ShapeError,
     UnknownSymbolError,
 )
 from daemodel.messages import quoted
@@ -39,6 +42,8 @@ from daemodel.reals import real
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 # Model names also appear in file names (compare's results) and reports, never in generated code.
 _MODEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_.\-]*$")
+# What one element of each kind of array is called in messages.
+_WHAT = {"states": "differential variable", "algebraics": "algebraic variable", "parameters": "parameter"}
 # Longest name accepted (model, variable, parameter, constraint).
 MAX_NAME_LENGTH = 64
 
@@ -93,6 +98,10 @@ class Declared:
     t0 : float
     events : tuple
         ``(name, when, direction, ((state, expr), ...), terminal)`` per event.
+    arrays : Mapping[str, tuple]
+        Each declared array's ``(kind, shape, symbols)`` by its name: kind is ``"states"``,
+        ``"algebraics"`` or ``"parameters"`` (its elements are in that table as ``u[0]``, ``T[3,4]``,
+        ...), symbols the read-only object array the declaration returned.
     """
 
     name: str
@@ -107,10 +116,20 @@ class Declared:
     guess: MappingProxyType
     t0: float
     events: tuple
+    arrays: MappingProxyType
 
     def symbols(self) -> dict[str, sp.Symbol]:
         """Every declared symbol by name: states, algebraic variables, parameters."""
         return {**self.states, **self.algebraics, **self.parameters}
+
+
+def _block(exprs, shape: tuple, what: str) -> list:
+    """``exprs`` (an array or nested lists of expressions or strings) as a flat list, if of ``shape``."""
+    values = np.asarray(exprs, dtype=object) if not isinstance(exprs, str) else np.asarray(exprs)
+    if values.shape != shape:
+        got = quoted(exprs) if values.ndim == 0 else f"shape {values.shape}"
+        raise ShapeError(f"{what} need expressions of that shape; got {got}")
+    return list(values.flat)
 
 
 def _split_names(names, what: str) -> list[str]:
@@ -149,6 +168,9 @@ class Declaration:
         # looks names up in O(1) (merging the tables on every m.ode made a loop quadratic)
         self._known: dict[str, sp.Symbol] = {"t": self.t}
         self._constraint_names: set[str] = set()
+        # arrays of variables and parameters: name -> (kind, shape, object array of the symbols)
+        self._arrays: dict[str, tuple[str, tuple, np.ndarray]] = {}
+        self._constraint_arrays: set[str] = set()  # the names of arrays of constraints (m.constraint(array))
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
 
     def declared(self) -> Declared:
@@ -167,15 +189,24 @@ class Declaration:
             guess=view(self._guess),
             t0=self._t0,
             events=tuple(self._events),
+            arrays=view(self._arrays),
         )
 
     # ---- declarations -------------------------------------------------------------------
-    def states(self, names) -> tuple[sp.Symbol, ...]:
-        """Declare differential variables; ``names`` is ``"y1 y2"``, ``"y1, y2"`` or a list."""
+    def states(self, names, shape=None):
+        """Declare differential variables: ``m.states("y1 y2")`` (or ``"y1, y2"``, or a list) returns a
+        tuple of symbols; ``m.states("u", 1000)`` or ``m.states("T", (100, 100))`` declares an array
+        and returns a numpy object array of that shape whose elements are the symbols ``u[0]``, ...
+        (``T[0,0]``, ...): ``m.ode(u, exprs)`` gives all their ODEs at once, ``sol["u"]`` their values."""
+        if shape is not None:
+            return self._declare_array(names, shape, "states")
         return self._declare(names, self._states, "differential variable")
 
-    def algebraics(self, names) -> tuple[sp.Symbol, ...]:
-        """Declare algebraic variables (determined by the constraints)."""
+    def algebraics(self, names, shape=None):
+        """Declare algebraic variables (determined by the constraints): names as :meth:`states`,
+        or one name and a shape for an array (``m.algebraics("b", (2, 100))``)."""
+        if shape is not None:
+            return self._declare_array(names, shape, "algebraics")
         return self._declare(names, self._algebraics, "algebraic variable")
 
     def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
@@ -186,32 +217,62 @@ class Declaration:
         self._parameter_values[name] = value
         return symbol
 
+    def parameters(self, name: str, shape, value=None) -> np.ndarray:
+        """Declare an array of parameters ``k[0]``, ... (numpy object array of ``shape``); ``value``: one
+        number for all, or an array of ``shape`` (or later, :meth:`set_parameters` with ``k=array``)."""
+        values = (
+            None
+            if value is None
+            else self._array_values(name, checked_shape(shape, f"parameter array {name!r}"), value, "parameter value")
+        )
+        out = self._declare_array(name, shape, "parameters")
+        for symbol, v in zip(out.flat, [None] * out.size if values is None else values, strict=True):
+            self._parameter_values[symbol.name] = v
+        return out
+
     def set_parameters(self, /, **values: float) -> None:
-        """Give or change parameter values by name."""
+        """Give or change parameter values by name; an array of parameters takes one number or an
+        array of its shape."""
         for name, value in values.items():
+            if self._arrays.get(name, ("",))[0] == "parameters":
+                _, shape, symbols = self._arrays[name]
+                for symbol, v in zip(
+                    symbols.flat, self._array_values(name, shape, value, "parameter value"), strict=True
+                ):
+                    self._parameter_values[symbol.name] = v
+                continue
             if name not in self._parameters:
                 raise UnknownSymbolError(
                     f"set_parameters: '{name}' is not a declared parameter; parameters: {_listing(self._parameters)}"
                 )
             self._parameter_values[name] = real(value, f"parameter '{name}'")
 
+    def _check_name(self, name, what: str) -> None:
+        """Refuse ``name`` for a new ``what``: not an identifier, reserved, or declared already."""
+        if (
+            not isinstance(name, str)
+            or not _NAME.fullmatch(name)
+            or keyword.iskeyword(name)
+            or len(name) > MAX_NAME_LENGTH
+        ):
+            raise InvalidNameError(
+                f"{what} name {name!r} is not an identifier (ASCII letters, digits, '_', starting with a "
+                f"letter, at most {MAX_NAME_LENGTH} characters)"
+            )
+        if name == "t":
+            raise InvalidNameError(f"{what} name 't' is reserved for time (m.t)")
+        if name in RESERVED_NAMES:
+            raise InvalidNameError(
+                f"{what} name {name!r} is the name of a supported function or constant; choose another name"
+            )
+        if name in self._known or name in self._arrays:  # (t is refused above)
+            raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
+
     def _declare(self, names, table: dict, what: str) -> tuple[sp.Symbol, ...]:
         """Declare ``names`` in ``table``, all or none: every name is checked before any is declared."""
         names, seen = _split_names(names, what), set()
         for name in names:
-            if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
-                raise InvalidNameError(
-                    f"{what} name {name!r} is not an identifier (ASCII letters, digits, '_', starting with a "
-                    f"letter, at most {MAX_NAME_LENGTH} characters)"
-                )
-            if name == "t":
-                raise InvalidNameError(f"{what} name 't' is reserved for time (m.t)")
-            if name in RESERVED_NAMES:
-                raise InvalidNameError(
-                    f"{what} name {name!r} is the name of a supported function or constant; choose another name"
-                )
-            if name in self._known:  # (t is refused above)
-                raise InvalidNameError(f"{what} name {name!r} is already declared as {self._kind(name)}")
+            self._check_name(name, what)
             if name in seen:
                 raise InvalidNameError(f"{what} name {name!r} is given twice")
             seen.add(name)
@@ -222,7 +283,48 @@ class Declaration:
             table[name] = self._known[name] = symbol
         return out
 
+    def _declare_array(self, name, shape, kind: str) -> np.ndarray:
+        """Declare the array ``name`` of ``shape`` in the table of ``kind``: one name checked, then its
+        elements (whose names need no check: an identifier, then indices) in one pass, O(size)."""
+        what = _WHAT[kind]
+        if not isinstance(name, str) or not _NAME.fullmatch(name):
+            raise InvalidNameError(
+                f"an array of {what}s takes one name and a shape, e.g. m.{kind}('u', 1000); got the name {name!r}"
+            )
+        self._check_name(name, f"{what} array")
+        shape = checked_shape(shape, f"{what} array {name!r}")
+        names = element_names(name, shape)
+        symbols = [Symbol(n) for n in names]
+        table = {"states": self._states, "algebraics": self._algebraics, "parameters": self._parameters}[kind]
+        pairs = dict(zip(names, symbols, strict=True))
+        table.update(pairs)
+        self._known.update(pairs)
+        out = symbol_array(symbols, shape)
+        out.flags.writeable = False  # (the model's record of the array: sliced and combined, never changed)
+        self._arrays[name] = (kind, shape, out)
+        return out
+
+    def _array_values(self, name: str, shape: tuple, value, what: str) -> list:
+        """``value`` (one number, or an array of ``shape``) as one checked float per element of ``name``;
+        ``what``: ``"initial value"``, ``"guess"`` or ``"parameter value"``."""
+        if np.ndim(value) == 0:
+            return [real(value, f"{what} of '{name}'")] * int(np.prod(shape))
+        values = np.asarray(value, dtype=object)
+        if values.shape != shape:
+            plural = "guesses" if what == "guess" else f"{what}s"
+            raise ShapeError(
+                f"the {plural} of the array '{name}' must be one number or of shape {shape}; got shape {values.shape}"
+            )
+        return [real(v, f"{what} of '{name}[{','.join(map(str, i))}]'") for i, v in np.ndenumerate(values)]
+
+    def _shapes(self) -> dict[str, tuple]:
+        """Each array's shape by its name (for the parser: ``"u[3]"`` in a string)."""
+        return {name: shape for name, (_, shape, _) in self._arrays.items()}
+
     def _kind(self, name: str) -> str:
+        if name in self._arrays:
+            kind, shape, _ = self._arrays[name]
+            return f"an array of {_WHAT[kind]}s of shape {shape}"
         if name in self._states:
             return "a differential variable"
         if name in self._algebraics:
@@ -231,7 +333,22 @@ class Declaration:
 
     # ---- equations ----------------------------------------------------------------------
     def ode(self, state, rhs) -> None:
-        """Declare ``state' = rhs``; ``state`` is a declared symbol or its name."""
+        """Declare ``state' = rhs``; ``state`` is a declared symbol or its name.
+
+        For an array of states (the array :meth:`states` returned, a slice of it, or the array's name),
+        ``rhs`` is an array of expressions of the same shape and each element gets its ODE, all or
+        none (``m.ode(u[1:-1], (u[2:] - 2*u[1:-1] + u[:-2]) / h**2)``)."""
+        if isinstance(state, np.ndarray) or (isinstance(state, str) and state in self._arrays):
+            self._ode_block(state, rhs)
+            return
+        name = self._ode_target(state)
+        number = self._equation_count + 1
+        expr = self._expression(rhs, f"the ODE for '{name}' (#{number})")
+        self._equation_count = number
+        self._odes[name] = Equation("ode", name, number, expr)
+
+    def _ode_target(self, state) -> str:
+        """The name of ``state``, a differential variable without an ODE, else the error naming it."""
         name = state if isinstance(state, str) else getattr(state, "name", None)
         if not isinstance(state, (str, sp.Symbol)) or name not in self._states:
             if name in self._algebraics:
@@ -239,42 +356,103 @@ class Declaration:
             elif name in self._parameters:
                 why = f"'{name}' is a parameter"
             else:
-                why = f"{state!r} is not a declared differential variable"
+                why = f"{quoted(state)} is not a declared differential variable"
             raise ODETargetError(f"m.ode: {why}; differential variables: {_listing(self._states)}")
         if name in self._odes:
             raise DuplicateODEError(
                 f"differential variable '{name}' already has an ODE "
                 f"({self._odes[name].label}: {name}' = {self._odes[name].expr}); a state has exactly one"
             )
-        number = self._equation_count + 1
-        expr = self._expression(rhs, f"the ODE for '{name}' (#{number})")
-        self._equation_count = number
-        self._odes[name] = Equation("ode", name, number, expr)
+        return name
+
+    def _ode_block(self, states, rhs) -> None:
+        if isinstance(states, str):
+            name, (kind, _, states) = states, self._arrays[states]
+            if kind != "states":
+                raise ODETargetError(f"m.ode: '{name}' is an array of {_WHAT[kind]}s, not of differential variables")
+        exprs = _block(rhs, states.shape, f"m.ode: {states.size} differential variable(s) of shape {states.shape}")
+        names, seen = [], set()
+        for state in states.flat:
+            names.append(self._ode_target(state))
+            if names[-1] in seen:
+                raise DuplicateODEError(f"m.ode: differential variable '{names[-1]}' is given twice in one array")
+            seen.add(names[-1])
+        first = self._equation_count + 1
+        parsed = [
+            self._expression(e, f"the ODE for '{n}' (#{first + k})")
+            for k, (n, e) in enumerate(zip(names, exprs, strict=True))
+        ]
+        for k, (name, expr) in enumerate(zip(names, parsed, strict=True)):
+            self._odes[name] = Equation("ode", name, first + k, expr)
+        self._equation_count = first + len(names) - 1
 
     def constraint(self, expr, name: str | None = None) -> None:
-        """Declare ``0 = expr``; a string may be ``"lhs = rhs"`` (meaning ``0 = lhs - rhs``)."""
+        """Declare ``0 = expr``; a string may be ``"lhs = rhs"`` (meaning ``0 = lhs - rhs``).
+
+        ``expr`` may be an array (or list) of them: one constraint per element, all or none, named
+        ``name[0]``, ``name[1]``, ... (``name[i,j]`` for a 2-d array), or ``g<k>`` each without a name.
+        """
+        if isinstance(expr, np.ndarray | list | tuple):
+            self._constraint_block(expr, name)
+            return
         number = self._equation_count + 1
         if name is not None and not isinstance(name, str):
             raise InvalidNameError(f"constraint name must be a string; got {type(name).__name__}")
         name = f"g{len(self._constraints) + 1}" if name is None else name
         if not _NAME.fullmatch(name) or keyword.iskeyword(name) or len(name) > MAX_NAME_LENGTH:
             raise InvalidNameError(f"constraint name {name!r} is not an identifier")
-        if name in self._constraint_names:
+        if name in self._constraint_names or name in self._constraint_arrays:
             raise InvalidNameError(f"constraint name '{name}' is already used")
-        label = f"constraint '{name}' (#{number})"
+        value = self._constraint_value(expr, f"constraint '{name}' (#{number})")
+        self._add_constraint(Equation("constraint", name, number, value))
+
+    def _constraint_block(self, exprs, name) -> None:
+        if name is not None and (
+            not isinstance(name, str)
+            or not _NAME.fullmatch(name)
+            or keyword.iskeyword(name)
+            or len(name) > MAX_NAME_LENGTH
+        ):
+            raise InvalidNameError(f"constraint array name {quoted(name)} is not an identifier")
+        if name in self._constraint_names or name in self._constraint_arrays:
+            raise InvalidNameError(f"constraint name '{name}' is already used")
+        values = (
+            np.empty(0, dtype=object)
+            if isinstance(exprs, list | tuple) and not exprs
+            else np.asarray(exprs, dtype=object)
+        )
+        if values.size == 0:
+            raise ShapeError(f"m.constraint: the array of constraints {quoted(name)} is empty")
+        first, count = self._equation_count + 1, len(self._constraints)
+        if name is None:
+            names = [f"g{count + k + 1}" for k in range(values.size)]
+            clash = next((n for n in names if n in self._constraint_names), None)
+            if clash:
+                raise InvalidNameError(
+                    f"constraint name '{clash}' is already used; name the array: m.constraint(exprs, name=...)"
+                )
+        else:
+            names = element_names(name, values.shape)
+        parsed = [
+            self._constraint_value(e, f"constraint '{n}' (#{first + k})")
+            for k, (n, e) in enumerate(zip(names, values.flat, strict=True))
+        ]
+        for k, (n, value) in enumerate(zip(names, parsed, strict=True)):
+            self._add_constraint(Equation("constraint", n, first + k, value))
+        if name is not None:
+            self._constraint_arrays.add(name)
+
+    def _constraint_value(self, expr, label: str) -> sp.Expr:
+        """The checked expression of one constraint: ``expr``, ``lhs - rhs`` of ``"lhs = rhs"``, or of an equality."""
         single = re.search(r"(?<![=<>!])=(?!=)", expr) if isinstance(expr, str) else None
         if single:  # "lhs = rhs": a single '=' never occurs inside an admitted expression
             lhs, rhs = expr[: single.start()], expr[single.end() :]
-            value = self._expression(lhs, label) - self._expression(rhs, label)
-            self._add_constraint(Equation("constraint", name, number, value))
-            return
+            return self._expression(lhs, label) - self._expression(rhs, label)
         if isinstance(expr, str):  # "lhs == rhs" parses as an equality; '==' inside a condition stays there
-            expr = parse_equation(expr, self._known, label)
+            expr = parse_equation(expr, self._known, label, self._shapes())
         if isinstance(expr, sp.Equality):
-            value = self._expression(expr.lhs, label) - self._expression(expr.rhs, label)
-        else:
-            value = self._expression(expr, label)
-        self._add_constraint(Equation("constraint", name, number, value))
+            return self._expression(expr.lhs, label) - self._expression(expr.rhs, label)
+        return self._expression(expr, label)
 
     def _add_constraint(self, equation: Equation) -> None:
         self._equation_count = equation.number
@@ -340,14 +518,16 @@ class Declaration:
     def initial(self, /, t: float | None = None, **values: float) -> None:
         """Initial values by name: all differential variables; algebraic ones are optional.
 
-        A given algebraic value must agree with the consistent one (``compile`` checks it);
-        ``t`` sets the initial time (default 0).
+        An array's name takes one number for every element or an array of its shape
+        (``m.initial(u=np.sin(np.pi * x))``); an element may be given by its name
+        (``m.initial(**{"u[0]": 1.0})``).  A given algebraic value must agree with the consistent one
+        (``compile`` checks it); ``t`` sets the initial time (default 0).
         """
-        for name, value in values.items():
+        for name, value in self._by_element(values, ("states", "algebraics"), "initial value"):
             if name not in self._states and name not in self._algebraics:
                 raise UnknownSymbolError(
                     f"m.initial: '{name}' is not a declared variable; variables: "
-                    f"{_listing({**self._states, **self._algebraics})}"
+                    f"{_listing([*self._states, *self._algebraics])}"
                 )
             self._initial[name] = real(value, f"initial value of '{name}'")
         if t is not None:
@@ -359,8 +539,9 @@ class Declaration:
         A guess only picks the root (``0 = z**2 - x`` has two: ``m.guess(z=1)`` or
         ``m.guess(z=-1)``); unlike a value given to :meth:`initial`, it is not a claim that the
         root must match.  A variable without a guess starts at its :meth:`initial` value, else 0.
+        An array's name takes one number or an array of its shape, as in :meth:`initial`.
         """
-        for name, value in values.items():
+        for name, value in self._by_element(values, ("algebraics",), "guess"):
             if name not in self._algebraics:
                 where = "a differential variable: give it with m.initial" if name in self._states else "not declared"
                 raise UnknownSymbolError(
@@ -368,10 +549,25 @@ class Declaration:
                 )
             self._guess[name] = real(value, f"guess for '{name}'")
 
+    def _by_element(self, values: dict, kinds: tuple, what: str):
+        """``values`` by name with each array of ``kinds`` spread over its elements (checked first: all or none)."""
+        out = []
+        for name, value in values.items():
+            kind, shape, symbols = self._arrays.get(name, (None, None, None))
+            if kind is None:
+                out.append((name, value))
+            elif kind not in kinds:
+                raise UnknownSymbolError(
+                    f"m.{'guess' if what == 'guess' else 'initial'}: '{name}' is {self._kind(name)}"
+                )
+            else:
+                out += zip((s.name for s in symbols.flat), self._array_values(name, shape, value, what), strict=True)
+        return out
+
     def _expression(self, value, where: str) -> sp.Expr:
         """Turn a sympy expression, number or string into a checked sympy expression."""
         if isinstance(value, str):
-            expr = parse_equation(value, self._known, where)
+            expr = parse_equation(value, self._known, where, self._shapes())
         else:
             try:
                 expr = sp.sympify(value, strict=True)
@@ -429,4 +625,5 @@ class Declaration:
 
 
 def _listing(table) -> str:
-    return ", ".join(f"'{n}'" for n in table) or "(none)"
+    """The names of ``table`` for a message, an array's elements as one entry."""
+    return compact_listing(table)

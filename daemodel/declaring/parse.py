@@ -1,10 +1,10 @@
 """Equation strings to sympy expressions without evaluating any Python.
 
 A string is parsed by Python's :mod:`ast` (which builds a syntax tree and runs nothing) and
-the tree is walked here: only numbers, the declared names, the supported functions and
-constants of :mod:`daemodel.declaring.functions`, arithmetic (``+ - * / ** ^``), comparisons and logic
-(for ``Piecewise`` conditions) are admitted, and the sympy expression is built node by node.
-Anything else (attribute access, subscripts, lambdas, comprehensions, strings, keyword
+the tree is walked here: only numbers, the declared names (an array's element as ``u[3]``), the
+supported functions and constants of :mod:`daemodel.declaring.functions`, arithmetic (``+ - * / ** ^``),
+comparisons and logic (for ``Piecewise`` conditions) are admitted, and the sympy expression is built
+node by node.  Anything else (attribute access, other subscripts, lambdas, comprehensions, strings, keyword
 arguments, calls of anything but a supported function) is an :class:`ExpressionParseError`
 that names the equation and quotes the offending construct.
 
@@ -22,6 +22,7 @@ import sys
 
 import sympy as sp
 
+from daemodel.declaring.arrays import compact_listing, element_name
 from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, supported_names
 from daemodel.errors import DerivativeInEquationError, ExpressionParseError, UnknownSymbolError
 from daemodel.messages import quoted
@@ -96,7 +97,7 @@ _DESCRIBE = {
 }
 
 
-def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.Expr:
+def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str, shapes: dict | None = None) -> sp.Expr:
     """Parse one equation string over ``symbols`` (name -> Symbol, including ``t``).
 
     Parameters
@@ -107,6 +108,10 @@ def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.E
         Every name the equation may use.
     where : str
         How messages refer to the equation, e.g. ``"the ODE for 'x' (#1)"``.
+    shapes : dict name -> tuple of int, optional
+        The declared arrays' shapes, for messages: ``u[3]`` and ``T[3, 4]`` (non-negative integer
+        indices) are the elements ``u[3]`` and ``T[3,4]`` of ``symbols``, an index out of an array's
+        range is named as such, and any other subscript is refused.
 
     Raises
     ------
@@ -118,14 +123,14 @@ def parse_equation(text: str, symbols: dict[str, sp.Symbol], where: str) -> sp.E
     DerivativeInEquationError
         ``diff(...)`` or ``Derivative(...)``.
     """
-    return _Parser(text, symbols, where).parse()
+    return _Parser(text, symbols, where, shapes or {}).parse()
 
 
 class _Parser:
     """One parse: the source (for quoting constructs), the names, and a node budget."""
 
-    def __init__(self, text: str, symbols: dict, where: str):
-        self.text, self.symbols, self.where = text, symbols, where
+    def __init__(self, text: str, symbols: dict, where: str, shapes: dict):
+        self.text, self.symbols, self.where, self.shapes = text, symbols, where, shapes
         self.nodes = 0
 
     def fail(self, why: str, cls=ExpressionParseError):
@@ -199,6 +204,10 @@ class _Parser:
             return self.compare(node, depth)
         if isinstance(node, ast.Call):
             return self.call(node, depth)
+        if isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name):
+            element = self.element(node)
+            if element is not None:
+                return element
         if isinstance(node, ast.Tuple):
             raise self.fail(f"a tuple {self.quote(node)} is only allowed as a (value, condition) pair of Piecewise")
         what = _DESCRIBE.get(type(node), f"the construct '{type(node).__name__}'")
@@ -235,8 +244,37 @@ class _Parser:
             raise self.fail(f"'{name}' is a function: call it, e.g. {name}(x)")
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
-        declared = ", ".join(repr(n) for n in sorted(self.symbols, key=lambda n: n == "t")) or "(none)"  # (t last)
+        if name in self.shapes:
+            raise self.whole_array(name)
+        declared = compact_listing(sorted(self.symbols, key=lambda n: n == "t"))  # (t last)
         raise UnknownSymbolError(f"{self.where}: unknown name(s) '{name}' in {quoted(self.text)}; declared: {declared}")
+
+    def whole_array(self, name: str) -> ExpressionParseError:
+        """The error for an array's name used as a value (``2*u``) or called (``u(3)``)."""
+        zeros = ", ".join("0" * len(self.shapes[name]))
+        return self.fail(
+            f"'{name}' is an array of shape {self.shapes[name]}: an equation takes its elements, e.g. "
+            f"{name}[{zeros}] (an array of equations: m.ode({name}, exprs), m.constraint(exprs))"
+        )
+
+    def element(self, node):
+        """``u[3]``, ``T[3, 4]``: an element of a declared array, by non-negative integer literals; None
+        for a subscript of a name that is no array (refused as a subscript)."""
+        name = node.value.id
+        items = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+        index = tuple(i.value for i in items if isinstance(i, ast.Constant) and type(i.value) is int)
+        element = f"{name}[{','.join(map(str, index))}]"
+        if len(index) == len(items) and element in self.symbols:  # (an element among the symbols: also
+            return self.symbols[element]  # where no shapes are given, e.g. a solution's names)
+        if name not in self.shapes:
+            return None
+        if len(index) != len(items):
+            raise self.fail(
+                f"the subscript {self.quote(node)} is not allowed: an array's element is written with integer "
+                f"indices, e.g. {name}[{', '.join('0' * len(self.shapes[name]))}]"
+            )
+        element = element_name(name, index, self.shapes[name], self.where)  # (raises: out of range)
+        raise UnknownSymbolError(f"{self.where}: unknown name '{element}' in {quoted(self.text)}")
 
     def binary(self, node, depth: int):
         op = type(node.op)
@@ -292,6 +330,8 @@ class _Parser:
         name = node.func.id
         if name in DERIVATIVE_NAMES:
             raise self._derivative(node)
+        if name in self.shapes:
+            raise self.whole_array(name)
         # the arguments first: a hostile call such as open('f', 'w') fails on its string argument
         if name == "Piecewise":
             args = [self.piece(a, depth) for a in node.args]

@@ -163,6 +163,33 @@ def test_reserved_names_are_renamed():
     assert out.tolist() == [-5.0, 3.0, 1.0]
 
 
+def test_array_elements_become_identifiers_in_generated_source_and_casadi():
+    """u[0] is no Python name: the torch source and casadi's symbols name it u_0 (and a scalar u_0
+    declared after it u_0_), and no bracket of a user's name reaches generated code."""
+    m = dm.Model("elements")
+    u = m.states("u", 2)
+    (u_0,) = m.states("u_0")
+    T = m.algebraics("T", (1, 2))
+    m.ode(u, [-u[1] * T[0, 0], u_0 - T[0, 1] + u[0]])
+    m.ode(u_0, -u_0)
+    m.constraint(T[0] - 2 * u + T[0] ** 3, name="law")
+    m.initial(u=[1.0, 2.0], u_0=3.0)
+    c = m.compile()
+    tf = c.torch_functions()
+    assert "u_0 = y[..., 0]" in tf.source["f"] and "u_0_ = y[..., 2]" in tf.source["f"]
+    assert "T_0_1 = z[..., 1]" in tf.source["f"]
+    for source in tf.source.values():
+        body = source.replace("y[..., ", "").replace("z[..., ", "").replace("p[..., ", "")
+        assert not any(f"{name}[" in body for name in ("u", "T")), source
+    y, z = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64), torch.tensor([5.0, 7.0], dtype=torch.float64)
+    assert tf.f(0.0, y, z).tolist() == [-10.0, 3.0 - 7.0 + 1.0, -3.0]
+    dae = c.casadi_dae()
+    assert [dae["x"][i].name() for i in range(3)] == ["u_0", "u_1", "u_0_"]
+    assert [dae["z"][i].name() for i in range(2)] == ["T_0_0", "T_0_1"]
+    ode = casadi.Function("f", [dae["x"], dae["z"], dae["p"], dae["t"]], [dae["ode"]])
+    assert np.array(ode([1.0, 2.0, 3.0], [5.0, 7.0], [], 0.0)).ravel().tolist() == [-10.0, -3.0, -3.0]
+
+
 def test_source_is_readable_and_registered():
     c = HESSENBERG.model().compile()
     tf = c.torch_functions()

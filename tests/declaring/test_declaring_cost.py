@@ -40,3 +40,31 @@ def test_one_declaration_costs_the_same_at_100_and_at_4000_unknowns():
         small = peak_bytes_of_one_more_equation_pair(50, as_text)
         large = peak_bytes_of_one_more_equation_pair(2000, as_text)
         assert large < 1.5 * small, (as_text, small, large)
+
+
+def peak_bytes_of_an_array_declaration(n: int, what: str) -> int:
+    """Peak bytes of ``m.states("u", n)`` (what="states") or of ``m.ode(u, -u)`` on n states (what="odes")."""
+    m = dm.Model("arrays")
+    u = m.states("u", n) if what == "odes" else None
+    rhs = -u if what == "odes" else None
+    gc.collect()
+    gc.disable()
+    tracemalloc.start()
+    try:
+        if what == "states":
+            m.states("v", n)
+        else:
+            m.ode(u, rhs)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+        gc.enable()
+
+
+def test_an_array_declaration_is_linear_in_its_size():
+    """10^5 states in one call cost ten times what 10^4 do (measured 11.6: the tables' growth), not a
+    hundred (a check per element against every name declared so far); an array of ODEs likewise."""
+    small, large = (peak_bytes_of_an_array_declaration(n, "states") for n in (10_000, 100_000))
+    assert large < 15 * small, (small, large)
+    small, large = (peak_bytes_of_an_array_declaration(n, "odes") for n in (500, 5_000))
+    assert large < 15 * small, (small, large)
