@@ -273,6 +273,9 @@ class CompiledDAE:
             For an expression no emitter translates (e.g. ``Heaviside`` from differentiating
             ``Max`` in :meth:`reduced`), naming the function and the equation.
         """
+        return dict(self.cached("checked outputs", self._checked_outputs))  # (checked once per model)
+
+    def _checked_outputs(self) -> dict:
         outputs = {
             "f": (
                 self.rhs,
@@ -461,12 +464,9 @@ class CompiledDAE:
             table.update({s: vector[i] for i, s in enumerate(symbols)})
         convert = CasadiConverter(table)
         outputs = self._outputs()
-
-        def stacked(fname):
-            exprs = outputs[fname][0]
-            return casadi.vertcat(*[casadi.SX(convert(e)) for e in exprs]) if exprs else casadi.SX(0, 1)
-
-        return {"x": x, "z": z, "p": p, "t": t, "ode": stacked("f"), "alg": stacked("g")}
+        both = convert.stack([*outputs["f"][0], *outputs["g"][0]])  # (one conversion: shared parts made once)
+        ode, alg = casadi.vertsplit(both, [0, len(self.states), len(self.states) + len(self.algebraics)])
+        return {"x": x, "z": z, "p": p, "t": t, "ode": ode, "alg": alg}
 
     # ---- report -------------------------------------------------------------------------
     def report(self) -> str:

@@ -267,3 +267,56 @@ def test_the_casadi_dae_is_made_once_per_model(monkeypatch):
     assert made == [] and again["ode"] is not None and again["alg"] is c.casadi_dae()["alg"]
     c.reduced(1).casadi_dae()  # (another system: converted)
     assert made == [1]
+
+
+def _one_at_a_time_and_stacked(compiled, monkeypatch):
+    """casadi's ode/alg function of ``compiled`` converted one expression at a time and stacked by
+    structure (daemodel.compiling.codegen.VECTOR_GROUP), each on a fresh conversion."""
+    from daemodel.compiling import codegen
+
+    functions = []
+    for group in (10**9, 2):
+        monkeypatch.setattr(codegen, "VECTOR_GROUP", group)
+        compiled._cache.pop("casadi_dae", None)
+        dae = compiled.casadi_dae()
+        functions.append(casadi.Function("f", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"], dae["alg"]]))
+    return functions
+
+
+@pytest.mark.parametrize("size", [12, 40])
+def test_expressions_of_one_structure_are_converted_together_to_the_same_bits(monkeypatch, size):
+    """A line of cells with every kind of node (functions, Max, Piecewise with relations and logic,
+    powers, a root, a shared subexpression, numbers that differ per cell): stacked by structure, the
+    casadi functions give the one-at-a-time conversion's values bit for bit, with no more operations."""
+    m = dm.Model("cells")
+    u, w = m.states("u", size), m.algebraics("w", size)
+    k = m.parameter("k", 0.7)
+    shared = sp.sin(k * m.t)  # (in every equation: made once)
+    for i in range(size):
+        left, right = u[i - 1] if i else u[size - 1], u[(i + 1) % size]
+        switch = sp.Piecewise(
+            (left - u[i], (u[i] > 0.5) & (w[i] < 2)), (sp.Max(u[i], right) ** 2, u[i] < -1), (0, True)
+        )
+        m.ode(u[i], (i + 1) * (left - 2 * u[i] + right) - sp.exp(-u[i]) * shared + switch / (3 + i % 3))
+        m.constraint(w[i] - sp.sqrt(1 + u[i] ** 2) - sp.Rational(1, i + 2) * sp.cos(u[i]) ** 3, name=f"c{i}")
+    m.initial(**{f"u[{i}]": 0.1 * i - 0.4 for i in range(size)})
+    compiled = m.compile()
+    one, stacked = _one_at_a_time_and_stacked(compiled, monkeypatch)
+    assert stacked.n_instructions() <= one.n_instructions()
+    rng = np.random.default_rng(size)
+    for _ in range(20):
+        args = (rng.uniform(0, 3), rng.uniform(-2, 2, size), rng.uniform(0, 3, size), rng.uniform(0, 1, 1))
+        for a, b in zip(one(*args), stacked(*args), strict=True):
+            assert np.array_equal(np.asarray(a), np.asarray(b)), (a, b)
+
+
+def test_the_library_models_convert_to_the_same_bits_stacked(monkeypatch):
+    from daemodel.problems import PROBLEMS
+
+    for name in ("wheelset", "squeezer", "car-axis"):
+        compiled = PROBLEMS[name].model().compile()
+        one, stacked = _one_at_a_time_and_stacked(compiled, monkeypatch)
+        assert stacked.n_instructions() <= one.n_instructions(), name
+        args = [np.linspace(0.3, 0.9, max(f.numel(), 1))[: f.numel()] for f in one.mx_in()]
+        for a, b in zip(one(*args), stacked(*args), strict=True):
+            assert np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True), name
