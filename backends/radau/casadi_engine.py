@@ -17,7 +17,6 @@ from daemodel.backends.radau.compiled import (
     STEP_SCALARS,
     Buffered,
     StaticFactors,
-    calling_residual,
     casadi_functions,
     find_compiler,
     inverse_function,
@@ -125,18 +124,9 @@ class CasadiEngine(AbstractEngine):
 
     def _newton_step_function(self):
         """The casadi function of the fused Newton step (:func:`.compiled.newton_step_function`), built
-        once per model, stages and ``jit``."""
-        build = lambda: newton_step_function(self._stage_residual(), self)  # noqa: E731
-        return self.compiled.cached(("casadi-radau-step", self.s, self.jit), build)
-
-    def _stage_residual(self):
-        """The stage residual inside the compiled functions: with ``jit`` one that calls the model's
-        equations once per stage (:func:`.compiled.calling_residual`: the same operations, its C a
-        fraction), else the inlined SX of :func:`.compiled.casadi_functions` (faster on the virtual machine)."""
-        if not self.jit:
-            return self._functions[1]
-        build = lambda: calling_residual(self.compiled, self.tableau)  # noqa: E731
-        return self.compiled.cached(("casadi-radau-calling-residual", self.s), build)
+        once per model and stages."""
+        build = lambda: newton_step_function(self._functions[1], self)  # noqa: E731
+        return self.compiled.cached(("casadi-radau-step", self.s), build)
 
     def make_newton_step(self) -> None:
         """With ``jit``, on dense systems whose compiled step did not bring it (none made, or one on
@@ -176,7 +166,7 @@ class CasadiEngine(AbstractEngine):
         self._static_active = solver is not None
         weights = np.array(compiled.algebraic_index, dtype=float)
         key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None, jit)
-        build = lambda: step_function(functions[0], self._stage_residual(), self, iterations, e, weights, solver)  # noqa: E731
+        build = lambda: step_function(functions[0], functions[1], self, iterations, e, weights, solver)  # noqa: E731
         step = compiled.cached(key, build)
         if jit:
             step = self._library(step, key)

@@ -32,7 +32,7 @@ import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
-from daemodel.backends.radau.kernel import solve_call
+from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_call
 
 from daemodel.cache import Build, cached_library
 from daemodel.collocation import extrapolation_polynomial, horner
@@ -134,8 +134,9 @@ class StaticFactors:
     """The transformed systems' sparse LU factors with a fixed pivot order (:class:`.sparse.StaticLU`)
     packed: each block's (real, or complex as (Re, Im) parts), then the error estimate's system's
     where it is no block's (s even), then the factorisation's largest growth and smallest pivot (over
-    the systems); applied by triangular solves: straight-line SX, or with ``machine`` calls into the
-    loops of :mod:`.kernel` (for machine code only: :func:`.kernel.solve_call`; the same bits)."""
+    the systems); applied by triangular solves: straight-line SX, or with ``machine`` above
+    :data:`.kernel.UNROLLED_SOLVE_MAX_ENTRIES` entries calls into the loops of :mod:`.kernel` (for
+    machine code only: :func:`.kernel.solve_call`; the same bits)."""
 
     def __init__(self, lu, transform, machine: bool = False):
         self.lu, self.offsets, self.machine, self._solves = lu, [], machine, None
@@ -154,7 +155,7 @@ class StaticFactors:
         """The real (False) and complex (True) triangular solves as casadi functions of ``[packed factors
         of one system, b]`` (made on first use: the SX ones of a chain of 20 pendulums take 0.2 s)."""
         if self._solves is None:
-            if self.machine:
+            if self.machine and self.lu.entries > UNROLLED_SOLVE_MAX_ENTRIES:
                 self._solves = {complex_: solve_call(self.lu, complex_) for complex_ in (False, True)}
             else:
                 self._solves = {complex_: self.lu.solve_function(complex_) for complex_ in (False, True)}
@@ -511,32 +512,6 @@ def casadi_functions(compiled, tableau):
         np.asarray(jac[1][0], dtype=np.int64),
         np.asarray(jac[1][1], dtype=np.int64),
     )
-
-
-def calling_residual(compiled, tableau):
-    """The stage residual of :func:`casadi_functions` (the same input, output and operations) as an MX
-    function that calls one SX function of a stage's ``[f, g]`` s times: casadi's code generator
-    writes the model's equations once, not s times (the chain of 20 pendulums: the residual's C
-    4,300 -> 700 lines at s = 3).  For machine code: on casadi's virtual machine a call costs more
-    than the inlined SX."""
-    import casadi
-
-    dae = compiled.casadi_dae()
-    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
-    s, n, D, P = tableau.stages, x.numel(), x.numel() + z.numel(), p.numel()
-    stage = casadi.Function("stage", [casadi.vertcat(t, x, z, p)], [casadi.vertcat(dae["ode"], dae["alg"])])
-    v = casadi.MX.sym("v", 2 + n + s * D + P)
-    t, h, y_n, W, p = v[0], v[1], v[2 : 2 + n], v[2 + n : 2 + n + s * D], v[2 + n + s * D :]
-    A, c = tableau.A, tableau.c
-    stages = [stage(casadi.vertcat(t + float(c[i]) * h, W[i * D : (i + 1) * D], p)) for i in range(s)]
-    stage_f = [out[:n] for out in stages]
-    rows = []
-    for i in range(s):
-        quadrature = float(A[i, 0]) * stage_f[0]  # (the SX residual's sum from 0: 0 + x is x there)
-        for j in range(1, s):
-            quadrature = quadrature + float(A[i, j]) * stage_f[j]
-        rows += [W[i * D : i * D + n] - y_n - h * quadrature, stages[i][n:]]
-    return casadi.Function("residual", [v], [casadi.vertcat(*rows, *stage_f)])
 
 
 def newton_step_function(residual, engine):
