@@ -147,8 +147,9 @@ class CasadiEngine(AbstractEngine):
 
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
-        the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
-        about 0.5 s once per machine: the disk cache keeps it); False where the systems are sparse
+        the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler, one
+        library with the rest of the solve's machine code, :meth:`_library`: 0.5-3 s once per machine,
+        the disk cache keeps it); False where the systems are sparse
         beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
         general path."""
         D = self.D

@@ -40,9 +40,10 @@ import numpy as np
 KERNEL_FLAGS = ("-O2", "-ffp-contract=off", "-fno-math-errno")
 # Up to this many entries of the factors (L's and U's) the compiled step's triangular solves stay
 # straight-line code (.sparse's SX): little to compile, and on such small systems faster than the loops
-# (car axis, 53 entries: its step 5.4 against 6.0 us); above, the loops (the chain of 20 pendulums, 917:
-# the same step time, a third of its C).
-UNROLLED_SOLVE_MAX_ENTRIES = 200
+# (car axis, 53 entries: its step 5.4 against 6.0 us); above, the loops: the same step time or less
+# (squeezer, 183: 15.2 against 15.5 us; the chain of 20 pendulums, 917: 2/3 of its step's C gone) and
+# half the compiling (squeezer 0.6 against 1.5 s).
+UNROLLED_SOLVE_MAX_ENTRIES = 100
 # Seconds the compiler may take (a model's arrays are at most a few hundred kB of C)
 KERNEL_COMPILE_TIMEOUT = 120.0
 
