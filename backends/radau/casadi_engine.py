@@ -22,6 +22,7 @@ from daemodel.backends.radau.compiled import (
     inverse_function,
     inverse_size,
     machine_code,
+    machine_library,
     newton_step_function,
     refresh_function,
     static_factor_function,
@@ -29,7 +30,7 @@ from daemodel.backends.radau.compiled import (
     step_layouts,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
-from daemodel.backends.radau.kernel import factor_kernel
+from daemodel.backends.radau.kernel import kernel_source
 from daemodel.backends.radau.linalg import (
     dense_inverse,
     dense_lu,
@@ -115,13 +116,14 @@ class CasadiEngine(AbstractEngine):
         self.B = 1
         self.p = np.asarray(start.p, dtype=float)[0]
         self.jit = jit
-        self.cache_outcomes = []  # (jit: what the disk cache did for each function compiled: _machine_code)
-        self.kernel_outcome = None  # (jit: the disk cache's outcome for the C loop of .kernel, made on first use)
+        self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
+        self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
         self._f, self._residual, self._jac, self._stage_jac = (Buffered(fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
+        self._functions = functions
         D = self.D
         self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
         self.dense = dense_systems(D, len(self.rows))
@@ -129,14 +131,13 @@ class CasadiEngine(AbstractEngine):
         self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
         if self.dense:
             self._identity = (np.eye(D), np.eye(D, dtype=complex))
-            step = compiled.cached(("casadi-radau-step", self.s), lambda: newton_step_function(functions[1], self))
-            self._step = [Buffered(self._machine_code(step, ("casadi-radau-step", self.s)), inputs=2), None]
+            if not jit:  # (with jit it is compiled with the compiled step, or alone: make_newton_step)
+                self._step = [Buffered(self._newton_step_function(), inputs=2), None]
         else:
             self._sparse_layout()
         self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
         self._inverses = None  # dense: the compiled inverses of the shifted systems (_compiled_factor)
         self._refresh = None  # dense: Jacobian, inverses and iteration matrix in one call (refresh)
-        self._functions = functions
         # above COMPILED_FACTOR_MAX_SIZE, where the pattern is sparse: LU factors with a fixed pivot order as
         # compiled functions (.sparse), the pivots SuperLU picks at the first solve's start (per model and s)
         self.static = None  # (StaticFactors where the compiled step reads them: see make_compiled_step)
@@ -144,21 +145,35 @@ class CasadiEngine(AbstractEngine):
         self._static_active = False  # the compiled step reads the static factors: factor() makes them
         self._start = start
 
-    def _machine_code(self, function, key):
-        """``function``, or with ``jit`` its machine code (built once per model and ``key``, through the
-        disk cache); what the cache did is added to :attr:`cache_outcomes` ("memory" where this
-        process built it before)."""
-        if not self.jit:
-            return function
+    def _machine_code(self, build, key):
+        """What ``build()`` compiles (a :class:`.compiled.MachineCode` or a :class:`daemodel.cache.Library`:
+        built once per model and ``key``, through the disk cache); what the cache did is added to
+        :attr:`cache_outcomes` ("memory" where this process built it before)."""
         built = []
 
-        def build():
-            built.append(machine_code(function, find_compiler()))
+        def once():
+            built.append(build())
             return built[-1]
 
-        code = self.compiled.cached((*key, "machine code"), build)
+        code = self.compiled.cached((*key, "machine code"), once)
         self.cache_outcomes.append(code.outcome if built else "memory")
-        return code.function
+        return code
+
+    def _newton_step_function(self):
+        """The casadi function of the fused Newton step (:func:`.compiled.newton_step_function`), built
+        once per model and stages."""
+        build = lambda: newton_step_function(self._functions[1], self)  # noqa: E731
+        return self.compiled.cached(("casadi-radau-step", self.s), build)
+
+    def make_newton_step(self) -> None:
+        """With ``jit``, on dense systems whose compiled step did not bring it (none made, or one on
+        static factors, whose general path solves with them), the fused Newton step in machine code:
+        called once in the setup (:class:`.step.Stepper`), so that no compiling runs in the solve."""
+        if not self.dense or self._step is not None or self._static_active:
+            return
+        key = ("casadi-radau-step", self.s)
+        code = self._machine_code(lambda: machine_code(self._newton_step_function(), find_compiler()), key)
+        self._step = [Buffered(code.function, inputs=2), None]
 
     def cache_outcome(self) -> str | None:
         """What the disk cache of compiled libraries did for this engine's machine code, in one word
@@ -169,8 +184,9 @@ class CasadiEngine(AbstractEngine):
 
     def make_compiled_step(self, iterations: int, e: np.ndarray, jit: bool = False) -> bool:
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
-        the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler,
-        about 0.5 s once per machine: the disk cache keeps it); False where the systems are sparse
+        the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler, one
+        library with the rest of the solve's machine code, :meth:`_library`: 0.5-3 s once per machine,
+        the disk cache keeps it); False where the systems are sparse
         beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
         general path."""
         D = self.D
@@ -179,18 +195,19 @@ class CasadiEngine(AbstractEngine):
             lu = None  # (on casadi's virtual machine its factors cost more than LAPACK's or SuperLU's)
         if not self.dense and lu is None:
             return False
-        key = ("casadi-radau-static", self.s)
+        # (with jit the step's triangular solves call the loops of .kernel: the same bits, a third of the code)
+        key = ("casadi-radau-static", self.s, jit)
         solver = self.static = (
-            None if lu is None else self.compiled.cached(key, lambda: StaticFactors(lu, self.transform))
+            None if lu is None else self.compiled.cached(key, lambda: StaticFactors(lu, self.transform, jit))
         )
         compiled, functions = self.compiled, self._functions
         self._static_active = solver is not None
         weights = np.array(compiled.algebraic_index, dtype=float)
-        key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None)
+        key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None, jit)
         build = lambda: step_function(functions[0], functions[1], self, iterations, e, weights, solver)  # noqa: E731
         step = compiled.cached(key, build)
         if jit:
-            step = self._machine_code(step, key)
+            step = self._library(step, key)
         self._compiled = [Buffered(step, inputs=2), None]
         self.step_input, self.step_output = step_layouts(self.s, self.n, self.D, self.p.size)
         if solver is not None and "factor" not in self._static:
@@ -198,6 +215,31 @@ class CasadiEngine(AbstractEngine):
             # first solve's integration, at its first factorisation
             self._static["factor"] = Buffered(self._static_factor_function())
         return True
+
+    def _library(self, step, key):
+        """The machine code of the compiled ``step`` in one library with all that a solve runs in machine
+        code besides: on static factors the C functions of :mod:`.kernel` (the factors, the sign of a
+        determinant, the triangular solves of the general path), else on dense systems the fused Newton
+        step (the general path's; the stage residual compiled once for both).  One compiler run per model,
+        stages and Newton iterations; returns the step, and keeps the rest on the engine."""
+        static, m = self.static, self.m
+        functions = {"radau_step_machine_code": step}
+        if static is None and self.dense:
+            functions["newton_step_machine_code"] = self._newton_step_function()
+        kernel, names = "", ()
+        if static is not None:
+            kernel = kernel_source(static.lu, self.transform, static, m)
+            names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
+        what = f"radau: jit=True: compiling the step of {step.name()!r}"
+        build = lambda: machine_library(functions, find_compiler(), kernel, names, what)  # noqa: E731
+        code = self._machine_code(build, key).functions
+        if "newton_step_machine_code" in code:
+            self._step = [Buffered(code["newton_step_machine_code"], inputs=2), None]
+        if static is not None:
+            self._kernel = (code["static_factors"], code.get("sign_det"))
+            self._static[False] = Buffered(code["static_solve"], inputs=2)
+            self._static[True] = Buffered(code["static_solve_complex"], inputs=2)
+        return code["radau_step_machine_code"]
 
     def _sparse_layout(self):
         """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
@@ -325,18 +367,9 @@ class CasadiEngine(AbstractEngine):
 
     def _static_kernel(self):
         """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the
-        determinant of the algebraic variables' iteration matrix; built once per model and s."""
-        built = []
-
-        def build():
-            built.append(factor_kernel(self.static.lu, self.transform, self.static, self.m, find_compiler()))
-            return built[-1]
-
-        factors, sign, outcome = self.compiled.cached(("casadi-radau-static-kernel", self.s), build)
-        if self.kernel_outcome is None:
-            self.kernel_outcome = outcome if built else "memory"
-            self.cache_outcomes.append(self.kernel_outcome)
-        return factors, sign
+        determinant of the algebraic variables' iteration matrix (None where m = 0); in the compiled
+        step's library (:meth:`_library`)."""
+        return self._kernel
 
     def _refresh_function(self):
         """The casadi function of a fresh Jacobian with its factored systems (:func:`.compiled.refresh_function`),
@@ -419,6 +452,8 @@ class CasadiEngine(AbstractEngine):
         on dense systems; the residual and LU solves apart otherwise (full Newton, sparse systems)."""
         if not isinstance(factors, Factors) or factors.inverse is None or self._static_active:
             return super().newton_step(factors, t, h, y, W)
+        if self._step is None:  # (an engine made outside a solve; a solve makes it in its setup)
+            self.make_newton_step()
         step, bound = self._step
         if bound is not factors:
             step.inputs[1][:] = factors.inverse

@@ -32,6 +32,7 @@ import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
+from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_call
 
 from daemodel.cache import Build, cached_library
 from daemodel.collocation import extrapolation_polynomial, horner
@@ -133,10 +134,12 @@ class StaticFactors:
     """The transformed systems' sparse LU factors with a fixed pivot order (:class:`.sparse.StaticLU`)
     packed: each block's (real, or complex as (Re, Im) parts), then the error estimate's system's
     where it is no block's (s even), then the factorisation's largest growth and smallest pivot (over
-    the systems); applied by triangular solves."""
+    the systems); applied by triangular solves: straight-line SX, or with ``machine`` above
+    :data:`.kernel.UNROLLED_SOLVE_MAX_ENTRIES` entries calls into the loops of :mod:`.kernel` (for
+    machine code only: :func:`.kernel.solve_call`; the same bits)."""
 
-    def __init__(self, lu, transform):
-        self.lu, self.offsets = lu, []
+    def __init__(self, lu, transform, machine: bool = False):
+        self.lu, self.offsets, self.machine, self._solves = lu, [], machine, None
         offset = 0
         for _, lam in transform.blocks:
             self.offsets.append(offset)
@@ -146,7 +149,17 @@ class StaticFactors:
         else:
             self.error_offset, offset = offset, offset + lu.size(False)
         self.checks_offset, self.size = offset, offset + 2
-        self.solves = {False: lu.solve_function(False), True: lu.solve_function(True)}
+
+    @property
+    def solves(self) -> dict:
+        """The real (False) and complex (True) triangular solves as casadi functions of ``[packed factors
+        of one system, b]`` (made on first use: the SX ones of a chain of 20 pendulums take 0.2 s)."""
+        if self._solves is None:
+            if self.machine and self.lu.entries > UNROLLED_SOLVE_MAX_ENTRIES:
+                self._solves = {complex_: solve_call(self.lu, complex_) for complex_ in (False, True)}
+            else:
+                self._solves = {complex_: self.lu.solve_function(complex_) for complex_ in (False, True)}
+        return self._solves
 
     def real(self, casadi, packed, block: int, rhs):
         o = self.offsets[block]
@@ -301,8 +314,10 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
 
 # C compilers tried for jit=True, in this order (the first on PATH compiles).
 COMPILERS = ("cc", "gcc", "clang")
-# Optimisation of the machine code (-O2: the compiled step bit for bit as casadi's virtual machine).
-COMPILER_FLAGS = ("-O2",)
+# Optimisation of the machine code: -O2 (-O1 compiles the 20-pendulum chain's step 1.6x faster and
+# solves 7-13 % slower); no fused multiply-adds (the loops of .kernel give the SX factors and solves bit
+# for bit: a compiler may not contract a - b c); no errno (sqrt inline: it changes no value).
+COMPILER_FLAGS = ("-O2", "-ffp-contract=off", "-fno-math-errno")
 # What a failed compile's message proposes.
 JIT_FIX = "solve with jit=False (the same results to rounding, slower steps)"
 
@@ -322,23 +337,37 @@ def find_compiler() -> str | None:
     return next((path for path in map(shutil.which, COMPILERS) if path), None)
 
 
-def machine_code(function, compiler: str) -> MachineCode:
-    """``function`` compiled to machine code by ``compiler``, through the disk cache of compiled
-    libraries (:mod:`daemodel.cache`): the C source of casadi's code generator (what casadi's jit
-    compiles), compiled with :data:`COMPILER_FLAGS` in a private temporary folder, stored and loaded
-    with ``casadi.external``; or loaded from the cache where an earlier process stored it.
+def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_names=(), what: str = ""):
+    """The casadi ``functions`` ({name: function}) compiled by ``compiler`` into one library, through
+    the disk cache of compiled libraries (:mod:`daemodel.cache`): the C source of casadi's code
+    generator for all of them (a function they share, the stage residual, written once), after
+    ``kernel``, C that the source needs and whose own functions ``kernel_names`` the library offers
+    too (:func:`.kernel.kernel_source`: the static factors' loops, which the calls of
+    :func:`.kernel.solve_call` inside ``functions`` reach), compiled with :data:`COMPILER_FLAGS` in
+    a private temporary folder, stored and loaded with ``casadi.external``; or loaded from the cache
+    where an earlier process stored it.  One compiler run for everything a solve runs in machine code.
 
-    Returns the compiled function and what the cache did (:class:`daemodel.cache.Library`'s
-    ``outcome``).  Raises :class:`~daemodel.errors.CompileError` with the compiler's message where it fails.
+    Returns :class:`daemodel.cache.Library`: ``functions`` by the names given (and ``kernel_names``),
+    and what the cache did.  Raises :class:`~daemodel.errors.CompileError` with the compiler's
+    message where it fails.
     """
     import casadi
 
-    name = function.name() + "_machine_code"
-    inputs = function.mx_in()  # (an SX function makes new symbols on every call)
     generator = casadi.CodeGenerator("daemodel_jit")
-    generator.add(casadi.Function(name, inputs, function.call(inputs)))
-    what = f"radau: jit=True: compiling the step of {function.name()!r}"
-    code = cached_library(generator.dump(), [name], Build(compiler, COMPILER_FLAGS, what, JIT_FIX))
+    for name, function in functions.items():
+        inputs = function.mx_in()  # (an SX function makes new symbols on every call)
+        generator.add(casadi.Function(name, inputs, function.call(inputs)))
+    what = what or f"radau: jit=True: compiling the step of {next(iter(functions.values())).name()!r}"
+    build = Build(compiler, COMPILER_FLAGS, what, JIT_FIX, libraries=("-lm",))
+    return cached_library(kernel + generator.dump(), [*functions, *kernel_names], build)
+
+
+def machine_code(function, compiler: str) -> MachineCode:
+    """``function`` compiled to machine code by ``compiler`` (:func:`machine_library` of it alone),
+    and what the disk cache did (:class:`daemodel.cache.Library`'s ``outcome``).  Raises
+    :class:`~daemodel.errors.CompileError` with the compiler's message where it fails."""
+    name = function.name() + "_machine_code"
+    code = machine_library({name: function}, compiler)
     return MachineCode(code.functions[name], code.outcome)
 
 

@@ -119,6 +119,11 @@ class AbstractEngine(ABC):
         :meth:`CasadiEngine.make_compiled_step`); by default it does not."""
         return False
 
+    def make_newton_step(self) -> None:
+        """Build, in the setup, what the general path's Newton step compiles (see
+        :meth:`CasadiEngine.make_newton_step`); by default nothing."""
+        return None
+
     def make_compiled_run(self, iterations: int):
         """Many attempts of the RADAU5 controller in one call (see :meth:`CasadiEngine.make_compiled_run`),
         or None: by default there is none."""

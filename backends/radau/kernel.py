@@ -1,4 +1,4 @@
-"""The fixed-pivot sparse factorisation (:mod:`.sparse`) as a loop in C, called as a casadi function.
+"""The fixed-pivot sparse factorisation and triangular solves (:mod:`.sparse`) as loops in C.
 
 :func:`.compiled.static_factor_function` writes the elimination as straight-line SX: on casadi's
 virtual machine ~2-3 ns an operation, so 170-320 us a factorisation of the 20-pendulum chain at
@@ -12,12 +12,19 @@ The loop makes the same operations on the same operands in the same order as the
 fused multiply-adds, so its factors are those of :func:`.compiled.static_factor_function` bit for
 bit (a test compares them).  It is a casadi *external* function: it can be called from Python on
 bound buffers and inside other casadi functions (:mod:`.loop`'s compiled run) alike.  The same
-library holds ``sign_det``, the sign of the algebraic variables' iteration matrix's determinant by
+source holds ``sign_det``, the sign of the algebraic variables' iteration matrix's determinant by
 a dense LU with LAPACK's row choice, which the run needs at each fresh Jacobian (in SX, with its
 pivoting as branches, it grows with m^3 on the virtual machine).
 
 Measured (2-core CPU, one thread): a factorisation of the 20-pendulum chain (100 unknowns) 160 ->
 15 us at s = 3 and 280 -> 24 us at s = 5; the library compiles in about 0.1 s.
+
+The triangular solves with those factors are loops on position arrays too (:func:`solve_program`),
+the operations of :meth:`.sparse.StaticLU.solve_function` in its order, bit for bit: unrolled, they
+were 2/3 of the compiled step's C (the 20-pendulum chain: 12,800 of 18,750 lines, 4 of its 5 s of
+compiling).  The compiled step calls them (:func:`solve_call`) with this source in front of its own in
+one library (:func:`.compiled.machine_library`), which also offers them (``static_solve``,
+``static_solve_complex``) to the general path's solves in Python.
 
 Positions: the factors' nonzeros numbered as they are packed, L's (row by row, columns ascending)
 then U's (row by row, columns ascending from the diagonal); each system's elimination runs in
@@ -31,6 +38,12 @@ import numpy as np
 # C compilers' flags: no fused multiply-adds (the factors bit for bit those of the SX function); the
 # cache adds those of a shared library (daemodel.cache.LIBRARY_FLAGS)
 KERNEL_FLAGS = ("-O2", "-ffp-contract=off", "-fno-math-errno")
+# Up to this many entries of the factors (L's and U's) the compiled step's triangular solves stay
+# straight-line code (.sparse's SX): little to compile, and on such small systems faster than the loops
+# (car axis, 53 entries: its step 5.4 against 6.0 us); above, the loops: the same step time or less
+# (squeezer, 183: 15.2 against 15.5 us; the chain of 20 pendulums, 917: 2/3 of its step's C gone) and
+# half the compiling (squeezer 0.6 against 1.5 s).
+UNROLLED_SOLVE_MAX_ENTRIES = 100
 # Seconds the compiler may take (a model's arrays are at most a few hundred kB of C)
 KERNEL_COMPILE_TIMEOUT = 120.0
 
@@ -79,6 +92,27 @@ def factor_program(lu) -> dict:
     return {name: np.asarray(values, dtype=np.int32) for name, values in arrays.items()}
 
 
+def solve_program(lu) -> dict:
+    """The triangular solves of :meth:`.sparse.StaticLU.solve_function` as position arrays (int32):
+
+    ``l_begin``, ``l_col``: row i of L (unit lower) holds the packed L entries ``l_begin[i]`` up to
+    ``l_begin[i + 1]``, in columns ``l_col``; ``u_begin``, ``u_col``: row i of U likewise, its
+    diagonal first; ``row_in``: the right-hand side's entry that row i of the permuted system reads
+    (``Pr b``); ``col_out``: the permuted unknown that unknown k is (``x = Pc x'``).
+    """
+    row_in = np.empty(lu.D, dtype=np.int64)
+    row_in[lu.perm_r] = np.arange(lu.D)
+    arrays = {
+        "l_begin": np.cumsum([0] + [len(columns) for columns in lu.lower]),
+        "l_col": [k for columns in lu.lower for k in columns],
+        "u_begin": np.cumsum([0] + [len(columns) for columns in lu.upper]),
+        "u_col": [j for columns in lu.upper for j in columns],
+        "row_in": row_in,
+        "col_out": lu.perm_c,
+    }
+    return {name: np.asarray(values, dtype=np.int32) for name, values in arrays.items()}
+
+
 def _array(name: str, values, kind: str = "int") -> str:
     """A C array definition (at least one element: C has no empty arrays)."""
     values = list(values) or [0]
@@ -91,7 +125,7 @@ def _array(name: str, values, kind: str = "int") -> str:
 
 # The kernel: the same for every model; the arrays and sizes in front of it are the model's.
 _KERNEL = r"""
-static void load(const double* J, double h, double a_re, double a_im, double* re, double* im) {
+static void dm_load(const double* J, double h, double a_re, double a_im, double* re, double* im) {
   int q;
   for (q = 0; q < N_SLOT; q++) re[q] = 0.0;
   for (q = 0; q < N_J; q++) re[j_slot[q]] -= J[q];
@@ -101,7 +135,7 @@ static void load(const double* J, double h, double a_re, double a_im, double* re
   for (q = 0; q < N_DIAG; q++) im[d_slot[q]] += a_im / h;
 }
 
-static void eliminate_real(double* w) {
+static void dm_eliminate_real(double* w) {
   int e, u;
   for (e = 0; e < N_DIV; e++) {
     double f = w[div_slot[e]] / w[div_pivot[e]];
@@ -110,7 +144,7 @@ static void eliminate_real(double* w) {
   }
 }
 
-static void eliminate_complex(double* re, double* im) {
+static void dm_eliminate_complex(double* re, double* im) {
   int e, u;
   for (e = 0; e < N_DIV; e++) {
     double a0 = re[div_slot[e]], a1 = im[div_slot[e]], b0 = re[div_pivot[e]], b1 = im[div_pivot[e]];
@@ -126,7 +160,7 @@ static void eliminate_complex(double* re, double* im) {
   }
 }
 
-static double largest(const double* re, const double* im, int from, int to) {
+static double dm_largest(const double* re, const double* im, int from, int to) {
   double out = 0.0;
   int q;
   for (q = from; q < to; q++) {
@@ -137,18 +171,18 @@ static double largest(const double* re, const double* im, int from, int to) {
 }
 
 /* one system: its factors (packed at out), its growth and smallest pivot folded into checks */
-static void system(const double* J, double h, int s, double* out, double* work, double* checks) {
+static void dm_system(const double* J, double h, int s, double* out, double* work, double* checks) {
   int complex_ = shift_complex[s], q;
   double* re = complex_ ? work : out;
   double* im = complex_ ? work + N_SLOT : 0;
   double matrix = 0.0, growth, pivot = INFINITY;
-  load(J, h, shift_re[s], shift_im[s], re, im);
+  dm_load(J, h, shift_re[s], shift_im[s], re, im);
   for (q = 0; q < N_MATRIX; q++) {
     matrix = fmax(matrix, fabs(re[m_slot[q]]));
     if (im) matrix = fmax(matrix, fabs(im[m_slot[q]]));
   }
-  if (complex_) eliminate_complex(re, im); else eliminate_real(re);
-  growth = fmax(largest(re, im, 0, N_L), largest(re, im, N_L, N_SLOT) / fmax(matrix, 1e-300));
+  if (complex_) dm_eliminate_complex(re, im); else dm_eliminate_real(re);
+  growth = fmax(dm_largest(re, im, 0, N_L), dm_largest(re, im, N_L, N_SLOT) / fmax(matrix, 1e-300));
   for (q = 0; q < N_PIVOT; q++) {
     double size = im ? fabs(re[pivot_slot[q]]) + fabs(im[pivot_slot[q]]) : fabs(re[pivot_slot[q]]);
     pivot = fmin(pivot, size);
@@ -163,7 +197,7 @@ static void system(const double* J, double h, int s, double* out, double* work, 
 
 /* the sign of det of an (M_SIGN, M_SIGN) matrix (column-major), LU with partial pivoting as LAPACK's
    dgetrf picks its rows (the first largest |entry|); 0 where a pivot is 0 or an entry not finite */
-static double sign_of_det(const double* a, double* w) {
+static double dm_sign_of_det(const double* a, double* w) {
   double sign = 1.0;
   int i, j, k;
   for (i = 0; i < M_SIGN * M_SIGN; i++) w[i] = a[i];
@@ -191,12 +225,14 @@ static double sign_of_det(const double* a, double* w) {
   return sign;
 }
 
-typedef long long int casadi_int;
+#ifndef casadi_int
+#define casadi_int long long int
+#endif
 static const casadi_int sparsity_sign_in[3] = {M_SIGN * M_SIGN, 1, 1};
 static const casadi_int sparsity_sign_out[3] = {1, 1, 1};
 
 int sign_det(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
-  if (res[0]) res[0][0] = sign_of_det(arg[0], w);
+  if (res[0]) res[0][0] = dm_sign_of_det(arg[0], w);
   return 0;
 }
 casadi_int sign_det_n_in(void) { return 1; }
@@ -220,7 +256,7 @@ int static_factors(const double** arg, double** res, casadi_int* iw, double* w, 
   double checks[2] = {0.0, INFINITY};
   int s;
   if (!out) return 0;
-  for (s = 0; s < N_SHIFTS; s++) system(x + 1, x[0], s, out + shift_offset[s], w, checks);
+  for (s = 0; s < N_SHIFTS; s++) dm_system(x + 1, x[0], s, out + shift_offset[s], w, checks);
   out[N_OUT - 2] = checks[0];
   out[N_OUT - 1] = checks[1];
   return 0;
@@ -236,14 +272,100 @@ int static_factors_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_i
   if (sz_w) *sz_w = 2 * N_SLOT;
   return 0;
 }
+
+/* A x = b with one system's packed factors (.sparse's StaticLU.solve_function: the same operations
+   in the same order): L y = Pr b, U x' = y (in place: x'[i] needs y[i] and x'[j > i]), x = Pc x';
+   a null input reads as zeros, a null output is skipped */
+static const double dm_zeros[N_ZEROS] = {0.0};
+
+static int dm_solve_real(const double* factors, const double* b, double* x) {
+  double y[N_D];
+  const double* L = factors ? factors : dm_zeros;
+  const double* U = L + N_L;
+  int i, q;
+  if (!x) return 0;
+  if (!b) b = dm_zeros;
+  for (i = 0; i < N_D; i++) {
+    double v = b[row_in[i]];
+    for (q = l_begin[i]; q < l_begin[i + 1]; q++) v = v - L[q] * y[l_col[q]];
+    y[i] = v;
+  }
+  for (i = N_D - 1; i >= 0; i--) {
+    double v = y[i];
+    for (q = u_begin[i] + 1; q < u_begin[i + 1]; q++) v = v - U[q] * y[u_col[q]];
+    y[i] = v / U[u_begin[i]];
+  }
+  for (i = 0; i < N_D; i++) x[i] = y[col_out[i]];
+  return 0;
+}
+
+/* complex: factors (L re, L im, U re, U im), b and x as (re (N_D), im (N_D)) */
+static int dm_solve_complex(const double* factors, const double* b, double* x) {
+  double y0[N_D], y1[N_D];
+  const double* F = factors ? factors : dm_zeros;
+  const double *L0 = F, *L1 = F + N_L, *U0 = F + 2 * N_L, *U1 = F + 2 * N_L + N_U;
+  int i, q;
+  if (!x) return 0;
+  if (!b) b = dm_zeros;
+  for (i = 0; i < N_D; i++) {
+    double v0 = b[row_in[i]], v1 = b[N_D + row_in[i]];
+    for (q = l_begin[i]; q < l_begin[i + 1]; q++) {
+      double a0 = L0[q], a1 = L1[q], c0 = y0[l_col[q]], c1 = y1[l_col[q]];
+      v0 = v0 - (a0 * c0 - a1 * c1);
+      v1 = v1 - (a0 * c1 + a1 * c0);
+    }
+    y0[i] = v0;
+    y1[i] = v1;
+  }
+  for (i = N_D - 1; i >= 0; i--) {
+    double v0 = y0[i], v1 = y1[i], d0 = U0[u_begin[i]], d1 = U1[u_begin[i]], den;
+    for (q = u_begin[i] + 1; q < u_begin[i + 1]; q++) {
+      double a0 = U0[q], a1 = U1[q], c0 = y0[u_col[q]], c1 = y1[u_col[q]];
+      v0 = v0 - (a0 * c0 - a1 * c1);
+      v1 = v1 - (a0 * c1 + a1 * c0);
+    }
+    den = d0 * d0 + d1 * d1;
+    y0[i] = (v0 * d0 + v1 * d1) / den;
+    y1[i] = (v1 * d0 - v0 * d1) / den;
+  }
+  for (i = 0; i < N_D; i++) {
+    x[i] = y0[col_out[i]];
+    x[N_D + i] = y1[col_out[i]];
+  }
+  return 0;
+}
+
+static const casadi_int sparsity_solve_in[2][3] = {{N_L + N_U, 1, 1}, {N_D, 1, 1}};
+static const casadi_int sparsity_solve_complex_in[2][3] = {{2 * (N_L + N_U), 1, 1}, {2 * N_D, 1, 1}};
+static const casadi_int sparsity_solve_out[3] = {N_D, 1, 1};
+static const casadi_int sparsity_solve_complex_out[3] = {2 * N_D, 1, 1};
+
+int static_solve(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
+  return dm_solve_real(arg[0], arg[1], res[0]);
+}
+casadi_int static_solve_n_in(void) { return 2; }
+casadi_int static_solve_n_out(void) { return 1; }
+const casadi_int* static_solve_sparsity_in(casadi_int i) { return i < 2 ? sparsity_solve_in[i] : 0; }
+const casadi_int* static_solve_sparsity_out(casadi_int i) { return i == 0 ? sparsity_solve_out : 0; }
+
+int static_solve_complex(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
+  return dm_solve_complex(arg[0], arg[1], res[0]);
+}
+casadi_int static_solve_complex_n_in(void) { return 2; }
+casadi_int static_solve_complex_n_out(void) { return 1; }
+const casadi_int* static_solve_complex_sparsity_in(casadi_int i) { return i < 2 ? sparsity_solve_complex_in[i] : 0; }
+const casadi_int* static_solve_complex_sparsity_out(casadi_int i) { return i == 0 ? sparsity_solve_complex_out : 0; }
 """
 
 
 def kernel_source(lu, transform, factors, m: int) -> str:
-    """The C source of two functions of casadi's external-function interface: ``static_factors``,
+    """The C source of four functions of casadi's external-function interface: ``static_factors``,
     the packed :class:`.compiled.StaticFactors` ``factors`` (the systems of ``transform``'s blocks,
-    then the error estimate's where it is no block's) from ``[h, J's nonzeros]``, and ``sign_det``,
-    the sign of the determinant of an (m, m) matrix (:func:`.linalg.dense_sign_det`'s)."""
+    then the error estimate's where it is no block's) from ``[h, J's nonzeros]``; ``sign_det``, the
+    sign of the determinant of an (m, m) matrix (:func:`.linalg.dense_sign_det`'s); ``static_solve``
+    and ``static_solve_complex``, :meth:`.sparse.StaticLU.solve_function`'s (``dm_solve_real`` and
+    ``dm_solve_complex`` inside, for :func:`solve_call`).  Every name it defines that casadi's code
+    generator does not (``dm_``, arrays, sizes) may share a source with that generator's code."""
     program = factor_program(lu)
     shifts = [lam for _, lam in transform.blocks]
     offsets = list(factors.offsets)
@@ -262,10 +384,12 @@ def kernel_source(lu, transform, factors, m: int) -> str:
         "N_SHIFTS": len(shifts),
         "N_OUT": factors.size,
         "M_SIGN": max(m, 1),
+        "N_D": lu.D,
+        "N_ZEROS": 2 * max(lu.L_size + lu.U_size, lu.D),
     }
     source = ["/* daemodel: radau's fixed-pivot sparse factors (generated; numbers only) */\n"]
     source += ["#include <math.h>\n"] + [f"#define {key} {value}\n" for key, value in sizes.items()]
-    source += [_array(name, values) for name, values in program.items()]
+    source += [_array(name, values) for name, values in {**program, **solve_program(lu)}.items()]
     source += [
         _array("shift_re", [lam.real for lam in shifts], "double"),
         _array("shift_im", [lam.imag for lam in shifts], "double"),
@@ -293,3 +417,23 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
     names = ["static_factors", *(["sign_det"] if m else [])]
     code = cached_library(kernel_source(lu, transform, factors, m), names, build)
     return code.functions["static_factors"], code.functions.get("sign_det"), code.outcome
+
+
+def solve_call(lu, complex_: bool):
+    """casadi function of :meth:`.sparse.StaticLU.solve_function`'s signature (``[packed factors, b]``
+    to ``x``) whose code calls the kernel's loop (``dm_solve_real``, ``dm_solve_complex``): for casadi's
+    code generator inside a function compiled with :func:`kernel_source` in the same source, where it
+    replaces the unrolled solves (the chain of 20 pendulums: 2/3 of the compiled step's 18,750 lines).
+    It has no code of its own to run: called outside machine code, it fails."""
+    import casadi
+
+    scale = 2 if complex_ else 1
+    return casadi.Function.jit(
+        "static_solve_complex" if complex_ else "static_solve",
+        f"return dm_solve_{'complex' if complex_ else 'real'}(factors, b, x);",
+        ["factors", "b"],
+        ["x"],
+        [casadi.Sparsity.dense(lu.size(complex_)), casadi.Sparsity.dense(scale * lu.D)],
+        [casadi.Sparsity.dense(scale * lu.D)],
+        {"jit": False, "buffered": False},  # (no compiling here; the pointers as the caller holds them, no copies)
+    )

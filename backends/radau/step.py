@@ -121,6 +121,7 @@ class Stepper:
         self.compiled_run = engine.make_compiled_run(self.policy.iterations) if self.compiled_step else None
         if self.compiled_run is not None:
             self.stats["compiled_runs"] = 0  # calls of the compiled run (each up to loop.RUN_ATTEMPTS attempts)
+        engine.make_newton_step()  # (the general path's, where the compiled step did not bring it)
 
     # ---- pieces -------------------------------------------------------------------------
     def state(self):

@@ -14,12 +14,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau import casadi_engine, kernel, loop, sequence
+from daemodel.backends.radau import compiled as radau_compiled
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 from daemodel.backends.radau.linalg import dense_sign_det
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 
 import daemodel as dm
+from daemodel import cache
 from daemodel import errors as E
+from daemodel.problems import PROBLEMS
 from daemodel.tableau import radau_iia
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
@@ -133,3 +136,116 @@ def test_the_kernel_source_holds_numbers_only():
     )
     for line in source[: -len(kernel._KERNEL)].splitlines():
         assert allowed.fullmatch(line), line[:80]
+
+
+def _jit_engine(model, **options):
+    """The casadi engine of ``model``'s first solve with ``jit`` (a short one), and the compiled model."""
+    engines = []
+    original = casadi_engine.CasadiEngine.__init__
+
+    def keep(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        engines.append(self)
+
+    casadi_engine.CasadiEngine.__init__ = keep
+    try:
+        compiled = model.compile()
+        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=True, **options)
+    finally:
+        casadi_engine.CasadiEngine.__init__ = original
+    return compiled, engines[-1]
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        lambda: scaling_models.reaction_diffusion(50),
+        lambda: scaling_models.pendulum_chain(20),
+        lambda: scaling_models.pendulum_chain(40),
+        lambda: PROBLEMS["squeezer"].model(),
+        lambda: PROBLEMS["car-axis"].model(),
+    ],
+    ids=["reaction_diffusion-50", "pendulum_chain-20", "pendulum_chain-40", "squeezer", "car-axis"],
+)
+@pytest.mark.parametrize("stages", [2, 3, 5])
+def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages):
+    """The triangular solves of the library (the loops of .kernel, which the compiled step calls above
+    UNROLLED_SOLVE_MAX_ENTRIES, and the general path's solves with jit) against the straight-line SX of
+    .sparse, on the factors of the model's own Jacobian and random right-hand sides."""
+    compiled, engine = _jit_engine(model(), stages=stages)
+    static, lu = engine.static, engine.static.lu
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    rng = np.random.default_rng(stages)
+    for h in (1e-3, 0.05):
+        packed = engine._static["factor"](np.concatenate([[h], J * (1 + 0.3 * rng.standard_normal(len(J)))]))
+        systems = [(static.offsets[k], bool(lam.imag)) for k, (_, lam) in enumerate(engine.transform.blocks)]
+        for offset, complex_ in [*systems, (static.error_offset, False)]:
+            sx = Buffered(lu.solve_function(complex_), inputs=2)
+            c = engine._static[complex_]  # (the library's static_solve or static_solve_complex)
+            for _ in range(3):
+                b = rng.standard_normal((2 if complex_ else 1) * engine.D) * 10.0 ** rng.uniform(-3, 3)
+                for solve in (sx, c):
+                    solve.inputs[0][:] = packed[offset : offset + lu.size(complex_)]
+                    solve.inputs[1][:] = b
+                expected, got = sx.evaluate(), c.evaluate()
+                assert np.isfinite(expected).all() and np.array_equal(expected, got)
+
+
+def test_the_step_on_the_loops_gives_the_virtual_machines_bits(monkeypatch):
+    """The compiled step's solves as the loops of .kernel (at any size here) take the virtual machine's
+    steps (straight-line SX solves) bit for bit (s = 2: the error estimate's system is no block's).
+    (The pendulum chain's machine code differs from the virtual machine in the last bits, as before the
+    loops: its run and single attempts agree bit for bit, test_the_run_on_static_factors_...)"""
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**9)  # (the virtual machine takes them too)
+    monkeypatch.setattr(radau_compiled, "UNROLLED_SOLVE_MAX_ENTRIES", 0)
+    for model, stages in [(scaling_models.reaction_diffusion(15), 5), (scaling_models.reaction_diffusion(25), 3),
+                          (scaling_models.reaction_diffusion(15), 2)]:  # fmt: skip
+        compiled = model.compile()
+        options = dict(rtol=1e-6, atol=1e-6, stages=stages)
+        vm = dm.solve(compiled, (0.0, 1.0), **options)
+        jit = dm.solve(compiled, (0.0, 1.0), jit=True, **options)
+        assert "compiled_retries" in vm.stats and jit.stats["steps"] == vm.stats["steps"] > 5
+        for name in (*compiled.state_names, *compiled.algebraic_names):
+            assert np.array_equal(jit[name], vm[name]), name
+
+
+def _count_compiles(monkeypatch, tmp_path):
+    """A fresh disk cache, and the list of compiler runs that fills as solves compile."""
+    monkeypatch.setenv(cache.CACHE_VARIABLE, str(tmp_path / "cache"))
+    runs = []
+    original = cache.compile_library
+
+    def counted(source, folder, build):
+        runs.append(build.what)
+        return original(source, folder, build)
+
+    monkeypatch.setattr(cache, "compile_library", counted)
+    return runs
+
+
+@pytest.mark.parametrize(
+    ("name", "options", "static"),
+    [
+        ("pendulum_chain-10", dict(rtol=1e-6, atol=1e-6), True),  # (the loops, the compiled run)
+        ("akzo-nobel", dict(rtol=1e-6, atol=1e-6), True),  # (straight-line solves)
+        ("pendulum", dict(rtol=1e-6, atol=1e-6), False),  # (dense inverses: the step and the Newton step)
+        ("pendulum", dict(h=0.01), False),  # (no compiled step: the general path's Newton step alone)
+    ],
+)
+def test_one_library_serves_the_whole_solve(monkeypatch, tmp_path, name, options, static):
+    """One compiler run per model and stages holds all the machine code a solve runs; a second solve in
+    the process compiles nothing."""
+    runs = _count_compiles(monkeypatch, tmp_path)
+    if not static:
+        monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS", -1)
+    model = scaling_models.pendulum_chain(10) if name == "pendulum_chain-10" else PROBLEMS[name].model()
+    compiled = model.compile()
+    span = (0.0, 1.0) if name == "pendulum_chain-10" else PROBLEMS[name].t_span
+    first = dm.solve(compiled, span, jit=True, **options)
+    assert len(runs) == 1 and first.stats["compiled_cache"] == "miss"
+    again = dm.solve(compiled, span, jit=True, **options)
+    assert len(runs) == 1 and again.stats["compiled_cache"] == "memory"
+    assert np.array_equal(first[compiled.state_names[0]], again[compiled.state_names[0]])
+    if "rtol" in options:  # (another stage count: one more library)
+        dm.solve(compiled, span, jit=True, rtol=1e-9, atol=1e-9, stages=5)
+        assert len(runs) == 2
