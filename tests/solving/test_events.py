@@ -339,3 +339,23 @@ def test_a_flagged_piece_before_an_event_flags_the_solve():
     sol = dm.solve(m, (0.0, 2.0), stages=3, h=0.1)
     assert sol.status.startswith("on [0, 0.5]: flagged: radau's local error estimate")
     assert sol.events["off"]["t"][0].tolist() == [0.5]
+
+
+def test_the_search_for_each_event_stops_at_its_crossing():
+    """Each piece's search solve ends at the first crossing it finds (radau stops there: backends/base.py,
+    rule 5), and its steps up to there are the piece's outputs: the work grows with the events, not with
+    the events times the span left.  An oscillator crossing zero 16 times on [0, 50] took 2,082 steps
+    where the solve without the event takes 161 (each search solved the rest of the span), 632 now, most
+    of them the location's trial solves; the same values at the same output times."""
+    m = dm.Model("oscillator")
+    m.states("x v")
+    m.ode("x", "v")
+    m.ode("v", "-x")
+    m.initial(x=1.0, v=0.0)
+    plain = dm.solve(m, (0.0, 50.0), rtol=1e-8, atol=1e-8)
+    m.event("zero", "x")
+    sol = dm.solve(m, (0.0, 50.0), rtol=1e-8, atol=1e-8)
+    assert sol.stats["events"] == 16
+    np.testing.assert_allclose(sol.events["zero"]["t"][0], (np.arange(16) + 0.5) * np.pi, rtol=0, atol=1e-7)
+    assert sol.stats["steps"] <= 5 * plain.stats["steps"]
+    assert abs(sol["x"][-1] - np.cos(50.0)) < 1e-7
