@@ -59,6 +59,11 @@ MAX_LOCATION_ITERATIONS = 100
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
+# The first trial of an event's location is where the dense output crosses (events._dense_crossing): found
+# on DENSE_ROUNDS grids of DENSE_POINTS intervals, each inside the last's bracketing interval, then a secant;
+# the second trial is GUESS_WIDTH of the bracket past it.  The wheelset at rtol 1e-6: 12.8 trial solves an
+# event without it (1,077 for 84 events), 5.9 with it (480 for 82); an oscillator, 9.1 -> 4.
+DENSE_ROUNDS, DENSE_POINTS, GUESS_WIDTH = 2, 16, 1e-4
 # Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
 # t_span's length, whose geometric series ends inside t_span: ZenoError at the estimated accumulation point.
 ZENO_GAPS, ZENO_GAP = 5, 1e-6
@@ -313,8 +318,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
                 delta_at(a), events[which],
             )  # fmt: skip
+        guess = _dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
         t_event, y_event, z_event, located = _locate(
-            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za
+            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, guess
         )
         all_stats += located
         ends = t_event >= t1 - EVENT_TOL * max(1.0, abs(t1))  # (an event at t1: applied there, and the solve ends)
@@ -523,10 +529,37 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
-def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za):
+def _dense_crossing(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> float | None:
+    """Where the event function ``which`` first leaves ``Fa``'s side between the outputs ``a`` and ``b`` on
+    ``sol``'s dense output (radau's collocation polynomials: between its outputs at the method's stage
+    order), the first trial of :func:`_locate`; None without a dense output or a sign change on it.
+    :data:`DENSE_ROUNDS` rounds of :data:`DENSE_POINTS` points narrow it, then a secant."""
+    if sol.dense is None or not (sol.t[0] <= a < b <= sol.t[-1]):
+        return None
+    lo, hi = a, b
+    for _ in range(DENSE_ROUNDS):
+        grid = np.linspace(lo, hi, DENSE_POINTS + 1)
+        values = sol.at(grid)
+        Y = np.stack([np.reshape(values[v], -1) for v in compiled.state_names], axis=-1)
+        Z = [np.reshape(values[v], -1) for v in compiled.algebraic_names]
+        Z = np.stack(Z, axis=-1) if Z else np.zeros((len(grid), 0))
+        F = when(grid, Y, Z, np.repeat(P, len(grid), axis=0))[:, which]
+        other = np.flatnonzero((np.sign(F) != np.sign(Fa)) & (F != 0))
+        if not len(other) or other[0] == 0:
+            return None
+        k = int(other[0])
+        lo, hi, f_lo, f_hi = grid[k - 1], grid[k], F[k - 1], F[k]
+    guess = lo - f_lo * (hi - lo) / (f_hi - f_lo) if f_hi != f_lo else 0.5 * (lo + hi)
+    return float(guess) if a < guess < b else None
+
+
+def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, guess=None):
     """The event ``which`` between outputs ``a`` and ``b`` (values ``Fa``, ``Fb`` of opposite sign or
     ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats)``, by the Illinois method on trial
-    solves from ``a``."""
+    solves from ``a``.  A ``guess`` (:func:`_dense_crossing`'s) is the first trial, and the next one
+    :data:`GUESS_WIDTH` of the bracket past it on the other side, so that the search starts from a
+    bracket that narrow where the guess is as good as the dense output (about half the trials on the
+    wheelset); else the search goes on from whichever bracket the trials leave."""
     stats = []
     tol = EVENT_TOL * max(1.0, abs(a), abs(b))
 
@@ -539,11 +572,22 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         _, y, z = trial(b)
         return b, y, z, stats
     lo, hi, flo, fhi = a, b, Fa, Fb
-    best = None
+    best, at_hi = None, None  # (the trial's values at hi, where one set it)
     side = 0
-    for _ in range(MAX_LOCATION_ITERATIONS):
-        tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
-        if not lo < tau < hi:
+    width = GUESS_WIDTH * (b - a)
+    for k in range(MAX_LOCATION_ITERATIONS):
+        if guess is not None and k == 0:
+            tau = guess
+        elif guess is not None and k == 1:  # (the other side of the guess: the guess landed on lo's if side == -1)
+            tau = guess + width if side == -1 else guess - width
+        else:
+            tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
+        if tau <= lo or tau >= hi:
+            # the secant at an end (one whose value is near zero: a trial landed on the crossing): half the
+            # tolerance inside it closes the bracket from the other side, where the midpoint's trials bisected
+            # towards it (30 trials on an oscillator's crossing)
+            tau = lo + 0.5 * tol if tau <= lo else hi - 0.5 * tol
+        if not lo < tau < hi:  # (NaN, or a bracket within the tolerance)
             tau = 0.5 * (lo + hi)
         tau = max(tau, min(a + 1e-13 * max(1.0, abs(a)), 0.5 * (lo + hi)))  # (no trial span below ~1e-13)
         f, y, z = trial(tau)
@@ -556,14 +600,13 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
                 fhi *= 0.5  # (Illinois: halve the stale end's value)
             side = -1
         else:
-            hi, fhi = tau, f
+            hi, fhi, at_hi = tau, f, (y, z)
             if side == 1:
                 flo *= 0.5
             side = 1
-        if hi - lo <= tol:
-            tau = hi  # (the event after the crossing: the function has changed sign there)
-            f, y, z = trial(tau)
-            return tau, y, z, stats
+        if hi - lo <= tol:  # (the event after the crossing, where the function has changed sign: its trial's values)
+            y, z = at_hi if at_hi is not None else trial(hi)[1:]
+            return hi, y, z, stats
     raise EventLocationError(
         f"event {compiled.events[which].name!r} between t = {a:.10g} and {b:.10g}: not located to {tol:.1e} in "
         f"{MAX_LOCATION_ITERATIONS} trial solves (the bracket is [{lo:.15g}, {hi:.15g}], last trial "
