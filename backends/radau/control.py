@@ -45,7 +45,7 @@ KEEP_H_BAND_COMPILED = (1.0, 1.5)
 
 # Where the caller may stop the integration (Stepper.integrate's stop), a compiled run makes at most this
 # many attempts between its looks at the outputs: the steps it makes past the stop are lost (the wheelset's
-# event search, rtol 1e-6: 10 steps per event with the run's 32, 2 with 4; a call costs ~20 us)
+# event searches on [0, 1], rtol 1e-6, 28 events: 743 steps with the run's usual budget, 397 with 4)
 STOP_ATTEMPTS = 4
 
 

@@ -262,6 +262,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
     fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
     lock = has_state_switches(compiled)
+    keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see _dense_crossing)
 
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * EVENT_TOL * max(1.0, abs(time_)))
@@ -284,7 +285,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
             warnings.simplefilter("always")
             stop = _crossing_stop(compiled, begin, P)  # (it ends where a crossing is found, not at t1)
-            sol = _span_solve(backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None)
+            # (with its dense output, where the location's first trial is read, whatever the caller keeps)
+            sol = _span_solve(
+                backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True
+            )
         all_stats.append(sol.stats)
         setup_time += sol.setup_time
         last = sol
@@ -300,7 +304,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         if first is None:
             for warning in caught:
                 warnings.warn(warning.message, warning.category, stacklevel=4)
-            pieces.append((t, t1, Y, Z, None, piece, sol.dense, sol))
+            pieces.append((t, t1, Y, Z, None, piece, sol.dense if keeps_dense else None, sol))
             break
         count += 1
         if count > max_events:
@@ -333,7 +337,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 f"{recent[-1]:.12g}: chattering (Zeno); end t_span before it, or make the event terminal=True",
                 recent[-1],
             )
-        pieces.append((t, t_event, Y, Z, (which, t_event), piece, sol.dense, sol))
+        pieces.append((t, t_event, Y, Z, (which, t_event), piece, sol.dense if keeps_dense else None, sol))
         # every event whose function changed sign (its way) between the bracket's start and the located
         # time fires there, in declaration order (identical or simultaneous events)
         F_event = piece_when(np.array([t_event]), y_event, z_event, P)[0]
