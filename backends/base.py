@@ -19,6 +19,12 @@ A backend is a final subclass of :class:`AbstractBackend`:
    naming the time, the step, the sample and the fix.
 4. Every loop has a user-settable bound, and a request that cannot fit (a grid of more than
    :data:`~.grids.MAX_GRID_POINTS` steps, see :func:`~.grids.grid_steps`) is refused before anything is allocated.
+5. A backend whose ``stops`` is True also takes ``solve(..., stop=...)``: a function
+   ``stop(times (k,), Y (k, n), Z (k, m)) -> bool`` of one sample's outputs, called on each block of
+   them in order as the integration makes them (the start value first); where it returns True the
+   integration ends after that block, and the Solution holds the outputs up to it (those of a solve to
+   t1 up to there, the same values).  The event search (:mod:`daemodel.solving.events`) stops where
+   an event function has crossed zero, instead of solving on to t1 and discarding the rest.
 """
 
 from __future__ import annotations
@@ -147,6 +153,8 @@ class AbstractBackend(ABC):
     name: ClassVar[str]
     Options: ClassVar[type]
     max_index: ClassVar[int]
+    # solve() takes stop=... (rule 5 of the module docstring)
+    stops: ClassVar[bool] = False
 
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):

@@ -258,8 +258,8 @@ def test_the_step_ends_alone_keep_no_stages(engine, monkeypatch):
 
     kept, integrate = [], step.Stepper.integrate
 
-    def recording(self, t_span):
-        out = integrate(self, t_span)
+    def recording(self, t_span, *stop):
+        out = integrate(self, t_span, *stop)
         kept.append(self.records)
         return out
 

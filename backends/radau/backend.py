@@ -34,6 +34,7 @@ class RadauBackend(AbstractBackend):
     Options = RadauOptions
     # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
     max_index = 2
+    stops = True  # solve(..., stop=...): the event search ends a solve at a crossing (base.py, rule 5)
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return fixed_step_sweep(t_span, points, steps)
@@ -41,14 +42,18 @@ class RadauBackend(AbstractBackend):
     def times_follow_samples(self, options: RadauOptions) -> bool:
         return options.adaptive and options.t_eval is None  # a batch steps together, on its own times
 
-    def solve(self, compiled, t_span, start, options: RadauOptions):
+    def solve(self, compiled, t_span, start, options: RadauOptions, stop=None):
+        if stop is not None and start.size != 1:
+            raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
         if make_engine_name(start, options) == "casadi":
-            return self._solve(compiled, t_span, start, options)
+            return self._solve(compiled, t_span, start, options, stop=stop)
         warm_up = warm_up_torch(options.device, options.dtype)  # torch's first use: counted in the setup
         with torch_threads(options.threads, start.size * (len(compiled.states) + len(compiled.algebraics))):
-            return self._solve(compiled, t_span, start, options, warm_up)
+            return self._solve(compiled, t_span, start, options, warm_up, stop=stop)
 
-    def _solve(self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True):
+    def _solve(
+        self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True, stop=None
+    ):
         began = time.perf_counter()  # (the memory estimate reads the Jacobian's pattern: setup)
         engine_name = make_engine_name(start, options)
         check_memory(
@@ -73,7 +78,7 @@ class RadauBackend(AbstractBackend):
         setup = time.perf_counter() - began + warm_up
         began = time.perf_counter()
         try:
-            times, values = stepper.integrate(t_span)
+            times, values = stepper.integrate(t_span, stop)
         except ConvergenceError as error:
             where = getattr(error, "sign_change", None)
             if where is None or options.adaptive or not check:

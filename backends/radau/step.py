@@ -97,6 +97,7 @@ class Stepper:
         self._index_weights = None  # (h, h^(k-1) per component (D,)) for the last h
         self._f_start = None  # f at the start of the next step (the last stage's f of this one)
         self.records = None  # the accepted steps' outputs (Records)
+        self.stop, self.shown = None, 0  # the caller's stop and the blocks of records shown to it (integrate)
         self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
@@ -219,16 +220,22 @@ class Stepper:
         )
 
     # ---- the run --------------------------------------------------------------------------
-    def integrate(self, t_span):
-        """Values at the output times: ``(times (T,), values (B, T, n+m))``."""
+    def integrate(self, t_span, stop=None):
+        """Values at the output times: ``(times (T,), values (B, T, n+m))``.
+
+        ``stop``: the caller's ``stop(times (k,), Y (k, n), Z (k, m)) -> bool`` (one sample), called on
+        each block of the step ends (:meth:`stopped`); where it returns True the integration ends
+        there, and the outputs are those up to it (t_eval's up to the last step's end)."""
         t0 = t_span[0]
         grid = self.controller.grid(t_span)
         t_out = output_times(self.options.t_eval, t_span, grid)
         u0 = self.state()
         self.records = Records(t0, u0, dense=self.options.t_eval is not None or self.options.dense_output)
+        self.stop, self.shown = stop, 0
         self.controller.run(self, t_span, grid)
         if self.options.t_eval is not None:
-            return self.dense_output(t_out, u0, t0, self.records)
+            reached = self.records.times[-1][-1]
+            return self.dense_output(t_out[t_out <= reached], u0, t0, self.records)
         times, values = self.records.ends(self.xp)
         return times, numpy_copy(values)
 
@@ -238,6 +245,19 @@ class Stepper:
         if not self.options.dense_output:
             return None
         return self.records.polynomials(self.tableau.c, self.xp)
+
+    def stopped(self) -> bool:
+        """Whether the caller's ``stop`` (:meth:`integrate`) ends the integration: it is shown each block
+        of outputs it has not seen (the start value first), in order, until it returns True."""
+        if self.stop is None:
+            return False
+        while self.shown < len(self.records.times):
+            times, values = self.records.block(self.shown)
+            self.shown += 1
+            values = numpy_copy(values[0])
+            if self.stop(times, values[:, : self.n], values[:, self.n :]):
+                return True
+        return False
 
     # ---- one step -----------------------------------------------------------------------
     def attempt(self, t, h):
@@ -533,6 +553,12 @@ class Records:
         """``(times (T,), values (B, T, n+m))`` at the steps' ends, the start first."""
         values = self.values if not self.dense else self.values + [nodes[:, :, -1] for nodes in self.nodes]
         return np.concatenate(self.times), xp.concatenate(values, axis=1)
+
+    def block(self, k: int):
+        """``(times (j,), values (B, j, n+m))`` of the ``k``-th block of outputs (0: the start value)."""
+        if k == 0 or not self.dense:
+            return self.times[k], self.values[k]
+        return self.times[k], self.nodes[k - 1][:, :, -1]
 
     def polynomials(self, c, xp):
         """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``

@@ -1,0 +1,81 @@
+"""radau's controllers (backends/radau/control.py): where a caller's ``stop`` ends an integration
+(the backend contract's rule 5, backends/base.py)."""
+
+import numpy as np
+import pytest
+from daemodel.backends.radau.backend import RadauBackend
+from daemodel.backends.radau.options import RadauOptions
+
+from daemodel import errors as E
+from daemodel.compiling.initial_states import InitialStates
+from daemodel.problems import PENDULUM
+
+
+def _solve(options, stop=None, size=1):
+    compiled = PENDULUM.model().compile()
+    y0, z0 = np.tile(compiled.y0, (size, 1)), np.tile(compiled.z0, (size, 1))
+    P = np.tile(compiled.parameter_values, (size, 1))
+    start = InitialStates(y0=y0, z0=z0, p=P, batched=size > 1)
+    return compiled, RadauBackend().solve(compiled, (0.0, 3.0), start, options, stop=stop)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        RadauOptions(rtol=1e-8, atol=1e-8, jit=False),  # the Python controller
+        RadauOptions(rtol=1e-8, atol=1e-8, engine="torch"),  # (torch: attempts one at a time)
+        RadauOptions(h=0.01),  # the fixed grid
+    ],
+)
+def test_a_stop_ends_the_integration_after_the_block_where_it_is_true(options):
+    """The solve ends after the first block of outputs where ``stop`` is True (y4 < 0: the speed turns),
+    with the outputs of a solve to t1 up to there, bit for bit; every output was shown to ``stop`` once,
+    in order, the start value first."""
+    compiled, whole = _solve(options)
+    shown = []
+
+    def stop(times, Y, Z):
+        shown.append(times)
+        assert Y.shape == (len(times), len(compiled.states)) and Z.shape == (len(times), len(compiled.algebraics))
+        return bool((Y[:, 3] < 0).any())
+
+    _, stopped = _solve(options, stop)
+    seen = np.concatenate(shown)
+    assert seen[0] == 0.0 and np.all(np.diff(seen) > 0)
+    np.testing.assert_array_equal(stopped.t, seen)
+    first = int(np.argmax(whole["y4"] < 0))  # (the first output past the crossing)
+    assert stopped.t[-1] >= whole.t[first] and stopped.t[-1] < 3.0
+    k = len(stopped.t)
+    np.testing.assert_array_equal(stopped.t, whole.t[:k])
+    for name in ("y1", "y4", "y5"):
+        np.testing.assert_array_equal(stopped[name], whole[name][:k])
+    assert stopped.stats["steps"] == k - 1 < whole.stats["steps"]
+
+
+def test_a_stop_without_a_crossing_changes_nothing():
+    options = RadauOptions(rtol=1e-8, atol=1e-8, jit=False)
+    _, whole = _solve(options)
+    _, stopped = _solve(options, lambda times, Y, Z: False)
+    np.testing.assert_array_equal(stopped.t, whole.t)
+    np.testing.assert_array_equal(stopped["y5"], whole["y5"])
+
+
+def test_the_compiled_run_looks_at_the_outputs_every_few_attempts():
+    """With the compiled run (jit), a stop is seen within STOP_ATTEMPTS steps of the crossing, and the
+    outputs up to there are those of the solve to t1."""
+    from daemodel.backends.radau.compiled import find_compiler
+    from daemodel.backends.radau.control import STOP_ATTEMPTS
+
+    if find_compiler() is None:
+        pytest.skip("no C compiler")
+    options = RadauOptions(rtol=1e-8, atol=1e-8, jit=True)
+    _, whole = _solve(options)
+    _, stopped = _solve(options, lambda times, Y, Z: bool((Y[:, 3] < 0).any()))
+    first = int(np.argmax(whole["y4"] < 0))
+    assert first <= len(stopped.t) - 1 <= first + STOP_ATTEMPTS
+    np.testing.assert_array_equal(stopped["y1"], whole["y1"][: len(stopped.t)])
+
+
+def test_a_stop_reads_one_sample():
+    with pytest.raises(E.InvalidOptionError, match=r"stop=\.\.\. reads one sample's outputs; this solve has 2 samples"):
+        _solve(RadauOptions(rtol=1e-6, atol=1e-6, engine="torch"), lambda *a: False, size=2)
