@@ -55,7 +55,7 @@ class RadauBackend(AbstractBackend):
             f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
             memory_parts(compiled, t_span, start.size, options, engine_name),
         )
-        machine_code, said = jit_choice(engine_name, options)
+        machine_code, said = jit_choice(engine_name, options, len(compiled.states) + len(compiled.algebraics))
         try:
             engine, stepper = self._stepper(compiled, start, options, machine_code)
         except CompileError as error:
@@ -171,13 +171,26 @@ def make_engine_name(start, options: RadauOptions) -> str:
     return "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
 
 
-def jit_choice(name: str, options: RadauOptions) -> tuple[bool, str | None]:
-    """Whether the engine ``name`` runs its steps in machine code (``options.jit``: "auto", True,
-    False), and what ``stats["jit"]`` says of it (None on the torch engine, which compiles nothing)."""
+# jit="auto" compiles models of at most this many unknowns (n + m).  Measured on reaction-diffusion,
+# cold cache, one shared core: the first compile costs 5 s at 100 unknowns, 16 s at 200, 68 s at 500 and
+# 96 s at 1,000, for 6-7 ms saved per solve (at 1,000 the machine code's solve was slower); at issue
+# 44's 10^5 it would not finish.  jit=True compiles at any size.
+JIT_AUTO_MAX_SIZE = 200
+
+
+def jit_choice(name: str, options: RadauOptions, D: int) -> tuple[bool, str | None]:
+    """Whether the engine ``name`` runs the steps of ``D`` unknowns in machine code (``options.jit``:
+    "auto", True, False; "auto" up to :data:`JIT_AUTO_MAX_SIZE` unknowns), and what ``stats["jit"]``
+    says of it (None on the torch engine, which compiles nothing)."""
     if name != "casadi":
         return False, None
     if options.jit is False:
         return False, "casadi's virtual machine (jit=False)"
+    if options.jit == "auto" and D > JIT_AUTO_MAX_SIZE:
+        return False, (
+            f"casadi's virtual machine: {D} unknowns, above jit='auto''s {JIT_AUTO_MAX_SIZE} (compiling would "
+            "take minutes for little saved per solve; jit=True compiles at any size)"
+        )
     compiler = find_compiler()
     if compiler is None:  # (jit=True without a compiler was refused by RadauOptions)
         return False, f"casadi's virtual machine: no C compiler on PATH (tried {', '.join(COMPILERS)})"
@@ -198,7 +211,7 @@ def make_engine(compiled, start, options: RadauOptions, machine_code: bool | Non
             "leave jit out"
         )
     if machine_code is None:
-        machine_code = jit_choice(name, options)[0]
+        machine_code = jit_choice(name, options, len(compiled.states) + len(compiled.algebraics))[0]
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(

@@ -143,6 +143,34 @@ def test_auto_says_which_code_ran_and_goes_on_where_the_compiler_fails(monkeypat
 
 
 @needs_compiler
+def test_auto_leaves_models_above_its_size_on_the_virtual_machine(monkeypatch):
+    """jit="auto" compiles up to JIT_AUTO_MAX_SIZE unknowns (the first compile of reaction-diffusion
+    took 16 s at 200 unknowns, 96 s at 1,000 for nothing saved; 10^5 would not finish): above it the
+    virtual machine, said in stats["jit"]; jit=True still compiles."""
+    import sys
+    from pathlib import Path
+
+    from daemodel.backends.radau import backend
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import scaling_models
+
+    large = scaling_models.reaction_diffusion(101).compile()  # 202 unknowns
+    sol = dm.solve(large, (0.0, 1e-3), rtol=1e-6, atol=1e-6)
+    assert sol.stats["jit"] == (
+        "casadi's virtual machine: 202 unknowns, above jit='auto''s 200 (compiling would take minutes for "
+        "little saved per solve; jit=True compiles at any size)"
+    )
+    assert "compiled_cache" not in sol.stats
+    compiled = PENDULUM.model().compile()  # (5 unknowns)
+    monkeypatch.setattr(backend, "JIT_AUTO_MAX_SIZE", 4)
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1).stats["jit"].startswith("casadi's virtual machine: 5 unknowns")
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1, jit=True).stats["jit"] == f"machine code ({find_compiler()})"
+    monkeypatch.setattr(backend, "JIT_AUTO_MAX_SIZE", 5)
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1).stats["jit"] == f"machine code ({find_compiler()})"
+
+
+@needs_compiler
 def test_no_temporary_directory_is_a_compile_error(monkeypatch):
     import tempfile
 
