@@ -50,12 +50,10 @@ class RadauBackend(AbstractBackend):
 
     def _solve(self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True):
         began = time.perf_counter()  # (the memory estimate reads the Jacobian's pattern: setup)
-        engine_name = make_engine_name(start, options)
-        check_memory(
-            f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
-            memory_parts(compiled, t_span, start.size, options, engine_name),
-        )
-        machine_code, said = jit_choice(engine_name, options, len(compiled.states) + len(compiled.algebraics))
+        engine_name, D = make_engine_name(start, options), len(compiled.states) + len(compiled.algebraics)
+        parts = memory_parts(compiled, t_span, start.size, options, engine_name)  # (made once: one LU of the pattern)
+        check_memory(f"radau on {start.size} sample(s) of {D} unknowns", parts)
+        machine_code, said = jit_choice(engine_name, options, D)
         try:
             engine, stepper = self._stepper(compiled, start, options, machine_code)
         except CompileError as error:
@@ -67,8 +65,7 @@ class RadauBackend(AbstractBackend):
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)
-            known = sum(memory_parts(compiled, t_span, start.size, options, engine_name).values())
-            D = len(compiled.states) + len(compiled.algebraics)
+            known = sum(parts.values())
             stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
         setup = time.perf_counter() - began + warm_up
         began = time.perf_counter()

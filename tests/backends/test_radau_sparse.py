@@ -242,3 +242,17 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill():
     assert ("Newton matrices" in chain_parts) == dense_chain
     small = backend.memory_parts(scaling_models.reaction_diffusion(40).compile(), span, 1, options, "casadi")
     assert small == {"Newton matrices": 7 * 80**2 * 8}  # (80 unknowns: dense, LAPACK)
+
+
+def test_an_adaptive_solve_factors_the_pattern_for_its_memory_estimate_once(monkeypatch):
+    """The estimate's one LU of the pattern is made once per solve (an adaptive solve made it twice: for
+    the guard, then again for the step records' budget)."""
+    from daemodel.backends.radau import backend
+
+    compiled = scaling_models.reaction_diffusion(300).compile()  # 600 unknowns, sparse
+    made = []
+    monkeypatch.setattr(
+        backend, "factor_entries", lambda *args, count=backend.factor_entries: made.append(1) or count(*args)
+    )
+    sol = dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)
+    assert sol.status == "success" and len(made) == 1
