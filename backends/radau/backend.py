@@ -54,6 +54,11 @@ class RadauBackend(AbstractBackend):
         parts = memory_parts(compiled, t_span, start.size, options, engine_name)  # (made once: one LU of the pattern)
         check_memory(f"radau on {start.size} sample(s) of {D} unknowns", parts)
         machine_code, said = jit_choice(engine_name, options, D)
+        # "auto" remembers a failed compile of this model for the process (and its pieces between events
+        # and breakpoints, which share its cache): a failing or hanging compiler is tried once, not per solve
+        failed = compiled.cached("radau-jit-auto-failed", list)
+        if machine_code and options.jit == "auto" and failed:
+            machine_code, said = False, f"{failed[0]}, earlier in this process"
         try:
             engine, stepper = self._stepper(compiled, start, options, machine_code)
         except CompileError as error:
@@ -62,6 +67,7 @@ class RadauBackend(AbstractBackend):
             # "auto": the compiler failed (every compile runs here, in the setup): the virtual machine
             engine, stepper = self._stepper(compiled, start, options, False)
             said = f"casadi's virtual machine: the C compiler failed ({clip(str(error), 300)})"
+            failed.append(said)
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)

@@ -142,6 +142,39 @@ def test_auto_says_which_code_ran_and_goes_on_where_the_compiler_fails(monkeypat
     assert none.stats["jit"] == "casadi's virtual machine: no C compiler on PATH (tried cc, gcc, clang)"
 
 
+def test_auto_tries_a_failing_compiler_once_per_model(monkeypatch, tmp_path):
+    """jit="auto" remembers a failed compile of a model for the process: a failing (or hanging: up to
+    10 minutes each) compiler was run again by every solve and by every piece between events; jit=True
+    still tries, and a model compiled anew is tried anew."""
+    from daemodel.problems import BOUNCING_BALL
+
+    runs = tmp_path / "runs"
+    failing = tmp_path / "cc"
+    failing.write_text(
+        f'#!/bin/sh\n[ "$1" = --version ] && exit 0\necho run >> {runs}\necho "cc: no licence" >&2\nexit 1\n'
+    )
+    failing.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    ball = BOUNCING_BALL.model().compile()
+    sol = dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert sol.stats["events"] >= 3 and sol.status == "success"
+    assert (
+        sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed")
+        and "no licence" in sol.stats["jit"]
+    )
+    assert runs.read_text().count("run") == 1  # (the first piece's; the pieces after each bounce remember it)
+    again = dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert again.stats["jit"] == sol.stats["jit"] + ", earlier in this process"
+    assert runs.read_text().count("run") == 1
+    for name in ball.state_names:
+        assert np.array_equal(again[name], sol[name]), name
+    with pytest.raises(E.CompileError, match=r"no licence"):
+        dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8, jit=True)
+    assert runs.read_text().count("run") == 2
+    dm.solve(BOUNCING_BALL.model().compile(), BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert runs.read_text().count("run") == 3
+
+
 @needs_compiler
 def test_auto_leaves_models_above_its_size_on_the_virtual_machine(monkeypatch):
     """jit="auto" compiles up to JIT_AUTO_MAX_SIZE unknowns (the first compile of reaction-diffusion
