@@ -137,12 +137,19 @@ class RadauBackend(AbstractBackend):
 SMALLER_STEP = 4
 
 
+# The fill of the s D-sized full Newton system's SuperLU factors, over s^2 times that of one D-sized
+# system (:func:`.casadi_engine.factor_entries`): 0.72-0.74 measured on reaction-diffusion at 600
+# unknowns, 0.92-0.94 on the chain of 60 pendulums (300), s = 3, 5, 7.
+STAGE_FILL = 1.0
+
+
 def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = "torch") -> dict:
     """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
     Newton matrices (a stage Jacobian and the factored transformed systems: about (2s + 1) D^2 a
     sample where they are dense, the torch engine's and the casadi engine's small or full systems;
     on the casadi engine's sparse systems the Jacobian's nonzeros and s factors of the fill SuperLU
-    makes of its pattern, :func:`.casadi_engine.factor_entries`), and the outputs (a fixed grid's
+    makes of its pattern, :func:`.casadi_engine.factor_entries`, and on fixed steps the full Newton
+    system of s D unknowns, about s^2 that fill: :data:`STAGE_FILL`), and the outputs (a fixed grid's
     points, or t_eval's; with t_eval or ``dense_output``, each step's stages for the dense output).
     Adaptive steps add per step what :func:`step_record_bytes` says."""
     n, D, s = len(compiled.states), len(compiled.states) + len(compiled.algebraics), options.stages
@@ -152,7 +159,14 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
         rows, cols = jacobian_pattern(compiled)
         if not dense_systems(D, rows.size):
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
-            parts = {"Newton matrices (sparse)": rows.size * 8 * (s + 1) + s * factor_entries(rows, cols, n, D) * 16}
+            fill = factor_entries(rows, cols, n, D)
+            matrices = rows.size * 8 * (s + 1) + s * fill * 16
+            if not options.adaptive or options.start_guess is not None:
+                # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors
+                # the s D-sized system, its matrix and its factors in float64: s^2 nonzeros of J's, and
+                # STAGE_FILL s^2 times the fill (2.2-6.4x s times it at s = 3-7: the guard under-counted)
+                matrices += s * s * (rows.size + STAGE_FILL * fill) * 8
+            parts = {"Newton matrices (sparse)": int(matrices)}
     steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
     if options.t_eval is not None:
         parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
