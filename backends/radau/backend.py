@@ -68,6 +68,11 @@ class RadauBackend(AbstractBackend):
             engine, stepper = self._stepper(compiled, start, options, False)
             said = f"casadi's virtual machine: the C compiler failed ({clip(str(error), 300)})"
             failed.append(said)
+        if machine_code and engine.cache_outcome() is None:  # (every compile ran in the setup: none did)
+            said = (
+                "casadi's virtual machine: nothing to compile for this solve (sparse systems run in machine code "
+                "only in adaptive steps whose LU takes a fixed pivot order; here SuperLU on the general path)"
+            )
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)

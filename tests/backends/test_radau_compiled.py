@@ -176,6 +176,24 @@ def test_auto_tries_a_failing_compiler_once_per_model(monkeypatch, tmp_path):
 
 
 @needs_compiler
+def test_stats_say_the_virtual_machine_where_nothing_was_compiled():
+    """Fixed steps on sparse systems (above 100 unknowns) compile nothing, even with jit=True: stats["jit"]
+    said "machine code" there, with no compiled_cache."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import scaling_models
+
+    sparse = scaling_models.reaction_diffusion(60).compile()  # 120 unknowns, sparse
+    sol = dm.solve(sparse, (0.0, 2e-3), h=1e-3, jit=True)
+    assert sol.stats["jit"].startswith("casadi's virtual machine: nothing to compile for this solve")
+    assert "compiled_cache" not in sol.stats
+    adaptive = dm.solve(sparse, (0.0, 2e-3), rtol=1e-6, atol=1e-6, jit=True)  # (static factors: compiled)
+    assert adaptive.stats["jit"] == f"machine code ({find_compiler()})" and "compiled_cache" in adaptive.stats
+
+
+@needs_compiler
 def test_auto_leaves_models_above_its_size_on_the_virtual_machine(monkeypatch):
     """jit="auto" compiles up to JIT_AUTO_MAX_SIZE unknowns (the first compile of reaction-diffusion
     took 16 s at 200 unknowns, 96 s at 1,000 for nothing saved; 10^5 would not finish): above it the
