@@ -65,7 +65,7 @@ class RadauBackend(AbstractBackend):
             if options.jit is True:
                 raise
             # "auto": the compiler failed (every compile runs here, in the setup): the virtual machine
-            engine, stepper = self._stepper(compiled, start, options, False)
+            machine_code, (engine, stepper) = False, self._stepper(compiled, start, options, False)
             said = f"casadi's virtual machine: the C compiler failed ({clip(str(error), 300)})"
             failed.append(said)
         if machine_code and engine.cache_outcome() is None:  # (every compile ran in the setup: none did)
