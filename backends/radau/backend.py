@@ -164,7 +164,7 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
         rows, cols = jacobian_pattern(compiled)
         if not dense_systems(D, rows.size):
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
-            fill = factor_entries(rows, cols, n, D)
+            fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))  # (per model)
             matrices = rows.size * 8 * (s + 1) + s * fill * 16
             if not options.adaptive or options.start_guess is not None:
                 # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors

@@ -246,9 +246,9 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill():
     assert small == {"Newton matrices": 7 * 80**2 * 8}  # (80 unknowns: dense, LAPACK)
 
 
-def test_an_adaptive_solve_factors_the_pattern_for_its_memory_estimate_once(monkeypatch):
-    """The estimate's one LU of the pattern is made once per solve (an adaptive solve made it twice: for
-    the guard, then again for the step records' budget)."""
+def test_the_pattern_is_factored_for_the_memory_estimate_once_per_model(monkeypatch):
+    """The estimate's one LU of the pattern is made once per model (an adaptive solve made it twice: for
+    the guard, then again for the step records' budget; every solve, a fit's or an event's piece, again)."""
     from daemodel.backends.radau import backend
 
     compiled = scaling_models.reaction_diffusion(300).compile()  # 600 unknowns, sparse
@@ -258,6 +258,8 @@ def test_an_adaptive_solve_factors_the_pattern_for_its_memory_estimate_once(monk
     )
     sol = dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)
     assert sol.status == "success" and len(made) == 1
+    again = dm.solve(compiled, (0.0, 1e-3), h=5e-4, jit=False)  # (and kept with the model: fits, events' pieces)
+    assert again.status == "success" and len(made) == 1
 
 
 def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system():
