@@ -224,6 +224,8 @@ def compile_library(source: str, folder: Path, build: Build) -> Path:
     if done.returncode != 0:
         lines = (done.stderr or done.stdout or "").strip().splitlines() or ["no message"]
         raise CompileError(f"{what} with {compiler} failed: {lines[-1][:400]}; {fix}")
+    if not (folder / "library.so").is_file():  # (a wrapper that exits 0 and writes nothing)
+        raise CompileError(f"{what} with {compiler} failed: it exited 0 but wrote no library; {fix}")
     return folder / "library.so"
 
 
@@ -237,8 +239,8 @@ def load(library: Path, names) -> dict:
 def cached_library(source: str, names, build: Build) -> Library:
     """The functions ``names`` of ``source`` compiled as ``build`` says: loaded from the cache where
     it holds them (the stamp's source and library hashes checked), else compiled in a private
-    temporary folder, stored (library, then stamp) and loaded; a :class:`CompileError` where the
-    compiler fails (see :func:`compile_library`)."""
+    temporary folder, loaded, then stored (library, then stamp); a :class:`CompileError` where the
+    compiler fails, writes no library or one that does not load (see :func:`compile_library`)."""
     key, source_hash = entry_key(source, build), digest(source)
     try:
         folder = checked_folder()
@@ -253,13 +255,18 @@ def cached_library(source: str, names, build: Build) -> Library:
     private = private_directory("daemodel-jit-", fix=build.fix)
     try:
         library = compile_library(source, private, build)
+        try:  # (loaded before it is stored: a library that does not load is never kept)
+            functions = load(library, names)
+        except RuntimeError as error:
+            message = f"its library does not load ({clip(' '.join(str(error).split()), 200)})"
+            raise CompileError(f"{build.what} with {build.compiler} failed: {message}; {build.fix}") from None
         if folder is not None:
             problem = store(folder, key, source_hash, library.read_bytes())
             if problem:
                 outcome = f"not stored: {problem}"
                 warn_once(f"the cache {folder} could not store a compiled library ({problem}); it is used by "
                           "this process only", ("not stored", str(folder)))  # fmt: skip
-        return Library(load(library, names), outcome)
+        return Library(functions, outcome)
     finally:
         shutil.rmtree(private, ignore_errors=True)
 

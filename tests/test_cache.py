@@ -24,7 +24,7 @@ from daemodel.backends.radau.compiled import COMPILER_FLAGS, find_compiler
 import daemodel as dm
 from daemodel import cache
 from daemodel.comparing.cli import main
-from daemodel.errors import CacheWarning, InvalidOptionError, UnsafeCacheError
+from daemodel.errors import CacheWarning, CompileError, InvalidOptionError, UnsafeCacheError
 from daemodel.problems import PROBLEMS
 
 pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
@@ -470,3 +470,30 @@ def test_cache_clear_refuses_an_unsafe_folder(folder, capsys):
     assert main(["cache", "clear"]) == 2
     assert "daemodel cache clear: cache folder" in capsys.readouterr().err
     assert files(folder) == before
+
+
+@pytest.mark.parametrize(
+    "script, said",
+    [
+        ("exit 0", r"wrote no library"),  # (says it succeeded, writes nothing)
+        ("echo 'not an ELF file' > library.so", r"its library does not load"),  # (writes garbage)
+    ],
+)
+def test_a_compiler_that_succeeds_without_a_loadable_library_is_a_compile_error(
+    folder, tmp_path, monkeypatch, script, said
+):
+    """A compiler that exits 0 but leaves no library, or one casadi cannot load, is a CompileError
+    naming it (not a FileNotFoundError or casadi's RuntimeError), and nothing is stored; under radau's
+    default jit="auto" the solve goes on on casadi's virtual machine."""
+    bogus = tmp_path / "bin" / "cc"
+    bogus.parent.mkdir()
+    # (--version runs in the caller's folder: it writes nothing)
+    bogus.write_text(f'#!/bin/sh\n[ "$1" = --version ] && exit 0\n{script}\n')
+    bogus.chmod(0o755)
+    with pytest.raises(CompileError, match=rf"compiling with {bogus} failed: .*{said}.*; {FIX}"):
+        compiled(2.0, compiler=str(bogus))
+    assert not any(name.endswith(cache.LIBRARY) for name in files(folder))
+    monkeypatch.setenv("PATH", str(bogus.parent))
+    sol = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)
+    assert sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed") and said in sol.stats["jit"]
+    assert sol.status == "success" and not any(name.endswith(cache.LIBRARY) for name in files(folder))

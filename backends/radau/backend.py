@@ -55,25 +55,33 @@ class RadauBackend(AbstractBackend):
         self, compiled, t_span, start, options: RadauOptions, warm_up: float = 0.0, check: bool = True, stop=None
     ):
         began = time.perf_counter()  # (the memory estimate reads the Jacobian's pattern: setup)
-        engine_name = make_engine_name(start, options)
-        check_memory(
-            f"radau on {start.size} sample(s) of {len(compiled.states) + len(compiled.algebraics)} unknowns",
-            memory_parts(compiled, t_span, start.size, options, engine_name),
-        )
-        machine_code, said = jit_choice(engine_name, options)
+        engine_name, D = make_engine_name(start, options), len(compiled.states) + len(compiled.algebraics)
+        parts = memory_parts(compiled, t_span, start.size, options, engine_name)  # (made once: one LU of the pattern)
+        check_memory(f"radau on {start.size} sample(s) of {D} unknowns", parts)
+        machine_code, said = jit_choice(engine_name, options, D)
+        # "auto" remembers a failed compile of this model for the process (and its pieces between events
+        # and breakpoints, which share its cache): a failing or hanging compiler is tried once, not per solve
+        failed = compiled.cached("radau-jit-auto-failed", list)
+        if machine_code and options.jit == "auto" and failed:
+            machine_code, said = False, f"{failed[0]}, earlier in this process"
         try:
             engine, stepper = self._stepper(compiled, start, options, machine_code)
         except CompileError as error:
             if options.jit is True:
                 raise
             # "auto": the compiler failed (every compile runs here, in the setup): the virtual machine
-            engine, stepper = self._stepper(compiled, start, options, False)
+            machine_code, (engine, stepper) = False, self._stepper(compiled, start, options, False)
             said = f"casadi's virtual machine: the C compiler failed ({clip(str(error), 300)})"
+            failed.append(said)
+        if machine_code and engine.cache_outcome() is None:  # (every compile ran in the setup: none did)
+            said = (
+                "casadi's virtual machine: nothing to compile for this solve (sparse systems run in machine code "
+                "only in adaptive steps whose LU takes a fixed pivot order; here SuperLU on the general path)"
+            )
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)
-            known = sum(memory_parts(compiled, t_span, start.size, options, engine_name).values())
-            D = len(compiled.states) + len(compiled.algebraics)
+            known = sum(parts.values())
             stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
         setup = time.perf_counter() - began + warm_up
         began = time.perf_counter()
@@ -139,12 +147,19 @@ class RadauBackend(AbstractBackend):
 SMALLER_STEP = 4
 
 
+# The fill of the s D-sized full Newton system's SuperLU factors, over s^2 times that of one D-sized
+# system (:func:`.casadi_engine.factor_entries`): 0.72-0.74 measured on reaction-diffusion at 600
+# unknowns, 0.92-0.94 on the chain of 60 pendulums (300), s = 3, 5, 7.
+STAGE_FILL = 1.0
+
+
 def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = "torch") -> dict:
     """What a solve of ``B`` samples holds, in bytes, as far as it is known before it starts: the
     Newton matrices (a stage Jacobian and the factored transformed systems: about (2s + 1) D^2 a
     sample where they are dense, the torch engine's and the casadi engine's small or full systems;
     on the casadi engine's sparse systems the Jacobian's nonzeros and s factors of the fill SuperLU
-    makes of its pattern, :func:`.casadi_engine.factor_entries`), and the outputs (a fixed grid's
+    makes of its pattern, :func:`.casadi_engine.factor_entries`, and on fixed steps the full Newton
+    system of s D unknowns, about s^2 that fill: :data:`STAGE_FILL`), and the outputs (a fixed grid's
     points, or t_eval's; with t_eval or ``dense_output``, each step's stages for the dense output).
     Adaptive steps add per step what :func:`step_record_bytes` says."""
     n, D, s = len(compiled.states), len(compiled.states) + len(compiled.algebraics), options.stages
@@ -154,7 +169,14 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
         rows, cols = jacobian_pattern(compiled)
         if not dense_systems(D, rows.size):
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
-            parts = {"Newton matrices (sparse)": rows.size * 8 * (s + 1) + s * factor_entries(rows, cols, n, D) * 16}
+            fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))  # (per model)
+            matrices = rows.size * 8 * (s + 1) + s * fill * 16
+            if not options.adaptive or options.start_guess is not None:
+                # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors
+                # the s D-sized system, its matrix and its factors in float64: s^2 nonzeros of J's, and
+                # STAGE_FILL s^2 times the fill (2.2-6.4x s times it at s = 3-7: the guard under-counted)
+                matrices += s * s * (rows.size + STAGE_FILL * fill) * 8
+            parts = {"Newton matrices (sparse)": int(matrices)}
     steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
     if options.t_eval is not None:
         parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
@@ -176,13 +198,26 @@ def make_engine_name(start, options: RadauOptions) -> str:
     return "casadi" if start.size == 1 and options.dtype == "float64" and on_cpu else "torch"
 
 
-def jit_choice(name: str, options: RadauOptions) -> tuple[bool, str | None]:
-    """Whether the engine ``name`` runs its steps in machine code (``options.jit``: "auto", True,
-    False), and what ``stats["jit"]`` says of it (None on the torch engine, which compiles nothing)."""
+# jit="auto" compiles models of at most this many unknowns (n + m).  Measured on reaction-diffusion,
+# cold cache, one shared core: the first compile costs 5 s at 100 unknowns, 16 s at 200, 68 s at 500 and
+# 96 s at 1,000, for 6-7 ms saved per solve (at 1,000 the machine code's solve was slower); at issue
+# 44's 10^5 it would not finish.  jit=True compiles at any size.
+JIT_AUTO_MAX_SIZE = 200
+
+
+def jit_choice(name: str, options: RadauOptions, D: int) -> tuple[bool, str | None]:
+    """Whether the engine ``name`` runs the steps of ``D`` unknowns in machine code (``options.jit``:
+    "auto", True, False; "auto" up to :data:`JIT_AUTO_MAX_SIZE` unknowns), and what ``stats["jit"]``
+    says of it (None on the torch engine, which compiles nothing)."""
     if name != "casadi":
         return False, None
     if options.jit is False:
         return False, "casadi's virtual machine (jit=False)"
+    if options.jit == "auto" and D > JIT_AUTO_MAX_SIZE:
+        return False, (
+            f"casadi's virtual machine: {D} unknowns, above jit='auto''s {JIT_AUTO_MAX_SIZE} (compiling would "
+            "take minutes for little saved per solve; jit=True compiles at any size)"
+        )
     compiler = find_compiler()
     if compiler is None:  # (jit=True without a compiler was refused by RadauOptions)
         return False, f"casadi's virtual machine: no C compiler on PATH (tried {', '.join(COMPILERS)})"
@@ -203,7 +238,7 @@ def make_engine(compiled, start, options: RadauOptions, machine_code: bool | Non
             "leave jit out"
         )
     if machine_code is None:
-        machine_code = jit_choice(name, options)[0]
+        machine_code = jit_choice(name, options, len(compiled.states) + len(compiled.algebraics))[0]
     if name == "casadi":
         if start.size != 1:
             raise InvalidOptionError(

@@ -116,10 +116,13 @@ class RadauOptions:
         problems.  The C sources are compiled in a private temporary directory that is removed
         once the library is stored and loaded.
 
-        ``"auto"`` (the default): machine code wherever the casadi engine runs and a C compiler is
-        found, else casadi's virtual machine; ``stats["jit"]`` says which and why, once per solve
+        ``"auto"`` (the default): machine code wherever the casadi engine runs a model of at most
+        :data:`~.backend.JIT_AUTO_MAX_SIZE` (200) unknowns and a C compiler is found, else casadi's
+        virtual machine (larger models' first compile takes minutes for little saved per solve);
+        ``stats["jit"]`` says which and why, once per solve
         (no warning).  Where the compiler fails, ``"auto"`` goes on on the virtual machine and says
-        so there, with the compiler's message.  ``True`` insists: an
+        so there, with the compiler's message, and does not try that model again in this process
+        (nor its pieces between events and breakpoints).  ``True`` insists: an
         :class:`~daemodel.errors.InvalidOptionError` without a compiler or on the torch engine, a
         :class:`~daemodel.errors.CompileError` where the compiler fails.  ``False``: the virtual
         machine, nothing compiled.

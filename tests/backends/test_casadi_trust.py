@@ -569,3 +569,56 @@ def test_idas_initial_slopes_are_exact_sparse_and_made_once(monkeypatch):
     at_fold = InitialStates(y0=np.zeros((1, 1)), z0=np.zeros((1, 1)), p=np.zeros((1, 0)), batched=False)
     ydot, zdot = idas.initial_slopes(folded, dae_of(folded), 0.0, at_fold)
     assert ydot[0, 0] == 1.0 and np.isnan(zdot[0, 0])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_idas_initial_slopes_match_finite_differences_of_the_constraints(seed):
+    """Random sparse index-1 models with a parameter, a batch of samples: z'(t0) from the sparse LU and
+    the directional derivative equals -g_z^-1 (g_t + g_y f) with g_z, g_y, g_t by central differences
+    of the constraints written here in numpy (an independent reference)."""
+    import sympy as sp
+    from daemodel.backends.casadi import idas
+    from daemodel.backends.casadi.plumbing import dae_of
+
+    from daemodel.compiling.initial_states import InitialStates
+
+    rng = np.random.default_rng(seed)
+    n, m = 3, 5
+    A, Bz, C = rng.normal(size=(n, n)), rng.normal(size=(n, m)), rng.normal(size=(m, n))
+    G = np.where(rng.random((m, m)) < 0.3, rng.normal(size=(m, m)), 0.0) + 4 * np.eye(m)
+    model = dm.Model(f"random{seed}")
+    ys, zs = model.states(" ".join(f"y{i}" for i in range(n))), model.algebraics(" ".join(f"z{i}" for i in range(m)))
+    k = model.parameter("k", 0.7)
+    for i in range(n):
+        model.ode(
+            ys[i],
+            sum(A[i, j] * ys[j] for j in range(n)) + sum(Bz[i, j] * zs[j] for j in range(m)) + sp.sin(k * model.t),
+        )
+    for i in range(m):
+        linear = sum(C[i, j] * ys[j] for j in range(n)) + sum(G[i, j] * zs[j] for j in range(m) if G[i, j])
+        model.constraint(linear + 0.1 * zs[i] ** 2 + k * model.t * (i + 1) + 0.2 * sp.sin(ys[i % n]) * zs[i])
+    model.initial(**{f"y{i}": 0.1 * (i + 1) for i in range(n)})
+    model.guess(**{f"z{i}": 0.0 for i in range(m)})
+    compiled = model.compile()
+
+    def f(t, y, z, p):
+        return A @ y + Bz @ z + np.sin(p * t)
+
+    def g(t, y, z, p):
+        return C @ y + G @ z + 0.1 * z**2 + p * t * np.arange(1, m + 1) + 0.2 * np.sin(y[np.arange(m) % n]) * z
+
+    def derivative(fun, x, eps=1e-6):  # (central differences, one column per unknown)
+        return np.stack([(fun(x + eps * e) - fun(x - eps * e)) / (2 * eps) for e in np.eye(x.size)], axis=-1)
+
+    B, t0 = 3, 0.4
+    y0, z0, p = rng.normal(size=(B, n)), 0.3 * rng.normal(size=(B, m)), rng.uniform(0.5, 2, size=(B, 1))
+    start = InitialStates(y0=y0, z0=z0, p=p, batched=True)
+    ydot, zdot = idas.initial_slopes(compiled, dae_of(compiled), t0, start)
+    for b in range(B):
+        y, z, k_ = y0[b], z0[b], p[b, 0]
+        slope = f(t0, y, z, k_)
+        g_z = derivative(lambda v, y=y, k_=k_: g(t0, y, v, k_), z)
+        g_y = derivative(lambda v, z=z, k_=k_: g(t0, v, z, k_), y)
+        g_t = derivative(lambda v, y=y, z=z, k_=k_: g(v[0], y, z, k_), np.array([t0]))[:, 0]
+        np.testing.assert_allclose(ydot[b], slope, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(zdot[b], -np.linalg.solve(g_z, g_t + g_y @ slope), rtol=1e-7, atol=1e-8)

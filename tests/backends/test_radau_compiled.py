@@ -142,6 +142,85 @@ def test_auto_says_which_code_ran_and_goes_on_where_the_compiler_fails(monkeypat
     assert none.stats["jit"] == "casadi's virtual machine: no C compiler on PATH (tried cc, gcc, clang)"
 
 
+def test_auto_tries_a_failing_compiler_once_per_model(monkeypatch, tmp_path):
+    """jit="auto" remembers a failed compile of a model for the process: a failing (or hanging: up to
+    10 minutes each) compiler was run again by every solve and by every piece between events; jit=True
+    still tries, and a model compiled anew is tried anew."""
+    from daemodel.problems import BOUNCING_BALL
+
+    runs = tmp_path / "runs"
+    failing = tmp_path / "cc"
+    failing.write_text(
+        f'#!/bin/sh\n[ "$1" = --version ] && exit 0\necho run >> {runs}\necho "cc: no licence" >&2\nexit 1\n'
+    )
+    failing.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    ball = BOUNCING_BALL.model().compile()
+    sol = dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert sol.stats["events"] >= 3 and sol.status == "success"
+    assert (
+        sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed")
+        and "no licence" in sol.stats["jit"]
+    )
+    assert runs.read_text().count("run") == 1  # (the first piece's; the pieces after each bounce remember it)
+    again = dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert again.stats["jit"] == sol.stats["jit"] + ", earlier in this process"
+    assert runs.read_text().count("run") == 1
+    for name in ball.state_names:
+        assert np.array_equal(again[name], sol[name]), name
+    with pytest.raises(E.CompileError, match=r"no licence"):
+        dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8, jit=True)
+    assert runs.read_text().count("run") == 2
+    dm.solve(BOUNCING_BALL.model().compile(), BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
+    assert runs.read_text().count("run") == 3
+
+
+@needs_compiler
+def test_stats_say_the_virtual_machine_where_nothing_was_compiled():
+    """Fixed steps on sparse systems (above 100 unknowns) compile nothing, even with jit=True: stats["jit"]
+    said "machine code" there, with no compiled_cache."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import scaling_models
+
+    sparse = scaling_models.reaction_diffusion(60).compile()  # 120 unknowns, sparse
+    sol = dm.solve(sparse, (0.0, 2e-3), h=1e-3, jit=True)
+    assert sol.stats["jit"].startswith("casadi's virtual machine: nothing to compile for this solve")
+    assert "compiled_cache" not in sol.stats
+    adaptive = dm.solve(sparse, (0.0, 2e-3), rtol=1e-6, atol=1e-6, jit=True)  # (static factors: compiled)
+    assert adaptive.stats["jit"] == f"machine code ({find_compiler()})" and "compiled_cache" in adaptive.stats
+
+
+@needs_compiler
+def test_auto_leaves_models_above_its_size_on_the_virtual_machine(monkeypatch):
+    """jit="auto" compiles up to JIT_AUTO_MAX_SIZE unknowns (the first compile of reaction-diffusion
+    took 16 s at 200 unknowns, 96 s at 1,000 for nothing saved; 10^5 would not finish): above it the
+    virtual machine, said in stats["jit"]; jit=True still compiles."""
+    import sys
+    from pathlib import Path
+
+    from daemodel.backends.radau import backend
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import scaling_models
+
+    large = scaling_models.reaction_diffusion(101).compile()  # 202 unknowns
+    sol = dm.solve(large, (0.0, 1e-3), rtol=1e-6, atol=1e-6)
+    assert sol.stats["jit"] == (
+        "casadi's virtual machine: 202 unknowns, above jit='auto''s 200 (compiling would take minutes for "
+        "little saved per solve; jit=True compiles at any size)"
+    )
+    assert "compiled_cache" not in sol.stats
+    compiled = PENDULUM.model().compile()  # (5 unknowns)
+    monkeypatch.setattr(backend, "JIT_AUTO_MAX_SIZE", 4)
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1).stats["jit"].startswith("casadi's virtual machine: 5 unknowns")
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1, jit=True).stats["jit"] == f"machine code ({find_compiler()})"
+    monkeypatch.setattr(backend, "JIT_AUTO_MAX_SIZE", 5)
+    assert dm.solve(compiled, (0.0, 1.0), h=0.1).stats["jit"] == f"machine code ({find_compiler()})"
+
+
 @needs_compiler
 def test_no_temporary_directory_is_a_compile_error(monkeypatch):
     import tempfile

@@ -23,8 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 
 
-def _engine(model):
-    """The casadi engine of ``model``'s first solve (its Jacobian pattern and static factors)."""
+def _engine(model, **options):
+    """The casadi engine of ``model``'s first solve (its Jacobian pattern and static factors), adaptive
+    unless ``options`` say otherwise."""
     engines = []
     original = CasadiEngine.__init__
 
@@ -35,7 +36,8 @@ def _engine(model):
     CasadiEngine.__init__ = keep
     try:
         compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)  # (its pattern: nothing to compile)
+        options = options or {"rtol": 1e-6, "atol": 1e-6}
+        dm.solve(compiled, (0.0, 1e-3), jit=False, **options)  # (its pattern: nothing to compile)
     finally:
         CasadiEngine.__init__ = original
     return compiled, engines[-1]
@@ -242,3 +244,40 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill():
     assert ("Newton matrices" in chain_parts) == dense_chain
     small = backend.memory_parts(scaling_models.reaction_diffusion(40).compile(), span, 1, options, "casadi")
     assert small == {"Newton matrices": 7 * 80**2 * 8}  # (80 unknowns: dense, LAPACK)
+
+
+def test_the_pattern_is_factored_for_the_memory_estimate_once_per_model(monkeypatch):
+    """The estimate's one LU of the pattern is made once per model (an adaptive solve made it twice: for
+    the guard, then again for the step records' budget; every solve, a fit's or an event's piece, again)."""
+    from daemodel.backends.radau import backend
+
+    compiled = scaling_models.reaction_diffusion(300).compile()  # 600 unknowns, sparse
+    made = []
+    monkeypatch.setattr(
+        backend, "factor_entries", lambda *args, count=backend.factor_entries: made.append(1) or count(*args)
+    )
+    sol = dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)
+    assert sol.status == "success" and len(made) == 1
+    again = dm.solve(compiled, (0.0, 1e-3), h=5e-4, jit=False)  # (and kept with the model: fits, events' pieces)
+    assert again.status == "success" and len(made) == 1
+
+
+def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system():
+    """A fixed step's full Newton (where simplified Newton fails, or from start_guess) factors the system
+    of s D unknowns, whose SuperLU fill is 2-6x s times one D-sized system's: the estimate counts it."""
+    from daemodel.backends.radau import backend
+
+    compiled, engine = _engine(scaling_models.reaction_diffusion(300), h=1e-3, stages=7)  # 600 unknowns, sparse
+    span = scaling_models.T_SPAN["reaction_diffusion"]
+    rows = casadi_engine.jacobian_pattern(compiled)[0]
+    values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    transformed = 0
+    for sigma in engine.transform.shifts(0.01):
+        lu = engine._factor_shift(values, sigma)[0][1]
+        transformed += (lu.L.nnz + lu.U.nnz) * 16
+    stage = engine.factor_stages([values] * 7, 0.01).lu[1]
+    full = (stage.L.nnz + stage.U.nnz) * 8  # (real: the stages' system of 4,200 unknowns)
+    fixed = backend.memory_parts(compiled, span, 1, backend.RadauOptions(h=0.01, stages=7), "casadi")[
+        "Newton matrices (sparse)"
+    ]
+    assert transformed + full <= fixed <= 3 * (transformed + full + rows.size * 8 * 13)
