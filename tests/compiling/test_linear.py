@@ -10,7 +10,8 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.compiling.init import solve_algebraic
+from daemodel.compiling.init import initialise, solve_algebraic
+from daemodel.compiling.initial_states import initial_states
 from daemodel.compiling.linear import DENSE_FALLBACK_MAX, SPARSE_MIN_SIZE, SparseStack, factor
 from daemodel.compiling.structure import DENSE_RANK_MAX, check_rank
 
@@ -127,15 +128,31 @@ def _grid(K: int) -> dm.Model:
 
 
 def test_initialise_at_large_m_without_a_dense_jacobian():
+    """z0 exact; initialisation again (its functions made) and a batch of initial states: their
+    memory peaks far below one dense m x m (32 MB)."""
     K = 2000
     model = _grid(K)
-    tracemalloc.start()
     compiled = model.compile()
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    assert peak < K * K * 8 / 4  # a dense m x m alone would be 32 MB
     c = np.sin(np.pi * np.arange(1, K + 1) / (K + 1))
     np.testing.assert_allclose(compiled.z0, c**2 / (1 + c), rtol=1e-14, atol=0)
+    p = np.array([model.parameter_values[q.name] for q in compiled.parameters], dtype=float)
+    initial_states(compiled, y0=c)  # (its functions made)
+    tracemalloc.start()
+    values = initialise(
+        compiled.numeric,
+        list(compiled.constraints),
+        [],
+        compiled.t0,
+        dict(zip(compiled.state_names, compiled.y0)),
+        p,
+        False,
+    )
+    states = initial_states(compiled, y0=np.stack([c, 0.5 * c]))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < K * K * 8 / 20
+    np.testing.assert_array_equal(values.z0, compiled.z0)
+    np.testing.assert_allclose(states.z0, [c**2 / (1 + c), (c / 2) ** 2 / (1 + c / 2)], rtol=1e-14, atol=0)
 
 
 def test_singular_initial_jacobian_at_large_m_is_named():
