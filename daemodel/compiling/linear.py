@@ -21,10 +21,12 @@ import scipy.sparse.linalg
 # the rank check and Newton's dense linear solves: a dense SVD or LU is O(m^3), the blocks of a
 # sparse system cost next to nothing.  Smaller ones are factored whole (microseconds either way).
 BLOCK_MIN_SIZE = 16
-# From this many algebraic unknowns on, Newton's Jacobian is a SparseStack: measured on
-# reaction-diffusion (benchmarks of commit "sparse algebraic Newton"), the dense path's
-# (B, m, m) scatter and block split cost ~equal the per-sample sparse LU at m ~ 150 and grow as
-# m^2 (7.8 s at m = 15,000); below it the dense path keeps today's bits.
+# From this many algebraic unknowns on, Newton's Jacobian is a SparseStack.  Measured on the
+# reaction-diffusion grid (solve_algebraic from zero, one sample and 16): the dense path (its
+# (B, m, m) scatter, block split and solves) and the per-sample sparse LU are even at m ~ 100-150
+# (1.2 vs 1.3 ms at m = 50, 3.2 vs 2.3 ms at 200, 30 vs 18 ms at 1,000; 16 samples: 1.9 vs 7.4 ms at
+# 50, 302 vs 43 ms at 1,000), and the dense one grows as m^2 in memory; below it the dense path
+# keeps today's bits.
 SPARSE_MIN_SIZE = 200
 # A singular sparse Jacobian up to this size gets the dense pseudo-inverse step (the dense
 # path's step, 32 MB at most); larger ones a least-squares step by LSQR.
