@@ -11,7 +11,8 @@ For each constraint ``0 = g`` we build its *derivative chain*: ``h_0 = g``, and 
 The last element of each chain is the equation that determines z; the earlier ones are
 (hidden) constraints on y.  Stacking the determining equations gives the iteration matrix
 ``H_z``; it must be nonsingular, which is checked structurally (a perfect matching between
-constraints and algebraic variables) and numerically (singular values at the initial point).
+constraints and algebraic variables) and numerically (singular values at the initial point; for a
+large sparse ``H_z`` its sparse LU and a condition estimate, see :func:`check_rank`).
 """
 
 from __future__ import annotations
@@ -399,13 +400,16 @@ def _check_sparse_blocks(jacobian, constraints, algebraics, t0: float) -> None:
 
 def _name_block(jacobian, rows, cols, constraints, algebraics, t0: float) -> None:
     """Raise the :class:`SingularSystemError` of the block ``rows x cols`` of a large sparse ``H_z``
-    when its sparse LU finds it singular: by its null vectors when it is small enough to take dense,
-    else by its rows and columns."""
+    when it is singular: by its null vectors (:func:`check_rank`) when it is small enough to take
+    dense, else by its rows and columns where its sparse LU's condition estimate exceeds
+    ``m / RANK_RTOL``."""
     block = jacobian.tocsr()[rows][:, cols]
-    if len(rows) == len(cols) and factor(block)[1] * RANK_RTOL < 1:
-        return
     if len(rows) <= DENSE_RANK_MAX and len(rows) == len(cols):
         check_rank(block.toarray(), [constraints[i] for i in rows], [algebraics[j] for j in cols], t0)
+        return
+    # the 1-norm condition is at most m times the 2-norm one (the dense check's): named only where
+    # the block is singular by the dense check's measure too
+    if len(rows) == len(cols) and factor(block)[1] * RANK_RTOL <= len(rows):
         return
     names = ", ".join(constraints[i].label for i in rows[:NAMED_MAX])
     variables = ", ".join(repr(algebraics[j].name) for j in cols[:NAMED_MAX])
