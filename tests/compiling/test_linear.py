@@ -56,7 +56,7 @@ def test_sparse_newton_finds_the_dense_root(m):
 
 
 def test_sparse_stack_products_match_dense():
-    F, dense, sparse = _chain(50, B=2)
+    _, dense, sparse = _chain(50, B=2)
     x = np.random.default_rng(1).normal(size=(2, 50))
     J = dense(x)
     np.testing.assert_allclose(sparse(x).abs_product(x), np.einsum("bij,bj->bi", np.abs(J), np.abs(x)), rtol=1e-15)
@@ -143,7 +143,7 @@ def test_initialise_at_large_m_without_a_dense_jacobian():
         list(compiled.constraints),
         [],
         compiled.t0,
-        dict(zip(compiled.state_names, compiled.y0)),
+        dict(zip(compiled.state_names, compiled.y0, strict=True)),
         p,
         False,
     )
