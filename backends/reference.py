@@ -44,6 +44,7 @@ from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, ou
 from daemodel.backends.progress import ProgressWatch
 
 from daemodel.compiling.init import NewtonTolerances, NumericSystem, jacobian_entries, solve_algebraic
+from daemodel.compiling.linear import SPARSE_MIN_SIZE
 from daemodel.dense import Restarts
 from daemodel.errors import BranchError, ConvergenceError, InvalidOptionError, StepLimitError
 
@@ -202,6 +203,12 @@ class AlgebraicSolver:
         determining = [c.determining for c in compiled.constraints]
         self.H = numeric.function(determining)
         self.Hz = numeric.jacobian(determining, compiled.algebraics)
+        # Newton's Jacobian: the dense one above, or its sparse nonzeros for large m (no dense m x m)
+        if len(compiled.algebraics) >= SPARSE_MIN_SIZE:
+            sparse = numeric.newton_jacobian(determining, compiled.algebraics)
+            self.newton_Hz = lambda t, y, x, p: sparse(t, y[None], x, p[None])
+        else:
+            self.newton_Hz = lambda t, y, x, p: self.Hz(t, y, x[0], p)[None]
         self.Ht = numeric.jacobian(determining, (compiled.t,))
         self.Hy = numeric.jacobian(determining, compiled.states)
         # Linear in z (H_z free of z, as in mechanics): one Newton step is exact but for rounding,
@@ -234,7 +241,7 @@ class AlgebraicSolver:
             return z
         result = solve_algebraic(
             lambda x: self.H(t, y, x[0], p)[None, :],
-            lambda x: self.Hz(t, y, x[0], p)[None],
+            lambda x: self.newton_Hz(t, y, x, p),
             z[None, :],
             self.tolerances,
         )

@@ -511,7 +511,7 @@ class Solution:
         z = (1 - s) * left[..., n:] + s * right[..., n:]
         if m:
             determining = [constraint.determining for constraint in c.constraints]
-            H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, c.algebraics)
+            H, Hz = numeric.batch_function(determining), numeric.newton_jacobian(determining, c.algebraics)
             rows_t, rows_y = np.tile(times, B), y.reshape(B * K, n)
             result = solve_algebraic(
                 lambda x: H(rows_t, rows_y, x, rows_p), lambda x: Hz(rows_t, rows_y, x, rows_p), z.reshape(B * K, m)

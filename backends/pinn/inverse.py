@@ -165,7 +165,7 @@ class _Problem:
     def at_parameters(self, q: torch.Tensor, z_guess: np.ndarray) -> None:
         """z0 at the parameters of ``q`` (the compiler's algebraic solve) and dz0/dq (implicit
         differentiation of its determining equations H(t0, y0, z0, p) = 0)."""
-        from daemodel.compiling.initial_states import algebraic_values, constraint_checks
+        from daemodel.compiling.initial_states import algebraic_values
 
         p = self.parameters(q).detach().numpy()[None]
         y0 = self.y0.numpy()
@@ -174,10 +174,9 @@ class _Problem:
             return
         t0 = float(self.grid[0])
         z0 = algebraic_values(self.compiled, t0, y0, p, np.asarray(z_guess, dtype=float).reshape(1, -1))
-        checks = constraint_checks(self.compiled)
         determining = [c.determining for c in self.compiled.constraints]
         Hp = self.compiled.numeric.batch_jacobian(determining, self.compiled.parameters)(t0, y0, z0, p)[0]
-        Hz = checks.Hz(t0, y0, z0, p)[0]
+        Hz = self.compiled.numeric.batch_jacobian(determining, self.compiled.algebraics)(t0, y0, z0, p)[0]
         dz_dp = -np.linalg.solve(Hz, Hp[:, self.indices])  # (m, fitted)
         with torch.enable_grad():
             qq = q.detach().clone().requires_grad_()

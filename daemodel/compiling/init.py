@@ -17,7 +17,8 @@ import numpy as np
 import sympy as sp
 from sympy.printing.numpy import SciPyPrinter
 
-from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
+from daemodel.compiling.linear import SPARSE_MIN_SIZE, SparseStack, least_squares
+from daemodel.compiling.structure import Differentiator, check_rank
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
     InconsistentInitialStateError,
@@ -237,6 +238,24 @@ class NumericSystem:
         values = self.batch_function(entries)
         return rows, cols, values
 
+    def newton_jacobian(self, exprs, wrt):
+        """Return ``J(t, Y, Z, P)`` for :func:`solve_algebraic`: :meth:`batch_jacobian`'s dense
+        ndarray (B, len(exprs), len(wrt)) below :data:`~daemodel.compiling.linear.SPARSE_MIN_SIZE`
+        columns, a :class:`~daemodel.compiling.linear.SparseStack` of the structural nonzeros from
+        there on (no dense m x m is made)."""
+        if len(wrt) < SPARSE_MIN_SIZE:
+            return self.batch_jacobian(exprs, wrt)
+        return self._once("newton_jacobian", exprs, wrt, lambda: self._make_sparse_jacobian(exprs, wrt))
+
+    def _make_sparse_jacobian(self, exprs, wrt):
+        rows, cols, values = self.batch_jacobian_entries(exprs, wrt)
+        size = len(wrt)
+
+        def evaluate(t, Y, Z, P):
+            return SparseStack(rows, cols, values(t, Y, Z, P).reshape(len(Y), len(rows)), size)
+
+        return evaluate
+
     def _make_batch_jacobian(self, exprs, wrt):
         shape = (len(exprs), len(wrt))
         rows, cols, entries = jacobian_entries(exprs, wrt, self.calculus)
@@ -403,13 +422,17 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
     Parameters
     ----------
     F : callable (B, m) -> (B, m)
-    J : callable (B, m) -> (B, m, m)
+    J : callable (B, m) -> ndarray (B, m, m) or SparseStack
+        A :class:`~daemodel.compiling.linear.SparseStack` (large m,
+        :meth:`NumericSystem.newton_jacobian`) is factored sample by sample with a sparse LU, and
+        no dense m x m is made.
     x0 : ndarray, shape (B, m)
         Starting values: they select the root (the branch) among several.
     tolerances : NewtonTolerances
 
     Each step is the least-squares solution of ``J dx = -F`` (well defined where J is singular;
-    the caller checks the rank), halved per sample until ``|F|`` does not grow (at most
+    the caller checks the rank; :func:`~daemodel.compiling.linear.least_squares` or
+    :meth:`~daemodel.compiling.linear.SparseStack.solve`), halved per sample until ``|F|`` does not grow (at most
     ``DAMPING_HALVINGS`` times).
     """
     x = np.array(x0, dtype=float, copy=True)
@@ -430,8 +453,10 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
             # without copies)
             rows = slice(None) if active.all() else np.flatnonzero(active)
             xa, ra = x[rows], r[rows]
-            Ja = J(x)[rows]
-            dx = _least_squares(Ja, -ra)
+            Ja = J(x)
+            sparse = isinstance(Ja, SparseStack)
+            Ja = Ja.take(rows) if sparse else Ja[rows]
+            dx = Ja.solve(-ra) if sparse else least_squares(Ja, -ra)
             norm = np.sqrt(np.einsum("bi,bi->b", ra, ra))
             step = np.ones(len(xa))
             trial = x.copy()
@@ -459,9 +484,8 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
             stalled = (theta > tolerances.stall_rate) & (size <= tolerances.stall_step * scale)
             candidate = (error <= tolerances.step * scale) | stalled
             if candidate.any():  # (the residual's bound only where the steps have settled)
-                bound = tolerances.residual * (
-                    1 + np.maximum((scale - 1)[:, None], np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa)))
-                )
+                scaled = Ja.abs_product(xa) if sparse else np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa))
+                bound = tolerances.residual * (1 + np.maximum((scale - 1)[:, None], scaled))
                 settled[rows] = candidate & (np.abs(r_new) <= bound).all(axis=1)
             previous[rows] = size
         fine = np.isfinite(r).all(axis=1) & np.isfinite(x).all(axis=1)
@@ -470,47 +494,19 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
         if not converged.all():
             failed = ~converged & np.isfinite(x).all(axis=1)
             if failed.any():
-                Jf = J(x)[failed]
-                finite = np.isfinite(Jf).all(axis=(1, 2))
-                rank = np.zeros(len(Jf), dtype=int)
-                if finite.any():
-                    rank[finite] = np.linalg.matrix_rank(Jf[finite])
-                singular[failed] = finite & (rank < m)
+                Jf = J(x)
+                if isinstance(Jf, SparseStack):
+                    Jf = Jf.take(failed)
+                    finite = Jf.finite()
+                    singular[failed] = finite & Jf.singular()
+                else:
+                    Jf = Jf[failed]
+                    finite = np.isfinite(Jf).all(axis=(1, 2))
+                    rank = np.zeros(len(Jf), dtype=int)
+                    if finite.any():
+                        rank[finite] = np.linalg.matrix_rank(Jf[finite])
+                    singular[failed] = finite & (rank < m)
     return AlgebraicSolve(x, r, converged, singular, iterations)
-
-
-def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Least-squares solutions of ``A[i] x = b[i]`` for a stack; finite garbage never arises
-    from a singular A (the pseudo-inverse's minimum-norm step is used).  Large sparse systems
-    are solved block by block (:func:`~daemodel.compiling.structure.square_blocks`)."""
-    if A.shape[-1] >= BLOCK_MIN_SIZE:
-        out = _block_solve(A, b)
-        if out is not None:
-            return out
-    try:
-        out = np.linalg.solve(A, b[..., None])[..., 0]
-        if np.isfinite(out).all():
-            return out
-    except np.linalg.LinAlgError:
-        pass
-    return np.einsum("bij,bj->bi", np.linalg.pinv(A), b)
-
-
-def _block_solve(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-    """``A[i] x = b[i]`` solved on the independent blocks of the stack's joint nonzero pattern;
-    None where a block is not square, singular or gives a non-finite solution (the caller then
-    takes the whole-matrix path)."""
-    groups = square_blocks((A != 0).any(axis=0))
-    if groups is None:
-        return None
-    out = np.empty_like(b)
-    try:
-        for rows, cols in groups:
-            blocks = A[:, rows[:, :, None], cols[:, None, :]]  # (B, blocks, k, k)
-            out[:, cols] = np.linalg.solve(blocks, b[:, rows][..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return None
-    return out if np.isfinite(out).all() else None
 
 
 def _guess(symbols, values) -> str:
@@ -585,7 +581,7 @@ def initialise(
         y0 = y_new
 
     determining = [c.determining for c in constraints]
-    H, Hz = numeric.batch_function(determining), numeric.batch_jacobian(determining, numeric.z)
+    H, Hz = numeric.batch_function(determining), numeric.newton_jacobian(determining, numeric.z)
     # the guess selects the branch of roots; a given value without a guess starts Newton too (a
     # claim that is a root is then its own nearest root), and is checked below either way
     guess = np.array([[guesses.get(z.name, given.get(z.name, 0.0)) for z in numeric.z]], dtype=float)
@@ -593,7 +589,8 @@ def initialise(
     result = solve_algebraic(lambda Z: H(t0, Y, Z, P), lambda Z: Hz(t0, Y, Z, P), guess)
     z0, residual = result.x[0], result.residual[0]
     with np.errstate(all="ignore"):
-        jacobian = Hz(t0, Y, result.x, P)[0]
+        jacobian = Hz(t0, Y, result.x, P)
+        jacobian = jacobian.matrix(0) if isinstance(jacobian, SparseStack) else jacobian[0]
     try:
         check_rank(jacobian, constraints, numeric.z, t0)  # a singular H_z explains a failed Newton
     except SingularSystemError as error:
@@ -668,11 +665,14 @@ def _check_branch_claim(numeric, H, Hz, t0, Y, P, z0, claimed: dict) -> None:
     )
 
 
-def is_root(residual: np.ndarray, jacobian: np.ndarray, Z: np.ndarray) -> np.ndarray:
+def is_root(residual: np.ndarray, jacobian, Z: np.ndarray) -> np.ndarray:
     """``(B,)`` whether the residuals (B, m) of ``Z`` (B, m) are within Newton's residual bound
-    (:class:`NewtonTolerances`), with the Jacobian (B, m, m) at ``Z`` for its scale."""
+    (:class:`NewtonTolerances`), with the Jacobian at ``Z`` (ndarray (B, m, m) or SparseStack)
+    for its scale."""
     with np.errstate(all="ignore"):
-        scale = 1 + np.maximum(
-            np.max(np.abs(Z), axis=1, initial=0.0)[:, None], np.einsum("bij,bj->bi", np.abs(jacobian), np.abs(Z))
-        )
+        if isinstance(jacobian, SparseStack):
+            scaled = jacobian.abs_product(Z)
+        else:
+            scaled = np.einsum("bij,bj->bi", np.abs(jacobian), np.abs(Z))
+        scale = 1 + np.maximum(np.max(np.abs(Z), axis=1, initial=0.0)[:, None], scaled)
         return np.all(np.abs(residual) <= NEWTON_RESIDUAL_TOL * scale, axis=1)

@@ -209,8 +209,9 @@ class _Checks:
     residual : callable (t, Y, Z, P) -> (B, len(hidden))
     H : callable (t, Y, Z, P) -> (B, m)
         The determining equations.
-    Hz : callable (t, Y, Z, P) -> (B, m, m)
-        Their Jacobian in z.
+    Hz : callable (t, Y, Z, P) -> ndarray (B, m, m) or SparseStack
+        Their Jacobian in z (:meth:`~daemodel.compiling.init.NumericSystem.newton_jacobian`: sparse
+        for large m).
     """
 
     numeric: NumericSystem
@@ -234,7 +235,7 @@ def constraint_checks(compiled) -> _Checks:
             hidden=hidden,
             residual=numeric.batch_function([e for _, _, e in hidden]),
             H=numeric.batch_function(determining),
-            Hz=numeric.batch_jacobian(determining, compiled.algebraics),
+            Hz=numeric.newton_jacobian(determining, compiled.algebraics),
         )
 
     return compiled.cached("initial_states", build)

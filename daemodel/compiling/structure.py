@@ -11,7 +11,8 @@ For each constraint ``0 = g`` we build its *derivative chain*: ``h_0 = g``, and 
 The last element of each chain is the equation that determines z; the earlier ones are
 (hidden) constraints on y.  Stacking the determining equations gives the iteration matrix
 ``H_z``; it must be nonsingular, which is checked structurally (a perfect matching between
-constraints and algebraic variables) and numerically (singular values at the initial point).
+constraints and algebraic variables) and numerically (singular values at the initial point; for a
+large sparse ``H_z`` its sparse LU and a condition estimate, see :func:`check_rank`).
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse
-import scipy.sparse.csgraph
 import sympy as sp
 
+from daemodel.compiling.linear import BLOCK_MIN_SIZE, factor, square_blocks
 from daemodel.compiling.zero_test import is_zero
 from daemodel.errors import IndexTooHighError, SingularSystemError, UnsupportedFunctionError
 from daemodel.messages import clip
@@ -33,10 +34,12 @@ MAX_INDEX = 3  # Hessenberg index 3 is the highest form the compiler recognises.
 RANK_RTOL = 1e-10
 
 ITERATION_MATRIX = {1: "g_z", 2: "g_y f_z", 3: "g_y f_y f_z"}
-# Iteration matrices of at least this size are split into their independent square blocks for
-# the rank check and Newton's linear solves: a dense SVD or LU is O(m^3), the blocks of a sparse
-# system cost next to nothing.  Smaller ones are factored whole (microseconds either way).
-BLOCK_MIN_SIZE = 16
+# A sparse iteration matrix found singular is taken dense to name its culprits (singular vectors)
+# up to this size (an SVD of 2,000^2 takes a second and 32 MB); a larger one, or a larger block of
+# it, is named by its rows and columns.
+DENSE_RANK_MAX = 2000
+# Constraints and variables listed by name in the message about a large singular block.
+NAMED_MAX = 12
 
 
 @dataclass(frozen=True)
@@ -311,14 +314,29 @@ def match(constraints, algebraics, calculus: Differentiator | None = None) -> li
     )
 
 
-def check_rank(jacobian: np.ndarray, constraints, algebraics, t0: float) -> None:
+def check_rank(jacobian, constraints, algebraics, t0: float) -> None:
     """Numeric rank check of the iteration matrix ``H_z`` at the initial point.
+
+    ``jacobian`` is a dense ndarray (m, m) or a scipy.sparse matrix.  A sparse one passes on its
+    sparse LU with a condition estimate below ``1 / RANK_RTOL`` (no dense m x m); one that fails
+    is taken dense to name its culprits when m <= :data:`DENSE_RANK_MAX`, else split into its
+    independent blocks and the singular block is named (dense within it when it is small enough).
 
     Raises
     ------
     SingularSystemError
         Naming the constraints (left null vector) and variables (right null vector) involved.
     """
+    if scipy.sparse.issparse(jacobian):
+        jacobian = scipy.sparse.csc_matrix(jacobian)
+        if jacobian.shape[0] == 0 or not np.all(np.isfinite(jacobian.data)):
+            return  # nothing to judge; a non-finite Jacobian is reported as a failed Newton
+        if factor(jacobian)[1] * RANK_RTOL < 1:
+            return
+        if jacobian.shape[0] > DENSE_RANK_MAX:
+            _check_sparse_blocks(jacobian, constraints, algebraics, t0)
+            return
+        jacobian = jacobian.toarray()
     if jacobian.size == 0 or not np.all(np.isfinite(jacobian)):
         return  # nothing to judge; a non-finite Jacobian is reported as a failed Newton
     if len(jacobian) >= BLOCK_MIN_SIZE:
@@ -348,38 +366,58 @@ def check_rank(jacobian: np.ndarray, constraints, algebraics, t0: float) -> None
     )
 
 
-def square_blocks(pattern: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]] | None:
-    """The independent diagonal blocks of a square matrix with nonzero ``pattern``, grouped by size.
+def _check_sparse_blocks(jacobian, constraints, algebraics, t0: float) -> None:
+    """The rank check of a large sparse ``H_z`` (CSC) that its whole LU found (nearly) singular:
+    each independent block is factored, and the first singular one is named, by its null vectors
+    (:func:`check_rank` on the dense block) when it has at most :data:`DENSE_RANK_MAX` rows, else
+    by its rows and columns."""
+    groups = square_blocks(jacobian)
+    if groups is None:  # structurally singular: the whole matrix is the block to name
+        _name_block(jacobian, np.arange(jacobian.shape[0]), np.arange(jacobian.shape[1]), constraints, algebraics, t0)
+        return
+    coo = jacobian.tocoo()
+    for rows, cols in groups:
+        blocks, k = rows.shape
+        if blocks * k * k <= DENSE_RANK_MAX**2:  # the blocks of this size as one dense stack
+            block_of, row_in, col_in = (
+                np.full(len(constraints), -1),
+                np.zeros(len(constraints), dtype=int),
+                np.zeros(len(algebraics), dtype=int),
+            )
+            block_of[rows] = np.arange(blocks)[:, None]
+            row_in[rows], col_in[cols] = np.arange(k)[None, :], np.arange(k)[None, :]
+            inside = block_of[coo.row] >= 0
+            stack = np.zeros((blocks, k, k))
+            stack[block_of[coo.row[inside]], row_in[coo.row[inside]], col_in[coo.col[inside]]] = coo.data[inside]
+            sigma = np.linalg.svd(stack, compute_uv=False)
+            ratio = sigma[:, -1] / np.maximum(sigma[:, 0], np.finfo(float).tiny)
+            for b in np.flatnonzero(ratio <= RANK_RTOL):
+                check_rank(stack[b], [constraints[i] for i in rows[b]], [algebraics[j] for j in cols[b]], t0)
+            continue
+        for r, c in zip(rows, cols, strict=True):
+            _name_block(jacobian, r, c, constraints, algebraics, t0)
 
-    Rows and columns are linked where an entry is nonzero; each connected set of rows and
-    columns is one block, and the matrix is block diagonal after permuting them.
 
-    Parameters
-    ----------
-    pattern : ndarray of bool, shape (m, m)
-
-    Returns
-    -------
-    list of (rows, cols), or None
-        For each block size k, ``rows`` and ``cols`` of shape (blocks, k): the row and column
-        indices of every block of that size.  None when a block is not square (then the matrix
-        is singular, whatever its values).
-    """
-    m = len(pattern)
-    i, j = np.nonzero(pattern)
-    graph = scipy.sparse.coo_matrix((np.ones(len(i)), (i, m + j)), shape=(2 * m, 2 * m))
-    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
-    row_labels, col_labels = labels[:m], labels[m:]
-    row_order, col_order = np.argsort(row_labels, kind="stable"), np.argsort(col_labels, kind="stable")
-    row_counts = np.bincount(row_labels, minlength=labels.max() + 1)
-    col_counts = np.bincount(col_labels, minlength=labels.max() + 1)
-    if not np.array_equal(row_counts, col_counts):
-        return None
-    # blocks of one size side by side: rows sorted by label, then split into equal chunks
-    starts = np.concatenate([[0], np.cumsum(row_counts)[:-1]])
-    groups = []
-    for k in np.unique(row_counts[row_counts > 0]):
-        first = starts[row_counts == k]
-        take = first[:, None] + np.arange(k)[None, :]
-        groups.append((row_order[take], col_order[take]))
-    return groups
+def _name_block(jacobian, rows, cols, constraints, algebraics, t0: float) -> None:
+    """Raise the :class:`SingularSystemError` of the block ``rows x cols`` of a large sparse ``H_z``
+    when it is singular: by its null vectors (:func:`check_rank`) when it is small enough to take
+    dense, else by its rows and columns where its sparse LU's condition estimate exceeds
+    ``m / RANK_RTOL``."""
+    block = jacobian.tocsr()[rows][:, cols]
+    if len(rows) <= DENSE_RANK_MAX and len(rows) == len(cols):
+        check_rank(block.toarray(), [constraints[i] for i in rows], [algebraics[j] for j in cols], t0)
+        return
+    # the 1-norm condition is at most m times the 2-norm one (the dense check's): named only where
+    # the block is singular by the dense check's measure too
+    if len(rows) == len(cols) and factor(block)[1] * RANK_RTOL <= len(rows):
+        return
+    names = ", ".join(constraints[i].label for i in rows[:NAMED_MAX])
+    variables = ", ".join(repr(algebraics[j].name) for j in cols[:NAMED_MAX])
+    more = f" (of {len(rows)}; the first {NAMED_MAX} listed)" if len(rows) > NAMED_MAX else ""
+    forms = sorted({ITERATION_MATRIX[constraints[i].index] for i in rows})
+    raise SingularSystemError(
+        f"the constraint(s) {names}{more} do not determine the algebraic variable(s) {variables}: "
+        f"{' / '.join(forms)} is singular at t={t0:g} at the initial point (its sparse LU meets a zero "
+        f"or negligible pivot in a coupled block of {len(rows)} equations, too large to name the "
+        "culprits by singular vectors)"
+    )

@@ -5,11 +5,12 @@ import math
 import numpy as np
 import pytest
 import sympy as sp
-from daemodel.backends.reference import STIFF_STEPS, StiffnessDetector
+from daemodel.backends.reference import STIFF_STEPS, AlgebraicSolver, StiffnessDetector
 from scipy.integrate import DOP853
 
 import daemodel as dm
 from daemodel import errors as E
+from daemodel.compiling.linear import SPARSE_MIN_SIZE, SparseStack
 from daemodel.problems import HESSENBERG, PENDULUM, ROBERTSON
 
 # Robertson's kinetics at t = 40 (Hairer & Wanner II, Sec. IV.10); scipy's Radau, BDF and LSODA at
@@ -267,3 +268,26 @@ def test_an_endless_span_stops_early_instead_of_spending_max_steps():
         r"\d+ left\), stopped early at t = .* before t1 = 1e\+300",
     ):
         dm.solve(PENDULUM.model(), (0.0, 1e300), method="reference")
+
+
+def test_reference_solves_large_algebraic_systems_sparse():
+    """At SPARSE_MIN_SIZE algebraic variables the reference's Newton for z takes the sparse
+    Jacobian (no dense m x m), and z is the exact root w = c^2 / (1 + c) at every output."""
+    K = SPARSE_MIN_SIZE
+    model = dm.Model("grid")
+    c = model.states([f"c{k}" for k in range(K)])
+    w = model.algebraics([f"w{k}" for k in range(K)])
+    padded = (0, *c, 0)
+    for k in range(K):
+        model.ode(c[k], (padded[k] - 2 * padded[k + 1] + padded[k + 2]) * (K + 1) ** 2 / 10 - w[k])
+        model.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
+    model.initial(**{f"c{k}": np.sin(np.pi * (k + 1) / (K + 1)) for k in range(K)})
+    compiled = model.compile()
+    solver = AlgebraicSolver(compiled, compiled.numeric, 10)
+    J = solver.newton_Hz(0.0, compiled.y0, compiled.z0[None], np.zeros(0))
+    assert isinstance(J, SparseStack) and len(J.rows) == K
+    sol = dm.solve(compiled, (0.0, 1e-3), method="reference")
+    assert sol.status == "success"
+    for k in (0, K // 2, K - 1):
+        ck = sol[f"c{k}"]
+        np.testing.assert_allclose(sol[f"w{k}"], ck**2 / (1 + ck), rtol=1e-12, atol=1e-15)

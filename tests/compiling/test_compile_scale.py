@@ -2,7 +2,7 @@
 as the dense ones, checked against independent computations (numpy, closed forms, sympy's diff).
 
 Sizes are chosen so that the sparse paths are taken (algebraic blocks of at least
-``structure.BLOCK_MIN_SIZE``); the tests check numbers and messages, never timings.
+``linear.BLOCK_MIN_SIZE``); the tests check numbers and messages, never timings.
 """
 
 import numpy as np
@@ -11,9 +11,10 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.compiling.init import NumericSystem, _least_squares, jacobian_entries
+from daemodel.compiling.init import NumericSystem, jacobian_entries
 from daemodel.compiling.initial_states import initial_states
-from daemodel.compiling.structure import BLOCK_MIN_SIZE, Differentiator, check_rank, square_blocks
+from daemodel.compiling.linear import BLOCK_MIN_SIZE, least_squares, square_blocks
+from daemodel.compiling.structure import Differentiator, check_rank
 from daemodel.compiling.zero_test import is_zero
 
 GRAVITY = 9.81
@@ -314,12 +315,12 @@ def test_block_solve_and_rank_check_agree_with_dense():
     )
     np.testing.assert_allclose(np.sort(sigma), np.sort(np.linalg.svd(A, compute_uv=False)), rtol=1e-12)
     stack, b = np.stack([A, A.T @ A, 2 * A]), rng.normal(size=(3, len(A)))
-    x_blocks = _least_squares(stack, b)
+    x_blocks = least_squares(stack, b)
     np.testing.assert_allclose(x_blocks, np.linalg.solve(stack, b[..., None])[..., 0], rtol=1e-10, atol=1e-12)
     singular = A.copy()
     singular[:, np.flatnonzero(singular[5])[0]] = 0.0  # a zero column: no square block holds it
     assert square_blocks(singular != 0) is None
-    x_singular = _least_squares(singular[None], b[:1])  # the pseudo-inverse path
+    x_singular = least_squares(singular[None], b[:1])  # the pseudo-inverse path
     np.testing.assert_allclose(x_singular, (np.linalg.pinv(singular) @ b[0])[None], atol=1e-10)
     symbols = [sp.Symbol(f"w{j}") for j in range(len(A))]
 
