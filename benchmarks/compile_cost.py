@@ -5,7 +5,7 @@ For each problem (the Test Set problems of ``benchmarks/radau_idas.py`` and its 
 ``rtol = atol = --rtol``, over the problem's ``t_span``:
 
 * **first compile**: ``setup_time`` of the first solve in a fresh process with an empty cache folder
-  (``DAEMODEL_CACHE`` a new temporary folder; ``stats["compiled_cache"]`` must say ``"miss"``), and
+  (``DAEMODEL_CACHE`` a new temporary folder; ``stats["compiled_cache"]``, recorded, says ``"miss"``), and
   the same process's ``setup_time`` with ``jit=False`` on a fresh compile of the model (what the
   virtual machine's setup costs anyway);
 * **cached load**: ``setup_time`` of the first solve in a second process on the same folder
@@ -93,24 +93,33 @@ def run_worker(spec: dict) -> None:
     Path(spec["out"]).write_text(json.dumps(record))
 
 
+def run_phase(problem: str, rtol: float, repeats: int, phase: str, folder: str) -> tuple[dict, str | None]:
+    """One worker process of ``problem``: its record, and what went wrong (None: nothing)."""
+    spec = {"problem": problem, "rtol": rtol, "repeats": repeats, "phase": phase, "out": f"{folder}/{phase}.json"}
+    record, code, _ = scaling.run_worker_process(__file__, spec, WORKER_LIMIT)
+    if code != 0 or not record:
+        return record, f"the {phase} process " + ("timed out" if code is None else f"exited with {code}")
+    return record, None
+
+
 def measure(problem: str, rtol: float, repeats: int) -> dict:
     """Both processes of ``problem`` on one fresh cache folder; the entry of the JSON file."""
     entry = {"problem": problem}
+    before = os.environ.get("DAEMODEL_CACHE")
     with tempfile.TemporaryDirectory() as folder:
-        os.environ["DAEMODEL_CACHE"] = str(Path(folder) / "cache")
-        for phase in ("first", "cached"):
-            spec = {
-                "problem": problem,
-                "rtol": rtol,
-                "repeats": repeats,
-                "phase": phase,
-                "out": f"{folder}/{phase}.json",
-            }
-            record, code, _ = scaling.run_worker_process(__file__, spec, WORKER_LIMIT)
-            if code != 0 or not record:
-                entry["message"] = f"the {phase} process " + ("timed out" if code is None else f"exited with {code}")
-                return entry
-            entry[phase] = record
+        os.environ["DAEMODEL_CACHE"] = str(Path(folder) / "cache")  # (the workers' cache; restored below)
+        try:
+            records = [run_phase(problem, rtol, repeats, phase, folder) for phase in ("first", "cached")]
+        finally:
+            if before is None:
+                os.environ.pop("DAEMODEL_CACHE", None)
+            else:
+                os.environ["DAEMODEL_CACHE"] = before
+    for phase, (record, message) in zip(("first", "cached"), records, strict=True):
+        if message is not None:
+            entry["message"] = message
+            return entry
+        entry[phase] = record
     first, cached = entry["first"], entry["cached"]
     saved = cached["solve_vm_s"] - cached["solve_jit_s"]
     paid = first["setup_s"] - first["vm_setup_s"]
