@@ -20,6 +20,28 @@ def compiled_cache(tmp_path_factory):
         os.environ["DAEMODEL_CACHE"] = before
 
 
+def _diffusion_grid(K: int) -> dm.Model:
+    """A line of K cells diffusing c, each consuming it at the rate w = c^2 / (1 + c) (an algebraic
+    variable per cell: K states, K algebraic variables, tridiagonal), c(0) = sin(pi x)."""
+    import numpy as np
+
+    m = dm.Model(f"grid{K}")
+    c = m.states([f"c{k}" for k in range(K)])
+    w = m.algebraics([f"w{k}" for k in range(K)])
+    padded = (0, *c, 0)
+    for k in range(K):
+        m.ode(c[k], (padded[k] - 2 * padded[k + 1] + padded[k + 2]) * (K + 1) ** 2 / 10 - w[k])
+        m.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
+    m.initial(**{f"c{k}": np.sin(np.pi * (k + 1) / (K + 1)) for k in range(K)})
+    return m
+
+
+@pytest.fixture(scope="session")
+def diffusion_grid():
+    """The builder of :func:`_diffusion_grid`'s model of K cells (K states, K algebraic variables)."""
+    return _diffusion_grid
+
+
 @pytest.fixture
 def hessenberg() -> dm.Model:
     return PROBLEMS["hessenberg"].model()

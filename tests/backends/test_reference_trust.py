@@ -270,18 +270,11 @@ def test_an_endless_span_stops_early_instead_of_spending_max_steps():
         dm.solve(PENDULUM.model(), (0.0, 1e300), method="reference")
 
 
-def test_reference_solves_large_algebraic_systems_sparse():
+def test_reference_solves_large_algebraic_systems_sparse(diffusion_grid):
     """At SPARSE_MIN_SIZE algebraic variables the reference's Newton for z takes the sparse
     Jacobian (no dense m x m), and z is the exact root w = c^2 / (1 + c) at every output."""
     K = SPARSE_MIN_SIZE
-    model = dm.Model("grid")
-    c = model.states([f"c{k}" for k in range(K)])
-    w = model.algebraics([f"w{k}" for k in range(K)])
-    padded = (0, *c, 0)
-    for k in range(K):
-        model.ode(c[k], (padded[k] - 2 * padded[k + 1] + padded[k + 2]) * (K + 1) ** 2 / 10 - w[k])
-        model.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
-    model.initial(**{f"c{k}": np.sin(np.pi * (k + 1) / (K + 1)) for k in range(K)})
+    model = diffusion_grid(K)
     compiled = model.compile()
     solver = AlgebraicSolver(compiled, compiled.numeric, 10)
     J = solver.newton_Hz(0.0, compiled.y0, compiled.z0[None], np.zeros(0))

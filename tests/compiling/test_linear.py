@@ -8,7 +8,6 @@ import pytest
 import scipy.sparse
 import sympy as sp
 
-import daemodel as dm
 from daemodel import errors as E
 from daemodel.compiling.init import initialise, solve_algebraic
 from daemodel.compiling.initial_states import initial_states
@@ -115,23 +114,11 @@ def test_check_rank_names_the_singular_block_at_large_m():
         check_rank(T.tocsc(), rows, symbols, 0.0)
 
 
-def _grid(K: int) -> dm.Model:
-    m = dm.Model(f"grid{K}")
-    c = m.states([f"c{k}" for k in range(K)])
-    w = m.algebraics([f"w{k}" for k in range(K)])
-    padded = (0, *c, 0)
-    for k in range(K):
-        m.ode(c[k], (padded[k] - 2 * padded[k + 1] + padded[k + 2]) * (K + 1) ** 2 / 10 - w[k])
-        m.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
-    m.initial(**{f"c{k}": np.sin(np.pi * (k + 1) / (K + 1)) for k in range(K)})
-    return m
-
-
-def test_initialise_at_large_m_without_a_dense_jacobian():
+def test_initialise_at_large_m_without_a_dense_jacobian(diffusion_grid):
     """z0 exact; initialisation again (its functions made) and a batch of initial states: their
     memory peaks far below one dense m x m (32 MB)."""
     K = 2000
-    model = _grid(K)
+    model = diffusion_grid(K)
     compiled = model.compile()
     c = np.sin(np.pi * np.arange(1, K + 1) / (K + 1))
     np.testing.assert_allclose(compiled.z0, c**2 / (1 + c), rtol=1e-14, atol=0)
@@ -155,10 +142,10 @@ def test_initialise_at_large_m_without_a_dense_jacobian():
     np.testing.assert_allclose(states.z0, [c**2 / (1 + c), (c / 2) ** 2 / (1 + c / 2)], rtol=1e-14, atol=0)
 
 
-def test_singular_initial_jacobian_at_large_m_is_named():
+def test_singular_initial_jacobian_at_large_m_is_named(diffusion_grid):
     """Structurally regular, numerically singular at t0: u + v and 2 u + 2 v."""
     K = SPARSE_MIN_SIZE
-    model = _grid(K)
+    model = diffusion_grid(K)
     y = model.states(["p", "q"])
     u, v = model.algebraics(["u", "v"])
     model.ode(y[0], -u)
