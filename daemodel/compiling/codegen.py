@@ -365,15 +365,29 @@ class CasadiConverter:
         return casadi.cse(stacked) if len(parts) < len(exprs) else stacked
 
     @staticmethod
-    def _number(expr) -> bool:
-        return expr.is_Number or isinstance(expr, sp.NumberSymbol) or expr in (sp.true, sp.false)
+    def _number(expr) -> float | None:
+        """The value of a number leaf (a logical constant as 1 or 0), else None."""
+        if expr.is_Number or isinstance(expr, sp.NumberSymbol):
+            return float(expr)
+        return 1.0 if expr == sp.true else 0.0 if expr == sp.false else None
+
+    @staticmethod
+    def _piecewise(pieces: int, value, condition):
+        """A Piecewise of ``pieces`` (value, condition) pairs as nested ``if_else``, the last value the
+        otherwise branch; ``value(k)``, ``condition(k)`` convert pair k (a scalar or a vector)."""
+        import casadi
+
+        out = value(pieces - 1)
+        for k in reversed(range(pieces - 1)):
+            out = casadi.if_else(condition(k), value(k), out)
+        return out
 
     def _structure(self, expr) -> tuple:
         """The tree of operations of ``expr``, leaves as "S" (a symbol of the map) or "N" (a number);
         a power's exponent of one half (a square root) is part of the tree."""
         if expr in self._symbols:
             return ("S",)
-        if self._number(expr):
+        if self._number(expr) is not None:
             return ("N",)
         head = (type(expr), len(expr.args))
         if isinstance(expr, sp.Pow):
@@ -393,16 +407,14 @@ class CasadiConverter:
             return casadi.vertcat(*[self._memo[e] for e in exprs])
         if all(e == first for e in exprs[1:]):  # one subexpression shared by all: converted once (memo)
             return casadi.repmat(casadi.SX(self(first)), len(exprs), 1)
-        if self._number(first):
-            return casadi.SX(casadi.DM([1.0 if e == sp.true else 0.0 if e == sp.false else float(e) for e in exprs]))
+        if self._number(first) is not None:
+            return casadi.SX(casadi.DM([self._number(e) for e in exprs]))
         if isinstance(first, sp.Piecewise):
-            pieces = len(first.args)
-            value = lambda k: self._vector([e.args[k].expr for e in exprs])  # noqa: E731
-            condition = lambda k: self._vector([e.args[k].cond for e in exprs])  # noqa: E731
-            out = value(pieces - 1)
-            for k in reversed(range(pieces - 1)):
-                out = casadi.if_else(condition(k), value(k), out)
-            return out
+            return self._piecewise(
+                len(first.args),
+                lambda k: self._vector([e.args[k].expr for e in exprs]),
+                lambda k: self._vector([e.args[k].cond for e in exprs]),
+            )
         args = [self._vector([e.args[k] for e in exprs]) for k in range(len(first.args))]
         return self._combine(first, args)
 
@@ -442,19 +454,12 @@ class CasadiConverter:
         return out
 
     def _convert(self, expr):
-        import casadi
-
-        if expr.is_Number or isinstance(expr, sp.NumberSymbol):
-            return float(expr)
-        if expr == sp.true:
-            return 1.0
-        if expr == sp.false:
-            return 0.0
+        number = self._number(expr)
+        if number is not None:
+            return number
         if isinstance(expr, sp.Piecewise):
-            out = self(expr.args[-1].expr)
-            for value, cond in reversed(expr.args[:-1]):
-                out = casadi.if_else(self(cond), self(value), out)
-            return out
+            pairs = expr.args
+            return self._piecewise(len(pairs), lambda k: self(pairs[k].expr), lambda k: self(pairs[k].cond))
         return self._combine(expr, [self(a) for a in expr.args])
 
 
