@@ -85,6 +85,7 @@ PROBLEM_NAMES = (
     "pendulum",
     "pendulum-index3",
     "robertson",
+    "ring-modulator",
 )
 # The scaling families at about 100 and at least 200 unknowns (5N for the chain, 2K for the grid).
 FAMILY_SIZES = (("pendulum_chain", 20), ("pendulum_chain", 40), ("reaction_diffusion", 50), ("reaction_diffusion", 100))

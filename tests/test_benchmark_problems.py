@@ -5,13 +5,15 @@ tests check that the problem is transcribed right (scipy's tight reference repro
 measure how many correct digits each method delivers at growing accuracy.
 """
 
+import math
 import time
 
+import casadi
 import numpy as np
 import pytest
 
 import daemodel as dm
-from daemodel.problems import AKZO_NOBEL, CAR_AXIS, TRANSISTOR_AMPLIFIER, WHEELSET
+from daemodel.problems import AKZO_NOBEL, CAR_AXIS, RING_MODULATOR, TRANSISTOR_AMPLIFIER, WHEELSET
 
 
 def digits(sol, problem, names=None) -> float:
@@ -243,3 +245,72 @@ def test_wheelset_radau_takes_about_radau5s_steps(wheelset):
     assert sol.status == "success"
     assert sol.stats["steps"] + sol.stats["rejected_steps"] <= 1.5 * WHEELSET_RADAU5_STEPS
     assert digits(sol, WHEELSET, WHEELSET_CHECKED) >= 4.5
+
+
+# ---- ring modulator (stiff ODE) -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ring():
+    return RING_MODULATOR.model().compile()
+
+
+def ring_rhs(ring, t: float, **y) -> dict:
+    """The ring modulator's right-hand side at ``t`` and the state ``y`` (the unknowns not given: 0), by name."""
+    dae = ring.casadi_dae()
+    f = casadi.Function("f", [dae["t"], dae["x"], dae["p"]], [dae["ode"]])
+    state = [y.get(name, 0.0) for name in ring.state_names]
+    return dict(zip(ring.state_names, np.array(f(t, state, ring.parameter_values)).ravel(), strict=True))
+
+
+def test_ring_modulator_right_hand_side_is_the_test_sets(ring):
+    """Index 0, 15 states at rest, and f at six points against its values worked out by hand from the test
+    set's equations, each point reaching other terms: y1 alone (the capacitor's, Lh's and the windings'
+    rows), the currents with y2, y3 alone (diodes 1 and 4 at +-0.1), y4 alone (diodes 2 and 3), y7 alone
+    (all four, and Rp), and t = 2.5e-5, where the carrier's peak Uin2 = 2 drives all four diodes at +-2 and
+    the signal Uin1 = 0.5 sin(pi/20) the input winding."""
+    P = RING_MODULATOR.parameters
+    assert ring.index == 0 and len(ring.state_names) == 15 and not ring.algebraic_names
+    assert list(ring.y0) == [0.0] * 15
+    C, Cs, Cp, Ls1, Ls2, Ls3 = P["C"], P["Cs"], P["Cp"], P["Ls1"], P["Ls2"], P["Ls3"]
+
+    def q(u):  # a diode's current at the voltage u
+        return P["gamma"] * (math.exp(P["delta"] * u) - 1)
+
+    a, b = q(0.1), q(-0.1)
+    low, high = q(-2.0), q(2.0)
+    currents = {"y8": 1e-3, "y9": 2e-3, "y10": 3e-3, "y11": 4e-3, "y12": 5e-3, "y13": 6e-3, "y14": 7e-3, "y15": 8e-3}
+    cases = [
+        (0.0, {"y1": 1.0}, {"y1": -1 / (P["R"] * C), "y8": -1 / P["Lh"], "y10": 0.5 / Ls2, "y11": -0.5 / Ls3,
+                            "y14": -1 / Ls1}),
+        (0.0, {"y2": 1.0, **currents}, {
+            "y1": (1e-3 - 1.5e-3 + 2e-3 + 7e-3) / C, "y2": (2e-3 - 2.5e-3 + 3e-3 + 8e-3 - 1 / P["R"]) / C,
+            "y3": 3e-3 / Cs, "y4": -4e-3 / Cs, "y5": 5e-3 / Cs, "y6": -6e-3 / Cs, "y9": -1 / P["Lh"],
+            "y10": -P["Rg2"] * 3e-3 / Ls2, "y11": -P["Rg3"] * 4e-3 / Ls3, "y12": (0.5 - P["Rg2"] * 5e-3) / Ls2,
+            "y13": (-0.5 - P["Rg3"] * 6e-3) / Ls3, "y14": -(P["Ri"] + P["Rg1"]) * 7e-3 / Ls1,
+            "y15": (-1 - (P["Rc"] + P["Rg1"]) * 8e-3) / Ls1}),
+        # UD1 = y3, UD4 = -y3
+        (0.0, {"y3": 0.1}, {"y3": (-a + b) / Cs, "y5": a / Cs, "y6": b / Cs, "y7": (a - b) / Cp, "y10": -0.1 / Ls2}),
+        # UD2 = -y4, UD3 = y4
+        (0.0, {"y4": 0.1}, {"y4": (b - a) / Cs, "y5": -a / Cs, "y6": -b / Cs, "y7": (b - a) / Cp, "y11": 0.1 / Ls3}),
+        # UD1 = UD2 = -y7, UD3 = UD4 = y7
+        (0.0, {"y7": 0.1}, {"y3": (a - b) / Cs, "y4": (b - a) / Cs, "y5": (b - a) / Cs, "y6": (a - b) / Cs,
+                            "y7": (-0.1 / P["Rp"] + 2 * (b - a)) / Cp}),
+        # UD1 = UD2 = -Uin2, UD3 = UD4 = Uin2
+        (2.5e-5, {}, {"y3": (high - low) / Cs, "y4": (low - high) / Cs, "y5": (low - high) / Cs,
+                      "y6": (high - low) / Cs, "y7": 2 * (low - high) / Cp, "y14": 0.5 * math.sin(math.pi / 20) / Ls1}),
+    ]  # fmt: skip
+    for t, y, expected in cases:
+        f = ring_rhs(ring, t, **y)
+        for name in ring.state_names:
+            assert f[name] == pytest.approx(expected.get(name, 0.0), rel=1e-13, abs=0.0), (t, y, name)
+
+
+@pytest.mark.slow
+def test_ring_modulator_radau_meets_the_test_set_reference(ring):
+    """radau at rtol = atol = 1e-8 over [0, 1e-3] (about 67,000 steps: the windings' ringing with Cs,
+    period 2 pi sqrt(Ls2 Cs) = 2e-7, restarts at every switch of the diodes) meets the test set's
+    reference at t = 1e-3 to 8 significant digits (the test set's scd: the worst relative error over the 15
+    components)."""
+    sol = dm.solve(ring, RING_MODULATOR.t_span, rtol=1e-8, atol=1e-8, t_eval=[0.0, 1e-3])
+    assert sol.status == "success"
+    print(f"ring modulator, radau at rtol 1e-8: {digits(sol, RING_MODULATOR):.2f} digits, {sol.stats['steps']} steps")
+    assert digits(sol, RING_MODULATOR) >= 8

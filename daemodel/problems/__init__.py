@@ -5,7 +5,7 @@ examples draw on it; the equations are strings so the library exercises the same
 ``problem.py`` says what a problem is; ``paper.py`` holds the paper's problems, ``textbook.py``
 Robertson and the bouncing ball, one module per problem of the Test Set for IVP Solvers
 (``squeezer.py``, ``akzo_nobel.py``, ``car_axis.py``, ``transistor_amplifier.py``,
-``wheelset.py``), ``fitting.py`` the fitting problems; ``library.py`` gathers :data:`PROBLEMS`.
+``wheelset.py``, ``ring_modulator.py``), ``fitting.py`` the fitting problems; ``library.py`` gathers :data:`PROBLEMS`.
 """
 
 from daemodel.problems.akzo_nobel import AKZO_NOBEL, AKZO_NOBEL_PARAMETERS
@@ -14,6 +14,7 @@ from daemodel.problems.fitting import DAMPED_PENDULUM, DECAY
 from daemodel.problems.library import PROBLEMS
 from daemodel.problems.paper import HESSENBERG, PAPER, PENDULUM, PENDULUM_INDEX3
 from daemodel.problems.problem import ExactSolution, Problem
+from daemodel.problems.ring_modulator import RING_MODULATOR, RING_MODULATOR_PARAMETERS
 from daemodel.problems.squeezer import SQUEEZER, SQUEEZER_PARAMETERS, SQUEEZER_POSITION_CONSTRAINTS
 from daemodel.problems.textbook import BALL_E, BALL_G, BALL_IMPACTS, BOUNCING_BALL, ROBERTSON
 from daemodel.problems.transistor_amplifier import TRANSISTOR_AMPLIFIER, TRANSISTOR_PARAMETERS
@@ -35,6 +36,8 @@ __all__ = [
     "PENDULUM",
     "PENDULUM_INDEX3",
     "PROBLEMS",
+    "RING_MODULATOR",
+    "RING_MODULATOR_PARAMETERS",
     "ROBERTSON",
     "SQUEEZER",
     "SQUEEZER_PARAMETERS",

@@ -6,6 +6,7 @@ from __future__ import annotations
 from daemodel.problems.akzo_nobel import AKZO_NOBEL
 from daemodel.problems.car_axis import CAR_AXIS
 from daemodel.problems.paper import HESSENBERG, PENDULUM, PENDULUM_INDEX3
+from daemodel.problems.ring_modulator import RING_MODULATOR
 from daemodel.problems.squeezer import SQUEEZER
 from daemodel.problems.textbook import BOUNCING_BALL, ROBERTSON
 from daemodel.problems.transistor_amplifier import TRANSISTOR_AMPLIFIER
@@ -15,6 +16,6 @@ PROBLEMS = {
     p.name: p
     for p in (
         HESSENBERG, PENDULUM, PENDULUM_INDEX3, ROBERTSON, SQUEEZER, AKZO_NOBEL, CAR_AXIS, TRANSISTOR_AMPLIFIER,
-        WHEELSET, BOUNCING_BALL,
+        WHEELSET, RING_MODULATOR, BOUNCING_BALL,
     )
 }  # fmt: skip
