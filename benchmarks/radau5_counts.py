@@ -14,7 +14,7 @@ ctypes.  Build it from Assimulo's f2c translation (no Fortran compiler needed)::
 
 (``radau5_f2c_stubs.c`` supplies the few libf2c routines the translation calls.)  Then::
 
-    python benchmarks/radau5_counts.py --lib /path/to/libradau5.so [--problems ...]
+    python benchmarks/radau5_counts.py --lib /path/to/libradau5.so [--problems ...] [--tolerances ...] [--nmax N]
 
 Each problem of :data:`PROBLEMS` is solved at rtol = atol in :data:`TOLERANCES` by RADAU5 (full
 analytic Jacobian from casadi, mass matrix diag(1 for states, 0 for algebraics), NIND1-3 from
@@ -44,9 +44,10 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-PROBLEMS = ("pendulum", "robertson", "akzo-nobel", "car-axis", "transistor-amplifier", "squeezer")
+PROBLEMS = ("pendulum", "robertson", "akzo-nobel", "car-axis", "transistor-amplifier", "squeezer", "ring-modulator")
 TOLERANCES = (1e-4, 1e-6, 1e-8)
-# RADAU5's defaults but for NMAX, its step budget (daemodel's radau gets the same below).
+# RADAU5's defaults but for NMAX, its step budget (daemodel's radau gets the same below; --nmax sets it:
+# the ring modulator takes RADAU5 65,000 steps at rtol 1e-6).
 NMAX = 100_000
 
 PI, PD = C.POINTER(C.c_int), C.POINTER(C.c_double)
@@ -79,7 +80,7 @@ def functions(compiled):
     return f, jac, order, [sum(1 for k in index if k == j) for j in (1, 2, 3)]
 
 
-def radau5(lib, compiled, t_span, tol, thet=0.0):
+def radau5(lib, compiled, t_span, tol, thet=0.0, nmax=NMAX):
     """RADAU5 on ``compiled``: IDID, its counters (IWORK(14..20)) and the end state."""
     f, jac, order, (index1, index2, index3) = functions(compiled)
     ns, m = len(compiled.state_names), len(compiled.algebraic_names)
@@ -116,7 +117,7 @@ def radau5(lib, compiled, t_span, tol, thet=0.0):
     work = np.zeros(lwork)
     work[2] = thet  # WORK(3) = THET; 0: RADAU5's 0.001
     iwork = np.zeros(liwork, dtype=np.int32)
-    iwork[0] = NMAX
+    iwork[1] = nmax  # IWORK(2) = NMAX (IWORK(1) is the Hessenberg switch)
     iwork[4:7] = ns + index1, index2, index3  # NIND1 (states and index-1 algebraics), NIND2, NIND3
     rpar, ipar, idid = np.zeros(1), np.zeros(1, dtype=np.int32), C.c_int(0)
     lib.radau5_c(
@@ -132,10 +133,10 @@ def radau5(lib, compiled, t_span, tol, thet=0.0):
     return {"idid": idid.value, "t_end": t.value, "stats": stats, "y_end": u[:ns].tolist(), "non_finite_f": guarded[0]}
 
 
-def daemodel_counts(compiled, t_span, tol):
+def daemodel_counts(compiled, t_span, tol, nmax=NMAX):
     import daemodel as dm
 
-    sol = dm.solve(compiled, t_span, rtol=tol, atol=tol, stages=3, max_steps=NMAX)
+    sol = dm.solve(compiled, t_span, rtol=tol, atol=tol, stages=3, max_steps=nmax)
     keys = ("steps", "rejected_steps", "attempts", "newton_failures", "jacobian_evaluations", "lu_decompositions")
     y_end = [float(sol[name][-1]) for name in compiled.state_names]
     return {"status": sol.status, "stats": {k: sol.stats[k] for k in keys}, "y_end": y_end}
@@ -145,6 +146,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--lib", required=True, help="the libradau5.so built as the module docstring says")
     parser.add_argument("--problems", nargs="+", default=list(PROBLEMS))
+    parser.add_argument("--tolerances", nargs="+", type=float, default=list(TOLERANCES))
+    parser.add_argument("--nmax", type=int, default=NMAX, help="both codes' step budget")
     parser.add_argument("--out", default=str(HERE / "radau5_counts"))
     args = parser.parse_args(argv)
     from daemodel.files import atomic_write
@@ -156,20 +159,20 @@ def main(argv=None) -> None:
         problem = LIBRARY[name]
         compiled = problem.model().compile()
         compiled = compiled.reduced(2) if compiled.index == 3 else compiled  # as dm.solve hands it to radau
-        for tol in TOLERANCES:
-            ours = daemodel_counts(compiled, problem.t_span, tol)
+        for tol in args.tolerances:
+            ours = daemodel_counts(compiled, problem.t_span, tol, args.nmax)
+            ours["scd"] = scd(problem, compiled, ours["y_end"])
             runs = {
-                "same": radau5(lib, compiled, problem.t_span, tol),
-                "matched": radau5(lib, compiled, problem.t_span, (10 * tol) ** 1.5),
-                "same, THET = 0.1": radau5(lib, compiled, problem.t_span, tol, thet=0.1),
+                "same": radau5(lib, compiled, problem.t_span, tol, nmax=args.nmax),
+                "matched": radau5(lib, compiled, problem.t_span, (10 * tol) ** 1.5, nmax=args.nmax),
+                "same, THET = 0.1": radau5(lib, compiled, problem.t_span, tol, thet=0.1, nmax=args.nmax),
             }
             for run in runs.values():
                 ok = run["idid"] > 0
-                run["end_difference"] = (
-                    float(np.max(np.abs(np.subtract(run.pop("y_end"), ours["y_end"])) / (1 + np.abs(ours["y_end"]))))
-                    if ok
-                    else None
-                )
+                y_end = run.pop("y_end")
+                difference = np.abs(np.subtract(y_end, ours["y_end"])) / (1 + np.abs(ours["y_end"]))
+                run["end_difference"] = float(np.max(difference)) if ok else None
+                run["scd"] = scd(problem, compiled, y_end) if ok else None
             records.append({"problem": name, "unknowns": len(compiled.state_names) + len(compiled.algebraic_names),
                             "tol": tol, "radau5": runs, "daemodel": ours})  # fmt: skip
             print(row(records[-1]), flush=True)
@@ -182,6 +185,17 @@ def main(argv=None) -> None:
     }
     atomic_write(Path(args.out).with_suffix(".json"), lambda h: h.write(json.dumps(result, indent=1) + "\n"), text=True)
     print(f"wrote {Path(args.out).with_suffix('.json')}")
+
+
+def scd(problem, compiled, y_end) -> float | None:
+    """The Test Set's significant correct digits of the end states against the problem's published
+    reference: -log10 of the largest relative error over the states it gives (None without one)."""
+    values = dict(zip(compiled.state_names, y_end, strict=True))
+    names = [name for name in problem.reference if name in values]
+    if not names:
+        return None
+    worst = max(abs(values[name] - problem.reference[name]) / abs(problem.reference[name]) for name in names)
+    return float(-np.log10(max(worst, 1e-17)))
 
 
 def row(record: dict) -> str:
