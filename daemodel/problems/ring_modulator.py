@@ -8,7 +8,7 @@ from daemodel.problems.problem import Problem
 # ---- Ring modulator, index 0 -------------------------------------------------------------------
 #
 # Source: F. Mazzia and C. Magherini, Test Set for Initial Value Problem Solvers, release 2.4
-# (Dept. of Mathematics, Univ. of Bari, February 2008), Part I (ODEs), problem "Ring Modulator"
+# (Dept. of Mathematics, Univ. of Bari, February 2008), the ODE problem "Ring Modulator"
 # (ringmod.f, revision 1.2, 2006/10/02), after Horneber (1976) as in Kampowsky, Rentrop & Schmidt
 # (Surv. Math. Ind. 2, 1992), contributed by CWI's parallel-IVP group; read in deTestSet's copy:
 # src/Ex_ring.f (ringfunc: the equations; ringsoln: the reference) and R/ex_ring.R (the 16
