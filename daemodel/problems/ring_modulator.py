@@ -74,8 +74,9 @@ RING_MODULATOR = Problem(
     index=0,
     # ringmod.f's reference (deTestSet's subroutine ringsoln): y(1..15) at t = 1e-3, by RADAU (Hairer's
     # variable-order code) at rtol = atol = 1e-12, h0 = 1e-14 (23,541 accepted steps).  They carry 9.6 digits:
-    # radau at rtol 1e-10, 1e-12 and 1e-13 (s = 7) agrees with itself to 1.3e-11 and with them to 2.7e-10 (y3),
-    # as RADAU's internal tolerance at 1e-12, 0.1 rtol^(2/3) = 1e-9, lets it
+    # radau at rtol 1e-10, 1e-12 and 1e-13 (s = 7) agrees with itself to 2e-11 in y1..y7 (5e-11 in the
+    # tiny y9) and with them to 2.7e-10 (y3), as RADAU's internal tolerance at 1e-12, 0.1 rtol^(2/3) = 1e-9,
+    # lets it
     reference={
         "y1": -0.2339057358486745e-1,
         "y2": -0.7367485485540825e-2,
