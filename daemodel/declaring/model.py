@@ -23,6 +23,7 @@ from sympy.core.function import AppliedUndef
 from daemodel.declaring.arrays import checked_shape, compact_listing, element_names, symbol_array
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
+from daemodel.declaring.scan import scan
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -577,13 +578,14 @@ class Declaration:
             raise ExpressionParseError(
                 f"{where}: {quoted(value)} is not a scalar expression (got {type(expr).__name__})"
             )
-        if expr.has(sp.Derivative):
-            found = sorted(map(str, expr.atoms(sp.Derivative)))
+        found = scan(expr)  # (one walk; sympy is asked where it finds something to look at closer)
+        if found.holds(sp.Derivative):
+            derivatives = sorted(map(str, expr.atoms(sp.Derivative)))
             raise DerivativeInEquationError(
-                f"{where}: derivative {', '.join(found)} in {expr}; a semi-explicit DAE has "
+                f"{where}: derivative {', '.join(derivatives)} in {expr}; a semi-explicit DAE has "
                 "derivatives only on the left (declare them with m.ode)"
             )
-        undefined = sorted({str(a.func) for a in expr.atoms(AppliedUndef)})
+        undefined = sorted({str(a.func) for a in expr.atoms(AppliedUndef)}) if found.holds(AppliedUndef) else []
         if undefined:
             raise UnknownSymbolError(
                 f"{where}: unknown function(s) {', '.join(undefined)} in {expr}; variables are "
@@ -591,14 +593,18 @@ class Declaration:
                 f"functions are {supported_names()}"
             )
         known = self._known
-        unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
+        free = expr.free_symbols if found.symbols is None else found.symbols
+        unknown = sorted(s.name for s in free if known.get(s.name) != s)
         if unknown:
             listing = _listing(sorted(known, key=lambda n: n == "t"))  # (t last)
             raise UnknownSymbolError(
                 f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {listing}"
             )
-        expr = without_heaviside(without_ite(expr))
-        check_numbers(expr, where)
+        if found.holds(sp.ITE) or found.holds(sp.Heaviside):
+            expr = without_heaviside(without_ite(expr))
+            check_numbers(expr, where)
+        elif not found.numbers_plain:
+            check_numbers(expr, where)
         return expr
 
     def _fingerprint(self) -> tuple:
