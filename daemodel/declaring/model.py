@@ -103,6 +103,9 @@ class Declared:
         Each declared array's ``(kind, shape, symbols)`` by its name: kind is ``"states"``,
         ``"algebraics"`` or ``"parameters"`` (its elements are in that table as ``u[0]``, ``T[3,4]``,
         ...), symbols the read-only object array the declaration returned.
+    free_symbols : Mapping[sympy.Expr, frozenset]
+        The free symbols of declared expressions, found while checking them (the compiler starts
+        from them instead of walking each equation again); not every expression is in it.
     """
 
     name: str
@@ -118,6 +121,7 @@ class Declared:
     t0: float
     events: tuple
     arrays: MappingProxyType
+    free_symbols: MappingProxyType
 
     def symbols(self) -> dict[str, sp.Symbol]:
         """Every declared symbol by name: states, algebraic variables, parameters."""
@@ -172,6 +176,7 @@ class Declaration:
         # arrays of variables and parameters: name -> (kind, shape, object array of the symbols)
         self._arrays: dict[str, tuple[str, tuple, np.ndarray]] = {}
         self._constraint_arrays: set[str] = set()  # the names of arrays of constraints (m.constraint(array))
+        self._free_symbols: dict = {}  # expression -> its free symbols, where the declaration's check found them
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
 
     def declared(self) -> Declared:
@@ -191,6 +196,7 @@ class Declaration:
             t0=self._t0,
             events=tuple(self._events),
             arrays=view(self._arrays),
+            free_symbols=view(self._free_symbols),
         )
 
     # ---- declarations -------------------------------------------------------------------
@@ -603,8 +609,11 @@ class Declaration:
         if found.holds(sp.ITE) or found.holds(sp.Heaviside):
             expr = without_heaviside(without_ite(expr))
             check_numbers(expr, where)
-        elif not found.numbers_plain:
+            return expr
+        if not found.numbers_plain:
             check_numbers(expr, where)
+        if found.symbols is not None:
+            self._free_symbols[expr] = found.symbols
         return expr
 
     def _fingerprint(self) -> tuple:

@@ -13,7 +13,13 @@ from daemodel.errors import ExpressionParseError
 x, y, z = sp.symbols("x y z")
 LEAVES = [x, y, z, sp.Integer(2), sp.Rational(1, 3), sp.Float("0.25"), sp.pi, sp.Integer(-7)]
 UNARY = [sp.sin, sp.exp, sp.sqrt, sp.Abs, lambda a: -a, lambda a: 1 / a]
-BINARY = [sp.Add, sp.Mul, lambda a, b: a**b, lambda a, b: sp.Piecewise((a, x > b), (b, True)), sp.Max]
+BINARY = [
+    sp.Add,
+    sp.Mul,
+    lambda a, b: a**b,
+    lambda a, b: sp.Piecewise((a, x > 1), (b, True)),
+    lambda u, v: sp.Max(sp.Abs(u), sp.Abs(v)),
+]
 
 
 def expressions():
