@@ -73,3 +73,20 @@ def test_a_plain_equation_is_answered_by_the_walk():
     found = scan(y - x**2 / (1 + x) + sp.Rational(1, 3) * sp.sin(z))
     assert found.symbols == {x, y, z} and found.numbers_plain
     assert scan(x).symbols == {x} and scan(sp.Integer(3)).symbols == frozenset()
+
+
+def test_the_declaration_hands_each_equation_s_free_symbols_to_the_compiler():
+    import daemodel as dm
+
+    m = dm.Model("seeded")
+    (u,) = m.states("u")
+    v = m.states("v", 3)
+    (w,) = m.algebraics("w")
+    k = m.parameter("k", 2.0)
+    m.ode(u, -k * u + w)
+    m.ode(v, [v[1] - v[0], sp.sin(v[2]) * u, "2*v[0]"])
+    m.constraint(w - u**2 / (1 + u), name="rate")
+    declared = m.declared()
+    equations = [*declared.odes.values(), *declared.constraints]
+    assert all(declared.free_symbols[eq.expr] == eq.expr.free_symbols for eq in equations)
+    assert declared.free_symbols[declared.odes["v[1]"].expr] == {v[2], u}
