@@ -105,7 +105,8 @@ def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
     parameters = list(model.parameters.values())
     rhs = {s: model.odes[s.name].expr for s in states}
     symbols = {*states, *model.algebraics.values(), *parameters, model.t}
-    calculus = Differentiator()  # derivatives and free symbols shared by every step below
+    # derivatives and free symbols shared by every step below, from those the declaration found
+    calculus = Differentiator(model.free_symbols)
     equations, algebraics, aliases = eliminate_aliases(
         rhs, model.constraints, list(model.algebraics.values()), symbols, calculus
     )

@@ -15,9 +15,9 @@ from functools import cached_property
 
 import numpy as np
 import sympy as sp
-from sympy.printing.numpy import SciPyPrinter
 
 from daemodel.compiling.linear import SPARSE_MIN_SIZE, SparseStack, least_squares
+from daemodel.compiling.numeric_source import NUMERIC_MODULES, NumericPrinter, shared_subexpressions
 from daemodel.compiling.structure import Differentiator, check_rank
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
@@ -43,84 +43,6 @@ NEWTON_STALL_RATE, NEWTON_STALL_TOL = 0.5, 1e-9
 # Step halvings per Newton step while the residual grows.
 DAMPING_HALVINGS = 14
 PROJECTION_MAXITER = 100
-
-
-# lambdify's modules: scipy first, for the functions numpy lacks (erf would fall back to math.erf,
-# which takes no arrays).
-NUMERIC_MODULES = ["scipy", "numpy"]
-
-
-class _Printer(SciPyPrinter):
-    """The printer lambdify builds for ``NUMERIC_MODULES``, with three changes.
-
-    * Variables print as items of the generated function's arguments (``_y[3]``), names that no
-      user name can be (they start with a letter) and that shadow nothing of numpy's or scipy's
-      (a state named 'select'): lambdify's ``dummify=True`` instead substitutes one symbol at a
-      time into the expressions (variables x expression size), and an ``xreplace`` rebuilds every
-      node.  Four plain arguments also spare lambdify sorting hundreds of argument symbols.
-    * A subexpression that occurs more than once prints as the name it is assigned to first
-      (``shared``, from :func:`_shared_subexpressions`): printed and evaluated once.
-    * The terms of sums and products print in their stored order: sorting them (the default)
-      costs more than the rest of the printing on large expressions and changes nothing but the
-      order of rounding.
-    """
-
-    def __init__(self, names: dict, shared: dict, has_re: bool):
-        settings = {"fully_qualified_modules": False, "inline": True, "allow_unknown_functions": True}
-        super().__init__({**settings, "user_functions": {}, "order": "none"})
-        self._names, self._shared, self._top, self._has_re = names, shared, False, has_re
-
-    def _handle_UnevaluatedExpr(self, expr):
-        # the base class rewrites re(...) nodes with a walk over every expression it prints (each
-        # shared subexpression again); without re there is nothing to rewrite
-        return super()._handle_UnevaluatedExpr(expr) if self._has_re else expr
-
-    def doprint(self, expr, assign_to=None):
-        self._top = True  # the expression itself prints in full, also when it is shared
-        return super().doprint(expr, assign_to)
-
-    def _print(self, expr, **kwargs):
-        if self._top:
-            self._top = False
-        else:
-            name = self._shared.get(expr)
-            if name is not None:
-                return name
-        return super()._print(expr, **kwargs)
-
-    def _print_Symbol(self, expr):
-        name = self._names.get(expr)
-        return name if name is not None else super()._print_Symbol(expr)
-
-
-def _shared_subexpressions(exprs) -> dict:
-    """``{node: "_c<k>"}`` for the subexpressions to print once, in an order that defines each
-    after the ones it uses.
-
-    A node is shared when more than one parent refers to it (equal subtrees count as one node,
-    whether sympy built them as one object or not).  The base of a shared negative power is
-    shared too: a product prints ``a / b**(3/2)`` for ``a * b**(-3/2)``, a new power of that base.
-    Evaluating a name instead of its expression changes no rounding.
-    """
-    parents: dict = {}
-    order = []  # each node after its arguments
-
-    def visit(node) -> None:
-        if node in parents:
-            parents[node] += 1
-            return
-        parents[node] = 1
-        for arg in node.args:
-            if not arg.is_Atom:
-                visit(arg)
-        order.append(node)
-
-    for expr in exprs:
-        if not expr.is_Atom:
-            visit(expr)
-    shared = {n for n in order if parents[n] > 1 and isinstance(n, sp.Expr)}
-    shared |= {n.base for n in shared if n.is_Pow and n.exp.is_negative and not n.base.is_Atom}
-    return {node: f"_c{k}" for k, node in enumerate(n for n in order if n in shared)}
 
 
 @dataclass(frozen=True)
@@ -161,17 +83,21 @@ class NumericSystem:
     def _lambdify(self, exprs):
         names, arguments = self._arguments
         exprs = [sp.sympify(e) for e in exprs]
-        shared = _shared_subexpressions(exprs)
+        shared = shared_subexpressions(exprs)
         definitions = [(sp.Symbol(name), node) for node, name in shared.items()]
         # docstring_limit=0: lambdify would otherwise print every expression a second time for
         # the docstring
         # use_imps=False: no implemented_function is ever used here, and looking for one walks
         # every expression as a tree
+        printer = NumericPrinter(names, shared, any(e.has(sp.re) for e in exprs))
+        # an expression of a known shape goes in as its text, the text lambdify would print (it has no
+        # Subs, which lambdify would otherwise look for with a walk that rebuilds every expression)
+        items = [text if (text := printer.shaped_text(e)) is not None else e for e in exprs]
         return sp.lambdify(
             arguments,
-            exprs,
+            items,
             NUMERIC_MODULES,
-            printer=_Printer(names, shared, any(e.has(sp.re) for e in exprs)),
+            printer=printer,
             docstring_limit=0,
             cse=lambda e: (definitions, e),
             use_imps=False,

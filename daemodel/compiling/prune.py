@@ -17,7 +17,15 @@ from dataclasses import replace
 import sympy as sp
 
 from daemodel.compiling.structure import Differentiator, incidence
-from daemodel.compiling.zero_test import exact_value, is_zero, numeric_point, numeric_value, point_value
+from daemodel.compiling.zero_test import (
+    MODULUS,
+    exact_value,
+    is_zero,
+    modular_value,
+    numeric_point,
+    numeric_value,
+    point_value,
+)
 
 
 def find_alias(
@@ -31,13 +39,25 @@ def find_alias(
     calculus = calculus or Differentiator()
     occurring = calculus.free_symbols(g)  # once, not once per algebraic variable
     position = algebraics if isinstance(algebraics, dict) else {x: i for i, x in enumerate(algebraics)}
+    g_values = []  # [g's exact value at exact_value's point] once asked (None: not rational there)
     for x in sorted((s for s in occurring if s in position), key=position.__getitem__):
         a = calculus.diff(g, x)
         if not (a.is_number and a != 0):
             continue
+        others = (occurring - {x}) & symbols
+        if a.is_Rational and a.q % MODULUS and a.p % MODULUS:
+            # v's exact value is -(g - a x) / a at the point of exact_value, and modulo a prime: a residue
+            # that is neither s's nor -s's rules s out without building v (most constraints are no alias,
+            # and building v cost most of the scan); _may_be decides on the candidates left
+            g_values = g_values or [modular_value(g)]
+            if g_values[0] is not None:
+                coefficient = int(a.p) * pow(int(a.q), -1, MODULUS) % MODULUS
+                value = -(g_values[0] - coefficient * modular_value(x)) * pow(coefficient, -1, MODULUS) % MODULUS
+                if not any(value in (r, -r % MODULUS) for r in map(modular_value, others)):
+                    continue
         v = -(g - a * x) / a
         # the zero test (no expansion where the values decide) only for the symbols v may be
-        for s in _may_be(v, (occurring - {x}) & symbols):
+        for s in _may_be(v, others):
             for candidate in (s, -s):
                 if is_zero(v - candidate):
                     return x, candidate

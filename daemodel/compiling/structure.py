@@ -101,8 +101,9 @@ class Differentiator:
     One instance serves one compilation (it holds references to the expressions it saw).
     """
 
-    def __init__(self) -> None:
-        self._free: dict = {}
+    def __init__(self, free_symbols=None) -> None:
+        """``free_symbols``: expression -> its free symbols, already known (the declaration's)."""
+        self._free: dict = dict(free_symbols or {})
         self._derivatives: dict = {}
         self._depends: dict = {}
 

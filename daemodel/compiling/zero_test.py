@@ -298,8 +298,62 @@ MAX_EXACT_POWER = 64
 
 def _nonzero_somewhere(expr: sp.Expr) -> bool:
     """Whether ``expr`` has an exact nonzero rational value at the point of :func:`exact_value`."""
+    if modular_value(expr):  # (nonzero modulo a prime: nonzero, without fractions)
+        return True
     value = exact_value(expr)
     return value is not None and value != 0
+
+
+# The prime of modular_value: 2^61 - 1 (a Mersenne prime), so that a nonzero rational value is zero
+# modulo it only where its numerator is a multiple of 2^61 - 1.
+MODULUS = 2**61 - 1
+
+
+@functools.lru_cache(maxsize=1 << 18)  # (a symbol's residue is asked of every expression it is in)
+def _symbol_residue(name: str) -> int:
+    """:func:`point_value` of the symbol ``name`` modulo :data:`MODULUS` (its fraction, unreduced)."""
+    code = name.encode()
+    return (2 + zlib.crc32(code) % 1009) * pow(3 + zlib.crc32(code[::-1]) % 1013, -1, MODULUS) % MODULUS
+
+
+def modular_value(expr: sp.Expr) -> int | None:
+    """:func:`exact_value` modulo :data:`MODULUS`, with integers instead of fractions (~20 times cheaper).
+
+    None wherever :func:`exact_value` is None (a node with no exact value by its rules) and wherever
+    a denominator is a multiple of the modulus.  Where not None, it is the residue of the exact value:
+    a nonzero residue proves the value nonzero, and two different residues prove two values different
+    (a zero or equal residue proves nothing).
+    """
+    memo: dict = {}
+
+    def value(node) -> int:
+        out = memo.get(node)
+        if out is not None:
+            return out
+        if node.is_Symbol:
+            out = _symbol_residue(node.name)
+        elif node.is_Rational:
+            out = int(node.p) * pow(int(node.q), -1, MODULUS) % MODULUS  # ValueError: q a multiple of it
+        elif node.is_Add:
+            out = 0
+            for a in node.args:
+                out += value(a)
+            out %= MODULUS
+        elif node.is_Mul:
+            out = 1
+            for a in node.args:
+                out = out * value(a) % MODULUS
+        elif node.is_Pow and node.exp.is_Integer and abs(node.exp) <= MAX_EXACT_POWER:
+            out = pow(value(node.base), int(node.exp), MODULUS)  # ValueError: a pole, or one modulo it
+        else:
+            raise _NotRational
+        memo[node] = out
+        return out
+
+    try:
+        return value(expr)
+    except (_NotRational, ValueError):
+        return None
 
 
 def exact_value(expr: sp.Expr) -> Fraction | None:

@@ -23,6 +23,7 @@ from sympy.core.function import AppliedUndef
 from daemodel.declaring.arrays import checked_shape, compact_listing, element_names, symbol_array
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
+from daemodel.declaring.scan import scan
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -102,6 +103,9 @@ class Declared:
         Each declared array's ``(kind, shape, symbols)`` by its name: kind is ``"states"``,
         ``"algebraics"`` or ``"parameters"`` (its elements are in that table as ``u[0]``, ``T[3,4]``,
         ...), symbols the read-only object array the declaration returned.
+    free_symbols : Mapping[sympy.Expr, frozenset]
+        The free symbols of declared expressions, found while checking them (the compiler starts
+        from them instead of walking each equation again); not every expression is in it.
     """
 
     name: str
@@ -117,6 +121,7 @@ class Declared:
     t0: float
     events: tuple
     arrays: MappingProxyType
+    free_symbols: MappingProxyType
 
     def symbols(self) -> dict[str, sp.Symbol]:
         """Every declared symbol by name: states, algebraic variables, parameters."""
@@ -171,6 +176,7 @@ class Declaration:
         # arrays of variables and parameters: name -> (kind, shape, object array of the symbols)
         self._arrays: dict[str, tuple[str, tuple, np.ndarray]] = {}
         self._constraint_arrays: set[str] = set()  # the names of arrays of constraints (m.constraint(array))
+        self._free_symbols: dict = {}  # expression -> its free symbols, where the declaration's check found them
         self._compiled = None  # (what it was compiled from, CompiledDAE) of the last compile (compiling/)
 
     def declared(self) -> Declared:
@@ -190,6 +196,7 @@ class Declaration:
             t0=self._t0,
             events=tuple(self._events),
             arrays=view(self._arrays),
+            free_symbols=view(self._free_symbols),
         )
 
     # ---- declarations -------------------------------------------------------------------
@@ -577,13 +584,14 @@ class Declaration:
             raise ExpressionParseError(
                 f"{where}: {quoted(value)} is not a scalar expression (got {type(expr).__name__})"
             )
-        if expr.has(sp.Derivative):
-            found = sorted(map(str, expr.atoms(sp.Derivative)))
+        found = scan(expr)  # (one walk; sympy is asked where it finds something to look at closer)
+        if found.holds(sp.Derivative):
+            derivatives = sorted(map(str, expr.atoms(sp.Derivative)))
             raise DerivativeInEquationError(
-                f"{where}: derivative {', '.join(found)} in {expr}; a semi-explicit DAE has "
+                f"{where}: derivative {', '.join(derivatives)} in {expr}; a semi-explicit DAE has "
                 "derivatives only on the left (declare them with m.ode)"
             )
-        undefined = sorted({str(a.func) for a in expr.atoms(AppliedUndef)})
+        undefined = sorted({str(a.func) for a in expr.atoms(AppliedUndef)}) if found.holds(AppliedUndef) else []
         if undefined:
             raise UnknownSymbolError(
                 f"{where}: unknown function(s) {', '.join(undefined)} in {expr}; variables are "
@@ -591,14 +599,21 @@ class Declaration:
                 f"functions are {supported_names()}"
             )
         known = self._known
-        unknown = sorted(s.name for s in expr.free_symbols if known.get(s.name) != s)
+        free = expr.free_symbols if found.symbols is None else found.symbols
+        unknown = sorted(s.name for s in free if known.get(s.name) != s)
         if unknown:
             listing = _listing(sorted(known, key=lambda n: n == "t"))  # (t last)
             raise UnknownSymbolError(
                 f"{where}: unknown name(s) {', '.join(repr(u) for u in unknown)} in {expr}; declared: {listing}"
             )
-        expr = without_heaviside(without_ite(expr))
-        check_numbers(expr, where)
+        if found.holds(sp.ITE) or found.holds(sp.Heaviside):
+            expr = without_heaviside(without_ite(expr))
+            check_numbers(expr, where)
+            return expr
+        if not found.numbers_plain:
+            check_numbers(expr, where)
+        if found.symbols is not None:
+            self._free_symbols[expr] = found.symbols
         return expr
 
     def _fingerprint(self) -> tuple:

@@ -1,0 +1,66 @@
+"""Expressions of one shape are printed once: every expression's text is what printing it alone gives,
+character for character (so the generated functions, and their numbers, are those printed one by one)."""
+
+import sympy as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemodel.compiling.numeric_source import NumericPrinter, shape_key, shared_subexpressions
+
+SYMBOLS = sp.symbols("a b c d")
+NAMES = {s: f"_y[{k}]" for k, s in enumerate(SYMBOLS)}
+LEAVES = [*SYMBOLS, sp.Integer(2), sp.Rational(-1, 3), sp.Float("0.5"), sp.pi]
+UNARY = [sp.sin, sp.exp, sp.sqrt, sp.Abs, lambda e: -e, lambda e: 1 / e, lambda e: e**2]
+BINARY = [
+    sp.Add,
+    sp.Mul,
+    lambda u, v: sp.Piecewise((u, SYMBOLS[0] > 1), (v, True)),
+    lambda u, v: sp.Max(sp.Abs(u), sp.Abs(v)),
+]
+
+
+def expressions():
+    return st.recursive(
+        st.sampled_from(LEAVES),
+        lambda inner: st.one_of(
+            st.tuples(st.sampled_from(UNARY), inner).map(lambda p: p[0](p[1])),
+            st.tuples(st.sampled_from(BINARY), inner, inner).map(lambda p: p[0](p[1], p[2])),
+        ),
+        max_leaves=8,
+    ).filter(lambda e: not e.has(sp.zoo, sp.oo, -sp.oo, sp.nan, sp.I))  # (the declaration refuses these)
+
+
+def alone(expr, shared) -> str:
+    """The text of ``expr`` printed by a printer that has printed nothing else, without shapes."""
+    return NumericPrinter(NAMES, shared, False)._doprint(expr, None)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(expressions(), min_size=1, max_size=6), st.permutations(range(4)))
+def test_each_text_is_the_text_printed_alone(exprs, order):
+    # the same shapes again over other variables: the printer's second sight of each shape
+    renamed = [e.xreplace({s: SYMBOLS[order[k]] for k, s in enumerate(SYMBOLS)}) for e in exprs]
+    exprs = [sp.sympify(e) for e in exprs + renamed]
+    shared = shared_subexpressions(exprs)
+    printer = NumericPrinter(NAMES, shared, False)
+    for expr in exprs:
+        assert printer.doprint(expr) == alone(expr, shared)
+
+
+def test_one_shape_over_other_variables_has_one_key():
+    a, b, c, d = SYMBOLS
+    first, second = shape_key(a - b**2 / (1 + b), NAMES, {}), shape_key(c - d**2 / (1 + d), NAMES, {})
+    assert first[0] == second[0] and first[1] == [a, b] and second[1] == [c, d]
+    assert shape_key(a - b**2 / (1 + a), NAMES, {})[0] != first[0]  # (another variable at a leaf)
+    assert shape_key(a - b**3 / (1 + b), NAMES, {})[0] != first[0]  # (another number)
+    assert shape_key(a - b**2 / (2 + b), NAMES, {})[0] != first[0]
+
+
+def test_what_has_no_shape_is_printed_alone():
+    a, b = SYMBOLS[:2]
+    assert shape_key(a + sp.Symbol("other"), NAMES, {}) is None  # a symbol with no name given
+    inner = 1 + b
+    assert shape_key(a * inner, NAMES, {inner: "_c0"}) is None  # (a shared subexpression prints as its name)
+    assert shape_key(inner, NAMES, {inner: "_c0"}) is not None  # (except at the top: its definition)
+    printer = NumericPrinter(NAMES, {inner: "_c0"}, False)
+    assert printer.doprint(a * inner) == "_y[0]*(_c0)"  # (as printed without shapes)
