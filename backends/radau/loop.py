@@ -4,8 +4,12 @@ up to 24 unknowns, and with ``jit`` sparse ones on static factors made in C, :mo
 With the attempt compiled (:func:`.compiled.step_function`), what Python still did per attempt, the
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
 times the attempt itself in machine code (the pendulum: 3.3 us).  :func:`run_function` makes
-:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  Each
-attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
+:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function (a loop
+over one attempt).  With ``jit`` on static factors up to 24 unknowns the whole run is machine code,
+in the step's library (:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call): on
+casadi's virtual machine around the step's machine code, the run's own graph (switches, copies, the
+controller's scalars) took ~10 of car axis's ~17 us an attempt.  Each attempt, as
+:meth:`.step.Stepper.compiled_attempt` and the controller make it:
 
 - refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
   algebraic variables' iteration matrix), or factors anew where h changed;
@@ -238,12 +242,10 @@ def run_function(
     attempt = casadi.Function("attempt", [state, settings], [moved, record])
     idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(record.numel())])
     maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
-
-    carried, records = state, []
-    for _ in range(attempts):
-        carried, rec = maybe(carried[layout["active"]], carried, settings)
-        records.append(rec)
-    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+    one = casadi.Function("one_attempt", [state, settings], maybe(state[layout["active"]], state, settings))
+    # (a loop, not ``attempts`` calls written out: the machine code's size does not grow with them)
+    states, records = one.mapaccum("attempts", attempts)(state, settings)
+    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(states[:, -1], casadi.vec(records))])
 
 
 class CasadiTries(AbstractTriesSide):
