@@ -268,7 +268,7 @@ class CasadiEngine(AbstractEngine):
         refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
         functions = (refresh, factor, self._stage_jac.function, sign, static)
         key = ("casadi-radau-machine-run", self.s, iterations)
-        build = lambda: run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS)  # noqa: E731
+        build = lambda: run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)  # noqa: E731
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
