@@ -30,7 +30,7 @@ from daemodel.backends.radau.compiled import (
     step_layouts,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
-from daemodel.backends.radau.kernel import kernel_source
+from daemodel.backends.radau.kernel import factor_call, kernel_source, sign_call
 from daemodel.backends.radau.linalg import (
     dense_inverse,
     dense_lu,
@@ -61,6 +61,17 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 # elimination of at most this many multiply-adds: the chain of 40 pendulums (3,100) at s = 5 was 1.15x
 # slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
 STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
+# Attempts in one call of the compiled run in machine code (.loop; on casadi's virtual machine
+# loop.RUN_ATTEMPTS): an idle one costs a copy of the state, ~0.1 us, and a run ends at the progress
+# watch's window (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts)
+# takes 4 calls instead of 13, each ~40 us of Python around it.
+MACHINE_RUN_ATTEMPTS = 100
+# The compiled run is machine code up to this many unknowns (above, on casadi's virtual machine around the
+# step's machine code): there the run's own work (the controller, copies, the switches) is a large share of
+# an attempt, and its C (the Jacobian at the step's start and at the stages, the controller) adds ~50 % to
+# the compile (car axis); the chain of 20 pendulums (100 unknowns) compiled 3.5x longer for a run whose
+# attempts are mostly the step's own work.
+MACHINE_RUN_MAX_SIZE = COMPILED_FACTOR_MAX_SIZE
 
 
 # What the disk cache did (daemodel.cache), the most telling first: a refused folder, a library not
@@ -143,6 +154,7 @@ class CasadiEngine(AbstractEngine):
         self.static = None  # (StaticFactors where the compiled step reads them: see make_compiled_step)
         self._static = {}  # (on bound buffers, made on first use: the factor function, the real and complex solves)
         self._static_active = False  # the compiled step reads the static factors: factor() makes them
+        self._machine_run = None  # (jit on static factors: the compiled run in machine code, _library)
         self._start = start
 
     def _machine_code(self, build, key):
@@ -230,6 +242,8 @@ class CasadiEngine(AbstractEngine):
         if static is not None:
             kernel = kernel_source(static.lu, self.transform, static, m)
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
+            if self.D <= MACHINE_RUN_MAX_SIZE:
+                functions["radau_run_machine_code"] = self._machine_run_function(step, key[2])
         what = f"radau: jit=True: compiling the step of {step.name()!r}"
         build = lambda: machine_library(functions, find_compiler(), kernel, names, what)  # noqa: E731
         code = self._machine_code(build, key).functions
@@ -239,7 +253,23 @@ class CasadiEngine(AbstractEngine):
             self._kernel = (code["static_factors"], code.get("sign_det"))
             self._static[False] = Buffered(code["static_solve"], inputs=2)
             self._static[True] = Buffered(code["static_solve_complex"], inputs=2)
+            self._machine_run = code.get("radau_run_machine_code")
         return code["radau_step_machine_code"]
+
+    def _machine_run_function(self, step, iterations: int):
+        """The compiled run (:func:`.loop.run_function`, :data:`MACHINE_RUN_ATTEMPTS` attempts) around the
+        casadi ``step``, for machine code in one library with it and the kernel (:meth:`_library`): the
+        static factors and the determinant's sign are calls into the kernel's C (:func:`.kernel.factor_call`,
+        :func:`.kernel.sign_call`), so that nothing of the run is left to casadi's virtual machine (car
+        axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
+        static, m = self.static, self.m
+        factor = factor_call(static.lu, static)
+        sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
+        refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+        functions = (refresh, factor, self._stage_jac.function, sign, static)
+        key = ("casadi-radau-machine-run", self.s, iterations)
+        build = lambda: run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)  # noqa: E731
+        return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
         """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
@@ -387,6 +417,8 @@ class CasadiEngine(AbstractEngine):
         static = self._static_active and self.jit
         if self._compiled is None or (self.D > COMPILED_FACTOR_MAX_SIZE and not static):
             return None
+        if static and self._machine_run is not None:  # (in machine code with the step: _library)
+            return CompiledRun(self._machine_run, self)
         step = self._compiled[0].function
         key = ("casadi-radau-run", self.s, iterations, self.jit, static)
         if static:  # (the factors and the determinant's sign in C: .kernel)

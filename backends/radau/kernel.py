@@ -340,6 +340,28 @@ static const casadi_int sparsity_solve_complex_in[2][3] = {{2 * (N_L + N_U), 1, 
 static const casadi_int sparsity_solve_out[3] = {N_D, 1, 1};
 static const casadi_int sparsity_solve_complex_out[3] = {2 * N_D, 1, 1};
 
+/* the factors and the determinant's sign as plain C calls, their work on the stack: for code that
+   casadi's generator writes around them (factor_call, sign_call) */
+static int dm_factors(const double* x, double* out) {
+  double work[2 * N_SLOT];
+  const double* arg[1];
+  double* res[1];
+  if (!x) return 1;  /* (casadi passes a null input for structural zeros: never [h, J], whose h is a number) */
+  arg[0] = x;
+  res[0] = out;
+  return static_factors(arg, res, 0, work, 0);
+}
+
+static int dm_sign(const double* a, double* out) {
+  double work[M_SIGN * M_SIGN + 1];
+  const double* arg[1];
+  double* res[1];
+  if (!a) a = dm_zeros;  /* (a null input: zeros, a singular matrix) */
+  arg[0] = a;
+  res[0] = out;
+  return sign_det(arg, res, 0, work, 0);
+}
+
 int static_solve(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
   return dm_solve_real(arg[0], arg[1], res[0]);
 }
@@ -385,7 +407,7 @@ def kernel_source(lu, transform, factors, m: int) -> str:
         "N_OUT": factors.size,
         "M_SIGN": max(m, 1),
         "N_D": lu.D,
-        "N_ZEROS": 2 * max(lu.L_size + lu.U_size, lu.D),
+        "N_ZEROS": max(2 * max(lu.L_size + lu.U_size, lu.D), m * m),
     }
     source = ["/* daemodel: radau's fixed-pivot sparse factors (generated; numbers only) */\n"]
     source += ["#include <math.h>\n"] + [f"#define {key} {value}\n" for key, value in sizes.items()]
@@ -417,6 +439,36 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
     names = ["static_factors", *(["sign_det"] if m else [])]
     code = cached_library(kernel_source(lu, transform, factors, m), names, build)
     return code.functions["static_factors"], code.functions.get("sign_det"), code.outcome
+
+
+def factor_call(lu, factors):
+    """casadi function of ``static_factors``' signature (``[h, J's nonzeros]`` to the packed ``factors``,
+    :class:`.compiled.StaticFactors`) whose code calls the kernel's (``dm_factors``): for casadi's code
+    generator inside a function compiled with :func:`kernel_source` in the same source (the compiled
+    run, :mod:`.loop`, in machine code).  It has no code of its own to run: called outside machine
+    code, it fails."""
+    return _call("factor_call", "return dm_factors(x, out);", [1 + len(lu.rows)], factors.size)
+
+
+def sign_call(m: int):
+    """casadi function of ``sign_det``'s signature (an (m, m) matrix's column-major values to the sign
+    of its determinant) whose code calls the kernel's (``dm_sign``); as :func:`factor_call`."""
+    return _call("sign_call", "return dm_sign(x, out);", [m * m], 1)
+
+
+def _call(name: str, body: str, sizes_in: list, size_out: int):
+    """A code-only casadi function of one dense input ``x`` and one output ``out`` (see :func:`factor_call`)."""
+    import casadi
+
+    return casadi.Function.jit(
+        name,
+        body,
+        ["x"],
+        ["out"],
+        [casadi.Sparsity.dense(size) for size in sizes_in],
+        [casadi.Sparsity.dense(size_out)],
+        {"jit": False, "buffered": False},  # (no compiling here; the pointers as the caller holds them, no copies)
+    )
 
 
 def solve_call(lu, complex_: bool):

@@ -4,8 +4,12 @@ up to 24 unknowns, and with ``jit`` sparse ones on static factors made in C, :mo
 With the attempt compiled (:func:`.compiled.step_function`), what Python still did per attempt, the
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
 times the attempt itself in machine code (the pendulum: 3.3 us).  :func:`run_function` makes
-:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  Each
-attempt, as :meth:`.step.Stepper.compiled_attempt` and the controller make it:
+:data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  With
+``jit`` on static factors up to 24 unknowns the whole run is machine code, in the step's library
+(:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call, a loop over one attempt's code):
+on casadi's virtual machine around the step's machine code, the run's own graph (switches, copies,
+the controller's scalars) took ~10 of car axis's ~17 us an attempt.  Each attempt, as
+:meth:`.step.Stepper.compiled_attempt` and the controller make it:
 
 - refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
   algebraic variables' iteration matrix), or factors anew where h changed;
@@ -161,7 +165,16 @@ def tail_function(s: int, iterations: int):
 
 
 def run_function(
-    engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int, attempts: int = RUN_ATTEMPTS
+    engine,
+    step,
+    refresh,
+    inverses,
+    stage_jacobians,
+    sign,
+    static,
+    iterations: int,
+    attempts: int = RUN_ATTEMPTS,
+    loop: bool = False,
 ):
     """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring).
 
@@ -174,7 +187,9 @@ def run_function(
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`.sequence.SCALARS` and the
     arrays, :data:`.sequence.SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
-    virtual machine an MX operation costs ~20 ns, an SX one ~2.
+    virtual machine an MX operation costs ~20 ns, an SX one ~2.  ``loop``: the attempts as a casadi loop
+    (``mapaccum``: one attempt's code, for machine code), else written out one call after the other (on
+    the virtual machine 8 % faster on the chain of 20 pendulums: the loop keeps every attempt's state).
     """
     import casadi
 
@@ -238,7 +253,10 @@ def run_function(
     attempt = casadi.Function("attempt", [state, settings], [moved, record])
     idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(record.numel())])
     maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
-
+    if loop:  # (machine code: its size does not grow with the attempts)
+        one = casadi.Function("one_attempt", [state, settings], maybe(state[layout["active"]], state, settings))
+        states, records = one.mapaccum("attempts", attempts)(state, settings)
+        return casadi.Function("radau_run", [state, settings], [casadi.vertcat(states[:, -1], casadi.vec(records))])
     carried, records = state, []
     for _ in range(attempts):
         carried, rec = maybe(carried[layout["active"]], carried, settings)

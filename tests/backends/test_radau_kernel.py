@@ -249,3 +249,38 @@ def test_one_library_serves_the_whole_solve(monkeypatch, tmp_path, name, options
     if "rtol" in options:  # (another stage count: one more library)
         dm.solve(compiled, span, jit=True, rtol=1e-9, atol=1e-9, stages=5)
         assert len(runs) == 2
+
+
+@pytest.mark.parametrize(
+    ("name", "span", "rtol"),
+    [
+        ("car-axis", (0.0, 3.0), 1e-4),  # (m = 2: the run's own sign formula)
+        ("pendulum_chain-4", (0.0, 2.0), 1e-6),  # (m = 4: the kernel's sign, sign_call)
+        ("akzo-nobel", (0.0, 180.0), 1e-8),  # (Newton failures and fresh Jacobians inside the run)
+    ],
+)
+def test_the_run_in_machine_code_gives_the_virtual_machines_run_bit_for_bit(monkeypatch, name, span, rtol):
+    """Up to MACHINE_RUN_MAX_SIZE unknowns the whole run is machine code, in the step's library (the
+    factors and the sign through the kernel's C): the steps, counts and values of the run on casadi's
+    virtual machine around the same step, bit for bit, in fewer calls (MACHINE_RUN_ATTEMPTS a call)."""
+    model = lambda: scaling_models.pendulum_chain(4) if name == "pendulum_chain-4" else PROBLEMS[name].model()  # noqa: E731
+    options = dict(rtol=rtol, atol=rtol, jit=True, t_eval=np.linspace(*span, 11))
+    sizes, advance = [], loop.CompiledRun.advance
+
+    def recorded(self, *args):
+        sizes.append(self.attempts)
+        return advance(self, *args)
+
+    monkeypatch.setattr(loop.CompiledRun, "advance", recorded)
+    machine = dm.solve(model().compile(), span, **options)
+    assert set(sizes) == {casadi_engine.MACHINE_RUN_ATTEMPTS}
+    monkeypatch.setattr(casadi_engine, "MACHINE_RUN_MAX_SIZE", 0)
+    compiled = model().compile()  # (another model: its own cache of casadi functions and libraries)
+    sizes.clear()
+    virtual = dm.solve(compiled, span, **options)
+    assert set(sizes) == {loop.RUN_ATTEMPTS}
+    for key in COUNTS:
+        assert machine.stats[key] == virtual.stats[key], key
+    for name_ in (*compiled.state_names, *compiled.algebraic_names):
+        assert np.array_equal(machine[name_], virtual[name_]), name_
+    assert machine.stats["compiled_runs"] <= virtual.stats["compiled_runs"]

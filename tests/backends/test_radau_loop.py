@@ -7,7 +7,7 @@ compiled ones, errors), and stop where the controller checks its budget.
 
 import numpy as np
 import pytest
-from daemodel.backends.radau import loop, sequence
+from daemodel.backends.radau import casadi_engine, loop, sequence
 from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import find_compiler
 
@@ -75,7 +75,9 @@ def test_newton_failures_are_handled_inside_the_run(monkeypatch):
     run = dm.solve(PROBLEMS["akzo-nobel"].model(), (0.0, 180.0), rtol=1e-8, atol=1e-8)
     assert run.stats["newton_failures"] == 2 and run.stats["compiled_retries"] == 5
     assert sequence.HANDBACK not in ends and ends[-1] == sequence.FINISHED
-    assert run.stats["compiled_runs"] == len(ends) == 2
+    # (in as few calls as the run's attempts allow: loop.RUN_ATTEMPTS, or MACHINE_RUN_ATTEMPTS in machine code)
+    size = casadi_engine.MACHINE_RUN_ATTEMPTS if run.stats["jit"].startswith("machine") else loop.RUN_ATTEMPTS
+    assert run.stats["compiled_runs"] == len(ends) == -(-run.stats["attempts"] // size)
 
 
 def test_dense_output_from_the_runs_steps(monkeypatch):
