@@ -54,8 +54,9 @@ def solve(
     t_span : (float, float)
         ``(t0, t1)`` with ``t0 < t1``; ``t0`` is the time of the model's initial values.
     method : str
-        A registered method: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
-        ``"reference"``, ``"pinn"`` (see :func:`daemodel.backends.methods`).
+        A method's name: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
+        ``"reference"``, ``"pinn"``, or one registered or installed from outside (``dm.methods()``
+        lists them; :mod:`daemodel.backends.registry`).
     y0 : dict name -> float or array (B,), or array (n,) or (B, n), optional
         Initial states; states not named keep the model's values.  An array or a dict of
         arrays makes a batch: the solution's values get a leading axis of size B.

@@ -385,7 +385,8 @@ def error_estimate(compiled, t_span, start, times, values, rtol) -> tuple[float,
     return worst, where
 
 
-def main(argv=None) -> None:
+def main(argv=None):
+    """Compare the method with radau on Hessenberg against its exact solution; the Comparison."""
     import argparse
 
     from daemodel.problems import HESSENBERG
@@ -409,6 +410,7 @@ def main(argv=None) -> None:
     worst = max(v["max"] for v in run.errors.values())
     print(f"{NAME}: max error against the exact solution {worst:.2e}, status {run.status!r}")
     assert run.status == "success" and worst < 1e-3
+    return result
 
 
 if __name__ == "__main__":
