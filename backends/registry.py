@@ -179,7 +179,7 @@ class MethodRegistry:
         """Remove the method ``name`` registered in this process (a built-in or installed method it
         replaced is found again); :class:`UnknownMethodError` if none was registered under it."""
         with self._lock:
-            if name not in self._registered:
+            if not isinstance(name, str) or name not in self._registered:
                 known = ", ".join(self._registered) or "none"
                 raise UnknownMethodError(
                     f"no method {name!r} was registered in this process (registered: {known}); built-in and "

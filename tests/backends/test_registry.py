@@ -142,6 +142,8 @@ def test_unregister_names_what_was_registered():
         E.UnknownMethodError, match=r"no method 'radau' was registered in this process \(registered: none"
     ):
         dm.methods.unregister("radau")
+    with pytest.raises(E.UnknownMethodError, match=r"no method \['x'\] was registered in this process"):
+        dm.methods.unregister(["x"])
 
 
 def test_an_installed_method_is_found_by_its_entry_point(tmp_path, monkeypatch, example):
