@@ -2,29 +2,56 @@
 
 What several methods share besides lives apart: :mod:`.checks` (their options' checks),
 :mod:`.grids` (time grids, output times, sweeps), :mod:`.progress` (progress bars, step loops that
-cannot finish, casadi's output) and :mod:`.torch_setup` (devices, threads, torch's warm-up).
+cannot finish, casadi's output) and :mod:`.torch_setup` (devices, threads, torch's warm-up).  The
+same contract holds for a method plugged in from outside (:mod:`.registry`; docs/methods.md#writing-a-method
+walks through one).
 
 A backend is a final subclass of :class:`AbstractBackend`:
 
-1. ``name`` is the string users pass as ``solve(method=...)``; ``Options`` is a frozen,
-   keyword-only dataclass whose fields are the method's options, validated in
-   ``__post_init__``; ``max_index`` is the highest index the method solves directly
+1. ``name`` is the string users pass as ``solve(method=...)`` (the name it is registered under);
+   ``Options`` is a frozen, keyword-only dataclass whose fields are the method's options, with
+   defaults, validated in ``__post_init__`` (a value it cannot use:
+   :class:`~daemodel.errors.InvalidOptionError` naming the option, the value and the range; an
+   unknown keyword is refused by ``solve`` before, with :class:`~daemodel.errors.UnknownOptionError`
+   listing the fields); ``max_index`` is the highest index the method solves directly
    (``solve`` reduces a model of higher index before calling it).
-2. ``solve(compiled, t_span, start, options)`` integrates every sample of ``start`` over
-   ``t_span = (t0, t1)``, ``t0 < t1``, and returns a :class:`~daemodel.solution.Solution`
-   with values for every state and algebraic variable, its wall time and its stats.
-3. It never returns non-finite values and never warns-then-returns: a failure raises a
+2. ``solve(compiled, t_span, start, options)`` integrates every sample of ``start`` (an
+   :class:`~daemodel.compiling.initial_states.InitialStates`: consistent ``y0`` (B, n), ``z0`` (B, m),
+   parameters ``p`` (B, k)) over ``t_span = (t0, t1)``, ``t0 < t1``, checked, and returns a
+   :class:`~daemodel.solution.Solution` (made by :func:`make_solution`) with values for every state and
+   algebraic variable at its output times (``t_eval`` where the method has that option: checked by
+   :func:`~.grids.output_times`), its clocks and its stats.  ``compiled`` (a
+   :class:`~daemodel.compiling.compiled.CompiledDAE`, index at most ``max_index``) gives the model's
+   functions: ``compiled.torch_functions()`` (batched ``f``, ``g`` and their Jacobian),
+   ``compiled.numeric``, ``compiled.casadi_dae()``.
+3. Status: ``"success"`` only when the values are within the accuracy the method states (adaptive
+   steps: their tolerance; fixed steps: the embedded estimate within its bound; a trained network:
+   its error estimate within its bound); otherwise ``"flagged: ..."`` with the estimate, what it was
+   compared with and the fix, and a warning the user cannot miss (:func:`estimate_status`).
+4. It never returns non-finite values and never warns-then-returns: a failure raises a
    :class:`~daemodel.errors.SolverError` (:class:`~daemodel.errors.ConvergenceError`,
    :class:`~daemodel.errors.LocalErrorBoundError`, :class:`~daemodel.errors.StepLimitError`)
    naming the time, the step, the sample and the fix.
-4. Every loop has a user-settable bound, and a request that cannot fit (a grid of more than
+5. Every loop has a user-settable bound, and a request that cannot fit (a grid of more than
    :data:`~.grids.MAX_GRID_POINTS` steps, see :func:`~.grids.grid_steps`) is refused before anything is allocated.
-5. A backend whose ``stops`` is True also takes ``solve(..., stop=...)``: a function
+6. Clocks: ``setup_time`` is getting ready (generating or compiling code, building an integrator,
+   training a network), ``solve_time`` is producing the values from the ready method, checks of
+   the result included (:func:`make_solution` adds the branch check to it); nothing the method does
+   runs outside them.  ``solve`` adds what it did before and after (compiling the model, initial
+   states, joining pieces) to them, so that for every method setup + solve is the call's wall time.
+7. Pieces: a model with switches or events is solved piece by piece (from breakpoint to
+   breakpoint, from event to event, and short trial solves that locate an event), each a call of
+   ``solve`` from the states where the last ended.  A method that cannot be called on pieces (one
+   trained over the whole span per call) sets ``solves_pieces = False``; ``solve`` then refuses such
+   models with :class:`~daemodel.errors.UnsupportedModelError` naming the method and the switch or event.
+8. A backend whose ``stops`` is True also takes ``solve(..., stop=...)``: a function
    ``stop(times (k,), Y (k, n), Z (k, m)) -> bool`` of one sample's outputs, called on each block of
    them in order as the integration makes them (the start value first); where it returns True the
    integration ends after that block, and the Solution holds the outputs up to it (those of a solve to
    t1 up to there, the same values).  The event search (:mod:`daemodel.solving.events`) stops where
    an event function has crossed zero, instead of solving on to t1 and discarding the rest.
+9. :meth:`AbstractBackend.work_precision` gives :func:`daemodel.compare` its default sweep (cheap to
+   accurate); :meth:`AbstractBackend.describe` a label.
 """
 
 from __future__ import annotations
@@ -153,8 +180,10 @@ class AbstractBackend(ABC):
     name: ClassVar[str]
     Options: ClassVar[type]
     max_index: ClassVar[int]
-    # solve() takes stop=... (rule 5 of the module docstring)
+    # solve() takes stop=... (rule 8 of the module docstring)
     stops: ClassVar[bool] = False
+    # solve() may be called on pieces of the span (rule 7): models with switches and events are solved
+    solves_pieces: ClassVar[bool] = True
 
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):

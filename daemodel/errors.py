@@ -140,6 +140,34 @@ class UnknownMethodError(ModelError):
     """``solve(method=...)`` names no registered backend."""
 
 
+class MethodNameError(InvalidNameError):
+    """``dm.methods.register(name, ...)`` with a name that is not a plain method name (a letter, then
+    letters, digits, ``-`` or ``_``), or that is taken (a built-in method, one registered earlier, or an
+    installed entry point) without ``replace=True``."""
+
+
+class MethodClassError(ModelError, TypeError):
+    """``dm.methods.register(name, cls)`` with a ``cls`` that does not keep the backend contract: not a
+    concrete subclass of :class:`daemodel.backends.base.AbstractBackend`, its ``name`` not the name it is
+    registered under, ``Options`` not a dataclass, or ``max_index`` not 1, 2 or 3."""
+
+
+class MethodPluginError(ModelError):
+    """A method from the ``daemodel.methods`` entry-point group cannot be used: its module does not
+    import, its class is missing or breaks the backend contract, or two distributions give the same
+    name.  The message names the distribution, the entry point and the cause; the other methods work."""
+
+
+class MethodPluginWarning(UserWarning):
+    """An entry point of the ``daemodel.methods`` group is ignored: its name is not a plain method name,
+    or it is a built-in method's (the built-in one is used)."""
+
+
+class UnsupportedModelError(ModelError):
+    """A method cannot solve this kind of model: e.g. one that solves the whole span at once
+    (``solves_pieces = False``) given a model with events or switches, which are solved piece by piece."""
+
+
 class UnknownOptionError(ModelError):
     """A keyword passed to ``solve`` is not an option of the chosen method."""
 

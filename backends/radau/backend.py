@@ -34,7 +34,7 @@ class RadauBackend(AbstractBackend):
     Options = RadauOptions
     # index 3 would need h^-2-conditioned Newton matrices; solve() reduces it to index 2
     max_index = 2
-    stops = True  # solve(..., stop=...): the event search ends a solve at a crossing (base.py, rule 5)
+    stops = True  # solve(..., stop=...): the event search ends a solve at a crossing (base.py, rule 8)
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return fixed_step_sweep(t_span, points, steps)

@@ -67,7 +67,8 @@ def compare(
     model : Model or CompiledDAE
     t_span : (float, float)
     methods : iterable of str, optional
-        Registered method names; default every method except ``"reference"``.
+        Method names (built in, registered or installed: ``dm.methods()``); default every method except
+        ``"reference"``.
     reference : callable, optional
         ``reference(t) -> dict name -> values``, e.g. ``Problem.exact_solution()``: for times
         ``t`` of shape (T,), finite values of shape (T,) for every state and algebraic

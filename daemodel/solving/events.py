@@ -85,7 +85,7 @@ def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, o
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
     :func:`daemodel.solving.switches.solve_with_breakpoints` does).  ``stop``: a :class:`Crossings`
     search's ``stop(names)`` (the backend's names of its states and algebraic variables) -> the
-    backend's ``stop`` (:mod:`daemodel.backends.base`, rule 5); used where the backend takes it and
+    backend's ``stop`` (:mod:`daemodel.backends.base`, rule 8); used where the backend takes it and
     no time switch cuts the span, else the solve goes on to ``b``."""
     from daemodel.compiling.initial_states import InitialStates
 

@@ -24,6 +24,7 @@ from daemodel.errors import (
     SolverError,
     TimeSpanError,
     UnknownOptionError,
+    UnsupportedModelError,
 )
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
@@ -53,8 +54,9 @@ def solve(
     t_span : (float, float)
         ``(t0, t1)`` with ``t0 < t1``; ``t0`` is the time of the model's initial values.
     method : str
-        A registered method: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
-        ``"reference"``, ``"pinn"`` (see :func:`daemodel.backends.methods`).
+        A method's name: ``"radau"``, ``"casadi-collocation"``, ``"casadi-idas"``,
+        ``"reference"``, ``"pinn"``, or one registered or installed from outside (``dm.methods()``
+        lists them; :mod:`daemodel.backends.registry`).
     y0 : dict name -> float or array (B,), or array (n,) or (B, n), optional
         Initial states; states not named keep the model's values.  An array or a dict of
         arrays makes a batch: the solution's values get a leading axis of size B.
@@ -146,10 +148,12 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
     common = len(start.p) == 1 or getattr(opts, "t_eval", None) is not None
     # (and in float64: float32's rounding, ~1e-7, cannot tell which side of a switch a located state is on)
     common = common and getattr(opts, "dtype", "float64") in ("float64", None)
+    time_switches = has_time_switches(model)
+    if not backend.solves_pieces and (located.events or time_switches):
+        raise unsupported(backend, model)
     if model.events or (located.events and common):  # (located, reset and restarted from, in every method)
         dispatched.append(time.perf_counter())
         return solve_with_events(backend, located, t_span, start, opts, max_events)
-    time_switches = has_time_switches(model)
     dispatched.append(time.perf_counter())
     try:
         if time_switches:  # (from breakpoint to breakpoint, each side on its own branch)
@@ -166,6 +170,19 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
             + ("pass t_eval to have them located on common output times" if why != "float32" else "use float64")
         ) from error
     return sol if sensitivities is None else with_sensitivities(sol, model, sensitivities)
+
+
+def unsupported(backend, model) -> UnsupportedModelError:
+    """The error for a method that is not called on pieces (``solves_pieces = False``) given ``model``,
+    which has events or switches: naming the first of them."""
+    if model.events:
+        what = f"the event {model.events[0].name!r}"
+    else:
+        what = f"a switch ({find_switches(model)[0].describe()})"
+    return UnsupportedModelError(
+        f"method {backend.name!r} solves the whole span at once (solves_pieces = False), but model '{model.name}' "
+        f"has {what}, across which daemodel solves piece by piece: use a method that solves pieces, e.g. 'radau'"
+    )
 
 
 def check_sensitivities(model, backend, opts, names) -> None:

@@ -1,5 +1,5 @@
 """radau's controllers (backends/radau/control.py): where a caller's ``stop`` ends an integration
-(the backend contract's rule 5, backends/base.py)."""
+(the backend contract's rule 8, backends/base.py)."""
 
 import numpy as np
 import pytest

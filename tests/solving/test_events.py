@@ -354,7 +354,7 @@ def test_a_flagged_piece_before_an_event_flags_the_solve():
 
 def test_the_search_for_each_event_stops_at_its_crossing():
     """Each piece's search solve ends at the first crossing it finds (radau stops there: backends/base.py,
-    rule 5), and its steps up to there are the piece's outputs: the work grows with the events, not with
+    rule 8), and its steps up to there are the piece's outputs: the work grows with the events, not with
     the events times the span left; each location starts where the dense output crosses.  An oscillator
     crossing zero 16 times on [0, 50] took 2,082 steps where the solve without the event takes 161 (each
     search solved the rest of the span), 632 with the searches stopped (the location's 146 trial solves
