@@ -194,9 +194,14 @@ class CasadiEngine(AbstractEngine):
         general path."""
         D = self.D
         orders = self._pivot_orders() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
-        if orders is not None:  # (where the order stopped holding in an earlier solve of this model: .pivots)
-            orders.rederive([lam for _, lam in self.transform.blocks], STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES)
-        lu, version = (None, 0) if orders is None else (orders.lu, orders.version)
+        lu, version = None, 0
+        if orders is not None:  # (re-derived where it stopped holding in an earlier solve of this model: .pivots)
+            start = self._start
+            key = b"".join(
+                np.asarray(v, dtype=float).tobytes() for v in ([self.compiled.t0], start.y0, start.z0, start.p)
+            )
+            shifts = [lam for _, lam in self.transform.blocks]
+            lu, version = orders.for_start(key, shifts, STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES)
         if lu is not None and not jit and (lu.flops > STATIC_MAX_FLOPS_VM or lu.entries > STATIC_MAX_FILL * D * D):
             lu = None  # (on casadi's virtual machine its factors cost more than LAPACK's or SuperLU's)
         if not self.dense and lu is None:
@@ -365,7 +370,9 @@ class CasadiEngine(AbstractEngine):
     def _static_packed(self, packed: np.ndarray, h: float) -> Factors | None:
         """:class:`Factors` of the packed static factors (see :meth:`_static_factor`), or None."""
         growth, pivot = packed[-2:]
-        if not np.isfinite(packed.sum()) or growth > MAX_GROWTH or pivot == 0:
+        with np.errstate(invalid="ignore", over="ignore"):  # (inf - inf in the sum: not finite, and said below)
+            finite = np.isfinite(packed.sum())
+        if not finite or growth > MAX_GROWTH or pivot == 0:
             return None
         shifts = self.transform.shifts(h)
         error = self.transform.error_shift(shifts)

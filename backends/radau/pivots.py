@@ -13,7 +13,8 @@ is a candidate, and the one whose factors hold at most of the kept matrices (gro
 and no zero pivot, by :func:`fixed_order_growth`) replaces the order, if it holds at more of them
 than the order in use.  A new order is new code (the static factors and the compiled step are built
 for it, and compiled once, through the disk cache); at most :data:`MAX_PIVOT_ORDERS` are derived per
-model, so a solution that visits many regions does not compile without end.
+model, so a solution that visits many regions does not compile without end.  A solve from a start that
+an earlier solve of the model started from takes that solve's order: solving again gives the same bits.
 """
 
 from __future__ import annotations
@@ -75,6 +76,18 @@ class PivotOrders:
     def __init__(self, lu: StaticLU | None):
         self.lu, self.version, self.failures, self.derived = lu, 0, 0, 0
         self._kept = []  # (J, h) of failed factorisations: the first KEPT_FAILURES // 3 and the latest
+        self._orders = {0: lu}  # version -> order
+        self._by_start = {}  # a solve's start -> the version it took
+
+    def for_start(self, start: bytes, shifts: list, max_flops: int, max_entries: int) -> tuple:
+        """``(order, version)`` for a solve from ``start`` (its t0, y0, z0 and parameters as bytes): the one
+        an earlier solve from the same start took (solving again gives the same bits), else the latest,
+        re-derived first where it failed (:meth:`rederive`): each piece between events starts elsewhere."""
+        if start not in self._by_start:
+            self.rederive(shifts, max_flops, max_entries)
+            self._by_start[start] = self.version
+        version = self._by_start[start]
+        return self._orders[version], version
 
     def record(self, J: np.ndarray, h: float) -> None:
         """A factorisation in this order that did not hold (growth, zero pivot or a value not finite)."""
@@ -115,6 +128,7 @@ class PivotOrders:
         if best is None:
             return False
         self.lu, self.version = best, self.version + 1
+        self._orders[self.version] = best
         return True
 
     @staticmethod

@@ -78,6 +78,21 @@ def test_an_order_that_meets_a_zero_pivot_is_replaced_by_one_that_holds():
     assert fixed_order_growth(orders.lu, failing, 1.0, 1.0) <= MAX_GROWTH
 
 
+def test_a_solve_from_an_earlier_solves_start_takes_its_order():
+    """Solving again from the same start gives the same bits (the transistor amplifier's compiled run
+    and single attempts, tests/backends/test_radau_loop.py, are two solves of one model); a new start
+    (the next piece after an event) takes the order re-derived from the failures."""
+    first, failing = _two_by_two()
+    orders = PivotOrders(first)
+    assert orders.for_start(b"t0", [1.0 + 0j], 10**5, 5000) == (first, 0)
+    for _ in range(REDERIVE_AFTER):
+        orders.record(failing, 1.0)
+    assert orders.for_start(b"t0", [1.0 + 0j], 10**5, 5000) == (first, 0)
+    lu, version = orders.for_start(b"t1", [1.0 + 0j], 10**5, 5000)
+    assert version == 1 and lu is not first and fixed_order_growth(lu, failing, 1.0, 1.0) <= MAX_GROWTH
+    assert orders.for_start(b"t0", [1.0 + 0j], 10**5, 5000) == (first, 0)
+
+
 def test_the_orders_derived_per_model_are_bounded():
     first, failing = _two_by_two()
     orders = PivotOrders(first)
