@@ -97,6 +97,9 @@ class RadauBackend(AbstractBackend):
         wall = time.perf_counter() - began
         if said is not None:
             stepper.stats["jit"] = said
+        if engine.name == "casadi" and engine.static is not None:
+            # (factorisations the fixed pivot order did not hold, each factored by LAPACK or SuperLU: .pivots)
+            stepper.stats["pivot_failures"] = engine.pivot_failures
         if engine.name == "casadi" and engine.cache_outcome() is not None:
             stepper.stats["compiled_cache"] = engine.cache_outcome()  # (daemodel.cache: hit, miss, refused: ...)
         if engine.name == "torch":

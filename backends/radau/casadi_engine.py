@@ -40,6 +40,7 @@ from daemodel.backends.radau.linalg import (
     sparse_sign_det,
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
+from daemodel.backends.radau.pivots import PivotOrders
 from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
 
 # casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
@@ -155,6 +156,8 @@ class CasadiEngine(AbstractEngine):
         self._static = {}  # (on bound buffers, made on first use: the factor function, the real and complex solves)
         self._static_active = False  # the compiled step reads the static factors: factor() makes them
         self._machine_run = None  # (jit on static factors: the compiled run in machine code, _library)
+        self._version = 0  # (the .pivots order the static factors are built for)
+        self.pivot_failures = 0  # static factorisations that did not hold, factored by LAPACK or SuperLU
         self._start = start
 
     def _machine_code(self, build, key):
@@ -202,20 +205,29 @@ class CasadiEngine(AbstractEngine):
         beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
         general path."""
         D = self.D
-        lu = self._static_pattern() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
+        orders = self._pivot_orders() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
+        lu, version = None, 0
+        if orders is not None:  # (re-derived where it stopped holding in an earlier solve of this model: .pivots)
+            start = self._start
+            key = b"".join(
+                np.asarray(v, dtype=float).tobytes() for v in ([self.compiled.t0], start.y0, start.z0, start.p)
+            )
+            shifts = [lam for _, lam in self.transform.blocks]
+            lu, version = orders.for_start(key, shifts, STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES)
         if lu is not None and not jit and (lu.flops > STATIC_MAX_FLOPS_VM or lu.entries > STATIC_MAX_FILL * D * D):
             lu = None  # (on casadi's virtual machine its factors cost more than LAPACK's or SuperLU's)
         if not self.dense and lu is None:
             return False
         # (with jit the step's triangular solves call the loops of .kernel: the same bits, a third of the code)
-        key = ("casadi-radau-static", self.s, jit)
+        key = ("casadi-radau-static", self.s, jit, version)
         solver = self.static = (
             None if lu is None else self.compiled.cached(key, lambda: StaticFactors(lu, self.transform, jit))
         )
         compiled, functions = self.compiled, self._functions
         self._static_active = solver is not None
+        self._version = version
         weights = np.array(compiled.algebraic_index, dtype=float)
-        key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None, jit)
+        key = ("casadi-radau-compiled-step", self.s, iterations, solver is not None, jit, version)
         build = lambda: step_function(functions[0], functions[1], self, iterations, e, weights, solver)  # noqa: E731
         step = compiled.cached(key, build)
         if jit:
@@ -238,14 +250,19 @@ class CasadiEngine(AbstractEngine):
         functions = {"radau_step_machine_code": step}
         if static is None and self.dense:
             functions["newton_step_machine_code"] = self._newton_step_function()
-        kernel, names = "", ()
+        names = ()
         if static is not None:
-            kernel = kernel_source(static.lu, self.transform, static, m)
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
             if self.D <= MACHINE_RUN_MAX_SIZE:
                 functions["radau_run_machine_code"] = self._machine_run_function(step, key[2])
         what = f"radau: jit=True: compiling the step of {step.name()!r}"
-        build = lambda: machine_library(functions, find_compiler(), kernel, names, what)  # noqa: E731
+
+        def build():
+            # (the kernel's source only where the library is built: writing it took 8 ms, paid by every piece
+            # between events when it stood outside, 563 times for the wheelset at rtol 1e-6)
+            kernel = "" if static is None else kernel_source(static.lu, self.transform, static, m)
+            return machine_library(functions, find_compiler(), kernel, names, what)
+
         code = self._machine_code(build, key).functions
         if "newton_step_machine_code" in code:
             self._step = [Buffered(code["newton_step_machine_code"], inputs=2), None]
@@ -267,7 +284,7 @@ class CasadiEngine(AbstractEngine):
         sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
         refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
         functions = (refresh, factor, self._stage_jac.function, sign, static)
-        key = ("casadi-radau-machine-run", self.s, iterations)
+        key = ("casadi-radau-machine-run", self.s, iterations, self._version)  # (._version: .pivots)
         build = lambda: run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)  # noqa: E731
         return self.compiled.cached(key, build)
 
@@ -335,11 +352,16 @@ class CasadiEngine(AbstractEngine):
         return Factors(h=h, shifts=shifts, lu=lu, singular=_NOT_SINGULAR, error_shift=error, inverse=packed)
 
     def _static_pattern(self):
-        """The :class:`.sparse.StaticLU` of this model's Jacobian pattern (cached per model: the pivots
-        SuperLU picks for ``sigma M - J`` at the start of the model's first adaptive solve, sigma 1000
-        times J's largest entry, a short step), or None where its elimination exceeds
-        :data:`STATIC_MAX_FLOPS`, its factors :data:`STATIC_MAX_ENTRIES`, or J is not finite there."""
-        return self.compiled.cached(("casadi-radau-static-pattern",), lambda: self._static_lu(self._start))
+        """The :class:`.sparse.StaticLU` of this model's Jacobian pattern in the pivot order in use (see
+        :meth:`_pivot_orders`), or None where its elimination exceeds :data:`STATIC_MAX_FLOPS`, its factors
+        :data:`STATIC_MAX_ENTRIES`, or J is not finite there."""
+        return self._pivot_orders().lu
+
+    def _pivot_orders(self):
+        """The :class:`.pivots.PivotOrders` of this model (cached per model): first the pivots SuperLU
+        picks for ``sigma M - J`` at the start of the model's first adaptive solve (sigma 1000 times J's
+        largest entry, a short step), re-derived in a later solve's setup where they stopped holding."""
+        return self.compiled.cached(("casadi-radau-pivot-orders",), lambda: PivotOrders(self._static_lu(self._start)))
 
     def _static_lu(self, start):
         """See :meth:`_static_pattern`."""
@@ -362,7 +384,11 @@ class CasadiEngine(AbstractEngine):
         passes :data:`.sparse.MAX_GROWTH`, a pivot is 0 or a value is not finite (a singular system
         among them, or one the fixed order does not suit).  (Its function is made with the compiled
         step, :meth:`make_compiled_step`, which alone makes the static factors active.)"""
-        return self._static_packed(self._static["factor"](np.concatenate([[h], J])), h)
+        factors = self._static_packed(self._static["factor"](np.concatenate([[h], J])), h)
+        if factors is None:  # (LAPACK or SuperLU factors it instead; a later solve may take another order)
+            self.pivot_failures += 1
+            self._pivot_orders().record(J, h)
+        return factors
 
     def _static_solve(self, complex_: bool):
         """The real or complex triangular solve of the static factors, on bound buffers (made on first
@@ -374,7 +400,9 @@ class CasadiEngine(AbstractEngine):
     def _static_packed(self, packed: np.ndarray, h: float) -> Factors | None:
         """:class:`Factors` of the packed static factors (see :meth:`_static_factor`), or None."""
         growth, pivot = packed[-2:]
-        if not np.isfinite(packed.sum()) or growth > MAX_GROWTH or pivot == 0:
+        with np.errstate(invalid="ignore", over="ignore"):  # (inf - inf in the sum: not finite, and said below)
+            finite = np.isfinite(packed.sum())
+        if not finite or growth > MAX_GROWTH or pivot == 0:
             return None
         shifts = self.transform.shifts(h)
         error = self.transform.error_shift(shifts)
@@ -393,7 +421,7 @@ class CasadiEngine(AbstractEngine):
         if self.jit:
             return self._static_kernel()[0]
         build = lambda: static_factor_function(self.static.lu, self.transform)  # noqa: E731
-        return self.compiled.cached(("casadi-radau-static-factor", self.s), build)
+        return self.compiled.cached(("casadi-radau-static-factor", self.s, self._version), build)
 
     def _static_kernel(self):
         """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the
@@ -420,14 +448,19 @@ class CasadiEngine(AbstractEngine):
         if static and self._machine_run is not None:  # (in machine code with the step: _library)
             return CompiledRun(self._machine_run, self)
         step = self._compiled[0].function
-        key = ("casadi-radau-run", self.s, iterations, self.jit, static)
-        if static:  # (the factors and the determinant's sign in C: .kernel)
-            factor, sign = self._static_kernel()
-            refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-            functions = (refresh, factor, self._stage_jac.function, sign, self.static)
-        else:
-            functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function, None, None)
-        build = lambda: run_function(self, step, *functions, iterations)  # noqa: E731
+        key = ("casadi-radau-run", self.s, iterations, self.jit, static, self._version if static else 0)
+
+        def build():
+            # (the functions only where the run is built: the sparse refresh, 1-3 ms, was made again by every
+            # piece between events)
+            if static:  # (the factors and the determinant's sign in C: .kernel)
+                factor, sign = self._static_kernel()
+                refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+                functions = (refresh, factor, self._stage_jac.function, sign, self.static)
+            else:
+                functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function, None, None)
+            return run_function(self, step, *functions, iterations)
+
         return CompiledRun(self.compiled.cached(key, build), self)
 
     def packed_size(self) -> int:

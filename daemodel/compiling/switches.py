@@ -257,6 +257,9 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
     if expr.is_Atom:
         return expr
     args = [_fix(a, at, decide, sides) if isinstance(a, sp.Basic) else a for a in expr.args]
+    # (a node none of whose arguments changed is kept as it is: rebuilt, sympy evaluates it again, and Min
+    # and Max compare their arguments pairwise; the wheelset's creep forces took 1-2 s per locked branch)
+    unchanged = all(new is old for new, old in zip(args, expr.args, strict=True))
 
     def value(function) -> float:
         side = sides.get(function)
@@ -283,7 +286,7 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
     if isinstance(expr, sp.Heaviside | sp.sign | sp.Abs | sp.floor | sp.ceiling | sp.DiracDelta):
         inner = args[0]
         if not decide(inner):
-            return expr.func(*args)
+            return expr if unchanged else expr.func(*args)
         if isinstance(expr, sp.DiracDelta):
             return sp.S.Zero  # (0 inside a segment: the switch is at its ends)
         if isinstance(expr, sp.floor | sp.ceiling):
@@ -302,14 +305,14 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
         return inner if number >= 0 else -inner
     if isinstance(expr, sp.Max | sp.Min):
         if not all(decide(a) for a in args):
-            return expr.func(*args)
+            return expr if unchanged else expr.func(*args)
         pick = 0
         for j in range(1, len(args)):
             difference = value(sp.sympify(args[pick] - args[j]))
             if (difference < 0) if isinstance(expr, sp.Max) else (difference > 0):
                 pick = j
         return args[pick]
-    return expr.func(*args)
+    return expr if unchanged else expr.func(*args)
 
 
 def branch_model(compiled, tau: float, p: np.ndarray):

@@ -28,11 +28,27 @@ ROUNDING = 64 * np.finfo(float).eps
 RESET_CHANGE = 1e-6
 
 
-def drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float) -> np.ndarray:
+def drift(
+    compiled, backend, piece, t: float, Y, Z, P, functions, delta: float, flows: dict | None = None
+) -> np.ndarray:
     """How ``functions`` (``F(t, Y, Z, P) -> (1, k)``) change over ``delta`` along ``piece``'s flow from
     ``(t, Y, Z)``: one explicit midpoint step, the algebraic variables solved anew at its end; (k,).
     Enough to tell which way a function at zero goes (its own rate, or its curvature where the rate
-    is 0: a ball at rest on the floor), at no cost of a solve."""
+    is 0: a ball at rest on the floor), at no cost of a solve.  ``flows``: the step's ends by piece, kept
+    by a caller that asks again from the same ``(t, Y, Z)`` and ``delta`` (:func:`start_piece`: the
+    sides of each switch at zero and the rates of all, often on one and the same locked model)."""
+    key = id(piece)
+    if flows is None or key not in flows:
+        end = _flow_end(compiled, backend, piece, t, Y, Z, P, delta)
+        if flows is None:
+            return (functions(np.array([t + delta]), *end, P) - functions(np.array([t]), Y, Z, P))[0]
+        flows[key] = (piece, end)  # (the piece kept with its id: no other object takes that id meanwhile)
+    Y1, Z1 = flows[key][1]
+    return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
+
+
+def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float) -> tuple:
+    """``(Y1, Z1)``: :func:`drift`'s explicit midpoint step along ``piece``'s flow, and z solved at its end."""
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.errors import ModelError
 
@@ -45,7 +61,7 @@ def drift(compiled, backend, piece, t: float, Y, Z, P, functions, delta: float) 
             Z1 = algebraic_values(for_method(piece, backend), t + delta, Y1, P, Z)
         except ModelError:  # (no root near Z past the start: the rate of z is not needed to tell most sides)
             Z1 = Z
-    return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
+    return Y1, Z1
 
 
 def _side(change: float, scale: float) -> int:
@@ -113,16 +129,17 @@ def start_piece(
             at_zero.add(e)
     scale = float(np.max(np.abs(np.concatenate([Y[0], Z[0], [t]]))))
     chosen = {}
+    flows = {}  # (drift's step ends by piece: every drift below starts from (t, Y, Z) with the same delta)
     for _ in range(len(events) + 1):  # (more rounds for switches that cross within location tolerances of t)
         switches = [e for e in sorted(at_zero) if events[e].strict and events[e].when not in chosen]
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale, e in exited)  # fmt: skip
+                                             delta, scale, e in exited, flows)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
-        rates = drift(compiled, backend, model, t, Y, Z, P, when, delta) / delta
+        rates = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows) / delta
         soon = EVENT_TOL * max(1.0, abs(t)) * 10  # (a crossing this close to t is at t: no piece that short)
         near = {
             e
@@ -166,7 +183,7 @@ def start_piece(
             sides[e] = chosen[event.when]
     declared = [e for e in sorted(at_zero) if not events[e].strict]
     if declared:
-        changes = drift(compiled, backend, model, t, Y, Z, P, when, delta)
+        changes = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows)
         for e in declared:
             side = _side(changes[e], scale)
             before = crossing.get(e)
@@ -194,12 +211,24 @@ def start_piece(
 
 
 def _branch(
-    backend, compiled, event, t, Y, Z, P, chosen: dict, preferred: int, delta: float, scale: float, exited: bool
+    backend,
+    compiled,
+    event,
+    t,
+    Y,
+    Z,
+    P,
+    chosen: dict,
+    preferred: int,
+    delta: float,
+    scale: float,
+    exited: bool,
+    flows: dict | None = None,
 ) -> int:
     """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
     branch moves its function away from zero on its own side; ``preferred`` where both do, or where it
     just left a sliding motion (``exited``); 0 where neither does and the solution slides along it
-    (:func:`_slides`).
+    (:func:`_slides`).  ``flows``: :func:`drift`'s.
 
     Raises
     ------
@@ -212,7 +241,7 @@ def _branch(
     change = {}
     for side in (1, -1):
         candidate = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side})
-        change[side] = _side(drift(compiled, backend, candidate, t, Y, Z, P, function, delta)[0], scale)
+        change[side] = _side(drift(compiled, backend, candidate, t, Y, Z, P, function, delta, flows)[0], scale)
     up, down = change[1] >= 0, change[-1] <= 0
     if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
         return preferred
