@@ -302,3 +302,9 @@ def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(monkeypatch):
     _, engine = _engine(scaling_models.reaction_diffusion(50))
     assert engine._static_pattern() is None
     assert traced == []
+
+
+def test_sorted_unique_is_numpys_unique():
+    rng = np.random.default_rng(5)
+    for keys in (np.array([], dtype=np.int64), np.array([7]), rng.integers(0, 50, 400), rng.integers(0, 10**12, 1000)):
+        assert np.array_equal(casadi_engine.sorted_unique(keys), np.unique(keys))
