@@ -47,6 +47,7 @@ from daemodel.compiling.init import NewtonTolerances, NumericSystem, jacobian_en
 from daemodel.compiling.linear import SPARSE_MIN_SIZE
 from daemodel.dense import Restarts
 from daemodel.errors import BranchError, ConvergenceError, InvalidOptionError, StepLimitError
+from daemodel.files import check_dense
 
 INTEGRATORS = ("DOP853", "RK45", "Radau", "BDF", "LSODA")
 AUTO = "auto"
@@ -393,11 +394,17 @@ class ReferenceBackend(AbstractBackend):
         return f"method={self.name!r} (scipy {integrator}, rtol = {options.rtol:g}, atol = {options.atol:g})"
 
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
+        n, m = len(compiled.states), len(compiled.algebraics)
+        check_dense(
+            f"method='reference' on '{compiled.name}' ({n} states, {m} algebraic variables: H_z, its tangent and "
+            "scipy's Jacobian)",
+            max(n, m),
+            "use method='radau' or 'casadi-idas' (sparse), and a reference= of either in compare",
+        )
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         check_output_memory(self.name, compiled, start.size, len(times))
         numeric = compiled.numeric
         algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)
-        n, m = len(compiled.states), len(compiled.algebraics)
         values = np.empty((start.size, len(times), n + m))
         finals = []  # (each sample's integrator at its end)
         stats = {"integrator": [], "batch": start.size, "steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "restarts": 0}

@@ -37,6 +37,10 @@ Writes ``<out>.json`` (all raw numbers, machine information, torch threads) and 
 (log-log time against unknowns, one panel per family, growth exponents fitted to the largest
 sizes in the legend) and prints markdown tables.
 
+``--large`` runs ``benchmarks/scaling_large.py`` instead (issue 44): reaction-diffusion from 10^2 to
+10^5 unknowns, declare, compile, setup, solve, wall and peak memory of radau and casadi-idas at their
+defaults, each in a fresh process (``python benchmarks/scaling.py --large [--unknowns ...]``).
+
 Run: python benchmarks/scaling.py [--quick] [--pinn] [--cell-limit 60] [--setup-limit 60] [--budget 1800]
      [--families ...] [--chain 2 4 ...] [--grid ...] [--particles ...] [--out PATH] [--from-json PATH]
 """
@@ -527,6 +531,12 @@ def growth_exponents(records: list, key: str) -> dict | None:
 
 
 def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--large" in argv:  # issue 44: 10^2 ... 10^5 unknowns, radau against casadi-idas (scaling_large.py)
+        import scaling_large
+
+        scaling_large.main([a for a in argv if a != "--large"])
+        return
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--quick", action="store_true", help="small sizes, 30 s cell limit, one repeat")

@@ -49,6 +49,10 @@ JSON_DEPTH = 32
 # environment variable DAEMODEL_MEMORY_LIMIT gives a size ("64G", "512M", bytes).
 MEMORY_FRACTION = 0.5
 MEMORY_LIMIT_VARIABLE = "DAEMODEL_MEMORY_LIMIT"
+# The largest order of a dense matrix that the dense pieces (the reference's H_z, sensitivities'
+# stage systems, the PINN inverse's H_z, the states' projection) allocate and factor: 5,000 x 5,000
+# is 0.19 GiB and ~10^11 operations to factor (a minute on one core); beyond it they refuse.
+DENSE_MAX_ORDER = 5_000
 _UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 # Where the kernel states the memory of this process's control group: cgroup v2 (the file of the
 # group named in /proc/self/cgroup, else of the root a container sees), cgroup v1.
@@ -163,6 +167,18 @@ def check_memory(what: str, parts: dict) -> None:
             f"{what} would need {total / 2**30:.3g} GiB ({itemised}), more than the {limit / 2**30:.3g} GiB allowed "
             f"(set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it; {_limit_source()}): solve fewer samples at a "
             "time (dm.ensemble with a smaller chunk, write_to= to keep them on disk) or ask for fewer output times"
+        )
+
+
+def check_dense(what: str, order: int, fix: str, limit: int | None = None) -> None:
+    """A :class:`ResourceLimitError` when ``what`` would allocate and factor a dense ``order x order``
+    matrix above ``limit`` (default :data:`DENSE_MAX_ORDER`), before anything is allocated; the message
+    names the size, the limit and ``fix``."""
+    limit = DENSE_MAX_ORDER if limit is None else limit
+    if order > limit:
+        raise ResourceLimitError(
+            f"{what} works on dense {order} x {order} matrices ({_size(8 * order * order)} each, order^3 "
+            f"operations to factor), above its limit of {limit} x {limit}: {fix}"
         )
 
 

@@ -46,6 +46,7 @@ from daemodel.collocation import lagrange_matrix
 from daemodel.compiling.init import hidden_constraints
 from daemodel.dense import CollocationPolynomials, step_owners
 from daemodel.errors import SensitivityError, UnknownSymbolError
+from daemodel.files import check_dense
 from daemodel.tableau import radau_iia
 
 # Bytes of step matrices (M_k and its right-hand sides) built at a time: a block of steps is
@@ -87,6 +88,18 @@ class Directions:
         return out
 
 
+def check_stage_systems(compiled, stages: int, caller: str = "sensitivities") -> None:
+    """Refuse (:class:`~daemodel.errors.ResourceLimitError`) a model whose sensitivities would factor
+    dense systems of ``stages`` (n + m) unknowns above :data:`daemodel.files.DENSE_MAX_ORDER` (their
+    stage systems and Jacobians are dense), before anything is allocated."""
+    D = len(compiled.states) + len(compiled.algebraics)
+    check_dense(
+        f"{caller} of '{compiled.name}' ({D} unknowns, {stages} stage(s))",
+        stages * D,
+        "differentiate a smaller model, or by finite differences of two solves",
+    )
+
+
 def directions(compiled, names, caller: str = "sensitivities") -> Directions:
     """Resolve ``names`` (a name or a list of parameter and state names) against ``compiled``.
 
@@ -97,7 +110,11 @@ def directions(compiled, names, caller: str = "sensitivities") -> Directions:
         the constraints determine it).
     UnknownSymbolError
         For a name the model does not have.
+    ResourceLimitError
+        For a model beyond the dense systems' limit (:func:`check_stage_systems`), before anything is
+        allocated.
     """
+    check_stage_systems(compiled, 1, caller)
     if isinstance(names, str):
         names = (names,)
     try:
@@ -229,6 +246,7 @@ class StepSystems:
     """
 
     def __init__(self, compiled, dense: CollocationPolynomials, p: np.ndarray):
+        check_stage_systems(compiled, len(dense.c))
         self.compiled, self.dense, self.p = compiled, dense, p
         self.n, self.m = len(compiled.states), len(compiled.algebraics)
         self.D = self.n + self.m

@@ -379,3 +379,21 @@ def test_blocks_of_one_step_give_the_same_derivatives(monkeypatch):
         for output in ("y1", "y6"):
             assert np.allclose(single.sensitivity(output, name), whole.sensitivity(output, name), rtol=1e-12, atol=0)
     assert single.gradient(data, names) == pytest.approx(gradient, rel=1e-12)
+
+
+def test_sensitivities_beyond_the_dense_limit_are_refused_before_the_solve(monkeypatch):
+    import daemodel.files
+
+    compiled = DECAY.model().compile()  # (2 unknowns)
+    monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", 5)
+    sol = dm.solve(compiled, (0.0, 0.1), h=0.05, stages=2, sensitivities=["k"])  # (stages: 4 x 4 systems)
+    assert np.isfinite(sol.sensitivity("y", "k")).all()
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=r"sensitivities of 'decay' \(2 unknowns, 3 stage\(s\)\) works on dense 6 x 6 matrices .* above its "
+        r"limit of 5 x 5: differentiate a smaller model",
+    ):
+        dm.solve(compiled, (0.0, 0.1), h=0.05, stages=3, sensitivities=["k"])
+    monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", 1)
+    with pytest.raises(E.ResourceLimitError, match=r"sensitivities of 'decay' \(2 unknowns, 1 stage\(s\)\)"):
+        dm.solve(compiled, (0.0, 0.1), h=0.05, stages=3, sensitivities=["k"])  # (refused before solving)

@@ -336,31 +336,46 @@ class CompiledDAE:
         Cached.
         """
         if "algebraic_index" not in self._cache:
-            states = set(self.states)
-            position = {v: k for k, v in enumerate(self.algebraics)}
-            in_f = [{position[v] for v in f.free_symbols if v in position} for f in self.rhs]
-            state_rows = {v: i for i, v in enumerate(self.states)}
-            rows = []  # the algebraic variables in each constraint's iteration row
-            for c in self.constraints:
-                if c.index == 1:
-                    rows.append({position[v] for v in c.expr.free_symbols if v in position})
-                else:  # g_y f_z: the z in the right-hand sides of the states in g
-                    found = set()
-                    for v in c.expr.free_symbols & states:
-                        found |= in_f[state_rows[v]]
-                    rows.append(found)
-            owner = {k: j for k, j in enumerate(self.determined_by)}  # variable -> its constraint
-            index = []
-            for k in range(len(self.algebraics)):
-                seen, stack = {k}, [k]
-                while stack:
-                    for nxt in rows[owner[stack.pop()]]:
-                        if nxt not in seen:
-                            seen.add(nxt)
-                            stack.append(nxt)
-                index.append(max(self.constraints[owner[j]].index for j in seen))
-            self._cache["algebraic_index"] = tuple(index)
+            self._cache["algebraic_index"] = self._algebraic_index()
         return self._cache["algebraic_index"]
+
+    def _algebraic_index(self) -> tuple[int, ...]:
+        """:attr:`algebraic_index`, computed in O(nonzeros of H_z): one search per index level above 1."""
+        levels = sorted({c.index for c in self.constraints})
+        if not self.algebraics or len(levels) == 1:  # (every z has its constraints' one index: nothing read)
+            return (levels[0] if levels else 1,) * len(self.algebraics)
+        states = set(self.states)
+        position = {v: k for k, v in enumerate(self.algebraics)}
+        in_f = [{position[v] for v in f.free_symbols if v in position} for f in self.rhs]
+        state_rows = {v: i for i, v in enumerate(self.states)}
+        rows = []  # the algebraic variables in each constraint's iteration row
+        for c in self.constraints:
+            if c.index == 1:
+                rows.append({position[v] for v in c.expr.free_symbols if v in position})
+            else:  # g_y f_z: the z in the right-hand sides of the states in g
+                found = set()
+                for v in c.expr.free_symbols & states:
+                    found |= in_f[state_rows[v]]
+                rows.append(found)
+        owner = list(self.determined_by)  # variable -> its constraint
+        # z_j's index is the highest index of a constraint owning a z that j reaches: for each level, the
+        # variables that reach one owned at that level or above are found backwards from those, once each
+        reached_from = [[] for _ in self.algebraics]  # reached_from[b]: the a with an edge a -> b
+        for a in range(len(self.algebraics)):
+            for b in rows[owner[a]]:
+                reached_from[b].append(a)
+        index = [levels[0]] * len(self.algebraics)  # (each z reaches its own constraint, at levels[0] or above)
+        for level in levels[1:]:
+            stack = [k for k in range(len(self.algebraics)) if self.constraints[owner[k]].index >= level]
+            seen = set(stack)
+            while stack:
+                for a in reached_from[stack.pop()]:
+                    if a not in seen:
+                        seen.add(a)
+                        stack.append(a)
+            for k in seen:
+                index[k] = level
+        return tuple(index)
 
     def column_colouring(self) -> np.ndarray:
         """A colour per column of ``d(f, g)/d(y, z)`` such that no two columns of one colour share a

@@ -10,6 +10,7 @@ manifold with the least change in the Euclidean norm and replaces disagreeing z 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -26,6 +27,7 @@ from daemodel.errors import (
     SingularSystemError,
     WrongBranchError,
 )
+from daemodel.files import check_dense
 
 # Residual accepted for y0 on the constraint manifold, relative to 1 + max|y0|: a y0 typed
 # with 16 digits passes; one off in the 10th digit is reported.
@@ -260,9 +262,17 @@ def project(Y0: np.ndarray, residual, jacobian, free: np.ndarray | None = None) 
     Y0 = np.array(Y0, dtype=float)
     mask = np.ones(Y0.shape[1], dtype=bool) if free is None else np.asarray(free, dtype=bool)
     y = Y0.copy()
-    for _ in range(PROJECTION_MAXITER):
+    for k in range(PROJECTION_MAXITER):
+        r = residual(y)
+        if k == 0:  # (C is dense, L x n, and C C^T is factored: refused above the dense limit, before either)
+            L, n = r.shape[1], Y0.shape[1]
+            check_dense(
+                f"the projection onto the constraints ({L} constraint levels on {n} states)",
+                max(L, math.isqrt(L * n)),
+                "give initial states that satisfy the constraints (the projection is then not needed)",
+            )
         C = jacobian(y) * mask  # (the columns of fixed states zeroed: they neither move nor count)
-        rhs = residual(y) + np.einsum("bln,bn->bl", C, Y0 - y)
+        rhs = r + np.einsum("bln,bn->bl", C, Y0 - y)
         mu = np.einsum("blk,bk->bl", np.linalg.pinv(C @ C.transpose(0, 2, 1)), rhs)
         y_new = Y0 - np.einsum("bln,bl->bn", C, mu)
         if np.max(np.abs(y_new - y), initial=0.0) <= 1e-15 * (1 + np.max(np.abs(y), initial=0.0)):

@@ -278,3 +278,24 @@ def test_a_right_hand_side_of_t_alone_compiles():
     for options in ({"rtol": 1e-8, "atol": 1e-10}, {"h": 0.05}):
         sol = dm.solve(m, (0.0, 1.0), **options)
         assert abs(sol["x"][-1] - np.sin(1.0)) < 1e-8
+
+
+def test_the_stage_jacobians_are_the_jacobians_function_at_each_stage():
+    """casadi_functions' stage Jacobians call the Jacobian's function at each stage (MX, nothing inlined):
+    bit for bit the Jacobian at each stage's time and values."""
+    from daemodel.backends.radau.compiled import casadi_functions
+
+    from daemodel.tableau import radau_iia
+
+    compiled = PENDULUM.model().compile().reduced(2)
+    rng = np.random.default_rng(3)
+    for s in (1, 3):
+        tableau = radau_iia(s)
+        _, _, jacobian, stage_jacobians, rows, cols = casadi_functions(compiled, tableau)
+        D, k = len(compiled.states) + len(compiled.algebraics), len(compiled.parameters)
+        t, h, W, p = 0.3, 0.01, rng.normal(size=s * D), rng.normal(size=k)
+        values = np.array(stage_jacobians(np.r_[t, h, W, p])).ravel().reshape(s, -1)
+        for i in range(s):
+            at = np.r_[t + float(tableau.c[i]) * h, W[i * D : (i + 1) * D], p]
+            assert np.array_equal(values[i], np.array(jacobian(at)).ravel())
+        assert values.shape[1] == rows.size == cols.size

@@ -281,3 +281,30 @@ def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system():
         "Newton matrices (sparse)"
     ]
     assert transformed + full <= fixed <= 3 * (transformed + full + rows.size * 8 * 13)
+
+
+@pytest.mark.parametrize(("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20)])
+def test_the_entry_bound_is_below_the_factors_entries(family, size):
+    """unique_entries bounds the static factors' entries from below (fill only adds), so that a pattern
+    whose bound passes STATIC_MAX_ENTRIES is refused before any elimination is traced."""
+    _, engine = _engine(getattr(scaling_models, family)(size))
+    lu = engine._static_pattern()
+    bound = casadi_engine.unique_entries(engine.rows, engine.cols, engine.n, engine.D)
+    distinct = {(int(i), int(j)) for i, j in zip(engine.rows, engine.cols, strict=True)}
+    assert bound == max(engine.D, len(distinct | {(i, i) for i in range(engine.n)}))
+    assert engine.D < bound <= lu.entries
+
+
+def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(monkeypatch):
+    traced = []
+    monkeypatch.setattr(radau_sparse.StaticLU, "__init__", lambda self, *a: traced.append(a) or None)
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_ENTRIES", 100)  # (reaction-diffusion of 100 unknowns: 298+)
+    _, engine = _engine(scaling_models.reaction_diffusion(50))
+    assert engine._static_pattern() is None
+    assert traced == []
+
+
+def test_sorted_unique_is_numpys_unique():
+    rng = np.random.default_rng(5)
+    for keys in (np.array([], dtype=np.int64), np.array([7]), rng.integers(0, 50, 400), rng.integers(0, 10**12, 1000)):
+        assert np.array_equal(casadi_engine.sorted_unique(keys), np.unique(keys))

@@ -284,3 +284,19 @@ def test_reference_solves_large_algebraic_systems_sparse(diffusion_grid):
     for k in (0, K // 2, K - 1):
         ck = sol[f"c{k}"]
         np.testing.assert_allclose(sol[f"w{k}"], ck**2 / (1 + ck), rtol=1e-12, atol=1e-15)
+
+
+def test_the_reference_beyond_the_dense_limit_is_refused(monkeypatch):
+    import daemodel.files
+
+    compiled = HESSENBERG.model().compile()
+    n, m = len(compiled.states), len(compiled.algebraics)
+    monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", max(n, m) - 1)
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=rf"method='reference' on '{compiled.name}' \({n} states, {m} algebraic variables.* dense {max(n, m)} x "
+        rf"{max(n, m)} matrices .* above its limit of {max(n, m) - 1} x {max(n, m) - 1}: use method='radau'",
+    ):
+        dm.solve(compiled, (0.0, 0.1), method="reference")
+    monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", max(n, m))
+    assert dm.solve(compiled, (0.0, 0.1), method="reference").status == "success"

@@ -187,3 +187,16 @@ def test_guess_picks_the_root_and_claims_nothing():
         m.guess(x=2.0)
     with pytest.raises(dm.errors.UnknownSymbolError, match=r"m\.guess: 'q' is not declared"):
         m.guess(q=2.0)
+
+
+def test_repair_beyond_the_dense_limit_is_refused_before_the_projection(hessenberg, monkeypatch):
+    import daemodel.files
+
+    monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", 1)  # (one constraint on 4 states: order 2)
+    hessenberg.initial(y1=1.1, y2=0.9)
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=r"projection onto the constraints \(1 constraint levels on 4 states\) works on dense 2 x 2 matrices "
+        r".*above its limit of 1 x 1: give initial states that satisfy",
+    ):
+        hessenberg.compile(repair=True)
