@@ -155,6 +155,9 @@ class AbstractBackend(ABC):
     max_index: ClassVar[int]
     # solve() takes stop=... (rule 5 of the module docstring)
     stops: ClassVar[bool] = False
+    # Most fixed steps over t_span one setting of a benchmark sweep (dm.bench) gives this method
+    # (None: no limit beyond the sweep's own); a longer grid is skipped with the reason in the report.
+    bench_max_steps: ClassVar[int | None] = None
 
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):

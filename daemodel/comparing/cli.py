@@ -2,6 +2,7 @@
 
     daemodel compare hessenberg pendulum
     daemodel compare examples/pendulum.py --methods radau,casadi-idas,pinn --out results/
+    daemodel bench testset paper --out bench/ --workers 2
     daemodel cache info
     daemodel cache clear
 
@@ -240,6 +241,25 @@ def _parser() -> argparse.ArgumentParser:
         "--detail", action="store_true", help="a max (mean) error column per variable (default: worst per group)"
     )
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run = commands.add_parser(
+        "bench",
+        help="every method on suites of problems: scd at the end against time, one HTML report, resumable",
+        description="Every method on the problems of each SUITE (testset, paper) or model file: a sweep per method "
+        "(rtol = atol 1e-3 ... 1e-11, or step sizes), scd = -log10 of the largest relative error at the end, setup, "
+        "solve and wall times; each run stored in --out as it finishes (a rerun solves only what is missing), then "
+        "report.html (work-precision plots inline), results.json and results.csv.",
+    )
+    run.add_argument("suites", nargs="+", metavar="SUITE", help="testset, paper, or a .py model file")
+    run.add_argument("--out", default="bench", help="output folder (default bench/); its runs are reused")
+    run.add_argument("--methods", help="comma-separated methods (default: every method but 'reference')")
+    run.add_argument("--workers", type=int, default=1, help="processes (or Ray CPUs) to run on (default 1)")
+    run.add_argument("--executor", choices=("local", "processes", "ray"), help="where runs go (default: by --workers)")
+    run.add_argument("--address", help="a Ray cluster's address (with --executor ray)")
+    run.add_argument("--tolerances", help="comma-separated rtol = atol (default 1e-3,1e-5,1e-7,1e-9,1e-11)")
+    run.add_argument("--points", type=int, default=3, help="step sizes per fixed-step method (default 3)")
+    run.add_argument("--time-limit", type=float, default=120.0, help="seconds one run may take (default 120)")
+    run.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
     store = commands.add_parser(
         "cache",
         help="the cache of compiled libraries (radau's jit=True): where it is, what it holds; clear it",
@@ -260,6 +280,8 @@ def main(argv=None) -> int:
         return EXIT_USER_MISTAKE
     if args.command == "cache":
         return _cache(args.action)
+    if args.command == "bench":
+        return _bench(args)
     import torch
 
     torch.set_num_threads(max(1, args.threads))
@@ -331,6 +353,46 @@ def _compare(args) -> int:
             status = max(status, EXIT_USER_MISTAKE)
         print()
     return status
+
+
+def _bench(args) -> int:
+    """``daemodel bench``: :func:`daemodel.comparing.bench.bench` with the command's arguments."""
+    from daemodel.comparing.bench import DEFAULT_TOLERANCES, bench
+
+    try:
+        methods = None
+        if args.methods is not None:
+            methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+            if not methods:
+                raise ModelError(f"--methods {args.methods!r} names no method; give e.g. --methods radau,casadi-idas")
+        tolerances = DEFAULT_TOLERANCES
+        if args.tolerances is not None:
+            try:
+                tolerances = [float(t) for t in args.tolerances.split(",") if t.strip()]
+            except ValueError:
+                raise ModelError(f"--tolerances {args.tolerances!r} is not a list of numbers like 1e-4,1e-8") from None
+        result = bench(
+            args.suites,
+            methods,
+            args.out,
+            workers=args.workers,
+            executor=args.executor,
+            address=args.address,
+            tolerances=tolerances,
+            points=args.points,
+            time_limit=args.time_limit,
+            threads=args.threads,
+            progress=False if args.no_progress else None,
+        )
+    except DaemodelError as error:
+        print(f"daemodel bench: {error}", file=sys.stderr)
+        return _exit_status(error)
+    print(result.table())
+    print(f"{len(result.records)} runs ({result.computed} solved now, the others read from {args.out}) in "
+          f"{result.elapsed:.1f} s")  # fmt: skip
+    for path in result.paths:
+        print(f"wrote {path}")
+    return 0
 
 
 def _cache(action: str) -> int:
