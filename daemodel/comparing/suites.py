@@ -9,7 +9,7 @@ there joins its suite with no change here:
 * ``paper``: the problems of the paper daemodel's Radau-PINN follows (``source`` starting with
   :data:`daemodel.problems.paper.PAPER`): Hessenberg with its closed form, the pendulum.
 
-A model file (``.py``) is read as ``daemodel compare`` reads it (:func:`~daemodel.comparing.cli.load_target`).
+A model file (``.py``) is read as ``daemodel compare`` reads it (:func:`~daemodel.comparing.targets.load_target`).
 
 The end values come from, in this order: the problem's published ``reference``, its closed form
 (``exact``, or a file's ``exact(t)``), else a tight scipy solve (``method="reference"``, rtol = atol
@@ -68,7 +68,7 @@ class BenchProblem:
 
     def model(self):
         """A fresh model of this problem (a model file is imported again)."""
-        from daemodel.comparing.cli import load_target
+        from daemodel.comparing.targets import load_target
 
         return load_target(self.target)[0]
 
@@ -81,7 +81,7 @@ def resolve(suites_or_files) -> list[BenchProblem]:
     BenchError
         Nothing given, or a name that is neither a suite nor a ``.py`` file.
     TargetError
-        A model file that cannot be read (see :func:`~daemodel.comparing.cli.load_target`).
+        A model file that cannot be read (see :func:`~daemodel.comparing.targets.load_target`).
     """
     from daemodel.problems import PROBLEMS
     from daemodel.problems.paper import PAPER
@@ -135,7 +135,7 @@ def _library_problem(problem, suite: str) -> BenchProblem:
 def _file_problem(path: str, taken: set) -> BenchProblem:
     from pathlib import Path
 
-    from daemodel.comparing.cli import load_target
+    from daemodel.comparing.targets import load_target
 
     _, t_span, exact = load_target(path)
     base = re.sub(r"[^A-Za-z0-9_\-]", "_", Path(path).stem) or "model"
