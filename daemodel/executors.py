@@ -242,13 +242,16 @@ def _peak_memory_mb() -> float | None:
 class time_limit:
     """Raise :class:`TimeLimitError` with ``message`` in this (main) thread once ``seconds`` have
     passed (SIGALRM; a long call into compiled code is interrupted when it returns to Python).
-    ``seconds=None``, or a thread other than the main one: no limit."""
+    ``seconds=None``, or a thread other than the main one: no limit.  ``expired`` says afterwards
+    whether the limit struck: code that catches exceptions from a callback (casadi's integrators)
+    may hand the error on as its own failure."""
 
     def __init__(self, seconds: float | None, message: str):
-        self.seconds, self.message = seconds, message
+        self.seconds, self.message, self.expired = seconds, message, False
         self.active = seconds is not None and threading.current_thread() is threading.main_thread()
 
     def _expired(self, *_):
+        self.expired = True
         raise TimeLimitError(self.message)
 
     def __enter__(self):

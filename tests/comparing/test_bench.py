@@ -171,6 +171,19 @@ def test_a_run_past_its_time_limit_is_a_failure_named_time_limit_error(tmp_path)
     assert result.summary()[0]["failures"] == {"TimeLimitError": 2}
 
 
+def test_a_time_limit_that_strikes_inside_idas_is_still_a_time_limit_error():
+    from daemodel.comparing.bench import Setting, run_setting
+
+    # IDAS needs over a minute for the transistor amplifier at 1e-9 (StepLimitError after 100,000
+    # steps): the limit strikes inside its residual callback, which IDAS reports as its own failure
+    transistor = next(p for p in resolve("testset") if p.name == "transistor-amplifier")
+    setting = Setting(transistor, "casadi-idas", 0, {"rtol": 1e-9, "atol": 1e-9}, "rtol=1e-09, atol=1e-09", "")
+    record = run_setting(None, setting, 1.0, 1)
+    assert record["status"] == "failed" and record["error_class"] == "TimeLimitError"
+    assert record["error"].startswith("transistor-amplifier: casadi-idas at rtol=1e-09, atol=1e-09 ran past the time")
+    assert 1.0 <= record["solve_time"] < 30
+
+
 def test_bench_options_are_checked_before_any_solve(tmp_path):
     with pytest.raises(InvalidOptionError, match="workers must be a positive integer; got 0"):
         dm.bench("paper", out=tmp_path, workers=0)
@@ -356,7 +369,7 @@ def test_the_command_runs_a_suite_and_refuses_mistakes(tmp_path, capsys):
         main(["bench", "paper", "--methods", "casadi-idas", "--tolerances", "1e-4", "--out", str(out), "--no-progress"])
         == 0
     )
-    assert "2 runs (0 solved now" in capsys.readouterr().out
+    assert "2 runs (0 solved now)" in capsys.readouterr().out
     assert main(["bench", "nosuch", "--out", str(out)]) == 2
     assert "daemodel bench: 'nosuch' is neither a suite" in capsys.readouterr().err
     assert main(["bench", "paper", "--tolerances", "tight", "--out", str(out)]) == 2
