@@ -3,9 +3,10 @@ against time, one line per method), a summary table per method, every run; as on
 HTML file (plots inline as base64 PNG), ``results.json`` and ``results.csv``.
 
 In the plots a success is a filled circle on its method's line, a flagged run a hollow square off
-the line, a failure an ``x`` on the bottom edge at the time it took to fail.  The left panel places
-each run by its solve time, the right one by setup + solve (the wall: the PINN's training, the
-compiled code's build), so a method that prepares for long is seen both ways.
+the line, a failure an ``x`` on the row labelled "failed" below the digits, at the time it took to
+fail.  The left panel places each run by its solve time, the right one by setup + solve (the wall:
+the PINN's training, the compiled code's build), so a method that prepares for long is seen both
+ways.
 """
 
 from __future__ import annotations
@@ -96,17 +97,18 @@ def _seconds(value: float) -> str:
 
 def work_precision_figure(problem, methods, records):
     """One problem's figure: scd at the end against solve time (left) and setup + solve (right), one
-    line per method through its successful runs; flagged runs hollow squares, failures ``x`` on the
-    bottom edge at the time they failed."""
+    line per method through its successful runs; flagged runs hollow squares, failures ``x`` on a
+    row labelled "failed" below every run's digits, at the time they failed."""
     from matplotlib.figure import Figure
-    from matplotlib.transforms import blended_transform_factory
 
     from daemodel.comparing.plots import readable_log_axis
 
     fig = Figure(figsize=(11.0, 4.4), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
+    digits = [r["scd"] for r in records if r["scd"] is not None and r["status"] in ("success", "flagged")]
+    # failures sit on a row of their own below every run's digits, labelled "failed"
+    failed_row = math.floor(min([0.0, *digits])) - 1
     for ax, clock, title in ((axes[0], "solve_time", "solve time [s]"), (axes[1], "wall_time", "setup + solve [s]")):
-        bottom = blended_transform_factory(ax.transData, ax.transAxes)
         times = []
         for i, method in enumerate(methods):
             runs = [r for r in records if r["method"] == method and r["problem"] == problem.name]
@@ -120,24 +122,32 @@ def work_precision_figure(problem, methods, records):
                     [r[clock] for r in flagged], [r["scd"] for r in flagged], "s", mfc="none", color=f"C{i}",
                     label=f"{method}: flagged",
                 )  # fmt: skip
-            if failed:
+            if failed:  # at the time it took to fail: no digits to place it by
                 ax.plot(
-                    [r["solve_time"] for r in failed], [0.03] * len(failed), "x", ms=9, mew=2, color=f"C{i}",
-                    transform=bottom, label=f"{method}: failed",
+                    [r["solve_time"] for r in failed], [failed_row] * len(failed), "x", ms=9, mew=2, color=f"C{i}",
+                    label=f"{method}: failed",
                 )  # fmt: skip
             times += [r[clock] for r in good + flagged] + [r["solve_time"] for r in failed]
         positive = [t for t in times if t is not None and t > 0]
         ax.set_xscale("log")
         if positive:
             readable_log_axis(ax.xaxis, min(positive), max(positive))
+        ax.axhline(failed_row + 0.5, color="0.6", lw=0.8, ls=":")
         ax.set_xlabel(title)
         ax.grid(which="major", alpha=0.3)
+    top = math.ceil(max([1.0, *digits]))
+    step = max(1, math.ceil((top - failed_row) / 10))
+    first = math.ceil((failed_row + 1) / step) * step
+    ticks = [failed_row, *range(first, top + 1, step)]
+    axes[0].set_yticks(ticks, ["failed", *(str(t) for t in ticks[1:])])
+    axes[0].set_ylim(failed_row - 0.6, top + 0.4)
     axes[0].set_ylabel("significant correct digits at the end (scd)")
     handles, labels = axes[0].get_legend_handles_labels()
     if labels:
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 3), fontsize=8)
     t0, t1 = problem.t_span
-    fig.suptitle(f"{problem.name} on [{t0:g}, {t1:g}]: scd against {problem.reference_source[:80]}", fontsize=10)
+    against = problem.reference_source.partition(":")[0]  # "published", "closed form", "scipy (...)"
+    fig.suptitle(f"{problem.name} on [{t0:g}, {t1:g}]: scd at t = {t1:g} against the {against} values", fontsize=10)
     return fig
 
 
