@@ -184,6 +184,9 @@ class AbstractBackend(ABC):
     stops: ClassVar[bool] = False
     # solve() may be called on pieces of the span (rule 7): models with switches and events are solved
     solves_pieces: ClassVar[bool] = True
+    # Most fixed steps over t_span one setting of a benchmark sweep (dm.bench) gives this method
+    # (None: no limit beyond the sweep's own); a longer grid is skipped with the reason in the report.
+    bench_max_steps: ClassVar[int | None] = None
 
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):

@@ -4,6 +4,7 @@ Radau-PINN and classical solvers."""
 from daemodel import errors
 from daemodel.backends import methods
 from daemodel.backends.pinn.config import PINNConfig
+from daemodel.comparing.bench import BenchResult, bench
 from daemodel.comparing.compare import compare
 from daemodel.comparing.tables import Comparison
 from daemodel.compiling.compiled import CompiledDAE
@@ -16,6 +17,7 @@ from daemodel.solving.solver import solve
 from daemodel.tableau import RadauIIA, radau_iia
 
 __all__ = [
+    "BenchResult",
     "Comparison",
     "CompiledDAE",
     "EnsembleFiles",
@@ -25,6 +27,7 @@ __all__ = [
     "RadauIIA",
     "Solution",
     "Surrogate",
+    "bench",
     "compare",
     "ensemble",
     "errors",

@@ -287,7 +287,8 @@ class WorkerError(SolverError):
 
 
 class TimeLimitError(SolverError):
-    """A Ray task ran longer than its time limit (``task_timeout``) and was stopped."""
+    """A task ran longer than its time limit (a Ray task's ``task_timeout``, a benchmark run's
+    ``time_limit``) and was stopped."""
 
 
 class SolutionFileError(ModelError):
@@ -301,6 +302,12 @@ class FileWriteError(ModelError, OSError):
 
 class NetworkFileError(ModelError):
     """A saved network file does not exist, is not a daemodel network, or belongs to another model."""
+
+
+class BenchError(ModelError):
+    """A benchmark (``dm.bench``, ``daemodel bench``) asked for what cannot run: an unknown suite,
+    a problem without a reference at its end, a setting its method refuses; or a file in its
+    output folder that is not one of its results (the message names the file and the field)."""
 
 
 class TargetError(ModelError):

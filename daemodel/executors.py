@@ -239,19 +239,20 @@ def _peak_memory_mb() -> float | None:
     return None
 
 
-class _time_limit:
-    """Raise :class:`TimeLimitError` in this (main) thread once ``seconds`` have passed (SIGALRM;
-    a long call into compiled code is interrupted when it returns to Python)."""
+class time_limit:
+    """Raise :class:`TimeLimitError` with ``message`` in this (main) thread once ``seconds`` have
+    passed (SIGALRM; a long call into compiled code is interrupted when it returns to Python).
+    ``seconds=None``, or a thread other than the main one: no limit.  ``expired`` says afterwards
+    whether the limit struck: code that catches exceptions from a callback (casadi's integrators)
+    may hand the error on as its own failure."""
 
-    def __init__(self, seconds: float | None, label: str, index: int):
-        self.seconds, self.label, self.index = seconds, label, index
+    def __init__(self, seconds: float | None, message: str):
+        self.seconds, self.message, self.expired = seconds, message, False
         self.active = seconds is not None and threading.current_thread() is threading.main_thread()
 
     def _expired(self, *_):
-        raise TimeLimitError(
-            f"{self.label}: task {self.index} ran past its time limit of {self.seconds:g} s (task_timeout) and was "
-            "stopped; give each task less work (a smaller chunk) or a longer task_timeout"
-        )
+        self.expired = True
+        raise TimeLimitError(self.message)
 
     def __enter__(self):
         if self.active:
@@ -263,6 +264,61 @@ class _time_limit:
         if self.active:
             signal.setitimer(signal.ITIMER_REAL, 0)
             signal.signal(signal.SIGALRM, signal.SIG_DFL if self.previous is None else self.previous)
+
+
+def _time_limit(seconds: float | None, label: str, index: int) -> time_limit:
+    """A Ray task's :class:`time_limit` (``task_timeout``), its message naming ``label`` and the task."""
+    return time_limit(
+        seconds,
+        f"{label}: task {index} ran past its time limit of {seconds:g} s (task_timeout) and was stopped; give each "
+        "task less work (a smaller chunk) or a longer task_timeout"
+        if seconds is not None
+        else "",
+    )
+
+
+def run_processes(
+    function: Callable, tasks: list, *, workers: int, label: str, on_result: Callable | None = None
+) -> list:
+    """``function(*task)`` for every task on ``workers`` processes of this machine (started fresh,
+    not forked: a forked torch can hang on its thread pools); the results in task order.
+    ``on_result(i, result)`` runs here as each finishes (in completion order).
+
+    Raises
+    ------
+    WorkerError
+        A worker process died before returning (killed, out of memory, crashed); ``label`` and
+        the task's index name it.  An exception the function raised is re-raised as itself.
+    InvalidOptionError
+        ``workers`` is not a positive integer.
+    """
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise InvalidOptionError(f"{label}: workers must be a positive integer; got {workers!r}")
+    results = [None] * len(tasks)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        pending = {pool.submit(function, *task): i for i, task in enumerate(tasks)}
+        try:
+            while pending:
+                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+                for future in done:
+                    i = pending.pop(future)
+                    try:
+                        results[i] = future.result()
+                    except BrokenProcessPool as error:
+                        raise WorkerError(
+                            f"{label}: the worker process running task {i} stopped before returning ({error}); give "
+                            "each task less work or the machine more memory"
+                        ) from None
+                    if on_result is not None:
+                        on_result(i, results[i])
+        finally:
+            for future in pending:
+                future.cancel()
+    return results
 
 
 @contextmanager

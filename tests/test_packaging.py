@@ -48,6 +48,7 @@ def test_public_api():
     import daemodel as dm
 
     assert set(dm.__all__) == {
+        "BenchResult",
         "CompiledDAE",
         "Comparison",
         "EnsembleFiles",
@@ -57,6 +58,7 @@ def test_public_api():
         "RadauIIA",
         "Solution",
         "Surrogate",
+        "bench",
         "compare",
         "ensemble",
         "errors",

@@ -165,6 +165,8 @@ class PINNBackend(AbstractBackend):
     name = "pinn"
     Options = PINNOptions
     max_index = MAX_INDEX
+    # a benchmark sweep trains at most this many segments per setting (seconds each on one core)
+    bench_max_steps = 200
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]

@@ -2,6 +2,7 @@
 
     daemodel compare hessenberg pendulum
     daemodel compare examples/pendulum.py --methods radau,casadi-idas,pinn --out results/
+    daemodel bench testset paper --out bench/ --workers 2
     daemodel cache info
     daemodel cache clear
 
@@ -39,138 +40,17 @@ solve failed).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import re
 import sys
 from pathlib import Path
 
-from daemodel.errors import DaemodelError, InvalidValueError, ModelError, TargetError
+from daemodel.comparing.targets import load_target
+from daemodel.errors import DaemodelError, ModelError, TargetError
 from daemodel.files import writable_directory
-from daemodel.reals import is_real, real
 
-DEFAULT_T_SPAN = (0.0, 1.0)
 # Exit statuses of `daemodel compare`.
 EXIT_USER_MISTAKE, EXIT_SOLVER_FAILURE = 2, 1
-
-
-def load_target(target: str):
-    """``(model, t_span, exact)`` for a problem name or a model file (see the module docs).
-
-    Raises
-    ------
-    TargetError
-        For anything wrong with the file, including any exception its code raises (a syntax
-        error, at import, in ``build_model()``): the message names the file, the line where
-        known, and the exception.
-    """
-    from daemodel.comparing.references import exception_summary
-    from daemodel.problems import PROBLEMS
-
-    if target in PROBLEMS:
-        problem = PROBLEMS[target]
-        exact = problem.exact_solution() if problem.exact else None
-        return problem.model(), problem.t_span, exact
-    path = Path(target)
-    if path.suffix != ".py":
-        raise TargetError(f"{target!r} is neither a problem ({', '.join(PROBLEMS)}) nor a .py model file")
-    if not path.is_file():
-        raise TargetError(f"no model file at {path}")
-
-    def run(what: str, function, *args):
-        try:
-            return function(*args)
-        except (Exception, SystemExit) as error:  # the user's code: a message, not a traceback
-            raise TargetError(f"{what} raised {exception_summary(error, filename=path)}") from error
-
-    # The file runs as `python my_model.py` would run it: its folder first on sys.path, so that
-    # `from params import K` finds params.py beside it.  Both the folder and the modules imported
-    # from it leave again afterwards, so that a second target with its own params.py imports its
-    # own (not the first one's cached in sys.modules) and nothing leaks into the caller's process.
-    folder = path.resolve().parent
-    loaded_before = set(sys.modules)
-    sys.path.insert(0, str(folder))
-    try:
-        module = _import_file(path, run)
-        build = getattr(module, "build_model", None)
-        if build is not None:
-            if not callable(build):
-                raise TargetError(f"{path}: build_model is {type(build).__name__}, not a function returning a Model")
-            model = run("build_model()", build)
-        elif hasattr(module, "model"):
-            model = module.model
-            if callable(model) and not _is_model(model):
-                model = run("model()", model)
-        else:
-            raise TargetError(
-                f"{path} defines neither build_model() nor model; define build_model() returning a daemodel.Model"
-            )
-    finally:
-        sys.path.remove(str(folder))
-        _forget_modules_from(folder, set(sys.modules) - loaded_before)
-    if not _is_model(model):
-        raise TargetError(f"{path}: build_model() / model gave {type(model).__name__}, not a Model or CompiledDAE")
-    t_span = _t_span(path, getattr(module, "T_SPAN", DEFAULT_T_SPAN))
-    exact = getattr(module, "exact", None)
-    if exact is not None and not callable(exact):
-        raise TargetError(f"{path}: exact is {type(exact).__name__}, not a function t -> dict name -> values")
-    return model, t_span, exact
-
-
-def _import_file(path: Path, run):
-    """The model file as a module, registered in sys.modules under a name no other target has."""
-    name = base = f"daemodel_target_{path.stem}"
-    copy = 1
-    while name in sys.modules:  # two targets named model.py in two folders are two modules
-        copy += 1
-        name = f"{base}_{copy}"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # as an import does: dataclasses and pickle look the module up there
-    try:
-        run("importing the model file", spec.loader.exec_module, module)
-    except TargetError:
-        del sys.modules[name]
-        raise
-    return module
-
-
-def _forget_modules_from(folder: Path, names) -> None:
-    """Drop from sys.modules the modules among ``names`` that were imported from ``folder`` (a model
-    file's own helpers: ``params.py`` beside it, a package folder beside it).  The model keeps
-    references to what it uses; sys.modules only must not hand them to the next target."""
-    for name in names:
-        top = name.partition(".")[0]
-        if not ((folder / f"{top}.py").is_file() or (folder / top).is_dir()):
-            continue  # numpy, scipy, ...: found elsewhere on sys.path, shared by every target
-        origin = getattr(getattr(sys.modules.get(name), "__spec__", None), "origin", None)
-        if origin and Path(origin).resolve().is_relative_to(folder):
-            del sys.modules[name]
-
-
-def _t_span(path: Path, value) -> tuple[float, float]:
-    """``T_SPAN`` of a model file as floats: a pair of finite numbers, increasing."""
-    expected = f"{path}: T_SPAN must be a pair (t0, t1) of finite numbers with t0 < t1; got {value!r}"
-    try:
-        pair = tuple(value)
-    except TypeError:
-        raise TargetError(expected) from None
-    if len(pair) != 2 or not all(is_real(v) for v in pair):
-        raise TargetError(expected)
-    try:
-        t0, t1 = real(pair[0], "t0", finite=False), real(pair[1], "t1", finite=False)
-    except InvalidValueError:  # a sympy symbol: no number
-        raise TargetError(expected) from None
-    if not (math.isfinite(t0) and math.isfinite(t1) and t0 < t1):
-        raise TargetError(expected)
-    return t0, t1
-
-
-def _is_model(value) -> bool:
-    from daemodel.compiling.compiled import CompiledDAE
-    from daemodel.compiling.compiler import Model
-
-    return isinstance(value, Model | CompiledDAE)
 
 
 def check_out(out: str) -> Path:
@@ -240,6 +120,25 @@ def _parser() -> argparse.ArgumentParser:
         "--detail", action="store_true", help="a max (mean) error column per variable (default: worst per group)"
     )
     cmp.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run = commands.add_parser(
+        "bench",
+        help="every method on suites of problems: scd at the end against time, one HTML report, resumable",
+        description="Every method on the problems of each SUITE (testset, paper) or model file: a sweep per method "
+        "(rtol = atol 1e-3 ... 1e-11, or step sizes), scd = -log10 of the largest relative error at the end, setup, "
+        "solve and wall times; each run stored in --out as it finishes (a rerun solves only what is missing), then "
+        "report.html (work-precision plots inline), results.json and results.csv.",
+    )
+    run.add_argument("suites", nargs="+", metavar="SUITE", help="testset, paper, or a .py model file")
+    run.add_argument("--out", default="bench", help="output folder (default bench/); its runs are reused")
+    run.add_argument("--methods", help="comma-separated methods (default: every method but 'reference')")
+    run.add_argument("--workers", type=int, default=1, help="processes (or Ray CPUs) to run on (default 1)")
+    run.add_argument("--executor", choices=("local", "processes", "ray"), help="where runs go (default: by --workers)")
+    run.add_argument("--address", help="a Ray cluster's address (with --executor ray)")
+    run.add_argument("--tolerances", help="comma-separated rtol = atol (default 1e-3,1e-5,1e-7,1e-9,1e-11)")
+    run.add_argument("--points", type=int, default=3, help="step sizes per fixed-step method (default 3)")
+    run.add_argument("--time-limit", type=float, default=60.0, help="seconds one run may take (default 60)")
+    run.add_argument("--threads", type=int, default=1, help="torch threads per run (default 1)")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
     store = commands.add_parser(
         "cache",
         help="the cache of compiled libraries (radau's jit=True): where it is, what it holds; clear it",
@@ -260,6 +159,8 @@ def main(argv=None) -> int:
         return EXIT_USER_MISTAKE
     if args.command == "cache":
         return _cache(args.action)
+    if args.command == "bench":
+        return _bench(args)
     import torch
 
     torch.set_num_threads(max(1, args.threads))
@@ -331,6 +232,45 @@ def _compare(args) -> int:
             status = max(status, EXIT_USER_MISTAKE)
         print()
     return status
+
+
+def _bench(args) -> int:
+    """``daemodel bench``: :func:`daemodel.comparing.bench.bench` with the command's arguments."""
+    from daemodel.comparing.bench import DEFAULT_TOLERANCES, bench
+
+    try:
+        methods = None
+        if args.methods is not None:
+            methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+            if not methods:
+                raise ModelError(f"--methods {args.methods!r} names no method; give e.g. --methods radau,casadi-idas")
+        tolerances = DEFAULT_TOLERANCES
+        if args.tolerances is not None:
+            try:
+                tolerances = [float(t) for t in args.tolerances.split(",") if t.strip()]
+            except ValueError:
+                raise ModelError(f"--tolerances {args.tolerances!r} is not a list of numbers like 1e-4,1e-8") from None
+        result = bench(
+            args.suites,
+            methods,
+            args.out,
+            workers=args.workers,
+            executor=args.executor,
+            address=args.address,
+            tolerances=tolerances,
+            points=args.points,
+            time_limit=args.time_limit,
+            threads=args.threads,
+            progress=False if args.no_progress else None,
+        )
+    except DaemodelError as error:
+        print(f"daemodel bench: {error}", file=sys.stderr)
+        return _exit_status(error)
+    print(result.table())
+    print(f"{len(result.records)} runs ({result.computed} solved now) in {result.elapsed:.1f} s")
+    for path in result.paths:
+        print(f"wrote {path}")
+    return 0
 
 
 def _cache(action: str) -> int:

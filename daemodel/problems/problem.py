@@ -45,6 +45,9 @@ class Problem:
     events : tuple of dict
         Declared events, each the keyword arguments of :meth:`Model.event` (``name``, ``when``,
         ``direction``, ``reset`` with str expressions, ``terminal``).
+    scd_names : tuple of str
+        The components whose relative error at ``t_span[1]`` ``dm.bench`` reads significant
+        correct digits from (empty: every component of ``reference``, or of ``exact``).
     exact_events : dict name -> tuple of str
         The exact solution's event times (expressions), where ``exact`` jumps.  ``exact`` is then a
         ``Piecewise`` in t whose conditions are ``t < t_k``: at ``t_k`` it gives the values after the
@@ -65,6 +68,7 @@ class Problem:
     source: str = ""
     compare_steps: int = SWEEP_FIRST_STEPS
     events: tuple = ()
+    scd_names: tuple = ()
     exact_events: dict = field(default_factory=dict)
 
     def model(self) -> Model:

@@ -132,6 +132,9 @@ SQUEEZER = Problem(
         **{f"lam{k}": 0.0 for k in range(3, 7)},
     },
     t_span=(0.0, 0.03),
+    # the positions: the index-1 components, whose error an adaptive code controls (the velocities,
+    # accelerations and multipliers are of higher index); dm.bench reads the scd from these
+    scd_names=tuple(f"q{k}" for k in range(1, 8)),
     compare_steps=40,  # a fast mechanism: h = 7.5e-4 first (at 1.5e-3, radau's local error bound stops step 8)
     index=2,
     # andrews.f, subroutine andsoln: y(1..27) at t = 0.03 (PSIDE, rtol = atol = 1e-14, Cray C90)
