@@ -584,10 +584,10 @@ def test_adaptive_steps_stop_at_the_memory_limit(monkeypatch):
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "20K")
     k = {"k": np.linspace(1.0, 50.0, 100)}
     with pytest.raises(ResourceLimitError, match=r"radau: at t = .*, the 15 steps' outputs of 100 sample\(s\) reach"):
-        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k, dense_output=False)
-    # (with the dense output, each step keeps its start and stages: 4 values where its end is 1)
+        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k, dense_output=False, stages=5)
+    # (with the dense output, each step keeps its start and stages: 6 values where its end is 1)
     with pytest.raises(ResourceLimitError, match=r"radau: at t = .*, the 3 steps' outputs of 100 sample\(s\) reach"):
-        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k)
+        dm.solve(decay, (0.0, 100.0), rtol=1e-10, parameters=k, stages=5)
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "lots")
     with pytest.raises(InvalidOptionError, match=r"DAEMODEL_MEMORY_LIMIT = 'lots' is not a memory size"):
         dm.solve(decay, (0.0, 1.0), h=0.1)

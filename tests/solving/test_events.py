@@ -327,7 +327,7 @@ def test_values_between_outputs_across_an_event():
     exact_v = np.where(times < located, -G * times, rebound - G * after)
     values = sol.at(times)
     np.testing.assert_allclose(values["h"], exact_h, rtol=0, atol=1e-8)
-    assert sol.dense.description == "each step's collocation polynomial (degree 5), in 2 segments"  # (1 impact)
+    assert sol.dense.description == "each step's collocation polynomial (degree 7), in 2 segments"  # (s = 7; 1 impact)
     np.testing.assert_allclose(values["v"], exact_v, rtol=0, atol=1e-8)
     assert values["v"][2] > 0  # (the event time: after the reset)
     plain = dm.solve(_ball(), (0.0, 1.0), rtol=1e-10, atol=1e-10, t_eval=np.linspace(0.0, 1.0, 11), dense_output=False)
