@@ -55,6 +55,10 @@ class PINNOptions:
     max_segments : int
         The most segments a default h makes (default 200): a long span with a short transient
         trains this many, flagged where radau at that h would be, not one per step of the transient.
+    auto_h : bool, optional
+        Take h from the problem (the pre-solve above) even with a ``config`` (True), or never
+        (False); default None: where neither ``h``, ``config`` nor ``segment_starts`` is given.  A
+        given ``h`` always wins.
     t_eval : array, optional
         Output times instead of the segment grid, within the interval: the values there are the
         PINN's dense output (:meth:`Solution.at`), on each segment the collocation polynomial
@@ -124,12 +128,22 @@ class PINNOptions:
     strict: bool = False
     estimate_bound: float = DEFAULT_ESTIMATE_BOUND
     save: object = None
-    # whether h comes from the problem (set by __post_init__: neither h, config nor segment_starts given)
-    h_follows_problem: bool = dataclasses.field(default=False, init=False)
+    auto_h: bool | None = None
 
     def __post_init__(self) -> None:
-        follows = self.config is None and self.h is None and self.segment_starts is None
-        object.__setattr__(self, "h_follows_problem", follows)
+        if (
+            self.auto_h is None
+        ):  # (a bool from here on, so that dataclasses.replace, as a piece between events does, keeps it)
+            follows = self.config is None and self.h is None and self.segment_starts is None
+            object.__setattr__(self, "auto_h", follows)
+        elif not isinstance(self.auto_h, bool):
+            raise InvalidOptionError(f"auto_h must be True, False or None; got {self.auto_h!r}")
+        if self.h is not None:  # a given h wins (an event's trial solve over a short span gives one)
+            object.__setattr__(self, "auto_h", False)
+        if self.auto_h and self.segment_starts is not None:
+            raise InvalidOptionError(
+                "auto_h=True takes h from a pre-solve, but segment_starts must be given on a known grid: give h"
+            )
         if self.config is None:
             object.__setattr__(self, "config", PINNConfig())
         set_number(self, "max_segments", integer=True)
@@ -207,7 +221,7 @@ class PINNBackend(AbstractBackend):
         config = options.config
         torch_device(config.device)
         presolve, h_from = 0.0, "given"
-        if options.h_follows_problem:  # h from a scipy Radau solve, in the setup
+        if options.auto_h:  # h from a scipy Radau solve, in the setup
             count, steps, presolve = default_segments(compiled, t_span, start, options.max_segments)
             config = dataclasses.replace(config, h=(t_span[1] - t_span[0]) / count)
             h_from = f"scipy Radau at rtol = {PRESOLVE_RTOL:g}: {steps} steps, {count} segments"

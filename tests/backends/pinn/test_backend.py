@@ -240,6 +240,25 @@ def test_a_given_h_or_config_keeps_its_h_and_runs_no_presolve():
     for options in ({"h": 0.1}, {"config": dm.PINNConfig(h=0.1)}):
         sol = dm.solve(c, (0.0, 1.0), method="pinn", **options)
         assert sol.stats["segments"] == 10 and sol.stats["h_from"] == "given" and sol.stats["presolve_seconds"] == 0
+    steps = _presolve_steps(c, (0.0, 1.0))
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(width=10), auto_h=True)
+    assert sol.stats["segments"] == steps and sol.settings["width"] == 10
+
+
+def test_auto_h_survives_a_replace_and_refuses_segment_starts():
+    import dataclasses
+
+    from daemodel.backends.pinn.backend import PINNOptions
+
+    options = PINNOptions()
+    assert options.auto_h is True and options.config == dm.PINNConfig()
+    assert dataclasses.replace(options, t_eval=None).auto_h is True  # as a piece between events is solved
+    assert dataclasses.replace(options, h=0.01).auto_h is False  # an event's trial solve gives its h
+    assert PINNOptions(stages=2).auto_h is True and PINNOptions(config=dm.PINNConfig()).auto_h is False
+    with pytest.raises(InvalidOptionError, match="auto_h=True takes h from a pre-solve, but segment_starts"):
+        PINNOptions(auto_h=True, segment_starts=np.ones((3, 4)))
+    with pytest.raises(InvalidOptionError, match="auto_h must be True, False or None; got 'yes'"):
+        PINNOptions(auto_h="yes")
 
 
 def test_a_failed_presolve_names_itself_and_the_fix():
