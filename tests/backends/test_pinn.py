@@ -719,7 +719,7 @@ def test_fast_mode_on_an_ode_whose_jacobian_has_no_symbolic_form():
     m.initial(x=1.0, v=0.0)
     c = m.compile()
     assert c.torch_functions(dtype=F64).jacobian is None
-    sol = dm.solve(c, (0.0, 0.2), method="pinn")
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", h=0.05)
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
     for name in c.state_names:
         assert np.abs(sol[name] - radau[name]).max() <= 1e-12, name
