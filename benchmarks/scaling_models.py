@@ -10,7 +10,9 @@ family                        unknowns (n states + m alg.)    index          cou
 ``sphere_particles(P)``       6P + 2P = 8P (160 at P = 20)    2              all pairs (dense)
 ============================  ==============================  =============  ========================
 
-The equations are built as sympy expressions from the symbols that ``m.states`` and
+The chain and the grid live in the package (:mod:`daemodel.problems.families`, where the
+``families`` suite of ``daemodel bench`` runs them) and are imported from there; the particles are
+declared here.  The equations are built as sympy expressions from the symbols that ``m.states`` and
 ``m.algebraics`` return, as a user would write them; ``T_SPAN`` below holds each family's
 benchmark interval.  Run ``python benchmarks/scaling_models.py`` to compile each family at a
 small size and print its report.
@@ -24,6 +26,7 @@ import numpy as np
 import sympy as sp
 
 import daemodel as dm
+from daemodel.problems.families import pendulum_chain, reaction_diffusion
 
 # Benchmark interval of each family: long enough for the chain to swing through a large angle,
 # for the grid's slowest mode to decay to about a third and for the particles to move well off their start.
@@ -32,17 +35,6 @@ T_SPAN = {
     "reaction_diffusion": (0.0, 1.0),
     "sphere_particles": (0.0, 1.0),
 }
-
-# Gravity of the pendulum chain (m / s^2): unit masses and rods make it the only scale.
-GRAVITY = 9.81
-# Angle of the straight chain at release, below the horizontal: gravity has a component along
-# the rods (nonzero tensions from t0, unlike a horizontal release where every lam_i(t0) = 0) and
-# one across them (the chain swings and folds rather than hanging still).
-CHAIN_RELEASE_ANGLE = math.pi / 4
-
-# Diffusion coefficient of the grid: stiffness 4 D / dx^2 grows from ~50 (K = 10) to ~36,000
-# (K = 300) while the slowest mode decays as exp(-D pi^2 t), to 37 % at t = 1: mildly stiff.
-DIFFUSION = 0.1
 
 # Softening of the particles' repulsion: keeps the force smooth (bounded by ~eps^-1) if two
 # particles come close; 0.05 is small next to their squared spacing at the start (closest pair
@@ -54,108 +46,6 @@ REPULSION = 1.0
 # Scale of the initial tangent velocities: a rigid rotation plus a per-particle twist of this
 # size, so that the sphere both rotates and deforms.
 PARTICLE_SPEED = 0.5
-
-
-def pendulum_chain(N: int) -> dm.Model:
-    """A chain of N planar pendulums in Cartesian coordinates (index 3).
-
-    Unit masses joined by unit massless rods; mass 0 is the fixed origin and rod i joins mass
-    i-1 and mass i.  For i = 1..N, with ``x_0 = y_0 = 0`` and the last term absent for i = N::
-
-        x_i' = u_i,   y_i' = v_i
-        u_i' = -lam_i (x_i - x_{i-1}) + lam_{i+1} (x_{i+1} - x_i)
-        v_i' = -lam_i (y_i - y_{i-1}) + lam_{i+1} (y_{i+1} - y_i) - grav
-        0    = (x_i - x_{i-1})^2 + (y_i - y_{i-1})^2 - 1          (constraint ``rod_i``)
-
-    ``lam_i`` is the tension of rod i per unit length.  States x_i, y_i, u_i, v_i (n = 4N),
-    algebraic variables lam_i (m = N): 5N unknowns (40 at N = 8, 160 at N = 32).  Each rod is
-    an index-3 constraint; solvers that need it get the compiler's index-2 reduction (the
-    velocity-level constraints ``rod_i'``).  Parameter ``grav`` = :data:`GRAVITY`.
-
-    Initial state: the chain at rest, straight, pointing down from the origin at
-    :data:`CHAIN_RELEASE_ANGLE` (45 degrees) below the horizontal (``x_i = i cos 45deg``,
-    ``y_i = -i sin 45deg``).  It is consistent (every rod has unit length, no velocity), the
-    tensions are nonzero from the start, and the chain swings and folds over ``T_SPAN``.
-
-    Parameters
-    ----------
-    N : int
-        Number of links, >= 1.
-    """
-    if isinstance(N, bool) or not isinstance(N, int) or N < 1:
-        raise ValueError(f"pendulum_chain needs an integer N >= 1 links; got {N!r}")
-    m = dm.Model(f"pendulum_chain_{N}")
-    idx = range(1, N + 1)
-    x = m.states([f"x_{i}" for i in idx])
-    y = m.states([f"y_{i}" for i in idx])
-    u = m.states([f"u_{i}" for i in idx])
-    v = m.states([f"v_{i}" for i in idx])
-    lam = m.algebraics([f"lam_{i}" for i in idx])
-    grav = m.parameter("grav", GRAVITY)
-    zero = sp.Integer(0)
-    # positions with the fixed mass 0 first: px[i] is mass i, i = 0..N
-    px, py = (zero, *x), (zero, *y)
-    for k in range(N):  # k = i - 1: mass i = k + 1
-        i = k + 1
-        fx = -lam[k] * (px[i] - px[i - 1])
-        fy = -lam[k] * (py[i] - py[i - 1])
-        if i < N:
-            fx += lam[k + 1] * (px[i + 1] - px[i])
-            fy += lam[k + 1] * (py[i + 1] - py[i])
-        m.ode(x[k], u[k])
-        m.ode(y[k], v[k])
-        m.ode(u[k], fx)
-        m.ode(v[k], fy - grav)
-    for k in range(N):
-        i = k + 1
-        m.constraint((px[i] - px[i - 1]) ** 2 + (py[i] - py[i - 1]) ** 2 - 1, name=f"rod_{i}")
-    cos_a, sin_a = math.cos(CHAIN_RELEASE_ANGLE), math.sin(CHAIN_RELEASE_ANGLE)
-    start = {}
-    for i in idx:
-        start.update({f"x_{i}": i * cos_a, f"y_{i}": -i * sin_a, f"u_{i}": 0.0, f"v_{i}": 0.0})
-    m.initial(**start)
-    return m
-
-
-def reaction_diffusion(K: int) -> dm.Model:
-    """Method of lines for ``c_t = D c_xx - c^2 / (1 + c)`` on [0, 1], the reaction as an algebraic variable (index 1).
-
-    K interior points ``x_k = k dx``, ``dx = 1 / (K + 1)``, homogeneous Dirichlet boundaries
-    ``c_0 = c_{K+1} = 0``.  For k = 1..K::
-
-        c_k' = D (c_{k-1} - 2 c_k + c_{k+1}) / dx^2 - w_k
-        0    = w_k - c_k^2 / (1 + c_k)                       (constraint ``rate_k``)
-
-    States c_k (n = K), algebraic variables w_k (m = K): 2K unknowns (200 at K = 100, 600 at
-    K = 300).  Each constraint has index 1 (``dg/dw = 1``).  Parameter ``D`` =
-    :data:`DIFFUSION`: the stiffness ``4 D / dx^2`` grows with K (about 36,000 at K = 300)
-    while the solution stays smooth, so the family is mildly stiff.
-
-    Initial state: ``c_k = sin(pi x_k)`` (it meets the boundary values); ``w_k`` is computed
-    by the compiler.
-
-    Parameters
-    ----------
-    K : int
-        Number of interior grid points, >= 1.
-    """
-    if isinstance(K, bool) or not isinstance(K, int) or K < 1:
-        raise ValueError(f"reaction_diffusion needs an integer K >= 1 grid points; got {K!r}")
-    m = dm.Model(f"reaction_diffusion_{K}")
-    idx = range(1, K + 1)
-    c = m.states([f"c_{k}" for k in idx])
-    w = m.algebraics([f"w_{k}" for k in idx])
-    D = m.parameter("D", DIFFUSION)
-    inv_dx2 = sp.Integer(K + 1) ** 2  # 1 / dx^2, exact
-    zero = sp.Integer(0)
-    padded = (zero, *c, zero)  # the Dirichlet boundary values around the interior points
-    for j in range(K):  # padded[j + 1] is c_{j+1}
-        laplacian = (padded[j] - 2 * padded[j + 1] + padded[j + 2]) * inv_dx2
-        m.ode(c[j], D * laplacian - w[j])
-    for j in range(K):
-        m.constraint(w[j] - c[j] ** 2 / (1 + c[j]), name=f"rate_{j + 1}")
-    m.initial(**{f"c_{k}": math.sin(math.pi * k / (K + 1)) for k in idx})
-    return m
 
 
 def fibonacci_sphere(P: int) -> np.ndarray:

@@ -18,7 +18,7 @@ from daemodel.backends.base import (
 from daemodel.backends.checks import check_output_memory, check_threads, set_number
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps, output_times
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.backends.pinn.segments import MAX_INDEX
+from daemodel.backends.pinn.segments import DEFAULT_MAX_SEGMENTS, MAX_INDEX, PRESOLVE_RTOL
 from daemodel.backends.progress import show_progress
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
@@ -41,12 +41,24 @@ class PINNOptions:
 
     Attributes
     ----------
-    config : PINNConfig
-        The network, loss and optimizer settings (default: the fast mode).
+    config : PINNConfig, optional
+        The network, loss and optimizer settings (default: the fast mode, ``PINNConfig()``, with
+        its h following the problem, below).
     stages, h : optional
         Radau IIA stages and the segment length, as for the fixed-step methods: given here, they
         replace ``config.stages`` and ``config.h`` (``method="pinn", stages=3, h=0.1`` is
-        ``config=PINNConfig(stages=3, h=0.1)``).
+        ``config=PINNConfig(stages=3, h=0.1)``).  Where neither ``h`` nor ``config`` nor
+        ``segment_starts`` is given, h follows the problem: the span over the accepted steps of a
+        scipy Radau solve at rtol = atol = 1e-6 (:func:`~daemodel.backends.pinn.segments.default_segments`;
+        16 steps on the pendulum over [0, 1]), at most ``max_segments`` segments; the pre-solve is
+        part of the setup time, and ``stats["h_from"]`` says where h came from.
+    max_segments : int
+        The most segments a default h makes (default 200): a long span with a short transient
+        trains this many, flagged where radau at that h would be, not one per step of the transient.
+    auto_h : bool, optional
+        Take h from the problem (the pre-solve above) even with a ``config`` (True), or never
+        (False); default None: where neither ``h``, ``config`` nor ``segment_starts`` is given.  A
+        given ``h`` always wins.
     t_eval : array, optional
         Output times instead of the segment grid, within the interval: the values there are the
         PINN's dense output (:meth:`Solution.at`), on each segment the collocation polynomial
@@ -101,9 +113,10 @@ class PINNOptions:
         sample only) are not saved: use ``PINNConfig(batch="shared")`` for networks to reuse.
     """
 
-    config: PINNConfig = dataclasses.field(default_factory=PINNConfig)
+    config: PINNConfig | None = None
     stages: int | None = None
     h: float | None = None
+    max_segments: int = DEFAULT_MAX_SEGMENTS
     t_eval: object = None
     segment_starts: object = None
     executor: str = "local"
@@ -115,8 +128,25 @@ class PINNOptions:
     strict: bool = False
     estimate_bound: float = DEFAULT_ESTIMATE_BOUND
     save: object = None
+    auto_h: bool | None = None
 
     def __post_init__(self) -> None:
+        if (
+            self.auto_h is None
+        ):  # (a bool from here on, so that dataclasses.replace, as a piece between events does, keeps it)
+            follows = self.config is None and self.h is None and self.segment_starts is None
+            object.__setattr__(self, "auto_h", follows)
+        elif not isinstance(self.auto_h, bool):
+            raise InvalidOptionError(f"auto_h must be True, False or None; got {self.auto_h!r}")
+        if self.h is not None:  # a given h wins (an event's trial solve over a short span gives one)
+            object.__setattr__(self, "auto_h", False)
+        if self.auto_h and self.segment_starts is not None:
+            raise InvalidOptionError(
+                "auto_h=True takes h from a pre-solve, but segment_starts must be given on a known grid: give h"
+            )
+        if self.config is None:
+            object.__setattr__(self, "config", PINNConfig())
+        set_number(self, "max_segments", integer=True)
         if not isinstance(self.config, PINNConfig):
             raise InvalidOptionError(
                 f"config must be a dm.PINNConfig; got {type(self.config).__name__} (e.g. config=dm.PINNConfig(h=0.05))"
@@ -178,11 +208,25 @@ class PINNBackend(AbstractBackend):
 
     def _solve(self, compiled, t_span, start, options: PINNOptions, warm_up: float = 0.0):
         from daemodel.backends.pinn.certificate import certify
-        from daemodel.backends.pinn.segments import Progress, copies_for, fit_parallel, segment_grid, train_segments
+        from daemodel.backends.pinn.segments import (
+            Progress,
+            copies_for,
+            default_segments,
+            fit_parallel,
+            segment_grid,
+            train_segments,
+        )
         from daemodel.backends.pinn.surrogate import SurrogateNetworks
 
         config = options.config
         torch_device(config.device)
+        presolve, h_from = 0.0, "given"
+        if options.auto_h:  # h from a scipy Radau solve, in the setup
+            count, steps, presolve = default_segments(compiled, t_span, start, options.max_segments)
+            config = dataclasses.replace(config, h=(t_span[1] - t_span[0]) / count)
+            h_from = f"scipy Radau at rtol = {PRESOLVE_RTOL:g}: {steps} steps, {count} segments"
+            if count == options.max_segments and steps > count * start.size:
+                h_from += f" (at most max_segments = {options.max_segments})"
         grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment
         segments = len(grid) - 1
         outputs = output_times(options.t_eval, t_span, grid)  # (checked before any training)
@@ -254,6 +298,8 @@ class PINNBackend(AbstractBackend):
             "batch": "independent" if networks[0].copies > 1 else ("shared" if start.size > 1 else "one trajectory"),
             "parameters_per_segment": networks[0].parameter_count() // networks[0].copies,
             "torch_threads": torch_threads_now(),
+            "h_from": h_from,
+            "presolve_seconds": presolve,
             "training_seconds": trained - began,
             "torch_warm_up_seconds": warm_up,
             "evaluation_seconds": evaluated - trained,
@@ -300,7 +346,7 @@ class PINNBackend(AbstractBackend):
             summary,
             settings=settings,
             status=status,
-            setup_time=trained - began + warm_up,  # training, and torch's first use in the process
+            setup_time=trained - began + warm_up + presolve,  # the h pre-solve, training, torch's first use
             dense=dense,
         )
 

@@ -81,7 +81,9 @@ class PINNConfig:
         Radau IIA stages v (order 2v-1).
     h : float
         Segment length: one network per segment; the last one is shortened to end at t1, and a
-        span shorter than h (a piece between two events) is one segment of its own length.
+        span shorter than h (a piece between two events) is one segment of its own length.  A
+        solve given neither ``h`` nor a config takes its h from the problem instead
+        (:class:`~daemodel.backends.pinn.backend.PINNOptions`).
     width, depth : int
         Hidden width and number of hidden layers of each network.  Networks whose training would
         not fit in memory are refused before they are built (a

@@ -1,7 +1,7 @@
 """The segments in time: one network per segment of the grid, trained one after another
 (each from its predecessor's prediction) or independently from known start values, as tasks of
-an executor (local or Ray).  Uses the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and
-:mod:`.surrogate` do).
+an executor (local or Ray), and the default h's segment count from a scipy Radau pre-solve.  Uses
+the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and :mod:`.surrogate` do).
 """
 
 from __future__ import annotations
@@ -13,12 +13,19 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
-from daemodel.errors import InvalidOptionError, ResourceLimitError
+from daemodel.errors import InvalidOptionError, ResourceLimitError, SolverError
 from daemodel.tableau import radau_iia
 
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
 # index 3 is reduced first).
 MAX_INDEX = 2
+# The pre-solve that sets the default h: scipy's Radau IIA (3 stages, order 5, the PINN's default
+# tableau) at rtol = atol = this, about the accuracy the fast mode certifies; its mean accepted step
+# becomes the segment length (the pendulum on [0, 1]: 16 steps, h = 0.0625; Hessenberg: 19).
+PRESOLVE_RTOL = 1e-6
+# Segments of a default h at most: a long span with a short stiff transient (a CSTR on [0, 200])
+# trains this many, not one per step of the transient; as the bench's bench_max_steps.
+DEFAULT_MAX_SEGMENTS = 200
 
 
 def resolve_model(model, caller: str):
@@ -122,6 +129,40 @@ def segment_grid(t_span, h: float, *, strict: bool = False) -> np.ndarray:
 
     t0, t1 = t_span
     return fixed_grid(t_span, h if strict else min(h, t1 - t0))
+
+
+def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, int, float]:
+    """The segment count of the default h over ``t_span``: the accepted steps per sample of a scipy
+    Radau solve at :data:`PRESOLVE_RTOL` (``method="reference"``, ``integrator="Radau"``), at least
+    one and at most ``max_segments``.
+
+    Returns
+    -------
+    segments : int
+    steps : int
+        The pre-solve's accepted steps, over every sample.
+    seconds : float
+        The pre-solve's time (the PINN counts it in its setup).
+
+    Raises
+    ------
+    ConvergenceError, StepLimitError
+        The pre-solve failed: the message says so and how to skip it (give ``h``).
+    """
+    from daemodel.backends.reference import ReferenceBackend, ReferenceOptions
+
+    began = time.perf_counter()
+    options = ReferenceOptions(rtol=PRESOLVE_RTOL, atol=PRESOLVE_RTOL, integrator="Radau", t_eval=list(t_span))
+    try:
+        solution = ReferenceBackend().solve(compiled, tuple(t_span), start, options)
+    except SolverError as error:
+        raise type(error)(
+            f"pinn: the default h comes from a scipy Radau solve at rtol = {PRESOLVE_RTOL:g}, which failed ({error}); "
+            "give the segment length, e.g. h=0.05, to train without it"
+        ) from error
+    steps = int(solution.stats["steps"])
+    segments = min(max(1, round(steps / start.size)), max_segments)
+    return segments, steps, time.perf_counter() - began
 
 
 def make_network(compiled, config, inputs: int, segment: int, copies: int = 1):

@@ -123,12 +123,12 @@ def _parser() -> argparse.ArgumentParser:
     run = commands.add_parser(
         "bench",
         help="every method on suites of problems: scd at the end against time, one HTML report, resumable",
-        description="Every method on the problems of each SUITE (testset, paper) or model file: a sweep per method "
-        "(rtol = atol 1e-3 ... 1e-11, or step sizes), scd = -log10 of the largest relative error at the end, setup, "
-        "solve and wall times; each run stored in --out as it finishes (a rerun solves only what is missing), then "
-        "report.html (work-precision plots inline), results.json and results.csv.",
+        description="Every method on the problems of each SUITE (testset, paper, families) or model file: a sweep per "
+        "method (rtol = atol 1e-3 ... 1e-11, or step sizes), scd = -log10 of the largest relative error at the end, "
+        "setup, solve and wall times; each run stored in --out as it finishes (a rerun solves only what is missing), "
+        "then report.html (work-precision plots inline), results.json and results.csv.",
     )
-    run.add_argument("suites", nargs="+", metavar="SUITE", help="testset, paper, or a .py model file")
+    run.add_argument("suites", nargs="+", metavar="SUITE", help="testset, paper, families, or a .py model file")
     run.add_argument("--out", default="bench", help="output folder (default bench/); its runs are reused")
     run.add_argument("--methods", help="comma-separated methods (default: every method but 'reference')")
     run.add_argument("--workers", type=int, default=1, help="processes (or Ray CPUs) to run on (default 1)")

@@ -7,7 +7,9 @@ there joins its suite with no change here:
 * ``testset``: the problems whose ``source`` cites the Test Set for IVP Solvers and which carry its
   published ``reference`` at ``t_span[1]``;
 * ``paper``: the problems of the paper daemodel's Radau-PINN follows (``source`` starting with
-  :data:`daemodel.problems.paper.PAPER`): Hessenberg with its closed form, the pendulum.
+  :data:`daemodel.problems.paper.PAPER`): Hessenberg with its closed form, the pendulum;
+* ``families``: the pendulum chain and reaction-diffusion at three sizes each
+  (:data:`daemodel.problems.families.FAMILIES`), with scipy's references on their index-reduced ODEs.
 
 A model file (``.py``) is read as ``daemodel compare`` reads it (:func:`~daemodel.comparing.targets.load_target`).
 
@@ -28,7 +30,7 @@ from daemodel.errors import BenchError
 
 # The words by which a problem's source cites the IVP Test Set (Mazzia, Magherini et al.).
 TEST_SET = "Test Set for IVP Solvers"
-SUITES = ("testset", "paper")
+SUITES = ("testset", "paper", "families")
 # The largest relative error a scd is read from is floored here: a run that matches the end values
 # to the last bit reads 17 digits (float64 holds 15.9), not infinitely many.
 ERROR_FLOOR = 1e-17
@@ -43,9 +45,10 @@ class BenchProblem:
     name : str
         The problem's name (a file's stem for a model file), unique within the benchmark.
     target : str
-        What builds it: a problem name of :data:`daemodel.problems.PROBLEMS` or a model file's path.
+        What builds it: a problem name of :data:`daemodel.problems.PROBLEMS`, a member of
+        :data:`daemodel.problems.families.FAMILIES` or a model file's path.
     suite : str
-        ``"testset"``, ``"paper"`` or ``"file"``.
+        ``"testset"``, ``"paper"``, ``"families"`` or ``"file"``.
     t_span : (float, float)
     steps : int
         Steps over ``t_span`` of the fixed-step methods' coarsest setting (the problem's ``compare_steps``).
@@ -84,6 +87,7 @@ def resolve(suites_or_files) -> list[BenchProblem]:
         A model file that cannot be read (see :func:`~daemodel.comparing.targets.load_target`).
     """
     from daemodel.problems import PROBLEMS
+    from daemodel.problems.families import FAMILIES
     from daemodel.problems.paper import PAPER
 
     if isinstance(suites_or_files, str):
@@ -99,6 +103,8 @@ def resolve(suites_or_files) -> list[BenchProblem]:
             chosen = [p for p in PROBLEMS.values() if TEST_SET in p.source and p.reference]
         elif item == "paper":
             chosen = [p for p in PROBLEMS.values() if p.source.startswith(PAPER)]
+        elif item == "families":
+            chosen = list(FAMILIES.values())
         elif item.endswith(".py"):
             problem = _file_problem(item, set(out))
             out[problem.name] = problem
@@ -112,7 +118,9 @@ def resolve(suites_or_files) -> list[BenchProblem]:
 
 
 def _library_problem(problem, suite: str) -> BenchProblem:
-    if problem.reference:
+    if suite == "families":
+        reference, source = dict(problem.reference), problem.source
+    elif problem.reference:
         reference, source = dict(problem.reference), "published: " + problem.source
     elif problem.exact:
         t1 = problem.t_span[1]

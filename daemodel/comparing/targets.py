@@ -15,7 +15,8 @@ DEFAULT_T_SPAN = (0.0, 1.0)
 
 
 def load_target(target: str):
-    """``(model, t_span, exact)`` for a problem name or a model file (see :mod:`daemodel.comparing.cli`).
+    """``(model, t_span, exact)`` for a problem name, a family member (``"pendulum_chain-8"``) or a
+    model file (see :mod:`daemodel.comparing.cli`).
 
     Raises
     ------
@@ -26,11 +27,15 @@ def load_target(target: str):
     """
     from daemodel.comparing.references import exception_summary
     from daemodel.problems import PROBLEMS
+    from daemodel.problems.families import FAMILIES
 
     if target in PROBLEMS:
         problem = PROBLEMS[target]
         exact = problem.exact_solution() if problem.exact else None
         return problem.model(), problem.t_span, exact
+    if target in FAMILIES:  # no closed form; bench reads its reference at the end from the member
+        member = FAMILIES[target]
+        return member.model(), member.t_span, None
     path = Path(target)
     if path.suffix != ".py":
         raise TargetError(f"{target!r} is neither a problem ({', '.join(PROBLEMS)}) nor a .py model file")

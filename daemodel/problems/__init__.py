@@ -5,11 +5,13 @@ examples draw on it; the equations are strings so the library exercises the same
 ``problem.py`` says what a problem is; ``paper.py`` holds the paper's problems, ``textbook.py``
 Robertson and the bouncing ball, one module per problem of the Test Set for IVP Solvers
 (``squeezer.py``, ``akzo_nobel.py``, ``car_axis.py``, ``transistor_amplifier.py``,
-``wheelset.py``, ``ring_modulator.py``), ``fitting.py`` the fitting problems; ``library.py`` gathers :data:`PROBLEMS`.
+``wheelset.py``, ``ring_modulator.py``), ``fitting.py`` the fitting problems, ``families.py`` the
+scalable families of the ``families`` suite (:data:`FAMILIES`); ``library.py`` gathers :data:`PROBLEMS`.
 """
 
 from daemodel.problems.akzo_nobel import AKZO_NOBEL, AKZO_NOBEL_PARAMETERS
 from daemodel.problems.car_axis import CAR_AXIS, CAR_AXIS_PARAMETERS
+from daemodel.problems.families import FAMILIES
 from daemodel.problems.fitting import DAMPED_PENDULUM, DECAY
 from daemodel.problems.library import PROBLEMS
 from daemodel.problems.paper import HESSENBERG, PAPER, PENDULUM, PENDULUM_INDEX3
@@ -31,6 +33,7 @@ __all__ = [
     "CAR_AXIS_PARAMETERS",
     "DAMPED_PENDULUM",
     "DECAY",
+    "FAMILIES",
     "HESSENBERG",
     "PAPER",
     "PENDULUM",

@@ -285,8 +285,8 @@ def test_t_eval_gives_the_dense_output_at_the_pinns_own_accuracy():
     c = HESSENBERG.model().compile()
     inside = (np.arange(20) + 0.37) * 0.05  # one time inside every segment of h = 0.05
     t_eval = np.sort(np.concatenate([inside, [0.0, 0.25, 0.5, 1.0]]))
-    on_grid = dm.solve(c, (0.0, 1.0), method="pinn")
-    sol = dm.solve(c, (0.0, 1.0), method="pinn", t_eval=t_eval)
+    on_grid = dm.solve(c, (0.0, 1.0), method="pinn", h=0.05)
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", h=0.05, t_eval=t_eval)
     radau = dm.solve(c, (0.0, 1.0), method="radau", stages=3, h=0.05, t_eval=t_eval)
     assert sol.status == "success" and sol.method == "pinn"
     np.testing.assert_array_equal(sol.t, t_eval)
@@ -355,7 +355,7 @@ def test_batch_with_varying_parameters_makes_them_network_inputs():
     c = PENDULUM.model().compile()
     y0 = {"y1": np.ones(3), "y4": np.ones(3)}
     params = {"lam": np.array([0.5, 1.0, 2.0])}
-    sol = dm.solve(c, (0.0, 0.2), method="pinn", y0=y0, parameters=params)
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", h=0.05, y0=y0, parameters=params)
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05, y0=y0, parameters=params)
     assert sol["y4"].shape == (3, 5)
     np.testing.assert_allclose(sol["y4"], radau["y4"], atol=1e-10)
@@ -719,7 +719,7 @@ def test_fast_mode_on_an_ode_whose_jacobian_has_no_symbolic_form():
     m.initial(x=1.0, v=0.0)
     c = m.compile()
     assert c.torch_functions(dtype=F64).jacobian is None
-    sol = dm.solve(c, (0.0, 0.2), method="pinn")
+    sol = dm.solve(c, (0.0, 0.2), method="pinn", h=0.05)
     radau = dm.solve(c, (0.0, 0.2), method="radau", stages=3, h=0.05)
     for name in c.state_names:
         assert np.abs(sol[name] - radau[name]).max() <= 1e-12, name
@@ -781,7 +781,7 @@ def test_nan_loss_names_the_segment_and_the_term():
         r"themselves, or the network's first predictions, lie outside f's or g's domain \(e\.g\. inside sqrt or "
         r"log\): check the initial values, or shorten h$",
     ):
-        dm.solve(m, (0.0, 0.2), method="pinn")
+        dm.solve(m, (0.0, 0.2), method="pinn", h=0.05)
 
 
 def test_an_under_trained_answer_is_flagged_not_success():

@@ -15,12 +15,12 @@ import pytest
 from daemodel.backends import get_backend
 
 import daemodel as dm
-from daemodel.comparing.bench import default_sweep, plan_settings
+from daemodel.comparing.bench import default_sweep, plan_settings, run_setting
 from daemodel.comparing.bench_files import RUN_FILE_BYTES, read_run
 from daemodel.comparing.cli import main
 from daemodel.comparing.suites import ERROR_FLOOR, resolve, scd
 from daemodel.errors import BenchError, InvalidOptionError
-from daemodel.problems import HESSENBERG, PROBLEMS
+from daemodel.problems import FAMILIES, HESSENBERG, PROBLEMS
 
 SWEEP = {"radau": [{"h": 0.1, "estimate_bound": 1e-14}, {"rtol": 1e-8, "atol": 1e-8}]}
 
@@ -59,10 +59,32 @@ def test_the_suites_are_read_from_the_problem_library():
     assert paper[0].reference == pytest.approx({"y1": math.e**2, "y2": math.e**-1, "y3": math.e**2,
                                                 "y4": math.e**-1, "y5": math.e})  # fmt: skip
     assert paper[1].reference is None  # no closed form, no published values: computed by bench
-    with pytest.raises(BenchError, match=r"'tests' is neither a suite \(testset, paper\) nor a .py model file"):
+    with pytest.raises(BenchError, match=r"'tests' is neither a suite \(testset, paper, families\) nor a .py model"):
         resolve(["tests"])
     with pytest.raises(BenchError, match="at least one suite"):
         resolve([])
+
+
+def test_the_families_suite_lists_each_family_at_three_sizes_with_its_scipy_reference():
+    families = resolve("families")
+    assert [p.name for p in families] == [
+        "pendulum_chain-4", "pendulum_chain-8", "pendulum_chain-16",
+        "reaction_diffusion-25", "reaction_diffusion-50", "reaction_diffusion-100",
+    ]  # fmt: skip
+    for p in families:
+        assert p.suite == "families" and p.target == p.name and p.t_span == (0.0, 1.0)
+        assert p.reference == FAMILIES[p.name].reference and p.scd_names == tuple(p.reference)
+        assert "scipy solve_ivp" in p.reference_source
+    assert [p.name for p in resolve(["families", "paper"])][-2:] == ["hessenberg", "pendulum"]
+
+
+def test_a_family_member_run_reaches_six_digits_against_its_reference():
+    grid = next(p for p in resolve("families") if p.name == "reaction_diffusion-25")
+    runs, skipped = plan_settings(grid, "radau", get_backend("radau"), (1e-8,), 3, None)
+    assert len(runs) == 1 and not skipped
+    record = run_setting(None, runs[0], None, 1)
+    assert record["status"] == "success" and record["problem"] == "reaction_diffusion-25"
+    assert record["scd"] > 6
 
 
 def test_default_sweeps_are_tolerances_for_adaptive_methods_and_steps_for_fixed_ones():

@@ -14,7 +14,14 @@ import pytest
 from pinn_hard_models import cstr, double_pendulum, rectifier
 
 import daemodel as dm
-from daemodel.errors import LocalErrorBoundError, LocalErrorWarning, StepSizeError
+from daemodel.errors import (
+    ConvergenceError,
+    InvalidOptionError,
+    LocalErrorBoundError,
+    LocalErrorWarning,
+    StepSizeError,
+)
+from daemodel.problems import PROBLEMS
 
 
 def estimate_in(status: str) -> float:
@@ -190,3 +197,82 @@ def test_a_span_shorter_than_config_h_is_one_segment_and_the_solve_option_h_stay
     for method in ("pinn", "radau"):
         with pytest.raises(StepSizeError, match=r"h = 0\.05 is larger than the interval .* take h <= 0\.01"):
             dm.solve(c, (0.0, 0.01), method=method, h=0.05)
+
+
+# ---- the default h follows the problem -----------------------------------------------------------
+def _presolve_steps(model, span) -> int:
+    """Accepted steps of the independent scipy Radau solve the default h is read from."""
+    return dm.solve(model, span, method="reference", integrator="Radau", rtol=1e-6, atol=1e-6).stats["steps"]
+
+
+def test_the_default_h_follows_the_pendulum_and_its_presolve_is_setup():
+    c = PROBLEMS["pendulum"].model().compile()
+    steps = _presolve_steps(c, (0.0, 1.0))
+    sol = dm.solve(c, (0.0, 1.0), method="pinn")
+    assert sol.stats["segments"] == steps and 10 <= steps <= 30  # h near the paper's 0.05
+    np.testing.assert_allclose(np.diff(sol.t), 1.0 / steps, rtol=1e-12)
+    assert sol.stats["h_from"] == f"scipy Radau at rtol = 1e-06: {steps} steps, {steps} segments"
+    assert sol.settings["h"] == pytest.approx(1.0 / steps)
+    assert (
+        0 < sol.stats["presolve_seconds"]
+        and sol.setup_time >= sol.stats["presolve_seconds"] + sol.stats["training_seconds"]
+    )
+    assert sol.status == "success"
+
+
+def test_a_long_cstr_span_takes_tens_of_segments_not_thousands():
+    """Today's 0.05 made [0, 200] 4,000 segments; the pre-solve's 52 steps make it 52 (flagged where
+    radau at that h is: the transient at h = 3.8 keeps fewer digits than estimate_bound asks)."""
+    c = cstr().compile()
+    steps = _presolve_steps(c, (0.0, 200.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LocalErrorWarning)
+        sol = dm.solve(c, (0.0, 200.0), method="pinn")
+        capped = dm.solve(c, (0.0, 200.0), method="pinn", max_segments=20)
+    assert sol.stats["segments"] == steps and steps < 200
+    assert sol.status == "success" or sol.status.startswith("flagged: radau's local error estimate")
+    assert capped.stats["segments"] == 20 and capped.settings["h"] == pytest.approx(10.0)
+    assert capped.stats["h_from"].endswith(f"{steps} steps, 20 segments (at most max_segments = 20)")
+
+
+def test_a_given_h_or_config_keeps_its_h_and_runs_no_presolve():
+    c = PROBLEMS["hessenberg"].model().compile()
+    for options in ({"h": 0.1}, {"config": dm.PINNConfig(h=0.1)}):
+        sol = dm.solve(c, (0.0, 1.0), method="pinn", **options)
+        assert sol.stats["segments"] == 10 and sol.stats["h_from"] == "given" and sol.stats["presolve_seconds"] == 0
+    steps = _presolve_steps(c, (0.0, 1.0))
+    sol = dm.solve(c, (0.0, 1.0), method="pinn", config=dm.PINNConfig(width=10), auto_h=True)
+    assert sol.stats["segments"] == steps and sol.settings["width"] == 10
+
+
+def test_auto_h_survives_a_replace_and_refuses_segment_starts():
+    import dataclasses
+
+    from daemodel.backends.pinn.backend import PINNOptions
+
+    options = PINNOptions()
+    assert options.auto_h is True and options.config == dm.PINNConfig()
+    assert dataclasses.replace(options, t_eval=None).auto_h is True  # as a piece between events is solved
+    assert dataclasses.replace(options, h=0.01).auto_h is False  # an event's trial solve gives its h
+    assert PINNOptions(stages=2).auto_h is True and PINNOptions(config=dm.PINNConfig()).auto_h is False
+    with pytest.raises(InvalidOptionError, match="auto_h=True takes h from a pre-solve, but segment_starts"):
+        PINNOptions(auto_h=True, segment_starts=np.ones((3, 4)))
+    with pytest.raises(InvalidOptionError, match="auto_h must be True, False or None; got 'yes'"):
+        PINNOptions(auto_h="yes")
+
+
+def test_a_failed_presolve_names_itself_and_the_fix():
+    m = dm.Model("root")
+    m.states(["x"])
+    m.algebraics(["w"])
+    m.ode("x", "sqrt(0.05 - t) + w")
+    m.constraint("x - w", name="tie")
+    m.initial(x=0.0)
+    with pytest.raises(
+        ConvergenceError,
+        match=r"^pinn: the default h comes from a scipy Radau solve at rtol = 1e-06, which failed \(reference: near "
+        r"t = 0.05 .*\); give the segment length, e.g. h=0.05, to train without it$",
+    ):
+        dm.solve(m, (0.0, 0.2), method="pinn")
+    with pytest.raises(InvalidOptionError, match="max_segments must be positive; got 0"):
+        dm.solve(m, (0.0, 0.2), method="pinn", max_segments=0)
