@@ -36,6 +36,34 @@ def _diffusion_grid(K: int) -> dm.Model:
     return m
 
 
+def _first_engine(model, **options):
+    """``(compiled, the casadi engine of model's first solve)``: its Jacobian pattern and static factors,
+    on casadi's virtual machine, adaptive at rtol = atol = 1e-6 unless ``options`` say otherwise."""
+    from daemodel.backends.radau.casadi_engine import CasadiEngine
+
+    engines = []
+    original = CasadiEngine.__init__
+
+    def keep(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        engines.append(self)
+
+    CasadiEngine.__init__ = keep
+    try:
+        compiled = model.compile()
+        options = options or {"rtol": 1e-6, "atol": 1e-6}
+        dm.solve(compiled, (0.0, 1e-3), jit=False, **options)  # (its pattern: nothing to compile)
+    finally:
+        CasadiEngine.__init__ = original
+    return compiled, engines[-1]
+
+
+@pytest.fixture(scope="session")
+def first_engine():
+    """The function ``first_engine(model, **options) -> (compiled, engine)`` (:func:`_first_engine`)."""
+    return _first_engine
+
+
 @pytest.fixture(scope="session")
 def diffusion_grid():
     """The builder of :func:`_diffusion_grid`'s model of K cells (K states, K algebraic variables)."""

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 from daemodel.backends.radau.pivots import MAX_PIVOT_ORDERS, REDERIVE_AFTER, PivotOrders, fixed_order_growth
 from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
@@ -22,25 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 
 
-def first_engine(model):
-    """``(compiled, the casadi engine of its first adaptive solve)``, on casadi's virtual machine."""
-    engines = []
-    original = CasadiEngine.__init__
-
-    def keep(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        engines.append(self)
-
-    CasadiEngine.__init__ = keep
-    try:
-        compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)
-    finally:
-        CasadiEngine.__init__ = original
-    return compiled, engines[-1]
-
-
-def test_the_growth_is_the_static_factors_own():
+def test_the_growth_is_the_static_factors_own(first_engine):
     """On the 20-pendulum chain with its Jacobian perturbed, the largest growth over the transformed
     systems (a real and a complex shift) is the one the static factor function reports."""
     compiled, engine = first_engine(scaling_models.pendulum_chain(20))

@@ -13,7 +13,6 @@ import pytest
 import scipy.sparse as sparse
 from daemodel.backends.radau import casadi_engine
 from daemodel.backends.radau import sparse as radau_sparse
-from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 
 import daemodel as dm
@@ -23,31 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 
 
-def _engine(model, **options):
-    """The casadi engine of ``model``'s first solve (its Jacobian pattern and static factors), adaptive
-    unless ``options`` say otherwise."""
-    engines = []
-    original = CasadiEngine.__init__
-
-    def keep(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        engines.append(self)
-
-    CasadiEngine.__init__ = keep
-    try:
-        compiled = model.compile()
-        options = options or {"rtol": 1e-6, "atol": 1e-6}
-        dm.solve(compiled, (0.0, 1e-3), jit=False, **options)  # (its pattern: nothing to compile)
-    finally:
-        CasadiEngine.__init__ = original
-    return compiled, engines[-1]
-
-
 @pytest.mark.parametrize(
     ("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20), ("pendulum_chain", 40)]
 )
-def test_the_factors_solve_every_transformed_system(family, size):
-    compiled, engine = _engine(getattr(scaling_models, family)(size))
+def test_the_factors_solve_every_transformed_system(first_engine, family, size):
+    compiled, engine = first_engine(getattr(scaling_models, family)(size))
     static = StaticFactors(engine._static_pattern(), engine.transform)
     assert static.lu.L_size + static.lu.U_size < 0.1 * engine.D**2
     rng = np.random.default_rng(size)
@@ -145,13 +124,13 @@ def test_machine_code_on_static_factors_gives_the_virtual_machines_bits(monkeypa
         assert np.array_equal(jit[name], vm[name]), name
 
 
-def test_dense_patterns_keep_lapack():
+def test_dense_patterns_keep_lapack(first_engine):
     """All-pairs coupling (160 unknowns): the fixed-order factors would fill in; LAPACK keeps them."""
-    _, engine = _engine(scaling_models.sphere_particles(20))
+    _, engine = first_engine(scaling_models.sphere_particles(20))
     assert engine._static_pattern() is None and engine.static is None
 
 
-def test_a_pivot_grown_small_is_refused():
+def test_a_pivot_grown_small_is_refused(first_engine):
     """0 = 2 exp(-40 t) z1 + z2 - 1: the order picked at t = 0 pivots on 2 exp(-40 t), 5e-16 at t = 0.9,
     under entries of order 1 (found by review: a growth measured against a stiff entry elsewhere, -1e9,
     let it pass with 13 % error in z); the multiplier |L| ~ 1e15 refuses it, and LAPACK factors."""
@@ -167,7 +146,7 @@ def test_a_pivot_grown_small_is_refused():
     m.algebraics("z2")
     m.constraint("2*exp(-40*t)*z1 + z2 - 1", name="g1")
     m.constraint("z1 - z2 - 0.01*sin(z2)", name="g2")
-    compiled, engine = _engine(m)
+    compiled, engine = first_engine(m)
     assert engine.static is not None  # (27 unknowns: the sparse factors apply)
     y, z = np.array([compiled.y0]), np.array([[1.0, 1.0]])
     assert engine._static_factor(engine.jacobian(0.1, y, z), 0.05) is not None
@@ -177,14 +156,14 @@ def test_a_pivot_grown_small_is_refused():
     assert factor(np.concatenate([[0.05], J]))[-2] > 1e12 > 1e6 == radau_sparse.MAX_GROWTH  # (|L|: ~1e15)
 
 
-def test_no_pivot_order_leaves_lapack(monkeypatch):
+def test_no_pivot_order_leaves_lapack(first_engine, monkeypatch):
     """SuperLU refusing the start's matrix (exactly singular) leaves the factors to LAPACK."""
 
     def refuse(*args, **kwargs):
         raise RuntimeError("Factor is exactly singular")
 
     monkeypatch.setattr(casadi_engine, "StaticLU", refuse)
-    compiled, engine = _engine(scaling_models.reaction_diffusion(20))
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(20))
     assert engine._static_pattern() is None and engine.static is None
     sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
     assert sol.status == "success" and sol.stats["steps"] > 0
@@ -216,13 +195,13 @@ def test_the_code_a_first_solve_generates_is_setup_not_solve(monkeypatch):
     assert sol.setup_time >= 0.6 and sol.solve_time < 0.3, (sol.setup_time, sol.solve_time)
 
 
-def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill():
+def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_engine):
     """The memory guard assumed dense Newton matrices: (2s + 1) D^2 (reaction-diffusion at 5 x 10^4
     unknowns refused for 130 GiB).  On the casadi engine's sparse systems it counts the Jacobian's
     nonzeros and s factors of the fill SuperLU makes: within 2x of the solve's own factors."""
     from daemodel.backends.radau import backend
 
-    compiled, engine = _engine(scaling_models.reaction_diffusion(300))  # 600 unknowns, sparse
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))  # 600 unknowns, sparse
     span = scaling_models.T_SPAN["reaction_diffusion"]
     options = backend.RadauOptions(rtol=1e-6, atol=1e-6)
     dense = backend.memory_parts(compiled, span, 1, options, "torch")
@@ -262,12 +241,12 @@ def test_the_pattern_is_factored_for_the_memory_estimate_once_per_model(monkeypa
     assert again.status == "success" and len(made) == 1
 
 
-def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system():
+def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system(first_engine):
     """A fixed step's full Newton (where simplified Newton fails, or from start_guess) factors the system
     of s D unknowns, whose SuperLU fill is 2-6x s times one D-sized system's: the estimate counts it."""
     from daemodel.backends.radau import backend
 
-    compiled, engine = _engine(scaling_models.reaction_diffusion(300), h=1e-3, stages=7)  # 600 unknowns, sparse
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300), h=1e-3, stages=7)  # 600 unknowns, sparse
     span = scaling_models.T_SPAN["reaction_diffusion"]
     rows = casadi_engine.jacobian_pattern(compiled)[0]
     values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
@@ -284,10 +263,10 @@ def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system():
 
 
 @pytest.mark.parametrize(("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20)])
-def test_the_entry_bound_is_below_the_factors_entries(family, size):
+def test_the_entry_bound_is_below_the_factors_entries(first_engine, family, size):
     """unique_entries bounds the static factors' entries from below (fill only adds), so that a pattern
     whose bound passes STATIC_MAX_ENTRIES is refused before any elimination is traced."""
-    _, engine = _engine(getattr(scaling_models, family)(size))
+    _, engine = first_engine(getattr(scaling_models, family)(size))
     lu = engine._static_pattern()
     bound = casadi_engine.unique_entries(engine.rows, engine.cols, engine.n, engine.D)
     distinct = {(int(i), int(j)) for i, j in zip(engine.rows, engine.cols, strict=True)}
@@ -295,11 +274,11 @@ def test_the_entry_bound_is_below_the_factors_entries(family, size):
     assert engine.D < bound <= lu.entries
 
 
-def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(monkeypatch):
+def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(first_engine, monkeypatch):
     traced = []
     monkeypatch.setattr(radau_sparse.StaticLU, "__init__", lambda self, *a: traced.append(a) or None)
     monkeypatch.setattr(casadi_engine, "STATIC_MAX_ENTRIES", 100)  # (reaction-diffusion of 100 unknowns: 298+)
-    _, engine = _engine(scaling_models.reaction_diffusion(50))
+    _, engine = first_engine(scaling_models.reaction_diffusion(50))
     assert engine._static_pattern() is None
     assert traced == []
 
