@@ -20,7 +20,7 @@ from daemodel.comparing.bench_files import RUN_FILE_BYTES, read_run
 from daemodel.comparing.cli import main
 from daemodel.comparing.suites import ERROR_FLOOR, resolve, scd
 from daemodel.errors import BenchError, InvalidOptionError
-from daemodel.problems import FAMILIES, HESSENBERG, PROBLEMS
+from daemodel.problems import FAMILIES, HESSENBERG, POLLUTION_SPECIES, PROBLEMS
 
 SWEEP = {"radau": [{"h": 0.1, "estimate_bound": 1e-14}, {"rtol": 1e-8, "atol": 1e-8}]}
 
@@ -50,7 +50,11 @@ def test_the_suites_are_read_from_the_problem_library():
     assert {p.name for p in testset} == {
         name for name, p in PROBLEMS.items() if "Test Set for IVP Solvers" in p.source and p.reference
     }
-    assert {"akzo-nobel", "car-axis", "squeezer", "transistor-amplifier", "wheelset"} <= {p.name for p in testset}
+    assert {"akzo-nobel", "car-axis", "squeezer", "transistor-amplifier", "wheelset", "ring-modulator", "hires",
+            "pollution", "fekete"} <= {p.name for p in testset}  # fmt: skip
+    assert next(p for p in testset if p.name == "pollution").scd_names == tuple(
+        name for name in POLLUTION_SPECIES if name != "O1D"
+    )
     squeezer = next(p for p in testset if p.name == "squeezer")
     assert squeezer.scd_names == tuple(f"q{k}" for k in range(1, 8))
     assert squeezer.reference == PROBLEMS["squeezer"].reference

@@ -295,7 +295,7 @@ def test_cli_t_end_and_target_errors(tmp_path, capsys):
     assert main(["compare", "lorenz", "--out", str(tmp_path)]) == 2
     problems = (  # every one of PROBLEMS
         "hessenberg, pendulum, pendulum-index3, robertson, squeezer, akzo-nobel, car-axis, transistor-amplifier, "
-        "wheelset, ring-modulator, bouncing-ball"
+        "wheelset, ring-modulator, hires, pollution, fekete, bouncing-ball"
     )
     assert problems == ", ".join(PROBLEMS)
     assert f"'lorenz' is neither a problem ({problems}) nor a .py model file" in capsys.readouterr().err
