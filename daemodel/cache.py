@@ -39,7 +39,14 @@ import warnings
 from pathlib import Path
 from typing import NamedTuple
 
-from daemodel.errors import CacheWarning, CompileError, FileWriteError, InvalidOptionError, UnsafeCacheError
+from daemodel.errors import (
+    CacheWarning,
+    CompileError,
+    DaemodelError,
+    FileWriteError,
+    InvalidOptionError,
+    UnsafeCacheError,
+)
 from daemodel.files import atomic_write, read_json, write_json
 from daemodel.messages import clip
 
@@ -257,6 +264,8 @@ def cached_library(source: str, names, build: Build) -> Library:
         library = compile_library(source, private, build)
         try:  # (loaded before it is stored: a library that does not load is never kept)
             functions = load(library, names)
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a failed load)
+            raise
         except RuntimeError as error:
             message = f"its library does not load ({clip(' '.join(str(error).split()), 200)})"
             raise CompileError(f"{build.what} with {build.compiler} failed: {message}; {build.fix}") from None
@@ -290,6 +299,8 @@ def cached(folder: Path, key: str, source_hash: str, names) -> tuple[dict | None
         return None, "its library's bytes differ from its stamp's hash"
     try:
         functions = load(library, names)
+    except DaemodelError:  # (a time limit's signal, raised inside the call: not a failed load)
+        raise
     except RuntimeError as error:
         return None, f"its library does not load: {clip(str(error).strip(), 120)}"
     with contextlib.suppress(OSError):  # last used now: eviction goes least recently used first

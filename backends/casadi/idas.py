@@ -40,7 +40,7 @@ from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, ou
 from daemodel.backends.progress import captured_output
 
 from daemodel.dense import AbstractDenseOutput, outputs_before
-from daemodel.errors import ConvergenceError, InvalidOptionError, SolverError, StepLimitError
+from daemodel.errors import ConvergenceError, DaemodelError, InvalidOptionError, SolverError, StepLimitError
 
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
@@ -184,6 +184,8 @@ def initial_slopes(compiled, dae: dict, t0: float, start) -> tuple[np.ndarray, n
         if m:
             try:
                 zdot[b] = -splu(g_z.sparse().tocsc()).solve(np.asarray(rate, dtype=float).reshape(m))
+            except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+                raise
             except RuntimeError:  # g_z singular: IDAS will say where it fails
                 zdot[b] = np.nan
     return ydot, zdot
@@ -239,6 +241,8 @@ class IDASRestarts(AbstractDenseOutput):
         try:
             with captured_output() as printed:
                 found = self.integrator().map(B * K)(x0=starts[:, : self.n].T, z0=starts[:, self.n :].T, p=p.T)
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError as error:
             asked = ", ".join(f"{t:.6g}" for t in times[inside][:3])
             raise ConvergenceError(

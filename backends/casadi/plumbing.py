@@ -12,7 +12,7 @@ import threading
 import numpy as np
 from daemodel.backends.progress import captured_output
 
-from daemodel.errors import ConvergenceError
+from daemodel.errors import ConvergenceError, DaemodelError
 
 # Options that stop casadi from printing a warning for every non-finite evaluation (tens of
 # thousands of lines when Newton wanders into a singularity).
@@ -84,6 +84,8 @@ def run_samples(call, compiled, start, T: int, explain) -> np.ndarray:
         with captured_output() as printed:
             try:
                 result = call(b)
+            except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+                raise
             except RuntimeError as error:
                 failure = explain(b, str(error), printed.getvalue())
             else:

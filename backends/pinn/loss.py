@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from daemodel.collocation import model_jacobian, stage_residual
+from daemodel.errors import DaemodelError
 
 TERMS = ("L_f", "L_g", "L_s")
 # The kernel's Newton correction is used where each of its two solves (the square stage rows; the
@@ -379,6 +380,8 @@ class RadauLoss:
         R = len(self._kernel_weights)
         try:
             values = self.kernel.correction(packed, self._kernel_weights)
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError:  # a zero pivot in a sparse QR
             return self._unpacked(self.kernel.residual(packed), packed), None, None
         residuals = self._unpacked(values[:R], packed)

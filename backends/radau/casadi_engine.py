@@ -43,6 +43,8 @@ from daemodel.backends.radau.loop import CompiledRun, run_function
 from daemodel.backends.radau.pivots import PivotOrders
 from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
 
+from daemodel.errors import DaemodelError
+
 # casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
 # more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
 # project's CPU: at 100 unknowns a dense LU of a 3 %-full matrix is ~0.1 ms, as SuperLU's overhead.
@@ -128,6 +130,8 @@ def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     matrix = matrix + sparse.diags(np.r_[np.full(n, 2.0), np.zeros(D - n)]).tocsc()
     try:
         lu = sparse.linalg.splu(matrix)
+    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+        raise
     except RuntimeError:  # (structurally singular at these values: at most dense)
         return D * D
     return int(lu.L.nnz + lu.U.nnz)
@@ -351,6 +355,8 @@ class CasadiEngine(AbstractEngine):
         try:
             with captured_output():
                 packed = self._inverses(np.concatenate([[h], J]))
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError:
             return None
         return self._packed_factors(packed, h)
@@ -394,6 +400,8 @@ class CasadiEngine(AbstractEngine):
         scale = 1e3 * max(1.0, float(np.abs(J).max(initial=0.0)))
         try:
             lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError:  # (SuperLU: "Factor is exactly singular"; the factorisations will say where)
             return None
         if lu.flops > STATIC_MAX_FLOPS or lu.entries > STATIC_MAX_ENTRIES:
@@ -498,6 +506,8 @@ class CasadiEngine(AbstractEngine):
         try:
             with captured_output():
                 out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError:  # a singular system: the general path factors it and names it
             return super().refresh(t, y, z, h)
         nnz, m = len(self.rows), self.m

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from daemodel.errors import DaemodelError
+
 
 def dense_inverse(matrix: np.ndarray, identity: np.ndarray) -> tuple:
     """``("inverse", matrix^-1)`` by LAPACK (``gesv`` on ``identity``, of the matrix's dtype), or
@@ -33,6 +35,8 @@ def sparse_lu(matrix):
 
     try:
         return ("sparse", splinalg.splu(matrix)), np.array([False])
+    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+        raise
     except RuntimeError:  # SuperLU: "Factor is exactly singular"
         return ("singular",), np.array([True])
 
@@ -75,6 +79,8 @@ def sparse_sign_det(matrix) -> float:
         return 1.0
     try:
         lu = splinalg.splu(matrix)
+    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+        raise
     except RuntimeError:
         return 0.0
     sign = float(np.prod(np.sign(lu.U.diagonal())))

@@ -56,6 +56,8 @@ from daemodel.backends.radau.sequence import (
 from daemodel.backends.radau.sparse import MAX_GROWTH
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
+from daemodel.errors import DaemodelError
+
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
 RUN_ATTEMPTS = 32
@@ -382,6 +384,8 @@ class CompiledRun:
         try:
             with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
                 out = self.buffered.evaluate()
+        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+            raise
         except RuntimeError:
             # a factorisation inside failed (LAPACK refuses an exactly singular matrix): the next attempt
             # on Python's path, which factors with scipy and names why it is singular

@@ -22,6 +22,8 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
 
+from daemodel.errors import DaemodelError
+
 # Pivot orders derived per model after the first (each is a compile of the step's library, 0.5-1 s on the
 # Test Set problems from a cold cache): the wheelset at rtol 1e-6 needs 1-2.
 MAX_PIVOT_ORDERS = 4
@@ -118,6 +120,8 @@ class PivotOrders:
         for J, h in [*kept, (np.where(vanished, 0.0, kept[-1][0]), kept[-1][1])]:
             try:
                 candidate = StaticLU(self.lu.rows, self.lu.cols, self.lu.n, self.lu.D, J, h, real)
+            except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+                raise
             except RuntimeError:  # (exactly singular there: no order from it)
                 continue
             if candidate.flops > max_flops or candidate.entries > max_entries:

@@ -353,8 +353,9 @@ def run_setting(shared, setting: Setting, time_limit: float | None, threads: int
             solution = None
     record["messages"] = list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
     if solution is not None and limit.expired:
-        # the limit struck, and the method went on: code that treats a RuntimeError as a singular system
-        # took it for one (radau's factorisations), so the run finished, past its limit
+        # the limit struck, and the method went on: code that treats any RuntimeError as a failure of its
+        # own (a plugged-in method's; radau's factorisations did, before they let daemodel errors through)
+        # took it for one, so the run finished, past its limit
         record.update(
             status="failed", error_class=TimeLimitError.__name__, solve_time=time.perf_counter() - began,
             error=f"{message} (the method caught it and finished after {time.perf_counter() - began:.3g} s)",

@@ -334,3 +334,45 @@ def test_too_few_newton_iterations_are_named_as_the_cause():
         "radau: step size underflow at t = 0.25 (h = 1e-15; last failure: not converged in 1 iteration, sample 0); "
         "Newton stops at max_newton_iterations before it converges: raise it (the default is 10)"
     )
+
+
+# ---- a time limit's signal is not a singular system ------------------------------------------------
+def test_a_time_limit_inside_a_factorisation_is_not_taken_for_a_singular_system(monkeypatch):
+    """SuperLU says "exactly singular" with a RuntimeError, and radau takes that for a singular matrix;
+    a TimeLimitError (a RuntimeError too) raised by the limit's signal as the call returns went the same
+    way, and the solve went on past its limit. Now a daemodel error goes through."""
+    import scipy.sparse as sparse
+    import scipy.sparse.linalg as splinalg
+    from daemodel.backends.radau import linalg
+
+    def struck(_):
+        raise E.TimeLimitError("the limit struck")
+
+    def singular(_):
+        raise RuntimeError("Factor is exactly singular")
+
+    matrix = sparse.eye(3).tocsc()
+    monkeypatch.setattr(splinalg, "splu", struck)
+    for call in (linalg.sparse_lu, linalg.sparse_sign_det):
+        with pytest.raises(E.TimeLimitError, match="the limit struck"):
+            call(matrix)
+    monkeypatch.setattr(splinalg, "splu", singular)
+    assert linalg.sparse_lu(matrix)[0] == ("singular",) and linalg.sparse_sign_det(matrix) == 0.0
+
+
+@pytest.mark.parametrize("jit", [False, "auto"])
+def test_a_time_limit_stops_a_long_radau_solve_where_it_strikes(jit):
+    """The ring modulator at rtol 1e-10 (tens of thousands of steps, seconds) under a 0.3 s limit: the
+    TimeLimitError comes out within a second of the limit, whichever casadi call it strikes in."""
+    import time
+
+    from daemodel.executors import time_limit
+    from daemodel.problems import RING_MODULATOR
+
+    model = RING_MODULATOR.model().compile()
+    dm.solve(model, (0.0, 1e-6), rtol=1e-10, atol=1e-10, jit=jit)  # (any compiling done before the clock)
+    for _ in range(3):
+        began = time.perf_counter()
+        with pytest.raises(E.TimeLimitError, match="stop here"), time_limit(0.3, "stop here"):
+            dm.solve(model, RING_MODULATOR.t_span, rtol=1e-10, atol=1e-10, jit=jit)
+        assert time.perf_counter() - began < 1.3
