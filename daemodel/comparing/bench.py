@@ -352,6 +352,14 @@ def run_setting(shared, setting: Setting, time_limit: float | None, threads: int
             record.update(status="failed", error_class=name, error=text, solve_time=failed_after)
             solution = None
     record["messages"] = list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))
+    if solution is not None and limit.expired:
+        # the limit struck, and the method went on: code that treats a RuntimeError as a singular system
+        # took it for one (radau's factorisations), so the run finished, past its limit
+        record.update(
+            status="failed", error_class=TimeLimitError.__name__, solve_time=time.perf_counter() - began,
+            error=f"{message} (the method caught it and finished after {time.perf_counter() - began:.3g} s)",
+        )  # fmt: skip
+        return record
     if solution is None:
         return record
     end = {name: float(solution[name][..., -1].reshape(-1)[0]) for name in (problem.scd_names or problem.reference)}

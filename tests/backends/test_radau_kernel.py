@@ -28,15 +28,15 @@ from daemodel.tableau import radau_iia
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import scaling_models
 from test_radau_loop import COUNTS, _ends, _with_and_without_run  # (pytest puts tests/ on the path)
-from test_radau_sparse import _engine, _pinches
+from test_radau_sparse import _pinches
 
 pytestmark = pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
 
 
 @pytest.mark.parametrize(("family", "size"), [("reaction_diffusion", 50), ("pendulum_chain", 20)])
 @pytest.mark.parametrize("stages", [2, 3, 5])  # (s = 2: the error estimate's system is no block's)
-def test_the_kernel_gives_the_sx_factors_bit_for_bit(family, size, stages):
-    compiled, engine = _engine(getattr(scaling_models, family)(size))
+def test_the_kernel_gives_the_sx_factors_bit_for_bit(first_engine, family, size, stages):
+    compiled, engine = first_engine(getattr(scaling_models, family)(size))
     tableau = radau_iia(stages)
     transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
     lu = engine._static_pattern()
@@ -54,8 +54,8 @@ def test_the_kernel_gives_the_sx_factors_bit_for_bit(family, size, stages):
 
 
 @pytest.mark.parametrize("m", [1, 2, 4, 7])
-def test_signs_of_determinants_in_c(m):
-    _, engine = _engine(scaling_models.reaction_diffusion(15))
+def test_signs_of_determinants_in_c(first_engine, m):
+    _, engine = first_engine(scaling_models.reaction_diffusion(15))
     lu = engine._static_pattern()
     functions = kernel.factor_kernel(lu, engine.transform, StaticFactors(lu, engine.transform), m, find_compiler())
     sign = Buffered(functions[1])
@@ -113,8 +113,8 @@ def test_a_singular_system_in_the_run_is_named_by_the_fallback():
         dm.solve(m, (0.0, 1.0), rtol=1e-3, atol=1e-3, h0=0.5, reuse_jacobian=False, jit=True)
 
 
-def test_a_compiler_that_fails_is_named(tmp_path):
-    _, engine = _engine(scaling_models.reaction_diffusion(15))
+def test_a_compiler_that_fails_is_named(first_engine, tmp_path):
+    _, engine = first_engine(scaling_models.reaction_diffusion(15))
     lu = engine._static_pattern()
     factors = StaticFactors(lu, engine.transform)
     with pytest.raises(E.CompileError, match=r"compiling the sparse factors with /bin/false failed: no message; solve"):
@@ -124,9 +124,9 @@ def test_a_compiler_that_fails_is_named(tmp_path):
         kernel.factor_kernel(lu, engine.transform, factors, engine.m, missing)
 
 
-def test_the_kernel_source_holds_numbers_only():
+def test_the_kernel_source_holds_numbers_only(first_engine):
     """What differs between models is sizes, arrays of integers and hexadecimal floats, never a name."""
-    _, engine = _engine(scaling_models.reaction_diffusion(15))
+    _, engine = first_engine(scaling_models.reaction_diffusion(15))
     lu = engine._static_pattern()
     source = kernel.kernel_source(lu, engine.transform, StaticFactors(lu, engine.transform), engine.m)
     assert source.endswith(kernel._KERNEL)
