@@ -3393,7 +3393,8 @@ def api_edge_cases() -> list[Case]:
         ({"weight_g": INF}, "invalid"),
     ):
         out.append(Case(A, f"PINNConfig({_kw(kwargs)})", expect, (), "pinnconfig", {"kwargs": kwargs}, check="none"))
-    for config, expect in (({"h": 0.1}, "invalid"), (None, "invalid"), ("fast", "invalid")):
+    # (config=None is the default since issue 43: the PINN's h then follows the problem, a pre-solve's steps)
+    for config, expect in (({"h": 0.1}, "invalid"), (None, "either"), ("fast", "invalid")):
         solve(f"pinn config={config!r}", expect, method="pinn", options={"config": config})
     solve(
         "pinn executor='ray' without segment_starts",
