@@ -205,17 +205,38 @@ class Radau5Controller:
             stepper.accept(t, h, result, decisions["t_next"])
 
     def initial_step(self, stepper, t_span) -> float:
-        """``0.01 |u0| / |f(u0)|`` in the error norm, capped by the interval (Hairer-Wanner's first guess)."""
+        """Hairer-Wanner's starting step (Solving ODEs I, II.4, as scipy's ``select_initial_step``):
+        the first guess ``h0 = 0.01 |u0| / |f(u0)|`` in the error norm, then an explicit Euler probe
+        to ``t0 + h0`` that measures how fast f changes, ``d2 = |f(t0 + h0, y0 + h0 f0, z0) - f0| / h0``
+        (the algebraic variables held at their start), and the step ``min(100 h0, (0.01 / max(d1,
+        d2))^(1/(s+1)))`` for the order-s estimate, capped by the interval.
+
+        The first guess alone took the whole interval where f(u0) is small: from near a stirred tank's
+        unstable steady state (f0 ~ 1e-5 of the state) one implicit step of 200 landed on that steady
+        state, and no error estimate could see it (a wrong answer as "success"); the probe gives 0.10,
+        scipy's Radau's own first step there.
+        """
         xp = stepper.xp
         t0, t1 = t_span
         f0 = stepper.start_f(t0)
         sc = formulas.error_scale(self.atol, self.rtol, xp.abs(stepper.y), 1.0)  # (the states: weight 1)
-        d0 = float(stepper.rms(stepper.y / sc).max()) if stepper.n else 0.0
-        d1 = float(stepper.rms(f0 / sc).max()) if stepper.n else 0.0
+        if not stepper.n:
+            return min(max(1e-6, INITIAL_STEP_FLOOR * max(1.0, abs(t0))), t1 - t0)
+        d0 = float(stepper.rms(stepper.y / sc).max())
+        d1 = float(stepper.rms(f0 / sc).max())
         h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+        h0 = min(h0, t1 - t0)
+        f1 = stepper.engine.f(t0 + h0, stepper.y + h0 * f0, stepper.z)
+        d2 = float(stepper.rms((f1 - f0) / sc).max()) / h0
+        if not np.isfinite(d2):  # (the probe left f's domain: a step that long is no start)
+            h = h0 * 1e-3
+        elif max(d1, d2) <= 1e-15:
+            h = min(100 * h0, max(1e-6, h0 * 1e-3))
+        else:
+            h = min(100 * h0, (0.01 / max(d1, d2)) ** (1.0 / (stepper.s + 1)))
         # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
-        h0 = max(h0, INITIAL_STEP_FLOOR * max(1.0, abs(t0)))
-        return min(h0, t1 - t0)
+        h = max(h, INITIAL_STEP_FLOOR * max(1.0, abs(t0)))
+        return min(h, t1 - t0)
 
     def budget_error(self, stats, t, h, t1, half, recent, projected=None) -> StepLimitError:
         """max_steps ran out (or, ``projected``, cannot suffice): say where, and why it likely did

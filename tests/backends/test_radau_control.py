@@ -1,11 +1,16 @@
 """radau's controllers (backends/radau/control.py): where a caller's ``stop`` ends an integration
 (the backend contract's rule 8, backends/base.py)."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from daemodel.backends.radau.backend import RadauBackend
 from daemodel.backends.radau.options import RadauOptions
+from scipy.integrate import solve_ivp
 
+import daemodel as dm
 from daemodel import errors as E
 from daemodel.compiling.initial_states import InitialStates
 from daemodel.problems import PENDULUM
@@ -79,3 +84,25 @@ def test_the_compiled_run_looks_at_the_outputs_every_few_attempts():
 def test_a_stop_reads_one_sample():
     with pytest.raises(E.InvalidOptionError, match=r"stop=\.\.\. reads one sample's outputs; this solve has 2 samples"):
         _solve(RadauOptions(rtol=1e-6, atol=1e-6, engine="torch"), lambda *a: False, size=2)
+
+
+def test_the_first_step_probes_how_fast_f_changes():
+    """A stirred tank started near its unstable steady state: f(u0) is ~1e-5 of the state, so the
+    first guess 0.01 |u0| / |f(u0)| alone is the whole interval [0, 200], and one implicit step of 200
+    lands on that steady state (T = 350.005, and "success").  The Euler probe sizes the first step by
+    f's change (0.12 here; scipy's Radau takes 0.10), and radau follows the tank to scipy's T(200) =
+    324.476 at every tolerance, its default included."""
+    sys.path.insert(0, str(Path(__file__).parent / "pinn"))
+    from pinn_hard_models import cstr
+
+    def rhs(t, u):
+        C, T = u
+        r = 7.2e10 * np.exp(-8750.0 / T) * C
+        return [1.0 - C - r, (350.0 - T) + 209.2 * r + 2.092 * (300.0 - T)]
+
+    exact = solve_ivp(rhs, (0.0, 200.0), [0.5, 350.0], method="Radau", rtol=1e-12, atol=1e-12).y[:, -1]
+    c = cstr().compile()
+    for rtol in (1e-4, 1e-6, 1e-8):
+        sol = dm.solve(c, (0.0, 200.0), rtol=rtol, atol=rtol)
+        assert sol.status == "success" and 1e-3 < sol.t[1] < 1.0 and sol.stats["steps"] > 10
+        assert abs(sol["T"][-1] - exact[1]) < 1e3 * rtol * exact[1] and abs(sol["C"][-1] - exact[0]) < 1e3 * rtol

@@ -323,7 +323,7 @@ def test_too_few_newton_iterations_are_named_as_the_cause():
     right-hand side was likely discontinuous (chattering); it names the iterations."""
     with pytest.raises(
         E.StepLimitError,
-        match=r"radau: max_steps = 100000 cannot suffice .*: 250 attempts failed in Newton, which stops at "
+        match=r"radau: max_steps = 100000 cannot suffice .*: \d+ attempts failed in Newton, which stops at "
         r"max_newton_iterations = 1: raise it \(the default is 10\)",
     ):
         dm.solve(PENDULUM.model(), (0.0, 0.5), rtol=1e-8, atol=1e-8, max_newton_iterations=1)
