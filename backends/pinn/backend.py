@@ -18,7 +18,7 @@ from daemodel.backends.base import (
 from daemodel.backends.checks import check_output_memory, check_threads, set_number
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, SWEEP_STAGES, halving_steps, output_times
 from daemodel.backends.pinn.config import PINNConfig
-from daemodel.backends.pinn.segments import DEFAULT_MAX_SEGMENTS, MAX_INDEX, PRESOLVE_RTOL
+from daemodel.backends.pinn.segments import DEFAULT_MAX_SEGMENTS, MAX_INDEX, PRESOLVE
 from daemodel.backends.progress import show_progress
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
@@ -49,7 +49,7 @@ class PINNOptions:
         replace ``config.stages`` and ``config.h`` (``method="pinn", stages=3, h=0.1`` is
         ``config=PINNConfig(stages=3, h=0.1)``).  Where neither ``h`` nor ``config`` nor
         ``segment_starts`` is given, h follows the problem: the span over the accepted steps of a
-        scipy Radau solve at rtol = atol = 1e-6 (:func:`~daemodel.backends.pinn.segments.default_segments`;
+        radau solve (3 stages) at rtol = atol = 1e-6 (:func:`~daemodel.backends.pinn.segments.default_segments`;
         16 steps on the pendulum over [0, 1]), at most ``max_segments`` segments; the pre-solve is
         part of the setup time, and ``stats["h_from"]`` says where h came from.
     max_segments : int
@@ -221,10 +221,10 @@ class PINNBackend(AbstractBackend):
         config = options.config
         torch_device(config.device)
         presolve, h_from = 0.0, "given"
-        if options.auto_h:  # h from a scipy Radau solve, in the setup
+        if options.auto_h:  # h from a radau solve, in the setup
             count, steps, presolve = default_segments(compiled, t_span, start, options.max_segments)
             config = dataclasses.replace(config, h=(t_span[1] - t_span[0]) / count)
-            h_from = f"scipy Radau at rtol = {PRESOLVE_RTOL:g}: {steps} steps, {count} segments"
+            h_from = f"{PRESOLVE}: {steps} steps, {count} segments"
             if count == options.max_segments and steps > count * start.size:
                 h_from += f" (at most max_segments = {options.max_segments})"
         grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment

@@ -1,6 +1,6 @@
 """The segments in time: one network per segment of the grid, trained one after another
 (each from its predecessor's prediction) or independently from known start values, as tasks of
-an executor (local or Ray), and the default h's segment count from a scipy Radau pre-solve.  Uses
+an executor (local or Ray), and the default h's segment count from a radau pre-solve.  Uses
 the trainer (:mod:`.train`); builds no Solution (:mod:`.backend` and :mod:`.surrogate` do).
 """
 
@@ -19,10 +19,14 @@ from daemodel.tableau import radau_iia
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
 # index 3 is reduced first).
 MAX_INDEX = 2
-# The pre-solve that sets the default h: scipy's Radau IIA (3 stages, order 5, the PINN's default
-# tableau) at rtol = atol = this, about the accuracy the fast mode certifies; its mean accepted step
-# becomes the segment length (the pendulum on [0, 1]: 16 steps, h = 0.0625; Hessenberg: 19).
+# The pre-solve that sets the default h: adaptive radau with the PINN's default tableau (Radau IIA, 3
+# stages, order 5) at rtol = atol = this, about the accuracy the fast mode certifies; its mean accepted
+# step becomes the segment length (the pendulum on [0, 1]: about 16 steps, h = 0.0625).  It was scipy's
+# Radau, until radau's first step was probed (issue 43): scipy's took 316 s on Fekete's 160 unknowns
+# (its index-reduced ODE), radau 0.5 s.
 PRESOLVE_RTOL = 1e-6
+PRESOLVE_STAGES = 3
+PRESOLVE = f"an adaptive radau solve (stages = {PRESOLVE_STAGES}) at rtol = {PRESOLVE_RTOL:g}"
 # Segments of a default h at most: a long span with a short stiff transient (a CSTR on [0, 200])
 # trains this many, not one per step of the transient; as the bench's bench_max_steps.
 DEFAULT_MAX_SEGMENTS = 200
@@ -132,9 +136,9 @@ def segment_grid(t_span, h: float, *, strict: bool = False) -> np.ndarray:
 
 
 def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, int, float]:
-    """The segment count of the default h over ``t_span``: the accepted steps per sample of a scipy
-    Radau solve at :data:`PRESOLVE_RTOL` (``method="reference"``, ``integrator="Radau"``), at least
-    one and at most ``max_segments``.
+    """The segment count of the default h over ``t_span``: the accepted steps per sample of an adaptive
+    radau solve with the PINN's tableau (3 stages) at :data:`PRESOLVE_RTOL`, on casadi's virtual machine
+    (no compile in the setup), at least one and at most ``max_segments``.
 
     Returns
     -------
@@ -149,16 +153,20 @@ def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, i
     ConvergenceError, StepLimitError
         The pre-solve failed: the message says so and how to skip it (give ``h``).
     """
-    from daemodel.backends.reference import ReferenceBackend, ReferenceOptions
+    from daemodel.backends.radau.backend import RadauBackend
+    from daemodel.backends.radau.options import RadauOptions
 
     began = time.perf_counter()
-    options = ReferenceOptions(rtol=PRESOLVE_RTOL, atol=PRESOLVE_RTOL, integrator="Radau", t_eval=list(t_span))
+    options = RadauOptions(
+        rtol=PRESOLVE_RTOL, atol=PRESOLVE_RTOL, stages=PRESOLVE_STAGES, jit=False, t_eval=list(t_span),
+        dense_output=False,
+    )  # fmt: skip
     try:
-        solution = ReferenceBackend().solve(compiled, tuple(t_span), start, options)
+        solution = RadauBackend().solve(compiled, tuple(t_span), start, options)
     except SolverError as error:
         raise type(error)(
-            f"pinn: the default h comes from a scipy Radau solve at rtol = {PRESOLVE_RTOL:g}, which failed ({error}); "
-            "give the segment length, e.g. h=0.05, to train without it"
+            f"pinn: the default h comes from {PRESOLVE}, which failed ({error}); give the segment length, e.g. "
+            "h=0.05, to train without it"
         ) from error
     steps = int(solution.stats["steps"])
     segments = min(max(1, round(steps / start.size)), max_segments)
