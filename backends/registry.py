@@ -279,6 +279,24 @@ def load_entry_point(name: str, points: list) -> type:
 methods = MethodRegistry()
 
 
+def default_backends(leave_out: str, who: str) -> dict:
+    """Every method but ``leave_out``, as backend instances by name, for a call that was given no
+    methods (``compare``, ``bench``): an installed method that cannot be loaded is left out with a
+    :class:`MethodPluginWarning` naming it and why, instead of stopping the call (named explicitly, it
+    raises :class:`MethodPluginError`)."""
+    from daemodel.errors import MethodPluginError, MethodPluginWarning
+
+    out = {}
+    for name in methods():
+        if name == leave_out:
+            continue
+        try:
+            out[name] = get_backend(name)
+        except MethodPluginError as error:
+            warnings.warn(f"{who} leaves out {error}", MethodPluginWarning, stacklevel=3)
+    return out
+
+
 def get_backend(method: str):
     """An instance of the method ``method`` (built in, installed or registered).
 

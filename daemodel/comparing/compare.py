@@ -34,8 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemodel.backends import REFERENCE, get_backend
-from daemodel.backends import methods as registered_methods
+from daemodel.backends import REFERENCE, default_backends, get_backend
 from daemodel.backends.grids import SWEEP_FIRST_STEPS
 from daemodel.comparing.references import REFERENCE_CHECK_POINTS, CheckedReference
 from daemodel.comparing.sweeps import DEFAULT_POINTS, check_points, check_setting, sweep_labels
@@ -240,10 +239,14 @@ def plan_comparison(
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)
-    methods = [m for m in registered_methods() if m != REFERENCE] if methods is None else list(methods)
+    if methods is None:  # (an installed method that does not load is left out, with a warning)
+        backends = default_backends(REFERENCE, "compare()")
+        methods = list(backends)
+    else:
+        methods = list(methods)
+        backends = {method: get_backend(method) for method in methods}  # unknown names raise here
     if not methods:
         raise ComparisonError("compare() needs at least one method")
-    backends = {method: get_backend(method) for method in methods}  # unknown names raise here
     sweep = dict(sweep or {})
     stray = sorted(set(sweep) - set(methods))
     if stray:
