@@ -23,12 +23,15 @@ FIXED_STAGES = 3
 # Stages of adaptive mode when none are given, by rtol: (smallest rtol, stages), loosest first.
 # Measured at equal error on the pendulums, Robertson, the squeezer and the scaling families
 # (benchmarks/adaptive_precision.py): s = 5 takes 3-5x fewer steps than s = 3 below rtol 1e-6
-# for 1.3-2x the cost of a step, and s = 7 pays off from 1e-10 down (at looser tolerances
-# its steps are rejected or fail Newton more often).  At 1e-10 itself s = 7: the ring modulator takes
-# 42,595 steps with 7 stages against 125,478 with 5 (over the default max_steps), 1.1 s against 2.1 s of
-# solve at the same 9.6 digits, car axis 264 attempts against 793; Akzo Nobel's 59 attempts cost 2 ms
-# more.  Each entry holds for rtol >= its smallest rtol, loosest first.
-ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-10, 1.0), 5), (0.0, 7))
+# for 1.3-2x the cost of a step, and s = 7 pays off from 1e-9 down (at looser tolerances
+# its steps are rejected or fail Newton more often).  At 1e-10 the ring modulator takes 42,595 steps
+# with 7 stages against 125,478 with 5 (over the default max_steps), 1.1 s against 2.1 s of solve at
+# the same 9.6 digits.  At 1e-9 (warm solves, min of 3): the ring 36,937 steps and 1.01 s against
+# 95,740 and 1.44 s (with 6,441 rejections: over the default max_steps, a StepLimitError in the
+# bench), car axis 6.1 against 10.8 ms, the transistor amplifier 31 against 41 ms, Fekete 395
+# against 470 ms, Akzo Nobel equal; the squeezer 17.7 against 12.8 ms and HIRES and pollution
+# 0.2 ms slower, at the same digits.  Each entry holds for rtol >= its smallest rtol, loosest first.
+ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
 ENGINES = ("auto", "torch", "casadi")
 # Tolerances of adaptive mode when neither h nor rtol/atol is given.
@@ -58,7 +61,7 @@ class RadauOptions:
     stages : int, optional
         Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).  Default: 3
         (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
-        ``1e-10 < rtol < 1e-6`` and 7 (order 13) from 1e-10 down, where the larger steps of the higher order
+        ``1e-9 < rtol < 1e-6`` and 7 (order 13) from 1e-9 down, where the larger steps of the higher order
         pay for its larger systems (:data:`ADAPTIVE_STAGES`).
     h : float, optional
         Fixed step size.  Exclusive with ``rtol``/``atol``.
