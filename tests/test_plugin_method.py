@@ -122,3 +122,17 @@ def test_a_constraint_on_z_is_a_penalty_and_still_meets_the_accuracy(method):
     assert sol.status == "success" and error < 1e-5  # measured 1.9e-6 (w)
     assert sol.stats["error_estimate"] == pytest.approx(error / 2, rel=0.1)  # (relative to 1 + max|u| ~ 2)
     assert 1e-10 < sol.drift()["c"] < 1e-5  # a penalty, not kept to rounding: measured 6.7e-7
+
+
+def test_a_model_without_a_symbolic_jacobian_is_refused_with_the_reason(method):
+    """Fekete's 4,080 Jacobian nonzeros are past the 400 up to which daemodel writes a symbolic Jacobian:
+    the message said "equations whose derivatives daemodel does not generate (e.g. of Abs)", which
+    Fekete does not have; it names the count now."""
+    from daemodel.problems import FEKETE
+
+    with pytest.raises(
+        E.UnsupportedModelError,
+        match=r"model 'fekete' has no symbolic Jacobian, which the constraint layer needs \(daemodel writes one for "
+        r"at most 400 nonzeros, this one has 4080, and none where an equation's derivative is not generated",
+    ):
+        dm.solve(FEKETE.model(), FEKETE.t_span, method=NAME, iterations=5)

@@ -45,6 +45,7 @@ from daemodel.backends.checks import check_number
 from daemodel.backends.grids import output_times
 
 import daemodel as dm
+from daemodel.compiling.compiled import SYMBOLIC_JACOBIAN_MAX_ENTRIES
 from daemodel.errors import ConvergenceError, InvalidOptionError, UnsupportedModelError
 
 NAME = "whole-span-pinn"
@@ -206,9 +207,11 @@ class ConstraintLayer:
     def __init__(self, compiled, tf, start):
         n, m = len(compiled.states), len(compiled.algebraics)
         if tf.jacobian is None:
+            entries = len(compiled.jacobian_pattern()[0])
             raise UnsupportedModelError(
-                f"{NAME}: model '{compiled.name}' has equations whose derivatives daemodel does not generate "
-                "(e.g. of Abs), which the constraint layer needs: use radau"
+                f"{NAME}: model '{compiled.name}' has no symbolic Jacobian, which the constraint layer needs "
+                f"(daemodel writes one for at most {SYMBOLIC_JACOBIAN_MAX_ENTRIES} nonzeros, this one has "
+                f"{entries}, and none where an equation's derivative is not generated, e.g. of Abs): use radau"
             )
         rows, cols = (np.asarray(a) for a in tf.jacobian_pattern)
         in_g = rows >= n
