@@ -86,6 +86,68 @@ def summary_text(rows: list[dict], problems: int) -> str:
     )
 
 
+# The classical methods; every other one (the Radau-PINN, a plugged-in neural method) is set against
+# radau at equal error in the report.
+CLASSICAL = ("radau", "casadi-collocation", "casadi-idas", "reference")
+
+
+def against_radau(records, methods, problems) -> list[dict]:
+    """Per problem and method other than the classical ones (:data:`CLASSICAL`): its most accurate
+    successful run (``scd``, ``wall``: setup + solve, the training included, ``solve``) beside radau's
+    fastest successful solve reaching at least those digits (``radau_solve``, its ``radau_scd``), and
+    the ratios ``wall_ratio`` and ``solve_ratio``; ``none`` says why a row has no run (its runs'
+    statuses and errors) or no radau run to set it against."""
+    out = []
+    radau = [r for r in records if r["method"] == "radau" and r["status"] == "success" and r["scd"] is not None]
+    for method in methods:
+        if method in CLASSICAL:
+            continue
+        for problem in problems:
+            runs = [r for r in records if r["method"] == method and r["problem"] == problem.name]
+            good = [r for r in runs if r["status"] == "success" and r["scd"] is not None]
+            row = {"problem": problem.name, "method": method, "none": None}
+            if not good:
+                counts = Counter(r["error_class"] or r["status"] for r in runs)
+                row["none"] = ", ".join(f"{n} {what}" for what, n in sorted(counts.items())) or "no run"
+                out.append(row)
+                continue
+            best = max(good, key=lambda r: (r["scd"], -r["solve_time"]))
+            row.update(scd=best["scd"], settings=best["settings"], solve=best["solve_time"])
+            row["wall"] = best["setup_time"] + best["solve_time"]
+            match = [r for r in radau if r["problem"] == problem.name and r["scd"] >= best["scd"]]
+            if not match:
+                row["none"] = f"no successful radau run reaches {best['scd']:.1f} digits"
+            else:
+                fastest = min(match, key=lambda r: r["solve_time"])
+                row.update(radau_scd=fastest["scd"], radau_solve=fastest["solve_time"])
+                row.update(
+                    wall_ratio=row["wall"] / fastest["solve_time"], solve_ratio=row["solve"] / fastest["solve_time"]
+                )
+            out.append(row)
+    return out
+
+
+def against_radau_cells(row: dict) -> list[str]:
+    """One row of :func:`against_radau` as table cells: problem, method, its best run, radau's, the ratios."""
+    if "scd" not in row:
+        return [row["problem"], row["method"], f"none: {row['none']}", "", ""]
+    wall, solve = _seconds(row["wall"]), _seconds(row["solve"])
+    mine = f"{row['scd']:.1f} scd at {row['settings']}: {wall} setup + solve, {solve} solve"
+    if row["none"] is not None:
+        return [row["problem"], row["method"], mine, row["none"], ""]
+    theirs = f"{row['radau_scd']:.1f} scd in {_seconds(row['radau_solve'])}"
+    return [row["problem"], row["method"], mine, theirs, f"{row['wall_ratio']:.3g}x ({row['solve_ratio']:.3g}x solve)"]
+
+
+AGAINST_RADAU_HEAD = (
+    "problem",
+    "method",
+    "its most accurate success",
+    "radau's fastest solve as accurate",
+    "time ratio",
+)
+
+
 def _time_cell(row: dict, digits: int, problems: int) -> str:
     value = row[f"time_to_{digits}"]
     return "-" if value is None else f"{_seconds(value)} ({row[f'reached_{digits}']}/{problems})"
@@ -177,6 +239,7 @@ def write_report(out: Path, problems, methods, records) -> list[Path]:
                 ],
                 "methods": list(methods),
                 "summary": rows,
+                "against_radau": [_finite(r) for r in against_radau(records, methods, problems)],
                 "runs": [_finite(r) for r in records],
             },
         )
@@ -223,6 +286,16 @@ def _html(problems, methods, records, rows) -> str:
         "<h2>Summary</h2>",
         _summary_table(rows, len(problems)),
     ]
+    versus = against_radau(records, methods, problems)
+    if versus:
+        parts += [
+            "<h2>Against radau at equal error</h2>",
+            "<table><tr>" + "".join(f"<th>{e(h)}</th>" for h in AGAINST_RADAU_HEAD) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{e(c)}</td>" for c in against_radau_cells(r)) + "</tr>" for r in versus)
+            + "</table><p>Each method beyond the classical ones at its most accurate successful run (setup + solve: "
+            "the training included), beside radau's fastest successful solve with at least as many digits; the "
+            "ratio divides the first by radau's solve time (in brackets: its solve alone).</p>",
+        ]  # fmt: skip
     notes = _skip_notes(records)
     if notes:
         parts.append("<h2>Settings not run</h2><ul>" + "".join(f"<li>{e(n)}</li>" for n in notes) + "</ul>")

@@ -38,7 +38,7 @@ HIRES = Problem(
     parameters=HIRES_PARAMETERS,
     initial={"Pr": 1.0, "Pfr": 0.0, "PrX": 0.0, "PfrX": 0.0, "PrX2": 0.0, "PfrX2": 0.0, "PfrX2E": 0.0, "E": 0.0057},
     t_span=(0.0, 321.8122),
-    compare_steps=400,  # (the fast start: PfrX2 and E react at k7 = 280)
+    compare_steps=400,  # (the start: PfrX2 and E react at k7 = 280; 200 fixed steps keep no digit)
     index=0,
     # hires.f, subroutine solut (hiressol): y(1..8) at t = 321.8122
     reference={

@@ -269,6 +269,8 @@ def test_the_report_holds_every_plot_inline_one_per_problem(paper):
     stored = json.loads((out / "results.json").read_text())
     assert len(stored["runs"]) == len(result.records)
     assert stored["summary"] == json.loads(json.dumps(result.summary()))
+    assert stored["against_radau"] == []  # (no method beyond the classical ones in this run)
+    assert "Against radau at equal error" not in (out / "report.html").read_text()
 
 
 def _overlaps(fig) -> list:
@@ -426,3 +428,41 @@ def test_a_model_file_is_benched_against_its_exact_solution(tmp_path):
     assert record["problem"] == "decay" and result.problems[0].reference == {"y": pytest.approx(math.exp(-2.0))}
     assert 4 < record["scd"] < 10
     assert Path(result.paths[0]).name == "report.html"
+
+
+def test_a_neural_method_is_set_against_radau_at_equal_error():
+    """Per problem, the PINN's most accurate success (its setup + solve: training included) beside radau's
+    fastest success with at least as many digits; a problem it never solves says why, one where radau
+    never gets as far says so."""
+    from daemodel.comparing.bench_report import against_radau, against_radau_cells
+    from daemodel.comparing.suites import BenchProblem
+
+    def run(problem, method, status, scd, setup, solve, error_class=None, settings="s"):
+        return {"problem": problem, "method": method, "status": status, "scd": scd, "setup_time": setup,
+                "solve_time": solve, "error_class": error_class, "settings": settings}  # fmt: skip
+
+    records = [
+        run("a", "radau", "success", 5.0, 0.1, 0.002), run("a", "radau", "success", 9.0, 0.1, 0.005),
+        run("a", "radau", "success", 12.0, 0.1, 0.020), run("a", "radau", "flagged", 9.5, 0.0, 0.001),
+        run("a", "pinn", "success", 8.5, 1.0, 0.1, settings="h=0.1"), run("a", "pinn", "flagged", 10.0, 1.0, 0.1),
+        run("a", "pinn", "success", 6.0, 0.5, 0.05),
+        run("b", "radau", "success", 4.0, 0.1, 0.001), run("b", "pinn", "success", 7.0, 2.0, 0.2, settings="h=0.2"),
+        run("c", "radau", "success", 4.0, 0.1, 0.001), run("c", "pinn", "skipped", None, None, None),
+        run("c", "pinn", "failed", None, 0.0, 60.0, "TimeLimitError"),
+        run("c", "pinn", "failed", None, 0.0, 1.0, "TimeLimitError"),
+    ]  # fmt: skip
+    problems = [BenchProblem(name, name, "testset", (0.0, 1.0)) for name in "abc"]
+    rows = against_radau(records, ["radau", "casadi-idas", "pinn"], problems)
+    assert [(r["problem"], r["method"]) for r in rows] == [("a", "pinn"), ("b", "pinn"), ("c", "pinn")]
+    a, b, c = rows
+    # a: its 8.5 digits (the flagged 10 does not count) against radau's 9 in 5 ms (the flagged 9.5 in 1 ms neither)
+    assert (a["scd"], a["wall"], a["radau_scd"], a["radau_solve"]) == (8.5, 1.1, 9.0, 0.005)
+    assert a["wall_ratio"] == pytest.approx(220.0) and a["solve_ratio"] == pytest.approx(20.0)
+    assert against_radau_cells(a) == [
+        "a", "pinn", "8.5 scd at h=0.1: 1.1 s setup + solve, 100 ms solve", "9.0 scd in 5 ms", "220x (20x solve)",
+    ]  # fmt: skip
+    assert b["none"] == "no successful radau run reaches 7.0 digits" and "radau_solve" not in b
+    assert against_radau_cells(b)[3:] == ["no successful radau run reaches 7.0 digits", ""]
+    assert c == {"problem": "c", "method": "pinn", "none": "2 TimeLimitError, 1 skipped"}
+    assert against_radau_cells(c) == ["c", "pinn", "none: 2 TimeLimitError, 1 skipped", "", ""]
+    assert against_radau(records, ["radau", "casadi-idas"], problems) == []
