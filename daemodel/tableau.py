@@ -2,8 +2,10 @@
 
 The nodes ``c`` are the roots of the right Radau polynomial
 ``d^{s-1}/dx^{s-1} [x^{s-1} (x-1)^s]`` on ``[0, 1]`` (so ``c_s = 1``).  The polynomial has
-rational coefficients and its roots are kept as exact algebraic numbers (sympy ``CRootOf``);
-``A`` and ``b`` follow from the simplifying conditions C(s) and B(s),
+integer coefficients; its roots are found by mpmath at ``PRECISION_DIGITS + 20`` digits (sympy's
+exact root isolation, used before, cost 0.1-0.3 s in every process's first solve), and
+:meth:`RadauIIA.exact_nodes` gives them as exact algebraic numbers.  ``A`` and ``b`` follow from
+the simplifying conditions C(s) and B(s),
 
     sum_j a_ij c_j^(k-1) = c_i^k / k,   sum_j b_j c_j^(k-1) = 1 / k,   k = 1..s,
 
@@ -14,6 +16,7 @@ so the order conditions can be checked far below float64 round-off.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cache
 
@@ -48,8 +51,6 @@ class RadauIIA:
         Nodes, float64, read-only, strictly increasing, ``c[-1] == 1``.
     A_hp, b_hp, c_hp : tuple of mpmath.mpf
         The same coefficients at ``PRECISION_DIGITS`` digits (``A_hp`` row by row).
-    c_exact : tuple of sympy expressions
-        The nodes as exact algebraic numbers.
     """
 
     stages: int
@@ -61,7 +62,6 @@ class RadauIIA:
     A_hp: tuple
     b_hp: tuple
     c_hp: tuple
-    c_exact: tuple
 
     def __post_init__(self) -> None:
         s = self.stages
@@ -83,6 +83,10 @@ class RadauIIA:
 
         dtype = torch.float64 if dtype is None else dtype
         return tuple(torch.tensor(x.copy(), dtype=dtype, device=device) for x in (self.A, self.b, self.c))
+
+    def exact_nodes(self) -> tuple:
+        """The nodes as exact algebraic numbers (sympy ``CRootOf``, ascending)."""
+        return tuple(sp.Poly(radau_polynomial(self.stages)).real_roots())
 
     def __repr__(self) -> str:
         return f"RadauIIA(stages={self.stages}, order={self.order}, c={np.array2string(self.c)})"
@@ -111,13 +115,27 @@ def radau_iia(s: int) -> RadauIIA:
     return _radau_iia(int(s))
 
 
+def radau_coefficients(s: int) -> list[int]:
+    """The Radau polynomial's integer coefficients, highest power first:
+    ``d^{s-1}/dx^{s-1} [x^{s-1} (x-1)^s] = sum_k binom(s, k) (-1)^(s-k) (k+s-1)! / k! x^k``."""
+    return [
+        math.comb(s, k) * (-1) ** (s - k) * math.factorial(k + s - 1) // math.factorial(k) for k in range(s, -1, -1)
+    ]
+
+
 @cache
 def _radau_iia(s: int) -> RadauIIA:
-    roots = sp.Poly(radau_polynomial(s)).real_roots()  # exact, sorted ascending
-    if len(roots) != s:  # the Radau polynomial has s simple real roots in (0, 1]
-        raise StagesError(f"Radau polynomial of degree {s} has {len(roots)} real roots, expected {s}")
+    with mpmath.workdps(PRECISION_DIGITS + 20):
+        found = mpmath.polyroots(radau_coefficients(s), maxsteps=200, extraprec=4 * PRECISION_DIGITS)
+        found = found if isinstance(found, list) else [found]
+        if any(abs(mpmath.im(r)) > mpmath.mpf(10) ** -PRECISION_DIGITS for r in found):  # (s simple real roots)
+            raise StagesError(f"Radau polynomial of degree {s}: mpmath found complex roots {found}")
+        roots = sorted(mpmath.re(r) for r in found)
+        if not (0 < roots[0] and abs(roots[-1] - 1) < mpmath.mpf(10) ** -PRECISION_DIGITS):
+            raise StagesError(f"Radau polynomial of degree {s}: roots {roots} are not in (0, 1] ending at 1")
+        roots[-1] = mpmath.mpf(1)
     with mpmath.workdps(PRECISION_DIGITS):
-        c = [mpmath.mpf(str(sp.N(r, PRECISION_DIGITS + 10))) for r in roots]
+        c = [+r for r in roots]  # (rounded to PRECISION_DIGITS)
         vandermonde = mpmath.matrix([[cj ** (k - 1) for k in range(1, s + 1)] for cj in c])
         rhs = mpmath.matrix([[ci**k / k for k in range(1, s + 1)] for ci in c])
         # C(s): A V = R with V[j, k] = c_j^(k-1), R[i, k] = c_i^k / k  ->  A = R V^-1
@@ -134,5 +152,4 @@ def _radau_iia(s: int) -> RadauIIA:
         A_hp=A_hp,
         b_hp=b_hp,
         c_hp=tuple(c),
-        c_exact=tuple(roots),
     )

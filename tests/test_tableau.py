@@ -109,8 +109,25 @@ def test_invalid_stages(bad):
 def test_tableau_checks_itself():
     t = dm.radau_iia(2)
     with pytest.raises(StagesError, match=r"needs A \(s, s\)"):
-        dm.RadauIIA(2, 3, 2, np.zeros((3, 3)), t.b.copy(), t.c.copy(), (), (), (), ())
+        dm.RadauIIA(2, 3, 2, np.zeros((3, 3)), t.b.copy(), t.c.copy(), (), (), ())
     with pytest.raises(StagesError, match="nodes must increase"):
-        dm.RadauIIA(2, 3, 2, t.A.copy(), t.b.copy(), t.c[::-1].copy(), (), (), (), ())
+        dm.RadauIIA(2, 3, 2, t.A.copy(), t.b.copy(), t.c[::-1].copy(), (), (), ())
     with pytest.raises(StagesError, match="stiffly accurate"):
-        dm.RadauIIA(2, 3, 2, t.A.copy(), t.b.copy() + 1, t.c.copy(), (), (), (), ())
+        dm.RadauIIA(2, 3, 2, t.A.copy(), t.b.copy() + 1, t.c.copy(), (), (), ())
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 5, 7])
+def test_the_nodes_are_the_radau_polynomials_exact_roots(s):
+    """mpmath's roots of the integer polynomial (how the tableau is made, in milliseconds) are sympy's
+    exact algebraic roots to far below float64."""
+    import mpmath
+    import sympy as sp
+
+    t = dm.radau_iia(s)
+    exact = t.exact_nodes()
+    assert len(exact) == s and exact[-1] == 1
+    with mpmath.workdps(PRECISION_DIGITS):
+        for node, root in zip(t.c_hp, exact, strict=True):
+            assert abs(node - mpmath.mpf(str(sp.N(root, PRECISION_DIGITS + 10)))) < mpmath.mpf(10) ** -(
+                PRECISION_DIGITS - 5
+            )
