@@ -82,3 +82,36 @@ def test_worst_ratio_keeps_the_bounds_relation(radau_idas):
     lower = worst([{"ratio": 1.5, "relation": "="}, {"ratio": 0.9, "relation": ">"}, {"ratio": 3.0, "relation": "<"}])
     assert lower["ratio"] == 1.5 and lower["relation"] == ">"
     assert meets(lower, 1.0) is False and meets(lower, 2.0) is None
+
+
+@pytest.fixture(scope="module")
+def bench_tables():
+    yield from _benchmark("bench_tables")
+
+
+def test_bench_tables_read_the_most_digits_and_one_tolerance_off_the_runs(bench_tables):
+    def run(problem, method, status, scd, solve, error_class=None, component="y"):
+        return {"problem": problem, "method": method, "status": status, "scd": scd, "solve_time": solve,
+                "error_class": error_class, "scd_component": component, "flag": None, "reason": None}  # fmt: skip
+
+    results = {
+        "problems": [{"name": "a"}, {"name": "b"}],
+        "methods": ["radau", "pinn"],
+        "runs": [
+            run("a", "radau", "success", 6.0, 0.002), run("a", "radau", "success", 9.25, 0.004),
+            run("a", "radau", "flagged", 12.0, 0.001), run("a", "pinn", "failed", None, 60.0, "TimeLimitError"),
+            run("a", "pinn", "failed", None, 61.0, "TimeLimitError"), run("b", "radau", "success", 3.0, 2.5),
+            run("b", "pinn", "skipped", None, None),
+        ],
+    }  # fmt: skip
+    assert bench_tables.most_digits(results) == [
+        "| problem | radau | pinn |",
+        "|---|---:|---:|",
+        "| a | 9.2 (4 ms) | none: 2 TimeLimitError |",
+        "| b | 3.0 (2.5 s) | none: skipped |",
+    ]
+    one = {**results, "runs": [results["runs"][1], results["runs"][3], results["runs"][5]]}
+    assert bench_tables.at_one_tolerance(one)[2:] == [
+        "| a | 9.2 (y, 4 ms) | failed: TimeLimitError |",
+        "| b | 3.0 (y, 2.5 s) |  |",
+    ]
