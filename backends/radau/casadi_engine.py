@@ -275,7 +275,7 @@ class CasadiEngine(AbstractEngine):
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
             if self.D <= MACHINE_RUN_MAX_SIZE:
                 functions["radau_run_machine_code"] = self._machine_run_function(step, key[2])
-        what = f"radau: jit=True: compiling the step of {step.name()!r}"
+        what = f"radau's machine code: compiling the step of {step.name()!r}"
 
         def build():
             # (the kernel's source only where the library is built: writing it took 8 ms, paid by every piece

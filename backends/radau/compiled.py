@@ -359,7 +359,7 @@ def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_nam
         # (a call, never inlined: a function that another of them calls too, the step that the run calls,
         # is then written once; inlined, car axis's library held the step twice, 5,891 lines)
         generator.add(casadi.Function(name, inputs, function.call(inputs, False, True)))
-    what = what or f"radau: jit=True: compiling the step of {next(iter(functions.values())).name()!r}"
+    what = what or f"radau's machine code: compiling the step of {next(iter(functions.values())).name()!r}"
     build = Build(compiler, COMPILER_FLAGS, what, JIT_FIX, libraries=("-lm",))
     return cached_library(kernel + generator.dump(), [*functions, *kernel_names], build)
 

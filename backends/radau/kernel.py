@@ -433,7 +433,7 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
     """
     from daemodel.cache import Build, cached_library
 
-    what = "radau: jit=True: compiling the sparse factors"
+    what = "radau's machine code: compiling the sparse factors"
     fix = "solve with jit=False (the same results to rounding, slower steps)"
     build = Build(compiler, KERNEL_FLAGS, what, fix, libraries=("-lm",), timeout=KERNEL_COMPILE_TIMEOUT)
     names = ["static_factors", *(["sign_det"] if m else [])]

@@ -131,7 +131,9 @@ def test_auto_says_which_code_ran_and_goes_on_where_the_compiler_fails(monkeypat
     monkeypatch.setenv("PATH", str(tmp_path))
     fresh = PENDULUM.model().compile()  # (nothing compiled for it in this process)
     sol = dm.solve(fresh, span, **options)
-    assert sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed (radau: jit=True: compiling")
+    assert sol.stats["jit"].startswith(
+        "casadi's virtual machine: the C compiler failed (radau's machine code: compiling"
+    )
     assert "cc: fatal error: out of licences" in sol.stats["jit"] and sol.status == "success"
     for name in compiled.state_names:  # (the virtual machine's answer, bit for bit)
         assert np.array_equal(sol[name], vm[name]), name
@@ -244,7 +246,9 @@ def test_a_failing_compiler_is_a_compile_error(tmp_path):
     import casadi
 
     x = casadi.MX.sym("x")
-    with pytest.raises(E.CompileError, match=r"jit=True: compiling the step of 'f' with .*cc failed: .*jit=False"):
+    with pytest.raises(
+        E.CompileError, match=r"radau's machine code: compiling the step of 'f' with .*cc failed: .*jit=False"
+    ):
         radau_compiled.machine_code(casadi.Function("f", [x], [2 * x]), str(failing))
 
 
