@@ -7,6 +7,6 @@ subclass plus one line in :data:`~.registry.REGISTRY`; a method from outside is 
 import torch.
 """
 
-from daemodel.backends.registry import REFERENCE, REGISTRY, default_backends, get_backend, methods
+from daemodel.backends.registry import REFERENCE, REGISTRY, backends_for, get_backend, methods
 
-__all__ = ["REFERENCE", "REGISTRY", "default_backends", "get_backend", "methods"]
+__all__ = ["REFERENCE", "REGISTRY", "backends_for", "get_backend", "methods"]

@@ -279,16 +279,19 @@ def load_entry_point(name: str, points: list) -> type:
 methods = MethodRegistry()
 
 
-def default_backends(leave_out: str, who: str) -> dict:
-    """Every method but ``leave_out``, as backend instances by name, for a call that was given no
-    methods (``compare``, ``bench``): an installed method that cannot be loaded is left out with a
-    :class:`MethodPluginWarning` naming it and why, instead of stopping the call (named explicitly, it
-    raises :class:`MethodPluginError`)."""
+def backends_for(names, who: str) -> dict:
+    """Backend instances by name: of ``names``, or, where it is None (a call given no methods:
+    ``compare``, ``bench``), of every method but ``reference``.  Of every method, one installed that
+    cannot be loaded is left out with a :class:`MethodPluginWarning` naming it and why, instead of
+    stopping the call; named explicitly it raises :class:`MethodPluginError` (an unknown name
+    :class:`UnknownMethodError`)."""
     from daemodel.errors import MethodPluginError, MethodPluginWarning
 
+    if names is not None:
+        return {name: get_backend(name) for name in names}
     out = {}
     for name in methods():
-        if name == leave_out:
+        if name == REFERENCE:
             continue
         try:
             out[name] = get_backend(name)

@@ -159,7 +159,7 @@ def bench(
     UnknownMethodError
         An unknown method.
     """
-    from daemodel.backends import REFERENCE, default_backends, get_backend
+    from daemodel.backends import backends_for
     from daemodel.comparing.bench_files import load_runs, reference_values, write_run
     from daemodel.comparing.bench_report import write_report
     from daemodel.files import writable_directory
@@ -167,12 +167,8 @@ def bench(
     began = time.perf_counter()
     executor = _check_options(workers, executor, address, tolerances, points, time_limit, threads)
     problems = resolve(suites_or_files)
-    if methods is None:  # (an installed method that does not load is left out, with a warning)
-        backends = default_backends(REFERENCE, "bench")
-        methods = list(backends)
-    else:
-        methods = list(methods)
-        backends = {method: get_backend(method) for method in methods}  # unknown names raise here
+    backends = backends_for(None if methods is None else list(methods), "bench")  # (unknown names raise here)
+    methods = list(backends)
     if not methods:
         raise BenchError("bench needs at least one method")
     stray = sorted(set(sweep or {}) - set(methods))

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemodel.backends import REFERENCE, default_backends, get_backend
+from daemodel.backends import REFERENCE, backends_for, get_backend
 from daemodel.backends.grids import SWEEP_FIRST_STEPS
 from daemodel.comparing.references import REFERENCE_CHECK_POINTS, CheckedReference
 from daemodel.comparing.sweeps import DEFAULT_POINTS, check_points, check_setting, sweep_labels
@@ -239,12 +239,8 @@ def plan_comparison(
 
     compiled = as_compiled(model, "compare()")
     t_span = check_span(t_span, compiled)
-    if methods is None:  # (an installed method that does not load is left out, with a warning)
-        backends = default_backends(REFERENCE, "compare()")
-        methods = list(backends)
-    else:
-        methods = list(methods)
-        backends = {method: get_backend(method) for method in methods}  # unknown names raise here
+    backends = backends_for(None if methods is None else list(methods), "compare()")  # (unknown names raise here)
+    methods = list(backends)
     if not methods:
         raise ComparisonError("compare() needs at least one method")
     sweep = dict(sweep or {})

@@ -217,13 +217,13 @@ def test_a_broken_installed_method_is_left_out_of_a_run_over_every_method(tmp_pa
     """compare() and bench() with no methods given run every method: one installed method that does not
     load left them unable to start (MethodPluginError); now it is left out with a warning naming it,
     and the others run. Named explicitly, it still raises."""
-    from daemodel.backends import default_backends
+    from daemodel.backends import backends_for
 
     install(tmp_path, "daemodel-whole-span-pinn", {"whole-span-pinn": "whole_span_pinn:WholeSpanPINN"})
     install(tmp_path, "broken-methods", {"missing": "no_such_module_for_daemodel:Method"})
     monkeypatch.syspath_prepend(str(tmp_path))
     with pytest.warns(E.MethodPluginWarning) as caught:
-        backends = default_backends("reference", "bench")
+        backends = backends_for(None, "bench")
     assert [str(w.message) for w in caught] == [
         "bench leaves out method 'missing' cannot be loaded from entry point 'missing' = "
         "'no_such_module_for_daemodel:Method' of distribution 'broken-methods 1.0' (group daemodel.methods): "
