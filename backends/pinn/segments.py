@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
-from daemodel.errors import InvalidOptionError, ResourceLimitError, SolverError
+from daemodel.errors import InvalidOptionError, ResourceLimitError, SolverError, TimeLimitError
 from daemodel.tableau import radau_iia
 
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
@@ -163,6 +163,8 @@ def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, i
     )  # fmt: skip
     try:
         solution = RadauBackend().solve(compiled, tuple(t_span), start, options)
+    except TimeLimitError:  # (the time ran out: not a pre-solve that failed)
+        raise
     except SolverError as error:
         raise type(error)(
             f"pinn: the default h comes from {PRESOLVE}, which failed ({error}); give the segment length, e.g. "

@@ -116,3 +116,21 @@ def decay_chain(n: int) -> dm.Model:
         m.ode(x, -x)
     m.initial(**{x.name: 1.0 for x in xs})
     return m
+
+
+def test_a_time_limit_in_the_default_h_pre_solve_is_not_called_a_failed_pre_solve(monkeypatch):
+    """The default h's pre-solve turned any SolverError into "the default h comes from ..., which failed
+    (...); give the segment length": a time limit that struck there said so too."""
+    from daemodel.backends.pinn.segments import default_segments
+    from daemodel.backends.radau.backend import RadauBackend
+
+    from daemodel.compiling.initial_states import initial_states
+    from daemodel.errors import TimeLimitError
+
+    def struck(*_, **__):
+        raise TimeLimitError("stop here")
+
+    monkeypatch.setattr(RadauBackend, "solve", struck)
+    compiled = PENDULUM.model().compile()
+    with pytest.raises(TimeLimitError, match=r"^stop here$"):
+        default_segments(compiled, (0.0, 1.0), initial_states(compiled), 200)
