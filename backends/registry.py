@@ -213,6 +213,13 @@ class MethodRegistry:
                 self._loaded[method] = load_entry_point(method, installed[method])
             return self._loaded[method]
 
+    def entry_points_of(self, method: str) -> list:
+        """The entry points ``method`` is loaded from: none for a built-in or registered method."""
+        with self._lock:
+            if method in self._registered or method in REGISTRY:
+                return []
+            return list(self._installed().get(method, []))
+
     def _installed(self) -> dict[str, list]:
         """The entry points of :data:`ENTRY_POINT_GROUP` by name, read again when ``sys.path`` has changed;
         those with an unusable name or a built-in's are left out with a :class:`MethodPluginWarning`."""
@@ -308,6 +315,17 @@ def get_backend(method: str):
     UnknownMethodError
         Listing the known methods.
     MethodPluginError
-        An installed method that cannot be loaded, naming its distribution and entry point.
+        An installed method that cannot be loaded, or whose class cannot be constructed, naming its
+        distribution and entry point.
     """
-    return methods.backend_class(method)()
+    cls = methods.backend_class(method)
+    points = methods.entry_points_of(method)
+    if not points:
+        return cls()
+    try:
+        return cls()
+    except Exception as error:  # (a third party's constructor, e.g. one that needs a GPU: named as a failed load)
+        raise MethodPluginError(
+            f"method {method!r} from {describe_entry_points(points)} cannot be constructed: {type(error).__name__}: "
+            f"{error}"
+        ) from error

@@ -28,6 +28,13 @@ LOOPBACK = "127.0.0.1"
 # Shared objects (compiled models, with the code they generate) a Ray worker process keeps, by
 # reference: the latest calls', so that the tasks of one call generate code once per worker.
 HELD_OBJECTS = 2
+# Once a time limit has struck, it strikes again this often until the task ends: code that swallows
+# the first TimeLimitError (casadi's Python wrappers catch every exception in their type checks, so
+# a limit that strikes while casadi builds a model's functions was lost, and the task ran on to its
+# end: the transistor amplifier's IDAS at rtol 1e-9 under a 0.01 s limit ran 9.5 s) meets it again.
+TIME_LIMIT_REPEAT = 0.25
+# The time limits whose blocks run now (in the main thread), innermost last: see struck_limit.
+_ACTIVE_LIMITS: list = []
 _HELD: dict = {}
 
 
@@ -244,26 +251,63 @@ class time_limit:
     passed (SIGALRM; a long call into compiled code is interrupted when it returns to Python).
     ``seconds=None``, or a thread other than the main one: no limit.  ``expired`` says afterwards
     whether the limit struck: code that catches exceptions from a callback (casadi's integrators)
-    may hand the error on as its own failure."""
+    may hand the error on as its own failure.  Code that swallows the error meets it again every
+    :data:`TIME_LIMIT_REPEAT` seconds, until the ``with`` block ends; an import under way is not
+    interrupted (:func:`importing`): the limit strikes after it."""
 
     def __init__(self, seconds: float | None, message: str):
         self.seconds, self.message, self.expired = seconds, message, False
         self.active = seconds is not None and threading.current_thread() is threading.main_thread()
+        self.closing = False
 
-    def _expired(self, *_):
+    def _expired(self, signum, frame):
+        if self.closing:  # (the block is ending: its own exception, or its result, goes through)
+            return
         self.expired = True
+        if importing(frame):  # (it strikes again TIME_LIMIT_REPEAT later, after the import)
+            return
         raise TimeLimitError(self.message)
 
     def __enter__(self):
         if self.active:
+            self.closing = False
             self.previous = signal.signal(signal.SIGALRM, self._expired)
-            signal.setitimer(signal.ITIMER_REAL, self.seconds)
+            signal.setitimer(signal.ITIMER_REAL, self.seconds, TIME_LIMIT_REPEAT)
+            _ACTIVE_LIMITS.append(self)
         return self
 
     def __exit__(self, *_):
         if self.active:
+            self.closing = True
             signal.setitimer(signal.ITIMER_REAL, 0)
+            if self in _ACTIVE_LIMITS:
+                _ACTIVE_LIMITS.remove(self)
             signal.signal(signal.SIGALRM, signal.SIG_DFL if self.previous is None else self.previous)
+
+
+def importing(frame) -> bool:
+    """Whether ``frame`` runs inside an import (importlib's frames below it).  A time limit does not
+    strike there: a module whose import is interrupted can stay broken for the process (torch, stopped
+    half-imported by an ensemble chunk's limit, raised "partially initialized module 'torch' has no
+    attribute 'types'" in every later solve)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def struck_limit() -> TimeLimitError | None:
+    """The error of the innermost time limit that has struck while its block still runs, else None.
+
+    Code that turns a failed call into an error of its own (casadi reports an exception raised in a
+    callback as the call's failure: IDAS's IDA_RES_FAIL) raises this instead, so that the time that ran
+    out is not taken for the method's failure (an ensemble chunk bisected and solved again).
+    """
+    for limit in reversed(_ACTIVE_LIMITS):
+        if limit.expired:
+            return TimeLimitError(limit.message)
+    return None
 
 
 def _time_limit(seconds: float | None, label: str, index: int) -> time_limit:

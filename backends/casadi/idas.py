@@ -41,6 +41,7 @@ from daemodel.backends.progress import captured_output
 
 from daemodel.dense import AbstractDenseOutput, outputs_before
 from daemodel.errors import ConvergenceError, DaemodelError, InvalidOptionError, SolverError, StepLimitError
+from daemodel.executors import struck_limit
 
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
@@ -244,6 +245,8 @@ class IDASRestarts(AbstractDenseOutput):
         except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
             raise
         except RuntimeError as error:
+            if struck_limit() is not None:  # (the time limit struck inside IDAS's callback: not IDAS's failure)
+                raise struck_limit() from error
             asked = ", ".join(f"{t:.6g}" for t in times[inside][:3])
             raise ConvergenceError(
                 f"casadi-idas's dense output: IDAS started again from the outputs before t = {asked} failed "
@@ -304,7 +307,7 @@ class IDASBackend(AbstractBackend):
             try:
                 return shared(x0=start.y0[b], z0=start.z0[b], p=start.p[b])
             except RuntimeError as error:
-                if "IDACalcIC" not in str(error):
+                if "IDACalcIC" not in str(error) or struck_limit() is not None:
                     raise
             fallbacks.append(b)
             exact = {**settings, "calc_ic": False, "init_xdot": ydot[b].tolist()}

@@ -13,6 +13,7 @@ import numpy as np
 from daemodel.backends.progress import captured_output
 
 from daemodel.errors import ConvergenceError, DaemodelError
+from daemodel.executors import struck_limit
 
 # Options that stop casadi from printing a warning for every non-finite evaluation (tens of
 # thousands of lines when Newton wanders into a singularity).
@@ -87,7 +88,7 @@ def run_samples(call, compiled, start, T: int, explain) -> np.ndarray:
             except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
                 raise
             except RuntimeError as error:
-                failure = explain(b, str(error), printed.getvalue())
+                failure = struck_limit() or explain(b, str(error), printed.getvalue())
             else:
                 failure = None
         if failure is not None:

@@ -225,7 +225,7 @@ class PINNBackend(AbstractBackend):
             count, steps, presolve = default_segments(compiled, t_span, start, options.max_segments)
             config = dataclasses.replace(config, h=(t_span[1] - t_span[0]) / count)
             h_from = f"{PRESOLVE}: {steps} steps, {count} segments"
-            if count == options.max_segments and steps > count * start.size:
+            if count == options.max_segments and steps > count:
                 h_from += f" (at most max_segments = {options.max_segments})"
         grid = segment_grid(t_span, config.h, strict=options.h is not None)  # a short piece: one segment
         segments = len(grid) - 1

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from daemodel.backends.pinn.train import Segment, SegmentTrainer
 
-from daemodel.errors import InvalidOptionError, ResourceLimitError, SolverError
+from daemodel.errors import InvalidOptionError, ResourceLimitError, SolverError, TimeLimitError
 from daemodel.tableau import radau_iia
 
 # The highest index the PINN solves directly: its loss is the index-2 Radau residual (a model of
@@ -136,7 +136,7 @@ def segment_grid(t_span, h: float, *, strict: bool = False) -> np.ndarray:
 
 
 def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, int, float]:
-    """The segment count of the default h over ``t_span``: the accepted steps per sample of an adaptive
+    """The segment count of the default h over ``t_span``: the accepted steps of an adaptive
     radau solve with the PINN's tableau (3 stages) at :data:`PRESOLVE_RTOL`, on casadi's virtual machine
     (no compile in the setup), at least one and at most ``max_segments``.
 
@@ -144,7 +144,7 @@ def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, i
     -------
     segments : int
     steps : int
-        The pre-solve's accepted steps, over every sample.
+        The pre-solve's accepted steps (a batch's samples step together, on one h).
     seconds : float
         The pre-solve's time (the PINN counts it in its setup).
 
@@ -163,13 +163,17 @@ def default_segments(compiled, t_span, start, max_segments: int) -> tuple[int, i
     )  # fmt: skip
     try:
         solution = RadauBackend().solve(compiled, tuple(t_span), start, options)
+    except TimeLimitError:  # (the time ran out: not a pre-solve that failed)
+        raise
     except SolverError as error:
         raise type(error)(
             f"pinn: the default h comes from {PRESOLVE}, which failed ({error}); give the segment length, e.g. "
             "h=0.05, to train without it"
         ) from error
     steps = int(solution.stats["steps"])
-    segments = min(max(1, round(steps / start.size)), max_segments)
+    # (radau steps a batch's samples together: its steps are the batch's, not a sum over the samples, which
+    # scipy's pre-solve gave and which was divided by the samples here, 4 segments for 4 pendulums, not 16)
+    segments = min(max(1, steps), max_segments)
     return segments, steps, time.perf_counter() - began
 
 

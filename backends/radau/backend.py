@@ -21,7 +21,7 @@ from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.errors import CompileError, ConvergenceError, DaemodelError, InvalidOptionError
+from daemodel.errors import CompileError, ConvergenceError, DaemodelError, InvalidOptionError, TimeLimitError
 from daemodel.files import check_memory, memory_limit
 from daemodel.messages import clip
 from daemodel.tableau import radau_iia
@@ -136,6 +136,8 @@ class RadauBackend(AbstractBackend):
         try:
             finer = dataclasses.replace(options, h=smaller, t_eval=None)
             self._solve(compiled, (t_span[0], end), start, finer, check=False)
+        except TimeLimitError:  # (the time ran out: it says nothing about the step)
+            raise
         except DaemodelError:
             return error
         return ConvergenceError(

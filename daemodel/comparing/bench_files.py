@@ -83,9 +83,15 @@ def read_run(path: Path) -> dict:
     size = os.lstat(path).st_size
     if size > RUN_FILE_BYTES:
         raise BenchError(f"{path} is {size:,} bytes, more than a bench run file holds ({RUN_FILE_BYTES:,}); remove it")
-    value = read_json(path, BenchError, "a daemodel bench run file", follow=False)
+    try:
+        value = read_json(path, BenchError, "a daemodel bench run file", follow=False)
+    except BenchError as error:  # (cut short, or not JSON: the fix is the same as for a wrong field)
+        raise BenchError(f"{error}. Remove the file to run it again") from None
     if not isinstance(value, dict):
-        raise BenchError(f"{path} is not a daemodel bench run file: it holds a {type(value).__name__}, not an object")
+        raise BenchError(
+            f"{path} is not a daemodel bench run file: it holds a {type(value).__name__}, not an object. Remove the "
+            "file to run it again"
+        )
 
     def bad(field: str, expected: str):
         shown = repr(value.get(field))[:60]

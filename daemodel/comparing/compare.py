@@ -39,7 +39,7 @@ from daemodel.backends.grids import SWEEP_FIRST_STEPS
 from daemodel.comparing.references import REFERENCE_CHECK_POINTS, CheckedReference
 from daemodel.comparing.sweeps import DEFAULT_POINTS, check_points, check_setting, sweep_labels
 from daemodel.comparing.tables import Comparison, Run
-from daemodel.errors import ComparisonError, SolverError
+from daemodel.errors import ComparisonError, SolverError, TimeLimitError
 
 
 def compare(
@@ -157,6 +157,8 @@ class ComparisonPlan:
                     warnings.simplefilter("always")
                     try:
                         solution = solve(compiled, t_span, method=method, **options)
+                    except TimeLimitError:  # (the caller's time is up: not this method's failure)
+                        raise
                     except SolverError as error:
                         solution, failure = None, str(error)
                         failed_after = time.perf_counter() - began

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from daemodel.errors import DaemodelError
+
 # Matrices of at least this order whose nonzeros fill at most SPARSE_MAX_DENSITY of them take the
 # sparse LU: below it a dense one costs microseconds.
 SPARSE_MIN_SIZE = 64
@@ -68,6 +70,8 @@ def sparse_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) 
     A = sparse.csc_matrix((values, (rows, cols)), shape=(m, m))
     try:
         lu = splu(A)
+    except DaemodelError:  # (a time limit's signal, raised as the call returns: not a singular matrix)
+        raise
     except RuntimeError:  # ("Factor is exactly singular")
         return 0.0
     diagonal = lu.U.diagonal()

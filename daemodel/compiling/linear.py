@@ -17,6 +17,8 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.sparse.linalg
 
+from daemodel.errors import DaemodelError
+
 # Iteration matrices of at least this size are split into their independent square blocks for
 # the rank check and Newton's dense linear solves: a dense SVD or LU is O(m^3), the blocks of a
 # sparse system cost next to nothing.  Smaller ones are factored whole (microseconds either way).
@@ -127,6 +129,8 @@ def factor(A) -> tuple[scipy.sparse.linalg.SuperLU | None, float]:
         return None, np.inf
     try:
         lu = scipy.sparse.linalg.splu(A)
+    except DaemodelError:  # (a time limit's signal, raised as the call returns: not a singular matrix)
+        raise
     except RuntimeError:  # "Factor is exactly singular"
         return None, np.inf
     norm = abs(A).sum(axis=0).max()
@@ -206,6 +210,8 @@ class SparseStack:
             with np.errstate(all="ignore"):
                 try:
                     x = scipy.sparse.linalg.splu(A).solve(b[k])
+                except DaemodelError:  # (a time limit's signal, raised as the call returns: not a singular matrix)
+                    raise
                 except RuntimeError:  # an exactly zero pivot
                     pass
                 if x is None or not np.isfinite(x).all():

@@ -370,7 +370,7 @@ class _Model:
     def solve(self, x):
         """The solution with sensitivities at ``x``, or None where the model cannot be solved there
         (the error kept in ``self.failure``: a trial point scipy then rejects)."""
-        from daemodel.errors import DaemodelError
+        from daemodel.errors import DaemodelError, TimeLimitError
         from daemodel.sensitivities import forward
 
         if self.last is not None and np.array_equal(self.last[0], x):
@@ -390,6 +390,8 @@ class _Model:
                 solve_time=sol.solve_time + time.perf_counter() - started,
             )
             self.failure = None
+        except TimeLimitError:  # (the caller's time is up: not a point that cannot be solved)
+            raise
         except DaemodelError as error:  # (SolverError, InitialisationError, ...: this point cannot be solved)
             sol, self.failure = None, error
         self.solves += 1

@@ -35,6 +35,7 @@ from daemodel.executors import (
     check_timeout,
     refuse_engine,
     run_tasks,
+    struck_limit,
 )
 from daemodel.files import DirectoryLock, check_memory, writable_directory
 from daemodel.solution import Solution
@@ -349,6 +350,8 @@ def _solve_part(problem: list, offset: int, batch: dict, found: list, max_failur
     except SAMPLE_FAILURES as error:
         if isinstance(error, TimeLimitError):  # the task's time is up: no half of it may run on
             raise
+        if struck_limit() is not None:  # (it struck inside a call that reported it as its own failure)
+            raise struck_limit() from error
         if size == 1:
             failure = Failure(index=offset, error=type(error).__name__, message=str(error))
             found.append(failure)

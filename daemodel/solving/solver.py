@@ -22,6 +22,7 @@ from daemodel.errors import (
     InvalidValueError,
     SensitivityError,
     SolverError,
+    TimeLimitError,
     TimeSpanError,
     UnknownOptionError,
     UnsupportedModelError,
@@ -160,7 +161,7 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
             return solve_with_breakpoints(backend, model, t_span, start, opts)
         sol = backend.solve(compiled, t_span, start, opts)
     except SolverError as error:
-        if not located.events:
+        if not located.events or isinstance(error, TimeLimitError):  # (the time ran out: no switch to blame)
             raise
         # (the steps crossed the switches on variables, which this batch or dtype did not locate)
         why = "a batch without t_eval" if len(start.p) > 1 and getattr(opts, "t_eval", None) is None else "float32"

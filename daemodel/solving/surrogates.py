@@ -418,7 +418,7 @@ class Surrogate(SurrogateNetworks):
         Solution of the one call when every sample succeeded at once else None)``.  A sample
         that radau cannot solve from its start either is a :class:`ConvergenceError` naming it.
         """
-        from daemodel.errors import ConvergenceError, SolverError
+        from daemodel.errors import ConvergenceError, SolverError, TimeLimitError
 
         values = np.empty((len(rows), len(self.grid), len(self.compiled.states) + len(self.compiled.algebraics)))
         path = np.empty(len(rows), dtype=object)
@@ -429,6 +429,8 @@ class Surrogate(SurrogateNetworks):
             nonlocal iterations
             try:
                 solution = self._radau(start, rows[part], guessed)
+            except TimeLimitError:  # (the caller's time is up: no half may run on)
+                raise
             except SolverError as error:
                 if len(part) == 1:
                     return [(int(part[0]), error)]

@@ -622,3 +622,20 @@ def test_idas_initial_slopes_match_finite_differences_of_the_constraints(seed):
         g_t = derivative(lambda v, y=y, z=z, k_=k_: g(v[0], y, z, k_), np.array([t0]))[:, 0]
         np.testing.assert_allclose(ydot[b], slope, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(zdot[b], -np.linalg.solve(g_z, g_t + g_y @ slope), rtol=1e-7, atol=1e-8)
+
+
+def test_a_time_limit_that_strikes_inside_idas_is_a_time_limit_error_not_idas_failure():
+    """casadi reports an exception raised while IDAS runs (the limit's signal) as the call's own failure
+    (IDA_RES_FAIL): that was a ConvergenceError saying the model leaves its domain, which an ensemble
+    chunk took for failing samples and bisected.  IDAS needs seconds for the transistor amplifier at
+    rtol 1e-9: the limit strikes inside it."""
+    import time
+
+    from daemodel.executors import time_limit
+    from daemodel.problems import TRANSISTOR_AMPLIFIER
+
+    compiled = TRANSISTOR_AMPLIFIER.model().compile()
+    began = time.perf_counter()
+    with pytest.raises(E.TimeLimitError, match="stop here"), time_limit(0.5, "stop here"):
+        dm.solve(compiled, TRANSISTOR_AMPLIFIER.t_span, method="casadi-idas", rtol=1e-9, atol=1e-9)
+    assert time.perf_counter() - began < 3

@@ -376,3 +376,19 @@ def test_a_time_limit_stops_a_long_radau_solve_where_it_strikes(jit):
         with pytest.raises(E.TimeLimitError, match="stop here"), time_limit(0.3, "stop here"):
             dm.solve(model, RING_MODULATOR.t_span, rtol=1e-10, atol=1e-10, jit=jit)
         assert time.perf_counter() - began < 1.3
+
+
+def test_a_time_limit_in_the_smaller_step_check_is_not_the_sign_change_error(monkeypatch):
+    """A fixed grid's determinant sign change is checked again at h / 4 (RadauBackend._at_a_smaller_step);
+    any daemodel error of that check gave back the sign change's ConvergenceError, a time limit's too."""
+    from daemodel.backends.radau.backend import RadauBackend
+    from daemodel.backends.radau.options import RadauOptions
+
+    def struck(*_, **__):
+        raise E.TimeLimitError("stop here")
+
+    monkeypatch.setattr(RadauBackend, "_solve", struck)
+    compiled = PENDULUM.model().compile()
+    sign_change = E.ConvergenceError("the determinant changes sign")
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        RadauBackend()._at_a_smaller_step(compiled, (0.0, 1.0), None, RadauOptions(h=0.1), sign_change, (0.2, 0.3))

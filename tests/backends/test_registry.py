@@ -233,3 +233,26 @@ def test_a_broken_installed_method_is_left_out_of_a_run_over_every_method(tmp_pa
     assert isinstance(backends["whole-span-pinn"], example.WholeSpanPINN)
     with pytest.raises(E.MethodPluginError, match="method 'missing' cannot be loaded"):
         dm.bench(["paper"], ["missing"], tmp_path / "out", progress=False)
+
+
+def test_an_installed_method_whose_class_cannot_be_constructed_is_left_out_too(tmp_path, monkeypatch, example):
+    """A class that imports and keeps the contract but whose constructor raises (a method that needs a
+    GPU, a licence) stopped compare() and bench() without methods with its own exception; it is a
+    MethodPluginError naming the entry point, left out with a warning there, raised where named."""
+    from daemodel.backends import default_backends
+
+    (tmp_path / "needs_gpu.py").write_text(
+        "from whole_span_pinn import WholeSpanPINN\n\n\nclass NeedsGPU(WholeSpanPINN):\n"
+        "    name = 'needs-gpu'\n\n    def __init__(self):\n        raise RuntimeError('no GPU here')\n"
+    )
+    install(tmp_path, "needs-gpu", {"needs-gpu": "needs_gpu:NeedsGPU"})
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.warns(E.MethodPluginWarning) as caught:
+        backends = default_backends("reference", "compare()")
+    assert [str(w.message) for w in caught] == [
+        "compare() leaves out method 'needs-gpu' from entry point 'needs-gpu' = 'needs_gpu:NeedsGPU' of "
+        "distribution 'needs-gpu 1.0' (group daemodel.methods) cannot be constructed: RuntimeError: no GPU here"
+    ]
+    assert list(backends) == ["radau", "casadi-collocation", "casadi-idas", "pinn"]
+    with pytest.raises(E.MethodPluginError, match=r"method 'needs-gpu' from entry point .* RuntimeError: no GPU here$"):
+        get_backend("needs-gpu")

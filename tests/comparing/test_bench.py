@@ -183,6 +183,12 @@ def test_a_damaged_run_file_is_refused_naming_the_file_and_the_field(paper, tmp_
     path.write_text("[1, 2")
     with pytest.raises(BenchError, match="is not a daemodel bench run file"):
         read_run(path)
+    path.write_text('{"format": "daemodel-bench-run", "scd": 9')  # (cut short: the fix is said as for a field)
+    with pytest.raises(BenchError, match=r"run file \(JSONDecodeError: .*\)\. Remove the file to"):
+        read_run(path)
+    path.write_text("[1, 2]")
+    with pytest.raises(BenchError, match=r"it holds a list, not an object\. Remove the file to run it again$"):
+        read_run(path)
 
 
 def test_a_run_past_its_time_limit_is_a_failure_named_time_limit_error(tmp_path):

@@ -498,3 +498,21 @@ def test_no_method_pays_for_the_work_the_models_solves_share(monkeypatch):
     assert [r.method for r in result.runs] == ["radau", "casadi-idas"]
     for run in result.runs:
         assert run.setup_time < 0.3, (run.method, run.setup_time)
+
+
+def test_a_time_limit_is_raised_not_recorded_as_a_failing_setting(monkeypatch):
+    """A SolverError is recorded as the setting's failure and the next setting runs; the caller's time
+    limit (a TimeLimitError, a SolverError too) ended only that setting, and compare went on."""
+    from daemodel.errors import TimeLimitError
+    from daemodel.solving import solver
+
+    calls = []
+
+    def struck(*_, **__):
+        calls.append(1)
+        raise TimeLimitError("stop here")
+
+    monkeypatch.setattr(solver, "solve", struck)
+    with pytest.raises(TimeLimitError, match=r"^stop here$"):
+        dm.compare(HESSENBERG.model(), (0.0, 0.2), ["radau"], reference=EXACT, progress=False)
+    assert calls == [1]

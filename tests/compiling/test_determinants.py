@@ -90,3 +90,15 @@ def test_the_branch_check_on_200_algebraic_variables_names_the_fold(sparse_path,
     twice = on_branch.copy()
     twice[0, 1, m + 3] = twice[0, 1, m + 9] = 0.5  # two sign changes: det keeps its sign (what the check can see)
     check_branch("radau", c, np.array([0.0, 1.0]), twice, np.zeros((1, 0)))
+
+
+def test_a_time_limit_inside_the_sparse_lu_is_not_a_zero_determinant(monkeypatch):
+    """A time limit's TimeLimitError (a RuntimeError too), raised as SuperLU returns, read as sign 0."""
+    import scipy.sparse.linalg
+
+    def struck(*_, **__):
+        raise E.TimeLimitError("stop here")
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", struck)
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        sparse_sign(np.arange(3), np.arange(3), np.ones(3), 3)

@@ -155,3 +155,20 @@ def test_singular_initial_jacobian_at_large_m_is_named(diffusion_grid):
     model.initial(p=1.0, q=1.0)
     with pytest.raises(E.SingularSystemError, match=r"constraint 'sum'.*'twice'.*do not determine.*'u', 'v'"):
         model.compile()
+
+
+def test_a_time_limit_inside_a_sparse_factorisation_is_not_a_singular_matrix(monkeypatch):
+    """A time limit's TimeLimitError (a RuntimeError too), raised as SuperLU returns, was taken for
+    "Factor is exactly singular": the factorisation said (None, inf), the solve fell back to a
+    pseudo-inverse and went on."""
+    import scipy.sparse.linalg
+
+    def struck(*_, **__):
+        raise E.TimeLimitError("stop here")
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", struck)
+    A = scipy.sparse.identity(3, format="csc")
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        factor(A)
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        SparseStack(A.tocoo().row, A.tocoo().col, np.ones((1, 3)), 3).solve(np.ones((1, 3)))

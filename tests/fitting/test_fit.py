@@ -301,3 +301,21 @@ def test_a_progress_bar_shows_the_solves_and_estimates(capsys):
     assert "fit:" in err and "solve" in err  # (the estimates in its postfix show on redraws: a fast fit has none)
     dm.fit(compiled, t, {"y": exact["y"][1:] * 1.001}, {"k": (0.5, 5.0)}, progress=False)
     assert "fit:" not in capsys.readouterr().err
+
+
+def test_a_time_limit_stops_the_fit_instead_of_rejecting_a_trial_point(monkeypatch):
+    """A daemodel error at a trial point makes it one the model cannot be solved at (scipy rejects it
+    and tries another); the caller's time limit was one of them, and the fit ran on."""
+    from daemodel.fitting import fit as fitting
+
+    calls = []
+
+    def struck(*_, **__):
+        calls.append(1)
+        raise E.TimeLimitError("stop here")
+
+    compiled = DECAY.model().compile()
+    monkeypatch.setattr(fitting, "solve", struck)
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        dm.fit(compiled, [1.0], {"y": [0.25]}, {"k": 1.0})
+    assert calls == [1]

@@ -464,3 +464,36 @@ def test_an_ensemble_that_cannot_fit_in_memory_is_refused_before_its_first_chunk
         r"variables 745 GiB\), more than the 64 GiB allowed",
     ):
         dm.ensemble(m, (0.0, 1.0), parameters={"k": np.ones(5_000_000)}, t_eval=np.linspace(0.0, 1.0, 20_000))
+
+
+def test_a_time_limit_reported_by_the_method_as_its_own_failure_ends_the_chunk(monkeypatch):
+    """A limit that strikes inside a call which reports it as its own failure (casadi: IDA_RES_FAIL, a
+    ConvergenceError) ends the chunk as a TimeLimitError: the chunk is not taken for failing samples,
+    bisected and solved again piece by piece."""
+    import time
+
+    from daemodel.errors import TimeLimitError
+    from daemodel.executors import _time_limit
+    from daemodel.solving import solver
+    from daemodel.solving.ensemble import solve_chunk
+
+    calls = []
+
+    def reported_as_its_own(*args, **kwargs):
+        calls.append(1)
+        try:
+            time.sleep(2.0)  # the limit strikes here
+        except TimeLimitError:
+            pass
+        raise ConvergenceError("casadi-idas: the model could not be evaluated (IDA_RES_FAIL)")
+
+    monkeypatch.setattr(solver, "solve", reported_as_its_own)
+    decay = dm.Model("decay")
+    (y,) = decay.states("y")
+    decay.ode(y, -y)
+    decay.initial(y=1.0)
+    batch = {"y0": np.ones((8, 1))}
+    with pytest.raises(TimeLimitError, match=r"chunks: task 3 ran past its time limit of 0.1 s"):
+        with _time_limit(0.1, "chunks", 3):
+            solve_chunk((decay.compile(), (0.0, 1.0), "casadi-idas", {}, None), 0, batch)
+    assert len(calls) == 1

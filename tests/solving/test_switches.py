@@ -301,3 +301,22 @@ def test_a_batch_without_t_eval_that_fails_across_a_state_switch_is_told_to_pass
         dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, engine="torch")
     batch = dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, t_eval=[0.0, 0.5, 1.0])
     assert batch["x"].shape == (2, 3) and batch.events
+
+
+def test_a_time_limit_in_a_batch_across_a_state_switch_is_not_blamed_on_the_switch(monkeypatch):
+    """A solver error of a batch that steps across switches on variables gains a hint to pass t_eval; a
+    time limit that struck there is the limit alone."""
+    from daemodel.backends.radau.backend import RadauBackend
+
+    def struck(*_, **__):
+        raise E.TimeLimitError("stop here")
+
+    m = dm.Model("ss")
+    m.states("x")
+    m.ode("x", "Piecewise((1, x < 0.5), (0.2, True))")
+    m.initial(x=0.0)
+    c = m.compile()
+    y0 = c.consistent(y0={"x": np.array([0.0, 0.2])})
+    monkeypatch.setattr(RadauBackend, "solve", struck)
+    with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
+        dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, engine="torch")

@@ -116,3 +116,38 @@ def decay_chain(n: int) -> dm.Model:
         m.ode(x, -x)
     m.initial(**{x.name: 1.0 for x in xs})
     return m
+
+
+def test_a_time_limit_in_the_default_h_pre_solve_is_not_called_a_failed_pre_solve(monkeypatch):
+    """The default h's pre-solve turned any SolverError into "the default h comes from ..., which failed
+    (...); give the segment length": a time limit that struck there said so too."""
+    from daemodel.backends.pinn.segments import default_segments
+    from daemodel.backends.radau.backend import RadauBackend
+
+    from daemodel.compiling.initial_states import initial_states
+    from daemodel.errors import TimeLimitError
+
+    def struck(*_, **__):
+        raise TimeLimitError("stop here")
+
+    monkeypatch.setattr(RadauBackend, "solve", struck)
+    compiled = PENDULUM.model().compile()
+    with pytest.raises(TimeLimitError, match=r"^stop here$"):
+        default_segments(compiled, (0.0, 1.0), initial_states(compiled), 200)
+
+
+def test_a_batchs_default_h_is_its_trajectories_not_their_count_divided():
+    """radau steps a batch's samples together (one h), so its steps are the batch's; they were divided
+    by the samples, as scipy's per-sample sums were: 4 pendulums trained 4 segments where one trains
+    18, and 100 would have trained one."""
+    from daemodel.backends.pinn.segments import default_segments
+
+    from daemodel.compiling.initial_states import initial_states
+
+    compiled = PENDULUM.model().compile()
+    one, steps, _ = default_segments(compiled, (0.0, 1.0), initial_states(compiled), 200)
+    four, batch_steps, _ = default_segments(
+        compiled, (0.0, 1.0), initial_states(compiled, y0=np.repeat(np.asarray(compiled.y0)[None], 4, axis=0)), 200
+    )
+    assert one == steps and four == batch_steps
+    assert 0.7 * one <= four <= 1.3 * one
