@@ -239,7 +239,7 @@ def test_an_installed_method_whose_class_cannot_be_constructed_is_left_out_too(t
     """A class that imports and keeps the contract but whose constructor raises (a method that needs a
     GPU, a licence) stopped compare() and bench() without methods with its own exception; it is a
     MethodPluginError naming the entry point, left out with a warning there, raised where named."""
-    from daemodel.backends import default_backends
+    from daemodel.backends import backends_for
 
     (tmp_path / "needs_gpu.py").write_text(
         "from whole_span_pinn import WholeSpanPINN\n\n\nclass NeedsGPU(WholeSpanPINN):\n"
@@ -248,7 +248,7 @@ def test_an_installed_method_whose_class_cannot_be_constructed_is_left_out_too(t
     install(tmp_path, "needs-gpu", {"needs-gpu": "needs_gpu:NeedsGPU"})
     monkeypatch.syspath_prepend(str(tmp_path))
     with pytest.warns(E.MethodPluginWarning) as caught:
-        backends = default_backends("reference", "compare()")
+        backends = backends_for(None, "compare()")
     assert [str(w.message) for w in caught] == [
         "compare() leaves out method 'needs-gpu' from entry point 'needs-gpu' = 'needs_gpu:NeedsGPU' of "
         "distribution 'needs-gpu 1.0' (group daemodel.methods) cannot be constructed: RuntimeError: no GPU here"
