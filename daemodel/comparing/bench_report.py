@@ -279,7 +279,7 @@ def _html(problems, methods, records, rows) -> str:
         '<html lang="en"><head><meta charset="utf-8"><title>daemodel bench</title>',
         f"<style>{_STYLE}</style></head><body>",
         "<h1>daemodel bench</h1>",
-        f"<p>{len(problems)} problems, {len(methods)} methods, {len(records)} runs. "
+        f"<p>{_plural(len(problems), 'problem')}, {_plural(len(methods), 'method')}, {_plural(len(records), 'run')}. "
         "scd: significant correct digits at the end of the interval, -log10 of the largest relative error "
         "over the problem's components (absolute where the reference value is 0). Times on one clock per run: "
         "setup, solve, wall = setup + solve.</p>",
@@ -354,11 +354,24 @@ def _runs_table(records) -> str:
             (r["status"], f' class="{r["status"]}"'),
             ("" if r["scd"] is None else f"{r['scd']:.2f}", ""),
             *(("" if r[k] is None else _seconds(r[k]), "") for k in ("setup_time", "solve_time", "wall_time")),
-            (str(r["stats"].get("steps", "")), ""),
+            (_steps(r["stats"]), ""),
             (why[:400], ""),
         ]
         body.append("<tr>" + "".join(f"<td{attr}>{e(c)}</td>" for c, attr in cells) + "</tr>")
     return "<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>" + "".join(body) + "</table>"
+
+
+# What each method calls its steps in stats: radau and collocation "steps", IDAS "nsteps" (casadi's
+# name), the PINN "segments" (one network per step of its grid).
+STEP_COUNTS = ("steps", "nsteps", "segments")
+
+
+def _steps(stats: dict) -> str:
+    return next((str(stats[k]) for k in STEP_COUNTS if k in stats), "")
+
+
+def _plural(count: int, word: str) -> str:
+    return f"{count} {word}" + ("" if count == 1 else "s")
 
 
 def _skip_notes(records) -> list[str]:

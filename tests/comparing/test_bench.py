@@ -276,7 +276,13 @@ def test_the_report_holds_every_plot_inline_one_per_problem(paper):
     assert len(stored["runs"]) == len(result.records)
     assert stored["summary"] == json.loads(json.dumps(result.summary()))
     assert stored["against_radau"] == []  # (no method beyond the classical ones in this run)
-    assert "Against radau at equal error" not in (out / "report.html").read_text()
+    page = (out / "report.html").read_text()
+    assert "Against radau at equal error" not in page
+    assert f"<p>2 problems, 2 methods, {len(result.records)} runs." in page
+    # the runs' step counts under each method's own name: IDAS's nsteps (the column was empty for it)
+    idas = next(r for r in result.records if r["method"] == "casadi-idas" and r["status"] == "success")
+    row = f'<td>{idas["settings"]}</td><td class="success">success</td><td>{idas["scd"]:.2f}</td>'
+    assert row in page and f"<td>{idas['stats']['nsteps']}</td>" in page.split(row)[1].split("</tr>")[0]
 
 
 def _overlaps(fig) -> list:
