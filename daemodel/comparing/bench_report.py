@@ -147,12 +147,18 @@ def against_radau_cells(row: dict) -> list[str]:
     """One row of :func:`against_radau` as table cells: problem, method, its best run, radau's, the ratios."""
     if "scd" not in row:
         return [row["problem"], row["method"], f"none: {row['none']}", "", ""]
-    wall, solve = _seconds(row["wall"]), _seconds(row["solve"])
+    # (a clock a plugged-in method reported as NaN or inf is None in results.json: "not finite", not a crash)
+    wall, solve = _finite_or(row["wall"], _seconds), _finite_or(row["solve"], _seconds)
     mine = f"{row['scd']:.1f} scd at {row['settings']}: {wall} setup + solve, {solve} solve"
     if row["none"] is not None:
         return [row["problem"], row["method"], mine, row["none"], ""]
-    theirs = f"{row['radau_scd']:.1f} scd in {_seconds(row['radau_solve'])}"
-    return [row["problem"], row["method"], mine, theirs, f"{row['wall_ratio']:.3g}x ({row['solve_ratio']:.3g}x solve)"]
+    theirs = f"{row['radau_scd']:.1f} scd in {_finite_or(row['radau_solve'], _seconds)}"
+    wall_ratio, solve_ratio = (_finite_or(row[k], lambda v: f"{v:.3g}x") for k in ("wall_ratio", "solve_ratio"))
+    return [row["problem"], row["method"], mine, theirs, f"{wall_ratio} ({solve_ratio} solve)"]
+
+
+def _finite_or(value, show) -> str:
+    return show(value) if value is not None and math.isfinite(value) else "not finite"
 
 
 AGAINST_RADAU_HEAD = (

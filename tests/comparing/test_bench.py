@@ -478,7 +478,7 @@ def test_against_radau_says_whether_radau_ran_failed_or_fell_short():
     """A row with no radau run beside it says which: radau not among the methods (before: 'no successful
     radau run reaches 7.0 digits', as if it had run), radau's runs there all failed or flagged (with their
     counts), or none of its successes as accurate."""
-    from daemodel.comparing.bench_report import against_radau
+    from daemodel.comparing.bench_report import against_radau, against_radau_cells
     from daemodel.comparing.suites import BenchProblem
 
     def run(problem, method, status, scd, error_class=None):
@@ -499,3 +499,12 @@ def test_against_radau_says_whether_radau_ran_failed_or_fell_short():
         "no successful radau run reaches 7.0 digits",
         "no radau run succeeded (none ran)",
     ]
+    # a plugged-in method's clock reported as NaN: "not finite" in the cells, None in results.json (which
+    # bench_tables.py prints from: it raised TypeError on the None)
+    nan = [run("b", "pinn", "success", 7.0) | {"setup_time": math.nan}, run("b", "radau", "success", 7.5)]
+    (row,) = against_radau(nan, ["radau", "pinn"], problems[1:2])
+    stored = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()}
+    for shown in (row, stored):
+        assert against_radau_cells(shown)[2:] == [
+            "7.0 scd at s: not finite setup + solve, 10 ms solve", "7.5 scd in 10 ms", "not finite (1x solve)",
+        ]  # fmt: skip
