@@ -291,11 +291,18 @@ def backends_for(names, who: str) -> dict:
     ``compare``, ``bench``), of every method but ``reference``.  Of every method, one installed that
     cannot be loaded is left out with a :class:`MethodPluginWarning` naming it and why, instead of
     stopping the call; named explicitly it raises :class:`MethodPluginError` (an unknown name
-    :class:`UnknownMethodError`)."""
-    from daemodel.errors import MethodPluginError, MethodPluginWarning
+    :class:`UnknownMethodError`, a name given twice :class:`DuplicateMethodError`)."""
+    from daemodel.errors import DuplicateMethodError, MethodPluginError, MethodPluginWarning
 
     if names is not None:
-        return {name: get_backend(name) for name in names}
+        out = {}
+        for name in names:
+            if name in out:  # (a dict of backends would keep it once, silently)
+                raise DuplicateMethodError(
+                    f"{who} is given method {name!r} twice in methods; name each method once, its settings in sweep"
+                )
+            out[name] = get_backend(name)
+        return out
     out = {}
     for name in methods():
         if name == REFERENCE:

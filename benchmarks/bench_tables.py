@@ -20,14 +20,24 @@ def seconds(value: float) -> str:
     return f"{value * 1e3:.3g} ms" if value < 1 else f"{value:.3g} s"
 
 
+def cell(text: str) -> str:
+    """A markdown table cell: a '|' in a method's settings or error would end it."""
+    return str(text).replace("|", "\\|")
+
+
+def row(cells) -> str:
+    return "| " + " | ".join(cell(c) for c in cells) + " |"
+
+
 def most_digits(results: dict) -> list[str]:
-    """Per problem and method: the largest scd of a successful run and its solve time, or what happened."""
+    """Per problem and method: the largest scd of a successful run and its solve time (of ties, the
+    fastest, as the report's table against radau takes), or what happened."""
     methods, runs = results["methods"], results["runs"]
     best, other = {}, collections.defaultdict(collections.Counter)
     for run in runs:
         key = (run["problem"], run["method"])
         if run["status"] == "success" and run["scd"] is not None:
-            if key not in best or run["scd"] > best[key]["scd"]:
+            if key not in best or (run["scd"], -run["solve_time"]) > (best[key]["scd"], -best[key]["solve_time"]):
                 best[key] = run
         else:
             other[key][run["error_class"] or run["status"]] += 1
@@ -40,16 +50,23 @@ def most_digits(results: dict) -> list[str]:
                 cells.append(f"{run['scd']:.1f} ({seconds(run['solve_time'])})")
             else:
                 counts = other[(problem, method)]
-                cells.append("none: " + ", ".join(f"{n} {k}" if n > 1 else k for k, n in sorted(counts.items())))
-        lines.append(f"| {problem} | " + " | ".join(cells) + " |")
+                what = ", ".join(f"{n} {k}" if n > 1 else k for k, n in sorted(counts.items()))
+                cells.append("none: " + (what or "no run"))
+        lines.append(row([problem, *cells]))
     return lines
 
 
 def at_one_tolerance(results: dict) -> list[str]:
-    """One column per method: scd (the component it is read from, solve time) of its single setting."""
+    """One column per method: scd (the component it is read from, solve time) of its single setting;
+    a results.json with more than one run of a method on a problem is refused (SystemExit naming it)."""
     methods = results["methods"]
     rows = collections.defaultdict(dict)
     for run in results["runs"]:
+        if run["method"] in rows[run["problem"]]:
+            raise SystemExit(
+                f"{run['method']} has more than one run on {run['problem']} ({run.get('settings')}): "
+                "--at-one-tolerance reads a bench of one setting per method (--tolerances with one value)"
+            )
         rows[run["problem"]][run["method"]] = run
     lines = ["| problem | " + " | ".join(methods) + " |", "|---|" + "---:|" * len(methods)]
     for problem in (p["name"] for p in results["problems"]):
@@ -62,13 +79,13 @@ def at_one_tolerance(results: dict) -> list[str]:
                 cells.append(f"{run['scd']:.1f} ({run['scd_component']}, {seconds(run['solve_time'])})")
             else:
                 cells.append(f"{run['status']}: {run['error_class'] or run['flag'] or run['reason']}")
-        lines.append(f"| {problem} | " + " | ".join(cells) + " |")
+        lines.append(row([problem, *cells]))
     return lines
 
 
 def against_radau_table(results: dict) -> list[str]:
     lines = ["| " + " | ".join(AGAINST_RADAU_HEAD) + " |", "|---|---|---|---|---:|"]
-    lines += ["| " + " | ".join(against_radau_cells(row)) + " |" for row in results.get("against_radau", [])]
+    lines += [row(against_radau_cells(r)) for r in results.get("against_radau", [])]
     return lines
 
 

@@ -140,6 +140,11 @@ class UnknownMethodError(ModelError):
     """``solve(method=...)`` names no registered backend."""
 
 
+class DuplicateMethodError(ModelError):
+    """``compare()`` or ``bench`` given the same method twice in ``methods``: each method runs once, its
+    settings (as many as wanted) in ``sweep``."""
+
+
 class MethodNameError(InvalidNameError):
     """``dm.methods.register(name, ...)`` with a name that is not a plain method name (a letter, then
     letters, digits, ``-`` or ``_``), or that is taken (a built-in method, one registered earlier, or an

@@ -29,6 +29,8 @@ from daemodel.errors import StagesError
 # 60 digits: far below float64's 16, so rounding the tableau to float64 is exact to the last
 # bit and order-condition residuals of 1e-50 are distinguishable from real failures (>1e-20).
 PRECISION_DIGITS = 60
+# The bound on mpmath's root iterations (s = 30 converges well within it).
+ROOT_STEPS = 200
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,23 +127,32 @@ def radau_coefficients(s: int) -> list[int]:
 
 @cache
 def _radau_iia(s: int) -> RadauIIA:
-    with mpmath.workdps(PRECISION_DIGITS + 20):
-        found = mpmath.polyroots(radau_coefficients(s), maxsteps=200, extraprec=4 * PRECISION_DIGITS)
-        found = found if isinstance(found, list) else [found]
-        if any(abs(mpmath.im(r)) > mpmath.mpf(10) ** -PRECISION_DIGITS for r in found):  # (s simple real roots)
-            raise StagesError(f"Radau polynomial of degree {s}: mpmath found complex roots {found}")
-        roots = sorted(mpmath.re(r) for r in found)
-        if not (0 < roots[0] and abs(roots[-1] - 1) < mpmath.mpf(10) ** -PRECISION_DIGITS):
-            raise StagesError(f"Radau polynomial of degree {s}: roots {roots} are not in (0, 1] ending at 1")
-        roots[-1] = mpmath.mpf(1)
-    with mpmath.workdps(PRECISION_DIGITS):
-        c = [+r for r in roots]  # (rounded to PRECISION_DIGITS)
-        vandermonde = mpmath.matrix([[cj ** (k - 1) for k in range(1, s + 1)] for cj in c])
-        rhs = mpmath.matrix([[ci**k / k for k in range(1, s + 1)] for ci in c])
-        # C(s): A V = R with V[j, k] = c_j^(k-1), R[i, k] = c_i^k / k  ->  A = R V^-1
-        a = rhs * mpmath.inverse(vandermonde)
-        A_hp = tuple(tuple(a[i, j] for j in range(s)) for i in range(s))
-        b_hp = A_hp[-1]  # stiffly accurate: c_s = 1 makes C(s) for the last row equal to B(s)
+    # A context of its own, not mpmath's global one: mpmath.workdps sets the process-wide precision, so
+    # two threads' first calls (functools.cache does not lock) changed each other's digits mid-solve and
+    # left the global precision at 60 or 152 digits behind them (and polyroots raised NoConvergence).
+    mp = mpmath.MPContext()
+    mp.dps = PRECISION_DIGITS + 20
+    try:
+        found = mp.polyroots(radau_coefficients(s), maxsteps=ROOT_STEPS, extraprec=4 * PRECISION_DIGITS)
+    except mp.NoConvergence as error:
+        raise StagesError(
+            f"Radau polynomial of degree {s}: mpmath's roots did not converge in {ROOT_STEPS} steps ({error})"
+        ) from error
+    found = found if isinstance(found, list) else [found]
+    if any(abs(mp.im(r)) > mp.mpf(10) ** -PRECISION_DIGITS for r in found):  # (s simple real roots)
+        raise StagesError(f"Radau polynomial of degree {s}: mpmath found complex roots {found}")
+    roots = sorted(mp.re(r) for r in found)
+    if not (len(roots) == s and 0 < roots[0] and abs(roots[-1] - 1) < mp.mpf(10) ** -PRECISION_DIGITS):
+        raise StagesError(f"Radau polynomial of degree {s}: roots {roots} are not s in (0, 1] ending at 1")
+    roots[-1] = mp.mpf(1)
+    mp.dps = PRECISION_DIGITS  # (the values on the tableau keep this context: their arithmetic at 60 digits)
+    c = [+r for r in roots]  # (rounded to PRECISION_DIGITS)
+    vandermonde = mp.matrix([[cj ** (k - 1) for k in range(1, s + 1)] for cj in c])
+    rhs = mp.matrix([[ci**k / k for k in range(1, s + 1)] for ci in c])
+    # C(s): A V = R with V[j, k] = c_j^(k-1), R[i, k] = c_i^k / k  ->  A = R V^-1
+    a = rhs * mp.inverse(vandermonde)
+    A_hp = tuple(tuple(a[i, j] for j in range(s)) for i in range(s))
+    b_hp = A_hp[-1]  # stiffly accurate: c_s = 1 makes C(s) for the last row equal to B(s)
     return RadauIIA(
         stages=s,
         order=2 * s - 1,

@@ -131,3 +131,52 @@ def test_the_nodes_are_the_radau_polynomials_exact_roots(s):
             assert abs(node - mpmath.mpf(str(sp.N(root, PRECISION_DIGITS + 10)))) < mpmath.mpf(10) ** -(
                 PRECISION_DIGITS - 5
             )
+
+
+def test_first_calls_from_threads_agree_and_leave_mpmaths_precision_alone():
+    """Concurrent first calls (functools.cache does not lock) each get the one tableau, bit for bit,
+    and leave mpmath's global precision as it was: with the global context's workdps they changed each
+    other's digits, left mp.dps at 60 or 152 behind them, and polyroots raised NoConvergence."""
+    import threading
+
+    import mpmath
+
+    from daemodel import tableau
+
+    expected = {s: tableau.radau_iia(s) for s in range(1, 10)}
+    for _ in range(6):
+        tableau._radau_iia.cache_clear()
+        found, errors = [], []
+
+        def first_call(s, found=found, errors=errors):
+            try:
+                found.append((s, tableau.radau_iia(s)))
+            except Exception as error:  # (collected: a thread's exception would not fail the test)
+                errors.append(error)
+
+        threads = [threading.Thread(target=first_call, args=(s,)) for _ in range(2) for s in range(1, 10)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        assert errors == [] and mpmath.mp.dps == 15 and len(found) == 18
+        for s, t in found:
+            for name in ("A", "b", "c"):
+                assert np.array_equal(getattr(t, name), getattr(expected[s], name))
+
+
+def test_roots_that_do_not_converge_are_a_stages_error(monkeypatch):
+    import mpmath
+
+    from daemodel import tableau
+
+    def no_convergence(self, *args, **kwargs):
+        raise self.NoConvergence("Didn't converge in maxsteps=200 steps.")
+
+    monkeypatch.setattr(mpmath.MPContext, "polyroots", no_convergence)
+    tableau._radau_iia.cache_clear()
+    try:
+        with pytest.raises(StagesError, match="degree 4: mpmath's roots did not converge in 200 steps"):
+            dm.radau_iia(4)
+    finally:
+        tableau._radau_iia.cache_clear()

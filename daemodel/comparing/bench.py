@@ -39,8 +39,9 @@ DEFAULT_TOLERANCES = (1e-3, 1e-5, 1e-7, 1e-9, 1e-11)
 # Step sizes a fixed-step method is swept over: span / steps, halved this many times less one.
 DEFAULT_FIXED_POINTS = 3
 # Seconds one run may take before it is stopped and recorded as a TimeLimitError: far above a
-# Test Set run's usual second; the wheelset's tight settings reach it (radau at rtol = 1e-9 took
-# 100 s on a shared core), which keeps `daemodel bench testset paper` near ten minutes.
+# Test Set run's usual second; the wheelset's tight settings came near it (casadi-idas at rtol = 1e-11:
+# 39 s in benchmarks/bench_testset_paper.json; radau at 1e-9 took 100 s on a shared core in an earlier
+# measurement, 5.6 s there), which keeps `daemodel bench testset paper` near ten minutes.
 DEFAULT_TIME_LIMIT = 60.0
 # Where the runs' end values come from when a problem has neither published values nor a closed form.
 REFERENCE_METHOD_NOTE = "scipy (method='reference', rtol = atol = 1e-12)"

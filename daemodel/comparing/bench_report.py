@@ -96,7 +96,8 @@ def against_radau(records, methods, problems) -> list[dict]:
     successful run (``scd``, ``wall``: setup + solve, the training included, ``solve``) beside radau's
     fastest successful solve reaching at least those digits (``radau_solve``, its ``radau_scd``), and
     the ratios ``wall_ratio`` and ``solve_ratio``; ``none`` says why a row has no run (its runs'
-    statuses and errors) or no radau run to set it against."""
+    statuses and errors) or no radau run to set it against (radau not among ``methods``, none of its
+    runs on the problem a success, or none as accurate)."""
     out = []
     radau = [r for r in records if r["method"] == "radau" and r["status"] == "success" and r["scd"] is not None]
     for method in methods:
@@ -116,7 +117,7 @@ def against_radau(records, methods, problems) -> list[dict]:
             row["wall"] = best["setup_time"] + best["solve_time"]
             match = [r for r in radau if r["problem"] == problem.name and r["scd"] >= best["scd"]]
             if not match:
-                row["none"] = f"no successful radau run reaches {best['scd']:.1f} digits"
+                row["none"] = _no_radau_match(records, methods, problem.name, best["scd"])
             else:
                 fastest = min(match, key=lambda r: r["solve_time"])
                 row.update(radau_scd=fastest["scd"], radau_solve=fastest["solve_time"])
@@ -127,16 +128,37 @@ def against_radau(records, methods, problems) -> list[dict]:
     return out
 
 
+def _no_radau_match(records, methods, problem: str, digits: float) -> str:
+    """Why a row of :func:`against_radau` has no radau run beside it."""
+    if "radau" not in methods:
+        return "radau is not among the methods run"
+    runs = [r for r in records if r["method"] == "radau" and r["problem"] == problem]
+    if not any(r["status"] == "success" and r["scd"] is not None for r in runs):
+        counts = Counter(r["error_class"] or r["status"] for r in runs)
+        return (
+            "no radau run succeeded ("
+            + (", ".join(f"{n} {what}" for what, n in sorted(counts.items())) or "none ran")
+            + ")"
+        )
+    return f"no successful radau run reaches {digits:.1f} digits"
+
+
 def against_radau_cells(row: dict) -> list[str]:
     """One row of :func:`against_radau` as table cells: problem, method, its best run, radau's, the ratios."""
     if "scd" not in row:
         return [row["problem"], row["method"], f"none: {row['none']}", "", ""]
-    wall, solve = _seconds(row["wall"]), _seconds(row["solve"])
+    # (a clock a plugged-in method reported as NaN or inf is None in results.json: "not finite", not a crash)
+    wall, solve = _finite_or(row["wall"], _seconds), _finite_or(row["solve"], _seconds)
     mine = f"{row['scd']:.1f} scd at {row['settings']}: {wall} setup + solve, {solve} solve"
     if row["none"] is not None:
         return [row["problem"], row["method"], mine, row["none"], ""]
-    theirs = f"{row['radau_scd']:.1f} scd in {_seconds(row['radau_solve'])}"
-    return [row["problem"], row["method"], mine, theirs, f"{row['wall_ratio']:.3g}x ({row['solve_ratio']:.3g}x solve)"]
+    theirs = f"{row['radau_scd']:.1f} scd in {_finite_or(row['radau_solve'], _seconds)}"
+    wall_ratio, solve_ratio = (_finite_or(row[k], lambda v: f"{v:.3g}x") for k in ("wall_ratio", "solve_ratio"))
+    return [row["problem"], row["method"], mine, theirs, f"{wall_ratio} ({solve_ratio} solve)"]
+
+
+def _finite_or(value, show) -> str:
+    return show(value) if value is not None and math.isfinite(value) else "not finite"
 
 
 AGAINST_RADAU_HEAD = (

@@ -256,3 +256,25 @@ def test_an_installed_method_whose_class_cannot_be_constructed_is_left_out_too(t
     assert list(backends) == ["radau", "casadi-collocation", "casadi-idas", "pinn"]
     with pytest.raises(E.MethodPluginError, match=r"method 'needs-gpu' from entry point .* RuntimeError: no GPU here$"):
         get_backend("needs-gpu")
+
+
+def test_a_method_named_twice_is_a_named_error_not_merged_silently(tmp_path):
+    """methods=["radau", "radau"]: compare() and bench() kept it twice before backends_for, then merged
+    it into one without a word; it is a DuplicateMethodError naming the method and the call."""
+    from daemodel.backends import backends_for
+
+    with pytest.raises(E.DuplicateMethodError, match=r"^bench is given method 'radau' twice in methods; name each"):
+        backends_for(["radau", "casadi-idas", "radau"], "bench")
+    with pytest.raises(E.UnknownMethodError):  # (an unknown name is still that, before any duplicate)
+        backends_for(["radau", "nope", "radau"], "bench")
+    assert list(backends_for(["casadi-idas", "radau"], "bench")) == ["casadi-idas", "radau"]
+    m = dm.Model("decay")
+    (x,) = m.states("x")
+    (w,) = m.algebraics("w")
+    m.ode(x, -w)
+    m.constraint(w - x, name="tie")
+    m.initial(x=1.0, w=1.0)
+    with pytest.raises(E.DuplicateMethodError, match=r"^compare\(\) is given method 'radau' twice"):
+        dm.compare(m, (0.0, 1.0), ["radau", "radau"])
+    with pytest.raises(E.DuplicateMethodError, match=r"^bench is given method 'pinn' twice"):
+        dm.bench(["paper"], ["pinn", "radau", "pinn"], tmp_path / "out", progress=False)

@@ -478,3 +478,39 @@ def test_a_neural_method_is_set_against_radau_at_equal_error():
     assert c == {"problem": "c", "method": "pinn", "none": "2 TimeLimitError, 1 skipped"}
     assert against_radau_cells(c) == ["c", "pinn", "none: 2 TimeLimitError, 1 skipped", "", ""]
     assert against_radau(records, ["radau", "casadi-idas"], problems) == []
+
+
+def test_against_radau_says_whether_radau_ran_failed_or_fell_short():
+    """A row with no radau run beside it says which: radau not among the methods (before: 'no successful
+    radau run reaches 7.0 digits', as if it had run), radau's runs there all failed or flagged (with their
+    counts), or none of its successes as accurate."""
+    from daemodel.comparing.bench_report import against_radau, against_radau_cells
+    from daemodel.comparing.suites import BenchProblem
+
+    def run(problem, method, status, scd, error_class=None):
+        return {"problem": problem, "method": method, "status": status, "scd": scd, "setup_time": 0.5,
+                "solve_time": 0.01, "error_class": error_class, "settings": "s"}  # fmt: skip
+
+    pinn = [run(p, "pinn", "success", 7.0) for p in "abc"]
+    radau = [
+        run("a", "radau", "failed", None, "StepLimitError"), run("a", "radau", "flagged", 8.0),
+        run("a", "radau", "flagged", 9.0), run("b", "radau", "success", 6.5),
+    ]  # fmt: skip
+    problems = [BenchProblem(name, name, "testset", (0.0, 1.0)) for name in "abc"]
+    alone = against_radau(pinn, ["pinn"], problems)
+    assert [r["none"] for r in alone] == ["radau is not among the methods run"] * 3
+    rows = against_radau(pinn + radau, ["radau", "pinn"], problems)
+    assert [r["none"] for r in rows] == [
+        "no radau run succeeded (1 StepLimitError, 2 flagged)",
+        "no successful radau run reaches 7.0 digits",
+        "no radau run succeeded (none ran)",
+    ]
+    # a plugged-in method's clock reported as NaN: "not finite" in the cells, None in results.json (which
+    # bench_tables.py prints from: it raised TypeError on the None)
+    nan = [run("b", "pinn", "success", 7.0) | {"setup_time": math.nan}, run("b", "radau", "success", 7.5)]
+    (row,) = against_radau(nan, ["radau", "pinn"], problems[1:2])
+    stored = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in row.items()}
+    for shown in (row, stored):
+        assert against_radau_cells(shown)[2:] == [
+            "7.0 scd at s: not finite setup + solve, 10 ms solve", "7.5 scd in 10 ms", "not finite (1x solve)",
+        ]  # fmt: skip

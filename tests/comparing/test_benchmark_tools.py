@@ -115,3 +115,33 @@ def test_bench_tables_read_the_most_digits_and_one_tolerance_off_the_runs(bench_
         "| a | 9.2 (y, 4 ms) | failed: TimeLimitError |",
         "| b | 3.0 (y, 2.5 s) |  |",
     ]
+
+
+def test_bench_tables_ties_unrun_methods_bars_and_more_than_one_tolerance(bench_tables):
+    """Of tied digits the fastest run (as the report's table against radau; it took the first in the
+    file), 'none: no run' for a method with no run on a problem (it printed 'none: '), a '|' in a
+    settings string escaped (it split the row), and --at-one-tolerance refuses a results.json with two
+    runs of a method on a problem (it printed the last one read)."""
+
+    def run(problem, method, scd, solve, settings="s"):
+        return {"problem": problem, "method": method, "status": "success", "scd": scd, "solve_time": solve,
+                "error_class": None, "scd_component": "y", "flag": None, "reason": None,
+                "settings": settings}  # fmt: skip
+
+    results = {
+        "problems": [{"name": "a"}, {"name": "b"}],
+        "methods": ["radau", "pinn"],
+        "runs": [run("a", "radau", 9.0, 0.004), run("a", "radau", 9.0, 0.001), run("a", "pinn", 5.0, 0.2)],
+    }
+    assert bench_tables.most_digits(results)[2:] == [
+        "| a | 9.0 (1 ms) | 5.0 (200 ms) |",
+        "| b | none: no run | none: no run |",
+    ]
+    with pytest.raises(SystemExit, match=r"^radau has more than one run on a \(s\): --at-one-tolerance reads"):
+        bench_tables.at_one_tolerance(results)
+    hostile = {"problem": "a", "method": "pinn", "none": None, "scd": 5.0, "settings": "h=0.1 | <b>",
+               "wall": 1.0, "solve": 0.1, "radau_scd": 6.0, "radau_solve": 0.01, "wall_ratio": 100.0,
+               "solve_ratio": 10.0}  # fmt: skip
+    table = bench_tables.against_radau_table({"against_radau": [hostile]})
+    mine = "5.0 scd at h=0.1 \\| <b>: 1 s setup + solve, 100 ms solve"
+    assert table[2] == f"| a | pinn | {mine} | 6.0 scd in 10 ms | 100x (10x solve) |"
