@@ -213,18 +213,25 @@ def test_a_broken_entry_point_is_named_and_the_others_work(tmp_path, monkeypatch
     assert "no_such_module_for_daemodel" not in sys.modules
 
 
+def every_method(root: Path, monkeypatch, who: str) -> tuple[list, dict]:
+    """The warnings and the backends of a call given no methods (``who``), with the distributions
+    installed under ``root`` on sys.path."""
+    from daemodel.backends import backends_for
+
+    monkeypatch.syspath_prepend(str(root))
+    with pytest.warns(E.MethodPluginWarning) as caught:
+        backends = backends_for(None, who)
+    return [str(w.message) for w in caught], backends
+
+
 def test_a_broken_installed_method_is_left_out_of_a_run_over_every_method(tmp_path, monkeypatch, example):
     """compare() and bench() with no methods given run every method: one installed method that does not
     load left them unable to start (MethodPluginError); now it is left out with a warning naming it,
     and the others run. Named explicitly, it still raises."""
-    from daemodel.backends import backends_for
-
     install(tmp_path, "daemodel-whole-span-pinn", {"whole-span-pinn": "whole_span_pinn:WholeSpanPINN"})
     install(tmp_path, "broken-methods", {"missing": "no_such_module_for_daemodel:Method"})
-    monkeypatch.syspath_prepend(str(tmp_path))
-    with pytest.warns(E.MethodPluginWarning) as caught:
-        backends = backends_for(None, "bench")
-    assert [str(w.message) for w in caught] == [
+    messages, backends = every_method(tmp_path, monkeypatch, "bench")
+    assert messages == [
         "bench leaves out method 'missing' cannot be loaded from entry point 'missing' = "
         "'no_such_module_for_daemodel:Method' of distribution 'broken-methods 1.0' (group daemodel.methods): "
         "ModuleNotFoundError: No module named 'no_such_module_for_daemodel'"
@@ -239,17 +246,13 @@ def test_an_installed_method_whose_class_cannot_be_constructed_is_left_out_too(t
     """A class that imports and keeps the contract but whose constructor raises (a method that needs a
     GPU, a licence) stopped compare() and bench() without methods with its own exception; it is a
     MethodPluginError naming the entry point, left out with a warning there, raised where named."""
-    from daemodel.backends import backends_for
-
     (tmp_path / "needs_gpu.py").write_text(
         "from whole_span_pinn import WholeSpanPINN\n\n\nclass NeedsGPU(WholeSpanPINN):\n"
         "    name = 'needs-gpu'\n\n    def __init__(self):\n        raise RuntimeError('no GPU here')\n"
     )
     install(tmp_path, "needs-gpu", {"needs-gpu": "needs_gpu:NeedsGPU"})
-    monkeypatch.syspath_prepend(str(tmp_path))
-    with pytest.warns(E.MethodPluginWarning) as caught:
-        backends = backends_for(None, "compare()")
-    assert [str(w.message) for w in caught] == [
+    messages, backends = every_method(tmp_path, monkeypatch, "compare()")
+    assert messages == [
         "compare() leaves out method 'needs-gpu' from entry point 'needs-gpu' = 'needs_gpu:NeedsGPU' of "
         "distribution 'needs-gpu 1.0' (group daemodel.methods) cannot be constructed: RuntimeError: no GPU here"
     ]
