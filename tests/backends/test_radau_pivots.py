@@ -111,9 +111,9 @@ def test_the_wheelset_keeps_its_factorisations_in_the_static_order():
     the 537 static factorisations that Python saw fell back to LAPACK before the order was re-derived;
     now the orders derived from the failures hold (measured: 16 failures over [0, 10]).
 
-    The orders derived depend on the matrices the first steps factor: from h0 = 1e-6 (given to every
-    piece between events) 6 failures over [0, 2], from 1e-4 none; from the default first steps (the
-    probed rule's 3.4e-3, then 8.3e-6 after each event) 190, and from h0 = 3.0e-4 175: a loss of
+    The orders derived depend on the matrices the first steps factor: from h0 = 1e-6, 6 failures over
+    [0, 2], from 1e-4 none; from the default first steps (the probed rule's 3.4e-3, then 8.3e-6 after
+    each event) 190, and from h0 = 3.0e-4 175: a loss of
     speed (3.9 s against 3.0 s), not of accuracy, that is open (named in the closing note)."""
     from daemodel.problems import WHEELSET
 
