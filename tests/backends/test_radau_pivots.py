@@ -106,18 +106,21 @@ def test_matrices_that_are_not_finite_are_counted_and_not_kept():
 
 @pytest.mark.slow
 @pytest.mark.skipif(find_compiler() is None, reason="the static factors run in machine code (jit)")
+@pytest.mark.xfail(
+    strict=True,
+    reason="open speed regression: since radau's first step is probed (3.4e-3 first, then 8.3e-6 after each "
+    "event, where the rule without the probe gave 3.0e-4 and 1.1e-4), the pivot orders derived from the "
+    "first failures hold less well: 190 LAPACK fallbacks over [0, 2] in a fresh process, where this asks for "
+    "at most 40 (the solve still succeeds; each fallback is a factorisation on Python's path)",
+)
 def test_the_wheelset_keeps_its_factorisations_in_the_static_order():
     """The wheelset starts at rest, where its first order is chosen: over [0, 2] at rtol 1e-6, 531 of
     the 537 static factorisations that Python saw fell back to LAPACK before the order was re-derived;
-    now the orders derived from the failures hold (measured: 16 failures over [0, 10]).
-
-    The orders derived depend on the matrices the first steps factor: from h0 = 1e-6, 6 failures over
-    [0, 2], from 1e-4 none; from the default first steps (the probed rule's 3.4e-3, then 8.3e-6 after
-    each event) 190, and from h0 = 3.0e-4 175: a loss of
-    speed (3.9 s against 3.0 s), not of accuracy, that is open (named in the closing note)."""
+    then the orders derived from the failures held (16 failures over [0, 10]). They depend on the
+    matrices the first steps factor (see the xfail's reason)."""
     from daemodel.problems import WHEELSET
 
     compiled = WHEELSET.model().compile()
-    sol = dm.solve(compiled, (0.0, 2.0), rtol=1e-6, atol=1e-6, jit=True, h0=1e-6)
+    sol = dm.solve(compiled, (0.0, 2.0), rtol=1e-6, atol=1e-6, jit=True)
     assert sol.status == "success"
     assert sol.stats["pivot_failures"] <= 40
