@@ -769,12 +769,9 @@ def test_fast_mode_reaches_the_radau_ceiling_on_a_chain_with_many_multipliers():
 
 # ---- errors ---------------------------------------------------------------------------------------
 def test_nan_loss_names_the_segment_and_the_term():
-    m = dm.Model("root")
-    m.states(["x"])
-    m.algebraics(["w"])
-    m.ode("x", "sqrt(0.05 - t) + w")
-    m.constraint("x - w", name="tie")
-    m.initial(x=0.0)
+    from pinn_hard_models import root
+
+    m = root()
     with pytest.raises(
         TrainingError,
         match=r"segment 2 \(t = 0.05 to 0.1\): loss term L_f is not finite at iteration 0; the start values "

@@ -58,3 +58,14 @@ def rectifier() -> dm.Model:
     m.constraint(iD - p["Is"] * (sp.exp((source - vC - p["Rs"] * iD) / p["Vt"]) - 1), name="diode")
     m.initial(vC=0.0)
     return m
+
+
+def root() -> dm.Model:
+    """x' = sqrt(0.05 - t) + w, 0 = x - w (index 1): the right-hand side leaves its domain at t = 0.05."""
+    m = dm.Model("root")
+    m.states(["x"])
+    m.algebraics(["w"])
+    m.ode("x", "sqrt(0.05 - t) + w")
+    m.constraint("x - w", name="tie")
+    m.initial(x=0.0)
+    return m

@@ -11,7 +11,7 @@ import warnings
 
 import numpy as np
 import pytest
-from pinn_hard_models import cstr, double_pendulum, rectifier
+from pinn_hard_models import cstr, double_pendulum, rectifier, root
 
 import daemodel as dm
 from daemodel.errors import (
@@ -266,12 +266,7 @@ def test_auto_h_survives_a_replace_and_refuses_segment_starts():
 
 
 def test_a_failed_presolve_names_itself_and_the_fix():
-    m = dm.Model("root")
-    m.states(["x"])
-    m.algebraics(["w"])
-    m.ode("x", "sqrt(0.05 - t) + w")
-    m.constraint("x - w", name="tie")
-    m.initial(x=0.0)
+    m = root()
     with pytest.raises(
         ConvergenceError,
         match=r"^pinn: the default h comes from an adaptive radau solve \(stages = 3\) at rtol = 1e-06, which failed "
