@@ -39,6 +39,12 @@ CHAIN_RELEASE_ANGLE = math.pi / 4
 DIFFUSION = 0.1
 
 
+def check_size(value, family: str, name: str, what: str) -> None:
+    """A family's size ``name`` must be an integer >= 1 (a bool is not): else InvalidValueError."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise InvalidValueError(f"{family} needs an integer {name} >= 1 {what}; got {value!r}")
+
+
 def pendulum_chain(N: int) -> Model:
     """A chain of N planar pendulums in Cartesian coordinates (index 3).
 
@@ -65,8 +71,7 @@ def pendulum_chain(N: int) -> Model:
     N : int
         Number of links, >= 1.
     """
-    if isinstance(N, bool) or not isinstance(N, int) or N < 1:
-        raise InvalidValueError(f"pendulum_chain needs an integer N >= 1 links; got {N!r}")
+    check_size(N, "pendulum_chain", "N", "links")
     m = Model(f"pendulum_chain_{N}")
     idx = range(1, N + 1)
     x = m.states([f"x_{i}" for i in idx])
@@ -122,8 +127,7 @@ def reaction_diffusion(K: int) -> Model:
     K : int
         Number of interior grid points, >= 1.
     """
-    if isinstance(K, bool) or not isinstance(K, int) or K < 1:
-        raise InvalidValueError(f"reaction_diffusion needs an integer K >= 1 grid points; got {K!r}")
+    check_size(K, "reaction_diffusion", "K", "grid points")
     m = Model(f"reaction_diffusion_{K}")
     idx = range(1, K + 1)
     c = m.states([f"c_{k}" for k in idx])
