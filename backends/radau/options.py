@@ -32,6 +32,11 @@ FIXED_STAGES = 3
 # against 470 ms, Akzo Nobel equal; the squeezer 17.7 against 12.8 ms and HIRES and pollution
 # 0.2 ms slower, at the same digits.  Each entry holds for rtol >= its smallest rtol, loosest first.
 ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
+# Fewest stages of adaptive mode.  One stage is implicit Euler: its local error is O(h^2), so steps
+# that keep each local error at rtol number ~rtol^(-1/2) and add up to ~rtol^(1/2), 20-200 x rtol on
+# a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_options.py), up to 4,000 x on
+# random stiff systems; two stages (order 3) stayed within 0.1-100 x on the same systems.
+MIN_ADAPTIVE_STAGES = 2
 # Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
 ENGINES = ("auto", "torch", "casadi")
 # Tolerances of adaptive mode when neither h nor rtol/atol is given.
@@ -192,6 +197,14 @@ class RadauOptions:
         if self.stages is None:
             object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
         check_stages(self.stages)
+        if self.adaptive and self.stages < MIN_ADAPTIVE_STAGES:
+            raise InvalidOptionError(
+                f"stages = {self.stages} (implicit Euler, order 1) cannot take adaptive steps: the step-size "
+                "control bounds each step's local error by rtol/atol, and a first-order method's global error "
+                "then grows with the number of steps (100-4,000 x rtol measured at rtol 1e-6 to 1e-9); give "
+                f"stages >= {MIN_ADAPTIVE_STAGES} (or leave stages out), or h=... for a fixed implicit Euler grid "
+                "checked by its error estimate"
+            )
         eps = float(np.finfo(self.dtype).eps)
         if self.newton_tol is not None and self.newton_tol < 10 * eps:
             raise InvalidOptionError(

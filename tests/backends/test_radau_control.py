@@ -142,16 +142,44 @@ def _near_rest(seed: int):
 @pytest.mark.parametrize("seed", range(6))
 def test_a_start_near_rest_is_followed_to_the_tolerance(seed):
     """Near rest (f(t0) ~ 1e-7 of the state), the probed first step is no leap: radau's end values are
-    scipy's at 1e-13 to within 100 rtol (relative to 1 + |y|), for 3 and 5 stages.  With the first
+    scipy's at 1e-13 to within 100 rtol (relative to 1 + |y|), for 2, 3 and 5 stages.  With the first
     guess alone, seed 4 (3 stages, rtol 1e-4) ended 190 rtol off and said success."""
     model, rhs, y0 = _near_rest(seed)
     n = len(y0)
     T = float(10 ** np.random.default_rng(100 + seed).uniform(-1, 2))
     exact = solve_ivp(rhs, (0.0, T), y0, method="Radau", rtol=1e-13, atol=1e-13).y[:, -1]
     compiled = model.compile()
-    for stages in (3, 5):
+    for stages in (2, 3, 5):
         for rtol in (1e-4, 1e-7):
             sol = dm.solve(compiled, (0.0, T), rtol=rtol, atol=rtol, stages=stages, jit=False)
             got = np.array([float(np.ravel(sol[f"y{i}"])[-1]) for i in range(n)])
             assert sol.status == "success"
             assert np.max(np.abs(got - exact) / (1 + np.abs(exact))) < 100 * rtol, (stages, rtol)
+
+
+def test_implicit_euler_is_refused_adaptive_steps_and_two_stages_meet_the_tolerance():
+    """One stage (implicit Euler) with adaptive steps ended 20 rtol off at rtol 1e-4 and 197 rtol at 1e-6
+    on this stiff linear pair, and said success: its local error O(h^2) held at rtol over ~rtol^(-1/2)
+    steps adds up to ~rtol^(1/2).  It is refused, naming why and what to give; two and three stages end
+    within rtol of the exact solution (matrix exponential), and one stage on a fixed grid still runs."""
+    from scipy.linalg import expm
+
+    A = np.array([[-1.0, 1.0], [50.0 * np.cos(1.0), -50.0]])
+    m = dm.Model("stiff_pair")
+    x, y = m.states("x y")
+    m.ode(x, A[0, 0] * x + A[0, 1] * y)
+    m.ode(y, A[1, 0] * x + A[1, 1] * y)
+    m.initial(x=1.0, y=0.0)
+    c = m.compile()
+    exact = expm(5.0 * A) @ [1.0, 0.0]
+    for rtol in (1e-4, 1e-6):
+        with pytest.raises(E.InvalidOptionError, match=r"stages = 1 \(implicit Euler, order 1\) cannot take adaptive"):
+            dm.solve(c, (0.0, 5.0), rtol=rtol, atol=rtol, stages=1)
+        for stages in (2, 3):
+            sol = dm.solve(c, (0.0, 5.0), rtol=rtol, atol=rtol, stages=stages)
+            assert sol.status == "success"
+            assert max(abs(sol["x"][-1] - exact[0]), abs(sol["y"][-1] - exact[1])) < rtol, (stages, rtol)
+    with pytest.raises(E.InvalidOptionError, match=r"give stages >= 2 \(or leave stages out\), or h=\.\.\."):
+        dm.solve(c, (0.0, 5.0), stages=1)  # the default tolerances are adaptive too
+    fixed = dm.solve(c, (0.0, 5.0), stages=1, h=2.5e-4)
+    assert fixed.status == "success" and abs(fixed["x"][-1] - exact[0]) < 1e-3
