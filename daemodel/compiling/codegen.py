@@ -369,7 +369,8 @@ class CasadiConverter:
         """The value of a number leaf (a logical constant as 1 or 0), else None."""
         if expr.is_Number or isinstance(expr, sp.NumberSymbol):
             return float(expr)
-        return 1.0 if expr == sp.true else 0.0 if expr == sp.false else None
+        # (sympy's logical constants are singletons: an identity test, where == costs a sympify)
+        return 1.0 if expr is sp.true else 0.0 if expr is sp.false else None
 
     @staticmethod
     def _piecewise(pieces: int, value, condition):
@@ -385,10 +386,11 @@ class CasadiConverter:
     def _structure(self, expr) -> tuple:
         """The tree of operations of ``expr``, leaves as "S" (a symbol of the map) or "N" (a number);
         a power's exponent of one half (a square root) is part of the tree."""
-        if expr in self._symbols:
-            return ("S",)
-        if self._number(expr) is not None:
-            return ("N",)
+        if expr.is_Atom:  # (symbols and numbers are atoms: other nodes skip both tests)
+            if expr in self._symbols:
+                return ("S",)
+            if self._number(expr) is not None:
+                return ("N",)
         head = (type(expr), len(expr.args))
         if isinstance(expr, sp.Pow):
             head += (expr.exp == sp.S.Half,)

@@ -109,7 +109,10 @@ def find_switches(compiled) -> tuple[Switch, ...]:
     found, seen = [], set()
     for label, exprs in equations:
         for expr in exprs:
-            for node in sp.preorder_traversal(expr):
+            stack = [expr]
+            while stack:  # (preorder, as sympy's preorder_traversal, without its generator's cost per node)
+                node = stack.pop()
+                stack.extend(reversed(node.args))
                 kind = _KINDS.get(type(node))
                 if kind is None:
                     continue
