@@ -34,7 +34,7 @@ FIXED_STAGES = 3
 ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # Fewest stages of adaptive mode.  One stage is implicit Euler: its local error is O(h^2), so steps
 # that keep each local error at rtol number ~rtol^(-1/2) and add up to ~rtol^(1/2), 20-200 x rtol on
-# a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_options.py), up to 4,000 x on
+# a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_control.py), up to 4,000 x on
 # random stiff systems; two stages (order 3) stayed within 0.1-100 x on the same systems.
 MIN_ADAPTIVE_STAGES = 2
 # Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
