@@ -12,7 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
-from daemodel.backends.radau.pivots import MAX_PIVOT_ORDERS, REDERIVE_AFTER, PivotOrders, fixed_order_growth
+from daemodel.backends.radau.pivots import (
+    MATCHED_MAX_COST,
+    MAX_PIVOT_ORDERS,
+    REDERIVE_AFTER,
+    PivotOrders,
+    first_order,
+    fixed_order_growth,
+)
 from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
 
 import daemodel as dm
@@ -117,6 +124,19 @@ def test_static_pivoting_holds_an_index_two_system_at_every_step_size():
     assert lu.perm_r[3] < lu.perm_r[2]  # (the index-1 row pivots before the index-2 one)
     for h in (1e-8, 1e-4, 1e-2, 1.0):
         assert max(fixed_order_growth(lu, J, h, lam) for lam in (3.64 + 0j, 2.68 + 3.05j)) < 10
+
+
+def test_static_pivoting_is_the_first_order_unless_it_fills_in(first_engine):
+    """Static pivoting's order where its elimination costs at most MATCHED_MAX_COST times partial
+    pivoting's; on reaction-diffusion (100 unknowns) taking the differential variables first fills in."""
+    _, engine = first_engine(scaling_models.reaction_diffusion(50))
+    assert engine._static_pattern().pivoting == "partial"
+    rows, cols, J = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), -np.array([2.0, 1.0, 1.0, 1.0])
+    matched, partial = (StaticLU(rows, cols, 0, 2, J, 1.0, 1.0, kind) for kind in ("matched", "partial"))
+    assert first_order([partial, matched]) is matched and first_order([partial]) is partial
+    matched.flops = MATCHED_MAX_COST * partial.flops + 1
+    assert first_order([matched, partial]) is partial and first_order([matched]) is matched
+    assert first_order([]) is None
 
 
 @pytest.mark.slow
