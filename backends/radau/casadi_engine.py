@@ -40,8 +40,8 @@ from daemodel.backends.radau.linalg import (
     sparse_sign_det,
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
-from daemodel.backends.radau.pivots import PivotOrders
-from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
+from daemodel.backends.radau.pivots import PivotOrders, first_order, holds
+from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU
 
 from daemodel.errors import DaemodelError
 
@@ -398,15 +398,17 @@ class CasadiEngine(AbstractEngine):
         if not np.isfinite(J).all():
             return None
         scale = 1e3 * max(1.0, float(np.abs(J).max(initial=0.0)))
-        try:
-            lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0)
-        except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
-            raise
-        except RuntimeError:  # (SuperLU: "Factor is exactly singular"; the factorisations will say where)
-            return None
-        if lu.flops > STATIC_MAX_FLOPS or lu.entries > STATIC_MAX_ENTRIES:
-            return None
-        return lu
+        orders = []  # (static pivoting's and SuperLU's, where they hold here: .pivots.first_order chooses)
+        for pivoting in PIVOTING:
+            try:
+                lu = StaticLU(self.rows, self.cols, self.n, self.D, J, 1.0 / scale, 1.0, pivoting)
+            except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+                raise
+            except RuntimeError:  # (SuperLU: "Factor is exactly singular"; the factorisations will say where)
+                continue
+            if lu.flops <= STATIC_MAX_FLOPS and lu.entries <= STATIC_MAX_ENTRIES and holds(lu, J, 1.0 / scale, [1.0]):
+                orders.append(lu)
+        return first_order(orders)
 
     def _static_factor(self, J, h: float) -> Factors | None:
         """:class:`Factors` of every shift with the fixed-pivot sparse LU, or None where their growth

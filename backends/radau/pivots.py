@@ -1,15 +1,20 @@
 """The fixed pivot order of a model's static factors (:mod:`.sparse`), re-derived where it stops holding.
 
-The static factors' pivot order is SuperLU's at one matrix, the start of the model's first adaptive
-solve.  Where the solution moves far from there, that order stops holding: the wheelset starts at rest,
-where the contact and creep terms of the velocities vanish, and after t ~ 0.45 nearly every
-factorisation had a zero pivot or a growth past :data:`.sparse.MAX_GROWTH` (3,807 of 4,374 at rtol
-1e-6), each factored again by LAPACK and its attempts run on the general path in Python.
+The static factors' pivot order is chosen at one matrix, the start of the model's first adaptive solve:
+static pivoting (:func:`.sparse.matched_order`: the differential diagonals, then a matching on the
+algebraic block, index-1 rows before index-2 ones) where it holds there, else SuperLU's partial
+pivoting.  Partial pivoting's order depends on every value of that one matrix: the wheelset starts at
+rest, and its order pivoted on creep forces' derivatives that vanish where tanh saturates; after t ~ 0.45
+nearly every factorisation had a zero pivot (4,599 of 5,307 steps over [0, 10] at rtol 1e-6), each
+factored again by LAPACK on the general path in Python, and the orders re-derived from the first
+failures depended on which matrices the first steps happened to factor (190 fallbacks over [0, 2] with
+the probed first step, 455 from h0 = 1e-6).  The static-pivoting order held at every step, from any h0:
+no fallback over [0, 2] from the default, 3e-4 or 1e-6.
 
 :class:`PivotOrders` keeps the order with the model, counts the factorisations it did not hold, and
 keeps a few of their matrices.  The next solve of the model (each piece between events and
-breakpoints is one) derives a new order from them, in its setup: SuperLU's order at each kept matrix
-is a candidate, and the one whose factors hold at most of the kept matrices (growth within the bound
+breakpoints is one) derives a new order from them, in its setup: both orders at each kept matrix are
+candidates, and the one whose factors hold at most of the kept matrices (growth within the bound
 and no zero pivot, by :func:`fixed_order_growth`) replaces the order, if it holds at more of them
 than the order in use.  A new order is new code (the static factors and the compiled step are built
 for it, and compiled once, through the disk cache); at most :data:`MAX_PIVOT_ORDERS` are derived per
@@ -19,13 +24,16 @@ an earlier solve of the model started from takes that solve's order: solving aga
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
-from daemodel.backends.radau.sparse import MAX_GROWTH, StaticLU
+from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU
 
 from daemodel.errors import DaemodelError
 
 # Pivot orders derived per model after the first (each is a compile of the step's library, 0.5-1 s on the
-# Test Set problems from a cold cache): the wheelset at rtol 1e-6 needs 1-2.
+# Test Set problems from a cold cache): the wheelset at rtol 1e-6 needs none since its first order is
+# static pivoting's (it needed 1-2 with SuperLU's).
 MAX_PIVOT_ORDERS = 4
 # Factorisations the order must have failed before the next solve derives another: one failure is a
 # singular system as often as a poor order (every order fails there, and LAPACK names it).
@@ -34,33 +42,69 @@ REDERIVE_AFTER = 3
 # the test set of the candidates: each candidate is an elimination at each kept matrix, milliseconds at
 # D <= a few hundred.
 KEPT_FAILURES = 12
+# Static pivoting's elimination (the differential variables first) may fill in where partial pivoting's
+# interleaves them (reaction-diffusion of 100 unknowns: 4,000 entries against < 1,000): beyond this many
+# times partial pivoting's multiply-adds its robustness costs more than the factorisations it saves.
+MATCHED_MAX_COST = 1.5
 
 
 def fixed_order_growth(lu: StaticLU, J: np.ndarray, h: float, shift: complex) -> float:
     """The growth that the static factors of ``lu``'s pivot order report for ``shift / h M - J`` (J's
     nonzeros at ``lu``'s pattern): the larger of max |L| and max |U| over max |matrix|, inf at a zero
-    pivot or a value that is not finite.  A dense elimination in the fixed order (entries outside the
-    pattern stay 0), in numpy: the kernel's number, up to rounding."""
+    pivot, a singular matrix or a value that is not finite.  SuperLU's elimination of the matrix
+    permuted into that order, told to keep every diagonal pivot (threshold 0, no reordering beyond a
+    postorder of the elimination tree, which leaves the factors' entries as they are): the kernel's
+    number, up to rounding, in O(the elimination's flops)."""
+    import scipy.sparse as sparse
+    import scipy.sparse.linalg as splinalg
+
     D, n = lu.D, lu.n
-    dtype = complex if complex(shift).imag else float
-    A = np.zeros((D, D), dtype=dtype)
-    np.add.at(A, (lu.perm_r[lu.rows], lu.perm_c[lu.cols]), -np.asarray(J, dtype=float))
-    diagonal = (lu.perm_r[:n], lu.perm_c[:n])
-    A[diagonal] += shift / h if dtype is complex else complex(shift).real / h
-    largest = float(_magnitude(A).max(initial=0.0))
+    values = -np.asarray(J, dtype=float)
+    if not np.isfinite(values).all():
+        return float("inf")
+    complex_ = bool(complex(shift).imag)
+    diagonal = shift / h if complex_ else complex(shift).real / h
+    A = sparse.csc_matrix(
+        (np.r_[values, np.full(n, diagonal)], (lu.perm_r[np.r_[lu.rows, :n]], lu.perm_c[np.r_[lu.cols, :n]])),
+        shape=(D, D),
+        dtype=complex if complex_ else float,
+    )
+    largest = float(_magnitude(A.data).max(initial=0.0))
     if not np.isfinite(largest):
         return float("inf")
-    growth = 0.0
-    for k in range(D):
-        pivot = A[k, k]
-        if pivot == 0:
-            return float("inf")
-        multipliers = A[k + 1 :, k] / pivot
-        growth = max(growth, float(_magnitude(multipliers).max(initial=0.0)))
-        A[k + 1 :, k + 1 :] -= np.outer(multipliers, A[k, k + 1 :])
-    upper = float(_magnitude(np.triu(A)).max(initial=0.0))
-    growth = max(growth, upper / max(largest, 1e-300))
+    try:
+        factors = splinalg.splu(
+            A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options={"SymmetricMode": True, "Equil": False}
+        )
+    except RuntimeError:  # (exactly singular)
+        return float("inf")
+    if not np.array_equal(factors.perm_r, factors.perm_c):  # (a zero diagonal pivot: SuperLU took another row)
+        return float("inf")
+    L = factors.L.tocoo()
+    multipliers = L.data[L.row != L.col]
+    growth = max(
+        float(_magnitude(multipliers).max(initial=0.0)),
+        float(_magnitude(factors.U.data).max(initial=0.0)) / max(largest, 1e-300),
+    )
     return growth if np.isfinite(growth) else float("inf")
+
+
+def first_order(orders: list) -> StaticLU | None:
+    """The first order of a model's static factors, of ``orders`` (:class:`.sparse.StaticLU`, each of one
+    kind of :data:`.sparse.PIVOTING`, each holding at the start): static pivoting's where its elimination
+    takes at most :data:`MATCHED_MAX_COST` times partial pivoting's multiply-adds, else partial
+    pivoting's; None where there is none."""
+    by_kind = {lu.pivoting: lu for lu in orders}
+    matched, partial = by_kind.get("matched"), by_kind.get("partial")
+    if matched is not None and (partial is None or matched.flops <= MATCHED_MAX_COST * partial.flops):
+        return matched
+    return partial
+
+
+def holds(lu: StaticLU, J: np.ndarray, h: float, shifts: list) -> bool:
+    """Whether the factors in ``lu``'s order hold at ``J`` and step ``h`` for every one of ``shifts``: growth
+    within :data:`.sparse.MAX_GROWTH` and no zero pivot (:func:`fixed_order_growth`)."""
+    return all(fixed_order_growth(lu, J, h, lam) <= MAX_GROWTH for lam in shifts)
 
 
 def _magnitude(values: np.ndarray) -> np.ndarray:
@@ -114,12 +158,14 @@ class PivotOrders:
         kept, self.failures = self._kept, 0
         real = max((lam.real for lam in shifts if lam.imag == 0), default=abs(shifts[0]))
         best, best_held = None, self._held(self.lu, kept, shifts)
-        # candidates: SuperLU's order at each kept matrix, and at the latest with every entry that vanished
-        # in any of them set to 0 (an entry of J that a saturation or a branch makes 0 is no pivot to keep)
+        # candidates: both orders of .sparse (static pivoting and SuperLU's) at each kept matrix, and at the
+        # latest with every entry that vanished in any of them set to 0 (an entry of J that a saturation or a
+        # branch makes 0 is no pivot to keep)
         vanished = np.any([J == 0 for J, _ in kept], axis=0)
-        for J, h in [*kept, (np.where(vanished, 0.0, kept[-1][0]), kept[-1][1])]:
+        samples = [*kept, (np.where(vanished, 0.0, kept[-1][0]), kept[-1][1])]
+        for (J, h), pivoting in itertools.product(samples, PIVOTING):
             try:
-                candidate = StaticLU(self.lu.rows, self.lu.cols, self.lu.n, self.lu.D, J, h, real)
+                candidate = StaticLU(self.lu.rows, self.lu.cols, self.lu.n, self.lu.D, J, h, real, pivoting)
             except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
                 raise
             except RuntimeError:  # (exactly singular there: no order from it)
@@ -138,4 +184,4 @@ class PivotOrders:
     @staticmethod
     def _held(lu: StaticLU, kept: list, shifts: list) -> int:
         """At how many of the ``kept`` matrices the factors in ``lu``'s order hold for every shift."""
-        return sum(all(fixed_order_growth(lu, J, h, lam) <= MAX_GROWTH for lam in shifts) for J, h in kept)
+        return sum(holds(lu, J, h, shifts) for J, h in kept)

@@ -3,14 +3,14 @@
 Above :data:`.casadi_engine.COMPILED_FACTOR_MAX_SIZE` unknowns a dense inverse of each transformed
 system costs 0.16-0.75 ms at 100-200 unknowns, and the Newton iteration's products with it 40 us;
 SuperLU factors cheaper but only from Python, once per iteration's solve.  Chains and grids are
-sparse: with the pivot order of one SuperLU factorisation (COLAMD columns, partial pivoting rows)
-kept fixed, the elimination's pattern is fixed too, and the factorisation and the triangular
-solves are straight-line code on the nonzeros: measured on casadi's virtual machine, a factor
-5.5-40 us and a real solve 4-38 us on the chain and reaction-diffusion families at 100-200
-unknowns.  The factors then live in the compiled step like the dense inverses do.
+sparse: with a pivot order chosen once (:func:`matched_order`, static pivoting, else SuperLU's
+partial pivoting, :func:`partial_order`) and kept fixed, the elimination's pattern is fixed too, and
+the factorisation and the triangular solves are straight-line code on the nonzeros: measured on
+casadi's virtual machine, a factor 5.5-40 us and a real solve 4-38 us on the chain and
+reaction-diffusion families at 100-200 unknowns.  The factors then live in the compiled step like the dense inverses do.
 
-A fixed pivot order is what SuperLU would pick at the matrix it was chosen at; where values move
-far from it a pivot may grow small against the entries below it.  Each factorisation reports its
+A fixed pivot order suits the matrix it was chosen at; where values move far from it a pivot may
+grow small against the entries below it.  Each factorisation reports its
 growth, the larger of its largest multiplier |L| (at most 1 under partial pivoting) and its largest
 |U| entry over the matrix's largest entry (Wilkinson's growth factor), and its smallest pivot;
 beyond :data:`MAX_GROWTH`, at a zero pivot, or not finite, the caller factors with LAPACK or
@@ -27,26 +27,124 @@ import numpy as np
 # error grows with it, and beyond 1e6 Newton's iteration, which absorbs a relative error well below 1,
 # would contract too slowly.
 MAX_GROWTH = 1e6
+# How a StaticLU chooses its pivot order, in the order a model's first order tries them: static pivoting
+# on a matching (matched_order), else SuperLU's partial pivoting (partial_order)
+PIVOTING = ("matched", "partial")
+
+
+def partial_order(A) -> tuple[np.ndarray, np.ndarray]:
+    """``(perm_r, perm_c)`` of SuperLU's factorisation of the sparse ``A`` (COLAMD columns, rows by
+    partial pivoting): the order that holds best at ``A`` itself, and depends on every value of it.
+    RuntimeError where ``A`` is exactly singular."""
+    import scipy.sparse.linalg as splinalg
+
+    lu = splinalg.splu(A.tocsc(), permc_spec="COLAMD")
+    return lu.perm_r.copy(), lu.perm_c.copy()
+
+
+def matched_order(A, n: int, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(perm_r, perm_c)`` of static pivoting for ``A = sigma M - J`` (``n`` differential variables first,
+    ``sigma`` large against J: a short step), in three stages, each pivot chosen by structure and by
+    how large it is against its column, not by the values of one matrix:
+
+    1. the differential variables' diagonal entries (``sigma - J_ii``), in a minimum-degree order;
+    2. the algebraic block's pivots by a matching on its Schur complement ``S = A_zz - A_zy A_yy^-1 A_yz``
+       (here ``A_zz - A_zy A_yz / sigma``: ``A_yy ~ sigma I``), as SuperLU_DIST and MUMPS choose static
+       pivots (Duff and Koster's MC64): the assignment of rows to columns of largest product of
+       ``|s_ij| / max_i |s_ij|`` (scipy's minimum-weight full matching of ``log max_i |s_ij| - log |s_ij|``);
+    3. those pivots in a minimum-degree order of ``S + S^T``, stably sorted so that the rows with an
+       entry in an algebraic column (index 1: O(1) pivots) come before those with none (index 2: their
+       Schur complement entries are O(1 / sigma), and an O(1) entry under one would be a multiplier
+       growing as 1 / h).
+
+    Partial pivoting takes the largest entry under each pivot at one matrix: the wheelset's order, picked
+    at its start at rest, pivots on creep forces' derivatives that vanish where tanh saturates, and met a
+    zero pivot at 4,599 of the 5,307 steps of a solve over [0, 10] at rtol 1e-6; this order met no growth
+    past :data:`MAX_GROWTH` at every 8th of them, at their own h, at 1e-6 and at 0.1 (measured offline; a
+    matching of the whole matrix, without stages 1 and 3, grew as 12 / h, past the bound below h = 1e-5).
+    RuntimeError where the algebraic block has no full matching of nonzero entries."""
+    import scipy.sparse as sparse
+    import scipy.sparse.csgraph as csgraph
+
+    A = sparse.csr_matrix(A)
+    D = A.shape[0]
+    m = D - n
+    perm_r, perm_c = np.empty(D, dtype=np.int64), np.empty(D, dtype=np.int64)
+    if n:
+        states = _diagonal_order(A[:n, :n])  # states[k]: the state eliminated k-th
+        perm_r[states] = perm_c[states] = np.arange(n)
+    if not m:
+        return perm_r, perm_c
+    S = (A[n:, n:] - A[n:, :n] @ A[:n, n:] / sigma).tocsr()
+    S.eliminate_zeros()
+    magnitude = abs(S)
+    largest = np.asarray(magnitude.max(axis=0).todense()).ravel()
+    entries = magnitude.tocoo()
+    # (+1: the weights must be nonzero, and a matching has m of them whatever it takes)
+    cost = np.log(largest[entries.col]) - np.log(entries.data) + 1.0
+    try:
+        matched_rows, matched_cols = csgraph.min_weight_full_bipartite_matching(
+            sparse.csr_matrix((cost, (entries.row, entries.col)), shape=S.shape)
+        )
+    except ValueError as error:  # ("no full matching exists")
+        raise RuntimeError(f"no full matching of the algebraic block's nonzero entries: {error}") from error
+    row_of = np.empty(m, dtype=np.int64)
+    row_of[matched_cols] = matched_rows  # column j's pivot row
+    order = _diagonal_order(S[row_of, :])  # order[k]: the column eliminated k-th
+    index_two = np.diff(sparse.csr_matrix(A[n:, n:]).indptr) == 0  # (rows with no algebraic entry)
+    order = order[np.argsort(index_two[row_of[order]], kind="stable")]
+    perm_c[n + order] = n + np.arange(m)
+    perm_r[n + row_of[order]] = n + np.arange(m)
+    return perm_r, perm_c
+
+
+def _diagonal_order(B) -> np.ndarray:
+    """The order SuperLU eliminates the square ``B``'s diagonal in, keeping it as the pivots (threshold 0)
+    in a minimum-degree order of ``B + B^T``: ``order[k]`` is the index eliminated k-th.  A zero on the
+    diagonal is made nonzero for the ordering alone (the growth check sees the real one)."""
+    import scipy.sparse as sparse
+    import scipy.sparse.linalg as splinalg
+
+    B = sparse.csc_matrix(B, dtype=float)
+    k = B.shape[0]
+    pattern = sparse.csc_matrix((np.ones(B.nnz), B.indices, B.indptr), shape=B.shape) + sparse.eye(k) * (k + 1)
+    options = {"SymmetricMode": True}
+    lu = splinalg.splu(pattern.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=options)
+    return np.argsort(lu.perm_c)
 
 
 class StaticLU:
-    """The elimination pattern of ``sigma M - J`` for the Jacobian pattern ``(rows, cols)`` with the
-    pivot order SuperLU picks at ``values`` (J's nonzeros) and step ``h``; ``n`` differential
-    variables of ``D`` (M = diag(1 x n, 0 x m)).
+    """The elimination pattern of ``sigma M - J`` for the Jacobian pattern ``(rows, cols)`` with a
+    pivot order chosen at ``values`` (J's nonzeros) and step ``h`` (sigma = ``shift / h``); ``n``
+    differential variables of ``D`` (M = diag(1 x n, 0 x m)).  ``pivoting`` (one of :data:`PIVOTING`):
+    ``"partial"``, the order SuperLU picks (:func:`partial_order`), or ``"matched"``, static pivoting
+    on a matching of large entries (:func:`matched_order`).  RuntimeError where the matrix is (structurally or
+    exactly) singular at ``values``.
 
     Row i of the matrix is row ``perm_r[i]`` of the permuted one, column j its column ``perm_c[j]``
     (scipy's convention: ``Pr A Pc = L U``).
     """
 
-    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, D: int, values: np.ndarray, h: float, shift: float):
+    def __init__(
+        self,
+        rows: np.ndarray,
+        cols: np.ndarray,
+        n: int,
+        D: int,
+        values: np.ndarray,
+        h: float,
+        shift: float,
+        pivoting: str = "partial",
+    ):
         import scipy.sparse as sparse
-        import scipy.sparse.linalg as splinalg
 
-        self.rows, self.cols, self.n, self.D = rows, cols, n, D
+        self.rows, self.cols, self.n, self.D, self.pivoting = rows, cols, n, D, pivoting
         M = sparse.diags(np.r_[np.ones(n), np.zeros(D - n)])
         A = (shift / h * M - sparse.csc_matrix((values, (rows, cols)), shape=(D, D))).tocsc()
-        lu = splinalg.splu(A, permc_spec="COLAMD")
-        self.perm_r, self.perm_c = lu.perm_r.copy(), lu.perm_c.copy()
+        if pivoting == "matched":
+            self.perm_r, self.perm_c = matched_order(A, n, shift / h)
+        else:
+            self.perm_r, self.perm_c = partial_order(A)
         # the permuted pattern, and the fill of elimination without further pivoting
         pattern = [set() for _ in range(D)]
         for i, j in zip(rows, cols, strict=True):
