@@ -24,6 +24,7 @@ from daemodel.declaring.arrays import checked_shape, compact_listing, element_na
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.declaring.scan import scan
+from daemodel.declaring.stencils import Stencil, expand, leaf_symbols
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -377,7 +378,8 @@ class Declaration:
             name, (kind, _, states) = states, self._arrays[states]
             if kind != "states":
                 raise ODETargetError(f"m.ode: '{name}' is an array of {_WHAT[kind]}s, not of differential variables")
-        exprs = _block(rhs, states.shape, f"m.ode: {states.size} differential variable(s) of shape {states.shape}")
+        what = f"m.ode: {states.size} differential variable(s) of shape {states.shape}"
+        exprs = None if isinstance(rhs, Stencil) else _block(rhs, states.shape, what)
         names, seen = [], set()
         for state in states.flat:
             names.append(self._ode_target(state))
@@ -385,10 +387,13 @@ class Declaration:
                 raise DuplicateODEError(f"m.ode: differential variable '{names[-1]}' is given twice in one array")
             seen.add(names[-1])
         first = self._equation_count + 1
-        parsed = [
-            self._expression(e, f"the ODE for '{n}' (#{first + k})")
-            for k, (n, e) in enumerate(zip(names, exprs, strict=True))
-        ]
+        if exprs is None:
+            parsed = self._stencil(rhs, states.shape, what, lambda k: f"the ODE for '{names[k]}' (#{first + k})")
+        else:
+            parsed = [
+                self._expression(e, f"the ODE for '{n}' (#{first + k})")
+                for k, (n, e) in enumerate(zip(names, exprs, strict=True))
+            ]
         for k, (name, expr) in enumerate(zip(names, parsed, strict=True)):
             self._odes[name] = Equation("ode", name, first + k, expr)
         self._equation_count = first + len(names) - 1
@@ -399,7 +404,7 @@ class Declaration:
         ``expr`` may be an array (or list) of them: one constraint per element, all or none, named
         ``name[0]``, ``name[1]``, ... (``name[i,j]`` for a 2-d array), or ``g<k>`` each without a name.
         """
-        if isinstance(expr, np.ndarray | list | tuple):
+        if isinstance(expr, np.ndarray | list | tuple | Stencil):
             self._constraint_block(expr, name)
             return
         number = self._equation_count + 1
@@ -426,6 +431,8 @@ class Declaration:
         values = (
             np.empty(0, dtype=object)
             if isinstance(exprs, list | tuple) and not exprs
+            else np.empty(exprs.shape, dtype=np.int8)  # (its shape: the stencil makes the expressions)
+            if isinstance(exprs, Stencil)
             else np.asarray(exprs, dtype=object)
         )
         if values.size == 0:
@@ -440,10 +447,14 @@ class Declaration:
                 )
         else:
             names = element_names(name, values.shape)
-        parsed = [
-            self._constraint_value(e, f"constraint '{n}' (#{first + k})")
-            for k, (n, e) in enumerate(zip(names, values.flat, strict=True))
-        ]
+        if isinstance(exprs, Stencil):
+            what = f"m.constraint: the array of constraints {quoted(name)} of shape {values.shape}"
+            parsed = self._stencil(exprs, values.shape, what, lambda k: f"constraint '{names[k]}' (#{first + k})")
+        else:
+            parsed = [
+                self._constraint_value(e, f"constraint '{n}' (#{first + k})")
+                for k, (n, e) in enumerate(zip(names, values.flat, strict=True))
+            ]
         for k, (n, value) in enumerate(zip(names, parsed, strict=True)):
             self._add_constraint(Equation("constraint", n, first + k, value))
         if name is not None:
@@ -615,6 +626,33 @@ class Declaration:
         if found.symbols is not None:
             self._free_symbols[expr] = found.symbols
         return expr
+
+    def _stencil(self, stencil: Stencil, shape: tuple, what: str, label) -> list:
+        """The checked element expressions of ``stencil`` for ``shape`` (``label(k)``: element k's equation):
+        the template is checked once and each element made by renaming (:func:`expand`), the elements
+        sympy evaluated (and a template of anything beyond plain arithmetic) checked one by one."""
+        if stencil.shape != shape:
+            raise ShapeError(f"{what} need expressions of that shape; got a stencil of shape {stencil.shape}")
+        known = self._known
+        foreign = sorted(v.name for v in leaf_symbols(stencil) if known.get(v.name) != v)
+        if foreign:
+            raise UnknownSymbolError(
+                f"{what}: the stencil's arrays hold {_listing(foreign)}, not declared in model '{self.name}'"
+            )
+        found = scan(stencil.template)
+        plain = found.symbols is not None and found.numbers_plain
+        plain = plain and not any(found.holds(k) for k in (sp.Derivative, AppliedUndef, sp.ITE, sp.Heaviside))
+        if plain:  # (the template's own symbols, checked on the first element: its message names them)
+            plain = all(known.get(s.name) == s for s in found.symbols - set(stencil.leaves))
+        exprs, symbols = expand(stencil)
+        out = []
+        for k, (expr, free) in enumerate(zip(exprs, symbols, strict=True)):
+            if plain and free is not None:
+                self._free_symbols[expr] = free
+                out.append(expr)
+            else:
+                out.append(self._expression(expr, label(k)))
+        return out
 
     def _fingerprint(self) -> tuple:
         """Everything declared so far, comparable with ``==``."""
