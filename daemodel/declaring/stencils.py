@@ -230,9 +230,14 @@ def _power(base, exponent) -> sp.Pow:
     return power
 
 
-def _run(program: list, columns: list, k: int):
-    """Element ``k`` of the template by ``program``, or None where a function evaluates to another tree."""
-    values = []
+def _run(program: list, columns: list, k: int, orders: list | None):
+    """Element ``k`` of the template by ``program``, or None where a function evaluates to another tree.
+
+    ``orders``: the order of each sum's and product's arguments (positions into the renamed ones), from
+    an element whose symbols' names are in the same order (:func:`_name_orders`); an empty list: sort
+    them by :data:`ARGUMENT_ORDER` and append each order to it.
+    """
+    values, sums, record = [], 0, orders is not None and not orders
     for step in program:
         kind = step[0]
         if kind == "leaf":
@@ -241,12 +246,15 @@ def _run(program: list, columns: list, k: int):
             values.append(step[1])
         elif kind == "sorted":
             args = [values[i] for i in step[2]]
-            if step[3]:  # (the number stays first, as sympy's evaluation puts it)
-                rest = args[1:]
-                rest.sort(key=ARGUMENT_ORDER)
-                args[1:] = rest
+            if orders is not None and not record:
+                args = [args[i] for i in orders[sums]]
             else:
-                args.sort(key=ARGUMENT_ORDER)
+                start = 1 if step[3] else 0  # (the number stays first, as sympy's evaluation puts it)
+                order = [*range(start), *sorted(range(start, len(args)), key=lambda i: ARGUMENT_ORDER(args[i]))]
+                args = [args[i] for i in order]
+                if record:
+                    orders.append(order)
+            sums += 1
             values.append(step[1]._from_args(args, True))
         elif kind == "pow":
             values.append(_power(values[step[2][0]], values[step[2][1]]))
@@ -257,6 +265,36 @@ def _run(program: list, columns: list, k: int):
                 return None
             values.append(value)
     return values[-1]
+
+
+# Most symbols per element whose order by name :func:`_name_orders` encodes (a bit per pair, in an int64).
+MAX_ORDERED = 11
+
+
+def _name_orders(columns: list, fixed: tuple, slow: np.ndarray) -> np.ndarray | None:
+    """Per element, the order of its symbols' names as one integer (a bit per pair), or None.
+
+    Sympy orders two symbols of one class and the same assumptions by their names, so a renamed
+    element's arguments are in the order of another's wherever its symbols' names are: the sort is
+    done once per order of names.  None where the symbols differ in class or assumptions, or are too many.
+    """
+    count = len(columns) + len(fixed)
+    if count > MAX_ORDERED:
+        return None
+    kinds = {(type(v).__name__, tuple(sorted(v.assumptions0.items()))) for v in fixed}
+    names = []
+    for column in columns:
+        kinds.update((type(v).__name__, tuple(sorted(v.assumptions0.items()))) for v in set(column[~slow]))
+        names.append(np.array([v.name if v.is_Symbol else "" for v in column]))
+    if len(kinds) > 1 or (kinds and next(iter(kinds))[0] != "Symbol"):
+        return None
+    names += [np.full(len(slow), v.name) for v in fixed]
+    code, bit = np.zeros(len(slow), dtype=np.int64), 0
+    for i in range(count):
+        for j in range(i + 1, count):
+            code |= (names[i] < names[j]).astype(np.int64) << bit
+            bit += 1
+    return code
 
 
 def expand(s: Stencil) -> tuple[list, list]:
@@ -294,9 +332,14 @@ def expand(s: Stencil) -> tuple[list, list]:
     program = _program(template, {p: i for i, p in enumerate(placeholders)})
     exprs, symbols = [None] * size, [None] * size
     fixed = tuple(fixed)
+    signature = _name_orders(columns, fixed, slow)
+    known: dict = {}
     for k in range(size):
         if not slow[k]:
-            exprs[k] = _run(program, columns, k)
+            orders = None if signature is None else known.setdefault(signature[k], [])
+            exprs[k] = _run(program, columns, k, orders)
+            if exprs[k] is None and orders is not None:
+                orders.clear()  # (a function evaluated to another tree: an order recorded in part is none)
         if exprs[k] is None:
             exprs[k] = template.xreplace({p: c[k] for p, c in zip(placeholders, columns, strict=True)})
         else:
