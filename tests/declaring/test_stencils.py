@@ -204,3 +204,19 @@ def test_a_stencil_of_another_model_s_symbols_or_an_undeclared_name_is_refused()
     assert not m.declared().odes  # all or none
     m.ode(u, -dm.stencil(u))
     assert [e.expr for e in m.declared().odes.values()] == list(-u)
+
+
+def test_only_the_elements_sympy_must_evaluate_are_evaluated():
+    """Renaming makes every interior element of the Laplacian; the two at the boundary (a number at a
+    leaf) are evaluated.  Names c[9] < c[10] < c[2] as strings: the orders of arguments differ along the
+    array, and each element is still numpy's."""
+    c = np.array([Symbol(f"c[{i}]") for i in range(30)], dtype=object)
+    D = Symbol("D")
+    padded = np.array([0, *c, 0], dtype=object)
+    P = stencil(padded)
+    exprs, symbols = expand(D * (P[:-2] - 2 * P[1:-1] + P[2:]))
+    assert [k for k, f in enumerate(symbols) if f is None] == [0, 29]
+    assert exprs == list(D * (padded[:-2] - 2 * padded[1:-1] + padded[2:]))
+    laplacians = [next(a for a in e.args if a.is_Add) for e in exprs[1:-1]]
+    first_terms = {str(sum_.args[0]) == f"c[{k}]" for k, sum_ in enumerate(laplacians)}
+    assert first_terms == {True, False}  # (c[8], -2*c[9], c[10] in sympy's order: c[10] first)
