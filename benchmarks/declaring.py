@@ -6,8 +6,9 @@ equations tree for tree: ``arrays`` (numpy's arithmetic on the arrays of symbols
 element, an evaluated operation at a time) and ``stencils`` (``dm.stencil``: the arithmetic recorded
 once as a template, each element made by renaming).  Each (declaration, size) runs in a fresh
 process with one thread: ``declare`` (the model's construction), ``compile`` (``Model.compile()``),
-their sum, and the process's peak resident set.  Growth exponents (time ~ unknowns^k) are fitted
-over the sizes from :data:`FIT_FROM` unknowns on.
+their sum, each as wall and as the process's CPU time (on a shared machine the wall is the CPU time
+plus the time others held the cores), and the process's peak resident set.  Growth exponents
+(time ~ unknowns^k) are fitted over the sizes from :data:`FIT_FROM` unknowns on.
 
     OMP_NUM_THREADS=1 python benchmarks/declaring.py --out benchmarks/declaring   # .json and .png
 """
@@ -42,15 +43,18 @@ WORKER_LIMIT = 900
 
 def worker(declaration: str, unknowns: int) -> dict:
     """Declare and compile once in this (fresh) process."""
-    began = time.perf_counter()
+    began, cpu_began = time.perf_counter(), time.process_time()
     model = scaling_models.DECLARATIONS[declaration](unknowns // 2)
-    declared = time.perf_counter()
+    declared, cpu_declared = time.perf_counter(), time.process_time()
     compiled = model.compile()
-    done = time.perf_counter()
+    done, cpu_done = time.perf_counter(), time.process_time()
     return {
         "declare_s": declared - began,
         "compile_s": done - declared,
         "total_s": done - began,
+        "declare_cpu_s": cpu_declared - cpu_began,
+        "compile_cpu_s": cpu_done - cpu_declared,
+        "total_cpu_s": cpu_done - cpu_began,
         "peak_rss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         "equations": len(compiled.rhs) + len(compiled.g),
     }
@@ -81,7 +85,9 @@ def slope(points: list) -> float | None:
 
 def table(result: dict) -> str:
     """Markdown: one row per size, the two declarations side by side."""
-    head = "| unknowns |" + "".join(f" {d} declare | {d} compile | {d} total | {d} peak (GB) |" for d in DECLARATIONS)
+    head = "| unknowns |" + "".join(
+        f" {d} declare | {d} compile | {d} total (CPU) | {d} peak (GB) |" for d in DECLARATIONS
+    )
     lines = [head, "|" + "---:|" * (1 + 4 * len(DECLARATIONS))]
     for r in result["records"]:
         row = [f"{r['unknowns']:,}"]
@@ -90,7 +96,8 @@ def table(result: dict) -> str:
             if "failed" in c:
                 row += ["failed", "", "", ""]
                 continue
-            row += [f"{c[f]:.2f}" for f in ("declare_s", "compile_s", "total_s")] + [f"{c['peak_rss'] / 1e9:.2f}"]
+            row += [f"{c['declare_s']:.2f}", f"{c['compile_s']:.2f}", f"{c['total_s']:.2f} ({c['total_cpu_s']:.2f})"]
+            row += [f"{c['peak_rss'] / 1e9:.2f}"]
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", f"Growth exponents (from {FIT_FROM:,} unknowns on):", ""]
     lines += [f"- {label}: {value:.2f}" for label, value in result["slopes"].items() if value is not None]
@@ -144,7 +151,7 @@ def main(argv=None) -> None:
     slopes = {
         f"{d} {field[:-2]}": slope([(r["unknowns"], r[d][field]) for r in records if field in r[d]])
         for d in DECLARATIONS
-        for field in ("declare_s", "compile_s", "total_s")
+        for field in ("declare_s", "compile_s", "total_s", "declare_cpu_s", "compile_cpu_s", "total_cpu_s")
     }
     commit = subprocess.run(
         ["git", "-C", str(Path(daemodel.__file__).resolve().parents[1]), "rev-parse", "HEAD"],
