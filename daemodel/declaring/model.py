@@ -24,7 +24,7 @@ from daemodel.declaring.arrays import checked_shape, compact_listing, element_na
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.declaring.scan import scan
-from daemodel.declaring.stencils import Stencil, expand, leaf_symbols
+from daemodel.declaring.stencils import Stencil, expand, leaf_symbols, paused_collection
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -207,14 +207,16 @@ class Declaration:
         and returns a numpy object array of that shape whose elements are the symbols ``u[0]``, ...
         (``T[0,0]``, ...): ``m.ode(u, exprs)`` gives all their ODEs at once, ``sol["u"]`` their values."""
         if shape is not None:
-            return self._declare_array(names, shape, "states")
+            with paused_collection():
+                return self._declare_array(names, shape, "states")
         return self._declare(names, self._states, "differential variable")
 
     def algebraics(self, names, shape=None):
         """Declare algebraic variables (determined by the constraints): names as :meth:`states`,
         or one name and a shape for an array (``m.algebraics("b", (2, 100))``)."""
         if shape is not None:
-            return self._declare_array(names, shape, "algebraics")
+            with paused_collection():
+                return self._declare_array(names, shape, "algebraics")
         return self._declare(names, self._algebraics, "algebraic variable")
 
     def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
@@ -347,7 +349,8 @@ class Declaration:
         ``rhs`` is an array of expressions of the same shape and each element gets its ODE, all or
         none (``m.ode(u[1:-1], (u[2:] - 2*u[1:-1] + u[:-2]) / h**2)``)."""
         if isinstance(state, np.ndarray) or (isinstance(state, str) and state in self._arrays):
-            self._ode_block(state, rhs)
+            with paused_collection():  # (a block builds one tree per element)
+                self._ode_block(state, rhs)
             return
         name = self._ode_target(state)
         number = self._equation_count + 1
@@ -405,7 +408,8 @@ class Declaration:
         ``name[0]``, ``name[1]``, ... (``name[i,j]`` for a 2-d array), or ``g<k>`` each without a name.
         """
         if isinstance(expr, np.ndarray | list | tuple | Stencil):
-            self._constraint_block(expr, name)
+            with paused_collection():
+                self._constraint_block(expr, name)
             return
         number = self._equation_count + 1
         if name is not None and not isinstance(name, str):

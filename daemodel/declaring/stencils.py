@@ -20,8 +20,10 @@ for the same symbol as another, is made by sympy's ``xreplace`` (evaluated, as n
 
 from __future__ import annotations
 
+import gc
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import cmp_to_key
 
 import numpy as np
@@ -295,6 +297,21 @@ def _name_orders(columns: list, fixed: tuple, slow: np.ndarray) -> np.ndarray | 
             code |= (names[i] < names[j]).astype(np.int64) << bit
             bit += 1
     return code
+
+
+@contextmanager
+def paused_collection() -> Iterator[None]:
+    """Python's cyclic garbage collector paused (and restored as it was) while a block builds 10^5 trees:
+    its full collections walk every object alive, more of them as the model grows (at 10^5 unknowns,
+    2.7 of 4.9 s of CPU declaring the reaction-diffusion family).  Sympy trees hold no cycles: nothing
+    waits longer to be freed than until the collector runs again."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def expand(s: Stencil) -> tuple[list, list]:
