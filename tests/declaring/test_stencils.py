@@ -220,3 +220,31 @@ def test_only_the_elements_sympy_must_evaluate_are_evaluated():
     laplacians = [next(a for a in e.args if a.is_Add) for e in exprs[1:-1]]
     first_terms = {str(sum_.args[0]) == f"c[{k}]" for k, sum_ in enumerate(laplacians)}
     assert first_terms == {True, False}  # (c[8], -2*c[9], c[10] in sympy's order: c[10] first)
+
+
+def test_the_collector_is_paused_while_a_block_is_declared_and_restored_after():
+    import gc
+
+    from daemodel.declaring import stencils
+
+    seen = []
+    real_expand = stencils.expand
+
+    def spy(s):
+        seen.append(gc.isenabled())
+        return real_expand(s)
+
+    m = dm.Model("gc")
+    u = m.states("u", 3)
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr("daemodel.declaring.model.expand", spy)
+            m.ode(u, -dm.stencil(u))
+            assert seen == [False] and gc.isenabled()
+            gc.disable()
+            m.constraint(dm.stencil(m.algebraics("z", 3)) - dm.stencil(u), name="z")
+            assert seen == [False, False] and not gc.isenabled()  # (left as the caller had it)
+    finally:
+        (gc.enable if was else gc.disable)()
