@@ -111,7 +111,7 @@ def plot(result: dict, path: Path) -> None:
     fig = Figure(figsize=(11, 4.6), layout="constrained")
     times, memory = fig.subplots(1, 2)
     for d, style in zip(DECLARATIONS, ("--", "-"), strict=True):
-        for field in ("declare_s", "compile_s", "total_s"):
+        for field in ("declare_s", "compile_s", "total_s", "total_cpu_s"):
             points = [(r["unknowns"], r[d][field]) for r in result["records"] if field in r[d]]
             fit = result["slopes"].get(f"{d} {field[:-2]}")
             label = f"{d}: {field[:-2]}" + (f" (n^{fit:.2f})" if fit else "")
@@ -134,7 +134,13 @@ def main(argv=None) -> None:
     parser.add_argument("--worker", nargs=3, help=argparse.SUPPRESS)
     parser.add_argument("--unknowns", type=int, nargs="+", default=list(UNKNOWNS), help="sizes (even: 2K)")
     parser.add_argument("--out", default=str(HERE / "declaring"), help="output path without suffix")
+    parser.add_argument("--from-json", help="redraw the plot and table of an earlier run's JSON")
     args = parser.parse_args(argv)
+    if args.from_json:
+        result = json.loads(Path(args.from_json).read_text())
+        plot(result, Path(args.out).with_suffix(".png"))
+        print(table(result))
+        return
     if args.worker:
         declaration, unknowns, path = args.worker
         Path(path).write_text(json.dumps(worker(declaration, int(unknowns))))
