@@ -76,7 +76,7 @@ class Stencil:
                 f"stencil of shape {self.shape}: index {index!r} selects shape {shape}; a stencil keeps at least "
                 "one element on at least one axis (a slice such as [3:4] keeps the axis)"
             )
-        return Stencil(self.template, leaves, shape) if leaves else Stencil(self.template, {}, shape)
+        return Stencil(self.template, leaves, shape)
 
     def apply(self, function: Callable, *others) -> Stencil:
         """``function(self, *others)`` element by element, for a sympy function (``sp.exp``, ``sp.atan2``):
@@ -276,20 +276,14 @@ MAX_ORDERED = 11
 def _name_orders(columns: list, fixed: tuple, slow: np.ndarray) -> np.ndarray | None:
     """Per element, the order of its symbols' names as one integer (a bit per pair), or None.
 
-    Sympy orders two symbols of one class and the same assumptions by their names, so a renamed
-    element's arguments are in the order of another's wherever its symbols' names are: the sort is
-    done once per order of names.  None where the symbols differ in class or assumptions, or are too many.
+    Sympy orders two plain symbols (:func:`_plain`) by their names, so a renamed element's arguments
+    are in the order of another's wherever its symbols' names are: the sort is done once per order
+    of names.  None where the symbols are too many.
     """
     count = len(columns) + len(fixed)
     if count > MAX_ORDERED:
         return None
-    kinds = {(type(v).__name__, tuple(sorted(v.assumptions0.items()))) for v in fixed}
-    names = []
-    for column in columns:
-        kinds.update((type(v).__name__, tuple(sorted(v.assumptions0.items()))) for v in set(column[~slow]))
-        names.append(np.array([v.name if v.is_Symbol else "" for v in column]))
-    if len(kinds) > 1 or (kinds and next(iter(kinds))[0] != "Symbol"):
-        return None
+    names = [np.array([v.name if v.is_Symbol else "" for v in column]) for column in columns]
     names += [np.full(len(slow), v.name) for v in fixed]
     code, bit = np.zeros(len(slow), dtype=np.int64), 0
     for i in range(count):
@@ -312,6 +306,16 @@ def paused_collection() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
+
+
+# What a symbol of no assumptions (as the model declares them) says of itself.
+PLAIN_ASSUMPTIONS = sp.Symbol("x").assumptions0
+
+
+def _plain(symbol) -> bool:
+    """A sympy Symbol (by class name, as sympy orders classes) of no assumptions: the kind a model declares,
+    and the kind the template's placeholders are (an assumption, ``positive``, changes evaluation)."""
+    return type(symbol).__name__ == "Symbol" and symbol.assumptions0 == PLAIN_ASSUMPTIONS
 
 
 def expand(s: Stencil) -> tuple[list, list]:
@@ -340,7 +344,8 @@ def expand(s: Stencil) -> tuple[list, list]:
     placeholders = [placeholders[j] for j in keep]
     columns, codes = [columns[j] for j in keep], [codes[j] for j in keep]
     size = s.size
-    slow = np.zeros(size, dtype=bool)
+    # (renaming is sympy's evaluation only among plain symbols: others are evaluated, every element)
+    slow = np.full(size, not all(map(_plain, codes_of)), dtype=bool)
     for i, code in enumerate(codes):
         slow |= code < 0
         slow |= np.isin(code, own)

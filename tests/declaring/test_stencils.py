@@ -248,3 +248,10 @@ def test_the_collector_is_paused_while_a_block_is_declared_and_restored_after():
             assert seen == [False, False] and not gc.isenabled()  # (left as the caller had it)
     finally:
         (gc.enable if was else gc.disable)()
+
+
+def test_symbols_with_assumptions_are_evaluated_as_numpy_evaluates_them():
+    """A positive symbol changes sympy's evaluation (sqrt(x**2) is x): no renaming, numpy's trees."""
+    x = np.array([sp.Symbol(f"x{i}", positive=True) for i in range(4)], dtype=object)
+    exprs, symbols = expand(stencil(x).apply(lambda e: sp.sqrt(e**2)) + 1)
+    assert exprs == [xi + 1 for xi in x] and symbols == [None] * 4
