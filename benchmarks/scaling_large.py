@@ -2,13 +2,14 @@
 
 Run as ``python benchmarks/scaling.py --large [--unknowns 100 1000 ...] [--out PATH]``, or this file
 directly with the same arguments.  The reaction-diffusion family of ``scaling_models.py`` (index 1,
-tridiagonal, 2K unknowns: one state and one algebraic variable per grid point), declared as the docs
-show (a Python loop of ``m.ode`` and ``m.constraint``), at each size:
+tridiagonal, 2K unknowns: one state and one algebraic variable per grid point), declared as
+``--declaration`` says (``scaling_models.DECLARATIONS``: ``stencils``, the default, ``arrays`` by
+numpy's arithmetic, or ``loop``, a Python loop of ``m.ode`` and ``m.constraint``), at each size:
 
-* ``declare`` and ``compile`` (``Model.compile()``) in one fresh process, which pickles the compiled
-  model (its caches are not pickled: nothing a solve makes travels);
+* ``declare`` and ``compile`` (``Model.compile()``) in one fresh process;
 * ``radau`` (its default settings: adaptive, the casadi engine, ``jit="auto"``) and ``casadi-idas``
-  (its default sparse linear solver), each in its own fresh process on that pickle, at the same
+  (its default sparse linear solver), each in its own fresh process that declares and compiles the
+  model again (outside every clock: nothing a process makes travels to another), at the same
   tolerances (:data:`RTOL`, :data:`ATOL`, radau's defaults), on :data:`OUTPUT_POINTS` output times:
   ``setup`` and ``solve`` are the Solution's clocks, ``wall`` their sum (every second of the
   ``dm.solve`` call: each method pays, in its own process, every one-off per model it needs, such as
@@ -16,7 +17,7 @@ show (a Python loop of ``m.ode`` and ``m.constraint``), at each size:
 * a reference (casadi-idas at :data:`REFERENCE_TOL`) in a third process, against which the max
   absolute error of each method's states and algebraic variables is measured (equal error: compare
   the error columns);
-* peak memory: each process's peak resident set (``ru_maxrss``) and the one after loading the
+* peak memory: each process's peak resident set (``ru_maxrss``) and the one after compiling the
   model, so that the solve's own peak is their difference; radau's memory guard's estimate of its
   factors (``memory_parts``) is recorded beside it.
 
@@ -29,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pickle
 import resource
 import subprocess
 import sys
@@ -66,22 +66,20 @@ def peak_rss() -> int:
 
 
 def worker(task: dict) -> dict:
-    """One task in this (fresh) process: ``build`` (declare, compile, pickle) or one method's solve."""
+    """One task in this (fresh) process: ``build`` (declare, compile) or one method's solve."""
     import torch
 
     import daemodel as dm
 
     torch.set_num_threads(1)
     K = task["unknowns"] // 2
+    began = time.perf_counter()
+    model = scaling_models.DECLARATIONS[task["declaration"]](K)
+    declared = time.perf_counter()
+    compiled = model.compile()
+    done = time.perf_counter()
     if task["job"] == "build":
-        began = time.perf_counter()
-        model = scaling_models.reaction_diffusion(K)
-        declared = time.perf_counter()
-        compiled = model.compile()
-        done = time.perf_counter()
-        Path(task["model"]).write_bytes(pickle.dumps(compiled))
         return {"declare_s": declared - began, "compile_s": done - declared, "peak_rss": peak_rss()}
-    compiled = pickle.loads(Path(task["model"]).read_bytes())
     loaded = peak_rss()
     times = np.linspace(0.0, 1.0, OUTPUT_POINTS)
     tol = (REFERENCE_TOL, 1e-2 * REFERENCE_TOL) if task["job"] == "reference" else (RTOL, ATOL)
@@ -98,7 +96,7 @@ def worker(task: dict) -> dict:
         "steps": int(steps) if steps is not None else None,
         "status": sol.status,
         "peak_rss": peak_rss(),
-        "rss_after_load": loaded,
+        "rss_after_compile": loaded,
         "stats": {k: v for k, v in sol.stats.items() if isinstance(v, int | float | str) and not isinstance(v, bool)},
     }
     if method == "radau":
@@ -124,20 +122,19 @@ def run_task(task: dict) -> dict:
         return json.loads(result.read_text())
 
 
-def measure(unknowns: int, folder: Path) -> dict:
+def measure(unknowns: int, folder: Path, declaration: str) -> dict:
     """Every cell at one size: build, the reference, each method, and their errors."""
-    model, record = folder / f"model_{unknowns}.pickle", {"unknowns": unknowns}
+    record = {"unknowns": unknowns}
     print(f"{unknowns} unknowns: declare and compile", file=sys.stderr, flush=True)
-    record["build"] = run_task({"job": "build", "unknowns": unknowns, "model": str(model)})
+    record["build"] = run_task({"job": "build", "unknowns": unknowns, "declaration": declaration})
     if "failed" in record["build"]:
         return record
     values = {}
     for job in ("reference", *METHODS):
         print(f"{unknowns} unknowns: {job}", file=sys.stderr, flush=True)
         values[job] = folder / f"{job}_{unknowns}.npy"
-        task = {"job": job, "unknowns": unknowns, "model": str(model), "values": str(values[job])}
+        task = {"job": job, "unknowns": unknowns, "declaration": declaration, "values": str(values[job])}
         record[job] = run_task(task)
-    model.unlink(missing_ok=True)
     if "failed" not in record["reference"]:
         reference = np.load(values["reference"])
         n = unknowns // 2
@@ -250,6 +247,9 @@ def main(argv=None) -> None:
     parser.add_argument("--unknowns", type=int, nargs="+", default=list(UNKNOWNS), help="sizes (even: 2K)")
     parser.add_argument("--out", default=str(HERE / "scaling_large"), help="output path without suffix")
     parser.add_argument("--from-json", help="redraw the plot and table of an earlier run's JSON")
+    parser.add_argument(
+        "--declaration", choices=sorted(scaling_models.DECLARATIONS), default="stencils", help="how to declare"
+    )
     args = parser.parse_args(argv)
     if args.worker:
         task = json.loads(args.worker)
@@ -268,7 +268,7 @@ def main(argv=None) -> None:
     records = []
     with tempfile.TemporaryDirectory() as folder:
         for unknowns in sorted(args.unknowns):
-            records.append(measure(unknowns, Path(folder)))
+            records.append(measure(unknowns, Path(folder), args.declaration))
     slopes = {label: slope(series(records, *spec)) for label, spec in CURVES.items()}
     load = os.getloadavg()[0]  # (at the end: the machine is shared)
     commit = subprocess.run(
@@ -282,7 +282,13 @@ def main(argv=None) -> None:
         "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {load:.1f}",
         "git_commit": commit,
-        "settings": {"rtol": RTOL, "atol": ATOL, "reference_rtol": REFERENCE_TOL, "output_points": OUTPUT_POINTS},
+        "settings": {
+            "rtol": RTOL,
+            "atol": ATOL,
+            "reference_rtol": REFERENCE_TOL,
+            "output_points": OUTPUT_POINTS,
+            "declaration": args.declaration,
+        },
         "total_seconds": time.monotonic() - started,
         "records": records,
         "slopes": slopes,

@@ -12,10 +12,11 @@ family                        unknowns (n states + m alg.)    index          cou
 
 The chain and the grid live in the package (:mod:`daemodel.problems.families`, where the
 ``families`` suite of ``daemodel bench`` runs them) and are imported from there; the particles are
-declared here.  The equations are built as sympy expressions from the symbols that ``m.states`` and
-``m.algebraics`` return, as a user would write them; ``T_SPAN`` below holds each family's
-benchmark interval.  Run ``python benchmarks/scaling_models.py`` to compile each family at a
-small size and print its report.
+declared here; :func:`reaction_diffusion_arrays` declares the grid's equations as arrays, by numpy's
+arithmetic or by :func:`daemodel.stencil` (:data:`DECLARATIONS`).  The equations are built as sympy
+expressions from the symbols that ``m.states`` and ``m.algebraics`` return, as a user would write
+them; ``T_SPAN`` below holds each family's benchmark interval.  Run
+``python benchmarks/scaling_models.py`` to compile each family at a small size and print its report.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import numpy as np
 import sympy as sp
 
 import daemodel as dm
-from daemodel.problems.families import pendulum_chain, reaction_diffusion
+from daemodel.problems.families import DIFFUSION, pendulum_chain, reaction_diffusion
 
 # Benchmark interval of each family: long enough for the chain to swing through a large angle,
 # for the grid's slowest mode to decay to about a third and for the particles to move well off their start.
@@ -117,6 +118,38 @@ def sphere_particles(P: int) -> dm.Model:
             start[f"v{axis}_{i}"] = float(velocity[a])
     m.initial(**start)
     return m
+
+
+def reaction_diffusion_arrays(K: int, stencils: bool = True) -> dm.Model:
+    """The equations of :func:`reaction_diffusion` declared as arrays ``c[0..K-1]``, ``w[0..K-1]``.
+
+    ``stencils=True``: by :func:`daemodel.stencil` (the arithmetic recorded once, one template per
+    block); ``stencils=False``: by numpy's arithmetic on the arrays of symbols (one sympy tree per
+    element, built an operation at a time).  Both declare the same equations, tree for tree (the same
+    compiled model: ``tests/declaring/test_stencils.py``).  Constraints ``rate[0..K-1]``.
+    """
+    if isinstance(K, bool) or not isinstance(K, int) or K < 1:
+        raise ValueError(f"reaction_diffusion_arrays needs an integer K >= 1 grid points; got {K!r}")
+    m = dm.Model(f"reaction_diffusion_{K}")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    D = m.parameter("D", DIFFUSION)
+    padded = np.array([0, *c, 0], dtype=object)  # the Dirichlet boundary values around the interior points
+    if stencils:
+        padded, c, w = dm.stencil(padded), dm.stencil(c), dm.stencil(w)
+    inv_dx2 = sp.Integer(K + 1) ** 2  # 1 / dx^2, exact
+    laplacian = (padded[:-2] - 2 * padded[1:-1] + padded[2:]) * inv_dx2  # (as the loop of the family writes it)
+    m.ode("c", D * laplacian - w)
+    m.constraint(w - c**2 / (1 + c), name="rate")
+    m.initial(c=np.sin(np.pi * np.arange(1, K + 1) / (K + 1)))
+    return m
+
+
+# How the scaling benchmarks declare the reaction-diffusion family: name -> builder of K.
+DECLARATIONS = {
+    "loop": reaction_diffusion,  # a Python loop of m.ode and m.constraint on scalar names c_1, ...
+    "arrays": lambda K: reaction_diffusion_arrays(K, stencils=False),
+    "stencils": lambda K: reaction_diffusion_arrays(K, stencils=True),
+}
 
 
 FAMILIES = {

@@ -9,6 +9,7 @@ from daemodel.comparing.compare import compare
 from daemodel.comparing.tables import Comparison
 from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.compiler import Model
+from daemodel.declaring.stencils import Stencil, stencil
 from daemodel.fitting.fit import Fit, fit
 from daemodel.solution import Solution
 from daemodel.solving.ensemble import ensemble
@@ -26,6 +27,7 @@ __all__ = [
     "PINNConfig",
     "RadauIIA",
     "Solution",
+    "Stencil",
     "Surrogate",
     "bench",
     "compare",
@@ -35,6 +37,7 @@ __all__ = [
     "methods",
     "radau_iia",
     "solve",
+    "stencil",
 ]
 __version__ = "0.1.0"
 

@@ -5,7 +5,8 @@
     T = 0   at y = 0 and y = 1
 
 On an N x N grid of interior nodes (spacing h = 1/(N+1)) the states are ``T[i,j]``, one array
-``m.states("T", (N, N))``; the boundary values at x = 0 and x = 1 are the algebraic array
+``m.states("T", (N, N))``, whose equations are written with stencils (``dm.stencil``: the five-point
+Laplacian recorded once); the boundary values at x = 0 and x = 1 are the algebraic array
 ``m.algebraics("edge", (2, N))``, fixed by a second-order one-sided difference for T_x = 0,
 
     3 edge[0,j] - 4 T[0,j] + T[1,j] = 0,      3 edge[1,j] - 4 T[N-1,j] + T[N-2,j] = 0,
@@ -48,13 +49,15 @@ def build_model(n: int) -> tuple[dm.Model, np.ndarray, np.ndarray]:
     grid = np.zeros((n + 2, n + 2), dtype=object)  # with the boundary: edge at x = 0, 1; zero at y = 0, 1
     grid[1:-1, 1:-1] = T
     grid[0, 1:-1], grid[-1, 1:-1] = edge[0], edge[1]
-    neighbours = grid[2:, 1:-1] + grid[:-2, 1:-1] + grid[1:-1, 2:] + grid[1:-1, :-2] - 4 * T
+    # stencils: the arithmetic below is recorded once, not once per node (numpy's arithmetic on the
+    # arrays of symbols would build the same equations, node by node)
+    G = dm.stencil(grid)
+    neighbours = G[2:, 1:-1] + G[:-2, 1:-1] + G[1:-1, 2:] + G[1:-1, :-2] - 4 * G[1:-1, 1:-1]
     # (kappa / h^2 in front: a number times a sum alone would be multiplied out by sympy, term by term)
     m.ode(T, kappa / h**2 * neighbours)
-    m.constraint(
-        np.stack([3 * edge[0] - 4 * T[0] + T[1], 3 * edge[1] - 4 * T[-1] + T[-2]]),
-        name="insulated",
-    )
+    boundary = dm.stencil(edge)  # row 0 at x = 0, row 1 at x = 1; the first and second nodes inside:
+    first, second = dm.stencil(np.stack([T[0], T[-1]])), dm.stencil(np.stack([T[1], T[-2]]))
+    m.constraint(3 * boundary - 4 * first + second, name="insulated")
     m.initial(T=exact(x, y, 0.0)[..., 0])
     return m, x, y
 

@@ -57,6 +57,7 @@ def test_public_api():
         "PINNConfig",
         "RadauIIA",
         "Solution",
+        "Stencil",
         "Surrogate",
         "bench",
         "compare",
@@ -66,6 +67,7 @@ def test_public_api():
         "methods",
         "radau_iia",
         "solve",
+        "stencil",
     }
 
 

@@ -24,6 +24,7 @@ from daemodel.declaring.arrays import checked_shape, compact_listing, element_na
 from daemodel.declaring.functions import check_supported, supported_names
 from daemodel.declaring.parse import RESERVED_NAMES, check_numbers, parse_equation, without_heaviside, without_ite
 from daemodel.declaring.scan import scan
+from daemodel.declaring.stencils import Stencil, expand, leaf_symbols, paused_collection
 from daemodel.declaring.symbols import Symbol
 from daemodel.errors import (
     DerivativeInEquationError,
@@ -206,14 +207,16 @@ class Declaration:
         and returns a numpy object array of that shape whose elements are the symbols ``u[0]``, ...
         (``T[0,0]``, ...): ``m.ode(u, exprs)`` gives all their ODEs at once, ``sol["u"]`` their values."""
         if shape is not None:
-            return self._declare_array(names, shape, "states")
+            with paused_collection():
+                return self._declare_array(names, shape, "states")
         return self._declare(names, self._states, "differential variable")
 
     def algebraics(self, names, shape=None):
         """Declare algebraic variables (determined by the constraints): names as :meth:`states`,
         or one name and a shape for an array (``m.algebraics("b", (2, 100))``)."""
         if shape is not None:
-            return self._declare_array(names, shape, "algebraics")
+            with paused_collection():
+                return self._declare_array(names, shape, "algebraics")
         return self._declare(names, self._algebraics, "algebraic variable")
 
     def parameter(self, name: str, value: float | None = None) -> sp.Symbol:
@@ -346,7 +349,8 @@ class Declaration:
         ``rhs`` is an array of expressions of the same shape and each element gets its ODE, all or
         none (``m.ode(u[1:-1], (u[2:] - 2*u[1:-1] + u[:-2]) / h**2)``)."""
         if isinstance(state, np.ndarray) or (isinstance(state, str) and state in self._arrays):
-            self._ode_block(state, rhs)
+            with paused_collection():  # (a block builds one tree per element)
+                self._ode_block(state, rhs)
             return
         name = self._ode_target(state)
         number = self._equation_count + 1
@@ -377,7 +381,8 @@ class Declaration:
             name, (kind, _, states) = states, self._arrays[states]
             if kind != "states":
                 raise ODETargetError(f"m.ode: '{name}' is an array of {_WHAT[kind]}s, not of differential variables")
-        exprs = _block(rhs, states.shape, f"m.ode: {states.size} differential variable(s) of shape {states.shape}")
+        what = f"m.ode: {states.size} differential variable(s) of shape {states.shape}"
+        exprs = None if isinstance(rhs, Stencil) else _block(rhs, states.shape, what)
         names, seen = [], set()
         for state in states.flat:
             names.append(self._ode_target(state))
@@ -385,10 +390,13 @@ class Declaration:
                 raise DuplicateODEError(f"m.ode: differential variable '{names[-1]}' is given twice in one array")
             seen.add(names[-1])
         first = self._equation_count + 1
-        parsed = [
-            self._expression(e, f"the ODE for '{n}' (#{first + k})")
-            for k, (n, e) in enumerate(zip(names, exprs, strict=True))
-        ]
+        if exprs is None:
+            parsed = self._stencil(rhs, states.shape, what, lambda k: f"the ODE for '{names[k]}' (#{first + k})")
+        else:
+            parsed = [
+                self._expression(e, f"the ODE for '{n}' (#{first + k})")
+                for k, (n, e) in enumerate(zip(names, exprs, strict=True))
+            ]
         for k, (name, expr) in enumerate(zip(names, parsed, strict=True)):
             self._odes[name] = Equation("ode", name, first + k, expr)
         self._equation_count = first + len(names) - 1
@@ -399,8 +407,9 @@ class Declaration:
         ``expr`` may be an array (or list) of them: one constraint per element, all or none, named
         ``name[0]``, ``name[1]``, ... (``name[i,j]`` for a 2-d array), or ``g<k>`` each without a name.
         """
-        if isinstance(expr, np.ndarray | list | tuple):
-            self._constraint_block(expr, name)
+        if isinstance(expr, np.ndarray | list | tuple | Stencil):
+            with paused_collection():
+                self._constraint_block(expr, name)
             return
         number = self._equation_count + 1
         if name is not None and not isinstance(name, str):
@@ -426,6 +435,8 @@ class Declaration:
         values = (
             np.empty(0, dtype=object)
             if isinstance(exprs, list | tuple) and not exprs
+            else np.empty(exprs.shape, dtype=np.int8)  # (its shape: the stencil makes the expressions)
+            if isinstance(exprs, Stencil)
             else np.asarray(exprs, dtype=object)
         )
         if values.size == 0:
@@ -440,10 +451,14 @@ class Declaration:
                 )
         else:
             names = element_names(name, values.shape)
-        parsed = [
-            self._constraint_value(e, f"constraint '{n}' (#{first + k})")
-            for k, (n, e) in enumerate(zip(names, values.flat, strict=True))
-        ]
+        if isinstance(exprs, Stencil):
+            what = f"m.constraint: the array of constraints {quoted(name)} of shape {values.shape}"
+            parsed = self._stencil(exprs, values.shape, what, lambda k: f"constraint '{names[k]}' (#{first + k})")
+        else:
+            parsed = [
+                self._constraint_value(e, f"constraint '{n}' (#{first + k})")
+                for k, (n, e) in enumerate(zip(names, values.flat, strict=True))
+            ]
         for k, (n, value) in enumerate(zip(names, parsed, strict=True)):
             self._add_constraint(Equation("constraint", n, first + k, value))
         if name is not None:
@@ -615,6 +630,33 @@ class Declaration:
         if found.symbols is not None:
             self._free_symbols[expr] = found.symbols
         return expr
+
+    def _stencil(self, stencil: Stencil, shape: tuple, what: str, label) -> list:
+        """The checked element expressions of ``stencil`` for ``shape`` (``label(k)``: element k's equation):
+        the template is checked once and each element made by renaming (:func:`expand`), the elements
+        sympy evaluated (and a template of anything beyond plain arithmetic) checked one by one."""
+        if stencil.shape != shape:
+            raise ShapeError(f"{what} need expressions of that shape; got a stencil of shape {stencil.shape}")
+        known = self._known
+        foreign = sorted(v.name for v in leaf_symbols(stencil) if known.get(v.name) != v)
+        if foreign:
+            raise UnknownSymbolError(
+                f"{what}: the stencil's arrays hold {_listing(foreign)}, not declared in model '{self.name}'"
+            )
+        found = scan(stencil.template)
+        plain = found.symbols is not None and found.numbers_plain
+        plain = plain and not any(found.holds(k) for k in (sp.Derivative, AppliedUndef, sp.ITE, sp.Heaviside))
+        if plain:  # (the template's own symbols, checked on the first element: its message names them)
+            plain = all(known.get(s.name) == s for s in found.symbols - set(stencil.leaves))
+        exprs, symbols = expand(stencil)
+        out = []
+        for k, (expr, free) in enumerate(zip(exprs, symbols, strict=True)):
+            if plain and free is not None:
+                self._free_symbols[expr] = free
+                out.append(expr)
+            else:
+                out.append(self._expression(expr, label(k)))
+        return out
 
     def _fingerprint(self) -> tuple:
         """Everything declared so far, comparable with ``==``."""
