@@ -269,30 +269,33 @@ def compile_library(source: str, folder: Path, build: Build) -> Path:
 
 
 def run_compiler(commands: list, folder: Path, build: Build) -> None:
-    """The compiler ``commands`` run at once inside ``folder``, each within ``build.timeout``; a
-    :class:`CompileError` with the first failure's first line that says "error", else its last line
-    of output (or why it did not run)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    def run(command):
-        try:
-            done = subprocess.run(
-                command, cwd=folder, capture_output=True, text=True, timeout=build.timeout, check=False
-            )
-        except (OSError, subprocess.TimeoutExpired) as error:
-            timed_out = isinstance(error, subprocess.TimeoutExpired)
-            return f"did not finish in {build.timeout:g} s" if timed_out else str(error)
-        if done.returncode != 0:  # (gcc's last lines point at the code: its first "error" line says what)
-            lines = (done.stderr or done.stdout or "").strip().splitlines() or ["no message"]
-            return next((line for line in lines if "error" in line.lower()), lines[-1])[:400]
-        return None
-
-    if len(commands) == 1:
-        problems = [run(commands[0])]
-    else:  # (threads that wait on one compiler process each)
-        with ThreadPoolExecutor(len(commands)) as pool:
-            problems = list(pool.map(run, commands))
-    problem = next((problem for problem in problems if problem is not None), None)
+    """The compiler ``commands`` run at once inside ``folder`` (their output in ``folder``'s files, never
+    a pipe that could fill), all within ``build.timeout``; a :class:`CompileError` with the first
+    failure's first line that says "error", else its last line of output (or why it did not run).  An
+    exception while they run (a time limit's signal) stops them all."""
+    processes, logs, problem = [], [], None
+    deadline = time.monotonic() + build.timeout
+    try:
+        for index, command in enumerate(commands):
+            logs.append(folder / f"compiler{index}.log")
+            with open(logs[-1], "wb") as log:
+                processes.append(subprocess.Popen(command, cwd=folder, stdout=log, stderr=subprocess.STDOUT))
+        for process, log in zip(processes, logs, strict=True):
+            try:
+                code = process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                problem = problem or f"did not finish in {build.timeout:g} s"
+                continue
+            if code != 0 and problem is None:  # (gcc's last lines point at the code: its first "error" line says what)
+                lines = log.read_text(errors="replace").strip().splitlines() or ["no message"]
+                problem = next((line for line in lines if "error" in line.lower()), lines[-1])[:400]
+    except OSError as error:
+        problem = str(error)
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
     if problem is not None:
         raise CompileError(f"{build.what} with {build.compiler} failed: {problem}; {build.fix}")
 
