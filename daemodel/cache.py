@@ -58,6 +58,8 @@ DEFAULT_SIZE = 1 << 30
 FORMAT = 1
 # What makes C source a shared library, besides the caller's flags (casadi's jit: the same).
 LIBRARY_FLAGS = ("-fPIC", "-shared")
+# What makes one translation unit of a library an object file, besides the caller's flags.
+UNIT_FLAGS = ("-fPIC",)
 # A compile that takes longer is stopped (the largest steps compile in under a minute).
 COMPILE_TIMEOUT = 600.0
 # A temporary file younger than this may be another process's write in progress: eviction spares it.
@@ -179,9 +181,11 @@ def digest(data: bytes | str) -> str:
 
 def entry_key(source: str, build: Build) -> str:
     """The name of the entry that holds ``source`` compiled as ``build`` says: a hash of the source's
-    hash, the compiler's path and version, the whole command (every flag), casadi's and daemodel's
-    versions and :data:`FORMAT`."""
+    hash, the compiler's path and version, the whole command (every flag), the translation units it
+    is cut into (:meth:`Build.unit_count`), casadi's and daemodel's versions and :data:`FORMAT`."""
     parts = [f"format {FORMAT}", digest(source), build.compiler, compiler_version(build.compiler), *build.command()]
+    units = build.unit_count()
+    parts += [f"translation units {units}"] if units > 1 else []  # (one unit: the keys of before units existed)
     return digest("\0".join([*parts, *versions()]))
 
 
@@ -199,8 +203,10 @@ def private_directory(prefix: str, who: str = "radau: jit=True", fix: str = "sol
 
 class Build(NamedTuple):
     """How C source becomes a library: the compiler, its flags (before the source, with
-    :data:`LIBRARY_FLAGS`), the libraries it links (after it, e.g. ``("-lm",)``), the seconds it
-    may take; and for a :class:`CompileError`'s message, ``what`` is compiled and the ``fix``."""
+    :data:`LIBRARY_FLAGS`), the libraries it links (after it, e.g. ``("-lm",)``), the seconds each
+    compiler run may take; and for a :class:`CompileError`'s message, ``what`` is compiled and the
+    ``fix``; ``units``: the most translation units the source is cut into and compiled at once
+    (:mod:`daemodel.translation_units`; no more than this process may run at once, :func:`workers`)."""
 
     compiler: str
     flags: tuple
@@ -209,31 +215,89 @@ class Build(NamedTuple):
     libraries: tuple = ()
     timeout: float = COMPILE_TIMEOUT
 
+    units: int = 1
+
     def command(self) -> list[str]:
         """The command that compiles ``source.c`` into ``library.so`` in the current folder."""
         return [self.compiler, *self.flags, *LIBRARY_FLAGS, "source.c", "-o", "library.so", *self.libraries]
 
+    def unit_command(self, name: str) -> list[str]:
+        """The command that compiles the translation unit ``name.c`` into ``name.o`` (the same flags)."""
+        return [self.compiler, *self.flags, *UNIT_FLAGS, "-c", f"{name}.c", "-o", f"{name}.o"]
+
+    def link_command(self, names) -> list[str]:
+        """The command that links the units ``names`` (their ``.o``, in order) into ``library.so``."""
+        return [self.compiler, *self.flags, *LIBRARY_FLAGS, *(f"{name}.o" for name in names), "-o", "library.so",
+                *self.libraries]  # fmt: skip
+
+    def unit_count(self) -> int:
+        """The translation units asked for on this machine: :attr:`units`, at most :func:`workers`."""
+        return max(1, min(self.units, workers()))
+
+
+def workers() -> int:
+    """The compiler runs this process may make at once: the CPUs it may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # (not on every platform)
+        return os.cpu_count() or 1
+
 
 def compile_library(source: str, folder: Path, build: Build) -> Path:
     """``source`` compiled as ``build`` says into ``folder/library.so`` (run inside ``folder``, so the
-    library holds no temporary path and is the same bytes in every process); a :class:`CompileError`
-    naming what was compiled, the compiler, its last line of output and the fix where it fails."""
-    (folder / "source.c").write_text(source)
-    compiler, what, fix = build.compiler, build.what, build.fix
-    try:
-        done = subprocess.run(
-            build.command(), cwd=folder, capture_output=True, text=True, timeout=build.timeout, check=False
-        )
-    except (OSError, subprocess.TimeoutExpired) as error:
-        timed_out = isinstance(error, subprocess.TimeoutExpired)
-        message = f"did not finish in {build.timeout:g} s" if timed_out else str(error)
-        raise CompileError(f"{what} with {compiler} failed: {message}; {fix}") from None
-    if done.returncode != 0:
-        lines = (done.stderr or done.stdout or "").strip().splitlines() or ["no message"]
-        raise CompileError(f"{what} with {compiler} failed: {lines[-1][:400]}; {fix}")
+    library holds no temporary path and is the same bytes in every process): cut into translation
+    units compiled at once where ``build`` asks for several and the source allows
+    (:func:`daemodel.translation_units.split`), then linked; else in one compiler run.  A
+    :class:`CompileError` naming what was compiled, the compiler, what it said (:func:`run_compiler`)
+    and the fix where it fails."""
+    from daemodel.translation_units import split
+
+    count = build.unit_count()
+    units = split(source, count) if count > 1 else None
+    if units is None:
+        (folder / "source.c").write_text(source)
+        run_compiler([build.command()], folder, build)
+    else:
+        names = [f"unit{index}" for index in range(len(units))]
+        for name, text in zip(names, units, strict=True):
+            (folder / f"{name}.c").write_text(text)
+        run_compiler([build.unit_command(name) for name in names], folder, build)
+        run_compiler([build.link_command(names)], folder, build)
     if not (folder / "library.so").is_file():  # (a wrapper that exits 0 and writes nothing)
-        raise CompileError(f"{what} with {compiler} failed: it exited 0 but wrote no library; {fix}")
+        raise CompileError(f"{build.what} with {build.compiler} failed: it exited 0 but wrote no library; {build.fix}")
     return folder / "library.so"
+
+
+def run_compiler(commands: list, folder: Path, build: Build) -> None:
+    """The compiler ``commands`` run at once inside ``folder`` (their output in ``folder``'s files, never
+    a pipe that could fill), all within ``build.timeout``; a :class:`CompileError` with the first
+    failure's first line that says "error", else its last line of output (or why it did not run).  An
+    exception while they run (a time limit's signal) stops them all."""
+    processes, logs, problem = [], [], None
+    deadline = time.monotonic() + build.timeout
+    try:
+        for index, command in enumerate(commands):
+            logs.append(folder / f"compiler{index}.log")
+            with open(logs[-1], "wb") as log:
+                processes.append(subprocess.Popen(command, cwd=folder, stdout=log, stderr=subprocess.STDOUT))
+        for process, log in zip(processes, logs, strict=True):
+            try:
+                code = process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                problem = problem or f"did not finish in {build.timeout:g} s"
+                continue
+            if code != 0 and problem is None:  # (gcc's last lines point at the code: its first "error" line says what)
+                lines = log.read_text(errors="replace").strip().splitlines() or ["no message"]
+                problem = next((line for line in lines if "error" in line.lower()), lines[-1])[:400]
+    except OSError as error:
+        problem = str(error)
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    if problem is not None:
+        raise CompileError(f"{build.what} with {build.compiler} failed: {problem}; {build.fix}")
 
 
 def load(library: Path, names) -> dict:

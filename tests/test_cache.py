@@ -497,3 +497,29 @@ def test_a_compiler_that_succeeds_without_a_loadable_library_is_a_compile_error(
     sol = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)
     assert sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed") and said in sol.stats["jit"]
     assert sol.status == "success" and not any(name.endswith(cache.LIBRARY) for name in files(folder))
+
+
+@pytest.mark.parametrize("units", [1, 3])
+def test_a_compiler_past_its_time_is_stopped(tmp_path, monkeypatch, units):
+    """A compiler run (or each of the units' runs at once) that takes longer than the build's timeout is
+    stopped, and the CompileError says so; a compiler that cannot be started is named likewise."""
+    slow = tmp_path / "bin" / "cc"
+    slow.parent.mkdir()
+    slow.write_text(f'#!/bin/sh\n[ "$1" = --version ] && exit 0\necho $$ >> {tmp_path / "pids"}\nexec sleep 60\n')
+    slow.chmod(0o755)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.setattr(cache, "workers", lambda: units)
+    source = "\n".join(f"double f{k}(double x) {{\n  return {k} * x;\n}}" for k in range(3000))  # (~80 kB: 3 units)
+    build = cache.Build(str(slow), (), "compiling", FIX, timeout=1.0, units=units)
+    began = time.monotonic()
+    with pytest.raises(CompileError, match=rf"compiling with {slow} failed: did not finish in 1 s; {FIX}"):
+        cache.compile_library(source, work, build)
+    assert time.monotonic() - began < 30
+    pids = [int(pid) for pid in (tmp_path / "pids").read_text().split()]
+    assert len(pids) == units
+    for pid in pids:  # (stopped: no process left behind)
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    with pytest.raises(CompileError, match=r"compiling with .*no-such-cc failed: .*No such file"):
+        cache.compile_library(source, work, build._replace(compiler=str(tmp_path / "no-such-cc")))

@@ -20,7 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # From the bottom up: (layer, the first component of each module name under daemodel. in it).
 # daemodel/__init__.py, the front door, sits above them all.
 LAYERS = (
-    ("core", ("errors", "files", "cache", "tableau", "reals", "collocation", "messages", "executors")),
+    (
+        "core",
+        ("errors", "files", "cache", "translation_units", "tableau", "reals", "collocation", "messages", "executors"),
+    ),
     ("declaring", ("declaring",)),
     ("compiling", ("compiling",)),
     ("the Solution", ("solution", "solution_files", "stats", "dense", "sensitivities", "instants", "plotting")),

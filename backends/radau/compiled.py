@@ -34,7 +34,7 @@ from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
 from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_call
 
-from daemodel.cache import Build, cached_library
+from daemodel.cache import Build, cached_library, compiler_version
 from daemodel.collocation import extrapolation_polynomial, horner
 
 # Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does):
@@ -314,10 +314,19 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
 
 # C compilers tried for jit=True, in this order (the first on PATH compiles).
 COMPILERS = ("cc", "gcc", "clang")
-# Optimisation of the machine code: -O2 (-O1 compiles the 20-pendulum chain's step 1.6x faster and
-# solves 7-13 % slower); no fused multiply-adds (the loops of .kernel give the SX factors and solves bit
-# for bit: a compiler may not contract a - b c); no errno (sqrt inline: it changes no value).
+# Optimisation of the machine code: -O2 (-O1 compiles car axis's library 1.5x faster and solves 15-20 %
+# slower; -O1 with -finline-small-functions -fstrict-aliasing 8-11 % slower); no fused multiply-adds (the
+# loops of .kernel give the SX factors and solves bit for bit: a compiler may not contract a - b c); no
+# errno (sqrt inline: it changes no value).
 COMPILER_FLAGS = ("-O2", "-ffp-contract=off", "-fno-math-errno")
+# With GCC, -O2's passes that cost compiling and no solve time on this code: the second instruction
+# scheduling and partial redundancy elimination (tree and RTL), 12-15 % of the compiler's time on the Test
+# Set problems' libraries, the same us per attempt (car axis, transistor amplifier, squeezer) and the same
+# bits; without the vectorisers too would save 5 % more and cost 7 % of the transistor amplifier's attempts.
+GCC_FLAGS = ("-fno-schedule-insns2", "-fno-tree-pre", "-fno-gcse")
+# The most translation units a library's source is cut into and compiled at once (daemodel.translation_units;
+# at most one per CPU this process may use, and about one per 20 kB of functions: car axis 5 at most).
+COMPILE_UNITS = 8
 # What a failed compile's message proposes.
 JIT_FIX = "solve with jit=False (the same results to rounding, slower steps)"
 
@@ -328,6 +337,12 @@ class MachineCode(NamedTuple):
 
     function: object
     outcome: str
+
+
+def compiler_flags(compiler: str) -> tuple:
+    """:data:`COMPILER_FLAGS`, and :data:`GCC_FLAGS` where ``compiler`` is not clang (``--version``'s
+    first line, :func:`daemodel.cache.compiler_version`: GCC's, whose ``cc`` does not always say so)."""
+    return COMPILER_FLAGS + (() if "clang" in compiler_version(compiler).lower() else GCC_FLAGS)
 
 
 def find_compiler() -> str | None:
@@ -343,9 +358,11 @@ def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_nam
     generator for all of them (a function they share, the stage residual, written once), after
     ``kernel``, C that the source needs and whose own functions ``kernel_names`` the library offers
     too (:func:`.kernel.kernel_source`: the static factors' loops, which the calls of
-    :func:`.kernel.solve_call` inside ``functions`` reach), compiled with :data:`COMPILER_FLAGS` in
-    a private temporary folder, stored and loaded with ``casadi.external``; or loaded from the cache
-    where an earlier process stored it.  One compiler run for everything a solve runs in machine code.
+    :func:`.kernel.solve_call` inside ``functions`` reach), compiled with :func:`compiler_flags` in
+    a private temporary folder (cut into up to :data:`COMPILE_UNITS` translation units compiled at
+    once, :mod:`daemodel.translation_units`), stored and loaded with ``casadi.external``; or loaded
+    from the cache where an earlier process stored it.  One library for everything a solve runs in
+    machine code.
 
     Returns :class:`daemodel.cache.Library`: ``functions`` by the names given (and ``kernel_names``),
     and what the cache did.  Raises :class:`~daemodel.errors.CompileError` with the compiler's
@@ -360,7 +377,7 @@ def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_nam
         # is then written once; inlined, car axis's library held the step twice, 5,891 lines)
         generator.add(casadi.Function(name, inputs, function.call(inputs, False, True)))
     what = what or f"radau's machine code: compiling the step of {next(iter(functions.values())).name()!r}"
-    build = Build(compiler, COMPILER_FLAGS, what, JIT_FIX, libraries=("-lm",))
+    build = Build(compiler, compiler_flags(compiler), what, JIT_FIX, libraries=("-lm",), units=COMPILE_UNITS)
     return cached_library(kernel + generator.dump(), [*functions, *kernel_names], build)
 
 

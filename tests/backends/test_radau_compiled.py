@@ -76,6 +76,47 @@ def test_machine_code_gives_the_virtual_machines_bits(problem):
                 np.testing.assert_allclose(jit[name], vm[name], rtol=1e-12, atol=1e-15, err_msg=name)
 
 
+@needs_compiler
+@pytest.mark.parametrize("name", ["car-axis", "pendulum"])
+def test_how_the_library_is_compiled_changes_no_bit(monkeypatch, tmp_path, name):
+    """One compiler run at -O2, or the source cut into translation units compiled at once (daemodel.
+    translation_units) with GCC's -O2 less the passes of GCC_FLAGS: the same steps, the same values."""
+    from daemodel import cache
+
+    monkeypatch.setenv(cache.CACHE_VARIABLE, str(tmp_path / "cache"))
+    problem, options = PROBLEMS[name], {"rtol": 1e-6, "atol": 1e-6}
+    runs = []
+    original = cache.run_compiler
+    monkeypatch.setattr(
+        cache, "run_compiler", lambda commands, *args: (runs.append(commands), original(commands, *args))
+    )
+    monkeypatch.setattr(cache, "workers", lambda: 4)
+    cut = dm.solve(problem.model().compile(), problem.t_span, jit=True, **options)
+    assert len(runs) == 2 and len(runs[0]) > 1  # (units at once, then the link)
+    assert all(flag in runs[0][0] for flag in radau_compiled.GCC_FLAGS) or "clang" in cache.compiler_version(
+        find_compiler()
+    )
+    monkeypatch.setattr(radau_compiled, "COMPILE_UNITS", 1)
+    monkeypatch.setattr(radau_compiled, "compiler_flags", lambda compiler: radau_compiled.COMPILER_FLAGS)
+    whole = dm.solve(problem.model().compile(), problem.t_span, jit=True, **options)
+    assert len(runs) == 3 and len(runs[2]) == 1 and not set(radau_compiled.GCC_FLAGS) & set(runs[2][0])
+    assert cut.stats["compiled_cache"] == whole.stats["compiled_cache"] == "miss"
+    assert (
+        cut.stats["steps"] == whole.stats["steps"]
+        and cut.stats["newton_iterations"] == whole.stats["newton_iterations"]
+    )
+    compiled = problem.model().compile()
+    for key in (*compiled.state_names, *compiled.algebraic_names):
+        assert np.array_equal(cut[key], whole[key]), key
+
+
+def test_gcc_flags_only_for_gcc(monkeypatch):
+    monkeypatch.setattr(radau_compiled, "compiler_version", lambda compiler: "Apple clang version 15.0.0")
+    assert radau_compiled.compiler_flags("cc") == radau_compiled.COMPILER_FLAGS
+    monkeypatch.setattr(radau_compiled, "compiler_version", lambda compiler: "cc (Debian 12.2.0-14) 12.2.0")
+    assert radau_compiled.compiler_flags("cc") == radau_compiled.COMPILER_FLAGS + radau_compiled.GCC_FLAGS
+
+
 def test_the_compiled_step_keeps_radau5s_thresholds_where_newton_meets_rounding():
     """At rtol 1e-13 Newton's tolerance is 10 eps / rtol; a Jacobian kept while Newton contracts at
     0.1 there left stage errors the estimate read as the step's: the pendulum (s = 7) underflowed."""
@@ -157,6 +198,9 @@ def test_auto_tries_a_failing_compiler_once_per_model(monkeypatch, tmp_path):
     )
     failing.chmod(0o755)
     monkeypatch.setenv("PATH", str(tmp_path))
+    from daemodel import cache
+
+    monkeypatch.setattr(cache, "workers", lambda: 1)  # (one compiler run a compile: several CPUs run one per unit)
     ball = BOUNCING_BALL.model().compile()
     sol = dm.solve(ball, BOUNCING_BALL.t_span, rtol=1e-8, atol=1e-8)
     assert sol.stats["events"] >= 3 and sol.status == "success"
