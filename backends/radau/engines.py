@@ -131,7 +131,13 @@ class AbstractEngine(ABC):
 
     def newton_increment(self, factors, R):
         """``dW`` solving the Newton system ``N dW = -R`` (``R (B, s, n+m)``), through the
-        transformed systems of ``factors`` or the full matrix of :class:`StageFactors`."""
+        transformed systems of ``factors`` or the full matrix of :class:`StageFactors`.  A residual
+        that overflowed gives a non-finite increment, which Newton's loop counts as a failure of the
+        attempt (shorter h): numpy's warnings about it would only repeat that to the user."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            return self._newton_increment(factors, R)
+
+    def _newton_increment(self, factors, R):
         if isinstance(factors, StageFactors):
             return self.solve_stages(factors, R)
         xp, n, h, tr = self.xp, self.n, factors.h, self.transform

@@ -104,3 +104,19 @@ def test_the_tries_in_the_general_paths_order(outcomes, usable_after, kept, extr
     found = _tries(SCALAR, tuple(map(float, outcomes)), usable_after, 1.0, kept, extrapolated)
     assert found[0] == outcome and found[1] == stale and found[3] == retries and found[4] == evaluations
     assert found[5] == newton_failed and found[6] == (1.0 if newton_failed else False)
+
+
+def test_an_overflowing_residual_fails_its_attempt_without_numpy_warnings():
+    """The ring modulator at rtol 1e-8: 45 attempts' Newton iterations overflow (the diodes' exp) and
+    are retried shorter; numpy's "invalid value encountered in matmul" about each reached the user
+    as a RuntimeWarning from a run that succeeds."""
+    import warnings
+
+    import daemodel as dm
+    from daemodel.problems import PROBLEMS
+
+    ring = PROBLEMS["ring-modulator"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        sol = dm.solve(ring.model().compile(), ring.t_span, rtol=1e-8, atol=1e-8)
+    assert sol.status == "success" and sol.stats["newton_failures"] > 0
