@@ -7,16 +7,11 @@ import time
 
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
-from daemodel.backends.radau.casadi_engine import (
-    DENSE_MAX_SIZE,
-    CasadiEngine,
-    dense_systems,
-    factor_entries,
-    jacobian_pattern,
-)
+from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.options import RadauOptions
+from daemodel.backends.radau.sparse import factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
@@ -153,7 +148,7 @@ SMALLER_STEP = 4
 
 
 # The fill of the s D-sized full Newton system's SuperLU factors, over s^2 times that of one D-sized
-# system (:func:`.casadi_engine.factor_entries`): 0.72-0.74 measured on reaction-diffusion at 600
+# system (:func:`.sparse.factor_entries`): 0.72-0.74 measured on reaction-diffusion at 600
 # unknowns, 0.92-0.94 on the chain of 60 pendulums (300), s = 3, 5, 7.
 STAGE_FILL = 1.0
 
@@ -163,7 +158,7 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
     Newton matrices (a stage Jacobian and the factored transformed systems: about (2s + 1) D^2 a
     sample where they are dense, the torch engine's and the casadi engine's small or full systems;
     on the casadi engine's sparse systems the Jacobian's nonzeros and s factors of the fill SuperLU
-    makes of its pattern, :func:`.casadi_engine.factor_entries`, and on fixed steps the full Newton
+    makes of its pattern, :func:`.sparse.factor_entries`, and on fixed steps the full Newton
     system of s D unknowns, about s^2 that fill: :data:`STAGE_FILL`), and the outputs (a fixed grid's
     points, or t_eval's; with t_eval or ``dense_output``, each step's stages for the dense output).
     Adaptive steps add per step what :func:`step_record_bytes` says."""

@@ -41,7 +41,7 @@ from daemodel.backends.radau.linalg import (
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
 from daemodel.backends.radau.pivots import PivotOrders, first_order, holds
-from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU
+from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, sorted_unique, unique_entries
 
 from daemodel.errors import DaemodelError
 
@@ -86,55 +86,6 @@ def dense_systems(D: int, nonzeros: int) -> bool:
     """Whether the casadi engine factors systems of ``D`` unknowns whose Jacobian has ``nonzeros``
     entries densely (LAPACK), else with SuperLU (:data:`DENSE_MAX_SIZE`, :data:`DENSE_FILL`)."""
     return D <= DENSE_MAX_SIZE or nonzeros > DENSE_FILL * D * D
-
-
-def jacobian_pattern(compiled) -> tuple[np.ndarray, np.ndarray]:
-    """The rows and columns of the nonzeros of ``[f_y f_z; g_y g_z]`` (casadi's sparsity of the model's
-    equations; no function is built), made once per model."""
-
-    def build():
-        import casadi
-
-        dae = compiled.casadi_dae()
-        pattern = casadi.jacobian_sparsity(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"]))
-        rows, cols = pattern.get_triplet()
-        return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-
-    return compiled.cached("jacobian-pattern", build)
-
-
-def sorted_unique(keys: np.ndarray) -> np.ndarray:
-    """The distinct values of the integer array ``keys``, ascending: ``np.unique``'s result by a sort
-    (numpy 2.4's ``np.unique`` hashes first: 2.8 s against 0.2 s for the 3 x 10^5 keys of a 10^5
-    tridiagonal pattern on a loaded core)."""
-    ordered = np.sort(keys, kind="stable")
-    return ordered[np.r_[True, ordered[1:] != ordered[:-1]]] if ordered.size else ordered
-
-
-def unique_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
-    """A lower bound of the entries of ``sigma M - J``'s LU factors, J of the pattern ``(rows, cols)``
-    and ``D`` unknowns, ``n`` of them differential: the matrix's distinct entries (J's and M's), and at
-    least the D pivots."""
-    diagonal = np.arange(n, dtype=np.int64) * (D + 1)
-    return max(D, int(sorted_unique(np.concatenate([rows * D + cols, diagonal])).size))
-
-
-def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
-    """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
-    ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
-    engine's factors, which pivot on their own values, is of the same order)."""
-    import scipy.sparse as sparse
-
-    values = np.random.default_rng(0).uniform(0.5, 1.5, rows.size)
-    matrix = sparse.csc_matrix((values, (rows, cols)), shape=(D, D))
-    matrix = matrix + sparse.diags(np.r_[np.full(n, 2.0), np.zeros(D - n)]).tocsc()
-    try:
-        lu = sparse.linalg.splu(matrix)
-    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
-        raise
-    except RuntimeError:  # (structurally singular at these values: at most dense)
-        return D * D
-    return int(lu.L.nnz + lu.U.nnz)
 
 
 class CasadiEngine(AbstractEngine):

@@ -212,19 +212,19 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
     options = backend.RadauOptions(rtol=1e-6, atol=1e-6)
     dense = backend.memory_parts(compiled, span, 1, options, "torch")
     assert dense == {"Newton matrices": 7 * 600**2 * 8}
-    rows, cols = casadi_engine.jacobian_pattern(compiled)
+    rows, cols = radau_sparse.jacobian_pattern(compiled)
     assert sorted(zip(rows, cols, strict=True)) == sorted(zip(engine.rows, engine.cols, strict=True))
     values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
     for sigma in (3.6 + 0j, 2.7 + 3.0j):  # (s = 3's shifts over h = 1, about)
         lu = engine._factor_shift(values, sigma)[0][1]
-        estimate = casadi_engine.factor_entries(rows, cols, len(compiled.states), 600)
+        estimate = radau_sparse.factor_entries(rows, cols, len(compiled.states), 600)
         assert (lu.L.nnz + lu.U.nnz) / 2 <= estimate <= 2 * (lu.L.nnz + lu.U.nnz)
     parts = backend.memory_parts(compiled, span, 1, options, "casadi")
     assert parts == {"Newton matrices (sparse)": rows.size * 8 * 4 + 3 * estimate * 16}
     assert parts["Newton matrices (sparse)"] < dense["Newton matrices"] / 20
     # systems the engine factors densely keep the dense estimate
     chain = scaling_models.pendulum_chain(30).compile()  # 150 unknowns, a dense enough pattern?
-    dense_chain = casadi_engine.dense_systems(150, casadi_engine.jacobian_pattern(chain)[0].size)
+    dense_chain = casadi_engine.dense_systems(150, radau_sparse.jacobian_pattern(chain)[0].size)
     chain_parts = backend.memory_parts(chain, span, 1, options, "casadi")
     assert ("Newton matrices" in chain_parts) == dense_chain
     small = backend.memory_parts(scaling_models.reaction_diffusion(40).compile(), span, 1, options, "casadi")
@@ -254,7 +254,7 @@ def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system(first_
 
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300), h=1e-3, stages=7)  # 600 unknowns, sparse
     span = scaling_models.T_SPAN["reaction_diffusion"]
-    rows = casadi_engine.jacobian_pattern(compiled)[0]
+    rows = radau_sparse.jacobian_pattern(compiled)[0]
     values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
     transformed = 0
     for sigma in engine.transform.shifts(0.01):
@@ -274,7 +274,7 @@ def test_the_entry_bound_is_below_the_factors_entries(first_engine, family, size
     whose bound passes STATIC_MAX_ENTRIES is refused before any elimination is traced."""
     _, engine = first_engine(getattr(scaling_models, family)(size))
     lu = engine._static_pattern()
-    bound = casadi_engine.unique_entries(engine.rows, engine.cols, engine.n, engine.D)
+    bound = radau_sparse.unique_entries(engine.rows, engine.cols, engine.n, engine.D)
     distinct = {(int(i), int(j)) for i, j in zip(engine.rows, engine.cols, strict=True)}
     assert bound == max(engine.D, len(distinct | {(i, i) for i in range(engine.n)}))
     assert engine.D < bound <= lu.entries
@@ -292,4 +292,4 @@ def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(first_engine, mo
 def test_sorted_unique_is_numpys_unique():
     rng = np.random.default_rng(5)
     for keys in (np.array([], dtype=np.int64), np.array([7]), rng.integers(0, 50, 400), rng.integers(0, 10**12, 1000)):
-        assert np.array_equal(casadi_engine.sorted_unique(keys), np.unique(keys))
+        assert np.array_equal(radau_sparse.sorted_unique(keys), np.unique(keys))

@@ -4,6 +4,7 @@ own branch, so that fixed-step radau keeps order 2s-1 across a switch (issue 27,
 """
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -320,3 +321,29 @@ def test_a_time_limit_in_a_batch_across_a_state_switch_is_not_blamed_on_the_swit
     monkeypatch.setattr(RadauBackend, "solve", struck)
     with pytest.raises(E.TimeLimitError, match=r"^stop here$"):
         dm.solve(c, (0.0, 1.0), y0=y0, h=0.01, engine="torch")
+
+
+def test_the_switches_come_in_one_order_whatever_the_hash_seed():
+    # sympy's preorder_traversal walks Max, Min, And and Or through their argument *sets*, whose order
+    # follows the string hash seed: the switches' order changed from one process to the next
+    import subprocess
+    import sys
+
+    script = (
+        "import sympy as sp, daemodel as dm\n"
+        "from daemodel.compiling.switches import find_switches\n"
+        "m = dm.Model('order'); x, y, w = m.states(['x', 'y', 'w'])\n"
+        "m.ode(x, sp.Max(sp.Abs(x - 1), sp.sign(y - 2), sp.floor(w)))\n"
+        "m.ode(y, sp.Piecewise((1, sp.And(x > 1, y < 2, w > 3)), (sp.Min(sp.Abs(y), sp.Heaviside(w - x)), True)))\n"
+        "m.ode(w, sp.Piecewise((1, sp.Or(sp.Abs(x) > 1, sp.sign(w) < 0, y > 4)), (0, True)))\n"
+        "m.initial(x=0.1, y=0.2, w=0.3)\n"
+        "print([(s.kind, str(s.function)) for s in find_switches(m.compile())])\n"
+    )
+    outputs = {
+        subprocess.run(
+            [sys.executable, "-c", script], env={**os.environ, "PYTHONHASHSEED": str(seed)}, capture_output=True,
+            text=True, check=True,
+        ).stdout
+        for seed in (1, 2, 3, 4)
+    }  # fmt: skip
+    assert len(outputs) == 1
