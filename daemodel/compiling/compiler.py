@@ -15,6 +15,7 @@ from daemodel.declaring.arrays import compact_listing
 from daemodel.declaring.events import Event
 from daemodel.declaring.functions import check_supported
 from daemodel.declaring.model import Declaration
+from daemodel.declaring.stencils import paused_collection
 from daemodel.errors import (
     InvalidValueError,
     MissingInitialValueError,
@@ -96,7 +97,15 @@ def as_compiled(model, caller: str = "solve()") -> CompiledDAE:
 
 
 def compile_model(model, outputs=None, repair: bool = False) -> CompiledDAE:
-    """Compile a :class:`~daemodel.compiling.compiler.Model`; see ``Model.compile`` for the parameters."""
+    """Compile a :class:`~daemodel.compiling.compiler.Model`; see ``Model.compile`` for the parameters.
+
+    Python's garbage collector is paused meanwhile (as while declaring by stencils): its full
+    collections walk every expression alive, ~1 of 7.5 s of CPU at 10^5 unknowns."""
+    with paused_collection():
+        return _compile(model, outputs, repair)
+
+
+def _compile(model, outputs, repair: bool) -> CompiledDAE:
     if not isinstance(repair, bool):
         raise InvalidValueError(f"compile(repair=...) must be True or False; got {repair!r}")
     model = model.declared()

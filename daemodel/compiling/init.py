@@ -18,7 +18,13 @@ import numpy as np
 import sympy as sp
 
 from daemodel.compiling.linear import SPARSE_MIN_SIZE, SparseStack, least_squares
-from daemodel.compiling.numeric_source import NUMERIC_MODULES, NumericPrinter, shared_subexpressions
+from daemodel.compiling.numeric_source import (
+    NUMERIC_MODULES,
+    NumericPrinter,
+    holds_re,
+    shape_key,
+    shared_subexpressions,
+)
 from daemodel.compiling.structure import Differentiator, check_rank
 from daemodel.errors import (
     InconsistentAlgebraicValueError,
@@ -91,10 +97,14 @@ class NumericSystem:
         # the docstring
         # use_imps=False: no implemented_function is ever used here, and looking for one walks
         # every expression as a tree
-        printer = NumericPrinter(names, shared, any(e.has(sp.re) for e in exprs))
+        shapes = [shape_key(e, names, shared) for e in exprs]
+        printer = NumericPrinter(names, shared, holds_re(exprs, shapes))
         # an expression of a known shape goes in as its text, the text lambdify would print (it has no
         # Subs, which lambdify would otherwise look for with a walk that rebuilds every expression)
-        items = [text if (text := printer.shaped_text(e)) is not None else e for e in exprs]
+        items = [
+            text if (text := printer.shaped_text(e, shape)) is not None else e
+            for e, shape in zip(exprs, shapes, strict=True)
+        ]
         return sp.lambdify(
             arguments,
             items,

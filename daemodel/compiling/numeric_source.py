@@ -50,10 +50,14 @@ class NumericPrinter(SciPyPrinter):
         text = None if assign_to is not None else self.shaped_text(expr)
         return self._doprint(expr, assign_to) if text is None else text
 
-    def shaped_text(self, expr) -> str | None:
+    def shaped_text(self, expr, shape=False) -> str | None:
         """The text of ``expr``, from the text of its shape (printed at the first expression of that
-        shape); None for an expression of no shape (:func:`shape_key`)."""
-        shape = None if self._has_re else shape_key(expr, self._names, self._shared)
+        shape); None for an expression of no shape (:func:`shape_key`).  ``shape``: its
+        :func:`shape_key` with these names and shared subexpressions, where already known."""
+        if self._has_re:
+            return None
+        if shape is False:
+            shape = shape_key(expr, self._names, self._shared)
         if shape is None:
             return None
         key, leaves = shape
@@ -149,3 +153,21 @@ def shape_key(expr, names: dict, shared: dict) -> tuple[tuple, list] | None:
             key.append((type(node), len(node.args)))
             stack.extend((a, False) for a in reversed(node.args))
     return tuple(key), list(leaves)
+
+
+def holds_re(exprs, shapes) -> bool:
+    """Whether an expression of ``exprs`` holds an ``re`` node (``any(e.has(sp.re) for e in exprs)``),
+    with ``shapes`` their :func:`shape_key` (or None): an expression of a shape is read from its key
+    (the type of every node), each distinct key once, instead of walking its tree."""
+    keys = set()
+    for expr, shape in zip(exprs, shapes, strict=True):
+        if shape is None:
+            if expr.has(sp.re):
+                return True
+        else:
+            keys.add(shape[0])
+    return any(isinstance(token, tuple) and _is_re(token[0]) for key in keys for token in key)
+
+
+def _is_re(kind) -> bool:
+    return isinstance(kind, type) and issubclass(kind, sp.re)

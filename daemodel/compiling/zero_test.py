@@ -343,8 +343,9 @@ def modular_value(expr: sp.Expr) -> int | None:
             out = 1
             for a in node.args:
                 out = out * value(a) % MODULUS
-        elif node.is_Pow and node.exp.is_Integer and abs(node.exp) <= MAX_EXACT_POWER:
-            out = pow(value(node.base), int(node.exp), MODULUS)  # ValueError: a pole, or one modulo it
+        elif node.is_Pow and node.exp.is_Integer and abs(k := int(node.exp)) <= MAX_EXACT_POWER:
+            # (compared as a Python int: sympy's comparison would sympify the bound at every power)
+            out = pow(value(node.base), k, MODULUS)  # ValueError: a pole, or one modulo it
         else:
             raise _NotRational
         memo[node] = out
@@ -381,8 +382,8 @@ def exact_value(expr: sp.Expr) -> Fraction | None:
             out = Fraction(1)
             for a in node.args:
                 out *= value(a)
-        elif node.is_Pow and node.exp.is_Integer and abs(node.exp) <= MAX_EXACT_POWER:
-            out = value(node.base) ** int(node.exp)  # ZeroDivisionError at a pole
+        elif node.is_Pow and node.exp.is_Integer and abs(k := int(node.exp)) <= MAX_EXACT_POWER:
+            out = value(node.base) ** k  # ZeroDivisionError at a pole
         else:
             raise _NotRational
         memo[node] = out

@@ -298,13 +298,20 @@ def paused_collection() -> Iterator[None]:
     """Python's cyclic garbage collector paused (and restored as it was) while a block builds 10^5 trees:
     its full collections walk every object alive, more of them as the model grows (at 10^5 unknowns,
     2.7 of 4.9 s of CPU declaring the reaction-diffusion family).  Sympy trees hold no cycles: nothing
-    waits longer to be freed than until the collector runs again."""
+    waits longer to be freed than until the collector runs again.
+
+    On leaving, what the block made is moved to the oldest generation unscanned (``gc.freeze()`` then
+    ``gc.unfreeze()``, where nothing was frozen before): else the first allocation after would scan it
+    all as the youngest generation (0.6 of 7 s compiling at 10^5 unknowns)."""
     enabled = gc.isenabled()
     gc.disable()
     try:
         yield
     finally:
         if enabled:
+            if gc.get_freeze_count() == 0:  # (a caller's frozen objects stay frozen)
+                gc.freeze()
+                gc.unfreeze()
             gc.enable()
 
 

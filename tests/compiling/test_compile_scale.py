@@ -331,3 +331,37 @@ def test_block_solve_and_rank_check_agree_with_dense():
     check_rank(A, [Row(k) for k in range(len(A))], symbols, 0.0)  # regular: passes
     with pytest.raises(E.SingularSystemError, match=r"g_z is singular at t=0 \(smallest singular value"):
         check_rank(singular, [Row(k) for k in range(len(A))], symbols, 0.0)
+
+
+def test_compile_pauses_the_garbage_collector_and_restores_it(monkeypatch):
+    import gc
+
+    from daemodel.compiling import compiler
+
+    seen = []
+    original = compiler.initialise
+
+    def recording(*args, **kwargs):
+        seen.append(gc.isenabled())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(compiler, "initialise", recording)
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        z0 = reaction_diffusion(5).compile().z0
+        assert seen == [False] and gc.isenabled()
+        c0 = np.sin(np.pi * np.arange(1, 6) / 6)
+        np.testing.assert_allclose(z0, c0**2 / (1 + c0), rtol=1e-14)
+        gc.disable()  # (a caller's paused collector stays paused)
+        reaction_diffusion(4).compile()
+        assert seen == [False, False] and not gc.isenabled()
+        gc.enable()  # (and an error restores it)
+        with pytest.raises(E.MissingInitialValueError):
+            broken = dm.Model("broken")
+            (x,) = broken.states("x")
+            broken.ode(x, -x)
+            broken.compile()
+        assert gc.isenabled()
+    finally:
+        (gc.enable if was else gc.disable)()

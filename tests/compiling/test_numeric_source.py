@@ -5,7 +5,7 @@ import sympy as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemodel.compiling.numeric_source import NumericPrinter, shape_key, shared_subexpressions
+from daemodel.compiling.numeric_source import NumericPrinter, holds_re, shape_key, shared_subexpressions
 
 SYMBOLS = sp.symbols("a b c d")
 NAMES = {s: f"_y[{k}]" for k, s in enumerate(SYMBOLS)}
@@ -64,3 +64,26 @@ def test_what_has_no_shape_is_printed_alone():
     assert shape_key(inner, NAMES, {inner: "_c0"}) is not None  # (except at the top: its definition)
     printer = NumericPrinter(NAMES, {inner: "_c0"}, False)
     assert printer.doprint(a * inner) == "_y[0]*(_c0)"  # (as printed without shapes)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(expressions(), min_size=1, max_size=6), st.lists(st.booleans(), min_size=6, max_size=6))
+def test_holds_re_is_any_has_re(exprs, wrap):
+    # re(...) around some of them (at the top, or deeper inside a sum): shaped or not, shared or not
+    exprs = [sp.sympify(e) for e in exprs]
+    exprs = [
+        (sp.re(e) if k % 2 else SYMBOLS[1] + 2 * sp.re(e)) if w else e
+        for k, (e, w) in enumerate(zip(exprs, wrap, strict=False))
+    ]
+    shared = shared_subexpressions(exprs)
+    shapes = [shape_key(e, NAMES, shared) for e in exprs]
+    assert holds_re(exprs, shapes) == any(e.has(sp.re) for e in exprs)
+
+
+def test_holds_re_reads_an_re_from_a_shape_key_alone():
+    a, b = SYMBOLS[:2]
+    exprs = [a + sp.re(b * a), b + sp.re(a * b)]  # (one shape: its key says re)
+    shapes = [shape_key(e, NAMES, {}) for e in exprs]
+    assert all(s is not None for s in shapes) and holds_re(exprs, shapes)
+    plain = [a + sp.sin(b), b + sp.sin(a)]
+    assert not holds_re(plain, [shape_key(e, NAMES, {}) for e in plain])

@@ -255,3 +255,28 @@ def test_symbols_with_assumptions_are_evaluated_as_numpy_evaluates_them():
     x = np.array([sp.Symbol(f"x{i}", positive=True) for i in range(4)], dtype=object)
     exprs, symbols = expand(stencil(x).apply(lambda e: sp.sqrt(e**2)) + 1)
     assert exprs == [xi + 1 for xi in x] and symbols == [None] * 4
+
+
+def test_what_a_paused_block_made_is_not_scanned_as_young_after_it():
+    import gc
+
+    from daemodel.declaring.stencils import paused_collection
+
+    was = gc.isenabled()
+    try:
+        gc.enable()
+        with paused_collection():
+            made = [[k] for k in range(50_000)]  # (tracked objects: the youngest generation's count grows)
+            assert gc.get_count()[0] >= 50_000
+        assert gc.isenabled() and gc.get_freeze_count() == 0
+        # in the oldest generation, unscanned (else the first allocation after the block scans them all
+        # as the youngest, and the survivors sit in the middle generation)
+        assert any(o is made[-1] for o in gc.get_objects(generation=2)) and made[-1] == [49_999]
+        gc.freeze()  # a caller's frozen objects stay frozen
+        frozen = gc.get_freeze_count()
+        with paused_collection():
+            more = [[k] for k in range(1000)]
+        assert gc.get_freeze_count() == frozen and gc.isenabled() and len(more) == 1000
+    finally:
+        gc.unfreeze()
+        (gc.enable if was else gc.disable)()
