@@ -165,12 +165,12 @@ class PivotOrders:
         samples = [*kept, (np.where(vanished, 0.0, kept[-1][0]), kept[-1][1])]
         for (J, h), pivoting in itertools.product(samples, PIVOTING):
             try:
-                candidate = StaticLU(self.lu.rows, self.lu.cols, self.lu.n, self.lu.D, J, h, real, pivoting)
+                candidate = StaticLU(self.lu.rows, self.lu.cols, self.lu.n, self.lu.D, J, h, real, pivoting, max_flops)
             except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
                 raise
-            except RuntimeError:  # (exactly singular there: no order from it)
+            except RuntimeError:  # (exactly singular there, or over max_flops: no order from it)
                 continue
-            if candidate.flops > max_flops or candidate.entries > max_entries:
+            if candidate.entries > max_entries:
                 continue
             held = self._held(candidate, kept, shifts)
             if held > best_held or (best is not None and held == best_held and candidate.flops < best.flops):
