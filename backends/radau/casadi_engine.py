@@ -251,12 +251,15 @@ class CasadiEngine(AbstractEngine):
         :func:`.kernel.sign_call`), so that nothing of the run is left to casadi's virtual machine (car
         axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
         static, m = self.static, self.m
-        factor = factor_call(static.lu, static)
-        sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
-        refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-        functions = (refresh, factor, self._stage_jac.function, sign, static)
+
+        def build():  # (its pieces only where it is built: they cost ~40 us of casadi per solve that needs it)
+            factor = factor_call(static.lu, static)
+            sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
+            refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+            functions = (refresh, factor, self._stage_jac.function, sign, static)
+            return run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)
+
         key = ("casadi-radau-machine-run", self.s, iterations, self._version)  # (._version: .pivots)
-        build = lambda: run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)  # noqa: E731
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
