@@ -347,3 +347,31 @@ def test_the_switches_come_in_one_order_whatever_the_hash_seed():
         for seed in (1, 2, 3, 4)
     }  # fmt: skip
     assert len(outputs) == 1
+
+
+_UNLOCKED = pytest.mark.xfail(
+    strict=True,
+    reason="known defect: compiling.switches._fix locks a Max/Min only where every argument is decided (not a "
+    "function of t and parameters alone), so Min(1, x) (the wheelset's creep saturation) is never locked and "
+    "its pieces are not smooth; locking it on today's code makes casadi-idas on the wheelset fail "
+    "(IDA_CONV_FAIL at t = 0.0086) and moves radau's counts (6,033 -> 6,156 steps, 68 -> 70 events)",
+)
+
+
+@pytest.mark.parametrize(
+    "rhs, locked",
+    [
+        ("Min(x, y)", "y"),
+        pytest.param("Min(1, x)", "1", marks=_UNLOCKED),
+        pytest.param("Max(x, 0)", "x", marks=_UNLOCKED),
+    ],
+)
+def test_a_max_or_min_of_states_is_locked_to_its_branch(rhs, locked):
+    m = dm.Model("locked")
+    m.states("x y")
+    m.ode("x", rhs)
+    m.ode("y", "0")
+    m.initial(x=2.0, y=1.5)
+    compiled = m.compile()
+    fixed = switches.lock_branches(compiled, 0.0, np.array([2.0, 1.5]), np.zeros(0), np.zeros(len(compiled.parameters)))
+    assert fixed.rhs[0] == sp.sympify(locked, locals={"x": compiled.states[0], "y": compiled.states[1]})
