@@ -537,14 +537,16 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
 
 def _earliest(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np.ndarray, which: int) -> int:
     """Of the events ``tied`` whose first crossing lies between the same two outputs ``a`` and ``b``
-    (``Fa``: every event function at ``a``), the one that crosses first on ``sol``'s dense output;
-    ``which``, the first declared, where there is one or the dense output does not tell.  A step that
-    holds two crossings once located the first declared one and fired the earlier with it, late (a
-    state 0.0134 off at rtol 1e-8, said "success": tests/solving/test_events.py)."""
+    (``Fa``: every event function at ``a``), the one that crosses first on ``sol``'s dense output, in
+    :func:`_dense_bracket`'s cells (events that cross in one cell: the first declared, whose location the
+    others join, so that a root as flat as tanh(y)^3's at y's is never the one located); ``which``, the
+    first declared, where there is one or the dense output does not tell.  A step that holds two
+    crossings once located the first declared one and fired the earlier with it, late (a state 0.0134
+    off at rtol 1e-8, said "success": tests/solving/test_events.py)."""
     if len(tied) < 2:
         return which
-    guesses = {e: _dense_crossing(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
-    known = {e: g for e, g in guesses.items() if g is not None}
+    cells = {e: _dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
+    known = {e: cell[1] for e, cell in cells.items() if cell is not None}
     return min(known, key=lambda e: (known[e], e)) if len(known) == len(tied) else which
 
 
@@ -552,7 +554,20 @@ def _dense_crossing(sol, compiled, when, which, P, a: float, b: float, Fa: float
     """Where the event function ``which`` first leaves ``Fa``'s side between the outputs ``a`` and ``b`` on
     ``sol``'s dense output (radau's collocation polynomials: between its outputs at the method's stage
     order), the first trial of :func:`_locate`; None without a dense output or a sign change on it.
-    :data:`DENSE_ROUNDS` rounds of :data:`DENSE_POINTS` points narrow it, then a secant."""
+    :func:`_dense_bracket` narrows it, then a secant."""
+    bracket = _dense_bracket(sol, compiled, when, which, P, a, b, Fa)
+    if bracket is None:
+        return None
+    lo, hi, f_lo, f_hi = bracket
+    guess = lo - f_lo * (hi - lo) / (f_hi - f_lo) if f_hi != f_lo else 0.5 * (lo + hi)
+    return float(guess) if a < guess < b else None
+
+
+def _dense_bracket(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> tuple | None:
+    """``(lo, hi, F(lo), F(hi))``: the cell of :data:`DENSE_ROUNDS` rounds of :data:`DENSE_POINTS` points
+    on ``sol``'s dense output, each within the last, where the event function ``which`` first leaves
+    ``Fa``'s side between ``a`` and ``b``; None without a dense output or a sign change on it.  Events
+    that cross at one instant share their cells, whatever their functions' slopes there."""
     if sol.dense is None or not (sol.t[0] <= a < b <= sol.t[-1]):
         return None
     lo, hi = a, b
@@ -568,8 +583,7 @@ def _dense_crossing(sol, compiled, when, which, P, a: float, b: float, Fa: float
             return None
         k = int(other[0])
         lo, hi, f_lo, f_hi = grid[k - 1], grid[k], F[k - 1], F[k]
-    guess = lo - f_lo * (hi - lo) / (f_hi - f_lo) if f_hi != f_lo else 0.5 * (lo + hi)
-    return float(guess) if a < guess < b else None
+    return lo, hi, f_lo, f_hi
 
 
 def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, guess=None):

@@ -395,3 +395,20 @@ def test_two_switches_crossing_in_one_step_are_each_located_at_their_own_time(fi
     assert sol.events["Piecewise in b'"]["t"].ravel() == pytest.approx([tb], abs=1e-7)
     assert sol["a"][..., -1].item() == pytest.approx(0.5 * math.exp(-2 * (1 - ta)), abs=1e-7)
     assert sol["b"][..., -1].item() == pytest.approx(0.2 * math.exp(-(1 - tb) / 2), abs=1e-7)
+
+
+def test_switches_that_cross_at_one_instant_join_the_first_declared_one_located():
+    """y1 = 0 and tanh(y1)^3 = 0 cross at one instant (a random model of the slow fuzz corpus,
+    r1-0042-expr-valid): the first declared, a simple root, is located and the flat one (a triple root)
+    joins it.  Choosing between them by their dense-output secants picked the flat one, whose location
+    failed: EventLocationError after 100 trial solves."""
+    m = dm.Model("flat_root")
+    m.states("y1")
+    m.algebraics("z1")
+    m.ode("y1", "-1.7*y1 + 0.76*Piecewise((atan((1 + z1**2)**0.5), atan((1 + z1**2)**0.5) > 0), (0, True))")
+    m.constraint("z1 - Piecewise((y1, (y1 > 0) & (tanh(y1)**3 > 0)), (0.5, True))")
+    m.initial(y1=-0.005)
+    sol = dm.solve(m, (0.0, 1.0), method="casadi-collocation", stages=3, h=0.02)
+    assert sol.status == "success"
+    times = {name: event["t"].ravel().tolist() for name, event in sol.events.items() if event["t"].size}
+    assert len(times) == 2 and len({t for ts in times.values() for t in ts}) == 1, times
