@@ -327,6 +327,12 @@ GCC_FLAGS = ("-fno-schedule-insns2", "-fno-tree-pre", "-fno-gcse")
 # The most translation units a library's source is cut into and compiled at once (daemodel.translation_units;
 # at most one per CPU this process may use, and about one per 20 kB of functions: car axis 5 at most).
 COMPILE_UNITS = 8
+# The stage residual inlines its s copies of the equations (SX) up to this many unknowns, the most that
+# jit="auto" compiles (.backend.JIT_AUTO_MAX_SIZE): called as functions (MX) the machine code took 8-11 %
+# longer a solve (car axis, the transistor amplifier; the same values bit for bit); above it, where
+# casadi's virtual machine runs it, calls cost the same to evaluate and save building the copies
+# (1.58 -> 0.36 s at 10^5 unknowns).
+INLINED_RESIDUAL_MAX_SIZE = 200
 # What a failed compile's message proposes.
 JIT_FIX = "solve with jit=False (the same results to rounding, slower steps)"
 
@@ -510,9 +516,10 @@ def casadi_functions(compiled, tableau):
     jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
     jacobian = casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac.nz[:]])
     A, c = tableau.A, tableau.c
-    # the stage residual calls f and g s times (MX), as the stages' Jacobians call the Jacobian's function
-    # below: the same operations as s inlined copies, without building them (at 10^5 unknowns 1.6 s of setup)
-    inputs = casadi.MX.sym("x", 2 + n + s * D + p.numel())
+    # above INLINED_RESIDUAL_MAX_SIZE the stage residual calls f and g s times (MX), as the stages' Jacobians
+    # call the Jacobian's function below: the same operations as s inlined copies, without building them
+    kind = casadi.SX if D <= INLINED_RESIDUAL_MAX_SIZE else casadi.MX
+    inputs = kind.sym("x", 2 + n + s * D + p.numel())
     t_r, h, y_n, W, p_r = (inputs[0], inputs[1], inputs[2 : 2 + n], inputs[2 + n : 2 + n + s * D],
                            inputs[2 + n + s * D :])  # fmt: skip
     times = [t_r + float(c[i]) * h for i in range(s)]
@@ -521,7 +528,7 @@ def casadi_functions(compiled, tableau):
     stage_f = [f(times[i], Y[i], Z[i], p_r) for i in range(s)]
     rows = []
     for i in range(s):
-        quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), casadi.MX.zeros(n))
+        quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), kind.zeros(n))
         rows += [Y[i] - y_n - h * quadrature, g(times[i], Y[i], Z[i], p_r)]
     # the stages' Jacobians call the Jacobian's function s times (MX): the same operations as s inlined
     # copies, without building them (at 10^5 unknowns the copies took longer to build than a solve)
