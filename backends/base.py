@@ -45,8 +45,9 @@ A backend is a final subclass of :class:`AbstractBackend`:
    trained over the whole span per call) sets ``solves_pieces = False``; ``solve`` then refuses such
    models with :class:`~daemodel.errors.UnsupportedModelError` naming the method and the switch or event.
 8. A backend whose ``stops`` is True also takes ``solve(..., stop=...)``: a function
-   ``stop(times (k,), Y (k, n), Z (k, m)) -> bool`` of one sample's outputs, called on each block of
-   them in order as the integration makes them (the start value first); where it returns True the
+   ``stop(times (k,), Y (k, n), Z (k, m), dense) -> bool`` of one sample's outputs, called on each block
+   of them in order as the integration makes them (the start value first), ``dense`` the block's dense
+   output from the output before it where the method has one (else None); where it returns True the
    integration ends after that block, and the Solution holds the outputs up to it (those of a solve to
    t1 up to there, the same values).  The event search (:mod:`daemodel.solving.events`) stops where
    an event function has crossed zero, instead of solving on to t1 and discarding the rest.

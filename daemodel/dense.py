@@ -57,6 +57,9 @@ def outputs_before(outputs: np.ndarray, values: np.ndarray, times: np.ndarray) -
 class AbstractDenseOutput(ABC):
     """A continuous solution over a solve's span: ``(B, K, n+m)`` values at any ``K`` times inside."""
 
+    # whether reading it solves again (a method started again from an output): costly to read often
+    solves_again = False
+
     @abstractmethod
     def __call__(self, times: np.ndarray) -> np.ndarray: ...
 
@@ -109,6 +112,10 @@ class Segments(AbstractDenseOutput):
     def description(self) -> str:
         return f"{self.pieces[0].description}, in {len(self.pieces)} segments"
 
+    @property
+    def solves_again(self) -> bool:
+        return any(piece.solves_again for piece in self.pieces)
+
     def __call__(self, times: np.ndarray) -> np.ndarray:
         times = np.asarray(times, dtype=float)
         segment = np.clip(np.searchsorted(self.edges, times, side="right") - 1, 0, len(self.pieces) - 1)
@@ -135,6 +142,10 @@ class Groups(AbstractDenseOutput):
     @property
     def description(self) -> str:
         return self.groups[0][1].description
+
+    @property
+    def solves_again(self) -> bool:
+        return any(dense.solves_again for _, dense in self.groups)
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         out = None
@@ -187,6 +198,7 @@ class Restarts(AbstractDenseOutput):
     times: np.ndarray
     values: np.ndarray
     parameters: np.ndarray
+    solves_again = True
 
     @property
     def description(self) -> str:

@@ -220,6 +220,7 @@ class IDASRestarts(AbstractDenseOutput):
     parameters: np.ndarray  # (B, k)
     integrator: object  # () -> the integrator from s = 0 to 1 on normalised time
     n: int
+    solves_again = True
 
     @property
     def description(self) -> str:

@@ -253,9 +253,10 @@ class Stepper:
             return False
         while self.shown < len(self.records.times):
             times, values = self.records.block(self.shown)
+            dense = self.records.block_polynomials(self.shown, self.tableau.c) if self.shown else None
             self.shown += 1
             values = numpy_copy(values[0])
-            if self.stop(times, values[:, : self.n], values[:, self.n :]):
+            if self.stop(times, values[:, : self.n], values[:, self.n :], dense):
                 return True
         return False
 
@@ -559,6 +560,20 @@ class Records:
         if k == 0 or not self.dense:
             return self.times[k], self.values[k]
         return self.times[k], self.nodes[k - 1][:, :, -1]
+
+    def block_polynomials(self, k: int, c):
+        """The :class:`~daemodel.dense.CollocationPolynomials` of the ``k``-th block's steps (``k`` >= 1), or
+        None without ``dense``."""
+        if not self.dense:
+            return None
+        from daemodel.dense import CollocationPolynomials
+
+        return CollocationPolynomials(
+            c=np.asarray(c, dtype=float),
+            starts=np.asarray(self.starts[k - 1], dtype=float),
+            lengths=np.asarray(self.lengths[k - 1], dtype=float),
+            nodes=numpy_copy(self.nodes[k - 1]),
+        )
 
     def polynomials(self, c, xp):
         """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``

@@ -2,8 +2,10 @@
 where the solve starts), read off one explicit step (:func:`drift`), never the switch's value at zero;
 the levels of ``floor`` and ``ceiling`` for the piece; Filippov's sliding motion along a switch where
 neither side goes on and the motion on it is integrable, refused where it is not
-(:class:`~daemodel.errors.SlidingModeError`); and a reset that leaves its function on the guard
-(:class:`~daemodel.errors.ZenoError`).  Used by :mod:`daemodel.solving.events` after each event."""
+(:class:`~daemodel.errors.SlidingModeError`); a reset that leaves its function on the guard, and an
+event whose times converge inside the span (:class:`~daemodel.errors.ZenoError`); whether a switch's
+excursion inside a step is within the tolerance (:func:`within_tolerance`).  Used by
+:mod:`daemodel.solving.events` after each event."""
 
 from __future__ import annotations
 
@@ -23,6 +25,9 @@ from daemodel.solving.switches import for_method
 EVENT_TOL = 1e-12
 # A drift within ROUNDING of the values' size (at least 1) is no motion.
 ROUNDING = 64 * np.finfo(float).eps
+# Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
+# t_span's length, whose geometric series ends inside t_span: ZenoError at the estimated accumulation point.
+ZENO_GAPS, ZENO_GAP = 5, 1e-6
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
 RESET_CHANGE = 1e-6
@@ -290,3 +295,54 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
         model = dataclasses.replace(minus, rhs=rhs, _cache={})
         compiled._cache[key] = (model, down * (-up), (up, down))
     return compiled._cache[key]
+
+
+def accumulation_point(times: list) -> float | None:
+    """Where ``times`` converge, if their last 3 gaps shrink: the sum of the geometric series they start."""
+    if len(times) < 4:
+        return None
+    gaps = np.diff(np.asarray(times[-4:]))
+    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1])):
+        return None
+    ratio = gaps[-1] / gaps[-2]
+    return float(times[-1] + gaps[-1] * ratio / (1.0 - ratio))
+
+
+def check_accumulating(event, times: list, t0: float, t1: float) -> None:
+    """Raise :class:`ZenoError` where ``event``'s times converge geometrically to a point inside the span."""
+    if len(times) <= ZENO_GAPS:
+        return
+    gaps = np.diff(np.asarray(times[-ZENO_GAPS - 1 :]))
+    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1]) and gaps[-1] <= ZENO_GAP * (t1 - t0)):
+        return
+    ratio = gaps[-1] / gaps[-2]
+    limit = times[-1] + gaps[-1] * ratio / (1.0 - ratio)
+    if limit < t1:
+        raise ZenoError(
+            f"event '{event.name}' accumulates at t ≈ {limit:.12g}: its last {ZENO_GAPS} gaps shrink by "
+            f"{ratio:.3g} each, down to {gaps[-1]:.3g} at t = {times[-1]:.12g} (Zeno: infinitely many events before "
+            f"it); the solution past it is not defined by the events: end t_span before t ≈ {limit:.6g}, or make "
+            "the event terminal=True (or set max_events) to stop earlier",
+            limit,
+        )
+
+
+def within_tolerance(compiled, piece, options, P, t: float, y: np.ndarray, z: np.ndarray, span: float) -> bool:
+    """Whether a switch's excursion to its other branch at ``(t, y (1, n), z (1, m))`` (its deepest point),
+    inside one step of length ``span``, may be integrated on ``piece``'s branch at the solve's tolerance:
+    the difference of the two branches' rates there times the whole step, in the weighted norm the
+    adaptive methods hold each step's local error to (``atol + rtol |y|``, root mean square), at most 1.
+    The difference bounds the excursion's effect where it is largest at its deepest point (a kink,
+    ``Min(1, x)``: it grows with the distance from the switch) or the same throughout (a jump).  False
+    without ``rtol`` and ``atol`` (fixed steps) and where the branches' constraints differ (the
+    algebraic variables would change with them)."""
+    rtol, atol = getattr(options, "rtol", None), getattr(options, "atol", None)
+    if rtol is None or atol is None:
+        return False
+    other = lock_branches(compiled, t, y[0], z[0], P[0])
+    if other.constraints != piece.constraints:
+        return False
+    numeric, at = compiled.numeric, np.array([float(t)])
+    change = numeric.batch_function(list(other.rhs))(at, y, z, P) - numeric.batch_function(list(piece.rhs))(at, y, z, P)
+    weighted = np.abs(change[0]) * span / (np.asarray(atol, dtype=float) + np.asarray(rtol, dtype=float) * np.abs(y[0]))
+    return bool(np.sqrt(np.mean(weighted**2)) <= 1.0)

@@ -15,10 +15,13 @@ outputs, instead of a solve to t1 whose rest is discarded); locate it between th
 two outputs that bracket it by the Illinois variant of regula falsi, each trial time a short solve
 from the output before it (so the located state has the method's own accuracy, not an
 interpolant's), to :data:`EVENT_TOL` in t; keep the outputs before it, apply the reset, go on
-from there.  A crossing between two outputs whose function changes sign twice is not seen, except
-from where a piece starts: an event function at zero there (just fired, or where the solve starts)
-takes the side the flow goes to (:mod:`daemodel.solving.branches`: one explicit step), so a
-flight shorter than an output step is a crossing too.  At most ``max_events`` events a solve
+from there.  A function that crosses zero and comes back between two outputs changes no sign at
+them: it is looked for on the dense output between them (:mod:`daemodel.solving.between`, also in
+the blocks a stopping method shows its search), confirmed by a trial solve, and its crossing located
+the same way; a search stopped for one its trial does not confirm goes on from there (at most
+``max_events`` times).  An event function at zero where a piece starts (just fired, or where the
+solve starts) takes the side the flow goes to (:mod:`daemodel.solving.branches`: one explicit
+step), so a flight shorter than an output step is a crossing too.  At most ``max_events`` events a solve
 (default :data:`DEFAULT_MAX_EVENTS`); events whose times converge stop earlier, at their estimated
 accumulation point, and so does a reset that leaves its function on the guard
 (:class:`~daemodel.errors.ZenoError`).
@@ -42,7 +45,25 @@ import numpy as np
 
 from daemodel.compiling.switches import has_state_switches, has_time_switches
 from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
-from daemodel.solving.branches import EVENT_TOL, ROUNDING, drift, start_piece
+from daemodel.solving.between import (
+    armed_outputs,
+    block_excursion,
+    dense_bracket,
+    dense_crossing,
+    dense_states,
+    excursions,
+    inner_samples,
+    on_dense,
+)
+from daemodel.solving.branches import (
+    EVENT_TOL,
+    ROUNDING,
+    accumulation_point,
+    check_accumulating,
+    drift,
+    start_piece,
+    within_tolerance,
+)
 from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
@@ -51,22 +72,19 @@ DEFAULT_MAX_EVENTS = 1000
 # Chattering: more than CHATTER_EVENTS events within CHATTER_SPAN of t_span's length end the solve
 # (EventLimitError) before max_events does; a sliding mode makes thousands, each a few trial solves.
 CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
-# Trial solves of the location of one event before EventLocationError.
-MAX_LOCATION_ITERATIONS = 100
+# Trial solves of the location of one event before EventLocationError; from BISECT_AFTER on, a bracket
+# that two trials in a row did not halve from the same end is bisected (a root as flat as x^3's: the
+# secant crept 1e-14 a trial from the end next to it, and 100 trials did not locate it).
+MAX_LOCATION_ITERATIONS, BISECT_AFTER = 100, 24
 # Which way an event function at zero goes (after an event, or where it starts) is read off one explicit
 # step this long: LOOKAHEAD_SPAN of t_span's length, and at least LOOKAHEAD_TOLS location tolerances (so
 # that a located event's own error in t cannot decide the side).
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
-# The first trial of an event's location is where the dense output crosses (events._dense_crossing): found
-# on DENSE_ROUNDS grids of DENSE_POINTS intervals, each inside the last's bracketing interval, then a secant;
-# the second trial is GUESS_WIDTH of the bracket past it.  The wheelset at rtol 1e-6: 12.8 trial solves an
-# event without it (1,077 for 84 events), 5.9 with it (480 for 82); an oscillator, 9.1 -> 4.
-DENSE_ROUNDS, DENSE_POINTS, GUESS_WIDTH = 2, 16, 1e-4
-# Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
-# t_span's length, whose geometric series ends inside t_span: ZenoError at the estimated accumulation point.
-ZENO_GAPS, ZENO_GAP = 5, 1e-6
+# The first trial of an event's location is where the dense output crosses (between.dense_crossing); the
+# second is GUESS_WIDTH of the bracket past it.
+GUESS_WIDTH = 1e-4
 
 
 def _functions(compiled):
@@ -155,27 +173,39 @@ class Crossings:
         return np.zeros(0, dtype=int)
 
 
-def _crossing_stop(compiled, begin, P):
+def _crossing_stop(compiled, begin, P, options):
     """The search's ``stop`` for :func:`_span_solve`: given the backend's names, a function of each block
-    of outputs that is True once an event function has crossed zero its way in the outputs so far (the
-    crossing the search then takes, found as :func:`_crossing` finds it over all of them), so that the
-    solve ends there instead of at t1 (the wheelset at rtol 1e-6 crosses its creep forces' saturation
-    84 times: each search solved the rest of t_span, about 285,000 of the solve's 291,665 steps)."""
+    of outputs, True once an event function has crossed zero its way in the outputs so far (as
+    :func:`_crossing` finds it over all of them) or, on the block's dense output, left its side and come
+    back (:func:`daemodel.solving.between.block_excursion`), so that the solve ends there, not at t1 (the
+    wheelset's searches once solved the rest of t_span: 285,000 of the solve's 291,665 steps)."""
     events = compiled.events
     wanted = (*compiled.state_names, *compiled.algebraic_names)
     n = len(compiled.state_names)
+    armed = np.array([bool(begin.armed[k]) or bool(begin.sides[k]) for k in range(len(events))], dtype=bool)
+
+    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for: see _first_excursion)
+        return not (events[x.event].strict and within_tolerance(compiled, begin.model, options, P, x.t, y, z, span))
 
     def make(names):
         position = {v: k for k, v in enumerate((*names[0], *names[1]))}
         if any(v not in position for v in wanted):
-            return lambda times, Y, Z: False  # (outputs the search does not read as its own: no stop)
+            return lambda times, Y, Z, dense=None: False  # (outputs the search does not read as its own: no stop)
         columns = np.array([position[v] for v in wanted], dtype=int)
         scans = [Crossings(e.direction, bool(begin.armed[k]), begin.sides[k]) for k, e in enumerate(events)]
+        last = []  # (the last output seen: time, values of the functions)
 
-        def stop(times, Y, Z) -> bool:
+        def stop(times, Y, Z, dense=None) -> bool:
             U = np.concatenate([Y, Z], axis=1)[:, columns]
             F = begin.when(times, U[:, :n], U[:, n:], np.repeat(P, len(times), axis=0))
-            return any(len(scan.feed(F[:, k])) for k, scan in enumerate(scans))
+            if any(len(scan.feed(F[:, k])) for k, scan in enumerate(scans)):
+                return True
+            found = dense is not None and bool(last) and armed.any()
+            if found:
+                T_block, F_block = np.append(last[0], times), np.vstack([last[1], F])
+                found = block_excursion(dense, columns, begin.when, P, n, T_block, F_block, armed, counts)
+            last[:] = [times[-1], F[-1:]]
+            return found
 
         return stop
 
@@ -213,36 +243,6 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     return join_samples(parts, len(P), start.batched)
 
 
-def _limit(times: list) -> float | None:
-    """Where ``times`` converge, if their last 3 gaps shrink: the sum of the geometric series they start."""
-    if len(times) < 4:
-        return None
-    gaps = np.diff(np.asarray(times[-4:]))
-    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1])):
-        return None
-    ratio = gaps[-1] / gaps[-2]
-    return float(times[-1] + gaps[-1] * ratio / (1.0 - ratio))
-
-
-def _accumulating(event, times: list, t0: float, t1: float) -> None:
-    """Raise :class:`ZenoError` where ``event``'s times converge geometrically to a point inside the span."""
-    if len(times) <= ZENO_GAPS:
-        return
-    gaps = np.diff(np.asarray(times[-ZENO_GAPS - 1 :]))
-    if not (np.all(gaps > 0) and np.all(gaps[1:] < gaps[:-1]) and gaps[-1] <= ZENO_GAP * (t1 - t0)):
-        return
-    ratio = gaps[-1] / gaps[-2]
-    limit = times[-1] + gaps[-1] * ratio / (1.0 - ratio)
-    if limit < t1:
-        raise ZenoError(
-            f"event '{event.name}' accumulates at t ≈ {limit:.12g}: its last {ZENO_GAPS} gaps shrink by "
-            f"{ratio:.3g} each, down to {gaps[-1]:.3g} at t = {times[-1]:.12g} (Zeno: infinitely many events before "
-            f"it); the solution past it is not defined by the events: end t_span before t ≈ {limit:.6g}, or make "
-            "the event terminal=True (or set max_events) to stop earlier",
-            limit,
-        )
-
-
 def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.backends.grids import output_times
     from daemodel.compiling.initial_states import algebraic_values
@@ -262,7 +262,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
     fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
     lock = has_state_switches(compiled)
-    keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see _dense_crossing)
+    location = []  # (the trial solves' stats)
+    continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
+    keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
 
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * EVENT_TOL * max(1.0, abs(time_)))
@@ -274,7 +276,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off
             )
         except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
-            limit = max((_limit(history[e]) or -math.inf for e in fired), default=-math.inf)
+            limit = max((accumulation_point(history[e]) or -math.inf for e in fired), default=-math.inf)
             if limit > -math.inf:
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
             raise
@@ -284,11 +286,13 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
             warnings.simplefilter("always")
-            stop = _crossing_stop(compiled, begin, P)  # (it ends where a crossing is found, not at t1)
+            stop = _crossing_stop(compiled, begin, P, options)  # (it ends where a crossing is found, not at t1)
             # (with its dense output, where the location's first trial is read, whatever the caller keeps)
             sol = _span_solve(
-                backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True
-            )
+                backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True,
+                **carried,
+            )  # fmt: skip
+        carried = {}
         all_stats.append(sol.stats)
         setup_time += sol.setup_time
         last = sol
@@ -301,34 +305,67 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
-        if first is None:
+        found = None  # (which, a, b, Fa, Fb, ya, za, the first trial, each fired event's side after it)
+        if first is not None:
+            tied = [e for e in hit if hit[e] == first]
+            which = _earliest(sol, compiled, piece_when, P, tied, T[before_index], T[first], F[before_index], which)
+            a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
+            ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
+            if before_index == 0 and which in begin.at_zero and begin.sides[which]:
+                # (at zero where the piece starts, going to its side: the bracket starts a look-ahead later, where
+                # the method's own solution is on that side, clear of its error at the start)
+                a, Fa, ya, za = _clear_of_zero(
+                    backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
+                    delta_at(a), events[which],
+                )  # fmt: skip
+            guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
+            sides_after = {e: int(np.sign(F[first, e])) or 1 for e in tied}
+            found = (which, a, b, Fa, Fb, ya, za, guess, sides_after)
+        # a function that crossed zero and came back between two outputs, before that crossing
+        until = math.inf if found is None else (found[7] if found[7] is not None else found[2])
+        shown = len(T) if first is None else first + 1
+        hidden, trials = _first_excursion(
+            backend, piece, options, start.batched, P, compiled, piece_when, sol, T[:shown], F[:shown], Ys, Zs, begin,
+            until,
+        )  # fmt: skip
+        all_stats += trials
+        location += trials
+        if hidden is not None:
+            found, hit = hidden, {}
+        if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
+            # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
+            # from there, with the step it had reached)
+            continued += 1
+            if continued > max_events:
+                raise EventLimitError(
+                    f"{continued} crossings of zero on the dense output that the method's own solution does not "
+                    f"confirm, by t = {T[-1]:.10g} (max_events = {max_events}): the event functions graze zero "
+                    "within the method's error that often; tighten the tolerances or raise max_events"
+                )
+            pieces.append((t, T[-1], Y, Z, "continued", piece, sol.dense if keeps_dense else None, sol))
+            if getattr(options, "h", None) is None:
+                carried = {"h0": float(T[-1] - T[-2])}
+            t, Y, Z = float(T[-1]), Ys[-1:].copy(), Zs[-1:].copy()
+            fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()
+            continue
+        if found is None:
             for warning in caught:
                 warnings.warn(warning.message, warning.category, stacklevel=4)
             pieces.append((t, t1, Y, Z, None, piece, sol.dense if keeps_dense else None, sol))
             break
+        which, a, b, Fa, Fb, ya, za, guess, sides_after = found
         count += 1
         if count > max_events:
             raise EventLimitError(
-                f"event '{events[which].name}' would be event number {count} by t = {T[first]:.10g} (max_events = "
+                f"event '{events[which].name}' would be event number {count} by t = {b:.10g} (max_events = "
                 f"{max_events}): events this close together are chattering (Zeno); raise max_events, or end t_span "
                 "before it"
             )
-        tied = [e for e in hit if hit[e] == first]
-        which = _earliest(sol, compiled, piece_when, P, tied, T[before_index], T[first], F[before_index], which)
-        a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
-        ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
-        if before_index == 0 and which in begin.at_zero and begin.sides[which]:
-            # (at zero where the piece starts, going to its side: the bracket starts a look-ahead later, where the
-            # method's own solution is on that side, clear of its error at the start)
-            a, Fa, ya, za = _clear_of_zero(
-                backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
-                delta_at(a), events[which],
-            )  # fmt: skip
-        guess = _dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
         t_event, y_event, z_event, located = _locate(
             backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, guess
         )
         all_stats += located
+        location += located
         ends = t_event >= t1 - EVENT_TOL * max(1.0, abs(t1))  # (an event at t1: applied there, and the solve ends)
         t_event = t1 if ends else t_event
         recent.append(t_event)
@@ -348,7 +385,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             for e, event in enumerate(events)
             if e == which
             or (
-                hit.get(e) == first
+                e in hit
+                and hit[e] == first
                 and (
                     len(_crossing(np.array([F[before_index, e], F_event[e]]), event.direction, True)) or F_event[e] == 0
                 )
@@ -356,13 +394,13 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         ]
         for e in fired:
             history[e].append(t_event)
-            _accumulating(events[e], history[e], t0, t1)
+            check_accumulating(events[e], history[e], t0, t1)
         with_reset = [e for e in fired if resets[e] is not None]
         crossing = {}
         if with_reset:  # (how the functions moved just before the resets: a reset must send them back)
             changes = drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
-        preferred = {e: int(np.sign(F[first, e])) or 1 for e in fired if events[e].strict and not events[e].integer}
+        preferred = {e: sides_after.get(e, 1) for e in fired if events[e].strict and not events[e].integer}
         exited = {e for e in fired if e in begin.sliding}
         for e in exited:  # (it leaves the sliding motion to the side whose rate reached 0)
             up, down = begin.sliding[e](np.array([t_event]), y_event, z_event, P)[0]
@@ -458,6 +496,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     out = {name: table[:, j][None, :].copy() for j, name in enumerate(names)}
     stats = merge_stats(all_stats)
     stats["events"] = count
+    # (the trial solves that located the events, and confirmed excursions: their steps are among stats["steps"])
+    stats["location_trials"] = len(location)
+    stats["location_steps"] = int(sum(trial.get("steps", 0) for trial in location))
+    stats["searches_continued"] = continued  # (stopped at an excursion that its trial did not confirm)
 
     def by_name(rows) -> dict:
         table = np.asarray(rows, dtype=float).reshape(len(rows), len(names))
@@ -535,61 +577,64 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
+def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until: float):
+    """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
+    before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
+    on the dense output), as ``(which, a, b, Fa, Fb, ya, za, the first trial, {which: its side after})``
+    for :func:`_locate`; None where there is none.  Its crossing is the first one its ``direction``
+    accepts: the one away from its side, else the one back to it."""
+    stats = []
+    if sol.dense is None:
+        return None, stats
+
+    def read(times):
+        return on_dense(sol, compiled, when, P, times)
+
+    for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
+        if x.t >= until:
+            break
+        i, e = x.before, x.event
+        if compiled.events[
+            e
+        ].strict:  # (a switch whose other branch, for a whole step, changes less than the tolerance)
+            y, z = dense_states(sol, compiled, np.array([x.t]))
+            if within_tolerance(compiled, piece, options, P, x.t, y, z, T[i + 1] - T[i]):
+                continue
+        ya, za = Ys[i : i + 1], Zs[i : i + 1]
+        value, y, z, solved = _trial(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)
+        stats.append(solved)
+        if np.sign(value) != -x.side:  # (the method's own solution stays on its side: within its error of zero)
+            continue
+        direction = compiled.events[e].direction
+        if direction == 0 or (direction > 0) == (x.side < 0):
+            guess = dense_crossing(sol, compiled, when, e, P, T[i], x.t, F[i, e])
+            return (e, T[i], x.t, F[i, e], value, ya, za, guess, {e: int(-x.side)}), stats
+        guess = dense_crossing(sol, compiled, when, e, P, x.t, T[i + 1], value)
+        return (e, x.t, T[i + 1], value, F[i + 1, e], y, z, guess, {e: int(x.side)}), stats
+    return None, stats
+
+
 def _earliest(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np.ndarray, which: int) -> int:
     """Of the events ``tied`` whose first crossing lies between the same two outputs ``a`` and ``b``
     (``Fa``: every event function at ``a``), the one that crosses first on ``sol``'s dense output, in
-    :func:`_dense_bracket`'s cells (events that cross in one cell: the first declared, whose location the
+    :func:`~daemodel.solving.between.dense_bracket`'s cells (events that cross in one cell: the first declared, whose
+    location the
     others join, so that a root as flat as tanh(y)^3's at y's is never the one located); ``which``, the
     first declared, where there is one or the dense output does not tell.  A step that holds two
     crossings once located the first declared one and fired the earlier with it, late (a state 0.0134
     off at rtol 1e-8, said "success": tests/solving/test_events.py)."""
     if len(tied) < 2:
         return which
-    cells = {e: _dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
+    cells = {e: dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
     known = {e: cell[1] for e, cell in cells.items() if cell is not None}
     return min(known, key=lambda e: (known[e], e)) if len(known) == len(tied) else which
-
-
-def _dense_crossing(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> float | None:
-    """Where the event function ``which`` first leaves ``Fa``'s side between the outputs ``a`` and ``b`` on
-    ``sol``'s dense output (radau's collocation polynomials: between its outputs at the method's stage
-    order), the first trial of :func:`_locate`; None without a dense output or a sign change on it.
-    :func:`_dense_bracket` narrows it, then a secant."""
-    bracket = _dense_bracket(sol, compiled, when, which, P, a, b, Fa)
-    if bracket is None:
-        return None
-    lo, hi, f_lo, f_hi = bracket
-    guess = lo - f_lo * (hi - lo) / (f_hi - f_lo) if f_hi != f_lo else 0.5 * (lo + hi)
-    return float(guess) if a < guess < b else None
-
-
-def _dense_bracket(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> tuple | None:
-    """``(lo, hi, F(lo), F(hi))``: the cell of :data:`DENSE_ROUNDS` rounds of :data:`DENSE_POINTS` points
-    on ``sol``'s dense output, each within the last, where the event function ``which`` first leaves
-    ``Fa``'s side between ``a`` and ``b``; None without a dense output or a sign change on it.  Events
-    that cross at one instant share their cells, whatever their functions' slopes there."""
-    if sol.dense is None or not (sol.t[0] <= a < b <= sol.t[-1]):
-        return None
-    lo, hi = a, b
-    for _ in range(DENSE_ROUNDS):
-        grid = np.linspace(lo, hi, DENSE_POINTS + 1)
-        values = sol.at(grid)
-        Y = np.stack([np.reshape(values[v], -1) for v in compiled.state_names], axis=-1)
-        Z = [np.reshape(values[v], -1) for v in compiled.algebraic_names]
-        Z = np.stack(Z, axis=-1) if Z else np.zeros((len(grid), 0))
-        F = when(grid, Y, Z, np.repeat(P, len(grid), axis=0))[:, which]
-        other = np.flatnonzero((np.sign(F) != np.sign(Fa)) & (F != 0))
-        if not len(other) or other[0] == 0:
-            return None
-        k = int(other[0])
-        lo, hi, f_lo, f_hi = grid[k - 1], grid[k], F[k - 1], F[k]
-    return lo, hi, f_lo, f_hi
 
 
 def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, guess=None):
     """The event ``which`` between outputs ``a`` and ``b`` (values ``Fa``, ``Fb`` of opposite sign or
     ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats)``, by the Illinois method on trial
-    solves from ``a``.  A ``guess`` (:func:`_dense_crossing`'s) is the first trial, and the next one
+    solves from ``a``.  A ``guess`` (:func:`~daemodel.solving.between.dense_crossing`'s) is the first trial, and the
+    next one
     :data:`GUESS_WIDTH` of the bracket past it on the other side, so that the search starts from a
     bracket that narrow where the guess is as good as the dense output (about half the trials on the
     wheelset); else the search goes on from whichever bracket the trials leave."""
@@ -606,16 +651,18 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         return b, y, z, stats
     lo, hi, flo, fhi = a, b, Fa, Fb
     best, at_hi = None, None  # (the trial's values at hi, where one set it)
-    side = 0
+    side, slow, last_side = 0, 0, 0  # (slow: trials in a row that kept the same end and did not halve the bracket)
     width = GUESS_WIDTH * (b - a)
     for k in range(MAX_LOCATION_ITERATIONS):
         if guess is not None and k == 0:
             tau = guess
         elif guess is not None and k == 1:  # (the other side of the guess: the guess landed on lo's if side == -1)
             tau = guess + width if side == -1 else guess - width
+        elif slow >= 2 and k >= BISECT_AFTER:  # (a flat root, x^3's: the secant creeps from one end; bisected)
+            tau = 0.5 * (lo + hi)
         else:
             tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
-        if tau <= lo or tau >= hi:
+        if not lo < tau < hi:
             # the secant at an end (one whose value is near zero: a trial landed on the crossing): half the
             # tolerance inside it closes the bracket from the other side, where the midpoint's trials bisected
             # towards it (30 trials on an oscillator's crossing)
@@ -627,6 +674,7 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         best = (tau, y, z)
         if f == 0 or hi - lo <= tol:
             return tau, y, z, stats
+        before = hi - lo
         if np.sign(f) == np.sign(flo):
             lo, flo = tau, f
             if side == -1:
@@ -637,6 +685,8 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
             if side == 1:
                 flo *= 0.5
             side = 1
+        kept = side == last_side and hi - lo > 0.5 * before
+        slow, last_side = (slow + 1 if kept or slow >= 2 else 0), side
         if hi - lo <= tol:  # (the event after the crossing, where the function has changed sign: its trial's values)
             y, z = at_hi if at_hi is not None else trial(hi)[1:]
             return hi, y, z, stats

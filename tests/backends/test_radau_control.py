@@ -35,13 +35,18 @@ def _solve(options, stop=None, size=1):
 def test_a_stop_ends_the_integration_after_the_block_where_it_is_true(options):
     """The solve ends after the first block of outputs where ``stop`` is True (y4 < 0: the speed turns),
     with the outputs of a solve to t1 up to there, bit for bit; every output was shown to ``stop`` once,
-    in order, the start value first."""
+    in order, the start value first, with the block's dense output from the output before it (its values
+    at the block's outputs are the outputs)."""
     compiled, whole = _solve(options)
     shown = []
 
-    def stop(times, Y, Z):
-        shown.append(times)
+    def stop(times, Y, Z, dense):
         assert Y.shape == (len(times), len(compiled.states)) and Z.shape == (len(times), len(compiled.algebraics))
+        if not shown:
+            assert dense is None  # (the start value)
+        else:
+            assert dense.starts[0] == shown[-1][-1] and np.allclose(dense(times)[0], np.hstack([Y, Z]), atol=1e-12)
+        shown.append(times)
         return bool((Y[:, 3] < 0).any())
 
     _, stopped = _solve(options, stop)
@@ -60,7 +65,7 @@ def test_a_stop_ends_the_integration_after_the_block_where_it_is_true(options):
 def test_a_stop_without_a_crossing_changes_nothing():
     options = RadauOptions(rtol=1e-8, atol=1e-8, jit=False)
     _, whole = _solve(options)
-    _, stopped = _solve(options, lambda times, Y, Z: False)
+    _, stopped = _solve(options, lambda times, Y, Z, dense: False)
     np.testing.assert_array_equal(stopped.t, whole.t)
     np.testing.assert_array_equal(stopped["y5"], whole["y5"])
 
@@ -75,7 +80,7 @@ def test_the_compiled_run_looks_at_the_outputs_every_few_attempts():
         pytest.skip("no C compiler")
     options = RadauOptions(rtol=1e-8, atol=1e-8, jit=True)
     _, whole = _solve(options)
-    _, stopped = _solve(options, lambda times, Y, Z: bool((Y[:, 3] < 0).any()))
+    _, stopped = _solve(options, lambda times, Y, Z, dense: bool((Y[:, 3] < 0).any()))
     first = int(np.argmax(whole["y4"] < 0))
     assert first <= len(stopped.t) - 1 <= first + STOP_ATTEMPTS
     np.testing.assert_array_equal(stopped["y1"], whole["y1"][: len(stopped.t)])

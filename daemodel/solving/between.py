@@ -1,0 +1,230 @@
+"""What the event functions do between a solve's outputs, read off its dense output.
+
+:mod:`daemodel.solving.events` scans the event functions at a piece's outputs (each radau step, each
+of IDAS's outputs) for a sign change.  Between two outputs it asks the dense output three things:
+
+- where a crossing it found lies (:func:`dense_crossing`): its location's first trial;
+- which of several crossings between the same two outputs comes first (:func:`dense_bracket`'s cells);
+- whether a function left its side of zero and came back between two outputs, which changes no sign
+  at them (:func:`excursions`).  Unseen, the piece (its switches locked to the branch it started on)
+  integrated through the other branch's interval on the wrong one and said "success": the part of
+  sin t above 0.99, integrated at rtol 1e-10 in radau steps of 0.57, saw 2 of its 4 crossings, the
+  integral 1.9e-3 off; casadi-idas, one output a second, 14 of 32 (tests/solving/test_events_edges.py).
+
+Excursions are looked for at samples: the outputs, and where the dense output is cheap to read
+(radau's and collocation's polynomials, not a method started again: ``dense.solves_again``)
+:data:`EXCURSION_POINTS` more inside each interval.  A sample on the other side than its interval's
+two ends is one; so is a local extremum towards zero among the samples (one nearer zero than both
+its neighbours, all three on one side), where :data:`EXCURSION_ROUNDS` rounds of
+:data:`EXCURSION_GRID` points on the dense output, each about the last round's deepest, look for the
+other side.  The caller confirms each with a trial solve of the method's own (an excursion inside
+the dense output's error is none).  No sampling sees everything: an excursion both narrower than the
+samples' spacing and away from any extremum they show is not seen; one deep enough to matter at
+the method's tolerance makes an extremum the samples show, unless the function is that rough
+between two steps that each met the tolerance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from daemodel.errors import ConvergenceError
+
+# The first trial of an event's location is where the dense output crosses (dense_crossing): found on
+# DENSE_ROUNDS grids of DENSE_POINTS intervals, each inside the last's bracketing interval, then a secant.
+# The wheelset at rtol 1e-6: 12.8 trial solves an event without it (1,077 for 84 events), 5.9 with it (480
+# for 82); an oscillator, 9.1 -> 4.
+DENSE_ROUNDS, DENSE_POINTS = 2, 16
+# Samples of the event functions inside each interval of outputs, where the dense output is cheap to read.
+EXCURSION_POINTS = 4
+# An extremum towards zero among the samples is zoomed into: EXCURSION_ROUNDS grids of EXCURSION_GRID
+# intervals, each over the two intervals about the last grid's deepest point (each round 1/8 of the last).
+EXCURSION_ROUNDS, EXCURSION_GRID = 3, 16
+# Where reading the dense output solves again (IDAS started again from an output: thousands of steps on a
+# stiff model), an extremum among the outputs is zoomed into only where the parabola through it and its
+# neighbours reaches below HALFWAY of the nearest one's distance to zero (the wheelset under casadi-idas:
+# 73 s instead of 21 with every extremum zoomed into).
+HALFWAY = 0.5
+
+
+def dense_states(sol, compiled, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(Y (K, n), Z (K, m))`` of ``compiled``'s variables on ``sol``'s dense output at ``times`` (read
+    straight off it where it holds them all, else through :meth:`Solution.at`)."""
+    c, n = sol.compiled, len(compiled.state_names)
+    names = (*c.state_names, *c.algebraic_names)
+    wanted = (*compiled.state_names, *compiled.algebraic_names)
+    if sol.dense is not None and set(wanted) <= set(names):
+        position = {v: k for k, v in enumerate(names)}
+        U = sol.dense(np.asarray(times, dtype=float))[0][:, [position[v] for v in wanted]]
+        return U[:, :n], U[:, n:]
+    values = sol.at(times)
+    Y = np.stack([np.reshape(values[v], -1) for v in compiled.state_names], axis=-1)
+    Z = [np.reshape(values[v], -1) for v in compiled.algebraic_names]
+    return Y, (np.stack(Z, axis=-1) if Z else np.zeros((len(times), 0)))
+
+
+def on_dense(sol, compiled, when, P, times: np.ndarray) -> np.ndarray:
+    """The event functions ``when`` on ``sol``'s dense output at ``times``: (K, E)."""
+    Y, Z = dense_states(sol, compiled, times)
+    return when(times, Y, Z, np.repeat(P, len(times), axis=0))
+
+
+def inner_samples(dense) -> int:
+    """Samples :func:`excursions` reads inside each interval of outputs on ``dense``: none where reading
+    it solves again (a method started again from an output), else :data:`EXCURSION_POINTS`."""
+    return 0 if dense is None or getattr(dense, "solves_again", False) else EXCURSION_POINTS
+
+
+def dense_bracket(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> tuple | None:
+    """``(lo, hi, F(lo), F(hi))``: the cell of :data:`DENSE_ROUNDS` rounds of :data:`DENSE_POINTS` points
+    on ``sol``'s dense output, each within the last, where the event function ``which`` first leaves
+    ``Fa``'s side between ``a`` and ``b``; None without a dense output or a sign change on it.  Events
+    that cross at one instant share their cells, whatever their functions' slopes there."""
+    if sol.dense is None or not (sol.t[0] <= a < b <= sol.t[-1]):
+        return None
+    lo, hi = a, b
+    for _ in range(DENSE_ROUNDS):
+        grid = np.linspace(lo, hi, DENSE_POINTS + 1)
+        try:
+            F = on_dense(sol, compiled, when, P, grid)[:, which]
+        except ConvergenceError:  # (a method started again that fails there: no guess, the trial solves locate)
+            return None
+        other = np.flatnonzero((np.sign(F) != np.sign(Fa)) & (F != 0))
+        if not len(other) or other[0] == 0:
+            return None
+        k = int(other[0])
+        lo, hi, f_lo, f_hi = grid[k - 1], grid[k], F[k - 1], F[k]
+    return lo, hi, f_lo, f_hi
+
+
+def dense_crossing(sol, compiled, when, which, P, a: float, b: float, Fa: float) -> float | None:
+    """Where the event function ``which`` first leaves ``Fa``'s side between the outputs ``a`` and ``b`` on
+    ``sol``'s dense output (radau's collocation polynomials: between its outputs at the method's stage
+    order), the first trial of the location; None without a dense output or a sign change on it.
+    :func:`dense_bracket` narrows it, then a secant."""
+    bracket = dense_bracket(sol, compiled, when, which, P, a, b, Fa)
+    if bracket is None:
+        return None
+    lo, hi, f_lo, f_hi = bracket
+    guess = lo - f_lo * (hi - lo) / (f_hi - f_lo) if f_hi != f_lo else 0.5 * (lo + hi)
+    return float(guess) if a < guess < b else None
+
+
+@dataclass(frozen=True)
+class Excursion:
+    """An event function on the other side of zero between two outputs on whose sides it agrees."""
+
+    event: int  # which event function
+    before: int  # the output before it
+    t: float  # the deepest point found on the other side, on the dense output
+    side: float  # the side it left (+1 or -1): its sign at the outputs about it
+
+
+def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: int) -> Iterator[Excursion]:
+    """The excursions (see the module docstring) of the event functions between the outputs ``T`` (values
+    ``F``, (len(T), E)), earliest sample first.  ``read(times) -> (K, E)``: the functions on the dense
+    output (it may raise :class:`~daemodel.errors.ConvergenceError`: not seen there); ``inner``: samples
+    read inside each interval (0 where reading solves again); ``checked[j, e]``: whether the scan reads
+    the function ``e`` at output ``j`` (False where it is not yet armed).  Lazy: each is zoomed into as
+    it is asked for, so that a caller that takes the first confirmed one pays for no other."""
+    if len(T) < 2 or not checked.any():
+        return
+    T, F = np.asarray(T, dtype=float), np.asarray(F, dtype=float)
+    owner = np.repeat(np.arange(len(T) - 1), inner + 1)  # (each sample's interval: an output, then those inside)
+    times = (T[:-1, None] + np.diff(T)[:, None] * (np.arange(inner + 1) / (inner + 1))).ravel()
+    G = np.repeat(F[:-1], inner + 1, axis=0)
+    if inner:
+        at = np.flatnonzero(np.arange(len(times)) % (inner + 1))
+        try:
+            G[at] = read(times[at])
+        except ConvergenceError:
+            return
+    times, owner, G = np.append(times, T[-1]), np.append(owner, len(T) - 2), np.vstack([G, F[-1:]])
+    # an interval is read where the scan reads both ends and they are on one side of zero
+    side = np.sign(F[:-1]) * ((np.sign(F[:-1]) == np.sign(F[1:])) & checked[:-1] & checked[1:])
+    sample_side = side[owner]
+    found = []
+    k = np.arange(1, len(times) - 1)
+    for e in range(F.shape[1]):
+        s, g = sample_side[:, e], G[:, e]
+        other = np.flatnonzero((s != 0) & (np.sign(g) == -s))
+        if len(other):
+            found.append((int(other[0]), e, False))
+        # local extrema towards zero, all three samples on their intervals' side
+        deeper = (s[k] != 0) & (s[k - 1] == s[k]) & (s[k + 1] == s[k])
+        deeper &= (np.sign(g[k - 1]) == s[k]) & (np.sign(g[k]) == s[k]) & (np.sign(g[k + 1]) == s[k])
+        deeper &= (s[k] * g[k] < s[k] * g[k - 1]) & (s[k] * g[k] <= s[k] * g[k + 1])
+        if not inner:  # (each look solves again: only where the parabola through the three goes past halfway)
+            deeper &= (
+                _vertex(times[k - 1], times[k], times[k + 1], g[k - 1], g[k], g[k + 1]) * s[k] < HALFWAY * s[k] * g[k]
+            )
+        found += [(int(j), e, True) for j in k[deeper]]
+    for j, e, zoom in sorted(found, key=lambda item: (times[item[0]], item[1])):
+        s = float(sample_side[j, e])
+        t = _zoom(read, e, s, float(times[j - 1]), float(times[j + 1])) if zoom else float(times[j])
+        if t is not None:
+            yield Excursion(e, int(np.searchsorted(T, t, side="right") - 1), t, s)
+
+
+def armed_outputs(F: np.ndarray, armed, sides) -> np.ndarray:
+    """``[j, e]``: whether the scan of :mod:`daemodel.solving.events` reads the event function ``e`` at
+    output ``j`` (values ``F``): one not ``armed`` (nor given its side) where the piece starts is read
+    from the first two outputs in a row on one side of zero."""
+    checked = np.ones(F.shape, dtype=bool)
+    for e in range(F.shape[1]):
+        if armed[e] or sides[e]:
+            continue
+        s = np.sign(F[:, e])
+        same = np.flatnonzero((s[1:] == s[:-1]) & (s[1:] != 0))
+        checked[: same[0] if len(same) else len(s), e] = False
+    return checked
+
+
+def block_excursion(dense, columns, when, P, n: int, T: np.ndarray, F: np.ndarray, armed: np.ndarray, counts) -> bool:
+    """Whether a stopping method's block of outputs ``T`` (the output before it first; ``F`` the event
+    functions there) shows an excursion of a function ``armed`` on its dense output ``dense`` (values in
+    the method's order; ``columns`` reorders them to the model's, ``n`` states first) that
+    ``counts(excursion, y (1, n), z (1, m), the step's length)`` accepts."""
+
+    def states(at):
+        V = dense(at)[0][:, columns]
+        return V[:, :n], V[:, n:]
+
+    def read(at):
+        return when(at, *states(at), np.repeat(P, len(at), axis=0))
+
+    checked = np.repeat(armed[None, :], len(T), axis=0)
+    for x in excursions(read, T, F, checked, inner_samples(dense)):
+        if counts(x, *states(np.array([x.t])), T[x.before + 1] - T[x.before]):
+            return True
+    return False
+
+
+def _vertex(t0, t1, t2, g0, g1, g2) -> np.ndarray:
+    """The extreme value of the parabola through ``(t0, g0), (t1, g1), (t2, g2)`` (arrays), ``g1`` where it
+    is a line."""
+    slope = (g1 - g0) / (t1 - t0)
+    curve = ((g2 - g1) / (t2 - t1) - slope) / (t2 - t0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = np.where(curve != 0, 0.5 * (t0 + t1) - 0.5 * slope / curve, t1)
+    return np.where(curve != 0, g0 + (at - t0) * slope + curve * (at - t0) * (at - t1), g1)
+
+
+def _zoom(read, e: int, side: float, lo: float, hi: float) -> float | None:
+    """The deepest point on the other side than ``side`` of the event function ``e`` found by
+    :data:`EXCURSION_ROUNDS` rounds of :data:`EXCURSION_GRID` points on the dense output (``read``) over
+    ``[lo, hi]``, each about the last's deepest; None where every point stays on ``side``."""
+    for _ in range(EXCURSION_ROUNDS):
+        grid = np.linspace(lo, hi, EXCURSION_GRID + 1)
+        try:
+            g = side * read(grid)[:, e]
+        except ConvergenceError:  # (a method started again that fails there: not seen)
+            return None
+        k = int(np.argmin(g))
+        if g[k] < 0:
+            return float(grid[k])
+        lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, EXCURSION_GRID)]
+    return None
