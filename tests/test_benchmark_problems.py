@@ -250,10 +250,9 @@ def test_wheelset_radau_takes_about_radau5s_steps(wheelset):
     searches' steps past a crossing), at most 1.5 times RADAU5's at the matched tolerance: 291,665 steps
     and 30,488 rejections before each event's search stopped at its crossing (each solved the rest of
     [t, 10]); 5,907 and 572 with 68 switches located.  The trial solves that locate them are counted
-    apart (``location_steps``), at most 10 a switch: RADAU5 integrates through the switches, and since
-    the creep saturation's crossings and crossings back inside one step are seen (327 switches, each a
-    real crossing for about 5e-5 s) they are 2,934 trials of 2,941 steps, beside 6,278 steps and 952
-    rejections."""
+    apart (``location_steps``), at most 10 a switch (RADAU5 integrates through the switches): 401 trials
+    of 408 steps for 68 switches, beside 5,415 steps and 587 rejections.  (Seen as events, the 259
+    crossings and crossings back inside one step that are below the tolerance were 2,934 trials.)"""
     from daemodel.backends.radau.compiled import find_compiler
 
     sol = dm.solve(wheelset, WHEELSET.t_span, rtol=1e-6, atol=1e-6, jit=find_compiler() is not None)
