@@ -37,6 +37,17 @@ ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_control.py), up to 4,000 x on
 # random stiff systems; two stages (order 3) stayed within 0.1-100 x on the same systems.
 MIN_ADAPTIVE_STAGES = 2
+# Fewest stages of adaptive mode on a system of index 2 (an index-3 one is solved as its index-2
+# reduction).  Two stages are order 3 over an order-2 estimate: steps that hold the estimate at rtol
+# leave a global error that is a fixed multiple of rtol, whatever rtol, and at index 2, where the
+# algebraic variables' estimates are weighted by h, that multiple grew large: the squeezer's
+# velocities ended 1,000-1,600 x rtol off (its accelerations 1,700-2,600 x) at rtol 1e-3 to 1e-9,
+# the car axis's 43-62 x, and both said success; three stages: 3-36 x and 0.2-5.5 x
+# (tests/backends/test_radau_options.py).  The squeezer's error is a lag of the whole mechanism
+# (4.5e-7 s at rtol 1e-5; 1.3e-8 s with three stages), read at t = 0.03 where its bodies' accelerations
+# are 1e4-6e5 times their velocities.  No Radau code adapts steps with two stages (RADAU5 and
+# Hairer's RADAU take 3, 5 or 7).
+MIN_ADAPTIVE_STAGES_INDEX2 = 3
 # Who evaluates and factors: "auto" picks casadi for one float64 CPU trajectory, torch otherwise.
 ENGINES = ("auto", "torch", "casadi")
 # Tolerances of adaptive mode when neither h nor rtol/atol is given.
@@ -64,7 +75,10 @@ class RadauOptions:
     Attributes
     ----------
     stages : int, optional
-        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).  Default: 3
+        Radau IIA stages s (order 2s-1 for y; s for an index-2 algebraic variable).  Adaptive steps
+        take at least 2, and at least 3 on a system of index 2 or 3
+        (:data:`MIN_ADAPTIVE_STAGES_INDEX2`: two stages' global error there reached 1,000-2,600 x
+        rtol and said success).  Default: 3
         (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
         ``1e-9 < rtol < 1e-6`` and 7 (order 13) from 1e-9 down, where the larger steps of the higher order
         pay for its larger systems (:data:`ADAPTIVE_STAGES`).
@@ -258,6 +272,21 @@ class RadauOptions:
     @property
     def adaptive(self) -> bool:
         return self.h is None
+
+
+def check_index_stages(options: RadauOptions, index: int, name: str) -> None:
+    """Refuse adaptive steps with fewer than :data:`MIN_ADAPTIVE_STAGES_INDEX2` stages on a system of
+    index 2 (``index``: the system's, ``name``: the model's), with an
+    :class:`~daemodel.errors.InvalidOptionError` that says why and what to give."""
+    if options.adaptive and index >= 2 and options.stages < MIN_ADAPTIVE_STAGES_INDEX2:
+        raise InvalidOptionError(
+            f"stages = {options.stages} cannot take adaptive steps on the index-{index} system of '{name}' (an index-3 "
+            "model is solved as its index-2 reduction): the order-2 error "
+            "estimate leaves a global error that is a fixed multiple of rtol, whatever rtol, and on index-2 "
+            "systems that multiple reached 1,000-2,600 (the squeezing mechanism's velocities and accelerations "
+            f"at rtol 1e-3 to 1e-9); give stages >= {MIN_ADAPTIVE_STAGES_INDEX2} (or leave stages out), or h=... "
+            "for a fixed grid checked by its error estimate"
+        )
 
 
 def adaptive_stages(rtol: float) -> int:
