@@ -18,8 +18,17 @@ BINARY = [
     sp.Mul,
     lambda a, b: a**b,
     lambda a, b: sp.Piecewise((a, x > 1), (b, True)),
-    lambda u, v: sp.Max(sp.Abs(u), sp.Abs(v)),
+    lambda u, v: _max_of_sizes(u, v),
 ]
+
+
+def _max_of_sizes(u, v):
+    """Max(|u|, |v|), unevaluated where sympy cannot compare the two (|a complex constant| it keeps as a
+    nested radical: a ValueError "not comparable" while the example was generated)."""
+    try:
+        return sp.Max(sp.Abs(u), sp.Abs(v))
+    except (ValueError, TypeError):
+        return sp.Max(sp.Abs(u), sp.Abs(v), evaluate=False)
 
 
 def expressions():
