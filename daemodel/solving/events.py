@@ -3,9 +3,11 @@
 ``m.event(name, when, direction=0, reset=None, terminal=False)`` declares an event at each zero
 crossing of ``when`` (an expression of t, the variables and parameters): ``direction`` +1 for a
 rising, -1 for a falling crossing, 0 for both.  At the event ``reset`` (state name -> expression
-of the values just before) sets states; the states are then projected onto the constraints where
-the reset left them (least change, reported), the algebraic variables are solved anew with the
-routine that initialises them at t0, and the integration starts again.  ``terminal=True`` ends
+of the values just before; events at one instant all read those, and two that set one state to
+different values raise :class:`~daemodel.errors.ResetConflictError`) sets states; the states are
+then projected onto the constraints where the reset left them (least change, reported), the
+algebraic variables are solved anew with the routine that initialises them at t0, and the
+integration starts again.  ``terminal=True`` ends
 the solve there.
 
 How (:func:`solve_with_events`, for every method alike): integrate towards t1 on the method's own
@@ -41,7 +43,7 @@ import warnings
 import numpy as np
 
 from daemodel.compiling.switches import has_state_switches, has_time_switches
-from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
+from daemodel.errors import EventLimitError, EventLocationError, ResetConflictError, SwitchError, ZenoError
 from daemodel.solving.branches import EVENT_TOL, ROUNDING, drift, start_piece
 from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
@@ -369,11 +371,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             preferred[e] = 1 if abs(up) <= abs(down) else -1
         before = np.concatenate([y_event, z_event], axis=1)
         F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
-        Y = y_event.copy()
-        for e in with_reset:
-            new = resets[e](t_event, Y, z_event, P)
-            for k, (index, _) in enumerate(events[e].reset):
-                Y[:, index] = new[:, k]
+        Y = _reset(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
         scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
         moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
@@ -487,6 +485,33 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         events=events_out,
         dense=joined_in_time(edges, dense),
     )
+
+
+def _reset(compiled, resets, fired: list, t: float, y, z, P) -> np.ndarray:
+    """The states (1, n) after the resets of the events ``fired`` at ``t``, each an expression of the values
+    just before (``y``, ``z``), whatever the others set.
+
+    Raises
+    ------
+    ResetConflictError
+        Two of them set one state to values further apart than rounding.
+    """
+    events = compiled.events
+    Y, setter = y.copy(), {}  # (state -> the event that set it)
+    for e in fired:
+        new = resets[e](t, y, z, P)
+        for k, (index, _) in enumerate(events[e].reset):
+            value, was = float(new[0, k]), float(Y[0, index])
+            if index in setter and abs(value - was) > ROUNDING * max(1.0, abs(value), abs(was)):
+                raise ResetConflictError(
+                    f"events '{events[setter[index]].name}' and '{events[e].name}' fire together at t = {t:.12g} and "
+                    f"reset '{compiled.state_names[index]}' to different values ({was:.12g} and {value:.12g}): which "
+                    "one holds is not defined (each reset reads the values just before); reset that state in one "
+                    "of them, or give them guards that differ"
+                )
+            setter[index] = e
+            Y[:, index] = new[:, k]
+    return Y
 
 
 def _trial(backend, compiled, options, batched, P, which, when, a: float, tau: float, ya, za) -> tuple:
