@@ -451,3 +451,34 @@ def test_events_at_one_instant_that_reset_a_state_to_different_values_are_refuse
         dm.solve(_two_at_once({"v": "2*v"}), (0.0, 1.0), rtol=1e-8, atol=1e-8)
     sol = dm.solve(_two_at_once({"v": "-v"}), (0.0, 1.0), rtol=1e-8, atol=1e-8)  # (the same value: no conflict)
     assert sol["v"][-1] == -1.0
+
+
+@pytest.mark.parametrize("t_eval", [None, np.linspace(0.0, 1.0, 11)])
+def test_a_model_with_events_keeps_its_time_breakpoints(t_eval):
+    # x' = 1 + [t >= 0.4], an event at x = 1 (t = 0.7): the breakpoint at 0.4 is in sol.breakpoints with the
+    # values on both sides, as without the event (before: sol.breakpoints was {} once the model had an event)
+    m = dm.Model("both")
+    m.states("x y")
+    m.ode("x", "1 + Heaviside(t - 0.4)")
+    m.ode("y", "0")
+    m.initial(x=0.0, y=0.0)
+    m.event("e", "x - 1", reset={"y": "y + 1"})
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-10, t_eval=t_eval)
+    assert abs(sol.events["e"]["t"][0, 0] - 0.7) < 1e-9 and abs(sol["x"][-1] - 1.6) < 1e-9
+    assert sol.breakpoints["t"].tolist() == [[0.4]] and sol.breakpoints["moved"].tolist() == [[0.0]]
+    for side in ("before", "after"):
+        assert abs(sol.breakpoints[side]["x"][0, 0] - 0.4) < 1e-9 and sol.breakpoints[side]["y"][0, 0] == 0.0
+
+
+def test_a_batch_with_events_keeps_each_samples_breakpoints():
+    # the breakpoint at t = p, one sample's after its terminal event (t = 0.5): NaN there
+    m = dm.Model("both")
+    m.states("x")
+    m.parameter("p", 0.3)
+    m.ode("x", "1 + Heaviside(t - p)")
+    m.initial(x=0.0)
+    m.event("stop", "t - 0.5", terminal=True)
+    sol = dm.solve(m, (0.0, 1.0), parameters={"p": [0.3, 0.8]}, t_eval=np.linspace(0.0, 1.0, 11))
+    t = sol.breakpoints["t"]
+    assert t.shape == (2, 1) and t[0, 0] == 0.3 and np.isnan(t[1, 0])
+    assert abs(sol.breakpoints["after"]["x"][0, 0] - 0.3) < 1e-9
