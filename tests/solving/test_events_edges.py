@@ -452,3 +452,32 @@ def test_an_event_function_that_rests_on_zero_before_it_crosses(method, options)
     sol = dm.solve(m, (0.0, 3.0), method=method, **options)
     assert sol.status == "success" and sol.events["f"]["t"].shape == (1, 1)
     assert abs(sol.events["f"]["t"][0, 0] - 2.0) < 1e-9 and abs(sol["y"][-1] - 2.0) < 1e-9
+
+
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_a_reset_to_a_value_that_is_not_finite_is_named(method, options):
+    # log(v - 1) at v = 1 (before: radau "the Newton matrix is singular ... a stiff mode", the reference a bare
+    # ValueError from scipy about its y0)
+    m = dm.Model("nanreset")
+    m.states("x v")
+    m.ode("x", "1")
+    m.ode("v", "0")
+    m.initial(x=0.0, v=1.0)
+    m.event("e", "x - 0.5", reset={"v": "log(v - 1)"})
+    # (v = 1 to the method's rounding: log(0) = -inf, or log of a hair below 0, nan)
+    with pytest.raises(E.InvalidValueError, match=r"event 'e' at t = 0\.5\d*: its reset sets 'v' to (-inf|nan) \(log"):
+        dm.solve(m, (0.0, 1.0), method=method, **options)
+
+
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_an_event_function_that_is_not_finite_where_the_solution_goes_is_named(method, options):
+    # sqrt(x) - 1/2 with x = 1 - t: NaN past t = 1 (before: a bare ValueError "cannot convert float NaN to integer")
+    m = dm.Model("nanwhen")
+    m.states("x")
+    m.ode("x", "-1")
+    m.initial(x=1.0)
+    m.event("e", "sqrt(x) - 0.5", direction=-1)
+    with pytest.raises(E.SwitchError, match=r"event 'e': its function sqrt\(x\) - 0\.5 is nan at t = .*x = -"):
+        dm.solve(m, (0.0, 2.0), method=method, **options)
+    sol = dm.solve(m, (0.0, 0.9), method=method, **options)  # (defined up to there: located)
+    assert abs(sol.events["e"]["t"][0, 0] - 0.75) < 1e-6
