@@ -45,7 +45,14 @@ import numpy as np
 from daemodel.compiling.switches import has_state_switches, has_time_switches
 from daemodel.errors import EventLimitError, EventLocationError, ResetConflictError, SwitchError, ZenoError
 from daemodel.solving.branches import EVENT_TOL, ROUNDING, drift, start_piece
-from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
+from daemodel.solving.pieces import (
+    breakpoints_between,
+    join_samples,
+    joined_breakpoints,
+    merge_stats,
+    onto_constraints,
+    segment_steps,
+)
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -420,9 +427,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     names = (*compiled.state_names, *compiled.algebraic_names)
     times, rows, failing = [], [], []  # (failing: the pieces whose solve did not meet its accuracy)
     dense = []  # each piece's dense output: its output solve's, else its detection solve's (that ran past b)
+    marks = []  # (the time breakpoints each piece's detection solve crossed before its end)
     for a, b, Ya, Za, event, model, detection, found in pieces:
         closed, sol = event is None, None
         dense.append(detection)
+        if found.breakpoints:
+            marks.append(breakpoints_between(found.breakpoints, a, b, closed))
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
             if not len(grid):
@@ -491,6 +501,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         status="success" if not failing else "; ".join(failing),
         setup_time=setup_time,
         events=events_out,
+        breakpoints=joined_breakpoints(marks),
         dense=joined_in_time(edges, dense),
     )
 
