@@ -43,7 +43,7 @@ import warnings
 import numpy as np
 
 from daemodel.compiling.switches import has_state_switches, has_time_switches
-from daemodel.errors import EventLimitError, EventLocationError, ResetConflictError, SwitchError, ZenoError
+from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
 from daemodel.solving.branches import EVENT_TOL, ROUNDING, drift, start_piece
 from daemodel.solving.pieces import (
     breakpoints_between,
@@ -53,6 +53,7 @@ from daemodel.solving.pieces import (
     onto_constraints,
     segment_steps,
 )
+from daemodel.solving.resets import apply_resets
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -310,6 +311,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
+        _finite(compiled, F, T, Ys, len(T) if first is None else first + 1)
         if first is None:
             for warning in caught:
                 warnings.warn(warning.message, warning.category, stacklevel=4)
@@ -386,7 +388,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             preferred[e] = 1 if abs(up) <= abs(down) else -1
         before = np.concatenate([y_event, z_event], axis=1)
         F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
-        Y = _reset(compiled, resets, with_reset, t_event, y_event, z_event, P)
+        Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
         scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
         moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
@@ -506,31 +508,18 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     )
 
 
-def _reset(compiled, resets, fired: list, t: float, y, z, P) -> np.ndarray:
-    """The states (1, n) after the resets of the events ``fired`` at ``t``, each an expression of the values
-    just before (``y``, ``z``), whatever the others set.
-
-    Raises
-    ------
-    ResetConflictError
-        Two of them set one state to values further apart than rounding.
-    """
-    events = compiled.events
-    Y, setter = y.copy(), {}  # (state -> the event that set it)
-    for e in fired:
-        new = resets[e](t, y, z, P)
-        for k, (index, _) in enumerate(events[e].reset):
-            value, was = float(new[0, k]), float(Y[0, index])
-            if index in setter and abs(value - was) > ROUNDING * max(1.0, abs(value), abs(was)):
-                raise ResetConflictError(
-                    f"events '{events[setter[index]].name}' and '{events[e].name}' fire together at t = {t:.12g} and "
-                    f"reset '{compiled.state_names[index]}' to different values ({was:.12g} and {value:.12g}): which "
-                    "one holds is not defined (each reset reads the values just before); reset that state in one "
-                    "of them, or give them guards that differ"
-                )
-            setter[index] = e
-            Y[:, index] = new[:, k]
-    return Y
+def _finite(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) -> None:
+    """Raise :class:`SwitchError` where an event function ``F`` (T, E) is not finite at the first ``upto``
+    outputs (those the search for the first crossing read)."""
+    bad = np.argwhere(~np.isfinite(F[:upto]))
+    if len(bad):
+        k, e = bad[0]
+        at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(compiled.state_names, Y[k], strict=True))
+        raise SwitchError(
+            f"event '{compiled.events[e].name}': its function {compiled.events[e].when} is {float(F[k, e])} at "
+            f"t = {T[k]:.12g} ({at}), where the solution goes; an event function must be finite along the "
+            "solution: write it without a sqrt, log or division that the solution takes out of its domain"
+        )
 
 
 def _trial(backend, compiled, options, batched, P, which, when, a: float, tau: float, ya, za) -> tuple:
