@@ -227,6 +227,11 @@ class EventLocationError(SolverError):
     """An event's crossing could not be located to its tolerance."""
 
 
+class ResetConflictError(ModelError):
+    """Events that fire at one instant reset the same state to different values: which one holds is not
+    defined (each reset reads the values just before the instant)."""
+
+
 class CompileError(SolverError):
     """The system's C compiler failed on code daemodel generated (radau's ``jit=True``)."""
 

@@ -70,8 +70,14 @@ def matching_system(compiled, meta: dict, path: Path, what: str = "a solution", 
     saying that ``path`` holds ``what`` of another model and what differs: the equations, or the
     events (both listed), or the parameter values (each changed one named).  ``solved`` (B, k): the
     parameter values the stored result was solved at, which the model's may equal instead of the
-    declared ones it was compiled with (a solve with ``parameters=``)."""
-    candidates = [compiled] + [compiled.reduced(k) for k in (2, 1) if compiled.index > k]
+    declared ones it was compiled with (a solve with ``parameters=``).  A solve locates each switch on a
+    variable as an event of its own (:func:`~daemodel.compiling.switches.with_state_events`), which its
+    result lists: the model with those events is a candidate too."""
+    from daemodel.compiling.switches import with_state_events
+
+    located = with_state_events(compiled)
+    systems = [compiled] if located is compiled else [compiled, located]
+    candidates = [c for system in systems for c in [system] + [system.reduced(k) for k in (2, 1) if system.index > k]]
     parts = meta["fingerprints"]
     for candidate in candidates:
         if candidate.fingerprint() == meta["fingerprint"] and candidate.fingerprints() == parts:

@@ -494,9 +494,10 @@ class Declaration:
             +1: rising crossings only; -1: falling only; 0: both.
         reset : dict state name -> str or expression, optional
             The states' values after the event, as expressions of the values just before
-            (``{"v": "-0.8*v"}``); states not named keep theirs.  Algebraic variables are solved
-            anew (they cannot be reset), and the states are projected onto the constraints where
-            the reset leaves them.
+            (``{"v": "-0.8*v"}``; events at one instant all read the values before it, and two
+            that set one state to different values raise ``ResetConflictError``); states not named
+            keep theirs.  Algebraic variables are solved anew (they cannot be reset), and the
+            states are projected onto the constraints where the reset leaves them.
         terminal : bool
             End the solve at the event.
         """

@@ -29,6 +29,7 @@ from daemodel.solution_files import SOLUTION_ARRAYS, declared, matching_system, 
 from daemodel.solving.ensemble_results import (
     Failure,
     all_failures,
+    common_times,
     ensemble_status,
     joined_switches,
     solved_system,
@@ -206,7 +207,8 @@ class EnsembleFiles:
                         | {"rows": int(rows.sum())},
                     )
                 )
-                first = first or {key: getattr(part, key) for key in ("t", "method", "settings", "compiled")}
+                kept[-1] += (part.t,)
+                first = first or {key: getattr(part, key) for key in ("method", "settings", "compiled")}
                 del part
         got = np.concatenate([indices for indices, *_ in kept]) if kept else np.zeros(0, np.int64)
         absent = np.setdiff1d(wanted, got)
@@ -218,12 +220,17 @@ class EnsembleFiles:
         order = np.argsort(got, kind="stable")
         take = order[np.searchsorted(got, wanted, sorter=order)]
         names = kept[0][1].keys()
+        t, onto = common_times([times for *_, times in kept])  # (chunks whose samples end at terminal events)
         return Solution(
-            values={name: np.concatenate([values[name] for _, values, *_ in kept])[take] for name in names},
+            t=t,
+            values={
+                name: np.concatenate([at(values[name]) for (_, values, *_), at in zip(kept, onto, strict=True)])[take]
+                for name in names
+            },
             solve_time=self.seconds,
             stats={"samples": wanted, "executor": self.executor, "chunk": self.chunk},
-            parameters=np.concatenate([parameters for _, _, parameters, _ in kept])[take],
-            **switch_rows(joined_switches([switches for *_, switches in kept]), take),
+            parameters=np.concatenate([parameters for _, _, parameters, *_ in kept])[take],
+            **switch_rows(joined_switches([switches for _, _, _, switches, _ in kept]), take),
             batched=True,
             status=self.status,
             **first,

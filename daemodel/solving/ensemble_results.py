@@ -37,6 +37,32 @@ class Failure:
     message: str
 
 
+def common_times(times: list) -> tuple:
+    """``(t, takes)``: the output times that parts of an ensemble (``times``: each part's, increasing) can
+    share, and for each part a function ``values (rows, its times) -> (rows, len(t))``.  Parts differ where
+    a terminal event ended their samples (each part's times are t_eval and its own samples' ends): a time is
+    kept where every part has a value of its own there or has ended before it (NaN: its samples ended), so
+    that no value moves to another time; a sample's end that another part, still running, has no value at
+    is left out (its values after the event are in the event's record)."""
+    if all(len(t) == len(times[0]) and np.array_equal(t, times[0]) for t in times):
+        return times[0], [lambda values: values] * len(times)
+    union = np.unique(np.concatenate(times))
+    t = union[np.all([np.isin(union, own) | (union > own[-1]) for own in times], axis=0)]
+
+    def take(own):
+        inside = t <= own[-1]
+        at = np.searchsorted(own, t[inside])
+
+        def taken(values):
+            out = np.full((len(values), len(t)), np.nan)
+            out[:, inside] = np.asarray(values, dtype=float)[:, at]
+            return out
+
+        return taken
+
+    return t, [take(np.asarray(own)) for own in times]
+
+
 def merged(parts: list, offset: int, size: int, seconds: float) -> dict:
     """The results of consecutive parts of one chunk (its halves, split around a failing sample)
     as the result of the chunk of ``size`` samples from ``offset``."""
@@ -48,13 +74,15 @@ def merged(parts: list, offset: int, size: int, seconds: float) -> dict:
         "failures": [failure for part in parts for failure in part["failures"]],
     }
     if solved:
+        t, takes = common_times([part["meta"]["t"] for part in solved])
         merged["indices"] = np.concatenate([part["indices"] for part in solved])
         merged["values"] = {
-            name: np.concatenate([part["values"][name] for part in solved]) for name in solved[0]["values"]
+            name: np.concatenate([take(part["values"][name]) for part, take in zip(solved, takes, strict=True)])
+            for name in solved[0]["values"]
         }
         merged["parameters"] = np.concatenate([part["parameters"] for part in solved])
         merged["switches"] = joined_switches([part["switches"] for part in solved]) | {"rows": len(merged["indices"])}
-        merged["meta"], merged["index"] = solved[0]["meta"], solved[0]["index"]
+        merged["meta"], merged["index"] = solved[0]["meta"] | {"t": t}, solved[0]["index"]
     return merged
 
 
@@ -63,7 +91,11 @@ def assemble(compiled, results: list, total: int, seconds: float, executor: str,
     statuses, failures and chunk records in its stats); a ConvergenceError when none was solved."""
     failures = all_failures(results, total)
     solved = [result for result in results if "values" in result]
-    values = {name: np.concatenate([result["values"][name] for result in solved]) for name in solved[0]["values"]}
+    t, takes = common_times([result["meta"]["t"] for result in solved])
+    values = {
+        name: np.concatenate([take(result["values"][name]) for result, take in zip(solved, takes, strict=True)])
+        for name in solved[0]["values"]
+    }
     stats = {
         "executor": executor,
         "chunk": chunk,
@@ -74,7 +106,7 @@ def assemble(compiled, results: list, total: int, seconds: float, executor: str,
         ],
         "peak_memory_mb": [r["peak_memory_mb"] for r in results if "peak_memory_mb" in r],
     }
-    meta = solved[0]["meta"]
+    meta = solved[0]["meta"] | {"t": t}
     return Solution(
         values=values,
         parameters=np.concatenate([result["parameters"] for result in solved]),

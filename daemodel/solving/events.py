@@ -3,9 +3,11 @@
 ``m.event(name, when, direction=0, reset=None, terminal=False)`` declares an event at each zero
 crossing of ``when`` (an expression of t, the variables and parameters): ``direction`` +1 for a
 rising, -1 for a falling crossing, 0 for both.  At the event ``reset`` (state name -> expression
-of the values just before) sets states; the states are then projected onto the constraints where
-the reset left them (least change, reported), the algebraic variables are solved anew with the
-routine that initialises them at t0, and the integration starts again.  ``terminal=True`` ends
+of the values just before; events at one instant all read those, and two that set one state to
+different values raise :class:`~daemodel.errors.ResetConflictError`) sets states; the states are
+then projected onto the constraints where the reset left them (least change, reported), the
+algebraic variables are solved anew with the routine that initialises them at t0, and the
+integration starts again.  ``terminal=True`` ends
 the solve there.
 
 How (:func:`solve_with_events`, for every method alike): integrate towards t1 on the method's own
@@ -47,7 +49,6 @@ from daemodel.compiling.switches import has_state_switches, has_time_switches
 from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
 from daemodel.solving.between import (
     armed_outputs,
-    block_excursion,
     dense_bracket,
     dense_crossing,
     dense_states,
@@ -64,7 +65,16 @@ from daemodel.solving.branches import (
     start_piece,
     within_tolerance,
 )
-from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
+from daemodel.solving.crossings import crossing_stop, first_crossing
+from daemodel.solving.pieces import (
+    breakpoints_between,
+    join_samples,
+    joined_breakpoints,
+    merge_stats,
+    onto_constraints,
+    segment_steps,
+)
+from daemodel.solving.resets import apply_resets
 from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -101,9 +111,9 @@ def _functions(compiled):
 
 def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, stop=None, **changes):
     """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
-    :func:`daemodel.solving.switches.solve_with_breakpoints` does).  ``stop``: a :class:`Crossings`
-    search's ``stop(names)`` (the backend's names of its states and algebraic variables) -> the
-    backend's ``stop`` (:mod:`daemodel.backends.base`, rule 8); used where the backend takes it and
+    :func:`daemodel.solving.switches.solve_with_breakpoints` does).  ``stop``: a search's ``stop(names)``
+    (:func:`~daemodel.solving.crossings.crossing_stop`; the backend's names of its states and algebraic
+    variables) -> the backend's ``stop`` (:mod:`daemodel.backends.base`, rule 8); used where the backend takes it and
     no time switch cuts the span, else the solve goes on to ``b``."""
     from daemodel.compiling.initial_states import InitialStates
 
@@ -130,86 +140,6 @@ def _outputs(sol, compiled):
     Z = [np.asarray(sol.values[n])[0] for n in compiled.algebraic_names]
     Z = np.stack(Z, axis=-1).reshape(T, -1) if Z else np.zeros((T, 0))
     return np.asarray(sol.t, dtype=float), Y, Z
-
-
-def _crossing(values: np.ndarray, direction: int, armed: bool, side: float = 0.0) -> np.ndarray:
-    """``[j, i]``: the first output j where the function is on the other side of zero (in
-    ``direction``) than at output i, the last before it off zero (values exactly 0 have no side: a
-    function that stays on zero crosses nothing); empty where there is none.  ``armed`` False: not
-    until it has left zero and stayed on one side; ``side`` (+1 or -1): the side the function
-    starts on, whatever its first value (a switch just crossed)."""
-    return Crossings(direction, armed, side).feed(values)
-
-
-class Crossings:
-    """:func:`_crossing`'s scan, fed the outputs in blocks as a solve makes them: :meth:`feed` returns
-    the first crossing ``[j, i]`` (output numbers from the first value fed) once a block holds it.
-    The scan reads each value once, in order, so the crossing found is the one :func:`_crossing`
-    finds over all of them."""
-
-    def __init__(self, direction: int, armed: bool, side: float = 0.0):
-        self.direction, self.side = direction, side
-        self.armed = armed or bool(side)
-        self.current, self.at, self.count = side, 0, 0
-
-    def feed(self, values: np.ndarray) -> np.ndarray:
-        """The first crossing so far (see :func:`_crossing`), after ``values`` (the next outputs')."""
-        for value in np.sign(np.asarray(values, dtype=float)):
-            j = self.count
-            self.count += 1
-            if j == 0:
-                self.current = self.side if self.side else value
-                continue
-            if value == 0:
-                continue
-            if not self.armed:
-                self.armed = value == self.current
-                self.current, self.at = value, j
-                continue
-            if self.current != 0 and value != self.current:
-                if self.direction == 0 or (self.direction > 0) == (value > self.current):
-                    return np.array([j, self.at], dtype=int)
-            self.current, self.at = value, j
-        return np.zeros(0, dtype=int)
-
-
-def _crossing_stop(compiled, begin, P, options):
-    """The search's ``stop`` for :func:`_span_solve`: given the backend's names, a function of each block
-    of outputs, True once an event function has crossed zero its way in the outputs so far (as
-    :func:`_crossing` finds it over all of them) or, on the block's dense output, left its side and come
-    back (:func:`daemodel.solving.between.block_excursion`), so that the solve ends there, not at t1 (the
-    wheelset's searches once solved the rest of t_span: 285,000 of the solve's 291,665 steps)."""
-    events = compiled.events
-    wanted = (*compiled.state_names, *compiled.algebraic_names)
-    n = len(compiled.state_names)
-    armed = np.array([bool(begin.armed[k]) or bool(begin.sides[k]) for k in range(len(events))], dtype=bool)
-
-    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for: see _first_excursion)
-        return not (events[x.event].strict and within_tolerance(compiled, begin.model, options, P, x.t, y, z, span))
-
-    def make(names):
-        position = {v: k for k, v in enumerate((*names[0], *names[1]))}
-        if any(v not in position for v in wanted):
-            return lambda times, Y, Z, dense=None: False  # (outputs the search does not read as its own: no stop)
-        columns = np.array([position[v] for v in wanted], dtype=int)
-        scans = [Crossings(e.direction, bool(begin.armed[k]), begin.sides[k]) for k, e in enumerate(events)]
-        last = []  # (the last output seen: time, values of the functions)
-
-        def stop(times, Y, Z, dense=None) -> bool:
-            U = np.concatenate([Y, Z], axis=1)[:, columns]
-            F = begin.when(times, U[:, :n], U[:, n:], np.repeat(P, len(times), axis=0))
-            if any(len(scan.feed(F[:, k])) for k, scan in enumerate(scans)):
-                return True
-            found = dense is not None and bool(last) and armed.any()
-            if found:
-                T_block, F_block = np.append(last[0], times), np.vstack([last[1], F])
-                found = block_excursion(dense, columns, begin.when, P, n, T_block, F_block, armed, counts)
-            last[:] = [times[-1], F[-1:]]
-            return found
-
-        return stop
-
-    return make
 
 
 def solve_with_events(backend, compiled, t_span, start, options, max_events: int = DEFAULT_MAX_EVENTS):
@@ -286,7 +216,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
             warnings.simplefilter("always")
-            stop = _crossing_stop(compiled, begin, P, options)  # (it ends where a crossing is found, not at t1)
+            stop = crossing_stop(compiled, begin, P, options)  # (it ends where a crossing is found, not at t1)
             # (with its dense output, where the location's first trial is read, whatever the caller keeps)
             sol = _span_solve(
                 backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True,
@@ -300,11 +230,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         F = piece_when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
         first, which, hit, before_index = None, None, {}, None
         for e, event in enumerate(events):
-            hits = _crossing(F[:, e], event.direction, bool(begin.armed[e]), begin.sides[e])
+            hits = first_crossing(F[:, e], event.direction, bool(begin.armed[e]), begin.sides[e])
             if len(hits):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
+        _finite(compiled, F, T, Ys, len(T) if first is None else first + 1)
         found = None  # (which, a, b, Fa, Fb, ya, za, the first trial, each fired event's side after it)
         if first is not None:
             tied = [e for e in hit if hit[e] == first]
@@ -388,7 +319,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 e in hit
                 and hit[e] == first
                 and (
-                    len(_crossing(np.array([F[before_index, e], F_event[e]]), event.direction, True)) or F_event[e] == 0
+                    len(first_crossing(np.array([F[before_index, e], F_event[e]]), event.direction, True))
+                    or F_event[e] == 0
                 )
             )
         ]
@@ -398,7 +330,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         with_reset = [e for e in fired if resets[e] is not None]
         crossing = {}
         if with_reset:  # (how the functions moved just before the resets: a reset must send them back)
-            changes = drift(compiled, backend, piece, t_event, y_event, z_event, P, when, delta_at(t_event))
+            # (from z solved at y_event, as after the reset: the method's z is off its constraints by its own
+            # tolerance, 8e-14 for radau at rtol 1e-8, against a drift of 1e-9, and a reset that left the
+            # motion as it was seemed to change it: ZenoError)
+            z_start = (
+                z_event
+                if not z_event.shape[1]
+                else algebraic_values(for_method(piece, backend), t_event, y_event, P, z_event)
+            )
+            changes = drift(compiled, backend, piece, t_event, y_event, z_start, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: sides_after.get(e, 1) for e in fired if events[e].strict and not events[e].integer}
         exited = {e for e in fired if e in begin.sliding}
@@ -407,11 +347,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             preferred[e] = 1 if abs(up) <= abs(down) else -1
         before = np.concatenate([y_event, z_event], axis=1)
         F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
-        Y = y_event.copy()
-        for e in with_reset:
-            new = resets[e](t_event, Y, z_event, P)
-            for k, (index, _) in enumerate(events[e].reset):
-                Y[:, index] = new[:, k]
+        Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
         scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
         moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
@@ -452,9 +388,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     names = (*compiled.state_names, *compiled.algebraic_names)
     times, rows, failing = [], [], []  # (failing: the pieces whose solve did not meet its accuracy)
     dense = []  # each piece's dense output: its output solve's, else its detection solve's (that ran past b)
+    marks = []  # (the time breakpoints each piece's detection solve crossed before its end)
     for a, b, Ya, Za, event, model, detection, found in pieces:
         closed, sol = event is None, None
         dense.append(detection)
+        if found.breakpoints:
+            marks.append(breakpoints_between(found.breakpoints, a, b, closed))
         if user_grid is not None:
             grid = user_grid[(user_grid >= a) & ((user_grid <= b) if closed else (user_grid < b))]
             if not len(grid):
@@ -527,8 +466,23 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         status="success" if not failing else "; ".join(failing),
         setup_time=setup_time,
         events=events_out,
+        breakpoints=joined_breakpoints(marks),
         dense=joined_in_time(edges, dense),
     )
+
+
+def _finite(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) -> None:
+    """Raise :class:`SwitchError` where an event function ``F`` (T, E) is not finite at the first ``upto``
+    outputs (those the search for the first crossing read)."""
+    bad = np.argwhere(~np.isfinite(F[:upto]))
+    if len(bad):
+        k, e = bad[0]
+        at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(compiled.state_names, Y[k], strict=True))
+        raise SwitchError(
+            f"event '{compiled.events[e].name}': its function {compiled.events[e].when} is {float(F[k, e])} at "
+            f"t = {T[k]:.12g} ({at}), where the solution goes; an event function must be finite along the "
+            "solution: write it without a sqrt, log or division that the solution takes out of its domain"
+        )
 
 
 def _trial(backend, compiled, options, batched, P, which, when, a: float, tau: float, ya, za) -> tuple:

@@ -101,6 +101,37 @@ def _pad(records: list, B: int) -> dict:
     return out
 
 
+def breakpoints_between(record: dict, a: float, b: float, closed: bool) -> dict:
+    """The entries of a breakpoint record (``"t"``, ``"moved"``: (B, K); ``"before"``, ``"after"``: name ->
+    (B, K)) at times in ``[a, b)``, ``[a, b]`` where ``closed`` (a piece of a solve with events)."""
+    t = record["t"][0]
+    keep = (t >= a) & ((t <= b) if closed else (t < b))
+    return {
+        "t": record["t"][:, keep],
+        "moved": record["moved"][:, keep],
+        **{side: {name: v[:, keep] for name, v in record[side].items()} for side in ("before", "after")},
+    }
+
+
+def joined_breakpoints(records: list) -> dict:
+    """One breakpoint record of the pieces' ``records`` (as :func:`breakpoints_between` returns them, in
+    time order); ``{}`` where there are none."""
+    if not records:
+        return {}
+
+    def joined(get) -> np.ndarray:
+        return np.concatenate([get(record) for record in records], axis=1)
+
+    return {
+        "t": joined(lambda r: r["t"]),
+        "moved": joined(lambda r: r["moved"]),
+        **{
+            side: {name: joined(lambda r, n=name, s=side: r[s][n]) for name in records[0][side]}
+            for side in ("before", "after")
+        },
+    }
+
+
 def join_samples(parts: list, B: int, batched: bool):
     """One Solution of the groups' (``(sample indices, Solution)``, all on the same output times):
     values and parameters in sample order, breakpoints and events padded with NaN to the longest."""
@@ -132,7 +163,9 @@ def join_samples(parts: list, B: int, batched: bool):
                     row[:, between] = np.asarray(found[name]).reshape(len(index), -1)
                 values[name][index] = row
         parameters[index] = sol.parameters
-    breakpoints = _pad([(index, sol.breakpoints) for index, sol in parts], B) if first.breakpoints else {}
+    # (with events, a sample may end before any breakpoint: its entries NaN)
+    marks = [(index, sol.breakpoints) for index, sol in parts if sol.breakpoints]
+    breakpoints = _pad(marks, B) if marks else {}
     events = {name: _pad([(index, sol.events[name]) for index, sol in parts], B) for name in first.events}
     stats = merge_stats([sol.stats for _, sol in parts])  # (events: every group's, summed)
     stats["groups"] = len(parts)

@@ -497,3 +497,33 @@ def test_a_time_limit_reported_by_the_method_as_its_own_failure_ends_the_chunk(m
         with _time_limit(0.1, "chunks", 3):
             solve_chunk((decay.compile(), (0.0, 1.0), "casadi-idas", {}, None), 0, batch)
     assert len(calls) == 1
+
+
+def _drop():
+    m = dm.Model("drop")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, terminal=True)
+    return m
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 4])
+@pytest.mark.parametrize("to_disk", [False, True])
+def test_chunks_whose_samples_end_at_their_own_terminal_events(chunk, to_disk, tmp_path):
+    # each chunk's times are t_eval and its own samples' ends: before, chunk=1 failed with a bare numpy ValueError
+    # (arrays of 6 and 5 times) and chunk=2 put the second chunk's values on the first chunk's times, h off by
+    # 0.28 with status "success"; now every value is at its own time (NaN after its sample's end), and the
+    # times are those of t_eval and of each end that every chunk has a value at
+    h0 = np.array([1.0, 2.0, 0.5, 3.0])
+    grid = np.linspace(0.0, 0.5, 6)
+    options = {"y0": {"h": h0}, "t_eval": grid, "rtol": 1e-10, "atol": 1e-10, "chunk": chunk}
+    out = dm.ensemble(_drop(), (0.0, 0.5), **options, write_to=tmp_path / "drop" if to_disk else None)
+    sol = out.solution() if to_disk else out
+    ends = np.sqrt(2.0 * h0 / 9.81)
+    assert set(grid) <= set(sol.t.tolist()) and sol.status == "success"
+    exact = h0[:, None] - 0.5 * 9.81 * sol.t[None, :] ** 2
+    exact[sol.t[None, :] > ends[:, None] + 1e-12] = np.nan
+    np.testing.assert_allclose(sol["h"], exact, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.events["floor"]["t"][[0, 2], 0], ends[[0, 2]], rtol=0, atol=1e-10)

@@ -412,3 +412,73 @@ def test_switches_that_cross_at_one_instant_join_the_first_declared_one_located(
     assert sol.status == "success"
     times = {name: event["t"].ravel().tolist() for name, event in sol.events.items() if event["t"].size}
     assert len(times) == 2 and len({t for ts in times.values() for t in ts}) == 1, times
+
+
+# ---- found by attacking the events as a hostile user (helper evatk) --------------------------------------
+
+
+def _two_at_once(second_reset):
+    """x' = 1 from 0: events 'a' and 'b' both at x = 0.5; 'a' flips v, 'b' sets w by ``second_reset``."""
+    m = dm.Model("two_at_once")
+    m.states("x v w")
+    m.ode("x", "1")
+    m.ode("v", "0")
+    m.ode("w", "0")
+    m.initial(x=0.0, v=1.0, w=0.0)
+    m.event("a", "x - 0.5", reset={"v": "-v"})
+    m.event("b", "2*x - 1", reset=second_reset)
+    return m
+
+
+@pytest.mark.parametrize(("method", "options"), [("radau", {"rtol": 1e-8, "atol": 1e-8}), ("casadi-idas", {})])
+def test_events_at_one_instant_reset_from_the_values_just_before(method, options):
+    # Model.event: a reset maps states to "expressions of the values just before"; 'b' reads v before the
+    # instant (1), not after 'a' flipped it (before: w = -1, "success"), so that each event's "after" is its
+    # reset of its "before"
+    sol = dm.solve(_two_at_once({"w": "v"}), (0.0, 1.0), method=method, **options)
+    assert sol.status == "success"
+    assert sol.events["a"]["t"][0].tolist() == sol.events["b"]["t"][0].tolist()
+    assert abs(sol.events["a"]["t"][0, 0] - 0.5) < 1e-9
+    assert sol["v"][-1] == -1.0 and sol["w"][-1] == 1.0
+    b = sol.events["b"]
+    assert b["after"]["w"][0, 0] == b["before"]["v"][0, 0] == 1.0
+
+
+def test_events_at_one_instant_that_reset_a_state_to_different_values_are_refused():
+    # 'a' sets v to -1, 'b' to 2 at the same instant: which one holds is not defined (before: v = 2 after
+    # applying them one after the other, "success")
+    with pytest.raises(E.ResetConflictError, match=r"events 'a' and 'b' fire together at t = 0\.5\d* and reset 'v'"):
+        dm.solve(_two_at_once({"v": "2*v"}), (0.0, 1.0), rtol=1e-8, atol=1e-8)
+    sol = dm.solve(_two_at_once({"v": "-v"}), (0.0, 1.0), rtol=1e-8, atol=1e-8)  # (the same value: no conflict)
+    assert sol["v"][-1] == -1.0
+
+
+@pytest.mark.parametrize("t_eval", [None, np.linspace(0.0, 1.0, 11)])
+def test_a_model_with_events_keeps_its_time_breakpoints(t_eval):
+    # x' = 1 + [t >= 0.4], an event at x = 1 (t = 0.7): the breakpoint at 0.4 is in sol.breakpoints with the
+    # values on both sides, as without the event (before: sol.breakpoints was {} once the model had an event)
+    m = dm.Model("both")
+    m.states("x y")
+    m.ode("x", "1 + Heaviside(t - 0.4)")
+    m.ode("y", "0")
+    m.initial(x=0.0, y=0.0)
+    m.event("e", "x - 1", reset={"y": "y + 1"})
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-10, atol=1e-10, t_eval=t_eval)
+    assert abs(sol.events["e"]["t"][0, 0] - 0.7) < 1e-9 and abs(sol["x"][-1] - 1.6) < 1e-9
+    assert sol.breakpoints["t"].tolist() == [[0.4]] and sol.breakpoints["moved"].tolist() == [[0.0]]
+    for side in ("before", "after"):
+        assert abs(sol.breakpoints[side]["x"][0, 0] - 0.4) < 1e-9 and sol.breakpoints[side]["y"][0, 0] == 0.0
+
+
+def test_a_batch_with_events_keeps_each_samples_breakpoints():
+    # the breakpoint at t = p, one sample's after its terminal event (t = 0.5): NaN there
+    m = dm.Model("both")
+    m.states("x")
+    m.parameter("p", 0.3)
+    m.ode("x", "1 + Heaviside(t - p)")
+    m.initial(x=0.0)
+    m.event("stop", "t - 0.5", terminal=True)
+    sol = dm.solve(m, (0.0, 1.0), parameters={"p": [0.3, 0.8]}, t_eval=np.linspace(0.0, 1.0, 11))
+    t = sol.breakpoints["t"]
+    assert t.shape == (2, 1) and t[0, 0] == 0.3 and np.isnan(t[1, 0])
+    assert abs(sol.breakpoints["after"]["x"][0, 0] - 0.3) < 1e-9
