@@ -605,7 +605,12 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         return b, y, z, stats
     lo, hi, flo, fhi = a, b, Fa, Fb
     best, at_hi = None, None  # (the trial's values at hi, where one set it)
-    side, slow, last_side = 0, 0, 0  # (slow: trials in a row that kept the same end and did not halve the bracket)
+    side, slow, last_side, zero = (
+        0,
+        0,
+        0,
+        None,
+    )  # (slow: trials in a row that kept the same end and did not halve the bracket)
     width = GUESS_WIDTH * (b - a)
     for k in range(MAX_LOCATION_ITERATIONS):
         if guess is not None and k == 0:
@@ -626,11 +631,15 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         tau = max(tau, min(a + 1e-13 * max(1.0, abs(a)), 0.5 * (lo + hi)))  # (no trial span below ~1e-13)
         f, y, z = trial(tau)
         best = (tau, y, z)
-        if f == 0 or hi - lo <= tol:
+        if hi - lo <= tol:
             return tau, y, z, stats
         before = hi - lo
-        if np.sign(f) == np.sign(flo):
+        if f == 0 or np.sign(f) == np.sign(flo):
+            # (a value exactly 0 has no side: the crossing is where the function reaches the other one, so a
+            # function resting on zero over [1, 2] crosses at 2, not wherever a trial landed on it; the last
+            # zero is the event where the other side is within the tolerance of it)
             lo, flo = tau, f
+            zero = (tau, y, z) if f == 0 else zero
             if side == -1:
                 fhi *= 0.5  # (Illinois: halve the stale end's value)
             side = -1
@@ -642,6 +651,8 @@ def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, y
         kept = side == last_side and hi - lo > 0.5 * before
         slow, last_side = (slow + 1 if kept or slow >= 2 else 0), side
         if hi - lo <= tol:  # (the event after the crossing, where the function has changed sign: its trial's values)
+            if zero is not None and hi - zero[0] <= tol:
+                return (*zero, stats)
             y, z = at_hi if at_hi is not None else trial(hi)[1:]
             return hi, y, z, stats
     raise EventLocationError(

@@ -533,16 +533,10 @@ def test_an_event_of_an_algebraic_variable_with_a_reset_of_another_state(method,
     assert np.abs(sol["x"] - np.exp(-sol.t)).max() < tol
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known defect: an event function that rests on zero over an interval ([1, 2] here) and then leaves it "
-    "to the other side is located wherever a trial lands on the flat zero (_locate returns a trial whose value "
-    "is exactly 0), so each method puts the event somewhere else inside it, all with status 'success': radau "
-    "rtol 1e-8 at 1.99119609, radau h = 0.01 at 1.99605469, IDAS, collocation and the reference at "
-    "1.99804687; the crossing is decided where the function leaves zero, t = 2",
-)
 @pytest.mark.parametrize(("method", "options"), METHODS)
 def test_an_event_function_that_rests_on_zero_before_it_crosses(method, options):
+    # (before: located wherever a trial landed on the flat zero, all 'success': radau rtol 1e-8 at 1.99119609,
+    # h = 0.01 at 1.99605469, IDAS, collocation and the reference at 1.99804687; the crossing is at t = 2)
     m = dm.Model("rest")
     m.states("x y")
     m.ode("x", "1")
