@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from daemodel.solving.between import block_excursion
-from daemodel.solving.branches import within_tolerance
+from daemodel.solving.branches import EXCURSION_BUDGET, excursion_weight
 
 
 def first_crossing(values: np.ndarray, direction: int, armed: bool, side: float = 0.0) -> np.ndarray:
@@ -52,7 +52,7 @@ class Crossings:
         return np.zeros(0, dtype=int)
 
 
-def crossing_stop(compiled, begin, P, options):
+def crossing_stop(compiled, begin, P, options, spent: list):
     """The search's ``stop`` for a search's solve: given the backend's names, a function of each block
     of outputs, True once an event function has crossed zero its way in the outputs so far (as
     :func:`first_crossing` finds it over all of them) or, on the block's dense output, left its side and come
@@ -63,8 +63,9 @@ def crossing_stop(compiled, begin, P, options):
     n = len(compiled.state_names)
     armed = np.array([bool(begin.armed[k]) or bool(begin.sides[k]) for k in range(len(events))], dtype=bool)
 
-    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for: see _first_excursion)
-        return not (events[x.event].strict and within_tolerance(compiled, begin.model, options, P, x.t, y, z, span))
+    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for: events._first_excursion spends the budget)
+        weight = excursion_weight(compiled, begin.model, options, P, x.t, y, z, span) if events[x.event].strict else 1
+        return not events[x.event].strict or spent[0] + weight > EXCURSION_BUDGET
 
     def make(names):
         position = {v: k for k, v in enumerate((*names[0], *names[1]))}

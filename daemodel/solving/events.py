@@ -58,12 +58,13 @@ from daemodel.solving.between import (
 )
 from daemodel.solving.branches import (
     EVENT_TOL,
+    EXCURSION_BUDGET,
     ROUNDING,
     accumulation_point,
     check_accumulating,
     drift,
+    excursion_weight,
     start_piece,
-    within_tolerance,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.pieces import (
@@ -192,7 +193,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
     fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
     lock = has_state_switches(compiled)
-    location = []  # (the trial solves' stats)
+    location, spent = [], [0.0]  # (the trial solves' stats; the tolerance the excursions integrated through used)
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
 
@@ -216,7 +217,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
             warnings.simplefilter("always")
-            stop = crossing_stop(compiled, begin, P, options)  # (it ends where a crossing is found, not at t1)
+            stop = crossing_stop(compiled, begin, P, options, spent)  # (it ends where a crossing is found, not at t1)
             # (with its dense output, where the location's first trial is read, whatever the caller keeps)
             sol = _span_solve(
                 backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True,
@@ -257,7 +258,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         shown = len(T) if first is None else first + 1
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[:shown], F[:shown], Ys, Zs, begin,
-            until,
+            until, spent,
         )  # fmt: skip
         all_stats += trials
         location += trials
@@ -531,12 +532,13 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
-def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until: float):
+def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent):
     """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
     before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
     on the dense output), as ``(which, a, b, Fa, Fb, ya, za, the first trial, {which: its side after})``
     for :func:`_locate`; None where there is none.  Its crossing is the first one its ``direction``
-    accepts: the one away from its side, else the one back to it."""
+    accepts: the one away from its side, else the one back to it.  A switch's excursion is integrated through
+    where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it)."""
     stats = []
     if sol.dense is None:
         return None, stats
@@ -548,11 +550,11 @@ def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T
         if x.t >= until:
             break
         i, e = x.before, x.event
-        if compiled.events[
-            e
-        ].strict:  # (a switch whose other branch, for a whole step, changes less than the tolerance)
+        if compiled.events[e].strict:  # (a switch whose other branch changes less than the tolerance left)
             y, z = dense_states(sol, compiled, np.array([x.t]))
-            if within_tolerance(compiled, piece, options, P, x.t, y, z, T[i + 1] - T[i]):
+            weight = excursion_weight(compiled, piece, options, P, x.t, y, z, T[i + 1] - T[i])
+            if spent[0] + weight <= EXCURSION_BUDGET:
+                spent[0] += weight
                 continue
         ya, za = Ys[i : i + 1], Zs[i : i + 1]
         value, y, z, solved = _trial(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)

@@ -607,3 +607,28 @@ def test_a_switching_function_that_touches_zero_at_a_grid_point():
     m.initial(x=-0.7, y=0.0)
     sol = dm.solve(m, (0.0, 2.0), method="casadi-collocation")
     assert sol.status == "success" and abs(sol["y"][-1]) < 1e-8
+
+
+def _narrow_jumps(c: float, k: float):
+    """s = sin t; w' = k where s > c (a jump of k, on for 2 acos(c) every 2 pi), else 0."""
+    m = dm.Model("narrow_jumps")
+    m.states("s c w")
+    m.ode("s", "c")
+    m.ode("c", "-s")
+    m.ode("w", f"{k}*Heaviside(s - {c})")
+    m.initial(s=0.0, c=1.0, w=0.0)
+    return m
+
+
+def test_switch_excursions_skipped_one_by_one_stay_within_the_tolerance_together():
+    # every hump of sin t above 0.99 (0.28 wide) adds 0.28 k to w; radau's steps at rtol 1e-6 with 7 stages are
+    # about 1 long, so each hump's other branch changes w by k x step <= atol in its step and is integrated
+    # through on the branch below; 477 such humps were 477 x 0.28 k off, one sign: w 104 rtol off, 'success'.  Together
+    # they are held to the tolerance (branches.EXCURSION_BUDGET): past it, each is located
+    c, k, t1, rtol = 0.99, 8.5e-7, 3000.0, 1e-6
+    sol = dm.solve(_narrow_jumps(c, k), (0.0, t1), rtol=rtol, atol=rtol, stages=7, t_eval=[0.0, t1])
+    times = _hump_times(c, t1)
+    exact = k * float(np.sum(np.minimum(times[1::2], t1) - times[0::2][: len(times[1::2])]))
+    if len(times) % 2:  # (a hump still on at t1)
+        exact += k * (t1 - times[-1])
+    assert sol.status != "success" or abs(sol["w"][-1] - exact) < 100 * rtol * (1.0 + abs(exact))
