@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemodel.solving.between import block_excursion
+from daemodel.dense import CollocationPolynomials
+from daemodel.solving.between import block_excursion, joined_blocks
 from daemodel.solving.branches import EXCURSION_BUDGET, excursion_weight
 
 
@@ -52,20 +53,33 @@ class Crossings:
         return np.zeros(0, dtype=int)
 
 
-def crossing_stop(compiled, begin, P, options, spent: list):
+# The search reads between the outputs of a stopping method's blocks (between.block_excursion) once they hold
+# this many steps together: a crossing and crossing back found up to that many steps late, for a fraction of
+# the per-step cost (an oscillator of 4 states: 60 us a step read one by one, as much as the step itself).
+EXCURSION_BATCH = 16
+
+
+def crossing_stop(compiled, begin, P, options, spent: list, clean: list):
     """The search's ``stop`` for a search's solve: given the backend's names, a function of each block
     of outputs, True once an event function has crossed zero its way in the outputs so far (as
     :func:`first_crossing` finds it over all of them) or, on the block's dense output, left its side and come
     back (:func:`daemodel.solving.between.block_excursion`), so that the solve ends there, not at t1 (the
-    wheelset's searches once solved the rest of t_span: 285,000 of the solve's 291,665 steps)."""
+    wheelset's searches once solved the rest of t_span: 285,000 of the solve's 291,665 steps).  ``spent``:
+    the tolerance the switches' excursions integrated through have used (``[float]``, added to);
+    ``clean``: the time up to which the blocks were read between and held none (``[float]``, set)."""
     events = compiled.events
     wanted = (*compiled.state_names, *compiled.algebraic_names)
     n = len(compiled.state_names)
     armed = np.array([bool(begin.armed[k]) or bool(begin.sides[k]) for k in range(len(events))], dtype=bool)
 
-    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for: events._first_excursion spends the budget)
-        weight = excursion_weight(compiled, begin.model, options, P, x.t, y, z, span) if events[x.event].strict else 1
-        return not events[x.event].strict or spent[0] + weight > EXCURSION_BUDGET
+    def counts(x, y, z, span) -> bool:  # (an excursion the search stops for; one it integrates through is spent)
+        if not events[x.event].strict:
+            return True
+        weight = excursion_weight(compiled, begin.model, options, P, x.t, y, z, span)
+        if spent[0] + weight > EXCURSION_BUDGET:
+            return True
+        spent[0] += weight
+        return False
 
     def make(names):
         position = {v: k for k, v in enumerate((*names[0], *names[1]))}
@@ -73,18 +87,27 @@ def crossing_stop(compiled, begin, P, options, spent: list):
             return lambda times, Y, Z, dense=None: False  # (outputs the search does not read as its own: no stop)
         columns = np.array([position[v] for v in wanted], dtype=int)
         scans = [Crossings(e.direction, bool(begin.armed[k]), begin.sides[k]) for k, e in enumerate(events)]
-        last = []  # (the last output seen: time, values of the functions)
+        last, pending = [], []  # (the output before the blocks not yet read between; those blocks)
 
         def stop(times, Y, Z, dense=None) -> bool:
             U = np.concatenate([Y, Z], axis=1)[:, columns]
             F = begin.when(times, U[:, :n], U[:, n:], np.repeat(P, len(times), axis=0))
             if any(len(scan.feed(F[:, k])) for k, scan in enumerate(scans)):
                 return True
-            found = dense is not None and bool(last) and armed.any()
-            if found:
-                T_block, F_block = np.append(last[0], times), np.vstack([last[1], F])
-                found = block_excursion(dense, columns, begin.when, P, n, T_block, F_block, armed, counts)
-            last[:] = [times[-1], F[-1:]]
+            found = False
+            if dense is not None and last and armed.any():
+                pending.append((dense, times, F))
+                batched = isinstance(dense, CollocationPolynomials)  # (read between in batches of steps)
+                if not batched or sum(len(block[1]) for block in pending) >= EXCURSION_BATCH:
+                    dense = joined_blocks([block[0] for block in pending])
+                    T_block = np.concatenate([[last[0]], *(block[1] for block in pending)])
+                    F_block = np.vstack([last[1], *(block[2] for block in pending)])
+                    found = block_excursion(dense, columns, begin.when, P, n, T_block, F_block, armed, counts)
+                    pending.clear()
+                    if not found and armed.all():  # (read between up to there: the search after the solve need not)
+                        clean[0] = float(T_block[-1])
+            if not pending:
+                last[:] = [times[-1], F[-1:]]
             return found
 
         return stop

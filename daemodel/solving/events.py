@@ -217,7 +217,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
             warnings.simplefilter("always")
-            stop = crossing_stop(compiled, begin, P, options, spent)  # (it ends where a crossing is found, not at t1)
+            clean = [t]  # (read between by the search's stop up to there, and nothing found)
+            stop = crossing_stop(compiled, begin, P, options, spent, clean)  # (it ends at a crossing, not at t1)
             # (with its dense output, where the location's first trial is read, whatever the caller keeps)
             sol = _span_solve(
                 backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True,
@@ -256,9 +257,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         # a function that crossed zero and came back between two outputs, before that crossing
         until = math.inf if found is None else (found[7] if found[7] is not None else found[2])
         shown = len(T) if first is None else first + 1
+        read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
-            backend, piece, options, start.batched, P, compiled, piece_when, sol, T[:shown], F[:shown], Ys, Zs, begin,
-            until, spent,
+            backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],
+            Ys[read:], Zs[read:], begin, until, spent,
         )  # fmt: skip
         all_stats += trials
         location += trials
