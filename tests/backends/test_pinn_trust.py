@@ -440,7 +440,10 @@ def test_the_certificate_judges_the_answer_not_the_residual():
     assert pinn.stats["certificate"]["certified"].tolist() == [True, True, True]
     for name in pinn.names:
         distance = np.abs(pinn[name] - radau[name]).max(axis=1)
-        assert (distance <= np.array(pinn.stats["certificate"]["max_distance"][name])).all(), name
+        # (the certificate's own Radau steps and dm.solve's differ by rounding: a few ulps of the values' size,
+        # 2.2e-16 against a certified 1.1e-16 in v on one CI run)
+        rounding = 8 * np.finfo(float).eps * (1.0 + np.abs(radau[name]).max(axis=1))
+        assert (distance <= np.array(pinn.stats["certificate"]["max_distance"][name]) + rounding).all(), name
         assert distance.max() < 1e-6
 
 
