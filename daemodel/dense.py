@@ -99,6 +99,20 @@ class CollocationPolynomials(AbstractDenseOutput):
         weights = lagrange_matrix(np.concatenate([[0.0], self.c]), theta)  # (K, s+1)
         return np.einsum("kj,bkjd->bkd", weights, self.nodes[:, step].astype(float, copy=False))
 
+    @staticmethod
+    def joined(blocks: list) -> CollocationPolynomials:
+        """The polynomials of consecutive blocks of one solve's steps (one tableau), one after another."""
+        if not all(np.array_equal(b.c, blocks[0].c) for b in blocks):
+            raise ValueError("CollocationPolynomials.joined: blocks of one tableau only")  # (daemodel's own bug)
+        if len(blocks) == 1:
+            return blocks[0]
+        return CollocationPolynomials(
+            c=blocks[0].c,
+            starts=np.concatenate([b.starts for b in blocks]),
+            lengths=np.concatenate([b.lengths for b in blocks]),
+            nodes=np.concatenate([b.nodes for b in blocks], axis=1),
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class Segments(AbstractDenseOutput):

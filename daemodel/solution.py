@@ -463,6 +463,18 @@ class Solution:
             out.update({name: values[:, i].reshape(B, K) for i, name in enumerate(c.alias_names)})
         return out if self.batched else {name: v[0] for name, v in out.items()}
 
+    def columns_at(self, times: np.ndarray, names) -> np.ndarray:
+        """The states and algebraic variables ``names`` of the first sample at ``times`` inside the span,
+        ``(len(times), len(names))``: read straight off :attr:`dense` where it holds them (no checks: the
+        times are the caller's own, such as an event search's), else through :meth:`at`."""
+        c = self.compiled
+        position = {v: k for k, v in enumerate((*c.state_names, *c.algebraic_names))}
+        if self.dense is not None and all(v in position for v in names):
+            return self.dense(np.asarray(times, dtype=float))[0][:, [position[v] for v in names]]
+        values = self.at(times)
+        columns = [np.reshape(values[v], (self.batch_size, -1))[0] for v in names]
+        return np.stack(columns, axis=-1) if columns else np.zeros((len(np.atleast_1d(times)), 0))
+
     def _hermite(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(y (B, K, n), z (B, K, m))`` at ``times`` from the outputs and the switches' values (see :meth:`at`)."""
         from daemodel.compiling.init import solve_algebraic

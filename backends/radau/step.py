@@ -244,7 +244,7 @@ class Stepper:
         after :meth:`integrate`, or None where they were not kept (``dense_output=False``)."""
         if not self.options.dense_output:
             return None
-        return self.records.polynomials(self.tableau.c, self.xp)
+        return self.records.polynomials(self.tableau.c)
 
     def stopped(self) -> bool:
         """Whether the caller's ``stop`` (:meth:`integrate`) ends the integration: it is shown each block
@@ -575,20 +575,14 @@ class Records:
             nodes=numpy_copy(self.nodes[k - 1]),
         )
 
-    def polynomials(self, c, xp):
+    def polynomials(self, c):
         """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``
         or steps."""
         if not self.dense or not self.starts:
             return None
         from daemodel.dense import CollocationPolynomials
 
-        nodes = self.nodes[0] if len(self.nodes) == 1 else xp.concatenate(self.nodes, axis=1)
-        return CollocationPolynomials(
-            c=np.asarray(c, dtype=float),
-            starts=np.concatenate(self.starts),
-            lengths=np.concatenate(self.lengths),
-            nodes=numpy_copy(nodes),
-        )
+        return CollocationPolynomials.joined([self.block_polynomials(k, c) for k in range(1, len(self.starts) + 1)])
 
     def nodes_of(self, steps: np.ndarray, xp, index):
         """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered

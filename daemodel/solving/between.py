@@ -55,19 +55,9 @@ EXCURSION_PROBES = 4
 
 
 def dense_states(sol, compiled, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(Y (K, n), Z (K, m))`` of ``compiled``'s variables on ``sol``'s dense output at ``times`` (read
-    straight off it where it holds them all, else through :meth:`Solution.at`)."""
-    c, n = sol.compiled, len(compiled.state_names)
-    names = (*c.state_names, *c.algebraic_names)
-    wanted = (*compiled.state_names, *compiled.algebraic_names)
-    if sol.dense is not None and set(wanted) <= set(names):
-        position = {v: k for k, v in enumerate(names)}
-        U = sol.dense(np.asarray(times, dtype=float))[0][:, [position[v] for v in wanted]]
-        return U[:, :n], U[:, n:]
-    values = sol.at(times)
-    Y = np.stack([np.reshape(values[v], -1) for v in compiled.state_names], axis=-1)
-    Z = [np.reshape(values[v], -1) for v in compiled.algebraic_names]
-    return Y, (np.stack(Z, axis=-1) if Z else np.zeros((len(times), 0)))
+    """``(Y (K, n), Z (K, m))`` of ``compiled``'s variables on ``sol``'s dense output at ``times``."""
+    U = sol.columns_at(times, (*compiled.state_names, *compiled.algebraic_names))
+    return U[:, : len(compiled.state_names)], U[:, len(compiled.state_names) :]
 
 
 def on_dense(sol, compiled, when, P, times: np.ndarray) -> np.ndarray:
@@ -162,7 +152,8 @@ def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: i
         deeper &= (np.sign(g[k - 1]) == s[k]) & (np.sign(g[k]) == s[k]) & (np.sign(g[k + 1]) == s[k])
         deeper &= (s[k] * g[k] < s[k] * g[k - 1]) & (s[k] * g[k] <= s[k] * g[k + 1])
         # (only where the parabola through the three goes past halfway to zero)
-        deeper &= _vertex(times[k - 1], times[k], times[k + 1], g[k - 1], g[k], g[k + 1]) * s[k] < HALFWAY * s[k] * g[k]
+        vertex = _parabola(times[k - 1], times[k], times[k + 1], g[k - 1], g[k], g[k + 1])[2]
+        deeper &= vertex * s[k] < HALFWAY * s[k] * g[k]
         found += [(int(j), e, True) for j in k[deeper]]
     for j, e, zoom in sorted(found, key=lambda item: (times[item[0]], item[1])):
         s = float(sample_side[j, e])
@@ -197,14 +188,9 @@ def joined_blocks(blocks: list):
 
     if len(blocks) == 1:
         return blocks[0]
-    if not all(isinstance(b, CollocationPolynomials) and np.array_equal(b.c, blocks[0].c) for b in blocks):
+    if not all(isinstance(b, CollocationPolynomials) for b in blocks):
         raise TypeError("joined_blocks: blocks of one solve's collocation polynomials only")  # (daemodel's own bug)
-    return CollocationPolynomials(
-        c=blocks[0].c,
-        starts=np.concatenate([b.starts for b in blocks]),
-        lengths=np.concatenate([b.lengths for b in blocks]),
-        nodes=np.concatenate([b.nodes for b in blocks], axis=1),
-    )
+    return CollocationPolynomials.joined(blocks)
 
 
 def block_excursion(dense, columns, when, P, n: int, T: np.ndarray, F: np.ndarray, armed: np.ndarray, counts) -> bool:
@@ -227,14 +213,14 @@ def block_excursion(dense, columns, when, P, n: int, T: np.ndarray, F: np.ndarra
     return False
 
 
-def _vertex(t0, t1, t2, g0, g1, g2) -> np.ndarray:
-    """The extreme value of the parabola through ``(t0, g0), (t1, g1), (t2, g2)`` (arrays), ``g1`` where it
-    is a line."""
+def _parabola(t0, t1, t2, g0, g1, g2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(curvature, vertex time, vertex value)`` of the parabola through ``(t0, g0), (t1, g1), (t2, g2)``
+    (arrays or floats); where it is a line, curvature 0 at ``(t1, g1)``."""
     slope = (g1 - g0) / (t1 - t0)
     curve = ((g2 - g1) / (t2 - t1) - slope) / (t2 - t0)
     with np.errstate(divide="ignore", invalid="ignore"):
         at = np.where(curve != 0, 0.5 * (t0 + t1) - 0.5 * slope / curve, t1)
-    return np.where(curve != 0, g0 + (at - t0) * slope + curve * (at - t0) * (at - t1), g1)
+    return curve, at, np.where(curve != 0, g0 + (at - t0) * slope + curve * (at - t0) * (at - t1), g1)
 
 
 def _probe(read, e: int, side: float, t: np.ndarray, g: np.ndarray) -> float | None:
@@ -244,11 +230,10 @@ def _probe(read, e: int, side: float, t: np.ndarray, g: np.ndarray) -> float | N
     dense output (``read``); None where none is (or the vertex stops moving)."""
     t, g = list(t), list(g)
     for _ in range(EXCURSION_PROBES):
-        slope = (g[1] - g[0]) / (t[1] - t[0])
-        curve = ((g[2] - g[1]) / (t[2] - t[1]) - slope) / (t[2] - t[0])
+        curve, vertex, _ = _parabola(*t, *g)
         if not side * curve > 0:  # (no extremum towards zero between them)
             return None
-        at = min(max(0.5 * (t[0] + t[1]) - 0.5 * slope / curve, t[0]), t[2])
+        at = min(max(float(vertex), t[0]), t[2])
         if min(abs(at - x) for x in t) <= 1e-6 * (t[2] - t[0]):  # (the vertex stopped moving)
             return None
         try:
