@@ -32,6 +32,11 @@ ZENO_GAPS, ZENO_GAP = 5, 1e-6
 # by at most this many tolerances together (excursion_weight): 477 humps each within the tolerance over its
 # step once left a state 104 rtol off, "success" (tests/solving/test_events_edges.py).
 EXCURSION_BUDGET = 1.0
+# A switch's side at zero that one look-ahead (delta) does not resolve on a branch (its function moves by less
+# than rounding there) is looked at again over look-aheads LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTH^2, ... times
+# longer, at most LOOKAHEAD_GROWTHS times: x = 0.3 - (t - 1)^2 touching its switch at t = 1 moves by delta^2
+# = 4e-18 over delta = 2e-9, resolved from 8^5 delta on.
+LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTHS = 8.0, 6
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
 RESET_CHANGE = 1e-6
@@ -247,10 +252,20 @@ def _branch(
 
     phi = event.when
     function = compiled.numeric.batch_function([phi])
-    change = {}
-    for side in (1, -1):
-        candidate = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side})
-        change[side] = _side(drift(compiled, backend, candidate, t, Y, Z, P, function, delta, flows)[0], scale)
+    candidates = {side: lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side}) for side in (1, -1)}
+    change = {
+        side: _side(drift(compiled, backend, candidate, t, Y, Z, P, function, delta, flows)[0], scale)
+        for side, candidate in candidates.items()
+    }
+    # (a branch on which the function does not move within rounding over the look-ahead: a touch, its rate 0
+    # and its curvature below the look-ahead's resolution, or a crossing of higher order; looked at again
+    # over longer look-aheads, while it stays unresolved, so that a touch from one side keeps that side)
+    for growth in range(1, LOOKAHEAD_GROWTHS + 1):
+        if exited or all(change.values()):
+            break
+        longer = delta * LOOKAHEAD_GROWTH**growth
+        for side in [side for side in change if not change[side]]:
+            change[side] = _side(drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer)[0], scale)
     up, down = change[1] >= 0, change[-1] <= 0
     if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
         return preferred
