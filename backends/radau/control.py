@@ -198,6 +198,9 @@ class Radau5Controller:
             sequence.add_attempt(stats, accepted, failed)
             if not accepted:
                 if decisions["shrunk_away"]:
+                    if failed and why == formulas.UNNAMED_NON_FINITE:  # (the general path names where they arose)
+                        result, _, named, named_sample = stepper.attempt(t, h)
+                        why, sample = (named, named_sample) if result is None else (why, sample)
                     why = why if failed else f"error estimate {decisions['err']:.2g} > 1"
                     raise underflow_error(decisions["h_rejected"], t, why, sample)
                 stepper.drop_factors()

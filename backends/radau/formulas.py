@@ -44,6 +44,9 @@ TINY_NORM = 1e-300
 STAGNATION_THETA, STAGNATION_FACTOR = 0.5, 100.0
 # How a simplified Newton iteration ends (newton_iteration), the failures in the order in which they win.
 CONVERGED, NON_FINITE, DIVERGING, SLOW, NOT_CONVERGED = 0, 1, 2, 3, 4
+# A compiled attempt's failure on values that turned non-finite: it fails as a diverging Newton does (h
+# shrinks); the compiled step does not tell where they arose, the general path names that where h underflows.
+UNNAMED_NON_FINITE = "non-finite values"
 # What follows a convergence (after_convergence): iterating on, a check of it by one more increment,
 # f evaluated at the final stages (the error estimate reads it).
 ITERATING, CHECK, EVALUATE = 0, 1, 2

@@ -27,10 +27,11 @@ floats, and the attempt's tries are :mod:`.tries`'; every packed vector's parts 
 name).  What this module writes is the graph around them: the Jacobian's refresh and refactor
 as casadi switches, the carried arrays, the records.  What only Python does ends
 the run *before* the attempt, which Python then makes on its own path (the attempt runs twice),
-where the errors are worded: non-finite values (the general path names where they arose), a sign
-change of the iteration matrix's determinant, a singular factorisation (a non-finite inverse; an
-exactly singular matrix, which LAPACK refuses, fails the call, and Python makes the next attempt),
-a step size underflow.  A run also ends where the integration does and at ``limit`` attempts (the
+where the errors are worded: a sign change of the iteration matrix's determinant, a singular
+factorisation (a non-finite inverse; an exactly singular matrix, which LAPACK refuses, fails the
+call, and Python makes the next attempt), a step size underflow (where values that turned
+non-finite, which fail an attempt as a diverging Newton does, shrank h away, the general path names
+where they arose).  A run also ends where the integration does and at ``limit`` attempts (the
 controller's budget checks).  Each attempt that ran leaves a record (:data:`.sequence.RECORD`,
 then the start value and the stages) from which :class:`CompiledRun` writes the steps back into
 the stepper, and the statistics by :func:`.sequence.add_statistics`.
@@ -41,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.progress import captured_output
 from daemodel.backends.radau import formulas, sequence
-from daemodel.backends.radau.compiled import NON_FINITE, Buffered, Layout, iteration_matrix, step_layouts
+from daemodel.backends.radau.compiled import Buffered, Layout, iteration_matrix, step_layouts
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sequence import (
     ATTEMPT,
@@ -285,9 +286,6 @@ class CasadiTries(AbstractTriesSide):
 
     def failed(self, result):
         return result[self.out["outcome"]] != 0
-
-    def non_finite(self, result):
-        return result[self.out["outcome"]] == NON_FINITE
 
     def evaluations(self, result):
         return result[self.out["evaluations"]]

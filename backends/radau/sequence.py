@@ -143,7 +143,8 @@ def run_tail(xp, carried: dict, settings: dict, attempt: dict, after: dict, deci
     (handed back: the error is worded there): an underflow of h before it or after its rejection,
     factors that cannot serve (``singular``), a sign change of the iteration matrix's determinant
     between fresh Jacobians (:meth:`.step.Stepper.check_determined`'s) or over the stages
-    (``stage_flip``), values that turned non-finite (the general path names where).  Then the
+    (``stage_flip``), values that turned non-finite outside a Newton failure (a try's non-finite values
+    fail the attempt as a diverging Newton does: :func:`.tries.attempt_tries`).  Then the
     scalars stay as they were, inactive, with the code why.
     """
     t, accept, failed = carried["t"], decisions["accepted"], attempt["newton_failed"]

@@ -313,7 +313,7 @@ class Stepper:
     def compiled_attempt(self, t, h, first):
         """The attempt of :meth:`attempt_with_error` in compiled calls, where Newton runs on the transformed
         systems; None where the step must run on the general path (full Newton pending, factors that
-        cannot serve, or values that turned non-finite, whose culprit the general path names).
+        cannot serve, or with the policy's rescue values that turned non-finite: full Newton follows).
 
         The retries of :meth:`attempt`, in its order (:func:`.tries.attempt_tries`, which the compiled
         run builds into its graph too): from the extrapolated guess, again with a fresh Jacobian
@@ -333,14 +333,13 @@ class Stepper:
         tries = attempt_tries(SCALAR, side, factors, guess, start, extrapolated)
         self.stats["compiled_retries"] += tries.retries
         self.stats["residual_evaluations"] += tries.evaluations
-        if not tries.usable or side.non_finite(tries.result):
+        if not tries.usable or (self.policy.rescue and side.non_finite(tries.result)):
             return None
         return tries.result.found
 
     def compiled_try(self, factors, t, h, guess, first, f0):
         """One compiled attempt from ``guess`` = (the last step's nodes, h / h_old): a :class:`CompiledTry`
-        whose ``found`` is as :meth:`attempt_with_error` returns it (why None where values turned
-        non-finite)."""
+        whose ``found`` is as :meth:`attempt_with_error` returns it (non-finite values unnamed)."""
         previous, ratio = guess
         policy, stats = self.policy, self.stats
         scalars = dict(t=t, h=h, ratio=ratio, eta=float(self.eta[0]), newton_tol=policy.tol, first=float(first))
@@ -353,6 +352,7 @@ class Stepper:
                 formulas.DIVERGING: f"diverging (contraction {theta:.2f})",
                 formulas.SLOW: f"converging too slowly (contraction {theta:.2f})",
                 formulas.NOT_CONVERGED: f"not converged in {k} iteration{'s' if k != 1 else ''}",
+                formulas.NON_FINITE: formulas.UNNAMED_NON_FINITE,
             }.get(outcome)
             return CompiledTry((None, k, why, 0, math.inf), outcome, evaluations)
         stats["newton_iterations"] += k
@@ -647,9 +647,6 @@ class GeneralTries(StepperTries):
     def failed(self, result):
         return result[0] is None
 
-    def non_finite(self, result):
-        return False  # (the general path names them in its why)
-
     def evaluations(self, result):
         return 0  # (counted as they are made)
 
@@ -672,6 +669,7 @@ class CompiledTries(StepperTries):
         return result.outcome != formulas.CONVERGED
 
     def non_finite(self, result):
+        """Whether the try failed on values that turned non-finite (the compiled step does not say where)."""
         return result.outcome == formulas.NON_FINITE
 
     def evaluations(self, result):
