@@ -41,7 +41,7 @@ from daemodel.backends.radau.linalg import (
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
-from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, sorted_unique, unique_entries
+from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
 
 from daemodel.errors import DaemodelError
 
@@ -109,6 +109,7 @@ class CasadiEngine(AbstractEngine):
         self._functions = functions
         D = self.D
         self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
+        self._order = None  # sparse: the band order its shifted systems are factored in, or None (_sparse_layout)
         self.dense = dense_systems(D, len(self.rows))
         self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
         self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
@@ -263,14 +264,9 @@ class CasadiEngine(AbstractEngine):
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
-        """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
-        n, D = self.n, self.D
-        keys_J = self.cols * D + self.rows  # CSC order: by column, then row
-        keys_M = np.arange(n) * D + np.arange(n)
-        keys = sorted_unique(np.concatenate([keys_J, keys_M]))
-        indptr = np.searchsorted(keys // D, np.arange(D + 1))
-        self._csc = (keys % D, indptr, len(keys))
-        self._pos_J, self._pos_M = np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+        """The CSC layout of ``sigma M - J`` (:func:`.sparse.shifted_layout`), in the model's band order where it
+        has one (:func:`.sparse.band_orders`, ``self._order``)."""
+        self._order, self._csc, self._pos_J, self._pos_M = shifted_layout(self.compiled, self.rows, self.cols, self.n)
 
     def asarray(self, values):
         return np.array(values, dtype=float)
@@ -587,7 +583,7 @@ class CasadiEngine(AbstractEngine):
         data = np.zeros(nnz, dtype=float if real else complex)
         data[self._pos_J] = -values
         data[self._pos_M] += sigma.real if real else sigma
-        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)))
+        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)), self._order)
 
     def solve(self, lu, rhs):
         kind = lu[0]
