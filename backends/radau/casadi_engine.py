@@ -25,6 +25,7 @@ from daemodel.backends.radau.compiled import (
     machine_library,
     newton_step_function,
     refresh_function,
+    stage_f_buffer,
     static_factor_function,
     step_function,
     step_layouts,
@@ -41,7 +42,7 @@ from daemodel.backends.radau.linalg import (
 )
 from daemodel.backends.radau.loop import CompiledRun, run_function
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
-from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, sorted_unique, unique_entries
+from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
 
 from daemodel.errors import DaemodelError
 
@@ -106,9 +107,11 @@ class CasadiEngine(AbstractEngine):
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
         self._f, self._residual, self._jac, self._stage_jac = (Buffered(fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
+        self._stage_f = stage_f_buffer(compiled, tableau)  # (f at the stages alone, or None: .compiled)
         self._functions = functions
         D = self.D
-        self._stage_layout = None  # the full Newton matrix's CSC layout (sparse factor_stages), made on first use
+        # sparse: the full Newton matrix's CSC layout (factor_stages, on first use), the band order (_sparse_layout)
+        self._stage_layout = self._order = None
         self.dense = dense_systems(D, len(self.rows))
         self._step = None  # dense: the fused Newton step (see newton_step), and the factors it is bound to
         self._identity = None  # dense: real and complex identities, the right-hand sides of the inverses
@@ -263,14 +266,8 @@ class CasadiEngine(AbstractEngine):
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
-        """The CSC pattern of ``sigma M - J`` (J's entries and M's diagonal), and where each goes."""
-        n, D = self.n, self.D
-        keys_J = self.cols * D + self.rows  # CSC order: by column, then row
-        keys_M = np.arange(n) * D + np.arange(n)
-        keys = sorted_unique(np.concatenate([keys_J, keys_M]))
-        indptr = np.searchsorted(keys // D, np.arange(D + 1))
-        self._csc = (keys % D, indptr, len(keys))
-        self._pos_J, self._pos_M = np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+        """The CSC layout of ``sigma M - J`` in the model's band order where it has one (.sparse.shifted_layout)."""
+        self._order, self._csc, self._pos_J, self._pos_M = shifted_layout(self.compiled, self.rows, self.cols, self.n)
 
     def asarray(self, values):
         return np.array(values, dtype=float)
@@ -414,9 +411,8 @@ class CasadiEngine(AbstractEngine):
         return self.compiled.cached(("casadi-radau-static-factor", self.s, self._version), build)
 
     def _static_kernel(self):
-        """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the
-        determinant of the algebraic variables' iteration matrix (None where m = 0); in the compiled
-        step's library (:meth:`_library`)."""
+        """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the determinant of
+        the algebraic variables' iteration matrix (None where m = 0); in the compiled step's library (_library)."""
         return self._kernel
 
     def _refresh_function(self):
@@ -530,6 +526,12 @@ class CasadiEngine(AbstractEngine):
         R = out[: s * D].reshape(1, s, D)
         return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
 
+    def stage_values(self, t, h, y, W):
+        if self._stage_f is None:  # (up to INLINED_RESIDUAL_MAX_SIZE unknowns: the residual inlines f)
+            return super().stage_values(t, h, y, W)
+        f = self._stage_f(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        return Residual(R=None, stage_f=f.reshape(1, self.s, self.n), G=None)
+
     def jacobian(self, t, y, z):
         return self._jac(np.concatenate([[t], y[0], z[0], self.p]))
 
@@ -587,7 +589,7 @@ class CasadiEngine(AbstractEngine):
         data = np.zeros(nnz, dtype=float if real else complex)
         data[self._pos_J] = -values
         data[self._pos_M] += sigma.real if real else sigma
-        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)))
+        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)), self._order)
 
     def solve(self, lu, rhs):
         kind = lu[0]

@@ -546,6 +546,34 @@ def casadi_functions(compiled, tableau):
     )
 
 
+def stage_f_function(compiled, tableau):
+    """casadi function of f at the stages alone, from the residual's packed ``[t, h, y_n, W, p]``:
+    ``[f(t + c_i h, Y_i, Z_i)]`` stage by stage, the residual's second output without its stage
+    equations (the error estimate's evaluation after Newton has converged: 15 against 26 ms at 10^5
+    unknowns of reaction-diffusion).  None up to :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns, where the
+    residual inlines its copies of f (its bits are those of this function's calls above only)."""
+    import casadi
+
+    dae = compiled.casadi_dae()
+    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
+    s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
+    if D <= INLINED_RESIDUAL_MAX_SIZE:
+        return None
+    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    inputs = casadi.MX.sym("x", 2 + n + s * D + p.numel())
+    t_r, h, W, p_r = inputs[0], inputs[1], inputs[2 + n : 2 + n + s * D], inputs[2 + n + s * D :]
+    stage_f = [
+        f(t_r + float(tableau.c[i]) * h, W[i * D : i * D + n], W[i * D + n : (i + 1) * D], p_r) for i in range(s)
+    ]
+    return casadi.Function("stage_f", [inputs], [casadi.vertcat(*stage_f)])
+
+
+def stage_f_buffer(compiled, tableau) -> Buffered | None:
+    """:func:`stage_f_function` (built once per model and s) on its own buffers, or None where there is none."""
+    function = compiled.cached(("casadi-radau-stage-f", tableau.stages), lambda: stage_f_function(compiled, tableau))
+    return None if function is None else Buffered(function)
+
+
 def newton_step_function(residual, engine):
     """casadi function of the fused Newton step (:meth:`CasadiEngine.newton_step`).
 

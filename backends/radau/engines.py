@@ -154,6 +154,11 @@ class AbstractEngine(ABC):
                 parts += [w.real, w.imag]
         return T @ xp.stack(parts, axis=1)
 
+    def stage_values(self, t: float, h: float, y, W) -> Residual:
+        """f at the stages of ``W`` (the error estimate's, once Newton has converged): a :class:`Residual`
+        whose ``stage_f`` is :meth:`residual`'s; an engine may leave ``R`` and ``G`` out (None)."""
+        return self.residual(t, h, y, W)
+
     def newton_step(self, factors, t: float, h: float, y, W) -> tuple:
         """The stage residual at ``W`` and Newton's increment from it: ``(Residual, dW)``."""
         r = self.residual(t, h, y, W)

@@ -111,7 +111,7 @@ class Newton:
         while state.active:  # (no idle pass: Python's branch where every sample is done)
             mode = state.mode
             if mode == formulas.EVALUATE:  # the error estimate needs f at the final stage values
-                r, dW, norm = engine.residual(t, h, stepper.y, W), None, None
+                r, dW, norm = engine.stage_values(t, h, stepper.y, W), None, None
             else:
                 r, dW = engine.newton_step(factors, t, h, stepper.y, W)
                 if stepper.B > 1 and mode == formulas.ITERATING:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from daemodel.backends.radau.linalg import band_order, pattern_matrix
 
 from daemodel.errors import DaemodelError
 
@@ -378,15 +379,39 @@ def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
     ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
     engine's factors, which pivot on their own values, is of the same order)."""
-    import scipy.sparse as sparse
+    import scipy.sparse.linalg as splinalg
 
-    values = np.random.default_rng(0).uniform(0.5, 1.5, rows.size)
-    matrix = sparse.csc_matrix((values, (rows, cols)), shape=(D, D))
-    matrix = matrix + sparse.diags(np.r_[np.full(n, 2.0), np.zeros(D - n)]).tocsc()
     try:
-        lu = sparse.linalg.splu(matrix)
+        lu = splinalg.splu(pattern_matrix(rows, cols, n, D))
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
         raise
     except RuntimeError:  # (structurally singular at these values: at most dense)
         return D * D
     return int(lu.L.nnz + lu.U.nnz)
+
+
+def band_orders(compiled, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> np.ndarray | None:
+    """The band order of the model's sparse shifted systems (:func:`.linalg.band_order`, measured against
+    the fill of :func:`.sparse.factor_entries`), or None: made once per model."""
+
+    def build():
+        fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))
+        return band_order(rows, cols, n, D, fill)
+
+    return compiled.cached("radau-band-order", build)
+
+
+def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int) -> tuple:
+    """The CSC pattern of ``sigma M - J`` (J's entries at ``(rows, cols)``, M's diagonal over the ``n``
+    differential unknowns of the model ``compiled``), in the model's band order where it has one
+    (:func:`band_orders`: unknown ``order[k]`` is the k-th row and column): ``(order or None, (indices,
+    indptr, nnz), where J's values go, where M's diagonal goes)``."""
+    D = len(compiled.states) + len(compiled.algebraics)
+    order = band_orders(compiled, rows, cols, n, D)
+    position = np.arange(D) if order is None else np.argsort(order)  # (unknown k's row and column)
+    rows, cols, diagonal = position[rows], position[cols], position[:n]
+    keys_J = cols * D + rows  # CSC order: by column, then row
+    keys_M = diagonal * D + diagonal
+    keys = sorted_unique(np.concatenate([keys_J, keys_M]))
+    indptr = np.searchsorted(keys // D, np.arange(D + 1))
+    return order, (keys % D, indptr, len(keys)), np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)

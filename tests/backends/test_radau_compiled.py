@@ -347,3 +347,30 @@ def test_the_stage_jacobians_are_the_jacobians_function_at_each_stage():
             at = np.r_[t + float(tableau.c[i]) * h, W[i * D : (i + 1) * D], p]
             assert np.array_equal(values[i], np.array(jacobian(at)).ravel())
         assert values.shape[1] == rows.size == cols.size
+
+
+def test_f_at_the_stages_alone_is_the_residuals_bit_for_bit(first_engine, monkeypatch):
+    """Above INLINED_RESIDUAL_MAX_SIZE the error estimate's evaluation after Newton computes f at the stages
+    alone (no stage equations): the residual's stage_f bit for bit, so a solve's values do not change."""
+    from daemodel.backends.radau import casadi_engine
+
+    from daemodel.problems.families import reaction_diffusion
+
+    model = reaction_diffusion(150)  # 300 unknowns
+    compiled, engine = first_engine(model)
+    assert engine.D > radau_compiled.INLINED_RESIDUAL_MAX_SIZE
+    rng = np.random.default_rng(5)
+    y = rng.random((1, engine.n))
+    W = rng.random((1, engine.s, engine.D))
+    alone, full = engine.stage_values(0.3, 0.01, y, W), engine.residual(0.3, 0.01, y, W)
+    assert alone.R is None and alone.G is None
+    np.testing.assert_array_equal(alone.stage_f, full.stage_f)
+    _, small_engine = first_engine(reaction_diffusion(40))  # 80 unknowns: the residual inlines f
+    assert small_engine._stage_f is None
+    options = {"rtol": 1e-6, "atol": 1e-8, "jit": False}
+    fast = dm.solve(model, (0.0, 1.0), **options)
+    monkeypatch.setattr(casadi_engine, "stage_f_buffer", lambda *args: None)
+    full_residuals = dm.solve(model, (0.0, 1.0), **options)
+    assert fast.stats["steps"] == full_residuals.stats["steps"]
+    for name in compiled.state_names + compiled.algebraic_names:
+        np.testing.assert_array_equal(fast[name], full_residuals[name])

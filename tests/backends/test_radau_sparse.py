@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sparse
 from daemodel.backends.radau import casadi_engine
+from daemodel.backends.radau import linalg as radau_linalg
 from daemodel.backends.radau import sparse as radau_sparse
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
 
@@ -293,3 +294,56 @@ def test_sorted_unique_is_numpys_unique():
     rng = np.random.default_rng(5)
     for keys in (np.array([], dtype=np.int64), np.array([7]), rng.integers(0, 50, 400), rng.integers(0, 10**12, 1000)):
         assert np.array_equal(radau_sparse.sorted_unique(keys), np.unique(keys))
+
+
+def test_the_band_order_solves_every_shifted_system(first_engine):
+    """Reaction-diffusion (600 unknowns, banded): its shifted systems are factored in the reverse
+    Cuthill-McKee order, which holds no more entries than COLAMD's, and each solve is A^-1 b."""
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
+    order = engine._order
+    assert order is not None and np.array_equal(np.sort(order), np.arange(engine.D))
+    D, n = engine.D, engine.n
+    rows, cols = radau_sparse.jacobian_pattern(compiled)
+    fill = radau_sparse.factor_entries(rows, cols, n, D)
+    rng = np.random.default_rng(3)
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0])) * (
+        1 + 0.3 * rng.random(len(engine.rows))
+    )
+    Jm = sparse.csc_matrix((J, (engine.rows, engine.cols)), shape=(D, D)).toarray()
+    M = np.diag(np.r_[np.ones(n), np.zeros(D - n)])
+    for sigma in engine.transform.shifts(0.01):
+        (kind, lu), singular = engine._factor_shift(J, sigma)
+        assert kind == "sparse" and not singular.any()
+        assert lu.lu.L.nnz + lu.lu.U.nnz <= fill
+        b = rng.standard_normal(D) + (1j * rng.standard_normal(D) if sigma.imag else 0)
+        x = engine.solve(("sparse", lu), b[None])[0]
+        exact = np.linalg.solve(sigma * M - Jm, b)
+        assert np.abs(x - exact).max() < 1e-12 * np.abs(exact).max()
+
+
+def test_a_two_dimensional_grid_keeps_superlus_order():
+    """A 5-point Laplacian on a 30 x 30 grid: its band is 30 wide, where COLAMD fills less (None)."""
+    q = 30
+    k = np.arange(q * q)
+    i, j = divmod(k, q)
+    pairs = [(k, k)]
+    pairs += [(k[i > 0], k[i > 0] - q), (k[i < q - 1], k[i < q - 1] + q)]
+    pairs += [(k[j > 0], k[j > 0] - 1), (k[j < q - 1], k[j < q - 1] + 1)]
+    rows, cols = (np.concatenate(a) for a in zip(*pairs, strict=True))
+    fill = radau_sparse.factor_entries(rows, cols, q * q, q * q)
+    assert radau_linalg.band_order(rows, cols, q * q, q * q, fill) is None
+    chain = (np.r_[k, k[1:], k[:-1]], np.r_[k, k[:-1], k[1:]])  # a tridiagonal pattern: banded
+    assert radau_linalg.band_order(*chain, q * q, q * q, radau_sparse.factor_entries(*chain, q * q, q * q)) is not None
+
+
+def test_the_band_order_takes_the_same_steps_as_colamd(monkeypatch):
+    """Only the factors' rounding differs: the same steps, values within the solve's accuracy."""
+    _without_static(monkeypatch)
+    model = scaling_models.reaction_diffusion(300)
+    band = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8)
+    monkeypatch.setattr(radau_sparse, "band_orders", lambda *args: None)
+    colamd = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8)
+    for key in ("steps", "rejected_steps", "lu_decompositions", "residual_evaluations", "jacobian_evaluations"):
+        assert band.stats[key] == colamd.stats[key], key
+    for name in model.compile().state_names:
+        np.testing.assert_allclose(band[name], colamd[name], rtol=1e-9, atol=1e-12)
