@@ -10,8 +10,9 @@ from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_st
 from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
+from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages
-from daemodel.backends.radau.sparse import factor_entries, jacobian_pattern
+from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
@@ -171,6 +172,8 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
         if not dense_systems(D, rows.size):
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
             fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))  # (per model)
+            if band_orders(compiled, rows, cols, n, D) is not None:  # (factored in it: at most this more fill)
+                fill = BAND_FILL_RATIO * fill
             matrices = rows.size * 8 * (s + 1) + s * fill * 16
             if not options.adaptive or options.start_guess is not None:
                 # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors
