@@ -24,14 +24,20 @@ FIXED_STAGES = 3
 # Measured at equal error on the pendulums, Robertson, the squeezer and the scaling families
 # (benchmarks/adaptive_precision.py): s = 5 takes 3-5x fewer steps than s = 3 below rtol 1e-6
 # for 1.3-2x the cost of a step, and s = 7 pays off from 1e-9 down (at looser tolerances
-# its steps are rejected or fail Newton more often).  At 1e-10 the ring modulator takes 42,595 steps
+# its steps are rejected or fail Newton more often).  s = 5 from below 1e-5 (was from below 1e-6):
+# the ring modulator takes s = 3 125,656 attempts at rtol = atol = 1e-6 (over the default max_steps,
+# a StepLimitError at the defaults; 100,000 at 2e-6 and 3e-6, 1.2 s at 1e-6), s = 5 36,073
+# (0.55 s) at 1e-6 and 24,428 at 9e-6, with errors 100x smaller; at 1e-6 (solve time, min of 5
+# passes) s = 5 also takes the transistor amplifier, the car axis and the chain of 40 pendulums
+# faster (2.7-4.2x fewer steps) and the rest within noise of s = 3, while at 1e-4 s = 3 is
+# faster on all but the ring and the car axis.  At 1e-10 the ring modulator takes 42,595 steps
 # with 7 stages against 125,478 with 5 (over the default max_steps), 1.1 s against 2.1 s of solve at
 # the same 9.6 digits.  At 1e-9 (warm solves, min of 3): the ring 36,937 steps and 1.01 s against
 # 95,740 and 1.44 s (with 6,441 rejections: over the default max_steps, a StepLimitError in the
 # bench), car axis 6.1 against 10.8 ms, the transistor amplifier 31 against 41 ms, Fekete 395
 # against 470 ms, Akzo Nobel equal; the squeezer 17.7 against 12.8 ms and HIRES and pollution
 # 0.2 ms slower, at the same digits.  Each entry holds for rtol >= its smallest rtol, loosest first.
-ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
+ADAPTIVE_STAGES = ((1e-5, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # Fewest stages of adaptive mode.  One stage is implicit Euler: its local error is O(h^2), so steps
 # that keep each local error at rtol number ~rtol^(-1/2) and add up to ~rtol^(1/2), 20-200 x rtol on
 # a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_control.py), up to 4,000 x on
@@ -79,8 +85,8 @@ class RadauOptions:
         take at least 2, and at least 3 on a system of index 2 or 3
         (:data:`MIN_ADAPTIVE_STAGES_INDEX2`: two stages' global error there reached 1,000-2,600 x
         rtol and said success).  Default: 3
-        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
-        ``1e-9 < rtol < 1e-6`` and 7 (order 13) from 1e-9 down, where the larger steps of the higher order
+        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-5``; 5 (order 9) for
+        ``1e-9 < rtol < 1e-5`` and 7 (order 13) from 1e-9 down, where the larger steps of the higher order
         pay for its larger systems (:data:`ADAPTIVE_STAGES`).
     h : float, optional
         Fixed step size.  Exclusive with ``rtol``/``atol``.

@@ -149,10 +149,10 @@ def test_adaptive_meets_tolerance_and_tightens():
 
 
 def test_adaptive_stages_follow_the_tolerance():
-    """Without ``stages``, adaptive mode takes s = 3 at rtol >= 1e-6, 5 above 1e-9 and 7 from 1e-9 down,
+    """Without ``stages``, adaptive mode takes s = 3 at rtol >= 1e-5, 5 above 1e-9 and 7 from 1e-9 down,
     each meeting its tolerance; a fixed step keeps the paper's 3."""
     c = HESSENBERG.model().compile()
-    for rtol, stages in ((1e-5, 3), (1e-6, 3), (1e-8, 5), (1.1e-9, 5), (1e-9, 7), (1e-11, 7)):
+    for rtol, stages in ((1e-4, 3), (1e-5, 3), (9.9e-6, 5), (1e-6, 5), (1e-8, 5), (1.1e-9, 5), (1e-9, 7), (1e-11, 7)):
         sol = dm.solve(c, (0.0, 1.0), rtol=rtol, atol=rtol * 1e-2, t_eval=np.linspace(0, 1, 11))
         assert sol.stats["stages"] == stages and sol.stats["order"] == 2 * stages - 1
         assert max_error(sol, EXACT, sol.names) < 100 * rtol
