@@ -10,7 +10,7 @@ from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_st
 from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
-from daemodel.backends.radau.options import RadauOptions, check_index_stages
+from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.sparse import factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
@@ -40,6 +40,7 @@ class RadauBackend(AbstractBackend):
     def solve(self, compiled, t_span, start, options: RadauOptions, stop=None):
         if stop is not None and start.size != 1:
             raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
+        options = stages_for_index(options, compiled.index)
         check_index_stages(options, compiled.index, compiled.name)
         if make_engine_name(start, options) == "casadi":
             return self._solve(compiled, t_span, start, options, stop=stop)
