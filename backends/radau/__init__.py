@@ -17,6 +17,7 @@ from daemodel.backends.radau.options import (
     DEFAULT_MAX_FIXED_STEPS,
     RadauOptions,
     adaptive_stages,
+    stages_for_index,
 )
 from daemodel.backends.radau.transform import embedded_weights
 
@@ -28,4 +29,5 @@ __all__ = [
     "RadauOptions",
     "adaptive_stages",
     "embedded_weights",
+    "stages_for_index",
 ]

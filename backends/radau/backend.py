@@ -11,7 +11,7 @@ from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, 
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
-from daemodel.backends.radau.options import RadauOptions, check_index_stages
+from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
@@ -41,6 +41,7 @@ class RadauBackend(AbstractBackend):
     def solve(self, compiled, t_span, start, options: RadauOptions, stop=None):
         if stop is not None and start.size != 1:
             raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
+        options = stages_for_index(options, compiled.index)
         check_index_stages(options, compiled.index, compiled.name)
         if make_engine_name(start, options) == "casadi":
             return self._solve(compiled, t_span, start, options, stop=stop)

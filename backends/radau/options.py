@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -31,7 +32,19 @@ FIXED_STAGES = 3
 # bench), car axis 6.1 against 10.8 ms, the transistor amplifier 31 against 41 ms, Fekete 395
 # against 470 ms, Akzo Nobel equal; the squeezer 17.7 against 12.8 ms and HIRES and pollution
 # 0.2 ms slower, at the same digits.  Each entry holds for rtol >= its smallest rtol, loosest first.
-ADAPTIVE_STAGES = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
+# On systems of index 0 and 1, s = 5 from below 1e-5: with s = 3 the ring modulator took 125,656
+# attempts at rtol = atol = 1e-6 (over the default max_steps: a StepLimitError at the default settings
+# and at 2e-6; RADAU5 at the same internal tolerance takes 120,834 steps), with s = 5 36,073 (0.55
+# against 1.2 s) and 24,428 at 9e-6, its end values 100x closer to the Test Set's reference; at 1e-6
+# and 3e-6 (min of 5 passes) s = 5 was as fast or faster on the transistor amplifier (1.7x), Akzo
+# Nobel, Robertson and reaction-diffusion, and its first compile up to 1.5x dearer (reaction-diffusion
+# K = 50: 1.65 -> 2.5 s on a loaded machine).
+ADAPTIVE_STAGES = ((1e-5, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
+# On systems of index 2 (and 3, solved as their index-2 reduction) s = 3 down to 1e-6: with s = 5 at
+# rtol 1e-6 (atol 1e-8) the pendulum over [0, 1000] failed Newton at ever shorter steps until
+# h = 1e-7 at t = 686 (a StepLimitError; s = 3 runs it in 27,589 attempts, and s = 5 at 1e-7, 1e-8 and
+# at rtol = atol = 1e-6 in 14,600-16,000).
+ADAPTIVE_STAGES_INDEX2 = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # Fewest stages of adaptive mode.  One stage is implicit Euler: its local error is O(h^2), so steps
 # that keep each local error at rtol number ~rtol^(-1/2) and add up to ~rtol^(1/2), 20-200 x rtol on
 # a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_control.py), up to 4,000 x on
@@ -79,9 +92,10 @@ class RadauOptions:
         take at least 2, and at least 3 on a system of index 2 or 3
         (:data:`MIN_ADAPTIVE_STAGES_INDEX2`: two stages' global error there reached 1,000-2,600 x
         rtol and said success).  Default: 3
-        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-6``; 5 (order 9) for
-        ``1e-9 < rtol < 1e-6`` and 7 (order 13) from 1e-9 down, where the larger steps of the higher order
-        pay for its larger systems (:data:`ADAPTIVE_STAGES`).
+        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-5`` (``rtol >= 1e-6`` on a
+        system of index 2 or 3); 5 (order 9) below that down to ``1e-9 < rtol``, and 7 (order 13)
+        from 1e-9 down, where the larger steps of the higher order pay for its larger systems
+        (:data:`ADAPTIVE_STAGES`, :data:`ADAPTIVE_STAGES_INDEX2`).
     h : float, optional
         Fixed step size.  Exclusive with ``rtol``/``atol``.
     rtol, atol : float, optional
@@ -166,6 +180,10 @@ class RadauOptions:
         output times.  Default True; it holds s + 1 values per step where the step ends alone hold
         one: False keeps only those (large batches over many steps), and ``at()`` then interpolates
         the outputs by cubic Hermite polynomials.
+    stages_by_default : bool
+        Set to True by the options themselves where ``stages`` is left out (give ``stages``, not
+        this): the stages picked from rtol are then picked again for the index of the system solved
+        (:func:`stages_for_index`), and options copied with ``dataclasses.replace`` keep that.
     """
 
     stages: int | None = None
@@ -186,6 +204,7 @@ class RadauOptions:
     jit: bool | str = "auto"
     estimate_bound: float | None = None
     dense_output: bool = True
+    stages_by_default: bool = False
 
     def __post_init__(self) -> None:
         for name in ("h", "rtol", "atol", "h0", "newton_tol"):
@@ -209,6 +228,7 @@ class RadauOptions:
                 )
             set_tolerances(self)
         if self.stages is None:
+            object.__setattr__(self, "stages_by_default", True)
             object.__setattr__(self, "stages", adaptive_stages(self.rtol) if self.adaptive else FIXED_STAGES)
         check_stages(self.stages)
         if self.adaptive and self.stages < MIN_ADAPTIVE_STAGES:
@@ -226,7 +246,7 @@ class RadauOptions:
                 "Newton cannot reach it" + (": use dtype='float64'" if self.dtype == "float32" else "")
             )
         check_threads(self.threads)
-        for name in ("reuse_jacobian", "dense_output"):
+        for name in ("reuse_jacobian", "dense_output", "stages_by_default"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
@@ -289,6 +309,17 @@ def check_index_stages(options: RadauOptions, index: int, name: str) -> None:
         )
 
 
-def adaptive_stages(rtol: float) -> int:
-    """The stages adaptive mode uses at ``rtol`` when none are given (:data:`ADAPTIVE_STAGES`)."""
-    return next(stages for smallest, stages in ADAPTIVE_STAGES if rtol >= smallest)
+def adaptive_stages(rtol: float, index: int = 0) -> int:
+    """The stages adaptive mode uses at ``rtol`` when none are given, on a system of ``index``
+    (:data:`ADAPTIVE_STAGES`; :data:`ADAPTIVE_STAGES_INDEX2` from index 2 up)."""
+    table = ADAPTIVE_STAGES_INDEX2 if index >= 2 else ADAPTIVE_STAGES
+    return next(stages for smallest, stages in table if rtol >= smallest)
+
+
+def stages_for_index(options: RadauOptions, index: int) -> RadauOptions:
+    """``options`` with the default stages of a system of ``index`` (:func:`adaptive_stages`) where the
+    stages were not given and the index changes them; else ``options`` itself."""
+    if not (options.adaptive and options.stages_by_default):
+        return options
+    stages = adaptive_stages(options.rtol, index)
+    return options if stages == options.stages else dataclasses.replace(options, stages=stages)

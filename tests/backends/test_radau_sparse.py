@@ -210,7 +210,7 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
 
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))  # 600 unknowns, sparse
     span = scaling_models.T_SPAN["reaction_diffusion"]
-    options = backend.RadauOptions(rtol=1e-6, atol=1e-6)
+    options = backend.RadauOptions(rtol=1e-6, atol=1e-6, stages=3)
     dense = backend.memory_parts(compiled, span, 1, options, "torch")
     assert dense == {"Newton matrices": 7 * 600**2 * 8}
     rows, cols = radau_sparse.jacobian_pattern(compiled)
