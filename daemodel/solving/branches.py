@@ -35,7 +35,9 @@ EXCURSION_BUDGET = 1.0
 # A switch's side at zero that one look-ahead (delta) does not resolve on a branch (its function moves by less
 # than rounding there) is looked at again over look-aheads LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTH^2, ... times
 # longer, at most LOOKAHEAD_GROWTHS times: x = 0.3 - (t - 1)^2 touching its switch at t = 1 moves by delta^2
-# = 4e-18 over delta = 2e-9, resolved from 8^5 delta on.
+# = 4e-18 over delta = 2e-9, resolved from 8^5 delta on.  Never past t_span's end (``horizon``): the flow after
+# it is not solved, and a touch at t1 located a rounding before it saw x turn down there, chose below, and raised
+# ZenoError as x stayed on zero within rounding up to t1.
 LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTHS = 8.0, 6
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
@@ -118,13 +120,28 @@ class Start:
 
 
 def start_piece(
-    backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=(), moved_off=()
+    backend,
+    compiled,
+    when,
+    t,
+    Y,
+    Z,
+    P,
+    fired,
+    crossing,
+    preferred,
+    delta,
+    lock,
+    exited=(),
+    moved_off=(),
+    horizon=math.inf,
 ) -> Start:
     """The piece from ``t``: which side each event function at zero there goes to, by the flow
     (:func:`drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
     (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
-    the side it crossed to (kept where both sides lead away).
+    the side it crossed to (kept where both sides lead away); ``horizon``: how far t_span goes on from ``t``
+    (the longest look-ahead).
 
     Raises
     ------
@@ -149,7 +166,7 @@ def start_piece(
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale, e in exited, flows)  # fmt: skip
+                                             delta, scale, e in exited, flows, horizon)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
@@ -238,11 +255,12 @@ def _branch(
     scale: float,
     exited: bool,
     flows: dict | None = None,
+    horizon: float = math.inf,
 ) -> int:
     """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
     branch moves its function away from zero on its own side; ``preferred`` where both do, or where it
     just left a sliding motion (``exited``); 0 where neither does and the solution slides along it
-    (:func:`_slides`).  ``flows``: :func:`drift`'s.
+    (:func:`_slides`).  ``flows``: :func:`drift`'s; ``horizon``: the longest look-ahead (to t_span's end).
 
     Raises
     ------
@@ -261,9 +279,9 @@ def _branch(
     # and its curvature below the look-ahead's resolution, or a crossing of higher order; looked at again
     # over longer look-aheads, while it stays unresolved, so that a touch from one side keeps that side)
     for growth in range(1, LOOKAHEAD_GROWTHS + 1):
-        if exited or all(change.values()):
+        if exited or all(change.values()) or delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
             break
-        longer = delta * LOOKAHEAD_GROWTH**growth
+        longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
         for side in [side for side in change if not change[side]]:
             change[side] = _side(drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer)[0], scale)
     up, down = change[1] >= 0, change[-1] <= 0

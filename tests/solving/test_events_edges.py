@@ -618,6 +618,20 @@ def test_a_switching_function_that_touches_zero_at_a_grid_point(method, rate, x0
     assert abs(sol["x"][-1] - x2) < 1e-6 and abs(sol["y"][-1] - y2) < bound
 
 
+@pytest.mark.parametrize(("method", "options"), [("radau", {"h": 0.005}), ("reference", {"rtol": 1e-8, "atol": 1e-8})])
+def test_a_touch_at_the_end_of_t_span(method, options):
+    # x = 0.3 - (t - 1)^2 touches the switch at t1 = 1: a crossing is located a rounding before it, where the look-ahead
+    # grown past t1 saw x go down (the flow after t1, not solved), chose below, and the method's own x, on zero within
+    # rounding up to t1, never got below it: ZenoError ("does not leave zero to the side the flow takes")
+    m = dm.Model("touch")
+    m.states("x y")
+    m.ode("x", "-2*(t - 1)")
+    m.ode("y", "Heaviside(x - 0.3)")
+    m.initial(x=-0.7, y=0.0)
+    sol = dm.solve(m, (0.0, 1.0), method=method, **options)
+    assert sol.status == "success" and abs(sol["x"][-1] - 0.3) < 1e-8 and abs(sol["y"][-1]) < 1e-7
+
+
 def _narrow_jumps(c: float, k: float):
     """s = sin t; w' = k where s > c (a jump of k, on for 2 acos(c) every 2 pi), else 0."""
     m = dm.Model("narrow_jumps")
