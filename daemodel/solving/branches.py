@@ -35,7 +35,11 @@ EXCURSION_BUDGET = 1.0
 # A switch's side at zero that one look-ahead (delta) does not resolve on a branch (its function moves by less
 # than rounding there) is looked at again over look-aheads LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTH^2, ... times
 # longer, at most LOOKAHEAD_GROWTHS times: x = 0.3 - (t - 1)^2 touching its switch at t = 1 moves by delta^2
-# = 4e-18 over delta = 2e-9, resolved from 8^5 delta on.
+# = 4e-18 over delta = 2e-9, resolved from 8^5 delta on.  Never past t_span's end (``horizon``): the flow after
+# it is not solved, and a touch at t1 located a rounding before it saw x turn down there, chose below, and raised
+# ZenoError as x stayed on zero within rounding up to t1.  The longer look-aheads take a fourth-order step
+# (:func:`drift`'s ``fourth``): x = 0.3 - t^3 through a chain of states (x' = w, w' = v, v' = -6, all 0 at t0) does
+# not move over any midpoint step, and kept the default side, above (ZenoError); it moves by -h^3.
 LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTHS = 8.0, 6
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
@@ -43,17 +47,19 @@ RESET_CHANGE = 1e-6
 
 
 def drift(
-    compiled, backend, piece, t: float, Y, Z, P, functions, delta: float, flows: dict | None = None
+    compiled, backend, piece, t: float, Y, Z, P, functions, delta: float, flows: dict | None = None, fourth=False
 ) -> np.ndarray:
     """How ``functions`` (``F(t, Y, Z, P) -> (1, k)``) change over ``delta`` along ``piece``'s flow from
     ``(t, Y, Z)``: one explicit midpoint step, the algebraic variables solved anew at its end; (k,).
     Enough to tell which way a function at zero goes (its own rate, or its curvature where the rate
     is 0: a ball at rest on the floor), at no cost of a solve.  ``flows``: the step's ends by piece, kept
     by a caller that asks again from the same ``(t, Y, Z)`` and ``delta`` (:func:`start_piece`: the
-    sides of each switch at zero and the rates of all, often on one and the same locked model)."""
+    sides of each switch at zero and the rates of all, often on one and the same locked model).  ``fourth``:
+    classical Runge-Kutta's fourth-order step instead (no ``flows``), which moves a function whose first two
+    rates along the flow are 0 (x' = w, w' = v, v' = 6 from 0: the midpoint's h (w + h v / 2) = 0, any h)."""
     key = id(piece)
     if flows is None or key not in flows:
-        end = _flow_end(compiled, backend, piece, t, Y, Z, P, delta)
+        end = _flow_end(compiled, backend, piece, t, Y, Z, P, delta, fourth)
         if flows is None:
             return (functions(np.array([t + delta]), *end, P) - functions(np.array([t]), Y, Z, P))[0]
         flows[key] = (piece, end)  # (the piece kept with its id: no other object takes that id meanwhile)
@@ -61,14 +67,20 @@ def drift(
     return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
 
 
-def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float) -> tuple:
-    """``(Y1, Z1)``: :func:`drift`'s explicit midpoint step along ``piece``'s flow, and z solved at its end."""
+def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float, fourth: bool = False) -> tuple:
+    """``(Y1, Z1)``: :func:`drift`'s explicit midpoint step (``fourth``: classical Runge-Kutta's) along
+    ``piece``'s flow, z held at the start's inside it, and z solved at its end."""
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.errors import ModelError
 
     rhs = compiled.numeric.batch_function(list(piece.rhs))
     k1 = rhs(t, Y, Z, P)
-    Y1 = Y + delta * rhs(t + 0.5 * delta, Y + 0.5 * delta * k1, Z, P)
+    k2 = rhs(t + 0.5 * delta, Y + 0.5 * delta * k1, Z, P)
+    if fourth:
+        k3 = rhs(t + 0.5 * delta, Y + 0.5 * delta * k2, Z, P)
+        k4 = rhs(t + delta, Y + delta * k3, Z, P)
+        k2 = (k1 + 2.0 * k2 + 2.0 * k3 + k4) / 6.0
+    Y1 = Y + delta * k2
     Z1 = Z
     if Z.shape[1]:
         try:
@@ -118,13 +130,28 @@ class Start:
 
 
 def start_piece(
-    backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta, lock, exited=(), moved_off=()
+    backend,
+    compiled,
+    when,
+    t,
+    Y,
+    Z,
+    P,
+    fired,
+    crossing,
+    preferred,
+    delta,
+    lock,
+    exited=(),
+    moved_off=(),
+    horizon=math.inf,
 ) -> Start:
     """The piece from ``t``: which side each event function at zero there goes to, by the flow
     (:func:`drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
     (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
-    the side it crossed to (kept where both sides lead away).
+    the side it crossed to (kept where both sides lead away); ``horizon``: how far t_span goes on from ``t``
+    (the longest look-ahead).
 
     Raises
     ------
@@ -149,7 +176,7 @@ def start_piece(
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale, e in exited, flows)  # fmt: skip
+                                             delta, scale, e in exited, flows, horizon)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
@@ -238,11 +265,12 @@ def _branch(
     scale: float,
     exited: bool,
     flows: dict | None = None,
+    horizon: float = math.inf,
 ) -> int:
     """The side (+1, -1) of the switch ``event``, at zero at ``t``, that the flow goes on to: the one whose
     branch moves its function away from zero on its own side; ``preferred`` where both do, or where it
     just left a sliding motion (``exited``); 0 where neither does and the solution slides along it
-    (:func:`_slides`).  ``flows``: :func:`drift`'s.
+    (:func:`_slides`).  ``flows``: :func:`drift`'s; ``horizon``: the longest look-ahead (to t_span's end).
 
     Raises
     ------
@@ -261,11 +289,12 @@ def _branch(
     # and its curvature below the look-ahead's resolution, or a crossing of higher order; looked at again
     # over longer look-aheads, while it stays unresolved, so that a touch from one side keeps that side)
     for growth in range(1, LOOKAHEAD_GROWTHS + 1):
-        if exited or all(change.values()):
+        if exited or all(change.values()) or delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
             break
-        longer = delta * LOOKAHEAD_GROWTH**growth
+        longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
         for side in [side for side in change if not change[side]]:
-            change[side] = _side(drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer)[0], scale)
+            moved = drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer, fourth=True)[0]
+            change[side] = _side(moved, scale)
     up, down = change[1] >= 0, change[-1] <= 0
     if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
         return preferred

@@ -204,8 +204,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
         try:
             begin = start_piece(
-                backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off
-            )
+                backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off,
+                t1 - t,
+            )  # fmt: skip
         except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
             limit = max((accumulation_point(history[e]) or -math.inf for e in fired), default=-math.inf)
             if limit > -math.inf:
@@ -367,7 +368,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 delta = delta_at(t_event)
                 after = start_piece(
                     backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta, lock, exited,
-                    moved_off,
+                    moved_off, t1 - t_event,
                 )  # fmt: skip
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)

@@ -618,6 +618,40 @@ def test_a_switching_function_that_touches_zero_at_a_grid_point(method, rate, x0
     assert abs(sol["x"][-1] - x2) < 1e-6 and abs(sol["y"][-1] - y2) < bound
 
 
+@pytest.mark.parametrize(("method", "options"), [("radau", {"h": 0.005}), ("reference", {"rtol": 1e-8, "atol": 1e-8})])
+def test_a_touch_at_the_end_of_t_span(method, options):
+    # x = 0.3 - (t - 1)^2 touches the switch at t1 = 1: a crossing is located a rounding before it, where the look-ahead
+    # grown past t1 saw x go down (the flow after t1, not solved), chose below, and the method's own x, on zero within
+    # rounding up to t1, never got below it: ZenoError ("does not leave zero to the side the flow takes")
+    m = dm.Model("touch")
+    m.states("x y")
+    m.ode("x", "-2*(t - 1)")
+    m.ode("y", "Heaviside(x - 0.3)")
+    m.initial(x=-0.7, y=0.0)
+    sol = dm.solve(m, (0.0, 1.0), method=method, **options)
+    assert sol.status == "success" and abs(sol["x"][-1] - 0.3) < 1e-8 and abs(sol["y"][-1]) < 1e-7
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-collocation", "casadi-idas", "reference"])
+@pytest.mark.parametrize(("jerk", "y1"), [(-6.0, 0.0), (6.0, 1.0)])
+def test_a_crossing_whose_first_two_rates_are_zero_along_the_states(method, jerk, y1):
+    # x = 0.3 +- t^3 from t0 through a chain of states (x' = w, w' = v, v' = +-6, all 0 at t0): the look-ahead's
+    # explicit midpoint step moves x by h w_mid = h (w + h v / 2) = 0 over every h, so the side was never resolved;
+    # the default (above) raised ZenoError for the crossing downward in every method ("does not leave zero to the side
+    # the flow takes").  The longer look-aheads take a fourth-order step (x moves +-h^3)
+    m = dm.Model("jerk")
+    m.states("x w v y")
+    m.ode("x", "w")
+    m.ode("w", "v")
+    m.ode("v", str(jerk))
+    m.ode("y", "Heaviside(x - 0.3)")
+    m.initial(x=0.3, w=0.0, v=0.0, y=0.0)
+    tolerances = {} if method == "casadi-collocation" else {"rtol": 1e-8, "atol": 1e-8}
+    sol = dm.solve(m, (0.0, 1.0), method=method, **tolerances)
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - (0.3 + jerk / 6)) < 1e-6 and abs(sol["y"][-1] - y1) < 1e-8
+
+
 def _narrow_jumps(c: float, k: float):
     """s = sin t; w' = k where s > c (a jump of k, on for 2 acos(c) every 2 pi), else 0."""
     m = dm.Model("narrow_jumps")
