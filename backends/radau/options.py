@@ -183,7 +183,9 @@ class RadauOptions:
     stages_by_default : bool
         Set to True by the options themselves where ``stages`` is left out (give ``stages``, not
         this): the stages picked from rtol are then picked again for the index of the system solved
-        (:func:`stages_for_index`), and options copied with ``dataclasses.replace`` keep that.
+        (:func:`stages_for_index`), and options copied with ``dataclasses.replace`` keep that.  True
+        beside stages that no default picks at this rtol is an
+        :class:`~daemodel.errors.InvalidOptionError`.
     """
 
     stages: int | None = None
@@ -249,6 +251,7 @@ class RadauOptions:
         for name in ("reuse_jacobian", "dense_output", "stages_by_default"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
+        _check_stages_by_default(self)
         # InvalidOptionError for a device torch cannot use here ("cpu" needs no torch: the casadi
         # engine's solves then never import it, ~2.7 s on a first call)
         if self.device != "cpu":
@@ -292,6 +295,21 @@ class RadauOptions:
     @property
     def adaptive(self) -> bool:
         return self.h is None
+
+
+def _check_stages_by_default(options: RadauOptions) -> None:
+    """Refuse ``stages_by_default=True`` beside ``stages`` that no default would pick at this rtol:
+    the index would re-pick them silently (:func:`stages_for_index`).  Copies made with
+    ``dataclasses.replace`` hold a default's pick and pass."""
+    if not options.stages_by_default:
+        return
+    picks = {adaptive_stages(options.rtol, index) for index in (0, 2)} if options.adaptive else {FIXED_STAGES}
+    if options.stages not in picks:
+        raise InvalidOptionError(
+            f"stages = {options.stages} with stages_by_default=True: the options set stages_by_default "
+            f"themselves where stages is left out (the defaults here pick {' or '.join(map(str, sorted(picks)))} "
+            "by the system's index), and would replace the stages given; give stages, or leave both out"
+        )
 
 
 def check_index_stages(options: RadauOptions, index: int, name: str) -> None:

@@ -9,6 +9,7 @@ import torch
 
 import daemodel as dm
 from daemodel.collocation import stage_residual
+from daemodel.errors import InvalidOptionError
 from daemodel.problems import BOUNCING_BALL, HESSENBERG, PENDULUM
 
 EXACT = HESSENBERG.exact_solution()
@@ -190,6 +191,23 @@ def test_adaptive_stages_of_index_0_and_1_take_five_from_below_1e_5():
     assert chosen.stages == 5 and chosen.stages_by_default
     assert stages_for_index(replace(chosen, t_eval=times), 2).stages == 3
     assert stages_for_index(RadauOptions(rtol=1e-6, atol=1e-6, stages=5), 2).stages == 5
+
+
+def test_stages_by_default_beside_stages_no_default_picks_is_refused():
+    """``stages_by_default=True`` beside stages that no default picks at that rtol would let the index
+    replace them silently: refused, naming both; a default's own pick (what copies hold) is kept."""
+    from daemodel.backends.radau import RadauOptions, stages_for_index
+
+    with pytest.raises(InvalidOptionError, match=r"stages = 7 with stages_by_default=True.*pick 3 or 5"):
+        RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default=True)
+    with pytest.raises(InvalidOptionError, match=r"stages = 5 with stages_by_default=True.*pick 3 by"):
+        RadauOptions(h=0.1, stages=5, stages_by_default=True)
+    with pytest.raises(InvalidOptionError, match="stages_by_default must be True or False"):
+        RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default="yes")
+    kept = RadauOptions(rtol=1e-6, atol=1e-6, stages=3, stages_by_default=True)
+    assert stages_for_index(kept, 0).stages == 5 and stages_for_index(kept, 2).stages == 3
+    with pytest.raises(InvalidOptionError, match="stages = 7 with stages_by_default"):
+        dm.solve(HESSENBERG.model().compile(), (0.0, 1.0), rtol=1e-6, atol=1e-6, stages=7, stages_by_default=True)
 
 
 def test_five_stages_take_fewer_steps_at_tight_tolerance():
