@@ -3,10 +3,10 @@
 casadi-compiled residual, right-hand side and sparse Jacobian (casadi's AD); on dense systems the
 inverses of the transformed systems (LAPACK's LU inside casadi), a Newton iteration as one casadi
 call, an adaptive attempt as one casadi call (:mod:`.compiled`), and up to 24 unknowns many attempts
-with the controller in one (:mod:`.loop`), so that Python runs once per run of attempts.  Above 24
-unknowns, sparse patterns get LU factors with a fixed pivot order (:mod:`.sparse`), with ``jit`` a
-loop in C (:mod:`.kernel`), and then the many attempts in one call too; SuperLU for other large
-sparse systems.  No torch code generation and no per-operation dispatch.
+with the controller in one (:mod:`.loop`), so that Python runs once per run of attempts.  Sparse
+patterns of 25-200 unknowns (any size with ``jit``, a loop in C: :mod:`.kernel`) get LU factors with a
+fixed pivot order (:mod:`.sparse`), and then the many attempts in one call too; SuperLU for other
+large sparse systems.  No torch code generation and no per-operation dispatch.
 """
 
 from __future__ import annotations
@@ -63,8 +63,9 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 # Without jit (straight-line SX on casadi's virtual machine, ~3 ns an operation) only above
 # COMPILED_FACTOR_MAX_SIZE, for factors within this share of D^2 entries (the squeezer: 25 %) and an
 # elimination of at most this many multiply-adds: the chain of 40 pendulums (3,100) at s = 5 was 1.15x
-# slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
-STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
+# slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x; up to 200
+# unknowns (above, 0.45-2 s of setup per process for solves within 20 % of SuperLU's at 300-1,000 unknowns).
+STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM, STATIC_MAX_SIZE_VM = 0.2, 2_000, 200
 # Attempts in one call of the compiled run in machine code (.loop; on casadi's virtual machine
 # loop.RUN_ATTEMPTS): an idle one costs a copy of the state, ~0.1 us, and a run ends at the progress
 # watch's window (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts)
@@ -175,11 +176,10 @@ class CasadiEngine(AbstractEngine):
         """Build (or fetch, cached per model, s and ``iterations``) the compiled adaptive step (``e``:
         the error estimate's ``bhat - b``), in machine code with ``jit`` (the system's C compiler, one
         library with the rest of the solve's machine code, :meth:`_library`: 0.5-3 s once per machine,
-        the disk cache keeps it); False where the systems are sparse
-        beyond the fixed-pivot factors' reach (:data:`STATIC_MAX_FLOPS`) and the step runs on the
-        general path."""
+        the disk cache keeps it); False where the systems are sparse beyond the fixed-pivot factors' reach
+        (:data:`STATIC_MAX_FLOPS`, :data:`STATIC_MAX_SIZE_VM`) and the step runs on the general path."""
         D = self.D
-        orders = self._pivot_orders() if jit or D > COMPILED_FACTOR_MAX_SIZE else None
+        orders = self._pivot_orders() if jit or COMPILED_FACTOR_MAX_SIZE < D <= STATIC_MAX_SIZE_VM else None
         lu, version = None, 0
         if orders is not None:  # (re-derived where it stopped holding in an earlier solve of this model: .pivots)
             start = self._start

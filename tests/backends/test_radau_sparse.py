@@ -66,10 +66,11 @@ def _without_static(monkeypatch):
 def test_the_compiled_step_on_static_factors_takes_the_general_paths_steps(monkeypatch, family, size, rtol):
     """The families above 24 unknowns now run the compiled step (SuperLU's or LAPACK's factors before)."""
     model = getattr(scaling_models, family)(size)
-    fast = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol)
+    times = np.linspace(0.0, 1.0, 11)  # (the step ends differ by rounding: compare at the same times)
+    fast = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol, t_eval=times)
     assert "compiled_retries" in fast.stats
     _without_static(monkeypatch)
-    general = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol)
+    general = dm.solve(model, (0.0, 1.0), rtol=rtol, atol=rtol, t_eval=times)
     for key in ("steps", "rejected_steps", "newton_failures", "jacobian_evaluations"):
         assert fast.stats[key] == general.stats[key], key
     # The same steps, not the same bits: each run's Newton stops within newton_tol (RADAU5's sqrt(rtol),
@@ -80,6 +81,24 @@ def test_the_compiled_step_on_static_factors_takes_the_general_paths_steps(monke
     compiled = model.compile()
     for name in compiled.state_names:
         np.testing.assert_allclose(fast[name], general[name], rtol=rtol, atol=rtol)
+
+
+def test_above_200_unknowns_the_virtual_machine_builds_no_static_factors(monkeypatch):
+    """On casadi's virtual machine the straight-line factors stop at STATIC_MAX_SIZE_VM unknowns (above, they
+    cost seconds of setup for solves within 20 % of SuperLU's): reaction-diffusion at 202 unknowns solves on
+    SuperLU, at 200 on static factors, and both meet IDAS at rtol 1e-10."""
+    built = []
+    monkeypatch.setattr(casadi_engine, "StaticFactors", lambda *args: built.append(args) or StaticFactors(*args))
+    times = np.linspace(0.0, 1.0, 5)
+    for K, static in ((100, True), (101, False)):
+        built.clear()
+        compiled = scaling_models.reaction_diffusion(K).compile()
+        assert 2 * K - casadi_engine.STATIC_MAX_SIZE_VM == (0 if static else 2)
+        sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-8, t_eval=times, jit=False)
+        assert bool(built) is static and ("compiled_retries" in sol.stats) is static, K
+        ref = dm.solve(compiled, (0.0, 1.0), method="casadi-idas", rtol=1e-10, atol=1e-12, t_eval=times)
+        for name in compiled.state_names:
+            np.testing.assert_allclose(sol[name], ref[name], rtol=1e-5, atol=1e-7)
 
 
 def test_growth_past_the_bound_falls_back_to_superlu(monkeypatch):
@@ -344,9 +363,10 @@ def test_the_band_order_takes_the_same_steps_as_colamd(monkeypatch):
     """Only the factors' rounding differs: the same steps, values within the solve's accuracy."""
     _without_static(monkeypatch)
     model = scaling_models.reaction_diffusion(300)
-    band = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8)
+    times = np.linspace(0.0, 1.0, 11)  # (the step ends differ by rounding: compare at the same times)
+    band = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8, t_eval=times)
     monkeypatch.setattr(radau_sparse, "band_orders", lambda *args: None)
-    colamd = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8)
+    colamd = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8, t_eval=times)
     for key in ("steps", "rejected_steps", "lu_decompositions", "residual_evaluations", "jacobian_evaluations"):
         assert band.stats[key] == colamd.stats[key], key
     for name in model.compile().state_names:
