@@ -28,6 +28,7 @@ Writes ``<out>.json`` (every number, the command, the machine) and ``<out>.png``
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import resource
@@ -58,6 +59,9 @@ FIT_FROM = 1_000
 # a loaded 2-core machine).
 WORKER_LIMIT = 1_800
 METHODS = ("radau", "casadi-idas")
+# casadi-idas is also run at these tighter rtols (atol in the same ratio), each in its own process,
+# so that its solve time at radau's error can be read off its line (equal error, not equal rtol).
+IDAS_TIGHTER = (1e-7, 1e-8)
 
 
 def peak_rss() -> int:
@@ -82,7 +86,8 @@ def worker(task: dict) -> dict:
         return {"declare_s": declared - began, "compile_s": done - declared, "peak_rss": peak_rss()}
     loaded = peak_rss()
     times = np.linspace(0.0, 1.0, OUTPUT_POINTS)
-    tol = (REFERENCE_TOL, 1e-2 * REFERENCE_TOL) if task["job"] == "reference" else (RTOL, ATOL)
+    rtol = task.get("rtol", RTOL)
+    tol = (REFERENCE_TOL, 1e-2 * REFERENCE_TOL) if task["job"] == "reference" else (rtol, rtol * ATOL / RTOL)
     method = "casadi-idas" if task["job"] == "reference" else task["job"]
     sol = dm.solve(compiled, (0.0, 1.0), method=method, rtol=tol[0], atol=tol[1], t_eval=times)
     names = [*compiled.state_names, *compiled.algebraic_names]
@@ -130,26 +135,53 @@ def measure(unknowns: int, folder: Path, declaration: str) -> dict:
     if "failed" in record["build"]:
         return record
     values = {}
-    for job in ("reference", *METHODS):
-        print(f"{unknowns} unknowns: {job}", file=sys.stderr, flush=True)
-        values[job] = folder / f"{job}_{unknowns}.npy"
-        task = {"job": job, "unknowns": unknowns, "declaration": declaration, "values": str(values[job])}
-        record[job] = run_task(task)
+    cells = [(job, job, {}) for job in ("reference", *METHODS)]
+    cells += [(f"casadi-idas@{rtol:g}", "casadi-idas", {"rtol": rtol}) for rtol in IDAS_TIGHTER]
+    for cell, job, extra in cells:
+        print(f"{unknowns} unknowns: {cell}", file=sys.stderr, flush=True)
+        values[cell] = folder / f"{cell}_{unknowns}.npy"
+        task = {"job": job, "unknowns": unknowns, "declaration": declaration, "values": str(values[cell]), **extra}
+        record[cell] = run_task(task)
     if "failed" not in record["reference"]:
         reference = np.load(values["reference"])
         n = unknowns // 2
-        for method in METHODS:
-            if "failed" not in record[method]:
-                error = np.abs(np.load(values[method]) - reference)
-                record[method]["error_y"], record[method]["error_z"] = float(error[:n].max()), float(error[n:].max())
+        for cell, _, _ in cells[1:]:
+            if "failed" not in record[cell]:
+                error = np.abs(np.load(values[cell]) - reference)
+                record[cell]["error_y"], record[cell]["error_z"] = float(error[:n].max()), float(error[n:].max())
+    record["idas_at_radau_error"] = idas_at_radau_error(record)
     return record
+
+
+def idas_at_radau_error(record: dict) -> dict | None:
+    """casadi-idas's solve and wall time at radau's error (the larger of its y and z errors), read off
+    IDAS's line over its rtols by log-log interpolation between the two points that bracket it; outside
+    the line, IDAS's time at its nearest point and ``"bound"``: ``"more than"`` (radau more accurate
+    than IDAS's tightest point: IDAS needs more than that) or ``"less than"``."""
+    radau = record.get("radau", {})
+    line = sorted(
+        (max(c["error_y"], c["error_z"]), c["solve_s"], c["wall_s"])
+        for k, c in record.items()
+        if k.startswith("casadi-idas") and isinstance(c, dict) and "error_y" in c
+    )
+    if "error_y" not in radau or len(line) < 2:
+        return None
+    error = max(radau["error_y"], radau["error_z"])
+    if error <= line[0][0] or error >= line[-1][0]:
+        _, solve, wall = line[0] if error <= line[0][0] else line[-1]
+        bound = "more than" if error <= line[0][0] else "less than"
+        return {"error": error, "solve_s": solve, "wall_s": wall, "bound": bound}
+    (e0, s0, w0), (e1, s1, w1) = next((a, b) for a, b in itertools.pairwise(line) if a[0] <= error <= b[0])
+    x = np.log(error / e0) / np.log(e1 / e0) if e1 > e0 else 0.0
+    solve, wall = (float(np.exp((1 - x) * np.log(a) + x * np.log(b))) for a, b in ((s0, s1), (w0, w1)))
+    return {"error": error, "solve_s": solve, "wall_s": wall, "bound": None}
 
 
 def series(records: list, cell: str, field: str, per_step: bool = False) -> list:
     """(unknowns, value) of a cell's field over the sizes where it was measured."""
     out = []
     for r in records:
-        c = r.get(cell, {})
+        c = r.get(cell) or {}
         if field in c and (not per_step or c.get("steps")):
             out.append((r["unknowns"], c[field] / c["steps"] if per_step else c[field]))
     return out
@@ -168,6 +200,7 @@ CURVES = {  # label -> (cell, field, per step)
     "compile": ("build", "compile_s", False),
     **{f"{m} {what}": (m, f"{what}_s", False) for m in METHODS for what in ("setup", "solve", "wall")},
     **{f"{m} solve per step": (m, "solve_s", True) for m in METHODS},
+    "casadi-idas solve at radau's error": ("idas_at_radau_error", "solve_s", False),
 }
 
 
@@ -229,6 +262,28 @@ def table(result: dict) -> str:
             row += [f"{c.get('error_y', float('nan')):.1e} / {c.get('error_z', float('nan')):.1e}"]
             row += [f"{c['peak_rss'] / 1e9:.2f}"]
         lines.append("| " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "radau against casadi-idas at radau's error (IDAS's line over rtol "
+        + ", ".join(f"{r:g}" for r in (RTOL, *IDAS_TIGHTER))
+        + ", log-log interpolation):",
+        "",
+    ]
+    lines += [
+        "| unknowns | radau error | radau solve | IDAS solve at it | ratio | radau wall | IDAS wall at it | ratio |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["records"]:
+        at, c = r.get("idas_at_radau_error"), r.get("radau", {})
+        if not at:
+            continue
+        # radau more accurate than IDAS's tightest point: IDAS needs more time (">"), the ratio is a "<" bound
+        idas, ratio = {"more than": (">", "<"), "less than": ("<", ">"), None: ("", "")}[at["bound"]]
+        lines.append(
+            f"| {r['unknowns']} | {at['error']:.1e} | {c['solve_s']:.3g} | {idas}{at['solve_s']:.3g} "
+            f"| {ratio}{c['solve_s'] / at['solve_s']:.2f}x | {c['wall_s']:.3g} | {idas}{at['wall_s']:.3g} "
+            f"| {ratio}{c['wall_s'] / at['wall_s']:.2f}x |"
+        )
     lines += ["", "Growth exponents (fitted from " + f"{FIT_FROM} unknowns on):", ""]
     lines += [f"- {label}: {value:.2f}" for label, value in result["slopes"].items() if value is not None]
     failures = [
