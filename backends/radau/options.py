@@ -300,10 +300,11 @@ class RadauOptions:
 def _check_stages_by_default(options: RadauOptions) -> None:
     """Refuse ``stages_by_default=True`` beside ``stages`` that no default would pick at this rtol:
     the index would re-pick them silently (:func:`stages_for_index`).  Copies made with
-    ``dataclasses.replace`` hold a default's pick and pass."""
-    if not options.stages_by_default:
+    ``dataclasses.replace`` hold a default's pick and pass (an event's one fixed step keeps the adaptive
+    pick it was copied from)."""
+    if not (options.stages_by_default and options.adaptive):  # (fixed steps keep their stages: no re-pick)
         return
-    picks = {adaptive_stages(options.rtol, index) for index in (0, 2)} if options.adaptive else {FIXED_STAGES}
+    picks = {adaptive_stages(options.rtol, index) for index in (0, 2)}
     if options.stages not in picks:
         raise InvalidOptionError(
             f"stages = {options.stages} with stages_by_default=True: the options set stages_by_default "

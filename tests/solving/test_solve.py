@@ -200,8 +200,7 @@ def test_stages_by_default_beside_stages_no_default_picks_is_refused():
 
     with pytest.raises(InvalidOptionError, match=r"stages = 7 with stages_by_default=True.*pick 3 or 5"):
         RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default=True)
-    with pytest.raises(InvalidOptionError, match=r"stages = 5 with stages_by_default=True.*pick 3 by"):
-        RadauOptions(h=0.1, stages=5, stages_by_default=True)
+    assert RadauOptions(h=0.1, stages=5, stages_by_default=True).stages == 5  # (fixed steps: never re-picked)
     with pytest.raises(InvalidOptionError, match="stages_by_default must be True or False"):
         RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default="yes")
     kept = RadauOptions(rtol=1e-6, atol=1e-6, stages=3, stages_by_default=True)
