@@ -73,7 +73,10 @@ def test_machine_code_gives_the_virtual_machines_bits(problem):
             if "h" in options:
                 assert np.array_equal(jit[name], vm[name]), name
             else:
-                np.testing.assert_allclose(jit[name], vm[name], rtol=1e-12, atol=1e-15, err_msg=name)
+                # (an index-2 multiplier takes its stages' rounding amplified by 1/h: the pendulum's y5 with
+                # the default's five stages at rtol 1e-6, 1.2e-11 apart, as before the index-2 guess changed)
+                close = 1e-10 if name in compiled.algebraic_names and problem is PENDULUM else 1e-12
+                np.testing.assert_allclose(jit[name], vm[name], rtol=close, atol=1e-15, err_msg=name)
 
 
 @needs_compiler
