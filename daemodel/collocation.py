@@ -239,10 +239,15 @@ def extrapolation_matrix(c, ratio: float):
     return lagrange_matrix(np.concatenate([[0.0], c]), 1.0 + c * ratio)
 
 
-def extrapolation_polynomial(c):
+def extrapolation_polynomial(c, pattern=None):
     """Coefficients ``C (s+1, s, s+1)`` of :func:`extrapolation_matrix` as a polynomial in the ratio:
     ``L(ratio) = sum_k C[k] ratio^k``, evaluated by :func:`horner` in a few array operations (radau
-    extrapolates every step, mostly at a new ratio: the product form costs 20 us a time there)."""
+    extrapolates every step, mostly at a new ratio: the product form costs 20 us a time there).
+
+    ``pattern`` (s,): the stage values are read as a polynomial of degree s - 1 plus an unknown multiple
+    of ``pattern`` at the stages (0 at the start node), and that polynomial alone is extrapolated
+    (radau's guess of index-2 algebraic variables, whose stages carry ``A^-1 1`` times the start
+    value's constraint defect over h; exact on polynomials of degree s - 1, blind to the pattern)."""
     import numpy as np
     from numpy.polynomial import polynomial as P
 
@@ -250,6 +255,17 @@ def extrapolation_polynomial(c):
     nodes = np.concatenate([[0.0], c])
     s = len(c)
     C = np.zeros((s + 1, s, s + 1))
+    if pattern is not None:
+        # the monomials of degree < s and the pattern at the nodes, solved for: their coefficients
+        # (rows) as functions of the node values; the monomials at 1 + c_i ratio expanded in the ratio
+        basis = np.column_stack([nodes**k for k in range(s)] + [np.concatenate([[0.0], pattern])])
+        coefficients = np.linalg.inv(basis)[:s]  # (s, s+1): the monomials' coefficients
+        for i in range(s):
+            for k in range(s):
+                # (1 + c_i r)^k = sum_j binom(k, j) c_i^j r^j
+                for j in range(k + 1):
+                    C[j, i] += math.comb(k, j) * c[i] ** j * coefficients[k]
+        return C
     for i in range(s):
         for j in range(s + 1):
             poly = np.array([1.0])

@@ -257,6 +257,10 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     # formula's rounding changed Newton's iteration count and so the step sequence)
     L = horner([casadi.DM(C) for C in extrapolation_polynomial(engine.tableau.c)], ratio)  # (s, s+1)
     W0 = casadi.mtimes(prev, L.T)  # (D, s)
+    high = formulas.high_index_columns(s, n, error_weights)  # (index-2/3 z: blind to their stages' pattern)
+    if high is not None:
+        blind = extrapolation_polynomial(engine.tableau.c, formulas.high_index_pattern(engine.tableau.A))
+        W0[high, :] = casadi.mtimes(prev[high, :], horner([casadi.DM(C) for C in blind], ratio).T)
 
     index_w = formulas.index_weights(CASADI, h, n, error_weights - 1)
     scale = casadi.repmat(formulas.error_scale(atol, rtol, casadi.fabs(u_n), index_w), 1, s)

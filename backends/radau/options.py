@@ -40,11 +40,17 @@ FIXED_STAGES = 3
 # Nobel, Robertson and reaction-diffusion, and its first compile up to 1.5x dearer (reaction-diffusion
 # K = 50: 1.65 -> 2.5 s on a loaded machine).
 ADAPTIVE_STAGES = ((1e-5, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
-# On systems of index 2 (and 3, solved as their index-2 reduction) s = 3 down to 1e-6: with s = 5 at
-# rtol 1e-6 (atol 1e-8) the pendulum over [0, 1000] failed Newton at ever shorter steps until
-# h = 1e-7 at t = 686 (a StepLimitError; s = 3 runs it in 27,589 attempts, and s = 5 at 1e-7, 1e-8 and
-# at rtol = atol = 1e-6 in 14,600-16,000).
-ADAPTIVE_STAGES_INDEX2 = ((1e-6, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
+# On systems of index 2 (and 3, solved as their index-2 reduction) the same, since s = 5 guesses the
+# algebraic variables blind to their stages' defect pattern (.formulas.HIGH_INDEX_GUESS_MIN_STAGES):
+# before, s = 5 at rtol 1e-6 (atol 1e-8) failed Newton on the pendulum over [0, 1000] at ever shorter
+# steps (down to 2.5e-8; at 1e-5 a StepLimitError), and s = 3 was kept down to 1e-6.  At rtol = atol =
+# 1e-6 (the radau_idas problems, min of 7 interleaved passes, one thread) s = 5 against s = 3: car axis
+# 2.7 against 6.0 ms (state error 1.2e-6 against 1.1e-5), the squeezer 5.6 against 6.1 (9e-7, 1.2e-6),
+# chains of 20 and 40 pendulums 3.3 against 4.2 and 6.7 against 12.1 (1.0e-6 and 8.7e-7 against 1.8e-6
+# and 2.4e-6), the pendulum 0.42 against 0.41 (1.9e-7, 4.6e-7); over [0, 1000], 12,884 attempts
+# against 27,589.  At 1e-5 s = 3 stays: s = 5 was slower on the squeezer (4.7 against 3.9 ms), the
+# 40-chain (9.0 against 5.5) and the pendulum.
+ADAPTIVE_STAGES_INDEX2 = ((1e-5, 3), (math.nextafter(1e-9, 1.0), 5), (0.0, 7))
 # Fewest stages of adaptive mode.  One stage is implicit Euler: its local error is O(h^2), so steps
 # that keep each local error at rtol number ~rtol^(-1/2) and add up to ~rtol^(1/2), 20-200 x rtol on
 # a stiff linear pair at rtol 1e-4 and 1e-6 (tests/backends/test_radau_control.py), up to 4,000 x on
@@ -67,14 +73,14 @@ ENGINES = ("auto", "torch", "casadi")
 DEFAULT_RTOL, DEFAULT_ATOL = 1e-6, 1e-8
 # float32 carries ~7 digits: asking for more from it is an error, not a silent loss.
 FLOAT32_MIN_RTOL = 1e-5
-# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  It bounds
-# the loop, and is set for a long span to run rather than to be refused: the pendulum on [0, 1000] at
-# rtol = 1e-6 takes 27,000 attempts (2.8-12 s on one shared core with the casadi engine, 0.1-0.4 ms
-# an attempt), the old default of 5,000 stopped it at t = 106.  A span that cannot finish within it
-# does not spend it: the progress watch (progress.ProgressWatch) stops after two windows of 100 attempts
-# that project past it, naming max_steps.  What spends it all is chattering at a switch (rejected
-# attempts with h collapsing): 10-40 s with the casadi engine, minutes with the torch engine (2-6 ms
-# an attempt); give a smaller max_steps where a quick failure matters more than a long span.
+# Adaptive mode: default budget of step attempts (accepted, rejected, or failed in Newton).  It bounds the loop,
+# and is set for a long span to run rather than to be refused: the pendulum on [0, 1000] at rtol = 1e-6 takes
+# 27,000 attempts with three stages (2.8-12 s on one shared core with the casadi engine, 0.1-0.4 ms an attempt;
+# 12,900 with the default's five), the old default of 5,000 stopped it at t = 106.  A span that cannot finish
+# within it does not spend it: the progress watch (progress.ProgressWatch) stops after two windows of 100
+# attempts that project past it, naming max_steps.  What spends it all is chattering at a switch (rejected
+# attempts with h collapsing): 10-40 s with the casadi engine, minutes with the torch engine (2-6 ms an
+# attempt); give a smaller max_steps where a quick failure matters more than a long span.
 DEFAULT_MAX_ADAPTIVE_STEPS = 100_000
 # Fixed step: default bound on the grid's step count, checked before the grid is built (the count
 # is known up front, so no runaway is possible; daemodel.compare's finest sweep takes 20,480 steps).
@@ -92,8 +98,8 @@ class RadauOptions:
         take at least 2, and at least 3 on a system of index 2 or 3
         (:data:`MIN_ADAPTIVE_STAGES_INDEX2`: two stages' global error there reached 1,000-2,600 x
         rtol and said success).  Default: 3
-        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-5`` (``rtol >= 1e-6`` on a
-        system of index 2 or 3); 5 (order 9) below that down to ``1e-9 < rtol``, and 7 (order 13)
+        (RADAU5, the paper's v = 3) for a fixed step and for ``rtol >= 1e-5``; 5 (order 9) below that
+        down to ``1e-9 < rtol``, and 7 (order 13)
         from 1e-9 down, where the larger steps of the higher order pay for its larger systems
         (:data:`ADAPTIVE_STAGES`, :data:`ADAPTIVE_STAGES_INDEX2`).
     h : float, optional
@@ -115,8 +121,9 @@ class RadauOptions:
         attempts, accepted, rejected or failed in Newton alike
         (:class:`~daemodel.errors.StepLimitError`); default 100,000
         (:data:`DEFAULT_MAX_ADAPTIVE_STEPS`), enough for long spans (the pendulum on [0, 1000] at
-        rtol = 1e-6 takes 27,000).  A span that cannot finish within the budget is stopped early,
-        after a few hundred attempts project past it, with the number it would need.
+        rtol = 1e-6 takes 12,900, 27,600 with three stages).  A span that cannot finish within the
+        budget is stopped early, after a few hundred attempts project past it, with the number it
+        would need.
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.

@@ -101,8 +101,9 @@ class Stepper:
         self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
         self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
-        self._extrapolation = None  # (h / h_old, Lagrange matrix) of the last start guess
+        self._extrapolation = None  # (h / h_old, Lagrange matrices) of the last start guess
         self._extrapolation_polynomial = extrapolation_coefficients(self.s)  # the matrix by Horner's rule
+        self._high_index = formulas.high_index_columns(self.s, self.n, self.z_index)  # (guessed apart)
         self.record_budget = math.inf  # accepted steps whose records fit in memory (set by the backend)
         # the RADAU5 controller on dense systems of one trajectory: each attempt in one compiled call
         self.compiled_step = (
@@ -177,13 +178,19 @@ class Stepper:
         if self._previous is None:
             return self.constant_guess()
         h_old, u_old, W_old = self._previous
-        L = self.extrapolation(h / h_old)
-        return xp.einsum("ij,bjk->bik", L, xp.concatenate([u_old[:, None, :], W_old], axis=1))
+        (L, L_high), nodes = self.extrapolation(h / h_old), xp.concatenate([u_old[:, None, :], W_old], axis=1)
+        W = xp.einsum("ij,bjk->bik", L, nodes)
+        if L_high is not None:  # (index-2/3 algebraic variables: formulas.HIGH_INDEX_GUESS_MIN_STAGES)
+            W[..., self._high_index] = xp.einsum("ij,bjk->bik", L_high, nodes[..., self._high_index])
+        return W
 
     def extrapolation(self, ratio):
-        """The start guess's extrapolation matrix (s, s+1) for ``ratio`` = h / h_old, kept while it is unchanged."""
+        """The start guess's extrapolation matrices (s, s+1) for ``ratio`` = h / h_old (the whole polynomial's, and
+        the index-2/3 algebraic variables' blind to their pattern, or None), kept while it is unchanged."""
         if self._extrapolation is None or self._extrapolation[0] != ratio:
-            self._extrapolation = (ratio, self.engine.asarray(horner(self._extrapolation_polynomial, ratio)))
+            L = horner(self._extrapolation_polynomial, ratio)
+            high = self._high_index and horner(extrapolation_coefficients(self.s, True), ratio)
+            self._extrapolation = (ratio, tuple(None if x is None else self.engine.asarray(x) for x in (L, high)))
         return self._extrapolation[1]
 
     def start_f(self, t):
@@ -680,9 +687,10 @@ class CompiledTries(StepperTries):
 
 
 @functools.cache
-def extrapolation_coefficients(stages: int) -> np.ndarray:
-    """:func:`~daemodel.collocation.extrapolation_polynomial` of the s-stage tableau, computed once."""
-    return extrapolation_polynomial(radau_iia(stages).c)
+def extrapolation_coefficients(stages: int, high_index: bool = False) -> np.ndarray:
+    """:func:`~daemodel.collocation.extrapolation_polynomial` of the s-stage tableau (its pattern: ``high_index``)."""
+    A = radau_iia(stages).A
+    return extrapolation_polynomial(radau_iia(stages).c, formulas.high_index_pattern(A) if high_index else None)
 
 
 def step_record_bytes(D: int, B: int, options) -> int:
