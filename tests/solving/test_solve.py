@@ -199,14 +199,18 @@ def test_stages_by_default_beside_stages_no_default_picks_is_refused():
     """``stages_by_default=True`` beside stages that no default picks at that rtol would let the index
     replace them silently: refused, naming both; a default's own pick (what copies hold) is kept."""
     from daemodel.backends.radau import RadauOptions, stages_for_index
+    from daemodel.backends.radau.options import adaptive_stages
 
-    with pytest.raises(InvalidOptionError, match=r"stages = 7 with stages_by_default=True.*pick 3 or 5"):
+    with pytest.raises(InvalidOptionError, match=r"stages = 7 with stages_by_default=True.*pick 5 by"):
         RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default=True)
+    with pytest.raises(InvalidOptionError, match=r"stages = 5 with stages_by_default=True.*pick 3 by"):
+        RadauOptions(rtol=1e-4, atol=1e-4, stages=5, stages_by_default=True)
     assert RadauOptions(h=0.1, stages=5, stages_by_default=True).stages == 5  # (fixed steps: never re-picked)
     with pytest.raises(InvalidOptionError, match="stages_by_default must be True or False"):
         RadauOptions(rtol=1e-6, atol=1e-6, stages=7, stages_by_default="yes")
-    kept = RadauOptions(rtol=1e-6, atol=1e-6, stages=3, stages_by_default=True)
-    assert stages_for_index(kept, 0).stages == 5 and stages_for_index(kept, 2).stages == 3
+    for rtol in (1e-4, 1e-6, 1e-10):  # a default's pick passes, and the index picks its own from it
+        kept = RadauOptions(rtol=rtol, atol=rtol, stages=adaptive_stages(rtol, 2), stages_by_default=True)
+        assert [stages_for_index(kept, index).stages for index in (0, 2)] == [adaptive_stages(rtol, i) for i in (0, 2)]
     with pytest.raises(InvalidOptionError, match="stages = 7 with stages_by_default"):
         dm.solve(HESSENBERG.model().compile(), (0.0, 1.0), rtol=1e-6, atol=1e-6, stages=7, stages_by_default=True)
 
