@@ -40,7 +40,7 @@ from daemodel.backends.radau.linalg import (
     sparse_lu,
     sparse_sign_det,
 )
-from daemodel.backends.radau.loop import CompiledRun, run_function
+from daemodel.backends.radau.loop import CompiledRun, attempt_function, run_function, run_loop_source
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
 from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
 
@@ -65,10 +65,9 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 # elimination of at most this many multiply-adds: the chain of 40 pendulums (3,100) at s = 5 was 1.15x
 # slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
 STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
-# Attempts in one call of the compiled run in machine code (.loop; on casadi's virtual machine
-# loop.RUN_ATTEMPTS): an idle one costs a copy of the state, ~0.1 us, and a run ends at the progress
-# watch's window (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts)
-# takes 4 calls instead of 13, each ~40 us of Python around it.
+# Attempts in one call of the compiled run in machine code (.loop.run_loop_source, which stops where the run
+# does; on casadi's virtual machine loop.RUN_ATTEMPTS): a run ends at the progress watch's window
+# (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts) takes 4 calls.
 MACHINE_RUN_ATTEMPTS = 100
 # The compiled run is machine code up to this many unknowns (above, on casadi's virtual machine around the
 # step's machine code): there the run's own work (the controller, copies, the switches) is a large share of
@@ -215,27 +214,28 @@ class CasadiEngine(AbstractEngine):
         return True
 
     def _library(self, step, key):
-        """The machine code of the compiled ``step`` in one library with all that a solve runs in machine
-        code besides: on static factors the C functions of :mod:`.kernel` (the factors, the sign of a
-        determinant, the triangular solves of the general path), else on dense systems the fused Newton
-        step (the general path's; the stage residual compiled once for both).  One compiler run per model,
-        stages and Newton iterations; returns the step, and keeps the rest on the engine."""
+        """The machine code of the compiled ``step`` in one library with all a solve runs in machine code
+        besides: on static factors :mod:`.kernel`'s C (factors, a determinant's sign, the general path's
+        solves) and the compiled run (:mod:`.loop`), else on dense systems the fused Newton step (the
+        stage residual compiled once for both).  One compiler run per model, stages and iterations."""
         static, m = self.static, self.m
         functions = {"radau_step_machine_code": step}
         if static is None and self.dense:
             functions["newton_step_machine_code"] = self._newton_step_function()
-        names = ()
+        names, run = (), None
         if static is not None:
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
             if self.D <= MACHINE_RUN_MAX_SIZE:
-                functions["radau_run_machine_code"] = self._machine_run_function(step, key[2])
+                functions["radau_attempt_machine_code"] = run = self._machine_attempt_function(step, key[2])
+                names += ("radau_run_machine_code",)
         what = f"radau's machine code: compiling the step of {step.name()!r}"
 
         def build():
             # (the kernel's source only where the library is built: writing it took 8 ms, paid by every piece
             # between events when it stood outside, 563 times for the wheelset at rtol 1e-6)
             kernel = "" if static is None else kernel_source(static.lu, self.transform, static, m)
-            return machine_library(functions, find_compiler(), kernel, names, what)
+            after = "" if run is None else run_loop_source(self, run, MACHINE_RUN_ATTEMPTS)
+            return machine_library(functions, find_compiler(), kernel, names, what, after)
 
         code = self._machine_code(build, key).functions
         if "newton_step_machine_code" in code:
@@ -247,12 +247,12 @@ class CasadiEngine(AbstractEngine):
             self._machine_run = code.get("radau_run_machine_code")
         return code["radau_step_machine_code"]
 
-    def _machine_run_function(self, step, iterations: int):
-        """The compiled run (:func:`.loop.run_function`, :data:`MACHINE_RUN_ATTEMPTS` attempts) around the
-        casadi ``step``, for machine code in one library with it and the kernel (:meth:`_library`): the
-        static factors and the determinant's sign are calls into the kernel's C (:func:`.kernel.factor_call`,
-        :func:`.kernel.sign_call`), so that nothing of the run is left to casadi's virtual machine (car
-        axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
+    def _machine_attempt_function(self, step, iterations: int):
+        """One attempt of the compiled run (:func:`.loop.attempt_function`) around the casadi ``step``, for
+        machine code in one library with it, the kernel and the loop in C that calls it (:meth:`_library`,
+        :func:`.loop.run_loop_source`): the static factors and the determinant's sign are calls into the
+        kernel's C (:func:`.kernel.factor_call`, :func:`.kernel.sign_call`), so that nothing of the run is
+        left to casadi's virtual machine (car axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
         static, m = self.static, self.m
 
         def build():  # (its pieces only where it is built: they cost ~40 us of casadi per solve that needs it)
@@ -260,9 +260,9 @@ class CasadiEngine(AbstractEngine):
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
             refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
             functions = (refresh, factor, self._stage_jac.function, sign, static)
-            return run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)
+            return attempt_function(self, step, *functions, iterations)
 
-        key = ("casadi-radau-machine-run", self.s, iterations, self._version)  # (._version: .pivots)
+        key = ("casadi-radau-machine-attempt", self.s, iterations, self._version)  # (._version: .pivots)
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):

@@ -177,9 +177,29 @@ def run_function(
     static,
     iterations: int,
     attempts: int = RUN_ATTEMPTS,
-    loop: bool = False,
 ):
-    """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring).
+    """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring),
+    :func:`attempt_function`'s attempt written out one call after the other, each a switch that passes
+    the state through once the run ended: for casadi's virtual machine (in machine code the attempts
+    are a loop in C, :func:`run_loop_source`).  Inputs ``[state, settings]``; output the state, then
+    each attempt's record (:func:`record_layout`)."""
+    import casadi
+
+    attempt = attempt_function(engine, step, refresh, inverses, stage_jacobians, sign, static, iterations)
+    state, settings = attempt.mx_in()
+    active = state_layout(engine.s, engine.n, engine.D, len(engine.rows), engine.packed_size())["active"]
+    idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(attempt.nnz_out(1))])
+    maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
+    carried, records = state, []
+    for _ in range(attempts):
+        carried, rec = maybe(carried[active], carried, settings)
+        records.append(rec)
+    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+
+
+def attempt_function(engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int):
+    """The casadi function of one attempt of the RADAU5 controller (see the module docstring), from
+    ``[state, settings]`` to ``[state after it, its record]``.
 
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
@@ -188,11 +208,9 @@ def run_function(
     function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
     ``stage_jacobians``: the Jacobian's nonzeros at every stage
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`.sequence.SCALARS` and the
-    arrays, :data:`.sequence.SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
+    arrays, :data:`.sequence.SETTINGS` and p); outputs the state after it and its record (:func:`record_layout`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
-    virtual machine an MX operation costs ~20 ns, an SX one ~2.  ``loop``: the attempts as a casadi loop
-    (``mapaccum``: one attempt's code, for machine code), else written out one call after the other (on
-    the virtual machine 8 % faster on the chain of 20 pendulums: the loop keeps every attempt's state).
+    virtual machine an MX operation costs ~20 ns, an SX one ~2.
     """
     import casadi
 
@@ -253,18 +271,61 @@ def run_function(
         casadi.if_else(ran, casadi.vertcat(J, inverse), state[layout["J"].start :]),
     )
     record = casadi.vertcat(after["record"], casadi.if_else(ran, casadi.vertcat(u, W), 0))
-    attempt = casadi.Function("attempt", [state, settings], [moved, record])
-    idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(record.numel())])
-    maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
-    if loop:  # (machine code: its size does not grow with the attempts)
-        one = casadi.Function("one_attempt", [state, settings], maybe(state[layout["active"]], state, settings))
-        states, records = one.mapaccum("attempts", attempts)(state, settings)
-        return casadi.Function("radau_run", [state, settings], [casadi.vertcat(states[:, -1], casadi.vec(records))])
-    carried, records = state, []
-    for _ in range(attempts):
-        carried, rec = maybe(carried[layout["active"]], carried, settings)
-        records.append(rec)
-    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+    return casadi.Function("attempt", [state, settings], [moved, record])
+
+
+def run_loop_source(engine, function, attempts: int) -> str:
+    """C of casadi's external-function interface: ``radau_run_machine_code``, :func:`run_function`'s
+    signature and output (``[state, settings]`` to the state, then ``attempts`` records) as a loop in C
+    around ``radau_attempt_machine_code``, the exported C of ``function`` (:func:`attempt_function`'s, on
+    ``engine``), in the same library after it (:func:`.compiled.machine_library`).
+
+    casadi's own loop (``mapaccum``) kept every attempt's state (100 x 287 entries on car axis) and
+    copied it at each of its levels, and its switch copied the state through every idle attempt; here
+    two buffers take turns, and the loop stops where the run does (the rest of the records zeros)."""
+    attempt, name = "radau_attempt_machine_code", "radau_run_machine_code"
+    layout = state_layout(engine.s, engine.n, engine.D, len(engine.rows), engine.packed_size())
+    state, settings, record, active = layout.size, function.nnz_in(1), function.nnz_out(1), layout["active"]
+    return f"""
+/* daemodel: radau's compiled run, {attempts} attempts of {attempt} in a loop (numbers only) */
+static const casadi_int {name}_in[2][3] = {{{{{state}, 1, 1}}, {{{settings}, 1, 1}}}};
+static const casadi_int {name}_out[3] = {{{state + attempts * record}, 1, 1}};
+
+int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{
+  const casadi_real* settings = arg[1];
+  casadi_real* out = res[0];
+  casadi_real* now = w;
+  casadi_real* next = w + {state};
+  casadi_real* swap;
+  casadi_int i, k;
+  if (!out) return 0;
+  for (i = 0; i < {state}; i++) now[i] = arg[0] ? arg[0][i] : 0;
+  for (k = 0; k < {attempts} && now[{active}] != 0; k++) {{
+    arg[2] = now;
+    arg[3] = settings;
+    res[1] = next;
+    res[2] = out + {state} + k * {record};
+    if ({attempt}(arg + 2, res + 1, iw, w + {2 * state}, mem)) return 1;
+    swap = now, now = next, next = swap;
+  }}
+  for (i = {state} + k * {record}; i < {state + attempts * record}; i++) out[i] = 0;
+  for (i = 0; i < {state}; i++) out[i] = now[i];
+  return 0;
+}}
+casadi_int {name}_n_in(void) {{ return 2; }}
+casadi_int {name}_n_out(void) {{ return 1; }}
+const casadi_int* {name}_sparsity_in(casadi_int i) {{ return i == 0 || i == 1 ? {name}_in[i] : 0; }}
+const casadi_int* {name}_sparsity_out(casadi_int i) {{ return i == 0 ? {name}_out : 0; }}
+int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{
+  casadi_int n_arg = 0, n_res = 0, n_iw = 0, n_w = 0;
+  {attempt}_work(&n_arg, &n_res, &n_iw, &n_w);
+  if (sz_arg) *sz_arg = 2 + n_arg;
+  if (sz_res) *sz_res = 1 + n_res;
+  if (sz_iw) *sz_iw = n_iw;
+  if (sz_w) *sz_w = {2 * state} + n_w;
+  return 0;
+}}
+"""
 
 
 class CasadiTries(AbstractTriesSide):
