@@ -40,7 +40,7 @@ from daemodel.backends.radau.linalg import (
     sparse_lu,
     sparse_sign_det,
 )
-from daemodel.backends.radau.loop import CompiledRun, attempt_function, run_function, run_loop_source
+from daemodel.backends.radau.loop import MACHINE_ATTEMPT, CompiledRun, attempt_function, run_function, run_loop_source
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
 from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
 
@@ -226,7 +226,7 @@ class CasadiEngine(AbstractEngine):
         if static is not None:
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
             if self.D <= MACHINE_RUN_MAX_SIZE:
-                functions["radau_attempt_machine_code"] = run = self._machine_attempt_function(step, key[2])
+                functions[MACHINE_ATTEMPT] = run = self._machine_attempt_function(step, key[2])
                 names += ("radau_run_machine_code",)
         what = f"radau's machine code: compiling the step of {step.name()!r}"
 
@@ -260,7 +260,7 @@ class CasadiEngine(AbstractEngine):
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
             refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
             functions = (refresh, factor, self._stage_jac.function, sign, static)
-            return attempt_function(self, step, *functions, iterations)
+            return attempt_function(self, step, *functions, iterations, machine=True)
 
         key = ("casadi-radau-machine-attempt", self.s, iterations, self._version)  # (._version: .pivots)
         return self.compiled.cached(key, build)

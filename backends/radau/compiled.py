@@ -379,6 +379,9 @@ def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_nam
 
     generator = casadi.CodeGenerator("daemodel_jit")
     for name, function in functions.items():
+        if function.name() == name:  # (no other calls it: its own code, without a wrapper that copies its outputs)
+            generator.add(function)
+            continue
         inputs = function.mx_in()  # (an SX function makes new symbols on every call)
         # (a call, never inlined: a function that another of them calls too, the step that the run calls,
         # is then written once; inlined, car axis's library held the step twice, 5,891 lines)

@@ -59,6 +59,8 @@ from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 from daemodel.errors import DaemodelError
 
+# The name of the attempt in machine code, which the loop in C calls (run_loop_source).
+MACHINE_ATTEMPT = "radau_attempt_machine_code"
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
 RUN_ATTEMPTS = 32
@@ -197,9 +199,12 @@ def run_function(
     return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
 
 
-def attempt_function(engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int):
+def attempt_function(
+    engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int, machine: bool = False
+):
     """The casadi function of one attempt of the RADAU5 controller (see the module docstring), from
-    ``[state, settings]`` to ``[state after it, its record]``.
+    ``[state, settings]`` to ``[state after it, its record]``; ``machine``: for machine code, named
+    :data:`MACHINE_ATTEMPT` (the loop in C calls it: :func:`run_loop_source`).
 
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
@@ -263,15 +268,21 @@ def attempt_function(engine, step, refresh, inverses, stage_jacobians, sign, sta
     attempt = casadi.vertcat(*ATTEMPT.pack(**attempt))
     after = tail_function(s, iterations)(scalars=scalars, settings=given, attempt=attempt)
     ran, taken, W = after["ran"], after["taken"], results["W"]
-    moved = casadi.vertcat(
-        after["after"],
-        casadi.if_else(taken, W[(s - 1) * D :], u),
-        casadi.if_else(taken, casadi.vertcat(u, W), nodes),
-        casadi.if_else(taken, results["F"][(s - 1) * n :], f0),
-        casadi.if_else(ran, casadi.vertcat(J, inverse), state[layout["J"].start :]),
-    )
-    record = casadi.vertcat(after["record"], casadi.if_else(ran, casadi.vertcat(u, W), 0))
-    return casadi.Function("attempt", [state, settings], [moved, record])
+
+    # in machine code switches that copy the branch taken: casadi's if_else on arrays makes four passes over
+    # both, ~9 % of car axis's machine code with the state's 213 entries of J and the factors (on the virtual
+    # machine the switches' calls cost more: the chain of 20 pendulums 1.8 % more instructions)
+    def pick(name, condition, new, old):
+        if not machine:
+            return casadi.if_else(condition, new, old)
+        return CASADI.branch(name, condition, lambda a, b: a, lambda a, b: b, new, old)
+
+    W_last, F_last, J_start = W[(s - 1) * D :], results["F"][(s - 1) * n :], layout["J"].start
+    arrays = pick("taken", taken, casadi.vertcat(W_last, u, W, F_last), state[layout["u"].start : J_start])
+    moved = casadi.vertcat(after["after"], arrays, pick("ran", ran, casadi.vertcat(J, inverse), state[J_start:]))
+    zeros = casadi.MX.zeros(D * (s + 1)) if machine else 0
+    record = casadi.vertcat(after["record"], pick("kept", ran, casadi.vertcat(u, W), zeros))
+    return casadi.Function(MACHINE_ATTEMPT if machine else "attempt", [state, settings], [moved, record])
 
 
 def run_loop_source(engine, function, attempts: int) -> str:
@@ -283,7 +294,7 @@ def run_loop_source(engine, function, attempts: int) -> str:
     casadi's own loop (``mapaccum``) kept every attempt's state (100 x 287 entries on car axis) and
     copied it at each of its levels, and its switch copied the state through every idle attempt; here
     two buffers take turns, and the loop stops where the run does (the rest of the records zeros)."""
-    attempt, name = "radau_attempt_machine_code", "radau_run_machine_code"
+    attempt, name = MACHINE_ATTEMPT, "radau_run_machine_code"
     layout = state_layout(engine.s, engine.n, engine.D, len(engine.rows), engine.packed_size())
     state, settings, record, active = layout.size, function.nnz_in(1), function.nnz_out(1), layout["active"]
     return f"""
