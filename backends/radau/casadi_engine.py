@@ -65,16 +65,16 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 # elimination of at most this many multiply-adds: the chain of 40 pendulums (3,100) at s = 5 was 1.15x
 # slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x.
 STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM = 0.2, 2_000
-# Attempts in one call of the compiled run in machine code (.loop.run_loop_source, which stops where the run
-# does; on casadi's virtual machine loop.RUN_ATTEMPTS): a run ends at the progress watch's window
-# (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts) takes 4 calls.
+# Attempts in one call of the compiled run in machine code (.loop.run_loop_source: it stops where the run does;
+# virtual machine: loop.RUN_ATTEMPTS); a run ends at the progress watch's window (100 attempts) anyway.
 MACHINE_RUN_ATTEMPTS = 100
-# The compiled run is machine code up to this many unknowns (above, on casadi's virtual machine around the
-# step's machine code): there the run's own work (the controller, copies, the switches) is a large share of
-# an attempt, and its C (the Jacobian at the step's start and at the stages, the controller) adds ~50 % to
-# the compile (car axis); the chain of 20 pendulums (100 unknowns) compiled 3.5x longer for a run whose
-# attempts are mostly the step's own work.
-MACHINE_RUN_MAX_SIZE = COMPILED_FACTOR_MAX_SIZE
+# The compiled run is machine code up to this many unknowns, jit="auto"'s most (.backend.JIT_AUTO_MAX_SIZE;
+# above, on casadi's virtual machine around the step's machine code).  Its C (the Jacobian at the step's
+# start and at the stages, the controller) adds to the compile: with casadi's mapaccum the chain of 20
+# pendulums compiled 3.5x longer; with the loop in C (.loop.run_loop_source) the chains of 20 and 40 take
+# 1.07 -> 1.71 and 2.83 -> 4.22 s of compiler CPU (once per machine: the disk cache) for solves 11 and 8 %
+# shorter (4.60 -> 4.09, 9.71 -> 8.98 ms at rtol 1e-6, benchmarks/compile_cost.py).
+MACHINE_RUN_MAX_SIZE = 200
 
 
 # What the disk cache did (daemodel.cache), the most telling first: a refused folder, a library not
