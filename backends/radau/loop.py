@@ -5,10 +5,11 @@ With the attempt compiled (:func:`.compiled.step_function`), what Python still d
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
 times the attempt itself in machine code (the pendulum: 3.3 us).  :func:`run_function` makes
 :data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  With
-``jit`` on static factors up to 24 unknowns the whole run is machine code, in the step's library
-(:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call, a loop over one attempt's code):
-on casadi's virtual machine around the step's machine code, the run's own graph (switches, copies,
-the controller's scalars) took ~10 of car axis's ~17 us an attempt.  Each attempt, as
+``jit`` on static factors up to 200 unknowns the whole run is machine code, in the step's library
+(:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call: :func:`attempt_function`'s attempt
+called by a loop in C, :func:`run_loop_source`): on casadi's virtual machine around the step's machine
+code, the run's own graph (switches, copies, the controller's scalars) took ~10 of car axis's ~17 us an
+attempt.  Each attempt, as
 :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 
 - refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
