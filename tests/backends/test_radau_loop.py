@@ -246,6 +246,24 @@ def test_the_loop_in_c_is_its_attempt_called_until_the_run_ends(monkeypatch):
         assert np.array_equal(buffered.evaluate(), np.concatenate([state, records.ravel()]))
 
 
+def test_a_run_that_finishes_the_integration_leaves_no_factors(monkeypatch):
+    """The last run's Jacobian and factors are not written back into the stepper (nothing reads them
+    after the integration ends): the pendulum at 1e-4 (6 attempts, one run) builds no Factors from a
+    run's packed factors, and its steps are those of one attempt per call, bit for bit."""
+    ends, built = _ends(monkeypatch), []
+    packed = CasadiEngine._packed_factors
+    monkeypatch.setattr(CasadiEngine, "_packed_factors", lambda self, *args: built.append(1) or packed(self, *args))
+    run = dm.solve(PENDULUM.model(), (0.0, 1.0), rtol=1e-4, atol=1e-4)
+    assert ends == [sequence.FINISHED] and run.stats["compiled_runs"] == 1
+    assert built == []
+    monkeypatch.setattr(CasadiEngine, "make_compiled_run", lambda self, iterations: None)
+    single = dm.solve(PENDULUM.model(), (0.0, 1.0), rtol=1e-4, atol=1e-4)
+    for key in COUNTS:
+        assert run.stats[key] == single.stats[key], key
+    for name in PENDULUM.model().compile().state_names:
+        assert np.array_equal(run[name], single[name]), name
+
+
 @pytest.mark.parametrize("m", [0, 1, 2, 3, 4, 6])
 def test_signs_of_determinants(m):
     sign = loop.sign_det_function(m)
