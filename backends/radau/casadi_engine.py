@@ -40,7 +40,7 @@ from daemodel.backends.radau.linalg import (
     sparse_lu,
     sparse_sign_det,
 )
-from daemodel.backends.radau.loop import CompiledRun, run_function
+from daemodel.backends.radau.loop import MACHINE_ATTEMPT, CompiledRun, attempt_function, run_function, run_loop_source
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
 from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
 
@@ -66,17 +66,16 @@ STATIC_MAX_FLOPS, STATIC_MAX_ENTRIES = 100_000, 5_000
 # slower than SuperLU, the chain of 20 (1,500) 1.8x faster, reaction-diffusion (100-600) 2.4-5x; up to 200
 # unknowns (above, 0.45-2 s of setup per process for solves within 20 % of SuperLU's at 300-1,000 unknowns).
 STATIC_MAX_FILL, STATIC_MAX_FLOPS_VM, STATIC_MAX_SIZE_VM = 0.2, 2_000, 200
-# Attempts in one call of the compiled run in machine code (.loop; on casadi's virtual machine
-# loop.RUN_ATTEMPTS): an idle one costs a copy of the state, ~0.1 us, and a run ends at the progress
-# watch's window (.progress.PROGRESS_WINDOW, 100 attempts) anyway; car axis at rtol 1e-4 (318 attempts)
-# takes 4 calls instead of 13, each ~40 us of Python around it.
+# Attempts in one call of the compiled run in machine code (.loop.run_loop_source: it stops where the run does;
+# virtual machine: loop.RUN_ATTEMPTS); a run ends at the progress watch's window (100 attempts) anyway.
 MACHINE_RUN_ATTEMPTS = 100
-# The compiled run is machine code up to this many unknowns (above, on casadi's virtual machine around the
-# step's machine code): there the run's own work (the controller, copies, the switches) is a large share of
-# an attempt, and its C (the Jacobian at the step's start and at the stages, the controller) adds ~50 % to
-# the compile (car axis); the chain of 20 pendulums (100 unknowns) compiled 3.5x longer for a run whose
-# attempts are mostly the step's own work.
-MACHINE_RUN_MAX_SIZE = COMPILED_FACTOR_MAX_SIZE
+# The compiled run is machine code up to this many unknowns, jit="auto"'s most (.backend.JIT_AUTO_MAX_SIZE;
+# above, on casadi's virtual machine around the step's machine code).  Its C (the Jacobian at the step's
+# start and at the stages, the controller) adds to the compile: with casadi's mapaccum the chain of 20
+# pendulums compiled 3.5x longer; with the loop in C (.loop.run_loop_source) the chains of 20 and 40 take
+# 1.07 -> 1.71 and 2.83 -> 4.22 s of compiler CPU (once per machine: the disk cache) for solves 11 and 8 %
+# shorter (4.60 -> 4.09, 9.71 -> 8.98 ms at rtol 1e-6, benchmarks/compile_cost.py).
+MACHINE_RUN_MAX_SIZE = 200
 
 
 # What the disk cache did (daemodel.cache), the most telling first: a refused folder, a library not
@@ -215,27 +214,28 @@ class CasadiEngine(AbstractEngine):
         return True
 
     def _library(self, step, key):
-        """The machine code of the compiled ``step`` in one library with all that a solve runs in machine
-        code besides: on static factors the C functions of :mod:`.kernel` (the factors, the sign of a
-        determinant, the triangular solves of the general path), else on dense systems the fused Newton
-        step (the general path's; the stage residual compiled once for both).  One compiler run per model,
-        stages and Newton iterations; returns the step, and keeps the rest on the engine."""
+        """The machine code of the compiled ``step`` in one library with all a solve runs in machine code
+        besides: on static factors :mod:`.kernel`'s C (factors, a determinant's sign, the general path's
+        solves) and the compiled run (:mod:`.loop`), else on dense systems the fused Newton step (the
+        stage residual compiled once for both).  One compiler run per model, stages and iterations."""
         static, m = self.static, self.m
         functions = {"radau_step_machine_code": step}
         if static is None and self.dense:
             functions["newton_step_machine_code"] = self._newton_step_function()
-        names = ()
+        names, run = (), None
         if static is not None:
             names = ("static_factors", "static_solve", "static_solve_complex", *(("sign_det",) if m else ()))
             if self.D <= MACHINE_RUN_MAX_SIZE:
-                functions["radau_run_machine_code"] = self._machine_run_function(step, key[2])
+                functions[MACHINE_ATTEMPT] = run = self._machine_attempt_function(step, key[2])
+                names += ("radau_run_machine_code",)
         what = f"radau's machine code: compiling the step of {step.name()!r}"
 
         def build():
             # (the kernel's source only where the library is built: writing it took 8 ms, paid by every piece
             # between events when it stood outside, 563 times for the wheelset at rtol 1e-6)
             kernel = "" if static is None else kernel_source(static.lu, self.transform, static, m)
-            return machine_library(functions, find_compiler(), kernel, names, what)
+            after = "" if run is None else run_loop_source(self, run, MACHINE_RUN_ATTEMPTS)
+            return machine_library(functions, find_compiler(), kernel, names, what, after)
 
         code = self._machine_code(build, key).functions
         if "newton_step_machine_code" in code:
@@ -247,12 +247,12 @@ class CasadiEngine(AbstractEngine):
             self._machine_run = code.get("radau_run_machine_code")
         return code["radau_step_machine_code"]
 
-    def _machine_run_function(self, step, iterations: int):
-        """The compiled run (:func:`.loop.run_function`, :data:`MACHINE_RUN_ATTEMPTS` attempts) around the
-        casadi ``step``, for machine code in one library with it and the kernel (:meth:`_library`): the
-        static factors and the determinant's sign are calls into the kernel's C (:func:`.kernel.factor_call`,
-        :func:`.kernel.sign_call`), so that nothing of the run is left to casadi's virtual machine (car
-        axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
+    def _machine_attempt_function(self, step, iterations: int):
+        """One attempt of the compiled run (:func:`.loop.attempt_function`) around the casadi ``step``, for
+        machine code in one library with it, the kernel and the loop in C that calls it (:meth:`_library`,
+        :func:`.loop.run_loop_source`): the static factors and the determinant's sign are calls into the
+        kernel's C (:func:`.kernel.factor_call`, :func:`.kernel.sign_call`), so that nothing of the run is
+        left to casadi's virtual machine (car axis, 10 unknowns: ~10 of its ~17 us an attempt)."""
         static, m = self.static, self.m
 
         def build():  # (its pieces only where it is built: they cost ~40 us of casadi per solve that needs it)
@@ -260,9 +260,9 @@ class CasadiEngine(AbstractEngine):
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
             refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
             functions = (refresh, factor, self._stage_jac.function, sign, static)
-            return run_function(self, step, *functions, iterations, MACHINE_RUN_ATTEMPTS, loop=True)
+            return attempt_function(self, step, *functions, iterations, machine=True)
 
-        key = ("casadi-radau-machine-run", self.s, iterations, self._version)  # (._version: .pivots)
+        key = ("casadi-radau-machine-attempt", self.s, iterations, self._version)  # (._version: .pivots)
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):

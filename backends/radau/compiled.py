@@ -362,17 +362,18 @@ def find_compiler() -> str | None:
     return next((path for path in map(shutil.which, COMPILERS) if path), None)
 
 
-def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_names=(), what: str = ""):
+def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_names=(), what: str = "", after: str = ""):
     """The casadi ``functions`` ({name: function}) compiled by ``compiler`` into one library, through
     the disk cache of compiled libraries (:mod:`daemodel.cache`): the C source of casadi's code
     generator for all of them (a function they share, the stage residual, written once), after
     ``kernel``, C that the source needs and whose own functions ``kernel_names`` the library offers
     too (:func:`.kernel.kernel_source`: the static factors' loops, which the calls of
-    :func:`.kernel.solve_call` inside ``functions`` reach), compiled with :func:`compiler_flags` in
-    a private temporary folder (cut into up to :data:`COMPILE_UNITS` translation units compiled at
-    once, :mod:`daemodel.translation_units`), stored and loaded with ``casadi.external``; or loaded
-    from the cache where an earlier process stored it.  One library for everything a solve runs in
-    machine code.
+    :func:`.kernel.solve_call` inside ``functions`` reach), and before ``after``, C that calls them
+    and whose own functions are among ``kernel_names`` too (:func:`.loop.run_loop_source`), compiled
+    with :func:`compiler_flags` in a private temporary folder (cut into up to :data:`COMPILE_UNITS`
+    translation units compiled at once, :mod:`daemodel.translation_units`), stored and loaded with
+    ``casadi.external``; or loaded from the cache where an earlier process stored it.  One library
+    for everything a solve runs in machine code.
 
     Returns :class:`daemodel.cache.Library`: ``functions`` by the names given (and ``kernel_names``),
     and what the cache did.  Raises :class:`~daemodel.errors.CompileError` with the compiler's
@@ -382,13 +383,16 @@ def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_nam
 
     generator = casadi.CodeGenerator("daemodel_jit")
     for name, function in functions.items():
+        if function.name() == name:  # (no other calls it: its own code, without a wrapper that copies its outputs)
+            generator.add(function)
+            continue
         inputs = function.mx_in()  # (an SX function makes new symbols on every call)
         # (a call, never inlined: a function that another of them calls too, the step that the run calls,
         # is then written once; inlined, car axis's library held the step twice, 5,891 lines)
         generator.add(casadi.Function(name, inputs, function.call(inputs, False, True)))
     what = what or f"radau's machine code: compiling the step of {next(iter(functions.values())).name()!r}"
     build = Build(compiler, compiler_flags(compiler), what, JIT_FIX, libraries=("-lm",), units=COMPILE_UNITS)
-    return cached_library(kernel + generator.dump(), [*functions, *kernel_names], build)
+    return cached_library(kernel + generator.dump() + after, [*functions, *kernel_names], build)
 
 
 def machine_code(function, compiler: str) -> MachineCode:

@@ -5,10 +5,11 @@ With the attempt compiled (:func:`.compiled.step_function`), what Python still d
 controller's arithmetic, the Jacobian's refresh and the state's bookkeeping, cost 25-40 us, ten
 times the attempt itself in machine code (the pendulum: 3.3 us).  :func:`run_function` makes
 :data:`RUN_ATTEMPTS` attempts of :meth:`.control.Radau5Controller.run` one casadi function.  With
-``jit`` on static factors up to 24 unknowns the whole run is machine code, in the step's library
-(:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call, a loop over one attempt's code):
-on casadi's virtual machine around the step's machine code, the run's own graph (switches, copies,
-the controller's scalars) took ~10 of car axis's ~17 us an attempt.  Each attempt, as
+``jit`` on static factors up to 200 unknowns the whole run is machine code, in the step's library
+(:meth:`.casadi_engine.CasadiEngine._library`, 100 attempts a call: :func:`attempt_function`'s attempt
+called by a loop in C, :func:`run_loop_source`): on casadi's virtual machine around the step's machine
+code, the run's own graph (switches, copies, the controller's scalars) took ~10 of car axis's ~17 us an
+attempt.  Each attempt, as
 :meth:`.step.Stepper.compiled_attempt` and the controller make it:
 
 - refreshes the Jacobian where it was dropped (with its factored systems and the sign of the
@@ -47,6 +48,7 @@ from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sequence import (
     ATTEMPT,
     CONTROLLER,
+    FINISHED,
     FULL,
     HANDBACK,
     HEAD,
@@ -59,6 +61,8 @@ from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 from daemodel.errors import DaemodelError
 
+# The name of the attempt in machine code, which the loop in C calls (run_loop_source).
+MACHINE_ATTEMPT = "radau_attempt_machine_code"
 # Attempts in one call.  An idle one (after the run ended) costs a copy of the state; measured on
 # the pendulum (19 attempts at rtol 1e-6) and car axis (~800), 32 keeps both near their best.
 RUN_ATTEMPTS = 32
@@ -177,9 +181,32 @@ def run_function(
     static,
     iterations: int,
     attempts: int = RUN_ATTEMPTS,
-    loop: bool = False,
 ):
-    """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring).
+    """The casadi function of ``attempts`` attempts of the RADAU5 controller (see the module docstring),
+    :func:`attempt_function`'s attempt written out one call after the other, each a switch that passes
+    the state through once the run ended: for casadi's virtual machine (in machine code the attempts
+    are a loop in C, :func:`run_loop_source`).  Inputs ``[state, settings]``; output the state, then
+    each attempt's record (:func:`record_layout`)."""
+    import casadi
+
+    attempt = attempt_function(engine, step, refresh, inverses, stage_jacobians, sign, static, iterations)
+    state, settings = attempt.mx_in()
+    active = state_layout(engine.s, engine.n, engine.D, len(engine.rows), engine.packed_size())["active"]
+    idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(attempt.nnz_out(1))])
+    maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
+    carried, records = state, []
+    for _ in range(attempts):
+        carried, rec = maybe(carried[active], carried, settings)
+        records.append(rec)
+    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+
+
+def attempt_function(
+    engine, step, refresh, inverses, stage_jacobians, sign, static, iterations: int, machine: bool = False
+):
+    """The casadi function of one attempt of the RADAU5 controller (see the module docstring), from
+    ``[state, settings]`` to ``[state after it, its record]``; ``machine``: for machine code, named
+    :data:`MACHINE_ATTEMPT` (the loop in C calls it: :func:`run_loop_source`).
 
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
@@ -188,11 +215,9 @@ def run_function(
     function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
     ``stage_jacobians``: the Jacobian's nonzeros at every stage
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`.sequence.SCALARS` and the
-    arrays, :data:`.sequence.SETTINGS` and p); output the state, then each attempt's record (:func:`record_layout`).
+    arrays, :data:`.sequence.SETTINGS` and p); outputs the state after it and its record (:func:`record_layout`).
     The scalar logic is in two SX functions (:func:`head_function`, :func:`tail_function`): on casadi's
-    virtual machine an MX operation costs ~20 ns, an SX one ~2.  ``loop``: the attempts as a casadi loop
-    (``mapaccum``: one attempt's code, for machine code), else written out one call after the other (on
-    the virtual machine 8 % faster on the chain of 20 pendulums: the loop keeps every attempt's state).
+    virtual machine an MX operation costs ~20 ns, an SX one ~2.
     """
     import casadi
 
@@ -245,26 +270,75 @@ def run_function(
     attempt = casadi.vertcat(*ATTEMPT.pack(**attempt))
     after = tail_function(s, iterations)(scalars=scalars, settings=given, attempt=attempt)
     ran, taken, W = after["ran"], after["taken"], results["W"]
-    moved = casadi.vertcat(
-        after["after"],
-        casadi.if_else(taken, W[(s - 1) * D :], u),
-        casadi.if_else(taken, casadi.vertcat(u, W), nodes),
-        casadi.if_else(taken, results["F"][(s - 1) * n :], f0),
-        casadi.if_else(ran, casadi.vertcat(J, inverse), state[layout["J"].start :]),
-    )
-    record = casadi.vertcat(after["record"], casadi.if_else(ran, casadi.vertcat(u, W), 0))
-    attempt = casadi.Function("attempt", [state, settings], [moved, record])
-    idle = casadi.Function("idle", [state, settings], [state, casadi.MX.zeros(record.numel())])
-    maybe = casadi.Function.if_else("maybe_attempt", attempt, idle)
-    if loop:  # (machine code: its size does not grow with the attempts)
-        one = casadi.Function("one_attempt", [state, settings], maybe(state[layout["active"]], state, settings))
-        states, records = one.mapaccum("attempts", attempts)(state, settings)
-        return casadi.Function("radau_run", [state, settings], [casadi.vertcat(states[:, -1], casadi.vec(records))])
-    carried, records = state, []
-    for _ in range(attempts):
-        carried, rec = maybe(carried[layout["active"]], carried, settings)
-        records.append(rec)
-    return casadi.Function("radau_run", [state, settings], [casadi.vertcat(carried, *records)])
+
+    # in machine code switches that copy the branch taken: casadi's if_else on arrays makes four passes over
+    # both, ~9 % of car axis's machine code with the state's 213 entries of J and the factors (on the virtual
+    # machine the switches' calls cost more: the chain of 20 pendulums 1.8 % more instructions)
+    def pick(name, condition, new, old):
+        if not machine:
+            return casadi.if_else(condition, new, old)
+        return CASADI.branch(name, condition, lambda a, b: a, lambda a, b: b, new, old)
+
+    W_last, F_last, J_start = W[(s - 1) * D :], results["F"][(s - 1) * n :], layout["J"].start
+    arrays = pick("taken", taken, casadi.vertcat(W_last, u, W, F_last), state[layout["u"].start : J_start])
+    moved = casadi.vertcat(after["after"], arrays, pick("ran", ran, casadi.vertcat(J, inverse), state[J_start:]))
+    zeros = casadi.MX.zeros(D * (s + 1)) if machine else 0
+    record = casadi.vertcat(after["record"], pick("kept", ran, casadi.vertcat(u, W), zeros))
+    return casadi.Function(MACHINE_ATTEMPT if machine else "attempt", [state, settings], [moved, record])
+
+
+def run_loop_source(engine, function, attempts: int) -> str:
+    """C of casadi's external-function interface: ``radau_run_machine_code``, :func:`run_function`'s
+    signature and output (``[state, settings]`` to the state, then ``attempts`` records) as a loop in C
+    around ``radau_attempt_machine_code``, the exported C of ``function`` (:func:`attempt_function`'s, on
+    ``engine``), in the same library after it (:func:`.compiled.machine_library`).
+
+    casadi's own loop (``mapaccum``) kept every attempt's state (100 x 287 entries on car axis) and
+    copied it at each of its levels, and its switch copied the state through every idle attempt; here
+    two buffers take turns, and the loop stops where the run does (the rest of the records zeros)."""
+    attempt, name = MACHINE_ATTEMPT, "radau_run_machine_code"
+    layout = state_layout(engine.s, engine.n, engine.D, len(engine.rows), engine.packed_size())
+    state, settings, record, active = layout.size, function.nnz_in(1), function.nnz_out(1), layout["active"]
+    return f"""
+/* daemodel: radau's compiled run, {attempts} attempts of {attempt} in a loop (numbers only) */
+static const casadi_int {name}_in[2][3] = {{{{{state}, 1, 1}}, {{{settings}, 1, 1}}}};
+static const casadi_int {name}_out[3] = {{{state + attempts * record}, 1, 1}};
+
+int {name}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{
+  const casadi_real* settings = arg[1];
+  casadi_real* out = res[0];
+  casadi_real* now = w;
+  casadi_real* next = w + {state};
+  casadi_real* swap;
+  casadi_int i, k;
+  if (!out) return 0;
+  for (i = 0; i < {state}; i++) now[i] = arg[0] ? arg[0][i] : 0;
+  for (k = 0; k < {attempts} && now[{active}] != 0; k++) {{
+    arg[2] = now;
+    arg[3] = settings;
+    res[1] = next;
+    res[2] = out + {state} + k * {record};
+    if ({attempt}(arg + 2, res + 1, iw, w + {2 * state}, mem)) return 1;
+    swap = now, now = next, next = swap;
+  }}
+  for (i = {state} + k * {record}; i < {state + attempts * record}; i++) out[i] = 0;
+  for (i = 0; i < {state}; i++) out[i] = now[i];
+  return 0;
+}}
+casadi_int {name}_n_in(void) {{ return 2; }}
+casadi_int {name}_n_out(void) {{ return 1; }}
+const casadi_int* {name}_sparsity_in(casadi_int i) {{ return i == 0 || i == 1 ? {name}_in[i] : 0; }}
+const casadi_int* {name}_sparsity_out(casadi_int i) {{ return i == 0 ? {name}_out : 0; }}
+int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{
+  casadi_int n_arg = 0, n_res = 0, n_iw = 0, n_w = 0;
+  {attempt}_work(&n_arg, &n_res, &n_iw, &n_w);
+  if (sz_arg) *sz_arg = 2 + n_arg;
+  if (sz_res) *sz_res = 1 + n_res;
+  if (sz_iw) *sz_iw = n_iw;
+  if (sz_w) *sz_w = {2 * state} + n_w;
+  return 0;
+}}
+"""
 
 
 class CasadiTries(AbstractTriesSide):
@@ -419,6 +493,9 @@ class CompiledRun:
                 out[L["f0"]][None].copy(),
             )
         stepper.eta = np.array([v["eta"]])
+        if v["code"] == FINISHED:  # (the integration is over: no attempt reads the Jacobian or its factors;
+            stepper._jac = stepper.factors = None  # building their Factors took 5 us of the pendulum's ~330 us)
+            return carried, FINISHED
         stepper._jac = (out[L["J"]].copy(), v["t_jac"]) if v["jac_kept"] else None
         factors_h = v["factors_h"]
         stepper.factors = engine._packed_factors(out[L["inverse"]].copy(), factors_h) if factors_h else None

@@ -262,6 +262,7 @@ def test_one_library_serves_the_whole_solve(monkeypatch, tmp_path, name, options
     [
         ("car-axis", (0.0, 3.0), 1e-4),  # (m = 2: the run's own sign formula)
         ("pendulum_chain-4", (0.0, 2.0), 1e-6),  # (m = 4: the kernel's sign, sign_call)
+        ("pendulum_chain-20", (0.0, 1.0), 1e-5),  # (100 unknowns: machine code up to MACHINE_RUN_MAX_SIZE)
         ("akzo-nobel", (0.0, 180.0), 1e-8),  # (Newton failures and fresh Jacobians inside the run)
     ],
 )
@@ -269,7 +270,8 @@ def test_the_run_in_machine_code_gives_the_virtual_machines_run_bit_for_bit(monk
     """Up to MACHINE_RUN_MAX_SIZE unknowns the whole run is machine code, in the step's library (the
     factors and the sign through the kernel's C): the steps, counts and values of the run on casadi's
     virtual machine around the same step, bit for bit, in fewer calls (MACHINE_RUN_ATTEMPTS a call)."""
-    model = lambda: scaling_models.pendulum_chain(4) if name == "pendulum_chain-4" else PROBLEMS[name].model()  # noqa: E731
+    chain = name.startswith("pendulum_chain-")
+    model = lambda: scaling_models.pendulum_chain(int(name[15:])) if chain else PROBLEMS[name].model()  # noqa: E731
     options = dict(rtol=rtol, atol=rtol, jit=True, t_eval=np.linspace(*span, 11))
     sizes, advance = [], loop.CompiledRun.advance
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from daemodel.backends.radau import casadi_engine, loop, sequence
 from daemodel.backends.radau.casadi_engine import CasadiEngine
-from daemodel.backends.radau.compiled import find_compiler
+from daemodel.backends.radau.compiled import Buffered, find_compiler
 
 import daemodel as dm
 from daemodel import errors as E
@@ -205,6 +205,63 @@ def test_the_run_on_machine_code_gives_the_same_bits(monkeypatch):
         assert run.stats[key] == vm.stats[key], key
     for name in compiled.state_names:
         np.testing.assert_allclose(run[name], vm[name], rtol=1e-12, atol=1e-15, err_msg=name)
+
+
+@pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
+def test_the_loop_in_c_is_its_attempt_called_until_the_run_ends(monkeypatch):
+    """radau_run_machine_code (.loop.run_loop_source) gives, bit for bit, what its exported attempt gives
+    called one attempt at a time from the same state: the state after the last attempt that ran, each
+    attempt's record, zeros for the attempts after the run ended (car axis at 1e-4: 318 attempts in four
+    calls, the last ending with the integration; and a call whose state is already inactive)."""
+    libraries, calls = [], []
+    build = casadi_engine.machine_library
+    monkeypatch.setattr(casadi_engine, "machine_library", lambda *args: libraries.append(build(*args)) or libraries[-1])
+    advance = loop.CompiledRun.advance
+
+    def recorded(self, *args):
+        out = advance(self, *args)
+        calls.append([inputs.copy() for inputs in self.buffered.inputs])
+        return out
+
+    monkeypatch.setattr(loop.CompiledRun, "advance", recorded)
+    compiled = PROBLEMS["car-axis"].model().compile()  # (its own caches: the library is built or loaded here)
+    sol = dm.solve(compiled, (0.0, 3.0), rtol=1e-4, atol=1e-4, jit=True)
+    assert sol.stats["compiled_runs"] == len(calls) >= 4
+    functions = libraries[-1].functions
+    run, attempt = functions["radau_run_machine_code"], functions["radau_attempt_machine_code"]
+    state_size, record_size = attempt.nnz_out(0), attempt.nnz_out(1)
+    attempts = (run.nnz_out(0) - state_size) // record_size
+    active = sequence.SCALARS["active"]
+    idle = calls[-1][0].copy()
+    idle[active] = 0.0
+    calls.append([idle, calls[-1][1]])
+    buffered = Buffered(run, inputs=2)
+    for given, settings in calls:
+        state, records = given, np.zeros((attempts, record_size))
+        for k in range(attempts):
+            if not state[active]:
+                break
+            state, records[k] = (np.asarray(out).ravel() for out in attempt(state, settings))
+        buffered.inputs[0][:], buffered.inputs[1][:] = given, settings  # (the output buffer reused, as a solve does)
+        assert np.array_equal(buffered.evaluate(), np.concatenate([state, records.ravel()]))
+
+
+def test_a_run_that_finishes_the_integration_leaves_no_factors(monkeypatch):
+    """The last run's Jacobian and factors are not written back into the stepper (nothing reads them
+    after the integration ends): the pendulum at 1e-4 (6 attempts, one run) builds no Factors from a
+    run's packed factors, and its steps are those of one attempt per call, bit for bit."""
+    ends, built = _ends(monkeypatch), []
+    packed = CasadiEngine._packed_factors
+    monkeypatch.setattr(CasadiEngine, "_packed_factors", lambda self, *args: built.append(1) or packed(self, *args))
+    run = dm.solve(PENDULUM.model(), (0.0, 1.0), rtol=1e-4, atol=1e-4)
+    assert ends == [sequence.FINISHED] and run.stats["compiled_runs"] == 1
+    assert built == []
+    monkeypatch.setattr(CasadiEngine, "make_compiled_run", lambda self, iterations: None)
+    single = dm.solve(PENDULUM.model(), (0.0, 1.0), rtol=1e-4, atol=1e-4)
+    for key in COUNTS:
+        assert run.stats[key] == single.stats[key], key
+    for name in PENDULUM.model().compile().state_names:
+        assert np.array_equal(run[name], single[name]), name
 
 
 @pytest.mark.parametrize("m", [0, 1, 2, 3, 4, 6])
