@@ -166,15 +166,9 @@ def sparse_sign_det(matrix) -> float:
 
 
 def permutation_sign(perm: np.ndarray) -> float:
-    """+1 or -1: the parity of a permutation, from its cycles."""
-    seen = np.zeros(len(perm), dtype=bool)
-    transpositions = 0
-    for start in range(len(perm)):
-        length = 0
-        k = start
-        while not seen[k]:
-            seen[k] = True
-            k = perm[k]
-            length += 1
-        transpositions += max(length - 1, 0)
-    return -1.0 if transpositions % 2 else 1.0
+    """+1 or -1: the parity of a permutation, from its cycles (counted vectorised,
+    :func:`daemodel.compiling.determinants.odd_permutation`: a Python walk of the cycles took 35 ms a
+    sign at 10^5 unknowns, twice per fresh Jacobian)."""
+    from daemodel.compiling.determinants import odd_permutation
+
+    return -1.0 if odd_permutation(perm) else 1.0
