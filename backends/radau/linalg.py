@@ -43,9 +43,13 @@ def dense_lu(matrix: np.ndarray):
 def sparse_lu(matrix, order: np.ndarray | None = None):
     """SuperLU's factors of a sparse CSC matrix: ``(("sparse", lu), singular (1,))``.  With ``order``
     (:func:`band_order`) the matrix is already ``A[order][:, order]``, factored in that order (SuperLU's
-    ``NATURAL``, no ordering of its own) and ``lu.solve`` solves with ``A`` (:class:`OrderedLU`)."""
+    ``NATURAL``, no ordering of its own) and ``lu.solve`` solves with ``A`` (:class:`OrderedLU`); with a
+    :class:`.band.BandKernel` for ``order``, by its band LU in C (:class:`.band.BandLU`, the same ``solve``)."""
     import scipy.sparse.linalg as splinalg
+    from daemodel.backends.radau.band import BandKernel
 
+    if isinstance(order, BandKernel):  # (the band order's LU in C: the matrix's values are all it reads)
+        return order.factor(matrix.data)
     try:
         if order is not None:
             lu = splinalg.splu(matrix, permc_spec="NATURAL", relax=BAND_RELAX, panel_size=BAND_PANEL)
