@@ -99,7 +99,7 @@ class CasadiEngine(AbstractEngine):
         self.xp = np
         self.B = 1
         self.p = np.asarray(start.p, dtype=float)[0]
-        self.jit, self.band = jit, band  # (band: narrow band orders' LU in C, .band)
+        self.jit, self.band, self.band_outcomes = jit, band, []  # (band: narrow band orders' LU in C, .band)
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
@@ -267,7 +267,7 @@ class CasadiEngine(AbstractEngine):
 
     def _sparse_layout(self):
         """``sigma M - J``'s CSC layout, in the band order (``band``: LU in C) where any (.sparse.shifted_layout)."""
-        layout = shifted_layout(self.compiled, self.rows, self.cols, self.n, self.cache_outcomes if self.band else None)
+        layout = shifted_layout(self.compiled, self.rows, self.cols, self.n, self.band_outcomes if self.band else None)
         self._order, self._csc, self._pos_J, self._pos_M = layout
 
     def asarray(self, values):
