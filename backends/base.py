@@ -159,9 +159,13 @@ def make_solution(
             settings[field.name] = value
 
     names = (*compiled.state_names, *compiled.algebraic_names)
+    # (one copy with the variables first: each variable's (B, T) values are a contiguous view of it, where a
+    # copy per variable took 140 ms at 10^5 unknowns)
+    columns = np.ascontiguousarray(np.moveaxis(np.asarray(values), -1, 0))
+    columns.flags.writeable = False
     return Solution(
         t=np.asarray(times, dtype=float),
-        values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},
+        values=dict(zip(names, columns, strict=True)),
         method=backend if isinstance(backend, str) else backend.name,
         settings=settings,
         solve_time=solve_time,

@@ -111,7 +111,8 @@ class Solution:
             for i, name in enumerate(c.alias_names):
                 self.values[name] = out[:, i].reshape(shape)
         for array in self.values.values():
-            array.flags.writeable = False
+            if array.flags.writeable:  # (a backend's views of one read-only block are already: 10^5 of them)
+                array.flags.writeable = False
         self.t.flags.writeable = False
 
     # ---- access -------------------------------------------------------------------------

@@ -7,6 +7,7 @@ import time
 
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
+from daemodel.backends.radau.band import BAND_SPARE_BUFFERS, BandKernel, band_entries
 from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
@@ -95,6 +96,9 @@ class RadauBackend(AbstractBackend):
         wall = time.perf_counter() - began
         if said is not None:
             stepper.stats["jit"] = said
+        if engine.name == "casadi" and isinstance(engine._order, BandKernel):  # (.band: its LU in C)
+            widths = f"band widths {engine._order.kl} and {engine._order.ku}"
+            stepper.stats["band_lu"] = f"machine code ({widths}; cache: {', '.join(engine.band_outcomes)})"
         if engine.name == "casadi" and engine.static is not None:
             # (factorisations the fixed pivot order did not hold, each factored by LAPACK or SuperLU: .pivots)
             stepper.stats["pivot_failures"] = engine.pivot_failures
@@ -173,9 +177,14 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
         if not dense_systems(D, rows.size):
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
             fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))  # (per model)
-            if band_orders(compiled, rows, cols, n, D) is not None:  # (factored in it: at most this more fill)
+            order, systems = band_orders(compiled, rows, cols, n, D), s * fill
+            if order is not None:  # (factored in it: at most this more fill)
                 fill = BAND_FILL_RATIO * fill
-            matrices = rows.size * 8 * (s + 1) + s * fill * 16
+                systems = s * fill
+                band = band_entries(order, rows, cols, n, D)  # (the band LU in C: its storage, and its spares)
+                if band is not None and options.jit is not False and find_compiler() is not None:
+                    systems = (s + 2 * BAND_SPARE_BUFFERS) * band
+            matrices = rows.size * 8 * (s + 1) + systems * 16
             if not options.adaptive or options.start_guess is not None:
                 # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors
                 # the s D-sized system, its matrix and its factors in float64: s^2 nonzeros of J's, and
@@ -250,7 +259,9 @@ def make_engine(compiled, start, options: RadauOptions, machine_code: bool | Non
                 f"engine='casadi' solves one trajectory; this batch has {start.size} samples: use engine='torch' "
                 "(or 'auto')"
             )
-        return CasadiEngine(compiled, start, tableau, transform, jit=machine_code)
+        # (narrow band orders' LU in C wherever machine code may run: a small library, whatever the size)
+        band = options.jit is not False and find_compiler() is not None
+        return CasadiEngine(compiled, start, tableau, transform, jit=machine_code, band=band)
     import torch
     from daemodel.backends.radau.torch_engine import TorchEngine
 

@@ -94,12 +94,12 @@ class CasadiEngine(AbstractEngine):
 
     name = "casadi"
 
-    def __init__(self, compiled, start, tableau, transform, jit: bool = False):
+    def __init__(self, compiled, start, tableau, transform, jit: bool = False, band: bool = False):
         super().__init__(compiled, start, tableau, transform)
         self.xp = np
         self.B = 1
         self.p = np.asarray(start.p, dtype=float)[0]
-        self.jit = jit
+        self.jit, self.band, self.band_outcomes = jit, band, []  # (band: narrow band orders' LU in C, .band)
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
@@ -266,8 +266,9 @@ class CasadiEngine(AbstractEngine):
         return self.compiled.cached(key, build)
 
     def _sparse_layout(self):
-        """The CSC layout of ``sigma M - J`` in the model's band order where it has one (.sparse.shifted_layout)."""
-        self._order, self._csc, self._pos_J, self._pos_M = shifted_layout(self.compiled, self.rows, self.cols, self.n)
+        """``sigma M - J``'s CSC layout, in the band order (``band``: LU in C) where any (.sparse.shifted_layout)."""
+        layout = shifted_layout(self.compiled, self.rows, self.cols, self.n, self.band_outcomes if self.band else None)
+        self._order, self._csc, self._pos_J, self._pos_M = layout
 
     def asarray(self, values):
         return np.array(values, dtype=float)
@@ -411,8 +412,7 @@ class CasadiEngine(AbstractEngine):
         return self.compiled.cached(("casadi-radau-static-factor", self.s, self._version), build)
 
     def _static_kernel(self):
-        """The C functions of :mod:`.kernel` (``jit``): the static factors, and the sign of the determinant of
-        the algebraic variables' iteration matrix (None where m = 0); in the compiled step's library (_library)."""
+        """:mod:`.kernel`'s C static factors and sign of det (None where m = 0), in the step's library (_library)."""
         return self._kernel
 
     def _refresh_function(self):

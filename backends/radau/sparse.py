@@ -401,11 +401,12 @@ def band_orders(compiled, rows: np.ndarray, cols: np.ndarray, n: int, D: int) ->
     return compiled.cached("radau-band-order", build)
 
 
-def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int) -> tuple:
+def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int, band: list | None = None) -> tuple:
     """The CSC pattern of ``sigma M - J`` (J's entries at ``(rows, cols)``, M's diagonal over the ``n``
     differential unknowns of the model ``compiled``), in the model's band order where it has one
     (:func:`band_orders`: unknown ``order[k]`` is the k-th row and column): ``(order or None, (indices,
-    indptr, nnz), where J's values go, where M's diagonal goes)``."""
+    indptr, nnz), where J's values go, where M's diagonal goes)``.  With ``band`` (a list: what the disk
+    cache did is added to it) the order is its :class:`.band.BandKernel` where the band is narrow."""
     D = len(compiled.states) + len(compiled.algebraics)
     order = band_orders(compiled, rows, cols, n, D)
     position = np.arange(D) if order is None else np.argsort(order)  # (unknown k's row and column)
@@ -414,4 +415,9 @@ def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int) -> tupl
     keys_M = diagonal * D + diagonal
     keys = sorted_unique(np.concatenate([keys_J, keys_M]))
     indptr = np.searchsorted(keys // D, np.arange(D + 1))
-    return order, (keys % D, indptr, len(keys)), np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+    csc = (keys % D, indptr, len(keys))
+    if band is not None:
+        from daemodel.backends.radau.band import band_factors
+
+        order = band_factors(compiled, order, csc, band)
+    return order, csc, np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)

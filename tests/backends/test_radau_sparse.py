@@ -229,7 +229,7 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
 
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))  # 600 unknowns, sparse
     span = scaling_models.T_SPAN["reaction_diffusion"]
-    options = backend.RadauOptions(rtol=1e-6, atol=1e-6, stages=3)
+    options = backend.RadauOptions(rtol=1e-6, atol=1e-6, stages=3, jit=False)  # (SuperLU: no band LU in C)
     dense = backend.memory_parts(compiled, span, 1, options, "torch")
     assert dense == {"Newton matrices": 7 * 600**2 * 8}
     rows, cols = radau_sparse.jacobian_pattern(compiled)
@@ -286,9 +286,8 @@ def test_the_memory_estimate_of_fixed_steps_counts_the_full_newton_system(first_
         transformed += (lu.L.nnz + lu.U.nnz) * 16
     stage = engine.factor_stages([values] * 7, 0.01).lu[1]
     full = (stage.L.nnz + stage.U.nnz) * 8  # (real: the stages' system of 4,200 unknowns)
-    fixed = backend.memory_parts(compiled, span, 1, backend.RadauOptions(h=0.01, stages=7), "casadi")[
-        "Newton matrices (sparse)"
-    ]
+    options = backend.RadauOptions(h=0.01, stages=7, jit=False)  # (SuperLU's factors: no band LU in C)
+    fixed = backend.memory_parts(compiled, span, 1, options, "casadi")["Newton matrices (sparse)"]
     assert transformed + full <= fixed <= 3 * (transformed + full + rows.size * 8 * 13)
 
 
@@ -364,9 +363,10 @@ def test_the_band_order_takes_the_same_steps_as_colamd(monkeypatch):
     _without_static(monkeypatch)
     model = scaling_models.reaction_diffusion(300)
     times = np.linspace(0.0, 1.0, 11)  # (the step ends differ by rounding: compare at the same times)
-    band = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8, t_eval=times)
+    options = dict(rtol=1e-6, atol=1e-8, t_eval=times, jit=False)  # (SuperLU in both: no band LU in C)
+    band = dm.solve(model, (0.0, 1.0), **options)
     monkeypatch.setattr(radau_sparse, "band_orders", lambda *args: None)
-    colamd = dm.solve(model, (0.0, 1.0), rtol=1e-6, atol=1e-8, t_eval=times)
+    colamd = dm.solve(model, (0.0, 1.0), **options)
     for key in ("steps", "rejected_steps", "lu_decompositions", "residual_evaluations", "jacobian_evaluations"):
         assert band.stats[key] == colamd.stats[key], key
     for name in model.compile().state_names:

@@ -25,6 +25,21 @@ def test_the_parity_of_a_permutation_is_that_of_its_inversions():
     assert odd_permutation(np.arange(10)) == 0 and odd_permutation([1, 0]) == 1 and odd_permutation([]) == 0
 
 
+def test_the_parity_of_permutations_near_the_identity():
+    """A few swaps of a long identity (SuperLU's row orders): short cycles, whose passes stop early,
+    beside one long cycle whose least index is found only at the last pass."""
+    rng = np.random.default_rng(2)
+    for n in (2, 9, 300, 1000):
+        for swaps in range(6):
+            p = np.arange(n)
+            for _ in range(swaps):
+                i, j = rng.integers(0, n, 2)
+                p[[i, j]] = p[[j, i]]
+            assert odd_permutation(p) == inversions(p) % 2, p
+        cycle = np.r_[1:n, 0]  # (one cycle through all n: n - 1 transpositions)
+        assert odd_permutation(cycle) == (n - 1) % 2
+
+
 def test_sparse_signs_are_dense_slogdets_signs():
     rng = np.random.default_rng(2)
     for m in (64, 150, 400):

@@ -1,0 +1,389 @@
+"""Band LU factors of the shifted systems in C, for models whose band order is narrow (issue 44).
+
+A chain or a 1-D grid, in its reverse Cuthill-McKee order (:func:`.linalg.band_order`), is a band matrix
+a few entries wide.  SuperLU factors it at a fixed cost of ~100 ns a column (its symbolic analysis and
+bookkeeping, redone at every factorisation: 10-12 ms at 10^5 unknowns, 8 ms of it for the identity);
+LAPACK's band LU (``gbtrf``) at ~37 ns, but its triangular solves cost 2.5x SuperLU's (four BLAS calls
+a column).  Here the band LU is one loop in C: LAPACK's ``gbtf2`` (partial pivoting in the band, the
+first largest ``|a|`` -- ``|re| + |im|`` for complex entries, as ``izamax``), and ``gbtrs``'s solve,
+with no call per column.  The source depends on four sizes only (unknowns, nonzeros, the band's widths),
+so it compiles in a fraction of a second and the disk cache (:mod:`daemodel.cache`) keeps it.
+
+Storage is LAPACK's: ``ab`` of ``LDAB = 2 kl + ku + 1`` rows by ``D`` columns (column-major), entry
+``A[i, j]`` at row ``kl + ku + i - j``; the factors overwrite it, with the pivots beside them.  A complex
+system's entries are interleaved (re, im): numpy's complex128 seen as float64.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+# The band kernel is used where the band storage (LDAB rows) is at most this many entries a column: its
+# elimination is dense in the band (kl (kl + ku) multiply-adds a column), where SuperLU's follows the
+# nonzeros; reaction-diffusion's band order has LDAB 13 (kl = ku = 4), the chain's 19
+BAND_KERNEL_MAX_LDAB = 40
+# Factors' buffers kept for reuse, of each kind (real, complex), once their factors are dropped: a fresh
+# buffer of 10-20 MB (10^5 unknowns) is new pages, and faulting them in took 2-3x the factorisation
+# itself on a loaded machine (complex: 10.7-34 ms against 6.2 on reused memory)
+BAND_SPARE_BUFFERS = 2
+# C flags (the cache adds a shared library's): the loops are short, -O2 is enough
+BAND_FLAGS = ("-O2", "-fno-math-errno")
+# Seconds the compiler may take (the source is ~150 lines)
+BAND_COMPILE_TIMEOUT = 120.0
+
+_KERNEL = r"""
+#ifndef casadi_int
+#define casadi_int long long int
+#endif
+#define KV (KL + KU)
+#define AT(r, j) ((r) + (casadi_int)LDAB * (j))
+#define MIN(a, b) ((a) < (b) ? (a) : (b))
+
+static const casadi_int sp_data[3] = {N_NZ, 1, 1};
+static const casadi_int sp_data_c[3] = {2 * N_NZ, 1, 1};
+static const casadi_int sp_pos[3] = {N_NZ, 1, 1};
+static const casadi_int sp_lu[3] = {N_LU, 1, 1};
+static const casadi_int sp_lu_c[3] = {N_LU_C, 1, 1};
+static const casadi_int sp_b[3] = {N_D, 1, 1};
+static const casadi_int sp_b_c[3] = {2 * N_D, 1, 1};
+static const casadi_int sp_order[3] = {N_D, 1, 1};
+
+/* The packed factors (C = 1 real, 2 complex doubles an entry):
+   [values (C LDAB N_D: the band while factoring, then each column's nonzeros, L's then U's, diagonal first)]
+   [pivots (N_D)] [info: 0, j + 1 at a zero pivot in column j, -1 at a value not finite]
+   [bytes: each column's counts of L and U entries (2 N_D), then each entry's distance from the diagonal] */
+#define FACTOR(NAME, C, ISZERO, ABS1, DIVIDE, UPDATE)                                                     \
+int NAME(const double** arg, double** res, casadi_int* iw, double* w, int mem) {                        \
+  const double* data = arg[0];                                                                           \
+  const double* pos = arg[1];                                                                            \
+  double* ab = res[0];                                                                                   \
+  double* piv = ab + C * (casadi_int)LDAB * N_D;                                                        \
+  unsigned char* count = (unsigned char*)(piv + N_D + 1);                                                \
+  unsigned char* dist = count + 2 * (casadi_int)N_D;                                                     \
+  casadi_int q, j, r, c, jp, km, ju = 0, info = 0, p = 0, e = 0;                                        \
+  double column[C * LDAB], check = 0.0;                                                                  \
+  if (!ab) return 0;                                                                                     \
+  for (q = 0; q < C * (casadi_int)LDAB * N_D; q++) ab[q] = 0.0;                                         \
+  for (q = 0; q < N_NZ; q++)                                                                             \
+    for (c = 0; c < C; c++) ab[C * (casadi_int)pos[q] + c] = data[C * q + c];                           \
+  for (j = 0; j < N_D; j++) {                                                                            \
+    double big = -1.0, t;                                                                                \
+    km = MIN(KL, N_D - 1 - j);                                                                           \
+    jp = 0;                                                                                              \
+    for (r = 0; r <= km; r++) {                                                                          \
+      const double* a = ab + C * AT(KV + r, j);                                                          \
+      t = ABS1(a);                                                                                       \
+      if (t > big) { big = t; jp = r; }                                                                  \
+    }                                                                                                    \
+    piv[j] = (double)(j + jp);                                                                           \
+    if (!ISZERO(ab + C * AT(KV + jp, j))) {                                                              \
+      ju = j + KU + jp < N_D - 1 ? (j + KU + jp > ju ? j + KU + jp : ju) : N_D - 1;                      \
+      if (jp != 0)                                                                                       \
+        for (c = j; c <= ju; c++)                                                                        \
+          for (q = 0; q < C; q++) {                                                                      \
+            casadi_int u = C * AT(KV + j - c, c) + q, v = C * AT(KV + j + jp - c, c) + q;                \
+            t = ab[u]; ab[u] = ab[v]; ab[v] = t;                                                         \
+          }                                                                                              \
+      for (r = 1; r <= km; r++) DIVIDE(ab + C * AT(KV + r, j), ab + C * AT(KV, j));                      \
+      for (c = j + 1; c <= ju; c++) {                                                                    \
+        const double* u = ab + C * AT(KV + j - c, c);                                                    \
+        if (!ISZERO(u))                                                                                  \
+          for (r = 1; r <= km; r++) UPDATE(ab + C * AT(KV + j + r - c, c), ab + C * AT(KV + r, j), u);   \
+      }                                                                                                  \
+    } else if (!info) {                                                                                  \
+      info = j + 1;                                                                                      \
+    }                                                                                                    \
+  }                                                                                                      \
+  /* each column's nonzeros, in place (a column is read whole before it is written: p <= LDAB j) */     \
+  for (j = 0; j < N_D; j++) {                                                                            \
+    casadi_int lower = 0, upper = 0, top = MIN(KV, j);                                                   \
+    km = MIN(KL, N_D - 1 - j);                                                                           \
+    for (q = 0; q < C * LDAB; q++) column[q] = ab[C * AT(0, j) + q];                                     \
+    for (r = 1; r <= km; r++)                                                                            \
+      if (!ISZERO(column + C * (KV + r))) {                                                              \
+        for (q = 0; q < C; q++) ab[C * p + q] = column[C * (KV + r) + q];                                \
+        p++; dist[e++] = (unsigned char)r; lower++;                                                      \
+      }                                                                                                  \
+    for (r = 0; r <= top; r++)                                                                           \
+      if (r == 0 || !ISZERO(column + C * (KV - r))) {                                                    \
+        for (q = 0; q < C; q++) { ab[C * p + q] = column[C * (KV - r) + q]; check += 0.0 * ab[C * p + q]; } \
+        p++; dist[e++] = (unsigned char)r; upper++;                                                      \
+      }                                                                                                  \
+    for (r = 1; r <= km; r++) check += 0.0 * column[C * (KV + r)];                                       \
+    count[2 * j] = (unsigned char)lower;                                                                 \
+    count[2 * j + 1] = (unsigned char)upper;                                                             \
+  }                                                                                                      \
+  piv[N_D] = check != check ? -1.0 : (double)info;                                                       \
+  return 0;                                                                                              \
+}
+
+#define R_ISZERO(a) ((a)[0] == 0.0)
+#define R_ABS1(a) fabs((a)[0])
+#define R_DIVIDE(a, d) ((a)[0] /= (d)[0])
+#define R_UPDATE(a, l, u) ((a)[0] -= (l)[0] * (u)[0])
+#define C_ISZERO(a) ((a)[0] == 0.0 && (a)[1] == 0.0)
+#define C_ABS1(a) (fabs((a)[0]) + fabs((a)[1]))
+static void c_divide(double* a, const double* d) {
+  double m = d[0] * d[0] + d[1] * d[1], ir = d[0] / m, ii = -d[1] / m, ar = a[0], ai = a[1];
+  a[0] = ar * ir - ai * ii;
+  a[1] = ar * ii + ai * ir;
+}
+static void c_update(double* a, const double* l, const double* u) {
+  a[0] -= l[0] * u[0] - l[1] * u[1];
+  a[1] -= l[0] * u[1] + l[1] * u[0];
+}
+FACTOR(band_factor, 1, R_ISZERO, R_ABS1, R_DIVIDE, R_UPDATE)
+FACTOR(band_factor_complex, 2, C_ISZERO, C_ABS1, c_divide, c_update)
+
+/* x = A^-1 b, b and x in the unknowns' own order (order[k]: the unknown at the band's k-th place) */
+static void solve_real(const double* f, const double* b, const double* order, double* x, double* out) {
+  const double* piv = f + (casadi_int)LDAB * N_D;
+  const unsigned char* count = (const unsigned char*)(piv + N_D + 1);
+  const unsigned char* dist = count + 2 * (casadi_int)N_D;
+  casadi_int i, j, k, p = 0;
+  for (i = 0; i < N_D; i++) x[i] = b[(casadi_int)order[i]];
+  for (j = 0; j < N_D; j++) {
+    casadi_int l = (casadi_int)piv[j], lower = count[2 * j];
+    double t;
+    if (l != j) { t = x[l]; x[l] = x[j]; x[j] = t; }
+    t = x[j];
+    for (k = 0; k < lower; k++) x[j + dist[p + k]] -= f[p + k] * t;
+    p += lower + count[2 * j + 1];
+  }
+  for (j = N_D - 1; j >= 0; j--) {
+    casadi_int upper = count[2 * j + 1];
+    double t;
+    p -= upper;
+    t = x[j] / f[p];
+    x[j] = t;
+    for (k = 1; k < upper; k++) x[j - dist[p + k]] -= f[p + k] * t;
+    p -= count[2 * j];
+  }
+  for (i = 0; i < N_D; i++) out[(casadi_int)order[i]] = x[i];
+}
+
+static void solve_complex(const double* f, const double* b, const double* order, double* x, double* out) {
+  const double* piv = f + 2 * (casadi_int)LDAB * N_D;
+  const unsigned char* count = (const unsigned char*)(piv + N_D + 1);
+  const unsigned char* dist = count + 2 * (casadi_int)N_D;
+  casadi_int i, j, k, p = 0;
+  for (i = 0; i < N_D; i++) {
+    x[2 * i] = b[2 * (casadi_int)order[i]];
+    x[2 * i + 1] = b[2 * (casadi_int)order[i] + 1];
+  }
+  for (j = 0; j < N_D; j++) {
+    casadi_int l = (casadi_int)piv[j], lower = count[2 * j];
+    double t[2];
+    if (l != j) {
+      t[0] = x[2 * l]; x[2 * l] = x[2 * j]; x[2 * j] = t[0];
+      t[1] = x[2 * l + 1]; x[2 * l + 1] = x[2 * j + 1]; x[2 * j + 1] = t[1];
+    }
+    t[0] = x[2 * j];
+    t[1] = x[2 * j + 1];
+    for (k = 0; k < lower; k++) c_update(x + 2 * (j + dist[p + k]), f + 2 * (p + k), t);
+    p += lower + count[2 * j + 1];
+  }
+  for (j = N_D - 1; j >= 0; j--) {
+    casadi_int upper = count[2 * j + 1];
+    p -= upper;
+    c_divide(x + 2 * j, f + 2 * p);
+    for (k = 1; k < upper; k++) c_update(x + 2 * (j - dist[p + k]), f + 2 * (p + k), x + 2 * j);
+    p -= count[2 * j];
+  }
+  for (i = 0; i < N_D; i++) {
+    out[2 * (casadi_int)order[i]] = x[2 * i];
+    out[2 * (casadi_int)order[i] + 1] = x[2 * i + 1];
+  }
+}
+
+int band_solve(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
+  if (res[0]) solve_real(arg[0], arg[1], arg[2], w, res[0]);
+  return 0;
+}
+
+int band_solve_complex(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
+  if (res[0]) solve_complex(arg[0], arg[1], arg[2], w, res[0]);
+  return 0;
+}
+
+#define SIGNATURE(name, n, in0, in1, in2, out, work)                                                     \
+  casadi_int name##_n_in(void) { return n; }                                                             \
+  casadi_int name##_n_out(void) { return 1; }                                                            \
+  const casadi_int* name##_sparsity_in(casadi_int i) { return i == 0 ? in0 : i == 1 ? in1 : i == 2 ? in2 : 0; } \
+  const casadi_int* name##_sparsity_out(casadi_int i) { return i == 0 ? out : 0; }                       \
+  int name##_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {         \
+    if (sz_arg) *sz_arg = n;                                                                              \
+    if (sz_res) *sz_res = 1;                                                                              \
+    if (sz_iw) *sz_iw = 0;                                                                                \
+    if (sz_w) *sz_w = work;                                                                               \
+    return 0;                                                                                             \
+  }
+SIGNATURE(band_factor, 2, sp_data, sp_pos, 0, sp_lu, 0)
+SIGNATURE(band_factor_complex, 2, sp_data_c, sp_pos, 0, sp_lu_c, 0)
+SIGNATURE(band_solve, 3, sp_lu, sp_b, sp_order, sp_b, N_D)
+SIGNATURE(band_solve_complex, 3, sp_lu_c, sp_b_c, sp_order, sp_b_c, 2 * N_D)
+"""
+
+NAMES = ("band_factor", "band_factor_complex", "band_solve", "band_solve_complex")
+
+
+def band_widths(indices: np.ndarray, indptr: np.ndarray) -> tuple[int, int]:
+    """``(kl, ku)``: the lower and upper band widths of the CSC pattern ``(indices, indptr)``."""
+    columns = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+    offset = indices - columns  # (row - column)
+    return int(max(offset.max(initial=0), 0)), int(max(-offset.min(initial=0), 0))
+
+
+def band_entries(order: np.ndarray | None, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int | None:
+    """The float64 entries one real system's :class:`BandKernel` factors take (LDAB x D, the pivots and
+    the entries' positions; a complex system's values take twice LDAB x D) for the Jacobian pattern
+    ``(rows, cols)`` (and M's diagonal over the ``n`` differential unknowns) in the band ``order``, or
+    None where :func:`band_kernel` would take none (no order, or a band wider than
+    :data:`BAND_KERNEL_MAX_LDAB`): what the memory guard counts."""
+    if order is None:
+        return None
+    position = np.argsort(order)
+    offset = np.concatenate([position[rows] - position[cols], [0]])
+    ldab = 2 * max(int(offset.max()), 0) + max(int(-offset.min()), 0) + 1
+    return ldab * D + D + 1 + -(-(2 + ldab) * D // 8) if ldab <= BAND_KERNEL_MAX_LDAB else None
+
+
+def band_source(D: int, nnz: int, kl: int, ku: int) -> str:
+    """The C source of :data:`NAMES` (casadi's external-function interface) for ``D`` unknowns, ``nnz``
+    matrix entries and the band widths ``kl``, ``ku``: numbers only."""
+    ldab = 2 * kl + ku + 1
+    sizes = {"N_D": D, "N_NZ": nnz, "KL": kl, "KU": ku, "LDAB": ldab}
+    tail = D + 1 + -(-(2 + ldab) * D // 8)  # (the pivots, info, and the counts' and distances' bytes)
+    sizes |= {"N_LU": ldab * D + tail, "N_LU_C": 2 * ldab * D + tail}
+    head = ["/* daemodel: radau's band LU (generated; numbers only) */\n#include <math.h>\n"]
+    return "".join(head + [f"#define {key} {value}\n" for key, value in sizes.items()]) + _KERNEL
+
+
+def _bound(function, inputs: list, output: np.ndarray):
+    """casadi's FunctionBuffer of ``function`` on the numpy arrays ``inputs`` and ``output`` (no copies):
+    its ``evaluate``; the arrays must outlive it (the caller keeps them)."""
+    buffer, evaluate = function.buffer()
+    for k, values in enumerate(inputs):
+        buffer.set_arg(k, memoryview(values))
+    buffer.set_res(0, memoryview(output))
+
+    def call():
+        evaluate()
+        if buffer.ret() != 0:
+            raise RuntimeError(f"casadi function {function.name()} failed (return code {buffer.ret()})")
+
+    return call
+
+
+class BandKernel:
+    """The band LU of the shifted systems of one CSC layout (``indices``, ``indptr``: the matrix in its
+    band order, :func:`.sparse.shifted_layout`), compiled by ``compiler``; ``order``: the band order
+    (unknown ``order[k]`` is the k-th row and column).  :meth:`factor` takes the matrix's CSC values.
+    Raises :class:`~daemodel.errors.CompileError` where the compiler fails."""
+
+    def __init__(self, order: np.ndarray, indices: np.ndarray, indptr: np.ndarray, compiler: str):
+        from daemodel.cache import Build, cached_library
+
+        self.order, self.D, self.nnz = order, len(indptr) - 1, len(indices)
+        self.kl, self.ku = band_widths(indices, indptr)
+        self.ldab = 2 * self.kl + self.ku + 1
+        what = "radau's machine code: compiling the band factors"
+        fix = "solve with jit=False (SuperLU's factors: the same results to rounding)"
+        build = Build(compiler, BAND_FLAGS, what, fix, libraries=("-lm",), timeout=BAND_COMPILE_TIMEOUT)
+        library = cached_library(band_source(self.D, self.nnz, self.kl, self.ku), NAMES, build)
+        self.outcome, self.functions = library.outcome, library.functions
+        self._spare = {False: [], True: []}  # (buffers of dropped factors, BAND_SPARE_BUFFERS of each kind)
+        columns = np.repeat(np.arange(self.D), np.diff(indptr))
+        self.positions = (self.kl + self.ku + indices - columns + self.ldab * columns).astype(float)
+        self.order_values = np.asarray(order, dtype=float)  # (the kernel's inputs are float64)
+
+    @property
+    def entries(self) -> int:
+        """The entries one system's factors hold: the band storage (LDAB x D)."""
+        return self.ldab * self.D
+
+    def factor(self, data: np.ndarray):
+        """``(("sparse", BandLU), singular (1,))`` for the CSC values ``data`` (float or complex, in the
+        layout's order), or ``(("singular",), [True])`` where a pivot is exactly zero or not finite."""
+        complex_ = np.iscomplexobj(data)
+        values = np.ascontiguousarray(data, dtype=complex if complex_ else float).view(float)
+        band = (2 if complex_ else 1) * self.ldab * self.D
+        spare = self._spare[complex_]
+        packed = spare.pop() if spare else np.empty(band + self.D + 1 + -(-(2 + self.ldab) * self.D // 8))
+        name = "band_factor_complex" if complex_ else "band_factor"
+        _bound(self.functions[name], [values, self.positions], packed)()
+        if packed[band + self.D] != 0:  # (a zero pivot, or a value not finite)
+            self._keep(packed, complex_)
+            return ("singular",), np.array([True])
+        lu = BandLU(self, packed, complex_)
+        weakref.finalize(lu, self._keep, packed, complex_)  # (its buffer is reused once it is dropped)
+        return ("sparse", lu), np.array([False])
+
+    def _keep(self, packed: np.ndarray, complex_: bool) -> None:
+        """Keep a dropped factors' buffer for the next factorisation (up to :data:`BAND_SPARE_BUFFERS`)."""
+        if len(self._spare[complex_]) < BAND_SPARE_BUFFERS:
+            self._spare[complex_].append(packed)
+
+
+class BandLU:
+    """One system's band factors (``packed``: :class:`BandKernel`'s output), solving with ``A`` (its
+    unknowns in their own order: the band order is applied on the way in and out)."""
+
+    def __init__(self, kernel: BandKernel, packed: np.ndarray, complex_: bool):
+        self.kernel, self.complex, self.packed = kernel, complex_, packed
+        self._b = np.empty(kernel.D, dtype=complex if complex_ else float)
+        self._x = np.empty_like(self._b)
+        name = "band_solve_complex" if complex_ else "band_solve"
+        inputs = [packed, self._b.view(float), kernel.order_values]
+        self._call = _bound(kernel.functions[name], inputs, self._x.view(float))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """``x`` with ``A x = rhs``, ``rhs`` of shape (D,) (complex on a real system: by parts)."""
+        if np.iscomplexobj(rhs) and not self.complex:
+            return self.solve(rhs.real) + 1j * self.solve(rhs.imag)
+        self._b[:] = rhs
+        self._call()  # (the band order applied inside, on the way in and out)
+        return self._x.copy()
+
+
+def band_kernel(order, indices, indptr, compiler: str | None) -> BandKernel | None:
+    """The :class:`BandKernel` of a layout in its band ``order``, or None: without an order or a
+    compiler, where the band is wider than :data:`BAND_KERNEL_MAX_LDAB` (SuperLU factors it), or where
+    the compiler fails (SuperLU then, as with ``jit=False``)."""
+    from daemodel.errors import CompileError
+
+    if order is None or compiler is None:
+        return None
+    kl, ku = band_widths(indices, indptr)
+    if 2 * kl + ku + 1 > BAND_KERNEL_MAX_LDAB:
+        return None
+    try:
+        return BandKernel(order, indices, indptr, compiler)
+    except CompileError:
+        return None
+
+
+def band_factors(compiled, order, layout: tuple, outcomes: list):
+    """The factoriser of a model's shifted systems for :func:`.linalg.sparse_lu`: its :class:`BandKernel`
+    (:func:`band_kernel`, made once per model) where there is one, else ``order`` itself (SuperLU in
+    the band order, or in its own where ``order`` is None); what the disk cache did is added to
+    ``outcomes`` ("memory" where this process made it before)."""
+    from daemodel.backends.radau.compiled import find_compiler
+
+    if order is None:
+        return order
+    made = []
+
+    def build():
+        made.append(band_kernel(order, layout[0], layout[1], find_compiler()))
+        return made[-1]
+
+    kernel = compiled.cached("radau-band-kernel", build)
+    if kernel is None:
+        return order
+    if not np.array_equal(kernel.order, order):  # (another order than the model's own: not its kernel)
+        return order
+    outcomes.append(kernel.outcome if made else "memory")
+    return kernel

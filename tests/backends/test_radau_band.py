@@ -1,0 +1,143 @@
+"""The band LU in C of narrow band orders (backends/radau/band.py).
+
+Its factors must solve every shifted system (real and complex) to rounding, call a zero pivot or a
+value that is not finite singular, and give radau's default solve SuperLU's steps and Newton counts;
+the memory guard counts its storage, and a wide band (a 2-D grid) keeps SuperLU.
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.sparse as sparse
+from daemodel.backends.radau import backend, band
+from daemodel.backends.radau import sparse as radau_sparse
+from daemodel.backends.radau.compiled import find_compiler
+
+import daemodel as dm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import scaling_models
+
+needs_compiler = pytest.mark.skipif(find_compiler() is None, reason="no C compiler")
+
+
+def shifted(engine, J, sigma):
+    """The CSC values of ``sigma M - J`` in the engine's layout (its band order), as its _factor_shift
+    makes them, and the same matrix dense in the unknowns' own order."""
+    nnz = engine._csc[2]
+    data = np.zeros(nnz, dtype=float if sigma.imag == 0 else complex)
+    data[engine._pos_J] = -J
+    data[engine._pos_M] += sigma.real if sigma.imag == 0 else sigma
+    D, n = engine.D, engine.n
+    dense = (
+        sigma * np.diag(np.r_[np.ones(n), np.zeros(D - n)])
+        - sparse.csc_matrix((J, (engine.rows, engine.cols)), shape=(D, D)).toarray()
+    )
+    return data, dense if sigma.imag else dense.real
+
+
+def test_band_widths_of_a_pattern():
+    # columns 0..3 of a 4 x 4 matrix with entries (1, 0), (3, 1) below and (0, 2) above the diagonal
+    A = sparse.csc_matrix((np.ones(7), ([0, 1, 1, 3, 2, 0, 3], [0, 0, 1, 1, 2, 2, 3])), shape=(4, 4))
+    assert band.band_widths(A.indices, A.indptr) == (2, 2)
+    identity = sparse.eye(5, format="csc")
+    assert band.band_widths(identity.indices, identity.indptr) == (0, 0)
+
+
+@needs_compiler
+@pytest.mark.parametrize(("family", "size"), [("reaction_diffusion", 300), ("pendulum_chain", 40)])
+def test_the_band_factors_solve_every_shifted_system(first_engine, family, size):
+    compiled, engine = first_engine(getattr(scaling_models, family)(size))
+    order = engine._order
+    assert order is not None and not isinstance(order, band.BandKernel)  # (jit=False: SuperLU in the order)
+    kernel = band.band_kernel(order, *engine._csc[:2], find_compiler())
+    assert kernel is not None and kernel.ldab <= band.BAND_KERNEL_MAX_LDAB
+    rng = np.random.default_rng(4)
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0])) * (
+        1 + 0.3 * rng.random(engine.rows.size)
+    )
+    for sigma in engine.transform.shifts(0.01):
+        data, A = shifted(engine, J, sigma)
+        (kind, lu), singular = kernel.factor(data)
+        assert kind == "sparse" and not singular.any() and lu.complex == bool(sigma.imag)
+        b = rng.standard_normal(engine.D) + 1j * rng.standard_normal(engine.D)  # (complex on a real system too)
+        exact = np.linalg.solve(A, b)
+        x = lu.solve(b if sigma.imag else b.real)
+        assert np.abs(x - (exact if sigma.imag else exact.real)).max() < 1e-11 * np.abs(exact).max()
+        assert np.abs(lu.solve(b) - exact).max() < 1e-11 * np.abs(exact).max()
+        (_, superlu), _ = engine._factor_shift(J, sigma)  # (SuperLU's factors, in the same order)
+        real_or_not = b if sigma.imag else b.real  # (SuperLU's real factors take real right-hand sides)
+        assert np.abs(superlu.solve(real_or_not) - lu.solve(real_or_not)).max() < 1e-11 * np.abs(exact).max()
+
+
+@needs_compiler
+def test_a_zero_pivot_or_a_value_not_finite_is_singular(first_engine):
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
+    kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    for sigma in (4.0 + 0j, 3.0 + 2.0j):
+        data, _ = shifted(engine, J, sigma)
+        indptr = engine._csc[1]
+        zero = data.copy()
+        zero[indptr[7] : indptr[8]] = 0  # (a column of zeros: exactly singular)
+        assert kernel.factor(zero)[0] == ("singular",) and kernel.factor(zero)[1].all()
+        for bad in (np.nan, np.inf):
+            broken = data.copy()
+            broken[5] = bad
+            assert kernel.factor(broken)[0] == ("singular",)
+        (kind, _), singular = kernel.factor(data)  # (and the kernel factors again after them)
+        assert kind == "sparse" and not singular.any()
+
+
+@needs_compiler
+def test_the_default_solve_factors_by_the_band_kernel_with_superlus_steps():
+    """Reaction-diffusion of 600 unknowns (above jit="auto"'s compiled steps: the general path): the
+    default factors in C (stats["band_lu"]), jit=False by SuperLU; the same steps, Newton iterations and
+    factorisations, and the same values to rounding."""
+    compiled = scaling_models.reaction_diffusion(300).compile()
+    span, t_eval = scaling_models.T_SPAN["reaction_diffusion"], np.linspace(0.0, 1.0, 5)
+    banded = dm.solve(compiled, span, t_eval=t_eval)
+    superlu = dm.solve(compiled, span, t_eval=t_eval, jit=False)
+    assert banded.stats["band_lu"].startswith("machine code (band widths 4 and 4; cache: ")
+    assert "band_lu" not in superlu.stats and "compiled_cache" not in banded.stats  # (its own: no step compiled)
+    for key in ("steps", "rejected_steps", "newton_iterations", "lu_decompositions", "residual_evaluations"):
+        assert banded.stats[key] == superlu.stats[key], key
+    for name in ("c_1", "c_150", "w_300"):
+        assert np.abs(banded[name] - superlu[name]).max() < 1e-12 * np.abs(superlu[name]).max()
+
+
+@needs_compiler
+def test_the_memory_estimate_counts_the_band_storage(first_engine):
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
+    span = scaling_models.T_SPAN["reaction_diffusion"]
+    rows, cols = radau_sparse.jacobian_pattern(compiled)
+    n, D, s = engine.n, engine.D, 3
+    entries = band.band_entries(engine._order, rows, cols, n, D)
+    parts = backend.memory_parts(compiled, span, 1, backend.RadauOptions(rtol=1e-6, atol=1e-6, stages=s), "casadi")
+    assert parts == {
+        "Newton matrices (sparse)": rows.size * 8 * (s + 1) + (s + 2 * band.BAND_SPARE_BUFFERS) * entries * 16
+    }
+    kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    for sigma in (4.0 + 0j, 3.0 + 2.0j):
+        lu = kernel.factor(shifted(engine, J, sigma)[0])[0][1]
+        assert lu.packed.nbytes <= entries * 16  # (each system's buffer within what is counted for it)
+
+
+def test_a_wide_band_keeps_superlu():
+    """A 5-point Laplacian on a 30 x 30 grid, in its reverse Cuthill-McKee order: a band ~60 wide."""
+    q = 30
+    k = np.arange(q * q)
+    i, j = divmod(k, q)
+    rows = np.concatenate([k, k[i > 0], k[i < q - 1], k[j > 0], k[j < q - 1]])
+    cols = np.concatenate([k, k[i > 0] - q, k[i < q - 1] + q, k[j > 0] - 1, k[j < q - 1] + 1])
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    pattern = sparse.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(q * q, q * q))
+    order = np.asarray(reverse_cuthill_mckee(pattern, symmetric_mode=True), dtype=np.int64)
+    assert band.band_entries(order, rows, cols, q * q, q * q) is None
+    position = np.argsort(order)
+    ordered = sparse.csc_matrix((np.ones(rows.size), (position[rows], position[cols])), shape=(q * q, q * q))
+    assert band.band_kernel(order, ordered.indices, ordered.indptr, find_compiler() or "cc") is None
