@@ -133,12 +133,19 @@ class CompiledDAE:
             return kept[0]
         return hashlib.sha256(repr(kept).encode()).hexdigest()
 
-    def cached(self, key, build):
+    def cached(self, key, build, on: tuple | None = None):
         """``build()``, computed once per key and kept with this model (not pickled): generated
-        functions that a solver would otherwise rebuild on every solve."""
-        if key not in self._cache:
-            self._cache[key] = build()
-        return self._cache[key]
+        functions that a solver would otherwise rebuild on every solve.  ``on``: the fields it is made
+        from, where a copy may change them (``dataclasses.replace`` shares the cache): kept beside it, and
+        built anew where the model's are not those same objects."""
+        if on is None:
+            if key not in self._cache:
+                self._cache[key] = build()
+            return self._cache[key]
+        kept = self._cache.get(key)
+        if kept is None or len(kept[0]) != len(on) or any(a is not b for a, b in zip(kept[0], on, strict=True)):
+            kept = self._cache[key] = (on, build())
+        return kept[1]
 
     @property
     def numeric(self):
@@ -154,7 +161,7 @@ class CompiledDAE:
     def index(self) -> int:
         """Highest index over the constraints (0 for a pure ODE), computed once per model (a solve asks
         several times: 70 ms a time over the 5 x 10^4 constraints of 10^5 unknowns)."""
-        return self.cached("index", lambda: max((c.index for c in self.constraints), default=0))
+        return self.cached("index", lambda: max((c.index for c in self.constraints), default=0), on=(self.constraints,))
 
     @property
     def constraint_index(self) -> dict[str, int]:

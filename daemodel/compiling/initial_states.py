@@ -447,7 +447,7 @@ def branch_check_functions(compiled):
         determining = [c.determining for c in compiled.constraints]
         return compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
 
-    return compiled.cached("branch-check-functions", build)
+    return compiled.cached("branch-check-functions", build, on=(compiled.constraints, compiled.algebraics))
 
 
 def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray) -> None:

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import pytest
 import sympy as sp
 
 import daemodel as dm
-from daemodel.problems import PROBLEMS
+from daemodel.compiling.initial_states import branch_check_functions
+from daemodel.problems import PENDULUM, PROBLEMS
 
 
 def index_by_search_from_each(compiled) -> tuple[int, ...]:
@@ -67,3 +71,23 @@ def test_algebraic_index_of_a_chain_reaching_an_index_two_variable():
     assert compiled.algebraic_index == expected
     assert [compiled.constraints[j].index for j in compiled.determined_by] == [1] * 30 + [2]
     assert set(expected) == {2}  # (every w, matched to an index-1 row, reaches lam through the chain)
+
+
+def test_a_copy_with_other_constraints_does_not_reuse_their_cached_index_or_branch_check():
+    """dataclasses.replace shares the model's cache; the index and the branch check's functions, kept
+    there since 6bf1b97, are made from the constraints, so a copy with other constraints makes its own
+    (the pendulum's index 2 was read back for a copy whose constraint says index 1)."""
+    compiled = PENDULUM.model().compile()
+    assert compiled.index == 2
+    *_, values = branch_check_functions(compiled)
+    lowered = tuple(dataclasses.replace(c, chain=c.chain[-1:]) for c in compiled.constraints)
+    copy = dataclasses.replace(compiled, constraints=lowered)
+    assert copy.index == 1 and compiled.index == 2
+    x = sp.Symbol(compiled.algebraics[0].name)
+    other = tuple(dataclasses.replace(c, chain=(*c.chain[:-1], c.chain[-1] + x**3)) for c in compiled.constraints)
+    copy = dataclasses.replace(compiled, constraints=other)
+    fresh = dataclasses.replace(copy, _cache={})
+    at = (0.0, np.array([compiled.y0]), np.array([compiled.z0]) + 1.0, np.array([compiled.parameter_values]))
+    want, got = branch_check_functions(fresh), branch_check_functions(copy)
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert np.allclose(got[2](*at), want[2](*at)) and not np.allclose(values(*at), want[2](*at))

@@ -1,6 +1,8 @@
 """Signs of determinants for the branch check: sparse LU against dense slogdet, permutation parity
 against a count of inversions, and the branch check itself on 200 algebraic variables."""
 
+import itertools
+
 import numpy as np
 import pytest
 import scipy.sparse as sparse
@@ -38,6 +40,31 @@ def test_the_parity_of_permutations_near_the_identity():
             assert odd_permutation(p) == inversions(p) % 2, p
         cycle = np.r_[1:n, 0]  # (one cycle through all n: n - 1 transpositions)
         assert odd_permutation(cycle) == (n - 1) % 2
+
+
+def test_the_parity_of_every_small_permutation_and_of_long_cycles_in_any_order():
+    """The passes' early stop (daedd48) against the inversions' parity on every permutation of up to 7
+    and random ones of 8 and 9; and one cycle through all n visited in a random order (its least index
+    reaches the others only at the last pass) beside many 2-cycles, up to 2^16 + 1."""
+    for n in range(8):
+        for p in itertools.permutations(range(n)):
+            assert odd_permutation(np.array(p, dtype=np.int64)) == inversions(p) % 2, p
+    rng = np.random.default_rng(3)
+    for n in (8, 9):
+        for _ in range(300):
+            p = rng.permutation(n)
+            assert odd_permutation(p) == inversions(p) % 2, p
+    for n in (1000, 2**16 + 1):
+        visit = rng.permutation(n)
+        cycle = np.empty(n, dtype=np.int64)
+        cycle[visit] = np.roll(visit, -1)
+        assert odd_permutation(cycle) == (n - 1) % 2
+        pairs = cycle.copy()
+        half = visit[: 2 * (n // 4)].reshape(-1, 2)  # (these as 2-cycles, the rest one cycle of its own)
+        rest = visit[2 * (n // 4) :]
+        pairs[half[:, 0]], pairs[half[:, 1]] = half[:, 1], half[:, 0]
+        pairs[rest] = np.roll(rest, -1)
+        assert odd_permutation(pairs) == (len(half) + len(rest) - 1) % 2
 
 
 def test_sparse_signs_are_dense_slogdets_signs():
