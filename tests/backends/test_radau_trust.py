@@ -212,6 +212,33 @@ def test_five_stages_run_the_pendulum_over_a_thousand(pendulum):
     assert float(np.abs(sol["y5"] - z).max()) < 1e-3
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="seven stages given at loose rtol on index 2: Newton's stopping tolerance (RADAU5's min(0.03, "
+    "rtol^0.5), 0.01 at rtol 1e-4) leaves stage errors that the s = 7 estimate does not see shrink with h, "
+    "and h collapses.  Measured on the pendulum over [0, 20]: rtol = atol = 1e-4 a StepLimitError at "
+    "t = 4.1 (h = 6e-6; whole-polynomial guess of becd241: at t = 0.67), rtol 1e-4, atol 1e-6 a step "
+    "size underflow at t = 4.4 ('the error estimate kept shrinking the step'; becd241: success after "
+    "83,450 attempts); with newton_tol=1e-10 both run in 626 and 625 attempts within 0.05 rtol of the "
+    "reference (the torch engine at rtol = atol = 1e-4 in 1,304).  Car axis, squeezer and "
+    "Fekete run at s = 7, rtol 1e-3 to 1e-5, in 26-66 steps.",
+)
+@pytest.mark.parametrize("atol", [1e-4, 1e-6])
+def test_seven_stages_at_a_loose_rtol_run_the_pendulum(pendulum, atol):
+    from scipy.integrate import solve_ivp
+
+    rtol, times = 1e-4, np.linspace(0.0, 20.0, 21)
+    sol = dm.solve(pendulum, (0.0, 20.0), rtol=rtol, atol=atol, stages=7, t_eval=times)
+    assert sol.status == "success" and sol.stats["attempts"] < 5_000
+    # the pendulum's angle: phi'' = -cos(phi) (m = lam = 1), x = cos(phi), y = sin(phi)
+    phi = solve_ivp(
+        lambda t, u: [u[1], -np.cos(u[0])], (0.0, 20.0), [0.0, 1.0], method="DOP853", rtol=1e-13, atol=1e-13,
+        t_eval=times,
+    ).y[0]  # fmt: skip
+    assert float(np.abs(np.ravel(sol["y1"]) - np.cos(phi)).max()) < 10 * rtol  # (newton_tol=1e-10: < 0.05 rtol)
+    assert float(np.abs(np.ravel(sol["y2"]) - np.sin(phi)).max()) < 10 * rtol
+
+
 # ---- grids, tolerances, devices, output times ----------------------------------------------
 
 
