@@ -377,6 +377,22 @@ def test_too_few_newton_iterations_are_named_as_the_cause():
     )
 
 
+def test_an_underflow_by_the_error_estimate_names_newtons_tolerance_too():
+    """The step size underflow where the error estimate kept shrinking the step said only that the solution may
+    blow up or leave f's domain; the pendulum at s = 7, rtol 1e-4, atol 1e-6 (smooth, bounded) ended there at
+    t = 4.4 because Newton's tolerance left stage errors that do not shrink with h (newton_tol=1e-10 ran it in
+    625 attempts: test_seven_stages_at_a_loose_rtol_run_the_pendulum)."""
+    from daemodel.backends.radau.control import underflow_error
+
+    message = str(underflow_error(4.4e-14, 4.42153, "the error estimate kept shrinking the step", None))
+    assert message == (
+        "radau: step size underflow at t = 4.42153 (h = 4.4e-14; last failure: the error estimate kept shrinking "
+        "the step); the solution may blow up or leave the domain of f there, or, where it stays smooth, Newton's "
+        "tolerance leaves stage errors that do not shrink with h (more stages at a looser rtol need a tighter one): "
+        "give a smaller newton_tol (e.g. 1e-10), or leave stages out"
+    )
+
+
 # ---- a time limit's signal is not a singular system ------------------------------------------------
 def test_a_time_limit_inside_a_factorisation_is_not_taken_for_a_singular_system(monkeypatch):
     """SuperLU says "exactly singular" with a RuntimeError, and radau takes that for a singular matrix;
