@@ -37,6 +37,8 @@ KEEP_H_BAND = (1.0, 1.2)
 # rounding floor (Radau5Controller.rounding_floor): the estimates are noise there, and the prediction,
 # which squares them, drove a chain of 40 pendulums (s = 7, rtol 1e-13) to step size underflow.
 PREDICTIVE = True
+# The last failure of a step size underflow that the error estimate caused, not Newton (underflow_error).
+SHRUNK_BY_ESTIMATE = "the error estimate kept shrinking the step"
 # The same where the step is compiled (a refactorisation costs 10-50 Newton iterations there): growth
 # up to 1.5x keeps h (RADAU5 lets users widen QUOT2 where factorisations are costly); measured with
 # REUSE_THETA_COMPILED, see there.
@@ -187,7 +189,7 @@ class Radau5Controller:
             python_next = False
             head = sequence.before_attempt(SCALAR, carried, settings)
             if head["underflow"]:
-                raise underflow_error(h, t, "the error estimate kept shrinking the step", None)
+                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None)
             h = head["h"]
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
             failed = result is None
@@ -297,6 +299,13 @@ def underflow_error(new, t, why, sample) -> ConvergenceError:
         )
     else:
         cause = "the solution may blow up or leave the domain of f there"
+    if why is not None and (why == SHRUNK_BY_ESTIMATE or why.startswith("error estimate ")):
+        # (the pendulum at s = 7, rtol 1e-4, atol 1e-6 ended here at t = 4.4, smooth and bounded: RADAU5's Newton
+        # tolerance, 0.01 there, left stage errors that do not shrink with h; newton_tol=1e-10 ran it in 625 attempts)
+        cause += (
+            ", or, where it stays smooth, Newton's tolerance leaves stage errors that do not shrink with h (more "
+            "stages at a looser rtol need a tighter one): give a smaller newton_tol (e.g. 1e-10), or leave stages out"
+        )
     return ConvergenceError(
         f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); {cause}"
     )
