@@ -689,3 +689,25 @@ def test_switch_excursions_skipped_one_by_one_stay_within_the_tolerance_together
     if len(times) % 2:  # (a hump still on at t1)
         exact += k * (t1 - times[-1])
     assert sol.status != "success" or abs(sol["w"][-1] - exact) < 100 * rtol * (1.0 + abs(exact))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="casadi-idas at rtol 1e-7 counts 4 of the 6 crossings of 0.99999 - sin(t + 1.5779) (status success, n = 4); "
+    "at c = 0.999999, 0 of 6 in 8 of 16 phases: an excursion between IDAS's outputs (read by solving again, no inner "
+    "samples) that the three-output parabola does not show is not looked into",
+)
+def test_a_declared_event_on_a_hump_10_to_100_tolerances_deep_under_casadi_idas():
+    c, phi, t1 = 0.99999, 1.5779, 20.0
+    m = dm.Model("humps")
+    m.states("s c n")
+    m.ode("s", "c")
+    m.ode("c", "-s")
+    m.ode("n", "0")
+    m.initial(s=math.sin(phi), c=math.cos(phi), n=0.0)
+    m.event("hump", f"{c} - s", reset={"n": "n + 1"})
+    sol = dm.solve(m, (0.0, t1), method="casadi-idas", rtol=1e-7, atol=1e-7, t_eval=[0.0, t1])
+    exact = _hump_times(c, t1 + phi) - phi
+    exact = exact[exact > 0]
+    found = sol.events["hump"]["t"][0]
+    assert sol["n"][-1] == len(exact) == 6 and np.abs(found - exact).max() < 1e-4
