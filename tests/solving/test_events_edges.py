@@ -711,3 +711,20 @@ def test_a_declared_event_on_a_hump_10_to_100_tolerances_deep_under_casadi_idas(
     exact = exact[exact > 0]
     found = sol.events["hump"]["t"][0]
     assert sol["n"][-1] == len(exact) == 6 and np.abs(found - exact).max() < 1e-4
+
+
+def test_a_hump_midway_between_a_scans_first_sample_and_its_neighbour_is_looked_into():
+    # 0.99999 - sin t sampled symmetrically about its minimum: the output 0.03 before the peak and the first inner
+    # sample 0.03 after it read the same value, so neither was nearer zero than the other and the hump (1e-5 deep,
+    # 0.0089 wide) was looked into by neither the edge nor the interior test
+    from daemodel.solving.between import excursions
+
+    c, peak = 0.99999, math.pi / 2
+    T = np.array([peak - 0.03, peak + 0.27])  # (four inner samples 0.06 apart: the first at peak + 0.03)
+
+    def read(t):
+        return (c - np.sin(np.asarray(t, dtype=float)))[:, None]
+
+    F = read(T)
+    found = list(excursions(read, T, F, np.ones(F.shape, dtype=bool), 4))
+    assert len(found) == 1 and abs(found[0].t - peak) < math.acos(c) and found[0].side == 1.0
