@@ -188,7 +188,8 @@ def _edge_extrema(times: np.ndarray, s: np.ndarray, g: np.ndarray) -> list:
         side = s[j]
         if side == 0 or not (np.all(s[three] == side) and np.all(np.sign(g[three]) == side)):
             continue
-        if not side * g[j] < side * g[near]:
+        # (at the first sample a tie with its neighbour counts: the interior test takes only a tie on its right)
+        if not (side * g[j] <= side * g[near] if j == 0 else side * g[j] < side * g[near]):
             continue
         curve, vertex, value = _parabola(*times[three], *g[three])
         inside = min(times[j], times[near]) < vertex < max(times[j], times[near])

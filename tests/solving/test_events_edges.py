@@ -689,3 +689,42 @@ def test_switch_excursions_skipped_one_by_one_stay_within_the_tolerance_together
     if len(times) % 2:  # (a hump still on at t1)
         exact += k * (t1 - times[-1])
     assert sol.status != "success" or abs(sol["w"][-1] - exact) < 100 * rtol * (1.0 + abs(exact))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="casadi-idas at rtol 1e-7 counts 4 of the 6 crossings of 0.99999 - sin(t + 1.5779) (status success, n = 4); "
+    "at c = 0.999999, 0 of 6 in 8 of 16 phases: an excursion between IDAS's outputs (read by solving again, no inner "
+    "samples) that the three-output parabola does not show is not looked into",
+)
+def test_a_declared_event_on_a_hump_10_to_100_tolerances_deep_under_casadi_idas():
+    c, phi, t1 = 0.99999, 1.5779, 20.0
+    m = dm.Model("humps")
+    m.states("s c n")
+    m.ode("s", "c")
+    m.ode("c", "-s")
+    m.ode("n", "0")
+    m.initial(s=math.sin(phi), c=math.cos(phi), n=0.0)
+    m.event("hump", f"{c} - s", reset={"n": "n + 1"})
+    sol = dm.solve(m, (0.0, t1), method="casadi-idas", rtol=1e-7, atol=1e-7, t_eval=[0.0, t1])
+    exact = _hump_times(c, t1 + phi) - phi
+    exact = exact[exact > 0]
+    found = sol.events["hump"]["t"][0]
+    assert sol["n"][-1] == len(exact) == 6 and np.abs(found - exact).max() < 1e-4
+
+
+def test_a_hump_midway_between_a_scans_first_sample_and_its_neighbour_is_looked_into():
+    # 0.99999 - sin t sampled symmetrically about its minimum: the output 0.03 before the peak and the first inner
+    # sample 0.03 after it read the same value, so neither was nearer zero than the other and the hump (1e-5 deep,
+    # 0.0089 wide) was looked into by neither the edge nor the interior test
+    from daemodel.solving.between import excursions
+
+    c, peak = 0.99999, math.pi / 2
+    T = np.array([peak - 0.03, peak + 0.27])  # (four inner samples 0.06 apart: the first at peak + 0.03)
+
+    def read(t):
+        return (c - np.sin(np.asarray(t, dtype=float)))[:, None]
+
+    F = read(T)
+    found = list(excursions(read, T, F, np.ones(F.shape, dtype=bool), 4))
+    assert len(found) == 1 and abs(found[0].t - peak) < math.acos(c) and found[0].side == 1.0
