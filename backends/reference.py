@@ -634,7 +634,7 @@ class _SampleRun:
         ends = None if error is BranchError else self.algebraic.branch_ends(self.point, self.p)
         if ends is not None:
             error, reason = BranchError, reason + ends
-        return error(f"reference: near t = {t:.8g} ({self._where()}): {reason}")
+        return error(f"reference: near t = {t:.8g} ({self._where()}): {reason}", float(t))
 
     def _stopped(self, solver, message: str) -> ConvergenceError:
         """The integrator gave up (in scipy's words: the step size underflowed, LSODA's work limit, ...)."""
@@ -643,7 +643,8 @@ class _SampleRun:
         return ConvergenceError(
             f"reference: the integrator stopped near t = {solver.t:.8g} ({self._where()}): {message}; the "
             f"largest state there is '{names[big]}' = {solver.y[big]:.3g}: the solution may blow up (a singularity) "
-            "at this time. End t_span before it, or check the equations"
+            "at this time. End t_span before it, or check the equations",
+            float(solver.t),
         )
 
     def _step_limit(self, detector: StiffnessDetector, projected: float | None = None) -> StepLimitError:
@@ -664,5 +665,6 @@ class _SampleRun:
             )
         return StepLimitError(
             f"{head} (h = {self.h:.3g}) before t1 = {self.t1:g} ({self._where()}); raise max_steps, shorten t_span, "
-            f"or {hint}"
+            f"or {hint}",
+            float(self.t),
         )

@@ -26,7 +26,12 @@ class ModelError(DaemodelError, ValueError):
 
 
 class SolverError(DaemodelError, RuntimeError):
-    """Base class of every failure of a method on well-formed input."""
+    """Base class of every failure of a method on well-formed input.  ``t`` is where the method stopped,
+    where it says (casadi-idas: the time IDAS printed), else None."""
+
+    def __init__(self, message: str, t: float | None = None):
+        super().__init__(message)
+        self.t = t
 
 
 class InvalidNameError(ModelError):

@@ -152,13 +152,14 @@ def idas_failure(error: str, printed: str, *, sample: int, model: str, grid, max
             )
         return StepLimitError(
             f"{name}: max_num_steps = {max_num_steps:,} steps {ended} ({where}); raise max_num_steps (the limit "
-            "per output interval) or loosen rtol/atol, or, if the solution is singular there, shorten t_span"
+            "per output interval) or loosen rtol/atol, or, if the solution is singular there, shorten t_span",
+            t,
         )
     if code in IDAS_REASONS:
         reason, fix = IDAS_REASONS[code]
-        return ConvergenceError(f"{name}: {reason.format(at=at)} ({where}, {code}); {fix}")
+        return ConvergenceError(f"{name}: {reason.format(at=at)} ({where}, {code}); {fix}", t)
     said = last_lines(printed) or last_lines(error)
-    return ConvergenceError(f"{name}: {function} failed{at} ({where}, {code}): {said}")
+    return ConvergenceError(f"{name}: {function} failed{at} ({where}, {code}): {said}", t)
 
 
 def slopes_function(dae: dict):

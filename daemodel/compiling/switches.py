@@ -307,15 +307,37 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
             return sp.Integer(int(np.sign(number)))
         return inner if number >= 0 else -inner
     if isinstance(expr, sp.Max | sp.Min):
-        if not all(decide(a) for a in args):
+        kept = _contenders(args, decide, value, 1 if isinstance(expr, sp.Max) else -1)
+        if len(kept) == len(args):
             return expr if unchanged else expr.func(*args)
-        pick = 0
-        for j in range(1, len(args)):
-            difference = value(sp.sympify(args[pick] - args[j]))
-            if (difference < 0) if isinstance(expr, sp.Max) else (difference > 0):
-                pick = j
-        return args[pick]
+        return kept[0] if len(kept) == 1 else expr.func(*kept)
     return expr if unchanged else expr.func(*args)
+
+
+def _contenders(args, decide, value, way: int) -> list:
+    """The arguments of a ``Max`` (``way`` = 1) or ``Min`` (-1) that may still be its value once the
+    switching functions ``decide`` accepts (its arguments' differences, :func:`find_switches`) are
+    fixed by ``value``: those that lose no decided comparison (a tie to the earlier argument).  Only
+    the comparisons between them are left, all undecided: ``Min(1, x)`` is ``1`` or ``x`` on a piece
+    of the state event ``1 - x`` (before, it was locked only where every argument, the constant too,
+    was of the variables, and stayed a kink inside each piece); ``Max(x, sin(t), 0)`` keeps
+    ``Max(sin(t), 0)`` where ``x`` is below both, for the time breakpoints to cut."""
+    k = len(args)
+    out = set(range(k))
+    for i in range(k):
+        for j in range(i + 1, k):
+            difference = sp.sympify(args[i] - args[j])
+            if not decide(difference):
+                continue
+            number = way * value(difference)  # (> 0: i wins, < 0: j wins, 0: a tie, to the earlier)
+            out.discard(j if number >= 0 else i)
+    if not out:  # (sides that contradict one another, a > b > c > a: the first one standing in turn)
+        pick = 0
+        for j in range(1, k):
+            if way * value(sp.sympify(args[pick] - args[j])) < 0:
+                pick = j
+        return [args[pick]]
+    return [args[i] for i in sorted(out)]
 
 
 def branch_model(compiled, tau: float, p: np.ndarray):

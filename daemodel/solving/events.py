@@ -46,7 +46,14 @@ import warnings
 import numpy as np
 
 from daemodel.compiling.switches import has_state_switches, has_time_switches
-from daemodel.errors import EventLimitError, EventLocationError, SwitchError, ZenoError
+from daemodel.errors import (
+    ConvergenceError,
+    EventLimitError,
+    EventLocationError,
+    StepLimitError,
+    SwitchError,
+    ZenoError,
+)
 from daemodel.solving.between import (
     armed_outputs,
     dense_bracket,
@@ -93,6 +100,9 @@ MAX_LOCATION_ITERATIONS, BISECT_AFTER = 100, 24
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
+# A detection solve on locked branches that fails at a time is solved again to this fraction of the way
+# there, where the crossing that its branch went past is looked for (_detect).
+BEFORE_FAILURE = 0.99
 # The first trial of an event's location is where the dense output crosses (between.dense_crossing); the
 # second is GUESS_WIDTH of the bracket past it.
 GUESS_WIDTH = 1e-4
@@ -220,11 +230,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             warnings.simplefilter("always")
             clean = [t]  # (read between by the search's stop up to there, and nothing found)
             stop = crossing_stop(compiled, begin, P, options, spent, clean)  # (it ends at a crossing, not at t1)
-            # (with its dense output, where the location's first trial is read, whatever the caller keeps)
-            sol = _span_solve(
-                backend, piece, t, t1, Y, Z, P, start.batched, options, stop=stop, t_eval=None, dense_output=True,
-                **carried,
-            )  # fmt: skip
+            sol, failed = _detect(backend, piece, t, t1, Y, Z, P, start.batched, options, stop, carried, lock)
         carried = {}
         all_stats.append(sol.stats)
         setup_time += sol.setup_time
@@ -267,6 +273,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         location += trials
         if hidden is not None:
             found, hit = hidden, {}
+        if failed is not None and found is None:  # (no switch crossed before the failure: the model's own)
+            raise failed
         if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
             # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
             # from there, with the step it had reached)
@@ -473,6 +481,31 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         breakpoints=joined_breakpoints(marks),
         dense=joined_in_time(edges, dense),
     )
+
+
+def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop, carried: dict, lock: bool):
+    """A piece's detection solve from ``t`` towards ``t1`` (with its dense output, where the location's first
+    trial is read, whatever the caller keeps) and None.  Where its switches are locked and it fails at a
+    time the method names (:attr:`~daemodel.errors.SolverError.t`), the solve again to
+    :data:`BEFORE_FAILURE` of the way there, and the error, for the caller to raise unless a crossing comes
+    before it: the branch continued past its switch can leave the model's domain (the wheelset's creep
+    left unsaturated past its saturation failed IDAS's Newton 6 ms after it) in a method that does not
+    stop at a crossing (``backend.stops``)."""
+
+    def run(end: float):
+        return _span_solve(
+            backend, piece, t, end, Y, Z, P, batched, options, stop=stop, t_eval=None, dense_output=True, **carried
+        )
+
+    try:
+        return run(t1), None
+    except (ConvergenceError, StepLimitError) as error:
+        if not lock or error.t is None or not t < error.t < t1:
+            raise
+        try:
+            return run(t + BEFORE_FAILURE * (error.t - t)), error
+        except (ConvergenceError, StepLimitError):
+            raise error from None
 
 
 def _finite(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) -> None:
