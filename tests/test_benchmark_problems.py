@@ -234,15 +234,16 @@ def test_wheelset_initial_multipliers_are_the_test_sets(wheelset):
 
 @pytest.mark.slow
 def test_wheelset_radau_meets_the_test_set_reference(wheelset):
-    """radau at rtol = atol = 1e-6 over [0, 10] (~6,000 steps, ~82 switches of the creep forces' friction
-    limit located, 10-30 s) meets the test set's reference (DASSL at 1e-9) to 4.5 digits in the positions,
-    velocities and contact coordinates, and the multipliers to 5.6 (6.1 when 7 of the switches flipped
+    """radau at rtol = atol = 1e-6 over [0, 10] (three stages: ~10,000 steps, ~320 switches of the creep
+    forces' friction limit located, 10-30 s) meets the test set's reference (DASSL at 1e-9) to 4.5 digits
+    in the positions, velocities and contact coordinates, and the multipliers to 5.6 (6.1 when 7 of the switches flipped
     straight back on the branch their value at zero chose).  The bounds follow from rtol = 1e-6 over a
     stiff 10 s run, not from one run's digits: the states' digits move by +-0.2 with the first step or
     rtol changed in its ninth digit (4.41-4.81 over h0 = 1e-6...1e-3 with static pivoting's order, 4.52-4.79
     with partial pivoting's; 4.47 at the defaults), so their bound is 4.3.  Three stages, which these
     bounds were set for: the default at rtol 1e-6 is five since 91f96e8, which read 4.32 and 5.27 digits
-    (3,646 steps; three stages 4.73 and 5.6), the multipliers' 5.5 missed: open, not loosened here."""
+    (3,646 steps; three stages 4.73 and 5.6), the multipliers' 5.5 missed; with Min(1, ...) locked
+    (ffedb4f) five stages read 4.86 and 6.75 (6,897 steps, 280 switches), three 4.77 and 5.99."""
     sol = dm.solve(wheelset, WHEELSET.t_span, rtol=1e-6, atol=1e-6, stages=3, t_eval=[0.0, 10.0], max_steps=400_000)
     assert sol.status == "success"
     print(f"wheelset, radau at rtol 1e-6: {digits(sol, WHEELSET, WHEELSET_CHECKED):.1f} digits")
@@ -264,8 +265,9 @@ def test_wheelset_radau_takes_about_radau5s_steps(wheelset):
     and 30,488 rejections before each event's search stopped at its crossing (each solved the rest of
     [t, 10]); 5,907 and 572 with 68 switches located.  The trial solves that locate them are counted
     apart (``location_steps``), at most 10 a switch (RADAU5 integrates through the switches): 401 trials
-    of 408 steps for 68 switches, beside 5,415 steps and 587 rejections.  (Seen as events, the 259
-    crossings and crossings back inside one step that are below the tolerance were 2,934 trials.)"""
+    of 408 steps for 68 switches, beside 5,415 steps and 587 rejections, while Min(1, ...) was not locked
+    and ~230 crossings and crossings back inside one step were integrated through; locked (ffedb4f),
+    280 switches located in 2,604 trials of 2,636 steps, beside 4,237 steps and 312 rejections."""
     from daemodel.backends.radau.compiled import find_compiler
 
     sol = dm.solve(wheelset, WHEELSET.t_span, rtol=1e-6, atol=1e-6, jit=find_compiler() is not None)
