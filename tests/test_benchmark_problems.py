@@ -251,6 +251,20 @@ def test_wheelset_radau_meets_the_test_set_reference(wheelset):
     assert digits(sol, WHEELSET, ("lam1", "lam2")) >= 5.5
 
 
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="known defect: casadi-idas locates 12 of the wheelset's ~280 crossings of its creep saturation at "
+    "rtol 1e-6 (radau 280; 278 at 1e-9): an excursion between two of its 101 outputs a piece (0.25006-0.29984, "
+    "outputs at 0.2035 and 0.303) is integrated through on the locked branch, 2e-2 off by t = 0.35 against "
+    "radau at 1e-9 (9e-6 at t = 0.24); 1.39 digits at t = 10 with status success (0.84-1.9 before the lock)",
+)
+def test_wheelset_casadi_idas_meets_the_test_set_reference(wheelset):
+    """IDAS at rtol = atol = 1e-6 within 1.3 digits of radau's 4.8 at the same tolerance, or says it is not."""
+    sol = dm.solve(wheelset, WHEELSET.t_span, method="casadi-idas", rtol=1e-6, atol=1e-6, t_eval=[0.0, 10.0])
+    assert sol.status != "success" or digits(sol, WHEELSET, WHEELSET_CHECKED) >= 3.5
+
+
 # RADAU5 (Assimulo's radau_decsol.c, built as benchmarks/radau5_counts.py says) on the same 27-unknown
 # model with its own Jacobian, NIND1/NIND2 from algebraic_index and its defaults: 3,083 accepted and 233
 # rejected steps at rtol = atol = 1e-6 (its internal tolerance 1e-5), 5,049 and 619 at (10 tol)^1.5, whose
