@@ -323,7 +323,7 @@ def test_the_band_order_solves_every_shifted_system(first_engine):
     Cuthill-McKee order, which holds no more entries than COLAMD's, and each solve is A^-1 b."""
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
     order = engine._order
-    assert order is not None and np.array_equal(np.sort(order), np.arange(engine.D))
+    assert order is not None and np.array_equal(np.sort(order.columns), np.arange(engine.D))
     D, n = engine.D, engine.n
     rows, cols = radau_sparse.jacobian_pattern(compiled)
     fill = radau_sparse.factor_entries(rows, cols, n, D)
