@@ -264,8 +264,15 @@ def sparse_sign_det(matrix) -> float:
     """Sign of the determinant of a sparse square matrix (0 when singular), from SuperLU's factors."""
     import scipy.sparse.linalg as splinalg
 
+    from daemodel.compiling.determinants import triangular_sign
+
     if matrix.shape[0] == 0:
         return 1.0
+    entries = matrix.tocoo()
+    if np.isfinite(entries.data).all():  # (one side of the diagonal: its diagonal's sign, no LU)
+        triangular = triangular_sign(entries.row, entries.col, entries.data, matrix.shape[0])
+        if triangular is not None:
+            return triangular
     try:
         lu = splinalg.splu(matrix)
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
