@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from daemodel.backends.radau.linalg import BandOrder, band_order, pattern_matrix
+from daemodel.backends.radau.linalg import BandOrder, band_order, pattern_matrix, sparse_lu
 
 from daemodel.errors import DaemodelError
 
@@ -423,3 +423,25 @@ def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int, band: l
 
         order = band_factors(compiled, order, csc, band)
     return order, csc, np.searchsorted(keys, keys_J), np.searchsorted(keys, keys_M)
+
+
+def factor_shifts(values: np.ndarray, shifts, csc: tuple, pos_J: np.ndarray, pos_M: np.ndarray, order) -> tuple:
+    """``sigma M - J`` factored for each of ``shifts`` (:func:`.linalg.sparse_lu`: SuperLU's factors, or the
+    band kernel's where ``order`` is one), J's nonzeros ``values`` placed at ``pos_J`` and M's at ``pos_M`` of
+    :func:`shifted_layout`'s ``csc`` = (indices, indptr, nnz): ``({sigma: factors}, singular (1,))``.  -J's
+    entries are placed once for all the shifts (a scatter of 3 x 10^5 at 10^5 unknowns, 2 of 3 saved), each
+    shift adds sigma at M's: the same values as placing both per shift."""
+    import scipy.sparse as sparse
+
+    indices, indptr, nnz = csc
+    D = len(indptr) - 1
+    minus_J = np.zeros(nnz)
+    minus_J[pos_J] = -values
+    lu, singular = {}, None
+    for sigma in shifts:
+        real = sigma.imag == 0
+        data = minus_J.copy() if real else minus_J.astype(complex)
+        data[pos_M] += sigma.real if real else sigma
+        lu[sigma], bad = sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(D, D)), order)
+        singular = bad if singular is None else singular | bad
+    return lu, singular
