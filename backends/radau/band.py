@@ -19,10 +19,11 @@ from __future__ import annotations
 import weakref
 
 import numpy as np
+from daemodel.backends.radau.linalg import BandOrder, band_storage
 
 # The band kernel is used where the band storage (LDAB rows) is at most this many entries a column: its
 # elimination is dense in the band (kl (kl + ku) multiply-adds a column), where SuperLU's follows the
-# nonzeros; reaction-diffusion's band order has LDAB 13 (kl = ku = 4), the chain's 19
+# nonzeros; reaction-diffusion's band order has LDAB 7 (kl = ku = 2), the chain's 19
 BAND_KERNEL_MAX_LDAB = 40
 # Factors' buffers kept for reuse, of each kind (real, complex), once their factors are dropped: a fresh
 # buffer of 10-20 MB (10^5 unknowns) is new pages, and faulting them in took 2-3x the factorisation
@@ -236,7 +237,7 @@ def band_widths(indices: np.ndarray, indptr: np.ndarray) -> tuple[int, int]:
     return int(max(offset.max(initial=0), 0)), int(max(-offset.min(initial=0), 0))
 
 
-def band_entries(order: np.ndarray | None, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int | None:
+def band_entries(order: BandOrder | None, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int | None:
     """The float64 entries one real system's :class:`BandKernel` factors take (LDAB x D, the pivots and
     the entries' positions; a complex system's values take twice LDAB x D) for the Jacobian pattern
     ``(rows, cols)`` (and M's diagonal over the ``n`` differential unknowns) in the band ``order``, or
@@ -244,9 +245,7 @@ def band_entries(order: np.ndarray | None, rows: np.ndarray, cols: np.ndarray, n
     :data:`BAND_KERNEL_MAX_LDAB`): what the memory guard counts."""
     if order is None:
         return None
-    position = np.argsort(order)
-    offset = np.concatenate([position[rows] - position[cols], [0]])
-    ldab = 2 * max(int(offset.max()), 0) + max(int(-offset.min()), 0) + 1
+    ldab = band_storage(order, rows, cols)
     return ldab * D + D + 1 + -(-(2 + ldab) * D // 8) if ldab <= BAND_KERNEL_MAX_LDAB else None
 
 
@@ -280,10 +279,11 @@ def _bound(function, inputs: list, output: np.ndarray):
 class BandKernel:
     """The band LU of the shifted systems of one CSC layout (``indices``, ``indptr``: the matrix in its
     band order, :func:`.sparse.shifted_layout`), compiled by ``compiler``; ``order``: the band order
-    (unknown ``order[k]`` is the k-th row and column).  :meth:`factor` takes the matrix's CSC values.
+    (:class:`.linalg.BandOrder`: equation ``order.rows[k]`` is the k-th row, unknown ``order.columns[k]``
+    the k-th column).  :meth:`factor` takes the matrix's CSC values.
     Raises :class:`~daemodel.errors.CompileError` where the compiler fails."""
 
-    def __init__(self, order: np.ndarray, indices: np.ndarray, indptr: np.ndarray, compiler: str):
+    def __init__(self, order: BandOrder, indices: np.ndarray, indptr: np.ndarray, compiler: str):
         from daemodel.cache import Build, cached_library
 
         self.order, self.D, self.nnz = order, len(indptr) - 1, len(indices)
@@ -297,7 +297,9 @@ class BandKernel:
         self._spare = {False: [], True: []}  # (buffers of dropped factors, BAND_SPARE_BUFFERS of each kind)
         columns = np.repeat(np.arange(self.D), np.diff(indptr))
         self.positions = (self.kl + self.ku + indices - columns + self.ldab * columns).astype(float)
-        self.order_values = np.asarray(order, dtype=float)  # (the kernel's inputs are float64)
+        self.order_values = np.asarray(order.columns, dtype=float)  # (the kernel's inputs are float64)
+        # (the kernel reads b[columns[k]] into its k-th row, where equation rows[k]'s value belongs: b = rhs[match])
+        self.match = order.match
 
     @property
     def entries(self) -> int:
@@ -343,7 +345,10 @@ class BandLU:
         """``x`` with ``A x = rhs``, ``rhs`` of shape (D,) (complex on a real system: by parts)."""
         if np.iscomplexobj(rhs) and not self.complex:
             return self.solve(rhs.real) + 1j * self.solve(rhs.imag)
-        self._b[:] = rhs
+        if self.kernel.match is None:
+            self._b[:] = rhs
+        else:
+            np.take(rhs, self.kernel.match, out=self._b)
         self._call()  # (the band order applied inside, on the way in and out)
         return self._x.copy()
 
@@ -383,7 +388,7 @@ def band_factors(compiled, order, layout: tuple, outcomes: list):
     kernel = compiled.cached("radau-band-kernel", build)
     if kernel is None:
         return order
-    if not np.array_equal(kernel.order, order):  # (another order than the model's own: not its kernel)
+    if not kernel.order.same(order):  # (another order than the model's own: not its kernel)
         return order
     outcomes.append(kernel.outcome if made else "memory")
     return kernel

@@ -42,7 +42,15 @@ from daemodel.backends.radau.linalg import (
 )
 from daemodel.backends.radau.loop import MACHINE_ATTEMPT, CompiledRun, attempt_function, run_function, run_loop_source
 from daemodel.backends.radau.pivots import MATCHED_MAX_COST, PivotOrders, first_order, holds
-from daemodel.backends.radau.sparse import MAX_GROWTH, PIVOTING, StaticLU, shifted_layout, sorted_unique, unique_entries
+from daemodel.backends.radau.sparse import (
+    MAX_GROWTH,
+    PIVOTING,
+    StaticLU,
+    factor_shifts,
+    shifted_layout,
+    sorted_unique,
+    unique_entries,
+)
 
 from daemodel.errors import DaemodelError
 
@@ -486,10 +494,9 @@ class CasadiEngine(AbstractEngine):
         return step.evaluate()
 
     def _factor_shifts(self, values, shifts):
-        """Dense systems: the inverse of each ``sigma M - J`` (LAPACK), which the fused Newton step
-        applies as a matrix product; sparse ones: SuperLU's factors."""
-        if not self.dense:
-            return super()._factor_shifts(values, shifts)
+        """Dense systems: each ``sigma M - J``'s inverse (LAPACK: the fused Newton step's products)."""
+        if not self.dense:  # (sparse ones: SuperLU's or the band kernel's factors, -J placed once for all)
+            return factor_shifts(values, shifts, self._csc, self._pos_J, self._pos_M, self._order)
         minus_J = -self._dense(values)
         diagonal = slice(0, self.n * (self.D + 1), self.D + 1)  # M's diagonal in the flattened matrix
         lu, singular = {}, False
@@ -581,15 +588,8 @@ class CasadiEngine(AbstractEngine):
 
     def _factor_shift(self, values, sigma):
         """SuperLU's factors of ``sigma M - J`` (dense systems: see :meth:`_factor_shifts`)."""
-        import scipy.sparse as sparse
-
-        real = sigma.imag == 0
-
-        indices, indptr, nnz = self._csc
-        data = np.zeros(nnz, dtype=float if real else complex)
-        data[self._pos_J] = -values
-        data[self._pos_M] += sigma.real if real else sigma
-        return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(self.D, self.D)), self._order)
+        lu, singular = factor_shifts(values, (sigma,), self._csc, self._pos_J, self._pos_M, self._order)
+        return lu[sigma], singular
 
     def solve(self, lu, rhs):
         kind = lu[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -18,6 +19,32 @@ BAND_FILL_RATIO = 1.1
 # 10^5 unknowns: 17 and 18 ms for the real and complex factors against 27 and 48 with the defaults, 32 and
 # 52 in COLAMD's order; the same entries)
 BAND_RELAX, BAND_PANEL = 1, 1
+# Breadth-first sweeps of the search for a component's peripheral node (each from the last node the one
+# before reached; a chain, a 1-D grid and their leaves need 2) and the components beyond which the search
+# is not made (one Python loop each): scipy's order is then taken as it is
+PERIPHERAL_SWEEPS = 4
+PERIPHERAL_MAX_COMPONENTS = 64
+
+
+@dataclass(frozen=True)
+class BandOrder:
+    """The rows' and columns' order of a band factorisation of ``sigma M - J`` (D unknowns): unknown
+    ``columns[k]`` is the k-th column, equation ``rows[k]`` the k-th row.  They differ only where the
+    constraints were declared in another order than the algebraic variables they determine
+    (:func:`constraint_match`): ``rows = match[columns]``, ``match[u]`` the equation paired with unknown u
+    (a differential unknown's own equation; None where every unknown keeps its own row)."""
+
+    columns: np.ndarray
+    match: np.ndarray | None = None
+
+    @property
+    def rows(self) -> np.ndarray:
+        """``rows[k]``: the equation at the k-th row."""
+        return self.columns if self.match is None else self.match[self.columns]
+
+    def same(self, other: BandOrder) -> bool:
+        """Whether ``other`` is the same order."""
+        return np.array_equal(self.columns, other.columns) and np.array_equal(self.rows, other.rows)
 
 
 def dense_inverse(matrix: np.ndarray, identity: np.ndarray) -> tuple:
@@ -40,9 +67,9 @@ def dense_lu(matrix: np.ndarray):
     return ("dense", LU, piv, getrs), np.array([info > 0 or not np.isfinite(LU).all()])
 
 
-def sparse_lu(matrix, order: np.ndarray | None = None):
+def sparse_lu(matrix, order: BandOrder | None = None):
     """SuperLU's factors of a sparse CSC matrix: ``(("sparse", lu), singular (1,))``.  With ``order``
-    (:func:`band_order`) the matrix is already ``A[order][:, order]``, factored in that order (SuperLU's
+    (:func:`band_order`) the matrix is already ``A[order.rows][:, order.columns]``, factored in that order (SuperLU's
     ``NATURAL``, no ordering of its own) and ``lu.solve`` solves with ``A`` (:class:`OrderedLU`); with a
     :class:`.band.BandKernel` for ``order``, by its band LU in C (:class:`.band.BandLU`, the same ``solve``)."""
     import scipy.sparse.linalg as splinalg
@@ -62,11 +89,12 @@ def sparse_lu(matrix, order: np.ndarray | None = None):
 
 
 class OrderedLU:
-    """SuperLU's factors of ``A[order][:, order]``, solving with ``A``: ``A x = b`` is
-    ``A[order][:, order] x[order] = b[order]``."""
+    """SuperLU's factors of ``A[order.rows][:, order.columns]``, solving with ``A``: ``A x = b`` is
+    ``A[rows][:, columns] x[columns] = b[rows]``."""
 
-    def __init__(self, lu, order: np.ndarray):
+    def __init__(self, lu, order: BandOrder):
         self.lu, self.order = lu, order
+        self._rows, self._columns = order.rows, order.columns
 
     @property
     def L(self):
@@ -80,13 +108,13 @@ class OrderedLU:
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """``x`` with ``A x = rhs``, ``rhs`` of shape (D,)."""
-        y = self.lu.solve(rhs[self.order])
+        y = self.lu.solve(rhs[self._rows])
         x = np.empty_like(y)
-        x[self.order] = y
+        x[self._columns] = y
         return x
 
 
-def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) -> np.ndarray | None:
+def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) -> BandOrder | None:
     """The reverse Cuthill-McKee order of ``sigma M - J`` (J of the pattern ``(rows, cols)``, ``D``
     unknowns, ``n`` of them differential) where SuperLU's factors in that order hold at most
     :data:`BAND_FILL_RATIO` times ``fill`` entries (COLAMD's, :func:`.sparse.factor_entries`), else None.
@@ -95,21 +123,100 @@ def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) ->
     factorisation in it skips SuperLU's own ordering (COLAMD) each time and pads no supernode
     (:data:`BAND_RELAX`): 2.3x faster on reaction-diffusion's pair of systems at 10^5 unknowns.
     Elsewhere (a 2-D grid: its band is ~sqrt(D) wide) COLAMD fills less, and the order is None.
+
+    Of scipy's order and :func:`peripheral_cuthill_mckee`'s, the one with the narrower band storage is
+    taken: scipy starts each component at a node of least degree, which on reaction-diffusion's pattern
+    (every w_k a leaf of the chain of c's) is a leaf in the middle of the chain, and two fronts walk out
+    of it: band widths 4 and 4 in the declared order, 44 and 44 in a shuffled one (600 unknowns), where
+    a start at the chain's end gives 2 and 2 in either.
     """
     import scipy.sparse as sparse
     import scipy.sparse.linalg as splinalg
     from scipy.sparse.csgraph import reverse_cuthill_mckee
 
     matrix = pattern_matrix(rows, cols, n, D)
-    order = reverse_cuthill_mckee((abs(matrix) + abs(matrix).T).tocsr(), symmetric_mode=True)
-    ordered = sparse.csc_matrix(matrix[order][:, order])
+    candidates, paired_rows = [], constraint_match(rows, cols, n, D)
+    for match in (None,) if paired_rows is None else (None, paired_rows):
+        paired = matrix if match is None else matrix[match]  # (row u: the equation paired with unknown u)
+        graph = (abs(paired) + abs(paired).T).tocsr()
+        peripheral = peripheral_cuthill_mckee(graph)
+        if peripheral is not None:
+            candidates.append(BandOrder(peripheral, match))
+        if match is None:
+            candidates.append(BandOrder(np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), np.int64)))
+    order = min(candidates, key=lambda o: band_storage(o, rows, cols))  # (the first of the narrowest)
+    ordered = sparse.csc_matrix(matrix[order.rows][:, order.columns])
     try:
         lu = splinalg.splu(ordered, permc_spec="NATURAL")
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
         raise
     except RuntimeError:  # (structurally singular at these values: SuperLU's own order then)
         return None
-    return np.asarray(order, dtype=np.int64) if lu.L.nnz + lu.U.nnz <= BAND_FILL_RATIO * fill else None
+    return order if lu.L.nnz + lu.U.nnz <= BAND_FILL_RATIO * fill else None
+
+
+def peripheral_cuthill_mckee(graph) -> np.ndarray | None:
+    """The reverse Cuthill-McKee order of the symmetric pattern ``graph`` (CSR, D x D) with each
+    connected component started at a pseudo-peripheral node (George and Liu's search, simplified: up
+    to :data:`PERIPHERAL_SWEEPS` breadth-first sweeps, each from the last node the one before reached),
+    so that one front walks the component from its end; None where it has more than
+    :data:`PERIPHERAL_MAX_COMPONENTS` components (their per-component loop runs in Python).
+
+    Cuthill-McKee visits each node's neighbours by increasing degree: here every node is relabelled by
+    its rank in (degree, index), so that scipy's breadth-first search, which follows the CSR's sorted
+    columns, visits them in that order.  No step depends on the order the unknowns were declared in,
+    beyond ties of degree."""
+    import scipy.sparse as sparse
+    from scipy.sparse.csgraph import breadth_first_order, connected_components
+
+    D = graph.shape[0]
+    rank = np.lexsort((np.arange(D), np.diff(graph.indptr)))  # (the node of rank k)
+    relabelled = sparse.csr_matrix(graph[rank][:, rank])
+    relabelled.sort_indices()
+    count, component = connected_components(relabelled, directed=False)
+    if count > PERIPHERAL_MAX_COMPONENTS:
+        return None
+    parts = []
+    for start in np.unique(component, return_index=True)[1]:  # (each component's node of least rank)
+        visit = breadth_first_order(relabelled, start, directed=False, return_predecessors=False)
+        for _ in range(PERIPHERAL_SWEEPS):
+            if visit[-1] == start:
+                break
+            start = visit[-1]
+            visit = breadth_first_order(relabelled, start, directed=False, return_predecessors=False)
+        parts.append(visit)
+    return np.asarray(rank[np.concatenate(parts)[::-1]], dtype=np.int64)
+
+
+def band_storage(order: BandOrder, rows: np.ndarray, cols: np.ndarray) -> int:
+    """``2 kl + ku + 1``: the rows a band LU with partial pivoting stores of the pattern ``(rows,
+    cols)`` (and M's diagonal) in ``order``."""
+    offset = np.concatenate([np.argsort(order.rows)[rows] - np.argsort(order.columns)[cols], [0]])
+    return 2 * max(int(offset.max()), 0) + max(int(-offset.min()), 0) + 1
+
+
+def constraint_match(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> np.ndarray | None:
+    """``match``: ``match[u]`` the equation paired with unknown ``u`` -- its own for the ``n`` differential
+    unknowns, and for the algebraic ones a perfect matching of the constraints to them in ``g_z``'s
+    pattern (scipy's Hopcroft-Karp) -- or None where ``g_z``'s diagonal is already full (each constraint
+    sits on its own variable's row) or it has no perfect matching (an index-2 constraint: ``g_z``
+    structurally singular).
+
+    A banded system whose constraints were declared in another order than their variables has its
+    constraint rows far from their variables' columns: no symmetric order of rows and columns together
+    makes it narrow; paired first, it is the same band as in the declared order."""
+    import scipy.sparse as sparse
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    m = D - n
+    block = (rows >= n) & (cols >= n)
+    if m == 0 or np.unique(rows[block & (rows == cols)]).size == m:
+        return None
+    g_z = sparse.csr_matrix((np.ones(int(block.sum())), (rows[block] - n, cols[block] - n)), shape=(m, m))
+    paired = maximum_bipartite_matching(g_z, perm_type="row")  # (paired[j]: the constraint of variable j)
+    if (paired < 0).any():
+        return None
+    return np.concatenate([np.arange(n), n + paired]).astype(np.int64)
 
 
 def pattern_matrix(rows: np.ndarray, cols: np.ndarray, n: int, D: int):
@@ -157,8 +264,15 @@ def sparse_sign_det(matrix) -> float:
     """Sign of the determinant of a sparse square matrix (0 when singular), from SuperLU's factors."""
     import scipy.sparse.linalg as splinalg
 
+    from daemodel.compiling.determinants import triangular_sign
+
     if matrix.shape[0] == 0:
         return 1.0
+    entries = matrix.tocoo()
+    if np.isfinite(entries.data).all():  # (one side of the diagonal: its diagonal's sign, no LU)
+        triangular = triangular_sign(entries.row, entries.col, entries.data, matrix.shape[0])
+        if triangular is not None:
+            return triangular
     try:
         lu = splinalg.splu(matrix)
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)

@@ -28,7 +28,7 @@ from daemodel.backends.radau.transform import embedded_weights
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
 from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matrix
-from daemodel.dense import step_owners
+from daemodel.dense import collocation_values, step_owners
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
 from daemodel.tableau import radau_iia
@@ -522,10 +522,9 @@ class Stepper:
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
         nodes = np.concatenate([[0.0], self.tableau.c])
         weights = self.engine.asarray(lagrange_matrix(nodes, theta))  # (P, s+1)
-        used = np.unique(owner)
-        values = records.nodes_of(used, xp, self.index)  # (B, used, s+1, n+m)
-        where = self.index(np.searchsorted(used, owner))
-        out[:, after] = xp.einsum("pj,bpjk->bpk", weights, values[:, where])
+        out[:, after] = collocation_values(
+            weights, owner, lambda k: records.nodes_of(k, xp, self.index), xp, self.index
+        )
         return t_out, numpy_copy(out)
 
     def index(self, indices: np.ndarray):

@@ -67,6 +67,9 @@ def sparse_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) 
 
     if not np.isfinite(values).all():
         return 0.0
+    triangular = triangular_sign(rows, cols, values, m)
+    if triangular is not None:
+        return triangular
     A = sparse.csc_matrix((values, (rows, cols)), shape=(m, m))
     try:
         lu = splu(A)
@@ -79,6 +82,21 @@ def sparse_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) 
         return 0.0
     negative = int(np.count_nonzero(diagonal < 0)) + odd_permutation(lu.perm_r) + odd_permutation(lu.perm_c)
     return -1.0 if negative % 2 else 1.0
+
+
+def triangular_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) -> float | None:
+    """``sign(det A)`` of an (m, m) matrix whose nonzeros ``values`` (finite) at ``(rows, cols)`` lie on one
+    side of the diagonal, from its diagonal alone (0 where an entry of it is 0), or None where they lie
+    on both: a diagonal g_z (each constraint explicit in its own variable, as reaction-diffusion's) skips
+    SuperLU (6-30 ms a sign at 5 x 10^4, 13 signs a solve at 10^5 unknowns)."""
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    if not ((rows >= cols).all() or (rows <= cols).all()):
+        return None
+    on = rows == cols
+    diagonal = np.bincount(rows[on], weights=np.asarray(values, dtype=float)[on], minlength=m)  # (repeats add)
+    if (diagonal == 0).any():
+        return 0.0
+    return -1.0 if np.count_nonzero(diagonal < 0) % 2 else 1.0
 
 
 def odd_permutation(perm: np.ndarray) -> int:

@@ -323,7 +323,7 @@ def test_the_band_order_solves_every_shifted_system(first_engine):
     Cuthill-McKee order, which holds no more entries than COLAMD's, and each solve is A^-1 b."""
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
     order = engine._order
-    assert order is not None and np.array_equal(np.sort(order), np.arange(engine.D))
+    assert order is not None and np.array_equal(np.sort(order.columns), np.arange(engine.D))
     D, n = engine.D, engine.n
     rows, cols = radau_sparse.jacobian_pattern(compiled)
     fill = radau_sparse.factor_entries(rows, cols, n, D)
@@ -371,3 +371,71 @@ def test_the_band_order_takes_the_same_steps_as_colamd(monkeypatch):
         assert band.stats[key] == colamd.stats[key], key
     for name in model.compile().state_names:
         np.testing.assert_allclose(band[name], colamd[name], rtol=1e-9, atol=1e-12)
+
+
+def grid_pattern(K: int, seed: int | None) -> tuple:
+    """The Jacobian pattern of reaction-diffusion's K points (states c_k = unknown k, rates w_k = K + k;
+    equation k: c_k' from c_{k-1}, c_k, c_{k+1}, w_k; equation K + k: w_k from c_k, w_k), with the states,
+    the rates and the constraints each numbered in a random order (``seed``; None: in order)."""
+    rng = np.random.default_rng(seed)
+    state, rate, constraint = (np.arange(K) if seed is None else rng.permutation(K) for _ in range(3))
+    k = np.arange(K)
+    rows = [state[k], state[k], state[k[1:]], state[k[:-1]], K + constraint[k], K + constraint[k]]
+    cols = [state[k], K + rate[k], state[k[:-1]], state[k[1:]], state[k], K + rate[k]]
+    return np.concatenate(rows), np.concatenate(cols)
+
+
+@pytest.mark.parametrize("seed", [None, 0, 1, 2])
+def test_the_band_order_of_a_grid_is_two_wide_in_any_numbering(seed):
+    """The narrowest band of the pattern (c_1, w_1, c_2, w_2, ...: kl = ku = 2, 7 rows of LAPACK's
+    storage) is found whatever the numbering of the states, the rates and the constraints: before, scipy's
+    order gave 13 rows in the declared numbering and no band order (a band hundreds wide) in shuffled ones."""
+    K = 400
+    rows, cols = grid_pattern(K, seed)
+    fill = radau_sparse.factor_entries(rows, cols, K, 2 * K)
+    order = radau_linalg.band_order(rows, cols, K, 2 * K, fill)
+    assert order is not None and radau_linalg.band_storage(order, rows, cols) == 7
+    assert np.array_equal(np.sort(order.columns), np.arange(2 * K)) and np.array_equal(
+        np.sort(order.rows), np.arange(2 * K)
+    )
+    assert (order.match is None) == (seed is None)  # (equations paired with unknowns only where needed)
+    # the ordered matrix is the pattern's, its rows and columns permuted: a solve in that order is A^-1 b
+    A = radau_linalg.pattern_matrix(rows, cols, K, 2 * K)
+    b = np.random.default_rng(7).standard_normal(2 * K)
+    import scipy.sparse.linalg as splinalg
+
+    (_, lu), singular = radau_linalg.sparse_lu(sparse.csc_matrix(A[order.rows][:, order.columns]), order)
+    assert not singular.any()
+    assert np.abs(lu.solve(b) - splinalg.spsolve(A.tocsc(), b)).max() < 1e-12 * np.abs(b).max()
+
+
+def test_constraints_are_paired_only_where_their_block_has_a_perfect_matching():
+    """No pairing without constraints, with g_z's diagonal full, or where g_z is structurally singular (an
+    index-2 constraint: g_z = 0); a shuffled g_z is paired along its own nonzeros."""
+    assert radau_linalg.constraint_match(np.arange(5), np.arange(5), 5, 5) is None  # (an ODE)
+    rows, cols = grid_pattern(30, None)
+    assert radau_linalg.constraint_match(rows, cols, 30, 60) is None
+    # the pendulum at index 2: x' = u, y' = v, u' = -lam x, v' = -lam y - g, 0 = x u + y v
+    pendulum = (np.array([0, 1, 2, 2, 3, 3, 4, 4, 4, 4]), np.array([2, 3, 0, 4, 1, 4, 0, 1, 2, 3]))
+    assert radau_linalg.constraint_match(*pendulum, 4, 5) is None  # (g_z: the (4, 4) entry absent)
+    rows, cols = grid_pattern(30, 3)
+    match = radau_linalg.constraint_match(rows, cols, 30, 60)
+    assert np.array_equal(match[:30], np.arange(30)) and np.array_equal(np.sort(match[30:]), np.arange(30, 60))
+    pairs = set(zip(rows.tolist(), cols.tolist(), strict=True))
+    assert all((match[u], u) in pairs for u in range(30, 60))  # (each variable on a row of its own constraint)
+
+
+def test_many_components_keep_scipys_order():
+    """Beyond PERIPHERAL_MAX_COMPONENTS components the peripheral search is not made (a Python loop each):
+    scipy's order, which on decoupled 2 x 2 blocks is as narrow."""
+    blocks = radau_linalg.PERIPHERAL_MAX_COMPONENTS + 1
+    k = np.arange(blocks)
+    rows, cols = (
+        np.r_[k, k, blocks + k, blocks + k],
+        np.r_[k, blocks + k, k, blocks + k],
+    )  # x_k' from w_k; 0 = g(x_k, w_k)
+    graph = radau_linalg.pattern_matrix(rows, cols, blocks, 2 * blocks)
+    assert radau_linalg.peripheral_cuthill_mckee((abs(graph) + abs(graph).T).tocsr()) is None
+    fill = radau_sparse.factor_entries(rows, cols, blocks, 2 * blocks)
+    order = radau_linalg.band_order(rows, cols, blocks, 2 * blocks, fill)
+    assert order is not None and radau_linalg.band_storage(order, rows, cols) <= 4  # (kl, ku <= 1)
