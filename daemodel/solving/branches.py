@@ -359,7 +359,8 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
         rhs = tuple(fm + a * (fp - fm) for fp, fm in zip(plus.rhs, minus.rhs, strict=True))
         model = dataclasses.replace(minus, rhs=rhs, _cache={})
         compiled._cache[key] = (model, down * (-up), (up, down))
-    return compiled._cache[key]
+    model, leaves, rates = compiled._cache[key]
+    return compiled.rebased(model), leaves, rates
 
 
 def accumulation_point(times: list) -> float | None:
