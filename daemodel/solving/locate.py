@@ -1,9 +1,9 @@
 """Locating one declared event between two outputs (:func:`locate`), for :mod:`daemodel.solving.events`:
 trial solves of the method's own from the output before it (:func:`trial_solve`, each a :func:`span_solve`),
 the Illinois variant of regula falsi on their event function values, to
-:func:`~daemodel.solving.branches.event_tol` in t and until the states at the bracket's ends differ by a
-share of their tolerance (:data:`LOCATE_SHARE`); an event that float64's spacing of t does not resolve to
-that tolerance is flagged, never "success"."""
+:func:`~daemodel.solving.branches.event_tol` in t and until the states move across the bracket (their rates
+times its width) by a share of their tolerance (:data:`LOCATE_SHARE`); an event that float64's spacing of
+t does not resolve to that tolerance is flagged, never "success"."""
 
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ from daemodel.solving.switches import for_method, solve_with_breakpoints
 # that two trials in a row did not halve from the same end is bisected (a root as flat as x^3's: the
 # secant crept 1e-14 a trial from the end next to it, and 100 trials did not locate it).
 MAX_LOCATION_ITERATIONS, BISECT_AFTER = 100, 24
-# A located event's bracket is narrowed until the states at its ends differ by at most this share of their
-# tolerance (atol + rtol |y|), so that its time moves the states after it by less than that (at t0 = 1e6 the
-# width in t alone left them 1356 rtol off).
+# A located event's bracket is narrowed until the states move across it (their rates times its width) by at most
+# this share of their tolerance (atol + rtol |y|), so that its time moves the states after it by less than that
+# (at t0 = 1e6 the width in t alone left them 1356 rtol off).
 LOCATE_SHARE = 0.1
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
@@ -103,13 +103,15 @@ def locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya
     ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats, None or the flag of an event not located
     to the states' tolerance)``, by the Illinois method on trial solves from ``a``, to
     :func:`~daemodel.solving.branches.event_tol` in t (``span``: t_span's length) and, for a method with a
-    tolerance (:func:`states_tol`), until the states at the bracket's ends differ by at most
-    :data:`LOCATE_SHARE` of it; a bracket :func:`~daemodel.solving.branches.resolution` wide (float64 holds
-    no finer time) where they differ by more than their tolerance is flagged: the event's time, and so the
-    states after it, are off by more than it.  A ``guess`` (:func:`~daemodel.solving.between.dense_crossing`'s)
-    is the first trial, and the next one :data:`GUESS_WIDTH` of the bracket past it on the other side, so
-    that the search starts from a bracket that narrow where the guess is as good as the dense output (about
-    half the trials on the wheelset); else the search goes on from whichever bracket the trials leave."""
+    tolerance (:func:`states_tol`), until the states move by at most :data:`LOCATE_SHARE` of it across the
+    bracket (their rates at its ends times its width: two trial solves' values differ by their own errors
+    too, 1.1 atol for casadi-idas 2 float64 spacings apart on the wheelset); a bracket
+    :func:`~daemodel.solving.branches.resolution` wide (float64 holds no finer time) across which they move
+    by more than their tolerance is flagged: the event's time, and so the states after it, are off by more.
+    A ``guess`` (:func:`~daemodel.solving.between.dense_crossing`'s) is the first trial, and the next one
+    :data:`GUESS_WIDTH` of the bracket past it on the other side, so that the search starts from a bracket
+    that narrow where the guess is as good as the dense output (about half the trials on the wheelset);
+    else the search goes on from whichever bracket the trials leave."""
     stats = []
     tol, floor = event_tol(max(abs(a), abs(b)), span), resolution(max(abs(a), abs(b)))
     tolerance = states_tol(options)
@@ -119,20 +121,24 @@ def locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya
         stats.append(solved)
         return value, y, z
 
-    def apart(y_lo, hi_values) -> float:
-        """How far apart the states at the bracket's ends are, in their tolerances (0 where not known)."""
-        if tolerance is None or hi_values is None:
+    def apart() -> float:
+        """How far the states move across the bracket, in their tolerances: the larger of their rates at
+        its ends (where known) times its width (0 for a method without a tolerance, or rates not finite)."""
+        if tolerance is None:
             return 0.0
         rtol, atol = tolerance
-        y_hi = hi_values[0]
-        bound = atol + rtol * np.maximum(np.abs(y_lo), np.abs(y_hi))
-        return float(np.max(np.abs(y_hi - y_lo) / bound, initial=0.0))
+        rhs = compiled.numeric.batch_function(list(compiled.rhs))  # (made once: the numeric system keeps it)
+        share = 0.0
+        for t, (y, z) in ((lo, at_lo), (hi, at_hi)) if at_hi is not None else ((lo, at_lo),):
+            rate = np.abs(rhs(t, y, z, P)) * (hi - lo) / (atol + rtol * np.abs(y))
+            share = max(share, float(np.max(rate, initial=0.0)))
+        return share if math.isfinite(share) else 0.0
 
     def settled() -> bool:
-        return hi - lo <= floor or (hi - lo <= tol and apart(y_lo, at_hi) <= LOCATE_SHARE)
+        return hi - lo <= floor or (hi - lo <= tol and apart() <= LOCATE_SHARE)
 
     def flag(t_event) -> str | None:
-        share = apart(y_lo, at_hi)
+        share = apart()
         if share <= 1.0:  # (within the tolerance: a bracket narrower than float64 allows at t would not be)
             return None
         return (
@@ -147,7 +153,7 @@ def locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya
         _, y, z = trial(b)
         return b, y, z, stats, None
     lo, hi, flo, fhi = a, b, Fa, Fb
-    y_lo = ya[0]  # (the states at lo)
+    at_lo = (ya, za)  # (the states at lo)
     best, at_hi = None, None  # (the trial's values at hi, where one set it)
     side, slow, last_side, zero = (
         0,
@@ -182,7 +188,7 @@ def locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya
             # (a value exactly 0 has no side: the crossing is where the function reaches the other one, so a
             # function resting on zero over [1, 2] crosses at 2, not wherever a trial landed on it; the last
             # zero is the event where the other side is within the tolerance of it)
-            lo, flo, y_lo = tau, f, y[0]
+            lo, flo, at_lo = tau, f, (y, z)
             zero = (tau, y, z) if f == 0 else zero
             if side == -1:
                 fhi *= 0.5  # (Illinois: halve the stale end's value)
