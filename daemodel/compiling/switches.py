@@ -404,6 +404,10 @@ def with_state_events(compiled):
             names.add(name)
             integer = switch.kind in ("floor", "ceiling")
             extra.append(Event(name, switch.function, 0, (), False, strict=True, integer=integer))
-        return dataclasses.replace(compiled, events=(*compiled.events, *extra), _cache={}) if extra else compiled
+        return dataclasses.replace(compiled, events=(*compiled.events, *extra), _cache={}) if extra else None
 
-    return compiled.kept_copy(("with-state-events",), build)
+    key = ("with-state-events",)
+    if key not in compiled._cache:
+        compiled._cache[key] = build()
+    # (no switch on a variable: the model itself, also for a copy at other initial values that shares its cache)
+    return compiled if compiled._cache[key] is None else compiled.rebased(compiled._cache[key])

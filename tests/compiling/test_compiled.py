@@ -10,6 +10,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel.compiling.initial_states import branch_check_functions
+from daemodel.compiling.switches import with_state_events
 from daemodel.problems import PENDULUM, PROBLEMS
 
 
@@ -136,6 +137,7 @@ def test_every_cached_entry_follows_a_users_copy():
     assert moved.reduced(1).t0 == 2.0 and moved.reduced(1).y0 is moved.y0 and moved.reduced(1).z0 is moved.z0
     assert moved.reduced(1).constraints is reduced.constraints and compiled.reduced(1) is reduced
     assert moved.reduced(1).torch_functions() is reduced.torch_functions()  # (its generated code, not made again)
+    assert with_state_events(compiled) is compiled and with_state_events(moved) is moved  # (no switch on a variable)
     # any other field: a cache of its own
     changes = {
         "rhs": tuple(list(compiled.rhs)),  # (equal, but another object: the cache tells by identity, not by value)
@@ -162,3 +164,20 @@ def test_a_users_copy_with_other_events_locates_its_own():
     copy = dataclasses.replace(compiled, rhs=(-2 * x,))
     sol = dm.solve(copy, (0.0, 2.0), rtol=1e-10, atol=1e-10)
     assert abs(sol.events["half"]["t"][0, 0] - np.log(2.0) / 2) < 1e-8
+
+
+def test_the_switches_events_of_a_copy_at_other_initial_values_carry_them():
+    """with_state_events keeps the model with its switches' events in the cache; a copy at other initial
+    values (a piece of a solve) gets it with its own t0, y0 and z0, and the same events (before: the
+    first model's t0 and y0, whichever asked first)."""
+    m = dm.Model("switching")
+    m.states("x")
+    m.ode("x", "1 - Max(x, 0.5)")
+    m.initial(x=0.0)
+    compiled = m.compile()
+    located = with_state_events(compiled)
+    assert len(located.events) == 1 and located.t0 == 0.0
+    moved = dataclasses.replace(compiled, t0=3.0, y0=np.array([0.25]))
+    again = with_state_events(moved)
+    assert again.t0 == 3.0 and again.y0 is moved.y0 and again.events is located.events
+    assert again.numeric is located.numeric  # (the same generated code)
