@@ -279,6 +279,11 @@ class LocalErrorWarning(UserWarning):
     solution is flagged, not "success", and keeps fewer digits than that bound promises."""
 
 
+class EventResolutionWarning(UserWarning):
+    """An event's time is not resolved to the states' tolerance: float64's spacing of t there moves the
+    states by more than it (an event near t = 1e8 at rtol 1e-9); the Solution's status is "flagged"."""
+
+
 class OmittedPanelsWarning(UserWarning):
     """``Solution.plot()`` without ``names=`` drew the first variables only (a figure of sixty panels
     is unreadable); the warning and the figure's title name how many were left out."""

@@ -9,7 +9,8 @@ functions or casadi's DAE dict.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field, replace
+import operator
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import sympy as sp
@@ -28,6 +29,12 @@ from daemodel.errors import ReductionError, UnsupportedFunctionError
 # derivative on real models (20 s for the 1,798 of a 600-unknown grid, 170 s for a dense
 # 160-unknown system), while forward-mode AD over a column colouring needs a few directions.
 SYMBOLIC_JACOBIAN_MAX_ENTRIES = 400
+# The fields a copy may change and still share its model's cache: the initial values (a piece of a solve is the
+# model from where the last ended, and every cached entry is made from the rest).  A copy that changes any other
+# field (``dataclasses.replace(compiled, rhs=...)``) gets a cache of its own (CompiledDAE.__post_init__).
+INITIAL_FIELDS = ("t0", "y0", "z0")
+# The cache's entry that holds the fields its other entries were made from (a key no entry's can equal).
+_MADE_FROM = ("made from",)
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,10 +100,40 @@ class CompiledDAE:
     def __post_init__(self) -> None:
         for array in (self.parameter_values, self.y0, self.z0):
             array.flags.writeable = False
+        # dataclasses.replace hands a copy its model's cache: kept where the copy changed only the initial values,
+        # else a cache of its own (a copy with other right-hand sides solved the original's: exp(-1) for exp(-2))
+        made_from = self._made_from()
+        kept = self._cache.get(_MADE_FROM)
+        if kept is None and not self._cache:
+            self._cache[_MADE_FROM] = made_from
+        elif kept is None or len(kept) != len(made_from) or not all(map(operator.is_, kept, made_from)):
+            object.__setattr__(self, "_cache", {_MADE_FROM: made_from})
+
+    def _made_from(self) -> tuple:
+        """The fields every cached entry is made from (all but :data:`INITIAL_FIELDS`), as objects."""
+        return tuple(getattr(self, f.name) for f in fields(self) if f.name not in (*INITIAL_FIELDS, "_cache"))
 
     def __getstate__(self) -> dict:
         # Generated functions live in the cache and do not pickle; a copy regenerates them.
         return {**self.__dict__, "_cache": {}}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.__dict__["_cache"] = {_MADE_FROM: self._made_from()}
+
+    def kept_copy(self, key, build) -> CompiledDAE:
+        """A copy of this model with other equations (``build()``, given ``_cache={}``), made once and kept in
+        its cache under ``key``, returned with this model's initial values: a copy of this one that changed
+        only those (a piece of a solve) gets the same copy, with its own t0, y0 and z0, and its generated code."""
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self.rebased(self._cache[key])
+
+    def rebased(self, copy: CompiledDAE) -> CompiledDAE:
+        """``copy`` (a model made from this one) with this model's initial values, sharing its cache."""
+        if all(getattr(copy, name) is getattr(self, name) for name in INITIAL_FIELDS):
+            return copy
+        return replace(copy, **{name: getattr(self, name) for name in INITIAL_FIELDS})
 
     def fingerprints(self) -> dict[str, str]:
         """Hashes of what a saved result belongs to, by field: ``"equations"`` (the names and the
@@ -135,9 +172,9 @@ class CompiledDAE:
 
     def cached(self, key, build, on: tuple | None = None):
         """``build()``, computed once per key and kept with this model (not pickled): generated
-        functions that a solver would otherwise rebuild on every solve.  ``on``: the fields it is made
-        from, where a copy may change them (``dataclasses.replace`` shares the cache): kept beside it, and
-        built anew where the model's are not those same objects."""
+        functions that a solver would otherwise rebuild on every solve.  A copy by ``dataclasses.replace``
+        shares it only where it changed nothing but the initial values (:meth:`__post_init__`); ``on``: the
+        fields it is made from, kept beside it, and built anew where the model's are not those same objects."""
         if on is None:
             if key not in self._cache:
                 self._cache[key] = build()
@@ -244,25 +281,26 @@ class CompiledDAE:
                 f"reduced(index={index!r}): the target must be an integer from 1 to the current "
                 f"index {self.index} of '{self.name}'"
             )
-        key = ("reduced", index)
-        if key in self._cache:  # the same reduction, with its generated code, for every solve
-            return self._cache[key]
-        constraints = tuple(
-            Constraint(c.level_name(c.index - index), c.number, c.chain[c.index - index :]) if c.index > index else c
-            for c in self.constraints
-        )
-        note = f"reduced from index {self.index} to {index}: " + (
-            ", ".join(f"{a.name} -> {b.name}" for a, b in zip(self.constraints, constraints, strict=True) if a is not b)
-            or "nothing to differentiate"
-        )
-        self._cache[key] = replace(
-            self,
-            constraints=constraints,
-            notes=(*self.notes, note),
-            reduced_from=self.reduced_from or self.index,
-            _cache={},
-        )
-        return self._cache[key]
+
+        def build():
+            constraints = tuple(
+                Constraint(c.level_name(c.index - index), c.number, c.chain[c.index - index :])
+                if c.index > index
+                else c
+                for c in self.constraints
+            )
+            pairs = zip(self.constraints, constraints, strict=True)
+            changed = ", ".join(f"{a.name} -> {b.name}" for a, b in pairs if a is not b)
+            note = f"reduced from index {self.index} to {index}: " + (changed or "nothing to differentiate")
+            return replace(
+                self,
+                constraints=constraints,
+                notes=(*self.notes, note),
+                reduced_from=self.reduced_from or self.index,
+                _cache={},
+            )
+
+        return self.kept_copy(("reduced", index), build)  # (the same reduction, with its generated code, every solve)
 
     # ---- code generation ----------------------------------------------------------------
     def _groups(self) -> dict:

@@ -404,9 +404,7 @@ def _fixed(compiled, at: dict, decide, kind: str, sides: dict | None = None):
         dataclasses.replace(c, chain=tuple(_fix(e, at, decide, sides) for e in c.chain)) for c in compiled.constraints
     )
     key = (kind, rhs, tuple(c.chain for c in constraints))
-    if key not in compiled._cache:
-        compiled._cache[key] = dataclasses.replace(compiled, rhs=rhs, constraints=constraints, _cache={})
-    return compiled._cache[key]
+    return compiled.kept_copy(key, lambda: dataclasses.replace(compiled, rhs=rhs, constraints=constraints, _cache={}))
 
 
 def with_state_events(compiled):
@@ -415,8 +413,7 @@ def with_state_events(compiled):
     ``ceiling`` at the integers below and above the function's value in each piece), so that no step
     straddles one; cached on ``compiled``."""
 
-    key = ("with-state-events",)
-    if key not in compiled._cache:
+    def build():
         extra, names, functions = [], {e.name for e in compiled.events}, set()
         for switch in find_switches(compiled):
             if switch.time_only or switch.function in functions or -switch.function in functions:
@@ -429,5 +426,10 @@ def with_state_events(compiled):
             names.add(name)
             integer = switch.kind in ("floor", "ceiling")
             extra.append(Event(name, switch.function, 0, (), False, strict=True, integer=integer))
-        compiled._cache[key] = dataclasses.replace(compiled, events=(*compiled.events, *extra)) if extra else compiled
-    return compiled._cache[key]
+        return dataclasses.replace(compiled, events=(*compiled.events, *extra), _cache={}) if extra else None
+
+    key = ("with-state-events",)
+    if key not in compiled._cache:
+        compiled._cache[key] = build()
+    # (no switch on a variable: the model itself, also for a copy at other initial values that shares its cache)
+    return compiled if compiled._cache[key] is None else compiled.rebased(compiled._cache[key])

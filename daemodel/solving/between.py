@@ -146,56 +146,60 @@ def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: i
         s, g = sample_side[:, e], G[:, e]
         other = np.flatnonzero((s != 0) & (np.sign(g) == -s))
         if len(other):
-            found.append((int(other[0]), e, False))
+            found.append((int(other[0]), e, None))
         # local extrema towards zero, all three samples on their intervals' side
         deeper = (s[k] != 0) & (s[k - 1] == s[k]) & (s[k + 1] == s[k])
         deeper &= (np.sign(g[k - 1]) == s[k]) & (np.sign(g[k]) == s[k]) & (np.sign(g[k + 1]) == s[k])
         deeper &= (s[k] * g[k] < s[k] * g[k - 1]) & (s[k] * g[k] <= s[k] * g[k + 1])
-        # (only where the parabola through the three goes past halfway to zero)
-        vertex = _parabola(times[k - 1], times[k], times[k + 1], g[k - 1], g[k], g[k + 1])[2]
-        deeper &= vertex * s[k] < HALFWAY * s[k] * g[k]
-        found += [(int(j), e, True) for j in k[deeper]]
-        found += [(j, e, True) for j in _edge_extrema(times, s, g)]
-    for j, e, zoom in sorted(found, key=lambda item: (times[item[0]], item[1])):
+        deeper &= _past_halfway((times[k - 1], times[k], times[k + 1]), (g[k - 1], g[k], g[k + 1]), s[k], 1)[0]
+        found += [(int(j), e, slice(j - 1, j + 2)) for j in k[deeper]]
+        found += [(j, e, window) for j, window in _edge_extrema(times, s, g)]
+    for j, e, window in sorted(found, key=lambda item: (times[item[0]], item[1])):
         s = float(sample_side[j, e])
         # (an extremum at the first or last sample, which has one neighbour here: its other lies in the
         # scan before or after, so only the interval inside this one is looked into)
         lo, hi = max(j - 1, 0), min(j + 1, len(times) - 1)
-        if not zoom:
+        if window is None:  # (a sample on the other side)
             t = float(times[j])
         elif inner:
             t = _zoom(read, e, s, float(times[lo]), float(times[hi]))
         else:  # (each look solves again: a few probes at the parabola's vertex, not grids)
-            three = (
-                slice(0, 3) if j == 0 else slice(len(times) - 3, None) if j == len(times) - 1 else slice(j - 1, j + 2)
-            )
-            t = _probe(read, e, s, times[three].astype(float), G[three, e].astype(float))
+            t = _probe(read, e, s, times[window].astype(float), G[window, e].astype(float))
         if t is not None:
             yield Excursion(e, int(np.searchsorted(T, t, side="right") - 1), t, s)
 
 
 def _edge_extrema(times: np.ndarray, s: np.ndarray, g: np.ndarray) -> list:
-    """The first and last samples (0, ``len(times) - 1``) where the event function's extremum towards zero lies
-    between them and their one neighbour: the sample nearer zero than that neighbour, the three samples at
-    that end on one side, and the parabola through them turning inside that end's interval past
-    :data:`HALFWAY` to zero.  (The scan before or after reads the other side of an output: neither saw the
+    """``[(j, window)]``: the first and last samples ``j`` (0, ``len(times) - 1``) where the event function's
+    extremum towards zero lies between them and their one neighbour, each with the three samples at its end
+    (``window``, a slice of ``times``): the sample nearer zero than that neighbour, the three on one side,
+    and the parabola through them turning inside that end's interval past :data:`HALFWAY` to zero
+    (:func:`_past_halfway`).  (The scan before or after reads the other side of an output: neither saw the
     hump of sin t above 0.99999 whose peak fell 0.01 after an output, at rtol 1e-11 with five stages.)"""
     out = []
     if len(times) < 3:
         return out
-    for j, three in ((0, [0, 1, 2]), (len(times) - 1, [len(times) - 3, len(times) - 2, len(times) - 1])):
-        near = three[1]  # (the end's one neighbour)
+    for j, window, nearest in ((0, slice(0, 3), 0), (len(times) - 1, slice(len(times) - 3, None), 2)):
+        near = j + 1 if j == 0 else j - 1  # (the end's one neighbour)
         side = s[j]
-        if side == 0 or not (np.all(s[three] == side) and np.all(np.sign(g[three]) == side)):
+        if side == 0 or not (np.all(s[window] == side) and np.all(np.sign(g[window]) == side)):
             continue
         # (at the first sample a tie with its neighbour counts: the interior test takes only a tie on its right)
         if not (side * g[j] <= side * g[near] if j == 0 else side * g[j] < side * g[near]):
             continue
-        curve, vertex, value = _parabola(*times[three], *g[three])
-        inside = min(times[j], times[near]) < vertex < max(times[j], times[near])
-        if side * curve > 0 and inside and value * side < HALFWAY * side * g[j]:
-            out.append(j)
+        past, vertex = _past_halfway(tuple(times[window]), tuple(g[window]), side, nearest)
+        if past and min(times[j], times[near]) < vertex < max(times[j], times[near]):
+            out.append((j, window))
     return out
+
+
+def _past_halfway(t: tuple, g: tuple, side, nearest: int) -> tuple:
+    """``(whether, the vertex's time)``: whether the parabola through the three samples ``(t[i], g[i])`` (each
+    a float, or arrays of as many triples), all on ``side`` of zero, turns towards zero and reaches past
+    :data:`HALFWAY` of the distance to zero of its sample ``nearest`` (0, 1 or 2: the one nearest zero).
+    The one test of the extrema :func:`excursions` looks into, inside a scan and at its ends."""
+    curve, vertex, value = _parabola(*t, *g)
+    return (side * curve > 0) & (side * value < HALFWAY * side * g[nearest]), vertex
 
 
 def armed_outputs(F: np.ndarray, armed, sides) -> np.ndarray:

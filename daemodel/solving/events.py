@@ -16,8 +16,9 @@ outputs, evaluate every event function there, and take the first crossing (a met
 outputs, instead of a solve to t1 whose rest is discarded); locate it between the
 two outputs that bracket it by the Illinois variant of regula falsi, each trial time a short solve
 from the output before it (so the located state has the method's own accuracy, not an
-interpolant's), to :data:`EVENT_TOL` in t; keep the outputs before it, apply the reset, go on
-from there.  A function that crosses zero and comes back between two outputs changes no sign at
+interpolant's), to :func:`~daemodel.solving.branches.event_tol` in t and a tenth of the states' tolerance
+(:mod:`daemodel.solving.locate`; one float64 cannot resolve is flagged); keep the outputs before it,
+apply the reset, go on from there.  A function that crosses zero and comes back between two outputs changes no sign at
 them: it is looked for on the dense output between them (:mod:`daemodel.solving.between`, also in
 the blocks a stopping method shows its search), confirmed by a trial solve, and its crossing located
 the same way; a search stopped for one its trial does not confirm goes on from there (at most
@@ -45,11 +46,11 @@ import warnings
 
 import numpy as np
 
-from daemodel.compiling.switches import has_state_switches, has_time_switches
+from daemodel.compiling.switches import has_state_switches
 from daemodel.errors import (
     ConvergenceError,
     EventLimitError,
-    EventLocationError,
+    EventResolutionWarning,
     StepLimitError,
     SwitchError,
     ZenoError,
@@ -64,48 +65,39 @@ from daemodel.solving.between import (
     on_dense,
 )
 from daemodel.solving.branches import (
-    EVENT_TOL,
     EXCURSION_BUDGET,
     ROUNDING,
     accumulation_point,
     check_accumulating,
     drift,
+    event_tol,
     excursion_weight,
     start_piece,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
+from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
     joined_breakpoints,
     merge_stats,
     onto_constraints,
-    segment_steps,
 )
 from daemodel.solving.resets import apply_resets
-from daemodel.solving.switches import for_method, settings_as_given, solve_with_breakpoints
+from daemodel.solving.switches import for_method, settings_as_given
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
 # Chattering: more than CHATTER_EVENTS events within CHATTER_SPAN of t_span's length end the solve
 # (EventLimitError) before max_events does; a sliding mode makes thousands, each a few trial solves.
 CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
-# Trial solves of the location of one event before EventLocationError; from BISECT_AFTER on, a bracket
-# that two trials in a row did not halve from the same end is bisected (a root as flat as x^3's: the
-# secant crept 1e-14 a trial from the end next to it, and 100 trials did not locate it).
-MAX_LOCATION_ITERATIONS, BISECT_AFTER = 100, 24
 # Which way an event function at zero goes (after an event, or where it starts) is read off one explicit
 # step this long: LOOKAHEAD_SPAN of t_span's length, and at least LOOKAHEAD_TOLS location tolerances (so
 # that a located event's own error in t cannot decide the side).
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
-# A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
-TINY_SPAN = 1e-9
 # A detection solve on locked branches that fails at a time is solved again to this fraction of the way
 # there, where the crossing that its branch went past is looked for (_detect).
 BEFORE_FAILURE = 0.99
-# The first trial of an event's location is where the dense output crosses (between.dense_crossing); the
-# second is GUESS_WIDTH of the bracket past it.
-GUESS_WIDTH = 1e-4
 
 
 def _functions(compiled):
@@ -118,39 +110,6 @@ def _functions(compiled):
         return when, resets
 
     return compiled.cached(("events", compiled.events), build)
-
-
-def _span_solve(backend, compiled, a: float, b: float, Y, Z, P, batched: bool, options, stop=None, **changes):
-    """One solve of ``compiled`` over [a, b] from the states ``Y``, ``Z`` (its time switches cut, as
-    :func:`daemodel.solving.switches.solve_with_breakpoints` does).  ``stop``: a search's ``stop(names)``
-    (:func:`~daemodel.solving.crossings.crossing_stop`; the backend's names of its states and algebraic
-    variables) -> the backend's ``stop`` (:mod:`daemodel.backends.base`, rule 8); used where the backend takes it and
-    no time switch cuts the span, else the solve goes on to ``b``."""
-    from daemodel.compiling.initial_states import InitialStates
-
-    model = dataclasses.replace(compiled, t0=float(a), y0=Y[0].copy(), z0=Z[0].copy())
-    start = InitialStates(y0=Y, z0=Z, p=P, batched=batched)
-    fields = {f.name for f in dataclasses.fields(options)}
-    if "h" not in changes and getattr(options, "h", None) is not None:  # (a piece shorter than h: equal steps)
-        changes["h"] = segment_steps(a, b, options.h)
-    # (an option the method lacks is left out)
-    options = dataclasses.replace(options, **{k: v for k, v in changes.items() if k in fields})
-    if has_time_switches(model):
-        return solve_with_breakpoints(backend, model, (float(a), float(b)), start, options)
-    reduced = for_method(model, backend)
-    if stop is not None and backend.stops:
-        names = (reduced.state_names, reduced.algebraic_names)
-        return backend.solve(reduced, (float(a), float(b)), start, options, stop=stop(names))
-    return backend.solve(reduced, (float(a), float(b)), start, options)
-
-
-def _outputs(sol, compiled):
-    """``(t, Y (T, n), Z (T, m))`` of a one-sample solution."""
-    T = len(sol.t)
-    Y = np.stack([np.asarray(sol.values[n])[0] for n in compiled.state_names], axis=-1).reshape(T, -1)
-    Z = [np.asarray(sol.values[n])[0] for n in compiled.algebraic_names]
-    Z = np.stack(Z, axis=-1).reshape(T, -1) if Z else np.zeros((T, 0))
-    return np.asarray(sol.t, dtype=float), Y, Z
 
 
 def solve_with_events(backend, compiled, t_span, start, options, max_events: int = DEFAULT_MAX_EVENTS):
@@ -203,19 +162,20 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
     fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
     lock = has_state_switches(compiled)
+    failing = []  # (the pieces whose solve did not meet its accuracy, and events not located to it)
     location, spent = [], [0.0]  # (the trial solves' stats; the tolerance the excursions integrated through used)
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
 
     def delta_at(time_: float) -> float:
-        return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * EVENT_TOL * max(1.0, abs(time_)))
+        return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * event_tol(time_, t1 - t0))
 
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
         try:
             begin = start_piece(
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off,
-                t1 - t,
+                t1 - t, span=t1 - t0,
             )  # fmt: skip
         except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
             limit = max((accumulation_point(history[e]) or -math.inf for e in fired), default=-math.inf)
@@ -235,7 +195,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         all_stats.append(sol.stats)
         setup_time += sol.setup_time
         last = sol
-        T, Ys, Zs = _outputs(sol, compiled)
+        T, Ys, Zs = outputs(sol, compiled)
         F = piece_when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
         first, which, hit, before_index = None, None, {}, None
         for e, event in enumerate(events):
@@ -304,12 +264,17 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 f"{max_events}): events this close together are chattering (Zeno); raise max_events, or end t_span "
                 "before it"
             )
-        t_event, y_event, z_event, located = _locate(
-            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, guess
+        t_event, y_event, z_event, located, unresolved = locate(
+            backend, piece, options, start.batched, P, which, piece_when, a, b, Fa, Fb, ya, za, guess, t1 - t0
         )
         all_stats += located
         location += located
-        ends = t_event >= t1 - EVENT_TOL * max(1.0, abs(t1))  # (an event at t1: applied there, and the solve ends)
+        if unresolved is not None:
+            from daemodel.backends.base import caller_level
+
+            failing.append(unresolved)
+            warnings.warn(unresolved, EventResolutionWarning, stacklevel=caller_level())
+        ends = t_event >= t1 - event_tol(t1, t1 - t0)  # (an event at t1: applied there, and the solve ends)
         t_event = t1 if ends else t_event
         recent.append(t_event)
         if len(recent) > CHATTER_EVENTS and recent[-1] - recent[-1 - CHATTER_EVENTS] <= CHATTER_SPAN * (t1 - t0):
@@ -376,7 +341,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 delta = delta_at(t_event)
                 after = start_piece(
                     backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta, lock, exited,
-                    moved_off, t1 - t_event,
+                    moved_off, t1 - t_event, span=t1 - t0,
                 )  # fmt: skip
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)
@@ -398,7 +363,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     # its time to the next one, which starts with the values after it
     reuse = backend.stops and getattr(options, "h", None) is None
     names = (*compiled.state_names, *compiled.algebraic_names)
-    times, rows, failing = [], [], []  # (failing: the pieces whose solve did not meet its accuracy)
+    times, rows = [], []
     dense = []  # each piece's dense output: its output solve's, else its detection solve's (that ran past b)
     marks = []  # (the time breakpoints each piece's detection solve crossed before its end)
     for a, b, Ya, Za, event, model, detection, found in pieces:
@@ -413,17 +378,17 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if len(grid) == 1 and grid[0] == a:
                 piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
             else:
-                sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
+                sol = span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)
                 setup_time += sol.setup_time
-                piece_t, Yp, Zp = _outputs(sol, compiled)
+                piece_t, Yp, Zp = outputs(sol, compiled)
                 piece = np.concatenate([Yp, Zp], axis=1)
         else:
             if not (closed or reuse):
-                sol = _span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=None)
+                sol = span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=None)
                 all_stats.append(sol.stats)
                 setup_time += sol.setup_time
-            piece_t, Yp, Zp = _outputs(found if sol is None else sol, compiled)
+            piece_t, Yp, Zp = outputs(found if sol is None else sol, compiled)
             piece = np.concatenate([Yp, Zp], axis=1)
             if not closed:
                 before = piece_t < b
@@ -493,7 +458,7 @@ def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop
     stop at a crossing (``backend.stops``)."""
 
     def run(end: float):
-        return _span_solve(
+        return span_solve(
             backend, piece, t, end, Y, Z, P, batched, options, stop=stop, t_eval=None, dense_output=True, **carried
         )
 
@@ -522,25 +487,6 @@ def _finite(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) ->
         )
 
 
-def _trial(backend, compiled, options, batched, P, which, when, a: float, tau: float, ya, za) -> tuple:
-    """One trial solve of ``compiled`` over ``[a, tau]`` from ``(ya, za)``: ``(F, y (1, n), z (1, m), stats)``,
-    ``F`` the event function ``which`` at its end.  A fixed ``h`` is kept (at most the span); a span shorter
-    than a method's own grid resolves is one fixed step, its adaptive settings dropped.  Its warnings are
-    not the solve's (its outputs are solved again), so they are not shown."""
-    fields = {f.name for f in dataclasses.fields(options)}
-    changes = {"t_eval": None}
-    if "h" in fields and getattr(options, "h", None) is not None:
-        changes["h"] = min(options.h, tau - a)
-    elif "h" in fields and tau - a <= TINY_SPAN * max(1.0, abs(a)):
-        changes |= {"h": tau - a} | {name: None for name in ("rtol", "atol", "h0") if name in fields}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        sol = _span_solve(backend, compiled, a, tau, ya, za, P, batched, options, **changes)
-    _, Ys, Zs = _outputs(sol, compiled)
-    y, z = Ys[-1:], Zs[-1:]
-    return float(when(np.array([tau]), y, z, P)[0, which]), y, z, sol.stats
-
-
 def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya, za, side, delta, event):
     """``(t, F, y (1, n), z (1, m))`` past ``a`` where the event function ``which``, at zero at ``a``, is on
     its ``side`` in the method's own solution: a look-ahead ``delta`` later, doubled while the method's
@@ -554,7 +500,7 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
     step = delta
     while True:
         tau = min(a + step, 0.5 * (a + b))
-        value, y, z, _ = _trial(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
+        value, y, z, _ = trial_solve(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
         if np.sign(value) == side:
             return tau, value, y, z
         if tau >= 0.5 * (a + b):
@@ -593,7 +539,7 @@ def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T
                 spent[0] += weight
                 continue
         ya, za = Ys[i : i + 1], Zs[i : i + 1]
-        value, y, z, solved = _trial(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)
+        value, y, z, solved = trial_solve(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)
         stats.append(solved)
         if np.sign(value) != -x.side:  # (the method's own solution stays on its side: within its error of zero)
             continue
@@ -620,81 +566,3 @@ def _earliest(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np.nda
     cells = {e: dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
     known = {e: cell[1] for e, cell in cells.items() if cell is not None}
     return min(known, key=lambda e: (known[e], e)) if len(known) == len(tied) else which
-
-
-def _locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya, za, guess=None):
-    """The event ``which`` between outputs ``a`` and ``b`` (values ``Fa``, ``Fb`` of opposite sign or
-    ``Fb`` 0): ``(t, y (1, n), z (1, m), the trial solves' stats)``, by the Illinois method on trial
-    solves from ``a``.  A ``guess`` (:func:`~daemodel.solving.between.dense_crossing`'s) is the first trial, and the
-    next one
-    :data:`GUESS_WIDTH` of the bracket past it on the other side, so that the search starts from a
-    bracket that narrow where the guess is as good as the dense output (about half the trials on the
-    wheelset); else the search goes on from whichever bracket the trials leave."""
-    stats = []
-    tol = EVENT_TOL * max(1.0, abs(a), abs(b))
-
-    def trial(tau):
-        value, y, z, solved = _trial(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
-        stats.append(solved)
-        return value, y, z
-
-    if Fb == 0:
-        _, y, z = trial(b)
-        return b, y, z, stats
-    lo, hi, flo, fhi = a, b, Fa, Fb
-    best, at_hi = None, None  # (the trial's values at hi, where one set it)
-    side, slow, last_side, zero = (
-        0,
-        0,
-        0,
-        None,
-    )  # (slow: trials in a row that kept the same end and did not halve the bracket)
-    width = GUESS_WIDTH * (b - a)
-    for k in range(MAX_LOCATION_ITERATIONS):
-        if guess is not None and k == 0:
-            tau = guess
-        elif guess is not None and k == 1:  # (the other side of the guess: the guess landed on lo's if side == -1)
-            tau = guess + width if side == -1 else guess - width
-        elif slow >= 2 and k >= BISECT_AFTER:  # (a flat root, x^3's: the secant creeps from one end; bisected)
-            tau = 0.5 * (lo + hi)
-        else:
-            tau = hi - fhi * (hi - lo) / (fhi - flo) if fhi != flo else 0.5 * (lo + hi)
-        if not lo < tau < hi:
-            # the secant at an end (one whose value is near zero: a trial landed on the crossing): half the
-            # tolerance inside it closes the bracket from the other side, where the midpoint's trials bisected
-            # towards it (30 trials on an oscillator's crossing)
-            tau = lo + 0.5 * tol if tau <= lo else hi - 0.5 * tol
-        if not lo < tau < hi:  # (NaN, or a bracket within the tolerance)
-            tau = 0.5 * (lo + hi)
-        tau = max(tau, min(a + 1e-13 * max(1.0, abs(a)), 0.5 * (lo + hi)))  # (no trial span below ~1e-13)
-        f, y, z = trial(tau)
-        best = (tau, y, z)
-        if hi - lo <= tol:
-            return tau, y, z, stats
-        before = hi - lo
-        if f == 0 or np.sign(f) == np.sign(flo):
-            # (a value exactly 0 has no side: the crossing is where the function reaches the other one, so a
-            # function resting on zero over [1, 2] crosses at 2, not wherever a trial landed on it; the last
-            # zero is the event where the other side is within the tolerance of it)
-            lo, flo = tau, f
-            zero = (tau, y, z) if f == 0 else zero
-            if side == -1:
-                fhi *= 0.5  # (Illinois: halve the stale end's value)
-            side = -1
-        else:
-            hi, fhi, at_hi = tau, f, (y, z)
-            if side == 1:
-                flo *= 0.5
-            side = 1
-        kept = side == last_side and hi - lo > 0.5 * before
-        slow, last_side = (slow + 1 if kept or slow >= 2 else 0), side
-        if hi - lo <= tol:  # (the event after the crossing, where the function has changed sign: its trial's values)
-            if zero is not None and hi - zero[0] <= tol:
-                return (*zero, stats)
-            y, z = at_hi if at_hi is not None else trial(hi)[1:]
-            return hi, y, z, stats
-    raise EventLocationError(
-        f"event {compiled.events[which].name!r} between t = {a:.10g} and {b:.10g}: not located to {tol:.1e} in "
-        f"{MAX_LOCATION_ITERATIONS} trial solves (the bracket is [{lo:.15g}, {hi:.15g}], last trial "
-        f"{best[0]:.15g}); the event function may be discontinuous there"
-    )

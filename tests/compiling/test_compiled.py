@@ -10,6 +10,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel.compiling.initial_states import branch_check_functions
+from daemodel.compiling.switches import with_state_events
 from daemodel.problems import PENDULUM, PROBLEMS
 
 
@@ -91,3 +92,92 @@ def test_a_copy_with_other_constraints_does_not_reuse_their_cached_index_or_bran
     want, got = branch_check_functions(fresh), branch_check_functions(copy)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert np.allclose(got[2](*at), want[2](*at)) and not np.allclose(values(*at), want[2](*at))
+
+
+def _decay():
+    m = dm.Model("decay")
+    m.states("x")
+    m.parameter("k", 1.0)
+    m.ode("x", "-k*x")
+    m.initial(x=1.0)
+    return m.compile()
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_users_copy_with_other_equations_solves_its_own(method):
+    """dataclasses.replace(compiled, rhs=...) handed the copy its model's cache: radau and casadi-idas solved
+    the original's generated x' = -x for the copy's x' = -2x (x(1) = exp(-1) = 0.368 for exp(-2) = 0.135,
+    "success").  A copy that changes more than the initial values now has a cache of its own."""
+    compiled = _decay()
+    assert abs(dm.solve(compiled, (0.0, 1.0), method=method)["x"][-1] - np.exp(-1.0)) < 1e-6
+    x, k = compiled.states[0], compiled.parameters[0]
+    copy = dataclasses.replace(compiled, rhs=(-2 * k * x,))
+    assert abs(dm.solve(copy, (0.0, 1.0), method=method)["x"][-1] - np.exp(-2.0)) < 1e-6
+    assert abs(dm.solve(compiled, (0.0, 1.0), method=method)["x"][-1] - np.exp(-1.0)) < 1e-6  # (and the original)
+
+
+def test_every_cached_entry_follows_a_users_copy():
+    """Whatever a copy changes but its initial values, no entry of its model's cache is read back for it: the
+    Jacobian's pattern of a copy with another constraint, the numeric system of a copy with other symbols'
+    equations, its event functions; a copy that changes only the initial values shares them (a solve's
+    pieces), and its reduction carries its own t0, y0 and z0 (before: the original's t0 = 0 for a copy at 2)."""
+    compiled = PENDULUM.model().compile()
+    pattern = compiled.jacobian_pattern()
+    numeric, reduced = compiled.numeric, compiled.reduced(1)
+    lam = compiled.algebraics[0]
+    other = tuple(dataclasses.replace(c, chain=(c.chain[0] + lam, *c.chain[1:])) for c in compiled.constraints)
+    copy = dataclasses.replace(compiled, constraints=other)
+    rows, cols = copy.jacobian_pattern()
+    n = len(compiled.states)
+    assert (n, n) in set(zip(rows.tolist(), cols.tolist(), strict=True))  # (the new d g / d lam entry)
+    assert len(rows) > len(pattern[0]) and compiled.jacobian_pattern() is pattern
+    # a copy at other initial values: the same generated code, its own initial values in its reduction
+    moved = dataclasses.replace(compiled, t0=2.0, y0=compiled.y0.copy(), z0=compiled.z0.copy())
+    assert moved.numeric is numeric and moved.jacobian_pattern() is pattern
+    assert moved.reduced(1).t0 == 2.0 and moved.reduced(1).y0 is moved.y0 and moved.reduced(1).z0 is moved.z0
+    assert moved.reduced(1).constraints is reduced.constraints and compiled.reduced(1) is reduced
+    assert moved.reduced(1).torch_functions() is reduced.torch_functions()  # (its generated code, not made again)
+    assert with_state_events(compiled) is compiled and with_state_events(moved) is moved  # (no switch on a variable)
+    # any other field: a cache of its own
+    changes = {
+        "rhs": tuple(list(compiled.rhs)),  # (equal, but another object: the cache tells by identity, not by value)
+        "parameter_values": np.array(compiled.parameter_values),
+        "invariants": tuple(list(compiled.invariants)),
+        "name": "other",
+    }
+    for name, changed in changes.items():
+        assert dataclasses.replace(compiled, **{name: changed}).numeric is not numeric, name
+
+
+def test_a_users_copy_with_other_events_locates_its_own():
+    """The event functions are cached by the events, and a copy with other events (and so other switches'
+    events) builds its own; with other right-hand sides, the crossing moves with them."""
+    m = dm.Model("decay")
+    m.states("x")
+    m.ode("x", "-x")
+    m.initial(x=1.0)
+    m.event("half", "x - 0.5", direction=-1, terminal=True)
+    compiled = m.compile()
+    sol = dm.solve(compiled, (0.0, 2.0), rtol=1e-10, atol=1e-10)
+    assert abs(sol.events["half"]["t"][0, 0] - np.log(2.0)) < 1e-8
+    x = compiled.states[0]
+    copy = dataclasses.replace(compiled, rhs=(-2 * x,))
+    sol = dm.solve(copy, (0.0, 2.0), rtol=1e-10, atol=1e-10)
+    assert abs(sol.events["half"]["t"][0, 0] - np.log(2.0) / 2) < 1e-8
+
+
+def test_the_switches_events_of_a_copy_at_other_initial_values_carry_them():
+    """with_state_events keeps the model with its switches' events in the cache; a copy at other initial
+    values (a piece of a solve) gets it with its own t0, y0 and z0, and the same events (before: the
+    first model's t0 and y0, whichever asked first)."""
+    m = dm.Model("switching")
+    m.states("x")
+    m.ode("x", "1 - Max(x, 0.5)")
+    m.initial(x=0.0)
+    compiled = m.compile()
+    located = with_state_events(compiled)
+    assert len(located.events) == 1 and located.t0 == 0.0
+    moved = dataclasses.replace(compiled, t0=3.0, y0=np.array([0.25]))
+    again = with_state_events(moved)
+    assert again.t0 == 3.0 and again.y0 is moved.y0 and again.events is located.events
+    assert again.numeric is located.numeric  # (the same generated code)

@@ -10,7 +10,7 @@ import sympy as sp
 
 import daemodel as dm
 from daemodel import errors as E
-from daemodel.solving.events import EVENT_TOL
+from daemodel.solving.branches import EVENT_TOL
 
 G = 9.81
 
