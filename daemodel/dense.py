@@ -102,10 +102,10 @@ class CollocationPolynomials(AbstractDenseOutput):
     @staticmethod
     def joined(blocks: list) -> CollocationPolynomials:
         """The polynomials of consecutive blocks of one solve's steps (one tableau), one after another."""
-        if not all(np.array_equal(b.c, blocks[0].c) for b in blocks):
-            raise ValueError("CollocationPolynomials.joined: blocks of one tableau only")  # (daemodel's own bug)
         if len(blocks) == 1:
             return blocks[0]
+        if not all(np.array_equal(b.c, blocks[0].c) for b in blocks):
+            raise ValueError("CollocationPolynomials.joined: blocks of one tableau only")  # (daemodel's own bug)
         return CollocationPolynomials(
             c=blocks[0].c,
             starts=np.concatenate([b.starts for b in blocks]),

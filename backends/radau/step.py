@@ -513,18 +513,18 @@ class Stepper:
         t_out = np.asarray(t_out, dtype=float)
         # (B, T, n+m): u0 where t <= t0
         out = xp.repeat(u0[:, None], len(t_out), axis=1) if xp is np else xp.stack([u0] * len(t_out), axis=1)
-        after = np.flatnonzero(t_out > t0)
+        after = (t_out > t0).nonzero()[0]  # (np.flatnonzero, without its Python wrapper)
         if not records.starts or not len(after):
             return t_out, numpy_copy(out)
         starts, lengths = np.concatenate(records.starts), np.concatenate(records.lengths)
         owner, theta = step_owners(starts, lengths, t_out[after])  # (the step ending at or after each)
         # the product form, for all points at once: exact at the nodes (a weight of 1 and zeros), which
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
-        nodes = np.concatenate([[0.0], self.tableau.c])
-        weights = self.engine.asarray(lagrange_matrix(nodes, theta))  # (P, s+1)
-        used = np.unique(owner)
+        weights = self.engine.asarray(lagrange_matrix(np.concatenate([[0.0], self.tableau.c]), theta))  # (P, s+1)
+        changes = np.concatenate(([True], owner[1:] != owner[:-1]))  # (owner ascends: no np.unique, no search)
+        used = owner[changes]
         values = records.nodes_of(used, xp, self.index)  # (B, used, s+1, n+m)
-        where = self.index(np.searchsorted(used, owner))
+        where = self.index(np.cumsum(changes) - 1)
         out[:, after] = xp.einsum("pj,bpjk->bpk", weights, values[:, where])
         return t_out, numpy_copy(out)
 

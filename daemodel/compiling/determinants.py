@@ -32,6 +32,9 @@ def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.
     at one position add up (as in a sparse matrix), on both paths."""
     values = np.asarray(values, dtype=float)
     K = len(values)
+    if m == 1 and len(rows) == 1:  # (one entry, the matrix: its sign, as an LU's; 0 where it is 0 or not finite)
+        entry = values[:, 0]
+        return np.sign(np.where(np.isfinite(entry), entry, 0.0))
     if not sparse_enough(len(rows), m):
         rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
         repeated = len(np.unique(rows * m + cols)) < len(rows)
