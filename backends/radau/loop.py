@@ -458,7 +458,7 @@ class CompiledRun:
         inputs[SETTINGS.size :] = stepper.engine.p
         try:
             with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
-                out = self.buffered.evaluate()
+                out = self.buffered.evaluate(copy=False)  # (_write_back copies what it keeps)
         except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
             raise
         except RuntimeError:

@@ -55,6 +55,8 @@ def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.
 def dense_signs(J: np.ndarray) -> np.ndarray:
     """``sign(det J)`` per matrix of a stack (K, m, m), 0 where an entry is not finite."""
     finite = np.isfinite(J).all(axis=(1, 2))
+    if finite.all():  # (the usual case: no copy of the finite ones)
+        return np.linalg.slogdet(J)[0]
     out = np.zeros(len(J))
     if finite.any():
         out[finite] = np.linalg.slogdet(J[finite])[0]
