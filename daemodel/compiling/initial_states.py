@@ -488,7 +488,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
             b = slice(a, a + chunk)
             sign[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
     sign = sign.reshape(B, T)
-    changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
+    changed = sign[:, 1:] * sign[:, :1] < 0  # (signs -1, 0, +1: opposite and both nonzero, in two operations)
     if not changed.any():
         return
     sample, k = np.argwhere(changed)[0]
