@@ -290,7 +290,7 @@ def lagrange_matrix(nodes, points):
     shape (P, N), in numpy: the interpolation of stage values (a start guess, dense output)."""
     import numpy as np
 
-    others, denominators = _lagrange_denominators(tuple(float(x) for x in nodes))
+    others, denominators = _lagrange_denominators(tuple(np.asarray(nodes, dtype=float).tolist()))
     factors = np.where(others, points[:, None, None] - np.asarray(nodes)[None, None, :], 1.0)  # x - x_m, (P, j, m)
     return factors.prod(axis=-1) / denominators
 

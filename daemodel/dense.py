@@ -57,8 +57,10 @@ def collocation_values(weights, owner: np.ndarray, nodes_of, xp, index):
     at least :data:`NODES_PER_STEP_LOOP` entries, each step's points take its nodes alone: the gathered
     (B, P, s+1, n+m) copy of all the points' nodes (48 MB a solve at 10^5 unknowns, 11 outputs) is not
     made; both ways are one ``einsum`` over the same subscripts."""
-    used = np.unique(owner)
-    where = np.searchsorted(used, owner)
+    changes = np.ones(len(owner), dtype=bool)  # (owner ascends: no np.unique, no search)
+    changes[1:] = owner[1:] != owner[:-1]
+    used = owner[changes]
+    where = np.cumsum(changes) - 1
     first = nodes_of(used[:1])
     if first.shape[0] * first.shape[2] * first.shape[3] < NODES_PER_STEP_LOOP:
         return xp.einsum("pj,bpjk->bpk", weights, nodes_of(used)[:, index(where)])
@@ -126,10 +128,10 @@ class CollocationPolynomials(AbstractDenseOutput):
     @staticmethod
     def joined(blocks: list) -> CollocationPolynomials:
         """The polynomials of consecutive blocks of one solve's steps (one tableau), one after another."""
-        if not all(np.array_equal(b.c, blocks[0].c) for b in blocks):
-            raise ValueError("CollocationPolynomials.joined: blocks of one tableau only")  # (daemodel's own bug)
         if len(blocks) == 1:
             return blocks[0]
+        if not all(np.array_equal(b.c, blocks[0].c) for b in blocks):
+            raise ValueError("CollocationPolynomials.joined: blocks of one tableau only")  # (daemodel's own bug)
         return CollocationPolynomials(
             c=blocks[0].c,
             starts=np.concatenate([b.starts for b in blocks]),

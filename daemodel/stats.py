@@ -8,6 +8,9 @@ import numpy as np
 # Items of a list that a printed stats dict shows before it says how many more there are.
 SHOWN_ITEMS = 6
 
+# Values that :func:`as_arrays` returns as they are (a solution's stats are mostly these).
+PLAIN = frozenset({int, float, str, bool, type(None)})
+
 # Entries a printed stats dict shows, one a line, before it says how many more there are (with the
 # braces: at most 40 lines whatever the batch).
 SHOWN_ENTRIES = 36
@@ -23,7 +26,18 @@ class Stats(dict):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         for key, value in self.items():
-            self[key] = as_arrays(value)
+            if type(value) not in PLAIN:  # (most entries: as_arrays keeps them as they are)
+                self[key] = as_arrays(value)
+
+    def extended(self, **entries) -> Stats:
+        """A copy with ``entries`` added (converted as the constructor converts), its own entries taken as
+        they are (converted already: the solve's clock, which adds two entries to every solution, paid
+        for a second pass over all of them)."""
+        out = Stats()
+        dict.update(out, self)
+        for key, value in entries.items():
+            out[key] = as_arrays(value)
+        return out
 
     def __repr__(self) -> str:
         items = [f"{key!r}: {_summary(value)}" for key, value in self.items()]

@@ -202,6 +202,19 @@ def test_stats_hold_arrays_not_lists_of_lists():
     )
 
 
+def test_extended_stats_keep_their_arrays_and_convert_the_new_entries():
+    """``Stats.extended`` (the solve's clock adds two entries to every solution's stats): a new Stats with
+    the entries added, converted as the constructor converts, the original unchanged."""
+    stats = Stats({"per_step": [1.0, 2.0], "steps": 2})
+    more = stats.extended(seconds=0.5, per_segment=[[1, 2], [3, 4]])
+    assert isinstance(more, Stats) and list(more) == ["per_step", "steps", "seconds", "per_segment"]
+    assert more["per_step"] is stats["per_step"] and more["steps"] == 2 and more["seconds"] == 0.5
+    np.testing.assert_array_equal(more["per_segment"], [[1, 2], [3, 4]])
+    assert isinstance(more["per_segment"], np.ndarray) and "seconds" not in stats
+    sol = dm.solve(DECAY.model(), (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    assert isinstance(sol.stats, Stats) and sol.stats["completion_seconds"] >= 0.0
+
+
 def test_stats_as_plain_values_go_through_strict_json():
     """json.dumps(sol.stats) refuses numpy arrays; ``to_dict()`` is plain (NaN and inf as None)."""
     import json

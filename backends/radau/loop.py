@@ -444,7 +444,10 @@ class CompiledRun:
         state[: SCALARS.size] = SCALARS.pack(**scalars)
         u = stepper.state()[0]
         state[L["u"]] = u
-        state[L["nodes"]] = stepper._previous_nodes if previous is not None else np.tile(u, stepper.s + 1)
+        if previous is not None:
+            state[L["nodes"]] = stepper._previous_nodes
+        else:  # (u at every node, written in place: np.tile made a copy first)
+            state[L["nodes"]].reshape(stepper.s + 1, len(u))[:] = u
         state[L["f0"]] = stepper.start_f(t)[0]
         if jac is not None:
             state[L["J"]] = jac[0]
@@ -455,7 +458,7 @@ class CompiledRun:
         inputs[SETTINGS.size :] = stepper.engine.p
         try:
             with captured_output():  # (casadi prints a failing call's inputs, all nested functions', before it raises)
-                out = self.buffered.evaluate()
+                out = self.buffered.evaluate(copy=False)  # (_write_back copies what it keeps)
         except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
             raise
         except RuntimeError:

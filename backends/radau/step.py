@@ -513,7 +513,7 @@ class Stepper:
         t_out = np.asarray(t_out, dtype=float)
         # (B, T, n+m): u0 where t <= t0
         out = xp.repeat(u0[:, None], len(t_out), axis=1) if xp is np else xp.stack([u0] * len(t_out), axis=1)
-        after = np.flatnonzero(t_out > t0)
+        after = (t_out > t0).nonzero()[0]  # (np.flatnonzero, without its Python wrapper)
         if not records.starts or not len(after):
             return t_out, numpy_copy(out)
         starts, lengths = np.concatenate(records.starts), np.concatenate(records.lengths)

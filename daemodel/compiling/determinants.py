@@ -32,6 +32,9 @@ def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.
     at one position add up (as in a sparse matrix), on both paths."""
     values = np.asarray(values, dtype=float)
     K = len(values)
+    if m == 1 and len(rows) == 1:  # (one entry, the matrix: its sign, as an LU's; 0 where it is 0 or not finite)
+        entry = values[:, 0]
+        return np.sign(np.where(np.isfinite(entry), entry, 0.0))
     if not sparse_enough(len(rows), m):
         rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
         repeated = len(np.unique(rows * m + cols)) < len(rows)
@@ -52,6 +55,8 @@ def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.
 def dense_signs(J: np.ndarray) -> np.ndarray:
     """``sign(det J)`` per matrix of a stack (K, m, m), 0 where an entry is not finite."""
     finite = np.isfinite(J).all(axis=(1, 2))
+    if finite.all():  # (the usual case: no copy of the finite ones)
+        return np.linalg.slogdet(J)[0]
     out = np.zeros(len(J))
     if finite.any():
         out[finite] = np.linalg.slogdet(J[finite])[0]

@@ -478,7 +478,8 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
     if m == 0 or T < 2:
         return
     rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
-    T_all, P_all = np.tile(np.asarray(times, dtype=float), B), np.repeat(P, T, axis=0)
+    T_all = np.asarray(times, dtype=float)
+    T_all, P_all = (T_all if B == 1 else np.tile(T_all, B)), np.repeat(P, T, axis=0)
     at, to, entries = branch_check_functions(compiled)
     sign = np.empty(B * T)
     chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)
@@ -487,7 +488,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
             b = slice(a, a + chunk)
             sign[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
     sign = sign.reshape(B, T)
-    changed = (sign[:, 1:] != sign[:, :1]) & (sign[:, 1:] != 0) & (sign[:, :1] != 0)
+    changed = sign[:, 1:] * sign[:, :1] < 0  # (signs -1, 0, +1: opposite and both nonzero, in two operations)
     if not changed.any():
         return
     sample, k = np.argwhere(changed)[0]

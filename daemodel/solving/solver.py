@@ -123,7 +123,7 @@ def within_clocks(sol: Solution, started: float, dispatched: float) -> Solution:
     wall = time.perf_counter() - started
     before = dispatched - started
     after = max(0.0, wall - before - sol.setup_time - sol.solve_time)
-    stats = {**sol.stats, "preparation_seconds": before, "completion_seconds": after}
+    stats = sol.stats.extended(preparation_seconds=before, completion_seconds=after)
     return dataclasses.replace(sol, setup_time=sol.setup_time + before, solve_time=sol.solve_time + after, stats=stats)
 
 
