@@ -206,10 +206,11 @@ NEWTON_BEFORE = Layout("norm", *(name for name in NEWTON_STATE if name != "activ
 NEWTON_AFTER = Layout("iterate", *NEWTON_STATE)
 
 
-def newton_tests(iterations: int):
+def newton_tests(iterations: int, geometric: bool = False):
     """One pass of the simplified Newton iteration on its scalars, :func:`.iteration.newton_pass` (the one
     :meth:`.newton.Newton.simplified` runs) on casadi SX symbols: an SX function from ``before``
-    (:data:`NEWTON_BEFORE`) to ``after`` (:data:`NEWTON_AFTER`)."""
+    (:data:`NEWTON_BEFORE`) to ``after`` (:data:`NEWTON_AFTER`); ``geometric``: the contraction's mean
+    (:func:`.formulas.geometric_contraction` of the stages)."""
     import casadi
 
     x = casadi.SX.sym("before", NEWTON_BEFORE.size)
@@ -219,7 +220,7 @@ def newton_tests(iterations: int):
         active=1,
         iterating=v["mode"] == formulas.ITERATING,
     )
-    found = newton_pass(CASADI, state, v["norm"], v["tol"], iterations)
+    found = newton_pass(CASADI, state, v["norm"], v["tol"], iterations, geometric=geometric)
     after = found.state._asdict()
     out = NEWTON_AFTER.pack(iterate=found.iterate, **{name: after[name] for name in NEWTON_STATE})
     return casadi.Function("newton_tests", [x], [casadi.vertcat(*out)], ["before"], ["after"])
@@ -282,7 +283,8 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
     # the tests on the scalars in one SX function (an MX operation costs ~40 ns on casadi's virtual
     # machine, an SX one ~2: a pendulum step of 3 iterations 23.6 -> 19.7 us)
     before = NEWTON_BEFORE.pack(norm=norm, tol=tols, **{name: state_in[name] for name in NEWTON_BEFORE.names[1:-1]})
-    after = NEWTON_AFTER.read(newton_tests(iterations)(before=casadi.vertcat(*before))["after"])
+    tests = newton_tests(iterations, formulas.geometric_contraction(s))
+    after = NEWTON_AFTER.read(tests(before=casadi.vertcat(*before))["after"])
     state_out = dict(after, W=casadi.if_else(after["iterate"], W_s + dW, W_s), F=stage_f)
     symbols = [*(state_in[name] for name in ITERATION), *fixed_syms]
     one = casadi.Function("iteration", symbols, [state_out[name] for name in ITERATION])

@@ -26,6 +26,11 @@ from daemodel.backends.radau.sequence import HANDBACK
 
 from daemodel.errors import ConvergenceError, StepLimitError
 
+# Newton's tolerance (adaptive_newton_tol) for more than three stages is at most this: rtol^(3/4) at s = 7,
+# rtol = atol = 1e-3 (5.6e-3) ran the pendulum over [0, 20] in 11,902 attempts, 40 x (atol + rtol) off, 3e-3
+# in 175, 1e-3 in 118 within 0.005 x (with RADAU5's contraction, formulas.GEOMETRIC_CONTRACTION_STAGES;
+# with the last ratio alone: 7,307, 50 x at 5.6e-3, 241 at 1e-3)
+HIGH_ORDER_NEWTON_TOL = 1e-3
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
 FIXED_NEWTON_TOL_EPS = 10
 # (The step-size formulas, RADAU5's safety factor and bounds, are .formulas', shared with .loop.)
@@ -53,6 +58,25 @@ STOP_ATTEMPTS = 4
 
 # The first step is at least this (times max(1, |t0|)): 1e4 times the step size underflow's threshold.
 INITIAL_STEP_FLOOR = 1e-10
+
+
+def adaptive_newton_tol(rtol: float, stages: int, eps: float) -> float:
+    """Newton's tolerance of an adaptive step, in units of the error tolerance: RADAU5's ``min(0.03,
+    rtol^(1/2))`` for up to three stages, ``min(1e-3, rtol^((s - 1) / (s + 1)))`` for more, never below
+    the rounding floor ``10 eps / rtol``.
+
+    Hairer's variable-order RADAU (radau.f, s = 3, 5, 7) stops Newton at the estimate's tolerance to the
+    power ``2s / (s + 1)`` (its FNEWT is that tolerance to ``(s - 1) / (s + 1)`` in its units): the
+    estimate is O(h^(s+1)) and the solution's local error O(h^(2s)), so the stage errors Newton leaves
+    stay at the latter's level, below what the estimate must see shrink with h.  RADAU5's sqrt(rtol) at
+    s = 7 left them at 0.01 of rtol 1e-4 on the pendulum: the estimate stopped shrinking with h and h
+    collapsed (step size underflow at t = 4.4); rtol^(3/4) is 1e-3 there.  Above rtol 1e-4 the power
+    alone is not enough for s = 7: :data:`HIGH_ORDER_NEWTON_TOL` caps it.
+    """
+    if stages <= 3:
+        return max(10 * eps / rtol, min(0.03, rtol**0.5))
+    power = (stages - 1) / (stages + 1)
+    return max(10 * eps / rtol, min(HIGH_ORDER_NEWTON_TOL, rtol**power))
 
 
 class FixedGrid:
@@ -114,10 +138,13 @@ class Radau5Controller:
         self.options = options
         self.rtol, self.atol = options.rtol, options.atol
         eps = float(np.finfo(options.dtype).eps)
-        # Newton's tolerance is set by rounding (10 eps / rtol), not by RADAU5's min(0.03, sqrt(rtol)),
-        # below rtol ~5e-10: its stage errors, and so the estimates, are near noise there
-        tol = options.newton_tol or max(10 * eps / self.rtol, min(0.03, self.rtol**0.5))  # RADAU5's rule
-        self.rounding_floor = tol <= 10 * eps / self.rtol * (1 + 1e-12)  # (a newton_tol given that low too)
+        tol = options.newton_tol or adaptive_newton_tol(self.rtol, options.stages, eps)
+        # below rtol ~5e-10 RADAU5's tolerance meets the rounding floor (10 eps / rtol): the stage errors, and
+        # so the estimates, are near noise there (a newton_tol given that low too).  Read on three stages'
+        # rule: the tighter one of more stages meets the floor sooner (s = 7 below rtol 3.8e-9), where the
+        # estimates are not noise yet
+        floor = 10 * eps / self.rtol
+        self.rounding_floor = (options.newton_tol or adaptive_newton_tol(self.rtol, 3, eps)) <= floor * (1 + 1e-12)
         self.policy = NewtonPolicy(
             tol=tol,
             atol=self.atol,
@@ -300,8 +327,8 @@ def underflow_error(new, t, why, sample) -> ConvergenceError:
     else:
         cause = "the solution may blow up or leave the domain of f there"
     if why is not None and (why == SHRUNK_BY_ESTIMATE or why.startswith("error estimate ")):
-        # (the pendulum at s = 7, rtol 1e-4, atol 1e-6 ended here at t = 4.4, smooth and bounded: RADAU5's Newton
-        # tolerance, 0.01 there, left stage errors that do not shrink with h; newton_tol=1e-10 ran it in 625 attempts)
+        # (the pendulum at s = 7, rtol 1e-4, atol 1e-6 ended here at t = 4.4, smooth and bounded, under RADAU5's
+        # Newton tolerance, 0.01 there: stage errors that do not shrink with h; adaptive_newton_tol's 1e-3 runs it)
         cause += (
             ", or, where it stays smooth, Newton's tolerance leaves stage errors that do not shrink with h (more "
             "stages at a looser rtol need a tighter one): give a smaller newton_tol (e.g. 1e-10), or leave stages out"

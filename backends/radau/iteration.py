@@ -33,7 +33,8 @@ class NewtonState(NamedTuple):
     """
 
     previous: object  # the last increment's scaled norm (read from the second iteration on)
-    theta: object  # the contraction of the last increment against the one before
+    theta: object  # the contraction of the last increment against the one before (.formulas.mean_contraction)
+    ratio: object  # the last ratio of increments (0 before the second iteration)
     eta: object  # the rate theta / (1 - theta) (at the start: the last step's, RADAU5)
     k: object  # the iterations made
     mode: object  # ITERATING, CHECK (of a convergence at k = 1) or EVALUATE (f at the final stages)
@@ -47,8 +48,8 @@ def newton_start(eta, zeros, everyone) -> NewtonState:
     """The state before the first iteration: the start rate ``eta``, ``zeros`` for the last norm and the
     contraction (the first iteration reads neither), ``everyone`` iterating."""
     return NewtonState(
-        previous=zeros, theta=zeros, eta=eta, k=0, mode=ITERATING, outcome=CONVERGED, active=True, evaluations=0,
-        iterating=everyone,
+        previous=zeros, theta=zeros, ratio=zeros, eta=eta, k=0, mode=ITERATING, outcome=CONVERGED, active=True,
+        evaluations=0, iterating=everyone,
     )  # fmt: skip
 
 
@@ -63,7 +64,15 @@ class NewtonPass(NamedTuple):
 
 
 def newton_pass(
-    xp, state: NewtonState, norm, tol, iterations: int, to_rounding=False, slow_ends=True, trust_last_rate=True
+    xp,
+    state: NewtonState,
+    norm,
+    tol,
+    iterations: int,
+    to_rounding=False,
+    slow_ends=True,
+    trust_last_rate=True,
+    geometric=False,
 ) -> NewtonPass:
     """One pass of the simplified Newton iteration on ``norm``, the scaled norm of the increment at the
     current stage values (None on arrays in :data:`.formulas.EVALUATE` mode: nothing is tested there).
@@ -80,7 +89,8 @@ def newton_pass(
       stage values: the statistics stay as they were);
     - EVALUATE: f at the final stages, one evaluation, and the iteration has converged.
 
-    ``tol``, ``iterations``, ``to_rounding`` and ``slow_ends``: :func:`.formulas.newton_iteration`'s;
+    ``tol``, ``iterations``, ``to_rounding``, ``slow_ends`` and ``geometric`` (the contraction's mean,
+    :func:`.formulas.geometric_contraction`): :func:`.formulas.newton_iteration`'s;
     ``trust_last_rate`` (a Python flag): a convergence is checked or followed by an evaluation, else
     (the fixed grid) it ends the iteration at once (f at the last evaluation's stage values serves).
     """
@@ -93,11 +103,11 @@ def newton_pass(
     def tested():
         return formulas.newton_iteration(
             xp, norm, state.previous, state.theta, state.eta, moved, k <= 1, iterations - k, tol,
-            to_rounding=to_rounding, slow_ends=slow_ends,
+            to_rounding=to_rounding, slow_ends=slow_ends, ratio=state.ratio, geometric=geometric,
         )  # fmt: skip
 
     def idle():  # (where no sample moves, the tests leave theta and eta, and fail nothing)
-        return NewtonTests(CONVERGED, state.theta, state.eta, moved, False, False, False)
+        return NewtonTests(CONVERGED, state.theta, state.eta, moved, False, False, False, state.ratio)
 
     tests = xp.guard(iterate, tested, idle)
     failed = xp.and_(iterate, tests.outcome != CONVERGED)
@@ -108,6 +118,7 @@ def newton_pass(
     after = NewtonState(
         previous=xp.where(iterate, norm, state.previous),
         theta=tests.theta,
+        ratio=tests.ratio,
         eta=tests.eta,
         k=k,
         mode=xp.where(converged, formulas.after_convergence(xp, k, iterations), ITERATING),

@@ -120,6 +120,7 @@ class Newton:
             found = newton_pass(
                 ops, state, norm, policy.tol, policy.iterations, to_rounding=policy.to_rounding,
                 slow_ends=slow_ends, trust_last_rate=policy.trust_last_rate,
+                geometric=policy.trust_last_rate and formulas.geometric_contraction(stepper.s),  # (adaptive only)
             )  # fmt: skip
             state, tests = found.state, found.tests
             if found.iterate:  # (a refuted check's increment moves the samples it refuted)

@@ -112,8 +112,10 @@ class RadauOptions:
         Output times (collocation-polynomial dense output); default: the step grid.
     newton_tol : float, optional
         Newton's tolerance on scaled increments; default ``10 * eps`` of the dtype for a fixed
-        step (the collocation solution to rounding), ``max(10 eps / rtol, min(0.03, sqrt(rtol)))``
-        relative to the error tolerance in adaptive mode (RADAU5's rule).
+        step (the collocation solution to rounding); relative to the error tolerance in adaptive
+        mode, RADAU5's ``max(10 eps / rtol, min(0.03, sqrt(rtol)))`` up to three stages, and
+        ``rtol^((s - 1) / (s + 1))`` (at most 1e-3) for more, as Hairer's RADAU (radau.f) sets it
+        per stage count (:func:`~.control.adaptive_newton_tol`).
     max_newton_iterations : int
     max_steps : int, optional
         Fixed step: most steps of the grid, refused before it is built

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau.backend import RadauBackend
+from daemodel.backends.radau.control import Radau5Controller
 from daemodel.backends.radau.options import RadauOptions
 from scipy.integrate import solve_ivp
 
@@ -188,3 +189,23 @@ def test_implicit_euler_is_refused_adaptive_steps_and_two_stages_meet_the_tolera
         dm.solve(c, (0.0, 5.0), stages=1)  # the default tolerances are adaptive too
     fixed = dm.solve(c, (0.0, 5.0), stages=1, h=2.5e-4)
     assert fixed.status == "success" and abs(fixed["x"][-1] - exact[0]) < 1e-3
+
+
+def test_newtons_adaptive_tolerance_follows_the_stages():
+    """RADAU5's min(0.03, rtol^(1/2)) up to three stages (the same float), radau.f's rtol^((s - 1) / (s + 1))
+    above, capped at HIGH_ORDER_NEWTON_TOL, never below the rounding floor 10 eps / rtol."""
+    from daemodel.backends.radau.control import HIGH_ORDER_NEWTON_TOL, adaptive_newton_tol
+
+    eps = float(np.finfo(np.float64).eps)
+    for rtol in (1e-1, 3e-3, 1e-4, 1e-6, 7e-8, 1e-9, 1e-12):
+        for stages in (2, 3):
+            assert adaptive_newton_tol(rtol, stages, eps) == max(10 * eps / rtol, min(0.03, rtol**0.5))
+    assert adaptive_newton_tol(1e-4, 7, eps) == pytest.approx(1e-3, rel=1e-12)  # rtol^(3/4)
+    assert adaptive_newton_tol(1e-6, 5, eps) == pytest.approx(1e-4, rel=1e-12)  # rtol^(2/3)
+    assert adaptive_newton_tol(1e-3, 7, eps) == HIGH_ORDER_NEWTON_TOL == adaptive_newton_tol(1e-3, 5, eps)
+    assert adaptive_newton_tol(1e-9, 7, eps) == 10 * eps / 1e-9  # (rtol^(3/4) = 1.8e-7 is below the floor)
+    # where the rule is RADAU5's, the predictive controller is off below rtol ~5e-10 only, as before
+    for stages, rtol, floor in ((7, 1e-9, False), (5, 1e-9, False), (7, 1e-10, True), (3, 1e-10, True)):
+        options = RadauOptions(rtol=rtol, atol=rtol, stages=stages)
+        assert Radau5Controller(options).rounding_floor is floor
+        assert Radau5Controller(options).policy.tol == adaptive_newton_tol(rtol, stages, eps)

@@ -89,3 +89,32 @@ def test_a_check_moves_only_the_samples_it_refutes():
     after = found.state
     np.testing.assert_array_equal(after.theta, [0.0, 5e-3 / 0.2, 0.0])  # only the refuted sample's moves
     assert (after.k, after.evaluations, after.mode, after.outcome) == (2, 3, formulas.EVALUATE, formulas.CONVERGED)
+
+
+def test_five_stages_and_more_take_radau5s_geometric_contraction():
+    """From the third iteration on, RADAU5's sqrt(q_k q_(k-1)) of the last two ratios (formulas.mean_contraction)
+    for s >= 5 (formulas.GEOMETRIC_CONTRACTION_STAGES), the same on arrays and casadi symbols; s = 3 keeps q_k."""
+    ops = ArrayOps(np)
+    norms = [1e-1, 1e-2, 1e-4]  # ratios 1e-1, then 1e-2: the mean 10^-1.5
+    mean = ((1e-4 / 1e-2) * (1e-2 / 1e-1)) ** 0.5
+    for stages, theta in ((3, 1e-4 / 1e-2), (5, mean), (7, mean)):
+        geometric = formulas.geometric_contraction(stages)
+        state = newton_start(np.array([0.5]), np.zeros(1), np.ones(1, dtype=bool))
+        function = newton_tests(7, geometric)
+        scalars = {name: 0.0 for name in NEWTON_BEFORE.names}
+        scalars.update(eta=0.5, active=1.0)
+        for norm in norms:
+            state = newton_pass(ops, state, np.array([norm]), TOL, 7, geometric=geometric).state
+            before = NEWTON_BEFORE.pack(
+                **{name: scalars[name] for name in NEWTON_BEFORE.names[1:-1]}, norm=norm, tol=TOL
+            )
+            scalars = NEWTON_AFTER.read(np.asarray(function(before=before)["after"]).ravel())
+        assert float(state.theta[0]) == theta and float(state.eta[0]) == theta / (1 - theta)
+        assert (scalars["theta"], scalars["eta"]) == (float(state.theta[0]), float(state.eta[0]))
+    # a mean below the divergence bound where the last ratio alone (1.1) is above it: the iteration goes on
+    for geometric, outcome in ((True, formulas.CONVERGED), (False, formulas.DIVERGING)):
+        state = newton_start(np.array([0.5]), np.zeros(1), np.ones(1, dtype=bool))
+        for norm in (1.0, 0.1, 0.11):
+            state = newton_pass(ops, state, np.array([norm]), TOL, 7, geometric=geometric).state
+        assert state.outcome == outcome and state.active == geometric
+    assert float(state.theta[0]) == pytest.approx(1.1)  # (the last ratio alone)
