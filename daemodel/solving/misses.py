@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemodel.errors import InvalidOptionError, SolverError
+from daemodel.errors import InvalidOptionError, SolverError, TimeLimitError
 
 # An extremum towards zero that the method's own solution leaves within this many tolerances of zero (how far
 # atol + rtol |v| in its variables moves the event function: function_tolerance) is checked by a tighter
@@ -114,6 +114,8 @@ class NearMisses:
             return None
         try:
             value, y_tight, z_tight = self.trial(self.tight, a, x.t, ya, za, x.event)
+        except TimeLimitError:  # (the time that ran out is not the check's failure)
+            raise
         except SolverError:
             return NearMiss(name, x.t, x.near, None)
         self.at = (x.t, y_tight, z_tight)

@@ -67,6 +67,12 @@ def test_a_near_miss_whose_tighter_solve_fails_is_flagged():
     ]
 
 
+def test_a_time_limit_that_strikes_in_the_check_is_not_its_failure():
+    trial, _ = _solver(E.TimeLimitError("the task's time limit of 1 s ran out"))
+    with pytest.raises(E.TimeLimitError, match="time limit of 1 s"):
+        _near(trial).check(_miss(1e-6), "hump", ONE, NONE)
+
+
 @pytest.mark.parametrize(
     ("near", "tight", "rtol", "solves"),
     [
