@@ -18,10 +18,12 @@ two ends is one; so is a local extremum towards zero among the samples (one near
 its neighbours, all three on one side), where :data:`EXCURSION_ROUNDS` rounds of
 :data:`EXCURSION_GRID` points on the dense output, each about the last round's deepest, look for the
 other side.  The caller confirms each with a trial solve of the method's own (an excursion inside
-the dense output's error is none).  No sampling sees everything: an excursion both narrower than the
-samples' spacing and away from any extremum they show is not seen; one deep enough to matter at
-the method's tolerance makes an extremum the samples show, unless the function is that rough
-between two steps that each met the tolerance.
+the dense output's error is none).  Where each look solves again, an extremum the probes find still on its
+side is yielded too, as a near miss with its distance to zero (``Excursion.near``), for
+:mod:`daemodel.solving.misses` to check against the method's error.  No sampling sees everything: an
+excursion both narrower than the samples' spacing and away from any extremum they show is not seen; one
+deep enough to matter at the method's tolerance makes an extremum the samples show, unless the function is
+that rough between two steps that each met the tolerance.
 """
 
 from __future__ import annotations
@@ -115,6 +117,10 @@ class Excursion:
     before: int  # the output before it
     t: float  # the deepest point found on the other side, on the dense output
     side: float  # the side it left (+1 or -1): its sign at the outputs about it
+    # None: on the other side at t.  A distance: a near miss, found where each look solves again (the method's
+    # own solution): the probes found no crossing, the function is this far from zero at t, its nearest point
+    # (:mod:`daemodel.solving.misses` checks whether that is within the method's error)
+    near: float | None = None
 
 
 def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: int) -> Iterator[Excursion]:
@@ -164,7 +170,13 @@ def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: i
         elif inner:
             t = _zoom(read, e, s, float(times[lo]), float(times[hi]))
         else:  # (each look solves again: a few probes at the parabola's vertex, not grids)
-            t = _probe(read, e, s, times[window].astype(float), G[window, e].astype(float))
+            probed = _probe(read, e, s, times[window].astype(float), G[window, e].astype(float))
+            if probed is None:
+                continue
+            t, value = probed
+            if s * value >= 0:  # (no crossing: the nearest point the probes found, a near miss)
+                yield Excursion(e, int(np.searchsorted(T, t, side="right") - 1), t, s, near=abs(value))
+                continue
         if t is not None:
             yield Excursion(e, int(np.searchsorted(T, t, side="right") - 1), t, s)
 
@@ -243,7 +255,7 @@ def block_excursion(dense, columns, when, P, n: int, T: np.ndarray, F: np.ndarra
 
     checked = np.repeat(armed[None, :], len(T), axis=0)
     for x in excursions(read, T, F, checked, inner_samples(dense)):
-        if counts(x, *states(np.array([x.t])), T[x.before + 1] - T[x.before]):
+        if x.near is None and counts(x, *states(np.array([x.t])), T[x.before + 1] - T[x.before]):
             return True
     return False
 
@@ -258,30 +270,34 @@ def _parabola(t0, t1, t2, g0, g1, g2) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return curve, at, np.where(curve != 0, g0 + (at - t0) * slope + curve * (at - t0) * (at - t1), g1)
 
 
-def _probe(read, e: int, side: float, t: np.ndarray, g: np.ndarray) -> float | None:
-    """Where the event function ``e`` is on the other side than ``side``, looked for by successive parabolic
-    interpolation from the three samples ``(t, g)`` about a local extremum towards zero: each of
+def _probe(read, e: int, side: float, t: np.ndarray, g: np.ndarray) -> tuple[float, float] | None:
+    """``(t, F)``: where the event function ``e`` is on the other side than ``side``, looked for by successive
+    parabolic interpolation from the three samples ``(t, g)`` about a local extremum towards zero: each of
     :data:`EXCURSION_PROBES` probes at the vertex of the parabola through the three nearest zero, on the
-    dense output (``read``); None where none is (or the vertex stops moving)."""
+    dense output (``read``).  Where none is (or the vertex stops moving), the point read nearest zero, still on
+    ``side``; None where the samples show no extremum towards zero or a read fails."""
     t, g = list(t), list(g)
+    nearest = None  # (the point read nearest zero)
     for _ in range(EXCURSION_PROBES):
         curve, vertex, _ = _parabola(*t, *g)
         if not side * curve > 0:  # (no extremum towards zero between them)
-            return None
+            return nearest
         at = min(max(float(vertex), t[0]), t[2])
         if min(abs(at - x) for x in t) <= 1e-6 * (t[2] - t[0]):  # (the vertex stopped moving)
-            return None
+            return nearest
         try:
             value = float(read(np.array([at]))[0, e])
         except ConvergenceError:  # (a method started again that fails there: not seen)
             return None
+        if side * value < 0 or nearest is None or side * value < side * nearest[1]:
+            nearest = (at, value)
         if side * value < 0:
-            return at
+            return nearest
         points = sorted(zip([*t, at], [*g, value], strict=True))
         k = min(range(1, 3), key=lambda i: side * points[i][1])  # (the nearest zero, with a neighbour each side)
         k = min(max(k, 1), 2)
         t, g = [p[0] for p in points[k - 1 : k + 2]], [p[1] for p in points[k - 1 : k + 2]]
-    return None
+    return nearest
 
 
 def _zoom(read, e: int, side: float, lo: float, hi: float) -> float | None:

@@ -76,6 +76,7 @@ from daemodel.solving.branches import (
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
+from daemodel.solving.misses import NearMisses, status_of
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
@@ -164,6 +165,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     lock = has_state_switches(compiled)
     failing = []  # (the pieces whose solve did not meet its accuracy, and events not located to it)
     location, spent = [], [0.0]  # (the trial solves' stats; the tolerance the excursions integrated through used)
+    missed, checks = [], []  # (near misses within the method's error: misses.NearMiss; the tighter solves' stats)
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
 
@@ -227,7 +229,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],
-            Ys[read:], Zs[read:], begin, until, spent,
+            Ys[read:], Zs[read:], begin, until, spent, missed, checks,
         )  # fmt: skip
         all_stats += trials
         location += trials
@@ -410,12 +412,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     t_out = np.concatenate(times)
     table = np.concatenate(rows, axis=0)
     out = {name: table[:, j][None, :].copy() for j, name in enumerate(names)}
-    stats = merge_stats(all_stats)
+    stats = merge_stats(all_stats + checks)
     stats["events"] = count
     # (the trial solves that located the events, and confirmed excursions: their steps are among stats["steps"])
     stats["location_trials"] = len(location)
     stats["location_steps"] = int(sum(trial.get("steps", 0) for trial in location))
     stats["searches_continued"] = continued  # (stopped at an excursion that its trial did not confirm)
+    stats["near_miss_checks"] = len(checks)  # (tighter solves, their steps among stats["steps"])
+    failing += status_of(missed, last.method)
 
     def by_name(rows) -> dict:
         table = np.asarray(rows, dtype=float).reshape(len(rows), len(names))
@@ -514,13 +518,17 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
-def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent):
+def _first_excursion(
+    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks
+):
     """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
     before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
     on the dense output), as ``(which, a, b, Fa, Fb, ya, za, the first trial, {which: its side after})``
     for :func:`_locate`; None where there is none.  Its crossing is the first one its ``direction``
     accepts: the one away from its side, else the one back to it.  A switch's excursion is integrated through
-    where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it)."""
+    where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it).
+    A near miss (the method's own solution does not cross) within its error is added to ``missed``
+    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``."""
     stats = []
     if sol.dense is None:
         return None, stats
@@ -528,16 +536,29 @@ def _first_excursion(backend, piece, options, batched, P, compiled, when, sol, T
     def read(times):
         return on_dense(sol, compiled, when, P, times)
 
+    def tight(opts, a, tau, ya, za, e):  # (a check's tighter solve: misses.NearMisses)
+        value, y, z, solved = trial_solve(backend, piece, opts, batched, P, e, when, a, tau, ya, za)
+        checks.append(solved)
+        return value, y, z
+
+    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1])
+
     for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
         if x.t >= until:
             break
         i, e = x.before, x.event
+        miss = None if x.near is None else near.check(x, compiled.events[e].name, Ys[i : i + 1], Zs[i : i + 1])
+        if x.near is not None and miss is None:
+            continue
         if compiled.events[e].strict:  # (a switch whose other branch changes less than the tolerance left)
             y, z = dense_states(sol, compiled, np.array([x.t]))
             weight = excursion_weight(compiled, piece, options, P, x.t, y, z, T[i + 1] - T[i])
             if spent[0] + weight <= EXCURSION_BUDGET:
                 spent[0] += weight
                 continue
+        if miss is not None:
+            missed.append(miss)
+            continue
         ya, za = Ys[i : i + 1], Zs[i : i + 1]
         value, y, z, solved = trial_solve(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)
         stats.append(solved)
