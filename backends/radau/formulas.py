@@ -27,8 +27,12 @@ REJECTED_MAX_FACTOR, NEWTON_FAILURE_FACTOR = 0.9, 0.5
 ERROR_FLOOR, ACCEPTED_ERROR_FLOOR = 1e-10, 1e-2
 # Step size underflow: h below this times max(1, |t|).
 UNDERFLOW = 1e-14
-# t has reached t1 within this relative tolerance (of t1, and absolute of |t1 - t0|).
-END_TOLERANCE = 1e-13
+# t has reached t1 within this tolerance relative to |t1 - t0| (a step's end: to its h), or within END_ROUNDING
+# of |t1| (a few float64 spacings there: t + (t1 - t) rounds to within one of t1).  Relative to |t1| alone,
+# 1e-13 of t1 = 1e15 + 2 is 100, more than the span: radau ended at its start, 0 steps, "success", and at
+# t0 = 1e13 each step within 1 of t1 ended at t1 (u 0.61 off at rtol 1e-8, "success"; now 1.1e-3 off, still
+# "success": t + h rounds to t's spacing, 2e-3 there, and that is not flagged yet).
+END_TOLERANCE, END_ROUNDING = 1e-13, 4 * 2.0**-52
 # A step that would leave less than this times h before t1 is stretched to end there.
 STRETCH = 1e-10
 # ---- the start guess ----------------------------------------------------------------------------
@@ -329,12 +333,12 @@ def step_length(xp, h, t, t1):
 
 def step_end(xp, t, h, t1):
     """Where the step from ``t`` with ``h`` ends: ``t1`` itself where it ends within rounding of it."""
-    return xp.where(xp.isclose(t + h, t1, END_TOLERANCE), t1, t + h)
+    return xp.where(xp.isclose(t + h, t1, END_ROUNDING, END_TOLERANCE * xp.abs(h)), t1, t + h)
 
 
 def finished(xp, t, t0, t1):
     """Whether the integration over ``(t0, t1)`` has reached ``t1`` at ``t``."""
-    near = xp.isclose(t, t1, END_TOLERANCE, END_TOLERANCE * xp.abs(t1 - t0))
+    near = xp.isclose(t, t1, END_ROUNDING, END_TOLERANCE * xp.abs(t1 - t0))
     return xp.not_(xp.and_(t < t1, xp.not_(near)))
 
 

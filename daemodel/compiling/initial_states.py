@@ -285,7 +285,7 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
             ("parameters", parameters, compiled.parameter_names, compiled.parameter_values),
         ),
     )
-    if y0 is None and z0 is None and parameters is None:
+    if y0 is None and z0 is None and parameters is None and _own_values_consistent(compiled, Y, Z, P):
         return InitialStates(y0=Y, z0=Z, p=P, batched=False)
 
     checks = constraint_checks(compiled)
@@ -320,6 +320,27 @@ def initial_states(compiled, y0=None, z0=None, parameters=None) -> InitialStates
             )
         Zc[off] = algebraic_values(compiled, t0, Yo, Po, Zo)  # (Newton from the given roots: to full precision)
     return InitialStates(y0=Y, z0=Zc, p=P, batched=bool(sizes))
+
+
+def _own_values_consistent(compiled, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> bool:
+    """Whether the model's own ``y0`` satisfy its constraints and its ``z0`` is their root at them (kept with
+    those values).  A ``dataclasses.replace`` copy at other ``y0`` or parameter values keeps the ``z0`` made
+    for the first ones: taken as it was, radau printed z(t0) = 2 beside x(t0) = 0.4 for z = 2 x, and the
+    reference locked Min(1, z) to the branch of z = 2 (u = 2.0 for 0.393, "success"); such values go
+    the way of values given to :func:`initial_states` (checked, z solved again)."""
+
+    def build() -> bool:
+        if not Y.shape[1] and not Z.shape[1]:
+            return True
+        if state_violations(compiled, Y, P)[2].any():
+            return False
+        if not Z.shape[1]:
+            return True
+        checks = constraint_checks(compiled)
+        return bool(is_root(checks.H(compiled.t0, Y, Z, P), checks.Hz(compiled.t0, Y, Z, P), Z).all())
+
+    on = (compiled.y0, compiled.z0, compiled.parameter_values, compiled.t0)
+    return compiled.cached(("own-values-consistent",), build, on=on)
 
 
 def algebraic_values(

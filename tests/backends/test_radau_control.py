@@ -1,6 +1,7 @@
 """radau's controllers (backends/radau/control.py): where a caller's ``stop`` ends an integration
 (the backend contract's rule 8, backends/base.py)."""
 
+import math
 import sys
 from pathlib import Path
 
@@ -209,3 +210,30 @@ def test_newtons_adaptive_tolerance_follows_the_stages():
         options = RadauOptions(rtol=rtol, atol=rtol, stages=stages)
         assert Radau5Controller(options).rounding_floor is floor
         assert Radau5Controller(options).policy.tol == adaptive_newton_tol(rtol, stages, eps)
+
+
+@pytest.mark.parametrize("t0", [3e4, -3e4])
+def test_a_span_shorter_than_1e_13_of_its_end_is_integrated(t0):
+    """x' = cos(x) from 0 over 1e-9 at t0 = 3e4 (2.7e5 float64 spacings of t): the end test was relative to |t1|
+    (1e-13 of 3e4 = 3e-9, more than the span), so radau ended where it started, 0 steps, x = 0, "success"."""
+    m = dm.Model("short")
+    m.states("x")
+    m.ode("x", "cos(x)")
+    m.initial(t=t0, x=0.0)
+    t1 = t0 + 1e-9
+    sol = dm.solve(m, (t0, t1), method="radau", rtol=1e-10, atol=1e-12)
+    assert sol.status == "success" and sol.stats["steps"] >= 1
+    assert abs(sol["x"][-1] - math.asin(math.tanh(t1 - t0))) < 1e-20  # (x = gd(t - t0), 1.0004e-9)
+
+
+def test_a_span_below_the_resolution_of_its_steps_is_not_success():
+    """At t0 = 1e15 (float64 spacing 0.125) a span of 2: radau took 0 steps and said "success" with the initial
+    values at t1 (u = 0 for 1.68); now each step ends where it ends, and steps too short for t there are named."""
+    m = dm.Model("far")
+    m.states("x v u")
+    m.ode("x", "v")
+    m.ode("v", "-x")
+    m.ode("u", "x")
+    m.initial(t=1e15, x=math.cos(1.0), v=math.sin(1.0), u=0.0)
+    with pytest.raises(E.ConvergenceError, match=r"step size underflow at t = 1e\+15"):
+        dm.solve(m, (1e15, 1e15 + 2.0), method="radau", rtol=1e-8, atol=1e-8)

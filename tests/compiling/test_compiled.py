@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -181,3 +182,23 @@ def test_the_switches_events_of_a_copy_at_other_initial_values_carry_them():
     again = with_state_events(moved)
     assert again.t0 == 3.0 and again.y0 is moved.y0 and again.events is located.events
     assert again.numeric is located.numeric  # (the same generated code)
+
+
+@pytest.mark.parametrize("method", ["radau", "reference"])
+def test_a_copy_at_other_initial_states_solves_its_algebraic_values_again(method):
+    """dataclasses.replace(compiled, y0=..., parameter_values=...) keeps the z0 made for the first values (z = 2 x
+    = 2 at x = 1): taken as it was, radau gave z(t0) = 2 beside x(t0) = 0.4 (and an event at 1e-13), and the
+    reference locked Min(1, z) to the branch of z = 2: u = 2.0 for 0.393, status "success"."""
+    m = dm.Model("stale")
+    m.states("x u")
+    m.algebraics("z")
+    m.parameter("k", 1.0)
+    m.ode("x", "-k*x")
+    m.ode("u", "Min(1, z)")
+    m.constraint("z - 2*x", name="zc")
+    m.initial(x=1.0, u=0.0)
+    copy = dataclasses.replace(m.compile(), y0=np.array([0.4, 0.0]), parameter_values=np.array([2.0]))
+    sol = dm.solve(copy, (0.0, 2.0), method=method, **({"rtol": 1e-10, "atol": 1e-10} if method == "radau" else {}))
+    assert sol.status == "success" and abs(sol["z"][0] - 0.8) < 1e-12
+    assert abs(sol["u"][-1] - 0.4 * (1.0 - math.exp(-4.0))) < 1e-8  # (z = 0.8 e^(-2t) < 1 throughout)
+    assert all(np.asarray(event["t"]).size == 0 for event in sol.events.values())

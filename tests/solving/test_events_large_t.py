@@ -109,3 +109,22 @@ def test_the_move_across_a_bracket_is_read_off_the_rates_not_two_trials():
         sol = dm.solve(WHEELSET.model(), WHEELSET.t_span, method="casadi-idas", rtol=1e-6)
     assert not [w for w in caught if issubclass(w.category, E.EventResolutionWarning)]
     assert sol.status == "success" and sol.stats["events"] >= 1
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-collocation"])
+def test_a_switch_just_past_an_output_at_a_large_t0_is_located_with_a_fixed_step(method):
+    """u' = Min(1, x), x = 1.0002 cos(t - t0 - 1): the cap's first crossing lies 1.7e-6 after the output at
+    t0 + 0.98 (t0 = 1e9: 14 float64 spacings), so the location's first trial solve, one step from that output,
+    was refused as a grid whose times repeat (StepSizeError for an h = 1.55e-6 the user never gave)."""
+    t0, hump = 1e9, 1.0002
+    m = dm.Model("cap")
+    m.states("x v u")
+    m.ode("x", "v")
+    m.ode("v", "-x")
+    m.ode("u", "Min(1, x)")
+    m.initial(t=t0, x=hump * math.cos(1.0), v=hump * math.sin(1.0), u=0.0)
+    sol = dm.solve(m, (t0, t0 + 2.0), method=method, h=0.01)
+    c = math.acos(1.0 / hump)
+    exact = 2.0 * hump * math.sin(1.0) - (2.0 * hump * math.sin(c) - 2.0 * c)  # (the integral, capped)
+    assert sol.status == "success" and abs(sol["u"][-1] - exact) < 1e-10
+    np.testing.assert_allclose(sol.events["Min in u'"]["t"][0] - t0, [1.0 - c, 1.0 + c], rtol=0, atol=1e-6)
