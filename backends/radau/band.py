@@ -347,8 +347,10 @@ class BandLU:
             return self.solve(rhs.real) + 1j * self.solve(rhs.imag)
         if self.kernel.match is None:
             self._b[:] = rhs
-        else:
+        elif rhs.dtype == self._b.dtype:
             np.take(rhs, self.kernel.match, out=self._b)
+        else:  # (a real right-hand side on complex factors: np.take's out= takes its own dtype only)
+            self._b[:] = rhs[self.kernel.match]
         self._call()  # (the band order applied inside, on the way in and out)
         return self._x.copy()
 

@@ -261,7 +261,8 @@ def dense_sign_det(matrix: np.ndarray) -> float:
 
 
 def sparse_sign_det(matrix) -> float:
-    """Sign of the determinant of a sparse square matrix (0 when singular), from SuperLU's factors."""
+    """Sign of the determinant of a sparse square matrix (0 when singular or an entry is not finite, as
+    :func:`dense_sign_det` and :func:`daemodel.compiling.determinants.sparse_sign`), from SuperLU's factors."""
     import scipy.sparse.linalg as splinalg
 
     from daemodel.compiling.determinants import triangular_sign
@@ -269,10 +270,11 @@ def sparse_sign_det(matrix) -> float:
     if matrix.shape[0] == 0:
         return 1.0
     entries = matrix.tocoo()
-    if np.isfinite(entries.data).all():  # (one side of the diagonal: its diagonal's sign, no LU)
-        triangular = triangular_sign(entries.row, entries.col, entries.data, matrix.shape[0])
-        if triangular is not None:
-            return triangular
+    if not np.isfinite(entries.data).all():  # (an inf reached U's diagonal as a sign of +-1 before)
+        return 0.0
+    triangular = triangular_sign(entries.row, entries.col, entries.data, matrix.shape[0])
+    if triangular is not None:  # (one side of the diagonal: its diagonal's sign, no LU)
+        return triangular
     try:
         lu = splinalg.splu(matrix)
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)

@@ -219,3 +219,27 @@ def test_a_shuffled_declaration_takes_the_same_narrow_band(seed):
         assert np.abs(w - reference**2 / (1 + reference)).max() < 1e-8
     for key in ("steps", "rejected_steps", "newton_iterations", "lu_decompositions"):
         assert banded.stats[key] == superlu.stats[key], key
+
+
+@needs_compiler
+def test_paired_band_factors_solve_real_and_complex_right_hand_sides(first_engine):
+    """The band kernel of a shuffled declaration reads the right-hand side through its constraint match
+    (b = rhs[match]); every shift's factors solve a real and a complex right-hand side alike, as the
+    unpaired kernel does (before: a real one on complex factors raised numpy's TypeError from np.take)."""
+    compiled, engine = first_engine(shuffled_reaction_diffusion(60, 0))
+    order = engine._order
+    assert order is not None and order.match is not None and not isinstance(order, band.BandKernel)
+    kernel = band.band_kernel(order, *engine._csc[:2], find_compiler())
+    assert kernel is not None and kernel.match is not None
+    rng = np.random.default_rng(5)
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0])) * (
+        1 + 0.3 * rng.random(engine.rows.size)
+    )
+    for sigma in engine.transform.shifts(0.01):
+        data, A = shifted(engine, J, sigma)
+        (kind, lu), singular = kernel.factor(data)
+        assert kind == "sparse" and not singular.any()
+        b = rng.standard_normal(engine.D) + 1j * rng.standard_normal(engine.D)
+        for rhs in (b.real, b):
+            exact = np.linalg.solve(A, rhs)
+            assert np.abs(lu.solve(rhs) - exact).max() < 1e-11 * np.abs(exact).max()

@@ -186,6 +186,18 @@ def test_sign_of_a_sparse_determinant():
     assert linalg.permutation_sign(np.array([1, 2, 0])) == 1.0
 
 
+@pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
+@pytest.mark.parametrize("where", [(1, 1), (0, 1)])  # (on the diagonal, and off it: SuperLU's path)
+def test_a_sparse_determinant_with_an_entry_not_finite_has_sign_zero(bad, where):
+    """An inf or NaN entry gives the sign 0, as dense_sign_det and determinants.sparse_sign give it (the
+    branch check's 'undetermined'); before, an inf on U's diagonal came back as +1 or -1."""
+    matrix = np.array([[1.0, 2.0], [3.0, 4.0]])
+    matrix[where] = bad
+    assert linalg.dense_sign_det(matrix) == 0.0
+    assert linalg.sparse_sign_det(sparse.csc_matrix(matrix)) == 0.0
+    assert linalg.sparse_sign_det(sparse.csc_matrix(np.triu(matrix))) == 0.0
+
+
 def test_coloured_forward_ad_jacobian_equals_the_symbolic_one(monkeypatch):
     """Past SYMBOLIC_JACOBIAN_MAX_ENTRIES the torch engine differentiates by forward-mode AD with one
     direction per colour; a grid needs a handful of colours instead of its 2K columns."""
