@@ -31,6 +31,11 @@ from daemodel.errors import ConvergenceError, StepLimitError
 # in 175, 1e-3 in 118 within 0.005 x (with RADAU5's contraction, formulas.GEOMETRIC_CONTRACTION_STAGES;
 # with the last ratio alone: 7,307, 50 x at 5.6e-3, 241 at 1e-3)
 HIGH_ORDER_NEWTON_TOL = 1e-3
+# ... and at least this many times the rounding floor 10 eps / rtol, where three stages' rule is that loose:
+# within a few floors the increments stall on rounding and the contraction tests fail Newton (the transistor
+# amplifier at rtol = atol = 1e-9, s = 7, at the floor 2.2e-6: 2,264 attempts, 850 Newton failures; at 10
+# floors: 913 and 132, as at three stages' 3.2e-5 before: 902 and 137)
+HIGH_ORDER_ROUNDING_MARGIN = 10
 # Fixed step: Newton stops when the scaled increment is below this many eps of the dtype.
 FIXED_NEWTON_TOL_EPS = 10
 # (The step-size formulas, RADAU5's safety factor and bounds, are .formulas', shared with .loop.)
@@ -63,7 +68,9 @@ INITIAL_STEP_FLOOR = 1e-10
 def adaptive_newton_tol(rtol: float, stages: int, eps: float) -> float:
     """Newton's tolerance of an adaptive step, in units of the error tolerance: RADAU5's ``min(0.03,
     rtol^(1/2))`` for up to three stages, ``min(1e-3, rtol^((s - 1) / (s + 1)))`` for more, never below
-    the rounding floor ``10 eps / rtol``.
+    the rounding floor ``10 eps / rtol`` (for more than three stages not below
+    :data:`HIGH_ORDER_ROUNDING_MARGIN` floors either, where three stages' rule is not: s = 7 below rtol
+    1.6e-8, s = 5 below 6.4e-9, down to rtol 5e-10 where three stages' rule meets the floor).
 
     Hairer's variable-order RADAU (radau.f, s = 3, 5, 7) stops Newton at the estimate's tolerance to the
     power ``2s / (s + 1)`` (its FNEWT is that tolerance to ``(s - 1) / (s + 1)`` in its units): the
@@ -75,8 +82,9 @@ def adaptive_newton_tol(rtol: float, stages: int, eps: float) -> float:
     """
     if stages <= 3:
         return max(10 * eps / rtol, min(0.03, rtol**0.5))
-    power = (stages - 1) / (stages + 1)
-    return max(10 * eps / rtol, min(HIGH_ORDER_NEWTON_TOL, rtol**power))
+    power, floor = (stages - 1) / (stages + 1), 10 * eps / rtol
+    margin = min(0.03, rtol**0.5, HIGH_ORDER_ROUNDING_MARGIN * floor)
+    return max(floor, margin, min(HIGH_ORDER_NEWTON_TOL, rtol**power))
 
 
 class FixedGrid:
@@ -145,6 +153,9 @@ class Radau5Controller:
         # estimates are not noise yet
         floor = 10 * eps / self.rtol
         self.rounding_floor = (options.newton_tol or adaptive_newton_tol(self.rtol, 3, eps)) <= floor * (1 + 1e-12)
+        self.newton_hint = loose_newton_tol_hint(
+            options.newton_tol, adaptive_newton_tol(self.rtol, options.stages, eps)
+        )
         self.policy = NewtonPolicy(
             tol=tol,
             atol=self.atol,
@@ -216,7 +227,7 @@ class Radau5Controller:
             python_next = False
             head = sequence.before_attempt(SCALAR, carried, settings)
             if head["underflow"]:
-                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None)
+                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint)
             h = head["h"]
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
             failed = result is None
@@ -231,7 +242,7 @@ class Radau5Controller:
                         result, _, named, named_sample = stepper.attempt(t, h)
                         why, sample = (named, named_sample) if result is None else (why, sample)
                     why = why if failed else f"error estimate {decisions['err']:.2g} > 1"
-                    raise underflow_error(decisions["h_rejected"], t, why, sample)
+                    raise underflow_error(decisions["h_rejected"], t, why, sample, self.newton_hint)
                 stepper.drop_factors()
                 continue
             stepper.accept(t, h, result, decisions["t_next"])
@@ -301,7 +312,7 @@ class Radau5Controller:
             reason = (
                 f"the steps are accepted, but at the last {recent} attempts' rate ({rate:.3g} per attempt) the "
                 f"rest of t_span needs {more} attempts: t_span is too long for max_steps at this tolerance; "
-                "raise max_steps, loosen rtol/atol or shorten t_span"
+                f"raise max_steps, loosen rtol/atol or shorten t_span{self.newton_hint}"
             )
         if projected is None:
             head = f"radau: max_steps = {budget} reached at t = {t:.6g}"
@@ -316,8 +327,23 @@ class Radau5Controller:
         )
 
 
-def underflow_error(new, t, why, sample) -> ConvergenceError:
-    """The step size underflow at ``t`` with the step ``new`` (the last failure named)."""
+def loose_newton_tol_hint(given, default) -> str:
+    """What the budget's and the underflow's errors add where the user's ``newton_tol`` is looser than the
+    stages' own (``default``, :func:`adaptive_newton_tol`): nothing where none was given or it is not looser.
+
+    (The pendulum at s = 7, rtol = atol = 1e-4 over [0, 20]: newton_tol = 0.03 collapsed h to 4e-6 at t = 3.9
+    and the budget's error blamed the span alone; the default, 1e-3 there, runs it in 114 attempts.)"""
+    if given is None or given <= default * (1 + 1e-12):
+        return ""
+    return (
+        f"; or newton_tol = {given:g} is looser than these stages' default ({default:.3g}): the stage errors "
+        "it leaves may not shrink with h, which then collapses where the solution is smooth: leave newton_tol out"
+    )
+
+
+def underflow_error(new, t, why, sample, newton_hint="") -> ConvergenceError:
+    """The step size underflow at ``t`` with the step ``new`` (the last failure named); ``newton_hint``:
+    :func:`loose_newton_tol_hint`'s, where the error estimate shrank the step."""
     who = f", sample {sample}" if sample is not None else ""
     if why is not None and why.startswith("not converged in"):  # (the iterations ran out, at every h)
         cause = (
@@ -332,7 +358,7 @@ def underflow_error(new, t, why, sample) -> ConvergenceError:
         cause += (
             ", or, where it stays smooth, Newton's tolerance leaves stage errors that do not shrink with h (more "
             "stages at a looser rtol need a tighter one): give a smaller newton_tol (e.g. 1e-10), or leave stages out"
-        )
+        ) + newton_hint
     return ConvergenceError(
         f"radau: step size underflow at t = {t:.6g} (h = {new:.3g}; last failure: {why}{who}); {cause}"
     )

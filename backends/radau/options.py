@@ -114,8 +114,13 @@ class RadauOptions:
         Newton's tolerance on scaled increments; default ``10 * eps`` of the dtype for a fixed
         step (the collocation solution to rounding); relative to the error tolerance in adaptive
         mode, RADAU5's ``max(10 eps / rtol, min(0.03, sqrt(rtol)))`` up to three stages, and
-        ``rtol^((s - 1) / (s + 1))`` (at most 1e-3) for more, as Hairer's RADAU (radau.f) sets it
-        per stage count (:func:`~.control.adaptive_newton_tol`).
+        ``max(10 eps / rtol, min(1e-3, rtol^((s - 1) / (s + 1))))`` for more, as Hairer's RADAU
+        (radau.f) sets it per stage count, but not below ten floors ``100 eps / rtol`` where
+        three stages' rule is not (rtol below ~1.6e-8: Newton stalls on rounding at the floor)
+        (:func:`~.control.adaptive_newton_tol`).  A value given
+        is taken as it is, above that cap too; one looser than the stages' default may leave stage
+        errors that do not shrink with h (seven stages at rtol 1e-4 on the pendulum: 0.03 collapses
+        h), and the budget's and the underflow's errors then say so.
     max_newton_iterations : int
     max_steps : int, optional
         Fixed step: most steps of the grid, refused before it is built

@@ -195,7 +195,7 @@ def test_implicit_euler_is_refused_adaptive_steps_and_two_stages_meet_the_tolera
 def test_newtons_adaptive_tolerance_follows_the_stages():
     """RADAU5's min(0.03, rtol^(1/2)) up to three stages (the same float), radau.f's rtol^((s - 1) / (s + 1))
     above, capped at HIGH_ORDER_NEWTON_TOL, never below the rounding floor 10 eps / rtol."""
-    from daemodel.backends.radau.control import HIGH_ORDER_NEWTON_TOL, adaptive_newton_tol
+    from daemodel.backends.radau.control import HIGH_ORDER_NEWTON_TOL, HIGH_ORDER_ROUNDING_MARGIN, adaptive_newton_tol
 
     eps = float(np.finfo(np.float64).eps)
     for rtol in (1e-1, 3e-3, 1e-4, 1e-6, 7e-8, 1e-9, 1e-12):
@@ -204,7 +204,13 @@ def test_newtons_adaptive_tolerance_follows_the_stages():
     assert adaptive_newton_tol(1e-4, 7, eps) == pytest.approx(1e-3, rel=1e-12)  # rtol^(3/4)
     assert adaptive_newton_tol(1e-6, 5, eps) == pytest.approx(1e-4, rel=1e-12)  # rtol^(2/3)
     assert adaptive_newton_tol(1e-3, 7, eps) == HIGH_ORDER_NEWTON_TOL == adaptive_newton_tol(1e-3, 5, eps)
-    assert adaptive_newton_tol(1e-9, 7, eps) == 10 * eps / 1e-9  # (rtol^(3/4) = 1.8e-7 is below the floor)
+    # rtol^(3/4) = 1.8e-7 is below the floor 10 eps / rtol, and three stages' rule (3.2e-5) is above ten floors
+    assert adaptive_newton_tol(1e-9, 7, eps) == HIGH_ORDER_ROUNDING_MARGIN * 10 * eps / 1e-9
+    assert adaptive_newton_tol(1e-8, 7, eps) == HIGH_ORDER_ROUNDING_MARGIN * 10 * eps / 1e-8  # (rtol^(3/4): 1e-6)
+    for rtol in (5e-10, 1e-10, 1e-12):  # where three stages' rule is within ten floors, more stages take it
+        assert (
+            adaptive_newton_tol(rtol, 5, eps) == adaptive_newton_tol(rtol, 7, eps) == adaptive_newton_tol(rtol, 3, eps)
+        )
     # where the rule is RADAU5's, the predictive controller is off below rtol ~5e-10 only, as before
     for stages, rtol, floor in ((7, 1e-9, False), (5, 1e-9, False), (7, 1e-10, True), (3, 1e-10, True)):
         options = RadauOptions(rtol=rtol, atol=rtol, stages=stages)
@@ -237,3 +243,19 @@ def test_a_span_below_the_resolution_of_its_steps_is_not_success():
     m.initial(t=1e15, x=math.cos(1.0), v=math.sin(1.0), u=0.0)
     with pytest.raises(E.ConvergenceError, match=r"step size underflow at t = 1e\+15"):
         dm.solve(m, (1e15, 1e15 + 2.0), method="radau", rtol=1e-8, atol=1e-8)
+
+
+def test_seven_stages_near_the_rounding_floor_do_not_fail_newton_at_every_other_attempt():
+    """The transistor amplifier at rtol = atol = 1e-9 (the default's seven stages) against the Test Set's
+    reference at t = 0.2.  Newton's tolerance at the rounding floor (10 eps / rtol = 2.2e-6, where
+    rtol^(3/4) fell below it) stalled on rounding: 2,264 attempts, 850 Newton failures, 7,620 iterations
+    (three stages' rule, 3.2e-5, before 1429be5: 902, 137, 4,943).  At HIGH_ORDER_ROUNDING_MARGIN floors:
+    913, 132, 5,056, within 0.011 of atol + rtol |u|."""
+    from daemodel.problems import PROBLEMS
+
+    problem = PROBLEMS["transistor-amplifier"]
+    sol = dm.solve(problem.model().compile(), tuple(problem.t_span), rtol=1e-9, atol=1e-9)
+    assert sol.status == "success" and sol.stats["stages"] == 7
+    assert sol.stats["attempts"] < 1_300 and sol.stats["newton_failures"] < 300
+    for name, value in problem.reference.items():
+        assert abs(float(np.ravel(sol[name])[-1]) - value) < 1e-9 + 1e-9 * abs(value), name

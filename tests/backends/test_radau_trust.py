@@ -431,6 +431,30 @@ def test_an_underflow_by_the_error_estimate_names_newtons_tolerance_too():
     )
 
 
+def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(pendulum):
+    """A newton_tol given above adaptive_newton_tol's (seven stages at rtol 1e-4: 0.03 against 1e-3) is taken
+    as given; on the pendulum over [0, 20] it collapsed h to ~4e-6 by t ~ 3.9, and the budget's error said only
+    that t_span was too long for max_steps (raise it, loosen rtol/atol or shorten t_span).  It names newton_tol
+    now; the default runs the same solve in 114 attempts (test_seven_stages_at_a_loose_rtol_run_the_pendulum)."""
+    from daemodel.backends.radau.control import underflow_error
+
+    with pytest.raises(
+        E.StepLimitError,
+        match=r"the steps are accepted, but .*shorten t_span; or newton_tol = 0\.03 is looser than these stages' "
+        r"default \(0\.001\): the stage errors it leaves may not shrink with h, which then collapses where the "
+        r"solution is smooth: leave newton_tol out$",
+    ):
+        dm.solve(pendulum, (0.0, 20.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03)
+    hint = "; or newton_tol = 0.03 is looser than ..."
+    message = str(underflow_error(4.4e-14, 4.42153, "the error estimate kept shrinking the step", None, hint))
+    assert message.endswith("give a smaller newton_tol (e.g. 1e-10), or leave stages out" + hint)
+    assert str(underflow_error(1e-15, 0.25, "not converged in 1 iteration", 0, hint)).endswith("(the default is 10)")
+    # a newton_tol at or below the stages' default adds nothing
+    with pytest.raises(E.StepLimitError) as caught:
+        dm.solve(pendulum, (0.0, 1e300), max_steps=200, stages=7, rtol=1e-4, atol=1e-4, newton_tol=1e-3)
+    assert "newton_tol" not in str(caught.value)
+
+
 # ---- a time limit's signal is not a singular system ------------------------------------------------
 def test_a_time_limit_inside_a_factorisation_is_not_taken_for_a_singular_system(monkeypatch):
     """SuperLU says "exactly singular" with a RuntimeError, and radau takes that for a singular matrix;
