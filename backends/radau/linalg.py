@@ -73,10 +73,9 @@ def sparse_lu(matrix, order: BandOrder | None = None):
     ``NATURAL``, no ordering of its own) and ``lu.solve`` solves with ``A`` (:class:`OrderedLU`); with a
     :class:`.band.BandKernel` for ``order``, by its band LU in C (:class:`.band.BandLU`, the same ``solve``)."""
     import scipy.sparse.linalg as splinalg
-    from daemodel.backends.radau.band import BandKernel
 
-    if isinstance(order, BandKernel):  # (the band order's LU in C: the matrix's values are all it reads)
-        return order.factor(matrix.data)
+    if order is not None and not isinstance(order, BandOrder):  # (a .band.BandKernel, which imports this module:
+        return order.factor(matrix.data)  # the band order's LU in C, the matrix's values all it reads)
     try:
         if order is not None:
             lu = splinalg.splu(matrix, permc_spec="NATURAL", relax=BAND_RELAX, panel_size=BAND_PANEL)

@@ -455,7 +455,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
 def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop, carried: dict, lock: bool):
     """A piece's detection solve from ``t`` towards ``t1`` (with its dense output, where the location's first
     trial is read, whatever the caller keeps) and None.  Where its switches are locked and it fails at a
-    time the method names (:attr:`~daemodel.errors.SolverError.t`), the solve again to
+    time the method names (the ``t`` of :class:`~daemodel.errors.SolverError`), the solve again to
     :data:`BEFORE_FAILURE` of the way there, and the error, for the caller to raise unless a crossing comes
     before it: the branch continued past its switch can leave the model's domain (the wheelset's creep
     left unsaturated past its saturation failed IDAS's Newton 6 ms after it) in a method that does not
