@@ -169,8 +169,14 @@ def slow_results(request):
 # Cases that fail today for a reason understood and documented (docs/trust.md), with the outcome
 # they give.  Each must keep failing that way: one that starts passing must leave this list.
 KNOWN_FAILURES = {
-    # none: "r1-0105-options" (adaptive float32 radau, index-2 DAE with a kink, z1 0.12 off) was
-    # cured by radau's RADAU5 Newton (scaled error 2.6e-4 now)
+    # (cured: "r1-0105-options", adaptive float32 radau, index-2 DAE with a kink, z1 0.12 off, by radau's
+    # RADAU5 Newton: scaled error 2.6e-4 now)
+    # Open, a wrong answer with "success" since Max/Min of the variables are locked to a branch (ffedb4f):
+    # y1' = ... + 0.9 Min(Max(-2, y4), y4 + 0.47, y1**2) on an index-2 DAE.  The reference, radau and
+    # casadi-idas at their defaults agree with one another (events at 0.0132, 0.1508, 0.9494) and not with
+    # radau at rtol 1e-10 (second crossing of the third comparison at 0.9827): z1 at t = 0.6 is 0.354 against
+    # 0.280 from t = 0.2 on, right after the crossing at 0.1508 - the branch taken there, not the tolerance.
+    "r1-0173-dae-index2": "silently-wrong",
 }
 
 
