@@ -15,12 +15,13 @@ from daemodel.solving.branches import EVENT_TOL
 G = 9.81
 
 
-def _ball(e=0.8, **event):
+def _ball(e=0.8, t0=None, **event):
+    """A ball dropped from h = 1 at rest (at ``t0`` where given), bouncing with restitution ``e``."""
     m = dm.Model("ball")
     m.states("h v")
     m.ode("h", "v")
     m.ode("v", f"-{G}")
-    m.initial(h=1.0, v=0.0)
+    m.initial(h=1.0, v=0.0, **({} if t0 is None else {"t": t0}))
     m.event("floor", "h", direction=-1, reset={"v": f"-{e}*v"}, **event)
     return m
 
