@@ -209,7 +209,9 @@ class Radau5Controller:
                 raise self.budget_error(stats, t, h, t1, half, options.max_steps - options.max_steps // 2)
             if attempts == options.max_steps // 2:
                 half = (t, stats["steps"])
-            needed = watch.hopeless(attempts, t, h, t1, options.max_steps, extra=stats["steps"])
+            needed = watch.hopeless(
+                attempts, t, h, t1, options.max_steps, extra=stats["steps"], accepted=stats["steps"]
+            )
             if needed is not None:
                 t_w, count_w, _, accepted_w = watch.start
                 raise self.budget_error(stats, t, h, t1, (t_w, accepted_w), attempts - count_w, projected=needed)

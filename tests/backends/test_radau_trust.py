@@ -14,6 +14,7 @@ import pytest
 import sympy as sp
 from daemodel.backends import radau
 from daemodel.backends.grids import MAX_GRID_POINTS, fixed_grid
+from scipy.integrate import solve_ivp
 
 import daemodel as dm
 from daemodel import errors as E
@@ -161,6 +162,51 @@ def test_endless_span_raises_step_limit(pendulum, switch):
         dm.solve(pendulum, (0.0, 1e300))
     with pytest.raises(E.StepLimitError, match=r"max_steps = 200 (reached|cannot suffice).* before t1 = 1e\+300"):
         dm.solve(switch, (0.0, 1e300), max_steps=200)
+
+
+@pytest.mark.parametrize("eps", [1e-6, 1e-8])
+def test_a_stiff_layer_is_not_taken_for_an_endless_span(eps):
+    """Van der Pol's fast jumps take ~300 accepted attempts at h ~ 4e-8 (eps = 1e-6): the progress watch
+    projected past the budget at that pace and stopped at t = 0.807 a solve that finishes in 866
+    attempts.  A dip three orders below the steps taken before, mostly accepted, gets more windows."""
+    m = dm.Model("vdp")
+    m.states("y1 y2")
+    m.ode("y1", "y2")
+    m.ode("y2", f"((1 - y1**2)*y2 - y1)/{eps}")
+    m.initial(y1=2.0, y2=-0.66)
+    t_eval = np.linspace(0.0, 2.0, 5)
+    sol = dm.solve(m, (0.0, 2.0), stages=3, rtol=1e-6, atol=1e-6, t_eval=t_eval)
+    assert sol.status == "success"
+
+    def f(t, y):
+        return [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps]
+
+    def jac(t, y):
+        return [[0.0, 1.0], [(-2 * y[0] * y[1] - 1) / eps, (1 - y[0] ** 2) / eps]]
+
+    ref = solve_ivp(f, (0.0, 2.0), [2.0, -0.66], method="Radau", rtol=1e-11, atol=1e-11, jac=jac, t_eval=t_eval)
+    assert np.abs(sol["y1"] - ref.y[0]).max() < 1e-5
+
+
+def test_chattering_in_a_dip_still_stops_after_two_windows():
+    """The dip's extra windows are for accepted steps: mostly rejected attempts at a step far below the
+    earlier ones (chattering at a switch) stop after HOPELESS_WINDOWS, as before."""
+    from daemodel.backends.progress import DIP_WINDOWS, HOPELESS_WINDOWS, PROGRESS_WINDOW, ProgressWatch
+
+    def windows_until_stop(accepted_per_window):
+        watch, t, count, accepted = ProgressWatch(0.0, 1e-2), 0.0, 0, 0
+        t += 100 * 1e-2  # one window of large steps, then steps of 1e-9
+        count, accepted = PROGRESS_WINDOW, PROGRESS_WINDOW
+        assert watch.hopeless(count, t, 1e-2, 10.0, 100_000, accepted=accepted) is None
+        for window in range(1, 50):
+            t += accepted_per_window * 1e-9
+            count, accepted = count + PROGRESS_WINDOW, accepted + accepted_per_window
+            if watch.hopeless(count, t, 1e-9, 10.0, 100_000, accepted=accepted) is not None:
+                return window
+
+    # (+ 1: the window in which h falls by more than COLLAPSE_FACTOR is left to the step-size failure)
+    assert windows_until_stop(95) == DIP_WINDOWS + 1
+    assert windows_until_stop(10) == HOPELESS_WINDOWS + 1
 
 
 def test_max_steps_counts_every_attempt_and_has_per_mode_defaults(pendulum):
