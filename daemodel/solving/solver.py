@@ -31,6 +31,7 @@ from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
 from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events
+from daemodel.solving.resolution import flag_time_rounding
 from daemodel.solving.switches import for_method, solve_with_breakpoints
 
 
@@ -89,6 +90,7 @@ def solve(
     started = time.perf_counter()
     dispatched = []  # when the work went to a method: the time before it (compile, checks) is setup
     sol = _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities, options, dispatched)
+    sol = flag_time_rounding(sol)  # (every method: where t's float64 spacing is too coarse for the tolerance)
     return within_clocks(sol, started, dispatched[0] if dispatched else started)
 
 
