@@ -8,8 +8,8 @@ tolerance ended up to 7.8e-8 off (one at a time: 8e-12), "success".  Now each sa
 its switches located, and the batch is solved again on the output times of all of them (each sample's own
 steps and switch instants, so that every sample's kink is an output time), as a batch on ``t_eval`` is.
 That is about twice the work of the samples solved one at a time (``stats["samples_alone_steps"]`` counts
-the first pass's steps): 50 samples of that model 2.8 s where stepping across took 1.6 s and t_eval
-(31 times) 2.0 s.
+the first pass's steps): 50 samples of that model 2.4 s where stepping across took 0.9 s and t_eval
+(31 times) 0.9 s (benchmarks/batch_switches.json, minima of 3 passes).
 """
 
 from __future__ import annotations
