@@ -36,6 +36,8 @@ from daemodel.errors import TimeResolutionWarning
 # resolution of the span itself (t's relative rounding over [0, t1]), which no choice of time's origin improves;
 # and a model's first check reads every right-hand side for t (0.1 s at 10^4 equations, then kept).
 SPAN_RATIO = 1.0
+# df/dt is read in this many intervals at least (outputs far apart are cut into pieces).
+MIN_INTERVALS = 64
 # df/dt is read over this many spacings of t either side of an interval's middle (fewer where the interval
 # is shorter): enough that the difference is not f's own rounding, few enough to stay local.
 SPACINGS = 16
@@ -69,11 +71,20 @@ def rounding_bound(sol, compiled):
     n, names = len(compiled.states), (*compiled.state_names, *compiled.algebraic_names)
     B = np.asarray(sol.parameters).shape[0]
     U = np.stack([np.asarray(sol.values[name], dtype=float).reshape(B, len(t)) for name in names], axis=-1)
-    a, b = t[:-1], t[1:]
-    keep = b > a  # (an event's instant is two outputs at one time)
-    a, b = a[keep], b[keep]
-    h, K = b - a, int(keep.sum())
-    middle = 0.5 * (U[:, :-1][:, keep] + U[:, 1:][:, keep])  # (B, K, D)
+    keep = t[1:] > t[:-1]  # (an event's instant is two outputs at one time)
+    if not keep.any():
+        return None
+    # each interval cut into `pieces` (at least MIN_INTERVALS in all: t_eval=[t0, t1] would read df/dt once),
+    # the values between its ends linear (f's t alone moves: the states only place the reading)
+    pieces = -(-MIN_INTERVALS // int(keep.sum()))
+    w = (np.arange(pieces) + 0.5) / pieces  # (the pieces' middles, as fractions of their interval)
+    ends = t[:-1][keep][:, None] + np.diff(t)[keep][:, None] * np.arange(pieces + 1) / pieces
+    a, b = ends[:, :-1].ravel(), np.maximum(ends[:, 1:], ends[:, :-1]).ravel()
+    left, right = U[:, :-1][:, keep], U[:, 1:][:, keep]  # (B, k, D)
+    middle = (left[:, :, None] * (1 - w)[None, None, :, None] + right[:, :, None] * w[None, None, :, None]).reshape(
+        B, len(a), -1
+    )
+    h, K = b - a, len(a)
     dtype = np.float32 if sol.settings.get("dtype") == "float32" else np.float64
     spacing = np.spacing(np.maximum(np.abs(a), np.abs(b)).astype(dtype)).astype(float)
     width = np.maximum(np.minimum(SPACINGS * spacing, 0.25 * h), spacing)
@@ -87,7 +98,7 @@ def rounding_bound(sol, compiled):
         rate = np.abs(change).reshape(B, K, n) / (after - before).reshape(B, K, 1)
         moved = np.nan_to_num(h[None, :, None] * rate * (0.5 * spacing)[None, :, None], nan=0.0)
     size = np.nanmax(np.abs(U[..., :n]), axis=1, initial=0.0)
-    return moved.sum(axis=1), tolerance(sol, size, K), a[np.argmax(moved, axis=1)]
+    return moved.sum(axis=1), tolerance(sol, size, int(keep.sum())), a[np.argmax(moved, axis=1)]
 
 
 def _held_roots(compiled, before, after, Y, Z, P):

@@ -101,3 +101,11 @@ def test_t_rounding_far_below_the_tolerance_is_not_flagged(method):
     sol, flags = _solve(_cosine(1e3), 1e3, method, **options)
     assert sol.status == "success" and not flags
     assert abs(sol["y"][-1] - (math.sin(1e3 + 2.0) - math.sin(1e3))) <= 20 * TOL
+
+
+def test_outputs_far_apart_are_read_between():
+    """Outputs only at the ends, around t0 + 1 = k pi where df/dt = -sin(t) is 0: df/dt read at the one interval's
+    middle alone said 1e-7 and passed the solve (1.4e-8 off at rtol 1e-8); read in 64 pieces it is flagged."""
+    t0 = round((1e9 + 1.0) / math.pi) * math.pi - 1.0
+    sol, flags = _solve(_cosine(t0), t0, "radau", rtol=TOL, atol=TOL, t_eval=[t0, t0 + 2.0])
+    assert len(flags) == 1 and sol.status.startswith("flagged: t's float64 spacing (1.19e-07 near t = ")
