@@ -285,6 +285,11 @@ class EventResolutionWarning(UserWarning):
     states by more than it (an event near t = 1e8 at rtol 1e-9); the Solution's status is "flagged"."""
 
 
+class TimeResolutionWarning(UserWarning):
+    """float64's spacing of t, where f reads t, may move the states by more than their tolerance (y' = cos(t)
+    from t0 = 1e13, spacing 2e-3): the Solution's status is "flagged" (:mod:`daemodel.solving.resolution`)."""
+
+
 class OmittedPanelsWarning(UserWarning):
     """``Solution.plot()`` without ``names=`` drew the first variables only (a figure of sixty panels
     is unreadable); the warning and the figure's title name how many were left out."""

@@ -34,6 +34,7 @@ from daemodel.backends.casadi.plumbing import (
     last_number,
     normalised_dae,
     run_samples,
+    shifted_dae,
 )
 from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
 from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
@@ -128,8 +129,11 @@ class IDASOptions:
             raise InvalidOptionError(f"suppress_algebraic must be True or False; got {self.suppress_algebraic!r}")
 
 
-def idas_failure(error: str, printed: str, *, sample: int, model: str, grid, max_num_steps: int) -> SolverError:
-    """casadi-idas's failure as one line: IDAS's return flag translated, with the time IDAS printed.
+def idas_failure(
+    error: str, printed: str, *, sample: int, model: str, grid, max_num_steps: int, t0: float = 0.0
+) -> SolverError:
+    """casadi-idas's failure as one line: IDAS's return flag translated, with the time IDAS printed (its own
+    time, since ``t0``: :func:`~daemodel.backends.casadi.plumbing.shifted_dae`).
 
     ``error`` holds casadi's ``IDASolve returned "IDA_ERR_FAIL"``; ``printed`` IDAS's own
     message, e.g. ``At t = 0.5 and h = 3.8e-10, the error test failed repeatedly ...``.
@@ -138,6 +142,7 @@ def idas_failure(error: str, printed: str, *, sample: int, model: str, grid, max
     flag = re.search(r'(IDA\w+) returned "(\w+)"', error)
     function, code = flag.groups() if flag else ("IDAS", None)
     t, h = last_number(r"t = ([-+0-9.eE]+)", printed), last_number(r"h = ([-+0-9.eE]+)", printed)
+    t = None if t is None else t0 + t
     at = "" if t is None else f" at t = {t:.6g}" + ("" if h is None else f" with step size {h:.3g}")
     where = f"sample {sample} of '{model}'"
     if code == "IDA_TOO_MUCH_WORK":
@@ -298,8 +303,10 @@ class IDASBackend(AbstractBackend):
         step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, grid[0])
         if step0 is not None:
             settings["step0"] = step0
-        out = [float(t) for t in grid]
-        shared = cached_integrator(compiled, "idas", dae, t_span[0], out, {**settings, "calc_ic": True})
+        # (on the time since t0, given as the last parameter: plumbing.shifted_dae)
+        t0, shifted = float(t_span[0]), shifted_dae(dae)
+        out = [float(t) - t0 for t in grid]
+        shared = cached_integrator(compiled, "idas", shifted, 0.0, out, {**settings, "calc_ic": True})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()
@@ -307,19 +314,25 @@ class IDASBackend(AbstractBackend):
         def call(b):
             """IDAS with y'(t0) from IDACalcIC; where that fails, a one-off integrator given y'(t0) = f(t0, y0, z0)."""
             try:
-                return shared(x0=start.y0[b], z0=start.z0[b], p=start.p[b])
+                return shared(x0=start.y0[b], z0=start.z0[b], p=[*start.p[b], t0])
             except RuntimeError as error:
                 if "IDACalcIC" not in str(error) or struck_limit() is not None:
                     raise
             fallbacks.append(b)
             exact = {**settings, "calc_ic": False, "init_xdot": ydot[b].tolist()}
-            return casadi.integrator("idas", "idas", dae, float(t_span[0]), out, exact)(
-                x0=start.y0[b], z0=start.z0[b], p=start.p[b]
+            return casadi.integrator("idas", "idas", shifted, 0.0, out, exact)(
+                x0=start.y0[b], z0=start.z0[b], p=[*start.p[b], t0]
             )
 
         def explain(sample, error, printed):
             return idas_failure(
-                error, printed, sample=sample, model=compiled.name, grid=grid, max_num_steps=options.max_num_steps
+                error,
+                printed,
+                sample=sample,
+                model=compiled.name,
+                grid=grid,
+                max_num_steps=options.max_num_steps,
+                t0=t0,
             )
 
         values = run_samples(call, compiled, start, len(grid), explain)

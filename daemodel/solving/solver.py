@@ -30,7 +30,9 @@ from daemodel.errors import (
 from daemodel.messages import quoted
 from daemodel.reals import is_real, real
 from daemodel.solution import Solution
+from daemodel.solving.batches import solve_on_common_times
 from daemodel.solving.events import DEFAULT_MAX_EVENTS, solve_with_events
+from daemodel.solving.resolution import flag_time_rounding
 from daemodel.solving.switches import for_method, solve_with_breakpoints
 
 
@@ -89,6 +91,7 @@ def solve(
     started = time.perf_counter()
     dispatched = []  # when the work went to a method: the time before it (compile, checks) is setup
     sol = _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities, options, dispatched)
+    sol = flag_time_rounding(sol)  # (every method: where t's float64 spacing is too coarse for the tolerance)
     return within_clocks(sol, started, dispatched[0] if dispatched else started)
 
 
@@ -144,14 +147,20 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
         return _on_fixed_branches(backend, model, t_span, start, opts, sensitivities)
     compiled = system_for(model, backend)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
-    # (a batch's samples have their own event times: they share outputs on t_eval only; without it the
-    # switches on variables of a batch are crossed by the steps, as before, and declared events refused)
-    common = len(start.p) == 1 or getattr(opts, "t_eval", None) is not None
+    # (a batch's samples have their own event times: they share outputs on t_eval only; without it a batch's
+    # switches on variables are located in each sample, then the batch solved on all their output times
+    # (.batches), and declared events refused; a method without t_eval steps across them)
+    has_t_eval = any(f.name == "t_eval" for f in dataclasses.fields(opts))
+    batch_alone = len(start.p) > 1 and getattr(opts, "t_eval", None) is None and has_t_eval and not model.events
+    common = len(start.p) == 1 or getattr(opts, "t_eval", None) is not None or batch_alone
     # (and in float64: float32's rounding, ~1e-7, cannot tell which side of a switch a located state is on)
     common = common and getattr(opts, "dtype", "float64") in ("float64", None)
     time_switches = has_time_switches(model)
     if not backend.solves_pieces and (located.events or time_switches):
         raise unsupported(backend, model)
+    if located.events and common and batch_alone:
+        dispatched.append(time.perf_counter())
+        return solve_on_common_times(backend, located, t_span, start, opts, max_events)
     if model.events or (located.events and common):  # (located, reset and restarted from, in every method)
         dispatched.append(time.perf_counter())
         return solve_with_events(backend, located, t_span, start, opts, max_events)

@@ -400,6 +400,18 @@ def test_every_idas_flag_becomes_one_line_with_its_fix(code):
         raise error
 
 
+def test_idas_failure_names_the_time_since_t0_plus_t0():
+    """IDAS integrates on the time since t0 (plumbing.shifted_dae): the time it prints is read back as t0 + s.
+    y' = y^2 from y = 1 at t0 = 1000 blows up at 1001."""
+    m = dm.Model("blow")
+    m.states("y")
+    m.ode("y", "y**2")
+    m.initial(t=1000.0, y=1.0)
+    with pytest.raises(E.StepLimitError, match=r"ended just before the output time t = 1001 \(sample 0") as caught:
+        dm.solve(m, (1000.0, 1002.0), method="casadi-idas")
+    assert abs(caught.value.t - 1001.0) < 1e-3
+
+
 def test_idas_unknown_flag_and_budget_without_a_time():
     unknown = idas_failure(
         casadi_error("IDASolve", "IDA_MEM_FAIL"), "out of memory\n", sample=1, model="m", grid=[1.0], max_num_steps=9
