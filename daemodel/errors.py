@@ -275,9 +275,8 @@ class OutsideTrainingBoxWarning(UserWarning):
 
 
 class LocalErrorWarning(UserWarning):
-    """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``), or an adaptive
-    one's ``newton_tol`` is looser than its stages' default, so that its estimate does not bound the
-    errors Newton leaves: the solution is flagged, not "success", and may keep fewer digits than asked."""
+    """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``): the
+    solution is flagged, not "success", and keeps fewer digits than that bound promises."""
 
 
 class EventResolutionWarning(UserWarning):

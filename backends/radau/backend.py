@@ -10,7 +10,7 @@ from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_st
 from daemodel.backends.radau.band import BAND_SPARE_BUFFERS, BandKernel, band_entries
 from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
-from daemodel.backends.radau.control import loose_newton_tol_status, make_controller
+from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
@@ -107,10 +107,7 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch":
             stepper.stats["torch_threads"] = engine.torch.get_num_threads()
             stepper.stats["torch_warm_up_seconds"] = warm_up
-        if options.adaptive:
-            status = loose_newton_tol_status(self.name, options)
-        else:
-            status = stepper.error.status(self.name, options.estimate_bound)
+        status = "success" if options.adaptive else stepper.error.status(self.name, options.estimate_bound)
         return make_solution(
             self,
             compiled,

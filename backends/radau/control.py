@@ -343,32 +343,6 @@ def loose_newton_tol_hint(given, default) -> str:
     )
 
 
-def loose_newton_tol_status(method: str, options) -> str:
-    """An adaptive run's status: "success", or flagged (with a :class:`~daemodel.errors.LocalErrorWarning`)
-    where the user's ``newton_tol`` is looser than the stages' own (:func:`adaptive_newton_tol`): the
-    error estimate then does not bound the stage errors Newton leaves.
-
-    (The pendulum at s = 7, rtol = atol = 1e-4 over [0, 20] with newton_tol = 0.03 and max_steps = 10^6:
-    83,777 attempts, "success", and errors of 0.27-1.9 against scipy at 1e-10; the default's 114 attempts
-    are within 3.5e-6.)"""
-    default = adaptive_newton_tol(options.rtol, options.stages, float(np.finfo(options.dtype).eps))
-    if options.newton_tol is None or options.newton_tol <= default * (1 + 1e-12):
-        return "success"
-    import warnings
-
-    from daemodel.backends.base import caller_level
-
-    from daemodel.errors import LocalErrorWarning
-
-    status = (
-        f"flagged: newton_tol = {options.newton_tol:g} is looser than these stages' default ({default:.3g}): "
-        f"{method}'s error estimate does not bound the stage errors Newton leaves, so the values are not "
-        "known to be within rtol/atol; leave newton_tol out"
-    )
-    warnings.warn(status, LocalErrorWarning, stacklevel=caller_level())
-    return status
-
-
 def underflow_error(new, t, why, sample, newton_hint="") -> ConvergenceError:
     """The step size underflow at ``t`` with the step ``new`` (the last failure named); ``newton_hint``:
     :func:`loose_newton_tol_hint`'s, where the error estimate shrank the step."""

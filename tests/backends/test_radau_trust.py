@@ -7,7 +7,6 @@ before anything is allocated or integrated.
 
 import functools
 import itertools
-import re
 import tracemalloc
 
 import numpy as np
@@ -500,22 +499,6 @@ def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(
     with pytest.raises(E.StepLimitError) as caught:
         dm.solve(pendulum, (0.0, 1e300), max_steps=200, stages=7, rtol=1e-4, atol=1e-4, newton_tol=1e-3)
     assert "newton_tol" not in str(caught.value)
-
-
-def test_a_newton_tol_looser_than_the_stages_default_flags_the_solution(pendulum):
-    """Where such a newton_tol runs to the end it is not "success": seven stages with newton_tol = 0.03 and
-    max_steps = 10^6 ran the pendulum over [0, 20] in 83,777 attempts to errors of 0.27-1.9 (scipy at 1e-10)
-    and said "success".  The stages' default, or a tighter newton_tol, keeps "success"."""
-    message = (
-        r"flagged: newton_tol = 0\.03 is looser than these stages' default \(0\.01\): radau's error estimate "
-        r"does not bound the stage errors Newton leaves, so the values are not known to be within rtol/atol; "
-        r"leave newton_tol out"
-    )
-    with pytest.warns(E.LocalErrorWarning, match=message):
-        sol = dm.solve(pendulum, (0.0, 2.0), rtol=1e-4, atol=1e-4, stages=3, newton_tol=0.03)
-    assert re.fullmatch(message, sol.status)
-    for newton_tol in (None, 0.01, 1e-3):
-        assert dm.solve(pendulum, (0.0, 2.0), rtol=1e-4, atol=1e-4, stages=3, newton_tol=newton_tol).status == "success"
 
 
 # ---- a time limit's signal is not a singular system ------------------------------------------------
