@@ -120,7 +120,8 @@ class RadauOptions:
         (:func:`~.control.adaptive_newton_tol`).  A value given
         is taken as it is, above that cap too; one looser than the stages' default may leave stage
         errors that do not shrink with h (seven stages at rtol 1e-4 on the pendulum: 0.03 collapses
-        h), and the budget's and the underflow's errors then say so.
+        h), and the budget's and the underflow's errors then say so; a solve that finishes is
+        flagged (:class:`~daemodel.errors.LocalErrorWarning`): its estimate does not see those errors.
     max_newton_iterations : int
     max_steps : int, optional
         Fixed step: most steps of the grid, refused before it is built

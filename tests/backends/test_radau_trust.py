@@ -477,6 +477,27 @@ def test_an_underflow_by_the_error_estimate_names_newtons_tolerance_too():
     )
 
 
+def test_a_newton_tol_looser_than_the_stages_default_flags_the_solution(pendulum):
+    """The error estimate does not see the stage errors a loose Newton leaves: seven stages at rtol = atol = 1e-4
+    with newton_tol = 0.03 (the stages' default: 1e-3) said "success" over [0, 6] 1.7e-2 from the reference (170x
+    the tolerance; the default: 3e-6), and over [0, 20], where only the progress watch stopped it, 1.1.  Such a
+    solve is flagged; a newton_tol at the default is not."""
+    t_eval = np.linspace(0.0, 6.0, 7)
+    ref = dm.solve(pendulum, (0.0, 6.0), method="reference", t_eval=t_eval)
+    states = pendulum.state_names
+    with pytest.warns(E.LocalErrorWarning, match=r"newton_tol = 0\.03 is looser than these stages' default"):
+        sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, t_eval=t_eval)
+    assert sol.status == (
+        "flagged: radau's newton_tol = 0.03 is looser than these stages' default (0.001): the error estimate does "
+        "not see the stage errors Newton leaves, and the values may be further from the solution than rtol and "
+        "atol say (seven stages at rtol 1e-4 on the pendulum over [0, 6]: 1.7e-2 off); leave newton_tol out"
+    )
+    assert max(sol.errors(ref)[name]["max"] for name in states) > 1e-3  # (the flag is earned)
+    sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=1e-3, t_eval=t_eval)
+    assert sol.status == "success"
+    assert max(sol.errors(ref)[name]["max"] for name in states) < 1e-4
+
+
 def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(pendulum):
     """A newton_tol given above adaptive_newton_tol's (seven stages at rtol 1e-4: 0.03 against 1e-3) is taken
     as given; on the pendulum over [0, 20] it collapsed h to ~4e-6 by t ~ 3.9, and the budget's error said only
