@@ -131,7 +131,8 @@ class RadauOptions:
         (:data:`DEFAULT_MAX_ADAPTIVE_STEPS`), enough for long spans (the pendulum on [0, 1000] at
         rtol = 1e-6 takes 12,900, 27,600 with three stages).  A span that cannot finish within the
         budget is stopped early, after a few hundred attempts project past it, with the number it
-        would need.
+        would need (where h has fallen far below its earlier steps, mostly accepted, a stiff layer,
+        after up to a quarter of max_steps: raising max_steps lets a longer layer through).
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.
