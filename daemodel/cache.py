@@ -342,7 +342,10 @@ def cached_library(source: str, names, build: Build) -> Library:
     """The functions ``names`` of ``source`` compiled as ``build`` says: loaded from the cache where
     it holds them (the stamp's source and library hashes checked), else compiled in a private
     temporary folder, loaded, then stored (library, then stamp); a :class:`CompileError` where the
-    compiler fails, writes no library or one that does not load (see :func:`compile_library`)."""
+    compiler fails, writes no library or one that does not load (see :func:`compile_library`), an
+    :class:`InvalidOptionError` for a bad ``DAEMODEL_CACHE_SIZE`` or ``DAEMODEL_COMPILE_TIMEOUT``."""
+    # (the settings read first: a bad one is named on every call, not only on a miss, after its store)
+    size_limit(), compile_timeout(build.timeout)
     key, source_hash = entry_key(source, build), digest(source)
     try:
         folder = checked_folder()

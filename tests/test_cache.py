@@ -553,3 +553,22 @@ def test_a_hanging_compiler_is_bounded_by_daemodel_compile_timeout(folder, tmp_p
             InvalidOptionError, match=rf"DAEMODEL_COMPILE_TIMEOUT = '{text}' is not a time limit; give seconds"
         ):
             cache.compile_timeout(600.0)
+
+
+def test_a_bad_setting_is_named_on_every_call_not_only_on_a_miss(folder, monkeypatch):
+    """DAEMODEL_CACHE_SIZE = 'lots' was read only after a compile had stored its library: the first solve
+    raised and left the entry behind, and the next, a hit, succeeded with the same setting (measured:
+    InvalidOptionError, then "hit").  DAEMODEL_COMPILE_TIMEOUT was read only where a compiler ran.  Both
+    are read first now: every call names them, and nothing is stored."""
+    monkeypatch.setenv(cache.SIZE_VARIABLE, "lots")
+    with pytest.raises(InvalidOptionError, match=r"DAEMODEL_CACHE_SIZE = 'lots' is not a size"):
+        compiled(2.0)
+    assert not any(name.endswith(cache.LIBRARY) for name in files(folder))
+    monkeypatch.delenv(cache.SIZE_VARIABLE)
+    assert compiled(2.0).outcome == "miss"
+    for variable, value, said in [(cache.SIZE_VARIABLE, "lots", "a size"), (cache.TIMEOUT_VARIABLE, "soon", "a time")]:
+        monkeypatch.setenv(variable, value)
+        with pytest.raises(InvalidOptionError, match=rf"{variable} = '{value}' is not {said}"):
+            compiled(2.0)
+        monkeypatch.delenv(variable)
+    assert compiled(2.0).outcome == "hit"
