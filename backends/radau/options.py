@@ -161,7 +161,8 @@ class RadauOptions:
     jit : "auto", True or False
         The casadi engine: compile its steps (the adaptive attempt: start guess, Newton, error
         estimate; and the fused Newton iteration of fixed steps) to machine code with the system's
-        C compiler (:data:`~.compiled.COMPILERS`, the first on PATH; 0.3-1 s once per model and
+        C compiler (:data:`~.compiled.COMPILERS`, the first on PATH; ``CC`` is not read; a compiler
+        run is stopped after ``DAEMODEL_COMPILE_TIMEOUT`` seconds where set; 0.3-1 s once per model and
         stages for systems of ten unknowns, seconds for a hundred, in the setup; kept in the disk
         cache :mod:`daemodel.cache`, so a later process loads it in ~0.02 s) instead of running
         them on casadi's virtual machine, and, in adaptive mode, factor the transformed systems by
