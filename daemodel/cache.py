@@ -142,7 +142,8 @@ def unsafe(info: os.stat_result) -> str | None:
     if info.st_uid != os.geteuid():
         return f"is owned by another user (uid {info.st_uid}, not {os.geteuid()})"
     if info.st_mode & 0o022:
-        return f"is writable by {'the group' if info.st_mode & 0o020 else 'others'} (mode {info.st_mode & 0o777:o})"
+        who = {0o020: "the group", 0o002: "others", 0o022: "the group and others"}[info.st_mode & 0o022]
+        return f"is writable by {who} (mode {info.st_mode & 0o777:o})"
     return None
 
 

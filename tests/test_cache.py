@@ -209,6 +209,7 @@ def test_a_planted_link_in_the_folder_is_refused_and_nothing_is_loaded_from_it(f
     [
         (0o770, "folder", r"cache folder .* is writable by the group \(mode 770\)"),
         (0o707, "folder", r"cache folder .* is writable by others \(mode 707\)"),
+        (0o777, "folder", r"cache folder .* is writable by the group and others \(mode 777\)"),  # (said "the group")
         (0o620, "file", r"cache folder .*: [0-9a-f]{64}\.json is writable by the group \(mode 620\); remove it"),
         (0o602, "file", r"cache folder .*: [0-9a-f]{64}\.so is writable by others \(mode 602\)"),
     ],
