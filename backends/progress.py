@@ -16,14 +16,19 @@ PROGRESS_WINDOW, PROJECTION_FACTOR, COLLAPSE_FACTOR = 100, 10, 0.1
 
 # Windows in a row that must each project past the budget before a loop gives up early.
 HOPELESS_WINDOWS = 2
-# A stiff layer (van der Pol at eps = 1e-6 or 1e-8 crossing its fast jump) takes ~300 accepted attempts at a
-# step DIP_FACTOR or more below the largest one the loop has taken, and projects past the budget at that
-# pace for two windows before h grows again.  Such a dip (h below DIP_FACTOR of the largest h, at least
-# DIP_ACCEPTED of the window's attempts accepted: not chattering, which is mostly rejections) is given
-# DIP_WINDOWS windows in a row before the loop gives up; a dip longer than that (h collapsed for good, as
-# with a newton_tol too loose for the stages) is judged as any other window.  With two, van der Pol at
-# eps = 1e-6 and three stages stopped at t = 0.807 (h = 3.7e-8) a solve that finishes in 866 attempts.
-DIP_FACTOR, DIP_ACCEPTED, DIP_WINDOWS = 1e-3, 0.5, 10
+# A stiff layer (van der Pol crossing its fast jump) takes hundreds to thousands of accepted attempts at a step
+# DIP_FACTOR or more below the largest one the loop has taken, and projects past the budget at that pace for
+# many windows before h grows again.  Such a dip (h below DIP_FACTOR of the largest h, at least DIP_ACCEPTED of
+# each window's attempts accepted: not chattering, which is mostly rejections) may take DIP_SHARE of the budget,
+# at least DIP_WINDOWS windows, before the loop gives up; a dip longer than that (h collapsed for good, as with
+# a newton_tol too loose for the stages) is judged as any other window.  Raising max_steps lets a longer layer
+# through.  Three stages on van der Pol: one jump's dip took 5-18 windows at rtol 1e-6 to 1e-8 (eps = 1e-6 to
+# 1e-10), 57 at 1e-10 and 183 at 1e-12 (eps = 1e-10: 18,300 of the solve's 40,680 attempts); a fixed 10
+# windows stopped solves that finish in 5,505 attempts (eps = 1e-6 over [0, 11], rtol 1e-6) and 4,289
+# (eps = 1e-10 over [0, 2], rtol 1e-8) whatever max_steps.  A runaway that looks like a dip (mostly accepted
+# steps far below the earlier ones, for good) now spends up to DIP_SHARE of the budget before it is stopped: an
+# oscillator whose frequency jumps from 1 to 1e6 at t = 30, over [0, 1000], 25,100 attempts (1,100 with 10).
+DIP_FACTOR, DIP_ACCEPTED, DIP_WINDOWS, DIP_SHARE = 1e-3, 0.5, 10, 0.25
 
 
 class ProgressWatch:
@@ -38,7 +43,7 @@ class ProgressWatch:
         self.strikes = 0  # windows in a row that projected past the budget
         self.h_max = abs(h)  # the largest step seen at a window's end, or mean step over a window
         self.accepted = 0  # the caller's accepted steps when the window began (where it tells them)
-        self.dips = 0  # windows in a row in a dip (h below DIP_FACTOR of h_max)
+        self.dip_began = None  # the count where the dip began (windows in a row, h below DIP_FACTOR of h_max)
 
     def hopeless(
         self, count: int, t: float, h: float, t1: float, budget: int, extra=None, accepted: int | None = None
@@ -47,7 +52,8 @@ class ProgressWatch:
         further steps when :data:`HOPELESS_WINDOWS` windows in a row project past
         :data:`PROJECTION_FACTOR` times the budget left, else None (starting a new window when one
         is complete).  Where the caller counts attempts, ``accepted`` (its accepted steps so far) lets
-        a stiff layer's dip take :data:`DIP_WINDOWS` windows instead."""
+        a stiff layer's dip take :data:`DIP_SHARE` of ``budget`` (at least :data:`DIP_WINDOWS` windows)
+        instead."""
         t_w, count_w, h_w, _ = self.start
         steps = count - count_w
         if steps < PROGRESS_WINDOW or count >= budget:  # the budget's own error speaks at the end
@@ -62,14 +68,15 @@ class ProgressWatch:
         hopeless = growth >= COLLAPSE_FACTOR and needed > PROJECTION_FACTOR * (budget - count)
         self.strikes = self.strikes + 1 if hopeless else 0
         low = max(abs(h), abs(h_w)) < DIP_FACTOR * self.h_max
-        self.dips = self.dips + 1 if low else 0
+        self.dip_began = (count_w if self.dip_began is None else self.dip_began) if low else None
+        allowance = max(DIP_WINDOWS * PROGRESS_WINDOW, DIP_SHARE * budget)
         dip = (
             accepted is not None
             and low
-            and self.dips <= DIP_WINDOWS
+            and count - self.dip_began < allowance
             and accepted - self.accepted >= DIP_ACCEPTED * steps
         )
-        if self.strikes >= (DIP_WINDOWS if dip else HOPELESS_WINDOWS):
+        if self.strikes >= HOPELESS_WINDOWS and not dip:
             return needed
         self.start = (t, count, h, extra)
         self.h_max = max(self.h_max, abs(h), abs(covered) / steps)

@@ -21,6 +21,10 @@
 * **Bounded.**  ``DAEMODEL_CACHE_SIZE`` bytes (default 1 GiB); after each store the least recently
   used entries go first (a load touches its stamp), with leftover temporary files
   (:func:`evict`); ``daemodel cache info`` and ``daemodel cache clear`` (:func:`info`, :func:`clear`).
+* **Timed.**  A compiler run that takes longer than its build's limit (600 s for radau's step; 60 s for
+  ``--version``), or than ``DAEMODEL_COMPILE_TIMEOUT`` seconds where set, is stopped: a
+  :class:`~daemodel.errors.CompileError`, after which radau's default ``jit="auto"`` goes on on casadi's
+  virtual machine (:func:`compile_timeout`).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
+import math
 import os
 import re
 import shutil
@@ -62,6 +67,11 @@ LIBRARY_FLAGS = ("-fPIC", "-shared")
 UNIT_FLAGS = ("-fPIC",)
 # A compile that takes longer is stopped (the largest steps compile in under a minute).
 COMPILE_TIMEOUT = 600.0
+# ``compiler --version`` (asked once per process and compiler) that takes longer is stopped.
+VERSION_TIMEOUT = 60.0
+# Where set, the seconds any compiler run may take instead (a hanging compiler held radau's default
+# jit="auto" 60 + 600 s on each model's first solve before the virtual machine took over).
+TIMEOUT_VARIABLE = "DAEMODEL_COMPILE_TIMEOUT"
 # A temporary file younger than this may be another process's write in progress: eviction spares it.
 PARTIAL_GRACE = 60.0
 # The files of an entry, and the temporary names files.atomic_write gives them while they are written.
@@ -107,6 +117,24 @@ def size_limit() -> int:
     return int(match[1]) * _SIZE_UNITS[match[2].upper()]
 
 
+def compile_timeout(default: float) -> float:
+    """The seconds a compiler run may take: ``DAEMODEL_COMPILE_TIMEOUT`` where set, else ``default``; an
+    :class:`InvalidOptionError` naming the variable for anything but a positive finite number."""
+    text = os.environ.get(TIMEOUT_VARIABLE, "").strip()
+    if not text:
+        return default
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise InvalidOptionError(
+            f"{TIMEOUT_VARIABLE} = {clip(repr(text), 40)} is not a time limit; give seconds (a positive number, "
+            f"e.g. '120'), or unset it (each compile's own: {COMPILE_TIMEOUT:g} s for radau's step)"
+        )
+    return seconds
+
+
 def unsafe(info: os.stat_result) -> str | None:
     """What makes a path whose ``lstat`` is ``info`` unsafe to hold or be code this user loads, or None."""
     if stat.S_ISLNK(info.st_mode):
@@ -114,7 +142,8 @@ def unsafe(info: os.stat_result) -> str | None:
     if info.st_uid != os.geteuid():
         return f"is owned by another user (uid {info.st_uid}, not {os.geteuid()})"
     if info.st_mode & 0o022:
-        return f"is writable by {'the group' if info.st_mode & 0o020 else 'others'} (mode {info.st_mode & 0o777:o})"
+        who = {0o020: "the group", 0o002: "others", 0o022: "the group and others"}[info.st_mode & 0o022]
+        return f"is writable by {who} (mode {info.st_mode & 0o777:o})"
     return None
 
 
@@ -151,9 +180,11 @@ def checked_folder(folder: Path | None = None, *, create: bool = True) -> Path:
 
 @functools.cache
 def compiler_version(compiler: str) -> str:
-    """The first line of ``compiler --version`` (asked once per process and compiler), or what went wrong."""
+    """The first line of ``compiler --version`` (asked once per process and compiler, within
+    :data:`VERSION_TIMEOUT` or :func:`compile_timeout`'s), or what went wrong."""
+    limit = compile_timeout(VERSION_TIMEOUT)
     try:
-        done = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60, check=False)
+        done = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=limit, check=False)
     except (OSError, subprocess.TimeoutExpired) as error:
         return f"unknown ({type(error).__name__})"
     lines = (done.stdout or "").strip().splitlines()
@@ -270,11 +301,12 @@ def compile_library(source: str, folder: Path, build: Build) -> Path:
 
 def run_compiler(commands: list, folder: Path, build: Build) -> None:
     """The compiler ``commands`` run at once inside ``folder`` (their output in ``folder``'s files, never
-    a pipe that could fill), all within ``build.timeout``; a :class:`CompileError` with the first
-    failure's first line that says "error", else its last line of output (or why it did not run).  An
-    exception while they run (a time limit's signal) stops them all."""
+    a pipe that could fill), all within ``build.timeout`` (or :func:`compile_timeout`'s); a
+    :class:`CompileError` with the first failure's first line that says "error", else its last line of
+    output (or why it did not run).  An exception while they run (a time limit's signal) stops them all."""
     processes, logs, problem = [], [], None
-    deadline = time.monotonic() + build.timeout
+    limit = compile_timeout(build.timeout)
+    deadline = time.monotonic() + limit
     try:
         for index, command in enumerate(commands):
             logs.append(folder / f"compiler{index}.log")
@@ -284,7 +316,7 @@ def run_compiler(commands: list, folder: Path, build: Build) -> None:
             try:
                 code = process.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                problem = problem or f"did not finish in {build.timeout:g} s"
+                problem = problem or f"did not finish in {limit:g} s ({TIMEOUT_VARIABLE} sets the limit)"
                 continue
             if code != 0 and problem is None:  # (gcc's last lines point at the code: its first "error" line says what)
                 lines = log.read_text(errors="replace").strip().splitlines() or ["no message"]
@@ -311,7 +343,10 @@ def cached_library(source: str, names, build: Build) -> Library:
     """The functions ``names`` of ``source`` compiled as ``build`` says: loaded from the cache where
     it holds them (the stamp's source and library hashes checked), else compiled in a private
     temporary folder, loaded, then stored (library, then stamp); a :class:`CompileError` where the
-    compiler fails, writes no library or one that does not load (see :func:`compile_library`)."""
+    compiler fails, writes no library or one that does not load (see :func:`compile_library`), an
+    :class:`InvalidOptionError` for a bad ``DAEMODEL_CACHE_SIZE`` or ``DAEMODEL_COMPILE_TIMEOUT``."""
+    # (the settings read first: a bad one is named on every call, not only on a miss, after its store)
+    size_limit(), compile_timeout(build.timeout)
     key, source_hash = entry_key(source, build), digest(source)
     try:
         folder = checked_folder()

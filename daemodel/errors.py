@@ -275,8 +275,10 @@ class OutsideTrainingBoxWarning(UserWarning):
 
 
 class LocalErrorWarning(UserWarning):
-    """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``): the
-    solution is flagged, not "success", and keeps fewer digits than that bound promises."""
+    """A fixed-step solution's local error estimate exceeds its bound (``estimate_bound``), or an
+    adaptive radau solve was given a ``newton_tol`` looser than its stages' default (its estimate does
+    not see the stage errors Newton leaves): the solution is flagged, not "success", and may keep fewer
+    digits than the bound or the tolerances promise."""
 
 
 class EventResolutionWarning(UserWarning):

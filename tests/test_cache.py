@@ -38,6 +38,7 @@ def folder(tmp_path, monkeypatch) -> Path:
     path = tmp_path / "cache"
     monkeypatch.setenv(cache.CACHE_VARIABLE, str(path))
     monkeypatch.delenv(cache.SIZE_VARIABLE, raising=False)
+    monkeypatch.delenv(cache.TIMEOUT_VARIABLE, raising=False)
     return path
 
 
@@ -208,6 +209,7 @@ def test_a_planted_link_in_the_folder_is_refused_and_nothing_is_loaded_from_it(f
     [
         (0o770, "folder", r"cache folder .* is writable by the group \(mode 770\)"),
         (0o707, "folder", r"cache folder .* is writable by others \(mode 707\)"),
+        (0o777, "folder", r"cache folder .* is writable by the group and others \(mode 777\)"),  # (said "the group")
         (0o620, "file", r"cache folder .*: [0-9a-f]{64}\.json is writable by the group \(mode 620\); remove it"),
         (0o602, "file", r"cache folder .*: [0-9a-f]{64}\.so is writable by others \(mode 602\)"),
     ],
@@ -510,10 +512,12 @@ def test_a_compiler_past_its_time_is_stopped(tmp_path, monkeypatch, units):
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.setattr(cache, "workers", lambda: units)
+    monkeypatch.delenv(cache.TIMEOUT_VARIABLE, raising=False)
     source = "\n".join(f"double f{k}(double x) {{\n  return {k} * x;\n}}" for k in range(3000))  # (~80 kB: 3 units)
     build = cache.Build(str(slow), (), "compiling", FIX, timeout=1.0, units=units)
     began = time.monotonic()
-    with pytest.raises(CompileError, match=rf"compiling with {slow} failed: did not finish in 1 s; {FIX}"):
+    said = r"did not finish in 1 s \(DAEMODEL_COMPILE_TIMEOUT sets the limit\)"
+    with pytest.raises(CompileError, match=rf"compiling with {slow} failed: {said}; {FIX}"):
         cache.compile_library(source, work, build)
     assert time.monotonic() - began < 30
     pids = [int(pid) for pid in (tmp_path / "pids").read_text().split()]
@@ -523,3 +527,49 @@ def test_a_compiler_past_its_time_is_stopped(tmp_path, monkeypatch, units):
             os.kill(pid, 0)
     with pytest.raises(CompileError, match=r"compiling with .*no-such-cc failed: .*No such file"):
         cache.compile_library(source, work, build._replace(compiler=str(tmp_path / "no-such-cc")))
+
+
+def test_a_hanging_compiler_is_bounded_by_daemodel_compile_timeout(folder, tmp_path, monkeypatch):
+    """A compiler that hangs held radau's default jit="auto" for 60 s of ``--version`` and 600 s of compiling
+    (constants a user could not change) before the virtual machine took over, on the first solve of each
+    model.  DAEMODEL_COMPILE_TIMEOUT (seconds) bounds both; a value that is not a positive number is named."""
+    slow = tmp_path / "bin" / "cc"
+    slow.parent.mkdir()
+    slow.write_text("#!/bin/sh\nexec /bin/sleep 20\n")  # (--version too)
+    slow.chmod(0o755)
+    monkeypatch.setenv("PATH", str(slow.parent))
+    monkeypatch.setenv("DAEMODEL_COMPILE_TIMEOUT", "0.5")
+    sol = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)
+    assert sol.status == "success"
+    assert sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed")
+    assert f"with {slow} failed: did not finish in 0.5 s (DAEMODEL_COMPILE_TIMEOUT sets the limit)" in sol.stats["jit"]
+    assert cache.compiler_version(str(slow)) == "unknown (TimeoutExpired)"
+    with pytest.raises(CompileError, match=r"did not finish in 0\.5 s \(DAEMODEL_COMPILE_TIMEOUT sets the limit\)"):
+        dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05, jit=True)
+    monkeypatch.delenv("DAEMODEL_COMPILE_TIMEOUT")
+    assert cache.compile_timeout(600.0) == 600.0
+    for text in ("0", "-3", "soon", "nan", "inf"):
+        monkeypatch.setenv("DAEMODEL_COMPILE_TIMEOUT", text)
+        with pytest.raises(
+            InvalidOptionError, match=rf"DAEMODEL_COMPILE_TIMEOUT = '{text}' is not a time limit; give seconds"
+        ):
+            cache.compile_timeout(600.0)
+
+
+def test_a_bad_setting_is_named_on_every_call_not_only_on_a_miss(folder, monkeypatch):
+    """DAEMODEL_CACHE_SIZE = 'lots' was read only after a compile had stored its library: the first solve
+    raised and left the entry behind, and the next, a hit, succeeded with the same setting (measured:
+    InvalidOptionError, then "hit").  DAEMODEL_COMPILE_TIMEOUT was read only where a compiler ran.  Both
+    are read first now: every call names them, and nothing is stored."""
+    monkeypatch.setenv(cache.SIZE_VARIABLE, "lots")
+    with pytest.raises(InvalidOptionError, match=r"DAEMODEL_CACHE_SIZE = 'lots' is not a size"):
+        compiled(2.0)
+    assert not any(name.endswith(cache.LIBRARY) for name in files(folder))
+    monkeypatch.delenv(cache.SIZE_VARIABLE)
+    assert compiled(2.0).outcome == "miss"
+    for variable, value, said in [(cache.SIZE_VARIABLE, "lots", "a size"), (cache.TIMEOUT_VARIABLE, "soon", "a time")]:
+        monkeypatch.setenv(variable, value)
+        with pytest.raises(InvalidOptionError, match=rf"{variable} = '{value}' is not {said}"):
+            compiled(2.0)
+        monkeypatch.delenv(variable)
+    assert compiled(2.0).outcome == "hit"

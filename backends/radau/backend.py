@@ -107,7 +107,10 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch":
             stepper.stats["torch_threads"] = engine.torch.get_num_threads()
             stepper.stats["torch_warm_up_seconds"] = warm_up
-        status = "success" if options.adaptive else stepper.error.status(self.name, options.estimate_bound)
+        if options.adaptive:  # (flagged where a newton_tol looser than the stages' default was given)
+            status = stepper.controller.status(self.name)
+        else:
+            status = stepper.error.status(self.name, options.estimate_bound)
         return make_solution(
             self,
             compiled,

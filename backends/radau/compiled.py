@@ -358,23 +358,24 @@ def compiler_flags(compiler: str) -> tuple:
 
 
 def find_compiler() -> str | None:
-    """The path of the first of :data:`COMPILERS` on PATH, or None.  Kept per value of PATH while the path
-    found is still an executable file (a search of PATH took 90 us, twice in each of the wheelset's 2,700
-    solves and trial solves of its events)."""
+    """The absolute path of the first of :data:`COMPILERS` on PATH, or None (absolute: the compiler runs
+    inside a private temporary folder, where a relative PATH entry's ``bin/cc`` is not found).  Kept per
+    value of PATH and working folder while the path found is still an executable file (a search of PATH
+    took 90 us, twice in each of the wheelset's 2,700 solves and trial solves of its events)."""
     import os
     import shutil
 
-    search = os.environ.get("PATH", "")
+    search = (os.environ.get("PATH", ""), os.getcwd())
     found = _FOUND_COMPILERS.get(search)
     if found is None or not os.access(found, os.X_OK):
-        found = next((path for path in map(shutil.which, COMPILERS) if path), None)
+        found = next((os.path.abspath(path) for path in map(shutil.which, COMPILERS) if path), None)
         if found is not None:
             _FOUND_COMPILERS[search] = found
     return found
 
 
-# find_compiler's compilers found, by the value of PATH
-_FOUND_COMPILERS: dict[str, str] = {}
+# find_compiler's compilers found, by the value of PATH and the working folder
+_FOUND_COMPILERS: dict[tuple[str, str], str] = {}
 
 
 def machine_library(functions: dict, compiler: str, kernel: str = "", kernel_names=(), what: str = "", after: str = ""):

@@ -120,7 +120,8 @@ class RadauOptions:
         (:func:`~.control.adaptive_newton_tol`).  A value given
         is taken as it is, above that cap too; one looser than the stages' default may leave stage
         errors that do not shrink with h (seven stages at rtol 1e-4 on the pendulum: 0.03 collapses
-        h), and the budget's and the underflow's errors then say so.
+        h), and the budget's and the underflow's errors then say so; a solve that finishes is
+        flagged (:class:`~daemodel.errors.LocalErrorWarning`): its estimate does not see those errors.
     max_newton_iterations : int
     max_steps : int, optional
         Fixed step: most steps of the grid, refused before it is built
@@ -130,7 +131,8 @@ class RadauOptions:
         (:data:`DEFAULT_MAX_ADAPTIVE_STEPS`), enough for long spans (the pendulum on [0, 1000] at
         rtol = 1e-6 takes 12,900, 27,600 with three stages).  A span that cannot finish within the
         budget is stopped early, after a few hundred attempts project past it, with the number it
-        would need.
+        would need (where h has fallen far below its earlier steps, mostly accepted, a stiff layer,
+        after up to a quarter of max_steps: raising max_steps lets a longer layer through).
     reuse_jacobian : bool
         Keep the Jacobian (and the LU while h is unchanged) for the next step when Newton
         contracted fast; otherwise a fresh one every step.
@@ -159,7 +161,8 @@ class RadauOptions:
     jit : "auto", True or False
         The casadi engine: compile its steps (the adaptive attempt: start guess, Newton, error
         estimate; and the fused Newton iteration of fixed steps) to machine code with the system's
-        C compiler (:data:`~.compiled.COMPILERS`, the first on PATH; 0.3-1 s once per model and
+        C compiler (:data:`~.compiled.COMPILERS`, the first on PATH; ``CC`` is not read; a compiler
+        run is stopped after ``DAEMODEL_COMPILE_TIMEOUT`` seconds where set; 0.3-1 s once per model and
         stages for systems of ten unknowns, seconds for a hundred, in the setup; kept in the disk
         cache :mod:`daemodel.cache`, so a later process loads it in ~0.02 s) instead of running
         them on casadi's virtual machine, and, in adaptive mode, factor the transformed systems by

@@ -136,6 +136,24 @@ def test_idas_pendulum_at_11_output_times_matches_the_reference(pendulum):
     assert sol.stats["initial_slope_fallbacks"] == 0  # IDACalcIC found y'(t0)
 
 
+def test_idas_first_step_is_not_sized_by_a_far_end_of_t_span(pendulum):
+    """IDAS's first step was floored at 16 ulp of the farther end of t_span: on (0, 1e20) with outputs at
+    0.5 and 1 it was 2.6e5, and the pendulum failed at t = 0 ("the error test failed repeatedly ... the
+    problem may be singular there").  The first step is floored at t's resolution at t0, where it is taken."""
+    t_eval = np.array([0.0, 0.5, 1.0])
+    near = dm.solve(pendulum, (0.0, 1.0), method="casadi-idas", t_eval=t_eval)
+    far = dm.solve(pendulum, (0.0, 1e20), method="casadi-idas", t_eval=t_eval)
+    ref = dm.solve(pendulum, (0.0, 1.0), method="reference", t_eval=t_eval)
+    assert far.status == "success"
+    for name in pendulum.state_names:
+        np.testing.assert_array_equal(far[name], near[name])
+    assert max(far.errors(ref)[name]["max"] for name in pendulum.state_names) < 1e-6
+    # the default outputs (the first at 1e198): the step limit, named, where the first step was 1e183 (16 ulp
+    # of 1e200) and the pendulum's evaluation failed at t = 0 ("it leaves its domain there")
+    with pytest.raises(E.StepLimitError, match=r"max_num_steps = 100,000 steps ended at t = \d+"):
+        dm.solve(pendulum, (0.0, 1e200), method="casadi-idas")
+
+
 def test_idas_pendulum_at_rtol_1e_10(pendulum):
     t_eval = np.linspace(0.0, 1.0, 11)
     sol = dm.solve(pendulum, (0.0, 1.0), method="casadi-idas", rtol=1e-10, atol=1e-12, t_eval=t_eval)

@@ -5,6 +5,8 @@ the same steps with the same Newton iterations as the general path that it repla
 (``jit=True``) must give the same bits as casadi's virtual machine; its options fail by name.
 """
 
+import os
+
 import numpy as np
 import pytest
 from daemodel.backends.radau import compiled as radau_compiled
@@ -434,3 +436,22 @@ def test_the_compiler_found_is_kept_per_path_while_it_exists(monkeypatch, tmp_pa
     assert machine.find_compiler() is None and searches[1:] == list(machine.COMPILERS)  # (gone: searched again)
     monkeypatch.setenv("PATH", str(tmp_path / "other"))
     assert machine.find_compiler() is None
+
+
+@needs_compiler
+def test_a_compiler_found_through_a_relative_path_entry_compiles(tmp_path, monkeypatch):
+    """A PATH entry relative to the working folder (``bin``) gave the compiler as ``bin/cc``, which the
+    compile, run inside its private temporary folder, could not find: jit=True raised "No such file or
+    directory: 'bin/cc'" and jit="auto" never ran machine code.  The compiler is named by its absolute
+    path, found again where the working folder changes."""
+    real = find_compiler()
+    for place in ("one", "two"):
+        (tmp_path / place / "bin").mkdir(parents=True)
+        (tmp_path / place / "bin" / "cc").symlink_to(real)
+    monkeypatch.chdir(tmp_path / "one")
+    monkeypatch.setenv("PATH", "bin" + os.pathsep + os.environ["PATH"])  # (the rest: gcc's assembler)
+    assert find_compiler() == str(tmp_path / "one" / "bin" / "cc")
+    sol = dm.solve(PENDULUM.model(), (0.0, 1.0), rtol=1e-6, jit=True)
+    assert sol.status == "success" and sol.stats["jit"] == f"machine code ({tmp_path / 'one' / 'bin' / 'cc'})"
+    monkeypatch.chdir(tmp_path / "two")
+    assert find_compiler() == str(tmp_path / "two" / "bin" / "cc")

@@ -188,24 +188,54 @@ def test_a_stiff_layer_is_not_taken_for_an_endless_span(eps):
     assert np.abs(sol["y1"] - ref.y[0]).max() < 1e-5
 
 
+@pytest.mark.parametrize(("eps", "t1", "rtol"), [(1e-6, 11.0, 1e-6), (1e-10, 2.0, 1e-8)])
+def test_a_stiff_layer_longer_than_ten_windows_is_not_taken_for_an_endless_span(eps, t1, rtol):
+    """Van der Pol's jumps at three stages take more windows than the dip's first allowance (10) at a tighter
+    rtol or over more jumps: over [0, 11] at eps = 1e-6, rtol 1e-6 (5,505 attempts to finish) and over
+    [0, 2] at eps = 1e-10, rtol 1e-8 (4,289) the watch stopped at t = 8.88 and 0.807 with a StepLimitError
+    projecting 5.6e7 and 8e11 more attempts (the second even at max_steps = 10**7).  A dip may now take a
+    quarter of max_steps."""
+    m = dm.Model("vdp")
+    m.states("y1 y2")
+    m.ode("y1", "y2")
+    m.ode("y2", f"((1 - y1**2)*y2 - y1)/{eps}")
+    m.initial(y1=2.0, y2=-0.66)
+    t_eval = np.linspace(0.0, t1, 5)
+    sol = dm.solve(m, (0.0, t1), stages=3, rtol=rtol, atol=rtol, t_eval=t_eval)
+    assert sol.status == "success"
+
+    def f(t, y):
+        return [y[1], ((1 - y[0] ** 2) * y[1] - y[0]) / eps]
+
+    def jac(t, y):
+        return [[0.0, 1.0], [(-2 * y[0] * y[1] - 1) / eps, (1 - y[0] ** 2) / eps]]
+
+    # (1e-10 from scipy at 1e-11, in half the time)
+    ref = solve_ivp(f, (0.0, t1), [2.0, -0.66], method="Radau", rtol=1e-9, atol=1e-9, jac=jac, t_eval=t_eval)
+    print(f"eps = {eps}: {sol.stats['attempts']} attempts, y1 error {np.abs(sol['y1'] - ref.y[0]).max():.2g}")
+    assert np.abs(sol["y1"] - ref.y[0]).max() < 10 * rtol
+
+
 def test_chattering_in_a_dip_still_stops_after_two_windows():
     """The dip's extra windows are for accepted steps: mostly rejected attempts at a step far below the
-    earlier ones (chattering at a switch) stop after HOPELESS_WINDOWS, as before."""
-    from daemodel.backends.progress import DIP_WINDOWS, HOPELESS_WINDOWS, PROGRESS_WINDOW, ProgressWatch
+    earlier ones (chattering at a switch) stop after HOPELESS_WINDOWS, as before.  Accepted ones stop once
+    the dip has taken DIP_SHARE of the budget, at least DIP_WINDOWS windows."""
+    from daemodel.backends.progress import DIP_SHARE, DIP_WINDOWS, HOPELESS_WINDOWS, PROGRESS_WINDOW, ProgressWatch
 
-    def windows_until_stop(accepted_per_window):
+    def windows_until_stop(accepted_per_window, budget=100_000):
         watch, t, count, accepted = ProgressWatch(0.0, 1e-2), 0.0, 0, 0
         t += 100 * 1e-2  # one window of large steps, then steps of 1e-9
         count, accepted = PROGRESS_WINDOW, PROGRESS_WINDOW
-        assert watch.hopeless(count, t, 1e-2, 10.0, 100_000, accepted=accepted) is None
-        for window in range(1, 50):
+        assert watch.hopeless(count, t, 1e-2, 10.0, budget, accepted=accepted) is None
+        for window in range(1, budget // PROGRESS_WINDOW):
             t += accepted_per_window * 1e-9
             count, accepted = count + PROGRESS_WINDOW, accepted + accepted_per_window
-            if watch.hopeless(count, t, 1e-9, 10.0, 100_000, accepted=accepted) is not None:
+            if watch.hopeless(count, t, 1e-9, 10.0, budget, accepted=accepted) is not None:
                 return window
 
     # (+ 1: the window in which h falls by more than COLLAPSE_FACTOR is left to the step-size failure)
-    assert windows_until_stop(95) == DIP_WINDOWS + 1
+    assert windows_until_stop(95) == DIP_SHARE * 100_000 / PROGRESS_WINDOW + 1 == 251
+    assert windows_until_stop(95, budget=3_000) == DIP_WINDOWS + 1
     assert windows_until_stop(10) == HOPELESS_WINDOWS + 1
 
 
@@ -477,11 +507,34 @@ def test_an_underflow_by_the_error_estimate_names_newtons_tolerance_too():
     )
 
 
+def test_a_newton_tol_looser_than_the_stages_default_flags_the_solution(pendulum):
+    """The error estimate does not see the stage errors a loose Newton leaves: seven stages at rtol = atol = 1e-4
+    with newton_tol = 0.03 (the stages' default: 1e-3) said "success" over [0, 6] 1.7e-2 from the reference (170x
+    the tolerance; the default: 3e-6), and over [0, 20], where only the progress watch stopped it, 1.1.  Such a
+    solve is flagged; a newton_tol at the default is not."""
+    t_eval = np.linspace(0.0, 6.0, 7)
+    ref = dm.solve(pendulum, (0.0, 6.0), method="reference", t_eval=t_eval)
+    states = pendulum.state_names
+    with pytest.warns(E.LocalErrorWarning, match=r"newton_tol = 0\.03 is looser than these stages' default"):
+        sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, t_eval=t_eval)
+    assert sol.status == (
+        "flagged: radau's newton_tol = 0.03 is looser than these stages' default (0.001): the error estimate does "
+        "not see the stage errors Newton leaves, and the values may be further from the solution than rtol and "
+        "atol say (seven stages at rtol 1e-4 on the pendulum over [0, 6]: 1.7e-2 off); leave newton_tol out"
+    )
+    assert max(sol.errors(ref)[name]["max"] for name in states) > 1e-3  # (the flag is earned)
+    sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=1e-3, t_eval=t_eval)
+    assert sol.status == "success"
+    assert max(sol.errors(ref)[name]["max"] for name in states) < 1e-4
+
+
 def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(pendulum):
     """A newton_tol given above adaptive_newton_tol's (seven stages at rtol 1e-4: 0.03 against 1e-3) is taken
     as given; on the pendulum over [0, 20] it collapsed h to ~4e-6 by t ~ 3.9, and the budget's error said only
     that t_span was too long for max_steps (raise it, loosen rtol/atol or shorten t_span).  It names newton_tol
-    now; the default runs the same solve in 114 attempts (test_seven_stages_at_a_loose_rtol_run_the_pendulum)."""
+    now; the default runs the same solve in 114 attempts (test_seven_stages_at_a_loose_rtol_run_the_pendulum).
+    (max_steps = 20,000: since a dip may take a quarter of the budget, the default budget lets these dips
+    through, 83,777 attempts, to a flagged solution: test_a_newton_tol_looser_than_the_stages_default_flags_...)"""
     from daemodel.backends.radau.control import underflow_error
 
     with pytest.raises(
@@ -490,7 +543,7 @@ def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(
         r"default \(0\.001\): the stage errors it leaves may not shrink with h, which then collapses where the "
         r"solution is smooth: leave newton_tol out$",
     ):
-        dm.solve(pendulum, (0.0, 20.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03)
+        dm.solve(pendulum, (0.0, 20.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, max_steps=20_000)
     hint = "; or newton_tol = 0.03 is looser than ..."
     message = str(underflow_error(4.4e-14, 4.42153, "the error estimate kept shrinking the step", None, hint))
     assert message.endswith("give a smaller newton_tol (e.g. 1e-10), or leave stages out" + hint)
