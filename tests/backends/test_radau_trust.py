@@ -511,19 +511,20 @@ def test_a_newton_tol_looser_than_the_stages_default_flags_the_solution(pendulum
     """The error estimate does not see the stage errors a loose Newton leaves: seven stages at rtol = atol = 1e-4
     with newton_tol = 0.03 (the stages' default: 1e-3) said "success" over [0, 6] 1.7e-2 from the reference (170x
     the tolerance; the default: 3e-6), and over [0, 20], where only the progress watch stopped it, 1.1.  Such a
-    solve is flagged; a newton_tol at the default is not."""
-    t_eval = np.linspace(0.0, 6.0, 7)
-    ref = dm.solve(pendulum, (0.0, 6.0), method="reference", t_eval=t_eval)
+    solve is flagged; a newton_tol at the default is not.  (Over [0, 6]: since each step is the one t's float64
+    spacing makes of h, h underflows at t = 4.13 on this solve, a named error; over [0, 4] it is 1.5e-2 off.)"""
+    t_eval = np.linspace(0.0, 4.0, 7)
+    ref = dm.solve(pendulum, (0.0, 4.0), method="reference", t_eval=t_eval)
     states = pendulum.state_names
     with pytest.warns(E.LocalErrorWarning, match=r"newton_tol = 0\.03 is looser than these stages' default"):
-        sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, t_eval=t_eval)
+        sol = dm.solve(pendulum, (0.0, 4.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, t_eval=t_eval)
     assert sol.status == (
         "flagged: radau's newton_tol = 0.03 is looser than these stages' default (0.001): the error estimate does "
         "not see the stage errors Newton leaves, and the values may be further from the solution than rtol and "
-        "atol say (seven stages at rtol 1e-4 on the pendulum over [0, 6]: 1.7e-2 off); leave newton_tol out"
+        "atol say (seven stages at rtol 1e-4 on the pendulum over [0, 4]: 1.5e-2 off); leave newton_tol out"
     )
     assert max(sol.errors(ref)[name]["max"] for name in states) > 1e-3  # (the flag is earned)
-    sol = dm.solve(pendulum, (0.0, 6.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=1e-3, t_eval=t_eval)
+    sol = dm.solve(pendulum, (0.0, 4.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=1e-3, t_eval=t_eval)
     assert sol.status == "success"
     assert max(sol.errors(ref)[name]["max"] for name in states) < 1e-4
 
@@ -533,8 +534,10 @@ def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(
     as given; on the pendulum over [0, 20] it collapsed h to ~4e-6 by t ~ 3.9, and the budget's error said only
     that t_span was too long for max_steps (raise it, loosen rtol/atol or shorten t_span).  It names newton_tol
     now; the default runs the same solve in 114 attempts (test_seven_stages_at_a_loose_rtol_run_the_pendulum).
-    (max_steps = 20,000: since a dip may take a quarter of the budget, the default budget lets these dips
-    through, 83,777 attempts, to a flagged solution: test_a_newton_tol_looser_than_the_stages_default_flags_...)"""
+    (max_steps = 5,000: since a dip may take a quarter of the budget, the default budget lets these dips
+    through, 83,777 attempts, to a flagged solution: test_a_newton_tol_looser_than_the_stages_default_flags_...;
+    since each step is the one t's float64 spacing makes of h, to an underflow at t = 4.13 that names newton_tol
+    too, beyond max_steps = 20,000)"""
     from daemodel.backends.radau.control import underflow_error
 
     with pytest.raises(
@@ -543,7 +546,7 @@ def test_a_newton_tol_looser_than_the_stages_default_is_named_where_h_collapses(
         r"default \(0\.001\): the stage errors it leaves may not shrink with h, which then collapses where the "
         r"solution is smooth: leave newton_tol out$",
     ):
-        dm.solve(pendulum, (0.0, 20.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, max_steps=20_000)
+        dm.solve(pendulum, (0.0, 20.0), rtol=1e-4, atol=1e-4, stages=7, newton_tol=0.03, max_steps=5_000)
     hint = "; or newton_tol = 0.03 is looser than ..."
     message = str(underflow_error(4.4e-14, 4.42153, "the error estimate kept shrinking the step", None, hint))
     assert message.endswith("give a smaller newton_tol (e.g. 1e-10), or leave stages out" + hint)
