@@ -466,7 +466,9 @@ def branch_check_functions(compiled):
 
     def build():
         determining = [c.determining for c in compiled.constraints]
-        return compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
+        rows, cols, values = compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
+        values.numpy()  # (made now: numpy evaluates the checks of more than a few output times)
+        return rows, cols, values
 
     return compiled.cached("branch-check-functions", build, on=(compiled.constraints, compiled.algebraics))
 
