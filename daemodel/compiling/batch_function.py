@@ -77,12 +77,14 @@ class BatchFunction:
             local.buffer.set_arg(0, memoryview(local.inputs))
             local.buffer.set_res(0, memoryview(local.outputs))
         inputs, outputs, n, m = local.inputs, local.outputs, Y.shape[1], Z.shape[1]
-        times = np.broadcast_to(np.asarray(t, dtype=float).reshape(-1), (B,))
-        Z, P = np.broadcast_to(Z, (B, Z.shape[-1])), np.broadcast_to(P, (B, P.shape[-1]))
+        times = np.reshape(t, -1)
         out = np.empty((B, len(outputs)))
         for b in range(B):
-            inputs[0] = times[b]
-            inputs[1 : 1 + n], inputs[1 + n : 1 + n + m], inputs[1 + n + m :] = Y[b], Z[b], P[b]
+            # (t, Z and P of one row stand for every sample, as numpy broadcasts them)
+            inputs[0] = times[b if len(times) > 1 else 0]
+            inputs[1 : 1 + n] = Y[b]
+            inputs[1 + n : 1 + n + m] = Z[b if len(Z) > 1 else 0]
+            inputs[1 + n + m :] = P[b if len(P) > 1 else 0]
             local.evaluate()
             out[b] = outputs
         return out

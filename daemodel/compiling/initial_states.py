@@ -466,9 +466,7 @@ def branch_check_functions(compiled):
 
     def build():
         determining = [c.determining for c in compiled.constraints]
-        rows, cols, values = compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
-        values.numpy()  # (made now: numpy evaluates the checks of more than a few output times)
-        return rows, cols, values
+        return compiled.numeric.batch_jacobian_entries(determining, compiled.algebraics)
 
     return compiled.cached("branch-check-functions", build, on=(compiled.constraints, compiled.algebraics))
 
