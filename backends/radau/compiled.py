@@ -508,19 +508,27 @@ def lend(owner, function, inputs: int = 1) -> Buffered:
             values[:] = 0.0
     else:
         buffered = Buffered(function, inputs)
-    state = {k: v for k, v in buffered.__dict__.items() if k != "function"}  # (the function is the pool's key)
-    weakref.finalize(owner, _give_back, weakref.ref(function), inputs, state)
+    lent = _LENT.get(owner)
+    if lent is None:  # (one finalizer an owner: ~3 us each)
+        lent = _LENT[owner] = []
+        weakref.finalize(owner, _give_back, lent)
+    state = dict(buffered.__dict__)
+    del state["function"]  # (the pool's key)
+    lent.append((weakref.ref(function), inputs, state))
     return buffered
 
 
-def _give_back(function, inputs: int, state: dict) -> None:
-    function = function()
-    if function is not None:
-        _LENDABLE.setdefault(function, {}).setdefault(inputs, []).append(state)
+def _give_back(lent: list) -> None:
+    for function, inputs, state in lent:
+        function = function()
+        if function is not None:
+            _LENDABLE.setdefault(function, {}).setdefault(inputs, []).append(state)
 
 
-# Buffered functions' parts free to lend again (:func:`lend`), by casadi function (gone with it) and inputs.
+# Buffered functions' parts free to lend again (:func:`lend`), by casadi function (gone with it) and inputs;
+# and what each owner alive was lent, given back when it is gone.
 _LENDABLE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_LENT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 class Buffered:
