@@ -20,11 +20,16 @@ from daemodel.errors import UnsupportedFunctionError
 # Up to this many samples casadi evaluates a function one sample at a time (~5-10 us each on the wheelset's
 # equations), above it numpy on all at once (~0.6-1.3 ms, nearly whatever their number up to hundreds).
 SAMPLE_ROWS = 4
+# Functions of more expressions than this stay on numpy at any batch: their conversion to casadi, one
+# expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
+# 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).
+SAMPLE_EXPRESSIONS = 256
 
 
 class BatchFunction:
     """``F(t, Y (B, n), Z (B, m), P (B, k)) -> ndarray (B, len(exprs))``; ``t`` a number or (B,), and ``Z``,
-    ``P`` of one row broadcast to ``Y``'s.
+    ``P`` of one row broadcast to ``Y``'s.  On casadi up to :data:`SAMPLE_ROWS` samples of at most
+    :data:`SAMPLE_EXPRESSIONS` expressions, else on numpy.
 
     Parameters
     ----------
@@ -44,7 +49,7 @@ class BatchFunction:
     def __call__(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
         if not self._exprs:
             return np.zeros((len(Y), 0))
-        if len(Y) <= SAMPLE_ROWS:
+        if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
                 self._casadi = self._convert()
             if self._casadi is not False:

@@ -58,3 +58,25 @@ def test_a_few_samples_are_evaluated_on_casadi_without_numpy_code(monkeypatch, B
     np.testing.assert_array_equal(G(0.0, np.array([[-1.0], [2.0]]), Z[:1], P[:1]), [[0.0, -1.0], [1.0, 2.0]])
     np.testing.assert_array_equal(G(0.0, np.array([[3.0]]), Z[:1], P[:1]), [[1.0, 3.0]])
     assert printed == [1, 1]
+
+
+def test_many_expressions_stay_on_numpy_at_one_sample(monkeypatch):
+    """A function of more than SAMPLE_EXPRESSIONS expressions (a discretised PDE's 10^4-10^5) is not converted
+    to casadi for one sample (one expression at a time, seconds at that size): numpy evaluates it."""
+    from daemodel.compiling import codegen
+
+    converted = []
+    init = codegen.CasadiConverter.__init__
+    monkeypatch.setattr(
+        codegen.CasadiConverter, "__init__", lambda self, symbols: converted.append(1) or init(self, symbols)
+    )
+    n = batch_function.SAMPLE_EXPRESSIONS + 1
+    states = sp.symbols(f"u0:{n}")
+    numeric = NumericSystem(t, states, (), ())
+    F = numeric.batch_function([u**2 - t for u in states])
+    Y = np.arange(n, dtype=float)[None, :]
+    np.testing.assert_array_equal(F(0.5, Y, np.zeros((1, 0)), np.zeros((1, 0))), Y**2 - 0.5)
+    assert not converted
+    G = numeric.batch_function([u**2 - t for u in states[:3]])  # (few: converted)
+    np.testing.assert_array_equal(G(0.5, Y, np.zeros((1, 0)), np.zeros((1, 0))), Y[:, :3] ** 2 - 0.5)
+    assert converted == [1]
