@@ -52,7 +52,8 @@ class BatchFunction:
         if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
                 self._casadi = self._convert()
-            if self._casadi is not False:
+            # (non-finite values go to numpy, whose Max and Min pass a nan on where casadi's fmax and fmin drop it)
+            if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
                 return self._few(t, Y, Z, P)
         # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
         t = np.asarray(t, dtype=float)

@@ -53,6 +53,11 @@ def test_a_few_samples_are_evaluated_on_casadi_without_numpy_code(monkeypatch, B
     np.testing.assert_allclose(one, F(np.array([0.25] * 5), np.repeat(Y[:1], 5, 0), Z[[0] * 5], P[[0] * 5])[:1])
     np.testing.assert_allclose(F(0.25, Y, Z[:1], P[:1]), F(np.full(B, 0.25), Y, np.repeat(Z[:1], B, 0), P[[0] * B]))
 
+    # a nan among the values: numpy's (Max passes it on, where casadi's fmax would drop it)
+    Yn = Y.copy()
+    Yn[0, 1] = np.nan
+    with np.errstate(invalid="ignore"):
+        assert np.isnan(F(T, Yn, Z, P)[0, [0, 1, 3]]).all()
     # the Heaviside of a Max's derivative has no casadi translation: numpy evaluates it, one sample too
     G = numeric.batch_function([sp.diff(sp.Max(x, 0), x), x])
     np.testing.assert_array_equal(G(0.0, np.array([[-1.0], [2.0]]), Z[:1], P[:1]), [[0.0, -1.0], [1.0, 2.0]])
