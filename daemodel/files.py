@@ -61,6 +61,11 @@ CGROUP_ROOT = Path("/sys/fs/cgroup")
 CGROUP_V1_LIMIT = Path("/sys/fs/cgroup/memory/memory.limit_in_bytes")
 # A cgroup v1 "limit" at or above this is the kernel's way of saying none (PAGE_COUNTER_MAX pages).
 CGROUP_V1_UNLIMITED = 1 << 60
+# The cgroup's limit, once read, is read again where one of the files it came from changes (their inode,
+# size or times: a file a test writes) and at the latest this many seconds later (the kernel's cgroup files
+# need not change their times when a limit is written).
+CGROUP_RECHECK = 1.0
+_cgroup_kept: dict = {}  # (CGROUP_TABLE, CGROUP_ROOT, CGROUP_V1_LIMIT) -> (when read, files, signature, limit)
 
 
 def _read_bytes(path: Path) -> int | None:
@@ -73,27 +78,60 @@ def _read_bytes(path: Path) -> int | None:
 
 
 def _cgroup_memory() -> int | None:
-    """Bytes this process's control group may use, or None where no limit is set or visible."""
+    """Bytes this process's control group may use, or None where no limit is set or visible: read once
+    and kept while the files it came from keep their :func:`_signature` and for at most
+    :data:`CGROUP_RECHECK` seconds (read on every solve, it was 7 % of the wheelset's: ~5,000 solves)."""
+    key = (CGROUP_TABLE, CGROUP_ROOT, CGROUP_V1_LIMIT)
+    kept = _cgroup_kept.get(key)
+    now = time.monotonic()
+    if kept is not None and now - kept[0] < CGROUP_RECHECK and _signature(kept[1]) == kept[2]:
+        return kept[3]
+    paths, limit = _read_cgroup_memory()
+    _cgroup_kept.clear()
+    _cgroup_kept[key] = (now, paths, _signature(paths), limit)
+    return limit
+
+
+def _signature(paths) -> tuple:
+    """What tells that one of the files ``paths`` changed: each one's inode, size and times (None where
+    there is none)."""
+    signature = []
+    for path in paths:
+        try:
+            found = os.stat(path)
+        except OSError:
+            signature.append(None)
+            continue
+        signature.append((found.st_ino, found.st_size, found.st_mtime_ns, found.st_ctime_ns))
+    return tuple(signature)
+
+
+def _read_cgroup_memory() -> tuple[tuple, int | None]:
+    """``(the files read, :func:`_cgroup_memory`'s value)``, read from them now."""
     found = []
     try:
         lines = CGROUP_TABLE.read_text().splitlines()
     except (OSError, UnicodeDecodeError):
         lines = []
+    paths = [CGROUP_TABLE]
     v1 = [CGROUP_V1_LIMIT]
     for line in lines:  # "0::/user.slice/..." names the v2 group, "4:memory:/docker/..." the v1 one
         number, _, rest = line.partition(":")
         controllers, _, group = rest.partition(":")
         group = group.strip().lstrip("/")
         if number == "0" and not controllers and group:
-            found.append(_read_bytes(CGROUP_ROOT / group / "memory.max"))
+            paths.append(CGROUP_ROOT / group / "memory.max")
+            found.append(_read_bytes(paths[-1]))
         elif "memory" in controllers.split(",") and group:
             v1.insert(0, CGROUP_V1_LIMIT.parent / group / CGROUP_V1_LIMIT.name)
-    found.append(_read_bytes(CGROUP_ROOT / "memory.max"))
+    paths.append(CGROUP_ROOT / "memory.max")
+    found.append(_read_bytes(paths[-1]))
     for path in v1:
+        paths.append(path)
         value = _read_bytes(path)
         found.append(value if value is not None and value < CGROUP_V1_UNLIMITED else None)
     limits = [value for value in found if value]
-    return min(limits) if limits else None
+    return tuple(paths), (min(limits) if limits else None)
 
 
 def _address_space_left() -> int | None:

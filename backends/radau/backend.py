@@ -15,7 +15,7 @@ from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
-from daemodel.backends.radau.transform import StageTransform, embedded_weights
+from daemodel.backends.radau.transform import stage_transform
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
 from daemodel.errors import CompileError, ConvergenceError, DaemodelError, InvalidOptionError, TimeLimitError
@@ -246,7 +246,7 @@ def make_engine(compiled, start, options: RadauOptions, machine_code: bool | Non
     (compiled functions, no per-operation dispatch), torch for batches, float32 and GPUs.  The casadi
     engine's steps run in machine code where ``machine_code`` says so (default: :func:`jit_choice`)."""
     tableau = radau_iia(options.stages)
-    transform = StageTransform.of(tableau.A, embedded_weights(tableau)[0])
+    transform = stage_transform(tableau)
     name = make_engine_name(start, options)
     if options.jit is True and name != "casadi":
         raise InvalidOptionError(

@@ -15,12 +15,12 @@ import numpy as np
 from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import (
     STEP_SCALARS,
-    Buffered,
     StaticFactors,
     casadi_functions,
     find_compiler,
     inverse_function,
     inverse_size,
+    lend,
     machine_code,
     machine_library,
     newton_step_function,
@@ -113,7 +113,7 @@ class CasadiEngine(AbstractEngine):
         functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
-        self._f, self._residual, self._jac, self._stage_jac = (Buffered(fn) for fn in functions[:4])
+        self._f, self._residual, self._jac, self._stage_jac = (lend(self, fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
         self._stage_f = stage_f_buffer(compiled, tableau)  # (f at the stages alone, or None: .compiled)
         self._functions = functions
@@ -126,7 +126,7 @@ class CasadiEngine(AbstractEngine):
         if self.dense:
             self._identity = (np.eye(D), np.eye(D, dtype=complex))
             if not jit:  # (with jit it is compiled with the compiled step, or alone: make_newton_step)
-                self._step = [Buffered(self._newton_step_function(), inputs=2), None]
+                self._step = [lend(self, self._newton_step_function(), inputs=2), None]
         else:
             self._sparse_layout()
         self._compiled = None  # dense: the compiled adaptive step and the factors bound to it (make_compiled_step)
@@ -170,7 +170,7 @@ class CasadiEngine(AbstractEngine):
             return
         key = ("casadi-radau-step", self.s)
         code = self._machine_code(lambda: machine_code(self._newton_step_function(), find_compiler()), key)
-        self._step = [Buffered(code.function, inputs=2), None]
+        self._step = [lend(self, code.function, inputs=2), None]
 
     def cache_outcome(self) -> str | None:
         """What the disk cache of compiled libraries did for this engine's machine code, in one word
@@ -213,12 +213,12 @@ class CasadiEngine(AbstractEngine):
         step = compiled.cached(key, build)
         if jit:
             step = self._library(step, key)
-        self._compiled = [Buffered(step, inputs=2), None]
+        self._compiled = [lend(self, step, inputs=2), None]
         self.step_input, self.step_output = step_layouts(self.s, self.n, self.D, self.p.size)
         if solver is not None and "factor" not in self._static:
             # made now, in the setup: its code generation (0.4 s for a chain of 16 pendulums) ran inside the
             # first solve's integration, at its first factorisation
-            self._static["factor"] = Buffered(self._static_factor_function())
+            self._static["factor"] = lend(self, self._static_factor_function())
         return True
 
     def _library(self, step, key):
@@ -247,11 +247,11 @@ class CasadiEngine(AbstractEngine):
 
         code = self._machine_code(build, key).functions
         if "newton_step_machine_code" in code:
-            self._step = [Buffered(code["newton_step_machine_code"], inputs=2), None]
+            self._step = [lend(self, code["newton_step_machine_code"], inputs=2), None]
         if static is not None:
             self._kernel = (code["static_factors"], code.get("sign_det"))
-            self._static[False] = Buffered(code["static_solve"], inputs=2)
-            self._static[True] = Buffered(code["static_solve_complex"], inputs=2)
+            self._static[False] = lend(self, code["static_solve"], inputs=2)
+            self._static[True] = lend(self, code["static_solve_complex"], inputs=2)
             self._machine_run = code.get("radau_run_machine_code")
         return code["radau_step_machine_code"]
 
@@ -311,7 +311,7 @@ class CasadiEngine(AbstractEngine):
         """The inverses of every shift in one casadi call, or None where one is singular or not finite
         (scipy's LAPACK then factors, and names it)."""
         if self._inverses is None:
-            self._inverses = Buffered(self._inverse_function())
+            self._inverses = lend(self, self._inverse_function())
         try:
             with captured_output():
                 packed = self._inverses(np.concatenate([[h], J]))
@@ -390,7 +390,7 @@ class CasadiEngine(AbstractEngine):
         """The real or complex triangular solve of the static factors, on bound buffers (made on first
         use: the compiled step solves inside, Python only on the general path)."""
         if complex_ not in self._static:
-            self._static[complex_] = Buffered(self.static.solves[complex_], inputs=2)
+            self._static[complex_] = lend(self, self.static.solves[complex_], inputs=2)
         return self._static[complex_]
 
     def _static_packed(self, packed: np.ndarray, h: float) -> Factors | None:
@@ -467,7 +467,7 @@ class CasadiEngine(AbstractEngine):
         if not self.dense or self.D > COMPILED_FACTOR_MAX_SIZE or self._static_active:
             return super().refresh(t, y, z, h)
         if self._refresh is None:
-            self._refresh = Buffered(self._refresh_function())
+            self._refresh = lend(self, self._refresh_function())
         try:
             with captured_output():
                 out = self._refresh(np.concatenate([[t], y[0], z[0], self.p, [h]]))

@@ -43,7 +43,7 @@ from __future__ import annotations
 import numpy as np
 from daemodel.backends.progress import captured_output
 from daemodel.backends.radau import formulas, sequence
-from daemodel.backends.radau.compiled import Buffered, Layout, iteration_matrix, step_layouts
+from daemodel.backends.radau.compiled import Layout, iteration_matrix, lend, step_layouts
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.sequence import (
     ATTEMPT,
@@ -413,7 +413,7 @@ class CompiledRun:
 
     def __init__(self, function, engine):
         s, D = engine.s, engine.D
-        self.buffered = Buffered(function, inputs=2)
+        self.buffered = lend(self, function, inputs=2)  # (its state stays in it between advances)
         self.layout = state_layout(s, engine.n, D, len(engine.rows), engine.packed_size())
         self.record = record_layout(s, D)
         self.attempts = (function.nnz_out(0) - self.layout.size) // self.record.size

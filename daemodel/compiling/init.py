@@ -17,6 +17,7 @@ from functools import cached_property
 import numpy as np
 import sympy as sp
 
+from daemodel.compiling.batch_function import BatchFunction
 from daemodel.compiling.linear import SPARSE_MIN_SIZE, SparseStack, least_squares
 from daemodel.compiling.numeric_source import (
     NUMERIC_MODULES,
@@ -148,23 +149,7 @@ class NumericSystem:
         return self._once("batch_function", exprs, None, lambda: self._make_batch_function(exprs))
 
     def _make_batch_function(self, exprs):
-        fn = self._lambdify(exprs) if exprs else None
-
-        def evaluate(t, Y, Z, P):
-            if not exprs:
-                return np.zeros((len(Y), 0))
-            # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
-            t = np.asarray(t, dtype=float)
-            t = t if t.shape == (len(Y),) else np.broadcast_to(t, (len(Y),))  # (a column already: as it is)
-            # (each a row, contiguous, converted to float by the assignment itself, then one transposed
-            # copy: a column each, through np.asarray, took 36 us of the 60 H_z entries of a chain of 20
-            # pendulums at 21 output times, in every solve's branch check, against 14)
-            out = np.empty((len(exprs), len(Y)))
-            for i, v in enumerate(fn(t, Y.T, Z.T, P.T)):  # (a constant broadcasts on assignment)
-                out[i] = v
-            return np.ascontiguousarray(out.T)
-
-        return evaluate
+        return BatchFunction(exprs, (self.t, self.y, self.z, self.p), self._lambdify)
 
     def batch_jacobian(self, exprs, wrt):
         """Return ``J(t, Y, Z, P) -> ndarray, shape (B, len(exprs), len(wrt))``."""

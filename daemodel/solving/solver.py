@@ -100,7 +100,10 @@ def system_for(model, backend):
     functions made: work a solve keeps with the compiled model, done before any method's clock."""
     compiled = for_method(model, backend)
     if compiled.algebraics:
-        branch_check_functions(compiled)  # (the check runs after the integration: made in the setup)
+        # (the check runs after the integration: made in the setup, numpy's code too, which evaluates the check
+        # of more than a few output times; a locked piece's, made at its first check, is often only ever
+        # evaluated at a trial solve's two ends, on casadi)
+        branch_check_functions(compiled)[2].numpy()
     return compiled
 
 

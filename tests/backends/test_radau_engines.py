@@ -265,3 +265,25 @@ def test_the_first_torch_use_in_a_process_is_counted_in_the_setup(first):
     (setup, warm_up), *later = result["clocks"]
     assert warm_up > 0 and setup >= warm_up  # the warm-up ran, inside the setup clock
     assert [seconds for _, seconds in later] == [0.0, 0.0]  # once per process (and device, dtype)
+
+
+def test_the_stage_transform_is_made_once_per_tableau(monkeypatch):
+    """Every solve's engine reads the tableau's transform and error weights: made once per tableau (they were
+    made again by every solve, ~0.4 ms of eigen-decompositions each, 2,700 times in the wheelset's events'
+    trial solves); the same numbers as made anew, and the weights a copy the caller may change."""
+    from daemodel.backends.radau import transform
+
+    made = []
+    original = transform.StageTransform.of
+    monkeypatch.setattr(transform.StageTransform, "of", lambda A, gamma0: made.append(1) or original(A, gamma0))
+    tableau = radau_iia(4)
+    first = transform.stage_transform(tableau)
+    assert transform.stage_transform(tableau) is first
+    assert len(made) <= 1  # (none where an earlier test made it)
+    fresh = original(tableau.A, transform.embedded_weights(tableau)[0])
+    np.testing.assert_array_equal(first.T, fresh.T)
+    assert first.blocks == fresh.blocks
+    gamma0, e = transform.embedded_weights(tableau)
+    e[:] = 0.0
+    assert transform.embedded_weights(tableau)[1].any()
+    assert transform.embedded_weights(tableau)[0] == gamma0

@@ -1,0 +1,113 @@
+"""The batched numeric functions of a :class:`~daemodel.compiling.init.NumericSystem`: numpy's lambdified code
+for batches, casadi's virtual machine for a few samples.  numpy pays ~1 us of dispatch per operation whatever
+the batch, so one sample of the wheelset's determining equations (12 of them, ~1400 operations) took 1.3 ms
+there against 6 us on a casadi function evaluated on bound buffers; the wheelset's solve evaluates such
+functions at one sample ~20,000 times (the algebraic values after each event, the look-ahead's flow) and at
+the two ends of each of its ~2,300 trial solves (the branch check).  Each is made at its first use (a locked
+piece's functions are often only ever evaluated at one sample: their numpy code, 70 ms each to print, is
+then never made); casadi's never for expressions it cannot express (the Heaviside of a Max's derivative),
+which numpy evaluates at any batch."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import sympy as sp
+
+from daemodel.errors import UnsupportedFunctionError
+
+# Up to this many samples casadi evaluates a function one sample at a time (~5-10 us each on the wheelset's
+# equations), above it numpy on all at once (~0.6-1.3 ms, nearly whatever their number up to hundreds).
+SAMPLE_ROWS = 4
+# Functions of more expressions than this stay on numpy at any batch: their conversion to casadi, one
+# expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
+# 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).
+SAMPLE_EXPRESSIONS = 256
+
+
+class BatchFunction:
+    """``F(t, Y (B, n), Z (B, m), P (B, k)) -> ndarray (B, len(exprs))``; ``t`` a number or (B,), and ``Z``,
+    ``P`` of one row broadcast to ``Y``'s.  On casadi up to :data:`SAMPLE_ROWS` samples of at most
+    :data:`SAMPLE_EXPRESSIONS` expressions, else on numpy.
+
+    Parameters
+    ----------
+    exprs : list of sympy.Expr
+    symbols : tuple
+        ``(t, y, z, p)``: the time and the variables, in the order of the columns of ``Y``, ``Z``, ``P``.
+    lambdify : callable
+        ``lambdify(exprs)``: the numpy function of ``(t, Y.T, Z.T, P.T)`` (made on first use: :meth:`numpy`).
+    """
+
+    def __init__(self, exprs, symbols: tuple, lambdify):
+        self._exprs, self._symbols, self._lambdify = list(exprs), symbols, lambdify
+        self._numpy = None
+        self._casadi = None  # (casadi.Function of [t, y, z, p], dense; False where casadi cannot express it)
+        self._local = threading.local()  # (each thread's buffers: a call writes its inputs into them)
+
+    def __call__(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
+        if not self._exprs:
+            return np.zeros((len(Y), 0))
+        if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
+            if self._casadi is None:
+                self._casadi = self._convert()
+            # (non-finite values go to numpy, whose Max and Min pass a nan on where casadi's fmax and fmin drop it)
+            if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
+                return self._few(t, Y, Z, P)
+        # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
+        t = np.asarray(t, dtype=float)
+        t = t if t.shape == (len(Y),) else np.broadcast_to(t, (len(Y),))  # (a column already: as it is)
+        # (each a row, contiguous, converted to float by the assignment itself, then one transposed
+        # copy: a column each, through np.asarray, took 36 us of the 60 H_z entries of a chain of 20
+        # pendulums at 21 output times, in every solve's branch check, against 14)
+        out = np.empty((len(self._exprs), len(Y)))
+        for i, v in enumerate(self.numpy()(t, Y.T, Z.T, P.T)):  # (a constant broadcasts on assignment)
+            out[i] = v
+        return np.ascontiguousarray(out.T)
+
+    def numpy(self):
+        """The lambdified numpy function, made now if not yet (a caller that wants it made in a setup, off the
+        solve's clock, calls this there)."""
+        if self._numpy is None and self._exprs:
+            self._numpy = self._lambdify(self._exprs)
+        return self._numpy
+
+    def _few(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """:meth:`__call__` on casadi, one sample at a time."""
+        local, B = self._local, len(Y)
+        if not hasattr(local, "evaluate"):
+            local.inputs = np.zeros(self._casadi.nnz_in(0))
+            local.outputs = np.zeros(self._casadi.nnz_out(0))
+            local.buffer, local.evaluate = self._casadi.buffer()
+            local.buffer.set_arg(0, memoryview(local.inputs))
+            local.buffer.set_res(0, memoryview(local.outputs))
+        inputs, outputs, n, m = local.inputs, local.outputs, Y.shape[1], Z.shape[1]
+        times = np.reshape(t, -1)
+        out = np.empty((B, len(outputs)))
+        for b in range(B):
+            # (t, Z and P of one row stand for every sample, as numpy broadcasts them)
+            inputs[0] = times[b if len(times) > 1 else 0]
+            inputs[1 : 1 + n] = Y[b]
+            inputs[1 + n : 1 + n + m] = Z[b if len(Z) > 1 else 0]
+            inputs[1 + n + m :] = P[b if len(P) > 1 else 0]
+            local.evaluate()
+            out[b] = outputs
+        return out
+
+    def _convert(self):
+        """The casadi function of the expressions, or False where one has no translation."""
+        import casadi
+
+        from daemodel.compiling.codegen import CasadiConverter
+
+        t, y, z, p = self._symbols
+        packed = casadi.SX.sym("x", 1 + len(y) + len(z) + len(p))
+        convert = CasadiConverter(dict(zip((t, *y, *z, *p), casadi.vertsplit(packed), strict=True)))
+        try:
+            # (one at a time, the shared parts made once through the converter's memo: its stack() first sorts
+            # the expressions by structure, a walk of every tree that cost 4 times the conversion here)
+            out = [casadi.SX(convert(sp.sympify(e))) for e in self._exprs]
+        except (UnsupportedFunctionError, TypeError):  # (no translation, or a number that is no float: zoo)
+            return False
+        return casadi.Function("few_samples", [packed], [casadi.densify(casadi.vertcat(*out))])

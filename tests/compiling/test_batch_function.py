@@ -1,0 +1,87 @@
+"""The numeric system's batched functions: casadi evaluates a few samples, numpy larger batches, each made on
+first use (daemodel/compiling/batch_function.py)."""
+
+import numpy as np
+import pytest
+import sympy as sp
+
+from daemodel.compiling import batch_function
+from daemodel.compiling.init import NumericSystem
+
+t, x, y, z, k = sp.symbols("t x y z k")
+EXPRS = [
+    sp.sin(x * t) + sp.exp(-z) * y**2,
+    sp.sqrt(x) / (1 + y**2),  # (not finite where x < 0: nan on both)
+    sp.Piecewise((x * k, y > 0.5), (-z, True)),
+    sp.Max(x, y, 0.25) - sp.Min(z, 1),
+    sp.Integer(0),  # (a structural zero: a column of the output all the same)
+    sp.Float(2.5),
+]
+
+
+def rows(B: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    Y = rng.uniform(0, 2, (B, 2))
+    Y[1:, 0] = -Y[1:, 0]  # (x < 0 after the first sample: sqrt(x) is nan there)
+    return rng.uniform(-0.5, 1.5, B), Y, rng.uniform(-1, 2, (B, 1)), rng.uniform(1, 3, (B, 1))
+
+
+@pytest.mark.parametrize("B", [1, 2, batch_function.SAMPLE_ROWS])
+def test_a_few_samples_are_evaluated_on_casadi_without_numpy_code(monkeypatch, B):
+    """A function evaluated at up to SAMPLE_ROWS samples runs on casadi, and its numpy code is never printed
+    (before: lambdified when the function was made, ~1 ms an evaluation at one sample of the wheelset's
+    determining equations, 70 ms to print for each locked piece); its values are numpy's to rounding."""
+    printed = []
+    original = NumericSystem._lambdify
+    monkeypatch.setattr(NumericSystem, "_lambdify", lambda self, exprs: printed.append(1) or original(self, exprs))
+    numeric = NumericSystem(t, (x, y), (z,), (k,))
+    F = numeric.batch_function(EXPRS)
+    T, Y, Z, P = rows(B)
+    with np.errstate(invalid="ignore"):
+        few = F(T, Y, Z, P)
+        assert not printed
+        # numpy on the same rows and more (a batch above SAMPLE_ROWS), the rows compared
+        T5, Y5, Z5, P5 = (np.concatenate([a, b]) for a, b in zip((T, Y, Z, P), rows(5, seed=1), strict=True))
+        many = F(T5, Y5, Z5, P5)[:B]
+    assert printed == [1]
+    assert few.shape == (B, len(EXPRS))
+    np.testing.assert_array_equal(np.isnan(few), np.isnan(many))
+    np.testing.assert_allclose(few, many, rtol=4e-16, atol=0)
+    assert np.isnan(few[1:, 1]).all() and np.isfinite(few[0]).all()
+    # one sample, t a number and Z, P one row for all (as numpy broadcasts them)
+    one = F(0.25, Y[:1], Z[:1], P[:1])
+    np.testing.assert_allclose(one, F(np.array([0.25] * 5), np.repeat(Y[:1], 5, 0), Z[[0] * 5], P[[0] * 5])[:1])
+    np.testing.assert_allclose(F(0.25, Y, Z[:1], P[:1]), F(np.full(B, 0.25), Y, np.repeat(Z[:1], B, 0), P[[0] * B]))
+
+    # a nan among the values: numpy's (Max passes it on, where casadi's fmax would drop it)
+    Yn = Y.copy()
+    Yn[0, 1] = np.nan
+    with np.errstate(invalid="ignore"):
+        assert np.isnan(F(T, Yn, Z, P)[0, [0, 1, 3]]).all()
+    # the Heaviside of a Max's derivative has no casadi translation: numpy evaluates it, one sample too
+    G = numeric.batch_function([sp.diff(sp.Max(x, 0), x), x])
+    np.testing.assert_array_equal(G(0.0, np.array([[-1.0], [2.0]]), Z[:1], P[:1]), [[0.0, -1.0], [1.0, 2.0]])
+    np.testing.assert_array_equal(G(0.0, np.array([[3.0]]), Z[:1], P[:1]), [[1.0, 3.0]])
+    assert printed == [1, 1]
+
+
+def test_many_expressions_stay_on_numpy_at_one_sample(monkeypatch):
+    """A function of more than SAMPLE_EXPRESSIONS expressions (a discretised PDE's 10^4-10^5) is not converted
+    to casadi for one sample (one expression at a time, seconds at that size): numpy evaluates it."""
+    from daemodel.compiling import codegen
+
+    converted = []
+    init = codegen.CasadiConverter.__init__
+    monkeypatch.setattr(
+        codegen.CasadiConverter, "__init__", lambda self, symbols: converted.append(1) or init(self, symbols)
+    )
+    n = batch_function.SAMPLE_EXPRESSIONS + 1
+    states = sp.symbols(f"u0:{n}")
+    numeric = NumericSystem(t, states, (), ())
+    F = numeric.batch_function([u**2 - t for u in states])
+    Y = np.arange(n, dtype=float)[None, :]
+    np.testing.assert_array_equal(F(0.5, Y, np.zeros((1, 0)), np.zeros((1, 0))), Y**2 - 0.5)
+    assert not converted
+    G = numeric.batch_function([u**2 - t for u in states[:3]])  # (few: converted)
+    np.testing.assert_array_equal(G(0.5, Y, np.zeros((1, 0)), np.zeros((1, 0))), Y[:, :3] ** 2 - 0.5)
+    assert converted == [1]
