@@ -77,6 +77,9 @@ class RadauBackend(AbstractBackend):
                 "casadi's virtual machine: nothing to compile for this solve (sparse systems run in machine code "
                 "only in adaptive steps whose LU takes a fixed pivot order; here SuperLU on the general path)"
             )
+        if engine.name == "casadi" and isinstance(engine._order, BandKernel):  # (its buffers made in the setup)
+            real = sum(sigma.imag == 0 for sigma in engine.transform.shifts(1.0))  # (the systems of a factorisation)
+            engine._order.reserve({False: 2 * real, True: 2 * (len(engine.transform.shifts(1.0)) - real)})
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)
@@ -86,6 +89,7 @@ class RadauBackend(AbstractBackend):
         began = time.perf_counter()
         try:
             times, values = stepper.integrate(t_span, stop)
+            stepper.drop_factors()  # (the band kernel's buffers back to its spares for the next solve: .band)
         except ConvergenceError as error:
             where = getattr(error, "sign_change", None)
             if where is None or options.adaptive or not check:

@@ -27,7 +27,8 @@ from daemodel.backends.radau.linalg import BandOrder, band_storage
 BAND_KERNEL_MAX_LDAB = 40
 # Factors' buffers kept for reuse, of each kind (real, complex), once their factors are dropped: a fresh
 # buffer of 10-20 MB (10^5 unknowns) is new pages, and faulting them in took 2-3x the factorisation
-# itself on a loaded machine (complex: 10.7-34 ms against 6.2 on reused memory)
+# itself on a loaded machine (complex: 10.7-34 ms against 6.2 on reused memory).  At least this many;
+# a solve reserves what two factorisations hold at once, made in its setup (BandKernel.reserve)
 BAND_SPARE_BUFFERS = 2
 # C flags (the cache adds a shared library's): the loops are short, -O2 is enough
 BAND_FLAGS = ("-O2", "-fno-math-errno")
@@ -294,7 +295,8 @@ class BandKernel:
         build = Build(compiler, BAND_FLAGS, what, fix, libraries=("-lm",), timeout=BAND_COMPILE_TIMEOUT)
         library = cached_library(band_source(self.D, self.nnz, self.kl, self.ku), NAMES, build)
         self.outcome, self.functions = library.outcome, library.functions
-        self._spare = {False: [], True: []}  # (buffers of dropped factors, BAND_SPARE_BUFFERS of each kind)
+        self._spare = {False: [], True: []}  # (buffers of dropped factors, up to _kept of each kind)
+        self._kept = {False: BAND_SPARE_BUFFERS, True: BAND_SPARE_BUFFERS}
         columns = np.repeat(np.arange(self.D), np.diff(indptr))
         self.positions = (self.kl + self.ku + indices - columns + self.ldab * columns).astype(float)
         self.order_values = np.asarray(order.columns, dtype=float)  # (the kernel's inputs are float64)
@@ -313,7 +315,7 @@ class BandKernel:
         values = np.ascontiguousarray(data, dtype=complex if complex_ else float).view(float)
         band = (2 if complex_ else 1) * self.ldab * self.D
         spare = self._spare[complex_]
-        packed = spare.pop() if spare else np.empty(band + self.D + 1 + -(-(2 + self.ldab) * self.D // 8))
+        packed = spare.pop() if spare else np.empty(self._size(complex_))
         name = "band_factor_complex" if complex_ else "band_factor"
         _bound(self.functions[name], [values, self.positions], packed)()
         if packed[band + self.D] != 0:  # (a zero pivot, or a value not finite)
@@ -323,9 +325,26 @@ class BandKernel:
         weakref.finalize(lu, self._keep, packed, complex_)  # (its buffer is reused once it is dropped)
         return ("sparse", lu), np.array([False])
 
+    def _size(self, complex_: bool) -> int:
+        """The float64 entries of one system's packed factors (:data:`_KERNEL`'s layout)."""
+        return (2 if complex_ else 1) * self.ldab * self.D + self.D + 1 + -(-(2 + self.ldab) * self.D // 8)
+
+    def reserve(self, counts: dict) -> None:
+        """Keep ``counts[complex_]`` buffers of each kind ready, their pages written now (a solve's setup:
+        what two factorisations hold at once, the current factors and the next step's), and keep as many
+        once dropped: the first solve of a process faulted in ~56 MB of them at 10^5 unknowns (s = 5), and
+        each later one half of that, in its integration."""
+        for complex_, count in counts.items():
+            self._kept[complex_] = max(self._kept[complex_], count)
+            spare = self._spare[complex_]
+            for _ in range(count - len(spare)):
+                spare.append(np.zeros(self._size(complex_)))
+                spare[-1].fill(0.0)  # (np.zeros leaves large arrays to the kernel's zero pages, faulted at first write)
+
     def _keep(self, packed: np.ndarray, complex_: bool) -> None:
-        """Keep a dropped factors' buffer for the next factorisation (up to :data:`BAND_SPARE_BUFFERS`)."""
-        if len(self._spare[complex_]) < BAND_SPARE_BUFFERS:
+        """Keep a dropped factors' buffer for the next factorisation (up to :meth:`reserve`'s counts, at least
+        :data:`BAND_SPARE_BUFFERS`)."""
+        if len(self._spare[complex_]) < self._kept[complex_]:
             self._spare[complex_].append(packed)
 
 

@@ -51,6 +51,7 @@ from daemodel.backends.radau.sparse import (
     sorted_unique,
     unique_entries,
 )
+from daemodel.backends.radau.transform import IncrementBuffers
 
 from daemodel.errors import DaemodelError
 
@@ -104,9 +105,8 @@ class CasadiEngine(AbstractEngine):
 
     def __init__(self, compiled, start, tableau, transform, jit: bool = False, band: bool = False):
         super().__init__(compiled, start, tableau, transform)
-        self.xp = np
-        self.B = 1
-        self.p = np.asarray(start.p, dtype=float)[0]
+        self.xp, self.B, self.p = np, 1, np.asarray(start.p, dtype=float)[0]
+        self.increment = IncrementBuffers(transform, self.n, self.D)  # (Newton's increment on the general path)
         self.jit, self.band, self.band_outcomes = jit, band, []  # (band: narrow band orders' LU in C, .band)
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
@@ -525,25 +525,25 @@ class CasadiEngine(AbstractEngine):
         return Residual(R=R, stage_f=stage_f, G=R[..., n:]), out[s * D + s * n :].reshape(1, s, D)
 
     def f(self, t, y, z):
-        return self._f(np.concatenate([[t], y[0], z[0], self.p]))[None]
+        return self._f.packed(t, y[0], z[0], self.p)[None]
 
     def residual(self, t, h, y, W):
         s, n, D = self.s, self.n, self.D
-        out = self._residual(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        out = self._residual.packed(t, h, y[0], W, self.p)
         R = out[: s * D].reshape(1, s, D)
         return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
 
     def stage_values(self, t, h, y, W):
         if self._stage_f is None:  # (up to INLINED_RESIDUAL_MAX_SIZE unknowns: the residual inlines f)
             return super().stage_values(t, h, y, W)
-        f = self._stage_f(np.concatenate([[t, h], y[0], W.ravel(), self.p]))
+        f = self._stage_f.packed(t, h, y[0], W, self.p)
         return Residual(R=None, stage_f=f.reshape(1, self.s, self.n), G=None)
 
     def jacobian(self, t, y, z):
-        return self._jac(np.concatenate([[t], y[0], z[0], self.p]))
+        return self._jac.packed(t, y[0], z[0], self.p)
 
     def stage_jacobians(self, t, h, W):
-        values = self._stage_jac(np.concatenate([[t, h], W.ravel(), self.p]))
+        values = self._stage_jac.packed(t, h, W, self.p)
         return list(values.reshape(self.s, -1))
 
     def _dense(self, values) -> np.ndarray:

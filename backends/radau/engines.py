@@ -56,6 +56,7 @@ class AbstractEngine(ABC):
     name: str
     xp: object
     jit = False  # (the casadi engine's steps in machine code: see CasadiEngine)
+    increment = None  # (numpy, one sample: the transformed systems' increment in buffers, .transform.IncrementBuffers)
 
     def __init__(self, compiled, start, tableau, transform: StageTransform):
         self.compiled, self.tableau, self.transform = compiled, tableau, transform
@@ -140,6 +141,8 @@ class AbstractEngine(ABC):
     def _newton_increment(self, factors, R):
         if isinstance(factors, StageFactors):
             return self.solve_stages(factors, R)
+        if self.increment is not None:  # (the same operations, in buffers made once)
+            return self.increment(factors, R, self.solve, self._transform_arrays())
         xp, n, h, tr = self.xp, self.n, factors.h, self.transform
         T, T_inv, T_inv_A_inv = self._transform_arrays()
         # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs

@@ -127,6 +127,27 @@ def test_the_memory_estimate_counts_the_band_storage(first_engine):
         assert lu.packed.nbytes <= entries * 16  # (each system's buffer within what is counted for it)
 
 
+@needs_compiler
+@pytest.mark.parametrize("stages", [3, 5, 6])
+def test_a_solve_reserves_the_band_buffers_of_two_factorisations_in_its_setup(stages):
+    """A solve makes, in its setup, the band kernel's buffers for the factors two factorisations hold at
+    once (s = 5: one real and two complex systems each), and keeps them: its integration, and a later
+    solve's, factor into those and make none (before, the first solve faulted in two sets of 10-20 MB
+    buffers at 10^5 unknowns, and every later solve one set)."""
+    compiled = scaling_models.reaction_diffusion(300).compile()
+    span = scaling_models.T_SPAN["reaction_diffusion"]
+    first = dm.solve(compiled, span, method="radau", rtol=1e-6, atol=1e-8, stages=stages)
+    assert first.stats["band_lu"].startswith("machine code")
+    kernel = compiled.cached("radau-band-kernel", lambda: pytest.fail("the kernel was made by the solve"))
+    # one real system a factorisation (s odd: the real block, also the error estimate's; s even: the error
+    # estimate's), s // 2 complex ones
+    assert [len(kernel._spare[False]), len(kernel._spare[True])] == [2, 2 * (stages // 2)]
+    made = {id(buffer) for kind in (False, True) for buffer in kernel._spare[kind]}
+    again = dm.solve(compiled, span, method="radau", rtol=1e-6, atol=1e-8, stages=stages)
+    assert again.stats["lu_decompositions"] == first.stats["lu_decompositions"] > 6
+    assert {id(buffer) for kind in (False, True) for buffer in kernel._spare[kind]} == made
+
+
 def test_a_wide_band_keeps_superlu():
     """A 5-point Laplacian on a 30 x 30 grid, in its reverse Cuthill-McKee order: a band ~60 wide."""
     q = 30
