@@ -372,6 +372,56 @@ def test_a_max_or_min_of_states_is_locked_to_its_branch(rhs, locked):
     assert fixed.rhs[0] == sp.sympify(locked, locals=symbols)
 
 
+@pytest.mark.parametrize(
+    ("rhs", "at", "above", "below"),
+    [
+        ("Min(x**2, Max(-2, y))", (1.0, 1.0), "y", "x**2"),  # (x**2 - Max(-2, y) at zero)
+        ("Max(Min(2, y), -x**2)", (1.0, -1.0), "y", "-x**2"),  # (x**2 + Min(2, y) at zero; above: y > -x**2)
+        ("sign(Max(x, y) - 1)", (1.0, 0.0), "1", "-1"),
+        ("Abs(Max(x, y) - 1)", (1.0, 0.0), "x - 1", "1 - x"),
+    ],
+)
+def test_a_switch_at_zero_with_a_switch_inside_it_takes_the_side_given(rhs, at, above, below):
+    """The side of a switching function at zero is looked up as find_switches wrote it (x**2 - Max(-2, y)), not
+    with the switch inside it already locked (x**2 - y, no key of the sides): it fell to the comparison's value
+    at zero, 0, a tie to the earlier argument, and sign(0) = 0 (the fuzz's r1-0173: the branch before the
+    crossing kept after it, "success")."""
+    m = dm.Model("nested")
+    m.states("x y")
+    m.ode("x", rhs)
+    m.ode("y", "0")
+    m.initial(x=at[0], y=at[1])
+    compiled = m.compile()
+    (outer,) = [s.function for s in switches.find_switches(compiled) if s.function.has(sp.Max, sp.Min)]
+    symbols = {"x": compiled.states[0], "y": compiled.states[1]}
+    for side, locked in ((1, above), (-1, below)):
+        fixed = switches.lock_branches(compiled, 0.0, np.array(at), np.zeros(0), np.zeros(0), {outer: side})
+        assert fixed.rhs[0] == sp.sympify(locked, locals=symbols), (side, fixed.rhs[0])
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+@pytest.mark.parametrize(
+    ("rhs", "y0", "exact"),
+    [
+        ("Min(x**2, Max(-2, y))", 1.0, 4.0 / 3.0),  # (x**2 up to t = 1, then y = 1)
+        ("sign(Max(x, y) - 1)", 0.0, 0.0),  # (-1 up to t = 1, then +1)
+    ],
+)
+def test_a_crossing_of_a_switch_with_a_switch_inside_it_goes_on_on_the_branch_after_it(method, rhs, y0, exact):
+    """w' = rhs with x = t, y constant, over [0, 2], against the closed form: before, casadi-idas kept Min = x**2
+    after t = 1 (w(2) = 8/3), radau and casadi-idas took sign(Max(x, y) - 1) = -1 after it (w(2) = -2), all
+    "success" (which one fails depends on the side of t = 1 the crossing is located on)."""
+    m = dm.Model("nested-crossing")
+    m.states("x y w")
+    m.ode("x", "1")
+    m.ode("y", "0")
+    m.ode("w", rhs)
+    m.initial(x=0.0, y=y0, w=0.0)
+    sol = dm.solve(m, (0.0, 2.0), method=method, t_eval=[0.0, 2.0], rtol=1e-6, atol=1e-6)
+    assert sol.status == "success"
+    assert abs(sol["w"][-1] - exact) < 1e-5
+
+
 def test_a_max_whose_arguments_differ_by_a_function_of_time_is_a_breakpoint():
     m = dm.Model("time-max")
     m.states("x")
