@@ -545,7 +545,15 @@ def _first_excursion(
 
     for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
         if x.t >= until:
-            break
+            if T[x.before] >= until:
+                break
+            # (its deepest point past the crossing found, in the interval that holds that crossing: it may have
+            # left its side before it.  Min(0, 0.01 - (x - 1.02)^2) + Max(0, x - 1.01), x = t: the Max's crossing
+            # at 1.01 was located, the Min's at 0.92 not (its deepest point, 1.02, lies past 1.01), and the piece
+            # integrated Min's branch 0 over [0.92, 1.01]: 5.7e-4 off at rtol 1e-8, "success")
+            if x.near is not None or not _across(read, x, until):
+                continue
+            x = dataclasses.replace(x, t=until)  # (a point on its other side before the crossing found)
         i, e = x.before, x.event
         miss = None if x.near is None else near.check(x, compiled.events[e].name, Ys[i : i + 1], Zs[i : i + 1])
         if x.near is not None and miss is None:
@@ -571,6 +579,15 @@ def _first_excursion(
         guess = dense_crossing(sol, compiled, when, e, P, x.t, T[i + 1], value)
         return (e, x.t, T[i + 1], value, F[i + 1, e], y, z, guess, {e: int(x.side)}), stats
     return None, stats
+
+
+def _across(read, x, t: float) -> bool:
+    """Whether the excursion ``x``'s function is on its other side at ``t`` on the dense output (``read``)."""
+    try:
+        value = read(np.array([t]))[0, x.event]
+    except ConvergenceError:  # (not seen there)
+        return False
+    return bool(np.sign(value) == -x.side)
 
 
 def _earliest(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np.ndarray, which: int) -> int:

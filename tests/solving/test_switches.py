@@ -532,3 +532,36 @@ def test_a_state_that_decays_onto_a_max_switch_is_solved(method):
     options = {"rtol": 1e-8, "atol": 1e-8} if method == "casadi-idas" else {}
     sol = dm.solve(m, (0.0, 60.0), method=method, **options)
     assert sol.status == "success" and abs(sol["u"][-1] - (1.0 - math.exp(-60.0))) < 1e-7
+
+
+@pytest.mark.parametrize("rtol", [1e-6, 1e-8])
+def test_an_excursion_that_leaves_its_side_before_a_crossing_in_the_same_step_is_located(rtol):
+    """w' = Min(0, 0.01 - (x - 1.02)^2) + Max(0, x - 1.01), x = t: the Min's excursion to its other branch,
+    [0.92, 1.12], holds the Max's crossing at 1.01 in one radau step.  Its deepest point, 1.02, lies past that
+    crossing, and the excursions were cut there: the crossing at 1.01 was located, the one at 0.92 not, and
+    the piece integrated the Min as 0 over [0.92, 1.01], w(2) 5.7e-4 off at rtol 1e-6 and 1e-8, "success"."""
+    a, c, b = 0.01, 1.02, 1.01
+    m = dm.Model("hidden")
+    m.states("x w")
+    m.ode("x", "1")
+    m.ode("w", f"Min(0, {a} - (x - {c})**2) + Max(0, x - {b})")
+    m.initial(x=0.0, w=0.0)
+    exact = 2.0 * a - (c**3 + (2.0 - c) ** 3) / 3.0 - 4.0 / 3.0 * a**1.5 + (2.0 - b) ** 2 / 2.0
+    sol = dm.solve(m, (0.0, 2.0), method="radau", t_eval=[0.0, 2.0], rtol=rtol, atol=rtol)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["Min in w'"]["t"][0], [c - math.sqrt(a), c + math.sqrt(a)], atol=1e-9)
+    assert abs(sol["w"][-1] - exact) < 10 * rtol
+
+
+def test_a_declared_events_crossing_before_a_switchs_in_the_same_step_is_located():
+    """The same for a declared event: 0.01 - (x - 1.02)^2 crosses at 0.92 and 1.12, the switch Max(0, x - 1.01)
+    at 1.01 in one radau step; radau fired the event at 1.12 only, "success"."""
+    m = dm.Model("declared")
+    m.states("x w")
+    m.ode("x", "1")
+    m.ode("w", "Max(0, x - 1.01)")
+    m.event("hump", "0.01 - (x - 1.02)**2")
+    m.initial(x=0.0, w=0.0)
+    sol = dm.solve(m, (0.0, 2.0), method="radau", t_eval=[0.0, 2.0])
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["hump"]["t"][0], [0.92, 1.12], atol=1e-9)
