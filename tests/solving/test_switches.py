@@ -553,15 +553,26 @@ def test_an_excursion_that_leaves_its_side_before_a_crossing_in_the_same_step_is
     assert abs(sol["w"][-1] - exact) < 10 * rtol
 
 
-def test_a_declared_events_crossing_before_a_switchs_in_the_same_step_is_located():
-    """The same for a declared event: 0.01 - (x - 1.02)^2 crosses at 0.92 and 1.12, the switch Max(0, x - 1.01)
-    at 1.01 in one radau step; radau fired the event at 1.12 only, "success"."""
+@pytest.mark.parametrize(
+    ("when", "direction", "fired"),
+    [
+        ("0.01 - (x - 1.02)**2", 0, [0.92, 1.12]),  # (its crossing away, 0.92, before the switch's: lost)
+        ("(x - 1)**2 - 0.0064", 1, [1.08]),  # (its crossing back, 1.08, past it: located first, the switch's lost)
+    ],
+)
+def test_a_declared_event_and_a_switch_in_one_radau_step_fire_in_their_order(when, direction, fired):
+    """A declared event whose function leaves its side and comes back inside the radau step that holds the crossing
+    of Max(0, x - 1.01) at 1.01, x = t.  Crossing at 0.92 and 1.12 (deepest at 1.02): radau fired 1.12 only.
+    Crossing at 0.92 and 1.08, deepest at 1.0, rising only: radau located 1.08 first and the switch never fired,
+    Max kept 0 past 1.01 (w(2) 2.4e-3 off).  Both "success"."""
     m = dm.Model("declared")
     m.states("x w")
     m.ode("x", "1")
     m.ode("w", "Max(0, x - 1.01)")
-    m.event("hump", "0.01 - (x - 1.02)**2")
+    m.event("hump", when, direction=direction)
     m.initial(x=0.0, w=0.0)
     sol = dm.solve(m, (0.0, 2.0), method="radau", t_eval=[0.0, 2.0])
     assert sol.status == "success"
-    np.testing.assert_allclose(sol.events["hump"]["t"][0], [0.92, 1.12], atol=1e-9)
+    np.testing.assert_allclose(sol.events["hump"]["t"][0], fired, atol=1e-9)
+    np.testing.assert_allclose(sol.events["Max in w'"]["t"][0], [1.01], atol=1e-9)
+    assert abs(sol["w"][-1] - 0.99**2 / 2.0) < 1e-6
