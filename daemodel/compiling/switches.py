@@ -264,11 +264,16 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
     # and Max compare their arguments pairwise; the wheelset's creep forces took 1-2 s per locked branch)
     unchanged = all(new is old for new, old in zip(args, expr.args, strict=True))
 
-    def value(function) -> float:
+    def value(function, fixed) -> float:
+        # (the side is looked up by the switching function as find_switches wrote it, of the node's arguments
+        # as they stand in the equations: a switch inside it (Min(x**2, Max(-2, y))'s x**2 - Max(-2, y)) is
+        # already fixed in ``args``, and x**2 - y is no key of ``sides``, so the comparison fell to its value
+        # at zero, a rounding's sign, or a tie to the earlier argument: the branch before the crossing, kept
+        # after it, "success"; its value where no side is given: ``fixed``'s, inner switches on their side)
         side = sides.get(function)
         if side is None and -function in sides:
             side = -sides[-function]
-        return float(side) if side else float(function.subs(at))
+        return float(side) if side else float(fixed.subs(at))
 
     if isinstance(expr, sp.Piecewise):
         kept = []
@@ -282,24 +287,25 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
                 kept.append((piece, condition))
                 continue
             relations = condition.atoms(sp.core.relational.Relational)
-            truth = {r: type(r)(value(sp.sympify(r.lhs - r.rhs)), 0) for r in relations}
+            differences = {r: sp.sympify(r.lhs - r.rhs) for r in relations}
+            truth = {r: type(r)(value(d, _fix(d, at, decide, sides)), 0) for r, d in differences.items()}
             if bool(condition.xreplace(truth)):
                 return piece
         return sp.Piecewise(*kept) if kept else sp.nan
     if isinstance(expr, sp.Heaviside | sp.sign | sp.Abs | sp.floor | sp.ceiling | sp.DiracDelta):
-        inner = args[0]
-        if not decide(inner):
+        inner, switching = args[0], expr.args[0]  # (fixed; as find_switches wrote it: the key of sides)
+        if not decide(switching):
             return expr if unchanged else expr.func(*args)
         if isinstance(expr, sp.DiracDelta):
             return sp.S.Zero  # (0 inside a segment: the switch is at its ends)
         if isinstance(expr, sp.floor | sp.ceiling):
             number = float(inner.subs(at))
-            side = sides.get(inner)
+            side = sides.get(switching)
             if side:  # (at an integer k: floor is k going up, k - 1 going down)
                 k = round(number)
                 return sp.Integer(k if side > 0 else k - 1) + (1 if isinstance(expr, sp.ceiling) else 0)
             return sp.Integer(math.floor(number) if isinstance(expr, sp.floor) else math.ceil(number))
-        number = value(inner)
+        number = value(switching, inner)
         if isinstance(expr, sp.Heaviside):
             half = args[1] if len(args) > 1 else sp.S.Half
             return sp.S.One if number > 0 else (sp.S.Zero if number < 0 else half)
@@ -307,34 +313,40 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
             return sp.Integer(int(np.sign(number)))
         return inner if number >= 0 else -inner
     if isinstance(expr, sp.Max | sp.Min):
-        kept = _contenders(args, decide, value, 1 if isinstance(expr, sp.Max) else -1)
+        kept = _contenders(expr.args, args, decide, value, 1 if isinstance(expr, sp.Max) else -1)
         if len(kept) == len(args):
             return expr if unchanged else expr.func(*args)
         return kept[0] if len(kept) == 1 else expr.func(*kept)
     return expr if unchanged else expr.func(*args)
 
 
-def _contenders(args, decide, value, way: int) -> list:
+def _contenders(written, args, decide, value, way: int) -> list:
     """The arguments of a ``Max`` (``way`` = 1) or ``Min`` (-1) that may still be its value once the
     switching functions ``decide`` accepts (its arguments' differences, :func:`find_switches`) are
     fixed by ``value``: those that lose no decided comparison (a tie to the earlier argument).  Only
     the comparisons between them are left, all undecided: ``Min(1, x)`` is ``1`` or ``x`` on a piece
     of the state event ``1 - x`` (before, it was locked only where every argument, the constant too,
     was of the variables, and stayed a kink inside each piece); ``Max(x, sin(t), 0)`` keeps
-    ``Max(sin(t), 0)`` where ``x`` is below both, for the time breakpoints to cut."""
+    ``Max(sin(t), 0)`` where ``x`` is below both, for the time breakpoints to cut.  ``written``: the
+    node's arguments as they stand in the equations, whose differences are the switching functions
+    (decided, and looked up in the sides, as find_switches found them); ``args``: the same with the
+    switches inside them fixed (valued, and returned)."""
     k = len(args)
+
+    def compare(i: int, j: int) -> float:
+        return way * value(sp.sympify(written[i] - written[j]), sp.sympify(args[i] - args[j]))
+
     out = set(range(k))
     for i in range(k):
         for j in range(i + 1, k):
-            difference = sp.sympify(args[i] - args[j])
-            if not decide(difference):
+            if not decide(sp.sympify(written[i] - written[j])):
                 continue
-            number = way * value(difference)  # (> 0: i wins, < 0: j wins, 0: a tie, to the earlier)
+            number = compare(i, j)  # (> 0: i wins, < 0: j wins, 0: a tie, to the earlier)
             out.discard(j if number >= 0 else i)
     if not out:  # (sides that contradict one another, a > b > c > a: the first one standing in turn)
         pick = 0
         for j in range(1, k):
-            if way * value(sp.sympify(args[pick] - args[j])) < 0:
+            if compare(pick, j) < 0:
                 pick = j
         return [args[pick]]
     return [args[i] for i in sorted(out)]

@@ -370,6 +370,56 @@ def test_a_max_or_min_of_states_is_locked_to_its_branch(rhs, locked):
     assert fixed.rhs[0] == sp.sympify(locked, locals=symbols)
 
 
+@pytest.mark.parametrize(
+    ("rhs", "at", "above", "below"),
+    [
+        ("Min(x**2, Max(-2, y))", (1.0, 1.0), "y", "x**2"),  # (x**2 - Max(-2, y) at zero)
+        ("Max(Min(2, y), -x**2)", (1.0, -1.0), "y", "-x**2"),  # (x**2 + Min(2, y) at zero; above: y > -x**2)
+        ("sign(Max(x, y) - 1)", (1.0, 0.0), "1", "-1"),
+        ("Abs(Max(x, y) - 1)", (1.0, 0.0), "x - 1", "1 - x"),
+    ],
+)
+def test_a_switch_at_zero_with_a_switch_inside_it_takes_the_side_given(rhs, at, above, below):
+    """The side of a switching function at zero is looked up as find_switches wrote it (x**2 - Max(-2, y)), not
+    with the switch inside it already locked (x**2 - y, no key of the sides): it fell to the comparison's value
+    at zero, 0, a tie to the earlier argument, and sign(0) = 0 (the fuzz's r1-0173: the branch before the
+    crossing kept after it, "success")."""
+    m = dm.Model("nested")
+    m.states("x y")
+    m.ode("x", rhs)
+    m.ode("y", "0")
+    m.initial(x=at[0], y=at[1])
+    compiled = m.compile()
+    (outer,) = [s.function for s in switches.find_switches(compiled) if s.function.has(sp.Max, sp.Min)]
+    symbols = {"x": compiled.states[0], "y": compiled.states[1]}
+    for side, locked in ((1, above), (-1, below)):
+        fixed = switches.lock_branches(compiled, 0.0, np.array(at), np.zeros(0), np.zeros(0), {outer: side})
+        assert fixed.rhs[0] == sp.sympify(locked, locals=symbols), (side, fixed.rhs[0])
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+@pytest.mark.parametrize(
+    ("rhs", "y0", "exact"),
+    [
+        ("Min(x**2, Max(-2, y))", 1.0, 4.0 / 3.0),  # (x**2 up to t = 1, then y = 1)
+        ("sign(Max(x, y) - 1)", 0.0, 0.0),  # (-1 up to t = 1, then +1)
+    ],
+)
+def test_a_crossing_of_a_switch_with_a_switch_inside_it_goes_on_on_the_branch_after_it(method, rhs, y0, exact):
+    """w' = rhs with x = t, y constant, over [0, 2], against the closed form: before, casadi-idas kept Min = x**2
+    after t = 1 (w(2) = 8/3), radau and casadi-idas took sign(Max(x, y) - 1) = -1 after it (w(2) = -2), all
+    "success" (which one fails depends on the side of t = 1 the crossing is located on)."""
+    m = dm.Model("nested-crossing")
+    m.states("x y w")
+    m.ode("x", "1")
+    m.ode("y", "0")
+    m.ode("w", rhs)
+    m.initial(x=0.0, y=y0, w=0.0)
+    sol = dm.solve(m, (0.0, 2.0), method=method, t_eval=[0.0, 2.0], rtol=1e-6, atol=1e-6)
+    assert sol.status == "success"
+    assert abs(sol["w"][-1] - exact) < 1e-5
+
+
 def test_a_max_whose_arguments_differ_by_a_function_of_time_is_a_breakpoint():
     m = dm.Model("time-max")
     m.states("x")
@@ -480,3 +530,47 @@ def test_a_state_that_decays_onto_a_max_switch_is_solved(method):
     options = {"rtol": 1e-8, "atol": 1e-8} if method == "casadi-idas" else {}
     sol = dm.solve(m, (0.0, 60.0), method=method, **options)
     assert sol.status == "success" and abs(sol["u"][-1] - (1.0 - math.exp(-60.0))) < 1e-7
+
+
+@pytest.mark.parametrize("rtol", [1e-6, 1e-8])
+def test_an_excursion_that_leaves_its_side_before_a_crossing_in_the_same_step_is_located(rtol):
+    """w' = Min(0, 0.01 - (x - 1.02)^2) + Max(0, x - 1.01), x = t: the Min's excursion to its other branch,
+    [0.92, 1.12], holds the Max's crossing at 1.01 in one radau step.  Its deepest point, 1.02, lies past that
+    crossing, and the excursions were cut there: the crossing at 1.01 was located, the one at 0.92 not, and
+    the piece integrated the Min as 0 over [0.92, 1.01], w(2) 5.7e-4 off at rtol 1e-6 and 1e-8, "success"."""
+    a, c, b = 0.01, 1.02, 1.01
+    m = dm.Model("hidden")
+    m.states("x w")
+    m.ode("x", "1")
+    m.ode("w", f"Min(0, {a} - (x - {c})**2) + Max(0, x - {b})")
+    m.initial(x=0.0, w=0.0)
+    exact = 2.0 * a - (c**3 + (2.0 - c) ** 3) / 3.0 - 4.0 / 3.0 * a**1.5 + (2.0 - b) ** 2 / 2.0
+    sol = dm.solve(m, (0.0, 2.0), method="radau", t_eval=[0.0, 2.0], rtol=rtol, atol=rtol)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["Min in w'"]["t"][0], [c - math.sqrt(a), c + math.sqrt(a)], atol=1e-9)
+    assert abs(sol["w"][-1] - exact) < 10 * rtol
+
+
+@pytest.mark.parametrize(
+    ("when", "direction", "fired"),
+    [
+        ("0.01 - (x - 1.02)**2", 0, [0.92, 1.12]),  # (its crossing away, 0.92, before the switch's: lost)
+        ("(x - 1)**2 - 0.0064", 1, [1.08]),  # (its crossing back, 1.08, past it: located first, the switch's lost)
+    ],
+)
+def test_a_declared_event_and_a_switch_in_one_radau_step_fire_in_their_order(when, direction, fired):
+    """A declared event whose function leaves its side and comes back inside the radau step that holds the crossing
+    of Max(0, x - 1.01) at 1.01, x = t.  Crossing at 0.92 and 1.12 (deepest at 1.02): radau fired 1.12 only.
+    Crossing at 0.92 and 1.08, deepest at 1.0, rising only: radau located 1.08 first and the switch never fired,
+    Max kept 0 past 1.01 (w(2) 2.4e-3 off).  Both "success"."""
+    m = dm.Model("declared")
+    m.states("x w")
+    m.ode("x", "1")
+    m.ode("w", "Max(0, x - 1.01)")
+    m.event("hump", when, direction=direction)
+    m.initial(x=0.0, w=0.0)
+    sol = dm.solve(m, (0.0, 2.0), method="radau", t_eval=[0.0, 2.0])
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["hump"]["t"][0], fired, atol=1e-9)
+    np.testing.assert_allclose(sol.events["Max in w'"]["t"][0], [1.01], atol=1e-9)
+    assert abs(sol["w"][-1] - 0.99**2 / 2.0) < 1e-6
