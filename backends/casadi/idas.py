@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import AbstractBackend, make_solution
+from daemodel.backends.casadi.idas_search import FIRST_WINDOW, MIN_POINTS, real_times, search
 from daemodel.backends.casadi.plumbing import (
     QUIET,
     cached_integrator,
@@ -46,6 +47,11 @@ from daemodel.executors import struck_limit
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
 FIRST_STEP_SAFETY = 0.1
+
+# A span shorter than this (relative to max(1, |t|)) is solved on normalised time: casadi's IDAS takes no step
+# towards an output within about 1e-9 of the start (x' = 1 from x(0.5) = 0.5: x(0.5 + 1e-9) came back 0.5, so
+# the trial solves that located a crossing 1e-7 from an output saw no change and settled 1e-7 late).
+SHORT_SPAN = 1e-6
 
 # IDAS's return flags: what happened (with the time spliced in) and what to do about it.
 IDAS_REASONS = {
@@ -271,13 +277,16 @@ class IDASBackend(AbstractBackend):
     name = "casadi-idas"
     Options = IDASOptions
     max_index = 1
+    stops = True  # solve(..., stop=...): the event search in windows read at each step (.idas_search)
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return tolerance_sweep(points)
 
-    def solve(self, compiled, t_span, start, options: IDASOptions):
+    def solve(self, compiled, t_span, start, options: IDASOptions, stop=None):
         import casadi
 
+        if stop is not None and start.size != 1:
+            raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         grid = times[1:] if times[0] == t_span[0] else times
         check_output_memory(self.name, compiled, start.size, len(times))
@@ -298,8 +307,18 @@ class IDASBackend(AbstractBackend):
         step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, grid[0])
         if step0 is not None:
             settings["step0"] = step0
-        out = [float(t) for t in grid]
-        shared = cached_integrator(compiled, "idas", dae, t_span[0], out, {**settings, "calc_ic": True})
+        if stop is not None:
+            return self._search(compiled, t_span, start, options, dae, settings, zdot, stop, began)
+        # (a span shorter than casadi's IDAS steps over is solved on normalised time, where it is 1 long)
+        t_start, span, extra = float(t_span[0]), 1.0, np.zeros((start.size, 0))
+        if t_span[1] - t_span[0] < SHORT_SPAN * max(1.0, abs(t_span[0]), abs(t_span[1])):
+            t_start, span = 0.0, float(t_span[1] - t_span[0])
+            extra = np.tile([float(t_span[0]), span], (start.size, 1))
+            settings = {**settings, "step0": step0 / span} if step0 is not None else settings
+        run_dae = dae if not extra.shape[1] else normalised_dae(dae)
+        out = [float(t) for t in grid] if not extra.shape[1] else [(float(t) - t_span[0]) / span for t in grid]
+        P = np.concatenate([np.asarray(start.p, dtype=float).reshape(start.size, -1), extra], axis=1)
+        shared = cached_integrator(compiled, "idas", run_dae, t_start, out, {**settings, "calc_ic": True})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()
@@ -307,17 +326,19 @@ class IDASBackend(AbstractBackend):
         def call(b):
             """IDAS with y'(t0) from IDACalcIC; where that fails, a one-off integrator given y'(t0) = f(t0, y0, z0)."""
             try:
-                return shared(x0=start.y0[b], z0=start.z0[b], p=start.p[b])
+                return shared(x0=start.y0[b], z0=start.z0[b], p=P[b])
             except RuntimeError as error:
                 if "IDACalcIC" not in str(error) or struck_limit() is not None:
                     raise
             fallbacks.append(b)
-            exact = {**settings, "calc_ic": False, "init_xdot": ydot[b].tolist()}
-            return casadi.integrator("idas", "idas", dae, float(t_span[0]), out, exact)(
-                x0=start.y0[b], z0=start.z0[b], p=start.p[b]
+            exact = {**settings, "calc_ic": False, "init_xdot": (ydot[b] * span).tolist()}
+            return casadi.integrator("idas", "idas", run_dae, t_start, out, exact)(
+                x0=start.y0[b], z0=start.z0[b], p=P[b]
             )
 
         def explain(sample, error, printed):
+            if extra.shape[1]:  # (IDAS's times on the normalised scale, said on the real one)
+                printed = real_times(printed, float(t_span[0]), span)
             return idas_failure(
                 error, printed, sample=sample, model=compiled.name, grid=grid, max_num_steps=options.max_num_steps
             )
@@ -346,3 +367,32 @@ class IDASBackend(AbstractBackend):
         if times[0] != t_span[0]:
             values = values[:, 1:]
         return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)
+
+    def _search(self, compiled, t_span, start, options, dae, settings, zdot, stop, began):
+        """The solve of one sample that ends where ``stop`` says (:func:`.idas_search.search`), its outputs
+        about one an IDAS step, with the dense output of IDAS started again from them."""
+        first_output = t_span[0] + FIRST_WINDOW * (t_span[1] - t_span[0]) / MIN_POINTS
+        step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, first_output)
+        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | {"calc_ic": True}
+
+        def explain(error, printed, outputs):
+            return idas_failure(
+                error, printed, sample=0, model=compiled.name, grid=outputs, max_num_steps=options.max_num_steps
+            )
+
+        times, values, stats = search(
+            compiled, dae, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
+            options.max_num_steps,
+        )  # fmt: skip
+        failure = first_non_finite(self.name, compiled, times, values, "tighten rtol/atol or shorten t_span")
+        if failure is not None:
+            raise failure
+        stats |= {"batch": 1, "casadi_calls": stats["search_windows"] + stats["search_redos"], "first_step": step0}
+        stats["initial_slope_fallbacks"] = 0
+
+        def restart():
+            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+
+        dense = IDASRestarts(times, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
+        wall = time.perf_counter() - began
+        return make_solution(self, compiled, start, options, times, values, wall, stats, dense=dense)
