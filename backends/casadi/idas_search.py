@@ -24,6 +24,7 @@ import re
 
 import numpy as np
 from daemodel.backends.casadi.plumbing import cached_integrator, normalised_dae
+from daemodel.backends.checks import check_output_memory
 from daemodel.backends.progress import captured_output
 
 from daemodel.errors import DaemodelError, StepLimitError
@@ -98,6 +99,8 @@ def search(compiled, dae: dict, t_span, y0, z0, p, settings: dict, step0, stop, 
             span = end - a
             grid = (done - a) / span + (end - done) / span * (np.arange(1, points + 1) / points)
             grid[-1] = 1.0
+            # (the outputs kept so far and this window's, refused before casadi allocates them: MemoryLimitError)
+            check_output_memory("casadi-idas's event search", compiled, 1, sum(len(t) for t in times) + points)
             own = dict(settings)
             if first is not None and first / span < 1e-3 * grid[0]:  # (shorter than IDAS's own first guess)
                 own["step0"] = 2.0 ** math.floor(math.log2(first / span))  # (a power of two: few integrators)

@@ -80,3 +80,13 @@ def test_a_window_solved_again_without_end_is_refused(monkeypatch):
         r"\(sample 0 of 'humps'\): IDAS's steps there shrink without end; shorten t_span before it",
     ):
         dm.solve(_hump_event(), (0.0, 3000.0), method="casadi-idas", rtol=1e-10, atol=1e-10)
+
+
+def test_the_search_s_outputs_are_refused_past_the_memory_limit(monkeypatch):
+    # two outputs or more an IDAS step, all kept: refused before casadi allocates them, not a machine out of memory
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "200K")
+    with pytest.raises(
+        E.ResourceLimitError,
+        match=r"casadi-idas's event search on 1 sample\(s\) of 3 unknowns would need [0-9.]+ GiB \(outputs",
+    ):
+        dm.solve(_hump_event(2.0), (0.0, 3000.0), method="casadi-idas", rtol=1e-7, atol=1e-7)
