@@ -14,6 +14,11 @@ as usual (a few steps more).  Leaving z out of the error test instead (``suppres
 no fix: IDAS's Newton then stops correcting z where y does not depend on it, and z drifts off its
 constraint.  A failure is one line: :class:`~daemodel.errors.StepLimitError` when IDAS exhausts
 ``max_num_steps``, :class:`~daemodel.errors.ConvergenceError` otherwise, IDAS's flag translated.
+
+Events: ``solve(..., stop=...)`` (the event search) runs IDAS in windows read at two outputs or more an
+IDAS step (:mod:`.idas_search`): casadi shows nothing between the outputs it is given.  A span shorter than
+:data:`SHORT_SPAN` is solved on normalised time: casadi's IDAS takes no step towards an output within about
+1e-9 of its start.
 """
 
 from __future__ import annotations
@@ -380,15 +385,20 @@ class IDASBackend(AbstractBackend):
                 error, printed, sample=0, model=compiled.name, grid=outputs, max_num_steps=options.max_num_steps
             )
 
+        slopes = compiled.cached("casadi-idas-slopes", lambda: slopes_function(dae))
+
+        def slope(t, y, z):
+            return np.asarray(slopes(t, y, z, start.p[0])[0], dtype=float).reshape(-1)
+
         times, values, stats = search(
             compiled, dae, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
-            options.max_num_steps,
+            options.max_num_steps, slope,
         )  # fmt: skip
         failure = first_non_finite(self.name, compiled, times, values, "tighten rtol/atol or shorten t_span")
         if failure is not None:
             raise failure
         stats |= {"batch": 1, "casadi_calls": stats["search_windows"] + stats["search_redos"], "first_step": step0}
-        stats["initial_slope_fallbacks"] = 0
+        stats.setdefault("initial_slope_fallbacks", 0)
 
         def restart():
             return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)

@@ -90,3 +90,20 @@ def test_the_search_s_outputs_are_refused_past_the_memory_limit(monkeypatch):
         match=r"casadi-idas's event search on 1 sample\(s\) of 3 unknowns would need [0-9.]+ GiB \(outputs",
     ):
         dm.solve(_hump_event(2.0), (0.0, 3000.0), method="casadi-idas", rtol=1e-7, atol=1e-7)
+
+
+def test_the_search_falls_back_to_the_exact_slope_where_idacalcic_fails():
+    # w = log y, w(0) = 0: IDACalcIC's line search fails at atol 1e-10 (the solve to t1 falls back to y' = f); the
+    # search's windows raised ConvergenceError (IDA_LINESEARCH_FAIL) before they did the same
+    import sympy as sp
+
+    m = dm.Model("logarithm")
+    (y,) = m.states("y")
+    (w,) = m.algebraics("w")
+    m.ode(y, -1)
+    m.constraint(w - sp.log(y), name="log")
+    m.initial(y=1.0)
+    m.event("third", "w + 1")
+    sol = dm.solve(m, (0.0, 0.9), method="casadi-idas")
+    assert sol.status == "success" and abs(sol.events["third"]["t"][0, 0] - (1.0 - math.exp(-1.0))) < 1e-8
+    np.testing.assert_allclose(sol["w"], np.log(1.0 - sol.t), atol=1e-7)
