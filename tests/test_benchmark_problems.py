@@ -270,10 +270,11 @@ def test_wheelset_radau_at_loose_tolerances_goes_on_past_its_creep_saturation(wh
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="known defect: casadi-idas locates 12 of the wheelset's ~280 crossings of its creep saturation at "
-    "rtol 1e-6 (radau 280; 278 at 1e-9): an excursion between two of its 101 outputs a piece (0.25006-0.29984, "
-    "outputs at 0.2035 and 0.303) is integrated through on the locked branch, 2e-2 off by t = 0.35 against "
-    "radau at 1e-9 (9e-6 at t = 0.24); 1.39 digits at t = 10 with status success (0.84-1.9 before the lock)",
+    reason="known defect: casadi-idas's windowed search (backends/casadi/idas_search.py) follows radau's "
+    "crossings of the creep saturation to t = 0.81 and then raises ConvergenceError (IDA_ERR_FAIL at t = 0.811556 "
+    "in a trial solve that locates a crossing: the locked branch past it fails IDAS at once). Before it, 12 of the "
+    "~280 crossings were located (an excursion between two of its 101 outputs a piece, 0.25006-0.29984, integrated "
+    "through on the locked branch) and the solve said success 1.39 digits from the reference",
 )
 def test_wheelset_casadi_idas_meets_the_test_set_reference(wheelset):
     """IDAS at rtol = atol = 1e-6 within 1.3 digits of radau's 4.8 at the same tolerance, or says it is not."""

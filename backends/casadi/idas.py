@@ -14,6 +14,11 @@ as usual (a few steps more).  Leaving z out of the error test instead (``suppres
 no fix: IDAS's Newton then stops correcting z where y does not depend on it, and z drifts off its
 constraint.  A failure is one line: :class:`~daemodel.errors.StepLimitError` when IDAS exhausts
 ``max_num_steps``, :class:`~daemodel.errors.ConvergenceError` otherwise, IDAS's flag translated.
+
+Events: ``solve(..., stop=...)`` (the event search) runs IDAS in windows read at two outputs or more an
+IDAS step (:mod:`.idas_search`): casadi shows nothing between the outputs it is given.  A span shorter than
+:data:`SHORT_SPAN` is solved on normalised time: casadi's IDAS takes no step towards an output within about
+1e-9 of its start.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from daemodel.backends.base import AbstractBackend, make_solution
+from daemodel.backends.casadi.idas_search import FIRST_WINDOW, MIN_POINTS, real_times, search
 from daemodel.backends.casadi.plumbing import (
     QUIET,
     cached_integrator,
@@ -47,6 +53,11 @@ from daemodel.executors import struck_limit
 # IDAS's first step: this fraction of the longest step whose z' = 0 prediction passes the error
 # test, h |z'(t0)| = rtol |z0| + atol (order 1: the estimate is about the prediction's error).
 FIRST_STEP_SAFETY = 0.1
+
+# A span shorter than this (relative to max(1, |t|)) is solved on normalised time: casadi's IDAS takes no step
+# towards an output within about 1e-9 of the start (x' = 1 from x(0.5) = 0.5: x(0.5 + 1e-9) came back 0.5, so
+# the trial solves that located a crossing 1e-7 from an output saw no change and settled 1e-7 late).
+SHORT_SPAN = 1e-6
 
 # IDAS's return flags: what happened (with the time spliced in) and what to do about it.
 IDAS_REASONS = {
@@ -277,13 +288,16 @@ class IDASBackend(AbstractBackend):
     name = "casadi-idas"
     Options = IDASOptions
     max_index = 1
+    stops = True  # solve(..., stop=...): the event search in windows read at each step (.idas_search)
 
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return tolerance_sweep(points)
 
-    def solve(self, compiled, t_span, start, options: IDASOptions):
+    def solve(self, compiled, t_span, start, options: IDASOptions, stop=None):
         import casadi
 
+        if stop is not None and start.size != 1:
+            raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
         times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
         grid = times[1:] if times[0] == t_span[0] else times
         check_output_memory(self.name, compiled, start.size, len(times))
@@ -304,10 +318,22 @@ class IDASBackend(AbstractBackend):
         step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, grid[0])
         if step0 is not None:
             settings["step0"] = step0
-        # (on the time since t0, given as the last parameter: plumbing.shifted_dae)
-        t0, shifted = float(t_span[0]), shifted_dae(dae)
-        out = [float(t) - t0 for t in grid]
-        shared = cached_integrator(compiled, "idas", shifted, 0.0, out, {**settings, "calc_ic": True})
+        if stop is not None:
+            return self._search(compiled, t_span, start, options, dae, settings, zdot, stop, began)
+        # (on the time since t0, given as the last parameter: plumbing.shifted_dae; a span shorter than casadi's
+        # IDAS steps over on normalised time, where it is 1 long, t0 and the span the last two parameters)
+        t0, span = float(t_span[0]), 1.0
+        if t_span[1] - t_span[0] < SHORT_SPAN * max(1.0, abs(t_span[0]), abs(t_span[1])):
+            span = float(t_span[1] - t_span[0])
+            run_dae, extra = normalised_dae(dae), [t0, span]
+            settings = {**settings, "step0": step0 / span} if step0 is not None else settings
+        else:
+            run_dae, extra = shifted_dae(dae), [t0]
+        out = [(float(t) - t0) / span for t in grid]
+        P = np.concatenate(
+            [np.asarray(start.p, dtype=float).reshape(start.size, -1), np.tile(extra, (start.size, 1))], 1
+        )
+        shared = cached_integrator(compiled, "idas", run_dae, 0.0, out, {**settings, "calc_ic": True})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()
@@ -315,17 +341,24 @@ class IDASBackend(AbstractBackend):
         def call(b):
             """IDAS with y'(t0) from IDACalcIC; where that fails, a one-off integrator given y'(t0) = f(t0, y0, z0)."""
             try:
-                return shared(x0=start.y0[b], z0=start.z0[b], p=[*start.p[b], t0])
+                return shared(x0=start.y0[b], z0=start.z0[b], p=P[b])
             except RuntimeError as error:
                 if "IDACalcIC" not in str(error) or struck_limit() is not None:
                     raise
             fallbacks.append(b)
-            exact = {**settings, "calc_ic": False, "init_xdot": ydot[b].tolist()}
-            return casadi.integrator("idas", "idas", shifted, 0.0, out, exact)(
-                x0=start.y0[b], z0=start.z0[b], p=[*start.p[b], t0]
-            )
+            exact = {**settings, "calc_ic": False, "init_xdot": (ydot[b] * span).tolist()}
+            return casadi.integrator("idas", "idas", run_dae, 0.0, out, exact)(x0=start.y0[b], z0=start.z0[b], p=P[b])
 
         def explain(sample, error, printed):
+            if len(extra) == 2:  # (IDAS's times on the normalised scale, said on the real one)
+                return idas_failure(
+                    error,
+                    real_times(printed, t0, span),
+                    sample=sample,
+                    model=compiled.name,
+                    grid=grid,
+                    max_num_steps=options.max_num_steps,
+                )
             return idas_failure(
                 error,
                 printed,
@@ -360,3 +393,37 @@ class IDASBackend(AbstractBackend):
         if times[0] != t_span[0]:
             values = values[:, 1:]
         return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)
+
+    def _search(self, compiled, t_span, start, options, dae, settings, zdot, stop, began):
+        """The solve of one sample that ends where ``stop`` says (:func:`.idas_search.search`), its outputs
+        about one an IDAS step, with the dense output of IDAS started again from them."""
+        first_output = t_span[0] + FIRST_WINDOW * (t_span[1] - t_span[0]) / MIN_POINTS
+        step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, first_output)
+        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | {"calc_ic": True}
+
+        def explain(error, printed, outputs):
+            return idas_failure(
+                error, printed, sample=0, model=compiled.name, grid=outputs, max_num_steps=options.max_num_steps
+            )
+
+        slopes = compiled.cached("casadi-idas-slopes", lambda: slopes_function(dae))
+
+        def slope(t, y, z):
+            return np.asarray(slopes(t, y, z, start.p[0])[0], dtype=float).reshape(-1)
+
+        times, values, stats = search(
+            compiled, dae, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
+            options.max_num_steps, slope,
+        )  # fmt: skip
+        failure = first_non_finite(self.name, compiled, times, values, "tighten rtol/atol or shorten t_span")
+        if failure is not None:
+            raise failure
+        stats |= {"batch": 1, "casadi_calls": stats["search_windows"] + stats["search_redos"], "first_step": step0}
+        stats.setdefault("initial_slope_fallbacks", 0)
+
+        def restart():
+            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+
+        dense = IDASRestarts(times, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
+        wall = time.perf_counter() - began
+        return make_solution(self, compiled, start, options, times, values, wall, stats, dense=dense)

@@ -37,7 +37,9 @@ def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dic
     import casadi
 
     times = [float(t) for t in times]
-    key = (plugin, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
+    # (the parameters' count tells the model's own dae from its shifted_dae (one more) and normalised_dae (two))
+    kind = int(dae["p"].numel())
+    key = (plugin, kind, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
     with _KEPT_LOCK:
         kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
         if key in kept:

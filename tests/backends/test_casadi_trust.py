@@ -669,3 +669,32 @@ def test_a_time_limit_that_strikes_inside_idas_is_a_time_limit_error_not_idas_fa
     with pytest.raises(E.TimeLimitError, match="stop here"), time_limit(0.5, "stop here"):
         dm.solve(compiled, TRANSISTOR_AMPLIFIER.t_span, method="casadi-idas", rtol=1e-9, atol=1e-9)
     assert time.perf_counter() - began < 3
+
+
+@pytest.mark.parametrize("t0", [0.5, 1e3])
+def test_idas_moves_over_a_span_shorter_than_casadis_own_threshold(t0):
+    # casadi's IDAS took no step towards an output within about 1e-9 of its start (x came back unchanged), so the
+    # trial solves that located a crossing from an output on it saw nothing move and settled 1e-7 late
+    m = dm.Model("line")
+    m.states("x")
+    m.ode("x", "1")
+    m.initial(t=t0, x=t0)
+    for span in (1e-12 * t0, 1e-9, 1e-7):
+        sol = dm.solve(m, (t0, t0 + span), method="casadi-idas", t_eval=[t0, t0 + span])
+        assert sol.status == "success" and abs((sol["x"][-1] - t0) - span) < 1e-3 * span + 4e-16 * t0, span
+
+
+def test_idas_keeps_the_integrators_of_a_short_and_a_long_span_apart():
+    """A span under SHORT_SPAN runs on normalised time (two more parameters), a longer one on the time since t0
+    (one more): with the same relative outputs and settings both had one key among the kept integrators, and the
+    second solve of the model raised ConvergenceError (IDAS handed parameters of the other length)."""
+    m = dm.Model("decay")
+    m.states("x")
+    m.parameter("k", 2.0)
+    m.ode("x", "-k*x + t")
+    m.initial(x=1.0)
+    compiled = m.compile()
+    for span in (1.0, 1e-9, 1.0):
+        sol = dm.solve(compiled, (0.0, span), method="casadi-idas", t_eval=np.linspace(0.0, span, 5), rtol=1e-10)
+        exact = 1.25 * np.exp(-2 * span) + span / 2 - 0.25
+        assert sol.status == "success" and abs(sol["x"][-1] - exact) < 1e-8 * span + 1e-15, span
