@@ -76,7 +76,7 @@ def test_integrators_kept_are_bounded(monkeypatch):
     for t1 in (0.5, 0.75, 1.0):
         dm.solve(compiled, (0.0, t1), method="casadi-idas", rtol=1e-6)
     kept = compiled.reduced(1).cached("casadi-integrators", dict)  # (IDAS solves the index-1 reduction)
-    assert [key[2][-1] for key in kept] == [0.75, 1.0]  # the two most recent t_spans
+    assert [key[3][-1] for key in kept] == [0.75, 1.0]  # the two most recent t_spans (key: plugin, kind, t0, times)
 
 
 def test_threads_keep_their_own_integrators():
