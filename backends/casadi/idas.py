@@ -350,24 +350,12 @@ class IDASBackend(AbstractBackend):
             return casadi.integrator("idas", "idas", run_dae, 0.0, out, exact)(x0=start.y0[b], z0=start.z0[b], p=P[b])
 
         def explain(sample, error, printed):
-            if len(extra) == 2:  # (IDAS's times on the normalised scale, said on the real one)
-                return idas_failure(
-                    error,
-                    real_times(printed, t0, span),
-                    sample=sample,
-                    model=compiled.name,
-                    grid=grid,
-                    max_num_steps=options.max_num_steps,
-                )
+            # (normalised time: IDAS's times said on the real scale; shifted: its time is since t0)
+            printed, since = (real_times(printed, t0, span), 0.0) if len(extra) == 2 else (printed, t0)
             return idas_failure(
-                error,
-                printed,
-                sample=sample,
-                model=compiled.name,
-                grid=grid,
-                max_num_steps=options.max_num_steps,
-                t0=t0,
-            )
+                error, printed, sample=sample, model=compiled.name, grid=grid, max_num_steps=options.max_num_steps,
+                t0=since,
+            )  # fmt: skip
 
         values = run_samples(call, compiled, start, len(grid), explain)
         stats = {
