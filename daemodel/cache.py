@@ -7,7 +7,8 @@
 * **Where.**  ``DAEMODEL_CACHE``, else the user's cache folder (``$XDG_CACHE_HOME/daemodel``, else
   ``~/.cache/daemodel``), created with mode 0700 (parents as needed) (:func:`cache_folder`).
 * **Safe.**  The folder is refused (:class:`~daemodel.errors.UnsafeCacheError`) if it, or a file in
-  it, is a link, is writable by the group or others, or belongs to another user
+  it, is a link, is writable by the group or others, or belongs to another user, or if a folder
+  above it lets another user replace it (writable by others without the sticky bit, or theirs)
   (:func:`checked_folder`); a solve then compiles into a private temporary folder for this process
   (:class:`~daemodel.errors.CacheWarning`, once per process and folder) and never loads a file from
   the refused one.  A library is loaded only if the stamp beside it (``<key>.json``, written after
@@ -147,11 +148,45 @@ def unsafe(info: os.stat_result) -> str | None:
     return None
 
 
+def unsafe_parent(folder: Path) -> str | None:
+    """What lets another user replace ``folder`` through a folder above it, or None: a link on its path,
+    or a folder on its resolved path, that belongs to a user other than this one or root, or a folder
+    there writable by the group or others without the sticky bit (``/tmp``'s 1777 is safe: there only a
+    name's owner may rename or remove it).  Folders not there yet are skipped (they are created private)."""
+    me = os.geteuid()
+    given = Path(os.path.abspath(folder))
+    for link in [path for path in reversed(given.parents) if os.path.islink(path)]:
+        owner = os.lstat(link).st_uid
+        if owner not in (0, me):
+            return f"the link {link} on its path is owned by another user (uid {owner})"
+    real = Path(os.path.realpath(given))
+    for parent in real.parents:
+        try:
+            info = os.stat(parent)
+        except OSError:
+            continue
+        if info.st_uid not in (0, me):
+            return f"the folder {parent} above it is owned by another user (uid {info.st_uid})"
+        if info.st_mode & 0o022 and not info.st_mode & stat.S_ISVTX:
+            who = {0o020: "the group", 0o002: "others", 0o022: "the group and others"}[info.st_mode & 0o022]
+            return (
+                f"the folder {parent} above it is writable by {who} without the sticky bit (mode "
+                f"{info.st_mode & 0o7777:o}): they could replace the cache"
+            )
+    return None
+
+
 def checked_folder(folder: Path | None = None, *, create: bool = True) -> Path:
     """``folder`` (default :func:`cache_folder`), created with mode 0700 (parents as needed), after
     checking that neither it nor any file in it is a link, writable by the group or others, or owned
-    by another user; else an :class:`UnsafeCacheError` naming the path and what is wrong with it."""
+    by another user, and that no folder above it lets another user replace it (:func:`unsafe_parent`);
+    else an :class:`UnsafeCacheError` naming the path and what is wrong with it."""
     folder = Path(folder if folder is not None else cache_folder())
+    above = unsafe_parent(folder)
+    if above:
+        raise UnsafeCacheError(
+            f"cache folder {folder}: {above}; set {CACHE_VARIABLE} to a folder under one only you can change"
+        )
     if create and not os.path.lexists(folder):
         try:
             folder.mkdir(mode=FOLDER_MODE, parents=True, exist_ok=True)

@@ -238,6 +238,61 @@ def test_a_folder_of_another_user_is_refused(folder, monkeypatch):
         cache.checked_folder()
 
 
+@pytest.mark.parametrize(("mode", "who"), [(0o777, "the group and others"), (0o775, "the group"), (0o757, "others")])
+def test_a_folder_above_that_others_can_write_without_the_sticky_bit_is_refused(tmp_path, monkeypatch, mode, who):
+    """A parent writable by others could have the cache renamed away and a folder of theirs put in its place:
+    refused before anything is created or loaded, as an unsafe folder is; /tmp's 1777 (sticky) is not."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(mode)
+    folder = shared / "deeper" / "cache"
+    monkeypatch.setenv(cache.CACHE_VARIABLE, str(folder))
+    match = (
+        rf"cache folder {folder}: the folder {shared} above it is writable by {who} without the sticky bit "
+        rf"\(mode {mode:o}\): they could replace the cache; set DAEMODEL_CACHE to a folder under one only you"
+    )
+    with pytest.raises(UnsafeCacheError, match=match):
+        cache.checked_folder()
+    with pytest.warns(CacheWarning, match=match):
+        library = compiled(2.0)
+    assert library.outcome.startswith("refused: cache folder") and evaluates(library, 2.0)
+    assert list(shared.iterdir()) == []  # (nothing created under it)
+    shared.chmod(mode | 0o1000)  # (sticky, as /tmp: only a name's owner may rename it)
+    assert cache.checked_folder() == folder and folder.is_dir()
+    assert compiled(2.0).outcome == "miss"
+
+
+def test_a_folder_above_is_checked_where_links_lead(tmp_path, monkeypatch):
+    """The folders checked are those of the resolved path: a link from a private folder into a shared one."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    (shared / "real").mkdir(mode=0o700)
+    private = tmp_path / "private"
+    private.mkdir(mode=0o700)
+    (private / "link").symlink_to(shared / "real")
+    folder = private / "link" / "cache"
+    with pytest.raises(UnsafeCacheError, match=rf"the folder {shared} above it is writable by the group and others"):
+        cache.checked_folder(folder)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a folder or a link to another user takes root")
+def test_a_folder_or_link_above_of_another_user_is_refused(tmp_path):
+    theirs = tmp_path / "theirs"
+    theirs.mkdir(mode=0o755)
+    os.chown(theirs, 65534, -1)
+    with pytest.raises(UnsafeCacheError, match=rf"the folder {theirs} above it is owned by another user \(uid 65534\)"):
+        cache.checked_folder(theirs / "cache")
+    mine = tmp_path / "mine"
+    mine.mkdir(mode=0o700)
+    link = tmp_path / "link"
+    link.symlink_to(mine)
+    os.lchown(link, 65534, -1)
+    with pytest.raises(UnsafeCacheError, match=rf"the link {link} on its path is owned by another user \(uid 65534\)"):
+        cache.checked_folder(link / "cache")
+    assert cache.checked_folder(mine / "cache") == mine / "cache"
+
+
 @pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user takes root")
 def test_a_file_of_another_user_is_refused(folder):
     compiled(2.0)
