@@ -34,7 +34,8 @@ too (:func:`~daemodel.compiling.switches.with_state_events`: no reset, named aft
 the switch locked to the branch the flow takes where each piece starts
 (:func:`daemodel.compiling.switches.lock_branches`,
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
-goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`).
+goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`); one whose function rests on
+zero within the method's error keeps its branch where both agree (:mod:`daemodel.solving.resting`).
 """
 
 from __future__ import annotations
@@ -85,6 +86,7 @@ from daemodel.solving.pieces import (
     onto_constraints,
 )
 from daemodel.solving.resets import apply_resets
+from daemodel.solving.resting import account, rest_or_raise, watch
 from daemodel.solving.switches import for_method, settings_as_given
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -168,6 +170,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     missed, checks = [], []  # (near misses within the method's error: misses.NearMiss; the tighter solves' stats)
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
+    rests = {}  # (switches resting on zero within the method's error: resting.Rest by event)
 
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * event_tol(time_, t1 - t0))
@@ -185,7 +188,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
             raise
         setup_time += begin.setup_time
+        begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
         piece, piece_when = begin.model, begin.when
+        spent_before = spent[0]
         if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
@@ -216,16 +221,24 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if before_index == 0 and which in begin.at_zero and begin.sides[which]:
                 # (at zero where the piece starts, going to its side: the bracket starts a look-ahead later, where
                 # the method's own solution is on that side, clear of its error at the start)
-                a, Fa, ya, za = _clear_of_zero(
-                    backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
-                    delta_at(a), events[which],
-                )  # fmt: skip
+                try:
+                    a, Fa, ya, za = _clear_of_zero(
+                        backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za,
+                        begin.sides[which], delta_at(a), events[which],
+                    )  # fmt: skip
+                except ZenoError as error:  # (a continuous switch resting on zero: the piece again, watched)
+                    if which in rests:
+                        raise
+                    rests[which] = rest_or_raise(error, compiled, piece, options, P, which, a, ya, za, t1)
+                    spent[0] = spent_before
+                    continue
             guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
             sides_after = {e: int(np.sign(F[first, e])) or 1 for e in tied}
             found = (which, a, b, Fa, Fb, ya, za, guess, sides_after)
         # a function that crossed zero and came back between two outputs, before that crossing
         until = math.inf if found is None else (found[7] if found[7] is not None else found[2])
         shown = len(T) if first is None else first + 1
+        failing += account(rests, rest_sides, compiled, piece, options, P, T[:shown], Ys[:shown], Zs[:shown], F[:shown])
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],

@@ -1,0 +1,165 @@
+"""A switch whose function rests on zero: a state that decays onto its guard (x' = -x under Max(x, 0), x = e^-t)
+stays within the method's error of zero, where the sign of the method's solution is its error's.
+
+casadi-idas (rtol 1e-8) stepped x across zero at t = 21.6 by its own error and the crossing was located; the
+piece after it started on the branch the flow had crossed to, the method's x came back across within its
+error, and :func:`daemodel.solving.events._clear_of_zero` raised :class:`~daemodel.errors.ZenoError` ("does not
+leave zero to the side the flow takes") for a solution that is smooth (the reference method at t = 33; radau,
+whose x stays positive, said "success" 6e-16 off).
+
+Where the two branches of the switch agree there (:func:`branch_weight` at the piece's start, over the rest of
+t_span, within :data:`REST_BUDGET` tolerances: Max(x, 0), Min(1, x), Abs(x) are continuous), either branch is
+within tolerance while the function stays near zero: the piece keeps the branch it started on (a
+:class:`Rest`) and its detection watches the function past a band of :data:`RESTING_TOLS` tolerances on the
+other side (:func:`watch`), not past zero.  Outside the band the switch is an event again.  What the choice
+could cost is measured along the method's own solution (:meth:`Rest.account`: the two branches' difference in
+rate integrated over the outputs where the function is within the band, in tolerances): past
+:data:`REST_BUDGET` the status says so.  Where the branches differ (sign(x), Heaviside(x), floor(x) at an
+integer: a jump), which one holds is not decided at the method's accuracy: :class:`~daemodel.errors.ZenoError`,
+which says so.  Used by :mod:`daemodel.solving.events`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from daemodel.compiling.switches import lock_branches
+from daemodel.errors import ZenoError
+from daemodel.solving.branches import EXCURSION_BUDGET
+from daemodel.solving.misses import function_tolerance
+
+# The band about zero a resting function is watched past, in tolerances of its variables (misses.function_tolerance):
+# scipy's solution of x' = -x at rtol = atol = 1e-8 strays 18 atol below zero (x = -1.8e-7 after t = 20).
+RESTING_TOLS = 100
+# The two branches' difference over a rest, in tolerances (the weighted root mean square the adaptive methods hold
+# each step's error to, times the time), that either branch keeps within the tolerance: the excursions' budget.
+REST_BUDGET = EXCURSION_BUDGET
+
+
+@dataclasses.dataclass
+class Rest:
+    """The switch event ``event`` resting on zero since ``start``: watched past ``band`` on the side other than
+    the piece's branch; ``moved``: how far the other branch would have moved each state so far (:meth:`account`)."""
+
+    event: int
+    name: str
+    band: float
+    start: float
+    moved: np.ndarray | None = None
+    flagged: bool = False
+
+    def account(self, compiled, piece, options, P, side: int, T, Y, Z, F) -> str | None:
+        """Add to :attr:`moved` the integral of the other branch's rates less ``piece``'s (branch ``side``) over the
+        outputs ``T`` (K,) with variables ``Y`` (K, n), ``Z`` (K, m) and this event's function ``F`` (K,), counted
+        where the function is within the band (where the other branch may be the solution's; the output past it on
+        the other side ends the piece, and one past it on the piece's side is on its branch);
+        signed, so that the method's error that takes the function back and forth across zero cancels as it does
+        in the states.  The status where that, in tolerances of the last output (the weighted root mean square the
+        adaptive methods hold each step's error to), passes :data:`REST_BUDGET`, once; else None."""
+        if len(T) < 2 or self.flagged:
+            return None
+        phi = compiled.events[self.event].when
+        other = lock_branches(compiled, T[0], Y[0], Z[0], P[0], {phi: -side})
+        rtol, atol = getattr(options, "rtol", None), getattr(options, "atol", None)
+        if rtol is None or atol is None or other.constraints != piece.constraints:
+            weight = math.inf
+        else:
+            numeric, PP = compiled.numeric, np.repeat(P, len(T), axis=0)
+            change = numeric.batch_function(list(other.rhs))(T, Y, Z, PP) - numeric.batch_function(list(piece.rhs))(
+                T, Y, Z, PP
+            )
+            change[np.abs(F) > self.band] = 0.0
+            moved = np.sum(0.5 * (change[1:] + change[:-1]) * np.diff(T)[:, None], axis=0)
+            self.moved = moved if self.moved is None else self.moved + moved
+            scale = np.asarray(atol, dtype=float) + np.asarray(rtol, dtype=float) * np.abs(Y[-1])
+            weight = float(np.sqrt(np.mean((self.moved / scale) ** 2)))
+        if weight <= REST_BUDGET:
+            return None
+        self.flagged = True
+        return (
+            f"switch '{self.name}' rests on zero within the method's error from t = {self.start:.10g}, where its "
+            f"other branch would have moved the states by {weight:.3g} tolerances by t = {T[-1]:.10g}: the branch "
+            "kept is not within the tolerance; tighten rtol/atol, or smooth the switch"
+        )
+
+
+def rest_or_raise(error: ZenoError, compiled, piece, options, P, which: int, t: float, y, z, t1: float) -> Rest:
+    """A :class:`Rest` for the switch event ``which``, whose function the method's solution does not take off zero
+    where the piece from ``(t, y (1, n), z (1, m))`` starts (``error``, from ``_clear_of_zero``), where its two
+    branches there differ by at most :data:`REST_BUDGET` tolerances over the rest of t_span, to ``t1``.
+
+    Raises
+    ------
+    ZenoError
+        ``error`` for a declared event; for a switch whose branches differ there (a jump), one that says so.
+    """
+    event = compiled.events[which]
+    if not event.strict:
+        raise error
+    plus = lock_branches(compiled, t, y[0], z[0], P[0], {event.when: 1})
+    minus = lock_branches(compiled, t, y[0], z[0], P[0], {event.when: -1})
+    weight = float(_weighted_difference(compiled, plus, minus, options, np.array([t]), y, z, P)[0]) * (t1 - t)
+    if not weight <= REST_BUDGET:
+        said = f"by {weight:.3g} tolerances over the rest of t_span" if math.isfinite(weight) else "in its constraints"
+        raise ZenoError(
+            f"switch '{event.name}' at t = {t:.12g}: {event.when} rests on zero within the method's error (the "
+            f"method's solution does not leave zero to the side the flow takes), where its two branches differ "
+            f"({said}): which one holds is not decided at this accuracy; smooth the switch (e.g. tanh(s/eps) for "
+            "sign(s)), or end t_span before it",
+            t,
+        ) from None
+    when = compiled.numeric.batch_function([event.when])
+    band = RESTING_TOLS * function_tolerance(when, options, 0, t, y, z, P)
+    return Rest(which, event.name, band, t)
+
+
+def _weighted_difference(compiled, one, other, options, T, Y, Z, P) -> np.ndarray:
+    """The difference of the rates of the models ``one`` and ``other`` at the outputs ``(T (K,), Y (K, n), Z (K, m))``
+    in the weighted root mean square of ``atol + rtol |y|``: (K,); infinite without rtol and atol (fixed steps) and
+    where their constraints differ."""
+    rtol, atol = getattr(options, "rtol", None), getattr(options, "atol", None)
+    if rtol is None or atol is None or one.constraints != other.constraints:
+        return np.full(len(T), math.inf)
+    numeric, PP = compiled.numeric, np.repeat(P, len(T), axis=0)
+    change = numeric.batch_function(list(one.rhs))(T, Y, Z, PP) - numeric.batch_function(list(other.rhs))(T, Y, Z, PP)
+    weighted = np.abs(change) / (np.asarray(atol, dtype=float) + np.asarray(rtol, dtype=float) * np.abs(Y))
+    return np.sqrt(np.mean(weighted**2, axis=1))
+
+
+def watch(begin, rests: dict, when, t: float, Y, Z, P, fired) -> tuple:
+    """``(begin, rests, sides)`` for the piece from ``t``: the rests still on (not those whose event fired at ``t``
+    after they began, leaving the band, nor those whose function is past their band there), and ``begin`` (a
+    :class:`~daemodel.solving.branches.Start`) with each one's function ``F`` seen as ``F + side band``, ``side``
+    its branch in the piece (its side at zero, else its value's): of that side until ``F`` leaves the band on the
+    other one."""
+    if not rests:
+        return begin, rests, {}
+    F0 = when(np.array([t]), Y, Z, P)[0]
+    rests = {e: rest for e, rest in rests.items() if not (e in fired and t > rest.start) and abs(F0[e]) <= rest.band}
+    sides = {e: int(begin.sides[e]) or int(np.sign(F0[e])) or 1 for e in rests}
+    if not rests:
+        return begin, rests, sides
+    inner = begin.when
+
+    def watched(t, Y, Z, P):
+        out = inner(t, Y, Z, P).copy()
+        for e, rest in rests.items():
+            out[:, e] += sides[e] * rest.band
+        return out
+
+    return dataclasses.replace(begin, when=watched), rests, sides
+
+
+def account(rests: dict, sides: dict, compiled, piece, options, P, T, Y, Z, F) -> list[str]:
+    """:meth:`Rest.account` for each rest over a piece's outputs ``T`` (K,), ``Y``, ``Z`` and its watched functions
+    ``F`` (K, E) (:func:`watch`): the statuses of those past :data:`REST_BUDGET`."""
+    notes = []
+    for e, rest in rests.items():
+        raw = F[:, e] - sides[e] * rest.band
+        note = rest.account(compiled, piece, options, P, sides[e], T, Y, Z, raw)
+        if note is not None:
+            notes.append(note)
+    return notes
