@@ -77,7 +77,7 @@ from daemodel.solving.branches import (
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
-from daemodel.solving.misses import NearMisses, status_of
+from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
@@ -171,6 +171,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
     rests = {}  # (switches resting on zero within the method's error: resting.Rest by event)
+    carried_in = CarriedErrors()  # (each piece, to estimate the error it carries on: misses.CarriedErrors)
 
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * event_tol(time_, t1 - t0))
@@ -242,7 +243,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],
-            Ys[read:], Zs[read:], begin, until, spent, missed, checks,
+            Ys[read:], Zs[read:], begin, until, spent, missed, checks, carried_in,
         )  # fmt: skip
         all_stats += trials
         location += trials
@@ -261,6 +262,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                     "within the method's error that often; tighten the tolerances or raise max_events"
                 )
             pieces.append((t, T[-1], Y, Z, "continued", piece, sol.dense if keeps_dense else None, sol))
+            again = _again(backend, piece, start.batched, P, piece_when, t, Y, Z, T[-1], checks)
+            carried_in.add(again, Ys[-1:], Zs[-1:])
             if getattr(options, "h", None) is None:
                 carried = {"h0": float(T[-1] - T[-2])}
             t, Y, Z = float(T[-1]), Ys[-1:].copy(), Zs[-1:].copy()
@@ -284,6 +287,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         )
         all_stats += located
         location += located
+        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
         if unresolved is not None:
             from daemodel.backends.base import caller_level
 
@@ -531,8 +535,20 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
+def _again(backend, piece, batched, P, when, a: float, ya, za, b: float, checks: list):
+    """``solve(options) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(ya, za)`` solved again with other
+    options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to ``checks``."""
+
+    def solve(options):
+        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, ya, za)
+        checks.append(solved)
+        return y, z
+
+    return solve
+
+
 def _first_excursion(
-    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks
+    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks, carried
 ):
     """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
     before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
@@ -541,7 +557,8 @@ def _first_excursion(
     accepts: the one away from its side, else the one back to it.  A switch's excursion is integrated through
     where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it).
     A near miss (the method's own solution does not cross) within its error is added to ``missed``
-    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``."""
+    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``; ``carried``:
+    the error the pieces before carry in (:class:`~daemodel.solving.misses.CarriedErrors`)."""
     stats = []
     if sol.dense is None:
         return None, stats
@@ -554,7 +571,7 @@ def _first_excursion(
         checks.append(solved)
         return value, y, z
 
-    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1])
+    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1], carried)
 
     for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
         if x.t >= until:
