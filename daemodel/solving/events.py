@@ -86,7 +86,7 @@ from daemodel.solving.pieces import (
     onto_constraints,
 )
 from daemodel.solving.resets import apply_resets
-from daemodel.solving.resting import account, rest_or_raise, watch
+from daemodel.solving.resting import account, gone, rest_or_raise, watch
 from daemodel.solving.switches import for_method, settings_as_given
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -251,6 +251,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             found, hit = hidden, {}
         if failed is not None and found is None:  # (no switch crossed before the failure: the model's own)
             raise failed
+        left = None if failed is not None else gone(rests, rest_sides, F[:shown])
+        if left is not None and (found is None or T[left] <= found[1]):  # (a rest ends: on from there, watched anew)
+            found, T, Ys, Zs = None, T[: left + 1], Ys[: left + 1], Zs[: left + 1]
         if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
             # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
             # from there, with the step it had reached)

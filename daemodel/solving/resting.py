@@ -153,6 +153,16 @@ def watch(begin, rests: dict, when, t: float, Y, Z, P, fired) -> tuple:
     return dataclasses.replace(begin, when=watched), rests, sides
 
 
+def gone(rests: dict, sides: dict, F: np.ndarray) -> int | None:
+    """The first of a piece's outputs (not its first) where a resting function, in the watched ``F`` (K, E)
+    (:func:`watch`), is past its band on the piece's own side: its rest ends there, and a piece from there watches
+    it cross zero again (watched past the band on the other side, a crossing after it was located a band late:
+    5e-7 in t at rtol 1e-8, where the function falls at 2 a second); None where there is none."""
+    ends = [np.flatnonzero(sides[e] * F[1:, e] > 2.0 * rest.band) for e, rest in rests.items()]
+    found = [int(k[0]) + 1 for k in ends if len(k)]
+    return min(found) if found else None
+
+
 def account(rests: dict, sides: dict, compiled, piece, options, P, T, Y, Z, F) -> list[str]:
     """:meth:`Rest.account` for each rest over a piece's outputs ``T`` (K,), ``Y``, ``Z`` and its watched functions
     ``F`` (K, E) (:func:`watch`): the statuses of those past :data:`REST_BUDGET`."""

@@ -123,3 +123,19 @@ def test_a_rest_whose_other_branch_would_move_the_states_is_flagged():
     small = Y * 1e-9  # (x 1e-19: u moves 1e-18 on the other branch)
     assert quiet.account(compiled, piece, options, P, 1, T, small, Z, small[:, 0]) is None
     assert np.sqrt(np.mean((quiet.moved / (1e-8 + 1e-8 * np.abs(small[-1]))) ** 2)) < REST_BUDGET
+
+
+@pytest.mark.parametrize("method", ["casadi-idas", "reference"])
+def test_a_rest_that_ends_on_its_own_side_leaves_the_next_crossing_located_at_zero(method):
+    # x = -e^-t rests on Max(x, 0)'s guard from below (at rtol 1e-8 IDAS's x crossed it at t = 21, the reference's at
+    # 24.9, and the rest kept the branch above), is pushed up at t = 30 and down at 45: it crosses zero at
+    # 45 + ln((x(45) + 2) / 2).  The rest went on through [30, 45], where x was 2, and that crossing was watched past
+    # the band: 45.69314753 in both, 5e-7 late (x falls at 2 a second past a band of 1e-6)
+    x45 = 2.0 * (1.0 - math.exp(-15.0)) - math.exp(-45.0)
+    late = math.log((x45 + 2.0) / 2.0)
+    u = 28.0 + 2.0 * math.exp(-15.0) - math.exp(-30.0) * (1.0 - math.exp(-15.0)) + x45 - 2.0 * late
+    m = _decay("-x + 2*Heaviside(t - 30) - 4*Heaviside(t - 45)", "Max(x, 0)", -1.0)
+    sol = dm.solve(m, (0.0, T1), method=method, rtol=1e-8, atol=1e-8)
+    assert sol.status == "success"
+    assert abs(sol.events["Max in u'"]["t"][0, -1] - (45.0 + late)) < 5e-8
+    assert abs(sol["u"][-1] - u) < 1e-6
