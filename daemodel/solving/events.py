@@ -230,7 +230,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 except ZenoError as error:  # (a continuous switch resting on zero: the piece again, watched)
                     if which in rests:
                         raise
-                    rests[which] = rest_or_raise(error, compiled, piece, options, P, which, a, ya, za, t1)
+                    rests[which] = rest_or_raise(
+                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
+                    )
                     spent[0] = spent_before
                     continue
             guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
@@ -239,7 +241,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         # a function that crossed zero and came back between two outputs, before that crossing
         until = math.inf if found is None else (found[7] if found[7] is not None else found[2])
         shown = len(T) if first is None else first + 1
-        failing += account(rests, rest_sides, compiled, piece, options, P, T[:shown], Ys[:shown], Zs[:shown], F[:shown])
+        failing += account(
+            rests, rest_sides, compiled, backend, piece, options, P, T[:shown], Ys[:shown], Zs[:shown], F[:shown]
+        )
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],

@@ -4,16 +4,21 @@ solution; switches that jump there (sign, Heaviside, floor) are refused with a n
 
 import math
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from daemodel.backends.casadi.idas import IDASOptions
+from daemodel.backends.radau.options import RadauOptions
+from daemodel.backends.registry import get_backend
 
 import daemodel as dm
 from daemodel import errors as E
+from daemodel.compiling.initial_states import algebraic_values
 from daemodel.compiling.switches import lock_branches, with_state_events
-from daemodel.solving.resting import REST_BUDGET, Rest
+from daemodel.solving.resting import REST_BUDGET, Rest, rest_or_raise
 
+IDAS = get_backend("casadi-idas")
 T1 = 60.0  # (e^-60 = 8.8e-27: below every tolerance; IDAS's x crosses zero by its error near t = 20-27)
 
 # (x' rate, the switch in u', x(0), u(T1) exact)
@@ -112,16 +117,16 @@ def test_a_rest_whose_other_branch_would_move_the_states_is_flagged():
     piece = lock_branches(compiled, T[0], Y[0], Z[0], P[0], {compiled.events[0].when: 1})
     rest = Rest(0, "Max in u'", 1e-6, 20.0)
     options = IDASOptions(rtol=1e-8, atol=1e-8)
-    note = rest.account(compiled, piece, options, P, 1, T, Y, Z, Y[:, 0])
+    note = rest.account(compiled, IDAS, piece, options, P, 1, T, Y, Z, Y[:, 0])
     assert note == (
         "switch 'Max in u'' rests on zero within the method's error from t = 20, where its other branch would have "
         "moved the states by 7.07e+04 tolerances by t = 30: the branch kept is not within the tolerance; tighten "
         "rtol/atol, or smooth the switch"
     )
-    assert rest.account(compiled, piece, options, P, 1, T, Y, Z, Y[:, 0]) is None  # (said once)
+    assert rest.account(compiled, IDAS, piece, options, P, 1, T, Y, Z, Y[:, 0]) is None  # (said once)
     quiet = Rest(0, "Max in u'", 1e-6, 20.0)
     small = Y * 1e-9  # (x 1e-19: u moves 1e-18 on the other branch)
-    assert quiet.account(compiled, piece, options, P, 1, T, small, Z, small[:, 0]) is None
+    assert quiet.account(compiled, IDAS, piece, options, P, 1, T, small, Z, small[:, 0]) is None
     assert np.sqrt(np.mean((quiet.moved / (1e-8 + 1e-8 * np.abs(small[-1]))) ** 2)) < REST_BUDGET
 
 
@@ -139,3 +144,78 @@ def test_a_rest_that_ends_on_its_own_side_leaves_the_next_crossing_located_at_ze
     assert sol.status == "success"
     assert abs(sol.events["Max in u'"]["t"][0, -1] - (45.0 + late)) < 5e-8
     assert abs(sol["u"][-1] - u) < 1e-6
+
+
+def _rest_at_zero(m, x: float, options, side: int = 1):
+    """:func:`rest_or_raise` for ``m``'s first switch where the piece from x (z solved on the branch ``side``)
+    starts, at t = 30 of (0, 60)."""
+    compiled = with_state_events(m.compile())
+    phi = compiled.events[0].when
+    y, P = np.array([[x, 0.0]]), np.zeros((1, 0))
+    piece = lock_branches(compiled, 30.0, y[0], np.zeros(len(compiled.algebraics)), P[0], {phi: side})
+    z = algebraic_values(piece, 30.0, y, P, np.ones((1, len(compiled.algebraics))))
+    backend = get_backend("casadi-idas" if isinstance(options, IDASOptions) else "radau")
+    return rest_or_raise(
+        E.ZenoError("as _clear_of_zero"), compiled, backend, piece, side, options, P, 0, 30.0, y, z, T1
+    )
+
+
+def test_a_rest_is_refused_where_the_branches_cannot_be_weighed():
+    # a fixed step without estimate_bound has no tolerance to weigh the branches' difference by; the other branch of a
+    # switch in a constraint (z^2 = 1 + (x or -2)) that leaves the algebraic variable no solution cannot be weighed
+    m = _decay("-x", "Max(x, 0)", 1.0)
+    fixed = SimpleNamespace(h=0.5, rtol=None, atol=None, estimate_bound=None)  # (every method sets estimate_bound)
+    with pytest.raises(E.ZenoError, match=r"differ \(with no tolerance to weigh them by: give rtol and atol, or "):
+        _rest_at_zero(m, 1e-12, fixed)
+    assert _rest_at_zero(m, 1e-12, RadauOptions(h=0.5, stages=3, estimate_bound=1e-8)).band == pytest.approx(1e-6)
+    m = dm.Model("root")
+    m.states("x u")
+    m.algebraics("z")
+    m.ode("x", "-x")
+    m.ode("u", "z")
+    m.constraint("z**2 - 1 - Piecewise((x, x > 0), (-2, True))")
+    m.initial(x=1.0, u=0.0)
+    m.guess(z=1.0)
+    with pytest.raises(E.ZenoError, match=r"differ \(the algebraic variables have no solution on the other\)"):
+        _rest_at_zero(m, 1e-12, IDASOptions(rtol=1e-8, atol=1e-8))
+    with pytest.raises(E.ZenoError, match="as _clear_of_zero"):  # (a declared event: the error as it came)
+        m = _decay("-x", "0", 1.0)
+        m.event("down", "x")
+        _rest_at_zero(m, 1e-12, IDASOptions(rtol=1e-8, atol=1e-8))
+
+
+def _algebraic(gain: float):
+    """u' = x with z = gain Max(x, 0) in a constraint (the switch's branches differ in the constraints)."""
+    m = dm.Model("algebraic")
+    m.states("x u")
+    m.algebraics("z")
+    m.ode("x", "-x")
+    m.ode("u", "z")
+    m.constraint(f"z - {gain!r}*Max(x, 0)")
+    m.initial(x=1.0, u=0.0)
+    return m
+
+
+@pytest.mark.parametrize(("method", "options"), [("casadi-idas", {"rtol": 1e-8, "atol": 1e-8}), ("reference", {})])
+def test_a_state_resting_on_a_continuous_switch_in_a_constraint_is_solved(method, options):
+    # before: ZenoError at t = 30.1 (IDAS) and 33 (reference); now z solved on the other branch is weighed too
+    sol = dm.solve(_algebraic(1.0), (0.0, T1), method=method, **options)
+    assert sol.status == "success" and abs(sol["u"][-1] - (1.0 - math.exp(-T1))) < 1e-7
+    assert np.abs(sol["z"] - np.exp(-sol.t)).max() < 1e-7
+
+
+@pytest.mark.parametrize(("method", "options"), [("casadi-idas", {"rtol": 1e-8, "atol": 1e-8}), ("reference", {})])
+def test_a_rest_whose_branch_would_be_wrong_in_the_algebraic_variables_is_never_success(method, options):
+    # z = 1e6 Max(x, 0), x = e^-t: z = 4.7e-9 at t = 33, thousands of the reference's tolerances (1e-12); the branch
+    # z = 0 kept there would be that far off.  Either refused by name or solved within the tolerance
+    try:
+        sol = dm.solve(_algebraic(1e6), (0.0, T1), method=method, **options)
+    except E.ZenoError as error:
+        assert re.search(
+            r"where its two branches differ \(by [0-9.e+]+ tolerances over the rest of t_span\)", str(error)
+        )
+        return
+    late = sol.t > 20.0
+    rtol = options.get("rtol", 1e-12)
+    assert sol.status == "success"
+    assert np.all(np.abs(sol["z"][late] - 1e6 * np.exp(-sol.t[late])) < 10 * (rtol + rtol * 1e6 * np.exp(-sol.t[late])))
