@@ -7,13 +7,14 @@ error, and :func:`daemodel.solving.events._clear_of_zero` raised :class:`~daemod
 leave zero to the side the flow takes") for a solution that is smooth (the reference method at t = 33; radau,
 whose x stays positive, said "success" 6e-16 off).
 
-Where the two branches of the switch agree there (:func:`branch_weight` at the piece's start, over the rest of
-t_span, within :data:`REST_BUDGET` tolerances: Max(x, 0), Min(1, x), Abs(x) are continuous), either branch is
-within tolerance while the function stays near zero: the piece keeps the branch it started on (a
-:class:`Rest`) and its detection watches the function past a band of :data:`RESTING_TOLS` tolerances on the
-other side (:func:`watch`), not past zero.  Outside the band the switch is an event again.  What the choice
-could cost is measured along the method's own solution (:meth:`Rest.account`: the two branches' difference in
-rate integrated over the outputs where the function is within the band, in tolerances): past
+Where the two branches of the switch agree there (:func:`rest_or_raise`: their rates at the piece's start over
+the rest of t_span, and the algebraic variables solved on each, within :data:`REST_BUDGET` tolerances: Max(x, 0),
+Min(1, x), Abs(x) are continuous), either branch is within tolerance while the function stays near zero: the
+piece keeps the branch it started on (a :class:`Rest`) and its detection watches the function past a band of
+:data:`RESTING_TOLS` tolerances on the other side (:func:`watch`), not past zero.  Past the band on either side
+the rest ends (:func:`gone`) and the switch is an event again.  What the choice could cost is measured along the
+method's own solution (:meth:`Rest.account`: the two branches' difference in rate integrated, signed, over the
+outputs where the function is within the band, and in the algebraic variables, in tolerances): past
 :data:`REST_BUDGET` the status says so.  Where the branches differ (sign(x), Heaviside(x), floor(x) at an
 integer: a jump), which one holds is not decided at the method's accuracy: :class:`~daemodel.errors.ZenoError`,
 which says so.  Used by :mod:`daemodel.solving.events`.
