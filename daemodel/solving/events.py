@@ -34,7 +34,8 @@ too (:func:`~daemodel.compiling.switches.with_state_events`: no reset, named aft
 the switch locked to the branch the flow takes where each piece starts
 (:func:`daemodel.compiling.switches.lock_branches`,
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
-goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`).
+goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`); one whose function rests on
+zero within the method's error keeps its branch where both agree (:mod:`daemodel.solving.resting`).
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ from daemodel.solving.branches import (
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
-from daemodel.solving.misses import NearMisses, status_of
+from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
@@ -85,6 +86,7 @@ from daemodel.solving.pieces import (
     onto_constraints,
 )
 from daemodel.solving.resets import apply_resets
+from daemodel.solving.resting import account, gone, rest_or_raise, watch
 from daemodel.solving.switches import for_method, settings_as_given
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
@@ -168,6 +170,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     missed, checks = [], []  # (near misses within the method's error: misses.NearMiss; the tighter solves' stats)
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
+    rests = {}  # (switches resting on zero within the method's error: resting.Rest by event)
+    carried_in = CarriedErrors()  # (each piece, to estimate the error it carries on: misses.CarriedErrors)
 
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * event_tol(time_, t1 - t0))
@@ -185,7 +189,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
             raise
         setup_time += begin.setup_time
+        begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
         piece, piece_when = begin.model, begin.when
+        spent_before = spent[0]
         if t == t0 and Z.shape[1] and any(e.strict for e, side in zip(events, begin.sides, strict=True) if side):
             Z = algebraic_values(for_method(piece, backend), t, Y, P, Z)  # (z0 on the branch taken, not at zero)
         with warnings.catch_warnings(record=True) as caught:  # (said only where the solve is the last piece's)
@@ -216,20 +222,32 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             if before_index == 0 and which in begin.at_zero and begin.sides[which]:
                 # (at zero where the piece starts, going to its side: the bracket starts a look-ahead later, where
                 # the method's own solution is on that side, clear of its error at the start)
-                a, Fa, ya, za = _clear_of_zero(
-                    backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za, begin.sides[which],
-                    delta_at(a), events[which],
-                )  # fmt: skip
+                try:
+                    a, Fa, ya, za = _clear_of_zero(
+                        backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za,
+                        begin.sides[which], delta_at(a), events[which],
+                    )  # fmt: skip
+                except ZenoError as error:  # (a continuous switch resting on zero: the piece again, watched)
+                    if which in rests:
+                        raise
+                    rests[which] = rest_or_raise(
+                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
+                    )
+                    spent[0] = spent_before
+                    continue
             guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
             sides_after = {e: int(np.sign(F[first, e])) or 1 for e in tied}
             found = (which, a, b, Fa, Fb, ya, za, guess, sides_after)
         # a function that crossed zero and came back between two outputs, before that crossing
         until = math.inf if found is None else (found[7] if found[7] is not None else found[2])
         shown = len(T) if first is None else first + 1
+        failing += account(
+            rests, rest_sides, compiled, backend, piece, options, P, T[:shown], Ys[:shown], Zs[:shown], F[:shown]
+        )
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
         hidden, trials = _first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],
-            Ys[read:], Zs[read:], begin, until, spent, missed, checks,
+            Ys[read:], Zs[read:], begin, until, spent, missed, checks, carried_in,
         )  # fmt: skip
         all_stats += trials
         location += trials
@@ -237,6 +255,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             found, hit = hidden, {}
         if failed is not None and found is None:  # (no switch crossed before the failure: the model's own)
             raise failed
+        left = None if failed is not None else gone(rests, rest_sides, F[:shown])
+        if left is not None and (found is None or T[left] <= found[1]):  # (a rest ends: on from there, watched anew)
+            found, T, Ys, Zs = None, T[: left + 1], Ys[: left + 1], Zs[: left + 1]
         if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
             # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
             # from there, with the step it had reached)
@@ -248,6 +269,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                     "within the method's error that often; tighten the tolerances or raise max_events"
                 )
             pieces.append((t, T[-1], Y, Z, "continued", piece, sol.dense if keeps_dense else None, sol))
+            again = _again(backend, piece, start.batched, P, piece_when, t, Y, Z, T[-1], checks)
+            carried_in.add(again, Ys[-1:], Zs[-1:])
             if getattr(options, "h", None) is None:
                 carried = {"h0": float(T[-1] - T[-2])}
             t, Y, Z = float(T[-1]), Ys[-1:].copy(), Zs[-1:].copy()
@@ -271,6 +294,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         )
         all_stats += located
         location += located
+        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
         if unresolved is not None:
             from daemodel.backends.base import caller_level
 
@@ -518,8 +542,20 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         step *= 2.0
 
 
+def _again(backend, piece, batched, P, when, a: float, ya, za, b: float, checks: list):
+    """``solve(options) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(ya, za)`` solved again with other
+    options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to ``checks``."""
+
+    def solve(options):
+        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, ya, za)
+        checks.append(solved)
+        return y, z
+
+    return solve
+
+
 def _first_excursion(
-    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks
+    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks, carried
 ):
     """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
     before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
@@ -528,7 +564,8 @@ def _first_excursion(
     accepts: the one away from its side, else the one back to it.  A switch's excursion is integrated through
     where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it).
     A near miss (the method's own solution does not cross) within its error is added to ``missed``
-    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``."""
+    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``; ``carried``:
+    the error the pieces before carry in (:class:`~daemodel.solving.misses.CarriedErrors`)."""
     stats = []
     if sol.dense is None:
         return None, stats
@@ -541,7 +578,7 @@ def _first_excursion(
         checks.append(solved)
         return value, y, z
 
-    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1])
+    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1], carried)
 
     for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
         if x.t >= until:

@@ -2,14 +2,24 @@
 leaves within its error of zero, checked by a solve 100 times tighter."""
 
 import math
+import re
 
 import numpy as np
 import pytest
 from daemodel.backends.casadi.idas import IDASOptions
 
+import daemodel as dm
 from daemodel import errors as E
 from daemodel.solving.between import Excursion, excursions
-from daemodel.solving.misses import NEAR_MISS_TOLS, TIGHTER, NearMiss, NearMisses, function_tolerance, status_of
+from daemodel.solving.misses import (
+    NEAR_MISS_TOLS,
+    TIGHTER,
+    CarriedErrors,
+    NearMiss,
+    NearMisses,
+    function_tolerance,
+    status_of,
+)
 
 
 def _miss(near: float, t: float = 1.0) -> Excursion:
@@ -113,3 +123,104 @@ def test_the_probes_report_the_point_nearest_zero_where_no_crossing_is():
     found = list(excursions(read, T, F, np.ones(F.shape, dtype=bool), 0))
     assert len(found) == 1 and found[0].side == 1.0
     assert abs(found[0].t - peak) < 1e-4 and abs(found[0].near - 1e-6) < 1e-9
+
+
+def _carried(*ends):
+    """A :class:`CarriedErrors` of pieces whose solves again end at ``ends`` (each (y, z), or an error to raise),
+    the method's own at ONE, NONE; and the options each solve got."""
+    carried, calls = CarriedErrors(), []
+    for end in ends:
+
+        def solve(options, end=end):
+            calls.append((options.rtol, options.atol))
+            if isinstance(end, Exception):
+                raise end
+            return end
+
+        carried.add(solve, ONE, NONE)
+    return carried, calls
+
+
+def test_the_error_carried_in_adds_each_earlier_pieces_in_tolerances_once():
+    # the pieces' ends solved again 100 times tighter: 4e-7 and 1e-7 off in the largest variable (of 1: tolerances of
+    # 2e-7 at rtol = atol = 1e-7), 2 + 0.5 tolerances; each piece solved again once
+    options = IDASOptions(rtol=1e-7, atol=1e-7)
+    carried, calls = _carried((np.array([[1.0 - 4e-7, 1.0 + 1e-7]]), NONE), (np.array([[1.0, 1.0 + 1e-7]]), NONE))
+    assert abs(carried.total(options) - 2.5) < 1e-9
+    assert abs(carried.total(options) - 2.5) < 1e-9 and calls == [(1e-7 / TIGHTER, 1e-7 / TIGHTER)] * 2
+    failing, _ = _carried(E.ConvergenceError("IDA_CONV_FAIL"))
+    assert failing.total(options) == math.inf
+    with pytest.raises(E.TimeLimitError):
+        _carried(E.TimeLimitError("the task's time limit of 1 s ran out"))[0].total(options)
+
+
+@pytest.mark.parametrize(("tight", "flagged"), [(1.8e-6, True), (2.2e-6, False), (-1e-6, True)])
+def test_a_near_miss_within_the_error_carried_in_is_flagged(tight, flagged):
+    # 10 tolerances carried in (2e-6 in 0.999999 - s at rtol 1e-7): a tighter solve from the piece's start that stays
+    # 1.8e-6 on its side is within it (undecided); 2.2e-6 is not; one that crosses is flagged as before
+    trial, _ = _solver(tight)
+    carried, _ = _carried((np.array([[1.0 - 2e-6, 1.0]]), NONE))
+    near = NearMisses(trial, _when, P, IDASOptions(rtol=1e-7, atol=1e-7), 0.0, ONE, NONE, carried)
+    miss = near.check(_miss(2.4e-6, t=7.85), "hump", ONE, NONE)
+    assert (miss is not None) == flagged
+    if flagged and tight > 0:
+        assert miss == NearMiss("hump", 7.85, 2.4e-6, 1.8e-6, miss.carried) and abs(miss.carried - 2e-6) < 1e-12
+        assert miss.status("casadi-idas") == (
+            "event 'hump' near t = 7.85: its function stays 2.4e-06 from zero in casadi-idas's solution, where a solve "
+            "100 times tighter from the piece's start stays 1.8e-06 from it, within the error carried in from earlier "
+            "pieces (2e-06): whether it crosses is not decided at the method's accuracy; tighten rtol/atol"
+        )
+
+
+def _halves(c: float, phi: float):
+    """A declared event on c - sin(t + phi), its crossings counted in n, and one at each zero of s, counted in k: a
+    piece every half period, each starting from the values the pieces before left."""
+    m = dm.Model("halves")
+    m.states("s c n k")
+    m.ode("s", "c")
+    m.ode("c", "-s")
+    m.ode("n", "0")
+    m.ode("k", "0")
+    m.initial(s=math.sin(phi), c=math.cos(phi), n=0.0, k=0.0)
+    m.event("hump", f"{c} - s", reset={"n": "n + 1"})
+    m.event("zero", "s", reset={"k": "k + 1"})
+    return m
+
+
+CROSSES = (
+    r"event 'hump' near t = [0-9.]+: its function stays [0-9.]+e-0[5-9] from zero in casadi-idas's solution, where "
+    r"a solve 100 times tighter crosses to -[0-9.]+e-0[6-9]: a crossing within the method's error, not located; "
+    r"tighten rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?"
+)
+UNDECIDED = (
+    r"event 'hump' near t = [0-9.]+: its function stays [0-9.]+e-0[5-9] from zero in casadi-idas's solution, where "
+    r"a solve 100 times tighter from the piece's start stays [0-9.]+e-0[5-9] from it, within the error carried in "
+    r"from earlier pieces \([0-9.]+e-0[5-9]\): whether it crosses is not decided at the method's accuracy; tighten "
+    r"rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?"
+)
+
+
+@pytest.mark.parametrize("c", [0.99999, 0.999999, 1.000001, 1.00001])
+def test_near_misses_after_events_count_the_error_carried_in(c):
+    # IDAS at rtol 1e-7 loses 2e-5 of the amplitude of s by t = 40; with a piece every half period each near miss's
+    # tighter solve started from the values the pieces before left, with that loss in them, and stayed on its side:
+    # 0 to 2 of the 12 to 14 crossings at c = 0.999999 (7 of 8 phases) and 6 to 8 at 0.99999, each "success".  Now
+    # every crossing is found, or the status says one is within the method's error.  Humps that never cross make no
+    # event; 1e-5 above (50 tolerances) no flag either; 1e-6 above, within IDAS's error there, the status may say that
+    # whether one crosses is not decided (at phase 1.5779: benchmarks/event_near_misses.py), never that one does
+    t1, rtol = 40.0, 1e-7
+    for phi in np.linspace(0.0, 2.0 * math.pi, 4, endpoint=False):
+        sol = dm.solve(_halves(c, phi), (0.0, t1), method="casadi-idas", rtol=rtol, atol=rtol, t_eval=[0.0, t1])
+        exact = np.zeros(0)
+        if c < 1.0:
+            k = 2.0 * math.pi * np.arange(8)
+            exact = np.sort(np.concatenate([math.pi / 2 - math.acos(c) + k, math.pi / 2 + math.acos(c) + k])) - phi
+            exact = exact[(exact > 0) & (exact < t1)]
+        found = sol.events["hump"]["t"][0]
+        assert sol["n"][-1] == len(found) <= len(exact), phi
+        if sol.status == "success":
+            assert len(found) == len(exact), phi
+        elif c < 1.0:
+            assert re.fullmatch(CROSSES, sol.status) or re.fullmatch(UNDECIDED, sol.status), (phi, sol.status)
+        else:
+            assert c < 1.00001 and re.fullmatch(UNDECIDED, sol.status), (phi, sol.status)

@@ -510,18 +510,13 @@ def test_a_failure_past_no_crossing_is_the_models_own(method):
     assert abs(raised.value.t - 2.0) < 1e-2
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=E.ZenoError,
-    reason="open (found 2026-11-30, also at b6ed043): a state that decays onto a Max/Min switch rests on it within "
-    "rounding; IDAS and scipy step across by their error, the crossing is located, and events._clear_of_zero "
-    "raises ZenoError although both branches agree there",
-)
 @pytest.mark.parametrize("method", ["casadi-idas", "reference"])
 def test_a_state_that_decays_onto_a_max_switch_is_solved(method):
-    """u' = Max(x, 0), x = e^-t: x never crosses 0, and Max(x, 0) is continuous; u = 1 - e^-t.  ZenoError at
-    t = 22.2 (IDAS, rtol 1e-8) and 33 (reference); radau and casadi-collocation say success, 6e-16 and 1e-12 off.
-    The same for x' = 1 - x with Min(1, x) (IDAS at t = 19.5, the reference at 35)."""
+    """u' = Max(x, 0), x = e^-t: x never crosses 0, and Max(x, 0) is continuous; u = 1 - e^-t.  Was ZenoError at
+    t = 22.2 (IDAS, rtol 1e-8) and 33 (reference); radau and casadi-collocation said success, 6e-16 and 1e-12 off.
+    The same for x' = 1 - x with Min(1, x) (IDAS at t = 19.5, the reference at 35).  Now the switch rests on zero
+    within the method's error with its branch kept (daemodel/solving/resting.py; more cases in
+    tests/solving/test_resting.py)."""
     m = dm.Model("decay")
     m.states("x u")
     m.ode("x", "-x")
