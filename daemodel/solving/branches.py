@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
-from daemodel.compiling.switches import lock_branches
+from daemodel.compiling.switches import lock_branches, lock_functions
 from daemodel.errors import SlidingModeError, ZenoError
 from daemodel.solving.switches import for_method
 
@@ -104,6 +104,18 @@ def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float, fourth:
         except ModelError:  # (no root near Z past the start: the rate of z is not needed to tell most sides)
             Z1 = Z
     return Y1, Z1
+
+
+def _on_piece(compiled, when, t: float, Y, Z, P, chosen: dict):
+    """The event functions on the piece whose switches ``chosen`` and ``(t, Y, Z)`` lock
+    (:func:`~daemodel.compiling.switches.lock_functions`: a switch inside one fixed to the piece's branch, so
+    that the function is smooth on it, as the piece's equations are); ``when`` (all of them as written) where
+    none holds a switch on variables."""
+    whens = tuple(event.when for event in compiled.events)
+    fixed = lock_functions(compiled, whens, t, Y[0], Z[0], P[0], chosen)
+    if fixed == whens:
+        return when
+    return compiled.cached(("event-functions", fixed), lambda: compiled.numeric.batch_function(list(fixed)))
 
 
 def _side(change: float, scale: float) -> int:
@@ -197,7 +209,8 @@ def start_piece(
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
-        rates = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows) / delta
+        rates = drift(compiled, backend, model, t, Y, Z, P, _on_piece(compiled, when, t, Y, Z, P, chosen), delta, flows)
+        rates = rates / delta
         soon = event_tol(t, span) * 10  # (a crossing this close to t is at t: no piece that short)
         near = {
             e
@@ -259,7 +272,7 @@ def start_piece(
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
         model,
-        _leveled(when, levels, replaced),
+        _leveled(_on_piece(compiled, when, t, Y, Z, P, chosen) if lock else when, levels, replaced),
         sides,
         armed,
         time.perf_counter() - started,
