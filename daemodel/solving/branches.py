@@ -57,9 +57,10 @@ def resolution(t: float) -> float:
 def event_tol(t: float, span: float) -> float:
     """Width in t to which an event near ``t`` is located, in a solve over ``span``: :data:`EVENT_TOL` of the
     time scale, ``max(1, min(|t|, span))`` (a span from t0 = 0 as ever), not of |t| alone: the same
-    model started at t0 = 1e6 was located to 1e-6, its states 1356 rtol off at rtol 1e-9, "success";
-    never below :func:`resolution` at ``t``."""
-    return max(EVENT_TOL * max(1.0, min(abs(t), span)), resolution(t))
+    model started at t0 = 1e6 was located to 1e-6, its states 1356 rtol off at rtol 1e-9, "success"; and
+    never more than ``span`` (a span shorter than 1 is its own scale: over (0, 1e-12) every event was
+    "at t1", the states after it 0.1 for 0.25, "success"); never below :func:`resolution` at ``t``."""
+    return max(EVENT_TOL * min(span, max(1.0, min(abs(t), span))), resolution(t))
 
 
 def drift(

@@ -581,6 +581,25 @@ def test_a_reset_to_a_value_that_is_not_finite_is_named(method, options):
         dm.solve(m, (0.0, 1.0), method=method, **options)
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_events_in_a_span_much_shorter_than_1_are_located_on_its_scale(method):
+    """x' = (1 + Heaviside(x - 0.5))/w over (0, w), w = 1e-12, an event at x = 1.2 resets x to 0.1: the switch at
+    w/2, the event at 0.85 w, x(t1) = 0.25.  The location's width in t was 1e-12 max(1, ...), the whole span:
+    radau put the event "at t1" (x(t1) = 0.1, "success"), casadi-idas and the reference looked ahead 100 times
+    that past the switch (ZenoError at t = 0)."""
+    w = 1e-12
+    m = dm.Model("brief")
+    m.states("x")
+    m.parameter("w", w)
+    m.ode("x", "(1 + Heaviside(x - 0.5))/w")
+    m.initial(x=0.0)
+    m.event("e", "x - 1.2", reset={"x": "0.1"})
+    sol = dm.solve(m, (0.0, w), method=method, rtol=1e-8, atol=1e-8)
+    assert sol.status == "success"
+    assert abs(sol.events["e"]["t"][0, 0] / w - 0.85) < 1e-6 and abs(sol["x"][-1] - 0.25) < 1e-6
+    assert abs(sol.events["Piecewise in x'"]["t"][0, 0] / w - 0.5) < 1e-6
+
+
 @pytest.mark.parametrize(("method", "options"), METHODS)
 def test_a_reset_to_a_max_of_a_value_that_is_not_finite_is_named(method, options):
     # Max(-0.8 v, sqrt(h - 2)) at the floor: sqrt of -2 is nan, which numpy's maximum passes on; casadi's fmax,
