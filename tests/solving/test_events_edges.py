@@ -600,6 +600,27 @@ def test_events_in_a_span_much_shorter_than_1_are_located_on_its_scale(method):
     assert abs(sol.events["Piecewise in x'"]["t"][0, 0] / w - 0.5) < 1e-6
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_events_in_a_span_of_a_few_float64_spacings_are_flagged_or_named(method):
+    """The same model over (1000, 1000 + 1e-12), 9 float64 spacings of t: no method can locate its events there.
+    Before, casadi-idas raised a bare ZeroDivisionError (a trial solve from a to a, divided by its span), the
+    reference ZenoError "within 0 of its last crossing"; radau flags the event it cannot resolve."""
+    w = 1e-12
+    m = dm.Model("brief")
+    m.states("x")
+    m.parameter("w", w)
+    m.ode("x", "(1 + Heaviside(x - 0.5))/w")
+    m.initial(t=1000.0, x=0.0)
+    m.event("e", "x - 1.2", reset={"x": "0.1"})
+    if method == "radau":
+        with pytest.warns(E.EventResolutionWarning):
+            sol = dm.solve(m, (1000.0, 1000.0 + w), method=method, rtol=1e-8, atol=1e-8)
+        assert sol.status.startswith("flagged: event 'e'")
+        return
+    with pytest.raises(E.EventLocationError, match=r"at t = 1000: float64 holds no time between it and the next out"):
+        dm.solve(m, (1000.0, 1000.0 + w), method=method, rtol=1e-8, atol=1e-8)
+
+
 @pytest.mark.parametrize(("method", "options"), METHODS)
 def test_a_reset_to_a_max_of_a_value_that_is_not_finite_is_named(method, options):
     # Max(-0.8 v, sqrt(h - 2)) at the floor: sqrt of -2 is nan, which numpy's maximum passes on; casadi's fmax,
