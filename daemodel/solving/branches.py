@@ -365,12 +365,15 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
 
     plus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: 1})
     minus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: -1})
-    key = ("sliding", phi, plus.rhs, minus.rhs)
+    # (differentiated with the switches inside it on their branch: sign(Abs(x) - 1)'s d|x|/dx is sympy's
+    # Derivative(im(x), x) for a symbol not known real, which no printer prints: an unnamed error)
+    (smooth,) = lock_functions(compiled, (phi,), t, Y[0], Z[0], P[0], chosen)
+    key = ("sliding", smooth, plus.rhs, minus.rhs)
     if key not in compiled._cache:
 
         def rate(rhs):
-            return sp.diff(phi, compiled.t) + sum(
-                sp.diff(phi, y) * f for y, f in zip(compiled.states, rhs, strict=True)
+            return sp.diff(smooth, compiled.t) + sum(
+                sp.diff(smooth, y) * f for y, f in zip(compiled.states, rhs, strict=True)
             )
 
         up, down = rate(plus.rhs), rate(minus.rhs)

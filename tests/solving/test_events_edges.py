@@ -181,6 +181,22 @@ def test_a_sliding_motion_that_ends():
     np.testing.assert_allclose(sol.at([1.9, 3.0, 4.0])["x"], [0.0, 1.0, 4.0], atol=1e-8)
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_sliding_motion_along_a_switch_with_a_switch_inside_it(method):
+    # x' = -sign(|x| - 1) + t/2 from 1.5: x = 1.5 - t + t^2/4 down to 1 at 2 - sqrt(2), slides along |x| = 1 until
+    # the rate above, t/2 - 1, turns at t = 2, then x = 1 + (t - 2)^2/4.  The sliding motion differentiated
+    # sign's function as written: d|x|/dx is sympy's Derivative(im(x), x) for a symbol not known real, and the
+    # printer raised PrintMethodNotImplementedError (no named error) in every method
+    m = dm.Model("nested-slide")
+    m.states("x")
+    m.ode("x", "-sign(Abs(x) - 1) + t/2")
+    m.initial(x=1.5)
+    sol = dm.solve(m, (0.0, 3.0), method=method, rtol=1e-10, atol=1e-10)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["sign in x'"]["t"][0], [2 - math.sqrt(2), 2.0], atol=1e-8)
+    np.testing.assert_allclose(sol.at([0.3, 1.5, 3.0])["x"], [1.5 - 0.3 + 0.0225, 1.0, 1.25], atol=1e-8)
+
+
 def test_a_sliding_mode_daemodel_does_not_integrate_is_refused():
     # the switching function is an algebraic variable: the sliding motion would move it through the constraint
     m = dm.Model("refused")
