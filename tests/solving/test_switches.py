@@ -438,6 +438,23 @@ def test_a_switch_whose_function_jumps_with_a_floor_inside_it_crosses_only_where
     assert np.allclose(sol.events["floor in x'"]["t"][0], [1 / 3 + math.log(4 / 3), 2 / 3 + 2 * math.log(4 / 3)])
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_an_algebraic_variable_inside_abs_in_its_own_constraint(method):
+    """x' = -z, 0 = z |z| + z - x from x = 1 (z > 0 throughout: z = (sqrt(1 + 4x) - 1)/2), against scipy at
+    1e-13 (x(1) = 0.5102789472060445).  H_z = 2|z| + 1 was differentiated by sympy as a function of complex z
+    (Derivative(im(z), z)): every method raised sympy's PrintMethodNotImplementedError."""
+    m = dm.Model("zabs")
+    m.states("x")
+    m.algebraics("z")
+    m.ode("x", "-z")
+    m.constraint("z*Abs(z) + z - x")
+    m.initial(x=1.0)
+    sol = dm.solve(m, (0.0, 1.0), method=method, t_eval=[0.0, 1.0], rtol=1e-10, atol=1e-10)
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - 0.5102789472060445) < 1e-8
+    assert abs(sol["z"][-1] - (math.sqrt(1 + 4 * sol["x"][-1]) - 1) / 2) < 1e-8
+
+
 def test_a_max_whose_arguments_differ_by_a_function_of_time_is_a_breakpoint():
     m = dm.Model("time-max")
     m.states("x")
