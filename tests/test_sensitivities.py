@@ -397,3 +397,19 @@ def test_sensitivities_beyond_the_dense_limit_are_refused_before_the_solve(monke
     monkeypatch.setattr(daemodel.files, "DENSE_MAX_ORDER", 1)
     with pytest.raises(E.ResourceLimitError, match=r"sensitivities of 'decay' \(2 unknowns, 1 stage\(s\)\)"):
         dm.solve(compiled, (0.0, 0.1), h=0.05, stages=3, sensitivities=["k"])  # (refused before solving)
+
+
+@pytest.mark.parametrize(("rhs", "k"), [("-Abs(k)*x", 2.0), ("-Abs(k)*x", -2.0), ("-sign(k)*k*x", 2.0)])
+def test_sensitivities_through_abs_and_sign_of_a_parameter(rhs, k):
+    """x' = -|k| x: x(1) = exp(-|k|), dx(1)/dk = -sign(k) exp(-|k|).  sympy's derivative of Abs(k) for a symbol
+    not declared real holds Derivative(im(k), k), sign(k)'s Derivative(sign(k), k): no printer prints them, and
+    the solve raised sympy's PrintMethodNotImplementedError."""
+    m = dm.Model("absk")
+    m.states("x")
+    m.parameter("k", k)
+    m.ode("x", rhs)
+    m.initial(x=1.0)
+    sol = dm.solve(m, (0.0, 1.0), method="radau", rtol=1e-10, atol=1e-10, sensitivities=["k"])
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - np.exp(-abs(k))) < 1e-9
+    assert abs(np.ravel(sol.sensitivities["k"])[-1] + np.sign(k) * np.exp(-abs(k))) < 1e-8

@@ -302,7 +302,9 @@ class IDASBackend(AbstractBackend):
         grid = times[1:] if times[0] == t_span[0] else times
         check_output_memory(self.name, compiled, start.size, len(times))
         began = time.perf_counter()
-        if len(grid) == 0:  # only t0 asked for: the initial state is the answer
+        if len(grid) == 0 or not t_span[1] > t_span[0]:  # only t0 asked for, or a span of length 0 (an event's trial
+            # solve from a to a bracket's end one float64 spacing on, at its midpoint: divided by the span, 0, before)
+            times = times[:1]
             values = np.concatenate([start.y0, start.z0], axis=1)[:, None, :]
             return make_solution(self, compiled, start, options, times, values, time.perf_counter() - began, {})
         dae = dae_of(compiled)

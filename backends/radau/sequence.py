@@ -67,7 +67,7 @@ def before_attempt(xp, carried: dict, settings: dict) -> dict:
     refiltered where it is 1 or more: a first step, or one after a rejection)."""
     t, h = carried["t"], carried["h"]
     return {
-        "underflow": formulas.underflow(xp, h, t),
+        "underflow": formulas.underflow(xp, h, t, settings["t1"]),
         "h": formulas.step_length(xp, h, t, settings["t1"]),
         "first": xp.or_(carried["first"], carried["rejected_last"]),
     }

@@ -93,8 +93,10 @@ class Differentiator:
     with an ``s``-free exponent are differentiated by the rules sympy applies to them
     (``Add``: term by term; ``Mul``: Leibniz, one factor at a time, in argument order;
     ``Pow``: ``b**e * (b' * e / b)``; functions of the default rule, ``sin``, ``tanh``, ``atan2``...:
-    the chain rule), so the result is the expression ``sp.diff`` returns.  Every other node
-    (``Abs``, ``Max``, ``Piecewise``, ...) is handed to ``sp.diff``.  Derivatives
+    the chain rule), so the result is the expression ``sp.diff`` returns.  ``Abs``, ``sign``, ``floor`` and
+    ``ceiling`` are differentiated as functions of real values (``sign(u) u'``; 0 between their jumps), where
+    sympy's answers hold ``Derivative`` nodes no printer prints.  Every other node (``Max``, ``Piecewise``,
+    ...) is handed to ``sp.diff``.  Derivatives
     and the zero tests of :func:`depends_on` are memoised: the derivative chain, the incidence
     and the Jacobian of the determining equations reuse them.
 
@@ -145,6 +147,13 @@ class Differentiator:
         elif expr.is_Pow and s not in self.free_symbols(expr.exp):
             # sympy: b**e * (e' * log(b) + b' * e / b) with e' = 0
             out = expr * (self.diff(expr.base, s) * expr.exp / expr.base)
+        elif isinstance(expr, sp.Abs):
+            # (of real values: sign(u) u'; sympy's, for symbols not declared real, is written in re(u) and im(u)
+            # with Derivative(im(u), u), which no printer prints: z |z| + z - x = 0 failed every solve with
+            # sympy's PrintMethodNotImplementedError, as did sensitivities to k through Abs(k))
+            out = sp.sign(expr.args[0]) * self.diff(expr.args[0], s)
+        elif isinstance(expr, sp.sign | sp.floor | sp.ceiling):
+            out = sp.S.Zero  # (constant between its jumps, where every piece lies; sympy's: an unprintable Derivative)
         elif isinstance(expr, sp.Function) and type(expr)._eval_derivative is sp.Function._eval_derivative:
             out = self._chain_rule(expr, s)
         else:

@@ -367,15 +367,48 @@ def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarra
     functions crosses zero, which :mod:`daemodel.solving.events` locates and then locks again.
     ``sides`` (switching function -> +1 or -1): the branch of those at zero there (see :func:`_fix`).
     Cached."""
-    sides = sides or {}
+    decided, signature = _decisions(compiled, t, y, z, p, sides or {})
+    key = ("locked-by", signature)
+    if key not in compiled._cache:
+        time_symbols = {compiled.t, *compiled.parameters}
+        at = _point(compiled, t, y, z, p)
+        compiled._cache[key] = _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", decided)
+    return compiled._cache[key]
+
+
+def lock_functions(compiled, functions: tuple, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray, sides=None):
+    """``functions`` (sympy expressions: the event functions) with the switches on variables inside them fixed
+    to the branches :func:`lock_branches` gives the equations at the same point and ``sides``: a piece's own
+    event functions, smooth on it.  ``-x + floor(x) + 0.5`` (the switching function of ``Max(x - floor(x),
+    0.5)``) jumps from -0.5 to 0.5 where x reaches 1, a jump that is no crossing; read as it is on a piece
+    whose floor is locked to 1 from a located x a rounding below 1, it was -0.5 there and +0.5 a step on, a
+    crossing at the piece's start that never left zero to its side (ZenoError at t = 0.621 in every method).
+    ``functions`` themselves where none holds such a switch.  Cached."""
+
+    def nested() -> bool:
+        return any(_KINDS.get(type(node)) for f in functions for node in sp.preorder_traversal(f) if not node.is_Atom)
+
+    if not compiled.cached(("nested-switches", functions), nested):
+        return functions
+    decided, signature = _decisions(compiled, t, y, z, p, sides or {})
+    key = ("locked-functions", functions, signature)
+    if key not in compiled._cache:
+        time_symbols = {compiled.t, *compiled.parameters}
+        at = _point(compiled, t, y, z, p)
+        compiled._cache[key] = tuple(_fix(f, at, lambda e: not _time_only(e, time_symbols), decided) for f in functions)
+    return compiled._cache[key]
+
+
+def _decisions(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray, sides: dict) -> tuple:
+    """``(decided, signature)``: the side of each switching function on variables at ``(t, y, z)`` (``sides``
+    where given, else its sign; an integer part's level), and the branches as numbers: the same branches are
+    the same model, found without rewriting the equations (large models: seconds each)."""
     switches = find_switches(compiled)
     functions = tuple(dict.fromkeys(switch.function for switch in switches))
     integer = {switch.function for switch in switches if switch.kind in ("floor", "ceiling")}
     numbers = compiled.numeric.batch_function(list(functions))(
         np.array([float(t)]), np.asarray(y, dtype=float)[None], np.asarray(z, dtype=float)[None], np.asarray(p)[None]
     )[0]
-    # the branches as numbers (each function's sign, an integer part's floor and ceiling, or the side given):
-    # the same branches are the same model, found without rewriting the equations (large models: seconds each)
     decided, signature = {}, []
     for function, number in zip(functions, numbers, strict=True):
         side = sides.get(function) or (-sides[-function] if -function in sides else None)
@@ -387,18 +420,18 @@ def lock_branches(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarra
             signature.append(side or int(np.sign(number)))
             if signature[-1]:
                 decided[function] = signature[-1]
-    key = ("locked-by", tuple(signature))
-    if key not in compiled._cache:
-        time_symbols = {compiled.t, *compiled.parameters}
-        values = [
-            (compiled.t, t),
-            *zip(compiled.parameters, p, strict=True),
-            *zip(compiled.states, y, strict=True),
-            *zip(compiled.algebraics, z, strict=True),
-        ]
-        at = {symbol: sp.Float(float(value)) for symbol, value in values}
-        compiled._cache[key] = _fixed(compiled, at, lambda e: not _time_only(e, time_symbols), "locked", decided)
-    return compiled._cache[key]
+    return decided, tuple(signature)
+
+
+def _point(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray) -> dict:
+    """``{symbol: value}`` of t, the parameters and the variables at one point (sympy Floats)."""
+    values = [
+        (compiled.t, t),
+        *zip(compiled.parameters, p, strict=True),
+        *zip(compiled.states, y, strict=True),
+        *zip(compiled.algebraics, z, strict=True),
+    ]
+    return {symbol: sp.Float(float(value)) for symbol, value in values}
 
 
 def has_state_switches(compiled) -> bool:

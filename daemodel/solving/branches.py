@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import sympy as sp
 
-from daemodel.compiling.switches import lock_branches
+from daemodel.compiling.switches import lock_branches, lock_functions
 from daemodel.errors import SlidingModeError, ZenoError
 from daemodel.solving.switches import for_method
 
@@ -57,9 +57,10 @@ def resolution(t: float) -> float:
 def event_tol(t: float, span: float) -> float:
     """Width in t to which an event near ``t`` is located, in a solve over ``span``: :data:`EVENT_TOL` of the
     time scale, ``max(1, min(|t|, span))`` (a span from t0 = 0 as ever), not of |t| alone: the same
-    model started at t0 = 1e6 was located to 1e-6, its states 1356 rtol off at rtol 1e-9, "success";
-    never below :func:`resolution` at ``t``."""
-    return max(EVENT_TOL * max(1.0, min(abs(t), span)), resolution(t))
+    model started at t0 = 1e6 was located to 1e-6, its states 1356 rtol off at rtol 1e-9, "success"; and
+    never more than ``span`` (a span shorter than 1 is its own scale: over (0, 1e-12) every event was
+    "at t1", the states after it 0.1 for 0.25, "success"); never below :func:`resolution` at ``t``."""
+    return max(EVENT_TOL * min(span, max(1.0, min(abs(t), span))), resolution(t))
 
 
 def drift(
@@ -104,6 +105,18 @@ def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float, fourth:
         except ModelError:  # (no root near Z past the start: the rate of z is not needed to tell most sides)
             Z1 = Z
     return Y1, Z1
+
+
+def _on_piece(compiled, when, t: float, Y, Z, P, chosen: dict):
+    """The event functions on the piece whose switches ``chosen`` and ``(t, Y, Z)`` lock
+    (:func:`~daemodel.compiling.switches.lock_functions`: a switch inside one fixed to the piece's branch, so
+    that the function is smooth on it, as the piece's equations are); ``when`` (all of them as written) where
+    none holds a switch on variables."""
+    whens = tuple(event.when for event in compiled.events)
+    fixed = lock_functions(compiled, whens, t, Y[0], Z[0], P[0], chosen)
+    if fixed == whens:
+        return when
+    return compiled.cached(("event-functions", fixed), lambda: compiled.numeric.batch_function(list(fixed)))
 
 
 def _side(change: float, scale: float) -> int:
@@ -197,7 +210,8 @@ def start_piece(
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
-        rates = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows) / delta
+        rates = drift(compiled, backend, model, t, Y, Z, P, _on_piece(compiled, when, t, Y, Z, P, chosen), delta, flows)
+        rates = rates / delta
         soon = event_tol(t, span) * 10  # (a crossing this close to t is at t: no piece that short)
         near = {
             e
@@ -259,7 +273,7 @@ def start_piece(
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
         model,
-        _leveled(when, levels, replaced),
+        _leveled(_on_piece(compiled, when, t, Y, Z, P, chosen) if lock else when, levels, replaced),
         sides,
         armed,
         time.perf_counter() - started,
@@ -351,12 +365,15 @@ def _sliding(compiled, t, Y, Z, P, chosen: dict, phi):
 
     plus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: 1})
     minus = lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: -1})
-    key = ("sliding", phi, plus.rhs, minus.rhs)
+    # (differentiated with the switches inside it on their branch: sign(Abs(x) - 1)'s d|x|/dx is sympy's
+    # Derivative(im(x), x) for a symbol not known real, which no printer prints: an unnamed error)
+    (smooth,) = lock_functions(compiled, (phi,), t, Y[0], Z[0], P[0], chosen)
+    key = ("sliding", smooth, plus.rhs, minus.rhs)
     if key not in compiled._cache:
 
         def rate(rhs):
-            return sp.diff(phi, compiled.t) + sum(
-                sp.diff(phi, y) * f for y, f in zip(compiled.states, rhs, strict=True)
+            return sp.diff(smooth, compiled.t) + sum(
+                sp.diff(smooth, y) * f for y, f in zip(compiled.states, rhs, strict=True)
             )
 
         up, down = rate(plus.rhs), rate(minus.rhs)

@@ -51,6 +51,7 @@ from daemodel.compiling.switches import has_state_switches
 from daemodel.errors import (
     ConvergenceError,
     EventLimitError,
+    EventLocationError,
     EventResolutionWarning,
     StepLimitError,
     SwitchError,
@@ -524,8 +525,17 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
     ------
     ZenoError
         It is not on its side anywhere there: back across zero sooner than the method resolves.
+    EventLocationError
+        No float64 time lies between ``a`` and ``b`` to look at.
     """
     step = delta
+    if not a < 0.5 * (a + b):  # (no float64 time to read it at: the trial would start and end at a)
+        raise EventLocationError(
+            f"event '{event.name}' at t = {a:.17g}: float64 holds no time between it and the next output t = "
+            f"{b:.17g} (its spacing there is {math.ulp(a):.3g}), so the side its function goes to cannot be read; "
+            "the span is too short for t's resolution at this |t|: start t_span nearer 0 (shift the model's time)",
+            a,
+        )
     while True:
         tau = min(a + step, 0.5 * (a + b))
         value, y, z, _ = trial_solve(backend, compiled, options, batched, P, which, when, a, tau, ya, za)

@@ -245,6 +245,24 @@ def test_a_span_below_the_resolution_of_its_steps_is_not_success():
         dm.solve(m, (1e15, 1e15 + 2.0), method="radau", rtol=1e-8, atol=1e-8)
 
 
+@pytest.mark.parametrize("t0", [1.0, 1e6, -1e6, 1e15])
+@pytest.mark.parametrize("spacings", [1, 3, 10])
+def test_a_span_of_a_few_float64_spacings_is_one_step(t0, spacings):
+    """x' = 1/w over (t0, t0 + w), w a few float64 spacings of t0: x(t1) = 1.  Within 4 eps of t1 the end test
+    held at t0 itself (1 and 3 spacings): radau took no step and returned x(t0) = 0 alone, "success"; from 10
+    spacings h fell below the underflow threshold (1e-14 |t|) at once: "step size underflow ... the solution
+    may blow up".  A step that reaches t1 is now taken however short (exact: Sterbenz)."""
+    t1 = t0 + spacings * math.ulp(t0)
+    m = dm.Model("ulps")
+    m.states("x")
+    m.parameter("w", t1 - t0)
+    m.ode("x", "1/w")
+    m.initial(t=t0, x=0.0)
+    sol = dm.solve(m, (t0, t1), method="radau", rtol=1e-8, atol=1e-8)
+    assert sol.status == "success" and list(sol.t) == [t0, t1]
+    assert abs(sol["x"][-1] - 1.0) < 1e-14
+
+
 def test_seven_stages_near_the_rounding_floor_do_not_fail_newton_at_every_other_attempt():
     """The transistor amplifier at rtol = atol = 1e-9 (the default's seven stages) against the Test Set's
     reference at t = 0.2.  Newton's tolerance at the rounding floor (10 eps / rtol = 2.2e-6, where

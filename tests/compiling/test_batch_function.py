@@ -85,3 +85,19 @@ def test_many_expressions_stay_on_numpy_at_one_sample(monkeypatch):
     G = numeric.batch_function([u**2 - t for u in states[:3]])  # (few: converted)
     np.testing.assert_array_equal(G(0.5, Y, np.zeros((1, 0)), np.zeros((1, 0))), Y[:, :3] ** 2 - 0.5)
     assert converted == [1]
+
+
+def test_a_nan_among_a_max_or_min_s_arguments_is_passed_on_at_a_few_samples():
+    """Max(0, sqrt(x)) at x = -1 is nan on numpy (maximum passes a nan on) and was 0 on casadi (fmax drops it)
+    at one sample from finite values: a reset to such a Max (InvalidValueError on numpy) went on with "success"
+    (tests/solving/test_events_edges.py).  Evaluated on numpy there, at any batch; finite values on casadi."""
+    numeric = NumericSystem(t, (x, y), (z,), (k,))
+    F = numeric.batch_function([sp.Max(0, sp.sqrt(x)), sp.Min(1, sp.log(x)) + y, sp.Max(1, x / y), sp.sqrt(x) + y])
+    for B in (1, 2, batch_function.SAMPLE_ROWS, batch_function.SAMPLE_ROWS + 1):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = F(0.0, np.array([[-1.0, 1.0], [0.0, 0.0]] * B)[:B], np.zeros((1, 1)), np.zeros((1, 1)))
+        assert np.isnan(out[0, [0, 1, 3]]).all() and out[0, 2] == 1.0, (B, out)  # (x = -1, y = 1)
+        if B > 1:  # (x = y = 0: Max(1, 0/0) is nan)
+            assert out[1, 0] == 0.0 and out[1, 1] == -np.inf and np.isnan(out[1, 2]) and out[1, 3] == 0.0, (B, out)
+    G = numeric.batch_function([sp.Max(0, sp.sqrt(x)), sp.Min(x, y)])
+    np.testing.assert_array_equal(G(0.0, np.array([[4.0, -3.0]]), np.zeros((1, 1)), np.zeros((1, 1))), [[2.0, -3.0]])

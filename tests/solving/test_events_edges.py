@@ -181,6 +181,22 @@ def test_a_sliding_motion_that_ends():
     np.testing.assert_allclose(sol.at([1.9, 3.0, 4.0])["x"], [0.0, 1.0, 4.0], atol=1e-8)
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_sliding_motion_along_a_switch_with_a_switch_inside_it(method):
+    # x' = -sign(|x| - 1) + t/2 from 1.5: x = 1.5 - t + t^2/4 down to 1 at 2 - sqrt(2), slides along |x| = 1 until
+    # the rate above, t/2 - 1, turns at t = 2, then x = 1 + (t - 2)^2/4.  The sliding motion differentiated
+    # sign's function as written: d|x|/dx is sympy's Derivative(im(x), x) for a symbol not known real, and the
+    # printer raised PrintMethodNotImplementedError (no named error) in every method
+    m = dm.Model("nested-slide")
+    m.states("x")
+    m.ode("x", "-sign(Abs(x) - 1) + t/2")
+    m.initial(x=1.5)
+    sol = dm.solve(m, (0.0, 3.0), method=method, rtol=1e-10, atol=1e-10)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol.events["sign in x'"]["t"][0], [2 - math.sqrt(2), 2.0], atol=1e-8)
+    np.testing.assert_allclose(sol.at([0.3, 1.5, 3.0])["x"], [1.5 - 0.3 + 0.0225, 1.0, 1.25], atol=1e-8)
+
+
 def test_a_sliding_mode_daemodel_does_not_integrate_is_refused():
     # the switching function is an algebraic variable: the sliding motion would move it through the constraint
     m = dm.Model("refused")
@@ -578,6 +594,60 @@ def test_a_reset_to_a_value_that_is_not_finite_is_named(method, options):
     m.event("e", "x - 0.5", reset={"v": "log(v - 1)"})
     # (v = 1 to the method's rounding: log(0) = -inf, or log of a hair below 0, nan)
     with pytest.raises(E.InvalidValueError, match=r"event 'e' at t = 0\.5\d*: its reset sets 'v' to (-inf|nan) \(log"):
+        dm.solve(m, (0.0, 1.0), method=method, **options)
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_events_in_a_span_much_shorter_than_1_are_located_on_its_scale(method):
+    """x' = (1 + Heaviside(x - 0.5))/w over (0, w), w = 1e-12, an event at x = 1.2 resets x to 0.1: the switch at
+    w/2, the event at 0.85 w, x(t1) = 0.25.  The location's width in t was 1e-12 max(1, ...), the whole span:
+    radau put the event "at t1" (x(t1) = 0.1, "success"), casadi-idas and the reference looked ahead 100 times
+    that past the switch (ZenoError at t = 0)."""
+    w = 1e-12
+    m = dm.Model("brief")
+    m.states("x")
+    m.parameter("w", w)
+    m.ode("x", "(1 + Heaviside(x - 0.5))/w")
+    m.initial(x=0.0)
+    m.event("e", "x - 1.2", reset={"x": "0.1"})
+    sol = dm.solve(m, (0.0, w), method=method, rtol=1e-8, atol=1e-8)
+    assert sol.status == "success"
+    assert abs(sol.events["e"]["t"][0, 0] / w - 0.85) < 1e-6 and abs(sol["x"][-1] - 0.25) < 1e-6
+    assert abs(sol.events["Piecewise in x'"]["t"][0, 0] / w - 0.5) < 1e-6
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_events_in_a_span_of_a_few_float64_spacings_are_flagged_or_named(method):
+    """The same model over (1000, 1000 + 1e-12), 9 float64 spacings of t: no method can locate its events there.
+    Before, casadi-idas raised a bare ZeroDivisionError (a trial solve from a to a, divided by its span), the
+    reference ZenoError "within 0 of its last crossing"; radau flags the event it cannot resolve."""
+    w = 1e-12
+    m = dm.Model("brief")
+    m.states("x")
+    m.parameter("w", w)
+    m.ode("x", "(1 + Heaviside(x - 0.5))/w")
+    m.initial(t=1000.0, x=0.0)
+    m.event("e", "x - 1.2", reset={"x": "0.1"})
+    if method == "radau":
+        with pytest.warns(E.EventResolutionWarning):
+            sol = dm.solve(m, (1000.0, 1000.0 + w), method=method, rtol=1e-8, atol=1e-8)
+        assert sol.status.startswith("flagged: event 'e'")
+        return
+    with pytest.raises(E.EventLocationError, match=r"at t = 1000: float64 holds no time between it and the next out"):
+        dm.solve(m, (1000.0, 1000.0 + w), method=method, rtol=1e-8, atol=1e-8)
+
+
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_a_reset_to_a_max_of_a_value_that_is_not_finite_is_named(method, options):
+    # Max(-0.8 v, sqrt(h - 2)) at the floor: sqrt of -2 is nan, which numpy's maximum passes on; casadi's fmax,
+    # which evaluates a reset's one sample since eff7d0c, dropped it: v = 3.54 after the impact, "success"
+    m = dm.Model("maxnanreset")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": "Max(-0.8*v, sqrt(h - 2))"})
+    with pytest.raises(E.InvalidValueError, match=r"event 'floor' at t = 0\.4515\d*: its reset sets 'v' to nan \(Max"):
         dm.solve(m, (0.0, 1.0), method=method, **options)
 
 

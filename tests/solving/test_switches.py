@@ -420,6 +420,41 @@ def test_a_crossing_of_a_switch_with_a_switch_inside_it_goes_on_on_the_branch_af
     assert abs(sol["w"][-1] - exact) < 1e-5
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_switch_whose_function_jumps_with_a_floor_inside_it_crosses_only_where_it_crosses_zero(method):
+    """x' = 1 + Max(x - floor(x), 0.5) from 0: Max's switching function -x + floor(x) + 0.5 jumps from -0.5 to
+    +0.5 where x reaches an integer (floor's event), a jump that is no crossing.  Read as written on the piece
+    after floor's event, located a rounding below x = 1, it was -0.5 at the start and +0.5 a step on: a
+    crossing at the start that never left zero to its side, ZenoError at t = 0.621 in every method.  Against
+    the closed form: x' = 1.5 to x = 0.5, x' = 1 + x to 1, 1.5 to 1.5, x to 2 (t = 2/3 + 2 ln(4/3)), then 1.5."""
+    m = dm.Model("frac")
+    m.states("x")
+    m.ode("x", "1 + Max(x - floor(x), 0.5)")
+    m.initial(x=0.0)
+    sol = dm.solve(m, (0.0, 1.5), method=method, t_eval=[0.0, 1.5], rtol=1e-8, atol=1e-8)
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - (2.0 + 1.5 * (1.5 - 2.0 / 3.0 - 2.0 * math.log(4.0 / 3.0)))) < 1e-6
+    assert [sol.events[name]["t"].shape[-1] for name in ("Max in x'", "floor in x'")] == [2, 2]
+    assert np.allclose(sol.events["floor in x'"]["t"][0], [1 / 3 + math.log(4 / 3), 2 / 3 + 2 * math.log(4 / 3)])
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_an_algebraic_variable_inside_abs_in_its_own_constraint(method):
+    """x' = -z, 0 = z |z| + z - x from x = 1 (z > 0 throughout: z = (sqrt(1 + 4x) - 1)/2), against scipy at
+    1e-13 (x(1) = 0.5102789472060445).  H_z = 2|z| + 1 was differentiated by sympy as a function of complex z
+    (Derivative(im(z), z)): every method raised sympy's PrintMethodNotImplementedError."""
+    m = dm.Model("zabs")
+    m.states("x")
+    m.algebraics("z")
+    m.ode("x", "-z")
+    m.constraint("z*Abs(z) + z - x")
+    m.initial(x=1.0)
+    sol = dm.solve(m, (0.0, 1.0), method=method, t_eval=[0.0, 1.0], rtol=1e-10, atol=1e-10)
+    assert sol.status == "success"
+    assert abs(sol["x"][-1] - 0.5102789472060445) < 1e-8
+    assert abs(sol["z"][-1] - (math.sqrt(1 + 4 * sol["x"][-1]) - 1) / 2) < 1e-8
+
+
 def test_a_max_whose_arguments_differ_by_a_function_of_time_is_a_breakpoint():
     m = dm.Model("time-max")
     m.states("x")
