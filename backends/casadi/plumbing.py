@@ -23,6 +23,13 @@ QUIET = {"show_eval_warnings": False}
 KEPT_INTEGRATORS = 32
 # Lines of casadi's captured output quoted in an error that cannot be translated.
 QUOTED_LINES = 3
+# IDACalcIC's own artificial step (IDAS's hic = 0.001 x casadi's first_time): this share of IDAS's first step.
+# Left to casadi, first_time is the last output time, and IDACalcIC, whose Newton iteration moves the algebraic
+# variables by about hic z', left them off their constraints: on the wheelset a trial solve over 2.2e-5 from
+# consistent values (|g| 2.6e-12) started from z 13 of its tolerances off (|g| 1.5e-5), and IDAS failed its error
+# test at every step down to 7e-17 (IDA_ERR_FAIL).  At 1e-3 to 1e3 of the first step its values agreed with
+# y'(t0) = f given exactly (calc_ic off) to 1e-9; the share leaves two decades on each side.
+IC_STEP_SHARE = 1e-2
 
 
 def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
@@ -54,6 +61,14 @@ def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dic
 
 
 _KEPT_LOCK = threading.Lock()  # (the kept integrators of every model: a cache shared by threads)
+
+
+def consistent_start(first_output: float, step0: float | None) -> dict:
+    """IDAS's settings to start from IDACalcIC's consistent ``y'(t0)`` (and z, from nearly consistent values):
+    its artificial step :data:`IC_STEP_SHARE` of IDAS's first one, ``step0``, or IDAS's own first guess, 0.001 of
+    the first output's distance (both on the integrator's own time)."""
+    first = step0 if step0 is not None else 1e-3 * first_output
+    return {"calc_ic": True, "first_time": 1e3 * IC_STEP_SHARE * first}
 
 
 def dae_of(compiled) -> dict:
