@@ -42,9 +42,8 @@ from daemodel.backends.casadi.plumbing import (
     integrator_stats,
     last_lines,
     last_number,
-    normalised_dae,
     run_samples,
-    shifted_dae,
+    scaled_dae,
 )
 from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
 from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
@@ -234,7 +233,7 @@ def first_step(zdot, z0, rtol: float, atol: float, t_span, first_output: float) 
 class IDASRestarts(AbstractDenseOutput):
     """casadi-idas's dense output: IDAS started again from the output before each time asked for, with
     the solve's tolerances, to that time (casadi keeps IDAS's interpolating polynomials to itself).
-    Every time is one short IDAS run from consistent values, on normalised time (:func:`normalised_dae`),
+    Every time is one short IDAS run from consistent values, on normalised time (:func:`~.plumbing.normalised_dae`),
     all of them in one mapped call; an output time itself is the solve's own value."""
 
     times: np.ndarray  # (T,)
@@ -329,16 +328,16 @@ class IDASBackend(AbstractBackend):
         t0, span = float(t_span[0]), 1.0
         if t_span[1] - t_span[0] < SHORT_SPAN * max(1.0, abs(t_span[0]), abs(t_span[1])):
             span = float(t_span[1] - t_span[0])
-            run_dae, extra = normalised_dae(dae), [t0, span]
+            scale, extra = "normalised", [t0, span]
             settings = {**settings, "step0": step0 / span} if step0 is not None else settings
         else:
-            run_dae, extra = shifted_dae(dae), [t0]
+            scale, extra = "shifted", [t0]
         out = [(float(t) - t0) / span for t in grid]
         P = np.concatenate(
             [np.asarray(start.p, dtype=float).reshape(start.size, -1), np.tile(extra, (start.size, 1))], 1
         )
         start_ic = consistent_start(out[0], settings.get("step0"))  # (IDACalcIC's own step: on the run's time)
-        shared = cached_integrator(compiled, "idas", run_dae, 0.0, out, {**settings, **start_ic})
+        shared = cached_integrator(compiled, "idas", scale, 0.0, out, {**settings, **start_ic})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()
@@ -352,7 +351,8 @@ class IDASBackend(AbstractBackend):
                     raise
             fallbacks.append(b)
             exact = {**settings, "calc_ic": False, "init_xdot": (ydot[b] * span).tolist()}
-            return casadi.integrator("idas", "idas", run_dae, 0.0, out, exact)(x0=start.y0[b], z0=start.z0[b], p=P[b])
+            integrator = casadi.integrator("idas", "idas", scaled_dae(compiled, scale), 0.0, out, exact)
+            return integrator(x0=start.y0[b], z0=start.z0[b], p=P[b])
 
         def explain(sample, error, printed):
             # (normalised time: IDAS's times said on the real scale; shifted: its time is since t0)
@@ -380,7 +380,7 @@ class IDASBackend(AbstractBackend):
         restart_settings = {key: v for key, v in settings.items() if key != "step0"} | consistent_start(1.0, None)
 
         def restart():
-            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+            return cached_integrator(compiled, "idas", "normalised", 0.0, [1.0], restart_settings)
 
         dense = IDASRestarts(times_out, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
         if times[0] != t_span[0]:
@@ -405,7 +405,7 @@ class IDASBackend(AbstractBackend):
             return np.asarray(slopes(t, y, z, start.p[0])[0], dtype=float).reshape(-1)
 
         times, values, stats = search(
-            compiled, dae, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
+            compiled, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
             options.max_num_steps, slope,
         )  # fmt: skip
         failure = first_non_finite(self.name, compiled, times, values, "tighten rtol/atol or shorten t_span")
@@ -416,7 +416,7 @@ class IDASBackend(AbstractBackend):
 
         def restart():
             dense_settings = restart_settings | consistent_start(1.0, None)
-            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], dense_settings)
+            return cached_integrator(compiled, "idas", "normalised", 0.0, [1.0], dense_settings)
 
         dense = IDASRestarts(times, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
         wall = time.perf_counter() - began
