@@ -25,10 +25,11 @@ KEPT_INTEGRATORS = 32
 QUOTED_LINES = 3
 # IDACalcIC's own artificial step (IDAS's hic = 0.001 x casadi's first_time): this share of IDAS's first step.
 # Left to casadi, first_time is the last output time, and IDACalcIC, whose Newton iteration moves the algebraic
-# variables by about hic z', left them off their constraints: on the wheelset a trial solve over 2.2e-5 from
-# consistent values (|g| 2.6e-12) started from z 13 of its tolerances off (|g| 1.5e-5), and IDAS failed its error
-# test at every step down to 7e-17 (IDA_ERR_FAIL).  At 1e-3 to 1e3 of the first step its values agreed with
-# y'(t0) = f given exactly (calc_ic off) to 1e-9; the share leaves two decades on each side.
+# variables by a share of hic z' (0.05 here), left them off their constraints: on the wheelset a trial solve over
+# 2.2e-5 from consistent values (|g| 2.6e-12) started from z 13 of its tolerances off (|g| 1.5e-5), and IDAS
+# failed its error test at every step down to 7e-17 (IDA_ERR_FAIL): its step was 2,600 times IDAS's first
+# (8.4e-12).  At 1e-4 to 1e2 times it, IDAS's values there agreed with those from y'(t0) = f given exactly
+# (calc_ic off) to 1e-14.
 IC_STEP_SHARE = 1e-2
 
 
