@@ -376,7 +376,7 @@ class CollocationBackend(AbstractBackend):
         }
         # built once per model, grid and settings, as radau builds its functions once: sweeps and
         # repeated solves pay the setup once
-        integrator = cached_integrator(compiled, "collocation", dae, grid[0], grid[1:], plugin_options)
+        integrator = cached_integrator(compiled, "collocation", "own", grid[0], grid[1:], plugin_options)
         check = compiled.cached(
             ("casadi-collocation-check", options.stages, root_abstol),
             lambda: LocalErrorCheck(compiled, options.stages, dae, root_abstol),

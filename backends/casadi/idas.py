@@ -6,10 +6,13 @@ Trust: IDAS starts from consistent derivatives.  ``y'(t0) = f(t0, y0, z0)``: ``c
 compute it for each sample inside the call, so one integrator serves a whole batch (``init_xdot``
 fixes it per integrator: a rebuild per sample, 5x slower on a batch of 50 pendulums); a sample
 whose IDACalcIC fails gets its own integrator with ``init_xdot = f``.  Without either, IDAS
-assumes ``y' = 0`` and fails its error test at t0 on most models.  ``z'(t0)`` cannot be given to
-IDAS at all: it predicts z with ``z' = 0``, so its first step must be short enough for that
-prediction to pass the error test, ``h |z'(t0)| < rtol |z0| + atol``; ``step0`` is set so (see
-:data:`FIRST_STEP_SAFETY`) from ``z'(t0) = -g_z^{-1} (g_t + g_y f)``.  IDAS then doubles the step
+assumes ``y' = 0`` and fails its error test at t0 on most models.  IDACalcIC's own step is a share
+of IDAS's first one (:func:`~.plumbing.consistent_start`): left at casadi's 0.001 of the last output,
+it moved nearly consistent algebraic values off their constraints by about that step times z', and
+IDAS failed at its first step.  ``z'(t0)`` cannot be given to IDAS at all: it predicts z with
+``z' = 0``, so its first step must be short enough for that prediction to pass the error test,
+``h |z'(t0)| < rtol |z0| + atol``; ``step0`` is set so (see :data:`FIRST_STEP_SAFETY`) from
+``z'(t0) = -g_z^{-1} (g_t + g_y f)``.  IDAS then doubles the step
 as usual (a few steps more).  Leaving z out of the error test instead (``suppress_algebraic``) is
 no fix: IDAS's Newton then stops correcting z where y does not depend on it, and z drifts off its
 constraint.  A failure is one line: :class:`~daemodel.errors.StepLimitError` when IDAS exhausts
@@ -33,14 +36,14 @@ from daemodel.backends.casadi.idas_search import FIRST_WINDOW, MIN_POINTS, real_
 from daemodel.backends.casadi.plumbing import (
     QUIET,
     cached_integrator,
+    consistent_start,
     dae_of,
     first_non_finite,
     integrator_stats,
     last_lines,
     last_number,
-    normalised_dae,
     run_samples,
-    shifted_dae,
+    scaled_dae,
 )
 from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
 from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
@@ -230,7 +233,7 @@ def first_step(zdot, z0, rtol: float, atol: float, t_span, first_output: float) 
 class IDASRestarts(AbstractDenseOutput):
     """casadi-idas's dense output: IDAS started again from the output before each time asked for, with
     the solve's tolerances, to that time (casadi keeps IDAS's interpolating polynomials to itself).
-    Every time is one short IDAS run from consistent values, on normalised time (:func:`normalised_dae`),
+    Every time is one short IDAS run from consistent values, on normalised time (:func:`~.plumbing.normalised_dae`),
     all of them in one mapped call; an output time itself is the solve's own value."""
 
     times: np.ndarray  # (T,)
@@ -327,15 +330,16 @@ class IDASBackend(AbstractBackend):
         t0, span = float(t_span[0]), 1.0
         if t_span[1] - t_span[0] < SHORT_SPAN * max(1.0, abs(t_span[0]), abs(t_span[1])):
             span = float(t_span[1] - t_span[0])
-            run_dae, extra = normalised_dae(dae), [t0, span]
+            scale, extra = "normalised", [t0, span]
             settings = {**settings, "step0": step0 / span} if step0 is not None else settings
         else:
-            run_dae, extra = shifted_dae(dae), [t0]
+            scale, extra = "shifted", [t0]
         out = [(float(t) - t0) / span for t in grid]
         P = np.concatenate(
             [np.asarray(start.p, dtype=float).reshape(start.size, -1), np.tile(extra, (start.size, 1))], 1
         )
-        shared = cached_integrator(compiled, "idas", run_dae, 0.0, out, {**settings, "calc_ic": True})
+        start_ic = consistent_start(out[0], settings.get("step0"))  # (IDACalcIC's own step: on the run's time)
+        shared = cached_integrator(compiled, "idas", scale, 0.0, out, {**settings, **start_ic})
         fallbacks = []
         setup = time.perf_counter() - began  # building the integrator: reported apart from the solve
         began = time.perf_counter()
@@ -349,7 +353,8 @@ class IDASBackend(AbstractBackend):
                     raise
             fallbacks.append(b)
             exact = {**settings, "calc_ic": False, "init_xdot": (ydot[b] * span).tolist()}
-            return casadi.integrator("idas", "idas", run_dae, 0.0, out, exact)(x0=start.y0[b], z0=start.z0[b], p=P[b])
+            integrator = casadi.integrator("idas", "idas", scaled_dae(compiled, scale), 0.0, out, exact)
+            return integrator(x0=start.y0[b], z0=start.z0[b], p=P[b])
 
         def explain(sample, error, printed):
             # (normalised time: IDAS's times said on the real scale; shifted: its time is since t0)
@@ -374,10 +379,10 @@ class IDASBackend(AbstractBackend):
         wall = time.perf_counter() - began
         # (built on the first query, kept with the model; the first step IDAS chose on the real time
         # scale means nothing on the normalised one)
-        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | {"calc_ic": True}
+        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | consistent_start(1.0, None)
 
         def restart():
-            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+            return cached_integrator(compiled, "idas", "normalised", 0.0, [1.0], restart_settings)
 
         dense = IDASRestarts(times_out, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
         if times[0] != t_span[0]:
@@ -389,7 +394,7 @@ class IDASBackend(AbstractBackend):
         about one an IDAS step, with the dense output of IDAS started again from them."""
         first_output = t_span[0] + FIRST_WINDOW * (t_span[1] - t_span[0]) / MIN_POINTS
         step0 = first_step(zdot, start.z0, options.rtol, options.atol, t_span, first_output)
-        restart_settings = {key: v for key, v in settings.items() if key != "step0"} | {"calc_ic": True}
+        restart_settings = {key: v for key, v in settings.items() if key != "step0"}  # (search adds IDACalcIC's)
 
         def explain(error, printed, outputs):
             return idas_failure(
@@ -402,7 +407,7 @@ class IDASBackend(AbstractBackend):
             return np.asarray(slopes(t, y, z, start.p[0])[0], dtype=float).reshape(-1)
 
         times, values, stats = search(
-            compiled, dae, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
+            compiled, t_span, start.y0[0], start.z0[0], start.p[0], restart_settings, step0, stop, explain,
             options.max_num_steps, slope,
         )  # fmt: skip
         failure = first_non_finite(self.name, compiled, times, values, "tighten rtol/atol or shorten t_span")
@@ -412,7 +417,8 @@ class IDASBackend(AbstractBackend):
         stats.setdefault("initial_slope_fallbacks", 0)
 
         def restart():
-            return cached_integrator(compiled, "idas", normalised_dae(dae), 0.0, [1.0], restart_settings)
+            dense_settings = restart_settings | consistent_start(1.0, None)
+            return cached_integrator(compiled, "idas", "normalised", 0.0, [1.0], dense_settings)
 
         dense = IDASRestarts(times, values, np.asarray(start.p, dtype=float), restart, len(compiled.states))
         wall = time.perf_counter() - began

@@ -29,7 +29,7 @@ import math
 import re
 
 import numpy as np
-from daemodel.backends.casadi.plumbing import cached_integrator, normalised_dae
+from daemodel.backends.casadi.plumbing import cached_integrator, consistent_start, scaled_dae
 from daemodel.backends.checks import check_output_memory
 from daemodel.backends.progress import captured_output
 
@@ -46,9 +46,9 @@ MIN_POINTS, MAX_POINTS = 64, 2**14
 # A window solved again (a finer grid, or halved) at most this many times: past it StepLimitError.  (Each redo
 # doubles the points per step; 2^30 of them in a row would mean IDAS's steps shrank a billion times.)
 MAX_REDOS = 30
-# A window whose IDAS fails at its start is halved at most this many times (IDACalcIC at a restart takes its
-# scale from the first output's distance: the wheelset's failed from t = 0.7135690 with windows of 3.6e-4 and
-# 7.2e-4, and went on with 1.8e-4); past it, IDAS's failure is raised.
+# A window whose IDAS fails at its start is halved at most this many times; past it, IDAS's failure is raised.
+# (The wheelset's failed from t = 0.7135690 with windows of 3.6e-4 and 7.2e-4, and went on with 1.8e-4, while
+# IDACalcIC's own step was 0.001 of the window: plumbing.consistent_start.)
 START_HALVINGS = 8
 # IDAS prints the time of its failure to 6 digits (of normalised time here): a window cut short there ends this
 # fraction of its length before it.
@@ -67,7 +67,7 @@ def real_times(printed: str, a: float, w: float) -> str:
     return re.sub(r"h = ([-+0-9.eE]+)", lambda m: f"h = {w * float(m.group(1)):.17g}", printed)
 
 
-def search(compiled, dae: dict, t_span, y0, z0, p, settings: dict, step0, stop, explain, max_num_steps: int, slope):
+def search(compiled, t_span, y0, z0, p, settings: dict, step0, stop, explain, max_num_steps: int, slope):
     """``(times (T,), values (1, T, n+m), stats)`` of one sample from ``t_span[0]`` (its value first) until
     ``stop(times, Y, Z, None)`` returns True for a window's outputs, or to ``t_span[1]``.
 
@@ -87,7 +87,6 @@ def search(compiled, dae: dict, t_span, y0, z0, p, settings: dict, step0, stop, 
     t0, t1 = float(t_span[0]), float(t_span[1])
     y, z, p = np.asarray(y0, dtype=float), np.asarray(z0, dtype=float), np.asarray(p, dtype=float)
     n = len(y)
-    scaled = normalised_dae(dae)
     times, rows = [np.array([t0])], [np.concatenate([y, z])[None, :]]
     stats = {"search_windows": 0, "search_redos": 0, "search_restarts": 0}
     budget = DEFAULT_OUTPUT_POINTS * max_num_steps
@@ -111,7 +110,8 @@ def search(compiled, dae: dict, t_span, y0, z0, p, settings: dict, step0, stop, 
             own = dict(settings)
             if first is not None and first / span < 1e-3 * grid[0]:  # (shorter than IDAS's own first guess)
                 own["step0"] = 2.0 ** math.floor(math.log2(first / span))  # (a power of two: few integrators)
-            integrator = cached_integrator(compiled, "idas", scaled, 0.0, grid.tolist(), own)
+            own |= consistent_start(grid[0], own.get("step0"))  # (IDACalcIC's own step, on normalised time)
+            integrator = cached_integrator(compiled, "idas", "normalised", 0.0, grid.tolist(), own)
             with captured_output() as printed:
                 try:
                     try:
@@ -121,6 +121,7 @@ def search(compiled, dae: dict, t_span, y0, z0, p, settings: dict, step0, stop, 
                             raise
                         stats["initial_slope_fallbacks"] = stats.get("initial_slope_fallbacks", 0) + 1
                         exact = {**own, "calc_ic": False, "init_xdot": (span * slope(a, y, z)).tolist()}
+                        scaled = scaled_dae(compiled, "normalised")
                         integrator = casadi.integrator("idas", "idas", scaled, 0.0, grid.tolist(), exact)
                         found = integrator(x0=y, z0=z, p=np.concatenate([p, [a, span]]))
                 except DaemodelError:  # (a time limit's signal, raised inside the call: not IDAS's failure)

@@ -1,7 +1,7 @@
 """What casadi-collocation and casadi-idas share: casadi's integrators built once per model and
-kept (:func:`cached_integrator`), the model as casadi's DAE dict (:func:`dae_of`,
-:func:`normalised_dae`), one call per sample with casadi's output captured (:func:`run_samples`),
-casadi's statistics and messages read back, and the check for non-finite values."""
+kept (:func:`cached_integrator`), the model as casadi's DAE dict on each time scale (:func:`scaled_dae`:
+:func:`dae_of`, :func:`shifted_dae`, :func:`normalised_dae`), one call per sample with casadi's output
+captured (:func:`run_samples`), casadi's statistics and messages read back, and the check for non-finite values."""
 
 from __future__ import annotations
 
@@ -23,12 +23,21 @@ QUIET = {"show_eval_warnings": False}
 KEPT_INTEGRATORS = 32
 # Lines of casadi's captured output quoted in an error that cannot be translated.
 QUOTED_LINES = 3
+# IDACalcIC's own artificial step (IDAS's hic = 0.001 x casadi's first_time): this share of IDAS's first step.
+# Left to casadi, first_time is the last output time, and IDACalcIC, whose Newton iteration moves the algebraic
+# variables by a share of hic z' (0.05 here), left them off their constraints: on the wheelset a trial solve over
+# 2.2e-5 from consistent values (|g| 2.6e-12) started from z 13 of its tolerances off (|g| 1.5e-5), and IDAS
+# failed its error test at every step down to 7e-17 (IDA_ERR_FAIL): its step was 2,600 times IDAS's first
+# (8.4e-12).  At 1e-4 to 1e2 times it, IDAS's values there agreed with those from y'(t0) = f given exactly
+# (calc_ic off) to 1e-14.
+IC_STEP_SHARE = 1e-2
 
 
-def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dict):
-    """casadi's ``plugin`` integrator of ``dae`` from ``t0`` to ``times``, built once per model, times,
-    settings and thread, and kept with the model (its setup, 2-30 ms, otherwise paid on every solve of a
-    sweep); the :data:`KEPT_INTEGRATORS` most recently used are kept.
+def cached_integrator(compiled, plugin: str, scale: str, t0, times, settings: dict):
+    """casadi's ``plugin`` integrator of the model's DAE on the time scale ``scale`` (:func:`scaled_dae`) from
+    ``t0`` to ``times``, built once per model, scale, times, settings and thread, and kept with the model (its
+    setup, 2-30 ms, otherwise paid on every solve of a sweep); the :data:`KEPT_INTEGRATORS` most recently used
+    are kept.
 
     Per thread: a solve reads the integrator's statistics after its calls, which another thread's call
     of a shared integrator would overwrite in between."""
@@ -37,15 +46,13 @@ def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dic
     import casadi
 
     times = [float(t) for t in times]
-    # (the parameters' count tells the model's own dae from its shifted_dae (one more) and normalised_dae (two))
-    kind = int(dae["p"].numel())
-    key = (plugin, kind, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
+    key = (plugin, scale, float(t0), tuple(times), json.dumps(settings, sort_keys=True), threading.get_ident())
     with _KEPT_LOCK:
         kept = compiled.cached("casadi-integrators", collections.OrderedDict)  # the most recently used last
         if key in kept:
             kept.move_to_end(key)
             return kept[key]
-    built = casadi.integrator(plugin, plugin, dae, float(t0), times, settings)
+    built = casadi.integrator(plugin, plugin, scaled_dae(compiled, scale), float(t0), times, settings)
     with _KEPT_LOCK:
         kept[key] = built
         while len(kept) > KEPT_INTEGRATORS:
@@ -54,6 +61,23 @@ def cached_integrator(compiled, plugin: str, dae: dict, t0, times, settings: dic
 
 
 _KEPT_LOCK = threading.Lock()  # (the kept integrators of every model: a cache shared by threads)
+
+
+def consistent_start(first_output: float, step0: float | None) -> dict:
+    """IDAS's settings to start from IDACalcIC's consistent ``y'(t0)`` (and z, from nearly consistent values):
+    its artificial step :data:`IC_STEP_SHARE` of IDAS's first one, ``step0``, or IDAS's own first guess, 0.001 of
+    the first output's distance (both on the integrator's own time)."""
+    first = step0 if step0 is not None else 1e-3 * first_output
+    return {"calc_ic": True, "first_time": 1e3 * IC_STEP_SHARE * first}
+
+
+def scaled_dae(compiled, scale: str) -> dict:
+    """The model's casadi DAE on the time scale ``scale``: ``"own"`` (its t), ``"shifted"`` (the time since t0:
+    :func:`shifted_dae`) or ``"normalised"`` (:func:`normalised_dae`), built once per model and kept with it
+    (a substitution into every equation: built per solve, 344 of them took 0.37 s of the 956 humps' search)."""
+    if scale not in TIME_SCALES:
+        raise ValueError(f"unknown time scale {scale!r}; the scales are {', '.join(TIME_SCALES)}")
+    return compiled.cached(("casadi-dae", scale), lambda: TIME_SCALES[scale](dae_of(compiled)))
 
 
 def dae_of(compiled) -> dict:
@@ -168,3 +192,7 @@ def normalised_dae(dae: dict) -> dict:
         "ode": h * casadi.substitute(dae["ode"], dae["t"], now),
         "alg": casadi.substitute(dae["alg"], dae["t"], now),
     }
+
+
+# The time scales an integrator runs on (cached_integrator's ``scale``): the DAE on each, from the model's own.
+TIME_SCALES = {"own": lambda dae: dae, "shifted": shifted_dae, "normalised": normalised_dae}

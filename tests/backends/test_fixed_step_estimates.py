@@ -76,7 +76,22 @@ def test_integrators_kept_are_bounded(monkeypatch):
     for t1 in (0.5, 0.75, 1.0):
         dm.solve(compiled, (0.0, t1), method="casadi-idas", rtol=1e-6)
     kept = compiled.reduced(1).cached("casadi-integrators", dict)  # (IDAS solves the index-1 reduction)
-    assert [key[3][-1] for key in kept] == [0.75, 1.0]  # the two most recent t_spans (key: plugin, kind, t0, times)
+    assert [key[3][-1] for key in kept] == [0.75, 1.0]  # the two most recent t_spans (key: plugin, scale, t0, times)
+
+
+def test_kept_integrators_name_their_time_scale():
+    # (the caller's tag, where the dae's parameter count told them apart: a model with one more parameter than
+    # another's shifted dae would have shared its integrators)
+    from daemodel.backends.casadi import plumbing
+
+    compiled = PENDULUM.model().compile()
+    dm.solve(compiled, (0.0, 1.0), method="casadi-idas", rtol=1e-6)  # (on the time since t0)
+    dm.solve(compiled, (0.0, 1e-7), method="casadi-idas", rtol=1e-6)  # (shorter than SHORT_SPAN: normalised)
+    dm.solve(compiled, (0.0, 1.0), method="casadi-collocation", h=0.1)
+    kept = [*compiled.reduced(1).cached("casadi-integrators", dict), *compiled.cached("casadi-integrators", dict)]
+    assert {key[:2] for key in kept} == {("idas", "shifted"), ("idas", "normalised"), ("collocation", "own")}
+    with pytest.raises(ValueError, match=r"unknown time scale 'since'; the scales are own, shifted, normalised"):
+        plumbing.scaled_dae(compiled.reduced(1), "since")
 
 
 def test_threads_keep_their_own_integrators():

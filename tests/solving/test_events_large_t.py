@@ -78,14 +78,15 @@ def test_fixed_steps_locate_events_at_a_large_t0(method, options):
     assert np.abs(located - _impacts(6)).max() <= 20 * math.ulp(1e6)
 
 
-@pytest.mark.slow  # (60 s on a busy machine over the wheelset's span, which IDAS now fails)
+@pytest.mark.slow  # (60 s on a busy machine over (0, 0.5); over the wheelset's span, 5 CPU minutes were not enough)
 def test_the_move_across_a_bracket_is_read_off_the_rates_not_two_trials():
     """The states' move across a located bracket is their rates times its width, not the difference of two
     trial solves, which also differ by their own errors: casadi-idas at rtol 1e-6 on the wheelset read 1.11
     atol between trials 2 float64 spacings apart (t = 0.329) and flagged it; the rates move them by 1e-9 of it.
     (Over (0, 0.5), through t = 0.329: since casadi-idas's windowed search (6b9dcca) follows the wheelset's
-    crossings, its solve raises ConvergenceError at t = 0.73-0.91 (by span), the open defect of
-    test_wheelset_casadi_idas_meets_the_test_set_reference.)"""
+    crossings, its solve raised ConvergenceError at t = 0.73-0.91 (by span) until IDACalcIC's own step was a
+    share of IDAS's first one (plumbing.consistent_start); at atol 1e-10 it takes more than 5 CPU minutes over
+    the whole span.)"""
     from daemodel.problems import WHEELSET
 
     with warnings.catch_warnings(record=True) as caught:
