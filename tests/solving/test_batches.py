@@ -6,6 +6,7 @@ x(3) = 0.30), "success" (one at a time, or on t_eval: 7e-12)."""
 import math
 
 import numpy as np
+import pytest
 
 import daemodel as dm
 
@@ -47,3 +48,36 @@ def test_a_batch_without_t_eval_agrees_with_its_samples_alone():
         assert shared.sum() == len(alone.t)  # (the batch's times hold every sample's own)
         np.testing.assert_allclose(sol["x"][b][shared], alone["x"], rtol=0, atol=1e-11)
         assert abs(alone["x"][-1] - _exact(x0, 3.0)) <= 1e-9
+
+
+def _jump_exact(x0, t):
+    """x' = -1 while x > 1, then -1/4: x = x0 - t until t = x0 - 1, then 1 - (t - (x0 - 1)) / 4."""
+    return x0 - t if t <= x0 - 1.0 else 1.0 - 0.25 * (t - (x0 - 1.0))
+
+
+@pytest.mark.parametrize("samples", [1, 7])
+def test_float32_locates_its_switches(samples):
+    """float32 stepped across the switches (one trajectory or a batch): the jump of x' at x = 1 ended 3,700
+    tolerances off at rtol 1e-5 (7 samples), 'success'; the area under Max(0, x - 1) 35 of them."""
+    x0 = np.linspace(1.2, 2.8, samples) if samples > 1 else np.array([1.7])
+    jump = dm.Model("jump")
+    jump.states("x")
+    jump.ode("x", "Piecewise((-1, x > 1), (-0.25, True))")
+    jump.initial(x=2.0)
+    area = dm.Model("area")
+    area.states("x y")
+    area.ode("x", "-1")
+    area.ode("y", "Max(0, x - 1)")  # (y = (x0 - 1)^2 / 2 - Max(0, x0 - 1 - t)^2 / 2)
+    area.initial(x=2.0, y=0.0)
+    rtol = 1e-5
+    for model, name, exact in (
+        (jump, "x", _jump_exact),
+        (area, "y", lambda a, t: (a - 1.0) ** 2 / 2 - max(a - 1.0 - t, 0.0) ** 2 / 2),
+    ):
+        sol = dm.solve(model, (0.0, 3.0), y0={"x": x0}, dtype="float32", rtol=rtol)
+        values = np.asarray(sol[name], dtype=float).reshape(samples, -1)
+        for b, a in enumerate(x0):
+            reference = np.array([exact(a, t) for t in sol.t])
+            # (float32 holds x and y to 6e-8; the errors located: <= 0.2 rtol |x| + 1e-7)
+            assert np.all(np.abs(values[b] - reference) <= rtol * np.abs(reference) + 1e-6), (name, a)
+        assert sol.status == "success" and sol.stats["events"] == samples
