@@ -1,5 +1,6 @@
-"""A batch without ``t_eval`` whose model switches on its variables (``Max``, ``Min``, ``Piecewise`` of the
-states): its switches located in each sample, as one sample alone or a batch on ``t_eval`` has them.
+"""A batch without ``t_eval`` whose model has events (``m.event``) or switches on its variables (``Max``,
+``Min``, ``Piecewise`` of the states): its events and switches located in each sample, as one sample alone or
+a batch on ``t_eval`` has them (a batch with events was refused: "pass t_eval").
 
 A batch's samples cross their switches at times of their own, and share output times only where the user
 gives them (``t_eval``).  Without it the batch stepped across its switches instead of locating them, its

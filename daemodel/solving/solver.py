@@ -151,17 +151,17 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
     compiled = system_for(model, backend)
     located = with_state_events(model)  # (declared events, and one at each switch on a variable)
     # (a batch's samples have their own event times: they share outputs on t_eval only; without it a batch's
-    # switches on variables are located in each sample, then the batch solved on all their output times
-    # (.batches), and declared events refused; a method without t_eval steps across them)
+    # events and switches on variables are located in each sample, the batch's outputs all their output times
+    # (.batches); a method without t_eval steps across the switches)
     has_t_eval = any(f.name == "t_eval" for f in dataclasses.fields(opts))
-    batch_alone = len(start.p) > 1 and getattr(opts, "t_eval", None) is None and has_t_eval and not model.events
+    batch_alone = len(start.p) > 1 and getattr(opts, "t_eval", None) is None and has_t_eval
     # (float32 too: stepped across, x' = Piecewise((-1, x > 1), (-0.25, True)) from 7 x0 in [1.2, 2.8] at rtol 1e-5
     # ended 3,700 tolerances off, "success"; located in float32, within 0.02 of them: tests/solving/test_batches.py)
     common = len(start.p) == 1 or getattr(opts, "t_eval", None) is not None or batch_alone
     time_switches = has_time_switches(model)
     if not backend.solves_pieces and (located.events or time_switches):
         raise unsupported(backend, model)
-    if located.events and common and batch_alone:
+    if located.events and batch_alone:
         dispatched.append(time.perf_counter())
         return solve_on_common_times(backend, located, t_span, start, opts, max_events)
     if model.events or (located.events and common):  # (located, reset and restarted from, in every method)

@@ -81,3 +81,64 @@ def test_float32_locates_its_switches(samples):
             # (float32 holds x and y to 6e-8; the errors located: <= 0.2 rtol |x| + 1e-7)
             assert np.all(np.abs(values[b] - reference) <= rtol * np.abs(reference) + 1e-6), (name, a)
         assert sol.status == "success" and sol.stats["events"] == samples
+
+
+G, E_BALL = 9.81, 0.8
+
+
+def _ball(**event):
+    m = dm.Model("ball")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", f"-{G}")
+    m.initial(h=1.0, v=0.0)
+    m.event("floor", "h", direction=-1, **event)
+    return m
+
+
+def _ball_exact(h0: float, t: float, t1: float) -> tuple[float, list]:
+    """h at t of a ball dropped from h0 at rest (restitution E_BALL), and its impact times up to t1."""
+    t_hit, v = math.sqrt(2.0 * h0 / G), math.sqrt(2.0 * G * h0)
+    impacts, start, h, up = [], 0.0, None, 0.0
+    while start <= t1:
+        end = t_hit if not impacts else start + 2.0 * up / G
+        if h is None and t <= end:
+            tau = t - start
+            h = h0 - G * tau**2 / 2 if not impacts else up * tau - G * tau**2 / 2
+        if end <= t1:
+            impacts.append(end)
+        start, up = end, (v if not impacts[:-1] else up) * E_BALL
+    return h, impacts
+
+
+def test_a_batch_of_bouncing_balls_without_t_eval():
+    """Refused before (SwitchError: 'pass t_eval'): each sample's impacts located, its values at every
+    sample's times (the others' from its dense output) against the closed form."""
+    heights = np.array([0.5, 1.0, 1.7, 2.3])
+    rtol = atol = 1e-8
+    sol = dm.solve(_ball(reset={"v": f"-{E_BALL}*v"}), (0.0, 2.5), y0={"h": heights}, rtol=rtol, atol=atol)
+    assert sol.status == "success" and sol["h"].shape == (len(heights), len(sol.t))
+    impacts = sol.events["floor"]["t"]
+    for b, h0 in enumerate(heights):
+        exact = [_ball_exact(h0, t, 2.5)[0] for t in sol.t]
+        assert np.all(np.abs(sol["h"][b] - exact) <= atol + rtol * np.abs(exact)), h0
+        times = _ball_exact(h0, 0.0, 2.5)[1]
+        assert len(times) >= 2 and np.abs(impacts[b, : len(times)] - times).max() <= 1e-9
+        assert np.isnan(impacts[b, len(times) :]).all()  # (padded: the others bounce more often)
+        assert np.abs(sol.t[:, None] - np.array(times)[None, :]).min(axis=0).max() <= 1e-9  # (output times)
+    assert sol.stats["events"] == sum(len(_ball_exact(h0, 0.0, 2.5)[1]) for h0 in heights)
+
+
+def test_a_terminal_event_ends_each_sample_of_a_batch_at_its_own_time():
+    heights = np.array([0.5, 1.2, 2.0])
+    sol = dm.solve(_ball(terminal=True), (0.0, 1.0), y0={"h": heights}, rtol=1e-8, atol=1e-8)
+    ends = np.sqrt(2.0 * heights / G)  # (0.32, 0.49, 0.64 s: all before t1 = 1)
+    np.testing.assert_allclose(sol.stats["t_end"], ends, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(sol.events["floor"]["t"][:, 0], ends, rtol=0, atol=1e-9)
+    assert sol.t[-1] == sol.stats["t_end"].max()
+    for b, h0 in enumerate(heights):
+        before = sol.t <= sol.stats["t_end"][b]
+        exact = h0 - G * sol.t[before] ** 2 / 2
+        assert np.all(np.abs(sol["h"][b][before] - exact) <= 1e-8 + 1e-8 * np.abs(exact)), h0
+        assert np.isnan(sol["h"][b][~before]).all()  # (the sample ended there)
+    assert sol.status == "success"
