@@ -142,3 +142,19 @@ def test_a_terminal_event_ends_each_sample_of_a_batch_at_its_own_time():
         assert np.all(np.abs(sol["h"][b][before] - exact) <= 1e-8 + 1e-8 * np.abs(exact)), h0
         assert np.isnan(sol["h"][b][~before]).all()  # (the sample ended there)
     assert sol.status == "success"
+
+
+def test_a_batch_without_t_eval_reads_the_others_times_off_each_samples_dense_output():
+    """Before, each sample was solved alone, then all again on the union of their times (t_eval): 103 steps
+    where the samples alone took 68.  Now the samples' own solves are the answer, each sample's values at the
+    others' times its collocation polynomial's (what t_eval evaluates): the same values, within the tolerance
+    of the closed form (0.04 of it at rtol 1e-4, 3 stages; at the step ends 0.003)."""
+    rtol, atol = 1e-4, 1e-6
+    sol = dm.solve(_model(), (0.0, 3.0), y0={"x": X0}, rtol=rtol, atol=atol)
+    assert sol.stats["steps"] == sol.stats["samples_alone_steps"]  # (nothing solved again)
+    on_times = dm.solve(_model(), (0.0, 3.0), y0={"x": X0}, rtol=rtol, atol=atol, t_eval=sol.t)
+    np.testing.assert_allclose(sol["x"], on_times["x"], rtol=0, atol=1e-13)
+    for b, x0 in enumerate(X0):
+        exact = np.array([_exact(x0, t) for t in sol.t])
+        assert np.all(np.abs(sol["x"][b] - exact) <= 0.5 * (atol + rtol * np.abs(exact)))
+    assert sol.status == "success"
