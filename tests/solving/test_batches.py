@@ -158,3 +158,12 @@ def test_a_batch_without_t_eval_reads_the_others_times_off_each_samples_dense_ou
         exact = np.array([_exact(x0, t) for t in sol.t])
         assert np.all(np.abs(sol["x"][b] - exact) <= 0.5 * (atol + rtol * np.abs(exact)))
     assert sol.status == "success"
+
+
+def test_a_flagged_sample_of_a_batch_without_t_eval_is_said():
+    """The samples' own solves are kept: their warnings are said (before, by the solve again on the union)
+    and the flagged samples named in the status."""
+    with pytest.warns(dm.errors.LocalErrorWarning, match=r"flagged: radau's local error estimate reaches"):
+        sol = dm.solve(_model(), (0.0, 3.0), y0={"x": X0}, h=0.5, stages=1, estimate_bound=1e-6)
+    assert sol.status.startswith("samples [0]: on [0.2, 3]: flagged")  # (x0 = 1.2: its switch at t = 0.2)
+    assert sol.stats["steps"] == sol.stats["samples_alone_steps"]
