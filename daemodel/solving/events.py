@@ -127,7 +127,8 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     EventLocationError
         An event that the trial solves do not locate.
     SwitchError
-        A batch without ``t_eval``: its samples' outputs would not share times.
+        A batch without ``t_eval``: its samples' outputs would not share times (:func:`daemodel.solve` gives
+        such a batch to :func:`~daemodel.solving.batches.solve_on_common_times`).
     """
 
     P = np.asarray(start.p, dtype=float)

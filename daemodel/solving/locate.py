@@ -27,6 +27,11 @@ MAX_LOCATION_ITERATIONS, BISECT_AFTER = 100, 24
 # this share of their tolerance (atol + rtol |y|), so that its time moves the states after it by less than that
 # (at t0 = 1e6 the width in t alone left them 1356 rtol off).
 LOCATE_SHARE = 0.1
+# A trial solve of a method computing in float32 runs in float64: its event function's sign is float32's rounding
+# within ~1e-7 of a crossing (x' = Piecewise((-1, x > 1), (-0.25, True)) hit x = 1.0 exactly over 6e-8 in t, and
+# the search crept along that plateau: 32 trials for one event, 51 for 7 samples, against 3 in float64), while the
+# side an event leaves its function on must be told there.  The pieces between events stay in float32.
+TRIALS_DTYPE = {"float32": {"dtype": "float64"}}
 # A trial solve this short (relative to max(1, |t|)) is one step, whatever the method's own grid.
 TINY_SPAN = 1e-9
 # The first trial of an event's location is where the dense output crosses (between.dense_crossing); the
@@ -71,9 +76,10 @@ def trial_solve(backend, compiled, options, batched, P, which, when, a: float, t
     """One trial solve of ``compiled`` over ``[a, tau]`` from ``(ya, za)``: ``(F, y (1, n), z (1, m), stats)``,
     ``F`` the event function ``which`` at its end.  A fixed ``h`` is kept (at most the span); a span shorter
     than a method's own grid resolves is one fixed step, its adaptive settings dropped.  Its warnings are
-    not the solve's (its outputs are solved again), so they are not shown."""
+    not the solve's (its outputs are solved again), so they are not shown.  A method computing in float32 solves
+    its trials in float64 (:data:`TRIALS_DTYPE`), from the float32 solve's output."""
     fields = {f.name for f in dataclasses.fields(options)}
-    changes = {"t_eval": None}
+    changes = {"t_eval": None} | TRIALS_DTYPE.get(getattr(options, "dtype", None), {})
     if "h" in fields and getattr(options, "h", None) is not None:
         changes["h"] = min(options.h, tau - a)
     elif "h" in fields and tau - a <= TINY_SPAN * max(1.0, abs(a)):

@@ -133,8 +133,11 @@ def joined_breakpoints(records: list) -> dict:
 
 
 def join_samples(parts: list, B: int, batched: bool):
-    """One Solution of the groups' (``(sample indices, Solution)``, all on the same output times):
-    values and parameters in sample order, breakpoints and events padded with NaN to the longest."""
+    """One Solution of the groups' (``(sample indices, Solution)``): values and parameters in sample order,
+    breakpoints and events padded with NaN to the longest.  Groups on other output times (a terminal event
+    that ends some early, a batch without t_eval: :mod:`daemodel.solving.batches`) are joined on all their
+    times, each group's values at the others' times from its dense output (:meth:`Solution.at`: radau's is
+    what t_eval evaluates), NaN after its own end where that comes before the last."""
     from daemodel.solution import Solution
 
     first = parts[0][1]

@@ -149,8 +149,19 @@ def test_a_batch_of_100_with_their_own_event_times():
 
 
 def test_a_batch_with_events_needs_common_output_times():
+    """solve_with_events itself: dm.solve gives a batch without t_eval to solving.batches (its own
+    tests: tests/solving/test_batches.py)."""
+    from daemodel.backends import get_backend
+
+    from daemodel.compiling.initial_states import initial_states
+    from daemodel.solving.events import solve_with_events
+    from daemodel.solving.solver import check_options
+
+    compiled = _ball().compile()
+    start = initial_states(compiled, y0={"h": [1.0, 2.0], "v": [0.0, 0.0]})
+    options = check_options(get_backend("radau"), {"rtol": 1e-6, "atol": 1e-6})
     with pytest.raises(E.SwitchError, match=r"a batch of 2 samples with events: each sample has its own event times"):
-        dm.solve(_ball(), (0.0, 1.0), rtol=1e-6, atol=1e-6, y0={"h": [1.0, 2.0], "v": [0.0, 0.0]})
+        solve_with_events(get_backend("radau"), compiled, (0.0, 1.0), start, options)
 
 
 def test_chattering_is_bounded():
