@@ -101,8 +101,9 @@ def test_car_axis_is_transcribed_as_published(car_axis):
     """Index 3 (the multipliers appear in the second derivative of the position constraints), the
     published initial state consistent, and scipy at 1e-12 meets the test set's positions and
     velocities at t = 3 to 9 digits.  Its multipliers agree to 7 digits only: scipy, radau and IDAS
-    here agree with one another on them to 1e-11 (test below), so those 7 digits are the published
-    values' own accuracy (lam1 is off by 1.6e-10 in each)."""
+    here agree with one another on them to 1e-11 (test below), and those 7 digits are the published
+    values' own accuracy, measured against an extended-precision reference (7.47 and 7.14 digits,
+    tests/problems/test_car_axis_reference.py)."""
     assert car_axis.index == 3
     assert car_axis.z0 == pytest.approx([0.0, 0.0], abs=1e-12)  # the test set's lam(0) = 0
     ref = dm.solve(car_axis, CAR_AXIS.t_span, method="reference", rtol=1e-12, atol=1e-12, t_eval=[0.0, 3.0])
