@@ -16,6 +16,7 @@ model's ``f`` and ``g`` (``tests/backends/radau/test_stencil.py``).
 from __future__ import annotations
 
 from daemodel.backends.radau.compiled import (
+    COMPILER_FLAGS,
     INLINED_RESIDUAL_MAX_SIZE,
     casadi_functions,
     compiler_flags,
@@ -27,6 +28,9 @@ from daemodel.backends.radau.compiled import (
 NAME, RESIDUAL = "stencil_fg", "stencil_residual"
 # Seconds the compiler may take (a few templates, their runs' table and the boundary rows).
 STENCIL_COMPILE_TIMEOUT = 120.0
+# With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
+# are exported, so -fPIC called each through the PLT at every row, and casadi's sq too): the same operations.
+GCC_STENCIL_FLAGS = ("-fno-semantic-interposition",)
 
 
 def _table(name: str, rows: list) -> str:
@@ -186,7 +190,9 @@ def stencil_function(runs, tableau, compiler: str):
 
     what = "radau's machine code: compiling the stencil's equations"
     fix = "solve with jit=False (casadi's virtual machine: the same results)"
-    build = Build(compiler, compiler_flags(compiler), what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
+    flags = compiler_flags(compiler)
+    flags += GCC_STENCIL_FLAGS if flags != COMPILER_FLAGS else ()  # (GCC's flags added: not clang)
+    build = Build(compiler, flags, what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
     source = stencil_source(runs) + residual_source(tableau)
     library = cached_library(source, [NAME, RESIDUAL], build)
     return library.functions[NAME], library.functions[RESIDUAL], library.outcome
