@@ -80,20 +80,23 @@ _LEAF = [object() for _ in range(64)]
 def _shape(expr, where: dict, leaves: list, seen: dict, numbers: dict):
     """``expr``'s tree as nested tuples: nodes as (type, *args), symbols of ``where`` as their place among
     ``leaves`` (first occurrence first, appended to ``leaves``), numbers as (type, value, sign), anything
-    else as itself."""
+    else as itself.  ``numbers`` memoises by ``id`` (every expression is alive while the rows are read:
+    sympy's hashes of numbers were half of the search's time at 10^5 unknowns); symbols are looked up by
+    equality (a model's expressions may hold an equal symbol that is another object)."""
     args = expr._args
     if not args:
-        k = seen.get(expr)
-        if k is not None:
-            return _LEAF[k] if k < len(_LEAF) else ("leaf", k)
-        if expr in where:
-            k = seen[expr] = len(leaves)
-            leaves.append(expr)
-            return _LEAF[k] if k < len(_LEAF) else ("leaf", k)
-        value = numbers.get(expr)
+        if expr.is_Symbol:
+            k = seen.get(expr)
+            if k is None and expr in where:
+                k = seen[expr] = len(leaves)
+                leaves.append(expr)
+            if k is not None:
+                return _LEAF[k] if k < len(_LEAF) else ("leaf", k)
+            return expr
+        value = numbers.get(id(expr))
         if value is None:
             number = CasadiConverter._number(expr)  # (its type too: x**(1/2) is a square root, x**0.5 a power)
-            value = numbers[expr] = expr if number is None else (type(expr), number, bool(np.signbit(number)))
+            value = numbers[id(expr)] = expr if number is None else (type(expr), number, bool(np.signbit(number)))
         return value
     if isinstance(expr, sp.Piecewise):  # (its (value, condition) pairs: their parts)
         return (sp.Piecewise, *[_shape(part, where, leaves, seen, numbers) for pair in args for part in pair])
@@ -106,7 +109,8 @@ def _runs(members: list, leaves: list, where: dict) -> list:
     if len(members) < RUN_MIN:
         return []
     count = len(leaves[members[0]])
-    places = np.array([[where[s] for s in leaves[k]] for k in members], dtype=np.int64).reshape(len(members), count, 2)
+    places = np.array([[where[s] for s in leaves[k]] for k in members], dtype=np.int64)
+    places = places.reshape(len(members), count, 2)
     inputs, indices = places[..., 0], np.concatenate([places[..., 1], np.array(members)[:, None]], axis=1)
     step = np.diff(indices, axis=0)  # (rows - 1, leaves + 1): from each row to the next
     joins = (inputs[1:] == inputs[:-1]).all(axis=1)  # (row k and k + 1 read the same inputs)
