@@ -24,6 +24,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.compiling.codegen import CasadiConverter
+from daemodel.declaring.stencils import paused_collection
 
 # A run holds at least this many rows (shorter ones are left to the rest: each run is a loop of its own).
 RUN_MIN = 16
@@ -142,10 +143,11 @@ def equation_runs(compiled) -> EquationRuns | None:
     outputs = compiled._outputs()
     rows = [*outputs["f"][0], *outputs["g"][0]]
     groups, leaves, numbers = {}, [], {}
-    for row, expr in enumerate(rows):
-        leaves.append([])
-        key = (row >= n, _shape(expr, where, leaves[-1], {}, numbers))
-        groups.setdefault(key, []).append(row)
+    with paused_collection():  # (10^6 tuples made: full collections would walk every tree of the model)
+        for row, expr in enumerate(rows):
+            leaves.append([])
+            key = (row >= n, _shape(expr, where, leaves[-1], {}, numbers))
+            groups.setdefault(key, []).append(row)
     templates, runs, covered = [], [], np.zeros(n + m, dtype=bool)
     for members in groups.values():
         found = _runs(members, leaves, where)
