@@ -8,7 +8,9 @@ other jobs (load 6-11 on 2 cores when ``first_solve_cpu.json`` was measured: wal
 values) does not decide the comparison; page faults and the kernel's page clearing are counted (sys time).
 With ``DAEMODEL_OLD_PATHS=1`` the three changes of 7ac3759 and 49d6374 are patched back out (Newton's
 increment with its temporaries, the packed inputs made by ``np.concatenate``, no band buffers reserved in
-the setup): the "before" cells.  The errors are those of ``scaling_large.json`` (the same bits).
+the setup): the "before" cells.  With ``DAEMODEL_NO_STENCIL=1`` radau's stage residual stays on casadi's
+virtual machine (``backends/radau/stencil.py`` patched out: the "-nostencil" cells, the same bits).  The
+errors are those of ``scaling_large.json`` (the same bits).
 """
 
 from __future__ import annotations
@@ -41,10 +43,16 @@ def main() -> None:
         casadi_engine.IncrementBuffers = lambda *args: None
         radau_compiled.Buffered.packed = lambda self, *parts: self(np.concatenate([np.ravel(p) for p in parts]))
         band.BandKernel.reserve = lambda self, counts: None
+    nostencil = bool(os.environ.get("DAEMODEL_NO_STENCIL"))
+    if nostencil:
+        from daemodel.backends.radau import stencil
+
+        stencil.stencil_equations = lambda *args: (None, "off")
     compiled = scaling_models.DECLARATIONS["stencils"](unknowns // 2).compile()
     times = np.linspace(0.0, 1.0, 11)
     sol = dm.solve(compiled, (0.0, 1.0), method=method, rtol=rtol, atol=rtol / 100, t_eval=times)
-    cell = {"unknowns": unknowns, "method": method + ("-before" if old else ""), "rtol": rtol}
+    suffix = ("-before" if old else "") + ("-nostencil" if nostencil else "")
+    cell = {"unknowns": unknowns, "method": method + suffix, "rtol": rtol}
     print(json.dumps({**cell, "setup_cpu": sol.setup_time, "solve_cpu": sol.solve_time, "load": os.getloadavg()[0]}))
 
 

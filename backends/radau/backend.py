@@ -103,6 +103,8 @@ class RadauBackend(AbstractBackend):
         if engine.name == "casadi" and isinstance(engine._order, BandKernel):  # (.band: its LU in C)
             widths = f"band widths {engine._order.kl} and {engine._order.ku}"
             stepper.stats["band_lu"] = f"machine code ({widths}; cache: {', '.join(engine.band_outcomes)})"
+        if engine.name == "casadi" and engine.stencil is not None:  # (f and g of a repeated stencil in C: .stencil)
+            stepper.stats["stencil"] = engine.stencil
         if engine.name == "casadi" and engine.static is not None:
             # (factorisations the fixed pivot order did not hold, each factored by LAPACK or SuperLU: .pivots)
             stepper.stats["pivot_failures"] = engine.pivot_failures

@@ -16,7 +16,6 @@ from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import (
     STEP_SCALARS,
     StaticFactors,
-    casadi_functions,
     find_compiler,
     inverse_function,
     inverse_size,
@@ -25,7 +24,6 @@ from daemodel.backends.radau.compiled import (
     machine_library,
     newton_step_function,
     refresh_function,
-    stage_f_buffer,
     static_factor_function,
     step_function,
     step_layouts,
@@ -51,6 +49,7 @@ from daemodel.backends.radau.sparse import (
     sorted_unique,
     unique_entries,
 )
+from daemodel.backends.radau.stencil import engine_functions
 from daemodel.backends.radau.transform import IncrementBuffers
 
 from daemodel.errors import DaemodelError
@@ -110,12 +109,12 @@ class CasadiEngine(AbstractEngine):
         self.jit, self.band, self.band_outcomes = jit, band, []  # (band: narrow band orders' LU in C, .band)
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
-        functions = compiled.cached(("casadi-radau", self.s), lambda: casadi_functions(compiled, tableau))
+        # (stencil: a repeated stencil's f, g and residual in C above 200 unknowns, without jit: .stencil)
+        functions, self._stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
         self._f, self._residual, self._jac, self._stage_jac = (lend(self, fn) for fn in functions[:4])
         self.rows, self.cols = functions[4:]
-        self._stage_f = stage_f_buffer(compiled, tableau)  # (f at the stages alone, or None: .compiled)
         self._functions = functions
         D = self.D
         # sparse: the full Newton matrix's CSC layout (factor_stages, on first use), the band order (_sparse_layout)

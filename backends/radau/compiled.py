@@ -575,7 +575,7 @@ class Buffered:
         return self._outputs.copy() if copy else self._outputs
 
 
-def casadi_functions(compiled, tableau):
+def casadi_functions(compiled, tableau, stencil=None):
     """casadi functions of the casadi engine (cached on the compiled model, per s).
 
     Each takes one packed vector and returns one (a call costs ~20 us per argument): ``f`` of
@@ -583,6 +583,8 @@ def casadi_functions(compiled, tableau):
     :func:`daemodel.collocation.stage_residual`) of ``[t, h, y_n, W, p]``, ``W`` stage by stage
     ``[Y_i, Z_i]``, returning ``[R (stage by stage [F_i, G_i]), f at the stages]``; the Jacobian's
     nonzeros at ``[t, y, z, p]`` and at every stage of ``[t, h, W, p]``; its pattern (rows, cols).
+    ``stencil``: functions ``(t, x, z, p) -> (f, g)`` and of the stage residual that replace the model's
+    own (above :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns: :mod:`.stencil`, the same bits in C).
     """
     import casadi
 
@@ -600,6 +602,9 @@ def casadi_functions(compiled, tableau):
     inputs = kind.sym("x", 2 + n + s * D + p.numel())
     t_r, h, y_n, W, p_r = (inputs[0], inputs[1], inputs[2 : 2 + n], inputs[2 + n : 2 + n + s * D],
                            inputs[2 + n + s * D :])  # fmt: skip
+    if stencil is not None:
+        return (casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]), stencil[1], jacobian,
+                *stage_jacobians(jacobian, tableau, D, p.numel(), jac))  # fmt: skip
     times = [t_r + float(c[i]) * h for i in range(s)]
     Y = [W[i * D : i * D + n] for i in range(s)]
     Z = [W[i * D + n : (i + 1) * D] for i in range(s)]
@@ -608,28 +613,36 @@ def casadi_functions(compiled, tableau):
     for i in range(s):
         quadrature = sum((float(A[i, j]) * stage_f[j] for j in range(s)), kind.zeros(n))
         rows += [Y[i] - y_n - h * quadrature, g(times[i], Y[i], Z[i], p_r)]
+    residual = casadi.Function("residual", [inputs], [casadi.vertcat(*rows, *stage_f)])
+    f = casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]])
+    return (f, residual, jacobian, *stage_jacobians(jacobian, tableau, D, p.numel(), jac))
+
+
+def stage_jacobians(jacobian, tableau, D: int, P: int, jac) -> tuple:
+    """:func:`casadi_functions`' last three: the stages' Jacobians, and the pattern's rows and columns."""
+    import casadi
+
+    s, c = tableau.stages, tableau.c
     # the stages' Jacobians call the Jacobian's function s times (MX): the same operations as s inlined
     # copies, without building them (at 10^5 unknowns the copies took longer to build than a solve)
-    packed = casadi.MX.sym("x", 2 + s * D + p.numel())
+    packed = casadi.MX.sym("x", 2 + s * D + P)
     t_, h_, W_, p_ = packed[0], packed[1], packed[2 : 2 + s * D], packed[2 + s * D :]
     stages = [jacobian(casadi.vertcat(t_ + float(c[i]) * h_, W_[i * D : (i + 1) * D], p_)) for i in range(s)]
     pattern = jac.sparsity().get_triplet()
     return (
-        casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]),
-        casadi.Function("residual", [inputs], [casadi.vertcat(*rows, *stage_f)]),
-        jacobian,
         casadi.Function("stage_jacobians", [packed], [casadi.vertcat(*stages)]),
         np.asarray(pattern[0], dtype=np.int64),
         np.asarray(pattern[1], dtype=np.int64),
     )
 
 
-def stage_f_function(compiled, tableau):
+def stage_f_function(compiled, tableau, stencil=None):
     """casadi function of f at the stages alone, from the residual's packed ``[t, h, y_n, W, p]``:
     ``[f(t + c_i h, Y_i, Z_i)]`` stage by stage, the residual's second output without its stage
     equations (the error estimate's evaluation after Newton has converged: 15 against 26 ms at 10^5
     unknowns of reaction-diffusion).  None up to :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns, where the
-    residual inlines its copies of f (its bits are those of this function's calls above only)."""
+    residual inlines its copies of f (its bits are those of this function's calls above only).
+    ``stencil``: as :func:`casadi_functions`' (its f and g alone, f read)."""
     import casadi
 
     dae = compiled.casadi_dae()
@@ -638,6 +651,9 @@ def stage_f_function(compiled, tableau):
     if D <= INLINED_RESIDUAL_MAX_SIZE:
         return None
     f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    if stencil is not None:  # (its first output)
+        arguments = stencil[0].mx_in()
+        f = casadi.Function("f", arguments, [stencil[0](*arguments)[0]])
     inputs = casadi.MX.sym("x", 2 + n + s * D + p.numel())
     t_r, h, W, p_r = inputs[0], inputs[1], inputs[2 + n : 2 + n + s * D], inputs[2 + n + s * D :]
     stage_f = [
@@ -646,9 +662,11 @@ def stage_f_function(compiled, tableau):
     return casadi.Function("stage_f", [inputs], [casadi.vertcat(*stage_f)])
 
 
-def stage_f_buffer(compiled, tableau) -> Buffered | None:
-    """:func:`stage_f_function` (built once per model and s) on its own buffers, or None where there is none."""
-    function = compiled.cached(("casadi-radau-stage-f", tableau.stages), lambda: stage_f_function(compiled, tableau))
+def stage_f_buffer(compiled, tableau, stencil=None) -> Buffered | None:
+    """:func:`stage_f_function` (built once per model, s and ``stencil``) on its own buffers, or None where
+    there is none."""
+    key = ("casadi-radau-stage-f", tableau.stages, stencil is not None)
+    function = compiled.cached(key, lambda: stage_f_function(compiled, tableau, stencil))
     return None if function is None else Buffered(function)
 
 

@@ -392,7 +392,7 @@ def test_the_stage_jacobians_are_the_jacobians_function_at_each_stage():
 def test_f_at_the_stages_alone_is_the_residuals_bit_for_bit(first_engine, monkeypatch):
     """Above INLINED_RESIDUAL_MAX_SIZE the error estimate's evaluation after Newton computes f at the stages
     alone (no stage equations): the residual's stage_f bit for bit, so a solve's values do not change."""
-    from daemodel.backends.radau import casadi_engine
+    from daemodel.backends.radau import stencil
 
     from daemodel.problems.families import reaction_diffusion
 
@@ -409,7 +409,7 @@ def test_f_at_the_stages_alone_is_the_residuals_bit_for_bit(first_engine, monkey
     assert small_engine._stage_f is None
     options = {"rtol": 1e-6, "atol": 1e-8, "jit": False}
     fast = dm.solve(model, (0.0, 1.0), **options)
-    monkeypatch.setattr(casadi_engine, "stage_f_buffer", lambda *args: None)
+    monkeypatch.setattr(stencil, "stage_f_buffer", lambda *args: None)
     full_residuals = dm.solve(model, (0.0, 1.0), **options)
     assert fast.stats["steps"] == full_residuals.stats["steps"]
     for name in compiled.state_names + compiled.algebraic_names:

@@ -1,0 +1,236 @@
+"""The equations ``f`` and ``g`` of a repeated stencil in C: one loop per run of one template (issue 44).
+
+Above :data:`.compiled.INLINED_RESIDUAL_MAX_SIZE` unknowns the stage residual calls ``f`` and ``g`` at
+every stage on casadi's virtual machine: at 10^5 unknowns of reaction-diffusion 3.6 of its 4.9 ms, ~1 ns
+an operation (0.42 ms for f's 450,001 instructions, 0.30 for g's 350,001).  Compiling them whole would take
+minutes; but a discretised PDE is a few templates repeated with shifted indices
+(:func:`daemodel.compiling.runs.equation_runs`).  Here each template is a small casadi function in C
+(casadi's code generator: the operations its virtual machine runs, in the same order), called in a loop
+over each run with its leaves' pointers advanced by their strides, and the rows in no run (the
+boundaries) a casadi function of their own in the same library; the source grows with the templates and
+runs, not with the unknowns, so it compiles in a fraction of a second and the disk cache
+(:mod:`daemodel.cache`) keeps it.  One function ``stencil_fg(t, x, z, p) -> (f, g)``, the same bits as the
+model's ``f`` and ``g`` (``tests/backends/radau/test_stencil.py``).
+"""
+
+from __future__ import annotations
+
+from daemodel.backends.radau.compiled import (
+    COMPILER_FLAGS,
+    INLINED_RESIDUAL_MAX_SIZE,
+    casadi_functions,
+    compiler_flags,
+    find_compiler,
+    stage_f_buffer,
+)
+
+# The names of the functions in the library: f and g, and the stage residual.
+NAME, RESIDUAL = "stencil_fg", "stencil_residual"
+# Seconds the compiler may take (a few templates, their runs' table and the boundary rows).
+STENCIL_COMPILE_TIMEOUT = 120.0
+# With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
+# are exported, so -fPIC called each through the PLT at every row, and casadi's sq too): the same operations.
+GCC_STENCIL_FLAGS = ("-fno-semantic-interposition",)
+
+
+def _table(name: str, rows: list) -> str:
+    """A C table of integers, one row per entry of ``rows`` (at least one row: C has no empty arrays)."""
+    rows = rows or [[0]]
+    body = ",\n".join("  {" + ", ".join(str(int(v)) for v in row) + "}" for row in rows)
+    return f"static const casadi_int {name}[{len(rows)}][{len(rows[0])}] = {{\n{body}\n}};\n"
+
+
+def stencil_source(runs) -> str:
+    """The C of :data:`NAME` (casadi's external-function interface) for ``runs``
+    (:class:`daemodel.compiling.runs.EquationRuns`): the templates and the rest by casadi's code
+    generator, then the loops over the runs and the rest's rows put in place."""
+    import casadi
+
+    generator = casadi.CodeGenerator("daemodel_stencil", {"with_header": False})
+    for template in runs.templates:
+        generator.add(template)
+    rest = runs.rest
+    if rest is not None:
+        generator.add(rest)
+    n, m, P = runs.sizes
+    out = [generator.dump(), "\n/* daemodel: runs of the templates (generated; numbers only) */\n"]
+    # each template's runs: count, then per leaf its input, base and stride, then output, base and stride
+    for k, template in enumerate(runs.templates):
+        leaves = template.n_in()
+        rows = [[r.count, *[v for j in range(leaves) for v in (r.inputs[j], r.bases[j], r.strides[j])],
+                 r.output, r.out_base, r.out_stride] for r in runs.runs if r.template == k]  # fmt: skip
+        out.append(_table(f"runs{k}", rows))
+    f_rows, g_rows = (list(map(int, r)) for r in runs.rest_rows)
+    out.append(_table("rest_rows", [[0, i] for i in f_rows] + [[1, i] for i in g_rows]))
+    rest_w = 0 if rest is None else rest.sz_w()
+    rest_iw = 0 if rest is None else rest.sz_iw()
+    rest_arg = 0 if rest is None else rest.sz_arg()
+    rest_res = 0 if rest is None else rest.sz_res()
+    out.append(
+        f"#define N_X {n}\n#define N_Z {m}\n#define N_P {P}\n#define N_REST {len(f_rows) + len(g_rows)}\n"
+        f"#define REST_W {rest_w}\n#define REST_IW {rest_iw}\n#define REST_ARG {max(rest_arg, 4)}\n"
+        f"#define REST_RES {max(rest_res, 1)}\n"
+        "static const casadi_int sp_t[3] = {1, 1, 1};\n"
+        "static const casadi_int sp_x[3] = {N_X, 1, 1};\n"
+        "static const casadi_int sp_z[3] = {N_Z, 1, 1};\n"
+        "static const casadi_int sp_p[3] = {N_P, 1, 1};\n"
+        f"int {NAME}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
+        "  casadi_int r, i, j;\n"
+    )
+    for k, template in enumerate(runs.templates):
+        leaves = template.n_in()
+        count = sum(r.template == k for r in runs.runs)
+        out.append(
+            f"  for (r = 0; r < {count}; r++) {{\n"
+            f"    const casadi_int* q = runs{k}[r];\n"
+            f"    const casadi_real* a[{max(leaves, 1)}];\n"  # (C has no empty arrays: a row of a constant)
+            f"    const casadi_real* in[{max(leaves, 1)}];\n"
+            f"    casadi_int s[{max(leaves, 1)}];\n"
+            f"    casadi_real* o = res[q[{3 * leaves + 1}]];\n"
+            "    casadi_real* out[1];\n"
+            "    if (!o) continue;\n"
+            f"    o += q[{3 * leaves + 2}];\n"
+            f"    for (j = 0; j < {leaves}; j++) {{\n"
+            "      a[j] = arg[q[1 + 3 * j]] + q[2 + 3 * j];\n"
+            "      s[j] = q[3 + 3 * j];\n"
+            "    }\n"
+            "    for (i = 0; i < q[0]; i++) {\n"
+            f"      for (j = 0; j < {leaves}; j++) in[j] = a[j] + s[j] * i;\n"
+            f"      out[0] = o + q[{3 * leaves + 3}] * i;\n"
+            f"      if ({template.name()}(in, out, iw, w, 0)) return 1;\n"
+            "    }\n"
+            "  }\n"
+        )
+    if rest is not None:
+        out.append(
+            "  {\n"
+            "    const casadi_real** rest_arg = arg + 4;\n"
+            "    casadi_real** rest_res = res + 2;\n"
+            "    for (j = 0; j < 4; j++) rest_arg[j] = arg[j];\n"
+            "    rest_res[0] = w + REST_W;\n"
+            "    if (rest(rest_arg, rest_res, iw, w, 0)) return 1;\n"
+            "    for (i = 0; i < N_REST; i++)\n"
+            "      if (res[rest_rows[i][0]]) res[rest_rows[i][0]][rest_rows[i][1]] = w[REST_W + i];\n"
+            "  }\n"
+        )
+    out.append(
+        "  return 0;\n}\n"
+        f"casadi_int {NAME}_n_in(void) {{ return 4; }}\n"
+        f"casadi_int {NAME}_n_out(void) {{ return 2; }}\n"
+        f"const casadi_int* {NAME}_sparsity_in(casadi_int i) {{\n"
+        "  return i == 0 ? sp_t : i == 1 ? sp_x : i == 2 ? sp_z : i == 3 ? sp_p : 0;\n}\n"
+        f"const casadi_int* {NAME}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_x : i == 1 ? sp_z : 0; }}\n"
+        f"int {NAME}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
+        "  if (sz_arg) *sz_arg = 4 + REST_ARG;  /* (the rest's arguments after its own) */\n"
+        "  if (sz_res) *sz_res = 2 + REST_RES;\n"
+        "  if (sz_iw) *sz_iw = REST_IW;\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST;  /* (the rest's work, then its outputs) */\n"
+        "  return 0;\n}\n"
+    )
+    return "".join(out)
+
+
+def residual_source(tableau) -> str:
+    """The C of :data:`RESIDUAL` (after :func:`stencil_source`'s): :func:`.compiled.casadi_functions`' stage
+    residual of ``[t, h, y_n, W, p]`` to ``[R, f at the stages]``, its operations in the order of that MX
+    graph (``t + c_i h``; ``Y_i - y_n - h (a_i1 f_1 + ... + a_is f_s)`` summed from the left), the
+    tableau's numbers as C99 hexadecimal literals (exact)."""
+    s, A, c = tableau.stages, tableau.A, tableau.c
+    hexes = lambda values: ", ".join(float(v).hex() for v in values)  # noqa: E731
+    return (
+        f"\n/* daemodel: the stage residual on {NAME} (generated; numbers only) */\n"
+        f"#define N_S {s}\n#define N_D (N_X + N_Z)\n"
+        f"static const casadi_real stage_c[N_S] = {{{hexes(c)}}};\n"
+        f"static const casadi_real stage_a[N_S][N_S] = {{{', '.join('{' + hexes(row) + '}' for row in A)}}};\n"
+        "static const casadi_int sp_in[3] = {2 + N_X + N_S * N_D + N_P, 1, 1};\n"
+        "static const casadi_int sp_out[3] = {N_S * N_D + N_S * N_X, 1, 1};\n"
+        f"int {RESIDUAL}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
+        "  const casadi_real* in = arg[0];\n"
+        "  const casadi_real* yn = in + 2;\n"
+        "  const casadi_real* W = yn + N_X;\n"
+        "  const casadi_real* p = W + N_S * N_D;\n"
+        "  casadi_real* R = res[0];\n"
+        "  casadi_real* F = R + N_S * N_D;\n"
+        "  casadi_real t, h = in[1], q;\n"
+        "  casadi_int i, j, k;\n"
+        "  if (!R) return 0;\n"
+        "  for (i = 0; i < N_S; i++) {\n"
+        "    const casadi_real** a = arg + 1;\n"
+        "    casadi_real** r = res + 1;\n"
+        "    t = in[0] + stage_c[i] * h;\n"
+        "    a[0] = &t; a[1] = W + i * N_D; a[2] = W + i * N_D + N_X; a[3] = p;\n"
+        "    r[0] = F + i * N_X; r[1] = R + i * N_D + N_X;\n"
+        f"    if ({NAME}(a, r, iw, w, 0)) return 1;\n"
+        "  }\n"
+        "  for (i = 0; i < N_S; i++)\n"
+        "    for (k = 0; k < N_X; k++) {\n"
+        "      q = stage_a[i][0] * F[k];\n"
+        "      for (j = 1; j < N_S; j++) q = q + stage_a[i][j] * F[j * N_X + k];\n"
+        "      R[i * N_D + k] = W[i * N_D + k] - yn[k] - h * q;\n"
+        "    }\n"
+        "  return 0;\n}\n"
+        f"casadi_int {RESIDUAL}_n_in(void) {{ return 1; }}\n"
+        f"casadi_int {RESIDUAL}_n_out(void) {{ return 1; }}\n"
+        f"const casadi_int* {RESIDUAL}_sparsity_in(casadi_int i) {{ return i == 0 ? sp_in : 0; }}\n"
+        f"const casadi_int* {RESIDUAL}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_out : 0; }}\n"
+        f"int {RESIDUAL}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
+        "  if (sz_arg) *sz_arg = 1 + 4 + REST_ARG;  /* (the stencil's arguments after its own) */\n"
+        "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
+        "  if (sz_iw) *sz_iw = REST_IW;\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
+        "  return 0;\n}\n"
+    )
+
+
+def stencil_function(runs, tableau, compiler: str):
+    """The casadi functions :data:`NAME` and :data:`RESIDUAL` of ``runs`` and ``tableau`` compiled by
+    ``compiler`` (through the disk cache), and what the cache did ("hit", "miss", ...).  Raises
+    :class:`~daemodel.errors.CompileError` where the compiler fails."""
+    from daemodel.cache import Build, cached_library
+
+    what = "radau's machine code: compiling the stencil's equations"
+    fix = "solve with jit=False (casadi's virtual machine: the same results)"
+    flags = compiler_flags(compiler)
+    flags += GCC_STENCIL_FLAGS if flags != COMPILER_FLAGS else ()  # (GCC's flags added: not clang)
+    build = Build(compiler, flags, what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
+    source = stencil_source(runs) + residual_source(tableau)
+    library = cached_library(source, [NAME, RESIDUAL], build)
+    return library.functions[NAME], library.functions[RESIDUAL], library.outcome
+
+
+def stencil_equations(compiled, tableau):
+    """``(functions, said)``: the compiled :data:`NAME` and :data:`RESIDUAL` of ``compiled`` and
+    ``tableau`` (made once per model and s) and what a solve's stats say of them, or ``(None, why)``
+    where the model is not a repeated stencil (:func:`daemodel.compiling.runs.equation_runs`), there
+    is no compiler, or it failed."""
+    from daemodel.compiling.runs import equation_runs
+    from daemodel.errors import CompileError
+
+    def build():
+        compiler = find_compiler()
+        if compiler is None:
+            return None, "casadi's virtual machine (no C compiler)"
+        runs = compiled.cached("radau-stencil-runs", lambda: equation_runs(compiled))
+        if runs is None:
+            return None, "casadi's virtual machine (not a repeated stencil)"
+        try:
+            fg, residual, outcome = stencil_function(runs, tableau, compiler)
+        except CompileError as error:
+            return None, f"casadi's virtual machine (the compiler failed: {str(error)[:200]})"
+        return (fg, residual), f"machine code ({runs.describe()}; cache: {outcome})"
+
+    return compiled.cached(("radau-stencil-equations", tableau.stages), build)
+
+
+def engine_functions(compiled, tableau, machine: bool):
+    """``(functions, stage_f, said)`` of the casadi engine: :func:`.compiled.casadi_functions` and
+    :func:`.compiled.stage_f_buffer` (made once per model and s), on :func:`stencil_equations`' functions
+    where ``machine`` code may run (a C compiler, ``jit`` not False; with ``jit`` True the whole solve's
+    functions are compiled instead) above :data:`.compiled.INLINED_RESIDUAL_MAX_SIZE` unknowns and the
+    model is a repeated stencil; ``said``: what a solve's stats say of it (None where it was not tried)."""
+    stencil, said = None, None
+    if machine and len(compiled.states) + len(compiled.algebraics) > INLINED_RESIDUAL_MAX_SIZE:
+        stencil, said = stencil_equations(compiled, tableau)
+    key = ("casadi-radau", tableau.stages) + (() if stencil is None else ("stencil",))
+    functions = compiled.cached(key, lambda: casadi_functions(compiled, tableau, stencil))
+    return functions, stage_f_buffer(compiled, tableau, stencil), said

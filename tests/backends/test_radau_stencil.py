@@ -1,0 +1,107 @@
+"""A repeated stencil's f, g and stage residual in C (backends/radau/stencil.py): the same bits as the
+casadi functions they replace, the same solve; models that are not one keep the virtual machine."""
+
+import numpy as np
+import pytest
+from daemodel.backends.radau import stencil as stencil_module
+from daemodel.backends.radau.compiled import Buffered, casadi_functions, find_compiler, stage_f_function
+from daemodel.backends.radau.stencil import stencil_equations
+
+import daemodel as dm
+from daemodel.errors import CompileError
+from daemodel.problems.families import reaction_diffusion
+from daemodel.tableau import radau_iia
+
+pytestmark = pytest.mark.skipif(find_compiler() is None, reason="needs a C compiler")
+
+
+@pytest.mark.parametrize("stages", [3, 5])
+def test_the_stencils_residual_is_the_casadi_residual_bit_for_bit(stages):
+    compiled = reaction_diffusion(300).compile()  # 600 unknowns
+    tableau = radau_iia(stages)
+    functions, said = stencil_equations(compiled, tableau)
+    assert said.startswith("machine code (2 templates, ") and "rows apart; cache: " in said
+    plain = casadi_functions(compiled, tableau)[1]
+    rng = np.random.default_rng(stages)
+    x = rng.uniform(-0.5, 2.0, plain.nnz_in(0))
+    x[1] = 0.013  # (h)
+    np.testing.assert_array_equal(Buffered(functions[1])(x), Buffered(plain)(x))
+    alone, plain_alone = stage_f_function(compiled, tableau, functions), stage_f_function(compiled, tableau)
+    np.testing.assert_array_equal(Buffered(alone)(x), Buffered(plain_alone)(x))
+    n, m = len(compiled.states), len(compiled.algebraics)
+    args = [0.2, rng.uniform(-0.5, 2.0, n), rng.uniform(-0.5, 2.0, m), np.asarray(compiled.parameter_values)]
+    dae = compiled.casadi_dae()
+    for got, want in zip(functions[0](*args), (dae["ode"], dae["alg"]), strict=True):
+        import casadi
+
+        value = casadi.Function("v", [dae["t"], dae["x"], dae["z"], dae["p"]], [want])(*args)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(value))
+
+
+def test_a_solve_on_the_stencil_is_the_virtual_machines_bit_for_bit(monkeypatch):
+    """The same steps and values as the residual on casadi's virtual machine (the band LU in C both times:
+    jit=False would factor with SuperLU, other bits)."""
+    compiled = reaction_diffusion(300).compile()
+    options = {"rtol": 1e-6, "atol": 1e-8, "t_eval": np.linspace(0.0, 1.0, 5)}
+    fast = dm.solve(compiled, (0.0, 1.0), **options)
+    assert fast.stats["stencil"].startswith("machine code (2 templates")
+    monkeypatch.setattr(stencil_module, "stencil_equations", lambda *args: (None, "off"))
+    slow = dm.solve(reaction_diffusion(300).compile(), (0.0, 1.0), **options)
+    assert slow.stats["stencil"] == "off" and slow.stats["band_lu"].startswith("machine code (band widths 2 and 2")
+    for key in ("steps", "newton_iterations", "rejected_steps", "residual_evaluations"):
+        assert fast.stats[key] == slow.stats[key]
+    for name in compiled.state_names + compiled.algebraic_names:
+        np.testing.assert_array_equal(fast[name], slow[name])
+
+
+def mixed_model(K: int = 150) -> dm.Model:
+    """f of distinct structures (each cell's own exponent and coefficient), g a stencil."""
+    import sympy as sp
+
+    m = dm.Model(f"mixed{K}")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    for k in range(K):
+        m.ode(c[k], -(c[k] ** (k + 2)) * sp.Rational(1, k + 1) + w[k] - c[(k + 1) % K])
+        m.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
+    m.initial(c=np.linspace(0.1, 0.9, K))
+    return m
+
+
+def test_rows_in_no_run_are_computed_apart_bit_for_bit():
+    compiled = mixed_model().compile()
+    tableau = radau_iia(5)
+    functions, said = stencil_equations(compiled, tableau)
+    assert said.startswith("machine code (1 templates, 1 runs of 150 rows, 150 rows apart")
+    plain = casadi_functions(compiled, tableau)[1]
+    x = np.random.default_rng(2).uniform(0.1, 1.5, plain.nnz_in(0))
+    np.testing.assert_array_equal(Buffered(functions[1])(x), Buffered(plain)(x))
+
+
+def test_a_model_that_is_no_repeated_stencil_keeps_the_virtual_machine(monkeypatch):
+    """More rows apart than REST_MAX (the C compiler would take the whole model): casadi's virtual machine."""
+    from daemodel.compiling import runs
+
+    monkeypatch.setattr(runs, "REST_MAX", 100)
+    compiled = mixed_model().compile()
+    functions, said = stencil_equations(compiled, radau_iia(5))
+    assert functions is None and said == "casadi's virtual machine (not a repeated stencil)"
+    sol = dm.solve(compiled, (0.0, 0.1), rtol=1e-6, atol=1e-8)
+    assert sol.stats["stencil"] == "casadi's virtual machine (not a repeated stencil)"
+    assert sol.status == "success"
+
+
+def test_a_compiler_that_fails_leaves_the_stencil_to_the_virtual_machine(monkeypatch):
+    def fail(*args):
+        raise CompileError("radau's machine code: compiling the stencil's equations with cc failed: boom; fix")
+
+    monkeypatch.setattr(stencil_module, "stencil_function", fail)
+    compiled = reaction_diffusion(300).compile()
+    sol = dm.solve(compiled, (0.0, 0.1), rtol=1e-6, atol=1e-8)
+    assert sol.stats["stencil"].startswith("casadi's virtual machine (the compiler failed: radau's machine code")
+    assert sol.status == "success"
+
+
+def test_no_compiler_leaves_the_stencil_to_the_virtual_machine(monkeypatch):
+    monkeypatch.setattr(stencil_module, "find_compiler", lambda: None)
+    functions, said = stencil_equations(reaction_diffusion(300).compile(), radau_iia(5))
+    assert functions is None and said == "casadi's virtual machine (no C compiler)"

@@ -1,0 +1,164 @@
+"""Runs of repeated equations (daemodel/compiling/runs.py): each run's template, evaluated on its rows'
+leaves, gives the model's own f and g bit for bit; rows of another structure, other numbers or leaves
+that do not advance by fixed strides are left to the rest, never put in a run."""
+
+import casadi
+import numpy as np
+import pytest
+import sympy as sp
+
+import daemodel as dm
+from daemodel.compiling import runs as runs_module
+from daemodel.compiling.runs import INPUTS, RUN_MIN, equation_runs
+from daemodel.problems.families import reaction_diffusion
+
+
+def plain_values(compiled, args):
+    """The model's own f and g (its casadi_dae, as the residual reads them) at ``args`` = (t, x, z, p)."""
+    dae = compiled.casadi_dae()
+    plain = casadi.Function("plain", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"], dae["alg"]])
+    return [np.asarray(v).ravel() for v in plain(*args)]
+
+
+def run_values(found, args):
+    """f and g rebuilt from the runs (each template mapped over its rows' leaves) and the rest."""
+    n, m, _ = found.sizes
+    out = [np.full(n, np.nan), np.full(m, np.nan)]
+    for run in found.runs:
+        template = found.templates[run.template]
+        k = np.arange(run.count)
+        leaves = [np.asarray(args[i], dtype=float).ravel()[b + s * k] for i, b, s in zip(run.inputs, run.bases,
+                  run.strides, strict=True)]  # fmt: skip
+        values = np.asarray(template.map(run.count).call([v[None, :] for v in leaves])[0]).ravel()
+        out[run.output][run.out_base + run.out_stride * k] = values
+    if found.rest is not None:
+        rest = np.asarray(found.rest(*args)).ravel()
+        f_rows, g_rows = found.rest_rows
+        out[0][f_rows], out[1][g_rows] = rest[: len(f_rows)], rest[len(f_rows) :]
+    return out
+
+
+def random_args(compiled, seed=3):
+    rng = np.random.default_rng(seed)
+    n, m = len(compiled.states), len(compiled.algebraics)
+    return [0.37, rng.uniform(-0.5, 2.0, n), rng.uniform(-0.5, 2.0, m), np.asarray(compiled.parameter_values)]
+
+
+def test_the_family_is_two_templates_whose_runs_give_f_and_g_bit_for_bit():
+    compiled = reaction_diffusion(300).compile()  # 600 unknowns, names c_1 .. c_300
+    found = equation_runs(compiled)
+    assert found is not None and len(found.templates) == 2
+    n, m, _ = found.sizes
+    rows = sum(run.count for run in found.runs)
+    rest = len(found.rest_rows[0]) + len(found.rest_rows[1])
+    assert rows + rest == n + m and rest < 40 and all(run.count >= RUN_MIN for run in found.runs)
+    assert found.describe() == f"2 templates, {len(found.runs)} runs of {rows} rows, {rest} rows apart"
+    for run in found.runs:  # (each leaf from the grid's states or algebraic variables, or the parameter D)
+        assert {INPUTS[i] for i in run.inputs} <= {"x", "z", "p"}
+    args = random_args(compiled)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def scrambled_grid(K: int, seed: int = 0) -> dm.Model:
+    """The family's equations with each cell's neighbours at random places: one template, leaves that do
+    not advance by fixed strides (a run would read the wrong neighbours)."""
+    rng = np.random.default_rng(seed)
+    m = dm.Model(f"scrambled{K}")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    left, right = rng.permutation(K), rng.permutation(K)
+    for k in range(K):
+        m.ode(c[k], (c[left[k]] - 2 * c[k] + c[right[k]]) * 7 - w[k])
+        m.constraint(w[k] - c[k] ** 2 / (1 + c[k]), name=f"rate{k}")
+    m.initial(c=np.linspace(0.1, 0.9, K))
+    return m
+
+
+def test_leaves_at_no_fixed_stride_are_left_to_the_rest_and_the_values_stay():
+    compiled = scrambled_grid(300).compile()
+    found = equation_runs(compiled)
+    assert found is not None  # (g is a stencil: its rows make runs)
+    f_rows = sum(run.count for run in found.runs if run.output == 0)
+    assert f_rows < 300 // 4  # (f's rows: runs only where the permutations happen to advance by a stride)
+    args = random_args(compiled)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_rows_of_other_numbers_or_a_square_root_are_not_one_template():
+    """x**(1/2) is a square root and x**0.5 a power (the key keeps the number's type), and a coefficient
+    that changes from row to row is part of the template (a run would give every row the first's)."""
+    K = 64
+    m = dm.Model("coefficients")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    for k in range(K):
+        root = sp.sqrt(1 + c[k] ** 2) if k % 2 else (1 + c[k] ** 2) ** sp.Float(0.5)
+        m.ode(c[k], -sp.Rational(k + 1, 7) * c[k] + w[k])
+        m.constraint(w[k] - root, name=f"root{k}")
+    m.initial(c=np.linspace(0.1, 0.9, K))
+    compiled = m.compile()
+    found = equation_runs(compiled)  # (g's rows of each kind sit at stride 2: a template and a run each)
+    assert len(found.templates) == 2 and all(run.output == 1 and run.out_stride == 2 for run in found.runs)
+    args = random_args(compiled)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_model_of_distinct_equations_has_no_runs():
+    """All-pairs equations (no two rows of one structure) are not a repeated stencil: None."""
+    K = 40
+    m = dm.Model("distinct")
+    c = m.states("c", K)
+    for k in range(K):
+        m.ode(c[k], -sp.Add(*[c[j] ** (j % 3 + 1) for j in range(k + 1)]))
+    m.initial(c=np.linspace(0.1, 0.9, K))
+    assert equation_runs(m.compile()) is None
+
+
+def test_too_many_rest_rows_is_not_a_repeated_stencil(monkeypatch):
+    compiled = reaction_diffusion(300).compile()
+    found = equation_runs(compiled)
+    rest = len(found.rest_rows[0]) + len(found.rest_rows[1])
+    monkeypatch.setattr(runs_module, "REST_MAX", rest - 1)
+    assert equation_runs(compiled) is None
+    monkeypatch.setattr(runs_module, "REST_MAX", rest)
+    monkeypatch.setattr(runs_module, "RUNS_MAX", 0)
+    assert equation_runs(compiled) is None
+
+
+@pytest.mark.parametrize("declaration", ["loop", "stencils"])
+def test_the_declarations_of_the_grid_give_the_same_runs_values(declaration):
+    """The family declared by a loop of scalar names and by dm.stencil (benchmarks' scaling_models): runs
+    that give its f and g bit for bit."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import scaling_models
+
+    compiled = scaling_models.DECLARATIONS[declaration](150).compile()
+    found = equation_runs(compiled)
+    assert found is not None and sum(run.count for run in found.runs) > 250
+    args = random_args(compiled, seed=11)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_rows_of_a_constant_and_of_time_make_runs_too():
+    """Rows without a leaf (u' = 1) and leaves of t (a source sin(t)): an ODE without algebraic variables."""
+    K = 200
+    m = dm.Model("heat")
+    u, v = m.states("u", K), m.states("v", 40)
+    padded = [0, *u, 0]
+    for k in range(K):
+        m.ode(u[k], (padded[k] - 2 * padded[k + 1] + padded[k + 2]) * 100 + sp.sin(m.t) / 10)
+    for k in range(40):
+        m.ode(v[k], 1)
+    m.initial(u=np.linspace(0.0, 1.0, K), v=np.zeros(40))
+    compiled = m.compile()
+    found = equation_runs(compiled)
+    assert any(len(found.templates[run.template].sx_in()) == 0 for run in found.runs)
+    assert any("t" in {INPUTS[i] for i in run.inputs} for run in found.runs)
+    args = random_args(compiled)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
