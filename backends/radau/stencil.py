@@ -10,7 +10,7 @@ over each run with its leaves' pointers advanced by their strides, and the rows 
 boundaries) a casadi function of their own in the same library; the source grows with the templates and
 runs, not with the unknowns, so it compiles in a fraction of a second and the disk cache
 (:mod:`daemodel.cache`) keeps it.  One function ``stencil_fg(t, x, z, p) -> (f, g)``, the same bits as the
-model's ``f`` and ``g`` (``tests/backends/radau/test_stencil.py``).
+model's ``f`` and ``g`` (``tests/backends/test_radau_stencil.py``).
 """
 
 from __future__ import annotations
