@@ -49,6 +49,9 @@ def determinant_signs(rows: np.ndarray, cols: np.ndarray, values, m: int) -> np.
                 dense[:, rows, cols] = block
             out[a : a + chunk] = dense_signs(dense)
         return out
+    signs = triangular_signs(rows, cols, values, m)
+    if signs is not None:
+        return signs
     return np.array([sparse_sign(rows, cols, v, m) for v in values])
 
 
@@ -102,6 +105,27 @@ def triangular_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: i
     if (diagonal == 0).any():
         return 0.0
     return -1.0 if np.count_nonzero(diagonal < 0) % 2 else 1.0
+
+
+def triangular_signs(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) -> np.ndarray | None:
+    """:func:`triangular_sign` of every row of ``values`` (K, nnz) at once, (K,), 0 where a row holds
+    an entry that is not finite; None where the nonzeros lie on both sides of the diagonal.  The
+    branch check reads one sign per output time: at 200 unknowns one call per output was 0.3 ms of
+    a 1.5 ms solve (21 outputs)."""
+    rows, cols = np.asarray(rows), np.asarray(cols)
+    if not ((rows >= cols).all() or (rows <= cols).all()):
+        return None
+    values = np.asarray(values, dtype=float)
+    on = np.flatnonzero(rows == cols)
+    diagonal = np.zeros((len(values), m))
+    if len(np.unique(rows[on])) == len(on):
+        diagonal[:, rows[on]] = values[:, on]
+    else:
+        np.add.at(diagonal, (slice(None), rows[on]), values[:, on])  # (repeats add)
+    negative = np.count_nonzero(diagonal < 0, axis=1)
+    signs = np.where(negative % 2, -1.0, 1.0)
+    signs[(diagonal == 0).any(axis=1) | ~np.isfinite(values).all(axis=1)] = 0.0
+    return signs
 
 
 def odd_permutation(perm: np.ndarray) -> int:

@@ -90,6 +90,28 @@ def test_singular_or_non_finite_matrices_have_sign_zero_on_both_paths():
     np.testing.assert_array_equal(negated, [-1.0, 0.0, -1.0])
 
 
+def test_triangular_signs_of_many_matrices_at_once_are_their_slogdets_signs():
+    # the branch check's one call per solve: K lower (then upper) triangular 100 x 100 matrices with
+    # random diagonals of either sign, against each one's dense slogdet and the one-matrix sparse_sign
+    rng = np.random.default_rng(7)
+    m, K = 100, 40
+    below = rng.choice(m * m, 300, replace=False)
+    r, c = np.divmod(below, m)
+    keep = r > c
+    rows, cols = np.r_[np.arange(m), r[keep]], np.r_[np.arange(m), c[keep]]
+    values = rng.normal(size=(K, len(rows)))
+    values[3, 7] = 0.0  # a zero pivot
+    values[5, m + 2] = np.inf  # off the diagonal, yet not finite: 0, as sparse_sign gives it
+    for r_, c_ in ((rows, cols), (cols, rows)):
+        signs = determinant_signs(r_, c_, values, m)
+        dense = np.zeros((K, m, m))
+        dense[:, r_, c_] = values
+        expected = [0.0 if not np.isfinite(d).all() else np.linalg.slogdet(d)[0] for d in dense]
+        np.testing.assert_array_equal(signs, expected)
+        np.testing.assert_array_equal(signs, [sparse_sign(r_, c_, v, m) for v in values])
+        assert {-1.0, 1.0} <= set(signs) and signs[3] == signs[5] == 0.0
+
+
 def test_entries_at_one_position_add_up_on_both_paths():
     # diag(-3 + 2, 1, ...): det < 0 where the two entries at (0, 0) add up; whichever of them came last
     # alone (2 in one order, -3 in the other) would give +1 in one of the two orders
