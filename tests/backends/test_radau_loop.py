@@ -211,9 +211,11 @@ def test_the_run_on_machine_code_gives_the_same_bits(monkeypatch):
 @pytest.mark.skipif(find_compiler() is None, reason="no C compiler on PATH")
 def test_the_loop_in_c_is_its_attempt_called_until_the_run_ends(monkeypatch):
     """radau_run_machine_code (.loop.run_loop_source) gives, bit for bit, what its exported attempt gives
-    called one attempt at a time from the same state: the state after the last attempt that ran, each
-    attempt's record, zeros for the attempts after the run ended (car axis at 1e-4: 318 attempts in four
-    calls, the last ending with the integration; and a call whose state is already inactive)."""
+    called one attempt at a time from the same state: the state after the last attempt that ran and each
+    attempt's record; the records after the run ended are not written (the output buffer holds an
+    earlier call's there), and the state's count of attempts names the records that ran, the first ones
+    (car axis at 1e-4: 318 attempts in four calls, the last ending with the integration; and a call whose
+    state is already inactive)."""
     libraries, calls = [], []
     build = casadi_engine.machine_library
     monkeypatch.setattr(casadi_engine, "machine_library", lambda *args: libraries.append(build(*args)) or libraries[-1])
@@ -237,14 +239,21 @@ def test_the_loop_in_c_is_its_attempt_called_until_the_run_ends(monkeypatch):
     idle[active] = 0.0
     calls.append([idle, calls[-1][1]])
     buffered = Buffered(run, inputs=2)
+    ran_flag = sequence.RECORD.index("ran")
     for given, settings in calls:
-        state, records = given, np.zeros((attempts, record_size))
+        state, records, called = given, np.zeros((attempts, record_size)), 0
         for k in range(attempts):
             if not state[active]:
                 break
             state, records[k] = (np.asarray(out).ravel() for out in attempt(state, settings))
+            called += 1
         buffered.inputs[0][:], buffered.inputs[1][:] = given, settings  # (the output buffer reused, as a solve does)
-        assert np.array_equal(buffered.evaluate(), np.concatenate([state, records.ravel()]))
+        out = buffered.evaluate()
+        assert np.array_equal(out[:state_size], state)
+        written = out[state_size : state_size + called * record_size].reshape(called, record_size)
+        assert np.array_equal(written, records[:called])
+        ran = int(out[sequence.SCALARS["attempts"]])
+        assert ran == int(records[:, ran_flag].sum()) and records[:ran, ran_flag].all()
 
 
 def test_a_run_that_finishes_the_integration_leaves_no_factors(monkeypatch):
