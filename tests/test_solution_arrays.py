@@ -88,6 +88,34 @@ def test_a_saved_solution_reads_back_its_arrays(tmp_path):
     assert np.array_equal(loaded["w[1,2]"], sol["w[1,2]"]) and loaded.names == sol.names
 
 
+def test_saving_and_loading_print_each_equation_once(tmp_path, monkeypatch):
+    # the fingerprint printed every equation (sympy's str) at each call, twice a save and again a load:
+    # a 10^4-unknown solution took 19 s of CPU to save (cProfile, loaded machine), ~0.3 ms an equation
+    from sympy.printing.str import StrPrinter
+
+    m, _, _ = decays()
+    sol = dm.solve(m, (0.0, 1.0), rtol=1e-8, atol=1e-10)
+    printed, depth, doprint = [0], [0], StrPrinter.doprint
+
+    def counted(self, expr):
+        printed[0] += depth[0] == 0  # (an expression, not the parts sympy prints inside it)
+        depth[0] += 1
+        try:
+            return doprint(self, expr)
+        finally:
+            depth[0] -= 1
+
+    monkeypatch.setattr(StrPrinter, "doprint", counted)
+    path = sol.save(tmp_path / "decays.npz")
+    for _ in range(2):
+        loaded = dm.Solution.load(path, m)
+    assert printed[0] <= 12  # (6 right-hand sides and 6 constraints, once)
+    assert np.array_equal(loaded["T"], sol["T"])
+    m.set_parameters(k=2 * RATES)  # (other values: another model, which the file does not match)
+    with pytest.raises(E.SolutionFileError, match="parameter values"):
+        dm.Solution.load(path, m)
+
+
 def test_report_and_plot_name_the_elements(tmp_path):
     m, _, _ = decays()
     sol = dm.solve(m, (0.0, 0.2), h=0.05)

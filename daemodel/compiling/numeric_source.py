@@ -15,6 +15,10 @@ from sympy.printing.numpy import SciPyPrinter
 NUMERIC_MODULES = ["scipy", "numpy"]
 
 
+# Terms of a sum printed in one chain at most (a longer sum prints as nested groups: _print_Add).
+LONG_SUM = 256
+
+
 class NumericPrinter(SciPyPrinter):
     """The printer lambdify builds for ``NUMERIC_MODULES``, with four changes.
 
@@ -45,6 +49,17 @@ class NumericPrinter(SciPyPrinter):
         # the base class rewrites re(...) nodes with a walk over every expression it prints (each
         # shared subexpression again); without re there is nothing to rewrite
         return super()._handle_UnevaluatedExpr(expr) if self._has_re else expr
+
+    def _print_Add(self, expr, order=None):
+        # a long sum prints as nested groups of at most LONG_SUM terms: Python's compiler recurses once
+        # per '+' of a chain, and a constraint of 3,000 terms (one row coupling a grid) stopped compile
+        # with a RecursionError
+        if len(expr.args) <= LONG_SUM:
+            return super()._print_Add(expr, order)
+        texts = [f"({self._print(term)})" for term in expr.args]
+        while len(texts) > LONG_SUM:
+            texts = [f"({' + '.join(texts[i : i + LONG_SUM])})" for i in range(0, len(texts), LONG_SUM)]
+        return " + ".join(texts)
 
     def doprint(self, expr, assign_to=None):
         text = None if assign_to is not None else self.shaped_text(expr)

@@ -285,22 +285,13 @@ def match(constraints, algebraics, calculus: Differentiator | None = None) -> li
     rows = incidence(constraints, algebraics, calculus)
     names = [z.name for z in algebraics]
     owner = [-1] * len(algebraics)
-
-    def augment(i: int, seen: set[int]) -> bool:
-        for j in rows[i]:
-            if j not in seen:
-                seen.add(j)
-                if owner[j] < 0 or augment(owner[j], seen):
-                    owner[j] = i
-                    return True
-        return False
-
-    unmatched_rows = [i for i in range(len(constraints)) if not augment(i, set())]
+    unmatched_rows = [i for i in range(len(constraints)) if not _augment(i, rows, owner)]
     if not unmatched_rows:
         return owner
+    occurring = set().union(*rows)  # (one pass over the nonzeros, not one per variable)
     for j, name in enumerate(names):
-        if not any(j in r for r in rows):
-            hint = "; ".join(_describe(c) for c in constraints) or "there are no constraints"
+        if j not in occurring:
+            hint = _listed([_describe(c) for c in constraints], "; ") or "there are no constraints"
             raise SingularSystemError(
                 f"algebraic variable '{name}' appears in no constraint's Jacobian: no constraint "
                 f"determines it ({hint}). Make '{name}' enter a right-hand side or a constraint"
@@ -315,13 +306,56 @@ def match(constraints, algebraics, calculus: Differentiator | None = None) -> li
             if owner[j] >= 0 and owner[j] not in block_rows:
                 block_rows.add(owner[j])
                 todo.append(owner[j])
-    row_text = ", ".join(_describe(constraints[i]) for i in sorted(block_rows))
-    col_text = ", ".join(f"'{names[j]}'" for j in sorted(block_cols)) or "no algebraic variable"
+    row_text = _listed([_describe(constraints[i]) for i in sorted(block_rows)])
+    col_text = _listed([f"'{names[j]}'" for j in sorted(block_cols)]) or "no algebraic variable"
     raise SingularSystemError(
         f"structurally singular: {len(block_rows)} constraint(s) {row_text} can only determine "
         f"{len(block_cols)} algebraic variable(s) {col_text}; the iteration matrix is singular "
         "for every value (a redundant constraint, or a missing algebraic variable)"
     )
+
+
+def _augment(start: int, rows: list[set[int]], owner: list[int]) -> bool:
+    """Match row ``start`` by an augmenting path (``owner[j]``: the row matched to column j, -1 if
+    none), and say whether one was found.  Depth first, each row first looking for a free column
+    among its own (MC21's look-ahead: a chain ``w[i] + w[i-1]`` is matched in one pass, where a
+    search without it walked back along the chain from every row, O(n^2)), with a stack of its own
+    (a path as long as the chain: Python's recursion stopped at ~1,000 rows)."""
+    for j in rows[start]:
+        if owner[j] < 0:
+            owner[j] = start
+            return True
+    seen: set[int] = set()
+    stack, tried = [(start, iter(rows[start]))], []  # tried[k]: the column stack[k] is trying
+    while stack:
+        i, columns = stack[-1]
+        for j in columns:
+            if j in seen:
+                continue
+            seen.add(j)
+            k = owner[j]
+            free = next((c for c in rows[k] if owner[c] < 0), None)
+            if free is not None:  # k moves to a free column, row i takes j, and so up the path
+                owner[free], owner[j] = k, i
+                for (row, _), column in zip(stack, tried, strict=False):
+                    owner[column] = row
+                return True
+            tried.append(j)
+            stack.append((k, iter(rows[k])))
+            break
+        else:
+            stack.pop()
+            if tried:
+                tried.pop()
+    return False
+
+
+def _listed(items: list[str], separator: str = ", ") -> str:
+    """``items`` joined, the first :data:`NAMED_MAX` of them where there are more (a message stays a
+    line or two at 10^5 constraints)."""
+    if len(items) <= NAMED_MAX:
+        return separator.join(items)
+    return f"{separator.join(items[:NAMED_MAX])}{separator}... ({len(items)} in all; the first {NAMED_MAX} listed)"
 
 
 def check_rank(jacobian, constraints, algebraics, t0: float) -> None:

@@ -1,10 +1,14 @@
 """Expressions of one shape are printed once: every expression's text is what printing it alone gives,
 character for character (so the generated functions, and their numbers, are those printed one by one)."""
 
+import numpy as np
+import pytest
+import scipy.optimize
 import sympy as sp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import daemodel as dm
 from daemodel.compiling.numeric_source import NumericPrinter, holds_re, shape_key, shared_subexpressions
 
 SYMBOLS = sp.symbols("a b c d")
@@ -87,3 +91,23 @@ def test_holds_re_reads_an_re_from_a_shape_key_alone():
     assert all(s is not None for s in shapes) and holds_re(exprs, shapes)
     plain = [a + sp.sin(b), b + sp.sin(a)]
     assert not holds_re(plain, [shape_key(e, NAMES, {}) for e in plain])
+
+
+def test_a_constraint_summing_thousands_of_variables_compiles():
+    # one row coupling a whole grid: the printed sum was one chain of '+', which Python's compiler
+    # recursed through (3,000 terms: a RecursionError from compile)
+    K = 3_000
+    m = dm.Model("mean")
+    c = m.states("c", K)
+    w = m.algebraics("w", K)
+    (mean,) = m.algebraics("mean")
+    C, W = dm.stencil(c), dm.stencil(w)
+    m.ode(c, -C - W - mean)
+    m.constraint(W - C**2 / (1 + C), name="rate")
+    m.constraint(mean + mean**3 / 10 - sp.Add(*c) / K, name="mean")  # (nonlinear: solved by Newton)
+    y0 = 1 + np.cos(np.arange(K)) / 2
+    m.initial(c=y0)
+    compiled = m.compile()
+    root = scipy.optimize.brentq(lambda z: z + z**3 / 10 - np.mean(y0), 0.0, 2.0, xtol=1e-15)
+    assert compiled.z0[-1] == pytest.approx(root, rel=0, abs=1e-14)
+    assert np.allclose(compiled.z0[:-1], y0**2 / (1 + y0), rtol=1e-14, atol=0)

@@ -131,6 +131,79 @@ def test_structurally_singular_block():
         m.compile()
 
 
+def chain_of_algebraics(K: int, orientation: str):
+    """K states c and K algebraic w, c' = -c + w / 100, with a bidiagonal g_z: ``w[i] + w[i-1] / 2 = c[i]``
+    from ``w[0] = c[0]^3`` (lower), or ``w[i] + 2 w[i+1] = c[i]`` closed by ``w[0] = c[K-1]^3`` (upper, whose
+    matching needs one augmenting path through the whole chain); and g_z as a scipy matrix."""
+    import scipy.sparse
+
+    m = dm.Model(f"chain_{orientation}")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    m.ode(c, -c + 0.01 * w)
+    i = np.arange(K - 1)
+    if orientation == "lower":
+        m.constraint(dm.stencil(w[1:]) + 0.5 * dm.stencil(w[:-1]) - dm.stencil(c[1:]), name="pair")
+        m.constraint(w[0] - c[0] ** 3, name="end")  # (not an alias: w stays)
+        rows, cols, values = np.r_[i, i, K - 1], np.r_[i + 1, i, 0], np.r_[np.ones(K - 1), np.full(K - 1, 0.5), 1.0]
+        right = np.r_[1 + i, 0]  # (c[i + 1] for pair[i], c[0] for end)
+    else:
+        m.constraint(dm.stencil(w[:-1]) + 2 * dm.stencil(w[1:]) - dm.stencil(c[:-1]), name="pair")
+        m.constraint(w[0] - c[K - 1] ** 3, name="end")
+        rows, cols, values = np.r_[i, i, K - 1], np.r_[i, i + 1, 0], np.r_[np.ones(K - 1), np.full(K - 1, 2.0), 1.0]
+        right = np.r_[i, K - 1]
+    y0 = np.cos(np.arange(K))
+    m.initial(c=y0)
+    g_c = y0[right]
+    g_c[-1] **= 3
+    return m, scipy.sparse.csc_matrix((values, (rows, cols)), shape=(K, K)), g_c
+
+
+@pytest.mark.parametrize("orientation", ["lower", "upper"])
+def test_a_long_chain_of_algebraic_variables_is_matched(orientation):
+    # the matching's augmenting paths were recursive: a chain of 1,200 algebraic variables stopped compile
+    # with a RecursionError (and a lower chain took O(n^2) steps: each row walked back the whole chain)
+    import scipy.sparse.linalg
+
+    m, g_z, g_c = chain_of_algebraics(1_200, orientation)
+    c = m.compile()
+    assert c.index == 1 and len(c.algebraics) == 1_200
+    assert np.allclose(c.z0, scipy.sparse.linalg.spsolve(g_z, g_c), rtol=1e-12, atol=1e-12)
+
+
+def test_structural_messages_name_at_most_a_dozen_of_many_culprits():
+    # the messages listed every constraint of the model, or of the block (at 10^5: megabytes of text)
+    K = 40
+    m = dm.Model("dangling_many")
+    c, w = m.states("c", K), m.algebraics("w", K + 1)
+    m.ode(c, -c + w[:-1])
+    m.constraint(w[:-1] - c**2, name="rate")
+    m.constraint("c[0]**2 - 1", name="level")  # (its hidden form holds w[0], again: w[40] is in none)
+    m.initial(c=1.0)
+    with pytest.raises(
+        E.SingularSystemError,
+        match=r"algebraic variable 'w\[40\]' appears in no constraint's Jacobian: no constraint determines it "
+        r"\(constraint 'rate\[0\]' \(#41\) \(index 1: through g_z\); .*; constraint 'rate\[11\]' \(#52\) "
+        r"\(index 1: through g_z\); \.\.\. \(41 in all; the first 12 listed\)\)\. Make 'w\[40\]' enter",
+    ):
+        m.compile()
+    K = 20
+    m = dm.Model("competing_many")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    m.ode(c, -c + w)
+    m.constraint(dm.stencil(w[: K - 3]) + 2 * dm.stencil(w[1 : K - 2]) - dm.stencil(c[: K - 3]) ** 2, name="pair")
+    m.constraint("c[0]**2 - 1", name="a")  # (hidden forms: a holds w[0], b w[17]; 19 rows on w[0] ... w[17])
+    m.constraint("c[17]**2 - 1", name="b")
+    m.constraint("w[18] + w[19] - c[19]**2", name="last")
+    m.initial(c=1.0)
+    with pytest.raises(
+        E.SingularSystemError,
+        match=r"structurally singular: 19 constraint\(s\) constraint 'pair\[0\]' \(#21\) .*, constraint "
+        r"'pair\[11\]' \(#32\) \(index 1: through g_z\), \.\.\. \(19 in all; the first 12 listed\) can only "
+        r"determine 18 algebraic variable\(s\) 'w\[0\]', .*'w\[11\]', \.\.\. \(18 in all; the first 12 listed\);",
+    ):
+        m.compile()
+
+
 def test_numerically_singular_at_initial_point():
     m = dm.Model("degenerate")
     y1, y2 = m.states("y1 y2")
