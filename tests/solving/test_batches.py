@@ -3,6 +3,7 @@ switch located, as one sample alone or a batch on t_eval has it.  Before: x' = -
 2.8 stepped across the switch at x = 1 and ended up to 9.2e-7 off at the default tolerance (3 rtol of
 x(3) = 0.30), "success" (one at a time, or on t_eval: 7e-12)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -184,3 +185,49 @@ def test_float32_locates_its_switches_by_trials_in_float64():
     for b, a in enumerate(x0):
         reference = np.array([_jump_exact(a, t) for t in sol.t])
         assert np.all(np.abs(sol["x"][b] - reference) <= 1e-5 * np.abs(reference) + 1e-6)
+
+
+class _NoTimes:
+    """A method plugged in without ``t_eval`` and without a dense output (scipy's, through the reference)."""
+
+    @staticmethod
+    def register():
+        from daemodel.backends.reference import ReferenceBackend, ReferenceOptions
+
+        @dataclasses.dataclass(frozen=True, kw_only=True)
+        class Options:
+            rtol: float = 1e-4
+            atol: float = 1e-6
+
+        class NoTimes(ReferenceBackend):
+            name = "no-times"
+
+            def solve(self, compiled, t_span, start, options):
+                own = ReferenceOptions(rtol=options.rtol, atol=options.atol)
+                return dataclasses.replace(super().solve(compiled, t_span, start, own), dense=None)
+
+        NoTimes.Options = Options
+        dm.methods.register("no-times", NoTimes)
+
+
+@pytest.fixture
+def no_times():
+    _NoTimes.register()
+    yield "no-times"
+    dm.methods.unregister("no-times")
+
+
+def test_a_batch_on_a_method_without_t_eval_does_not_step_across_its_switches(no_times):
+    """A method without t_eval (plugged in) stepped across a batch's switches, x' = -Min(1, x): 2.7 tolerances
+    off at x(3) with rtol = atol = 1e-10 (one sample alone: 0.04), "success"; and a batch with a declared event
+    was told to 'pass t_eval', an option the method does not have.  Each sample is solved alone, its switch
+    located; where their outputs do not share times and the method can neither evaluate between them nor take
+    t_eval, a SwitchError says so."""
+    for model, name in ((_model(), "x"), (_ball(), "h")):
+        with pytest.raises(dm.errors.SwitchError, match="method 'no-times' has no t_eval and no dense output"):
+            dm.solve(model, (0.0, 3.0), method=no_times, y0={name: X0})
+    one = dm.solve(_model(), (0.0, 3.0), method=no_times, y0={"x": X0[:1]}, rtol=1e-10, atol=1e-10)
+    assert one.status == "success" and abs(one["x"][0][-1] - _exact(X0[0], 3.0)) <= 1e-10
+    same = dm.solve(_model(), (0.0, 3.0), method=no_times, y0={"x": X0[[1, 1]]}, rtol=1e-10, atol=1e-10)
+    assert same.status == "success" and same.stats["events"] == 2
+    np.testing.assert_allclose(same["x"][:, -1], _exact(X0[1], 3.0), rtol=0, atol=1e-10)
