@@ -172,8 +172,10 @@ def test_a_flagged_sample_of_a_batch_without_t_eval_is_said():
 
 def test_float32_locates_its_switches_by_trials_in_float64():
     """float32's event function is its rounding near a crossing: x hit 1.0 exactly over 6e-8 in t, and the search
-    crept along that plateau (32 trials for x0 = 2, 51 for the 7 samples; float64: 3).  Its trials in float64:
-    4, the pieces between the switches in float32, the errors as small (0.02 of the tolerance)."""
+    crept along that plateau (32 trials for x0 = 2; 301 for the 7 samples; float64: 23).  Its trials in float64:
+    28, 4 a sample, the pieces between the switches in float32, the errors as small (0.02 of the tolerance).  (The
+    batch's count was its first sample's until every sample's was summed, and the bound here, 2 a sample, held
+    on that one's 4.)"""
     x0 = np.linspace(1.2, 2.8, 7)
     jump = dm.Model("jump")
     jump.states("x")
@@ -181,7 +183,7 @@ def test_float32_locates_its_switches_by_trials_in_float64():
     jump.initial(x=2.0)
     sol = dm.solve(jump, (0.0, 3.0), y0={"x": x0}, dtype="float32", rtol=1e-5)
     assert sol.stats["dtype"] == "float32" and sol.stats["events"] == len(x0)
-    assert sol.stats["location_trials"] <= 2 * len(x0)
+    assert sol.stats["location_trials"] <= 4 * len(x0)
     for b, a in enumerate(x0):
         reference = np.array([_jump_exact(a, t) for t in sol.t])
         assert np.all(np.abs(sol["x"][b] - reference) <= 1e-5 * np.abs(reference) + 1e-6)
