@@ -384,10 +384,11 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         if terminal or ends:
             break
         t = t_event
-    # the outputs: each piece solved again on the user's times (t_eval), or on its own steps: its detection
-    # solve's before its end where the method stops at a crossing and chooses its steps (a solve to the event
-    # makes the same steps, the same values, but for its last one or two, which it shortens to end there),
-    # else solved again to its end (a fixed h: equal steps over the piece); a piece ending at an event leaves
+    # the outputs: each piece's detection solve's where the method stops at a crossing and chooses its steps (a
+    # solve to the event makes the same steps, the same values, but for its last one or two, which it shortens to
+    # end there): its steps before its end, or the user's times (t_eval) read off them where its dense output is
+    # an evaluation (radau's polynomials, what t_eval evaluates); else each piece solved again to its end on the
+    # user's times, or on its own (a fixed h: equal steps over the piece); a piece ending at an event leaves
     # its time to the next one, which starts with the values after it
     reuse = backend.stops and getattr(options, "h", None) is None
     names = (*compiled.state_names, *compiled.algebraic_names)
@@ -405,6 +406,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 continue
             if len(grid) == 1 and grid[0] == a:
                 piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
+            elif reuse and found.dense is not None and not found.dense.solves_again:
+                # (read off the detection solve's steps where that is an evaluation, as without t_eval: solved
+                # again, each piece cost its steps twice)
+                piece_t, piece = grid, found.columns_at(grid, names)
+                if found.status != "success":
+                    failing.append(f"on [{a:.6g}, {b:.6g}]: {found.status}")
             else:
                 sol = span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)
