@@ -74,6 +74,7 @@ from daemodel.solving.branches import (
     drift,
     event_tol,
     excursion_weight,
+    jumped,
     start_piece,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
@@ -329,6 +330,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 )
             )
         ]
+        # (and a declared event whose function a switch firing here takes across zero by a jump: off zero after it)
+        delta = delta_at(t_event)
+        jumps = jumped(compiled, backend, piece, when, piece_when, t_event, y_event, z_event, P, delta, fired)
+        fired = sorted(fired + jumps)
         for e in fired:
             history[e].append(t_event)
             check_accumulating(events[e], history[e], t0, t1)
@@ -355,7 +360,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
         scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
-        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
+        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)} | set(jumps)
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:
