@@ -78,7 +78,7 @@ from daemodel.solving.branches import (
     start_piece,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
-from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
+from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
 from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
 from daemodel.solving.pieces import (
     breakpoints_between,
@@ -297,6 +297,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         )
         all_stats += located
         location += located
+        if hit:  # (an event tied with it that crossed before it: located too, the earlier of them fires)
+            which, t_event, y_event, z_event, unresolved = earlier_tied(
+                backend, piece, options, start.batched, P, piece_when, events, hit, first, T[before_index],
+                F[before_index], Ys[before_index : before_index + 1], Zs[before_index : before_index + 1],
+                (which, t_event, y_event, z_event, unresolved), location, all_stats, t1 - t0,
+            )  # fmt: skip
         carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
         if unresolved is not None:
             from daemodel.backends.base import caller_level
