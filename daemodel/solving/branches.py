@@ -116,7 +116,7 @@ def jumped(compiled, backend, piece, when, piece_when, t: float, Y, Z, P, delta:
     Locked to the piece, such a function never crossed inside one: floor(x) - 2.5 with x' = 1 + floor(x) from 0 did
     not fire at x = 3 (y' = 1 reset there ended 1.83 off, "success", in every method)."""
     events = compiled.events
-    if piece_when is when or not any(events[e].strict for e in fired):
+    if piece_when is when or all(event.strict for event in events) or not any(events[e].strict for e in fired):
         return []
     Y1, Z1 = _flow_end(compiled, backend, piece, t, Y, Z, P, delta)
     Yh, Zh = _flow_end(compiled, backend, piece, t, Y, Z, P, 0.5 * delta)
