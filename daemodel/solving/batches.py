@@ -13,7 +13,9 @@ evaluation (radau's, casadi-collocation's collocation polynomials): the values `
 same evaluation of the same steps.  Where it is not (a method started again from an output: casadi-idas, the
 reference; ``dense_output=False``), the samples are solved again on those times, as a batch on ``t_eval`` is:
 about twice the work (``stats["samples_alone_steps"]`` counts the first pass's steps; where nothing is solved
-again it is ``stats["steps"]``).  A terminal event ends its sample's values there (NaN after it,
+again it is ``stats["steps"]``); a method without ``t_eval`` (plugged in) whose samples' times differ cannot be
+read there: :class:`~daemodel.errors.SwitchError` (it stepped across a batch's switches: x' = -Min(1, x) 2.7
+tolerances off at rtol 1e-10, "success").  A terminal event ends its sample's values there (NaN after it,
 ``stats["t_end"]``).  50 samples of x' = -Min(1, x) over (0, 3) at the default tolerance: 823 steps and 0.53 s
 where the samples alone and again on the union took 1,214 and 1.10 s, the same values (minima of 3 interleaved
 passes on a shared machine: benchmarks/batch_switches.json).
@@ -36,9 +38,12 @@ def solve_on_common_times(backend, located, t_span, start, options, max_events: 
     ResourceLimitError
         The outputs on the union of the samples' times (samples x times x variables) exceed the memory limit:
         pass t_eval.
+    SwitchError
+        A method without ``t_eval`` whose samples' outputs do not share times, and cannot be read between them.
     """
     from daemodel.backends.checks import check_output_memory
     from daemodel.compiling.initial_states import InitialStates
+    from daemodel.errors import SwitchError
     from daemodel.solving.events import solve_with_events
     from daemodel.solving.pieces import join_samples
 
@@ -57,6 +62,14 @@ def solve_on_common_times(backend, located, t_span, start, options, max_events: 
             warnings.warn(warning.message, warning.category, stacklevel=4)
         sol = join_samples(parts, len(start.p), start.batched)
         return dataclasses.replace(sol, stats=sol.stats.extended(samples_alone_steps=steps))
+    if "t_eval" not in {f.name for f in dataclasses.fields(options)}:
+        if any(len(sol.t) != len(grid) for _, sol in parts):
+            raise SwitchError(
+                f"a batch of {len(start.p)} samples with events or switches on its variables: each sample's are "
+                f"located alone, but their outputs do not share times, and method {backend.name!r} has no t_eval "
+                "and no dense output to give each one's values at the others': solve the samples one at a time"
+            )
+        return join_samples(parts, len(start.p), start.batched)
     sol = solve_with_events(backend, located, t_span, start, dataclasses.replace(options, t_eval=grid), max_events)
     # (the samples alone, which chose the times, apart from the solve on them: stats["steps"] is that solve's)
     return dataclasses.replace(sol, stats=sol.stats.extended(samples_alone_steps=steps))

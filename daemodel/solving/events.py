@@ -74,10 +74,11 @@ from daemodel.solving.branches import (
     drift,
     event_tol,
     excursion_weight,
+    jumped,
     start_piece,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
-from daemodel.solving.locate import locate, outputs, span_solve, trial_solve
+from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
 from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
 from daemodel.solving.pieces import (
     breakpoints_between,
@@ -296,6 +297,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         )
         all_stats += located
         location += located
+        if hit:  # (an event tied with it that crossed before it: located too, the earlier of them fires)
+            which, t_event, y_event, z_event, unresolved = earlier_tied(
+                backend, piece, options, start.batched, P, piece_when, events, hit, first, T[before_index],
+                F[before_index], Ys[before_index : before_index + 1], Zs[before_index : before_index + 1],
+                (which, t_event, y_event, z_event, unresolved), location, all_stats, t1 - t0,
+            )  # fmt: skip
         carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
         if unresolved is not None:
             from daemodel.backends.base import caller_level
@@ -329,6 +336,10 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 )
             )
         ]
+        # (and a declared event whose function a switch firing here takes across zero by a jump: off zero after it)
+        delta = delta_at(t_event)
+        jumps = jumped(compiled, backend, piece, when, piece_when, t_event, y_event, z_event, P, delta, fired)
+        fired = sorted(fired + jumps)
         for e in fired:
             history[e].append(t_event)
             check_accumulating(events[e], history[e], t0, t1)
@@ -355,7 +366,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
         scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
-        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)}
+        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)} | set(jumps)
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:
@@ -384,10 +395,11 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         if terminal or ends:
             break
         t = t_event
-    # the outputs: each piece solved again on the user's times (t_eval), or on its own steps: its detection
-    # solve's before its end where the method stops at a crossing and chooses its steps (a solve to the event
-    # makes the same steps, the same values, but for its last one or two, which it shortens to end there),
-    # else solved again to its end (a fixed h: equal steps over the piece); a piece ending at an event leaves
+    # the outputs: each piece's detection solve's where the method stops at a crossing and chooses its steps (a
+    # solve to the event makes the same steps, the same values, but for its last one or two, which it shortens to
+    # end there): its steps before its end, or the user's times (t_eval) read off them where its dense output is
+    # an evaluation (radau's polynomials, what t_eval evaluates); else each piece solved again to its end on the
+    # user's times, or on its own (a fixed h: equal steps over the piece); a piece ending at an event leaves
     # its time to the next one, which starts with the values after it
     reuse = backend.stops and getattr(options, "h", None) is None
     names = (*compiled.state_names, *compiled.algebraic_names)
@@ -405,6 +417,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 continue
             if len(grid) == 1 and grid[0] == a:
                 piece_t, piece = np.array([a]), np.concatenate([Ya, Za], axis=1)
+            elif reuse and found.dense is not None and not found.dense.solves_again:
+                # (read off the detection solve's steps where that is an evaluation, as without t_eval: solved
+                # again, each piece cost its steps twice)
+                piece_t, piece = grid, found.columns_at(grid, names)
+                if found.status != "success":
+                    failing.append(f"on [{a:.6g}, {b:.6g}]: {found.status}")
             else:
                 sol = span_solve(backend, model, a, b, Ya, Za, P, start.batched, options, t_eval=grid)
                 all_stats.append(sol.stats)

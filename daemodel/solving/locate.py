@@ -16,6 +16,7 @@ import numpy as np
 from daemodel.compiling.switches import has_time_switches
 from daemodel.errors import EventLocationError
 from daemodel.solving.branches import RESOLVE_ULPS, event_tol, resolution
+from daemodel.solving.crossings import first_crossing
 from daemodel.solving.pieces import segment_steps
 from daemodel.solving.switches import for_method, solve_with_breakpoints
 
@@ -216,3 +217,40 @@ def locate(backend, compiled, options, batched, P, which, when, a, b, Fa, Fb, ya
         f"{MAX_LOCATION_ITERATIONS} trial solves (the bracket is [{lo:.15g}, {hi:.15g}], last trial "
         f"{best[0]:.15g}); the event function may be discontinuous there"
     )
+
+
+def earlier_tied(
+    backend, piece, options, batched, P, when, events, hit, first, a, Fa, ya, za, located, stats, more, span
+):
+    """``located`` (``(which, t, y, z, flag)``), or the event tied with it (``hit[e] == first``: crossing between
+    the same two outputs) whose function crossed (its way) before ``t``, located from the output ``a`` (values
+    ``Fa`` of every function, states ``ya``, ``za``) and earlier by more than the location's tolerance; again from
+    there, until none is (crossings within twice the tolerance of ``t`` join it, as a flat root, tanh(y)^3, joins y's).
+    The first declared of events crossing in one cell of the dense output was located, the
+    others fired with it: x - 1 crossing 1e-5 (radau: 1e-3) before x - 1.00001, declared second, fired at 1.00001,
+    a reset there 1e-5 late, "success", in every method.  The trial solves' stats are added to ``stats`` and
+    ``more``."""
+    which, t_event, y_event, z_event, flag = located
+    for _ in range(len(events)):
+        F_at = when(np.array([t_event]), y_event, z_event, P)[0]
+        earlier = None
+        for e in sorted(hit):
+            if e == which or hit[e] != first:
+                continue
+            before = t_event - 2.0 * event_tol(t_event, span)  # (crossings within the tolerance of t join it)
+            if not len(first_crossing(np.array([Fa[e], F_at[e]]), events[e].direction, True)) or not a < before:
+                continue
+            value, _, _, solved = trial_solve(backend, piece, options, batched, P, e, when, a, before, ya, za)
+            stats.append(solved)
+            more.append(solved)
+            if not len(first_crossing(np.array([Fa[e], value]), events[e].direction, True)):
+                continue
+            found = locate(backend, piece, options, batched, P, e, when, a, before, Fa[e], value, ya, za, None, span)
+            stats += found[3]
+            more += found[3]
+            if earlier is None or found[0] < earlier[1]:
+                earlier = (e, *found[:3], found[4])
+        if earlier is None:
+            break
+        which, t_event, y_event, z_event, flag = earlier
+    return which, t_event, y_event, z_event, flag

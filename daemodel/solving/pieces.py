@@ -15,8 +15,9 @@ from daemodel.stats import padded_with_nan
 
 # Stats summed over segments (counters); keys starting with "max"/ending "_max" take the largest,
 # "min"/"_min" the smallest; any other key keeps the first segment's value (stages, engine, ...).
+# (a batch's samples joined: its "location_trials", "searches_continued", "near_miss_checks" were the first's)
 _COUNTERS = ("steps", "attempts", "rejected", "iterations", "evaluations", "decompositions", "failures",
-             "refreshes", "retries", "runs", "setups", "calls", "events")  # fmt: skip
+             "refreshes", "retries", "runs", "setups", "calls", "events", "trials", "continued", "checks")  # fmt: skip
 
 
 def merge_stats(all_stats: list) -> dict:

@@ -426,6 +426,27 @@ def test_switches_that_cross_at_one_instant_join_the_first_declared_one_located(
     assert len(times) == 2 and len({t for ts in times.values() for t in ts}) == 1, times
 
 
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+@pytest.mark.parametrize("gap", [1e-5, 1e-7])
+def test_of_two_events_crossing_between_the_same_outputs_the_earlier_fires_first(method, gap):
+    """x' = 1, A at x = 1 + gap (declared first, resets y) and B at x = 1 (resets w): both crossings in one
+    cell of the dense output, A was located and B fired with it, gap late: w(2) off by the gap (1e-5: 1e5
+    tolerances at 1e-10), "success", in every method (radau at 1e-3 too).  Now B is located, fires at 1, and A
+    fires at its own time after it."""
+    m = dm.Model("tied")
+    m.states("x y w")
+    for name in ("x", "y", "w"):
+        m.ode(name, "1")
+    m.initial(x=0.0, y=0.0, w=0.0)
+    m.event("A", f"x - 1 - {gap}", direction=1, reset={"y": "0"})
+    m.event("B", "x - 1", direction=1, reset={"w": "0"})
+    sol = dm.solve(m, (0.0, 2.0), method=method, rtol=1e-10, atol=1e-10)
+    assert sol.status == "success"
+    assert abs(sol.events["A"]["t"].item() - (1 + gap)) <= 1e-11
+    assert abs(sol.events["B"]["t"].item() - 1) <= 1e-11
+    assert abs(sol["w"][-1] - 1.0) <= 1e-10 and abs(sol["y"][-1] - (1.0 - gap)) <= 1e-10
+
+
 # ---- found by attacking the events as a hostile user (helper evatk) --------------------------------------
 
 

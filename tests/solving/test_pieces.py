@@ -51,3 +51,25 @@ def test_a_batch_solved_in_groups_counts_every_samples_events_and_all_its_sample
     assert alone == [1, 2, 3]
     batch = dm.solve(m, (0.0, 1.3), y0={"h": heights, "v": [0.0] * 3}, t_eval=[0.0, 0.5, 1.3], rtol=1e-8)
     assert batch.stats["groups"] == 3 and batch.stats["batch"] == 3 and batch.stats["events"] == 6
+
+
+def test_a_batch_solved_in_groups_counts_every_samples_location_trials():
+    """A batch with switches, its samples solved alone and joined: its ``location_trials`` (and
+    ``searches_continued``, ``near_miss_checks``) were the first sample's (4 for 20 samples in float32:
+    tests/solving/test_batches.py read it as the batch's), now every sample's, as ``location_steps`` was."""
+    import daemodel as dm
+
+    m = dm.Model("min")
+    m.states("x")
+    m.ode("x", "-Min(1, x)")
+    m.initial(x=2.0)
+    x0 = [1.2, 2.0, 2.8]
+    alone = []
+    for value in x0:
+        m.initial(x=value)
+        alone.append(dm.solve(m, (0.0, 3.0)).stats)
+    for options in ({}, {"t_eval": np.linspace(0.0, 3.0, 7)}):
+        batch = dm.solve(m, (0.0, 3.0), y0={"x": x0}, **options).stats
+        for key in ("location_trials", "location_steps", "searches_continued", "near_miss_checks"):
+            assert batch[key] == sum(stats[key] for stats in alone), key
+        assert batch["location_trials"] >= len(x0)  # (at least one trial each)

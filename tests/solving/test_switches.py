@@ -439,6 +439,39 @@ def test_a_switch_whose_function_jumps_with_a_floor_inside_it_crosses_only_where
 
 
 @pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+@pytest.mark.parametrize(
+    ("when", "direction"), [("floor(x) - 2.5", 1), ("x - floor(x) - 0.5", -1), ("x - floor(x) - 0.5", 0)]
+)
+def test_a_declared_event_whose_function_jumps_across_zero_with_a_switch_fires_there(method, when, direction):
+    """x' = 1 + floor(x) from 0 (x = k at t = 1 + 1/2 + ... + 1/k), and an event whose function holds floor(x):
+    read on each piece with floor locked to the piece's level (0d9e0a9), floor(x) - 2.5 was -0.5 on one piece
+    and +0.5 on the next, and never fired at x = 3 (its reset y = 0 left y(2.5) 1.83 off, "success", in every
+    method); x - floor(x) - 0.5 (direction -1) never fired at its jumps from 0.5 to -0.5 where x reaches an
+    integer (2.45 off).  Before the lock: the first fired, the second raised ZenoError (reference) or never fired
+    (radau).  Now each fires with floor's event, the crossings of zero between them as before."""
+    m = dm.Model("levels")
+    m.states("x y")
+    m.ode("x", "1 + floor(x)")
+    m.ode("y", "1")
+    m.initial(x=0.0, y=0.0)
+    m.event("e", when, direction=direction, reset={"y": "0"})
+    integers = np.cumsum(1.0 / np.arange(1, 7))  # (x reaches 1..6 before t = 2.5)
+    halves = np.concatenate([[0.0], integers[:-1]]) + 0.5 / np.arange(1, 7)  # (x reaches k + 1/2)
+    exact = {
+        ("floor(x) - 2.5", 1): integers[2:3],
+        ("x - floor(x) - 0.5", -1): integers,
+        ("x - floor(x) - 0.5", 0): np.sort(np.concatenate([integers, halves])),
+    }[when, direction]
+    sol = dm.solve(m, (0.0, 2.5), method=method, rtol=1e-8, atol=1e-8)
+    assert sol.status == "success"
+    times = sol.events["e"]["t"][0]
+    assert len(times) == len(exact)
+    np.testing.assert_allclose(times, exact, rtol=0, atol=1e-9)
+    assert abs(sol["y"][-1] - (2.5 - exact[-1])) <= 1e-9
+    assert abs(sol["x"][-1] - (6 + 7 * (2.5 - integers[-1]))) <= 1e-7
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
 def test_an_algebraic_variable_inside_abs_in_its_own_constraint(method):
     """x' = -z, 0 = z |z| + z - x from x = 1 (z > 0 throughout: z = (sqrt(1 + 4x) - 1)/2), against scipy at
     1e-13 (x(1) = 0.5102789472060445).  H_z = 2|z| + 1 was differentiated by sympy as a function of complex z
