@@ -44,8 +44,14 @@ EXCURSION_BUDGET = 1.0
 # not move over any midpoint step, and kept the default side, above (ZenoError); it moves by -h^3.
 LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTHS = 8.0, 6
 # A look-ahead within this many resolutions (RESOLVE_ULPS float64 spacings) of t is set by t's resolution, not by
-# the span: a reset's function that does not come back within it may be a motion float64 does not resolve there.
+# the span: a function that does not come back within it may be a motion float64 does not resolve there.
 RESOLUTION_LOOKAHEAD = 16
+# Where t is large the location tolerance is float64's resolution of t, and 100 of them (0.39 at t = 1e13: the
+# events' look-ahead) can be longer than the motion after an event (the ball's fourth flight, 0.37: a false
+# ZenoError).  A function reset onto its guard is read back over look-aheads down to SHORTEST_TOLS location
+# tolerances (_back_sooner), and the side a piece leaves zero to is looked for from there (events._clear_of_zero
+# doubles it): a few, so that the located event's own error does not decide the side.
+SHORTEST_TOLS = 4
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
 RESET_CHANGE = 1e-6
@@ -312,9 +318,9 @@ def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delt
     ZenoError
         It does not go back over any of them: it stays on the guard (a ball coming to rest).
     TimeResolutionError
-        It does not, and ``shortest`` is set by float64's spacing of t (within :data:`RESOLUTION_LOOKAHEAD`
-        resolutions of t): a motion back sooner than that is not resolved there, so a bounce and a state at rest
-        look alike."""
+        It does not, and ``shortest`` is set by float64's spacing of t (:data:`SHORTEST_TOLS` resolutions of t,
+        not the span's share): a motion back sooner than that is not resolved there, so a bounce and a state at
+        rest look alike (at t0 = 1e6 over 2.5 the span's 2.5e-9 sets it, and a ball at rest is ZenoError)."""
     shorter = delta
     for _ in range(LOOKAHEAD_GROWTHS):
         if shorter <= shortest:
@@ -322,7 +328,7 @@ def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delt
         shorter = max(shorter / LOOKAHEAD_GROWTH, shortest)
         if _side(drift(compiled, backend, model, t, Y, Z, P, when, shorter)[e], scale) == -across:
             return -across
-    if shortest <= RESOLUTION_LOOKAHEAD * resolution(t):
+    if shortest <= (1.0 + 1e-9) * SHORTEST_TOLS * resolution(t):
         raise TimeResolutionError(
             f"event '{event.name}' at t = {time_text(t)}: after its reset {event.when} does not move back to the side "
             f"it came from within {shortest:.3g}, the shortest look-ahead that float64 resolves at |t| = {abs(t):.3g} "

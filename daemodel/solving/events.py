@@ -71,6 +71,7 @@ from daemodel.solving.branches import (
     EXCURSION_BUDGET,
     RESOLUTION_LOOKAHEAD,
     ROUNDING,
+    SHORTEST_TOLS,
     accumulation_point,
     check_accumulating,
     drift,
@@ -104,12 +105,6 @@ CHATTER_EVENTS, CHATTER_SPAN = 20, 1e-9
 # step this long: LOOKAHEAD_SPAN of t_span's length, and at least LOOKAHEAD_TOLS location tolerances (so
 # that a located event's own error in t cannot decide the side).
 LOOKAHEAD_SPAN, LOOKAHEAD_TOLS = 1e-9, 100
-# Where t is large the location tolerance is float64's resolution of t, and LOOKAHEAD_TOLS of them (0.39 at
-# t = 1e13) can be longer than the motion after an event (the ball's fourth flight, 0.37: a false ZenoError).
-# A function reset onto its guard is read back over look-aheads down to SHORTEST_TOLS location tolerances
-# (branches._back_sooner), and the side a piece leaves zero to is looked for from there (_clear_of_zero doubles
-# it): a few tolerances, so that the located event's own error does not decide the side.
-SHORTEST_TOLS = 4
 # A detection solve on locked branches that fails at a time is solved again to this fraction of the way
 # there, where the crossing that its branch went past is looked for (_detect).
 BEFORE_FAILURE = 0.99

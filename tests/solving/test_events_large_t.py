@@ -169,3 +169,14 @@ def test_a_crossing_back_within_t_s_resolution_is_a_named_error_not_zeno():
     )
     with pytest.raises(E.TimeResolutionError, match=message):
         dm.solve(_ball(t0=t0), (t0, t0 + 2.5), method="casadi-idas", rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("t0", [1e6, 1e13])
+def test_a_ball_at_rest_is_zeno_where_t_resolves_it_and_named_where_not(t0):
+    """Restitution 0: the ball stays on the floor after its first impact.  From t0 = 1e6 the shortest look-ahead
+    (the span's 2.5e-9, 11 resolutions of t) is not t's spacing's, so this is Zeno, as from 0; from 1e13 it is
+    (4 resolutions, 0.0156), and a ball at rest and a bounce that short look alike: TimeResolutionError.  (A first
+    version of the look-ahead's check named t's resolution from 1e6 on.)"""
+    error = E.ZenoError if t0 < 1e9 else E.TimeResolutionError
+    with pytest.raises(error, match=r"event 'floor' at t = \d+\.45\d*: after its reset h"):
+        dm.solve(_ball(e=0.0, t0=t0), (t0, t0 + 2.5), method="radau", rtol=1e-6, atol=1e-6)
