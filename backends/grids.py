@@ -94,6 +94,14 @@ def fixed_grid(t_span, h: float, *, max_steps: int | None = None) -> np.ndarray:
     return grid
 
 
+def default_times(t_span) -> np.ndarray:
+    """The :data:`DEFAULT_OUTPUT_POINTS` output times of a method that chooses its own steps, each float64 time once:
+    over a span of a few float64 spacings of t (a trial solve of an event's location at t = 1e13, 0.02 long,
+    11 spacings there) linspace's times round onto one another and onto t0, and casadi-idas, given a first output
+    at t0, started IDACalcIC with a step of 0 and never returned."""
+    return np.unique(np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
+
+
 def output_times(t_eval, t_span, default) -> np.ndarray:
     """Validated output times: sorted, finite, inside ``t_span``; ``default`` when None."""
     if t_eval is None:
@@ -111,7 +119,15 @@ def output_times(t_eval, t_span, default) -> np.ndarray:
     if times[0] < t0 - slack or times[-1] > t1 + slack:
         raise TimeSpanError(f"t_eval runs from {times[0]:g} to {times[-1]:g}, outside t_span = ({t0:g}, {t1:g})")
     # (clipped only where an end lies outside, by its slack: np.clip's Python wrapper cost a few us twice a solve)
-    return np.clip(times, t0, t1) if times[0] < t0 or times[-1] > t1 else times
+    if not (times[0] < t0 or times[-1] > t1):
+        return times
+    clipped = np.clip(times, t0, t1)
+    if (clipped[1:] <= clipped[:-1]).any():  # (two times within the slack outside one end: both at that end)
+        raise TimeSpanError(
+            f"t_eval holds two times that lie outside t_span = ({t0!r}, {t1!r}) by less than its slack ({slack:.3g}) "
+            "and so are the same time at its end; keep one of them"
+        )
+    return clipped
 
 
 def numeric_times(t_eval) -> np.ndarray:

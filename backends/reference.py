@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
-from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, default_times, output_times, tolerance_sweep
 from daemodel.backends.progress import ProgressWatch
 
 from daemodel.compiling.init import NewtonTolerances, NumericSystem, jacobian_entries, solve_algebraic
@@ -401,7 +401,7 @@ class ReferenceBackend(AbstractBackend):
             max(n, m),
             "use method='radau' or 'casadi-idas' (sparse), and a reference= of either in compare",
         )
-        times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
+        times = output_times(options.t_eval, t_span, default_times(t_span))
         check_output_memory(self.name, compiled, start.size, len(times))
         numeric = compiled.numeric
         algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)

@@ -232,6 +232,18 @@ class EventLocationError(SolverError):
     """An event's crossing could not be located to its tolerance."""
 
 
+class TimeResolutionError(EventLocationError):
+    """float64's spacing of t where the events happen is too coarse to tell what they do: a function reset onto
+    its guard does not move back within the few spacings of t that an event's location resolves there (the ball
+    at t0 = 1e15, spacing 0.125, its flights shorter than the 1.0 that its impacts' locations allow): a bounce
+    and a ball at rest (Zeno) look alike.  ``t`` is the event's time; the fix is to count time from near the
+    start (``t - t0`` in the model, t_span from 0)."""
+
+    def __init__(self, message: str, t: float | None = None):
+        super().__init__(message)
+        self.t = t
+
+
 class ResetConflictError(ModelError):
     """Events that fire at one instant reset the same state to different values: which one holds is not
     defined (each reset reads the values just before the instant)."""

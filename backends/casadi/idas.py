@@ -46,7 +46,7 @@ from daemodel.backends.casadi.plumbing import (
     scaled_dae,
 )
 from daemodel.backends.checks import check_output_memory, set_number, set_tolerances
-from daemodel.backends.grids import DEFAULT_OUTPUT_POINTS, SWEEP_FIRST_STEPS, output_times, tolerance_sweep
+from daemodel.backends.grids import SWEEP_FIRST_STEPS, default_times, output_times, tolerance_sweep
 from daemodel.backends.progress import captured_output
 
 from daemodel.dense import AbstractDenseOutput, outputs_before
@@ -301,7 +301,7 @@ class IDASBackend(AbstractBackend):
 
         if stop is not None and start.size != 1:
             raise InvalidOptionError(f"stop=... reads one sample's outputs; this solve has {start.size} samples")
-        times = output_times(options.t_eval, t_span, np.linspace(*t_span, DEFAULT_OUTPUT_POINTS))
+        times = output_times(options.t_eval, t_span, default_times(t_span))
         grid = times[1:] if times[0] == t_span[0] else times
         check_output_memory(self.name, compiled, start.size, len(times))
         began = time.perf_counter()

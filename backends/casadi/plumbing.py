@@ -12,7 +12,7 @@ import threading
 import numpy as np
 from daemodel.backends.progress import captured_output
 
-from daemodel.errors import ConvergenceError, DaemodelError
+from daemodel.errors import ConvergenceError, DaemodelError, TimeSpanError
 from daemodel.executors import struck_limit
 
 # Options that stop casadi from printing a warning for every non-finite evaluation (tens of
@@ -68,6 +68,12 @@ def consistent_start(first_output: float, step0: float | None) -> dict:
     its artificial step :data:`IC_STEP_SHARE` of IDAS's first one, ``step0``, or IDAS's own first guess, 0.001 of
     the first output's distance (both on the integrator's own time)."""
     first = step0 if step0 is not None else 1e-3 * first_output
+    if not first > 0.0:  # (IDACalcIC's step 0: it never returned, at t0 = 1e13 over 11 float64 spacings)
+        raise TimeSpanError(
+            f"casadi-idas: its first output lies at its start (IDACalcIC's step would be {first!r}, on which it "
+            "never returns): the span is shorter than float64 resolves at its |t|; start t_span nearer 0 (shift the "
+            "model's time)"
+        )
     return {"calc_ic": True, "first_time": 1e3 * IC_STEP_SHARE * first}
 
 

@@ -18,7 +18,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.compiling.switches import lock_branches, lock_functions
-from daemodel.errors import SlidingModeError, ZenoError
+from daemodel.errors import SlidingModeError, TimeResolutionError, ZenoError
 from daemodel.solving.switches import for_method
 
 # Width in t to which an event is located (relative to the solve's time scale: event_tol).
@@ -43,6 +43,15 @@ EXCURSION_BUDGET = 1.0
 # (:func:`drift`'s ``fourth``): x = 0.3 - t^3 through a chain of states (x' = w, w' = v, v' = -6, all 0 at t0) does
 # not move over any midpoint step, and kept the default side, above (ZenoError); it moves by -h^3.
 LOOKAHEAD_GROWTH, LOOKAHEAD_GROWTHS = 8.0, 6
+# A look-ahead within this many resolutions (RESOLVE_ULPS float64 spacings) of t is set by t's resolution, not by
+# the span: a function that does not come back within it may be a motion float64 does not resolve there.
+RESOLUTION_LOOKAHEAD = 16
+# Where t is large the location tolerance is float64's resolution of t, and 100 of them (0.39 at t = 1e13: the
+# events' look-ahead) can be longer than the motion after an event (the ball's fourth flight, 0.37: a false
+# ZenoError).  A function reset onto its guard is read back over look-aheads down to SHORTEST_TOLS location
+# tolerances (_back_sooner), and the side a piece leaves zero to is looked for from there (events._clear_of_zero
+# doubles it): a few, so that the located event's own error does not decide the side.
+SHORTEST_TOLS = 4
 # A reset changes the motion across its guard where the drift after it differs from the drift before by
 # more than this (relative): then it must send the function back (else: ZenoError, the state stays on it).
 RESET_CHANGE = 1e-6
@@ -52,6 +61,13 @@ def resolution(t: float) -> float:
     """The narrowest bracket around ``t`` that an event's location can hold trial times in:
     :data:`RESOLVE_ULPS` float64 spacings at ``t``."""
     return RESOLVE_ULPS * math.ulp(abs(t))
+
+
+def time_text(t: float) -> str:
+    """``t`` in a message: 12 significant digits, and more where |t| is large (up to float64's 17), so that a time
+    at t0 = 1e13 reads 10000000000004.062, not 1e+13."""
+    digits = 12 + max(0, math.floor(math.log10(abs(t)))) if math.isfinite(t) and t != 0 else 12
+    return f"{t:.{min(digits, 17)}g}"
 
 
 def event_tol(t: float, span: float) -> float:
@@ -148,6 +164,15 @@ def _on_piece(compiled, when, t: float, Y, Z, P, chosen: dict):
     return compiled.cached(("event-functions", fixed), lambda: compiled.numeric.batch_function(list(fixed)))
 
 
+def rounding_scale(compiled, function, t: float, Y, Z) -> float:
+    """The size of the values that a drift of ``function`` (an event's) is rounded at: the largest |y| and |z|,
+    and |t| only where the function names t.  A function of the states alone is not rounded by t: the ball's
+    height at t = 1e13 rose 0.136 over the look-ahead after its third impact, within 64 eps 1e13 = 0.142, and
+    was read as resting on the floor (ZenoError)."""
+    size = float(np.max(np.abs(np.concatenate([Y[0], Z[0]])), initial=0.0))
+    return max(size, abs(float(t))) if compiled.t in function.free_symbols else size
+
+
 def _side(change: float, scale: float) -> int:
     """The sign of a drift, 0 within rounding of values of size ``scale``."""
     return 0 if abs(change) <= ROUNDING * max(1.0, scale) else int(np.sign(change))
@@ -204,13 +229,15 @@ def start_piece(
     moved_off=(),
     horizon=math.inf,
     span=math.inf,
+    shortest=None,
 ) -> Start:
     """The piece from ``t``: which side each event function at zero there goes to, by the flow
     (:func:`drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
     (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
     the side it crossed to (kept where both sides lead away); ``horizon``: how far t_span goes on from ``t``
-    (the longest look-ahead); ``span``: t_span's length (the scale of :func:`event_tol`).
+    (the longest look-ahead); ``span``: t_span's length (the scale of :func:`event_tol`); ``shortest``: the
+    shortest look-ahead a reset's function may be read back over (:func:`_back_sooner`; ``delta`` where None).
 
     Raises
     ------
@@ -221,13 +248,14 @@ def start_piece(
     """
 
     started = time.perf_counter()
+    shortest = delta if shortest is None else shortest
     events = compiled.events
     F0 = when(np.array([t]), Y, Z, P)[0]
     at_zero = set(fired) - set(moved_off)
     for e, event in enumerate(events):
         if F0[e] == (round(F0[e]) if event.integer else 0):
             at_zero.add(e)
-    scale = float(np.max(np.abs(np.concatenate([Y[0], Z[0], [t]]))))
+    scale = [rounding_scale(compiled, event.when, t, Y, Z) for event in events]
     chosen = {}
     flows = {}  # (drift's step ends by piece: every drift below starts from (t, Y, Z) with the same delta)
     for _ in range(len(events) + 1):  # (more rounds for switches that cross within location tolerances of t)
@@ -235,7 +263,7 @@ def start_piece(
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale, e in exited, flows, horizon)  # fmt: skip
+                                             delta, scale[e], e in exited, flows, horizon)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
@@ -286,18 +314,13 @@ def start_piece(
     if declared:
         changes = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows)
         for e in declared:
-            side = _side(changes[e], scale)
+            side = _side(changes[e], scale[e])
             before = crossing.get(e)
             if before is not None:  # (a reset: it must send the function back, or leave its motion as it was)
-                across = _side(before, scale)
+                across = _side(before, scale[e])
                 if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
-                    raise ZenoError(
-                        f"event '{events[e].name}' at t = {t:.12g}: after its reset {events[e].when} stays on the "
-                        "guard (it does not move back to the side it came from), so the event would fire again at "
-                        "once, without end (Zeno: a ball coming to rest); make the event terminal=True to stop "
-                        "there, change the reset, or end t_span at it",
-                        t,
-                    )
+                    side = _back_sooner(compiled, backend, model, events[e], e, t, Y, Z, P, when, delta, shortest,
+                                        scale[e], across)  # fmt: skip
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
@@ -308,6 +331,46 @@ def start_piece(
         time.perf_counter() - started,
         sliding,
         frozenset(at_zero),
+    )
+
+
+def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,
+                 scale: float, across: int) -> int:  # fmt: skip
+    """The side (``-across``) that the function of ``event`` (number ``e``), reset at ``t``, goes back to over a
+    look-ahead shorter than ``delta``: ``delta / LOOKAHEAD_GROWTH^k``, and ``shortest`` last (at most
+    :data:`LOOKAHEAD_GROWTHS` of them).  The look-ahead is long where t is (a hundred location tolerances, each two
+    float64 spacings of t: 0.39 at t = 1e13), and a flight shorter than it (the ball's fourth, 0.37) came back
+    down within it: ZenoError, where the ball bounces on.
+
+    Raises
+    ------
+    ZenoError
+        It does not go back over any of them: it stays on the guard (a ball coming to rest).
+    TimeResolutionError
+        It does not, and ``shortest`` is set by float64's spacing of t (:data:`SHORTEST_TOLS` resolutions of t,
+        not the span's share): a motion back sooner than that is not resolved there, so a bounce and a state at
+        rest look alike (at t0 = 1e6 over 2.5 the span's 2.5e-9 sets it, and a ball at rest is ZenoError)."""
+    shorter = delta
+    for _ in range(LOOKAHEAD_GROWTHS):
+        if shorter <= shortest:
+            break
+        shorter = max(shorter / LOOKAHEAD_GROWTH, shortest)
+        if _side(drift(compiled, backend, model, t, Y, Z, P, when, shorter)[e], scale) == -across:
+            return -across
+    if shortest <= (1.0 + 1e-9) * SHORTEST_TOLS * resolution(t):
+        raise TimeResolutionError(
+            f"event '{event.name}' at t = {time_text(t)}: after its reset {event.when} does not move back to the side "
+            f"it came from within {shortest:.3g}, the shortest look-ahead that float64 resolves at |t| = {abs(t):.3g} "
+            f"(its spacing of t there is {math.ulp(abs(t)):.3g}, and the event is located to {resolution(t):.3g}): a "
+            "motion shorter than that (a bounce) and a state at rest on the guard (Zeno) look alike there; count "
+            "time from near the start (t - t0 in the model, t_span from 0)",
+            t,
+        )
+    raise ZenoError(
+        f"event '{event.name}' at t = {time_text(t)}: after its reset {event.when} stays on the guard (it does not "
+        "move back to the side it came from), so the event would fire again at once, without end (Zeno: a ball "
+        "coming to rest); make the event terminal=True to stop there, change the reset, or end t_span at it",
+        t,
     )
 
 
@@ -436,10 +499,10 @@ def check_accumulating(event, times: list, t0: float, t1: float) -> None:
     limit = times[-1] + gaps[-1] * ratio / (1.0 - ratio)
     if limit < t1:
         raise ZenoError(
-            f"event '{event.name}' accumulates at t ≈ {limit:.12g}: its last {ZENO_GAPS} gaps shrink by "
-            f"{ratio:.3g} each, down to {gaps[-1]:.3g} at t = {times[-1]:.12g} (Zeno: infinitely many events before "
-            f"it); the solution past it is not defined by the events: end t_span before t ≈ {limit:.6g}, or make "
-            "the event terminal=True (or set max_events) to stop earlier",
+            f"event '{event.name}' accumulates at t ≈ {time_text(limit)}: its last {ZENO_GAPS} gaps shrink by "
+            f"{ratio:.3g} each, down to {gaps[-1]:.3g} at t = {time_text(times[-1])} (Zeno: infinitely many events "
+            f"before it); the solution past it is not defined by the events: end t_span before t ≈ {time_text(limit)}, "
+            "or make the event terminal=True (or set max_events) to stop earlier",
             limit,
         )
 

@@ -55,27 +55,33 @@ from daemodel.errors import (
     EventResolutionWarning,
     StepLimitError,
     SwitchError,
+    TimeResolutionError,
     ZenoError,
 )
 from daemodel.solving.between import (
     armed_outputs,
-    dense_bracket,
     dense_crossing,
     dense_states,
+    earliest_tied,
     excursions,
     inner_samples,
     on_dense,
 )
 from daemodel.solving.branches import (
     EXCURSION_BUDGET,
+    RESOLUTION_LOOKAHEAD,
     ROUNDING,
+    SHORTEST_TOLS,
     accumulation_point,
     check_accumulating,
     drift,
     event_tol,
     excursion_weight,
     jumped,
+    resolution,
+    rounding_scale,
     start_piece,
+    time_text,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
@@ -179,17 +185,20 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     def delta_at(time_: float) -> float:
         return max(LOOKAHEAD_SPAN * (t1 - t0), LOOKAHEAD_TOLS * event_tol(time_, t1 - t0))
 
+    def shortest_at(time_: float) -> float:
+        return min(delta_at(time_), max(LOOKAHEAD_SPAN * (t1 - t0), SHORTEST_TOLS * event_tol(time_, t1 - t0)))
+
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
         try:
             begin = start_piece(
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off,
-                t1 - t, span=t1 - t0,
+                t1 - t, span=t1 - t0, shortest=shortest_at(t),
             )  # fmt: skip
         except ZenoError as error:  # (a ball at rest: where its bounces accumulate, if their times tell)
             limit = max((accumulation_point(history[e]) or -math.inf for e in fired), default=-math.inf)
             if limit > -math.inf:
-                raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
+                raise ZenoError(f"{error}; its events accumulate at t ≈ {time_text(limit)}", limit) from None
             raise
         setup_time += begin.setup_time
         begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
@@ -219,7 +228,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         found = None  # (which, a, b, Fa, Fb, ya, za, the first trial, each fired event's side after it)
         if first is not None:
             tied = [e for e in hit if hit[e] == first]
-            which = _earliest(sol, compiled, piece_when, P, tied, T[before_index], T[first], F[before_index], which)
+            which = earliest_tied(sol, compiled, piece_when, P, tied, T[before_index], T[first], F[before_index], which)
             a, b, Fa, Fb = T[before_index], T[first], F[before_index, which], F[first, which]
             ya, za = Ys[before_index : before_index + 1], Zs[before_index : before_index + 1]
             if before_index == 0 and which in begin.at_zero and begin.sides[which]:
@@ -228,7 +237,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 try:
                     a, Fa, ya, za = _clear_of_zero(
                         backend, piece, options, start.batched, P, which, piece_when, a, b, ya, za,
-                        begin.sides[which], delta_at(a), events[which],
+                        begin.sides[which], shortest_at(a), events[which],
                     )  # fmt: skip
                 except ZenoError as error:  # (a continuous switch resting on zero: the piece again, watched)
                     if which in rests:
@@ -365,8 +374,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
         Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
-        scale = float(np.max(np.abs(np.concatenate([Y[0], z_event[0], [t_event]]))))
-        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > ROUNDING * max(1.0, scale)} | set(jumps)
+        moved_off = {
+            e
+            for e in with_reset
+            if abs(F_reset[e] - F_raw[e])
+            > ROUNDING * max(1.0, rounding_scale(compiled, events[e].when, t_event, Y, z_event))
+        } | set(jumps)
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:
@@ -380,7 +393,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 delta = delta_at(t_event)
                 after = start_piece(
                     backend, compiled, when, t_event, Y, z_event, P, fired, crossing, preferred, delta, lock, exited,
-                    moved_off, t1 - t_event, span=t1 - t0,
+                    moved_off, t1 - t_event, span=t1 - t0, shortest=shortest_at(t_event),
                 )  # fmt: skip
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)
@@ -544,6 +557,8 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
     ------
     ZenoError
         It is not on its side anywhere there: back across zero sooner than the method resolves.
+    TimeResolutionError
+        It is not, and half the bracket is within ``RESOLUTION_LOOKAHEAD`` resolutions of t (float64's spacing).
     EventLocationError
         No float64 time lies between ``a`` and ``b`` to look at.
     """
@@ -552,7 +567,9 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         raise EventLocationError(
             f"event '{event.name}' at t = {a:.17g}: float64 holds no time between it and the next output t = "
             f"{b:.17g} (its spacing there is {math.ulp(a):.3g}), so the side its function goes to cannot be read; "
-            "the span is too short for t's resolution at this |t|: start t_span nearer 0 (shift the model's time)",
+            "t's resolution at this |t| is too coarse for the span or for the event (located to a few spacings, which "
+            "can leave its function on the wrong side of zero past the next output): start t_span nearer 0 (shift "
+            "the model's time)",
             a,
         )
     while True:
@@ -560,6 +577,19 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
         value, y, z, _ = trial_solve(backend, compiled, options, batched, P, which, when, a, tau, ya, za)
         if np.sign(value) == side:
             return tau, value, y, z
+        if tau >= 0.5 * (a + b) and tau - a <= RESOLUTION_LOOKAHEAD * resolution(a):
+            # (the event located to float64's spacing of t leaves its function off zero, on the other side, by its
+            # rate times that: casadi-idas's first output after the ball's impact at t0 = 1e14 (located to 0.031)
+            # lay two spacings on, the ball still below the floor, rising)
+            raise TimeResolutionError(
+                f"event '{event.name}' at t = {time_text(a)}: its function does not leave zero to the side the flow "
+                f"takes within {tau - a:.3g} of its last crossing, {(tau - a) / math.ulp(abs(a)):.3g} float64 spacings "
+                f"of t at |t| = {abs(a):.3g} (spacing {math.ulp(abs(a)):.3g}; the event is located to "
+                f"{resolution(a):.3g}, which leaves its function off zero by its rate times that): a motion this short "
+                "and a state resting on its guard (Zeno) look alike there; count time from near the start (t - t0 in "
+                "the model, t_span from 0)",
+                a,
+            )
         if tau >= 0.5 * (a + b):
             raise ZenoError(
                 f"event '{event.name}' at t = {a:.12g}: its function does not leave zero to the side the flow "
@@ -660,19 +690,3 @@ def _across(read, x, t: float) -> bool:
     except ConvergenceError:  # (not seen there)
         return False
     return bool(np.sign(value) == -x.side)
-
-
-def _earliest(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np.ndarray, which: int) -> int:
-    """Of the events ``tied`` whose first crossing lies between the same two outputs ``a`` and ``b``
-    (``Fa``: every event function at ``a``), the one that crosses first on ``sol``'s dense output, in
-    :func:`~daemodel.solving.between.dense_bracket`'s cells (events that cross in one cell: the first declared, whose
-    location the
-    others join, so that a root as flat as tanh(y)^3's at y's is never the one located); ``which``, the
-    first declared, where there is one or the dense output does not tell.  A step that holds two
-    crossings once located the first declared one and fired the earlier with it, late (a state 0.0134
-    off at rtol 1e-8, said "success": tests/solving/test_events.py)."""
-    if len(tied) < 2:
-        return which
-    cells = {e: dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
-    known = {e: cell[1] for e, cell in cells.items() if cell is not None}
-    return min(known, key=lambda e: (known[e], e)) if len(known) == len(tied) else which

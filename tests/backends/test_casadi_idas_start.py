@@ -50,3 +50,28 @@ def test_the_wheelset_past_a_creep_saturation_starts_from_its_consistent_values(
     for name in (*compiled.state_names, *compiled.algebraic_names):
         off = abs(sol[name][-1] - ref[name][-1]) / (1e-6 + 1e-6 * abs(ref[name][-1]))
         assert off < 10.0, (name, off)
+
+
+def test_idacalcic_is_never_given_a_step_of_zero():
+    # (a first output at t0: IDACalcIC's step 0, on which casadi's call never returned)
+    with pytest.raises(
+        dm.errors.TimeSpanError, match=r"casadi-idas: its first output lies at its start .*step would be 0\.0"
+    ):
+        plumbing.consistent_start(0.0, None)
+
+
+def test_a_span_of_a_few_float64_spacings_at_a_large_t_is_solved():
+    """A trial solve of the ball's first impact at t0 = 1e13 (a fall over 0.0215, 11 float64 spacings of t): the
+    default outputs of linspace rounded onto t0 and onto one another, and IDAS, its first output at t0, never
+    returned (300 s).  Now the outputs are float64's distinct times, and the fall is exact on them."""
+    t0, span, h0, v0 = 1e13 + 0.4296875, 0.021484375, 0.09438324, -4.21523437
+    m = dm.Model("fall")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", "-9.81")
+    m.initial(t=t0, h=h0, v=v0)
+    sol = dm.solve(m, (t0, t0 + span), method="casadi-idas", rtol=1e-10, atol=1e-10)
+    s = sol.t - t0
+    assert sol.status == "success" and sol.t[0] == t0 and sol.t[-1] == t0 + span
+    assert np.all(np.diff(sol.t) > 0) and len(sol.t) == 12  # (t0 and the 11 float64 times after it)
+    np.testing.assert_allclose(sol["h"], h0 + v0 * s - 0.5 * 9.81 * s**2, rtol=0, atol=1e-9)

@@ -113,3 +113,70 @@ def test_a_switch_just_past_an_output_at_a_large_t0_is_located_with_a_fixed_step
     exact = 2.0 * hump * math.sin(1.0) - (2.0 * hump * math.sin(c) - 2.0 * c)  # (the integral, capped)
     assert sol.status == "success" and abs(sol["u"][-1] - exact) < 1e-10
     np.testing.assert_allclose(sol.events["Min in u'"]["t"][0] - t0, [1.0 - c, 1.0 + c], rtol=0, atol=1e-6)
+
+
+def _flights_bound(count, width, e=0.8):
+    """How far ``count`` impacts located ``width`` apart may be from the exact ones: each impact found dt late
+    moves the next one by (1 + 2e - 1/e) dt (test_events._located_to) before its own location adds its width."""
+    gain, bound = abs(1 + 2 * e - 1 / e), 0.0
+    for _ in range(count):
+        bound = gain * bound + width
+    return bound
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+@pytest.mark.parametrize("t0", [1e13, -1e13])
+def test_the_ball_at_t0_1e13_is_located_as_float64_allows_and_flagged(method, t0):
+    """At t0 = 1e13 float64's spacing of t is 1.95e-3: each impact is located to two spacings (the ball moves
+    1.7e4 tolerances across them), flagged, and within that of the exact ones.  Before: radau and the reference
+    raised ZenoError after the third impact (h's rise over the look-ahead, 0.136, read as rounding at 64 eps |t| =
+    0.142), and past that after the fourth (the look-ahead, 100 location tolerances = 0.39, outlasts the fourth
+    flight, 0.37); casadi-idas never returned (its first trial solve's outputs rounded onto t0: IDACalcIC's step 0)."""
+    sol, flags = _solve(_ball(t0=t0), t0, method, rtol=1e-6, atol=1e-6)
+    assert sol.status.startswith("flagged: event 'floor' at t = ") and flags
+    assert "float64 does not resolve t finely enough at |t| = 1e+13" in sol.status
+    located = sol.events["floor"]["t"][0] - t0
+    assert len(located) == 6 and sol.t[-1] == t0 + 3.0  # (impacts at 0.45, ..., 2.58, 2.88: flights down to 0.30)
+    assert np.abs(located - _impacts(6)).max() <= _flights_bound(6, 2 * math.ulp(1e13))
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_bounce_shorter_than_t_s_resolution_is_a_named_error_not_zeno(method):
+    """At t0 = 1e15 float64's spacing of t is 0.125 and an impact is located to 0.25: the ball's first flight
+    after it (0.72) comes back down within the shortest look-ahead that location leaves readable (4 of it, 1.0),
+    so a bounce and a ball at rest look alike: TimeResolutionError, naming t, the spacing and the fix.  Before:
+    ZenoError (radau and the reference: the ball was said to come to rest) or no return (casadi-idas)."""
+    t0 = 1e15
+    message = (
+        r"event 'floor' at t = 1000000000000000\.5: after its reset h does not move back to the side it came from "
+        r"within 1, the shortest look-ahead that float64 resolves at \|t\| = 1e\+15 \(its spacing of t there is "
+        r"0\.125, and the event is located to 0\.25\).*count time from near the start \(t - t0 in the model"
+    )
+    with pytest.raises(E.TimeResolutionError, match=message) as caught:
+        _solve(_ball(t0=t0), t0, method, rtol=1e-6, atol=1e-6)
+    assert caught.value.t == t0 + 0.5
+
+
+def test_a_crossing_back_within_t_s_resolution_is_a_named_error_not_zeno():
+    """casadi-idas at t0 = 1e14 (spacing 0.0156) over 2.5: the impact at 1.77 located to 0.031 leaves the ball below the
+    floor, rising, and IDAS's first output after it lies one spacing on, still below: the function does not leave
+    zero to its side within half that bracket.  Before: ZenoError (once IDAS returned at all)."""
+    t0 = 1e14
+    message = (
+        r"event 'floor' at t = 100000000000001\.77: its function does not leave zero to the side the flow takes "
+        r"within 0\.0156 of its last crossing, 1 float64 spacings of t at \|t\| = 1e\+14 \(spacing 0\.0156; the "
+        r"event is located to 0\.0312.*count time from near the start"
+    )
+    with pytest.raises(E.TimeResolutionError, match=message):
+        dm.solve(_ball(t0=t0), (t0, t0 + 2.5), method="casadi-idas", rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("t0", [1e6, 1e13])
+def test_a_ball_at_rest_is_zeno_where_t_resolves_it_and_named_where_not(t0):
+    """Restitution 0: the ball stays on the floor after its first impact.  From t0 = 1e6 the shortest look-ahead
+    (the span's 2.5e-9, 11 resolutions of t) is not t's spacing's, so this is Zeno, as from 0; from 1e13 it is
+    (4 resolutions, 0.0156), and a ball at rest and a bounce that short look alike: TimeResolutionError.  (A first
+    version of the look-ahead's check named t's resolution from 1e6 on.)"""
+    error = E.ZenoError if t0 < 1e9 else E.TimeResolutionError
+    with pytest.raises(error, match=r"event 'floor' at t = \d+\.45\d*: after its reset h"):
+        dm.solve(_ball(e=0.0, t0=t0), (t0, t0 + 2.5), method="radau", rtol=1e-6, atol=1e-6)

@@ -34,6 +34,12 @@ def test_bad_t_eval(pendulum):
         dm.solve(pendulum, (0.0, 1.0), h=0.1, t_eval=[0.5, 2.0])
     with pytest.raises(E.TimeSpanError, match="strictly increasing"):
         dm.solve(pendulum, (0.0, 1.0), method="reference", t_eval=[0.5, 0.2])
+    # (two times below t0 within its slack were both clipped to t0: casadi-idas's first output at t0, and IDACalcIC,
+    # given a step of 0, never returned)
+    with pytest.raises(
+        E.TimeSpanError, match=r"t_eval holds two times that lie outside t_span = \(0\.0, 1\.0\) by less"
+    ):
+        dm.solve(pendulum, (0.0, 1.0), method="casadi-idas", t_eval=[-1e-13, -5e-14, 0.5])
 
 
 def test_step_sizes(pendulum):
