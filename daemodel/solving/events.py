@@ -173,6 +173,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
     rests = {}  # (switches resting on zero within the method's error: resting.Rest by event)
+    rested, left_rests = 0, 0  # (rests begun; rests left, each a piece that ends where its function leaves the band)
     carried_in = CarriedErrors()  # (each piece, to estimate the error it carries on: misses.CarriedErrors)
 
     def delta_at(time_: float) -> float:
@@ -235,6 +236,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                     rests[which] = rest_or_raise(
                         error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
                     )
+                    rested += 1
                     spent[0] = spent_before
                     continue
             guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
@@ -258,12 +260,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         if failed is not None and found is None:  # (no switch crossed before the failure: the model's own)
             raise failed
         left = None if failed is not None else gone(rests, rest_sides, F[:shown])
-        if left is not None and (found is None or T[left] <= found[1]):  # (a rest ends: on from there, watched anew)
+        ended = left is not None and bool(found is None or T[left] <= found[1])
+        if ended:  # (a rest ends: on from there, watched anew)
             found, T, Ys, Zs = None, T[: left + 1], Ys[: left + 1], Zs[: left + 1]
         if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
-            # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
-            # from there, with the step it had reached)
-            continued += 1
+            # (stopped at an excursion on the dense output that the method's own trial solve did not confirm, or
+            # where a rest ends: on from there, with the step it had reached.  A rest ends once, and begins only
+            # where a piece starts at zero, at t0 or after an event: max_events bounds them)
+            left_rests += ended
+            continued += not ended
             if continued > max_events:
                 raise EventLimitError(
                     f"{continued} crossings of zero on the dense output that the method's own solution does not "
@@ -444,6 +449,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     stats["location_trials"] = len(location)
     stats["location_steps"] = int(sum(trial.get("steps", 0) for trial in location))
     stats["searches_continued"] = continued  # (stopped at an excursion that its trial did not confirm)
+    stats["rests"], stats["rests_left"] = rested, left_rests  # (switches that rested on zero; those that left it)
     stats["near_miss_checks"] = len(checks)  # (tighter solves, their steps among stats["steps"])
     failing += status_of(missed, last.method)
 
