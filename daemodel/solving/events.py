@@ -277,10 +277,11 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 )
             pieces.append((t, T[-1], Y, Z, "continued", piece, sol.dense if keeps_dense else None, sol))
             again = _again(backend, piece, start.batched, P, piece_when, t, Y, Z, T[-1], checks)
-            carried_in.add(again, Ys[-1:], Zs[-1:])
+            carried_in.add(again)
             if getattr(options, "h", None) is None:
                 carried = {"h0": float(T[-1] - T[-2])}
             t, Y, Z = float(T[-1]), Ys[-1:].copy(), Zs[-1:].copy()
+            carried_in.restart(None, Y, Z)
             fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()
             continue
         if found is None:
@@ -301,7 +302,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         )
         all_stats += located
         location += located
-        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
+        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks))
         if unresolved is not None:
             from daemodel.backends.base import caller_level
 
@@ -379,6 +380,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
+            carried_in.restart(_after_event(compiled, resets, with_reset, t_event, P, reduced), Y, Z)
         for e in fired:
             entry = record[events[e].name]
             entry["t"].append(t_event)
@@ -560,15 +562,31 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
 
 
 def _again(backend, piece, batched, P, when, a: float, ya, za, b: float, checks: list):
-    """``solve(options) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(ya, za)`` solved again with other
-    options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to ``checks``."""
+    """``solve(options, y0, z0) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(y0, z0)`` (None: ``(ya,
+    za)``) solved again with other options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to
+    ``checks``."""
 
-    def solve(options):
-        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, ya, za)
+    def solve(options, y0=None, z0=None):
+        start = (ya, za) if y0 is None else (y0, z0)
+        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, *start)
         checks.append(solved)
         return y, z
 
     return solve
+
+
+def _after_event(compiled, resets, with_reset: list, t_event: float, P, reduced):
+    """``after(y, z) -> (y, z)``: what follows the event at ``t_event`` does to values at it: the resets
+    ``with_reset``, the projection onto the constraints, and the algebraic variables solved on ``reduced``
+    (:class:`~daemodel.solving.misses.CarriedErrors`, for a solve tighter than the method's)."""
+    from daemodel.compiling.initial_states import algebraic_values
+
+    def after(y, z):
+        Y = apply_resets(compiled, resets, with_reset, t_event, y, z, P)
+        Y = onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
+        return Y, algebraic_values(reduced, t_event, Y, P, z)
+
+    return after
 
 
 def _first_excursion(
