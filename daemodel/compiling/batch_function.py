@@ -52,11 +52,9 @@ class BatchFunction:
         if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
                 self._casadi = self._convert()
-            # (non-finite values go to numpy, whose Max and Min pass a nan on where casadi's fmax and fmin drop it)
+            # (non-finite inputs go to numpy, whose arithmetic on them is the reference)
             if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
-                out = self._few(t, Y, Z, P)
-                if out is not None:
-                    return out
+                return self._few(t, Y, Z, P)
         # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
         t = np.asarray(t, dtype=float)
         t = t if t.shape == (len(Y),) else np.broadcast_to(t, (len(Y),))  # (a column already: as it is)
@@ -76,18 +74,16 @@ class BatchFunction:
         return self._numpy
 
     def _few(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """:meth:`__call__` on casadi, one sample at a time; None where an argument of a ``Max`` or ``Min`` is not
-        finite in a sample (casadi's fmax and fmin drop a nan that numpy's maximum and minimum pass on: a reset
-        to ``Max(-0.8*v, sqrt(h - 2))`` at h = 0 was 3.54 on casadi, not the nan that InvalidValueError names)."""
+        """:meth:`__call__` on casadi, one sample at a time (its ``Max`` and ``Min`` pass a nan on, as numpy's do:
+        :func:`daemodel.declaring.functions._maximum`; casadi's fmax made a reset to ``Max(-0.8*v, sqrt(h - 2))``
+        at h = 0 3.54, not the nan that InvalidValueError names)."""
         local, B = self._local, len(Y)
         if not hasattr(local, "evaluate"):
             local.inputs = np.zeros(self._casadi.nnz_in(0))
             local.outputs = np.zeros(self._casadi.nnz_out(0))
-            local.compared = np.zeros(1)
             local.buffer, local.evaluate = self._casadi.buffer()
             local.buffer.set_arg(0, memoryview(local.inputs))
             local.buffer.set_res(0, memoryview(local.outputs))
-            local.buffer.set_res(1, memoryview(local.compared))
         inputs, outputs, n, m = local.inputs, local.outputs, Y.shape[1], Z.shape[1]
         times = np.reshape(t, -1)
         out = np.empty((B, len(outputs)))
@@ -98,8 +94,6 @@ class BatchFunction:
             inputs[1 + n : 1 + n + m] = Z[b if len(Z) > 1 else 0]
             inputs[1 + n + m :] = P[b if len(P) > 1 else 0]
             local.evaluate()
-            if not np.isfinite(local.compared[0]):
-                return None  # (a nan among a Max's or Min's arguments: numpy's, which passes it on)
             out[b] = outputs
         return out
 
@@ -115,14 +109,7 @@ class BatchFunction:
         try:
             # (one at a time, the shared parts made once through the converter's memo: its stack() first sorts
             # the expressions by structure, a walk of every tree that cost 4 times the conversion here)
-            exprs = [sp.sympify(e) for e in self._exprs]
-            out = [casadi.SX(convert(e)) for e in exprs]
-            # (the arctangents of the arguments of every Max and Min, added up: finite unless one is a nan, which
-            # fmax drops; 0 times one is simplified away by casadi)
-            arguments = {a for e in exprs for node in e.atoms(sp.Max, sp.Min) for a in node.args}
-            compared = sum((casadi.atan(convert(a)) for a in sorted(arguments, key=sp.default_sort_key)), 0.0)
+            out = [casadi.SX(convert(sp.sympify(e))) for e in self._exprs]
         except (UnsupportedFunctionError, TypeError):  # (no translation, or a number that is no float: zoo)
             return False
-        return casadi.Function(
-            "few_samples", [packed], [casadi.densify(casadi.vertcat(*out)), casadi.densify(casadi.SX(compared))]
-        )
+        return casadi.Function("few_samples", [packed], [casadi.densify(casadi.vertcat(*out))])

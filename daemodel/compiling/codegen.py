@@ -81,11 +81,12 @@ class TorchPrinter(StrPrinter):
         return f"torch.{FUNCTIONS[type(expr)][1]}({args})"
 
     def _print_reduction(self, expr):
-        pick = ">=" if isinstance(expr, sp.Max) else "<="
+        # (torch.maximum passes a nan on, as numpy's maximum does, where torch.where(a >= b, a, b) returned b for a
+        # nan in a; at a tie its gradient is split between the two, a subgradient as good as either)
+        name = "maximum" if isinstance(expr, sp.Max) else "minimum"
         out = self._branch(expr.args[0])
         for arg in expr.args[1:]:
-            other = self._branch(arg)
-            out = f"torch.where(({out}) {pick} ({other}), {out}, {other})"
+            out = f"torch.{name}({out}, {self._branch(arg)})"
         return out
 
     def _print_Piecewise(self, expr):

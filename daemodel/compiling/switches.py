@@ -273,7 +273,18 @@ def _fix(expr, at: dict, decide, sides: dict | None = None):
         side = sides.get(function)
         if side is None and -function in sides:
             side = -sides[-function]
-        return float(side) if side else float(fixed.subs(at))
+        if side:
+            return float(side)
+        number = fixed.subs(at)
+        try:
+            return float(number)
+        except TypeError:  # (a complex number: sympy's sqrt of a negative; numpy's nan, which no comparison orders)
+            where = ", ".join(f"{symbol} = {float(v):.6g}" for symbol, v in at.items())
+            raise SwitchError(
+                f"switching function {function} is {sp.N(number, 6)}, not a real number, at {where}, where the "
+                "branch of its switch is chosen: write the switch's arguments so that they stay real there (a sqrt, "
+                "log or power of a negative), or end t_span before it"
+            ) from None
 
     if isinstance(expr, sp.Piecewise):
         kept = []

@@ -36,10 +36,23 @@ FUNCTIONS: dict[type, tuple[str, str, object]] = {
     sp.ceiling: ("ceiling", "ceil", casadi.ceil),
 }
 
+
+def _maximum(a, b):
+    """``Max(a, b)`` on casadi that passes a nan on, as numpy's maximum does: casadi's fmax returns the other
+    argument (fmax(0, nan) = 0: u' = Max(0, sqrt(c - 2)) x at c = 1 was solved to u = 0 with "success").  Neither
+    ordered (a nan): their sum, a nan; each if_else keeps its other branch out (0, not 0 times a nan)."""
+    return casadi.if_else(a >= b, a, casadi.if_else(a < b, b, a + b))
+
+
+def _minimum(a, b):
+    """``Min(a, b)`` on casadi that passes a nan on (:func:`_maximum`)."""
+    return casadi.if_else(a <= b, a, casadi.if_else(a > b, b, a + b))
+
+
 # Two-argument-or-more reductions, folded pairwise.
 REDUCTIONS: dict[type, tuple[str, str, object]] = {
-    sp.Max: ("Max", "maximum", casadi.fmax),
-    sp.Min: ("Min", "minimum", casadi.fmin),
+    sp.Max: ("Max", "maximum", _maximum),
+    sp.Min: ("Min", "minimum", _minimum),
 }
 
 

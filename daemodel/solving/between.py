@@ -345,3 +345,12 @@ def earliest_tied(sol, compiled, when, P, tied: list, a: float, b: float, Fa: np
     cells = {e: dense_bracket(sol, compiled, when, e, P, a, b, Fa[e]) for e in tied}
     known = {e: cell[1] for e, cell in cells.items() if cell is not None}
     return min(known, key=lambda e: (known[e], e)) if len(known) == len(tied) else which
+
+
+def across(read, x, t: float) -> bool:
+    """Whether the excursion ``x``'s function is on its other side at ``t`` on the dense output (``read``)."""
+    try:
+        value = read(np.array([t]))[0, x.event]
+    except ConvergenceError:  # (not seen there)
+        return False
+    return bool(np.sign(value) == -x.side)

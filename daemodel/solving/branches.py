@@ -18,7 +18,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.compiling.switches import lock_branches, lock_functions
-from daemodel.errors import SlidingModeError, TimeResolutionError, ZenoError
+from daemodel.errors import SlidingModeError, SwitchError, TimeResolutionError, ZenoError
 from daemodel.solving.switches import for_method
 
 # Width in t to which an event is located (relative to the solve's time scale: event_tol).
@@ -527,3 +527,17 @@ def excursion_weight(compiled, piece, options, P, t: float, y: np.ndarray, z: np
     change = numeric.batch_function(list(other.rhs))(at, y, z, P) - numeric.batch_function(list(piece.rhs))(at, y, z, P)
     weighted = np.abs(change[0]) * span / (np.asarray(atol, dtype=float) + np.asarray(rtol, dtype=float) * np.abs(y[0]))
     return float(np.sqrt(np.mean(weighted**2)))
+
+
+def finite_functions(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) -> None:
+    """Raise :class:`SwitchError` where an event function ``F`` (T, E) is not finite at the first ``upto``
+    outputs (those the search for the first crossing read)."""
+    bad = np.argwhere(~np.isfinite(F[:upto]))
+    if len(bad):
+        k, e = bad[0]
+        at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(compiled.state_names, Y[k], strict=True))
+        raise SwitchError(
+            f"event '{compiled.events[e].name}': its function {compiled.events[e].when} is {float(F[k, e])} at "
+            f"t = {T[k]:.12g} ({at}), where the solution goes; an event function must be finite along the "
+            "solution: write it without a sqrt, log or division that the solution takes out of its domain"
+        )

@@ -59,6 +59,7 @@ from daemodel.errors import (
     ZenoError,
 )
 from daemodel.solving.between import (
+    across,
     armed_outputs,
     dense_crossing,
     dense_states,
@@ -77,6 +78,7 @@ from daemodel.solving.branches import (
     drift,
     event_tol,
     excursion_weight,
+    finite_functions,
     jumped,
     resolution,
     rounding_scale,
@@ -180,6 +182,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     continued, carried = 0, {}  # (pieces that end where a search stopped for nothing, and the step they reached)
     keeps_dense = getattr(options, "dense_output", True)  # (the searches keep theirs: see between.dense_crossing)
     rests = {}  # (switches resting on zero within the method's error: resting.Rest by event)
+    rested, left_rests = 0, 0  # (rests begun; rests left, each a piece that ends where its function leaves the band)
     carried_in = CarriedErrors()  # (each piece, to estimate the error it carries on: misses.CarriedErrors)
 
     def delta_at(time_: float) -> float:
@@ -224,7 +227,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 hit[e] = int(hits[0])
                 if first is None or hits[0] < first:
                     first, which, before_index = int(hits[0]), e, int(hits[1])
-        _finite(compiled, F, T, Ys, len(T) if first is None else first + 1)
+        finite_functions(compiled, F, T, Ys, len(T) if first is None else first + 1)
         found = None  # (which, a, b, Fa, Fb, ya, za, the first trial, each fired event's side after it)
         if first is not None:
             tied = [e for e in hit if hit[e] == first]
@@ -245,6 +248,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                     rests[which] = rest_or_raise(
                         error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
                     )
+                    rested += 1
                     spent[0] = spent_before
                     continue
             guess = dense_crossing(sol, compiled, piece_when, which, P, a, b, Fa)
@@ -268,12 +272,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         if failed is not None and found is None:  # (no switch crossed before the failure: the model's own)
             raise failed
         left = None if failed is not None else gone(rests, rest_sides, F[:shown])
-        if left is not None and (found is None or T[left] <= found[1]):  # (a rest ends: on from there, watched anew)
+        ended = left is not None and bool(found is None or T[left] <= found[1])
+        if ended:  # (a rest ends: on from there, watched anew)
             found, T, Ys, Zs = None, T[: left + 1], Ys[: left + 1], Zs[: left + 1]
         if found is None and T[-1] < t1 and sol.status == "success" and len(T) > 1:
-            # (stopped at an excursion on the dense output that the method's own trial solve did not confirm: on
-            # from there, with the step it had reached)
-            continued += 1
+            # (stopped at an excursion on the dense output that the method's own trial solve did not confirm, or
+            # where a rest ends: on from there, with the step it had reached.  A rest ends once, and begins only
+            # where a piece starts at zero, at t0 or after an event: max_events bounds them)
+            left_rests += ended
+            continued += not ended
             if continued > max_events:
                 raise EventLimitError(
                     f"{continued} crossings of zero on the dense output that the method's own solution does not "
@@ -282,10 +289,11 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 )
             pieces.append((t, T[-1], Y, Z, "continued", piece, sol.dense if keeps_dense else None, sol))
             again = _again(backend, piece, start.batched, P, piece_when, t, Y, Z, T[-1], checks)
-            carried_in.add(again, Ys[-1:], Zs[-1:])
+            carried_in.add(again)
             if getattr(options, "h", None) is None:
                 carried = {"h0": float(T[-1] - T[-2])}
             t, Y, Z = float(T[-1]), Ys[-1:].copy(), Zs[-1:].copy()
+            carried_in.restart(None, Y, Z)
             fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()
             continue
         if found is None:
@@ -312,7 +320,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 F[before_index], Ys[before_index : before_index + 1], Zs[before_index : before_index + 1],
                 (which, t_event, y_event, z_event, unresolved), location, all_stats, t1 - t0,
             )  # fmt: skip
-        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks), y_event, z_event)
+        carried_in.add(_again(backend, piece, start.batched, P, piece_when, t, Y, Z, t_event, checks))
         if unresolved is not None:
             from daemodel.backends.base import caller_level
 
@@ -398,6 +406,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 setup_time += after.setup_time
                 reduced = for_method(after.model, backend)
             Z = algebraic_values(reduced, t_event, Y, P, z_event)
+            carried_in.restart(_after_event(compiled, resets, with_reset, t_event, P, reduced), Y, Z)
         for e in fired:
             entry = record[events[e].name]
             entry["t"].append(t_event)
@@ -475,6 +484,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     stats["location_trials"] = len(location)
     stats["location_steps"] = int(sum(trial.get("steps", 0) for trial in location))
     stats["searches_continued"] = continued  # (stopped at an excursion that its trial did not confirm)
+    stats["rests"], stats["rests_left"] = rested, left_rests  # (switches that rested on zero; those that left it)
     stats["near_miss_checks"] = len(checks)  # (tighter solves, their steps among stats["steps"])
     failing += status_of(missed, last.method)
 
@@ -534,20 +544,6 @@ def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop
             raise error from None
 
 
-def _finite(compiled, F: np.ndarray, T: np.ndarray, Y: np.ndarray, upto: int) -> None:
-    """Raise :class:`SwitchError` where an event function ``F`` (T, E) is not finite at the first ``upto``
-    outputs (those the search for the first crossing read)."""
-    bad = np.argwhere(~np.isfinite(F[:upto]))
-    if len(bad):
-        k, e = bad[0]
-        at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(compiled.state_names, Y[k], strict=True))
-        raise SwitchError(
-            f"event '{compiled.events[e].name}': its function {compiled.events[e].when} is {float(F[k, e])} at "
-            f"t = {T[k]:.12g} ({at}), where the solution goes; an event function must be finite along the "
-            "solution: write it without a sqrt, log or division that the solution takes out of its domain"
-        )
-
-
 def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya, za, side, delta, event):
     """``(t, F, y (1, n), z (1, m))`` past ``a`` where the event function ``which``, at zero at ``a``, is on
     its ``side`` in the method's own solution: a look-ahead ``delta`` later, doubled while the method's
@@ -602,15 +598,31 @@ def _clear_of_zero(backend, compiled, options, batched, P, which, when, a, b, ya
 
 
 def _again(backend, piece, batched, P, when, a: float, ya, za, b: float, checks: list):
-    """``solve(options) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(ya, za)`` solved again with other
-    options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to ``checks``."""
+    """``solve(options, y0, z0) -> (y (1, n), z (1, m))``: the piece ``[a, b]`` from ``(y0, z0)`` (None: ``(ya,
+    za)``) solved again with other options (:class:`~daemodel.solving.misses.CarriedErrors`), its stats added to
+    ``checks``."""
 
-    def solve(options):
-        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, ya, za)
+    def solve(options, y0=None, z0=None):
+        start = (ya, za) if y0 is None else (y0, z0)
+        _, y, z, solved = trial_solve(backend, piece, options, batched, P, 0, when, a, b, *start)
         checks.append(solved)
         return y, z
 
     return solve
+
+
+def _after_event(compiled, resets, with_reset: list, t_event: float, P, reduced):
+    """``after(y, z) -> (y, z)``: what follows the event at ``t_event`` does to values at it: the resets
+    ``with_reset``, the projection onto the constraints, and the algebraic variables solved on ``reduced``
+    (:class:`~daemodel.solving.misses.CarriedErrors`, for a solve tighter than the method's)."""
+    from daemodel.compiling.initial_states import algebraic_values
+
+    def after(y, z):
+        Y = apply_resets(compiled, resets, with_reset, t_event, y, z, P)
+        Y = onto_constraints(dataclasses.replace(compiled, t0=float(t_event)), Y, P)
+        return Y, algebraic_values(reduced, t_event, Y, P, z)
+
+    return after
 
 
 def _first_excursion(
@@ -647,13 +659,13 @@ def _first_excursion(
             # left its side before it.  Min(0, 0.01 - (x - 1.02)^2) + Max(0, x - 1.01), x = t: the Max's crossing
             # at 1.01 was located, the Min's at 0.92 not (its deepest point, 1.02, lies past 1.01), and the piece
             # integrated Min's branch 0 over [0.92, 1.01]: 5.7e-4 off at rtol 1e-8, "success")
-            if x.near is not None or not _across(read, x, until):
+            if x.near is not None or not across(read, x, until):
                 continue
             x = dataclasses.replace(x, t=until)  # (a point on its other side before the crossing found)
         i, e = x.before, x.event
         direction = compiled.events[e].direction
         away = direction == 0 or (direction > 0) == (x.side < 0)  # (its crossing away counts, else the one back)
-        if not away and x.near is None and until < T[i + 1] and _across(read, x, until):
+        if not away and x.near is None and until < T[i + 1] and across(read, x, until):
             # (the crossing back lies past the crossing found, which comes first: the next piece, from there, starts
             # on this function's other side and sees it.  (x - 1)^2 - 0.0064 rising (direction +1) at 1.08 was
             # located before the crossing of Max(0, x - 1.01) at 1.01, which never fired: w 2.4e-3 off, "success")
@@ -681,12 +693,3 @@ def _first_excursion(
         guess = dense_crossing(sol, compiled, when, e, P, x.t, T[i + 1], value)
         return (e, x.t, T[i + 1], value, F[i + 1, e], y, z, guess, {e: int(x.side)}), stats
     return None, stats
-
-
-def _across(read, x, t: float) -> bool:
-    """Whether the excursion ``x``'s function is on its other side at ``t`` on the dense output (``read``)."""
-    try:
-        value = read(np.array([t]))[0, x.event]
-    except ConvergenceError:  # (not seen there)
-        return False
-    return bool(np.sign(value) == -x.side)

@@ -1,26 +1,28 @@
 """Near misses: an event function that comes within the method's error of zero between two outputs and does
 not cross there in the method's own solution.
 
-Whether a function crosses is decided on the method's own solution (a touch is no crossing), but that
-solution's error is not its tolerance.  casadi-idas at rtol = atol = 1e-7 loses 9.8e-6 of a unit oscillator's
-amplitude in 20 s (radau 4.5e-11): the peaks of sin t stayed up to 6.9e-6 below 0.999999 in its solution,
-and the declared event on 0.999999 - sin(t + phase) fired 0 to 4 times of its 6 to 8 crossings in each of 16
-phases, each solve "success" (tests/solving/test_events_edges.py).  The probes of
-:mod:`daemodel.solving.between` find such an extremum's nearest point to zero where each look solves again
-(:class:`~daemodel.solving.between.Excursion` with ``near``); one within :data:`NEAR_MISS_TOLS` tolerances of
-zero (in what a tolerance of the variables moves the function: :func:`function_tolerance`) is solved again
-:data:`TIGHTER` times tighter, on from the piece's start (one tighter solve of a piece, however many near
-misses it holds).  Where that solution crosses, by more than its own error and tolerance, the crossing lies
-within the method's error: the solve's status says so (:meth:`NearMiss.status`), never
-"success".  The tighter solve starts from the method's own values at the piece's start, which carry the error
-of the pieces before it: with an event at each zero of s (a piece every half period), casadi-idas at rtol 1e-7
-counted 0 to 2 of the 12 to 14 crossings of 0.999999 - s over (0, 40) in 7 of 8 phases, each "success", its
-amplitude lost in earlier pieces and the tighter solve from each piece's start losing it too.  That error is
-estimated (:class:`CarriedErrors`: each earlier piece solved again :data:`TIGHTER` times tighter from its own
-start, the differences at its end added up, once per piece and only where a near miss asks), and a near miss
-whose tighter solve stays within it of zero is flagged too: whether it crosses is not decided at the accuracy
-the solution has there.  Adding the pieces' differences ignores how the flow and the resets carry each one on
-(an oscillator keeps them, a contracting flow shrinks them: an overestimate there, flagged more often).
+Whether a function crosses is decided on the method's own solution (a touch is no crossing), but that solution's
+error is not its tolerance.  casadi-idas at rtol = atol = 1e-7 loses 9.8e-6 of a unit oscillator's amplitude in 20 s
+(radau 4.5e-11): the peaks of sin t stayed up to 6.9e-6 below 0.999999 in its solution, and the declared event on
+0.999999 - sin(t + phase) fired 0 to 4 times of its 6 to 8 crossings in each of 16 phases, each solve "success"
+(tests/solving/test_events_edges.py).  The probes of :mod:`daemodel.solving.between` find such an extremum's nearest
+point to zero where each look solves again (:class:`~daemodel.solving.between.Excursion` with ``near``); one within
+:data:`NEAR_MISS_TOLS` tolerances of zero (in what a tolerance of the variables moves the function:
+:func:`function_tolerance`) is solved again :data:`TIGHTER` times tighter, on from the piece's start (one tighter
+solve of a piece, however many near misses it holds).  Where that solution crosses, by more than its own error and
+tolerance, the crossing lies within the method's error: the solve's status says so (:meth:`NearMiss.status`), never
+"success".  A tighter solve from the method's own values at the piece's start carries the error of the pieces before
+it: with an event at each zero of s (a piece every half period), casadi-idas at rtol 1e-7 counted 0 to 2 of the 12
+to 14 crossings of 0.999999 - s over (0, 40) in 7 of 8 phases, each "success", its amplitude lost in earlier pieces
+and the tighter solve from each piece's start losing it too.  So the tighter solve starts from the solution
+:data:`TIGHTER` times tighter from t0 (:class:`CarriedErrors`: each earlier piece solved again from the last one's
+end, after that one's resets, once per piece and only where a near miss asks), which carries the method's error on
+as the flow and the resets do; a near miss whose tighter solve stays within that solution's own error carried in
+(1/:data:`TIGHTER` of its distance from the method's values at the piece's start) is flagged too: whether it crosses
+is not decided.  Before (9361bc5), the pieces' differences were added up, ignoring the flow: a damped oscillator
+whose last peak lies 1e-6 below the level, which IDAS at rtol 1e-7 reaches to 3e-8, was flagged as undecided within
+6.2e-6 (54 tolerances) "carried in".  The event times are the method's (a tighter solve's would differ by their
+error: its resets are applied at the method's times, an error of the method's that the estimate does not see).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemodel.errors import InvalidOptionError, SolverError, TimeLimitError
+from daemodel.errors import InvalidOptionError, ModelError, SolverError, TimeLimitError
 
 # An extremum towards zero that the method's own solution leaves within this many tolerances of zero (how far
 # atol + rtol |v| in its variables moves the event function: function_tolerance) is checked by a tighter
@@ -60,8 +62,8 @@ class NearMiss:
             seen = f"a solve {TIGHTER} times tighter, to check it, failed"
         elif self.carried:
             seen = (
-                f"a solve {TIGHTER} times tighter from the piece's start stays {self.tight:.3g} from it, within the "
-                f"error carried in from earlier pieces ({self.carried:.3g})"
+                f"a solve {TIGHTER} times tighter from t0, through the pieces before, stays {self.tight:.3g} from "
+                f"it, within its own error carried in from them ({self.carried:.3g})"
             )
             said = "whether it crosses is not decided at the method's accuracy"
         else:
@@ -108,37 +110,48 @@ def tighter(options):
 
 
 class CarriedErrors:
-    """The error the pieces before one carry into it (see the module docstring), in tolerances: :meth:`add` each
-    piece as it ends, :meth:`total` adds up those not yet solved again."""
+    """The solution :data:`TIGHTER` times tighter from t0 through the pieces before one (see the module docstring):
+    :meth:`add` each piece as it ends, :meth:`restart` where the next one starts; :meth:`start` solves them."""
 
     def __init__(self):
-        self.pending, self.sum = [], 0.0
+        self.pending, self.tight = [], None
+        self.error = 0.0  # (how far the method's values lie from the tighter solution's where the last piece ends)
 
-    def add(self, solve, y: np.ndarray, z: np.ndarray) -> None:
-        """A piece that ended with the method's values ``y`` (1, n), ``z`` (1, m); ``solve(options) -> (y, z)`` solves
-        it again from its start with ``options``."""
-        self.pending.append((solve, np.concatenate([y, z], axis=1)[0]))
+    def add(self, solve) -> None:
+        """A piece that ended: ``solve(options, y0, z0) -> (y (1, n), z (1, m))`` solves it again with ``options``
+        from ``(y0, z0)`` (None: the method's own start) to its end."""
+        self.pending.append([solve, None, None])
 
-    def total(self, options) -> float:
-        """The pieces' differences from their solves :data:`TIGHTER` times tighter, each in tolerances of its end
-        values (``atol + rtol |v|``, the largest over the variables: a rotation moves an error from one to
-        another), added up; 0 without pieces before or without rtol and atol, infinite where such a solve fails."""
+    def restart(self, after, y: np.ndarray, z: np.ndarray) -> None:
+        """The next piece starts from the method's ``y`` (1, n), ``z`` (1, m), where ``after(y, z) -> (y, z)`` (the
+        resets, the projection onto the constraints, the algebraic variables solved anew; None: none) takes the
+        last piece's end."""
+        self.pending[-1][1:] = [after, np.concatenate([y, z], axis=1)[0]]
+
+    def start(self, options) -> tuple | None:
+        """``(y (1, n), z (1, m))`` of the solution :data:`TIGHTER` times tighter than ``options`` where the last
+        piece ends: each piece solved again from the last one's end after that one's resets (the error the method
+        carries in, as its flow and resets carry it on: a contracting flow shrinks it), at most once and only when
+        asked; :attr:`error` is how far the method's values lie from it there, in their tolerances (``atol + rtol
+        |v|``, the largest over the variables: a rotation moves an error from one to another).  None without pieces
+        before, without rtol and atol, or where such a solve failed (:attr:`error` infinite)."""
         tight = tighter(options)
         if tight is None:
-            return 0.0
-        while self.pending:
-            solve, v = self.pending.pop(0)
+            return None
+        while self.pending and self.pending[0][2] is not None and self.error < np.inf:
+            solve, after, v = self.pending.pop(0)
             try:
-                y, z = solve(tight)
+                y, z = solve(tight, *(self.tight or (None, None)))
+                self.tight = (y, z) if after is None else after(y, z)
             except TimeLimitError:
                 raise
-            except SolverError:
+            except (SolverError, ModelError):  # (the solve, or what follows its end: the resets, the projection)
                 self.pending.clear()
-                self.sum = np.inf
+                self.tight, self.error = None, np.inf
                 break
-            moved = np.abs(np.concatenate([y, z], axis=1)[0] - v) / (options.atol + options.rtol * np.abs(v))
-            self.sum += float(np.max(moved, initial=0.0))
-        return self.sum
+            moved = np.abs(np.concatenate(self.tight, axis=1)[0] - v) / (options.atol + options.rtol * np.abs(v))
+            self.error = float(np.max(moved, initial=0.0))
+        return self.tight
 
 
 class NearMisses:
@@ -151,7 +164,7 @@ class NearMisses:
     def __init__(self, trial, when, P: np.ndarray, options, a: float, ya: np.ndarray, za: np.ndarray, carried=None):
         self.trial, self.when, self.P, self.options, self.at = trial, when, P, options, (a, ya, za)
         self.tight = tighter(options)
-        self.carried = carried
+        self.carried, self.band = carried, None
 
     def check(self, x, name: str, y: np.ndarray, z: np.ndarray) -> NearMiss | None:
         """The near miss ``x`` (:class:`~daemodel.solving.between.Excursion` with ``near``) of the event ``name``,
@@ -161,6 +174,11 @@ class NearMisses:
         a, ya, za = self.at
         if self.tight is None or not x.near <= NEAR_MISS_TOLS * scale or x.t <= a:
             return None
+        if self.band is None:  # (the piece's first check: from the tighter solution through the pieces before)
+            start = None if self.carried is None else self.carried.start(self.options)
+            ya, za = (ya, za) if start is None else start
+            # (that solution's own error carried in, in tolerances: 1/TIGHTER of its distance from the method's)
+            self.band = 0.0 if self.carried is None else self.carried.error / TIGHTER
         try:
             value, y_tight, z_tight = self.trial(self.tight, a, x.t, ya, za, x.event)
         except TimeLimitError:  # (the time that ran out is not the check's failure)
@@ -173,7 +191,7 @@ class NearMisses:
         # is flagged, undecided at that accuracy: 1 - sin(t + phase) at rtol 1e-7, 4 of 16 phases, 6e-9 past)
         if x.side * value < -max(abs(x.side * x.near - value) / TIGHTER, scale / TIGHTER):
             return NearMiss(name, x.t, x.near, value)
-        carried = 0.0 if self.carried is None else self.carried.total(self.options) * scale
+        carried = self.band * scale
         if carried and x.side * value <= carried:  # (on its side, but within the error carried in: undecided)
             return NearMiss(name, x.t, x.near, value, carried)
         return None

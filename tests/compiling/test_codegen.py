@@ -1,6 +1,7 @@
 """Generated torch and casadi functions agree with sympy; batching, autograd, dtypes, errors."""
 
 import linecache
+import math
 
 import casadi
 import numpy as np
@@ -320,3 +321,62 @@ def test_the_library_models_convert_to_the_same_bits_stacked(monkeypatch):
         args = [np.linspace(0.3, 0.9, max(f.numel(), 1))[: f.numel()] for f in one.mx_in()]
         for a, b in zip(one(*args), stacked(*args), strict=True):
             assert np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True), name
+
+
+def _nan_in_max_or_min() -> dm.Model:
+    """a' = Max(a, sqrt(b)) and b' = Min(sqrt(a), b): a nan where a or b is negative, in either argument."""
+    m = dm.Model("nanargs")
+    a, b = m.states("a b")
+    m.ode(a, sp.Max(a, sp.sqrt(b)))
+    m.ode(b, sp.Min(sp.sqrt(a), b))
+    m.initial(a=1.0, b=1.0)
+    return m
+
+
+def test_a_nan_among_a_max_or_min_s_arguments_is_passed_on_by_both_emitters():
+    # casadi's fmax and fmin return the other argument where one is nan, and torch.where(a >= b, a, b) returns b
+    # where a is nan: both gave a number (1, 0.5, ...) where sympy and numpy give nan.  Finite and infinite values
+    # as before
+    c = _nan_in_max_or_min().compile()
+    tf, dae = c.torch_functions(), c.casadi_dae()
+    F = casadi.Function("F", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
+    inf = math.inf
+    points = [(-1.0, 4.0), (4.0, -1.0), (math.nan, 1.0), (1.0, math.nan), (4.0, 1.0), (0.25, 4.0), (inf, 4.0)]
+    expected = [(2.0, np.nan), (np.nan, -1.0), (np.nan, np.nan), (np.nan, np.nan), (4.0, 1.0), (2.0, 0.5), (inf, 4.0)]
+    Y = np.array(points)
+    with np.errstate(invalid="ignore"):
+        f_numpy = c.numeric.batch_function(list(c.rhs))(np.zeros(len(Y)), Y, np.zeros((len(Y), 0)), np.zeros((1, 0)))
+    f_torch = tf.f(torch.zeros(len(Y), dtype=torch.float64), torch.tensor(Y), torch.zeros(len(Y), 0)).numpy()
+    f_casadi = np.array([np.array(F(0.0, y, [], [])).ravel() for y in Y])
+    for name, f in [("numpy", f_numpy), ("torch", f_torch), ("casadi", f_casadi)]:
+        np.testing.assert_array_equal(f, np.array(expected), err_msg=name)
+
+
+@pytest.mark.parametrize(
+    ("method", "options"),
+    [
+        ("radau", {"engine": "casadi"}),
+        ("radau", {"engine": "casadi", "jit": False}),
+        ("radau", {"h": 0.1, "stages": 3}),
+        ("casadi-idas", {}),
+        ("casadi-collocation", {}),
+        ("reference", {}),
+    ],
+)
+def test_a_max_of_a_nan_in_the_equations_fails_as_the_nan_does(method, options):
+    # u' = Max(0, sqrt(c - 2)) x at c = 1: the parameters' Max is no switch (it is in no piece's events), and
+    # fmax(0, nan) = 0 gave u = 0 with "success" in radau's casadi engine (adaptive and fixed steps) and casadi-idas;
+    # now each method raises what it raises for u' = sqrt(c - 2) x
+    def model(rate: str) -> dm.Model:
+        m = dm.Model("maxnan")
+        m.states("x u")
+        m.parameter("c", 1.0)
+        m.ode("x", "-x")
+        m.ode("u", rate)
+        m.initial(x=1.0, u=0.0)
+        return m
+
+    with pytest.raises(E.SolverError) as plain:
+        dm.solve(model("sqrt(c - 2)*x"), (0.0, 1.0), method=method, **options)
+    with pytest.raises(type(plain.value)):
+        dm.solve(model("Max(0, sqrt(c - 2))*x"), (0.0, 1.0), method=method, **options)

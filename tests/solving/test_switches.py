@@ -108,6 +108,24 @@ def test_a_switching_function_that_is_not_finite_is_named():
         dm.solve(m, (0.0, 1.0), stages=3, h=0.1)
 
 
+@pytest.mark.parametrize(("method", "options"), [("radau", {}), ("casadi-idas", {}), ("reference", {})])
+def test_a_switching_function_that_is_not_real_where_its_branch_is_chosen_is_named(method, options):
+    # Max(t, sqrt(c - t)) at c = 1: sqrt(1 - t) is complex past t = 1, where the segment after its breakpoint (t =
+    # 0.618) chooses its branch; sympy's float() of it raised its own TypeError ("Cannot convert complex to
+    # float") in every method
+    m = dm.Model("complex")
+    m.states("x")
+    m.parameter("c", 1.0)
+    m.ode("x", "Max(t, sqrt(c - t))")
+    m.initial(x=0.0)
+    with pytest.raises(
+        E.SwitchError,
+        match=r"^switching function t - sqrt\(c - t\) is 1\.80902 - 0\.899454\*I, not a real number, at t = 1\.80902, "
+        r"c = 1, where the branch of its switch is chosen: write the switch's arguments so that they stay real there",
+    ):
+        dm.solve(m, (0.0, 3.0), method=method, **options)
+
+
 # ---- fixed steps keep their order across a switch ------------------------------------------------
 @pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
 @pytest.mark.parametrize("stages", [1, 2, 3])
