@@ -416,8 +416,10 @@ class Solution:
         Where the method keeps a dense output (:attr:`dense`: radau's collocation polynomials, the
         Radau-PINN's), it is evaluated: the values are those ``solve(..., t_eval=times)`` would give,
         at the method's own accuracy, across breakpoints and events too (a time on one takes the
-        values after it).  Otherwise the states are interpolated by cubic Hermite polynomials
-        through the two nearest points of the time's piece, with the derivatives ``f(t, y, z)`` there:
+        values after it); where it is marked ``resolves_algebraic`` (adaptive radau on a system of index
+        2 or 3), its algebraic variables are solved from its states, as the method did at its outputs.
+        Otherwise the states are interpolated by cubic Hermite polynomials through the two nearest
+        points of the time's piece, with the derivatives ``f(t, y, z)`` there:
         the adjacent output times, or a breakpoint or event between them, with its values before it
         (on its left) or after it (on its right), so that no interpolant spans one (an error of O(dt^4)
         in the output spacing dt on top of the method's); the algebraic variables are solved from the
@@ -430,7 +432,8 @@ class Solution:
             For times that are not real numbers (strings, bools, complex), outside the solution's span,
             or not finite.
         InitialisationError
-            Without a dense output: the algebraic variables cannot be solved at an interpolated state.
+            Without a dense output, or with one marked ``resolves_algebraic``: the algebraic variables
+            cannot be solved at an interpolated state.
         """
         from daemodel.errors import InvalidValueError
         from daemodel.reals import real_array
@@ -453,6 +456,8 @@ class Solution:
         if self.dense is not None:
             u = self.dense(times)
             y, z = u[..., :n], u[..., n:]
+            if self.dense.resolves_algebraic and m:
+                z = self._algebraic_from_states(times, y, z)
         else:
             y, z = self._hermite(times)
         out = {name: y[..., i] for i, name in enumerate(c.state_names)}
@@ -463,6 +468,23 @@ class Solution:
             )
             out.update({name: values[:, i].reshape(B, K) for i, name in enumerate(c.alias_names)})
         return out if self.batched else {name: v[0] for name, v in out.items()}
+
+    def _algebraic_from_states(self, times: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The algebraic variables (B, K, m) solved from the dense output's states ``y`` (B, K, n) at ``times``,
+        from its values ``z``, as the method solved them at its outputs (``dense.resolves_algebraic``)."""
+        from daemodel.compiling.algebraic import algebraic_from_states
+        from daemodel.errors import InitialisationError
+
+        found = algebraic_from_states(self.compiled, times, y, z, self.parameters)
+        finite = np.isfinite(y).all(axis=2)  # (NaN after a sample's terminal event: kept)
+        failed = ~found.converged & finite
+        if failed.any():
+            sample, k = np.argwhere(failed)[0]
+            raise InitialisationError(
+                f"at(): the algebraic variables could not be solved at t = {times[k]:g} (sample {sample}) from the "
+                "states of the dense output; ask for that time with solve(..., t_eval=...)"
+            )
+        return found.z
 
     def columns_at(self, times: np.ndarray, names) -> np.ndarray:
         """The states and algebraic variables ``names`` of the first sample at ``times`` inside the span,
