@@ -24,6 +24,9 @@ from daemodel.compiling.initial_states import constraint_checks
 # Newton steps at most from the collocation's values, which lie within a few tolerances of the root:
 # determining equations linear in z (mechanics) settle in one, others in a few.
 RESOLVE_MAX_ITERATIONS = 20
+# Outputs solved at a time: as many as keep their dense z Jacobians (m x m each) within these bytes (a long run of
+# a model with tens of algebraic variables would otherwise hold hundreds of megabytes of them at once).
+RESOLVE_BYTES = 64 * 2**20
 
 
 def resolves_algebraic(compiled) -> bool:
@@ -56,18 +59,22 @@ def algebraic_from_states(compiled, times, Y, Z, P) -> Resolved:
     m = Z.shape[2]
     if not K or not m:
         return Resolved(Z.copy(), np.ones((B, K), dtype=bool))
-    checks = constraint_checks(compiled)
+    checks, settings = constraint_checks(compiled), tolerances(compiled)
     rows_t, rows_y = np.tile(np.asarray(times, dtype=float), B), Y.reshape(B * K, n)
-    rows_p = np.repeat(np.asarray(P, dtype=float), K, axis=0)
-    result = solve_algebraic(
-        lambda x: checks.H(rows_t, rows_y, x, rows_p),
-        lambda x: checks.Hz(rows_t, rows_y, x, rows_p),
-        Z.reshape(B * K, m),
-        tolerances(compiled),
-    )
-    converged = result.converged.reshape(B, K)
-    z = np.where(converged[..., None], result.x.reshape(B, K, m), Z)
-    return Resolved(z, converged)
+    rows_p, rows_z = np.repeat(np.asarray(P, dtype=float), K, axis=0), Z.reshape(B * K, m)
+    x, converged = rows_z.copy(), np.zeros(B * K, dtype=bool)
+    chunk = max(1, RESOLVE_BYTES // (8 * m * m))
+    for a in range(0, B * K, chunk):
+        rows = slice(a, a + chunk)
+        t, y, p = rows_t[rows], rows_y[rows], rows_p[rows]
+        result = solve_algebraic(
+            lambda z, t=t, y=y, p=p: checks.H(t, y, z, p),
+            lambda z, t=t, y=y, p=p: checks.Hz(t, y, z, p),
+            rows_z[rows],
+            settings,
+        )
+        x[rows], converged[rows] = np.where(result.converged[:, None], result.x, rows_z[rows]), result.converged
+    return Resolved(x.reshape(B, K, m), converged.reshape(B, K))
 
 
 def tolerances(compiled) -> NewtonTolerances:

@@ -127,3 +127,14 @@ def test_outputs_where_newton_fails_keep_the_collocation_values_and_are_flagged(
         warnings.simplefilter("error")
         with pytest.raises(InitialisationError, match=r"at\(\): the algebraic variables could not be solved"):
             sol.at([0.5])
+
+
+def test_outputs_solved_a_few_at_a_time_are_the_same(monkeypatch):
+    """The outputs are solved in chunks within RESOLVE_BYTES of z Jacobians: three at a time gives the
+    values of all at once."""
+    compiled = HESSENBERG.model().compile()
+    whole = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-8, stages=3)
+    monkeypatch.setattr(algebraic, "RESOLVE_BYTES", 3 * 8)  # (m = 1: three outputs a chunk)
+    chunked = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-8, stages=3)
+    assert len(chunked.t) > 10
+    np.testing.assert_array_equal(chunked["y5"], whole["y5"])
