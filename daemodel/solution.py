@@ -489,11 +489,21 @@ class Solution:
     def columns_at(self, times: np.ndarray, names) -> np.ndarray:
         """The states and algebraic variables ``names`` of the first sample at ``times`` inside the span,
         ``(len(times), len(names))``: read straight off :attr:`dense` where it holds them (no checks: the
-        times are the caller's own, such as an event search's), else through :meth:`at`."""
+        times are the caller's own, such as an event search's; where it is marked ``resolves_algebraic``,
+        the algebraic variables solved from its states, as :meth:`at` gives them, or its own where that
+        fails), else through :meth:`at`."""
         c = self.compiled
         position = {v: k for k, v in enumerate((*c.state_names, *c.algebraic_names))}
         if self.dense is not None and all(v in position for v in names):
-            return self.dense(np.asarray(times, dtype=float))[0][:, [position[v] for v in names]]
+            times = np.asarray(times, dtype=float)
+            u = self.dense(times)[:1]
+            n = len(c.states)
+            if self.dense.resolves_algebraic and any(position[v] >= n for v in names):
+                from daemodel.compiling.algebraic import algebraic_from_states
+
+                u = u.copy()
+                u[..., n:] = algebraic_from_states(c, times, u[..., :n], u[..., n:], self.parameters[:1]).z
+            return u[0][:, [position[v] for v in names]]
         values = self.at(times)
         columns = [np.reshape(values[v], (self.batch_size, -1))[0] for v in names]
         return np.stack(columns, axis=-1) if columns else np.zeros((len(np.atleast_1d(times)), 0))

@@ -138,3 +138,16 @@ def test_outputs_solved_a_few_at_a_time_are_the_same(monkeypatch):
     chunked = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-8, stages=3)
     assert len(chunked.t) > 10
     np.testing.assert_array_equal(chunked["y5"], whole["y5"])
+
+
+def test_an_event_search_reads_the_algebraic_variables_that_at_gives():
+    """columns_at (what an event search reads between outputs) gives at()'s values: a guard on an index-2
+    variable is searched on the values the solution reports (it read the collocation's, 57 tolerances off
+    at rtol 1e-8 on the circle)."""
+    model, exact = _circle()
+    sol = dm.solve(model.compile(), (0.0, 1.0), rtol=1e-8, atol=1e-8, stages=3)
+    times = np.linspace(0.0, 1.0, 23)
+    read = sol.columns_at(times, ("y1", "z"))
+    np.testing.assert_allclose(read[:, 1], sol.at(times)["z"], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(read[:, 0], sol.at(times)["y1"], rtol=0, atol=0)
+    assert _in_tolerances(read[:, 1], exact["z"](times), 1e-8) < 1.0
