@@ -77,6 +77,17 @@ def algebraic_from_states(compiled, times, Y, Z, P) -> Resolved:
     return Resolved(x.reshape(B, K, m), converged.reshape(B, K))
 
 
+def prepare(compiled) -> None:
+    """Make the functions :func:`algebraic_from_states` evaluates for ``compiled`` (its determining equations and
+    their z Jacobian in numpy, and whether they are affine in z), where it has algebraic variables of index 2 or
+    more: code generation, done in the setup, before any method's clock."""
+    if not resolves_algebraic(compiled):
+        return
+    tolerances(compiled)
+    # (H_z's nonzeros are the branch check's, made with it; a batch of outputs evaluates H in numpy)
+    constraint_checks(compiled).H.numpy()
+
+
 def tolerances(compiled) -> NewtonTolerances:
     """The Newton tolerances of :func:`algebraic_from_states` for ``compiled`` (linear ones settle in a
     step: determining equations whose z Jacobian is free of z), made once per model."""
