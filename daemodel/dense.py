@@ -85,6 +85,9 @@ class AbstractDenseOutput(ABC):
 
     # whether reading it solves again (a method started again from an output): costly to read often
     solves_again = False
+    # whether :meth:`Solution.at` solves the algebraic variables from its states, as the method did at its
+    # outputs (adaptive radau on index 2: daemodel.compiling.algebraic), instead of reading them off it
+    resolves_algebraic = False
 
     @abstractmethod
     def __call__(self, times: np.ndarray) -> np.ndarray: ...
@@ -107,12 +110,16 @@ class CollocationPolynomials(AbstractDenseOutput):
         Each step's start time and length, ascending.
     nodes : ndarray, shape (B, S, s+1, n+m)
         Each step's start value, then its stage values.
+    resolves_algebraic : bool
+        The algebraic variables are to be solved from the states (see :class:`AbstractDenseOutput`):
+        adaptive radau's on a system of index 2 or more, whose polynomials read them to order s only.
     """
 
     c: np.ndarray
     starts: np.ndarray
     lengths: np.ndarray
     nodes: np.ndarray
+    resolves_algebraic: bool = False
 
     @property
     def description(self) -> str:
@@ -137,6 +144,7 @@ class CollocationPolynomials(AbstractDenseOutput):
             starts=np.concatenate([b.starts for b in blocks]),
             lengths=np.concatenate([b.lengths for b in blocks]),
             nodes=np.concatenate([b.nodes for b in blocks], axis=1),
+            resolves_algebraic=blocks[0].resolves_algebraic,
         )
 
 
@@ -155,6 +163,10 @@ class Segments(AbstractDenseOutput):
     @property
     def solves_again(self) -> bool:
         return any(piece.solves_again for piece in self.pieces)
+
+    @property
+    def resolves_algebraic(self) -> bool:
+        return any(piece.resolves_algebraic for piece in self.pieces)
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         times = np.asarray(times, dtype=float)
@@ -186,6 +198,10 @@ class Groups(AbstractDenseOutput):
     @property
     def solves_again(self) -> bool:
         return any(dense.solves_again for _, dense in self.groups)
+
+    @property
+    def resolves_algebraic(self) -> bool:
+        return any(dense.resolves_algebraic for _, dense in self.groups)
 
     def __call__(self, times: np.ndarray) -> np.ndarray:
         out = None
@@ -320,6 +336,7 @@ def stored_dense(dense: AbstractDenseOutput | None):
             "starts": dense.starts,
             "lengths": dense.lengths,
             "nodes": dense.nodes,
+            "resolves_algebraic": bool(dense.resolves_algebraic),
         }
     if isinstance(dense, Held):
         return {"kind": "held", "t": float(dense.t), "values": np.asarray(dense.values)}
@@ -370,7 +387,10 @@ def dense_from_stored(data, samples: int, width: int) -> AbstractDenseOutput:
                 )
             if not (np.isfinite(starts).all() and np.isfinite(lengths).all() and (lengths > 0).all()):
                 raise ValueError(f"{where}: its steps are not finite, positive intervals")
-            return CollocationPolynomials(c, starts, lengths, nodes)
+            resolves = data.get("resolves_algebraic", False)  # (absent from files written before it)
+            if not isinstance(resolves, bool):
+                raise ValueError(f"{where}.resolves_algebraic is not True or False")
+            return CollocationPolynomials(c, starts, lengths, nodes, resolves)
         if kind == "held":
             values = array(data.get("values"), 2, f"{where}.values")
             if values.shape != (rows, width):

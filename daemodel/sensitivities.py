@@ -23,6 +23,10 @@ step's ``M_k`` is built from the recorded stage values (the dense output's nodes
 together with all the others, a block of steps at a time in one batched LAPACK call, and only the
 small recursion ``dy_{k+1} = Phi_k dy_k + Psi_k`` runs step by step.
 
+Adaptive steps on a system of index 2 or 3 return the algebraic variables solved from the returned
+states (:mod:`daemodel.compiling.algebraic`), ``H(t, y, z, p) = 0``: their derivatives at the outputs
+are ``-H_z^-1 (H_y dy + H_p dp)`` of the states' (:func:`resolved_derivatives`), in both directions.
+
 The adjoint of a scalar ``J = sum over outputs of phi(u(t))`` runs the same steps backwards with
 the transposed matrices: one column for the cotangent and ``n`` for the state's recursion per
 step, whatever the number of parameters (their gradient is one product ``lambda_k^T (-R_p)`` per
@@ -334,7 +338,41 @@ def forward(sol, names, model=None, initial=None) -> tuple[Directions, np.ndarra
     dy0, dz0 = initial_sensitivities(
         compiled, float(dense.starts[0]), start[:, :n], start[:, n:], sol.parameters, where, given=initial
     )
-    return where, _forward_piece(compiled, dense, sol.parameters, where, dy0, dz0, np.asarray(sol.t))
+    out = _forward_piece(compiled, dense, sol.parameters, where, dy0, dz0, np.asarray(sol.t))
+    resolved = resolved_derivatives(sol)
+    if resolved is not None:  # (the returned algebraic variables: functions of the returned states)
+        dz_dy, dz_dp = resolved
+        out[:, :, n:] = dz_dy @ out[:, :, :n] + dz_dp @ where.parameter_columns(sol.parameters.shape[1])
+    return where, out
+
+
+def resolved_derivatives(sol) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(dz/dy (B, T, m, n), dz/dp (B, T, m, k))`` at the output times of a solution whose algebraic variables
+    are solved from its states (``sol.dense.resolves_algebraic``), from their determining equations; else None."""
+    compiled = sol.compiled
+    if not sol.dense.resolves_algebraic or not compiled.algebraics:
+        return None
+    B, T, n, m = sol.batch_size, len(sol.t), len(compiled.states), len(compiled.algebraics)
+    Y = np.stack([np.reshape(sol.values[name], (B, T)) for name in compiled.state_names], axis=-1).reshape(B * T, n)
+    Z = np.stack([np.reshape(sol.values[name], (B, T)) for name in compiled.algebraic_names], axis=-1)
+    Z = Z.reshape(B * T, m)
+    P, times = np.repeat(sol.parameters, T, axis=0), np.tile(np.asarray(sol.t, dtype=float), B)
+    determining, numeric = [c.determining for c in compiled.constraints], compiled.numeric
+    Hz = numeric.batch_jacobian(determining, compiled.algebraics)(times, Y, Z, P)
+    Hy = numeric.batch_jacobian(determining, compiled.states)(times, Y, Z, P)
+    Hp = numeric.batch_jacobian(determining, compiled.parameters)(times, Y, Z, P)
+    try:
+        dz = -np.linalg.solve(Hz, np.concatenate([Hy, Hp], axis=-1))
+    except np.linalg.LinAlgError:
+        dz = np.full((B * T, m, n + P.shape[1]), np.nan)
+    if not np.isfinite(dz).all():
+        row = int(np.flatnonzero(~np.isfinite(dz).all(axis=(1, 2)))[0])
+        raise SensitivityError(
+            f"the algebraic variables' equations are singular in {list(compiled.algebraic_names)} at t = "
+            f"{times[row]:g} (sample {row // T}): the algebraic values there have no derivative"
+        )
+    dz = dz.reshape(B, T, m, n + P.shape[1])
+    return dz[..., :n], dz[..., n:]
 
 
 def _forward_piece(compiled, dense, p, where: Directions, dy0, dz0, times):
@@ -378,6 +416,14 @@ def adjoint(sol, cotangent: tuple, names, model=None) -> tuple[Directions, np.nd
     dy0, dz0 = initial_sensitivities(
         compiled, float(dense.starts[0]), start[:, :n], start[:, n:], sol.parameters, where
     )
+    resolved = resolved_derivatives(sol)
+    if resolved is not None:  # (the returned algebraic variables' cotangent, moved onto the states and parameters)
+        dz_dy, dz_dp = resolved
+        zbar = cotangent[:, :, n:]
+        cotangent = np.concatenate(
+            [cotangent[:, :, :n] + np.einsum("btm,btmn->btn", zbar, dz_dy), np.zeros_like(zbar)], axis=-1
+        )
+        direct_p = direct_p + np.einsum("btm,btmk->bk", zbar, dz_dp)
     ybar0, zbar0, pbar = _adjoint_piece(compiled, dense, sol.parameters, cotangent, sol.t)
     gradient = (
         np.einsum("bn,bnq->bq", ybar0, dy0)

@@ -416,8 +416,10 @@ class Solution:
         Where the method keeps a dense output (:attr:`dense`: radau's collocation polynomials, the
         Radau-PINN's), it is evaluated: the values are those ``solve(..., t_eval=times)`` would give,
         at the method's own accuracy, across breakpoints and events too (a time on one takes the
-        values after it).  Otherwise the states are interpolated by cubic Hermite polynomials
-        through the two nearest points of the time's piece, with the derivatives ``f(t, y, z)`` there:
+        values after it); where it is marked ``resolves_algebraic`` (adaptive radau on a system of index
+        2 or 3), its algebraic variables are solved from its states, as the method did at its outputs.
+        Otherwise the states are interpolated by cubic Hermite polynomials through the two nearest
+        points of the time's piece, with the derivatives ``f(t, y, z)`` there:
         the adjacent output times, or a breakpoint or event between them, with its values before it
         (on its left) or after it (on its right), so that no interpolant spans one (an error of O(dt^4)
         in the output spacing dt on top of the method's); the algebraic variables are solved from the
@@ -430,7 +432,8 @@ class Solution:
             For times that are not real numbers (strings, bools, complex), outside the solution's span,
             or not finite.
         InitialisationError
-            Without a dense output: the algebraic variables cannot be solved at an interpolated state.
+            Without a dense output, or with one marked ``resolves_algebraic``: the algebraic variables
+            cannot be solved at an interpolated state.
         """
         from daemodel.errors import InvalidValueError
         from daemodel.reals import real_array
@@ -453,6 +456,8 @@ class Solution:
         if self.dense is not None:
             u = self.dense(times)
             y, z = u[..., :n], u[..., n:]
+            if self.dense.resolves_algebraic and m:
+                z = self._algebraic_from_states(times, y, z)
         else:
             y, z = self._hermite(times)
         out = {name: y[..., i] for i, name in enumerate(c.state_names)}
@@ -464,14 +469,41 @@ class Solution:
             out.update({name: values[:, i].reshape(B, K) for i, name in enumerate(c.alias_names)})
         return out if self.batched else {name: v[0] for name, v in out.items()}
 
+    def _algebraic_from_states(self, times: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The algebraic variables (B, K, m) solved from the dense output's states ``y`` (B, K, n) at ``times``,
+        from its values ``z``, as the method solved them at its outputs (``dense.resolves_algebraic``)."""
+        from daemodel.compiling.algebraic import algebraic_from_states
+        from daemodel.errors import InitialisationError
+
+        found = algebraic_from_states(self.compiled, times, y, z, self.parameters)
+        finite = np.isfinite(y).all(axis=2)  # (NaN after a sample's terminal event: kept)
+        failed = ~found.converged & finite
+        if failed.any():
+            sample, k = np.argwhere(failed)[0]
+            raise InitialisationError(
+                f"at(): the algebraic variables could not be solved at t = {times[k]:g} (sample {sample}) from the "
+                "states of the dense output; ask for that time with solve(..., t_eval=...)"
+            )
+        return found.z
+
     def columns_at(self, times: np.ndarray, names) -> np.ndarray:
         """The states and algebraic variables ``names`` of the first sample at ``times`` inside the span,
         ``(len(times), len(names))``: read straight off :attr:`dense` where it holds them (no checks: the
-        times are the caller's own, such as an event search's), else through :meth:`at`."""
+        times are the caller's own, such as an event search's; where it is marked ``resolves_algebraic``,
+        the algebraic variables solved from its states, as :meth:`at` gives them, or its own where that
+        fails), else through :meth:`at`."""
         c = self.compiled
         position = {v: k for k, v in enumerate((*c.state_names, *c.algebraic_names))}
         if self.dense is not None and all(v in position for v in names):
-            return self.dense(np.asarray(times, dtype=float))[0][:, [position[v] for v in names]]
+            times = np.asarray(times, dtype=float)
+            u = self.dense(times)[:1]
+            n = len(c.states)
+            if self.dense.resolves_algebraic and any(position[v] >= n for v in names):
+                from daemodel.compiling.algebraic import algebraic_from_states
+
+                u = u.copy()
+                u[..., n:] = algebraic_from_states(c, times, u[..., :n], u[..., n:], self.parameters[:1]).z
+            return u[0][:, [position[v] for v in names]]
         values = self.at(times)
         columns = [np.reshape(values[v], (self.batch_size, -1))[0] for v in names]
         return np.stack(columns, axis=-1) if columns else np.zeros((len(np.atleast_1d(times)), 0))

@@ -170,10 +170,13 @@ def _check_instants(model, t: np.ndarray, breakpoints: dict, events: dict, path:
                 )
 
 
-def _check_dense(dense, t: np.ndarray, values: np.ndarray, path: Path) -> None:
-    """Refuse a stored dense output that does not give the stored values at the output times."""
+def _check_dense(dense, t: np.ndarray, values: np.ndarray, path: Path, n: int) -> None:
+    """Refuse a stored dense output that does not give the stored values at the output times (the ``n``
+    states' alone where the algebraic variables are solved from them: ``resolves_algebraic``)."""
     try:
         found = np.asarray(dense(t), dtype=float)
+        if dense.resolves_algebraic:
+            found, values = found[..., :n], values[..., :n]
     except (ValueError, IndexError, TypeError, FloatingPointError) as error:
         raise SolutionFileError(f"{path}: field 'dense' cannot be evaluated at the output times: {error}") from None
     both = np.isfinite(values)
@@ -286,7 +289,7 @@ def read(handle, path: Path, model, cls):
             dense = dense_from_stored(field("dense"), B, len(names))
         except ValueError as error:
             raise SolutionFileError(f"{path}: field 'dense' is damaged: {error}") from None
-        _check_dense(dense, t, values, path)
+        _check_dense(dense, t, values, path, len(match.states))
     return cls(
         t=t,
         values={name: np.ascontiguousarray(values[..., i]) for i, name in enumerate(names)},

@@ -14,6 +14,7 @@ import torch
 import daemodel as dm
 from daemodel import errors as E
 from daemodel.collocation import collocation_step
+from daemodel.compiling.algebraic import algebraic_from_states
 from daemodel.problems import AKZO_NOBEL, DECAY, PENDULUM_INDEX3
 from daemodel.sensitivities import directions, initial_sensitivities
 from daemodel.tableau import radau_iia
@@ -61,7 +62,13 @@ def _on_steps(compiled, dense, parameters, y0):
         assert bool(step.converged)
         u = torch.cat([step.Y[-1], step.Z[-1]]).numpy()
         out.append(u)
-    return np.array(out)
+    out = np.array(out)
+    if dense.resolves_algebraic:  # (adaptive steps on index 2: radau returns z solved from its states)
+        times = np.concatenate([[compiled.t0], dense.starts + dense.lengths])
+        found = algebraic_from_states(compiled, times, out[None, :, :n], out[None, :, n:], p.numpy()[None])
+        assert found.converged.all()
+        out[:, n:] = found.z[0]
+    return out
 
 
 def _perturbed(compiled, name, value, delta):

@@ -13,6 +13,7 @@ from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
+from daemodel.backends.radau.outputs import marked, resolve_outputs, resolved_outputs
 from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import stage_transform
@@ -97,6 +98,8 @@ class RadauBackend(AbstractBackend):
             raise self._at_a_smaller_step(compiled, t_span, start, options, error, where) from None
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
+        # (adaptive steps, index 2 or more: the algebraic variables at the outputs from the states, .outputs)
+        values, resolved = resolve_outputs(self.name, compiled, start, options, times, values, stepper.stats)
         wall = time.perf_counter() - began
         if said is not None:
             stepper.stats["jit"] = said
@@ -115,6 +118,8 @@ class RadauBackend(AbstractBackend):
             stepper.stats["torch_warm_up_seconds"] = warm_up
         if options.adaptive:  # (flagged where a newton_tol looser than the stages' default was given)
             status = stepper.controller.status(self.name)
+            if resolved is not None:
+                status = resolved if status == "success" else f"{status}; {resolved}"
         else:
             status = stepper.error.status(self.name, options.estimate_bound)
         return make_solution(
@@ -128,7 +133,7 @@ class RadauBackend(AbstractBackend):
             stepper.stats,
             status=status,
             setup_time=setup,
-            dense=stepper.polynomials(),
+            dense=marked(stepper.polynomials(), resolved_outputs(options, compiled)),
         )
 
     @staticmethod

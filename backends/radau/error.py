@@ -8,7 +8,8 @@ stages),
 
 where ``M = diag(I, 0)``.  As in RADAU5, the error of an algebraic variable determined through an
 index-k constraint is multiplied by ``h^(k-1)`` before the norm (its stage values are only accurate
-to order s - k + 2).  A batch shares the step sequence (the worst sample decides).
+to order s - k + 2); so adaptive steps return them solved from the states at the outputs (:mod:`.outputs`).
+A batch shares the step sequence (the worst sample decides).
 
 The adaptive controller reads :meth:`ErrorEstimate.norm`; the fixed grid checks every step with
 :meth:`ErrorEstimate.check_fixed`, in units of the solution's size ``1 + max |u|`` so far: Newton

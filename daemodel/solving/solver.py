@@ -7,6 +7,7 @@ import math
 import time
 
 from daemodel.backends import get_backend
+from daemodel.compiling.algebraic import prepare as prepare_algebraic
 from daemodel.compiling.compiler import as_compiled
 from daemodel.compiling.initial_states import branch_check_functions, initial_states
 from daemodel.compiling.switches import (
@@ -102,6 +103,8 @@ def system_for(model, backend):
         # of more than a few output times; a locked piece's, made at its first check, is often only ever
         # evaluated at a trial solve's two ends, on casadi)
         branch_check_functions(compiled)[2].numpy()
+        # (and, at index 2 or more, those that solve the algebraic variables from the states at the outputs)
+        prepare_algebraic(compiled)
     return compiled
 
 

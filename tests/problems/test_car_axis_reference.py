@@ -93,18 +93,18 @@ def test_the_published_reference_carries_the_digits_measured_against_the_extende
 
 
 def test_radau_at_1e_10_against_the_extended_reference(system, stored):
-    """Default radau (7 stages) at rtol = atol = 1e-10: 10.79 digits in the states (vl), 8.30 in the
-    multipliers (lam2; against the published values 9.26 and 7.17).  The multipliers' error is
-    the last step's collocation error (order s in h for an index-2 algebraic variable, its estimate
-    weighted by h): the multipliers solved from radau's own end states by the acceleration-level
-    constraints read 13.58.  Absolute, the multipliers are 5.5e-12 and 1.1e-11 off: within atol."""
+    """Default radau (7 stages) at rtol = atol = 1e-10: 10.79 digits in the states (vl), 13.55 in the
+    multipliers (against the published values 9.26 and 7.14).  The multipliers are solved from radau's
+    end states (backends/radau/outputs.py); the collocation's own multipliers read 8.30 (order s in h for
+    an index-2 algebraic variable, its estimate weighted by h), which this test's bound of 13 refused.
+    The same states solved here at 30 digits by the acceleration-level constraints read 13.58."""
     extended = {n: float(v) for n, v in stored["reference"].items()}
     sol = dm.solve(CAR_AXIS.model(), CAR_AXIS.t_span, rtol=1e-10, atol=1e-10, t_eval=[0.0, 3.0])
     assert sol.status == "success"
     end = {n: float(sol[n][-1]) for n in STATES + MULTIPLIERS}
     assert min(agreement(end[n], extended[n]) for n in STATES) > 10.5
-    assert min(agreement(end[n], extended[n]) for n in MULTIPLIERS) > 8.0
-    assert max(abs(end[n] - extended[n]) for n in MULTIPLIERS) < 1e-10
+    assert min(agreement(end[n], extended[n]) for n in MULTIPLIERS) > 13.0
+    assert max(abs(end[n] - extended[n]) for n in MULTIPLIERS) < 1e-12
     with mpmath.workdps(30):
         solved = system.multipliers(mpmath.mpf(3), [mpmath.mpf(end[n]) for n in STATES])
     assert min(agreement(value, extended[n]) for n, value in zip(MULTIPLIERS, solved, strict=True)) > 13.0
