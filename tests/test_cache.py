@@ -118,6 +118,20 @@ def test_the_folder_is_created_private_with_its_parents(folder):
     assert all((nested / name).stat().st_mode & 0o777 == 0o600 for name in files(nested))
 
 
+def test_the_folders_it_creates_above_it_are_private_under_any_umask(folder):
+    """Under umask 002 (user-private groups) ``mkdir -p``'s parents came out 775: the cache then refused
+    itself on every later run (a folder above it writable by the group), the first run used it."""
+    nested = folder / "a" / "b"
+    os.environ["DAEMODEL_CACHE"] = str(nested)
+    before = os.umask(0o002)
+    try:
+        assert compiled(2.0).outcome == "miss"
+        assert compiled(2.0).outcome == "hit"
+    finally:
+        os.umask(before)
+    assert [oct(path.stat().st_mode & 0o777) for path in (folder, folder / "a", nested)] == ["0o700"] * 3
+
+
 # -- a miss, then a hit; the key -----------------------------------------------------------------------
 
 
