@@ -11,6 +11,7 @@ which numpy evaluates at any batch."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import sympy as sp
@@ -24,6 +25,22 @@ SAMPLE_ROWS = 4
 # expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
 # 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).
 SAMPLE_EXPRESSIONS = 256
+
+
+# Seconds each thread has spent making the functions' code at their first use (generating_seconds).
+_MADE = threading.local()
+
+
+def generating_seconds() -> float:
+    """Seconds this thread has spent so far making :class:`BatchFunction` code at its first use (numpy's
+    lambdified code, casadi's function): one-off work that a solve counts as setup, wherever it ran
+    (:mod:`daemodel.solving.events`: the event functions' numpy code, 40 ms of the bouncing ball's first
+    radau solve, was on its solve clock)."""
+    return getattr(_MADE, "seconds", 0.0)
+
+
+def _made_since(began: float) -> None:
+    _MADE.seconds = generating_seconds() + time.perf_counter() - began
 
 
 class BatchFunction:
@@ -51,7 +68,9 @@ class BatchFunction:
             return np.zeros((len(Y), 0))
         if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
+                began = time.perf_counter()
                 self._casadi = self._convert()
+                _made_since(began)
             # (non-finite values go to numpy, whose Max and Min pass a nan on where casadi's fmax and fmin drop it)
             if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
                 out = self._few(t, Y, Z, P)
@@ -72,7 +91,9 @@ class BatchFunction:
         """The lambdified numpy function, made now if not yet (a caller that wants it made in a setup, off the
         solve's clock, calls this there)."""
         if self._numpy is None and self._exprs:
+            began = time.perf_counter()
             self._numpy = self._lambdify(self._exprs)
+            _made_since(began)
         return self._numpy
 
     def _few(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:

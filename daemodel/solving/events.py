@@ -47,6 +47,7 @@ import warnings
 
 import numpy as np
 
+from daemodel.compiling.batch_function import generating_seconds
 from daemodel.compiling.switches import has_state_switches
 from daemodel.errors import (
     ConvergenceError,
@@ -155,6 +156,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.solution import Solution
 
     started = time.perf_counter()
+    # (functions' code made at its first use in this call, outside start_piece's setup: setup too, not solve)
+    made, made_in_starts = generating_seconds(), 0.0
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events
@@ -180,6 +183,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
 
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
+        before = generating_seconds()
         try:
             begin = start_piece(
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off,
@@ -191,6 +195,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
             raise
         setup_time += begin.setup_time
+        made_in_starts += generating_seconds() - before
         begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
         piece, piece_when = begin.model, begin.when
         spent_before = spent[0]
@@ -460,6 +465,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         }
         for name, entry in record.items()
     }
+    setup_time += generating_seconds() - made - made_in_starts
     return Solution(
         t=t_out,
         values=out,
