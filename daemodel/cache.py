@@ -335,13 +335,18 @@ def compile_library(source: str, folder: Path, build: Build) -> Path:
 
     count = build.unit_count()
     units = split(source, count) if count > 1 else None
+    names = ["source"] if units is None else [f"unit{index}" for index in range(len(units))]
+    try:  # (a full disk, a file-size limit: the compiler's failure, which jit="auto" leaves to the virtual machine)
+        for name, text in zip(names, [source] if units is None else units, strict=True):
+            (folder / f"{name}.c").write_text(text)
+    except OSError as error:
+        raise CompileError(
+            f"{build.what} with {build.compiler} failed: its C source could not be written in {folder} "
+            f"({error.strerror or error}); free space there or set TMPDIR to another folder, or {build.fix}"
+        ) from None
     if units is None:
-        (folder / "source.c").write_text(source)
         run_compiler([build.command()], folder, build)
     else:
-        names = [f"unit{index}" for index in range(len(units))]
-        for name, text in zip(names, units, strict=True):
-            (folder / f"{name}.c").write_text(text)
         run_compiler([build.unit_command(name) for name in names], folder, build)
         run_compiler([build.link_command(names)], folder, build)
     if not (folder / "library.so").is_file():  # (a wrapper that exits 0 and writes nothing)

@@ -459,6 +459,28 @@ def test_a_full_disk_leaves_the_cache_unchanged_and_the_solve_succeeds(folder, m
         assert np.array_equal(sol[name], vm[name]), name
 
 
+def test_a_full_temporary_folder_is_a_compile_error_and_auto_goes_on_on_the_virtual_machine(folder, monkeypatch):
+    """The C source written where the compiler runs (TMPDIR) on a full disk or past a file-size limit
+    (``ulimit -f 50``): before, a bare OSError ("File too large") out of dm.solve, jit="auto" included."""
+    write_text = Path.write_text
+
+    def full(path, *args, **kwargs):
+        if path.parent.name.startswith("daemodel-jit-"):
+            raise OSError(errno.EFBIG, "File too large")
+        return write_text(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    said = r"its C source could not be written in .*daemodel-jit-.* \(File too large\); free space there or set TMPDIR"
+    with pytest.raises(CompileError, match=said + " to another folder, or solve with jit=False"):
+        pendulum_jit()
+    sol = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)  # (jit="auto")
+    assert (
+        sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed (")
+        and "File too large" in (sol.stats["jit"])
+    )
+    assert files(folder) == {}
+
+
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names an open file through /proc")
 def test_a_stamp_that_cannot_be_written_takes_its_library_away(folder, monkeypatch):
     real = os.fsync
