@@ -27,20 +27,28 @@ SAMPLE_ROWS = 4
 SAMPLE_EXPRESSIONS = 256
 
 
-# Seconds each thread has spent making the functions' code at their first use (generating_seconds).
+# Seconds each thread has spent making the functions' code at their first use, and those a clock has claimed.
 _MADE = threading.local()
 
 
 def generating_seconds() -> float:
-    """Seconds this thread has spent so far making :class:`BatchFunction` code at its first use (numpy's
-    lambdified code, casadi's function): one-off work that a solve counts as setup, wherever it ran
-    (:mod:`daemodel.solving.events`: the event functions' numpy code, 40 ms of the bouncing ball's first
-    radau solve, was on its solve clock)."""
-    return getattr(_MADE, "seconds", 0.0)
+    """Seconds this thread has spent making :class:`BatchFunction` code at its first use (numpy's lambdified
+    code, casadi's function) that no clock has claimed yet (:func:`claim_generated`): one-off work that a
+    solve counts as setup wherever it ran (the events' numpy code, 40 ms of the bouncing ball's first radau
+    solve, was on its solve clock)."""
+    return getattr(_MADE, "seconds", 0.0) - getattr(_MADE, "claimed", 0.0)
+
+
+def claim_generated(since: float) -> float:
+    """The seconds of code made since :func:`generating_seconds` read ``since`` that no clock inside has
+    claimed, claimed now (a caller adds them to its setup; one around it does not count them again)."""
+    seconds = generating_seconds() - since
+    _MADE.claimed = getattr(_MADE, "claimed", 0.0) + seconds
+    return seconds
 
 
 def _made_since(began: float) -> None:
-    _MADE.seconds = generating_seconds() + time.perf_counter() - began
+    _MADE.seconds = getattr(_MADE, "seconds", 0.0) + time.perf_counter() - began
 
 
 class BatchFunction:

@@ -47,7 +47,7 @@ import warnings
 
 import numpy as np
 
-from daemodel.compiling.batch_function import generating_seconds
+from daemodel.compiling.batch_function import claim_generated, generating_seconds
 from daemodel.compiling.switches import has_state_switches
 from daemodel.errors import (
     ConvergenceError,
@@ -156,8 +156,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.solution import Solution
 
     started = time.perf_counter()
-    # (functions' code made at its first use in this call, outside start_piece's setup: setup too, not solve)
-    made, made_in_starts = generating_seconds(), 0.0
+    made = generating_seconds()  # (functions' code made at its first use in this call: setup too, not solve)
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events
@@ -195,7 +194,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {limit:.12g}", limit) from None
             raise
         setup_time += begin.setup_time
-        made_in_starts += generating_seconds() - before
+        claim_generated(before)  # (on start_piece's setup clock already)
         begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
         piece, piece_when = begin.model, begin.when
         spent_before = spent[0]
@@ -465,7 +464,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         }
         for name, entry in record.items()
     }
-    setup_time += generating_seconds() - made - made_in_starts
+    setup_time += claim_generated(made)
     return Solution(
         t=t_out,
         values=out,
