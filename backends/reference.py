@@ -33,6 +33,7 @@ that :func:`daemodel.compare` measures every method against, so it follows these
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, replace
@@ -394,6 +395,7 @@ class ReferenceBackend(AbstractBackend):
         return f"method={self.name!r} (scipy {integrator}, rtol = {options.rtol:g}, atol = {options.atol:g})"
 
     def solve(self, compiled, t_span, start, options: ReferenceOptions):
+        began = time.perf_counter()  # (the checks, z's solver and the right-hand side made: setup)
         n, m = len(compiled.states), len(compiled.algebraics)
         check_dense(
             f"method='reference' on '{compiled.name}' ({n} states, {m} algebraic variables: H_z, its tangent and "
@@ -404,13 +406,18 @@ class ReferenceBackend(AbstractBackend):
         times = output_times(options.t_eval, t_span, default_times(t_span))
         check_output_memory(self.name, compiled, start.size, len(times))
         numeric = compiled.numeric
-        algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)
         values = np.empty((start.size, len(times), n + m))
         finals = []  # (each sample's integrator at its end)
         stats = {"integrator": [], "batch": start.size, "steps": 0, "nfev": 0, "njev": 0, "nlu": 0, "restarts": 0}
-        began = time.perf_counter()
         with np.errstate(all="ignore"):  # non-finite values are detected and reported, never warned about
+            # (z's solver: H, its Jacobians as numpy functions, 0.8 s of a chain of 20 pendulums' first solve, and
+            # scipy's integrators imported, 0.6 s: on neither clock, hence on the solve's, before)
+            algebraic = AlgebraicSolver(compiled, numeric, options.max_newton_iterations)
             f = numeric.function(compiled.rhs)
+            if options.integrator == AUTO:  # (the stiffness test's Jacobians, made at its first use: 72 ms there)
+                _stiffness_jacobians(compiled)
+            import scipy.integrate  # noqa: F401
+
             setup = time.perf_counter() - began  # the right-hand side as a numpy function
             began = time.perf_counter()
             for b in range(start.size):
@@ -435,6 +442,18 @@ class ReferenceBackend(AbstractBackend):
         starts, first = (times, values) if times[0] == t_span[0] else _with_start(t_span[0], times, values, start)
         dense = Restarts(self, compiled, ended, starts, first, np.asarray(start.p, dtype=float))
         return make_solution(self, compiled, start, options, times, values, wall, stats, setup_time=setup, dense=dense)
+
+
+def _stiffness_jacobians(compiled) -> None:
+    """The numpy Jacobians :meth:`_SampleRun.decay_rate` evaluates, made now (in a setup) where it uses them;
+    one that has no numeric form (a switch's derivative) is left to it, which then lets the steps decide."""
+    n, m = len(compiled.states), len(compiled.algebraics)
+    if n == 0 or n + m > STIFF_EIG_MAX:
+        return
+    with contextlib.suppress(ValueError, TypeError, NotImplementedError, ArithmeticError):
+        compiled.numeric.jacobian(compiled.rhs, compiled.states)
+        if m:
+            compiled.numeric.jacobian(compiled.rhs, compiled.algebraics)
 
 
 def _with_start(t0: float, times, values, start):

@@ -182,16 +182,21 @@ def checked_folder(folder: Path | None = None, *, create: bool = True) -> Path:
     by another user, and that no folder above it lets another user replace it (:func:`unsafe_parent`);
     else an :class:`UnsafeCacheError` naming the path and what is wrong with it."""
     folder = Path(folder if folder is not None else cache_folder())
-    above = unsafe_parent(folder)
-    if above:
-        raise UnsafeCacheError(
-            f"cache folder {folder}: {above}; set {CACHE_VARIABLE} to a folder under one only you can change"
-        )
+
+    def check_above() -> None:
+        above = unsafe_parent(folder)
+        if above:
+            raise UnsafeCacheError(
+                f"cache folder {folder}: {above}; set {CACHE_VARIABLE} to a folder under one only you can change"
+            )
+
+    check_above()
     if create and not os.path.lexists(folder):
         try:
-            folder.mkdir(mode=FOLDER_MODE, parents=True, exist_ok=True)
+            make_private(folder)
         except OSError as error:
             raise UnsafeCacheError(f"cache folder {folder} cannot be created: {error.strerror or error}") from None
+        check_above()  # (again: a folder above that another user made meanwhile is theirs, not ours)
     try:
         info = os.lstat(folder)
     except OSError as error:
@@ -211,6 +216,16 @@ def checked_folder(folder: Path | None = None, *, create: bool = True) -> Path:
     except OSError as error:
         raise UnsafeCacheError(f"cache folder {folder} cannot be listed: {error.strerror or error}") from None
     return folder
+
+
+def make_private(folder: Path) -> None:
+    """``folder`` and the folders above it that are not there yet, each created with mode 0700 (``mkdir
+    -p``'s parents get the umask's mode: under umask 002 they were group-writable, and the cache refused
+    itself on every later run for a folder above it that the group could replace)."""
+    missing = [path for path in [folder, *folder.parents] if not os.path.lexists(path)]
+    for path in reversed(missing):
+        with contextlib.suppress(FileExistsError):  # (another process made it: checked like any other)
+            os.mkdir(path, FOLDER_MODE)
 
 
 @functools.cache
@@ -320,13 +335,18 @@ def compile_library(source: str, folder: Path, build: Build) -> Path:
 
     count = build.unit_count()
     units = split(source, count) if count > 1 else None
+    names = ["source"] if units is None else [f"unit{index}" for index in range(len(units))]
+    try:  # (a full disk, a file-size limit: the compiler's failure, which jit="auto" leaves to the virtual machine)
+        for name, text in zip(names, [source] if units is None else units, strict=True):
+            (folder / f"{name}.c").write_text(text)
+    except OSError as error:
+        raise CompileError(
+            f"{build.what} with {build.compiler} failed: its C source could not be written in {folder} "
+            f"({error.strerror or error}); free space there or set TMPDIR to another folder, or {build.fix}"
+        ) from None
     if units is None:
-        (folder / "source.c").write_text(source)
         run_compiler([build.command()], folder, build)
     else:
-        names = [f"unit{index}" for index in range(len(units))]
-        for name, text in zip(names, units, strict=True):
-            (folder / f"{name}.c").write_text(text)
         run_compiler([build.unit_command(name) for name in names], folder, build)
         run_compiler([build.link_command(names)], folder, build)
     if not (folder / "library.so").is_file():  # (a wrapper that exits 0 and writes nothing)

@@ -118,6 +118,20 @@ def test_the_folder_is_created_private_with_its_parents(folder):
     assert all((nested / name).stat().st_mode & 0o777 == 0o600 for name in files(nested))
 
 
+def test_the_folders_it_creates_above_it_are_private_under_any_umask(folder):
+    """Under umask 002 (user-private groups) ``mkdir -p``'s parents came out 775: the cache then refused
+    itself on every later run (a folder above it writable by the group), the first run used it."""
+    nested = folder / "a" / "b"
+    os.environ["DAEMODEL_CACHE"] = str(nested)
+    before = os.umask(0o002)
+    try:
+        assert compiled(2.0).outcome == "miss"
+        assert compiled(2.0).outcome == "hit"
+    finally:
+        os.umask(before)
+    assert [oct(path.stat().st_mode & 0o777) for path in (folder, folder / "a", nested)] == ["0o700"] * 3
+
+
 # -- a miss, then a hit; the key -----------------------------------------------------------------------
 
 
@@ -443,6 +457,28 @@ def test_a_full_disk_leaves_the_cache_unchanged_and_the_solve_succeeds(folder, m
     vm = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)
     for name in vm.names:
         assert np.array_equal(sol[name], vm[name]), name
+
+
+def test_a_full_temporary_folder_is_a_compile_error_and_auto_goes_on_on_the_virtual_machine(folder, monkeypatch):
+    """The C source written where the compiler runs (TMPDIR) on a full disk or past a file-size limit
+    (``ulimit -f 50``): before, a bare OSError ("File too large") out of dm.solve, jit="auto" included."""
+    write_text = Path.write_text
+
+    def full(path, *args, **kwargs):
+        if path.parent.name.startswith("daemodel-jit-"):
+            raise OSError(errno.EFBIG, "File too large")
+        return write_text(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", full)
+    said = r"its C source could not be written in .*daemodel-jit-.* \(File too large\); free space there or set TMPDIR"
+    with pytest.raises(CompileError, match=said + " to another folder, or solve with jit=False"):
+        pendulum_jit()
+    sol = dm.solve(PROBLEMS["pendulum"].model(), (0.0, 1.0), h=0.05)  # (jit="auto")
+    assert (
+        sol.stats["jit"].startswith("casadi's virtual machine: the C compiler failed (")
+        and "File too large" in (sol.stats["jit"])
+    )
+    assert files(folder) == {}
 
 
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="names an open file through /proc")

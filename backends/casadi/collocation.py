@@ -381,6 +381,12 @@ class CollocationBackend(AbstractBackend):
             ("casadi-collocation-check", options.stages, root_abstol),
             lambda: LocalErrorCheck(compiled, options.stages, dae, root_abstol),
         )
+        # (the dense output's stage solver: made in the solve, before, where it was a chain of 20 pendulums'
+        # first solve's 15 ms of CPU, issue 42)
+        stage_solver = compiled.cached(
+            ("casadi-collocation-stages", options.stages, root_abstol),
+            lambda: CollocationStages(compiled, options.stages, dae, root_abstol),
+        )
         setup = time.perf_counter() - began  # building the integrators: reported apart from the solve
         began = time.perf_counter()
 
@@ -412,10 +418,6 @@ class CollocationBackend(AbstractBackend):
         }
         status = check.status(self.name, grid, estimates, options.estimate_bound, start.batched)
         settings = {k: v for k, v in dataclasses.asdict(options).items() if k != "t_eval"}
-        stage_solver = compiled.cached(
-            ("casadi-collocation-stages", options.stages, root_abstol),
-            lambda: CollocationStages(compiled, options.stages, dae, root_abstol),
-        )
         dense = CollocationSteps(grid, values, np.asarray(start.p, dtype=float), stage_solver)
         times = grid
         if options.t_eval is not None:

@@ -11,6 +11,7 @@ which numpy evaluates at any batch."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import sympy as sp
@@ -24,6 +25,30 @@ SAMPLE_ROWS = 4
 # expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
 # 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).
 SAMPLE_EXPRESSIONS = 256
+
+
+# Seconds each thread has spent making the functions' code at their first use, and those a clock has claimed.
+_MADE = threading.local()
+
+
+def generating_seconds() -> float:
+    """Seconds this thread has spent making :class:`BatchFunction` code at its first use (numpy's lambdified
+    code, casadi's function) that no clock has claimed yet (:func:`claim_generated`): one-off work that a
+    solve counts as setup wherever it ran (the events' numpy code, 40 ms of the bouncing ball's first radau
+    solve, was on its solve clock)."""
+    return getattr(_MADE, "seconds", 0.0) - getattr(_MADE, "claimed", 0.0)
+
+
+def claim_generated(since: float) -> float:
+    """The seconds of code made since :func:`generating_seconds` read ``since`` that no clock inside has
+    claimed, claimed now (a caller adds them to its setup; one around it does not count them again)."""
+    seconds = generating_seconds() - since
+    _MADE.claimed = getattr(_MADE, "claimed", 0.0) + seconds
+    return seconds
+
+
+def _made_since(began: float) -> None:
+    _MADE.seconds = getattr(_MADE, "seconds", 0.0) + time.perf_counter() - began
 
 
 class BatchFunction:
@@ -51,7 +76,9 @@ class BatchFunction:
             return np.zeros((len(Y), 0))
         if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
+                began = time.perf_counter()
                 self._casadi = self._convert()
+                _made_since(began)
             # (non-finite inputs go to numpy, whose arithmetic on them is the reference)
             if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
                 return self._few(t, Y, Z, P)
@@ -70,7 +97,9 @@ class BatchFunction:
         """The lambdified numpy function, made now if not yet (a caller that wants it made in a setup, off the
         solve's clock, calls this there)."""
         if self._numpy is None and self._exprs:
+            began = time.perf_counter()
             self._numpy = self._lambdify(self._exprs)
+            _made_since(began)
         return self._numpy
 
     def _few(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:

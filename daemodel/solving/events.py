@@ -47,6 +47,7 @@ import warnings
 
 import numpy as np
 
+from daemodel.compiling.batch_function import claim_generated, generating_seconds
 from daemodel.compiling.switches import has_state_switches
 from daemodel.errors import (
     ConvergenceError,
@@ -164,6 +165,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
     from daemodel.solution import Solution
 
     started = time.perf_counter()
+    made = generating_seconds()  # (functions' code made at its first use in this call: setup too, not solve)
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events
@@ -193,6 +195,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
 
     while True:
         # (switches on variables locked to the branch the flow takes from the piece's start: smooth until an event)
+        before = generating_seconds()
         try:
             begin = start_piece(
                 backend, compiled, when, t, Y, Z, P, fired, crossing, preferred, delta_at(t), lock, exited, moved_off,
@@ -204,6 +207,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                 raise ZenoError(f"{error}; its events accumulate at t ≈ {time_text(limit)}", limit) from None
             raise
         setup_time += begin.setup_time
+        claim_generated(before)  # (on start_piece's setup clock already)
         begin, rests, rest_sides = watch(begin, rests, when, t, Y, Z, P, fired)
         piece, piece_when = begin.model, begin.when
         spent_before = spent[0]
@@ -501,6 +505,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         }
         for name, entry in record.items()
     }
+    setup_time += claim_generated(made)
     return Solution(
         t=t_out,
         values=out,

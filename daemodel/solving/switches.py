@@ -19,6 +19,7 @@ import itertools
 
 import numpy as np
 
+from daemodel.compiling.batch_function import claim_generated, generating_seconds
 from daemodel.compiling.switches import MERGE_TOL, branch_model, breakpoints
 from daemodel.dense import joined_in_time
 from daemodel.errors import SwitchError
@@ -93,6 +94,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
     from daemodel.solution import Solution
 
     t0, t1 = t_span
+    made = generating_seconds()  # (code made at its first use, each segment's branch check: setup, not solve)
     moved = []  # (B,) per breakpoint: how far the states were projected there
     solved = for_method(compiled, backend)
     P = np.asarray(start.p, dtype=float)
@@ -166,7 +168,7 @@ def _solve_segments(backend, compiled, t_span, start, options, times: np.ndarray
         parameters=parts[0][0].parameters,
         batched=parts[0][0].batched,
         status="success" if not failing else "; ".join(failing),
-        setup_time=sum(sol.setup_time for sol, _ in parts),
+        setup_time=sum(sol.setup_time for sol, _ in parts) + claim_generated(made),
         breakpoints=record,
         dense=joined_in_time(edges, [sol.dense for sol, _ in parts]),
     )
