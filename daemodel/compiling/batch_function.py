@@ -21,6 +21,17 @@ from daemodel.errors import UnsupportedFunctionError
 # Up to this many samples casadi evaluates a function one sample at a time (~5-10 us each on the wheelset's
 # equations), above it numpy on all at once (~0.6-1.3 ms, nearly whatever their number up to hundreds).
 SAMPLE_ROWS = 4
+# Above SAMPLE_ROWS and up to CASADI_ROWS_MAX samples, casadi still evaluates them one at a time where that
+# costs less than numpy on all at once, by a model of the two costs in the casadi function's instructions I:
+# a sample on casadi ~CASADI_ROW_US + CASADI_INSTRUCTION_US * I microseconds, numpy's call on all of them
+# ~NUMPY_INSTRUCTION_US * I (one array operation an instruction).  Fitted at 21 samples (idle 2-core
+# machine): the pendulum's determining equation (I = 19) numpy 5.7 us against casadi 21.8; the car axis's
+# (174) 78 against 27.5; 20 and 40 pendulums' (904, 1,824) 283 and 567 against 42.5 and 60.  The branch
+# check and the algebraic variables solved again at the outputs evaluate at every output time.
+CASADI_ROWS_MAX = 256
+CASADI_ROW_US = 1.0
+CASADI_INSTRUCTION_US = 0.001
+NUMPY_INSTRUCTION_US = 0.3
 # Functions of more expressions than this stay on numpy at any batch: their conversion to casadi, one
 # expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
 # 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).
@@ -51,10 +62,20 @@ def _made_since(began: float) -> None:
     _MADE.seconds = getattr(_MADE, "seconds", 0.0) + time.perf_counter() - began
 
 
+def on_casadi(rows: int, instructions: int) -> bool:
+    """Whether ``rows`` samples of a function of ``instructions`` casadi instructions cost less one at a time on
+    casadi than all at once on numpy (always up to :data:`SAMPLE_ROWS`; see :data:`CASADI_ROWS_MAX`)."""
+    if rows <= SAMPLE_ROWS:
+        return True
+    casadi = rows * (CASADI_ROW_US + CASADI_INSTRUCTION_US * instructions)
+    return rows <= CASADI_ROWS_MAX and casadi < NUMPY_INSTRUCTION_US * instructions
+
+
 class BatchFunction:
     """``F(t, Y (B, n), Z (B, m), P (B, k)) -> ndarray (B, len(exprs))``; ``t`` a number or (B,), and ``Z``,
-    ``P`` of one row broadcast to ``Y``'s.  On casadi up to :data:`SAMPLE_ROWS` samples of at most
-    :data:`SAMPLE_EXPRESSIONS` expressions, else on numpy.
+    ``P`` of one row broadcast to ``Y``'s.  On casadi, one sample at a time, up to :data:`SAMPLE_ROWS`
+    samples of at most :data:`SAMPLE_EXPRESSIONS` expressions and up to :data:`CASADI_ROWS_MAX` where that
+    costs less (:func:`on_casadi`), else on numpy.
 
     Parameters
     ----------
@@ -69,18 +90,24 @@ class BatchFunction:
         self._exprs, self._symbols, self._lambdify = list(exprs), symbols, lambdify
         self._numpy = None
         self._casadi = None  # (casadi.Function of [t, y, z, p], dense; False where casadi cannot express it)
+        self._instructions = 0  # (its instruction count: on_casadi)
         self._local = threading.local()  # (each thread's buffers: a call writes its inputs into them)
 
     def __call__(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
         if not self._exprs:
             return np.zeros((len(Y), 0))
-        if len(Y) <= SAMPLE_ROWS and len(self._exprs) <= SAMPLE_EXPRESSIONS:
+        if len(Y) <= CASADI_ROWS_MAX and len(self._exprs) <= SAMPLE_EXPRESSIONS:
             if self._casadi is None:
                 began = time.perf_counter()
                 self._casadi = self._convert()
+                self._instructions = self._casadi.n_instructions() if self._casadi is not False else 0
                 _made_since(began)
             # (non-finite inputs go to numpy, whose arithmetic on them is the reference)
-            if self._casadi is not False and all(np.isfinite(v).all() for v in (t, Y, Z, P)):
+            if (
+                self._casadi is not False
+                and on_casadi(len(Y), self._instructions)
+                and all(np.isfinite(v).all() for v in (t, Y, Z, P))
+            ):
                 return self._few(t, Y, Z, P)
         # t as a column like the others: numpy's select (Piecewise) refuses conditions of mixed shapes
         t = np.asarray(t, dtype=float)

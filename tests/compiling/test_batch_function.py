@@ -1,6 +1,8 @@
 """The numeric system's batched functions: casadi evaluates a few samples, numpy larger batches, each made on
 first use (daemodel/compiling/batch_function.py)."""
 
+import itertools
+
 import numpy as np
 import pytest
 import sympy as sp
@@ -40,8 +42,9 @@ def test_a_few_samples_are_evaluated_on_casadi_without_numpy_code(monkeypatch, B
     with np.errstate(invalid="ignore"):
         few = F(T, Y, Z, P)
         assert not printed
-        # numpy on the same rows and more (a batch above SAMPLE_ROWS), the rows compared
-        T5, Y5, Z5, P5 = (np.concatenate([a, b]) for a, b in zip((T, Y, Z, P), rows(5, seed=1), strict=True))
+        # numpy on the same rows and more (a batch above CASADI_ROWS_MAX), the rows compared
+        more = rows(batch_function.CASADI_ROWS_MAX, seed=1)
+        T5, Y5, Z5, P5 = (np.concatenate([a, b]) for a, b in zip((T, Y, Z, P), more, strict=True))
         many = F(T5, Y5, Z5, P5)[:B]
     assert printed == [1]
     assert few.shape == (B, len(EXPRS))
@@ -101,3 +104,35 @@ def test_a_nan_among_a_max_or_min_s_arguments_is_passed_on_at_a_few_samples():
             assert out[1, 0] == 0.0 and out[1, 1] == -np.inf and np.isnan(out[1, 2]) and out[1, 3] == 0.0, (B, out)
     G = numeric.batch_function([sp.Max(0, sp.sqrt(x)), sp.Min(x, y)])
     np.testing.assert_array_equal(G(0.0, np.array([[4.0, -3.0]]), np.zeros((1, 1)), np.zeros((1, 1))), [[2.0, -3.0]])
+
+
+def test_more_samples_go_to_casadi_where_the_cost_model_says_it_is_cheaper(monkeypatch):
+    """Above SAMPLE_ROWS a function runs on casadi one sample at a time where rows x (1 + I / 1000) us is below
+    numpy's 0.3 I us (I its casadi instructions; fitted at 21 samples: 20 pendulums' determining equations
+    283 us on numpy, 42.5 on casadi): a tiny function at 21 samples stays on numpy, a large one goes to
+    casadi with numpy's values to rounding, and past CASADI_ROWS_MAX everything is numpy's."""
+    assert not batch_function.on_casadi(21, 19)  # (the pendulum's determining equation: 5.7 us on numpy)
+    assert batch_function.on_casadi(21, 904) and batch_function.on_casadi(5, 60)
+    assert not batch_function.on_casadi(batch_function.CASADI_ROWS_MAX + 1, 10**6)
+    assert batch_function.on_casadi(batch_function.SAMPLE_ROWS, 1)
+    printed = []
+    original = NumericSystem._lambdify
+    monkeypatch.setattr(NumericSystem, "_lambdify", lambda self, exprs: printed.append(1) or original(self, exprs))
+    xs = sp.symbols("x0:40")
+    numeric = NumericSystem(t, xs, (z,), (k,))
+    large = [
+        sum(sp.sin(a * t) * b + sp.exp(-z * a) / (1 + b**2) for a, b in itertools.pairwise(xs)) * (i + k)
+        for i in range(8)
+    ]
+    F = numeric.batch_function(large)
+    rng = np.random.default_rng(3)
+    K = 300
+    T, Y, Z, P = rng.uniform(0, 1, K), rng.uniform(-1, 1, (K, 40)), rng.uniform(0, 1, (K, 1)), rng.uniform(1, 2, (K, 1))
+    casadi = F(T[:21], Y[:21], Z[:21], P[:21])
+    assert not printed and F._instructions > 400
+    numpy = F(T, Y, Z, P)[:21]  # (past CASADI_ROWS_MAX: numpy's code)
+    assert printed == [1]
+    np.testing.assert_allclose(casadi, numpy, rtol=1e-14, atol=1e-14)
+    tiny = numeric.batch_function([xs[0] * k + z])
+    tiny(T[:21], Y[:21], Z[:21], P[:21])
+    assert printed == [1, 1]  # (a few instructions at 21 samples: numpy's)
