@@ -24,14 +24,17 @@ SAMPLE_ROWS = 4
 # Above SAMPLE_ROWS and up to CASADI_ROWS_MAX samples, casadi still evaluates them one at a time where that
 # costs less than numpy on all at once, by a model of the two costs in the casadi function's instructions I:
 # a sample on casadi ~CASADI_ROW_US + CASADI_INSTRUCTION_US * I microseconds, numpy's call on all of them
-# ~NUMPY_INSTRUCTION_US * I (one array operation an instruction).  Fitted at 21 samples (idle 2-core
-# machine): the pendulum's determining equation (I = 19) numpy 5.7 us against casadi 21.8; the car axis's
-# (174) 78 against 27.5; 20 and 40 pendulums' (904, 1,824) 283 and 567 against 42.5 and 60.  The branch
-# check and the algebraic variables solved again at the outputs evaluate at every output time.
+# ~NUMPY_INSTRUCTION_US * I (one array operation an instruction: 0.2-0.45 us measured, the lower end taken).
+# At 21 samples (idle 2-core machine), numpy against casadi: the pendulum's determining equation (I = 19)
+# 5.7 against 21.8 us; the car axis's (174) 78 against 27.5; 20 and 40 pendulums' (904, 1,824) 283 and 567
+# against 42.5 and 60, and the 20 pendulums' branch check (585) 196 against 35; reaction-diffusion's
+# branch checks at 100 and 200 unknowns (51, 101: an entry each) 10.5 and 19.7 against 23.0 and 24.6 (stay
+# on numpy).  The branch check and the algebraic variables solved again at the outputs evaluate at every
+# output time.
 CASADI_ROWS_MAX = 256
 CASADI_ROW_US = 1.0
 CASADI_INSTRUCTION_US = 0.001
-NUMPY_INSTRUCTION_US = 0.3
+NUMPY_INSTRUCTION_US = 0.2
 # Functions of more expressions than this stay on numpy at any batch: their conversion to casadi, one
 # expression at a time, grows with them (~25 us a node through casadi's Python binding: seconds for the
 # 10^4-10^5 equations of a discretised PDE, whose numpy code, printed once per shape, evaluates in ms).

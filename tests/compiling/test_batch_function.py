@@ -108,7 +108,7 @@ def test_a_nan_among_a_max_or_min_s_arguments_is_passed_on_at_a_few_samples():
 
 def test_more_samples_go_to_casadi_where_the_cost_model_says_it_is_cheaper(monkeypatch):
     """Above SAMPLE_ROWS a function runs on casadi one sample at a time where rows x (1 + I / 1000) us is below
-    numpy's 0.3 I us (I its casadi instructions; fitted at 21 samples: 20 pendulums' determining equations
+    numpy's 0.2 I us (I its casadi instructions; fitted at 21 samples: 20 pendulums' determining equations
     283 us on numpy, 42.5 on casadi): a tiny function at 21 samples stays on numpy, a large one goes to
     casadi with numpy's values to rounding, and past CASADI_ROWS_MAX everything is numpy's."""
     assert not batch_function.on_casadi(21, 19)  # (the pendulum's determining equation: 5.7 us on numpy)
