@@ -49,6 +49,7 @@ from daemodel.backends.checks import check_output_memory, set_number, set_tolera
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, default_times, output_times, tolerance_sweep
 from daemodel.backends.progress import captured_output
 
+from daemodel.compiling.codegen import casadi_jacobian
 from daemodel.dense import AbstractDenseOutput, outputs_before
 from daemodel.errors import ConvergenceError, DaemodelError, InvalidOptionError, SolverError, StepLimitError
 from daemodel.executors import struck_limit
@@ -188,7 +189,7 @@ def slopes_function(dae: dict):
 
     t, x, z, p, alg = dae["t"], dae["x"], dae["z"], dae["p"], dae["alg"]
     rate = casadi.jacobian(alg, t) + casadi.jtimes(alg, x, dae["ode"])
-    return casadi.Function("slopes", [t, x, z, p], [dae["ode"], casadi.jacobian(alg, z), rate])
+    return casadi.Function("slopes", [t, x, z, p], [dae["ode"], casadi_jacobian(alg, z), rate])
 
 
 def initial_slopes(compiled, dae: dict, t0: float, start) -> tuple[np.ndarray, np.ndarray]:

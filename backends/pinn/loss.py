@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from daemodel.collocation import model_jacobian, stage_residual
+from daemodel.compiling.codegen import casadi_jacobian
 from daemodel.errors import DaemodelError
 
 TERMS = ("L_f", "L_g", "L_s")
@@ -207,7 +208,7 @@ def _casadi_loss_functions(compiled, tableau):
     G.append(g(t + h, y_end, z_end, p))
     r = casadi.vertcat(*F, *G, z_end - Z[-1])
     packed = casadi.vertcat(t, h, y_n, u, p)
-    sparse = casadi.jacobian(r, u)
+    sparse = casadi_jacobian(r, u)  # (dense rows apart)
     rows = casadi.reshape(casadi.densify(sparse).T, -1, 1)  # column-major of J^T: J row by row
     # the Newton correction: the stage rows are square (radau's Newton matrix), so the stage values
     # take their full Newton increment; the end values then fit their rows (F_end, G_end, S: the

@@ -37,6 +37,7 @@ from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_cal
 
 from daemodel.cache import Build, cached_library, compiler_version
 from daemodel.collocation import extrapolation_polynomial, horner
+from daemodel.compiling.codegen import casadi_jacobian
 
 # Outcome codes of the compiled step (Stepper._compiled_try words them as the general path does):
 # .formulas.newton_iteration's, the same for both.
@@ -595,7 +596,8 @@ def casadi_functions(compiled, tableau, stencil=None):
     s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
     f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
     g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
-    jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
+    rows = np.bincount(compiled.casadi_jacobian_pattern()[0], minlength=D)  # (nonzeros per row)
+    jac = casadi_jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z), rows)  # (dense rows apart)
     jacobian = casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac.nz[:]])
     A, c = tableau.A, tableau.c
     # above INLINED_RESIDUAL_MAX_SIZE the stage residual calls f and g s times (MX), as the stages' Jacobians

@@ -346,17 +346,8 @@ def _largest(casadi, values, complex_):
 # ---- the model's pattern and the factors' size -------------------------------------------
 def jacobian_pattern(compiled) -> tuple[np.ndarray, np.ndarray]:
     """The rows and columns of the nonzeros of ``[f_y f_z; g_y g_z]`` (casadi's sparsity of the model's
-    equations; no function is built), made once per model."""
-
-    def build():
-        import casadi
-
-        dae = compiled.casadi_dae()
-        pattern = casadi.jacobian_sparsity(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"]))
-        rows, cols = pattern.get_triplet()
-        return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
-
-    return compiled.cached("jacobian-pattern", build)
+    equations; no function is built), made once per model: :meth:`.CompiledDAE.casadi_jacobian_pattern`."""
+    return compiled.casadi_jacobian_pattern()
 
 
 def sorted_unique(keys: np.ndarray) -> np.ndarray:

@@ -511,6 +511,20 @@ class CompiledDAE:
             self._cache[key] = build_torch_functions(specs, sizes, parameters, self.name, pattern)
         return self._cache[key]
 
+    def casadi_jacobian_pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rows and columns of the nonzeros of ``[f_y f_z; g_y g_z]``: casadi's structural sparsity of
+        :meth:`casadi_dae`'s equations (no function is built; within :meth:`jacobian_pattern`'s), made once."""
+
+        def build():
+            import casadi
+
+            dae = self.casadi_dae()
+            equations, unknowns = casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"])
+            rows, cols = casadi.jacobian_sparsity(equations, unknowns).get_triplet()
+            return np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+
+        return self.cached("jacobian-pattern", build)
+
     def casadi_dae(self) -> dict:
         """casadi's DAE dict ``{"x", "z", "p", "t", "ode", "alg"}`` of this system (SX).
 
