@@ -142,13 +142,16 @@ class CompiledDAE:
 
         def hash_equations() -> str:
             # (printed once per model, kept: every print of 10^5 equations took ~0.3 ms each, and a save
-            # asked for it twice, a load again)
+            # asked for it twice, a load again; each shape of equation is printed once, the text str gives)
+            from daemodel.compiling.texts import texts
+
+            symbols = (self.t, *self.states, *self.algebraics, *self.parameters)
             equations = (
                 self.state_names,
                 self.algebraic_names,
                 self.parameter_names,
-                [str(e) for e in self.rhs],
-                [str(e) for e in self.g],
+                texts(self.rhs, symbols),
+                texts(self.g, symbols),
             )
             return hashlib.sha256(repr(equations).encode()).hexdigest()
 
