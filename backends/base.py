@@ -216,7 +216,7 @@ class AbstractBackend(ABC):
     def solve(self, compiled, t_span: tuple[float, float], start, options):
         """Integrate every sample of ``start`` (:class:`InitialStates`) over ``t_span``."""
 
-    def check_size(self, compiled, start, options) -> None:
+    def check_size(self, compiled, t_span: tuple[float, float], start, options) -> None:
         """Refuse, with a named error, a model this method cannot hold at its size, before any work
         that grows with it: :func:`daemodel.solve` calls it once the initial values are read
         (``start``, :class:`InitialStates`), before the switches are found and the method is set

@@ -201,13 +201,17 @@ class PINNBackend(AbstractBackend):
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]
 
-    def check_size(self, compiled, start, options: PINNOptions) -> None:
-        """Refuse a model whose training would not fit in memory on even one segment (its dense Radau
-        stage system at 10^4 unknowns and more): before the default h's pre-solve, a radau solve
-        (10 s at 10^5 unknowns), and before the switches are found; :meth:`_solve` checks again with
-        the segments of its grid."""
-        from daemodel.backends.pinn.segments import check_network_memory
+    def check_size(self, compiled, t_span, start, options: PINNOptions) -> None:
+        """Refuse a solve whose outputs would not fit in memory (on the grid of a given h, else at
+        the two ends of the span: a lower bound), or whose training would not on even one segment
+        (its dense Radau stage system at 10^4 unknowns and more): before the default h's pre-solve,
+        a radau solve (10 s at 10^5 unknowns), and before the switches are found; :meth:`_solve`
+        checks both again on its grid."""
+        from daemodel.backends.pinn.segments import check_network_memory, segment_grid
 
+        points = 2 if options.auto_h else len(segment_grid(t_span, options.config.h, strict=options.h is not None))
+        points += len(output_times(options.t_eval, t_span, None)) if options.t_eval is not None else 0
+        check_output_memory(self.name, compiled, start.size, points)
         inputs = len(compiled.states) + len(varying_inputs(options.config, start))
         check_network_memory(compiled, options.config, inputs, start.size, 1, at_least=True)
 
