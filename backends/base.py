@@ -33,7 +33,9 @@ A backend is a final subclass of :class:`AbstractBackend`:
    :class:`~daemodel.errors.LocalErrorBoundError`, :class:`~daemodel.errors.StepLimitError`)
    naming the time, the step, the sample and the fix.
 5. Every loop has a user-settable bound, and a request that cannot fit (a grid of more than
-   :data:`~.grids.MAX_GRID_POINTS` steps, see :func:`~.grids.grid_steps`) is refused before anything is allocated.
+   :data:`~.grids.MAX_GRID_POINTS` steps, see :func:`~.grids.grid_steps`) is refused before anything is allocated;
+   a model too large for the method at any setting is refused by :meth:`AbstractBackend.check_size`,
+   which ``solve`` calls before the work that grows with the model (finding its switches, setup).
 6. Clocks: ``setup_time`` is getting ready (generating or compiling code, building an integrator,
    training a network), ``solve_time`` is producing the values from the ready method, checks of
    the result included (:func:`make_solution` adds the branch check to it); nothing the method does
@@ -213,6 +215,13 @@ class AbstractBackend(ABC):
     @abstractmethod
     def solve(self, compiled, t_span: tuple[float, float], start, options):
         """Integrate every sample of ``start`` (:class:`InitialStates`) over ``t_span``."""
+
+    def check_size(self, compiled, t_span: tuple[float, float], start, options) -> None:
+        """Refuse, with a named error, a model this method cannot hold at its size, before any work
+        that grows with it: :func:`daemodel.solve` calls it once the initial values are read
+        (``start``, :class:`InitialStates`), before the switches are found and the method is set
+        up.  ``compiled`` is the model as given (reduction keeps its variables).  Default: nothing."""
+        return None  # (a method without a size limit: the work that grows with the model is its own)
 
     def describe(self, options) -> str:
         """The method and the settings that matter for its accuracy, for a label (e.g. a reference's)."""

@@ -201,6 +201,20 @@ class PINNBackend(AbstractBackend):
     def work_precision(self, t_span, points, steps=SWEEP_FIRST_STEPS):
         return [{"stages": SWEEP_STAGES, "h": h} for h in halving_steps(t_span, points, steps)]
 
+    def check_size(self, compiled, t_span, start, options: PINNOptions) -> None:
+        """Refuse a solve whose outputs would not fit in memory (on the grid of a given h, else at
+        the two ends of the span: a lower bound), or whose training would not on even one segment
+        (its dense Radau stage system at 10^4 unknowns and more): before the default h's pre-solve,
+        a radau solve (10 s at 10^5 unknowns), and before the switches are found; :meth:`_solve`
+        checks both again on its grid."""
+        from daemodel.backends.pinn.segments import check_network_memory, segment_grid
+
+        points = 2 if options.auto_h else len(segment_grid(t_span, options.config.h, strict=options.h is not None))
+        points += len(output_times(options.t_eval, t_span, None)) if options.t_eval is not None else 0
+        check_output_memory(self.name, compiled, start.size, points)
+        inputs = len(compiled.states) + len(varying_inputs(options.config, start))
+        check_network_memory(compiled, options.config, inputs, start.size, 1, at_least=True)
+
     def solve(self, compiled, t_span, start, options: PINNOptions):
         warm_up = warm_up_torch(options.config.device, options.config.dtype)  # counted in the setup (training)
         with torch_threads(options.threads if options.threads is not None else 1, 0):
@@ -236,7 +250,7 @@ class PINNBackend(AbstractBackend):
         # Shared networks take the parameters that differ between samples as inputs; independent
         # ones (one set per sample) hold each sample's values as constants.
         independent = copies_for(config, start.size) > 1
-        varying = [] if independent else [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
+        varying = varying_inputs(config, start)
         if independent and options.save is not None:
             raise InvalidOptionError(
                 f"save writes networks that solve any start in their box; the independent networks of a batch of "
@@ -349,6 +363,16 @@ class PINNBackend(AbstractBackend):
             setup_time=trained - began + warm_up + presolve,  # the h pre-solve, training, torch's first use
             dense=dense,
         )
+
+
+def varying_inputs(config, start) -> list[int]:
+    """The columns of ``start.p`` that shared networks take as inputs after the states: the parameters
+    that differ between the samples (none for independent networks, one set per sample)."""
+    from daemodel.backends.pinn.segments import copies_for
+
+    if copies_for(config, start.size) > 1:
+        return []
+    return [i for i in range(start.p.shape[1]) if np.ptp(start.p[:, i]) > 0]
 
 
 def _segment_starts(given, compiled, grid, start) -> tuple[np.ndarray, np.ndarray]:

@@ -67,7 +67,7 @@ def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> 
     segment, training's working copies of one segment's (:data:`TRAINING_COPIES`), and with more
     than one input per set of networks, LM's Gram matrices (:data:`GRAM_COPIES`) or its normal
     matrices in parameter space, whichever it solves in (see ``SegmentTrainer._normal_system``)."""
-    from daemodel.backends.pinn.network import output_layout, parameter_count_of
+    from daemodel.backends.pinn.network import output_sizes, parameter_count_of
 
     itemsize = 4 if config.dtype == "float32" else 8
     copies = copies_for(config, batch)
@@ -82,8 +82,8 @@ def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> 
     # (every input's stage system at once, (batch samples, R, U): independent networks' too)
     parts["the Radau stage system, dense"] = STAGE_SYSTEM_COPIES * max(batch * config.samples, 1) * R * U * itemsize
     if config.optimizer == "lm" and rows > 1:
-        sizes, _ = output_layout(len(compiled.states), len(compiled.algebraics), config.stages, config.architecture)
-        K, w, out = len(sizes) * copies, config.width, max(sizes)
+        count, out = output_sizes(len(compiled.states), len(compiled.algebraics), config.stages, config.architecture)
+        K, w = count * copies, config.width
         if rows * out <= P // K:
             parts["LM's Gram matrices"] = GRAM_COPIES * K * (rows * w) ** 2 * itemsize
         else:
@@ -91,32 +91,36 @@ def network_memory(compiled, config, inputs: int, batch: int, segments: int) -> 
     return parts
 
 
-def check_network_memory(compiled, config, inputs: int, batch: int, segments: int) -> None:
+def check_network_memory(compiled, config, inputs: int, batch: int, segments: int, at_least: bool = False) -> None:
     """A :class:`ResourceLimitError` naming width and depth when the networks and their training
     (:func:`network_memory`) would need more than the memory allowed
-    (:func:`daemodel.files.memory_limit`), before anything is allocated."""
+    (:func:`daemodel.files.memory_limit`), before anything is allocated.  ``at_least``: ``segments``
+    is a lower bound on the segments (the grid is not known yet), and the message says "at least"."""
     from daemodel.files import MEMORY_LIMIT_VARIABLE, memory_limit
 
     parts = network_memory(compiled, config, inputs, batch, segments)
     limit, total = memory_limit(), sum(parts.values())
     if total <= limit:
         return
+    need = f"{'at least ' if at_least else ''}{total / 2**30:.3g} GiB"
     itemised = ", ".join(f"{name} {size / 2**30:.3g} GiB" for name, size in parts.items())
     fewer = " or fewer samples" if any(name.startswith("LM's") for name in parts) else ""
     stage_system = parts["the Radau stage system, dense"]
-    if stage_system >= max(parts.values()):  # (the model's size, more than the networks', is what does not fit)
+    # (the model's size, more than the networks', is what does not fit; or the stage system alone does not:
+    # at 10^5 unknowns 17 segments' networks outweighed it, and the message said to take a smaller width)
+    if stage_system >= max(parts.values()) or stage_system > limit:
         D, inputs_all = len(compiled.states) + len(compiled.algebraics), batch * config.samples
         many = f" with {inputs_all} training inputs" if inputs_all > 1 else ""
         raise ResourceLimitError(
             f"pinn: a model of {D} unknowns{many} is too large for the PINN: its Levenberg-Marquardt solves the "
             f"Radau stage system of {config.stages} stages densely{' for every input at once' if many else ''}, "
-            f"which would need {total / 2**30:.3g} GiB to train ({itemised}), more than the {limit / 2**30:.3g} GiB "
+            f"which would need {need} to train ({itemised}), more than the {limit / 2**30:.3g} GiB "
             f"allowed (set {MEMORY_LIMIT_VARIABLE} to change it); solve it with method='radau' (sparse), or take "
             f"fewer stages{' or fewer samples' if many else ''}"
         )
     raise ResourceLimitError(
         f"pinn: networks of width = {config.width} and depth = {config.depth} for {batch} sample(s) of "
-        f"{len(compiled.states) + len(compiled.algebraics)} unknowns would need {total / 2**30:.3g} GiB to train "
+        f"{len(compiled.states) + len(compiled.algebraics)} unknowns would need {need} to train "
         f"({itemised}), more than the {limit / 2**30:.3g} GiB allowed (set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', "
         f"to change it); take a smaller width or depth{fewer} (PINNConfig's defaults: width = 20, depth = 2)"
     )

@@ -21,7 +21,7 @@ from daemodel.compiling.codegen import (
     local_names,
     torch_source,
 )
-from daemodel.compiling.structure import ITERATION_MATRIX, Constraint
+from daemodel.compiling.structure import Constraint
 from daemodel.declaring.functions import check_supported
 from daemodel.errors import ReductionError, UnsupportedFunctionError
 
@@ -142,13 +142,16 @@ class CompiledDAE:
 
         def hash_equations() -> str:
             # (printed once per model, kept: every print of 10^5 equations took ~0.3 ms each, and a save
-            # asked for it twice, a load again)
+            # asked for it twice, a load again; each shape of equation is printed once, the text str gives)
+            from daemodel.compiling.texts import texts
+
+            symbols = (self.t, *self.states, *self.algebraics, *self.parameters)
             equations = (
                 self.state_names,
                 self.algebraic_names,
                 self.parameter_names,
-                [str(e) for e in self.rhs],
-                [str(e) for e in self.g],
+                texts(self.rhs, symbols),
+                texts(self.g, symbols),
             )
             return hashlib.sha256(repr(equations).encode()).hexdigest()
 
@@ -554,54 +557,19 @@ class CompiledDAE:
         return {"x": x, "z": z, "p": p, "t": t, "ode": ode, "alg": alg}
 
     # ---- report -------------------------------------------------------------------------
-    def report(self) -> str:
-        """A human-readable account: variables, equations, index per constraint, switches, init, pruning."""
-        kind = {0: "ODE", 1: "index-1 DAE", 2: "index-2 DAE", 3: "index-3 DAE"}[self.index]
-        lines = [f"Model '{self.name}': {kind} (semi-explicit), t0 = {self.t0:g}"]
-        if self.reduced_from:
-            lines[0] += f", reduced from index {self.reduced_from}"
-        lines.append(f"Differential variables ({len(self.states)}):")
-        for s, n, f, v in zip(self.states, self.ode_numbers, self.rhs, self.y0, strict=True):
-            lines.append(f"  #{n:<3d} {s.name}' = {f}")
-            lines.append(f"        {s.name}(t0) = {v:.16g}")
-        lines.append(f"Algebraic variables ({len(self.algebraics)}):")
-        for z, owner, v in zip(self.algebraics, self.determined_by, self.z0, strict=True):
-            c = self.constraints[owner]
-            how = {1: c.name, 2: f"hidden constraint {c.level_name(1)}", 3: f"hidden constraint {c.level_name(2)}"}
-            lines.append(f"  {z.name}(t0) = {v:.16g}   (consistent: from {how[c.index]} = 0)")
-        if self.parameters:
-            lines.append(f"Parameters ({len(self.parameters)}):")
-            lines += [f"  {p.name} = {v:.16g}" for p, v in zip(self.parameters, self.parameter_values, strict=True)]
-        lines.append(f"Constraints ({len(self.constraints)}):")
-        for c in self.constraints:
-            lines.append(f"  #{c.number:<3d} {c.name}: 0 = {c.expr}")
-            lines.append(
-                f"        index {c.index}: determines the algebraic variables through {ITERATION_MATRIX[c.index]}"
-            )
-            for k in range(1, c.index):
-                lines.append(f"        {c.level_name(k)} = {c.chain[k]}")
-        if self.aliases:
-            lines.append(f"Aliases eliminated ({len(self.aliases)}):")
-            lines += [f"  {n} = {e}   (from {label})" for n, e, label in self.aliases]
-        if self.invariants:
-            lines.append("Invariants (drift): " + ", ".join(self.invariant_names))
-        from daemodel.compiling.switches import find_switches
+    def report(self, full: bool = False) -> str:
+        """A human-readable account: variables, equations, index per constraint, switches, init, pruning.
 
-        switches = find_switches(self)
-        if switches:
-            lines.append(f"Switches ({len(switches)}):")
-            lines += [f"  {s.describe()}" for s in switches]
-        if self.events:
-            lines.append(f"Events ({len(self.events)}):")
-            lines += [f"  {e.describe(self.state_names)}" for e in self.events]
-        lines.append("Initialisation: " + ("; ".join(self.notes) if self.notes else "given values are consistent"))
-        dropped = {k: v for k, v in self.dropped.items() if v}
-        if dropped:
-            lines.append("Pruned (not needed by the requested outputs):")
-            lines += [f"  {kind}: {', '.join(names)}" for kind, names in dropped.items()]
-        else:
-            lines.append("Pruned: nothing (every variable is needed)")
-        return "\n".join(lines)
+        Parameters
+        ----------
+        full : bool
+            List every entry.  By default a run of more than 50 entries of a section (an array's
+            elements, or consecutive scalar names) shows its first three, a line counting the
+            others, and its last (:mod:`daemodel.compiling.report`).
+        """
+        from daemodel.compiling.report import report
+
+        return report(self, full)
 
     def __repr__(self) -> str:
         return (

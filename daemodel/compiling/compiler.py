@@ -6,12 +6,13 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import sympy as sp
 
 from daemodel.compiling.compiled import CompiledDAE
 from daemodel.compiling.init import NumericSystem, initialise
 from daemodel.compiling.prune import eliminate_aliases, needed
 from daemodel.compiling.structure import Differentiator, derivative_chain, match
-from daemodel.declaring.arrays import compact_listing
+from daemodel.declaring.arrays import compact_listing, element_name, split_element
 from daemodel.declaring.events import Event
 from daemodel.declaring.functions import check_supported
 from daemodel.declaring.model import Declaration
@@ -25,6 +26,30 @@ from daemodel.errors import (
     UnbalancedSystemError,
     UnknownOutputError,
 )
+
+# Outputs an unknown-output error names (a list of 10^5 wrong names is not repeated whole), and the characters
+# of each it shows (a name of a million characters neither).
+OUTPUTS_NAMED = 10
+NAME_SHOWN = 80
+
+
+def short_repr(value) -> str:
+    """``repr(value)``, cut to :data:`NAME_SHOWN` characters with the length said."""
+    text = repr(value)
+    return text if len(text) <= NAME_SHOWN else f"{text[:NAME_SHOWN]}... ({len(text):,} characters)"
+
+
+def output_name(output, known: set, arrays: dict):
+    """The name ``compile(outputs=...)`` reads ``output`` as: a symbol's name, an element's name as
+    ``sol[...]`` reads it (``u[ 3 ]``, ``u[03]``: ``u[3]``; an index out of range is an
+    :class:`UnknownOutputError` naming the array's shape), else ``output`` itself (checked after)."""
+    if isinstance(output, sp.Symbol):
+        return output.name
+    if isinstance(output, str) and output not in known and "[" in output:
+        parts = split_element(output)
+        if parts is not None and parts[0] in arrays:
+            return element_name(*parts, arrays[parts[0]][1], "compile(outputs=...)", UnknownOutputError)
+    return output
 
 
 def with_events(model, compiled):
@@ -136,7 +161,9 @@ def _compile(model, outputs, repair: bool) -> CompiledDAE:
         keep = set(known)
     else:
         try:
-            outputs = [outputs] if isinstance(outputs, str) else list(outputs)
+            if isinstance(outputs, np.ndarray):  # (an array of names or of the symbols m.states returned)
+                outputs = list(outputs.flat)
+            outputs = [outputs] if isinstance(outputs, str | sp.Symbol) else list(outputs)
         except TypeError:
             raise UnknownOutputError(
                 f"compile(outputs=...) must be a variable name or a list of them; got {type(outputs).__name__}"
@@ -146,14 +173,18 @@ def _compile(model, outputs, repair: bool) -> CompiledDAE:
                 f"compile(outputs=[]) asks for nothing; name the variables you want (of {compact_listing(known)}) "
                 "or leave outputs=None for all"
             )
-        # (an array's name stands for its elements)
-        outputs = [e for o in outputs for e in (elements(o) if isinstance(o, str) and o in arrays else (o,))]
         known_set = set(known)
+        # (a symbol stands for its name, an element's name is read as sol[...] reads it: u[ 3 ] and u[03] are
+        # u[3], u[5] of 5 elements is out of range, saying so; an array's name stands for its elements)
+        outputs = [output_name(o, known_set, arrays) for o in outputs]
+        outputs = [e for o in outputs for e in (elements(o) if isinstance(o, str) and o in arrays else (o,))]
         unknown = [o for o in outputs if not isinstance(o, str) or o not in known_set]
         if unknown:
+            listed = ", ".join(short_repr(u) for u in unknown[:OUTPUTS_NAMED])
+            more = f" and {len(unknown) - OUTPUTS_NAMED:,} more" if len(unknown) > OUTPUTS_NAMED else ""
             raise UnknownOutputError(
-                f"compile(outputs=...): {', '.join(repr(u) for u in unknown)} not a variable of model "
-                f"'{model.name}'; variables: {compact_listing(known)}"
+                f"compile(outputs=...): {listed}{more} not a variable of model '{model.name}'; variables: "
+                f"{compact_listing(known)}"
             )
         keep = needed(outputs, rhs, constraints, algebraics, alias_exprs, calculus)
     algebraic_names = {z.name for z in algebraics}
@@ -266,8 +297,9 @@ class Model(Declaration):
         ----------
         outputs : list of str, optional
             Variable names the user wants (an array's name stands for all its elements, ``"u[3]"``
-            for one); only what they depend on through the coupled system is kept.  ``None`` keeps
-            everything.
+            for one, read as ``sol["u[3]"]`` reads it), or the symbols ``m.states`` returned (an
+            array of them too); only what they depend on through the coupled system is kept.
+            ``None`` keeps everything.
         repair : bool
             Project an inconsistent initial state onto the constraint manifold (least change)
             and replace disagreeing algebraic values, reporting both, instead of raising.

@@ -146,6 +146,7 @@ def _solve(model, t_span, method, y0, z0, parameters, max_events, sensitivities,
         check_sensitivities(model, backend, opts, sensitivities)
     t_span = check_span(t_span, model)
     start = initial_states(model, y0=y0, z0=z0, parameters=parameters)
+    backend.check_size(model, t_span, start, opts)  # (the PINN at 10^5 unknowns: refused in 0.2 s, not 10)
     if sensitivities is not None and find_switches(model):
         dispatched.append(time.perf_counter())
         return _on_fixed_branches(backend, model, t_span, start, opts, sensitivities)

@@ -275,9 +275,39 @@ def test_outputs_take_an_array_name_or_elements():
     assert m.compile(outputs=["u[1]"]).state_names == ("u[0]", "u[1]")
     assert m.compile(outputs=["b"]).algebraic_names == ("b[0]", "b[1]", "b[2]")
     with pytest.raises(
-        E.UnknownOutputError, match=r"'u\[3\]' not a variable of model 'chain'; variables: 'u\[...\]' \(3 elements\)"
-    ):
+        E.UnknownOutputError,
+        match=r"compile\(outputs=...\): index 3 is out of range for axis 0 of 'u', shape \(3,\) \(0 to 2\)",
+    ):  # (as sol["u[3]"] says it; it said "'u[3]' not a variable of model 'chain'")
         m.compile(outputs=["u[3]"])
+    with pytest.raises(E.UnknownOutputError, match=r"'v\[0\]' not a variable of model 'chain'; variables: 'u\[...\]'"):
+        m.compile(outputs=["v[0]"])
+
+
+def test_outputs_read_elements_as_a_solution_does_and_take_the_declared_symbols():
+    """sol["u[ 1 ]"] and sol["u[01]"] read u[1], sol[u[1]] takes the symbol; compile(outputs=...) refused
+    all three ("not a variable", for the symbols m.states returned too)."""
+    m, u, b, _ = chain(3)
+    m.ode(u, [-u[0], -u[1] + u[0], -u[2]])
+    m.constraint(b - 2 * u + b**3, name="eq")
+    m.initial(u=1.0)
+    for outputs in ("u[ 1 ]", "u[01]", ["u[1]"], u[1], [u[1]], np.array([[u[1]]], dtype=object)):
+        assert m.compile(outputs=outputs).state_names == ("u[0]", "u[1]")
+    assert m.compile(outputs=u).state_names == ("u[0]", "u[1]", "u[2]")
+    sol = dm.solve(m.compile(outputs=u[1]), (0.0, 1.0), rtol=1e-10, atol=1e-12)
+    assert abs(sol["u[1]"][-1] - 2 * np.exp(-1.0)) < 1e-8  # (u1 = (1 + t) e^-t)
+
+
+def test_an_unknown_output_error_does_not_repeat_a_huge_request():
+    m, u, b, _ = chain(3)
+    m.ode(u, -u)
+    m.constraint(b - 2 * u + b**3, name="eq")
+    m.initial(u=1.0)
+    with pytest.raises(E.UnknownOutputError, match=r"'aaaa+\.\.\. \(1,000,002 characters\) not a variable") as caught:
+        m.compile(outputs="a" * 10**6)
+    assert len(str(caught.value)) < 300
+    with pytest.raises(E.UnknownOutputError, match=r"'x9' and 99,990 more not a variable") as caught:
+        m.compile(outputs=[f"x{i}" for i in range(100_000)])
+    assert len(str(caught.value)) < 300
 
 
 def test_element_names_are_split_and_made_identifiers():
