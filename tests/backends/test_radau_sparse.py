@@ -258,13 +258,11 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
 def test_the_pattern_is_factored_for_the_memory_estimate_once_per_model(monkeypatch):
     """The estimate's one LU of the pattern is made once per model (an adaptive solve made it twice: for
     the guard, then again for the step records' budget; every solve, a fit's or an event's piece, again)."""
-    from daemodel.backends.radau import backend
+    from daemodel.backends.radau import fill
 
     compiled = scaling_models.reaction_diffusion(300).compile()  # 600 unknowns, sparse
     made = []
-    monkeypatch.setattr(
-        backend, "factor_entries", lambda *args, count=backend.factor_entries: made.append(1) or count(*args)
-    )
+    monkeypatch.setattr(fill, "factor_entries", lambda *args, count=fill.factor_entries: made.append(1) or count(*args))
     sol = dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False)
     assert sol.status == "success" and len(made) == 1
     again = dm.solve(compiled, (0.0, 1e-3), h=5e-4, jit=False)  # (and kept with the model: fits, events' pieces)
