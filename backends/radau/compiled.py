@@ -34,6 +34,7 @@ from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
 from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_call
+from daemodel.backends.radau.sparse import jacobian_by_rows, jacobian_pattern
 
 from daemodel.cache import Build, cached_library, compiler_version
 from daemodel.collocation import extrapolation_polynomial, horner
@@ -595,7 +596,7 @@ def casadi_functions(compiled, tableau, stencil=None):
     s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
     f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
     g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
-    jac = casadi.jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z))
+    jac = jacobian_by_rows(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z), jacobian_pattern(compiled)[0])
     jacobian = casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac.nz[:]])
     A, c = tableau.A, tableau.c
     # above INLINED_RESIDUAL_MAX_SIZE the stage residual calls f and g s times (MX), as the stages' Jacobians
