@@ -71,17 +71,22 @@ def dense_lines(rows: np.ndarray, cols: np.ndarray, D: int) -> bool:
 def superlu_column_order(matrix) -> np.ndarray | None:
     """The order SuperLU's ``splu`` takes the columns of the square CSC ``matrix`` in (COLAMD, then the
     postorder of its column elimination tree): ``order[k]`` is the k-th column.  Read from ``spilu`` with
-    every entry dropped (the ordering is made from the pattern before any value is read: O(nnz)); None where
-    that factorisation meets a zero pivot."""
+    every entry dropped (the ordering is made from the pattern before any value is read: O(nnz)), the dropped
+    entries added to the diagonal (``SMILU_1``: without it the algebraic columns of an index-2 or 3 model met
+    zero pivots, the pendulum chains' and the sphere particles'), else not; None where both meet one."""
     import scipy.sparse.linalg as splinalg
 
-    try:
-        ilu = splinalg.spilu(matrix, drop_tol=1e300, fill_factor=1, diag_pivot_thresh=0.0)
-    except DaemodelError:  # (a time limit's signal, raised inside the call)
-        raise
-    except RuntimeError:  # ("Factor is exactly singular")
-        return None
-    return np.argsort(ilu.perm_c)
+    for modified in ("SMILU_1", "SILU"):
+        try:
+            ilu = splinalg.spilu(
+                matrix, drop_tol=1e300, fill_factor=1, diag_pivot_thresh=0.0, options={"ILU_MILU": modified}
+            )
+        except DaemodelError:  # (a time limit's signal, raised inside the call)
+            raise
+        except RuntimeError:  # ("Factor is exactly singular")
+            continue
+        return np.argsort(ilu.perm_c)
+    return None
 
 
 def fill_bound(matrix) -> int | None:
