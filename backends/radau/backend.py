@@ -221,13 +221,20 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
             try:  # (per model)
                 fill = compiled.cached("radau-factor-entries", lambda: measured_fill(rows, cols, n, D, max(left, 0)))
             except FillOverLimit as over:
+                allowed = f"the {memory_limit() / 2**30:.3g} GiB allowed"
+                setting = f"set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it"
+                if over.entries is None:
+                    held = f"could not be counted within {allowed} ({over.reason}; {setting})"
+                else:
+                    gib = (fixed + per_entry * over.entries) / 2**30
+                    held = (
+                        f"would hold about {over.entries:.3g} entries or more ({over.reason}), {gib:.3g} GiB with "
+                        f"its {s} stages' systems, more than {allowed} (the fill that fits: {max(left, 0):.3g} "
+                        f"entries; {setting})"
+                    )
                 raise ResourceLimitError(
-                    f"radau on {B} sample(s) of {D} unknowns: the LU factors of its sparse Newton systems would hold "
-                    f"about {over.entries:.3g} entries or more ({over.reason}), "
-                    f"{(fixed + per_entry * over.entries) / 2**30:.3g} GiB with its {s} stages' systems, more than the "
-                    f"{memory_limit() / 2**30:.3g} GiB allowed (the fill that fits: {max(left, 0):.3g} entries; set "
-                    f"{MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it): fewer unknowns, or a Jacobian pattern "
-                    "that fills less (banded, block-diagonal), would fit"
+                    f"radau on {B} sample(s) of {D} unknowns: the LU factors of its sparse Newton systems {held}: "
+                    "fewer unknowns, or a Jacobian pattern that fills less (banded, block-diagonal), would fit"
                 ) from None
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
             order, systems = band_orders(compiled, rows, cols, n, D), s * fill

@@ -14,13 +14,15 @@ exhausting the machine before it could refuse.  So the trial runs only where a b
    tests).  0.02-0.1 s at 10^4 unknowns.
 2. Where the trial's memory at the bound fits the limit (:data:`TRIAL_BYTES_PER_ENTRY`), **the trial** runs as
    before: the exact count, the same path and timing for every model that fits.
-3. Else, where no row or column is dense (:func:`dense_lines`), the bound over :data:`BOUND_SLACK` is an
-   estimate of the fill (measured: the bound is 1.0-1.9 times the fill of random, banded, block and 2-D grid
-   patterns at 2,000 and 10^4 unknowns); where even that does not fit, the model is **refused** at once.
-4. Else (a dense row or column: a constraint summing every state, a multiplier in every equation) the bound
-   says little (2,500 times the fill of an arrow at 10^4 unknowns, 14 times that of one dense row), and **the
-   trial runs in a child process** under ``RLIMIT_AS`` (the memory the limit leaves it) and
-   :data:`TRIAL_SECONDS`: its count, or a refusal when it runs out of either (without ``fork``, the bound decides).
+3. Else, where no row or column is dense (:func:`dense_lines`), the bound over :data:`BOUND_SLACK` is below
+   the fill on every pattern measured (the bound is 1.0-1.9 times the fill of random, banded, block and 2-D
+   grid patterns, up to 51 times with many rows of 16-64 entries); where even that does not fit, the model
+   is **refused** at once.
+4. Else (a dense row or column: a constraint summing every state, a multiplier in every equation; or a bound
+   within :data:`BOUND_SLACK` of the limit) the bound says little (2,500 times the fill of an arrow at 10^4
+   unknowns, 14 times that of one dense row), and **the trial runs in a child process** under ``RLIMIT_AS``
+   (the memory limit) and :data:`TRIAL_SECONDS`: its count, or a refusal when it runs out of either (without
+   ``fork``, the bound decides).
 
 Refusals are :class:`FillOverLimit`, which the guard turns into a :class:`~daemodel.errors.ResourceLimitError`
 naming the size, the fill and the limit.
@@ -42,19 +44,23 @@ from daemodel.errors import DaemodelError
 # the trial runs in this process only where this many bytes per entry of the bound fit the limit.
 TRIAL_BYTES_PER_ENTRY = 80
 # The bound over the fill, at most, on patterns without dense rows or columns: 1.0 (block-diagonal), 1.7
-# (banded), 1.8-1.9 (random, four entries a row; a 2-D grid), measured at 2,000 and 10^4 unknowns; twice that.
-BOUND_SLACK = 4.0
+# (banded), 1.8-1.9 (random, four entries a row; a 2-D grid) at 2,000 and 10^4 unknowns, but 26-51 on a chain
+# of 10^4 states with 100-300 algebraic rows of 16-64 states each (rows that pivot last, where the bound lets
+# any row pivot): above the largest measured.  A model refused on the bound has a fill at least this
+# many times below it, and would still not fit.
+BOUND_SLACK = 64.0
 # Seconds the trial in a child process may take (case 4): one factorisation of the solve would take as long,
 # and a solve makes one at every Jacobian.
 TRIAL_SECONDS = 30.0
 
 
 class FillOverLimit(RuntimeError):
-    """The factors would hold more than the entries allowed: ``entries`` (the estimate, at least what the
-    reason says) and ``reason`` (how it is known, in words).  Internal: the memory guard turns it into a
+    """The factors would hold more than the entries allowed, or could not be counted within the limit:
+    ``entries`` (an estimate, at least what the reason says; None where the count did not finish) and
+    ``reason`` (how it is known, in words).  Internal: the memory guard turns it into a
     :class:`~daemodel.errors.ResourceLimitError`."""
 
-    def __init__(self, entries: float, reason: str):
+    def __init__(self, entries: float | None, reason: str):
         super().__init__(reason)
         self.entries, self.reason = entries, reason
 
@@ -210,10 +216,10 @@ def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entrie
         raise FillOverLimit(
             bound / BOUND_SLACK,
             f"the bound {bound:.3g} from the Jacobian's pattern (George and Ng's: the Cholesky factor of A^T A in "
-            f"SuperLU's column order) over {BOUND_SLACK:g}, the most it exceeded the fill on patterns without dense "
-            "rows; not factored",
+            f"SuperLU's column order) over {BOUND_SLACK:g}, more than it exceeded the fill on any pattern without "
+            "dense rows measured; not factored",
         )
-    outcome = capped_trial(matrix, min(trial_limit, TRIAL_BYTES_PER_ENTRY * max_entries), TRIAL_SECONDS)
+    outcome = capped_trial(matrix, trial_limit, TRIAL_SECONDS)  # (its count, over max_entries or not, decides)
     if isinstance(outcome, int):
         return outcome
     if outcome == "unavailable":
@@ -221,7 +227,7 @@ def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entrie
         if estimate <= max_entries:  # (no fork: the bound itself fits, the trial is within it)
             return factor_entries(rows, cols, n, D)
         raise FillOverLimit(estimate, f"the bound {estimate:.3g} from the Jacobian's pattern; not factored")
-    raise FillOverLimit(max_entries, outcome)
+    raise FillOverLimit(None, outcome)  # (how many entries is not known: the count did not finish)
 
 
 def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
@@ -254,8 +260,11 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
                 message = b"memory"
             except RuntimeError:
                 message = b"singular"
-        except BaseException:  # (whatever else: no count)
-            pass
+        except BaseException as error:  # (whatever else, named where memory is left to name it: no count)
+            try:
+                message = f"error {type(error).__name__}".encode()[:60]
+            except BaseException:
+                pass
         finally:
             try:
                 os.write(write_end, message)
@@ -275,8 +284,9 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
         return int(answer)
     if answer == "singular":
         return matrix.shape[0] ** 2  # (structurally singular at these values: at most dense, as factor_entries)
-    return (
-        f"one factorisation of the pattern ran out of the {max_bytes / 2**30:.3g} GiB it was given"
-        if answer == "memory"
-        else "one factorisation of the pattern failed in a child process"
+    if answer == "memory":
+        return f"one factorisation of the pattern ran out of the {max_bytes / 2**30:.3g} GiB it was given"
+    return (  # (at the memory it was given, the child may fail before it can say why)
+        f"one factorisation of the pattern failed in a child process given {max_bytes / 2**30:.3g} GiB "
+        f"({answer or 'no answer'})"
     )
