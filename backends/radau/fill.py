@@ -271,15 +271,18 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
             finally:
                 os._exit(0)
     os.close(write_end)
+    answer = None
     try:
         ready, _, _ = select.select([read_end], [], [], seconds)
-        if not ready:
-            os.kill(pid, signal.SIGKILL)
-            return f"one factorisation of the pattern did not finish within {seconds:g} s"
-        answer = os.read(read_end, 64).decode()
-    finally:
+        if ready:
+            answer = os.read(read_end, 64).decode()
+    finally:  # (out of time, or interrupted here, as by a time limit's signal: the child is stopped, not left)
         os.close(read_end)
+        if answer is None:
+            os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
+    if answer is None:
+        return f"one factorisation of the pattern did not finish within {seconds:g} s"
     if answer.isdigit():
         return int(answer)
     if answer == "singular":

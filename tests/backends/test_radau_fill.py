@@ -228,3 +228,17 @@ def test_a_dense_row_whose_count_runs_out_of_memory_is_refused(monkeypatch):
     )
     with pytest.raises(E.ResourceLimitError, match=refused):
         dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-8, jit=False)
+
+
+def test_a_child_process_out_of_time_is_stopped_and_named(monkeypatch):
+    """The count in the child stops at its time limit: the child is killed and waited for, and the reason
+    names the limit (a random pattern of 2 x 10^4 unknowns fills ~0.14 n^2: far more than 10 ms)."""
+    import os
+
+    D, children, fork = 20_000, [], os.fork
+    monkeypatch.setattr(os, "fork", lambda: children.append(fork()) or children[-1])
+    rows, cols, n = _pattern("random", D)
+    outcome = fill.capped_trial(pattern_matrix(rows, cols, n, D), 2**30, 0.01)
+    assert outcome == "one factorisation of the pattern did not finish within 0.01 s"
+    with pytest.raises(ProcessLookupError):  # (the child is gone, reaped: none left behind)
+        os.kill(children[0], 0)
