@@ -256,8 +256,8 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
             try:
                 lu = splinalg.splu(matrix)
                 message = str(int(lu.L.nnz + lu.U.nnz)).encode()
-            except MemoryError:
-                message = b"memory"
+            except (MemoryError, SystemError):  # (SuperLU's failed expansion of its work space, "Can't expand
+                message = b"memory"  # MemType", comes back as a SystemError where Python's own allocation failed)
             except RuntimeError:
                 message = b"singular"
         except BaseException as error:  # (whatever else, named where memory is left to name it: no count)
