@@ -180,11 +180,11 @@ def test_a_dense_row_is_measured_in_a_child_process_and_solves_as_before(monkeyp
 def test_the_child_process_stops_at_the_memory_it_is_given(monkeypatch):
     """A dense row whose fill is ~0.3 n^2 under SuperLU's order: the child runs out of the memory it was given
     and the guard refuses, naming it; with room it counts what this process's factorisation counts."""
-    D = 3000
+    D = 5000  # (~0.22 n^2 = 5.5e6 entries: their values alone 44 MB, beyond the 32 MiB given, whatever the heap)
     rows, cols, n = _pattern("dense row", D)
     matrix = pattern_matrix(rows, cols, n, D)
-    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "64M")
-    with pytest.raises(fill.FillOverLimit, match=r"one factorisation of the pattern ran out of the 0.0625 GiB"):
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "32M")
+    with pytest.raises(fill.FillOverLimit, match=r"one factorisation of the pattern ran out of the 0.0312 GiB"):
         fill.measured_fill(rows, cols, n, D, 10**5)
     lu = splinalg.splu(matrix)
     assert fill.capped_trial(matrix, 2**30, 120.0) == lu.L.nnz + lu.U.nnz
@@ -209,9 +209,9 @@ def test_rows_that_pivot_last_are_measured_not_refused_on_the_bound(monkeypatch)
 
 def test_a_dense_row_whose_count_runs_out_of_memory_is_refused(monkeypatch):
     """A chain of states whose boundary value is their total (one dense row): under SuperLU's order its
-    factors fill ~0.22 n^2 (1.95e6 entries here), the bound says little, and the count in the child runs out of
+    factors fill ~0.22 n^2 (1.95e6 entries at 3,000), the bound says little, and the count in the child runs out of
     the memory allowed: the guard refuses, naming the size and why."""
-    K = 3000
+    K = 5000  # (~0.22 n^2 = 5.5e6 entries: their values alone 44 MB, beyond the 32 MiB allowed, whatever the heap)
     m = dm.Model("chain_and_sum")
     y = m.states("y", K)
     (z,) = m.algebraics("z")
@@ -220,10 +220,10 @@ def test_a_dense_row_whose_count_runs_out_of_memory_is_refused(monkeypatch):
     m.constraint(z - sp.Add(*y), name="total")
     m.initial(y=np.linspace(0.1, 1.0, K))
     compiled = m.compile()
-    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "64M")
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "32M")
     refused = (
-        r"radau on 1 sample\(s\) of 3001 unknowns: the LU factors of its sparse Newton systems could not be "
-        r"counted within the 0.0625 GiB allowed \(one factorisation of the pattern ran out of the 0.0625 GiB it "
+        r"radau on 1 sample\(s\) of 5001 unknowns: the LU factors of its sparse Newton systems could not be "
+        r"counted within the 0.0312 GiB allowed \(one factorisation of the pattern ran out of the 0.0312 GiB it "
         r"was given; set DAEMODEL_MEMORY_LIMIT, e.g. '64G', to change it\): fewer unknowns"
     )
     with pytest.raises(E.ResourceLimitError, match=refused):
