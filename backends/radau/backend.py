@@ -11,16 +11,24 @@ from daemodel.backends.radau.band import BAND_SPARE_BUFFERS, BandKernel, band_en
 from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
+from daemodel.backends.radau.fill import FillOverLimit, measured_fill
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.outputs import marked, resolve_outputs, resolved_outputs
-from daemodel.backends.radau.sparse import band_orders, factor_entries, jacobian_pattern
+from daemodel.backends.radau.sparse import band_orders, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import stage_transform
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
-from daemodel.errors import CompileError, ConvergenceError, DaemodelError, InvalidOptionError, TimeLimitError
-from daemodel.files import check_memory, memory_limit
+from daemodel.errors import (
+    CompileError,
+    ConvergenceError,
+    DaemodelError,
+    InvalidOptionError,
+    ResourceLimitError,
+    TimeLimitError,
+)
+from daemodel.files import MEMORY_LIMIT_VARIABLE, check_memory, memory_limit
 from daemodel.messages import clip
 from daemodel.tableau import radau_iia
 
@@ -56,7 +64,9 @@ class RadauBackend(AbstractBackend):
     ):
         began = time.perf_counter()  # (the memory estimate reads the Jacobian's pattern: setup)
         engine_name, D = make_engine_name(start, options), len(compiled.states) + len(compiled.algebraics)
-        parts = memory_parts(compiled, t_span, start.size, options, engine_name)  # (made once: one LU of the pattern)
+        parts = memory_parts(
+            compiled, t_span, start.size, options, engine_name
+        )  # (made once: one LU of the pattern, .fill)
         check_memory(f"radau on {start.size} sample(s) of {D} unknowns", parts)
         machine_code, said = jit_choice(engine_name, options, D)
         # "auto" remembers a failed compile of this model for the process (and its pieces between events
@@ -169,7 +179,7 @@ SMALLER_STEP = 4
 
 
 # The fill of the s D-sized full Newton system's SuperLU factors, over s^2 times that of one D-sized
-# system (:func:`.sparse.factor_entries`): 0.72-0.74 measured on reaction-diffusion at 600
+# system (:func:`.fill.measured_fill`): 0.72-0.74 measured on reaction-diffusion at 600
 # unknowns, 0.92-0.94 on the chain of 60 pendulums (300), s = 3, 5, 7.
 STAGE_FILL = 1.0
 
@@ -179,18 +189,54 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
     Newton matrices (a stage Jacobian and the factored transformed systems: about (2s + 1) D^2 a
     sample where they are dense, the torch engine's and the casadi engine's small or full systems;
     on the casadi engine's sparse systems the Jacobian's nonzeros and s factors of the fill SuperLU
-    makes of its pattern, :func:`.sparse.factor_entries`, and on fixed steps the full Newton
+    makes of its pattern, :func:`.fill.measured_fill`, and on fixed steps the full Newton
     system of s D unknowns, about s^2 that fill: :data:`STAGE_FILL`), and the outputs (a fixed grid's
     points, or t_eval's; with t_eval or ``dense_output``, each step's stages for the dense output).
-    Adaptive steps add per step what :func:`step_record_bytes` says."""
+    Adaptive steps add per step what :func:`step_record_bytes` says.  A :class:`ResourceLimitError` where
+    the fill is known to be beyond :func:`memory_limit` before it is measured (:mod:`.fill`)."""
     n, D, s = len(compiled.states), len(compiled.states) + len(compiled.algebraics), options.stages
     itemsize = 4 if options.dtype == "float32" else 8
     parts = {"Newton matrices": B * (2 * s + 1) * D * D * itemsize}
+    steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
+    outputs = {}
+    if options.t_eval is not None:
+        outputs["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
+    if steps is not None:
+        if options.t_eval is not None:
+            name = "step records"
+        else:
+            name = "outputs with the dense output (dense_output=False keeps the step ends only)"
+            name = name if options.dense_output else "outputs"
+        outputs[name] = steps * step_record_bytes(D, B, options)
     if engine == "casadi" and D > DENSE_MAX_SIZE:
         rows, cols = jacobian_pattern(compiled)
         if not dense_systems(D, rows.size):
+            # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors the s D-sized
+            # system, its matrix and its factors in float64: s^2 nonzeros of J's, and STAGE_FILL s^2 times the fill
+            # (2.2-6.4x s times it at s = 3-7: the guard under-counted)
+            full = not options.adaptive or options.start_guess is not None
+            fixed, per_entry = rows.size * 8 * (s + 1) + (s * s * rows.size * 8 if full else 0), s * 16
+            per_entry += s * s * STAGE_FILL * 8 if full else 0
+            left = (memory_limit() - sum(outputs.values()) - fixed) / per_entry  # (the fill the limit leaves)
+            try:  # (per model)
+                fill = compiled.cached("radau-factor-entries", lambda: measured_fill(rows, cols, n, D, max(left, 0)))
+            except FillOverLimit as over:
+                allowed = f"the {memory_limit() / 2**30:.3g} GiB allowed"
+                setting = f"set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it"
+                if over.entries is None:
+                    held = f"could not be counted within {allowed} ({over.reason}; {setting})"
+                else:
+                    gib = (fixed + per_entry * over.entries) / 2**30
+                    held = (
+                        f"would hold about {over.entries:.3g} entries or more ({over.reason}), {gib:.3g} GiB with "
+                        f"its {s} stages' systems, more than {allowed} (the fill that fits: {max(left, 0):.3g} "
+                        f"entries; {setting})"
+                    )
+                raise ResourceLimitError(
+                    f"radau on {B} sample(s) of {D} unknowns: the LU factors of its sparse Newton systems {held}: "
+                    "fewer unknowns, or a Jacobian pattern that fills less (banded, block-diagonal), would fit"
+                ) from None
             # (the complex systems' factors at 16 bytes an entry, the real one's at 8: s of them in all)
-            fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))  # (per model)
             order, systems = band_orders(compiled, rows, cols, n, D), s * fill
             if order is not None:  # (factored in it: at most this more fill)
                 fill = BAND_FILL_RATIO * fill
@@ -199,23 +245,10 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
                 if band is not None and options.jit is not False and find_compiler() is not None:
                     systems = (s + 2 * BAND_SPARE_BUFFERS) * band
             matrices = rows.size * 8 * (s + 1) + systems * 16
-            if not options.adaptive or options.start_guess is not None:
-                # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors
-                # the s D-sized system, its matrix and its factors in float64: s^2 nonzeros of J's, and
-                # STAGE_FILL s^2 times the fill (2.2-6.4x s times it at s = 3-7: the guard under-counted)
+            if full:
                 matrices += s * s * (rows.size + STAGE_FILL * fill) * 8
             parts = {"Newton matrices (sparse)": int(matrices)}
-    steps = None if options.adaptive else grid_steps(t_span, options.h, max_steps=options.max_steps)
-    if options.t_eval is not None:
-        parts["outputs"] = B * len(output_times(options.t_eval, t_span, ())) * D * 8  # validated first
-    if steps is not None:
-        if options.t_eval is not None:
-            name = "step records"
-        else:
-            name = "outputs with the dense output (dense_output=False keeps the step ends only)"
-            name = name if options.dense_output else "outputs"
-        parts[name] = steps * step_record_bytes(D, B, options)
-    return parts
+    return parts | outputs
 
 
 def make_engine_name(start, options: RadauOptions) -> str:

@@ -113,7 +113,9 @@ class OrderedLU:
         return x
 
 
-def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) -> BandOrder | None:
+def band_order(
+    rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int, max_entries: float = math.inf
+) -> BandOrder | None:
     """The reverse Cuthill-McKee order of ``sigma M - J`` (J of the pattern ``(rows, cols)``, ``D``
     unknowns, ``n`` of them differential) where SuperLU's factors in that order hold at most
     :data:`BAND_FILL_RATIO` times ``fill`` entries (COLAMD's, :func:`.sparse.factor_entries`), else None.
@@ -121,7 +123,8 @@ def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) ->
     On a banded pattern (a chain, a 1-D grid) the order keeps the factors within the band, and a
     factorisation in it skips SuperLU's own ordering (COLAMD) each time and pads no supernode
     (:data:`BAND_RELAX`): 2.3x faster on reaction-diffusion's pair of systems at 10^5 unknowns.
-    Elsewhere (a 2-D grid: its band is ~sqrt(D) wide) COLAMD fills less, and the order is None.
+    Elsewhere (a 2-D grid: its band is ~sqrt(D) wide) COLAMD fills less, and the order is None; None too,
+    untried, where the band's bound on its factors (D times :func:`band_storage`) is over ``max_entries``.
 
     Of scipy's order and :func:`peripheral_cuthill_mckee`'s, the one with the narrower band storage is
     taken: scipy starts each component at a node of least degree, which on reaction-diffusion's pattern
@@ -144,6 +147,8 @@ def band_order(rows: np.ndarray, cols: np.ndarray, n: int, D: int, fill: int) ->
         if match is None:
             candidates.append(BandOrder(np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True), np.int64)))
     order = min(candidates, key=lambda o: band_storage(o, rows, cols))  # (the first of the narrowest)
+    if D * band_storage(order, rows, cols) > max_entries:  # (its trial might not fit: the band bounds its fill)
+        return None
     ordered = sparse.csc_matrix(matrix[order.rows][:, order.columns])
     try:
         lu = splinalg.splu(ordered, permc_spec="NATURAL")

@@ -383,11 +383,18 @@ def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
 
 def band_orders(compiled, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> BandOrder | None:
     """The band order of the model's sparse shifted systems (:func:`.linalg.band_order`, measured against
-    the fill of :func:`.sparse.factor_entries`), or None: made once per model."""
+    the fill of :func:`.sparse.factor_entries`), or None: made once per model.  Each trial factorisation
+    stays within the memory limit: the fill's (:func:`.fill.measured_fill`, which :func:`.backend.memory_parts`
+    made first in a solve; here at most one complex system's factors), and the band order's, skipped where
+    the band's own bound on it (D times its band storage) would not fit."""
+    from daemodel.backends.radau.fill import TRIAL_BYTES_PER_ENTRY, measured_fill
+
+    from daemodel.files import memory_limit
 
     def build():
-        fill = compiled.cached("radau-factor-entries", lambda: factor_entries(rows, cols, n, D))
-        return band_order(rows, cols, n, D, fill)
+        most = memory_limit() / 16  # (without the solve's options: one complex system's factors, at least)
+        fill = compiled.cached("radau-factor-entries", lambda: measured_fill(rows, cols, n, D, most))
+        return band_order(rows, cols, n, D, fill, memory_limit() / TRIAL_BYTES_PER_ENTRY)
 
     return compiled.cached("radau-band-order", build)
 
