@@ -1,6 +1,6 @@
 """How many entries the LU factors of ``sigma M - J`` hold, found within the memory the solve may take.
 
-The memory guard counts the fill of SuperLU's factors of the Jacobian's pattern (:func:`.sparse.factor_entries`:
+The memory guard counts the fill of SuperLU's factors of the Jacobian's pattern (:func:`.fill.factor_entries`:
 one factorisation at values drawn once).  That trial is as large as the factors it measures: on a random sparse
 pattern of 10^4 unknowns (0.14 n^2 entries) it took 6-25 s, and at 10^5 it would need ~17 GB and hours, the guard
 exhausting the machine before it could refuse.  So the trial runs only where a bound says it is affordable:
@@ -34,8 +34,7 @@ import math
 import os
 
 import numpy as np
-from daemodel.backends.radau.linalg import pattern_matrix
-from daemodel.backends.radau.sparse import factor_entries, sorted_unique
+from daemodel.backends.radau.linalg import pattern_matrix, sorted_unique
 
 from daemodel.errors import DaemodelError
 
@@ -202,7 +201,7 @@ def _ancestor_reaching(up: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarr
 
 
 def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entries: float) -> int:
-    """The entries of SuperLU's factors of ``sigma M - J`` (:func:`.sparse.factor_entries`), measured only
+    """The entries of SuperLU's factors of ``sigma M - J`` (:func:`.fill.factor_entries`), measured only
     where it can be within the memory limit; :class:`FillOverLimit` where they would be more than
     ``max_entries`` (the largest fill the limit leaves the solve), as the module docstring's steps say."""
     from daemodel.files import memory_limit
@@ -293,3 +292,18 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
         f"one factorisation of the pattern failed in a child process given {max_bytes / 2**30:.3g} GiB "
         f"({answer or 'no answer'})"
     )
+
+
+def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
+    """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
+    ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
+    engine's factors, which pivot on their own values, is of the same order)."""
+    import scipy.sparse.linalg as splinalg
+
+    try:
+        lu = splinalg.splu(pattern_matrix(rows, cols, n, D))
+    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
+        raise
+    except RuntimeError:  # (structurally singular at these values: at most dense)
+        return D * D
+    return int(lu.L.nnz + lu.U.nnz)

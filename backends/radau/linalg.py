@@ -118,7 +118,7 @@ def band_order(
 ) -> BandOrder | None:
     """The reverse Cuthill-McKee order of ``sigma M - J`` (J of the pattern ``(rows, cols)``, ``D``
     unknowns, ``n`` of them differential) where SuperLU's factors in that order hold at most
-    :data:`BAND_FILL_RATIO` times ``fill`` entries (COLAMD's, :func:`.sparse.factor_entries`), else None.
+    :data:`BAND_FILL_RATIO` times ``fill`` entries (COLAMD's, :func:`.fill.factor_entries`), else None.
 
     On a banded pattern (a chain, a 1-D grid) the order keeps the factors within the band, and a
     factorisation in it skips SuperLU's own ordering (COLAMD) each time and pads no supernode
@@ -306,3 +306,11 @@ def permutation_sign(perm: np.ndarray) -> float:
     from daemodel.compiling.determinants import odd_permutation
 
     return -1.0 if odd_permutation(perm) else 1.0
+
+
+def sorted_unique(keys: np.ndarray) -> np.ndarray:
+    """The distinct values of the integer array ``keys``, ascending: ``np.unique``'s result by a sort
+    (numpy 2.4's ``np.unique`` hashes first: 2.8 s against 0.2 s for the 3 x 10^5 keys of a 10^5
+    tridiagonal pattern on a loaded core)."""
+    ordered = np.sort(keys, kind="stable")
+    return ordered[np.r_[True, ordered[1:] != ordered[:-1]]] if ordered.size else ordered

@@ -22,9 +22,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from daemodel.backends.radau.linalg import BandOrder, band_order, pattern_matrix, sparse_lu
-
-from daemodel.errors import DaemodelError
+from daemodel.backends.radau.fill import TRIAL_BYTES_PER_ENTRY, measured_fill
+from daemodel.backends.radau.linalg import BandOrder, band_order, sorted_unique, sparse_lu
 
 # Growth of the factors (max |L|, and max |U| over max |matrix|) beyond which the fixed pivot order is
 # not trusted: partial pivoting keeps |L| <= 1, and a pivot grown small against the entries below it
@@ -350,14 +349,6 @@ def jacobian_pattern(compiled) -> tuple[np.ndarray, np.ndarray]:
     return compiled.casadi_jacobian_pattern()
 
 
-def sorted_unique(keys: np.ndarray) -> np.ndarray:
-    """The distinct values of the integer array ``keys``, ascending: ``np.unique``'s result by a sort
-    (numpy 2.4's ``np.unique`` hashes first: 2.8 s against 0.2 s for the 3 x 10^5 keys of a 10^5
-    tridiagonal pattern on a loaded core)."""
-    ordered = np.sort(keys, kind="stable")
-    return ordered[np.r_[True, ordered[1:] != ordered[:-1]]] if ordered.size else ordered
-
-
 def unique_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     """A lower bound of the entries of ``sigma M - J``'s LU factors, J of the pattern ``(rows, cols)``
     and ``D`` unknowns, ``n`` of them differential: the matrix's distinct entries (J's and M's), and at
@@ -366,29 +357,12 @@ def unique_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     return max(D, int(sorted_unique(np.concatenate([rows * D + cols, diagonal])).size))
 
 
-def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
-    """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
-    ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
-    engine's factors, which pivot on their own values, is of the same order)."""
-    import scipy.sparse.linalg as splinalg
-
-    try:
-        lu = splinalg.splu(pattern_matrix(rows, cols, n, D))
-    except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
-        raise
-    except RuntimeError:  # (structurally singular at these values: at most dense)
-        return D * D
-    return int(lu.L.nnz + lu.U.nnz)
-
-
 def band_orders(compiled, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> BandOrder | None:
     """The band order of the model's sparse shifted systems (:func:`.linalg.band_order`, measured against
-    the fill of :func:`.sparse.factor_entries`), or None: made once per model.  Each trial factorisation
+    the fill of :func:`.fill.factor_entries`), or None: made once per model.  Each trial factorisation
     stays within the memory limit: the fill's (:func:`.fill.measured_fill`, which :func:`.backend.memory_parts`
     made first in a solve; here at most one complex system's factors), and the band order's, skipped where
     the band's own bound on it (D times its band storage) would not fit."""
-    from daemodel.backends.radau.fill import TRIAL_BYTES_PER_ENTRY, measured_fill
-
     from daemodel.files import memory_limit
 
     def build():

@@ -157,7 +157,7 @@ def test_a_model_that_fits_keeps_the_trial_in_this_process(monkeypatch):
     sol = dm.solve(compiled, (0.0, 0.5), rtol=1e-6, atol=1e-8, jit=False)
     assert sol.status == "success"
     rows, cols = radau_sparse.jacobian_pattern(compiled)
-    assert compiled.cached("radau-factor-entries", lambda: None) == radau_sparse.factor_entries(rows, cols, 400, 400)
+    assert compiled.cached("radau-factor-entries", lambda: None) == fill.factor_entries(rows, cols, 400, 400)
 
 
 def test_a_dense_row_is_measured_in_a_child_process_and_solves_as_before(monkeypatch):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sparse
 from daemodel.backends.radau import casadi_engine
+from daemodel.backends.radau import fill as radau_fill
 from daemodel.backends.radau import linalg as radau_linalg
 from daemodel.backends.radau import sparse as radau_sparse
 from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
@@ -237,7 +238,7 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
     values = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
     for sigma in (3.6 + 0j, 2.7 + 3.0j):  # (s = 3's shifts over h = 1, about)
         lu = engine._factor_shift(values, sigma)[0][1]
-        estimate = radau_sparse.factor_entries(rows, cols, len(compiled.states), 600)
+        estimate = radau_fill.factor_entries(rows, cols, len(compiled.states), 600)
         assert (lu.L.nnz + lu.U.nnz) / 2 <= estimate <= 2 * (lu.L.nnz + lu.U.nnz)
     parts = backend.memory_parts(compiled, span, 1, options, "casadi")
     # (factored in its band order, whose fill may be up to BAND_FILL_RATIO times COLAMD's: counted so)
@@ -324,7 +325,7 @@ def test_the_band_order_solves_every_shifted_system(first_engine):
     assert order is not None and np.array_equal(np.sort(order.columns), np.arange(engine.D))
     D, n = engine.D, engine.n
     rows, cols = radau_sparse.jacobian_pattern(compiled)
-    fill = radau_sparse.factor_entries(rows, cols, n, D)
+    fill = radau_fill.factor_entries(rows, cols, n, D)
     rng = np.random.default_rng(3)
     J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0])) * (
         1 + 0.3 * rng.random(len(engine.rows))
@@ -350,10 +351,10 @@ def test_a_two_dimensional_grid_keeps_superlus_order():
     pairs += [(k[i > 0], k[i > 0] - q), (k[i < q - 1], k[i < q - 1] + q)]
     pairs += [(k[j > 0], k[j > 0] - 1), (k[j < q - 1], k[j < q - 1] + 1)]
     rows, cols = (np.concatenate(a) for a in zip(*pairs, strict=True))
-    fill = radau_sparse.factor_entries(rows, cols, q * q, q * q)
+    fill = radau_fill.factor_entries(rows, cols, q * q, q * q)
     assert radau_linalg.band_order(rows, cols, q * q, q * q, fill) is None
     chain = (np.r_[k, k[1:], k[:-1]], np.r_[k, k[:-1], k[1:]])  # a tridiagonal pattern: banded
-    assert radau_linalg.band_order(*chain, q * q, q * q, radau_sparse.factor_entries(*chain, q * q, q * q)) is not None
+    assert radau_linalg.band_order(*chain, q * q, q * q, radau_fill.factor_entries(*chain, q * q, q * q)) is not None
 
 
 def test_the_band_order_takes_the_same_steps_as_colamd(monkeypatch):
@@ -390,7 +391,7 @@ def test_the_band_order_of_a_grid_is_two_wide_in_any_numbering(seed):
     order gave 13 rows in the declared numbering and no band order (a band hundreds wide) in shuffled ones."""
     K = 400
     rows, cols = grid_pattern(K, seed)
-    fill = radau_sparse.factor_entries(rows, cols, K, 2 * K)
+    fill = radau_fill.factor_entries(rows, cols, K, 2 * K)
     order = radau_linalg.band_order(rows, cols, K, 2 * K, fill)
     assert order is not None and radau_linalg.band_storage(order, rows, cols) == 7
     assert np.array_equal(np.sort(order.columns), np.arange(2 * K)) and np.array_equal(
@@ -434,7 +435,7 @@ def test_many_components_keep_scipys_order():
     )  # x_k' from w_k; 0 = g(x_k, w_k)
     graph = radau_linalg.pattern_matrix(rows, cols, blocks, 2 * blocks)
     assert radau_linalg.peripheral_cuthill_mckee((abs(graph) + abs(graph).T).tocsr()) is None
-    fill = radau_sparse.factor_entries(rows, cols, blocks, 2 * blocks)
+    fill = radau_fill.factor_entries(rows, cols, blocks, 2 * blocks)
     order = radau_linalg.band_order(rows, cols, blocks, 2 * blocks, fill)
     assert order is not None and radau_linalg.band_storage(order, rows, cols) <= 4  # (kl, ku <= 1)
 
