@@ -422,6 +422,14 @@ def _decisions(compiled, t: float, y: np.ndarray, z: np.ndarray, p: np.ndarray, 
     )[0]
     decided, signature = {}, []
     for function, number in zip(functions, numbers, strict=True):
+        if not np.isfinite(number):  # (numpy's sign of a nan is nan: a bare "cannot convert float NaN to integer")
+            switch = next(switch for switch in switches if switch.function == function)
+            at = ", ".join(f"{n} = {v:.6g}" for n, v in zip(compiled.state_names, np.ravel(y), strict=True))
+            raise SwitchError(
+                f"{switch.kind} in {switch.equation}: its switching function {function} is {float(number)} at t = "
+                f"{float(t):.12g} ({at}), so the branch cannot be chosen (a nan compares to nothing); write it "
+                "without a sqrt, log or division that the solution takes out of its domain"
+            )
         side = sides.get(function) or (-sides[-function] if -function in sides else None)
         if function in integer:
             signature.append((round(number), side) if side else (math.floor(number), math.ceil(number)))
