@@ -13,7 +13,8 @@ the end values within 5e-5, ten times the states' tolerance at |v| ~ 4.4), "WRON
     python benchmarks/events_large_t0.py [--before DIR] [--limit 90] [--out benchmarks/events_large_t0_after]
 
 ``--before``: a directory holding an earlier tree's ``daemodel`` package (with its ``backends`` inside, as the
-install maps it) and its ``tests``, imported in place of the editable install.  Writes ``<out>.json``.
+install maps it) and its ``tests``, imported in place of the editable install.  Writes ``<out>.json``;
+benchmarks/events_large_t0_after.json holds the latest run (its command says on which tree).
 """
 
 from __future__ import annotations

@@ -138,7 +138,9 @@ class TimeSpanError(ModelError):
 
 
 class StepSizeError(ModelError):
-    """A step size is not positive, or larger than the interval."""
+    """A step size is not positive, larger than the interval, or shorter than float64 resolves t where it is
+    taken: given (a fixed grid's h) or asked for by the error estimate (adaptive radau's steps from t0 = 1e14,
+    below the step size underflow's threshold 1e-14 |t|); the fix is then to count time from near the start."""
 
 
 class UnknownMethodError(ModelError):

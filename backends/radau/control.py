@@ -27,7 +27,7 @@ from daemodel.backends.radau.newton import NewtonPolicy
 from daemodel.backends.radau.options import DEFAULT_NEWTON_ITERATIONS
 from daemodel.backends.radau.sequence import HANDBACK
 
-from daemodel.errors import ConvergenceError, LocalErrorWarning, StepLimitError
+from daemodel.errors import ConvergenceError, LocalErrorWarning, StepLimitError, StepSizeError
 
 # Newton's tolerance (adaptive_newton_tol) for more than three stages is at most this: rtol^(3/4) at s = 7,
 # rtol = atol = 1e-3 (5.6e-3) ran the pendulum over [0, 20] in 11,902 attempts, 40 x (atol + rtol) off, 3e-3
@@ -56,6 +56,10 @@ SHRUNK_BY_ESTIMATE = "the error estimate kept shrinking the step"
 # up to 1.5x keeps h (RADAU5 lets users widen QUOT2 where factorisations are costly); measured with
 # REUSE_THETA_COMPILED, see there.
 KEEP_H_BAND_COMPILED = (1.0, 1.5)
+# A step size underflow that the error estimate caused is float64's resolution of t's doing where its threshold,
+# UNDERFLOW |t| (45-90 spacings of t), is at least this share of t_span: the Max model from t0 = 1e14 over 2.5
+# (threshold 1.0) asked for steps of ~0.13 at rtol 1e-6, and was told its solution may blow up (ConvergenceError).
+RESOLUTION_SHARE = 1e-6
 
 
 # Where the caller may stop the integration (Stepper.integrate's stop), a compiled run makes at most this
@@ -231,7 +235,7 @@ class Radau5Controller:
             python_next = False
             head = sequence.before_attempt(SCALAR, carried, settings)
             if head["underflow"]:
-                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint)
+                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint, t1 - t0)
             h = head["h"]
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
             failed = result is None
@@ -246,7 +250,7 @@ class Radau5Controller:
                         result, _, named, named_sample = stepper.attempt(t, h)
                         why, sample = (named, named_sample) if result is None else (why, sample)
                     why = why if failed else f"error estimate {decisions['err']:.2g} > 1"
-                    raise underflow_error(decisions["h_rejected"], t, why, sample, self.newton_hint)
+                    raise underflow_error(decisions["h_rejected"], t, why, sample, self.newton_hint, t1 - t0)
                 stepper.drop_factors()
                 continue
             stepper.accept(t, h, result, decisions["t_next"])
@@ -363,9 +367,22 @@ def loose_newton_tol_hint(given, default) -> str:
     )
 
 
-def underflow_error(new, t, why, sample, newton_hint="") -> ConvergenceError:
+def underflow_error(new, t, why, sample, newton_hint="", span=None) -> ConvergenceError | StepSizeError:
     """The step size underflow at ``t`` with the step ``new`` (the last failure named); ``newton_hint``:
-    :func:`loose_newton_tol_hint`'s, where the error estimate shrank the step."""
+    :func:`loose_newton_tol_hint`'s, where the error estimate shrank the step.  A :class:`StepSizeError` that
+    names t's float64 spacing where the error estimate shrank the step to a threshold that is t's resolution's
+    (at least :data:`RESOLUTION_SHARE` of ``span``, t_span's length)."""
+    estimate = why is not None and (why == SHRUNK_BY_ESTIMATE or why.startswith("error estimate "))
+    floor = formulas.UNDERFLOW * max(1.0, abs(t))
+    if estimate and span is not None and abs(t) > 1.0 and floor >= RESOLUTION_SHARE * span:
+        spacing = float(np.spacing(abs(t)))
+        return StepSizeError(
+            f"radau: the steps that rtol and atol ask for at t = {t:.17g} are shorter than float64 resolves "
+            f"there: h = {new:.3g} (last failure: {why}) reached the step size underflow's threshold, 1e-14 |t| = "
+            f"{floor:.3g}, {floor / spacing:.0f} float64 spacings of t at |t| = {abs(t):.3g} (spacing {spacing:.3g}), "
+            f"{floor / span:.2g} of t_span; start t_span nearer 0 (shift the model's time), loosen rtol and atol, "
+            "or take more stages (longer steps at the same tolerance); a solution that blows up there ends so too"
+        )
     who = f", sample {sample}" if sample is not None else ""
     if why is not None and why.startswith("not converged in"):  # (the iterations ran out, at every h)
         cause = (
@@ -374,7 +391,7 @@ def underflow_error(new, t, why, sample, newton_hint="") -> ConvergenceError:
         )
     else:
         cause = "the solution may blow up or leave the domain of f there"
-    if why is not None and (why == SHRUNK_BY_ESTIMATE or why.startswith("error estimate ")):
+    if estimate:
         # (the pendulum at s = 7, rtol 1e-4, atol 1e-6 ended here at t = 4.4, smooth and bounded, under RADAU5's
         # Newton tolerance, 0.01 there: stage errors that do not shrink with h; adaptive_newton_tol's 1e-3 runs it)
         cause += (

@@ -270,3 +270,31 @@ class Newton:
 def host(values) -> np.ndarray:
     """A numpy view or copy of an engine's array, of its own dtype."""
     return values if isinstance(values, np.ndarray) else values.detach().cpu().numpy()
+
+
+def jacobian_not_finite(compiled, engine, matrices) -> str:
+    """The cause a singular Newton matrix gives where a Jacobian of ``matrices`` is not finite: its first such entry
+    by name (d(u')/d(x) for sample 0), and the fix.  Each matrix a stack ``(B, ..., D, D)`` (rows f then g, columns
+    y then z), or the nonzeros of one sample at ``engine.rows``, ``engine.cols`` (the casadi engine's)."""
+    names = (*compiled.state_names, *compiled.algebraic_names)
+    rows = (*(f"{y}'" for y in compiled.state_names), *compiled.constraint_names)
+    at, where = (getattr(engine, "rows", None), getattr(engine, "cols", None)), ""
+    for matrix in matrices:
+        values = host(matrix) if hasattr(matrix, "detach") else np.asarray(matrix)
+        bad = np.argwhere(~np.isfinite(values))
+        if not len(bad):
+            continue
+        index = tuple(bad[0])
+        if values.ndim >= 3 and values.shape[-2:] == (len(rows), len(names)):
+            sample, row, column = index[0], index[-2], index[-1]
+        elif values.ndim == 1 and at[0] is not None and len(values) == len(at[0]):
+            sample, row, column = 0, at[0][index[0]], at[1][index[0]]
+        else:
+            continue
+        where = f"d({rows[row]})/d({names[column]}) = {values[index]} for sample {sample}: "
+        break
+    return (
+        f"the Jacobian of f and g is not finite there ({where}f or g is not differentiable at this state, e.g. "
+        "sqrt(x) at x = 0, or the state left their domain, e.g. sqrt or log of a negative value, which a step "
+        "this long can cause); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
+    )

@@ -23,7 +23,7 @@ from daemodel.backends.radau.compiled import STEP_RESULTS
 from daemodel.backends.radau.engines import Residual
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.formulas import SCALAR
-from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton
+from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton, jacobian_not_finite
 from daemodel.backends.radau.transform import embedded_weights
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
@@ -209,11 +209,7 @@ class Stepper:
         head = f"radau: the {what} is singular for sample {sample} at t = {t:.6g} with h = {h:.3g}"
         matrices = J if isinstance(J, list) else [J]
         if not all(bool(self.xp.isfinite(m).all()) for m in matrices):
-            raise ConvergenceError(
-                f"{head}: the Jacobian of f and g is not finite there (f or g is not differentiable at this "
-                "state, e.g. sqrt(x) at x = 0, or the state left their domain, e.g. sqrt or log of a negative "
-                "value, which a step this long can cause); take a smaller h, or the adaptive mode (rtol=..., atol=...)"
-            )
+            raise ConvergenceError(f"{head}: {jacobian_not_finite(self.compiled, self.engine, matrices)}")
         signs = self.engine.z_matrix_sign(J)
         if self.m and bool((signs == 0).any()):
             raise ConvergenceError(

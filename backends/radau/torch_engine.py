@@ -117,7 +117,7 @@ class TorchEngine(AbstractEngine):
             matrix = (-J).to(self.complex_dtype)
             matrix.diagonal(dim1=-2, dim2=-1)[..., self._diag] += sigma
         LU, pivots, info = torch.linalg.lu_factor_ex(matrix)
-        return (LU, pivots), info > 0
+        return (LU, pivots), singular(torch, LU, info)
 
     def solve(self, lu, rhs):
         LU, pivots = lu
@@ -144,7 +144,7 @@ class TorchEngine(AbstractEngine):
             N[:, i, n:, i, :] = stage_J[:, i, n:, :]
             N[:, i, :n, i, :n] += self._stage_eye
         LU, pivots, info = torch.linalg.lu_factor_ex(N.reshape(B, s * D, s * D))
-        return StageFactors(lu=(LU, pivots), singular=info > 0)
+        return StageFactors(lu=(LU, pivots), singular=singular(torch, LU, info))
 
     def solve_stages(self, factors, R):
         LU, pivots = factors.lu
@@ -153,3 +153,11 @@ class TorchEngine(AbstractEngine):
 
     def first(self, mask):
         return int(self.torch.nonzero(mask)[0])
+
+
+def singular(torch, LU, info):
+    """``(B,)``: where torch's LU is singular or not finite (a nan in the Jacobian: sqrt(-x), which torch gives as
+    nan, passed lu_factor_ex's info = 0, and the solve went on to torch's bare RuntimeError "expected scalar type
+    Double but found ComplexDouble"; linalg's dense LU counts a factor that is not finite as singular too), so that
+    the step names the Jacobian that is not finite (Stepper.check_singular)."""
+    return (info > 0) | ~torch.isfinite(LU).flatten(1).all(dim=1)

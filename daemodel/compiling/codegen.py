@@ -28,7 +28,7 @@ import sympy as sp
 from sympy.printing.str import StrPrinter
 
 from daemodel.declaring.arrays import identifier
-from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS
+from daemodel.declaring.functions import FUNCTIONS, REDUCTIONS, compared, ordered
 from daemodel.errors import ShapeError, UnsupportedFunctionError
 
 _COUNTER = itertools.count()
@@ -94,6 +94,10 @@ class TorchPrinter(StrPrinter):
         out = self._branch(expr.args[-1].expr)
         for value, cond in reversed(expr.args[:-1]):
             out = f"torch.where({self._print(cond)}, {self._branch(value)}, {out})"
+        sides = dict.fromkeys(compared(expr))  # (a nan compared: no branch holds, a nan: functions.compared)
+        if sides:
+            unordered = " | ".join(f"torch.isnan({self._print(side)})" for side in sides)
+            out = f"torch.where({unordered}, y.new_tensor(math.nan), {out})"
         return out
 
     def _print_Relational(self, expr):
@@ -375,14 +379,18 @@ class CasadiConverter:
         return 1.0 if expr is sp.true else 0.0 if expr is sp.false else None
 
     @staticmethod
-    def _piecewise(pieces: int, value, condition):
+    def _piecewise(pieces: int, value, condition, sides=()):
         """A Piecewise of ``pieces`` (value, condition) pairs as nested ``if_else``, the last value the
-        otherwise branch; ``value(k)``, ``condition(k)`` convert pair k (a scalar or a vector)."""
+        otherwise branch; ``value(k)``, ``condition(k)`` convert pair k (a scalar or a vector); ``sides``: the
+        converted operands of its conditions' comparisons (a nan among them gives a nan:
+        :func:`~daemodel.declaring.functions.compared`)."""
         import casadi
 
         out = value(pieces - 1)
         for k in reversed(range(pieces - 1)):
             out = casadi.if_else(condition(k), value(k), out)
+        if len(sides):
+            out = casadi.if_else(_fold(casadi.logic_and, [ordered(side) for side in sides]), out, math.nan)
         return out
 
     def _structure(self, expr) -> tuple:
@@ -414,10 +422,12 @@ class CasadiConverter:
         if self._number(first) is not None:
             return casadi.SX(casadi.DM([self._number(e) for e in exprs]))
         if isinstance(first, sp.Piecewise):
+            operands = [compared(e) for e in exprs]  # (of one structure: in the same places)
             return self._piecewise(
                 len(first.args),
                 lambda k: self._vector([e.args[k].expr for e in exprs]),
                 lambda k: self._vector([e.args[k].cond for e in exprs]),
+                [self._vector([sides[j] for sides in operands]) for j in range(len(operands[0]))],
             )
         args = [self._vector([e.args[k] for e in exprs]) for k in range(len(first.args))]
         return self._combine(first, args)
@@ -463,7 +473,8 @@ class CasadiConverter:
             return number
         if isinstance(expr, sp.Piecewise):
             pairs = expr.args
-            return self._piecewise(len(pairs), lambda k: self(pairs[k].expr), lambda k: self(pairs[k].cond))
+            sides = [self(side) for side in compared(expr)]
+            return self._piecewise(len(pairs), lambda k: self(pairs[k].expr), lambda k: self(pairs[k].cond), sides)
         return self._combine(expr, [self(a) for a in expr.args])
 
 

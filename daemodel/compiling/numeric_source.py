@@ -7,8 +7,10 @@ from __future__ import annotations
 import sympy as sp
 from sympy.core.relational import Relational
 from sympy.functions.elementary.piecewise import ExprCondPair
-from sympy.logic.boolalg import BooleanFunction
+from sympy.logic.boolalg import ITE, BooleanFunction
 from sympy.printing.numpy import SciPyPrinter
+
+from daemodel.declaring.functions import compared
 
 # lambdify's modules: scipy first, for the functions numpy lacks (erf would fall back to math.erf,
 # which takes no arrays).
@@ -60,6 +62,19 @@ class NumericPrinter(SciPyPrinter):
         while len(texts) > LONG_SUM:
             texts = [f"({' + '.join(texts[i : i + LONG_SUM])})" for i in range(0, len(texts), LONG_SUM)]
         return " + ".join(texts)
+
+    def _print_Piecewise(self, expr):
+        # (a nan compared in a condition: no branch holds, and the value is a nan, not the otherwise branch's, as
+        # casadi's and torch's: functions.compared)
+        sides = dict.fromkeys(compared(expr))
+        if not sides or any(pair.cond.has(ITE) for pair in expr.args):
+            return super()._print_Piecewise(expr)
+        isnan = self._module_format(self._module + ".isnan")
+        conds = [" | ".join(f"{isnan}({self._print(side)})" for side in sides)]
+        conds += [self._print(pair.cond) for pair in expr.args]
+        values = ["nan", *(self._print(pair.expr) for pair in expr.args)]
+        select = self._module_format(self._module + ".select")
+        return f"{select}([{','.join(conds)}], [{','.join(values)}], default=nan)"
 
     def doprint(self, expr, assign_to=None):
         text = None if assign_to is not None else self.shaped_text(expr)

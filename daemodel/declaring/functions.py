@@ -49,6 +49,27 @@ def _minimum(a, b):
     return casadi.if_else(a <= b, a, casadi.if_else(a > b, b, a + b))
 
 
+def compared(piecewise) -> list:
+    """The operands of the comparisons in ``piecewise``'s conditions that are not numbers, in the order of a
+    preorder walk (one per operand met).  Where one is a nan no condition is true or false: sympy's Piecewise
+    took the otherwise branch (nan > 0 is False in numpy, torch and casadi alike), and u' = Piecewise((1,
+    sqrt(c - 2) > 0), (0, True)) x at c = 1 was solved to u = 0 with "success".  The emitters give a nan there
+    (passed on as Max's and Min's are: :func:`_maximum`)."""
+    return [
+        side
+        for pair in piecewise.args[:-1]
+        for node in sp.preorder_traversal(pair.cond)
+        if isinstance(node, sp.core.relational.Relational)
+        for side in (node.lhs, node.rhs)
+        if side.free_symbols
+    ]
+
+
+def ordered(a):
+    """On casadi: 1 where ``a`` compares (is no nan), else 0 (``a == a`` simplifies to 1 there)."""
+    return casadi.logic_or(a <= 0, a > 0)
+
+
 # Two-argument-or-more reductions, folded pairwise.
 REDUCTIONS: dict[type, tuple[str, str, object]] = {
     sp.Max: ("Max", "maximum", _maximum),

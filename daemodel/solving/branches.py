@@ -210,6 +210,8 @@ class Start:
     sliding: dict = dataclasses.field(default_factory=dict)
     # the events whose functions are at zero where the piece starts
     at_zero: frozenset = frozenset()
+    # of those, the declared events reset there (their side read back over the shortest look-ahead: _back_sooner)
+    reset: frozenset = frozenset()
 
 
 def start_piece(
@@ -311,6 +313,7 @@ def start_piece(
         elif event.strict and e in at_zero:
             sides[e] = chosen[event.when]
     declared = [e for e in sorted(at_zero) if not events[e].strict]
+    reset = frozenset(e for e in declared if crossing.get(e) is not None)
     if declared:
         changes = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows)
         for e in declared:
@@ -331,6 +334,7 @@ def start_piece(
         time.perf_counter() - started,
         sliding,
         frozenset(at_zero),
+        reset,
     )
 
 

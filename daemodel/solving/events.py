@@ -86,7 +86,7 @@ from daemodel.solving.branches import (
     start_piece,
     time_text,
 )
-from daemodel.solving.crossings import crossing_stop, first_crossing
+from daemodel.solving.crossings import crossing_stop, first_crossing, settled
 from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
 from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
 from daemodel.solving.pieces import (
@@ -223,7 +223,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         setup_time += sol.setup_time
         last = sol
         T, Ys, Zs = outputs(sol, compiled)
-        F = piece_when(T, Ys, Zs, np.repeat(P, len(T), axis=0))
+        F = settled(piece_when(T, Ys, Zs, np.repeat(P, len(T), axis=0)), T, t, begin)
         first, which, hit, before_index = None, None, {}, None
         for e, event in enumerate(events):
             hits = first_crossing(F[:, e], event.direction, bool(begin.armed[e]), begin.sides[e])

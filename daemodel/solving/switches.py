@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import time
 
 import numpy as np
 
@@ -61,12 +62,15 @@ def solve_with_breakpoints(backend, compiled, t_span, start, options):
 
     P = np.asarray(start.p, dtype=float)
     groups: dict = {}
+    began = time.perf_counter()  # (finding the breakpoints, kept with the model: setup, as the model's code is)
     for b in range(len(P)):
         times = breakpoints(compiled, t_span, P[b])
         key = next((k for k in groups if _same(k, times, t_span)), None)
         groups.setdefault(key if key is not None else tuple(times.tolist()), []).append(b)
+    found = time.perf_counter() - began
     if len(groups) == 1:
-        return _solve_segments(backend, compiled, t_span, start, options, np.asarray(next(iter(groups))))
+        sol = _solve_segments(backend, compiled, t_span, start, options, np.asarray(next(iter(groups))))
+        return dataclasses.replace(sol, setup_time=sol.setup_time + found)
     if getattr(options, "t_eval", None) is None:
         (first, one), (second, other) = list(groups.items())[:2]
         raise SwitchError(
@@ -79,7 +83,8 @@ def solve_with_breakpoints(backend, compiled, t_span, start, options):
         index = np.asarray(members)
         sub = InitialStates(y0=start.y0[index], z0=start.z0[index], p=start.p[index], batched=True)
         parts.append((index, _solve_segments(backend, compiled, t_span, sub, options, np.asarray(times))))
-    return join_samples(parts, len(P), start.batched)
+    sol = join_samples(parts, len(P), start.batched)
+    return dataclasses.replace(sol, setup_time=sol.setup_time + found)
 
 
 def _same(key: tuple, times: np.ndarray, t_span) -> bool:

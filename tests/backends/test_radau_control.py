@@ -241,8 +241,44 @@ def test_a_span_below_the_resolution_of_its_steps_is_not_success():
     m.ode("v", "-x")
     m.ode("u", "x")
     m.initial(t=1e15, x=math.cos(1.0), v=math.sin(1.0), u=0.0)
-    with pytest.raises(E.ConvergenceError, match=r"step size underflow at t = 1e\+15"):
+    with pytest.raises(E.StepSizeError, match=r"at t = 1000000000000000 are shorter than float64 resolves there"):
         dm.solve(m, (1e15, 1e15 + 2.0), method="radau", rtol=1e-8, atol=1e-8)
+
+
+def test_steps_below_t_s_resolution_are_a_step_size_error_naming_t_s_spacing():
+    """x = cos(t - t0 - 1), u' = Max(0, x - 0.5) from t0 = 1e14 over 2.5 at rtol 1e-6 (benchmarks/events_large_t0.py):
+    the steps the error estimate asks for (~0.13) are below the underflow threshold, 1e-14 |t| = 1 (64 spacings of t
+    there).  Before: ConvergenceError "the solution may blow up or leave the domain of f there, or ... Newton's
+    tolerance": not the cause.  Seven stages (longer steps) run it, flagged by t's resolution at the switch."""
+    t0 = 1e14
+    m = dm.Model("cap")
+    m.states("x v u")
+    m.ode("x", "v")
+    m.ode("v", "-x")
+    m.ode("u", "Max(0, x - 0.5)")
+    m.initial(t=t0, x=math.cos(1.0), v=math.sin(1.0), u=0.0)
+    message = (
+        r"radau: the steps that rtol and atol ask for at t = 100000000000000 are shorter than float64 resolves there: "
+        r"h = [0-9.]+ \(last failure: error estimate [0-9.e+]+ > 1\) reached the step size underflow's threshold, "
+        r"1e-14 \|t\| = 1, 64 float64 spacings of t at \|t\| = 1e\+14 \(spacing 0\.0156\), 0\.4 "
+        r"of t_span; start t_span nearer 0 \(shift the model's time\), loosen rtol and atol, or take more stages"
+    )
+    with pytest.raises(E.StepSizeError, match=message):
+        dm.solve(m, (t0, t0 + 2.5), method="radau", rtol=1e-6, atol=1e-6)
+    with pytest.warns(E.EventResolutionWarning):
+        sol = dm.solve(m, (t0, t0 + 2.5), method="radau", rtol=1e-6, atol=1e-6, stages=7)
+    assert sol.status.startswith('flagged: event "Max in u\'" at t = ')
+
+
+def test_an_underflow_near_zero_or_on_a_long_span_is_no_step_size_error():
+    """The same underflow where 1e-14 |t| is below a millionth of t_span (t = 4.4, or t = 1e14 over 1e9) keeps
+    its ConvergenceError: the solution may blow up there."""
+    from daemodel.backends.radau.control import SHRUNK_BY_ESTIMATE, underflow_error
+
+    assert type(underflow_error(4.4e-14, 4.4, SHRUNK_BY_ESTIMATE, None, "", 6.0)) is E.ConvergenceError
+    assert type(underflow_error(0.5, 1e14, SHRUNK_BY_ESTIMATE, None, "", 1e9)) is E.ConvergenceError
+    assert type(underflow_error(0.5, 1e14, "not converged in 10 iterations", None, "", 2.5)) is E.ConvergenceError
+    assert type(underflow_error(0.5, 1e14, SHRUNK_BY_ESTIMATE, None, "", 2.5)) is E.StepSizeError
 
 
 @pytest.mark.parametrize("t0", [1.0, 1e6, -1e6, 1e15])

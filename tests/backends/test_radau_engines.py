@@ -342,3 +342,21 @@ def test_the_casadi_engine_writes_its_inputs_into_the_bound_buffer():
     assert r.R.tobytes() == engine._residual(inputs)[: r.R.size].tobytes()
     with pytest.raises(ValueError, match=r"casadi function residual takes \d+ inputs; the parts hold \d+"):
         engine._residual.packed(0.1, 0.05, y[0])  # (W left out)
+
+
+@pytest.mark.parametrize("options", [{}, {"h": 0.1, "stages": 3}])
+def test_a_nan_jacobian_in_the_torch_engine_is_the_casadi_engine_s_named_error(options):
+    # u' = sqrt(-x) from x = 1: torch's LU of a matrix holding the nan passed with info = 0, and the solve went on to
+    # torch's bare RuntimeError "expected scalar type Double but found ComplexDouble"; the casadi engine's error
+    # names the Jacobian that is not finite, at t = 0, and (both engines) its entry: d(u')/d(x)
+    m = dm.Model("sqrtneg")
+    m.states("x u")
+    m.ode("x", "-x")
+    m.ode("u", "sqrt(-x)")
+    m.initial(x=1.0, u=0.0)
+    messages, message = [], r"at t = 0 with h = .*: the Jacobian of f and g is not finite there \(d\(u'\)/d\(x\) = nan"
+    for engine in ("casadi", "torch"):
+        with pytest.raises(E.ConvergenceError, match=message) as e:
+            dm.solve(m, (0.0, 1.0), method="radau", engine=engine, **options)
+        messages.append(str(e.value))
+    assert messages[0] == messages[1]

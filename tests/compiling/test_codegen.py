@@ -420,3 +420,72 @@ def test_radau_differentiates_an_arrows_dense_row_apart(monkeypatch):
     assert sol.status == "success"
     assert 2 * K + 1 not in seen and K * 2 in seen and 1 in seen
     np.testing.assert_allclose(sol["mean"][-1], np.mean(sol["c"][:, -1]), rtol=1e-12)
+
+
+def test_a_nan_compared_in_a_piecewise_condition_gives_a_nan_in_every_emitter():
+    # nan > 0 is False in numpy, torch and casadi alike: Piecewise((1, sqrt(b) > 0), (2, True)) took the otherwise
+    # branch, 2, where b < 0 (sympy's own value there is no number either).  Now a nan, in all three; the second
+    # condition (an And of two comparisons, one on a, one on b) too; finite and infinite values as before
+    m = dm.Model("nanpiece")
+    a, b = m.states("a b")
+    m.ode(a, sp.Piecewise((1, sp.sqrt(b) > 0), (2, True)))
+    m.ode(b, sp.Piecewise((a, sp.And(sp.sqrt(a) < 1, b > 0)), (-a, True)))
+    m.initial(a=1.0, b=1.0)
+    c = m.compile()
+    tf, dae = c.torch_functions(), c.casadi_dae()
+    F = casadi.Function("F", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
+    inf, nan = math.inf, math.nan
+    points = [(0.25, 4.0), (4.0, -1.0), (-1.0, 4.0), (nan, 1.0), (0.25, -1.0), (inf, 0.0), (0.25, 0.0)]
+    expected = [(1.0, 0.25), (nan, -4.0), (1.0, nan), (1.0, nan), (nan, -0.25), (2.0, -inf), (2.0, -0.25)]
+    Y = np.array(points)
+    with np.errstate(invalid="ignore"):
+        f_numpy = c.numeric.batch_function(list(c.rhs))(np.zeros(len(Y)), Y, np.zeros((len(Y), 0)), np.zeros((1, 0)))
+    f_torch = tf.f(torch.zeros(len(Y), dtype=torch.float64), torch.tensor(Y), torch.zeros(len(Y), 0)).numpy()
+    f_casadi = np.array([np.array(F(0.0, y, [], [])).ravel() for y in Y])
+    for name, f in [("numpy", f_numpy), ("torch", f_torch), ("casadi", f_casadi)]:
+        np.testing.assert_array_equal(f, np.array(expected), err_msg=name)
+
+
+@pytest.mark.parametrize(
+    ("method", "options"),
+    [
+        ("radau", {"engine": "casadi"}),
+        ("radau", {"h": 0.1, "stages": 3}),
+        ("casadi-idas", {}),
+        ("reference", {}),
+    ],
+)
+def test_a_piecewise_on_a_nan_in_the_equations_fails_as_the_nan_does(method, options):
+    # u' = Piecewise((1, sqrt(c - 2) > 0), (0, True)) x at c = 1: the parameters' switch has no breakpoint
+    # (sqrt(-1) has no root) and its condition on the nan was False: u = 0 with "success" in every method; now each
+    # raises what it raises for u' = sqrt(c - 2) x
+    def model(rate: str) -> dm.Model:
+        m = dm.Model("piecenan")
+        m.states("x u")
+        m.parameter("c", 1.0)
+        m.ode("x", "-x")
+        m.ode("u", rate)
+        m.initial(x=1.0, u=0.0)
+        return m
+
+    with pytest.raises(E.SolverError) as plain:
+        dm.solve(model("sqrt(c - 2)*x"), (0.0, 1.0), method=method, **options)
+    with pytest.raises(type(plain.value)):
+        dm.solve(model("Piecewise((1, sqrt(c - 2) > 0), (0, True))*x"), (0.0, 1.0), method=method, **options)
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas", "reference"])
+def test_a_switch_on_the_states_that_is_nan_where_its_branch_is_chosen_is_named(method):
+    # u' = Piecewise((1, sqrt(x - 2) > 0), (0, True)) from x = 1: numpy's sign of the nan, cast to int, raised a
+    # bare ValueError "cannot convert float NaN to integer" (switches._decisions) in every method
+    m = dm.Model("piecestate")
+    m.states("x u")
+    m.ode("x", "-x")
+    m.ode("u", "Piecewise((1, sqrt(x - 2) > 0), (0, True))")
+    m.initial(x=1.0, u=0.0)
+    message = (
+        r"Piecewise in u': its switching function sqrt\(x - 2\) is nan at t = 0 \(x = 1, u = 0\), so the branch "
+        r"cannot be chosen \(a nan compares to nothing\); write it without a sqrt, log or division"
+    )
+    with pytest.raises(E.SwitchError, match=message):
+        dm.solve(m, (0.0, 1.0), method=method)

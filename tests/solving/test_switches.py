@@ -686,3 +686,41 @@ def test_code_made_for_the_segments_is_setup(monkeypatch, method):
     monkeypatch.setattr(batch_function.BatchFunction, "__init__", slow_init)
     sol = dm.solve(compiled, (0.0, 1.0), method=method, rtol=1e-8, atol=1e-8)
     assert sol.stats["segments"] == 2 and sol.setup_time >= 0.6 and sol.solve_time < 0.3, sol
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas"])
+def test_breakpoints_are_found_once_per_model_and_span_on_the_setup_clock(monkeypatch, method):
+    """A time switch's breakpoints were found again at every solve (sympy's solveset: 19-86 ms of a two-segment
+    model's solve, on its solve clock); now kept with the model per span and parameter values, their first finding
+    setup.  Measured by slowing the finding down by a known 0.3 s: the first solve's setup holds it, the second
+    finds nothing again; a new span or parameter value finds its own."""
+    import time
+
+    from daemodel.compiling import switches
+
+    roots, found = switches._roots, []
+
+    def slow_roots(*args, **kwargs):
+        found.append(args[-2:])
+        time.sleep(0.3)
+        return roots(*args, **kwargs)
+
+    m = dm.Model("segments")
+    x, y = m.states(["x", "y"])
+    c = m.parameter("c", 0.5)
+    m.ode(x, sp.Piecewise((-x, m.t < c), (-2 * x + y, True)))
+    m.ode(y, -y)
+    m.initial(x=1.0, y=0.5)
+    compiled = m.compile()
+    monkeypatch.setattr(switches, "_roots", slow_roots)
+    first = dm.solve(compiled, (0.0, 1.0), method=method, rtol=1e-8, atol=1e-8)
+    assert first.setup_time >= 0.3 and first.solve_time < 0.3 and len(found) == 1, first
+    again = dm.solve(compiled, (0.0, 1.0), method=method, rtol=1e-8, atol=1e-8)
+    assert len(found) == 1 and again.setup_time < 0.3
+    # x = e^-t to t = c, then x' = -2x + y with y = 0.5 e^-t: x = (x(c) - 0.5 e^-c) e^-2(t-c) + 0.5 e^-t
+    for sol in (first, again):
+        exact = (math.exp(-0.5) - 0.5 * math.exp(-0.5)) * math.exp(-1.0) + 0.5 * math.exp(-1.0)
+        assert abs(sol["x"][-1] - exact) < 1e-6
+    dm.solve(compiled, (0.0, 0.9), method=method)
+    dm.solve(compiled, (0.0, 1.0), method=method, parameters={"c": 0.25})
+    assert len(found) == 3
