@@ -36,6 +36,10 @@ the switch locked to the branch the flow takes where each piece starts
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
 goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`); one whose function rests on
 zero within the method's error keeps its branch where both agree (:mod:`daemodel.solving.resting`).
+
+After the solve, crossings within the method's error (a function that crosses and comes back, or comes near zero,
+within 1000 tolerances of it) stand only where the whole solve 100 times tighter confirms them; else the status
+says they are undecided (:mod:`daemodel.solving.undecided`, ``stats["undecided_checks"]``).
 """
 
 from __future__ import annotations
@@ -81,7 +85,7 @@ from daemodel.solving.branches import (
 from daemodel.solving.crossings import crossing_stop, first_crossing
 from daemodel.solving.hidden import first_excursion
 from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
-from daemodel.solving.misses import CarriedErrors, status_of
+from daemodel.solving.misses import CarriedErrors, status_of, tighter
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
@@ -92,6 +96,7 @@ from daemodel.solving.pieces import (
 from daemodel.solving.resets import apply_resets
 from daemodel.solving.resting import account, gone, rest_or_raise, watch
 from daemodel.solving.switches import for_method, settings_as_given
+from daemodel.solving.undecided import audit
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
@@ -151,7 +156,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     return join_samples(parts, len(P), start.batched)
 
 
-def _one_sample(backend, compiled, t_span, start, options, max_events: int):
+def _one_sample(backend, compiled, t_span, start, options, max_events: int, audited: bool = True):
     from daemodel.backends.grids import output_times
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.dense import Held, joined_in_time
@@ -499,7 +504,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         for name, entry in record.items()
     }
     setup_time += claim_generated(made)
-    return Solution(
+    solution = Solution(
         t=t_out,
         values=out,
         method=last.method,
@@ -515,6 +520,25 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         breakpoints=joined_breakpoints(marks),
         dense=joined_in_time(edges, dense),
     )
+    tight = tighter(options)
+    if not audited or tight is None:  # (a tighter solve's own, or nothing tighter to check with)
+        return solution
+    # (crossings within the method's error, confirmed by the whole solve again TIGHTER times tighter or flagged;
+    # its steps among stats["steps"], its time on the solve's clock)
+    checked, audit_started = [], time.perf_counter()
+
+    def again():
+        checked.append(_one_sample(backend, compiled, t_span, start, tight, max_events, False))
+        return checked[-1]
+
+    flagged = audit(solution, compiled, when, options, P, again)
+    stats["undecided_checks"] = len(checked)
+    if checked:
+        own = ("events", "location_trials", "location_steps", "searches_continued", "rests", "rests_left")
+        stats = merge_stats([stats, {k: v for k, v in checked[0].stats.items() if k not in own}])
+    status = "; ".join(([] if solution.status == "success" else [solution.status]) + flagged) or "success"
+    spent = time.perf_counter() - audit_started
+    return dataclasses.replace(solution, status=status, stats=stats, solve_time=solution.solve_time + spent)
 
 
 def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop, carried: dict, lock: bool):
