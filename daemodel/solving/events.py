@@ -248,8 +248,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
                     if which in rests:
                         raise
                     rests[which] = rest_or_raise(
-                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
-                    )
+                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1,
+                        ahead=0.5 * (a + b),
+                    )  # fmt: skip
                     rested += 1
                     spent[0] = spent_before
                     continue
