@@ -526,10 +526,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
         return solution
     # (crossings within the method's error, confirmed by the whole solve again TIGHTER times tighter or flagged;
     # its steps among stats["steps"], its time on the solve's clock)
-    checked, audit_started = [], time.perf_counter()
+    checked, audit_started, made_before = [], time.perf_counter(), generating_seconds()
 
     def again():
-        checked.append(_one_sample(backend, compiled, t_span, start, tight, max_events, False))
+        with warnings.catch_warnings():  # (the check's own warnings are not the solve's: its status is read)
+            warnings.simplefilter("ignore")
+            checked.append(_one_sample(backend, compiled, t_span, start, tight, max_events, False))
         return checked[-1]
 
     flagged = audit(solution, compiled, when, options, P, again)
@@ -538,8 +540,12 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
         own = ("events", "location_trials", "location_steps", "searches_continued", "rests", "rests_left")
         stats = merge_stats([stats, {k: v for k, v in checked[0].stats.items() if k not in own}])
     status = "; ".join(([] if solution.status == "success" else [solution.status]) + flagged) or "success"
-    spent = time.perf_counter() - audit_started
-    return dataclasses.replace(solution, status=status, stats=stats, solve_time=solution.solve_time + spent)
+    # (code made for it, and the check's own setup, are setup)
+    setup = claim_generated(made_before) + sum(check.setup_time for check in checked)
+    spent = time.perf_counter() - audit_started - setup
+    return dataclasses.replace(
+        solution, status=status, stats=stats, solve_time=solution.solve_time + spent, setup_time=setup_time + setup
+    )
 
 
 def _detect(backend, piece, t: float, t1: float, Y, Z, P, batched, options, stop, carried: dict, lock: bool):

@@ -18,7 +18,8 @@ whatever the runs): the run's crossings stand where that solve records as many i
 (its sample furthest past zero, or the midpoint of two crossings), is past zero (or, with none, on its side) by more
 than its own error (1/TIGHTER of the two solves' difference there) and tolerance.  Else the status says so, never
 "success".  Events with a reset (a bounce) are not read: the reset sends their function back from zero by design.
-Nor are the switches on variables but floor and ceiling: a continuous one (Max, Abs) that the method's error takes
+Nor are the switches on variables but floor and ceiling (read as their argument's signed distance to the nearest
+integer, which crosses zero where it reaches one): a continuous one (Max, Abs) that the method's error takes
 across zero changes nothing beyond it (:mod:`daemodel.solving.resting` weighs its branches where it rests there),
 and one that jumps (sign, Heaviside) is refused where it rests.  A floor of a state that decays onto an integer
 (x = 2.5 e^-t, floor(x) 0 from t = log 2.5 on) recorded 15 crossings of 0 from t = 21.9 to 57.7 under casadi-idas at
@@ -70,7 +71,9 @@ def _vertices(T: np.ndarray, F: np.ndarray, band: np.ndarray) -> np.ndarray:
     g0, g1, g2 = F[:-2], F[1:-1], F[2:]
     s = np.sign(g1)
     towards = (s != 0) & (np.sign(g0) == s) & (np.sign(g2) == s) & (s * g1 < s * g0) & (s * g1 <= s * g2)
-    _, vertex, value = parabola(t0, t1, t2, g0, g1, g2)
+    towards &= (t0 < t1) & (t1 < t2)  # (a crossing's sample beside an output at its time: no parabola)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        _, vertex, value = parabola(t0, t1, t2, g0, g1, g2)
     near = towards & (np.abs(value) <= band[1:-1]) & (vertex > t0) & (vertex < t2) & (vertex != t1)
     return np.unique(np.broadcast_to(vertex, near.shape)[near])
 
@@ -93,41 +96,47 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
         return []
     names = (*compiled.state_names, *compiled.algebraic_names)
     n = len(compiled.state_names)
-    T, V = _samples(sol, names)
-    F = when(T, V[:, :n], V[:, n:], np.repeat(P, len(T), axis=0))
-    band = NEAR_MISS_TOLS * tolerances(when, options, T, V, n, P)
-    vertices = _vertices(T, F[:, which], band[:, which])
-    if len(vertices):  # (an extremum between samples that its parabola puts within the band: read there too)
-        T_all = np.concatenate([T, vertices])
-        order = np.argsort(T_all, kind="stable")
-        T, V = T_all[order], np.concatenate([V, sol.columns_at(vertices, names)])[order]
-        F = when(T, V[:, :n], V[:, n:], np.repeat(P, len(T), axis=0))
-        band = NEAR_MISS_TOLS * tolerances(when, options, T, V, n, P)
+    base_T, base_V = _samples(sol, names)
     tight, statuses = [], []
 
-    def read(solution, t: float, e: int) -> float:
-        u = solution.columns_at(np.array([t]), names)
-        return float(when(np.array([t]), u[:, :n], u[:, n:], P)[0, e])
+    def values(solution, t: np.ndarray, e: int) -> np.ndarray:
+        u = solution.columns_at(t, names)
+        return when(t, u[:, :n], u[:, n:], np.repeat(P, len(t), axis=0))[:, e]
 
     for e in which:
         event = compiled.events[e]
-        crossed = np.asarray(sol.events[event.name]["t"], dtype=float).reshape(-1)
-        for first, last in _runs(np.abs(F[:, e]) <= band[:, e]):
+        record = sol.events[event.name]
+        crossed = np.asarray(record["t"], dtype=float).reshape(-1)
+        T, V = _with_crossings(sol, names, base_T, base_V, crossed, record["before"])
+        F = when(T, V[:, :n], V[:, n:], np.repeat(P, len(T), axis=0))
+        band = NEAR_MISS_TOLS * tolerances(when, options, T, V, n, P)[:, e]
+        F = F[:, e]
+        near = F - np.round(F) if event.integer else F  # (a floor's argument: its distance to the nearest integer)
+        vertices = _vertices(T, near[:, None], band[:, None])
+        if len(vertices):  # (an extremum between samples that its parabola puts within the band: read there too)
+            T, V = _merged(T, V, vertices, sol.columns_at(vertices, names))
+            F = when(T, V[:, :n], V[:, n:], np.repeat(P, len(T), axis=0))
+            band = NEAR_MISS_TOLS * tolerances(when, options, T, V, n, P)[:, e]
+            F = F[:, e]
+            near = F - np.round(F) if event.integer else F
+        for first, last in _runs(np.abs(near) <= band):
+            level = float(np.round(F[first])) if event.integer else 0.0  # (the integer it comes near)
             lo = T[first - 1] if first > 0 else -np.inf
             hi = T[last + 1] if last + 1 < len(T) else np.inf
             inner = crossed[(crossed > lo) & (crossed < hi)]
-            left = F[first - 1, e] if first > 0 else 0.0
-            right = F[last + 1, e] if last + 1 < len(T) else 0.0
-            side = np.sign(left) or np.sign(right) or np.sign(F[first, e]) or 1.0
-            if len(inner) == 1 and left * right < 0:  # (one crossing from one side to the other: decided)
-                continue
+            left = F[first - 1] - level if first > 0 else 0.0
+            right = F[last + 1] - level if last + 1 < len(T) else 0.0
+            side = np.sign(left) or np.sign(right) or 1.0
+            if len(inner) == 1 and left * right <= 0:
+                continue  # (one crossing from one side to the other, or one at an end of the span: none read past it)
             if not len(inner) and left * right <= 0:  # (none recorded: only a hump with one side about it is checked)
                 continue
             # (the extremum: the sample furthest past zero, or the midpoint of two crossings, read on the dense output)
-            at = [(float(T[i]), float(F[i, e])) for i in range(first, last + 1)]
-            at += [(m, read(sol, m, e)) for m in 0.5 * (inner[:-1] + inner[1:])][:8]
-            t_star, f_star = max(at, key=lambda point: -side * point[1])
-            scale = float(band[first + int(np.argmin(np.abs(T[first : last + 1] - t_star))), e]) / NEAR_MISS_TOLS
+            middles = (0.5 * (inner[:-1] + inner[1:]))[:8]
+            at = list(zip(T[first : last + 1], F[first : last + 1] - level, strict=True))
+            at += list(zip(middles, values(sol, middles, e) - level, strict=True)) if len(middles) else []
+            t_star, f_star = (float(v) for v in max(at, key=lambda point: -side * point[1]))
+            scale = float(band[first + int(np.argmin(np.abs(T[first : last + 1] - t_star)))]) / NEAR_MISS_TOLS
             if not tight:
                 try:
                     tight.append(tighter_solve())
@@ -138,8 +147,9 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
             checked = tight[0]
             where = (
                 f"event '{event.name}' {_crossings(len(inner))} between t = {_time(lo, T[0])} and "
-                f"{_time(hi, T[-1])}, where its function stays within {NEAR_MISS_TOLS} tolerances of zero in "
-                f"{sol.method}'s solution ({f_star:.3g} at t = {t_star:.10g})"
+                f"{_time(hi, T[-1])}, where its function stays within {NEAR_MISS_TOLS} tolerances of "
+                f"{'zero' if not event.integer else f'the integer {level:.0f}'} in {sol.method}'s solution "
+                f"({f_star:.3g} at t = {t_star:.10g})"
             )
             if isinstance(checked, Exception) or checked.status != "success":
                 why = checked if isinstance(checked, Exception) else checked.status
@@ -150,7 +160,7 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
                 continue
             again = np.asarray(checked.events[event.name]["t"], dtype=float).reshape(-1)
             k = int(np.sum((again > lo) & (again < hi)))
-            f_tight = read(checked, t_star, e)
+            f_tight = float(values(checked, np.array([t_star]), e)[0]) - level
             error = max(abs(f_star - f_tight) / TIGHTER, scale / TIGHTER)
             past = -side * f_tight > error if len(inner) else side * f_tight > error
             if k == len(inner) and past:
@@ -161,6 +171,27 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
                 "rtol/atol"
             )
     return statuses
+
+
+def _merged(T: np.ndarray, V: np.ndarray, times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The samples ``(T (K,), V (K, N))`` with ``(times, values)`` among them, in time order."""
+    T_all = np.concatenate([T, times])
+    order = np.argsort(T_all, kind="stable")
+    return T_all[order], np.concatenate([V, values])[order]
+
+
+def _with_crossings(sol, names: tuple, T: np.ndarray, V: np.ndarray, crossed: np.ndarray, before: dict) -> tuple:
+    """The samples ``(T, V)`` with an event's recorded crossings ``crossed`` (the values just before each, by name in
+    ``before``), and the dense output at the middle of two crossings with no sample between them: each crossing in
+    the run of samples about it, and two crossings far apart (on a sparse t_eval) not taken for one run."""
+    if not len(crossed):
+        return T, V
+    at = np.stack([np.asarray(before[v], dtype=float).reshape(-1) for v in names], axis=1)
+    T, V = _merged(T, V, crossed, at)
+    a, b = crossed[:-1], crossed[1:]
+    empty = np.searchsorted(T, b, side="left") == np.searchsorted(T, a, side="right")
+    middles = 0.5 * (a + b)[empty & (b > a)]
+    return _merged(T, V, middles, sol.columns_at(middles, names)) if len(middles) else (T, V)
 
 
 def _crossings(k: int, there: str = "") -> str:

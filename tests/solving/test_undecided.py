@@ -119,3 +119,17 @@ def test_the_runs_and_vertices_read():
     assert not len(_vertices(T, F, np.full_like(F, 1e-10)))  # (the vertex outside the band: not read)
     np.testing.assert_allclose(_vertices(T, -F, np.full_like(F, 1e-6)), [2.0])  # (from below too)
     assert not len(_vertices(T, F - 2.0, np.full_like(F, 1e-6)))  # (samples on both sides: no hump on one side)
+
+
+@pytest.mark.parametrize("method", ["radau", "casadi-idas"])
+def test_a_terminal_event_is_one_crossing_from_the_side_before_it(method):
+    # the solve ends at the crossing, the last sample at zero: no side after it to read (7029766 flagged each such
+    # solve undecided, its extremum taken at the crossing itself)
+    m = dm.Model("drop")
+    m.states("h v")
+    m.ode("h", "v")
+    m.ode("v", f"-{G}")
+    m.initial(h=H0, v=0.0)
+    m.event("floor", "h", direction=-1, terminal=True)
+    sol = dm.solve(m, (0.0, 2.0), method=method)
+    assert sol.status == "success" and abs(sol.t[-1] - math.sqrt(2 * H0 / G)) < 1e-8
