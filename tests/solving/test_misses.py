@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 from daemodel.backends.casadi.idas import IDASOptions
+from daemodel.backends.radau.options import RadauOptions
 
 import daemodel as dm
 from daemodel import errors as E
@@ -19,6 +20,7 @@ from daemodel.solving.misses import (
     NearMisses,
     function_tolerance,
     status_of,
+    tighter,
 )
 
 
@@ -312,3 +314,12 @@ def test_a_near_miss_after_pieces_of_a_contracting_flow_is_decided(above):
     else:
         assert sol.status != "success" or len(found) == len(exact)
     assert np.abs(found - exact[: len(found)]).max() < 1e-4
+
+
+def test_the_tighter_options_of_radau_pick_their_stages_again():
+    # radau's stages picked by rtol (5 at 1e-8, 7 at 1e-10): the copy kept 5 beside stages_by_default=True, which
+    # its options refuse, so radau at rtol 1e-8 had no tighter check (None); given stages stay as given
+    picked = tighter(RadauOptions(rtol=1e-8, atol=1e-8))
+    assert (picked.rtol, picked.atol, picked.stages) == (1e-10, 1e-10, RadauOptions(rtol=1e-10, atol=1e-10).stages)
+    assert tighter(RadauOptions(rtol=1e-8, atol=1e-8, stages=3)).stages == 3
+    assert tighter(RadauOptions(h=0.1)) is None
