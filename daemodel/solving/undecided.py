@@ -17,7 +17,8 @@ band) is checked by the whole solve again :data:`~daemodel.solving.misses.TIGHTE
 whatever the runs): the run's crossings stand where that solve records as many in it and, at the run's extremum
 (its sample furthest past zero, or the midpoint of two crossings), is past zero (or, with none, on its side) by more
 than its own error (1/TIGHTER of the two solves' difference there) and tolerance.  Else the status says so, never
-"success".  Events with a reset (a bounce) are not read: the reset sends their function back from zero by design.
+"success".  Events whose reset sets a state their function or its rate depends on (a bounce: h at zero, v -> -e v)
+are not read: the reset sends their function back from zero by design.
 Nor are the switches on variables but floor and ceiling (read as their argument's signed distance to the nearest
 integer, which crosses zero where it reaches one): a continuous one (Max, Abs) that the method's error takes
 across zero changes nothing beyond it (:mod:`daemodel.solving.resting` weighs its branches where it rests there),
@@ -91,7 +92,7 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
     for a method without rtol and atol."""
     if getattr(options, "rtol", None) is None or getattr(options, "atol", None) is None:
         return []
-    which = [e for e, event in enumerate(compiled.events) if not event.reset and (event.integer or not event.strict)]
+    which = [e for e, event in enumerate(compiled.events) if _read(compiled, event)]
     if not which or len(np.asarray(sol.t).reshape(-1)) < 2:
         return []
     names = (*compiled.state_names, *compiled.algebraic_names)
@@ -131,6 +132,11 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
                 continue  # (one crossing from one side to the other, or one at an end of the span: none read past it)
             if not len(inner) and left * right <= 0:  # (none recorded: only a hump with one side about it is checked)
                 continue
+            if len(inner) == 1 and event.direction:  # (one way only: the other crossing may lie between the samples)
+                halves = np.array([0.5 * (lo + inner[0]), 0.5 * (inner[0] + hi)])
+                ends = values(sol, halves, e) - level
+                if ends[0] * ends[1] < 0 and np.all(np.abs(ends) > np.maximum(band[first - 1], band[last + 1])):
+                    continue  # (from one side to the other, each half-way out of the band: decided)
             # (the extremum: the sample furthest past zero, or the midpoint of two crossings, read on the dense output)
             middles = (0.5 * (inner[:-1] + inner[1:]))[:8]
             at = list(zip(T[first : last + 1], F[first : last + 1] - level, strict=True))
@@ -171,6 +177,19 @@ def audit(sol, compiled, when, options, P: np.ndarray, tighter_solve) -> list[st
                 "rtol/atol"
             )
     return statuses
+
+
+def _read(compiled, event) -> bool:
+    """Whether :func:`audit` reads ``event``: a declared one whose reset (if any) sets no state its function or that
+    function's rate depends on (a bounce's reset sends its function back from zero by design), or a floor or ceiling
+    of a variable."""
+    if event.strict:
+        return event.integer
+    reads = set(event.when.free_symbols)
+    for i, state in enumerate(compiled.states):
+        if state in reads:
+            reads |= set(compiled.rhs[i].free_symbols)
+    return not any(compiled.states[i] in reads for i, _ in event.reset)
 
 
 def _merged(T: np.ndarray, V: np.ndarray, times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -133,3 +133,20 @@ def test_a_terminal_event_is_one_crossing_from_the_side_before_it(method):
     m.event("floor", "h", direction=-1, terminal=True)
     sol = dm.solve(m, (0.0, 2.0), method=method)
     assert sol.status == "success" and abs(sol.t[-1] - math.sqrt(2 * H0 / G)) < 1e-8
+
+
+def test_an_event_whose_reset_leaves_its_function_alone_is_read_too(apexes):
+    # a counter n -> n + 1 at each crossing sets nothing h or its rate depends on: read like an event without a reset
+    # (a5df2f7 read only those: casadi-idas counted 5 crossings of a level 1e-6 (relative) below the third apex, whose
+    # exact count is 7, "success")
+    m = dm.Model("counted")
+    m.states("h v n")
+    m.ode("h", "v")
+    m.ode("v", f"-{G} - {C}*v*Abs(v)")
+    m.ode("n", "0")
+    m.initial(h=H0, v=0.0, n=0.0)
+    m.event("floor", "h", direction=-1, reset={"v": f"-{E}*v"})
+    m.event("counted", f"h - {apexes[2] * (1 - 1e-6)!r}", reset={"n": "n + 1"})
+    sol = dm.solve(m, (0.0, T1), method="casadi-idas", rtol=1e-6, atol=1e-6)
+    assert sol.events["counted"]["t"].shape[1] == 5 and sol["n"][-1] == 5  # (of 7)
+    assert "event 'counted' does not cross zero between t = 1.5" in sol.status
