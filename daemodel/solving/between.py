@@ -175,7 +175,7 @@ def excursions(read, T: np.ndarray, F: np.ndarray, checked: np.ndarray, inner: i
         # scan before or after, so only the interval inside this one is looked into)
         lo, hi = max(j - 1, 0), min(j + 1, len(times) - 1)
         if window is NEAR:  # (the parabola's vertex, unread: misses.NearMisses decides whether it is near zero)
-            _, vertex, value = _parabola(*times[j - 1 : j + 2].astype(float), *G[j - 1 : j + 2, e].astype(float))
+            _, vertex, value = parabola(*times[j - 1 : j + 2].astype(float), *G[j - 1 : j + 2, e].astype(float))
             t = min(max(float(vertex), float(times[j - 1])), float(times[j + 1]))
             yield Excursion(e, int(np.searchsorted(T, t, side="right") - 1), t, s, near=abs(float(value)))
             continue
@@ -224,7 +224,7 @@ def _past_halfway(t: tuple, g: tuple, side, nearest: int) -> tuple:
     a float, or arrays of as many triples), all on ``side`` of zero, turns towards zero and reaches past
     :data:`HALFWAY` of the distance to zero of its sample ``nearest`` (0, 1 or 2: the one nearest zero).
     The one test of the extrema :func:`excursions` looks into, inside a scan and at its ends."""
-    curve, vertex, value = _parabola(*t, *g)
+    curve, vertex, value = parabola(*t, *g)
     return (side * curve > 0) & (side * value < HALFWAY * side * g[nearest]), vertex
 
 
@@ -274,7 +274,7 @@ def block_excursion(dense, columns, when, P, n: int, T: np.ndarray, F: np.ndarra
     return False
 
 
-def _parabola(t0, t1, t2, g0, g1, g2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def parabola(t0, t1, t2, g0, g1, g2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(curvature, vertex time, vertex value)`` of the parabola through ``(t0, g0), (t1, g1), (t2, g2)``
     (arrays or floats); where it is a line, curvature 0 at ``(t1, g1)``."""
     slope = (g1 - g0) / (t1 - t0)
@@ -293,7 +293,7 @@ def _probe(read, e: int, side: float, t: np.ndarray, g: np.ndarray) -> tuple[flo
     t, g = list(t), list(g)
     nearest = None  # (the point read nearest zero)
     for _ in range(EXCURSION_PROBES):
-        curve, vertex, _ = _parabola(*t, *g)
+        curve, vertex, _ = parabola(*t, *g)
         if not side * curve > 0:  # (no extremum towards zero between them)
             return nearest
         at = min(max(float(vertex), t[0]), t[2])

@@ -36,6 +36,10 @@ the switch locked to the branch the flow takes where each piece starts
 never the switch's value at zero), so that every piece is smooth; a switch where neither branch
 goes on (a sliding mode) is refused (:class:`~daemodel.errors.SlidingModeError`); one whose function rests on
 zero within the method's error keeps its branch where both agree (:mod:`daemodel.solving.resting`).
+
+After the solve, crossings within the method's error (a function that crosses and comes back, or comes near zero,
+within 1000 tolerances of it) stand only where the whole solve 100 times tighter confirms them; else the status
+says they are undecided (:mod:`daemodel.solving.undecided`, ``stats["undecided_checks"]``).
 """
 
 from __future__ import annotations
@@ -60,17 +64,10 @@ from daemodel.errors import (
     ZenoError,
 )
 from daemodel.solving.between import (
-    across,
-    armed_outputs,
     dense_crossing,
-    dense_states,
     earliest_tied,
-    excursions,
-    inner_samples,
-    on_dense,
 )
 from daemodel.solving.branches import (
-    EXCURSION_BUDGET,
     RESOLUTION_LOOKAHEAD,
     ROUNDING,
     SHORTEST_TOLS,
@@ -78,7 +75,6 @@ from daemodel.solving.branches import (
     check_accumulating,
     drift,
     event_tol,
-    excursion_weight,
     finite_functions,
     jumped,
     resolution,
@@ -87,8 +83,9 @@ from daemodel.solving.branches import (
     time_text,
 )
 from daemodel.solving.crossings import crossing_stop, first_crossing, settled
+from daemodel.solving.hidden import first_excursion
 from daemodel.solving.locate import earlier_tied, locate, outputs, span_solve, trial_solve
-from daemodel.solving.misses import CarriedErrors, NearMisses, status_of
+from daemodel.solving.misses import CarriedErrors, status_of, tighter
 from daemodel.solving.pieces import (
     breakpoints_between,
     join_samples,
@@ -99,6 +96,7 @@ from daemodel.solving.pieces import (
 from daemodel.solving.resets import apply_resets
 from daemodel.solving.resting import account, gone, rest_or_raise, watch
 from daemodel.solving.switches import for_method, settings_as_given
+from daemodel.solving.undecided import audit
 
 # Events one solve may handle, unless dm.solve(max_events=...) says otherwise.
 DEFAULT_MAX_EVENTS = 1000
@@ -158,7 +156,7 @@ def solve_with_events(backend, compiled, t_span, start, options, max_events: int
     return join_samples(parts, len(P), start.batched)
 
 
-def _one_sample(backend, compiled, t_span, start, options, max_events: int):
+def _one_sample(backend, compiled, t_span, start, options, max_events: int, audited: bool = True):
     from daemodel.backends.grids import output_times
     from daemodel.compiling.initial_states import algebraic_values
     from daemodel.dense import Held, joined_in_time
@@ -250,8 +248,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
                     if which in rests:
                         raise
                     rests[which] = rest_or_raise(
-                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1
-                    )
+                        error, compiled, backend, piece, begin.sides[which], options, P, which, a, ya, za, t1,
+                        ahead=0.5 * (a + b),
+                    )  # fmt: skip
                     rested += 1
                     spent[0] = spent_before
                     continue
@@ -265,7 +264,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
             rests, rest_sides, compiled, backend, piece, options, P, T[:shown], Ys[:shown], Zs[:shown], F[:shown]
         )
         read = max(int(np.searchsorted(T, clean[0], side="right")) - 1, 0)  # (what the stop has not read between)
-        hidden, trials = _first_excursion(
+        hidden, trials = first_excursion(
             backend, piece, options, start.batched, P, compiled, piece_when, sol, T[read:shown], F[read:shown],
             Ys[read:], Zs[read:], begin, until, spent, missed, checks, carried_in,
         )  # fmt: skip
@@ -506,7 +505,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         for name, entry in record.items()
     }
     setup_time += claim_generated(made)
-    return Solution(
+    solution = Solution(
         t=t_out,
         values=out,
         method=last.method,
@@ -521,6 +520,31 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int):
         events=events_out,
         breakpoints=joined_breakpoints(marks),
         dense=joined_in_time(edges, dense),
+    )
+    tight = tighter(options)
+    if not audited or tight is None:  # (a tighter solve's own, or nothing tighter to check with)
+        return solution
+    # (crossings within the method's error, confirmed by the whole solve again TIGHTER times tighter or flagged;
+    # its steps among stats["steps"], its time on the solve's clock)
+    checked, audit_started, made_before = [], time.perf_counter(), generating_seconds()
+
+    def again():
+        with warnings.catch_warnings():  # (the check's own warnings are not the solve's: its status is read)
+            warnings.simplefilter("ignore")
+            checked.append(_one_sample(backend, compiled, t_span, start, tight, max_events, False))
+        return checked[-1]
+
+    flagged = audit(solution, compiled, when, options, P, again)
+    stats["undecided_checks"] = len(checked)
+    if checked:
+        own = ("events", "location_trials", "location_steps", "searches_continued", "rests", "rests_left")
+        stats = merge_stats([stats, {k: v for k, v in checked[0].stats.items() if k not in own}])
+    status = "; ".join(([] if solution.status == "success" else [solution.status]) + flagged) or "success"
+    # (code made for it, and the check's own setup, are setup)
+    setup = claim_generated(made_before) + sum(check.setup_time for check in checked)
+    spent = time.perf_counter() - audit_started - setup
+    return dataclasses.replace(
+        solution, status=status, stats=stats, solve_time=solution.solve_time + spent, setup_time=setup_time + setup
     )
 
 
@@ -628,73 +652,3 @@ def _after_event(compiled, resets, with_reset: list, t_event: float, P, reduced)
         return Y, algebraic_values(reduced, t_event, Y, P, z)
 
     return after
-
-
-def _first_excursion(
-    backend, piece, options, batched, P, compiled, when, sol, T, F, Ys, Zs, begin, until, spent, missed, checks, carried
-):
-    """``(crossing, the trial solves' stats)``: the first excursion (:func:`daemodel.solving.between.excursions`)
-    before ``until`` that a trial solve of the method's own confirms (on the other side at its deepest point
-    on the dense output), as ``(which, a, b, Fa, Fb, ya, za, the first trial, {which: its side after})``
-    for :func:`_locate`; None where there is none.  Its crossing is the first one its ``direction``
-    accepts: the one away from its side, else the one back to it.  A switch's excursion is integrated through
-    where its ``branches.excursion_weight`` fits in what ``spent[0]`` leaves of ``EXCURSION_BUDGET`` (adding it).
-    A near miss (the method's own solution does not cross) within its error is added to ``missed``
-    (:mod:`daemodel.solving.misses`), the stats of the tighter solves that checked them to ``checks``; ``carried``:
-    the error the pieces before carry in (:class:`~daemodel.solving.misses.CarriedErrors`)."""
-    stats = []
-    if sol.dense is None:
-        return None, stats
-
-    def read(times):
-        return on_dense(sol, compiled, when, P, times)
-
-    def tight(opts, a, tau, ya, za, e):  # (a check's tighter solve: misses.NearMisses)
-        value, y, z, solved = trial_solve(backend, piece, opts, batched, P, e, when, a, tau, ya, za)
-        checks.append(solved)
-        return value, y, z
-
-    near = NearMisses(tight, when, P, options, T[0], Ys[:1], Zs[:1], carried)
-
-    for x in excursions(read, T, F, armed_outputs(F, begin.armed, begin.sides), inner_samples(sol.dense)):
-        if x.t >= until:
-            if T[x.before] >= until:
-                break
-            # (its deepest point past the crossing found, in the interval that holds that crossing: it may have
-            # left its side before it.  Min(0, 0.01 - (x - 1.02)^2) + Max(0, x - 1.01), x = t: the Max's crossing
-            # at 1.01 was located, the Min's at 0.92 not (its deepest point, 1.02, lies past 1.01), and the piece
-            # integrated Min's branch 0 over [0.92, 1.01]: 5.7e-4 off at rtol 1e-8, "success")
-            if x.near is not None or not across(read, x, until):
-                continue
-            x = dataclasses.replace(x, t=until)  # (a point on its other side before the crossing found)
-        i, e = x.before, x.event
-        direction = compiled.events[e].direction
-        away = direction == 0 or (direction > 0) == (x.side < 0)  # (its crossing away counts, else the one back)
-        if not away and x.near is None and until < T[i + 1] and across(read, x, until):
-            # (the crossing back lies past the crossing found, which comes first: the next piece, from there, starts
-            # on this function's other side and sees it.  (x - 1)^2 - 0.0064 rising (direction +1) at 1.08 was
-            # located before the crossing of Max(0, x - 1.01) at 1.01, which never fired: w 2.4e-3 off, "success")
-            continue
-        miss = None if x.near is None else near.check(x, compiled.events[e].name, Ys[i : i + 1], Zs[i : i + 1])
-        if x.near is not None and miss is None:
-            continue
-        if compiled.events[e].strict:  # (a switch whose other branch changes less than the tolerance left)
-            y, z = dense_states(sol, compiled, np.array([x.t]))
-            weight = excursion_weight(compiled, piece, options, P, x.t, y, z, T[i + 1] - T[i])
-            if spent[0] + weight <= EXCURSION_BUDGET:
-                spent[0] += weight
-                continue
-        if miss is not None:
-            missed.append(miss)
-            continue
-        ya, za = Ys[i : i + 1], Zs[i : i + 1]
-        value, y, z, solved = trial_solve(backend, piece, options, batched, P, e, when, T[i], x.t, ya, za)
-        stats.append(solved)
-        if np.sign(value) != -x.side:  # (the method's own solution stays on its side: within its error of zero)
-            continue
-        if away:
-            guess = dense_crossing(sol, compiled, when, e, P, T[i], x.t, F[i, e])
-            return (e, T[i], x.t, F[i, e], value, ya, za, guess, {e: int(-x.side)}), stats
-        guess = dense_crossing(sol, compiled, when, e, P, x.t, T[i + 1], value)
-        return (e, x.t, T[i + 1], value, F[i + 1, e], y, z, guess, {e: int(x.side)}), stats
-    return None, stats

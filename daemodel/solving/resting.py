@@ -29,9 +29,10 @@ from types import SimpleNamespace
 import numpy as np
 
 from daemodel.compiling.switches import lock_branches
-from daemodel.errors import ZenoError
+from daemodel.errors import SwitchError, ZenoError
 from daemodel.solving.branches import EXCURSION_BUDGET
 from daemodel.solving.misses import function_tolerance
+from daemodel.solving.pieces import onto_constraints
 from daemodel.solving.switches import for_method
 
 # The band about zero a resting function is watched past, in tolerances of its variables (misses.function_tolerance):
@@ -100,22 +101,40 @@ class Rest:
 
 
 def rest_or_raise(
-    error: ZenoError, compiled, backend, piece, side: int, options, P, which: int, t: float, y, z, t1: float
+    error: ZenoError,
+    compiled,
+    backend,
+    piece,
+    side: int,
+    options,
+    P,
+    which: int,
+    t: float,
+    y,
+    z,
+    t1: float,
+    ahead: float | None = None,
 ) -> Rest:
     """A :class:`Rest` for the switch event ``which``, whose function the method's solution does not take off zero
     where ``piece`` (on its branch ``side``) starts from ``(t, y (1, n), z (1, m))`` (``error``, from
-    ``_clear_of_zero``), where its two branches there differ by at most :data:`REST_BUDGET` tolerances: their rates
-    over the rest of t_span, to ``t1``, and the algebraic variables solved on each.
+    ``_clear_of_zero``, which looked up to ``ahead``), where its two branches there differ by at most
+    :data:`REST_BUDGET` tolerances: their rates over the rest of t_span, to ``t1``, and the algebraic variables
+    solved on each.
 
     Raises
     ------
     ZenoError
         ``error`` for a declared event; for a switch whose branches differ there (a jump), one that says so.
+    SwitchError
+        At ``ahead``, no state near ``y`` satisfies the constraints on either branch: the function does not rest on
+        zero, the constraints have no real solution past the switch (|x| = 1 - t past t = 1).
     """
     event = compiled.events[which]
     if not event.strict:
         raise error
     one, other = piece, lock_branches(compiled, t, y[0], z[0], P[0], {event.when: -side})
+    if ahead is not None and ahead > t:
+        _solvable_past(compiled, event, options, t, ahead, {side: one, -side: other}, y, z, P)
     if event.integer:  # (the levels on each side of the integer: the piece's side is not a branch's)
         one, other = (lock_branches(compiled, t, y[0], z[0], P[0], {event.when: way}) for way in (1, -1))
     tolerances = _tolerances(options)
@@ -147,6 +166,35 @@ def rest_or_raise(
     rtol, atol = tolerances
     band = RESTING_TOLS * function_tolerance(when, SimpleNamespace(rtol=rtol, atol=atol), 0, t, y, z, P)
     return Rest(which, event.name, band, t)
+
+
+def _solvable_past(compiled, event, options, t: float, ahead: float, branches: dict, y, z, P) -> None:
+    """Raise :class:`~daemodel.errors.SwitchError` where at ``ahead`` the states near ``y`` (1, n) that satisfy the
+    constraints of each of ``branches`` (side -> the model locked to it, from ``t``) lie on the other side of the
+    switch ``event``, by more than a tolerance (``options``') and the function's distance from zero at ``y``: the
+    function cannot rest on zero there, nor leave it (|x| = 1 - t past t = 1: x = 1 - t on the branch x > 0, t - 1
+    on the other).  Before 60745ba (the algebraic variables at radau's outputs solved from the states) radau located
+    that switch past t = 1, where the projection after it said so; since, located at 1, the rest's weighing of the
+    branches called it a ZenoError."""
+    when = compiled.numeric.batch_function([event.when])
+    at = np.array([float(ahead)])
+    scale = 0.0 if _tolerances(options) is None else function_tolerance(when, options, 0, t, y, z, P)
+    here = abs(float(when(np.array([t]), y, z, P)[0, 0]))
+    failed = []
+    for side, branch in branches.items():
+        try:
+            projected = onto_constraints(dataclasses.replace(branch, t0=float(ahead)), y, P)
+        except SwitchError as error:
+            failed.append(str(error))
+            continue
+        value = float(when(at, projected, z, P)[0, 0])
+        if side * value >= -(here + scale):
+            return
+        failed.append(f"on the branch {event.when} {'>' if side > 0 else '<'} 0 it is {value:.3g} at t = {ahead:.10g}")
+    raise SwitchError(
+        f"switch '{event.name}' at t = {t:.12g}: past it no state satisfies the constraints on either side of "
+        f"{event.when} = 0 ({'; '.join(failed)}): the switch leaves the constraints without a real solution there"
+    )
 
 
 def _tolerances(options) -> tuple | None:

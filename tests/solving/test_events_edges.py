@@ -499,7 +499,13 @@ def test_a_switch_the_solution_only_touches_makes_no_event(method, options):
     # does not, and the search goes on from there, the outputs as one solve's.  (At rtol 1e-10 whether the
     # polynomial passes 1, by ~1e-11, is rounding: one machine's did at a peak, another's at none)
     sol = dm.solve(_humps(1.0, event=0), (0.0, 30.0), method=method, **options)
-    assert sol.status == "success" and len(sol.events["hump"]["t"][0]) == 0 and sol["n"][-1] == 0.0
+    assert len(sol.events["hump"]["t"][0]) == 0 and sol["n"][-1] == 0.0
+    # (a touch within the method's error: "success" until the check of crossings within it (solving/undecided.py),
+    # which cannot tell it from a crossing by less than its error, 1e-10 deep: that one says it is undecided)
+    assert sol.status == "success" or all(
+        part.startswith("event 'hump' does not cross zero between") and part.endswith("tighten rtol/atol")
+        for part in re.split(r"; (?=event ')", sol.status)
+    ), sol.status
     assert (sol.stats["searches_continued"] >= 1 or options.get("rtol") == 1e-10) and np.all(np.diff(sol.t) > 0)
     assert np.abs(sol["s"] - np.sin(sol.t)).max() < (0.1 if "h" in options else 100 * options["rtol"])
 
@@ -843,10 +849,15 @@ def _phase_hump(c: float, phi: float):
     return m
 
 
+# (and the check of crossings within the method's error, solving/undecided.py, where it reads one undecided too)
+AUDITED = (
+    r"(; event 'hump' (does not cross zero|crosses zero once|crosses zero [0-9]+ times) between t = [^;]*; tighten "
+    r"rtol/atol)*"
+)
 NEAR_MISS = (
     r"event 'hump' near t = [0-9.]+: its function stays [0-9.]+e-0[5-9] from zero in casadi-idas's solution, where "
     r"a solve 100 times tighter crosses to -[0-9.]+e-0[6-9]: a crossing within the method's error, not located; "
-    r"tighten rtol/atol( \(and [0-9] more, the last near t = [0-9.]+\))?"
+    r"tighten rtol/atol( \(and [0-9] more, the last near t = [0-9.]+\))?" + AUDITED
 )
 
 

@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 from daemodel.backends.casadi.idas import IDASOptions
+from daemodel.backends.radau.options import RadauOptions
 
 import daemodel as dm
 from daemodel import errors as E
@@ -19,6 +20,7 @@ from daemodel.solving.misses import (
     NearMisses,
     function_tolerance,
     status_of,
+    tighter,
 )
 
 
@@ -220,16 +222,21 @@ def _halves(c: float, phi: float):
     return m
 
 
+# (and the check of crossings within the method's error, solving/undecided.py, where it reads one undecided too)
+AUDITED = (
+    r"(; event 'hump' (does not cross zero|crosses zero once|crosses zero [0-9]+ times) between t = [^;]*; tighten "
+    r"rtol/atol)*"
+)
 CROSSES = (
     r"event 'hump' near t = [0-9.]+: its function stays [0-9.]+e-0[5-9] from zero in casadi-idas's solution, where "
     r"a solve 100 times tighter crosses to -[0-9.]+e-0[6-9]: a crossing within the method's error, not located; "
-    r"tighten rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?"
+    r"tighten rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?" + AUDITED
 )
 UNDECIDED = (
     r"event 'hump' near t = [0-9.]+: its function stays [0-9.]+e-0[5-9] from zero in casadi-idas's solution, where "
     r"a solve 100 times tighter from t0, through the pieces before, stays [0-9.]+e-[0-9]+ from it, within its own "
     r"error carried in from them \([0-9.]+e-[0-9]+\): whether it crosses is not decided at the method's accuracy; "
-    r"tighten rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?"
+    r"tighten rtol/atol( \(and [0-9]+ more, the last near t = [0-9.]+\))?" + AUDITED
 )
 
 
@@ -312,3 +319,12 @@ def test_a_near_miss_after_pieces_of_a_contracting_flow_is_decided(above):
     else:
         assert sol.status != "success" or len(found) == len(exact)
     assert np.abs(found - exact[: len(found)]).max() < 1e-4
+
+
+def test_the_tighter_options_of_radau_pick_their_stages_again():
+    # radau's stages picked by rtol (5 at 1e-8, 7 at 1e-10): the copy kept 5 beside stages_by_default=True, which
+    # its options refuse, so radau at rtol 1e-8 had no tighter check (None); given stages stay as given
+    picked = tighter(RadauOptions(rtol=1e-8, atol=1e-8))
+    assert (picked.rtol, picked.atol, picked.stages) == (1e-10, 1e-10, RadauOptions(rtol=1e-10, atol=1e-10).stages)
+    assert tighter(RadauOptions(rtol=1e-8, atol=1e-8, stages=3)).stages == 3
+    assert tighter(RadauOptions(h=0.1)) is None

@@ -92,8 +92,19 @@ def test_a_floor_of_a_state_resting_on_an_integer_is_right_or_refused(method, op
     except E.ZenoError as error:
         assert re.match(r"switch 'floor in u'' at t = [0-9.]+: x rests on zero within the method's error", str(error))
         return
-    assert sol.status == "success" and abs(sol["u"][-1] - exact) < 100 * options.get("rtol", 1e-6)
-    np.testing.assert_allclose(sol.events["floor in u'"]["t"][0][:2], [math.log(1.25), math.log(2.5)], atol=1e-5)
+    assert abs(sol["u"][-1] - exact) < 100 * options.get("rtol", 1e-6)
+    times = sol.events["floor in u'"]["t"][0]
+    np.testing.assert_allclose(times[:2], [math.log(1.25), math.log(2.5)], atol=1e-5)
+    # (casadi-idas at rtol 1e-8 recorded 15 more crossings of 0, t = 21.9 to 57.7, where its x came within 1e-12 of
+    # zero (the exact 8e-10 to 2e-25 above it), and at its defaults 14, "success": now flagged, undecided)
+    if sol.status == "success":
+        assert len(times) == 2
+    else:
+        assert re.fullmatch(
+            r"event 'floor in u'' crosses zero \d+ times between t = [0-9.]+ and 60, .* whether it crosses there is "
+            r"not decided at the method's accuracy; tighten rtol/atol",
+            sol.status,
+        ), sol.status
 
 
 def test_a_switch_that_leaves_its_rest_is_located_again():
