@@ -6,7 +6,8 @@ Adaptive steps weigh an index-2 variable's error estimate by h, as RADAU5 does (
 of order s where the states' step ends are of order 2s - 1), so its collocation values at the outputs
 were several tolerances off while the status said success.  Weighing it unscaled instead would cost
 steps of order s for every variable; solving it from the states costs one batched Newton solve of
-small systems at the outputs (linear in z in mechanics: one step).  Fixed steps keep the collocation
+small systems at the outputs (linear in z in mechanics: one step, a casadi function made in the setup,
+:class:`~daemodel.compiling.algebraic.AffineStep`).  Fixed steps keep the collocation
 solution (what ``h`` asks for, and what the Radau-PINN's certificate measures against): their
 estimate already reads an index-2 variable unweighted (:meth:`.error.ErrorEstimate.check_fixed`).
 """
