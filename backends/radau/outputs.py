@@ -57,14 +57,15 @@ def resolve_outputs(method: str, compiled, start, options, times, values, stats)
     found = algebraic_from_states(compiled, times, values[..., :n], collocation, start.p)
     values[..., n:] = found.z
     change = np.abs(collocation - found.z) / (options.atol + options.rtol * np.abs(found.z))
-    change = np.where(found.converged[..., None], change, 0.0)
+    converged = found.converged.all()
+    change = change if converged else np.where(found.converged[..., None], change, 0.0)
     stats["algebraic_resolved"] = True
     stats["algebraic_correction"] = float(change.max(initial=0.0))
     if change.size:
         sample, k, j = np.unravel_index(int(np.argmax(change)), change.shape)
         where = f"'{compiled.algebraic_names[j]}' at t = {times[k]:.6g}"
         stats["algebraic_correction_at"] = where + (f", sample {sample}" if change.shape[0] > 1 else "")
-    if found.converged.all():
+    if converged:
         return values, None
     sample, k = np.argwhere(~found.converged)[0]
     count = int((~found.converged).sum())
