@@ -204,20 +204,18 @@ def _make_affine_step(compiled) -> AffineStep | None:
         dict(zip((numeric.t, *numeric.y, *numeric.z, *numeric.p), casadi.vertsplit(packed), strict=True))
     )
     try:
-        H, values = convert.stack(determining), convert.stack(entries)
+        # (one stack: the subexpressions that H_z's entries share with H made once, by its cse)
+        both = convert.stack([*determining, *entries])
     except (UnsupportedFunctionError, TypeError):  # (no translation, or a number that is no float: zoo)
         return None
-    z0 = packed[1 + n : 1 + n + m]
+    H, values, z0 = both[:m], both[m:], packed[1 + n : 1 + n + m]
     order = np.lexsort((rows, cols))  # (casadi's nonzeros run column by column)
     Hz = casadi.SX(casadi.Sparsity.triplet(m, m, rows[order].tolist(), cols[order].tolist()), values[order.tolist()])
     V, R, beta, row_order, col_order = casadi.qr_sparse(Hz)
     z1 = z0 + casadi.qr_solve(-H, V, R, beta, row_order, col_order)
     residual = casadi.substitute(H, z0, z1)  # (H itself at z1: the residual the bound reads, affine or not)
     scaled = casadi.mtimes(casadi.fabs(Hz), casadi.fabs(z1))
-    # (cse: H_z's entries and H share subexpressions that the conversion made twice: 2,800 -> 2,593 instructions for
-    # a chain of 20 pendulums)
-    outputs = casadi.cse(casadi.densify(casadi.vertcat(z1, residual, scaled)))
-    function = casadi.Function("affine_step", [packed], [outputs])
+    function = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(z1, residual, scaled))])
     if function.n_instructions() > AFFINE_MAX_INSTRUCTIONS:
         return None
     return AffineStep(function, n, m)
