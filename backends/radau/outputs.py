@@ -34,13 +34,13 @@ def resolved_outputs(options, compiled) -> bool:
 
 def prepare_outputs(options, compiled) -> None:
     """In a solve's setup: make what the solve at the outputs evaluates (:func:`daemodel.compiling.algebraic.prepare`,
-    once per model), where the solve resolves them.  solve() prepared its model, but the pieces between breakpoints
-    and events are models of their own, whose affine step (0.1-1.6 s for chains of 20 to 199 pendulums) was made at
-    their first solve at the outputs, on the solve clock.  Claimed here (counted in this setup, not again by a caller
-    that moves code made at first use into its own)."""
+    once per model; the numpy code only where there is no affine step), where the solve resolves them.  solve()
+    prepared its model, but the pieces between breakpoints and events are models of their own, whose affine step
+    (0.1-1.6 s for chains of 20 to 199 pendulums) was made at their first solve at the outputs, on the solve clock.
+    Claimed here (counted in this setup, not again by a caller that moves code made at first use into its own)."""
     if resolved_outputs(options, compiled):
         made = generating_seconds()
-        prepare_algebraic(compiled)
+        prepare_algebraic(compiled, numpy=False)
         claim_generated(made)
 
 

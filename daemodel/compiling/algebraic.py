@@ -221,17 +221,18 @@ def _make_affine_step(compiled) -> AffineStep | None:
     return AffineStep(function, n, m)
 
 
-def prepare(compiled) -> None:
-    """Make the functions :func:`algebraic_from_states` evaluates for ``compiled`` (its determining equations and
-    their z Jacobian in numpy, and whether they are affine in z), where it has algebraic variables of index 2 or
-    more: code generation, done in the setup, before any method's clock."""
+def prepare(compiled, numpy: bool = True) -> None:
+    """Make the functions :func:`algebraic_from_states` evaluates for ``compiled`` (whether its determining equations
+    are affine in z, their affine step, and their numpy code), where it has algebraic variables of index 2 or more:
+    code generation, done in the setup, before any method's clock.  ``numpy=False``: their numpy code only where
+    there is no affine step (with one, the numpy path solves only the outputs where it does not settle, usually
+    none, and a few of them on casadi: ~70 ms of printing for each piece between events, made for nothing)."""
     if not resolves_algebraic(compiled):
         return
     tolerances(compiled)
-    # (H_z's nonzeros are the branch check's, made with it; a batch of outputs evaluates H in numpy where the affine
-    # step does not settle, or there is none)
-    constraint_checks(compiled).H.numpy()
-    affine_step(compiled)
+    # (H_z's nonzeros are the branch check's, made with it)
+    if affine_step(compiled) is None or numpy:
+        constraint_checks(compiled).H.numpy()
 
 
 def tolerances(compiled) -> NewtonTolerances:

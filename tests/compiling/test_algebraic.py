@@ -169,3 +169,15 @@ def test_the_affine_step_in_threads_at_once():
     for k in range(4):
         for z in results[k]:
             np.testing.assert_array_equal(z, alone[k])
+
+
+def test_prepare_makes_no_numpy_code_where_the_affine_step_solves_if_asked():
+    """``prepare(numpy=False)`` (radau's setup of each piece between events): the affine step, and no numpy code of
+    the determining equations (~70 ms of printing a piece, which the numpy path needs only where the step does not
+    settle); ``prepare()`` (solve()'s own model) makes both."""
+    compiled = PENDULUM.model().compile()
+    algebraic.prepare(compiled, numpy=False)
+    assert algebraic.affine_step(compiled) is not None
+    assert constraint_checks(compiled).H._numpy is None
+    algebraic.prepare(compiled)
+    assert constraint_checks(compiled).H._numpy is not None
