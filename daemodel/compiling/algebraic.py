@@ -13,8 +13,9 @@ within 0.15 tolerances of the closed form.  So the outputs take those, and the d
 
 That solve is on every adaptive solve's clock.  Determining equations affine in z (mechanics: always) take one
 whole Newton step in one casadi function of the outputs, made in the setup (:class:`AffineStep`): 21 outputs of
-a chain of 20 pendulums cost ~1 ms on the batched numpy path, as much as half of radau's solve at loose
-tolerances, and ~0.1 ms so.  Where the step does not settle, and for other equations, the numpy path solves.
+a chain of 20 pendulums cost 0.9-1.1 ms on the batched numpy path (thread CPU), as much as half of radau's
+solve at loose tolerances, and 0.18-0.28 ms so (benchmarks/affine_resolve.py).  Where the step does not settle,
+and for other equations, the numpy path solves.
 """
 
 from __future__ import annotations
