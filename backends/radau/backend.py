@@ -14,7 +14,7 @@ from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.fill import FillOverLimit, measured_fill
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
-from daemodel.backends.radau.outputs import marked, resolve_outputs, resolved_outputs
+from daemodel.backends.radau.outputs import marked, prepare_outputs, resolve_outputs, resolved_outputs
 from daemodel.backends.radau.sparse import band_orders, jacobian_pattern
 from daemodel.backends.radau.step import Stepper, step_record_bytes
 from daemodel.backends.radau.transform import stage_transform
@@ -96,6 +96,7 @@ class RadauBackend(AbstractBackend):
             # grid's records were counted before the solve)
             known = sum(parts.values())
             stepper.record_budget = (memory_limit() - known) // step_record_bytes(D, start.size, options)
+        prepare_outputs(options, compiled)  # (a piece's model between events: its code made here, in the setup)
         setup = time.perf_counter() - began + warm_up
         began = time.perf_counter()
         try:

@@ -6,7 +6,8 @@ Adaptive steps weigh an index-2 variable's error estimate by h, as RADAU5 does (
 of order s where the states' step ends are of order 2s - 1), so its collocation values at the outputs
 were several tolerances off while the status said success.  Weighing it unscaled instead would cost
 steps of order s for every variable; solving it from the states costs one batched Newton solve of
-small systems at the outputs (linear in z in mechanics: one step).  Fixed steps keep the collocation
+small systems at the outputs (linear in z in mechanics: one step, a casadi function made in the setup,
+:class:`~daemodel.compiling.algebraic.AffineStep`).  Fixed steps keep the collocation
 solution (what ``h`` asks for, and what the Radau-PINN's certificate measures against): their
 estimate already reads an index-2 variable unweighted (:meth:`.error.ErrorEstimate.check_fixed`).
 """
@@ -20,6 +21,8 @@ import numpy as np
 from daemodel.backends.base import caller_level
 
 from daemodel.compiling.algebraic import algebraic_from_states, resolves_algebraic
+from daemodel.compiling.algebraic import prepare as prepare_algebraic
+from daemodel.compiling.batch_function import claim_generated, generating_seconds
 from daemodel.errors import LocalErrorWarning
 
 
@@ -27,6 +30,18 @@ def resolved_outputs(options, compiled) -> bool:
     """Whether a solve of ``compiled`` with ``options`` solves its algebraic variables from the states at its
     outputs (adaptive steps on a system with some of index 2 or more), and its dense output between them."""
     return options.adaptive and resolves_algebraic(compiled)
+
+
+def prepare_outputs(options, compiled) -> None:
+    """In a solve's setup: make what the solve at the outputs evaluates (:func:`daemodel.compiling.algebraic.prepare`,
+    once per model; the numpy code only where there is no affine step), where the solve resolves them.  solve()
+    prepared its model, but the pieces between breakpoints and events are models of their own, whose affine step
+    (0.1-1.6 s for chains of 20 to 199 pendulums) was made at their first solve at the outputs, on the solve clock.
+    Claimed here (counted in this setup, not again by a caller that moves code made at first use into its own)."""
+    if resolved_outputs(options, compiled):
+        made = generating_seconds()
+        prepare_algebraic(compiled, numpy=False)
+        claim_generated(made)
 
 
 def marked(dense, resolved: bool):
@@ -56,14 +71,15 @@ def resolve_outputs(method: str, compiled, start, options, times, values, stats)
     found = algebraic_from_states(compiled, times, values[..., :n], collocation, start.p)
     values[..., n:] = found.z
     change = np.abs(collocation - found.z) / (options.atol + options.rtol * np.abs(found.z))
-    change = np.where(found.converged[..., None], change, 0.0)
+    converged = found.converged.all()
+    change = change if converged else np.where(found.converged[..., None], change, 0.0)
     stats["algebraic_resolved"] = True
     stats["algebraic_correction"] = float(change.max(initial=0.0))
     if change.size:
         sample, k, j = np.unravel_index(int(np.argmax(change)), change.shape)
         where = f"'{compiled.algebraic_names[j]}' at t = {times[k]:.6g}"
         stats["algebraic_correction_at"] = where + (f", sample {sample}" if change.shape[0] > 1 else "")
-    if found.converged.all():
+    if converged:
         return values, None
     sample, k = np.argwhere(~found.converged)[0]
     count = int((~found.converged).sum())

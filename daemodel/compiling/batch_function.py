@@ -61,7 +61,9 @@ def claim_generated(since: float) -> float:
     return seconds
 
 
-def _made_since(began: float) -> None:
+def made_since(began: float) -> None:
+    """Counts the seconds since ``began`` (a ``time.perf_counter()``) as code made at its first use
+    (:func:`generating_seconds`): for other functions made so, such as :func:`.algebraic.affine_step`'s."""
     _MADE.seconds = getattr(_MADE, "seconds", 0.0) + time.perf_counter() - began
 
 
@@ -104,7 +106,7 @@ class BatchFunction:
                 began = time.perf_counter()
                 self._casadi = self._convert()
                 self._instructions = self._casadi.n_instructions() if self._casadi is not False else 0
-                _made_since(began)
+                made_since(began)
             # (non-finite inputs go to numpy, whose arithmetic on them is the reference)
             if (
                 self._casadi is not False
@@ -129,7 +131,7 @@ class BatchFunction:
         if self._numpy is None and self._exprs:
             began = time.perf_counter()
             self._numpy = self._lambdify(self._exprs)
-            _made_since(began)
+            made_since(began)
         return self._numpy
 
     def _few(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:

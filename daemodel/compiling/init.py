@@ -422,8 +422,7 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
             candidate = (error <= tolerances.step * scale) | stalled
             if candidate.any():  # (the residual's bound only where the steps have settled)
                 scaled = Ja.abs_product(xa) if sparse else np.einsum("bij,bj->bi", np.abs(Ja), np.abs(xa))
-                bound = tolerances.residual * (1 + np.maximum((scale - 1)[:, None], scaled))
-                settled[rows] = candidate & (np.abs(r_new) <= bound).all(axis=1)
+                settled[rows] = candidate & residual_settled(r_new, scale, scaled, tolerances)
             previous[rows] = size
         fine = np.isfinite(r).all(axis=1) & np.isfinite(x).all(axis=1)
         converged = settled & fine
@@ -444,6 +443,14 @@ def solve_algebraic(F, J, x0: np.ndarray, tolerances: NewtonTolerances = NewtonT
                         rank[finite] = np.linalg.matrix_rank(Jf[finite])
                     singular[failed] = finite & (rank < m)
     return AlgebraicSolve(x, r, converged, singular, iterations)
+
+
+def residual_settled(r: np.ndarray, scale: np.ndarray, scaled: np.ndarray, tolerances: NewtonTolerances) -> np.ndarray:
+    """Whether the residuals ``r`` (B, m) of iterates ``x`` are at the rounding level that :func:`solve_algebraic`
+    accepts (:attr:`NewtonTolerances.residual`): every ``|r_i| <= residual (1 + max(max|x|, (|J| |x|)_i))``, given
+    ``scale = 1 + max|x|`` (B,) and ``scaled = |J| |x|`` (B, m).  False where ``r`` is not finite."""
+    bound = tolerances.residual * (1 + np.maximum((scale - 1)[:, None], scaled))
+    return (np.abs(r) <= bound).all(axis=1)
 
 
 def _guess(symbols, values) -> str:

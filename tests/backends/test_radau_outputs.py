@@ -131,7 +131,9 @@ def test_outputs_where_newton_fails_keep_the_collocation_values_and_are_flagged(
 
 def test_outputs_solved_a_few_at_a_time_are_the_same(monkeypatch):
     """The outputs are solved in chunks within RESOLVE_BYTES of z Jacobians: three at a time gives the
-    values of all at once."""
+    values of all at once (on the numpy path: the Hessenberg example's determining equation is affine in y5,
+    which the affine step would otherwise solve)."""
+    monkeypatch.setattr(algebraic, "affine_step", lambda _: None)
     compiled = HESSENBERG.model().compile()
     whole = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-8, stages=3)
     monkeypatch.setattr(algebraic, "RESOLVE_BYTES", 3 * 8)  # (m = 1: three outputs a chunk)
@@ -151,3 +153,37 @@ def test_an_event_search_reads_the_algebraic_variables_that_at_gives():
     np.testing.assert_allclose(read[:, 1], sol.at(times)["z"], rtol=1e-13, atol=1e-15)
     np.testing.assert_allclose(read[:, 0], sol.at(times)["y1"], rtol=0, atol=0)
     assert _in_tolerances(read[:, 1], exact["z"](times), 1e-8) < 1.0
+
+
+def test_each_pieces_affine_step_is_made_in_the_setup(monkeypatch):
+    """Between breakpoints radau solves each piece's own model, which solve() did not prepare: its affine step (the
+    algebraic variables' solve at the outputs) is made in radau's setup, never inside the solve at the outputs (on
+    the solve clock)."""
+    from daemodel.backends.radau import backend
+
+    m = dm.Model("pushed_pendulum")
+    x, y, u, v = m.states("x y u v")
+    (lam,) = m.algebraics("lam")
+    push = sp.Piecewise((0.0, m.t < 0.5), (2.0, True))
+    m.ode(x, u)
+    m.ode(y, v)
+    m.ode(u, -lam * x + push)
+    m.ode(v, -lam * y - 9.81)
+    m.constraint(x**2 + y**2 - 1, name="rod")
+    m.initial(x=1.0, y=0.0, u=0.0, v=0.0)
+    compiled = m.compile()
+    made, inside = [], []
+    make, resolve = algebraic._make_affine_step, backend.resolve_outputs
+    monkeypatch.setattr(algebraic, "_make_affine_step", lambda c: made.append(bool(inside)) or make(c))
+
+    def resolving(*arguments):
+        inside.append(1)
+        try:
+            return resolve(*arguments)
+        finally:
+            inside.clear()
+
+    monkeypatch.setattr(backend, "resolve_outputs", resolving)
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-6)
+    assert sol.status == "success" and sol.stats["segments"] == 2
+    assert made and not any(made)  # (made, and never inside the solve at the outputs)
