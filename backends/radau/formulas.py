@@ -27,6 +27,14 @@ REJECTED_MAX_FACTOR, NEWTON_FAILURE_FACTOR = 0.9, 0.5
 ERROR_FLOOR, ACCEPTED_ERROR_FLOOR = 1e-10, 1e-2
 # Step size underflow: h below this times max(1, |t|).
 UNDERFLOW = 1e-14
+# The systems factored for a step of h_f serve a step of h within this many float64 epsilons of (|t| + |h|) of
+# it (factors_serve): a step is the one t's spacing makes of the controller's h (step_length), so that an h kept
+# by the keep band moves by up to eps |t + h| a step, and the chain of 20 pendulums at rtol 1e-4 factored 4 of
+# its 15 times for such a move alone.  Newton's matrix is an approximation (its Jacobian is kept while Newton
+# contracts): a relative change d of h moves it and the error estimate's by d, 1e-13 here.  64: the walk of the
+# roundings stays within it for thousands of kept steps.
+FACTORS_ROUNDING = 64
+EPS = 2.0**-52
 # t has reached t1 within this tolerance relative to |t1 - t0| (a step's end: to its h), or within END_ROUNDING
 # of |t1| (a few float64 spacings there: t + (t1 - t) rounds to within one of t1).  Relative to |t1| alone,
 # 1e-13 of t1 = 1e15 + 2 is 100, more than the span: radau ended at its start, 0 steps, "success", and at
@@ -320,6 +328,13 @@ SCALAR, CASADI = ScalarOps(), CasadiOps()
 
 
 # ---- the controller -----------------------------------------------------------------------------
+def factors_serve(xp, factors_h, h, t):
+    """Whether the systems factored for a step of ``factors_h`` (0: none) serve the step of ``h`` from ``t``:
+    ``h`` is theirs to within the rounding of t + h (:data:`FACTORS_ROUNDING`)."""
+    close = xp.abs(h - factors_h) <= FACTORS_ROUNDING * EPS * (xp.abs(t) + xp.abs(h))
+    return xp.and_(factors_h > 0, close)
+
+
 def underflow(xp, h, t, t1=None):
     """Whether ``h`` is below the step size underflow's threshold at ``t``; a step ``h`` that reaches ``t1``
     (where given) is no underflow, however short: a span shorter than the threshold is taken in one step."""
