@@ -410,6 +410,32 @@ def next_step(xp, h, err, quot, s: int, last, predictive, rejected_last, keep, j
     return xp.where(banded, h, new_h), (h, xp.maximum(err, ACCEPTED_ERROR_FLOOR))
 
 
+# ---- the first step ------------------------------------------------------------------------------
+# The first step is at least this (times max(1, |t0|)): 1e4 times the step size underflow's threshold.
+INITIAL_STEP_FLOOR = 1e-10
+
+
+def initial_step(xp, rms, y, f0, probe, atol, rtol, stages: int, t0, t1):
+    """Hairer-Wanner's starting step (see :meth:`.control.Radau5Controller.initial_step`) of the states ``y``
+    with ``f0`` = f there: ``rms`` the worst sample's root mean square, ``probe(h0)`` f at ``(t0 + h0, y +
+    h0 f0)`` (the algebraic variables held).  Not where there are no states (the caller's)."""
+    sc = error_scale(atol, rtol, xp.abs(y), 1.0)  # (the states: weight 1)
+    d0, d1 = rms(y / sc), rms(f0 / sc)
+    h0 = xp.cond(xp.or_(d0 < 1e-5, d1 < 1e-5), lambda: 1e-6, lambda: 0.01 * d0 / d1)
+    h0 = xp.minimum(h0, t1 - t0)
+    d2 = rms((probe(h0) - f0) / sc) / h0
+    d = xp.maximum(d1, d2)
+
+    def probed():  # (a probe that left f's domain: a step that long is no start)
+        flat = lambda: xp.minimum(100 * h0, xp.maximum(1e-6, h0 * 1e-3))  # noqa: E731
+        return xp.cond(d <= 1e-15, flat, lambda: xp.minimum(100 * h0, (0.01 / d) ** (1.0 / (stages + 1))))
+
+    h = xp.cond(d2 < math.inf, probed, lambda: h0 * 1e-3)  # (NaN: not finite)
+    # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
+    h = xp.maximum(h, INITIAL_STEP_FLOOR * xp.maximum(1.0, xp.abs(t0)))
+    return xp.minimum(h, t1 - t0)
+
+
 # ---- the error estimate's norm ------------------------------------------------------------------
 def index_weights(xp, h, n: int, exponents):
     """``h^(k-1)`` for each component (``exponents``: each algebraic variable's k - 1), 1 for the n states."""
