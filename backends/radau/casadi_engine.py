@@ -49,6 +49,7 @@ from daemodel.backends.radau.sparse import (
     sorted_unique,
     unique_entries,
 )
+from daemodel.backends.radau.start import Start
 from daemodel.backends.radau.stencil import engine_functions
 from daemodel.backends.radau.transform import IncrementBuffers
 
@@ -184,7 +185,7 @@ class CasadiEngine(AbstractEngine):
         library with the rest of the solve's machine code, :meth:`_library`: 0.5-3 s once per machine,
         the disk cache keeps it); False where the systems are sparse beyond the fixed-pivot factors' reach
         (:data:`STATIC_MAX_FLOPS`, :data:`STATIC_MAX_SIZE_VM`) and the step runs on the general path."""
-        D = self.D
+        D, self.first_step = self.D, Start(self)  # (the first step's function, in the setup: .start)
         orders = self._pivot_orders() if jit or COMPILED_FACTOR_MAX_SIZE < D <= STATIC_MAX_SIZE_VM else None
         lu, version = None, 0
         if orders is not None:  # (re-derived where it stopped holding in an earlier solve of this model: .pivots)

@@ -22,7 +22,7 @@ from daemodel.backends.base import caller_level
 from daemodel.backends.grids import fixed_grid
 from daemodel.backends.progress import PROGRESS_WINDOW, ProgressWatch
 from daemodel.backends.radau import formulas, sequence
-from daemodel.backends.radau.formulas import SCALAR
+from daemodel.backends.radau.formulas import INITIAL_STEP_FLOOR, SCALAR
 from daemodel.backends.radau.newton import NewtonPolicy
 from daemodel.backends.radau.options import DEFAULT_NEWTON_ITERATIONS
 from daemodel.backends.radau.sequence import HANDBACK
@@ -66,10 +66,6 @@ RESOLUTION_SHARE = 1e-6
 # many attempts between its looks at the outputs: the steps it makes past the stop are lost (the wheelset's
 # event searches on [0, 1], rtol 1e-6, 28 events: 743 steps with the run's usual budget, 397 with 4)
 STOP_ATTEMPTS = 4
-
-
-# The first step is at least this (times max(1, |t0|)): 1e4 times the step size underflow's threshold.
-INITIAL_STEP_FLOOR = 1e-10
 
 
 def adaptive_newton_tol(rtol: float, stages: int, eps: float) -> float:
@@ -266,28 +262,23 @@ class Radau5Controller:
         unstable steady state (f0 ~ 1e-5 of the state) one implicit step of 200 landed on that steady
         state, and no error estimate could see it (a wrong answer as "success"); the probe gives 0.10,
         scipy's Radau's own first step there.
+
+        The casadi engine makes it in one call (:mod:`.start`: 35 of the pendulum's
+        ~330 us solve on the path below), the same formula (:func:`.formulas.initial_step`).
         """
-        xp = stepper.xp
         t0, t1 = t_span
-        f0 = stepper.start_f(t0)
-        sc = formulas.error_scale(self.atol, self.rtol, xp.abs(stepper.y), 1.0)  # (the states: weight 1)
         if not stepper.n:
             return min(max(1e-6, INITIAL_STEP_FLOOR * max(1.0, abs(t0))), t1 - t0)
-        d0 = float(stepper.rms(stepper.y / sc).max())
-        d1 = float(stepper.rms(f0 / sc).max())
-        h0 = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
-        h0 = min(h0, t1 - t0)
-        f1 = stepper.engine.f(t0 + h0, stepper.y + h0 * f0, stepper.z)
-        d2 = float(stepper.rms((f1 - f0) / sc).max()) / h0
-        if not np.isfinite(d2):  # (the probe left f's domain: a step that long is no start)
-            h = h0 * 1e-3
-        elif max(d1, d2) <= 1e-15:
-            h = min(100 * h0, max(1e-6, h0 * 1e-3))
-        else:
-            h = min(100 * h0, (0.01 / max(d1, d2)) ** (1.0 / (stepper.s + 1)))
-        # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
-        h = max(h, INITIAL_STEP_FLOOR * max(1.0, abs(t0)))
-        return min(h, t1 - t0)
+        if stepper.engine.first_step is not None:
+            h, stepper._f_start = stepper.engine.first_step(t0, t1, stepper.y, stepper.z, self.atol, self.rtol)
+            return h
+        f0 = stepper.start_f(t0)
+
+        def probe(h0):
+            return stepper.engine.f(t0 + h0, stepper.y + h0 * f0, stepper.z)
+
+        rms = lambda x: float(stepper.rms(x).max())  # noqa: E731
+        return formulas.initial_step(SCALAR, rms, stepper.y, f0, probe, self.atol, self.rtol, stepper.s, t0, t1)
 
     def status(self, method: str) -> str:
         """ "success" (every accepted step's estimate within rtol and atol), or "flagged: ..." with a

@@ -64,6 +64,9 @@ class AbstractEngine(ABC):
         self.D = self.n + self.m
         self.index2_rows = np.array([c.index == 2 for c in compiled.constraints], dtype=bool)
         self._T = None  # T, T^-1, T^-1 A^-1 as this engine's arrays, made on first use
+        # (t0, t1, y, z, atol, rtol) -> (h, f at the start): the first step of adaptive steps in one call, made in
+        # the setup where an engine has it (the casadi engine's: .start); None: the controller computes it
+        self.first_step = None
 
     @abstractmethod
     def asarray(self, values):

@@ -27,6 +27,14 @@ REJECTED_MAX_FACTOR, NEWTON_FAILURE_FACTOR = 0.9, 0.5
 ERROR_FLOOR, ACCEPTED_ERROR_FLOOR = 1e-10, 1e-2
 # Step size underflow: h below this times max(1, |t|).
 UNDERFLOW = 1e-14
+# The systems factored for a step of h_f serve a step of h within this many float64 epsilons of (|t| + |h|) of
+# it (factors_serve): a step is the one t's spacing makes of the controller's h (step_length), so that an h kept
+# by the keep band moves by up to eps |t + h| a step, and the chain of 20 pendulums at rtol 1e-4 factored 4 of
+# its 15 times for such a move alone.  Newton's matrix is an approximation (its Jacobian is kept while Newton
+# contracts): a relative change d of h moves it and the error estimate's by d, 1e-13 here.  64: the walk of the
+# roundings stays within it for thousands of kept steps.
+FACTORS_ROUNDING = 64
+EPS = 2.0**-52
 # t has reached t1 within this tolerance relative to |t1 - t0| (a step's end: to its h), or within END_ROUNDING
 # of |t1| (a few float64 spacings there: t + (t1 - t) rounds to within one of t1).  Relative to |t1| alone,
 # 1e-13 of t1 = 1e15 + 2 is 100, more than the span: radau ended at its start, 0 steps, "success", and at
@@ -320,6 +328,13 @@ SCALAR, CASADI = ScalarOps(), CasadiOps()
 
 
 # ---- the controller -----------------------------------------------------------------------------
+def factors_serve(xp, factors_h, h, t):
+    """Whether the systems factored for a step of ``factors_h`` (0: none) serve the step of ``h`` from ``t``:
+    ``h`` is theirs to within the rounding of t + h (:data:`FACTORS_ROUNDING`)."""
+    close = xp.abs(h - factors_h) <= FACTORS_ROUNDING * EPS * (xp.abs(t) + xp.abs(h))
+    return xp.and_(factors_h > 0, close)
+
+
 def underflow(xp, h, t, t1=None):
     """Whether ``h`` is below the step size underflow's threshold at ``t``; a step ``h`` that reaches ``t1``
     (where given) is no underflow, however short: a span shorter than the threshold is taken in one step."""
@@ -393,6 +408,32 @@ def next_step(xp, h, err, quot, s: int, last, predictive, rejected_last, keep, j
     quotient = new_h / h
     banded = xp.and_(xp.and_(keep[0] <= quotient, quotient <= keep[1]), jac_kept)
     return xp.where(banded, h, new_h), (h, xp.maximum(err, ACCEPTED_ERROR_FLOOR))
+
+
+# ---- the first step ------------------------------------------------------------------------------
+# The first step is at least this (times max(1, |t0|)): 1e4 times the step size underflow's threshold.
+INITIAL_STEP_FLOOR = 1e-10
+
+
+def initial_step(xp, rms, y, f0, probe, atol, rtol, stages: int, t0, t1):
+    """Hairer-Wanner's starting step (see :meth:`.control.Radau5Controller.initial_step`) of the states ``y``
+    with ``f0`` = f there: ``rms`` the worst sample's root mean square, ``probe(h0)`` f at ``(t0 + h0, y +
+    h0 f0)`` (the algebraic variables held).  Not where there are no states (the caller's)."""
+    sc = error_scale(atol, rtol, xp.abs(y), 1.0)  # (the states: weight 1)
+    d0, d1 = rms(y / sc), rms(f0 / sc)
+    h0 = xp.cond(xp.or_(d0 < 1e-5, d1 < 1e-5), lambda: 1e-6, lambda: 0.01 * d0 / d1)
+    h0 = xp.minimum(h0, t1 - t0)
+    d2 = rms((probe(h0) - f0) / sc) / h0
+    d = xp.maximum(d1, d2)
+
+    def probed():  # (a probe that left f's domain: a step that long is no start)
+        flat = lambda: xp.minimum(100 * h0, xp.maximum(1e-6, h0 * 1e-3))  # noqa: E731
+        return xp.cond(d <= 1e-15, flat, lambda: xp.minimum(100 * h0, (0.01 / d) ** (1.0 / (stages + 1))))
+
+    h = xp.cond(d2 < math.inf, probed, lambda: h0 * 1e-3)  # (NaN: not finite)
+    # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
+    h = xp.maximum(h, INITIAL_STEP_FLOOR * xp.maximum(1.0, xp.abs(t0)))
+    return xp.minimum(h, t1 - t0)
 
 
 # ---- the error estimate's norm ------------------------------------------------------------------

@@ -78,18 +78,21 @@ def run_head(xp, carried: dict, settings: dict, h) -> dict:
     :data:`SCALARS` ``carried``: ``limited`` (its ``limit`` of attempts is spent), ``refreshed`` and
     ``factored``, and ``ratio`` (h / h_old, the start guess's; 0 without a last step).
 
-    ``refreshed``: the Jacobian was not kept, and ``factored``: else h changed (``factors_h`` 0: no
-    factors), are :meth:`.step.Stepper.current_jacobian`'s and :meth:`.step.Stepper.current_lu`'s
-    decisions on the flags the run carries in place of the stepper's objects (None where dropped,
-    as :meth:`.loop.CompiledRun.advance` packs them).  The stepper does not call this function: its
-    factors can also be partial (the error estimate's system alone, before full Newton), which the
-    run never makes, and it refactors those too.
+    ``refreshed``: the Jacobian was not kept, and ``factored``: else h moved from the factors' beyond the
+    rounding of t + h (``factors_h`` 0: no factors; :func:`.formulas.factors_serve`), are
+    :meth:`.step.Stepper.current_jacobian`'s and :meth:`.step.Stepper.current_lu`'s decisions on the flags
+    the run carries in place of the stepper's objects (None where dropped, as
+    :meth:`.loop.CompiledRun.advance` packs them).  The stepper does not call this function: its factors
+    can also be partial (the error estimate's system alone, before full Newton), which the run never
+    makes, and it refactors those too.
     """
     refreshed = xp.not_(carried["jac_kept"])
     return {
         "limited": carried["attempts"] >= settings["limit"],
         "refreshed": refreshed,
-        "factored": xp.and_(xp.not_(refreshed), carried["factors_h"] != h),
+        "factored": xp.and_(
+            xp.not_(refreshed), xp.not_(formulas.factors_serve(xp, carried["factors_h"], h, carried["t"]))
+        ),
         "ratio": xp.cond(carried["h_old"] > 0, lambda: h / carried["h_old"], lambda: 0.0),
     }
 
@@ -165,7 +168,10 @@ def run_tail(xp, carried: dict, settings: dict, attempt: dict, after: dict, deci
         "eta": xp.where(failed, carried["eta"], attempt["eta"]),
         "jac_kept": xp.where(accept, attempt["jac_kept"], 1),  # (refreshed if it was not kept)
         "t_jac": xp.where(refreshes > 0, t, carried["t_jac"]),
-        "factors_h": xp.where(accept, attempt["h"], 0),  # (a rejected step drops its factors: h changes)
+        # (a rejected step drops its factors: h changes; factors that served keep their own h)
+        "factors_h": xp.where(
+            accept, xp.where(refreshes + attempt["factored"] > 0, attempt["h"], carried["factors_h"]), 0
+        ),
         "det_sign": xp.where(attempt["stale"], attempt["retry_sign"], attempt["sign"]),
         "t_det": xp.where(refreshes > 0, t, carried["t_det"]),
         "attempts": carried["attempts"] + 1,

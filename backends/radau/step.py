@@ -463,10 +463,11 @@ class Stepper:
         self.factors = None
 
     def current_lu(self, J, t, h, error_only=False):
-        """The factored transformed systems of ``J`` for step ``h`` (kept while both are unchanged), or
+        """The factored transformed systems of ``J`` for step ``h`` (kept while both are, h to rounding), or
         (``error_only``) the error estimate's system alone."""
-        factors = self.factors
-        if factors is None or factors.h != h or not (factors.complete or error_only):
+        factors = self.factors  # (of an h that t's rounding moved, they serve: formulas.factors_serve)
+        serve = factors is not None and formulas.factors_serve(SCALAR, factors.h, h, t)
+        if not (serve and (factors.complete or error_only)):
             self.factors = self.factor(J, t, h, error_only)
         return self.factors
 

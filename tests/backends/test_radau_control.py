@@ -115,6 +115,70 @@ def test_the_first_step_probes_how_fast_f_changes():
         assert abs(sol["T"][-1] - exact[1]) < 1e3 * rtol * exact[1] and abs(sol["C"][-1] - exact[0]) < 1e3 * rtol
 
 
+# (y, f at y, f at the probe, atol, rtol, stages, t0, t1): a step from the probe's d2, f at rest (the first guess
+# 1e-6), the probe outside f's domain (NaN: h0 1e-3), f unchanged and tiny (the flat branch), a span shorter
+# than the step, a start at t0 = 1e9 (the floor times |t0|)
+FIRST_STEPS = [
+    ([1.0, -2.0], [0.5, 3.0], [0.7, 2.0], 1e-6, 1e-4, 3, 0.0, 10.0),
+    ([1.0, 2.0], [0.0, 0.0], [1e-3, 0.0], 1e-8, 1e-6, 5, 0.0, 1.0),
+    ([1.0, 2.0], [0.5, 3.0], [math.nan, 2.0], 1e-6, 1e-4, 3, 0.0, 10.0),
+    ([1e-9, 0.0], [1e-20, 0.0], [1e-20, 0.0], 1e-3, 1e-3, 3, 0.0, 10.0),
+    ([1.0, -2.0], [0.5, 3.0], [0.7, 2.0], 1e-6, 1e-4, 7, 0.0, 1e-4),
+    ([1.0, -2.0], [1e-9, 0.0], [1e-9, 0.0], 1e-6, 1e-4, 3, 1e9, 2e9),
+]
+
+
+@pytest.mark.parametrize("case", FIRST_STEPS)
+def test_the_first_step_is_one_formula_on_floats_and_on_casadi_symbols(case):
+    """formulas.initial_step on Python floats (the controller's, on an engine's arrays) and on casadi symbols
+    (backends/radau/start.py: the casadi engine's, one call): the same step, to 1e-15."""
+    import casadi
+    from daemodel.backends.radau import formulas
+
+    y, f0, f1, atol, rtol, stages, t0, t1 = case
+    y, f0, f1 = (np.array([v]) for v in (y, f0, f1))  # (one sample: the controller's (B, n))
+    ops = formulas.ArrayOps(np)
+    on_floats = formulas.initial_step(
+        formulas.SCALAR, lambda x: float(ops.rms(x).max()), y, f0, lambda h0: f1, atol, rtol, stages, t0, t1
+    )
+    x = casadi.SX.sym("x", 2)
+    probe = lambda h0: casadi.DM(f1[0]) + 0 * h0  # noqa: E731  (f1, as a symbol of h0)
+    h = formulas.initial_step(
+        formulas.CASADI, formulas.CASADI.rms, x, casadi.DM(f0[0]), probe, atol, rtol, stages, t0, t1
+    )
+    on_casadi = float(casadi.Function("h", [x], [h])(y[0]))
+    assert on_casadi == pytest.approx(on_floats, rel=1e-15, abs=0) and 0 < on_floats <= t1 - t0
+    if math.isnan(f1[0, 0]):
+        assert on_floats < 1e-2  # (1e-3 of the first guess)
+
+
+@pytest.mark.parametrize("name", ["pendulum", "akzo-nobel", "car-axis", "robertson"])
+def test_the_casadi_engine_makes_the_first_step_in_one_call(monkeypatch, name):
+    """The casadi engine's first step (backends/radau/start.py), made in the setup and called once: the same
+    h and f at the start as the controller's numpy path, bit for bit, and the same solve."""
+    from daemodel.backends.radau import control
+
+    from daemodel.problems import PROBLEMS
+
+    found = []
+    initial_step = control.Radau5Controller.initial_step
+
+    def both(self, stepper, t_span):
+        assert stepper.engine.first_step is not None
+        h, f0 = initial_step(self, stepper, t_span), stepper._f_start.copy()
+        kept, stepper.engine.first_step, stepper._f_start = stepper.engine.first_step, None, None
+        found.append((h, f0, initial_step(self, stepper, t_span), stepper._f_start.copy()))
+        stepper.engine.first_step = kept
+        return h
+
+    monkeypatch.setattr(control.Radau5Controller, "initial_step", both)
+    compiled = PROBLEMS[name].model().compile()
+    span = PROBLEMS[name].t_span
+    sol = dm.solve(compiled, span, rtol=1e-5, atol=1e-5)
+    ((h, f0, h_numpy, f0_numpy),) = found
+    assert h == h_numpy and np.array_equal(f0, f0_numpy) and sol.status == "success"
+
+
 def _near_rest(seed: int):
     """A random stiff system near rest, ``u' = A u - c u^3 + b forcing(t)`` with ``u = y - y_rest``,
     ``u(0)`` 1e-7 of ``y_rest`` (of size 1-10) and ``forcing(0) = 0``: f(t0) is ~1e-7 of the state,

@@ -40,6 +40,9 @@ CASES = [
     ("Gustafsson binding", {"err_acc": 0.05}, {}, {}),
     ("keep band", {}, {"keep_high": 1.5}, {"error_norm": 0.1}),
     ("keep band, Jacobian dropped", {}, {"keep_high": 1.5}, {"error_norm": 0.1, "theta": 0.5}),
+    # (factors of the last step's h, which t's rounding moved: they serve; beyond that rounding: factored)
+    ("factors within rounding", {"factors_h": (0.2 + 0.1) - 0.2}, {}, {}),
+    ("factors beyond rounding", {"factors_h": 0.1 * (1 + 1e-12)}, {}, {}),
     ("growth bound", {}, {}, {"error_norm": 1e-14, "iterations": 1.0}),
     ("end of interval", {"t": 0.95}, {}, {}),
     ("stretched to the end", {"t": 1.0 - 0.1 - 1e-12}, {}, {}),
@@ -120,6 +123,21 @@ def test_the_cases_reach_every_decision():
     kept = seen["keep band"][0]["h"]
     assert kept == (0.3 + 0.1) - 0.3 and seen["keep band"][1]["h"] == kept
     assert seen["keep band, Jacobian dropped"][1]["h"] != kept
+
+
+def test_factors_serve_a_step_within_the_rounding_of_t_plus_h():
+    """The step from t = 0.3 is 0.1 as t's float64 spacing makes it: the factors of the last step's 0.1 (from
+    t = 0.2, another rounding) serve it and keep their own h; factors 1e-12 off, or none, are factored anew,
+    and then carry the step's h."""
+    h = (0.3 + 0.1) - 0.3
+    for factors_h, factored in (((0.2 + 0.1) - 0.2, False), (0.1, False), (0.1 * (1 + 1e-12), True), (0.0, True)):
+        carried, settings, attempt = _case({"factors_h": factors_h}, {}, {})
+        head, _, _, scalars, ran, taken, _ = _on_floats(carried, settings, attempt)
+        assert head["h"] == h and bool(head["factored"]) == factored, factors_h
+        assert ran and taken and scalars["factors_h"] == (h if factored else factors_h), factors_h
+    # (the bound: 64 eps (|t| + |h|), 0.4 here)
+    assert not formulas.factors_serve(SCALAR, h, h + 70 * 2.0**-52 * 0.4, 0.3)
+    assert formulas.factors_serve(SCALAR, h, h + 58 * 2.0**-52 * 0.4, 0.3)
 
 
 # RADAU5's formulas written out (Hairer & Wanner IV.8; s = 3, Newton's most 7 iterations, k = 3 of them)
