@@ -13,3 +13,10 @@ def quoted(value, limit: int = 80) -> str:
     if isinstance(value, str) and len(value) > limit:
         return repr(value[: limit - 3] + "...")
     return clip(repr(value), limit)
+
+
+def listed(items, most: int = 10) -> str:
+    """The first ``most`` of ``items``, each :func:`quoted`, and how many more there are."""
+    items = list(items)
+    shown = ", ".join(quoted(item) for item in items[:most])
+    return shown + (f" and {len(items) - most:,} more" if len(items) > most else "")

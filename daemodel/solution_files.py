@@ -22,6 +22,7 @@ from daemodel.files import (
     stored,
     writable_file,
 )
+from daemodel.messages import listed, quoted
 
 # What Solution.save writes and Solution.load reads.
 SOLUTION_FORMAT = "daemodel-solution/2"
@@ -130,7 +131,7 @@ def _switch_record(record, B: int, names: list, path: Path, field: str) -> dict:
     out = {"t": t, "moved": table(record["moved"], f"{field}.moved", t.shape[1])}
     for side in ("before", "after"):
         if not isinstance(record[side], dict) or sorted(record[side]) != sorted(names):
-            raise SolutionFileError(f"{path}: field '{field}.{side}' does not hold the variables {names}")
+            raise SolutionFileError(f"{path}: field '{field}.{side}' does not hold the variables {listed(names)}")
         out[side] = {name: table(record[side][name], f"{field}.{side}.{name}", t.shape[1]) for name in names}
     return out
 
@@ -246,17 +247,19 @@ def read(handle, path: Path, model, cls):
             raise SolutionFileError(f"{path}: field {key!r} is a {type(meta[key]).__name__}, not {expected}")
     if "dense" not in meta or not isinstance(meta["dense"], dict | None):
         raise SolutionFileError(f"{path}: field 'dense' is missing or not an object: it is damaged")
-    listed = meta["arrays"]
-    bad = [k for k, v in listed.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)]
+    declared = meta["arrays"]
+    bad = [k for k, v in declared.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)]
     if bad:
         raise SolutionFileError(f"{path}: field 'arrays' lists {bad[0]!r}, which is no array daemodel writes")
-    expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in listed.items()}
+    expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in declared.items()}
     arrays = read_arrays(handle, path, expected, SolutionFileError, limit, "daemodel solution file")
     compiled = as_compiled(model, "Solution.load()")
     match = matching_system(compiled, meta, path, solved=arrays["parameters"])
     names = [*match.state_names, *match.algebraic_names]
     if meta["names"] != names:
-        raise SolutionFileError(f"{path}: field 'names' is {meta['names']!r}; the model's variables are {names}")
+        raise SolutionFileError(
+            f"{path}: field 'names' is {quoted(meta['names'], 200)}; the model's variables are {listed(names)}"
+        )
     t, values, parameters = arrays["t"], arrays["values"], arrays["parameters"]
     if not len(t) or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
         raise SolutionFileError(f"{path}: field 't' is not a non-empty, finite, increasing sequence of times")

@@ -344,8 +344,8 @@ def _forge(tmp_path, saved, **changes) -> Path:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"names": ["x", "x"]}, r"field 'names' is \['x', 'x'\]; the model's variables are \['x'\]"),
-        ({"names": []}, r"field 'names' is \[\]; the model's variables are \['x'\]"),
+        ({"names": ["x", "x"]}, r"field 'names' is \['x', 'x'\]; the model's variables are 'x'$"),
+        ({"names": []}, r"field 'names' is \[\]; the model's variables are 'x'$"),
         ({"t": np.array([0.0, np.nan, 1.0])}, r"field 't' is not a non-empty, finite, increasing"),
         ({"t": np.array([0.0, 0.5, 0.4])}, r"field 't' is not a non-empty, finite, increasing"),
         ({"t": np.linspace(0, 1, 5)}, r"field 'values' has shape \(2, 11, 1\); 2 samples, 5 times and 1 variables"),
@@ -361,6 +361,24 @@ def test_a_solution_file_with_a_bad_field_names_it(saved, tmp_path, changes, mes
     path = _forge(tmp_path, saved, **changes)
     with pytest.raises(SolutionFileError, match=message):
         dm.Solution.load(path, decay)
+
+
+def test_a_solution_file_whose_names_are_long_is_refused_in_a_short_message(saved, tmp_path):
+    """10^5 forged names: the message quotes their start, not all of them (it printed every one)."""
+    path = _forge(tmp_path, saved, names=[f"v{k}" for k in range(100_000)])
+    with pytest.raises(
+        SolutionFileError, match=r"field 'names' is \['v0', 'v1', .*\.\.\.; the model's variables are 'x'$"
+    ) as raised:
+        dm.Solution.load(path, decay)
+    assert len(str(raised.value)) < 400
+
+
+def test_messages_list_the_first_items_and_count_the_rest():
+    from daemodel.messages import listed
+
+    assert listed(["a", "b"]) == "'a', 'b'"
+    assert listed([f"u[{k}]" for k in range(12)], most=2) == "'u[0]', 'u[1]' and 10 more"
+    assert listed([]) == ""
 
 
 def test_a_solution_file_with_an_object_array_or_an_extra_member_is_refused_unread(saved, tmp_path):
