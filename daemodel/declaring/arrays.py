@@ -13,13 +13,17 @@ import re
 
 import numpy as np
 
-from daemodel.errors import ShapeError, UnknownSymbolError
+from daemodel.errors import ResourceLimitError, ShapeError, UnknownSymbolError
+from daemodel.files import memory_limit
 
 # An element's name: an identifier, then one index per axis (no spaces, no sign).
 ELEMENT = re.compile(r"([A-Za-z][A-Za-z0-9_]*)\[([0-9]+(?:,[0-9]+)*)\]")
 # Most elements one array may have: far beyond a model daemodel can solve, small enough that a typo
 # (an extra zero or two) is an error, not an hour spent allocating symbols.
 MAX_ELEMENTS = 10_000_000
+# What an element costs before any equation: its sympy symbol, name and index entries (0.35 kB measured at
+# 10^5 elements); an array whose elements alone would pass the memory limit is refused before they are made.
+ELEMENT_BYTES = 350
 
 
 def checked_shape(shape, what: str) -> tuple[int, ...]:
@@ -42,6 +46,13 @@ def checked_shape(shape, what: str) -> tuple[int, ...]:
         raise ShapeError(f"{what}: every axis needs at least one element; got shape {dims}")
     if int(np.prod(dims, dtype=object)) > MAX_ELEMENTS:
         raise ShapeError(f"{what}: shape {dims} has more than the {MAX_ELEMENTS:,} elements an array may have")
+    count, limit = int(np.prod(dims, dtype=object)), memory_limit()
+    if count * ELEMENT_BYTES > limit:
+        raise ResourceLimitError(
+            f"{what}: shape {dims} makes {count:,} elements, about {count * ELEMENT_BYTES / 2**30:.3g} GiB of "
+            f"symbols ({ELEMENT_BYTES} bytes each) before any equation, over the memory limit of "
+            f"{limit / 2**30:.3g} GiB (DAEMODEL_MEMORY_LIMIT)"
+        )
     return dims
 
 
