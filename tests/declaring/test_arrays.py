@@ -322,11 +322,10 @@ def test_element_names_are_split_and_made_identifiers():
 
 def test_an_array_whose_symbols_alone_pass_the_memory_limit_is_refused_before_they_are_made(monkeypatch):
     """10^6 elements under a 100 MB limit (0.33 GiB of symbols): refused at once, naming the size and the
-    limit; an array that fits is declared as before."""
+    limit; the name stays free, and an array that fits is declared as before."""
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "100M")
     m = dm.Model("big")
     message = r"array 'u': shape \(1000, 1000\) makes 1,000,000 elements, about 0.326 GiB .* limit of 0.0977 GiB"
     with pytest.raises(E.ResourceLimitError, match=message):
         m.states("u", (1000, 1000))
-    assert m.report().count("u[") == 0
-    assert m.states("v", 1000).shape == (1000,)
+    assert m.states("u", 1000).shape == (1000,)  # (nothing of the refused one was declared)
