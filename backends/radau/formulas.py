@@ -421,7 +421,9 @@ def initial_step(xp, rms, y, f0, probe, atol, rtol, stages: int, t0, t1):
     h0 f0)`` (the algebraic variables held).  Not where there are no states (the caller's)."""
     sc = error_scale(atol, rtol, xp.abs(y), 1.0)  # (the states: weight 1)
     d0, d1 = rms(y / sc), rms(f0 / sc)
-    h0 = xp.cond(xp.or_(d0 < 1e-5, d1 < 1e-5), lambda: 1e-6, lambda: 0.01 * d0 / d1)
+    # (f0 not finite: 1e-6 on every engine, where numpy's minimum passed a NaN on and casadi's dropped it)
+    small = xp.or_(xp.or_(d0 < 1e-5, d1 < 1e-5), xp.not_(d1 < math.inf))
+    h0 = xp.cond(small, lambda: 1e-6, lambda: 0.01 * d0 / d1)
     h0 = xp.minimum(h0, t1 - t0)
     d2 = rms((probe(h0) - f0) / sc) / h0
     d = xp.maximum(d1, d2)
