@@ -248,7 +248,9 @@ def read(handle, path: Path, model, cls):
     if "dense" not in meta or not isinstance(meta["dense"], dict | None):
         raise SolutionFileError(f"{path}: field 'dense' is missing or not an object: it is damaged")
     declared = meta["arrays"]
-    bad = [k for k, v in declared.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)]
+    bad = [
+        k for k, v in declared.items() if not STORED_NAME.fullmatch(k) or isinstance(v, bool) or v not in range(1, 33)
+    ]
     if bad:
         raise SolutionFileError(f"{path}: field 'arrays' lists {bad[0]!r}, which is no array daemodel writes")
     expected = SOLUTION_ARRAYS | {name: (STORED_KINDS, ndim) for name, ndim in declared.items()}
