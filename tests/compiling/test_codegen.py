@@ -324,7 +324,10 @@ def test_the_library_models_convert_to_the_same_bits_stacked(monkeypatch):
 
 
 def _nan_in_max_or_min() -> dm.Model:
-    """a' = Max(a, sqrt(b)) and b' = Min(sqrt(a), b): a nan where a or b is negative, in either argument."""
+    """a' = Max(a, sqrt(b)) and b' = Min(sqrt(a), b): a nan where a or b is negative, in either argument.
+
+    casadi's fmax and fmin return the other argument where one is nan, and torch.where(a >= b, a, b) returns b
+    where a is nan: both gave a number (1, 0.5, ...) where sympy and numpy give nan."""
     m = dm.Model("nanargs")
     a, b = m.states("a b")
     m.ode(a, sp.Max(a, sp.sqrt(b)))
@@ -333,16 +336,44 @@ def _nan_in_max_or_min() -> dm.Model:
     return m
 
 
-def test_a_nan_among_a_max_or_min_s_arguments_is_passed_on_by_both_emitters():
-    # casadi's fmax and fmin return the other argument where one is nan, and torch.where(a >= b, a, b) returns b
-    # where a is nan: both gave a number (1, 0.5, ...) where sympy and numpy give nan.  Finite and infinite values
-    # as before
-    c = _nan_in_max_or_min().compile()
+def _nan_in_a_piecewise_condition() -> dm.Model:
+    """a' = Piecewise((1, sqrt(b) > 0), (2, True)), b' = Piecewise((a, sqrt(a) < 1 and b > 0), (-a, True)).
+
+    nan > 0 is False in numpy, torch and casadi alike: the first took the otherwise branch, 2, where b < 0
+    (sympy's own value there is no number either); the second's condition is an And of two comparisons."""
+    m = dm.Model("nanpiece")
+    a, b = m.states("a b")
+    m.ode(a, sp.Piecewise((1, sp.sqrt(b) > 0), (2, True)))
+    m.ode(b, sp.Piecewise((a, sp.And(sp.sqrt(a) < 1, b > 0)), (-a, True)))
+    m.initial(a=1.0, b=1.0)
+    return m
+
+
+INF, NAN = math.inf, math.nan
+
+
+@pytest.mark.parametrize(
+    ("model", "points", "expected"),
+    [
+        (
+            _nan_in_max_or_min,
+            [(-1.0, 4.0), (4.0, -1.0), (NAN, 1.0), (1.0, NAN), (4.0, 1.0), (0.25, 4.0), (INF, 4.0)],
+            [(2.0, NAN), (NAN, -1.0), (NAN, NAN), (NAN, NAN), (4.0, 1.0), (2.0, 0.5), (INF, 4.0)],
+        ),
+        (
+            _nan_in_a_piecewise_condition,
+            [(0.25, 4.0), (4.0, -1.0), (-1.0, 4.0), (NAN, 1.0), (0.25, -1.0), (INF, 0.0), (0.25, 0.0)],
+            [(1.0, 0.25), (NAN, -4.0), (1.0, NAN), (1.0, NAN), (NAN, -0.25), (2.0, -INF), (2.0, -0.25)],
+        ),
+    ],
+    ids=["max-or-min", "piecewise"],
+)
+def test_a_nan_through_a_max_or_a_piecewise_gives_the_same_values_in_every_emitter(model, points, expected):
+    # a nan in a Max's or Min's argument, or in a Piecewise's condition, is a nan in numpy, torch and casadi;
+    # finite and infinite values as before
+    c = model().compile()
     tf, dae = c.torch_functions(), c.casadi_dae()
     F = casadi.Function("F", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
-    inf = math.inf
-    points = [(-1.0, 4.0), (4.0, -1.0), (math.nan, 1.0), (1.0, math.nan), (4.0, 1.0), (0.25, 4.0), (inf, 4.0)]
-    expected = [(2.0, np.nan), (np.nan, -1.0), (np.nan, np.nan), (np.nan, np.nan), (4.0, 1.0), (2.0, 0.5), (inf, 4.0)]
     Y = np.array(points)
     with np.errstate(invalid="ignore"):
         f_numpy = c.numeric.batch_function(list(c.rhs))(np.zeros(len(Y)), Y, np.zeros((len(Y), 0)), np.zeros((1, 0)))
@@ -420,30 +451,6 @@ def test_radau_differentiates_an_arrows_dense_row_apart(monkeypatch):
     assert sol.status == "success"
     assert 2 * K + 1 not in seen and K * 2 in seen and 1 in seen
     np.testing.assert_allclose(sol["mean"][-1], np.mean(sol["c"][:, -1]), rtol=1e-12)
-
-
-def test_a_nan_compared_in_a_piecewise_condition_gives_a_nan_in_every_emitter():
-    # nan > 0 is False in numpy, torch and casadi alike: Piecewise((1, sqrt(b) > 0), (2, True)) took the otherwise
-    # branch, 2, where b < 0 (sympy's own value there is no number either).  Now a nan, in all three; the second
-    # condition (an And of two comparisons, one on a, one on b) too; finite and infinite values as before
-    m = dm.Model("nanpiece")
-    a, b = m.states("a b")
-    m.ode(a, sp.Piecewise((1, sp.sqrt(b) > 0), (2, True)))
-    m.ode(b, sp.Piecewise((a, sp.And(sp.sqrt(a) < 1, b > 0)), (-a, True)))
-    m.initial(a=1.0, b=1.0)
-    c = m.compile()
-    tf, dae = c.torch_functions(), c.casadi_dae()
-    F = casadi.Function("F", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
-    inf, nan = math.inf, math.nan
-    points = [(0.25, 4.0), (4.0, -1.0), (-1.0, 4.0), (nan, 1.0), (0.25, -1.0), (inf, 0.0), (0.25, 0.0)]
-    expected = [(1.0, 0.25), (nan, -4.0), (1.0, nan), (1.0, nan), (nan, -0.25), (2.0, -inf), (2.0, -0.25)]
-    Y = np.array(points)
-    with np.errstate(invalid="ignore"):
-        f_numpy = c.numeric.batch_function(list(c.rhs))(np.zeros(len(Y)), Y, np.zeros((len(Y), 0)), np.zeros((1, 0)))
-    f_torch = tf.f(torch.zeros(len(Y), dtype=torch.float64), torch.tensor(Y), torch.zeros(len(Y), 0)).numpy()
-    f_casadi = np.array([np.array(F(0.0, y, [], [])).ravel() for y in Y])
-    for name, f in [("numpy", f_numpy), ("torch", f_torch), ("casadi", f_casadi)]:
-        np.testing.assert_array_equal(f, np.array(expected), err_msg=name)
 
 
 @pytest.mark.parametrize(
