@@ -242,3 +242,30 @@ def test_a_child_process_out_of_time_is_stopped_and_named(monkeypatch):
     assert outcome == "one factorisation of the pattern did not finish within 0.01 s"
     with pytest.raises(ProcessLookupError):  # (the child is gone, reaped: none left behind)
         os.kill(children[0], 0)
+
+
+def test_the_column_order_of_a_pattern_without_a_full_diagonal_does_not_abort_the_process():
+    """A random pattern of 300 unknowns, 180 of them differential, whose algebraic columns have no diagonal: the
+    incomplete factorisation that reads SuperLU's order, at a fill ratio of 1, overran its work space and glibc
+    aborted the whole process ("double free or corruption"), so it runs in a child interpreter here.  Now it
+    finishes, with SuperLU's own order and a bound that holds its factors."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, scipy.sparse.linalg as splinalg\n"
+        "from daemodel.backends.radau import fill\n"
+        "from daemodel.backends.radau.linalg import pattern_matrix\n"
+        "D = 300\n"
+        "rng, i = np.random.default_rng(24), np.arange(D)\n"
+        "k = int(rng.integers(1, 6)) * D\n"
+        "rows, cols = np.r_[rng.integers(0, D, k), i], np.r_[rng.integers(0, D, k), rng.permutation(D)]\n"
+        "matrix = pattern_matrix(rows, cols, 180, D)\n"
+        "lu = splinalg.splu(matrix)\n"
+        "order = fill.superlu_column_order(matrix)\n"
+        "print(int(np.array_equal(np.argsort(order), lu.perm_c)), fill.fill_bound(matrix), lu.L.nnz + lu.U.nnz)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-300:]
+    same, bound, count = (int(word) for word in run.stdout.split())
+    assert same == 1 and count <= bound
