@@ -21,8 +21,8 @@ exhausting the machine before it could refuse.  So the trial runs only where a b
 4. Else (a dense row or column: a constraint summing every state, a multiplier in every equation; or a bound
    within :data:`BOUND_SLACK` of the limit) the bound says little (2,500 times the fill of an arrow at 10^4
    unknowns, 14 times that of one dense row), and **the trial runs in a child process** under ``RLIMIT_AS``
-   (the memory limit) and :data:`TRIAL_SECONDS`: its count, or a refusal when it runs out of either (without
-   ``fork``, the bound decides).
+   (the memory limit) and :data:`TRIAL_SECONDS` (radau's ``fill_seconds``): its count, or a refusal when it
+   runs out of either (without ``fork``, the bound decides).
 
 Refusals are :class:`FillOverLimit`, which the guard turns into a :class:`~daemodel.errors.ResourceLimitError`
 naming the size, the fill and the limit.
@@ -48,8 +48,8 @@ TRIAL_BYTES_PER_ENTRY = 80
 # any row pivot): above the largest measured.  A model refused on the bound has a fill at least this
 # many times below it, and would still not fit.
 BOUND_SLACK = 64.0
-# Seconds the trial in a child process may take (case 4): one factorisation of the solve would take as long,
-# and a solve makes one at every Jacobian.
+# Seconds the trial in a child process may take (case 4) unless radau's ``fill_seconds`` says: one
+# factorisation of the solve would take as long, and a solve makes one at every Jacobian.
 TRIAL_SECONDS = 30.0
 # The fill ratio given to the incomplete factorisation that reads SuperLU's column order (scipy's default):
 # at 1, SuperLU's ILU overran its work space on random patterns without a full diagonal (300 unknowns, 180
@@ -209,17 +209,20 @@ def _ancestor_reaching(up: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarr
     return np.where(x < b, up[x], x)
 
 
-def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entries: float) -> int:
+def measured_fill(
+    rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entries: float, seconds: float = TRIAL_SECONDS
+) -> int:
     """The entries of SuperLU's factors of ``sigma M - J`` (:func:`.fill.factor_entries`), measured only
     where it can be within the memory limit; :class:`FillOverLimit` where they would be more than
-    ``max_entries`` (the largest fill the limit leaves the solve), as the module docstring's steps say."""
+    ``max_entries`` (the largest fill the limit leaves the solve), as the module docstring's steps say.
+    ``seconds``: the most the count in a child process may take (radau's ``fill_seconds``)."""
     from daemodel.files import memory_limit
 
-    matrix = pattern_matrix(rows, cols, n, D)
+    matrix = pattern_matrix(rows, cols, n, D)  # (made once: the bound, the order and the count read it)
     bound = fill_bound(matrix)
     trial_limit = memory_limit()
     if bound is not None and bound * TRIAL_BYTES_PER_ENTRY <= trial_limit:
-        return factor_entries(rows, cols, n, D)
+        return matrix_entries(matrix)
     if bound is not None and not dense_lines(rows, cols, D) and bound / BOUND_SLACK > max_entries:
         raise FillOverLimit(
             bound / BOUND_SLACK,
@@ -227,13 +230,13 @@ def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entrie
             f"SuperLU's column order) over {BOUND_SLACK:g}, more than it exceeded the fill on any pattern without "
             "dense rows measured; not factored",
         )
-    outcome = capped_trial(matrix, trial_limit, TRIAL_SECONDS)  # (its count, over max_entries or not, decides)
+    outcome = capped_trial(matrix, trial_limit, seconds)  # (its count, over max_entries or not, decides)
     if isinstance(outcome, int):
         return outcome
     if outcome == "unavailable":
         estimate = bound if bound is not None else D * D
         if estimate <= max_entries:  # (no fork: the bound itself fits, the trial is within it)
-            return factor_entries(rows, cols, n, D)
+            return matrix_entries(matrix)
         raise FillOverLimit(estimate, f"the bound {estimate:.3g} from the Jacobian's pattern; not factored")
     raise FillOverLimit(None, outcome)  # (how many entries is not known: the count did not finish)
 
@@ -307,10 +310,17 @@ def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
     ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
     engine's factors, which pivot on their own values, is of the same order)."""
+    return matrix_entries(pattern_matrix(rows, cols, n, D))
+
+
+def matrix_entries(matrix) -> int:
+    """The entries of SuperLU's LU factors (L's and U's) of the square CSC ``matrix``
+    (:func:`.linalg.pattern_matrix`'s), ``D^2`` where it is singular at its values."""
     import scipy.sparse.linalg as splinalg
 
+    D = matrix.shape[0]
     try:
-        lu = splinalg.splu(pattern_matrix(rows, cols, n, D))
+        lu = splinalg.splu(matrix)
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
         raise
     except RuntimeError:  # (structurally singular at these values: at most dense)

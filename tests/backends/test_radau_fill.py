@@ -269,3 +269,33 @@ def test_the_column_order_of_a_pattern_without_a_full_diagonal_does_not_abort_th
     assert run.returncode == 0, run.stderr[-300:]
     same, bound, count = (int(word) for word in run.stdout.split())
     assert same == 1 and count <= bound
+
+
+def test_the_pattern_matrix_is_made_once_for_the_bound_and_the_count(monkeypatch):
+    """measured_fill made ``sigma M - J`` for the bound and again for the count (factor_entries): now the count
+    factors the matrix it is given, and counts what factor_entries counts."""
+    rows, cols, n = _pattern("random", 900)
+    made, make = [], fill.pattern_matrix
+    monkeypatch.setattr(fill, "pattern_matrix", lambda *args: made.append(1) or make(*args))
+    count = fill.measured_fill(rows, cols, n, 900, 1e9)
+    assert len(made) == 1
+    assert count == fill.factor_entries(rows, cols, n, 900)
+
+
+@pytest.mark.parametrize(
+    ("seconds", "said"),
+    [(0, "positive"), (-1.0, "positive"), (math.nan, "finite"), (math.inf, "finite"), ("5", "a real number")],
+)
+def test_fill_seconds_must_be_a_positive_finite_number(seconds, said):
+    with pytest.raises(E.InvalidOptionError, match=f"fill_seconds must be {said}; got"):
+        dm.solve(_mean_model(3).compile(), (0.0, 1.0), method="radau", fill_seconds=seconds)
+
+
+def test_fill_seconds_is_the_child_process_s_time_limit(monkeypatch):
+    """TRIAL_SECONDS (30 s) was fixed: the count in a child process (a dense row, the trial not allowed here) now
+    takes radau's fill_seconds (a count past it: test_a_child_process_out_of_time_is_stopped_and_named)."""
+    seconds, trial = [], fill.capped_trial
+    monkeypatch.setattr(fill, "capped_trial", lambda matrix, limit, s: seconds.append(s) or trial(matrix, limit, s))
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")
+    sol = dm.solve(_mean_model(300).compile(), (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False, fill_seconds=7.5)
+    assert sol.status == "success" and seconds == [7.5]
