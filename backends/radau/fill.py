@@ -56,6 +56,9 @@ TRIAL_SECONDS = 30.0
 # of them differential, 900 entries: "double free or corruption", the process aborted, in 3 of 3 runs of
 # 300 random patterns); at 10, none in 6,000 patterns of 2-400 unknowns (at 2, none in 3,000).
 ORDER_FILL_FACTOR = 10
+# The largest address-space limit setrlimit takes (a C rlim_t read as signed by Python): a child given more
+# failed with an OverflowError, and the guard refused a model under a memory limit of 10^8 TiB.
+MAX_RLIMIT = 2**63 - 1
 
 
 class FillOverLimit(RuntimeError):
@@ -263,7 +266,10 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
             _, hard = resource.getrlimit(resource.RLIMIT_AS)
             size = os.sysconf("SC_PAGE_SIZE") * int(open("/proc/self/statm").read().split()[0])
             soft = size + int(max_bytes)
-            resource.setrlimit(resource.RLIMIT_AS, (soft if hard == resource.RLIM_INFINITY else min(soft, hard), hard))
+            if soft < MAX_RLIMIT:  # (a limit past what setrlimit takes, DAEMODEL_MEMORY_LIMIT = '10^8T': none)
+                resource.setrlimit(
+                    resource.RLIMIT_AS, (soft if hard == resource.RLIM_INFINITY else min(soft, hard), hard)
+                )
             try:
                 lu = splinalg.splu(matrix)
                 message = str(int(lu.L.nnz + lu.U.nnz)).encode()

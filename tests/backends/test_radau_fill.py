@@ -299,3 +299,13 @@ def test_fill_seconds_is_the_child_process_s_time_limit(monkeypatch):
     monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")
     sol = dm.solve(_mean_model(300).compile(), (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False, fill_seconds=7.5)
     assert sol.status == "success" and seconds == [7.5]
+
+
+@pytest.mark.parametrize("max_bytes", [1e30, 2.0**63, 2.0**64])
+def test_a_child_given_more_memory_than_setrlimit_takes_counts_unlimited(max_bytes):
+    # before: setrlimit's OverflowError in the child, "one factorisation of the pattern failed in a child process
+    # given 9.31e+20 GiB (error OverflowError)": a refusal under a limit no model reaches
+    rows, cols, n = _pattern("dense row", 300)
+    matrix = pattern_matrix(rows, cols, n, 300)
+    lu = splinalg.splu(matrix)
+    assert fill.capped_trial(matrix, max_bytes, 60.0) == lu.L.nnz + lu.U.nnz
