@@ -247,14 +247,23 @@ def measured_fill(
 def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
     """SuperLU's fill of ``matrix`` (L's and U's entries) factored in a child process (``fork``) whose
     address space may grow by ``max_bytes`` and which may take ``seconds``: the count, or in words why
-    there is none (out of memory, out of time, singular), or ``"unavailable"`` where this system cannot fork."""
+    there is none (out of memory, out of time, singular), or ``"unavailable"`` where this system cannot
+    fork or no child can be made now (``fork``'s ``OSError``)."""
     import select
     import signal
 
     if not hasattr(os, "fork"):
         return "unavailable"
-    read_end, write_end = os.pipe()
-    pid = os.fork()
+    try:
+        read_end, write_end = os.pipe()
+    except OSError:  # (no descriptors left: as without fork)
+        return "unavailable"
+    try:
+        pid = os.fork()
+    except OSError:  # (EAGAIN, ENOMEM: no process can be made now; the bound decides, as without fork)
+        os.close(read_end)
+        os.close(write_end)
+        return "unavailable"
     if pid == 0:  # the child: factor, write the count or the reason, and leave without Python's exit handlers
         message = b"error"
         try:

@@ -309,3 +309,22 @@ def test_a_child_given_more_memory_than_setrlimit_takes_counts_unlimited(max_byt
     matrix = pattern_matrix(rows, cols, n, 300)
     lu = splinalg.splu(matrix)
     assert fill.capped_trial(matrix, max_bytes, 60.0) == lu.L.nnz + lu.U.nnz
+
+
+def test_a_child_process_that_cannot_be_made_leaves_the_bound_to_decide(monkeypatch):
+    """fork's OSError (EAGAIN: a process limit reached) came out of the solve as a bare BlockingIOError; now the
+    bound decides, as on a system without fork: here the bound (9.1e4 entries) is more than the 4 MiB leave
+    (5.2e4), and the solve is refused naming it."""
+    import os
+
+    def no_fork():
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    compiled = _mean_model(300).compile()
+    monkeypatch.setattr(os, "fork", no_fork)
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")  # (the trial not allowed here: a child process is asked for)
+    refused = (
+        r"would hold about 9.09e\+04 entries or more \(the bound 9.09e\+04 from the Jacobian's pattern; not factored\)"
+    )
+    with pytest.raises(E.ResourceLimitError, match=refused):
+        dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False)
