@@ -324,6 +324,8 @@ def start_piece(
                 if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
                     side = _back_sooner(compiled, backend, model, events[e], e, t, Y, Z, P, when, delta, shortest,
                                         scale[e], across)  # fmt: skip
+            if not side and e in fired:  # (it crossed here, too slowly for one look-ahead: read over longer ones)
+                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, scale[e], horizon)
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
@@ -336,6 +338,23 @@ def start_piece(
         frozenset(at_zero),
         reset,
     )
+
+
+def _crossed_to(compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, scale: float, horizon: float) -> int:
+    """The side the function of the declared event ``e``, which crossed zero at ``t`` and moves by less than
+    rounding over ``delta`` from there, goes on to: read over look-aheads :data:`LOOKAHEAD_GROWTH` times longer,
+    at most :data:`LOOKAHEAD_GROWTHS` of them, never past ``horizon``; 0 where none resolves it (it rests on zero).
+    Unread, it was 0 (not armed: "armed once it has left it"), and its way back across zero was taken for that
+    leaving: x = (t - 1)^2 - 1e-12 crossed at 1 -+ 1e-6 (moving 4e-15 over delta = 2e-9), and one crossing was
+    recorded, "success", under the reference and a fixed radau grid."""
+    for growth in range(1, LOOKAHEAD_GROWTHS + 1):
+        if delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
+            break
+        longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
+        side = _side(drift(compiled, backend, model, t, Y, Z, P, when, longer, fourth=True)[e], scale)
+        if side:
+            return side
+    return 0
 
 
 def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,

@@ -891,3 +891,24 @@ def test_humps_between_idas_outputs_far_apart_are_each_seen():
     sol = dm.solve(_humps(0.99, event=0), (0.0, t1), method="casadi-idas", rtol=1e-7, atol=1e-7, t_eval=[0.0, t1])
     found, exact = sol.events["hump"]["t"][0], _hump_times(0.99, t1)
     assert sol.status != "success" or len(found) == len(exact) == 956
+
+
+@pytest.mark.parametrize("reset", [False, True])
+@pytest.mark.parametrize(("method", "options"), [("reference", {}), ("radau", {"stages": 3, "h": 0.01})])
+@pytest.mark.parametrize("depth", [1e-12, 1e-11])
+def test_an_event_that_crosses_slowly_and_back_soon_counts_both_crossings(reset, method, options, depth):
+    # x = (t - 1)^2 - depth crosses zero at 1 -+ sqrt(depth) (1e-6, 3.2e-6): at the first, x moves by 4e-15 over the
+    # look-ahead (2e-9), below rounding, so its side was 0 (not armed), and its crossing back was taken for its first
+    # leaving of zero: one crossing recorded (n = 1), "success", under the reference and a fixed radau grid
+    m = dm.Model("slow_crossing")
+    m.states("x n")
+    m.ode("x", "2*(t - 1)")
+    m.ode("n", "0")
+    m.initial(x=1.0 - depth, n=0.0)
+    m.event("level", "x", **({"reset": {"n": "n + 1"}} if reset else {}))
+    sol = dm.solve(m, (0.0, 2.0), method=method, **options)
+    assert sol.status == "success"
+    np.testing.assert_allclose(
+        sol.events["level"]["t"].ravel(), [1 - math.sqrt(depth), 1 + math.sqrt(depth)], atol=1e-9
+    )
+    assert sol["n"][-1] == (2.0 if reset else 0.0)
