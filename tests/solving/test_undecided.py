@@ -104,9 +104,11 @@ def test_a_hump_between_radau_steps_is_read_at_its_parabola_vertex():
     m.event("floor", "h", direction=-1, reset={"v": f"-{E}*v"})
     m.event("level", f"h - {E**8 * (1 - 1e-9)!r}")
     sol = dm.solve(m, (0.0, 3.5), method="radau", rtol=1e-6, atol=1e-6)
-    assert sol.events["level"]["t"].shape[1] == 7
+    # (the excursion search now reads the zoom's parabola vertex too, and finds both crossings: the exact 9, still
+    # within the method's error there, so flagged)
+    assert sol.events["level"]["t"].shape[1] == 9
     found = re.fullmatch(
-        r"event 'level' does not cross zero between .* \(-?[0-9.e-]+ at t = ([0-9.]+)\), .*", sol.status
+        r"event 'level' crosses zero 2 times between .* \(-?[0-9.e-]+ at t = ([0-9.]+)\), .*", sol.status
     )
     assert found and abs(float(found.group(1)) - t_apex) < 1e-6, sol.status
 
