@@ -930,3 +930,28 @@ def test_a_switch_excursion_narrower_than_the_zoom_s_grid_is_seen(depth, rtol):
     assert sol.status == "success"
     np.testing.assert_allclose(sol.events["Piecewise in y'"]["t"].ravel(), [1 - half, 1 + half], atol=1e-8)
     assert abs(sol["y"][-1] - (2.0 + 4.0 * half)) < 1e3 * rtol
+
+
+@pytest.mark.parametrize("rate", ["Piecewise((1, x > 0), (2, True))", "sign(x)", "Heaviside(x)"])
+@pytest.mark.parametrize(("method", "options"), METHODS[:4])
+def test_a_jump_switch_whose_function_rests_on_zero_on_both_branches_is_refused(rate, method, options):
+    # x = 0 throughout (x' = 0): neither branch moves x off zero, and the default branch (x > 0) was taken: y(1) = 1
+    # where the model says 2 (Piecewise) or 0 (sign(0)), "success" in every method
+    m = dm.Model("resting_jump")
+    m.states("x y")
+    m.ode("x", "0")
+    m.ode("y", rate)
+    m.initial(x=0.0, y=0.0)
+    with pytest.raises(E.ZenoError, match=r"x rests on zero on both of its branches .* which one holds is not decided"):
+        dm.solve(m, (0.0, 1.0), method=method, **options)
+
+
+def test_a_continuous_switch_whose_function_rests_on_zero_solves():
+    # (Max(x, 0) at x = 0 moves the states alike on both branches: no error)
+    m = dm.Model("resting_max")
+    m.states("x y")
+    m.ode("x", "0")
+    m.ode("y", "1 + Max(x, 0)")
+    m.initial(x=0.0, y=0.0)
+    sol = dm.solve(m, (0.0, 1.0), method="radau", rtol=1e-8, atol=1e-8)
+    assert sol.status == "success" and abs(sol["y"][-1] - 1.0) < 1e-12
