@@ -220,7 +220,9 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
             per_entry += s * s * STAGE_FILL * 8 if full else 0
             left = (memory_limit() - sum(outputs.values()) - fixed) / per_entry  # (the fill the limit leaves)
             try:  # (per model)
-                fill = compiled.cached("radau-factor-entries", lambda: measured_fill(rows, cols, n, D, max(left, 0)))
+                fill = compiled.cached(
+                    "radau-factor-entries", lambda: measured_fill(rows, cols, n, D, max(left, 0), options.fill_seconds)
+                )
             except FillOverLimit as over:
                 allowed = f"the {memory_limit() / 2**30:.3g} GiB allowed"
                 setting = f"set {MEMORY_LIMIT_VARIABLE}, e.g. '64G', to change it"

@@ -21,8 +21,8 @@ exhausting the machine before it could refuse.  So the trial runs only where a b
 4. Else (a dense row or column: a constraint summing every state, a multiplier in every equation; or a bound
    within :data:`BOUND_SLACK` of the limit) the bound says little (2,500 times the fill of an arrow at 10^4
    unknowns, 14 times that of one dense row), and **the trial runs in a child process** under ``RLIMIT_AS``
-   (the memory limit) and :data:`TRIAL_SECONDS`: its count, or a refusal when it runs out of either (without
-   ``fork``, the bound decides).
+   (the memory limit) and :data:`TRIAL_SECONDS` (radau's ``fill_seconds``): its count, or a refusal when it
+   runs out of either (without ``fork``, the bound decides).
 
 Refusals are :class:`FillOverLimit`, which the guard turns into a :class:`~daemodel.errors.ResourceLimitError`
 naming the size, the fill and the limit.
@@ -48,9 +48,17 @@ TRIAL_BYTES_PER_ENTRY = 80
 # any row pivot): above the largest measured.  A model refused on the bound has a fill at least this
 # many times below it, and would still not fit.
 BOUND_SLACK = 64.0
-# Seconds the trial in a child process may take (case 4): one factorisation of the solve would take as long,
-# and a solve makes one at every Jacobian.
+# Seconds the trial in a child process may take (case 4) unless radau's ``fill_seconds`` says: one
+# factorisation of the solve would take as long, and a solve makes one at every Jacobian.
 TRIAL_SECONDS = 30.0
+# The fill ratio given to the incomplete factorisation that reads SuperLU's column order (scipy's default):
+# at 1, SuperLU's ILU overran its work space on random patterns without a full diagonal (300 unknowns, 180
+# of them differential, 900 entries: "double free or corruption", the process aborted, in 3 of 3 runs of
+# 300 random patterns); at 10, none in 6,000 patterns of 2-400 unknowns (at 2, none in 3,000).
+ORDER_FILL_FACTOR = 10
+# The largest address-space limit setrlimit takes (a C rlim_t read as signed by Python): a child given more
+# failed with an OverflowError, and the guard refused a model under a memory limit of 10^8 TiB.
+MAX_RLIMIT = 2**63 - 1
 
 
 class FillOverLimit(RuntimeError):
@@ -84,7 +92,11 @@ def superlu_column_order(matrix) -> np.ndarray | None:
     for modified in ("SMILU_1", "SILU"):
         try:
             ilu = splinalg.spilu(
-                matrix, drop_tol=1e300, fill_factor=1, diag_pivot_thresh=0.0, options={"ILU_MILU": modified}
+                matrix,
+                drop_tol=1e300,
+                fill_factor=ORDER_FILL_FACTOR,
+                diag_pivot_thresh=0.0,
+                options={"ILU_MILU": modified},
             )
         except DaemodelError:  # (a time limit's signal, raised inside the call)
             raise
@@ -200,17 +212,20 @@ def _ancestor_reaching(up: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarr
     return np.where(x < b, up[x], x)
 
 
-def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entries: float) -> int:
+def measured_fill(
+    rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entries: float, seconds: float = TRIAL_SECONDS
+) -> int:
     """The entries of SuperLU's factors of ``sigma M - J`` (:func:`.fill.factor_entries`), measured only
     where it can be within the memory limit; :class:`FillOverLimit` where they would be more than
-    ``max_entries`` (the largest fill the limit leaves the solve), as the module docstring's steps say."""
+    ``max_entries`` (the largest fill the limit leaves the solve), as the module docstring's steps say.
+    ``seconds``: the most the count in a child process may take (radau's ``fill_seconds``)."""
     from daemodel.files import memory_limit
 
-    matrix = pattern_matrix(rows, cols, n, D)
+    matrix = pattern_matrix(rows, cols, n, D)  # (made once: the bound, the order and the count read it)
     bound = fill_bound(matrix)
     trial_limit = memory_limit()
     if bound is not None and bound * TRIAL_BYTES_PER_ENTRY <= trial_limit:
-        return factor_entries(rows, cols, n, D)
+        return matrix_entries(matrix)
     if bound is not None and not dense_lines(rows, cols, D) and bound / BOUND_SLACK > max_entries:
         raise FillOverLimit(
             bound / BOUND_SLACK,
@@ -218,13 +233,13 @@ def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entrie
             f"SuperLU's column order) over {BOUND_SLACK:g}, more than it exceeded the fill on any pattern without "
             "dense rows measured; not factored",
         )
-    outcome = capped_trial(matrix, trial_limit, TRIAL_SECONDS)  # (its count, over max_entries or not, decides)
+    outcome = capped_trial(matrix, trial_limit, seconds)  # (its count, over max_entries or not, decides)
     if isinstance(outcome, int):
         return outcome
     if outcome == "unavailable":
         estimate = bound if bound is not None else D * D
         if estimate <= max_entries:  # (no fork: the bound itself fits, the trial is within it)
-            return factor_entries(rows, cols, n, D)
+            return matrix_entries(matrix)
         raise FillOverLimit(estimate, f"the bound {estimate:.3g} from the Jacobian's pattern; not factored")
     raise FillOverLimit(None, outcome)  # (how many entries is not known: the count did not finish)
 
@@ -232,14 +247,23 @@ def measured_fill(rows: np.ndarray, cols: np.ndarray, n: int, D: int, max_entrie
 def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
     """SuperLU's fill of ``matrix`` (L's and U's entries) factored in a child process (``fork``) whose
     address space may grow by ``max_bytes`` and which may take ``seconds``: the count, or in words why
-    there is none (out of memory, out of time, singular), or ``"unavailable"`` where this system cannot fork."""
+    there is none (out of memory, out of time, singular), or ``"unavailable"`` where this system cannot
+    fork or no child can be made now (``fork``'s ``OSError``)."""
     import select
     import signal
 
     if not hasattr(os, "fork"):
         return "unavailable"
-    read_end, write_end = os.pipe()
-    pid = os.fork()
+    try:
+        read_end, write_end = os.pipe()
+    except OSError:  # (no descriptors left: as without fork)
+        return "unavailable"
+    try:
+        pid = os.fork()
+    except OSError:  # (EAGAIN, ENOMEM: no process can be made now; the bound decides, as without fork)
+        os.close(read_end)
+        os.close(write_end)
+        return "unavailable"
     if pid == 0:  # the child: factor, write the count or the reason, and leave without Python's exit handlers
         message = b"error"
         try:
@@ -251,7 +275,10 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
             _, hard = resource.getrlimit(resource.RLIMIT_AS)
             size = os.sysconf("SC_PAGE_SIZE") * int(open("/proc/self/statm").read().split()[0])
             soft = size + int(max_bytes)
-            resource.setrlimit(resource.RLIMIT_AS, (soft if hard == resource.RLIM_INFINITY else min(soft, hard), hard))
+            if soft < MAX_RLIMIT:  # (a limit past what setrlimit takes, DAEMODEL_MEMORY_LIMIT = '10^8T': none)
+                resource.setrlimit(
+                    resource.RLIMIT_AS, (soft if hard == resource.RLIM_INFINITY else min(soft, hard), hard)
+                )
             try:
                 lu = splinalg.splu(matrix)
                 message = str(int(lu.L.nnz + lu.U.nnz)).encode()
@@ -298,10 +325,17 @@ def factor_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     """The entries SuperLU's LU factors of ``sigma M - J`` hold (L's and U's), ``J`` of the pattern
     ``(rows, cols)``: one factorisation of that pattern with values drawn once (the fill of the
     engine's factors, which pivot on their own values, is of the same order)."""
+    return matrix_entries(pattern_matrix(rows, cols, n, D))
+
+
+def matrix_entries(matrix) -> int:
+    """The entries of SuperLU's LU factors (L's and U's) of the square CSC ``matrix``
+    (:func:`.linalg.pattern_matrix`'s), ``D^2`` where it is singular at its values."""
     import scipy.sparse.linalg as splinalg
 
+    D = matrix.shape[0]
     try:
-        lu = splinalg.splu(pattern_matrix(rows, cols, n, D))
+        lu = splinalg.splu(matrix)
     except DaemodelError:  # (a time limit's signal, raised inside the call: not a singular system)
         raise
     except RuntimeError:  # (structurally singular at these values: at most dense)

@@ -10,6 +10,7 @@ import numpy as np
 from daemodel.backends.base import DEFAULT_ESTIMATE_BOUND
 from daemodel.backends.checks import check_dtype, check_stages, check_threads, set_number, set_tolerances
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
+from daemodel.backends.radau.fill import TRIAL_SECONDS
 from daemodel.backends.torch_setup import torch_device
 
 from daemodel.errors import InvalidOptionError
@@ -203,6 +204,13 @@ class RadauOptions:
         (:func:`stages_for_index`), and options copied with ``dataclasses.replace`` keep that.  True
         beside stages that no default picks at this rtol is an
         :class:`~daemodel.errors.InvalidOptionError`.
+    fill_seconds : float
+        The casadi engine's sparse systems: the most seconds the memory guard's count of their LU factors'
+        fill may take where it runs in a child process (a dense row or column, whose bound from the pattern
+        says little: :mod:`~daemodel.backends.radau.fill`); past it the solve is refused
+        (:class:`~daemodel.errors.ResourceLimitError` naming it), since one factorisation of each Jacobian
+        would take as long.  Default :data:`~daemodel.backends.radau.fill.TRIAL_SECONDS` (30); the count is
+        made once per model.
     """
 
     stages: int | None = None
@@ -224,9 +232,10 @@ class RadauOptions:
     estimate_bound: float | None = None
     dense_output: bool = True
     stages_by_default: bool = False
+    fill_seconds: float = TRIAL_SECONDS
 
     def __post_init__(self) -> None:
-        for name in ("h", "rtol", "atol", "h0", "newton_tol"):
+        for name in ("h", "rtol", "atol", "h0", "newton_tol", "fill_seconds"):
             set_number(self, name, allow_none=True)
         set_number(self, "max_newton_iterations", integer=True)
         object.__setattr__(self, "dtype", check_dtype(self.dtype))

@@ -324,6 +324,8 @@ def start_piece(
                 if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
                     side = _back_sooner(compiled, backend, model, events[e], e, t, Y, Z, P, when, delta, shortest,
                                         scale[e], across)  # fmt: skip
+            if not side and e in fired:  # (it crossed here, too slowly for one look-ahead: read over longer ones)
+                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, scale[e], horizon)
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
@@ -336,6 +338,23 @@ def start_piece(
         frozenset(at_zero),
         reset,
     )
+
+
+def _crossed_to(compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, scale: float, horizon: float) -> int:
+    """The side the function of the declared event ``e``, which crossed zero at ``t`` and moves by less than
+    rounding over ``delta`` from there, goes on to: read over look-aheads :data:`LOOKAHEAD_GROWTH` times longer,
+    at most :data:`LOOKAHEAD_GROWTHS` of them, never past ``horizon``; 0 where none resolves it (it rests on zero).
+    Unread, it was 0 (not armed: "armed once it has left it"), and its way back across zero was taken for that
+    leaving: x = (t - 1)^2 - 1e-12 crossed at 1 -+ 1e-6 (moving 4e-15 over delta = 2e-9), and one crossing was
+    recorded, "success", under the reference and a fixed radau grid."""
+    for growth in range(1, LOOKAHEAD_GROWTHS + 1):
+        if delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
+            break
+        longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
+        side = _side(drift(compiled, backend, model, t, Y, Z, P, when, longer, fourth=True)[e], scale)
+        if side:
+            return side
+    return 0
 
 
 def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,
@@ -421,6 +440,8 @@ def _branch(
             moved[side] = drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer, fourth=True)[0]
             change[side] = _side(moved[side], scale)
     up, down = change[1] >= 0, change[-1] <= 0
+    if not exited and all(m == 0 for m in moved.values()) and delta * LOOKAHEAD_GROWTH**LOOKAHEAD_GROWTHS < horizon:
+        _rests_on_both(compiled, backend, event, candidates, t, Y, Z, P, delta * LOOKAHEAD_GROWTH**LOOKAHEAD_GROWTHS)
     if not (up or down) and exited:  # (it just left a sliding motion there, tangentially: the side it left to)
         return preferred
     if not (up or down) and _slides(compiled, event):
@@ -442,6 +463,27 @@ def _branch(
             t,
         )
     return preferred if up and down else (1 if up else -1)
+
+
+def _rests_on_both(compiled, backend, event, candidates: dict, t, Y, Z, P, ahead: float) -> None:
+    """Nothing where the branches ``candidates`` (side: model) of the switch ``event``, whose function does not move
+    at all from zero at ``t`` over the look-ahead ``ahead`` on either (one that moves within rounding: the method's
+    error, :mod:`.resting`'s), move the states alike over it; else a :class:`ZenoError`: the function rests on zero
+    on either branch, and which one holds (a jump) is not decided by the flow.  x = 0 throughout (x' = 0) under
+    y' = Piecewise((1, x > 0), (2, True)) took the branch x > 0 by default, y(1) = 1 where the model says 2, and
+    sign(x) gave y(1) = 1 for 0, "success" in every method."""
+    states = compiled.numeric.batch_function(list(compiled.states))
+    moved = [drift(compiled, backend, c, t, Y, Z, P, states, ahead, fourth=True) for c in candidates.values()]
+    scale = max(1.0, float(np.max(np.abs(Y), initial=0.0)))
+    if np.all(np.abs(moved[0] - moved[1]) <= ROUNDING * scale):
+        return
+    raise ZenoError(
+        f"switch '{event.name}' at t = {time_text(t)}: {event.when} rests on zero on both of its branches (neither "
+        f"moves it off zero over {ahead:.3g}), where the branches move the states differently: which one holds is "
+        "not decided by the flow (daemodel never takes a switch's value at zero); smooth the switch, or state the "
+        "rate that holds on zero without it",
+        t,
+    )
 
 
 def _slides(compiled, event) -> bool:

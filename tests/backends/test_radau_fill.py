@@ -242,3 +242,89 @@ def test_a_child_process_out_of_time_is_stopped_and_named(monkeypatch):
     assert outcome == "one factorisation of the pattern did not finish within 0.01 s"
     with pytest.raises(ProcessLookupError):  # (the child is gone, reaped: none left behind)
         os.kill(children[0], 0)
+
+
+def test_the_column_order_of_a_pattern_without_a_full_diagonal_does_not_abort_the_process():
+    """A random pattern of 300 unknowns, 180 of them differential, whose algebraic columns have no diagonal: the
+    incomplete factorisation that reads SuperLU's order, at a fill ratio of 1, overran its work space and glibc
+    aborted the whole process ("double free or corruption"), so it runs in a child interpreter here.  Now it
+    finishes, with SuperLU's own order and a bound that holds its factors."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, scipy.sparse.linalg as splinalg\n"
+        "from daemodel.backends.radau import fill\n"
+        "from daemodel.backends.radau.linalg import pattern_matrix\n"
+        "D = 300\n"
+        "rng, i = np.random.default_rng(24), np.arange(D)\n"
+        "k = int(rng.integers(1, 6)) * D\n"
+        "rows, cols = np.r_[rng.integers(0, D, k), i], np.r_[rng.integers(0, D, k), rng.permutation(D)]\n"
+        "matrix = pattern_matrix(rows, cols, 180, D)\n"
+        "lu = splinalg.splu(matrix)\n"
+        "order = fill.superlu_column_order(matrix)\n"
+        "print(int(np.array_equal(np.argsort(order), lu.perm_c)), fill.fill_bound(matrix), lu.L.nnz + lu.U.nnz)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-300:]
+    same, bound, count = (int(word) for word in run.stdout.split())
+    assert same == 1 and count <= bound
+
+
+def test_the_pattern_matrix_is_made_once_for_the_bound_and_the_count(monkeypatch):
+    """measured_fill made ``sigma M - J`` for the bound and again for the count (factor_entries): now the count
+    factors the matrix it is given, and counts what factor_entries counts."""
+    rows, cols, n = _pattern("random", 900)
+    made, make = [], fill.pattern_matrix
+    monkeypatch.setattr(fill, "pattern_matrix", lambda *args: made.append(1) or make(*args))
+    count = fill.measured_fill(rows, cols, n, 900, 1e9)
+    assert len(made) == 1
+    assert count == fill.factor_entries(rows, cols, n, 900)
+
+
+@pytest.mark.parametrize(
+    ("seconds", "said"),
+    [(0, "positive"), (-1.0, "positive"), (math.nan, "finite"), (math.inf, "finite"), ("5", "a real number")],
+)
+def test_fill_seconds_must_be_a_positive_finite_number(seconds, said):
+    with pytest.raises(E.InvalidOptionError, match=f"fill_seconds must be {said}; got"):
+        dm.solve(_mean_model(3).compile(), (0.0, 1.0), method="radau", fill_seconds=seconds)
+
+
+def test_fill_seconds_is_the_child_process_s_time_limit(monkeypatch):
+    """TRIAL_SECONDS (30 s) was fixed: the count in a child process (a dense row, the trial not allowed here) now
+    takes radau's fill_seconds (a count past it: test_a_child_process_out_of_time_is_stopped_and_named)."""
+    seconds, trial = [], fill.capped_trial
+    monkeypatch.setattr(fill, "capped_trial", lambda matrix, limit, s: seconds.append(s) or trial(matrix, limit, s))
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")
+    sol = dm.solve(_mean_model(300).compile(), (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False, fill_seconds=7.5)
+    assert sol.status == "success" and seconds == [7.5]
+
+
+@pytest.mark.parametrize("max_bytes", [1e30, 2.0**63, 2.0**64])
+def test_a_child_given_more_memory_than_setrlimit_takes_counts_unlimited(max_bytes):
+    # before: setrlimit's OverflowError in the child, "one factorisation of the pattern failed in a child process
+    # given 9.31e+20 GiB (error OverflowError)": a refusal under a limit no model reaches
+    rows, cols, n = _pattern("dense row", 300)
+    matrix = pattern_matrix(rows, cols, n, 300)
+    lu = splinalg.splu(matrix)
+    assert fill.capped_trial(matrix, max_bytes, 60.0) == lu.L.nnz + lu.U.nnz
+
+
+def test_a_child_process_that_cannot_be_made_leaves_the_bound_to_decide(monkeypatch):
+    """fork's OSError (EAGAIN: a process limit reached) came out of the solve as a bare BlockingIOError; now the
+    bound decides, as on a system without fork: here the bound (9.1e4 entries) is more than the 4 MiB leave
+    (5.2e4), and the solve is refused naming it."""
+    import os
+
+    def no_fork():
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    compiled = _mean_model(300).compile()
+    monkeypatch.setattr(os, "fork", no_fork)
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")  # (the trial not allowed here: a child process is asked for)
+    refused = (
+        r"would hold about 9.09e\+04 entries or more \(the bound 9.09e\+04 from the Jacobian's pattern; not factored\)"
+    )
+    with pytest.raises(E.ResourceLimitError, match=refused):
+        dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False)

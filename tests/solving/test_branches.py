@@ -1,0 +1,64 @@
+"""Which side an event's or a switch's function goes on to where it is at zero (daemodel/solving/branches.py): a
+declared event that crosses too slowly for one look-ahead, and a jump switch whose function rests on zero on both
+branches; against the exact crossing times and counts."""
+
+import math
+
+import numpy as np
+import pytest
+
+import daemodel as dm
+from daemodel import errors as E
+
+METHODS = [
+    ("radau", {"rtol": 1e-8, "atol": 1e-8}),
+    ("radau", {"stages": 3, "h": 0.01}),
+    ("casadi-idas", {}),
+    ("reference", {}),
+]
+
+
+@pytest.mark.parametrize("reset", [False, True])
+@pytest.mark.parametrize(("method", "options"), [("reference", {}), ("radau", {"stages": 3, "h": 0.01})])
+@pytest.mark.parametrize("depth", [1e-12, 1e-11])
+def test_an_event_that_crosses_slowly_and_back_soon_counts_both_crossings(reset, method, options, depth):
+    # x = (t - 1)^2 - depth crosses zero at 1 -+ sqrt(depth) (1e-6, 3.2e-6): at the first, x moves by 4e-15 over the
+    # look-ahead (2e-9), below rounding, so its side was 0 (not armed), and its crossing back was taken for its first
+    # leaving of zero: one crossing recorded (n = 1), "success", under the reference and a fixed radau grid
+    m = dm.Model("slow_crossing")
+    m.states("x n")
+    m.ode("x", "2*(t - 1)")
+    m.ode("n", "0")
+    m.initial(x=1.0 - depth, n=0.0)
+    m.event("level", "x", **({"reset": {"n": "n + 1"}} if reset else {}))
+    sol = dm.solve(m, (0.0, 2.0), method=method, **options)
+    assert sol.status == "success"
+    np.testing.assert_allclose(
+        sol.events["level"]["t"].ravel(), [1 - math.sqrt(depth), 1 + math.sqrt(depth)], atol=1e-9
+    )
+    assert sol["n"][-1] == (2.0 if reset else 0.0)
+
+
+@pytest.mark.parametrize("rate", ["Piecewise((1, x > 0), (2, True))", "sign(x)", "Heaviside(x)"])
+@pytest.mark.parametrize(("method", "options"), METHODS)
+def test_a_jump_switch_whose_function_rests_on_zero_on_both_branches_is_refused(rate, method, options):
+    # x = 0 throughout (x' = 0): neither branch moves x off zero, and the default branch (x > 0) was taken: y(1) = 1
+    # where the model says 2 (Piecewise) or 0 (sign(0)), "success" in every method
+    m = dm.Model("resting_jump")
+    m.states("x y")
+    m.ode("x", "0")
+    m.ode("y", rate)
+    m.initial(x=0.0, y=0.0)
+    with pytest.raises(E.ZenoError, match=r"x rests on zero on both of its branches .* which one holds is not decided"):
+        dm.solve(m, (0.0, 1.0), method=method, **options)
+
+
+def test_a_continuous_switch_whose_function_rests_on_zero_solves():
+    # (Max(x, 0) at x = 0 moves the states alike on both branches: no error)
+    m = dm.Model("resting_max")
+    m.states("x y")
+    m.ode("x", "0")
+    m.ode("y", "1 + Max(x, 0)")
+    m.initial(x=0.0, y=0.0)
+    sol = dm.solve(m, (0.0, 1.0), method="radau", rtol=1e-8, atol=1e-8)
+    assert sol.status == "success" and abs(sol["y"][-1] - 1.0) < 1e-12
