@@ -78,6 +78,7 @@ def test_factor_bytes_in_the_stats(size, jit, engine):
 
 
 @needs_compiler
+@pytest.mark.slow  # (tracemalloc on a first solve of 10^4 unknowns: 20-110 s on 2 shared cores)
 @pytest.mark.parametrize("dense_output", [True, False])
 def test_the_solve_peak_stays_within_a_bound_of_its_factors(dense_output):
     """At 10^4 unknowns (tracemalloc sees numpy's allocations) the first solve's peak, the outputs the user
