@@ -15,8 +15,9 @@ from daemodel.backends.radau.fill import FillOverLimit, measured_fill
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.outputs import marked, prepare_outputs, resolve_outputs, resolved_outputs
+from daemodel.backends.radau.records import step_record_bytes
 from daemodel.backends.radau.sparse import band_orders, jacobian_pattern
-from daemodel.backends.radau.step import Stepper, step_record_bytes
+from daemodel.backends.radau.step import Stepper
 from daemodel.backends.radau.transform import stage_transform
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
 
@@ -90,7 +91,7 @@ class RadauBackend(AbstractBackend):
             )
         if engine.name == "casadi" and isinstance(engine._order, BandKernel):  # (its buffers made in the setup)
             real = sum(sigma.imag == 0 for sigma in engine.transform.shifts(1.0))  # (the systems of a factorisation)
-            engine._order.reserve({False: 2 * real, True: 2 * (len(engine.transform.shifts(1.0)) - real)})
+            engine._order.reserve({False: real, True: len(engine.transform.shifts(1.0)) - real})
         if options.adaptive:
             # adaptive steps keep a record each: how many fit in the memory the solve may take (a fixed
             # grid's records were counted before the solve)

@@ -28,8 +28,9 @@ BAND_KERNEL_MAX_LDAB = 40
 # Factors' buffers kept for reuse, of each kind (real, complex), once their factors are dropped: a fresh
 # buffer of 10-20 MB (10^5 unknowns) is new pages, and faulting them in took 2-3x the factorisation
 # itself on a loaded machine (complex: 10.7-34 ms against 6.2 on reused memory).  At least this many;
-# a solve reserves what two factorisations hold at once, made in its setup (BandKernel.reserve)
-BAND_SPARE_BUFFERS = 2
+# a solve reserves what one factorisation holds, made in its setup (BandKernel.reserve): the stepper drops
+# its factors before it factors anew (.step.Stepper.current_lu), so the next ones are made in their buffers
+BAND_SPARE_BUFFERS = 1
 # C flags (the cache adds a shared library's): the loops are short, -O2 is enough
 BAND_FLAGS = ("-O2", "-fno-math-errno")
 # Seconds the compiler may take (the source is ~150 lines)
@@ -331,9 +332,9 @@ class BandKernel:
 
     def reserve(self, counts: dict) -> None:
         """Keep ``counts[complex_]`` buffers of each kind ready, their pages written now (a solve's setup:
-        what two factorisations hold at once, the current factors and the next step's), and keep as many
-        once dropped: the first solve of a process faulted in ~56 MB of them at 10^5 unknowns (s = 5), and
-        each later one half of that, in its integration."""
+        what one factorisation holds; the stepper drops its factors before it factors anew), and keep as
+        many once dropped: the first solve of a process faulted in ~56 MB of them at 10^5 unknowns (s = 5,
+        two factorisations' then), and each later one half of that, in its integration."""
         for complex_, count in counts.items():
             self._kept[complex_] = max(self._kept[complex_], count)
             spare = self._spare[complex_]

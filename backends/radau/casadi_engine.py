@@ -86,7 +86,6 @@ MACHINE_RUN_ATTEMPTS = 100
 # shorter (4.60 -> 4.09, 9.71 -> 8.98 ms at rtol 1e-6, benchmarks/compile_cost.py).
 MACHINE_RUN_MAX_SIZE = 200
 
-
 # What the disk cache did (daemodel.cache), the most telling first: a refused folder, a library not
 # stored, compiled and stored, loaded from disk, built earlier in this process.
 CACHE_OUTCOMES = ("refused:", "not", "miss", "hit", "memory")
@@ -114,7 +113,7 @@ class CasadiEngine(AbstractEngine):
         functions, self._stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
-        self._f, self._residual, self._jac, self._stage_jac = (lend(self, fn) for fn in functions[:4])
+        self._f, self._residual, self._jac, self._stage_jac = (*(lend(self, fn) for fn in functions[:3]), None)
         self.rows, self.cols = functions[4:]
         self._functions = functions
         D = self.D
@@ -267,7 +266,7 @@ class CasadiEngine(AbstractEngine):
             factor = factor_call(static.lu, static)
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
             refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-            functions = (refresh, factor, self._stage_jac.function, sign, static)
+            functions = (refresh, factor, self._functions[3], sign, static)
             return attempt_function(self, step, *functions, iterations, machine=True)
 
         key = ("casadi-radau-machine-attempt", self.s, iterations, self._version)  # (._version: .pivots)
@@ -450,9 +449,9 @@ class CasadiEngine(AbstractEngine):
             if static:  # (the factors and the determinant's sign in C: .kernel)
                 factor, sign = self._static_kernel()
                 refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-                functions = (refresh, factor, self._stage_jac.function, sign, self.static)
+                functions = (refresh, factor, self._functions[3], sign, self.static)
             else:
-                functions = (self._refresh_function(), self._inverse_function(), self._stage_jac.function, None, None)
+                functions = (self._refresh_function(), self._inverse_function(), self._functions[3], None, None)
             return run_function(self, step, *functions, iterations)
 
         return CompiledRun(self.compiled.cached(key, build), self)
@@ -543,6 +542,7 @@ class CasadiEngine(AbstractEngine):
         return self._jac.packed(t, y[0], z[0], self.p)
 
     def stage_jacobians(self, t, h, W):
+        self._stage_jac = self._stage_jac or lend(self, self._functions[3])  # (s J's: lent at first use)
         values = self._stage_jac.packed(t, h, W, self.p)
         return list(values.reshape(self.s, -1))
 

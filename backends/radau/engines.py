@@ -29,6 +29,11 @@ class Factors:
     complete: bool = True  # False: the error estimate's system alone
     inverse: object = None  # casadi engine, dense: the blocks' inverses packed for its fused Newton step
 
+    def release(self) -> None:
+        """Drop the factored systems (a stale Jacobian's, replaced while a caller still holds these): the
+        band kernel's buffers go back to its spares before the fresh factors are made (.band.BandKernel)."""
+        self.lu, self.inverse = {}, None
+
 
 @dataclass
 class StageFactors:
@@ -45,6 +50,40 @@ class Residual:
     R: object
     stage_f: object
     G: object
+
+
+def factors_bytes(factors) -> int:
+    """The bytes the factorisation ``factors`` holds (:class:`Factors` or :class:`StageFactors`): every
+    array of its factored systems (LAPACK's LU and pivots, dense inverses, the band kernel's packed
+    buffers, the static factors' packed array) counted once, however many views of it there are, and
+    SuperLU's factors by the entries it stores (``nnz``: a value and an int32 row index each) and its
+    column pointers and permutations.  ``stats["factor_bytes"]`` reports the largest over a solve."""
+    seen = {}
+
+    def add(item, complex_: bool) -> None:
+        if isinstance(item, np.ndarray):
+            while isinstance(item.base, np.ndarray):  # (a view: its owner's bytes, once)
+                item = item.base
+            seen[id(item)] = item.nbytes
+        elif isinstance(item, (tuple, list)):
+            for part in item:
+                add(part, complex_)
+        elif hasattr(item, "untyped_storage"):  # (a torch tensor: its storage, once)
+            seen[item.untyped_storage().data_ptr()] = item.untyped_storage().nbytes()
+        elif hasattr(item, "packed"):  # (.band.BandLU: its kernel's buffer)
+            add(item.packed, complex_)
+        elif hasattr(item, "lu"):  # (.linalg.OrderedLU: SuperLU's factors in the band order)
+            add(item.lu, complex_)
+        elif hasattr(item, "perm_c"):  # (scipy's SuperLU)
+            seen[id(item)] = item.nnz * ((16 if complex_ else 8) + 4) + 3 * 4 * item.shape[0]
+
+    if isinstance(factors, StageFactors):
+        add(factors.lu, False)
+    else:
+        for shift, lu in factors.lu.items():
+            add(lu, bool(complex(shift).imag))
+        add(factors.inverse, False)
+    return sum(seen.values())
 
 
 class AbstractEngine(ABC):

@@ -467,6 +467,8 @@ class CompiledRun:
             # on Python's path, which factors with scipy and names why it is singular
             return carried, HANDBACK
         stepper.stats["compiled_runs"] += 1
+        stats, packed = stepper.stats, 8 * stepper.engine.packed_size()  # (the factors in the run's state)
+        stats["factor_bytes"] = max(stats["factor_bytes"], packed)
         return self._write_back(stepper, out)
 
     def _write_back(self, stepper, out):

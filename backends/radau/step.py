@@ -20,10 +20,11 @@ import numpy as np
 from daemodel.backends.grids import output_times
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.compiled import STEP_RESULTS
-from daemodel.backends.radau.engines import Residual
+from daemodel.backends.radau.engines import Residual, factors_bytes
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton, jacobian_not_finite
+from daemodel.backends.radau.records import Records
 from daemodel.backends.radau.transform import embedded_weights
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
@@ -87,6 +88,7 @@ class Stepper:
             "newton_refreshes": 0,
             "jacobian_evaluations": 0,
             "lu_decompositions": 0,
+            "factor_bytes": 0,  # the largest factorisation's bytes (.engines.factors_bytes)
             "residual_evaluations": 0,
             "h_min": math.inf,
             "h_max": 0.0,
@@ -135,7 +137,7 @@ class Stepper:
 
     def factor(self, J, t, h, error_only=False):
         factors = self.engine.factor(J, h, error_only)
-        self.stats["lu_decompositions"] += len(factors.shifts) if factors.complete else 1
+        self.counted(factors, len(factors.shifts) if factors.complete else 1)
         self.check_singular(factors.singular, t, h, "Newton matrix", J)
         return factors
 
@@ -375,11 +377,16 @@ class Stepper:
     def factor_stages(self, stage_J, t, h):
         """The full Newton matrix of per-stage Jacobians, factored; the next steps start with it."""
         factors = self.engine.factor_stages(stage_J, h)
-        self.stats["lu_decompositions"] += 1
+        self.counted(factors, 1)
         self.stats["newton_refreshes"] += 1
         self.check_singular(factors.singular, t, h, "Newton matrix", stage_J)
         self.stage_steps = STAGE_NEWTON_STEPS
         return factors
+
+    def counted(self, factors, systems: int) -> None:
+        """Count a factorisation of ``systems`` systems and its bytes (the largest in ``factor_bytes``)."""
+        self.stats["lu_decompositions"] += systems
+        self.stats["factor_bytes"] = max(self.stats["factor_bytes"], factors_bytes(factors))
 
     def accept(self, t, h, result, t_next):
         """Take the step: record its output, move the state to ``t_next``, decide on the Jacobian's reuse."""
@@ -444,7 +451,7 @@ class Stepper:
             J, factors, signs = self.engine.refresh(t, self.y, self.z, h)
             self._jac, self.factors = (J, t), factors
             if factors is not None:  # factored along with J (see the engine's refresh)
-                self.stats["lu_decompositions"] += len(factors.shifts)
+                self.counted(factors, len(factors.shifts))
             self.check_determined(J, t, h, signs=signs)
         return self._jac[0]
 
@@ -468,6 +475,8 @@ class Stepper:
         factors = self.factors  # (of an h that t's rounding moved, they serve: formulas.factors_serve)
         serve = factors is not None and formulas.factors_serve(SCALAR, factors.h, h, t)
         if not (serve and (factors.complete or error_only)):
+            # (the old ones dropped first: the band kernel makes the new ones in their buffers, .band)
+            self.factors = factors = None
             self.factors = self.factor(J, t, h, error_only)
         return self.factors
 
@@ -529,82 +538,6 @@ class Stepper:
         return indices if self.xp is np else self.engine.torch.as_tensor(indices, device=self.y.device)
 
 
-class Records:
-    """The accepted steps' outputs, in blocks (one step, or a compiled run's steps): each step's end
-    time and, with ``dense`` (t_eval, or the dense output kept for :meth:`Solution.at`), its start,
-    length and nodes (start value and stages: its collocation polynomial), else its end value.
-    ``count``: the outputs kept, the start's included."""
-
-    def __init__(self, t0: float, u0, dense: bool):
-        self.dense = dense
-        self.times, self.values = [np.array([t0])], [u0[:, None]]  # (k,), (B, k, n+m)
-        self.starts, self.lengths, self.nodes = [], [], []  # (k,), (k,), (B, k, s+1, n+m)
-        self.count = 1
-
-    def add(self, starts, lengths, times, arrays):
-        """A block of steps: their ``starts``, ``lengths`` and end ``times``, and ``arrays`` = their nodes
-        (B, k, s+1, n+m); without ``dense`` only the end values (the last node) are kept."""
-        self.times.append(times)
-        if self.dense:
-            self.starts.append(starts)
-            self.lengths.append(lengths)
-            self.nodes.append(arrays)
-        else:
-            self.values.append(arrays[:, :, -1])
-        self.count += len(times)
-
-    def ends(self, xp):
-        """``(times (T,), values (B, T, n+m))`` at the steps' ends, the start first."""
-        values = self.values if not self.dense else self.values + [nodes[:, :, -1] for nodes in self.nodes]
-        return np.concatenate(self.times), xp.concatenate(values, axis=1)
-
-    def block(self, k: int):
-        """``(times (j,), values (B, j, n+m))`` of the ``k``-th block of outputs (0: the start value)."""
-        if k == 0 or not self.dense:
-            return self.times[k], self.values[k]
-        return self.times[k], self.nodes[k - 1][:, :, -1]
-
-    def block_polynomials(self, k: int, c):
-        """The :class:`~daemodel.dense.CollocationPolynomials` of the ``k``-th block's steps (``k`` >= 1), or
-        None without ``dense``."""
-        if not self.dense:
-            return None
-        from daemodel.dense import CollocationPolynomials
-
-        return CollocationPolynomials(
-            c=np.asarray(c, dtype=float),
-            starts=np.asarray(self.starts[k - 1], dtype=float),
-            lengths=np.asarray(self.lengths[k - 1], dtype=float),
-            nodes=numpy_copy(self.nodes[k - 1]),
-        )
-
-    def polynomials(self, c):
-        """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``
-        or steps."""
-        if not self.dense or not self.starts:
-            return None
-        from daemodel.dense import CollocationPolynomials
-
-        return CollocationPolynomials.joined([self.block_polynomials(k, c) for k in range(1, len(self.starts) + 1)])
-
-    def nodes_of(self, steps: np.ndarray, xp, index):
-        """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered
-        block by block (only the steps asked for are copied)."""
-        if len(self.nodes) == 1:  # (one compiled run: the whole solve)
-            nodes = self.nodes[0]
-            return nodes if len(steps) == nodes.shape[1] else nodes[:, index(steps)]
-        offsets = np.cumsum([0] + [len(block) for block in self.starts])
-        block = np.searchsorted(offsets, steps, side="right") - 1
-        # the asked-for steps of each block are a contiguous run of ``steps`` (ascending): split there
-        starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
-        pieces = []
-        for first, last in zip(starts, [*starts[1:], len(steps)], strict=True):
-            b, local = block[first], steps[first:last] - offsets[block[first]]
-            nodes = self.nodes[b]
-            pieces.append(nodes if len(local) == nodes.shape[1] else nodes[:, index(local)])
-        return pieces[0] if len(pieces) == 1 else xp.concatenate(pieces, axis=1)
-
-
 class CompiledTry(NamedTuple):
     """One compiled attempt's result (:meth:`Stepper.compiled_try`)."""
 
@@ -628,6 +561,7 @@ class StepperTries(AbstractTriesSide):
         stepper, t, h = self.stepper, self.t, self.h
         stepper.drop_jacobian()
         stepper.drop_factors()
+        matrices.release()  # (the stale factors: the tries hold them, the fresh ones reuse their buffers)
         return stepper.current_lu(stepper.current_jacobian(t, h), t, h)
 
     def check_stages(self, matrices):
@@ -687,10 +621,3 @@ def extrapolation_coefficients(stages: int, high_index: bool = False) -> np.ndar
     """:func:`~daemodel.collocation.extrapolation_polynomial` of the s-stage tableau (its pattern: ``high_index``)."""
     A = radau_iia(stages).A
     return extrapolation_polynomial(radau_iia(stages).c, formulas.high_index_pattern(A) if high_index else None)
-
-
-def step_record_bytes(D: int, B: int, options) -> int:
-    """Bytes an accepted step keeps until the end: its end values, or with t_eval or the dense output its
-    stages and start."""
-    dense = options.t_eval is not None or options.dense_output
-    return B * D * (4 if options.dtype == "float32" else 8) * (options.stages + 1 if dense else 1)

@@ -114,7 +114,7 @@ def triangular_signs(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: 
     values = np.asarray(values, dtype=float)
     on = np.flatnonzero(rows == cols)
     diagonal = np.zeros((len(values), m))
-    if len(np.unique(rows[on])) == len(on):
+    if np.bincount(rows[on], minlength=1).max() <= 1:  # (no repeats; np.unique hashes: 4.5 ms at 5 x 10^4)
         diagonal[:, rows[on]] = values[:, on]
     else:
         np.add.at(diagonal, (slice(None), rows[on]), values[:, on])  # (repeats add)

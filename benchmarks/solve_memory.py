@@ -1,0 +1,139 @@
+"""Issue 44: radau's solve's own memory against its factors' bytes, on reaction-diffusion (one fresh process a cell).
+
+Run as ``python benchmarks/solve_memory.py [--unknowns 10000 100000] [--out PATH]``.  Each cell is a fresh
+process that declares and compiles ``scaling_models.DECLARATIONS["stencils"](unknowns // 2)`` and then
+solves it once with radau at its defaults over [0, 1] with 11 output times (``t_eval``), with and without
+``dense_output``; that first solve is measured two ways:
+
+* ``traced``: tracemalloc's peak during ``dm.solve`` over what was traced before it (numpy's allocations
+  and Python's, not casadi's or the C kernels' own: theirs are the compiled libraries, made in the
+  compile or loaded);
+* ``rss``: the process's resident set, sampled every millisecond by a thread, its peak during the solve
+  over its value before (pages written, not pages merely reserved).
+
+Beside them: ``stats["factor_bytes"]`` (what one factorisation's buffers hold: the band kernel's real and
+two complex systems at s = 5) and ``output_bytes``, what the returned Solution holds that the user asked
+for: the values at ``t_eval`` and, with ``dense_output``, each step's collocation nodes.  ``ratio``:
+(traced peak - output bytes) / factor bytes.  The first solve counts what a model makes once (its
+Jacobian's pattern, the band kernel, the engines' bound buffers, the factors' reserved buffers).
+``DAEMODEL_TREE=/path/to/a/tree`` runs another tree of the package (a ``git archive`` of an earlier commit)
+through the editable install's finder.  Writes ``<out>.json`` with the command and the load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+OUTPUT_POINTS = 11
+
+
+def rss_bytes() -> int:
+    """The process's resident set (bytes), from /proc/self/statm."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def cell(unknowns: int, dense_output: bool, traced: bool = True) -> dict:
+    """One fresh process's measurement (see the module docstring)."""
+    import tracemalloc
+
+    tree = os.environ.get("DAEMODEL_TREE")
+    if tree:  # (another tree through the editable install's finder)
+        import __editable___daemodel_0_1_0_finder as finder
+
+        finder.MAPPING.update(daemodel=f"{tree}/daemodel", **{"daemodel.backends": f"{tree}/backends"})
+    sys.path.insert(0, str(HERE))
+    import numpy as np
+    import scaling_models
+    import torch
+
+    import daemodel as dm
+
+    torch.set_num_threads(1)
+    compiled = scaling_models.DECLARATIONS["stencils"](unknowns // 2).compile()
+    times = np.linspace(0.0, 1.0, OUTPUT_POINTS)
+    samples, running = [], [True]
+
+    def sample():
+        while running[0]:
+            samples.append(rss_bytes())
+            time.sleep(0.001)
+
+    import gc
+
+    gc.collect()
+    before_rss = rss_bytes()
+    if traced:
+        tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    watcher = threading.Thread(target=sample, daemon=True)
+    watcher.start()
+    sol = dm.solve(compiled, (0.0, 1.0), method="radau", t_eval=times, dense_output=dense_output)
+    running[0] = False
+    watcher.join()
+    peak = tracemalloc.get_traced_memory()[1] - before if traced else None
+    rss_peak = max([*samples, rss_bytes()]) - before_rss
+    tracemalloc.stop()
+    names = [*compiled.state_names, *compiled.algebraic_names]
+    output = sum(np.asarray(sol[name]).nbytes for name in names)
+    if sol.dense is not None and hasattr(sol.dense, "nodes"):
+        output += sol.dense.nodes.nbytes
+    factors = sol.stats.get("factor_bytes")
+    return {
+        "unknowns": unknowns,
+        "dense_output": dense_output,
+        "traced_peak_bytes": peak,
+        "rss_peak_bytes": rss_peak,
+        "factor_bytes": factors,
+        "output_bytes": output,
+        "ratio": None if not (factors and traced) else (peak - output) / factors,
+        "rss_ratio": None if not factors else (rss_peak - output) / factors,
+        "steps": sol.stats["steps"],
+        "solve_s": sol.solve_time,
+        "status": sol.status,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--unknowns", type=int, nargs="+", default=[10_000, 100_000])
+    parser.add_argument("--out", type=Path, default=HERE / "solve_memory")
+    parser.add_argument("--dense", choices=("both", "on", "off"), default="both", help="dense_output's cells")
+    parser.add_argument(
+        "--rss-only", action="store_true", help="no tracemalloc (its cost on every allocation: minutes at 10^5)"
+    )
+    parser.add_argument("--cell", nargs=3, help=argparse.SUPPRESS)  # (unknowns, dense_output, traced: one child's)
+    args = parser.parse_args()
+    if args.cell:
+        print(json.dumps(cell(int(args.cell[0]), args.cell[1] == "1", args.cell[2] == "1")))
+        return
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    cells = []
+    for unknowns in args.unknowns:
+        for dense in {"both": (True, False), "on": (True,), "off": (False,)}[args.dense]:
+            traced = "0" if args.rss_only else "1"
+            command = [sys.executable, __file__, "--cell", str(unknowns), "1" if dense else "0", traced]
+            out = subprocess.run(command, env=env, capture_output=True, text=True, check=True).stdout
+            cells.append(json.loads(out.strip().splitlines()[-1]))
+            c = cells[-1]
+            print(
+                f"{unknowns} dense_output={dense}: traced {(c['traced_peak_bytes'] or 0) / 1e6:.1f} MB, rss "
+                f"{c['rss_peak_bytes'] / 1e6:.1f} MB, factors {(c['factor_bytes'] or 0) / 1e6:.2f} MB, outputs "
+                f"{c['output_bytes'] / 1e6:.1f} MB, ratio {c['ratio'] or float('nan'):.2f}",
+                flush=True,
+            )
+    command = "python benchmarks/solve_memory.py " + " ".join(sys.argv[1:])
+    record = {"command": command, "tree": os.environ.get("DAEMODEL_TREE"), "load": os.getloadavg(), "cells": cells}
+    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""radau's memory at scale (issue 44): what its factors hold (stats["factor_bytes"]) and the solve's own peak
+against it, on reaction-diffusion (benchmarks/scaling_models.py; benchmarks/solve_memory.py measures 10^5)."""
+
+import gc
+import sys
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from daemodel.backends.radau import engines
+from daemodel.backends.radau.compiled import find_compiler
+
+import daemodel as dm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import scaling_models
+
+needs_compiler = pytest.mark.skipif(find_compiler() is None, reason="no C compiler")
+# The solve's peak over its factors' bytes that the test holds it to (10^4 unknowns, the first solve of a
+# fresh model, which makes the model's own pieces too: its Jacobian's pattern, the band kernel, the
+# engines' bound buffers): measured 5.3 (dense output) and 6.3 (without), 7.3 and 8.5 before the factors
+# were made in one factorisation's buffers and the dense output joined without a second copy
+PEAK_OVER_FACTORS = 6.8
+# Issue 44's target: the solve within 2x its factors (not met: see test_the_solve_peak_within_two_factors)
+TARGET_OVER_FACTORS = 2.0
+
+
+def first_solve_peak(unknowns: int, dense_output: bool) -> tuple:
+    """``(traced peak - the outputs' bytes, the Solution)`` of a fresh model's first solve (11 outputs)."""
+    compiled = scaling_models.DECLARATIONS["stencils"](unknowns // 2).compile()
+    times = np.linspace(0.0, 1.0, 11)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        sol = dm.solve(compiled, (0.0, 1.0), method="radau", t_eval=times, dense_output=dense_output)
+        peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    names = [*compiled.state_names, *compiled.algebraic_names]
+    outputs = sum(np.asarray(sol[name]).nbytes for name in names)
+    outputs += sol.dense.nodes.nbytes if sol.dense is not None else 0
+    return peak - outputs, sol
+
+
+def test_factor_bytes_counts_each_array_once():
+    """A view of an array counts as its owner, once; a SuperLU object by its entries (value and row index)."""
+    import scipy.sparse as sparse
+    import scipy.sparse.linalg as splinalg
+
+    packed = np.zeros(100)
+    lu = {1.0: ("static", False, packed[:40]), 2.0 + 1.0j: ("static", True, packed[40:])}
+    factors = engines.Factors(h=0.1, shifts=(1.0, 2.0 + 1.0j), lu=lu, singular=None, error_shift=1.0, inverse=packed)
+    assert engines.factors_bytes(factors) == packed.nbytes
+    matrix = sparse.csc_matrix(np.array([[4.0, 1.0], [1.0, 3.0]]))
+    superlu = splinalg.splu(matrix)
+    factors = engines.Factors(h=0.1, shifts=(1.0,), lu={1.0: ("sparse", superlu)}, singular=None, error_shift=1.0)
+    assert engines.factors_bytes(factors) == superlu.nnz * 12 + 3 * 4 * 2
+    factors.release()
+    assert engines.factors_bytes(factors) == 0 and factors.lu == {}
+
+
+@pytest.mark.parametrize("size", [20, 300])
+@pytest.mark.parametrize("jit", ["auto", False])
+@pytest.mark.parametrize("engine", ["casadi", "torch"])
+def test_factor_bytes_in_the_stats(size, jit, engine):
+    """Every adaptive radau solve says what its largest factorisation holds: the band kernel's buffers (one
+    real and two complex systems at s = 5), SuperLU's (jit=False), the compiled run's packed factors (40
+    unknowns), the torch engine's LU: at least 8 bytes an unknown for the real system's entries and 16 for
+    each complex one's."""
+    if engine == "torch" and (jit is False or size > 20):
+        pytest.skip("the torch engine compiles nothing; one size is enough")
+    compiled = scaling_models.reaction_diffusion(size).compile()
+    sol = dm.solve(compiled, scaling_models.T_SPAN["reaction_diffusion"], method="radau", jit=jit, engine=engine)
+    assert sol.status == "success"
+    assert sol.stats["factor_bytes"] >= 2 * size * (8 + 2 * 16)
+
+
+@needs_compiler
+@pytest.mark.slow  # (tracemalloc on a first solve of 10^4 unknowns: 20-110 s on 2 shared cores)
+@pytest.mark.parametrize("dense_output", [True, False])
+def test_the_solve_peak_stays_within_a_bound_of_its_factors(dense_output):
+    """At 10^4 unknowns (tracemalloc sees numpy's allocations) the first solve's peak, the outputs the user
+    asked for aside (values at t_eval, the dense output's nodes), is within PEAK_OVER_FACTORS of the
+    factors' bytes (stats["factor_bytes"]): one factorisation's band buffers are reserved, not two, and the
+    dense output is not held twice."""
+    peak, sol = first_solve_peak(10_000, dense_output)
+    assert sol.status == "success" and sol.stats["band_lu"].startswith("machine code")
+    assert sol.stats["factor_bytes"] > 3e6  # (one real and two complex systems of 10^4 unknowns, LDAB 7)
+    assert peak <= PEAK_OVER_FACTORS * sol.stats["factor_bytes"], peak / sol.stats["factor_bytes"]
+
+
+@needs_compiler
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 44 item 5: the first solve's peak is 5-6x its factors, not 2x")
+def test_the_solve_peak_within_two_factors():
+    """Issue 44's target: the solve's own peak within 2x its factors' bytes.  Open: with t_eval every step's
+    nodes are kept to the end (4.3 MB at 10^4 unknowns), the engines' bound buffers (~3.5 MB) and the
+    model's first-solve pieces (its Jacobian's pattern, its outputs' labels: ~2.5 MB) come on top."""
+    peak, sol = first_solve_peak(10_000, False)
+    assert peak <= TARGET_OVER_FACTORS * sol.stats["factor_bytes"], peak / sol.stats["factor_bytes"]
