@@ -15,20 +15,18 @@ import numpy as np
 from daemodel.backends.progress import captured_output
 from daemodel.backends.radau.compiled import (
     STEP_SCALARS,
-    StaticFactors,
     find_compiler,
     inverse_function,
-    inverse_size,
     lend,
     machine_code,
     machine_library,
     newton_step_function,
     refresh_function,
-    static_factor_function,
     step_function,
     step_layouts,
 )
 from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, StageFactors
+from daemodel.backends.radau.increments import StaticFactors, inverse_size, static_factor_function
 from daemodel.backends.radau.kernel import factor_call, kernel_source, sign_call
 from daemodel.backends.radau.linalg import (
     dense_inverse,
@@ -412,7 +410,7 @@ class CasadiEngine(AbstractEngine):
     def _static_factor_function(self):
         """The casadi function of the packed static factors from ``[h, J's nonzeros]`` (cached per model
         and s): with ``jit`` the loop of :mod:`.kernel` in C, else straight-line SX
-        (:func:`.compiled.static_factor_function`); the same factors bit for bit."""
+        (:func:`.increments.static_factor_function`); the same factors bit for bit."""
         if self.jit:
             return self._static_kernel()[0]
         build = lambda: static_factor_function(self.static.lu, self.transform)  # noqa: E731

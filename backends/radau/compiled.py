@@ -32,8 +32,9 @@ from typing import NamedTuple
 import numpy as np
 from daemodel.backends.radau import formulas
 from daemodel.backends.radau.formulas import CASADI
+from daemodel.backends.radau.increments import DenseInverses, inverse_size, transformed_increment
 from daemodel.backends.radau.iteration import NewtonState, newton_pass, newton_start
-from daemodel.backends.radau.kernel import UNROLLED_SOLVE_MAX_ENTRIES, solve_call
+from daemodel.backends.radau.kernel import transform_calls
 
 from daemodel.cache import Build, cached_library, compiler_version
 from daemodel.collocation import extrapolation_polynomial, horner
@@ -85,117 +86,6 @@ def step_layouts(s: int, n: int, D: int, P: int) -> tuple[Layout, Layout]:
     the stages ``W`` and f at the stages ``F``)."""
     inputs = Layout(*STEP_SCALARS, ("nodes", (s + 1) * D), ("f0", n), ("p", P))
     return inputs, Layout(*STEP_RESULTS, ("W", s * D), ("F", s * n))
-
-
-def transformed_increment(casadi, R, h, inverse, transform, n: int, D: int, solver=None):
-    """``dW`` (D, s) from the stage residual ``R`` (D, s) through the transformed systems, whose
-    factors come packed (``solver``: :class:`DenseInverses` by default, the blocks' inverses, or
-    :class:`StaticFactors`): the increment :meth:`AbstractEngine.newton_increment` computes with LU solves."""
-    solver = solver or DenseInverses(transform, D)
-    rhs = casadi.vertcat(
-        casadi.mtimes(R[:n, :], casadi.DM(transform.T_inv_A_inv.T)) * (-1.0 / h),
-        casadi.mtimes(R[n:, :], casadi.DM(transform.T_inv.T)),
-    )
-    columns = []
-    for index, (k, lam) in enumerate(transform.blocks):
-        if lam.imag == 0:
-            columns.append(solver.real(casadi, inverse, index, rhs[:, k]))
-        else:
-            columns += solver.complex(casadi, inverse, index, rhs[:, k], rhs[:, k + 1])
-    return casadi.mtimes(casadi.horzcat(*columns), casadi.DM(transform.T.T))
-
-
-class DenseInverses:
-    """The transformed systems' inverses packed column-major: each block's (a complex one as (Re, Im)),
-    then the error estimate's system's; applied by matrix products."""
-
-    def __init__(self, transform, D: int):
-        self.D, self.offsets = D, []
-        offset = 0
-        for _, lam in transform.blocks:
-            self.offsets.append(offset)
-            offset += (2 if lam.imag else 1) * D * D
-        self.error_offset, self.size = offset, offset + D * D
-
-    def real(self, casadi, packed, block: int, rhs):
-        o, D = self.offsets[block], self.D
-        return casadi.mtimes(casadi.reshape(packed[o : o + D * D], D, D), rhs)
-
-    def complex(self, casadi, packed, block: int, re, im):
-        o, D = self.offsets[block], self.D
-        real = casadi.reshape(packed[o : o + D * D], D, D)
-        imag = casadi.reshape(packed[o + D * D : o + 2 * D * D], D, D)
-        return [casadi.mtimes(real, re) - casadi.mtimes(imag, im), casadi.mtimes(imag, re) + casadi.mtimes(real, im)]
-
-    def error(self, casadi, packed, rhs):
-        o, D = self.error_offset, self.D
-        return casadi.mtimes(casadi.reshape(packed[o : o + D * D], D, D), rhs)
-
-
-class StaticFactors:
-    """The transformed systems' sparse LU factors with a fixed pivot order (:class:`.sparse.StaticLU`)
-    packed: each block's (real, or complex as (Re, Im) parts), then the error estimate's system's
-    where it is no block's (s even), then the factorisation's largest growth and smallest pivot (over
-    the systems); applied by triangular solves: straight-line SX, or with ``machine`` above
-    :data:`.kernel.UNROLLED_SOLVE_MAX_ENTRIES` entries calls into the loops of :mod:`.kernel` (for
-    machine code only: :func:`.kernel.solve_call`; the same bits)."""
-
-    def __init__(self, lu, transform, machine: bool = False):
-        self.lu, self.offsets, self.machine, self._solves = lu, [], machine, None
-        offset = 0
-        for _, lam in transform.blocks:
-            self.offsets.append(offset)
-            offset += lu.size(bool(lam.imag))
-        if transform.error_block is not None:
-            self.error_offset = self.offsets[transform.error_block]
-        else:
-            self.error_offset, offset = offset, offset + lu.size(False)
-        self.checks_offset, self.size = offset, offset + 2
-
-    @property
-    def solves(self) -> dict:
-        """The real (False) and complex (True) triangular solves as casadi functions of ``[packed factors
-        of one system, b]`` (made on first use: the SX ones of a chain of 20 pendulums take 0.2 s)."""
-        if self._solves is None:
-            if self.machine and self.lu.entries > UNROLLED_SOLVE_MAX_ENTRIES:
-                self._solves = {complex_: solve_call(self.lu, complex_) for complex_ in (False, True)}
-            else:
-                self._solves = {complex_: self.lu.solve_function(complex_) for complex_ in (False, True)}
-        return self._solves
-
-    def real(self, casadi, packed, block: int, rhs):
-        o = self.offsets[block]
-        return self.solves[False](packed[o : o + self.lu.size(False)], rhs)
-
-    def complex(self, casadi, packed, block: int, re, im):
-        o = self.offsets[block]
-        out = self.solves[True](packed[o : o + self.lu.size(True)], casadi.vertcat(re, im))
-        return [out[: self.lu.D], out[self.lu.D :]]
-
-    def error(self, casadi, packed, rhs):
-        return self.solves[False](packed[self.error_offset : self.error_offset + self.lu.size(False)], rhs)
-
-
-def static_factor_function(lu, transform):
-    """casadi SX function of the packed :class:`StaticFactors` from ``[h, J's nonzeros]``: each block's
-    factors, the error system's where it is no block's, the largest growth and the smallest pivot."""
-    import casadi
-
-    x = casadi.SX.sym("x", 1 + len(lu.rows))
-    h, J = x[0], x[1:]
-    packed, growth, pivot = [], casadi.SX(0), casadi.SX(casadi.inf)
-    shifts = [lam for _, lam in transform.blocks]
-    shifts += [complex(1.0 / transform.gamma0)] if transform.error_block is None else []
-    for lam in shifts:
-        values, block_growth, block_pivot = lu.factor_expressions(casadi, h, J, lam, bool(lam.imag))
-        packed += values
-        growth, pivot = casadi.fmax(growth, block_growth), casadi.fmin(pivot, block_pivot)
-    return casadi.Function("static_factors", [x], [casadi.vertcat(*packed, growth, pivot)])
-
-
-def inverse_size(transform, D: int) -> int:
-    """Entries of the packed inverses: the blocks' (a complex one twice), then the error estimate's."""
-    return DenseInverses(transform, D).size
 
 
 # The iteration's state in the compiled step: the stages W (D, s), f at them F (n, s), then the scalars
@@ -277,15 +167,27 @@ def step_function(f, residual, engine, iterations: int, e: np.ndarray, error_wei
         for name, e in zip(("t", "h", "y_n", "p", "scale", "tol", "inverse"), fixed, strict=True)
     ]
     ts, hs, ys, ps, scs, tols, invs = fixed_syms
+    tests = newton_tests(iterations, formulas.geometric_contraction(s))
+    scalars = [state_in[name] for name in NEWTON_BEFORE.names[1:-1]]
     out = residual(casadi.vertcat(ts, hs, ys, casadi.vec(W_s), ps))
-    R = casadi.reshape(out[: s * D], D, s)
     stage_f = casadi.reshape(out[s * D :], n, s)
-    dW = transformed_increment(casadi, R, hs, invs, tr, n, D, solver)
-    norm = CASADI.rms(dW / scs)
+    if getattr(solver, "machine", False):
+        # in machine code on static factors: the transforms, the increment and its norm as loops in C
+        # (.kernel.transform_calls), the same operations in the same order as the MX below, whose copies,
+        # slices and transposes between them took 27 % of the chain of 20 pendulums' run at rtol 1e-4
+        # (46,000 instructions an iteration; the run 14.2 -> 12.9 million instructions a solve)
+        transform_in, transform_out = transform_calls(tr, n, D)
+        blocks = transform_in(out, hs)
+        blocks = [blocks] if len(tr.blocks) == 1 else blocks
+        solved = [solver.stacked(casadi, invs, index, rhs) for index, rhs in enumerate(blocks)]
+        dW, norm = transform_out(*solved, casadi.vec(scs))
+        dW = casadi.reshape(dW, D, s)
+    else:
+        dW = transformed_increment(casadi, casadi.reshape(out[: s * D], D, s), hs, invs, tr, n, D, solver)
+        norm = CASADI.rms(dW / scs)
     # the tests on the scalars in one SX function (an MX operation costs ~40 ns on casadi's virtual
     # machine, an SX one ~2: a pendulum step of 3 iterations 23.6 -> 19.7 us)
-    before = NEWTON_BEFORE.pack(norm=norm, tol=tols, **{name: state_in[name] for name in NEWTON_BEFORE.names[1:-1]})
-    tests = newton_tests(iterations, formulas.geometric_contraction(s))
+    before = NEWTON_BEFORE.pack(norm=norm, tol=tols, **dict(zip(NEWTON_BEFORE.names[1:-1], scalars, strict=True)))
     after = NEWTON_AFTER.read(tests(before=casadi.vertcat(*before))["after"])
     state_out = dict(after, W=casadi.if_else(after["iterate"], W_s + dW, W_s), F=stage_f)
     symbols = [*(state_in[name] for name in ITERATION), *fixed_syms]

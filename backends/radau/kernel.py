@@ -1,6 +1,6 @@
 """The fixed-pivot sparse factorisation and triangular solves (:mod:`.sparse`) as loops in C.
 
-:func:`.compiled.static_factor_function` writes the elimination as straight-line SX: on casadi's
+:func:`.increments.static_factor_function` writes the elimination as straight-line SX: on casadi's
 virtual machine ~2-3 ns an operation, so 170-320 us a factorisation of the 20-pendulum chain at
 s = 3 and 5 (a third of its solve), and as machine code 3-15 s of compiling for a factor of two.
 Here the elimination is data: arrays of positions (which entry is divided by which pivot, which
@@ -9,7 +9,7 @@ the arrays are the only part that differs between models, and they are numbers, 
 
 The loop makes the same operations on the same operands in the same order as the SX expressions
 (complex ones with the same formulas), and is compiled without contracting ``a - b c`` into
-fused multiply-adds, so its factors are those of :func:`.compiled.static_factor_function` bit for
+fused multiply-adds, so its factors are those of :func:`.increments.static_factor_function` bit for
 bit (a test compares them).  It is a casadi *external* function: it can be called from Python on
 bound buffers and inside other casadi functions (:mod:`.loop`'s compiled run) alike.  The same
 source holds ``sign_det``, the sign of the algebraic variables' iteration matrix's determinant by
@@ -25,6 +25,13 @@ were 2/3 of the compiled step's C (the 20-pendulum chain: 12,800 of 18,750 lines
 compiling).  The compiled step calls them (:func:`solve_call`) with this source in front of its own in
 one library (:func:`.compiled.machine_library`), which also offers them (``static_solve``,
 ``static_solve_complex``) to the general path's solves in Python.
+
+The compiled step's Newton increment passes through RADAU5's transforms on either side of those solves
+(the stage residual through ``T^-1 A^-1`` and ``T^-1``, the solutions back through ``T``, then the
+increment's scaled norm): as loops too (``dm_transform_in``, ``dm_transform_out``: :func:`transform_calls`), the sums of
+casadi's dense products and dot product in their order, so the same bits, without the copies, slices and
+transposes that casadi's code made between the MX products (the chain of 20 pendulums at rtol 1e-4: the
+run's instructions 14.2 -> 12.9 million a solve).
 
 Positions: the factors' nonzeros numbered as they are packed, L's (row by row, columns ascending)
 then U's (row by row, columns ascending from the diagonal); each system's elimination runs in
@@ -396,12 +403,62 @@ casadi_int static_solve_complex_n_in(void) { return 2; }
 casadi_int static_solve_complex_n_out(void) { return 1; }
 const casadi_int* static_solve_complex_sparsity_in(casadi_int i) { return i < 2 ? sparsity_solve_complex_in[i] : 0; }
 const casadi_int* static_solve_complex_sparsity_out(casadi_int i) { return i == 0 ? sparsity_solve_complex_out : 0; }
+
+/* the transformed systems' right-hand sides from the stage residual r (TR_D rows, stage by stage):
+   the states' rows through T^-1 A^-1 over -h, the constraints' through T^-1; out[b]: block b's
+   columns one after the other (a complex block: its real part's, then its imaginary part's).  Each
+   entry summed from 0 over the stages in order, as casadi's dense product; the loops run along the
+   rows, where the entries are contiguous */
+static int dm_transform_in(const double* r, const double* h, double** out) {
+  int b, c, i, j;
+  if (!r) r = dm_zeros_tr;
+  for (b = 0; b < TR_BLOCKS; b++) {
+    if (!out[b]) continue;
+    for (c = 0; c < tr_width[b]; c++) {
+      int k = tr_column[b] + c;
+      double* o = out[b] + c * TR_D;
+      for (i = 0; i < TR_D; i++) o[i] = 0.0;
+      for (j = 0; j < TR_S; j++) {
+        const double* rj = r + j * TR_D;
+        double a = tr_in_states[k * TR_S + j], g = tr_in_constraints[k * TR_S + j];
+        for (i = 0; i < TR_N; i++) o[i] = o[i] + rj[i] * a;
+        for (i = TR_N; i < TR_D; i++) o[i] = o[i] + rj[i] * g;
+      }
+      for (i = 0; i < TR_N; i++) o[i] = -(o[i] / h[0]);
+    }
+  }
+  return 0;
+}
+
+/* the increment dW (TR_D rows, stage by stage) through T from the blocks' solutions x[b] (each entry
+   summed from 0 in order, as casadi's dense product), and the root mean square of dW / scale (its
+   squares summed in order, as casadi's dot product) */
+static int dm_transform_out(const double** x, const double* scale, double* dW, double* norm) {
+  double total = 0.0;
+  int i, j, k;
+  if (!dW || !scale) return 1;
+  for (k = 0; k < TR_S; k++) {
+    double* o = dW + k * TR_D;
+    for (i = 0; i < TR_D; i++) o[i] = 0.0;
+    for (j = 0; j < TR_S; j++) {
+      const double* xj = x[tr_block_of[j]] ? x[tr_block_of[j]] + tr_part_of[j] * TR_D : dm_zeros_tr;
+      double a = tr_out[k * TR_S + j];
+      for (i = 0; i < TR_D; i++) o[i] = o[i] + xj[i] * a;
+    }
+  }
+  for (i = 0; i < TR_D * TR_S; i++) {
+    double v = dW[i] / scale[i];
+    total += v * v;
+  }
+  if (norm) norm[0] = sqrt(total / (double)(TR_D * TR_S));
+  return 0;
+}
 """
 
 
 def kernel_source(lu, transform, factors, m: int) -> str:
     """The C source of four functions of casadi's external-function interface: ``static_factors``,
-    the packed :class:`.compiled.StaticFactors` ``factors`` (the systems of ``transform``'s blocks,
+    the packed :class:`.increments.StaticFactors` ``factors`` (the systems of ``transform``'s blocks,
     then the error estimate's where it is no block's) from ``[h, J's nonzeros]``; ``sign_det``, the
     sign of the determinant of an (m, m) matrix (:func:`.linalg.dense_sign_det`'s); ``static_solve``
     and ``static_solve_complex``, :meth:`.sparse.StaticLU.solve_function`'s (``dm_solve_real`` and
@@ -437,7 +494,7 @@ def kernel_source(lu, transform, factors, m: int) -> str:
         _array("shift_complex", [int(bool(lam.imag)) for lam in shifts]),
         _array("shift_offset", offsets),
     ]
-    return "".join(source) + _KERNEL
+    return "".join(source) + transform_arrays(transform, lu.n, lu.D) + _KERNEL
 
 
 def factor_kernel(lu, transform, factors, m: int, compiler: str):
@@ -462,7 +519,7 @@ def factor_kernel(lu, transform, factors, m: int, compiler: str):
 
 def factor_call(lu, factors):
     """casadi function of ``static_factors``' signature (``[h, J's nonzeros]`` to the packed ``factors``,
-    :class:`.compiled.StaticFactors`) whose code calls the kernel's (``dm_factors``): for casadi's code
+    :class:`.increments.StaticFactors`) whose code calls the kernel's (``dm_factors``): for casadi's code
     generator inside a function compiled with :func:`kernel_source` in the same source (the compiled
     run, :mod:`.loop`, in machine code).  It has no code of its own to run: called outside machine
     code, it fails."""
@@ -508,3 +565,56 @@ def solve_call(lu, complex_: bool):
         [casadi.Sparsity.dense(scale * lu.D)],
         {"jit": False, "buffered": False},  # (no compiling here; the pointers as the caller holds them, no copies)
     )
+
+
+def transform_arrays(transform, n: int, D: int) -> str:
+    """The sizes and arrays of the kernel's ``dm_transform_in`` and ``dm_transform_out`` for ``transform``
+    (:class:`.transform.StageTransform`) on n states of D unknowns: its matrices and block layout."""
+    s = len(transform.T)
+    column, width, block_of, part_of = [], [], [], []
+    for index, (k, lam) in enumerate(transform.blocks):
+        column.append(k)
+        width.append(2 if lam.imag else 1)
+        block_of += [index] * width[-1]
+        part_of += list(range(width[-1]))
+    sizes = {"TR_S": s, "TR_N": n, "TR_D": D, "TR_BLOCKS": len(transform.blocks)}
+    source = [f"#define {key} {value}\n" for key, value in sizes.items()]
+    source += [
+        _array("tr_in_states", np.asarray(transform.T_inv_A_inv, dtype=float).ravel(), "double"),
+        _array("tr_in_constraints", np.asarray(transform.T_inv, dtype=float).ravel(), "double"),
+        _array("tr_out", np.asarray(transform.T, dtype=float).ravel(), "double"),
+        _array("tr_column", column),
+        _array("tr_width", width),
+        _array("tr_block_of", block_of),
+        _array("tr_part_of", part_of),
+        f"static const double dm_zeros_tr[{s * D + s * n}] = {{0.0}};\n",
+    ]
+    return "".join(source)
+
+
+def transform_calls(transform, n: int, D: int):
+    """casadi functions whose code calls the kernel's loops ``dm_transform_in`` and ``dm_transform_out``
+    (sized by :func:`transform_arrays`; code only, as :func:`solve_call`: for machine code whose source
+    holds :func:`kernel_source`'s):
+
+    ``transform_in``: ``[r (s D + s n: the stage residual's output), h]`` -> each block's right-hand side
+    (D, or 2D for a complex block: its real part, then its imaginary part); ``transform_out``: each
+    block's solution in that layout and the error scale (s D, stage by stage) -> the increment (s D)
+    and its scaled root mean square."""
+    import casadi
+
+    s, widths = len(transform.T), [2 if lam.imag else 1 for _, lam in transform.blocks]
+    blocks = [f"b{index}" for index in range(len(widths))]
+    dense = casadi.Sparsity.dense
+    options = {"jit": False, "buffered": False}  # (no compiling here; the pointers as the caller holds them)
+    body_in = f"double* o[{len(blocks)}] = {{{', '.join(blocks)}}}; return dm_transform_in(r, h, o);"
+    transform_in = casadi.Function.jit(
+        "transform_in", body_in, ["r", "h"], blocks, [dense(s * D + s * n), dense(1)],
+        [dense(w * D) for w in widths], options,
+    )  # fmt: skip
+    body_out = f"const double* x[{len(blocks)}] = {{{', '.join(blocks)}}}; return dm_transform_out(x, scale, dW, norm);"
+    transform_out = casadi.Function.jit(
+        "transform_out", body_out, [*blocks, "scale"], ["dW", "norm"], [*(dense(w * D) for w in widths), dense(s * D)],
+        [dense(s * D), dense(1)], options,
+    )  # fmt: skip
+    return transform_in, transform_out

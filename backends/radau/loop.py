@@ -115,7 +115,7 @@ def not_finite(casadi, values):
 
 def unusable(casadi, packed, static):
     """Whether the packed factors cannot serve: a value not finite (dense inverses), or with ``static``
-    (:class:`.compiled.StaticFactors`) also growth beyond :data:`.sparse.MAX_GROWTH` or a zero pivot
+    (:class:`.increments.StaticFactors`) also growth beyond :data:`.sparse.MAX_GROWTH` or a zero pivot
     (:meth:`.casadi_engine.CasadiEngine.factor` then factors with LAPACK or SuperLU, on Python's path)."""
     if static is None:
         return not_finite(casadi, packed)
@@ -211,7 +211,7 @@ def attempt_function(
     ``step``: the compiled attempt (:func:`.compiled.step_function`, or its machine code);
     ``refresh`` and ``inverses``: :func:`.compiled.refresh_function` and
     :func:`.compiled.inverse_function`, or with ``static`` (the engine's
-    :class:`.compiled.StaticFactors`) the packed static factors' (:mod:`.kernel`); ``sign``: a
+    :class:`.increments.StaticFactors`) the packed static factors' (:mod:`.kernel`); ``sign``: a
     function of the sign of det of an (m, m) matrix above m = 3 (None: :func:`sign_det_function`);
     ``stage_jacobians``: the Jacobian's nonzeros at every stage
     (:func:`.compiled.casadi_functions`).  Inputs ``[state, settings]`` (:data:`.sequence.SCALARS` and the

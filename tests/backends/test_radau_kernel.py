@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau import backend as radau_backend
-from daemodel.backends.radau import casadi_engine, kernel, loop, sequence
-from daemodel.backends.radau import compiled as radau_compiled
-from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
+from daemodel.backends.radau import casadi_engine, increments, kernel, loop, sequence
+from daemodel.backends.radau.compiled import Buffered, find_compiler
+from daemodel.backends.radau.increments import StaticFactors, static_factor_function
 from daemodel.backends.radau.linalg import dense_sign_det
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
 
@@ -228,7 +228,7 @@ def test_the_step_on_the_loops_gives_the_virtual_machines_bits(monkeypatch):
     (The pendulum chain's machine code differs from the virtual machine in the last bits, as before the
     loops: its run and single attempts agree bit for bit, test_the_run_on_static_factors_...)"""
     monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**9)  # (the virtual machine takes them too)
-    monkeypatch.setattr(radau_compiled, "UNROLLED_SOLVE_MAX_ENTRIES", 0)
+    monkeypatch.setattr(increments, "UNROLLED_SOLVE_MAX_ENTRIES", 0)
     for model, stages in [(scaling_models.reaction_diffusion(15), 5), (scaling_models.reaction_diffusion(25), 3),
                           (scaling_models.reaction_diffusion(15), 2)]:  # fmt: skip
         compiled = model.compile()

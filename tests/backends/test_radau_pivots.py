@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
+from daemodel.backends.radau.compiled import Buffered, find_compiler
+from daemodel.backends.radau.increments import StaticFactors, static_factor_function
 from daemodel.backends.radau.pivots import (
     MATCHED_MAX_COST,
     MAX_PIVOT_ORDERS,

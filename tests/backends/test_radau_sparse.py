@@ -15,7 +15,8 @@ from daemodel.backends.radau import casadi_engine
 from daemodel.backends.radau import fill as radau_fill
 from daemodel.backends.radau import linalg as radau_linalg
 from daemodel.backends.radau import sparse as radau_sparse
-from daemodel.backends.radau.compiled import Buffered, StaticFactors, find_compiler, static_factor_function
+from daemodel.backends.radau.compiled import Buffered, find_compiler
+from daemodel.backends.radau.increments import StaticFactors, static_factor_function
 
 import daemodel as dm
 from daemodel import errors as E
