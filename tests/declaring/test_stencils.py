@@ -272,11 +272,14 @@ def test_what_a_paused_block_made_is_not_scanned_as_young_after_it():
         # in the oldest generation, unscanned (else the first allocation after the block scans them all
         # as the youngest, and the survivors sit in the middle generation)
         assert any(o is made[-1] for o in gc.get_objects(generation=2)) and made[-1] == [49_999]
+        gc.collect()
         gc.freeze()  # a caller's frozen objects stay frozen
         frozen = gc.get_freeze_count()
         with paused_collection():
             more = [[k] for k in range(1000)]
-        assert gc.get_freeze_count() == frozen and gc.isenabled() and len(more) == 1000
+        # (neither unfrozen, 0, nor the block's 1,000 lists frozen too; a frozen object freed meanwhile by
+        # reference counting leaves the count: 2 of 726,122 did in a full run)
+        assert frozen - 100 <= gc.get_freeze_count() <= frozen and gc.isenabled() and len(more) == 1000
     finally:
         gc.unfreeze()
         (gc.enable if was else gc.disable)()
