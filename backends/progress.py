@@ -12,6 +12,13 @@ import sys
 # window (a stiff transient's slow start is not judged at its pace), and a collapsing h (below
 # COLLAPSE_FACTOR of the window's start: a blow-up) is left to the step-size failure that names it.
 PROGRESS_WINDOW, PROJECTION_FACTOR, COLLAPSE_FACTOR = 100, 10, 0.1
+# A held h is no pace: radau keeps h (and its factorisations) while the step its error estimate asks for stays
+# within a band above h (.radau.control.KEEP_H_BAND: up to 1.5x compiled), so a stiff transient's fast mode
+# decaying at the solve's start held h = 2.53e-6 flat for 260 attempts (a' = -b - a/10, b' = a - b/10,
+# c' = -1000 c + a, s = 2, rtol 1e-9) and two flat windows projected 1.97e6 attempts: StepLimitError after
+# 200 where the solve takes 4,701.  Where h is held (within HELD_H of the window's start: t's rounding moves it)
+# the watch reads the growth the estimate asks for.
+HELD_H = 1e-9
 
 
 # Windows in a row that must each project past the budget before a loop gives up early.
@@ -40,25 +47,40 @@ class ProgressWatch:
 
     def __init__(self, t: float, h: float, extra=None):
         self.start = (t, 0, h, extra)
+        self.err = None  # the error estimate where the window began (where the caller tells it)
         self.strikes = 0  # windows in a row that projected past the budget
         self.h_max = abs(h)  # the largest step seen at a window's end, or mean step over a window
         self.accepted = 0  # the caller's accepted steps when the window began (where it tells them)
         self.dip_began = None  # the count where the dip began (windows in a row, h below DIP_FACTOR of h_max)
 
     def hopeless(
-        self, count: int, t: float, h: float, t1: float, budget: int, extra=None, accepted: int | None = None
+        self,
+        count: int,
+        t: float,
+        h: float,
+        t1: float,
+        budget: int,
+        extra=None,
+        accepted: int | None = None,
+        err: float | None = None,
+        exponent: float = 0.0,
     ) -> float | None:
         """Call once per step; ``count`` steps (or attempts) so far.  Returns the projected number of
         further steps when :data:`HOPELESS_WINDOWS` windows in a row project past
         :data:`PROJECTION_FACTOR` times the budget left, else None (starting a new window when one
         is complete).  Where the caller counts attempts, ``accepted`` (its accepted steps so far) lets
         a stiff layer's dip take :data:`DIP_SHARE` of ``budget`` (at least :data:`DIP_WINDOWS` windows)
-        instead."""
+        instead.  Where the caller holds h while its error estimate ``err`` falls (a controller that keeps h,
+        and its factorisations, until the step it asks for is ``keep`` band's worth larger), the window's
+        growth is the one its estimate asks for, ``(err then / err now)^exponent``, not h's 1."""
         t_w, count_w, h_w, _ = self.start
         steps = count - count_w
         if steps < PROGRESS_WINDOW or count >= budget:  # the budget's own error speaks at the end
             return None
         covered, left, growth = t - t_w, t1 - t, h / h_w
+        held = abs(growth - 1) <= HELD_H  # (held: h moved only by t's rounding)
+        if held and err is not None and self.err is not None and 0 < err < self.err:
+            growth = (self.err / err) ** exponent
         if covered <= 0:
             needed = math.inf
         elif growth > 1:  # windows covering covered * growth^k: a geometric series up to t1
@@ -78,7 +100,7 @@ class ProgressWatch:
         )
         if self.strikes >= HOPELESS_WINDOWS and not dip:
             return needed
-        self.start = (t, count, h, extra)
+        self.start, self.err = (t, count, h, extra), err
         self.h_max = max(self.h_max, abs(h), abs(covered) / steps)
         self.accepted = accepted or 0
         return None

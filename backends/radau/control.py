@@ -212,7 +212,15 @@ class Radau5Controller:
             if attempts == options.max_steps // 2:
                 half = (t, stats["steps"])
             needed = watch.hopeless(
-                attempts, t, h, t1, options.max_steps, extra=stats["steps"], accepted=stats["steps"]
+                attempts,
+                t,
+                h,
+                t1,
+                options.max_steps,
+                extra=stats["steps"],
+                accepted=stats["steps"],
+                err=float(carried["err_acc"]) if stats["steps"] else None,
+                exponent=1.0 / (stepper.s + 1),
             )
             if needed is not None:
                 t_w, count_w, _, accepted_w = watch.start

@@ -164,6 +164,44 @@ def test_endless_span_raises_step_limit(pendulum, switch):
         dm.solve(switch, (0.0, 1e300), max_steps=200)
 
 
+def test_a_held_step_is_judged_by_the_growth_its_error_estimate_asks_for():
+    """radau holds h (and its factors) while the step its estimate asks for is within the keep band above it:
+    a held h whose estimate falls (a stiff transient decaying) projects at the asked growth, and one whose
+    estimate stays (an endless span at a steady pace) still stops after HOPELESS_WINDOWS."""
+    from daemodel.backends.progress import HOPELESS_WINDOWS, PROGRESS_WINDOW, ProgressWatch
+
+    def windows_until_stop(err_ratio, h_rounding=0.0, h_shrink=0.0):
+        h, err, watch = 2.5e-6, 0.4, ProgressWatch(0.0, 2.5e-6)
+        for window in range(1, 20):
+            count = window * PROGRESS_WINDOW
+            held = h * (1 + h_rounding * (-1) ** window) * (1 - h_shrink) ** window
+            t, err = count * h, err * err_ratio
+            if watch.hopeless(count, t, held, 5.0, 100_000, accepted=count, err=err, exponent=1 / 3) is not None:
+                return window
+        return None
+
+    assert windows_until_stop(1.0) == HOPELESS_WINDOWS  # (the first window has no estimate to compare)
+    assert windows_until_stop(1.01) == HOPELESS_WINDOWS
+    assert windows_until_stop(0.78) is None  # (the transient above: 0.40 -> 0.27 a window, growth 1.14)
+    assert windows_until_stop(0.78, h_rounding=1e-13) is None  # (t's rounding moves a held h)
+    assert windows_until_stop(0.78, h_shrink=1e-3) == HOPELESS_WINDOWS  # (h moved: h's own growth)
+
+
+def test_a_stiff_transient_held_at_the_start_is_not_taken_for_an_endless_span():
+    """a' = -b - a/10, b' = a - b/10, c' = -1000 c + a from c = 0, two stages at rtol 1e-9: the fast mode's
+    decay holds h = 2.53e-6 for 260 attempts, and the watch projected 1.97e6 more at that pace and raised
+    StepLimitError after 200 attempts where the solve takes 4,701 (max_steps = 10**7)."""
+    m = dm.Model("transient")
+    m.states("a b c")
+    m.ode("a", "-b - 0.1*a")
+    m.ode("b", "a - 0.1*b")
+    m.ode("c", "-1000*c + a")
+    m.initial(a=1.0, b=0.0, c=0.0)
+    sol = dm.solve(m, (0.0, 5.0), method="radau", stages=2, rtol=1e-9, atol=1e-12)
+    assert sol.status == "success" and sol.stats["attempts"] < 10_000
+    assert np.max(np.abs(sol["a"] - np.exp(-0.1 * sol.t) * np.cos(sol.t))) < 1e-8
+
+
 @pytest.mark.parametrize("eps", [1e-6, 1e-8])
 def test_a_stiff_layer_is_not_taken_for_an_endless_span(eps):
     """Van der Pol's fast jumps take ~300 accepted attempts at h ~ 4e-8 (eps = 1e-6): the progress watch
