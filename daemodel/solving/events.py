@@ -377,6 +377,14 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
             changes = drift(compiled, backend, piece, t_event, y_event, z_start, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: sides_after.get(e, 1) for e in fired if events[e].strict and not events[e].integer}
+        # (and each declared event that crossed zero here, from the bracket's start to its side after: the side it
+        # crossed to, which a look-ahead that reads it back on the side it came from has passed its crossing back)
+        F_from = piece_when(np.array([a]), ya, za, P)[0]
+        preferred |= {
+            e: sides_after[e]
+            for e in fired
+            if not events[e].strict and e in sides_after and sides_after[e] == -np.sign(F_from[e]) != 0
+        }
         exited = {e for e in fired if e in begin.sliding}
         for e in exited:  # (it leaves the sliding motion to the side whose rate reached 0)
             up, down = begin.sliding[e](np.array([t_event]), y_event, z_event, P)[0]
