@@ -351,10 +351,11 @@ def _crossed_to(
     Unread, it was 0 (not armed: "armed once it has left it"), and its way back across zero was taken for that
     leaving: x = (t - 1)^2 - 1e-12 crossed at 1 -+ 1e-6 (moving 4e-15 over delta = 2e-9), and one crossing was
     recorded, "success", under the reference and a fixed radau grid.  ``crossed``: the side it crossed to (0:
-    not known); a look-ahead that reads it back on the side it came from has passed its crossing back, which the
-    next piece locates: the side is ``crossed`` (read as it was, x = (t - 1)^2 a touch at t = 1 that the reference
-    and casadi-collocation's solutions cross by 1e-15 at 1 -+ 5e-8, within 64 look-aheads: one crossing
-    recorded, of a function above zero at both ends of the span, "success")."""
+    not known, or a reset that sends it back: :func:`reset_keeps_motion`); a look-ahead that reads it back on the
+    side it came from has passed its crossing back, which the next piece locates: the side is ``crossed`` (read as
+    it was, x = (t - 1)^2 a touch at t = 1 that the reference and casadi-collocation's solutions cross by 1e-15
+    at 1 -+ 5e-8, within 64 look-aheads: one crossing recorded, of a function above zero at both ends of the span,
+    "success")."""
     for growth in range(1, LOOKAHEAD_GROWTHS + 1):
         if delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
             break
@@ -363,6 +364,19 @@ def _crossed_to(
         if side:
             return crossed if side == -crossed else side
     return 0
+
+
+def reset_keeps_motion(compiled, event) -> bool:
+    """Whether the reset of the declared ``event`` (if any) sets no state its function or that function's rate
+    depends on: a counter's, not a bounce's, whose reset sends its function back across zero by design (so the
+    side it crossed to is not the side it goes on to)."""
+    if not event.reset:
+        return True
+    reads = set(event.when.free_symbols)
+    for i, state in enumerate(compiled.states):
+        if state in reads:
+            reads |= set(compiled.rhs[i].free_symbols)
+    return not any(compiled.states[i] in reads for i, _ in event.reset)
 
 
 def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,
