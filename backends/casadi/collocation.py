@@ -42,6 +42,7 @@ from daemodel.backends.progress import captured_output
 
 from daemodel.dense import AbstractDenseOutput, CollocationPolynomials, step_owners
 from daemodel.errors import ConvergenceError, LocalErrorBoundError
+from daemodel.tableau import radau_iia
 
 # Steps of casadi-collocation over the interval when h is not given.
 DEFAULT_STEPS = 100
@@ -94,7 +95,9 @@ class CollocationOptions:
         set_number(self, "estimate_bound")
 
 
-def stuck_step(compiled, grid, values, slopes, root_abstol: float = ROOT_ABSTOL) -> ConvergenceError | None:
+def stuck_step(
+    compiled, grid, values, slopes, root_abstol: float = ROOT_ABSTOL, stage_increments=None
+) -> ConvergenceError | None:
     """The error for the first step that returned its start value exactly although f is not zero
     there: casadi's root finder gave up (f or g turned NaN inside its Newton iteration, with casadi's
     evaluation warnings off) and casadi returned its last iterate instead of failing.
@@ -103,17 +106,27 @@ def stuck_step(compiled, grid, values, slopes, root_abstol: float = ROOT_ABSTOL)
     (a start at rest up to rounding, ``x' = 1e-14``, or a constraint met to the last bit): the
     collocation residual at the start guess is ``h f`` at the stages, so the root finder accepts that
     guess once ``h |f| < root_abstol``; and a change below :data:`STEADY_ULPS` units in the last place
-    of ``u`` is not a change that the values can show.
+    of ``u`` is not a change that the values can show.  ``stage_increments(sample, k)``: step ``k``'s stage
+    increments from its start value, ``h A f`` (s, n) with f at its collocation times there (the root finder's
+    first Newton step, without J): within that rounding at every stage, the step's own change is, and its root
+    finder stops at the start value (on its residual, or on a Newton step below its ``abstolStep``, 1e-12): x' = 2
+    (t - h) from 0 over one step h = 7.4e-7 (h |f| 1.1e-12 at the start, its increments 0.5e-12 at most) and
+    x = (t - c)^2 - 3.6e-13 across its crossing (h |f| 1.5e-12, increments 0.2e-12) were named stuck.
     """
     n = len(compiled.states)
     same = np.all(values[:, 1:] == values[:, :-1], axis=2)  # (B, T-1): step k returned u_k
     h = np.diff(grid)[None, :, None]
     rounding = np.maximum(root_abstol, STEADY_ULPS * np.finfo(values.dtype).eps * np.abs(values[:, :-1, :n]))
     moving = np.any(h * np.abs(slopes[:, :-1, :n]) > rounding, axis=2)  # f(t_k, u_k) moves u_k visibly
-    stuck = np.argwhere(same & moving)
-    if not len(stuck):
-        return None
-    sample, k = (int(i) for i in stuck[0])
+    for sample, k in np.argwhere(same & moving):  # (each a step that f at its start says moves)
+        sample, k = int(sample), int(k)
+        if stage_increments is None or np.any(np.abs(stage_increments(sample, k)) > rounding[sample, k]):
+            return _stuck(compiled, grid, sample, k)
+    return None
+
+
+def _stuck(compiled, grid, sample: int, k: int) -> ConvergenceError:
+    """The error of :func:`stuck_step` for step ``k`` of ``sample``."""
     return ConvergenceError(
         f"casadi-collocation: step {k + 1} from t = {grid[k]:.6g} (h = {grid[k + 1] - grid[k]:.3g}) of sample {sample} "
         f"of '{compiled.name}' returned its start value although f is not zero there: casadi's Newton iteration "
@@ -249,8 +262,6 @@ class CollocationStages:
 
     def __init__(self, compiled, stages: int, dae: dict, root_abstol: float):
         import casadi
-
-        from daemodel.tableau import radau_iia
 
         tableau = radau_iia(stages)
         A, self.c = np.asarray(tableau.A, dtype=float), np.asarray(tableau.c, dtype=float)
@@ -401,8 +412,16 @@ class CollocationBackend(AbstractBackend):
         failure = first_non_finite(self.name, compiled, grid, values, ADAPTIVE_FIX)
         if failure is None:  # casadi's root finder returns its last iterate when f turns NaN inside a step
             slopes = _right_hand_sides(dae, grid, values, start.p)
+            tableau = radau_iia(options.stages)  # (casadi's collocation: Radau's times)
+            A, nodes, n = np.asarray(tableau.A, dtype=float), np.asarray(tableau.c, dtype=float), len(compiled.states)
+
+            def stage_increments(b: int, k: int) -> np.ndarray:  # (h A f at step k's collocation times, its start)
+                h = grid[k + 1] - grid[k]
+                at_start = np.repeat(values[b : b + 1, k : k + 1], len(nodes), axis=1)
+                return h * A @ _right_hand_sides(dae, grid[k] + nodes * h, at_start, start.p[b : b + 1])[0, :, :n]
+
             failure = first_non_finite(self.name, compiled, grid, slopes, ADAPTIVE_FIX, "f at") or stuck_step(
-                compiled, grid, values, slopes, root_abstol
+                compiled, grid, values, slopes, root_abstol, stage_increments
             )
         if failure is not None:
             raise failure

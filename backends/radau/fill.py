@@ -59,6 +59,9 @@ ORDER_FILL_FACTOR = 10
 # The largest address-space limit setrlimit takes (a C rlim_t read as signed by Python): a child given more
 # failed with an OverflowError, and the guard refused a model under a memory limit of 10^8 TiB.
 MAX_RLIMIT = 2**63 - 1
+# The longest wait for the child's answer (31 years): select's timeout must fit the platform's time_t, and
+# fill_seconds = 1e300 raised an OverflowError out of the solve; a longer limit is no limit in practice.
+MAX_WAIT_SECONDS = 1e9
 
 
 class FillOverLimit(RuntimeError):
@@ -299,7 +302,7 @@ def capped_trial(matrix, max_bytes: float, seconds: float) -> int | str:
     os.close(write_end)
     answer = None
     try:
-        ready, _, _ = select.select([read_end], [], [], seconds)
+        ready, _, _ = select.select([read_end], [], [], min(seconds, MAX_WAIT_SECONDS))
         if ready:
             answer = os.read(read_end, 64).decode()
     finally:  # (out of time, or interrupted here, as by a time limit's signal: the child is stopped, not left)

@@ -235,8 +235,9 @@ class RadauOptions:
     fill_seconds: float = TRIAL_SECONDS
 
     def __post_init__(self) -> None:
-        for name in ("h", "rtol", "atol", "h0", "newton_tol", "fill_seconds"):
+        for name in ("h", "rtol", "atol", "h0", "newton_tol"):
             set_number(self, name, allow_none=True)
+        set_number(self, "fill_seconds")  # (None was taken: the child's count waited without a bound)
         set_number(self, "max_newton_iterations", integer=True)
         object.__setattr__(self, "dtype", check_dtype(self.dtype))
         if self.h is not None and (self.rtol is not None or self.atol is not None or self.h0 is not None):

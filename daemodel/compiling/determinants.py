@@ -108,7 +108,7 @@ def triangular_signs(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: 
     an entry that is not finite; None where the nonzeros lie on both sides of the diagonal.  The
     branch check reads one sign per output time: at 200 unknowns one call per output was 0.3 ms of
     a 1.5 ms solve (21 outputs)."""
-    rows, cols = np.asarray(rows), np.asarray(cols)
+    rows, cols = np.asarray(rows, dtype=np.intp), np.asarray(cols, dtype=np.intp)  # (np.bincount: ints, [] too)
     if not ((rows >= cols).all() or (rows <= cols).all()):
         return None
     values = np.asarray(values, dtype=float)

@@ -237,7 +237,8 @@ def start_piece(
     (:func:`drift`), never by a switch's value at zero.  ``fired``: the events that fired at ``t``
     (``moved_off``: those whose reset moved their function off zero, which take the side of its value);
     ``crossing``: event -> its function's drift just before its reset; ``preferred``: switch event ->
-    the side it crossed to (kept where both sides lead away); ``horizon``: how far t_span goes on from ``t``
+    the side it crossed to (kept where both sides lead away), and a declared event that crossed zero at ``t`` -> the
+    side it crossed to (:func:`_crossed_to`); ``horizon``: how far t_span goes on from ``t``
     (the longest look-ahead); ``span``: t_span's length (the scale of :func:`event_tol`); ``shortest``: the
     shortest look-ahead a reset's function may be read back over (:func:`_back_sooner`; ``delta`` where None).
 
@@ -325,7 +326,8 @@ def start_piece(
                     side = _back_sooner(compiled, backend, model, events[e], e, t, Y, Z, P, when, delta, shortest,
                                         scale[e], across)  # fmt: skip
             if not side and e in fired:  # (it crossed here, too slowly for one look-ahead: read over longer ones)
-                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, scale[e], horizon)
+                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, scale[e], horizon,
+                                   preferred.get(e, 0))  # fmt: skip
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
     return Start(
@@ -340,21 +342,41 @@ def start_piece(
     )
 
 
-def _crossed_to(compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, scale: float, horizon: float) -> int:
+def _crossed_to(
+    compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, scale: float, horizon: float, crossed: int = 0
+) -> int:
     """The side the function of the declared event ``e``, which crossed zero at ``t`` and moves by less than
     rounding over ``delta`` from there, goes on to: read over look-aheads :data:`LOOKAHEAD_GROWTH` times longer,
     at most :data:`LOOKAHEAD_GROWTHS` of them, never past ``horizon``; 0 where none resolves it (it rests on zero).
     Unread, it was 0 (not armed: "armed once it has left it"), and its way back across zero was taken for that
     leaving: x = (t - 1)^2 - 1e-12 crossed at 1 -+ 1e-6 (moving 4e-15 over delta = 2e-9), and one crossing was
-    recorded, "success", under the reference and a fixed radau grid."""
+    recorded, "success", under the reference and a fixed radau grid.  ``crossed``: the side it crossed to (0:
+    not known, or a reset that sends it back: :func:`reset_keeps_motion`); a look-ahead that reads it back on the
+    side it came from has passed its crossing back, which the next piece locates: the side is ``crossed`` (read as
+    it was, x = (t - 1)^2 a touch at t = 1 that the reference and casadi-collocation's solutions cross by 1e-15
+    at 1 -+ 5e-8, within 64 look-aheads: one crossing recorded, of a function above zero at both ends of the span,
+    "success")."""
     for growth in range(1, LOOKAHEAD_GROWTHS + 1):
         if delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
             break
         longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
         side = _side(drift(compiled, backend, model, t, Y, Z, P, when, longer, fourth=True)[e], scale)
         if side:
-            return side
+            return crossed if side == -crossed else side
     return 0
+
+
+def reset_keeps_motion(compiled, event) -> bool:
+    """Whether the reset of the declared ``event`` (if any) sets no state its function or that function's rate
+    depends on: a counter's, not a bounce's, whose reset sends its function back across zero by design (so the
+    side it crossed to is not the side it goes on to)."""
+    if not event.reset:
+        return True
+    reads = set(event.when.free_symbols)
+    for i, state in enumerate(compiled.states):
+        if state in reads:
+            reads |= set(compiled.rhs[i].free_symbols)
+    return not any(compiled.states[i] in reads for i, _ in event.reset)
 
 
 def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,

@@ -77,6 +77,7 @@ from daemodel.solving.branches import (
     event_tol,
     finite_functions,
     jumped,
+    reset_keeps_motion,
     resolution,
     rounding_scale,
     start_piece,
@@ -175,6 +176,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
     recent = []  # (the event times, to see chattering before max_events)
     history = {e: [] for e in range(len(events))}  # (each event's times, to see them accumulate)
     fired, crossing, preferred, exited, moved_off = [], {}, {}, set(), set()  # (what happened at t: start_piece)
+    keeps_motion = {e for e, event in enumerate(events) if not event.strict and reset_keeps_motion(compiled, event)}
     lock = has_state_switches(compiled)
     failing = []  # (the pieces whose solve did not meet its accuracy, and events not located to it)
     location, spent = [], [0.0]  # (the trial solves' stats; the tolerance the excursions integrated through used)
@@ -377,6 +379,15 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
             changes = drift(compiled, backend, piece, t_event, y_event, z_start, P, when, delta_at(t_event))
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: sides_after.get(e, 1) for e in fired if events[e].strict and not events[e].integer}
+        # (and each declared event that crossed zero here, from the bracket's start to its side after: the side it
+        # crossed to, which a look-ahead that reads it back on the side it came from has passed its crossing back;
+        # not a bounce's, whose reset sends it back)
+        F_from = piece_when(np.array([a]), ya, za, P)[0]
+        preferred |= {
+            e: sides_after[e]
+            for e in fired
+            if e in keeps_motion and e in sides_after and sides_after[e] == -np.sign(F_from[e]) != 0
+        }
         exited = {e for e in fired if e in begin.sliding}
         for e in exited:  # (it leaves the sliding motion to the side whose rate reached 0)
             up, down = begin.sliding[e](np.array([t_event]), y_event, z_event, P)[0]

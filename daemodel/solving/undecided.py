@@ -33,6 +33,7 @@ import numpy as np
 
 from daemodel.errors import ModelError, SolverError, TimeLimitError
 from daemodel.solving.between import inner_samples, parabola
+from daemodel.solving.branches import reset_keeps_motion
 from daemodel.solving.misses import NEAR_MISS_TOLS, TIGHTER
 
 
@@ -203,11 +204,7 @@ def _read(compiled, event) -> bool:
     of a variable."""
     if event.strict:
         return event.integer
-    reads = set(event.when.free_symbols)
-    for i, state in enumerate(compiled.states):
-        if state in reads:
-            reads |= set(compiled.rhs[i].free_symbols)
-    return not any(compiled.states[i] in reads for i, _ in event.reset)
+    return reset_keeps_motion(compiled, event)
 
 
 def _merged(T: np.ndarray, V: np.ndarray, times: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

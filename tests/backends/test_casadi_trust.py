@@ -570,6 +570,21 @@ def test_collocation_that_returns_its_start_value_is_refused():
     assert abs(sol["y1"][-1] - AKZO_NOBEL.reference["y1"]) < 1e-4
 
 
+def test_collocation_whose_root_finder_accepts_its_start_value_at_every_stage_is_not_stuck():
+    """x' = 2 (t - h) from x = 0 over one step h = 7.4e-7: h |f| is 1.1e-12 at the step's start, above the root
+    finder's abstol (1e-12), but its stage increments h A f are 0.5e-12 at most (f falls to 0 at the end): the
+    root finder stops at the start value, 5.5e-13 off the exact -h^2.  The guard read f at the start alone and
+    named the step stuck, "casadi's Newton iteration gave up (f or g likely turned NaN)" (after an event, as
+    x = (t - c)^2 - 1.1e-12 at a crossing: the solve refused)."""
+    h = 7.4e-7
+    m = dm.Model("slow_end")
+    m.states("x")
+    m.ode("x", f"2*(t - {h!r})")
+    m.initial(x=0.0)
+    sol = dm.solve(m, (0.0, h), method="casadi-collocation", h=h, stages=3)
+    assert sol.status == "success" and abs(sol["x"][-1] + h * h) <= 1e-12
+
+
 def test_idas_initial_slopes_are_exact_sparse_and_made_once(monkeypatch):
     """z'(t0) = -g_z^-1 (g_t + g_y f) by a sparse LU, its function made once per model (at 4,000
     unknowns its dense g_z and the function's rebuild took 2.2 s of every call's setup)."""

@@ -284,8 +284,9 @@ def test_the_pattern_matrix_is_made_once_for_the_bound_and_the_count(monkeypatch
 
 @pytest.mark.parametrize(
     ("seconds", "said"),
-    [(0, "positive"), (-1.0, "positive"), (math.nan, "finite"), (math.inf, "finite"), ("5", "a real number")],
-)
+    [(0, "positive"), (-1.0, "positive"), (math.nan, "finite"), (math.inf, "finite"), ("5", "a real number"),
+     (True, "a real number"), (None, "a real number")],  # (None was taken: select's wait without a bound)
+)  # fmt: skip
 def test_fill_seconds_must_be_a_positive_finite_number(seconds, said):
     with pytest.raises(E.InvalidOptionError, match=f"fill_seconds must be {said}; got"):
         dm.solve(_mean_model(3).compile(), (0.0, 1.0), method="radau", fill_seconds=seconds)
@@ -328,3 +329,11 @@ def test_a_child_process_that_cannot_be_made_leaves_the_bound_to_decide(monkeypa
     )
     with pytest.raises(E.ResourceLimitError, match=refused):
         dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False)
+
+
+def test_a_fill_seconds_past_the_clocks_range_waits_without_an_overflow(monkeypatch):
+    """fill_seconds = 1e300 passed the option's check and reached select, whose wait must fit the platform's
+    time_t: an OverflowError out of dm.solve; now the wait is at most fill.MAX_WAIT_SECONDS (31 years)."""
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "4M")
+    sol = dm.solve(_mean_model(300).compile(), (0.0, 1.0), rtol=1e-8, atol=1e-10, jit=False, fill_seconds=1e300)
+    assert sol.status == "success"

@@ -112,6 +112,14 @@ def test_triangular_signs_of_many_matrices_at_once_are_their_slogdets_signs():
         assert {-1.0, 1.0} <= set(signs) and signs[3] == signs[5] == 0.0
 
 
+def test_positions_given_as_lists_or_without_entries_take_the_triangular_path():
+    # np.bincount (counting repeated diagonal positions) refused the float64 array that np.asarray makes of an
+    # empty list: a TypeError where np.unique gave the signs; lists of ints are positions as arrays are
+    np.testing.assert_array_equal(determinants.triangular_signs([], [], np.zeros((2, 0)), 3), [0.0, 0.0])
+    signs = determinants.triangular_signs([0, 1, 1], [0, 0, 1], np.array([[2.0, 5.0, -3.0], [2.0, 5.0, 3.0]]), 2)
+    np.testing.assert_array_equal(signs, [-1.0, 1.0])
+
+
 def test_entries_at_one_position_add_up_on_both_paths():
     # diag(-3 + 2, 1, ...): det < 0 where the two entries at (0, 0) add up; whichever of them came last
     # alone (2 in one order, -3 in the other) would give +1 in one of the two orders

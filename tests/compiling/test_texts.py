@@ -89,3 +89,23 @@ def test_the_fingerprint_prints_each_shape_once(monkeypatch):
     monkeypatch.setattr(StrPrinter, "doprint", counted)
     c.fingerprints()
     assert printed[0] <= 20  # (the shapes: a boundary row at each end, the interior, three digit counts)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the fingerprint of the equations is sympy's str, which prints a float64 coefficient to 15 digits: "
+    "y' = -0.1 y and y' = -0.10000000000000002 y have one fingerprint (a saved solution or an ensemble's chunks "
+    "of one load as the other's); exact digits where str rounds would keep the hash of every model whose "
+    "coefficients str prints exactly (files saved before still load)",
+)
+def test_models_whose_coefficients_differ_in_the_last_bit_have_different_fingerprints():
+    def compiled(rate: float):
+        m = dm.Model("decay")
+        (y,) = m.states("y")
+        m.ode("y", rate * y)
+        m.initial(y=1.0)
+        return m.compile()
+
+    a, b = compiled(-0.1), compiled(-0.10000000000000002)
+    assert a.rhs[0] != b.rhs[0]
+    assert a.fingerprint() != b.fingerprint()
