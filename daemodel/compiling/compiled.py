@@ -160,8 +160,16 @@ class CompiledDAE:
                 )
             return hashlib.sha256(repr(equations).encode()).hexdigest()
 
+        from daemodel.compiling.texts import exact_str
+
         events = [
-            (e.name, str(e.when), e.direction, [(self.state_names[i], str(x)) for i, x in e.reset], e.terminal)
+            (
+                e.name,
+                exact_str(e.when),
+                e.direction,
+                [(self.state_names[i], exact_str(x)) for i, x in e.reset],
+                e.terminal,
+            )
             for e in self.events
         ]
         values = [float(v).hex() for v in np.asarray(self.parameter_values, dtype=float)]

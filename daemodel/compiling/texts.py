@@ -9,6 +9,11 @@ names as strings, ``c[10]`` before ``c[9]``).  So the first expression of each (
 leaves' names) is printed with its leaves renamed to placeholders that sort as they do, and the others
 are that text with their own names in the placeholders' places, character for character what ``str``
 gives (tests/compiling/test_texts.py checks it against ``str``).
+
+One difference from ``str``: a float whose text (15 digits for a float64) does not give its value back is
+printed with the digits that do (:func:`exact_str`), so that y' = -0.1 y and y' = -0.10000000000000002 y do
+not share a fingerprint; every other text is ``str``'s, and the fingerprint of a model whose coefficients
+``str`` prints exactly is the one it had before.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ from __future__ import annotations
 import re
 
 import sympy as sp
+from mpmath.libmp import repr_dps, to_str
+from sympy.printing.str import StrPrinter
 
 from daemodel.compiling.numeric_source import SHAPED, SHAPED_ATOMS
 
@@ -25,8 +32,24 @@ MARK = "\x00"
 _PLACEHOLDER = re.compile(MARK + r"(\d{7})")
 
 
+class _ExactFloats(StrPrinter):
+    """``str``'s printer, but a Float whose text does not give its value back prints the digits that do."""
+
+    def _print_Float(self, expr):
+        text = super()._print_Float(expr)
+        if expr._prec < 5 or not expr.is_finite or sp.Float(text, precision=expr._prec)._mpf_ == expr._mpf_:
+            return text
+        return to_str(expr._mpf_, repr_dps(expr._prec), strip_zeros=True).removeprefix("+")
+
+
+def exact_str(expr) -> str:
+    """``str(expr)``, its floats printed with the digits that give their values back (see the module's
+    docstring)."""
+    return _ExactFloats({"order": None}).doprint(expr)
+
+
 def texts(exprs, symbols) -> list[str]:
-    """``[str(e) for e in exprs]``, each shape printed once (see the module docstring).  ``symbols``: every
+    """``[exact_str(e) for e in exprs]``, each shape printed once (see the module docstring).  ``symbols``: every
     symbol the expressions may hold (an expression with another, or with a node no shape describes, is
     printed on its own)."""
     names = set(symbols)
@@ -47,7 +70,7 @@ def texts(exprs, symbols) -> list[str]:
     out = []
     for expr, found in zip(exprs, classes, strict=True):
         if found is None or counts[found[:2]] == 1:  # (printed on its own: no other of its class)
-            out.append(str(expr))
+            out.append(exact_str(expr))
             continue
         key, order, leaves, leaf_names = found
         template = templates.get((key, order))
@@ -94,6 +117,6 @@ def _template(expr, leaves: list, order: tuple) -> tuple[str, list]:
     split at the placeholders: ``(head, [(leaf index, text after it), ...])``."""
     rank = {leaf: r for r, leaf in enumerate(order)}
     swap = {leaves[i]: sp.Symbol(f"{MARK}{rank[i]:07d}", **leaves[i].assumptions0) for i in range(len(leaves))}
-    printed = str(expr.xreplace(swap))
+    printed = exact_str(expr.xreplace(swap))
     pieces = _PLACEHOLDER.split(printed)  # [text, rank, text, rank, ...]
     return pieces[0], [(order[int(pieces[k])], pieces[k + 1]) for k in range(1, len(pieces), 2)]

@@ -91,13 +91,6 @@ def test_the_fingerprint_prints_each_shape_once(monkeypatch):
     assert printed[0] <= 20  # (the shapes: a boundary row at each end, the interior, three digit counts)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the fingerprint of the equations is sympy's str, which prints a float64 coefficient to 15 digits: "
-    "y' = -0.1 y and y' = -0.10000000000000002 y have one fingerprint (a saved solution or an ensemble's chunks "
-    "of one load as the other's); exact digits where str rounds would keep the hash of every model whose "
-    "coefficients str prints exactly (files saved before still load)",
-)
 def test_models_whose_coefficients_differ_in_the_last_bit_have_different_fingerprints():
     def compiled(rate: float):
         m = dm.Model("decay")
@@ -109,3 +102,29 @@ def test_models_whose_coefficients_differ_in_the_last_bit_have_different_fingerp
     a, b = compiled(-0.1), compiled(-0.10000000000000002)
     assert a.rhs[0] != b.rhs[0]
     assert a.fingerprint() != b.fingerprint()
+
+
+def test_events_whose_resets_differ_in_the_last_bit_have_different_fingerprints():
+    def compiled(e: float):
+        m = dm.Model("ball")
+        _, v = m.states("x v")
+        m.ode("x", v)
+        m.ode("v", -9.81)
+        m.event("floor", "x", direction=-1, reset={"v": -e * v})
+        m.initial(x=1.0, v=0.0)
+        return m.compile()
+
+    a, b = compiled(0.3), compiled(0.30000000000000004)
+    assert a.fingerprints()["equations"] == b.fingerprints()["equations"]
+    assert a.fingerprints()["events"] != b.fingerprints()["events"]
+
+
+@pytest.mark.parametrize("value", [0.1, 2.0, 1e-300, -7.25, 0.30000000000000004, 1 / 3, 5e-324, 1.7976931348623157e308])
+def test_a_float_prints_as_str_does_where_that_gives_its_value_back(value):
+    from daemodel.compiling.texts import exact_str
+
+    y = sp.Symbol("y")
+    expr = value * y + sp.Float(value) * sp.exp(y)
+    exact, rounded = exact_str(expr), str(expr)
+    assert sp.Float(exact.split("*")[0], precision=53) == sp.Float(value)  # (the value back)
+    assert (exact == rounded) == (sp.Float(rounded.split("*")[0], precision=53) == sp.Float(value))
