@@ -233,16 +233,18 @@ def _make_affine_step(compiled) -> AffineStep | None:
     residual = casadi.substitute(H, z0, z1)  # (H itself at z1: the residual the bound reads, affine or not)
     scaled = casadi.mtimes(casadi.fabs(Hz), casadi.fabs(z1))
     outputs = [z1, residual, scaled]
-    # (det H_z's sign from the QR: its reflections m long (casadi adds rows to a structurally singular H_z), R's
-    # diagonal complete)
-    parity = None
-    if V.size1() == m and casadi.diag(R).nnz() == m:
-        parity = (-1) ** (odd_permutation(np.asarray(row_order)) + odd_permutation(np.asarray(col_order)))
-        outputs.append(householder_sign(casadi, Hz, beta, casadi.diag(R), parity))
     function = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(*outputs))])
     if function.n_instructions() > AFFINE_MAX_INSTRUCTIONS:
         return None
-    return AffineStep(function, n, m, parity)
+    # (det H_z's sign from the QR, where its reflections are m long (casadi adds rows to a structurally singular
+    # H_z) and R's diagonal complete; not where it would take the step past the bound: the branch check evaluates)
+    if V.size1() == m and casadi.diag(R).nnz() == m:
+        parity = (-1) ** (odd_permutation(np.asarray(row_order)) + odd_permutation(np.asarray(col_order)))
+        outputs.append(householder_sign(casadi, Hz, beta, casadi.diag(R), parity))
+        signed = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(*outputs))])
+        if signed.n_instructions() <= AFFINE_MAX_INSTRUCTIONS:
+            return AffineStep(signed, n, m, parity)
+    return AffineStep(function, n, m)
 
 
 def prepare(compiled, numpy: bool = True) -> None:

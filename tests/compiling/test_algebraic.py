@@ -251,3 +251,18 @@ def test_radaus_branch_check_reads_the_signs_of_its_solve_at_the_outputs(monkeyp
     assert counted == [1]
     chain = dm.solve(pendulum_chain(5).compile(), (0.0, 1.0), rtol=1e-4, atol=1e-4)
     assert chain.status == "success" and counted == [1]
+
+
+def test_the_sign_is_left_out_where_it_would_take_the_affine_step_past_its_bound(monkeypatch):
+    """An affine step within AFFINE_MAX_INSTRUCTIONS without the sign and beyond it with: kept, without the sign
+    (the branch check evaluates H_z), where before the sign cost the step itself (the numpy path then solved)."""
+    signed = algebraic.affine_step(PENDULUM.model().compile())
+    assert signed is not None and signed._parity is not None
+    monkeypatch.setattr(algebraic, "AFFINE_MAX_INSTRUCTIONS", signed.instructions - 1)
+    compiled = PENDULUM.model().compile()
+    step = algebraic.affine_step(compiled)
+    assert step is not None and step._parity is None and step.instructions < signed.instructions
+    Y = np.random.default_rng(2).normal(size=(1, 5, 4))
+    P = np.array([[1.0, 9.8]])
+    found = algebraic.algebraic_from_states(compiled, np.linspace(0, 1, 5), Y, np.ones((1, 5, 1)), P)
+    assert found.converged.all() and found.signs is None
