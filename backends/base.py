@@ -136,6 +136,7 @@ def make_solution(
     status="success",
     setup_time: float = 0.0,
     dense=None,
+    branch_signs=None,
 ):
     """The :class:`Solution` of a backend: ``values`` has shape (B, T, n+m) in state then algebraic order.
 
@@ -143,7 +144,9 @@ def make_solution(
     without one).  ``solve_time`` and ``setup_time`` are :attr:`Solution.solve_time` and
     :attr:`Solution.setup_time`; ``settings`` defaults to the options' fields (less ``t_eval``; a
     function, such as radau's ``start_guess``, by its name, not copied); ``status`` is
-    :attr:`Solution.status`; ``dense`` is :attr:`Solution.dense` (:mod:`daemodel.dense`).
+    :attr:`Solution.status`; ``dense`` is :attr:`Solution.dense` (:mod:`daemodel.dense`); ``branch_signs``
+    (B, T), where the method knows ``sign(det H_z)`` at its outputs (NaN where not), spares the branch check
+    their evaluation (:func:`daemodel.compiling.initial_states.check_branch`'s ``signs``).
 
     Raises
     ------
@@ -158,7 +161,8 @@ def make_solution(
     from daemodel.solution import Solution
 
     began, made = time.perf_counter(), generating_seconds()  # (the check is part of the solve: on its clock)
-    check_branch(backend if isinstance(backend, str) else backend.name, compiled, times, values, start.p)
+    name = backend if isinstance(backend, str) else backend.name
+    check_branch(name, compiled, times, values, start.p, branch_signs)
     generated = claim_generated(made)  # (but its code, made at its first use (a piece's model), is setup)
     checked = time.perf_counter() - began - generated
     solve_time, setup_time = solve_time + checked, setup_time + generated

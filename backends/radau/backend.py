@@ -111,7 +111,7 @@ class RadauBackend(AbstractBackend):
         if engine.name == "torch" and engine.device.type == "cuda":
             engine.torch.cuda.synchronize(engine.device)
         # (adaptive steps, index 2 or more: the algebraic variables at the outputs from the states, .outputs)
-        values, resolved = resolve_outputs(self.name, compiled, start, options, times, values, stepper.stats)
+        values, resolved, signs = resolve_outputs(self.name, compiled, start, options, times, values, stepper.stats)
         wall = time.perf_counter() - began
         if said is not None:
             stepper.stats["jit"] = said
@@ -146,6 +146,7 @@ class RadauBackend(AbstractBackend):
             status=status,
             setup_time=setup,
             dense=marked(stepper.polynomials(), resolved_outputs(options, compiled)),
+            branch_signs=signs,  # (read off the solve at the outputs: .outputs)
         )
 
     @staticmethod

@@ -479,24 +479,29 @@ class CompiledRun:
         carried = {name: v[name] for name in CONTROLLER}
         carried["first"], carried["rejected_last"] = bool(v["first"]), bool(v["rejected_last"])
         ran = int(v["attempts"])  # (the first records: those after them hold nothing of this call in machine code)
-        records = out[L.size : L.size + ran * R.size].reshape(ran, R.size)
-        records = records[records[:, R["ran"]] > 0]
-        if not len(records):  # (the first attempt handed back: nothing moved)
+        records = out[L.size : L.size + ran * R.size].reshape(ran, R.size)  # (a view of the run's output buffer)
+        held = records[:, R["ran"]] > 0
+        # (the counters alone taken out of the records, and the accepted steps' times and nodes alone: the rows
+        # whole were copied twice before, ~70 kB each at 20 pendulums, s = 3)
+        counts = records[held, : len(RECORD)]
+        if not len(counts):  # (the first attempt handed back: nothing moved)
             return carried, int(v["code"])
-        sums = dict(zip(RECORD, records[:, : len(RECORD)].sum(axis=0).tolist(), strict=True))  # (one numpy call)
+        sums = dict(zip(RECORD, counts.sum(axis=0).tolist(), strict=True))  # (one numpy call)
         sequence.add_statistics(stats, sums, self.shifts)
-        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(records[:, R["iterations"]].max()))
+        stats["max_newton_iterations"] = max(stats["max_newton_iterations"], int(counts[:, R["iterations"]].max()))
         if sums["refreshed"] and stepper.m:
             stepper._det_sign, stepper._det_time = np.array([v["det_sign"]]), v["t_det"]
-        steps = records[records[:, R["accepted"]] > 0]
-        if len(steps):
-            nodes = steps[:, R["nodes"]].reshape(1, len(steps), s + 1, D)  # (the start value, then the stages)
-            # (copies: the records' other entries are not kept, as step_record_bytes counts)
+        accepted = held & (records[:, R["accepted"]] > 0)
+        k = int(np.count_nonzero(accepted))
+        if k:
+            # (copies, of the output buffer that the next call overwrites: the records' other entries are not
+            # kept, as step_record_bytes counts)
+            nodes = records[accepted, R["nodes"]].reshape(1, k, s + 1, D)  # (the start value, then the stages)
             stepper.take_steps(
-                steps[:, R["t"]].copy(),
-                steps[:, R["h"]].copy(),
-                steps[:, R["t_next"]].copy(),
-                nodes.copy() if stepper.records.dense else nodes,
+                records[accepted, R["t"]],
+                records[accepted, R["h"]],
+                records[accepted, R["t_next"]],
+                nodes,
                 out[L["f0"]][None].copy(),
             )
         stepper.eta = np.array([v["eta"]])

@@ -51,11 +51,13 @@ def marked(dense, resolved: bool):
     return dataclasses.replace(dense, resolves_algebraic=True) if resolved and dense is not None else dense
 
 
-def resolve_outputs(method: str, compiled, start, options, times, values, stats) -> tuple[np.ndarray, str | None]:
-    """``(values, flag)``: ``values`` (B, T, n+m) of an adaptive solve with the algebraic variables
+def resolve_outputs(method: str, compiled, start, options, times, values, stats):
+    """``(values, flag, signs)``: ``values`` (B, T, n+m) of an adaptive solve with the algebraic variables
     solved from the states at every output where the system has some of index 2 or more (else as
-    given), and None, or a "flagged: ..." status naming the first output where Newton failed (its
-    collocation values kept, their error not estimated).
+    given), None, or a "flagged: ..." status naming the first output where Newton failed (its
+    collocation values kept, their error not estimated), and ``sign(det H_z)`` (B, T) at the outputs
+    where the solve read it (:class:`~daemodel.compiling.algebraic.Resolved`; the branch check's, NaN where
+    not known) or None.
 
     Where they were solved again, adds to ``stats``: ``algebraic_resolved`` (True),
     ``algebraic_correction``, the largest ``|z_collocation - z| / (atol + rtol |z|)`` over the outputs
@@ -63,7 +65,7 @@ def resolve_outputs(method: str, compiled, start, options, times, values, stats)
     sample where it is).
     """
     if not resolved_outputs(options, compiled):
-        return values, None
+        return values, None, None
     n = len(compiled.states)
     values = np.array(values, dtype=float)  # (a copy: the stepper's arrays stay its own)
     times = np.asarray(times, dtype=float)
@@ -80,7 +82,7 @@ def resolve_outputs(method: str, compiled, start, options, times, values, stats)
         where = f"'{compiled.algebraic_names[j]}' at t = {times[k]:.6g}"
         stats["algebraic_correction_at"] = where + (f", sample {sample}" if change.shape[0] > 1 else "")
     if converged:
-        return values, None
+        return values, None, found.signs
     sample, k = np.argwhere(~found.converged)[0]
     count = int((~found.converged).sum())
     flag = (
@@ -90,4 +92,4 @@ def resolve_outputs(method: str, compiled, start, options, times, values, stats)
         "order s, weighed by h in the step control) may exceed rtol and atol; compare with a tighter rtol"
     )
     warnings.warn(flag, LocalErrorWarning, stacklevel=caller_level())
-    return values, flag
+    return values, flag, found.signs

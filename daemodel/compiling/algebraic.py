@@ -28,6 +28,7 @@ import numpy as np
 import sympy as sp
 
 from daemodel.compiling.batch_function import made_since
+from daemodel.compiling.determinants import householder_sign, odd_permutation
 from daemodel.compiling.init import NewtonTolerances, jacobian_entries, residual_settled, solve_algebraic
 from daemodel.compiling.initial_states import constraint_checks
 from daemodel.compiling.linear import SPARSE_MIN_SIZE
@@ -62,10 +63,16 @@ class Resolved:
     z : ndarray, shape (B, K, m)
         The algebraic variables solved from the states; where Newton failed, the values given.
     converged : ndarray of bool, shape (B, K)
+    signs : ndarray, shape (B, K), or None
+        ``sign(det H_z)`` at each point (-1 or +1), read off the affine step's QR of ``H_z`` (free of z there:
+        the same matrix at the values given and at those returned), NaN where the QR cannot tell
+        (:func:`~daemodel.compiling.determinants.householder_sign`); None without the affine step.  The
+        branch check's signs (:func:`~daemodel.compiling.initial_states.check_branch`), made here for free.
     """
 
     z: np.ndarray
     converged: np.ndarray
+    signs: np.ndarray | None = None
 
 
 def algebraic_from_states(compiled, times, Y, Z, P) -> Resolved:
@@ -84,16 +91,17 @@ def algebraic_from_states(compiled, times, Y, Z, P) -> Resolved:
     rows_t, rows_y = np.tile(np.asarray(times, dtype=float), B), Y.reshape(B * K, n)
     rows_p, rows_z = np.repeat(np.asarray(P, dtype=float), K, axis=0), Z.reshape(B * K, m)
     step = affine_step(compiled) if settings.max_iterations >= 1 else None
+    signs = None
     if step is None:
         x, converged = _newton(compiled, settings, rows_t, rows_y, rows_z, rows_p)
     else:
-        x, converged = step(rows_t, rows_y, rows_z, rows_p, settings)
+        x, converged, signs = step(rows_t, rows_y, rows_z, rows_p, settings)
         rest = np.flatnonzero(~converged)
         if rest.size:  # (a singular H_z, values not finite, rounding above the bound: Newton from the start)
             x[rest], converged[rest] = _newton(
                 compiled, settings, rows_t[rest], rows_y[rest], rows_z[rest], rows_p[rest]
             )
-    return Resolved(x.reshape(B, K, m), converged.reshape(B, K))
+    return Resolved(x.reshape(B, K, m), converged.reshape(B, K), None if signs is None else signs.reshape(B, K))
 
 
 def _newton(compiled, settings, rows_t, rows_y, rows_z, rows_p) -> tuple[np.ndarray, np.ndarray]:
@@ -119,28 +127,33 @@ class AffineStep:
     """One whole Newton step on determining equations ``H(t, y, z, p) = 0`` affine in z, from a start ``z0``:
     ``z1 = z0 - H_z^-1 H(z0)``, the residual ``H(z1)`` and ``|H_z| |z1|``, as one casadi function of a sample
     (packed ``(t, y, z0, p)``; ``H_z`` by a sparse Householder QR whose pattern casadi analysed once, at its
-    making), mapped over :data:`AFFINE_BATCHES` samples.  Made by :func:`affine_step`.
+    making), mapped over :data:`AFFINE_BATCHES` samples.  Made by :func:`affine_step`.  With ``parity`` (that of
+    the QR's two permutations, where its reflections are m long), the function gives the sign of ``det H_z`` too,
+    read off that QR (:func:`~daemodel.compiling.determinants.householder_sign`), which the branch check reads at
+    every output (97 of radau's 1,400 us at rtol 1e-4 on a chain of 20 pendulums,
+    207 of 2,700 on 40, where a second evaluation of ``H_z`` and a dense LU of each took them).
 
     The numpy path's cost was ~1 ms at 21 outputs of a chain of 20 pendulums (the z Jacobians' block split, their
     dense solves, two evaluations of H and one of H_z, each a call per output on casadi, and solve_algebraic's
     bookkeeping), more than half of radau's whole solve at rtol 1e-4.
     """
 
-    def __init__(self, function, n: int, m: int):
+    def __init__(self, function, n: int, m: int, parity: int | None = None):
         self._functions = {size: function.map(size, "serial") if size > 1 else function for size in AFFINE_BATCHES}
-        self._n, self._m = n, m
-        self._width = function.nnz_in(0)
+        self._n, self._m, self._parity = n, m, parity
+        self._width, self._outputs = function.nnz_in(0), function.nnz_out(0)  # (3 m, and 1 with the QR's sign)
         self.instructions = function.n_instructions()
         self._local = threading.local()  # (each thread's buffers: a call writes its inputs into them)
 
-    def __call__(self, t, Y, Z, P, settings: NewtonTolerances) -> tuple[np.ndarray, np.ndarray]:
-        """``(z1, settled)`` for rows ``t`` (R,), ``Y`` (R, n), ``Z`` (R, m), ``P`` (R, k): the step's end and where
-        it settled as :func:`~daemodel.compiling.init.solve_algebraic` settles a linear first step (its residual
-        within :func:`~daemodel.compiling.init.residual_settled`'s bound, every value finite)."""
+    def __call__(self, t, Y, Z, P, settings: NewtonTolerances) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(z1, settled, signs)`` for rows ``t`` (R,), ``Y`` (R, n), ``Z`` (R, m), ``P`` (R, k): the step's end,
+        where it settled as :func:`~daemodel.compiling.init.solve_algebraic` settles a linear first step (its
+        residual within :func:`~daemodel.compiling.init.residual_settled`'s bound, every value finite), and
+        ``sign(det H_z)`` (R,) where the QR tells it (NaN where not; None without ``parity``)."""
         n, m, R = self._n, self._m, len(Y)
         packed = np.empty((R, self._width))
         packed[:, 0], packed[:, 1 : 1 + n], packed[:, 1 + n : 1 + n + m], packed[:, 1 + n + m :] = t, Y, Z, P
-        out, at = np.empty((R, 3 * m)), 0
+        out, at = np.empty((R, self._outputs)), 0
         buffers = getattr(self._local, "buffers", None) or self._buffers()
         for size in AFFINE_BATCHES:
             while R - at >= size:
@@ -149,16 +162,19 @@ class AffineStep:
                 evaluate()  # (an SX function on the virtual machine: no call that could fail)
                 out[at : at + size] = outputs
                 at += size
-        z1, r1, scaled = out[:, :m], out[:, m : 2 * m], out[:, 2 * m :]
-        settled = np.isfinite(out).all(axis=1) & residual_settled(r1, 1 + np.abs(z1).max(axis=1), scaled, settings)
-        return z1, settled
+        z1, r1, scaled = out[:, :m], out[:, m : 2 * m], out[:, 2 * m : 3 * m]
+        settled = np.isfinite(out[:, : 3 * m]).all(axis=1)
+        settled &= residual_settled(r1, 1 + np.abs(z1).max(axis=1), scaled, settings)
+        if self._parity is None:
+            return z1, settled, None
+        return z1, settled, out[:, 3 * m]
 
     def _buffers(self) -> dict:
-        """This thread's ``{size: (inputs (size, width), outputs (size, 3 m), evaluate)}``, the buffers bound to the
-        map over ``size`` samples (made at its first call; kept with the casadi buffer that they back)."""
+        """This thread's ``{size: (inputs (size, width), outputs (size, 3 m [+ 1]), evaluate)}``, the buffers bound to
+        the map over ``size`` samples (made at its first call; kept with the casadi buffer that they back)."""
         buffers, width = {}, self._width
         for size, function in self._functions.items():
-            inputs, outputs = np.zeros((size, width)), np.zeros((size, 3 * self._m))
+            inputs, outputs = np.zeros((size, width)), np.zeros((size, self._outputs))
             buffer, evaluate = function.buffer()
             buffer.set_arg(0, memoryview(inputs.reshape(-1)))
             buffer.set_res(0, memoryview(outputs.reshape(-1)))
@@ -216,9 +232,18 @@ def _make_affine_step(compiled) -> AffineStep | None:
     z1 = z0 + casadi.qr_solve(-H, V, R, beta, row_order, col_order)
     residual = casadi.substitute(H, z0, z1)  # (H itself at z1: the residual the bound reads, affine or not)
     scaled = casadi.mtimes(casadi.fabs(Hz), casadi.fabs(z1))
-    function = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(z1, residual, scaled))])
+    outputs = [z1, residual, scaled]
+    function = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(*outputs))])
     if function.n_instructions() > AFFINE_MAX_INSTRUCTIONS:
         return None
+    # (det H_z's sign from the QR, where its reflections are m long (casadi adds rows to a structurally singular
+    # H_z) and R's diagonal complete; not where it would take the step past the bound: the branch check evaluates)
+    if V.size1() == m and casadi.diag(R).nnz() == m:
+        parity = (-1) ** (odd_permutation(np.asarray(row_order)) + odd_permutation(np.asarray(col_order)))
+        outputs.append(householder_sign(casadi, Hz, beta, casadi.diag(R), parity))
+        signed = casadi.Function("affine_step", [packed], [casadi.densify(casadi.vertcat(*outputs))])
+        if signed.n_instructions() <= AFFINE_MAX_INSTRUCTIONS:
+            return AffineStep(signed, n, m, parity)
     return AffineStep(function, n, m)
 
 

@@ -232,11 +232,12 @@ class CompiledDAE:
 
     @property
     def state_names(self) -> tuple[str, ...]:
-        return tuple(s.name for s in self.states)
+        # (made once: every solve reads them a few times, ~5 us each at 80 states)
+        return self.cached("state-names", lambda: tuple(s.name for s in self.states), on=(self.states,))
 
     @property
     def algebraic_names(self) -> tuple[str, ...]:
-        return tuple(s.name for s in self.algebraics)
+        return self.cached("algebraic-names", lambda: tuple(s.name for s in self.algebraics), on=(self.algebraics,))
 
     @property
     def parameter_names(self) -> tuple[str, ...]:

@@ -143,3 +143,40 @@ def odd_permutation(perm: np.ndarray) -> int:
         least, step = longer, step[step]
     cycles = int(np.count_nonzero(least == np.arange(n)))
     return (n - cycles) % 2
+
+
+# A Householder QR's sign of det A is taken where its smallest |R_cc| is above this fraction of its largest; below,
+# A may lie within rounding of a singular matrix, where the QR's sign and an LU's may differ (an LU of an exactly
+# singular matrix reads 0, which the branch check never counts as a change; the QR's R_cc reads rounding there):
+# such matrices' signs are left to :func:`determinant_signs` (:func:`householder_sign`'s NaN).
+HOUSEHOLDER_SURE_RATIO = 1e-8
+# ... and where every R_cc lies within these bounds: casadi's ``beta = -1 / (R_cc v_c0)`` of a true reflection reads
+# +0, as the identity's, where the product overflows, and a column's squares below the diagonal sum to 0 where they
+# underflow (there the reflection is skipped).
+HOUSEHOLDER_RANGE = (1e-150, 1e150)
+
+
+def householder_sign(casadi, matrix, beta, diagonal, parity: int):
+    """``sign(det A)`` of the matrix ``matrix`` (m, m) from casadi's sparse Householder QR of it
+    (``casadi.qr_sparse``: ``A = P_r^T Q R P_c``, ``Q`` the product of the reflections ``I - beta_c v_c v_c^T``), as
+    a casadi expression of its ``beta`` (m,) and ``R``'s diagonal ``diagonal`` (m,), ``parity`` that of ``P_r``
+    times that of ``P_c`` (+1 or -1): -1, +1, or NaN where the QR cannot tell (the caller reads those by
+    :func:`determinant_signs`).
+
+    casadi's reflection of column c (``casadi_house``) makes ``R_cc = |column| >= 0``; it is a true reflection
+    (determinant -1, ``beta_c = -1 / (R_cc v_c0) > 0``) except where the column below the diagonal is exactly
+    zero and its diagonal entry positive (the identity, ``beta_c = 0``).  So ``sign(det A) = parity
+    (-1)^#(beta > 0)`` where every ``R_cc > 0``.  NaN where a nonzero of ``matrix`` or ``R_cc`` is not finite, the
+    smallest ``R_cc`` is at most :data:`HOUSEHOLDER_SURE_RATIO` times the largest, or one lies outside
+    :data:`HOUSEHOLDER_RANGE`."""
+    m = diagonal.numel()
+    flips = sum((beta[i] > 0 for i in range(1, m)), beta[0] > 0)
+    least, largest = diagonal[0], diagonal[0]
+    for i in range(1, m):
+        least, largest = casadi.fmin(least, diagonal[i]), casadi.fmax(largest, diagonal[i])
+    # (a sum is not finite where a term is not, which casadi's fmin and fmax pass over, and which may leave R's
+    # diagonal finite; |x| < inf where x is finite)
+    total = casadi.sum1(casadi.vec(matrix.nz[:])) + casadi.sum1(diagonal)
+    sure = casadi.logic_and(least > casadi.fmax(HOUSEHOLDER_SURE_RATIO * largest, HOUSEHOLDER_RANGE[0]),
+                            casadi.logic_and(largest < HOUSEHOLDER_RANGE[1], casadi.fabs(total) < np.inf))  # fmt: skip
+    return casadi.if_else(sure, parity * (1 - 2 * casadi.fmod(flips, 2)), np.nan)

@@ -471,7 +471,7 @@ def branch_check_functions(compiled):
     return compiled.cached("branch-check-functions", build, on=(compiled.constraints, compiled.algebraics))
 
 
-def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray) -> None:
+def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray, signs=None) -> None:
     """Refuse a solution whose algebraic variables leave the branch of roots they start on.
 
     Between two output times of one sample, ``det H_z`` (the determining equations' Jacobian in z)
@@ -488,6 +488,10 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
     times : ndarray, shape (T,)
     values : ndarray, shape (B, T, n + m)
     P : ndarray, shape (B, k)
+    signs : ndarray, shape (B, T), optional
+        ``sign(det H_z)`` at ``values`` where the method knows it (radau's solve at the outputs reads it off
+        its QR of ``H_z``: :class:`~daemodel.compiling.algebraic.Resolved`), NaN where not: only those are
+        evaluated here.
 
     Raises
     ------
@@ -498,16 +502,23 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
     B, T = values.shape[:2]
     if m == 0 or T < 2:
         return
-    rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
-    T_all = np.asarray(times, dtype=float)
-    T_all, P_all = (T_all if B == 1 else np.tile(T_all, B)), np.repeat(P, T, axis=0)
-    at, to, entries = branch_check_functions(compiled)
-    sign = np.empty(B * T)
-    chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)
-    with np.errstate(all="ignore"):
-        for a in range(0, B * T, chunk):
-            b = slice(a, a + chunk)
-            sign[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
+    sign = np.empty(B * T) if signs is None else np.array(signs, dtype=float).reshape(B * T)
+    unknown = None if signs is None else np.flatnonzero(np.isnan(sign))  # (None: every one)
+    if unknown is None or unknown.size:
+        rows = np.asarray(values, dtype=float).reshape(B * T, n + m)
+        T_all = np.asarray(times, dtype=float)
+        T_all, P_all = (T_all if B == 1 else np.tile(T_all, B)), np.repeat(P, T, axis=0)
+        if unknown is not None:
+            rows, T_all, P_all = rows[unknown], np.broadcast_to(T_all, (B * T,))[unknown], P_all[unknown]
+        read = sign if unknown is None else np.empty(len(unknown))
+        at, to, entries = branch_check_functions(compiled)
+        chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)
+        with np.errstate(all="ignore"):
+            for a in range(0, len(read), chunk):
+                b = slice(a, a + chunk)
+                read[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
+        if unknown is not None:
+            sign[unknown] = read
     sign = sign.reshape(B, T)
     changed = sign[:, 1:] * sign[:, :1] < 0  # (signs -1, 0, +1: opposite and both nonzero, in two operations)
     if not changed.any():
