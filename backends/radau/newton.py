@@ -110,6 +110,7 @@ class Newton:
         slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
         while state.active:  # (no idle pass: Python's branch where every sample is done)
             mode = state.mode
+            r = dW = None  # (the last pass's go before the next are made: two of each were the solve's peak)
             if mode == formulas.EVALUATE:  # the error estimate needs f at the final stage values
                 r, dW, norm = engine.stage_values(t, h, stepper.y, W), None, None
             else:

@@ -303,7 +303,8 @@ class Stepper:
         # start value, then z's determinedness checked), as the compiled attempt and run make them
         extrapolated = self._previous is not None or self.options.start_guess is not None
         side = GeneralTries(self, t, h)
-        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess(), extrapolated)
+        # (the start value's guess made where a try starts from it: GeneralTries.attempt)
+        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess, extrapolated)
         if tries.result[0] is None and self.policy.rescue:  # (every try started from the start value then)
             return newton.full(t, h, self.constant_guess())
         return tries.result
@@ -586,7 +587,8 @@ class GeneralTries(StepperTries):
     ``(result or None, iterations, why, sample)``."""
 
     def attempt(self, matrices, guess):
-        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
+        """Newton from ``guess``: stage values, or a function that makes them (:meth:`Stepper.constant_guess`)."""
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess() if callable(guess) else guess)
 
     def failed(self, result):
         return result[0] is None
