@@ -117,7 +117,7 @@ class Newton:
                 r, dW = engine.newton_step(factors, t, h, stepper.y, W)
                 if stepper.B > 1 and mode == formulas.ITERATING:
                     dW = dW * state.iterating[:, None, None]  # samples that converged keep their stage values
-                norm = stepper.rms(dW / scale)
+                norm = stepper.ops.rms_ratio(dW, scale)
             found = newton_pass(
                 ops, state, norm, policy.tol, policy.iterations, to_rounding=policy.to_rounding,
                 slow_ends=slow_ends, trust_last_rate=policy.trust_last_rate,
