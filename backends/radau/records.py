@@ -41,9 +41,10 @@ class Records:
         self.count += len(times)
 
     def release(self, shown: int) -> None:
-        """Without ``dense``: drop the nodes of the blocks before the ``shown``-th (0: the start value), whose
-        outputs at t_eval were filled (the newest's stay: the next step's start guess reads them anyway)."""
-        if self.dense:
+        """With ``outputs``: drop the nodes of the blocks before the ``shown``-th (0: the start value), whose
+        outputs at t_eval were filled (the newest's stay: the next step's start guess reads them anyway).
+        Otherwise the records keep all nodes (``dense``) or none."""
+        if self.outputs is None:
             return
         for k in range(max(min(shown, len(self.times) - 1), 1) - 1):
             self.nodes[k] = None
