@@ -128,6 +128,7 @@ class FixedGrid:
             if abs(h - self.h) <= 1e-12 * self.h:
                 h = self.h  # not its rounded copy: the LU and the estimate's weights are kept per h
             stepper.stats["attempts"] += 1
+            result = None  # (the last step's stages and residual go before this one's are made)
             result, _, why, sample = stepper.attempt(t, h)
             if result is None:
                 stepper.stats["newton_failures"] += 1
@@ -241,6 +242,7 @@ class Radau5Controller:
             if head["underflow"]:
                 raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint, t1 - t0)
             h = head["h"]
+            result = None  # (the last attempt's stages and residual go before this one's are made)
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
             failed = result is None
             attempt = dict(h=h, iterations=newton_iterations, error_norm=err, newton_failed=failed)

@@ -186,6 +186,13 @@ class ArrayOps:
         x = x.reshape(x.shape[0], -1)
         return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
 
+    def rms_ratio(self, a, b):
+        """:meth:`rms` of ``a / b``, squared in place: one temporary of a's size, not two (the same bits)."""
+        x = a / b
+        x *= x
+        x = x.reshape(x.shape[0], -1)
+        return self.xp.sqrt(x.sum(axis=-1) / x.shape[-1])
+
     def concat(self, parts):
         return self.xp.concatenate(parts, axis=-1)
 

@@ -110,13 +110,14 @@ class Newton:
         slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
         while state.active:  # (no idle pass: Python's branch where every sample is done)
             mode = state.mode
+            r = dW = None  # (the last pass's go before the next are made: two of each were the solve's peak)
             if mode == formulas.EVALUATE:  # the error estimate needs f at the final stage values
                 r, dW, norm = engine.stage_values(t, h, stepper.y, W), None, None
             else:
                 r, dW = engine.newton_step(factors, t, h, stepper.y, W)
                 if stepper.B > 1 and mode == formulas.ITERATING:
                     dW = dW * state.iterating[:, None, None]  # samples that converged keep their stage values
-                norm = stepper.rms(dW / scale)
+                norm = stepper.ops.rms_ratio(dW, scale)
             found = newton_pass(
                 ops, state, norm, policy.tol, policy.iterations, to_rounding=policy.to_rounding,
                 slow_ends=slow_ends, trust_last_rate=policy.trust_last_rate,

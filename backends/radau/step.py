@@ -24,7 +24,7 @@ from daemodel.backends.radau.engines import Residual, factors_bytes
 from daemodel.backends.radau.error import ErrorEstimate, numpy_copy
 from daemodel.backends.radau.formulas import SCALAR
 from daemodel.backends.radau.newton import STAGE_NEWTON_STEPS, Newton, jacobian_not_finite
-from daemodel.backends.radau.records import Records
+from daemodel.backends.radau.records import OutputsAt, Records
 from daemodel.backends.radau.transform import embedded_weights
 from daemodel.backends.radau.tries import AbstractTriesSide, attempt_tries
 
@@ -235,11 +235,16 @@ class Stepper:
         grid = self.controller.grid(t_span)
         t_out = output_times(self.options.t_eval, t_span, grid)
         u0 = self.state()
-        self.records = Records(t0, u0, dense=self.options.t_eval is not None or self.options.dense_output)
+        dense, at_times = self.options.dense_output, self.options.t_eval is not None
+        # t_eval without the dense output: each block's polynomials give the outputs it covers as it comes
+        outputs = OutputsAt(t_out, t0, u0, self.tableau.c, self.engine, self.index) if at_times and not dense else None
+        self.records = Records(t0, u0, dense=dense, outputs=outputs)
         self.stop, self.shown = stop, 0
         self.controller.run(self, t_span, grid)
-        if self.options.t_eval is not None:
+        if at_times:
             reached = self.records.times[-1][-1]
+            if outputs is not None:
+                return outputs.result(reached)
             return self.dense_output(t_out[t_out <= reached], u0, t0, self.records)
         times, values = self.records.ends(self.xp)
         return times, numpy_copy(values)
@@ -298,7 +303,8 @@ class Stepper:
         # start value, then z's determinedness checked), as the compiled attempt and run make them
         extrapolated = self._previous is not None or self.options.start_guess is not None
         side = GeneralTries(self, t, h)
-        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess(), extrapolated)
+        # (the start value's guess made where a try starts from it: GeneralTries.attempt)
+        tries = attempt_tries(SCALAR, side, self.current_lu(J, t, h), W0, self.constant_guess, extrapolated)
         if tries.result[0] is None and self.policy.rescue:  # (every try started from the start value then)
             return newton.full(t, h, self.constant_guess())
         return tries.result
@@ -411,12 +417,14 @@ class Stepper:
         would keep all of them), moves the state to the last one's end, keeps its polynomial for the
         next start guess and counts them.
         """
-        if self.records.dense:
+        if self.records.nodal:
             kept = nodes
         else:
             end = nodes[:, :, -1:]
             kept = end.copy() if self.xp is np else end.clone()
         self.records.add(starts, lengths, ends, kept)
+        # (t_eval's outputs filled: the older blocks' nodes go, once a caller's stop has seen them)
+        self.records.release(self.shown if self.stop is not None else len(self.records.times) - 1)
         last = nodes[:, -1]  # (B, s+1, n+m)
         self._previous = (float(lengths[-1]), last[:, 0], last[:, 1:])
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed (B = 1)
@@ -579,7 +587,8 @@ class GeneralTries(StepperTries):
     ``(result or None, iterations, why, sample)``."""
 
     def attempt(self, matrices, guess):
-        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
+        """Newton from ``guess``: stage values, or a function that makes them (:meth:`Stepper.constant_guess`)."""
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess() if callable(guess) else guess)
 
     def failed(self, result):
         return result[0] is None

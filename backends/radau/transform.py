@@ -127,21 +127,22 @@ class IncrementBuffers:
     def __init__(self, transform: StageTransform, n: int, D: int):
         self.transform, self.n = transform, n
         s = len(transform.T)
-        self.rhs, self.parts = np.empty((1, s, D)), np.empty((1, s, D))
+        self.rhs = np.empty((1, s, D))
         self.complex = np.empty((1, D), dtype=complex)
 
     def __call__(self, factors, R: np.ndarray, solve, arrays) -> np.ndarray:
         T, T_inv, T_inv_A_inv = arrays
-        n, rhs, parts, h = self.n, self.rhs, self.parts, factors.h
+        n, rhs, h = self.n, self.rhs, factors.h
         # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs
         np.matmul(T_inv_A_inv, R[..., :n], out=rhs[..., :n])
         np.multiply(rhs[..., :n], -1.0 / h, out=rhs[..., :n])
         np.matmul(T_inv, R[..., n:], out=rhs[..., n:])
+        # (each system's solution in its right-hand side's place, read before: the solves return new arrays)
         for (k, lam), shift in zip(self.transform.blocks, factors.shifts, strict=False):
             lu = factors.lu[shift]
             if lam.imag == 0:
-                parts[:, k] = solve(lu, rhs[:, k])
+                rhs[:, k] = solve(lu, rhs[:, k])
             else:  # (rhs_k + 1j rhs_k+1, as the temporaries made it: 1j times the real array, then the sum)
                 w = solve(lu, np.add(rhs[:, k], np.multiply(1j, rhs[:, k + 1], out=self.complex), out=self.complex))
-                parts[:, k], parts[:, k + 1] = w.real, w.imag
-        return T @ parts  # (a new array: Newton keeps the increment)
+                rhs[:, k], rhs[:, k + 1] = w.real, w.imag
+        return T @ rhs  # (a new array: Newton keeps the increment)

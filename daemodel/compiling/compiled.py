@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import operator
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -35,6 +36,23 @@ SYMBOLIC_JACOBIAN_MAX_ENTRIES = 400
 INITIAL_FIELDS = ("t0", "y0", "z0")
 # The cache's entry that holds the fields its other entries were made from (a key no entry's can equal).
 _MADE_FROM = ("made from",)
+
+
+class Labels(Sequence):
+    """``count`` strings made when read, ``make(i)`` the i-th: a generated function's labels and comments."""
+
+    def __init__(self, count: int, make):
+        self.count, self.make = count, make
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self.make(k) for k in range(*i.indices(self.count))]
+        if not -self.count <= i < self.count:
+            raise IndexError(f"label {i} of {self.count}")
+        return self.make(i % self.count)
 
 
 @dataclass(frozen=True, eq=False)
@@ -348,29 +366,37 @@ class CompiledDAE:
         return dict(self.cached("checked outputs", self._checked_outputs))  # (checked once per model)
 
     def _checked_outputs(self) -> dict:
+        # (labels and comments made when read: kept as lists they held 2 MB at 10^4 unknowns, a model's first solve)
+        states, numbers, constraints = self.states, self.ode_numbers, self.constraints
         outputs = {
             "f": (
                 self.rhs,
-                [f"{s.name}' (#{n})" for s, n in zip(self.states, self.ode_numbers, strict=True)],
-                [f"f[{i}]: ODE #{n}" for i, n in enumerate(self.ode_numbers)],
+                Labels(len(states), lambda i: f"{states[i].name}' (#{numbers[i]})"),
+                Labels(len(states), lambda i: f"f[{i}]: ODE #{numbers[i]}"),
                 "ODE right-hand sides f, shape (..., n).",
             ),
             "g": (
                 self.g,
-                [f"{c.name} (#{c.number}, index {c.index})" for c in self.constraints],
-                [f"g[{i}]: constraint #{c.number}, index {c.index}" for i, c in enumerate(self.constraints)],
+                Labels(
+                    len(constraints),
+                    lambda i: f"{constraints[i].name} (#{constraints[i].number}, index {constraints[i].index})",
+                ),
+                Labels(
+                    len(constraints),
+                    lambda i: f"g[{i}]: constraint #{constraints[i].number}, index {constraints[i].index}",
+                ),
                 "Constraints g, shape (..., m).",
             ),
             "aliases": (
                 tuple(e for _, e, _ in self.aliases),
                 list(self.alias_names),
-                [f"alias {i}" for i in range(len(self.aliases))],
+                Labels(len(self.aliases), lambda i: f"alias {i}"),
                 "Eliminated alias variables, shape (..., a).",
             ),
             "invariants": (
                 tuple(e for _, e in self.invariants),
                 list(self.invariant_names),
-                [f"invariant {i}" for i in range(len(self.invariants))],
+                Labels(len(self.invariants), lambda i: f"invariant {i}"),
                 "Original constraints (drift), shape (..., i).",
             ),
         }

@@ -19,9 +19,11 @@ import scaling_models
 needs_compiler = pytest.mark.skipif(find_compiler() is None, reason="no C compiler")
 # The solve's peak over its factors' bytes that the test holds it to (10^4 unknowns, the first solve of a
 # fresh model, which makes the model's own pieces too: its Jacobian's pattern, the band kernel, the
-# engines' bound buffers): measured 5.3 (dense output) and 6.3 (without), 7.3 and 8.5 before the factors
-# were made in one factorisation's buffers and the dense output joined without a second copy
-PEAK_OVER_FACTORS = 6.8
+# engines' bound buffers): measured 4.15 (dense output) and 3.99 (without), 4.86 and 5.85 before t_eval's
+# outputs were filled as the steps came, the labels made when read and Newton's last arrays dropped
+# first (7.3 and 8.5 before the factors were made in one factorisation's buffers); 4.5: 8 % above the
+# larger, the margin the bound had (a retry more or less moves the peak by a stage array, 0.12)
+PEAK_OVER_FACTORS = 4.5
 # Issue 44's target: the solve within 2x its factors (not met: see test_the_solve_peak_within_two_factors)
 TARGET_OVER_FACTORS = 2.0
 
@@ -93,10 +95,14 @@ def test_the_solve_peak_stays_within_a_bound_of_its_factors(dense_output):
 
 @needs_compiler
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 44 item 5: the first solve's peak is 5-6x its factors, not 2x")
+@pytest.mark.xfail(strict=True, reason="issue 44 item 5: the first solve's peak is 4.0x its factors at 10^4, not 2x")
 def test_the_solve_peak_within_two_factors():
-    """Issue 44's target: the solve's own peak within 2x its factors' bytes.  Open: with t_eval every step's
-    nodes are kept to the end (4.3 MB at 10^4 unknowns), the engines' bound buffers (~3.5 MB) and the
-    model's first-solve pieces (its Jacobian's pattern, its outputs' labels: ~2.5 MB) come on top."""
+    """Issue 44's target: the solve's own peak within 2x its factors' bytes.  Open: measured 3.99 at 10^4
+    unknowns (13.2 MB over 3.31 MB of factors; 5.85 before t_eval's outputs were filled as the steps came).
+    What remains beside the factors (tracemalloc at the peak, a retry's Newton pass): the engines' bound
+    buffers (residual, f, Jacobian, stencil: ~2.1 MB in and out), the band LUs' solve buffers (0.8 MB),
+    Newton's arrays (guess, stages, increment, its norm's square, the residual: 2.2 MB, and the last step's
+    nodes for the next guess, 0.48 MB), the model's first-solve pieces (the Jacobian's pattern and the
+    layout of its shifted systems, the stencil's pieces, the initial values' check: ~2.6 MB)."""
     peak, sol = first_solve_peak(10_000, False)
     assert peak <= TARGET_OVER_FACTORS * sol.stats["factor_bytes"], peak / sol.stats["factor_bytes"]

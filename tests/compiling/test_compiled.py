@@ -202,3 +202,45 @@ def test_a_copy_at_other_initial_states_solves_its_algebraic_values_again(method
     assert sol.status == "success" and abs(sol["z"][0] - 0.8) < 1e-12
     assert abs(sol["u"][-1] - 0.4 * (1.0 - math.exp(-4.0))) < 1e-8  # (z = 0.8 e^(-2t) < 1 throughout)
     assert all(np.asarray(event["t"]).size == 0 for event in sol.events.values())
+
+
+def test_the_generated_functions_labels_are_made_when_read():
+    """The labels and comments of the generated functions (an equation's name and number in error messages
+    and generated source) are made when read, not held: the first checked outputs of a model of 2,000
+    unknowns keep under 16 bytes an equation (before: five lists of strings, 415 KB, ~140 bytes an
+    equation, 20 MB at 10^5 unknowns, made at the first solve)."""
+    import gc
+    import tracemalloc
+
+    K = 1000
+    m = dm.Model("labels")
+    c, w = m.states("c", K), m.algebraics("w", K)
+    for i in range(K):
+        m.ode(c[i], -w[i])
+        m.constraint(w[i] - c[i] ** 2, name=f"rate{i}")
+    m.initial(**{str(c[i]): 1.0 + i / K for i in range(K)})
+    compiled = m.compile()
+    equations = len(compiled.states) + len(compiled.constraints) + len(compiled.invariants)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        outputs = compiled._outputs()
+        gc.collect()
+        kept = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert kept < 16 * equations, kept / equations
+    (_, f_labels, f_comments, _), (_, g_labels, g_comments, _) = outputs["f"], outputs["g"]
+    assert len(f_labels) == len(f_comments) == len(g_labels) == len(g_comments) == K
+    number = compiled.ode_numbers[K - 1]
+    assert f_labels[K - 1] == f"{compiled.state_names[K - 1]}' (#{number})" == f_labels[-1]
+    assert f_comments[K - 1] == f"f[{K - 1}]: ODE #{number}"
+    rate = compiled.constraints[3]
+    assert (
+        g_labels[3] == f"rate3 (#{rate.number}, index 1)"
+        and g_comments[3] == f"g[3]: constraint #{rate.number}, index 1"
+    )
+    assert list(g_labels[1:3]) == [g_labels[1], g_labels[2]] and list(f_labels)[-1] == f_labels[-1]
+    with pytest.raises(IndexError):
+        f_labels[K]
