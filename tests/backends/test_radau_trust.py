@@ -187,6 +187,19 @@ def test_a_held_step_is_judged_by_the_growth_its_error_estimate_asks_for():
     assert windows_until_stop(0.78, h_shrink=1e-3) == HOPELESS_WINDOWS  # (h moved: h's own growth)
 
 
+def test_a_first_step_rejected_at_once_does_not_make_an_endless_span_a_dip():
+    """x' = v, v' = -x over (0, 1e300) from h0 = 1e3: the guess, rejected at once, was the progress watch's largest
+    step, so every later window (h ~ 0.05) looked like a stiff layer's dip and took DIP_SHARE of the budget: 25,100
+    attempts where h0 = 100 or none stops after ~300."""
+    m = dm.Model("endless_oscillator")
+    m.states("x v")
+    m.ode("x", "v")
+    m.ode("v", "-x")
+    m.initial(x=1.0, v=0.0)
+    with pytest.raises(E.StepLimitError, match=r"cannot suffice \(.*, 99[5-9]00 left\), stopped early"):
+        dm.solve(m, (0.0, 1e300), rtol=1e-6, atol=1e-6, h0=1e3)
+
+
 def test_a_stiff_transient_held_at_the_start_is_not_taken_for_an_endless_span():
     """a' = -b - a/10, b' = a - b/10, c' = -1000 c + a from c = 0, two stages at rtol 1e-9: the fast mode's
     decay holds h = 2.53e-6 for 260 attempts, and the watch projected 1.97e6 more at that pace and raised
