@@ -49,7 +49,9 @@ class ProgressWatch:
         self.start = (t, 0, h, extra)
         self.err = None  # the error estimate where the window began (where the caller tells it)
         self.strikes = 0  # windows in a row that projected past the budget
-        self.h_max = abs(h)  # the largest step seen at a window's end, or mean step over a window
+        # the largest step seen at a window's end, or mean step over a window (not ``h``: a first guess rejected
+        # at once, h0 = 1e3 on an oscillator, made every later window a dip, 25,100 attempts where 300 tell)
+        self.h_max = 0.0
         self.accepted = 0  # the caller's accepted steps when the window began (where it tells them)
         self.dip_began = None  # the count where the dip began (windows in a row, h below DIP_FACTOR of h_max)
 
