@@ -509,7 +509,7 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         T_all = np.asarray(times, dtype=float)
         T_all, P_all = (T_all if B == 1 else np.tile(T_all, B)), np.repeat(P, T, axis=0)
         if unknown is not None:
-            rows, T_all, P_all = rows[unknown], np.broadcast_to(T_all, (B * T,))[unknown], P_all[unknown]
+            rows, T_all, P_all = rows[unknown], T_all[unknown], P_all[unknown]
         read = sign if unknown is None else np.empty(len(unknown))
         at, to, entries = branch_check_functions(compiled)
         chunk = max(1, BRANCH_CHECK_BYTES // (8 * max(len(at), 1)))  # (rows per evaluation of H_z's nonzeros)

@@ -1,6 +1,7 @@
 """radau's memory at scale (issue 44): what its factors hold (stats["factor_bytes"]) and the solve's own peak
 against it, on reaction-diffusion (benchmarks/scaling_models.py; benchmarks/solve_memory.py measures 10^5)."""
 
+import functools
 import gc
 import sys
 import tracemalloc
@@ -28,6 +29,7 @@ PEAK_OVER_FACTORS = 4.5
 TARGET_OVER_FACTORS = 2.0
 
 
+@functools.cache  # (one measurement per case: the bound's test and the 2x target's read the same, ~34 s each)
 def first_solve_peak(unknowns: int, dense_output: bool) -> tuple:
     """``(traced peak - the outputs' bytes, the Solution)`` of a fresh model's first solve (11 outputs)."""
     compiled = scaling_models.DECLARATIONS["stencils"](unknowns // 2).compile()
