@@ -199,11 +199,17 @@ class Certificate:
         the largest distance and Radau error over the grid (per sample); per segment and sample,
         at the segment's end, the largest distance and Radau error over the variables
         (``segment_distance``, ``segment_radau_error``, each (B, segments)) and the same from
-        the segment's own start (``local_distance``, ``local_radau_error``)."""
+        the segment's own start (``local_distance``, ``local_radau_error``); per variable, the largest
+        resolution (``max_resolution``: :attr:`floor` plus Newton's :attr:`rounding`, below which a distance is
+        not resolved)."""
+        resolution = self.floor[:, None, :] + self.rounding
         return {
             "certified": np.asarray(self.certified, dtype=bool),
             "max_distance": {name: self.distance[..., j].max(axis=1) for j, name in enumerate(names)},
             "max_radau_error": {name: self.radau_error[..., j].max(axis=1) for j, name in enumerate(names)},
+            # what a distance is resolved to (the collocation solution's rounding and Newton's last increment):
+            # a true distance up to it is not one the certificate can tell from radau's
+            "max_resolution": {name: resolution[..., j].max(axis=1) for j, name in enumerate(names)},
             "max_ratio": float(self.ratio().max()),
             "worst": self._worst_pair(),
             "failure": self.failure(),
