@@ -1,6 +1,7 @@
 """Examples run, print what the issue asks for, and declare the same systems as the problem library."""
 
 import importlib.util
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -91,3 +92,14 @@ def test_fit_example_checks_sensitivities_adjoint_and_the_fit(tmp_path):
     assert "Fit(radau, success" in out and "standard errors from the truth" in out
     assert "m and c together: fit: the data do not determine ['m', 'c']" in out
     assert (tmp_path / "fit.png").stat().st_size > 10_000
+
+
+def test_every_example_runs_in_ci():
+    """Each script in examples/ runs in CI: .ci/run names it, or a test runs it (``run``/``load`` here, an
+    import in tests/test_plugin_method.py); .ci/run leaves to the tests those they run with its arguments."""
+    ci = (ROOT / ".ci" / "run").read_text()
+    tests = Path(__file__).read_text() + (ROOT / "tests" / "test_plugin_method.py").read_text()
+    for path in sorted((ROOT / "examples").rglob("*.py")):
+        name = path.relative_to(ROOT).as_posix()
+        by_a_test = re.search(rf'\b(run|load)\("{path.stem}"', tests) or f"import {path.stem}\n" in tests
+        assert name in ci or by_a_test, f"{name} runs neither in .ci/run nor in a test"

@@ -7,10 +7,14 @@ without running anything.  The cases, the independent solutions and the classifi
 or a crash fails one test, not the session.
 
 The default pass runs about a hundred quick cases (under a minute on two cores).  The slow pass
-runs every fixed case and 200 random ones, one test per category, only when asked for with
-``pytest -m slow tests/solving/test_fuzz.py`` (a plain ``pytest`` skips it).
+runs every fixed case the default pass does not (85 of its cases are fixed cases, the same in every
+field) and 200 random ones, one test per category, only when asked for with
+``pytest -m slow tests/solving/test_fuzz.py`` (a plain ``pytest`` skips it); CI runs both passes.
 ``benchmarks/trust/fuzz_report.py`` counts the same outcomes for a report.
 """
+
+import dataclasses
+import pickle
 
 import fuzz_cases as F
 import pytest
@@ -156,11 +160,20 @@ def _slow_selected(config) -> bool:
     return "slow" in expression and "not slow" not in expression
 
 
+def _without_id(case: Case) -> bytes:
+    """Everything that makes ``case`` what it is, its id (its number in its list) left out."""
+    return pickle.dumps(dataclasses.replace(case, id=""))
+
+
 @pytest.fixture(scope="module")
 def slow_results(request):
     if not _slow_selected(request.config):
         pytest.skip("the slow fuzz pass runs with: pytest -m slow tests/solving/test_fuzz.py")
-    cases = [*F.fixed_cases(), *F.random_cases(SLOW_RANDOM, seed=SLOW_SEED)]
+    # (a fixed case equal to one of FAST's in every field but its id gets its outcome there, in CI's first step: the
+    # slow pass ran those 85 again, 61 of the fixed cases' 240 seconds of solving, measured at load 11-14)
+    fast = {_without_id(case) for case in FAST}
+    fixed = [case for case in F.fixed_cases() if _without_id(case) not in fast]
+    cases = [*fixed, *F.random_cases(SLOW_RANDOM, seed=SLOW_SEED)]
     results, meta = F.run_cases(cases, timeout=SLOW_TIMEOUT, jobs=2)
     assert "import_error" not in meta, meta
     return cases, results
