@@ -161,6 +161,18 @@ def test_the_exact_impact_times_agree_with_scipy_restarted_by_hand(x0):
 
 
 @pytest.mark.parametrize(("method", "options"), BALL_METHODS)
+@pytest.mark.parametrize("x0", [1e-20, 1e-14, 1e8])
+def test_an_accumulating_ball_at_any_scale_is_refused_at_its_accumulation_point(method, options, x0):
+    # past its accumulation point first (1 + 2e / (1 - e)): ZenoError there, in any units (before, at 1e-14 and
+    # 1e-20: radau 1 impact, the reference 17, both "success" with the ball 89 and 6 x0 below the floor)
+    g, e = 9.81, 0.8
+    limit = math.sqrt(2 * x0 / g) * (1 + 2 * e / (1 - e))
+    with pytest.raises(E.ZenoError, match=r"event 'floor'") as caught:
+        dm.solve(_ball(x0, g=g, e=e), (0.0, 1.25 * limit), method=method, atol=1e-10 * x0, **options)
+    assert limit * (1 - 1e-4) < caught.value.t < limit * (1 + 1e-6)  # (IDAS stops 7e-6 early at 1e-20: its error)
+
+
+@pytest.mark.parametrize(("method", "options"), BALL_METHODS)
 @pytest.mark.parametrize("v0", [1e-7, 1.0, 1e4])
 def test_a_ball_thrown_up_from_the_floor_at_any_scale_bounces_at_the_exact_times(method, options, v0):
     # x = 0 exactly at t0, its side read off the flow: a throw of 1e-7 moves x by 1e-24 over the look-ahead
