@@ -30,9 +30,9 @@ from daemodel.errors import SwitchError
 # sign between them (a tangency, where the branch does not change either).
 ROOT_GRID = 4096
 
-# Breakpoints closer than this (relative to the span) are one, and closer than MERGE_ULPS float64 spacings of the
-# span's ends (the rounding of a root bisected to adjacent floats, or of two switches at one time).
-MERGE_TOL, MERGE_ULPS = 1e-12, 4
+# Breakpoints closer than this (relative to the span) are one, and within MERGE_ULPS float64 spacings of the
+# span's ends (a root bisected to adjacent floats; as an event's bracket, branches.RESOLVE_ULPS, no time between).
+MERGE_TOL, MERGE_ULPS = 1e-12, 2
 
 # Relations whose switching function has more operations than this are not handed to sympy's
 # solveset (it may take long on large expressions); they are found numerically.

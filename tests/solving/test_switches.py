@@ -116,16 +116,19 @@ def test_two_breakpoints_apart_by_a_millionth_of_the_span_stay_two_at_any_scale(
     np.testing.assert_allclose(sol["y"][-1], (t1 - a) + (t1 - b), rtol=1e-9)
 
 
-def test_breakpoints_within_a_few_spacings_of_t_are_one():
-    # (two switches at one time, rounded apart: one breakpoint, however short the span; and none at an end)
+@pytest.mark.parametrize(("apart", "count"), [(1, 1), (2, 1), (3, 2)])
+def test_breakpoints_within_two_spacings_of_t_are_one(apart, count):
+    # (two switches at one time, rounded apart: one breakpoint, however short the span; three spacings: two)
     assert switches.merge_tol(0.0, 3e-7) == 3e-7 * switches.MERGE_TOL
-    assert switches.merge_tol(1e6, 1e6 + 1e-6) == switches.MERGE_ULPS * math.ulp(1e6 + 1e-6)
+    assert switches.merge_tol(1e6, 1e6 + 1e-6) == 2 * math.ulp(1e6 + 1e-6)
+    a = 1e6 + 5e-7
+    b = a + apart * math.ulp(a)
     m = dm.Model("same_time")
     m.states("y")
-    m.ode("y", "Piecewise((1, t > 1e6 + 5e-7), (0, True)) + Piecewise((1, t > 1e6 + 5e-7 + 2.5e-10), (0, True))")
+    m.ode("y", f"Piecewise((1, t > {a!r}), (0, True)) + Piecewise((1, t > {b!r}), (0, True))")
     m.initial(t=1e6, y=0.0)
     c = m.compile()
-    assert len(switches.breakpoints(c, (1e6, 1e6 + 1e-6), c.parameter_values)) == 1
+    assert len(switches.breakpoints(c, (1e6, 1e6 + 1e-6), c.parameter_values)) == count
 
 
 def test_too_many_breakpoints_are_refused():
