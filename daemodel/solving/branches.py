@@ -19,14 +19,13 @@ import sympy as sp
 
 from daemodel.compiling.switches import lock_branches, lock_functions
 from daemodel.errors import SlidingModeError, SwitchError, TimeResolutionError, ZenoError
+from daemodel.solving.rounding import ROUNDING, floor_at, within_rounding
 from daemodel.solving.switches import for_method
 
 # Width in t to which an event is located (relative to the solve's time scale: event_tol).
 EVENT_TOL = 1e-12
 # Float64 spacings of t that an event's bracket keeps at least (narrower holds no trial time inside it).
 RESOLVE_ULPS = 2
-# A drift within ROUNDING of the values' size (at least 1) is no motion.
-ROUNDING = 64 * np.finfo(float).eps
 # Zeno: ZENO_GAPS consecutive shrinking gaps between one event's times, the last below ZENO_GAP of
 # t_span's length, whose geometric series ends inside t_span: ZenoError at the estimated accumulation point.
 ZENO_GAPS, ZENO_GAP = 5, 1e-6
@@ -80,7 +79,18 @@ def event_tol(t: float, span: float) -> float:
 
 
 def drift(
-    compiled, backend, piece, t: float, Y, Z, P, functions, delta: float, flows: dict | None = None, fourth=False
+    compiled,
+    backend,
+    piece,
+    t: float,
+    Y,
+    Z,
+    P,
+    functions,
+    delta: float,
+    flows: dict | None = None,
+    fourth=False,
+    exprs: tuple | None = None,
 ) -> np.ndarray:
     """How ``functions`` (``F(t, Y, Z, P) -> (1, k)``) change over ``delta`` along ``piece``'s flow from
     ``(t, Y, Z)``: one explicit midpoint step, the algebraic variables solved anew at its end; (k,).
@@ -89,15 +99,29 @@ def drift(
     by a caller that asks again from the same ``(t, Y, Z)`` and ``delta`` (:func:`start_piece`: the
     sides of each switch at zero and the rates of all, often on one and the same locked model).  ``fourth``:
     classical Runge-Kutta's fourth-order step instead (no ``flows``), which moves a function whose first two
-    rates along the flow are 0 (x' = w, w' = v, v' = 6 from 0: the midpoint's h (w + h v / 2) = 0, any h)."""
+    rates along the flow are 0 (x' = w, w' = v, v' = 6 from 0: the midpoint's h (w + h v / 2) = 0, any h).
+    ``exprs``: the functions' expressions, where given a change within rounding of the values they round at, at
+    either end (:func:`~daemodel.solving.rounding.floor_at`), is exactly 0: no motion, no side."""
+    change, floor = drift_and_floor(compiled, backend, piece, t, Y, Z, P, functions, delta, flows, fourth, exprs)
+    return change if exprs is None else within_rounding(change, floor)
+
+
+def drift_and_floor(
+    compiled, backend, piece, t: float, Y, Z, P, functions, delta: float, flows=None, fourth=False, exprs=None
+) -> tuple:
+    """:func:`drift`'s change as it is, and the rounding below which it is no motion (the larger of both ends'
+    :func:`~daemodel.solving.rounding.floor_at`; None without ``exprs``): both (k,)."""
     key = id(piece)
-    if flows is None or key not in flows:
-        end = _flow_end(compiled, backend, piece, t, Y, Z, P, delta, fourth)
-        if flows is None:
-            return (functions(np.array([t + delta]), *end, P) - functions(np.array([t]), Y, Z, P))[0]
-        flows[key] = (piece, end)  # (the piece kept with its id: no other object takes that id meanwhile)
-    Y1, Z1 = flows[key][1]
-    return (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
+    if flows is not None and key in flows:
+        Y1, Z1 = flows[key][1]
+    else:
+        Y1, Z1 = _flow_end(compiled, backend, piece, t, Y, Z, P, delta, fourth)
+        if flows is not None:
+            flows[key] = (piece, (Y1, Z1))  # (the piece kept with its id: no other object takes that id meanwhile)
+    change = (functions(np.array([t + delta]), Y1, Z1, P) - functions(np.array([t]), Y, Z, P))[0]
+    if exprs is None:
+        return change, None
+    return change, np.maximum(floor_at(compiled, exprs, t, Y, Z, P), floor_at(compiled, exprs, t + delta, Y1, Z1, P))
 
 
 def _flow_end(compiled, backend, piece, t: float, Y, Z, P, delta: float, fourth: bool = False) -> tuple:
@@ -164,18 +188,9 @@ def _on_piece(compiled, when, t: float, Y, Z, P, chosen: dict):
     return compiled.cached(("event-functions", fixed), lambda: compiled.numeric.batch_function(list(fixed)))
 
 
-def rounding_scale(compiled, function, t: float, Y, Z) -> float:
-    """The size of the values that a drift of ``function`` (an event's) is rounded at: the largest |y| and |z|,
-    and |t| only where the function names t.  A function of the states alone is not rounded by t: the ball's
-    height at t = 1e13 rose 0.136 over the look-ahead after its third impact, within 64 eps 1e13 = 0.142, and
-    was read as resting on the floor (ZenoError)."""
-    size = float(np.max(np.abs(np.concatenate([Y[0], Z[0]])), initial=0.0))
-    return max(size, abs(float(t))) if compiled.t in function.free_symbols else size
-
-
-def _side(change: float, scale: float) -> int:
-    """The sign of a drift, 0 within rounding of values of size ``scale``."""
-    return 0 if abs(change) <= ROUNDING * max(1.0, scale) else int(np.sign(change))
+def _side(change: float) -> int:
+    """The sign of a drift that :func:`drift` has read with its ``exprs`` (0 within rounding)."""
+    return int(np.sign(change))
 
 
 def _leveled(when, levels: dict, replaced: dict | None = None):
@@ -258,7 +273,7 @@ def start_piece(
     for e, event in enumerate(events):
         if F0[e] == (round(F0[e]) if event.integer else 0):
             at_zero.add(e)
-    scale = [rounding_scale(compiled, event.when, t, Y, Z) for event in events]
+    whens = tuple(event.when for event in events)  # (their drifts read within rounding of their own values)
     chosen = {}
     flows = {}  # (drift's step ends by piece: every drift below starts from (t, Y, Z) with the same delta)
     for _ in range(len(events) + 1):  # (more rounds for switches that cross within location tolerances of t)
@@ -266,7 +281,7 @@ def start_piece(
         chosen |= {events[e].when: preferred.get(e, 1) for e in switches}
         for e in switches:
             chosen[events[e].when] = _branch(backend, compiled, events[e], t, Y, Z, P, chosen, preferred.get(e, 1),
-                                             delta, scale[e], e in exited, flows, horizon)  # fmt: skip
+                                             delta, e in exited, flows, horizon)  # fmt: skip
         if not lock:
             break
         model = lock_branches(compiled, t, Y[0], Z[0], P[0], chosen)
@@ -316,17 +331,17 @@ def start_piece(
     declared = [e for e in sorted(at_zero) if not events[e].strict]
     reset = frozenset(e for e in declared if crossing.get(e) is not None)
     if declared:
-        changes = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows)
+        changes = drift(compiled, backend, model, t, Y, Z, P, when, delta, flows, exprs=whens)
         for e in declared:
-            side = _side(changes[e], scale[e])
+            side = _side(changes[e])
             before = crossing.get(e)
             if before is not None:  # (a reset: it must send the function back, or leave its motion as it was)
-                across = _side(before, scale[e])
+                across = _side(before)
                 if across and side != -across and abs(changes[e] - before) > RESET_CHANGE * abs(before):
                     side = _back_sooner(compiled, backend, model, events[e], e, t, Y, Z, P, when, delta, shortest,
-                                        scale[e], across)  # fmt: skip
+                                        across)  # fmt: skip
             if not side and e in fired:  # (it crossed here, too slowly for one look-ahead: read over longer ones)
-                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, scale[e], horizon,
+                side = _crossed_to(compiled, backend, model, t, Y, Z, P, when, e, delta, horizon,
                                    preferred.get(e, 0))  # fmt: skip
             sides[e] = side
             armed[e] = bool(side)  # (a function that stays on zero is armed once it has left it)
@@ -343,7 +358,7 @@ def start_piece(
 
 
 def _crossed_to(
-    compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, scale: float, horizon: float, crossed: int = 0
+    compiled, backend, model, t, Y, Z, P, when, e: int, delta: float, horizon: float, crossed: int = 0
 ) -> int:
     """The side the function of the declared event ``e``, which crossed zero at ``t`` and moves by less than
     rounding over ``delta`` from there, goes on to: read over look-aheads :data:`LOOKAHEAD_GROWTH` times longer,
@@ -360,7 +375,8 @@ def _crossed_to(
         if delta * LOOKAHEAD_GROWTH ** (growth - 1) >= horizon:
             break
         longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
-        side = _side(drift(compiled, backend, model, t, Y, Z, P, when, longer, fourth=True)[e], scale)
+        whens = tuple(event.when for event in compiled.events)
+        side = _side(drift(compiled, backend, model, t, Y, Z, P, when, longer, fourth=True, exprs=whens)[e])
         if side:
             return crossed if side == -crossed else side
     return 0
@@ -380,7 +396,7 @@ def reset_keeps_motion(compiled, event) -> bool:
 
 
 def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delta: float, shortest: float,
-                 scale: float, across: int) -> int:  # fmt: skip
+                 across: int) -> int:  # fmt: skip
     """The side (``-across``) that the function of ``event`` (number ``e``), reset at ``t``, goes back to over a
     look-ahead shorter than ``delta``: ``delta / LOOKAHEAD_GROWTH^k``, and ``shortest`` last (at most
     :data:`LOOKAHEAD_GROWTHS` of them).  The look-ahead is long where t is (a hundred location tolerances, each two
@@ -395,12 +411,13 @@ def _back_sooner(compiled, backend, model, event, e: int, t, Y, Z, P, when, delt
         It does not, and ``shortest`` is set by float64's spacing of t (:data:`SHORTEST_TOLS` resolutions of t,
         not the span's share): a motion back sooner than that is not resolved there, so a bounce and a state at
         rest look alike (at t0 = 1e6 over 2.5 the span's 2.5e-9 sets it, and a ball at rest is ZenoError)."""
-    shorter = delta
+    shorter, whens = delta, tuple(f.when for f in compiled.events)
     for _ in range(LOOKAHEAD_GROWTHS):
         if shorter <= shortest:
             break
         shorter = max(shorter / LOOKAHEAD_GROWTH, shortest)
-        if _side(drift(compiled, backend, model, t, Y, Z, P, when, shorter)[e], scale) == -across:
+        change = drift(compiled, backend, model, t, Y, Z, P, when, shorter, exprs=whens)
+        if _side(change[e]) == -across:
             return -across
     if shortest <= (1.0 + 1e-9) * SHORTEST_TOLS * resolution(t):
         raise TimeResolutionError(
@@ -430,7 +447,6 @@ def _branch(
     chosen: dict,
     preferred: int,
     delta: float,
-    scale: float,
     exited: bool,
     flows: dict | None = None,
     horizon: float = math.inf,
@@ -449,8 +465,10 @@ def _branch(
     phi = event.when
     function = compiled.numeric.batch_function([phi])
     candidates = {side: lock_branches(compiled, t, Y[0], Z[0], P[0], {**chosen, phi: side}) for side in (1, -1)}
-    moved = {side: drift(compiled, backend, c, t, Y, Z, P, function, delta, flows)[0] for side, c in candidates.items()}
-    change = {side: _side(m, scale) for side, m in moved.items()}
+    read = {side: drift_and_floor(compiled, backend, c, t, Y, Z, P, function, delta, flows, exprs=(phi,))
+            for side, c in candidates.items()}  # fmt: skip
+    moved = {side: m[0] for side, (m, _) in read.items()}  # (as they are: a motion within rounding is resting's)
+    change = {side: _side(within_rounding(m, f)[0]) for side, (m, f) in read.items()}
     # (a branch on which the function does not move within rounding over the look-ahead: a touch, its rate 0
     # and its curvature below the look-ahead's resolution, or a crossing of higher order; looked at again
     # over longer look-aheads, while it stays unresolved, so that a touch from one side keeps that side)
@@ -459,8 +477,9 @@ def _branch(
             break
         longer = min(delta * LOOKAHEAD_GROWTH**growth, horizon)
         for side in [side for side in change if not change[side]]:
-            moved[side] = drift(compiled, backend, candidates[side], t, Y, Z, P, function, longer, fourth=True)[0]
-            change[side] = _side(moved[side], scale)
+            m, f = drift_and_floor(compiled, backend, candidates[side], t, Y, Z, P, function, longer, fourth=True,
+                                   exprs=(phi,))  # fmt: skip
+            moved[side], change[side] = m[0], _side(within_rounding(m, f)[0])
     up, down = change[1] >= 0, change[-1] <= 0
     if not exited and all(m == 0 for m in moved.values()) and delta * LOOKAHEAD_GROWTH**LOOKAHEAD_GROWTHS < horizon:
         _rests_on_both(compiled, backend, event, candidates, t, Y, Z, P, delta * LOOKAHEAD_GROWTH**LOOKAHEAD_GROWTHS)
@@ -469,7 +488,7 @@ def _branch(
     if not (up or down) and _slides(compiled, event):
         return 0  # (Filippov's sliding motion: see _sliding)
     value = float(function(np.array([t]), Y, Z, P)[0, 0]) if not (up or down) else 0.0
-    if _side(value, scale) and all(abs(m) < abs(value) for m in moved.values()):
+    if abs(value) > floor_at(compiled, (phi,), t, Y, Z, P)[0] and all(abs(m) < abs(value) for m in moved.values()):
         # not at zero: a function of the algebraic variables that the event's own solution put at zero, moved off
         # it by their values solved anew there (by the method's error in them: 2e-4 for the wheelset's creep
         # saturation at rtol 1e-4), further than the flow moves it over the look-ahead on either branch, so that
@@ -496,8 +515,10 @@ def _rests_on_both(compiled, backend, event, candidates: dict, t, Y, Z, P, ahead
     sign(x) gave y(1) = 1 for 0, "success" in every method."""
     states = compiled.numeric.batch_function(list(compiled.states))
     moved = [drift(compiled, backend, c, t, Y, Z, P, states, ahead, fourth=True) for c in candidates.values()]
-    scale = max(1.0, float(np.max(np.abs(Y), initial=0.0)))
-    if np.all(np.abs(moved[0] - moved[1]) <= ROUNDING * scale):
+    # (each state's motions alike within the rounding of its own values at either end: not of an absolute 1, under
+    # which y' = Piecewise((1e-20, x > 0), (2e-20, True)) moved y alike on both)
+    size = np.max(np.abs([Y[0], Y[0] + moved[0], Y[0] + moved[1]]), axis=0)
+    if np.all(np.abs(moved[0] - moved[1]) <= ROUNDING * size):
         return
     raise ZenoError(
         f"switch '{event.name}' at t = {time_text(t)}: {event.when} rests on zero on both of its branches (neither "

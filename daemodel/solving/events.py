@@ -69,7 +69,6 @@ from daemodel.solving.between import (
 )
 from daemodel.solving.branches import (
     RESOLUTION_LOOKAHEAD,
-    ROUNDING,
     SHORTEST_TOLS,
     accumulation_point,
     check_accumulating,
@@ -79,7 +78,6 @@ from daemodel.solving.branches import (
     jumped,
     reset_keeps_motion,
     resolution,
-    rounding_scale,
     start_piece,
     time_text,
 )
@@ -96,6 +94,7 @@ from daemodel.solving.pieces import (
 )
 from daemodel.solving.resets import apply_resets
 from daemodel.solving.resting import account, gone, rest_or_raise, watch
+from daemodel.solving.rounding import floor_at
 from daemodel.solving.switches import for_method, settings_as_given
 from daemodel.solving.undecided import audit
 
@@ -168,6 +167,7 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
     t0, t1 = (float(v) for v in t_span)
     when, resets = _functions(compiled)
     events = compiled.events
+    whens = tuple(event.when for event in events)  # (their drifts and resets read within their own rounding)
     P = np.asarray(start.p, dtype=float)
     Y, Z = np.asarray(start.y0, dtype=float), np.asarray(start.z0, dtype=float)
     user_grid = None if getattr(options, "t_eval", None) is None else output_times(options.t_eval, t_span, ())
@@ -376,7 +376,8 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
                 if not z_event.shape[1]
                 else algebraic_values(for_method(piece, backend), t_event, y_event, P, z_event)
             )
-            changes = drift(compiled, backend, piece, t_event, y_event, z_start, P, when, delta_at(t_event))
+            changes = drift(compiled, backend, piece, t_event, y_event, z_start, P, when, delta_at(t_event),
+                            exprs=whens)  # fmt: skip
             crossing = {e: changes[e] for e in with_reset}
         preferred = {e: sides_after.get(e, 1) for e in fired if events[e].strict and not events[e].integer}
         # (and each declared event that crossed zero here, from the bracket's start to its side after: the side it
@@ -396,12 +397,9 @@ def _one_sample(backend, compiled, t_span, start, options, max_events: int, audi
         F_raw = when(np.array([t_event]), y_event, z_event, P)[0]
         Y = apply_resets(compiled, resets, with_reset, t_event, y_event, z_event, P)
         F_reset = when(np.array([t_event]), Y, z_event, P)[0]
-        moved_off = {
-            e
-            for e in with_reset
-            if abs(F_reset[e] - F_raw[e])
-            > ROUNDING * max(1.0, rounding_scale(compiled, events[e].when, t_event, Y, z_event))
-        } | set(jumps)
+        floor = np.maximum(floor_at(compiled, whens, t_event, y_event, z_event, P),
+                           floor_at(compiled, whens, t_event, Y, z_event, P))  # fmt: skip
+        moved_off = {e for e in with_reset if abs(F_reset[e] - F_raw[e]) > floor[e]} | set(jumps)
         terminal = any(events[e].terminal for e in fired)
         reduced = for_method(compiled, backend)
         if terminal:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from daemodel.errors import InvalidValueError, ResetConflictError
-from daemodel.solving.branches import ROUNDING
+from daemodel.solving.rounding import floor_at
 
 
 def apply_resets(compiled, resets, fired: list, t: float, y, z, P) -> np.ndarray:
@@ -24,19 +24,22 @@ def apply_resets(compiled, resets, fired: list, t: float, y, z, P) -> np.ndarray
         One sets a state to a value that is not finite.
     """
     events = compiled.events
-    Y, setter = y.copy(), {}  # (state -> the event that set it)
+    Y, setter, rounds = y.copy(), {}, {}  # (state -> the event that set it, the rounding of the value it set)
     for e in fired:
         new = resets[e](t, y, z, P)
+        # (each value within the rounding of its own expression's terms, not of an absolute 1: resets to 1e-15 and
+        # 2e-15 of a state in units of 1e-14 conflict)
+        floor = floor_at(compiled, tuple(expr for _, expr in events[e].reset), t, y, z, P)
         for k, (index, _) in enumerate(events[e].reset):
             value, was = float(new[0, k]), float(Y[0, index])
-            if index in setter and abs(value - was) > ROUNDING * max(1.0, abs(value), abs(was)):
+            if index in setter and abs(value - was) > max(floor[k], rounds[index]):
                 raise ResetConflictError(
                     f"events '{events[setter[index]].name}' and '{events[e].name}' fire together at t = {t:.12g} and "
                     f"reset '{compiled.state_names[index]}' to different values ({was:.12g} and {value:.12g}): which "
                     "one holds is not defined (each reset reads the values just before); reset that state in one "
                     "of them, or give them guards that differ"
                 )
-            setter[index] = e
+            setter[index], rounds[index] = e, floor[k]
             Y[:, index] = new[:, k]
     for index in (i for i in setter if not np.isfinite(Y[0, i])):
         name, state = events[setter[index]].name, compiled.state_names[index]

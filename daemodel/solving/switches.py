@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from daemodel.compiling.batch_function import claim_generated, generating_seconds
-from daemodel.compiling.switches import MERGE_TOL, branch_model, breakpoints
+from daemodel.compiling.switches import branch_model, breakpoints, merge_tol
 from daemodel.dense import joined_in_time
 from daemodel.errors import SwitchError
 from daemodel.solving.pieces import join_samples, merge_stats, onto_constraints, segment_steps
@@ -88,7 +88,7 @@ def solve_with_breakpoints(backend, compiled, t_span, start, options):
 
 
 def _same(key: tuple, times: np.ndarray, t_span) -> bool:
-    tol = MERGE_TOL * max(1.0, t_span[1] - t_span[0])
+    tol = merge_tol(*(float(v) for v in t_span))
     return len(key) == len(times) and bool(np.all(np.abs(np.asarray(key) - times) <= tol))
 
 

@@ -97,6 +97,40 @@ def test_breakpoints_in_closed_form_numerically_and_at_integers():
     assert 0.6 in moved and 0.3 not in moved
 
 
+@pytest.mark.parametrize(
+    ("method", "options"), [("radau", {"rtol": 1e-10}), ("reference", {}), ("casadi-idas", {"rtol": 1e-10})]
+)
+@pytest.mark.parametrize("scale", [1.0, 1e-7])
+def test_two_breakpoints_apart_by_a_millionth_of_the_span_stay_two_at_any_scale(method, options, scale):
+    # y' = [t > a] + [t > b], b - a = 5e-6 a: breakpoints within 1e-12 max(1, span) were one, so on (0, 3e-7) the
+    # two steps merged and y(t1) came out 1.25e-6 off (rtol 1e-10), "success", in every method
+    a, b, t1 = scale, (1.0 + 5e-6) * scale, 3.0 * scale
+    m = dm.Model("two_steps")
+    m.states("y")
+    m.ode("y", f"Piecewise((1, t > {a!r}), (0, True)) + Piecewise((1, t > {b!r}), (0, True))")
+    m.initial(y=0.0)
+    c = m.compile()
+    np.testing.assert_allclose(switches.breakpoints(c, (0.0, t1), c.parameter_values), [a, b], rtol=1e-14)
+    sol = dm.solve(m, (0.0, t1), method=method, atol=1e-10 * scale, **options)
+    assert sol.status == "success"
+    np.testing.assert_allclose(sol["y"][-1], (t1 - a) + (t1 - b), rtol=1e-9)
+
+
+@pytest.mark.parametrize(("apart", "count"), [(1, 1), (2, 1), (3, 2)])
+def test_breakpoints_within_two_spacings_of_t_are_one(apart, count):
+    # (two switches at one time, rounded apart: one breakpoint, however short the span; three spacings: two)
+    assert switches.merge_tol(0.0, 3e-7) == 3e-7 * switches.MERGE_TOL
+    assert switches.merge_tol(1e6, 1e6 + 1e-6) == 2 * math.ulp(1e6 + 1e-6)
+    a = 1e6 + 5e-7
+    b = a + apart * math.ulp(a)
+    m = dm.Model("same_time")
+    m.states("y")
+    m.ode("y", f"Piecewise((1, t > {a!r}), (0, True)) + Piecewise((1, t > {b!r}), (0, True))")
+    m.initial(t=1e6, y=0.0)
+    c = m.compile()
+    assert len(switches.breakpoints(c, (1e6, 1e6 + 1e-6), c.parameter_values)) == count
+
+
 def test_too_many_breakpoints_are_refused():
     with pytest.raises(E.SwitchError, match=r"floor in x' switches 100000 times in t_span = \(0, 1\) \(at most 10000"):
         dm.solve(_switched("floor(100000*t)"), (0.0, 1.0), stages=3, h=0.1)
