@@ -186,7 +186,11 @@ class Radau5Controller:
         options, stats = self.options, stepper.stats
         iterations = options.max_newton_iterations
         t0, t1 = t_span
-        h = options.h0 or self.initial_step(stepper, t_span)
+        # the probe's step, also where h0 is given: no estimate above it is refiltered before a step is
+        # accepted (formulas.refiltered_here: the floor's 1e7 from t0 = 1e17 and a user's h0 = 1e7 damped an
+        # oscillator to 1e-79 as "success")
+        trusted = self.initial_step(stepper, t_span)
+        h = options.h0 or formulas.floored_step(SCALAR, trusted, t0, t1)
         # (h_acc 0: no accepted step yet, for Gustafsson's prediction)
         carried = dict(t=t0, h=h, first=True, rejected_last=False, h_acc=0.0, err_acc=0.0)
         keep = KEEP_H_BAND_COMPILED if stepper.keep_longer else KEEP_H_BAND
@@ -201,6 +205,7 @@ class Radau5Controller:
             keep_low=keep[0],
             keep_high=keep[1],
             predictive=float(PREDICTIVE and not self.rounding_floor),
+            trusted=trusted,
         )
         half = (t0, 0)  # (t, accepted steps) when half the budget was spent: the recent rate of progress
         watch = ProgressWatch(t0, h, extra=0)  # extra: the accepted steps when the window began
@@ -240,7 +245,8 @@ class Radau5Controller:
             python_next = False
             head = sequence.before_attempt(SCALAR, carried, settings)
             if head["underflow"]:
-                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint, t1 - t0)
+                probe = self.probe(stats, trusted)
+                raise underflow_error(h, t, SHRUNK_BY_ESTIMATE, None, self.newton_hint, t1 - t0, probe)
             h = head["h"]
             result = None  # (the last attempt's stages and residual go before this one's are made)
             result, newton_iterations, why, sample, err = stepper.attempt_with_error(t, h, head["first"])
@@ -256,17 +262,26 @@ class Radau5Controller:
                         result, _, named, named_sample = stepper.attempt(t, h)
                         why, sample = (named, named_sample) if result is None else (why, sample)
                     why = why if failed else f"error estimate {decisions['err']:.2g} > 1"
-                    raise underflow_error(decisions["h_rejected"], t, why, sample, self.newton_hint, t1 - t0)
+                    probe = self.probe(stats, trusted)
+                    raise underflow_error(decisions["h_rejected"], t, why, sample, self.newton_hint, t1 - t0, probe)
                 stepper.drop_factors()
                 continue
             stepper.accept(t, h, result, decisions["t_next"])
+
+    @staticmethod
+    def probe(stats, trusted):
+        """The probe's first step where no step was accepted yet (what :func:`underflow_error` reads of t's
+        resolution), else None."""
+        return trusted if not stats["steps"] else None
 
     def initial_step(self, stepper, t_span) -> float:
         """Hairer-Wanner's starting step (Solving ODEs I, II.4, as scipy's ``select_initial_step``):
         the first guess ``h0 = 0.01 |u0| / |f(u0)|`` in the error norm, then an explicit Euler probe
         to ``t0 + h0`` that measures how fast f changes, ``d2 = |f(t0 + h0, y0 + h0 f0, z0) - f0| / h0``
         (the algebraic variables held at their start), and the step ``min(100 h0, (0.01 / max(d1,
-        d2))^(1/(s+1)))`` for the order-s estimate, capped by the interval.
+        d2))^(1/(s+1)))`` for the order-s estimate, capped by the interval.  Before
+        :func:`.formulas.floored_step` lifts it (the caller's): no estimate above it is refiltered before
+        the first accepted step.
 
         The first guess alone took the whole interval where f(u0) is small: from near a stirred tank's
         unstable steady state (f0 ~ 1e-5 of the state) one implicit step of 200 landed on that steady
@@ -277,7 +292,7 @@ class Radau5Controller:
         ~330 us solve on the path below), the same formula (:func:`.formulas.initial_step`).
         """
         t0, t1 = t_span
-        if not stepper.n:
+        if not stepper.n:  # (no states: no estimate to refilter)
             return min(max(1e-6, INITIAL_STEP_FLOOR * max(1.0, abs(t0))), t1 - t0)
         if stepper.engine.first_step is not None:
             h, stepper._f_start = stepper.engine.first_step(t0, t1, stepper.y, stepper.z, self.atol, self.rtol)
@@ -368,21 +383,26 @@ def loose_newton_tol_hint(given, default) -> str:
     )
 
 
-def underflow_error(new, t, why, sample, newton_hint="", span=None) -> ConvergenceError | StepSizeError:
+def underflow_error(new, t, why, sample, newton_hint="", span=None, probe=None) -> ConvergenceError | StepSizeError:
     """The step size underflow at ``t`` with the step ``new`` (the last failure named); ``newton_hint``:
     :func:`loose_newton_tol_hint`'s, where the error estimate shrank the step.  A :class:`StepSizeError` that
     names t's float64 spacing where the error estimate shrank the step to a threshold that is t's resolution's
-    (at least :data:`RESOLUTION_SHARE` of ``span``, t_span's length)."""
+    (at least :data:`RESOLUTION_SHARE` of ``span``, t_span's length), or before any accepted step, where the
+    start's probe (``probe``: its step, :meth:`Radau5Controller.initial_step`) asked for a step below that
+    threshold (an oscillator from t0 = 1e17 over 9e17: 0.013, where t's spacing is 16)."""
     estimate = why is not None and (why == SHRUNK_BY_ESTIMATE or why.startswith("error estimate "))
     floor = formulas.UNDERFLOW * max(1.0, abs(t))
-    if estimate and span is not None and abs(t) > 1.0 and floor >= RESOLUTION_SHARE * span:
+    unresolved = probe is not None and probe < floor
+    if estimate and abs(t) > 1.0 and (unresolved or (span is not None and floor >= RESOLUTION_SHARE * span)):
         spacing = float(np.spacing(abs(t)))
+        asked = f", where the start's probe asked for h = {probe:.3g}" if unresolved else ""
+        asked += f", {floor / span:.2g} of t_span" if span else ""
         return StepSizeError(
             f"radau: the steps that rtol and atol ask for at t = {t:.17g} are shorter than float64 resolves "
             f"there: h = {new:.3g} (last failure: {why}) reached the step size underflow's threshold, 1e-14 |t| = "
-            f"{floor:.3g}, {floor / spacing:.0f} float64 spacings of t at |t| = {abs(t):.3g} (spacing {spacing:.3g}), "
-            f"{floor / span:.2g} of t_span; start t_span nearer 0 (shift the model's time), loosen rtol and atol, "
-            "or take more stages (longer steps at the same tolerance); a solution that blows up there ends so too"
+            f"{floor:.3g}, {floor / spacing:.0f} float64 spacings of t at |t| = {abs(t):.3g} (spacing "
+            f"{spacing:.3g}){asked}; start t_span nearer 0 (shift the model's time), loosen rtol and atol, or take "
+            "more stages (longer steps at the same tolerance); a solution that blows up there ends so too"
         )
     who = f", sample {sample}" if sample is not None else ""
     if why is not None and why.startswith("not converged in"):  # (the iterations ran out, at every h)

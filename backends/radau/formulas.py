@@ -425,7 +425,9 @@ INITIAL_STEP_FLOOR = 1e-10
 def initial_step(xp, rms, y, f0, probe, atol, rtol, stages: int, t0, t1):
     """Hairer-Wanner's starting step (see :meth:`.control.Radau5Controller.initial_step`) of the states ``y``
     with ``f0`` = f there: ``rms`` the worst sample's root mean square, ``probe(h0)`` f at ``(t0 + h0, y +
-    h0 f0)`` (the algebraic variables held).  Not where there are no states (the caller's)."""
+    h0 f0)`` (the algebraic variables held).  Not where there are no states (the caller's).  The probe's
+    step, before :func:`floored_step` lifts it: the controller refilters no estimate above it before its
+    first accepted step (:func:`refiltered_here`)."""
     sc = error_scale(atol, rtol, xp.abs(y), 1.0)  # (the states: weight 1)
     d0, d1 = rms(y / sc), rms(f0 / sc)
     # (f0 not finite: 1e-6 on every engine, where numpy's minimum passed a NaN on and casadi's dropped it)
@@ -440,9 +442,29 @@ def initial_step(xp, rms, y, f0, probe, atol, rtol, stages: int, t0, t1):
         return xp.cond(d <= 1e-15, flat, lambda: xp.minimum(100 * h0, (0.01 / d) ** (1.0 / (stages + 1))))
 
     h = xp.cond(d2 < math.inf, probed, lambda: h0 * 1e-3)  # (NaN: not finite)
-    # (a start on a state near 0 moving fast, as after an event, made 9e-15 here: underflow at once)
-    h = xp.maximum(h, INITIAL_STEP_FLOOR * xp.maximum(1.0, xp.abs(t0)))
     return xp.minimum(h, t1 - t0)
+
+
+def floored_step(xp, h, t0, t1):
+    """The first step: the probe's ``h`` (:func:`initial_step`) lifted to :data:`INITIAL_STEP_FLOOR`
+    ``max(1, |t0|)``, within t_span.  (A start on a state near 0 moving fast, as after an event, made 9e-15
+    there: underflow at once.)  The floor is no accuracy claim: from t0 = 1e17 it lifts the oscillator's
+    0.013 to 1e7, and only the unfiltered estimate judges such a step (:func:`refiltered_here`)."""
+    return xp.minimum(xp.maximum(h, INITIAL_STEP_FLOOR * xp.maximum(1.0, xp.abs(t0))), t1 - t0)
+
+
+def refiltered_here(xp, first, h, h_acc, trusted):
+    """Whether an attempt of ``h`` may have its estimate refiltered (:func:`error_norm`): a ``first`` one
+    (the first of a run, or one after a rejection) once a step was accepted (``h_acc`` > 0), and before
+    that only up to ``trusted``, the probe's step (:func:`initial_step`).
+
+    The refiltered estimate is ``(I - h gamma0 J)^-1`` applied once more to the estimate: every mode of
+    ``|h lambda| >> 1`` is damped in it, as the step damps it (L-stable), and that is right for a decaying
+    mode alone.  An oscillator's ``h omega = 1e7`` (a user's h0, or the floor of :func:`floored_step` at
+    t0 = 1e17) read 0.1 refiltered, where the step took ``x^2 + v^2`` from 1 to 1e-79 ("success"); the
+    unfiltered estimate reads the step's whole damping there (``-y0``: rejected).  Steps up to the probe's
+    are RADAU5's own first steps; the ones above it shrink, unfiltered, to it (or underflow by name)."""
+    return xp.and_(first, xp.or_(h_acc > 0, h <= trusted))
 
 
 # ---- the error estimate's norm ------------------------------------------------------------------

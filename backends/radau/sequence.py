@@ -41,9 +41,11 @@ SCALARS = Layout(
     "factors_h", "det_sign", "t_det", "attempts", "active", "code",
 )  # fmt: skip
 # The run's settings (in the compiled run: in front of p).  limit: the attempts the compiled run may
-# make (the Python controller checks its budget itself).
+# make (the Python controller checks its budget itself); trusted: the largest h whose estimate is refiltered
+# before the first accepted step (.formulas.refiltered_here: the probe's first step).
 SETTINGS = Layout(
     "t0", "t1", "limit", "newton_tol", "rtol", "atol", "reuse_theta", "keep_low", "keep_high", "predictive",
+    "trusted",
 )  # fmt: skip
 # What the compiled run's head tells of the attempt to come (.loop.head_function's outputs).
 HEAD = ("h", "limited", "underflow", "refreshed", "factored", "ratio", "first")
@@ -64,12 +66,15 @@ def before_attempt(xp, carried: dict, settings: dict) -> dict:
     """What the controller decides before an attempt, from the :data:`CONTROLLER` scalars ``carried``
     and the :data:`SETTINGS`: ``underflow`` (the carried h underflows at t: the run ends there),
     ``h`` (shortened to end at t1, or stretched to it) and ``first`` (the error estimate is
-    refiltered where it is 1 or more: a first step, or one after a rejection)."""
+    refiltered where it is 1 or more: a first step, or one after a rejection, but before the first
+    accepted step only up to the probe's step, :func:`.formulas.refiltered_here`)."""
     t, h = carried["t"], carried["h"]
+    step = formulas.step_length(xp, h, t, settings["t1"])
+    first = xp.or_(carried["first"], carried["rejected_last"])
     return {
         "underflow": formulas.underflow(xp, h, t, settings["t1"]),
-        "h": formulas.step_length(xp, h, t, settings["t1"]),
-        "first": xp.or_(carried["first"], carried["rejected_last"]),
+        "h": step,
+        "first": formulas.refiltered_here(xp, first, step, carried["h_acc"], settings["trusted"]),
     }
 
 

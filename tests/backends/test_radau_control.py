@@ -324,7 +324,8 @@ def test_steps_below_t_s_resolution_are_a_step_size_error_naming_t_s_spacing():
     message = (
         r"radau: the steps that rtol and atol ask for at t = 100000000000000 are shorter than float64 resolves there: "
         r"h = [0-9.]+ \(last failure: error estimate [0-9.e+]+ > 1\) reached the step size underflow's threshold, "
-        r"1e-14 \|t\| = 1, 64 float64 spacings of t at \|t\| = 1e\+14 \(spacing 0\.0156\), 0\.4 "
+        r"1e-14 \|t\| = 1, 64 float64 spacings of t at \|t\| = 1e\+14 \(spacing 0\.0156\), "
+        r"where the start's probe asked for h = 0\.0[0-9]+, 0\.4 "
         r"of t_span; start t_span nearer 0 \(shift the model's time\), loosen rtol and atol, or take more stages"
     )
     with pytest.raises(E.StepSizeError, match=message):

@@ -11,7 +11,7 @@ from daemodel.backends.radau.formulas import SCALAR
 S, ITERATIONS = 3, 7
 SETTINGS = dict(
     t0=0.0, t1=1.0, limit=32.0, newton_tol=0.03, rtol=1e-6, atol=1e-6, reuse_theta=0.1, keep_low=1.0,
-    keep_high=1.2, predictive=1.0,
+    keep_high=1.2, predictive=1.0, trusted=0.2,
 )  # fmt: skip
 CARRIED = dict(
     t=0.3, h=0.1, h_old=0.08, eta=0.02, first=0.0, rejected_last=0.0, h_acc=0.08, err_acc=0.7, jac_kept=1.0,
@@ -36,6 +36,15 @@ CASES = [
         {},
     ),
     ("after a rejection", {"rejected_last": 1.0, "factors_h": 0.0}, {}, {"error_norm": 0.01}),
+    # (before the first accepted step, no estimate of a step beyond the probe's is refiltered: after one, any)
+    (
+        "first step beyond the probe's",
+        {"first": 1.0, "h_old": 0.0, "h_acc": 0.0, "err_acc": 0.0, "jac_kept": 0.0, "factors_h": 0.0},
+        {"trusted": 0.05},
+        {},
+    ),
+    ("rejected beyond the probe's", {"rejected_last": 1.0, "h_acc": 0.0, "err_acc": 0.0}, {"trusted": 0.05}, {}),
+    ("rejected beyond the probe's, a step accepted", {"rejected_last": 1.0}, {"trusted": 0.05}, {}),
     ("Gustafsson off", {}, {"predictive": 0.0}, {"error_norm": 0.2}),
     ("Gustafsson binding", {"err_acc": 0.05}, {}, {}),
     ("keep band", {}, {"keep_high": 1.5}, {"error_norm": 0.1}),
@@ -111,6 +120,9 @@ def test_the_cases_reach_every_decision():
         seen[name] = (head, after, decisions, scalars, bool(ran), bool(taken))
     assert seen["accepted"][5] and not seen["rejected"][5] and seen["rejected"][4]
     assert seen["failed Newton"][4] and seen["failed Newton"][1]["first"]  # (the next step does not grow h)
+    assert seen["first step"][0]["first"] and seen["after a rejection"][0]["first"] and not seen["accepted"][0]["first"]
+    assert not seen["first step beyond the probe's"][0]["first"] and not seen["rejected beyond the probe's"][0]["first"]
+    assert seen["rejected beyond the probe's, a step accepted"][0]["first"]
     assert seen["h underflows"][0]["underflow"] and not seen["h underflows"][4]
     assert seen["rejected h underflows"][2]["shrunk_away"] and not seen["rejected h underflows"][4]
     assert seen["end of interval"][3]["active"] == 0 and seen["end of interval"][3]["code"] == sequence.FINISHED

@@ -7,6 +7,7 @@ before anything is allocated or integrated.
 
 import functools
 import itertools
+import re
 import tracemalloc
 
 import numpy as np
@@ -666,23 +667,75 @@ def test_a_time_limit_in_the_smaller_step_check_is_not_the_sign_change_error(mon
         RadauBackend()._at_a_smaller_step(compiled, (0.0, 1.0), None, RadauOptions(h=0.1), sign_change, (0.2, 0.3))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the first step's floor (formulas.INITIAL_STEP_FLOOR * |t0| = 1e7 at t0 = 1e17) lifts the probe's "
-    "0.013 to h omega = 1e7, where the refiltered error estimate reads below 1 (L-stable damping): a wrong answer "
-    "as 'success'; at t0 = 1e15 and 1e16 the floor's step is rejected and h underflows by name",
-)
-def test_an_oscillator_started_where_t_is_coarse_is_not_damped_away_as_success():
-    """``x' = v, v' = -x`` from t0 = 1e17 (float64's spacing 16 there, the steps rtol 1e-6 asks for ~0.013): the
-    exact solution keeps ``x^2 + v^2 = 1``; radau must raise a named error or keep it, never return "success" on
-    a solution damped to 1e-79 (its first step, 1e7, accepted)."""
-    m = dm.Model("coarse_t")
+def _oscillator(t0: float) -> dm.Model:
+    """``x' = v, v' = -x`` from ``x = 1, v = 0`` at t0: exactly ``x = cos(t - t0)``, ``x^2 + v^2 = 1``."""
+    m = dm.Model("oscillator")
     x, v = m.states("x v")
     m.ode(x, v)
     m.ode(v, -x)
-    m.initial(t=1e17, x=1.0, v=0.0)
-    try:
-        sol = dm.solve(m.compile(), (1e17, 1e18), rtol=1e-6, atol=1e-6)
-    except (E.StepSizeError, E.ConvergenceError, E.StepLimitError):
-        return
-    assert sol.status != "success" or np.allclose(np.hypot(sol["x"], sol["v"]), 1.0, rtol=1e-3)
+    m.initial(t=t0, x=1.0, v=0.0)
+    return m
+
+
+@pytest.mark.parametrize(
+    "t0, rtol", [(1e15, 1e-6), (1e16, 1e-6), (1e17, 1e-6), (1e18, 1e-6), (-1e17, 1e-6), (1e17, 1e-2)]
+)
+def test_an_oscillator_started_where_t_is_coarse_is_not_damped_away_as_success(t0, rtol):
+    """From t0 = 1e17 (float64's spacing 16 there, the steps rtol 1e-6 asks for ~0.05) the first step's floor,
+    1e-10 |t0| = 1e7, was accepted on the refiltered estimate (0.1 at h omega = 1e7, the L-stable step's damping
+    unseen): "success" on a solution damped to 1e-79.  At 1e15 and 1e16 the floor's step was rejected and h
+    underflowed, as a ConvergenceError that blamed a blow-up or Newton.  Now no estimate above the probe's step
+    is refiltered before a step is accepted, and the underflow names t's resolution and the probe's step."""
+    message = (
+        rf"radau: the steps that rtol and atol ask for at t = {re.escape(f'{t0:.17g}')} are shorter than float64 "
+        rf"resolves there: .* \(spacing {np.spacing(abs(t0)):.3g}\), where the start's probe asked for "
+        r"h = (0\.\d+), [0-9.e-]+ of t_span; start t_span nearer 0"
+    )
+    with pytest.raises(E.StepSizeError, match=message) as caught:
+        dm.solve(_oscillator(t0).compile(), (t0, t0 + 9 * abs(t0)), rtol=rtol, atol=rtol)
+    probe = float(re.search(message, str(caught.value)).group(1))
+    assert probe < 1e-14 * abs(t0)  # (below the underflow's threshold: t cannot resolve it)
+
+
+@pytest.mark.parametrize("h0", [1e3, 1e7])
+@pytest.mark.parametrize("rtol, jit", [(1e-6, "auto"), (1e-6, False), (1e-2, "auto")])
+def test_a_first_step_far_above_the_probe_s_shrinks_unfiltered(h0, rtol, jit):
+    """A user's h0 = 1e7 on the oscillator from t0 = 0 over (0, 1e8) (h omega = 1e7) was accepted on the
+    refiltered estimate and damped x^2 + v^2 to 1e-22 as "success" in 4 steps (h0 = 1e3 too at rtol 1e-2).
+    Unfiltered, the estimate reads the step's damping (-y0: rejected), and h shrinks to the probe's step, where
+    RADAU5's refiltering starts: at rtol 1e-6 the span then needs ~1e8 steps, which max_steps cannot give
+    (named); at 1e-2 the first step keeps x^2 + v^2 within 10 rtol.  (Over that span, at rtol 1e-2, the local
+    errors then add up to damping the oscillation away in 2,500 steps, as without h0: local error control.)
+    Over (0, 50) the same h0 ends within 40 rtol of the exact cos t (3.6e-9 at rtol 1e-6, 3.2e-2 at 1e-2)."""
+    compiled = _oscillator(0.0).compile()
+    if rtol < 1e-3:
+        with pytest.raises(E.StepLimitError, match=r"radau: max_steps = 100000 cannot suffice"):
+            dm.solve(compiled, (0.0, 1e8), rtol=rtol, atol=rtol, h0=h0, jit=jit)
+    else:
+        sol = dm.solve(compiled, (0.0, 1e8), rtol=rtol, atol=rtol, h0=h0, jit=jit)
+        assert sol.t[1] < 10 and abs(np.hypot(sol["x"][1], sol["v"][1]) - 1) < 10 * rtol
+    sol = dm.solve(compiled, (0.0, 50.0), rtol=rtol, atol=rtol, h0=h0, jit=jit)
+    assert sol.status == "success" and sol.stats["rejected_steps"] >= 2
+    assert np.abs(sol["x"] - np.cos(sol.t)).max() < 40 * rtol
+    assert np.abs(np.hypot(sol["x"], sol["v"]) - 1).max() < 40 * rtol
+
+
+def test_a_large_first_step_on_a_decaying_mode_still_solves():
+    """Where the flow damps the mode, the large first steps still end right: y' = -1e6 (y - cos t) from y0 = 0.95
+    with h0 = 1 or 1e3 (the exact solution: the slow manifold plus the transient) and y' = -y with h0 = 1e7."""
+    m = dm.Model("stiff")
+    m.states("y")
+    m.ode("y", "-1e6*(y - cos(t))")
+    m.initial(y=0.95)
+    compiled = m.compile()
+    slow = lambda t: (1e12 * np.cos(t) + 1e6 * np.sin(t)) / (1e12 + 1)  # noqa: E731
+    for h0 in (1.0, 1e3):
+        sol = dm.solve(compiled, (0.0, 10.0), rtol=1e-6, atol=1e-6, h0=h0)
+        exact = slow(sol.t) + (0.95 - slow(0.0)) * np.exp(-1e6 * sol.t)
+        assert sol.status == "success" and np.abs(sol["y"] - exact).max() < 4e-6
+    m = dm.Model("decay")
+    m.states("y")
+    m.ode("y", "-y")
+    m.initial(y=1.0)
+    sol = dm.solve(m.compile(), (0.0, 100.0), rtol=1e-6, atol=1e-6, h0=1e7)
+    assert sol.status == "success" and np.abs(sol["y"] - np.exp(-sol.t)).max() < 1e-8
