@@ -114,6 +114,8 @@ class CasadiEngine(AbstractEngine):
         self._f, self._residual, self._jac, self._stage_jac = (*(lend(self, fn) for fn in functions[:3]), None)
         self.rows, self.cols = functions[4:]
         self._functions = functions
+        if self._stage_f is not None:  # (the same packed input as the residual's: one buffer of it)
+            self._stage_f.read_input_of(self._residual)
         D = self.D
         # sparse: the full Newton matrix's CSC layout (factor_stages, on first use), the band order (_sparse_layout)
         self._stage_layout = self._order = None
@@ -525,15 +527,19 @@ class CasadiEngine(AbstractEngine):
         return self._f.packed(t, y[0], z[0], self.p)[None]
 
     def residual(self, t, h, y, W):
+        """The stage residual in the function's output buffer, which the next call overwrites (a copy of 0.6 MB
+        a call at 10^4 unknowns, s = 5, was in the solve's peak): a caller copies what it keeps longer
+        (:meth:`.step.Stepper.accept` f at the last stage)."""
         s, n, D = self.s, self.n, self.D
-        out = self._residual.packed(t, h, y[0], W, self.p)
+        out = self._residual.packed(t, h, y[0], W, self.p, copy=False)
         R = out[: s * D].reshape(1, s, D)
         return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
 
     def stage_values(self, t, h, y, W):
+        """f at the stages, in the function's output buffer (as :meth:`residual`'s)."""
         if self._stage_f is None:  # (up to INLINED_RESIDUAL_MAX_SIZE unknowns: the residual inlines f)
             return super().stage_values(t, h, y, W)
-        f = self._stage_f.packed(t, h, y[0], W, self.p)
+        f = self._stage_f.packed(t, h, y[0], W, self.p, copy=False)
         return Residual(R=None, stage_f=f.reshape(1, self.s, self.n), G=None)
 
     def jacobian(self, t, y, z):

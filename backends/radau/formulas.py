@@ -186,9 +186,10 @@ class ArrayOps:
         x = x.reshape(x.shape[0], -1)
         return self.xp.sqrt((x * x).sum(axis=-1) / x.shape[-1])
 
-    def rms_ratio(self, a, b):
-        """:meth:`rms` of ``a / b``, squared in place: one temporary of a's size, not two (the same bits)."""
-        x = a / b
+    def rms_ratio(self, a, b, out=None):
+        """:meth:`rms` of ``a / b``, squared in place: one temporary of a's size, not two (the same bits), or
+        none where ``out`` (an array of a's shape, overwritten) is given."""
+        x = a / b if out is None else self.xp.divide(a, b, out=out)
         x *= x
         x = x.reshape(x.shape[0], -1)
         return self.xp.sqrt(x.sum(axis=-1) / x.shape[-1])

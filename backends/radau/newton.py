@@ -108,6 +108,9 @@ class Newton:
         # slow contraction ends the attempt with the transformed systems and no rescue (the controller
         # shrinks h, as RADAU5 does); else slow_contraction refreshes the matrices
         slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
+        # (the first increment makes Newton's own stage values, later ones are added in place: the guess stays the
+        # caller's, a retry's; the increment's norm is squared in the engine's scratch where it has one)
+        own, scratch = False, None if engine.increment is None else engine.increment.scratch
         while state.active:  # (no idle pass: Python's branch where every sample is done)
             mode = state.mode
             r = dW = None  # (the last pass's go before the next are made: two of each were the solve's peak)
@@ -117,7 +120,7 @@ class Newton:
                 r, dW = engine.newton_step(factors, t, h, stepper.y, W)
                 if stepper.B > 1 and mode == formulas.ITERATING:
                     dW = dW * state.iterating[:, None, None]  # samples that converged keep their stage values
-                norm = stepper.ops.rms_ratio(dW, scale)
+                norm = stepper.ops.rms_ratio(dW, scale, out=scratch)
             found = newton_pass(
                 ops, state, norm, policy.tol, policy.iterations, to_rounding=policy.to_rounding,
                 slow_ends=slow_ends, trust_last_rate=policy.trust_last_rate,
@@ -125,7 +128,11 @@ class Newton:
             )  # fmt: skip
             state, tests = found.state, found.tests
             if found.iterate:  # (a refuted check's increment moves the samples it refuted)
-                W = W + (dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW)
+                step = dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW
+                if own:
+                    W += step
+                else:
+                    W, own = W + step, True
             if state.outcome != formulas.CONVERGED:
                 stats["residual_evaluations"] += state.evaluations
                 return None, state.k, *self.failure(state, tests, r, dW, t, h)

@@ -40,13 +40,13 @@ class Records:
             self.values.append(arrays[:, :, -1])
         self.count += len(times)
 
-    def release(self, shown: int) -> None:
+    def release(self, shown: int, newest: bool = True) -> None:
         """With ``outputs``: drop the nodes of the blocks before the ``shown``-th (0: the start value), whose
-        outputs at t_eval were filled (the newest's stay: the next step's start guess reads them anyway).
-        Otherwise the records keep all nodes (``dense``) or none."""
+        outputs at t_eval were filled (the newest's stay, unless not ``newest``: the next step's start guess reads
+        them, until the next block comes).  Otherwise the records keep all nodes (``dense``) or none."""
         if self.outputs is None:
             return
-        for k in range(max(min(shown, len(self.times) - 1), 1) - 1):
+        for k in range(max(min(shown, len(self.times) - 1) - (1 if newest else 0), 0)):
             self.nodes[k] = None
 
     def ends(self, xp):
