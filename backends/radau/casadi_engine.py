@@ -527,13 +527,11 @@ class CasadiEngine(AbstractEngine):
         return self._f.packed(t, y[0], z[0], self.p)[None]
 
     def residual(self, t, h, y, W):
-        """The stage residual in the function's output buffer, which the next call overwrites (a copy of 0.6 MB
-        a call at 10^4 unknowns, s = 5, was in the solve's peak): a caller copies what it keeps longer
-        (:meth:`.step.Stepper.accept` f at the last stage)."""
-        s, n, D = self.s, self.n, self.D
+        """The stage residual in the function's output buffer, overwritten by the next call (no 0.6 MB copy at
+        10^4 unknowns, s = 5): a caller copies what it keeps (:meth:`.step.Stepper.accept`: f at the last stage)."""
         out = self._residual.packed(t, h, y[0], W, self.p, copy=False)
-        R = out[: s * D].reshape(1, s, D)
-        return Residual(R=R, stage_f=out[s * D :].reshape(1, s, n), G=R[..., n:])
+        R = out[: self.s * self.D].reshape(1, self.s, self.D)
+        return Residual(R=R, stage_f=out[self.s * self.D :].reshape(1, self.s, self.n), G=R[..., self.n :])
 
     def stage_values(self, t, h, y, W):
         """f at the stages, in the function's output buffer (as :meth:`residual`'s)."""
@@ -547,12 +545,10 @@ class CasadiEngine(AbstractEngine):
 
     def stage_jacobians(self, t, h, W):
         self._stage_jac = self._stage_jac or lend(self, self._functions[3])  # (s J's: lent at first use)
-        values = self._stage_jac.packed(t, h, W, self.p)
-        return list(values.reshape(self.s, -1))
+        return list(self._stage_jac.packed(t, h, W, self.p).reshape(self.s, -1))
 
     def _dense(self, values) -> np.ndarray:
-        J = np.zeros((self.D, self.D))
-        J[self.rows, self.cols] = values
+        (J := np.zeros((self.D, self.D)))[self.rows, self.cols] = values
         return J
 
     def _csr(self, values):
