@@ -27,18 +27,6 @@ from daemodel.backends.radau import formulas
 
 from daemodel.errors import LocalErrorBoundError
 
-# The refiltered estimate of a fixed step judges it only where the flow damps what the filter damps
-# (ErrorEstimate.flow_damps), read on at most this many Ritz values of the filter (Arnoldi's solves, made only
-# where the unfiltered estimate is beyond its bound): an oscillator and a stiff mode together (3 states) read
-# on 2 passed an oscillator damped to 1e-66 at h = 1e7 as "success"
-FILTER_KRYLOV = 8
-# ... and a mode may be damped by the filter up to this many times more than by the flow: a slow mode's
-# |h lambda| < 5, oscillating or not, barely filtered (1 / |1 - gamma0 h lambda|, 1.7 at h omega = 5), beside a
-# stiff mode's transient (in one sample, or in a batch) must not block the filter; h omega = 1e7's is 2.7e6
-FILTER_EXCESS = 2.0
-# Arnoldi stops where the next vector is below this share of the column's largest entry (an invariant space)
-KRYLOV_BREAKDOWN = 1e-10
-
 
 class ErrorEstimate:
     """The local error estimate of the steps of one :class:`~.step.Stepper`."""
@@ -108,11 +96,7 @@ class ErrorEstimate:
             # estimate flagged y' = -1e6 (y - cos t) at h = 0.01 from y0 = 0.95 at 2.6e-2, 1.5e-5 off
             filtered = xp.abs(self.refiltered(t, err, matrices)) / self.scale
             if bool(xp.isfinite(filtered).all()):  # (f at y + err may leave f's domain: keep the first then)
-                # (and lower than the first only in a sample where the filter's damping is the flow's: an
-                # oscillator at h omega = 1e7 read 1e-7 refiltered, and came back damped to 1e-66 as "success";
-                # higher it is taken, as before: the CSTR's steps at h = 1 read 0.41 and 1.5, refiltered 1.8, 4.9)
-                damps = stepper.engine.asarray(self.flow_damps(h, err, matrices[0]).astype(float))[:, None] > 0.5
-                raw = xp.where(damps, filtered, xp.maximum(raw, filtered))
+                raw = filtered
                 ratio = raw * index_weight
                 worst = float(ratio.max())
         if worst <= LOCAL_ERROR_BOUND:  # the usual case: False for NaN too
@@ -141,35 +125,6 @@ class ErrorEstimate:
             "singular, switch or change too fast there); take a smaller h, or the adaptive mode (rtol=...)"
         )
 
-    def flow_damps(self, h, err, factors) -> np.ndarray:
-        """Whether, in each sample (a bool array (B,)), the exact flow damps the estimate ``err`` (B, n+m)
-        over the step about as much as the stiff filter ``F = (I - h gamma0 J)^-1`` does, so that the
-        refiltered estimate may judge the step.
-
-        The filter damps every mode of ``|h lambda| >> 1`` by ``|mu| = 1 / |1 - gamma0 h lambda|``, the
-        flow by ``exp(Re h lambda)``: a decaying mode (y' = -1e6 (y - cos t) at h = 0.01) is damped by
-        both, an oscillator (x' = v, v' = -x at h = 1e7) by the filter alone, and the step damped it to
-        1e-66 where the refiltered estimate read 1e-7.  The modes that the states' part of ``err`` excites
-        are read off the Ritz values ``mu`` of F on the Krylov space of ``err`` (Arnoldi, up to
-        :data:`FILTER_KRYLOV` solves with the factored matrix, in the error's units; on an invariant space,
-        as one decaying mode's or one oscillation's, they are its eigenvalues, whatever the scaling): each
-        gives ``h lambda = (1 - 1 / mu) / gamma0``, and none may be damped by the filter more than
-        :data:`FILTER_EXCESS` times the flow (:func:`ritz_values_damp`)."""
-        stepper, n = self.stepper, self.stepper.n
-        if not n:
-            return np.ones(err.shape[0], dtype=bool)
-        xp, engine = stepper.xp, stepper.engine
-        zeros = xp.zeros_like(err[:, n:])
-        unit = numpy_copy(self.scale[:, :n])
-        hg = h * self.gamma0
-
-        def F(v):  # (the filter on the states' part, (M - h gamma0 J)^-1 M's states' rows, in the error's units)
-            rhs = xp.concatenate([engine.asarray(v * unit) / hg, zeros], axis=-1)
-            return numpy_copy(engine.error_solve(factors, rhs)[:, :n]) / unit
-
-        ritz = krylov_ritz_values(F, numpy_copy(err[:, :n]) / unit)
-        return np.array([ritz_values_damp(mu, self.gamma0) for mu in ritz], dtype=bool)
-
     def status(self, method: str, bound: float) -> str:
         """The fixed grid's status: "success", or flagged at its worst step beyond ``bound`` (see
         :func:`~daemodel.backends.base.estimate_status`)."""
@@ -182,61 +137,6 @@ class ErrorEstimate:
         where = f"step {step} from t = {t:.6g} (h = {h:.3g}), in '{name}'"
         where += f", sample {sample}" if stepper.B > 1 else ""
         return estimate_status(method, worst, bound, where)
-
-
-def krylov_ritz_values(F, q, dimension=None) -> list:
-    """Each sample's Ritz values of the linear map ``F`` ((B, n) to (B, n), samples apart) on the Krylov space
-    of ``q`` (B, n), by Arnoldi (Gram-Schmidt twice) up to ``dimension`` (default :data:`FILTER_KRYLOV`)
-    vectors, or fewer where the space is invariant: a list of B arrays of complex values (none where q is 0
-    or not finite: judged by the caller as damped, and a non-finite one as not)."""
-    B, n = q.shape
-    k = min(n, dimension or FILTER_KRYLOV)
-    norms = np.linalg.norm(q, axis=1)
-    if not np.isfinite(q).all():
-        return [np.array([np.nan + 0j])] * B
-    V = np.zeros((B, k + 1, n))
-    H = np.zeros((B, k + 1, k))
-    V[:, 0] = q / np.where(norms > 0, norms, 1.0)[:, None]
-    size = np.where(norms > 0, 0, -1)  # each sample's dimension so far (-1: q = 0, no Ritz value)
-    live = norms > 0
-    for j in range(k):
-        if not live.any():
-            break
-        w = F(V[:, j])
-        for _ in range(2):
-            for i in range(j + 1):
-                c = np.einsum("bn,bn->b", V[:, i], w)
-                H[:, i, j] += np.where(live, c, 0.0)
-                w = w - c[:, None] * V[:, i]
-        beta = np.linalg.norm(w, axis=1)
-        size = np.where(live, j + 1, size)
-        scale = np.abs(H[:, : j + 1, j]).max(axis=1)
-        live = live & np.isfinite(beta) & (beta > KRYLOV_BREAKDOWN * scale)
-        H[:, j + 1, j] = np.where(live, beta, 0.0)
-        V[:, j + 1] = np.where(live[:, None], w / np.where(beta > 0, beta, 1.0)[:, None], 0.0)
-    out = []
-    for b in range(B):
-        m = max(int(size[b]), 0)  # (-1: q = 0, no block)
-        block = H[b, :m, :m]
-        if not np.isfinite(block).all():
-            out.append(np.array([np.nan + 0j]))  # (F left the finite numbers: judged as not damped)
-        else:
-            out.append(np.linalg.eigvals(block) if m else np.array([], complex))
-    return out
-
-
-def ritz_values_damp(mus, gamma0) -> bool:
-    """Whether for every Ritz value ``mu`` of the filter (:func:`krylov_ritz_values`) the flow damps its mode
-    about as much as the filter: ``Re h lambda <= log |mu| + log FILTER_EXCESS`` with ``h lambda = (1 - 1 / mu)
-    / gamma0`` (see :meth:`ErrorEstimate.flow_damps`); False for a value that is not finite."""
-    for mu in np.asarray(mus, dtype=complex):
-        if not np.isfinite(mu):
-            return False
-        if mu == 0:
-            continue  # (damped to nothing: h lambda -> -inf along it)
-        if ((1 - 1 / mu) / gamma0).real > np.log(abs(mu) * FILTER_EXCESS):
-            return False
-    return True
 
 
 def numpy_copy(values) -> np.ndarray:
