@@ -131,7 +131,12 @@ def _decay_with_rate():
 
 
 @pytest.mark.parametrize(
-    "model", [PENDULUM.model, _decay_with_rate, pytest.param(HESSENBERG.model, id="hessenberg")], ids=str
+    "model",
+    [
+        pytest.param(PENDULUM.model, id="pendulum"),
+        pytest.param(_decay_with_rate, id="decay_with_rate"),
+        pytest.param(HESSENBERG.model, id="hessenberg"),
+    ],
 )
 def test_the_casadi_kernel_equals_the_torch_residuals_and_jacobian(model):
     """One sample's residuals and Jacobian from casadi's kernel (LM's path for a trajectory on the
