@@ -6,6 +6,13 @@ import daemodel as dm
 from daemodel.problems import PROBLEMS
 
 
+def pytest_configure(config):
+    """Under pytest-xdist (pyproject's ``-n 2``) each worker runs torch on one thread: two workers of two
+    threads each on CI's two cores would oversubscribe them.  The processes the tests start inherit it."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
 @pytest.fixture(scope="session", autouse=True)
 def compiled_cache(tmp_path_factory):
     """The cache of compiled libraries (daemodel.cache) of the whole run, in a temporary folder: the
