@@ -14,6 +14,7 @@ field) and 200 random ones, one test per category, only when asked for with
 """
 
 import dataclasses
+import os
 import pickle
 
 import fuzz_cases as F
@@ -22,6 +23,10 @@ from fuzz_cases import Case, Lazy
 
 FAST_TIMEOUT = 20.0
 SLOW_TIMEOUT = 30.0
+# Cases run at a time: 2 on CI's two cores, 1 under pytest-xdist (pyproject's -n 2), whose other worker has the
+# other core: two cases beside it put 3 processes on 2 cores, and a case near its time limit alone (Robertson
+# under RK45, ~26 s alone) ran past it.
+JOBS = 1 if os.environ.get("PYTEST_XDIST_WORKER") else 2
 SLOW_SEED, SLOW_RANDOM = 1, 200
 
 # Cases that check the instrument itself (independent of daemodel's state): each must get the
@@ -107,7 +112,7 @@ FAST = F.fast_cases()
 
 @pytest.fixture(scope="module")
 def fast_results():
-    results, meta = F.run_cases([*FAST, *INSTRUMENT], timeout=FAST_TIMEOUT, jobs=2)
+    results, meta = F.run_cases([*FAST, *INSTRUMENT], timeout=FAST_TIMEOUT, jobs=JOBS)
     assert "import_error" not in meta, meta
     return {r["id"]: r for r in results}
 
@@ -174,7 +179,7 @@ def slow_results(request):
     fast = {_without_id(case) for case in FAST}
     fixed = [case for case in F.fixed_cases() if _without_id(case) not in fast]
     cases = [*fixed, *F.random_cases(SLOW_RANDOM, seed=SLOW_SEED)]
-    results, meta = F.run_cases(cases, timeout=SLOW_TIMEOUT, jobs=2)
+    results, meta = F.run_cases(cases, timeout=SLOW_TIMEOUT, jobs=JOBS)
     assert "import_error" not in meta, meta
     return cases, results
 
