@@ -158,7 +158,7 @@ def make_solution(
 
     from daemodel.compiling.batch_function import claim_generated, generating_seconds
     from daemodel.compiling.initial_states import check_branch
-    from daemodel.solution import Solution
+    from daemodel.solution import Columns, Solution
 
     began, made = time.perf_counter(), generating_seconds()  # (the check is part of the solve: on its clock)
     name = backend if isinstance(backend, str) else backend.name
@@ -188,7 +188,7 @@ def make_solution(
     columns.flags.writeable = False
     return Solution(
         t=np.asarray(times, dtype=float),
-        values=dict(zip(names, columns, strict=True)),
+        values=Columns(names, columns),  # (each name's view made when read: 10^4 views were 1.5 MB)
         method=backend if isinstance(backend, str) else backend.name,
         settings=settings,
         solve_time=solve_time,

@@ -355,3 +355,41 @@ def test_a_solution_of_a_model_that_switches_on_a_state_loads_with_its_model(met
     assert abs(loaded.events["Abs in y'"]["t"][0, 0] - 1.0) < 1e-9
     np.testing.assert_array_equal(loaded["y"], sol["y"])
     assert abs(loaded["y"][-1] - 1.0) < 1e-8
+
+
+def test_a_backends_values_are_views_of_one_block_made_when_read():
+    """Columns (Solution.values as backends make it): each name's values a read-only view of the block's row,
+    made when read, not held; names added later (aliases) hold their own; its mistakes named."""
+    from daemodel.solution import Columns
+
+    block = np.arange(12.0).reshape(3, 1, 4)
+    columns = Columns(("a", "b", "c"), block)
+    assert columns._index is None  # (nothing made by name until a name is read)
+    assert list(columns) == ["a", "b", "c"] and len(columns) == 3 and "b" in columns and "d" not in columns
+    np.testing.assert_array_equal(columns["b"], [[4.0, 5.0, 6.0, 7.0]])
+    assert np.shares_memory(columns["c"], block)
+    columns["d"] = np.zeros((1, 4))
+    assert list(columns) == ["a", "b", "c", "d"] and len(columns) == 4 and columns.arrays()[0] is block
+    assert dict(columns.items())["d"].tolist() == [[0.0] * 4]
+    with pytest.raises(KeyError, match="'e'"):
+        columns["e"]
+    with pytest.raises(ValueError, match=r"'a' has values already"):
+        columns["a"] = np.zeros((1, 4))
+    with pytest.raises(ValueError, match=r"2 names for 3 variables' values"):
+        Columns(("a", "b"), block)
+
+
+def test_a_solutions_values_by_name_alias_and_array_from_the_backends_block():
+    """A radau solution's values: sol[name], the aliases' (computed after the solve), sol.values as a mapping."""
+    m = dm.Model("aliased")
+    x, y = m.states("x y")
+    (w,) = m.algebraics("w")
+    m.ode(x, -x)
+    m.ode(y, -2 * y)
+    m.constraint(w - x, "alias")
+    m.initial(x=1.0, y=1.0)
+    sol = dm.solve(m, (0.0, 1.0), method="radau", rtol=1e-8, atol=1e-10, t_eval=[0.0, 0.5, 1.0])
+    np.testing.assert_allclose(sol["x"], np.exp(-sol.t), rtol=1e-6)
+    np.testing.assert_allclose(sol["y"], np.exp(-2 * sol.t), rtol=1e-6)
+    np.testing.assert_allclose(sol["w"], sol["x"], rtol=1e-12)
+    assert set(sol.values) == {"x", "y", "w"} and not sol["x"].flags.writeable and not sol["w"].flags.writeable

@@ -76,24 +76,29 @@ class Records:
 
     def polynomials(self, c):
         """The steps' :class:`~daemodel.dense.CollocationPolynomials` (numpy), or None without ``dense``
-        or steps.  The blocks' nodes move into it: each is copied into the joined array and dropped from
-        the records at once, so that the solve's peak holds them once and a block, not twice (at 10^5
-        unknowns and s = 5, 4.8 MB a step); the records keep no nodes after it (the solve's last use)."""
+        or steps: of the blocks :meth:`join` made one (their nodes are the records' own, not a copy)."""
         if not self.dense or not self.starts:
             return None
-        from daemodel.dense import CollocationPolynomials
+        self.join()
+        return self.block_polynomials(1, c)
 
-        if len(self.nodes) == 1:
-            return self.block_polynomials(1, c)
+    def join(self) -> None:
+        """With ``dense``, the blocks' nodes moved into one array, the records' only block from now on: each
+        block is copied in and dropped at once, so that the solve's peak holds them once and a block, not
+        twice (at 10^5 unknowns and s = 5, 4.8 MB a step).  Before :meth:`.step.Stepper.dense_output` makes
+        the values at t_eval: the joined nodes and those values were not all held at once beside the blocks
+        (0.88 MB of a first solve's peak at 10^4 unknowns, 11 outputs)."""
+        if not self.dense or len(self.nodes) < 2:
+            return
         B, _, stages, D = self.nodes[0].shape
         nodes, at = np.empty((B, sum(block.shape[1] for block in self.nodes), stages, D)), 0
         for k, block in enumerate(self.nodes):
             nodes[:, at : at + block.shape[1]] = numpy_copy(block)
             at += block.shape[1]
             self.nodes[k] = None
-        self.nodes = []
-        starts, lengths = np.concatenate(self.starts).astype(float), np.concatenate(self.lengths).astype(float)
-        return CollocationPolynomials(c=np.asarray(c, dtype=float), starts=starts, lengths=lengths, nodes=nodes)
+        self.nodes = [nodes]
+        self.starts = [np.concatenate(self.starts).astype(float)]
+        self.lengths = [np.concatenate(self.lengths).astype(float)]
 
     def nodes_of(self, steps: np.ndarray, xp, index):
         """The nodes of ``steps`` (ascending step numbers), ``(B, len(steps), s+1, n+m)``, gathered

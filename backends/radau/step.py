@@ -245,6 +245,8 @@ class Stepper:
             reached = self.records.times[-1][-1]
             if outputs is not None:
                 return outputs.result(reached)
+            if self.xp is np:  # (the dense output's nodes joined before the values at t_eval are made: .records)
+                self.records.join()
             return self.dense_output(t_out[t_out <= reached], u0, t0, self.records)
         times, values = self.records.ends(self.xp)
         return times, numpy_copy(values)
