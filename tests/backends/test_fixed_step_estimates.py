@@ -230,7 +230,8 @@ def test_the_filter_s_ritz_values_tell_a_decaying_mode_from_an_oscillation():
     h lambda = -1e4 is damped by the flow (exp(-1e4)) beyond the filter's 1 / (1 + 1e4 gamma0); h lambda =
     +-1e7 i, also with the state scaled 1 : 100 (x' = 100 v, v' = -x / 100), is not, nor 10 i (2.9 times);
     h lambda = 1e-3 i and 3 i are barely filtered (1.0 and 1.3 times: within FILTER_EXCESS).  A row whose
-    values are not finite is judged on its own (not damped), the others as before."""
+    values are not finite is judged on its own (not damped), the others as before; a Ritz value within
+    RITZ_ROUNDING of zero is zero."""
     from daemodel.backends.radau.error import krylov_ritz_values, ritz_values_damp
 
     gamma0 = 0.2748888295956774  # (three stages' real eigenvalue of A)
@@ -257,6 +258,10 @@ def test_the_filter_s_ritz_values_tell_a_decaying_mode_from_an_oscillation():
     assert np.allclose(sorted(mus, key=np.imag), 1 / (1 - gamma0 * np.array([-1e7j, 1e7j])), rtol=1e-9)
     assert krylov_ritz_values(filter_of([[-1.0]]), np.zeros((1, 1)))[0].size == 0  # (no error: nothing to judge)
     assert not ritz_values_damp([np.nan], gamma0)
+    # a value at rounding's size is a direction the filter annihilates (a constraint's normal: the squeezer's
+    # read -7e-17, "h lambda = +5e16"); a growing mode's is not, nor an oscillation's at h omega = 1e7
+    assert ritz_values_damp([-7e-17, 0.78], gamma0) and not ritz_values_damp([-1e-7, 0.78], gamma0)
+    assert not ritz_values_damp([1 / (1 - gamma0 * 1e7j), 0.78], gamma0)
     decaying = filter_of([[-1e4, 0.0], [0.0, -1.0]])
     rows = krylov_ritz_values(decaying, np.array([[np.nan, 1.0], [1.0, -1.0]]))
     assert not ritz_values_damp(rows[0], gamma0) and ritz_values_damp(rows[1], gamma0)
