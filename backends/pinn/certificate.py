@@ -369,8 +369,7 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     Newton's last increment of the end values (R, D), the step map's sensitivity
     d(y, z)_end / dy_n (R, D, n), and radau's fixed-step estimate of the step (R, D) in radau's units
     (:func:`embedded_estimate`, with ``units`` = (scale (R, D), weight (R, D), estimate_bound, high_index (D,));
-    zeros with
-    ``radau_error=False``)."""
+    zeros with ``radau_error=False``)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
     t_n, h = steps[:, 0], steps[:, 1]
     y_n, z_n = start[:, :n], start[:, n:]
