@@ -37,7 +37,9 @@ networks' own start values.
 The certificate proves closeness to radau, not accuracy.  So that the PINN's status is never better
 than radau's at the same h and stages, every step also carries radau's own fixed-step error estimate
 (:func:`embedded_estimate`: the embedded estimate of order s of :mod:`daemodel.backends.radau.error`,
-at the Radau step's stages from the networks' start), in radau's units (``1 + max|u|`` over the step
+at the Radau step's stages from the networks' start, judged by radau's own function for it,
+:func:`~daemodel.backends.radau.error.fixed_step_units`: the stiff filter once more and where it may lower
+the estimate), in radau's units (``1 + max|u|`` over the step
 starts so far, an index-k algebraic variable's weighted by ``h^(k-1)``): the backend raises
 :class:`~daemodel.errors.LocalErrorBoundError` where radau would, and flags where radau would flag.
 """
@@ -262,6 +264,12 @@ def certify(
     start = as_tensor(values[:, :-1]).transpose(0, 1).reshape(S * B, D)  # row k B + b: segment k of sample b
     steps = np.repeat(np.array(segment_steps(grid)), B, axis=0)  # (S B, 2): t, h of each row
     rows_p = as_tensor(np.tile(np.asarray(p, dtype=float), (S, 1)))
+    # radau's units for its own estimate: 1 + max|u| over the step starts so far (each sample's), and an index-k
+    # algebraic variable's estimate weighted by h^(k-1) (what LOCAL_ERROR_BOUND bounds), per row
+    scale = np.maximum.accumulate(1.0 + np.abs(values[:, :-1]), axis=1).transpose(1, 0, 2).reshape(S * B, D)
+    h = np.array([step for _, step in segment_steps(grid)])
+    weight = np.concatenate([np.ones((S, n)), h[:, None] ** (np.asarray(compiled.algebraic_index, float) - 1)], axis=1)
+    high_index = np.concatenate([np.zeros(n, dtype=bool), np.asarray(compiled.algebraic_index) >= 2])
     chunk = max(1, CERTIFICATE_ENTRIES // ((s + 1) * D) ** 2)
     parts = []
     for first in range(0, S * B, chunk):
@@ -279,10 +287,11 @@ def certify(
                 device,
                 radau_error,
                 newton_tol,
+                (scale[rows], np.repeat(weight, B, axis=0)[rows], estimate_bound, high_index),
             )
         )
-    radau_end, local_e, converged, estimated, rounding, sensitivity, embedded, refiltered = (
-        torch.cat([part[i] for part in parts]) for i in range(8)
+    radau_end, local_e, converged, estimated, rounding, sensitivity, units = (
+        torch.cat([part[i] for part in parts]) for i in range(7)
     )
     pinn_end = torch.cat([y_end, z_end], dim=-1)
     inf = torch.tensor(float("inf"), dtype=torch.float64, device=device)
@@ -292,8 +301,8 @@ def certify(
     def per_step(a):  # rows (S B, ...) -> (S, B, ...)
         return a.reshape(S, B, *a.shape[1:])
 
-    local_d, local_e, rounding, sensitivity, converged, estimated, embedded, refiltered = map(
-        per_step, (local_d, local_e, rounding, sensitivity, converged, estimated, embedded, refiltered)
+    local_d, local_e, rounding, sensitivity, converged, estimated, units = map(
+        per_step, (local_d, local_e, rounding, sensitivity, converged, estimated, units)
     )
     distance = [torch.zeros(B, D, dtype=torch.float64, device=device)]
     error = [torch.zeros(B, D, dtype=torch.float64, device=device)]
@@ -311,8 +320,6 @@ def certify(
     size = 1 + np.abs(values).max(axis=1)  # (B, D): each sample's own scale
     # a step whose Radau error estimate has no correct digit is one radau refuses (its fixed step
     # weighs an index-k algebraic variable's estimate by h^(k-1), as here)
-    h = np.array([step for _, step in segment_steps(grid)])
-    weight = np.concatenate([np.ones((S, n)), h[:, None] ** (np.asarray(compiled.algebraic_index, float) - 1)], axis=1)
     digits = local_e * weight[None] <= LOCAL_ERROR_BOUND * size[:, None, :]
     converged, estimated = (a.transpose(0, 1).cpu().numpy() for a in (converged, estimated))
     failed = np.where(
@@ -331,24 +338,9 @@ def certify(
     if not radau_error:
         return certificate
     ok = (certificate.ratio() <= 1).all(axis=(1, 2)) & (failed == "").all(axis=1)
-    estimate = _radau_units(values, weight, embedded, refiltered, converged, estimate_bound)
+    # radau's own fixed-step estimate (fixed_step_units), NaN where the Newton check failed (no Radau step)
+    estimate = np.where(converged[..., None], units.transpose(0, 1).cpu().numpy(), np.nan)
     return dataclasses.replace(certificate, certified=ok, estimate=estimate, index_weight=weight)
-
-
-def _radau_units(values, weight, embedded, refiltered, converged, estimate_bound) -> np.ndarray:
-    """Radau's fixed-step estimate of every step, (B, S, D), as
-    :meth:`daemodel.backends.radau.error.ErrorEstimate.check_fixed` judges it: ``|err|`` over the
-    scale ``1 + max|u|`` of the step starts so far; where the step's weighted estimate is beyond
-    :data:`LOCAL_ERROR_BOUND` or its unweighted one beyond ``estimate_bound``, the
-    refiltered estimate (the stiff filter once more) where that is finite.  NaN where the Newton
-    check failed (no Radau step to estimate)."""
-    scale = np.maximum.accumulate(1.0 + np.abs(values[:, :-1]), axis=1)  # (B, S, D)
-    embedded, refiltered = (np.abs(a.transpose(0, 1).cpu().numpy()) / scale for a in (embedded, refiltered))
-    first = np.nan_to_num(embedded, nan=np.inf)
-    judged = ((first * weight[None]).max(axis=2) > LOCAL_ERROR_BOUND) | (first.max(axis=2) > estimate_bound)
-    again = judged & np.isfinite(refiltered).all(axis=2)  # (f at y + err may leave f's domain: keep the first)
-    estimate = np.where(again[..., None], refiltered, first)
-    return np.where(converged[..., None], estimate, np.nan)
 
 
 def _unknown_is_inf(a: np.ndarray) -> np.ndarray:
@@ -369,14 +361,15 @@ def _predictions(compiled, config, grid, networks, input_columns, values, p) -> 
     return tuple(torch.stack([row[i] for row in predicted]) for i in range(4))
 
 
-def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, newton_tol: float) -> tuple:
+def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, newton_tol: float, units) -> tuple:
     """For rows of (t, h) ``steps`` (R, 2), starts (R, D) and the networks' stages: the Radau step's
     end values (R, D) by full Newton from those stages, Radau's local error estimate (R, D) (that
     step less the (s+1)-stage one; zeros with ``radau_error=False``), whether the step converged
     and whether the (s+1)-stage one did (R,) each,
     Newton's last increment of the end values (R, D), the step map's sensitivity
-    d(y, z)_end / dy_n (R, D, n), and radau's embedded estimate of the step and its refiltered form
-    (R, D) each (:func:`embedded_estimate`; zeros with ``radau_error=False``)."""
+    d(y, z)_end / dy_n (R, D, n), and radau's fixed-step estimate of the step (R, D) in radau's units
+    (:func:`embedded_estimate`, with ``units`` = (scale (R, D), weight (R, D), estimate_bound, high_index (D,));
+    zeros with ``radau_error=False``)."""
     functions = compiled.torch_functions(dtype=torch.float64, device=device)
     t_n, h = steps[:, 0], steps[:, 1]
     y_n, z_n = start[:, :n], start[:, n:]
@@ -387,7 +380,7 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
     radau_end = torch.cat([radau.Y[:, -1], radau.Z[:, -1]], dim=-1)
     if not radau_error:
         done, zeros = radau.converged, torch.zeros_like(radau_end)
-        return radau_end, zeros, done, done, radau.increment[:, -1], radau.end_sensitivity(), zeros, zeros
+        return radau_end, zeros, done, done, radau.increment[:, -1], radau.end_sensitivity(), zeros
     # the (s+1)-stage step from the same start, started on the s-stage collocation polynomial
     A1, _, c1 = radau_iia(s + 1).to_torch(dtype=torch.float64, device=device)
     nodes = np.concatenate([[0.0], radau_iia(s).c])
@@ -415,20 +408,25 @@ def _steps(compiled, s, steps, start, Y, Z, p, n, device, radau_error: bool, new
         higher.converged,
         radau.increment[:, -1],
         radau.end_sensitivity(),
-        *embedded_estimate(functions, s, t_n, h, y_n, z_n, radau.Y, radau.Z, p),
+        embedded_estimate(functions, s, t_n, h, y_n, z_n, radau.Y, radau.Z, p, *units),
     )
 
 
-def embedded_estimate(functions, s, t_n, h, y_n, z_n, Y, Z, p) -> tuple:
-    """Radau's own embedded local error estimate of each row's step (the one radau's fixed step
-    checks, :mod:`daemodel.backends.radau.error`), at the stage values ``Y`` (R, s, n), ``Z``
-    (R, s, m) of the step from ``t_n``, ``y_n``, ``z_n`` (R, ...) with ``h`` (R,)::
+def embedded_estimate(functions, s, t_n, h, y_n, z_n, Y, Z, p, scale, weight, estimate_bound, high_index):
+    """Radau's own fixed-step local error estimate of each row's step in radau's units (the one radau's fixed
+    step checks: :func:`daemodel.backends.radau.error.fixed_step_units`, the same function), at the stage
+    values ``Y`` (R, s, n), ``Z`` (R, s, m) of the step from ``t_n``, ``y_n``, ``z_n`` (R, ...) with ``h``
+    (R,), over ``scale`` (R, D), with the index weights ``weight`` (R, D), radau's ``estimate_bound`` and
+    ``high_index`` (D,), the algebraic variables of index 2 or more::
 
         ((1 / (h gamma0)) M - J) err = [sum_i (bhat_i - b_i) f(Y_i) / gamma0 + f(y_n); 0]
 
-    with J the Jacobian of (f, g) at the step's start, and the same with ``f`` at ``u_n + err``
-    (the stiff filter once more, which radau applies before it judges a step beyond its bounds).
-    Returns ``(err, refiltered)``, (R, n + m) each, unscaled."""
+    with J the Jacobian of (f, g) at the step's start, and the same with ``f`` at ``u_n + err`` (the stiff
+    filter once more, which radau applies before it judges a step beyond its bounds, where the flow damps
+    what the filter damps).  What radau's fixed step gives differently: J is the one at each step's start
+    (radau's ``reuse_jacobian`` may keep an older one: ``reuse_jacobian=False`` is this), and the start and
+    the scale are the networks' values, not radau's.  Returns a tensor (R, D) on the device of ``Y``."""
+    from daemodel.backends.radau.error import fixed_step_units
     from daemodel.backends.radau.transform import embedded_weights
 
     from daemodel.collocation import model_jacobian
@@ -446,10 +444,25 @@ def embedded_estimate(functions, s, t_n, h, y_n, z_n, Y, Z, p) -> tuple:
     lu, pivots, _ = torch.linalg.lu_factor_ex(matrix)
     zeros = torch.zeros_like(z_n)
 
-    def solve(f):
-        rhs = torch.cat([quadrature + f, zeros], dim=-1)[..., None]
-        return torch.linalg.lu_solve(lu, pivots, rhs)[..., 0]
+    def solve(rhs):  # ((1 / (h gamma0)) M - J)^-1 rhs, rows (R, D)
+        return torch.linalg.lu_solve(lu, pivots, rhs[..., None])[..., 0]
 
-    err = solve(functions.f(t_n, y_n, z_n, p))
-    refiltered = solve(functions.f(t_n, y_n + err[:, :n], z_n + err[:, n:], p))
-    return err, refiltered
+    def as_numpy(a):
+        return a.detach().cpu().numpy()
+
+    err = solve(torch.cat([quadrature + functions.f(t_n, y_n, z_n, p), zeros], dim=-1))
+    estimate = fixed_step_units(
+        as_numpy(err),
+        scale,
+        weight,
+        estimate_bound,
+        lambda: as_numpy(
+            solve(torch.cat([quadrature + functions.f(t_n, y_n + err[:, :n], z_n + err[:, n:], p), zeros], dim=-1))
+        ),
+        lambda rhs: as_numpy(solve(torch.as_tensor(rhs, dtype=Y.dtype, device=Y.device))),
+        as_numpy(h) * gamma0,
+        gamma0,
+        n,
+        high_index,
+    )
+    return torch.as_tensor(estimate, dtype=Y.dtype, device=Y.device)
