@@ -1,9 +1,15 @@
 import os
+import sys
+from pathlib import Path
 
 import pytest
 
 import daemodel as dm
 from daemodel.problems import PROBLEMS
+
+# tests/backends/pinn/pinn_hard_models.py is imported by tests in other folders too (test_pinn.py, test_compare.py,
+# test_radau_control.py): importable whichever file runs alone, not only after pytest has collected its folder.
+sys.path.insert(0, str(Path(__file__).parent / "backends" / "pinn"))
 
 
 def pytest_configure(config):
