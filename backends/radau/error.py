@@ -41,10 +41,11 @@ FILTER_KRYLOV = 8
 FILTER_EXCESS = 2.0
 # Arnoldi stops where the next vector is below this share of the column's largest entry (an invariant space)
 KRYLOV_BREAKDOWN = 1e-10
-# A Ritz value below this share of the largest (or of 1) is the rounding of a direction the filter annihilates
+# A Ritz value below this share of the row's largest is the rounding of a direction the filter annihilates
 # (a constraint's normal in an index-2 system: the squeezer's read 7e-17 to 6e-13, of either sign, and a sign
 # below zero read as a growing mode, h lambda = +5e16, that radau's and the certificate's steps told apart at
-# random); an oscillation's at h omega = 1e7 is 3.6e-7
+# random); an oscillation's at h omega = 1e7 is 3.6e-7, at 1e12 3.6e-12: of the largest, not of 1 (a floor of 1
+# read a lone oscillator's pair at h omega >= 1e12 as zero, damped, and its true error 0.49 came back "success")
 RITZ_ROUNDING = 1e-11
 
 
@@ -286,11 +287,11 @@ def ritz_values_damp(mus, gamma0) -> bool:
     """Whether for every Ritz value ``mu`` of the filter (:func:`krylov_ritz_values`) the flow damps its mode
     about as much as the filter: ``Re h lambda <= log |mu| + log FILTER_EXCESS`` with ``h lambda = (1 - 1 / mu)
     / gamma0`` (see :func:`flow_damps`); False for a value that is not finite.  A value within
-    :data:`RITZ_ROUNDING` of zero is zero: damped to nothing, ``h lambda -> -inf`` along it."""
+    :data:`RITZ_ROUNDING` times the largest is zero: damped to nothing, ``h lambda -> -inf`` along it."""
     mus = np.asarray(mus, dtype=complex)
     if not np.isfinite(mus).all():
         return False
-    zero = RITZ_ROUNDING * max(1.0, float(np.abs(mus).max(initial=0.0)))
+    zero = RITZ_ROUNDING * float(np.abs(mus).max(initial=0.0))  # (of the largest: no floor of 1, see RITZ_ROUNDING)
     for mu in mus:
         if abs(mu) <= zero:
             continue

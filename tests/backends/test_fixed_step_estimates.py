@@ -157,14 +157,16 @@ def _oscillator_and_stiff(w0: float) -> dm.Model:
     return m
 
 
-@pytest.mark.parametrize("h, w0", [(1e7, 0.0), (1e3, 0.0), (1e7, 100.0), (1e3, 1.0)])
+@pytest.mark.parametrize("h, w0", [(1e7, 0.0), (1e3, 0.0), (1e7, 100.0), (1e3, 1.0), (1e12, 0.0), (1e15, 0.0)])
 def test_a_step_that_damps_an_oscillator_is_not_refiltered_into_success(h, w0):
     """The refiltered estimate applies the stiff filter (I - h gamma0 J)^-1 again, which damps an oscillator's
     mode at h omega = 1e7 as much as a decaying one's: h = 1e7 read 1e-7 and came back "success" with
     x^2 + v^2 = 1e-66 (h = 1e3 "flagged" at 3.6e-3, the error being 1), and beside a stiff mode two Ritz
     values passed it too.  The filter's damping must be the flow's; it is not, and the unfiltered estimate
     (0.5 of 1 + max|u| and more) stops the step by name; so does the PINN's certificate, which judges radau's
-    estimate on its steps by the same function."""
+    estimate on its steps by the same function.  At h omega = 1e12 and 1e15 the oscillator's Ritz values (3.6e-12
+    and 3.6e-15, alone in the row) were read as rounding, zero, damped, and both came back "success" with a true
+    error of 0.49 of 1 + max|x|: rounding is judged against the row's largest Ritz value, not against 1."""
     with pytest.raises(E.LocalErrorBoundError, match=r"radau: step 1 from t = 0 with h = .*: the local error estimate"):
         dm.solve(_oscillator_and_stiff(w0), (0.0, 10 * h), h=h)
     if w0 == 0.0:
@@ -262,6 +264,8 @@ def test_the_filter_s_ritz_values_tell_a_decaying_mode_from_an_oscillation():
     # read -7e-17, "h lambda = +5e16"); a growing mode's is not, nor an oscillation's at h omega = 1e7
     assert ritz_values_damp([-7e-17, 0.78], gamma0) and not ritz_values_damp([-1e-7, 0.78], gamma0)
     assert not ritz_values_damp([1 / (1 - gamma0 * 1e7j), 0.78], gamma0)
+    # ... nor a lone oscillation's at h omega = 1e12 (3.6e-12: the row's largest, not rounding)
+    assert not ritz_values_damp(1 / (1 - gamma0 * np.array([1e12j, -1e12j])), gamma0)
     decaying = filter_of([[-1e4, 0.0], [0.0, -1.0]])
     rows = krylov_ritz_values(decaying, np.array([[np.nan, 1.0], [1.0, -1.0]]))
     assert not ritz_values_damp(rows[0], gamma0) and ritz_values_damp(rows[1], gamma0)
