@@ -47,6 +47,8 @@ KRYLOV_BREAKDOWN = 1e-10
 # random); an oscillation's at h omega = 1e7 is 3.6e-7, at 1e12 3.6e-12: of the largest, not of 1 (a floor of 1
 # read a lone oscillator's pair at h omega >= 1e12 as zero, damped, and its true error 0.49 came back "success")
 RITZ_ROUNDING = 1e-11
+# ... and every Ritz value is known to within this share of the largest (eigvals of the Hessenberg matrix)
+RITZ_PRECISION = 1e-14
 
 
 class ErrorEstimate:
@@ -291,11 +293,16 @@ def ritz_values_damp(mus, gamma0) -> bool:
     mus = np.asarray(mus, dtype=complex)
     if not np.isfinite(mus).all():
         return False
-    zero = RITZ_ROUNDING * float(np.abs(mus).max(initial=0.0))  # (of the largest: no floor of 1, see RITZ_ROUNDING)
+    largest = float(np.abs(mus).max(initial=0.0))
+    zero = RITZ_ROUNDING * largest  # (of the largest: no floor of 1, see RITZ_ROUNDING)
     for mu in mus:
-        if abs(mu) <= zero:
+        if abs(mu) <= zero and abs(mu.imag) <= abs(mu.real):  # (an oscillation's is imaginary: judged)
             continue
-        if ((1 - 1 / mu) / gamma0).real > np.log(abs(mu) * FILTER_EXCESS):
+        # Re h lambda to within the Ritz value's rounding (RITZ_PRECISION of the largest), read at its largest:
+        # 1 / mu moves by that over |mu|^2 (an oscillation's at h omega = 1e12 beside a slow mode, 0.78, read
+        # Re h lambda from -2e6 to +2e6 by the sign of its real part's rounding, 1e-17 where 1.3e-23 is true)
+        blur = RITZ_PRECISION * largest / (gamma0 * abs(mu) ** 2)
+        if ((1 - 1 / mu) / gamma0).real + blur > np.log(abs(mu) * FILTER_EXCESS):
             return False
     return True
 

@@ -175,6 +175,25 @@ def test_a_step_that_damps_an_oscillator_is_not_refiltered_into_success(h, w0):
             dm.solve(_oscillator_and_stiff(w0), (0.0, 4 * h), h=h, method="pinn")
 
 
+@pytest.mark.parametrize("omega", [1e11, 1e12])
+def test_an_oscillator_beside_a_slow_mode_is_not_refiltered_into_success(omega):
+    """y' = -y beside x' = omega v, v' = -omega x at h = 1: the oscillator's Ritz values (3.6e-11, 3.6e-12)
+    beside the slow mode's 0.78 were read as rounding (below RITZ_ROUNDING of it), or their real part's rounding
+    (1e-17, the true one 1e-22) as damping, and both came back "success" at 8e-4 with x 0.44 off cos(omega t);
+    the oscillator now stops the step by name, radau and the PINN's certificate alike."""
+    m = dm.Model("slow_and_oscillating")
+    y, x, v = m.states("y x v")
+    m.ode(y, -y)
+    m.ode(x, omega * v)
+    m.ode(v, -omega * x)
+    m.initial(y=1.0, x=1.0, v=0.0)
+    match = r"radau: step 1 from t = 0 with h = 1: the local error estimate of 'x' \(sample 0\) is 0\.5 times"
+    with pytest.raises(E.LocalErrorBoundError, match=match):
+        dm.solve(m, (0.0, 4.0), h=1.0)
+    with pytest.raises(E.LocalErrorBoundError, match=r"pinn: step 1 from t = 0 with h = 1: radau's local error"):
+        dm.solve(m, (0.0, 4.0), h=1.0, method="pinn")
+
+
 def test_each_sample_is_refiltered_where_its_own_flow_damps():
     """A batch (the torch engine) of the oscillator alone and of the stiff mode's transient alone (w0 = 5): at
     h = 0.01 the transient's estimate is refiltered (the oscillator's h omega = 0.01 barely filtered beside it)
@@ -266,6 +285,7 @@ def test_the_filter_s_ritz_values_tell_a_decaying_mode_from_an_oscillation():
     assert not ritz_values_damp([1 / (1 - gamma0 * 1e7j), 0.78], gamma0)
     # ... nor a lone oscillation's at h omega = 1e12 (3.6e-12: the row's largest, not rounding)
     assert not ritz_values_damp(1 / (1 - gamma0 * np.array([1e12j, -1e12j])), gamma0)
+    assert not ritz_values_damp([*(1 / (1 - gamma0 * np.array([1e12j, -1e12j]))), 0.78], gamma0)  # (beside a slow mode)
     decaying = filter_of([[-1e4, 0.0], [0.0, -1.0]])
     rows = krylov_ritz_values(decaying, np.array([[np.nan, 1.0], [1.0, -1.0]]))
     assert not ritz_values_damp(rows[0], gamma0) and ritz_values_damp(rows[1], gamma0)
