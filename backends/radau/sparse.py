@@ -354,7 +354,7 @@ def unique_entries(rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> int:
     and ``D`` unknowns, ``n`` of them differential: the matrix's distinct entries (J's and M's), and at
     least the D pivots."""
     diagonal = np.arange(n, dtype=np.int64) * (D + 1)
-    return max(D, int(sorted_unique(np.concatenate([rows * D + cols, diagonal])).size))
+    return max(D, int(sorted_unique(np.concatenate([rows.astype(np.int64) * D + cols, diagonal])).size))
 
 
 def band_orders(compiled, rows: np.ndarray, cols: np.ndarray, n: int, D: int) -> BandOrder | None:

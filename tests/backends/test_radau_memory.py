@@ -110,11 +110,11 @@ def test_the_solve_peak_within_two_factors():
     outputs were filled as the steps came).  What is live at the peak beside the factors (tracemalloc
     snapshots at it, now inside the integration or the branch check after it: a plateau, several moments within
     0.1 MB): the engines' bound buffers (the residual's input 0.44 and output 0.6 MB, the stencil's stage f
-    0.2, the Jacobian's output 0.24 and its copy 0.24, f's and the first step's: ~1.9 MB), Newton's buffers
-    (right-hand sides, increment, complex right-hand side: 0.96 MB) and its stage values (0.4), the band LUs'
-    shared solve buffers (0.32 MB) and the entries' positions (0.24), the last step's nodes (0.48 MB; 0.96 while
-    an accepted step's replace them), the model's first-solve pieces (the Jacobian's pattern, int64: 0.48 MB;
-    the shifted systems' layout 0.3; the initial values' check's generated code 0.35) and, in a fresh process,
-    the radau modules' import (~1 MB, a constant: 0.03x of the factors at 10^5)."""
+    0.2, the Jacobian's output 0.24 (its copy, 0.24, gone since eac32ac), f's and the first step's: ~1.7 MB),
+    Newton's buffers (right-hand sides, increment, complex right-hand side: 0.96 MB) and its stage values (0.4),
+    the band LUs' shared solve buffers (0.32 MB) and the entries' positions (0.24), the last step's nodes (0.48 MB;
+    0.96 while an accepted step's replace them), the model's first-solve pieces (the Jacobian's pattern, int32
+    since eac32ac: 0.24 MB; the shifted systems' layout 0.3; the initial values' check's generated code 0.35) and,
+    in a fresh process, the radau modules' import (~1 MB, a constant: 0.03x of the factors at 10^5)."""
     peak, sol = first_solve_peak(10_000, False)
     assert peak <= TARGET_OVER_FACTORS * sol.stats["factor_bytes"], peak / sol.stats["factor_bytes"]

@@ -304,6 +304,28 @@ def test_the_entry_bound_is_below_the_factors_entries(first_engine, family, size
     assert engine.D < bound <= lu.entries
 
 
+def test_the_entry_bound_keys_in_int64_from_an_int32_pattern():
+    """The model's pattern is int32 (CompiledDAE.casadi_jacobian_pattern) and rows * D + cols passes 2^31 at
+    46,341 unknowns: its keys are made in int64.  Here D = 10^5 and entry (k + 42949, k + 67296)'s key is
+    2^32 + k (D + 1), which an int32 product wraps onto the diagonal entry (k, k)'s: counted, not merged."""
+    D, extra = 100_000, 1_000
+    k = np.arange(extra)
+    rows = np.concatenate([np.arange(D), k + 42_949]).astype(np.int32)
+    cols = np.concatenate([np.arange(D), k + 67_296]).astype(np.int32)
+    assert int(rows[-1]) * D + int(cols[-1]) > 2**32  # (and (rows * D + cols)[-1] in int32 wraps to k (D + 1))
+    assert radau_sparse.unique_entries(rows, cols, 0, D) == D + extra
+    assert radau_sparse.unique_entries(rows, cols, D, D) == D + extra  # (M's diagonal: the same keys as J's)
+
+
+def test_the_model_pattern_is_int32():
+    compiled = scaling_models.reaction_diffusion(5).compile()
+    rows, cols = compiled.casadi_jacobian_pattern()
+    assert rows.dtype == cols.dtype == np.int32
+    assert {(int(i), int(j)) for i, j in zip(rows, cols, strict=True)} == set(
+        zip(*(a.tolist() for a in compiled.jacobian_pattern()), strict=True)
+    )
+
+
 def test_a_pattern_beyond_the_entry_limit_traces_no_elimination(first_engine, monkeypatch):
     traced = []
     monkeypatch.setattr(radau_sparse.StaticLU, "__init__", lambda self, *a: traced.append(a) or None)
