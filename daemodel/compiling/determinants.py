@@ -92,6 +92,11 @@ def sparse_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) 
     return -1.0 if negative % 2 else 1.0
 
 
+# Diagonal entries :func:`triangular_signs` reads at once (32 kB): one matrix at a time at 10^4 unknowns, a
+# batch's small matrices many at a time
+SIGN_CHUNK_ENTRIES = 4096
+
+
 def triangular_sign(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: int) -> float | None:
     """``sign(det A)`` of an (m, m) matrix whose nonzeros ``values`` (finite) at ``(rows, cols)`` lie on one
     side of the diagonal, from its diagonal alone (0 where an entry of it is 0), or None where they lie
@@ -114,13 +119,19 @@ def triangular_signs(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, m: 
     values = np.asarray(values, dtype=float)
     on = np.flatnonzero(rows == cols)
     if np.bincount(rows[on], minlength=1).max() <= 1:  # (no repeats; np.unique hashes: 4.5 ms at 5 x 10^4)
-        # each matrix's diagonal read from its row, one at a time (a (K, m) copy of them all was 0.44 MB of a
-        # first solve's peak at 10^4 unknowns and 11 outputs); a diagonal entry without a nonzero is a zero
+        # the matrices' diagonals read SIGN_CHUNK_ENTRIES at a time (a (K, m) copy of them all was 0.44 MB of a
+        # first solve's peak at 10^4 unknowns and 11 outputs; one row at a time, a Python loop over a batch's
+        # every sample and output); a diagonal entry without a nonzero is a zero
         signs = np.zeros(len(values))
-        for k, row in enumerate(values):
-            diagonal = row[on]
-            if len(on) == m and np.all(diagonal != 0) and np.isfinite(row).all():
-                signs[k] = -1.0 if np.count_nonzero(diagonal < 0) % 2 else 1.0
+        if len(on) < m:
+            return signs
+        step = max(1, SIGN_CHUNK_ENTRIES // max(m, 1))
+        for first in range(0, len(values), step):
+            part = values[first : first + step]
+            diagonal = part[:, on]
+            negative = np.count_nonzero(diagonal < 0, axis=1)
+            fine = (diagonal != 0).all(axis=1) & np.isfinite(part).all(axis=1)
+            signs[first : first + step] = np.where(fine, np.where(negative % 2, -1.0, 1.0), 0.0)
         return signs
     diagonal = np.zeros((len(values), m))
     np.add.at(diagonal, (slice(None), rows[on]), values[:, on])  # (repeats add)
