@@ -9,6 +9,7 @@ layers are drawn in docs/README.md#layout.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import shutil
 from pathlib import Path
@@ -56,12 +57,29 @@ def layer(module: str) -> int | None:
     return next((i for i, (_, names) in enumerate(LAYERS) if first in names), None)
 
 
-def imports(name: str, path: Path):
+@functools.cache
+def _parsed(text: str) -> ast.Module:
+    """The syntax tree of a module's text, parsed once a run: the planted-import tests read a copy of
+    the whole tree a test and change one file (every file parsed and walked again took ~9 s a test
+    beside another test worker)."""
+    return ast.parse(text)
+
+
+def imports(name: str, path: Path) -> tuple[tuple[int, str, str], ...]:
     """``(line, imported module, imported name or "")`` of every import in the file, relative ones
     resolved; a literal string given to ``importlib.import_module`` or ``__import__`` and a
     ``"module:attribute"`` string naming a daemodel module (a registry's entry) count as imports."""
-    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    return _imports(name, path.name == "__init__.py", path.read_text())
+
+
+@functools.cache
+def _imports(name: str, package_file: bool, text: str) -> tuple[tuple[int, str, str], ...]:
+    return tuple(_walk_imports(name, package_file, _parsed(text)))
+
+
+def _walk_imports(name: str, package_file: bool, tree: ast.Module):
+    package = name.split(".") if package_file else name.split(".")[:-1]
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 yield node.lineno, alias.name, ""
@@ -91,13 +109,22 @@ def _called(func: ast.expr) -> str:
     return func.id if isinstance(func, ast.Name) else func.attr if isinstance(func, ast.Attribute) else ""
 
 
-def private_attributes(name: str, path: Path, table: dict[str, Path]):
+def private_attributes(name: str, path: Path, table: dict[str, Path]) -> tuple[tuple[int, str, str], ...]:
     """``(line, module, name)`` of every private attribute read through a name bound to another
     daemodel module (``import daemodel.a.b as m; m._x``, ``from daemodel.a import b; b._x``,
     ``daemodel.a.b._x``)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    return _private_attributes(name, path.name == "__init__.py", path.read_text(), frozenset(table))
+
+
+@functools.cache
+def _private_attributes(name: str, package_file: bool, text: str, table: frozenset[str]):
+    return tuple(_walk_private_attributes(name, package_file, text, table))
+
+
+def _walk_private_attributes(name: str, package_file: bool, text: str, table: frozenset[str]):
+    tree = _parsed(text)
     bound = {}
-    for _, module, imported in imports(name, path):
+    for _, module, imported in _imports(name, package_file, text):
         if imported and f"{module}.{imported}" in table:
             bound[imported] = f"{module}.{imported}"
     for node in ast.walk(tree):
