@@ -612,13 +612,13 @@ def test_adaptive_steps_stop_at_the_memory_limit(monkeypatch):
 
 
 def test_an_ensemble_too_big_for_memory_is_stopped_before_its_first_chunk(monkeypatch, tmp_path):
-    """2000 samples of 1001 times need 16 MB; with 1 MB allowed the in-memory ensemble is refused
-    before its first chunk, and write_to= (one chunk of 800 KB in memory at a time) runs."""
-    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "1M")
+    """2000 samples of 101 times need 1.6 MB; with 200 KB allowed the in-memory ensemble is refused
+    before its first chunk, and write_to= (one chunk of 81 KB in memory at a time) runs."""
+    monkeypatch.setenv("DAEMODEL_MEMORY_LIMIT", "200K")
     k = {"k": np.linspace(1.0, 2.0, 2000)}
-    with pytest.raises(ResourceLimitError, match=r"ensemble of 2000 samples kept in memory would need 0.0149 GiB"):
-        dm.ensemble(decay, (0.0, 1.0), h=0.001, parameters=k, chunk=100)
-    files = dm.ensemble(decay, (0.0, 1.0), h=0.001, parameters=k, chunk=100, write_to=tmp_path)
+    with pytest.raises(ResourceLimitError, match=r"ensemble of 2000 samples kept in memory would need 0.00151 GiB"):
+        dm.ensemble(decay, (0.0, 1.0), h=0.01, parameters=k, chunk=100)
+    files = dm.ensemble(decay, (0.0, 1.0), h=0.01, parameters=k, chunk=100, write_to=tmp_path)
     assert files.solved == 2000
     part = next(iter(files))
     np.testing.assert_allclose(part["x"][:, -1], np.exp(-part.parameters[:, 0]), rtol=1e-9)
