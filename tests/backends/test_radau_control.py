@@ -218,7 +218,8 @@ def test_a_start_near_rest_is_followed_to_the_tolerance(seed):
     model, rhs, y0 = _near_rest(seed)
     n = len(y0)
     T = float(10 ** np.random.default_rng(100 + seed).uniform(-1, 2))
-    exact = solve_ivp(rhs, (0.0, T), y0, method="Radau", rtol=1e-13, atol=1e-13).y[:, -1]
+    # (DOP853 at 1e-13: within 1.6e-15 of scipy's Radau at 1e-13 on these six, in 5.7 s against 25 s)
+    exact = solve_ivp(rhs, (0.0, T), y0, method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
     compiled = model.compile()
     for stages in (2, 3, 5):
         for rtol in (1e-4, 1e-7):
