@@ -52,6 +52,11 @@ NEWTON_STALL_RATE, NEWTON_STALL_TOL = 0.5, 1e-9
 # Step halvings per Newton step while the residual grows.
 DAMPING_HALVINGS = 14
 PROJECTION_MAXITER = 100
+# Expressions per generated numpy function: more are printed as several functions whose lists are joined.  A
+# line of one code object looked up per allocation (tracemalloc, coverage, a profiler's line events) costs in
+# proportion to the code's length: one function of 10^4 expressions took a traced 10^4-unknown first solve 68 s
+# of its 1.5 s (each piece computes the subexpressions its own expressions share: the same values).
+LAMBDIFY_CHUNK = 256
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,19 @@ class NumericSystem:
         return names, tuple(sp.Symbol(name) for name in ("_t", "_y", "_z", "_p"))
 
     def _lambdify(self, exprs):
+        """The numpy function of ``(t, y, z, p)`` whose value is the list of ``exprs``' values (:data:`LAMBDIFY_CHUNK`
+        at a time, the lists joined)."""
+        exprs = list(exprs)
+        if len(exprs) <= LAMBDIFY_CHUNK:
+            return self._lambdify_piece(exprs)
+        pieces = [self._lambdify_piece(exprs[i : i + LAMBDIFY_CHUNK]) for i in range(0, len(exprs), LAMBDIFY_CHUNK)]
+
+        def joined(t, y, z, p):
+            return [value for piece in pieces for value in piece(t, y, z, p)]
+
+        return joined
+
+    def _lambdify_piece(self, exprs):
         names, arguments = self._arguments
         exprs = [sp.sympify(e) for e in exprs]
         shared = shared_subexpressions(exprs)

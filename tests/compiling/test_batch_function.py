@@ -136,3 +136,32 @@ def test_more_samples_go_to_casadi_where_the_cost_model_says_it_is_cheaper(monke
     tiny = numeric.batch_function([xs[0] * k + z])
     tiny(T[:21], Y[:21], Z[:21], P[:21])
     assert printed == [1, 1]  # (a few instructions at 21 samples: numpy's)
+
+
+def test_many_expressions_are_printed_in_pieces_with_the_same_values(monkeypatch):
+    """Above LAMBDIFY_CHUNK expressions the numpy code is several functions, their lists joined in order (one
+    code object of 10^4 expressions made each traced allocation look its line up across the whole code): the
+    same values bit for bit as one function, a subexpression shared across pieces included, in the function,
+    batch function and Jacobian."""
+    from daemodel.compiling import init
+
+    n = 3 * init.LAMBDIFY_CHUNK + 7
+    states = sp.symbols(f"u0:{n}")
+    shared = sp.exp(-states[0] * t)  # (in every expression: each piece computes it once)
+    exprs = [shared * u**2 + sp.sin(u * k) / (1 + shared) for u in states]
+    rng = np.random.default_rng(3)
+    Y, P = rng.uniform(-1, 1, (5, n)), rng.uniform(0.5, 2, (5, 1))
+    T = rng.uniform(0, 1, 5)
+
+    def values(numeric):
+        F, J = numeric.batch_function(exprs), numeric.batch_jacobian(exprs[:40], states[:40])
+        f = numeric.function(exprs)
+        return F(T, Y, np.zeros((5, 0)), P), J(T, Y, np.zeros((5, 0)), P), f(0.3, Y[0], np.zeros(0), P[0])
+
+    pieces = values(NumericSystem(t, states, (), (k,)))
+    monkeypatch.setattr(init, "LAMBDIFY_CHUNK", n)
+    whole = values(NumericSystem(t, states, (), (k,)))
+    for a, b in zip(pieces, whole, strict=True):
+        np.testing.assert_array_equal(a, b)
+    s = np.exp(-Y[:, :1, None] * T[:, None, None])[..., 0]
+    np.testing.assert_allclose(pieces[0], s * Y**2 + np.sin(Y * P) / (1 + s), rtol=1e-14)
