@@ -2,6 +2,15 @@ import os
 import sys
 from pathlib import Path
 
+# Under pytest-xdist (pyproject's ``-n 2``) each worker runs numpy's and torch's BLAS and OpenMP on one thread:
+# two workers of two threads each on CI's two cores oversubscribe them, and OpenBLAS's threads, which spin while
+# they wait, made BLAS-bound tests up to 35x slower (a 200 x 200 pinv test: 0.46 s alone, 16-31 s).  Set before
+# numpy and torch are first imported (they read it then: pytest_configure ran after this module's imports, and
+# OpenBLAS kept 2 threads in each worker).  The processes the tests start inherit it.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import pytest
 
 import daemodel as dm
@@ -10,13 +19,6 @@ from daemodel.problems import PROBLEMS
 # tests/backends/pinn/pinn_hard_models.py is imported by tests in other folders too (test_pinn.py, test_compare.py,
 # test_radau_control.py): importable whichever file runs alone, not only after pytest has collected its folder.
 sys.path.insert(0, str(Path(__file__).parent / "backends" / "pinn"))
-
-
-def pytest_configure(config):
-    """Under pytest-xdist (pyproject's ``-n 2``) each worker runs torch on one thread: two workers of two
-    threads each on CI's two cores would oversubscribe them.  The processes the tests start inherit it."""
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 # A cache folder shared by several pytest runs (CI's fast and slow steps: .ci/run sets it); unset, each run has
