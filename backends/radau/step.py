@@ -101,7 +101,7 @@ class Stepper:
         self.records = None  # the accepted steps' outputs (Records)
         self.stop, self.shown = None, 0  # the caller's stop and the blocks of records shown to it (integrate)
         self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
-        self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
+        self._previous = None  # (h, nodes (B, s+1, n+m): u_start and W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
         self._extrapolation = None  # (h / h_old, Lagrange matrices) of the last start guess
         self._extrapolation_polynomial = extrapolation_coefficients(self.s)  # the matrix by Horner's rule
@@ -179,8 +179,10 @@ class Stepper:
             return W
         if self._previous is None:
             return self.constant_guess()
-        h_old, u_old, W_old = self._previous
-        (L, L_high), nodes = self.extrapolation(h / h_old), xp.concatenate([u_old[:, None, :], W_old], axis=1)
+        # (the last step's nodes as they are: a copy of them, joined from its start value and stage values, was the
+        # first solve's peak at 10^5 unknowns, s = 5: 4.8 MB beside them)
+        h_old, nodes = self._previous
+        L, L_high = self.extrapolation(h / h_old)
         W = xp.einsum("ij,bjk->bik", L, nodes)
         if L_high is not None:  # (index-2/3 algebraic variables: formulas.HIGH_INDEX_GUESS_MIN_STAGES)
             W[..., self._high_index] = xp.einsum("ij,bjk->bik", L_high, nodes[..., self._high_index])
@@ -412,7 +414,13 @@ class Stepper:
                 "at a time, loosen rtol, give t_eval, or keep the step ends only (dense_output=False; with a fixed h, "
                 "a grid's size is checked before the solve)"
             )
-        nodes = self.xp.concatenate([self.state()[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
+        # (the last step's nodes go before this one's are made: the start guess has read them; at 10^5 unknowns,
+        # s = 5, both and the stage values were the first solve's peak, 4.8 MB each)
+        u, self._previous = self.state(), None
+        if self.stop is None:  # (and the records' copy of them, t_eval's outputs from them filled: take_steps)
+            self.records.release(len(self.records.times), newest=False)
+        nodes = self.xp.concatenate([u[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
+        del u
         f_end = r.stage_f[:, -1]  # (copied on numpy: the casadi engine's residual is its buffer, the next call's)
         f_end = f_end.copy() if self.xp is np else f_end
         self.take_steps(np.array([t]), np.array([h]), np.array([t_next]), nodes, f_end)
@@ -433,10 +441,14 @@ class Stepper:
             end = nodes[:, :, -1:]
             kept = end.copy() if self.xp is np else end.clone()
         last = nodes[:, -1]  # (B, s+1, n+m)
-        self._previous = (float(lengths[-1]), last[:, 0], last[:, 1:])
+        self._previous = (float(lengths[-1]), last)
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed (B = 1)
             self._previous_nodes = last[0].reshape(-1).copy()
-        self.y, self.z = last[:, -1, : self.n], last[:, -1, self.n :]
+        # (the end values copied where the nodes are not kept to the end: views would keep them beside the next
+        # step's, which accept makes once the start guess has read these)
+        end = last[:, -1]  # (B, n+m)
+        end = end if self.records.dense else end.copy() if self.xp is np else end.clone()
+        self.y, self.z = end[:, : self.n], end[:, self.n :]
         # (t_eval's outputs: the older blocks' nodes go, the last one's too, which nothing reads now, before this
         # block's outputs are filled: two steps' nodes and the fill were the first solve's peak, 10^4 unknowns;
         # with a caller's stop, once it has seen them)
