@@ -131,8 +131,9 @@ class Newton:
                 step = dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW
                 if own:
                     W += step
-                else:
-                    W, own = W + step, True
+                else:  # (in an array of the step's nodes where the stepper has one: accept takes it whole)
+                    buffer = stepper.stage_buffer(np.result_type(W, step)) if xp is np else None
+                    W, own = (W + step if buffer is None else np.add(W, step, out=buffer)), True
             if state.outcome != formulas.CONVERGED:
                 stats["residual_evaluations"] += state.evaluations
                 return None, state.k, *self.failure(state, tests, r, dW, t, h)
