@@ -3,6 +3,7 @@ against it, on reaction-diffusion (benchmarks/scaling_models.py; benchmarks/solv
 
 import functools
 import gc
+import os
 import sys
 import tracemalloc
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau import engines
+from daemodel.backends.radau.backend import TRIM_MIN_UNKNOWNS, _malloc_trim, hand_back_freed_memory
 from daemodel.backends.radau.compiled import find_compiler
 
 import daemodel as dm
@@ -85,6 +87,24 @@ def test_factor_bytes_in_the_stats(size, jit, engine):
     sol = dm.solve(compiled, scaling_models.T_SPAN["reaction_diffusion"], method="radau", jit=jit, engine=engine)
     assert sol.status == "success"
     assert sol.stats["factor_bytes"] >= 2 * size * (8 + 2 * 16)
+
+
+def resident_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(_malloc_trim() is None or not os.path.exists("/proc/self/statm"), reason="not glibc on Linux")
+def test_a_large_solve_hands_the_freed_pages_back():
+    """From TRIM_MIN_UNKNOWNS unknowns, the pages the C heap freed under a block still held go back to the system
+    (the resident set falls by most of them); below, they stay (a small solve pays no heap walk)."""
+    blocks = [np.ones(8192) for _ in range(400)]  # (64 KB each, 26 MB: the C heap's, under its mmap threshold)
+    del blocks[:-1]  # (the last one held: the freed pages lie under it, not at the heap's top)
+    before = resident_bytes()
+    hand_back_freed_memory(TRIM_MIN_UNKNOWNS - 1)
+    kept = resident_bytes()
+    hand_back_freed_memory(TRIM_MIN_UNKNOWNS)
+    assert before - kept < 4e6 and kept - resident_bytes() > 20e6, (before, kept, resident_bytes())
 
 
 @needs_compiler
