@@ -198,7 +198,8 @@ class Stepper:
         # first solve's peak at 10^5 unknowns, s = 5: 4.8 MB beside them)
         h_old, nodes = self._previous
         L, L_high = self.extrapolation(h / h_old)
-        W = xp.einsum("ij,bjk->bik", L, nodes)
+        W = self.stage_buffer(np.result_type(L, nodes)) if xp is np else None  # (the next nodes' array: accept)
+        W = xp.einsum("ij,bjk->bik", L, nodes) if W is None else np.einsum("ij,bjk->bik", L, nodes, out=W)
         if L_high is not None:  # (index-2/3 algebraic variables: formulas.HIGH_INDEX_GUESS_MIN_STAGES)
             W[..., self._high_index] = xp.einsum("ij,bjk->bik", L_high, nodes[..., self._high_index])
         return W
@@ -634,7 +635,9 @@ class GeneralTries(StepperTries):
 
     def attempt(self, matrices, guess):
         """Newton from ``guess``: stage values, or a function that makes them (:meth:`Stepper.constant_guess`)."""
-        return self.stepper.newton.simplified(self.t, self.h, matrices, guess() if callable(guess) else guess)
+        if callable(guess):  # (made for this try alone: Newton adds its increments to it in place)
+            return self.stepper.newton.simplified(self.t, self.h, matrices, guess(), owned=True)
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
 
     def failed(self, result):
         return result[0] is None
