@@ -88,8 +88,9 @@ class Newton:
     def __init__(self, stepper, policy: NewtonPolicy):
         self.stepper, self.policy = stepper, policy
 
-    def simplified(self, t, h, factors, W):
-        """Solve the stage equations from the guess ``W`` with ``factors`` (transformed systems or full).
+    def simplified(self, t, h, factors, W, owned: bool = False):
+        """Solve the stage equations from the guess ``W`` with ``factors`` (transformed systems or full); ``owned``:
+        ``W`` is made for this call alone (numpy), and its increments are added in place.
 
         The passes of :func:`.iteration.newton_pass` (the compiled attempt's, on the samples' arrays),
         each on the increment at the current stage values; around them what Python alone does: no
@@ -109,8 +110,9 @@ class Newton:
         # shrinks h, as RADAU5 does); else slow_contraction refreshes the matrices
         slow_ends = not policy.rescue and not isinstance(factors, StageFactors)
         # (the first increment makes Newton's own stage values, later ones are added in place: the guess stays the
-        # caller's, a retry's; the increment's norm is squared in the engine's scratch where it has one)
-        own, scratch = False, None if engine.increment is None else engine.increment.scratch
+        # caller's, a retry's, unless it is owned; the increment's norm is squared in the engine's scratch where it
+        # has one)
+        own, scratch = owned and xp is np, None if engine.increment is None else engine.increment.scratch
         while state.active:  # (no idle pass: Python's branch where every sample is done)
             mode = state.mode
             r = dW = None  # (the last pass's go before the next are made: two of each were the solve's peak)
@@ -131,8 +133,9 @@ class Newton:
                 step = dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW
                 if own:
                     W += step
-                else:
-                    W, own = W + step, True
+                else:  # (in an array of the step's nodes where the stepper has one: accept takes it whole)
+                    buffer = stepper.stage_buffer(np.result_type(W, step)) if xp is np else None
+                    W, own = (W + step if buffer is None else np.add(W, step, out=buffer)), True
             if state.outcome != formulas.CONVERGED:
                 stats["residual_evaluations"] += state.evaluations
                 return None, state.k, *self.failure(state, tests, r, dW, t, h)

@@ -50,6 +50,15 @@ REUSE_THETA_COMPILED = 0.1
 NUMPY = formulas.ArrayOps(np)
 
 
+def nodes_around(W: np.ndarray) -> np.ndarray | None:
+    """The nodes (B, s+1, n+m) whose rows after the first are the stage values ``W`` (B, s, n+m) (those of
+    :meth:`Stepper.stage_buffer`), or None."""
+    base = W.base
+    if base is None or base.shape != (W.shape[0], W.shape[1] + 1, W.shape[2]) or not base.flags.c_contiguous:
+        return None
+    return base if base[:, 1:].ctypes.data == W.ctypes.data and base[:, 1:].strides == W.strides else None
+
+
 class Stepper:
     """State of one integration on an engine: the step and its counters, driven by a controller.
 
@@ -101,7 +110,7 @@ class Stepper:
         self.records = None  # the accepted steps' outputs (Records)
         self.stop, self.shown = None, 0  # the caller's stop and the blocks of records shown to it (integrate)
         self.eta = engine.asarray(np.ones(self.B))  # Newton's contraction estimate
-        self._previous = None  # (h, u_start, W) of the last accepted step, for the start guess
+        self._previous = None  # (h, nodes (B, s+1, n+m): u_start and W) of the last accepted step, for the start guess
         self.stage_steps = 0  # steps left that start with full Newton (see attempt)
         self._extrapolation = None  # (h / h_old, Lagrange matrices) of the last start guess
         self._extrapolation_polynomial = extrapolation_coefficients(self.s)  # the matrix by Horner's rule
@@ -156,6 +165,12 @@ class Stepper:
         self.stats["residual_evaluations"] += 1
         return self.engine.residual(t, h, self.y, W)
 
+    def stage_buffer(self, dtype):
+        """An array for stage values (1, s, n+m) in a step's nodes (1, s+1, n+m), whose first row :meth:`accept` fills
+        with the step's start value (:meth:`.newton.Newton.simplified`'s own iterates: the nodes without a copy of
+        them, 4.8 MB at 10^5 unknowns, s = 5); None where the engine is not numpy's or solves a batch."""
+        return np.empty((1, self.s + 1, self.n + self.m), dtype)[:, 1:] if self.xp is np and self.B == 1 else None
+
     def constant_guess(self):
         """Every stage value equal to the step's start value."""
         u = self.state()
@@ -179,9 +194,12 @@ class Stepper:
             return W
         if self._previous is None:
             return self.constant_guess()
-        h_old, u_old, W_old = self._previous
-        (L, L_high), nodes = self.extrapolation(h / h_old), xp.concatenate([u_old[:, None, :], W_old], axis=1)
-        W = xp.einsum("ij,bjk->bik", L, nodes)
+        # (the last step's nodes as they are: a copy of them, joined from its start value and stage values, was the
+        # first solve's peak at 10^5 unknowns, s = 5: 4.8 MB beside them)
+        h_old, nodes = self._previous
+        L, L_high = self.extrapolation(h / h_old)
+        W = self.stage_buffer(np.result_type(L, nodes)) if xp is np else None  # (the next nodes' array: accept)
+        W = xp.einsum("ij,bjk->bik", L, nodes) if W is None else np.einsum("ij,bjk->bik", L, nodes, out=W)
         if L_high is not None:  # (index-2/3 algebraic variables: formulas.HIGH_INDEX_GUESS_MIN_STAGES)
             W[..., self._high_index] = xp.einsum("ij,bjk->bik", L_high, nodes[..., self._high_index])
         return W
@@ -412,7 +430,17 @@ class Stepper:
                 "at a time, loosen rtol, give t_eval, or keep the step ends only (dense_output=False; with a fixed h, "
                 "a grid's size is checked before the solve)"
             )
-        nodes = self.xp.concatenate([self.state()[:, None], W], axis=1)[:, None]  # (B, 1, s+1, n+m)
+        # (the last step's nodes go before this one's are made: the start guess has read them; at 10^5 unknowns,
+        # s = 5, both and the stage values were the first solve's peak, 4.8 MB each)
+        u, self._previous = self.state(), None
+        if self.stop is None:  # (and the records' copy of them, t_eval's outputs from them filled: take_steps)
+            self.records.release(len(self.records.times), newest=False)
+        nodes = nodes_around(W) if self.xp is np else None  # (B, s+1, n+m)
+        if nodes is None:
+            nodes = self.xp.concatenate([u[:, None], W], axis=1)
+        else:
+            nodes[:, 0] = u
+        nodes, u = nodes[:, None], None  # (B, 1, s+1, n+m)
         f_end = r.stage_f[:, -1]  # (copied on numpy: the casadi engine's residual is its buffer, the next call's)
         f_end = f_end.copy() if self.xp is np else f_end
         self.take_steps(np.array([t]), np.array([h]), np.array([t_next]), nodes, f_end)
@@ -433,10 +461,14 @@ class Stepper:
             end = nodes[:, :, -1:]
             kept = end.copy() if self.xp is np else end.clone()
         last = nodes[:, -1]  # (B, s+1, n+m)
-        self._previous = (float(lengths[-1]), last[:, 0], last[:, 1:])
+        self._previous = (float(lengths[-1]), last)
         if self.compiled_step:  # the compiled step's start guess reads the nodes packed (B = 1)
             self._previous_nodes = last[0].reshape(-1).copy()
-        self.y, self.z = last[:, -1, : self.n], last[:, -1, self.n :]
+        # (the end values copied where the nodes are not kept to the end: views would keep them beside the next
+        # step's, which accept makes once the start guess has read these)
+        end = last[:, -1]  # (B, n+m)
+        end = end if self.records.dense else end.copy() if self.xp is np else end.clone()
+        self.y, self.z = end[:, : self.n], end[:, self.n :]
         # (t_eval's outputs: the older blocks' nodes go, the last one's too, which nothing reads now, before this
         # block's outputs are filled: two steps' nodes and the fill were the first solve's peak, 10^4 unknowns;
         # with a caller's stop, once it has seen them)
@@ -603,7 +635,9 @@ class GeneralTries(StepperTries):
 
     def attempt(self, matrices, guess):
         """Newton from ``guess``: stage values, or a function that makes them (:meth:`Stepper.constant_guess`)."""
-        return self.stepper.newton.simplified(self.t, self.h, matrices, guess() if callable(guess) else guess)
+        if callable(guess):  # (made for this try alone: Newton adds its increments to it in place)
+            return self.stepper.newton.simplified(self.t, self.h, matrices, guess(), owned=True)
+        return self.stepper.newton.simplified(self.t, self.h, matrices, guess)
 
     def failed(self, result):
         return result[0] is None
