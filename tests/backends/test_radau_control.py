@@ -253,8 +253,8 @@ def test_implicit_euler_is_refused_adaptive_steps_and_two_stages_meet_the_tolera
             assert max(abs(sol["x"][-1] - exact[0]), abs(sol["y"][-1] - exact[1])) < rtol, (stages, rtol)
     with pytest.raises(E.InvalidOptionError, match=r"give stages >= 2 \(or leave stages out\), or h=\.\.\."):
         dm.solve(c, (0.0, 5.0), stages=1)  # the default tolerances are adaptive too
-    fixed = dm.solve(c, (0.0, 5.0), stages=1, h=2.5e-4)
-    assert fixed.status == "success" and abs(fixed["x"][-1] - exact[0]) < 1e-3
+    fixed = dm.solve(c, (0.0, 5.0), stages=1, h=5e-4)  # (its estimate 6e-4 of the size: 1e-3 is flagged)
+    assert fixed.status == "success" and abs(fixed["x"][-1] - exact[0]) < 1e-4
 
 
 def test_newtons_adaptive_tolerance_follows_the_stages():
