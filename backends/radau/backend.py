@@ -45,10 +45,11 @@ TRIM_MIN_UNKNOWNS = 10_000
 
 @functools.cache
 def _malloc_trim():
-    """glibc's ``malloc_trim`` (frees the whole free pages of the C heap), or None where the C library has none."""
+    """glibc's ``malloc_trim`` (frees the whole free pages of the C heap), or None where the C library has none
+    (or ctypes cannot open the main program: on Windows ``CDLL(None)`` raises TypeError)."""
     try:
         return ctypes.CDLL(None).malloc_trim
-    except (AttributeError, OSError):
+    except (AttributeError, OSError, TypeError):
         return None
 
 

@@ -109,6 +109,35 @@ def test_a_large_solve_hands_the_freed_pages_back():
     assert before - kept < 4e6 and kept - resident_bytes() > 20e6, (before, kept, resident_bytes())
 
 
+@pytest.mark.parametrize(
+    "library",
+    [
+        "no symbol",  # (a C library without malloc_trim: musl, macOS)
+        "not loaded",  # (dlopen failed)
+        "no main program",  # (Windows: CDLL(None) tests '/' in None, a TypeError)
+    ],
+)
+def test_a_large_solve_without_malloc_trim_goes_on(monkeypatch, library):
+    """Where ctypes finds no malloc_trim, a solve of TRIM_MIN_UNKNOWNS unknowns or more trims nothing and goes on
+    (no error): _malloc_trim is None."""
+    from daemodel.backends.radau import backend
+
+    def cdll(name):
+        if library == "not loaded":
+            raise OSError("cannot load")
+        if library == "no main program":  # (ctypes.CDLL.__init__ on Windows reads '/' in name)
+            return "/" in name
+        return object()
+
+    monkeypatch.setattr(backend.ctypes, "CDLL", cdll)
+    _malloc_trim.cache_clear()
+    try:
+        assert _malloc_trim() is None
+        assert hand_back_freed_memory(TRIM_MIN_UNKNOWNS) is None
+    finally:
+        _malloc_trim.cache_clear()
+
+
 @needs_compiler
 @pytest.mark.slow  # (tracemalloc on a first solve of 10^4 unknowns: 20-110 s on 2 shared cores)
 @pytest.mark.parametrize("dense_output", [True, False])
