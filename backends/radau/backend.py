@@ -37,9 +37,10 @@ from daemodel.tableau import radau_iia
 
 # Unknowns from which a solve hands the pages its setup freed back to the system before the factors' buffers are
 # reserved (glibc's malloc_trim): at 10^5 unknowns of reaction-diffusion a first solve's setup (the model's casadi
-# graphs, the fill's trial LU) frees tens of MB that the allocator kept resident, under the factors or beside
-# them as the process's layout fell: the first solve's resident growth was 1.86-1.97x the factors' bytes by
-# process, 1.69x with them handed back.
+# graphs, the fill's trial LU) frees tens of MB that the allocator would keep resident for the process's life.
+# (It lowers what the process holds, not what a solve needs: benchmarks/solve_memory.py, which reads the resident
+# set before a solve with the heap's free pages handed back, measures a first solve at 10^5 at 9.5x the factors'
+# bytes, the model's one-off pieces included, and a second solve at 1.6x.)
 TRIM_MIN_UNKNOWNS = 10_000
 
 

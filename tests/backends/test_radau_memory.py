@@ -156,8 +156,10 @@ def test_the_solve_peak_stays_within_a_bound_of_its_factors(dense_output):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 44 item 5: the first solve's peak is 2.87x its factors at 10^4, not 2x")
 def test_the_solve_peak_within_two_factors():
-    """Issue 44's target: the solve's own peak within 2x its factors' bytes. Met at 10^5 in the resident set (1.49-1.67
-    in five processes on d22090c: benchmarks/solve_memory.json, key item5_trim); open here: measured 2.87 at 10^4
+    """Issue 44's target: the solve's own peak within 2x its factors' bytes. In the resident set with the heap's free
+    pages handed back first (benchmarks/solve_memory.json, key item5_settled; item5_trim's 1.49-1.67 reused the
+    compile's freed heap), a second solve holds it (1.63 at 10^5, 1.53 at 10^4) and a first does not (9.48, 12.06:
+    the model's one-off pieces); open here in tracemalloc's count of a first solve: measured 2.87 at 10^4
     unknowns on d22090c (9.5 MB over 3.31 MB of factors), 3.10 on 7bc53eb (3.38 on 88e28fa, 3.99 before, 5.85 before
     t_eval's outputs were filled as the steps came). The list below is 7bc53eb's; since, the last step's nodes are
     not held beside the next's, Newton's own stage values are the next nodes' array and the complex right-hand side
