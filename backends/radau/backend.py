@@ -19,6 +19,7 @@ from daemodel.backends.radau.options import RadauOptions, check_index_stages, st
 from daemodel.backends.radau.outputs import marked, prepare_outputs, resolve_outputs, resolved_outputs
 from daemodel.backends.radau.records import step_record_bytes
 from daemodel.backends.radau.sparse import band_orders, jacobian_pattern
+from daemodel.backends.radau.stencil import uses_stencil
 from daemodel.backends.radau.step import Stepper
 from daemodel.backends.radau.transform import stage_transform
 from daemodel.backends.torch_setup import torch_device, torch_threads, warm_up_torch
@@ -240,7 +241,7 @@ def memory_parts(compiled, t_span, B: int, options: RadauOptions, engine: str = 
             name = name if options.dense_output else "outputs"
         outputs[name] = steps * step_record_bytes(D, B, options)
     if engine == "casadi" and D > DENSE_MAX_SIZE:
-        rows, cols = jacobian_pattern(compiled)
+        rows, cols = jacobian_pattern(compiled, uses_stencil(compiled, options.jit, jit_choice(engine, options, D)[0]))
         if not dense_systems(D, rows.size):
             # a fixed step's full Newton (where simplified Newton fails, or from start_guess) factors the s D-sized
             # system, its matrix and its factors in float64: s^2 nonzeros of J's, and STAGE_FILL s^2 times the fill

@@ -266,7 +266,7 @@ class CasadiEngine(AbstractEngine):
             factor = factor_call(static.lu, static)
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
             refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-            functions = (refresh, factor, self._functions[3], sign, static)
+            functions = (refresh, factor, self._functions[3](), sign, static)
             return attempt_function(self, step, *functions, iterations, machine=True)
 
         key = ("casadi-radau-machine-attempt", self.s, iterations, self._version)  # (._version: .pivots)
@@ -449,9 +449,9 @@ class CasadiEngine(AbstractEngine):
             if static:  # (the factors and the determinant's sign in C: .kernel)
                 factor, sign = self._static_kernel()
                 refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
-                functions = (refresh, factor, self._functions[3], sign, self.static)
+                functions = (refresh, factor, self._functions[3](), sign, self.static)
             else:
-                functions = (self._refresh_function(), self._inverse_function(), self._functions[3], None, None)
+                functions = (self._refresh_function(), self._inverse_function(), self._functions[3](), None, None)
             return run_function(self, step, *functions, iterations)
 
         return CompiledRun(self.compiled.cached(key, build), self)
@@ -544,7 +544,7 @@ class CasadiEngine(AbstractEngine):
         return self._jac.packed(t, y[0], z[0], self.p)
 
     def stage_jacobians(self, t, h, W):
-        self._stage_jac = self._stage_jac or lend(self, self._functions[3])  # (s J's: lent at first use)
+        self._stage_jac = self._stage_jac or lend(self, self._functions[3]())  # (s J's: lent at first use)
         return list(self._stage_jac.packed(t, h, W, self.p).reshape(self.s, -1))
 
     def _dense(self, values) -> np.ndarray:

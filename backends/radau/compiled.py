@@ -26,6 +26,7 @@ one-iteration convergence and evaluate ``f`` at the final stages).
 
 from __future__ import annotations
 
+import functools
 import weakref
 from typing import NamedTuple
 
@@ -498,30 +499,47 @@ def casadi_functions(compiled, tableau, stencil=None):
     :func:`daemodel.collocation.stage_residual`) of ``[t, h, y_n, W, p]``, ``W`` stage by stage
     ``[Y_i, Z_i]``, returning ``[R (stage by stage [F_i, G_i]), f at the stages]``; the Jacobian's
     nonzeros at ``[t, y, z, p]`` and at every stage of ``[t, h, W, p]``; its pattern (rows, cols).
-    ``stencil``: functions ``(t, x, z, p) -> (f, g)`` and of the stage residual that replace the model's
-    own (above :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns: :mod:`.stencil`, the same bits in C).
+    ``stencil``: functions ``(t, x, z, p) -> (f, g)``, of the stage residual and of the Jacobian's nonzeros (or
+    None) that replace the model's own (above :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns: :mod:`.stencil`, the
+    same bits in C); with its Jacobian the model's whole casadi graph (:meth:`.CompiledDAE.casadi_dae`: 89 MB
+    kept at 10^5 unknowns of reaction-diffusion, 280 MB while it is made) is not made.
     """
     import casadi
 
+    if stencil is not None and stencil[2] is not None:
+        from daemodel.compiling.runs import runs_jacobian_layout
+
+        n, m, P = len(compiled.states), len(compiled.algebraics), len(compiled.parameters)
+        packed = casadi.MX.sym("x", 1 + n + m + P)
+        f = casadi.Function(
+            "f", [packed], [stencil[0](*casadi.vertsplit(packed, [0, 1, 1 + n, 1 + n + m, packed.numel()]))[0]]
+        )
+        pattern = runs_jacobian_layout(compiled)[:2]  # (casadi_jacobian_pattern's: tests/compiling/test_runs.py)
+        return (f, stencil[1], stencil[2], stage_jacobians(stencil[2], tableau, n + m, P), *pattern)
     dae = compiled.casadi_dae()
     t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
     s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
-    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
-    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
     model_pattern = compiled.casadi_jacobian_pattern()
     rows = np.bincount(model_pattern[0], minlength=D)  # (nonzeros per row)
     jac = casadi_jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(x, z), rows)  # (dense rows apart)
     jacobian = casadi.Function("jacobian", [casadi.vertcat(t, x, z, p)], [jac.nz[:]])
+    # (the model's own arrays where they are the same, not a second copy: 0.48 MB at 10^4 of reaction-diffusion)
+    pattern = tuple(np.asarray(part, dtype=np.int64) for part in jac.sparsity().get_triplet())
+    if all(np.array_equal(ours, model) for ours, model in zip(pattern, model_pattern, strict=True)):
+        pattern = model_pattern
+    stages = stage_jacobians(jacobian, tableau, D, p.numel())
+    if stencil is not None:
+        return (casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]), stencil[1], jacobian, stages,
+                *pattern)  # fmt: skip
+    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
+    g = casadi.Function("g", [t, x, z, p], [dae["alg"]])
     A, c = tableau.A, tableau.c
     # above INLINED_RESIDUAL_MAX_SIZE the stage residual calls f and g s times (MX), as the stages' Jacobians
-    # call the Jacobian's function below: the same operations as s inlined copies, without building them
+    # call the Jacobian's function: the same operations as s inlined copies, without building them
     kind = casadi.SX if D <= INLINED_RESIDUAL_MAX_SIZE else casadi.MX
     inputs = kind.sym("x", 2 + n + s * D + p.numel())
     t_r, h, y_n, W, p_r = (inputs[0], inputs[1], inputs[2 : 2 + n], inputs[2 + n : 2 + n + s * D],
                            inputs[2 + n + s * D :])  # fmt: skip
-    if stencil is not None:
-        return (casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]]), stencil[1], jacobian,
-                *stage_jacobians(jacobian, tableau, D, p.numel(), jac, model_pattern))  # fmt: skip
     times = [t_r + float(c[i]) * h for i in range(s)]
     Y = [W[i * D : i * D + n] for i in range(s)]
     Z = [W[i * D + n : (i + 1) * D] for i in range(s)]
@@ -532,25 +550,28 @@ def casadi_functions(compiled, tableau, stencil=None):
         rows += [Y[i] - y_n - h * quadrature, g(times[i], Y[i], Z[i], p_r)]
     residual = casadi.Function("residual", [inputs], [casadi.vertcat(*rows, *stage_f)])
     f = casadi.Function("f", [casadi.vertcat(t, x, z, p)], [dae["ode"]])
-    return (f, residual, jacobian, *stage_jacobians(jacobian, tableau, D, p.numel(), jac, model_pattern))
+    return (f, residual, jacobian, stages, *pattern)
 
 
-def stage_jacobians(jacobian, tableau, D: int, P: int, jac, model_pattern: tuple) -> tuple:
-    """:func:`casadi_functions`' last three: the stages' Jacobians, and the pattern's rows and columns: the
-    model's own arrays (``model_pattern``, :meth:`.CompiledDAE.casadi_jacobian_pattern`) where they are the
-    same, not a second copy of them (0.48 MB at 10^4 unknowns of reaction-diffusion)."""
-    import casadi
+def stage_jacobians(jacobian, tableau, D: int, P: int):
+    """:func:`casadi_functions`' fourth: a callable that makes (once) the casadi function of the stages'
+    Jacobians, ``jacobian`` at every stage of ``[t, h, W, p]``.  Made where full Newton first needs it, not
+    before: adaptive steps never do, and at 10^5 unknowns of reaction-diffusion (s = 5) it held 17 MB (casadi
+    keeps a dense column's sparsity as its 2.25 x 10^6 row indices)."""
 
-    s, c = tableau.stages, tableau.c
-    # the stages' Jacobians call the Jacobian's function s times (MX): the same operations as s inlined
-    # copies, without building them (at 10^5 unknowns the copies took longer to build than a solve)
-    packed = casadi.MX.sym("x", 2 + s * D + P)
-    t_, h_, W_, p_ = packed[0], packed[1], packed[2 : 2 + s * D], packed[2 + s * D :]
-    stages = [jacobian(casadi.vertcat(t_ + float(c[i]) * h_, W_[i * D : (i + 1) * D], p_)) for i in range(s)]
-    pattern = tuple(np.asarray(part, dtype=np.int64) for part in jac.sparsity().get_triplet())
-    if all(np.array_equal(ours, model) for ours, model in zip(pattern, model_pattern, strict=True)):
-        pattern = model_pattern
-    return (casadi.Function("stage_jacobians", [packed], [casadi.vertcat(*stages)]), *pattern)
+    @functools.cache
+    def make():
+        import casadi
+
+        s, c = tableau.stages, tableau.c
+        # the stages' Jacobians call the Jacobian's function s times (MX): the same operations as s inlined
+        # copies, without building them (at 10^5 unknowns the copies took longer to build than a solve)
+        packed = casadi.MX.sym("x", 2 + s * D + P)
+        t_, h_, W_, p_ = packed[0], packed[1], packed[2 : 2 + s * D], packed[2 + s * D :]
+        stages = [jacobian(casadi.vertcat(t_ + float(c[i]) * h_, W_[i * D : (i + 1) * D], p_)) for i in range(s)]
+        return casadi.Function("stage_jacobians", [packed], [casadi.vertcat(*stages)])
+
+    return make
 
 
 def stage_f_function(compiled, tableau, stencil=None):
@@ -562,16 +583,17 @@ def stage_f_function(compiled, tableau, stencil=None):
     ``stencil``: as :func:`casadi_functions`' (its f and g alone, f read)."""
     import casadi
 
-    dae = compiled.casadi_dae()
-    t, x, z, p = dae["t"], dae["x"], dae["z"], dae["p"]
-    s, n, D = tableau.stages, x.numel(), x.numel() + z.numel()
+    s, n, P = tableau.stages, len(compiled.states), len(compiled.parameters)
+    D = n + len(compiled.algebraics)
     if D <= INLINED_RESIDUAL_MAX_SIZE:
         return None
-    f = casadi.Function("f", [t, x, z, p], [dae["ode"]])
     if stencil is not None:  # (its first output)
         arguments = stencil[0].mx_in()
         f = casadi.Function("f", arguments, [stencil[0](*arguments)[0]])
-    inputs = casadi.MX.sym("x", 2 + n + s * D + p.numel())
+    else:
+        dae = compiled.casadi_dae()
+        f = casadi.Function("f", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
+    inputs = casadi.MX.sym("x", 2 + n + s * D + P)
     t_r, h, W, p_r = inputs[0], inputs[1], inputs[2 + n : 2 + n + s * D], inputs[2 + n + s * D :]
     stage_f = [
         f(t_r + float(tableau.c[i]) * h, W[i * D : i * D + n], W[i * D + n : (i + 1) * D], p_r) for i in range(s)

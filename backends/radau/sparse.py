@@ -343,9 +343,17 @@ def _largest(casadi, values, complex_):
 
 
 # ---- the model's pattern and the factors' size -------------------------------------------
-def jacobian_pattern(compiled) -> tuple[np.ndarray, np.ndarray]:
+def jacobian_pattern(compiled, stencil: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The rows and columns of the nonzeros of ``[f_y f_z; g_y g_z]`` (casadi's sparsity of the model's
-    equations; no function is built), made once per model: :meth:`.CompiledDAE.casadi_jacobian_pattern`."""
+    equations; no function is built), made once per model: :meth:`.CompiledDAE.casadi_jacobian_pattern`, or
+    where the solve runs a repeated ``stencil`` (:mod:`.stencil`) the same from its templates' derivatives
+    (:func:`daemodel.compiling.runs.runs_jacobian_layout`: the model's whole casadi graph is not made)."""
+    if stencil:
+        from daemodel.compiling.runs import runs_jacobian_layout
+
+        layout = runs_jacobian_layout(compiled)
+        if layout is not None:
+            return layout[0], layout[1]
     return compiled.casadi_jacobian_pattern()
 
 

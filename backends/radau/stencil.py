@@ -10,7 +10,11 @@ over each run with its leaves' pointers advanced by their strides, and the rows 
 boundaries) a casadi function of their own in the same library; the source grows with the templates and
 runs, not with the unknowns, so it compiles in a fraction of a second and the disk cache
 (:mod:`daemodel.cache`) keeps it.  One function ``stencil_fg(t, x, z, p) -> (f, g)``, the same bits as the
-model's ``f`` and ``g`` (``tests/backends/test_radau_stencil.py``).
+model's ``f`` and ``g`` (``tests/backends/test_radau_stencil.py``), and ``stencil_jacobian(t, x, z, p)``, each
+template's partial derivatives (casadi's AD of the template) at each row of its runs and the rest's Jacobian,
+which taken in casadi's order (:func:`daemodel.compiling.runs.jacobian_layout`) are the model's Jacobian's
+nonzeros bit for bit: with them a solve does not make the model's whole casadi graph (at 10^5 unknowns of
+reaction-diffusion 89 MB kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
 """
 
 from __future__ import annotations
@@ -24,8 +28,8 @@ from daemodel.backends.radau.compiled import (
     stage_f_buffer,
 )
 
-# The names of the functions in the library: f and g, and the stage residual.
-NAME, RESIDUAL = "stencil_fg", "stencil_residual"
+# The names of the functions in the library: f and g, the stage residual, and the Jacobian's values.
+NAME, RESIDUAL, JACOBIAN = "stencil_fg", "stencil_residual", "stencil_jacobian"
 # Seconds the compiler may take (a few templates, their runs' table and the boundary rows).
 STENCIL_COMPILE_TIMEOUT = 120.0
 # With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
@@ -47,11 +51,12 @@ def stencil_source(runs) -> str:
     import casadi
 
     generator = casadi.CodeGenerator("daemodel_stencil", {"with_header": False})
-    for template in runs.templates:
+    for template in (*runs.templates, *runs.derivatives):
         generator.add(template)
     rest = runs.rest
     if rest is not None:
         generator.add(rest)
+        generator.add(runs.rest_jacobian)
     n, m, P = runs.sizes
     out = [generator.dump(), "\n/* daemodel: runs of the templates (generated; numbers only) */\n"]
     # each template's runs: count, then per leaf its input, base and stride, then output, base and stride
@@ -127,6 +132,76 @@ def stencil_source(runs) -> str:
         "  if (sz_w) *sz_w = REST_W + N_REST;  /* (the rest's work, then its outputs) */\n"
         "  return 0;\n}\n"
     )
+    out.append(jacobian_source(runs))
+    return "".join(out)
+
+
+def jacobian_source(runs) -> str:
+    """The C of :data:`JACOBIAN` (after :func:`stencil_source`'s): ``(t, x, z, p)`` to the values of each
+    template's partial derivatives at each row of its runs, in order, then the rest's Jacobian's nonzeros
+    (the order :func:`daemodel.compiling.runs.jacobian_layout` reads them in)."""
+    rest = runs.rest_jacobian
+    functions = [*runs.derivatives, *([] if rest is None else [rest])]
+    sizes = [max([f.sz_arg(), f.sz_res(), f.sz_iw(), f.sz_w()][k] for f in functions) if functions else 0
+             for k in range(4)]  # fmt: skip
+    total = sum(r.count * len(runs.derivative_leaves[r.template]) for r in runs.runs) + runs.rest_pattern[0].size
+    out = [
+        f"#define N_JAC {total}\n#define JAC_ARG {max(sizes[0], 4)}\n#define JAC_RES {max(sizes[1], 1)}\n"
+        f"#define JAC_IW {sizes[2]}\n#define JAC_W {sizes[3]}\n"
+        "static const casadi_int sp_jac[3] = {N_JAC, 1, 1};\n"
+        f"int {JACOBIAN}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
+        "  casadi_int r, i, j;\n"
+        "  casadi_real* o = res[0];\n"
+        "  if (!o) return 0;\n"
+    ]
+    for k, derivative in enumerate(runs.derivatives):
+        leaves, width = derivative.n_in(), len(runs.derivative_leaves[k])
+        count = sum(r.template == k for r in runs.runs)
+        if width == 0:  # (a constant row: no partial derivatives, nothing written)
+            continue
+        out.append(
+            f"  for (r = 0; r < {count}; r++) {{\n"
+            f"    const casadi_int* q = runs{k}[r];\n"
+            f"    const casadi_real* a[{leaves}];\n"
+            f"    const casadi_real* in[{leaves}];\n"
+            f"    casadi_int s[{leaves}];\n"
+            "    casadi_real* out[1];\n"
+            f"    for (j = 0; j < {leaves}; j++) {{\n"
+            "      a[j] = arg[q[1 + 3 * j]] + q[2 + 3 * j];\n"
+            "      s[j] = q[3 + 3 * j];\n"
+            "    }\n"
+            "    for (i = 0; i < q[0]; i++) {\n"
+            f"      for (j = 0; j < {leaves}; j++) in[j] = a[j] + s[j] * i;\n"
+            "      out[0] = o;\n"
+            f"      if ({derivative.name()}(in, out, iw, w, 0)) return 1;\n"
+            f"      o += {width};\n"
+            "    }\n"
+            "  }\n"
+        )
+    if rest is not None:
+        out.append(
+            "  {\n"
+            "    const casadi_real** rest_arg = arg + 4;\n"
+            "    casadi_real** rest_res = res + 1;\n"
+            "    for (j = 0; j < 4; j++) rest_arg[j] = arg[j];\n"
+            "    rest_res[0] = o;\n"
+            "    if (rest_jacobian(rest_arg, rest_res, iw, w, 0)) return 1;\n"
+            "  }\n"
+        )
+    out.append(
+        "  return 0;\n}\n"
+        f"casadi_int {JACOBIAN}_n_in(void) {{ return 4; }}\n"
+        f"casadi_int {JACOBIAN}_n_out(void) {{ return 1; }}\n"
+        f"const casadi_int* {JACOBIAN}_sparsity_in(casadi_int i) {{\n"
+        "  return i == 0 ? sp_t : i == 1 ? sp_x : i == 2 ? sp_z : i == 3 ? sp_p : 0;\n}\n"
+        f"const casadi_int* {JACOBIAN}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_jac : 0; }}\n"
+        f"int {JACOBIAN}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
+        "  if (sz_arg) *sz_arg = 4 + JAC_ARG;  /* (the rest's arguments after its own) */\n"
+        "  if (sz_res) *sz_res = 1 + JAC_RES;\n"
+        "  if (sz_iw) *sz_iw = JAC_IW;\n"
+        "  if (sz_w) *sz_w = JAC_W;\n"
+        "  return 0;\n}\n"
+    )
     return "".join(out)
 
 
@@ -194,8 +269,8 @@ def stencil_function(runs, tableau, compiler: str):
     flags += GCC_STENCIL_FLAGS if flags != COMPILER_FLAGS else ()  # (GCC's flags added: not clang)
     build = Build(compiler, flags, what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
     source = stencil_source(runs) + residual_source(tableau)
-    library = cached_library(source, [NAME, RESIDUAL], build)
-    return library.functions[NAME], library.functions[RESIDUAL], library.outcome
+    library = cached_library(source, [NAME, RESIDUAL, JACOBIAN], build)
+    return library.functions[NAME], library.functions[RESIDUAL], library.functions[JACOBIAN], library.outcome
 
 
 def stencil_equations(compiled, tableau):
@@ -203,23 +278,43 @@ def stencil_equations(compiled, tableau):
     ``tableau`` (made once per model and s) and what a solve's stats say of them, or ``(None, why)``
     where the model is not a repeated stencil (:func:`daemodel.compiling.runs.equation_runs`), there
     is no compiler, or it failed."""
-    from daemodel.compiling.runs import equation_runs
+    from daemodel.compiling.runs import model_runs, runs_jacobian_layout
     from daemodel.errors import CompileError
 
     def build():
         compiler = find_compiler()
         if compiler is None:
             return None, "casadi's virtual machine (no C compiler)"
-        runs = compiled.cached("radau-stencil-runs", lambda: equation_runs(compiled))
+        runs = model_runs(compiled)
         if runs is None:
             return None, "casadi's virtual machine (not a repeated stencil)"
         try:
-            fg, residual, outcome = stencil_function(runs, tableau, compiler)
+            fg, residual, raw, outcome = stencil_function(runs, tableau, compiler)
         except CompileError as error:
             return None, f"casadi's virtual machine (the compiler failed: {str(error)[:200]})"
-        return (fg, residual), f"machine code ({runs.describe()}; cache: {outcome})"
+        layout = runs_jacobian_layout(compiled)
+        jacobian = None if layout is None else gathered_jacobian(raw, layout[2], runs.sizes)
+        return (fg, residual, jacobian), f"machine code ({runs.describe()}; cache: {outcome})"
 
     return compiled.cached(("radau-stencil-equations", tableau.stages), build)
+
+
+def gathered_jacobian(raw, taken, sizes):
+    """casadi function of the packed ``[t, x, z, p]`` to the Jacobian's nonzeros in casadi's order: :data:`JACOBIAN`'s
+    values (``raw``) at ``taken`` (:func:`daemodel.compiling.runs.jacobian_layout`)."""
+    import casadi
+
+    n, m, P = sizes
+    packed = casadi.MX.sym("x", 1 + n + m + P)
+    t, x, z, p = casadi.vertsplit(packed, [0, 1, 1 + n, 1 + n + m, 1 + n + m + P])
+    return casadi.Function("jacobian", [packed], [raw(t, x, z, p)[taken.tolist()]])
+
+
+def uses_stencil(compiled, jit, machine_code: bool) -> bool:
+    """Whether a casadi engine of ``jit`` (an option's value) and ``machine_code`` (:func:`.backend.jit_choice`'s)
+    tries :func:`stencil_equations` (see :func:`engine_functions`)."""
+    D = len(compiled.states) + len(compiled.algebraics)
+    return jit is not False and not machine_code and D > INLINED_RESIDUAL_MAX_SIZE and find_compiler() is not None
 
 
 def engine_functions(compiled, tableau, machine: bool):

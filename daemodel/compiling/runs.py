@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import sympy as sp
 
-from daemodel.compiling.codegen import CasadiConverter
+from daemodel.compiling.codegen import CasadiConverter, casadi_jacobian
 from daemodel.declaring.stencils import paused_collection
 
 # A run holds at least this many rows (shorter ones are left to the rest: each run is a loop of its own).
@@ -59,6 +59,12 @@ class EquationRuns(NamedTuple):
     rest : casadi.Function of ``(t, x, z, p)`` to the rows in no run (f's first), or None where none
     rest_rows : ``(f rows, g rows)``, int arrays: where the rest's outputs go
     sizes : ``(n, m, P)``
+    derivatives : list of casadi.Function, each template's leaves to its nonzero partial derivatives (in its
+        leaves' order: ``derivative_leaves``)
+    derivative_leaves : list of int arrays, the leaves each template's partial derivatives are in
+    rest_jacobian : casadi.Function of ``(t, x, z, p)`` to the nonzeros of the rest's Jacobian in ``(x, z)``
+        (column-major), or None where there is no rest
+    rest_pattern : ``(rows, cols)`` of those nonzeros: rows among the rest's, columns among ``(x, z)``
     """
 
     templates: list
@@ -66,6 +72,10 @@ class EquationRuns(NamedTuple):
     rest: object
     rest_rows: tuple
     sizes: tuple
+    derivatives: list = ()
+    derivative_leaves: list = ()
+    rest_jacobian: object = None
+    rest_pattern: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
     def describe(self) -> str:
         """How many templates, runs and rest rows, in a few words (a solve's stats)."""
@@ -149,14 +159,19 @@ def equation_runs(compiled) -> EquationRuns | None:
             key = (row >= n, _shape(expr, where, leaves[-1], {}, numbers))
             groups.setdefault(key, []).append(row)
     templates, runs, covered = [], [], np.zeros(n + m, dtype=bool)
+    derivatives, derivative_leaves = [], []
     for members in groups.values():
         found = _runs(members, leaves, where)
         if not found:
             continue
         first = leaves[members[found[0][0]]]
         symbols = [casadi.SX.sym(f"a{j}") for j in range(len(first))]
-        template = CasadiConverter(dict(zip(first, symbols, strict=True)))(rows[members[found[0][0]]])
-        templates.append(casadi.Function(f"template{len(templates)}", symbols, [casadi.SX(template)]))
+        template = casadi.SX(CasadiConverter(dict(zip(first, symbols, strict=True)))(rows[members[found[0][0]]]))
+        templates.append(casadi.Function(f"template{len(templates)}", symbols, [template]))
+        # (its partial derivatives: casadi's AD of the template's operations, those of each member's row)
+        partials = casadi.jacobian(template, casadi.vertcat(*symbols)) if symbols else casadi.SX(1, 0)
+        derivative_leaves.append(np.asarray(partials.sparsity().get_col(), dtype=np.int64))
+        derivatives.append(casadi.Function(f"derivative{len(derivatives)}", symbols, [partials.nz[:]]))
         for start, last, inputs, indices, step in found:
             output, row = int(members[start] >= n), members[start]
             base = row - n * output
@@ -169,9 +184,73 @@ def equation_runs(compiled) -> EquationRuns | None:
     apart = np.flatnonzero(~covered)
     if not runs or len(apart) > REST_MAX:
         return None
-    rest = None
+    rest = rest_jacobian = None
+    rest_pattern = EquationRuns._field_defaults["rest_pattern"]
     if len(apart):
-        dae = compiled.casadi_dae()
-        both = casadi.vertcat(dae["ode"], dae["alg"])
-        rest = casadi.Function("rest", [dae["t"], dae["x"], dae["z"], dae["p"]], [both[apart.tolist()]])
-    return EquationRuns(templates, runs, rest, (apart[apart < n], apart[apart >= n] - n), (n, m, P))
+        # (the rest's rows alone converted, not the whole model: the same operations a row, as the templates')
+        symbols = {"t": casadi.SX.sym("t"), "x": casadi.SX.sym("x", n), "z": casadi.SX.sym("z", m)}
+        symbols["p"] = casadi.SX.sym("p", P)
+        table = {compiled.t: symbols["t"]}
+        for kind, column in (("x", compiled.states), ("z", compiled.algebraics), ("p", compiled.parameters)):
+            table.update(zip(column, casadi.vertsplit(symbols[kind]) if column else (), strict=True))
+        both = CasadiConverter(table).stack([rows[i] for i in apart])
+        arguments = [symbols[kind] for kind in INPUTS]
+        rest = casadi.Function("rest", arguments, [both])
+        partials = casadi_jacobian(both, casadi.vertcat(symbols["x"], symbols["z"]))
+        rest_jacobian = casadi.Function("rest_jacobian", arguments, [partials.nz[:]])
+        rest_pattern = tuple(np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
+    return EquationRuns(templates, runs, rest, (apart[apart < n], apart[apart >= n] - n), (n, m, P), derivatives,
+                        derivative_leaves, rest_jacobian, rest_pattern)  # fmt: skip
+
+
+def jacobian_layout(runs: EquationRuns) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(rows, cols, taken)``: the nonzeros of ``[f_y f_z; g_y g_z]`` in casadi's order (column by column,
+    rows increasing: :meth:`.compiled.CompiledDAE.casadi_jacobian_pattern`'s), and where each is in the
+    values the runs' derivatives write (template by template, its runs in order, row by row, then the rest's
+    Jacobian), or None where two of them are one entry (a row whose leaves meet at one unknown)."""
+    n, m, _ = runs.sizes
+    D = n + m
+    rows, cols, taken, offset = [], [], [], 0
+    for k, partials in enumerate(runs.derivative_leaves):
+        for run in (r for r in runs.runs if r.template == k):
+            steps = np.arange(run.count, dtype=np.int64)
+            for place, leaf in enumerate(partials):
+                kind = run.inputs[leaf]
+                if INPUTS[kind] in ("x", "z"):
+                    rows.append(run.output * n + run.out_base + run.out_stride * steps)
+                    cols.append((0 if INPUTS[kind] == "x" else n) + run.bases[leaf] + run.strides[leaf] * steps)
+                    taken.append(offset + steps * len(partials) + place)
+            offset += run.count * len(partials)
+    apart = np.concatenate([runs.rest_rows[0], runs.rest_rows[1] + n]).astype(np.int64)
+    rows.append(apart[runs.rest_pattern[0]])
+    cols.append(runs.rest_pattern[1])
+    taken.append(offset + np.arange(runs.rest_pattern[0].size, dtype=np.int64))
+    rows, cols, taken = (np.concatenate(parts) for parts in (rows, cols, taken))
+    order = np.argsort(cols * D + rows, kind="stable")
+    keys = cols[order] * D + rows[order]
+    if keys.size and (np.diff(keys) == 0).any():
+        return None
+    index = index_for(D)  # (as casadi_jacobian_pattern's)
+    taken = taken[order]
+    return rows[order].astype(index), cols[order].astype(index), taken.astype(index_for(taken.size))
+
+
+def index_for(size: int):
+    """int32 where indices below ``size`` fit, else int64."""
+    return np.int32 if size <= np.iinfo(np.int32).max else np.int64
+
+
+def model_runs(compiled) -> EquationRuns | None:
+    """:func:`equation_runs` of ``compiled``, made once per model."""
+    return compiled.cached("equation-runs", lambda: equation_runs(compiled))
+
+
+def runs_jacobian_layout(compiled) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`jacobian_layout` of :func:`model_runs`, made once per model; None where the model is no
+    repeated stencil or the layout is none."""
+
+    def build():
+        runs = model_runs(compiled)
+        return None if runs is None else jacobian_layout(runs)
+
+    return compiled.cached("equation-runs-jacobian-layout", build)

@@ -382,7 +382,7 @@ def test_the_stage_jacobians_are_the_jacobians_function_at_each_stage():
         _, _, jacobian, stage_jacobians, rows, cols = casadi_functions(compiled, tableau)
         D, k = len(compiled.states) + len(compiled.algebraics), len(compiled.parameters)
         t, h, W, p = 0.3, 0.01, rng.normal(size=s * D), rng.normal(size=k)
-        values = np.array(stage_jacobians(np.r_[t, h, W, p])).ravel().reshape(s, -1)
+        values = np.array(stage_jacobians()(np.r_[t, h, W, p])).ravel().reshape(s, -1)
         for i in range(s):
             at = np.r_[t + float(tableau.c[i]) * h, W[i * D : (i + 1) * D], p]
             assert np.array_equal(values[i], np.array(jacobian(at)).ravel())

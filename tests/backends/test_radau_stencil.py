@@ -45,6 +45,12 @@ def test_a_solve_on_the_stencil_is_the_virtual_machines_bit_for_bit(monkeypatch)
     options = {"rtol": 1e-6, "atol": 1e-8, "t_eval": np.linspace(0.0, 1.0, 5)}
     fast = dm.solve(compiled, (0.0, 1.0), **options)
     assert fast.stats["stencil"].startswith("machine code (2 templates")
+    # (its Jacobian from the templates' derivatives: the model's whole casadi graph was not made)
+    assert "casadi_dae" not in compiled._cache and "jacobian-pattern" not in compiled._cache
+    # (a start guess: full Newton, on the stage Jacobians of the templates' derivatives)
+    guess = lambda t, y, z: np.repeat(np.concatenate([y, z], axis=-1)[:, None, :], 3, axis=1)  # noqa: E731
+    fixed = dm.solve(compiled, (0.0, 0.05), h=0.01, stages=3, start_guess=guess)
+    assert fixed.stats["stencil"].startswith("machine code (2 templates") and "casadi_dae" not in compiled._cache
     monkeypatch.setattr(stencil_module, "stencil_equations", lambda *args: (None, "off"))
     slow = dm.solve(reaction_diffusion(300).compile(), (0.0, 1.0), **options)
     assert slow.stats["stencil"] == "off" and slow.stats["band_lu"].startswith("machine code (band widths 2 and 2")
@@ -52,6 +58,10 @@ def test_a_solve_on_the_stencil_is_the_virtual_machines_bit_for_bit(monkeypatch)
         assert fast.stats[key] == slow.stats[key]
     for name in compiled.state_names + compiled.algebraic_names:
         np.testing.assert_array_equal(fast[name], slow[name])
+    plain = dm.solve(reaction_diffusion(300).compile(), (0.0, 0.05), h=0.01, stages=3, start_guess=guess)
+    assert fixed.stats["jacobian_evaluations"] == plain.stats["jacobian_evaluations"] >= 5
+    for name in compiled.state_names + compiled.algebraic_names:
+        np.testing.assert_array_equal(fixed[name], plain[name])
 
 
 def mixed_model(K: int = 150) -> dm.Model:

@@ -145,8 +145,35 @@ def test_the_declarations_of_the_grid_give_the_same_runs_values(declaration):
 
 
 def test_rows_of_a_constant_and_of_time_make_runs_too():
-    """Rows without a leaf (u' = 1) and leaves of t (a source sin(t)): an ODE without algebraic variables."""
-    K = 200
+    """Rows without a leaf (v' = 1) and leaves of t (a source sin(t)): an ODE without algebraic variables."""
+    compiled = heat_with_source().compile()
+    found = equation_runs(compiled)
+    assert any(len(found.templates[run.template].sx_in()) == 0 for run in found.runs)
+    assert any("t" in {INPUTS[i] for i in run.inputs} for run in found.runs)
+    args = random_args(compiled)
+    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def jacobian_of_runs(found, layout, args):
+    """The Jacobian's nonzeros rebuilt from the runs: each template's derivatives mapped over its rows' leaves
+    (the order the stencil's C writes them), the rest's Jacobian after them, then taken at ``layout[2]``."""
+    values = []
+    for k, derivative in enumerate(found.derivatives):
+        for run in (r for r in found.runs if r.template == k):
+            steps = np.arange(run.count)
+            leaves = [np.asarray(args[i], dtype=float).ravel()[b + s * steps] for i, b, s in zip(run.inputs,
+                      run.bases, run.strides, strict=True)]  # fmt: skip
+            if len(found.derivative_leaves[k]):
+                mapped = derivative.map(run.count).call([v[None, :] for v in leaves])[0]
+                values.append(np.asarray(mapped).T.ravel())  # (row by row, each row's partials together)
+    if found.rest_jacobian is not None:
+        values.append(np.asarray(found.rest_jacobian(*args)).ravel())
+    return np.concatenate(values)[layout[2]]
+
+
+def heat_with_source(K: int = 200) -> dm.Model:
+    """Rows without a leaf (v' = 1) and leaves of t (a source sin(t)), no algebraic variable."""
     m = dm.Model("heat")
     u, v = m.states("u", K), m.states("v", 40)
     padded = [0, *u, 0]
@@ -155,10 +182,35 @@ def test_rows_of_a_constant_and_of_time_make_runs_too():
     for k in range(40):
         m.ode(v[k], 1)
     m.initial(u=np.linspace(0.0, 1.0, K), v=np.zeros(40))
-    compiled = m.compile()
+    return m
+
+
+@pytest.mark.parametrize(
+    "model",
+    [lambda: reaction_diffusion(300), lambda: scrambled_grid(300), heat_with_source],
+    ids=["grid", "scrambled", "source"],
+)
+def test_the_runs_jacobian_is_casadis_pattern_and_values_bit_for_bit(model):
+    """:func:`runs.jacobian_layout`: the pattern of the whole model's casadi Jacobian, in its order, and the
+    templates' derivatives (with the rest's Jacobian) its values, bit for bit."""
+    from daemodel.compiling.codegen import casadi_jacobian
+
+    compiled = model().compile()
     found = equation_runs(compiled)
-    assert any(len(found.templates[run.template].sx_in()) == 0 for run in found.runs)
-    assert any("t" in {INPUTS[i] for i in run.inputs} for run in found.runs)
-    args = random_args(compiled)
-    for got, want in zip(run_values(found, args), plain_values(compiled, args), strict=True):
-        np.testing.assert_array_equal(got, want)
+    layout = runs_module.jacobian_layout(found)
+    assert layout is not None and layout[0].dtype == np.int32 and layout[2].dtype == np.int32
+    for ours, theirs in zip(layout[:2], compiled.casadi_jacobian_pattern(), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    dae = compiled.casadi_dae()
+    whole = casadi_jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"]))
+    plain = casadi.Function("J", [dae["t"], dae["x"], dae["z"], dae["p"]], [whole.nz[:]])
+    for seed in (3, 4):
+        args = random_args(compiled, seed)
+        np.testing.assert_array_equal(jacobian_of_runs(found, layout, args), np.asarray(plain(*args)).ravel())
+
+
+def test_a_layout_whose_entries_meet_is_none():
+    """Two values for one entry (a run given twice) would be summed by nothing: no layout, casadi's Jacobian."""
+    found = equation_runs(reaction_diffusion(300).compile())
+    assert runs_module.jacobian_layout(found) is not None
+    assert runs_module.jacobian_layout(found._replace(runs=[*found.runs, found.runs[0]])) is None
