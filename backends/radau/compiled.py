@@ -580,19 +580,17 @@ def stage_f_function(compiled, tableau, stencil=None):
     equations (the error estimate's evaluation after Newton has converged: 15 against 26 ms at 10^5
     unknowns of reaction-diffusion).  None up to :data:`INLINED_RESIDUAL_MAX_SIZE` unknowns, where the
     residual inlines its copies of f (its bits are those of this function's calls above only).
-    ``stencil``: as :func:`casadi_functions`' (its f and g alone, f read)."""
+    ``stencil``: as :func:`casadi_functions`'; its stage f in C (:data:`.stencil.STAGE_F`) is returned."""
     import casadi
 
     s, n, P = tableau.stages, len(compiled.states), len(compiled.parameters)
     D = n + len(compiled.algebraics)
     if D <= INLINED_RESIDUAL_MAX_SIZE:
         return None
-    if stencil is not None:  # (its first output)
-        arguments = stencil[0].mx_in()
-        f = casadi.Function("f", arguments, [stencil[0](*arguments)[0]])
-    else:
-        dae = compiled.casadi_dae()
-        f = casadi.Function("f", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
+    if stencil is not None:  # (its own function in C: the same operations, g's rows not computed)
+        return stencil[3]
+    dae = compiled.casadi_dae()
+    f = casadi.Function("f", [dae["t"], dae["x"], dae["z"], dae["p"]], [dae["ode"]])
     inputs = casadi.MX.sym("x", 2 + n + s * D + P)
     t_r, h, W, p_r = inputs[0], inputs[1], inputs[2 + n : 2 + n + s * D], inputs[2 + n + s * D :]
     stage_f = [

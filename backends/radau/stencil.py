@@ -29,7 +29,7 @@ from daemodel.backends.radau.compiled import (
 )
 
 # The names of the functions in the library: f and g, the stage residual, and the Jacobian's values.
-NAME, RESIDUAL, JACOBIAN = "stencil_fg", "stencil_residual", "stencil_jacobian"
+NAME, RESIDUAL, JACOBIAN, STAGE_F = "stencil_fg", "stencil_residual", "stencil_jacobian", "stencil_stage_f"
 # Seconds the compiler may take (a few templates, their runs' table and the boundary rows).
 STENCIL_COMPILE_TIMEOUT = 120.0
 # With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
@@ -254,6 +254,34 @@ def residual_source(tableau) -> str:
         "  if (sz_iw) *sz_iw = REST_IW;\n"
         "  if (sz_w) *sz_w = REST_W + N_REST;\n"
         "  return 0;\n}\n"
+        # f at the stages alone (the error estimate's, :func:`.compiled.stage_f_function`): g's rows not written
+        "static const casadi_int sp_stage_f[3] = {N_S * N_X, 1, 1};\n"
+        f"int {STAGE_F}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
+        "  const casadi_real* in = arg[0];\n"
+        "  const casadi_real* W = in + 2 + N_X;\n"
+        "  casadi_real* F = res[0];\n"
+        "  casadi_real t, h = in[1];\n"
+        "  casadi_int i;\n"
+        "  if (!F) return 0;\n"
+        "  for (i = 0; i < N_S; i++) {\n"
+        "    const casadi_real** a = arg + 1;\n"
+        "    casadi_real** r = res + 1;\n"
+        "    t = in[0] + stage_c[i] * h;\n"
+        "    a[0] = &t; a[1] = W + i * N_D; a[2] = W + i * N_D + N_X; a[3] = W + N_S * N_D;\n"
+        "    r[0] = F + i * N_X; r[1] = 0;\n"
+        f"    if ({NAME}(a, r, iw, w, 0)) return 1;\n"
+        "  }\n"
+        "  return 0;\n}\n"
+        f"casadi_int {STAGE_F}_n_in(void) {{ return 1; }}\n"
+        f"casadi_int {STAGE_F}_n_out(void) {{ return 1; }}\n"
+        f"const casadi_int* {STAGE_F}_sparsity_in(casadi_int i) {{ return i == 0 ? sp_in : 0; }}\n"
+        f"const casadi_int* {STAGE_F}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_stage_f : 0; }}\n"
+        f"int {STAGE_F}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
+        "  if (sz_arg) *sz_arg = 1 + 4 + REST_ARG;\n"
+        "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
+        "  if (sz_iw) *sz_iw = REST_IW;\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
+        "  return 0;\n}\n"
     )
 
 
@@ -269,8 +297,8 @@ def stencil_function(runs, tableau, compiler: str):
     flags += GCC_STENCIL_FLAGS if flags != COMPILER_FLAGS else ()  # (GCC's flags added: not clang)
     build = Build(compiler, flags, what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
     source = stencil_source(runs) + residual_source(tableau)
-    library = cached_library(source, [NAME, RESIDUAL, JACOBIAN], build)
-    return library.functions[NAME], library.functions[RESIDUAL], library.functions[JACOBIAN], library.outcome
+    library = cached_library(source, [NAME, RESIDUAL, JACOBIAN, STAGE_F], build)
+    return (*(library.functions[name] for name in (NAME, RESIDUAL, JACOBIAN, STAGE_F)), library.outcome)
 
 
 def stencil_equations(compiled, tableau):
@@ -289,12 +317,12 @@ def stencil_equations(compiled, tableau):
         if runs is None:
             return None, "casadi's virtual machine (not a repeated stencil)"
         try:
-            fg, residual, raw, outcome = stencil_function(runs, tableau, compiler)
+            fg, residual, raw, stage_f, outcome = stencil_function(runs, tableau, compiler)
         except CompileError as error:
             return None, f"casadi's virtual machine (the compiler failed: {str(error)[:200]})"
         layout = runs_jacobian_layout(compiled)
         jacobian = None if layout is None else gathered_jacobian(raw, layout[2], runs.sizes)
-        return (fg, residual, jacobian), f"machine code ({runs.describe()}; cache: {outcome})"
+        return (fg, residual, jacobian, stage_f), f"machine code ({runs.describe()}; cache: {outcome})"
 
     return compiled.cached(("radau-stencil-equations", tableau.stages), build)
 
