@@ -14,7 +14,9 @@ solves it once with radau at its defaults over [0, 1] with 11 output times (``t_
   freed heap (~275 MB at 10^5 unknowns, the compile's numpy code) stayed resident and the solve reused it
   unseen, so the growth read 1.5-2x the factors where the solve's own pages were ~9x;
 * ``again_rss``: the same for a second solve of the same compiled model (what each later solve needs, the
-  model's one-off pieces made).
+  model's one-off pieces made).  The factors' buffers are among those pieces (the band kernel keeps one
+  factorisation's for the next solve), so a later solve's memory is its growth plus the factors' bytes:
+  ``again_total_ratio`` = (growth - outputs + factors) / factors.
 
 Beside them: ``stats["factor_bytes"]`` (what one factorisation's buffers hold: the band kernel's real and
 two complex systems at s = 5) and ``output_bytes``, what the returned Solution holds that the user asked
@@ -48,7 +50,7 @@ def rss_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def cell(unknowns: int, dense_output: bool, traced: bool = True) -> dict:
+def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "radau") -> dict:
     """One fresh process's measurement (see the module docstring)."""
     import tracemalloc
 
@@ -89,19 +91,20 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True) -> dict:
     before = tracemalloc.get_traced_memory()[0]
     watcher = threading.Thread(target=sample, daemon=True)
     watcher.start()
-    sol = dm.solve(compiled, (0.0, 1.0), method="radau", t_eval=times, dense_output=dense_output)
+    options = {"dense_output": dense_output} if method == "radau" else {}  # (casadi-idas has no dense output)
+    sol = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
     running[0] = False
     watcher.join()
     peak = tracemalloc.get_traced_memory()[1] - before if traced else None
     rss_peak = max([*samples, rss_bytes()]) - before_rss
     tracemalloc.stop()
-    first = {"steps": sol.stats["steps"], "solve_s": sol.solve_time, "status": sol.status}
+    first = {"steps": sol.stats.get("steps"), "solve_s": sol.solve_time, "status": sol.status}
     del sol
     samples[:] = []
     before_again, running[0] = settle(), True
     watcher = threading.Thread(target=sample, daemon=True)
     watcher.start()
-    sol = dm.solve(compiled, (0.0, 1.0), method="radau", t_eval=times, dense_output=dense_output)
+    sol = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
     running[0] = False
     watcher.join()
     again_peak = max([*samples, rss_bytes()]) - before_again
@@ -121,6 +124,8 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True) -> dict:
         "rss_ratio": None if not factors else (rss_peak - output) / factors,
         "again_rss_peak_bytes": again_peak,
         "again_rss_ratio": None if not factors else (again_peak - output) / factors,
+        "again_total_ratio": None if not factors else (again_peak - output + factors) / factors,
+        "method": method,
         **first,  # (the first solve's steps, solve time and status; the second's time beside them)
         "again_solve_s": sol.solve_time,
     }
@@ -134,17 +139,18 @@ def main() -> None:
     parser.add_argument(
         "--rss-only", action="store_true", help="no tracemalloc (its cost on every allocation: minutes at 10^5)"
     )
-    parser.add_argument("--cell", nargs=3, help=argparse.SUPPRESS)  # (unknowns, dense_output, traced: one child's)
+    parser.add_argument("--method", default="radau", help="the method solved (casadi-idas: its growth, no factors)")
+    parser.add_argument("--cell", nargs=4, help=argparse.SUPPRESS)  # (unknowns, dense_output, traced, method)
     args = parser.parse_args()
     if args.cell:
-        print(json.dumps(cell(int(args.cell[0]), args.cell[1] == "1", args.cell[2] == "1")))
+        print(json.dumps(cell(int(args.cell[0]), args.cell[1] == "1", args.cell[2] == "1", args.cell[3])))
         return
     env = dict(os.environ, OMP_NUM_THREADS="1")
     cells = []
     for unknowns in args.unknowns:
         for dense in {"both": (True, False), "on": (True,), "off": (False,)}[args.dense]:
             traced = "0" if args.rss_only else "1"
-            command = [sys.executable, __file__, "--cell", str(unknowns), "1" if dense else "0", traced]
+            command = [sys.executable, __file__, "--cell", str(unknowns), "1" if dense else "0", traced, args.method]
             out = subprocess.run(command, env=env, capture_output=True, text=True, check=True).stdout
             cells.append(json.loads(out.strip().splitlines()[-1]))
             c = cells[-1]
@@ -152,8 +158,9 @@ def main() -> None:
                 f"{unknowns} dense_output={dense}: traced {(c['traced_peak_bytes'] or 0) / 1e6:.1f} MB, rss "
                 f"{c['rss_peak_bytes'] / 1e6:.1f} MB, factors {(c['factor_bytes'] or 0) / 1e6:.2f} MB, outputs "
                 f"{c['output_bytes'] / 1e6:.1f} MB, ratio {c['ratio'] or float('nan'):.2f}, rss ratio "
-                f"{c['rss_ratio']:.2f}, "
-                f"a second solve's rss ratio {c['again_rss_ratio']:.2f}",
+                f"{c['rss_ratio'] or float('nan'):.2f}; a second solve: rss {c['again_rss_peak_bytes'] / 1e6:.1f} MB, "
+                f"ratio {c['again_rss_ratio'] or float('nan'):.2f}, with the factors "
+                f"{c['again_total_ratio'] or float('nan'):.2f}",
                 flush=True,
             )
     command = "python benchmarks/solve_memory.py " + " ".join(sys.argv[1:])
