@@ -187,20 +187,37 @@ def equation_runs(compiled) -> EquationRuns | None:
     rest = rest_jacobian = None
     rest_pattern = EquationRuns._field_defaults["rest_pattern"]
     if len(apart):
-        # (the rest's rows alone converted, not the whole model: the same operations a row, as the templates')
-        symbols = {"t": casadi.SX.sym("t"), "x": casadi.SX.sym("x", n), "z": casadi.SX.sym("z", m)}
-        symbols["p"] = casadi.SX.sym("p", P)
-        table = {compiled.t: symbols["t"]}
-        for kind, column in (("x", compiled.states), ("z", compiled.algebraics), ("p", compiled.parameters)):
-            table.update(zip(column, casadi.vertsplit(symbols[kind]) if column else (), strict=True))
-        both = CasadiConverter(table).stack([rows[i] for i in apart])
-        arguments = [symbols[kind] for kind in INPUTS]
-        rest = casadi.Function("rest", arguments, [both])
-        partials = casadi_jacobian(both, casadi.vertcat(symbols["x"], symbols["z"]))
-        rest_jacobian = casadi.Function("rest_jacobian", arguments, [partials.nz[:]])
-        rest_pattern = tuple(np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
+        rest, rest_jacobian, rest_pattern = _rest_functions(compiled, [rows[i] for i in apart])
     return EquationRuns(templates, runs, rest, (apart[apart < n], apart[apart >= n] - n), (n, m, P), derivatives,
                         derivative_leaves, rest_jacobian, rest_pattern)  # fmt: skip
+
+
+def _rest_functions(compiled, rows: list):
+    """The rest's function of ``(t, x, z, p)`` to ``rows`` (the rows in no run), its Jacobian's function to
+    its nonzeros in ``(x, z)`` and their pattern: the rows alone converted (not the whole model), each on
+    the symbols it reads, an MX function gathering those from the whole inputs (casadi's function of the
+    whole inputs' symbols held them all: 11 MB at 10^5 unknowns for rows of two boundaries)."""
+    import casadi
+
+    read = set().union(*(row.free_symbols for row in rows))
+    table, places, local, whole, gathered = {}, [], [], [], []
+    for kind, column in zip(
+        INPUTS, ((compiled.t,), compiled.states, compiled.algebraics, compiled.parameters), strict=True
+    ):
+        places.append([i for i, symbol in enumerate(column) if symbol in read])
+        symbols = [casadi.SX.sym(f"{kind}{i}") for i in places[-1]]
+        table.update(zip((column[i] for i in places[-1]), symbols, strict=True))
+        local.append(casadi.vertcat(*symbols) if symbols else casadi.SX(0, 1))
+        whole.append(casadi.MX.sym(kind, len(column)))
+        gathered.append(whole[-1][places[-1]] if places[-1] else casadi.MX(0, 1))
+    both = CasadiConverter(table).stack(rows)
+    rest = casadi.Function("rest", whole, [casadi.Function("rest_rows", local, [both])(*gathered)])
+    partials = casadi_jacobian(both, casadi.vertcat(local[1], local[2]))
+    inner = casadi.Function("rest_jacobian_rows", local, [partials.nz[:]])
+    rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)])
+    local_rows, local_cols = (np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
+    columns = np.asarray([*places[1], *(len(compiled.states) + j for j in places[2])], dtype=np.int64)
+    return rest, rest_jacobian, (local_rows, columns[local_cols])
 
 
 def jacobian_layout(runs: EquationRuns) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
