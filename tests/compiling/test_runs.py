@@ -185,10 +185,25 @@ def heat_with_source(K: int = 200) -> dm.Model:
     return m
 
 
+def product_rows(K: int = 240, W: int = 12) -> dm.Model:
+    """Rows of a product of W - 1 neighbours' sines: a template whose partial derivatives casadi takes by one
+    reverse sweep, unless told (the whole model's Jacobian is coloured forward: other roundings)."""
+    m = dm.Model("products")
+    u = m.states("u", K)
+    for k in range(K):
+        if k + W <= K:
+            product = sp.Mul(*[1 + sp.Rational(1, 100) * sp.sin(u[k + j]) for j in range(1, W)])
+            m.ode(u[k], -u[k] + product * sp.cos(u[k]) / 100)
+        else:
+            m.ode(u[k], -u[k])
+    m.initial(u=np.linspace(0.1, 0.9, K))
+    return m
+
+
 @pytest.mark.parametrize(
     "model",
-    [lambda: reaction_diffusion(300), lambda: scrambled_grid(300), heat_with_source],
-    ids=["grid", "scrambled", "source"],
+    [lambda: reaction_diffusion(300), lambda: scrambled_grid(300), heat_with_source, product_rows],
+    ids=["grid", "scrambled", "source", "products"],
 )
 def test_the_runs_jacobian_is_casadis_pattern_and_values_bit_for_bit(model):
     """:func:`runs.jacobian_layout`: the pattern of the whole model's casadi Jacobian, in its order, and the
