@@ -14,8 +14,9 @@ model's ``f`` and ``g`` (``tests/backends/test_radau_stencil.py``), and ``stenci
 template's partial derivatives (casadi's AD of the template) at each row of its runs and the rest's Jacobian
 (on casadi's virtual machine instead where it has more than :data:`REST_JACOBIAN_C_MAX` operations), which
 taken in casadi's order (:func:`daemodel.compiling.runs.jacobian_layout`) are the model's Jacobian's nonzeros
-bit for bit: with them a solve does not make the model's whole casadi graph (at 10^5 unknowns of
-reaction-diffusion 89 MB kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
+(bit for bit where casadi colours the whole model's Jacobian forward, to rounding else: :data:`.runs.FORWARD`):
+with them a solve does not make the model's whole casadi graph (at 10^5 unknowns of reaction-diffusion 89 MB
+kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
 """
 
 from __future__ import annotations
