@@ -11,10 +11,12 @@ boundaries) a casadi function of their own in the same library; the source grows
 runs, not with the unknowns, so it compiles in a fraction of a second and the disk cache
 (:mod:`daemodel.cache`) keeps it.  One function ``stencil_fg(t, x, z, p) -> (f, g)``, the same bits as the
 model's ``f`` and ``g`` (``tests/backends/test_radau_stencil.py``), and ``stencil_jacobian(t, x, z, p)``, each
-template's partial derivatives (casadi's AD of the template) at each row of its runs and the rest's Jacobian,
-which taken in casadi's order (:func:`daemodel.compiling.runs.jacobian_layout`) are the model's Jacobian's
-nonzeros bit for bit: with them a solve does not make the model's whole casadi graph (at 10^5 unknowns of
-reaction-diffusion 89 MB kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
+template's partial derivatives (casadi's AD of the template) at each row of its runs and the rest's Jacobian
+(on casadi's virtual machine instead where it has more than :data:`REST_JACOBIAN_C_MAX` operations), which
+taken in casadi's order (:func:`daemodel.compiling.runs.jacobian_layout`) are the model's Jacobian's nonzeros
+(bit for bit where casadi colours the whole model's Jacobian forward, to rounding else: :data:`.runs.FORWARD`):
+with them a solve does not make the model's whole casadi graph (at 10^5 unknowns of reaction-diffusion 89 MB
+kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
 """
 
 from __future__ import annotations
@@ -35,6 +37,10 @@ STENCIL_COMPILE_TIMEOUT = 120.0
 # With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
 # are exported, so -fPIC called each through the PLT at every row, and casadi's sq too): the same operations.
 GCC_STENCIL_FLAGS = ("-fno-semantic-interposition",)
+# The most operations of the rest rows' Jacobian compiled in C; beyond, casadi's virtual machine evaluates it
+# (boundary rows of products of 70 leaves: 139,338 operations, 3.3 MB of C that cc did not finish in 120 s,
+# and the whole library, f, g and the residual with it, fell back to the virtual machine).
+REST_JACOBIAN_C_MAX = 20_000
 
 
 def _table(name: str, rows: list) -> str:
@@ -56,6 +62,7 @@ def stencil_source(runs) -> str:
     rest = runs.rest
     if rest is not None:
         generator.add(rest)
+    if rest_jacobian_in_c(runs):
         generator.add(runs.rest_jacobian)
     n, m, P = runs.sizes
     out = [generator.dump(), "\n/* daemodel: runs of the templates (generated; numbers only) */\n"]
@@ -140,11 +147,12 @@ def jacobian_source(runs) -> str:
     """The C of :data:`JACOBIAN` (after :func:`stencil_source`'s): ``(t, x, z, p)`` to the values of each
     template's partial derivatives at each row of its runs, in order, then the rest's Jacobian's nonzeros
     (the order :func:`daemodel.compiling.runs.jacobian_layout` reads them in)."""
-    rest = runs.rest_jacobian
+    rest = runs.rest_jacobian if rest_jacobian_in_c(runs) else None
     functions = [*runs.derivatives, *([] if rest is None else [rest])]
     sizes = [max([f.sz_arg(), f.sz_res(), f.sz_iw(), f.sz_w()][k] for f in functions) if functions else 0
              for k in range(4)]  # fmt: skip
-    total = sum(r.count * len(runs.derivative_leaves[r.template]) for r in runs.runs) + runs.rest_pattern[0].size
+    total = sum(r.count * len(runs.derivative_leaves[r.template]) for r in runs.runs)
+    total += 0 if rest is None else runs.rest_pattern[0].size
     out = [
         f"#define N_JAC {total}\n#define JAC_ARG {max(sizes[0], 4)}\n#define JAC_RES {max(sizes[1], 1)}\n"
         f"#define JAC_IW {sizes[2]}\n#define JAC_W {sizes[3]}\n"
@@ -321,21 +329,32 @@ def stencil_equations(compiled, tableau):
         except CompileError as error:
             return None, f"casadi's virtual machine (the compiler failed: {str(error)[:200]})"
         layout = runs_jacobian_layout(compiled)
-        jacobian = None if layout is None else gathered_jacobian(raw, layout[2], runs.sizes)
+        rest = None if rest_jacobian_in_c(runs) else runs.rest_jacobian  # (None: in the library, or no rest)
+        jacobian = None if layout is None else gathered_jacobian(raw, layout[2], runs.sizes, rest)
         return (fg, residual, jacobian, stage_f), f"machine code ({runs.describe()}; cache: {outcome})"
 
     return compiled.cached(("radau-stencil-equations", tableau.stages), build)
 
 
-def gathered_jacobian(raw, taken, sizes):
+def gathered_jacobian(raw, taken, sizes, rest=None):
     """casadi function of the packed ``[t, x, z, p]`` to the Jacobian's nonzeros in casadi's order: :data:`JACOBIAN`'s
-    values (``raw``) at ``taken`` (:func:`daemodel.compiling.runs.jacobian_layout`)."""
+    values (``raw``), then ``rest``'s (the rest rows' Jacobian where it is not in the library:
+    :func:`rest_jacobian_in_c`), at ``taken`` (:func:`daemodel.compiling.runs.jacobian_layout`)."""
     import casadi
 
     n, m, P = sizes
     packed = casadi.MX.sym("x", 1 + n + m + P)
     t, x, z, p = casadi.vertsplit(packed, [0, 1, 1 + n, 1 + n + m, 1 + n + m + P])
-    return casadi.Function("jacobian", [packed], [raw(t, x, z, p)[taken.tolist()]])
+    values = raw(t, x, z, p) if rest is None else casadi.vertcat(raw(t, x, z, p), rest(t, x, z, p))
+    return casadi.Function("jacobian", [packed], [values[taken.tolist()]])
+
+
+def rest_jacobian_in_c(runs) -> bool:
+    """Whether :data:`JACOBIAN` computes the rest rows' Jacobian too: there is a rest and its Jacobian has at
+    most :data:`REST_JACOBIAN_C_MAX` operations (else :func:`gathered_jacobian` calls it on the virtual machine)."""
+    rest = runs.rest_jacobian
+    # (its operations are those of the function of the rows' own symbols it calls: runs._rest_functions)
+    return rest is not None and rest.get_function("rest_jacobian_rows").n_instructions() <= REST_JACOBIAN_C_MAX
 
 
 def uses_stencil(compiled, jit, machine_code: bool) -> bool:

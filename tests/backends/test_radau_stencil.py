@@ -3,6 +3,7 @@ casadi functions they replace, the same solve; models that are not one keep the 
 
 import numpy as np
 import pytest
+import sympy as sp
 from daemodel.backends.radau import stencil as stencil_module
 from daemodel.backends.radau.compiled import Buffered, casadi_functions, find_compiler, stage_f_function
 from daemodel.backends.radau.stencil import stencil_equations
@@ -115,3 +116,46 @@ def test_no_compiler_leaves_the_stencil_to_the_virtual_machine(monkeypatch):
     monkeypatch.setattr(stencil_module, "find_compiler", lambda: None)
     functions, said = stencil_equations(reaction_diffusion(300).compile(), radau_iia(5))
     assert functions is None and said == "casadi's virtual machine (no C compiler)"
+
+
+def heavy_boundary_model(K: int = 120, W: int = 70) -> dm.Model:
+    """Rows that read their next W - 1 neighbours in a product, and W boundary rows apart whose Jacobian has
+    more operations than :data:`stencil.REST_JACOBIAN_C_MAX` (its C took cc over 120 s before that bound)."""
+    m = dm.Model("heavy_boundary")
+    u = m.states("u", 2 * K)
+    for k in range(2 * K):
+        if k + W <= 2 * K:
+            product = sp.Mul(*[1 + sp.Rational(1, 100) * sp.sin(u[k + j]) for j in range(1, W)])
+            m.ode(u[k], -u[k] + product * sp.cos(u[k]) / 100)
+        else:
+            m.ode(u[k], -u[k])
+    m.initial(u=np.linspace(0.1, 0.9, 2 * K))
+    return m
+
+
+def test_a_rest_jacobian_above_the_bound_is_left_to_the_virtual_machine(monkeypatch):
+    """Its Jacobian is not put in the library's C (the rest's f and g are: few operations), the runs' are;
+    the values are still casadi's whole-model Jacobian's, bit for bit, and the solve the same."""
+    from daemodel.compiling.runs import equation_runs
+
+    heavy = equation_runs(heavy_boundary_model().compile())
+    assert heavy.rest_jacobian.get_function("rest_jacobian_rows").n_instructions() > stencil_module.REST_JACOBIAN_C_MAX
+    assert not stencil_module.rest_jacobian_in_c(heavy) and "rest_jacobian" not in stencil_module.stencil_source(heavy)
+    assert heavy.rest.get_function("rest_rows").n_instructions() < stencil_module.REST_JACOBIAN_C_MAX
+    monkeypatch.setattr(stencil_module, "REST_JACOBIAN_C_MAX", 0)  # (reaction-diffusion's boundary rows too)
+    compiled, tableau = reaction_diffusion(300).compile(), radau_iia(3)
+    functions, said = stencil_equations(compiled, tableau)
+    assert said.startswith("machine code (2 templates") and "13 rows apart" in said
+    plain = casadi_functions(compiled, tableau)
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        x = np.r_[0.3, rng.uniform(-0.5, 2.0, 600), compiled.parameter_values]
+        np.testing.assert_array_equal(np.asarray(functions[2](x)).ravel(), np.asarray(plain[2](x)).ravel())
+    options = {"rtol": 1e-6, "atol": 1e-8}
+    fast = dm.solve(compiled, (0.0, 1.0), **options)
+    assert fast.stats["stencil"] == said
+    monkeypatch.setattr(stencil_module, "stencil_equations", lambda *args: (None, "off"))
+    slow = dm.solve(reaction_diffusion(300).compile(), (0.0, 1.0), **options)
+    assert fast.stats["steps"] == slow.stats["steps"]
+    for name in compiled.state_names + compiled.algebraic_names:
+        np.testing.assert_array_equal(fast[name], slow[name])

@@ -185,10 +185,25 @@ def heat_with_source(K: int = 200) -> dm.Model:
     return m
 
 
+def product_rows(K: int = 240, W: int = 12) -> dm.Model:
+    """Rows of a product of W - 1 neighbours' sines: a template whose partial derivatives casadi takes by one
+    reverse sweep, unless told (the whole model's Jacobian is coloured forward: other roundings)."""
+    m = dm.Model("products")
+    u = m.states("u", K)
+    for k in range(K):
+        if k + W <= K:
+            product = sp.Mul(*[1 + sp.Rational(1, 100) * sp.sin(u[k + j]) for j in range(1, W)])
+            m.ode(u[k], -u[k] + product * sp.cos(u[k]) / 100)
+        else:
+            m.ode(u[k], -u[k])
+    m.initial(u=np.linspace(0.1, 0.9, K))
+    return m
+
+
 @pytest.mark.parametrize(
     "model",
-    [lambda: reaction_diffusion(300), lambda: scrambled_grid(300), heat_with_source],
-    ids=["grid", "scrambled", "source"],
+    [lambda: reaction_diffusion(300), lambda: scrambled_grid(300), heat_with_source, product_rows],
+    ids=["grid", "scrambled", "source", "products"],
 )
 def test_the_runs_jacobian_is_casadis_pattern_and_values_bit_for_bit(model):
     """:func:`runs.jacobian_layout`: the pattern of the whole model's casadi Jacobian, in its order, and the
@@ -214,3 +229,28 @@ def test_a_layout_whose_entries_meet_is_none():
     found = equation_runs(reaction_diffusion(300).compile())
     assert runs_module.jacobian_layout(found) is not None
     assert runs_module.jacobian_layout(found._replace(runs=[*found.runs, found.runs[0]])) is None
+
+
+def test_where_casadi_colours_the_whole_model_backward_the_values_agree_to_rounding():
+    """A row of 60 unknowns: casadi takes the whole model's Jacobian by reverse sweeps, whose bits neither sweep
+    of a template gives (runs.FORWARD); the pattern is still casadi's and the values agree to rounding."""
+    from daemodel.compiling.codegen import casadi_jacobian
+
+    m = dm.Model("wide_row")
+    u = m.states("u", 300)
+    m.ode(u[0], -u[0] + sp.Mul(*[1 + sp.sin(u[j]) / 100 for j in range(1, 60)]) * sp.cos(u[0]) / 100)
+    for k in range(1, 300):
+        m.ode(u[k], -u[k] + sp.sin(u[k - 1]) * sp.cos(u[k]) * sp.exp(u[k - 1] / 3) * (1 + u[k] ** 2) / 10)
+    m.initial(u=np.linspace(0.1, 0.9, 300))
+    compiled = m.compile()
+    found = equation_runs(compiled)
+    assert found.describe() == "1 templates, 1 runs of 299 rows, 1 rows apart"
+    layout = runs_module.jacobian_layout(found)
+    for ours, theirs in zip(layout[:2], compiled.casadi_jacobian_pattern(), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    dae = compiled.casadi_dae()
+    whole = casadi_jacobian(casadi.vertcat(dae["ode"], dae["alg"]), casadi.vertcat(dae["x"], dae["z"]))
+    plain = casadi.Function("J", [dae["t"], dae["x"], dae["z"], dae["p"]], [whole.nz[:]])
+    args = random_args(compiled)
+    want = np.asarray(plain(*args)).ravel()
+    np.testing.assert_allclose(jacobian_of_runs(found, layout, args), want, rtol=4e-15, atol=0)
