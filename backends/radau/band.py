@@ -45,14 +45,10 @@ _KERNEL = r"""
 #define AT(r, j) ((r) + (casadi_int)LDAB * (j))
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
 
-static const casadi_int sp_data[3] = {N_NZ, 1, 1};
-static const casadi_int sp_data_c[3] = {2 * N_NZ, 1, 1};
-static const casadi_int sp_pos[3] = {N_NZ, 1, 1};
-static const casadi_int sp_lu[3] = {N_LU, 1, 1};
-static const casadi_int sp_lu_c[3] = {N_LU_C, 1, 1};
-static const casadi_int sp_b[3] = {N_D, 1, 1};
-static const casadi_int sp_b_c[3] = {2 * N_D, 1, 1};
-static const casadi_int sp_order[3] = {N_D, 1, 1};
+/* Each argument and result is declared as one entry: casadi keeps a dense vector's row indices (8 bytes an entry,
+   30 MB for their six sizes at 10^5 unknowns, as long as the functions live); the sizes are this source's numbers,
+   the buffers Python's (band.py: FunctionBuffer takes any buffer at least as large as declared) */
+static const casadi_int sp_one[3] = {1, 1, 1};
 
 /* The packed factors (C = 1 real, 2 complex doubles an entry):
    [values (C LDAB N_D: the band while factoring, then each column's nonzeros, L's then U's, diagonal first)]
@@ -224,10 +220,10 @@ int band_solve_complex(const double** arg, double** res, casadi_int* iw, double*
     if (sz_w) *sz_w = work;                                                                               \
     return 0;                                                                                             \
   }
-SIGNATURE(band_factor, 2, sp_data, sp_pos, 0, sp_lu, 0)
-SIGNATURE(band_factor_complex, 2, sp_data_c, sp_pos, 0, sp_lu_c, 0)
-SIGNATURE(band_solve, 3, sp_lu, sp_b, sp_order, sp_b, N_D)
-SIGNATURE(band_solve_complex, 3, sp_lu_c, sp_b_c, sp_order, sp_b_c, 2 * N_D)
+SIGNATURE(band_factor, 2, sp_one, sp_one, 0, sp_one, 0)
+SIGNATURE(band_factor_complex, 2, sp_one, sp_one, 0, sp_one, 0)
+SIGNATURE(band_solve, 3, sp_one, sp_one, sp_one, sp_one, N_D)
+SIGNATURE(band_solve_complex, 3, sp_one, sp_one, sp_one, sp_one, 2 * N_D)
 """
 
 NAMES = ("band_factor", "band_factor_complex", "band_solve", "band_solve_complex")
@@ -257,8 +253,6 @@ def band_source(D: int, nnz: int, kl: int, ku: int) -> str:
     matrix entries and the band widths ``kl``, ``ku``: numbers only."""
     ldab = 2 * kl + ku + 1
     sizes = {"N_D": D, "N_NZ": nnz, "KL": kl, "KU": ku, "LDAB": ldab}
-    tail = D + 1 + -(-(2 + ldab) * D // 8)  # (the pivots, info, and the counts' and distances' bytes)
-    sizes |= {"N_LU": ldab * D + tail, "N_LU_C": 2 * ldab * D + tail}
     head = ["/* daemodel: radau's band LU (generated; numbers only) */\n#include <math.h>\n"]
     return "".join(head + [f"#define {key} {value}\n" for key, value in sizes.items()]) + _KERNEL
 
@@ -326,6 +320,8 @@ class BandKernel:
         layout's order), or ``(("singular",), [True])`` where a pivot is exactly zero or not finite."""
         complex_ = np.iscomplexobj(data)
         values = np.ascontiguousarray(data, dtype=complex if complex_ else float).view(float)
+        if values.size != (2 if complex_ else 1) * self.nnz:  # (the C reads N_NZ of them: its interface, one entry)
+            raise ValueError(f"the band factors take {self.nnz} matrix entries, got {data.size}")
         band = (2 if complex_ else 1) * self.ldab * self.D
         spare = self._spare[complex_]
         packed = spare.pop() if spare else np.empty(self._size(complex_))
