@@ -282,3 +282,10 @@ def test_paired_band_factors_solve_real_and_complex_right_hand_sides(first_engin
         for rhs in (b.real, b):
             exact = np.linalg.solve(A, rhs)
             assert np.abs(lu.solve(rhs) - exact).max() < 1e-11 * np.abs(exact).max()
+
+
+def test_the_kernel_indexes_the_band_in_int32_where_it_fits():
+    # (LDAB x D entries: 7 x 306,783,378 = 2^31 - 1 is int32's largest, one unknown more is not)
+    assert band.band_index(306_783_378, 7) == np.int32 and band.band_index(306_783_379, 7) == np.int64
+    assert "#define INDEX int\n" in band.band_source(1000, 2998, 2, 2)
+    assert "#define INDEX long long int\n" in band.band_source(306_783_379, 10**9, 2, 2)
