@@ -45,14 +45,10 @@ _KERNEL = r"""
 #define AT(r, j) ((r) + (casadi_int)LDAB * (j))
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
 
-static const casadi_int sp_data[3] = {N_NZ, 1, 1};
-static const casadi_int sp_data_c[3] = {2 * N_NZ, 1, 1};
-static const casadi_int sp_pos[3] = {N_NZ, 1, 1};
-static const casadi_int sp_lu[3] = {N_LU, 1, 1};
-static const casadi_int sp_lu_c[3] = {N_LU_C, 1, 1};
-static const casadi_int sp_b[3] = {N_D, 1, 1};
-static const casadi_int sp_b_c[3] = {2 * N_D, 1, 1};
-static const casadi_int sp_order[3] = {N_D, 1, 1};
+/* Each argument and result is declared as one entry: casadi keeps a dense vector's row indices (8 bytes an entry,
+   30 MB for their six sizes at 10^5 unknowns, as long as the functions live); the sizes are this source's numbers,
+   the buffers Python's (band.py: FunctionBuffer takes any buffer at least as large as declared) */
+static const casadi_int sp_one[3] = {1, 1, 1};
 
 /* The packed factors (C = 1 real, 2 complex doubles an entry):
    [values (C LDAB N_D: the band while factoring, then each column's nonzeros, L's then U's, diagonal first)]
@@ -61,7 +57,7 @@ static const casadi_int sp_order[3] = {N_D, 1, 1};
 #define FACTOR(NAME, C, ISZERO, ABS1, DIVIDE, UPDATE)                                                     \
 int NAME(const double** arg, double** res, casadi_int* iw, double* w, int mem) {                        \
   const double* data = arg[0];                                                                           \
-  const double* pos = arg[1];                                                                            \
+  const INDEX* pos = (const INDEX*)arg[1];                                                               \
   double* ab = res[0];                                                                                   \
   double* piv = ab + C * (casadi_int)LDAB * N_D;                                                        \
   unsigned char* count = (unsigned char*)(piv + N_D + 1);                                                \
@@ -142,7 +138,7 @@ FACTOR(band_factor, 1, R_ISZERO, R_ABS1, R_DIVIDE, R_UPDATE)
 FACTOR(band_factor_complex, 2, C_ISZERO, C_ABS1, c_divide, c_update)
 
 /* x = A^-1 b, b and x in the unknowns' own order (order[k]: the unknown at the band's k-th place) */
-static void solve_real(const double* f, const double* b, const double* order, double* x, double* out) {
+static void solve_real(const double* f, const double* b, const INDEX* order, double* x, double* out) {
   const double* piv = f + (casadi_int)LDAB * N_D;
   const unsigned char* count = (const unsigned char*)(piv + N_D + 1);
   const unsigned char* dist = count + 2 * (casadi_int)N_D;
@@ -168,7 +164,7 @@ static void solve_real(const double* f, const double* b, const double* order, do
   for (i = 0; i < N_D; i++) out[(casadi_int)order[i]] = x[i];
 }
 
-static void solve_complex(const double* f, const double* b, const double* order, double* x, double* out) {
+static void solve_complex(const double* f, const double* b, const INDEX* order, double* x, double* out) {
   const double* piv = f + 2 * (casadi_int)LDAB * N_D;
   const unsigned char* count = (const unsigned char*)(piv + N_D + 1);
   const unsigned char* dist = count + 2 * (casadi_int)N_D;
@@ -203,12 +199,12 @@ static void solve_complex(const double* f, const double* b, const double* order,
 }
 
 int band_solve(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
-  if (res[0]) solve_real(arg[0], arg[1], arg[2], w, res[0]);
+  if (res[0]) solve_real(arg[0], arg[1], (const INDEX*)arg[2], w, res[0]);
   return 0;
 }
 
 int band_solve_complex(const double** arg, double** res, casadi_int* iw, double* w, int mem) {
-  if (res[0]) solve_complex(arg[0], arg[1], arg[2], w, res[0]);
+  if (res[0]) solve_complex(arg[0], arg[1], (const INDEX*)arg[2], w, res[0]);
   return 0;
 }
 
@@ -224,10 +220,10 @@ int band_solve_complex(const double** arg, double** res, casadi_int* iw, double*
     if (sz_w) *sz_w = work;                                                                               \
     return 0;                                                                                             \
   }
-SIGNATURE(band_factor, 2, sp_data, sp_pos, 0, sp_lu, 0)
-SIGNATURE(band_factor_complex, 2, sp_data_c, sp_pos, 0, sp_lu_c, 0)
-SIGNATURE(band_solve, 3, sp_lu, sp_b, sp_order, sp_b, N_D)
-SIGNATURE(band_solve_complex, 3, sp_lu_c, sp_b_c, sp_order, sp_b_c, 2 * N_D)
+SIGNATURE(band_factor, 2, sp_one, sp_one, 0, sp_one, 0)
+SIGNATURE(band_factor_complex, 2, sp_one, sp_one, 0, sp_one, 0)
+SIGNATURE(band_solve, 3, sp_one, sp_one, sp_one, sp_one, N_D)
+SIGNATURE(band_solve_complex, 3, sp_one, sp_one, sp_one, sp_one, 2 * N_D)
 """
 
 NAMES = ("band_factor", "band_factor_complex", "band_solve", "band_solve_complex")
@@ -257,10 +253,15 @@ def band_source(D: int, nnz: int, kl: int, ku: int) -> str:
     matrix entries and the band widths ``kl``, ``ku``: numbers only."""
     ldab = 2 * kl + ku + 1
     sizes = {"N_D": D, "N_NZ": nnz, "KL": kl, "KU": ku, "LDAB": ldab}
-    tail = D + 1 + -(-(2 + ldab) * D // 8)  # (the pivots, info, and the counts' and distances' bytes)
-    sizes |= {"N_LU": ldab * D + tail, "N_LU_C": 2 * ldab * D + tail}
+    sizes["INDEX"] = "int" if band_index(D, ldab) == np.int32 else "long long int"
     head = ["/* daemodel: radau's band LU (generated; numbers only) */\n#include <math.h>\n"]
     return "".join(head + [f"#define {key} {value}\n" for key, value in sizes.items()]) + _KERNEL
+
+
+def band_index(D: int, ldab: int):
+    """The integer type of the kernel's positions in the band storage and of its order (its C ``INDEX``):
+    int32 where the storage's LDAB x D entries are within its range, else int64."""
+    return np.int32 if ldab * D <= np.iinfo(np.int32).max else np.int64
 
 
 def _bound(function, inputs: list, output: np.ndarray):
@@ -300,8 +301,10 @@ class BandKernel:
         self._spare = {False: [], True: []}  # (buffers of dropped factors, up to _kept of each kind)
         self._kept = {False: BAND_SPARE_BUFFERS, True: BAND_SPARE_BUFFERS}
         columns = np.repeat(np.arange(self.D), np.diff(indptr))
-        self.positions = (self.kl + self.ku + indices - columns + self.ldab * columns).astype(float)
-        self.order_values = np.asarray(order.columns, dtype=float)  # (the kernel's inputs are float64)
+        index = band_index(self.D, self.ldab)  # (the C's INDEX: int32 where LDAB x D fits, half of float64's bytes)
+        # (one entry more, never read: casadi takes a buffer of at least the 8 bytes of the one entry declared)
+        self.positions = np.r_[self.kl + self.ku + indices - columns + self.ldab * columns, 0].astype(index)
+        self.order_values = np.r_[order.columns, 0].astype(index)
         self._buffers = threading.local()  # (each thread's solve buffers: solve_buffers)
         # (the kernel reads b[columns[k]] into its k-th row, where equation rows[k]'s value belongs: b = rhs[match])
         self.match = order.match
@@ -326,6 +329,8 @@ class BandKernel:
         layout's order), or ``(("singular",), [True])`` where a pivot is exactly zero or not finite."""
         complex_ = np.iscomplexobj(data)
         values = np.ascontiguousarray(data, dtype=complex if complex_ else float).view(float)
+        if values.size != (2 if complex_ else 1) * self.nnz:  # (the C reads N_NZ of them: its interface, one entry)
+            raise ValueError(f"the band factors take {self.nnz} matrix entries, got {data.size}")
         band = (2 if complex_ else 1) * self.ldab * self.D
         spare = self._spare[complex_]
         packed = spare.pop() if spare else np.empty(self._size(complex_))

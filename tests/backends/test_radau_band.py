@@ -93,6 +93,22 @@ def test_a_zero_pivot_or_a_value_not_finite_is_singular(first_engine):
 
 
 @needs_compiler
+def test_the_kernel_refuses_values_of_another_layout_and_declares_one_entry_an_argument(first_engine):
+    # (its C reads N_NZ values whatever it is given: casadi's check of the buffers' sizes sees one entry each)
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
+    kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
+    for sigma in (4.0 + 0j, 3.0 + 2.0j):
+        data, _ = shifted(engine, J, sigma)
+        message = f"the band factors take {kernel.nnz} matrix entries, got {kernel.nnz - 1}"
+        with pytest.raises(ValueError, match=message):
+            kernel.factor(data[:-1])
+    for function in kernel.functions.values():  # (no dense vector's row indices kept by casadi: 30 MB at 10^5)
+        sizes = [function.nnz_in(k) for k in range(function.n_in())] + [function.nnz_out(0)]
+        assert sizes == [1] * len(sizes)
+
+
+@needs_compiler
 def test_the_default_solve_factors_by_the_band_kernel_with_superlus_steps():
     """Reaction-diffusion of 600 unknowns (above jit="auto"'s compiled steps: the general path): the
     default factors in C (stats["band_lu"]), jit=False by SuperLU; the same steps, Newton iterations and
@@ -266,3 +282,10 @@ def test_paired_band_factors_solve_real_and_complex_right_hand_sides(first_engin
         for rhs in (b.real, b):
             exact = np.linalg.solve(A, rhs)
             assert np.abs(lu.solve(rhs) - exact).max() < 1e-11 * np.abs(exact).max()
+
+
+def test_the_kernel_indexes_the_band_in_int32_where_it_fits():
+    # (LDAB x D entries: 7 x 306,783,378 = 2^31 - 1 is int32's largest, one unknown more is not)
+    assert band.band_index(306_783_378, 7) == np.int32 and band.band_index(306_783_379, 7) == np.int64
+    assert "#define INDEX int\n" in band.band_source(1000, 2998, 2, 2)
+    assert "#define INDEX long long int\n" in band.band_source(306_783_379, 10**9, 2, 2)
