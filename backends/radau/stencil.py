@@ -50,6 +50,33 @@ def _table(name: str, rows: list) -> str:
     return f"static const casadi_int {name}[{len(rows)}][{len(rows[0])}] = {{\n{body}\n}};\n"
 
 
+def _run_loop(k: int, count: int, leaves: int, function: str, start: str, output: str, advance: str = "") -> str:
+    """C: the loop over the ``count`` runs of template ``k`` (``runs{k}``'s rows) calling ``function`` on each of
+    their rows' ``leaves``; ``start``: the lines that begin a run (may ``continue``), ``output``: where a row's
+    result goes (an expression of ``o`` and ``i``), ``advance``: the lines after a row."""
+    size = max(leaves, 1)  # (C has no empty arrays: a row of a constant)
+    return (
+        f"  for (r = 0; r < {count}; r++) {{\n"
+        f"    const casadi_int* q = runs{k}[r];\n"
+        f"    const casadi_real* a[{size}];\n"
+        f"    const casadi_real* in[{size}];\n"
+        f"    casadi_int s[{size}];\n"
+        "    casadi_real* out[1];\n"
+        f"{start}"
+        f"    for (j = 0; j < {leaves}; j++) {{\n"
+        "      a[j] = arg[q[1 + 3 * j]] + q[2 + 3 * j];\n"
+        "      s[j] = q[3 + 3 * j];\n"
+        "    }\n"
+        "    for (i = 0; i < q[0]; i++) {\n"
+        f"      for (j = 0; j < {leaves}; j++) in[j] = a[j] + s[j] * i;\n"
+        f"      out[0] = {output};\n"
+        f"      if ({function}(in, out, iw, w, 0)) return 1;\n"
+        f"{advance}"
+        "    }\n"
+        "  }\n"
+    )
+
+
 def stencil_source(runs) -> str:
     """The C of :data:`NAME` (casadi's external-function interface) for ``runs``
     (:class:`daemodel.compiling.runs.EquationRuns`): the templates and the rest by casadi's code
@@ -90,29 +117,10 @@ def stencil_source(runs) -> str:
         "  casadi_int r, i, j;\n"
     )
     for k, template in enumerate(runs.templates):
-        leaves = template.n_in()
-        count = sum(r.template == k for r in runs.runs)
-        out.append(
-            f"  for (r = 0; r < {count}; r++) {{\n"
-            f"    const casadi_int* q = runs{k}[r];\n"
-            f"    const casadi_real* a[{max(leaves, 1)}];\n"  # (C has no empty arrays: a row of a constant)
-            f"    const casadi_real* in[{max(leaves, 1)}];\n"
-            f"    casadi_int s[{max(leaves, 1)}];\n"
-            f"    casadi_real* o = res[q[{3 * leaves + 1}]];\n"
-            "    casadi_real* out[1];\n"
-            "    if (!o) continue;\n"
-            f"    o += q[{3 * leaves + 2}];\n"
-            f"    for (j = 0; j < {leaves}; j++) {{\n"
-            "      a[j] = arg[q[1 + 3 * j]] + q[2 + 3 * j];\n"
-            "      s[j] = q[3 + 3 * j];\n"
-            "    }\n"
-            "    for (i = 0; i < q[0]; i++) {\n"
-            f"      for (j = 0; j < {leaves}; j++) in[j] = a[j] + s[j] * i;\n"
-            f"      out[0] = o + q[{3 * leaves + 3}] * i;\n"
-            f"      if ({template.name()}(in, out, iw, w, 0)) return 1;\n"
-            "    }\n"
-            "  }\n"
-        )
+        leaves, count = template.n_in(), sum(r.template == k for r in runs.runs)
+        start = (f"    casadi_real* o = res[q[{3 * leaves + 1}]];\n    if (!o) continue;\n"
+                 f"    o += q[{3 * leaves + 2}];\n")  # fmt: skip
+        out.append(_run_loop(k, count, leaves, template.name(), start, f"o + q[{3 * leaves + 3}] * i"))
     if rest is not None:
         out.append(
             "  {\n"
@@ -164,28 +172,9 @@ def jacobian_source(runs) -> str:
     ]
     for k, derivative in enumerate(runs.derivatives):
         leaves, width = derivative.n_in(), len(runs.derivative_leaves[k])
-        count = sum(r.template == k for r in runs.runs)
-        if width == 0:  # (a constant row: no partial derivatives, nothing written)
-            continue
-        out.append(
-            f"  for (r = 0; r < {count}; r++) {{\n"
-            f"    const casadi_int* q = runs{k}[r];\n"
-            f"    const casadi_real* a[{leaves}];\n"
-            f"    const casadi_real* in[{leaves}];\n"
-            f"    casadi_int s[{leaves}];\n"
-            "    casadi_real* out[1];\n"
-            f"    for (j = 0; j < {leaves}; j++) {{\n"
-            "      a[j] = arg[q[1 + 3 * j]] + q[2 + 3 * j];\n"
-            "      s[j] = q[3 + 3 * j];\n"
-            "    }\n"
-            "    for (i = 0; i < q[0]; i++) {\n"
-            f"      for (j = 0; j < {leaves}; j++) in[j] = a[j] + s[j] * i;\n"
-            "      out[0] = o;\n"
-            f"      if ({derivative.name()}(in, out, iw, w, 0)) return 1;\n"
-            f"      o += {width};\n"
-            "    }\n"
-            "  }\n"
-        )
+        if width:  # (else a constant row: no partial derivatives, nothing written)
+            count = sum(r.template == k for r in runs.runs)
+            out.append(_run_loop(k, count, leaves, derivative.name(), "", "o", f"      o += {width};\n"))
     if rest is not None:
         out.append(
             "  {\n"

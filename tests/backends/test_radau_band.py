@@ -73,13 +73,19 @@ def test_the_band_factors_solve_every_shifted_system(first_engine, family, size)
         assert np.abs(superlu.solve(real_or_not) - lu.solve(real_or_not)).max() < 1e-11 * np.abs(exact).max()
 
 
-@needs_compiler
-def test_a_zero_pivot_or_a_value_not_finite_is_singular(first_engine):
+def kernel_and_systems(first_engine):
+    """Reaction-diffusion's band kernel (300 cells) and ``(engine, [the values of sigma M - J])`` for a real and a
+    complex shift, J at the initial values."""
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
     kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
     J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
-    for sigma in (4.0 + 0j, 3.0 + 2.0j):
-        data, _ = shifted(engine, J, sigma)
+    return kernel, engine, [shifted(engine, J, sigma)[0] for sigma in (4.0 + 0j, 3.0 + 2.0j)]
+
+
+@needs_compiler
+def test_a_zero_pivot_or_a_value_not_finite_is_singular(first_engine):
+    kernel, engine, systems = kernel_and_systems(first_engine)
+    for data in systems:
         indptr = engine._csc[1]
         zero = data.copy()
         zero[indptr[7] : indptr[8]] = 0  # (a column of zeros: exactly singular)
@@ -95,11 +101,8 @@ def test_a_zero_pivot_or_a_value_not_finite_is_singular(first_engine):
 @needs_compiler
 def test_the_kernel_refuses_values_of_another_layout_and_declares_one_entry_an_argument(first_engine):
     # (its C reads N_NZ values whatever it is given: casadi's check of the buffers' sizes sees one entry each)
-    compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
-    kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
-    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
-    for sigma in (4.0 + 0j, 3.0 + 2.0j):
-        data, _ = shifted(engine, J, sigma)
+    kernel, _, systems = kernel_and_systems(first_engine)
+    for data in systems:
         message = f"the band factors take {kernel.nnz} matrix entries, got {kernel.nnz - 1}"
         with pytest.raises(ValueError, match=message):
             kernel.factor(data[:-1])
