@@ -387,7 +387,23 @@ def shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int, band: l
     (:func:`band_orders`: equation ``order.rows[k]`` is the k-th row, unknown ``order.columns[k]`` the k-th
     column): ``(order or None, (indices,
     indptr, nnz), where J's values go, where M's diagonal goes)``.  With ``band`` (a list: what the disk
-    cache did is added to it) the order is its :class:`.band.BandKernel` where the band is narrow."""
+    cache did is added to it) the order is its :class:`.band.BandKernel` where the band is narrow.  Made once per
+    model and pattern (3 MB of a later solve at 10^5 unknowns, and the kernel's positions of J's and M's entries
+    read from it: :meth:`.band.BandKernel.factor_shifted`); its arrays are read, never written."""
+    made = []
+
+    def build():
+        made.append(True)
+        return _shifted_layout(compiled, rows, cols, n, band)
+
+    layout = compiled.cached(("radau-shifted-layout", band is not None), build, on=(rows, cols))
+    if band is not None and not made and hasattr(layout[0], "factor_shifted"):  # (its kernel, made before)
+        band.append("memory")
+    return layout
+
+
+def _shifted_layout(compiled, rows: np.ndarray, cols: np.ndarray, n: int, band: list | None) -> tuple:
+    """:func:`shifted_layout`'s, made."""
     D = len(compiled.states) + len(compiled.algebraics)
     order = band_orders(compiled, rows, cols, n, D)
     # (equation k's row and unknown k's column)
@@ -418,6 +434,12 @@ def factor_shifts(values: np.ndarray, shifts, csc: tuple, pos_J: np.ndarray, pos
 
     indices, indptr, nnz = csc
     D = len(indptr) - 1
+    if hasattr(order, "factor_shifted"):  # (a .band.BandKernel: -J and sigma placed by its C, no copies)
+        lu, singular = {}, None
+        for sigma in shifts:
+            lu[sigma], bad = order.factor_shifted(values, sigma, pos_J, pos_M)
+            singular = bad if singular is None else singular | bad
+        return lu, singular
     minus_J = np.zeros(nnz)
     minus_J[pos_J] = -values
     lu, singular = {}, None

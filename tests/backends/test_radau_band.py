@@ -73,13 +73,40 @@ def test_the_band_factors_solve_every_shifted_system(first_engine, family, size)
         assert np.abs(superlu.solve(real_or_not) - lu.solve(real_or_not)).max() < 1e-11 * np.abs(exact).max()
 
 
-def kernel_and_systems(first_engine):
+SHIFTS = (4.0 + 0j, 3.0 + 2.0j)
+
+
+def kernel_and_systems(first_engine, J_too: bool = False):
     """Reaction-diffusion's band kernel (300 cells) and ``(engine, [the values of sigma M - J])`` for a real and a
-    complex shift, J at the initial values."""
+    complex shift (:data:`SHIFTS`), J at the initial values (and J, with ``J_too``)."""
     compiled, engine = first_engine(scaling_models.reaction_diffusion(300))
     kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
     J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
-    return kernel, engine, [shifted(engine, J, sigma)[0] for sigma in (4.0 + 0j, 3.0 + 2.0j)]
+    found = kernel, engine, [shifted(engine, J, sigma)[0] for sigma in SHIFTS]
+    return (*found, J) if J_too else found
+
+
+@needs_compiler
+def test_the_shifted_factors_are_those_of_the_shifted_values_bit_for_bit(first_engine):
+    """factor_shifted places -J and sigma in C: the same packed factors as factor() of numpy's sigma M - J (the
+    values .sparse.factor_shifts made), for a real and a complex shift, and J's values of another size refused."""
+    kernel, engine, _, J = kernel_and_systems(first_engine, J_too=True)
+    J = J * (1 + 0.3 * np.random.default_rng(7).random(J.size))  # (entries other than the diagonal's too)
+    for sigma in SHIFTS:
+        data, _ = shifted(engine, J, sigma)
+        (_, want), _ = kernel.factor(data)
+        (_, got), singular = kernel.factor_shifted(J, sigma, engine._pos_J, engine._pos_M)
+        assert not singular.any() and got.complex == (sigma.imag != 0)
+        head = (2 if got.complex else 1) * kernel.ldab * kernel.D + kernel.D + 1  # (the factors' values, the pivots)
+        np.testing.assert_array_equal(got.packed[:head], want.packed[:head])
+        counts = [lu.packed[head:].view(np.uint8) for lu in (got, want)]  # (then the counts, the distances: the
+        used = 2 * kernel.D + int(counts[1][: 2 * kernel.D].sum())  # bytes after them are a reused buffer's)
+        np.testing.assert_array_equal(counts[0][:used], counts[1][:used])
+        b = np.random.default_rng(8).standard_normal(kernel.D) * (1 + 1j if got.complex else 1)
+        np.testing.assert_array_equal(got.solve(b), want.solve(b))
+    message = f"the band factors take {J.size} Jacobian entries, got {J.size - 1}"
+    with pytest.raises(ValueError, match=message):
+        kernel.factor_shifted(J[:-1], SHIFTS[0], engine._pos_J, engine._pos_M)
 
 
 @needs_compiler
