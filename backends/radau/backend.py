@@ -40,8 +40,8 @@ from daemodel.tableau import radau_iia
 # reserved (glibc's malloc_trim): at 10^5 unknowns of reaction-diffusion a first solve's setup (the model's casadi
 # graphs, the fill's trial LU) frees tens of MB that the allocator would keep resident for the process's life.
 # (It lowers what the process holds, not what a solve needs: benchmarks/solve_memory.py, which reads the resident
-# set before a solve with the heap's free pages handed back, measures a first solve at 10^5 at 4.7x the factors'
-# bytes, the model's one-off pieces included, and a later solve at 2.3-2.4x, the factors' reused buffers included.)
+# set before a solve with the heap's free pages handed back, measures a first solve at 10^5 at 4.6x the factors'
+# bytes, the model's one-off pieces included, and a later solve at 2.2x, the factors' reused buffers included.)
 TRIM_MIN_UNKNOWNS = 10_000
 
 
