@@ -367,17 +367,22 @@ class BandKernel:
         complex_ = sigma.imag != 0
         scalars = np.array([sigma.real, sigma.imag, pos_J.size, pos_M.size], dtype=float)
         name = "band_factor_shifted_complex" if complex_ else "band_factor_shifted"
-        return self._factored(name, [np.ascontiguousarray(values, dtype=float), *at, scalars], complex_)
+        values = np.ascontiguousarray(values, dtype=float)
+        if not values.size:  # (J without entries: casadi takes at least its one entry's 8 bytes; the C reads none)
+            values = np.zeros(1)
+        return self._factored(name, [values, *at, scalars], complex_)
 
     def _shifted_positions(self, pos_J: np.ndarray, pos_M: np.ndarray) -> tuple:
         """The band storage's positions of J's and M's entries (:meth:`factor_shifted`), made once per layout."""
         key = (id(pos_J), id(pos_M))
-        if getattr(self, "_at", (None,))[0] != key:  # (one line of a trailing entry: casadi's one-entry minimum)
+        # (two trailing entries, never read: casadi takes a buffer of at least its one entry's 8 bytes, two int32s
+        # where J or M has no entry)
+        if getattr(self, "_at", (None,))[0] != key:
             self._at = (
                 key,
                 pos_J,
                 pos_M,
-                *(np.r_[self.positions[p], 0].astype(self.positions.dtype) for p in (pos_J, pos_M)),
+                *(np.r_[self.positions[p], 0, 0].astype(self.positions.dtype) for p in (pos_J, pos_M)),
             )
         return self._at[3:]
 

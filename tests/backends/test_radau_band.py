@@ -319,3 +319,24 @@ def test_the_kernel_indexes_the_band_in_int32_where_it_fits():
     assert band.band_index(306_783_378, 7) == np.int32 and band.band_index(306_783_379, 7) == np.int64
     assert "#define INDEX int\n" in band.band_source(1000, 2998, 2, 2)
     assert "#define INDEX long long int\n" in band.band_source(306_783_379, 10**9, 2, 2)
+
+
+@needs_compiler
+def test_a_jacobian_without_entries_is_factored_by_the_band_kernel():
+    """x_k' = p k / K (300 states, J has no entry: sigma M - J is sigma I): the shifted factors take J's values,
+    none, which casadi refused as a buffer under its one entry's 8 bytes (RuntimeError 'Buffer is not large
+    enough', where the CSC values of sigma M, D of them, were given before); x_k(1) = p k / K to rounding."""
+    K = 300
+    m = dm.Model("no_jacobian_entries")
+    x = m.states([f"x_{k}" for k in range(1, K + 1)])
+    p = m.parameter("p", 2.0)
+    for k in range(1, K + 1):
+        m.ode(x[k - 1], p * k / K)
+    m.initial(**{f"x_{k}": 0.0 for k in range(1, K + 1)})
+    compiled = m.compile()
+    assert radau_sparse.jacobian_pattern(compiled)[0].size == 0
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10)
+    assert sol.stats["band_lu"].startswith("machine code (band widths 0 and 0; cache: ")
+    assert sol.status == "success"
+    for k in (1, 150, 300):
+        assert abs(sol[f"x_{k}"][-1] - 2.0 * k / K) < 1e-14
