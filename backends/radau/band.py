@@ -323,14 +323,25 @@ class BandKernel:
         self.outcome, self.functions = library.outcome, library.functions
         self._spare = {False: [], True: []}  # (buffers of dropped factors, up to _kept of each kind)
         self._kept = {False: BAND_SPARE_BUFFERS, True: BAND_SPARE_BUFFERS}
-        columns = np.repeat(np.arange(self.D), np.diff(indptr))
         index = band_index(self.D, self.ldab)  # (the C's INDEX: int32 where LDAB x D fits, half of float64's bytes)
         # (one entry more, never read: casadi takes a buffer of at least the 8 bytes of the one entry declared)
-        self.positions = np.r_[self.kl + self.ku + indices - columns + self.ldab * columns, 0].astype(index)
+        self.positions = np.r_[self._places(indices, indptr), 0].astype(index)
         self.order_values = np.r_[order.columns, 0].astype(index)
         self._buffers = threading.local()  # (each thread's solve buffers: solve_buffers)
         # (the kernel reads b[columns[k]] into its k-th row, where equation rows[k]'s value belongs: b = rhs[match])
         self.match = order.match
+
+    def _places(self, indices: np.ndarray, indptr: np.ndarray) -> np.ndarray:
+        """The band storage's positions of the CSC layout's entries (int64: the columns' arange)."""
+        columns = np.repeat(np.arange(self.D), np.diff(indptr))
+        return self.kl + self.ku + indices - columns + self.ldab * columns
+
+    def made_for(self, indices: np.ndarray, indptr: np.ndarray) -> bool:
+        """Whether the CSC layout ``(indices, indptr)`` is the one this kernel was made for (its positions): a
+        model's kernel is made once, from the first layout of its shifted systems (:func:`band_factors`)."""
+        if len(indptr) - 1 != self.D or len(indices) != self.nnz or band_widths(indices, indptr) != (self.kl, self.ku):
+            return False
+        return bool(np.array_equal(self._places(indices, indptr), self.positions[:-1]))
 
     def solve_buffers(self) -> tuple[np.ndarray, np.ndarray]:
         """``(rhs, solution)`` (D complex each) that every system's solve in this thread reads its right-hand side
@@ -367,19 +378,27 @@ class BandKernel:
         complex_ = sigma.imag != 0
         scalars = np.array([sigma.real, sigma.imag, pos_J.size, pos_M.size], dtype=float)
         name = "band_factor_shifted_complex" if complex_ else "band_factor_shifted"
-        return self._factored(name, [np.ascontiguousarray(values, dtype=float), *at, scalars], complex_)
+        values = np.ascontiguousarray(values, dtype=float)
+        if not values.size:  # (J without entries: casadi takes at least its one entry's 8 bytes; the C reads none)
+            values = np.zeros(1)
+        return self._factored(name, [values, *at, scalars], complex_)
 
     def _shifted_positions(self, pos_J: np.ndarray, pos_M: np.ndarray) -> tuple:
         """The band storage's positions of J's and M's entries (:meth:`factor_shifted`), made once per layout."""
         key = (id(pos_J), id(pos_M))
-        if getattr(self, "_at", (None,))[0] != key:  # (one line of a trailing entry: casadi's one-entry minimum)
-            self._at = (
+        # (two trailing entries, never read: casadi takes a buffer of at least its one entry's 8 bytes, two int32s
+        # where J or M has no entry)
+        # (the tuple this call checked or made, not self._at read again: a solve in another thread may have put
+        # another layout's there in between)
+        at = getattr(self, "_at", (None,))
+        if at[0] != key:
+            at = self._at = (
                 key,
                 pos_J,
                 pos_M,
-                *(np.r_[self.positions[p], 0].astype(self.positions.dtype) for p in (pos_J, pos_M)),
+                *(np.r_[self.positions[p], 0, 0].astype(self.positions.dtype) for p in (pos_J, pos_M)),
             )
-        return self._at[3:]
+        return at[3:]
 
     def _factored(self, name: str, inputs: list, complex_: bool):
         """The factors the kernel's ``name`` makes of ``inputs`` in a spare buffer (see :meth:`factor`)."""
@@ -480,5 +499,7 @@ def band_factors(compiled, order, layout: tuple, outcomes: list):
         return order
     if not kernel.order.same(order):  # (another order than the model's own: not its kernel)
         return order
+    if not made and not kernel.made_for(layout[0], layout[1]):  # (another pattern's layout: its positions are not
+        return order  # these, and the C would place J's values wrongly; SuperLU in the order then)
     outcomes.append(kernel.outcome if made else "memory")
     return kernel

@@ -319,3 +319,92 @@ def test_the_kernel_indexes_the_band_in_int32_where_it_fits():
     assert band.band_index(306_783_378, 7) == np.int32 and band.band_index(306_783_379, 7) == np.int64
     assert "#define INDEX int\n" in band.band_source(1000, 2998, 2, 2)
     assert "#define INDEX long long int\n" in band.band_source(306_783_379, 10**9, 2, 2)
+
+
+@needs_compiler
+def test_a_jacobian_without_entries_is_factored_by_the_band_kernel():
+    """x_k' = p k / K (300 states, J has no entry: sigma M - J is sigma I): the shifted factors take J's values,
+    none, which casadi refused as a buffer under its one entry's 8 bytes (RuntimeError 'Buffer is not large
+    enough', where the CSC values of sigma M, D of them, were given before); x_k(1) = p k / K to rounding."""
+    K = 300
+    m = dm.Model("no_jacobian_entries")
+    x = m.states([f"x_{k}" for k in range(1, K + 1)])
+    p = m.parameter("p", 2.0)
+    for k in range(1, K + 1):
+        m.ode(x[k - 1], p * k / K)
+    m.initial(**{f"x_{k}": 0.0 for k in range(1, K + 1)})
+    compiled = m.compile()
+    assert radau_sparse.jacobian_pattern(compiled)[0].size == 0
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10)
+    assert sol.stats["band_lu"].startswith("machine code (band widths 0 and 0; cache: ")
+    assert sol.status == "success"
+    for k in (1, 150, 300):
+        assert abs(sol[f"x_{k}"][-1] - 2.0 * k / K) < 1e-14
+
+
+@needs_compiler
+def test_the_shifted_factors_call_the_same_systems_singular_and_take_either_sign_of_a_shift(first_engine):
+    """factor_shifted against factor() of numpy's values (bit for bit where factored): a complex shift and its
+    conjugate, and J with an algebraic unknown's column zero (singular: no M entry there), with a NaN or an
+    infinity (singular: not finite)."""
+    kernel, engine, _, J = kernel_and_systems(first_engine, J_too=True)
+    zero_column = np.where(engine.cols == engine.n + 7, 0.0, J)
+    variants = {"J": J, "zero column": zero_column}
+    variants |= {f"{bad}": np.where(np.arange(J.size) == 11, bad, J) for bad in (np.nan, -np.inf)}
+    for sigma in (4.0 + 0j, 3.0 + 2.0j, 3.0 - 2.0j):
+        for label, values in variants.items():
+            (want, *factors), want_singular = kernel.factor(shifted(engine, values, sigma)[0])
+            (got, *ours), singular = kernel.factor_shifted(values, sigma, engine._pos_J, engine._pos_M)
+            assert (
+                (got, bool(singular[0]))
+                == (want, bool(want_singular[0]))
+                == (("sparse", False) if label == "J" else ("singular", True))
+            ), (label, sigma)
+            if got == "sparse":
+                head = (2 if sigma.imag else 1) * kernel.ldab * kernel.D + kernel.D + 1
+                np.testing.assert_array_equal(ours[0].packed[:head], factors[0].packed[:head])
+
+
+@needs_compiler
+def test_the_models_kernel_factors_only_the_layout_it_was_made_for(first_engine):
+    """A model's band kernel is made once, from its shifted systems' first layout; a layout of another pattern
+    (here J without one entry) gets SuperLU in the same band order, whose factors solve its systems (before: the
+    kernel, its positions those of the first layout, placed J's values wrongly: a wrong matrix, no error)."""
+    compiled, engine = first_engine(scaling_models.reaction_diffusion(150))  # (jit=False: no kernel made yet)
+    rows, cols, n, D = engine.rows, engine.cols, engine.n, engine.D
+    first = radau_sparse.shifted_layout(compiled, rows, cols, n, band=[])
+    assert isinstance(first[0], band.BandKernel) and first[0].made_for(*first[1][:2])
+    keep = np.delete(np.arange(rows.size), np.flatnonzero(rows != cols)[3])  # (an entry off M's diagonal)
+    other = radau_sparse.shifted_layout(compiled, rows[keep], cols[keep], n, band=[])
+    assert other[1][2] == first[1][2] - 1 and not first[0].made_for(*other[1][:2])
+    assert isinstance(other[0], BandOrder) and other[0].same(first[0].order)
+    J = 1 + np.random.default_rng(9).random(keep.size)
+    b = np.random.default_rng(10).standard_normal(D)
+    for sigma in SHIFTS:
+        factors, singular = radau_sparse.factor_shifts(J, (sigma,), *other[1:], other[0])
+        kind, lu = factors[sigma]
+        A = (
+            sigma * np.diag(np.r_[np.ones(n), np.zeros(D - n)])
+            - sparse.csc_matrix((J, (rows[keep], cols[keep])), shape=(D, D)).toarray()
+        )
+        exact = np.linalg.solve(A, b)
+        assert kind == "sparse" and not singular.any()
+        assert np.abs(lu.solve(b) - exact).max() < 1e-11 * np.abs(exact).max()
+
+
+@needs_compiler
+def test_the_kernel_in_int64_solves_bit_for_bit_as_in_int32(monkeypatch):
+    """The int64 branch of the kernel's positions and order (LDAB x D past 2^31: 3 x 10^8 unknowns at LDAB 7),
+    forced at 300 unknowns: its own library (INDEX long long int), and the same solve, bit for bit."""
+    span, options = (0.0, 1.0), {"rtol": 1e-6, "atol": 1e-8, "stages": 5, "t_eval": np.linspace(0.0, 1.0, 5)}
+    narrow = dm.solve(scaling_models.reaction_diffusion(150).compile(), span, **options)
+    monkeypatch.setattr(band, "band_index", lambda D, ldab: np.int64)
+    compiled = scaling_models.reaction_diffusion(150).compile()
+    wide = dm.solve(compiled, span, **options)
+    kernel = compiled.cached("radau-band-kernel", lambda: pytest.fail("the kernel was made by the solve"))
+    assert kernel.positions.dtype == kernel.order_values.dtype == kernel._at[3].dtype == np.int64
+    assert wide.stats["band_lu"].startswith("machine code (band widths 2 and 2; cache: ")
+    for key in ("steps", "rejected_steps", "newton_iterations", "lu_decompositions"):
+        assert wide.stats[key] == narrow.stats[key], key
+    for name in ("c_1", "c_75", "w_150"):
+        np.testing.assert_array_equal(wide[name], narrow[name])
