@@ -385,20 +385,18 @@ class BandKernel:
 
     def _shifted_positions(self, pos_J: np.ndarray, pos_M: np.ndarray) -> tuple:
         """The band storage's positions of J's and M's entries (:meth:`factor_shifted`), made once per layout."""
-        key = (id(pos_J), id(pos_M))
         # (two trailing entries, never read: casadi takes a buffer of at least its one entry's 8 bytes, two int32s
         # where J or M has no entry)
         # (the tuple this call checked or made, not self._at read again: a solve in another thread may have put
         # another layout's there in between)
-        at = getattr(self, "_at", (None,))
-        if at[0] != key:
+        at = getattr(self, "_at", (None, None))
+        if at[0] is not pos_J or at[1] is not pos_M:  # (the layout's own arrays, kept here: identity is enough)
             at = self._at = (
-                key,
                 pos_J,
                 pos_M,
                 *(np.r_[self.positions[p], 0, 0].astype(self.positions.dtype) for p in (pos_J, pos_M)),
             )
-        return at[3:]
+        return at[2:]
 
     def _factored(self, name: str, inputs: list, complex_: bool):
         """The factors the kernel's ``name`` makes of ``inputs`` in a spare buffer (see :meth:`factor`)."""

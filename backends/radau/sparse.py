@@ -435,11 +435,25 @@ def factor_shifts(values: np.ndarray, shifts, csc: tuple, pos_J: np.ndarray, pos
     indices, indptr, nnz = csc
     D = len(indptr) - 1
     if hasattr(order, "factor_shifted"):  # (a .band.BandKernel: -J and sigma placed by its C, no copies)
-        lu, singular = {}, None
-        for sigma in shifts:
-            lu[sigma], bad = order.factor_shifted(values, sigma, pos_J, pos_M)
-            singular = bad if singular is None else singular | bad
-        return lu, singular
+
+        def factor(sigma):
+            return order.factor_shifted(values, sigma, pos_J, pos_M)
+
+    else:
+        minus_J = np.zeros(nnz)
+        minus_J[pos_J] = -values
+
+        def factor(sigma):
+            real = sigma.imag == 0
+            data = minus_J.copy() if real else minus_J.astype(complex)  # (freed before the next shift's are made)
+            data[pos_M] += sigma.real if real else sigma
+            return sparse_lu(sparse.csc_matrix((data, indices, indptr), shape=(D, D)), order)
+
+    lu, singular = {}, None
+    for sigma in shifts:
+        lu[sigma], bad = factor(sigma)
+        singular = bad if singular is None else singular | bad
+    return lu, singular
     minus_J = np.zeros(nnz)
     minus_J[pos_J] = -values
     lu, singular = {}, None
