@@ -10,11 +10,11 @@ import time
 from daemodel.backends.base import AbstractBackend, make_solution
 from daemodel.backends.grids import SWEEP_FIRST_STEPS, fixed_step_sweep, grid_steps, output_times
 from daemodel.backends.radau.band import BAND_SPARE_BUFFERS, BandKernel, band_entries
-from daemodel.backends.radau.casadi_engine import DENSE_MAX_SIZE, CasadiEngine, dense_systems
+from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.fill import FillOverLimit, measured_fill
-from daemodel.backends.radau.linalg import BAND_FILL_RATIO
+from daemodel.backends.radau.linalg import BAND_FILL_RATIO, DENSE_MAX_SIZE, dense_systems
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.outputs import marked, prepare_outputs, resolve_outputs, resolved_outputs
 from daemodel.backends.radau.records import step_record_bytes

@@ -327,7 +327,7 @@ class BandKernel:
         # (one entry more, never read: casadi takes a buffer of at least the 8 bytes of the one entry declared)
         self.positions = np.r_[self._places(indices, indptr), 0].astype(index)
         self.order_values = np.r_[order.columns, 0].astype(index)
-        self._buffers = threading.local()  # (each thread's solve buffers: solve_buffers)
+        self._buffers = threading.local()  # (each thread's solvers and gathered right-hand side: solver, gathered)
         # (the kernel reads b[columns[k]] into its k-th row, where equation rows[k]'s value belongs: b = rhs[match])
         self.match = order.match
 
@@ -343,15 +343,29 @@ class BandKernel:
             return False
         return bool(np.array_equal(self._places(indices, indptr), self.positions[:-1]))
 
-    def solve_buffers(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(rhs, solution)`` (D complex each) that every system's solve in this thread reads its right-hand side
-        from and writes its solution to (a real system's: their first D entries seen as float64), made once a
-        thread: a solve's result is copied out before the next (three systems' own pairs were 0.8 MB of a
-        first solve's peak at 10^4 unknowns, s = 5)."""
-        buffers = getattr(self._buffers, "pair", None)
-        if buffers is None:
-            buffers = self._buffers.pair = (np.empty(self.D, dtype=complex), np.empty(self.D, dtype=complex))
-        return buffers
+    def solver(self, complex_: bool) -> tuple:
+        """This thread's ``(buffer, evaluate)`` of the kernel's real or complex solve (casadi's FunctionBuffer, made
+        once a thread: its work array of D values, complex or real, is casadi's; a buffer made for each system's
+        factors was 0.8-1.6 MB of casadi's heap a factorisation at 10^5 unknowns), bound to its systems' arrays by
+        each solve (:meth:`BandLU.solve`)."""
+        solvers = getattr(self._buffers, "solvers", None)
+        if solvers is None:
+            solvers = self._buffers.solvers = {}
+        if complex_ not in solvers:
+            solvers[complex_] = self.functions["band_solve_complex" if complex_ else "band_solve"].buffer()
+        return solvers[complex_]
+
+    def gathered(self, rhs: np.ndarray, dtype) -> np.ndarray:
+        """``rhs[match]`` (:attr:`match`), of ``dtype``, in this thread's buffer of it (D complex, made once a
+        thread; a real one: its first D entries seen as float64), which the next solve overwrites."""
+        buffer = getattr(self._buffers, "gathered", None)
+        if buffer is None:
+            buffer = self._buffers.gathered = np.empty(self.D, dtype=complex)
+        b = buffer if np.dtype(dtype).kind == "c" else buffer.view(float)[: self.D]
+        if rhs.dtype == dtype:
+            return np.take(rhs, self.match, out=b)
+        b[:] = rhs[self.match]  # (a real right-hand side on complex factors: np.take's out= takes its own dtype only)
+        return b
 
     @property
     def entries(self) -> int:
@@ -440,24 +454,46 @@ class BandLU:
 
     def __init__(self, kernel: BandKernel, packed: np.ndarray, complex_: bool):
         self.kernel, self.complex, self.packed = kernel, complex_, packed
-        b, x = kernel.solve_buffers()  # (the kernel's, shared by its systems)
-        self._b, self._x = (b, x) if complex_ else (b.view(float)[: kernel.D], x.view(float)[: kernel.D])
-        name = "band_solve_complex" if complex_ else "band_solve"
-        inputs = [packed, self._b.view(float), kernel.order_values]
-        self._call = _bound(kernel.functions[name], inputs, self._x.view(float))
+        self.dtype = np.dtype(complex if complex_ else float)
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``x`` with ``A x = rhs``, ``rhs`` of shape (D,) (complex on a real system: by parts)."""
+    def solve(self, rhs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``x`` with ``A x = rhs``, ``rhs`` of shape (D,) (complex on a real system: by parts); in ``out`` where
+        given (C-contiguous, of the solution's dtype), which may be ``rhs`` itself: the kernel reads the right-hand
+        side whole before it writes the solution, and reads ``rhs`` itself where the band needs no row order
+        (:attr:`BandKernel.match`), so a solve copies nothing (Newton's increment, .transform.IncrementBuffers:
+        a new array a system, then a copy in and out of the kernel's buffers, 108 arrays of 0.8-1.6 MB a solve at
+        10^5 unknowns, s = 5)."""
+        kernel, D = self.kernel, self.kernel.D
         if np.iscomplexobj(rhs) and not self.complex:
-            return self.solve(rhs.real) + 1j * self.solve(rhs.imag)
-        if self.kernel.match is None:
-            self._b[:] = rhs
-        elif rhs.dtype == self._b.dtype:
-            np.take(rhs, self.kernel.match, out=self._b)
-        else:  # (a real right-hand side on complex factors: np.take's out= takes its own dtype only)
-            self._b[:] = rhs[self.kernel.match]
-        self._call()  # (the band order applied inside, on the way in and out)
-        return self._x.copy()
+            return solved_in(self.solve(rhs.real) + 1j * self.solve(rhs.imag), out)
+        if rhs.shape != (D,):
+            raise ValueError(f"the band factors solve for right-hand sides of shape ({D},), got {rhs.shape}")
+        if out is None:
+            out = np.empty(D, dtype=self.dtype)
+        elif out.dtype != self.dtype or out.shape != (D,) or not (out.flags.c_contiguous and out.flags.writeable):
+            raise ValueError(f"a solve's out= is {out.dtype} {out.shape}, its solution {self.dtype} ({D},)")
+        if kernel.match is not None:
+            b = kernel.gathered(rhs, self.dtype)
+        else:
+            b = rhs if rhs.dtype == self.dtype and rhs.flags.c_contiguous else np.ascontiguousarray(rhs, self.dtype)
+        buffer, evaluate = kernel.solver(self.complex)  # (the band order applied inside, on the way in and out)
+        for k, values in enumerate((self.packed, b.view(float), kernel.order_values)):
+            buffer.set_arg(k, memoryview(values))
+        buffer.set_res(0, memoryview(out.view(float)))
+        evaluate()
+        if buffer.ret() != 0:
+            raise RuntimeError(f"casadi function {'band_solve_complex' if self.complex else 'band_solve'} failed")
+        return out
+
+
+def solved_in(x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    """``x``, or ``out`` with its values where given (of ``x``'s dtype and shape: a solution is not cast)."""
+    if out is None:
+        return x
+    if out.dtype != x.dtype or out.shape != x.shape:
+        raise ValueError(f"a solve's out= is {out.dtype} {out.shape}, its solution {x.dtype} {x.shape}")
+    np.copyto(out, x)
+    return out
 
 
 def band_kernel(order, indices, indptr, compiler: str | None) -> BandKernel | None:

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 from daemodel.backends.progress import captured_output
+from daemodel.backends.radau.band import BandLU
 from daemodel.backends.radau.compiled import (
     STEP_SCALARS,
+    Buffered,
     find_compiler,
     inverse_function,
     lend,
@@ -29,9 +31,12 @@ from daemodel.backends.radau.engines import AbstractEngine, Factors, Residual, S
 from daemodel.backends.radau.increments import StaticFactors, inverse_size, static_factor_function
 from daemodel.backends.radau.kernel import factor_call, kernel_source, sign_call
 from daemodel.backends.radau.linalg import (
+    DENSE_MAX_SIZE,
+    OrderedLU,
     dense_inverse,
     dense_lu,
     dense_sign_det,
+    dense_systems,
     small_sign_det,
     sparse_lu,
     sparse_sign_det,
@@ -53,10 +58,6 @@ from daemodel.backends.radau.transform import IncrementBuffers
 
 from daemodel.errors import DaemodelError
 
-# casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
-# more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
-# project's CPU: at 100 unknowns a dense LU of a 3 %-full matrix is ~0.1 ms, as SuperLU's overhead.
-DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
 # Dense systems up to this size are inverted in one casadi call (the complex blocks as real systems of
 # twice the size, casadi computing in real numbers); above it scipy's complex LAPACK is cheaper
 # (measured per factorisation: 0.12 against 0.09 ms at 40 unknowns, 0.85 against 0.51 ms at 100).
@@ -89,12 +90,6 @@ MACHINE_RUN_MAX_SIZE = 200
 CACHE_OUTCOMES = ("refused:", "not", "miss", "hit", "memory")
 
 
-def dense_systems(D: int, nonzeros: int) -> bool:
-    """Whether the casadi engine factors systems of ``D`` unknowns whose Jacobian has ``nonzeros``
-    entries densely (LAPACK), else with SuperLU (:data:`DENSE_MAX_SIZE`, :data:`DENSE_FILL`)."""
-    return D <= DENSE_MAX_SIZE or nonzeros > DENSE_FILL * D * D
-
-
 class CasadiEngine(AbstractEngine):
     """One trajectory in float64 on casadi-compiled functions and scipy's LU (see the module docstring)."""
 
@@ -108,14 +103,15 @@ class CasadiEngine(AbstractEngine):
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
         # (stencil: a repeated stencil's f, g and residual in C above 200 unknowns, without jit: .stencil)
-        functions, self._stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
+        functions, stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
         self._f, self._residual, self._jac, self._stage_jac = (*(lend(self, fn) for fn in functions[:3]), None)
         self.rows, self.cols = functions[4:]
         self._functions = functions
-        if self._stage_f is not None:  # (the same packed input as the residual's: one buffer of it)
-            self._stage_f.read_input_of(self._residual)
+        # (the stages' f on the residual's packed input and f at the stages' part of its output: 4.4 and 2 MB, 10^5)
+        out = self._residual._outputs[self.s * self.D :]
+        self._stage_f = None if stage_f is None else Buffered(stage_f, input_of=self._residual, output=out)
         D = self.D
         # sparse: the full Newton matrix's CSC layout (factor_stages, on first use), the band order (_sparse_layout)
         self._stage_layout = self._order = None
@@ -591,7 +587,10 @@ class CasadiEngine(AbstractEngine):
         lu, singular = factor_shifts(values, (sigma,), self._csc, self._pos_J, self._pos_M, self._order)
         return lu[sigma], singular
 
-    def solve(self, lu, rhs):
+    def solve(self, lu, rhs, out=None):
+        if out is not None and not isinstance(lu[1], (BandLU, OrderedLU)):  # (out (1, D), may be rhs: they take it)
+            out[...] = self.solve(lu, rhs)
+            return out
         kind = lu[0]
         if kind == "inverse":
             return (lu[1] @ rhs[0])[None]
@@ -612,7 +611,7 @@ class CasadiEngine(AbstractEngine):
                 return (x[: self.D] + 1j * x[self.D :])[None]
             solve.inputs[1][:] = rhs[0].real if np.iscomplexobj(rhs) else rhs[0]
             return solve.evaluate()[None]
-        return lu[1].solve(rhs[0])[None]
+        return lu[1].solve(rhs[0], **({} if out is None else {"out": out[0]}))[None]  # (SuperLU's own takes no out)
 
     def factor_stages(self, stage_J, h):
         s, n, D = self.s, self.n, self.D

@@ -442,31 +442,31 @@ class Buffered:
     """A casadi function of one dense vector, evaluated on bound numpy buffers (casadi's
     FunctionBuffer: ~3 us a call, against ~40-100 us through argument conversion)."""
 
-    def __init__(self, function, inputs: int = 1):
+    def __init__(self, function, inputs: int = 1, input_of: Buffered | None = None, output: np.ndarray | None = None):
+        """``input_of``: a Buffered whose first input this one reads, not a copy of it (two functions of the same
+        packed input called one after the other, each call writing all of it: :meth:`packed`; the residual's and the
+        stages' f: 4.4 MB at 10^5 unknowns, s = 5); ``output``: the float64 array its output is written to."""
         # inputs after the first stay bound between calls: write them through ``inputs[k][:]``
-        self.inputs = [np.zeros(function.nnz_in(k)) for k in range(inputs)]
+        sizes = [function.nnz_in(k) for k in range(inputs)]
+        self.name = function.name()
+        if input_of is not None and input_of._inputs.size != sizes[0]:
+            raise ValueError(
+                f"casadi function {self.name} takes {sizes[0]} inputs; {input_of.name} {input_of._inputs.size}"
+            )
+        if output is not None and (output.dtype != float or output.shape != (function.nnz_out(0),)):
+            raise ValueError(f"casadi function {self.name} gives {function.nnz_out(0)} outputs, not {output.shape}")
+        self.inputs = [input_of._inputs if k == 0 and input_of else np.zeros(size) for k, size in enumerate(sizes)]
         self._inputs = self.inputs[0]
-        self._outputs = np.zeros(function.nnz_out(0))
+        self._outputs = np.zeros(function.nnz_out(0)) if output is None else output
         self._buffer, self._evaluate = function.buffer()
         for k, values in enumerate(self.inputs):
             self._buffer.set_arg(k, memoryview(values))
         self._buffer.set_res(0, memoryview(self._outputs))
-        self.name = function.name()
         self.function = function
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
         self._inputs[:] = values
         return self.evaluate()
-
-    def read_input_of(self, other: Buffered) -> None:
-        """Read the first input from ``other``'s buffer, not from one of its own: two functions of the same
-        packed input called one after the other (each call writes all of it: :meth:`packed`), whose second
-        buffer of it would only hold a copy (the residual's and the stages' f: 0.44 MB at 10^4 unknowns, s = 5)."""
-        if other._inputs.size != self._inputs.size:
-            sizes = f"{self._inputs.size} inputs; {other.name} {other._inputs.size}"
-            raise ValueError(f"casadi function {self.name} takes {sizes}")
-        self.inputs[0] = self._inputs = other._inputs
-        self._buffer.set_arg(0, memoryview(self._inputs))
 
     def packed(self, *parts, copy: bool = True) -> np.ndarray:
         """The outputs for the input ``np.concatenate(parts)``, written part by part into the input buffer
@@ -599,12 +599,10 @@ def stage_f_function(compiled, tableau, stencil=None):
     return casadi.Function("stage_f", [inputs], [casadi.vertcat(*stage_f)])
 
 
-def stage_f_buffer(compiled, tableau, stencil=None) -> Buffered | None:
-    """:func:`stage_f_function` (built once per model, s and ``stencil``) on its own buffers, or None where
-    there is none."""
+def stage_f_of(compiled, tableau, stencil=None):
+    """:func:`stage_f_function`, built once per model, s and ``stencil``, or None where there is none."""
     key = ("casadi-radau-stage-f", tableau.stages, stencil is not None)
-    function = compiled.cached(key, lambda: stage_f_function(compiled, tableau, stencil))
-    return None if function is None else Buffered(function)
+    return compiled.cached(key, lambda: stage_f_function(compiled, tableau, stencil))
 
 
 def newton_step_function(residual, engine):

@@ -172,19 +172,20 @@ class AbstractEngine(ABC):
         or None: by default there is none."""
         return None
 
-    def newton_increment(self, factors, R):
+    def newton_increment(self, factors, R, over: bool = False):
         """``dW`` solving the Newton system ``N dW = -R`` (``R (B, s, n+m)``), through the
         transformed systems of ``factors`` or the full matrix of :class:`StageFactors`.  A residual
         that overflowed gives a non-finite increment, which Newton's loop counts as a failure of the
-        attempt (shorter h): numpy's warnings about it would only repeat that to the user."""
+        attempt (shorter h): numpy's warnings about it would only repeat that to the user.  ``over``: R is
+        the engine's residual buffer (:meth:`newton_step`'s), which the increment may be written over."""
         with np.errstate(invalid="ignore", over="ignore"):
-            return self._newton_increment(factors, R)
+            return self._newton_increment(factors, R, over)
 
-    def _newton_increment(self, factors, R):
+    def _newton_increment(self, factors, R, over=False):
         if isinstance(factors, StageFactors):
             return self.solve_stages(factors, R)
         if self.increment is not None:  # (the same operations, in buffers made once)
-            return self.increment(factors, R, self.solve, self._transform_arrays())
+            return self.increment(factors, R, self.solve, self._transform_arrays(), over)
         xp, n, h, tr = self.xp, self.n, factors.h, self.transform
         T, T_inv, T_inv_A_inv = self._transform_arrays()
         # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs
@@ -205,9 +206,10 @@ class AbstractEngine(ABC):
         return self.residual(t, h, y, W)
 
     def newton_step(self, factors, t: float, h: float, y, W) -> tuple:
-        """The stage residual at ``W`` and Newton's increment from it: ``(Residual, dW)``."""
+        """The stage residual at ``W`` and Newton's increment from it: ``(Residual, dW)``; on numpy, one sample,
+        the increment may be written over the residual's ``R`` and ``G`` (:class:`.transform.IncrementBuffers`)."""
         r = self.residual(t, h, y, W)
-        return r, self.newton_increment(factors, r.R)
+        return r, self.newton_increment(factors, r.R, over=True)
 
     def error_solve(self, factors: Factors, rhs):
         """Solve ``((1 / (h gamma0)) M - J) err = rhs`` (the error estimate's matrix)."""

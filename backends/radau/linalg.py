@@ -9,6 +9,10 @@ import numpy as np
 
 from daemodel.errors import DaemodelError
 
+# casadi engine: factor the (n+m)-sized systems densely (LAPACK) up to this size, or above it when
+# more than DENSE_FILL of the Jacobian is nonzero; sparse (SuperLU) otherwise.  Measured on this
+# project's CPU: at 100 unknowns a dense LU of a 3 %-full matrix is ~0.1 ms, as SuperLU's overhead.
+DENSE_MAX_SIZE, DENSE_FILL = 100, 0.2
 # The band order is taken where its factors hold at most this many times COLAMD's entries: on the pattern's
 # test values reaction-diffusion's are 1.005 times (600 unknowns) and 0.9999 (10^4), the chain of 200
 # pendulums' 1.09, a 2-D grid's (30 x 30) 1.33; the memory guard's count (COLAMD's) stays within the
@@ -24,6 +28,12 @@ BAND_RELAX, BAND_PANEL = 1, 1
 # is not made (one Python loop each): scipy's order is then taken as it is
 PERIPHERAL_SWEEPS = 4
 PERIPHERAL_MAX_COMPONENTS = 64
+
+
+def dense_systems(D: int, nonzeros: int) -> bool:
+    """Whether the casadi engine factors systems of ``D`` unknowns whose Jacobian has ``nonzeros``
+    entries densely (LAPACK), else with SuperLU (:data:`DENSE_MAX_SIZE`, :data:`DENSE_FILL`)."""
+    return D <= DENSE_MAX_SIZE or nonzeros > DENSE_FILL * D * D
 
 
 @dataclass(frozen=True)
@@ -105,10 +115,13 @@ class OrderedLU:
         """The upper factor (SuperLU's, of the ordered matrix)."""
         return self.lu.U
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``x`` with ``A x = rhs``, ``rhs`` of shape (D,)."""
+    def solve(self, rhs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``x`` with ``A x = rhs``, ``rhs`` of shape (D,); in ``out`` (of the solution's dtype) where given,
+        which may be ``rhs`` itself (read first)."""
         y = self.lu.solve(rhs[self._rows])
-        x = np.empty_like(y)
+        x = np.empty_like(y) if out is None else out
+        if x.dtype != y.dtype or x.shape != y.shape:
+            raise ValueError(f"a solve's out= is {x.dtype} {x.shape}, its solution {y.dtype} {y.shape}")
         x[self._columns] = y
         return x
 

@@ -129,6 +129,9 @@ class Newton:
                 geometric=policy.trust_last_rate and formulas.geometric_contraction(stepper.s),  # (adaptive only)
             )  # fmt: skip
             state, tests = found.state, found.tests
+            if state.outcome != formulas.CONVERGED:  # (named at the W of r and dW: a failed pass iterates too)
+                stats["residual_evaluations"] += state.evaluations
+                return None, state.k, *self.failure(state, tests, r, dW, t, h, W)
             if found.iterate:  # (a refuted check's increment moves the samples it refuted)
                 step = dW * found.moved[:, None, None] if mode == formulas.CHECK and stepper.B > 1 else dW
                 if own:
@@ -136,9 +139,6 @@ class Newton:
                 else:  # (in an array of the step's nodes where the stepper has one: accept takes it whole)
                     buffer = stepper.stage_buffer(np.result_type(W, step)) if xp is np else None
                     W, own = (W + step if buffer is None else np.add(W, step, out=buffer)), True
-            if state.outcome != formulas.CONVERGED:
-                stats["residual_evaluations"] += state.evaluations
-                return None, state.k, *self.failure(state, tests, r, dW, t, h)
             if found.iterate and tests.running and state.k > 1 and policy.iterations > state.k and not slow_ends:
                 factors = self.slow_contraction(t, h, W, factors, state.theta, tests.slow, state.iterating)
         stats["residual_evaluations"] += state.evaluations
@@ -147,11 +147,15 @@ class Newton:
         stats["max_newton_iterations"] = max(stats["max_newton_iterations"], state.k)
         return (W, r, float(state.theta.max())), state.k, None, None
 
-    def failure(self, state, tests, r, dW, t, h):
+    def failure(self, state, tests, r, dW, t, h, W):
         """Why the iteration failed (``state.outcome``) and at which sample: the first that failed the test."""
         engine, theta = self.stepper.engine, state.theta
         if state.outcome == formulas.NON_FINITE:
             sample = engine.first(tests.failing)
+            if dW is not None and engine.increment is not None:  # (the increment is over the residual's R and G
+                # (.engines.AbstractEngine.newton_step): the residual at W once more, for the culprit)
+                dW = dW.copy()
+                r = self.stepper.residual(t, h, W)
             return f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
         if state.outcome == formulas.DIVERGING:
             worst = engine.first(tests.failing)

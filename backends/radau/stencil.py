@@ -27,7 +27,7 @@ from daemodel.backends.radau.compiled import (
     casadi_functions,
     compiler_flags,
     find_compiler,
-    stage_f_buffer,
+    stage_f_of,
 )
 
 # The names of the functions in the library: f and g, the stage residual, and the Jacobian's values.
@@ -355,7 +355,7 @@ def uses_stencil(compiled, jit, machine_code: bool) -> bool:
 
 def engine_functions(compiled, tableau, machine: bool):
     """``(functions, stage_f, said)`` of the casadi engine: :func:`.compiled.casadi_functions` and
-    :func:`.compiled.stage_f_buffer` (made once per model and s), on :func:`stencil_equations`' functions
+    :func:`.compiled.stage_f_of` (made once per model and s), on :func:`stencil_equations`' functions
     where ``machine`` code may run (a C compiler, ``jit`` not False; with ``jit`` True the whole solve's
     functions are compiled instead) above :data:`.compiled.INLINED_RESIDUAL_MAX_SIZE` unknowns and the
     model is a repeated stencil; ``said``: what a solve's stats say of it (None where it was not tried)."""
@@ -364,4 +364,4 @@ def engine_functions(compiled, tableau, machine: bool):
         stencil, said = stencil_equations(compiled, tableau)
     key = ("casadi-radau", tableau.stages) + (() if stencil is None else ("stencil",))
     functions = compiled.cached(key, lambda: casadi_functions(compiled, tableau, stencil))
-    return functions, stage_f_buffer(compiled, tableau, stencil), said
+    return functions, stage_f_of(compiled, tableau, stencil), said

@@ -122,21 +122,17 @@ class IncrementBuffers:
     so the same bits, without its temporaries (at 10^5 unknowns and s = 5 each iteration allocated
     ~25 MB, whose first touch was ~460 page faults an iteration, 70 % of a solve's).
 
-    ``R (1, s, D)``; ``solve(lu, rhs (1, D))`` the engine's; ``arrays`` its (T, T^-1, T^-1 A^-1).  A call
-    returns the increment in a buffer of its own, which the next call overwrites (Newton adds it to its stage
-    values before it asks for the next: a new array an iteration was 0.4 MB of the solve's peak at 10^4
-    unknowns, s = 5)."""
+    ``R (1, s, D)``; ``solve(lu, rhs (1, D), out=)`` the engine's (its solution in ``out``); ``arrays`` its
+    (T, T^-1, T^-1 A^-1).  A call returns the increment in a buffer of its own, which the next call overwrites
+    (Newton adds it to its stage values before it asks for the next: a new array an iteration was 0.4 MB of the
+    solve's peak at 10^4 unknowns, s = 5), or ``over`` R: the engine's residual buffer, C-contiguous float64,
+    which the next evaluation overwrites anyway (:meth:`.engines.AbstractEngine.newton_step`'s: its own buffer,
+    never made then, was 4 MB of a later solve's peak at 10^5 unknowns, s = 5)."""
 
     def __init__(self, transform: StageTransform, n: int, D: int):
         self.transform, self.n = transform, n
-        s = len(transform.T)
-        self.rhs = np.empty((1, s, D))
-        # (the increment: each call overwrites it, so Newton adds it to its stage values before the next)
-        self.out = np.empty((1, s, D))
-        # (a complex system's right-hand side in the increment's buffer, which a call writes last, once the solves
-        # have read it: its own was 1.6 MB of the first solve's peak at 10^5 unknowns, s = 5; s = 1 has none)
-        fits = s >= 2
-        self.complex = self.out.reshape(-1)[: 2 * D].view(complex)[None] if fits else np.empty((1, D), dtype=complex)
+        self.rhs = np.empty((1, len(transform.T), D))
+        self._out = None
 
     @property
     def scratch(self) -> np.ndarray:
@@ -145,19 +141,30 @@ class IncrementBuffers:
         entries in it: a temporary of 0.4 MB an iteration at 10^4 unknowns, s = 5)."""
         return self.rhs
 
-    def __call__(self, factors, R: np.ndarray, solve, arrays) -> np.ndarray:
+    def __call__(self, factors, R: np.ndarray, solve, arrays, over: bool = False) -> np.ndarray:
         T, T_inv, T_inv_A_inv = arrays
         n, rhs, h = self.n, self.rhs, factors.h
+        if over and (R.shape != rhs.shape or R.dtype != rhs.dtype or not (R.flags.c_contiguous and R.flags.writeable)):
+            raise ValueError(
+                f"the increment is written over a writable C-contiguous residual {rhs.shape}, got {R.shape}"
+            )
+        if not over and self._out is None:
+            self._out = np.empty_like(rhs)
+        out = R if over else self._out
         # (h A)^-1 on the F rows, -1 on the G rows: the system becomes ((h A)^-1 (x) M - I (x) J) dU = rhs
         np.matmul(T_inv_A_inv, R[..., :n], out=rhs[..., :n])
         np.multiply(rhs[..., :n], -1.0 / h, out=rhs[..., :n])
         np.matmul(T_inv, R[..., n:], out=rhs[..., n:])
-        # (each system's solution in its right-hand side's place, read before: the solves return new arrays)
+        # (R read: a complex system's right-hand side in out's first 2 D entries, the increment in it at the end; a
+        # complex block has s >= 2.  Each system's solution in its right-hand side's place, which the solve reads
+        # first: a new array a system was 108 arrays of 0.8-1.6 MB a solve at 10^5 unknowns, s = 5)
         for (k, lam), shift in zip(self.transform.blocks, factors.shifts, strict=False):
             lu = factors.lu[shift]
             if lam.imag == 0:
-                rhs[:, k] = solve(lu, rhs[:, k])
+                solve(lu, rhs[:, k], out=rhs[:, k])
             else:  # (rhs_k + 1j rhs_k+1, as the temporaries made it: 1j times the real array, then the sum)
-                w = solve(lu, np.add(rhs[:, k], np.multiply(1j, rhs[:, k + 1], out=self.complex), out=self.complex))
+                complex_ = out.reshape(-1)[: 2 * out.shape[-1]].view(complex)[None]
+                w = np.add(rhs[:, k], np.multiply(1j, rhs[:, k + 1], out=complex_), out=complex_)
+                w = solve(lu, w, out=w)
                 rhs[:, k], rhs[:, k + 1] = w.real, w.imag
-        return np.matmul(T, rhs, out=self.out)  # (T @ rhs in its buffer: overwritten by the next call)
+        return np.matmul(T, rhs, out=out)  # (T @ rhs: overwritten by the next call, or the next evaluation)

@@ -408,3 +408,41 @@ def test_the_kernel_in_int64_solves_bit_for_bit_as_in_int32(monkeypatch):
         assert wide.stats[key] == narrow.stats[key], key
     for name in ("c_1", "c_75", "w_150"):
         np.testing.assert_array_equal(wide[name], narrow[name])
+
+
+@needs_compiler
+@pytest.mark.parametrize("paired", [False, True], ids=["own-order", "matched"])
+def test_a_solve_writes_its_solution_into_out_which_may_be_its_right_hand_side(first_engine, paired):
+    """BandLU.solve(rhs, out=) and SparseLU.solve(rhs, out=) give the bits of the solution they return without out,
+    in out, also where out is rhs itself (Newton's increment solves in place: .transform.IncrementBuffers); a
+    complex right-hand side on real factors by parts; an out of another dtype or shape is refused by name."""
+    model = shuffled_reaction_diffusion(60, 0) if paired else scaling_models.reaction_diffusion(60)
+    compiled, engine = first_engine(model)
+    kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
+    assert (kernel.match is not None) == paired
+    rng = np.random.default_rng(11)
+    J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0])) * (
+        1 + 0.3 * rng.random(engine.rows.size)
+    )
+    for sigma in SHIFTS:
+        data, A = shifted(engine, J, sigma)
+        (_, lu), _ = kernel.factor(data)
+        (_, superlu), _ = engine._factor_shift(J, sigma)
+        b = rng.standard_normal(engine.D) + 1j * rng.standard_normal(engine.D)
+        for factors in (lu, superlu):
+            for rhs in (b, b.real) if sigma.imag else (b.real,):
+                want = factors.solve(rhs)
+                assert np.abs(want - np.linalg.solve(A, rhs)).max() < 1e-11 * np.abs(want).max()
+                out = np.full_like(want, np.nan)
+                assert factors.solve(rhs, out=out) is out
+                np.testing.assert_array_equal(out, want)
+                if rhs.dtype == want.dtype:
+                    same = rhs.copy()
+                    assert factors.solve(same, out=same) is same
+                    np.testing.assert_array_equal(same, want)
+            wrong = np.empty(engine.D, dtype=complex if not sigma.imag else float)
+            with pytest.raises(ValueError, match=r"a solve's out= is (complex128|float64) \(\d+,\), its solution"):
+                factors.solve(b if sigma.imag else b.real, out=wrong)
+    (_, lu), _ = kernel.factor(shifted(engine, J, SHIFTS[0])[0])
+    out = np.empty(engine.D, dtype=complex)
+    np.testing.assert_array_equal(lu.solve(b, out=out), lu.solve(b.real) + 1j * lu.solve(b.imag))  # (by parts)

@@ -344,6 +344,59 @@ def test_the_casadi_engine_writes_its_inputs_into_the_bound_buffer():
         engine._residual.packed(0.1, 0.05, y[0])  # (W left out)
 
 
+@pytest.mark.parametrize("stages", [1, 2, 3, 5])
+def test_newtons_step_writes_the_increment_over_the_residual_with_the_same_bits(stages):
+    """On sparse systems (600 unknowns) newton_step's increment is written over the residual's buffer (its R,
+    read first), not into a buffer of its own: the bits of newton_increment from a copy of R, no memory beyond
+    a complex solve's (SuperLU's) while it runs, and the residual's f at the stages untouched; a residual that
+    cannot take it (not C-contiguous) is refused by name.  The stages' f (the error estimate's) reads the
+    residual's input and writes f at the stages into its output: the values of the residual's own."""
+    compiled = _grid(300).compile()
+    start = initial_states(compiled)
+    tableau = radau_iia(stages)
+    engine = CasadiEngine(compiled, start, tableau, StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0]))
+    assert not engine.dense and engine._stage_f is not None
+    y, z = engine.asarray(start.y0), engine.asarray(start.z0)
+    factors = engine.factor(engine.jacobian(0.0, y, z), 0.05)
+    W = np.concatenate([y, z], axis=-1)[:, None, :] + 0.01 * np.random.default_rng(4).normal(size=(1, stages, engine.D))
+    r = engine.residual(0.1, 0.05, y, W)
+    R, f = r.R.copy(), r.stage_f.copy()
+    want = engine.newton_increment(factors, R.copy())  # (into the increment's own buffer)
+    engine.newton_step(factors, 0.1, 0.05, y, W)  # (the transform's arrays made)
+    (r, dW), peak = _traced_peak(lambda: engine.newton_step(factors, 0.1, 0.05, y, W))
+    assert dW.base is r.R.base and np.shares_memory(dW, engine._residual._outputs)
+    assert dW.tobytes() == want.tobytes() and r.stage_f.tobytes() == f.tobytes()
+    assert peak <= 3 * 16 * engine.D + 4096  # (SuperLU's complex solve: its right-hand side in its order, two more)
+    alone = engine.stage_values(0.1, 0.05, y, W)
+    assert np.shares_memory(alone.stage_f, engine._residual._outputs) and alone.stage_f.tobytes() == f.tobytes()
+    with pytest.raises(ValueError, match=r"the increment is written over a writable C-contiguous residual"):
+        engine.newton_increment(factors, np.asfortranarray(R[0])[None] if stages > 1 else R[:, :, ::-1], over=True)
+
+
+def test_a_buffered_function_refuses_an_input_or_output_of_another_size():
+    """Buffered(function, input_of=, output=) shares another's first input and writes into a given array of its
+    output's size; another size, or an output not float64, is refused naming the function."""
+    import casadi
+    from daemodel.backends.radau.compiled import Buffered
+
+    x = casadi.MX.sym("x", 4)
+    twice, head = casadi.Function("twice", [x], [2 * x]), casadi.Function("head", [x], [x[:2] + 1])
+    first = Buffered(twice)
+    out = np.zeros(6)
+    second = Buffered(head, input_of=first, output=out[4:])
+    first(np.arange(4.0))
+    np.testing.assert_array_equal(second.evaluate(copy=False), [1.0, 2.0])
+    assert second._inputs is first._inputs and np.shares_memory(second._outputs, out)
+    y = casadi.MX.sym("y", 3)
+    small = Buffered(casadi.Function("small", [y], [y[0]]))
+    with pytest.raises(ValueError, match=r"casadi function head takes 4 inputs; small 3"):
+        Buffered(head, input_of=small)
+    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(3,\)"):
+        Buffered(head, output=np.zeros(3))
+    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(2,\)"):
+        Buffered(head, output=np.zeros(2, dtype=np.float32))
+
+
 @pytest.mark.parametrize("options", [{}, {"h": 0.1, "stages": 3}])
 def test_a_nan_jacobian_in_the_torch_engine_is_the_casadi_engine_s_named_error(options):
     # u' = sqrt(-x) from x = 1: torch's LU of a matrix holding the nan passed with info = 0, and the solve went on to

@@ -250,7 +250,7 @@ def test_the_memory_estimate_of_sparse_systems_counts_their_factors_fill(first_e
     assert parts["Newton matrices (sparse)"] < dense["Newton matrices"] / 20
     # systems the engine factors densely keep the dense estimate
     chain = scaling_models.pendulum_chain(30).compile()  # 150 unknowns, a dense enough pattern?
-    dense_chain = casadi_engine.dense_systems(150, radau_sparse.jacobian_pattern(chain)[0].size)
+    dense_chain = radau_linalg.dense_systems(150, radau_sparse.jacobian_pattern(chain)[0].size)
     chain_parts = backend.memory_parts(chain, span, 1, options, "casadi")
     assert ("Newton matrices" in chain_parts) == dense_chain
     small = backend.memory_parts(scaling_models.reaction_diffusion(40).compile(), span, 1, options, "casadi")

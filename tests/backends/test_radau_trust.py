@@ -739,3 +739,25 @@ def test_a_large_first_step_on_a_decaying_mode_still_solves():
     m.initial(y=1.0)
     sol = dm.solve(m.compile(), (0.0, 100.0), rtol=1e-6, atol=1e-6, h0=1e7)
     assert sol.status == "success" and np.abs(sol["y"] - np.exp(-sol.t)).max() < 1e-8
+
+
+@pytest.mark.parametrize("jit", [False, "auto"])
+def test_a_non_finite_constraint_is_named_where_the_increment_is_written_over_the_residual(jit):
+    """On sparse systems (120 unknowns) Newton's increment is written over the residual's R and G
+    (.engines.AbstractEngine.newton_step); a failure on non-finite values evaluates the residual once more to
+    name its culprit: log(x37) with x37 = 0.05 - t, each constraint coupled to its neighbours (the LU solve
+    spreads a NaN over the whole increment: named from it, the culprit read 'c0' at stage 1)."""
+    K = 60
+    m = dm.Model("logs")
+    x = m.states(" ".join(f"x{k}" for k in range(K)))
+    z = m.algebraics(" ".join(f"z{k}" for k in range(K)))
+    for k in range(K):
+        m.ode(x[k], -1 + 0 * z[k])
+        near = (z[k - 1] if k else 0) + (z[k + 1] if k < K - 1 else 0)
+        m.constraint(z[k] - sp.log(x[k]) - near / 10, name=f"c{k}")
+    m.initial(**{f"x{k}": (0.05 if k == 37 else 1.0) for k in range(K)})
+    with pytest.raises(
+        E.ConvergenceError,
+        match=r"step size underflow at t = 0\.05 .*last failure: non-finite values: constraint 'c37' at stage 3 ",
+    ):
+        dm.solve(m, (0.0, 1.0), rtol=1e-6, atol=1e-8, jit=jit)
