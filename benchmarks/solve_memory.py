@@ -16,7 +16,11 @@ solves it once with radau at its defaults over [0, 1] with 11 output times (``t_
 * ``again_rss``: the same for a second solve of the same compiled model (what each later solve needs, the
   model's one-off pieces made).  The factors' buffers are among those pieces (the band kernel keeps one
   factorisation's for the next solve), so a later solve's memory is its growth plus the factors' bytes:
-  ``again_total_ratio`` = (growth - outputs + factors) / factors.
+  ``again_total_ratio`` = (growth - outputs + factors) / factors;
+* ``cold_rss``: a third solve after the buffers solves hand on to the next are dropped (:func:`drop_reused_buffers`:
+  the factors', the casadi functions' bound inputs and outputs, the band kernel's solvers): every array a solve
+  works in is made and counted in it, the model's compiled functions, layouts and patterns not;
+  ``cold_ratio`` = (its growth - outputs) / factors.
 
 Beside them: ``stats["factor_bytes"]`` (what one factorisation's buffers hold: the band kernel's real and
 two complex systems at s = 5) and ``output_bytes``, what the returned Solution holds that the user asked
@@ -48,6 +52,19 @@ def rss_bytes() -> int:
     """The process's resident set (bytes), from /proc/self/statm."""
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def drop_reused_buffers(model) -> None:
+    """Drop what radau's solves of the compiled ``model`` hand on to the next (for ``cold_rss``): the casadi
+    functions' bound buffers lent from one engine to the next (``compiled._LENDABLE``) and its band kernel's
+    spare factor buffers and its threads' solvers; its compiled functions, layouts and patterns stay."""
+    from daemodel.backends.radau import compiled
+
+    compiled._LENDABLE.clear()
+    kernel = model._cache.get("radau-band-kernel")  # (.band.band_factors: one a model)
+    if kernel is not None:
+        kernel._spare = {False: [], True: []}
+        kernel._buffers = threading.local()
 
 
 def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "radau") -> dict:
@@ -108,6 +125,16 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "
     running[0] = False
     watcher.join()
     again_peak = max([*samples, rss_bytes()]) - before_again
+    del sol
+    samples[:] = []
+    drop_reused_buffers(compiled)
+    before_cold, running[0] = settle(), True
+    watcher = threading.Thread(target=sample, daemon=True)
+    watcher.start()
+    sol = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
+    running[0] = False
+    watcher.join()
+    cold_peak = max([*samples, rss_bytes()]) - before_cold
     names = [*compiled.state_names, *compiled.algebraic_names]
     output = sum(np.asarray(sol[name]).nbytes for name in names)
     if sol.dense is not None and hasattr(sol.dense, "nodes"):
@@ -125,6 +152,8 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "
         "again_rss_peak_bytes": again_peak,
         "again_rss_ratio": None if not factors else (again_peak - output) / factors,
         "again_total_ratio": None if not factors else (again_peak - output + factors) / factors,
+        "cold_rss_peak_bytes": cold_peak,
+        "cold_ratio": None if not factors else (cold_peak - output) / factors,
         "method": method,
         **first,  # (the first solve's steps, solve time and status; the second's time beside them)
         "again_solve_s": sol.solve_time,
@@ -160,12 +189,16 @@ def main() -> None:
                 f"{c['output_bytes'] / 1e6:.1f} MB, ratio {c['ratio'] or float('nan'):.2f}, rss ratio "
                 f"{c['rss_ratio'] or float('nan'):.2f}; a second solve: rss {c['again_rss_peak_bytes'] / 1e6:.1f} MB, "
                 f"ratio {c['again_rss_ratio'] or float('nan'):.2f}, with the factors "
-                f"{c['again_total_ratio'] or float('nan'):.2f}",
+                f"{c['again_total_ratio'] or float('nan'):.2f}; cold: rss {c['cold_rss_peak_bytes'] / 1e6:.1f} MB, "
+                f"ratio {c['cold_ratio'] or float('nan'):.2f}",
                 flush=True,
             )
     command = "python benchmarks/solve_memory.py " + " ".join(sys.argv[1:])
     record = {"command": command, "tree": os.environ.get("DAEMODEL_TREE"), "load": os.getloadavg(), "cells": cells}
-    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    target = args.out.with_suffix(".json")
+    partial = target.with_name(f".{target.name}.partial")
+    partial.write_text(json.dumps(record, indent=1))
+    os.replace(partial, target)  # (atomic: a run cut short leaves the last file whole)
 
 
 if __name__ == "__main__":
