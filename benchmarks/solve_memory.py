@@ -58,8 +58,11 @@ def drop_reused_buffers(model) -> None:
     """Drop what radau's solves of the compiled ``model`` hand on to the next (for ``cold_rss``): the casadi
     functions' bound buffers lent from one engine to the next (``compiled._LENDABLE``) and its band kernel's
     spare factor buffers and its threads' solvers; its compiled functions, layouts and patterns stay."""
+    import gc
+
     from daemodel.backends.radau import compiled
 
+    gc.collect()  # (an engine or factors in a cycle give their buffers back when collected: before they are dropped)
     compiled._LENDABLE.clear()
     kernel = model._cache.get("radau-band-kernel")  # (.band.band_factors: one a model)
     if kernel is not None:
