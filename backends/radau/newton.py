@@ -153,9 +153,10 @@ class Newton:
         if state.outcome == formulas.NON_FINITE:
             sample = engine.first(tests.failing)
             if dW is not None and engine.increment is not None:  # (the increment is over the residual's R and G
-                # (.engines.AbstractEngine.newton_step): the residual at W once more, for the culprit)
+                # (.engines.AbstractEngine.newton_step): the residual at W once more, for the culprit; not counted,
+                # as the compiled attempt, which names none, has the general path's counts)
                 dW = dW.copy()
-                r = self.stepper.residual(t, h, W)
+                r = engine.residual(t, h, self.stepper.y, W)
             return f"non-finite values: {self.non_finite(r, dW, sample, t, h)}", sample
         if state.outcome == formulas.DIVERGING:
             worst = engine.first(tests.failing)
