@@ -32,6 +32,10 @@ BAND_KERNEL_MAX_LDAB = 40
 # a solve reserves what one factorisation holds, made in its setup (BandKernel.reserve): the stepper drops
 # its factors before it factors anew (.step.Stepper.current_lu), so the next ones are made in their buffers
 BAND_SPARE_BUFFERS = 1
+# Unknowns from which a band solve reads the caller's right-hand side and writes its solution where they lie
+# (BandSolver): below, copies into and out of a thread's own arrays cost less than binding the caller's (two
+# casadi bindings a call, ~2.4 us each); from 10^4 unknowns a copy is ~10 us, and the arrays 2 x 16 D bytes
+BAND_SOLVE_IN_PLACE_MIN = 10_000
 # C flags (the cache adds a shared library's): the loops are short, -O2 is enough
 BAND_FLAGS = ("-O2", "-fno-math-errno")
 # Seconds the compiler may take (the source is ~150 lines)
@@ -343,26 +347,28 @@ class BandKernel:
             return False
         return bool(np.array_equal(self._places(indices, indptr), self.positions[:-1]))
 
-    def solver(self, complex_: bool) -> tuple:
-        """This thread's ``(buffer, evaluate)`` of the kernel's real or complex solve (casadi's FunctionBuffer, made
-        once a thread: its work array of D values, complex or real, is casadi's; a buffer made for each system's
-        factors was 0.8-1.6 MB of casadi's heap a factorisation at 10^5 unknowns), bound to its systems' arrays by
-        each solve (:meth:`BandLU.solve`)."""
+    def solver(self, complex_: bool) -> BandSolver:
+        """This thread's :class:`BandSolver` of the kernel's real or complex solve (made once a thread; a buffer made
+        for each system's factors was, with its casadi work array of D values, 0.8-1.6 MB of casadi's heap a
+        factorisation at 10^5 unknowns)."""
         solvers = getattr(self._buffers, "solvers", None)
         if solvers is None:
             solvers = self._buffers.solvers = {}
         if complex_ not in solvers:
-            solvers[complex_] = self.functions["band_solve_complex" if complex_ else "band_solve"].buffer()
+            solvers[complex_] = BandSolver(self, complex_)
         return solvers[complex_]
 
-    def gathered(self, rhs: np.ndarray, dtype) -> np.ndarray:
-        """``rhs[match]`` (:attr:`match`), of ``dtype``, in this thread's buffer of it (D complex, made once a
-        thread; a real one: its first D entries seen as float64), which the next solve overwrites."""
+    def gathered(self, dtype) -> np.ndarray:
+        """This thread's array of a right-hand side in the band's row order (D complex, made once a thread; a real
+        one: its first D entries seen as float64), which the next solve overwrites (:meth:`gather`)."""
         buffer = getattr(self._buffers, "gathered", None)
         if buffer is None:
             buffer = self._buffers.gathered = np.empty(self.D, dtype=complex)
-        b = buffer if np.dtype(dtype).kind == "c" else buffer.view(float)[: self.D]
-        if rhs.dtype == dtype:
+        return buffer if np.dtype(dtype).kind == "c" else buffer.view(float)[: self.D]
+
+    def gather(self, rhs: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """``b[:] = rhs[match]`` (:attr:`match`): the right-hand side in the band's row order."""
+        if rhs.dtype == b.dtype:
             return np.take(rhs, self.match, out=b)
         b[:] = rhs[self.match]  # (a real right-hand side on complex factors: np.take's out= takes its own dtype only)
         return b
@@ -448,6 +454,41 @@ class BandKernel:
             self._spare[complex_].append(packed)
 
 
+class BandSolver:
+    """One thread's call of a :class:`BandKernel`'s real or complex solve (casadi's FunctionBuffer, the band order on
+    its third argument, bound once).  Below :data:`BAND_SOLVE_IN_PLACE_MIN` unknowns its right-hand side and
+    solution are its own arrays, bound once, and a solve copies in and out (two bindings a call cost more than the
+    copies there: 28 against 19 us a complex solve at 10^3 unknowns); from it, a solve binds the caller's arrays, its
+    right-hand side where the band needs no row order and its ``out``, and copies nothing (at 10^5 unknowns, s = 5,
+    Newton's increment made 108 arrays of 0.8-1.6 MB a solve, and the copies were 3.2 MB of buffers)."""
+
+    def __init__(self, kernel: BandKernel, complex_: bool):
+        self.name = "band_solve_complex" if complex_ else "band_solve"
+        self.buffer, self.evaluate = kernel.functions[self.name].buffer()
+        self.buffer.set_arg(2, memoryview(kernel.order_values))  # (kept by the kernel)
+        self.b = self.x = None
+        if kernel.D < BAND_SOLVE_IN_PLACE_MIN:
+            dtype = complex if complex_ else float
+            self.b, self.x = np.empty(kernel.D, dtype=dtype), np.empty(kernel.D, dtype=dtype)
+            self.buffer.set_arg(1, memoryview(self.b.view(float)))
+            self.buffer.set_res(0, memoryview(self.x.view(float)))
+
+    def __call__(self, packed: memoryview, b: np.ndarray | None = None, out: np.ndarray | None = None) -> None:
+        """Solve with the factors ``packed``: for :attr:`b` into :attr:`x` where it has them (few unknowns), else for
+        ``b`` into ``out`` (both C-contiguous, of the factors' dtype).  Every array a call reads or writes is bound
+        before it runs (the buffer keeps pointers, not arrays, between calls)."""
+        buffer = self.buffer
+        if (b is None) != (self.b is not None):
+            raise ValueError(f"{self.name}: b and out are given to a solver without arrays of its own, and only to one")
+        buffer.set_arg(0, packed)
+        if b is not None:
+            buffer.set_arg(1, memoryview(b.view(float)))
+            buffer.set_res(0, memoryview(out.view(float)))
+        self.evaluate()
+        if buffer.ret() != 0:
+            raise RuntimeError(f"casadi function {self.name} failed (return code {buffer.ret()})")
+
+
 class BandLU:
     """One system's band factors (``packed``: :class:`BandKernel`'s output), solving with ``A`` (its
     unknowns in their own order: the band order is applied on the way in and out)."""
@@ -455,34 +496,36 @@ class BandLU:
     def __init__(self, kernel: BandKernel, packed: np.ndarray, complex_: bool):
         self.kernel, self.complex, self.packed = kernel, complex_, packed
         self.dtype = np.dtype(complex if complex_ else float)
+        self._packed = memoryview(packed)  # (bound for each solve: BandSolver)
 
     def solve(self, rhs: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``x`` with ``A x = rhs``, ``rhs`` of shape (D,) (complex on a real system: by parts); in ``out`` where
         given (C-contiguous, of the solution's dtype), which may be ``rhs`` itself: the kernel reads the right-hand
-        side whole before it writes the solution, and reads ``rhs`` itself where the band needs no row order
-        (:attr:`BandKernel.match`), so a solve copies nothing (Newton's increment, .transform.IncrementBuffers:
-        a new array a system, then a copy in and out of the kernel's buffers, 108 arrays of 0.8-1.6 MB a solve at
-        10^5 unknowns, s = 5)."""
+        side whole before it writes the solution (:class:`BandSolver`: from BAND_SOLVE_IN_PLACE_MIN unknowns it
+        reads ``rhs`` where it lies, where the band needs no row order, and writes ``out``, with no copies)."""
         kernel, D = self.kernel, self.kernel.D
         if np.iscomplexobj(rhs) and not self.complex:
             return solved_in(self.solve(rhs.real) + 1j * self.solve(rhs.imag), out)
         if rhs.shape != (D,):
             raise ValueError(f"the band factors solve for right-hand sides of shape ({D},), got {rhs.shape}")
-        if out is None:
-            out = np.empty(D, dtype=self.dtype)
-        elif out.dtype != self.dtype or out.shape != (D,) or not (out.flags.c_contiguous and out.flags.writeable):
+        if out is not None and (
+            out.dtype != self.dtype or out.shape != (D,) or not (out.flags.c_contiguous and out.flags.writeable)
+        ):
             raise ValueError(f"a solve's out= is {out.dtype} {out.shape}, its solution {self.dtype} ({D},)")
+        solver = kernel.solver(self.complex)  # (the band order applied inside, on the way in and out)
+        if solver.b is not None:  # (few unknowns: in its own arrays, copied in and out)
+            if kernel.match is None:
+                solver.b[:] = rhs
+            else:
+                kernel.gather(rhs, solver.b)
+            solver(self._packed)
+            return solver.x.copy() if out is None else solved_in(solver.x, out)
+        out = np.empty(D, dtype=self.dtype) if out is None else out
         if kernel.match is not None:
-            b = kernel.gathered(rhs, self.dtype)
+            b = kernel.gather(rhs, kernel.gathered(self.dtype))
         else:
             b = rhs if rhs.dtype == self.dtype and rhs.flags.c_contiguous else np.ascontiguousarray(rhs, self.dtype)
-        buffer, evaluate = kernel.solver(self.complex)  # (the band order applied inside, on the way in and out)
-        for k, values in enumerate((self.packed, b.view(float), kernel.order_values)):
-            buffer.set_arg(k, memoryview(values))
-        buffer.set_res(0, memoryview(out.view(float)))
-        evaluate()
-        if buffer.ret() != 0:
-            raise RuntimeError(f"casadi function {'band_solve_complex' if self.complex else 'band_solve'} failed")
+        solver(self._packed, b, out)
         return out
 
 

@@ -411,11 +411,16 @@ def test_the_kernel_in_int64_solves_bit_for_bit_as_in_int32(monkeypatch):
 
 
 @needs_compiler
+@pytest.mark.parametrize("in_place", [False, True], ids=["copies", "in-place"])
 @pytest.mark.parametrize("paired", [False, True], ids=["own-order", "matched"])
-def test_a_solve_writes_its_solution_into_out_which_may_be_its_right_hand_side(first_engine, paired):
-    """BandLU.solve(rhs, out=) and SparseLU.solve(rhs, out=) give the bits of the solution they return without out,
-    in out, also where out is rhs itself (Newton's increment solves in place: .transform.IncrementBuffers); a
-    complex right-hand side on real factors by parts; an out of another dtype or shape is refused by name."""
+def test_a_solve_writes_its_solution_into_out_which_may_be_its_right_hand_side(
+    first_engine, monkeypatch, paired, in_place
+):
+    """BandLU.solve(rhs, out=) and OrderedLU.solve(rhs, out=) give the bits of the solution they return without out,
+    in out, also where out is rhs itself (Newton's increment solves in place: .transform.IncrementBuffers), with the
+    band solver's own arrays (few unknowns) and on the caller's (band.BAND_SOLVE_IN_PLACE_MIN); a complex
+    right-hand side on real factors by parts; an out of another dtype or shape is refused by name."""
+    monkeypatch.setattr(band, "BAND_SOLVE_IN_PLACE_MIN", 0 if in_place else 10**9)
     model = shuffled_reaction_diffusion(60, 0) if paired else scaling_models.reaction_diffusion(60)
     compiled, engine = first_engine(model)
     kernel = band.band_kernel(engine._order, *engine._csc[:2], find_compiler())
@@ -446,3 +451,11 @@ def test_a_solve_writes_its_solution_into_out_which_may_be_its_right_hand_side(f
     (_, lu), _ = kernel.factor(shifted(engine, J, SHIFTS[0])[0])
     out = np.empty(engine.D, dtype=complex)
     np.testing.assert_array_equal(lu.solve(b, out=out), lu.solve(b.real) + 1j * lu.solve(b.imag))  # (by parts)
+    assert (kernel.solver(False).b is None) == in_place
+    strided = np.repeat(b.real, 2)[::2]  # (not contiguous: read through a contiguous copy)
+    np.testing.assert_array_equal(lu.solve(strided), lu.solve(b.real))
+    with pytest.raises(ValueError, match=r"the band factors solve for right-hand sides of shape \(\d+,\), got \(3,\)"):
+        lu.solve(np.zeros(3))
+    solver, given = kernel.solver(False), (np.zeros(engine.D), np.zeros(engine.D))
+    with pytest.raises(ValueError, match=r"band_solve: b and out are given to a solver without arrays of its own, and"):
+        solver(memoryview(lu.packed), *(given if not in_place else ()))  # (unbound, the C would write nothing)
