@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import math
 import sys
+import threading
 
 # Step loops give up early when the last PROGRESS_WINDOW steps project more than PROJECTION_FACTOR
 # times the steps left in the budget: an endless t_span or a chattering switch fails in a second
@@ -122,16 +123,57 @@ class captured_output:  # (lower case: used as the function it was, ``with captu
     with ``capfd``).  Both are set back on the way out, as ``contextlib.redirect_stdout`` and
     ``redirect_stderr`` would (a class: the generator of ``contextlib.contextmanager`` with those two
     inside cost a few microseconds of every compiled radau run's ~0.3 ms on a small model).
+
+    Threads: while any thread captures, ``sys.stdout`` and ``sys.stderr`` are :class:`_ThreadStreams`, which send a
+    capturing thread's writes to its own text and every other thread's to the streams they replaced; the last
+    thread out sets those back.  (Each saving and restoring the streams it found left ``sys.stdout`` and
+    ``sys.stderr`` a StringIO for good after concurrent solves, every later print lost, and a thread's text caught
+    another's prints.)
     """
 
     def __enter__(self) -> io.StringIO:
-        self.text = io.StringIO()
-        self.saved = sys.stdout, sys.stderr
-        sys.stdout = sys.stderr = self.text
+        self.text, self.outer = io.StringIO(), getattr(_CAPTURING, "text", None)  # (outer: a capture it is inside)
+        with _CAPTURE_LOCK:
+            if _CAPTURE_STATE["depth"] == 0:
+                _CAPTURE_STATE["saved"] = sys.stdout, sys.stderr
+                sys.stdout, sys.stderr = _ThreadStreams(sys.stdout), _ThreadStreams(sys.stderr)
+            _CAPTURE_STATE["depth"] += 1
+        _CAPTURING.text = self.text
         return self.text
 
     def __exit__(self, *exception) -> None:
-        sys.stdout, sys.stderr = self.saved
+        _CAPTURING.text = self.outer
+        with _CAPTURE_LOCK:
+            _CAPTURE_STATE["depth"] -= 1
+            if _CAPTURE_STATE["depth"] == 0:
+                sys.stdout, sys.stderr = _CAPTURE_STATE["saved"]
+                _CAPTURE_STATE["saved"] = None
+
+
+# captured_output across threads: how many captures are open in all and the streams the first replaced; each
+# thread's text (None outside a capture).
+_CAPTURE_LOCK = threading.Lock()
+_CAPTURE_STATE: dict = {"depth": 0, "saved": None}
+_CAPTURING = threading.local()
+
+
+class _ThreadStreams:
+    """``sys.stdout`` or ``sys.stderr`` while a thread captures (:class:`captured_output`): a write goes to the
+    writing thread's text where it captures, else to ``stream``, the one replaced (its other attributes too)."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        captured = getattr(_CAPTURING, "text", None)
+        return (self.stream if captured is None else captured).write(text)
+
+    def flush(self) -> None:
+        if getattr(_CAPTURING, "text", None) is None and self.stream is not None:
+            self.stream.flush()
+
+    def __getattr__(self, name: str):
+        return getattr(self.stream, name)
 
 
 def stderr_is_terminal() -> bool:
