@@ -7,12 +7,18 @@ derivative leaves the emitters); batched dense LU.
 
 from __future__ import annotations
 
+import threading
 import warnings
 
 import numpy as np
 from daemodel.backends.radau.engines import AbstractEngine, Residual, StageFactors
 
 from daemodel.collocation import stage_residual
+
+# torch's forward-mode AD levels are the process's, not a thread's: threads' Jacobians by forward AD take turns (two
+# radau solves of one large model in two threads raised torch's RuntimeError "Nested forward mode AD is not supported
+# at the moment" where their dual levels met); warnings.catch_warnings, around it, is the process's too.
+_FORWARD_AD = threading.Lock()
 
 
 class TorchEngine(AbstractEngine):
@@ -82,7 +88,7 @@ class TorchEngine(AbstractEngine):
             shape = (*lead, C, x.shape[-1])
             return x[..., None, :].expand(shape).clone(), columns.expand(shape).clone()
 
-        with warnings.catch_warnings(), fwAD.dual_level():
+        with _FORWARD_AD, warnings.catch_warnings(), fwAD.dual_level():
             # torch's forward-AD decompositions still call torch.jit.script on first use
             warnings.filterwarnings("ignore", message=".*torch.jit.script.*deprecated", category=DeprecationWarning)
             yd = fwAD.make_dual(*directions(y, seeds[:, :n]))

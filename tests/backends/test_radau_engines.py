@@ -413,3 +413,54 @@ def test_a_nan_jacobian_in_the_torch_engine_is_the_casadi_engine_s_named_error(o
             dm.solve(m, (0.0, 1.0), method="radau", engine=engine, **options)
         messages.append(str(e.value))
     assert messages[0] == messages[1]
+
+
+def test_forward_ad_jacobians_in_two_threads_at_once_take_turns(monkeypatch):
+    """torch's forward-mode AD level is the process's: a thread's Jacobian by forward AD (past
+    SYMBOLIC_JACOBIAN_MAX_ENTRIES) while another's is inside its dual level raised torch's RuntimeError ("Nested
+    forward mode AD is not supported"; two radau solves of a 600-unknown model in two threads); they take turns,
+    each with the bits of a Jacobian alone."""
+    import threading
+    import types
+
+    import torch
+
+    from daemodel.compiling import compiled as compiled_module
+
+    monkeypatch.setattr(compiled_module, "SYMBOLIC_JACOBIAN_MAX_ENTRIES", 0)
+    compiled = _grid(12).compile()
+    assert compiled.torch_functions().jacobian is None
+    tableau = radau_iia(3)
+    start = initial_states(compiled)
+    transform = StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0])
+    engines = [TorchEngine(compiled, start, tableau, transform, torch.float64, torch.device("cpu")) for _ in range(2)]
+    y, z = engines[0].asarray(start.y0) * 1.1, engines[0].asarray(start.z0) + 0.3
+    want = engines[0].jacobian(0.2, y, z)
+    inside, other_done, found = threading.Event(), threading.Event(), {}
+    functions = engines[0].tf
+
+    def held_f(*args):  # (the first thread's f waits, inside its dual level, for the second's Jacobian)
+        inside.set()
+        other_done.wait(timeout=1.0)
+        return functions.f(*args)
+
+    engines[0].tf = types.SimpleNamespace(**{k: getattr(functions, k) for k in ("g", "jacobian")}, f=held_f)
+
+    def jacobian(k):
+        if k == 1:
+            inside.wait(timeout=10.0)
+        try:
+            found[k] = engines[k].jacobian(0.2, y, z)
+        except RuntimeError as error:
+            found[k] = error
+        if k == 1:
+            other_done.set()
+
+    threads = [threading.Thread(target=jacobian, args=(k,)) for k in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    for k in range(2):
+        assert isinstance(found[k], torch.Tensor), found[k]
+        assert torch.equal(found[k], want)
