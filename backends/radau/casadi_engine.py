@@ -588,7 +588,7 @@ class CasadiEngine(AbstractEngine):
         return lu[sigma], singular
 
     def solve(self, lu, rhs, out=None):
-        if out is not None and not isinstance(lu[1], (BandLU, OrderedLU)):  # (out (1, D), may be rhs: they take it)
+        if out is not None and not (len(lu) == 2 and isinstance(lu[1], (BandLU, OrderedLU))):  # (out may be rhs)
             out[...] = self.solve(lu, rhs)
             return out
         kind = lu[0]

@@ -464,3 +464,27 @@ def test_forward_ad_jacobians_in_two_threads_at_once_take_turns(monkeypatch):
     for k in range(2):
         assert isinstance(found[k], torch.Tensor), found[k]
         assert torch.equal(found[k], want)
+
+
+def test_the_casadi_engines_solve_into_out_gives_what_it_returns_for_every_kind_of_factors():
+    """CasadiEngine.solve(lu, rhs, out=) writes what solve(lu, rhs) returns into out (and returns it) for every kind
+    of factors (the grid's: SuperLU in the band order), a singular system's NaN too (``("singular",)``: reading its
+    second entry, for the band kernel's and the ordered factors, raised IndexError), also where out is rhs."""
+    compiled = _grid(60).compile()
+    start = initial_states(compiled)
+    tableau = radau_iia(3)
+    engine = CasadiEngine(compiled, start, tableau, StageTransform.of(tableau.A, radau.embedded_weights(tableau)[0]))
+    y, z = engine.asarray(start.y0), engine.asarray(start.z0)
+    factors = engine.factor(engine.jacobian(0.0, y, z), 0.05)
+    rhs = np.random.default_rng(5).standard_normal((1, engine.D))
+    for sigma, lu in ((0.0, ("singular",)), *factors.lu.items()):
+        b = rhs.astype(complex) if sigma.imag else rhs
+        want = engine.solve(lu, b.copy())
+        out = np.full_like(want, 7.0)
+        np.testing.assert_array_equal(engine.solve(lu, b.copy(), out=out), want)
+        np.testing.assert_array_equal(out, want)
+        same = b.copy()
+        if same.dtype == want.dtype:
+            np.testing.assert_array_equal(engine.solve(lu, same, out=same), want)
+            np.testing.assert_array_equal(same, want)
+    assert np.isnan(engine.solve(("singular",), rhs)).all()
