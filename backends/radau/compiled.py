@@ -453,9 +453,18 @@ class Buffered:
             raise ValueError(
                 f"casadi function {self.name} takes {sizes[0]} inputs; {input_of.name} {input_of._inputs.size}"
             )
-        if output is not None and (output.dtype != float or output.shape != (function.nnz_out(0),)):
-            raise ValueError(f"casadi function {self.name} gives {function.nnz_out(0)} outputs, not {output.shape}")
-        self.inputs = [input_of._inputs if k == 0 and input_of else np.zeros(size) for k, size in enumerate(sizes)]
+        if output is not None and (
+            output.dtype != float
+            or output.shape != (function.nnz_out(0),)
+            or not (output.flags.c_contiguous and output.flags.writeable)
+        ):
+            raise ValueError(
+                f"casadi function {self.name} gives {function.nnz_out(0)} outputs, not {output.shape} "
+                "(into a writable contiguous float64 array)"
+            )
+        self.inputs = [
+            input_of._inputs if k == 0 and input_of is not None else np.zeros(size) for k, size in enumerate(sizes)
+        ]
         self._inputs = self.inputs[0]
         self._outputs = np.zeros(function.nnz_out(0)) if output is None else output
         self._buffer, self._evaluate = function.buffer()

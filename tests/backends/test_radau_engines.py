@@ -393,8 +393,14 @@ def test_a_buffered_function_refuses_an_input_or_output_of_another_size():
         Buffered(head, input_of=small)
     with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(3,\)"):
         Buffered(head, output=np.zeros(3))
-    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(2,\)"):
+    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(2,\) \(into a writable"):
         Buffered(head, output=np.zeros(2, dtype=np.float32))
+    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(2,\) \(into a writable"):
+        Buffered(head, output=np.zeros(4)[::2])  # (strided: casadi's own error was a bare NotImplementedError)
+    frozen = np.zeros(2)
+    frozen.flags.writeable = False
+    with pytest.raises(ValueError, match=r"casadi function head gives 2 outputs, not \(2,\) \(into a writable"):
+        Buffered(head, output=frozen)
 
 
 @pytest.mark.parametrize("options", [{}, {"h": 0.1, "stages": 3}])
