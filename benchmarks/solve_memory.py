@@ -120,24 +120,22 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "
     tracemalloc.stop()
     first = {"steps": sol.stats.get("steps"), "solve_s": sol.solve_time, "status": sol.status}
     del sol
-    samples[:] = []
-    before_again, running[0] = settle(), True
-    watcher = threading.Thread(target=sample, daemon=True)
-    watcher.start()
-    sol = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
-    running[0] = False
-    watcher.join()
-    again_peak = max([*samples, rss_bytes()]) - before_again
+
+    def watched() -> tuple:
+        """A solve under the sampler: ``(Solution, its resident peak over the settled set before it)``."""
+        samples[:] = []
+        before, running[0] = settle(), True
+        watcher = threading.Thread(target=sample, daemon=True)
+        watcher.start()
+        solved = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
+        running[0] = False
+        watcher.join()
+        return solved, max([*samples, rss_bytes()]) - before
+
+    sol, again_peak = watched()
     del sol
-    samples[:] = []
     drop_reused_buffers(compiled)
-    before_cold, running[0] = settle(), True
-    watcher = threading.Thread(target=sample, daemon=True)
-    watcher.start()
-    sol = dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
-    running[0] = False
-    watcher.join()
-    cold_peak = max([*samples, rss_bytes()]) - before_cold
+    sol, cold_peak = watched()
     names = [*compiled.state_names, *compiled.algebraic_names]
     output = sum(np.asarray(sol[name]).nbytes for name in names)
     if sol.dense is not None and hasattr(sol.dense, "nodes"):
