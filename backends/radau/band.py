@@ -422,7 +422,10 @@ class BandKernel:
         """The factors the kernel's ``name`` makes of ``inputs`` in a spare buffer (see :meth:`factor`)."""
         band = (2 if complex_ else 1) * self.ldab * self.D
         spare = self._spare[complex_]
-        packed = spare.pop() if spare else np.empty(self._size(complex_))
+        try:  # (none kept, or another thread took the last one since a check: a new buffer, not IndexError)
+            packed = spare.pop()
+        except IndexError:
+            packed = np.empty(self._size(complex_))
         _bound(self.functions[name], inputs, packed)()
         if packed[band + self.D] != 0:  # (a zero pivot, or a value not finite)
             self._keep(packed, complex_)

@@ -408,9 +408,13 @@ def lend(owner, function, inputs: int = 1) -> Buffered:
     of a solve)."""
     free = _LENDABLE.get(function)
     parts = free.get(inputs) if free is not None else None
-    if parts:
+    try:  # (none free, or another thread took the last one since a check: a new one, not IndexError)
+        state = parts.pop() if parts is not None else None
+    except IndexError:
+        state = None
+    if state is not None:
         buffered = Buffered.__new__(Buffered)
-        buffered.__dict__.update(parts.pop(), function=function)
+        buffered.__dict__.update(state, function=function)
         for values in buffered.inputs:  # (zeros, as a new one's: nothing of its last owner)
             values[:] = 0.0
     else:

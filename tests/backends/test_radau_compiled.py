@@ -457,6 +457,45 @@ def test_a_compiler_found_through_a_relative_path_entry_compiles(tmp_path, monke
     assert find_compiler() == str(tmp_path / "two" / "bin" / "cc")
 
 
+class _TakenSince(list):
+    """A pool that another thread emptied between a check and a pop: it reads as holding one, and has none."""
+
+    def __bool__(self) -> bool:
+        return True
+
+    def __len__(self) -> int:
+        return 1
+
+
+def test_a_pool_emptied_by_another_thread_makes_a_new_buffer():
+    """compiled.lend and the band kernel's factors take a pooled buffer where one is left, else make one: a pool that
+    another thread emptied since a check (two threads both saw its last item) makes a new one, not IndexError."""
+    import casadi
+
+    x = casadi.SX.sym("x", 3)
+    function = casadi.Function("twice", [x], [2 * x])
+
+    class Owner:
+        pass
+
+    radau_compiled._LENDABLE[function] = {1: _TakenSince()}
+    lent = radau_compiled.lend(Owner(), function)
+    np.testing.assert_array_equal(lent(np.array([1.0, 2.0, 3.0])), [2.0, 4.0, 6.0])
+    if radau_compiled.find_compiler() is None:
+        return
+    from daemodel.backends.radau import band
+
+    from daemodel.problems.families import reaction_diffusion
+
+    compiled = reaction_diffusion(60).compile()
+    dm.solve(compiled, (0.0, 0.1))
+    kernel = compiled._cache["radau-band-kernel"]
+    assert isinstance(kernel, band.BandKernel)
+    kernel._spare = {False: _TakenSince(), True: _TakenSince()}
+    factors, singular = kernel.factor(np.ones(kernel.nnz))
+    assert factors[0] in ("sparse", "singular") and singular.shape == (1,)
+
+
 def test_buffered_functions_are_lent_to_one_owner_at_a_time(monkeypatch):
     """Each solve's engine took ~9 new Buffered (~17 us each, 24,486 in the wheelset's solve at rtol 1e-6): they
     are lent, to one owner alive at a time, and taken back, zeroed, when it is gone; a second solve of a model
