@@ -331,7 +331,7 @@ class BandKernel:
         # (one entry more, never read: casadi takes a buffer of at least the 8 bytes of the one entry declared)
         self.positions = np.r_[self._places(indices, indptr), 0].astype(index)
         self.order_values = np.r_[order.columns, 0].astype(index)
-        self._buffers = threading.local()  # (each thread's solvers and gathered right-hand side: solver, gathered)
+        self._buffers = threading.local()  # (each thread's solvers: solver)
         # (the kernel reads b[columns[k]] into its k-th row, where equation rows[k]'s value belongs: b = rhs[match])
         self.match = order.match
 
@@ -357,14 +357,6 @@ class BandKernel:
         if complex_ not in solvers:
             solvers[complex_] = BandSolver(self, complex_)
         return solvers[complex_]
-
-    def gathered(self, dtype) -> np.ndarray:
-        """This thread's array of a right-hand side in the band's row order (D complex, made once a thread; a real
-        one: its first D entries seen as float64), which the next solve overwrites (:meth:`gather`)."""
-        buffer = getattr(self._buffers, "gathered", None)
-        if buffer is None:
-            buffer = self._buffers.gathered = np.empty(self.D, dtype=complex)
-        return buffer if np.dtype(dtype).kind == "c" else buffer.view(float)[: self.D]
 
     def gather(self, rhs: np.ndarray, b: np.ndarray) -> np.ndarray:
         """``b[:] = rhs[match]`` (:attr:`match`): the right-hand side in the band's row order."""
@@ -469,12 +461,22 @@ class BandSolver:
         self.name = "band_solve_complex" if complex_ else "band_solve"
         self.buffer, self.evaluate = kernel.functions[self.name].buffer()
         self.buffer.set_arg(2, memoryview(kernel.order_values))  # (kept by the kernel)
-        self.b = self.x = None
+        self.b = self.x = self._gathered = None
+        self.D, self.dtype = kernel.D, np.dtype(complex if complex_ else float)
         if kernel.D < BAND_SOLVE_IN_PLACE_MIN:
-            dtype = complex if complex_ else float
-            self.b, self.x = np.empty(kernel.D, dtype=dtype), np.empty(kernel.D, dtype=dtype)
+            self.b, self.x = np.empty(kernel.D, dtype=self.dtype), np.empty(kernel.D, dtype=self.dtype)
             self.buffer.set_arg(1, memoryview(self.b.view(float)))
             self.buffer.set_res(0, memoryview(self.x.view(float)))
+
+    @property
+    def gathered(self) -> np.ndarray:
+        """An array for a right-hand side in the band's row order (:meth:`BandKernel.gather`), made at first use, which
+        the next solve overwrites (the solver's own :attr:`b` where it has one)."""
+        if self.b is not None:
+            return self.b
+        if self._gathered is None:
+            self._gathered = np.empty(self.D, dtype=self.dtype)
+        return self._gathered
 
     def __call__(self, packed: memoryview, b: np.ndarray | None = None, out: np.ndarray | None = None) -> None:
         """Solve with the factors ``packed``: for :attr:`b` into :attr:`x` where it has them (few unknowns), else for
@@ -520,12 +522,12 @@ class BandLU:
             if kernel.match is None:
                 solver.b[:] = rhs
             else:
-                kernel.gather(rhs, solver.b)
+                kernel.gather(rhs, solver.gathered)
             solver(self._packed)
             return solver.x.copy() if out is None else solved_in(solver.x, out)
         out = np.empty(D, dtype=self.dtype) if out is None else out
         if kernel.match is not None:
-            b = kernel.gather(rhs, kernel.gathered(self.dtype))
+            b = kernel.gather(rhs, solver.gathered)
         else:
             b = rhs if rhs.dtype == self.dtype and rhs.flags.c_contiguous else np.ascontiguousarray(rhs, self.dtype)
         solver(self._packed, b, out)
