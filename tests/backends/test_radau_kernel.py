@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from daemodel.backends.radau import backend as radau_backend
 from daemodel.backends.radau import casadi_engine, increments, kernel, loop, sequence
-from daemodel.backends.radau.compiled import Buffered, find_compiler
+from daemodel.backends.radau.compiled import Buffered, compiler_flags, find_compiler
 from daemodel.backends.radau.increments import StaticFactors, static_factor_function
 from daemodel.backends.radau.linalg import dense_sign_det
 from daemodel.backends.radau.transform import StageTransform, embedded_weights
@@ -164,8 +164,9 @@ def test_the_kernel_source_holds_numbers_only(first_engine):
         assert allowed.fullmatch(line), line[:80]
 
 
-def _jit_engine(model, **options):
-    """The casadi engine of ``model``'s first solve with ``jit`` (a short one), and the compiled model."""
+def _static_engine(model, monkeypatch, **options):
+    """The casadi engine of ``model``'s first solve (a short one) on static factors, on casadi's virtual machine
+    (their pivot order is the one a solve with ``jit`` takes: it does not depend on jit), and the compiled model."""
     engines = []
     original = casadi_engine.CasadiEngine.__init__
 
@@ -173,18 +174,32 @@ def _jit_engine(model, **options):
         original(self, *args, **kwargs)
         engines.append(self)
 
-    casadi_engine.CasadiEngine.__init__ = keep
+    monkeypatch.setattr(casadi_engine.CasadiEngine, "__init__", keep)
+    # (static factors at any size on the virtual machine, as with jit)
+    monkeypatch.setattr(casadi_engine, "COMPILED_FACTOR_MAX_SIZE", 0)
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**12)
+    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FILL", 1.0)
     # (the engine is what is tested: two stages' adaptive solves of an index-2 system are refused
     # (options.check_index_stages), but their factors' solves are still the kernel's to match)
-    refuse = radau_backend.check_index_stages
-    radau_backend.check_index_stages = lambda *args: None
-    try:
-        compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=True, **options)
-    finally:
-        casadi_engine.CasadiEngine.__init__ = original
-        radau_backend.check_index_stages = refuse
+    monkeypatch.setattr(radau_backend, "check_index_stages", lambda *args: None)
+    compiled = model.compile()
+    dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False, **options)
+    monkeypatch.undo()
+    assert engines[-1].static is not None
     return compiled, engines[-1]
+
+
+def _kernel_solves(engine) -> dict:
+    """The library's ``static_solve`` and ``static_solve_complex`` (:func:`.kernel.kernel_source`'s loops) for
+    ``engine``'s static factors, compiled with the flags of a solve's library (:func:`.compiled.machine_library`),
+    without the step's functions around them (which cost the compiler 2-20 s a model here: 15 libraries)."""
+    compiler = find_compiler()
+    static = engine.static
+    build = cache.Build(compiler, compiler_flags(compiler), "the kernel's solves", "", libraries=("-lm",))
+    source = kernel.kernel_source(static.lu, engine.transform, static, engine.m)
+    library = cache.cached_library(source, ["static_solve", "static_solve_complex"], build)
+    return {complex_: Buffered(library.functions[name], inputs=2) for complex_, name in
+            [(False, "static_solve"), (True, "static_solve_complex")]}  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -199,11 +214,12 @@ def _jit_engine(model, **options):
     ids=["reaction_diffusion-50", "pendulum_chain-20", "pendulum_chain-40", "squeezer", "car-axis"],
 )
 @pytest.mark.parametrize("stages", [2, 3, 5])
-def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages):
+def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages, monkeypatch):
     """The triangular solves of the library (the loops of .kernel, which the compiled step calls above
     UNROLLED_SOLVE_MAX_ENTRIES, and the general path's solves with jit) against the straight-line SX of
     .sparse, on the factors of the model's own Jacobian and random right-hand sides."""
-    compiled, engine = _jit_engine(model(), stages=stages)
+    compiled, engine = _static_engine(model(), monkeypatch, stages=stages)
+    solves = _kernel_solves(engine)
     static, lu = engine.static, engine.static.lu
     J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
     rng = np.random.default_rng(stages)
@@ -212,7 +228,7 @@ def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages):
         systems = [(static.offsets[k], bool(lam.imag)) for k, (_, lam) in enumerate(engine.transform.blocks)]
         for offset, complex_ in [*systems, (static.error_offset, False)]:
             sx = Buffered(lu.solve_function(complex_), inputs=2)
-            c = engine._static[complex_]  # (the library's static_solve or static_solve_complex)
+            c = solves[complex_]  # (the library's static_solve or static_solve_complex)
             for _ in range(3):
                 b = rng.standard_normal((2 if complex_ else 1) * engine.D) * 10.0 ** rng.uniform(-3, 3)
                 for solve in (sx, c):
