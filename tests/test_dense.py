@@ -10,6 +10,9 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.problems import AKZO_NOBEL, HESSENBERG, PENDULUM
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 EXACT = HESSENBERG.exact_solution()
 
 

@@ -20,6 +20,9 @@ from daemodel.errors import SolutionFileError
 from daemodel.problems import DECAY
 from daemodel.stats import Stats
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 G = 9.81
 SPAN = (0.0, 2.5)  # four impacts, well before the Zeno point near 4.06
 T_EVAL = np.linspace(0.0, 2.5, 6)  # sparse: the first impact (0.4515) lies inside [0, 0.5]

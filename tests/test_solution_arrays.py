@@ -7,6 +7,9 @@ import pytest
 import daemodel as dm
 from daemodel import errors as E
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 RATES = np.array([[1.0, 2.0, 3.0], [0.5, 1.5, 2.5]])
 
 

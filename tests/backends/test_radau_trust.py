@@ -21,6 +21,9 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.problems import HESSENBERG, PENDULUM
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 @pytest.fixture(scope="module")
 def pendulum():
@@ -633,6 +636,7 @@ def test_a_time_limit_inside_a_factorisation_is_not_taken_for_a_singular_system(
     assert linalg.sparse_lu(matrix)[0] == ("singular",) and linalg.sparse_sign_det(matrix) == 0.0
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("jit", [False, "auto"])
 def test_a_time_limit_stops_a_long_radau_solve_where_it_strikes(jit):
     """The ring modulator at rtol 1e-10 (tens of thousands of steps, seconds) under a 0.3 s limit: the
@@ -697,6 +701,7 @@ def test_an_oscillator_started_where_t_is_coarse_is_not_damped_away_as_success(t
     assert probe < 1e-14 * abs(t0)  # (below the underflow's threshold: t cannot resolve it)
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("h0", [1e3, 1e7])
 @pytest.mark.parametrize("rtol, jit", [(1e-6, "auto"), (1e-6, False), (1e-2, "auto")])
 def test_a_first_step_far_above_the_probe_s_shrinks_unfiltered(h0, rtol, jit):
@@ -741,6 +746,7 @@ def test_a_large_first_step_on_a_decaying_mode_still_solves():
     assert sol.status == "success" and np.abs(sol["y"] - np.exp(-sol.t)).max() < 1e-8
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("jit", [False, "auto"])
 def test_a_non_finite_constraint_is_named_where_the_increment_is_written_over_the_residual(jit):
     """On sparse systems (120 unknowns) Newton's increment is written over the residual's R and G

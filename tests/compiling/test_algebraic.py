@@ -14,6 +14,9 @@ from daemodel.compiling.initial_states import constraint_checks
 from daemodel.problems import PENDULUM
 from daemodel.problems.families import pendulum_chain
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 def _outputs(sol):
     """``(Y, Z, P)`` of a solution's outputs, one sample: (1, K, n), (1, K, m), (1, k)."""

@@ -14,6 +14,9 @@ from daemodel.compiling.initial_states import branch_check_functions
 from daemodel.compiling.switches import with_state_events
 from daemodel.problems import PENDULUM, PROBLEMS
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 def index_by_search_from_each(compiled) -> tuple[int, ...]:
     """RADAU5's index of each algebraic variable by the definition: one graph search from each z

@@ -9,6 +9,9 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.declaring.arrays import compact_listing, element_names, identifier, split_element
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 def test_an_array_of_states_is_a_numpy_array_of_named_symbols():
     m = dm.Model("a")

@@ -12,6 +12,9 @@ from daemodel import errors as E
 from daemodel.declaring.parse import MAX_CHARACTERS, MAX_DEPTH, parse_equation
 from daemodel.problems import PROBLEMS
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 @pytest.fixture
 def model() -> dm.Model:

@@ -16,6 +16,9 @@ from daemodel import errors as E
 from daemodel.declaring.stencils import expand, stencil
 from daemodel.declaring.symbols import Symbol
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

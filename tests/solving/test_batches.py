@@ -11,6 +11,9 @@ import pytest
 
 import daemodel as dm
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 X0 = np.array([1.2, 2.0, 2.8])
 
 

@@ -8,6 +8,9 @@ import pytest
 
 import daemodel as dm
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 
 @pytest.mark.parametrize("depth", [1e-8, 1e-10])
 @pytest.mark.parametrize("rtol", [1e-12, 1e-10])

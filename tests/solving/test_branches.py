@@ -10,6 +10,9 @@ import pytest
 import daemodel as dm
 from daemodel import errors as E
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 METHODS = [
     ("radau", {"rtol": 1e-8, "atol": 1e-8}),
     ("radau", {"stages": 3, "h": 0.01}),

@@ -12,6 +12,9 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.solving.branches import EVENT_TOL
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 G = 9.81
 
 
@@ -104,12 +107,23 @@ def _wall(terminal=False, x0=1.0):
     return m
 
 
+def test_radau_runs_here_on_the_virtual_machine_and_as_users_get_it_where_marked(request):
+    """This module's mark (tests/conftest.py): radau's jit="auto" on casadi's virtual machine, which stats say; the
+    same values as jit=False's bit for bit.  The tests marked machine_code compile (test_a_pendulum_hits_a_wall)."""
+    compiled = _wall().compile()
+    sol = dm.solve(compiled, (0.0, 0.5), rtol=1e-8, atol=1e-8)
+    assert sol.stats["jit"] == "casadi's virtual machine (jit='auto' in a test marked virtual_machine)"
+    np.testing.assert_array_equal(sol["x"], dm.solve(compiled, (0.0, 0.5), rtol=1e-8, atol=1e-8, jit=False)["x"])
+
+
+@pytest.mark.machine_code
 def test_a_pendulum_hits_a_wall():
     compiled = _wall().compile()
     reference = dm.solve(compiled, (0.0, 3.0), rtol=1e-13, atol=1e-13, stages=7)
     sol = dm.solve(compiled, (0.0, 3.0), rtol=1e-10, atol=1e-10)
     wall = sol.events["wall"]
     assert wall["t"].shape == (1, 2) and sol.status == "success"
+    assert sol.stats["jit"].startswith("machine code") or "no C compiler" in sol.stats["jit"]  # (marked machine_code)
     assert np.abs(wall["t"] - reference.events["wall"]["t"]).max() < 1e-9  # the impact times
     x, y, u, v, lam = (wall["after"][k][0] for k in ("x", "y", "u", "v", "lam"))
     assert np.abs(x**2 + y**2 - 1).max() < 1e-12 and np.abs(x * u + y * v).max() < 1e-12  # both levels
@@ -126,6 +140,7 @@ def test_a_terminal_event_ends_the_solve():
     assert sol["u"][-1] == sol.events["wall"]["after"]["u"][0, 0]  # (the values after the reset end it)
 
 
+@pytest.mark.machine_code
 def test_a_batch_of_100_with_their_own_event_times():
     x0 = np.linspace(0.6, 1.0, 100)
     grid = np.linspace(0.0, 2.0, 11)

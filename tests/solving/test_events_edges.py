@@ -14,6 +14,9 @@ from hypothesis import strategies as st
 import daemodel as dm
 from daemodel import errors as E
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 G = 9.81
 METHODS = [
     ("radau", {"rtol": 1e-8, "atol": 1e-8}),
@@ -54,6 +57,7 @@ def _ball_exact(t: float, e: float, h0: float = 1.0) -> float:
         start += flight
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize(("method", "options"), METHODS)
 def test_zeno_stops_at_the_accumulation_point_in_every_method(method, options):
     # (before: "success" with the ball 4-9 m below the floor at t = 5 in every method)
@@ -143,6 +147,7 @@ def test_floor_and_ceiling_of_a_state_step_at_every_integer(rhs, exact, method, 
     assert len(sol.events[next(iter(sol.events))]["t"][0]) == 4
 
 
+@pytest.mark.machine_code
 def test_a_floor_that_goes_down():
     # x' = -1 - floor(x) from 2.5: rate -3 to x = 2 (t = 1/6), -2 to 1 (2/3), -1 to 0 (5/3), then 0: x stays 0
     m = dm.Model("down")
@@ -168,6 +173,7 @@ def test_a_sliding_mode_in_every_method(method, options):
     np.testing.assert_allclose(sol.at([0.05, 0.5])["x"], [0.0, 0.5], atol=1e-9)
 
 
+@pytest.mark.machine_code
 def test_a_sliding_motion_that_ends():
     # x' = -sign(x) + 2t - 3 from 1: x = 1 - 4t + t^2 down to 0 at 2 - sqrt(3), through it (both sides push
     # down), x = t^2 - 2t - 3 + 2 sqrt(3) back up to 0 at sqrt(3), where both sides push onto it: it slides
@@ -233,6 +239,7 @@ def test_the_event_machinery_is_inside_the_clocks():
     assert sol.setup_time + sol.solve_time >= 0.5 * wall  # (before: 0.23 s of 2.97 s on the thermostat)
 
 
+@pytest.mark.machine_code
 def test_event_functions_code_made_at_first_use_is_setup(monkeypatch):
     """Code made once (the event functions' numpy code, printed at their first use inside the events'
     loop) is setup, as compiling is (issue 42): measured by slowing each such making down by a known
@@ -306,6 +313,7 @@ def test_property_piecewise_linear_switches(x0, a, b, c, t1, how):
     assert abs(sol["x"][-1] - value) < 1e-8 * max(1.0, abs(value))
 
 
+@pytest.mark.machine_code
 @settings(max_examples=25, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(e=st.floats(0.05, 0.95), h0=st.floats(0.1, 2.0), t1=st.floats(0.2, 8.0))
 def test_property_bouncing_balls(e, h0, t1):
@@ -448,6 +456,7 @@ def _humps_exact(c: float, t1: float) -> float:
     return float(np.sum(np.cos(up) - np.cos(down) - c * (down - up)))
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("c", [0.99, 0.9999])
 @pytest.mark.parametrize(
     "method, options, t1, t_tol, w_tol",

@@ -18,6 +18,9 @@ from daemodel.compiling.initial_states import algebraic_values
 from daemodel.compiling.switches import lock_branches, with_state_events
 from daemodel.solving.resting import REST_BUDGET, Rest, rest_or_raise
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 IDAS = get_backend("casadi-idas")
 T1 = 60.0  # (e^-60 = 8.8e-27: below every tolerance; IDAS's x crosses zero by its error near t = 20-27)
 
@@ -107,6 +110,7 @@ def test_a_floor_of_a_state_resting_on_an_integer_is_right_or_refused(method, op
         ), sol.status
 
 
+@pytest.mark.machine_code
 def test_a_switch_that_leaves_its_rest_is_located_again():
     # x' = -x + 2 Heaviside(t - 40): x rests on Max(x, 0)'s guard, then rises again from t = 40 (x = 2 (1 - e^-(t-40))
     # after it); u' = Max(x, 0) integrates it: u = 1 - e^-40 + 2 (t - 40) - 2 (1 - e^-(t - 40))

@@ -12,6 +12,9 @@ from daemodel.collocation import stage_residual
 from daemodel.errors import InvalidOptionError
 from daemodel.problems import BOUNCING_BALL, HESSENBERG, PENDULUM
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 EXACT = HESSENBERG.exact_solution()
 
 

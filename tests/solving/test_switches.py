@@ -14,6 +14,9 @@ import daemodel as dm
 from daemodel import errors as E
 from daemodel.compiling import switches
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 EXACT_SWITCH = 1.0 - math.exp(-0.63)  # x' = -x + [t >= 0.37], x(0) = 0, at t = 1
 
 
@@ -161,6 +164,7 @@ def test_a_switching_function_that_is_not_real_where_its_branch_is_chosen_is_nam
 
 
 # ---- fixed steps keep their order across a switch ------------------------------------------------
+@pytest.mark.machine_code
 @pytest.mark.filterwarnings("ignore::daemodel.errors.LocalErrorWarning")
 @pytest.mark.parametrize("stages", [1, 2, 3])
 @pytest.mark.parametrize(
@@ -311,6 +315,7 @@ def _tracking():
     return m
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize(
     ("method", "options"),
     [("radau", {"stages": 3, "h": 0.1}), ("radau", {"rtol": 1e-8, "atol": 1e-8}), ("casadi-idas", {})],
@@ -691,6 +696,7 @@ def test_a_declared_event_and_a_switch_in_one_radau_step_fire_in_their_order(whe
     assert abs(sol["w"][-1] - 0.99**2 / 2.0) < 1e-6
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("method", ["radau", "casadi-idas"])
 def test_code_made_for_the_segments_is_setup(monkeypatch, method):
     """Issue 42: every one-off code generation is setup.  Each segment between breakpoints is a model of its
@@ -722,6 +728,7 @@ def test_code_made_for_the_segments_is_setup(monkeypatch, method):
     assert sol.stats["segments"] == 2 and sol.setup_time >= 0.6 and sol.solve_time < 0.3, sol
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize("method", ["radau", "casadi-idas"])
 def test_breakpoints_are_found_once_per_model_and_span_on_the_setup_clock(monkeypatch, method):
     """A time switch's breakpoints were found again at every solve (sympy's solveset: 19-86 ms of a two-segment

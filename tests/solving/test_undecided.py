@@ -11,6 +11,9 @@ from scipy.integrate import solve_ivp
 import daemodel as dm
 from daemodel.solving.undecided import _runs, _vertices
 
+# radau's default on casadi's virtual machine, but in the tests marked machine_code (tests/conftest.py)
+pytestmark = pytest.mark.virtual_machine
+
 G, E, C, H0 = 9.81, 0.8, 0.5, 1.0
 T1 = 1.75  # (after the ball's fourth impact, 1.666, rising towards an apex of 0.056: below every level here)
 RELATIVE = [s * d for d in (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9) for s in (1, -1)]
