@@ -49,16 +49,18 @@ def compiled_cache(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def radau_on_the_virtual_machine(request, monkeypatch):
-    """In tests marked ``virtual_machine`` and not ``machine_code``, radau's ``jit="auto"`` runs on casadi's
-    virtual machine, as ``jit=False`` does (``stats["jit"]`` says so): modules whose subject lives around the
-    engine's solves (events, switches, rests, branches, outputs' arrays, declaring) or is the same on both (the
-    controller's trust: casadi's graph of the run, compiled or not).  The default compiled a library per model, per
-    branch of its switches and per stages (each floor level, each side of a sign: ~1 s of the compiler for a model
-    of two states); in those 18 modules, 647 of the fast suite's ~1,730 test-seconds went to 336 (CPU, idle
-    machine).  The tests marked ``machine_code`` there run the default as users get it (the run's blocks of steps
-    shown to the event search, resets, accumulating events, floor levels, sliding, crossings and crossings back
-    within a step, batches of events, the tests that compare jit's values); tests/backends, the examples, the docs
-    and the fuzz pass keep it everywhere."""
+    """In tests marked ``virtual_machine`` and not ``machine_code``, radau's ``jit="auto"`` runs its steps on
+    casadi's virtual machine, as ``jit=False`` does (``stats["jit"]`` says so; a band model of 101-200 unknowns would
+    still factor in the band kernel's C, and a module-scoped fixture's solve, made before this, compiles): modules
+    whose subject lives around the engine's solves (events, switches, rests, branches, outputs' arrays, declaring)
+    or is the same on both (the controller's trust: casadi's graph of the run, compiled or not).  The default
+    compiled a library per model, per branch of its switches and per stages (each floor level, each side of a
+    sign: ~1 s of the compiler for a model of two states); in those 18 modules, 647 of the fast suite's ~1,730
+    test-seconds went to 336 (CPU, idle machine).  The tests marked ``machine_code`` there run the default as users
+    get it: the event search's stops in the run's blocks of steps, resets, accumulating events, floor levels,
+    sliding, crossings and crossings back within a step, balls at any scale, batches of events, the clocks (the
+    compiler's time on the setup's), the tests that compare jit's values.  The rest of tests/backends, the
+    examples, the docs and the fuzz pass keep the default everywhere."""
     if request.node.get_closest_marker("virtual_machine") is None or request.node.get_closest_marker("machine_code"):
         return
     from daemodel.backends.radau import backend

@@ -174,17 +174,17 @@ def _static_engine(model, monkeypatch, **options):
         original(self, *args, **kwargs)
         engines.append(self)
 
-    monkeypatch.setattr(casadi_engine.CasadiEngine, "__init__", keep)
-    # (static factors at any size on the virtual machine, as with jit)
-    monkeypatch.setattr(casadi_engine, "COMPILED_FACTOR_MAX_SIZE", 0)
-    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**12)
-    monkeypatch.setattr(casadi_engine, "STATIC_MAX_FILL", 1.0)
-    # (the engine is what is tested: two stages' adaptive solves of an index-2 system are refused
-    # (options.check_index_stages), but their factors' solves are still the kernel's to match)
-    monkeypatch.setattr(radau_backend, "check_index_stages", lambda *args: None)
-    compiled = model.compile()
-    dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False, **options)
-    monkeypatch.undo()
+    with monkeypatch.context() as patch:
+        patch.setattr(casadi_engine.CasadiEngine, "__init__", keep)
+        # (static factors at any size on the virtual machine, as with jit)
+        patch.setattr(casadi_engine, "COMPILED_FACTOR_MAX_SIZE", 0)
+        patch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**12)
+        patch.setattr(casadi_engine, "STATIC_MAX_FILL", 1.0)
+        # (the engine is what is tested: two stages' adaptive solves of an index-2 system are refused
+        # (options.check_index_stages), but their factors' solves are still the kernel's to match)
+        patch.setattr(radau_backend, "check_index_stages", lambda *args: None)
+        compiled = model.compile()
+        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False, **options)
     assert engines[-1].static is not None
     return compiled, engines[-1]
 
@@ -192,7 +192,8 @@ def _static_engine(model, monkeypatch, **options):
 def _kernel_solves(engine) -> dict:
     """The library's ``static_solve`` and ``static_solve_complex`` (:func:`.kernel.kernel_source`'s loops) for
     ``engine``'s static factors, compiled with the flags of a solve's library (:func:`.compiled.machine_library`),
-    without the step's functions around them (which cost the compiler 2-20 s a model here: 15 libraries)."""
+    without the step's functions around them (which cost the compiler 2-20 s a model here: 15 libraries).  How a
+    solve's library hands them to the engine is test_the_step_on_the_loops_gives_the_virtual_machines_bits's."""
     compiler = find_compiler()
     static = engine.static
     build = cache.Build(compiler, compiler_flags(compiler), "the kernel's solves", "", libraries=("-lm",))

@@ -131,6 +131,7 @@ def _impacts_by_scipy(x0: float, v0: float, span: float, g: float = 9.81, e: flo
 BALL_METHODS = [("radau", {"rtol": 1e-10}), ("reference", {}), ("casadi-idas", {"rtol": 1e-10})]
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize(("method", "options"), BALL_METHODS)
 @pytest.mark.parametrize("x0", [1e-20, 1e-14, 1e-8, 1.0, 1e8])
 def test_a_ball_at_any_scale_bounces_at_the_exact_times(method, options, x0):

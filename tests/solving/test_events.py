@@ -380,6 +380,7 @@ def test_a_flagged_piece_before_an_event_flags_the_solve():
     assert sol.events["off"]["t"][0].tolist() == [0.5]
 
 
+@pytest.mark.machine_code
 def test_the_search_for_each_event_stops_at_its_crossing():
     """Each piece's search solve ends at the first crossing it finds (radau stops there: backends/base.py,
     rule 8), and its steps up to there are the piece's outputs: the work grows with the events, not with

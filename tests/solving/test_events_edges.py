@@ -230,6 +230,7 @@ def test_a_repelling_switch_keeps_the_side_it_crossed_to():
     assert abs(sol["x"][-1] - 3.0 * (2.0 - 1.0)) < 1e-9
 
 
+@pytest.mark.machine_code
 def test_the_event_machinery_is_inside_the_clocks():
     import time
 

@@ -253,6 +253,7 @@ def test_every_method_reports_setup_and_solve_clocks(method, options):
     assert f"solve_time={sol.solve_time:.3g} s, setup_time={sol.setup_time:.3g} s" in repr(sol)
 
 
+@pytest.mark.machine_code
 @pytest.mark.parametrize(
     "method, options",
     [
