@@ -164,18 +164,11 @@ def test_the_kernel_source_holds_numbers_only(first_engine):
         assert allowed.fullmatch(line), line[:80]
 
 
-def _static_engine(model, monkeypatch, **options):
-    """The casadi engine of ``model``'s first solve (a short one) on static factors, on casadi's virtual machine
-    (their pivot order is the one a solve with ``jit`` takes: it does not depend on jit), and the compiled model."""
-    engines = []
-    original = casadi_engine.CasadiEngine.__init__
-
-    def keep(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        engines.append(self)
-
+def _static_engine(first_engine, model, monkeypatch, **options):
+    """The casadi engine of ``model``'s first solve (a short one: conftest's ``first_engine``) on static factors,
+    on casadi's virtual machine (their pivot order is the one a solve with ``jit`` takes: it does not depend on
+    jit), and the compiled model."""
     with monkeypatch.context() as patch:
-        patch.setattr(casadi_engine.CasadiEngine, "__init__", keep)
         # (static factors at any size on the virtual machine, as with jit)
         patch.setattr(casadi_engine, "COMPILED_FACTOR_MAX_SIZE", 0)
         patch.setattr(casadi_engine, "STATIC_MAX_FLOPS_VM", 10**12)
@@ -183,10 +176,9 @@ def _static_engine(model, monkeypatch, **options):
         # (the engine is what is tested: two stages' adaptive solves of an index-2 system are refused
         # (options.check_index_stages), but their factors' solves are still the kernel's to match)
         patch.setattr(radau_backend, "check_index_stages", lambda *args: None)
-        compiled = model.compile()
-        dm.solve(compiled, (0.0, 1e-3), rtol=1e-6, atol=1e-6, jit=False, **options)
-    assert engines[-1].static is not None
-    return compiled, engines[-1]
+        compiled, engine = first_engine(model, rtol=1e-6, atol=1e-6, **options)
+    assert engine.static is not None
+    return compiled, engine
 
 
 def _kernel_solves(engine) -> dict:
@@ -215,11 +207,11 @@ def _kernel_solves(engine) -> dict:
     ids=["reaction_diffusion-50", "pendulum_chain-20", "pendulum_chain-40", "squeezer", "car-axis"],
 )
 @pytest.mark.parametrize("stages", [2, 3, 5])
-def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages, monkeypatch):
+def test_the_c_solves_give_the_sx_solves_bit_for_bit(model, stages, monkeypatch, first_engine):
     """The triangular solves of the library (the loops of .kernel, which the compiled step calls above
     UNROLLED_SOLVE_MAX_ENTRIES, and the general path's solves with jit) against the straight-line SX of
     .sparse, on the factors of the model's own Jacobian and random right-hand sides."""
-    compiled, engine = _static_engine(model(), monkeypatch, stages=stages)
+    compiled, engine = _static_engine(first_engine, model(), monkeypatch, stages=stages)
     solves = _kernel_solves(engine)
     static, lu = engine.static, engine.static.lu
     J = engine.jacobian(0.0, np.array([compiled.y0]), np.array([compiled.z0]))
