@@ -103,15 +103,16 @@ class CasadiEngine(AbstractEngine):
         self.cache_outcomes = []  # (jit: what the disk cache did for each library compiled: _machine_code)
         self._kernel = None  # (jit with static factors: the C functions static_factors and sign_det, .kernel)
         # (stencil: a repeated stencil's f, g and residual in C above 200 unknowns, without jit: .stencil)
-        functions, stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
+        functions, lent, stage_f, self.stencil = engine_functions(compiled, tableau, band and not jit)
         # (jit leaves these on casadi's virtual machine: compiled, the residual of 200 unknowns took 8 s to
         # build and saved 6 % of the solve; the steps below are where Python waited on casadi)
-        self._f, self._residual, self._jac, self._stage_jac = (*(lend(self, fn) for fn in functions[:3]), None)
+        self._f, self._residual, self._jac, self._stage_jac = (*(lend(self, fn) for fn in lent), None)
         self.rows, self.cols = functions[4:]
         self._functions = functions
-        # (the stages' f on the residual's packed input and f at the stages' part of its output: 4.4 and 2 MB, 10^5)
-        out = self._residual._outputs[self.s * self.D :]
-        self._stage_f = None if stage_f is None else Buffered(stage_f, input_of=self._residual, output=out)
+        # (the stages' f on the residual's packed input, a stencil's on the caller's arrays (.stencil.Sliced), and
+        # f at the stages' part of its output: 4.4 and 2 MB at 10^5 unknowns)
+        out, kind = self._residual._outputs[self.s * self.D :], getattr(stage_f, "buffered", Buffered)
+        self._stage_f = None if stage_f is None else kind(stage_f, 1, self._residual, out)
         D = self.D
         # sparse: the full Newton matrix's CSC layout (factor_stages, on first use), the band order (_sparse_layout)
         self._stage_layout = self._order = None
@@ -180,7 +181,7 @@ class CasadiEngine(AbstractEngine):
         library with the rest of the solve's machine code, :meth:`_library`: 0.5-3 s once per machine,
         the disk cache keeps it); False where the systems are sparse beyond the fixed-pivot factors' reach
         (:data:`STATIC_MAX_FLOPS`, :data:`STATIC_MAX_SIZE_VM`) and the step runs on the general path."""
-        D, self.first_step = self.D, Start(self)  # (the first step's function, in the setup: .start)
+        D, self.first_step = self.D, Start.of(self)  # (the first step's function, in the setup: .start)
         orders = self._pivot_orders() if jit or COMPILED_FACTOR_MAX_SIZE < D <= STATIC_MAX_SIZE_VM else None
         lu, version = None, 0
         if orders is not None:  # (re-derived where it stopped holding in an earlier solve of this model: .pivots)
@@ -261,7 +262,7 @@ class CasadiEngine(AbstractEngine):
         def build():  # (its pieces only where it is built: they cost ~40 us of casadi per solve that needs it)
             factor = factor_call(static.lu, static)
             sign = sign_call(m) if m > 3 else None  # (up to m = 3 the run's own formula: sign_det_function)
-            refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+            refresh = refresh_function(self._functions[2], factor, self.rows, self.cols, self, sparse=True)
             functions = (refresh, factor, self._functions[3](), sign, static)
             return attempt_function(self, step, *functions, iterations, machine=True)
 
@@ -422,7 +423,7 @@ class CasadiEngine(AbstractEngine):
         """The casadi function of a fresh Jacobian with its factored systems (:func:`.compiled.refresh_function`),
         built once per model and stages."""
         inverses = self._inverse_function()
-        build = lambda: refresh_function(self._jac.function, inverses, self.rows, self.cols, self)  # noqa: E731
+        build = lambda: refresh_function(self._functions[2], inverses, self.rows, self.cols, self)  # noqa: E731
         return self.compiled.cached(("casadi-radau-refresh", self.s), build)
 
     def make_compiled_run(self, iterations: int):
@@ -444,7 +445,7 @@ class CasadiEngine(AbstractEngine):
             # piece between events)
             if static:  # (the factors and the determinant's sign in C: .kernel)
                 factor, sign = self._static_kernel()
-                refresh = refresh_function(self._jac.function, factor, self.rows, self.cols, self, sparse=True)
+                refresh = refresh_function(self._functions[2], factor, self.rows, self.cols, self, sparse=True)
                 functions = (refresh, factor, self._functions[3](), sign, self.static)
             else:
                 functions = (self._refresh_function(), self._inverse_function(), self._functions[3](), None, None)

@@ -405,20 +405,21 @@ def lend(owner, function, inputs: int = 1) -> Buffered:
     with ~9 of them at ~17 us each, 2,700 times in the wheelset's events' trial solves.  For an owner that
     keeps its Buffered to itself (its inputs are zeros, as a new one's; its outputs are what the last call
     wrote, which every call overwrites: zeroing the compiled run's, 1 MB at 200 unknowns and s = 5, was 3 %
-    of a solve)."""
+    of a solve).  ``function``: a casadi function, or one that names the kind bound to it (its ``buffered``)."""
     free = _LENDABLE.get(function)
     parts = free.get(inputs) if free is not None else None
     try:  # (none free, or another thread took the last one since a check: a new one, not IndexError)
         state = parts.pop() if parts is not None else None
     except IndexError:
         state = None
+    kind = getattr(function, "buffered", Buffered)  # (a function of sliced inputs: .stencil.Sliced)
     if state is not None:
-        buffered = Buffered.__new__(Buffered)
+        buffered = kind.__new__(kind)
         buffered.__dict__.update(state, function=function)
         for values in buffered.inputs:  # (zeros, as a new one's: nothing of its last owner)
             values[:] = 0.0
     else:
-        buffered = Buffered(function, inputs)
+        buffered = kind(function, inputs)
     lent = _LENT.get(owner)
     if lent is None:  # (one finalizer an owner: ~3 us each)
         lent = _LENT[owner] = []

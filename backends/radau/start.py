@@ -8,7 +8,7 @@ pendulum solve's ~330 (:meth:`.control.Radau5Controller.initial_step`).
 from __future__ import annotations
 
 from daemodel.backends.radau import formulas
-from daemodel.backends.radau.compiled import lend
+from daemodel.backends.radau.compiled import INLINED_RESIDUAL_MAX_SIZE, lend
 from daemodel.backends.radau.formulas import CASADI
 
 
@@ -32,6 +32,13 @@ def start_function(f, n: int, m: int, P: int, stages: int):
 class Start:
     """:func:`start_function` of a casadi engine on buffers of its own: ``(t0, t1, y (1, n), z (1, m), atol,
     rtol) -> (h, f0 (1, n))``."""
+
+    @classmethod
+    def of(cls, engine) -> Start | None:
+        """One for ``engine``, or None above :data:`.compiled.INLINED_RESIDUAL_MAX_SIZE` unknowns, where the
+        controller's formula on numpy (two calls of f) costs the same and holds no buffers for the solve's life
+        (the casadi function's work and input were 6.8 MB at 10^5 unknowns of reaction-diffusion)."""
+        return cls(engine) if engine.D <= INLINED_RESIDUAL_MAX_SIZE else None
 
     def __init__(self, engine):
         build = lambda: start_function(engine._functions[0], engine.n, engine.m, engine.p.size, engine.s)  # noqa: E731

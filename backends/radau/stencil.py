@@ -21,9 +21,14 @@ kept, 280 MB while it was made, and its Jacobian's function another 46 MB).
 
 from __future__ import annotations
 
+import itertools
+from typing import NamedTuple
+
+import numpy as np
 from daemodel.backends.radau.compiled import (
     COMPILER_FLAGS,
     INLINED_RESIDUAL_MAX_SIZE,
+    Buffered,
     casadi_functions,
     compiler_flags,
     find_compiler,
@@ -32,6 +37,8 @@ from daemodel.backends.radau.compiled import (
 
 # The names of the functions in the library: f and g, the stage residual, and the Jacobian's values.
 NAME, RESIDUAL, JACOBIAN, STAGE_F = "stencil_fg", "stencil_residual", "stencil_jacobian", "stencil_stage_f"
+# casadi's external functions' parameters.
+SIGNATURE = "(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem)"
 # Seconds the compiler may take (a few templates, their runs' table and the boundary rows).
 STENCIL_COMPILE_TIMEOUT = 120.0
 # With GCC, besides .compiled's flags: the library's own functions called directly and inlined (the templates
@@ -206,30 +213,58 @@ def residual_source(tableau) -> str:
     """The C of :data:`RESIDUAL` (after :func:`stencil_source`'s): :func:`.compiled.casadi_functions`' stage
     residual of ``[t, h, y_n, W, p]`` to ``[R, f at the stages]``, its operations in the order of that MX
     graph (``t + c_i h``; ``Y_i - y_n - h (a_i1 f_1 + ... + a_is f_s)`` summed from the left), the
-    tableau's numbers as C99 hexadecimal literals (exact)."""
+    tableau's numbers as C99 hexadecimal literals (exact); :data:`STAGE_F`, f at the stages alone; and each
+    of the two of the five inputs ``(t, h, y_n, W, p)`` apart (``_parts``: :class:`Sliced` binds them to the
+    caller's arrays, no packed copy), the packed ones calling those."""
     s, A, c = tableau.stages, tableau.A, tableau.c
     hexes = lambda values: ", ".join(float(v).hex() for v in values)  # noqa: E731
+    parts = "".join(
+        f"int {name}{SIGNATURE} {{\n"
+        "  const casadi_real** parts = arg + 1;  /* (the five inputs in the packed one, then the parts' own) */\n"
+        "  parts[0] = arg[0]; parts[1] = arg[0] + 1; parts[2] = arg[0] + 2; parts[3] = parts[2] + N_X;\n"
+        "  parts[4] = parts[3] + N_S * N_D;\n"
+        f"  return {name}_parts(parts, res, iw, w, mem);\n}}\n"
+        for name in (RESIDUAL, STAGE_F)
+    )
+    interfaces = "".join(
+        f"casadi_int {name}_n_in(void) {{ return {inputs}; }}\n"
+        f"casadi_int {name}_n_out(void) {{ return 1; }}\n"
+        f"const casadi_int* {name}_sparsity_in(casadi_int i) {{ return {sparsity}; }}\n"
+        f"const casadi_int* {name}_sparsity_out(casadi_int i) {{ return i == 0 ? {out} : 0; }}\n"
+        f"int {name}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
+        f"  if (sz_arg) *sz_arg = {inputs} + {5 if inputs == 1 else 0} + 4 + REST_ARG;  /* (then the stencil's) */\n"
+        "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
+        "  if (sz_iw) *sz_iw = REST_IW;\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
+        "  return 0;\n}\n"
+        for function, out in ((RESIDUAL, "sp_out"), (STAGE_F, "sp_stage_f"))
+        for name, inputs, sparsity in (
+            (function, 1, "i == 0 ? sp_in : 0"),
+            (f"{function}_parts", 5, "i < 2 ? sp_t : i == 2 ? sp_x : i == 3 ? sp_W : i == 4 ? sp_p : 0"),
+        )
+    )
     return (
         f"\n/* daemodel: the stage residual on {NAME} (generated; numbers only) */\n"
         f"#define N_S {s}\n#define N_D (N_X + N_Z)\n"
         f"static const casadi_real stage_c[N_S] = {{{hexes(c)}}};\n"
         f"static const casadi_real stage_a[N_S][N_S] = {{{', '.join('{' + hexes(row) + '}' for row in A)}}};\n"
         "static const casadi_int sp_in[3] = {2 + N_X + N_S * N_D + N_P, 1, 1};\n"
+        "static const casadi_int sp_W[3] = {N_S * N_D, 1, 1};\n"
         "static const casadi_int sp_out[3] = {N_S * N_D + N_S * N_X, 1, 1};\n"
-        f"int {RESIDUAL}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
-        "  const casadi_real* in = arg[0];\n"
-        "  const casadi_real* yn = in + 2;\n"
-        "  const casadi_real* W = yn + N_X;\n"
-        "  const casadi_real* p = W + N_S * N_D;\n"
+        "static const casadi_int sp_stage_f[3] = {N_S * N_X, 1, 1};\n"
+        f"int {RESIDUAL}_parts{SIGNATURE} {{\n"
+        "  const casadi_real* yn = arg[2];\n"
+        "  const casadi_real* W = arg[3];\n"
+        "  const casadi_real* p = arg[4];\n"
         "  casadi_real* R = res[0];\n"
         "  casadi_real* F = R + N_S * N_D;\n"
-        "  casadi_real t, h = in[1], q;\n"
+        "  casadi_real t, h = arg[1][0], q;\n"
         "  casadi_int i, j, k;\n"
         "  if (!R) return 0;\n"
         "  for (i = 0; i < N_S; i++) {\n"
-        "    const casadi_real** a = arg + 1;\n"
+        "    const casadi_real** a = arg + 5;\n"
         "    casadi_real** r = res + 1;\n"
-        "    t = in[0] + stage_c[i] * h;\n"
+        "    t = arg[0][0] + stage_c[i] * h;\n"
         "    a[0] = &t; a[1] = W + i * N_D; a[2] = W + i * N_D + N_X; a[3] = p;\n"
         "    r[0] = F + i * N_X; r[1] = R + i * N_D + N_X;\n"
         f"    if ({NAME}(a, r, iw, w, 0)) return 1;\n"
@@ -241,44 +276,23 @@ def residual_source(tableau) -> str:
         "      R[i * N_D + k] = W[i * N_D + k] - yn[k] - h * q;\n"
         "    }\n"
         "  return 0;\n}\n"
-        f"casadi_int {RESIDUAL}_n_in(void) {{ return 1; }}\n"
-        f"casadi_int {RESIDUAL}_n_out(void) {{ return 1; }}\n"
-        f"const casadi_int* {RESIDUAL}_sparsity_in(casadi_int i) {{ return i == 0 ? sp_in : 0; }}\n"
-        f"const casadi_int* {RESIDUAL}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_out : 0; }}\n"
-        f"int {RESIDUAL}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
-        "  if (sz_arg) *sz_arg = 1 + 4 + REST_ARG;  /* (the stencil's arguments after its own) */\n"
-        "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
-        "  if (sz_iw) *sz_iw = REST_IW;\n"
-        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
-        "  return 0;\n}\n"
         # f at the stages alone (the error estimate's, :func:`.compiled.stage_f_function`): g's rows not written
-        "static const casadi_int sp_stage_f[3] = {N_S * N_X, 1, 1};\n"
-        f"int {STAGE_F}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
-        "  const casadi_real* in = arg[0];\n"
-        "  const casadi_real* W = in + 2 + N_X;\n"
+        f"int {STAGE_F}_parts{SIGNATURE} {{\n"
+        "  const casadi_real* W = arg[3];\n"
         "  casadi_real* F = res[0];\n"
-        "  casadi_real t, h = in[1];\n"
+        "  casadi_real t, h = arg[1][0];\n"
         "  casadi_int i;\n"
         "  if (!F) return 0;\n"
         "  for (i = 0; i < N_S; i++) {\n"
-        "    const casadi_real** a = arg + 1;\n"
+        "    const casadi_real** a = arg + 5;\n"
         "    casadi_real** r = res + 1;\n"
-        "    t = in[0] + stage_c[i] * h;\n"
-        "    a[0] = &t; a[1] = W + i * N_D; a[2] = W + i * N_D + N_X; a[3] = W + N_S * N_D;\n"
+        "    t = arg[0][0] + stage_c[i] * h;\n"
+        "    a[0] = &t; a[1] = W + i * N_D; a[2] = W + i * N_D + N_X; a[3] = arg[4];\n"
         "    r[0] = F + i * N_X; r[1] = 0;\n"
         f"    if ({NAME}(a, r, iw, w, 0)) return 1;\n"
         "  }\n"
         "  return 0;\n}\n"
-        f"casadi_int {STAGE_F}_n_in(void) {{ return 1; }}\n"
-        f"casadi_int {STAGE_F}_n_out(void) {{ return 1; }}\n"
-        f"const casadi_int* {STAGE_F}_sparsity_in(casadi_int i) {{ return i == 0 ? sp_in : 0; }}\n"
-        f"const casadi_int* {STAGE_F}_sparsity_out(casadi_int i) {{ return i == 0 ? sp_stage_f : 0; }}\n"
-        f"int {STAGE_F}_work(casadi_int* sz_arg, casadi_int* sz_res, casadi_int* sz_iw, casadi_int* sz_w) {{\n"
-        "  if (sz_arg) *sz_arg = 1 + 4 + REST_ARG;\n"
-        "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
-        "  if (sz_iw) *sz_iw = REST_IW;\n"
-        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
-        "  return 0;\n}\n"
+        f"{parts}{interfaces}"
     )
 
 
@@ -294,15 +308,29 @@ def stencil_function(runs, tableau, compiler: str):
     flags += GCC_STENCIL_FLAGS if flags != COMPILER_FLAGS else ()  # (GCC's flags added: not clang)
     build = Build(compiler, flags, what, fix, libraries=("-lm",), timeout=STENCIL_COMPILE_TIMEOUT)
     source = stencil_source(runs) + residual_source(tableau)
-    library = cached_library(source, [NAME, RESIDUAL, JACOBIAN, STAGE_F], build)
-    return (*(library.functions[name] for name in (NAME, RESIDUAL, JACOBIAN, STAGE_F)), library.outcome)
+    names = (NAME, RESIDUAL, JACOBIAN, STAGE_F, f"{RESIDUAL}_parts", f"{STAGE_F}_parts")
+    library = cached_library(source, list(names), build)
+    return (*(library.functions[name] for name in names), library.outcome)
+
+
+class StencilFunctions(NamedTuple):
+    """:func:`stencil_equations`' functions: of the packed inputs (casadi functions, for casadi graphs and
+    :func:`.compiled.casadi_functions`), and the same on the caller's arrays (:class:`Sliced`, for the engine)."""
+
+    fg: object  # (t, x, z, p) -> (f, g): :data:`NAME`
+    residual: object  # [t, h, y_n, W, p] -> [R, f at the stages]: :data:`RESIDUAL`
+    jacobian: object  # [t, x, z, p] -> the Jacobian's nonzeros (casadi's order), or None: :func:`gathered_jacobian`
+    stage_f: object  # [t, h, y_n, W, p] -> f at the stages: :data:`STAGE_F`
+    sliced_f: Sliced
+    sliced_residual: Sliced
+    sliced_jacobian: Sliced | None
+    sliced_stage_f: Sliced
 
 
 def stencil_equations(compiled, tableau):
-    """``(functions, said)``: the compiled :data:`NAME` and :data:`RESIDUAL` of ``compiled`` and
-    ``tableau`` (made once per model and s) and what a solve's stats say of them, or ``(None, why)``
-    where the model is not a repeated stencil (:func:`daemodel.compiling.runs.equation_runs`), there
-    is no compiler, or it failed."""
+    """``(functions, said)``: the compiled :class:`StencilFunctions` of ``compiled`` and ``tableau`` (made once
+    per model and s) and what a solve's stats say of them, or ``(None, why)`` where the model is not a repeated
+    stencil (:func:`daemodel.compiling.runs.equation_runs`), there is no compiler, or it failed."""
     from daemodel.compiling.runs import model_runs, runs_jacobian_layout
     from daemodel.errors import CompileError
 
@@ -314,15 +342,102 @@ def stencil_equations(compiled, tableau):
         if runs is None:
             return None, "casadi's virtual machine (not a repeated stencil)"
         try:
-            fg, residual, raw, stage_f, outcome = stencil_function(runs, tableau, compiler)
+            fg, residual, raw, stage_f, residual_parts, stage_f_parts, outcome = stencil_function(
+                runs, tableau, compiler
+            )
         except CompileError as error:
             return None, f"casadi's virtual machine (the compiler failed: {str(error)[:200]})"
         layout = runs_jacobian_layout(compiled)
         rest = None if rest_jacobian_in_c(runs) else runs.rest_jacobian  # (None: in the library, or no rest)
-        jacobian = None if layout is None else gathered_jacobian(raw, layout[2], runs.sizes, rest)
-        return (fg, residual, jacobian, stage_f), f"machine code ({runs.describe()}; cache: {outcome})"
+        jacobian = sliced = None
+        n, m, P = sizes = runs.sizes
+        if layout is not None:
+            jacobian = gathered_jacobian(raw, layout[2], sizes, rest)
+            sliced = Sliced("jacobian", [raw, *([] if rest is None else [rest])], (1, n, m, P), layout[2])
+        stages = (1, 1, n, tableau.stages * (n + m), P)  # (t, h, y_n, W, p)
+        functions = StencilFunctions(fg, residual, jacobian, stage_f, Sliced("f", [fg], (1, n, m, P)),
+                                     Sliced("residual", [residual_parts], stages), sliced,
+                                     Sliced("stage_f", [stage_f_parts], stages))  # fmt: skip
+        return functions, f"machine code ({runs.describe()}; cache: {outcome})"
 
     return compiled.cached(("radau-stencil-equations", tableau.stages), build)
+
+
+class Sliced:
+    """A function of inputs apart (``sizes``: ``(t, x, z, p)``, or ``(t, h, y_n, W, p)``) made of casadi functions of
+    them (the library's), called on the caller's arrays in place: their first outputs one after the other are its
+    values, or those at ``taken`` where it is given.  The engine's f, Jacobian, stage residual and stages' f of a
+    stencil (:func:`engine_functions`): casadi functions of one packed input held a copy of it (the residual's 4.4 MB
+    at 10^5 unknowns of reaction-diffusion, s = 5), and an MX function around the library's Jacobian its split
+    input's copies, the library's values and their gather in its work (7.2 MB; f's 2.4 MB)."""
+
+    def __init__(self, name: str, functions, sizes, taken=None):
+        self.name, self.functions, self.taken = name, tuple(functions), taken
+        self.sizes = tuple(int(size) for size in sizes)
+        self.buffered = SlicedBuffered  # (the kind .compiled.lend binds to it)
+
+    def nnz_in(self, k: int = 0) -> int:
+        """The packed input's size (:meth:`SlicedBuffered.__call__`'s)."""
+        return sum(self.sizes)
+
+    def nnz_out(self, k: int = 0) -> int:
+        return len(self.taken) if self.taken is not None else sum(f.nnz_out(0) for f in self.functions)
+
+
+class SlicedBuffered(Buffered):
+    """:class:`Sliced`'s functions on casadi's FunctionBuffers: each call binds each input to the caller's array
+    (a C-contiguous float64 array of its size; else, and scalars, a copy in a buffer of its own), each function's
+    first output to its part of the values (later outputs not written: g with f), and gathers the values at
+    ``taken`` into the output (numpy, in place); ``output``: the float64 array its output is written to."""
+
+    def __init__(self, function: Sliced, inputs: int = 1, input_of=None, output: np.ndarray | None = None):
+        """``inputs``, ``input_of``: Buffered's, not used (each call binds the caller's arrays)."""
+        self.name, self.function, size = function.name, function, function.nnz_out()
+        if output is not None and (output.dtype != float or output.shape != (size,) or not output.flags.c_contiguous):
+            raise ValueError(f"{self.name} gives {size} outputs, not {output.shape} (into a contiguous float64 array)")
+        self.inputs = []  # (nothing bound between calls: see packed)
+        self._copies = {}  # (input k's buffer, where a call's part is not an array to bind)
+        self._outputs = np.zeros(size) if output is None else output
+        gathered = function.taken is not None
+        values = np.zeros(sum(f.nnz_out(0) for f in function.functions)) if gathered else self._outputs
+        self._values, self._buffers, at = values, [], 0
+        for each in function.functions:
+            buffer, evaluate = each.buffer()
+            buffer.set_res(0, memoryview(values[at : at + each.nnz_out(0)]))
+            at += each.nnz_out(0)
+            self._buffers.append((buffer, evaluate, each.name()))
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        """The outputs for the packed input ``values`` (its parts bound in place)."""
+        values = np.ascontiguousarray(values, dtype=float)
+        bounds = np.cumsum((0, *self.function.sizes))
+        return self.packed(*(values[a:b] for a, b in itertools.pairwise(bounds)))
+
+    def packed(self, *parts, copy: bool = True) -> np.ndarray:
+        """The outputs for the inputs ``parts``, one a size of :attr:`Sliced.sizes`; ``copy``: as Buffered's."""
+        sizes = self.function.sizes
+        if len(parts) != len(sizes) or any(np.size(part) != size for part, size in zip(parts, sizes, strict=False)):
+            given = [int(np.size(part)) for part in parts]
+            raise ValueError(f"{self.name} takes inputs of sizes {list(sizes)}; the parts hold {given}")
+        for k, part in enumerate(parts):
+            if not (isinstance(part, np.ndarray) and part.dtype == float and part.flags.c_contiguous):
+                if k not in self._copies:
+                    self._copies[k] = np.empty(sizes[k])
+                part = self._copies[k]
+                part[:] = np.ravel(parts[k])
+            for buffer, _, _ in self._buffers:  # (the parts are alive until the call returns: the caller's)
+                buffer.set_arg(k, memoryview(part.reshape(-1)))
+        for buffer, evaluate, name in self._buffers:
+            evaluate()
+            if buffer.ret() != 0:
+                raise RuntimeError(f"casadi function {name} failed (return code {buffer.ret()})")
+        if self.function.taken is not None:  # ("clip": each index is valid; numpy's "raise" copies out first)
+            np.take(self._values, self.function.taken, out=self._outputs, mode="clip")
+        return self._outputs.copy() if copy else self._outputs
+
+    def evaluate(self, copy: bool = True) -> np.ndarray:
+        """Not on bound inputs: they are the last caller's arrays, perhaps gone (:meth:`packed` binds them)."""
+        raise TypeError(f"{self.name} reads its inputs where each call gives them: call packed(), not evaluate()")
 
 
 def gathered_jacobian(raw, taken, sizes, rest=None):
@@ -354,14 +469,19 @@ def uses_stencil(compiled, jit, machine_code: bool) -> bool:
 
 
 def engine_functions(compiled, tableau, machine: bool):
-    """``(functions, stage_f, said)`` of the casadi engine: :func:`.compiled.casadi_functions` and
+    """``(functions, lent, stage_f, said)`` of the casadi engine: :func:`.compiled.casadi_functions` and
     :func:`.compiled.stage_f_of` (made once per model and s), on :func:`stencil_equations`' functions
     where ``machine`` code may run (a C compiler, ``jit`` not False; with ``jit`` True the whole solve's
     functions are compiled instead) above :data:`.compiled.INLINED_RESIDUAL_MAX_SIZE` unknowns and the
-    model is a repeated stencil; ``said``: what a solve's stats say of it (None where it was not tried)."""
+    model is a repeated stencil; ``lent``: what the engine evaluates f, the stage residual and the Jacobian
+    with (the first three functions, or the stencil's :class:`Sliced`); ``said``: what a solve's stats say
+    of it (None where it was not tried)."""
     stencil, said = None, None
     if machine and len(compiled.states) + len(compiled.algebraics) > INLINED_RESIDUAL_MAX_SIZE:
         stencil, said = stencil_equations(compiled, tableau)
     key = ("casadi-radau", tableau.stages) + (() if stencil is None else ("stencil",))
     functions = compiled.cached(key, lambda: casadi_functions(compiled, tableau, stencil))
-    return functions, stage_f_of(compiled, tableau, stencil), said
+    if stencil is None:
+        return functions, functions[:3], stage_f_of(compiled, tableau, stencil), said
+    lent = (stencil.sliced_f, stencil.sliced_residual, stencil.sliced_jacobian or functions[2])
+    return functions, lent, stencil.sliced_stage_f, said

@@ -179,6 +179,37 @@ def test_the_casadi_engine_makes_the_first_step_in_one_call(monkeypatch, name):
     assert h == h_numpy and np.array_equal(f0, f0_numpy) and sol.status == "success"
 
 
+def test_above_the_inlined_residuals_size_the_controller_makes_the_first_step(monkeypatch):
+    """No casadi function of the first step above INLINED_RESIDUAL_MAX_SIZE unknowns (its work and input, 6.8 MB
+    at 10^5 unknowns of reaction-diffusion, were held for the solve's life): the controller's formula on numpy,
+    the same f at the start as that function's and h to rounding; at the bound, the function."""
+    from daemodel.backends.radau import control
+    from daemodel.backends.radau.compiled import INLINED_RESIDUAL_MAX_SIZE
+    from daemodel.backends.radau.start import Start
+
+    from daemodel.problems.families import reaction_diffusion
+
+    found = []
+    initial_step = control.Radau5Controller.initial_step
+
+    def both(self, stepper, t_span):
+        made = stepper.engine.first_step
+        h, f0 = initial_step(self, stepper, t_span), stepper._f_start.copy()
+        stepper.engine.first_step = Start(stepper.engine)
+        found.append((made, h, f0, initial_step(self, stepper, t_span), stepper._f_start.copy()))
+        stepper.engine.first_step = made
+        return h
+
+    monkeypatch.setattr(control.Radau5Controller, "initial_step", both)
+    for cells in (INLINED_RESIDUAL_MAX_SIZE // 2, INLINED_RESIDUAL_MAX_SIZE // 2 + 1):
+        sol = dm.solve(reaction_diffusion(cells).compile(), (0.0, 1.0), rtol=1e-5, atol=1e-7)
+        assert sol.status == "success"
+    (at, *first), (above, *second) = found
+    assert isinstance(at, Start) and above is None
+    for h, f0, h_start, f0_start in (first, second):
+        assert h == pytest.approx(h_start, rel=1e-15, abs=0) and np.array_equal(f0, f0_start) and 0 < h < 1
+
+
 def _near_rest(seed: int):
     """A random stiff system near rest, ``u' = A u - c u^3 + b forcing(t)`` with ``u = y - y_rest``,
     ``u(0)`` 1e-7 of ``y_rest`` (of size 1-10) and ``forcing(0) = 0``: f(t0) is ~1e-7 of the state,

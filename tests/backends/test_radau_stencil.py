@@ -1,12 +1,14 @@
 """A repeated stencil's f, g and stage residual in C (backends/radau/stencil.py): the same bits as the
 casadi functions they replace, the same solve; models that are not one keep the virtual machine."""
 
+import gc
+
 import numpy as np
 import pytest
 import sympy as sp
 from daemodel.backends.radau import stencil as stencil_module
-from daemodel.backends.radau.compiled import Buffered, casadi_functions, find_compiler, stage_f_function
-from daemodel.backends.radau.stencil import stencil_equations
+from daemodel.backends.radau.compiled import Buffered, casadi_functions, find_compiler, lend, stage_f_function
+from daemodel.backends.radau.stencil import SlicedBuffered, stencil_equations
 
 import daemodel as dm
 from daemodel.errors import CompileError
@@ -29,6 +31,9 @@ def test_the_stencils_residual_is_the_casadi_residual_bit_for_bit(stages):
     np.testing.assert_array_equal(Buffered(functions[1])(x), Buffered(plain)(x))
     alone, plain_alone = stage_f_function(compiled, tableau, functions), stage_f_function(compiled, tableau)
     np.testing.assert_array_equal(Buffered(alone)(x), Buffered(plain_alone)(x))
+    # (the engine's: the five inputs apart, bound to the caller's arrays)
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_residual)(x), Buffered(plain)(x))
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_stage_f)(x), Buffered(plain_alone)(x))
     n, m = len(compiled.states), len(compiled.algebraics)
     args = [0.2, rng.uniform(-0.5, 2.0, n), rng.uniform(-0.5, 2.0, m), np.asarray(compiled.parameter_values)]
     dae = compiled.casadi_dae()
@@ -37,6 +42,56 @@ def test_the_stencils_residual_is_the_casadi_residual_bit_for_bit(stages):
 
         value = casadi.Function("v", [dae["t"], dae["x"], dae["z"], dae["p"]], [want])(*args)
         np.testing.assert_array_equal(np.asarray(got), np.asarray(value))
+    f = np.asarray(functions[0](*args)[0]).ravel()
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_f).packed(*args), f)
+    whole = casadi_functions(compiled, tableau)
+    packed = np.concatenate([[args[0]], *args[1:]])
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_jacobian)(packed), Buffered(whole[2])(packed))
+
+
+def test_a_sliced_function_binds_the_callers_arrays_and_copies_what_it_cannot_bind():
+    """Contiguous float64 parts are read where they are (a part changed between calls is seen, no copy of it is
+    kept); strided, float32, list and scalar parts through a copy of their own: the same values each way."""
+    compiled, tableau = reaction_diffusion(300).compile(), radau_iia(3)
+    functions, _ = stencil_equations(compiled, tableau)
+    plain = Buffered(casadi_functions(compiled, tableau)[1])
+    n, D = 300, 600
+    rng = np.random.default_rng(7)
+    y, W, p = rng.uniform(0.1, 1.0, n), rng.uniform(0.1, 1.0, (1, 3, D)), np.asarray(compiled.parameter_values)
+    residual = SlicedBuffered(functions.sliced_residual)
+    got = residual.packed(0.1, 0.01, y, W, p)
+    np.testing.assert_array_equal(got, plain.packed(0.1, 0.01, y, W, p))
+    assert sorted(residual._copies) == [0, 1]  # (t and h; y, W and p read in place)
+    W[0, 1, 5] += 1.0  # (the caller's array changed: the next call reads it)
+    np.testing.assert_array_equal(residual.packed(0.1, 0.01, y, W, p), plain.packed(0.1, 0.01, y, W, p))
+    assert not np.array_equal(residual.packed(0.1, 0.01, y, W, p), got)
+    strided, single = np.repeat(W.ravel(), 2)[::2], W.astype(np.float32)
+    assert not strided.flags.c_contiguous
+    for parts in ((0.1, 0.01, list(y), W, p), (0.1, 0.01, y, strided, p), (0.1, 0.01, y, single, p)):
+        want = plain.packed(*(np.asarray(part, dtype=float) for part in parts))
+        np.testing.assert_array_equal(residual.packed(*parts), want)
+    assert sorted(residual._copies) == [0, 1, 2, 3]
+    sizes = r"residual takes inputs of sizes \[1, 1, 300, 1800, 1\]; the parts hold \[1, 1, 300, 1799, 1\]"
+    with pytest.raises(ValueError, match=sizes):
+        residual.packed(0.1, 0.01, y, W.ravel()[1:], p)
+    with pytest.raises(ValueError, match=r"takes inputs of sizes .*; the parts hold \[1, 1, 300\]"):
+        residual.packed(0.1, 0.01, y)
+    with pytest.raises(TypeError, match="residual reads its inputs where each call gives them: call packed"):
+        residual.evaluate()
+    with pytest.raises(ValueError, match=r"stage_f gives 900 outputs, not \(901,\)"):
+        SlicedBuffered(functions.sliced_stage_f, output=np.zeros(901))
+
+    class Owner:
+        pass
+
+    lent = lend(owner := Owner(), functions.sliced_jacobian)
+    outputs = lent._outputs
+    del owner, lent
+    gc.collect()
+    again = lend(Owner(), functions.sliced_jacobian)  # (taken back, lent again: of its kind, its buffers)
+    assert type(again) is SlicedBuffered and again._outputs is outputs
+    x = np.r_[0.3, rng.uniform(-0.5, 2.0, D), compiled.parameter_values]
+    np.testing.assert_array_equal(again(x), Buffered(casadi_functions(compiled, tableau)[2])(x))
 
 
 def test_a_solve_on_the_stencil_is_the_virtual_machines_bit_for_bit(monkeypatch):
