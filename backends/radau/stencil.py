@@ -93,11 +93,13 @@ def stencil_source(runs) -> str:
     generator = casadi.CodeGenerator("daemodel_stencil", {"with_header": False})
     for template in (*runs.templates, *runs.derivatives):
         generator.add(template)
-    rest = runs.rest
+    # (the rest's rows and their Jacobian on the leaves they read, gathered by rest_gather: casadi's MX functions of
+    # the whole inputs copied them into their work at each call, 0.4 MB at 10^5 unknowns a bound function)
+    rest = None if runs.rest is None else runs.rest.get_function("rest_rows")
     if rest is not None:
         generator.add(rest)
     if rest_jacobian_in_c(runs):
-        generator.add(runs.rest_jacobian)
+        generator.add(runs.rest_jacobian.get_function("rest_jacobian_rows"))
     n, m, P = runs.sizes
     out = [generator.dump(), "\n/* daemodel: runs of the templates (generated; numbers only) */\n"]
     # each template's runs: count, then per leaf its input, base and stride, then output, base and stride
@@ -107,7 +109,9 @@ def stencil_source(runs) -> str:
                  r.output, r.out_base, r.out_stride] for r in runs.runs if r.template == k]  # fmt: skip
         out.append(_table(f"runs{k}", rows))
     f_rows, g_rows = (list(map(int, r)) for r in runs.rest_rows)
-    out.append(_table("rest_rows", [[0, i] for i in f_rows] + [[1, i] for i in g_rows]))
+    out.append(_table("rest_out", [[0, i] for i in f_rows] + [[1, i] for i in g_rows]))
+    out.append(_table("rest_leaves", runs.rest_leaves.tolist() or [[0, 0]]))
+    counts = np.bincount(runs.rest_leaves[:, 0], minlength=4)
     rest_w = 0 if rest is None else rest.sz_w()
     rest_iw = 0 if rest is None else rest.sz_iw()
     rest_arg = 0 if rest is None else rest.sz_arg()
@@ -115,11 +119,22 @@ def stencil_source(runs) -> str:
     out.append(
         f"#define N_X {n}\n#define N_Z {m}\n#define N_P {P}\n#define N_REST {len(f_rows) + len(g_rows)}\n"
         f"#define REST_W {rest_w}\n#define REST_IW {rest_iw}\n#define REST_ARG {max(rest_arg, 4)}\n"
-        f"#define REST_RES {max(rest_res, 1)}\n"
+        f"#define REST_RES {max(rest_res, 1)}\n#define N_LEAVES {len(runs.rest_leaves)}\n"
+        f"#define LEAVES_T {counts[0]}\n#define LEAVES_X {counts[1]}\n#define LEAVES_Z {counts[2]}\n"
         "static const casadi_int sp_t[3] = {1, 1, 1};\n"
         "static const casadi_int sp_x[3] = {N_X, 1, 1};\n"
         "static const casadi_int sp_z[3] = {N_Z, 1, 1};\n"
         "static const casadi_int sp_p[3] = {N_P, 1, 1};\n"
+        # the rest's leaves from the whole inputs (a null input: zeros, as casadi's), its inputs pointed at them
+        "static void rest_gather(const casadi_real** arg, casadi_real* leaves, const casadi_real** local) {\n"
+        "  casadi_int j;\n"
+        "  for (j = 0; j < N_LEAVES; j++) {\n"
+        "    const casadi_real* a = arg[rest_leaves[j][0]];\n"
+        "    leaves[j] = a ? a[rest_leaves[j][1]] : 0;\n"
+        "  }\n"
+        "  local[0] = leaves; local[1] = leaves + LEAVES_T; local[2] = local[1] + LEAVES_X;\n"
+        "  local[3] = local[2] + LEAVES_Z;\n"
+        "}\n"
         f"int {NAME}(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w, int mem) {{\n"
         "  casadi_int r, i, j;\n"
     )
@@ -133,11 +148,11 @@ def stencil_source(runs) -> str:
             "  {\n"
             "    const casadi_real** rest_arg = arg + 4;\n"
             "    casadi_real** rest_res = res + 2;\n"
-            "    for (j = 0; j < 4; j++) rest_arg[j] = arg[j];\n"
+            "    rest_gather(arg, w + REST_W + N_REST, rest_arg);\n"
             "    rest_res[0] = w + REST_W;\n"
-            "    if (rest(rest_arg, rest_res, iw, w, 0)) return 1;\n"
+            "    if (rest_rows(rest_arg, rest_res, iw, w, 0)) return 1;\n"
             "    for (i = 0; i < N_REST; i++)\n"
-            "      if (res[rest_rows[i][0]]) res[rest_rows[i][0]][rest_rows[i][1]] = w[REST_W + i];\n"
+            "      if (res[rest_out[i][0]]) res[rest_out[i][0]][rest_out[i][1]] = w[REST_W + i];\n"
             "  }\n"
         )
     out.append(
@@ -151,7 +166,7 @@ def stencil_source(runs) -> str:
         "  if (sz_arg) *sz_arg = 4 + REST_ARG;  /* (the rest's arguments after its own) */\n"
         "  if (sz_res) *sz_res = 2 + REST_RES;\n"
         "  if (sz_iw) *sz_iw = REST_IW;\n"
-        "  if (sz_w) *sz_w = REST_W + N_REST;  /* (the rest's work, then its outputs) */\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST + N_LEAVES;  /* (the rest's work, its outputs, its leaves) */\n"
         "  return 0;\n}\n"
     )
     out.append(jacobian_source(runs))
@@ -162,7 +177,7 @@ def jacobian_source(runs) -> str:
     """The C of :data:`JACOBIAN` (after :func:`stencil_source`'s): ``(t, x, z, p)`` to the values of each
     template's partial derivatives at each row of its runs, in order, then the rest's Jacobian's nonzeros
     (the order :func:`daemodel.compiling.runs.jacobian_layout` reads them in)."""
-    rest = runs.rest_jacobian if rest_jacobian_in_c(runs) else None
+    rest = runs.rest_jacobian.get_function("rest_jacobian_rows") if rest_jacobian_in_c(runs) else None
     functions = [*runs.derivatives, *([] if rest is None else [rest])]
     sizes = [max([f.sz_arg(), f.sz_res(), f.sz_iw(), f.sz_w()][k] for f in functions) if functions else 0
              for k in range(4)]  # fmt: skip
@@ -187,9 +202,9 @@ def jacobian_source(runs) -> str:
             "  {\n"
             "    const casadi_real** rest_arg = arg + 4;\n"
             "    casadi_real** rest_res = res + 1;\n"
-            "    for (j = 0; j < 4; j++) rest_arg[j] = arg[j];\n"
+            "    rest_gather(arg, w + JAC_W, rest_arg);\n"
             "    rest_res[0] = o;\n"
-            "    if (rest_jacobian(rest_arg, rest_res, iw, w, 0)) return 1;\n"
+            "    if (rest_jacobian_rows(rest_arg, rest_res, iw, w, 0)) return 1;\n"
             "  }\n"
         )
     out.append(
@@ -203,7 +218,7 @@ def jacobian_source(runs) -> str:
         "  if (sz_arg) *sz_arg = 4 + JAC_ARG;  /* (the rest's arguments after its own) */\n"
         "  if (sz_res) *sz_res = 1 + JAC_RES;\n"
         "  if (sz_iw) *sz_iw = JAC_IW;\n"
-        "  if (sz_w) *sz_w = JAC_W;\n"
+        "  if (sz_w) *sz_w = JAC_W + N_LEAVES;  /* (the functions' work, then the rest's leaves) */\n"
         "  return 0;\n}\n"
     )
     return "".join(out)
@@ -235,7 +250,7 @@ def residual_source(tableau) -> str:
         f"  if (sz_arg) *sz_arg = {inputs} + {5 if inputs == 1 else 0} + 4 + REST_ARG;  /* (then the stencil's) */\n"
         "  if (sz_res) *sz_res = 1 + 2 + REST_RES;\n"
         "  if (sz_iw) *sz_iw = REST_IW;\n"
-        "  if (sz_w) *sz_w = REST_W + N_REST;\n"
+        "  if (sz_w) *sz_w = REST_W + N_REST + N_LEAVES;\n"
         "  return 0;\n}\n"
         for function, out in ((RESIDUAL, "sp_out"), (STAGE_F, "sp_stage_f"))
         for name, inputs, sparsity in (
@@ -398,14 +413,10 @@ class SlicedBuffered(Buffered):
         self.inputs = []  # (nothing bound between calls: see packed)
         self._copies = {}  # (input k's buffer, where a call's part is not an array to bind)
         self._outputs = np.zeros(size) if output is None else output
-        gathered = function.taken is not None
-        values = np.zeros(sum(f.nnz_out(0) for f in function.functions)) if gathered else self._outputs
-        self._values, self._buffers, at = values, [], 0
-        for each in function.functions:
-            buffer, evaluate = each.buffer()
-            buffer.set_res(0, memoryview(values[at : at + each.nnz_out(0)]))
-            at += each.nnz_out(0)
-            self._buffers.append((buffer, evaluate, each.name()))
+        self._buffers = [(*each.buffer(), each.name()) for each in function.functions]
+        self._values_size = sum(each.nnz_out(0) for each in function.functions)
+        if function.taken is None:
+            self._bind_outputs(self._outputs)
 
     def __call__(self, values: np.ndarray) -> np.ndarray:
         """The outputs for the packed input ``values`` (its parts bound in place)."""
@@ -427,13 +438,23 @@ class SlicedBuffered(Buffered):
                 part[:] = np.ravel(parts[k])
             for buffer, _, _ in self._buffers:  # (the parts are alive until the call returns: the caller's)
                 buffer.set_arg(k, memoryview(part.reshape(-1)))
+        # (values to gather made for the call: kept, the Jacobian's were 2.8 MB of a cold solve's peak at 10^5 unknowns)
+        values = None if self.function.taken is None else self._bind_outputs(None)
         for buffer, evaluate, name in self._buffers:
             evaluate()
             if buffer.ret() != 0:
                 raise RuntimeError(f"casadi function {name} failed (return code {buffer.ret()})")
-        if self.function.taken is not None:  # ("clip": each index is valid; numpy's "raise" copies out first)
-            np.take(self._values, self.function.taken, out=self._outputs, mode="clip")
+        if values is not None:  # ("clip": each index is valid; numpy's "raise" copies out first)
+            np.take(values, self.function.taken, out=self._outputs, mode="clip")
         return self._outputs.copy() if copy else self._outputs
+
+    def _bind_outputs(self, values: np.ndarray | None) -> np.ndarray:
+        """Each function's first output bound to its part of ``values`` (a new array where None), returned."""
+        values, at = np.empty(self._values_size) if values is None else values, 0
+        for (buffer, _, _), function in zip(self._buffers, self.function.functions, strict=True):
+            buffer.set_res(0, memoryview(values[at : at + function.nnz_out(0)]))
+            at += function.nnz_out(0)
+        return values
 
     def evaluate(self, copy: bool = True) -> np.ndarray:
         """Not on bound inputs: they are the last caller's arrays, perhaps gone (:meth:`packed` binds them)."""

@@ -71,6 +71,9 @@ class EquationRuns(NamedTuple):
     rest_jacobian : casadi.Function of ``(t, x, z, p)`` to the nonzeros of the rest's Jacobian in ``(x, z)``
         (column-major), or None where there is no rest
     rest_pattern : ``(rows, cols)`` of those nonzeros: rows among the rest's, columns among ``(x, z)``
+    rest_leaves : int array (k, 2), the inputs the rest reads, each ``(input, index)`` (input 0-3: t, x, z, p),
+        input by input, indices increasing: the inputs of ``rest``'s and ``rest_jacobian``'s inner functions
+        (``rest_rows``, ``rest_jacobian_rows``), which a caller may call on them alone
     """
 
     templates: list
@@ -82,6 +85,7 @@ class EquationRuns(NamedTuple):
     derivative_leaves: list = ()
     rest_jacobian: object = None
     rest_pattern: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    rest_leaves: np.ndarray = np.zeros((0, 2), dtype=np.int64)
 
     def describe(self) -> str:
         """How many templates, runs and rest rows, in a few words (a solve's stats)."""
@@ -191,18 +195,19 @@ def equation_runs(compiled) -> EquationRuns | None:
     if not runs or len(apart) > REST_MAX:
         return None
     rest = rest_jacobian = None
-    rest_pattern = EquationRuns._field_defaults["rest_pattern"]
+    rest_pattern, rest_leaves = (EquationRuns._field_defaults[name] for name in ("rest_pattern", "rest_leaves"))
     if len(apart):
-        rest, rest_jacobian, rest_pattern = _rest_functions(compiled, [rows[i] for i in apart])
+        rest, rest_jacobian, rest_pattern, rest_leaves = _rest_functions(compiled, [rows[i] for i in apart])
     return EquationRuns(templates, runs, rest, (apart[apart < n], apart[apart >= n] - n), (n, m, P), derivatives,
-                        derivative_leaves, rest_jacobian, rest_pattern)  # fmt: skip
+                        derivative_leaves, rest_jacobian, rest_pattern, rest_leaves)  # fmt: skip
 
 
 def _rest_functions(compiled, rows: list):
     """The rest's function of ``(t, x, z, p)`` to ``rows`` (the rows in no run), its Jacobian's function to
-    its nonzeros in ``(x, z)`` and their pattern: the rows alone converted (not the whole model), each on
-    the symbols it reads, an MX function gathering those from the whole inputs (casadi's function of the
-    whole inputs' symbols held them all: 11 MB at 10^5 unknowns for rows of two boundaries)."""
+    its nonzeros in ``(x, z)``, their pattern and the inputs the rows read (:class:`EquationRuns`' rest_leaves):
+    the rows alone converted (not the whole model), each on the symbols it reads, an MX function gathering those
+    from the whole inputs (casadi's function of the whole inputs' symbols held them all: 11 MB at 10^5 unknowns
+    for rows of two boundaries)."""
     import casadi
 
     read = set().union(*(row.free_symbols for row in rows))
@@ -223,7 +228,8 @@ def _rest_functions(compiled, rows: list):
     rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)])
     local_rows, local_cols = (np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
     columns = np.asarray([*places[1], *(len(compiled.states) + j for j in places[2])], dtype=np.int64)
-    return rest, rest_jacobian, (local_rows, columns[local_cols])
+    leaves = np.array([(kind, i) for kind, indices in enumerate(places) for i in indices], dtype=np.int64)
+    return rest, rest_jacobian, (local_rows, columns[local_cols]), leaves.reshape(-1, 2)
 
 
 def jacobian_layout(runs: EquationRuns) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -11,6 +11,7 @@ from daemodel.backends.radau.compiled import Buffered, casadi_functions, find_co
 from daemodel.backends.radau.stencil import SlicedBuffered, stencil_equations
 
 import daemodel as dm
+from daemodel.compiling.runs import model_runs
 from daemodel.errors import CompileError
 from daemodel.problems.families import reaction_diffusion
 from daemodel.tableau import radau_iia
@@ -141,6 +142,39 @@ def test_rows_in_no_run_are_computed_apart_bit_for_bit():
     plain = casadi_functions(compiled, tableau)[1]
     x = np.random.default_rng(2).uniform(0.1, 1.5, plain.nnz_in(0))
     np.testing.assert_array_equal(Buffered(functions[1])(x), Buffered(plain)(x))
+
+
+def boundary_model(K: int = 150) -> dm.Model:
+    """Rows apart that read t, a parameter, states and algebraics far apart (the rest's leaves of every input)."""
+    m = dm.Model(f"boundary{K}")
+    u, w = m.states("u", K), m.algebraics("w", K)
+    a = m.parameter("a", 0.7)
+    for k in range(K):
+        if k in (0, K - 1):
+            m.ode(u[k], a * sp.sin(3 * m.t) * u[K - 1 - k] - u[k] + w[k // 2] * w[K - 1])
+        else:
+            m.ode(u[k], u[k - 1] - 2 * u[k] + u[k + 1] + a * w[k])
+        m.constraint(w[k] - u[k] ** 2 / (1 + u[k] ** 2) - (sp.cos(m.t) * a * u[0] if k == K // 3 else 0), name=f"r{k}")
+    m.initial(u=np.linspace(0.1, 0.9, K))
+    return m
+
+
+def test_the_rows_apart_read_each_input_where_it_is_bit_for_bit():
+    """The rest's leaves gathered in C (rest_gather: t, the parameter, x and z at their places): f, g, the stage
+    residual and the Jacobian the casadi functions' of the whole model, bit for bit."""
+    compiled, tableau = boundary_model().compile(), radau_iia(3)
+    functions, said = stencil_equations(compiled, tableau)
+    assert said.startswith("machine code (") and "rows apart" in said
+    assert sorted(set(model_runs(compiled).rest_leaves[:, 0].tolist())) == [0, 1, 2, 3]
+    plain = casadi_functions(compiled, tableau)
+    rng = np.random.default_rng(11)
+    for _ in range(3):
+        x = rng.uniform(-0.5, 2.0, plain[1].nnz_in(0))
+        x[1] = 0.02
+        np.testing.assert_array_equal(SlicedBuffered(functions.sliced_residual)(x), Buffered(plain[1])(x))
+        point = np.r_[rng.uniform(0.0, 3.0), rng.uniform(-0.5, 2.0, 300), 0.7]
+        np.testing.assert_array_equal(SlicedBuffered(functions.sliced_f)(point), Buffered(plain[0])(point))
+        np.testing.assert_array_equal(SlicedBuffered(functions.sliced_jacobian)(point), Buffered(plain[2])(point))
 
 
 def test_a_model_that_is_no_repeated_stencil_keeps_the_virtual_machine(monkeypatch):
