@@ -98,7 +98,9 @@ class BatchFunction:
         self._instructions = 0  # (its instruction count: on_casadi)
         self._local = threading.local()  # (each thread's buffers: a call writes its inputs into them)
 
-    def __call__(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray) -> np.ndarray:
+    def __call__(self, t, Y: np.ndarray, Z: np.ndarray, P: np.ndarray, contiguous: bool = True) -> np.ndarray:
+        """The expressions' values at each row of ``(t, Y, Z, P)``, shape (rows, expressions); ``contiguous``
+        False: perhaps a transposed view, not the C-ordered copy (the branch check's 4.4 MB at 10^5 unknowns)."""
         if not self._exprs:
             return np.zeros((len(Y), 0))
         if len(Y) <= CASADI_ROWS_MAX and len(self._exprs) <= SAMPLE_EXPRESSIONS:
@@ -123,7 +125,7 @@ class BatchFunction:
         out = np.empty((len(self._exprs), len(Y)))
         for i, v in enumerate(self.numpy()(t, Y.T, Z.T, P.T)):  # (a constant broadcasts on assignment)
             out[i] = v
-        return np.ascontiguousarray(out.T)
+        return np.ascontiguousarray(out.T) if contiguous else out.T
 
     def numpy(self):
         """The lambdified numpy function, made now if not yet (a caller that wants it made in a setup, off the

@@ -516,7 +516,10 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         with np.errstate(all="ignore"):
             for a in range(0, len(read), chunk):
                 b = slice(a, a + chunk)
-                read[b] = determinant_signs(at, to, entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b]), m)
+                # (a transposed view of the values, not its C-ordered copy: 4.4 MB at 10^5 unknowns of reaction-
+                # diffusion, a cold solve's peak with the factors it holds then, 2.25 -> 2.13 times their bytes)
+                nonzeros = entries(T_all[b], rows[b, :n], rows[b, n:], P_all[b], contiguous=False)
+                read[b] = determinant_signs(at, to, nonzeros, m)
         if unknown is not None:
             sign[unknown] = read
     sign = sign.reshape(B, T)

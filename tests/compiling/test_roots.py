@@ -299,6 +299,43 @@ def test_the_branch_check_reads_the_outputs_in_chunks(monkeypatch):
     np.testing.assert_allclose(sol["z"], 1 - sol.t, rtol=0, atol=1e-6)
 
 
+def test_the_branch_check_holds_one_copy_of_h_z_s_entries():
+    """H_z's nonzeros at 200 outputs of 2,000 algebraic variables are 6.4 MB: the check holds them once (their
+    evaluation's transposed view, not a C-ordered copy beside it: 4.4 MB of a cold solve's peak at 10^5 unknowns),
+    with the same values, and reads the signs from them."""
+    import tracemalloc
+
+    import daemodel.compiling.initial_states as initial_states
+
+    model, K = dm.Model("roots2000"), 2000
+    u, w = model.states("u", K), model.algebraics("w", K)
+    for k in range(K):
+        model.ode(u[k], u[(k + 1) % K] - u[k])
+        model.constraint(w[k] ** 2 - u[k] - w[(k + 1) % K] / 10, name=f"root{k}")  # (H_z: 2 w_k, -1/10 beside)
+    model.initial(u=np.ones(K))
+    compiled = model.compile()
+    n, m = len(compiled.states), len(compiled.algebraics)
+    rng = np.random.default_rng(3)
+    values = np.concatenate([rng.uniform(0.5, 1.5, (1, 200, n)), rng.uniform(0.5, 1.5, (1, 200, m))], axis=-1)
+    times, P = np.linspace(0.0, 1.0, 200), np.asarray(compiled.parameter_values)[None]
+    *_, entries = initial_states.branch_check_functions(compiled)
+    rows = values[0]
+    view = entries(times, rows[:, :n], rows[:, n:], np.repeat(P, 200, axis=0), contiguous=False)
+    whole = entries(times, rows[:, :n], rows[:, n:], np.repeat(P, 200, axis=0))
+    assert whole.flags.c_contiguous and not view.flags.c_contiguous and np.array_equal(view, whole)
+    size = whole.nbytes
+    del view, whole
+    initial_states.check_branch("radau", compiled, times, values, P)  # (its functions made before the count)
+    tracemalloc.start()
+    initial_states.check_branch("radau", compiled, times, values, P)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert size == 200 * 2 * m * 8 and peak < 1.75 * size  # (and the lambdified function's list of its 4,000 rows)
+    values[0, 150, n + 7] *= -1  # (one output's z on the other side: det H_z changes sign there)
+    with pytest.raises(E.BranchError, match="leave the branch of roots"):
+        initial_states.check_branch("radau", compiled, times, values, P)
+
+
 def test_newton_reports_convergence_and_singularity_for_the_caller_to_judge():
     """0 = z^2 + 1 has no real root and a singular Jacobian at z = 0; 0 = z^2 - 4 converges from 1 and
     from -1 to the root on its side."""
