@@ -300,6 +300,10 @@ class CasadiOps:
         return casadi.sqrt(casadi.sumsqr(x) / x.numel())
 
     @staticmethod
+    def rms_ratio(a, b):
+        return CasadiOps.rms(a / b)
+
+    @staticmethod
     def concat(parts):
         import casadi
 
@@ -488,9 +492,9 @@ def error_rhs(xp, quadrature, gamma0, f0, zeros):
 def error_norm(xp, err, scale, first, refiltered):
     """RADAU5's scaled norm of the estimate ``err``; at a ``first`` (or after a rejected) step where it
     is 1 or more, that of the estimate filtered once more (``refiltered()``, Hairer-Wanner)."""
-    norm = xp.rms(err / scale)
+    norm = xp.rms_ratio(err, scale)  # (squared in place: the same bits as rms(err / scale), 0.8 MB less at 10^5)
     again = xp.and_(first, xp.any(norm >= 1))
-    return xp.cond(again, lambda: xp.rms(refiltered() / scale), lambda: norm)
+    return xp.cond(again, lambda: xp.rms_ratio(refiltered(), scale), lambda: norm)
 
 
 def finite_or_inf(xp, value):

@@ -2,7 +2,8 @@
 right-hand sides from the stage residual (``T^-1 A^-1`` and ``T^-1``), the systems' packed factors
 (:class:`DenseInverses`, the blocks' inverses; :class:`StaticFactors`, sparse LU with a fixed pivot
 order) and the increment back through ``T``, for :mod:`.compiled`'s attempt (in machine code on static
-factors the transforms are loops of :mod:`.kernel`, :func:`.kernel.transform_calls`)."""
+factors the transforms are loops of :mod:`.kernel`, :func:`.kernel.transform_calls`); and the packed
+inverses read back as matrices for the general path (:class:`PackedInverses`)."""
 
 from __future__ import annotations
 
@@ -126,3 +127,28 @@ def static_factor_function(lu, transform):
 def inverse_size(transform, D: int) -> int:
     """Entries of the packed inverses: the blocks' (a complex one twice), then the error estimate's."""
     return DenseInverses(transform, D).size
+
+
+class PackedInverses(dict):
+    """``{shift: ("inverse", matrix)}`` read from the packed inverses of the compiled factorisation
+    when first asked for (the compiled step reads the packed array itself; the general path's LU
+    solves need the matrices)."""
+
+    def __init__(self, packed, transform, shifts, D):
+        super().__init__()
+        self._packed, self._transform, self._shifts, self._D = packed, transform, shifts, D
+
+    def __missing__(self, sigma):
+        D, offset = self._D, 0
+        for (_, lam), shift in zip(self._transform.blocks, self._shifts, strict=False):
+            if shift == sigma:
+                break
+            offset += (2 if lam.imag else 1) * D * D
+        else:
+            lam = 0j  # the error estimate's own system (s even): last, real
+        D2 = D * D
+        matrix = self._packed[offset : offset + D2].reshape(D, D, order="F")
+        if lam.imag:
+            matrix = matrix + 1j * self._packed[offset + D2 : offset + 2 * D2].reshape(D, D, order="F")
+        self[sigma] = ("inverse", matrix)
+        return self[sigma]

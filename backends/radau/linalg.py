@@ -312,6 +312,31 @@ def sparse_sign_det(matrix) -> float:
     return sign * permutation_sign(lu.perm_r) * permutation_sign(lu.perm_c)
 
 
+def z_block(rows: np.ndarray, cols: np.ndarray, n: int) -> tuple:
+    """``(at, rows, cols)``: where J's nonzeros at ``(rows, cols)`` (unknowns y then z, n states) lie in its z block
+    ``g_z``, and their places in it."""
+    at = np.flatnonzero((rows >= n) & (cols >= n))
+    index = np.int32 if max(len(rows), 1) <= np.iinfo(np.int32).max else np.int64
+    return at.astype(index), (rows[at] - n).astype(index), (cols[at] - n).astype(index)
+
+
+def block_sign_det(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, m: int) -> float:
+    """:func:`sparse_sign_det` of the (m, m) matrix of the nonzeros ``values`` at ``(rows, cols)`` (one a place):
+    the same sign, without a sparse matrix where they lie on one side of the diagonal (:func:`triangular_sign`)."""
+    from daemodel.compiling.determinants import triangular_sign
+
+    if m == 0:
+        return 1.0
+    if not np.isfinite(values).all():
+        return 0.0
+    triangular = triangular_sign(rows, cols, values, m)
+    if triangular is not None:
+        return triangular
+    import scipy.sparse as sparse
+
+    return sparse_sign_det(sparse.csc_matrix((values, (rows, cols)), shape=(m, m)))
+
+
 def permutation_sign(perm: np.ndarray) -> float:
     """+1 or -1: the parity of a permutation, from its cycles (counted vectorised,
     :func:`daemodel.compiling.determinants.odd_permutation`: a Python walk of the cycles took 35 ms a

@@ -186,6 +186,59 @@ def test_sign_of_a_sparse_determinant():
     assert linalg.permutation_sign(np.array([1, 2, 0])) == 1.0
 
 
+def test_the_sign_of_a_z_block_from_the_jacobian_s_entries():
+    """block_sign_det on g_z's entries picked from J's (z_block): the sign of det g_z, as sparse_sign_det of the
+    sliced sparse J gives it, for triangular, general, singular and not finite blocks, entries in any order."""
+    rng = np.random.default_rng(4)
+    n, m = 7, 30
+    for case in range(24):
+        J = rng.normal(size=(n + m, n + m)) * (rng.random((n + m, n + m)) < 0.2)
+        block = J[n:, n:]
+        block[np.diag_indices(m)] = rng.normal(size=m)
+        if case % 4 == 1:
+            block[np.tril_indices(m, -1)] = 0.0  # (upper triangular: its diagonal's sign, no LU)
+        if case % 4 == 2:
+            block[:, 3] = 0.0  # (a zero column: singular)
+        if case % 4 == 3:
+            block[case % m, (case * 7) % m] = [np.inf, np.nan, -np.inf][case % 3]
+        rows, cols = np.nonzero(J)
+        order = rng.permutation(len(rows))
+        rows, cols, values = rows[order], cols[order], J[rows[order], cols[order]]
+        at, z_rows, z_cols = linalg.z_block(rows, cols, n)
+        want = linalg.sparse_sign_det(sparse.csr_matrix((values, (rows, cols)), shape=J.shape)[n:, n:].tocsc())
+        got = linalg.block_sign_det(values[at], z_rows, z_cols, m)
+        assert got == want
+        assert got == (0.0 if case % 4 >= 2 else np.sign(np.linalg.det(block)))
+    assert linalg.block_sign_det(np.zeros(0), np.zeros(0, int), np.zeros(0, int), 0) == 1.0
+
+
+@pytest.mark.parametrize("both_sides", [False, True])
+def test_a_large_z_block_passing_through_singular_is_refused(both_sides):
+    """120 algebraic variables (above DENSE_MAX_SIZE: the z block's sign from J's entries, block_sign_det), g_z
+    triangular or not (SuperLU), its determinant through zero at t = 0.7 where z stays smooth (one row
+    ``(0.7 - t) (z - q)``): radau refuses the step across it, and solves up to it."""
+    import sympy
+
+    K = 120
+    model = dm.Model(f"fold{K}")
+    q, z = model.states("q", K), model.algebraics("z", K)
+    for k in range(K):
+        model.ode(q[k], -q[k] + z[k] / 10)
+        coupling = z[k - 1] / 10 if k else 0
+        coupling += z[(k + 1) % K] / 10 if both_sides and k else 0
+        if k == K // 2:
+            model.constraint((sympy.Rational(7, 10) - model.t) * (z[k] - q[k]), name=f"c{k}")
+        else:
+            model.constraint(z[k] + coupling - q[k], name=f"c{k}")
+    model.initial(q=np.linspace(0.5, 1.0, K))
+    compiled = model.compile()
+    options = {"rtol": 1e-6, "atol": 1e-8, "engine": "casadi", "reuse_jacobian": False}  # (a sign each step)
+    with pytest.raises(E.ConvergenceError, match=r"stop determining the algebraic variables between t = 0\.[3-7]"):
+        dm.solve(compiled, (0.0, 2.0), **options)
+    sol = dm.solve(compiled, (0.0, 0.6), **options)
+    assert sol.status == "success"
+
+
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
 @pytest.mark.parametrize("where", [(1, 1), (0, 1)])  # (on the diagonal, and off it: SuperLU's path)
 def test_a_sparse_determinant_with_an_entry_not_finite_has_sign_zero(bad, where):
