@@ -32,6 +32,7 @@ from daemodel.collocation import extrapolation_polynomial, horner, lagrange_matr
 from daemodel.dense import collocation_values, step_owners
 from daemodel.errors import ConvergenceError, InvalidOptionError, ResourceLimitError
 from daemodel.files import memory_limit
+from daemodel.messages import listed
 from daemodel.tableau import radau_iia
 
 # Reuse the Jacobian for the next step when Newton contracted at least this fast (RADAU5's THET:
@@ -570,7 +571,7 @@ class Stepper:
         flips = formulas.sign_flip(signs[:, :-1], signs[:, 1:]).any(axis=1)
         if bool(flips.any()):
             sample = self.engine.first(flips)
-            names = ", ".join(f"'{c.name}'" for c in self.compiled.constraints)
+            names = listed(c.name for c in self.compiled.constraints)  # (the first ten, and how many more)
             error = ConvergenceError(
                 f"radau: the constraints ({names}) stop determining the algebraic variables between t = "
                 f"{self._det_time:.6g} and {t + h:.6g} (sample {sample}): the determinant of their iteration "

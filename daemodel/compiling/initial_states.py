@@ -42,6 +42,9 @@ from daemodel.reals import is_real, real
 
 # Samples listed by index in an error message, at most.
 LISTED_SAMPLES = 5
+# A BranchError shows z on either side, at most this many of them: those that move most between the two outputs
+# (at 10^5 unknowns all of them made a message of ~1 MB).
+LISTED_BRANCH_VALUES = 8
 # check_branch evaluates H_z's nonzeros at this many bytes at a time: a large batch of outputs of a
 # model with many algebraic variables would otherwise hold all of them at once.
 BRANCH_CHECK_BYTES = 64 * 2**20
@@ -528,8 +531,13 @@ def check_branch(method: str, compiled, times, values: np.ndarray, P: np.ndarray
         return
     sample, k = np.argwhere(changed)[0]
     names = compiled.algebraic_names
-    before = ", ".join(f"{z} = {v:.6g}" for z, v in zip(names, values[sample, k, n:], strict=True))
-    after = ", ".join(f"{z} = {v:.6g}" for z, v in zip(names, values[sample, k + 1, n:], strict=True))
+    z0, z1 = values[sample, k, n:], values[sample, k + 1, n:]
+    shown = np.arange(m)  # (beyond LISTED_BRANCH_VALUES: those that move most, the fold's, in their order)
+    if m > LISTED_BRANCH_VALUES:
+        shown = np.sort(np.argsort(-np.nan_to_num(np.abs(z1 - z0), nan=np.inf), kind="stable")[:LISTED_BRANCH_VALUES])
+    more = f", and {m - len(shown):,} more" if m > len(shown) else ""
+    before = ", ".join(f"{names[i]} = {z0[i]:.6g}" for i in shown) + more
+    after = ", ".join(f"{names[i]} = {z1[i]:.6g}" for i in shown) + more
     raise BranchError(
         f"{method}: the algebraic variables leave the branch of roots chosen at t0 between t = {times[k]:.8g} "
         f"({before}) and t = {times[k + 1]:.8g} ({after}) (sample {sample} of '{compiled.name}'): det(dH/dz) "

@@ -237,6 +237,14 @@ def test_a_large_z_block_passing_through_singular_is_refused(both_sides):
         dm.solve(compiled, (0.0, 2.0), **options)
     sol = dm.solve(compiled, (0.0, 0.6), **options)
     assert sol.status == "success"
+    if both_sides:  # (the constraints named: the first ten and how many more, not 119; c0 went with z[0])
+        with pytest.raises(E.ConvergenceError, match=r"the constraints \('c1', 'c2', .*'c10' and 109 more\) stop"):
+            dm.solve(compiled, (0.0, 2.0), **options)
+    else:  # (the step across t = 0.7 seen by the branch check after the solve: z that moves most, and how many more)
+        listed = r"\((z\[\d+\] = \S+, ){7}z\[\d+\] = \S+, and 111 more\)"  # (z[0] = q[0] is substituted)
+        with pytest.raises(E.BranchError, match=rf"between t = \S+ {listed} and t = 1 {listed}") as caught:
+            dm.solve(compiled, (0.0, 1.0), rtol=1e-6, atol=1e-8, engine="casadi")
+        assert "z[119] = 0.617757" in str(caught.value) and len(str(caught.value)) < 1000
 
 
 @pytest.mark.parametrize("bad", [np.inf, -np.inf, np.nan])
