@@ -20,7 +20,10 @@ solves it once with radau at its defaults over [0, 1] with 11 output times (``t_
 * ``cold_rss``: a third solve after the buffers solves hand on to the next are dropped (:func:`drop_reused_buffers`:
   the factors', the casadi functions' bound inputs and outputs, the band kernel's solvers): every array a solve
   works in is made and counted in it, the model's compiled functions, layouts and patterns not;
-  ``cold_ratio`` = (its growth - outputs) / factors.
+  ``cold_ratio`` = (its growth - outputs) / factors;
+* ``cold_traced``: a fourth, cold too, under tracemalloc: the peak of the arrays it holds at once (numpy's and
+  Python's), without the C heap's free pages that the resident set keeps (glibc raises its mmap threshold to the
+  largest block freed, ~32 MB after a compile, and keeps freed blocks below it); ``cold_traced_ratio`` likewise.
 
 Beside them: ``stats["factor_bytes"]`` (what one factorisation's buffers hold: the band kernel's real and
 two complex systems at s = 5) and ``output_bytes``, what the returned Solution holds that the user asked
@@ -140,7 +143,15 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "
     output = sum(np.asarray(sol[name]).nbytes for name in names)
     if sol.dense is not None and hasattr(sol.dense, "nodes"):
         output += sol.dense.nodes.nbytes
-    factors = sol.stats.get("factor_bytes")
+    factors, again_solve_s = sol.stats.get("factor_bytes"), sol.solve_time
+    del sol
+    # (a fourth, cold again, under tracemalloc: the arrays it holds at once, without the C heap's free pages)
+    drop_reused_buffers(compiled)
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    dm.solve(compiled, (0.0, 1.0), method=method, t_eval=times, **options)
+    cold_traced = tracemalloc.get_traced_memory()[1] - before
+    tracemalloc.stop()
     return {
         "unknowns": unknowns,
         "dense_output": dense_output,
@@ -155,9 +166,11 @@ def cell(unknowns: int, dense_output: bool, traced: bool = True, method: str = "
         "again_total_ratio": None if not factors else (again_peak - output + factors) / factors,
         "cold_rss_peak_bytes": cold_peak,
         "cold_ratio": None if not factors else (cold_peak - output) / factors,
+        "cold_traced_peak_bytes": cold_traced,
+        "cold_traced_ratio": None if not factors else (cold_traced - output) / factors,
         "method": method,
         **first,  # (the first solve's steps, solve time and status; the second's time beside them)
-        "again_solve_s": sol.solve_time,
+        "again_solve_s": again_solve_s,
     }
 
 
@@ -191,7 +204,9 @@ def main() -> None:
                 f"{c['rss_ratio'] or float('nan'):.2f}; a second solve: rss {c['again_rss_peak_bytes'] / 1e6:.1f} MB, "
                 f"ratio {c['again_rss_ratio'] or float('nan'):.2f}, with the factors "
                 f"{c['again_total_ratio'] or float('nan'):.2f}; cold: rss {c['cold_rss_peak_bytes'] / 1e6:.1f} MB, "
-                f"ratio {c['cold_ratio'] or float('nan'):.2f}",
+                f"ratio {c['cold_ratio'] or float('nan'):.2f}; its arrays (traced): "
+                f"{(c.get('cold_traced_peak_bytes') or 0) / 1e6:.1f} MB, "
+                f"ratio {c.get('cold_traced_ratio') or float('nan'):.2f}",
                 flush=True,
             )
     command = "python benchmarks/solve_memory.py " + " ".join(sys.argv[1:])
