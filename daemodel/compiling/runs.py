@@ -69,7 +69,7 @@ class EquationRuns(NamedTuple):
         leaves' order: ``derivative_leaves``)
     derivative_leaves : list of int arrays, the leaves each template's partial derivatives are in
     rest_jacobian : casadi.Function of ``(t, x, z, p)`` to the nonzeros of the rest's Jacobian in ``(x, z)``
-        (column-major), or None where there is no rest
+        (column-major), or None where there is no rest or its Jacobian has no nonzeros (rows of t and constants)
     rest_pattern : ``(rows, cols)`` of those nonzeros: rows among the rest's, columns among ``(x, z)``
     rest_leaves : int array (k, 2), the inputs the rest reads, each ``(input, index)`` (input 0-3: t, x, z, p),
         input by input, indices increasing: the inputs of ``rest``'s and ``rest_jacobian``'s inner functions
@@ -204,10 +204,10 @@ def equation_runs(compiled) -> EquationRuns | None:
 
 def _rest_functions(compiled, rows: list):
     """The rest's function of ``(t, x, z, p)`` to ``rows`` (the rows in no run), its Jacobian's function to
-    its nonzeros in ``(x, z)``, their pattern and the inputs the rows read (:class:`EquationRuns`' rest_leaves):
-    the rows alone converted (not the whole model), each on the symbols it reads, an MX function gathering those
-    from the whole inputs (casadi's function of the whole inputs' symbols held them all: 11 MB at 10^5 unknowns
-    for rows of two boundaries)."""
+    its nonzeros in ``(x, z)`` (None where it has none), their pattern and the inputs the rows read
+    (:class:`EquationRuns`' rest_leaves): the rows alone converted (not the whole model), each on the symbols it
+    reads, an MX function gathering those from the whole inputs (casadi's function of the whole inputs' symbols
+    held them all: 11 MB at 10^5 unknowns for rows of two boundaries)."""
     import casadi
 
     read = set().union(*(row.free_symbols for row in rows))
@@ -225,7 +225,9 @@ def _rest_functions(compiled, rows: list):
     rest = casadi.Function("rest", whole, [casadi.Function("rest_rows", local, [both])(*gathered)])
     partials = casadi_jacobian(both, casadi.vertcat(local[1], local[2]))
     inner = casadi.Function("rest_jacobian_rows", local, [partials.nz[:]])
-    rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)])
+    # (rows that read no unknown (u' = sin t, a constant): no nonzeros, and casadi drops a call of no outputs, which
+    # then has no inner function to compile or count: None, as for no rest)
+    rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)]) if partials.nnz() else None
     local_rows, local_cols = (np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
     columns = np.asarray([*places[1], *(len(compiled.states) + j for j in places[2])], dtype=np.int64)
     leaves = np.array([(kind, i) for kind, indices in enumerate(places) for i in indices], dtype=np.int64)
