@@ -95,11 +95,11 @@ def stencil_source(runs) -> str:
         generator.add(template)
     # (the rest's rows and their Jacobian on the leaves they read, gathered by rest_gather: casadi's MX functions of
     # the whole inputs copied them into their work at each call, 0.4 MB at 10^5 unknowns a bound function)
-    rest = None if runs.rest is None else runs.rest.get_function("rest_rows")
+    rest = runs.rest_inner[0]
     if rest is not None:
         generator.add(rest)
     if rest_jacobian_in_c(runs):
-        generator.add(runs.rest_jacobian.get_function("rest_jacobian_rows"))
+        generator.add(runs.rest_inner[1])
     n, m, P = runs.sizes
     out = [generator.dump(), "\n/* daemodel: runs of the templates (generated; numbers only) */\n"]
     # each template's runs: count, then per leaf its input, base and stride, then output, base and stride
@@ -177,7 +177,7 @@ def jacobian_source(runs) -> str:
     """The C of :data:`JACOBIAN` (after :func:`stencil_source`'s): ``(t, x, z, p)`` to the values of each
     template's partial derivatives at each row of its runs, in order, then the rest's Jacobian's nonzeros
     (the order :func:`daemodel.compiling.runs.jacobian_layout` reads them in)."""
-    rest = runs.rest_jacobian.get_function("rest_jacobian_rows") if rest_jacobian_in_c(runs) else None
+    rest = runs.rest_inner[1] if rest_jacobian_in_c(runs) else None
     functions = [*runs.derivatives, *([] if rest is None else [rest])]
     sizes = [max([f.sz_arg(), f.sz_res(), f.sz_iw(), f.sz_w()][k] for f in functions) if functions else 0
              for k in range(4)]  # fmt: skip
@@ -477,9 +477,9 @@ def gathered_jacobian(raw, taken, sizes, rest=None):
 def rest_jacobian_in_c(runs) -> bool:
     """Whether :data:`JACOBIAN` computes the rest rows' Jacobian too: there is a rest and its Jacobian has at
     most :data:`REST_JACOBIAN_C_MAX` operations (else :func:`gathered_jacobian` calls it on the virtual machine)."""
-    rest = runs.rest_jacobian
+    rest = runs.rest_inner[1]
     # (its operations are those of the function of the rows' own symbols it calls: runs._rest_functions)
-    return rest is not None and rest.get_function("rest_jacobian_rows").n_instructions() <= REST_JACOBIAN_C_MAX
+    return rest is not None and rest.n_instructions() <= REST_JACOBIAN_C_MAX
 
 
 def uses_stencil(compiled, jit, machine_code: bool) -> bool:

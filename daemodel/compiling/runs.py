@@ -69,11 +69,14 @@ class EquationRuns(NamedTuple):
         leaves' order: ``derivative_leaves``)
     derivative_leaves : list of int arrays, the leaves each template's partial derivatives are in
     rest_jacobian : casadi.Function of ``(t, x, z, p)`` to the nonzeros of the rest's Jacobian in ``(x, z)``
-        (column-major), or None where there is no rest
+        (column-major), or None where there is no rest or its Jacobian has no nonzeros (rows of t and constants)
     rest_pattern : ``(rows, cols)`` of those nonzeros: rows among the rest's, columns among ``(x, z)``
     rest_leaves : int array (k, 2), the inputs the rest reads, each ``(input, index)`` (input 0-3: t, x, z, p),
         input by input, indices increasing: the inputs of ``rest``'s and ``rest_jacobian``'s inner functions
         (``rest_rows``, ``rest_jacobian_rows``), which a caller may call on them alone
+    rest_inner : those inner functions, ``(rest_rows, rest_jacobian_rows)`` (None where their outer one is None):
+        casadi drops a call whose outputs are all zeros (rows apart ``u' = 0``), and with it the function the outer
+        one would have named
     """
 
     templates: list
@@ -86,6 +89,7 @@ class EquationRuns(NamedTuple):
     rest_jacobian: object = None
     rest_pattern: tuple = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     rest_leaves: np.ndarray = np.zeros((0, 2), dtype=np.int64)
+    rest_inner: tuple = (None, None)
 
     def describe(self) -> str:
         """How many templates, runs and rest rows, in a few words (a solve's stats)."""
@@ -195,19 +199,21 @@ def equation_runs(compiled) -> EquationRuns | None:
     if not runs or len(apart) > REST_MAX:
         return None
     rest = rest_jacobian = None
-    rest_pattern, rest_leaves = (EquationRuns._field_defaults[name] for name in ("rest_pattern", "rest_leaves"))
+    rest_pattern, rest_leaves, rest_inner = (
+        EquationRuns._field_defaults[name] for name in ("rest_pattern", "rest_leaves", "rest_inner")
+    )
     if len(apart):
-        rest, rest_jacobian, rest_pattern, rest_leaves = _rest_functions(compiled, [rows[i] for i in apart])
+        rest, rest_jacobian, rest_pattern, rest_leaves, rest_inner = _rest_functions(compiled, [rows[i] for i in apart])
     return EquationRuns(templates, runs, rest, (apart[apart < n], apart[apart >= n] - n), (n, m, P), derivatives,
-                        derivative_leaves, rest_jacobian, rest_pattern, rest_leaves)  # fmt: skip
+                        derivative_leaves, rest_jacobian, rest_pattern, rest_leaves, rest_inner)  # fmt: skip
 
 
 def _rest_functions(compiled, rows: list):
     """The rest's function of ``(t, x, z, p)`` to ``rows`` (the rows in no run), its Jacobian's function to
-    its nonzeros in ``(x, z)``, their pattern and the inputs the rows read (:class:`EquationRuns`' rest_leaves):
-    the rows alone converted (not the whole model), each on the symbols it reads, an MX function gathering those
-    from the whole inputs (casadi's function of the whole inputs' symbols held them all: 11 MB at 10^5 unknowns
-    for rows of two boundaries)."""
+    its nonzeros in ``(x, z)`` (None where it has none), their pattern, the inputs the rows read and the two
+    functions' inner functions (:class:`EquationRuns`' rest_leaves, rest_inner): the rows alone converted (not the
+    whole model), each on the symbols it reads, an MX function gathering those from the whole inputs (casadi's
+    function of the whole inputs' symbols held them all: 11 MB at 10^5 unknowns for rows of two boundaries)."""
     import casadi
 
     read = set().union(*(row.free_symbols for row in rows))
@@ -222,14 +228,18 @@ def _rest_functions(compiled, rows: list):
         whole.append(casadi.MX.sym(kind, len(column)))
         gathered.append(whole[-1][places[-1]] if places[-1] else casadi.MX(0, 1))
     both = CasadiConverter(table).stack(rows)
-    rest = casadi.Function("rest", whole, [casadi.Function("rest_rows", local, [both])(*gathered)])
+    inner_rows = casadi.Function("rest_rows", local, [both])
+    rest = casadi.Function("rest", whole, [inner_rows(*gathered)])
     partials = casadi_jacobian(both, casadi.vertcat(local[1], local[2]))
     inner = casadi.Function("rest_jacobian_rows", local, [partials.nz[:]])
-    rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)])
+    # (rows that read no unknown (u' = sin t, a constant): no nonzeros, and casadi drops a call of no outputs, which
+    # then has no inner function to compile or count: None, as for no rest)
+    rest_jacobian = casadi.Function("rest_jacobian", whole, [inner(*gathered)]) if partials.nnz() else None
     local_rows, local_cols = (np.asarray(part, dtype=np.int64) for part in partials.sparsity().get_triplet())
     columns = np.asarray([*places[1], *(len(compiled.states) + j for j in places[2])], dtype=np.int64)
     leaves = np.array([(kind, i) for kind, indices in enumerate(places) for i in indices], dtype=np.int64)
-    return rest, rest_jacobian, (local_rows, columns[local_cols]), leaves.reshape(-1, 2)
+    inners = (inner_rows, inner if rest_jacobian is not None else None)
+    return rest, rest_jacobian, (local_rows, columns[local_cols]), leaves.reshape(-1, 2), inners
 
 
 def jacobian_layout(runs: EquationRuns) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -177,6 +177,38 @@ def test_the_rows_apart_read_each_input_where_it_is_bit_for_bit():
         np.testing.assert_array_equal(SlicedBuffered(functions.sliced_jacobian)(point), Buffered(plain[2])(point))
 
 
+@pytest.mark.parametrize("zeros", [False, True])
+def test_rows_apart_that_read_no_unknown_have_no_jacobian_to_compile(zeros):
+    """Rows apart of a parameter and of t alone (u_0' = a, u_last' = sin t), or zeros (u' = 0): their Jacobian has
+    no nonzeros, and casadi dropped the call of its function of none, and of the rows' where they are zeros (a casadi
+    RuntimeError from the solve, "No such function 'rest_jacobian_rows'", 'rest_rows'); the stencil's functions the
+    model's bit for bit, and the driven rows exact."""
+    K = 150
+    m = dm.Model(f"driven{K}{zeros}")
+    u, w = m.states("u", K), m.algebraics("w", K)
+    a = m.parameter("a", 0.7)
+    for k in range(K):
+        m.ode(u[k], (0 if zeros else a) if k == 0 else (0 if zeros else sp.sin(m.t)) if k == K - 1 else -u[k] + w[k])
+        m.constraint(w[k] - u[k] ** 2, name=f"r{k}")
+    m.initial(u=np.linspace(0.1, 0.9, K))
+    compiled, tableau = m.compile(), radau_iia(3)
+    functions, said = stencil_equations(compiled, tableau)
+    assert said.startswith("machine code (2 templates, 2 runs of 298 rows, 2 rows apart")
+    assert model_runs(compiled).rest_jacobian is None
+    plain = casadi_functions(compiled, tableau)
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-0.5, 2.0, plain[1].nnz_in(0))
+    x[1] = 0.02
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_residual)(x), Buffered(plain[1])(x))
+    point = np.r_[0.4, rng.uniform(-0.5, 2.0, 2 * K), compiled.parameter_values]
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_f)(point), Buffered(plain[0])(point))
+    np.testing.assert_array_equal(SlicedBuffered(functions.sliced_jacobian)(point), Buffered(plain[2])(point))
+    sol = dm.solve(compiled, (0.0, 1.0), rtol=1e-8, atol=1e-10)
+    assert sol.status == "success" and sol.stats["stencil"].startswith("machine code")
+    np.testing.assert_allclose(sol["u[0]"], 0.1 + (0 if zeros else 0.7) * sol.t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sol[f"u[{K - 1}]"], 0.9 if zeros else 1.9 - np.cos(sol.t), rtol=0, atol=1e-9)
+
+
 def test_a_model_that_is_no_repeated_stencil_keeps_the_virtual_machine(monkeypatch):
     """More rows apart than REST_MAX (the C compiler would take the whole model): casadi's virtual machine."""
     from daemodel.compiling import runs
