@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
-import functools
 import time
 
 from daemodel.backends.base import AbstractBackend, make_solution
@@ -14,6 +12,7 @@ from daemodel.backends.radau.casadi_engine import CasadiEngine
 from daemodel.backends.radau.compiled import COMPILERS, find_compiler
 from daemodel.backends.radau.control import make_controller
 from daemodel.backends.radau.fill import FillOverLimit, measured_fill
+from daemodel.backends.radau.heap import hand_back_freed_memory
 from daemodel.backends.radau.linalg import BAND_FILL_RATIO, DENSE_MAX_SIZE, dense_systems
 from daemodel.backends.radau.options import RadauOptions, check_index_stages, stages_for_index
 from daemodel.backends.radau.outputs import marked, prepare_outputs, resolve_outputs, resolved_outputs
@@ -35,31 +34,6 @@ from daemodel.errors import (
 from daemodel.files import MEMORY_LIMIT_VARIABLE, check_memory, memory_limit
 from daemodel.messages import clip
 from daemodel.tableau import radau_iia
-
-# Unknowns from which a solve hands the pages its setup freed back to the system before the factors' buffers are
-# reserved (glibc's malloc_trim): at 10^5 unknowns of reaction-diffusion a first solve's setup (the model's casadi
-# graphs, the fill's trial LU) frees tens of MB that the allocator would keep resident for the process's life.
-# (It lowers what the process holds, not what a solve needs: benchmarks/solve_memory.py, which reads the resident
-# set before a solve with the heap's free pages handed back, measures a first solve at 10^5 at 4.6x the factors'
-# bytes, the model's one-off pieces included, and a later solve at 2.2x, the factors' reused buffers included.)
-TRIM_MIN_UNKNOWNS = 10_000
-
-
-@functools.cache
-def _malloc_trim():
-    """glibc's ``malloc_trim`` (frees the whole free pages of the C heap), or None where the C library has none
-    (or ctypes cannot open the main program: on Windows ``CDLL(None)`` raises TypeError)."""
-    try:
-        return ctypes.CDLL(None).malloc_trim
-    except (AttributeError, OSError, TypeError):
-        return None
-
-
-def hand_back_freed_memory(unknowns: int) -> None:
-    """From :data:`TRIM_MIN_UNKNOWNS` on, the C heap's free pages back to the system (see there)."""
-    trim = _malloc_trim() if unknowns >= TRIM_MIN_UNKNOWNS else None
-    if trim is not None:
-        trim(0)
 
 
 class RadauBackend(AbstractBackend):

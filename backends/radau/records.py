@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 from daemodel.backends.radau.error import numpy_copy
+from daemodel.backends.radau.heap import hand_back_freed_memory
 
 from daemodel.collocation import lagrange_matrix
 from daemodel.dense import END_MATCH_RTOL, collocation_values
@@ -95,7 +96,8 @@ class Records:
         for k, block in enumerate(self.nodes):
             nodes[:, at : at + block.shape[1]] = numpy_copy(block)
             at += block.shape[1]
-            self.nodes[k] = None
+            self.nodes[k] = block = None
+            hand_back_freed_memory(B * D)  # (its pages: else resident beside the joined nodes, 3.04 -> 2.76x at 10^5)
         self.nodes = [nodes]
         self.starts = [np.concatenate(self.starts).astype(float)]
         self.lengths = [np.concatenate(self.lengths).astype(float)]

@@ -408,8 +408,11 @@ class SlicedBuffered(Buffered):
     def __init__(self, function: Sliced, inputs: int = 1, input_of=None, output: np.ndarray | None = None):
         """``inputs``, ``input_of``: Buffered's, not used (each call binds the caller's arrays)."""
         self.name, self.function, size = function.name, function, function.nnz_out()
-        if output is not None and (output.dtype != float or output.shape != (size,) or not output.flags.c_contiguous):
-            raise ValueError(f"{self.name} gives {size} outputs, not {output.shape} (into a contiguous float64 array)")
+        writable = output is not None and output.flags.c_contiguous and output.flags.writeable
+        if output is not None and (output.dtype != float or output.shape != (size,) or not writable):
+            raise ValueError(
+                f"{self.name} gives {size} outputs, not {output.shape} (into a writable contiguous float64 array)"
+            )
         self.inputs = []  # (nothing bound between calls: see packed)
         self._copies = {}  # (input k's buffer, where a call's part is not an array to bind)
         self._outputs = np.zeros(size) if output is None else output

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemodel.backends.radau import engines
-from daemodel.backends.radau.backend import TRIM_MIN_UNKNOWNS, _malloc_trim, hand_back_freed_memory
 from daemodel.backends.radau.compiled import find_compiler
+from daemodel.backends.radau.heap import TRIM_MIN_UNKNOWNS, hand_back_freed_memory, malloc_trim
 
 import daemodel as dm
 
@@ -100,7 +100,7 @@ def resident_bytes() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-@pytest.mark.skipif(_malloc_trim() is None or not os.path.exists("/proc/self/statm"), reason="not glibc on Linux")
+@pytest.mark.skipif(malloc_trim() is None or not os.path.exists("/proc/self/statm"), reason="not glibc on Linux")
 def test_a_large_solve_hands_the_freed_pages_back():
     """From TRIM_MIN_UNKNOWNS unknowns, the pages the C heap freed under a block still held go back to the system
     (the resident set falls by most of them); below, they stay (a small solve pays no heap walk)."""
@@ -113,6 +113,23 @@ def test_a_large_solve_hands_the_freed_pages_back():
     assert before - kept < 4e6 and kept - resident_bytes() > 20e6, (before, kept, resident_bytes())
 
 
+@needs_compiler
+def test_the_dense_output_hands_each_joined_step_s_pages_back(monkeypatch):
+    """From TRIM_MIN_UNKNOWNS unknowns the dense output's join hands the heap's free pages back as it drops each
+    step's nodes (else resident beside the joined array); the same solution as without."""
+    from daemodel.backends.radau import records
+
+    compiled = scaling_models.DECLARATIONS["stencils"](TRIM_MIN_UNKNOWNS // 2).compile()
+    options = {"method": "radau", "t_eval": np.linspace(0.0, 1.0, 5), "dense_output": True}
+    plain = dm.solve(compiled, (0.0, 1.0), **options)
+    calls = []
+    monkeypatch.setattr(records, "hand_back_freed_memory", lambda unknowns: calls.append(unknowns))
+    sol = dm.solve(compiled, (0.0, 1.0), **options)
+    assert calls == [TRIM_MIN_UNKNOWNS] * sol.stats["steps"] and sol.stats["steps"] >= 5
+    np.testing.assert_array_equal(sol.dense.nodes, plain.dense.nodes)
+    np.testing.assert_array_equal(sol["c[7]"], plain["c[7]"])
+
+
 @pytest.mark.parametrize(
     "library",
     [
@@ -121,10 +138,10 @@ def test_a_large_solve_hands_the_freed_pages_back():
         "no main program",  # (Windows: CDLL(None) tests '/' in None, a TypeError)
     ],
 )
-def test_a_large_solve_without_malloc_trim_goes_on(monkeypatch, library):
+def test_a_large_solve_withoutmalloc_trim_goes_on(monkeypatch, library):
     """Where ctypes finds no malloc_trim, a solve of TRIM_MIN_UNKNOWNS unknowns or more trims nothing and goes on
-    (no error): _malloc_trim is None."""
-    from daemodel.backends.radau import backend
+    (no error): malloc_trim is None."""
+    from daemodel.backends.radau import heap
 
     def cdll(name):
         if library == "not loaded":
@@ -133,13 +150,13 @@ def test_a_large_solve_without_malloc_trim_goes_on(monkeypatch, library):
             return "/" in name
         return object()
 
-    monkeypatch.setattr(backend.ctypes, "CDLL", cdll)
-    _malloc_trim.cache_clear()
+    monkeypatch.setattr(heap.ctypes, "CDLL", cdll)
+    malloc_trim.cache_clear()
     try:
-        assert _malloc_trim() is None
+        assert malloc_trim() is None
         assert hand_back_freed_memory(TRIM_MIN_UNKNOWNS) is None
     finally:
-        _malloc_trim.cache_clear()
+        malloc_trim.cache_clear()
 
 
 @needs_compiler

@@ -79,8 +79,11 @@ def test_a_sliced_function_binds_the_callers_arrays_and_copies_what_it_cannot_bi
         residual.packed(0.1, 0.01, y)
     with pytest.raises(TypeError, match="residual reads its inputs where each call gives them: call packed"):
         residual.evaluate()
-    with pytest.raises(ValueError, match=r"stage_f gives 900 outputs, not \(901,\)"):
+    with pytest.raises(ValueError, match=r"stage_f gives 900 outputs, not \(901,\) \(into a writable contiguous"):
         SlicedBuffered(functions.sliced_stage_f, output=np.zeros(901))
+    (read_only := np.zeros(900)).flags.writeable = False
+    with pytest.raises(ValueError, match=r"stage_f gives 900 outputs, not \(900,\) \(into a writable contiguous"):
+        SlicedBuffered(functions.sliced_stage_f, output=read_only)
 
     class Owner:
         pass
