@@ -51,29 +51,37 @@ def step_owners(starts: np.ndarray, lengths: np.ndarray, times: np.ndarray) -> t
     return step, (times - starts[step]) / lengths[step]
 
 
-def collocation_values(weights, owner: np.ndarray, nodes_of, xp, index):
+def collocation_values(weights, owner: np.ndarray, nodes_of, xp, index, out=None):
     """The values at points owned by the steps ``owner`` (nondecreasing), shape (B, P, n+m): the Lagrange
     ``weights`` (P, s+1) of each point applied to its step's nodes, ``nodes_of(steps)`` (B, len(steps),
     s+1, n+m); ``index`` makes step indices the arrays' (a tensor for torch).  Where a step's nodes hold
     at least :data:`NODES_PER_STEP_LOOP` entries, each step's points take its nodes alone: the gathered
     (B, P, s+1, n+m) copy of all the points' nodes (48 MB a solve at 10^5 unknowns, 11 outputs) is not
-    made; both ways are one ``einsum`` over the same subscripts."""
+    made; both ways are one ``einsum`` over the same subscripts.  ``out`` (numpy, (B, P, n+m)): each step's
+    values written there, not gathered in parts and joined (two copies of the outputs, 17.6 MB at 10^5)."""
     changes = np.ones(len(owner), dtype=bool)  # (owner ascends: no np.unique, no search)
     changes[1:] = owner[1:] != owner[:-1]
     used = owner[changes]
     where = np.cumsum(changes) - 1
     first = nodes_of(used[:1])
     if first.shape[0] * first.shape[2] * first.shape[3] < NODES_PER_STEP_LOOP:
-        return xp.einsum("pj,bpjk->bpk", weights, nodes_of(used)[:, index(where)])
+        values = xp.einsum("pj,bpjk->bpk", weights, nodes_of(used)[:, index(where)])
+        if out is None:
+            return values
+        out[...] = values
+        return out
     bounds = np.searchsorted(where, np.arange(len(used) + 1))
     parts = []
     for u, (a, b) in enumerate(itertools.pairwise(bounds)):
-        nodes = first if u == 0 else nodes_of(used[u : u + 1])  # (B, 1, s+1, n+m): the step's own block
+        nodes, first = (first if u == 0 else nodes_of(used[u : u + 1])), None  # (B, 1, s+1, n+m): the step's
         # (its nodes seen b - a times, a view: a gathered copy of them a point was the first solve's peak, 0.96 MB
         # for a step of two outputs at 10^4 unknowns, s = 5)
         seen = xp.broadcast_to(nodes, (nodes.shape[0], b - a, *nodes.shape[2:]))
-        parts.append(xp.einsum("pj,bpjk->bpk", weights[a:b], seen))
-    return xp.concatenate(parts, axis=1)
+        if out is None:
+            parts.append(xp.einsum("pj,bpjk->bpk", weights[a:b], seen))
+        else:
+            np.einsum("pj,bpjk->bpk", weights[a:b], seen, out=out[:, a:b])
+    return out if out is not None else xp.concatenate(parts, axis=1)
 
 
 def outputs_before(outputs: np.ndarray, values: np.ndarray, times: np.ndarray) -> tuple:

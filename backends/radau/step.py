@@ -599,9 +599,11 @@ class Stepper:
         # Horner's rule is not (the PINN starts from stages read here and must find them on the solution)
         nodes = np.concatenate([[0.0], self.tableau.c])
         weights = self.engine.asarray(lagrange_matrix(nodes, theta))  # (P, s+1)
-        out[:, after] = collocation_values(
-            weights, owner, lambda k: records.nodes_of(k, xp, self.index), xp, self.index
-        )
+        nodes_of = lambda k: records.nodes_of(k, xp, self.index)  # noqa: E731
+        if xp is np:  # (each step's values in their place: after is t_out's tail, t_out ascending)
+            collocation_values(weights, owner, nodes_of, xp, self.index, out=out[:, after[0] :])
+        else:
+            out[:, after] = collocation_values(weights, owner, nodes_of, xp, self.index)
         return t_out, numpy_copy(out)
 
     def index(self, indices: np.ndarray):
