@@ -295,3 +295,32 @@ def test_each_steps_points_read_apart_give_the_gathered_values_bit_for_bit(engin
     for name in names:
         np.testing.assert_array_equal(apart[name], gathered[name])
     assert _largest(apart, EXACT(t_eval), names) < 1e-7  # (1.0e-8 casadi, 3.7e-9 torch at rtol 1e-8)
+
+
+@pytest.mark.parametrize("loop", [False, True])
+def test_values_written_in_their_place_are_the_joined_values_bit_for_bit(loop, monkeypatch):
+    """collocation_values(out=) (the dense output's values at t_eval written in place, a batch's out not contiguous)
+    gives the values of out=None bit for bit, in both ways (gathered, step by step); the nodes of a run of steps are
+    a view of the block (records.block_nodes), other steps a copy, the same values, and the nodes are not written."""
+    from daemodel.backends.radau.records import block_nodes
+
+    from daemodel import dense
+
+    monkeypatch.setattr(dense, "NODES_PER_STEP_LOOP", 1 if loop else 10**9)
+    rng = np.random.default_rng(3)
+    nodes = rng.standard_normal((3, 7, 4, 50))
+    kept = nodes.copy()
+    owner = np.sort(rng.integers(0, 7, 40))
+    weights = rng.standard_normal((40, 4))
+    nodes_of = lambda k: block_nodes(nodes, k, np.asarray)  # noqa: E731
+    joined = dense.collocation_values(weights, owner, nodes_of, np, np.asarray)
+    out = rng.standard_normal((3, 45, 50))
+    before = out[:, :5].copy()
+    dense.collocation_values(weights, owner, nodes_of, np, np.asarray, out=out[:, 5:])
+    np.testing.assert_array_equal(out[:, 5:], joined)
+    np.testing.assert_array_equal(out[:, :5], before)
+    np.testing.assert_array_equal(nodes, kept)
+    run, apart = block_nodes(nodes, np.array([2, 3, 4]), np.asarray), block_nodes(nodes, np.array([1, 4]), np.asarray)
+    assert np.shares_memory(run, nodes) and not np.shares_memory(apart, nodes)
+    np.testing.assert_array_equal(run, nodes[:, 2:5])
+    np.testing.assert_array_equal(apart, nodes[:, [1, 4]])
