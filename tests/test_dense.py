@@ -324,3 +324,6 @@ def test_values_written_in_their_place_are_the_joined_values_bit_for_bit(loop, m
     assert np.shares_memory(run, nodes) and not np.shares_memory(apart, nodes)
     np.testing.assert_array_equal(run, nodes[:, 2:5])
     np.testing.assert_array_equal(apart, nodes[:, [1, 4]])
+    shuffled = block_nodes(nodes, np.array([1, 3, 2, 4]), np.asarray)  # (the span of a run, not one: gathered)
+    assert not np.shares_memory(shuffled, nodes)
+    np.testing.assert_array_equal(shuffled, nodes[:, [1, 3, 2, 4]])

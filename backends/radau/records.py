@@ -124,7 +124,7 @@ def block_nodes(nodes, steps: np.ndarray, index):
     a copy each, 4.8 MB at 10^5 unknowns, s = 5), else a copy."""
     if len(steps) == nodes.shape[1]:
         return nodes
-    if len(steps) and steps[-1] - steps[0] + 1 == len(steps):
+    if len(steps) and steps[-1] - steps[0] + 1 == len(steps) and (np.diff(steps) == 1).all():
         return nodes[:, int(steps[0]) : int(steps[-1]) + 1]
     return nodes[:, index(steps)]
 
