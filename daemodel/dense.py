@@ -73,7 +73,8 @@ def collocation_values(weights, owner: np.ndarray, nodes_of, xp, index, out=None
     bounds = np.searchsorted(where, np.arange(len(used) + 1))
     parts = []
     for u, (a, b) in enumerate(itertools.pairwise(bounds)):
-        nodes, first = (first if u == 0 else nodes_of(used[u : u + 1])), None  # (B, 1, s+1, n+m): the step's
+        nodes = first if u == 0 else nodes_of(used[u : u + 1])  # (B, 1, s+1, n+m): the step's own block
+        first = None  # (not held through the loop)
         # (its nodes seen b - a times, a view: a gathered copy of them a point was the first solve's peak, 0.96 MB
         # for a step of two outputs at 10^4 unknowns, s = 5)
         seen = xp.broadcast_to(nodes, (nodes.shape[0], b - a, *nodes.shape[2:]))

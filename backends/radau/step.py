@@ -77,6 +77,7 @@ class Stepper:
         self.s, self.n, self.m, self.B = engine.s, engine.n, engine.m, engine.B
         # each algebraic variable's index (RADAU5's count, coupling included): its error weight is h^(k-1)
         self.z_index = np.array(compiled.algebraic_index, dtype=float)
+        self._weights_by_h = bool((self.z_index > 1).any())  # (index 2 or 3: index_weights depend on h)
         self.newton = Newton(self, self.policy)
         e = embedded_weights(self.tableau)[1]
         self.error = ErrorEstimate(self, e)
@@ -155,7 +156,7 @@ class Stepper:
         """``h^(k-1)`` for each component (1 for the states), kept while h is unchanged."""
         # (every h's where all are of index 1, h^0 = 1: made once; and the last h's dropped before the next h's are
         # made: at 10^5 unknowns both, and the next one's pieces, were a cold solve's peak, 2.4 MB beside the rest)
-        if self._index_weights is None or (self._index_weights[0] != h and (self.z_index > 1).any()):
+        if self._index_weights is None or (self._index_weights[0] != h and self._weights_by_h):
             self._index_weights = None
             weights = formulas.index_weights(NUMPY, h, self.n, self.z_index - 1)
             self._index_weights = (h, self.engine.asarray(weights))
